@@ -1,0 +1,1 @@
+"""Packaged schemas: the USD plugin (usd/) and the JSON Schemas of layout metadata and reports."""

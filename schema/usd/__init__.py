@@ -1,0 +1,1 @@
+"""The codeless USD schema plugin files (schema.usda, generatedSchema.usda, plugInfo.json)."""

@@ -1,0 +1,1 @@
+"""Validators of Virtual Bones assets: findings with stable codes, severities and locations."""

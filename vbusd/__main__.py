@@ -1,0 +1,7 @@
+"""``python -m vbusd``: the same as the ``vbusd`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

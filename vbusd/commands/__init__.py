@@ -1,0 +1,1 @@
+"""Subcommands of the ``vbusd`` command line, one module each, each exposing ``command``."""

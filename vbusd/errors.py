@@ -1,0 +1,68 @@
+"""Errors that vbusd raises for bad input, bad options and assets the format cannot hold.
+
+Every error renders as one line: ``FILE: LOCATION: CODE: message``. The CLI prints that line and
+exits with :attr:`VbusdError.exit_status`; the library never calls ``sys.exit``.
+"""
+
+from __future__ import annotations
+
+
+class VbusdError(Exception):
+    """Base class of every error vbusd reports to a user.
+
+    Args:
+        message: What is wrong, with the values involved.
+        file: The file the problem is in, if any.
+        location: Where in the file: a JSON pointer, a USD prim path (and property), a byte offset
+            or a texel address.
+        code: A short stable code (for example ``gltf.accessor.bounds``).
+    """
+
+    exit_status = 2
+    default_code = "error"
+
+    def __init__(self, message: str, *, file: str | None = None, location: str | None = None,
+                 code: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.file = None if file is None else str(file)
+        self.location = location
+        self.code = code or self.default_code
+
+    def __str__(self) -> str:
+        parts = [p for p in (self.file, self.location) if p]
+        parts.append(self.code)
+        parts.append(self.message)
+        return ": ".join(parts)
+
+    def at(self, *, file: str | None = None, location: str | None = None) -> "VbusdError":
+        """Return this error with file and location filled in where they were missing."""
+        if self.file is None and file is not None:
+            self.file = str(file)
+        if self.location is None and location is not None:
+            self.location = location
+        return self
+
+
+class InputError(VbusdError):
+    """A file that cannot be read: malformed, truncated, inconsistent, out of limits or unsafe."""
+
+    default_code = "input"
+
+
+class OptionsError(VbusdError):
+    """Options that are invalid; raised before any work starts. ``file`` names the component."""
+
+    default_code = "options"
+
+
+class UnsupportedError(VbusdError):
+    """Source content the chosen encoding or the format cannot hold (for example scale with crossMatrix)."""
+
+    default_code = "unsupported"
+
+
+class VersionError(InputError):
+    """Metadata written by a newer major format version than this reader knows."""
+
+    default_code = "format.version"

@@ -1,0 +1,172 @@
+"""The texture layout of a Virtual Bones animation: every size of the format, derived in one place.
+
+A :class:`Layout` is frozen and computed from five choices (encoding, texel format, bone count,
+row count, padding). Writers, readers, validators and decoders take sizes from it and nowhere else.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+FORMAT_VERSION = 1
+"""The format version this library writes (spec/virtual-bones.md, "Versioning")."""
+
+CHANNELS = 4
+"""Every texel is RGBA."""
+
+MAX_TEXTURE_DIMENSION = 16384
+"""Largest width or height a conforming writer produces and a reader accepts by default."""
+
+
+class Encoding(str, enum.Enum):
+    """How one bone transform is stored in its run of texels (USD token names)."""
+
+    CROSS_MATRIX = "crossMatrix"
+    AFFINE_MATRIX = "affineMatrix"
+    QUAT_TRANSLATION = "quatTranslation"
+    DUAL_QUAT = "dualQuat"
+
+    def __str__(self) -> str:
+        return self.value
+
+    @property
+    def texels_per_bone(self) -> int:
+        """Texels one bone occupies in a row (T in the spec)."""
+        return 3 if self in (Encoding.CROSS_MATRIX, Encoding.AFFINE_MATRIX) else 2
+
+
+class TexelFormat(str, enum.Enum):
+    """How each channel value is stored."""
+
+    FLOAT16 = "float16"
+    FLOAT32 = "float32"
+    UNORM16 = "unorm16"
+
+    def __str__(self) -> str:
+        return self.value
+
+    @property
+    def bytes_per_channel(self) -> int:
+        """Bytes of one channel of one texel."""
+        return 4 if self is TexelFormat.FLOAT32 else 2
+
+    @property
+    def numpy_dtype(self) -> str:
+        """The numpy dtype of stored texels (little-endian)."""
+        return {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[self.value]
+
+
+class Padding(str, enum.Enum):
+    """Padding of one texture dimension."""
+
+    NONE = "none"
+    POWER_OF_TWO = "powerOfTwo"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+def next_power_of_two(n: int) -> int:
+    """Smallest power of two >= n (1 for n <= 1): the talk's "closest power of two", rounded up."""
+    return 1 if n <= 1 else 1 << (int(n) - 1).bit_length()
+
+
+def _coerce(enum_type, value, what: str):
+    from .errors import OptionsError
+
+    if isinstance(value, enum_type):
+        return value
+    try:
+        return enum_type(value)
+    except ValueError:
+        allowed = ", ".join(e.value for e in enum_type)
+        raise OptionsError(f"{what} must be one of {allowed}, got {value!r}", file="layout") from None
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Sizes of a Virtual Bones texture.
+
+    Attributes:
+        encoding: Bone transform encoding.
+        texel_format: Channel storage.
+        bone_count: Number of bones (B).
+        row_count: Rows holding keyframes, all clips together (R).
+        horizontal_padding: ``powerOfTwo`` rounds the width up to a power of two.
+        vertical_padding: ``powerOfTwo`` rounds the height up to a power of two.
+    """
+
+    encoding: Encoding
+    texel_format: TexelFormat
+    bone_count: int
+    row_count: int
+    horizontal_padding: Padding = Padding.POWER_OF_TWO
+    vertical_padding: Padding = Padding.NONE
+
+    def __post_init__(self) -> None:
+        from .errors import OptionsError
+
+        object.__setattr__(self, "encoding", _coerce(Encoding, self.encoding, "encoding"))
+        object.__setattr__(self, "texel_format", _coerce(TexelFormat, self.texel_format, "texelFormat"))
+        object.__setattr__(self, "horizontal_padding",
+                           _coerce(Padding, self.horizontal_padding, "horizontalPadding"))
+        object.__setattr__(self, "vertical_padding",
+                           _coerce(Padding, self.vertical_padding, "verticalPadding"))
+        for name in ("bone_count", "row_count"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise OptionsError(f"{name} must be a positive integer, got {value!r}", file="layout")
+            object.__setattr__(self, name, int(value))
+        if self.width > MAX_TEXTURE_DIMENSION or self.height > MAX_TEXTURE_DIMENSION:
+            raise OptionsError(
+                f"texture of {self.width}x{self.height} exceeds the limit of {MAX_TEXTURE_DIMENSION} "
+                f"texels per side ({self.bone_count} bones, {self.row_count} rows)", file="layout")
+
+    @property
+    def texels_per_bone(self) -> int:
+        """T: texels per bone (3 for the matrix encodings, 2 for the quaternion ones)."""
+        return self.encoding.texels_per_bone
+
+    @property
+    def used_width(self) -> int:
+        """Columns holding bone data: B x T."""
+        return self.bone_count * self.texels_per_bone
+
+    @property
+    def width(self) -> int:
+        """Texture width in texels, after horizontal padding."""
+        if self.horizontal_padding is Padding.POWER_OF_TWO:
+            return next_power_of_two(self.used_width)
+        return self.used_width
+
+    @property
+    def height(self) -> int:
+        """Texture height in texels, after vertical padding."""
+        if self.vertical_padding is Padding.POWER_OF_TWO:
+            return next_power_of_two(self.row_count)
+        return self.row_count
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """numpy shape of the texel array: (height, width, 4)."""
+        return (self.height, self.width, CHANNELS)
+
+    @property
+    def texel_bytes(self) -> int:
+        """Bytes of all texels, padding included."""
+        return self.width * self.height * CHANNELS * self.texel_format.bytes_per_channel
+
+    @property
+    def used_texel_bytes(self) -> int:
+        """Bytes of the texels that hold bone data."""
+        return self.used_width * self.row_count * CHANNELS * self.texel_format.bytes_per_channel
+
+    @property
+    def padding_fraction(self) -> float:
+        """Fraction of the texture that is padding (0 when nothing is padded)."""
+        return 1.0 - (self.used_width * self.row_count) / (self.width * self.height)
+
+    def column(self, bone: int, texel: int) -> int:
+        """Column of texel ``texel`` (0..T-1) of bone ``bone``: bone x T + texel."""
+        return bone * self.texels_per_bone + texel

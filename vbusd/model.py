@@ -1,0 +1,289 @@
+"""The pure data model: what converters produce and what writers, validators and decoders consume.
+
+Two halves:
+
+* the *source* side, :class:`SkinnedAnimation`: bones, rest meshes and clips whose skinning matrices
+  can be sampled at any time (a converter's output, before any texture exists);
+* the *baked* side, :class:`VirtualBones` (one texture and the meshes bound to it) grouped in a
+  :class:`VirtualBonesAsset` (what one USD file holds).
+
+Conventions used everywhere in vbusd (spec/virtual-bones.md, "Coordinate conventions"):
+
+* matrices are float64 ``(..., 4, 4)`` acting on column vectors, ``p' = M[:3, :3] @ p + M[:3, 3]``;
+  USD's row-vector matrices are transposed on the way in and out;
+* quaternions are ``(x, y, z, w)``;
+* times are seconds on the source's timeline.
+
+Nothing here does I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from .layout import Layout
+
+MatrixSampler = Callable[[np.ndarray], np.ndarray]
+"""``sample(times) -> (len(times), bone_count, 4, 4)`` float64 skinning matrices at source times (s)."""
+
+
+def _frozen_array(value, dtype, ndim: int, name: str) -> np.ndarray:
+    array = np.array(value, dtype=dtype, copy=True)
+    if array.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {array.shape}")
+    array.setflags(write=False)
+    return array
+
+
+# --------------------------------------------------------------------------------------------
+# Source side
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AnimationClip:
+    """One source animation clip whose skinning matrices can be sampled at any time.
+
+    Attributes:
+        name: Clip name (unique within its animation).
+        start_time: Source time of the clip's first pose, seconds.
+        end_time: Source time of the clip's last pose, seconds (>= start_time).
+        sample: Skinning matrices at given source times, see :data:`MatrixSampler`. Times outside
+            [start_time, end_time] hold the first or last pose.
+        native_rate: Keys per second of the source (the default rows per second), or None.
+        loop: True, False, or None to let the baker decide (loops when the first and last poses
+            agree).
+        key_times: The source's own key times (seconds), used to report and to resample exactly.
+    """
+
+    name: str
+    start_time: float
+    end_time: float
+    sample: MatrixSampler
+    native_rate: Optional[float] = None
+    loop: Optional[bool] = None
+    key_times: Optional[np.ndarray] = None
+
+    @property
+    def duration(self) -> float:
+        """end_time - start_time, seconds."""
+        return float(self.end_time - self.start_time)
+
+
+@dataclass(frozen=True)
+class SkinnedMesh:
+    """A rest mesh bound to the bones of a :class:`SkinnedAnimation`.
+
+    Points and normals are in the animation's space at bind pose (any geomBindTransform already
+    applied), so that ``deformed = sum_i w_i * M_i @ p``.
+
+    Attributes:
+        path: Prim path the mesh has (or gets) in USD, absolute, e.g. ``/Character/Body``.
+        points: (V, 3) rest positions.
+        face_vertex_counts: (F,) vertices per face.
+        face_vertex_indices: (sum counts,) point index of each face-vertex.
+        bone_indices: (V, K) indices into the animation's bones.
+        bone_weights: (V, K) weights, each row summing to one (K may exceed the bake's maximum).
+        normals: (V, 3) or (face-vertices, 3) rest normals, or None.
+        normals_interpolation: ``vertex`` or ``faceVarying``.
+        source_path: Where the mesh came from in its source, for messages.
+    """
+
+    path: str
+    points: np.ndarray
+    face_vertex_counts: np.ndarray
+    face_vertex_indices: np.ndarray
+    bone_indices: np.ndarray
+    bone_weights: np.ndarray
+    normals: Optional[np.ndarray] = None
+    normals_interpolation: str = "vertex"
+    source_path: Optional[str] = None
+
+
+@dataclass(frozen=True)
+class SkinnedAnimation:
+    """A converter's output: bones, rest meshes and clips of one skeleton.
+
+    Attributes:
+        name: Name for the animation prim.
+        path: Prim path of the animation prim to write, e.g. ``/Character/Anim``.
+        bones: Bone names in texture order (UsdSkel joint paths or glTF node names).
+        clips: One or more clips; each becomes a run of rows of the same texture.
+        meshes: Meshes bound to these bones.
+        source: The file the animation came from, for messages.
+    """
+
+    name: str
+    path: str
+    bones: tuple
+    clips: tuple
+    meshes: tuple = ()
+    source: Optional[str] = None
+
+    @property
+    def bone_count(self) -> int:
+        """Number of bones."""
+        return len(self.bones)
+
+
+# --------------------------------------------------------------------------------------------
+# Baked side
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Clip:
+    """A run of texture rows holding one animation clip (spec: "Clips").
+
+    Attributes:
+        name: Clip name.
+        first_row: Texture row of the clip's first keyframe.
+        row_count: Rows of the clip (N >= 1).
+        rows_per_second: Playback rate of rows, > 0.
+        loop: Looping clips wrap from their last row to their first; others clamp.
+        start_time: Source time (seconds) of the clip's first row.
+    """
+
+    name: str
+    first_row: int
+    row_count: int
+    rows_per_second: float
+    loop: bool
+    start_time: float = 0.0
+
+    @property
+    def duration(self) -> float:
+        """Seconds the clip plays: N / rate when looping, (N - 1) / rate when clamped."""
+        spans = self.row_count if self.loop else self.row_count - 1
+        return spans / self.rows_per_second
+
+    def row_time(self, row: int) -> float:
+        """Source time (seconds) of clip row ``row`` (0-based within the clip)."""
+        return self.start_time + row / self.rows_per_second
+
+
+@dataclass(frozen=True)
+class BoundMesh:
+    """A rest mesh bound to a Virtual Bones texture (VirtualBonesBindingAPI).
+
+    Attributes:
+        path: Absolute prim path of the mesh.
+        points: (V, 3) float32 rest positions in the animation's space.
+        face_vertex_counts: (F,) int32.
+        face_vertex_indices: (sum counts,) int32.
+        bone_indices: (V, K) int32 indices into the texture's bones.
+        bone_weights: (V, K) float32 weights, rows summing to one.
+        normals: (V, 3) or (face-vertices, 3) float32 rest normals, or None.
+        normals_interpolation: ``vertex`` or ``faceVarying``.
+    """
+
+    path: str
+    points: np.ndarray
+    face_vertex_counts: np.ndarray
+    face_vertex_indices: np.ndarray
+    bone_indices: np.ndarray
+    bone_weights: np.ndarray
+    normals: Optional[np.ndarray] = None
+    normals_interpolation: str = "vertex"
+
+    @property
+    def max_influences(self) -> int:
+        """K: influences per vertex."""
+        return int(self.bone_indices.shape[1])
+
+
+@dataclass(frozen=True)
+class Crowd:
+    """Instances of one animation's meshes on a point instancer (VirtualBonesInstancingAPI).
+
+    Per-instance clip time: ``tau = time_offset + playback_rate * t`` (spec: "Instancing").
+
+    Attributes:
+        path: Prim path of the UsdGeomPointInstancer.
+        positions: (N, 3) float32.
+        orientations: (N, 4) float32 unit quaternions (x, y, z, w).
+        scales: (N, 3) float32, or None for 1.
+        clip: (N,) int32 clip index of each instance.
+        time_offset: (N,) float32 seconds.
+        playback_rate: (N,) float32.
+    """
+
+    path: str
+    positions: np.ndarray
+    orientations: np.ndarray
+    clip: np.ndarray
+    time_offset: np.ndarray
+    playback_rate: np.ndarray
+    scales: Optional[np.ndarray] = None
+
+    @property
+    def instance_count(self) -> int:
+        """N: number of instances."""
+        return int(self.positions.shape[0])
+
+
+@dataclass(frozen=True)
+class VirtualBones:
+    """One baked Virtual Bones animation: a layout, its texels and what is bound to it.
+
+    Attributes:
+        layout: Sizes.
+        texels: ``layout.shape`` array of ``layout.texel_format.numpy_dtype``, read-only; padding
+            texels are zero.
+        bones: Bone names, ``layout.bone_count`` of them.
+        clips: Clips, in row order.
+        unorm_ranges: For unorm16, (T, 4, 2) float64 ``[min, max]`` per texel slot and channel;
+            None otherwise.
+        meshes: Bound meshes.
+        path: Prim path of the VirtualBonesAnimation prim.
+        texture: Texture file name relative to the USD layer (set by writers and readers).
+        clip_extents: (clips, 2, 3) float32 bounds of the skinned meshes per clip, or None.
+    """
+
+    layout: Layout
+    texels: np.ndarray
+    bones: tuple
+    clips: tuple
+    unorm_ranges: Optional[np.ndarray] = None
+    meshes: tuple = ()
+    path: str = "/VirtualBones/Animation"
+    texture: Optional[str] = None
+    clip_extents: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        if self.texels.shape != self.layout.shape:
+            raise ValueError(f"texels shape {self.texels.shape} != layout shape {self.layout.shape}")
+        if self.texels.dtype != np.dtype(self.layout.texel_format.numpy_dtype):
+            raise ValueError(f"texels dtype {self.texels.dtype} does not match {self.layout.texel_format}")
+        if len(self.bones) != self.layout.bone_count:
+            raise ValueError(f"{len(self.bones)} bone names for {self.layout.bone_count} bones")
+        rows = sum(c.row_count for c in self.clips)
+        if rows != self.layout.row_count:
+            raise ValueError(f"clips hold {rows} rows, layout says {self.layout.row_count}")
+
+
+@dataclass(frozen=True)
+class VirtualBonesAsset:
+    """What one Virtual Bones USD file holds: animations, their meshes, crowds and stage metadata.
+
+    Attributes:
+        animations: One :class:`VirtualBones` per skeleton.
+        crowds: Point instancers, each with the index of the animation it instances.
+        crowd_animation: For each crowd, the index into ``animations`` of what it instances.
+        up_axis: ``Y`` or ``Z``.
+        meters_per_unit: Scene units.
+        time_codes_per_second: Of the source timeline (decoded caches use it).
+        default_prim: Name of the stage's default prim.
+    """
+
+    animations: tuple
+    crowds: tuple = ()
+    crowd_animation: tuple = ()
+    up_axis: str = "Y"
+    meters_per_unit: float = 1.0
+    time_codes_per_second: float = 24.0
+    default_prim: str = "VirtualBones"
+    extra: dict = field(default_factory=dict)
