@@ -287,3 +287,50 @@ class VirtualBonesAsset:
     time_codes_per_second: float = 24.0
     default_prim: str = "VirtualBones"
     extra: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Converter contract
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReadOptions:
+    """Options every converter's ``read(path, options)`` accepts; checked before any work starts.
+
+    Attributes:
+        skeletons: Select skeletons (UsdSkel Skeleton prim paths, glTF skin names or indices as
+            strings); empty selects all.
+        clips: Select clips (glTF animation names or indices; UsdSkel: ignored); empty selects all.
+        time_range: (start, end) in the source's time unit (USD time codes, glTF seconds), or None
+            for the whole animation.
+        allow_outside_paths: Let referenced files resolve outside the asset's folder.
+    """
+
+    skeletons: tuple = ()
+    clips: tuple = ()
+    time_range: Optional[tuple] = None
+    allow_outside_paths: bool = False
+
+
+@dataclass(frozen=True)
+class SourceScene:
+    """What a converter returns: the skinned animations of one file and its stage metadata.
+
+    Attributes:
+        animations: One :class:`SkinnedAnimation` per skeleton (skin).
+        up_axis: ``Y`` or ``Z``.
+        meters_per_unit: Scene units in metres.
+        time_codes_per_second: Of the source timeline (glTF: 1 time code per second unless chosen).
+        default_prim: Name for the output stage's default prim.
+        warnings: One-line warnings (for example "morph targets ignored on /Mesh").
+        source: The file read.
+    """
+
+    animations: tuple
+    up_axis: str = "Y"
+    meters_per_unit: float = 1.0
+    time_codes_per_second: float = 24.0
+    default_prim: str = "VirtualBones"
+    warnings: tuple = ()
+    source: Optional[str] = None
