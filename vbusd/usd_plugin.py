@@ -1,0 +1,135 @@
+"""Registration of the codeless Virtual Bones USD schema plugin (schema/usd, package ``vbusd.schema.usd``).
+
+The plugin is three files shipped as package data: ``schema.usda`` (the source),
+``generatedSchema.usda`` and ``plugInfo.json`` (both made from it by usd-core's usdGenSchema; codeless,
+so no C++ library). ``plugInfo.json`` uses relative paths (``Root`` and ``ResourcePath`` are ``.``),
+so the folder works wherever the wheel installs it. It declares the types
+
+* ``VirtualBonesAnimation`` (typed; TfType name and schema identifier are both
+  ``VirtualBonesAnimation``),
+* ``VirtualBonesBindingAPI`` (single-apply, can only apply to ``Mesh``),
+* ``VirtualBonesInstancingAPI`` (single-apply, can only apply to ``PointInstancer``).
+
+Registration on ``import vbusd``
+--------------------------------
+``import vbusd`` calls :func:`register_on_import`, which keeps the import light (pxr costs 35 to
+80 ms to import and is not needed by the texture tools or the decoder):
+
+* when pxr is not installed, it does nothing (and never tries to import it);
+* when pxr is installed but no ``pxr`` module has been imported yet, it appends the plugin folder
+  to the ``PXR_PLUGINPATH_NAME`` environment variable of the process. OpenUSD reads that variable
+  once, when its plugin registry starts (on the first ``from pxr import ...``), so the types are
+  known to every later use of pxr in this process and in child processes it starts;
+* when pxr is already loaded, the registry has already read the variable, so it registers the
+  folder directly with ``Plug.Registry().RegisterPlugins`` (pxr is in memory: about 1 ms).
+
+vbusd's own USD code (:mod:`vbusd.usd_io`, the validators) also calls :func:`register` before
+using the types, which is idempotent.
+
+Using the schema outside Python (DCCs, usdview, usdrecord, Hydra viewers)
+--------------------------------------------------------------------------
+Point OpenUSD at the installed plugin folder before the application starts::
+
+    export PXR_PLUGINPATH_NAME="$(python -c 'import vbusd.usd_plugin as p; print(p.plugin_dir())')${PXR_PLUGINPATH_NAME:+:$PXR_PLUGINPATH_NAME}"
+    usdview crowd.usda
+
+(on Windows separate entries with ``;``). Without the plugin, a USD application still opens Virtual
+Bones files: the prims appear with an unknown type, the API schemas are listed but not recognised,
+and the attributes read as plain authored values without the schema's fallbacks.
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+PLUGIN_PACKAGE = "vbusd.schema.usd"
+"""The import package whose folder holds plugInfo.json and generatedSchema.usda."""
+
+PLUGIN_NAME = "vbusd"
+"""The plugin's ``Name`` in plugInfo.json."""
+
+ANIMATION_TYPE = "VirtualBonesAnimation"
+BINDING_API = "VirtualBonesBindingAPI"
+INSTANCING_API = "VirtualBonesInstancingAPI"
+
+PLUGIN_PATH_VARIABLE = "PXR_PLUGINPATH_NAME"
+
+
+def plugin_dir() -> Path:
+    """Return the folder of the installed schema plugin (found with importlib.resources).
+
+    Returns:
+        The absolute folder holding ``plugInfo.json``.
+
+    Raises:
+        vbusd.errors.UnsupportedError: The package data is not a plain folder on disk (for example
+            vbusd imported from a zip file), so OpenUSD cannot read it.
+    """
+    from .errors import UnsupportedError
+
+    folder = importlib.resources.files(PLUGIN_PACKAGE)
+    # OpenUSD reads plugInfo.json from the file system itself; a zip member would not do.
+    if not isinstance(folder, Path) or not (folder / "plugInfo.json").is_file():
+        raise UnsupportedError(
+            f"the USD schema plugin of package {PLUGIN_PACKAGE} is not a folder on disk ({folder}); "
+            "install vbusd as a regular (unzipped) package", file=str(folder), code="usd.plugin")
+    return folder.resolve()
+
+
+def register():
+    """Register the schema plugin with OpenUSD (idempotent) and return it.
+
+    Returns:
+        The ``pxr.Plug.Plugin`` named ``vbusd``.
+
+    Raises:
+        vbusd.errors.UnsupportedError: The plugin could not be registered (unreadable plugInfo.json).
+    """
+    from pxr import Plug
+
+    from .errors import UnsupportedError
+
+    folder = plugin_dir()
+    registry = Plug.Registry()
+    plugin = registry.GetPluginWithName(PLUGIN_NAME)
+    if plugin is None:
+        registry.RegisterPlugins(str(folder))
+        plugin = registry.GetPluginWithName(PLUGIN_NAME)
+    if plugin is None:
+        raise UnsupportedError("OpenUSD did not register the Virtual Bones schema plugin",
+                               file=str(folder / "plugInfo.json"), code="usd.plugin")
+    # A plugin of the same name found first elsewhere (an old checkout on PXR_PLUGINPATH_NAME) wins
+    # in OpenUSD; it is left in place: the types it declares are the same in every version 1 file.
+    return plugin
+
+
+def register_on_import() -> str:
+    """The hook ``import vbusd`` runs: make the plugin known to pxr without importing pxr.
+
+    Returns:
+        ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet:
+        the folder was added to ``PXR_PLUGINPATH_NAME``) or ``"unavailable"`` (no pxr installed,
+        or the package data is not on disk).
+    """
+    # Any pxr submodule loads Tf, which starts the plugin registry: too late for the variable.
+    if any(name.startswith("pxr.") for name in list(sys.modules)):
+        try:
+            register()
+        except Exception:  # never let a broken USD install break `import vbusd`
+            return "unavailable"
+        return "registered"
+    if importlib.util.find_spec("pxr") is None:
+        return "unavailable"
+    try:
+        folder = str(plugin_dir())
+    except Exception:
+        return "unavailable"
+    entries = [e for e in os.environ.get(PLUGIN_PATH_VARIABLE, "").split(os.pathsep) if e]
+    if folder not in entries:
+        entries.append(folder)
+        os.environ[PLUGIN_PATH_VARIABLE] = os.pathsep.join(entries)
+    return "deferred"
