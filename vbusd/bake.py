@@ -1,0 +1,309 @@
+"""Bake a :class:`~vbusd.model.SkinnedAnimation` into a :class:`~vbusd.model.VirtualBones` texture.
+
+The baker decides the rows of every clip (rate, looping, vertical power-of-two fill), samples the
+source's skinning matrices at those rows, encodes, quantizes and packs them, and binds the meshes
+with at most ``max_influences`` bone influences per vertex. It touches no file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .encoding import NonRigidError, encode_bones, make_hemispheres_continuous, pack, quantize
+from .errors import InputError, OptionsError, UnsupportedError
+from .layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
+from .model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
+
+DEFAULT_ROWS_PER_SECOND = 30.0
+"""Rows per second when neither the options nor the source say (a clip without native_rate)."""
+
+
+@dataclass(frozen=True)
+class BakeOptions:
+    """How to bake; checked on construction, before any work starts.
+
+    Attributes:
+        encoding: Bone transform encoding.
+        texel_format: Channel storage.
+        rows_per_second: Rows per second of every clip; None keeps each clip's native rate.
+        horizontal_padding: ``powerOfTwo`` (default) or ``none``.
+        vertical_padding: ``none`` (default) or ``powerOfTwo``: clips are resampled so their rows
+            fill the next power of two.
+        max_influences: Largest number of bone influences kept per vertex (K).
+        loop: Force looping (True) or clamping (False) for every clip; None decides per clip
+            (the clip's own flag, else looping when its first and last poses agree).
+        rigid_tolerance: How far a linear part may be from a rotation (crossMatrix, dualQuat) or a
+            uniformly scaled rotation (quatTranslation) before baking refuses it.
+        loop_tolerance: Largest matrix difference, relative to the pose's size, for which the first
+            and last poses count as equal when deciding to loop.
+    """
+
+    encoding: Encoding = Encoding.CROSS_MATRIX
+    texel_format: TexelFormat = TexelFormat.FLOAT16
+    rows_per_second: Optional[float] = None
+    horizontal_padding: Padding = Padding.POWER_OF_TWO
+    vertical_padding: Padding = Padding.NONE
+    max_influences: int = 4
+    loop: Optional[bool] = None
+    rigid_tolerance: float = 1e-3
+    loop_tolerance: float = 1e-5
+
+    def __post_init__(self) -> None:
+        for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat),
+                           ("horizontal_padding", Padding), ("vertical_padding", Padding)):
+            value = getattr(self, name)
+            try:
+                object.__setattr__(self, name, kind(value))
+            except ValueError:
+                allowed = ", ".join(e.value for e in kind)
+                raise OptionsError(f"{name} must be one of {allowed}, got {value!r}", file="bake") from None
+        rate = self.rows_per_second
+        if rate is not None and (isinstance(rate, bool) or not math.isfinite(float(rate)) or float(rate) <= 0):
+            raise OptionsError(f"rows_per_second must be a positive number, got {rate!r}", file="bake")
+        k = self.max_influences
+        if isinstance(k, bool) or int(k) != k or not 1 <= int(k) <= 64:
+            raise OptionsError(f"max_influences must be an integer in 1..64, got {k!r}", file="bake")
+        for name in ("rigid_tolerance", "loop_tolerance"):
+            value = float(getattr(self, name))
+            if not math.isfinite(value) or value < 0:
+                raise OptionsError(f"{name} must be a non-negative number, got {value!r}", file="bake")
+
+
+@dataclass(frozen=True)
+class RowPlan:
+    """Rows chosen for one clip: count, rate and looping."""
+
+    row_count: int
+    rows_per_second: float
+    loop: bool
+
+
+def _poses_agree(first: np.ndarray, last: np.ndarray, tolerance: float) -> bool:
+    scale = max(1.0, float(np.abs(first).max(initial=0.0)))
+    return float(np.abs(first - last).max(initial=0.0)) <= tolerance * scale
+
+
+def decide_loop(clip: AnimationClip, options: BakeOptions) -> bool:
+    """Whether ``clip`` loops: the options' flag, else the clip's, else first pose == last pose."""
+    if options.loop is not None:
+        return bool(options.loop) and clip.duration > 0
+    if clip.loop is not None:
+        return bool(clip.loop) and clip.duration > 0
+    if clip.duration <= 0:
+        return False
+    ends = clip.sample(np.array([clip.start_time, clip.end_time], dtype=np.float64))
+    return _poses_agree(ends[0], ends[1], options.loop_tolerance)
+
+
+def plan_rows(clips: tuple, loops: list, options: BakeOptions) -> list:
+    """Choose each clip's row count and rate (spec: "Clips" and "Vertical padding").
+
+    A looping clip of duration D at rate r gets N = round(D r) rows spanning D exactly (rate N/D);
+    a clamped clip gets round(D r) + 1 rows from its first to its last pose (rate (N-1)/D). With
+    vertical powerOfTwo padding, the spans are scaled so that all rows together fill the next power
+    of two, distributed by duration with largest remainders.
+    """
+    spans, durations = [], []
+    for clip, loop in zip(clips, loops):
+        rate = float(options.rows_per_second or clip.native_rate or DEFAULT_ROWS_PER_SECOND)
+        duration = max(0.0, clip.duration)
+        durations.append(duration)
+        spans.append(max(1, round(duration * rate)) if duration > 0 else 0)
+    fixed = sum(0 if loop else 1 for loop in loops)  # a clamped clip has one row more than spans
+    total = sum(spans) + fixed
+    if options.vertical_padding is Padding.POWER_OF_TWO:
+        target_spans = next_power_of_two(total) - fixed
+        moving = [i for i, d in enumerate(durations) if d > 0]
+        if moving and target_spans > sum(spans):
+            weight = sum(durations[i] for i in moving)
+            exact = {i: target_spans * durations[i] / weight for i in moving}
+            new = {i: max(1, math.floor(exact[i])) for i in moving}
+            leftover = target_spans - sum(new.values())
+            for i in sorted(moving, key=lambda i: exact[i] - math.floor(exact[i]), reverse=True):
+                if leftover <= 0:
+                    break
+                new[i] += 1
+                leftover -= 1
+            for i in moving:
+                spans[i] = new[i]
+    plans = []
+    for span, duration, loop, clip in zip(spans, durations, loops, clips):
+        if duration <= 0:
+            rate = float(options.rows_per_second or clip.native_rate or DEFAULT_ROWS_PER_SECOND)
+            plans.append(RowPlan(1, rate, False))
+        elif loop:
+            plans.append(RowPlan(span, span / duration, True))
+        else:
+            plans.append(RowPlan(span + 1, span / duration, False))
+    return plans
+
+
+def reduce_influences(indices: np.ndarray, weights: np.ndarray, max_influences: int,
+                      *, mesh: str = "mesh") -> tuple[np.ndarray, np.ndarray, float]:
+    """Keep the largest ``max_influences`` weights per vertex and renormalize.
+
+    Args:
+        indices: (V, K) bone indices.
+        weights: (V, K) weights.
+        max_influences: K' to keep.
+        mesh: Mesh path, for messages.
+
+    Returns:
+        (indices (V, K''), weights (V, K''), largest weight fraction dropped from one vertex) where
+        K'' = min(K, K'). Ties keep the lower influence slot. Unused slots get bone 0, weight 0.
+
+    Raises:
+        InputError: Weights are negative, not finite, or all zero for a vertex.
+    """
+    idx = np.asarray(indices, dtype=np.int64)
+    w = np.asarray(weights, dtype=np.float64)
+    if idx.shape != w.shape or idx.ndim != 2:
+        raise InputError(f"bone indices {idx.shape} and weights {w.shape} must be (V, K) alike", location=mesh)
+    if not np.all(np.isfinite(w)):
+        vertex = int(np.argwhere(~np.isfinite(w))[0][0])
+        raise InputError(f"vertex {vertex} has a NaN or infinite weight", location=mesh, code="binding.weights")
+    if np.any(w < 0):
+        vertex = int(np.argwhere(w < 0)[0][0])
+        raise InputError(f"vertex {vertex} has a negative weight {w[vertex].min():g}", location=mesh,
+                         code="binding.weights")
+    totals = w.sum(axis=1)
+    if np.any(totals <= 0):
+        raise InputError(f"vertex {int(np.argmax(totals <= 0))} has only zero weights", location=mesh,
+                         code="binding.weights")
+    w = w / totals[:, None]
+    keep = min(idx.shape[1], max_influences)
+    order = np.argsort(-w, axis=1, kind="stable")[:, :keep]
+    kept_w = np.take_along_axis(w, order, axis=1)
+    kept_i = np.take_along_axis(idx, order, axis=1)
+    kept_total = kept_w.sum(axis=1)
+    dropped = float((1.0 - kept_total).max(initial=0.0))
+    kept_w = kept_w / kept_total[:, None]
+    kept_i = np.where(kept_w > 0, kept_i, 0)
+    return kept_i.astype(np.int32), kept_w.astype(np.float32), max(dropped, 0.0)
+
+
+def bind_mesh(mesh: SkinnedMesh, bone_count: int, max_influences: int) -> BoundMesh:
+    """Turn a source mesh into a :class:`BoundMesh` with at most ``max_influences`` influences.
+
+    Raises:
+        InputError: Bone indices out of range, mismatched counts, non-finite points.
+    """
+    points = np.asarray(mesh.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path)
+    if not np.all(np.isfinite(points)):
+        raise InputError("points contain NaN or infinity", location=mesh.path, code="mesh.points")
+    idx = np.asarray(mesh.bone_indices)
+    if idx.shape[0] != points.shape[0]:
+        raise InputError(f"{idx.shape[0]} influence rows for {points.shape[0]} points", location=mesh.path,
+                         code="binding.count")
+    if idx.size and (idx.min() < 0 or idx.max() >= bone_count):
+        bad = int(idx.max() if idx.max() >= bone_count else idx.min())
+        raise InputError(f"bone index {bad} out of range 0..{bone_count - 1}", location=mesh.path,
+                         code="binding.indices")
+    indices, weights, _ = reduce_influences(idx, mesh.bone_weights, max_influences, mesh=mesh.path)
+    normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
+    return BoundMesh(
+        path=mesh.path, points=points.astype(np.float32),
+        face_vertex_counts=np.asarray(mesh.face_vertex_counts, dtype=np.int32),
+        face_vertex_indices=np.asarray(mesh.face_vertex_indices, dtype=np.int32),
+        bone_indices=indices, bone_weights=weights, normals=normals,
+        normals_interpolation=mesh.normals_interpolation)
+
+
+def _clip_extents(matrices: np.ndarray, meshes: tuple, bone_count: int) -> np.ndarray:
+    """Conservative (2, 3) bounds of the skinned meshes over the given poses.
+
+    Every skinned point is a convex combination of its influencing bones' transforms of it, so it
+    lies inside the box spanned by each bone's transformed rest box of the points it influences.
+    """
+    lo = np.full((bone_count, 3), np.inf)
+    hi = np.full((bone_count, 3), -np.inf)
+    for mesh in meshes:
+        for slot in range(mesh.bone_indices.shape[1]):
+            used = mesh.bone_weights[:, slot] > 0
+            bones = mesh.bone_indices[used, slot]
+            pts = mesh.points[used].astype(np.float64)
+            np.minimum.at(lo, bones, pts)
+            np.maximum.at(hi, bones, pts)
+    active = np.all(np.isfinite(lo), axis=1)
+    if not np.any(active):
+        return np.zeros((2, 3), dtype=np.float32)
+    lo, hi = lo[active], hi[active]
+    corners = np.stack([np.where(np.array([(c >> a) & 1 for a in range(3)], bool), hi, lo)
+                        for c in range(8)], axis=1)  # (bones, 8, 3)
+    m = matrices[:, active]  # (rows, bones, 4, 4)
+    moved = np.einsum("rbij,bcj->rbci", m[..., :3, :3], corners) + m[:, :, None, :3, 3]
+    return np.stack([moved.min(axis=(0, 1, 2)), moved.max(axis=(0, 1, 2))]).astype(np.float32)
+
+
+def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: AnimationClip,
+                      times: np.ndarray) -> UnsupportedError:
+    row, bone = error.index[0], error.index[1]
+    name = animation.bones[bone]
+    message = (f"bone '{name}' at time {times[row]:.6g} s of clip '{clip.name}': {error.message}")
+    return UnsupportedError(message, file=animation.source, location=animation.path,
+                            code="encoding.nonRigid")
+
+
+def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
+    """Bake one skinned animation into a Virtual Bones texture with its bound meshes.
+
+    Args:
+        animation: The converter's output for one skeleton.
+        options: How to bake.
+
+    Returns:
+        The baked animation: layout, packed texels, clips, bound meshes and per-clip extents.
+
+    Raises:
+        UnsupportedError: The encoding or texel format cannot hold the animation (names the bone,
+            time and clip).
+        InputError: Bad mesh bindings.
+    """
+    if not animation.clips:
+        raise InputError("the animation has no clip to bake", file=animation.source, location=animation.path)
+    bone_count = animation.bone_count
+    loops = [decide_loop(clip, options) for clip in animation.clips]
+    plans = plan_rows(animation.clips, loops, options)
+    meshes = tuple(bind_mesh(m, bone_count, options.max_influences) for m in animation.meshes)
+
+    values, clips, extents, first_row = [], [], [], 0
+    for clip, plan in zip(animation.clips, plans):
+        times = clip.start_time + np.arange(plan.row_count, dtype=np.float64) / plan.rows_per_second
+        matrices = np.asarray(clip.sample(times), dtype=np.float64)
+        if matrices.shape != (plan.row_count, bone_count, 4, 4):
+            raise InputError(f"clip '{clip.name}' sampled {matrices.shape}, expected "
+                             f"{(plan.row_count, bone_count, 4, 4)}", file=animation.source,
+                             location=animation.path)
+        if not np.all(np.isfinite(matrices)):
+            row, bone = (int(i) for i in np.argwhere(~np.isfinite(matrices))[0][:2])
+            raise InputError(f"bone '{animation.bones[bone]}' has a NaN or infinite transform at "
+                             f"{times[row]:.6g} s of clip '{clip.name}'", file=animation.source,
+                             location=animation.path, code="animation.nonFinite")
+        try:
+            encoded = encode_bones(matrices, options.encoding, tolerance=options.rigid_tolerance)
+        except NonRigidError as error:
+            raise _locate_non_rigid(error, animation, clip, times) from None
+        values.append(make_hemispheres_continuous(encoded, options.encoding))
+        extents.append(_clip_extents(matrices, meshes, bone_count))
+        clips.append(Clip(name=clip.name, first_row=first_row, row_count=plan.row_count,
+                          rows_per_second=plan.rows_per_second, loop=plan.loop,
+                          start_time=float(clip.start_time)))
+        first_row += plan.row_count
+
+    layout = Layout(options.encoding, options.texel_format, bone_count, first_row,
+                    options.horizontal_padding, options.vertical_padding)
+    try:
+        stored, ranges = quantize(np.concatenate(values, axis=0), options.texel_format)
+    except UnsupportedError as error:
+        raise error.at(file=animation.source, location=animation.path)
+    texels = pack(stored, layout)
+    texels.setflags(write=False)
+    return VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
+                        unorm_ranges=ranges, meshes=meshes, path=animation.path,
+                        clip_extents=np.stack(extents))

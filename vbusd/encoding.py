@@ -1,0 +1,365 @@
+"""Bone transform encodings, texel quantization and texture packing (numpy only).
+
+This module is the executable form of the spec's "Encodings" and "Texel formats" sections:
+
+* :func:`encode_bones` turns skinning matrices into per-bone channel values ``(..., B, T, 4)``;
+* :func:`decode_bones` turns (possibly interpolated) channel values back into transforms;
+* :func:`quantize` / :func:`dequantize` convert channel values to and from a texel format;
+* :func:`pack` / :func:`unpack` place per-bone values into the padded ``(H, W, 4)`` texture.
+
+Matrices act on column vectors (``p' = A p + t``); quaternions are ``(x, y, z, w)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .errors import UnsupportedError
+from .layout import Encoding, Layout, TexelFormat
+
+FLOAT16_MAX = 65504.0
+UNORM16_MAX = 65535
+
+
+# --------------------------------------------------------------------------------------------
+# Quaternion helpers
+# --------------------------------------------------------------------------------------------
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a (x) b`` of (..., 4) quaternions in (x, y, z, w) order."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ], axis=-1)
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate of (..., 4) quaternions (x, y, z, w)."""
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) in (x, y, z, w) order."""
+    x, y, z, w = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=-2)
+
+
+def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4), (x, y, z, w) with w >= 0, of rotation matrices (..., 3, 3).
+
+    Uses the largest-diagonal branch per matrix (Shepperd's method) for full precision everywhere.
+    """
+    m = np.asarray(rotation, dtype=np.float64)
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+    candidates = np.stack([trace, m00, m11, m22], axis=-1)
+    branch = np.argmax(candidates, axis=-1)
+    q = np.empty(m.shape[:-2] + (4,))
+    # w largest
+    s = np.sqrt(np.maximum(1.0 + trace, 1e-300)) * 2
+    qw = np.stack([(m[..., 2, 1] - m[..., 1, 2]) / s, (m[..., 0, 2] - m[..., 2, 0]) / s,
+                   (m[..., 1, 0] - m[..., 0, 1]) / s, 0.25 * s], axis=-1)
+    s = np.sqrt(np.maximum(1.0 + m00 - m11 - m22, 1e-300)) * 2
+    qx = np.stack([0.25 * s, (m[..., 0, 1] + m[..., 1, 0]) / s, (m[..., 0, 2] + m[..., 2, 0]) / s,
+                   (m[..., 2, 1] - m[..., 1, 2]) / s], axis=-1)
+    s = np.sqrt(np.maximum(1.0 - m00 + m11 - m22, 1e-300)) * 2
+    qy = np.stack([(m[..., 0, 1] + m[..., 1, 0]) / s, 0.25 * s, (m[..., 1, 2] + m[..., 2, 1]) / s,
+                   (m[..., 0, 2] - m[..., 2, 0]) / s], axis=-1)
+    s = np.sqrt(np.maximum(1.0 - m00 - m11 + m22, 1e-300)) * 2
+    qz = np.stack([(m[..., 0, 2] + m[..., 2, 0]) / s, (m[..., 1, 2] + m[..., 2, 1]) / s, 0.25 * s,
+                   (m[..., 1, 0] - m[..., 0, 1]) / s], axis=-1)
+    for index, value in enumerate((qw, qx, qy, qz)):
+        chosen = branch == index
+        q[chosen] = value[chosen]
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    q[q[..., 3] < 0] *= -1.0
+    return q
+
+
+# --------------------------------------------------------------------------------------------
+# Analysis of the linear part
+# --------------------------------------------------------------------------------------------
+
+
+class NonRigidError(UnsupportedError):
+    """A transform the chosen encoding cannot hold (scale, shear or mirroring).
+
+    Attributes:
+        index: Index tuple into the leading dimensions of the matrices passed (e.g. (row, bone)).
+        deviation: How far the linear part is from what the encoding allows.
+        kind: ``scale``, ``non-uniform scale or shear`` or ``mirror``.
+    """
+
+    default_code = "encoding.nonRigid"
+
+    def __init__(self, message: str, *, index: tuple, deviation: float, kind: str) -> None:
+        super().__init__(message)
+        self.index = index
+        self.deviation = deviation
+        self.kind = kind
+
+
+@dataclass(frozen=True)
+class _Polar:
+    rotation: np.ndarray  # (..., 3, 3) closest rotation
+    singular: np.ndarray  # (..., 3) singular values
+    det: np.ndarray  # (...,)
+
+
+def _polar(linear: np.ndarray) -> _Polar:
+    u, s, vt = np.linalg.svd(linear)
+    det = np.linalg.det(linear)
+    # Make U @ Vt a proper rotation even for (rejected later) mirrored inputs, so it is defined.
+    flip = np.linalg.det(u @ vt) < 0
+    u[flip, :, 2] *= -1.0
+    return _Polar(rotation=u @ vt, singular=s, det=det)
+
+
+def _raise_worst(deviation: np.ndarray, tolerance: float, kind: str, encoding: Encoding) -> None:
+    bad = deviation > tolerance
+    if not np.any(bad):
+        return
+    index = tuple(int(i) for i in np.unravel_index(np.argmax(np.where(bad, deviation, -1)), deviation.shape))
+    worst = float(deviation[index])
+    hint = "use affineMatrix" if encoding is not Encoding.AFFINE_MATRIX else ""
+    raise NonRigidError(
+        f"{encoding.value} cannot hold {kind} (deviation {worst:.3g} > tolerance {tolerance:.3g}); {hint}",
+        index=index, deviation=worst, kind=kind)
+
+
+def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: float) -> _Polar:
+    polar = _polar(linear)
+    if encoding is Encoding.AFFINE_MATRIX:
+        return polar
+    _raise_worst(np.where(polar.det <= 0, np.inf, 0.0), tolerance, "mirroring (negative determinant)", encoding)
+    if encoding is Encoding.QUAT_TRANSLATION:
+        mean = polar.singular.mean(axis=-1)
+        spread = (polar.singular.max(axis=-1) - polar.singular.min(axis=-1)) / np.maximum(mean, 1e-300)
+        _raise_worst(spread, tolerance, "non-uniform scale or shear", encoding)
+    else:
+        _raise_worst(np.abs(polar.singular - 1.0).max(axis=-1), tolerance, "scale or shear", encoding)
+    return polar
+
+
+# --------------------------------------------------------------------------------------------
+# Encode / decode
+# --------------------------------------------------------------------------------------------
+
+
+def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: float = 1e-3) -> np.ndarray:
+    """Encode skinning matrices into per-bone channel values.
+
+    Args:
+        matrices: (..., 4, 4) float64 column-vector matrices ``[A | t]``.
+        encoding: Target encoding.
+        tolerance: Largest allowed deviation from what the encoding holds (singular values from 1
+            for crossMatrix and dualQuat, relative spread for quatTranslation).
+
+    Returns:
+        (..., T, 4) float64 channel values (T texels per bone). Quaternions are returned with
+        w >= 0; call :func:`make_hemispheres_continuous` along the row axis afterwards.
+
+    Raises:
+        NonRigidError: The linear part holds scale, shear or mirroring the encoding cannot store;
+            ``index`` locates the worst matrix.
+    """
+    encoding = Encoding(encoding)
+    m = np.asarray(matrices, dtype=np.float64)
+    linear, translation = m[..., :3, :3], m[..., :3, 3]
+    out = np.empty(m.shape[:-2] + (encoding.texels_per_bone, 4))
+    if encoding is Encoding.AFFINE_MATRIX:
+        out[..., :, :3] = linear
+        out[..., :, 3] = translation
+        return out
+    polar = _check_representable(linear, encoding, tolerance)
+    if encoding is Encoding.CROSS_MATRIX:
+        out[..., 0, :3] = polar.rotation[..., :, 0]
+        out[..., 1, :3] = polar.rotation[..., :, 1]
+        out[..., 2, :3] = translation
+        out[..., :, 3] = 1.0
+        return out
+    q = matrix_to_quat(polar.rotation)
+    if encoding is Encoding.QUAT_TRANSLATION:
+        out[..., 0, :] = q
+        out[..., 1, :3] = translation
+        out[..., 1, 3] = polar.singular.mean(axis=-1)
+        return out
+    t_quat = np.concatenate([translation, np.zeros(translation.shape[:-1] + (1,))], axis=-1)
+    out[..., 0, :] = q
+    out[..., 1, :] = 0.5 * quat_multiply(t_quat, q)
+    return out
+
+
+def make_hemispheres_continuous(values: np.ndarray, encoding: Encoding | str) -> np.ndarray:
+    """Flip quaternion signs so consecutive rows of a clip lie in one hemisphere.
+
+    Args:
+        values: (rows, B, T, 4) channel values of ONE clip, rows along axis 0.
+        encoding: The encoding; matrix encodings are returned unchanged.
+
+    Returns:
+        A copy where, for quatTranslation and dualQuat, ``dot(q[r], q[r-1]) >= 0`` for every
+        row r > 0 and bone (the first row keeps w >= 0). Both dual quaternion parts flip together.
+    """
+    encoding = Encoding(encoding)
+    out = np.array(values, dtype=np.float64, copy=True)
+    if encoding in (Encoding.CROSS_MATRIX, Encoding.AFFINE_MATRIX):
+        return out
+    parts = 2 if encoding is Encoding.DUAL_QUAT else 1
+    # Sign of each row relative to the previous one; the cumulative product gives each row's flip.
+    dots = np.einsum("rbc,rbc->rb", out[1:, :, 0, :], out[:-1, :, 0, :])
+    step = np.where(dots < 0, -1.0, 1.0)
+    sign = np.concatenate([np.ones((1,) + step.shape[1:]), np.cumprod(step, axis=0)], axis=0)
+    out[:, :, :parts, :] *= sign[:, :, None, None]
+    return out
+
+
+@dataclass(frozen=True)
+class BoneTransforms:
+    """Decoded bone transforms.
+
+    Attributes:
+        linear: (..., B, 3, 3) A, with ``p' = A p + t``.
+        translation: (..., B, 3) t.
+        normal: (..., B, 3, 3) the matrix normals are multiplied by before blending.
+        dual_real: (..., B, 4) normalized real parts (dualQuat only), else None.
+        dual_dual: (..., B, 4) matching dual parts (dualQuat only), else None.
+    """
+
+    linear: np.ndarray
+    translation: np.ndarray
+    normal: np.ndarray
+    dual_real: Optional[np.ndarray] = None
+    dual_dual: Optional[np.ndarray] = None
+
+
+def decode_bones(values: np.ndarray, encoding: Encoding | str) -> BoneTransforms:
+    """Decode (possibly row-interpolated) channel values into bone transforms.
+
+    Args:
+        values: (..., T, 4) float64 channel values.
+        encoding: Their encoding.
+
+    Returns:
+        The decoded transforms (see :class:`BoneTransforms`).
+    """
+    encoding = Encoding(encoding)
+    v = np.asarray(values, dtype=np.float64)
+    if encoding is Encoding.CROSS_MATRIX:
+        x, y = v[..., 0, :3], v[..., 1, :3]
+        linear = np.stack([x, y, np.cross(x, y)], axis=-1)
+        return BoneTransforms(linear, v[..., 2, :3].copy(), linear)
+    if encoding is Encoding.AFFINE_MATRIX:
+        linear = v[..., :, :3].copy()
+        normal = np.swapaxes(np.linalg.inv(linear), -1, -2)
+        return BoneTransforms(linear, v[..., :, 3].copy(), normal)
+    q = v[..., 0, :]
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if encoding is Encoding.QUAT_TRANSLATION:
+        rotation = quat_to_matrix(q / norm)
+        scale = v[..., 1, 3][..., None, None]
+        return BoneTransforms(rotation * scale, v[..., 1, :3].copy(), rotation / scale)
+    real = q / norm
+    dual = v[..., 1, :] / norm
+    rotation = quat_to_matrix(real)
+    translation = 2.0 * quat_multiply(dual, quat_conjugate(real))[..., :3]
+    return BoneTransforms(rotation, translation, rotation, real, dual)
+
+
+# --------------------------------------------------------------------------------------------
+# Texel formats
+# --------------------------------------------------------------------------------------------
+
+
+def unorm_ranges(values: np.ndarray) -> np.ndarray:
+    """Per texel slot and channel [min, max] of (rows, B, T, 4) values: (T, 4, 2) float64."""
+    v = np.asarray(values, dtype=np.float64)
+    return np.stack([v.min(axis=(0, 1)), v.max(axis=(0, 1))], axis=-1)
+
+
+def quantize(values: np.ndarray, texel_format: TexelFormat | str,
+             ranges: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Convert float64 channel values (rows, B, T, 4) to stored texel values.
+
+    Args:
+        values: Channel values.
+        texel_format: Target format.
+        ranges: unorm16 only: (T, 4, 2) [min, max]; computed from ``values`` when None.
+
+    Returns:
+        (stored values of the format's dtype, the unorm16 ranges or None).
+
+    Raises:
+        UnsupportedError: A value is not finite, or exceeds float16's range.
+    """
+    texel_format = TexelFormat(texel_format)
+    v = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        raise UnsupportedError("bone transforms contain NaN or infinity", code="encoding.nonFinite")
+    if texel_format is TexelFormat.FLOAT32:
+        return v.astype("<f4"), None
+    if texel_format is TexelFormat.FLOAT16:
+        peak = float(np.abs(v).max(initial=0.0))
+        if peak > FLOAT16_MAX:
+            raise UnsupportedError(
+                f"a channel value of {peak:.6g} exceeds float16's largest value {FLOAT16_MAX:g}; "
+                f"use texelFormat float32 or unorm16", code="encoding.float16Overflow")
+        return v.astype("<f2"), None
+    if ranges is None:
+        ranges = unorm_ranges(v)
+    low, high = ranges[..., 0], ranges[..., 1]
+    span = high - low
+    safe = np.where(span > 0, span, 1.0)
+    u = np.where(span > 0, np.rint((v - low) / safe * UNORM16_MAX), 0.0)
+    return np.clip(u, 0, UNORM16_MAX).astype("<u2"), np.array(ranges, dtype=np.float64)
+
+
+def dequantize(stored: np.ndarray, texel_format: TexelFormat | str,
+               ranges: Optional[np.ndarray] = None) -> np.ndarray:
+    """Convert stored texel values (rows, B, T, 4) back to float64 channel values.
+
+    Args:
+        stored: Values of the format's dtype.
+        texel_format: Their format.
+        ranges: unorm16 only: (T, 4, 2) [min, max].
+    """
+    texel_format = TexelFormat(texel_format)
+    if texel_format is not TexelFormat.UNORM16:
+        return np.asarray(stored, dtype=np.float64)
+    if ranges is None:
+        raise ValueError("unorm16 texels need their ranges")
+    low, high = ranges[..., 0], ranges[..., 1]
+    return low + (high - low) * (np.asarray(stored, dtype=np.float64) / UNORM16_MAX)
+
+
+# --------------------------------------------------------------------------------------------
+# Texture packing
+# --------------------------------------------------------------------------------------------
+
+
+def pack(stored: np.ndarray, layout: Layout) -> np.ndarray:
+    """Place stored values (rows, B, T, 4) into a zero-padded (height, width, 4) texture."""
+    rows, bones, texels, channels = stored.shape
+    if (rows, bones, texels) != (layout.row_count, layout.bone_count, layout.texels_per_bone):
+        raise ValueError(f"values of shape {stored.shape} do not fit layout {layout}")
+    out = np.zeros(layout.shape, dtype=layout.texel_format.numpy_dtype)
+    out[:rows, :layout.used_width, :] = stored.reshape(rows, bones * texels, channels)
+    return out
+
+
+def unpack(texels: np.ndarray, layout: Layout) -> np.ndarray:
+    """The stored values (rows, B, T, 4) of a (height, width, 4) texture's data texels."""
+    data = texels[:layout.row_count, :layout.used_width, :]
+    return data.reshape(layout.row_count, layout.bone_count, layout.texels_per_bone, 4)

@@ -1,0 +1,204 @@
+"""The numpy reference decoder: clip timing, row interpolation, decoding and skinning.
+
+This is the executable definition of the spec's "Clips", "Interpolation between rows",
+"Skinning" and "Instancing" sections, in float64. The warp kernels (vbusd.warp_decoder) are its
+twins and are tested against it.
+
+Times passed here are *clip-local* seconds ``tau`` (0 is the clip's first row), unless a function
+says otherwise. The source time of ``tau`` is ``clip.start_time + tau``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .encoding import BoneTransforms, decode_bones, dequantize, quat_multiply, quat_to_matrix, unpack
+from .layout import Encoding
+from .model import BoundMesh, Clip, Crowd, VirtualBones
+
+
+def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows and blend factor of a clip at clip-local times.
+
+    Args:
+        clip: The clip.
+        tau: Clip-local times in seconds (scalar or array).
+
+    Returns:
+        (i0, i1, f): clip-relative row indices and the weight of ``i1``; the value at ``tau`` is
+        ``(1 - f) * row[i0] + f * row[i1]``. Looping clips wrap (row N-1 blends into row 0);
+        clamped clips hold their first and last rows.
+    """
+    n = clip.row_count
+    x = np.asarray(tau, dtype=np.float64) * clip.rows_per_second
+    if clip.loop:
+        x = np.mod(x, n)
+        i0 = np.minimum(np.floor(x).astype(np.int64), n - 1)
+        return i0, (i0 + 1) % n, x - i0
+    x = np.clip(x, 0.0, n - 1)
+    i0 = np.floor(x).astype(np.int64)
+    return i0, np.minimum(i0 + 1, n - 1), x - i0
+
+
+def channel_values(vb: VirtualBones) -> np.ndarray:
+    """Dequantized float64 channel values (rows, B, T, 4) of the texture's data texels."""
+    stored = unpack(vb.texels, vb.layout)
+    return dequantize(stored, vb.layout.texel_format, vb.unorm_ranges)
+
+
+def interpolated_values(vb: VirtualBones, clip_index: int, tau, values: Optional[np.ndarray] = None) -> np.ndarray:
+    """Channel values (n, B, T, 4) of every bone at clip-local times, interpolated between rows.
+
+    Args:
+        vb: The baked animation.
+        clip_index: Index into ``vb.clips``.
+        tau: Clip-local times (s).
+        values: :func:`channel_values` of ``vb``, to avoid recomputing it.
+    """
+    clip = vb.clips[clip_index]
+    values = channel_values(vb) if values is None else values
+    i0, i1, f = row_position(clip, np.atleast_1d(tau))
+    row0 = values[clip.first_row + i0]
+    row1 = values[clip.first_row + i1]
+    f = f[:, None, None, None]
+    return (1.0 - f) * row0 + f * row1
+
+
+def bone_transforms(vb: VirtualBones, clip_index: int, tau) -> BoneTransforms:
+    """Decoded bone transforms (n, B, ...) at clip-local times."""
+    return decode_bones(interpolated_values(vb, clip_index, tau), vb.layout.encoding)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    length = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(length > 0, length, 1.0)
+
+
+def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarray,
+         bone_indices: np.ndarray, bone_weights: np.ndarray,
+         normals: Optional[np.ndarray] = None,
+         normal_points: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Skin rest points (and normals) with decoded bone transforms.
+
+    Linear blend skinning for crossMatrix, affineMatrix and quatTranslation:
+    ``p' = sum_i w_i (A_i p + t_i)``, ``n' = normalize(sum_i w_i N_i n)``. Dual-quaternion
+    skinning for dualQuat (signs relative to the first influence).
+
+    Args:
+        transforms: (n, B, ...) decoded transforms.
+        encoding: Their encoding (picks LBS or DQS).
+        points: (V, 3) rest points.
+        bone_indices: (V, K) indices.
+        bone_weights: (V, K) weights.
+        normals: (V', 3) rest normals or None.
+        normal_points: (V',) point index of each normal (faceVarying normals), None when V' = V.
+
+    Returns:
+        (points (n, V, 3), normals (n, V', 3) or None), float64.
+    """
+    encoding = Encoding(encoding)
+    p = np.asarray(points, dtype=np.float64)
+    idx = np.asarray(bone_indices, dtype=np.int64)
+    w = np.asarray(bone_weights, dtype=np.float64)
+    nidx = idx if normal_points is None else idx[normal_points]
+    nw = w if normal_points is None else w[normal_points]
+    if encoding is Encoding.DUAL_QUAT:
+        return _skin_dqs(transforms, p, idx, w, normals, nidx, nw)
+    a = transforms.linear[:, idx]  # (n, V, K, 3, 3)
+    t = transforms.translation[:, idx]  # (n, V, K, 3)
+    moved = np.einsum("nvkij,vj->nvki", a, p) + t
+    out_points = np.einsum("nvki,vk->nvi", moved, w)
+    out_normals = None
+    if normals is not None:
+        nm = transforms.normal[:, nidx]
+        blended = np.einsum("nvkij,vj,vk->nvi", nm, np.asarray(normals, dtype=np.float64), nw)
+        out_normals = _normalize(blended)
+    return out_points, out_normals
+
+
+def _blend_dual_quats(transforms: BoneTransforms, idx: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    real = transforms.dual_real[:, idx]  # (n, V, K, 4)
+    dual = transforms.dual_dual[:, idx]
+    dots = np.einsum("nvkc,nvc->nvk", real, real[:, :, 0, :])
+    sign = np.where(dots < 0, -1.0, 1.0) * w[None]
+    blend_real = np.einsum("nvkc,nvk->nvc", real, sign)
+    blend_dual = np.einsum("nvkc,nvk->nvc", dual, sign)
+    norm = np.linalg.norm(blend_real, axis=-1, keepdims=True)
+    return blend_real / norm, blend_dual / norm
+
+
+def _skin_dqs(transforms, p, idx, w, normals, nidx, nw):
+    real, dual = _blend_dual_quats(transforms, idx, w)
+    rotation = quat_to_matrix(real)
+    translation = 2.0 * quat_multiply(dual, real * np.array([-1.0, -1.0, -1.0, 1.0]))[..., :3]
+    out_points = np.einsum("nvij,vj->nvi", rotation, p) + translation
+    out_normals = None
+    if normals is not None:
+        nreal, _ = _blend_dual_quats(transforms, nidx, nw)
+        out_normals = _normalize(np.einsum("nvij,vj->nvi", quat_to_matrix(nreal),
+                                           np.asarray(normals, dtype=np.float64)))
+    return out_points, out_normals
+
+
+def normal_point_indices(mesh: BoundMesh) -> Optional[np.ndarray]:
+    """Point index of each normal: None for vertex normals, the face-vertex indices for faceVarying."""
+    if mesh.normals is None or mesh.normals_interpolation != "faceVarying":
+        return None
+    return np.asarray(mesh.face_vertex_indices, dtype=np.int64)
+
+
+def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times (float64).
+
+    Args:
+        vb: The baked animation.
+        mesh: One of ``vb.meshes`` (or any mesh bound to ``vb``'s bones).
+        clip_index: Index into ``vb.clips``.
+        tau: Clip-local times in seconds.
+    """
+    transforms = bone_transforms(vb, clip_index, tau)
+    return skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
+                mesh.normals, normal_point_indices(mesh))
+
+
+def skin_mesh_at_rows(vb: VirtualBones, mesh: BoundMesh, clip_index: int) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Skinned points and normals at every row of a clip (tau = row / rowsPerSecond)."""
+    clip = vb.clips[clip_index]
+    return skin_mesh(vb, mesh, clip_index, np.arange(clip.row_count) / clip.rows_per_second)
+
+
+def instance_time(crowd: Crowd, t: float) -> np.ndarray:
+    """Clip-local time of every instance at scene time ``t``: timeOffset + playbackRate * t."""
+    return np.asarray(crowd.time_offset, dtype=np.float64) + np.asarray(crowd.playback_rate, dtype=np.float64) * t
+
+
+def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """World-space points (N, V, 3) and normals of every instance of ``mesh`` at scene time ``t``.
+
+    Each instance is skinned at its own clip and clip-local time, then placed by the point
+    instancer's transform: scale, then orientation, then position.
+    """
+    taus = instance_time(crowd, t)
+    clip_ids = np.asarray(crowd.clip, dtype=np.int64)
+    values = channel_values(vb)
+    n, v = crowd.instance_count, mesh.points.shape[0]
+    points = np.empty((n, v, 3))
+    normals = None if mesh.normals is None else np.empty((n,) + mesh.normals.shape)
+    for clip_index in np.unique(clip_ids):
+        chosen = np.flatnonzero(clip_ids == clip_index)
+        interpolated = interpolated_values(vb, int(clip_index), taus[chosen], values)
+        transforms = decode_bones(interpolated, vb.layout.encoding)
+        p, nrm = skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
+                      mesh.normals, normal_point_indices(mesh))
+        points[chosen] = p
+        if normals is not None:
+            normals[chosen] = nrm
+    rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
+    scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
+    world = np.einsum("nij,nvj->nvi", rotation, points * scale[:, None, :])
+    world += np.asarray(crowd.positions, dtype=np.float64)[:, None, :]
+    if normals is not None:
+        normals = _normalize(np.einsum("nij,nvj->nvi", rotation, normals / scale[:, None, :]))
+    return world, normals
