@@ -1,0 +1,257 @@
+"""The codeless USD schema plugin: generated files up to date, registration on import, schema behaviour.
+
+Checks against OpenUSD itself (usdGenSchema's output, Usd.SchemaRegistry, UsdPrim.CanApplyAPI), not
+against vbusd's own code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import tomllib
+from pathlib import Path
+
+import pytest
+
+pxr = pytest.importorskip("pxr")
+
+import vbusd  # noqa: E402  (registers the plugin)
+from vbusd import usd_plugin  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA_DIR = REPO / "schema" / "usd"
+
+# usdGenSchema writes these placeholders into a new plugInfo.json; the committed file replaces them
+# with relative paths (a codeless plugin has no library). Nothing else may differ.
+PLUGINFO_PLACEHOLDERS = {
+    '"LibraryPath": "@PLUG_INFO_LIBRARY_PATH@"': '"LibraryPath": ""',
+    '"ResourcePath": "@PLUG_INFO_RESOURCE_PATH@"': '"ResourcePath": "."',
+    '"Root": "@PLUG_INFO_ROOT@"': '"Root": "."',
+}
+
+
+def _clean_env() -> dict:
+    env = dict(os.environ)
+    env.pop("PXR_PLUGINPATH_NAME", None)
+    return env
+
+
+def test_generated_files_match_usdgenschema(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "pxr.Usd.usdGenSchema", "-q", str(SCHEMA_DIR / "schema.usda"), str(tmp_path)],
+        capture_output=True, text=True, env=_clean_env(), timeout=120)
+    assert result.returncode == 0, result.stderr
+    generated = (tmp_path / "generatedSchema.usda").read_text()
+    assert generated == (SCHEMA_DIR / "generatedSchema.usda").read_text(), \
+        "generatedSchema.usda is stale: run python -m pxr.Usd.usdGenSchema schema/usd/schema.usda schema/usd"
+    pluginfo = (tmp_path / "plugInfo.json").read_text()
+    for placeholder, committed in PLUGINFO_PLACEHOLDERS.items():
+        assert placeholder in pluginfo, f"usdGenSchema no longer writes {placeholder}"
+        pluginfo = pluginfo.replace(placeholder, committed)
+    assert pluginfo == (SCHEMA_DIR / "plugInfo.json").read_text(), "plugInfo.json is stale"
+
+
+def test_pluginfo_is_relative_and_codeless():
+    text = (SCHEMA_DIR / "plugInfo.json").read_text()
+    body = json.loads("\n".join(line for line in text.splitlines() if not line.lstrip().startswith("#")))
+    (plugin,) = body["Plugins"]
+    assert plugin["Type"] == "resource"
+    assert plugin["Root"] == "." and plugin["ResourcePath"] == "." and plugin["LibraryPath"] == ""
+    assert plugin["Name"] == usd_plugin.PLUGIN_NAME
+    types = plugin["Info"]["Types"]
+    assert types["VirtualBonesAnimation"]["schemaKind"] == "concreteTyped"
+    assert types["VirtualBonesBindingAPI"]["apiSchemaCanOnlyApplyTo"] == ["Mesh"]
+    assert types["VirtualBonesInstancingAPI"]["apiSchemaCanOnlyApplyTo"] == ["PointInstancer"]
+
+
+def test_schema_registry_knows_the_types():
+    from pxr import Tf, Usd
+
+    tf_type = Usd.SchemaRegistry.GetTypeFromName("VirtualBonesAnimation")
+    assert tf_type == Tf.Type.FindByName("VirtualBonesAnimation")
+    assert not tf_type.isUnknown
+    assert tf_type.IsA(Tf.Type.FindByName("UsdTyped"))
+    assert Usd.SchemaRegistry.IsConcrete(tf_type)
+    for api in ("VirtualBonesBindingAPI", "VirtualBonesInstancingAPI"):
+        api_type = Tf.Type.FindByName(api)
+        assert not api_type.isUnknown
+        assert Usd.SchemaRegistry.GetSchemaKind(api_type) == Usd.SchemaKind.SingleApplyAPI
+    definition = Usd.SchemaRegistry().FindConcretePrimDefinition("VirtualBonesAnimation")
+    names = set(definition.GetPropertyNames())
+    expected = {
+        "vb:formatVersion", "vb:texture", "vb:encoding", "vb:texelFormat", "vb:boneCount",
+        "vb:texelsPerBone", "vb:rowCount", "vb:textureWidth", "vb:textureHeight",
+        "vb:horizontalPadding", "vb:verticalPadding", "vb:bones", "vb:clipNames", "vb:clipFirstRows",
+        "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops", "vb:clipStartTimes",
+        "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest"}
+    assert names == expected
+
+
+def test_attribute_types_and_allowed_tokens():
+    from pxr import Sdf, Usd
+
+    definition = Usd.SchemaRegistry().FindConcretePrimDefinition("VirtualBonesAnimation")
+    types = {
+        "vb:formatVersion": Sdf.ValueTypeNames.Int, "vb:texture": Sdf.ValueTypeNames.Asset,
+        "vb:encoding": Sdf.ValueTypeNames.Token, "vb:bones": Sdf.ValueTypeNames.TokenArray,
+        "vb:clipRowsPerSecond": Sdf.ValueTypeNames.DoubleArray, "vb:clipLoops": Sdf.ValueTypeNames.BoolArray,
+        "vb:clipExtents": Sdf.ValueTypeNames.Float3Array, "vb:unormRangeMin": Sdf.ValueTypeNames.Float4Array,
+        "vb:contentDigest": Sdf.ValueTypeNames.String, "vb:clipFirstRows": Sdf.ValueTypeNames.IntArray}
+    for name, type_name in types.items():
+        spec = definition.GetAttributeDefinition(name)
+        assert spec.GetTypeName() == type_name, name
+        assert spec.GetVariability() == Sdf.VariabilityUniform, name
+    allowed = {
+        "vb:encoding": ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"],
+        "vb:texelFormat": ["float16", "float32", "unorm16"],
+        "vb:horizontalPadding": ["powerOfTwo", "none"], "vb:verticalPadding": ["none", "powerOfTwo"]}
+    for name, tokens in allowed.items():
+        assert list(definition.GetPropertyMetadata(name, "allowedTokens")) == tokens
+
+
+def test_every_property_is_documented():
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(SCHEMA_DIR / "schema.usda"))
+    for name in ("VirtualBonesAnimation", "VirtualBonesBindingAPI", "VirtualBonesInstancingAPI"):
+        prim = layer.GetPrimAtPath("/" + name)
+        assert prim.documentation.strip(), name
+        for prop in prim.properties:
+            assert prop.documentation.strip(), f"{name}.{prop.name} has no doc"
+
+
+def test_fallbacks_come_from_the_schema():
+    from pxr import Usd
+
+    stage = Usd.Stage.CreateInMemory()
+    prim = stage.DefinePrim("/Anim", "VirtualBonesAnimation")
+    assert prim.IsA("VirtualBonesAnimation")
+    assert prim.GetAttribute("vb:encoding").Get() == "crossMatrix"
+    assert prim.GetAttribute("vb:texelFormat").Get() == "float16"
+    assert prim.GetAttribute("vb:formatVersion").Get() == 1
+    assert prim.GetAttribute("vb:horizontalPadding").Get() == "powerOfTwo"
+    assert prim.GetAttribute("vb:verticalPadding").Get() == "none"
+    assert not prim.GetAttribute("vb:encoding").HasAuthoredValue()
+    assert prim.GetAttribute("vb:boneCount").Get() is None  # required, no fallback
+    # Nothing of the above was written to the layer.
+    assert len(stage.GetRootLayer().GetPrimAtPath("/Anim").properties) == 0
+
+
+def test_binding_api_applies_only_to_meshes():
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateInMemory()
+    mesh = UsdGeom.Mesh.Define(stage, "/Mesh").GetPrim()
+    ok, _ = mesh.CanApplyAPI("VirtualBonesBindingAPI")
+    assert ok
+    assert mesh.ApplyAPI("VirtualBonesBindingAPI")
+    assert mesh.HasAPI("VirtualBonesBindingAPI")
+    assert "VirtualBonesBindingAPI" in mesh.GetAppliedSchemas()
+    # The API's properties (with their vertex interpolation) come from the schema.
+    assert mesh.GetRelationship("vb:animation")
+    indices = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("vb:boneIndices")
+    assert indices and indices.GetInterpolation() == UsdGeom.Tokens.vertex
+
+    xform = UsdGeom.Xform.Define(stage, "/Xform").GetPrim()
+    ok, why = xform.CanApplyAPI("VirtualBonesBindingAPI")
+    assert not ok and "Mesh" in why
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Crowd").GetPrim()
+    assert not instancer.CanApplyAPI("VirtualBonesBindingAPI")[0]
+
+
+def test_instancing_api_applies_only_to_point_instancers():
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateInMemory()
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Crowd").GetPrim()
+    assert instancer.CanApplyAPI("VirtualBonesInstancingAPI")[0]
+    assert instancer.ApplyAPI("VirtualBonesInstancingAPI")
+    assert instancer.HasAPI("VirtualBonesInstancingAPI")
+    for name in ("vb:clip", "vb:timeOffset", "vb:playbackRate"):
+        primvar = UsdGeom.PrimvarsAPI(instancer).GetPrimvar(name)
+        assert primvar and primvar.GetInterpolation() == UsdGeom.Tokens.vertex, name
+    mesh = UsdGeom.Mesh.Define(stage, "/Mesh").GetPrim()
+    ok, why = mesh.CanApplyAPI("VirtualBonesInstancingAPI")
+    assert not ok and "PointInstancer" in why
+
+
+def test_plugin_dir_is_the_package_data_folder():
+    folder = usd_plugin.plugin_dir()
+    assert folder == SCHEMA_DIR.resolve()  # editable install maps vbusd.schema.usd onto schema/usd
+    from pxr import Plug
+
+    plugin = Plug.Registry().GetPluginWithName("vbusd")
+    assert plugin is not None
+    assert Path(plugin.resourcePath).resolve() == folder
+
+
+_PROBE = r"""
+import json, os, sys
+import vbusd
+from vbusd import usd_plugin
+state = {"pxr_loaded_by_import": any(m.startswith("pxr.") for m in sys.modules),
+         "plugin_path": os.environ.get("PXR_PLUGINPATH_NAME"),
+         "vbusd_file": vbusd.__file__, "plugin_dir": str(usd_plugin.plugin_dir())}
+from pxr import Usd
+stage = Usd.Stage.CreateInMemory()
+prim = stage.DefinePrim("/A", "VirtualBonesAnimation")
+state["known"] = not Usd.SchemaRegistry.GetTypeFromName("VirtualBonesAnimation").isUnknown
+state["encoding"] = prim.GetAttribute("vb:encoding").Get()
+print(json.dumps(state))
+"""
+
+
+def test_import_vbusd_registers_without_importing_pxr():
+    result = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
+                            env=_clean_env(), timeout=60)
+    assert result.returncode == 0, result.stderr
+    state = json.loads(result.stdout)
+    assert state["pxr_loaded_by_import"] is False
+    assert state["plugin_path"] == state["plugin_dir"]
+    assert state["known"] and state["encoding"] == "crossMatrix"
+
+
+def test_import_vbusd_after_pxr_registers_directly():
+    code = "from pxr import Usd\n" + _PROBE
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            env=_clean_env(), timeout=60)
+    assert result.returncode == 0, result.stderr
+    state = json.loads(result.stdout)
+    assert state["plugin_path"] is None  # too late for the variable: registered through Plug
+    assert state["known"] and state["encoding"] == "crossMatrix"
+
+
+def _install_like_a_wheel(target: Path) -> None:
+    """Lay the packages out as the wheel does, following pyproject's package-dir and package-data."""
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    package_dir = config["package-dir"]
+    package_data = config.get("package-data", {})
+    for package in config["packages"]:
+        source = REPO / package_dir.get(package, package.replace(".", "/"))
+        dest = target.joinpath(*package.split("."))
+        dest.mkdir(parents=True, exist_ok=True)
+        patterns = ["*.py"] + list(package_data.get(package, []))
+        for pattern in patterns:
+            for file in source.glob(pattern):
+                shutil.copy2(file, dest / file.name)
+
+
+def test_installed_layout_resolves_the_plugin(tmp_path):
+    site = tmp_path / "site"
+    _install_like_a_wheel(site)
+    assert (site / "vbusd" / "schema" / "usd" / "plugInfo.json").is_file()
+    purelib = sysconfig.get_paths()["purelib"]
+    env = _clean_env()
+    # -S skips site (and the editable install's path hook), so only the copied tree provides vbusd.
+    env["PYTHONPATH"] = os.pathsep.join([str(site), purelib])
+    result = subprocess.run([sys.executable, "-S", "-c", _PROBE], capture_output=True, text=True,
+                            env=env, timeout=60, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    state = json.loads(result.stdout)
+    assert Path(state["vbusd_file"]).resolve().is_relative_to(site.resolve())
+    assert Path(state["plugin_dir"]) == (site / "vbusd" / "schema" / "usd").resolve()
+    assert state["known"] and state["encoding"] == "crossMatrix"
