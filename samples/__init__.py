@@ -1,0 +1,1 @@
+"""Sample assets of vbusd and the generators that make them (not installed with the package)."""
