@@ -1,0 +1,287 @@
+"""Safe file output and safe path resolution.
+
+Writing: every output file is first written to a temporary file in the target's own folder (same
+file system, so the final ``os.replace`` is atomic), flushed and fsynced, then renamed over the
+target. A failure at any point removes the temporary file and leaves an existing target exactly as
+it was. :class:`AtomicTransaction` extends this to several files that belong together (a USD layer,
+its texture and the texture's sidecar): all temporaries are written first and renamed only when
+every one of them is complete.
+
+Temporary names keep the target's suffix (``.anim.exr.vbusd-tmp-1a2b3c.exr``) because some writers
+choose the file format by suffix (USD: ``.usda`` vs ``.usdc``).
+
+Reading: :func:`resolve_inside` turns a relative reference found in an asset (a USD asset path, a
+texture name) into a path and refuses references that leave the asset's folder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import secrets
+from pathlib import Path
+from typing import IO, Iterator, Optional, Union
+
+from .errors import InputError
+
+PathLike = Union[str, os.PathLike]
+
+_TMP_MARK = ".vbusd-tmp-"
+_BAK_MARK = ".vbusd-bak-"
+
+
+def _temp_name(target: Path, mark: str = _TMP_MARK) -> Path:
+    suffix = "".join(target.suffixes[-1:])
+    return target.with_name(f".{target.name}{mark}{secrets.token_hex(4)}{suffix}")
+
+
+def _target_mode(target: Path) -> int:
+    """Permission bits the finished file gets: the existing target's, else 0o666 minus umask."""
+    try:
+        return target.stat().st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
+
+
+def _fsync_path(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make renames in ``folder`` durable (POSIX; silently skipped where directories can't be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _remove_quietly(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
+class AtomicTransaction:
+    """Write several files so that either all of them replace their targets or none does.
+
+    Use as a context manager. For each output, either :meth:`open` a file object or take a
+    :meth:`temp_path` for libraries that write by file name (OpenEXR, USD). When the ``with`` block
+    ends without an exception every temporary is fsynced and renamed over its target, in the order
+    the targets were added (add the file that references the others, e.g. the USD layer, last).
+    If the block raises, every temporary is removed and no target is touched.
+
+    Should a rename itself fail after others succeeded (disk removed, permissions changed
+    underneath), the targets already replaced are restored from hard-link backups where the file
+    system allows hard links.
+
+    Example:
+        >>> with AtomicTransaction() as tx:
+        ...     with tx.open("anim.exr.json", "w") as f:
+        ...         f.write(text)
+        ...     write_exr(tx.temp_path("anim.exr"))
+    """
+
+    def __init__(self) -> None:
+        self._entries: list[tuple[Path, Path]] = []  # (target, temporary)
+        self._done = False
+
+    def temp_path(self, target: PathLike) -> Path:
+        """Reserve a temporary file beside ``target`` (created empty) and return its path.
+
+        Args:
+            target: The final file name.
+
+        Returns:
+            Path of the temporary file to write; it is renamed to ``target`` on commit.
+
+        Raises:
+            ValueError: ``target`` was already added to this transaction.
+            OSError: The folder does not exist or is not writable.
+        """
+        target = Path(target)
+        if any(t == target for t, _ in self._entries):
+            raise ValueError(f"{target} is written twice in one transaction")
+        while True:
+            temporary = _temp_name(target)
+            try:
+                fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            except FileExistsError:
+                continue
+            os.close(fd)
+            break
+        self._entries.append((target, temporary))
+        return temporary
+
+    @contextlib.contextmanager
+    def open(self, target: PathLike, mode: str = "wb", **kwargs) -> Iterator[IO]:
+        """Open a temporary file for ``target``; it is flushed and closed when the block ends.
+
+        Args:
+            target: The final file name.
+            mode: A write mode: ``"wb"`` or ``"w"`` (text; pass ``encoding=``, default UTF-8).
+            **kwargs: Passed to :func:`open`.
+        """
+        if not any(c in mode for c in "wa") or "r" in mode:
+            raise ValueError(f"atomic writes need a write mode, got {mode!r}")
+        if "b" not in mode:
+            kwargs.setdefault("encoding", "utf-8")
+        temporary = self.temp_path(target)
+        with open(temporary, mode.replace("a", "w"), **kwargs) as stream:
+            yield stream
+            stream.flush()
+
+    def commit(self) -> None:
+        """fsync every temporary and rename each over its target (called on a clean exit)."""
+        if self._done:
+            return
+        for target, temporary in self._entries:
+            os.chmod(temporary, _target_mode(target))
+            _fsync_path(temporary)
+        backups: list[tuple[Path, Optional[Path]]] = []
+        replaced: list[tuple[Path, Optional[Path], bool]] = []  # (target, backup, existed before)
+        try:
+            for target, temporary in self._entries:
+                existed = target.exists()
+                backup = None
+                if len(self._entries) > 1 and existed:
+                    backup = _temp_name(target, _BAK_MARK)
+                    try:
+                        os.link(target, backup)
+                    except OSError:
+                        backup = None
+                    else:
+                        backups.append((target, backup))
+                os.replace(temporary, target)
+                replaced.append((target, backup, existed))
+        except BaseException:
+            # Undo the renames that happened: put back what was there, remove what was new.
+            for target, backup, existed in reversed(replaced):
+                with contextlib.suppress(OSError):
+                    if backup is not None:
+                        os.replace(backup, target)
+                    elif not existed:
+                        os.unlink(target)
+            self._cleanup(backups)
+            raise
+        self._done = True
+        for folder in {t.parent for t, _ in self._entries}:
+            _fsync_dir(folder)
+        for _, backup in backups:
+            _remove_quietly(backup)
+
+    def _cleanup(self, backups=()) -> None:
+        for _, temporary in self._entries:
+            _remove_quietly(temporary)
+        for _, backup in backups:
+            if backup is not None:
+                _remove_quietly(backup)
+        self._done = True
+
+    def abort(self) -> None:
+        """Remove every temporary; targets stay untouched."""
+        if not self._done:
+            self._cleanup()
+
+    def __enter__(self) -> "AtomicTransaction":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            try:
+                self.commit()
+            except BaseException:
+                self.abort()
+                raise
+        else:
+            self.abort()
+
+
+def atomic_write_many() -> AtomicTransaction:
+    """Start an :class:`AtomicTransaction` (all files written or none). Use it as a ``with`` block."""
+    return AtomicTransaction()
+
+
+@contextlib.contextmanager
+def atomic_write(path: PathLike, mode: str = "wb", **kwargs) -> Iterator[IO]:
+    """Write one file atomically: a temporary beside ``path``, fsync, then ``os.replace``.
+
+    If the ``with`` block raises, the temporary is removed and an existing ``path`` is untouched.
+
+    Args:
+        path: The file to (re)place.
+        mode: ``"wb"`` (default) or ``"w"`` for text (UTF-8 unless ``encoding=`` is given).
+        **kwargs: Passed to :func:`open`.
+
+    Yields:
+        The open temporary file.
+    """
+    with AtomicTransaction() as transaction:
+        with transaction.open(path, mode, **kwargs) as stream:
+            yield stream
+
+
+_SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.\-]*):")
+
+
+def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=None,
+                   allow_outside: bool = False) -> Path:
+    """Resolve a reference found in an asset to a path, refusing ones that leave the asset's folder.
+
+    Refused (unless noted): empty references and NUL characters; URIs with a scheme (``file:``,
+    ``http:``, ``data:`` ...; a glTF reader decodes ``data:`` itself before calling this);
+    absolute paths and Windows drive paths; and, unless ``allow_outside``, references whose resolved
+    path (``..`` collapsed, symlinks followed) is not inside ``base_dir``. Backslashes count as
+    separators. Percent-decoding of URIs is the caller's job.
+
+    Args:
+        base_dir: The folder of the file holding the reference.
+        relative: The reference as written in the file.
+        file: The file holding the reference, for messages.
+        location: Where in that file, for messages.
+        allow_outside: Accept absolute paths and paths outside ``base_dir`` (URIs stay refused).
+
+    Returns:
+        The resolved absolute path (the file need not exist).
+
+    Raises:
+        InputError: with code ``path.unsafe`` naming the reference and why.
+    """
+    def refuse(why: str) -> InputError:
+        return InputError(f"refusing path {relative!r}: {why}", file=file, location=location,
+                          code="path.unsafe")
+
+    if not isinstance(relative, str) or not relative:
+        raise refuse("empty path")
+    if "\0" in relative:
+        raise refuse("contains a NUL character")
+    text = relative.replace("\\", "/")
+    match = _SCHEME.match(text)
+    if match and len(match.group(1)) > 1:
+        raise refuse(f"URI scheme {match.group(1)!r} is not allowed; give a path relative to "
+                     f"the asset's folder")
+    is_absolute = text.startswith("/") or bool(match)  # one-letter "scheme" = Windows drive
+    if is_absolute and not allow_outside:
+        raise refuse("absolute paths are not allowed; give a path relative to the asset's folder "
+                     "(or allow outside paths)")
+    base = Path(base_dir).resolve()
+    candidate = Path(text) if is_absolute else base / text
+    resolved = candidate.resolve()
+    if not allow_outside and not resolved.is_relative_to(base):
+        if ".." in Path(text).parts:
+            raise refuse(f"'..' leads outside the asset's folder {base}")
+        raise refuse(f"a symbolic link leads outside the asset's folder {base} (to {resolved})")
+    return resolved

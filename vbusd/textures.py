@@ -1,0 +1,273 @@
+"""Virtual Bones texture files: EXR or PNG plus the sidecar JSON, written atomically, read defensively.
+
+* float16 and float32 texels go to OpenEXR (``.exr``, :mod:`vbusd.exr`);
+* unorm16 texels go to 16-bit RGBA PNG (``.png``, :mod:`vbusd.png16`);
+* next to the texture, ``<texture file name>.json`` holds the same layout metadata (the *sidecar*:
+  UTF-8, sorted keys, indent 2) for tools that cannot read EXR headers or PNG text chunks.
+
+Texture and sidecar are written in one :class:`vbusd.fileio.AtomicTransaction`: both appear, or
+neither changes. :func:`read_texture` recognizes the container by its magic bytes (not its suffix),
+checks sizes before decoding pixels, and checks that pixels and metadata agree, content digest
+included; every problem is an :class:`vbusd.errors.InputError` with the file and a location.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+
+from . import metadata as md
+from .errors import InputError, OptionsError
+from .fileio import AtomicTransaction
+from .layout import MAX_TEXTURE_DIMENSION, TexelFormat
+from .model import VirtualBones
+
+PathLike = Union[str, os.PathLike]
+
+CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png"}
+CONTAINER_OF_FORMAT = {TexelFormat.FLOAT16: "exr", TexelFormat.FLOAT32: "exr",
+                       TexelFormat.UNORM16: "png"}
+
+
+@dataclass(frozen=True)
+class TextureData:
+    """A texture file read back.
+
+    Attributes:
+        texels: ``(height, width, 4)`` read-only array of the texel format's dtype (``<f2``,
+            ``<f4`` or ``<u2``); row 0 is the first scanline.
+        info: The validated layout metadata embedded in the file.
+        container: ``exr`` or ``png``.
+        compression: The file's compression (``none``, ``rle``, ``zips``, ``zip``, ``piz``; PNG:
+            ``zip``).
+        path: The file read.
+    """
+
+    texels: np.ndarray
+    info: md.LayoutInfo
+    container: str
+    compression: str
+    path: Path
+
+    def to_virtual_bones(self, **fields) -> VirtualBones:
+        """A :class:`VirtualBones` of these texels and metadata.
+
+        Args:
+            **fields: Further fields (``meshes``, ``path``, ``texture``, ``clip_extents``).
+        """
+        return VirtualBones(layout=self.info.layout, texels=self.texels, bones=self.info.bones,
+                            clips=self.info.clips, unorm_ranges=self.info.unorm_ranges, **fields)
+
+
+def sidecar_path(texture: PathLike) -> Path:
+    """The sidecar of a texture: ``<texture file name>.json`` in the same folder."""
+    texture = Path(texture)
+    return texture.with_name(texture.name + ".json")
+
+
+def container_for(path: PathLike, texel_format: TexelFormat) -> str:
+    """The container a texture file name asks for, checked against the texel format.
+
+    Raises:
+        OptionsError: Unknown suffix, or a format the container cannot hold (float formats need
+            ``.exr``, unorm16 needs ``.png``).
+    """
+    suffix = Path(path).suffix.lower()
+    container = CONTAINER_OF_SUFFIX.get(suffix)
+    if container is None:
+        raise OptionsError(f"texture file name {Path(path).name!r} must end in .exr (float16, "
+                           "float32) or .png (unorm16)", file="texture")
+    texel_format = TexelFormat(texel_format)
+    if CONTAINER_OF_FORMAT[texel_format] != container:
+        wanted = CONTAINER_OF_FORMAT[texel_format]
+        raise OptionsError(f"texelFormat {texel_format.value} is stored in .{wanted} files, not "
+                           f"{suffix} ({Path(path).name})", file="texture")
+    return container
+
+
+def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
+                  transaction: Optional[AtomicTransaction] = None, sidecar: bool = True) -> None:
+    """Write a baked animation's texture and its sidecar JSON.
+
+    Args:
+        path: Texture file: ``.exr`` for float16/float32, ``.png`` for unorm16.
+        vb: The baked animation.
+        compression: EXR: ``none``, ``rle``, ``zips``, ``zip`` (default) or ``piz``; PNG: ``zip``
+            (default) or ``none``. Lossy compressions are refused.
+        transaction: Stage the files in this transaction (the caller commits, e.g. together with a
+            USD layer); by default the files are committed before returning.
+        sidecar: Also write ``<path>.json`` (default True).
+
+    Raises:
+        OptionsError: Suffix and texel format disagree, or the compression is not allowed; raised
+            before any file is created.
+        OSError: The files cannot be written; existing files are left as they were.
+    """
+    path = Path(path)
+    container = container_for(path, vb.layout.texel_format)
+    name = str(compression).lower()
+    from . import exr, png16
+
+    allowed = exr.LOSSLESS if container == "exr" else tuple(png16.COMPRESSION_LEVELS)
+    if name not in allowed:
+        raise OptionsError(f"{container.upper()} compression must be one of {', '.join(allowed)}, "
+                           f"got {compression!r}", file="texture")
+    text = md.dumps(md.to_dict(vb))
+    own = transaction is None
+    tx = AtomicTransaction() if own else transaction
+    try:
+        if container == "exr":
+            exr.write_exr(tx.temp_path(path), vb.texels, text, compression=name)
+        else:
+            data = png16.png_bytes(vb.texels, text, compression=name)
+            with tx.open(path, "wb") as stream:
+                stream.write(data)
+        if sidecar:
+            with tx.open(sidecar_path(path), "w", encoding="utf-8", newline="\n") as stream:
+                stream.write(text)
+    except BaseException:
+        if own:
+            tx.abort()
+        raise
+    if own:
+        tx.commit()
+
+
+def write_sidecar(path: PathLike, vb: VirtualBones, *,
+                  transaction: Optional[AtomicTransaction] = None) -> Path:
+    """Write only the sidecar JSON of a texture (atomically); returns the sidecar's path."""
+    target = sidecar_path(path)
+    text = md.dumps(md.to_dict(vb))
+    if transaction is None:
+        with AtomicTransaction() as tx, tx.open(target, "w", newline="\n") as stream:
+            stream.write(text)
+    else:
+        with transaction.open(target, "w", newline="\n") as stream:
+            stream.write(text)
+    return target
+
+
+def _read_head(path: Path, count: int) -> bytes:
+    try:
+        with open(path, "rb") as stream:
+            return stream.read(count)
+    except FileNotFoundError:
+        raise InputError("file not found", file=str(path), location="file",
+                         code="file.missing") from None
+    except OSError as error:
+        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
+                         location="file", code="file.unreadable") from None
+
+
+def sniff_container(path: PathLike) -> str:
+    """``exr`` or ``png`` by the file's magic bytes.
+
+    Raises:
+        InputError: Missing, unreadable, or neither an EXR nor a PNG file (location ``byte 0``).
+    """
+    from .exr import MAGIC
+    from .png16 import SIGNATURE
+
+    head = _read_head(Path(path), 8)
+    if head[:4] == MAGIC:
+        return "exr"
+    if head == SIGNATURE:
+        return "png"
+    raise InputError("neither an OpenEXR nor a PNG file (checked the magic bytes)",
+                     file=str(path), location="byte 0", code="texture.container")
+
+
+def _check_dimensions(info: md.LayoutInfo, width: int, height: int, file: str, location: str) -> None:
+    layout = info.layout
+    if (width, height) != (layout.width, layout.height):
+        raise InputError(f"image is {width}x{height} but the metadata says "
+                         f"{layout.width}x{layout.height}", file=file, location=location,
+                         code="texture.shape")
+
+
+def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> TextureData:
+    """Read a texture file and check it thoroughly.
+
+    Checks, in order: the file exists and is an EXR or PNG (magic bytes); the header is complete
+    and its dimensions are within ``max_dimension`` (before any pixel data is read or allocated);
+    the channels are exactly R, G, B, A; the compression is lossless; the metadata is present,
+    valid and of a known version; the image size and pixel type match the metadata; the pixel data
+    decodes; the content digest matches.
+
+    Args:
+        path: The texture file.
+        max_dimension: Largest accepted width or height.
+
+    Returns:
+        The texels and their metadata.
+
+    Raises:
+        InputError: Any problem, with the file and a location such as ``byte 1234``,
+            ``header/compression``, ``header/vbusd.layout/clips/0/rowCount``, ``IHDR`` or
+            ``iTXt vbusd.layout``.
+        VersionError: Metadata of a newer format version.
+    """
+    path = Path(path)
+    file = str(path)
+    container = sniff_container(path)
+    if container == "exr":
+        from . import exr
+
+        header = exr.scan_header(path, max_dimension=max_dimension)
+        prefix = f"header/{exr.METADATA_ATTRIBUTE}"
+        info = md.loads(exr.metadata_text(header, file), file=file, location_prefix=prefix)
+        if info.layout.texel_format is TexelFormat.UNORM16:
+            raise InputError("texelFormat unorm16 is stored in PNG files, not EXR", file=file,
+                             location=f"{prefix}/texelFormat", code="texture.format")
+        _check_dimensions(info, header.width, header.height, file, "header/dataWindow")
+        texels = exr.read_pixels(path, header, info.layout.texel_format.value,
+                                 max_dimension=max_dimension)
+        compression = header.compression
+    else:
+        from . import png16
+
+        chunks = png16.scan_chunks(path, max_dimension=max_dimension)
+        prefix = f"iTXt {png16.METADATA_KEYWORD}"
+        info = md.loads(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
+        if info.layout.texel_format is not TexelFormat.UNORM16:
+            raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
+                             "files; a PNG holds unorm16 only", file=file,
+                             location=f"{prefix}/texelFormat", code="texture.format")
+        _check_dimensions(info, chunks.width, chunks.height, file, "IHDR")
+        texels = png16.read_pixels(chunks, file)
+        compression = "zip"
+    md.check_texels(info, texels, file=file, digest_location=f"{prefix}/contentDigest")
+    texels.setflags(write=False)
+    return TextureData(texels=texels, info=info, container=container, compression=compression,
+                       path=path)
+
+
+def read_sidecar(path: PathLike) -> md.LayoutInfo:
+    """Read and validate a sidecar JSON file (``<texture>.json``).
+
+    Args:
+        path: The sidecar itself (not the texture).
+
+    Raises:
+        InputError: Missing or unreadable file, text that is not UTF-8 (``byte N``), broken JSON
+            (``line L column C``), or invalid metadata (a JSON pointer).
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("file not found", file=str(path), location="file",
+                         code="file.missing") from None
+    except OSError as error:
+        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
+                         location="file", code="file.unreadable") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise InputError("sidecar is not UTF-8 text", file=str(path), location=f"byte {error.start}",
+                         code="metadata.json") from None
+    return md.loads(text.removeprefix("\ufeff"), file=str(path))
