@@ -1,0 +1,1000 @@
+"""glTF 2.0 (.gltf, .glb) to Virtual Bones: skins, meshes and animations as SkinnedAnimations.
+
+The normative mapping is spec/gltf-conversion.md; docs/converters/gltf.md is the user guide.
+In short:
+
+* one :class:`vbusd.model.SkinnedAnimation` per glTF skin; its bones are the skin's joints in
+  ``skin.joints`` order and its skinning matrices are ``jointWorld(t) @ inverseBind`` in the space
+  of the scene root, where ``jointWorld`` walks the full node hierarchy (non-joint ancestors
+  included). The skinned mesh node's own transform is ignored, as glTF 2.0 (3.7.3.3) requires;
+* one clip per glTF animation that moves a joint of the skin or an ancestor of one;
+* one :class:`vbusd.model.SkinnedMesh` per primitive of every node that uses the skin, with the
+  rest POSITION/NORMAL as stored and every JOINTS_n/WEIGHTS_n set merged;
+* Y up, metres; 24 time codes per second; prim names made valid and unique by the rule of
+  :func:`make_identifier` and :class:`NameAllocator`.
+
+pygltflib parses the container; everything it does not check (sizes, offsets, indices, URIs,
+base64, the node graph, the skin and animation rules that Khronos' glTF-Validator reports as
+errors) is checked here and raises :class:`vbusd.errors.InputError` with a JSON pointer.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import os
+import re
+import struct
+import urllib.parse
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vbusd.errors import InputError, OptionsError, UnsupportedError
+from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
+
+from .gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, is_int, require_index,
+                             require_int, triangles)
+from .gltf_animation import compose_trs, sample_channel
+
+NAME = "gltf"
+"""Converter name (``vbusd convert --from gltf``)."""
+
+SUFFIXES = (".gltf", ".glb")
+"""File suffixes this converter reads."""
+
+MAX_FILE_BYTES = 1 << 31
+"""Largest .gltf/.glb or external buffer accepted (2 GiB), checked before reading."""
+
+TIME_CODES_PER_SECOND = 24.0
+"""The output stage's timeCodesPerSecond: time code = glTF seconds x 24."""
+
+DEFAULT_RATE = 30.0
+"""Rows per second proposed for a clip whose keys do not lie on a regular grid of 10..240 Hz."""
+
+QUAT_UNIT_TOLERANCE = 5e-3
+"""Rotation keys whose length differs from 1 by more than this get a warning (then normalized)."""
+
+WEIGHT_SUM_TOLERANCE = 2e-7
+"""Per non-zero weight: |sum - 1| may not exceed this times the non-zero count (glTF-Validator)."""
+
+_GLB_MAGIC = b"glTF"
+_CHUNK_JSON = 0x4E4F534A
+_CHUNK_BIN = 0x004E4942
+
+_ALLOWED_REQUIRED = ("KHR_mesh_quantization", "KHR_texture_transform", "KHR_texture_basisu",
+                     "KHR_lights_punctual", "EXT_texture_webp", "EXT_texture_avif")
+"""Required extensions we can honour: geometry ones we implement, and ones that only touch
+materials, textures or lights (which a Virtual Bones texture does not carry)."""
+
+_IDENTIFIER_BAD = re.compile(r"[^A-Za-z0-9_]")
+
+
+# ------------------------------------------------------------------------------------------------
+# Names
+# ------------------------------------------------------------------------------------------------
+
+
+def make_identifier(name, fallback: str) -> str:
+    """Make a valid USD prim name (ASCII identifier) from a glTF name.
+
+    Rule (spec/gltf-conversion.md, "Names"): every character other than ``A-Z a-z 0-9 _`` becomes
+    ``_``; an empty or missing name becomes ``fallback``; a name starting with a digit gets a
+    leading ``_``.
+
+    Args:
+        name: The glTF ``name`` (may be None or not a string).
+        fallback: Name used when ``name`` is empty, e.g. ``node7``.
+    """
+    text = name if isinstance(name, str) else ""
+    text = _IDENTIFIER_BAD.sub("_", text)
+    if not text:
+        text = fallback
+    if text[0].isdigit():
+        text = "_" + text
+    return text
+
+
+class NameAllocator:
+    """Hands out unique names within one scope: the second ``Foo`` becomes ``Foo_1``, then ``Foo_2``."""
+
+    def __init__(self) -> None:
+        self._used: set[str] = set()
+
+    def take(self, name: str) -> str:
+        """Return ``name``, or ``name_<k>`` with the smallest k >= 1 not yet taken; mark it taken."""
+        candidate, k = name, 0
+        while candidate in self._used:
+            k += 1
+            candidate = f"{name}_{k}"
+        self._used.add(candidate)
+        return candidate
+
+
+# ------------------------------------------------------------------------------------------------
+# Loading: container, version, buffers
+# ------------------------------------------------------------------------------------------------
+
+
+def _parse_glb(data: bytes, file: str) -> tuple[str, bytes | None]:
+    """Check a GLB header and chunk table; return the JSON text and the BIN chunk (or None)."""
+    if len(data) < 20:
+        raise InputError(f"GLB file of {len(data)} bytes is shorter than its 12-byte header and "
+                         "first chunk header", file=file, location="byte 0", code="gltf.glb")
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    if version != 2:
+        raise InputError(f"GLB container version {version} is not 2", file=file, location="byte 4",
+                         code="gltf.asset.version")
+    if length != len(data):
+        raise InputError(f"GLB header declares {length} bytes, the file has {len(data)}",
+                         file=file, location="byte 8", code="gltf.glb")
+    offset, json_text, binary = 12, None, None
+    index = 0
+    while offset < length:
+        if offset + 8 > length:
+            raise InputError("truncated chunk header", file=file, location=f"byte {offset}",
+                             code="gltf.glb")
+        chunk_length, chunk_type = struct.unpack_from("<II", data, offset)
+        start = offset + 8
+        if start + chunk_length > length:
+            raise InputError(f"chunk {index} of {chunk_length} bytes runs past the end of the file "
+                             f"({length} bytes)", file=file, location=f"byte {offset}",
+                             code="gltf.glb")
+        chunk = data[start:start + chunk_length]
+        if index == 0:
+            if chunk_type != _CHUNK_JSON:
+                raise InputError("the first chunk is not JSON", file=file,
+                                 location=f"byte {offset + 4}", code="gltf.glb")
+            try:
+                json_text = chunk.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise InputError(f"JSON chunk is not UTF-8 ({exc.reason} at byte "
+                                 f"{start + exc.start})", file=file, location=f"byte {start + exc.start}",
+                                 code="gltf.json") from None
+        elif chunk_type == _CHUNK_BIN:
+            if index != 1:
+                raise InputError("BIN chunk is not the second chunk", file=file,
+                                 location=f"byte {offset}", code="gltf.glb")
+            binary = chunk
+        # Other chunk types are skipped, as the GLB specification requires.
+        offset = start + chunk_length
+        index += 1
+    if json_text is None:
+        raise InputError("GLB has no JSON chunk", file=file, location="byte 12", code="gltf.glb")
+    return json_text, binary
+
+
+def _check_version(gltf, file: str) -> None:
+    asset = gltf.asset
+    version = getattr(asset, "version", None) if asset is not None else None
+    match = re.fullmatch(r"(\d+)\.(\d+)", version) if isinstance(version, str) else None
+    if match is None:
+        raise InputError(f"asset.version {version!r} is not of the form MAJOR.MINOR", file=file,
+                         location="/asset/version", code="gltf.asset.version")
+    if int(match.group(1)) != 2:
+        raise InputError(f"glTF version {version} is not supported (this reader knows 2.x)",
+                         file=file, location="/asset/version", code="gltf.asset.version")
+    minimum = getattr(asset, "minVersion", None)
+    if minimum is not None:
+        m = re.fullmatch(r"(\d+)\.(\d+)", minimum) if isinstance(minimum, str) else None
+        if m is None or (int(m.group(1)), int(m.group(2))) > (2, 0):
+            raise InputError(f"asset.minVersion {minimum!r} is newer than 2.0", file=file,
+                             location="/asset/minVersion", code="gltf.asset.version")
+
+
+def _decode_data_uri(uri: str, pointer: str, file: str) -> bytes:
+    header, comma, payload = uri.partition(",")
+    if not comma or not header.endswith(";base64"):
+        raise InputError("data URI is not base64 (expected data:<type>;base64,<data>)", file=file,
+                         location=pointer, code="gltf.buffer.base64")
+    bad = re.search(r"[^A-Za-z0-9+/=]", payload)
+    if bad:
+        raise InputError(f"data URI holds {bad.group(0)!r}, not a base64 character, at character "
+                         f"{len(header) + 1 + bad.start()} of the URI", file=file, location=pointer,
+                         code="gltf.buffer.base64")
+    try:
+        return base64.b64decode(payload, validate=True)
+    except (binascii.Error, ValueError) as exc:
+        raise InputError(f"data URI is not valid base64: {exc}", file=file, location=pointer,
+                         code="gltf.buffer.base64") from None
+
+
+def _read_external(uri: str, folder: Path, length: int, pointer: str, file: str,
+                   allow_outside: bool) -> bytes:
+    from vbusd.fileio import resolve_inside
+
+    relative = urllib.parse.unquote(uri)
+    path = resolve_inside(folder, relative, file=file, location=pointer, allow_outside=allow_outside)
+    try:
+        size = os.stat(path).st_size
+        if size < length:
+            raise InputError(f"buffer file {relative!r} holds {size} bytes, byteLength declares "
+                             f"{length}", file=file, location=pointer.rsplit("/", 1)[0],
+                             code="gltf.buffer.length")
+        with open(path, "rb") as stream:
+            return stream.read(length)
+    except OSError as exc:
+        raise InputError(f"cannot read buffer file {relative!r}: {exc.strerror}", file=file,
+                         location=pointer, code="gltf.buffer.missing") from None
+
+
+def _load_buffers(gltf, binary: bytes | None, folder: Path, file: str,
+                  options: ReadOptions) -> list:
+    buffers = []
+    for i, buf in enumerate(gltf.buffers or []):
+        where = f"/buffers/{i}"
+        length = require_int(buf.byteLength, f"{where}/byteLength", file, minimum=1)
+        if length > MAX_FILE_BYTES:
+            raise InputError(f"byteLength {length} exceeds the limit of {MAX_FILE_BYTES} bytes",
+                             file=file, location=f"{where}/byteLength", code="gltf.buffer.limit")
+        uri = buf.uri
+        if uri is None:
+            if i != 0 or binary is None:
+                raise InputError("buffer has no uri and there is no GLB BIN chunk for it", file=file,
+                                 location=where, code="gltf.buffer.missing")
+            data = binary
+        elif not isinstance(uri, str):
+            raise InputError(f"uri must be a string, found {uri!r}", file=file,
+                             location=f"{where}/uri", code="gltf.value")
+        elif uri.startswith("data:"):
+            data = _decode_data_uri(uri, f"{where}/uri", file)
+        else:
+            data = _read_external(uri, folder, length, f"{where}/uri", file,
+                                  options.allow_outside_paths)
+        if len(data) < length:
+            raise InputError(f"buffer holds {len(data)} bytes, byteLength declares {length}",
+                             file=file, location=where, code="gltf.buffer.length")
+        buffers.append(bytes(data[:length]))
+    return buffers
+
+
+def load(path, options: ReadOptions | None = None):
+    """Parse a .gltf or .glb file with pygltflib and load its buffers, checking the container.
+
+    The container kind is taken from the file's first four bytes (``glTF`` = GLB), not its suffix.
+
+    Args:
+        path: The file.
+        options: Read options (``allow_outside_paths`` applies to buffer URIs).
+
+    Returns:
+        (gltf, buffers): the pygltflib document and the bytes of every buffer, each exactly
+        ``byteLength`` long.
+
+    Raises:
+        InputError: Unreadable file, bad GLB container, bad JSON, unknown major version,
+            unsupported required extension, unsafe or bad buffer URIs, short buffers.
+    """
+    import pygltflib
+
+    options = options or ReadOptions()
+    path = Path(path)
+    file = str(path)
+    try:
+        size = os.stat(path).st_size
+        if size > MAX_FILE_BYTES:
+            raise InputError(f"file of {size} bytes exceeds the limit of {MAX_FILE_BYTES}",
+                             file=file, code="gltf.file.limit")
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", file=file, code="gltf.file") from None
+    binary = None
+    try:
+        if data[:4] == _GLB_MAGIC:
+            json_text, binary = _parse_glb(data, file)
+            # The chunks are checked above; pygltflib parses the same bytes.
+            gltf = pygltflib.GLTF2.load_from_bytes(data)
+        else:
+            try:
+                json_text = data.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise InputError(f"not a GLB and not UTF-8 JSON ({exc.reason})", file=file,
+                                 location=f"byte {exc.start}", code="gltf.json") from None
+            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
+    except InputError:
+        raise
+    except Exception as exc:  # pygltflib surfaces JSON and structure errors as raw exceptions
+        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"not valid glTF JSON: {detail}", file=file, code="gltf.json") from None
+    if gltf is None:
+        raise InputError("GLB has no JSON chunk", file=file, code="gltf.glb")
+    for key in ("accessors", "animations", "bufferViews", "buffers", "meshes", "nodes", "scenes",
+                "skins", "extensionsRequired", "extensionsUsed"):
+        value = getattr(gltf, key, None)
+        if value is not None and not isinstance(value, list):
+            raise InputError(f"{key} must be an array", file=file, location=f"/{key}",
+                             code="gltf.json")
+        if value is None:
+            setattr(gltf, key, [])
+    _check_version(gltf, file)
+    for i, name in enumerate(gltf.extensionsRequired):
+        if name not in _ALLOWED_REQUIRED and not str(name).startswith("KHR_materials_"):
+            raise UnsupportedError(f"required extension {name!r} is not supported",
+                                   file=file, location=f"/extensionsRequired/{i}",
+                                   code="gltf.extension.required")
+    buffers = _load_buffers(gltf, binary, path.parent, file, options)
+    return gltf, buffers
+
+
+# ------------------------------------------------------------------------------------------------
+# Scene conversion
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Channel:
+    node: int
+    path: str            # translation | rotation | scale
+    keys: np.ndarray     # (k,)
+    values: np.ndarray   # (k, c) or (k, 3, c) for CUBICSPLINE
+    interpolation: str
+
+
+@dataclass
+class _Animation:
+    index: int
+    name: str
+    channels: list = field(default_factory=list)   # of _Channel (T/R/S only)
+    start: float = 0.0
+    end: float = 0.0
+
+
+def _float_list(value, length: int, pointer: str, file: str):
+    if value is None:
+        return None
+    if (not isinstance(value, list) or len(value) != length
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        raise InputError(f"expected {length} numbers, found {value!r}", file=file, location=pointer,
+                         code="gltf.node.transform")
+    array = np.array(value, dtype=np.float64)
+    if not np.all(np.isfinite(array)):
+        raise InputError("holds a NaN or infinite value", file=file, location=pointer,
+                         code="gltf.node.transform")
+    return array
+
+
+class _Converter:
+    """Builds a SourceScene from a loaded glTF document; one instance per read()."""
+
+    def __init__(self, gltf, buffers: list, file: str, options: ReadOptions) -> None:
+        self.gltf = gltf
+        self.file = file
+        self.options = options
+        self.reader = AccessorReader(gltf, buffers, file)
+        self.warnings: list[str] = []
+        self.quantized = "KHR_mesh_quantization" in (gltf.extensionsUsed or [])
+
+    def warn(self, message: str) -> None:
+        if message not in self.warnings:
+            self.warnings.append(message)
+
+    def fail(self, message: str, location: str, code: str) -> InputError:
+        return InputError(message, file=self.file, location=location, code=code)
+
+    # -- nodes -----------------------------------------------------------------------------------
+
+    def read_nodes(self) -> None:
+        """Check every node; compute parents, rest local matrices and rest TRS."""
+        nodes = self.gltf.nodes
+        n = len(nodes)
+        self.parent = [-1] * n
+        self.rest_local = np.zeros((n, 4, 4))
+        self.rest_trs: list = [None] * n
+        self.has_matrix = [False] * n
+        for i, node in enumerate(nodes):
+            where = f"/nodes/{i}"
+            children = node.children or []
+            if not isinstance(children, list):
+                raise self.fail("children must be an array", f"{where}/children", "gltf.value")
+            for k, child in enumerate(children):
+                require_index(child, n, f"{where}/children/{k}", self.file, "node")
+                if self.parent[child] != -1:
+                    raise self.fail(f"node {child} is already a child of node {self.parent[child]}; "
+                                    "a node may have only one parent", f"{where}/children/{k}",
+                                    "gltf.node.parents")
+                self.parent[child] = i
+            if node.mesh is not None:
+                require_index(node.mesh, len(self.gltf.meshes), f"{where}/mesh", self.file, "mesh")
+            if node.skin is not None:
+                require_index(node.skin, len(self.gltf.skins), f"{where}/skin", self.file, "skin")
+            matrix = _float_list(node.matrix, 16, f"{where}/matrix", self.file)
+            t = _float_list(node.translation, 3, f"{where}/translation", self.file)
+            r = _float_list(node.rotation, 4, f"{where}/rotation", self.file)
+            s = _float_list(node.scale, 3, f"{where}/scale", self.file)
+            if matrix is not None:
+                if t is not None or r is not None or s is not None:
+                    raise self.fail("a node has either matrix or translation/rotation/scale, not "
+                                    "both", f"{where}/matrix", "gltf.node.transform")
+                m = matrix.reshape(4, 4).T   # glTF is column-major
+                if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
+                    raise self.fail(f"matrix is not affine (last row {m[3].tolist()})",
+                                    f"{where}/matrix", "gltf.node.transform")
+                m = m.copy()
+                m[3] = (0.0, 0.0, 0.0, 1.0)
+                self.rest_local[i] = m
+                self.has_matrix[i] = True
+                continue
+            t = np.zeros(3) if t is None else t
+            s = np.ones(3) if s is None else s
+            if r is None:
+                r = np.array([0.0, 0.0, 0.0, 1.0])
+            else:
+                norm = float(np.linalg.norm(r))
+                if norm == 0.0:
+                    raise self.fail("rotation is a zero quaternion", f"{where}/rotation",
+                                    "gltf.node.transform")
+                if abs(norm - 1.0) > QUAT_UNIT_TOLERANCE:
+                    self.warn(f"{where}/rotation: quaternion of length {norm:.6g} normalized")
+                r = r / norm
+            self.rest_trs[i] = (t, r, s)
+            self.rest_local[i] = compose_trs(t, r, s)
+        # Loops: with at most one parent per node, a cycle shows as a walk up that returns.
+        state = [0] * n   # 0 unvisited, 1 on the current walk, 2 known to reach a root
+        for start in range(n):
+            walk, node = [], start
+            while node != -1 and state[node] == 0:
+                state[node] = 1
+                walk.append(node)
+                node = self.parent[node]
+            if node != -1 and state[node] == 1:
+                cycle = walk[walk.index(node):]
+                chain = " -> ".join(str(c) for c in reversed(cycle + [node]))
+                raise self.fail(f"node hierarchy has a loop: {chain}",
+                                f"/nodes/{self.parent[node]}/children", "gltf.node.loop")
+            for w in walk:
+                state[w] = 2
+        self.depth = [0] * n
+        for i in range(n):
+            d, node = 0, self.parent[i]
+            while node != -1:
+                d, node = d + 1, self.parent[node]
+            self.depth[i] = d
+        for si, scene in enumerate(self.gltf.scenes):
+            for k, root in enumerate(scene.nodes or []):
+                require_index(root, n, f"/scenes/{si}/nodes/{k}", self.file, "node")
+                if self.parent[root] != -1:
+                    raise self.fail(f"node {root} is listed as a scene root but is a child of node "
+                                    f"{self.parent[root]}", f"/scenes/{si}/nodes/{k}",
+                                    "gltf.scene")
+
+    def ancestors_and_self(self, nodes) -> list:
+        """Nodes and all their ancestors, parents before children."""
+        found = set()
+        for node in nodes:
+            while node != -1 and node not in found:
+                found.add(node)
+                node = self.parent[node]
+        return sorted(found, key=lambda x: (self.depth[x], x))
+
+    def rest_world(self, node: int) -> np.ndarray:
+        m = np.eye(4)
+        while node != -1:
+            m = self.rest_local[node] @ m
+            node = self.parent[node]
+        return m
+
+    def node_label(self, index: int) -> str:
+        name = self.gltf.nodes[index].name
+        return f"node {index} {name!r}" if isinstance(name, str) and name else f"node {index}"
+
+    # -- animations ------------------------------------------------------------------------------
+
+    def _accessor_format(self, index: int, pointer: str, what: str, types: tuple,
+                         components: tuple, normalized: tuple | None = None, code: str = "") -> None:
+        acc, ctype, tname, _ = self.reader.header(index, pointer)
+        ok = tname in types and ctype in components
+        if ok and ctype != 5126 and normalized is not None:
+            ok = bool(acc.normalized) in normalized
+        if not ok:
+            norm = " normalized" if acc.normalized else ""
+            raise self.fail(f"{what} accessor {index} is {tname} {COMPONENT_NAMES.get(ctype)}{norm}; "
+                            f"expected {'/'.join(types)} of "
+                            f"{'/'.join(COMPONENT_NAMES[c] for c in components)}", pointer,
+                            code or "gltf.accessor.format")
+
+    def read_animations(self) -> list:
+        """Check and decode every animation's T/R/S channels."""
+        result = []
+        for a, anim in enumerate(self.gltf.animations):
+            where = f"/animations/{a}"
+            samplers = anim.samplers or []
+            channels = anim.channels or []
+            decoded_inputs: dict[int, np.ndarray] = {}
+            for s, sampler in enumerate(samplers):
+                sw = f"{where}/samplers/{s}"
+                interp = sampler.interpolation or "LINEAR"
+                if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
+                    raise self.fail(f"unknown interpolation {interp!r}", f"{sw}/interpolation",
+                                    "gltf.animation.sampler")
+                self._accessor_format(sampler.input, f"{sw}/input", "input", ("SCALAR",), (5126,),
+                                      code="gltf.animation.input")
+                keys = self.reader.read(sampler.input, f"{sw}/input")
+                if keys[0] < 0:
+                    raise self.fail(f"input accessor {sampler.input}: key 0 is negative "
+                                    f"({keys[0]:g} s)", f"{sw}/input", "gltf.animation.input")
+                steps = np.diff(keys)
+                if np.any(steps <= 0):
+                    k = int(np.nonzero(steps <= 0)[0][0]) + 1
+                    raise self.fail(f"input accessor {sampler.input}: key {k} ({keys[k]:g} s) is not "
+                                    f"greater than key {k - 1} ({keys[k - 1]:g} s)", f"{sw}/input",
+                                    "gltf.animation.input")
+                if interp == "CUBICSPLINE" and len(keys) < 2:
+                    raise self.fail("CUBICSPLINE needs at least 2 keys, input has 1", sw,
+                                    "gltf.animation.sampler")
+                decoded_inputs[s] = keys
+            record = _Animation(a, make_identifier(anim.name, f"animation{a}"))
+            targets: dict[tuple, int] = {}
+            all_keys = []
+            for c, channel in enumerate(channels):
+                cw = f"{where}/channels/{c}"
+                s = require_index(channel.sampler, len(samplers), f"{cw}/sampler", self.file,
+                                  "sampler")
+                target = channel.target
+                if target is None:
+                    raise self.fail("channel has no target", cw, "gltf.animation.target")
+                all_keys.append(decoded_inputs[s])
+                if target.node is None:
+                    continue   # targets defined by extensions only
+                node = require_index(target.node, len(self.gltf.nodes), f"{cw}/target/node",
+                                     self.file, "node")
+                path = target.path
+                if path not in ("translation", "rotation", "scale", "weights"):
+                    raise self.fail(f"unknown target path {path!r}", f"{cw}/target/path",
+                                    "gltf.animation.target")
+                if (node, path) in targets:
+                    raise self.fail(f"{self.node_label(node)} {path} is already animated by channel "
+                                    f"{targets[(node, path)]}", cw, "gltf.animation.target")
+                targets[(node, path)] = c
+                if path == "weights":
+                    mesh = self.gltf.nodes[node].mesh
+                    label = (self.mesh_label(mesh) if mesh is not None else self.node_label(node))
+                    self.warn(f"{where}: morph target weights of {label} are animated; "
+                              "morph targets are not baked (the rest shape is used)")
+                    continue
+                if self.has_matrix[node]:
+                    raise self.fail(f"{self.node_label(node)} has a matrix; animated nodes must use "
+                                    "translation/rotation/scale", f"{cw}/target/node",
+                                    "gltf.animation.target")
+                sampler = samplers[s]
+                interp = sampler.interpolation or "LINEAR"
+                keys = decoded_inputs[s]
+                record.channels.append(self._read_output(
+                    node, path, keys, interp, sampler.output, f"{where}/samplers/{s}/output"))
+            if all_keys:
+                record.start = float(min(k[0] for k in all_keys))
+                record.end = float(max(k[-1] for k in all_keys))
+            result.append(record)
+        return result
+
+    def _read_output(self, node: int, path: str, keys: np.ndarray, interp: str, output,
+                     pointer: str) -> _Channel:
+        rotation = path == "rotation"
+        width = 4 if rotation else 3
+        components = (5126,)
+        if rotation:
+            components = (5126, 5120, 5121, 5122, 5123)
+        elif self.quantized:
+            components = (5126, 5120, 5121, 5122, 5123)
+        normalized = (True,) if rotation else None
+        self._accessor_format(output, pointer, f"{path} output", ("VEC4" if rotation else "VEC3",),
+                              components, normalized, code="gltf.animation.output")
+        values = self.reader.read(output, pointer)
+        expected = len(keys) * (3 if interp == "CUBICSPLINE" else 1)
+        if len(values) != expected:
+            raise self.fail(f"output accessor {output} has {len(values)} elements; {interp} with "
+                            f"{len(keys)} input keys needs {expected}", pointer,
+                            "gltf.animation.output")
+        values = np.asarray(values, dtype=np.float64)
+        if interp == "CUBICSPLINE":
+            values = values.reshape(len(keys), 3, width)
+        if rotation:
+            points = values[:, 1] if interp == "CUBICSPLINE" else values
+            norms = np.linalg.norm(points, axis=-1)
+            if np.any(norms == 0):
+                k = int(np.nonzero(norms == 0)[0][0])
+                raise self.fail(f"rotation key {k} is a zero quaternion", pointer,
+                                "gltf.animation.output")
+            worst = float(np.max(np.abs(norms - 1.0)))
+            if worst > QUAT_UNIT_TOLERANCE:
+                self.warn(f"{pointer}: rotation keys are not unit quaternions (length off by up to "
+                          f"{worst:.3g}); normalized")
+            if interp == "CUBICSPLINE":
+                values = values.copy()
+                values[:, 1] = points / norms[:, None]
+            else:
+                values = points / norms[:, None]
+        return _Channel(node, path, np.asarray(keys, dtype=np.float64), values, interp)
+
+    # -- meshes ----------------------------------------------------------------------------------
+
+    def mesh_label(self, index: int) -> str:
+        name = self.gltf.meshes[index].name
+        return (f"mesh {index} {name!r} (/meshes/{index})" if isinstance(name, str) and name
+                else f"mesh {index} (/meshes/{index})")
+
+    def read_primitive(self, m: int, p: int, joint_count: int, skin: int) -> dict:
+        """Decode one primitive of a skinned mesh; check it against a skin of ``joint_count`` joints."""
+        where = f"/meshes/{m}/primitives/{p}"
+        prim = self.gltf.meshes[m].primitives[p]
+        mode = 4 if prim.mode is None else prim.mode
+        if mode not in MODE_NAMES:
+            raise self.fail(f"unknown primitive mode {mode!r}", f"{where}/mode", "gltf.mesh.mode")
+        if mode not in (4, 5, 6):
+            raise UnsupportedError(f"primitive mode {MODE_NAMES[mode]} ({mode}) cannot be a skinned "
+                                   "mesh; only TRIANGLES, TRIANGLE_STRIP and TRIANGLE_FAN are",
+                                   file=self.file, location=f"{where}/mode", code="gltf.mesh.mode")
+        attributes = {k: v for k, v in vars(prim.attributes).items() if v is not None} \
+            if prim.attributes is not None else {}
+        if "POSITION" not in attributes:
+            raise self.fail("primitive has no POSITION", f"{where}/attributes", "gltf.mesh.attribute")
+        aw = f"{where}/attributes"
+        pos_types = (5126, 5120, 5121, 5122, 5123) if self.quantized else (5126,)
+        self._accessor_format(attributes["POSITION"], f"{aw}/POSITION", "POSITION", ("VEC3",),
+                              pos_types)
+        points = np.asarray(self.reader.read(attributes["POSITION"], f"{aw}/POSITION"), np.float64)
+        count = len(points)
+        normals = None
+        if "NORMAL" in attributes:
+            self._accessor_format(attributes["NORMAL"], f"{aw}/NORMAL", "NORMAL", ("VEC3",),
+                                  (5126, 5120, 5122) if self.quantized else (5126,), (True,))
+            normals = np.asarray(self.reader.read(attributes["NORMAL"], f"{aw}/NORMAL"), np.float64)
+            if len(normals) != count:
+                raise self.fail(f"NORMAL has {len(normals)} elements, POSITION {count}",
+                                f"{aw}/NORMAL", "gltf.mesh.count")
+        sets = sorted({int(k.split("_")[1]) for k in attributes
+                       if re.fullmatch(r"(JOINTS|WEIGHTS)_\d+", k)})
+        if 0 not in sets:
+            raise self.fail(f"primitive of a skinned node (skin {skin}) has no JOINTS_0/WEIGHTS_0",
+                            aw, "gltf.mesh.attribute")
+        joints_all, weights_all = [], []
+        for n in sets:
+            for sem in (f"JOINTS_{n}", f"WEIGHTS_{n}"):
+                if sem not in attributes:
+                    other = sem.replace("JOINTS", "W").replace("WEIGHTS", "JOINTS").replace("W_", "WEIGHTS_")
+                    raise self.fail(f"{other} has no matching {sem}", aw, "gltf.mesh.attribute")
+            jp, wp = f"{aw}/JOINTS_{n}", f"{aw}/WEIGHTS_{n}"
+            self._accessor_format(attributes[f"JOINTS_{n}"], jp, f"JOINTS_{n}", ("VEC4",),
+                                  (5121, 5123), (False,))
+            self._accessor_format(attributes[f"WEIGHTS_{n}"], wp, f"WEIGHTS_{n}", ("VEC4",),
+                                  (5126, 5121, 5123), (True,))
+            joints = np.asarray(self.reader.read(attributes[f"JOINTS_{n}"], jp), np.int64)
+            weights = np.asarray(self.reader.read(attributes[f"WEIGHTS_{n}"], wp), np.float64)
+            for arr, pointer in ((joints, jp), (weights, wp)):
+                if len(arr) != count:
+                    raise self.fail(f"has {len(arr)} elements, POSITION {count}", pointer,
+                                    "gltf.mesh.count")
+            if np.any(weights < 0):
+                v, c = (int(x[0]) for x in np.nonzero(weights < 0))
+                raise self.fail(f"vertex {v} component {c}: weight {weights[v, c]:g} is negative",
+                                wp, "gltf.skin.weights")
+            used = weights > 0
+            bad = used & (joints >= joint_count)
+            if np.any(bad):
+                v, c = (int(x[0]) for x in np.nonzero(bad))
+                raise self.fail(f"vertex {v} component {c}: joint {joints[v, c]} is out of range "
+                                f"(skin {skin} has {joint_count} joints)", jp, "gltf.skin.joint_index")
+            if np.any(joints >= joint_count):
+                # Out-of-range joints with zero weight cannot move anything; index 0 is harmless.
+                self.warn(f"{jp}: joints out of range with zero weight set to 0")
+                joints = np.where(joints >= joint_count, 0, joints)
+            joints_all.append(joints)
+            weights_all.append(weights)
+        joints = np.concatenate(joints_all, axis=1)
+        weights = np.concatenate(weights_all, axis=1)
+        # Duplicate joints with weight in one vertex (glTF-Validator ACCESSOR_JOINTS_INDEX_DUPLICATE).
+        keyed = np.where(weights > 0, joints, -1 - np.arange(joints.shape[1])[None, :])
+        ordered = np.sort(keyed, axis=1)
+        dup = np.any(ordered[:, 1:] == ordered[:, :-1], axis=1)
+        if np.any(dup):
+            v = int(np.nonzero(dup)[0][0])
+            raise self.fail(f"vertex {v} lists joint {int(ordered[v][1:][ordered[v][1:] == ordered[v][:-1]][0])} "
+                            "twice with non-zero weight", f"{aw}/JOINTS_0", "gltf.skin.joint_index")
+        # Weight sums, as glTF-Validator: float32 running sum, 2e-7 per non-zero weight.
+        total = np.zeros(count, dtype=np.float32)
+        for c in range(weights.shape[1]):
+            total = (total + weights[:, c].astype(np.float32)).astype(np.float32)
+        threshold = WEIGHT_SUM_TOLERANCE * np.count_nonzero(weights, axis=1)
+        off = np.abs(total.astype(np.float64) - 1.0) > np.maximum(threshold, 1e-12)
+        if np.any(off):
+            v = int(np.nonzero(off)[0][0])
+            raise self.fail(f"vertex {v}: weights sum to {float(total[v]):.9g}, not 1 "
+                            f"(tolerance {WEIGHT_SUM_TOLERANCE:g} per non-zero weight)",
+                            f"{aw}/WEIGHTS_0", "gltf.skin.weights")
+        # Topology.
+        if prim.indices is not None:
+            ip = f"{where}/indices"
+            self._accessor_format(prim.indices, ip, "indices", ("SCALAR",), (5121, 5123, 5125),
+                                  (False,))
+            indices = np.asarray(self.reader.read(prim.indices, ip), np.int64)
+            _, ctype, _, _ = self.reader.header(prim.indices, ip)
+            restart = {5121: 0xFF, 5123: 0xFFFF, 5125: 0xFFFFFFFF}[ctype]
+            bad = (indices >= count) | (indices == restart)
+            if np.any(bad):
+                k = int(np.nonzero(bad)[0][0])
+                why = ("is the primitive restart value" if indices[k] == restart
+                       else f"is not below the vertex count {count}")
+                raise self.fail(f"index {k}: vertex {int(indices[k])} {why}", ip, "gltf.mesh.indices")
+        else:
+            indices = np.arange(count, dtype=np.int64)
+        if mode == 4 and len(indices) % 3:
+            raise self.fail(f"TRIANGLES with {len(indices)} vertices (not a multiple of 3)",
+                            f"{where}/indices" if prim.indices is not None else where,
+                            "gltf.mesh.indices")
+        tris = triangles(mode, indices)
+        if prim.targets:
+            self.warn(f"{self.mesh_label(m)} has morph targets; the rest shape is used")
+        return {"points": points, "normals": normals, "tris": tris, "joints": joints,
+                "weights": weights}
+
+    # -- skins -----------------------------------------------------------------------------------
+
+    def read_skin(self, s: int) -> tuple[list, np.ndarray]:
+        """Check skin ``s``; return its joint node indices and (J, 4, 4) inverse bind matrices."""
+        skin = self.gltf.skins[s]
+        where = f"/skins/{s}"
+        joints = skin.joints
+        if not isinstance(joints, list) or not joints:
+            raise self.fail("skin has no joints", f"{where}/joints", "gltf.skin.joints")
+        seen: dict[int, int] = {}
+        for k, j in enumerate(joints):
+            require_index(j, len(self.gltf.nodes), f"{where}/joints/{k}", self.file, "node")
+            if j in seen:
+                raise self.fail(f"node {j} is listed twice (joints {seen[j]} and {k})",
+                                f"{where}/joints/{k}", "gltf.skin.joints")
+            seen[j] = k
+        if skin.skeleton is not None:
+            root = require_index(skin.skeleton, len(self.gltf.nodes), f"{where}/skeleton",
+                                 self.file, "node")
+            for k, j in enumerate(joints):
+                node = j
+                while node != -1 and node != root:
+                    node = self.parent[node]
+                if node == -1:
+                    raise self.fail(f"skeleton node {root} is not an ancestor of joint {k} "
+                                    f"({self.node_label(j)})", f"{where}/skeleton",
+                                    "gltf.skin.skeleton")
+        count = len(joints)
+        if skin.inverseBindMatrices is None:
+            ibm = np.broadcast_to(np.eye(4), (count, 4, 4))
+        else:
+            pointer = f"{where}/inverseBindMatrices"
+            self._accessor_format(skin.inverseBindMatrices, pointer, "inverseBindMatrices",
+                                  ("MAT4",), (5126,), code="gltf.skin.ibm")
+            ibm = self.reader.read(skin.inverseBindMatrices, pointer)
+            if len(ibm) < count:
+                raise self.fail(f"accessor {skin.inverseBindMatrices} holds {len(ibm)} inverse bind "
+                                f"matrices for {count} joints", pointer, "gltf.skin.ibm")
+            ibm = np.array(ibm[:count], dtype=np.float64)
+            bad = ~np.all(np.isclose(ibm[:, 3], (0.0, 0.0, 0.0, 1.0), atol=1e-5), axis=1)
+            if np.any(bad):
+                k = int(np.nonzero(bad)[0][0])
+                raise self.fail(f"inverse bind matrix {k} is not affine (last row "
+                                f"{ibm[k, 3].tolist()})", pointer, "gltf.skin.ibm")
+            ibm[:, 3] = (0.0, 0.0, 0.0, 1.0)
+        return list(joints), np.array(ibm)
+
+    # -- assembly --------------------------------------------------------------------------------
+
+    def select(self, values: tuple, names: list, what: str) -> list:
+        """Indices selected by ReadOptions values (names or decimal indices); all when empty."""
+        if not values:
+            return list(range(len(names)))
+        chosen = []
+        for value in values:
+            text = str(value)
+            hits = [i for i, name in enumerate(names) if name == text]
+            if not hits and text.isdigit() and int(text) < len(names):
+                hits = [int(text)]
+            if not hits:
+                known = ", ".join(repr(n) if n else str(i) for i, n in enumerate(names)) or "none"
+                raise OptionsError(f"no {what} named {text!r} (known: {known})", file=self.file,
+                                   location=f"/{what}s", code="gltf.option")
+            chosen.extend(h for h in hits if h not in chosen)
+        return sorted(chosen)
+
+    def run(self, stem: str) -> SourceScene:
+        gltf = self.gltf
+        self.read_nodes()
+        animations = self.read_animations()
+        if not gltf.skins:
+            raise UnsupportedError("the file has no skins; Virtual Bones bakes skinned meshes",
+                                   file=self.file, location="/skins", code="gltf.noSkin")
+        skin_names = [s.name if isinstance(s.name, str) else "" for s in gltf.skins]
+        anim_names = [a.name if isinstance(a.name, str) else "" for a in gltf.animations]
+        skins = self.select(self.options.skeletons, skin_names, "skin")
+        chosen_anims = self.select(self.options.clips, anim_names, "animation")
+        time_range = self.options.time_range
+        if time_range is not None:
+            lo, hi = (float(x) for x in time_range)
+            if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+                raise OptionsError(f"time range {time_range!r} is empty or not finite",
+                                   file=self.file, code="gltf.option")
+
+        # Scene and root prim name.
+        scene_index = gltf.scene
+        if scene_index is not None:
+            require_index(scene_index, len(gltf.scenes), "/scene", self.file, "scene")
+        elif gltf.scenes:
+            scene_index = 0
+        scene_name = gltf.scenes[scene_index].name if scene_index is not None else None
+        root = make_identifier(scene_name if isinstance(scene_name, str) and scene_name else stem,
+                               "Scene")
+        names = NameAllocator()
+
+        # Skinned nodes, in node order.
+        users: dict[int, list] = {}
+        for i, node in enumerate(gltf.nodes):
+            if node.mesh is not None and node.skin is None:
+                self.warn(f"{self.node_label(i)} has a mesh but no skin; left out")
+            elif node.skin is not None and node.mesh is None:
+                self.warn(f"{self.node_label(i)} has a skin but no mesh; ignored")
+            elif node.skin is not None:
+                users.setdefault(node.skin, []).append(i)
+                if not np.allclose(self.rest_world(i), np.eye(4), atol=1e-9):
+                    self.warn(f"{self.node_label(i)}: the skinned mesh node's transform is not "
+                              "identity; it is ignored, as glTF 2.0 requires (joint transforms "
+                              "place the mesh)")
+
+        result = []
+        anim_prim_names = {}
+        for s in skins:
+            if s not in users:
+                self.warn(f"skin {s} (/skins/{s}) is used by no mesh node; left out")
+                continue
+            base = make_identifier(gltf.skins[s].name, f"skin{s}")
+            anim_prim_names[s] = names.take(f"{base}_Anim")
+        mesh_names = {}
+        for s in anim_prim_names:
+            for node in users[s]:
+                mesh = gltf.nodes[node].mesh
+                base = make_identifier(gltf.nodes[node].name or gltf.meshes[mesh].name, f"node{node}")
+                prims = gltf.meshes[mesh].primitives or []
+                if not isinstance(prims, list) or not prims:
+                    raise self.fail("mesh has no primitives", f"/meshes/{mesh}/primitives",
+                                    "gltf.mesh.attribute")
+                for p in range(len(prims)):
+                    mesh_names[(node, p)] = names.take(base if len(prims) == 1 else f"{base}_p{p}")
+
+        for s, anim_name in anim_prim_names.items():
+            joints, ibm = self.read_skin(s)
+            bone_names = NameAllocator()
+            bones = tuple(bone_names.take(make_identifier(gltf.nodes[j].name, f"node{j}"))
+                          for j in joints)
+            meshes = []
+            for node in users[s]:
+                m = gltf.nodes[node].mesh
+                for p in range(len(gltf.meshes[m].primitives)):
+                    data = self.read_primitive(m, p, len(joints), s)
+                    meshes.append(SkinnedMesh(
+                        path=f"/{root}/{mesh_names[(node, p)]}",
+                        points=data["points"],
+                        face_vertex_counts=np.full(len(data["tris"]), 3, dtype=np.int32),
+                        face_vertex_indices=data["tris"].reshape(-1).astype(np.int32),
+                        bone_indices=data["joints"].astype(np.int32),
+                        bone_weights=data["weights"],
+                        normals=data["normals"],
+                        normals_interpolation="vertex",
+                        source_path=f"/nodes/{node} /meshes/{m}/primitives/{p}"))
+            relevant = self.ancestors_and_self(joints)
+            relevant_set = set(relevant)
+            clips = []
+            clip_names = NameAllocator()
+            for a in chosen_anims:
+                anim = animations[a]
+                channels = [c for c in anim.channels if c.node in relevant_set]
+                if not channels:
+                    continue
+                start, end = anim.start, anim.end
+                if time_range is not None:
+                    start, end = max(start, lo), min(end, hi)
+                    if end < start:
+                        self.warn(f"/animations/{a}: outside the chosen time range; left out")
+                        continue
+                clips.append(self.make_clip(clip_names.take(anim.name), start, end, channels,
+                                            joints, relevant, ibm))
+            if not clips:
+                self.warn(f"skin {s} (/skins/{s}): no animation moves its joints; a one-row rest "
+                          "clip is written")
+                t0 = 0.0 if time_range is None else float(lo)
+                clips.append(self.make_clip(clip_names.take("rest"), t0, t0, [], joints,
+                                            relevant, ibm))
+            result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=bones,
+                                           clips=tuple(clips), meshes=tuple(meshes),
+                                           source=self.file))
+        if not result:
+            raise UnsupportedError("no skin is used by a mesh node; nothing to bake",
+                                   file=self.file, location="/skins", code="gltf.noSkin")
+        return SourceScene(animations=tuple(result), up_axis="Y", meters_per_unit=1.0,
+                           time_codes_per_second=TIME_CODES_PER_SECOND, default_prim=root,
+                           warnings=tuple(self.warnings), source=self.file)
+
+    def make_clip(self, name: str, start: float, end: float, channels: list, joints: list,
+                  relevant: list, ibm: np.ndarray) -> AnimationClip:
+        """An AnimationClip whose sample() evaluates the node hierarchy at any times."""
+        by_node: dict[int, dict] = {}
+        for channel in channels:
+            by_node.setdefault(channel.node, {})[channel.path] = channel
+        parent = self.parent
+        rest_local = self.rest_local
+        rest_trs = self.rest_trs
+        joint_count = len(joints)
+
+        def sample(times) -> np.ndarray:
+            times = np.asarray(times, dtype=np.float64).reshape(-1)
+            n = len(times)
+            world: dict[int, np.ndarray] = {}
+            for node in relevant:
+                if node in by_node:
+                    t, r, s = rest_trs[node]
+                    animated = by_node[node]
+                    values = {}
+                    for key, rest in (("translation", t), ("rotation", r), ("scale", s)):
+                        ch = animated.get(key)
+                        values[key] = (rest[None, :] if ch is None else
+                                       sample_channel(times, ch.keys, ch.values, ch.interpolation,
+                                                      key == "rotation"))
+                    local = compose_trs(values["translation"], values["rotation"], values["scale"])
+                    local = np.broadcast_to(local, (n, 4, 4))
+                else:
+                    local = rest_local[node]
+                p = parent[node]
+                world[node] = local if p == -1 else world[p] @ local
+            out = np.empty((n, joint_count, 4, 4))
+            for k, j in enumerate(joints):
+                out[:, k] = world[j] @ ibm[k]
+            return out
+
+        keys = np.unique(np.concatenate([c.keys for c in channels])) if channels else np.array([start])
+        keys = keys[(keys >= start) & (keys <= end)]
+        return AnimationClip(name=name, start_time=float(start), end_time=float(end), sample=sample,
+                             native_rate=native_rate(keys), loop=None, key_times=keys)
+
+
+def native_rate(keys: np.ndarray) -> float:
+    """Rows per second proposed for a clip: the key rate when keys sit on a regular grid.
+
+    When every key time lies within 0.1% of a step on a grid of spacing ``dt`` (the smallest gap
+    between keys) and ``1/dt`` is between 10 and 240 Hz, the rate is ``1/dt`` (rounded to an integer
+    when within 0.1% of one); otherwise :data:`DEFAULT_RATE`.
+
+    Args:
+        keys: Sorted unique key times of the clip's channels, seconds.
+    """
+    if len(keys) < 2:
+        return DEFAULT_RATE
+    dt = float(np.min(np.diff(keys)))
+    if dt <= 0:
+        return DEFAULT_RATE
+    steps = (keys - keys[0]) / dt
+    if np.max(np.abs(steps - np.round(steps))) > 1e-3:
+        return DEFAULT_RATE
+    rate = 1.0 / dt
+    if not 10.0 <= rate <= 240.0:
+        return DEFAULT_RATE
+    if abs(rate - round(rate)) <= 1e-3 * rate:
+        rate = float(round(rate))
+    return rate
+
+
+def read(path, options: ReadOptions | None = None) -> SourceScene:
+    """Read a .gltf or .glb file into skinned animations (one per skin).
+
+    Args:
+        path: The glTF file.
+        options: Selection of skins (names or indices) and animations, time range (seconds), and
+            whether buffer URIs may leave the asset's folder.
+
+    Returns:
+        The scene: Y up, metres, 24 time codes per second, one SkinnedAnimation per selected skin
+        used by a mesh node, warnings (morph targets, ignored skinned-node transforms, ...).
+
+    Raises:
+        InputError: Malformed, inconsistent or unsafe input (one line, with a JSON pointer).
+        UnsupportedError: Content vbusd cannot bake (no skins, line or point primitives, ...).
+        OptionsError: Selections that name nothing in the file.
+    """
+    options = options or ReadOptions()
+    gltf, buffers = load(path, options)
+    converter = _Converter(gltf, buffers, str(path), options)
+    return converter.run(Path(path).stem)
