@@ -1,0 +1,171 @@
+"""The built wheel: what ``pip install .`` really installs.
+
+Builds the wheel from a copy of the source tree (so the shared checkout gets no build/ or
+*.egg-info litter) with the ``build`` tool, then checks the archive itself: the import packages
+``vbusd``, ``vbusd.converters`` and ``vbusd.validators``, the USD plugin files and JSON Schemas as
+package data, the ``vbusd`` console script and the ``vbusd.converters`` entry-point group, and no
+top-level ``validators``, ``converters``, ``schema`` or ``spec`` (names taken on the package index).
+Finally the unpacked wheel is imported in a fresh interpreter to show the mapping works without the
+source tree.
+
+Marked ``packaging``: skipped when the ``build`` tool is missing; deselect with
+``-m "not packaging"`` when offline and the build backend (setuptools, wheel) is not installed.
+"""
+
+from __future__ import annotations
+
+import configparser
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+import zipfile
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("build")
+
+pytestmark = pytest.mark.packaging
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Folders of the repository that the wheel maps to import packages: source folder -> package path.
+MAPPED_FOLDERS = {"vbusd": "vbusd", "converters": "vbusd/converters", "validators": "vbusd/validators",
+                  "schema": "vbusd/schema"}
+
+TAKEN_TOP_LEVEL_NAMES = ("validators", "converters", "schema", "spec")
+
+
+def _backend_installed(pyproject: dict) -> bool:
+    """Whether every build-system requirement is satisfied in this interpreter (no download needed)."""
+    from packaging.requirements import Requirement
+
+    for text in pyproject["build-system"]["requires"]:
+        requirement = Requirement(text)
+        try:
+            installed = metadata.version(requirement.name)
+        except metadata.PackageNotFoundError:
+            return False
+        if not requirement.specifier.contains(installed, prereleases=True):
+            return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def source_copy(tmp_path_factory) -> Path:
+    """A snapshot of the checkout: the wheel is built from it and compared with it."""
+    source = tmp_path_factory.mktemp("source") / "vbusd"
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
+        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc"))
+    return source
+
+
+@pytest.fixture(scope="module")
+def wheel_path(tmp_path_factory, source_copy) -> Path:
+    source = source_copy
+    out = tmp_path_factory.mktemp("dist")
+    pyproject = tomllib.loads((source / "pyproject.toml").read_text())
+    command = [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(source)]
+    if _backend_installed(pyproject):
+        # Offline and fast: build with the installed backend instead of a fresh isolated one.
+        command.insert(3, "--no-isolation")
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, f"wheel build failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
+    wheels = sorted(out.glob("vbusd-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0]
+
+
+@pytest.fixture(scope="module")
+def wheel_names(wheel_path) -> set:
+    with zipfile.ZipFile(wheel_path) as archive:
+        return set(archive.namelist())
+
+
+def _dist_info_file(wheel_path: Path, name: str) -> str:
+    with zipfile.ZipFile(wheel_path) as archive:
+        (member,) = [n for n in archive.namelist() if n.endswith(f".dist-info/{name}")]
+        return archive.read(member).decode()
+
+
+def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
+    required = [
+        "vbusd/__init__.py", "vbusd/cli.py", "vbusd/layout.py",
+        "vbusd/converters/__init__.py", "vbusd/validators/__init__.py",
+        "vbusd/schema/__init__.py", "vbusd/schema/usd/__init__.py",
+        "vbusd/schema/usd/plugInfo.json", "vbusd/schema/usd/generatedSchema.usda",
+        "vbusd/schema/usd/schema.usda", "vbusd/schema/layout-metadata.schema.json",
+    ]
+    missing = [name for name in required if name not in wheel_names]
+    assert not missing, f"missing from the wheel: {missing}"
+
+
+def test_every_source_module_and_schema_file_is_in_the_wheel(wheel_names, source_copy):
+    # A sub-package folder that pyproject's explicit `packages` list forgets is silently left out
+    # of the wheel; compare against the source folders themselves.
+    expected = []
+    for folder, package in MAPPED_FOLDERS.items():
+        for path in sorted((source_copy / folder).rglob("*")):
+            if "__pycache__" in path.parts or not path.is_file():
+                continue
+            if path.suffix in (".py", ".json", ".usda"):
+                expected.append(f"{package}/{path.relative_to(source_copy / folder).as_posix()}")
+    missing = [name for name in expected if name not in wheel_names]
+    assert not missing, f"source files not packaged: {missing}"
+
+
+def test_no_taken_top_level_names(wheel_names):
+    top_level = {name.split("/", 1)[0] for name in wheel_names}
+    dist_info = {name for name in top_level if name.endswith(".dist-info")}
+    assert top_level - dist_info == {"vbusd"}, f"unexpected top-level entries: {sorted(top_level - dist_info)}"
+    for taken in TAKEN_TOP_LEVEL_NAMES:
+        assert not any(name.startswith(f"{taken}/") for name in wheel_names), taken
+
+
+def test_top_level_txt_names_only_vbusd(wheel_path):
+    with zipfile.ZipFile(wheel_path) as archive:
+        members = [n for n in archive.namelist() if n.endswith(".dist-info/top_level.txt")]
+        if not members:
+            pytest.skip("this backend writes no top_level.txt")
+        assert archive.read(members[0]).decode().split() == ["vbusd"]
+
+
+def test_console_script_and_converter_entry_points(wheel_path):
+    parser = configparser.ConfigParser(delimiters=("=",))
+    parser.optionxform = str  # entry-point names are case-sensitive
+    parser.read_string(_dist_info_file(wheel_path, "entry_points.txt"))
+    assert parser.get("console_scripts", "vbusd").strip() == "vbusd.cli:main"
+    assert parser.has_section("vbusd.converters")
+    converters = dict(parser.items("vbusd.converters"))
+    assert converters, "the vbusd.converters group is empty"
+    for name, target in converters.items():
+        assert target.strip().startswith("vbusd.converters."), (name, target)
+
+
+def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel_path) as archive:
+        archive.extractall(site)
+    probe = (
+        "import sys, json, vbusd, vbusd.converters, vbusd.validators, vbusd.cli\n"
+        "from importlib import resources\n"
+        "data = resources.files('vbusd.schema')\n"
+        "print(json.dumps({'files': [vbusd.__file__, vbusd.converters.__file__, vbusd.validators.__file__],\n"
+        "                  'plugInfo': data.joinpath('usd', 'plugInfo.json').is_file(),\n"
+        "                  'jsonSchema': data.joinpath('layout-metadata.schema.json').is_file()}))\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(site)
+    env.pop("PXR_PLUGINPATH_NAME", None)
+    # Run outside the checkout: the current directory must not provide the packages.
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env,
+                            cwd=tmp_path, timeout=120)
+    assert result.returncode == 0, result.stderr
+    import json
+
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    for file in report["files"]:
+        assert Path(file).resolve().is_relative_to(site.resolve()), file
+    assert report["plugInfo"] and report["jsonSchema"]
