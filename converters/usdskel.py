@@ -1,0 +1,832 @@
+"""UsdSkel converter: read skinned meshes and skeleton animation from a USD stage.
+
+The mapping is normative in spec/usd-conversion.md; in short:
+
+* one :class:`~vbusd.model.SkinnedAnimation` per bound Skeleton, written at the Skeleton's prim
+  path, with the Skeleton's joints as bones in their order;
+* bones are UsdSkel's skinning transforms carried into the stage's *world space*:
+  ``M_j(t) = (S_j(t) * W_skel(t))^T`` in USD row-vector terms, where ``S_j`` is
+  ``SkeletonQuery.ComputeSkinningTransforms`` (``inverse(bind_j) * jointSkel_j``) and ``W_skel`` the
+  Skeleton prim's local-to-world transform (SkelRoot, ancestors and the Skeleton's own ops, animated
+  or not), so decoded points equal UsdSkel's skinned points placed in the world;
+* rest points are the mesh points with ``primvars:skel:geomBindTransform`` applied (bind space);
+  the skinned mesh's own transform is ignored, as UsdSkel ignores it;
+* mesh-local ``skel:joints`` are remapped to skeleton order; constant (rigid) influences are
+  repeated for every point; weights are normalized (UsdSkel does not: a warning says so);
+* one clip per skeleton, from the first to the last time sample of the animation and of the
+  skeleton's transforms (or ``ReadOptions.time_range``), sampled through UsdSkel so its own
+  interpolation between samples holds.
+
+UsdSkel only warns (or stays silent) on malformed data; every rule it relies on is checked here
+first and reported as one :class:`~vbusd.errors.InputError` naming the prim.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from vbusd.errors import InputError, OptionsError, UnsupportedError
+from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
+
+NAME = "usdskel"
+SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+WEIGHT_SUM_TOLERANCE = 1e-3
+"""Weights whose sum differs from 1 by more than this are reported (UsdSkel uses them as they are)."""
+
+DQS = "dualQuaternion"
+
+
+def sniff(path) -> bool:
+    """Whether ``path`` starts like a USD file (text ``#usda``, crate ``PXR-USDC``, or a usdz zip)."""
+    with open(path, "rb") as handle:
+        head = handle.read(64)
+    if head.startswith(b"#usda") or head.startswith(b"PXR-USDC"):
+        return True
+    return head.startswith(b"PK\x03\x04") and b".usd" in head
+
+
+@dataclass(frozen=True)
+class UsdSkelScene(SourceScene):
+    """A :class:`SourceScene` that also answers with UsdSkel's own skinning, for error reports.
+
+    Attributes:
+        reference: ``reference(animation_index, mesh_index, times) -> (points, normals)``: UsdSkel's
+            skinned points ``(n, V, 3)`` (SkinningQuery.ComputeSkinnedPoints) and normals (or None;
+            UsdSkel.SkinNormalsLBS), both in world space, at source times in seconds.
+        skinning_methods: Per animation, per mesh, UsdSkel's skinning method token.
+    """
+
+    reference: Optional[Callable] = None
+    skinning_methods: tuple = ()
+    reference_name: str = "UsdSkel.SkinningQuery.ComputeSkinnedPoints"
+
+
+# --------------------------------------------------------------------------------------------
+# Small helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _matrix(value) -> np.ndarray:
+    """Gf.Matrix4d -> float64 (4, 4) in USD's row-vector layout."""
+    return np.array(value, dtype=np.float64).reshape(4, 4)
+
+
+def _finite(array) -> bool:
+    return bool(np.all(np.isfinite(np.asarray(array, dtype=np.float64))))
+
+
+class _Reader:
+    """State of one read: the stage, its file name and collected warnings."""
+
+    def __init__(self, path: Path, options: ReadOptions) -> None:
+        from pxr import Usd, UsdGeom, UsdSkel  # heavy import: only at the edge
+
+        self.Usd, self.UsdGeom, self.UsdSkel = Usd, UsdGeom, UsdSkel
+        self.path = path
+        self.file = str(path)
+        self.options = options
+        self.warnings: list[str] = []
+        self.stage = self._open()
+        self.tcps = float(self.stage.GetTimeCodesPerSecond())
+        if not math.isfinite(self.tcps) or self.tcps <= 0:
+            raise InputError(f"timeCodesPerSecond must be positive, got {self.tcps}", file=self.file,
+                             location="/", code="usdskel.timeCodesPerSecond")
+        self.cache = UsdSkel.Cache()
+        self.predicate = Usd.TraverseInstanceProxies()
+
+    def error(self, message: str, location: str, code: str) -> InputError:
+        return InputError(message, file=self.file, location=location, code=code)
+
+    def warn(self, location: str, message: str) -> None:
+        self.warnings.append(f"{location}: {message}")
+
+    # ---------------------------------------------------------------------------------------
+    def _open(self):
+        from pxr import Sdf, Tf
+
+        try:
+            stage = self.Usd.Stage.Open(str(self.path))
+        except Tf.ErrorException as error:
+            first = str(error).strip().splitlines()[-1] if str(error).strip() else "cannot open"
+            raise InputError(f"not a readable USD stage: {first.strip()}", file=self.file,
+                             code="usd.open") from None
+        if stage is None:
+            raise InputError("not a readable USD stage", file=self.file, code="usd.open")
+        if not self.options.allow_outside_paths:
+            root = self.path.resolve().parent
+            for layer in stage.GetUsedLayers():
+                if layer.anonymous:
+                    continue
+                real = layer.realPath or layer.identifier
+                outer = real.split("[", 1)[0]  # a usdz member "pkg.usdz[inner.usdc]" lies in pkg.usdz
+                try:
+                    Path(outer).resolve().relative_to(root)
+                except ValueError:
+                    raise InputError(f"layer '{layer.identifier}' lies outside the asset's folder {root} "
+                                     "(use --allow-outside-paths to allow it)", file=self.file,
+                                     location="/", code="usd.outsidePath") from None
+        del Sdf
+        return stage
+
+    # ---------------------------------------------------------------------------------------
+    def check_binding_api(self) -> None:
+        """skel:* properties on a prim without SkelBindingAPI are ignored by UsdSkel: refuse them."""
+        binding_properties = ("skel:skeleton", "skel:animationSource", "skel:joints", "skel:blendShapes",
+                              "skel:blendShapeTargets", "primvars:skel:jointIndices",
+                              "primvars:skel:jointWeights", "primvars:skel:geomBindTransform",
+                              "primvars:skel:skinningMethod")
+        for prim in self.stage.Traverse(self.predicate):
+            if prim.IsA(self.UsdSkel.Animation):
+                continue  # SkelAnimation owns its own (non-binding) properties
+            authored = [p.GetName() for p in prim.GetAuthoredProperties() if p.GetName() in binding_properties]
+            if authored and not prim.HasAPI(self.UsdSkel.BindingAPI):
+                raise self.error(f"has {authored[0]} but SkelBindingAPI is not applied (UsdSkel ignores "
+                                 "skel:* properties without it; add prepend apiSchemas = [\"SkelBindingAPI\"])",
+                                 str(prim.GetPath()), "usdskel.bindingAPI")
+
+    # ---------------------------------------------------------------------------------------
+    def skinnable_prims(self) -> list:
+        """Prims with authored joint influences, with the skeleton each is bound to.
+
+        Returns:
+            ``[(prim, skeleton_prim)]`` in stage order.
+        """
+        found = []
+        for prim in self.stage.Traverse(self.predicate):
+            if not prim.HasAPI(self.UsdSkel.BindingAPI):
+                continue
+            binding = self.UsdSkel.BindingAPI(prim)
+            indices = binding.GetJointIndicesPrimvar()
+            weights = binding.GetJointWeightsPrimvar()
+            has_indices = bool(indices) and indices.HasAuthoredValue()
+            has_weights = bool(weights) and weights.HasAuthoredValue()
+            if not (has_indices or has_weights):
+                shapes = binding.GetBlendShapesAttr()
+                if shapes and shapes.HasAuthoredValue() and shapes.Get():
+                    found.append((prim, self._bound_skeleton(prim, binding)))
+                continue
+            location = str(prim.GetPath())
+            if has_indices != has_weights:
+                missing = "primvars:skel:jointWeights" if has_indices else "primvars:skel:jointIndices"
+                raise self.error(f"joint influences need both jointIndices and jointWeights; {missing} is "
+                                 "missing", location, "usdskel.influences.missing")
+            if self._skel_root(prim) is None:
+                self.warn(location, "has joint influences but no SkelRoot above it; UsdSkel does not skin "
+                          "it, so it is not converted")
+                continue
+            found.append((prim, self._bound_skeleton(prim, binding)))
+        return found
+
+    def _skel_root(self, prim):
+        parent = prim
+        while parent and not parent.IsPseudoRoot():
+            if parent.IsA(self.UsdSkel.Root):
+                return parent
+            parent = parent.GetParent()
+        return None
+
+    def _bound_skeleton(self, prim, binding):
+        location = str(prim.GetPath())
+        skeleton = binding.GetInheritedSkeleton()
+        if skeleton and skeleton.GetPrim().IsValid():
+            return skeleton.GetPrim()
+        # Find the nearest authored skel:skeleton to say whether it is missing or dangling.
+        node = prim
+        while node and not node.IsPseudoRoot():
+            rel = node.GetRelationship("skel:skeleton")
+            if rel and rel.HasAuthoredTargets():
+                targets = rel.GetForwardedTargets()
+                if not targets:
+                    break
+                target = self.stage.GetPrimAtPath(targets[0])
+                what = ("does not exist" if not target or not target.IsValid()
+                        else f"is a {target.GetTypeName() or 'typeless prim'}, not a Skeleton")
+                raise self.error(f"skel:skeleton (on {node.GetPath()}) targets {targets[0]}, which {what}",
+                                 location, "usdskel.skeleton.dangling")
+            node = node.GetParent()
+        raise self.error("has joint influences but no skel:skeleton binding (on it or an ancestor)",
+                         location, "usdskel.skeleton.missing")
+
+    # ---------------------------------------------------------------------------------------
+    def check_skeleton(self, skel_prim) -> tuple:
+        """Check a Skeleton's joints, bind and rest transforms. Returns its joint tokens."""
+        location = str(skel_prim.GetPath())
+        skeleton = self.UsdSkel.Skeleton(skel_prim)
+        joints = list(skeleton.GetJointsAttr().Get() or [])
+        seen = {}
+        for i, joint in enumerate(joints):
+            if joint in seen:
+                raise self.error(f"joint '{joint}' appears twice in joints (indices {seen[joint]} and {i})",
+                                 f"{location}.joints", "usdskel.joints.duplicate")
+            seen[joint] = i
+        from pxr import Sdf
+
+        for i, joint in enumerate(joints):
+            if not Sdf.Path.IsValidPathString(str(joint)):
+                raise self.error(f"joint {i} '{joint}' is not a valid path", f"{location}.joints",
+                                 "usdskel.joints.invalid")
+            parent = str(Sdf.Path(str(joint)).GetParentPath())
+            if parent in seen and seen[parent] > i:
+                raise self.error(f"joint '{joint}' (index {i}) comes before its parent '{parent}' (index "
+                                 f"{seen[parent]}); joints must be ordered parent first",
+                                 f"{location}.joints", "usdskel.joints.order")
+        for name, attr in (("bindTransforms", skeleton.GetBindTransformsAttr()),
+                           ("restTransforms", skeleton.GetRestTransformsAttr())):
+            if not attr or not attr.HasAuthoredValue():
+                if name == "bindTransforms" and joints:
+                    raise self.error("bindTransforms is missing", f"{location}.{name}",
+                                     "usdskel.bindTransforms.missing")
+                continue
+            value = attr.Get()
+            count = 0 if value is None else len(value)
+            if count != len(joints):
+                raise self.error(f"{name} has {count} matrices for {len(joints)} joints",
+                                 f"{location}.{name}", f"usdskel.{name}.count")
+            array = np.array(value, dtype=np.float64).reshape(-1, 4, 4)
+            if not _finite(array):
+                bad = int(np.argwhere(~np.isfinite(array))[0][0])
+                raise self.error(f"{name}[{bad}] (joint '{joints[bad]}') is not finite",
+                                 f"{location}.{name}", "usdskel.transform.nonFinite")
+            if name == "bindTransforms":
+                dets = np.linalg.det(array[:, :3, :3])
+                if np.any(np.abs(dets) < 1e-12):
+                    bad = int(np.argmax(np.abs(dets) < 1e-12))
+                    raise self.error(f"bindTransforms[{bad}] (joint '{joints[bad]}') is singular",
+                                     f"{location}.{name}", "usdskel.bindTransforms.singular")
+        return tuple(str(j) for j in joints)
+
+    def check_animation(self, anim_prim, skel_joints: tuple) -> None:
+        """Check a SkelAnimation: joints, array lengths at every sample, finite values."""
+        location = str(anim_prim.GetPath())
+        anim = self.UsdSkel.Animation(anim_prim)
+        joints = [str(j) for j in (anim.GetJointsAttr().Get() or [])]
+        seen = set()
+        for joint in joints:
+            if joint in seen:
+                raise self.error(f"joint '{joint}' appears twice in joints", f"{location}.joints",
+                                 "usdskel.joints.duplicate")
+            seen.add(joint)
+        unknown = [j for j in joints if j not in set(skel_joints)]
+        if unknown:
+            self.warn(location, f"{len(unknown)} animated joint(s) are not joints of the skeleton and are "
+                      f"ignored (first: '{unknown[0]}')")
+        attrs = {"translations": anim.GetTranslationsAttr(), "rotations": anim.GetRotationsAttr(),
+                 "scales": anim.GetScalesAttr()}
+        authored = {name: a for name, a in attrs.items() if a and a.HasAuthoredValue()}
+        if joints and authored and len(authored) < 3:
+            missing = sorted(set(attrs) - set(authored))
+            raise self.error(f"{', '.join(missing)} missing: UsdSkel ignores an animation without all of "
+                             "translations, rotations and scales", location, "usdskel.animation.incomplete")
+        for name, attr in authored.items():
+            times = attr.GetTimeSamples()
+            for time in (times or [None]):
+                value = attr.Get() if time is None else attr.Get(time)
+                count = 0 if value is None else len(value)
+                where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
+                if count != len(joints):
+                    raise self.error(f"{name} has {count} values for {len(joints)} joints", where,
+                                     "usdskel.animation.count")
+                if count and not _finite(value):
+                    bad = int(np.argwhere(~np.isfinite(np.asarray(value, dtype=np.float64)))[0][0])
+                    raise self.error(f"{name}[{bad}] (joint '{joints[bad]}') is not finite", where,
+                                     "usdskel.animation.nonFinite")
+                if name == "rotations" and count:
+                    norms = np.linalg.norm(np.asarray([(q.GetReal(), *q.GetImaginary()) for q in value]),
+                                           axis=1)
+                    if np.any(norms < 1e-6):
+                        bad = int(np.argmax(norms < 1e-6))
+                        raise self.error(f"rotations[{bad}] (joint '{joints[bad]}') is a zero quaternion",
+                                         where, "usdskel.animation.zeroQuaternion")
+
+
+# --------------------------------------------------------------------------------------------
+# Influences and meshes
+# --------------------------------------------------------------------------------------------
+
+
+def _read_influences(reader: _Reader, prim, point_count: int, joint_count: int):
+    """Return (indices (V, K) into the binding's joint list, weights (V, K), interpolation)."""
+    location = str(prim.GetPath())
+    binding = reader.UsdSkel.BindingAPI(prim)
+    ind_pv, wgt_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
+    interps = (ind_pv.GetInterpolation(), wgt_pv.GetInterpolation())
+    if interps[0] != interps[1]:
+        raise reader.error(f"jointIndices interpolation '{interps[0]}' differs from jointWeights "
+                           f"interpolation '{interps[1]}'", location, "usdskel.influences.interpolation")
+    if interps[0] not in ("vertex", "constant"):
+        raise reader.error(f"joint influences have interpolation '{interps[0]}'; UsdSkel allows only "
+                           "'vertex' or 'constant'", location, "usdskel.influences.interpolation")
+    sizes = (ind_pv.GetElementSize(), wgt_pv.GetElementSize())
+    if sizes[0] != sizes[1]:
+        raise reader.error(f"jointIndices elementSize {sizes[0]} differs from jointWeights elementSize "
+                           f"{sizes[1]}", location, "usdskel.influences.elementSize")
+    k = int(sizes[0])
+    if k < 1:
+        raise reader.error(f"joint influences have elementSize {k}; it must be at least 1", location,
+                           "usdskel.influences.elementSize")
+    indices = np.asarray(ind_pv.Get() or [], dtype=np.int64)
+    weights = np.asarray(wgt_pv.Get() or [], dtype=np.float64)
+    expected = k if interps[0] == "constant" else k * point_count
+    for name, array in (("jointIndices", indices), ("jointWeights", weights)):
+        if array.size != expected:
+            what = f"{k} (constant, elementSize {k})" if interps[0] == "constant" else \
+                f"{expected} ({point_count} points x elementSize {k})"
+            raise reader.error(f"{name} has {array.size} values, expected {what}", location,
+                               "usdskel.influences.count")
+    indices, weights = indices.reshape(-1, k), weights.reshape(-1, k)
+    if indices.size and (indices.min() < 0 or indices.max() >= joint_count):
+        bad_flat = int(np.argmax((indices < 0) | (indices >= joint_count)))
+        point, value = bad_flat // k, int(indices.reshape(-1)[bad_flat])
+        raise reader.error(f"jointIndices value {value} (point {point}) is out of range 0..{joint_count - 1}",
+                           location, "usdskel.influences.range")
+    if not np.all(np.isfinite(weights)):
+        point = int(np.argwhere(~np.isfinite(weights))[0][0])
+        raise reader.error(f"jointWeights of point {point} are not finite", location,
+                           "usdskel.influences.nonFinite")
+    if np.any(weights < 0):
+        point = int(np.argwhere(weights < 0)[0][0])
+        raise reader.error(f"jointWeights of point {point} has a negative weight {weights[point].min():g}",
+                           location, "usdskel.influences.negative")
+    totals = weights.sum(axis=1)
+    if np.any(totals <= 0):
+        point = int(np.argmax(totals <= 0))
+        raise reader.error(f"jointWeights of point {point} are all zero", location,
+                           "usdskel.influences.zero")
+    off = np.abs(totals - 1.0) > WEIGHT_SUM_TOLERANCE
+    if np.any(off):
+        reader.warn(location, f"weights of {int(off.sum())} point(s) do not sum to 1 (e.g. point "
+                    f"{int(np.argmax(off))}: {totals[np.argmax(off)]:g}); UsdSkel uses them as they are, "
+                    "vbusd normalizes them (the error report shows the difference)")
+    if interps[0] == "constant":
+        indices = np.repeat(indices, point_count, axis=0)
+        weights = np.repeat(weights, point_count, axis=0)
+    return indices, weights, interps[0]
+
+
+def _joint_map(reader: _Reader, prim, skel_joints: tuple) -> np.ndarray:
+    """Indices into the skeleton's joints of the binding's joint list (mesh-local skel:joints)."""
+    location = str(prim.GetPath())
+    attr = reader.UsdSkel.BindingAPI(prim).GetJointsAttr()
+    if not attr or not attr.HasAuthoredValue():
+        return np.arange(len(skel_joints))
+    local = [str(j) for j in (attr.Get() or [])]
+    position = {j: i for i, j in enumerate(skel_joints)}
+    seen = set()
+    result = []
+    for joint in local:
+        if joint in seen:
+            raise reader.error(f"skel:joints lists '{joint}' twice", f"{location}.skel:joints",
+                               "usdskel.joints.duplicate")
+        seen.add(joint)
+        if joint not in position:
+            raise reader.error(f"skel:joints names '{joint}', which is not a joint of the skeleton",
+                               f"{location}.skel:joints", "usdskel.joints.unknown")
+        result.append(position[joint])
+    return np.asarray(result, dtype=np.int64)
+
+
+def _normals(reader: _Reader, mesh, counts: np.ndarray, fvi: np.ndarray, point_count: int, time):
+    """Rest normals and their interpolation (vertex or faceVarying), or (None, 'vertex')."""
+    location = str(mesh.GetPath())
+    primvar = reader.UsdGeom.PrimvarsAPI(mesh.GetPrim()).GetPrimvar("normals")
+    if primvar and primvar.HasAuthoredValue():
+        values, interp = primvar.ComputeFlattened(time), primvar.GetInterpolation()
+    else:
+        attr = mesh.GetNormalsAttr()
+        if not attr or not attr.HasAuthoredValue():
+            return None, "vertex"
+        values, interp = attr.Get(time), mesh.GetNormalsInterpolation()
+    normals = np.asarray(values if values is not None else [], dtype=np.float64).reshape(-1, 3)
+    if normals.size == 0:
+        return None, "vertex"
+    if interp in ("vertex", "varying"):
+        expected, interp = point_count, "vertex"
+    elif interp == "faceVarying":
+        expected = fvi.size
+    elif interp == "uniform":
+        expected = counts.size
+    else:  # constant
+        expected = 1
+    if normals.shape[0] != expected:
+        reader.warn(location, f"{normals.shape[0]} normals for {interp} interpolation (expected {expected}); "
+                    "normals are not converted")
+        return None, "vertex"
+    if not _finite(normals):
+        raise reader.error("normals are not finite", f"{location}.normals", "usdskel.normals.nonFinite")
+    if interp == "uniform":
+        normals, interp = np.repeat(normals, counts, axis=0), "faceVarying"
+    elif interp == "constant":
+        normals, interp = np.repeat(normals, fvi.size, axis=0), "faceVarying"
+    return normals, interp
+
+
+# --------------------------------------------------------------------------------------------
+# Sampling the skeleton through UsdSkel
+# --------------------------------------------------------------------------------------------
+
+
+class SkeletonSampler:
+    """World-space skinning matrices of one skeleton at any time, evaluated by UsdSkel.
+
+    ``sample(times)`` returns ``(len(times), joints, 4, 4)`` column-vector matrices. Each distinct
+    time code is evaluated once (UsdSkel.SkeletonQuery.ComputeSkinningTransforms, which interpolates
+    between authored samples as UsdSkel does) and cached, so the baker and the error report share
+    the work. Times outside [start, end] hold the first or last pose.
+    """
+
+    def __init__(self, reader: _Reader, skel_query, skel_prim, start_code: float, end_code: float) -> None:
+        self._query = skel_query
+        self._xformable = reader.UsdGeom.Xformable(skel_prim)
+        self._cache_xf = reader.UsdGeom.XformCache()
+        self._usd = reader.Usd
+        self._tcps = reader.tcps
+        self._start, self._end = float(start_code), float(end_code)
+        self._location = str(skel_prim.GetPath())
+        self._file = reader.file
+        self._joints = len(skel_query.GetJointOrder())
+        self._static_world = None
+        if not self._world_might_vary(skel_prim, reader):
+            self._static_world = self._world(self._start)
+        self._memo: dict = {}
+
+    @staticmethod
+    def _world_might_vary(prim, reader) -> bool:
+        node = prim
+        while node and not node.IsPseudoRoot():
+            if node.IsA(reader.UsdGeom.Xformable) and reader.UsdGeom.Xformable(node).TransformMightBeTimeVarying():
+                return True
+            node = node.GetParent()
+        return False
+
+    def _world(self, code: float) -> np.ndarray:
+        self._cache_xf.SetTime(self._usd.TimeCode(code))
+        world = _matrix(self._cache_xf.GetLocalToWorldTransform(self._xformable.GetPrim()))
+        if not _finite(world):
+            raise InputError(f"the skeleton's local-to-world transform is not finite at time code {code:g}",
+                             file=self._file, location=self._location, code="usdskel.transform.nonFinite")
+        return world
+
+    def code(self, time: float) -> float:
+        """Time code of a source time (seconds), clamped to the clip."""
+        return min(max(float(time) * self._tcps, self._start), self._end)
+
+    def at_code(self, code: float) -> np.ndarray:
+        """Row-vector skinning matrices (joints, 4, 4) in world space at one time code."""
+        key = round(code, 9)
+        hit = self._memo.get(key)
+        if hit is not None:
+            return hit
+        transforms = self._query.ComputeSkinningTransforms(self._usd.TimeCode(code))
+        if transforms is None or len(transforms) != self._joints:
+            raise InputError(f"UsdSkel could not compute skinning transforms at time code {code:g}",
+                             file=self._file, location=self._location, code="usdskel.skinning")
+        skel = np.array(transforms, dtype=np.float64).reshape(self._joints, 4, 4)
+        world = self._static_world if self._static_world is not None else self._world(code)
+        result = skel @ world
+        self._memo[key] = result
+        return result
+
+    def __call__(self, times) -> np.ndarray:
+        times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        out = np.empty((times.size, self._joints, 4, 4))
+        for i, t in enumerate(times):
+            out[i] = self.at_code(self.code(t))
+        return np.ascontiguousarray(np.transpose(out, (0, 1, 3, 2)))  # row-vector -> column-vector
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Bound:
+    prim: object
+    mesh: SkinnedMesh
+    query: object  # UsdSkel.SkinningQuery
+    method: str
+    joint_map: np.ndarray
+
+
+@dataclass
+class _SkelWork:
+    skel_prim: object
+    joints: tuple
+    targets: list = field(default_factory=list)
+
+
+def _check_options(options: ReadOptions) -> None:
+    if not isinstance(options, ReadOptions):
+        raise OptionsError(f"options must be ReadOptions, got {type(options).__name__}", file=NAME)
+    if options.time_range is not None:
+        try:
+            start, end = (float(v) for v in options.time_range)
+        except (TypeError, ValueError):
+            raise OptionsError(f"time_range must be (start, end), got {options.time_range!r}", file=NAME) from None
+        if not (math.isfinite(start) and math.isfinite(end)) or end < start:
+            raise OptionsError(f"time_range must be finite with start <= end, got {options.time_range!r}",
+                               file=NAME)
+
+
+def _time_samples(reader: _Reader, skel_query, skel_prim) -> list:
+    """Union of the time codes at which the animation or the skeleton's placement is authored."""
+    codes = set()
+    anim = skel_query.GetAnimQuery()
+    if anim:
+        codes.update(float(t) for t in anim.GetJointTransformTimeSamples())
+    node = skel_prim
+    while node and not node.IsPseudoRoot():
+        if node.IsA(reader.UsdGeom.Xformable):
+            codes.update(float(t) for t in reader.UsdGeom.Xformable(node).GetTimeSamples())
+        node = node.GetParent()
+    return sorted(codes)
+
+
+def _native_rate(codes: list, tcps: float) -> float:
+    """One row per time code, or the key rate when keys are uniform and closer than one time code."""
+    if len(codes) >= 3:
+        steps = np.diff(np.asarray(codes))
+        if steps.min() > 0 and (steps.max() - steps.min()) <= 1e-3 * steps.mean() and steps.mean() < 1.0:
+            return tcps / float(steps.mean())
+    return tcps
+
+
+def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
+    """Read every skinned mesh and skeleton animation of a UsdSkel stage.
+
+    Args:
+        path: A .usd, .usda, .usdc or .usdz file.
+        options: Which skeletons (Skeleton prim paths) and which time codes; see
+            :class:`vbusd.model.ReadOptions`.
+
+    Returns:
+        A :class:`UsdSkelScene`: one :class:`SkinnedAnimation` per selected skeleton with meshes,
+        stage metadata, warnings, and UsdSkel's own skinning as an error reference.
+
+    Raises:
+        OptionsError: Bad options, or a ``--skeleton`` that is not a bound Skeleton of the stage.
+        InputError: The stage breaks a UsdSkel rule (one line with the prim path and the problem).
+        UnsupportedError: Nothing the format can hold (a skeleton without joints, only blend shapes).
+    """
+    _check_options(options)
+    path = Path(path)
+    reader = _Reader(path, options)
+    Usd, UsdGeom, UsdSkel = reader.Usd, reader.UsdGeom, reader.UsdSkel
+    stage = reader.stage
+    reader.check_binding_api()
+
+    groups: dict[str, _SkelWork] = {}
+    for prim, skel_prim in reader.skinnable_prims():
+        key = str(skel_prim.GetPath())
+        if not skel_prim.IsA(UsdSkel.Skeleton):
+            raise reader.error(f"skel:skeleton targets {key}, which is a {skel_prim.GetTypeName()}, not a "
+                               "Skeleton", str(prim.GetPath()), "usdskel.skeleton.dangling")
+        if key not in groups:
+            groups[key] = _SkelWork(skel_prim, reader.check_skeleton(skel_prim))
+        groups[key].targets.append(prim)
+
+    selected = [str(s) for s in options.skeletons]
+    for wanted in selected:
+        if wanted not in groups:
+            known = ", ".join(groups) or "none"
+            raise OptionsError(f"no bound Skeleton at '{wanted}' (bound skeletons: {known})", file=reader.file)
+    keys = [k for k in groups if not selected or k in selected]
+    if not keys:
+        raise UnsupportedError("no skinned mesh bound to a Skeleton was found", file=reader.file,
+                               location="/", code="usdskel.nothing")
+
+    animations, references, methods = [], [], []
+    for key in keys:
+        work = groups[key]
+        skel_prim = work.skel_prim
+        location = key
+        skel_query = reader.cache.GetSkelQuery(UsdSkel.Skeleton(skel_prim))
+        if not skel_query:
+            raise reader.error("UsdSkel cannot build a query for this skeleton (check its joints and "
+                               "transforms)", location, "usdskel.skeleton.invalid")
+        if not skel_query.HasRestPose() and not skel_query.GetAnimQuery():
+            raise reader.error("the skeleton has neither restTransforms nor an animation", location,
+                               "usdskel.restTransforms.missing")
+        anim_query = skel_query.GetAnimQuery()
+        if anim_query:
+            reader.check_animation(anim_query.GetPrim(), work.joints)
+            anim_joints = set(str(j) for j in anim_query.GetJointOrder())
+            if not skel_query.HasRestPose() and not set(work.joints) <= anim_joints:
+                raise reader.error("restTransforms is missing and the animation does not drive every joint",
+                                   f"{location}.restTransforms", "usdskel.restTransforms.missing")
+
+        codes = _time_samples(reader, skel_query, skel_prim)
+        if options.time_range is not None:
+            start_code, end_code = (float(v) for v in options.time_range)
+            keys_in = [c for c in codes if start_code <= c <= end_code]
+            codes = sorted(set(keys_in) | {start_code, end_code})
+        elif codes:
+            start_code, end_code = codes[0], codes[-1]
+        else:
+            start_code = end_code = (float(stage.GetStartTimeCode()) if stage.HasAuthoredTimeCodeRange() else 0.0)
+            codes = [start_code]
+        sampler = SkeletonSampler(reader, skel_query, skel_prim, start_code, end_code)
+
+        bound = _bind_targets(reader, work, skel_query, start_code)
+        if not work.joints:
+            shaped = [str(t.GetPath()) for t in work.targets
+                      if UsdSkel.BindingAPI(t).GetBlendShapesAttr().HasAuthoredValue()]
+            if shaped:
+                raise UnsupportedError(f"the skeleton has no joints; its meshes ({', '.join(shaped[:3])}) are "
+                                       "deformed by blend shapes only, which Virtual Bones cannot hold",
+                                       file=reader.file, location=location, code="usdskel.blendShapesOnly")
+            raise reader.error("the skeleton has no joints", f"{location}.joints", "usdskel.joints.empty")
+        if not bound:
+            raise UnsupportedError("no mesh bound to this skeleton can be converted (see the warnings)",
+                                   file=reader.file, location=location, code="usdskel.nothing")
+        tcps = reader.tcps
+        clip = AnimationClip(name=skel_prim.GetName(), start_time=start_code / tcps, end_time=end_code / tcps,
+                             sample=sampler, native_rate=_native_rate(codes, tcps), loop=None,
+                             key_times=np.asarray(codes, dtype=np.float64) / tcps)
+        animations.append(SkinnedAnimation(
+            name=skel_prim.GetName(), path=key, bones=work.joints, clips=(clip,),
+            meshes=tuple(b.mesh for b in bound), source=reader.file))
+        references.append((sampler, bound, skel_query))
+        methods.append(tuple(b.method for b in bound))
+
+    def reference(animation_index: int, mesh_index: int, times) -> tuple:
+        sampler, bound, skel_query = references[animation_index]
+        return _usdskel_reference(reader, sampler, skel_query, bound[mesh_index], times)
+
+    default = stage.GetDefaultPrim()
+    default_name = default.GetName() if default else (animations[0].path.split("/")[1] or "VirtualBones")
+    return UsdSkelScene(
+        animations=tuple(animations), up_axis=str(UsdGeom.GetStageUpAxis(stage)),
+        meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)), time_codes_per_second=reader.tcps,
+        default_prim=default_name, warnings=tuple(reader.warnings), source=reader.file,
+        reference=reference, skinning_methods=tuple(methods))
+
+
+def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: float) -> list:
+    """Turn every prim bound to one skeleton into a :class:`SkinnedMesh` (or a warning)."""
+    UsdSkel, UsdGeom, Usd = reader.UsdSkel, reader.UsdGeom, reader.Usd
+    skel_path = str(work.skel_prim.GetPath())
+    bound = []
+    for prim in work.targets:
+        location = str(prim.GetPath())
+        binding = UsdSkel.BindingAPI(prim)
+        shapes = binding.GetBlendShapesAttr()
+        has_shapes = bool(shapes and shapes.HasAuthoredValue() and shapes.Get())
+        if not binding.GetJointIndicesPrimvar() or not binding.GetJointIndicesPrimvar().HasAuthoredValue():
+            reader.warn(location, "is deformed by blend shapes only (no joint influences); blend shapes "
+                        "cannot be held by Virtual Bones, so it is not converted")
+            continue
+        if not prim.IsA(UsdGeom.Mesh):
+            kind = prim.GetTypeName() or "typeless prim"
+            reader.warn(location, f"is a skinned {kind}, not a Mesh; Virtual Bones binds meshes only, so it "
+                        "is not converted (bake it with UsdSkel.BakeSkinning or convert it to a Mesh)")
+            continue
+        mesh = UsdGeom.Mesh(prim)
+        time = Usd.TimeCode(start_code)
+        points_attr = mesh.GetPointsAttr()
+        points = np.asarray(points_attr.Get(time) or [], dtype=np.float64).reshape(-1, 3)
+        if points.shape[0] == 0:
+            reader.warn(location, "has no points; it is not converted")
+            continue
+        if not _finite(points):
+            bad = int(np.argwhere(~np.isfinite(points))[0][0])
+            raise reader.error(f"point {bad} is not finite", f"{location}.points", "usdskel.points.nonFinite")
+        if points_attr.GetNumTimeSamples() > 1:
+            reader.warn(location, f"points are time-sampled; the rest shape at time code {start_code:g} is used")
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+        fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+        if counts.sum() != fvi.size or (fvi.size and (fvi.min() < 0 or fvi.max() >= points.shape[0])):
+            raise reader.error(f"faceVertexCounts sum to {int(counts.sum())} and faceVertexIndices has "
+                               f"{fvi.size} entries for {points.shape[0]} points: inconsistent topology",
+                               location, "usdskel.mesh.topology")
+        query = _skinning_query(reader, prim, skel_path)
+        method = str(query.GetSkinningMethod()) if query is not None else "classicLinear"
+        joint_map = _joint_map(reader, prim, work.joints)
+        indices, weights, interp = _read_influences(reader, prim, points.shape[0], joint_map.size)
+        if query is None:
+            raise reader.error("UsdSkel does not treat this prim as a skinning target of "
+                               f"{skel_path} (check its joint influences)", location, "usdskel.binding")
+        if has_shapes:
+            reader.warn(location, "has blend shapes (skel:blendShapes); Virtual Bones cannot hold them, so "
+                        "only its joint skinning is converted")
+        geom_bind = _matrix(query.GetGeomBindTransform(time))
+        if not _finite(geom_bind) or abs(np.linalg.det(geom_bind[:3, :3])) < 1e-12:
+            raise reader.error("primvars:skel:geomBindTransform is singular or not finite",
+                               f"{location}.primvars:skel:geomBindTransform", "usdskel.geomBindTransform")
+        bind_points = points @ geom_bind[:3, :3] + geom_bind[3, :3]
+        normals, n_interp = _normals(reader, mesh, counts, fvi, points.shape[0], time)
+        if normals is not None:
+            normal_matrix = np.linalg.inv(geom_bind[:3, :3]).T  # row-vector inverse transpose
+            normals = normals @ normal_matrix
+            lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+            normals = np.divide(normals, lengths, out=np.zeros_like(normals), where=lengths > 0)
+        skinned = SkinnedMesh(
+            path=location, points=bind_points, face_vertex_counts=counts, face_vertex_indices=fvi,
+            bone_indices=joint_map[indices], bone_weights=weights, normals=normals,
+            normals_interpolation=n_interp, source_path=location)
+        bound.append(_Bound(prim, skinned, query, method, joint_map))
+    return bound
+
+
+def _skinning_query(reader: _Reader, prim, skel_path: str):
+    """UsdSkel's own SkinningQuery of ``prim`` (via UsdSkel.Cache bindings), or None."""
+    root = reader._skel_root(prim)
+    if root is None:
+        return None
+    memo = getattr(reader, "_bindings", None)
+    if memo is None:
+        memo = reader._bindings = {}
+    root_key = str(root.GetPath())
+    if root_key not in memo:
+        skel_root = reader.UsdSkel.Root(root)
+        reader.cache.Populate(skel_root, reader.predicate)
+        table = {}
+        for binding in reader.cache.ComputeSkelBindings(skel_root, reader.predicate):
+            for target in binding.GetSkinningTargets():
+                table[str(target.GetPrim().GetPath())] = (str(binding.GetSkeleton().GetPath()), target)
+        memo[root_key] = table
+    entry = memo[root_key].get(str(prim.GetPath()))
+    if entry is None or entry[0] != skel_path:
+        return None
+    return entry[1]
+
+
+def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bound: _Bound, times) -> tuple:
+    """UsdSkel's skinned points and normals of one mesh in world space at source times (seconds)."""
+    Usd, Vt, Gf = reader.Usd, _vt(), _gf()
+    UsdSkel = reader.UsdSkel
+    query = bound.query
+    mesh = reader.UsdGeom.Mesh(bound.prim)
+    times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+    rest = mesh.GetPointsAttr().Get(Usd.TimeCode(sampler.code(times[0])))
+    has_normals = bound.mesh.normals is not None
+    if has_normals:
+        indices, weights = query.ComputeJointInfluences()
+        k = query.GetNumInfluencesPerComponent()
+        raw_normals = _raw_normals(reader, mesh, bound)
+        geom3 = Gf.Matrix3d(*np.linalg.inv(_matrix(query.GetGeomBindTransform())[:3, :3]).T.reshape(-1).tolist())
+        mapper = query.GetJointMapper()
+    points_out = np.empty((times.size, len(rest), 3))
+    normals_out = None
+    for i, t in enumerate(times):
+        code = sampler.code(t)
+        xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(code))
+        world = sampler._static_world if sampler._static_world is not None else sampler._world(code)
+        points = Vt.Vec3fArray(rest)
+        if not query.ComputeSkinnedPoints(xforms, points, Usd.TimeCode(code)):
+            raise InputError(f"UsdSkel could not skin the points at time code {code:g}", file=reader.file,
+                             location=str(bound.prim.GetPath()), code="usdskel.skinning")
+        p = np.asarray(points, dtype=np.float64)
+        points_out[i] = p @ world[:3, :3] + world[3, :3]
+        if has_normals:
+            local = xforms if mapper is None or mapper.IsIdentity() else mapper.RemapTransforms(xforms, Vt.Matrix4dArray(), 1)
+            joint3 = [Gf.Matrix3d(*np.linalg.inv(_matrix(m)[:3, :3]).T.reshape(-1).tolist()) for m in local]
+            normals = Vt.Vec3fArray(raw_normals.tolist())
+            vertex_normals = bound.mesh.normals_interpolation == "vertex"
+            if vertex_normals:
+                UsdSkel.SkinNormalsLBS(geom3, Vt.Matrix3dArray(joint3), indices, weights, k, normals)
+            else:
+                # Face-varying normals: skin each face-vertex with the influences of its point, as
+                # UsdSkel.BakeSkinning does.
+                fvi = bound.mesh.face_vertex_indices
+                ind = np.asarray(indices).reshape(-1, k)
+                wgt = np.asarray(weights).reshape(-1, k)
+                if ind.shape[0] == 1:
+                    ind = np.repeat(ind, len(rest), axis=0)
+                    wgt = np.repeat(wgt, len(rest), axis=0)
+                UsdSkel.SkinNormalsLBS(geom3, Vt.Matrix3dArray(joint3), Vt.IntArray(ind[fvi].reshape(-1).tolist()),
+                                       Vt.FloatArray(wgt[fvi].reshape(-1).tolist()), k, normals)
+            n = np.asarray(normals, dtype=np.float64) @ np.linalg.inv(world[:3, :3]).T
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+            if normals_out is None:
+                normals_out = np.empty((times.size,) + n.shape)
+            normals_out[i] = n
+    return points_out, normals_out
+
+
+def _raw_normals(reader: _Reader, mesh, bound: _Bound) -> np.ndarray:
+    """The mesh's authored normals, expanded like the converter expands them (no geomBind)."""
+    counts = bound.mesh.face_vertex_counts
+    fvi = bound.mesh.face_vertex_indices
+    saved = list(reader.warnings)
+    normals, _ = _normals(reader, mesh, counts, fvi, bound.mesh.points.shape[0], reader.Usd.TimeCode.EarliestTime())
+    reader.warnings[:] = saved
+    return normals
+
+
+def _vt():
+    from pxr import Vt
+
+    return Vt
+
+
+def _gf():
+    from pxr import Gf
+
+    return Gf

@@ -1,0 +1,479 @@
+"""Library side of ``vbusd convert``: read a source, bake every animation, check, write.
+
+The steps, each reported to an optional progress callback:
+
+1. :class:`ConvertOptions` are checked before any file is opened (:class:`~vbusd.errors.OptionsError`);
+   an existing output is refused unless ``force`` is set.
+2. The converter that reads the source is picked by :mod:`vbusd.converters.registry` (UsdSkel, glTF
+   or a plugin) and returns a :class:`~vbusd.model.SourceScene`.
+3. Each skinned animation is baked (:func:`vbusd.bake.bake`). ``encoding="auto"`` picks
+   crossMatrix when every bone transform is rigid and affineMatrix otherwise, and dualQuat when the
+   source asks for dual-quaternion skinning; the report states the choice and why.
+4. Every bound mesh is decoded with the numpy reference decoder at the checked rows and compared
+   with the source's own skinning (for UsdSkel, ``UsdSkel.SkinningQuery.ComputeSkinnedPoints``), so
+   the report holds the largest position error per mesh, and separately the part of it that comes
+   from dropping influences beyond ``max_influences``.
+5. The asset, its texture and its sidecar are written by :func:`vbusd.usd_io.write_asset`, which
+   writes beside the target and renames: a failure leaves no partial output and never clobbers an
+   existing file.
+
+pxr is imported only by the converters and the USD writer, not here.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from .bake import BakeOptions, bake
+from .errors import OptionsError, UnsupportedError
+from .layout import Encoding, Padding, TexelFormat
+from .model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
+
+AUTO = "auto"
+"""The encoding choice that lets vbusd pick per animation."""
+
+CONTAINERS = ("exr", "png")
+OUTPUT_SUFFIXES = (".usda", ".usd", ".usdc")
+DEFAULT_CHECK_ROWS = 256
+"""Rows per clip compared with the source's own skinning by default (all rows when fewer)."""
+
+Progress = Callable[[str, int, int], None]
+"""``progress(step, done, total)``: a step name (``read``, ``bake``, ``check``, ``write``) and counts."""
+
+
+@dataclass(frozen=True)
+class ConvertOptions:
+    """Options of a conversion; checked on construction, before any work starts.
+
+    Attributes:
+        encoding: ``auto`` or an :class:`~vbusd.layout.Encoding` token.
+        texel_format: ``float16``, ``float32`` or ``unorm16``.
+        rows_per_second: Rows per second of every clip; None keeps the source's rate (for UsdSkel,
+            one row per time code).
+        horizontal_padding: ``powerOfTwo`` or ``none``.
+        vertical_padding: ``none`` or ``powerOfTwo`` (resample clips to fill a power of two).
+        max_influences: Influences kept per vertex (the largest, renormalized).
+        skeletons: Skeletons (UsdSkel paths, glTF skin names or indices) to convert; empty: all.
+        frame_range: (start, end) in the source's time unit (USD time codes), or None.
+        container: Texture container, ``exr`` or ``png`` (png requires unorm16).
+        allow_outside_paths: Let the source reference files outside its folder.
+        force: Replace an existing output.
+        check_rows: Rows per clip compared with the source's skinning: None for all rows, 0 to skip;
+            otherwise that many rows spread evenly (first and last included).
+        converter: Force a converter by name (``usdskel``, ``gltf``); None picks by the file.
+        loop: Force looping (True) or clamping (False); None lets the baker decide.
+    """
+
+    encoding: str = AUTO
+    texel_format: str = "float16"
+    rows_per_second: Optional[float] = None
+    horizontal_padding: str = "powerOfTwo"
+    vertical_padding: str = "none"
+    max_influences: int = 4
+    skeletons: tuple = ()
+    frame_range: Optional[tuple] = None
+    container: str = "exr"
+    allow_outside_paths: bool = False
+    force: bool = False
+    check_rows: Optional[int] = DEFAULT_CHECK_ROWS
+    converter: Optional[str] = None
+    loop: Optional[bool] = None
+
+    def __post_init__(self) -> None:
+        where = "convert"
+        encoding = str(getattr(self.encoding, "value", self.encoding))
+        if encoding != AUTO:
+            try:
+                Encoding(encoding)
+            except ValueError:
+                allowed = ", ".join([AUTO] + [e.value for e in Encoding])
+                raise OptionsError(f"encoding must be one of {allowed}, got {self.encoding!r}", file=where) from None
+        object.__setattr__(self, "encoding", encoding)
+        for name, kind in (("texel_format", TexelFormat), ("horizontal_padding", Padding),
+                           ("vertical_padding", Padding)):
+            value = str(getattr(getattr(self, name), "value", getattr(self, name)))
+            try:
+                kind(value)
+            except ValueError:
+                allowed = ", ".join(e.value for e in kind)
+                raise OptionsError(f"{name} must be one of {allowed}, got {value!r}", file=where) from None
+            object.__setattr__(self, name, value)
+        if self.container not in CONTAINERS:
+            raise OptionsError(f"container must be one of {', '.join(CONTAINERS)}, got {self.container!r}",
+                               file=where)
+        if self.container == "png" and self.texel_format != TexelFormat.UNORM16.value:
+            raise OptionsError(f"the png container holds 16-bit integers only: use --texel-format unorm16 "
+                               f"(got {self.texel_format})", file=where)
+        rate = self.rows_per_second
+        if rate is not None:
+            if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
+                raise OptionsError(f"rows per second must be a positive number, got {rate!r}", file=where)
+        k = self.max_influences
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 1 <= int(k) <= 64:
+            raise OptionsError(f"max influences must be an integer in 1..64, got {k!r}", file=where)
+        if self.frame_range is not None:
+            try:
+                start, end = (float(v) for v in self.frame_range)
+            except (TypeError, ValueError):
+                raise OptionsError(f"frame range must be START END, got {self.frame_range!r}", file=where) from None
+            if not (math.isfinite(start) and math.isfinite(end)) or end < start:
+                raise OptionsError(f"frame range must be finite with START <= END, got {start:g} {end:g}",
+                                   file=where)
+            object.__setattr__(self, "frame_range", (start, end))
+        if self.check_rows is not None and (isinstance(self.check_rows, bool) or int(self.check_rows) < 0):
+            raise OptionsError(f"check rows must be a non-negative integer, got {self.check_rows!r}", file=where)
+        object.__setattr__(self, "skeletons", tuple(str(s) for s in self.skeletons))
+
+    def bake_options(self, encoding: Encoding) -> BakeOptions:
+        """The :class:`BakeOptions` for one animation baked with ``encoding``."""
+        return BakeOptions(encoding=encoding, texel_format=self.texel_format,
+                           rows_per_second=self.rows_per_second, horizontal_padding=self.horizontal_padding,
+                           vertical_padding=self.vertical_padding, max_influences=int(self.max_influences),
+                           loop=self.loop)
+
+
+@dataclass
+class MeshReport:
+    """Accuracy of one converted mesh against the source's own skinning.
+
+    Attributes:
+        path: Prim path.
+        points: Vertex count.
+        source_influences: Influences per vertex in the source.
+        kept_influences: Influences per vertex in the texture binding.
+        max_error: Largest distance (scene units) between decoded and reference points over the
+            checked rows; None when not checked.
+        max_error_fraction: ``max_error`` over the diagonal of the reference points' bounding box.
+        influence_error: Largest distance that dropping influences alone adds (exact matrices, all
+            influences vs kept influences), scene units.
+        max_normal_error_degrees: Largest angle between decoded and reference normals, or None.
+        rows_checked: Rows compared.
+    """
+
+    path: str
+    points: int
+    source_influences: int
+    kept_influences: int
+    max_error: Optional[float] = None
+    max_error_fraction: Optional[float] = None
+    influence_error: Optional[float] = None
+    max_normal_error_degrees: Optional[float] = None
+    rows_checked: int = 0
+
+
+@dataclass
+class AnimationReport:
+    """What one baked animation holds."""
+
+    path: str
+    encoding: str
+    encoding_reason: str
+    texel_format: str
+    bones: int
+    rows: int
+    clips: list
+    width: int
+    height: int
+    texel_bytes: int
+    used_texel_bytes: int
+    padding_fraction: float
+    meshes: list = field(default_factory=list)
+
+
+@dataclass
+class ConvertReport:
+    """The summary ``vbusd convert`` prints (as a table or JSON).
+
+    Attributes:
+        source: Input file.
+        output: Written USD file.
+        converter: Converter name.
+        reference: What the errors are measured against.
+        animations: One :class:`AnimationReport` per skeleton.
+        warnings: The converter's and the conversion's warnings.
+        files: Files written, with their sizes in bytes.
+        seconds: Wall time per step.
+    """
+
+    source: str
+    output: str
+    converter: str
+    reference: str
+    animations: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    files: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of the whole report."""
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
+    """Refuse an output that cannot be written, or exists without ``force`` (before any work).
+
+    Raises:
+        OptionsError: Wrong suffix, missing folder, output is the source, or exists without force.
+    """
+    if output.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise OptionsError(f"the output must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
+                           file=str(output))
+    if not output.parent.exists() or not output.parent.is_dir():
+        raise OptionsError(f"the output folder {output.parent} does not exist", file=str(output))
+    if source.exists() and output.exists() and output.resolve() == source.resolve():
+        raise OptionsError("the output would overwrite the input", file=str(output))
+    if output.exists() and not options.force:
+        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+
+
+def _dual_quaternion_meshes(scene: SourceScene, index: int, animation: SkinnedAnimation) -> tuple[list, list]:
+    methods = getattr(scene, "skinning_methods", ())
+    if index >= len(methods):
+        return [], [m.path for m in animation.meshes]
+    dqs = [m.path for m, method in zip(animation.meshes, methods[index]) if method == "dualQuaternion"]
+    lbs = [m.path for m, method in zip(animation.meshes, methods[index]) if method != "dualQuaternion"]
+    return dqs, lbs
+
+
+def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> tuple[VirtualBones, str, list]:
+    """Bake one animation, choosing the encoding when ``options.encoding`` is ``auto``.
+
+    Returns:
+        (baked animation, why this encoding, warnings).
+
+    Raises:
+        UnsupportedError: The chosen encoding cannot hold the animation, or the source mixes
+            skinning methods the format cannot hold in one texture.
+    """
+    animation = scene.animations[index]
+    dqs, lbs = _dual_quaternion_meshes(scene, index, animation)
+    warnings = []
+    if dqs and lbs:
+        raise UnsupportedError(f"meshes bound to one skeleton mix dual-quaternion skinning ({dqs[0]}) and "
+                               f"linear blend skinning ({lbs[0]}); one Virtual Bones texture decodes with one "
+                               "method", file=scene.source, location=animation.path, code="convert.mixedSkinning")
+    if options.encoding == AUTO:
+        if dqs:
+            return bake(animation, options.bake_options(Encoding.DUAL_QUAT)), \
+                "auto: the source uses dual-quaternion skinning (skel:skinningMethod)", warnings
+        try:
+            return bake(animation, options.bake_options(Encoding.CROSS_MATRIX)), \
+                "auto: every bone transform is rigid", warnings
+        except UnsupportedError as error:
+            if error.code != "encoding.nonRigid":
+                raise
+            reason = f"auto: crossMatrix cannot hold it ({error.message.split(';')[0]})"
+            return bake(animation, options.bake_options(Encoding.AFFINE_MATRIX)), reason, warnings
+    encoding = Encoding(options.encoding)
+    if dqs and encoding is not Encoding.DUAL_QUAT:
+        raise UnsupportedError(f"{dqs[0]} uses skel:skinningMethod dualQuaternion, which {encoding.value} "
+                               "decodes with linear blend skinning; use --encoding dualQuat (or auto)",
+                               file=scene.source, location=dqs[0], code="convert.dualQuaternion")
+    if encoding is Encoding.DUAL_QUAT and not dqs:
+        warnings.append(f"{animation.path}: the source skins with linear blend skinning; dualQuat decodes "
+                        "with dual-quaternion skinning (the error report shows the difference)")
+    return bake(animation, options.bake_options(encoding)), "requested", warnings
+
+
+def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
+    if check_rows is None or check_rows >= row_count:
+        return np.arange(row_count)
+    if check_rows == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.unique(np.round(np.linspace(0, row_count - 1, int(check_rows))).astype(np.int64))
+
+
+def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Float64 LBS with exact matrices (n, B, 4, 4): the influence-reduction yardstick."""
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum(axis=1, keepdims=True)
+    a = matrices[:, indices, :3, :3]
+    t = matrices[:, indices, :3, 3]
+    moved = np.einsum("nvkij,vj->nvki", a, np.asarray(points, dtype=np.float64)) + t
+    return np.einsum("nvki,vk->nvi", moved, w)
+
+
+def _chunks(total: int, size: int):
+    for start in range(0, total, size):
+        yield slice(start, min(total, start + size))
+
+
+def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows: Optional[int],
+                   progress: Optional[Progress] = None) -> list:
+    """Compare every bound mesh of one baked animation with the source's own skinning.
+
+    Args:
+        scene: The source scene (its ``reference`` callable, when present, is the yardstick; else
+            float64 LBS of the source matrices with all influences).
+        index: Animation index.
+        vb: The baked animation.
+        check_rows: See :attr:`ConvertOptions.check_rows`.
+        progress: Progress callback.
+
+    Returns:
+        One :class:`MeshReport` per mesh.
+    """
+    from .reference import bone_transforms, normal_point_indices, skin
+
+    animation = scene.animations[index]
+    reference = getattr(scene, "reference", None)
+    reports = []
+    for mesh_index, (source_mesh, bound) in enumerate(zip(animation.meshes, vb.meshes)):
+        reports.append(MeshReport(path=bound.path, points=int(bound.points.shape[0]),
+                                  source_influences=int(np.asarray(source_mesh.bone_indices).shape[1]),
+                                  kept_influences=bound.max_influences))
+    if check_rows == 0:
+        return reports
+    plans = [(ci, clip, _checked_rows(clip.row_count, check_rows)) for ci, clip in enumerate(vb.clips)]
+    total = sum(len(rows) for _, _, rows in plans) * max(1, len(vb.meshes))
+    done = 0
+    lows = [np.full(3, np.inf) for _ in vb.meshes]
+    highs = [np.full(3, -np.inf) for _ in vb.meshes]
+    for clip_index, clip, rows in plans:
+        source_clip = animation.clips[clip_index]
+        for mesh_index, (source_mesh, bound) in enumerate(zip(animation.meshes, vb.meshes)):
+            report = reports[mesh_index]
+            vertex_count = bound.points.shape[0]
+            chunk = max(1, int(2_000_000 // max(1, vertex_count * bound.max_influences)))
+            for part in _chunks(len(rows), chunk):
+                chosen = rows[part]
+                tau = chosen / clip.rows_per_second
+                times = clip.start_time + tau
+                transforms = bone_transforms(vb, clip_index, tau)
+                decoded, decoded_normals = skin(transforms, vb.layout.encoding, bound.points, bound.bone_indices,
+                                                bound.bone_weights, bound.normals, normal_point_indices(bound))
+                exact = np.asarray(source_clip.sample(times), dtype=np.float64)
+                full = _source_lbs(exact, source_mesh.points, np.asarray(source_mesh.bone_indices),
+                                   np.asarray(source_mesh.bone_weights))
+                if reference is not None:
+                    ref_points, ref_normals = reference(index, mesh_index, times)
+                else:
+                    ref_points, ref_normals = full, None
+                kept = _source_lbs(exact, source_mesh.points, bound.bone_indices, bound.bone_weights)
+                error = float(np.linalg.norm(decoded - ref_points, axis=-1).max(initial=0.0))
+                dropped = float(np.linalg.norm(kept - full, axis=-1).max(initial=0.0))
+                report.max_error = max(report.max_error or 0.0, error)
+                report.influence_error = max(report.influence_error or 0.0, dropped)
+                lows[mesh_index] = np.minimum(lows[mesh_index], ref_points.reshape(-1, 3).min(axis=0))
+                highs[mesh_index] = np.maximum(highs[mesh_index], ref_points.reshape(-1, 3).max(axis=0))
+                if ref_normals is not None and decoded_normals is not None and ref_normals.shape == decoded_normals.shape:
+                    cosine = np.clip(np.einsum("nvi,nvi->nv", decoded_normals, ref_normals), -1.0, 1.0)
+                    angle = float(np.degrees(np.arccos(cosine)).max(initial=0.0))
+                    report.max_normal_error_degrees = max(report.max_normal_error_degrees or 0.0, angle)
+                report.rows_checked += len(chosen)
+                done += len(chosen)
+                if progress:
+                    progress("check", done, total)
+    for report, low, high in zip(reports, lows, highs):
+        if report.max_error is not None:
+            diagonal = float(np.linalg.norm(high - low)) if np.all(np.isfinite(low)) else 0.0
+            report.max_error_fraction = report.max_error / diagonal if diagonal > 0 else 0.0
+    return reports
+
+
+def convert(source, output, options: ConvertOptions = ConvertOptions(),
+            progress: Optional[Progress] = None) -> ConvertReport:
+    """Convert a skinned source file into a Virtual Bones USD asset.
+
+    Args:
+        source: Input file (UsdSkel .usd/.usda/.usdc/.usdz, glTF .gltf/.glb, or a plugin's format).
+        output: The USD layer to write (.usda, .usd or .usdc); the texture and sidecar go beside it.
+        options: Conversion options (checked before any work).
+        progress: Optional ``progress(step, done, total)`` callback.
+
+    Returns:
+        The :class:`ConvertReport` summary.
+
+    Raises:
+        OptionsError: Bad options or output path (before any work).
+        InputError: The source is unreadable or breaks its format's rules.
+        UnsupportedError: The source holds what the format cannot (the message names the prim).
+    """
+    from vbusd.converters import registry
+
+    if not isinstance(options, ConvertOptions):
+        raise OptionsError(f"options must be ConvertOptions, got {type(options).__name__}", file="convert")
+    source, output = Path(source), Path(output)
+    check_output(source, output, options)
+    seconds = {}
+
+    clock = time.perf_counter()
+    if progress:
+        progress("read", 0, 1)
+    converter = registry.find_converter(source, options.converter) if source.is_file() else None
+    read_options = ReadOptions(skeletons=options.skeletons, time_range=options.frame_range,
+                               allow_outside_paths=options.allow_outside_paths)
+    scene = registry.read(source, read_options, name=options.converter)
+    seconds["read"] = time.perf_counter() - clock
+    if progress:
+        progress("read", 1, 1)
+
+    clock = time.perf_counter()
+    baked, reasons, warnings = [], [], list(scene.warnings)
+    for index in range(len(scene.animations)):
+        vb, reason, extra = bake_animation(scene, index, options)
+        baked.append(vb)
+        reasons.append(reason)
+        warnings.extend(extra)
+        if progress:
+            progress("bake", index + 1, len(scene.animations))
+    seconds["bake"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    mesh_reports = [measure_errors(scene, i, vb, options.check_rows, progress) for i, vb in enumerate(baked)]
+    seconds["check"] = time.perf_counter() - clock
+
+    asset = VirtualBonesAsset(animations=tuple(baked), up_axis=scene.up_axis,
+                              meters_per_unit=scene.meters_per_unit,
+                              time_codes_per_second=scene.time_codes_per_second,
+                              default_prim=scene.default_prim)
+    clock = time.perf_counter()
+    if progress:
+        progress("write", 0, 1)
+    from .usd_io import write_asset
+
+    if output.exists() and not options.force:  # it may have appeared while we worked
+        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+    written = write_asset(asset, output, texture_container=options.container)
+    seconds["write"] = time.perf_counter() - clock
+    if progress:
+        progress("write", 1, 1)
+
+    files = _written_files(output, written)
+    reference_name = getattr(scene, "reference_name", None) if getattr(scene, "reference", None) else None
+    report = ConvertReport(
+        source=str(source), output=str(output), converter=getattr(converter, "NAME", "?"),
+        reference=reference_name or "source skinning matrices, float64 LBS with all influences",
+        warnings=warnings, files=files, seconds={k: round(v, 4) for k, v in seconds.items()})
+    for vb, reason, meshes in zip(baked, reasons, mesh_reports):
+        layout = vb.layout
+        report.animations.append(AnimationReport(
+            path=vb.path, encoding=layout.encoding.value, encoding_reason=reason,
+            texel_format=layout.texel_format.value, bones=layout.bone_count, rows=layout.row_count,
+            clips=[{"name": c.name, "rows": c.row_count, "rowsPerSecond": c.rows_per_second, "loop": c.loop,
+                    "startTime": c.start_time} for c in vb.clips],
+            width=layout.width, height=layout.height, texel_bytes=layout.texel_bytes,
+            used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
+            meshes=meshes))
+    return report
+
+
+def _written_files(output: Path, written) -> dict:
+    """Sizes of the files the writer produced: its answer when it gives paths, else the USD layer."""
+    paths = []
+    if isinstance(written, (list, tuple)):
+        paths = [Path(p) for p in written if isinstance(p, (str, Path))]
+    elif isinstance(written, dict):
+        paths = [Path(p) for p in written.values() if isinstance(p, (str, Path))]
+    if output not in paths:
+        paths.insert(0, output)
+    return {str(p): p.stat().st_size for p in paths if p.exists()}
