@@ -1,0 +1,378 @@
+"""Reference vertex-stage modules in GLSL and HLSL for every encoding and texel format.
+
+:func:`generate` writes one self-contained module: texel fetches, unorm16 dequantization, clip
+looping or clamping, per-instance clip / time offset / playback rate, interpolation between rows,
+decoding and skinning of position and normal, exactly as spec/virtual-bones.md states and as
+:mod:`vbusd.reference` computes. The interface is documented in spec/shaders.md.
+
+Both languages share one body: the GLSL spelling is the source, and the HLSL prologue maps its
+few type names and intrinsics onto HLSL with macros, so the two cannot drift apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .errors import OptionsError
+from .layout import Encoding, TexelFormat
+
+LANGUAGES = ("glsl", "hlsl")
+DEFAULT_MAX_CLIPS = 16
+
+
+@dataclass(frozen=True)
+class ShaderOptions:
+    """What to generate; checked on construction.
+
+    Attributes:
+        lang: ``glsl`` (GLSL 3.30 core and later) or ``hlsl`` (Shader Model 5 and later).
+        encoding: Bone encoding the texture uses.
+        texel_format: Its texel format (unorm16 adds the range uniforms).
+        max_influences: Influences per vertex K, 1..8 (two attribute sets above 4).
+        max_clips: Size of the clip table uniform array.
+        main: Also emit an entry point ``main`` that writes the skinned position and normal to
+            outputs (for transform feedback or as a starting point); engines usually call
+            ``vbSkin`` from their own vertex function instead.
+    """
+
+    lang: str = "glsl"
+    encoding: Encoding = Encoding.CROSS_MATRIX
+    texel_format: TexelFormat = TexelFormat.FLOAT16
+    max_influences: int = 4
+    max_clips: int = DEFAULT_MAX_CLIPS
+    main: bool = True
+
+    def __post_init__(self) -> None:
+        if self.lang not in LANGUAGES:
+            raise OptionsError(f"lang must be one of {', '.join(LANGUAGES)}, got {self.lang!r}", file="shader")
+        for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat)):
+            try:
+                object.__setattr__(self, name, kind(getattr(self, name)))
+            except ValueError:
+                allowed = ", ".join(e.value for e in kind)
+                raise OptionsError(f"{name} must be one of {allowed}, got {getattr(self, name)!r}",
+                                   file="shader") from None
+        k = self.max_influences
+        if isinstance(k, bool) or int(k) != k or not 1 <= k <= 8:
+            raise OptionsError(f"max_influences must be 1..8, got {k!r}", file="shader")
+        if isinstance(self.max_clips, bool) or int(self.max_clips) != self.max_clips or not 1 <= self.max_clips <= 256:
+            raise OptionsError(f"max_clips must be 1..256, got {self.max_clips!r}", file="shader")
+
+
+_GLSL_PROLOGUE = """\
+#define VB_FETCH(column, row) texelFetch(vb_texture, ivec2(column, row), 0)
+
+uniform sampler2D vb_texture;          // the Virtual Bones texture: NEAREST, no mipmaps, linear (not sRGB)
+uniform float vb_time;                 // scene time in seconds
+uniform vec4 vb_clips[VB_MAX_CLIPS];   // per clip: (firstRow, rowCount, rowsPerSecond, loop ? 1 : 0)
+#if VB_UNORM16
+uniform vec4 vb_rangeMin[VB_TEXELS_PER_BONE];  // unorm16: per texel slot, channel minimum
+uniform vec4 vb_rangeMax[VB_TEXELS_PER_BONE];  // unorm16: per texel slot, channel maximum
+#endif
+"""
+
+_HLSL_PROLOGUE = """\
+#define vec2 float2
+#define vec3 float3
+#define vec4 float4
+#define ivec4 int4
+#define mix lerp
+#define VB_FETCH(column, row) vb_texture.Load(int3(column, row, 0))
+
+Texture2D<float4> vb_texture;          // the Virtual Bones texture: point sampling, no mipmaps, linear (not sRGB)
+cbuffer VirtualBones
+{
+    float vb_time;                     // scene time in seconds
+    float4 vb_clips[VB_MAX_CLIPS];     // per clip: (firstRow, rowCount, rowsPerSecond, loop ? 1 : 0)
+#if VB_UNORM16
+    float4 vb_rangeMin[VB_TEXELS_PER_BONE];
+    float4 vb_rangeMax[VB_TEXELS_PER_BONE];
+#endif
+};
+"""
+
+# The shared body, in the GLSL spelling (the HLSL prologue maps vec*/mix/VB_FETCH).
+_BODY = """\
+vec4 vbTexel(int bone, int slot, int row)
+{
+    vec4 value = VB_FETCH(bone * VB_TEXELS_PER_BONE + slot, row);
+#if VB_UNORM16
+    // The texture is sampled as normalized 16-bit, so value = u / 65535.
+    value = vb_rangeMin[slot] + (vb_rangeMax[slot] - vb_rangeMin[slot]) * value;
+#endif
+    return value;
+}
+
+// Texture rows and blend factor of a clip at clip-local time tau (spec: "Clips").
+void vbRows(int clip, float tau, out int row0, out int row1, out float blend)
+{
+    vec4 c = vb_clips[clip];
+    float n = c.y;
+    float x = tau * c.z;
+    float i0;
+    float i1;
+    if (c.w > 0.5)
+    {
+        x = x - n * floor(x / n);
+        i0 = min(floor(x), n - 1.0);
+        i1 = (i0 + 1.0 >= n) ? 0.0 : i0 + 1.0;
+    }
+    else
+    {
+        x = clamp(x, 0.0, n - 1.0);
+        i0 = floor(x);
+        i1 = min(i0 + 1.0, n - 1.0);
+    }
+    blend = x - i0;
+    row0 = int(c.x + i0);
+    row1 = int(c.x + i1);
+}
+
+// Channel values of one bone texel, interpolated between the two rows.
+vec4 vbLerpTexel(int bone, int slot, int row0, int row1, float blend)
+{
+    return mix(vbTexel(bone, slot, row0), vbTexel(bone, slot, row1), blend);
+}
+"""
+
+_DECODE = {
+    Encoding.CROSS_MATRIX: """\
+// crossMatrix: texel 0 = A e_x, texel 1 = A e_y, texel 2 = t; A e_z = cross(x, y).
+void vbBone(int bone, int row0, int row1, float blend,
+            out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
+{
+    a0 = vbLerpTexel(bone, 0, row0, row1, blend).xyz;
+    a1 = vbLerpTexel(bone, 1, row0, row1, blend).xyz;
+    a2 = cross(a0, a1);
+    t = vbLerpTexel(bone, 2, row0, row1, blend).xyz;
+    n0 = a0; n1 = a1; n2 = a2;
+}
+""",
+    Encoding.AFFINE_MATRIX: """\
+// affineMatrix: texel i = row i of [A | t]; normals use inverse(A)^T.
+void vbBone(int bone, int row0, int row1, float blend,
+            out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
+{
+    vec4 r0 = vbLerpTexel(bone, 0, row0, row1, blend);
+    vec4 r1 = vbLerpTexel(bone, 1, row0, row1, blend);
+    vec4 r2 = vbLerpTexel(bone, 2, row0, row1, blend);
+    a0 = vec3(r0.x, r1.x, r2.x);
+    a1 = vec3(r0.y, r1.y, r2.y);
+    a2 = vec3(r0.z, r1.z, r2.z);
+    t = vec3(r0.w, r1.w, r2.w);
+    // Columns of inverse(A)^T are the cofactor columns over the determinant.
+    float det = dot(a0, cross(a1, a2));
+    n0 = cross(a1, a2) / det;
+    n1 = cross(a2, a0) / det;
+    n2 = cross(a0, a1) / det;
+}
+""",
+    Encoding.QUAT_TRANSLATION: """\
+vec3 vbRotate(vec4 q, vec3 v)
+{
+    return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v);
+}
+
+// quatTranslation: texel 0 = q (x, y, z, w), texel 1 = (t, s); A = s R(q), normals use R(q) / s.
+void vbBone(int bone, int row0, int row1, float blend,
+            out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
+{
+    vec4 q = normalize(vbLerpTexel(bone, 0, row0, row1, blend));
+    vec4 ts = vbLerpTexel(bone, 1, row0, row1, blend);
+    n0 = vbRotate(q, vec3(1.0, 0.0, 0.0));
+    n1 = vbRotate(q, vec3(0.0, 1.0, 0.0));
+    n2 = vbRotate(q, vec3(0.0, 0.0, 1.0));
+    a0 = n0 * ts.w; a1 = n1 * ts.w; a2 = n2 * ts.w;
+    n0 = n0 / ts.w; n1 = n1 / ts.w; n2 = n2 / ts.w;
+    t = ts.xyz;
+}
+""",
+    Encoding.DUAL_QUAT: """\
+vec3 vbRotate(vec4 q, vec3 v)
+{
+    return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v);
+}
+
+// dualQuat: texel 0 = real part, texel 1 = dual part; each bone is normalized by |real|.
+void vbBone(int bone, int row0, int row1, float blend, out vec4 real, out vec4 dual)
+{
+    real = vbLerpTexel(bone, 0, row0, row1, blend);
+    dual = vbLerpTexel(bone, 1, row0, row1, blend);
+    float len = length(real);
+    real = real / len;
+    dual = dual / len;
+}
+""",
+}
+
+_SKIN_LBS = """\
+// Linear blend skinning of one vertex at clip-local time tau.
+void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
+            int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+            out vec3 position, out vec3 normal)
+{
+    int row0;
+    int row1;
+    float blend;
+    vbRows(clip, tau, row0, row1, blend);
+    position = vec3(0.0, 0.0, 0.0);
+    normal = vec3(0.0, 0.0, 0.0);
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        float w = boneWeight[i];
+        if (w == 0.0) continue;
+        vec3 a0; vec3 a1; vec3 a2; vec3 t; vec3 n0; vec3 n1; vec3 n2;
+        vbBone(boneIndex[i], row0, row1, blend, a0, a1, a2, t, n0, n1, n2);
+        position += w * (a0 * restPosition.x + a1 * restPosition.y + a2 * restPosition.z + t);
+        normal += w * (n0 * restNormal.x + n1 * restNormal.y + n2 * restNormal.z);
+    }
+    normal = normalize(normal);
+}
+"""
+
+_SKIN_DQS = """\
+// Dual-quaternion skinning of one vertex at clip-local time tau (signs follow the first influence).
+void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
+            int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+            out vec3 position, out vec3 normal)
+{
+    int row0;
+    int row1;
+    float blend;
+    vbRows(clip, tau, row0, row1, blend);
+    vec4 real = vec4(0.0, 0.0, 0.0, 0.0);
+    vec4 dual = vec4(0.0, 0.0, 0.0, 0.0);
+    vec4 pivot = vec4(0.0, 0.0, 0.0, 1.0);
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        vec4 r; vec4 d;
+        vbBone(boneIndex[i], row0, row1, blend, r, d);
+        if (i == 0) pivot = r;
+        float w = boneWeight[i];
+        if (dot(r, pivot) < 0.0) w = -w;
+        real += w * r;
+        dual += w * d;
+    }
+    float len = length(real);
+    real = real / len;
+    dual = dual / len;
+    // t = 2 (dual (x) conj(real)).xyz
+    vec3 t = 2.0 * (real.w * dual.xyz - dual.w * real.xyz + cross(real.xyz, dual.xyz));
+    position = vbRotate(real, restPosition) + t;
+    normal = normalize(vbRotate(real, restNormal));
+}
+"""
+
+_GLSL_MAIN = """\
+#if VB_MAIN
+in vec3 vb_restPosition;
+in vec3 vb_restNormal;
+in ivec4 vb_boneIndices0;
+in vec4 vb_boneWeights0;
+#if VB_MAX_INFLUENCES > 4
+in ivec4 vb_boneIndices1;
+in vec4 vb_boneWeights1;
+#endif
+in int vb_instanceClip;          // per instance (divisor 1): clip index
+in vec2 vb_instanceTime;         // per instance: (timeOffset, playbackRate)
+
+out vec3 vb_skinnedPosition;
+out vec3 vb_skinnedNormal;
+
+void main()
+{
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+#if VB_MAX_INFLUENCES > 4
+        boneIndex[i] = i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4];
+        boneWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];
+#else
+        boneIndex[i] = vb_boneIndices0[i];
+        boneWeight[i] = vb_boneWeights0[i];
+#endif
+    }
+    float tau = vb_instanceTime.x + vb_instanceTime.y * vb_time;
+    vbSkin(vb_instanceClip, tau, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
+           vb_skinnedPosition, vb_skinnedNormal);
+    gl_Position = vec4(vb_skinnedPosition, 1.0);
+}
+#endif
+"""
+
+_HLSL_MAIN = """\
+#if VB_MAIN
+struct VbVertexInput
+{
+    float3 restPosition : POSITION;
+    float3 restNormal : NORMAL;
+    int4 boneIndices0 : BLENDINDICES0;
+    float4 boneWeights0 : BLENDWEIGHT0;
+#if VB_MAX_INFLUENCES > 4
+    int4 boneIndices1 : BLENDINDICES1;
+    float4 boneWeights1 : BLENDWEIGHT1;
+#endif
+    int instanceClip : TEXCOORD6;      // per instance: clip index
+    float2 instanceTime : TEXCOORD7;   // per instance: (timeOffset, playbackRate)
+};
+
+struct VbVertexOutput
+{
+    float4 position : SV_Position;
+    float3 skinnedPosition : TEXCOORD0;
+    float3 skinnedNormal : TEXCOORD1;
+};
+
+VbVertexOutput main(VbVertexInput input)
+{
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+#if VB_MAX_INFLUENCES > 4
+        boneIndex[i] = i < 4 ? input.boneIndices0[i] : input.boneIndices1[i - 4];
+        boneWeight[i] = i < 4 ? input.boneWeights0[i] : input.boneWeights1[i - 4];
+#else
+        boneIndex[i] = input.boneIndices0[i];
+        boneWeight[i] = input.boneWeights0[i];
+#endif
+    }
+    float tau = input.instanceTime.x + input.instanceTime.y * vb_time;
+    VbVertexOutput output;
+    vbSkin(input.instanceClip, tau, input.restPosition, input.restNormal, boneIndex, boneWeight,
+           output.skinnedPosition, output.skinnedNormal);
+    output.position = float4(output.skinnedPosition, 1.0);
+    return output;
+}
+#endif
+"""
+
+
+def generate(options: ShaderOptions) -> str:
+    """The source of a vertex-stage module for ``options``.
+
+    Args:
+        options: Language, encoding, texel format and sizes.
+
+    Returns:
+        GLSL (without a ``#version`` line, so it can be pasted into an engine's shader; add
+        ``#version 330 core`` or later to compile it alone) or HLSL source text.
+    """
+    header = [
+        f"// vbusd Virtual Bones vertex module ({options.lang}): encoding {options.encoding.value}, "
+        f"texel format {options.texel_format.value}, up to {options.max_influences} influences.",
+        "// Generated by `vbusd shader`; interface and math: spec/shaders.md, spec/virtual-bones.md.",
+        f"#define VB_TEXELS_PER_BONE {options.encoding.texels_per_bone}",
+        f"#define VB_MAX_INFLUENCES {options.max_influences}",
+        f"#define VB_MAX_CLIPS {options.max_clips}",
+        f"#define VB_UNORM16 {1 if options.texel_format is TexelFormat.UNORM16 else 0}",
+        "#ifndef VB_MAIN",
+        f"#define VB_MAIN {1 if options.main else 0}",
+        "#endif",
+        "",
+    ]
+    prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
+    skin = _SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _SKIN_LBS
+    main = _GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN
+    return "\n".join(header) + "\n".join([prologue, _BODY, _DECODE[options.encoding], skin, main])
