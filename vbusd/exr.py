@@ -295,6 +295,27 @@ def _max_image_size(limit: int):
         OpenEXR.setMaxImageSize(*previous)
 
 
+def check_pixel_types(header: ExrHeader, texel_format: str, file) -> str:
+    """Check that every channel has the pixel type of ``texel_format``; returns that type's name.
+
+    Raises:
+        InputError: A format EXR does not hold, or a channel of another pixel type
+            (``header/channels``).
+    """
+    expected = _PIXEL_TYPE_OF_FORMAT.get(texel_format)
+    if expected is None:
+        raise InputError(f"texelFormat {texel_format} cannot be stored in EXR (only float16 and "
+                         "float32; unorm16 uses PNG)", file=file,
+                         location=f"header/{METADATA_ATTRIBUTE}/texelFormat", code="texture.format")
+    wrong = {name: kind for name, kind in header.channels.items() if kind != expected}
+    if wrong:
+        listed = ", ".join(f"{name} is {kind}" for name, kind in sorted(wrong.items()))
+        raise InputError(f"pixel type does not match texelFormat {texel_format} ({expected} "
+                         f"expected): {listed}", file=file, location="header/channels",
+                         code="texture.format")
+    return expected
+
+
 def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: int = 16384) -> np.ndarray:
     """Decode the pixels of a file that :func:`scan_header` accepted.
 
@@ -314,17 +335,7 @@ def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: in
     import OpenEXR
 
     file = str(path)
-    expected = _PIXEL_TYPE_OF_FORMAT.get(texel_format)
-    if expected is None:
-        raise InputError(f"texelFormat {texel_format} cannot be stored in EXR (only float16 and "
-                         "float32; unorm16 uses PNG)", file=file, location=f"header/{METADATA_ATTRIBUTE}/texelFormat",
-                         code="texture.format")
-    wrong = {name: kind for name, kind in header.channels.items() if kind != expected}
-    if wrong:
-        listed = ", ".join(f"{name} is {kind}" for name, kind in sorted(wrong.items()))
-        raise InputError(f"pixel type does not match texelFormat {texel_format} ({expected} "
-                         f"expected): {listed}", file=file, location="header/channels",
-                         code="texture.format")
+    expected = check_pixel_types(header, texel_format, file)
     sink: list = []
     error_text = None
     exr = None

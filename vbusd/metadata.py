@@ -406,26 +406,28 @@ def _semantic_checks(d: Mapping, problems: _Problems) -> Optional[Layout]:
     if len(d["bones"]) != layout.bone_count:
         problems.add(["bones"], f"bones lists {len(d['bones'])} names for boneCount "
                                 f"{layout.bone_count}")
-    used = np.zeros(layout.row_count, dtype=np.int32)
-    total = 0
+    # Clips tile rows [0, rowCount) in order, without gaps or overlap (spec: "Clips").
+    expected_first = 0
+    names: dict = {}
     for i, clip in enumerate(d["clips"]):
         first, count, rate = clip["firstRow"], clip["rowCount"], clip["rowsPerSecond"]
+        if clip["name"] in names:
+            problems.add(["clips", i, "name"], f"clip name {clip['name']!r} is already used by "
+                                               f"clip {names[clip['name']]}")
+        names.setdefault(clip["name"], i)
+        if rate <= 0:
+            problems.add(["clips", i, "rowsPerSecond"], f"rowsPerSecond must be > 0, got {rate}")
         if count < 1:
             problems.add(["clips", i, "rowCount"], f"rowCount must be 1 or more, got {count}")
             continue
-        if rate <= 0:
-            problems.add(["clips", i, "rowsPerSecond"], f"rowsPerSecond must be > 0, got {rate}")
-        if first < 0 or first + count > layout.row_count:
+        if first != expected_first:
             problems.add(["clips", i, "firstRow"],
-                         f"rows {first}..{first + count - 1} lie outside rows 0..{layout.row_count - 1}")
-            continue
-        if used[first:first + count].any():
-            problems.add(["clips", i, "firstRow"],
-                         f"rows {first}..{first + count - 1} overlap an earlier clip")
-        used[first:first + count] += 1
-        total += count
-    if total != layout.row_count and not problems.items:
-        problems.add(["clips"], f"clips hold {total} rows, rowCount is {layout.row_count}")
+                         f"firstRow is {first} but clips tile the rows in order, so it must be "
+                         f"{expected_first}")
+        expected_first = first + count
+    if expected_first != layout.row_count:
+        problems.add(["rowCount"], f"clips end at row {expected_first}, rowCount is "
+                                   f"{layout.row_count}")
     ranges = d.get("unormRanges")
     if layout.texel_format is TexelFormat.UNORM16:
         if ranges is None:
@@ -461,7 +463,7 @@ def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
     :class:`vbusd.errors.VersionError`), the JSON Schema (when installed), structural checks, then
     cross-field checks: every derived size (``texelsPerBone``, ``usedWidth``, ``width``,
     ``height``, ``texelBytes``) must equal what the layout computes, ``bones`` must have
-    ``boneCount`` names, clips must lie inside the rows without overlapping and cover them all, and
+    ``boneCount`` names, clips (uniquely named) must tile the rows in order without gaps, and
     ``unormRanges`` must be present (T x 4 pairs, min <= max) exactly for unorm16.
 
     Args:

@@ -212,6 +212,67 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) 
         VersionError: Metadata of a newer format version.
     """
     path = Path(path)
+    opened = _open_checked(path, max_dimension)
+    if opened.container == "exr":
+        from . import exr
+
+        texels = exr.read_pixels(path, opened.raw, opened.info.layout.texel_format.value,
+                                 max_dimension=max_dimension)
+    else:
+        from . import png16
+
+        texels = png16.read_pixels(opened.raw, str(path))
+    md.check_texels(opened.info, texels, file=str(path),
+                    digest_location=f"{opened.prefix}/contentDigest")
+    texels.setflags(write=False)
+    return TextureData(texels=texels, info=opened.info, container=opened.container,
+                       compression=opened.compression, path=path)
+
+
+@dataclass(frozen=True)
+class TextureHeader:
+    """What a texture file says about itself, read without decoding its pixels.
+
+    Attributes:
+        info: The validated layout metadata.
+        container: ``exr`` or ``png``.
+        compression: The file's compression.
+        path: The file.
+    """
+
+    info: md.LayoutInfo
+    container: str
+    compression: str
+    path: Path
+
+
+def read_texture_header(path: PathLike, *,
+                        max_dimension: int = MAX_TEXTURE_DIMENSION) -> TextureHeader:
+    """Read and check a texture's header and metadata without decoding pixels (fast for any size).
+
+    Makes every check of :func:`read_texture` except decoding the pixels and the content digest
+    (EXR: the chunk table is still checked, so truncation is found).
+
+    Raises:
+        InputError: As :func:`read_texture`.
+    """
+    path = Path(path)
+    opened = _open_checked(path, max_dimension)
+    return TextureHeader(info=opened.info, container=opened.container,
+                         compression=opened.compression, path=path)
+
+
+@dataclass(frozen=True)
+class _Opened:
+    info: md.LayoutInfo
+    container: str
+    compression: str
+    raw: object  # exr.ExrHeader or png16.PngChunks
+    prefix: str  # location of the metadata inside the file
+
+
+def _open_checked(path: Path, max_dimension: int) -> _Opened:
+    """Every check that needs no pixel decoding: container, header, sizes, metadata, pixel types."""
     file = str(path)
     container = sniff_container(path)
     if container == "exr":
@@ -224,26 +285,19 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) 
             raise InputError("texelFormat unorm16 is stored in PNG files, not EXR", file=file,
                              location=f"{prefix}/texelFormat", code="texture.format")
         _check_dimensions(info, header.width, header.height, file, "header/dataWindow")
-        texels = exr.read_pixels(path, header, info.layout.texel_format.value,
-                                 max_dimension=max_dimension)
-        compression = header.compression
-    else:
-        from . import png16
+        exr.check_pixel_types(header, info.layout.texel_format.value, file)
+        return _Opened(info, container, header.compression, header, prefix)
+    from . import png16
 
-        chunks = png16.scan_chunks(path, max_dimension=max_dimension)
-        prefix = f"iTXt {png16.METADATA_KEYWORD}"
-        info = md.loads(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
-        if info.layout.texel_format is not TexelFormat.UNORM16:
-            raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
-                             "files; a PNG holds unorm16 only", file=file,
-                             location=f"{prefix}/texelFormat", code="texture.format")
-        _check_dimensions(info, chunks.width, chunks.height, file, "IHDR")
-        texels = png16.read_pixels(chunks, file)
-        compression = "zip"
-    md.check_texels(info, texels, file=file, digest_location=f"{prefix}/contentDigest")
-    texels.setflags(write=False)
-    return TextureData(texels=texels, info=info, container=container, compression=compression,
-                       path=path)
+    chunks = png16.scan_chunks(path, max_dimension=max_dimension)
+    prefix = f"iTXt {png16.METADATA_KEYWORD}"
+    info = md.loads(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
+    if info.layout.texel_format is not TexelFormat.UNORM16:
+        raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
+                         "files; a PNG holds unorm16 only", file=file,
+                         location=f"{prefix}/texelFormat", code="texture.format")
+    _check_dimensions(info, chunks.width, chunks.height, file, "IHDR")
+    return _Opened(info, container, "zip", chunks, prefix)
 
 
 def read_sidecar(path: PathLike) -> md.LayoutInfo:

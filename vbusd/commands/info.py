@@ -1,0 +1,284 @@
+"""``vbusd info ASSET``: print the texture layout of a Virtual Bones asset, texture or sidecar.
+
+ASSET may be:
+
+* a Virtual Bones USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``): every
+  ``VirtualBonesAnimation`` prim is described from its ``vb:*`` attributes (the source of truth
+  inside USD; the texture itself is not opened);
+* a texture (``.exr`` or ``.png``, recognized by its magic bytes): described from its embedded
+  metadata; the header is checked but pixels are not decoded (``vbusd validate`` checks them);
+* a sidecar ``<texture>.json``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import click
+
+from ..errors import InputError, OptionsError
+from ..layout import Layout
+from ..model import Clip
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+
+_HELP = """Print the texture layout of a Virtual Bones asset.
+
+ASSET is a Virtual Bones USD file (every VirtualBonesAnimation prim is described from its vb:*
+attributes), a texture (.exr or .png, from its embedded metadata; pixels are not decoded) or a
+sidecar <texture>.json.
+
+The text form shows, per animation: encoding, texel format, bones, rows, used and padded width,
+height, texel bytes, padding waste and the clips.
+
+The JSON form (--format json) is one object:
+
+\b
+  {"file": ASSET, "kind": "usd" | "texture" | "sidecar",
+   "animations": [{"path", "texture", "formatVersion", "encoding",
+                   "texelFormat", "boneCount", "texelsPerBone", "bones",
+                   "rowCount", "usedWidth", "width", "height",
+                   "horizontalPadding", "verticalPadding", "texelBytes",
+                   "usedTexelBytes", "paddingBytes", "paddingFraction",
+                   "contentDigest", "clips": [{"name", "firstRow",
+                   "rowCount", "rowsPerSecond", "loop", "startTime",
+                   "duration"}]}, ...]}
+
+When there is exactly one animation its keys are repeated at the top level, so
+`vbusd info anim.exr --format json | jq .width` works; with several, use
+`.animations[i].width`. "path" is the prim path (null for a texture or sidecar), "texture" the
+texture file as written in the asset.
+"""
+
+
+def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
+             texture: Optional[str] = None, format_version: Optional[int] = None,
+             content_digest: Optional[str] = None) -> dict:
+    """The JSON description of one animation's layout (keys as in the command help).
+
+    Args:
+        layout: Sizes.
+        clips: :class:`vbusd.model.Clip` objects.
+        bones: Bone names.
+        path: Prim path of the animation, if it came from USD.
+        texture: Texture file name as written in the asset.
+        format_version: The metadata's formatVersion.
+        content_digest: The texels' digest.
+    """
+    return {
+        "path": path,
+        "texture": texture,
+        "formatVersion": format_version,
+        "encoding": layout.encoding.value,
+        "texelFormat": layout.texel_format.value,
+        "boneCount": layout.bone_count,
+        "texelsPerBone": layout.texels_per_bone,
+        "bones": [str(b) for b in bones],
+        "rowCount": layout.row_count,
+        "usedWidth": layout.used_width,
+        "width": layout.width,
+        "height": layout.height,
+        "horizontalPadding": layout.horizontal_padding.value,
+        "verticalPadding": layout.vertical_padding.value,
+        "texelBytes": layout.texel_bytes,
+        "usedTexelBytes": layout.used_texel_bytes,
+        "paddingBytes": layout.texel_bytes - layout.used_texel_bytes,
+        "paddingFraction": layout.padding_fraction,
+        "contentDigest": content_digest,
+        "clips": [
+            {"name": c.name, "firstRow": c.first_row, "rowCount": c.row_count,
+             "rowsPerSecond": c.rows_per_second, "loop": c.loop, "startTime": c.start_time,
+             "duration": c.duration}
+            for c in clips
+        ],
+    }
+
+
+def _describe_info(info, *, texture: Optional[str]) -> dict:
+    return describe(info.layout, info.clips, bones=info.bones, texture=texture,
+                    format_version=info.format_version, content_digest=info.content_digest)
+
+
+# --------------------------------------------------------------------------------------------
+# USD
+# --------------------------------------------------------------------------------------------
+
+
+def _usd_animations(path: Path) -> list:
+    """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes."""
+    from pxr import Sdf, Tf, Usd
+
+    from .. import usd_plugin  # noqa: F401  (registers the schema so fallbacks resolve)
+
+    file = str(path)
+    try:
+        stage = Usd.Stage.Open(file, Usd.Stage.LoadAll)
+    except Tf.ErrorException as error:
+        first = str(error).strip().splitlines()
+        raise InputError(f"USD cannot open the file: {first[-1] if first else error}",
+                         file=file, location="file", code="usd.open") from None
+    if stage is None:
+        raise InputError("USD cannot open the file", file=file, location="file", code="usd.open")
+    animations = []
+    for prim in stage.Traverse():
+        if prim.GetTypeName() != "VirtualBonesAnimation":
+            continue
+        animations.append(_describe_prim(prim, file))
+    if not animations:
+        raise InputError("no VirtualBonesAnimation prim: not a Virtual Bones asset", file=file,
+                         location=str(stage.GetPseudoRoot().GetPath()), code="usd.noAnimation")
+    return animations
+
+
+def _describe_prim(prim, file: str) -> dict:
+    prim_path = str(prim.GetPath())
+
+    def get(name: str, *, required: bool = True, default=None):
+        attribute = prim.GetAttribute(name)
+        value = attribute.Get() if attribute else None
+        if value is None:
+            if required:
+                raise InputError(f"{name} has no value", file=file,
+                                 location=f"{prim_path}.{name}", code="usd.attribute")
+            return default
+        return value
+
+    try:
+        layout = Layout(get("vb:encoding"), get("vb:texelFormat"), int(get("vb:boneCount")),
+                        int(get("vb:rowCount")), get("vb:horizontalPadding", required=False,
+                                                     default="powerOfTwo"),
+                        get("vb:verticalPadding", required=False, default="none"))
+    except OptionsError as error:
+        raise InputError(error.message, file=file, location=prim_path,
+                         code="usd.attribute") from None
+    for name, value in (("vb:textureWidth", layout.width), ("vb:textureHeight", layout.height),
+                        ("vb:texelsPerBone", layout.texels_per_bone)):
+        authored = get(name, required=False)
+        if authored is not None and int(authored) != value:
+            raise InputError(f"{name} is {authored} but the layout gives {value}", file=file,
+                             location=f"{prim_path}.{name}", code="usd.attribute")
+    names = list(get("vb:clipNames", required=False, default=[]))
+    columns = {key: list(get(key, required=False, default=[])) for key in (
+        "vb:clipFirstRows", "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops",
+        "vb:clipStartTimes")}
+    for key, values in columns.items():
+        if len(values) != len(names):
+            raise InputError(f"{key} has {len(values)} entries for {len(names)} clip names",
+                             file=file, location=f"{prim_path}.{key}", code="usd.attribute")
+    clips = [Clip(name=str(names[i]), first_row=int(columns["vb:clipFirstRows"][i]),
+                  row_count=int(columns["vb:clipRowCounts"][i]),
+                  rows_per_second=float(columns["vb:clipRowsPerSecond"][i]),
+                  loop=bool(columns["vb:clipLoops"][i]),
+                  start_time=float(columns["vb:clipStartTimes"][i])) for i in range(len(names))]
+    for i, clip in enumerate(clips):
+        if clip.rows_per_second <= 0:
+            raise InputError(f"clip {clip.name!r} has rowsPerSecond {clip.rows_per_second}",
+                             file=file, location=f"{prim_path}.vb:clipRowsPerSecond[{i}]",
+                             code="usd.attribute")
+    texture = get("vb:texture", required=False)
+    version = get("vb:formatVersion", required=False)
+    return describe(layout, clips, bones=list(get("vb:bones", required=False, default=[])),
+                    path=prim_path, texture=texture.path if texture is not None else None,
+                    format_version=None if version is None else int(version),
+                    content_digest=get("vb:contentDigest", required=False))
+
+
+# --------------------------------------------------------------------------------------------
+# Entry points
+# --------------------------------------------------------------------------------------------
+
+
+def asset_info(asset) -> dict:
+    """The JSON description ``vbusd info --format json`` prints for ASSET.
+
+    Raises:
+        InputError: The file is missing, of an unknown kind, or cannot be read.
+    """
+    from .. import textures
+
+    path = Path(asset)
+    file = str(asset)
+    if not path.is_file():
+        raise InputError("file not found" if not path.exists() else "not a file", file=file,
+                         location="file", code="file.missing")
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        kind = "sidecar"
+        info = textures.read_sidecar(path)
+        texture = path.name[:-len(".json")] if path.name.lower().endswith(".json") else None
+        animations = [_describe_info(info, texture=texture)]
+    elif suffix in USD_SUFFIXES:
+        kind = "usd"
+        animations = _usd_animations(path)
+    else:
+        try:
+            container = textures.sniff_container(path)
+        except InputError:
+            raise InputError("not a Virtual Bones asset: expected a USD file (.usd, .usda, .usdc, "
+                             ".usdz), an EXR or PNG texture, or a sidecar .json", file=file,
+                             location="byte 0", code="file.kind") from None
+        kind = "texture"
+        header = textures.read_texture_header(path)
+        animations = [_describe_info(header.info, texture=path.name)]
+        animations[0]["container"] = container
+        animations[0]["compression"] = header.compression
+    result = {"file": file, "kind": kind, "animations": animations}
+    if len(animations) == 1:
+        for key, value in animations[0].items():
+            result.setdefault(key, value)
+    return result
+
+
+def _print_text(result: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(highlight=False, soft_wrap=False)
+    console.print(f"[bold]{result['file']}[/bold] ({result['kind']}, "
+                  f"{len(result['animations'])} animation{'s' if len(result['animations']) != 1 else ''})")
+    for animation in result["animations"]:
+        title = animation["path"] or animation["texture"] or "animation"
+        table = Table(title=title, title_justify="left", show_header=False, box=None,
+                      pad_edge=False)
+        table.add_column("key", style="bold")
+        table.add_column("value")
+        if animation["path"] and animation["texture"]:
+            table.add_row("texture", animation["texture"])
+        if animation.get("container"):
+            table.add_row("container", f"{animation['container']} ({animation['compression']})")
+        table.add_row("encoding", animation["encoding"])
+        table.add_row("texel format", animation["texelFormat"])
+        table.add_row("bones", f"{animation['boneCount']} x {animation['texelsPerBone']} texels")
+        table.add_row("rows", str(animation["rowCount"]))
+        table.add_row("width", f"{animation['usedWidth']} used, {animation['width']} padded "
+                               f"(horizontal padding {animation['horizontalPadding']})")
+        table.add_row("height", f"{animation['height']} (vertical padding "
+                                f"{animation['verticalPadding']})")
+        table.add_row("texel bytes", f"{animation['texelBytes']:,}")
+        table.add_row("padding waste", f"{animation['paddingFraction'] * 100:.2f}% "
+                                       f"({animation['paddingBytes']:,} bytes)")
+        console.print(table)
+        clips = Table(title="clips", title_justify="left", pad_edge=False)
+        for heading in ("name", "first row", "rows", "rows/s", "loop", "duration s"):
+            clips.add_column(heading, justify="left" if heading == "name" else "right")
+        for clip in animation["clips"]:
+            clips.add_row(clip["name"], str(clip["firstRow"]), str(clip["rowCount"]),
+                          f"{clip['rowsPerSecond']:g}", "yes" if clip["loop"] else "no",
+                          f"{clip['duration']:.4g}")
+        console.print(clips)
+
+
+@click.command("info", help=_HELP)
+@click.argument("asset", type=click.Path(dir_okay=False, path_type=str))
+@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
+              show_default=True, help="Output form.")
+def command(asset: str, output_format: str) -> int:
+    """Print the texture layout of ASSET (see the module docstring)."""
+    result = asset_info(asset)
+    if output_format == "json":
+        click.echo(json.dumps(result, indent=2, allow_nan=False))
+    else:
+        _print_text(result)
+    return 0
