@@ -251,3 +251,40 @@ def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     assert "#define VB_MAX_INFLUENCES 8" in text and "vb_rangeMin" in text and "vbRotate" in text
     assert main(["shader", "--lang", "wgsl", "--encoding", "dualQuat"]) == 2
     assert "wgsl" in capsys.readouterr().err
+
+
+def _png_chunk_types(data: bytes) -> list:
+    """Chunk types of a PNG file, parsed from the bytes (independent of vbusd's reader)."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    types, pos = [], 8
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos:pos + 4])
+        types.append(data[pos + 4:pos + 8].decode("ascii"))
+        pos += 12 + length
+    return types
+
+
+def test_written_textures_ask_importers_for_no_colour_processing(tmp_path):
+    """The files vbusd writes carry nothing that makes an importer apply sRGB, mips or lossy codecs."""
+    import OpenEXR
+
+    from vbusd.textures import write_texture
+
+    animation = _chain_animation(scaled=False)
+    png_vb = bake(animation, BakeOptions(texel_format="unorm16"))
+    write_texture(tmp_path / "t.png", png_vb)
+    data = (tmp_path / "t.png").read_bytes()
+    types = _png_chunk_types(data)
+    assert not {"sRGB", "gAMA", "iCCP", "cHRM", "sBIT", "PLTE"} & set(types), types
+    bit_depth, colour_type = data[24], data[25]  # IHDR: 16-bit RGBA (colour type 6)
+    assert (bit_depth, colour_type) == (16, 6)
+
+    exr_vb = bake(animation, BakeOptions(texel_format="float16"))
+    write_texture(tmp_path / "t.exr", exr_vb)
+    with OpenEXR.File(str(tmp_path / "t.exr")) as exr:
+        header = exr.header()
+    assert header.get("type", OpenEXR.scanlineimage) == OpenEXR.scanlineimage  # not tiled: no mip levels
+    assert "tiles" not in header and "chromaticities" not in header
+    assert header["compression"] in (OpenEXR.NO_COMPRESSION, OpenEXR.RLE_COMPRESSION,
+                                     OpenEXR.ZIPS_COMPRESSION, OpenEXR.ZIP_COMPRESSION,
+                                     OpenEXR.PIZ_COMPRESSION)
