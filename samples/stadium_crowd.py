@@ -39,6 +39,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+# Import vbusd before any pxr use: importing it registers the Virtual Bones USD schema plugin, and
+# OpenUSD's schema registry does not pick up plugins registered after its first use in a process.
+import vbusd  # noqa: F401
+
 # ------------------------------------------------------------------------------------------------
 # Constants of the reference case
 # ------------------------------------------------------------------------------------------------
