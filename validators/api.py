@@ -1,0 +1,182 @@
+"""Validate an asset: the library entry point behind ``vbusd validate``.
+
+:func:`validate` accepts a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``), a texture
+(``.exr``, ``.png``) or a sidecar (``.json``). It raises :class:`vbusd.errors.InputError` only when
+the asset cannot be opened at all (missing file, USD that does not parse, a texture or sidecar
+given on its own that cannot be decoded); everything wrong inside a readable asset is a finding.
+A check that fails unexpectedly becomes an ``asset.internal`` finding instead of a traceback, so
+one bug never hides the other findings.
+"""
+
+from __future__ import annotations
+
+import os
+import traceback
+from pathlib import Path
+from typing import Optional, Sequence
+
+from vbusd.errors import InputError, OptionsError
+
+from . import codes as _codes
+from .findings import FileLocation, UsdSite, finding
+from .report import Report, build_report
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+TEXTURE_SUFFIXES = (".exr", ".png", ".json")
+_UNREADABLE_ALONE = ("texture.unreadable", "texture.missing", "metadata.json")
+
+
+def check_filters(only: Sequence[str] = (), ignore: Sequence[str] = ()) -> None:
+    """Refuse filters that name no registered code (a typo would silently select nothing).
+
+    Raises:
+        OptionsError: naming the unknown filter.
+    """
+    for name in list(only) + list(ignore):
+        if not any(_codes.matches(code, [name]) for code in _codes.REGISTRY):
+            raise OptionsError(f"{name!r} is not a validation code or code prefix (see spec/ISSUES.md)",
+                               file="validate", code="options.code")
+
+
+def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (),
+             max_issues: Optional[int] = None) -> Report:
+    """Validate one asset.
+
+    Args:
+        path: USD file, texture or sidecar.
+        only: Report only these codes (or code prefixes).
+        ignore: Do not report these codes (or code prefixes).
+        max_issues: Report at most this many findings (counts still cover all).
+
+    Returns:
+        The :class:`~vbusd.validators.report.Report`.
+
+    Raises:
+        InputError: The asset cannot be opened at all.
+        OptionsError: Unknown code filter or negative ``max_issues``.
+    """
+    check_filters(only, ignore)
+    if max_issues is not None and max_issues < 0:
+        raise OptionsError(f"--max-issues must be 0 or more, got {max_issues}", file="validate")
+    findings = validate_findings(path)
+    return build_report(str(path), findings, only=only, ignore=ignore, max_issues=max_issues)
+
+
+def validate_findings(path) -> list:
+    """All findings of one asset, unfiltered (see :func:`validate`)."""
+    path = str(path)
+    if not os.path.exists(path):
+        raise InputError("file not found", file=path, code="file.missing")
+    if os.path.isdir(path):
+        raise InputError("is a folder, not an asset file", file=path, code="file.unreadable")
+    suffix = Path(path).suffix.lower()
+    if suffix in TEXTURE_SUFFIXES:
+        return _validate_texture(path)
+    return _validate_usd(path)
+
+
+def guarded(check, *args, location=None):
+    """Run ``check(*args)``; an unexpected exception becomes one ``asset.internal`` finding."""
+    try:
+        return list(check(*args))
+    except Exception as error:  # a validator bug must not hide the other findings
+        frame = traceback.extract_tb(error.__traceback__)[-1]
+        where = f"{Path(frame.filename).name}:{frame.lineno}"
+        return [finding("asset.internal", f"{getattr(check, '__name__', check)} failed: "
+                        f"{type(error).__name__}: {error} ({where})", location or FileLocation("?"))]
+
+
+def _validate_texture(path: str) -> list:
+    from .checks_animation import check_texture_only
+
+    findings = guarded(check_texture_only, path, location=FileLocation(path))
+    for item in findings:
+        if item.code in _UNREADABLE_ALONE:
+            location = item.location
+            where = None
+            if getattr(location, "byte_offset", None) is not None:
+                where = f"byte {location.byte_offset}"
+            raise InputError(item.message, file=str(getattr(location, "file", path)), location=where,
+                             code=item.code)
+    return findings
+
+
+def open_stage(path: str):
+    """Open a USD stage quietly.
+
+    Raises:
+        InputError: The file does not parse (USD's own message, condensed to one line).
+    """
+    import vbusd.usd_plugin as plugin
+
+    plugin.register()
+    from pxr import Sdf, Tf, Usd
+
+    from .rawtexture import quiet_stderr
+
+    try:
+        with quiet_stderr():
+            if Sdf.FileFormat.FindByExtension(Path(path).suffix.lstrip(".").lower() or "x") is None:
+                raise InputError("not a USD file (unknown extension)", file=path, code="usd.open")
+            stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    except Tf.ErrorException as error:
+        raise InputError(f"USD cannot open the file: {_usd_message(error)}", file=path,
+                         code="usd.open") from None
+    except InputError:
+        raise
+    except Exception as error:
+        raise InputError(f"USD cannot open the file: {' '.join(str(error).split())[:300]}", file=path,
+                         code="usd.open") from None
+    if stage is None:
+        raise InputError("USD cannot open the file", file=path, code="usd.open")
+    return stage
+
+
+def _usd_message(error) -> str:
+    text = " ".join(str(error).split())
+    # Keep the parser's own complaint ("path:line:col: Expected ...") and drop C++ function names.
+    for part in text.split("Error in "):
+        if ":" in part and ("Expected" in part or "parse" in part.lower() or "syntax" in part.lower()):
+            detail = part.split(" : ", 1)[-1].strip(" '")
+            return detail[:300]
+    parts = [p.split(" : ", 1)[-1].strip(" '") for p in text.split("Error in ") if p.strip()]
+    return (parts[0] if parts else text)[:300]
+
+
+def _validate_usd(path: str) -> list:
+    stage = open_stage(path)
+    asset_dir = os.path.dirname(os.path.abspath(path))
+    return validate_stage(stage, asset_dir)
+
+
+def validate_stage(stage, asset_dir: str) -> list:
+    """Findings of every Virtual Bones prim of an open stage.
+
+    Args:
+        stage: A ``Usd.Stage``.
+        asset_dir: The asset's folder (textures must lie inside it).
+    """
+    from pxr import Usd
+
+    from .checks_animation import check_animation_prim
+    from .checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
+    from .declared import ANIMATION_TYPE
+    from .rawtexture import quiet_stderr
+
+    findings = []
+    animations = 0
+    with quiet_stderr():
+        for prim in stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+            site = UsdSite(str(prim.GetPath()))
+            if prim.GetTypeName() == ANIMATION_TYPE:
+                animations += 1
+                findings += guarded(check_animation_prim, prim, asset_dir, location=site)
+            elif has_instancing(prim):
+                findings += guarded(check_instancer_prim, prim, location=site)
+            elif has_binding(prim):
+                findings += guarded(check_binding_prim, prim, location=site)
+    if not animations:
+        root = stage.GetDefaultPrim()
+        findings.insert(0, finding("asset.empty", "the stage holds no VirtualBonesAnimation prim",
+                                   UsdSite(str(root.GetPath()) if root else "/")))
+    return findings

@@ -1,0 +1,271 @@
+"""Checks of the prims bound to an animation: meshes (VirtualBonesBindingAPI) and point instancers
+(VirtualBonesInstancingAPI).
+
+All array checks are vectorized; each code is reported once per property with the number of
+offending elements and the first one (a vertex or instance index), so a broken million-vertex
+mesh gives a short report.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from .findings import UsdSite, finding
+
+WEIGHT_SUM_TOLERANCE = 1e-3
+"""|sum of a vertex's weights - 1| allowed (spec/validation.md: weights may come from 8-bit glTF
+weights renormalized in float32; 1e-3 is far above float32 rounding and far below a visible
+shrink of a skinned vertex toward the origin)."""
+
+NORMAL_LENGTH_TOLERANCE = 1e-3
+"""| |n| - 1 | allowed for rest normals (float32 normals written by DCCs are within 1e-6)."""
+
+INDICES = "primvars:vb:boneIndices"
+WEIGHTS = "primvars:vb:boneWeights"
+INSTANCE_PRIMVARS = {"primvars:vb:clip": "int[]", "primvars:vb:timeOffset": "float[]",
+                     "primvars:vb:playbackRate": "float[]"}
+
+
+def applied_schemas(prim) -> set:
+    """API schemas applied to ``prim``, including ones whose schema is not registered."""
+    names = set(prim.GetAppliedSchemas())
+    listop = prim.GetMetadata("apiSchemas")
+    if listop is not None:
+        try:
+            names.update(str(n) for n in listop.ApplyOperations([]))
+        except Exception:  # a malformed list op: the registered schemas above still count
+            pass
+    return names
+
+
+def has_binding(prim) -> bool:
+    """True for prims that apply VirtualBonesBindingAPI or carry its primvars."""
+    return BINDING_API in applied_schemas(prim) or prim.HasAttribute(INDICES) or prim.HasAttribute(WEIGHTS)
+
+
+def has_instancing(prim) -> bool:
+    """True for prims that apply VirtualBonesInstancingAPI or carry its primvars."""
+    return INSTANCING_API in applied_schemas(prim) or any(prim.HasAttribute(n) for n in INSTANCE_PRIMVARS)
+
+
+def _animation_target(prim, code: str, api: str):
+    """The single VirtualBonesAnimation prim targeted by ``vb:animation`` (or None, findings)."""
+    path = str(prim.GetPath())
+    site = UsdSite(path, "vb:animation")
+    relationship = prim.GetRelationship("vb:animation")
+    targets = relationship.GetTargets() if relationship.IsValid() else []
+    if len(targets) != 1:
+        return None, [finding(code, f"vb:animation has {len(targets)} targets; {api} needs exactly one "
+                              "VirtualBonesAnimation prim", site)]
+    target = prim.GetStage().GetPrimAtPath(targets[0])
+    if not target or not target.IsValid():
+        return None, [finding(code, f"vb:animation targets {targets[0]}, which does not exist", site)]
+    if target.GetTypeName() != ANIMATION_TYPE:
+        return None, [finding(code, f"vb:animation targets {targets[0]}, a {target.GetTypeName() or 'typeless'} "
+                              f"prim, not a {ANIMATION_TYPE}", site)]
+    return target, []
+
+
+def _int_value(prim, name):
+    attribute = prim.GetAttribute(name)
+    if not attribute.IsValid():
+        return None
+    value = attribute.Get()
+    return int(value) if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _array(attribute, dtype):
+    value = attribute.Get()
+    if value is None:
+        return None
+    return np.asarray(value, dtype=dtype)
+
+
+def _typed_primvar(prim, name, type_name, code, out, required=True):
+    from pxr import UsdGeom
+
+    attribute = prim.GetAttribute(name)
+    site = UsdSite(str(prim.GetPath()), name)
+    if not attribute.IsValid() or not attribute.HasValue():
+        if required:
+            out.append(finding(code, f"{name} ({type_name}) is missing or has no value", site))
+        return None
+    if str(attribute.GetTypeName()) != type_name:
+        out.append(finding(code, f"{name} has type {attribute.GetTypeName()}, expected {type_name}", site))
+        return None
+    return UsdGeom.Primvar(attribute)
+
+
+def check_binding_prim(prim):
+    """Every check of one mesh bound with VirtualBonesBindingAPI.
+
+    Args:
+        prim: A ``Usd.Prim`` (normally a Mesh) applying the API or carrying its primvars.
+    """
+    from pxr import UsdGeom
+
+    out = []
+    path = str(prim.GetPath())
+    if BINDING_API not in applied_schemas(prim):
+        out.append(finding("binding.api.missing", f"{path} has vb: binding primvars but does not apply "
+                           f"{BINDING_API}", UsdSite(path)))
+    target, problems = _animation_target(prim, "binding.animation", BINDING_API)
+    out += problems
+    bone_count = _int_value(target, "vb:boneCount") if target is not None else None
+
+    points_attr = UsdGeom.Mesh(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else prim.GetAttribute("points")
+    points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() else None
+    if points is not None:
+        points = points.reshape(-1, 3) if points.size % 3 == 0 else None
+    if points is not None:
+        bad = ~np.all(np.isfinite(points), axis=-1)
+        if bad.any():
+            first = int(np.argmax(bad))
+            out.append(finding("binding.points.nonFinite", f"{int(bad.sum())} rest point(s) are NaN or infinite; "
+                               f"the first is point {first} = {points[first].tolist()}", UsdSite(path, "points")))
+
+    indices_pv = _typed_primvar(prim, INDICES, "int[]", "binding.primvar.missing", out)
+    weights_pv = _typed_primvar(prim, WEIGHTS, "float[]", "binding.primvar.missing", out)
+    sizes = {}
+    for name, primvar in ((INDICES, indices_pv), (WEIGHTS, weights_pv)):
+        if primvar is None:
+            continue
+        interpolation = primvar.GetInterpolation()
+        if interpolation != UsdGeom.Tokens.vertex:
+            out.append(finding("binding.interpolation", f"{name} has interpolation {interpolation!r}; "
+                               "it must be 'vertex' (K values per point)", UsdSite(path, name)))
+        sizes[name] = primvar.GetElementSize()
+    if len(sizes) == 2 and sizes[INDICES] != sizes[WEIGHTS]:
+        out.append(finding("binding.elementSize", f"elementSize is {sizes[INDICES]} for {INDICES} but "
+                           f"{sizes[WEIGHTS]} for {WEIGHTS}", UsdSite(path, WEIGHTS)))
+        return out
+    k = next(iter(sizes.values())) if sizes else None
+    if k is not None and k < 1:
+        out.append(finding("binding.elementSize", f"elementSize is {k}; at least 1", UsdSite(path, INDICES)))
+        return out
+    vertex_count = None if points is None else len(points)
+    arrays = {}
+    for name, primvar, dtype in ((INDICES, indices_pv, np.int64), (WEIGHTS, weights_pv, np.float64)):
+        if primvar is None:
+            continue
+        values = _array(primvar.GetAttr(), dtype)
+        if values is None:
+            continue
+        if vertex_count is not None and len(values) != vertex_count * k:
+            out.append(finding("binding.count", f"{name} holds {len(values)} values; {vertex_count} points x "
+                               f"elementSize {k} = {vertex_count * k} expected", UsdSite(path, name)))
+            continue
+        if len(values) % k:
+            out.append(finding("binding.count", f"{name} holds {len(values)} values, not a multiple of "
+                               f"elementSize {k}", UsdSite(path, name)))
+            continue
+        arrays[name] = values.reshape(-1, k)
+    if INDICES in arrays and bone_count is not None:
+        idx = arrays[INDICES]
+        bad = (idx < 0) | (idx >= bone_count)
+        if bad.any():
+            vertex, slot = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            out.append(finding("binding.indices.range", f"{int(bad.sum())} bone index(es) outside 0.."
+                               f"{bone_count - 1}; the first is {int(idx[vertex, slot])} at vertex {vertex}, "
+                               f"influence {slot}", UsdSite(path, INDICES)))
+    if WEIGHTS in arrays:
+        w = arrays[WEIGHTS]
+        bad = ~np.isfinite(w) | (w < 0)
+        if bad.any():
+            vertex, slot = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            out.append(finding("binding.weights.negative", f"{int(bad.sum())} weight(s) are negative or not "
+                               f"finite; the first is {float(w[vertex, slot])} at vertex {vertex}, influence "
+                               f"{slot}", UsdSite(path, WEIGHTS)))
+        sums = np.sum(np.where(np.isfinite(w), w, 0.0), axis=1)
+        off = np.abs(sums - 1.0) > WEIGHT_SUM_TOLERANCE
+        if off.any():
+            vertex = int(np.argmax(off))
+            out.append(finding("binding.weights.sum", f"{int(off.sum())} vertex(es) have weights not summing "
+                               f"to 1 (tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with "
+                               f"sum {float(sums[vertex]):.6g}", UsdSite(path, WEIGHTS)))
+    out += _check_normals(prim, path)
+    return out
+
+
+def _check_normals(prim, path):
+    from pxr import UsdGeom
+
+    attribute = None
+    primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+    if primvar and primvar.HasValue():
+        attribute, name = primvar.GetAttr(), "primvars:normals"
+    elif prim.HasAttribute("normals") and prim.GetAttribute("normals").HasValue():
+        attribute, name = prim.GetAttribute("normals"), "normals"
+    if attribute is None:
+        return []
+    normals = _array(attribute, np.float64)
+    if normals is None or normals.size % 3:
+        return []
+    normals = normals.reshape(-1, 3)
+    length = np.linalg.norm(normals, axis=-1)
+    bad = ~(np.abs(length - 1.0) <= NORMAL_LENGTH_TOLERANCE)
+    if not bad.any():
+        return []
+    first = int(np.argmax(bad))
+    return [finding("binding.normals.unit", f"{int(bad.sum())} rest normal(s) are not unit length (tolerance "
+                    f"{NORMAL_LENGTH_TOLERANCE}); the first is normal {first} with length {float(length[first]):.6g}",
+                    UsdSite(path, name))]
+
+
+def check_instancer_prim(prim):
+    """Every check of one point instancer with VirtualBonesInstancingAPI."""
+    from pxr import UsdGeom
+
+    out = []
+    path = str(prim.GetPath())
+    target, problems = _animation_target(prim, "instancer.animation", INSTANCING_API)
+    out += problems
+    clip_count = None
+    if target is not None:
+        names = target.GetAttribute("vb:clipNames")
+        value = names.Get() if names.IsValid() else None
+        clip_count = None if value is None else len(value)
+    count = None
+    for name in ("protoIndices", "positions"):
+        attribute = prim.GetAttribute(name)
+        if attribute.IsValid() and attribute.HasValue():
+            count = len(attribute.Get())
+            break
+    arrays = {}
+    for name, type_name in INSTANCE_PRIMVARS.items():
+        primvar = _typed_primvar(prim, name, type_name, "instancer.count", out, required=name == "primvars:vb:clip")
+        if primvar is None:
+            continue
+        site = UsdSite(path, name)
+        interpolation = primvar.GetInterpolation()
+        if interpolation != UsdGeom.Tokens.vertex:
+            out.append(finding("instancer.count", f"{name} has interpolation {interpolation!r}; it must be "
+                               "'vertex' (one value per instance)", site))
+            continue
+        values = _array(primvar.GetAttr(), np.float64)
+        if values is None:
+            continue
+        if count is not None and len(values) != count:
+            out.append(finding("instancer.count", f"{name} holds {len(values)} values for {count} instances",
+                               site))
+            continue
+        arrays[name] = values
+    clips = arrays.get("primvars:vb:clip")
+    if clips is not None and clip_count is not None:
+        bad = (clips < 0) | (clips >= clip_count)
+        if bad.any():
+            first = int(np.argmax(bad))
+            out.append(finding("instancer.clip.range", f"{int(bad.sum())} instance(s) play a clip outside "
+                               f"0..{clip_count - 1}; the first is instance {first} with clip {int(clips[first])}",
+                               UsdSite(path, "primvars:vb:clip")))
+    for name in ("primvars:vb:timeOffset", "primvars:vb:playbackRate"):
+        values = arrays.get(name)
+        if values is None:
+            continue
+        bad = ~np.isfinite(values)
+        if bad.any():
+            first = int(np.argmax(bad))
+            out.append(finding("instancer.nonFinite", f"{int(bad.sum())} value(s) are NaN or infinite; the first "
+                               f"is instance {first} with {float(values[first])}", UsdSite(path, name)))
+    return out

@@ -1,0 +1,315 @@
+"""Checks on the texels themselves: finiteness, padding, digest and each encoding's invariants.
+
+Everything is vectorized with numpy and runs over blocks of rows, so a 4096x4096 float16 texture
+is checked in a few hundred milliseconds with bounded extra memory (a block holds about four
+million channel values as float32; see benchmarks/bench_validate.py).
+
+Tolerances come from the texel format (spec/validation.md, "Tolerances"): for a unit vector stored
+with relative rounding error u per channel (u = 2^-11 for float16, 2^-24 for float32), the norm is
+off by at most u and a dot product of two such vectors by at most 2u + u^2. The checks allow twice
+the larger bound, ``4u``, plus ``1e-6`` for float32 sources that were not exactly orthonormal to
+begin with. For unorm16 the absolute error per channel is half a quantization step h = (max - min)
+/ 65535 / 2, so the bounds become sqrt(3) h and 2 sqrt(3) h, and the tolerance ``4 sqrt(3) h_max``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from typing import Optional
+
+import numpy as np
+
+from vbusd.layout import Encoding, Layout, TexelFormat
+
+from .findings import TexelAddress, finding
+
+BLOCK_VALUES = 1 << 22
+"""Channel values per block of rows (4 Mi values: 16 MiB as float32)."""
+
+UNIT_ROUNDOFF = {TexelFormat.FLOAT16: 2.0 ** -11, TexelFormat.FLOAT32: 2.0 ** -24}
+FLOAT32_SOURCE_ALLOWANCE = 1e-6
+
+
+def tolerance(texel_format: TexelFormat, unorm_ranges: Optional[np.ndarray] = None,
+              slots=(0, 1)) -> float:
+    """Tolerance of the unit-length and orthogonality checks for a texel format.
+
+    Args:
+        texel_format: float16, float32 or unorm16.
+        unorm_ranges: (T, 4, 2) ranges for unorm16.
+        slots: Texel slots whose channels enter the check (for the unorm16 step).
+
+    Returns:
+        ``4u`` for float formats (plus 1e-6 for float32), ``4 sqrt(3) h_max`` for unorm16.
+    """
+    texel_format = TexelFormat(texel_format)
+    if texel_format in UNIT_ROUNDOFF:
+        u = UNIT_ROUNDOFF[texel_format]
+        return 4 * u + (FLOAT32_SOURCE_ALLOWANCE if texel_format is TexelFormat.FLOAT32 else 0.0)
+    if unorm_ranges is None:
+        return 4 * math.sqrt(3) * (1.0 / 65535 / 2)
+    spans = np.abs(unorm_ranges[list(slots), :, 1] - unorm_ranges[list(slots), :, 0])
+    half_step = float(np.max(spans)) / 65535 / 2
+    return 4 * math.sqrt(3) * half_step + 1e-7
+
+
+def row_blocks(height: int, width: int):
+    """Yield (start, stop) row ranges of about :data:`BLOCK_VALUES` channel values each."""
+    step = max(1, BLOCK_VALUES // max(1, width * 4))
+    for start in range(0, height, step):
+        yield start, min(height, start + step)
+
+
+def _address(file, layout: Optional[Layout], row, column, channel=None):
+    if layout is not None and column < layout.used_width:
+        bone, texel = divmod(int(column), layout.texels_per_bone)
+        return TexelAddress(file, int(row), int(column), bone, texel, channel)
+    return TexelAddress(file, int(row), int(column), None, None, channel)
+
+
+def check_non_finite(texels: np.ndarray, file: str, layout: Optional[Layout]):
+    """``texture.nonFinite``: NaN or infinity anywhere (float formats); reports the first texel."""
+    if texels.dtype.kind != "f":
+        return []
+    height, width = texels.shape[:2]
+    count, first = 0, None
+    for start, stop in row_blocks(height, width):
+        bad = ~np.isfinite(texels[start:stop])
+        n = int(np.count_nonzero(bad))
+        if n and first is None:
+            r, c, ch = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            first = (start + r, c, ch, texels[start + r, c, ch])
+        count += n
+    if not count:
+        return []
+    row, column, channel, value = first
+    return [finding("texture.nonFinite", f"{count} channel value(s) are NaN or infinite; the first is "
+                    f"{float(value)} at row {row}, column {column}",
+                    _address(file, layout, row, column, int(channel)))]
+
+
+def check_padding(texels: np.ndarray, file: str, layout: Layout):
+    """``texture.padding.nonZero``: texels right of the used width or below the data rows."""
+    height, width = texels.shape[:2]
+    used, rows = min(layout.used_width, width), min(layout.row_count, height)
+    regions = []
+    if used < width:
+        regions.append((0, height, used, width))
+    if rows < height:
+        regions.append((rows, height, 0, used))
+    count, first = 0, None
+    for r0, r1, c0, c1 in regions:
+        for start, stop in row_blocks(r1 - r0, c1 - c0):
+            block = texels[r0 + start:r0 + stop, c0:c1]
+            bad = block != 0
+            n = int(np.count_nonzero(bad))
+            if n:
+                r, c, ch = np.unravel_index(int(np.argmax(bad)), bad.shape)
+                candidate = (r0 + start + r, c0 + c, ch, block[r, c, ch])
+                if first is None or candidate[:2] < first[:2]:
+                    first = candidate
+            count += n
+    if not count:
+        return []
+    row, column, channel, value = first
+    return [finding("texture.padding.nonZero", f"{count} padding channel value(s) are not zero; the "
+                    f"first is {float(value)} at row {row}, column {column} (data: {layout.used_width} "
+                    f"columns x {layout.row_count} rows)", _address(file, None, row, column, int(channel)))]
+
+
+def content_digest(texels: np.ndarray) -> str:
+    """``sha256:`` digest of the texels as little-endian values in file order (the format's
+    content digest)."""
+    little = texels.astype(texels.dtype.newbyteorder("<"), copy=False)
+    return "sha256:" + hashlib.sha256(memoryview(np.ascontiguousarray(little)).cast("B")).hexdigest()
+
+
+def dequantize(block: np.ndarray, layout: Layout, unorm_ranges: Optional[np.ndarray]) -> np.ndarray:
+    """Data texels of a row block as float32 (rows, B, T, 4), unorm16 mapped through its ranges."""
+    rows = block.shape[0]
+    data = block[:, :layout.used_width].reshape(rows, layout.bone_count, layout.texels_per_bone, 4)
+    if block.dtype.kind == "f":
+        return data.astype(np.float32, copy=False)
+    values = data.astype(np.float32)
+    if unorm_ranges is not None:
+        lo = unorm_ranges[..., 0].astype(np.float32)
+        span = (unorm_ranges[..., 1] - unorm_ranges[..., 0]).astype(np.float32)
+        values = lo + span * (values / np.float32(65535))
+    else:
+        values /= np.float32(65535)
+    return values
+
+
+class _Worst:
+    """Tracks the count of (row, bone) pairs over tolerance and the worst one."""
+
+    def __init__(self):
+        self.count, self.value, self.where = 0, -1.0, None
+
+    def add(self, error: np.ndarray, row0: int, limit: float, extra=None):
+        bad = error > limit
+        n = int(np.count_nonzero(bad))
+        if not n:
+            return
+        self.count += n
+        flat = int(np.argmax(np.where(bad, error, -1)))
+        r, b = np.unravel_index(flat, error.shape)
+        if float(error[r, b]) > self.value:
+            self.value = float(error[r, b])
+            self.where = (row0 + int(r), int(b), None if extra is None else extra[r, b])
+
+
+def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=None, clips=()):
+    """Encoding invariants of every (row, bone): orthonormal crossMatrix axes, unit quaternions,
+    rigid dual quaternions, invertible affine matrices, hemisphere continuity within clips.
+
+    Args:
+        texels: (H, W, 4) texels; only the data region (used width x row count) is read.
+        file: Texture name for locations.
+        layout: Declared layout (texels must be at least that large).
+        unorm_ranges: (T, 4, 2) for unorm16.
+        clips: Clip dicts (``firstRow``, ``rowCount``) for the hemisphere check.
+
+    Returns:
+        Findings, at most one per code (with the count and the worst bone and row).
+    """
+    height, width = texels.shape[:2]
+    if width < layout.used_width or height < layout.row_count:
+        return []
+    encoding = layout.encoding
+    tol = tolerance(layout.texel_format, unorm_ranges)
+    worst = {code: _Worst() for code in ("orth", "quat", "dqunit", "dqorth", "singular", "scale",
+                                         "qscale")}
+    rows = layout.row_count
+    for start, stop in row_blocks(rows, layout.used_width):
+        v = dequantize(texels[start:stop], layout, unorm_ranges)
+        if encoding is Encoding.CROSS_MATRIX:
+            x, y = v[:, :, 0, :3], v[:, :, 1, :3]
+            nx, ny = np.linalg.norm(x, axis=-1), np.linalg.norm(y, axis=-1)
+            err = np.maximum(np.maximum(np.abs(nx - 1), np.abs(ny - 1)), np.abs(np.sum(x * y, axis=-1)))
+            worst["orth"].add(np.nan_to_num(err, nan=np.inf), start, tol)
+        elif encoding is Encoding.AFFINE_MATRIX:
+            a = v[:, :, :, :3].astype(np.float64)  # rows of A
+            det = np.linalg.det(a)
+            norms = np.linalg.norm(a, axis=-2)  # column norms of A
+            scale = np.max(norms, axis=-1)
+            singular = np.abs(det) <= 1e-6 * np.maximum(scale, 1e-30) ** 3
+            worst["singular"].add(np.where(singular, 1.0, 0.0), start, 0.5, extra=det)
+            gram = np.einsum("...ki,...kj->...ij", a, a)
+            off = np.abs(gram - np.eye(3))
+            err = np.max(off.reshape(off.shape[:-2] + (9,)), axis=-1)
+            worst["scale"].add(np.nan_to_num(err, nan=np.inf), start, tol, extra=norms)
+        else:
+            q = v[:, :, 0, :]
+            nq = np.linalg.norm(q, axis=-1)
+            if encoding is Encoding.QUAT_TRANSLATION:
+                worst["quat"].add(np.nan_to_num(np.abs(nq - 1), nan=np.inf), start, tol)
+                s = v[:, :, 1, 3]
+                worst["qscale"].add(np.where(np.isfinite(s) & (s > 0), 0.0, 1.0), start, 0.5, extra=s)
+            else:
+                worst["dqunit"].add(np.nan_to_num(np.abs(nq - 1), nan=np.inf), start, tol)
+                d = v[:, :, 1, :]
+                nd = np.linalg.norm(d, axis=-1)
+                dot = np.abs(np.sum(q * d, axis=-1)) / np.maximum(nq, 1e-30) / np.maximum(nd, 1.0)
+                worst["dqorth"].add(np.nan_to_num(dot, nan=np.inf), start, tol)
+
+    findings = []
+    labels = {
+        "orth": ("encoding.crossMatrix.orthonormal", 0,
+                 "crossMatrix axes are not orthonormal at {n} bone-row(s); worst error "
+                 "max(| |x|-1 |, | |y|-1 |, |x.y|) = {w:.3g} at bone {b}, row {r} (tolerance {t:.3g} "
+                 "for {fmt})"),
+        "quat": ("encoding.quat.unit", 0, "quaternion length differs from 1 at {n} bone-row(s); worst "
+                 "| |q|-1 | = {w:.3g} at bone {b}, row {r} (tolerance {t:.3g} for {fmt})"),
+        "dqunit": ("encoding.dualQuat.unit", 0, "dual quaternion real part length differs from 1 at {n} "
+                   "bone-row(s); worst | |q_r|-1 | = {w:.3g} at bone {b}, row {r} (tolerance {t:.3g} "
+                   "for {fmt})"),
+        "dqorth": ("encoding.dualQuat.orthogonal", 1, "real and dual parts are not orthogonal at {n} "
+                   "bone-row(s); worst |q_r.q_d| / max(|q_d|, 1) = {w:.3g} at bone {b}, row {r} "
+                   "(tolerance {t:.3g} for {fmt})"),
+        "singular": ("encoding.affine.singular", 0, "affineMatrix 3x3 part is singular at {n} "
+                     "bone-row(s); bone {b}, row {r} has determinant {x}"),
+        "scale": ("encoding.affine.scale", 0, "affineMatrix carries scale or shear at {n} bone-row(s) "
+                  "(worst |A^T A - I| = {w:.3g} at bone {b}, row {r}, column norms {x}): normals need "
+                  "inverse(A)^T"),
+        "qscale": ("encoding.quat.scale", 1, "quatTranslation scale is not positive at {n} bone-row(s); "
+                   "bone {b}, row {r} has scale {x}"),
+    }
+    for key, tracker in worst.items():
+        if not tracker.count:
+            continue
+        code, slot, text = labels[key]
+        row, bone, extra = tracker.where
+        extra_text = np.array2string(np.asarray(extra), precision=4) if extra is not None else ""
+        message = text.format(n=tracker.count, w=tracker.value, b=bone, r=row, t=tol,
+                              fmt=layout.texel_format.value, x=extra_text)
+        findings.append(finding(code, message, TexelAddress(file, row, layout.column(bone, slot), bone, slot)))
+    if encoding in (Encoding.QUAT_TRANSLATION, Encoding.DUAL_QUAT):
+        findings += _hemisphere(texels, file, layout, unorm_ranges, clips)
+    return findings
+
+
+def _hemisphere(texels, file, layout, unorm_ranges, clips):
+    count, first = 0, None
+    for clip in clips:
+        r0, n = int(clip["firstRow"]), int(clip["rowCount"])
+        if n < 2 or r0 < 0 or r0 + n > layout.row_count:
+            continue
+        for start, stop in row_blocks(n, layout.used_width):
+            lo = r0 + max(0, start - 1)
+            q = dequantize(texels[lo:r0 + stop], layout, unorm_ranges)[:, :, 0, :]
+            dots = np.sum(q[1:] * q[:-1], axis=-1)
+            bad = dots < 0
+            k = int(np.count_nonzero(bad))
+            if k and first is None:
+                r, b = np.unravel_index(int(np.argmax(bad)), bad.shape)
+                first = (lo + int(r) + 1, int(b), float(dots[r, b]), clip.get("name"))
+            count += k
+    if not count:
+        return []
+    row, bone, dot, name = first
+    return [finding("encoding.quat.hemisphere", f"{count} consecutive-row quaternion pair(s) lie in opposite "
+                    f"hemispheres; first in clip {name!r}: bone {bone}, rows {row - 1}->{row}, "
+                    f"dot {dot:.3g}", TexelAddress(file, row, layout.column(bone, 0), bone, 0))]
+
+
+def check_loop_jumps(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=None, clips=()):
+    """``clip.loopJump``: a looping clip whose last row is far from its first.
+
+    The wrap step (last row -> first row) is compared with the clip's own row-to-row steps: a step
+    is the largest absolute channel difference between two consecutive rows over all data texels.
+    The wrap is a jump when it exceeds both 4 x the median step and 1.5 x the largest step inside
+    the clip, and the format's tolerance (so a static clip does not warn about rounding).
+    """
+    findings = []
+    height, width = texels.shape[:2]
+    if width < layout.used_width or height < layout.row_count:
+        return findings
+    tol = tolerance(layout.texel_format, unorm_ranges, slots=range(layout.texels_per_bone))
+    for index, clip in enumerate(clips):
+        r0, n = int(clip["firstRow"]), int(clip["rowCount"])
+        if not clip.get("loop") or n < 3 or r0 < 0 or r0 + n > layout.row_count:
+            continue
+        steps = []
+        for start, stop in row_blocks(n, layout.used_width):
+            lo = r0 + max(0, start - 1)
+            v = dequantize(texels[lo:r0 + stop], layout, unorm_ranges)
+            diff = np.abs(v[1:] - v[:-1]).reshape(v.shape[0] - 1, -1)
+            steps.append(np.max(diff, axis=1))
+        steps = np.concatenate(steps) if steps else np.zeros(0)
+        first = dequantize(texels[r0:r0 + 1], layout, unorm_ranges)[0]
+        last = dequantize(texels[r0 + n - 1:r0 + n], layout, unorm_ranges)[0]
+        wrap = np.abs(first - last)
+        jump = float(np.max(wrap))
+        median, largest = float(np.median(steps)), float(np.max(steps))
+        scale = max(1.0, float(np.max(np.abs(first))))
+        if jump > 4 * median and jump > 1.5 * largest and jump > tol * scale:
+            bone, texel, channel = np.unravel_index(int(np.argmax(wrap)), wrap.shape)
+            findings.append(finding(
+                "clip.loopJump", f"looping clip {clip.get('name')!r} (#{index}) jumps by {jump:.4g} from its "
+                f"last row {r0 + n - 1} back to its first row {r0}; its row-to-row steps have median "
+                f"{median:.4g} and maximum {largest:.4g}",
+                TexelAddress(file, r0 + n - 1, layout.column(int(bone), int(texel)), int(bone), int(texel),
+                             int(channel))))
+    return findings

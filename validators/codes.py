@@ -1,0 +1,237 @@
+"""The one registry of validation codes: code, severity, summary and the spec section it enforces.
+
+Codes are stable dotted names, ``<area>.<what>`` (for example ``texture.nonFinite``), in the same
+style as the codes of :mod:`vbusd.errors`. A code never changes meaning once released; a retired
+code is kept in the registry with ``retired=True`` rather than reused.
+
+``spec/ISSUES.md`` is generated from this registry::
+
+    python -m vbusd.validators.codes --markdown > spec/ISSUES.md
+
+and a test fails when the committed file is stale.
+"""
+
+from __future__ import annotations
+
+import argparse
+import enum
+import sys
+from dataclasses import dataclass
+
+
+class Severity(str, enum.Enum):
+    """How serious a finding is. Only ``error`` makes ``vbusd validate`` exit with status 1."""
+
+    ERROR = "error"
+    WARNING = "warning"
+    INFO = "info"
+    HINT = "hint"
+
+    def __str__(self) -> str:
+        return self.value
+
+    @property
+    def rank(self) -> int:
+        """0 for error (most serious) to 3 for hint; reports list findings in this order."""
+        return _SEVERITY_RANK[self]
+
+
+_SEVERITY_RANK = {Severity.ERROR: 0, Severity.WARNING: 1, Severity.INFO: 2, Severity.HINT: 3}
+
+
+@dataclass(frozen=True)
+class Code:
+    """One registered validation code.
+
+    Attributes:
+        code: Stable dotted name.
+        severity: Default severity of its findings.
+        summary: One line saying what the finding means.
+        spec: The spec section it enforces (file and anchor under spec/).
+        location: The kind of location its findings carry (``usd``, ``json``, ``texel``, ``file``).
+    """
+
+    code: str
+    severity: Severity
+    summary: str
+    spec: str
+    location: str
+
+
+E, W, I, H = Severity.ERROR, Severity.WARNING, Severity.INFO, Severity.HINT
+_VB = "virtual-bones.md"
+
+_CODES = (
+    # asset
+    Code("asset.empty", W, "The stage holds no VirtualBonesAnimation prim.", f"{_VB}#usd-schema", "usd"),
+    Code("asset.internal", E, "A check failed unexpectedly; the rest of the report is still valid.",
+         "validation.md#robustness", "file"),
+    # format version
+    Code("format.version", E, "Format version missing, not an integer, below 1 or newer than this "
+         "validator reads.", f"{_VB}#versioning", "usd"),
+    # USD prim attributes
+    Code("prim.attribute.missing", E, "A required attribute of VirtualBonesAnimation is missing, has no "
+         "value or has the wrong type.", f"{_VB}#usd-schema", "usd"),
+    Code("prim.attribute.invalid", E, "An attribute of VirtualBonesAnimation holds an invalid value "
+         "(unknown token, count below 1, texelsPerBone not that of the encoding).",
+         f"{_VB}#usd-schema", "usd"),
+    Code("prim.bones.count", E, "vb:bones does not hold vb:boneCount names.", f"{_VB}#usd-schema", "usd"),
+    Code("prim.bones.duplicate", W, "A bone name appears twice in vb:bones.", f"{_VB}#usd-schema", "usd"),
+    # layout and padding
+    Code("layout.width", E, "vb:textureWidth is not B x T (horizontal padding none) or the next power "
+         "of two of B x T (powerOfTwo).", f"{_VB}#padding", "usd"),
+    Code("layout.height", E, "vb:textureHeight is not the row count (vertical padding none) or its next "
+         "power of two (powerOfTwo).", f"{_VB}#padding", "usd"),
+    # texture file
+    Code("texture.missing", E, "vb:texture is empty or names a file that does not exist.",
+         f"{_VB}#texture-files", "usd"),
+    Code("texture.outside", E, "vb:texture resolves outside the asset's folder or is a remote URI.",
+         f"{_VB}#texture-files", "usd"),
+    Code("texture.unreadable", E, "The texture file cannot be decoded (truncated, corrupt, not EXR or "
+         "PNG, declared dimensions over the limit).", f"{_VB}#texture-files", "file"),
+    Code("texture.size", E, "The texture file's width or height differs from the prim attributes.",
+         f"{_VB}#texture-files", "file"),
+    Code("texture.channels", E, "The texture does not hold exactly the four channels R, G, B, A.",
+         f"{_VB}#texture-files", "file"),
+    Code("texture.pixelType", E, "The texture's pixel type does not match vb:texelFormat (float16: EXR "
+         "HALF, float32: EXR FLOAT, unorm16: 16-bit PNG).", f"{_VB}#texel-formats", "file"),
+    Code("texture.compression", E, "The texture uses a lossy compression (EXR B44, B44A, DWAA, DWAB; "
+         "PXR24 on FLOAT channels).", f"{_VB}#texture-files", "file"),
+    Code("texture.nonFinite", E, "A data texel channel is NaN or infinite.", f"{_VB}#texel-formats",
+         "texel"),
+    Code("texture.digest", E, "The texels' SHA-256 does not match the declared content digest.",
+         f"{_VB}#content-digest", "json"),
+    Code("texture.padding.nonZero", E, "A padding texel is not zero.", f"{_VB}#padding", "texel"),
+    Code("texture.padding.fraction", I, "Fraction of the texture that is padding (wasted texels).",
+         f"{_VB}#padding", "usd"),
+    # layout metadata
+    Code("metadata.missing", E, "No layout metadata: neither embedded in the texture nor in the sidecar "
+         "<texture>.json.", f"{_VB}#layout-metadata", "file"),
+    Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON.", f"{_VB}#layout-metadata",
+         "file"),
+    Code("metadata.schema", E, "Layout metadata violates schema/layout-metadata.schema.json.",
+         f"{_VB}#layout-metadata", "json"),
+    Code("metadata.mismatch", E, "A layout metadata value disagrees with the prim attribute it mirrors.",
+         f"{_VB}#layout-metadata", "json"),
+    Code("metadata.sidecarMismatch", E, "The sidecar <texture>.json and the metadata embedded in the "
+         "texture disagree.", f"{_VB}#layout-metadata", "json"),
+    # encodings
+    Code("encoding.crossMatrix.orthonormal", E, "crossMatrix axes are not orthonormal within the texel "
+         "format's tolerance (worst bone and row reported).", f"{_VB}#crossmatrix", "texel"),
+    Code("encoding.quat.unit", E, "A quatTranslation rotation quaternion is not unit length within "
+         "tolerance.", f"{_VB}#quattranslation", "texel"),
+    Code("encoding.quat.hemisphere", W, "Consecutive rows of a clip store a bone's quaternion in opposite "
+         "hemispheres, so filtering between them takes the long way round.", f"{_VB}#quattranslation",
+         "texel"),
+    Code("encoding.quat.scale", E, "quatTranslation uniform scale (channel A of texel 1) is not "
+         "positive.", f"{_VB}#quattranslation", "texel"),
+    Code("encoding.dualQuat.unit", E, "A dual quaternion's real part is not unit length within "
+         "tolerance.", f"{_VB}#dualquat", "texel"),
+    Code("encoding.dualQuat.orthogonal", E, "A dual quaternion's real and dual parts are not orthogonal "
+         "(real . dual != 0): it is not a rigid transform.", f"{_VB}#dualquat", "texel"),
+    Code("encoding.affine.singular", E, "An affineMatrix 3x3 part is singular, so normals cannot be "
+         "transformed by its inverse transpose.", f"{_VB}#affinematrix", "texel"),
+    Code("encoding.affine.scale", H, "affineMatrix bones carry scale or shear: decoders must transform "
+         "normals by inverse(A)^T, not A.", f"{_VB}#affinematrix", "texel"),
+    # clips
+    Code("clip.arrays", E, "The clip attribute arrays have different lengths.", f"{_VB}#clips", "usd"),
+    Code("clip.bounds", E, "A clip's rows lie outside the texture's data rows, or it has no rows.",
+         f"{_VB}#clips", "usd"),
+    Code("clip.overlap", E, "Two clips share texture rows.", f"{_VB}#clips", "usd"),
+    Code("clip.rows", E, "The clips' row counts do not add up to vb:rowCount.", f"{_VB}#clips", "usd"),
+    Code("clip.rate", E, "A clip's rows per second is not a positive finite number.", f"{_VB}#clips",
+         "usd"),
+    Code("clip.loopJump", W, "A looping clip's last row jumps away from its first row much further "
+         "than the clip moves between rows.", f"{_VB}#clips", "texel"),
+    # mesh bindings
+    Code("binding.api.missing", W, "A mesh has vb: primvars but VirtualBonesBindingAPI is not applied.",
+         f"{_VB}#binding", "usd"),
+    Code("binding.animation", E, "vb:animation does not target exactly one VirtualBonesAnimation prim.",
+         f"{_VB}#binding", "usd"),
+    Code("binding.primvar.missing", E, "primvars:vb:boneIndices or primvars:vb:boneWeights is missing "
+         "or has the wrong type.", f"{_VB}#binding", "usd"),
+    Code("binding.interpolation", E, "A binding primvar's interpolation is not vertex.", f"{_VB}#binding",
+         "usd"),
+    Code("binding.elementSize", E, "The binding primvars' elementSize differs, or is below 1.",
+         f"{_VB}#binding", "usd"),
+    Code("binding.count", E, "A binding primvar does not hold points x elementSize values.",
+         f"{_VB}#binding", "usd"),
+    Code("binding.indices.range", E, "A bone index is negative or not below vb:boneCount.",
+         f"{_VB}#binding", "usd"),
+    Code("binding.weights.negative", E, "A bone weight is negative or not finite.", f"{_VB}#binding",
+         "usd"),
+    Code("binding.weights.sum", E, "A vertex's bone weights do not sum to one.", f"{_VB}#binding", "usd"),
+    Code("binding.points.nonFinite", E, "A rest point is NaN or infinite.", f"{_VB}#binding", "usd"),
+    Code("binding.normals.unit", W, "A rest normal is not unit length.", f"{_VB}#binding", "usd"),
+    # instancers
+    Code("instancer.animation", E, "vb:animation of a VirtualBonesInstancingAPI prim does not target "
+         "exactly one VirtualBonesAnimation prim.", f"{_VB}#instancing", "usd"),
+    Code("instancer.count", E, "An instancing primvar does not hold one value per instance, or is not "
+         "vertex-interpolated.", f"{_VB}#instancing", "usd"),
+    Code("instancer.clip.range", E, "An instance's clip index is negative or not below the clip count.",
+         f"{_VB}#instancing", "usd"),
+    Code("instancer.nonFinite", E, "An instance's time offset or playback rate is NaN or infinite.",
+         f"{_VB}#instancing", "usd"),
+)
+
+REGISTRY: dict[str, Code] = {c.code: c for c in _CODES}
+"""Every code, by name, in the order of :data:`_CODES` (which groups them by area)."""
+
+assert len(REGISTRY) == len(_CODES), "duplicate code in the registry"
+
+
+def get(code: str) -> Code:
+    """Return the registered :class:`Code` called ``code``.
+
+    Raises:
+        KeyError: The code is not registered (a programming error, not a user error).
+    """
+    return REGISTRY[code]
+
+
+def matches(code: str, patterns) -> bool:
+    """True when ``code`` equals one of ``patterns`` or lies under one (``texture`` matches
+    ``texture.nonFinite``; ``texture.padding`` matches ``texture.padding.nonZero``)."""
+    return any(code == p or code.startswith(p.rstrip(".") + ".") for p in patterns)
+
+
+def markdown() -> str:
+    """Render the registry as spec/ISSUES.md (the committed file must equal this text)."""
+    lines = [
+        "# Validation issues",
+        "",
+        "<!-- GENERATED by `python -m vbusd.validators.codes --markdown > spec/ISSUES.md`;",
+        "     do not edit by hand: edit validators/codes.py. tests/test_validate_codes.py fails when",
+        "     this file is stale. -->",
+        "",
+        "Every finding of `vbusd validate` carries one of these codes. Codes are stable: tests, CI",
+        "filters (`--only`, `--ignore`) and importers may rely on them. Severities are defaults;",
+        "only `error` findings make `vbusd validate` exit with status 1 (spec/validation.md).",
+        "",
+        "| code | severity | location | spec | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    for c in _CODES:
+        lines.append(f"| `{c.code}` | {c.severity.value} | {c.location} | [{c.spec}]({c.spec}) | "
+                     f"{c.summary} |")
+    counts = {s: sum(1 for c in _CODES if c.severity is s) for s in Severity}
+    lines += ["", f"{len(_CODES)} codes: " + ", ".join(f"{n} {s.value}" for s, n in counts.items()) + ".",
+              ""]
+    return "\n".join(lines)
+
+
+def _main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m vbusd.validators.codes",
+                                     description="Print the registry of validation codes.")
+    parser.add_argument("--markdown", action="store_true", help="print spec/ISSUES.md")
+    args = parser.parse_args(argv)
+    if args.markdown:
+        sys.stdout.write(markdown())
+    else:
+        for c in _CODES:
+            print(f"{c.code}\t{c.severity.value}\t{c.summary}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(_main())

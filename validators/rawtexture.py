@@ -1,0 +1,340 @@
+"""Raw, never-raising texture access for the validators.
+
+The validators read texture files here rather than through the strict readers of vbusd.textures,
+because they must keep going where a strict reader stops: a texture whose metadata is broken still
+has pixels worth checking for NaN, padding and encoding validity. Everything that goes wrong is
+turned into a :class:`~vbusd.validators.findings.Finding` (``texture.unreadable``,
+``metadata.json``...) with the file and, where known, the byte offset.
+
+Containers (spec/virtual-bones.md, "Texture files"):
+
+* OpenEXR, single part, channels R, G, B, A of type HALF (float16) or FLOAT (float32); layout
+  metadata in a string header attribute;
+* PNG, 16-bit RGBA (unorm16); layout metadata in an iTXt (or tEXt / zTXt) chunk;
+* a sidecar ``<texture>.json`` beside either.
+
+Limits are checked before any pixel is allocated: a header that declares more than
+:data:`vbusd.layout.MAX_TEXTURE_DIMENSION` texels per side is refused.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import struct
+import sys
+import zlib
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from vbusd.layout import MAX_TEXTURE_DIMENSION
+
+from .findings import FileLocation, JsonPointer, finding
+
+EXR_LOSSLESS = {"NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION", "ZIP_COMPRESSION",
+                "PIZ_COMPRESSION", "ZSTD_COMPRESSION", "HTJ2K256_COMPRESSION",
+                "HTJ2K32_COMPRESSION", "LJ2K_COMPRESSION"}
+"""EXR compressions that give back the exact bits written (PXR24 is lossless for HALF only)."""
+
+METADATA_FORMAT = "vbusd.virtualBones"
+MAX_METADATA_BYTES = 16 * 1024 * 1024
+"""Metadata larger than this is refused (a bone list of 16384 long names is far smaller)."""
+
+
+@dataclass
+class RawTexture:
+    """What could be read of one texture file.
+
+    Attributes:
+        file: Path as given (for locations).
+        container: ``exr`` or ``png``.
+        width: Width from the header.
+        height: Height from the header.
+        channels: Channel names in the file (``R G B A`` order when present).
+        pixel_type: ``float16``, ``float32``, ``uint32``, ``uint16``, ``uint8``, or ``mixed``.
+        compression: EXR compression name, ``png`` (always lossless), or None.
+        texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
+            not be read. Missing channels are not invented: texels is None then.
+        metadata_texts: Embedded metadata candidates: (key, text) pairs.
+    """
+
+    file: str
+    container: str
+    width: int = 0
+    height: int = 0
+    channels: tuple = ()
+    pixel_type: Optional[str] = None
+    compression: Optional[str] = None
+    texels: Optional[np.ndarray] = None
+    metadata_texts: list = field(default_factory=list)
+
+
+def read_texture(path: str, display: Optional[str] = None, max_dimension: int = MAX_TEXTURE_DIMENSION):
+    """Read a texture without raising.
+
+    Args:
+        path: File to read.
+        display: How to name the file in findings (defaults to ``path``).
+        max_dimension: Largest accepted width or height.
+
+    Returns:
+        ``(texture, findings)``: texture is a :class:`RawTexture` (None when not even the header
+        could be read) and findings lists ``texture.*`` findings.
+    """
+    name = display or str(path)
+    try:
+        with open(path, "rb") as handle:
+            magic = handle.read(8)
+    except OSError as error:
+        return None, [finding("texture.missing", f"cannot open the texture: {error.strerror}",
+                              FileLocation(name))]
+    if magic[:4] == b"\x76\x2f\x31\x01":
+        return _read_exr(path, name, max_dimension)
+    if magic == b"\x89PNG\r\n\x1a\n":
+        return _read_png(path, name, max_dimension)
+    return None, [finding("texture.unreadable", f"not an OpenEXR or PNG file (starts with {magic[:8]!r})",
+                          FileLocation(name, 0))]
+
+
+def _too_large(name: str, width: int, height: int, max_dimension: int, offset: int):
+    return finding("texture.unreadable",
+                   f"header declares {width}x{height} texels, over the limit of {max_dimension} per "
+                   "side; pixels not read", FileLocation(name, offset))
+
+
+def _read_exr(path: str, name: str, max_dimension: int):
+    import OpenEXR
+
+    from vbusd import exr as vexr
+    from vbusd.errors import InputError
+
+    # vbusd.exr.scan_header walks the header and the chunk offset table in pure Python: it finds
+    # truncation, oversized data windows and tiled / deep / multi-part files before OpenEXR gets a
+    # chance to print warnings or allocate. Compression and channel problems are not structural:
+    # they are reported below with their own codes, and the pixels are still read.
+    try:
+        vexr.scan_header(path, max_dimension=max_dimension)
+    except InputError as error:
+        if error.code not in ("texture.compression", "texture.channels"):
+            return None, [finding("texture.unreadable", error.message,
+                                  FileLocation(name, _byte_offset(error.location)))]
+    except Exception as error:  # an OSError while scanning
+        return None, [finding("texture.unreadable", _one_line(error), FileLocation(name))]
+    try:
+        with quiet_stderr():
+            header_file = OpenEXR.File(str(path), header_only=True)
+    except Exception as error:  # OpenEXR raises RuntimeError for anything it cannot parse
+        return None, [finding("texture.unreadable", f"OpenEXR cannot read the header: {_one_line(error)}",
+                              FileLocation(name))]
+    if len(header_file.parts) != 1:
+        return None, [finding("texture.unreadable",
+                              f"expected one EXR part, found {len(header_file.parts)} (truncated?)",
+                              FileLocation(name))]
+    header = header_file.header()
+    texture = RawTexture(file=name, container="exr")
+    try:
+        low, high = header["dataWindow"]
+        texture.width = int(high[0]) - int(low[0]) + 1
+        texture.height = int(high[1]) - int(low[1]) + 1
+    except Exception:
+        return None, [finding("texture.unreadable", "EXR header has no usable dataWindow",
+                              FileLocation(name))]
+    compression = header.get("compression")
+    texture.compression = getattr(compression, "name", str(compression))
+    texture.metadata_texts = [(k, v) for k, v in header.items() if isinstance(v, str)
+                              and _looks_like_metadata_key(k, v)]
+    findings = []
+    if texture.width < 1 or texture.height < 1 or texture.width > max_dimension \
+            or texture.height > max_dimension:
+        findings.append(_too_large(name, texture.width, texture.height, max_dimension, 0))
+        return texture, findings
+    try:
+        with quiet_stderr():
+            image = OpenEXR.File(str(path), separate_channels=True)
+        channels = image.parts[0].channels
+    except Exception as error:
+        findings.append(finding("texture.unreadable", f"OpenEXR cannot read the pixels: {_one_line(error)}",
+                                FileLocation(name)))
+        return texture, findings
+    names = list(channels)
+    texture.channels = tuple(sorted(names, key=lambda c: ("RGBA".find(c) if c in "RGBA" else 9, c)))
+    types = {str(getattr(channels[c].type(), "name", channels[c].type())) for c in names}
+    type_names = {"HALF": "float16", "FLOAT": "float32", "UINT": "uint32"}
+    texture.pixel_type = type_names.get(types.pop(), "unknown") if len(types) == 1 else "mixed"
+    if all(c in channels for c in "RGBA") and texture.pixel_type != "mixed":
+        planes = [np.asarray(channels[c].pixels) for c in "RGBA"]
+        if all(p.shape == (texture.height, texture.width) for p in planes):
+            texture.texels = np.stack(planes, axis=-1)
+    return texture, findings
+
+
+def _looks_like_metadata_key(key: str, value: str) -> bool:
+    lowered = key.lower()
+    if "vbusd" in lowered or "virtualbones" in lowered or "layout" in lowered:
+        return True
+    return METADATA_FORMAT in value[:4096]
+
+
+def _read_png(path: str, name: str, max_dimension: int):
+    texture = RawTexture(file=name, container="png", compression="png")
+    findings = []
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read()
+    except OSError as error:
+        return None, [finding("texture.unreadable", f"cannot read: {error.strerror}", FileLocation(name))]
+    # Walk the chunks ourselves: the IHDR limits are checked before pypng allocates anything, and
+    # text chunks are collected with their byte offsets.
+    offset, ihdr, idat_seen = 8, None, False
+    while offset < len(data):
+        if offset + 8 > len(data):
+            findings.append(finding("texture.unreadable", "truncated PNG chunk header",
+                                    FileLocation(name, offset)))
+            break
+        length, kind = struct.unpack(">I4s", data[offset:offset + 8])
+        body = data[offset + 8:offset + 8 + length]
+        if len(body) < length or offset + 12 + length > len(data):
+            findings.append(finding("texture.unreadable",
+                                    f"truncated PNG: chunk {kind!r} declares {length} bytes",
+                                    FileLocation(name, offset)))
+            break
+        crc = struct.unpack(">I", data[offset + 8 + length:offset + 12 + length])[0]
+        if zlib.crc32(kind + body) & 0xFFFFFFFF != crc:
+            findings.append(finding("texture.unreadable", f"PNG chunk {kind!r} fails its CRC",
+                                    FileLocation(name, offset)))
+            break
+        if kind == b"IHDR" and length == 13:
+            ihdr = struct.unpack(">IIBBBBB", body)
+        elif kind in (b"tEXt", b"zTXt", b"iTXt"):
+            text = _png_text(kind, body)
+            if text is not None and _looks_like_metadata_key(*text):
+                texture.metadata_texts.append(text)
+        elif kind == b"IDAT":
+            idat_seen = True
+        elif kind == b"IEND":
+            break
+        offset += 12 + length
+    if ihdr is None:
+        return None, findings or [finding("texture.unreadable", "PNG has no IHDR chunk",
+                                          FileLocation(name, 8))]
+    width, height, depth, color_type, _, _, interlace = ihdr
+    texture.width, texture.height = int(width), int(height)
+    planes = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}.get(color_type, 0)
+    texture.channels = {1: ("Y",), 2: ("Y", "A"), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}.get(
+        planes, ()) if color_type != 3 else ("palette",)
+    texture.pixel_type = {16: "uint16", 8: "uint8"}.get(depth, f"uint{depth}")
+    if width < 1 or height < 1 or width > max_dimension or height > max_dimension:
+        findings.append(_too_large(name, width, height, max_dimension, 16))
+        return texture, findings
+    if findings or not idat_seen:
+        if not idat_seen and not findings:
+            findings.append(finding("texture.unreadable", "PNG has no image data (IDAT)",
+                                    FileLocation(name)))
+        return texture, findings
+    try:
+        import png
+
+        w, h, pixels, info = png.Reader(bytes=data).read_flat()
+        if planes == 4 and depth == 16 and not info.get("palette"):
+            texture.texels = np.frombuffer(np.asarray(pixels, dtype=np.uint16).tobytes(),
+                                           dtype=np.uint16).reshape(h, w, 4)
+    except Exception as error:  # pypng raises its own FormatError / ChunkError and zlib errors
+        findings.append(finding("texture.unreadable", f"PNG pixels cannot be decoded: {_one_line(error)}",
+                                FileLocation(name)))
+    return texture, findings
+
+
+def _png_text(kind: bytes, body: bytes):
+    try:
+        keyword, _, rest = body.partition(b"\0")
+        key = keyword.decode("latin-1")
+        if kind == b"tEXt":
+            return key, rest.decode("latin-1")
+        if kind == b"zTXt":
+            return key, zlib.decompressobj().decompress(rest[1:], MAX_METADATA_BYTES).decode("latin-1")
+        compressed, _method = rest[0], rest[1]
+        _lang, _, rest = rest[2:].partition(b"\0")
+        _translated, _, text = rest.partition(b"\0")
+        if compressed:
+            text = zlib.decompressobj().decompress(text, MAX_METADATA_BYTES)
+        return key, text.decode("utf-8")
+    except Exception:
+        return None
+
+
+def parse_metadata(text, file: str, base_pointer: str = ""):
+    """Parse layout metadata JSON text without raising.
+
+    Args:
+        text: str or bytes.
+        file: File name for locations.
+        base_pointer: Unused today; reserved for metadata nested in a larger document.
+
+    Returns:
+        ``(value, findings)``: the parsed value (None on failure) and ``metadata.json`` findings with
+        the byte offset of the syntax error.
+    """
+    if isinstance(text, bytes):
+        if len(text) > MAX_METADATA_BYTES:
+            return None, [finding("metadata.json", f"metadata of {len(text)} bytes is over the limit of "
+                                  f"{MAX_METADATA_BYTES}", FileLocation(file))]
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as error:
+            return None, [finding("metadata.json", f"not UTF-8: {error.reason}",
+                                  FileLocation(file, error.start))]
+    try:
+        return json.loads(text), []
+    except json.JSONDecodeError as error:
+        offset = len(text[:error.pos].encode("utf-8"))
+        return None, [finding("metadata.json", f"invalid JSON at line {error.lineno} column {error.colno}: "
+                              f"{error.msg}", FileLocation(file, offset))]
+    except RecursionError:
+        return None, [finding("metadata.json", "JSON nested too deeply", FileLocation(file))]
+
+
+def sidecar_candidates(texture_path: str):
+    """Sidecar files to look for beside a texture: ``anim.exr.json``, then ``anim.json``."""
+    root, _ = os.path.splitext(texture_path)
+    return [texture_path + ".json", root + ".json"]
+
+
+def _byte_offset(location) -> Optional[int]:
+    match = re.fullmatch(r"byte (\d+)", str(location or ""))
+    return int(match.group(1)) if match else None
+
+
+@contextlib.contextmanager
+def quiet_stderr():
+    """Send file descriptor 2 to /dev/null while C++ libraries (OpenEXR, USD) print warnings that
+    the validator reports as findings anyway; the one-line contract of the CLI stays intact."""
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        yield
+        return
+    os.dup2(devnull, 2)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _one_line(error: BaseException) -> str:
+    text = " ".join(str(error).split())
+    return text[:300] or type(error).__name__
+
+
+__all__ = ["RawTexture", "read_texture", "parse_metadata", "sidecar_candidates", "EXR_LOSSLESS",
+           "JsonPointer"]

@@ -1,0 +1,42 @@
+"""``vbusd validate``: check a Virtual Bones asset and report findings with codes and locations.
+
+Exit status: 0 when there is no error (warnings, info and hints do not count), 1 when there are
+errors, 2 when the asset cannot be read at all or the options are wrong (one line on stderr).
+"""
+
+from __future__ import annotations
+
+import click
+
+
+def _split(values) -> tuple:
+    """``--only a,b --only c`` -> ``("a", "b", "c")``."""
+    out = []
+    for value in values:
+        out += [v.strip() for v in value.split(",") if v.strip()]
+    return tuple(out)
+
+
+@click.command(name="validate")
+@click.argument("asset", type=click.Path(dir_okay=False, path_type=str))
+@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
+              show_default=True, help="Report format (json follows schema/validation-report.schema.json).")
+@click.option("--only", multiple=True, metavar="CODE",
+              help="Report only this code or code prefix (repeat or separate with commas).")
+@click.option("--ignore", multiple=True, metavar="CODE",
+              help="Do not report this code or code prefix (repeat or separate with commas).")
+@click.option("--max-issues", type=click.IntRange(min=0), default=None, metavar="N",
+              help="Report at most N findings (the counts still cover all of them).")
+def command(asset: str, output_format: str, only, ignore, max_issues) -> int:
+    """Validate ASSET (a .usd/.usda/.usdc/.usdz file, a texture or its sidecar .json).
+
+    Exit status 0: no errors; 1: errors; 2: the asset cannot be read.
+    """
+    from vbusd.validators.api import validate
+
+    report = validate(asset, only=_split(only), ignore=_split(ignore), max_issues=max_issues)
+    if output_format == "json":
+        click.echo(report.to_json_text())
+    else:
+        click.echo(report.to_text(), nl=False)
+    return report.exit_status
