@@ -1,0 +1,487 @@
+"""The Virtual Bones decoder in warp-lang, on CPU and CUDA: the executable spec, on the device.
+
+:class:`Decoder` uploads one baked animation's texture and one bound mesh to a device once and
+keeps them there; each call then decodes the bones of every instance (one launch, instances x
+bones) and skins positions and normals (one launch, instances x vertices) into float32 device
+arrays, with no host<->device copy beyond the kernels' scalar arguments. A renderer or a
+simulation can call it every frame::
+
+    decoder = Decoder(vb, vb.meshes[0], device="cuda")
+    crowd_on_device = decoder.upload_crowd(crowd)
+    out = decoder.allocate(crowd.instance_count)
+    for t in frame_times:
+        decoder.skin_crowd(crowd_on_device, t, out=out)   # out.points, out.normals: wp.array
+
+:func:`skin_mesh` and :func:`skin_crowd` have the call shape of :mod:`vbusd.reference`'s functions
+of the same names (plus ``device=``) and return numpy arrays; ``vbusd decode --device`` uses them.
+
+Texel upload (exact path): the texture is uploaded once as float32 channel values, dequantized on
+the host in float64 for unorm16 (exactly the reference's values, rounded once to float32).
+float16 -> float32 is exact, so this loses nothing for float16 and float32 textures, and one kernel
+serves every texel format; the bone decode reads only instances x bones x 2T texels per call, so
+the doubled texel size costs no measurable time. The hardware path (``sampling="hardware"``)
+instead uploads the texels in their stored format into a ``wp.Texture2D`` and lets the texture unit
+filter between rows, as a vertex shader would; spec/hardware-sampling.md measures the difference.
+
+Kernels and their numpy twins: :mod:`vbusd.warp_kernels`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Union
+
+import numpy as np
+
+import warp as wp
+
+from . import warp_kernels as K
+from .errors import InputError, OptionsError
+from .layout import Encoding, TexelFormat
+from .model import BoundMesh, Crowd, VirtualBones
+from .reference import channel_values, normal_point_indices
+
+# The CLI prints results on stdout; warp's start-up banner and per-module compile lines would mix
+# into them (warp 1.19 replaced ``config.quiet`` by ``config.log_level``). Users who want them can
+# lower the level again after importing this module.
+if hasattr(wp, "LOG_WARNING") and getattr(wp.config, "log_level", 0) < wp.LOG_WARNING:
+    wp.config.log_level = wp.LOG_WARNING
+else:  # older warp
+    wp.config.quiet = True
+
+SAMPLING_MODES = ("exact", "hardware")
+"""``exact``: the spec's blend in float32 arithmetic; ``hardware``: the texture unit's filter."""
+
+
+def available_devices() -> list:
+    """Warp device names usable here: ``"cpu"`` (when warp's CPU backend loads) and ``"cuda"``."""
+    wp.init()
+    devices = []
+    if wp.is_cpu_available():
+        devices.append("cpu")
+    if wp.is_cuda_available():
+        devices.append("cuda")
+    return devices
+
+
+def _resolve_device(device) -> "wp.context.Device":
+    if device is None:
+        raise OptionsError("a device must be given explicitly (\"cpu\" or \"cuda\")", file="warp_decoder")
+    name = str(device)
+    wp.init()
+    if name.startswith("cuda") and not wp.is_cuda_available():
+        raise OptionsError(f"device {name!r} requested but no CUDA device is available "
+                           f"(available: {', '.join(available_devices()) or 'none'})", file="warp_decoder")
+    if name == "cpu" and not wp.is_cpu_available():
+        raise OptionsError("device 'cpu' requested but warp's CPU backend is not available",
+                           file="warp_decoder")
+    try:
+        return wp.get_device(name)
+    except Exception as error:  # warp raises RuntimeError/ValueError for unknown names
+        raise OptionsError(f"unknown device {name!r}: {error}", file="warp_decoder") from None
+
+
+@dataclass
+class SkinResult:
+    """Skinned output on the device.
+
+    Attributes:
+        points: (instances, V) ``wp.vec3`` array of float32 positions.
+        normals: (instances, V') ``wp.vec3`` array of unit normals, or None when the mesh has none.
+    """
+
+    points: wp.array
+    normals: Optional[wp.array]
+
+    @property
+    def instance_count(self) -> int:
+        """Number of instances (or times) the arrays hold."""
+        return int(self.points.shape[0])
+
+    def numpy(self) -> tuple:
+        """(points (n, V, 3), normals (n, V', 3) or None) as float32 numpy arrays (copies to host)."""
+        points = self.points.numpy()
+        normals = None if self.normals is None else self.normals.numpy()
+        return points, normals
+
+
+@dataclass
+class DeviceCrowd:
+    """A crowd's per-instance arrays, uploaded once (see :meth:`Decoder.upload_crowd`)."""
+
+    clip: wp.array
+    time_offset: wp.array
+    playback_rate: wp.array
+    positions: wp.array
+    orientations: wp.array
+    scales: wp.array
+
+    @property
+    def instance_count(self) -> int:
+        """Number of instances."""
+        return int(self.clip.shape[0])
+
+
+@dataclass
+class BoneBuffers:
+    """Decoded bones of every instance: the intermediate the skinning kernel reads.
+
+    ``linear`` (n, B) 3x4 ``[A | t]`` (matrix and quatTranslation encodings), ``normal`` (n, B)
+    3x3 normal matrices (affineMatrix, quatTranslation), ``dual`` (n, B) 2x4 dual quaternions
+    (dualQuat). Unused buffers are 1x1 placeholders.
+    """
+
+    linear: wp.array
+    normal: wp.array
+    dual: wp.array
+
+    def nbytes(self) -> int:
+        """Bytes of the buffers that hold data (placeholders excluded)."""
+        return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.shape[0] > 1 or a.shape[1] > 1)
+
+
+class Decoder:
+    """Keeps one Virtual Bones texture and one bound mesh on a device and skins them on demand.
+
+    Args:
+        vb: The baked animation.
+        mesh: The mesh to skin; defaults to ``vb.meshes[0]``.
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; required (no implicit default device).
+        sampling: ``"exact"`` (default; the spec's interpolation) or ``"hardware"`` (rows blended by
+            the texture unit through ``wp.Texture2D``; see spec/hardware-sampling.md).
+        instances_per_thread: Instances one skinning thread handles for its vertex (>= 1). None
+            picks by mesh size: more for large meshes, whose rest data then loads once per several
+            instances.
+
+    Raises:
+        OptionsError: Unknown device or sampling mode, no mesh.
+        InputError: Mesh bone indices outside the texture's bones, mismatched mesh arrays.
+    """
+
+    def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
+                 sampling: str = "exact", instances_per_thread: Optional[int] = None) -> None:
+        if sampling not in SAMPLING_MODES:
+            raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
+                               file="warp_decoder")
+        if mesh is None:
+            if not vb.meshes:
+                raise OptionsError("the animation has no bound mesh to skin", file="warp_decoder",
+                                   location=vb.path)
+            mesh = vb.meshes[0]
+        self.device = _resolve_device(device)
+        self.vb = vb
+        self.mesh = mesh
+        self.sampling = sampling
+        self.encoding = vb.layout.encoding
+        self.encoding_id = K.ENCODING_IDS[self.encoding.value]
+        self.bone_count = vb.layout.bone_count
+        self.vertex_count = int(np.asarray(mesh.points).shape[0])
+        if instances_per_thread is None:
+            instances_per_thread = 1 if self.vertex_count < 4096 else 4
+        if int(instances_per_thread) < 1:
+            raise OptionsError(f"instances_per_thread must be >= 1, got {instances_per_thread!r}",
+                               file="warp_decoder")
+        self.instances_per_thread = int(instances_per_thread)
+        self._check_mesh(mesh)
+        self._upload_texture()
+        self._upload_clips()
+        self._upload_mesh(mesh)
+        self._bones: dict = {}
+        self._crowd_cache: tuple = (None, None)
+
+    # ---------------------------------------------------------------------------------- uploads
+
+    def _array(self, data, dtype) -> wp.array:
+        return wp.array(data, dtype=dtype, device=self.device)
+
+    def _check_mesh(self, mesh: BoundMesh) -> None:
+        points = np.asarray(mesh.points)
+        idx = np.asarray(mesh.bone_indices)
+        w = np.asarray(mesh.bone_weights)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path)
+        if idx.ndim != 2 or idx.shape != w.shape or idx.shape[0] != points.shape[0] or idx.shape[1] < 1:
+            raise InputError(f"bone indices {idx.shape} and weights {w.shape} must be (V, K) for "
+                             f"{points.shape[0]} points", location=mesh.path, code="binding.count")
+        if idx.size and (idx.min() < 0 or idx.max() >= self.bone_count):
+            bad = int(idx.max() if idx.max() >= self.bone_count else idx.min())
+            raise InputError(f"bone index {bad} out of range 0..{self.bone_count - 1}", location=mesh.path,
+                             code="binding.indices")
+        if mesh.normals is not None:
+            expected = points.shape[0] if mesh.normals_interpolation != "faceVarying" else \
+                np.asarray(mesh.face_vertex_indices).shape[0]
+            if np.asarray(mesh.normals).shape != (expected, 3):
+                raise InputError(f"{mesh.normals_interpolation} normals must be ({expected}, 3), got "
+                                 f"{np.asarray(mesh.normals).shape}", location=mesh.path, code="mesh.normals")
+
+    def _upload_texture(self) -> None:
+        vb, layout = self.vb, self.vb.layout
+        self.unorm = layout.texel_format is TexelFormat.UNORM16
+        if self.sampling == "exact":
+            values = channel_values(vb)  # (rows, B, T, 4) float64, dequantized like the reference
+            texels = np.zeros((layout.height, layout.width, 4), dtype=np.float32)
+            texels[:layout.row_count, :layout.used_width] = values.reshape(layout.row_count, layout.used_width, 4)
+            self.texels = self._array(texels, wp.vec4)
+            self.texture = None
+            return
+        self.texels = None
+        self.texture = wp.Texture2D(np.ascontiguousarray(vb.texels), filter_mode=wp.TextureFilterMode.LINEAR,
+                                    address_mode=wp.TextureAddressMode.CLAMP, normalized_coords=False,
+                                    device=self.device)
+        if self.unorm:
+            ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)  # (T, 4, 2)
+            low, span = ranges[..., 0], ranges[..., 1] - ranges[..., 0]
+        else:
+            low = span = np.zeros((layout.texels_per_bone, 4))
+        self.unorm_low = self._array(low.astype(np.float32), wp.vec4)
+        self.unorm_span = self._array(span.astype(np.float32), wp.vec4)
+
+    def _upload_clips(self) -> None:
+        clips = self.vb.clips
+        self.clip_count = len(clips)
+        self.clip_first_row = self._array(np.array([c.first_row for c in clips], np.int32), wp.int32)
+        self.clip_row_count = self._array(np.array([c.row_count for c in clips], np.int32), wp.int32)
+        self.clip_rate = self._array(np.array([c.rows_per_second for c in clips], np.float64), wp.float64)
+        self.clip_loop = self._array(np.array([1 if c.loop else 0 for c in clips], np.int32), wp.int32)
+
+    def _upload_mesh(self, mesh: BoundMesh) -> None:
+        self.points = self._array(np.asarray(mesh.points, np.float32), wp.vec3)
+        self.indices = self._array(np.ascontiguousarray(mesh.bone_indices, np.int32), wp.int32)
+        self.weights = self._array(np.ascontiguousarray(mesh.bone_weights, np.float32), wp.float32)
+        self.with_normals = mesh.normals is not None
+        self.face_varying = normal_point_indices(mesh) is not None
+        if self.with_normals:
+            self.normals = self._array(np.asarray(mesh.normals, np.float32), wp.vec3)
+            self.normal_count = int(self.normals.shape[0])
+        else:
+            self.normals = self._array(np.zeros((1, 3), np.float32), wp.vec3)
+            self.normal_count = 0
+        if self.face_varying:
+            self.normal_points = self._array(normal_point_indices(mesh).astype(np.int32), wp.int32)
+
+    def upload_crowd(self, crowd: Crowd) -> DeviceCrowd:
+        """Upload a crowd's per-instance arrays once; pass the result to :meth:`skin_crowd`.
+
+        Orientations are normalized on the host in float64 (as the reference does); clip offsets
+        and rates are widened to float64 so instance times match the reference exactly.
+
+        Raises:
+            InputError: A clip index out of range or mismatched per-instance array lengths.
+        """
+        n = crowd.instance_count
+        clip = np.asarray(crowd.clip, dtype=np.int64).reshape(-1)
+        arrays = {"clip": clip, "timeOffset": np.asarray(crowd.time_offset).reshape(-1),
+                  "playbackRate": np.asarray(crowd.playback_rate).reshape(-1)}
+        for name, value in arrays.items():
+            if value.shape[0] != n:
+                raise InputError(f"primvars:vb:{name} has {value.shape[0]} values for {n} instances",
+                                 location=crowd.path)
+        if n and (clip.min() < 0 or clip.max() >= self.clip_count):
+            bad = int(clip.max() if clip.max() >= self.clip_count else clip.min())
+            raise InputError(f"clip index {bad} out of range 0..{self.clip_count - 1}",
+                             location=f"{crowd.path}.primvars:vb:clip", code="instancing.clip")
+        q = np.asarray(crowd.orientations, dtype=np.float64).reshape(n, 4)
+        length = np.linalg.norm(q, axis=1, keepdims=True)
+        q = q / np.where(length > 0, length, 1.0)
+        scales = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, np.float64).reshape(n, 3)
+        return DeviceCrowd(
+            clip=self._array(clip.astype(np.int32), wp.int32),
+            time_offset=self._array(np.asarray(crowd.time_offset, np.float64).reshape(n), wp.float64),
+            playback_rate=self._array(np.asarray(crowd.playback_rate, np.float64).reshape(n), wp.float64),
+            positions=self._array(np.asarray(crowd.positions, np.float32).reshape(n, 3), wp.vec3),
+            orientations=self._array(q.astype(np.float32), wp.quat),
+            scales=self._array(scales.astype(np.float32), wp.vec3))
+
+    def _times_crowd(self, clip_index: int, tau) -> DeviceCrowd:
+        """A crowd of untransformed instances at clip-local times ``tau`` (for :meth:`skin`)."""
+        if isinstance(clip_index, bool) or int(clip_index) != clip_index or not 0 <= clip_index < self.clip_count:
+            raise OptionsError(f"clip index {clip_index!r} out of range 0..{self.clip_count - 1}",
+                               file="warp_decoder")
+        tau = np.atleast_1d(np.asarray(tau, dtype=np.float64)).reshape(-1)
+        if not np.all(np.isfinite(tau)):
+            raise OptionsError("times must be finite", file="warp_decoder")
+        n = tau.shape[0]
+        identity = np.zeros((n, 4), np.float32)
+        identity[:, 3] = 1.0
+        return DeviceCrowd(
+            clip=self._array(np.full(n, int(clip_index), np.int32), wp.int32),
+            time_offset=self._array(tau, wp.float64),
+            playback_rate=self._array(np.zeros(n), wp.float64),
+            positions=self._array(np.zeros((n, 3), np.float32), wp.vec3),
+            orientations=self._array(identity, wp.quat),
+            scales=self._array(np.ones((n, 3), np.float32), wp.vec3))
+
+    # ---------------------------------------------------------------------------------- buffers
+
+    def allocate(self, instance_count: int) -> SkinResult:
+        """Output arrays for ``instance_count`` instances, to reuse through ``out=`` every frame."""
+        points = wp.empty((instance_count, self.vertex_count), dtype=wp.vec3, device=self.device)
+        normals = None
+        if self.with_normals:
+            normals = wp.empty((instance_count, self.normal_count), dtype=wp.vec3, device=self.device)
+        return SkinResult(points, normals)
+
+    def _bone_buffers(self, n: int) -> BoneBuffers:
+        buffers = self._bones.get(n)
+        if buffers is None:
+            b = self.bone_count
+            placeholder = (1, 1)
+            lbs = self.encoding is not Encoding.DUAL_QUAT
+            own_normal = self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION)
+            buffers = BoneBuffers(
+                linear=wp.empty((n, b) if lbs else placeholder, dtype=K.mat34, device=self.device),
+                normal=wp.empty((n, b) if own_normal else placeholder, dtype=wp.mat33, device=self.device),
+                dual=wp.empty(placeholder if lbs else (n, b), dtype=K.dualquat, device=self.device))
+            self._bones = {n: buffers}  # keep one size: a renderer calls with one crowd
+        return buffers
+
+    # ---------------------------------------------------------------------------------- launches
+
+    def decode_bones(self, crowd: DeviceCrowd, t: float, *, fraction_steps: float = 0.0) -> BoneBuffers:
+        """Launch the bone decode for every instance at scene time ``t``; returns the buffers.
+
+        Args:
+            crowd: Uploaded instances.
+            t: Scene time (s); each instance plays at ``timeOffset + playbackRate * t``.
+            fraction_steps: Exact path only: round the row fraction to multiples of
+                ``1 / fraction_steps`` (0: the spec's exact blend). Used to model the texture unit.
+        """
+        n = crowd.instance_count
+        buffers = self._bone_buffers(n)
+        if n == 0:
+            return buffers
+        common = [self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
+                  crowd.clip, crowd.time_offset, crowd.playback_rate, wp.float64(t)]
+        if self.sampling == "exact":
+            wp.launch(K.decode_bones_kernel, dim=(n, self.bone_count),
+                      inputs=[self.texels, self.encoding_id, *common, float(fraction_steps),
+                              buffers.linear, buffers.normal, buffers.dual], device=self.device)
+        else:
+            wp.launch(K.decode_bones_texture, dim=(n, self.bone_count),
+                      inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,
+                              *common, buffers.linear, buffers.normal, buffers.dual], device=self.device)
+        return buffers
+
+    def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:
+        """Launch the skinning of every (instance, vertex) from decoded bone buffers into ``out``."""
+        n = crowd.instance_count
+        if n == 0:
+            return out
+        ipt = self.instances_per_thread
+        dim = ((n + ipt - 1) // ipt, self.vertex_count)
+        fused_normals = int(self.with_normals and not self.face_varying)
+        out_normals = out.normals if fused_normals else out.points  # placeholder when unused
+        dqs = self.encoding is Encoding.DUAL_QUAT
+        use_normal = int(self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION))
+        placement = [crowd.positions, crowd.orientations, crowd.scales]
+        if dqs:
+            wp.launch(K.skin_dqs_kernel, dim=dim,
+                      inputs=[buffers.dual, self.points, self.normals, fused_normals, self.indices, self.weights,
+                              *placement, ipt, n, out.points, out_normals], device=self.device)
+        else:
+            wp.launch(K.skin_lbs_kernel, dim=dim,
+                      inputs=[buffers.linear, buffers.normal, use_normal, self.points, self.normals, fused_normals,
+                              self.indices, self.weights, *placement, ipt, n, out.points, out_normals],
+                      device=self.device)
+        if self.with_normals and self.face_varying:
+            dim = (n, self.normal_count)
+            if dqs:
+                wp.launch(K.skin_normals_dqs_kernel, dim=dim,
+                          inputs=[buffers.dual, self.normals, self.normal_points, self.indices, self.weights,
+                                  crowd.orientations, crowd.scales, out.normals], device=self.device)
+            else:
+                wp.launch(K.skin_normals_lbs_kernel, dim=dim,
+                          inputs=[buffers.linear, buffers.normal, use_normal, self.normals, self.normal_points,
+                                  self.indices, self.weights, crowd.orientations, crowd.scales, out.normals],
+                          device=self.device)
+        return out
+
+    def _check_out(self, out: Optional[SkinResult], n: int) -> SkinResult:
+        if out is None:
+            return self.allocate(n)
+        if out.points.shape != (n, self.vertex_count) or out.points.device != self.device or \
+                (self.with_normals and (out.normals is None or out.normals.shape != (n, self.normal_count))):
+            raise OptionsError(f"out arrays do not fit {n} instances of this mesh on {self.device}; "
+                               f"use Decoder.allocate({n})", file="warp_decoder")
+        return out
+
+    def skin_crowd(self, crowd: Union[Crowd, DeviceCrowd], t: float, out: Optional[SkinResult] = None,
+                   *, fraction_steps: float = 0.0) -> SkinResult:
+        """World-space points and normals of every instance at scene time ``t`` (two launches).
+
+        Twin of ``reference.skin_crowd``. A :class:`~vbusd.model.Crowd` is uploaded on its first
+        call and reused while the same object is passed again; pass a :class:`DeviceCrowd` from
+        :meth:`upload_crowd` to manage that yourself.
+
+        Args:
+            crowd: The instances.
+            t: Scene time in seconds.
+            out: Arrays from :meth:`allocate` to write into (no allocation per call), or None.
+            fraction_steps: See :meth:`decode_bones`.
+
+        Returns:
+            ``out`` (or new arrays): points (N, V) and normals (N, V') as ``wp.vec3`` arrays.
+        """
+        if not np.isfinite(t):
+            raise OptionsError(f"scene time must be finite, got {t!r}", file="warp_decoder")
+        if isinstance(crowd, Crowd):
+            if self._crowd_cache[0] is not crowd:
+                self._crowd_cache = (crowd, self.upload_crowd(crowd))
+            crowd = self._crowd_cache[1]
+        out = self._check_out(out, crowd.instance_count)
+        buffers = self.decode_bones(crowd, t, fraction_steps=fraction_steps)
+        return self.skin_bones(crowd, buffers, out)
+
+    def skin(self, clip_index: int, tau, out: Optional[SkinResult] = None, *,
+             fraction_steps: float = 0.0) -> SkinResult:
+        """Skinned points and normals of the mesh at clip-local times ``tau`` (twin of ``reference.skin_mesh``).
+
+        Args:
+            clip_index: Index into ``vb.clips``.
+            tau: Clip-local times in seconds (scalar or array of n).
+            out: Arrays from :meth:`allocate` (n instances), or None.
+            fraction_steps: See :meth:`decode_bones`.
+
+        Returns:
+            Points (n, V) and normals (n, V') on the device.
+        """
+        crowd = self._times_crowd(clip_index, tau)
+        out = self._check_out(out, crowd.instance_count)
+        buffers = self.decode_bones(crowd, 0.0, fraction_steps=fraction_steps)
+        return self.skin_bones(crowd, buffers, out)
+
+    def bone_transforms(self, clip_index: int, tau, *, fraction_steps: float = 0.0) -> dict:
+        """Decoded bone buffers at clip-local times, as numpy (for tests and inspection).
+
+        Returns:
+            ``{"linear": (n, B, 3, 4)}`` plus ``"normal": (n, B, 3, 3)`` for affineMatrix and
+            quatTranslation, or ``{"dual": (n, B, 2, 4)}`` for dualQuat.
+        """
+        crowd = self._times_crowd(clip_index, tau)
+        buffers = self.decode_bones(crowd, 0.0, fraction_steps=fraction_steps)
+        if self.encoding is Encoding.DUAL_QUAT:
+            return {"dual": buffers.dual.numpy()}
+        result = {"linear": buffers.linear.numpy()}
+        if self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION):
+            result["normal"] = buffers.normal.numpy()
+        return result
+
+
+def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device,
+              sampling: str = "exact") -> tuple:
+    """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times, on ``device``.
+
+    Same call shape and meaning as ``vbusd.reference.skin_mesh``, plus ``device=``; float32 results.
+    """
+    result = Decoder(vb, mesh, device=device, sampling=sampling).skin(clip_index, tau)
+    return result.numpy()
+
+
+def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, device,
+               sampling: str = "exact") -> tuple:
+    """World-space points (N, V, 3) and normals of every instance at scene time ``t``, on ``device``.
+
+    Same call shape and meaning as ``vbusd.reference.skin_crowd``, plus ``device=``; float32 results.
+    """
+    result = Decoder(vb, mesh, device=device, sampling=sampling).skin_crowd(crowd, t)
+    return result.numpy()

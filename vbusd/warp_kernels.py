@@ -1,0 +1,431 @@
+"""Warp kernels of the Virtual Bones decoder: the device twins of :mod:`vbusd.reference`.
+
+Every kernel here runs unchanged on ``"cpu"`` and ``"cuda"`` devices; :mod:`vbusd.warp_decoder`
+uploads the data and launches them with ``device=`` passed explicitly. Each kernel has a numpy twin
+in :mod:`vbusd.reference` and follows the spec's math (docs/architecture.md, "Encoding math"):
+
+=============================  ==============================================================
+kernel                         numpy twin
+=============================  ==============================================================
+:func:`row_blend`              ``reference.row_position`` (looping / clamped rows, float64)
+:data:`decode_bones_kernel`    ``reference.interpolated_values`` + ``encoding.decode_bones``
+:data:`decode_bones_texture`   the same, fetching through a hardware-filtered ``wp.Texture2D``
+:data:`skin_lbs_kernel`        ``reference.skin`` (LBS) + the instancer transform of
+                               ``reference.skin_crowd``
+:data:`skin_dqs_kernel`        ``reference.skin`` (DQS, ``_skin_dqs``) + instancer transform
+:data:`skin_normals_*_kernel`  faceVarying normals (``normal_points``) of the two above
+=============================  ==============================================================
+
+Performance design (GPU): a naive kernel with one thread per (instance, vertex) that fetches and
+decodes every texel it needs repeats the decode of each bone for every vertex it influences. Here
+the work is split in two launches: ``decode_bones_*`` runs once per (instance, bone) and writes a
+small bone buffer (a 3x4 matrix ``[A | t]`` per bone, plus the 3x3 normal matrix for encodings that
+need one, or the normalized dual quaternion for dualQuat); the skinning kernel then reads only
+that buffer (cache resident for one instance) and the rest mesh, and writes float32 positions and
+normals. A skinning thread may handle several instances of one vertex (``instances_per_thread``)
+so that the vertex's rest data is loaded once for all of them; writes stay coalesced because
+neighbouring threads hold neighbouring vertices of the same instance.
+
+Arithmetic is float32 except clip timing, which is float64 like the reference: a scene time of
+hours times a rate of 60 rows per second would otherwise lose the blend factor's low bits.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+# Compile only the forward kernels: the decoder never differentiates, and skipping the adjoints
+# roughly halves compile time on the CPU (LLVM) backend.
+wp.set_module_options({"enable_backward": False})
+
+ENCODING_IDS = {"crossMatrix": 0, "affineMatrix": 1, "quatTranslation": 2, "dualQuat": 3}
+"""Integer ids the kernels use for the spec's encodings."""
+
+CROSS_MATRIX = wp.constant(0)
+AFFINE_MATRIX = wp.constant(1)
+QUAT_TRANSLATION = wp.constant(2)
+DUAL_QUAT = wp.constant(3)
+
+mat34 = wp.types.matrix(shape=(3, 4), dtype=wp.float32)
+"""A bone's ``[A | t]``: rows ``(A[i, 0], A[i, 1], A[i, 2], t[i])``."""
+
+dualquat = wp.types.matrix(shape=(2, 4), dtype=wp.float32)
+"""A bone's normalized dual quaternion: row 0 the real part, row 1 the dual part, (x, y, z, w)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Clip timing and row interpolation
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def row_blend(tau: wp.float64, rows_per_second: wp.float64, row_count: int, loop: int):
+    """Clip rows ``(i0, i1)`` and the weight ``f`` of ``i1`` at clip-local time ``tau`` (seconds).
+
+    Twin of ``reference.row_position``: looping clips take ``x mod N`` (floored, like numpy's
+    ``mod``) and blend row N-1 into row 0; clamped clips clamp ``x`` to ``[0, N-1]``.
+    """
+    x = tau * rows_per_second
+    n = wp.float64(row_count)
+    i0 = int(0)
+    i1 = int(0)
+    if loop != 0:
+        x = wp.mod(x, n)  # fmod: exact, sign of x
+        if x < wp.float64(0.0):
+            x = x + n
+        i0 = wp.min(int(wp.floor(x)), row_count - 1)
+        i1 = i0 + 1
+        if i1 == row_count:
+            i1 = 0
+    else:
+        x = wp.clamp(x, wp.float64(0.0), n - wp.float64(1.0))
+        i0 = int(wp.floor(x))
+        i1 = wp.min(i0 + 1, row_count - 1)
+    f = x - wp.float64(i0)
+    return i0, i1, wp.float32(f)
+
+
+@wp.func
+def lerp_texel(texels: wp.array2d(dtype=wp.vec4), row0: int, row1: int, f: float, column: int):
+    """``(1 - f) * texel(column, row0) + f * texel(column, row1)``: the spec's row interpolation."""
+    return (1.0 - f) * texels[row0, column] + f * texels[row1, column]
+
+
+@wp.func
+def sample_texel(texture: wp.Texture2D, row0: int, row1: int, f: float, column: int,
+                 low: wp.vec4, span: wp.vec4, unorm: int):
+    """Row interpolation through the texture unit, as a vertex shader would fetch it.
+
+    Horizontally the sample sits at the texel centre (``column + 0.5``), so the bilinear filter
+    only blends vertically. Adjacent rows are blended by the filter itself (one fetch at
+    ``row0 + 0.5 + f``); the wrap of a looping clip (row N-1 into row 0, not adjacent in the
+    texture) and a clamped clip's held last row take two fetches at row centres, blended here.
+    unorm16 texels come back normalized to [0, 1] and are mapped to their range afterwards (the
+    map is affine, so it commutes with the blend).
+    """
+    u = float(column) + 0.5
+    value = wp.vec4()
+    if row1 == row0 + 1:
+        value = wp.texture_sample(texture, wp.vec2f(u, float(row0) + 0.5 + f), dtype=wp.vec4f)
+    else:
+        a = wp.texture_sample(texture, wp.vec2f(u, float(row0) + 0.5), dtype=wp.vec4f)
+        b = wp.texture_sample(texture, wp.vec2f(u, float(row1) + 0.5), dtype=wp.vec4f)
+        value = (1.0 - f) * a + f * b
+    if unorm != 0:
+        value = low + wp.cw_mul(span, value)
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# Decoding one bone (encoding.decode_bones)
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def store_bone(encoding: int, v0: wp.vec4, v1: wp.vec4, v2: wp.vec4, instance: int, bone: int,
+               linear: wp.array2d(dtype=mat34), normal: wp.array2d(dtype=wp.mat33),
+               dual: wp.array2d(dtype=dualquat)):
+    """Decode interpolated channel values ``v0..v2`` (texels 0..T-1) and store them.
+
+    crossMatrix: ``A = [x y cross(x, y)]``; the normal matrix is A itself (not stored).
+    affineMatrix: the texels are the rows of ``[A | t]``; normal matrix ``inverse(A)^T``.
+    quatTranslation: ``A = s R(q / |q|)``, normal matrix ``R / s``.
+    dualQuat: both parts divided by ``|q_r|`` (translation is recovered while skinning).
+    """
+    if encoding == CROSS_MATRIX:
+        x = wp.vec3(v0[0], v0[1], v0[2])
+        y = wp.vec3(v1[0], v1[1], v1[2])
+        z = wp.cross(x, y)
+        linear[instance, bone] = mat34(x[0], y[0], z[0], v2[0],
+                                       x[1], y[1], z[1], v2[1],
+                                       x[2], y[2], z[2], v2[2])
+    elif encoding == AFFINE_MATRIX:
+        linear[instance, bone] = wp.matrix_from_rows(v0, v1, v2)
+        a = wp.mat33(v0[0], v0[1], v0[2], v1[0], v1[1], v1[2], v2[0], v2[1], v2[2])
+        normal[instance, bone] = wp.transpose(wp.inverse(a))
+    elif encoding == QUAT_TRANSLATION:
+        r = wp.quat_to_matrix(wp.normalize(wp.quat(v0[0], v0[1], v0[2], v0[3])))
+        s = v1[3]
+        linear[instance, bone] = mat34(s * r[0, 0], s * r[0, 1], s * r[0, 2], v1[0],
+                                       s * r[1, 0], s * r[1, 1], s * r[1, 2], v1[1],
+                                       s * r[2, 0], s * r[2, 1], s * r[2, 2], v1[2])
+        normal[instance, bone] = r / s
+    else:
+        inv = 1.0 / wp.length(v0)
+        dual[instance, bone] = wp.matrix_from_rows(v0 * inv, v1 * inv)
+
+
+@wp.kernel
+def decode_bones_kernel(
+    texels: wp.array2d(dtype=wp.vec4),
+    encoding: int,
+    clip_first_row: wp.array(dtype=wp.int32),
+    clip_row_count: wp.array(dtype=wp.int32),
+    clip_rate: wp.array(dtype=wp.float64),
+    clip_loop: wp.array(dtype=wp.int32),
+    instance_clip: wp.array(dtype=wp.int32),
+    instance_offset: wp.array(dtype=wp.float64),
+    instance_rate: wp.array(dtype=wp.float64),
+    t: wp.float64,
+    fraction_steps: float,
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    dual: wp.array2d(dtype=dualquat),
+):
+    """One thread per (instance, bone): interpolate the bone's texels between rows and decode.
+
+    ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
+    textures). ``fraction_steps > 0`` rounds the row fraction to multiples of ``1/fraction_steps``
+    (a model of the texture unit's fixed-point filter weights; 0 is the spec's exact blend).
+    """
+    instance, bone = wp.tid()
+    clip = instance_clip[instance]
+    tau = instance_offset[instance] + instance_rate[instance] * t
+    i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
+    if fraction_steps > 0.0:
+        f = wp.round(f * fraction_steps) / fraction_steps
+    row0 = clip_first_row[clip] + i0
+    row1 = clip_first_row[clip] + i1
+    texels_per_bone = 2
+    if encoding == CROSS_MATRIX or encoding == AFFINE_MATRIX:
+        texels_per_bone = 3
+    column = bone * texels_per_bone
+    v0 = lerp_texel(texels, row0, row1, f, column)
+    v1 = lerp_texel(texels, row0, row1, f, column + 1)
+    v2 = wp.vec4()
+    if texels_per_bone == 3:
+        v2 = lerp_texel(texels, row0, row1, f, column + 2)
+    store_bone(encoding, v0, v1, v2, instance, bone, linear, normal, dual)
+
+
+@wp.kernel
+def decode_bones_texture(
+    texture: wp.Texture2D,
+    encoding: int,
+    unorm: int,
+    unorm_low: wp.array(dtype=wp.vec4),
+    unorm_span: wp.array(dtype=wp.vec4),
+    clip_first_row: wp.array(dtype=wp.int32),
+    clip_row_count: wp.array(dtype=wp.int32),
+    clip_rate: wp.array(dtype=wp.float64),
+    clip_loop: wp.array(dtype=wp.int32),
+    instance_clip: wp.array(dtype=wp.int32),
+    instance_offset: wp.array(dtype=wp.float64),
+    instance_rate: wp.array(dtype=wp.float64),
+    t: wp.float64,
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    dual: wp.array2d(dtype=dualquat),
+):
+    """The hardware texture path of :data:`decode_bones_kernel`: rows blended by the texture unit.
+
+    ``texture`` holds the stored texels in their own format (float16, float32, or uint16 read
+    normalized), unnormalized coordinates, bilinear filtering, clamped addressing.
+    """
+    instance, bone = wp.tid()
+    clip = instance_clip[instance]
+    tau = instance_offset[instance] + instance_rate[instance] * t
+    i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
+    row0 = clip_first_row[clip] + i0
+    row1 = clip_first_row[clip] + i1
+    texels_per_bone = 2
+    if encoding == CROSS_MATRIX or encoding == AFFINE_MATRIX:
+        texels_per_bone = 3
+    column = bone * texels_per_bone
+    low = wp.vec4()
+    span = wp.vec4()
+    if unorm != 0:
+        low = unorm_low[0]
+        span = unorm_span[0]
+    v0 = sample_texel(texture, row0, row1, f, column, low, span, unorm)
+    if unorm != 0:
+        low = unorm_low[1]
+        span = unorm_span[1]
+    v1 = sample_texel(texture, row0, row1, f, column + 1, low, span, unorm)
+    v2 = wp.vec4()
+    if texels_per_bone == 3:
+        if unorm != 0:
+            low = unorm_low[2]
+            span = unorm_span[2]
+        v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
+    store_bone(encoding, v0, v1, v2, instance, bone, linear, normal, dual)
+
+
+# --------------------------------------------------------------------------------------------
+# Skinning (reference.skin) and the point instancer transform (reference.skin_crowd)
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def blend_lbs(linear: wp.array2d(dtype=mat34), normal: wp.array2d(dtype=wp.mat33), use_normal: int,
+              instance: int, indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32),
+              v: int, influences: int, p: wp.vec3, n: wp.vec3):
+    """``sum w_i (A_i p + t_i)`` and ``sum w_i N_i n`` over a vertex's influences (LBS)."""
+    p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+    n4 = wp.vec4(n[0], n[1], n[2], 0.0)
+    out_p = wp.vec3()
+    out_n = wp.vec3()
+    for k in range(influences):
+        bone = indices[v, k]
+        w = weights[v, k]
+        m = linear[instance, bone]
+        out_p += w * (m * p4)
+        if use_normal != 0:
+            out_n += w * (normal[instance, bone] * n)
+        else:
+            out_n += w * (m * n4)
+    return out_p, out_n
+
+
+@wp.func
+def blend_dqs(dual: wp.array2d(dtype=dualquat), instance: int, indices: wp.array2d(dtype=wp.int32),
+              weights: wp.array2d(dtype=wp.float32), v: int, influences: int):
+    """Blended, normalized dual quaternion of a vertex; signs follow the first influence."""
+    first = dual[instance, indices[v, 0]][0]
+    real = wp.vec4()
+    du = wp.vec4()
+    for k in range(influences):
+        q = dual[instance, indices[v, k]]
+        w = weights[v, k]
+        if wp.dot(q[0], first) < 0.0:
+            w = -w
+        real += w * q[0]
+        du += w * q[1]
+    inv = 1.0 / wp.length(real)
+    return wp.quat(real[0] * inv, real[1] * inv, real[2] * inv, real[3] * inv), du * inv
+
+
+@wp.func
+def dqs_point(real: wp.quat, du: wp.vec4, p: wp.vec3):
+    """``R(q_r) p + t`` with ``t = 2 (q_d (x) conj(q_r)).xyz``."""
+    d = wp.quat(du[0], du[1], du[2], du[3])
+    tq = d * wp.quat_inverse(real)  # conjugate: real is unit
+    return wp.quat_rotate(real, p) + 2.0 * wp.vec3(tq[0], tq[1], tq[2])
+
+
+@wp.func
+def place_point(p: wp.vec3, position: wp.vec3, orientation: wp.quat, scale: wp.vec3):
+    """Point instancer transform: scale, then orientation, then position."""
+    return position + wp.quat_rotate(orientation, wp.cw_mul(p, scale))
+
+
+@wp.func
+def place_normal(n: wp.vec3, orientation: wp.quat, scale: wp.vec3):
+    """Normal under the instancer transform: ``normalize(R (n / scale))``."""
+    return wp.normalize(wp.quat_rotate(orientation, wp.cw_div(n, scale)))
+
+
+@wp.kernel
+def skin_lbs_kernel(
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    use_normal: int,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    with_normals: int,
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    positions: wp.array(dtype=wp.vec3),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    instances_per_thread: int,
+    instance_count: int,
+    out_points: wp.array2d(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """Linear blend skinning of (instance, vertex), then the instancer transform.
+
+    Thread (j, v) skins vertex v of instances ``j * instances_per_thread ...``. With vertex
+    normals (``with_normals``) the normal is skinned in the same pass: ``normalize(sum w N n)``.
+    """
+    j, v = wp.tid()
+    p = points[v]
+    n = wp.vec3()
+    if with_normals != 0:
+        n = normals[v]
+    influences = indices.shape[1]
+    first = j * instances_per_thread
+    last = wp.min(first + instances_per_thread, instance_count)
+    for instance in range(first, last):
+        sp, sn = blend_lbs(linear, normal, use_normal, instance, indices, weights, v, influences, p, n)
+        orientation = orientations[instance]
+        scale = scales[instance]
+        out_points[instance, v] = place_point(sp, positions[instance], orientation, scale)
+        if with_normals != 0:
+            out_normals[instance, v] = place_normal(wp.normalize(sn), orientation, scale)
+
+
+@wp.kernel
+def skin_dqs_kernel(
+    dual: wp.array2d(dtype=dualquat),
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    with_normals: int,
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    positions: wp.array(dtype=wp.vec3),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    instances_per_thread: int,
+    instance_count: int,
+    out_points: wp.array2d(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """Dual-quaternion skinning of (instance, vertex), then the instancer transform."""
+    j, v = wp.tid()
+    p = points[v]
+    n = wp.vec3()
+    if with_normals != 0:
+        n = normals[v]
+    influences = indices.shape[1]
+    first = j * instances_per_thread
+    last = wp.min(first + instances_per_thread, instance_count)
+    for instance in range(first, last):
+        real, du = blend_dqs(dual, instance, indices, weights, v, influences)
+        orientation = orientations[instance]
+        scale = scales[instance]
+        out_points[instance, v] = place_point(dqs_point(real, du, p), positions[instance], orientation, scale)
+        if with_normals != 0:
+            sn = wp.normalize(wp.quat_rotate(real, n))
+            out_normals[instance, v] = place_normal(sn, orientation, scale)
+
+
+@wp.kernel
+def skin_normals_lbs_kernel(
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    use_normal: int,
+    normals: wp.array(dtype=wp.vec3),
+    normal_points: wp.array(dtype=wp.int32),
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """faceVarying normals (LBS): normal e uses the influences of point ``normal_points[e]``."""
+    instance, e = wp.tid()
+    v = normal_points[e]
+    zero = wp.vec3()
+    sp, sn = blend_lbs(linear, normal, use_normal, instance, indices, weights, v, indices.shape[1], zero,
+                       normals[e])
+    out_normals[instance, e] = place_normal(wp.normalize(sn), orientations[instance], scales[instance])
+
+
+@wp.kernel
+def skin_normals_dqs_kernel(
+    dual: wp.array2d(dtype=dualquat),
+    normals: wp.array(dtype=wp.vec3),
+    normal_points: wp.array(dtype=wp.int32),
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """faceVarying normals (DQS): normal e uses the influences of point ``normal_points[e]``."""
+    instance, e = wp.tid()
+    v = normal_points[e]
+    real, du = blend_dqs(dual, instance, indices, weights, v, indices.shape[1])
+    sn = wp.normalize(wp.quat_rotate(real, normals[e]))
+    out_normals[instance, e] = place_normal(sn, orientations[instance], scales[instance])
