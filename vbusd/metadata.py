@@ -50,7 +50,7 @@ into a version ``v + 1`` dict. Version 1 is the first version, so the table is e
 arrives, ``UPGRADES[1]`` is added here and readers keep reading version 1 files."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class LayoutInfo:
     """The layout metadata of one texture, validated and turned into model objects.
 
@@ -72,6 +72,19 @@ class LayoutInfo:
     content_digest: str
     format_version: int
     generator: str
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, LayoutInfo):
+            return NotImplemented
+        if (self.unorm_ranges is None) != (other.unorm_ranges is None):
+            return False
+        return ((self.layout, self.bones, self.clips, self.content_digest, self.format_version,
+                 self.generator) == (other.layout, other.bones, other.clips, other.content_digest,
+                                     other.format_version, other.generator)
+                and (self.unorm_ranges is None
+                     or np.array_equal(self.unorm_ranges, other.unorm_ranges)))
+
+    __hash__ = None  # holds an array
 
     def to_dict(self) -> dict:
         """The metadata dict of this info (the current format version, keys as :func:`to_dict`)."""
