@@ -1,0 +1,340 @@
+"""The stadium-crowd sample: the talk's reference case, checked against independent references.
+
+* The rig's topology and skin are checked by counting and by mesh invariants (closed, consistently
+  wound parts; convex weights), not by re-running the generator's own code.
+* The committed UsdSkel asset is skinned by UsdSkel itself (in a fresh interpreter, so any warning
+  OpenUSD prints is seen) and compared with an independent float64 LBS of the generator's matrices.
+* The committed Virtual Bones asset is read back with vbusd.usd_io and decoded with the numpy
+  reference decoder at every row; UsdSkel's skinning of the UsdSkel asset at the same times is the
+  reference (the error bound comes from float16 texels: 2e-3 of the bounding-box diagonal).
+* Regenerating into a temporary folder (the generator's command line) takes under 10 s and gives
+  files that describe the same rig, texture and crowd as the committed ones.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+GENERATOR = REPO / "samples" / "stadium_crowd.py"
+SAMPLE_DIR = REPO / "samples" / "stadium_crowd"
+USDSKEL = SAMPLE_DIR / "stadium_crowd.usda"
+VB = SAMPLE_DIR / "stadium_crowd_vb.usda"
+
+# The talk's numbers (V. Lopatin, "Virtual Bones", SIGGRAPH 2017), written out, not derived.
+BONES, VERTICES, TRIANGLES = 18, 202, 352
+WIDTH, HEIGHT, TEXEL_BYTES = 64, 512, 262_144
+INSTANCES, DURATION, FPS = 1200, 10.0, 30.0
+
+
+def _load_generator():
+    """Import samples/stadium_crowd.py by path: samples/ is not an installed package."""
+    name = "vbusd_samples_stadium_crowd"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, GENERATOR)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the class is created
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def gen():
+    return _load_generator()
+
+
+@pytest.fixture(scope="module")
+def rig(gen):
+    return gen.build_rig()
+
+
+# ------------------------------------------------------------------------------------------------
+# The rig
+# ------------------------------------------------------------------------------------------------
+
+
+def test_rig_has_the_talks_counts(gen, rig):
+    assert len(gen.JOINT_NAMES) == BONES and len(set(gen.JOINT_NAMES)) == BONES
+    assert rig.points.shape == (VERTICES, 3)
+    assert rig.triangles.shape == (TRIANGLES, 3)
+    assert rig.normals.shape == (VERTICES, 3)
+    assert rig.bone_indices.shape == rig.bone_weights.shape == (VERTICES, 4)
+    # Parent-first joint order, as UsdSkel requires.
+    assert all(parent < j for j, parent in enumerate(gen.PARENTS))
+    assert sum(parent < 0 for parent in gen.PARENTS) == 1
+
+
+def test_every_part_is_closed_and_consistently_wound(rig):
+    edges = Counter()
+    for a, b, c in rig.triangles.tolist():
+        edges.update([(a, b), (b, c), (c, a)])
+    # A closed, consistently oriented surface uses each directed edge once and its reverse once.
+    assert all(count == 1 and edges[(b, a)] == 1 for (a, b), count in edges.items())
+    assert set(np.unique(rig.triangles)) == set(range(VERTICES)), "unused vertices"
+    # Outward winding: positive enclosed volume (divergence theorem) for the whole mesh.
+    p = rig.points[rig.triangles]
+    volume = np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0
+    assert volume > 0.02  # cubic metres: roughly a person's worth (about 0.07)
+
+
+def test_skin_weights_are_convex_with_at_most_four_influences(rig):
+    w = rig.bone_weights
+    assert (w >= 0).all()
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-12)
+    assert ((w > 0).sum(axis=1) <= 4).all()
+    assert ((w > 0).sum(axis=1) >= 2).sum() > VERTICES // 4, "weights should blend across joints"
+    assert (rig.bone_indices >= 0).all() and (rig.bone_indices < BONES).all()
+
+
+def test_normals_are_unit_and_point_outward(rig):
+    np.testing.assert_allclose(np.linalg.norm(rig.normals, axis=1), 1.0, atol=1e-12)
+    for name, first, count in rig.parts:
+        points = rig.points[first:first + count]
+        outward = points - points.mean(axis=0)
+        assert (np.einsum("ij,ij->i", rig.normals[first:first + count], outward) > 0).all(), name
+
+
+def test_cheer_loops_and_is_rigid(gen):
+    ends = gen.skinning_matrices(np.array([0.0, DURATION, 2 * DURATION + 3.7, 3.7]))
+    np.testing.assert_array_equal(ends[0], ends[1])
+    np.testing.assert_allclose(ends[2], ends[3], atol=1e-12)
+    many = gen.skinning_matrices(np.linspace(0, DURATION, 97))
+    linear = many[..., :3, :3]
+    np.testing.assert_allclose(linear @ np.swapaxes(linear, -1, -2), np.broadcast_to(np.eye(3), linear.shape),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(linear), 1.0, atol=1e-12)
+    # It moves: hands travel well over a metre during the loop.
+    assert np.ptp(many[:, 7, :3, 3], axis=0).max() > 0.5
+
+
+# ------------------------------------------------------------------------------------------------
+# The UsdSkel asset, skinned by UsdSkel
+# ------------------------------------------------------------------------------------------------
+
+_USDSKEL_PROBE = r"""
+import json, sys
+import numpy as np
+from pxr import Usd, UsdGeom, UsdSkel, Vt
+stage = Usd.Stage.Open(sys.argv[1])
+root = UsdSkel.Root(stage.GetPrimAtPath("/StadiumCrowd"))
+cache = UsdSkel.Cache()
+cache.Populate(root, Usd.TraverseInstanceProxies())
+bindings = cache.ComputeSkelBindings(root, Usd.TraverseInstanceProxies())
+(binding,) = bindings
+(target,) = binding.GetSkinningTargets()
+skel = cache.GetSkelQuery(binding.GetSkeleton())
+anim = UsdSkel.Animation(stage.GetPrimAtPath("/StadiumCrowd/Skeleton/Cheer"))
+rest = np.array(target.GetPrim().GetAttribute("points").Get(), dtype=np.float64)
+frames = []
+for frame in range(301):
+    points = Vt.Vec3fArray.FromNumpy(rest.astype(np.float32))
+    ok = target.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(frame), points, frame)
+    if not ok:
+        raise SystemExit(f"ComputeSkinnedPoints failed at frame {frame}")
+    frames.append(np.array(points, dtype=np.float64).tolist())
+mesh = UsdGeom.Mesh(target.GetPrim())
+print(json.dumps({
+    "upAxis": UsdGeom.GetStageUpAxis(stage), "metersPerUnit": UsdGeom.GetStageMetersPerUnit(stage),
+    "timeCodesPerSecond": stage.GetTimeCodesPerSecond(), "start": stage.GetStartTimeCode(),
+    "end": stage.GetEndTimeCode(), "joints": list(skel.GetJointOrder()),
+    "influences": target.GetNumInfluencesPerComponent(), "rigid": target.IsRigidlyDeformed(),
+    "animSamples": {name: attr.GetTimeSamples() for name, attr in (
+        ("translations", anim.GetTranslationsAttr()), ("rotations", anim.GetRotationsAttr()),
+        ("scales", anim.GetScalesAttr()))},
+    "faceVertexCounts": list(mesh.GetFaceVertexCountsAttr().Get()),
+    "normals": len(mesh.GetNormalsAttr().Get()), "normalsInterpolation": mesh.GetNormalsInterpolation(),
+    "frames": frames}))
+"""
+
+
+@pytest.fixture(scope="module")
+def usdskel_probe():
+    pytest.importorskip("pxr")
+    result = subprocess.run([sys.executable, "-c", _USDSKEL_PROBE, str(USDSKEL)], capture_output=True,
+                            text=True, timeout=300, cwd=REPO.parent)
+    assert result.returncode == 0, result.stderr
+    return result, json.loads(result.stdout)
+
+
+def test_usdskel_asset_skins_without_warnings(usdskel_probe):
+    result, report = usdskel_probe
+    # OpenUSD reports UsdSkel problems (bad joint order, wrong counts) as warnings on stderr.
+    assert result.stderr.strip() == ""
+    assert report["upAxis"] == "Y" and report["metersPerUnit"] == 1.0
+    assert report["timeCodesPerSecond"] == FPS and (report["start"], report["end"]) == (0.0, 300.0)
+    assert len(report["joints"]) == BONES
+    assert report["influences"] == 4 and not report["rigid"]
+    for name, samples in report["animSamples"].items():
+        assert samples == [float(f) for f in range(301)], name
+    assert report["faceVertexCounts"] == [3] * TRIANGLES
+    assert report["normals"] == VERTICES and report["normalsInterpolation"] == "vertex"
+
+
+def test_usdskel_skinning_matches_float64_lbs_of_the_generator(usdskel_probe, gen, rig):
+    _, report = usdskel_probe
+    usd = np.array(report["frames"])
+    assert usd.shape == (301, VERTICES, 3)
+    # Independent float64 LBS of the generator's matrices: sum_i w_i M_i p.
+    matrices = gen.skinning_matrices(np.arange(301) / FPS)
+    exact = np.zeros_like(usd)
+    for k in range(4):
+        m = matrices[:, rig.bone_indices[:, k]]
+        exact += rig.bone_weights[None, :, k, None] * (
+            np.einsum("fvij,vj->fvi", m[..., :3, :3], rig.points) + m[..., :3, 3])
+    assert np.abs(usd - exact).max() < 1e-5  # float32 points and quaternions in the file
+    np.testing.assert_allclose(usd[300], usd[0], atol=1e-6)  # the loop closes
+    assert np.abs(usd - usd[0]).max() > 0.3  # and something moves (metres)
+
+
+# ------------------------------------------------------------------------------------------------
+# The Virtual Bones asset
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def vb_asset():
+    usd_io = pytest.importorskip("vbusd.usd_io")
+    return usd_io.read_asset(VB)
+
+
+def test_vb_asset_is_the_talks_texture(vb_asset):
+    (vb,) = vb_asset.animations
+    layout = vb.layout
+    assert (str(layout.encoding), str(layout.texel_format)) == ("crossMatrix", "float16")
+    assert layout.bone_count == BONES and layout.texels_per_bone == 3
+    assert (layout.width, layout.height) == (WIDTH, HEIGHT)
+    assert vb.texels.shape == (HEIGHT, WIDTH, 4) and vb.texels.dtype == np.float16
+    assert vb.texels.nbytes == TEXEL_BYTES == layout.texel_bytes
+    (clip,) = vb.clips
+    assert clip.row_count == HEIGHT and clip.loop and clip.first_row == 0
+    assert clip.rows_per_second == pytest.approx(HEIGHT / DURATION)  # 51.2 rows/s
+    # Padding columns are zero; crossMatrix writes 1 into every alpha of bone data.
+    assert not vb.texels[:, BONES * 3:].any()
+    assert (vb.texels[:, :BONES * 3, 3] == 1).all()
+    (mesh,) = vb.meshes
+    assert mesh.points.shape == (VERTICES, 3)
+    assert list(mesh.face_vertex_counts) == [3] * TRIANGLES and mesh.max_influences <= 4
+    assert vb_asset.up_axis == "Y" and vb_asset.meters_per_unit == 1.0
+
+
+def test_vb_crowd_is_1200_spectators_facing_the_pitch(vb_asset):
+    (crowd,) = vb_asset.crowds
+    assert vb_asset.crowd_animation == (0,)
+    assert crowd.instance_count == INSTANCES
+    assert (np.asarray(crowd.clip) == 0).all()
+    offsets, rates = np.asarray(crowd.time_offset), np.asarray(crowd.playback_rate)
+    assert offsets.min() >= 0 and offsets.max() < DURATION and np.ptp(offsets) > 0.9 * DURATION
+    assert rates.min() >= 0.9 and rates.max() <= 1.1 and len(np.unique(rates)) > INSTANCES // 2
+    # Rotate the spectator's forward (+Z) by each orientation (x, y, z, w): it must point at the
+    # pitch (towards -Z from the stand at +Z) and stay horizontal (a pure yaw).
+    q = np.asarray(crowd.orientations, dtype=np.float64)
+    x, y, z, w = q.T
+    forward = np.stack([2 * (x * z + y * w), 2 * (y * z - x * w), 1 - 2 * (x * x + y * y)], axis=1)
+    positions = np.asarray(crowd.positions, dtype=np.float64)
+    assert (positions[:, 2] > 0).all()
+    np.testing.assert_allclose(forward[:, 1], 0.0, atol=1e-6)
+    to_pitch = -positions[:, [0, 2]] / np.linalg.norm(positions[:, [0, 2]], axis=1, keepdims=True)
+    assert (np.einsum("ij,ij->i", forward[:, [0, 2]], to_pitch) > 0.8).all()
+
+
+def test_vb_decode_matches_usdskel_at_every_row(vb_asset, usdskel_probe):
+    from pxr import Usd, UsdSkel, Vt
+    from vbusd import reference
+
+    (vb,) = vb_asset.animations
+    (mesh,) = vb.meshes
+    stage = Usd.Stage.Open(str(USDSKEL))
+    root = UsdSkel.Root(stage.GetPrimAtPath("/StadiumCrowd"))
+    cache = UsdSkel.Cache()
+    cache.Populate(root, Usd.TraverseInstanceProxies())
+    (binding,) = cache.ComputeSkelBindings(root, Usd.TraverseInstanceProxies())
+    (target,) = binding.GetSkinningTargets()
+    skel = cache.GetSkelQuery(binding.GetSkeleton())
+    rest = np.array(target.GetPrim().GetAttribute("points").Get(), dtype=np.float32)
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+
+    times = np.arange(HEIGHT) / (HEIGHT / DURATION)  # every row's time, seconds
+    decoded, _ = reference.skin_mesh(vb, mesh, 0, times)
+    worst = 0.0
+    for row, seconds in enumerate(times):
+        code = seconds * FPS  # rows 0, 128, 256, 384 fall on frames; the others UsdSkel interpolates
+        points = Vt.Vec3fArray.FromNumpy(rest.copy())
+        assert target.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(code), points, code)
+        worst = max(worst, float(np.linalg.norm(np.array(points) - decoded[row], axis=1).max()))
+    assert worst <= 2e-3 * diagonal, f"largest error {worst:.3g} = {worst / diagonal:.3g} of the diagonal"
+
+
+# ------------------------------------------------------------------------------------------------
+# Regeneration
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def regenerated(tmp_path_factory):
+    pytest.importorskip("pxr")
+    out = tmp_path_factory.mktemp("stadium_crowd")
+    start = time.perf_counter()
+    result = subprocess.run([sys.executable, str(GENERATOR), "--out", str(out)], capture_output=True,
+                            text=True, timeout=120, cwd=out)
+    seconds = time.perf_counter() - start
+    assert result.returncode == 0, result.stderr
+    return out, seconds
+
+
+def test_regeneration_is_fast(regenerated):
+    _, seconds = regenerated
+    assert seconds < 10.0, f"generating the sample took {seconds:.1f} s"
+
+
+def test_regenerated_files_are_the_committed_ones(regenerated):
+    out, _ = regenerated
+    committed = sorted(p.name for p in SAMPLE_DIR.iterdir())
+    assert sorted(p.name for p in out.iterdir()) == committed
+
+
+def test_regenerated_usdskel_describes_the_same_rig(regenerated):
+    from pxr import Usd
+
+    out, _ = regenerated
+    new, old = Usd.Stage.Open(str(out / USDSKEL.name)), Usd.Stage.Open(str(USDSKEL))
+    assert [str(p.GetPath()) for p in new.Traverse()] == [str(p.GetPath()) for p in old.Traverse()]
+    for prim in old.Traverse():
+        other = new.GetPrimAtPath(prim.GetPath())
+        assert other.GetTypeName() == prim.GetTypeName()
+        for attr in prim.GetAttributes():
+            twin = other.GetAttribute(attr.GetName())
+            assert twin.GetTimeSamples() == attr.GetTimeSamples(), attr.GetPath()
+            for code in attr.GetTimeSamples() or [Usd.TimeCode.Default()]:
+                a, b = attr.Get(code), twin.Get(code)
+                if hasattr(a, "__len__") and not isinstance(a, str) and len(a) and \
+                        not isinstance(a[0], str):
+                    np.testing.assert_allclose(np.array(b, dtype=np.float64),
+                                               np.array(a, dtype=np.float64), atol=1e-6,
+                                               err_msg=str(attr.GetPath()))
+                else:
+                    assert a == b, attr.GetPath()
+
+
+def test_regenerated_vb_asset_describes_the_same_texture_and_crowd(regenerated, vb_asset):
+    from vbusd import usd_io
+
+    out, _ = regenerated
+    new = usd_io.read_asset(out / VB.name)
+    (a,), (b,) = vb_asset.animations, new.animations
+    assert a.layout == b.layout and a.bones == b.bones and a.clips == b.clips
+    # One float16 step of tolerance, in case another platform's libm rounds a sine differently.
+    np.testing.assert_allclose(b.texels.astype(np.float64), a.texels.astype(np.float64), rtol=1e-3, atol=1e-4)
+    (ca,), (cb,) = vb_asset.crowds, new.crowds
+    for name in ("positions", "orientations", "time_offset", "playback_rate", "clip"):
+        np.testing.assert_allclose(np.asarray(getattr(cb, name), dtype=np.float64),
+                                   np.asarray(getattr(ca, name), dtype=np.float64), atol=1e-6, err_msg=name)
