@@ -31,7 +31,7 @@ moderngl = pytest.importorskip("moderngl")
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
 # float32 arithmetic on the GPU against float64 on the CPU, from the same stored texels.
-TOLERANCE = 2e-5
+TOLERANCE = 5e-6
 
 
 @pytest.fixture(scope="module")
@@ -243,7 +243,7 @@ def _check(ctx, lang, encoding, texel_format, tmp_path, source):
     point_error = np.abs(points - expected_points).max() / scale
     normal_error = np.abs(normals - expected_normals).max()
     assert point_error <= TOLERANCE, f"{lang} {encoding} {texel_format}: position error {point_error:.3g} of the diagonal"
-    assert normal_error <= 10 * TOLERANCE, f"{lang} {encoding} {texel_format}: normal error {normal_error:.3g}"
+    assert normal_error <= 20 * TOLERANCE, f"{lang} {encoding} {texel_format}: normal error {normal_error:.3g}"
 
 
 @pytest.mark.parametrize("source", ["stadium", "chain"])
