@@ -249,6 +249,37 @@ def _load_buffers(gltf, binary: bytes | None, folder: Path, file: str,
     return buffers
 
 
+_TOP_LEVEL_ARRAYS = ("accessors", "animations", "buffers", "bufferViews", "cameras", "images",
+                     "materials", "meshes", "nodes", "samplers", "scenes", "skins", "textures")
+
+
+def _locate_structure_error(json_text: str) -> str | None:
+    """After pygltflib failed: the JSON pointer of the first top-level value of the wrong kind.
+
+    Only used to give the error message a location; pygltflib does the parsing.
+    """
+    import json
+
+    try:
+        root = json.loads(json_text)
+    except (ValueError, RecursionError):
+        return None
+    if not isinstance(root, dict):
+        return ""
+    for key in _TOP_LEVEL_ARRAYS:
+        value = root.get(key)
+        if value is None:
+            continue
+        if not isinstance(value, list):
+            return f"/{key}"
+        for i, item in enumerate(value):
+            if not isinstance(item, dict):
+                return f"/{key}/{i}"
+    if not isinstance(root.get("asset"), dict):
+        return "/asset"
+    return None
+
+
 def load(path, options: ReadOptions | None = None):
     """Parse a .gltf or .glb file with pygltflib and load its buffers, checking the container.
 
@@ -296,7 +327,8 @@ def load(path, options: ReadOptions | None = None):
         raise
     except Exception as exc:  # pygltflib surfaces JSON and structure errors as raw exceptions
         detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"not valid glTF JSON: {detail}", file=file, code="gltf.json") from None
+        raise InputError(f"not valid glTF JSON: {detail}", file=file,
+                         location=_locate_structure_error(json_text), code="gltf.json") from None
     if gltf is None:
         raise InputError("GLB has no JSON chunk", file=file, code="gltf.glb")
     for key in ("accessors", "animations", "bufferViews", "buffers", "meshes", "nodes", "scenes",
