@@ -180,8 +180,15 @@ def test_instancing_api_applies_only_to_point_instancers():
 
 
 def test_plugin_dir_is_the_package_data_folder():
+    import importlib.util
+
     folder = usd_plugin.plugin_dir()
-    assert folder == SCHEMA_DIR.resolve()  # editable install maps vbusd.schema.usd onto schema/usd
+    # Editable installs map vbusd.schema.usd onto schema/usd, regular ones copy it: either way the
+    # folder is the package's own and holds the committed files.
+    spec = importlib.util.find_spec(usd_plugin.PLUGIN_PACKAGE)
+    assert folder == Path(spec.origin).resolve().parent
+    for name in ("plugInfo.json", "generatedSchema.usda"):
+        assert (folder / name).read_bytes() == (SCHEMA_DIR / name).read_bytes(), name
     from pxr import Plug
 
     plugin = Plug.Registry().GetPluginWithName("vbusd")

@@ -417,9 +417,14 @@ class _Reader:
             if required:
                 raise self.error(f"missing required attribute {name}", location, "usd.missing")
             return None
-        if attribute.GetTypeName() != type_name:
-            raise self.error(f"{name} must be {type_name}, found {attribute.GetTypeName()}",
-                             location, "usd.type")
+        # The composed type is the schema's even where a layer authored another type (and Get()
+        # then returns the authored value), so every authored spec is checked. Roles (point3f vs
+        # float3) do not matter for the values read: compare the value types.
+        found = [attribute.GetTypeName()] + [spec.typeName for spec in attribute.GetPropertyStack()]
+        for found_type in found:
+            if found_type.type != type_name.type:
+                raise self.error(f"{name} must be {type_name}, found {found_type}", location,
+                                 "usd.type")
         value = attribute.Get()
         if value is None and required:
             raise self.error(f"missing required attribute {name} (no value authored)", location,
