@@ -97,10 +97,8 @@ def test_valid_fixture_passes_schema(validator, name):
     assert errors == []
 
 
-@pytest.mark.parametrize("name", VALID)
-def test_valid_fixture_passes_cross_field_rules(name):
-    """Relations the schema cannot express (spec 11.3), computed here by hand, not by vbusd."""
-    d = _load(FIXTURES / name)
+def _relation_problems(d: dict) -> list:
+    """JSON pointers of the relations of spec 11.3 that ``d`` breaks, computed by hand (not by vbusd)."""
     t = {"crossMatrix": 3, "affineMatrix": 3, "quatTranslation": 2, "dualQuat": 2}[d["encoding"]]
 
     def p2(n):
@@ -109,22 +107,34 @@ def test_valid_fixture_passes_cross_field_rules(name):
             power *= 2
         return power
 
-    assert d["texelsPerBone"] == t
-    assert d["usedWidth"] == d["boneCount"] * t
-    assert d["width"] == (p2(d["usedWidth"]) if d["horizontalPadding"] == "powerOfTwo" else d["usedWidth"])
-    assert d["height"] == (p2(d["rowCount"]) if d["verticalPadding"] == "powerOfTwo" else d["rowCount"])
-    assert d["texelBytes"] == d["width"] * d["height"] * 4 * (4 if d["texelFormat"] == "float32" else 2)
-    assert len(d["bones"]) == d["boneCount"]
-    rows = sorted((c["firstRow"], c["rowCount"]) for c in d["clips"])
-    covered = 0
-    for first, count in rows:
-        assert first == covered  # no gap, no overlap
-        covered += count
-    assert covered == d["rowCount"]
-    assert len({c["name"] for c in d["clips"]}) == len(d["clips"])
-    for slot in d.get("unormRanges", []):
-        for low, high in slot:
-            assert low <= high
+    used = d["boneCount"] * t
+    width = p2(used) if d["horizontalPadding"] == "powerOfTwo" else used
+    height = p2(d["rowCount"]) if d["verticalPadding"] == "powerOfTwo" else d["rowCount"]
+    expected = {"texelsPerBone": t, "usedWidth": used, "width": width, "height": height,
+                "texelBytes": width * height * 4 * (4 if d["texelFormat"] == "float32" else 2)}
+    problems = [f"/{key}" for key, value in expected.items() if d[key] != value]
+    if len(d["bones"]) != d["boneCount"]:
+        problems.append("/bones")
+    next_row, names = 0, set()
+    for j, clip in enumerate(d["clips"]):  # in row order, no gap, no overlap (spec 7)
+        if clip["name"] in names:
+            problems.append(f"/clips/{j}/name")
+        names.add(clip["name"])
+        if clip["firstRow"] != next_row:
+            problems.append(f"/clips/{j}/firstRow")
+        next_row = clip["firstRow"] + clip["rowCount"]
+    if next_row != d["rowCount"]:
+        problems.append("/rowCount")
+    for k, slot in enumerate(d.get("unormRanges", [])):
+        for c, (low, high) in enumerate(slot):
+            if low > high:
+                problems.append(f"/unormRanges/{k}/{c}")
+    return problems
+
+
+@pytest.mark.parametrize("name", VALID)
+def test_valid_fixture_passes_cross_field_rules(name):
+    assert _relation_problems(_load(FIXTURES / name)) == []
 
 
 # ------------------------------------------------------------------------------------------
@@ -262,6 +272,42 @@ def test_invalid_fixture_is_refused_by_library(name):
     expected = VersionError if name == "newer-format-version" else InputError
     with pytest.raises(expected):
         metadata.from_dict(_load(FIXTURES / "invalid" / f"{name}.json"), file=name)
+
+
+# Documents that pass the schema but break a relation of spec 11.3 -> JSON pointer of the problem
+RELATIONS = {
+    "width-not-next-power-of-two": "/width",
+    "texel-bytes-wrong": "/texelBytes",
+    "used-width-wrong": "/usedWidth",
+    "bone-names-fewer-than-bone-count": "/bones",
+    "duplicate-clip-names": "/clips/1/name",
+    "clips-overlap": "/clips/1/firstRow",
+    "clips-leave-a-gap": "/rowCount",
+    "clips-out-of-order": "/clips/0/firstRow",
+    "unorm-min-above-max": "/unormRanges/0/0",
+}
+
+
+def test_every_relation_fixture_is_listed():
+    assert {p.stem for p in (FIXTURES / "invalid-relations").glob("*.json")} == set(RELATIONS)
+
+
+@pytest.mark.parametrize("name", sorted(RELATIONS))
+def test_relation_fixture_passes_schema_but_breaks_the_rule(validator, name):
+    """What JSON Schema cannot express: the schema accepts these, the spec's relations do not."""
+    document = _load(FIXTURES / "invalid-relations" / f"{name}.json")
+    assert validator.is_valid(document)
+    assert RELATIONS[name] in _relation_problems(document)
+
+
+@pytest.mark.parametrize("name", sorted(RELATIONS))
+def test_relation_fixture_is_refused_by_library_at_its_place(name):
+    metadata = pytest.importorskip("vbusd.metadata")
+    from vbusd.errors import InputError
+
+    with pytest.raises(InputError) as caught:
+        metadata.from_dict(_load(FIXTURES / "invalid-relations" / f"{name}.json"), file=name)
+    assert caught.value.location == RELATIONS[name]
 
 
 @pytest.mark.parametrize("mutate, path", [
