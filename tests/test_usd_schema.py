@@ -12,7 +12,6 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-import tomllib
 from pathlib import Path
 
 import pytest
@@ -212,28 +211,30 @@ print(json.dumps(state))
 """
 
 
-def test_import_vbusd_registers_without_importing_pxr():
-    result = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True,
-                            env=_clean_env(), timeout=60)
+def _run_probe(code: str, cwd: Path, env=None, *flags) -> dict:
+    # -P and a neutral cwd: the checkout's vbusd/ folder must not shadow the installed package.
+    result = subprocess.run([sys.executable, "-P", *flags, "-c", code], capture_output=True,
+                            text=True, env=env or _clean_env(), timeout=60, cwd=cwd)
     assert result.returncode == 0, result.stderr
-    state = json.loads(result.stdout)
+    return json.loads(result.stdout)
+
+
+def test_import_vbusd_registers_without_importing_pxr(tmp_path):
+    state = _run_probe(_PROBE, tmp_path)
     assert state["pxr_loaded_by_import"] is False
     assert state["plugin_path"] == state["plugin_dir"]
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 
-def test_import_vbusd_after_pxr_registers_directly():
-    code = "from pxr import Usd\n" + _PROBE
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            env=_clean_env(), timeout=60)
-    assert result.returncode == 0, result.stderr
-    state = json.loads(result.stdout)
+def test_import_vbusd_after_pxr_registers_directly(tmp_path):
+    state = _run_probe("from pxr import Usd\n" + _PROBE, tmp_path)
     assert state["plugin_path"] is None  # too late for the variable: registered through Plug
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 
 def _install_like_a_wheel(target: Path) -> None:
     """Lay the packages out as the wheel does, following pyproject's package-dir and package-data."""
+    tomllib = pytest.importorskip("tomllib")
     config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     package_dir = config["package-dir"]
     package_data = config.get("package-data", {})
@@ -255,10 +256,7 @@ def test_installed_layout_resolves_the_plugin(tmp_path):
     env = _clean_env()
     # -S skips site (and the editable install's path hook), so only the copied tree provides vbusd.
     env["PYTHONPATH"] = os.pathsep.join([str(site), purelib])
-    result = subprocess.run([sys.executable, "-S", "-c", _PROBE], capture_output=True, text=True,
-                            env=env, timeout=60, cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
-    state = json.loads(result.stdout)
+    state = _run_probe(_PROBE, tmp_path, env, "-S")
     assert Path(state["vbusd_file"]).resolve().is_relative_to(site.resolve())
     assert Path(state["plugin_dir"]) == (site / "vbusd" / "schema" / "usd").resolve()
     assert state["known"] and state["encoding"] == "crossMatrix"
