@@ -13,6 +13,7 @@ ASSET may be:
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Optional
 
@@ -116,9 +117,8 @@ def _usd_animations(path: Path) -> list:
     try:
         stage = Usd.Stage.Open(file, Usd.Stage.LoadAll)
     except Tf.ErrorException as error:
-        first = str(error).strip().splitlines()
-        raise InputError(f"USD cannot open the file: {first[-1] if first else error}",
-                         file=file, location="file", code="usd.open") from None
+        raise InputError(f"USD cannot open the file: {_tf_messages(error)}", file=file,
+                         location="file", code="usd.open") from None
     if stage is None:
         raise InputError("USD cannot open the file", file=file, location="file", code="usd.open")
     animations = []
@@ -130,6 +130,14 @@ def _usd_animations(path: Path) -> list:
         raise InputError("no VirtualBonesAnimation prim: not a Virtual Bones asset", file=file,
                          location=str(stage.GetPseudoRoot().GetPath()), code="usd.noAnimation")
     return animations
+
+
+def _tf_messages(error) -> str:
+    """The messages of a Tf.ErrorException without the C++ function names and source lines."""
+    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)",
+                       str(error), flags=re.S)
+    text = "; ".join(" ".join(m.split()) for m in found) or " ".join(str(error).split())
+    return text[:400]
 
 
 def _describe_prim(prim, file: str) -> dict:

@@ -1,0 +1,173 @@
+"""``vbusd info``: layout of textures, sidecars and USD assets, against hand-computed numbers."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from vbusd import textures
+from vbusd.cli import main
+from vbusd.layout import Layout
+from vbusd.model import Clip, VirtualBones
+
+REQUIRED = {"encoding", "texelFormat", "boneCount", "rowCount", "usedWidth", "width", "height",
+            "texelBytes", "clips"}
+
+
+def talk_vb(encoding="crossMatrix", texel_format="float16", rows=512):
+    """The talk's rig: 18 bones, 512 rows (a 10 s cheer at 51.2 rows/s)."""
+    layout = Layout(encoding, texel_format, 18, rows)
+    texels = np.zeros(layout.shape, layout.texel_format.numpy_dtype)
+    texels[:, :layout.used_width] = 1
+    ranges = None
+    if texel_format == "unorm16":
+        ranges = np.zeros((layout.texels_per_bone, 4, 2))
+        ranges[..., 1] = 1
+    return VirtualBones(layout, texels, tuple(f"j{i}" for i in range(18)),
+                        (Clip("cheer", 0, rows, 51.2, True),), unorm_ranges=ranges)
+
+
+def run_json(capsys, *args):
+    assert main(["info", *map(str, args), "--format", "json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_json_of_the_talks_texture(tmp_path, capsys):
+    path = tmp_path / "crowd.exr"
+    textures.write_texture(path, talk_vb())
+    out = run_json(capsys, path)
+    assert REQUIRED <= set(out) and out["kind"] == "texture" and out["file"] == str(path)
+    # 18 bones x 3 texels = 54 columns, padded to 64; 64 x 512 x 4 channels x 2 bytes.
+    assert (out["usedWidth"], out["width"], out["height"]) == (54, 64, 512)
+    assert out["texelBytes"] == 262144
+    assert out["paddingBytes"] == (64 - 54) * 512 * 8 == 40960
+    assert out["paddingFraction"] == pytest.approx(10 / 64)
+    assert (out["encoding"], out["texelFormat"], out["boneCount"], out["rowCount"]) == \
+        ("crossMatrix", "float16", 18, 512)
+    assert out["texelsPerBone"] == 3 and out["texture"] == "crowd.exr" and out["path"] is None
+    (clip,) = out["clips"]
+    assert clip == {"name": "cheer", "firstRow": 0, "rowCount": 512, "rowsPerSecond": 51.2,
+                    "loop": True, "startTime": 0.0, "duration": pytest.approx(10.0)}
+    assert len(out["animations"]) == 1 and out["animations"][0]["width"] == 64
+
+
+def test_json_of_quaternion_unorm16_png_and_sidecar(tmp_path, capsys):
+    path = tmp_path / "q.png"
+    textures.write_texture(path, talk_vb("quatTranslation", "unorm16", rows=300))
+    for source in (path, tmp_path / "q.png.json"):
+        out = run_json(capsys, source)
+        # 18 x 2 = 36 columns, padded to 64; 300 rows unpadded; unorm16 = 2 bytes per channel.
+        assert (out["usedWidth"], out["width"], out["height"]) == (36, 64, 300)
+        assert out["texelBytes"] == 64 * 300 * 8 == 153600
+        assert out["paddingBytes"] == 28 * 300 * 8
+        assert out["clips"][0]["duration"] == pytest.approx(300 / 51.2)
+    assert out["kind"] == "sidecar" and out["texture"] == "q.png"
+
+
+def test_text_table(tmp_path, capsys):
+    path = tmp_path / "crowd.exr"
+    textures.write_texture(path, talk_vb())
+    assert main(["info", str(path)]) == 0
+    text = capsys.readouterr().out
+    for expected in ("crossMatrix", "float16", "18 x 3 texels", "512", "54 used, 64 padded",
+                     "262,144", "15.62% (40,960 bytes)", "cheer", "51.2", "yes", "10"):
+        assert expected in text, expected
+
+
+def _usd_asset(tmp_path):
+    """A Virtual Bones USD layer written with pxr by hand (two animations), no texture needed."""
+    from pxr import Sdf, Usd, Vt
+
+    import vbusd.usd_plugin  # noqa: F401  registers the schema
+
+    path = tmp_path / "crowd.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    for name, encoding, bones, rows, clips in (
+            ("Spectator", "crossMatrix", 18, 512, [("cheer", 0, 512, 51.2, True, 0.0)]),
+            ("Mascot", "dualQuat", 5, 40, [("jump", 0, 30, 30.0, False, 0.0),
+                                          ("wave", 30, 10, 10.0, True, 2.0)])):
+        prim = stage.DefinePrim(f"/Crowd/{name}", "VirtualBonesAnimation")
+        values = {
+            "vb:texture": (Sdf.ValueTypeNames.Asset, Sdf.AssetPath(f"./{name}.exr")),
+            "vb:encoding": (Sdf.ValueTypeNames.Token, encoding),
+            "vb:texelFormat": (Sdf.ValueTypeNames.Token, "float32"),
+            "vb:boneCount": (Sdf.ValueTypeNames.Int, bones),
+            "vb:rowCount": (Sdf.ValueTypeNames.Int, rows),
+            "vb:bones": (Sdf.ValueTypeNames.TokenArray, Vt.TokenArray([f"b{i}" for i in range(bones)])),
+            "vb:clipNames": (Sdf.ValueTypeNames.TokenArray, Vt.TokenArray([c[0] for c in clips])),
+            "vb:clipFirstRows": (Sdf.ValueTypeNames.IntArray, Vt.IntArray([c[1] for c in clips])),
+            "vb:clipRowCounts": (Sdf.ValueTypeNames.IntArray, Vt.IntArray([c[2] for c in clips])),
+            "vb:clipRowsPerSecond": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray([c[3] for c in clips])),
+            "vb:clipLoops": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray([c[4] for c in clips])),
+            "vb:clipStartTimes": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray([c[5] for c in clips])),
+        }
+        for attribute, (type_name, value) in values.items():
+            prim.CreateAttribute(attribute, type_name).Set(value)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_usd_asset_with_two_animations(tmp_path, capsys):
+    path = _usd_asset(tmp_path)
+    out = run_json(capsys, path)
+    assert out["kind"] == "usd" and "width" not in out  # several animations: no top-level copy
+    spectator, mascot = out["animations"]
+    assert spectator["path"] == "/Crowd/Spectator" and spectator["texture"] == "./Spectator.exr"
+    # float32: 64 x 512 x 4 x 4 bytes.
+    assert (spectator["usedWidth"], spectator["width"], spectator["texelBytes"]) == (54, 64, 524288)
+    # dualQuat: 5 x 2 = 10 columns -> 16; 40 rows; 16 x 40 x 16 bytes.
+    assert (mascot["usedWidth"], mascot["width"], mascot["height"]) == (10, 16, 40)
+    assert mascot["texelBytes"] == 10240 and mascot["horizontalPadding"] == "powerOfTwo"
+    assert [c["duration"] for c in mascot["clips"]] == pytest.approx([29 / 30, 1.0])
+    assert main(["info", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "/Crowd/Spectator" in text and "/Crowd/Mascot" in text and "wave" in text
+
+
+def test_usd_asset_written_by_usd_io(tmp_path, capsys):
+    usd_io = pytest.importorskip("vbusd.usd_io")
+    if not hasattr(usd_io, "write_asset"):
+        pytest.skip("vbusd.usd_io.write_asset not available yet")
+    from vbusd.model import VirtualBonesAsset
+
+    vb = talk_vb()
+    path = tmp_path / "crowd.usda"
+    usd_io.write_asset(VirtualBonesAsset(animations=(vb,)), path)
+    out = run_json(capsys, path)
+    assert (out["width"], out["height"], out["texelBytes"], out["usedWidth"]) == (64, 512, 262144, 54)
+    assert out["path"] == vb.path and out["clips"][0]["rowCount"] == 512
+
+
+def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "missing.exr")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing.exr: file: file.missing" in err
+    other = tmp_path / "notes.txt"
+    other.write_text("hello")
+    assert main(["info", str(other)]) == 2
+    assert "not a Virtual Bones asset" in capsys.readouterr().err
+    usd = tmp_path / "empty.usda"
+    usd.write_text("#usda 1.0\ndef Xform \"World\" {}\n")
+    assert main(["info", str(usd)]) == 2
+    assert "no VirtualBonesAnimation prim" in capsys.readouterr().err
+    broken = tmp_path / "broken.usda"
+    broken.write_text("#usda 1.0\ndef Xform \"World\" {\n")
+    assert main(["info", str(broken)]) == 2
+    err = capsys.readouterr().err
+    assert "broken.usda: file: usd.open" in err and "Traceback" not in err
+
+
+def test_subprocess_json(tmp_path):
+    path = tmp_path / "crowd.exr"
+    textures.write_texture(path, talk_vb())
+    result = subprocess.run([sys.executable, "-m", "vbusd", "info", str(path), "--format", "json"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["texelBytes"] == 262144
+    result = subprocess.run([sys.executable, "-m", "vbusd", "info", "--help"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and "jq .width" in result.stdout
