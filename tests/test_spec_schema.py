@@ -422,6 +422,31 @@ def test_spec_states_the_exact_rules(spec_text):
         assert phrase in spec_text, phrase
 
 
+def _spec_anchors(spec_text: str) -> set:
+    return set(re.findall(r'<a id="([\w-]+)"></a>', spec_text))
+
+
+def test_spec_internal_links_resolve(spec_text):
+    anchors = _spec_anchors(spec_text)
+    targets = set(re.findall(r"\]\(#([^)]+)\)", spec_text))
+    assert targets and targets <= anchors, sorted(targets - anchors)
+
+
+def test_links_into_the_spec_from_the_repository_resolve(spec_text):
+    """Validator codes, docs and other spec files link to stable anchors; each must exist."""
+    anchors = _spec_anchors(spec_text)
+    pattern = re.compile(r"(?:virtual-bones\.md|_VB\})#([A-Za-z0-9_-]+)")
+    broken = []
+    for folder in ("spec", "docs", "vbusd", "validators", "converters", "benchmarks", "samples"):
+        for path in sorted((ROOT / folder).rglob("*")):
+            if path.suffix not in (".py", ".md") or not path.is_file():
+                continue
+            for anchor in pattern.findall(path.read_text(encoding="utf-8", errors="replace")):
+                if anchor not in anchors:
+                    broken.append(f"{path.relative_to(ROOT)}: #{anchor}")
+    assert broken == []
+
+
 def test_spec_index_links_every_spec_file():
     text = SPEC_INDEX.read_text(encoding="utf-8")
     for name in ("virtual-bones.md", "usd-conversion.md", "gltf-conversion.md", "validation.md",
