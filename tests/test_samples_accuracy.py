@@ -1,0 +1,85 @@
+"""Acceptance bounds of the accuracy table (benchmarks/accuracy.py) on the stadium-crowd sample.
+
+The reference is exact skinning in float64 computed by the benchmark itself from the generator's
+matrices (LBS; DQS for dualQuat), independently of vbusd's decoder. Bounds, at row times, as a
+fraction of the rest mesh's bounding-box diagonal:
+
+* float32, every encoding: at most 1e-6 (against its own skinning method);
+* float16 crossMatrix (the talk's choice): at most 2e-3; the other encodings too.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
+
+
+def _load(name: str, path: Path):
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def accuracy():
+    return _load("vbusd_benchmarks_accuracy", REPO / "benchmarks" / "accuracy.py")
+
+
+@pytest.fixture(scope="module")
+def results(accuracy):
+    return {(r.encoding, r.texel_format): r for r in accuracy.measure_all()}
+
+
+def test_table_covers_every_encoding_and_texel_format(results):
+    assert set(results) == {(e, f) for e in ENCODINGS for f in ("float16", "float32", "unorm16")}
+    for (encoding, texel_format), r in results.items():
+        assert (r.width, r.height) == (64, 512)
+        assert r.used_width == 18 * (3 if "Matrix" in encoding else 2)
+        assert r.texel_bytes == 64 * 512 * 4 * (4 if texel_format == "float32" else 2)
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_float32_is_exact_to_one_millionth_of_the_diagonal(results, encoding):
+    r = results[(encoding, "float32")]
+    assert r.method_row_fraction <= 1e-6
+    if encoding != "dualQuat":
+        assert r.row_fraction <= 1e-6
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_float16_within_two_thousandths_of_the_diagonal(results, encoding):
+    assert results[(encoding, "float16")].method_row_fraction <= 2e-3
+
+
+def test_float16_cross_matrix_is_the_talks_precision(results):
+    r = results[("crossMatrix", "float16")]
+    assert r.row_fraction <= 2e-3
+    assert r.row_fraction > 1e-5  # half floats do round: the check is not vacuous
+
+
+def test_mid_row_error_shows_interpolation(results):
+    r = results[("crossMatrix", "float32")]
+    # Between rows the format blends linearly, the generator moves along arcs: a visible but small
+    # difference, far larger than float32 rounding.
+    assert 100 * r.row_fraction < r.mid_fraction < 2e-3
+
+
+def test_dqs_reference_equals_lbs_for_single_influences(accuracy):
+    gen = _load("vbusd_samples_stadium_crowd", REPO / "samples" / "stadium_crowd.py")
+    rig = gen.build_rig()
+    matrices = gen.skinning_matrices(np.linspace(0.0, 10.0, 7))
+    indices = rig.bone_indices[:, :1]
+    weights = np.ones((indices.shape[0], 1))
+    np.testing.assert_allclose(accuracy.exact_dqs(rig.points, indices, weights, matrices),
+                               accuracy.exact_lbs(rig.points, indices, weights, matrices), atol=1e-12)
