@@ -198,6 +198,20 @@ def test_talk_example_in_spec_equals_fixture(spec_text, talk):
     assert json.loads(block) == talk
 
 
+def test_talk_example_is_the_committed_sample(validator, talk):
+    """The sample's real texture metadata has the worked example's sizes and clip (spec 18)."""
+    sidecar = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.Cheer.exr.json"
+    if not sidecar.exists():
+        pytest.skip("the stadium-crowd sample is not generated")
+    sample = _load(sidecar)
+    assert validator.is_valid(sample)
+    assert _relation_problems(sample) == []
+    ignore = ("bones", "contentDigest", "generator")
+    assert {k: v for k, v in sample.items() if k not in ignore} == {
+        k: v for k, v in talk.items() if k not in ignore}
+    assert len(sample["bones"]) == 18
+
+
 def test_talk_example_byte_offset_in_spec():
     """Spec 18: bone 5 texel 0 of row 100 starts at byte 51,320 with bytes 00 00 00 3c."""
     texels = np.zeros((512, 64, 4), dtype="<f2")
