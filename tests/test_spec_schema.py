@@ -424,7 +424,7 @@ def test_spec_states_the_exact_rules(spec_text):
         "dot(q_r, q_{r-1}) >= 0",
         "round-to-nearest, ties-to-even",
         "exceeds 65504",
-        "v = min + (max - min) · u / 65535",
+        "v = min + (max - min) · (u / 65535)",
         "`NONE`, `RLE`, `ZIPS`, `ZIP`, `PIZ`",
         "`vbusd.layout`",
         "`gAMA`, `sRGB`, `iCCP`",
