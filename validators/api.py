@@ -166,8 +166,13 @@ def validate_stage(stage, asset_dir: str) -> list:
     findings = []
     animations = 0
     with quiet_stderr():
-        for prim in stage.Traverse(Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+        for prim in iterator:
             site = UsdSite(str(prim.GetPath()))
+            if prim.GetTypeName() == "PointInstancer":
+                # Prototypes below an instancer reference the bound meshes: checking them again
+                # would repeat every binding finding (readers skip them the same way).
+                iterator.PruneChildren()
             if prim.GetTypeName() == ANIMATION_TYPE:
                 animations += 1
                 findings += guarded(check_animation_prim, prim, asset_dir, location=site)
