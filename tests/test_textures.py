@@ -604,3 +604,56 @@ def test_read_texture_header_skips_pixels_but_checks_structure(exr_file, png_fil
     exr_file.write_bytes(raw[:len(raw) // 2])
     with pytest.raises(InputError, match="truncated"):
         textures.read_texture_header(exr_file)
+
+
+def test_stale_sidecar_is_reported_not_guessed(tmp_path):
+    path = tmp_path / "s.exr"
+    textures.write_texture(path, make_vb("crossMatrix", "float16", bones=2, rows=3))
+    sidecar = tmp_path / "s.exr.json"
+    document = json.loads(sidecar.read_text(encoding="utf-8"))
+    # Same document, other formatting: still agrees (compared as parsed JSON, not as text).
+    sidecar.write_text(json.dumps(document), encoding="utf-8")
+    textures.read_texture(path)
+    document["clips"][0]["rowsPerSecond"] = 24.0
+    sidecar.write_text(json.dumps(document), encoding="utf-8")
+    with pytest.raises(InputError) as caught:
+        textures.read_texture(path)
+    error = caught.value
+    assert (error.file, error.location, error.code) == (str(sidecar), "/clips/0/rowsPerSecond",
+                                                        "metadata.mismatch")
+    document["clips"][0]["rowsPerSecond"] = 30
+    document["clips"][0]["loop"] = 1  # 1 == True in Python, but not the same JSON value
+    sidecar.write_text(json.dumps(document), encoding="utf-8")
+    with pytest.raises(InputError, match="/clips/0/loop"):
+        textures.read_texture_header(path)
+    # The sidecar is optional and can be left out of the check.
+    assert textures.read_texture(path, check_sidecar=False).info.clips[0].rows_per_second == 30.0
+    sidecar.unlink()
+    textures.read_texture(path)
+
+
+def test_colour_management_chunks_are_reported_and_ignored(tmp_path):
+    vb = make_vb("dualQuat", "unorm16", bones=3, rows=5)
+    path = tmp_path / "g.png"
+    gama = (b"gAMA", struct.pack(">I", 45455))
+    path.write_bytes(build_png(vb.texels, [gama, (b"iTXt", itxt("vbusd.layout", md.dumps(md.to_dict(vb))))]))
+    data = textures.read_texture(path)
+    assert np.array_equal(data.texels, vb.texels)  # samples exactly as stored, no gamma applied
+    assert len(data.warnings) == 1 and data.warnings[0].startswith("gAMA chunk present")
+
+
+def test_exr_display_window_must_equal_data_window(exr_file):
+    raw = bytearray(exr_file.read_bytes())
+    attrs, _ = exr_attributes(bytes(raw))
+    struct.pack_into("<iiii", raw, attrs["displayWindow"][2], 0, 0, 1919, 1079)
+    exr_file.write_bytes(raw)
+    assert read_error(exr_file).location == "header/displayWindow"
+
+
+def test_two_metadata_chunks_are_refused(tmp_path):
+    vb = make_vb("dualQuat", "unorm16", bones=3, rows=5)
+    body = itxt("vbusd.layout", md.dumps(md.to_dict(vb)))
+    path = tmp_path / "twice.png"
+    path.write_bytes(build_png(vb.texels, [(b"iTXt", body), (b"iTXt", body)]))
+    error = read_error(path)
+    assert error.location.startswith("byte ") and "two iTXt" in error.message

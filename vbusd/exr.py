@@ -154,7 +154,10 @@ def scan_header(path, *, max_dimension: int = 16384) -> ExrHeader:
                 raise _bad(file, f"byte {pos - 4}", f"attribute {name} declares {length} bytes "
                            f"but the file has {size - pos}; the file is truncated or corrupt")
             while len(data) < pos + length:
-                data += stream.read(pos + length - len(data))
+                piece = stream.read(pos + length - len(data))
+                if not piece:  # the file shrank while being read
+                    raise _bad(file, f"byte {len(data)}", "file ends inside the header")
+                data += piece
             attributes[name] = (type_name, bytes(data[pos:pos + length]))
             pos += length
         header_end = pos
@@ -179,6 +182,12 @@ def scan_header(path, *, max_dimension: int = 16384) -> ExrHeader:
         if (xmin, ymin) != (0, 0):
             raise _bad(file, "header/dataWindow",
                        f"data window starts at ({xmin}, {ymin}); a Virtual Bones texture starts at (0, 0)")
+        display = attribute("displayWindow", "box2i", 16)
+        if display != attribute("dataWindow", "box2i", 16):
+            shown = struct.unpack("<iiii", display)
+            raise _bad(file, "header/displayWindow",
+                       f"displayWindow {shown[:2]}-{shown[2:]} differs from the data window "
+                       f"(0, 0)-({width - 1}, {height - 1})")
         compression_code = attribute("compression", "compression", 1)[0]
         compression = COMPRESSION_NAMES.get(compression_code, f"unknown ({compression_code})")
         if compression not in LOSSLESS:

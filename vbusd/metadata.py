@@ -198,7 +198,7 @@ def dumps(d: Mapping) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def _pointer(parts) -> str:
+def json_pointer(parts) -> str:
     """RFC 6901 JSON pointer of a path of keys and indices."""
     out = ""
     for part in parts:
@@ -215,7 +215,7 @@ class _Problems:
         self.items: list[tuple[str, str]] = []
 
     def add(self, parts, message: str) -> None:
-        self.items.append((_pointer(parts), message))
+        self.items.append((json_pointer(parts), message))
 
     def raise_if_any(self) -> None:
         if not self.items:

@@ -43,6 +43,8 @@ class PngChunks:
         chunk_types: Chunk types in file order.
         metadata: The ``vbusd.layout`` iTXt text, or None.
         data: The whole file.
+        warnings: One-line notes about chunks that do not belong in a Virtual Bones PNG
+            (colour management chunks; they are ignored, samples are read as stored).
     """
 
     width: int
@@ -53,6 +55,7 @@ class PngChunks:
     chunk_types: tuple
     metadata: Optional[str]
     data: bytes
+    warnings: tuple = ()
 
 
 def _bad(file, location: str, message: str, code: str = "texture.png") -> InputError:
@@ -168,10 +171,14 @@ def scan_chunks(path, *, max_dimension: int = 16384) -> PngChunks:
         pos += 12 + length
         if kind == b"IEND":
             break
+    warnings = tuple(
+        f"{kind.decode()} chunk present: ignored, texels are data and are read without colour "
+        "management (writers must not add it)" for kind in COLOUR_MANAGEMENT_CHUNKS if kind in types)
     if b"IDAT" not in types:
         raise _bad(file, "IDAT", "no IDAT chunk: the file has no pixel data")
     return PngChunks(width=width, height=height, bit_depth=bit_depth, colour_type=colour_type,
-                     interlace=interlace, chunk_types=tuple(types), metadata=metadata, data=data)
+                     interlace=interlace, chunk_types=tuple(types), metadata=metadata, data=data,
+                     warnings=warnings)
 
 
 def metadata_text(chunks: PngChunks, file) -> str:

@@ -45,6 +45,7 @@ class TextureData:
         compression: The file's compression (``none``, ``rle``, ``zips``, ``zip``, ``piz``; PNG:
             ``zip``).
         path: The file read.
+        warnings: One-line notes that do not stop reading (e.g. a PNG gAMA chunk, ignored).
     """
 
     texels: np.ndarray
@@ -52,6 +53,7 @@ class TextureData:
     container: str
     compression: str
     path: Path
+    warnings: tuple = ()
 
     def to_virtual_bones(self, **fields) -> VirtualBones:
         """A :class:`VirtualBones` of these texels and metadata.
@@ -189,18 +191,22 @@ def _check_dimensions(info: md.LayoutInfo, width: int, height: int, file: str, l
                          code="texture.shape")
 
 
-def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> TextureData:
+def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
+                 check_sidecar: bool = True) -> TextureData:
     """Read a texture file and check it thoroughly.
 
     Checks, in order: the file exists and is an EXR or PNG (magic bytes); the header is complete
     and its dimensions are within ``max_dimension`` (before any pixel data is read or allocated);
     the channels are exactly R, G, B, A; the compression is lossless; the metadata is present,
-    valid and of a known version; the image size and pixel type match the metadata; the pixel data
-    decodes; the content digest matches.
+    valid and of a known version; a sidecar, when there is one, holds the same JSON document; the
+    image size and pixel type match the metadata; the pixel data decodes; the content digest
+    matches.
 
     Args:
         path: The texture file.
         max_dimension: Largest accepted width or height.
+        check_sidecar: Compare ``<path>.json`` with the embedded metadata when it exists (the
+            spec: all copies must agree, and a reader must not guess which one is right).
 
     Returns:
         The texels and their metadata.
@@ -208,11 +214,12 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) 
     Raises:
         InputError: Any problem, with the file and a location such as ``byte 1234``,
             ``header/compression``, ``header/vbusd.layout/clips/0/rowCount``, ``IHDR`` or
-            ``iTXt vbusd.layout``.
+            ``iTXt vbusd.layout``; a disagreeing sidecar is reported on the sidecar with the
+            JSON pointer of the first difference (code ``metadata.mismatch``).
         VersionError: Metadata of a newer format version.
     """
     path = Path(path)
-    opened = _open_checked(path, max_dimension)
+    opened = _open_checked(path, max_dimension, check_sidecar)
     if opened.container == "exr":
         from . import exr
 
@@ -226,7 +233,7 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) 
                     digest_location=f"{opened.prefix}/contentDigest")
     texels.setflags(write=False)
     return TextureData(texels=texels, info=opened.info, container=opened.container,
-                       compression=opened.compression, path=path)
+                       compression=opened.compression, path=path, warnings=opened.warnings)
 
 
 @dataclass(frozen=True)
@@ -238,16 +245,18 @@ class TextureHeader:
         container: ``exr`` or ``png``.
         compression: The file's compression.
         path: The file.
+        warnings: As :attr:`TextureData.warnings`.
     """
 
     info: md.LayoutInfo
     container: str
     compression: str
     path: Path
+    warnings: tuple = ()
 
 
-def read_texture_header(path: PathLike, *,
-                        max_dimension: int = MAX_TEXTURE_DIMENSION) -> TextureHeader:
+def read_texture_header(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
+                        check_sidecar: bool = True) -> TextureHeader:
     """Read and check a texture's header and metadata without decoding pixels (fast for any size).
 
     Makes every check of :func:`read_texture` except decoding the pixels and the content digest
@@ -257,9 +266,9 @@ def read_texture_header(path: PathLike, *,
         InputError: As :func:`read_texture`.
     """
     path = Path(path)
-    opened = _open_checked(path, max_dimension)
+    opened = _open_checked(path, max_dimension, check_sidecar)
     return TextureHeader(info=opened.info, container=opened.container,
-                         compression=opened.compression, path=path)
+                         compression=opened.compression, path=path, warnings=opened.warnings)
 
 
 @dataclass(frozen=True)
@@ -269,9 +278,10 @@ class _Opened:
     compression: str
     raw: object  # exr.ExrHeader or png16.PngChunks
     prefix: str  # location of the metadata inside the file
+    warnings: tuple = ()
 
 
-def _open_checked(path: Path, max_dimension: int) -> _Opened:
+def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opened:
     """Every check that needs no pixel decoding: container, header, sizes, metadata, pixel types."""
     file = str(path)
     container = sniff_container(path)
@@ -280,7 +290,10 @@ def _open_checked(path: Path, max_dimension: int) -> _Opened:
 
         header = exr.scan_header(path, max_dimension=max_dimension)
         prefix = f"header/{exr.METADATA_ATTRIBUTE}"
-        info = md.loads(exr.metadata_text(header, file), file=file, location_prefix=prefix)
+        text = exr.metadata_text(header, file)
+        info = md.loads(text, file=file, location_prefix=prefix)
+        if check_sidecar:
+            _check_sidecar_agrees(path, text)
         if info.layout.texel_format is TexelFormat.UNORM16:
             raise InputError("texelFormat unorm16 is stored in PNG files, not EXR", file=file,
                              location=f"{prefix}/texelFormat", code="texture.format")
@@ -291,13 +304,80 @@ def _open_checked(path: Path, max_dimension: int) -> _Opened:
 
     chunks = png16.scan_chunks(path, max_dimension=max_dimension)
     prefix = f"iTXt {png16.METADATA_KEYWORD}"
-    info = md.loads(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
+    text = png16.metadata_text(chunks, file)
+    info = md.loads(text, file=file, location_prefix=prefix)
+    if check_sidecar:
+        _check_sidecar_agrees(path, text)
     if info.layout.texel_format is not TexelFormat.UNORM16:
         raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
                          "files; a PNG holds unorm16 only", file=file,
                          location=f"{prefix}/texelFormat", code="texture.format")
     _check_dimensions(info, chunks.width, chunks.height, file, "IHDR")
-    return _Opened(info, container, "zip", chunks, prefix)
+    return _Opened(info, container, "zip", chunks, prefix, chunks.warnings)
+
+
+def _first_difference(a, b, parts=()) -> Optional[tuple]:
+    """Path to the first place two parsed JSON values differ, or None when they are equal."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            if key not in a or key not in b:
+                return parts + (key,)
+            found = _first_difference(a[key], b[key], parts + (key,))
+            if found is not None:
+                return found
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return parts
+        for i, (x, y) in enumerate(zip(a, b)):
+            found = _first_difference(x, y, parts + (i,))
+            if found is not None:
+                return found
+        return None
+    if isinstance(a, bool) != isinstance(b, bool) or type(a) in (dict, list) or \
+            type(b) in (dict, list) or a != b:
+        return parts
+    return None
+
+
+def _read_json_file(path: Path):
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError("file not found", file=str(path), location="file",
+                         code="file.missing") from None
+    except OSError as error:
+        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
+                         location="file", code="file.unreadable") from None
+    try:
+        return raw.decode("utf-8").removeprefix("\ufeff")
+    except UnicodeDecodeError as error:
+        raise InputError("sidecar is not UTF-8 text", file=str(path), location=f"byte {error.start}",
+                         code="metadata.json") from None
+
+
+def _check_sidecar_agrees(texture: Path, embedded_text: str) -> None:
+    """Refuse a sidecar whose JSON document differs from the texture's embedded one."""
+    import json
+
+    sidecar = sidecar_path(texture)
+    if not sidecar.is_file():
+        return
+    text = _read_json_file(sidecar)
+    try:
+        document = json.loads(text)
+    except ValueError as error:
+        where = (f"line {error.lineno} column {error.colno}"
+                 if isinstance(error, json.JSONDecodeError) else "/")
+        raise InputError(f"sidecar is not valid JSON: {getattr(error, 'msg', error)}",
+                         file=str(sidecar), location=where, code="metadata.json") from None
+    difference = _first_difference(json.loads(embedded_text), document)
+    if difference is not None:
+        pointer = md.json_pointer(difference) or "/"
+        raise InputError(f"sidecar disagrees with the metadata embedded in {texture.name} at "
+                         f"{pointer}; all copies must agree (rewrite the asset, or delete the "
+                         "stale sidecar)", file=str(sidecar), location=pointer,
+                         code="metadata.mismatch")
 
 
 def read_sidecar(path: PathLike) -> md.LayoutInfo:
@@ -311,17 +391,4 @@ def read_sidecar(path: PathLike) -> md.LayoutInfo:
             (``line L column C``), or invalid metadata (a JSON pointer).
     """
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", file=str(path), location="file",
-                         code="file.missing") from None
-    except OSError as error:
-        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
-                         location="file", code="file.unreadable") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as error:
-        raise InputError("sidecar is not UTF-8 text", file=str(path), location=f"byte {error.start}",
-                         code="metadata.json") from None
-    return md.loads(text.removeprefix("\ufeff"), file=str(path))
+    return md.loads(_read_json_file(path), file=str(path))

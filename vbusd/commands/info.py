@@ -232,6 +232,7 @@ def asset_info(asset) -> dict:
         animations = [_describe_info(header.info, texture=path.name)]
         animations[0]["container"] = container
         animations[0]["compression"] = header.compression
+        animations[0]["warnings"] = list(header.warnings)
     result = {"file": file, "kind": kind, "animations": animations}
     if len(animations) == 1:
         for key, value in animations[0].items():
@@ -267,6 +268,8 @@ def _print_text(result: dict) -> None:
         table.add_row("texel bytes", f"{animation['texelBytes']:,}")
         table.add_row("padding waste", f"{animation['paddingFraction'] * 100:.2f}% "
                                        f"({animation['paddingBytes']:,} bytes)")
+        for warning in animation.get("warnings", ()):
+            table.add_row("warning", warning)
         console.print(table)
         clips = Table(title="clips", title_justify="left", pad_edge=False)
         for heading in ("name", "first row", "rows", "rows/s", "loop", "duration s"):
