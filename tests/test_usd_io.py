@@ -18,6 +18,7 @@ import pytest
 pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
+from vbusd import metadata as md  # noqa: E402
 from vbusd import usd_io  # noqa: E402
 from vbusd.errors import InputError, OptionsError  # noqa: E402
 from vbusd.layout import Encoding, Layout, Padding, TexelFormat  # noqa: E402
@@ -140,6 +141,7 @@ def test_round_trip_is_exact(tmp_path, encoding, texel_format):
     assert theirs.texels.dtype == ours.texels.dtype
     assert theirs.texels.tobytes() == ours.texels.tobytes()  # bit-identical, padding included
     assert theirs.bones == ours.bones and theirs.clips == ours.clips
+    assert md.to_dict(theirs) == md.to_dict(ours)  # every metadata key, digest included
     assert theirs.path == ours.path and theirs.texture == f"./{texture.name}"
     if texel_format == "unorm16":
         assert np.array_equal(theirs.unorm_ranges, ours.unorm_ranges)  # float64, from the metadata
@@ -356,10 +358,14 @@ def test_failed_usd_export_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_second_write_replaces_all_files(tmp_path):
+    from pxr import Sdf
+
     rng = np.random.default_rng(6)
     usd_io.write_asset(make_asset(rng, "crossMatrix", "float16"), tmp_path / "crowd.usda")
+    held = Sdf.Layer.FindOrOpen(str(tmp_path / "crowd.usda"))  # keeps the old layer in USD's registry
     newer = make_asset(rng, "crossMatrix", "float16", bone_count=7)
     usd_io.write_asset(newer, tmp_path / "crowd.usda")
+    assert held is not None
     back = usd_io.read_asset(tmp_path / "crowd.usda")  # the registry must not serve the old layer
     assert back.animations[0].layout.bone_count == 7
     assert back.animations[0].texels.tobytes() == newer.animations[0].texels.tobytes()

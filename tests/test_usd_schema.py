@@ -11,7 +11,6 @@ import os
 import shutil
 import subprocess
 import sys
-import sysconfig
 from pathlib import Path
 
 import pytest
@@ -252,10 +251,10 @@ def test_installed_layout_resolves_the_plugin(tmp_path):
     site = tmp_path / "site"
     _install_like_a_wheel(site)
     assert (site / "vbusd" / "schema" / "usd" / "plugInfo.json").is_file()
-    purelib = sysconfig.get_paths()["purelib"]
+    # -S skips site (and an editable install's path hook), so only the copied tree provides vbusd;
+    # pxr comes from wherever it is installed.
     env = _clean_env()
-    # -S skips site (and the editable install's path hook), so only the copied tree provides vbusd.
-    env["PYTHONPATH"] = os.pathsep.join([str(site), purelib])
+    env["PYTHONPATH"] = os.pathsep.join([str(site), str(Path(pxr.__file__).resolve().parents[1])])
     state = _run_probe(_PROBE, tmp_path, env, "-S")
     assert Path(state["vbusd_file"]).resolve().is_relative_to(site.resolve())
     assert Path(state["plugin_dir"]) == (site / "vbusd" / "schema" / "usd").resolve()

@@ -338,7 +338,8 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     """Write a Virtual Bones asset: the USD layer, and per animation its texture and sidecar.
 
     All files are written as one transaction (temporaries beside the targets, renamed at the end):
-    on any failure nothing new is left behind and existing files keep their content.
+    on any failure nothing new is left behind and existing files keep their content. Texture names
+    are always ``<usd stem>.<animation prim name>.<exr|png>``; ``VirtualBones.texture`` is ignored.
 
     Args:
         asset: What to write.
