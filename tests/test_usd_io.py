@@ -569,3 +569,95 @@ def test_missing_texture_and_file(written):
         usd_io.read_asset(written.parent / "nothing.usda")
     with pytest.raises(InputError, match="usdz"):
         usd_io.read_asset(written.parent / "crowd.usdz")
+
+
+# --------------------------------------------------------------------------------------------
+# Independent checks: OpenUSD's validators, and a hand-written file
+# --------------------------------------------------------------------------------------------
+
+
+def _usd_validation_errors(path: Path) -> list:
+    from pxr import Usd, UsdValidation
+
+    validators = [v for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+                  if not v.GetMetadata().name.startswith("vbusd")]  # OpenUSD's own checks only
+    stage = Usd.Stage.Open(str(path))
+    return [f"{e.GetValidator().GetMetadata().name}: {e.GetMessage()}"
+            for e in UsdValidation.ValidationContext(validators).Validate(stage)]
+
+
+def test_openusd_validators_accept_the_output(tmp_path):
+    rng = np.random.default_rng(13)
+    path = tmp_path / "crowd.usda"
+    usd_io.write_asset(talk_like_asset(rng), path)
+    assert _usd_validation_errors(path) == []
+    # The same validators do catch a broken file (so the check above can fail).
+    _edit(path, "uniform int vb:boneCount = 18", "uniform float vb:boneCount = 18")
+    assert any("AttributeTypeMismatch" in e for e in _usd_validation_errors(path))
+
+
+HAND_WRITTEN = """#usda 1.0
+(
+    defaultPrim = "Rig"
+    upAxis = "Z"
+    metersPerUnit = 0.01
+)
+
+def Xform "Rig"
+{
+    def VirtualBonesAnimation "Anim"
+    {
+        uniform asset vb:texture = @textures/rig.exr@
+        uniform int vb:boneCount = 2
+        uniform int vb:texelsPerBone = 3
+        uniform int vb:rowCount = 3
+        uniform int vb:textureWidth = 8
+        uniform int vb:textureHeight = 3
+        uniform token[] vb:bones = ["hip", "spine"]
+        uniform token[] vb:clipNames = ["wave"]
+        uniform int[] vb:clipFirstRows = [0]
+        uniform int[] vb:clipRowCounts = [3]
+        uniform double[] vb:clipRowsPerSecond = [30]
+        uniform bool[] vb:clipLoops = [1]
+        uniform double[] vb:clipStartTimes = [0]
+    }
+
+    def Mesh "Tri" (
+        prepend apiSchemas = ["VirtualBonesBindingAPI"]
+    )
+    {
+        point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        int[] primvars:vb:boneIndices = [0, 1, 0, 1, 1, 0] (elementSize = 2)
+        float[] primvars:vb:boneWeights = [1, 0, 0.5, 0.5, 0.25, 0.75] (elementSize = 2)
+        rel vb:animation = </Rig/Anim>
+    }
+}
+"""
+
+
+def test_hand_written_asset_uses_schema_fallbacks(tmp_path):
+    """A file not written by vbusd: encoding, texel format, paddings and version left to the schema."""
+    from vbusd.textures import write_texture
+
+    layout = Layout("crossMatrix", "float16", 2, 3)  # 6 columns -> 8 (powerOfTwo), 3 rows
+    texels = np.zeros(layout.shape, "<f2")
+    texels[:, :6] = np.arange(3 * 6 * 4, dtype=np.float32).reshape(3, 6, 4) / 8
+    vb = VirtualBones(layout=layout, texels=texels, bones=("hip", "spine"),
+                      clips=(Clip("wave", 0, 3, 30.0, True, 0.0),))
+    (tmp_path / "textures").mkdir()
+    write_texture(tmp_path / "textures" / "rig.exr", vb)
+    (tmp_path / "rig.usda").write_text(HAND_WRITTEN)
+
+    back = usd_io.read_asset(tmp_path / "rig.usda")
+    (anim,) = back.animations
+    assert anim.layout == Layout(Encoding.CROSS_MATRIX, TexelFormat.FLOAT16, 2, 3,
+                                 Padding.POWER_OF_TWO, Padding.NONE)
+    assert anim.texels.tobytes() == texels.tobytes()
+    assert anim.texture == "textures/rig.exr" and anim.clip_extents is None
+    (mesh,) = anim.meshes
+    assert mesh.path == "/Rig/Tri" and mesh.normals is None
+    assert mesh.bone_indices.tolist() == [[0, 1], [0, 1], [1, 0]]
+    assert mesh.bone_weights.tolist() == [[1, 0], [0.5, 0.5], [0.25, 0.75]]
+    assert (back.up_axis, back.meters_per_unit, back.default_prim, back.crowds) == ("Z", 0.01, "Rig", ())
