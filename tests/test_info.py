@@ -171,3 +171,22 @@ def test_subprocess_json(tmp_path):
     result = subprocess.run([sys.executable, "-m", "vbusd", "info", "--help"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and "jq .width" in result.stdout
+
+
+SAMPLE = __import__("pathlib").Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
+
+
+@pytest.mark.skipif(not (SAMPLE / "stadium_crowd_vb.usda").exists(), reason="sample not generated")
+def test_the_stadium_crowd_sample(capsys):
+    """The talk's numbers: 18 bones, crossMatrix float16, 512 rows over 10 s -> 64x512, 262,144 B."""
+    usd = run_json(capsys, SAMPLE / "stadium_crowd_vb.usda")
+    texture = run_json(capsys, SAMPLE / usd["texture"])
+    for out in (usd, texture):
+        assert (out["encoding"], out["texelFormat"], out["boneCount"]) == ("crossMatrix", "float16", 18)
+        assert (out["usedWidth"], out["width"], out["height"], out["rowCount"]) == (54, 64, 512, 512)
+        assert out["texelBytes"] == 262144 and out["verticalPadding"] == "powerOfTwo"
+        assert out["clips"][0]["duration"] == pytest.approx(10.0)
+    assert usd["contentDigest"] == texture["contentDigest"]
+    # The sample's texture passes every reader check, digest included.
+    data = textures.read_texture(SAMPLE / usd["texture"])
+    assert data.info.content_digest == usd["contentDigest"]

@@ -657,3 +657,14 @@ def test_two_metadata_chunks_are_refused(tmp_path):
     path.write_bytes(build_png(vb.texels, [(b"iTXt", body), (b"iTXt", body)]))
     error = read_error(path)
     assert error.location.startswith("byte ") and "two iTXt" in error.message
+
+
+def test_decreasing_line_order_still_maps_scanline_y_to_row_y(tmp_path):
+    vb = make_vb("crossMatrix", "float16", bones=4, rows=40)
+    path = tmp_path / "dec.exr"
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "lineOrder": OpenEXR.DECREASING_Y, "vbusd.layout": md.dumps(md.to_dict(vb))}
+    channels = {c: np.ascontiguousarray(vb.texels[..., i]) for i, c in enumerate("RGBA")}
+    with OpenEXR.File(header, channels) as exr:
+        exr.write(str(path))
+    assert textures.read_texture(path).texels.tobytes() == vb.texels.tobytes()
