@@ -1009,6 +1009,22 @@ def native_rate(keys: np.ndarray) -> float:
     return rate
 
 
+def sniff(path) -> bool:
+    """Whether a file looks like glTF: GLB magic, or JSON whose first 64 KiB mention ``"asset"``.
+
+    Used by the converter registry when a file's suffix is not conclusive. Never raises.
+    """
+    try:
+        with open(path, "rb") as stream:
+            head = stream.read(1 << 16)
+    except OSError:
+        return False
+    if head[:4] == _GLB_MAGIC:
+        return True
+    text = head.lstrip(b"\xef\xbb\xbf \t\r\n")
+    return text[:1] == b"{" and b'"asset"' in text
+
+
 def read(path, options: ReadOptions | None = None) -> SourceScene:
     """Read a .gltf or .glb file into skinned animations (one per skin).
 

@@ -48,7 +48,7 @@ def test_every_bad_fixture_is_listed():
 @pytest.mark.parametrize("name", sorted(BAD))
 def test_bad_input_code_and_location(name):
     code, location = BAD[name]
-    with pytest.raises(InputError) as info:
+    with pytest.raises(VbusdError) as info:     # InputError, or UnsupportedError for extensions
         gltf.read(_file(name))
     error = info.value
     assert (error.code, error.location) == (code, location)
