@@ -116,6 +116,14 @@ def check_clips(declared: Declared):
             out.append(finding("clip.overlap", f"clips {clips[ai]['name']!r} (#{ai}, rows {a0}..{a0 + an - 1}) "
                                f"and {clips[bi]['name']!r} (#{bi}, rows {b0}..{b0 + bn - 1}) share rows",
                                declared.locate(("clips", bi, "firstRow"))))
+    seen = {}
+    for i, clip in enumerate(clips):
+        name = clip["name"]
+        if not name or name in seen:
+            why = "is empty" if not name else f"is also the name of clip #{seen[name]}"
+            out.append(finding("clip.name", f"clip #{i} name {name!r} {why}; names must be unique and "
+                               "non-empty", declared.locate(("clips", i, "name"))))
+        seen.setdefault(name, i)
     total = sum(int(c["rowCount"]) for c in clips)
     if rows is not None and total != rows:
         out.append(finding("clip.rows", f"the {len(clips)} clip(s) hold {total} rows, but rowCount is {rows}",
@@ -365,10 +373,10 @@ def _check_container(raw, declared: Declared):
         out.append(finding("texture.channels", f"channels are {', '.join(raw.channels) or 'none'}; "
                            "expected exactly R, G, B, A", location))
     if raw.container == "exr" and raw.compression not in EXR_LOSSLESS:
-        lossy = raw.compression != "PXR24_COMPRESSION" or raw.pixel_type != "float16"
-        if lossy:
-            out.append(finding("texture.compression", f"{raw.compression} is lossy for {raw.pixel_type} "
-                               "data: texel values must survive bit for bit", location))
+        allowed = ", ".join(sorted(c.replace("_COMPRESSION", "") for c in EXR_LOSSLESS))
+        out.append(finding("texture.compression", f"compression {raw.compression.replace('_COMPRESSION', '')} "
+                           f"is not allowed: texel values must survive bit for bit (allowed: {allowed})",
+                           location))
     fmt = values.get("texelFormat")
     if fmt in PIXEL_TYPE_OF_FORMAT and raw.pixel_type is not None:
         container, pixel_type = PIXEL_TYPE_OF_FORMAT[fmt]

@@ -102,7 +102,9 @@ def check_padding(texels: np.ndarray, file: str, layout: Layout):
     for r0, r1, c0, c1 in regions:
         for start, stop in row_blocks(r1 - r0, c1 - c0):
             block = texels[r0 + start:r0 + stop, c0:c1]
-            bad = block != 0
+            # Compare bits, not values: -0.0 is not the zero the spec requires.
+            bits = block.view(f"u{block.dtype.itemsize}") if block.dtype.kind == "f" else block
+            bad = bits != 0
             n = int(np.count_nonzero(bad))
             if n:
                 r, c, ch = np.unravel_index(int(np.argmax(bad)), bad.shape)
@@ -179,7 +181,7 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
         return []
     encoding = layout.encoding
     tol = tolerance(layout.texel_format, unorm_ranges)
-    worst = {code: _Worst() for code in ("orth", "quat", "dqunit", "dqorth", "singular", "scale",
+    worst = {code: _Worst() for code in ("orth", "alpha", "quat", "dqunit", "dqorth", "singular", "scale",
                                          "qscale")}
     rows = layout.row_count
     for start, stop in row_blocks(rows, layout.used_width):
@@ -189,6 +191,9 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
             nx, ny = np.linalg.norm(x, axis=-1), np.linalg.norm(y, axis=-1)
             err = np.maximum(np.maximum(np.abs(nx - 1), np.abs(ny - 1)), np.abs(np.sum(x * y, axis=-1)))
             worst["orth"].add(np.nan_to_num(err, nan=np.inf), start, tol)
+            alpha = np.abs(v[..., 3] - 1).max(axis=-1)  # any of the three texels' A channel
+            worst["alpha"].add(np.nan_to_num(alpha, nan=np.inf), start, 0.0,
+                               extra=np.argmax(np.abs(v[..., 3] - 1), axis=-1))
         elif encoding is Encoding.AFFINE_MATRIX:
             a = v[:, :, :, :3].astype(np.float64)  # rows of A
             det = np.linalg.det(a)
@@ -220,6 +225,8 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
                  "crossMatrix axes are not orthonormal at {n} bone-row(s); worst error "
                  "max(| |x|-1 |, | |y|-1 |, |x.y|) = {w:.3g} at bone {b}, row {r} (tolerance {t:.3g} "
                  "for {fmt})"),
+        "alpha": ("encoding.crossMatrix.alpha", None, "crossMatrix A channel differs from 1 at {n} "
+                  "bone-row(s); worst |A - 1| = {w:.3g} at bone {b}, row {r}"),
         "quat": ("encoding.quat.unit", 0, "quaternion length differs from 1 at {n} bone-row(s); worst "
                  "| |q|-1 | = {w:.3g} at bone {b}, row {r} (tolerance {t:.3g} for {fmt})"),
         "dqunit": ("encoding.dualQuat.unit", 0, "dual quaternion real part length differs from 1 at {n} "
@@ -241,10 +248,14 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
             continue
         code, slot, text = labels[key]
         row, bone, extra = tracker.where
+        channel = None
+        if slot is None:  # the alpha check: extra is the texel slot with the worst A channel
+            slot, extra, channel = int(extra), None, 3
         extra_text = np.array2string(np.asarray(extra), precision=4) if extra is not None else ""
         message = text.format(n=tracker.count, w=tracker.value, b=bone, r=row, t=tol,
                               fmt=layout.texel_format.value, x=extra_text)
-        findings.append(finding(code, message, TexelAddress(file, row, layout.column(bone, slot), bone, slot)))
+        findings.append(finding(code, message, TexelAddress(file, row, layout.column(bone, slot), bone, slot,
+                                                             channel)))
     if encoding in (Encoding.QUAT_TRANSLATION, Encoding.DUAL_QUAT):
         findings += _hemisphere(texels, file, layout, unorm_ranges, clips)
     return findings

@@ -95,15 +95,15 @@ _CODES = (
          f"{_VB}#texture-files", "file"),
     Code("texture.pixelType", E, "The texture's pixel type does not match vb:texelFormat (float16: EXR "
          "HALF, float32: EXR FLOAT, unorm16: 16-bit PNG).", f"{_VB}#texel-formats", "file"),
-    Code("texture.compression", E, "The texture uses a lossy compression (EXR B44, B44A, DWAA, DWAB; "
-         "PXR24 on FLOAT channels).", f"{_VB}#texture-files", "file"),
+    Code("texture.compression", E, "The EXR compression is not one of the lossless NONE, RLE, ZIPS, ZIP, "
+         "PIZ (PXR24, B44, B44A, DWAA, DWAB and later methods are refused).", f"{_VB}#openexr", "file"),
     Code("texture.nonFinite", E, "A data texel channel is NaN or infinite.", f"{_VB}#texel-formats",
          "texel"),
     Code("texture.digest", E, "The texels' SHA-256 does not match the declared content digest.",
          f"{_VB}#content-digest", "json"),
-    Code("texture.padding.nonZero", E, "A padding texel is not zero.", f"{_VB}#padding", "texel"),
+    Code("texture.padding.nonZero", E, "A padding texel is not zero.", f"{_VB}#padding-texels", "texel"),
     Code("texture.padding.fraction", I, "Fraction of the texture that is padding (wasted texels).",
-         f"{_VB}#padding", "usd"),
+         f"{_VB}#padding-waste", "usd"),
     # layout metadata
     Code("metadata.missing", E, "No layout metadata: neither embedded in the texture nor in the sidecar "
          "<texture>.json.", f"{_VB}#layout-metadata", "file"),
@@ -118,6 +118,8 @@ _CODES = (
     # encodings
     Code("encoding.crossMatrix.orthonormal", E, "crossMatrix axes are not orthonormal within the texel "
          "format's tolerance (worst bone and row reported).", f"{_VB}#crossmatrix", "texel"),
+    Code("encoding.crossMatrix.alpha", W, "A crossMatrix texel's A channel is not 1 (writers must fill "
+         "it with 1; decoders ignore it).", f"{_VB}#crossmatrix", "texel"),
     Code("encoding.quat.unit", E, "A quatTranslation rotation quaternion is not unit length within "
          "tolerance.", f"{_VB}#quattranslation", "texel"),
     Code("encoding.quat.hemisphere", W, "Consecutive rows of a clip store a bone's quaternion in opposite "
@@ -139,6 +141,7 @@ _CODES = (
          f"{_VB}#clips", "usd"),
     Code("clip.overlap", E, "Two clips share texture rows.", f"{_VB}#clips", "usd"),
     Code("clip.rows", E, "The clips' row counts do not add up to vb:rowCount.", f"{_VB}#clips", "usd"),
+    Code("clip.name", E, "A clip name is empty or used by two clips.", f"{_VB}#clips", "usd"),
     Code("clip.rate", E, "A clip's rows per second is not a positive finite number.", f"{_VB}#clips",
          "usd"),
     Code("clip.loopJump", W, "A looping clip's last row jumps away from its first row much further "

@@ -125,7 +125,12 @@ def from_prim(prim) -> Declared:
     if rmin is not None and rmax is not None:
         lo, hi = np.asarray(rmin, dtype=np.float64), np.asarray(rmax, dtype=np.float64)
         if lo.shape == hi.shape and lo.ndim == 2 and lo.shape[1] == 4:
-            declared.values["unormRanges"] = np.stack([lo, hi], axis=-1)
+            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi)):
+                declared.findings.append(finding(
+                    "prim.attribute.invalid", "unorm16 ranges must be finite with min <= max "
+                    "(vb:unormRangeMin, vb:unormRangeMax)", UsdSite(path, "vb:unormRangeMin")))
+            else:
+                declared.values["unormRanges"] = np.stack([lo, hi], axis=-1)
         else:
             declared.findings.append(finding(
                 "prim.attribute.invalid", f"vb:unormRangeMin has {len(lo)} entries and vb:unormRangeMax "

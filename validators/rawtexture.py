@@ -36,9 +36,10 @@ from vbusd.layout import MAX_TEXTURE_DIMENSION
 from .findings import FileLocation, JsonPointer, finding
 
 EXR_LOSSLESS = {"NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION", "ZIP_COMPRESSION",
-                "PIZ_COMPRESSION", "ZSTD_COMPRESSION", "HTJ2K256_COMPRESSION",
-                "HTJ2K32_COMPRESSION", "LJ2K_COMPRESSION"}
-"""EXR compressions that give back the exact bits written (PXR24 is lossless for HALF only)."""
+                "PIZ_COMPRESSION"}
+"""The EXR compressions the format allows (spec/virtual-bones.md, "OpenEXR"): lossless for HALF and
+FLOAT and readable by every OpenEXR version. Everything else (PXR24, B44, B44A, DWAA, DWAB and
+later methods) is refused."""
 
 METADATA_FORMAT = "vbusd.virtualBones"
 MAX_METADATA_BYTES = 16 * 1024 * 1024

@@ -1,0 +1,141 @@
+"""The vbusd checks as OpenUSD UsdValidation validators.
+
+:func:`register` adds three prim validators to ``UsdValidation.ValidationRegistry`` (the process-wide
+singleton), each limited by ``schemaTypes`` to the TfType of a vbusd schema, and a suite holding all
+three:
+
+========================================  ==============================  =========================
+validator                                 schemaTypes                     runs
+========================================  ==============================  =========================
+``vbusd:VirtualBonesAnimationValidator``  ``VirtualBonesAnimation``       prim attributes, clips,
+                                                                          texture, metadata, texels
+``vbusd:VirtualBonesBindingValidator``    ``VirtualBonesBindingAPI``      mesh bindings
+``vbusd:VirtualBonesInstancingValidator`` ``VirtualBonesInstancingAPI``   point instancer primvars
+``vbusd:Suite`` (suite)                   all of the above
+========================================  ==============================  =========================
+
+All carry the keyword ``vbusd``. So any of these runs them over a stage::
+
+    import vbusd.validators.usd_validation as vbv
+    from pxr import Tf, UsdValidation
+    vbv.register()
+    context = UsdValidation.ValidationContext(keywords=["vbusd"])
+    # or: UsdValidation.ValidationContext([Tf.Type.FindByName("VirtualBonesAnimation")])
+    errors = context.Validate(stage)
+
+Each vbusd finding becomes a ``UsdValidation.ValidationError`` whose name is the vbusd code (its
+identifier is ``<validator>.<code>``), whose type maps error -> Error, warning -> Warn and info /
+hint -> Info (UsdValidation has no hint), and whose site is the prim or property. Findings located
+in the texture (a texel or JSON pointer) are sited at the animation's ``vb:texture`` property and
+name the exact place at the start of the message.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+from .declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from .findings import UsdSite
+
+KEYWORD = "vbusd"
+ANIMATION_VALIDATOR = "vbusd:VirtualBonesAnimationValidator"
+BINDING_VALIDATOR = "vbusd:VirtualBonesBindingValidator"
+INSTANCING_VALIDATOR = "vbusd:VirtualBonesInstancingValidator"
+SUITE = "vbusd:Suite"
+
+_LOCK = threading.Lock()
+
+
+def _to_errors(prim, findings):
+    from pxr import Sdf, UsdValidation
+
+    kinds = {"error": UsdValidation.ValidationErrorType.Error,
+             "warning": UsdValidation.ValidationErrorType.Warn,
+             "info": UsdValidation.ValidationErrorType.Info,
+             "hint": UsdValidation.ValidationErrorType.Info}
+    stage = prim.GetStage()
+    errors = []
+    for item in findings:
+        location = item.location
+        if isinstance(location, UsdSite):
+            path = Sdf.Path(location.prim_path)
+            if location.property:
+                path = path.AppendProperty(location.property)
+            message = item.message
+        else:
+            path = prim.GetPath().AppendProperty("vb:texture") if prim.GetTypeName() == ANIMATION_TYPE \
+                else prim.GetPath()
+            message = f"{location}: {item.message}"
+        site = UsdValidation.ValidationErrorSite(stage, path)
+        errors.append(UsdValidation.ValidationError(item.code, kinds[item.severity.value], [site], message))
+    return errors
+
+
+def _asset_dir(stage) -> str:
+    real = stage.GetRootLayer().realPath
+    return os.path.dirname(real) if real else os.getcwd()
+
+
+def _animation_task(prim, time_range=None):
+    from .api import guarded
+    from .checks_animation import check_animation_prim
+
+    if prim.IsPseudoRoot() or prim.GetTypeName() != ANIMATION_TYPE:
+        return []
+    findings = guarded(check_animation_prim, prim, _asset_dir(prim.GetStage()),
+                       location=UsdSite(str(prim.GetPath())))
+    return _to_errors(prim, findings)
+
+
+def _binding_task(prim, time_range=None):
+    from .api import guarded
+    from .checks_bindings import check_binding_prim, has_binding
+
+    if prim.IsPseudoRoot() or not has_binding(prim):
+        return []
+    return _to_errors(prim, guarded(check_binding_prim, prim, location=UsdSite(str(prim.GetPath()))))
+
+
+def _instancing_task(prim, time_range=None):
+    from .api import guarded
+    from .checks_bindings import check_instancer_prim, has_instancing
+
+    if prim.IsPseudoRoot() or not has_instancing(prim):
+        return []
+    return _to_errors(prim, guarded(check_instancer_prim, prim, location=UsdSite(str(prim.GetPath()))))
+
+
+def register() -> list:
+    """Register the vbusd validators and suite with UsdValidation (idempotent, thread-safe).
+
+    Returns:
+        The registered ``UsdValidation.Validator`` objects (animation, binding, instancing).
+    """
+    import vbusd.usd_plugin as plugin
+
+    plugin.register()  # the schema TfTypes must exist for schemaTypes filtering
+    from pxr import UsdValidation
+
+    registry = UsdValidation.ValidationRegistry()
+    specs = (
+        (ANIMATION_VALIDATOR, ANIMATION_TYPE, _animation_task,
+         "vbusd: VirtualBonesAnimation attributes, clips, texture file, layout metadata and texels."),
+        (BINDING_VALIDATOR, BINDING_API, _binding_task,
+         "vbusd: meshes bound with VirtualBonesBindingAPI (indices, weights, counts, normals)."),
+        (INSTANCING_VALIDATOR, INSTANCING_API, _instancing_task,
+         "vbusd: point instancers with VirtualBonesInstancingAPI (clip indices, offsets, rates)."),
+    )
+    with _LOCK:
+        for name, schema_type, task, doc in specs:
+            if registry.HasValidator(name):
+                continue
+            metadata = UsdValidation.ValidatorMetadata(name=name, doc=doc, keywords=[KEYWORD],
+                                                       schemaTypes=[schema_type], isSuite=False)
+            registry.RegisterPrimValidator(metadata, task)
+        validators = [registry.GetOrLoadValidatorByName(name) for name, *_ in specs]
+        if not registry.HasValidatorSuite(SUITE):
+            metadata = UsdValidation.ValidatorMetadata(
+                name=SUITE, doc="vbusd: every Virtual Bones check.", keywords=[KEYWORD], isSuite=True)
+            registry.RegisterValidatorSuite(metadata, validators)
+    return validators
