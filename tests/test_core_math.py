@@ -268,3 +268,21 @@ def test_clip_extents_contain_every_skinned_point():
     points, _ = skin_mesh(vb, vb.meshes[0], 0, np.linspace(0, clip.duration, 97))
     lo, hi = vb.clip_extents[0]
     assert np.all(points >= lo - 1e-6) and np.all(points <= hi + 1e-6)
+
+
+def test_affine_matrix_refuses_a_zero_scaled_bone_and_inverts_others_by_cofactors():
+    zero = matrix(np.zeros((3, 3)))
+    with pytest.raises(UnsupportedError, match="singular"):
+        encode_bones(zero[None], "affineMatrix")
+    a = np.array([[2.0, 0, 0], [0, 1, 1], [0, 0, 4]])  # inverse transpose worked out by hand
+    decoded = decode_bones(encode_bones(matrix(a), "affineMatrix"), "affineMatrix")
+    np.testing.assert_allclose(decoded.normal, [[0.5, 0, 0], [0, 1, 0], [0, -0.25, 0.25]], atol=1e-15)
+
+
+def test_unorm16_ranges_are_float32_numbers_that_contain_every_value():
+    values = np.array([0.1, 0.7, -0.3]).reshape(3, 1, 1, 1) * np.ones((3, 1, 1, 4))
+    stored, ranges = quantize(values, "unorm16")
+    np.testing.assert_array_equal(ranges, ranges.astype(np.float32).astype(np.float64))
+    assert np.all(ranges[..., 0] <= -0.3) and np.all(ranges[..., 1] >= 0.7)
+    # 0.1 is not a float32, so its bound is the float32 just below/above it, within 1 ulp.
+    assert np.all(np.abs(ranges[..., 1] - 0.7) < 1e-7)

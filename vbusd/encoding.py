@@ -133,10 +133,10 @@ def _raise_worst(deviation: np.ndarray, tolerance: float, kind: str, encoding: E
         return
     index = tuple(int(i) for i in np.unravel_index(np.argmax(np.where(bad, deviation, -1)), deviation.shape))
     worst = float(deviation[index])
-    hint = "use affineMatrix" if encoding is not Encoding.AFFINE_MATRIX else ""
-    raise NonRigidError(
-        f"{encoding.value} cannot hold {kind} (deviation {worst:.3g} > tolerance {tolerance:.3g}); {hint}",
-        index=index, deviation=worst, kind=kind)
+    detail = "" if np.isinf(worst) else f" (deviation {worst:.3g} > tolerance {tolerance:.3g})"
+    hint = "; use affineMatrix" if encoding is not Encoding.AFFINE_MATRIX else ""
+    raise NonRigidError(f"{encoding.value} cannot hold {kind}{detail}{hint}",
+                        index=index, deviation=worst, kind=kind)
 
 
 def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: float) -> _Polar:
@@ -180,6 +180,10 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
     linear, translation = m[..., :3, :3], m[..., :3, 3]
     out = np.empty(m.shape[:-2] + (encoding.texels_per_bone, 4))
     if encoding is Encoding.AFFINE_MATRIX:
+        # A singular linear part has no inverse transpose, so normals could not be skinned.
+        size = np.abs(linear).max(axis=(-1, -2)) ** 3
+        singular = np.abs(np.linalg.det(linear)) <= 1e-12 * np.maximum(size, 1e-300)
+        _raise_worst(np.where(singular, np.inf, 0.0), 0.0, "a singular (zero-scaled) matrix", encoding)
         out[..., :, :3] = linear
         out[..., :, 3] = translation
         return out
@@ -263,7 +267,12 @@ def decode_bones(values: np.ndarray, encoding: Encoding | str) -> BoneTransforms
         return BoneTransforms(linear, v[..., 2, :3].copy(), linear)
     if encoding is Encoding.AFFINE_MATRIX:
         linear = v[..., :, :3].copy()
-        normal = np.swapaxes(np.linalg.inv(linear), -1, -2)
+        # inverse(A)^T from cofactors: its columns are cross products of A's columns over det(A),
+        # the same arithmetic the shaders and kernels use (and no exception for singular A).
+        a0, a1, a2 = linear[..., :, 0], linear[..., :, 1], linear[..., :, 2]
+        det = np.einsum("...i,...i->...", a0, np.cross(a1, a2))[..., None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            normal = np.stack([np.cross(a1, a2) / det, np.cross(a2, a0) / det, np.cross(a0, a1) / det], axis=-1)
         return BoneTransforms(linear, v[..., :, 3].copy(), normal)
     q = v[..., 0, :]
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
@@ -284,9 +293,18 @@ def decode_bones(values: np.ndarray, encoding: Encoding | str) -> BoneTransforms
 
 
 def unorm_ranges(values: np.ndarray) -> np.ndarray:
-    """Per texel slot and channel [min, max] of (rows, B, T, 4) values: (T, 4, 2) float64."""
+    """Per texel slot and channel [min, max] of (rows, B, T, 4) values: (T, 4, 2) float64.
+
+    The bounds are widened to the nearest float32 values outside them (min rounded down, max up),
+    so the float32 copies USD stores are the same numbers as the JSON's and every value still lies
+    inside its range.
+    """
     v = np.asarray(values, dtype=np.float64)
-    return np.stack([v.min(axis=(0, 1)), v.max(axis=(0, 1))], axis=-1)
+    low, high = v.min(axis=(0, 1)), v.max(axis=(0, 1))
+    low32, high32 = low.astype(np.float32), high.astype(np.float32)
+    low32 = np.where(low32.astype(np.float64) > low, np.nextafter(low32, np.float32(-np.inf)), low32)
+    high32 = np.where(high32.astype(np.float64) < high, np.nextafter(high32, np.float32(np.inf)), high32)
+    return np.stack([low32.astype(np.float64), high32.astype(np.float64)], axis=-1)
 
 
 def quantize(values: np.ndarray, texel_format: TexelFormat | str,
