@@ -280,6 +280,31 @@ def _locate_structure_error(json_text: str) -> str | None:
     return None
 
 
+def _check_raw_structure(json_text: str, file: str) -> None:
+    """Checks pygltflib cannot make: it fills a missing ``asset`` or ``asset.version`` with defaults.
+
+    Only the required ``asset.version`` and the kinds of the top-level arrays are looked at here;
+    everything else is read through pygltflib's objects.
+    """
+    import json
+
+    try:
+        root = json.loads(json_text)
+    except ValueError as exc:
+        raise InputError(f"not valid JSON: {exc.msg}", file=file,
+                         location=f"byte {getattr(exc, 'pos', 0)}", code="gltf.json") from None
+    if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
+        raise InputError("asset is missing or not an object", file=file, location="/asset",
+                         code="gltf.asset.version")
+    location = _locate_structure_error(json_text)
+    if location is not None:
+        raise InputError("top-level glTF value of the wrong kind (object or array expected)",
+                         file=file, location=location, code="gltf.json")
+    if "version" not in root["asset"]:
+        raise InputError("asset.version is missing", file=file, location="/asset",
+                         code="gltf.asset.version")
+
+
 def load(path, options: ReadOptions | None = None):
     """Parse a .gltf or .glb file with pygltflib and load its buffers, checking the container.
 
@@ -314,6 +339,7 @@ def load(path, options: ReadOptions | None = None):
     try:
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
+            _check_raw_structure(json_text, file)
             # The chunks are checked above; pygltflib parses the same bytes.
             gltf = pygltflib.GLTF2.load_from_bytes(data)
         else:
@@ -322,6 +348,7 @@ def load(path, options: ReadOptions | None = None):
             except UnicodeDecodeError as exc:
                 raise InputError(f"not a GLB and not UTF-8 JSON ({exc.reason})", file=file,
                                  location=f"byte {exc.start}", code="gltf.json") from None
+            _check_raw_structure(json_text, file)
             gltf = pygltflib.GLTF2.gltf_from_json(json_text)
     except InputError:
         raise

@@ -63,7 +63,10 @@ def test_the_base_of_every_mutation_is_valid():
 
 
 @pytest.mark.parametrize("text,code,location", [
-    (b"not json at all", "gltf.json", None),
+    (b"not json at all", "gltf.json", "byte 0"),
+    (b'{"asset": {"version": "2.0"},}', "gltf.json", "byte 29"),
+    (b'{"nodes": []}', "gltf.asset.version", "/asset"),
+    (b'{"asset": {}}', "gltf.asset.version", "/asset"),
     (b'{"asset": {"version": "2.0"}, "nodes": 3}', "gltf.json", "/nodes"),
     (b'{"asset": {"version": "two"}}', "gltf.asset.version", "/asset/version"),
     (b'{"asset": {"version": "2.0", "minVersion": "2.1"}}', "gltf.asset.version", "/asset/minVersion"),
