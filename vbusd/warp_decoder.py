@@ -344,7 +344,8 @@ class Decoder:
             crowd: Uploaded instances.
             t: Scene time (s); each instance plays at ``timeOffset + playbackRate * t``.
             fraction_steps: Exact path only: round the row fraction to multiples of
-                ``1 / fraction_steps`` (0: the spec's exact blend). Used to model the texture unit.
+                ``1 / fraction_steps`` (truncate to ``1 / -fraction_steps`` when negative; 0: the spec's
+                exact blend). Used to model the texture unit's filter weights.
         """
         n = crowd.instance_count
         buffers = self._bone_buffers(n)

@@ -175,8 +175,9 @@ def decode_bones_kernel(
     """One thread per (instance, bone): interpolate the bone's texels between rows and decode.
 
     ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
-    textures). ``fraction_steps > 0`` rounds the row fraction to multiples of ``1/fraction_steps``
-    (a model of the texture unit's fixed-point filter weights; 0 is the spec's exact blend).
+    textures). ``fraction_steps > 0`` rounds the row fraction to multiples of ``1/fraction_steps``,
+    ``fraction_steps < 0`` truncates it to multiples of ``1/-fraction_steps`` (models of the texture
+    unit's fixed-point filter weights); 0 is the spec's exact blend.
     """
     instance, bone = wp.tid()
     clip = instance_clip[instance]
@@ -184,6 +185,8 @@ def decode_bones_kernel(
     i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
     if fraction_steps > 0.0:
         f = wp.round(f * fraction_steps) / fraction_steps
+    elif fraction_steps < 0.0:
+        f = wp.floor(-f * fraction_steps) / (-fraction_steps)
     row0 = clip_first_row[clip] + i0
     row1 = clip_first_row[clip] + i1
     texels_per_bone = 2
