@@ -668,3 +668,16 @@ def test_decreasing_line_order_still_maps_scanline_y_to_row_y(tmp_path):
     with OpenEXR.File(header, channels) as exr:
         exr.write(str(path))
     assert textures.read_texture(path).texels.tobytes() == vb.texels.tobytes()
+
+
+def test_corrupted_compressed_chunk_is_one_error_and_no_console_noise(tmp_path, capfd):
+    vb = make_vb("crossMatrix", "float16", bones=18, rows=64)
+    path = tmp_path / "z.exr"
+    textures.write_texture(path, vb, compression="zip", sidecar=False)
+    raw = bytearray(path.read_bytes())
+    raw[-2000:-1000] = b"\xab" * 1000  # garbage inside the last chunk's zlib stream, same size
+    path.write_bytes(raw)
+    error = read_error(path)
+    assert error.location == "pixels" and "cannot decode" in error.message
+    # OpenEXR alone prints a warning to stdout and errors to stderr, and returns no parts.
+    assert capfd.readouterr() == ("", "")

@@ -269,27 +269,37 @@ def metadata_text(header: ExrHeader, file) -> str:
 
 
 @contextlib.contextmanager
-def _captured_stderr(sink: list):
-    """Redirect file descriptor 2 (where OpenEXR's C++ code prints) into ``sink[0]`` as text."""
-    with contextlib.suppress(Exception):
-        sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr at all: nothing to capture
-        yield
-        sink.append("")
-        return
+def _captured_output(sink: list):
+    """Capture what OpenEXR prints while reading, appending it to ``sink`` as one text.
+
+    OpenEXR's C++ core writes errors to file descriptor 2 and its Python binding prints warnings
+    ("Exception raised reading pixel data ...") to standard output; both become part of the error
+    message instead of console noise.
+    """
+    import io
+
+    python_side = io.StringIO()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved = {}
     with tempfile.TemporaryFile() as capture:
-        os.dup2(capture.fileno(), 2)
+        for fd in (1, 2):
+            try:
+                saved[fd] = os.dup(fd)
+                os.dup2(capture.fileno(), fd)
+            except OSError:  # no such descriptor: nothing to capture there
+                saved.pop(fd, None)
         try:
-            yield
+            with contextlib.redirect_stdout(python_side), contextlib.redirect_stderr(python_side):
+                yield
         finally:
-            with contextlib.suppress(Exception):
-                sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
+            for fd, copy in saved.items():
+                os.dup2(copy, fd)
+                os.close(copy)
             capture.seek(0)
-            sink.append(capture.read(4096).decode("utf-8", "replace").strip())
+            native = capture.read(4096).decode("utf-8", "replace")
+            sink.append(" ".join((python_side.getvalue()[:4096] + " " + native).split()))
 
 
 @contextlib.contextmanager
@@ -349,7 +359,7 @@ def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: in
     error_text = None
     exr = None
     try:
-        with _max_image_size(max_dimension), _captured_stderr(sink):
+        with _max_image_size(max_dimension), _captured_output(sink):
             exr = OpenEXR.File(file, separate_channels=True)
     except (RuntimeError, OSError, ValueError) as error:
         error_text = str(error)
