@@ -112,7 +112,7 @@ def test_cli_convert_reports_one_line_and_writes_nothing(tmp_path, capsys):
     if importlib.util.find_spec("vbusd.commands.convert") is None:
         pytest.skip("vbusd convert not available yet")
     out = tmp_path / "out.usda"
-    status = cli.main(["convert", str(_file("weights_sum")), str(out)])
+    status = cli.main(["convert", str(_file("weights_sum")), "-o", str(out)])
     captured = capsys.readouterr()
     assert status == 2
     assert "gltf.skin.weights" in captured.err
