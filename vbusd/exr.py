@@ -24,7 +24,6 @@ import struct
 import sys
 import tempfile
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Optional
 
 import numpy as np

@@ -109,7 +109,7 @@ def _describe_info(info, *, texture: Optional[str]) -> dict:
 
 def _usd_animations(path: Path) -> list:
     """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes."""
-    from pxr import Sdf, Tf, Usd
+    from pxr import Tf, Usd
 
     from .. import usd_plugin  # noqa: F401  (registers the schema so fallbacks resolve)
 
