@@ -607,12 +607,17 @@ def Xform "Rig"
 {
     def VirtualBonesAnimation "Anim"
     {
+        uniform int vb:formatVersion = 1
         uniform asset vb:texture = @textures/rig.exr@
+        uniform token vb:encoding = "crossMatrix"
+        uniform token vb:texelFormat = "float16"
         uniform int vb:boneCount = 2
         uniform int vb:texelsPerBone = 3
         uniform int vb:rowCount = 3
         uniform int vb:textureWidth = 8
         uniform int vb:textureHeight = 3
+        uniform token vb:horizontalPadding = "powerOfTwo"
+        uniform token vb:verticalPadding = "none"
         uniform token[] vb:bones = ["hip", "spine"]
         uniform token[] vb:clipNames = ["wave"]
         uniform int[] vb:clipFirstRows = [0]
@@ -629,16 +634,38 @@ def Xform "Rig"
         point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
         int[] faceVertexCounts = [3]
         int[] faceVertexIndices = [0, 1, 2]
-        int[] primvars:vb:boneIndices = [0, 1, 0, 1, 1, 0] (elementSize = 2)
-        float[] primvars:vb:boneWeights = [1, 0, 0.5, 0.5, 0.25, 0.75] (elementSize = 2)
+        normal3f[] primvars:normals = [(0, 0, 1), (0, 0, -1)] (interpolation = "faceVarying")
+        int[] primvars:normals:indices = [0, 0, 1]
+        int[] primvars:vb:boneIndices = [0, 1, 0, 1, 1, 0] (interpolation = "vertex"
+            elementSize = 2)
+        float[] primvars:vb:boneWeights = [1, 0, 0.5, 0.5, 0.25, 0.75] (interpolation = "vertex"
+            elementSize = 2)
         rel vb:animation = </Rig/Anim>
+    }
+
+    def PointInstancer "Crowd" (
+        prepend apiSchemas = ["VirtualBonesInstancingAPI"]
+    )
+    {
+        point3f[] positions = [(0, 0, 0), (2, 0, 0)]
+        int[] protoIndices = [0, 0]
+        rel prototypes = </Rig/Crowd/Prototypes/Tri>
+        rel vb:animation = </Rig/Anim>
+
+        def Scope "Prototypes"
+        {
+            def "Tri" (prepend references = </Rig/Tri>)
+            {
+            }
+        }
     }
 }
 """
 
 
-def test_hand_written_asset_uses_schema_fallbacks(tmp_path):
-    """A file not written by vbusd: encoding, texel format, paddings and version left to the schema."""
+@pytest.fixture
+def hand_written(tmp_path):
+    """A Virtual Bones asset written by hand (not by vbusd's writer), with its texture."""
     from vbusd.textures import write_texture
 
     layout = Layout("crossMatrix", "float16", 2, 3)  # 6 columns -> 8 (powerOfTwo), 3 rows
@@ -649,15 +676,37 @@ def test_hand_written_asset_uses_schema_fallbacks(tmp_path):
     (tmp_path / "textures").mkdir()
     write_texture(tmp_path / "textures" / "rig.exr", vb)
     (tmp_path / "rig.usda").write_text(HAND_WRITTEN)
+    return tmp_path / "rig.usda", texels
 
-    back = usd_io.read_asset(tmp_path / "rig.usda")
+
+def test_hand_written_asset(hand_written):
+    path, texels = hand_written
+    back = usd_io.read_asset(path)
     (anim,) = back.animations
     assert anim.layout == Layout(Encoding.CROSS_MATRIX, TexelFormat.FLOAT16, 2, 3,
                                  Padding.POWER_OF_TWO, Padding.NONE)
     assert anim.texels.tobytes() == texels.tobytes()
     assert anim.texture == "textures/rig.exr" and anim.clip_extents is None
-    (mesh,) = anim.meshes
-    assert mesh.path == "/Rig/Tri" and mesh.normals is None
+    (mesh,) = anim.meshes  # the prototype's reference to /Rig/Tri is not a second mesh
+    assert mesh.path == "/Rig/Tri"
+    assert mesh.normals_interpolation == "faceVarying"  # primvars:normals, indexed, flattened
+    assert mesh.normals.tolist() == [[0, 0, 1], [0, 0, 1], [0, 0, -1]]
     assert mesh.bone_indices.tolist() == [[0, 1], [0, 1], [1, 0]]
     assert mesh.bone_weights.tolist() == [[1, 0], [0.5, 0.5], [0.25, 0.75]]
-    assert (back.up_axis, back.meters_per_unit, back.default_prim, back.crowds) == ("Z", 0.01, "Rig", ())
+    (crowd,) = back.crowds  # no vb primvars authored: spec defaults clip 0, offset 0, rate 1
+    assert crowd.clip.tolist() == [0, 0] and crowd.time_offset.tolist() == [0, 0]
+    assert crowd.playback_rate.tolist() == [1, 1] and crowd.scales is None
+    assert crowd.orientations.tolist() == [[0, 0, 0, 1], [0, 0, 0, 1]]  # none authored: identity
+    assert (back.up_axis, back.meters_per_unit, back.default_prim) == ("Z", 0.01, "Rig")
+
+
+@pytest.mark.parametrize("attribute", ["vb:encoding", "vb:texelFormat", "vb:formatVersion",
+                                       "vb:horizontalPadding", "vb:verticalPadding"])
+def test_schema_fallbacks_are_not_relied_on(hand_written, attribute):
+    """Spec 13: writers author every attribute; readers must not fill gaps from the fallbacks."""
+    path, _ = hand_written
+    text = re.sub(rf"\n\s*uniform \w+ {attribute} = [^\n]+", "", path.read_text())
+    path.write_text(text)
+    with pytest.raises(InputError, match="missing required") as caught:
+        usd_io.read_asset(path)
+    assert caught.value.location == f"/Rig/Anim.{attribute}"

@@ -34,7 +34,10 @@ Every output (USD layer, textures, sidecars) is written in one
 
 :func:`read_asset` treats the prim attributes as the source of truth: the texture's own layout
 metadata must agree with them (sizes, encoding, texel format, bones, clips, unorm ranges, digest),
-or it raises :class:`vbusd.errors.InputError` naming the prim and attribute. Malformed USD (syntax
+or it raises :class:`vbusd.errors.InputError` naming the prim and attribute. Following the spec
+(sections 13 to 15) it requires every animation attribute to be authored (schema fallbacks are not
+relied on), reads normals from ``primvars:normals`` (flattened) when authored, else ``normals``,
+and gives instances without ``vb:`` primvars clip 0, offset 0 and rate 1. Malformed USD (syntax
 errors, truncated crate files, missing or mistyped attributes) also raises InputError with the file
 and prim path. Texture paths and the layer's sublayers, references and payloads must resolve inside
 the asset's folder unless ``allow_outside_paths`` is given.
@@ -411,10 +414,14 @@ class _Reader:
     # -- attributes ----------------------------------------------------------------------------
 
     def attribute(self, prim, name: str, type_name, *, required: bool = True):
-        """The value of ``prim.name`` (fallback included) checked against its type, or None."""
+        """The authored value of ``prim.name`` checked against its type, or None if not authored.
+
+        Schema fallbacks do not count (spec 13: readers must not rely on them, an application
+        without the plugin does not see them): a required attribute must be authored.
+        """
         location = f"{prim.GetPath()}.{name}"
         attribute = prim.GetAttribute(name)
-        if not attribute:
+        if not attribute or not attribute.HasAuthoredValue():
             if required:
                 raise self.error(f"missing required attribute {name}", location, "usd.missing")
             return None
@@ -441,7 +448,7 @@ class _Reader:
                              f"{prim.GetPath()}.{name}", "usd.count")
         return value
 
-    def primvar(self, prim, name: str, type_name, *, count: int, element_size=None):
+    def primvar(self, prim, name: str, type_name, *, count: int, element_size=None, default=None):
         """A vertex-interpolated primvar's flat numpy value and its element size.
 
         ``count`` elements of the authored elementSize (which must equal ``element_size`` if given).
@@ -449,7 +456,9 @@ class _Reader:
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
         location = f"{prim.GetPath()}.primvars:{name}"
         primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
-        value = self.attribute(prim, f"primvars:{name}", type_name)
+        value = self.attribute(prim, f"primvars:{name}", type_name, required=default is None)
+        if value is None:  # optional and not authored: the default for every element
+            return np.full(count * (element_size or 1), default), element_size or 1
         if primvar.IsIndexed():
             raise self.error("indexed primvars are not allowed here", location, "usd.primvar")
         interpolation = primvar.GetInterpolation()
@@ -661,22 +670,26 @@ class _Reader:
                              f"{path}.faceVertexIndices", "usd.mesh")
         normals = None
         interpolation = "vertex"
+        normals_name = "normals"
         primvar_normals = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
-        if primvar_normals and primvar_normals.HasAuthoredValue():
-            raise self.error("primvars:normals is not supported; author the normals attribute",
-                             f"{path}.primvars:normals", "usd.mesh")
         mesh = UsdGeom.Mesh(prim)
-        if mesh.GetNormalsAttr().HasAuthoredValue():
+        if primvar_normals and primvar_normals.HasAuthoredValue():
+            # UsdGeom: primvars:normals, when authored, wins over the normals attribute.
+            normals_name = "primvars:normals"
+            self.attribute(prim, normals_name, names.Normal3fArray)  # type check
+            normals = np.asarray(primvar_normals.ComputeFlattened(), dtype=np.float32)
+            interpolation = str(primvar_normals.GetInterpolation())
+        elif mesh.GetNormalsAttr().HasAuthoredValue():
             normals = np.asarray(self.attribute(prim, "normals", names.Normal3fArray), dtype=np.float32)
             interpolation = str(mesh.GetNormalsInterpolation())
-            expected = {"vertex": vertex_count, "varying": vertex_count,
-                        "faceVarying": len(indices)}.get(interpolation)
-            if interpolation not in ("vertex", "faceVarying"):
+        if normals is not None:
+            expected = {"vertex": vertex_count, "faceVarying": len(indices)}.get(interpolation)
+            if expected is None:
                 raise self.error(f"normals interpolation must be vertex or faceVarying, found "
-                                 f"{interpolation}", f"{path}.normals", "usd.mesh")
+                                 f"{interpolation}", f"{path}.{normals_name}", "usd.mesh")
             if len(normals) != expected:
                 raise self.error(f"{len(normals)} normals for {interpolation} interpolation, expected "
-                                 f"{expected}", f"{path}.normals", "usd.count")
+                                 f"{expected}", f"{path}.{normals_name}", "usd.count")
         bone_indices, k = self.primvar(prim, PRIMVAR_BONE_INDICES, names.IntArray, count=vertex_count)
         bone_weights, _ = self.primvar(prim, PRIMVAR_BONE_WEIGHTS, names.FloatArray,
                                        count=vertex_count, element_size=k)
@@ -703,16 +716,27 @@ class _Reader:
         if orientations_f.HasAuthoredValue() and len(orientations_f.Get() or []):
             quats = self.array(prim, "orientationsf", names.QuatfArray, length=n)
         else:
-            quats = self.array(prim, "orientations", names.QuathArray, length=n)
-        orientations = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats],
-                                dtype=np.float32).reshape(n, 4)
+            quats = self.array(prim, "orientations", names.QuathArray, length=n, required=False)
+        if quats is None:  # UsdGeom: no orientations means no rotation
+            orientations = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
+        else:
+            orientations = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats],
+                                    dtype=np.float32).reshape(n, 4)
         scales = None
         if instancer.GetScalesAttr().HasAuthoredValue():
             scales = np.asarray(self.array(prim, "scales", names.Float3Array, length=n),
                                 np.float32).reshape(n, 3)
-        clip, _ = self.primvar(prim, PRIMVAR_CLIP, names.IntArray, count=n, element_size=1)
-        offset, _ = self.primvar(prim, PRIMVAR_TIME_OFFSET, names.FloatArray, count=n, element_size=1)
-        rate, _ = self.primvar(prim, PRIMVAR_PLAYBACK_RATE, names.FloatArray, count=n, element_size=1)
+        # Spec 15: a primvar not authored means clip 0, offset 0, rate 1 for every instance.
+        clip, _ = self.primvar(prim, PRIMVAR_CLIP, names.IntArray, count=n, element_size=1, default=0)
+        offset, _ = self.primvar(prim, PRIMVAR_TIME_OFFSET, names.FloatArray, count=n,
+                                 element_size=1, default=0.0)
+        rate, _ = self.primvar(prim, PRIMVAR_PLAYBACK_RATE, names.FloatArray, count=n,
+                               element_size=1, default=1.0)
+        for name, values in ((PRIMVAR_TIME_OFFSET, offset), (PRIMVAR_PLAYBACK_RATE, rate)):
+            if not np.all(np.isfinite(values)):
+                bad = int(np.flatnonzero(~np.isfinite(values))[0])
+                raise self.error(f"instance {bad} has a non-finite value {values[bad]}",
+                                 f"{path}.primvars:{name}", "usd.primvar")
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
                      playback_rate=rate.astype(np.float32), scales=scales)
