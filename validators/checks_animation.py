@@ -175,8 +175,8 @@ def check_metadata_schema(meta, file: str):
         message = " ".join(error.message.split())
         if len(message) > 300:
             message = message[:297] + "..."
-        out.append(finding("metadata.schema", f"{pointer or '/'}: {message} (schema rule "
-                           f"{error.validator})", JsonPointer(file, pointer)))
+        out.append(finding("metadata.schema", f"{message} (schema rule {error.validator})",
+                           JsonPointer(file, pointer)))
     return out
 
 
@@ -447,5 +447,20 @@ def check_animation_prim(prim, asset_dir: str):
 
 def check_texture_only(path: str):
     """Checks of a texture (``.exr``, ``.png``) or a sidecar (``.json``) given on its own."""
-    texture = path[:-5] if path.lower().endswith(".json") else path
-    return check_texture_file(texture, texture, None)
+    if not path.lower().endswith(".json"):
+        return check_texture_file(path, path, None)
+    texture = path[:-5]
+    if os.path.isfile(texture):
+        return check_texture_file(texture, texture, None)
+    # Only the sidecar: check the document and its declared layout, and say the texture is gone.
+    with open(path, "rb") as handle:
+        value, out = parse_metadata(handle.read(64 * 1024 * 1024 + 1), path)
+    if out:
+        return out
+    out = [finding("texture.missing", f"the texture {os.path.basename(texture)} of this sidecar does not "
+                   "exist", FileLocation(texture))]
+    out += check_metadata_schema(value, path)
+    declared = from_metadata(value, path)
+    out += check_metadata_consistency(declared)
+    out += check_declared(declared)
+    return out

@@ -20,6 +20,7 @@ Limits are checked before any pixel is allocated: a header that declares more th
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import re
@@ -126,7 +127,7 @@ def _read_exr(path: str, name: str, max_dimension: int):
     except Exception as error:  # an OSError while scanning
         return None, [finding("texture.unreadable", _one_line(error), FileLocation(name))]
     try:
-        with quiet_stderr():
+        with quiet_stderr((1, 2)):
             header_file = OpenEXR.File(str(path), header_only=True)
     except Exception as error:  # OpenEXR raises RuntimeError for anything it cannot parse
         return None, [finding("texture.unreadable", f"OpenEXR cannot read the header: {_one_line(error)}",
@@ -154,8 +155,10 @@ def _read_exr(path: str, name: str, max_dimension: int):
         findings.append(_too_large(name, texture.width, texture.height, max_dimension, 0))
         return texture, findings
     try:
-        with quiet_stderr():
+        with quiet_stderr((1, 2)):
             image = OpenEXR.File(str(path), separate_channels=True)
+        if len(image.parts) != 1:
+            raise RuntimeError("OpenEXR returned no image: the pixel data is truncated or corrupt")
         channels = image.parts[0].channels
     except Exception as error:
         findings.append(finding("texture.unreadable", f"OpenEXR cannot read the pixels: {_one_line(error)}",
@@ -310,25 +313,43 @@ def _byte_offset(location) -> Optional[int]:
 
 
 @contextlib.contextmanager
-def quiet_stderr():
-    """Send file descriptor 2 to /dev/null while C++ libraries (OpenEXR, USD) print warnings that
-    the validator reports as findings anyway; the one-line contract of the CLI stays intact."""
-    with contextlib.suppress(Exception):
-        sys.stderr.flush()
+def quiet_stderr(descriptors=(2,)):
+    """Send file descriptors (default: 2) to /dev/null while C++ libraries print warnings that the
+    validator reports as findings anyway, so the CLI's one-line errors and its JSON output on
+    stdout stay clean. (OpenEXR 3.5 prints "Warning: Exception raised reading pixel data" on
+    stdout, USD prints diagnostics on stderr.)"""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved = []
     try:
-        saved = os.dup(2)
         devnull = os.open(os.devnull, os.O_WRONLY)
+        for fd in descriptors:
+            saved.append((fd, os.dup(fd)))
     except OSError:
+        for _, copy in saved:
+            os.close(copy)
         yield
         return
-    os.dup2(devnull, 2)
+    for fd, _ in saved:
+        os.dup2(devnull, fd)
+    # The OpenEXR bindings print through Python's sys.stdout, not only the C++ streams.
+    sink = io.StringIO()
+    redirects = contextlib.ExitStack()
+    if 1 in descriptors:
+        redirects.enter_context(contextlib.redirect_stdout(sink))
+    if 2 in descriptors:
+        redirects.enter_context(contextlib.redirect_stderr(sink))
     try:
-        yield
+        with redirects:
+            yield
     finally:
-        with contextlib.suppress(Exception):
-            sys.stderr.flush()
-        os.dup2(saved, 2)
-        os.close(saved)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
         os.close(devnull)
 
 

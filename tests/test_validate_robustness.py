@@ -1,0 +1,192 @@
+"""Robustness corpus: malformed inputs give exit 2 and one clear line (or, where the asset itself
+opens, findings), never a traceback, a hang or unbounded memory.
+
+The corpus is made in a temporary folder from a valid golden fixture by truncating, corrupting and
+rewriting its files. Every case runs in-process through ``vbusd.cli.main`` (fast), and the whole
+corpus runs once more in a subprocess of the installed ``vbusd`` entry point with a timeout and a
+peak-memory measurement.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import pytest
+
+from vbusd.cli import main
+
+FIXTURES = Path(__file__).parent / "fixtures" / "validate"
+EXR_FIXTURE = FIXTURES / "valid" / "crossMatrix_float16"
+PNG_FIXTURE = FIXTURES / "valid" / "quatTranslation_unorm16"
+EXR = "asset.Animation.exr"
+PNG = "asset.Animation.png"
+
+
+def _copy(source: Path, target: Path) -> Path:
+    shutil.copytree(source, target)
+    (target / "expected.json").unlink()
+    return target
+
+
+def _patch_exr_data_window(data: bytes, width: int, height: int) -> bytes:
+    marker = b"dataWindow\0box2i\0"
+    at = data.index(marker) + len(marker) + 4  # skip the attribute size
+    return data[:at] + struct.pack("<iiii", 0, 0, width - 1, height - 1) + data[at + 16:]
+
+
+def _patch_png_ihdr(data: bytes, width: int, height: int) -> bytes:
+    body = struct.pack(">II", width, height) + data[24:29]
+    chunk = b"IHDR" + body
+    return data[:12] + chunk + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF) + data[33:]
+
+
+def build_corpus(root: Path) -> list:
+    """Make the corpus; returns (name, path, allowed exit statuses, expected code or None)."""
+    cases = []
+    exr_dir = _copy(EXR_FIXTURE, root / "exr")
+    png_dir = _copy(PNG_FIXTURE, root / "png")
+    exr_bytes = (exr_dir / EXR).read_bytes()
+    png_bytes = (png_dir / PNG).read_bytes()
+
+    def add(name, data, suffix, statuses, code=None):
+        path = root / "alone" / f"{name}{suffix}"
+        path.parent.mkdir(exist_ok=True)
+        path.write_bytes(data)
+        cases.append((name, path, statuses, code))
+
+    # Textures given on their own: unreadable -> exit 2 with one line.
+    for cut in (0, 3, 8, 60, 300, len(exr_bytes) // 2, len(exr_bytes) - 1):
+        add(f"exr_truncated_{cut}", exr_bytes[:cut], ".exr", {2}, "texture.unreadable")
+    corrupt = bytearray(exr_bytes)
+    for i in range(len(corrupt) - 200, len(corrupt) - 100):
+        corrupt[i] ^= 0x5A  # inside the zip-compressed pixels
+    add("exr_corrupt_pixels", bytes(corrupt), ".exr", {1, 2})
+    add("exr_huge_declared", _patch_exr_data_window(exr_bytes, 50000, 40000), ".exr", {2}, "texture.unreadable")
+    add("exr_garbage", os.urandom(4096), ".exr", {2}, "texture.unreadable")
+    for cut in (0, 8, 20, 40, len(png_bytes) // 2, len(png_bytes) - 4):
+        add(f"png_truncated_{cut}", png_bytes[:cut], ".png", {2}, "texture.unreadable")
+    bad_crc = bytearray(png_bytes)
+    bad_crc[-20] ^= 0xFF
+    add("png_bad_crc", bytes(bad_crc), ".png", {2}, "texture.unreadable")
+    add("png_huge_declared", _patch_png_ihdr(png_bytes, 60000, 30000), ".png", {2}, "texture.unreadable")
+    # JSON sidecars given on their own.
+    add("json_broken", b'{"format": "vbusd.virtualBones", "boneCount": 4', ".json", {2}, "metadata.json")
+    add("json_not_utf8", b'{"generator": "\xff\xfe"}', ".json", {2}, "metadata.json")
+    add("json_list", b"[1, 2, 3]", ".json", {2}, "metadata.json")
+    add("json_nan", b'{"boneCount": NaN}', ".json", {1, 2})
+    typed = json.loads((exr_dir / (EXR + ".json")).read_text(encoding="utf-8"))
+    typed.update(boneCount="4", clips={"walk": 1}, width=-16, bones="root")
+    add("json_wrongly_typed", json.dumps(typed).encode(), ".json", {1}, "metadata.schema")
+    # USD files that do not open.
+    add("usd_syntax", b'#usda 1.0\ndef Xform "A" {\n  int x = \n}\n', ".usda", {2}, "usd.open")
+    add("usd_garbage", os.urandom(2048), ".usda", {2}, "usd.open")
+    add("usd_empty", b"", ".usda", {2}, "usd.open")
+    from pxr import Usd
+
+    crate = root / "crate.usdc"
+    stage = Usd.Stage.Open(str(exr_dir / "asset.usda"))  # keep the stage alive: it owns the layer
+    stage.GetRootLayer().Export(str(crate))
+    del stage
+    crate_bytes = crate.read_bytes()
+    for cut in (10, 100, len(crate_bytes) // 2, len(crate_bytes) - 16):
+        add(f"usdc_truncated_{cut}", crate_bytes[:cut], ".usdc", {2}, "usd.open")
+    cases.append(("missing_file", root / "nothere.usda", {2}, "file.missing"))
+    # Assets that open, with broken textures: findings, exit 1.
+    for name, mutate in (
+            ("usd_texture_truncated", lambda d: (d / EXR).write_bytes(exr_bytes[:len(exr_bytes) // 2])),
+            ("usd_texture_huge", lambda d: (d / EXR).write_bytes(_patch_exr_data_window(exr_bytes, 40000, 40000))),
+            ("usd_sidecar_broken", lambda d: (d / (EXR + ".json")).write_bytes(b'{"a": ')),
+            ("usd_texture_escapes", lambda d: (d / "asset.usda").write_text(
+                (d / "asset.usda").read_text(encoding="utf-8").replace("@./asset.Animation.exr@",
+                                                                      "@../exr/asset.Animation.exr@"),
+                encoding="utf-8"))):
+        folder = _copy(EXR_FIXTURE, root / name)
+        mutate(folder)
+        cases.append((name, folder / "asset.usda", {1}, None))
+    return cases
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    return build_corpus(tmp_path_factory.mktemp("corpus"))
+
+
+def test_corpus_in_process(corpus, capsys):
+    for name, path, statuses, code in corpus:
+        status = main(["validate", str(path), "--format", "json"])
+        out, err = capsys.readouterr()
+        assert status in statuses, f"{name}: exit {status}, expected {statuses}; stderr {err!r}"
+        assert "Traceback" not in out + err, name
+        if status == 2:
+            lines = err.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith("vbusd: "), f"{name}: {err!r}"
+            assert str(path.name) in lines[0] or path.stem in lines[0], f"{name}: file not named: {err!r}"
+            if code:
+                assert f": {code}: " in lines[0], f"{name}: {lines[0]!r}"
+            assert out == ""
+        else:
+            report = json.loads(out)
+            assert report["counts"]["error"] >= 1 and err == ""
+            if code:
+                assert code in {f["code"] for f in report["findings"]}, name
+
+
+def test_usd_cases_name_the_texture_problem(corpus, capsys):
+    expected = {"usd_texture_truncated": "texture.unreadable", "usd_texture_huge": "texture.unreadable",
+                "usd_sidecar_broken": "metadata.json", "usd_texture_escapes": "texture.outside"}
+    for name, path, _, _ in corpus:
+        if name in expected:
+            assert main(["validate", str(path), "--format", "json"]) == 1
+            report = json.loads(capsys.readouterr().out)
+            assert expected[name] in {f["code"] for f in report["findings"]}, name
+
+
+DRIVER = """
+import json, os, resource, subprocess, sys, time
+cases = json.loads(sys.argv[1])
+results = []
+for path in cases:
+    start = time.monotonic()
+    proc = subprocess.Popen([sys.argv[2], "validate", path], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        results.append([path, "timeout", out, err, 0, time.monotonic() - start])
+        continue
+    results.append([path, proc.returncode, out, err, 0, time.monotonic() - start])
+peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print(json.dumps({"results": results, "peak_kib": peak_kib}))
+"""
+
+
+def test_corpus_through_the_installed_command(corpus):
+    vbusd_exe = shutil.which("vbusd")
+    if vbusd_exe is None:
+        pytest.skip("the vbusd entry point is not installed")
+    # One process per input (what a pipeline does); a sample of the corpus keeps the test fast.
+    chosen = [c for c in corpus if c[0] in ("exr_truncated_300", "exr_huge_declared", "png_huge_declared",
+                                            "png_bad_crc", "json_list", "usd_syntax",
+                                            f"usdc_truncated_100", "missing_file", "usd_texture_huge")]
+    paths = [str(c[1]) for c in chosen]
+    result = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(paths), vbusd_exe],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    for (name, _, statuses, _), (path, status, out, err, _, seconds) in zip(chosen, data["results"]):
+        assert status != "timeout", name
+        assert status in statuses, f"{name}: {status} {err!r}"
+        assert "Traceback" not in out + err, name
+        if status == 2:
+            assert len(err.strip().splitlines()) == 1, f"{name}: {err!r}"
+    # pxr + numpy + OpenEXR take about 200 MB; a 40000 x 40000 declaration must not allocate.
+    assert data["peak_kib"] < 1024 * 1024, f"peak RSS {data['peak_kib']} KiB"
