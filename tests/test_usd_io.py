@@ -8,7 +8,6 @@ with Gf.Rotation; the write transaction, path safety, prim/texture disagreement 
 from __future__ import annotations
 
 import math
-import os
 import re
 from pathlib import Path
 

@@ -54,7 +54,7 @@ import numpy as np
 
 from .errors import InputError, OptionsError, VbusdError, VersionError
 from .fileio import AtomicTransaction, resolve_inside
-from .layout import CHANNELS, FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
+from .layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
 from .model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from .usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register
 
