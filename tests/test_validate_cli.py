@@ -1,0 +1,108 @@
+"""``vbusd validate`` on the command line: exit statuses, text and JSON forms, filters, truncation."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from vbusd.cli import main
+
+FIXTURES = Path(__file__).parent / "fixtures" / "validate"
+VALID = FIXTURES / "valid" / "crossMatrix_float16" / "asset.usda"
+
+
+def test_valid_asset_exits_0_and_prints_a_text_report(capsys):
+    assert main(["validate", str(VALID)]) == 0
+    out, err = capsys.readouterr()
+    assert err == ""
+    assert "info (1):" in out and "texture.padding.fraction" in out
+    assert "/VirtualBones/Animation.vb:texture" in out
+    assert out.rstrip().splitlines()[-1].startswith("valid: 0 error(s)")
+
+
+def test_invalid_asset_exits_1_with_code_and_location(capsys):
+    asset = FIXTURES / "binding.indices.range" / "asset.usda"
+    assert main(["validate", str(asset)]) == 1
+    out = capsys.readouterr().out
+    errors, info = out.index("errors (1):"), out.index("info (1):")
+    line = out.index("binding.indices.range  /VirtualBones/Character/Body.primvars:vb:boneIndices")
+    assert errors < line < info
+    assert "the first is 7 at vertex 2" in out
+
+
+def test_json_report(capsys):
+    asset = FIXTURES / "texture.nonFinite" / "asset.usda"
+    assert main(["validate", str(asset), "--format", "json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["valid"] is False and report["counts"]["error"] == 1
+    assert report["vbusdVersion"] and report["truncated"] is False
+    nan = [f for f in report["findings"] if f["code"] == "texture.nonFinite"][0]
+    assert nan["location"] == {"kind": "texel", "file": "asset.Animation.exr", "row": 3, "column": 5,
+                               "bone": 1, "texel": 2, "channel": "R"}
+
+
+def test_only_ignore_and_max_issues(capsys):
+    asset = FIXTURES / "format.version" / "asset.usda"  # 1 format.version + 2 metadata.mismatch + info
+    assert main(["validate", str(asset), "--format", "json", "--only", "metadata"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert {f["code"] for f in report["findings"]} == {"metadata.mismatch"}
+    assert report["only"] == ["metadata"]
+    assert main(["validate", str(asset), "--format", "json", "--ignore", "format.version,metadata"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["counts"] == {"error": 0, "warning": 0, "info": 1, "hint": 0}
+    assert main(["validate", str(asset), "--format", "json", "--max-issues", "1"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert report["truncated"] is True and len(report["findings"]) == 1
+    assert report["counts"]["error"] == 3 and report["findings"][0]["code"] == "format.version"
+
+
+def test_unknown_code_filter_is_a_usage_error(capsys):
+    assert main(["validate", str(VALID), "--only", "texture.nan"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "texture.nan" in err[0] and "not a validation code" in err[0]
+
+
+def test_negative_max_issues_is_a_usage_error(capsys):
+    assert main(["validate", str(VALID), "--max-issues", "-1"]) == 2
+
+
+def test_missing_asset_exits_2_with_one_line(capsys, tmp_path):
+    missing = tmp_path / "nothere.usda"
+    assert main(["validate", str(missing)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.strip() == f"vbusd: {missing}: file.missing: file not found"
+
+
+def test_texture_given_on_its_own(capsys):
+    texture = FIXTURES / "encoding.crossMatrix.orthonormal" / "asset.Animation.exr"
+    assert main(["validate", str(texture), "--format", "json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    found = {(f["code"], f["location"].get("row"), f["location"].get("bone")) for f in report["findings"]}
+    assert ("encoding.crossMatrix.orthonormal", 5, 2) in found
+
+
+def test_sidecar_without_its_texture(capsys, tmp_path):
+    sidecar = tmp_path / "asset.Animation.exr.json"
+    shutil.copy(FIXTURES / "valid" / "crossMatrix_float16" / sidecar.name, sidecar)
+    assert main(["validate", str(sidecar), "--format", "json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert [f["code"] for f in report["findings"]] == ["texture.missing"]
+
+
+def test_the_installed_command_in_a_subprocess(tmp_path):
+    exe = shutil.which("vbusd")
+    if exe is None:
+        pytest.skip("the vbusd entry point is not installed")
+    result = subprocess.run([exe, "validate", str(FIXTURES / "clip.overlap" / "asset.usda"), "--format", "json"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1 and result.stderr == ""
+    report = json.loads(result.stdout)
+    assert "clip.overlap" in {f["code"] for f in report["findings"]}
+    result = subprocess.run([sys.executable, "-m", "vbusd", "validate", str(VALID)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
