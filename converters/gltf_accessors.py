@@ -24,8 +24,14 @@ import numpy as np
 
 from vbusd.errors import InputError
 
-MAX_ELEMENTS = 1 << 26
-"""Largest accessor count accepted (64 Mi elements): refuses absurd sizes before allocating."""
+MAX_ELEMENTS = 1 << 24
+"""Largest accessor count accepted (16 Mi elements): refuses absurd sizes before allocating."""
+
+MAX_VALUES = 1 << 27
+"""Largest number of components one accessor may decode to (1 GiB of float64)."""
+
+MAX_TOTAL_VALUES = 1 << 29
+"""Largest number of components all accessors of one file may decode to together (4 GiB of float64)."""
 
 COMPONENT_TYPES = {
     5120: np.dtype("<i1"),
@@ -130,6 +136,7 @@ class AccessorReader:
         self.file = file
         self._views: dict[int, memoryview] = {}
         self._cache: dict[tuple, np.ndarray] = {}
+        self._decoded_values = 0
 
     # -- buffer views ---------------------------------------------------------------------------
 
@@ -216,6 +223,11 @@ class AccessorReader:
         if count > MAX_ELEMENTS:
             raise InputError(f"count {count} exceeds the limit of {MAX_ELEMENTS} elements",
                              file=self.file, location=f"{where}/count", code="gltf.accessor.limit")
+        values = count * int(np.prod(TYPE_SHAPES[acc.type]))
+        if values > MAX_VALUES:
+            raise InputError(f"{count} {acc.type} elements ({values} values) exceed the limit of "
+                             f"{MAX_VALUES} values per accessor", file=self.file,
+                             location=f"{where}/count", code="gltf.accessor.limit")
         if acc.normalized not in (None, False, True):
             raise InputError(f"normalized must be a boolean, found {acc.normalized!r}",
                              file=self.file, location=f"{where}/normalized", code="gltf.value")
@@ -246,6 +258,11 @@ class AccessorReader:
         acc, ctype, tname, count = self.header(index, pointer)
         where = f"/accessors/{index}"
         shape = TYPE_SHAPES[tname]
+        self._decoded_values += count * int(np.prod(shape))
+        if self._decoded_values > MAX_TOTAL_VALUES:
+            raise InputError(f"decoding this accessor takes the file past the limit of "
+                             f"{MAX_TOTAL_VALUES} decoded values", file=self.file, location=where,
+                             code="gltf.accessor.limit")
         offset = acc.byteOffset if acc.byteOffset is not None else 0
         require_int(offset, f"{where}/byteOffset", self.file)
         if acc.bufferView is not None:
