@@ -476,21 +476,29 @@ class SkeletonSampler:
         """Time code of a source time (seconds), clamped to the clip."""
         return min(max(float(time) * self._tcps, self._start), self._end)
 
-    def at_code(self, code: float) -> np.ndarray:
-        """Row-vector skinning matrices (joints, 4, 4) in world space at one time code."""
+    def usd_transforms(self, code: float) -> tuple:
+        """(UsdSkel's skel-space skinning transforms as a Vt.Matrix4dArray, row-vector world matrix)."""
         key = round(code, 9)
         hit = self._memo.get(key)
-        if hit is not None:
-            return hit
-        transforms = self._query.ComputeSkinningTransforms(self._usd.TimeCode(code))
-        if transforms is None or len(transforms) != self._joints:
-            raise InputError(f"UsdSkel could not compute skinning transforms at time code {code:g}",
-                             file=self._file, location=self._location, code="usdskel.skinning")
-        skel = np.array(transforms, dtype=np.float64).reshape(self._joints, 4, 4)
-        world = self._static_world if self._static_world is not None else self._world(code)
-        result = skel @ world
-        self._memo[key] = result
-        return result
+        if hit is None:
+            transforms = self._query.ComputeSkinningTransforms(self._usd.TimeCode(code))
+            if transforms is None or len(transforms) != self._joints:
+                raise InputError(f"UsdSkel could not compute skinning transforms at time code {code:g}",
+                                 file=self._file, location=self._location, code="usdskel.skinning")
+            world = self._static_world if self._static_world is not None else self._world(code)
+            hit = self._memo[key] = (transforms, world, None)
+        return hit[0], hit[1]
+
+    def at_code(self, code: float) -> np.ndarray:
+        """Row-vector skinning matrices (joints, 4, 4) in world space at one time code."""
+        transforms, world = self.usd_transforms(code)
+        key = round(code, 9)
+        cached = self._memo[key][2]
+        if cached is None:
+            skel = np.array(transforms, dtype=np.float64).reshape(self._joints, 4, 4)
+            cached = skel @ world
+            self._memo[key] = (transforms, world, cached)
+        return cached
 
     def __call__(self, times) -> np.ndarray:
         times = np.atleast_1d(np.asarray(times, dtype=np.float64))
@@ -758,9 +766,15 @@ def _skinning_query(reader: _Reader, prim, skel_path: str):
 
 
 def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bound: _Bound, times) -> tuple:
-    """UsdSkel's skinned points and normals of one mesh in world space at source times (seconds)."""
-    Usd, Vt, Gf = reader.Usd, _vt(), _gf()
-    UsdSkel = reader.UsdSkel
+    """UsdSkel's skinned points and normals of one mesh in world space at source times (seconds).
+
+    Points: ``SkinningQuery.ComputeSkinnedPoints`` (UsdSkel's own method: LBS or DQS, joint mapper
+    and geomBindTransform included), then the Skeleton's local-to-world transform. Normals:
+    ``UsdSkel.SkinNormals`` with the inverse-transpose matrices, as UsdSkel.BakeSkinning does,
+    per face-vertex for faceVarying normals.
+    """
+    Usd, UsdSkel = reader.Usd, reader.UsdSkel
+    Vt = _vt()
     query = bound.query
     mesh = reader.UsdGeom.Mesh(bound.prim)
     times = np.atleast_1d(np.asarray(times, dtype=np.float64))
@@ -769,15 +783,25 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     if has_normals:
         indices, weights = query.ComputeJointInfluences()
         k = query.GetNumInfluencesPerComponent()
-        raw_normals = _raw_normals(reader, mesh, bound)
-        geom3 = Gf.Matrix3d(*np.linalg.inv(_matrix(query.GetGeomBindTransform())[:3, :3]).T.reshape(-1).tolist())
+        ind = np.asarray(indices, dtype=np.int32).reshape(-1, k)
+        wgt = np.asarray(weights, dtype=np.float32).reshape(-1, k)
+        if ind.shape[0] == 1:  # constant (rigid) influences
+            ind = np.repeat(ind, len(rest), axis=0)
+            wgt = np.repeat(wgt, len(rest), axis=0)
+        if bound.mesh.normals_interpolation == "faceVarying":
+            ind, wgt = ind[bound.mesh.face_vertex_indices], wgt[bound.mesh.face_vertex_indices]
+        vt_ind = Vt.IntArray.FromNumpy(np.ascontiguousarray(ind.reshape(-1)))
+        vt_wgt = Vt.FloatArray.FromNumpy(np.ascontiguousarray(wgt.reshape(-1)))
+        raw_normals = np.asarray(_raw_normals(reader, mesh, bound), dtype=np.float32)
+        geom = np.linalg.inv(_matrix(query.GetGeomBindTransform())[:3, :3]).T
+        geom3 = _gf().Matrix3d(*geom.reshape(-1).tolist())
         mapper = query.GetJointMapper()
+        method = query.GetSkinningMethod()
     points_out = np.empty((times.size, len(rest), 3))
     normals_out = None
     for i, t in enumerate(times):
         code = sampler.code(t)
-        xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode(code))
-        world = sampler._static_world if sampler._static_world is not None else sampler._world(code)
+        xforms, world = sampler.usd_transforms(code)
         points = Vt.Vec3fArray(rest)
         if not query.ComputeSkinnedPoints(xforms, points, Usd.TimeCode(code)):
             raise InputError(f"UsdSkel could not skin the points at time code {code:g}", file=reader.file,
@@ -785,23 +809,12 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
         p = np.asarray(points, dtype=np.float64)
         points_out[i] = p @ world[:3, :3] + world[3, :3]
         if has_normals:
-            local = xforms if mapper is None or mapper.IsIdentity() else mapper.RemapTransforms(xforms, Vt.Matrix4dArray(), 1)
-            joint3 = [Gf.Matrix3d(*np.linalg.inv(_matrix(m)[:3, :3]).T.reshape(-1).tolist()) for m in local]
-            normals = Vt.Vec3fArray(raw_normals.tolist())
-            vertex_normals = bound.mesh.normals_interpolation == "vertex"
-            if vertex_normals:
-                UsdSkel.SkinNormalsLBS(geom3, Vt.Matrix3dArray(joint3), indices, weights, k, normals)
-            else:
-                # Face-varying normals: skin each face-vertex with the influences of its point, as
-                # UsdSkel.BakeSkinning does.
-                fvi = bound.mesh.face_vertex_indices
-                ind = np.asarray(indices).reshape(-1, k)
-                wgt = np.asarray(weights).reshape(-1, k)
-                if ind.shape[0] == 1:
-                    ind = np.repeat(ind, len(rest), axis=0)
-                    wgt = np.repeat(wgt, len(rest), axis=0)
-                UsdSkel.SkinNormalsLBS(geom3, Vt.Matrix3dArray(joint3), Vt.IntArray(ind[fvi].reshape(-1).tolist()),
-                                       Vt.FloatArray(wgt[fvi].reshape(-1).tolist()), k, normals)
+            local = xforms if mapper is None or mapper.IsIdentity() else \
+                mapper.RemapTransforms(xforms, Vt.Matrix4dArray(), 1)
+            linear = np.asarray(local, dtype=np.float64).reshape(-1, 4, 4)[:, :3, :3]
+            joint3 = Vt.Matrix3dArray.FromNumpy(np.ascontiguousarray(np.swapaxes(np.linalg.inv(linear), 1, 2)))
+            normals = Vt.Vec3fArray.FromNumpy(raw_normals)
+            UsdSkel.SkinNormals(method, geom3, joint3, vt_ind, vt_wgt, k, normals)
             n = np.asarray(normals, dtype=np.float64) @ np.linalg.inv(world[:3, :3]).T
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
             if normals_out is None:

@@ -293,13 +293,18 @@ def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
 
 
 def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Float64 LBS with exact matrices (n, B, 4, 4): the influence-reduction yardstick."""
+    """Float64 LBS with exact matrices (n, B, 4, 4): the influence-reduction yardstick.
+
+    Blends the matrices per vertex first (sum_k w_k M_k), then moves each point once.
+    """
     w = np.asarray(weights, dtype=np.float64)
     w = w / w.sum(axis=1, keepdims=True)
-    a = matrices[:, indices, :3, :3]
-    t = matrices[:, indices, :3, 3]
-    moved = np.einsum("nvkij,vj->nvki", a, np.asarray(points, dtype=np.float64)) + t
-    return np.einsum("nvki,vk->nvi", moved, w)
+    idx = np.asarray(indices, dtype=np.int64)
+    blended = np.zeros((matrices.shape[0], idx.shape[0], 3, 4))
+    for k in range(idx.shape[1]):
+        blended += w[None, :, k, None, None] * matrices[:, idx[:, k], :3, :]
+    p = np.asarray(points, dtype=np.float64)
+    return (blended[..., :3] @ p[None, :, :, None])[..., 0] + blended[..., 3]
 
 
 def _chunks(total: int, size: int):

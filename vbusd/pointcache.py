@@ -1,0 +1,258 @@
+"""Decode a Virtual Bones asset into a USD point cache that any USD viewer plays.
+
+``vbusd decode ASSET.usda -o CACHE.usda`` writes every bound mesh at its own prim path (the path it
+had in the source, for converted assets) as an ordinary ``Mesh`` whose ``points``, ``normals`` and
+``extent`` are time-sampled, one sample per texture row, on the source's timeline:
+
+    time code of clip row i = (clip.startTime + i / clip.rowsPerSecond) * timeCodesPerSecond
+
+so the cache and the source can be compared frame by frame. A looping clip gets one more sample
+at its end (row N = row 0, the wrap the decoder plays), so the cache spans the source's whole
+range. Bound meshes play clip 0 (spec, "Mesh binding"), or the clip chosen with ``clip``.
+
+Transforms: the meshes' ancestors (and the meshes) keep the local transforms they have in the
+asset (copied as one matrix op where authored), so world positions match the asset's.
+
+Decoding uses the numpy reference decoder (:mod:`vbusd.reference`), or the warp decoder
+(:mod:`vbusd.warp_decoder`) when a device is named and warp can be imported. Rows are decoded in
+chunks so the temporary arrays stay small; the samples themselves live in the USD layer until it is
+written. The cache is written beside the target and renamed: no partial file on failure.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from .errors import OptionsError
+from .model import VirtualBones, VirtualBonesAsset
+
+DEVICES = ("cpu", "cuda")
+OUTPUT_SUFFIXES = (".usda", ".usdc", ".usd")
+
+
+@dataclass
+class DecodeReport:
+    """What :func:`decode` wrote.
+
+    Attributes:
+        asset: The Virtual Bones asset read.
+        output: The point cache written.
+        decoder: ``numpy reference`` or ``warp (<device>)``.
+        meshes: Per mesh: path, points, samples, clip.
+        start_time_code: First time code written.
+        end_time_code: Last time code written.
+        bytes: Size of the written cache.
+        seconds: Wall time.
+        warnings: Warnings (for example a fallback to numpy).
+    """
+
+    asset: str
+    output: str
+    decoder: str
+    meshes: list = field(default_factory=list)
+    start_time_code: float = 0.0
+    end_time_code: float = 0.0
+    bytes: int = 0
+    seconds: float = 0.0
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict."""
+        return asdict(self)
+
+
+def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, str]:
+    """The skin_mesh function to use and its name: warp on ``device``, else the numpy reference."""
+    from . import reference
+
+    if device is None:
+        return reference.skin_mesh, "numpy reference"
+    if device not in DEVICES and not str(device).startswith("cuda:"):
+        raise OptionsError(f"device must be cpu or cuda (or cuda:N), got {device!r}", file="decode")
+    try:
+        from . import warp_decoder
+    except ImportError as error:
+        warnings.append(f"warp is not available ({error}); decoding with the numpy reference decoder")
+        return reference.skin_mesh, "numpy reference"
+
+    def skin(vb, mesh, clip_index, tau):
+        return warp_decoder.skin_mesh(vb, mesh, clip_index, tau, device=device)
+
+    return skin, f"warp ({device})"
+
+
+def _clip_index(vb: VirtualBones, clip) -> int:
+    if clip is None:
+        return 0
+    names = [c.name for c in vb.clips]
+    if str(clip) in names:
+        return names.index(str(clip))
+    try:
+        index = int(clip)
+    except (TypeError, ValueError):
+        index = -1
+    if 0 <= index < len(vb.clips):
+        return index
+    raise OptionsError(f"animation {vb.path} has no clip {clip!r} (clips: {', '.join(names)})", file="decode")
+
+
+def row_times(vb: VirtualBones, clip_index: int) -> tuple[np.ndarray, np.ndarray]:
+    """Clip-local times (s) of the samples written for a clip, and their source times (s).
+
+    Every row, plus the wrap sample (row N = row 0) at the end of a looping clip.
+    """
+    clip = vb.clips[clip_index]
+    count = clip.row_count + (1 if clip.loop and clip.row_count > 1 else 0)
+    tau = np.arange(count, dtype=np.float64) / clip.rows_per_second
+    return tau, clip.start_time + tau
+
+
+def _snap(codes: np.ndarray) -> np.ndarray:
+    """Time codes within 1e-9 of an integer become that integer (float noise of start + i / rate)."""
+    nearest = np.round(codes)
+    return np.where(np.abs(codes - nearest) <= 1e-9 * np.maximum(1.0, np.abs(codes)), nearest, codes)
+
+
+def _copy_transform(source_prim, target_prim, UsdGeom) -> None:
+    """Copy a prim's local transform (as one matrix op) when it has one."""
+    if not source_prim or not source_prim.IsA(UsdGeom.Xformable):
+        return
+    xformable = UsdGeom.Xformable(source_prim)
+    if not xformable.GetOrderedXformOps() and not xformable.GetResetXformStack():
+        return
+    target = UsdGeom.Xformable(target_prim)
+    target.SetResetXformStack(xformable.GetResetXformStack())
+    times = xformable.GetTimeSamples()
+    op = target.AddTransformOp()
+    if times:
+        for code in times:
+            op.Set(xformable.GetLocalTransformation(code), code)
+    else:
+        op.Set(xformable.GetLocalTransformation())
+
+
+def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force: bool = False,
+           allow_outside_paths: bool = False, progress: Optional[Callable] = None) -> DecodeReport:
+    """Decode a Virtual Bones asset into a time-sampled USD point cache.
+
+    Args:
+        asset_path: The Virtual Bones USD asset.
+        output: The cache to write (.usda, .usdc or .usd).
+        device: None for the numpy reference decoder; ``cpu`` or ``cuda`` for the warp decoder.
+        clip: Clip name or index to play on every animation (default: clip 0).
+        force: Replace an existing output.
+        allow_outside_paths: Let the asset reference files outside its folder.
+        progress: Optional ``progress(step, done, total)`` callback.
+
+    Returns:
+        A :class:`DecodeReport`.
+
+    Raises:
+        OptionsError: Bad options or output (before any work).
+        InputError: The asset cannot be read.
+    """
+    started = time.perf_counter()
+    asset_path, output = Path(asset_path), Path(output)
+    if output.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise OptionsError(f"the cache must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
+                           file=str(output))
+    if not output.parent.is_dir():
+        raise OptionsError(f"the output folder {output.parent} does not exist", file=str(output))
+    if output.exists() and asset_path.exists() and output.resolve() == asset_path.resolve():
+        raise OptionsError("the cache would overwrite the asset", file=str(output))
+    if output.exists() and not force:
+        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+    warnings: list = []
+    skin, decoder_name = _skinner(device, warnings)
+
+    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+    from .usd_io import read_asset
+
+    asset: VirtualBonesAsset = read_asset(asset_path, allow_outside_paths=allow_outside_paths)
+    source_stage = Usd.Stage.Open(str(asset_path))
+    tcps = float(asset.time_codes_per_second)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if asset.up_axis == "Z" else UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, float(asset.meters_per_unit))
+    stage.SetTimeCodesPerSecond(tcps)
+    stage.SetFramesPerSecond(float(asset.extra.get("frames_per_second", source_stage.GetFramesPerSecond())))
+
+    report = DecodeReport(asset=str(asset_path), output=str(output), decoder=decoder_name, warnings=warnings)
+    first_code, last_code = np.inf, -np.inf
+    total = sum(len(vb.meshes) for vb in asset.animations)
+    done = 0
+    for vb in asset.animations:
+        clip_index = _clip_index(vb, clip)
+        tau, seconds = row_times(vb, clip_index)
+        codes = _snap(seconds * tcps)
+        first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
+        for mesh in vb.meshes:
+            _define_path(stage, source_stage, mesh.path, UsdGeom)
+            prim = UsdGeom.Mesh.Define(stage, mesh.path)
+            _copy_transform(source_stage.GetPrimAtPath(mesh.path), prim.GetPrim(), UsdGeom)
+            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_counts, np.int32)))
+            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_indices, np.int32)))
+            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            points_attr = prim.CreatePointsAttr()
+            extent_attr = prim.CreateExtentAttr()
+            normals_attr = None
+            if mesh.normals is not None:
+                normals_attr = prim.CreateNormalsAttr()
+                prim.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying if mesh.normals_interpolation == "faceVarying"
+                                             else UsdGeom.Tokens.vertex)
+            chunk = max(1, int(4_000_000 // max(1, mesh.points.shape[0] * mesh.max_influences)))
+            for start in range(0, tau.size, chunk):
+                part = slice(start, min(tau.size, start + chunk))
+                points, normals = skin(vb, mesh, clip_index, tau[part])
+                points = np.asarray(points, dtype=np.float32)
+                for j, code in enumerate(codes[part]):
+                    code = Usd.TimeCode(float(code))
+                    points_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points[j])), code)
+                    low, high = points[j].min(axis=0), points[j].max(axis=0)
+                    extent_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, low)), Gf.Vec3f(*map(float, high))]), code)
+                    if normals_attr is not None and normals is not None:
+                        normals_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals[j], dtype=np.float32)),
+                                         code)
+            report.meshes.append({"path": mesh.path, "points": int(mesh.points.shape[0]), "samples": int(tau.size),
+                                  "clip": vb.clips[clip_index].name, "animation": vb.path,
+                                  "normals": normals_attr is not None})
+            done += 1
+            if progress:
+                progress("decode", done, total)
+    if not report.meshes:
+        raise OptionsError("the asset has no bound mesh to decode", file=str(asset_path))
+    stage.SetStartTimeCode(first_code)
+    stage.SetEndTimeCode(last_code)
+    default = asset.default_prim
+    if default and stage.GetPrimAtPath(f"/{default}"):
+        stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default}"))
+    stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
+
+    from .fileio import AtomicTransaction
+
+    with AtomicTransaction() as transaction:
+        temporary = transaction.temp_path(output)
+        if not stage.GetRootLayer().Export(str(temporary)):
+            raise OSError(f"USD could not write {output}")
+    del Sdf
+    report.start_time_code, report.end_time_code = first_code, last_code
+    report.bytes = output.stat().st_size
+    report.seconds = round(time.perf_counter() - started, 4)
+    return report
+
+
+def _define_path(stage, source_stage, path: str, UsdGeom) -> None:
+    """Define the ancestors of ``path`` as Xforms carrying the asset's transforms."""
+    from pxr import Sdf
+
+    for ancestor in Sdf.Path(path).GetParentPath().GetPrefixes():
+        if stage.GetPrimAtPath(ancestor):
+            continue
+        prim = UsdGeom.Xform.Define(stage, ancestor).GetPrim()
+        _copy_transform(source_stage.GetPrimAtPath(ancestor), prim, UsdGeom)
