@@ -126,6 +126,12 @@ def test_storage_variants_give_the_same_points(path):
         np.testing.assert_allclose(got, expected, atol=1e-6)
 
 
+def test_sparse_substitution_over_base_data():
+    mesh = gltf.read(FIXTURES / "bar_sparse.gltf").animations[0].meshes[0]
+    np.testing.assert_array_equal(mesh.points, REST)            # zeros + rows 1..5 substituted
+    np.testing.assert_array_equal(mesh.normals, [[0, 0, 1]] * 6)  # base (0,0,-1) fixed at 0, 2, 4
+
+
 def test_triangle_strip_and_fan_winding():
     strip = gltf.read(FIXTURES / "bar_strip.gltf").animations[0].meshes[0]
     # glTF 2.0: strip triangle i = (v_i, v_{i+1+i%2}, v_{i+2-i%2}).
