@@ -1,0 +1,63 @@
+"""End to end: `vbusd convert` on the hand-built bar (.glb), read back, decode, compare with the
+hand-computed points of tests/test_gltf_reader.py; a bad file gives one line and no output."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
+S = math.sqrt(0.5)
+BEND_1 = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 1.5, 0], [-1, 1, 0], [-1, 2, 0]]
+CUBIC_HALF = [[0, 0, 0], [1, 0, 0], [0.578125, 1, 0], [1.578125, 1, 0], [1.15625, 2, 0],
+              [2.15625, 2, 0]]
+
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("vbusd.commands.convert") is None,
+                                reason="vbusd convert not available")
+
+
+def _vbusd(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "vbusd", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=300)
+
+
+def test_convert_glb_round_trip(tmp_path):
+    from vbusd.reference import skin_mesh
+    from vbusd.usd_io import read_asset
+
+    out = tmp_path / "bar.usda"
+    result = _vbusd("convert", str(FIXTURES / "bar.glb"), "-o", str(out), "--texel-format",
+                    "float32", "--encoding", "affineMatrix", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "not identity" in result.stderr          # the ignored skinned-node transform is reported
+    asset = read_asset(out)
+    assert (asset.up_axis, asset.meters_per_unit, asset.time_codes_per_second) == ("Y", 1.0, 24.0)
+    assert asset.default_prim == "BarScene"
+    (vb,) = asset.animations
+    assert vb.path == "/BarScene/Bar_Anim" and tuple(vb.bones) == ("Bone0", "Bone1")
+    names = [c.name for c in vb.clips]
+    assert names == ["Bend", "Slide", "Step", "Cubic", "Grow"]
+    (mesh,) = vb.meshes
+    assert mesh.path == "/BarScene/Bar"
+    # Clip-local times that fall on rows (30 rows/s): Bend t=1 is row 30, Cubic t=0.5 row 15.
+    points, _ = skin_mesh(vb, mesh, names.index("Bend"), np.array([1.0]))
+    np.testing.assert_allclose(points[0], BEND_1, atol=1e-5)
+    points, _ = skin_mesh(vb, mesh, names.index("Cubic"), np.array([0.5]))
+    np.testing.assert_allclose(points[0], CUBIC_HALF, atol=1e-5)
+
+
+def test_convert_bad_glb_one_line_no_output(tmp_path):
+    out = tmp_path / "out.usda"
+    result = _vbusd("convert", str(FIXTURES / "bad" / "glb_truncated.glb"), "-o", str(out),
+                    cwd=tmp_path)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "byte 8: gltf.glb:" in lines[0]
+    assert "Traceback" not in result.stderr
+    assert list(tmp_path.iterdir()) == []
