@@ -26,6 +26,7 @@ import os
 import re
 import struct
 import urllib.parse
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -340,8 +341,11 @@ def load(path, options: ReadOptions | None = None):
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
             _check_raw_structure(json_text, file)
-            # The chunks are checked above; pygltflib parses the same bytes.
-            gltf = pygltflib.GLTF2.load_from_bytes(data)
+            # The chunks are checked above; pygltflib parses the same bytes. It warns (Python
+            # warnings) about chunk types the GLB spec says to skip silently.
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                gltf = pygltflib.GLTF2.load_from_bytes(data)
         else:
             try:
                 json_text = data.decode("utf-8")

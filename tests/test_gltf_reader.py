@@ -245,6 +245,20 @@ def test_container_sniffed_not_suffix(tmp_path):
     np.testing.assert_allclose(points_at(target, "Bend", 1.0), BEND_1, atol=1e-6)
 
 
+def test_glb_unknown_chunk_skipped_silently(tmp_path):
+    import struct
+    import warnings
+
+    data = (FIXTURES / "bar.glb").read_bytes()
+    extra = struct.pack("<II", 4, 0x12345678) + b"abcd"          # a chunk type nobody knows
+    data = data[:8] + struct.pack("<I", len(data) + len(extra)) + data[12:] + extra
+    target = tmp_path / "extra.glb"
+    target.write_bytes(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(points_at(target, "Bend", 1.0), BEND_1, atol=1e-6)
+
+
 def test_outside_paths_allowed_on_request(tmp_path):
     inner = tmp_path / "inner"
     inner.mkdir()
