@@ -1,0 +1,134 @@
+"""Benchmark of ``vbusd validate`` on a 4096 x 4096 float16 crossMatrix texture.
+
+Two measurements:
+
+1. the texel checks alone on an in-memory texture (non-finite, padding, crossMatrix orthonormality
+   and alpha, hemisphere / loop checks, SHA-256 digest), with wall time and the peak of Python-level
+   allocations (tracemalloc, which numpy reports its buffers to);
+2. the whole command, ``vbusd validate asset.usda`` in a fresh process (USD open, EXR decode,
+   metadata, every check), with wall time and the process's peak resident set size
+   (``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss``).
+
+Usage::
+
+    python benchmarks/bench_validate.py [--size 4096] [--repeat 3] [--keep DIR]
+
+The texture holds 1365 bones (4095 used columns, padded to 4096) x 4096 rows of random rotations
+in one looping clip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+
+def make_texels(size: int, seed: int = 1):
+    """A (size, size, 4) float16 crossMatrix texture of random rotations, and its layout."""
+    from vbusd.layout import Layout
+
+    bones = size // 3
+    layout = Layout("crossMatrix", "float16", bones, size)
+    texels = np.zeros(layout.shape, np.float16)
+    rng = np.random.default_rng(seed)
+    for start in range(0, size, 256):
+        rows = min(256, size - start)
+        q = rng.normal(size=(rows, bones, 4)).astype(np.float32)
+        q /= np.linalg.norm(q, axis=-1, keepdims=True)
+        x, y, z, w = np.moveaxis(q, -1, 0)
+        block = np.empty((rows, bones, 3, 4), np.float32)
+        block[..., 0, :3] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)], -1)
+        block[..., 1, :3] = np.stack([2 * (x * y - z * w), 1 - 2 * (x * x + z * z), 2 * (y * z + x * w)], -1)
+        block[..., 2, :3] = rng.normal(size=(rows, bones, 3)).astype(np.float32)
+        block[..., 3] = 1.0
+        texels[start:start + rows, :layout.used_width] = block.reshape(rows, -1, 4).astype(np.float16)
+    return texels, layout
+
+
+def bench_checks(texels, layout, repeat: int) -> dict:
+    from vbusd.validators import checks_texels as ct
+
+    clips = [{"name": "all", "firstRow": 0, "rowCount": layout.row_count, "loop": True}]
+
+    def run():
+        findings = []
+        findings += ct.check_non_finite(texels, "t.exr", layout)
+        findings += ct.check_padding(texels, "t.exr", layout)
+        findings += ct.check_encoding(texels, "t.exr", layout, None, clips)
+        findings += ct.check_loop_jumps(texels, "t.exr", layout, None, clips)
+        ct.content_digest(texels)
+        return findings
+
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        findings = run()
+        times.append(time.perf_counter() - start)
+    tracemalloc.start()
+    run()
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return {"seconds_best": min(times), "seconds_all": times, "tracemalloc_peak_mib": peak / 2 ** 20,
+            "texture_mib": texels.nbytes / 2 ** 20, "errors": [f.code for f in findings if f.severity.value == "error"]}
+
+
+def write_asset(texels, layout, folder: Path) -> Path:
+    from vbusd.model import Clip, VirtualBones, VirtualBonesAsset
+    from vbusd.usd_io import write_asset as write
+
+    bones = tuple(f"bone{i}" for i in range(layout.bone_count))
+    clip = Clip("all", 0, layout.row_count, 30.0, True, 0.0)
+    vb = VirtualBones(layout, texels, bones, (clip,), None, (), "/Bench/Animation")
+    path = folder / "bench.usda"
+    write(VirtualBonesAsset(animations=(vb,), default_prim="Bench"), path)
+    return path
+
+
+def bench_command(path: Path, repeat: int) -> dict:
+    exe = [sys.executable, "-m", "vbusd", "validate", str(path), "--format", "json"]
+    times, report = [], None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = subprocess.run(exe, capture_output=True, text=True, timeout=600)
+        times.append(time.perf_counter() - start)
+        report = json.loads(result.stdout)
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    return {"seconds_best": min(times), "seconds_all": times, "peak_rss_mib": peak,
+            "exit_status": result.returncode, "counts": report["counts"]}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=4096)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--keep", type=Path, default=None, help="write the asset here and keep it")
+    args = parser.parse_args(argv)
+    texels, layout = make_texels(args.size)
+    checks = bench_checks(texels, layout, args.repeat)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = args.keep or Path(tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        path = write_asset(texels, layout, folder)
+        exr = next(folder.glob("*.exr"))
+        command = bench_command(path, args.repeat)
+        command["exr_mib"] = os.path.getsize(exr) / 2 ** 20
+    out = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+           "texture": f"{layout.width}x{layout.height} {layout.texel_format.value} {layout.encoding.value}, "
+                      f"{layout.bone_count} bones", "checks": checks, "command": command}
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
