@@ -610,6 +610,7 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
                                location="/", code="usdskel.nothing")
 
     animations, references, methods = [], [], []
+    prim_paths = _animation_paths(keys)
     for key in keys:
         work = groups[key]
         skel_prim = work.skel_prim
@@ -658,7 +659,7 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
                              sample=sampler, native_rate=_native_rate(codes, tcps), loop=None,
                              key_times=np.asarray(codes, dtype=np.float64) / tcps)
         animations.append(SkinnedAnimation(
-            name=skel_prim.GetName(), path=key, bones=work.joints, clips=(clip,),
+            name=skel_prim.GetName(), path=prim_paths[key], bones=work.joints, clips=(clip,),
             meshes=tuple(b.mesh for b in bound), source=reader.file))
         references.append((sampler, bound, skel_query))
         methods.append(tuple(b.method for b in bound))
@@ -674,6 +675,26 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)), time_codes_per_second=reader.tcps,
         default_prim=default_name, warnings=tuple(reader.warnings), source=reader.file,
         reference=reference, skinning_methods=tuple(methods))
+
+
+def _animation_paths(skeleton_paths: list) -> dict:
+    """Prim path of each skeleton's animation prim: the Skeleton's own path, unless two converted
+    skeletons share a name (textures are named after the prim); then ``<parent>/<parentName>_<name>``,
+    numbered if that still clashes."""
+    names = [p.rsplit("/", 1)[-1] for p in skeleton_paths]
+    result, taken = {}, set()
+    for path, name in zip(skeleton_paths, names):
+        chosen = path
+        if names.count(name) > 1:
+            parent = path.rsplit("/", 1)[0]
+            stem = f"{parent.rsplit('/', 1)[-1] or 'Root'}_{name}"
+            chosen, number = f"{parent}/{stem}", 1
+            while chosen.rsplit("/", 1)[-1] in taken:
+                number += 1
+                chosen = f"{parent}/{stem}_{number}"
+        taken.add(chosen.rsplit("/", 1)[-1])
+        result[path] = chosen
+    return result
 
 
 def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: float) -> list:
