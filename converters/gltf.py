@@ -429,10 +429,12 @@ class _Converter:
         self.quantized = "KHR_mesh_quantization" in (gltf.extensionsUsed or [])
 
     def warn(self, message: str) -> None:
+        """Record a one-line warning once."""
         if message not in self.warnings:
             self.warnings.append(message)
 
     def fail(self, message: str, location: str, code: str) -> InputError:
+        """An InputError about this file (the caller raises it)."""
         return InputError(message, file=self.file, location=location, code=code)
 
     # -- nodes -----------------------------------------------------------------------------------
@@ -712,10 +714,10 @@ class _Converter:
                             aw, "gltf.mesh.attribute")
         joints_all, weights_all = [], []
         for n in sets:
-            for sem in (f"JOINTS_{n}", f"WEIGHTS_{n}"):
-                if sem not in attributes:
-                    other = sem.replace("JOINTS", "W").replace("WEIGHTS", "JOINTS").replace("W_", "WEIGHTS_")
-                    raise self.fail(f"{other} has no matching {sem}", aw, "gltf.mesh.attribute")
+            for present, missing in ((f"JOINTS_{n}", f"WEIGHTS_{n}"), (f"WEIGHTS_{n}", f"JOINTS_{n}")):
+                if missing not in attributes:
+                    raise self.fail(f"{present} has no matching {missing}", aw,
+                                    "gltf.mesh.attribute")
             jp, wp = f"{aw}/JOINTS_{n}", f"{aw}/WEIGHTS_{n}"
             self._accessor_format(attributes[f"JOINTS_{n}"], jp, f"JOINTS_{n}", ("VEC4",),
                                   (5121, 5123), (False,))
