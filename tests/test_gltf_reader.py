@@ -162,6 +162,24 @@ def test_mesh_quantization():
     np.testing.assert_allclose(got, expected, atol=1e-4)
 
 
+def test_quantized_translation_keys():
+    # Slide's keys are SHORT (0,0,2) and (0,0,4): at t=1 both bones move +1 in z, so every point
+    # does, whatever its (quantized) weights.
+    np.testing.assert_allclose(points_at("bar_quantized.gltf", "Slide", 1.0), SLIDE_1, atol=1e-9)
+
+
+def test_merged_joint_sets_flow_through_the_bake():
+    from vbusd.bake import BakeOptions, bake
+
+    animation = gltf.read(FIXTURES / "bar_joints2.gltf").animations[0]
+    vb = bake(animation, BakeOptions(encoding="affineMatrix", texel_format="float32",
+                                     max_influences=2))
+    (mesh,) = vb.meshes
+    # Vertex 2 had Bone0 0.5 in set 0 and Bone1 0.5 in set 1: both survive into K = 2.
+    assert sorted(zip(mesh.bone_indices[2].tolist(), mesh.bone_weights[2].tolist())) == \
+        [(0, 0.5), (1, 0.5)]
+
+
 def test_matrix_node():
     np.testing.assert_allclose(points_at("bar_matrix.gltf", "Bend", 1.0), BEND_1, atol=1e-6)
 
