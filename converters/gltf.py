@@ -291,8 +291,10 @@ def _check_raw_structure(json_text: str, file: str) -> None:
 
     try:
         root = json.loads(json_text)
+    except RecursionError:
+        raise InputError("JSON nests too deeply", file=file, code="gltf.json") from None
     except ValueError as exc:
-        raise InputError(f"not valid JSON: {exc.msg}", file=file,
+        raise InputError(f"not valid JSON: {getattr(exc, 'msg', exc)}", file=file,
                          location=f"byte {getattr(exc, 'pos', 0)}", code="gltf.json") from None
     if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
         raise InputError("asset is missing or not an object", file=file, location="/asset",

@@ -66,6 +66,7 @@ def test_the_base_of_every_mutation_is_valid():
     (b"not json at all", "gltf.json", "byte 0"),
     (b'{"asset": {"version": "2.0"},}', "gltf.json", "byte 29"),
     (b'{"nodes": []}', "gltf.asset.version", "/asset"),
+    (b'{"asset": ' + b"[" * 200000 + b"]" * 200000 + b"}", "gltf.json", None),
     (b'{"asset": {}}', "gltf.asset.version", "/asset"),
     (b'{"asset": {"version": "2.0"}, "nodes": 3}', "gltf.json", "/nodes"),
     (b'{"asset": {"version": "two"}}', "gltf.asset.version", "/asset/version"),
