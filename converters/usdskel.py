@@ -193,10 +193,8 @@ class _Reader:
 
     def _bound_skeleton(self, prim, binding):
         location = str(prim.GetPath())
-        skeleton = binding.GetInheritedSkeleton()
-        if skeleton and skeleton.GetPrim().IsValid():
-            return skeleton.GetPrim()
-        # Find the nearest authored skel:skeleton to say whether it is missing or dangling.
+        # Find the nearest authored skel:skeleton ourselves (UsdSkel warns on a dangling target and
+        # returns nothing), to say whether it is missing or dangling.
         node = prim
         while node and not node.IsPseudoRoot():
             rel = node.GetRelationship("skel:skeleton")
@@ -205,6 +203,8 @@ class _Reader:
                 if not targets:
                     break
                 target = self.stage.GetPrimAtPath(targets[0])
+                if target and target.IsValid() and target.IsA(self.UsdSkel.Skeleton):
+                    return target
                 what = ("does not exist" if not target or not target.IsValid()
                         else f"is a {target.GetTypeName() or 'typeless prim'}, not a Skeleton")
                 raise self.error(f"skel:skeleton (on {node.GetPath()}) targets {targets[0]}, which {what}",
@@ -734,10 +734,11 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
             raise reader.error(f"faceVertexCounts sum to {int(counts.sum())} and faceVertexIndices has "
                                f"{fvi.size} entries for {points.shape[0]} points: inconsistent topology",
                                location, "usdskel.mesh.topology")
-        query = _skinning_query(reader, prim, skel_path)
-        method = str(query.GetSkinningMethod()) if query is not None else "classicLinear"
+        # Our own checks first: UsdSkel only prints warnings for these.
         joint_map = _joint_map(reader, prim, work.joints)
         indices, weights, interp = _read_influences(reader, prim, points.shape[0], joint_map.size)
+        query = _skinning_query(reader, prim, skel_path)
+        method = str(query.GetSkinningMethod()) if query is not None else "classicLinear"
         if query is None:
             raise reader.error("UsdSkel does not treat this prim as a skinning target of "
                                f"{skel_path} (check its joint influences)", location, "usdskel.binding")

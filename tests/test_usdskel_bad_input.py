@@ -1,0 +1,76 @@
+"""Malformed UsdSkel input: one line naming the prim and the problem, exit 2, no traceback, no output.
+
+The fixtures in tests/fixtures/usdskel/bad/ each break one UsdSkel rule (made by
+make_bad_fixtures.py; expected.json holds the code and prim path each must report). UsdSkel itself
+only warns, or silently skins such data; the converter must refuse it.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pxr")
+
+from vbusd.cli import main  # noqa: E402
+
+BAD = Path(__file__).parent / "fixtures" / "usdskel" / "bad"
+EXPECTED = json.loads((BAD / "expected.json").read_text())
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_bad_fixture_gives_one_line_and_exit_2(name, tmp_path, capsys):
+    output = tmp_path / "out.usda"
+    status = main(["convert", str(BAD / name), "-o", str(output)])
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.startswith("vbusd:")]
+    assert status == 2, captured.err
+    assert len(lines) == 1, captured.err
+    line = lines[0]
+    expected = EXPECTED[name]
+    assert f": {expected['location']}" in line, line
+    assert f": {expected['code']}: " in line, line
+    assert str(BAD / name) in line
+    assert "Traceback" not in captured.err
+    assert list(tmp_path.iterdir()) == []  # no output, no temporary left behind
+
+
+def test_every_fixture_is_otherwise_valid_usd():
+    # Guard against fixtures that fail for an unrelated reason: each opens as a USD stage.
+    from pxr import Usd
+
+    for name in EXPECTED:
+        assert Usd.Stage.Open(str(BAD / name)) is not None
+
+
+def test_subprocess_exit_status_and_single_line(tmp_path):
+    name = "joints_not_parent_first.usda"
+    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(BAD / name), "-o",
+                             str(tmp_path / "out.usda")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    vbusd_lines = [line for line in result.stderr.splitlines() if line.startswith("vbusd:")]
+    assert len(vbusd_lines) == 1 and "usdskel.joints.order" in vbusd_lines[0]
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "out.usda").exists()
+
+
+def test_existing_output_is_not_clobbered_on_failure(tmp_path, capsys):
+    output = tmp_path / "out.usda"
+    output.write_text("precious")
+    status = main(["convert", str(BAD / "weights_negative.usda"), "-o", str(output), "--force"])
+    assert status == 2
+    assert output.read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.usda"]
+
+
+def test_existing_output_needs_force(tmp_path, capsys):
+    output = tmp_path / "out.usda"
+    output.write_text("precious")
+    status = main(["convert", str(BAD / "weights_negative.usda"), "-o", str(output)])
+    assert status == 2
+    assert "--force" in capsys.readouterr().err
+    assert output.read_text() == "precious"
