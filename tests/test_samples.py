@@ -338,3 +338,50 @@ def test_regenerated_vb_asset_describes_the_same_texture_and_crowd(regenerated, 
     for name in ("positions", "orientations", "time_offset", "playback_rate", "clip"):
         np.testing.assert_allclose(np.asarray(getattr(cb, name), dtype=np.float64),
                                    np.asarray(getattr(ca, name), dtype=np.float64), atol=1e-6, err_msg=name)
+
+
+# ------------------------------------------------------------------------------------------------
+# The README's main job
+# ------------------------------------------------------------------------------------------------
+
+
+def _readme_convert_arguments() -> list:
+    """The ``vbusd convert ...`` arguments of the README's main-job command, as written there."""
+    import shlex
+
+    for line in (REPO / "README.md").read_text().splitlines():
+        if line.startswith("pip install . && ") and "vbusd convert" in line:
+            command = line.split("vbusd convert", 1)[1]
+            return shlex.split(command.split("&&")[0])
+    pytest.fail("README.md has no 'pip install . && ... vbusd convert' line")
+
+
+def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
+    import os
+
+    from vbusd import reference, usd_io
+
+    if importlib.util.find_spec("vbusd.commands.convert") is None:
+        pytest.skip("vbusd convert not available")
+    arguments = _readme_convert_arguments()
+    output = arguments.index("-o") + 1
+    assert arguments[0] == "samples/stadium_crowd/stadium_crowd.usda"
+    arguments[0] = str(REPO / arguments[0])
+    arguments[output] = str(tmp_path / Path(arguments[output]).name)
+    env = dict(os.environ, PYTHONSAFEPATH="1")  # the installed vbusd, never the checkout
+    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", *arguments], capture_output=True,
+                            text=True, timeout=300, cwd=tmp_path, env=env)
+    assert result.returncode == 0, result.stderr
+    (converted,) = usd_io.read_asset(arguments[output]).animations
+    assert (converted.layout.width, converted.layout.height) == (WIDTH, HEIGHT)
+    assert converted.layout.texel_bytes == TEXEL_BYTES
+    assert str(converted.layout.encoding) == "crossMatrix" and str(converted.layout.texel_format) == "float16"
+    # Two roads to one texture: UsdSkel asset -> converter, and the generator's float64 matrices ->
+    # bake. Decoded at every row they agree to the float16 bound.
+    (committed,) = vb_asset.animations
+    times = np.arange(HEIGHT) / (HEIGHT / DURATION)
+    a, _ = reference.skin_mesh(converted, converted.meshes[0], 0, times)
+    b, _ = reference.skin_mesh(committed, committed.meshes[0], 0, times)
+    rest = committed.meshes[0].points
+    diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    assert np.linalg.norm(a - b, axis=-1).max() <= 2e-3 * diagonal
