@@ -155,6 +155,21 @@ def _read_exr(path: str, name: str, max_dimension: int):
         findings.append(_too_large(name, texture.width, texture.height, max_dimension, 0))
         return texture, findings
     try:
+        header_names = sorted(getattr(c, "name", "") for c in header.get("channels", []))
+        if header_names == ["A", "B", "G", "R"]:
+            # Interleaved read: OpenEXR fills one (height, width, 4) RGBA array, no stacking copy.
+            with quiet_stderr((1, 2)):
+                image = OpenEXR.File(str(path), separate_channels=False)
+            if len(image.parts) == 1:
+                rgba = image.parts[0].channels.get("RGBA")
+                pixels = None if rgba is None else np.asarray(rgba.pixels)
+                if pixels is not None and pixels.shape == (texture.height, texture.width, 4):
+                    texture.channels = ("R", "G", "B", "A")
+                    kind = str(getattr(rgba.type(), "name", rgba.type()))
+                    texture.pixel_type = {"HALF": "float16", "FLOAT": "float32", "UINT": "uint32"}.get(kind, "unknown")
+                    texture.texels = pixels
+                    return texture, findings
+            del image
         with quiet_stderr((1, 2)):
             image = OpenEXR.File(str(path), separate_channels=True)
         if len(image.parts) != 1:
