@@ -1,8 +1,8 @@
 """Checks on the texels themselves: finiteness, padding, digest and each encoding's invariants.
 
 Everything is vectorized with numpy and runs over blocks of rows, so a 4096x4096 float16 texture
-is checked in a few hundred milliseconds with bounded extra memory (a block holds about four
-million channel values as float32; see benchmarks/bench_validate.py).
+is checked in about half a second with bounded extra memory (a block holds about a million channel
+values as float32; see benchmarks/bench_validate.py).
 
 Tolerances come from the texel format (spec/validation.md, "Tolerances"): for a unit vector stored
 with relative rounding error u per channel (u = 2^-11 for float16, 2^-24 for float32), the norm is
