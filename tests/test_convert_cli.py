@@ -1,0 +1,152 @@
+"""``vbusd convert``: options, summary table and JSON, exit statuses, the stadium-crowd sample, registry.
+
+Behaviour is checked against independent facts: the seed's reference numbers for the stadium-crowd
+rig (18 bones, 64x512 half-float texture, 256 KiB of texels), hand-computed layout sizes, and
+UsdSkel's skinning via the report (the semantics tests compare decoded caches directly).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pxr")
+
+from vbusd.cli import main  # noqa: E402
+from vbusd.convert import ConvertOptions, convert  # noqa: E402
+from vbusd.errors import OptionsError  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
+
+
+def _scenes():
+    name = "vbusd_test_usdskel_scenes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, FIXTURES / "scenes.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+@pytest.fixture()
+def small_rig(tmp_path):
+    scenes = _scenes()
+    return Path(scenes.write_stage(tmp_path / "rig.usda", [scenes.RigSpec()]))
+
+
+def test_stadium_crowd_reproduces_the_talks_texture(tmp_path, capsys):
+    output = tmp_path / "crowd.usda"
+    status = main(["convert", str(STADIUM), "-o", str(output), "--vertical-padding", "powerOfTwo",
+                   "--format", "json"])
+    assert status == 0
+    report = json.loads(capsys.readouterr().out)
+    animation = report["animations"][0]
+    # The seed's reference case: 18 bones x 3 texels = 54 -> 64 wide, a 10 s loop in 512 rows,
+    # RGBA half float: 64 * 512 * 4 * 2 bytes = 256 KiB.
+    assert (animation["bones"], animation["width"], animation["height"]) == (18, 64, 512)
+    assert animation["texel_bytes"] == 256 * 1024
+    assert animation["encoding"] == "crossMatrix" and animation["texel_format"] == "float16"
+    assert animation["clips"][0]["loop"] is True
+    assert animation["clips"][0]["rowsPerSecond"] == pytest.approx(51.2)
+    assert animation["padding_fraction"] == pytest.approx(1 - 54 / 64)
+    mesh = animation["meshes"][0]
+    assert (mesh["points"], mesh["kept_influences"]) == (202, 4)
+    assert 0 < mesh["max_error_fraction"] < 2e-3  # float16 texels against UsdSkel
+    assert set(report["files"]) == {str(output), str(tmp_path / "crowd.Skeleton.exr"),
+                                    str(tmp_path / "crowd.Skeleton.exr.json")}
+
+
+def test_text_summary_has_the_table(small_rig, tmp_path, capsys):
+    status = main(["convert", str(small_rig), "-o", str(tmp_path / "out.usda")])
+    out = capsys.readouterr().out
+    assert status == 0
+    for fragment in ("crossMatrix", "float16", "16 x 13", "/Root/Body", "of bbox diagonal", "padding waste",
+                     "43.8%", "UsdSkel.SkinningQuery.ComputeSkinnedPoints"):
+        assert fragment in out, fragment
+
+
+def test_json_summary_is_pure_json_on_stdout(small_rig, tmp_path, capsys):
+    status = main(["convert", str(small_rig), "-o", str(tmp_path / "out.usda"), "--format", "json",
+                   "--encoding", "affineMatrix", "--texel-format", "unorm16", "--container", "png",
+                   "--rows-per-second", "12", "--max-influences", "1", "--check-rows", "all"])
+    captured = capsys.readouterr()
+    assert status == 0
+    report = json.loads(captured.out)
+    animation = report["animations"][0]
+    assert (animation["encoding"], animation["texel_format"]) == ("affineMatrix", "unorm16")
+    assert animation["encoding_reason"] == "requested"
+    assert animation["clips"][0]["rows"] == 7  # 12 time codes at 24/s = 0.5 s -> 6 spans at 12/s
+    assert animation["meshes"][0]["kept_influences"] == 1
+    assert animation["meshes"][0]["influence_error"] > 0
+    assert animation["meshes"][0]["rows_checked"] == 7
+    assert any(path.endswith(".png") for path in report["files"])
+
+
+def test_subprocess_convert_and_decode(small_rig, tmp_path):
+    asset, cache = tmp_path / "out.usda", tmp_path / "cache.usda"
+    done = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(small_rig), "-o", str(asset),
+                           "--format", "json"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["animations"][0]["bones"] == 3
+    done = subprocess.run([sys.executable, "-m", "vbusd", "decode", str(asset), "-o", str(cache)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert cache.exists() and "13 samples" in done.stdout
+
+
+@pytest.mark.parametrize("arguments, fragment", [
+    (["--container", "png"], "unorm16"),
+    (["--rows-per-second", "0"], "rows per second"),
+    (["--max-influences", "0"], "max influences"),
+    (["--frame-range", "9", "3"], "START <= END"),
+    (["--skeleton", "/Root/Nope"], "/Root/Nope"),
+])
+def test_bad_options_exit_2_without_output(small_rig, tmp_path, capsys, arguments, fragment):
+    status = main(["convert", str(small_rig), "-o", str(tmp_path / "out.usda")] + arguments)
+    err = capsys.readouterr().err
+    assert status == 2
+    assert fragment in err and "Traceback" not in err
+    assert not (tmp_path / "out.usda").exists()
+
+
+def test_unknown_suffix_is_an_options_error(tmp_path, capsys):
+    source = tmp_path / "thing.obj"
+    source.write_text("v 0 0 0\n")
+    status = main(["convert", str(source), "-o", str(tmp_path / "out.usda")])
+    assert status == 2
+    assert "no converter reads '.obj'" in capsys.readouterr().err
+
+
+def test_registry_picks_by_suffix_and_sniffs_content(small_rig, tmp_path):
+    from vbusd.converters import registry
+
+    assert registry.find_converter(small_rig).NAME == "usdskel"
+    disguised = tmp_path / "rig.weird"
+    disguised.write_bytes(small_rig.read_bytes())
+    assert registry.find_converter(disguised).NAME == "usdskel"  # "#usda" header
+    names = [entry.name for entry in registry.entries()]
+    assert {"usdskel", "gltf"} <= set(names)
+    with pytest.raises(OptionsError, match="no converter named"):
+        registry.find_converter(small_rig, "nope")
+
+
+def test_output_must_be_usd_and_not_the_source(small_rig, tmp_path):
+    with pytest.raises(OptionsError, match="USD layer"):
+        convert(small_rig, tmp_path / "out.exr")
+    with pytest.raises(OptionsError, match="overwrite the input"):
+        convert(small_rig, small_rig, ConvertOptions(force=True))
+
+
+def test_force_replaces_an_existing_output(small_rig, tmp_path):
+    output = tmp_path / "out.usda"
+    output.write_text("old")
+    report = convert(small_rig, output, ConvertOptions(force=True))
+    assert report.animations and output.read_text().startswith("#usda")

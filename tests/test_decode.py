@@ -1,0 +1,114 @@
+"""``vbusd decode``: the point cache keeps prim paths and the source timeline, and plays in USD.
+
+The cache is compared with what it must equal independently of the decoder: the source stage's
+metadata and prim paths, UsdSkel's skinning at the source time codes (semantics tests do this for
+every feature; here once more through the CLI), and the wrap sample of a looping clip equal to its
+first sample.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+from pxr import Usd, UsdGeom  # noqa: E402
+
+from vbusd.cli import main  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
+
+
+def _scenes():
+    name = "vbusd_test_usdskel_scenes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, FIXTURES / "scenes.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+@pytest.fixture()
+def converted(tmp_path):
+    scenes = _scenes()
+    rig = scenes.RigSpec(root_xform=scenes.translation(2, 0, 0), codes=[11.0, 15.0, 23.0],
+                         meshes=[scenes.MeshSpec(name="Body", normals="vertex"),
+                                 scenes.MeshSpec(name="Shell", normals="faceVarying")])
+    source = scenes.write_stage(tmp_path / "rig.usda", [rig], tcps=30)
+    asset = tmp_path / "asset.usda"
+    assert main(["convert", source, "-o", str(asset), "--texel-format", "float32"]) == 0
+    return Path(source), asset
+
+
+def test_cache_keeps_paths_timeline_and_matches_usdskel(converted, tmp_path, capsys):
+    source, asset = converted
+    cache = tmp_path / "cache.usda"
+    assert main(["decode", str(asset), "-o", str(cache), "--format", "json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [m["path"] for m in report["meshes"]] == ["/Root/Body", "/Root/Shell"]
+    stage, original = Usd.Stage.Open(str(cache)), Usd.Stage.Open(str(source))
+    assert stage.GetTimeCodesPerSecond() == 30
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (11, 23)
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.GetStageUpAxis(original)
+    scenes = _scenes()
+    for path in ("/Root/Body", "/Root/Shell"):
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(path))
+        assert mesh, path
+        codes = mesh.GetPointsAttr().GetTimeSamples()
+        assert codes == [float(c) for c in range(11, 24)]  # one sample per source time code
+        assert mesh.GetNormalsAttr().GetTimeSamples() == codes
+        assert mesh.GetExtentAttr().GetTimeSamples() == codes
+        assert list(mesh.GetFaceVertexCountsAttr().Get()) == list(
+            UsdGeom.Mesh(original.GetPrimAtPath(path)).GetFaceVertexCountsAttr().Get())
+        _, points, _ = scenes.read_cache(cache, path)
+        expected, _ = scenes.usdskel_world(original, path, codes)
+        assert np.abs(points - expected).max() < 2e-4
+    assert mesh.GetNormalsInterpolation() == "faceVarying"
+
+
+def test_looping_clip_gets_its_wrap_sample(tmp_path, capsys):
+    asset, cache = tmp_path / "crowd.usda", tmp_path / "cache.usda"
+    assert main(["convert", str(STADIUM), "-o", str(asset), "--check-rows", "0"]) == 0
+    assert main(["decode", str(asset), "-o", str(cache)]) == 0
+    stage = Usd.Stage.Open(str(cache))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/StadiumCrowd/Body"))
+    codes = mesh.GetPointsAttr().GetTimeSamples()
+    source = Usd.Stage.Open(str(STADIUM))
+    assert codes[0] == source.GetStartTimeCode() and codes[-1] == source.GetEndTimeCode()
+    first = np.array(mesh.GetPointsAttr().Get(codes[0]))
+    last = np.array(mesh.GetPointsAttr().Get(codes[-1]))
+    np.testing.assert_array_equal(first, last)  # row N of a looping clip is row 0
+
+
+def test_decode_refuses_existing_output_and_bad_device(converted, tmp_path, capsys):
+    _, asset = converted
+    cache = tmp_path / "cache.usda"
+    cache.write_text("keep")
+    assert main(["decode", str(asset), "-o", str(cache)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert cache.read_text() == "keep"
+    assert main(["decode", str(asset), "-o", str(tmp_path / "c2.usda"), "--device", "tpu"]) == 2
+    assert "device" in capsys.readouterr().err
+    assert main(["decode", str(tmp_path / "missing.usda"), "-o", str(tmp_path / "c3.usda")]) == 2
+    assert not (tmp_path / "c2.usda").exists() and not (tmp_path / "c3.usda").exists()
+
+
+def test_warp_cpu_decoder_matches_numpy(converted, tmp_path, capsys):
+    pytest.importorskip("warp")
+    _, asset = converted
+    assert main(["decode", str(asset), "-o", str(tmp_path / "numpy.usda")]) == 0
+    assert main(["decode", str(asset), "-o", str(tmp_path / "warp.usda"), "--device", "cpu"]) == 0
+    assert "warp (cpu)" in capsys.readouterr().out
+    a, b = Usd.Stage.Open(str(tmp_path / "numpy.usda")), Usd.Stage.Open(str(tmp_path / "warp.usda"))
+    for code in (11, 17, 23):
+        pa = np.array(UsdGeom.Mesh(a.GetPrimAtPath("/Root/Body")).GetPointsAttr().Get(code))
+        pb = np.array(UsdGeom.Mesh(b.GetPrimAtPath("/Root/Body")).GetPointsAttr().Get(code))
+        assert np.abs(pa - pb).max() < 1e-5
