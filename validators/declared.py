@@ -23,20 +23,21 @@ ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
 INSTANCING_API = "VirtualBonesInstancingAPI"
 
-# key -> (USD attribute, Sdf type name, required)
+# key -> (USD attribute, Sdf type name, required). Every attribute of the spec's table is required
+# and must be *authored*: readers must not rely on schema fallbacks (spec: "USD schema").
 SCALAR_ATTRIBUTES = {
     "formatVersion": ("vb:formatVersion", "int", True),
     "encoding": ("vb:encoding", "token", True),
     "texelFormat": ("vb:texelFormat", "token", True),
     "boneCount": ("vb:boneCount", "int", True),
-    "texelsPerBone": ("vb:texelsPerBone", "int", False),
+    "texelsPerBone": ("vb:texelsPerBone", "int", True),
     "rowCount": ("vb:rowCount", "int", True),
     "width": ("vb:textureWidth", "int", True),
     "height": ("vb:textureHeight", "int", True),
-    "horizontalPadding": ("vb:horizontalPadding", "token", False),
-    "verticalPadding": ("vb:verticalPadding", "token", False),
+    "horizontalPadding": ("vb:horizontalPadding", "token", True),
+    "verticalPadding": ("vb:verticalPadding", "token", True),
     "bones": ("vb:bones", "token[]", True),
-    "contentDigest": ("vb:contentDigest", "string", False),
+    "contentDigest": ("vb:contentDigest", "string", True),
 }
 CLIP_ATTRIBUTES = {
     "name": ("vb:clipNames", "token[]", True),
@@ -44,7 +45,7 @@ CLIP_ATTRIBUTES = {
     "rowCount": ("vb:clipRowCounts", "int[]", True),
     "rowsPerSecond": ("vb:clipRowsPerSecond", "double[]", True),
     "loop": ("vb:clipLoops", "bool[]", True),
-    "startTime": ("vb:clipStartTimes", "double[]", False),
+    "startTime": ("vb:clipStartTimes", "double[]", True),
 }
 TEXTURE_ATTRIBUTE = "vb:texture"
 DEFAULTS = {"horizontalPadding": "powerOfTwo", "verticalPadding": "none"}
@@ -119,6 +120,14 @@ def from_prim(prim) -> Declared:
         if value is not None:
             arrays[key] = list(value)
     _clips_from_arrays(declared, arrays, path)
+    extents = prim.GetAttribute("vb:clipExtents")
+    clips = declared.values.get("clips")
+    if clips is not None and extents.IsValid() and extents.HasAuthoredValue():
+        value = extents.Get()
+        if value is not None and len(value) != 2 * len(clips):
+            declared.findings.append(finding(
+                "clip.arrays", f"vb:clipExtents holds {len(value)} points; 2 per clip (min, max) = "
+                f"{2 * len(clips)} expected", UsdSite(path, "vb:clipExtents")))
     fmt = declared.values.get("texelFormat")
     rmin = _read_attribute(prim, "vb:unormRangeMin", "float4[]", fmt == "unorm16", declared.findings)
     rmax = _read_attribute(prim, "vb:unormRangeMax", "float4[]", fmt == "unorm16", declared.findings)
@@ -179,6 +188,11 @@ def _read_attribute(prim, name, type_name, required, findings):
         findings.append(finding("prim.attribute.missing", f"{name} cannot be read: {error}",
                                 UsdSite(path, name)))
         return None
+    if required and not attribute.HasAuthoredValue():
+        # The value seen is the schema's fallback, which applications without the plugin lack.
+        # Report it, but go on checking with it (one finding, not a cascade).
+        findings.append(finding("prim.attribute.missing", f"{name} is not authored (only the schema "
+                                f"fallback {value!r} applies); writers must author it", UsdSite(path, name)))
     if value is None:
         if required:
             findings.append(finding("prim.attribute.missing", f"{name} has no default value (only time "
