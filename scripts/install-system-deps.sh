@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Install the Debian packages the shader tests run on: Mesa's EGL/OpenGL (llvmpipe runs the GLSL
+# without a GPU), glslang-tools (HLSL front end) and spirv-cross (SPIR-V back to GLSL).
+#
+# Installs only what is missing, and only where apt-get can (root, or sudo without a password).
+# Elsewhere it says what to install and returns 0: tests/test_shaders.py then skips what it
+# cannot run instead of failing, and everything else still runs.
+set -uo pipefail
+
+missing=()
+command -v glslangValidator >/dev/null 2>&1 || missing+=(glslang-tools)
+command -v spirv-cross >/dev/null 2>&1 || missing+=(spirv-cross)
+ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so' || missing+=(libegl-mesa0 libegl1 libgl1-mesa-dri)
+[ ${#missing[@]} -eq 0 ] && exit 0
+
+if ! command -v apt-get >/dev/null 2>&1; then
+    echo "install-system-deps: no apt-get; install ${missing[*]} (or your system's equivalents) for the shader tests" >&2
+    exit 0
+fi
+if [ "$(id -u)" -eq 0 ]; then
+    run=()
+elif sudo -n true 2>/dev/null; then
+    run=(sudo -n)
+else
+    echo "install-system-deps: not root; run: sudo apt-get install -y ${missing[*]}" >&2
+    exit 0
+fi
+echo "install-system-deps: installing ${missing[*]}" >&2
+"${run[@]}" apt-get update -qq >/dev/null 2>&1 || true
+DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
+    || echo "install-system-deps: apt-get could not install ${missing[*]}; the shader tests that need them will skip" >&2
+exit 0
