@@ -254,10 +254,22 @@ _TOP_LEVEL_ARRAYS = ("accessors", "animations", "buffers", "bufferViews", "camer
                      "materials", "meshes", "nodes", "samplers", "scenes", "skins", "textures")
 
 
-def _locate_structure_error(json_text: str) -> str | None:
-    """After pygltflib failed: the JSON pointer of the first top-level value of the wrong kind.
+_NESTED = {
+    "animations": (("samplers", list), ("channels", list)),
+    "meshes": (("primitives", list),),
+    "accessors": (("sparse", dict),),
+}
+"""Arrays of objects / objects inside top-level elements that the converter reads."""
 
-    Only used to give the error message a location; pygltflib does the parsing.
+_NESTED_IN_ELEMENT = {"channels": ("target",), "primitives": ("attributes",),
+                      "sparse": ("indices", "values")}
+
+
+def _locate_structure_error(json_text: str) -> str | None:
+    """The JSON pointer of the first object-valued glTF property that is not an object (or array).
+
+    pygltflib keeps such values as they are (or fails with a bare exception); this finds them so
+    that the error can name the place. pygltflib still does the parsing.
     """
     import json
 
@@ -276,6 +288,27 @@ def _locate_structure_error(json_text: str) -> str | None:
         for i, item in enumerate(value):
             if not isinstance(item, dict):
                 return f"/{key}/{i}"
+            # Nested objects pygltflib would keep as raw values.
+            for member, kind in _NESTED.get(key, ()):
+                child = item.get(member)
+                where = f"/{key}/{i}/{member}"
+                if child is None:
+                    continue
+                if kind is list:
+                    if not isinstance(child, list):
+                        return where
+                    for k, element in enumerate(child):
+                        if not isinstance(element, dict):
+                            return f"{where}/{k}"
+                        for sub in _NESTED_IN_ELEMENT.get(member, ()):
+                            if sub in element and not isinstance(element[sub], dict):
+                                return f"{where}/{k}/{sub}"
+                elif not isinstance(child, dict):
+                    return where
+                else:
+                    for sub in _NESTED_IN_ELEMENT.get(member, ()):
+                        if sub in child and not isinstance(child[sub], dict):
+                            return f"{where}/{sub}"
     if not isinstance(root.get("asset"), dict):
         return "/asset"
     return None
@@ -301,7 +334,7 @@ def _check_raw_structure(json_text: str, file: str) -> None:
                          code="gltf.asset.version")
     location = _locate_structure_error(json_text)
     if location is not None:
-        raise InputError("top-level glTF value of the wrong kind (object or array expected)",
+        raise InputError("a glTF property that must be an object or an array is not one",
                          file=file, location=location, code="gltf.json")
     if "version" not in root["asset"]:
         raise InputError("asset.version is missing", file=file, location="/asset",
@@ -691,8 +724,11 @@ class _Converter:
             raise UnsupportedError(f"primitive mode {MODE_NAMES[mode]} ({mode}) cannot be a skinned "
                                    "mesh; only TRIANGLES, TRIANGLE_STRIP and TRIANGLE_FAN are",
                                    file=self.file, location=f"{where}/mode", code="gltf.mesh.mode")
-        attributes = {k: v for k, v in vars(prim.attributes).items() if v is not None} \
-            if prim.attributes is not None else {}
+        raw = prim.attributes
+        # pygltflib turns a non-empty attributes object into an Attributes instance, an empty one
+        # stays a dict.
+        raw = raw if isinstance(raw, dict) else (vars(raw) if raw is not None else {})
+        attributes = {k: v for k, v in raw.items() if v is not None}
         if "POSITION" not in attributes:
             raise self.fail("primitive has no POSITION", f"{where}/attributes", "gltf.mesh.attribute")
         aw = f"{where}/attributes"
