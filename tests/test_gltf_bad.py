@@ -119,3 +119,26 @@ def test_cli_convert_reports_one_line_and_writes_nothing(tmp_path, capsys):
     assert "gltf.skin.weights" in captured.err
     assert "Traceback" not in captured.err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("mutate,code,location", [
+    (lambda d: d["meshes"][0]["primitives"][0].update(attributes={}), "gltf.mesh.attribute",
+     "/meshes/0/primitives/0/attributes"),
+    (lambda d: d["animations"][0]["samplers"].__setitem__(0, None), "gltf.json",
+     "/animations/0/samplers/0"),
+    (lambda d: d["animations"][0]["channels"][0].update(target=3), "gltf.json",
+     "/animations/0/channels/0/target"),
+    (lambda d: d["nodes"][2].update(rotation=[0, 0, 1]), "gltf.node.transform", "/nodes/2/rotation"),
+    (lambda d: d["accessors"][0].update(count=-6), "gltf.value", "/accessors/0/count"),
+])
+def test_values_of_the_wrong_kind(tmp_path, mutate, code, location):
+    """Found by tests/test_gltf_fuzz.py's harness: pygltflib keeps such values as they are."""
+    import json
+
+    doc = json.loads((FIXTURES / "bar.gltf").read_text())
+    mutate(doc)
+    path = tmp_path / "x.gltf"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(VbusdError) as info:
+        gltf.read(path)
+    assert (info.value.code, info.value.location) == (code, location)
