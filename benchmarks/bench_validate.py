@@ -7,7 +7,7 @@ Two measurements:
    allocations (tracemalloc, which numpy reports its buffers to);
 2. the whole command, ``vbusd validate asset.usda`` in a fresh process (USD open, EXR decode,
    metadata, every check), with wall time and the process's peak resident set size
-   (``resource.getrusage(RUSAGE_CHILDREN).ru_maxrss``).
+   (``ru_maxrss`` that each validate process reports for itself on exit).
 
 Usage::
 
@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 import tempfile

@@ -176,7 +176,7 @@ def test_corpus_through_the_installed_command(corpus):
     # One process per input (what a pipeline does); a sample of the corpus keeps the test fast.
     chosen = [c for c in corpus if c[0] in ("exr_truncated_300", "exr_huge_declared", "png_huge_declared",
                                             "png_bad_crc", "json_list", "usd_syntax",
-                                            f"usdc_truncated_100", "missing_file", "usd_texture_huge")]
+                                            "usdc_truncated_100", "missing_file", "usd_texture_huge")]
     paths = [str(c[1]) for c in chosen]
     result = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(paths), vbusd_exe],
                             capture_output=True, text=True, timeout=300)

@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.layout import FORMAT_VERSION, Encoding, TexelFormat, next_power_of_two
+from vbusd.layout import FORMAT_VERSION, TexelFormat
 
 from . import checks_texels as texels_checks
 from .declared import Declared, from_metadata, from_prim, same_value

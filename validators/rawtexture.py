@@ -34,7 +34,7 @@ import numpy as np
 
 from vbusd.layout import MAX_TEXTURE_DIMENSION
 
-from .findings import FileLocation, JsonPointer, finding
+from .findings import FileLocation, finding
 
 EXR_LOSSLESS = {"NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION", "ZIP_COMPRESSION",
                 "PIZ_COMPRESSION"}
@@ -275,7 +275,7 @@ def _png_text(kind: bytes, body: bytes):
             return key, rest.decode("latin-1")
         if kind == b"zTXt":
             return key, zlib.decompressobj().decompress(rest[1:], MAX_METADATA_BYTES).decode("latin-1")
-        compressed, _method = rest[0], rest[1]
+        compressed = rest[0]  # rest[1] is the method: 0 (zlib) is the only one defined
         _lang, _, rest = rest[2:].partition(b"\0")
         _translated, _, text = rest.partition(b"\0")
         if compressed:
@@ -373,5 +373,5 @@ def _one_line(error: BaseException) -> str:
     return text[:300] or type(error).__name__
 
 
-__all__ = ["RawTexture", "read_texture", "parse_metadata", "sidecar_candidates", "EXR_LOSSLESS",
-           "JsonPointer"]
+__all__ = ["RawTexture", "read_texture", "parse_metadata", "sidecar_candidates", "quiet_stderr",
+           "EXR_LOSSLESS"]
