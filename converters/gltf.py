@@ -934,7 +934,7 @@ class _Converter:
                 self.warn(f"{self.node_label(i)} has a skin but no mesh; ignored")
             elif node.skin is not None:
                 users.setdefault(node.skin, []).append(i)
-                if not np.allclose(self.rest_world(i), np.eye(4), atol=1e-9):
+                if node.skin in skins and not np.allclose(self.rest_world(i), np.eye(4), atol=1e-9):
                     self.warn(f"{self.node_label(i)}: the skinned mesh node's transform is not "
                               "identity; it is ignored, as glTF 2.0 requires (joint transforms "
                               "place the mesh)")
