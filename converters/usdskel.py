@@ -297,8 +297,7 @@ class _Reader:
                     raise self.error(f"{name}[{bad}] (joint '{joints[bad]}') is not finite", where,
                                      "usdskel.animation.nonFinite")
                 if name == "rotations" and count:
-                    norms = np.linalg.norm(np.asarray([(q.GetReal(), *q.GetImaginary()) for q in value]),
-                                           axis=1)
+                    norms = np.linalg.norm(np.asarray(value, dtype=np.float64).reshape(-1, 4), axis=1)
                     if np.any(norms < 1e-6):
                         bad = int(np.argmax(norms < 1e-6))
                         raise self.error(f"rotations[{bad}] (joint '{joints[bad]}') is a zero quaternion",
