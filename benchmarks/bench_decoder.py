@@ -269,9 +269,8 @@ def run_cuda(case_list, args) -> list:
         n, v = crowd.instance_count, mesh.points.shape[0]
         vi = n * v
         err = agreement(wd.Decoder(vb, mesh, device=device), vb, mesh, crowd, t, limit=1200 if n <= 1200 else 200)
-        variants = [1, 2, 4, 8] if n >= 1000 else [1]
-        for ipt in variants:
-            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt)
+        for block in (128, 256, 512):
+            decoder = wd.Decoder(vb, mesh, device=device, block_dim=block)
             uploaded = decoder.upload_crowd(crowd)
             out = decoder.allocate(n)
             counted = bytes_moved(decoder, n)
@@ -279,8 +278,8 @@ def run_cuda(case_list, args) -> list:
             buffers = decoder.decode_bones(uploaded, t)
             decode = time_cuda(lambda: decoder.decode_bones(uploaded, t), device, args.repeats)
             skin = time_cuda(lambda: decoder.skin_bones(uploaded, buffers, out), device, args.repeats)
-            rows.append(dict(case=name, device="cuda", method=f"warp (bones, then skin; {ipt} inst/thread)",
-                             instances_per_thread=ipt, instances=n, vertices=v, seconds=total,
+            rows.append(dict(case=name, device="cuda", method=f"warp (bones, then skin; block {block})",
+                             block_dim=block, instances=n, vertices=v, seconds=total,
                              decode_seconds=decode, skin_seconds=skin, vertex_instances_per_second=vi / total,
                              bytes=counted, bytes_per_second=counted["total"] / total,
                              fraction_of_copy=counted["total"] / total / rate,
@@ -389,10 +388,46 @@ def probe_filter_weights(device, dtype) -> dict:
             "max_diff_to_floor_256": float(np.abs(weight - np.floor(f64 * 256) / 256).max())}
 
 
+@wp.kernel
+def probe_grid_kernel(texture: wp.Texture2D, fractions: wp.array(dtype=wp.float32), out: wp.array2d(dtype=wp.vec4)):
+    """Sample every column of a 2-row texture at ``v = 0.5 + f`` for each fraction f."""
+    i, column = wp.tid()
+    out[i, column] = wp.texture_sample(texture, wp.vec2f(float(column) + 0.5, 0.5 + fractions[i]), dtype=wp.vec4f)
+
+
+def probe_filter_arithmetic(device, dtype, seed: int = 11) -> dict:
+    """Is the filtered value ``(1 - w) a + w b`` computed in float32, or rounded to the texel format?
+
+    Random texel pairs in [-2, 2]; for each returned value the weight ``w`` is taken as the multiple
+    of 1/256 nearest to f that best explains it; reports the residual after that and how many
+    results are exactly representable in float16 (all of them if the unit filters in half).
+    """
+    rng = np.random.default_rng(seed)
+    data = rng.uniform(-2.0, 2.0, size=(2, 64, 4)).astype(dtype)
+    texture = wp.Texture2D(data, filter_mode=wp.TextureFilterMode.LINEAR, address_mode=wp.TextureAddressMode.CLAMP,
+                           normalized_coords=False, device=device)
+    f = ((np.arange(1024) + 0.37) / 1024).astype(np.float32)
+    out = wp.zeros((f.shape[0], 64), dtype=wp.vec4, device=device)
+    wp.launch(probe_grid_kernel, dim=out.shape, inputs=[texture, wp.array(f, dtype=wp.float32, device=device), out],
+              device=device)
+    got = out.numpy().astype(np.float64)  # (F, 64, 4)
+    a, b = data[0].astype(np.float64), data[1].astype(np.float64)
+    best = np.full(got.shape, np.inf)
+    for step in (-1, 0, 1):
+        w = ((np.round(f.astype(np.float64) * 256) + step) / 256)[:, None, None]
+        best = np.minimum(best, np.abs(got - ((1 - w) * a + w * b)))
+    exact = (1 - f.astype(np.float64)[:, None, None]) * a + f.astype(np.float64)[:, None, None] * b
+    return {"texel_dtype": np.dtype(dtype).name,
+            "max_residual_after_256_weights": float(best.max()),
+            "max_error_vs_exact_fraction": float(np.abs(got - exact).max()),
+            "fraction_float16_representable": float(np.mean(got.astype(np.float16).astype(np.float64) == got))}
+
+
 def hardware_study(device: str) -> dict:
     """Exact vs hardware texture path for every encoding x texel format, plus the weight probe."""
     synthetic = _load("bench_warp_synthetic", ROOT / "tests" / "fixtures" / "warp" / "synthetic.py")
     probes = [probe_filter_weights(device, d) for d in (np.float16, np.float32, np.uint16)]
+    probes += [probe_filter_arithmetic(device, d) for d in (np.float16, np.float32)]
     for probe in probes:
         print(f"# probe {probe}", flush=True)
     rows = []

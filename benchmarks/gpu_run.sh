@@ -41,7 +41,7 @@ run)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.memory --format=csv | tee "$out/gpu.txt"
     set +e
-    python3 -m pytest -p no:cacheprovider tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/pytest.log"
+    python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/pytest.log"
     python3 benchmarks/bench_decoder.py --devices cuda --json "$out/decoder_cuda.json" 2>&1 | tee "$out/bench.log"
     python3 benchmarks/bench_decoder.py --hardware --devices cuda --json "$out/hardware.json" 2>&1 | tee "$out/hardware.log"
     ;;

@@ -140,6 +140,15 @@ class BoneBuffers:
         return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.shape[0] > 1 or a.shape[1] > 1)
 
 
+def _flat(array: wp.array) -> wp.array:
+    """A (1, size) view of a contiguous 2D array: the shape the kernels' block-wide stores take."""
+    return array.reshape((1, array.shape[0] * array.shape[1]))
+
+
+def _blocks(items: int, block: int) -> int:
+    return (items + block - 1) // block
+
+
 class Decoder:
     """Keeps one Virtual Bones texture and one bound mesh on a device and skins them on demand.
 
@@ -149,9 +158,8 @@ class Decoder:
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; required (no implicit default device).
         sampling: ``"exact"`` (default; the spec's interpolation) or ``"hardware"`` (rows blended by
             the texture unit through ``wp.Texture2D``; see spec/hardware-sampling.md).
-        instances_per_thread: Instances one skinning thread handles for its vertex (>= 1). None
-            picks by mesh size: more for large meshes, whose rest data then loads once per several
-            instances.
+        block_dim: Threads per block of the kernels (a multiple of 4 on CUDA). None: 256 on CUDA, 1 on
+            the CPU (warp runs tiles one thread wide there).
 
     Raises:
         OptionsError: Unknown device or sampling mode, no mesh.
@@ -159,7 +167,7 @@ class Decoder:
     """
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
-                 sampling: str = "exact", instances_per_thread: Optional[int] = None) -> None:
+                 sampling: str = "exact", block_dim: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -176,12 +184,14 @@ class Decoder:
         self.encoding_id = K.ENCODING_IDS[self.encoding.value]
         self.bone_count = vb.layout.bone_count
         self.vertex_count = int(np.asarray(mesh.points).shape[0])
-        if instances_per_thread is None:
-            instances_per_thread = 1 if self.vertex_count < 4096 else 4
-        if int(instances_per_thread) < 1:
-            raise OptionsError(f"instances_per_thread must be >= 1, got {instances_per_thread!r}",
-                               file="warp_decoder")
-        self.instances_per_thread = int(instances_per_thread)
+        if block_dim is None:
+            block_dim = 256 if self.device.is_cuda else 1
+        if isinstance(block_dim, bool) or int(block_dim) != block_dim or not 1 <= block_dim <= 1024 or \
+                (self.device.is_cuda and block_dim % 4) or (self.device.is_cpu and block_dim != 1):
+            raise OptionsError(f"block_dim must be 1 on the CPU and a multiple of 4 up to 1024 on CUDA, "
+                               f"got {block_dim!r}", file="warp_decoder")
+        self.block_dim = int(block_dim)
+        self.kernels = K.kernels(self.block_dim)
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -353,14 +363,16 @@ class Decoder:
             return buffers
         common = [self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
                   crowd.clip, crowd.time_offset, crowd.playback_rate, wp.float64(t)]
+        outputs = [_flat(buffers.linear), _flat(buffers.normal), _flat(buffers.dual)]
+        dim = [_blocks(n * self.bone_count, self.block_dim)]
         if self.sampling == "exact":
-            wp.launch(K.decode_bones_kernel, dim=(n, self.bone_count),
-                      inputs=[self.texels, self.encoding_id, *common, float(fraction_steps),
-                              buffers.linear, buffers.normal, buffers.dual], device=self.device)
+            wp.launch_tiled(self.kernels.decode_bones, dim=dim, block_dim=self.block_dim, device=self.device,
+                            inputs=[self.texels, self.encoding_id, self.bone_count, *common, float(fraction_steps),
+                                    *outputs])
         else:
-            wp.launch(K.decode_bones_texture, dim=(n, self.bone_count),
-                      inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,
-                              *common, buffers.linear, buffers.normal, buffers.dual], device=self.device)
+            wp.launch_tiled(self.kernels.decode_bones_texture, dim=dim, block_dim=self.block_dim, device=self.device,
+                            inputs=[self.texture, self.encoding_id, self.bone_count, int(self.unorm),
+                                    self.unorm_low, self.unorm_span, *common, *outputs])
         return buffers
 
     def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:
@@ -368,33 +380,19 @@ class Decoder:
         n = crowd.instance_count
         if n == 0:
             return out
-        ipt = self.instances_per_thread
-        dim = ((n + ipt - 1) // ipt, self.vertex_count)
         fused_normals = int(self.with_normals and not self.face_varying)
-        out_normals = out.normals if fused_normals else out.points  # placeholder when unused
-        dqs = self.encoding is Encoding.DUAL_QUAT
-        use_normal = int(self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION))
-        placement = [crowd.positions, crowd.orientations, crowd.scales]
-        if dqs:
-            wp.launch(K.skin_dqs_kernel, dim=dim,
-                      inputs=[buffers.dual, self.points, self.normals, fused_normals, self.indices, self.weights,
-                              *placement, ipt, n, out.points, out_normals], device=self.device)
-        else:
-            wp.launch(K.skin_lbs_kernel, dim=dim,
-                      inputs=[buffers.linear, buffers.normal, use_normal, self.points, self.normals, fused_normals,
-                              self.indices, self.weights, *placement, ipt, n, out.points, out_normals],
-                      device=self.device)
+        bones = [self.encoding_id, buffers.linear, buffers.normal, buffers.dual]
+        out_points = _flat(out.points)
+        wp.launch_tiled(self.kernels.skin, dim=[_blocks(n * self.vertex_count, self.block_dim)],
+                        block_dim=self.block_dim, device=self.device,
+                        inputs=[*bones, self.points, self.normals, fused_normals, self.indices, self.weights,
+                                crowd.positions, crowd.orientations, crowd.scales, out_points,
+                                _flat(out.normals) if fused_normals else out_points])
         if self.with_normals and self.face_varying:
-            dim = (n, self.normal_count)
-            if dqs:
-                wp.launch(K.skin_normals_dqs_kernel, dim=dim,
-                          inputs=[buffers.dual, self.normals, self.normal_points, self.indices, self.weights,
-                                  crowd.orientations, crowd.scales, out.normals], device=self.device)
-            else:
-                wp.launch(K.skin_normals_lbs_kernel, dim=dim,
-                          inputs=[buffers.linear, buffers.normal, use_normal, self.normals, self.normal_points,
-                                  self.indices, self.weights, crowd.orientations, crowd.scales, out.normals],
-                          device=self.device)
+            wp.launch_tiled(self.kernels.skin_normals, dim=[_blocks(n * self.normal_count, self.block_dim)],
+                            block_dim=self.block_dim, device=self.device,
+                            inputs=[*bones, self.normals, self.normal_points, self.indices, self.weights,
+                                    crowd.orientations, crowd.scales, _flat(out.normals)])
         return out
 
     def _check_out(self, out: Optional[SkinResult], n: int) -> SkinResult:
