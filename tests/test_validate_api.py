@@ -123,3 +123,22 @@ def test_converted_third_party_assets(shared_assets, tmp_path, capsys):
             assert norms == pytest.approx([0.09, 0.09, 0.09], abs=2e-3)
         else:
             assert not hints
+
+
+def test_textures_inside_a_usdz_package_are_checked(tmp_path):
+    from pxr import Sdf, UsdUtils
+
+    for name, expected in (("valid/crossMatrix_float16", set()), ("texture.nonFinite", {"texture.nonFinite"})):
+        source = _copy(name, tmp_path)
+        package = tmp_path / (source.parent.name + ".usdz")
+        assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(source)), str(package))
+        alone = tmp_path / "packages" / package.name
+        alone.parent.mkdir(exist_ok=True)
+        package.rename(alone)  # nothing beside it: the texture can only come from the package
+        report = validate(alone)
+        errors = {f.code for f in report.findings if f.severity.value == "error"}
+        assert errors == expected, _codes(report)
+        # The padding info needs the pixels: proof the packaged texture was read.
+        assert "texture.padding.fraction" in {f.code for f in report.findings}
+    nan = [f for f in report.findings if f.code == "texture.nonFinite"][0]
+    assert nan.location.file == f"{alone}[asset.Animation.exr]".rsplit("/", 1)[-1]

@@ -391,8 +391,40 @@ def _check_container(raw, declared: Declared):
 # --------------------------------------------------------------------------------------------
 
 
-def resolve_texture(prim, asset_dir: str):
+MAX_PACKAGED_BYTES = 16384 * 16384 * 16 + (64 << 20)
+"""Largest texture extracted from a .usdz package (the largest legal float32 texture plus headroom)."""
+
+
+def _extract_packaged(value, authored: str, scratch: str):
+    """Copy a texture (and its sidecar) out of a .usdz package into ``scratch``.
+
+    Returns:
+        The extracted texture's path, or None when the package does not hold it.
+    """
+    from pxr import Ar
+
+    resolver = Ar.GetResolver()
+    resolved = value.resolvedPath
+    asset = resolver.OpenAsset(Ar.ResolvedPath(resolved)) if resolved else None
+    if asset is None or asset.GetSize() > MAX_PACKAGED_BYTES:
+        return None
+    target = os.path.join(scratch, os.path.basename(authored.replace("\\", "/")) or "texture")
+    with open(target, "wb") as handle:
+        handle.write(bytes(asset.GetBuffer()))
+    # The sidecar, when packaged too: "<package>[<texture>.json]".
+    if resolved.endswith("]"):
+        sidecar = resolver.OpenAsset(Ar.ResolvedPath(resolved[:-1] + ".json]"))
+        if sidecar is not None and sidecar.GetSize() <= 64 << 20:
+            with open(target + ".json", "wb") as handle:
+                handle.write(bytes(sidecar.GetBuffer()))
+    return target
+
+
+def resolve_texture(prim, asset_dir: str, scratch: Optional[str] = None):
     """Resolve ``vb:texture`` of an animation prim inside the asset's folder.
+
+    A texture inside a .usdz package (``pkg.usdz[anim.exr]``) is copied into ``scratch`` (a
+    temporary folder the caller removes) so the texture checks can read it like any file.
 
     Returns:
         ``(path or None, display name, findings)``.
@@ -422,6 +454,10 @@ def resolve_texture(prim, asset_dir: str):
         return None, None, [finding("texture.outside", f"vb:texture {authored!r} resolves to {resolved}, "
                                     f"outside the asset's folder {root}", site)]
     display = os.path.relpath(resolved, root)
+    if not resolved.is_file() and scratch is not None and "[" in (value.resolvedPath or ""):
+        extracted = _extract_packaged(value, authored, scratch)
+        if extracted is not None:
+            return extracted, os.path.basename(value.resolvedPath), []
     if not resolved.is_file():
         return None, display, [finding("texture.missing", f"vb:texture {authored!r}: no such file "
                                        f"({display})", site)]
@@ -438,10 +474,13 @@ def check_animation_prim(prim, asset_dir: str):
     declared = from_prim(prim)
     out = list(declared.findings)
     out += check_declared(declared)
-    path, display, problems = resolve_texture(prim, asset_dir)
-    out += problems
-    if path is not None:
-        out += check_texture_file(path, display, declared, UsdSite(str(prim.GetPath()), "vb:texture"))
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="vbusd-validate-") as scratch:
+        path, display, problems = resolve_texture(prim, asset_dir, scratch)
+        out += problems
+        if path is not None:
+            out += check_texture_file(path, display, declared, UsdSite(str(prim.GetPath()), "vb:texture"))
     return out
 
 
