@@ -364,6 +364,16 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
 def _check_container(raw, declared: Declared):
     out = []
     location = FileLocation(raw.file)
+    if raw.colour_chunks:
+        kinds = ", ".join(kind for kind, _ in raw.colour_chunks)
+        out.append(finding("texture.colorManagement", f"PNG carries {kinds}: the samples are bone data, and "
+                           "image tools may apply gamma or colour conversion to them",
+                           FileLocation(raw.file, raw.colour_chunks[0][1])))
+    keyed = [i for i, (key, _) in enumerate(raw.metadata_texts) if key == METADATA_KEY]
+    if len(keyed) > 1:
+        offset = raw.metadata_offsets[keyed[1]] if len(raw.metadata_offsets) > keyed[1] else None
+        out.append(finding("metadata.duplicate", f"{len(keyed)} '{METADATA_KEY}' chunks; a texture holds "
+                           "exactly one", FileLocation(raw.file, offset)))
     values = declared.values
     width, height = values.get("width"), values.get("height")
     if width is not None and height is not None and (raw.width, raw.height) != (width, height):

@@ -97,6 +97,8 @@ _CODES = (
          "HALF, float32: EXR FLOAT, unorm16: 16-bit PNG).", f"{_VB}#texel-formats", "file"),
     Code("texture.compression", E, "The EXR compression is not one of the lossless NONE, RLE, ZIPS, ZIP, "
          "PIZ (PXR24, B44, B44A, DWAA, DWAB and later methods are refused).", f"{_VB}#openexr", "file"),
+    Code("texture.colorManagement", W, "A PNG texture carries gAMA, sRGB, iCCP or cHRM chunks: the samples "
+         "are data, but image tools may apply gamma or colour conversion to them.", f"{_VB}#png", "file"),
     Code("texture.nonFinite", E, "A data texel channel is NaN or infinite.", f"{_VB}#texel-formats",
          "texel"),
     Code("texture.digest", E, "The texels' SHA-256 does not match the declared content digest.",
@@ -109,6 +111,8 @@ _CODES = (
          "<texture>.json.", f"{_VB}#layout-metadata", "file"),
     Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON.", f"{_VB}#layout-metadata",
          "file"),
+    Code("metadata.duplicate", E, "The texture holds more than one vbusd.layout metadata chunk.",
+         f"{_VB}#png", "file"),
     Code("metadata.schema", E, "Layout metadata violates schema/layout-metadata.schema.json.",
          f"{_VB}#layout-metadata", "json"),
     Code("metadata.mismatch", E, "A layout metadata value disagrees with the prim attribute it mirrors.",

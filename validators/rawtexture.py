@@ -62,6 +62,8 @@ class RawTexture:
         texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
             not be read. Missing channels are not invented: texels is None then.
         metadata_texts: Embedded metadata candidates: (key, text) pairs.
+        colour_chunks: PNG colour-management chunks found: (chunk type, byte offset) pairs.
+        metadata_offsets: PNG byte offsets of the text chunks in ``metadata_texts``.
     """
 
     file: str
@@ -73,6 +75,8 @@ class RawTexture:
     compression: Optional[str] = None
     texels: Optional[np.ndarray] = None
     metadata_texts: list = field(default_factory=list)
+    colour_chunks: list = field(default_factory=list)
+    metadata_offsets: list = field(default_factory=list)
 
 
 def read_texture(path: str, display: Optional[str] = None, max_dimension: int = MAX_TEXTURE_DIMENSION):
@@ -232,6 +236,9 @@ def _read_png(path: str, name: str, max_dimension: int):
             text = _png_text(kind, body)
             if text is not None and _looks_like_metadata_key(*text):
                 texture.metadata_texts.append(text)
+                texture.metadata_offsets.append(offset)
+        elif kind in (b"gAMA", b"sRGB", b"iCCP", b"cHRM"):
+            texture.colour_chunks.append((kind.decode("ascii"), offset))
         elif kind == b"IDAT":
             idat_seen = True
         elif kind == b"IEND":
