@@ -544,12 +544,17 @@ class _Converter:
                                 f"/nodes/{self.parent[node]}/children", "gltf.node.loop")
             for w in walk:
                 state[w] = 2
-        self.depth = [0] * n
+        # Depths, each node's computed from its parent's (linear time, even for long chains).
+        self.depth = [-1] * n
         for i in range(n):
-            d, node = 0, self.parent[i]
-            while node != -1:
-                d, node = d + 1, self.parent[node]
-            self.depth[i] = d
+            chain, node = [], i
+            while node != -1 and self.depth[node] == -1:
+                chain.append(node)
+                node = self.parent[node]
+            d = -1 if node == -1 else self.depth[node]
+            for c in reversed(chain):
+                d += 1
+                self.depth[c] = d
         for si, scene in enumerate(self.gltf.scenes):
             for k, root in enumerate(scene.nodes or []):
                 require_index(root, n, f"/scenes/{si}/nodes/{k}", self.file, "node")
