@@ -914,7 +914,11 @@ class _Converter:
         chosen_anims = self.select(self.options.clips, anim_names, "animation")
         time_range = self.options.time_range
         if time_range is not None:
-            lo, hi = (float(x) for x in time_range)
+            try:
+                lo, hi = (float(x) for x in time_range)
+            except (TypeError, ValueError):
+                raise OptionsError(f"time range {time_range!r} is not two numbers (seconds)",
+                                   file=self.file, code="gltf.option") from None
             if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
                 raise OptionsError(f"time range {time_range!r} is empty or not finite",
                                    file=self.file, code="gltf.option")

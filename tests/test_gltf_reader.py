@@ -249,6 +249,9 @@ def test_options_select_and_time_range():
     with pytest.raises(OptionsError) as info:
         gltf.read(FIXTURES / "bar.gltf", ReadOptions(skeletons=("Nope",)))
     assert "Nope" in info.value.message
+    for bad in ((2.0, 1.0), ("a", 1), (1.0,), (0.0, float("inf"))):
+        with pytest.raises(OptionsError):
+            gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=bad))
 
 
 def test_skin_selection_by_index():
