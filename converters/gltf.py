@@ -912,16 +912,9 @@ class _Converter:
         anim_names = [a.name if isinstance(a.name, str) else "" for a in gltf.animations]
         skins = self.select(self.options.skeletons, skin_names, "skin")
         chosen_anims = self.select(self.options.clips, anim_names, "animation")
-        time_range = self.options.time_range
+        time_range = check_time_range(self.options, self.file)
         if time_range is not None:
-            try:
-                lo, hi = (float(x) for x in time_range)
-            except (TypeError, ValueError):
-                raise OptionsError(f"time range {time_range!r} is not two numbers (seconds)",
-                                   file=self.file, code="gltf.option") from None
-            if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
-                raise OptionsError(f"time range {time_range!r} is empty or not finite",
-                                   file=self.file, code="gltf.option")
+            lo, hi = time_range
 
         # Scene and root prim name.
         scene_index = gltf.scene
@@ -1105,6 +1098,26 @@ def sniff(path) -> bool:
     return text[:1] == b"{" and b'"asset"' in text
 
 
+def check_time_range(options: ReadOptions, file: str) -> tuple[float, float] | None:
+    """The options' time range as two finite seconds ``lo <= hi``, or None.
+
+    Raises:
+        OptionsError: When it is not two finite numbers in order.
+    """
+    time_range = options.time_range
+    if time_range is None:
+        return None
+    try:
+        lo, hi = (float(x) for x in time_range)
+    except (TypeError, ValueError):
+        raise OptionsError(f"time range {time_range!r} is not two numbers (seconds)", file=file,
+                           code="gltf.option") from None
+    if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+        raise OptionsError(f"time range {time_range!r} is empty or not finite", file=file,
+                           code="gltf.option")
+    return lo, hi
+
+
 def read(path, options: ReadOptions | None = None) -> SourceScene:
     """Read a .gltf or .glb file into skinned animations (one per skin).
 
@@ -1123,6 +1136,7 @@ def read(path, options: ReadOptions | None = None) -> SourceScene:
         OptionsError: Selections that name nothing in the file.
     """
     options = options or ReadOptions()
+    check_time_range(options, str(path))      # options are checked before any work starts
     gltf, buffers = load(path, options)
     converter = _Converter(gltf, buffers, str(path), options)
     return converter.run(Path(path).stem)
