@@ -108,7 +108,7 @@ class _Reader:
 
     # ---------------------------------------------------------------------------------------
     def _open(self):
-        from pxr import Sdf, Tf
+        from pxr import Tf
 
         try:
             stage = self.Usd.Stage.Open(str(self.path))
@@ -131,7 +131,6 @@ class _Reader:
                     raise InputError(f"layer '{layer.identifier}' lies outside the asset's folder {root} "
                                      "(use --allow-outside-paths to allow it)", file=self.file,
                                      location="/", code="usd.outsidePath") from None
-        del Sdf
         return stage
 
     # ---------------------------------------------------------------------------------------

@@ -170,7 +170,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     warnings: list = []
     skin, decoder_name = _skinner(device, warnings)
 
-    from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+    from pxr import Gf, Usd, UsdGeom, Vt
 
     from .usd_io import read_asset
 
@@ -240,7 +240,6 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         temporary = transaction.temp_path(output)
         if not stage.GetRootLayer().Export(str(temporary)):
             raise OSError(f"USD could not write {output}")
-    del Sdf
     report.start_time_code, report.end_time_code = first_code, last_code
     report.bytes = output.stat().st_size
     report.seconds = round(time.perf_counter() - started, 4)
