@@ -190,3 +190,31 @@ def test_corpus_through_the_installed_command(corpus):
             assert len(err.strip().splitlines()) == 1, f"{name}: {err!r}"
     # pxr + numpy + OpenEXR take about 200 MB; a 40000 x 40000 declaration must not allocate.
     assert data["peak_kib"] < 1024 * 1024, f"peak RSS {data['peak_kib']} KiB"
+
+
+def test_silenced_streams_are_restored_after_overlapping_threads():
+    """UsdValidation runs validators on worker threads: overlapping silencing must not leave
+    stdout or stderr pointing at /dev/null."""
+    import threading
+    import time
+
+    from vbusd.validators.rawtexture import quiet_stderr
+
+    stdout, stderr = sys.stdout, sys.stderr
+    fds = [(os.fstat(fd).st_dev, os.fstat(fd).st_ino) for fd in (1, 2)]
+    barrier = threading.Barrier(4)
+
+    def work(delay):
+        with quiet_stderr():
+            barrier.wait(timeout=10)
+            time.sleep(delay)
+            with quiet_stderr():  # nested
+                print("hidden")
+
+    threads = [threading.Thread(target=work, args=(0.01 * i,)) for i in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=30)
+    assert sys.stdout is stdout and sys.stderr is stderr
+    assert [(os.fstat(fd).st_dev, os.fstat(fd).st_ino) for fd in (1, 2)] == fds

@@ -26,6 +26,7 @@ import os
 import re
 import struct
 import sys
+import threading
 import zlib
 from dataclasses import dataclass, field
 from typing import Optional
@@ -131,7 +132,7 @@ def _read_exr(path: str, name: str, max_dimension: int):
     except Exception as error:  # an OSError while scanning
         return None, [finding("texture.unreadable", _one_line(error), FileLocation(name))]
     try:
-        with quiet_stderr((1, 2)):
+        with quiet_stderr():
             header_file = OpenEXR.File(str(path), header_only=True)
     except Exception as error:  # OpenEXR raises RuntimeError for anything it cannot parse
         return None, [finding("texture.unreadable", f"OpenEXR cannot read the header: {_one_line(error)}",
@@ -162,7 +163,7 @@ def _read_exr(path: str, name: str, max_dimension: int):
         header_names = sorted(getattr(c, "name", "") for c in header.get("channels", []))
         if header_names == ["A", "B", "G", "R"]:
             # Interleaved read: OpenEXR fills one (height, width, 4) RGBA array, no stacking copy.
-            with quiet_stderr((1, 2)):
+            with quiet_stderr():
                 image = OpenEXR.File(str(path), separate_channels=False)
             if len(image.parts) == 1:
                 rgba = image.parts[0].channels.get("RGBA")
@@ -174,7 +175,7 @@ def _read_exr(path: str, name: str, max_dimension: int):
                     texture.texels = pixels
                     return texture, findings
             del image
-        with quiet_stderr((1, 2)):
+        with quiet_stderr():
             image = OpenEXR.File(str(path), separate_channels=True)
         if len(image.parts) != 1:
             raise RuntimeError("OpenEXR returned no image: the pixel data is truncated or corrupt")
@@ -334,45 +335,65 @@ def _byte_offset(location) -> Optional[int]:
     return int(match.group(1)) if match else None
 
 
-@contextlib.contextmanager
-def quiet_stderr(descriptors=(2,)):
-    """Send file descriptors (default: 2) to /dev/null while C++ libraries print warnings that the
-    validator reports as findings anyway, so the CLI's one-line errors and its JSON output on
-    stdout stay clean. (OpenEXR 3.5 prints "Warning: Exception raised reading pixel data" on
-    stdout, USD prints diagnostics on stderr.)"""
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    saved = []
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        for fd in descriptors:
-            saved.append((fd, os.dup(fd)))
-    except OSError:
-        for _, copy in saved:
-            os.close(copy)
-        yield
-        return
-    for fd, _ in saved:
-        os.dup2(devnull, fd)
-    # The OpenEXR bindings print through Python's sys.stdout, not only the C++ streams.
-    sink = io.StringIO()
-    redirects = contextlib.ExitStack()
-    if 1 in descriptors:
-        redirects.enter_context(contextlib.redirect_stdout(sink))
-    if 2 in descriptors:
-        redirects.enter_context(contextlib.redirect_stderr(sink))
-    try:
-        with redirects:
-            yield
-    finally:
+_QUIET_LOCK = threading.Lock()
+_QUIET = {"depth": 0, "saved": [], "devnull": None, "stdout": None, "stderr": None}
+
+
+def _quiet_enter() -> None:
+    with _QUIET_LOCK:
+        _QUIET["depth"] += 1
+        if _QUIET["depth"] > 1:
+            return  # already quiet (nested call, or another thread of a UsdValidation context)
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(Exception):
                 stream.flush()
-        for fd, copy in saved:
-            os.dup2(copy, fd)
-            os.close(copy)
-        os.close(devnull)
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+        except OSError:
+            devnull = None
+        saved = []
+        if devnull is not None:
+            for fd in (1, 2):
+                try:
+                    saved.append((fd, os.dup(fd)))
+                    os.dup2(devnull, fd)
+                except OSError:
+                    pass
+        _QUIET.update(saved=saved, devnull=devnull, stdout=sys.stdout, stderr=sys.stderr)
+        # The OpenEXR bindings print through Python's sys.stdout, not only the C++ streams.
+        sys.stdout = sys.stderr = io.StringIO()
+
+
+def _quiet_exit() -> None:
+    with _QUIET_LOCK:
+        _QUIET["depth"] -= 1
+        if _QUIET["depth"] > 0:
+            return
+        sys.stdout, sys.stderr = _QUIET["stdout"], _QUIET["stderr"]
+        for fd, copy in _QUIET["saved"]:
+            with contextlib.suppress(OSError):
+                os.dup2(copy, fd)
+                os.close(copy)
+        if _QUIET["devnull"] is not None:
+            os.close(_QUIET["devnull"])
+        _QUIET.update(saved=[], devnull=None, stdout=None, stderr=None)
+
+
+@contextlib.contextmanager
+def quiet_stderr():
+    """Silence stdout and stderr (file descriptors 1 and 2, and ``sys.stdout`` / ``sys.stderr``)
+    while C++ libraries print warnings the validator reports as findings anyway, so the CLI's
+    one-line errors and its JSON output stay clean. (OpenEXR 3.5 prints "Warning: Exception raised
+    reading pixel data" through Python's stdout; USD prints diagnostics on stderr.)
+
+    Re-entrant and thread-safe: UsdValidation runs validators on worker threads, so only the
+    outermost of overlapping uses redirects and the last one to leave restores the streams.
+    """
+    _quiet_enter()
+    try:
+        yield
+    finally:
+        _quiet_exit()
 
 
 def _one_line(error: BaseException) -> str:
