@@ -73,3 +73,20 @@ def test_valid_fixture_has_no_error(folder):
     report = _check(folder)
     assert report.error_count == 0 and report.exit_status == 0
     assert report.counts["warning"] == 0
+
+
+def test_committed_fixtures_are_what_the_generator_writes(tmp_path):
+    """The goldens are made by make_fixtures.py, not edited by hand: regenerate and compare."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.generate(tmp_path)
+    committed = sorted(p.relative_to(FIXTURES) for p in FIXTURES.rglob("expected.json"))
+    fresh = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("expected.json"))
+    assert committed == fresh
+    for relative in committed:
+        assert json.loads((tmp_path / relative).read_text(encoding="utf-8")) == _load(FIXTURES / relative.parent), relative
+        files = sorted(p.name for p in (FIXTURES / relative.parent).iterdir())
+        assert files == sorted(p.name for p in (tmp_path / relative.parent).iterdir()), relative
