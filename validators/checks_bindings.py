@@ -234,7 +234,9 @@ def check_instancer_prim(prim):
             break
     arrays = {}
     for name, type_name in INSTANCE_PRIMVARS.items():
-        primvar = _typed_primvar(prim, name, type_name, "instancer.count", out, required=name == "primvars:vb:clip")
+        # Unauthored instancing primvars take their defaults (clip 0, offset 0, rate 1; spec
+        # "Instancing"), so only authored ones are checked.
+        primvar = _typed_primvar(prim, name, type_name, "instancer.count", out, required=False)
         if primvar is None:
             continue
         site = UsdSite(path, name)
