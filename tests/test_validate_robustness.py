@@ -98,8 +98,19 @@ def build_corpus(root: Path) -> list:
     for cut in (10, 100, len(crate_bytes) // 2, len(crate_bytes) - 16):
         add(f"usdc_truncated_{cut}", crate_bytes[:cut], ".usdc", {2}, "usd.open")
     cases.append(("missing_file", root / "nothere.usda", {2}, "file.missing"))
-    # Assets that open, with broken textures: findings, exit 1.
+    def declare_huge(folder):
+        usda = folder / "asset.usda"
+        text = usda.read_text(encoding="utf-8")
+        for old, new in (("int vb:boneCount = 4", "int vb:boneCount = 20000"),
+                         ("int vb:rowCount = 12", "int vb:rowCount = 50000"),
+                         ("int vb:textureWidth = 16", "int vb:textureWidth = 65536")):
+            assert old in text
+            text = text.replace(old, new)
+        usda.write_text(text, encoding="utf-8")
+
+    # Assets that open, with broken textures or huge declarations: findings, exit 1.
     for name, mutate in (
+            ("usd_declares_huge", declare_huge),
             ("usd_texture_truncated", lambda d: (d / EXR).write_bytes(exr_bytes[:len(exr_bytes) // 2])),
             ("usd_texture_huge", lambda d: (d / EXR).write_bytes(_patch_exr_data_window(exr_bytes, 40000, 40000))),
             ("usd_sidecar_broken", lambda d: (d / (EXR + ".json")).write_bytes(b'{"a": ')),
@@ -140,6 +151,7 @@ def test_corpus_in_process(corpus, capsys):
 
 def test_usd_cases_name_the_texture_problem(corpus, capsys):
     expected = {"usd_texture_truncated": "texture.unreadable", "usd_texture_huge": "texture.unreadable",
+                "usd_declares_huge": "prim.attribute.invalid",
                 "usd_sidecar_broken": "metadata.json", "usd_texture_escapes": "texture.outside"}
     for name, path, _, _ in corpus:
         if name in expected:
@@ -176,7 +188,8 @@ def test_corpus_through_the_installed_command(corpus):
     # One process per input (what a pipeline does); a sample of the corpus keeps the test fast.
     chosen = [c for c in corpus if c[0] in ("exr_truncated_300", "exr_huge_declared", "png_huge_declared",
                                             "png_bad_crc", "json_list", "usd_syntax",
-                                            "usdc_truncated_100", "missing_file", "usd_texture_huge")]
+                                            "usdc_truncated_100", "missing_file", "usd_texture_huge",
+                                            "usd_declares_huge")]
     paths = [str(c[1]) for c in chosen]
     result = subprocess.run([sys.executable, "-c", DRIVER, json.dumps(paths), vbusd_exe],
                             capture_output=True, text=True, timeout=300)
