@@ -278,6 +278,26 @@ def _load_metadata(raw, texture_path: str, display: str):
     return embedded, sidecar, findings
 
 
+def _upgraded(document, out: list):
+    """A metadata document of an older format version brought to the current one with the format's
+    explicit upgrade functions (vbusd.metadata.upgrade), so it is checked against the current
+    schema; other documents are returned as they are. A failed upgrade is a ``format.version``
+    finding and the document is then checked as written."""
+    value, file = document
+    version = value.get("formatVersion") if isinstance(value, dict) else None
+    if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version < FORMAT_VERSION:
+        return document
+    from vbusd import metadata as md
+    from vbusd.errors import VbusdError
+
+    try:
+        return md.upgrade(value, current=FORMAT_VERSION, file=file), file
+    except VbusdError as error:
+        out.append(finding("format.version", f"cannot upgrade from format version {version}: "
+                           f"{error.message}", JsonPointer(file, "/formatVersion")))
+        return document
+
+
 def check_texture_file(texture_path: str, display: str, declared: Optional[Declared],
                        site: Optional[UsdSite] = None):
     """Every check of a texture file and its metadata against a declaration.
@@ -299,7 +319,7 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     if raw is not None and not raw.metadata_texts and sidecar is None and not problems:
         out.append(finding("metadata.missing", f"no '{METADATA_KEY}' metadata in the texture and no sidecar "
                            f"{os.path.basename(texture_path)}.json beside it", FileLocation(display)))
-    docs = [d for d in (embedded, sidecar) if d is not None]
+    docs = [_upgraded(d, out) for d in (embedded, sidecar) if d is not None]
     meta_declared = []
     for value, file in docs:
         out += check_metadata_schema(value, file)
