@@ -231,6 +231,66 @@ def test_import_vbusd_after_pxr_registers_directly(tmp_path):
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 
+_LATE_PROBE = r"""
+import json, os, sys, warnings
+from pxr import Usd
+# A user script that opened a stage before importing vbusd: USD's schema registry is built now.
+Usd.Stage.Open(sys.argv[1])
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    import vbusd
+from vbusd import usd_io, usd_plugin
+from vbusd.errors import VbusdError
+sample = Usd.Stage.Open(sys.argv[2])
+body = sample.GetPrimAtPath("/StadiumCrowd/Body")
+state = {"warnings": [(w.category.__name__, str(w.message), os.path.basename(w.filename)) for w in caught],
+         "known": usd_plugin.schema_types_known(),
+         "usd_has_api": body.HasAPI("VirtualBonesBindingAPI"),
+         "authored_api": [str(n) for n in body.GetMetadata("apiSchemas").ApplyOperations([])]}
+asset = usd_io.read_asset(sys.argv[2])
+state["meshes"] = [len(vb.meshes) for vb in asset.animations]
+state["instances"] = [c.instance_count for c in asset.crowds]
+try:
+    usd_io.write_asset(asset, os.path.join(sys.argv[3], "copy.usda"))
+    state["write_error"] = None
+except VbusdError as error:
+    state["write_error"] = [error.code, str(error)]
+state["written"] = sorted(os.listdir(sys.argv[3]))
+print(json.dumps(state))
+"""
+
+
+def test_import_vbusd_after_usd_built_its_schema_registry(tmp_path):
+    # OpenUSD builds Usd.SchemaRegistry once; a plugin registered afterwards gets no prim
+    # definitions. vbusd must say so on import, still read assets from authored data (the spec's
+    # reader rule) and refuse to write, rather than silently find no bound meshes or crowds.
+    sample = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+    unrelated = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+    out = tmp_path / "out"
+    out.mkdir()
+    result = subprocess.run([sys.executable, "-P", "-c", _LATE_PROBE, str(unrelated), str(sample), str(out)],
+                            capture_output=True, text=True, env=_clean_env(), timeout=120, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    state = json.loads(result.stdout)
+    assert state["known"] is False and state["usd_has_api"] is False  # USD's own behaviour
+    assert state["authored_api"] == ["VirtualBonesBindingAPI"]
+    (warning,) = state["warnings"]
+    assert warning[0] == "RuntimeWarning" and "PXR_PLUGINPATH_NAME" in warning[1]
+    assert warning[2] == "<string>", "the warning should point at the user's import line"
+    # The sample has one bound mesh and a crowd of 1,200 (checked with plain pxr in test_samples).
+    assert state["meshes"] == [1] and state["instances"] == [1200]
+    assert state["write_error"][0] == "usd.plugin" and "import vbusd before" in state["write_error"][1].lower()
+    assert state["written"] == []  # nothing half-written
+
+
+def test_late_import_with_plugin_path_set_is_fine(tmp_path):
+    # The documented remedy: PXR_PLUGINPATH_NAME set before the process starts.
+    env = _clean_env()
+    env["PXR_PLUGINPATH_NAME"] = str(usd_plugin.plugin_dir())
+    state = _run_probe("from pxr import Usd\nUsd.SchemaRegistry()\n" + _PROBE, tmp_path, env)
+    assert state["known"] and state["encoding"] == "crossMatrix"
+
+
 def _install_like_a_wheel(target: Path) -> None:
     """Lay the packages out as the wheel does, following pyproject's package-dir and package-data."""
     tomllib = pytest.importorskip("tomllib")

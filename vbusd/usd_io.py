@@ -56,7 +56,7 @@ from .errors import InputError, OptionsError, VbusdError, VersionError
 from .fileio import AtomicTransaction, resolve_inside
 from .layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
 from .model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
-from .usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register
+from .usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
 PathLike = Union[str, os.PathLike]
 
@@ -79,6 +79,24 @@ def _pxr():
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
     return Gf, Sdf, Tf, Usd, UsdGeom, Vt
+
+
+def _applies_api(prim, schema: str) -> bool:
+    """Whether ``prim`` applies the API schema ``schema``.
+
+    Also true when USD's schema registry does not know the schema (an application without the
+    plugin, or vbusd imported after pxr.Usd built its registry), where ``prim.HasAPI`` is False:
+    the composed, authored ``apiSchemas`` list counts (spec 13: readers rely on authored data only).
+    """
+    if schema in prim.GetAppliedSchemas():
+        return True
+    listop = prim.GetMetadata("apiSchemas")
+    if listop is None:
+        return False
+    try:
+        return schema in [str(name) for name in listop.ApplyOperations([])]
+    except Exception:  # a malformed list op applies nothing
+        return False
 
 
 def _tf_message(error: BaseException) -> str:
@@ -317,6 +335,9 @@ def build_stage(asset: VirtualBonesAsset, texture_names: list):
     """
     pxr = _pxr()
     Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    # Authoring needs the schema's prim definitions (ApplyAPI, the vb:* attributes); a process
+    # that built USD's schema registry before importing vbusd lacks them: say so, write nothing.
+    require_schema_types()
     _check_asset(Sdf, asset)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if asset.up_axis == "Y" else UsdGeom.Tokens.z)
@@ -788,7 +809,7 @@ class _Reader:
                 continue
             if prim.GetTypeName() == ANIMATION_TYPE:
                 animation_prims.append(prim)
-            if prim.HasAPI(BINDING_API):
+            if _applies_api(prim, BINDING_API):
                 if not prim.IsA(UsdGeom.Mesh):
                     raise self.error(f"{BINDING_API} is applied to a {prim.GetTypeName() or 'typeless'} "
                                      "prim; it applies to Mesh only", str(prim.GetPath()), "usd.binding")
@@ -796,7 +817,7 @@ class _Reader:
             if prim.IsA(UsdGeom.PointInstancer):
                 # Prototypes below an instancer repeat meshes defined elsewhere: not read.
                 prims.PruneChildren()
-                if prim.HasAPI(INSTANCING_API):
+                if _applies_api(prim, INSTANCING_API):
                     crowd_prims.append(prim)
         if not animation_prims:
             raise self.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")

@@ -26,6 +26,24 @@ Registration on ``import vbusd``
 vbusd's own USD code (:mod:`vbusd.usd_io`, the validators) also calls :func:`register` before
 using the types, which is idempotent.
 
+Importing vbusd after pxr.Usd has been used
+-------------------------------------------
+OpenUSD builds its schema registry (``Usd.SchemaRegistry``) once per process, the first time a
+stage is opened or the registry is used, and never rebuilds it: a plugin registered later declares
+its TfTypes but gets no prim definitions. So in a process that opened a stage (or used the registry)
+*before* ``import vbusd``, the Virtual Bones types stay unknown to pxr.Usd for the rest of the
+process: ``prim.HasAPI("VirtualBonesBindingAPI")`` is False, ``ApplyAPI`` fails and the schema's
+fallback values are missing. Nothing can repair that in-process. vbusd then:
+
+* warns once, on ``import vbusd``, with :data:`LATE_REGISTRATION_MESSAGE` (a ``RuntimeWarning``
+  saying what to do: import vbusd first, or set ``PXR_PLUGINPATH_NAME`` before Python starts);
+* still **reads** Virtual Bones assets correctly (:mod:`vbusd.usd_io` relies only on authored
+  values and on the authored ``apiSchemas`` list, as the spec requires of every reader);
+* refuses to **write** them (:func:`require_schema_types` raises ``UnsupportedError``, code
+  ``usd.plugin``, with the same advice) instead of writing an incomplete asset.
+
+:func:`schema_types_known` tells whether the current process has the types.
+
 Using the schema outside Python (DCCs, usdview, usdrecord, Hydra viewers)
 --------------------------------------------------------------------------
 Point OpenUSD at the installed plugin folder before the application starts::
@@ -44,6 +62,7 @@ import importlib.resources
 import importlib.util
 import os
 import sys
+import warnings
 from pathlib import Path
 
 PLUGIN_PACKAGE = "vbusd.schema.usd"
@@ -57,6 +76,14 @@ BINDING_API = "VirtualBonesBindingAPI"
 INSTANCING_API = "VirtualBonesInstancingAPI"
 
 PLUGIN_PATH_VARIABLE = "PXR_PLUGINPATH_NAME"
+
+LATE_REGISTRATION_MESSAGE = (
+    "vbusd was imported after pxr.Usd built its schema registry, so the Virtual Bones schema types "
+    "(VirtualBonesAnimation, VirtualBonesBindingAPI, VirtualBonesInstancingAPI) are unknown to USD "
+    "in this process; vbusd can read Virtual Bones assets but not write them. Import vbusd before "
+    "opening any USD stage, or set PXR_PLUGINPATH_NAME to the folder of vbusd's plugInfo.json "
+    "(python -c 'import vbusd.usd_plugin as p; print(p.plugin_dir())') before Python starts")
+"""Why the Virtual Bones types are missing when vbusd was imported too late, and what to do."""
 
 
 def plugin_dir() -> Path:
@@ -107,20 +134,62 @@ def register():
     return plugin
 
 
+def schema_types_known() -> bool:
+    """Whether pxr.Usd's schema registry of this process holds the Virtual Bones types.
+
+    Builds the registry if nothing has built it yet (after :func:`register`, it then includes the
+    types). False only when the registry was built before the plugin was registered (see the
+    module docstring).
+    """
+    from pxr import Usd
+
+    registry = Usd.SchemaRegistry()
+    return (registry.FindConcretePrimDefinition(ANIMATION_TYPE) is not None
+            and registry.FindAppliedAPIPrimDefinition(BINDING_API) is not None
+            and registry.FindAppliedAPIPrimDefinition(INSTANCING_API) is not None)
+
+
+def require_schema_types():
+    """Register the plugin and make sure pxr.Usd knows its types (needed to author them).
+
+    Returns:
+        The ``pxr.Plug.Plugin`` named ``vbusd``.
+
+    Raises:
+        vbusd.errors.UnsupportedError: code ``usd.plugin``: the schema registry was built before
+            the plugin was registered (:data:`LATE_REGISTRATION_MESSAGE`), or registration failed.
+    """
+    from .errors import UnsupportedError
+
+    plugin = register()
+    if not schema_types_known():
+        raise UnsupportedError(LATE_REGISTRATION_MESSAGE, file=str(plugin_dir() / "plugInfo.json"),
+                               code="usd.plugin")
+    return plugin
+
+
 def register_on_import() -> str:
     """The hook ``import vbusd`` runs: make the plugin known to pxr without importing pxr.
 
     Returns:
         ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet:
-        the folder was added to ``PXR_PLUGINPATH_NAME``) or ``"unavailable"`` (no pxr installed,
-        or the package data is not on disk).
+        the folder was added to ``PXR_PLUGINPATH_NAME``), ``"late"`` (registered, but pxr.Usd had
+        already built its schema registry without the types: warns with
+        :data:`LATE_REGISTRATION_MESSAGE`) or ``"unavailable"`` (no pxr installed, or the package
+        data is not on disk).
     """
     # Any pxr submodule loads Tf, which starts the plugin registry: too late for the variable.
     if any(name.startswith("pxr.") for name in list(sys.modules)):
         try:
             register()
+            # Only pxr.Usd builds the schema registry; before it is imported nothing can be stale.
+            known = "pxr.Usd" not in sys.modules or schema_types_known()
         except Exception:  # never let a broken USD install break `import vbusd`
             return "unavailable"
+        if not known:
+            # stacklevel 3: the line that imported vbusd (register_on_import <- vbusd/__init__).
+            warnings.warn(LATE_REGISTRATION_MESSAGE, RuntimeWarning, stacklevel=3)
+            return "late"
         return "registered"
     if importlib.util.find_spec("pxr") is None:
         return "unavailable"
