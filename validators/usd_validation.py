@@ -111,11 +111,24 @@ def register() -> list:
 
     Returns:
         The registered ``UsdValidation.Validator`` objects (animation, binding, instancing).
+
+    Raises:
+        UnsupportedError: The installed usd-core cannot register Python validators (OpenUSD added
+            ``ValidationRegistry.RegisterPrimValidator`` to its Python API in 2026; usd-core 26.11
+            has it).
     """
     import vbusd.usd_plugin as plugin
+    from vbusd.errors import UnsupportedError
 
     plugin.register()  # the schema TfTypes must exist for schemaTypes filtering
-    from pxr import UsdValidation
+    try:
+        from pxr import UsdValidation
+    except ImportError:
+        UsdValidation = None
+    if UsdValidation is None or not hasattr(UsdValidation.ValidationRegistry, "RegisterPrimValidator"):
+        raise UnsupportedError("this usd-core cannot register Python validators with UsdValidation "
+                               "(use usd-core 26.11 or newer); `vbusd validate` works without it",
+                               file="usd", code="usd.validation")
 
     registry = UsdValidation.ValidationRegistry()
     specs = (
