@@ -113,9 +113,9 @@ def register() -> list:
         The registered ``UsdValidation.Validator`` objects (animation, binding, instancing).
 
     Raises:
-        UnsupportedError: The installed usd-core cannot register Python validators (OpenUSD added
-            ``ValidationRegistry.RegisterPrimValidator`` to its Python API in 2026; usd-core 26.11
-            has it).
+        UnsupportedError: The installed usd-core has no ``ValidationRegistry.RegisterPrimValidator``
+            in its Python API (older releases cannot register Python validators; usd-core 26.11
+            can).
     """
     import vbusd.usd_plugin as plugin
     from vbusd.errors import UnsupportedError
