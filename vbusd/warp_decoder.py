@@ -37,7 +37,7 @@ import warp as wp
 
 from . import warp_kernels as K
 from .errors import InputError, OptionsError
-from .layout import Encoding, TexelFormat
+from .layout import Encoding, TexelFormat, next_power_of_two
 from .model import BoundMesh, Crowd, VirtualBones
 from .reference import channel_values, normal_point_indices
 
@@ -135,6 +135,11 @@ class BoneBuffers:
     normal: wp.array
     dual: wp.array
 
+    def __post_init__(self) -> None:
+        # (1, n x B) views the kernels take, made once: creating warp arrays per call costs
+        # tens of microseconds of Python, as much as a small crowd's whole decode.
+        self.flat = (_flat(self.linear), _flat(self.normal), _flat(self.dual))
+
     def nbytes(self) -> int:
         """Bytes of the buffers that hold data (placeholders excluded)."""
         return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.shape[0] > 1 or a.shape[1] > 1)
@@ -192,6 +197,14 @@ class Decoder:
                                f"got {block_dim!r}", file="warp_decoder")
         self.block_dim = int(block_dim)
         self.kernels = K.kernels(self.block_dim)
+        # Skinning blocks each serve one instance: a block as wide as the mesh (in whole warps) up
+        # to block_dim, so few lanes idle at the end of an instance.
+        if self.device.is_cuda:
+            self.skin_block = min(self.block_dim, -(-self.vertex_count // 32) * 32)
+        else:
+            self.skin_block = 1
+        self.skin_chunks = _blocks(self.vertex_count, self.skin_block)
+        self.skin_kernels = K.skin_kernels(self.skin_block, max(8, next_power_of_two(self.bone_count)))
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -363,7 +376,7 @@ class Decoder:
             return buffers
         common = [self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
                   crowd.clip, crowd.time_offset, crowd.playback_rate, wp.float64(t)]
-        outputs = [_flat(buffers.linear), _flat(buffers.normal), _flat(buffers.dual)]
+        outputs = list(buffers.flat)
         dim = [_blocks(n * self.bone_count, self.block_dim)]
         if self.sampling == "exact":
             wp.launch_tiled(self.kernels.decode_bones, dim=dim, block_dim=self.block_dim, device=self.device,
@@ -381,18 +394,25 @@ class Decoder:
         if n == 0:
             return out
         fused_normals = int(self.with_normals and not self.face_varying)
-        bones = [self.encoding_id, buffers.linear, buffers.normal, buffers.dual]
-        out_points = _flat(out.points)
-        wp.launch_tiled(self.kernels.skin, dim=[_blocks(n * self.vertex_count, self.block_dim)],
-                        block_dim=self.block_dim, device=self.device,
-                        inputs=[*bones, self.points, self.normals, fused_normals, self.indices, self.weights,
-                                crowd.positions, crowd.orientations, crowd.scales, out_points,
-                                _flat(out.normals) if fused_normals else out_points])
+        kernels, block, chunks = self.skin_kernels, self.skin_block, self.skin_chunks
+        flat = buffers.flat
+        placement = [crowd.positions, crowd.orientations, crowd.scales]
+        out_normals = out.normals if fused_normals else out.points  # placeholder when unused
+        mesh = [self.points, self.normals, fused_normals, self.indices, self.weights]
+        if self.encoding is Encoding.DUAL_QUAT:
+            wp.launch_tiled(kernels.skin_dqs, dim=[n * chunks], block_dim=block, device=self.device,
+                            inputs=[flat[2], self.bone_count, chunks, *mesh, *placement, out.points, out_normals])
+        else:
+            use_normal = int(self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION))
+            wp.launch_tiled(kernels.skin_lbs, dim=[n * chunks], block_dim=block, device=self.device,
+                            inputs=[flat[0], flat[1], use_normal, self.bone_count, chunks, *mesh, *placement,
+                                    out.points, out_normals])
         if self.with_normals and self.face_varying:
-            wp.launch_tiled(self.kernels.skin_normals, dim=[_blocks(n * self.normal_count, self.block_dim)],
-                            block_dim=self.block_dim, device=self.device,
-                            inputs=[*bones, self.normals, self.normal_points, self.indices, self.weights,
-                                    crowd.orientations, crowd.scales, _flat(out.normals)])
+            normal_chunks = _blocks(self.normal_count, block)
+            wp.launch_tiled(kernels.skin_normals, dim=[n * normal_chunks], block_dim=block, device=self.device,
+                            inputs=[self.encoding_id, *flat, self.bone_count, normal_chunks, self.normals,
+                                    self.normal_points, self.indices, self.weights, crowd.orientations,
+                                    crowd.scales, out.normals])
         return out
 
     def _check_out(self, out: Optional[SkinResult], n: int) -> SkinResult:

@@ -35,6 +35,7 @@ hours times a rate of 60 rows per second would otherwise lose the blend factor's
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -243,14 +244,13 @@ class Kernels:
 
 @functools.lru_cache(maxsize=None)
 def kernels(block: int) -> Kernels:
-    """The decoder's kernels, specialized for ``block`` threads per block (launch with ``launch_tiled``).
+    """The bone decode kernels for ``block`` threads per block (launch with ``launch_tiled``).
 
-    Every kernel handles one flat work item per thread, ``item = block_index * block + lane``, and
-    stages its results in a shared-memory tile that is stored with one block-wide
-    ``wp.tile_store``: consecutive threads' 12-byte points (or 48-byte matrices) then leave the
-    block as 16-byte vector stores instead of strided scalar stores. CUDA uses ``block = 256``;
-    warp's CPU backend runs tiles one thread wide, so the CPU uses ``block = 1``: the same source,
-    compiled for each.
+    Each thread decodes one (instance, bone) item, ``item = block_index * block + lane``, and the
+    block stages its results in a shared-memory tile stored with one block-wide ``wp.tile_store``
+    (16-byte vector stores instead of a 48-byte matrix's twelve strided 4-byte stores). CUDA uses
+    ``block = 256``; warp's CPU backend runs tiles one thread wide, so the CPU uses ``block = 1``:
+    the same source, compiled for each.
     """
 
     # (1, block) shared tiles of per-thread values, ready for a vectorized tile_store.
@@ -401,12 +401,30 @@ def kernels(block: int) -> Kernels:
             linear, normal, dual = decode_bone(encoding, v0, v1, v2)
         store_bones(encoding, first, linear, normal, dual, out_linear, out_normal, out_dual)
 
+    return Kernels(decode_bones=decode_bones, decode_bones_texture=decode_bones_texture)
+
+
+@functools.lru_cache(maxsize=None)
+def skin_kernels(block: int, bone_slots: int) -> Kernels:
+    """The skinning kernels for ``block`` threads per block and up to ``bone_slots`` bones.
+
+    Block ``j`` skins vertices ``[c * block, (c + 1) * block)`` of instance ``j // chunks`` (``c = j
+    % chunks``), so all its threads share one instance: the block first copies that instance's
+    decoded bones into shared memory (``wp.tile_load``, one coalesced read), and every vertex then
+    gathers its K bone matrices from there. Gathering them from global memory instead costs one L1
+    wavefront per distinct cache line per load instruction; that, not DRAM, bounded the first
+    measured version of this decoder. ``bone_slots`` (a power of two >= the bone count) fixes the
+    shared tile's size at compile time; the slots past the instance's bones hold whatever follows
+    and are never indexed.
+    """
+
     @wp.kernel(module="unique")
-    def skin(
-        encoding: int,
+    def skin_lbs(
         linear: wp.array2d(dtype=mat34),
         normal: wp.array2d(dtype=wp.mat33),
-        dual: wp.array2d(dtype=dualquat),
+        use_normal: int,
+        bone_count: int,
+        chunks: int,
         points: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
         with_normals: int,
@@ -418,45 +436,83 @@ def kernels(block: int) -> Kernels:
         out_points: wp.array2d(dtype=wp.vec3),
         out_normals: wp.array2d(dtype=wp.vec3),
     ):
-        """One item per (instance, vertex): LBS or DQS from the bone buffers, then the instancer.
+        """LBS of (instance, vertex): ``p' = sum w (A p + t)``, ``n' = normalize(sum w N n)``, then the instancer.
 
-        LBS (matrix and quatTranslation encodings): ``p' = sum w (A p + t)``, ``n' = normalize(sum w
-        N n)`` with N = A for crossMatrix. DQS (dualQuat): blend with signs relative to the first
-        influence, normalize, ``p' = R p + t``, ``n' = R n``. Then scale, orientation, position.
-        With vertex normals (``with_normals``) the normal is skinned in the same pass. Outputs are
-        (1, instances x vertices) views of the (instances, vertices) results.
+        ``linear`` / ``normal`` are (1, instances x bones) views of the bone buffers; ``use_normal``
+        0 takes N = A (crossMatrix). With vertex normals (``with_normals``) the normal is skinned in
+        the same pass.
         """
         block_index, lane = wp.tid()
-        first = block_index * block
-        item = first + lane
-        vertex_count = points.shape[0]
-        world_p = wp.vec3()
-        world_n = wp.vec3()
-        if item < positions.shape[0] * vertex_count:
-            instance = item // vertex_count
-            v = item - instance * vertex_count
+        instance = block_index // chunks
+        v = (block_index - instance * chunks) * block + lane
+        base = instance * bone_count
+        bones = wp.tile_load(linear, shape=(1, bone_slots), offset=(0, base), storage="shared")
+        valid = v < points.shape[0]
+        p = wp.vec3()
+        n = wp.vec3()
+        if valid:
             p = points[v]
-            n = wp.vec3()
             if with_normals != 0:
                 n = normals[v]
-            influences = indices.shape[1]
-            sp = wp.vec3()
-            sn = wp.vec3()
-            if encoding == DUAL_QUAT:
-                real, du = blend_dqs(dual, instance, indices, weights, v, influences)
-                sp = dqs_point(real, du, p)
-                sn = wp.quat_rotate(real, n)
-            else:
-                use_normal = int(encoding == AFFINE_MATRIX or encoding == QUAT_TRANSLATION)
-                sp, sn = blend_lbs(linear, normal, use_normal, instance, indices, weights, v, influences, p, n)
+        sp = wp.vec3()
+        sn = wp.vec3()
+        if use_normal != 0:
+            # affineMatrix, quatTranslation: their own normal matrices, in a second shared tile
+            normal_bones = wp.tile_load(normal, shape=(1, bone_slots), offset=(0, base), storage="shared")
+            if valid:
+                p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+                for k in range(indices.shape[1]):
+                    bone = indices[v, k]
+                    w = weights[v, k]
+                    sp += w * (bones[0, bone] * p4)
+                    sn += w * (normal_bones[0, bone] * n)
+        elif valid:
+            # crossMatrix: N = A
+            p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+            n4 = wp.vec4(n[0], n[1], n[2], 0.0)
+            for k in range(indices.shape[1]):
+                bone = indices[v, k]
+                w = weights[v, k]
+                m = bones[0, bone]
+                sp += w * (m * p4)
+                sn += w * (m * n4)
+        if valid:
             orientation = orientations[instance]
             scale = scales[instance]
-            world_p = place_point(sp, positions[instance], orientation, scale)
+            out_points[instance, v] = place_point(sp, positions[instance], orientation, scale)
             if with_normals != 0:
-                world_n = place_normal(wp.normalize(sn), orientation, scale)
-        wp.tile_store(out_points, staged(world_p), offset=(0, first))
-        if with_normals != 0:
-            wp.tile_store(out_normals, staged(world_n), offset=(0, first))
+                out_normals[instance, v] = place_normal(wp.normalize(sn), orientation, scale)
+
+    @wp.kernel(module="unique")
+    def skin_dqs(
+        dual: wp.array2d(dtype=dualquat),
+        bone_count: int,
+        chunks: int,
+        points: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        with_normals: int,
+        indices: wp.array2d(dtype=wp.int32),
+        weights: wp.array2d(dtype=wp.float32),
+        positions: wp.array(dtype=wp.vec3),
+        orientations: wp.array(dtype=wp.quat),
+        scales: wp.array(dtype=wp.vec3),
+        out_points: wp.array2d(dtype=wp.vec3),
+        out_normals: wp.array2d(dtype=wp.vec3),
+    ):
+        """DQS of (instance, vertex): blend with signs relative to the first influence, then the instancer."""
+        block_index, lane = wp.tid()
+        instance = block_index // chunks
+        v = (block_index - instance * chunks) * block + lane
+        bones = wp.tile_load(dual, shape=(1, bone_slots), offset=(0, instance * bone_count), storage="shared")
+        if v < points.shape[0]:
+            real, du = blend_dqs_tile(bones, indices, weights, v)
+            orientation = orientations[instance]
+            scale = scales[instance]
+            out_points[instance, v] = place_point(dqs_point(real, du, points[v]), positions[instance],
+                                                  orientation, scale)
+            if with_normals != 0:
+                sn = wp.normalize(wp.quat_rotate(real, normals[v]))
+                out_normals[instance, v] = place_normal(sn, orientation, scale)
 
     @wp.kernel(module="unique")
     def skin_normals(
@@ -464,6 +520,8 @@ def kernels(block: int) -> Kernels:
         linear: wp.array2d(dtype=mat34),
         normal: wp.array2d(dtype=wp.mat33),
         dual: wp.array2d(dtype=dualquat),
+        bone_count: int,
+        chunks: int,
         normals: wp.array(dtype=wp.vec3),
         normal_points: wp.array(dtype=wp.int32),
         indices: wp.array2d(dtype=wp.int32),
@@ -474,24 +532,45 @@ def kernels(block: int) -> Kernels:
     ):
         """faceVarying normals: normal e is skinned with the influences of point ``normal_points[e]``."""
         block_index, lane = wp.tid()
-        first = block_index * block
-        item = first + lane
-        normal_count = normals.shape[0]
-        world_n = wp.vec3()
-        if item < orientations.shape[0] * normal_count:
-            instance = item // normal_count
-            e = item - instance * normal_count
+        instance = block_index // chunks
+        e = (block_index - instance * chunks) * block + lane
+        base = instance * bone_count
+        bones = wp.tile_load(linear, shape=(1, bone_slots), offset=(0, base), storage="shared")
+        normal_bones = wp.tile_load(normal, shape=(1, bone_slots), offset=(0, base), storage="shared")
+        dual_bones = wp.tile_load(dual, shape=(1, bone_slots), offset=(0, base), storage="shared")
+        if e < normals.shape[0]:
             v = normal_points[e]
+            n = normals[e]
             sn = wp.vec3()
             if encoding == DUAL_QUAT:
-                real, du = blend_dqs(dual, instance, indices, weights, v, indices.shape[1])
-                sn = wp.quat_rotate(real, normals[e])
+                real, du = blend_dqs_tile(dual_bones, indices, weights, v)
+                sn = wp.quat_rotate(real, n)
             else:
-                use_normal = int(encoding == AFFINE_MATRIX or encoding == QUAT_TRANSLATION)
-                sp, sn = blend_lbs(linear, normal, use_normal, instance, indices, weights, v, indices.shape[1],
-                                   wp.vec3(), normals[e])
-            world_n = place_normal(wp.normalize(sn), orientations[instance], scales[instance])
-        wp.tile_store(out_normals, staged(world_n), offset=(0, first))
+                n4 = wp.vec4(n[0], n[1], n[2], 0.0)
+                for k in range(indices.shape[1]):
+                    bone = indices[v, k]
+                    w = weights[v, k]
+                    if encoding == AFFINE_MATRIX or encoding == QUAT_TRANSLATION:
+                        sn += w * (normal_bones[0, bone] * n)
+                    else:
+                        sn += w * (bones[0, bone] * n4)
+            out_normals[instance, e] = place_normal(wp.normalize(sn), orientations[instance], scales[instance])
 
-    return Kernels(decode_bones=decode_bones, decode_bones_texture=decode_bones_texture, skin=skin,
-                   skin_normals=skin_normals)
+    return Kernels(skin_lbs=skin_lbs, skin_dqs=skin_dqs, skin_normals=skin_normals)
+
+
+@wp.func
+def blend_dqs_tile(bones: Any, indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32), v: int):
+    """Blended, normalized dual quaternion of vertex v from a shared tile of the instance's bones."""
+    first = bones[0, indices[v, 0]][0]
+    real = wp.vec4()
+    du = wp.vec4()
+    for k in range(indices.shape[1]):
+        q = bones[0, indices[v, k]]
+        w = weights[v, k]
+        if wp.dot(q[0], first) < 0.0:
+            w = -w
+        real += w * q[0]
+        du += w * q[1]
+    inv = 1.0 / wp.length(real)
+    return wp.quat(real[0] * inv, real[1] * inv, real[2] * inv, real[3] * inv), du * inv
