@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from vbusd import textures
 from vbusd.cli import main
 from vbusd.layout import Layout
 from vbusd.model import Clip, VirtualBones
+
+SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
 REQUIRED = {"encoding", "texelFormat", "boneCount", "rowCount", "usedWidth", "width", "height",
             "texelBytes", "clips"}
@@ -158,7 +161,56 @@ def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
     broken.write_text("#usda 1.0\ndef Xform \"World\" {\n")
     assert main(["info", str(broken)]) == 2
     err = capsys.readouterr().err
-    assert "broken.usda: file: usd.open" in err and "Traceback" not in err
+    assert "broken.usda: file: usd.syntax" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and "broken.usda:3:" in err  # USD's own line number is kept
+    # A folder is one vbusd line too (click's own check would print a three-line usage error).
+    assert main(["info", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"vbusd: {tmp_path}: file: file.kind: is a folder; expected a USD file (.usd, .usda, " \
+                  ".usdc), an EXR or PNG texture, or a sidecar .json\n"
+
+
+def _sample_with_texture_path(tmp_path, authored: str, folder: str = "."):
+    """A copy of the stadium sample's USD layer whose vb:texture is ``authored``."""
+    text = (SAMPLE / "stadium_crowd_vb.usda").read_text()
+    assert "@./stadium_crowd_vb.Cheer.exr@" in text
+    target = tmp_path / folder / "crowd.usda"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(text.replace("@./stadium_crowd_vb.Cheer.exr@", f"@{authored}@"))
+    return target
+
+
+@pytest.mark.skipif(not (SAMPLE / "stadium_crowd_vb.usda").exists(), reason="sample not generated")
+@pytest.mark.parametrize("authored, why", [
+    ("../stadium_crowd_vb.Cheer.exr", "'..' leads outside the asset's folder"),
+    (str(SAMPLE / "stadium_crowd_vb.Cheer.exr"), "absolute paths are not allowed"),
+    ("https://example.com/a.exr", "URI scheme 'https' is not allowed"),
+])
+def test_texture_path_leaving_the_folder_is_refused(tmp_path, capsys, authored, why):
+    # Spec 13: vb:texture must resolve inside the asset's folder, even though info does not read
+    # the texture (a path is checked, never followed).
+    usd = _sample_with_texture_path(tmp_path, authored, folder="inner")
+    assert main(["info", str(usd)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert err.startswith(f"vbusd: {usd}: /StadiumCrowd/Cheer.vb:texture: path.unsafe: ") and why in err
+    if not authored.startswith("https"):
+        # Allowed on request; the layout is then printed as usual.
+        assert main(["info", str(usd), "--allow-outside-paths", "--format", "json"]) == 0
+        assert json.loads(capsys.readouterr().out)["texture"] == authored
+
+
+@pytest.mark.skipif(not (SAMPLE / "stadium_crowd_vb.usda").exists(), reason="sample not generated")
+def test_sublayer_outside_the_folder_is_refused(tmp_path, capsys):
+    # info opens the stage; a sublayer outside the asset's folder must not even be opened.
+    outside = tmp_path / "outside.usda"
+    outside.write_text("#usda 1.0\n")
+    usd = tmp_path / "inner" / "crowd.usda"
+    usd.parent.mkdir()
+    usd.write_text('#usda 1.0\n(\n    subLayers = [@../outside.usda@]\n)\n')
+    assert main(["info", str(usd)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "path.unsafe" in err and "outside.usda" in err
 
 
 def test_subprocess_json(tmp_path):
@@ -171,9 +223,6 @@ def test_subprocess_json(tmp_path):
     result = subprocess.run([sys.executable, "-m", "vbusd", "info", "--help"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and "jq .width" in result.stdout
-
-
-SAMPLE = __import__("pathlib").Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
 
 @pytest.mark.skipif(not (SAMPLE / "stadium_crowd_vb.usda").exists(), reason="sample not generated")

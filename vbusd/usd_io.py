@@ -614,13 +614,7 @@ class _Reader:
             ranges32 = np.stack([np.asarray(low, np.float32), np.asarray(high, np.float32)], axis=-1)
         digest = self.attribute(prim, "vb:contentDigest", names.String, required=False)
 
-        texture_asset = self.attribute(prim, "vb:texture", names.Asset)
-        authored = texture_asset.path
-        if not authored:
-            raise self.error("vb:texture is empty", where("vb:texture"), "usd.missing")
-        stack = prim.GetAttribute("vb:texture").GetPropertyStack(Usd.TimeCode.Default())
-        anchor = stack[0].layer if stack else prim.GetStage().GetRootLayer()
-        texture_path = self.resolve(authored, anchor, where("vb:texture"))
+        authored, texture_path = self.texture_file(prim)
         from .textures import read_texture
 
         texture = read_texture(texture_path)
@@ -628,6 +622,21 @@ class _Reader:
         return VirtualBones(layout=layout, texels=texture.texels, bones=bones, clips=clips,
                             unorm_ranges=texture.info.unorm_ranges, meshes=(), path=path,
                             texture=authored, clip_extents=clip_extents)
+
+    def texture_file(self, prim) -> tuple:
+        """``vb:texture`` of an animation prim: (the asset path as authored, the resolved file).
+
+        Resolved relative to the layer that authored it, and refused (``path.unsafe``) when it
+        leaves the asset's folder unless outside paths are allowed (spec 13).
+        """
+        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
+        location = f"{prim.GetPath()}.vb:texture"
+        authored = self.attribute(prim, "vb:texture", Sdf.ValueTypeNames.Asset).path
+        if not authored:
+            raise self.error("vb:texture is empty", location, "usd.missing")
+        stack = prim.GetAttribute("vb:texture").GetPropertyStack(Usd.TimeCode.Default())
+        anchor = stack[0].layer if stack else prim.GetStage().GetRootLayer()
+        return authored, self.resolve(authored, anchor, location)
 
     def compare(self, path: str, layout: Layout, bones, clips, ranges32, digest, texture) -> None:
         """Raise InputError where the texture's metadata disagrees with the prim attributes."""
@@ -776,7 +785,12 @@ class _Reader:
                              "VirtualBonesAnimation prim", location, "usd.binding")
         return index
 
-    def read(self) -> VirtualBonesAsset:
+    def open_stage(self):
+        """Open the file as a stage after checking its sublayers, references and payloads.
+
+        Returns:
+            (root layer, stage).
+        """
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
         if not self.path.is_file():
             raise InputError("file not found", file=self.file, location="file", code="file.missing")
@@ -801,7 +815,11 @@ class _Reader:
         if errors:
             raise self.error(f"composition error: {' '.join(str(errors[0]).split())}", "file",
                              "usd.composition")
+        return layer, stage
 
+    def read(self) -> VirtualBonesAsset:
+        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
+        layer, stage = self.open_stage()
         animation_prims, mesh_prims, crowd_prims = [], [], []
         prims = iter(Usd.PrimRange(stage.GetPseudoRoot()))
         for prim in prims:
@@ -865,6 +883,27 @@ class _Reader:
             raise
         except Tf.ErrorException as error:
             raise self.error(_tf_message(error), str(prim.GetPath()), "usd.invalid") from None
+
+
+def open_stage(path: PathLike, *, allow_outside_paths: bool = False):
+    """Open a USD file as :func:`read_asset` does, without reading any Virtual Bones data.
+
+    Sublayers, references and payloads are checked against the asset's folder first, and USD's
+    errors become one-line InputErrors.
+
+    Args:
+        path: The USD file.
+        allow_outside_paths: Accept layers outside the asset's folder.
+
+    Returns:
+        (``pxr.Usd.Stage``, a function ``texture_file(prim) -> (authored, resolved Path)`` that
+        resolves an animation prim's ``vb:texture`` under the same path rules).
+
+    Raises:
+        InputError: A missing or unreadable file, an unsafe dependency or texture path.
+    """
+    reader = _Reader(Path(path), allow_outside_paths)
+    return reader.open_stage()[1], reader.texture_file
 
 
 def read_asset(path: PathLike, *, allow_outside_paths: bool = False) -> VirtualBonesAsset:

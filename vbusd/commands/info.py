@@ -4,7 +4,8 @@ ASSET may be:
 
 * a Virtual Bones USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``): every
   ``VirtualBonesAnimation`` prim is described from its ``vb:*`` attributes (the source of truth
-  inside USD; the texture itself is not opened);
+  inside USD; the texture itself is not opened, but its path, like the layer's sublayers,
+  references and payloads, must stay inside the asset's folder unless ``--allow-outside-paths``);
 * a texture (``.exr`` or ``.png``, recognized by its magic bytes): described from its embedded
   metadata; the header is checked but pixels are not decoded (``vbusd validate`` checks them);
 * a sidecar ``<texture>.json``.
@@ -13,7 +14,6 @@ ASSET may be:
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Optional
 
@@ -107,37 +107,29 @@ def _describe_info(info, *, texture: Optional[str]) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def _usd_animations(path: Path) -> list:
-    """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes."""
-    from pxr import Tf, Usd
+def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
+    """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes.
 
-    from .. import usd_plugin  # noqa: F401  (registers the schema so fallbacks resolve)
+    The stage is opened as ``vbusd.usd_io`` opens it (sublayers, references and payloads checked
+    against the asset's folder first), and each ``vb:texture`` must resolve inside that folder
+    (spec 13) although the texture itself is not read.
+    """
+    from ..usd_io import open_stage
 
     file = str(path)
-    try:
-        stage = Usd.Stage.Open(file, Usd.Stage.LoadAll)
-    except Tf.ErrorException as error:
-        raise InputError(f"USD cannot open the file: {_tf_messages(error)}", file=file,
-                         location="file", code="usd.open") from None
-    if stage is None:
-        raise InputError("USD cannot open the file", file=file, location="file", code="usd.open")
+    stage, texture_file = open_stage(path, allow_outside_paths=allow_outside_paths)
     animations = []
     for prim in stage.Traverse():
         if prim.GetTypeName() != "VirtualBonesAnimation":
             continue
+        texture = prim.GetAttribute("vb:texture")
+        if texture and texture.HasAuthoredValue():
+            texture_file(prim)  # refuses a path that leaves the asset's folder
         animations.append(_describe_prim(prim, file))
     if not animations:
         raise InputError("no VirtualBonesAnimation prim: not a Virtual Bones asset", file=file,
                          location=str(stage.GetPseudoRoot().GetPath()), code="usd.noAnimation")
     return animations
-
-
-def _tf_messages(error) -> str:
-    """The messages of a Tf.ErrorException without the C++ function names and source lines."""
-    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]* : '(.*?)'\s*(?=\n\s*Error in|$)",
-                       str(error), flags=re.S)
-    text = "; ".join(" ".join(m.split()) for m in found) or " ".join(str(error).split())
-    return text[:400]
 
 
 def _describe_prim(prim, file: str) -> dict:
@@ -198,18 +190,25 @@ def _describe_prim(prim, file: str) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def asset_info(asset) -> dict:
+def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
     """The JSON description ``vbusd info --format json`` prints for ASSET.
 
+    Args:
+        asset: A USD file, a texture or a sidecar.
+        allow_outside_paths: Let a USD asset's layers and ``vb:texture`` lie outside its folder.
+
     Raises:
-        InputError: The file is missing, of an unknown kind, or cannot be read.
+        InputError: The file is missing, a folder, of an unknown kind, unsafe or unreadable.
     """
     from .. import textures
 
     path = Path(asset)
     file = str(asset)
+    if path.is_dir():
+        raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR or PNG "
+                         "texture, or a sidecar .json", file=file, location="file", code="file.kind")
     if not path.is_file():
-        raise InputError("file not found" if not path.exists() else "not a file", file=file,
+        raise InputError("file not found" if not path.exists() else "not a regular file", file=file,
                          location="file", code="file.missing")
     suffix = path.suffix.lower()
     if suffix == ".json":
@@ -219,7 +218,7 @@ def asset_info(asset) -> dict:
         animations = [_describe_info(info, texture=texture)]
     elif suffix in USD_SUFFIXES:
         kind = "usd"
-        animations = _usd_animations(path)
+        animations = _usd_animations(path, allow_outside_paths=allow_outside_paths)
     else:
         try:
             container = textures.sniff_container(path)
@@ -282,12 +281,16 @@ def _print_text(result: dict) -> None:
 
 
 @click.command("info", help=_HELP)
-@click.argument("asset", type=click.Path(dir_okay=False, path_type=str))
+# A plain path: asset_info reports a missing file or a folder as one vbusd error line (exit 2),
+# where click.Path would print its own three-line usage error.
+@click.argument("asset", type=click.Path(path_type=str))
 @click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
               show_default=True, help="Output form.")
-def command(asset: str, output_format: str) -> int:
+@click.option("--allow-outside-paths", is_flag=True,
+              help="Let a USD asset's layers and vb:texture lie outside its folder.")
+def command(asset: str, output_format: str, allow_outside_paths: bool) -> int:
     """Print the texture layout of ASSET (see the module docstring)."""
-    result = asset_info(asset)
+    result = asset_info(asset, allow_outside_paths=allow_outside_paths)
     if output_format == "json":
         click.echo(json.dumps(result, indent=2, allow_nan=False))
     else:
