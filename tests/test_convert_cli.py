@@ -150,3 +150,19 @@ def test_force_replaces_an_existing_output(small_rig, tmp_path):
     output.write_text("old")
     report = convert(small_rig, output, ConvertOptions(force=True))
     assert report.animations and output.read_text().startswith("#usda")
+
+
+def test_gltf_input_goes_through_the_same_command(shared_assets, tmp_path, capsys):
+    # The command is converter-agnostic: a registered glTF converter is picked by suffix.
+    pytest.importorskip("pygltflib")
+    source = shared_assets / "gltf" / "RiggedFigure" / "RiggedFigure.glb"
+    if not source.exists():
+        pytest.skip("RiggedFigure.glb not in the shared assets")
+    status = main(["convert", str(source), "-o", str(tmp_path / "figure.usda"), "--format", "json",
+                   "--check-rows", "4"])
+    assert status == 0, capsys.readouterr().err
+    report = json.loads(capsys.readouterr().out)
+    assert report["converter"] == "gltf"
+    animation = report["animations"][0]
+    assert animation["bones"] == 19 and animation["meshes"][0]["points"] == 370
+    assert animation["meshes"][0]["max_error_fraction"] < 2e-3
