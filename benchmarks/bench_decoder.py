@@ -269,8 +269,8 @@ def run_cuda(case_list, args) -> list:
         n, v = crowd.instance_count, mesh.points.shape[0]
         vi = n * v
         err = agreement(wd.Decoder(vb, mesh, device=device), vb, mesh, crowd, t, limit=1200 if n <= 1200 else 200)
-        for block in (128, 256, 512):
-            decoder = wd.Decoder(vb, mesh, device=device, block_dim=block)
+        for ipt in (1, 2, 4, 8):
+            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt)
             uploaded = decoder.upload_crowd(crowd)
             out = decoder.allocate(n)
             counted = bytes_moved(decoder, n)
@@ -278,8 +278,8 @@ def run_cuda(case_list, args) -> list:
             buffers = decoder.decode_bones(uploaded, t)
             decode = time_cuda(lambda: decoder.decode_bones(uploaded, t), device, args.repeats)
             skin = time_cuda(lambda: decoder.skin_bones(uploaded, buffers, out), device, args.repeats)
-            rows.append(dict(case=name, device="cuda", method=f"warp (bones, then skin; block {block})",
-                             block_dim=block, instances=n, vertices=v, seconds=total,
+            rows.append(dict(case=name, device="cuda", method=f"warp (bones, then skin; {ipt} inst/thread)",
+                             instances_per_thread=ipt, instances=n, vertices=v, seconds=total,
                              decode_seconds=decode, skin_seconds=skin, vertex_instances_per_second=vi / total,
                              bytes=counted, bytes_per_second=counted["total"] / total,
                              fraction_of_copy=counted["total"] / total / rate,

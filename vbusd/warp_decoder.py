@@ -37,7 +37,7 @@ import warp as wp
 
 from . import warp_kernels as K
 from .errors import InputError, OptionsError
-from .layout import Encoding, TexelFormat, next_power_of_two
+from .layout import Encoding, TexelFormat
 from .model import BoundMesh, Crowd, VirtualBones
 from .reference import channel_values, normal_point_indices
 
@@ -115,6 +115,7 @@ class DeviceCrowd:
     positions: wp.array
     orientations: wp.array
     scales: wp.array
+    uniform_scale: bool = True
 
     @property
     def instance_count(self) -> int:
@@ -163,8 +164,11 @@ class Decoder:
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; required (no implicit default device).
         sampling: ``"exact"`` (default; the spec's interpolation) or ``"hardware"`` (rows blended by
             the texture unit through ``wp.Texture2D``; see spec/hardware-sampling.md).
-        block_dim: Threads per block of the kernels (a multiple of 4 on CUDA). None: 256 on CUDA, 1 on
-            the CPU (warp runs tiles one thread wide there).
+        block_dim: Threads per block of the bone decode kernel (a multiple of 4 on CUDA). None: 256 on
+            CUDA, 1 on the CPU (warp runs tiles one thread wide there).
+        instances_per_thread: Instances a skinning thread handles for its vertex (its rest data is
+            loaded once for all of them). None: as many (up to 8) as leave at least a million
+            threads on CUDA; 1 on the CPU.
 
     Raises:
         OptionsError: Unknown device or sampling mode, no mesh.
@@ -172,7 +176,8 @@ class Decoder:
     """
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
-                 sampling: str = "exact", block_dim: Optional[int] = None) -> None:
+                 sampling: str = "exact", block_dim: Optional[int] = None,
+                 instances_per_thread: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -197,14 +202,12 @@ class Decoder:
                                f"got {block_dim!r}", file="warp_decoder")
         self.block_dim = int(block_dim)
         self.kernels = K.kernels(self.block_dim)
-        # Skinning blocks each serve one instance: a block as wide as the mesh (in whole warps) up
-        # to block_dim, so few lanes idle at the end of an instance.
-        if self.device.is_cuda:
-            self.skin_block = min(self.block_dim, -(-self.vertex_count // 32) * 32)
-        else:
-            self.skin_block = 1
-        self.skin_chunks = _blocks(self.vertex_count, self.skin_block)
-        self.skin_kernels = K.skin_kernels(self.skin_block, max(8, next_power_of_two(self.bone_count)))
+        if instances_per_thread is not None and (isinstance(instances_per_thread, bool) or
+                                                 int(instances_per_thread) != instances_per_thread or
+                                                 instances_per_thread < 1):
+            raise OptionsError(f"instances_per_thread must be a positive integer, got {instances_per_thread!r}",
+                               file="warp_decoder")
+        self.instances_per_thread = instances_per_thread
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -313,7 +316,8 @@ class Decoder:
             playback_rate=self._array(np.asarray(crowd.playback_rate, np.float64).reshape(n), wp.float64),
             positions=self._array(np.asarray(crowd.positions, np.float32).reshape(n, 3), wp.vec3),
             orientations=self._array(q.astype(np.float32), wp.quat),
-            scales=self._array(scales.astype(np.float32), wp.vec3))
+            scales=self._array(scales.astype(np.float32), wp.vec3),
+            uniform_scale=bool(np.all(scales == scales[:, :1])))
 
     def _times_crowd(self, clip_index: int, tau) -> DeviceCrowd:
         """A crowd of untransformed instances at clip-local times ``tau`` (for :meth:`skin`)."""
@@ -344,18 +348,23 @@ class Decoder:
             normals = wp.empty((instance_count, self.normal_count), dtype=wp.vec3, device=self.device)
         return SkinResult(points, normals)
 
-    def _bone_buffers(self, n: int) -> BoneBuffers:
-        buffers = self._bones.get(n)
+    def _separate_normals(self, crowd: DeviceCrowd) -> bool:
+        """Whether placed bones need their own normal matrices (else N is the linear part of M)."""
+        if self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION):
+            return True
+        return self.encoding is Encoding.CROSS_MATRIX and not crowd.uniform_scale
+
+    def _bone_buffers(self, n: int, own_normal: bool) -> BoneBuffers:
+        buffers = self._bones.get((n, own_normal))
         if buffers is None:
             b = self.bone_count
             placeholder = (1, 1)
             lbs = self.encoding is not Encoding.DUAL_QUAT
-            own_normal = self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION)
             buffers = BoneBuffers(
                 linear=wp.empty((n, b) if lbs else placeholder, dtype=K.mat34, device=self.device),
                 normal=wp.empty((n, b) if own_normal else placeholder, dtype=wp.mat33, device=self.device),
                 dual=wp.empty(placeholder if lbs else (n, b), dtype=K.dualquat, device=self.device))
-            self._bones = {n: buffers}  # keep one size: a renderer calls with one crowd
+            self._bones = {(n, own_normal): buffers}  # keep one size: a renderer calls with one crowd
         return buffers
 
     # ---------------------------------------------------------------------------------- launches
@@ -371,21 +380,23 @@ class Decoder:
                 exact blend). Used to model the texture unit's filter weights.
         """
         n = crowd.instance_count
-        buffers = self._bone_buffers(n)
+        separate = self._separate_normals(crowd)
+        buffers = self._bone_buffers(n, separate)
         if n == 0:
             return buffers
         common = [self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
                   crowd.clip, crowd.time_offset, crowd.playback_rate, wp.float64(t)]
+        placement = [crowd.positions, crowd.orientations, crowd.scales, int(separate)]
         outputs = list(buffers.flat)
         dim = [_blocks(n * self.bone_count, self.block_dim)]
         if self.sampling == "exact":
             wp.launch_tiled(self.kernels.decode_bones, dim=dim, block_dim=self.block_dim, device=self.device,
                             inputs=[self.texels, self.encoding_id, self.bone_count, *common, float(fraction_steps),
-                                    *outputs])
+                                    *placement, *outputs])
         else:
             wp.launch_tiled(self.kernels.decode_bones_texture, dim=dim, block_dim=self.block_dim, device=self.device,
                             inputs=[self.texture, self.encoding_id, self.bone_count, int(self.unorm),
-                                    self.unorm_low, self.unorm_span, *common, *outputs])
+                                    self.unorm_low, self.unorm_span, *common, *placement, *outputs])
         return buffers
 
     def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:
@@ -394,26 +405,36 @@ class Decoder:
         if n == 0:
             return out
         fused_normals = int(self.with_normals and not self.face_varying)
-        kernels, block, chunks = self.skin_kernels, self.skin_block, self.skin_chunks
-        flat = buffers.flat
-        placement = [crowd.positions, crowd.orientations, crowd.scales]
+        separate = int(self._separate_normals(crowd))
+        ipt = self._instances_per_thread(n)
+        dim = ((n + ipt - 1) // ipt, self.vertex_count)
         out_normals = out.normals if fused_normals else out.points  # placeholder when unused
         mesh = [self.points, self.normals, fused_normals, self.indices, self.weights]
         if self.encoding is Encoding.DUAL_QUAT:
-            wp.launch_tiled(kernels.skin_dqs, dim=[n * chunks], block_dim=block, device=self.device,
-                            inputs=[flat[2], self.bone_count, chunks, *mesh, *placement, out.points, out_normals])
+            wp.launch(K.skin_dqs_kernel, dim=dim, device=self.device,
+                      inputs=[buffers.dual, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
+                              out.points, out_normals])
         else:
-            use_normal = int(self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION))
-            wp.launch_tiled(kernels.skin_lbs, dim=[n * chunks], block_dim=block, device=self.device,
-                            inputs=[flat[0], flat[1], use_normal, self.bone_count, chunks, *mesh, *placement,
-                                    out.points, out_normals])
+            wp.launch(K.skin_lbs_kernel, dim=dim, device=self.device,
+                      inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, out.points, out_normals])
         if self.with_normals and self.face_varying:
-            normal_chunks = _blocks(self.normal_count, block)
-            wp.launch_tiled(kernels.skin_normals, dim=[n * normal_chunks], block_dim=block, device=self.device,
-                            inputs=[self.encoding_id, *flat, self.bone_count, normal_chunks, self.normals,
-                                    self.normal_points, self.indices, self.weights, crowd.orientations,
-                                    crowd.scales, out.normals])
+            wp.launch(K.skin_normals_kernel, dim=(n, self.normal_count), device=self.device,
+                      inputs=[self.encoding_id, buffers.linear, buffers.normal, separate, buffers.dual, self.normals,
+                              self.normal_points, self.indices, self.weights, crowd.orientations, crowd.scales,
+                              out.normals])
         return out
+
+    def _instances_per_thread(self, n: int) -> int:
+        if self.instances_per_thread is not None:
+            return self.instances_per_thread
+        if not self.device.is_cuda:
+            return 1
+        # Measured on an H200 (benchmarks/README.md): 8 instances per thread was fastest on the
+        # large crowds; small crowds need every thread they can get to fill the GPU.
+        ipt = 8
+        while ipt > 1 and -(-n // ipt) * self.vertex_count < 1_000_000:
+            ipt //= 2
+        return ipt
 
     def _check_out(self, out: Optional[SkinResult], n: int) -> SkinResult:
         if out is None:

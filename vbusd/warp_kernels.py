@@ -35,7 +35,6 @@ hours times a rate of 60 rows per second would otherwise lose the blend factor's
 from __future__ import annotations
 
 import functools
-from typing import Any
 
 import warp as wp
 
@@ -279,14 +278,14 @@ def kernels(block: int) -> Kernels:
         return stage
 
     @wp.func
-    def store_bones(encoding: int, first: int, linear: mat34, normal: wp.mat33, dual: dualquat,
-                    out_linear: wp.array2d(dtype=mat34), out_normal: wp.array2d(dtype=wp.mat33),
+    def store_bones(encoding: int, separate_normals: int, first: int, linear: mat34, normal: wp.mat33,
+                    dual: dualquat, out_linear: wp.array2d(dtype=mat34), out_normal: wp.array2d(dtype=wp.mat33),
                     out_dual: wp.array2d(dtype=dualquat)):
         if encoding == DUAL_QUAT:
             wp.tile_store(out_dual, staged(dual), offset=(0, first))
         else:
             wp.tile_store(out_linear, staged(linear), offset=(0, first))
-            if encoding == AFFINE_MATRIX or encoding == QUAT_TRANSLATION:
+            if separate_normals != 0:
                 wp.tile_store(out_normal, staged(normal), offset=(0, first))
 
     @wp.kernel(module="unique")
@@ -303,6 +302,10 @@ def kernels(block: int) -> Kernels:
         instance_rate: wp.array(dtype=wp.float64),
         t: wp.float64,
         fraction_steps: float,
+        positions: wp.array(dtype=wp.vec3),
+        orientations: wp.array(dtype=wp.quat),
+        scales: wp.array(dtype=wp.vec3),
+        separate_normals: int,
         out_linear: wp.array2d(dtype=mat34),
         out_normal: wp.array2d(dtype=wp.mat33),
         out_dual: wp.array2d(dtype=dualquat),
@@ -340,7 +343,10 @@ def kernels(block: int) -> Kernels:
             if texels_per_bone(encoding) == 3:
                 v2 = lerp_texel(texels, row0, row1, f, column + 2)
             linear, normal, dual = decode_bone(encoding, v0, v1, v2)
-        store_bones(encoding, first, linear, normal, dual, out_linear, out_normal, out_dual)
+            if encoding != DUAL_QUAT:
+                linear, normal = place_bone(encoding, linear, normal, positions[instance], orientations[instance],
+                                            scales[instance])
+        store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
 
     @wp.kernel(module="unique")
     def decode_bones_texture(
@@ -358,6 +364,10 @@ def kernels(block: int) -> Kernels:
         instance_offset: wp.array(dtype=wp.float64),
         instance_rate: wp.array(dtype=wp.float64),
         t: wp.float64,
+        positions: wp.array(dtype=wp.vec3),
+        orientations: wp.array(dtype=wp.quat),
+        scales: wp.array(dtype=wp.vec3),
+        separate_normals: int,
         out_linear: wp.array2d(dtype=mat34),
         out_normal: wp.array2d(dtype=wp.mat33),
         out_dual: wp.array2d(dtype=dualquat),
@@ -399,178 +409,159 @@ def kernels(block: int) -> Kernels:
                     span = unorm_span[2]
                 v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
             linear, normal, dual = decode_bone(encoding, v0, v1, v2)
-        store_bones(encoding, first, linear, normal, dual, out_linear, out_normal, out_dual)
+            if encoding != DUAL_QUAT:
+                linear, normal = place_bone(encoding, linear, normal, positions[instance], orientations[instance],
+                                            scales[instance])
+        store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
 
     return Kernels(decode_bones=decode_bones, decode_bones_texture=decode_bones_texture)
 
 
-@functools.lru_cache(maxsize=None)
-def skin_kernels(block: int, bone_slots: int) -> Kernels:
-    """The skinning kernels for ``block`` threads per block and up to ``bone_slots`` bones.
-
-    Block ``j`` skins vertices ``[c * block, (c + 1) * block)`` of instance ``j // chunks`` (``c = j
-    % chunks``), so all its threads share one instance: the block first copies that instance's
-    decoded bones into shared memory (``wp.tile_load``, one coalesced read), and every vertex then
-    gathers its K bone matrices from there. Gathering them from global memory instead costs one L1
-    wavefront per distinct cache line per load instruction; that, not DRAM, bounded the first
-    measured version of this decoder. ``bone_slots`` (a power of two >= the bone count) fixes the
-    shared tile's size at compile time; the slots past the instance's bones hold whatever follows
-    and are never indexed.
-    """
-
-    @wp.kernel(module="unique")
-    def skin_lbs(
-        linear: wp.array2d(dtype=mat34),
-        normal: wp.array2d(dtype=wp.mat33),
-        use_normal: int,
-        bone_count: int,
-        chunks: int,
-        points: wp.array(dtype=wp.vec3),
-        normals: wp.array(dtype=wp.vec3),
-        with_normals: int,
-        indices: wp.array2d(dtype=wp.int32),
-        weights: wp.array2d(dtype=wp.float32),
-        positions: wp.array(dtype=wp.vec3),
-        orientations: wp.array(dtype=wp.quat),
-        scales: wp.array(dtype=wp.vec3),
-        out_points: wp.array2d(dtype=wp.vec3),
-        out_normals: wp.array2d(dtype=wp.vec3),
-    ):
-        """LBS of (instance, vertex): ``p' = sum w (A p + t)``, ``n' = normalize(sum w N n)``, then the instancer.
-
-        ``linear`` / ``normal`` are (1, instances x bones) views of the bone buffers; ``use_normal``
-        0 takes N = A (crossMatrix). With vertex normals (``with_normals``) the normal is skinned in
-        the same pass.
-        """
-        block_index, lane = wp.tid()
-        instance = block_index // chunks
-        v = (block_index - instance * chunks) * block + lane
-        base = instance * bone_count
-        bones = wp.tile_load(linear, shape=(1, bone_slots), offset=(0, base), storage="shared")
-        valid = v < points.shape[0]
-        p = wp.vec3()
-        n = wp.vec3()
-        if valid:
-            p = points[v]
-            if with_normals != 0:
-                n = normals[v]
-        sp = wp.vec3()
-        sn = wp.vec3()
-        if use_normal != 0:
-            # affineMatrix, quatTranslation: their own normal matrices, in a second shared tile
-            normal_bones = wp.tile_load(normal, shape=(1, bone_slots), offset=(0, base), storage="shared")
-            if valid:
-                p4 = wp.vec4(p[0], p[1], p[2], 1.0)
-                for k in range(indices.shape[1]):
-                    bone = indices[v, k]
-                    w = weights[v, k]
-                    sp += w * (bones[0, bone] * p4)
-                    sn += w * (normal_bones[0, bone] * n)
-        elif valid:
-            # crossMatrix: N = A
-            p4 = wp.vec4(p[0], p[1], p[2], 1.0)
-            n4 = wp.vec4(n[0], n[1], n[2], 0.0)
-            for k in range(indices.shape[1]):
-                bone = indices[v, k]
-                w = weights[v, k]
-                m = bones[0, bone]
-                sp += w * (m * p4)
-                sn += w * (m * n4)
-        if valid:
-            orientation = orientations[instance]
-            scale = scales[instance]
-            out_points[instance, v] = place_point(sp, positions[instance], orientation, scale)
-            if with_normals != 0:
-                out_normals[instance, v] = place_normal(wp.normalize(sn), orientation, scale)
-
-    @wp.kernel(module="unique")
-    def skin_dqs(
-        dual: wp.array2d(dtype=dualquat),
-        bone_count: int,
-        chunks: int,
-        points: wp.array(dtype=wp.vec3),
-        normals: wp.array(dtype=wp.vec3),
-        with_normals: int,
-        indices: wp.array2d(dtype=wp.int32),
-        weights: wp.array2d(dtype=wp.float32),
-        positions: wp.array(dtype=wp.vec3),
-        orientations: wp.array(dtype=wp.quat),
-        scales: wp.array(dtype=wp.vec3),
-        out_points: wp.array2d(dtype=wp.vec3),
-        out_normals: wp.array2d(dtype=wp.vec3),
-    ):
-        """DQS of (instance, vertex): blend with signs relative to the first influence, then the instancer."""
-        block_index, lane = wp.tid()
-        instance = block_index // chunks
-        v = (block_index - instance * chunks) * block + lane
-        bones = wp.tile_load(dual, shape=(1, bone_slots), offset=(0, instance * bone_count), storage="shared")
-        if v < points.shape[0]:
-            real, du = blend_dqs_tile(bones, indices, weights, v)
-            orientation = orientations[instance]
-            scale = scales[instance]
-            out_points[instance, v] = place_point(dqs_point(real, du, points[v]), positions[instance],
-                                                  orientation, scale)
-            if with_normals != 0:
-                sn = wp.normalize(wp.quat_rotate(real, normals[v]))
-                out_normals[instance, v] = place_normal(sn, orientation, scale)
-
-    @wp.kernel(module="unique")
-    def skin_normals(
-        encoding: int,
-        linear: wp.array2d(dtype=mat34),
-        normal: wp.array2d(dtype=wp.mat33),
-        dual: wp.array2d(dtype=dualquat),
-        bone_count: int,
-        chunks: int,
-        normals: wp.array(dtype=wp.vec3),
-        normal_points: wp.array(dtype=wp.int32),
-        indices: wp.array2d(dtype=wp.int32),
-        weights: wp.array2d(dtype=wp.float32),
-        orientations: wp.array(dtype=wp.quat),
-        scales: wp.array(dtype=wp.vec3),
-        out_normals: wp.array2d(dtype=wp.vec3),
-    ):
-        """faceVarying normals: normal e is skinned with the influences of point ``normal_points[e]``."""
-        block_index, lane = wp.tid()
-        instance = block_index // chunks
-        e = (block_index - instance * chunks) * block + lane
-        base = instance * bone_count
-        bones = wp.tile_load(linear, shape=(1, bone_slots), offset=(0, base), storage="shared")
-        normal_bones = wp.tile_load(normal, shape=(1, bone_slots), offset=(0, base), storage="shared")
-        dual_bones = wp.tile_load(dual, shape=(1, bone_slots), offset=(0, base), storage="shared")
-        if e < normals.shape[0]:
-            v = normal_points[e]
-            n = normals[e]
-            sn = wp.vec3()
-            if encoding == DUAL_QUAT:
-                real, du = blend_dqs_tile(dual_bones, indices, weights, v)
-                sn = wp.quat_rotate(real, n)
-            else:
-                n4 = wp.vec4(n[0], n[1], n[2], 0.0)
-                for k in range(indices.shape[1]):
-                    bone = indices[v, k]
-                    w = weights[v, k]
-                    if encoding == AFFINE_MATRIX or encoding == QUAT_TRANSLATION:
-                        sn += w * (normal_bones[0, bone] * n)
-                    else:
-                        sn += w * (bones[0, bone] * n4)
-            out_normals[instance, e] = place_normal(wp.normalize(sn), orientations[instance], scales[instance])
-
-    return Kernels(skin_lbs=skin_lbs, skin_dqs=skin_dqs, skin_normals=skin_normals)
-
-
 @wp.func
-def blend_dqs_tile(bones: Any, indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32), v: int):
-    """Blended, normalized dual quaternion of vertex v from a shared tile of the instance's bones."""
-    first = bones[0, indices[v, 0]][0]
-    real = wp.vec4()
-    du = wp.vec4()
-    for k in range(indices.shape[1]):
-        q = bones[0, indices[v, k]]
-        w = weights[v, k]
-        if wp.dot(q[0], first) < 0.0:
-            w = -w
-        real += w * q[0]
-        du += w * q[1]
-    inv = 1.0 / wp.length(real)
-    return wp.quat(real[0] * inv, real[1] * inv, real[2] * inv, real[3] * inv), du * inv
+def place_bone(encoding: int, linear: mat34, normal: wp.mat33, position: wp.vec3, orientation: wp.quat,
+               scale: wp.vec3):
+    """Fold the point instancer's transform into a decoded LBS bone.
+
+    ``P = [R S | position]`` (scale, then orientation, then position) gives ``P [A | t]`` and the
+    normal matrix ``R S^-1 N`` (N = A for crossMatrix). Because a vertex's weights sum to one,
+    ``sum w P (A p + t) = P sum w (A p + t)``: the skinning kernel then blends already placed bones
+    and leaves the per-vertex instancer arithmetic out. (The reference applies P after skinning;
+    the results differ by float32 rounding.)
+    """
+    r = wp.quat_to_matrix(orientation)
+    rs = wp.mat33(r[0, 0] * scale[0], r[0, 1] * scale[1], r[0, 2] * scale[2],
+                  r[1, 0] * scale[0], r[1, 1] * scale[1], r[1, 2] * scale[2],
+                  r[2, 0] * scale[0], r[2, 1] * scale[1], r[2, 2] * scale[2])
+    a = wp.mat33(linear[0, 0], linear[0, 1], linear[0, 2],
+                 linear[1, 0], linear[1, 1], linear[1, 2],
+                 linear[2, 0], linear[2, 1], linear[2, 2])
+    pa = rs * a
+    pt = rs * wp.vec3(linear[0, 3], linear[1, 3], linear[2, 3]) + position
+    placed = mat34(pa[0, 0], pa[0, 1], pa[0, 2], pt[0],
+                   pa[1, 0], pa[1, 1], pa[1, 2], pt[1],
+                   pa[2, 0], pa[2, 1], pa[2, 2], pt[2])
+    source = normal
+    if encoding == CROSS_MATRIX:
+        source = a
+    inv = wp.vec3(1.0 / scale[0], 1.0 / scale[1], 1.0 / scale[2])
+    rsi = wp.mat33(r[0, 0] * inv[0], r[0, 1] * inv[1], r[0, 2] * inv[2],
+                   r[1, 0] * inv[0], r[1, 1] * inv[1], r[1, 2] * inv[2],
+                   r[2, 0] * inv[0], r[2, 1] * inv[1], r[2, 2] * inv[2])
+    return placed, rsi * source
+
+
+@wp.kernel
+def skin_lbs_kernel(
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    separate_normals: int,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    with_normals: int,
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    instances_per_thread: int,
+    out_points: wp.array2d(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """Linear blend skinning of placed bones: thread (j, v) skins vertex v of instances j*ipt ...
+
+    Blends the K placed bone matrices first (the talk's linear blend of matrices, 12 FMAs per
+    influence), then transforms the rest point and normal once: ``p' = (sum w M) p``,
+    ``n' = normalize((sum w N) n)``, with N the linear part of M unless ``separate_normals`` (the
+    affineMatrix and quatTranslation normal matrices, or non-uniformly scaled instances). The rest
+    vertex is loaded once for all the thread's instances.
+    """
+    j, v = wp.tid()
+    p = points[v]
+    p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+    n = wp.vec3()
+    if with_normals != 0:
+        n = normals[v]
+    n4 = wp.vec4(n[0], n[1], n[2], 0.0)
+    influences = indices.shape[1]
+    first = j * instances_per_thread
+    last = wp.min(first + instances_per_thread, linear.shape[0])
+    for instance in range(first, last):
+        blend = mat34()
+        for k in range(influences):
+            blend += weights[v, k] * linear[instance, indices[v, k]]
+        out_points[instance, v] = blend * p4
+        if with_normals != 0:
+            sn = wp.vec3()
+            if separate_normals != 0:
+                nblend = wp.mat33()
+                for k in range(influences):
+                    nblend += weights[v, k] * normal[instance, indices[v, k]]
+                sn = nblend * n
+            else:
+                sn = blend * n4
+            out_normals[instance, v] = wp.normalize(sn)
+
+
+@wp.kernel
+def skin_dqs_kernel(
+    dual: wp.array2d(dtype=dualquat),
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    with_normals: int,
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    positions: wp.array(dtype=wp.vec3),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    instances_per_thread: int,
+    out_points: wp.array2d(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """Dual-quaternion skinning of (instance, vertex), then the instancer transform (scale may not fold into a DQ)."""
+    j, v = wp.tid()
+    p = points[v]
+    n = wp.vec3()
+    if with_normals != 0:
+        n = normals[v]
+    influences = indices.shape[1]
+    first = j * instances_per_thread
+    last = wp.min(first + instances_per_thread, dual.shape[0])
+    for instance in range(first, last):
+        real, du = blend_dqs(dual, instance, indices, weights, v, influences)
+        orientation = orientations[instance]
+        scale = scales[instance]
+        out_points[instance, v] = place_point(dqs_point(real, du, p), positions[instance], orientation, scale)
+        if with_normals != 0:
+            out_normals[instance, v] = place_normal(wp.normalize(wp.quat_rotate(real, n)), orientation, scale)
+
+
+@wp.kernel
+def skin_normals_kernel(
+    encoding: int,
+    linear: wp.array2d(dtype=mat34),
+    normal: wp.array2d(dtype=wp.mat33),
+    separate_normals: int,
+    dual: wp.array2d(dtype=dualquat),
+    normals: wp.array(dtype=wp.vec3),
+    normal_points: wp.array(dtype=wp.int32),
+    indices: wp.array2d(dtype=wp.int32),
+    weights: wp.array2d(dtype=wp.float32),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    out_normals: wp.array2d(dtype=wp.vec3),
+):
+    """faceVarying normals: normal e is skinned with the influences of point ``normal_points[e]``."""
+    instance, e = wp.tid()
+    v = normal_points[e]
+    n = normals[e]
+    if encoding == DUAL_QUAT:
+        real, du = blend_dqs(dual, instance, indices, weights, v, indices.shape[1])
+        out_normals[instance, e] = place_normal(wp.normalize(wp.quat_rotate(real, n)), orientations[instance],
+                                                scales[instance])
+    else:
+        sn = wp.vec3()
+        for k in range(indices.shape[1]):
+            w = weights[v, k]
+            bone = indices[v, k]
+            if separate_normals != 0:
+                sn += w * (normal[instance, bone] * n)
+            else:
+                sn += w * (linear[instance, bone] * wp.vec4(n[0], n[1], n[2], 0.0))
+        out_normals[instance, e] = wp.normalize(sn)
