@@ -415,7 +415,7 @@ class Decoder:
                       inputs=[buffers.dual, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
                               out.points, out_normals])
         else:
-            wp.launch(K.skin_lbs_kernel, dim=dim, device=self.device,
+            wp.launch(K.skin_lbs_kernel(int(self.indices.shape[1])), dim=dim, device=self.device,
                       inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, out.points, out_normals])
         if self.with_normals and self.face_varying:
             wp.launch(K.skin_normals_kernel, dim=(n, self.normal_count), device=self.device,

@@ -450,53 +450,69 @@ def place_bone(encoding: int, linear: mat34, normal: wp.mat33, position: wp.vec3
     return placed, rsi * source
 
 
-@wp.kernel
-def skin_lbs_kernel(
-    linear: wp.array2d(dtype=mat34),
-    normal: wp.array2d(dtype=wp.mat33),
-    separate_normals: int,
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
-    with_normals: int,
-    indices: wp.array2d(dtype=wp.int32),
-    weights: wp.array2d(dtype=wp.float32),
-    instances_per_thread: int,
-    out_points: wp.array2d(dtype=wp.vec3),
-    out_normals: wp.array2d(dtype=wp.vec3),
-):
-    """Linear blend skinning of placed bones: thread (j, v) skins vertex v of instances j*ipt ...
+@functools.lru_cache(maxsize=None)
+def skin_lbs_kernel(influences: int):
+    """The LBS skinning kernel for meshes of exactly ``influences`` (K) influences per vertex.
 
-    Blends the K placed bone matrices first (the talk's linear blend of matrices, 12 FMAs per
-    influence), then transforms the rest point and normal once: ``p' = (sum w M) p``,
-    ``n' = normalize((sum w N) n)``, with N the linear part of M unless ``separate_normals`` (the
-    affineMatrix and quatTranslation normal matrices, or non-uniformly scaled instances). The rest
-    vertex is loaded once for all the thread's instances.
+    K is a compile-time constant so the influence loops unroll and a vertex's K bone indices and
+    weights stay in registers for all the instances its thread handles.
     """
-    j, v = wp.tid()
-    p = points[v]
-    p4 = wp.vec4(p[0], p[1], p[2], 1.0)
-    n = wp.vec3()
-    if with_normals != 0:
-        n = normals[v]
-    n4 = wp.vec4(n[0], n[1], n[2], 0.0)
-    influences = indices.shape[1]
-    first = j * instances_per_thread
-    last = wp.min(first + instances_per_thread, linear.shape[0])
-    for instance in range(first, last):
-        blend = mat34()
-        for k in range(influences):
-            blend += weights[v, k] * linear[instance, indices[v, k]]
-        out_points[instance, v] = blend * p4
+    index_vector = wp.types.vector(length=influences, dtype=wp.int32)
+    weight_vector = wp.types.vector(length=influences, dtype=wp.float32)
+
+    @wp.kernel(module="unique")
+    def skin_lbs(
+        linear: wp.array2d(dtype=mat34),
+        normal: wp.array2d(dtype=wp.mat33),
+        separate_normals: int,
+        points: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        with_normals: int,
+        indices: wp.array2d(dtype=wp.int32),
+        weights: wp.array2d(dtype=wp.float32),
+        instances_per_thread: int,
+        out_points: wp.array2d(dtype=wp.vec3),
+        out_normals: wp.array2d(dtype=wp.vec3),
+    ):
+        """Linear blend skinning of placed bones: thread (j, v) skins vertex v of instances j*ipt ...
+
+        Blends the K placed bone matrices first (the talk's linear blend of matrices, 12 FMAs per
+        influence), then transforms the rest point and normal once: ``p' = (sum w M) p``,
+        ``n' = normalize((sum w N) n)``, with N the linear part of M unless ``separate_normals``
+        (the affineMatrix and quatTranslation normal matrices, or non-uniformly scaled
+        instances). The rest vertex is loaded once for all the thread's instances.
+        """
+        j, v = wp.tid()
+        p = points[v]
+        p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+        n = wp.vec3()
         if with_normals != 0:
-            sn = wp.vec3()
-            if separate_normals != 0:
-                nblend = wp.mat33()
-                for k in range(influences):
-                    nblend += weights[v, k] * normal[instance, indices[v, k]]
-                sn = nblend * n
-            else:
-                sn = blend * n4
-            out_normals[instance, v] = wp.normalize(sn)
+            n = normals[v]
+        n4 = wp.vec4(n[0], n[1], n[2], 0.0)
+        bone = index_vector()
+        w = weight_vector()
+        for k in range(influences):
+            bone[k] = indices[v, k]
+            w[k] = weights[v, k]
+        first = j * instances_per_thread
+        last = wp.min(first + instances_per_thread, linear.shape[0])
+        for instance in range(first, last):
+            blend = w[0] * linear[instance, bone[0]]
+            for k in range(1, influences):
+                blend += w[k] * linear[instance, bone[k]]
+            out_points[instance, v] = blend * p4
+            if with_normals != 0:
+                sn = wp.vec3()
+                if separate_normals != 0:
+                    nblend = w[0] * normal[instance, bone[0]]
+                    for k in range(1, influences):
+                        nblend += w[k] * normal[instance, bone[k]]
+                    sn = nblend * n
+                else:
+                    sn = blend * n4
+                out_normals[instance, v] = wp.normalize(sn)
+
+    return skin_lbs
 
 
 @wp.kernel
