@@ -13,6 +13,11 @@ from pathlib import Path
 
 import pytest
 
+# Before any test module touches pxr.Usd: OpenUSD builds its schema registry once per process, and
+# the Virtual Bones types are in it only if vbusd registered its plugin first (vbusd.usd_plugin).
+# Importing vbusd here makes that independent of which test files run and in which order.
+import vbusd  # noqa: F401,E402
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
