@@ -596,6 +596,28 @@ def test_sidecar_errors(tmp_path):
     assert caught.value.location == "file"
 
 
+def test_deeply_nested_json_is_one_error_not_a_recursion_error(tmp_path, capsys):
+    # Python's JSON parser recurses once per nesting level and raises RecursionError (not a
+    # ValueError) on a hostile document; it must still be one located error line.
+    from vbusd.cli import main
+
+    deep = "[" * 100_000 + "]" * 100_000
+    vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
+    texture = tmp_path / "s.exr"
+    textures.write_texture(texture, vb)
+    sidecar = tmp_path / "s.exr.json"
+    sidecar.write_text(deep, encoding="utf-8")
+    for call in (lambda: textures.read_sidecar(sidecar), lambda: textures.read_texture(texture)):
+        with pytest.raises(InputError) as caught:
+            call()
+        assert (caught.value.file, caught.value.location, caught.value.code) == \
+            (str(sidecar), "/", "metadata.json")
+        assert "nested too deeply" in caught.value.message
+    assert main(["info", str(sidecar)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "nested too deeply" in err and "Traceback" not in err
+
+
 def test_read_texture_header_skips_pixels_but_checks_structure(exr_file, png_file):
     for path in (exr_file, png_file):
         header = textures.read_texture_header(path)

@@ -532,6 +532,9 @@ def loads(text: str, *, file=None, location_prefix: str = "") -> LayoutInfo:
     except ValueError as error:
         raise InputError(f"layout metadata is not valid JSON: {error}", file=file,
                          location=location_prefix or "/", code="metadata.json") from None
+    except RecursionError:  # Python's parser recurses per nesting level; metadata is 4 deep
+        raise InputError("layout metadata is nested too deeply to be Virtual Bones metadata",
+                         file=file, location=location_prefix or "/", code="metadata.json") from None
     return from_dict(d, file=file, location_prefix=location_prefix)
 
 

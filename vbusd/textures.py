@@ -371,6 +371,9 @@ def _check_sidecar_agrees(texture: Path, embedded_text: str) -> None:
                  if isinstance(error, json.JSONDecodeError) else "/")
         raise InputError(f"sidecar is not valid JSON: {getattr(error, 'msg', error)}",
                          file=str(sidecar), location=where, code="metadata.json") from None
+    except RecursionError:
+        raise InputError("sidecar is nested too deeply to be Virtual Bones metadata",
+                         file=str(sidecar), location="/", code="metadata.json") from None
     difference = _first_difference(json.loads(embedded_text), document)
     if difference is not None:
         pointer = md.json_pointer(difference) or "/"
