@@ -82,19 +82,29 @@ def test_text_table(tmp_path, capsys):
 
 
 def _usd_asset(tmp_path):
-    """A Virtual Bones USD layer written with pxr by hand (two animations), no texture needed."""
+    """A Virtual Bones USD layer written with pxr by hand (two animations), no texture needed.
+
+    Every attribute is authored, as the spec requires of writers (readers do not use fallbacks).
+    """
     from pxr import Sdf, Usd, Vt
 
     import vbusd.usd_plugin  # noqa: F401  registers the schema
 
     path = tmp_path / "crowd.usda"
     stage = Usd.Stage.CreateNew(str(path))
-    for name, encoding, bones, rows, clips in (
-            ("Spectator", "crossMatrix", 18, 512, [("cheer", 0, 512, 51.2, True, 0.0)]),
-            ("Mascot", "dualQuat", 5, 40, [("jump", 0, 30, 30.0, False, 0.0),
-                                          ("wave", 30, 10, 10.0, True, 2.0)])):
+    # Sizes by hand: T = 3 and 18 x 3 = 54 -> 64 wide; T = 2 and 5 x 2 = 10 -> 16 wide.
+    for name, encoding, bones, rows, texels, width, clips in (
+            ("Spectator", "crossMatrix", 18, 512, 3, 64, [("cheer", 0, 512, 51.2, True, 0.0)]),
+            ("Mascot", "dualQuat", 5, 40, 2, 16, [("jump", 0, 30, 30.0, False, 0.0),
+                                                 ("wave", 30, 10, 10.0, True, 2.0)])):
         prim = stage.DefinePrim(f"/Crowd/{name}", "VirtualBonesAnimation")
         values = {
+            "vb:formatVersion": (Sdf.ValueTypeNames.Int, 1),
+            "vb:texelsPerBone": (Sdf.ValueTypeNames.Int, texels),
+            "vb:textureWidth": (Sdf.ValueTypeNames.Int, width),
+            "vb:textureHeight": (Sdf.ValueTypeNames.Int, rows),
+            "vb:horizontalPadding": (Sdf.ValueTypeNames.Token, "powerOfTwo"),
+            "vb:verticalPadding": (Sdf.ValueTypeNames.Token, "none"),
             "vb:texture": (Sdf.ValueTypeNames.Asset, Sdf.AssetPath(f"./{name}.exr")),
             "vb:encoding": (Sdf.ValueTypeNames.Token, encoding),
             "vb:texelFormat": (Sdf.ValueTypeNames.Token, "float32"),
@@ -129,6 +139,30 @@ def test_usd_asset_with_two_animations(tmp_path, capsys):
     assert main(["info", str(path)]) == 0
     text = capsys.readouterr().out
     assert "/Crowd/Spectator" in text and "/Crowd/Mascot" in text and "wave" in text
+
+
+@pytest.mark.parametrize("attribute, change, code", [
+    ("vb:verticalPadding", None, "usd.missing"),  # left to the schema's fallback: not authored
+    ("vb:boneCount", "uniform string vb:boneCount = \"eighteen\"", "usd.type"),
+    ("vb:clipRowsPerSecond", "uniform double[] vb:clipRowsPerSecond = [nan]", "usd.clips"),
+    ("vb:textureWidth", "uniform int vb:textureWidth = 32", "usd.layout"),
+])
+def test_usd_attributes_are_checked_as_the_reader_checks_them(tmp_path, capsys, attribute, change, code):
+    # Spec 13: every attribute authored with its schema type, sizes derived from the layout,
+    # finite positive rates; info reports the first problem as one line at the prim and attribute.
+    path = _usd_asset(tmp_path)
+    lines = path.read_text().splitlines()
+    (index,) = [i for i, line in enumerate(lines)
+                if f" {attribute} = " in line and i < next(j for j, l in enumerate(lines) if "Mascot" in l)]
+    if change is None:
+        del lines[index]
+    else:
+        lines[index] = "        " + change
+    path.write_text("\n".join(lines) + "\n")
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert f": /Crowd/Spectator.{attribute}: {code}: " in err
 
 
 def test_usd_asset_written_by_usd_io(tmp_path, capsys):

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Union
 
@@ -100,12 +101,17 @@ def _applies_api(prim, schema: str) -> bool:
 
 
 def _tf_message(error: BaseException) -> str:
-    """The human part of a Tf error ("Error in 'Sdf_...' at line N in file X : 'message'")."""
+    """The human part of a Tf error ("Error in 'Sdf_...' at line N in file X : 'message'").
+
+    A Tf.ErrorException can hold several such errors; their messages are joined with "; ".
+    """
     text = str(error).strip()
-    match = re.search(r" : '(.*)'\s*$", text, flags=re.S)
-    if match:
-        text = match.group(1)
-    return " ".join(text.split())
+    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]*? : '(.*?)'\s*(?=Error in '|$)",
+                       text, flags=re.S)
+    if not found:
+        match = re.search(r" : '(.*)'\s*$", text, flags=re.S)
+        found = [match.group(1)] if match else [text]
+    return "; ".join(" ".join(message.split()) for message in found)[:600]
 
 
 # --------------------------------------------------------------------------------------------
@@ -419,6 +425,35 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
 # --------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class AnimationAttributes:
+    """What a ``VirtualBonesAnimation`` prim says, checked as :func:`read_asset` checks it.
+
+    Attributes:
+        path: Prim path.
+        format_version: ``vb:formatVersion``.
+        layout: The layout its sizes and tokens give (and ``vb:textureWidth`` etc. agree with).
+        bones: ``vb:bones``.
+        clips: The clips of the six clip arrays.
+        clip_extents: ``(clips, 2, 3)`` ``vb:clipExtents``, or None when not authored.
+        unorm_ranges32: ``(T, 4, 2)`` float32 ``vb:unormRangeMin``/``Max`` (unorm16), else None.
+        content_digest: ``vb:contentDigest`` or None.
+        texture: ``vb:texture`` as authored.
+        texture_file: The texture file it resolves to (inside the asset's folder unless allowed).
+    """
+
+    path: str
+    format_version: int
+    layout: Layout
+    bones: tuple
+    clips: tuple
+    clip_extents: Optional[np.ndarray]
+    unorm_ranges32: Optional[np.ndarray]
+    content_digest: Optional[str]
+    texture: str
+    texture_file: Path
+
+
 class _Reader:
     """State of one :func:`read_asset` call: the file for messages and the pxr modules."""
 
@@ -535,6 +570,19 @@ class _Reader:
     # -- prims ---------------------------------------------------------------------------------
 
     def read_animation(self, prim) -> VirtualBones:
+        attributes = self.animation_attributes(prim)
+        from .textures import read_texture
+
+        texture = read_texture(attributes.texture_file)
+        self.compare(attributes.path, attributes.layout, attributes.bones, attributes.clips,
+                     attributes.unorm_ranges32, attributes.content_digest, texture)
+        return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
+                            clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
+                            path=attributes.path, texture=attributes.texture,
+                            clip_extents=attributes.clip_extents)
+
+    def animation_attributes(self, prim) -> "AnimationAttributes":
+        """Every vb:* attribute of an animation prim, checked; the texture is located, not read."""
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
         path = str(prim.GetPath())
         names = Sdf.ValueTypeNames
@@ -613,15 +661,10 @@ class _Reader:
             high = self.array(prim, "vb:unormRangeMax", names.Float4Array, length=layout.texels_per_bone)
             ranges32 = np.stack([np.asarray(low, np.float32), np.asarray(high, np.float32)], axis=-1)
         digest = self.attribute(prim, "vb:contentDigest", names.String, required=False)
-
         authored, texture_path = self.texture_file(prim)
-        from .textures import read_texture
-
-        texture = read_texture(texture_path)
-        self.compare(path, layout, bones, clips, ranges32, digest, texture)
-        return VirtualBones(layout=layout, texels=texture.texels, bones=bones, clips=clips,
-                            unorm_ranges=texture.info.unorm_ranges, meshes=(), path=path,
-                            texture=authored, clip_extents=clip_extents)
+        return AnimationAttributes(path=path, format_version=int(version), layout=layout, bones=bones,
+                                   clips=clips, clip_extents=clip_extents, unorm_ranges32=ranges32,
+                                   content_digest=digest, texture=authored, texture_file=texture_path)
 
     def texture_file(self, prim) -> tuple:
         """``vb:texture`` of an animation prim: (the asset path as authored, the resolved file).
@@ -885,25 +928,32 @@ class _Reader:
             raise self.error(_tf_message(error), str(prim.GetPath()), "usd.invalid") from None
 
 
-def open_stage(path: PathLike, *, allow_outside_paths: bool = False):
-    """Open a USD file as :func:`read_asset` does, without reading any Virtual Bones data.
+def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = False) -> list:
+    """The checked attributes of every ``VirtualBonesAnimation`` prim of a USD file, textures unread.
 
-    Sublayers, references and payloads are checked against the asset's folder first, and USD's
-    errors become one-line InputErrors.
+    The file is opened as :func:`read_asset` opens it (sublayers, references and payloads must stay
+    inside the asset's folder) and every prim is checked as it checks it (authored attributes of the
+    right types, consistent sizes and clips, ``vb:texture`` resolving safely); the textures are
+    not opened. ``vbusd info`` uses it.
 
     Args:
-        path: The USD file.
-        allow_outside_paths: Accept layers outside the asset's folder.
+        path: A ``.usda``, ``.usdc``, ``.usd`` or ``.usdz`` file.
+        allow_outside_paths: Accept layers and textures outside the asset's folder.
 
     Returns:
-        (``pxr.Usd.Stage``, a function ``texture_file(prim) -> (authored, resolved Path)`` that
-        resolves an animation prim's ``vb:texture`` under the same path rules).
+        One :class:`AnimationAttributes` per animation prim, in stage order.
 
     Raises:
-        InputError: A missing or unreadable file, an unsafe dependency or texture path.
+        InputError: As :func:`read_asset`, or no animation prim (``usd.missing``).
+        VersionError: A newer format version than this reader knows.
     """
     reader = _Reader(Path(path), allow_outside_paths)
-    return reader.open_stage()[1], reader.texture_file
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = reader.pxr
+    _, stage = reader.open_stage()
+    prims = [prim for prim in stage.Traverse() if prim.GetTypeName() == ANIMATION_TYPE]
+    if not prims:
+        raise reader.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")
+    return [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
 
 
 def read_asset(path: PathLike, *, allow_outside_paths: bool = False) -> VirtualBonesAsset:

@@ -19,9 +19,8 @@ from typing import Optional
 
 import click
 
-from ..errors import InputError, OptionsError
+from ..errors import InputError
 from ..layout import Layout
-from ..model import Clip
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -110,79 +109,15 @@ def _describe_info(info, *, texture: Optional[str]) -> dict:
 def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes.
 
-    The stage is opened as ``vbusd.usd_io`` opens it (sublayers, references and payloads checked
-    against the asset's folder first), and each ``vb:texture`` must resolve inside that folder
-    (spec 13) although the texture itself is not read.
+    The prims are read and checked exactly as ``vbusd.usd_io`` reads them (every attribute authored
+    with its schema type, consistent sizes and clips, layers and ``vb:texture`` inside the asset's
+    folder), but the textures are not opened.
     """
-    from ..usd_io import open_stage
+    from ..usd_io import read_animation_attributes
 
-    file = str(path)
-    stage, texture_file = open_stage(path, allow_outside_paths=allow_outside_paths)
-    animations = []
-    for prim in stage.Traverse():
-        if prim.GetTypeName() != "VirtualBonesAnimation":
-            continue
-        texture = prim.GetAttribute("vb:texture")
-        if texture and texture.HasAuthoredValue():
-            texture_file(prim)  # refuses a path that leaves the asset's folder
-        animations.append(_describe_prim(prim, file))
-    if not animations:
-        raise InputError("no VirtualBonesAnimation prim: not a Virtual Bones asset", file=file,
-                         location=str(stage.GetPseudoRoot().GetPath()), code="usd.noAnimation")
-    return animations
-
-
-def _describe_prim(prim, file: str) -> dict:
-    prim_path = str(prim.GetPath())
-
-    def get(name: str, *, required: bool = True, default=None):
-        attribute = prim.GetAttribute(name)
-        value = attribute.Get() if attribute else None
-        if value is None:
-            if required:
-                raise InputError(f"{name} has no value", file=file,
-                                 location=f"{prim_path}.{name}", code="usd.attribute")
-            return default
-        return value
-
-    try:
-        layout = Layout(get("vb:encoding"), get("vb:texelFormat"), int(get("vb:boneCount")),
-                        int(get("vb:rowCount")), get("vb:horizontalPadding", required=False,
-                                                     default="powerOfTwo"),
-                        get("vb:verticalPadding", required=False, default="none"))
-    except OptionsError as error:
-        raise InputError(error.message, file=file, location=prim_path,
-                         code="usd.attribute") from None
-    for name, value in (("vb:textureWidth", layout.width), ("vb:textureHeight", layout.height),
-                        ("vb:texelsPerBone", layout.texels_per_bone)):
-        authored = get(name, required=False)
-        if authored is not None and int(authored) != value:
-            raise InputError(f"{name} is {authored} but the layout gives {value}", file=file,
-                             location=f"{prim_path}.{name}", code="usd.attribute")
-    names = list(get("vb:clipNames", required=False, default=[]))
-    columns = {key: list(get(key, required=False, default=[])) for key in (
-        "vb:clipFirstRows", "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops",
-        "vb:clipStartTimes")}
-    for key, values in columns.items():
-        if len(values) != len(names):
-            raise InputError(f"{key} has {len(values)} entries for {len(names)} clip names",
-                             file=file, location=f"{prim_path}.{key}", code="usd.attribute")
-    clips = [Clip(name=str(names[i]), first_row=int(columns["vb:clipFirstRows"][i]),
-                  row_count=int(columns["vb:clipRowCounts"][i]),
-                  rows_per_second=float(columns["vb:clipRowsPerSecond"][i]),
-                  loop=bool(columns["vb:clipLoops"][i]),
-                  start_time=float(columns["vb:clipStartTimes"][i])) for i in range(len(names))]
-    for i, clip in enumerate(clips):
-        if clip.rows_per_second <= 0:
-            raise InputError(f"clip {clip.name!r} has rowsPerSecond {clip.rows_per_second}",
-                             file=file, location=f"{prim_path}.vb:clipRowsPerSecond[{i}]",
-                             code="usd.attribute")
-    texture = get("vb:texture", required=False)
-    version = get("vb:formatVersion", required=False)
-    return describe(layout, clips, bones=list(get("vb:bones", required=False, default=[])),
-                    path=prim_path, texture=texture.path if texture is not None else None,
-                    format_version=None if version is None else int(version),
-                    content_digest=get("vb:contentDigest", required=False))
+    return [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
+                     format_version=a.format_version, content_digest=a.content_digest)
+            for a in read_animation_attributes(path, allow_outside_paths=allow_outside_paths)]
 
 
 # --------------------------------------------------------------------------------------------
