@@ -18,7 +18,8 @@ Bandwidth counting (bytes moved per call, DRAM level, each byte once):
 * outputs: positions + normals, float32: 24 bytes per vertex-instance;
 * bone buffer: written by the decode launch and read by the skinning launch: 2 x instances x bones x
   48 bytes (crossMatrix ``[A | t]``);
-* per-instance inputs: clip, offset, rate (20 bytes) and position, orientation, scale (40 bytes);
+* per-instance inputs: clip, offset, rate (20 bytes) and position, orientation, scale (40 bytes),
+  read by the per-instance frame launch, and its frame (rows, blend, placement) written and read once;
 * mesh: points, normals, K indices and K weights per vertex (24 + 8K bytes), read once;
 * texture: the float32 texel array once (512 KiB for the stadium texture).
 
@@ -239,7 +240,8 @@ def bytes_moved(decoder: wd.Decoder, instances: int) -> dict:
     outputs = instances * v * 24
     bone_bytes = {"crossMatrix": 48, "affineMatrix": 84, "quatTranslation": 84, "dualQuat": 32}[decoder.encoding.value]
     bones = 2 * instances * b * bone_bytes
-    per_instance = instances * (20 + 40)
+    frame = wp.types.type_size_in_bytes(K.InstanceFrame)
+    per_instance = instances * (20 + 40 + 2 * frame)
     mesh = v * (24 + 8 * k)
     texture = decoder.texels.capacity if decoder.texels is not None else decoder.vb.layout.texel_bytes
     return {"outputs": outputs, "bone_buffer": bones, "instance_inputs": per_instance, "mesh": mesh,
@@ -269,7 +271,7 @@ def run_cuda(case_list, args) -> list:
         n, v = crowd.instance_count, mesh.points.shape[0]
         vi = n * v
         err = agreement(wd.Decoder(vb, mesh, device=device), vb, mesh, crowd, t, limit=1200 if n <= 1200 else 200)
-        for ipt in (1, 2, 4, 8):
+        for ipt in (1, 4, 8, 16, 32):
             decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt)
             uploaded = decoder.upload_crowd(crowd)
             out = decoder.allocate(n)

@@ -135,6 +135,7 @@ class BoneBuffers:
     linear: wp.array
     normal: wp.array
     dual: wp.array
+    frames: wp.array
 
     def __post_init__(self) -> None:
         # (1, n x B) views the kernels take, made once: creating warp arrays per call costs
@@ -363,7 +364,8 @@ class Decoder:
             buffers = BoneBuffers(
                 linear=wp.empty((n, b) if lbs else placeholder, dtype=K.mat34, device=self.device),
                 normal=wp.empty((n, b) if own_normal else placeholder, dtype=wp.mat33, device=self.device),
-                dual=wp.empty(placeholder if lbs else (n, b), dtype=K.dualquat, device=self.device))
+                dual=wp.empty(placeholder if lbs else (n, b), dtype=K.dualquat, device=self.device),
+                frames=wp.empty(n, dtype=K.InstanceFrame, device=self.device))
             self._bones = {(n, own_normal): buffers}  # keep one size: a renderer calls with one crowd
         return buffers
 
@@ -384,19 +386,22 @@ class Decoder:
         buffers = self._bone_buffers(n, separate)
         if n == 0:
             return buffers
-        common = [self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
-                  crowd.clip, crowd.time_offset, crowd.playback_rate, wp.float64(t)]
-        placement = [crowd.positions, crowd.orientations, crowd.scales, int(separate)]
+        if self.sampling == "hardware" and fraction_steps:
+            raise OptionsError("fraction_steps models the texture unit on the exact path only", file="warp_decoder")
+        frames = buffers.frames
+        wp.launch(K.instance_frames_kernel, dim=n, device=self.device,
+                  inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop, crowd.clip,
+                          crowd.time_offset, crowd.playback_rate, wp.float64(t), float(fraction_steps),
+                          crowd.positions, crowd.orientations, crowd.scales, frames])
         outputs = list(buffers.flat)
         dim = [_blocks(n * self.bone_count, self.block_dim)]
         if self.sampling == "exact":
             wp.launch_tiled(self.kernels.decode_bones, dim=dim, block_dim=self.block_dim, device=self.device,
-                            inputs=[self.texels, self.encoding_id, self.bone_count, *common, float(fraction_steps),
-                                    *placement, *outputs])
+                            inputs=[self.texels, self.encoding_id, self.bone_count, frames, int(separate), *outputs])
         else:
             wp.launch_tiled(self.kernels.decode_bones_texture, dim=dim, block_dim=self.block_dim, device=self.device,
                             inputs=[self.texture, self.encoding_id, self.bone_count, int(self.unorm),
-                                    self.unorm_low, self.unorm_span, *common, *placement, *outputs])
+                                    self.unorm_low, self.unorm_span, frames, int(separate), *outputs])
         return buffers
 
     def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:

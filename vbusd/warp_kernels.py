@@ -234,6 +234,72 @@ def place_normal(n: wp.vec3, orientation: wp.quat, scale: wp.vec3):
     return wp.normalize(wp.quat_rotate(orientation, wp.cw_div(n, scale)))
 
 
+@wp.struct
+class InstanceFrame:
+    """What every bone of one instance shares, computed once per instance (:data:`instance_frames_kernel`).
+
+    Attributes:
+        row0, row1: Texture rows to blend (clip's first row + ``reference.row_position``'s i0, i1).
+        f: Weight of ``row1``.
+        placement: ``R S`` of the instancer (scale, then orientation).
+        normal_placement: ``R S^-1``, for normal matrices.
+        position: The instance's position.
+    """
+
+    row0: int
+    row1: int
+    f: float
+    placement: wp.mat33
+    normal_placement: wp.mat33
+    position: wp.vec3
+
+
+@wp.kernel
+def instance_frames_kernel(
+    clip_first_row: wp.array(dtype=wp.int32),
+    clip_row_count: wp.array(dtype=wp.int32),
+    clip_rate: wp.array(dtype=wp.float64),
+    clip_loop: wp.array(dtype=wp.int32),
+    instance_clip: wp.array(dtype=wp.int32),
+    instance_offset: wp.array(dtype=wp.float64),
+    instance_rate: wp.array(dtype=wp.float64),
+    t: wp.float64,
+    fraction_steps: float,
+    positions: wp.array(dtype=wp.vec3),
+    orientations: wp.array(dtype=wp.quat),
+    scales: wp.array(dtype=wp.vec3),
+    frames: wp.array(dtype=InstanceFrame),
+):
+    """One thread per instance: clip time ``tau = offset + rate * t`` (float64), rows and blend, placement.
+
+    ``fraction_steps > 0`` rounds the row fraction to multiples of ``1/fraction_steps``, ``< 0``
+    truncates it to multiples of ``1/-fraction_steps`` (models of the texture unit's fixed-point
+    filter weights); 0 is the spec's exact blend.
+    """
+    instance = wp.tid()
+    clip = instance_clip[instance]
+    tau = instance_offset[instance] + instance_rate[instance] * t
+    i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
+    if fraction_steps > 0.0:
+        f = wp.round(f * fraction_steps) / fraction_steps
+    elif fraction_steps < 0.0:
+        f = wp.floor(-f * fraction_steps) / (-fraction_steps)
+    r = wp.quat_to_matrix(orientations[instance])
+    s = scales[instance]
+    frame = InstanceFrame()
+    frame.row0 = clip_first_row[clip] + i0
+    frame.row1 = clip_first_row[clip] + i1
+    frame.f = f
+    frame.placement = wp.mat33(r[0, 0] * s[0], r[0, 1] * s[1], r[0, 2] * s[2],
+                               r[1, 0] * s[0], r[1, 1] * s[1], r[1, 2] * s[2],
+                               r[2, 0] * s[0], r[2, 1] * s[1], r[2, 2] * s[2])
+    frame.normal_placement = wp.mat33(r[0, 0] / s[0], r[0, 1] / s[1], r[0, 2] / s[2],
+                                      r[1, 0] / s[0], r[1, 1] / s[1], r[1, 2] / s[2],
+                                      r[2, 0] / s[0], r[2, 1] / s[1], r[2, 2] / s[2])
+    frame.position = positions[instance]
+    frames[instance] = frame
+
+
 class Kernels:
     """The decoder's kernels for one block size (see :func:`kernels`)."""
 
@@ -293,30 +359,17 @@ def kernels(block: int) -> Kernels:
         texels: wp.array2d(dtype=wp.vec4),
         encoding: int,
         bone_count: int,
-        clip_first_row: wp.array(dtype=wp.int32),
-        clip_row_count: wp.array(dtype=wp.int32),
-        clip_rate: wp.array(dtype=wp.float64),
-        clip_loop: wp.array(dtype=wp.int32),
-        instance_clip: wp.array(dtype=wp.int32),
-        instance_offset: wp.array(dtype=wp.float64),
-        instance_rate: wp.array(dtype=wp.float64),
-        t: wp.float64,
-        fraction_steps: float,
-        positions: wp.array(dtype=wp.vec3),
-        orientations: wp.array(dtype=wp.quat),
-        scales: wp.array(dtype=wp.vec3),
+        frames: wp.array(dtype=InstanceFrame),
         separate_normals: int,
         out_linear: wp.array2d(dtype=mat34),
         out_normal: wp.array2d(dtype=wp.mat33),
         out_dual: wp.array2d(dtype=dualquat),
     ):
-        """One item per (instance, bone): interpolate the bone's texels between rows and decode.
+        """One item per (instance, bone): blend the bone's texels between the instance's rows and decode.
 
         ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
-        textures). ``fraction_steps > 0`` rounds the row fraction to multiples of
-        ``1/fraction_steps``, ``< 0`` truncates it to multiples of ``1/-fraction_steps`` (models of
-        the texture unit's fixed-point filter weights); 0 is the spec's exact blend. Outputs are
-        (1, instances x bones) views of the (instances, bones) bone buffers.
+        textures). LBS bones are placed by the instance's transform (:func:`place_bone`). Outputs
+        are (1, instances x bones) views of the (instances, bones) bone buffers.
         """
         block_index, lane = wp.tid()
         first = block_index * block
@@ -324,28 +377,19 @@ def kernels(block: int) -> Kernels:
         linear = mat34()
         normal = wp.mat33()
         dual = dualquat()
-        if item < instance_clip.shape[0] * bone_count:
+        if item < frames.shape[0] * bone_count:
             instance = item // bone_count
             bone = item - instance * bone_count
-            clip = instance_clip[instance]
-            tau = instance_offset[instance] + instance_rate[instance] * t
-            i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
-            if fraction_steps > 0.0:
-                f = wp.round(f * fraction_steps) / fraction_steps
-            elif fraction_steps < 0.0:
-                f = wp.floor(-f * fraction_steps) / (-fraction_steps)
-            row0 = clip_first_row[clip] + i0
-            row1 = clip_first_row[clip] + i1
+            frame = frames[instance]
             column = bone * texels_per_bone(encoding)
-            v0 = lerp_texel(texels, row0, row1, f, column)
-            v1 = lerp_texel(texels, row0, row1, f, column + 1)
+            v0 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column)
+            v1 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 1)
             v2 = wp.vec4()
             if texels_per_bone(encoding) == 3:
-                v2 = lerp_texel(texels, row0, row1, f, column + 2)
+                v2 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 2)
             linear, normal, dual = decode_bone(encoding, v0, v1, v2)
             if encoding != DUAL_QUAT:
-                linear, normal = place_bone(encoding, linear, normal, positions[instance], orientations[instance],
-                                            scales[instance])
+                linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
         store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
 
     @wp.kernel(module="unique")
@@ -356,17 +400,7 @@ def kernels(block: int) -> Kernels:
         unorm: int,
         unorm_low: wp.array(dtype=wp.vec4),
         unorm_span: wp.array(dtype=wp.vec4),
-        clip_first_row: wp.array(dtype=wp.int32),
-        clip_row_count: wp.array(dtype=wp.int32),
-        clip_rate: wp.array(dtype=wp.float64),
-        clip_loop: wp.array(dtype=wp.int32),
-        instance_clip: wp.array(dtype=wp.int32),
-        instance_offset: wp.array(dtype=wp.float64),
-        instance_rate: wp.array(dtype=wp.float64),
-        t: wp.float64,
-        positions: wp.array(dtype=wp.vec3),
-        orientations: wp.array(dtype=wp.quat),
-        scales: wp.array(dtype=wp.vec3),
+        frames: wp.array(dtype=InstanceFrame),
         separate_normals: int,
         out_linear: wp.array2d(dtype=mat34),
         out_normal: wp.array2d(dtype=wp.mat33),
@@ -383,14 +417,13 @@ def kernels(block: int) -> Kernels:
         linear = mat34()
         normal = wp.mat33()
         dual = dualquat()
-        if item < instance_clip.shape[0] * bone_count:
+        if item < frames.shape[0] * bone_count:
             instance = item // bone_count
             bone = item - instance * bone_count
-            clip = instance_clip[instance]
-            tau = instance_offset[instance] + instance_rate[instance] * t
-            i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
-            row0 = clip_first_row[clip] + i0
-            row1 = clip_first_row[clip] + i1
+            frame = frames[instance]
+            row0 = frame.row0
+            row1 = frame.row1
+            f = frame.f
             column = bone * texels_per_bone(encoding)
             low = wp.vec4()
             span = wp.vec4()
@@ -410,44 +443,39 @@ def kernels(block: int) -> Kernels:
                 v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
             linear, normal, dual = decode_bone(encoding, v0, v1, v2)
             if encoding != DUAL_QUAT:
-                linear, normal = place_bone(encoding, linear, normal, positions[instance], orientations[instance],
-                                            scales[instance])
+                linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
         store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
 
     return Kernels(decode_bones=decode_bones, decode_bones_texture=decode_bones_texture)
 
 
 @wp.func
-def place_bone(encoding: int, linear: mat34, normal: wp.mat33, position: wp.vec3, orientation: wp.quat,
-               scale: wp.vec3):
+def place_bone(encoding: int, separate_normals: int, linear: mat34, normal: wp.mat33, frame: InstanceFrame):
     """Fold the point instancer's transform into a decoded LBS bone.
 
-    ``P = [R S | position]`` (scale, then orientation, then position) gives ``P [A | t]`` and the
-    normal matrix ``R S^-1 N`` (N = A for crossMatrix). Because a vertex's weights sum to one,
-    ``sum w P (A p + t) = P sum w (A p + t)``: the skinning kernel then blends already placed bones
-    and leaves the per-vertex instancer arithmetic out. (The reference applies P after skinning;
-    the results differ by float32 rounding.)
+    ``P = [R S | position]`` (scale, then orientation, then position) gives ``P [A | t]`` and, when
+    ``separate_normals``, the normal matrix ``R S^-1 N`` (N = A for crossMatrix). Because a
+    vertex's weights sum to one, ``sum w P (A p + t) = P sum w (A p + t)``: the skinning kernel
+    then blends already placed bones and does no per-vertex instancer arithmetic. (The reference
+    applies P after skinning; the results differ by float32 rounding.) Without separate normals
+    the skinning kernel uses the linear part ``R S A`` for normals: with a uniform scale s it is
+    ``s^2`` times ``R S^-1 A``, the same direction after normalization.
     """
-    r = wp.quat_to_matrix(orientation)
-    rs = wp.mat33(r[0, 0] * scale[0], r[0, 1] * scale[1], r[0, 2] * scale[2],
-                  r[1, 0] * scale[0], r[1, 1] * scale[1], r[1, 2] * scale[2],
-                  r[2, 0] * scale[0], r[2, 1] * scale[1], r[2, 2] * scale[2])
     a = wp.mat33(linear[0, 0], linear[0, 1], linear[0, 2],
                  linear[1, 0], linear[1, 1], linear[1, 2],
                  linear[2, 0], linear[2, 1], linear[2, 2])
-    pa = rs * a
-    pt = rs * wp.vec3(linear[0, 3], linear[1, 3], linear[2, 3]) + position
+    pa = frame.placement * a
+    pt = frame.placement * wp.vec3(linear[0, 3], linear[1, 3], linear[2, 3]) + frame.position
     placed = mat34(pa[0, 0], pa[0, 1], pa[0, 2], pt[0],
                    pa[1, 0], pa[1, 1], pa[1, 2], pt[1],
                    pa[2, 0], pa[2, 1], pa[2, 2], pt[2])
-    source = normal
-    if encoding == CROSS_MATRIX:
-        source = a
-    inv = wp.vec3(1.0 / scale[0], 1.0 / scale[1], 1.0 / scale[2])
-    rsi = wp.mat33(r[0, 0] * inv[0], r[0, 1] * inv[1], r[0, 2] * inv[2],
-                   r[1, 0] * inv[0], r[1, 1] * inv[1], r[1, 2] * inv[2],
-                   r[2, 0] * inv[0], r[2, 1] * inv[1], r[2, 2] * inv[2])
-    return placed, rsi * source
+    placed_normal = wp.mat33()
+    if separate_normals != 0:
+        if encoding == CROSS_MATRIX:
+            placed_normal = frame.normal_placement * a
+        else:
+            placed_normal = frame.normal_placement * normal
+    return placed, placed_normal
 
 
 @functools.lru_cache(maxsize=None)
@@ -460,7 +488,9 @@ def skin_lbs_kernel(influences: int):
     index_vector = wp.types.vector(length=influences, dtype=wp.int32)
     weight_vector = wp.types.vector(length=influences, dtype=wp.float32)
 
-    @wp.kernel(module="unique")
+    # fast_math: approximate division and square root in normalize (a few ulp): the skinning
+    # kernel's arithmetic, not memory, is what limits it (benchmarks/README.md).
+    @wp.kernel(module="unique", module_options={"fast_math": True})
     def skin_lbs(
         linear: wp.array2d(dtype=mat34),
         normal: wp.array2d(dtype=wp.mat33),
