@@ -559,6 +559,50 @@ def test_bone_index_out_of_range(written):
     assert caught.value.location == "/VirtualBones/Fan/Body.primvars:vb:boneIndices"
 
 
+def _replace_first_array_value(path: Path, attribute: str, value) -> float:
+    """Set the first number of ``attribute``'s array in a .usda file; returns the old number."""
+    text = path.read_text()
+    match = re.search(re.escape(attribute) + r" = \[\(?([-+0-9.e]+)", text)
+    assert match, attribute
+    path.write_text(text[:match.start(1)] + str(value) + text[match.end(1):])
+    return float(match.group(1))
+
+
+@pytest.mark.parametrize("value, why", [
+    ("nan", "must be finite and non-negative"),
+    ("-0.5", "must be finite and non-negative"),
+    ("+0.25", "sum to"),  # added to the first weight below
+])
+def test_bad_weights_are_refused(written, value, why):
+    # Spec 14: weights finite, non-negative, summing to 1 within 1e-3 per point; decoders use them
+    # as stored, so a reader must not pass them on.
+    attribute = "primvars:vb:boneWeights"
+    if value == "+0.25":
+        old = _replace_first_array_value(written, attribute, 0.0)
+        _replace_first_array_value(written, attribute, old + 0.25)
+    else:
+        _replace_first_array_value(written, attribute, value)
+    with pytest.raises(InputError) as caught:
+        usd_io.read_asset(written)
+    assert why in caught.value.message and caught.value.code == "usd.primvar"
+    assert caught.value.location == f"/VirtualBones/Fan/Body.{attribute}[0]"
+    _one_line(caught.value)
+
+
+def test_weights_within_the_tolerance_are_accepted(written):
+    old = _replace_first_array_value(written, "primvars:vb:boneWeights", 0.0)
+    _replace_first_array_value(written, "primvars:vb:boneWeights", old + 0.0009)
+    meshes = {m.path: m for m in usd_io.read_asset(written).animations[0].meshes}
+    assert meshes["/VirtualBones/Fan/Body"].bone_weights[0].sum() == pytest.approx(1.0009, abs=1e-6)
+
+
+def test_non_finite_point_is_refused(written):
+    _replace_first_array_value(written, "point3f[] points", "inf")
+    with pytest.raises(InputError, match="not finite") as caught:
+        usd_io.read_asset(written)
+    assert caught.value.location == "/VirtualBones/Fan/Body.points[0]"
+
+
 def test_missing_texture_and_file(written):
     (written.parent / "crowd.Anim.exr").unlink()
     with pytest.raises(InputError) as caught:

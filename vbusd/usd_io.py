@@ -72,6 +72,8 @@ PRIMVAR_CLIP = "vb:clip"
 PRIMVAR_TIME_OFFSET = "vb:timeOffset"
 PRIMVAR_PLAYBACK_RATE = "vb:playbackRate"
 PROTOTYPES_SCOPE = "Prototypes"
+WEIGHT_SUM_TOLERANCE = 1e-3
+"""Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
 
 
 def _pxr():
@@ -734,6 +736,10 @@ class _Reader:
         counts = np.asarray(self.attribute(prim, "faceVertexCounts", names.IntArray), dtype=np.int32)
         indices = np.asarray(self.attribute(prim, "faceVertexIndices", names.IntArray), dtype=np.int32)
         vertex_count = len(points)
+        if not np.all(np.isfinite(points)):
+            point = int(np.argwhere(~np.isfinite(points))[0][0])
+            raise self.error(f"point {point} is not finite: {points[point].tolist()}",
+                             f"{path}.points[{point}]", "usd.mesh")
         if counts.sum() != len(indices) or np.any(counts < 3):
             raise self.error(f"faceVertexCounts sum to {int(counts.sum())} (each at least 3) but there "
                              f"are {len(indices)} faceVertexIndices", f"{path}.faceVertexCounts",
@@ -771,12 +777,31 @@ class _Reader:
             raise self.error(f"bone indices must be in [0, {bone_count}) (the animation's bones), found "
                              f"{int(bone_indices.min())}..{int(bone_indices.max())}",
                              f"{path}.primvars:{PRIMVAR_BONE_INDICES}", "usd.primvar")
+        self.check_weights(bone_weights.reshape(vertex_count, k), f"{path}.primvars:{PRIMVAR_BONE_WEIGHTS}")
         return BoundMesh(path=path, points=points.reshape(-1, 3), face_vertex_counts=counts,
                          face_vertex_indices=indices,
                          bone_indices=bone_indices.astype(np.int32).reshape(vertex_count, k),
                          bone_weights=bone_weights.astype(np.float32).reshape(vertex_count, k),
                          normals=None if normals is None else normals.reshape(-1, 3),
                          normals_interpolation=interpolation)
+
+    def check_weights(self, weights: np.ndarray, location: str) -> None:
+        """Spec 14: finite, non-negative weights whose per-point sum is 1 within 1e-3.
+
+        Decoders use the weights as stored, so a bad weight would silently distort the skinning.
+        """
+        w = np.asarray(weights, dtype=np.float64)
+        bad = ~np.isfinite(w) | (w < 0)
+        if bad.any():
+            point, slot = (int(i) for i in np.argwhere(bad)[0])
+            raise self.error(f"point {point} has weight {w[point, slot]} (influence {slot}); weights "
+                             "must be finite and non-negative", f"{location}[{point * w.shape[1] + slot}]",
+                             "usd.primvar")
+        deviation = np.abs(w.sum(axis=1) - 1.0)
+        if w.size and deviation.max() > WEIGHT_SUM_TOLERANCE:
+            point = int(np.argmax(deviation))
+            raise self.error(f"the weights of point {point} sum to {w[point].sum():.6g}, not 1 (tolerance "
+                             f"{WEIGHT_SUM_TOLERANCE:g})", f"{location}[{point * w.shape[1]}]", "usd.primvar")
 
     def read_crowd(self, prim) -> Crowd:
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
