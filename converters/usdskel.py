@@ -81,6 +81,15 @@ def _finite(array) -> bool:
     return bool(np.all(np.isfinite(np.asarray(array, dtype=np.float64))))
 
 
+def _tf_reason(error) -> str:
+    """The first reason in a Tf.ErrorException (the parser's line and column), without C++ noise."""
+    for chunk in str(error).split("Error in ")[1:]:
+        _, found, reason = chunk.partition(" : '")
+        if found:
+            return reason.strip().rstrip("'").strip()
+    return str(error).strip().splitlines()[0].strip() if str(error).strip() else "cannot open"
+
+
 class _Reader:
     """State of one read: the stage, its file name and collected warnings."""
 
@@ -113,8 +122,7 @@ class _Reader:
         try:
             stage = self.Usd.Stage.Open(str(self.path))
         except Tf.ErrorException as error:
-            first = str(error).strip().splitlines()[-1] if str(error).strip() else "cannot open"
-            raise InputError(f"not a readable USD stage: {first.strip()}", file=self.file,
+            raise InputError(f"not a readable USD stage: {_tf_reason(error)}", file=self.file,
                              code="usd.open") from None
         if stage is None:
             raise InputError("not a readable USD stage", file=self.file, code="usd.open")

@@ -74,3 +74,17 @@ def test_existing_output_needs_force(tmp_path, capsys):
     assert status == 2
     assert "--force" in capsys.readouterr().err
     assert output.read_text() == "precious"
+
+
+@pytest.mark.parametrize("content, fragment", [
+    (b'#usda 1.0\ndef Xform "A" {\n  float x = \n', "3:3: Expected }"),
+    (b"garbage", "not a readable USD stage"),
+    (b'#usda 1.0\ndef Xform "A" {}\n', "usdskel.nothing"),
+])
+def test_unreadable_or_empty_stage(tmp_path, capsys, content, fragment):
+    source = tmp_path / "broken.usda"
+    source.write_bytes(content)
+    status = main(["convert", str(source), "-o", str(tmp_path / "out.usda")])
+    err = capsys.readouterr().err
+    assert status == 2 and fragment in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.usda"]
