@@ -127,9 +127,12 @@ class DeviceCrowd:
 class BoneBuffers:
     """Decoded bones of every instance: the intermediate the skinning kernel reads.
 
-    ``linear`` (n, B) 3x4 ``[A | t]`` (matrix and quatTranslation encodings), ``normal`` (n, B)
-    3x3 normal matrices (affineMatrix, quatTranslation), ``dual`` (n, B) 2x4 dual quaternions
-    (dualQuat). Unused buffers are 1x1 placeholders.
+    Structure of arrays, float32: ``linear`` (n, 12, B) the placed ``[A | t]`` row by row (LBS
+    encodings), ``normal`` (n, 9, B) placed normal matrices (affineMatrix, quatTranslation, or
+    non-uniformly scaled instances), ``dual`` (n, 8, B) dual quaternions (dualQuat). A skinning
+    warp gathers one component of its vertices' bones per load: with bones innermost, those
+    addresses fall in one or two cache lines instead of one 48-byte matrix each. Unused buffers are
+    1x1x1 placeholders. ``frames`` (n,) holds the per-instance rows, blend and placement.
     """
 
     linear: wp.array
@@ -137,23 +140,9 @@ class BoneBuffers:
     dual: wp.array
     frames: wp.array
 
-    def __post_init__(self) -> None:
-        # (1, n x B) views the kernels take, made once: creating warp arrays per call costs
-        # tens of microseconds of Python, as much as a small crowd's whole decode.
-        self.flat = (_flat(self.linear), _flat(self.normal), _flat(self.dual))
-
     def nbytes(self) -> int:
         """Bytes of the buffers that hold data (placeholders excluded)."""
-        return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.shape[0] > 1 or a.shape[1] > 1)
-
-
-def _flat(array: wp.array) -> wp.array:
-    """A (1, size) view of a contiguous 2D array: the shape the kernels' block-wide stores take."""
-    return array.reshape((1, array.shape[0] * array.shape[1]))
-
-
-def _blocks(items: int, block: int) -> int:
-    return (items + block - 1) // block
+        return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.size > 1)
 
 
 class Decoder:
@@ -165,8 +154,6 @@ class Decoder:
         device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``; required (no implicit default device).
         sampling: ``"exact"`` (default; the spec's interpolation) or ``"hardware"`` (rows blended by
             the texture unit through ``wp.Texture2D``; see spec/hardware-sampling.md).
-        block_dim: Threads per block of the bone decode kernel (a multiple of 4 on CUDA). None: 256 on
-            CUDA, 1 on the CPU (warp runs tiles one thread wide there).
         instances_per_thread: Instances a skinning thread handles for its vertex (its rest data is
             loaded once for all of them). None: as many (up to 8) as leave at least a million
             threads on CUDA; 1 on the CPU.
@@ -177,8 +164,7 @@ class Decoder:
     """
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
-                 sampling: str = "exact", block_dim: Optional[int] = None,
-                 instances_per_thread: Optional[int] = None) -> None:
+                 sampling: str = "exact", instances_per_thread: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -195,14 +181,6 @@ class Decoder:
         self.encoding_id = K.ENCODING_IDS[self.encoding.value]
         self.bone_count = vb.layout.bone_count
         self.vertex_count = int(np.asarray(mesh.points).shape[0])
-        if block_dim is None:
-            block_dim = 256 if self.device.is_cuda else 1
-        if isinstance(block_dim, bool) or int(block_dim) != block_dim or not 1 <= block_dim <= 1024 or \
-                (self.device.is_cuda and block_dim % 4) or (self.device.is_cpu and block_dim != 1):
-            raise OptionsError(f"block_dim must be 1 on the CPU and a multiple of 4 up to 1024 on CUDA, "
-                               f"got {block_dim!r}", file="warp_decoder")
-        self.block_dim = int(block_dim)
-        self.kernels = K.kernels(self.block_dim)
         if instances_per_thread is not None and (isinstance(instances_per_thread, bool) or
                                                  int(instances_per_thread) != instances_per_thread or
                                                  instances_per_thread < 1):
@@ -359,12 +337,12 @@ class Decoder:
         buffers = self._bones.get((n, own_normal))
         if buffers is None:
             b = self.bone_count
-            placeholder = (1, 1)
+            placeholder = (1, 1, 1)
             lbs = self.encoding is not Encoding.DUAL_QUAT
             buffers = BoneBuffers(
-                linear=wp.empty((n, b) if lbs else placeholder, dtype=K.mat34, device=self.device),
-                normal=wp.empty((n, b) if own_normal else placeholder, dtype=wp.mat33, device=self.device),
-                dual=wp.empty(placeholder if lbs else (n, b), dtype=K.dualquat, device=self.device),
+                linear=wp.empty((n, 12, b) if lbs else placeholder, dtype=float, device=self.device),
+                normal=wp.empty((n, 9, b) if own_normal else placeholder, dtype=float, device=self.device),
+                dual=wp.empty(placeholder if lbs else (n, 8, b), dtype=float, device=self.device),
                 frames=wp.empty(n, dtype=K.InstanceFrame, device=self.device))
             self._bones = {(n, own_normal): buffers}  # keep one size: a renderer calls with one crowd
         return buffers
@@ -393,15 +371,15 @@ class Decoder:
                   inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop, crowd.clip,
                           crowd.time_offset, crowd.playback_rate, wp.float64(t), float(fraction_steps),
                           crowd.positions, crowd.orientations, crowd.scales, frames])
-        outputs = list(buffers.flat)
-        dim = [_blocks(n * self.bone_count, self.block_dim)]
+        outputs = [buffers.linear, buffers.normal, buffers.dual]
+        dim = (n, self.bone_count)
         if self.sampling == "exact":
-            wp.launch_tiled(self.kernels.decode_bones, dim=dim, block_dim=self.block_dim, device=self.device,
-                            inputs=[self.texels, self.encoding_id, self.bone_count, frames, int(separate), *outputs])
+            wp.launch(K.decode_bones, dim=dim, device=self.device,
+                      inputs=[self.texels, self.encoding_id, frames, int(separate), *outputs])
         else:
-            wp.launch_tiled(self.kernels.decode_bones_texture, dim=dim, block_dim=self.block_dim, device=self.device,
-                            inputs=[self.texture, self.encoding_id, self.bone_count, int(self.unorm),
-                                    self.unorm_low, self.unorm_span, frames, int(separate), *outputs])
+            wp.launch(K.decode_bones_texture, dim=dim, device=self.device,
+                      inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,
+                              frames, int(separate), *outputs])
         return buffers
 
     def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:
@@ -504,11 +482,15 @@ class Decoder:
         """
         crowd = self._times_crowd(clip_index, tau)
         buffers = self.decode_bones(crowd, 0.0, fraction_steps=fraction_steps)
+        def matrices(array, rows, cols):
+            n, _, b = array.shape
+            return np.swapaxes(array.numpy(), 1, 2).reshape(n, b, rows, cols)
+
         if self.encoding is Encoding.DUAL_QUAT:
-            return {"dual": buffers.dual.numpy()}
-        result = {"linear": buffers.linear.numpy()}
+            return {"dual": matrices(buffers.dual, 2, 4)}
+        result = {"linear": matrices(buffers.linear, 3, 4)}
         if self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION):
-            result["normal"] = buffers.normal.numpy()
+            result["normal"] = matrices(buffers.normal, 3, 3)
         return result
 
 

@@ -11,22 +11,29 @@ kernel / function                  numpy twin
 :func:`lerp_texel`                 ``reference.interpolated_values`` (blend stored values)
 :func:`sample_texel`               the same through a hardware-filtered ``wp.Texture2D``
 :func:`decode_bone`                ``encoding.decode_bones``
-``kernels(b).decode_bones``        ``reference.bone_transforms`` for every (instance, bone)
-``kernels(b).skin``                ``reference.skin`` (LBS or DQS) + the instancer transform of
+:data:`instance_frames_kernel`     ``reference.instance_time`` + ``row_position`` per instance
+:data:`decode_bones`               ``reference.bone_transforms`` for every (instance, bone)
+:func:`skin_lbs_kernel` (K)        ``reference.skin`` (LBS) + the instancer transform of
                                    ``reference.skin_crowd``
-``kernels(b).skin_normals``        faceVarying normals (``normal_points``) of the same
+:data:`skin_dqs_kernel`            ``reference.skin`` (DQS, ``_skin_dqs``) + instancer transform
+:data:`skin_normals_kernel`        faceVarying normals (``normal_points``) of the two above
 =================================  ==========================================================
 
-Performance design (GPU): a naive kernel with one thread per (instance, vertex) that fetches and
-decodes every texel it needs repeats the decode of each bone for every vertex it influences. Here
-the work is split in two launches: ``decode_bones`` runs once per (instance, bone) and writes a
-small bone buffer (a 3x4 matrix ``[A | t]`` per bone, plus the 3x3 normal matrix for encodings that
-need one, or the normalized dual quaternion for dualQuat); ``skin`` then reads only that buffer
-(cache resident: one instance's bones serve all its vertices) and the rest mesh, and writes float32
-positions and normals. Both kernels stage their per-thread results in shared memory and leave the
-block with one ``wp.tile_store``, which warp turns into 16-byte vector stores: a thread's 12-byte
-point written directly would be three strided 4-byte stores, and the first measured version of
-this decoder (direct stores) reached only a quarter of the copy bandwidth because of them.
+Performance design (GPU), each step measured on an H200 (benchmarks/README.md):
+
+* A naive kernel with one thread per (instance, vertex) that fetches and decodes every texel it
+  needs repeats each bone's decode for every vertex it influences. Here the work is split into
+  launches: ``instance_frames_kernel`` once per instance (clip time, rows, blend, placement),
+  ``decode_bones`` once per (instance, bone) into a small bone buffer, then the skinning kernel
+  once per (instance, vertex), reading only that buffer and the rest mesh.
+* The skinning kernel is bound by instructions and L1 gathers, not DRAM, so the per-vertex work
+  is cut to the minimum: the instancer transform is folded into each decoded bone (weights sum to
+  one), the K bone matrices are blended first and applied once (the talk's linear blend of
+  matrices), K is a compile-time constant (unrolled loops, indices and weights in registers), and
+  one thread skins its vertex for several instances (its rest data loaded once).
+* The bone buffer is a structure of arrays, ``(instances, 12, bones)``: a warp's gather of one
+  matrix component for its 32 vertices touches one or two cache lines instead of one 48-byte
+  matrix each.
 
 Arithmetic is float32 except clip timing, which is float64 like the reference: a scene time of
 hours times a rate of 60 rows per second would otherwise lose the blend factor's low bits.
@@ -176,35 +183,58 @@ def texels_per_bone(encoding: int):
 
 
 @wp.func
-def blend_lbs(linear: wp.array2d(dtype=mat34), normal: wp.array2d(dtype=wp.mat33), use_normal: int,
-              instance: int, indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32),
-              v: int, influences: int, p: wp.vec3, n: wp.vec3):
-    """``sum w_i (A_i p + t_i)`` and ``sum w_i N_i n`` over a vertex's influences (LBS)."""
-    p4 = wp.vec4(p[0], p[1], p[2], 1.0)
-    n4 = wp.vec4(n[0], n[1], n[2], 0.0)
-    out_p = wp.vec3()
-    out_n = wp.vec3()
-    for k in range(influences):
-        bone = indices[v, k]
-        w = weights[v, k]
-        m = linear[instance, bone]
-        out_p += w * (m * p4)
-        if use_normal != 0:
-            out_n += w * (normal[instance, bone] * n)
-        else:
-            out_n += w * (m * n4)
-    return out_p, out_n
+def load_linear(bones: wp.array3d(dtype=float), instance: int, bone: int):
+    """Bone ``[A | t]`` from a structure-of-arrays buffer ``(instances, 12, bones)``."""
+    return mat34(bones[instance, 0, bone], bones[instance, 1, bone], bones[instance, 2, bone], bones[instance, 3, bone],
+                 bones[instance, 4, bone], bones[instance, 5, bone], bones[instance, 6, bone], bones[instance, 7, bone],
+                 bones[instance, 8, bone], bones[instance, 9, bone], bones[instance, 10, bone], bones[instance, 11, bone])
 
 
 @wp.func
-def blend_dqs(dual: wp.array2d(dtype=dualquat), instance: int, indices: wp.array2d(dtype=wp.int32),
+def load_normal(bones: wp.array3d(dtype=float), instance: int, bone: int):
+    """Bone normal matrix from a structure-of-arrays buffer ``(instances, 9, bones)``."""
+    return wp.mat33(bones[instance, 0, bone], bones[instance, 1, bone], bones[instance, 2, bone],
+                    bones[instance, 3, bone], bones[instance, 4, bone], bones[instance, 5, bone],
+                    bones[instance, 6, bone], bones[instance, 7, bone], bones[instance, 8, bone])
+
+
+@wp.func
+def load_dual(bones: wp.array3d(dtype=float), instance: int, bone: int):
+    """Bone dual quaternion from a structure-of-arrays buffer ``(instances, 8, bones)``."""
+    return dualquat(bones[instance, 0, bone], bones[instance, 1, bone], bones[instance, 2, bone], bones[instance, 3, bone],
+                    bones[instance, 4, bone], bones[instance, 5, bone], bones[instance, 6, bone], bones[instance, 7, bone])
+
+
+@wp.func
+def store_linear(bones: wp.array3d(dtype=float), instance: int, bone: int, m: mat34):
+    for i in range(3):
+        for j in range(4):
+            bones[instance, i * 4 + j, bone] = m[i, j]
+
+
+@wp.func
+def store_normal(bones: wp.array3d(dtype=float), instance: int, bone: int, m: wp.mat33):
+    for i in range(3):
+        for j in range(3):
+            bones[instance, i * 3 + j, bone] = m[i, j]
+
+
+@wp.func
+def store_dual(bones: wp.array3d(dtype=float), instance: int, bone: int, m: dualquat):
+    for i in range(2):
+        for j in range(4):
+            bones[instance, i * 4 + j, bone] = m[i, j]
+
+
+@wp.func
+def blend_dqs(dual: wp.array3d(dtype=float), instance: int, indices: wp.array2d(dtype=wp.int32),
               weights: wp.array2d(dtype=wp.float32), v: int, influences: int):
     """Blended, normalized dual quaternion of a vertex; signs follow the first influence."""
-    first = dual[instance, indices[v, 0]][0]
+    first = load_dual(dual, instance, indices[v, 0])[0]
     real = wp.vec4()
     du = wp.vec4()
     for k in range(influences):
-        q = dual[instance, indices[v, k]]
+        q = load_dual(dual, instance, indices[v, k])
         w = weights[v, k]
         if wp.dot(q[0], first) < 0.0:
             w = -w
@@ -300,153 +330,95 @@ def instance_frames_kernel(
     frames[instance] = frame
 
 
-class Kernels:
-    """The decoder's kernels for one block size (see :func:`kernels`)."""
+@wp.func
+def store_bones(encoding: int, separate_normals: int, instance: int, bone: int, linear: mat34, normal: wp.mat33,
+                dual: dualquat, out_linear: wp.array3d(dtype=float), out_normal: wp.array3d(dtype=float),
+                out_dual: wp.array3d(dtype=float)):
+    """Write a decoded bone to the buffers its encoding uses."""
+    if encoding == DUAL_QUAT:
+        store_dual(out_dual, instance, bone, dual)
+    else:
+        store_linear(out_linear, instance, bone, linear)
+        if separate_normals != 0:
+            store_normal(out_normal, instance, bone, normal)
 
-    def __init__(self, **launchers) -> None:
-        self.__dict__.update(launchers)
 
+@wp.kernel
+def decode_bones(
+    texels: wp.array2d(dtype=wp.vec4),
+    encoding: int,
+    frames: wp.array(dtype=InstanceFrame),
+    separate_normals: int,
+    out_linear: wp.array3d(dtype=float),
+    out_normal: wp.array3d(dtype=float),
+    out_dual: wp.array3d(dtype=float),
+):
+    """One item per (instance, bone): blend the bone's texels between the instance's rows and decode.
 
-@functools.lru_cache(maxsize=None)
-def kernels(block: int) -> Kernels:
-    """The bone decode kernels for ``block`` threads per block (launch with ``launch_tiled``).
-
-    Each thread decodes one (instance, bone) item, ``item = block_index * block + lane``, and the
-    block stages its results in a shared-memory tile stored with one block-wide ``wp.tile_store``
-    (16-byte vector stores instead of a 48-byte matrix's twelve strided 4-byte stores). CUDA uses
-    ``block = 256``; warp's CPU backend runs tiles one thread wide, so the CPU uses ``block = 1``:
-    the same source, compiled for each.
+    ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
+    textures). LBS bones are placed by the instance's transform (:func:`place_bone`). Outputs are
+    the structure-of-arrays bone buffers ``(instances, 12 | 9 | 8, bones)``.
     """
+    instance, bone = wp.tid()
+    frame = frames[instance]
+    column = bone * texels_per_bone(encoding)
+    v0 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column)
+    v1 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 1)
+    v2 = wp.vec4()
+    if texels_per_bone(encoding) == 3:
+        v2 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 2)
+    linear, normal, dual = decode_bone(encoding, v0, v1, v2)
+    if encoding != DUAL_QUAT:
+        linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
+    store_bones(encoding, separate_normals, instance, bone, linear, normal, dual, out_linear, out_normal,
+                out_dual)
 
-    # (1, block) shared tiles of per-thread values, ready for a vectorized tile_store.
-    @wp.func
-    def staged(value: wp.vec3):
-        stage = wp.tile_zeros(shape=(1, block), dtype=wp.vec3, storage="shared")
-        wp.tile_assign(stage, wp.tile_reshape(wp.tile(value, preserve_type=True), shape=(1, block)), offset=(0, 0))
-        return stage
 
-    @wp.func
-    def staged(value: mat34):
-        stage = wp.tile_zeros(shape=(1, block), dtype=mat34, storage="shared")
-        wp.tile_assign(stage, wp.tile_reshape(wp.tile(value, preserve_type=True), shape=(1, block)), offset=(0, 0))
-        return stage
+@wp.kernel
+def decode_bones_texture(
+    texture: wp.Texture2D,
+    encoding: int,
+    unorm: int,
+    unorm_low: wp.array(dtype=wp.vec4),
+    unorm_span: wp.array(dtype=wp.vec4),
+    frames: wp.array(dtype=InstanceFrame),
+    separate_normals: int,
+    out_linear: wp.array3d(dtype=float),
+    out_normal: wp.array3d(dtype=float),
+    out_dual: wp.array3d(dtype=float),
+):
+    """The hardware texture path of ``decode_bones``: rows blended by the texture unit.
 
-    @wp.func
-    def staged(value: wp.mat33):
-        stage = wp.tile_zeros(shape=(1, block), dtype=wp.mat33, storage="shared")
-        wp.tile_assign(stage, wp.tile_reshape(wp.tile(value, preserve_type=True), shape=(1, block)), offset=(0, 0))
-        return stage
-
-    @wp.func
-    def staged(value: dualquat):
-        stage = wp.tile_zeros(shape=(1, block), dtype=dualquat, storage="shared")
-        wp.tile_assign(stage, wp.tile_reshape(wp.tile(value, preserve_type=True), shape=(1, block)), offset=(0, 0))
-        return stage
-
-    @wp.func
-    def store_bones(encoding: int, separate_normals: int, first: int, linear: mat34, normal: wp.mat33,
-                    dual: dualquat, out_linear: wp.array2d(dtype=mat34), out_normal: wp.array2d(dtype=wp.mat33),
-                    out_dual: wp.array2d(dtype=dualquat)):
-        if encoding == DUAL_QUAT:
-            wp.tile_store(out_dual, staged(dual), offset=(0, first))
-        else:
-            wp.tile_store(out_linear, staged(linear), offset=(0, first))
-            if separate_normals != 0:
-                wp.tile_store(out_normal, staged(normal), offset=(0, first))
-
-    @wp.kernel(module="unique")
-    def decode_bones(
-        texels: wp.array2d(dtype=wp.vec4),
-        encoding: int,
-        bone_count: int,
-        frames: wp.array(dtype=InstanceFrame),
-        separate_normals: int,
-        out_linear: wp.array2d(dtype=mat34),
-        out_normal: wp.array2d(dtype=wp.mat33),
-        out_dual: wp.array2d(dtype=dualquat),
-    ):
-        """One item per (instance, bone): blend the bone's texels between the instance's rows and decode.
-
-        ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
-        textures). LBS bones are placed by the instance's transform (:func:`place_bone`). Outputs
-        are (1, instances x bones) views of the (instances, bones) bone buffers.
-        """
-        block_index, lane = wp.tid()
-        first = block_index * block
-        item = first + lane
-        linear = mat34()
-        normal = wp.mat33()
-        dual = dualquat()
-        if item < frames.shape[0] * bone_count:
-            instance = item // bone_count
-            bone = item - instance * bone_count
-            frame = frames[instance]
-            column = bone * texels_per_bone(encoding)
-            v0 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column)
-            v1 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 1)
-            v2 = wp.vec4()
-            if texels_per_bone(encoding) == 3:
-                v2 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 2)
-            linear, normal, dual = decode_bone(encoding, v0, v1, v2)
-            if encoding != DUAL_QUAT:
-                linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
-        store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
-
-    @wp.kernel(module="unique")
-    def decode_bones_texture(
-        texture: wp.Texture2D,
-        encoding: int,
-        bone_count: int,
-        unorm: int,
-        unorm_low: wp.array(dtype=wp.vec4),
-        unorm_span: wp.array(dtype=wp.vec4),
-        frames: wp.array(dtype=InstanceFrame),
-        separate_normals: int,
-        out_linear: wp.array2d(dtype=mat34),
-        out_normal: wp.array2d(dtype=wp.mat33),
-        out_dual: wp.array2d(dtype=dualquat),
-    ):
-        """The hardware texture path of ``decode_bones``: rows blended by the texture unit.
-
-        ``texture`` holds the stored texels in their own format (float16, float32, or uint16 read
-        normalized), unnormalized coordinates, bilinear filtering, clamped addressing.
-        """
-        block_index, lane = wp.tid()
-        first = block_index * block
-        item = first + lane
-        linear = mat34()
-        normal = wp.mat33()
-        dual = dualquat()
-        if item < frames.shape[0] * bone_count:
-            instance = item // bone_count
-            bone = item - instance * bone_count
-            frame = frames[instance]
-            row0 = frame.row0
-            row1 = frame.row1
-            f = frame.f
-            column = bone * texels_per_bone(encoding)
-            low = wp.vec4()
-            span = wp.vec4()
-            if unorm != 0:
-                low = unorm_low[0]
-                span = unorm_span[0]
-            v0 = sample_texel(texture, row0, row1, f, column, low, span, unorm)
-            if unorm != 0:
-                low = unorm_low[1]
-                span = unorm_span[1]
-            v1 = sample_texel(texture, row0, row1, f, column + 1, low, span, unorm)
-            v2 = wp.vec4()
-            if texels_per_bone(encoding) == 3:
-                if unorm != 0:
-                    low = unorm_low[2]
-                    span = unorm_span[2]
-                v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
-            linear, normal, dual = decode_bone(encoding, v0, v1, v2)
-            if encoding != DUAL_QUAT:
-                linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
-        store_bones(encoding, separate_normals, first, linear, normal, dual, out_linear, out_normal, out_dual)
-
-    return Kernels(decode_bones=decode_bones, decode_bones_texture=decode_bones_texture)
+    ``texture`` holds the stored texels in their own format (float16, float32, or uint16 read
+    normalized), unnormalized coordinates, bilinear filtering, clamped addressing.
+    """
+    instance, bone = wp.tid()
+    frame = frames[instance]
+    row0 = frame.row0
+    row1 = frame.row1
+    f = frame.f
+    column = bone * texels_per_bone(encoding)
+    low = wp.vec4()
+    span = wp.vec4()
+    if unorm != 0:
+        low = unorm_low[0]
+        span = unorm_span[0]
+    v0 = sample_texel(texture, row0, row1, f, column, low, span, unorm)
+    if unorm != 0:
+        low = unorm_low[1]
+        span = unorm_span[1]
+    v1 = sample_texel(texture, row0, row1, f, column + 1, low, span, unorm)
+    v2 = wp.vec4()
+    if texels_per_bone(encoding) == 3:
+        if unorm != 0:
+            low = unorm_low[2]
+            span = unorm_span[2]
+        v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
+    linear, normal, dual = decode_bone(encoding, v0, v1, v2)
+    if encoding != DUAL_QUAT:
+        linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
+    store_bones(encoding, separate_normals, instance, bone, linear, normal, dual, out_linear, out_normal,
+                out_dual)
 
 
 @wp.func
@@ -492,8 +464,8 @@ def skin_lbs_kernel(influences: int):
     # kernel's arithmetic, not memory, is what limits it (benchmarks/README.md).
     @wp.kernel(module="unique", module_options={"fast_math": True})
     def skin_lbs(
-        linear: wp.array2d(dtype=mat34),
-        normal: wp.array2d(dtype=wp.mat33),
+        linear: wp.array3d(dtype=float),
+        normal: wp.array3d(dtype=float),
         separate_normals: int,
         points: wp.array(dtype=wp.vec3),
         normals: wp.array(dtype=wp.vec3),
@@ -527,16 +499,16 @@ def skin_lbs_kernel(influences: int):
         first = j * instances_per_thread
         last = wp.min(first + instances_per_thread, linear.shape[0])
         for instance in range(first, last):
-            blend = w[0] * linear[instance, bone[0]]
+            blend = w[0] * load_linear(linear, instance, bone[0])
             for k in range(1, influences):
-                blend += w[k] * linear[instance, bone[k]]
+                blend += w[k] * load_linear(linear, instance, bone[k])
             out_points[instance, v] = blend * p4
             if with_normals != 0:
                 sn = wp.vec3()
                 if separate_normals != 0:
-                    nblend = w[0] * normal[instance, bone[0]]
+                    nblend = w[0] * load_normal(normal, instance, bone[0])
                     for k in range(1, influences):
-                        nblend += w[k] * normal[instance, bone[k]]
+                        nblend += w[k] * load_normal(normal, instance, bone[k])
                     sn = nblend * n
                 else:
                     sn = blend * n4
@@ -547,7 +519,7 @@ def skin_lbs_kernel(influences: int):
 
 @wp.kernel
 def skin_dqs_kernel(
-    dual: wp.array2d(dtype=dualquat),
+    dual: wp.array3d(dtype=float),
     points: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     with_normals: int,
@@ -581,10 +553,10 @@ def skin_dqs_kernel(
 @wp.kernel
 def skin_normals_kernel(
     encoding: int,
-    linear: wp.array2d(dtype=mat34),
-    normal: wp.array2d(dtype=wp.mat33),
+    linear: wp.array3d(dtype=float),
+    normal: wp.array3d(dtype=float),
     separate_normals: int,
-    dual: wp.array2d(dtype=dualquat),
+    dual: wp.array3d(dtype=float),
     normals: wp.array(dtype=wp.vec3),
     normal_points: wp.array(dtype=wp.int32),
     indices: wp.array2d(dtype=wp.int32),
@@ -607,7 +579,7 @@ def skin_normals_kernel(
             w = weights[v, k]
             bone = indices[v, k]
             if separate_normals != 0:
-                sn += w * (normal[instance, bone] * n)
+                sn += w * (load_normal(normal, instance, bone) * n)
             else:
-                sn += w * (linear[instance, bone] * wp.vec4(n[0], n[1], n[2], 0.0))
+                sn += w * (load_linear(linear, instance, bone) * wp.vec4(n[0], n[1], n[2], 0.0))
         out_normals[instance, e] = wp.normalize(sn)
