@@ -498,6 +498,22 @@ def test_syntax_error_is_an_input_error(written):
         usd_io.read_asset(written)
     assert caught.value.code == "usd.syntax" and caught.value.file == str(written)
     _one_line(caught.value)
+    # The place USD names (the file ends inside a prim: its last line) becomes the location.
+    last_line = written.read_text().count("\n") + 1
+    assert re.fullmatch(r"line (\d+) column \d+", caught.value.location)
+    assert abs(int(caught.value.location.split()[1]) - last_line) <= 1
+    assert str(written) not in caught.value.message  # said once, as the file
+
+
+def test_syntax_error_at_a_known_place(written):
+    text = written.read_text()
+    lines = text.splitlines()
+    (index,) = [i for i, line in enumerate(lines) if "vb:textureWidth = " in line]
+    lines[index] = lines[index].replace("vb:textureWidth = ", "vb:textureWidth = = ")
+    written.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError) as caught:
+        usd_io.read_asset(written)
+    assert caught.value.location.startswith(f"line {index + 1} column ")
 
 
 def test_truncated_usdc_is_an_input_error(tmp_path):

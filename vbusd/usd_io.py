@@ -469,6 +469,27 @@ class _Reader:
     def error(self, message: str, location: str, code: str = "usd.invalid") -> InputError:
         return InputError(message, file=self.file, location=location, code=code)
 
+    def syntax_error(self, error: BaseException) -> InputError:
+        """USD's parse error as an InputError located at ``line L column C`` of this file.
+
+        USD writes the place as ``/abs/path/file.usda:L:C: message``; when the place is in this
+        file it becomes the location, otherwise (a sublayer) it stays in the message.
+        """
+        message = _tf_message(error)
+        location = "file"
+        match = re.search(r"(\S+?):(\d+):(\d+): ", message)
+        if match:
+            try:
+                same = Path(match.group(1)).resolve() == self.path.resolve()
+            except (OSError, ValueError):
+                same = False
+            if same:
+                location = f"line {match.group(2)} column {match.group(3)}"
+                message = message.replace(match.group(0), "")
+        # USD often reports one parse error twice, with and without its place.
+        message = "; ".join(dict.fromkeys(message.split("; ")))
+        return self.error(message, location, "usd.syntax")
+
     # -- attributes ----------------------------------------------------------------------------
 
     def attribute(self, prim, name: str, type_name, *, required: bool = True):
@@ -869,14 +890,14 @@ class _Reader:
             else:
                 layer = Sdf.Layer.FindOrOpen(str(self.path))
         except Tf.ErrorException as error:
-            raise self.error(_tf_message(error), "file", "usd.syntax") from None
+            raise self.syntax_error(error) from None
         if layer is None:
             raise self.error("USD could not open the file", "file", "usd.syntax")
         self.check_dependencies(layer, set())
         try:
             stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
         except Tf.ErrorException as error:
-            raise self.error(_tf_message(error), "file", "usd.syntax") from None
+            raise self.syntax_error(error) from None
         if stage is None:
             raise self.error("USD could not open the stage", "file", "usd.syntax")
         errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
