@@ -23,11 +23,14 @@ import click
 @click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]))
 @click.option("--force", is_flag=True, help="Replace an existing output.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
-def command(asset, output, device, clip, output_format, force, allow_outside_paths):
+@click.option("--crowd", "crowds", is_flag=True,
+              help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>.")
+def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
     from vbusd.pointcache import decode
 
-    report = decode(asset, output, device=device, clip=clip, force=force, allow_outside_paths=allow_outside_paths)
+    report = decode(asset, output, device=device, clip=clip, force=force, allow_outside_paths=allow_outside_paths,
+                    crowds=crowds)
     if output_format == "json":
         click.echo(json.dumps(report.to_dict(), indent=2))
         return 0
