@@ -155,8 +155,9 @@ class Decoder:
         sampling: ``"exact"`` (default; the spec's interpolation) or ``"hardware"`` (rows blended by
             the texture unit through ``wp.Texture2D``; see spec/hardware-sampling.md).
         instances_per_thread: Instances a skinning thread handles for its vertex (its rest data is
-            loaded once for all of them). None: as many (up to 8) as leave at least a million
+            loaded once for all of them). None: as many (up to 16) as leave at least a million
             threads on CUDA; 1 on the CPU.
+        block_dim: Threads per CUDA block of the skinning launch (warp's default, 256, if None).
 
     Raises:
         OptionsError: Unknown device or sampling mode, no mesh.
@@ -164,7 +165,8 @@ class Decoder:
     """
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
-                 sampling: str = "exact", instances_per_thread: Optional[int] = None) -> None:
+                 sampling: str = "exact", instances_per_thread: Optional[int] = None,
+                 block_dim: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -187,6 +189,10 @@ class Decoder:
             raise OptionsError(f"instances_per_thread must be a positive integer, got {instances_per_thread!r}",
                                file="warp_decoder")
         self.instances_per_thread = instances_per_thread
+        if block_dim is not None and (isinstance(block_dim, bool) or int(block_dim) != block_dim or
+                                      not 1 <= block_dim <= 1024):
+            raise OptionsError(f"block_dim must be an integer in 1..1024, got {block_dim!r}", file="warp_decoder")
+        self.block_dim = 256 if block_dim is None else int(block_dim)
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -394,11 +400,12 @@ class Decoder:
         out_normals = out.normals if fused_normals else out.points  # placeholder when unused
         mesh = [self.points, self.normals, fused_normals, self.indices, self.weights]
         if self.encoding is Encoding.DUAL_QUAT:
-            wp.launch(K.skin_dqs_kernel, dim=dim, device=self.device,
+            wp.launch(K.skin_dqs_kernel, dim=dim, device=self.device, block_dim=self.block_dim,
                       inputs=[buffers.dual, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
                               out.points, out_normals])
         else:
             wp.launch(K.skin_lbs_kernel(int(self.indices.shape[1])), dim=dim, device=self.device,
+                      block_dim=self.block_dim,
                       inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, out.points, out_normals])
         if self.with_normals and self.face_varying:
             wp.launch(K.skin_normals_kernel, dim=(n, self.normal_count), device=self.device,
@@ -412,9 +419,9 @@ class Decoder:
             return self.instances_per_thread
         if not self.device.is_cuda:
             return 1
-        # Measured on an H200 (benchmarks/README.md): 8 instances per thread was fastest on the
+        # Measured on an H200 (benchmarks/README.md): 16 instances per thread was fastest on the
         # large crowds; small crowds need every thread they can get to fill the GPU.
-        ipt = 8
+        ipt = 16
         while ipt > 1 and -(-n // ipt) * self.vertex_count < 1_000_000:
             ipt //= 2
         return ipt
