@@ -27,10 +27,12 @@ import click
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>.")
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
+    from vbusd.commands.convert import _progress
     from vbusd.pointcache import decode
 
-    report = decode(asset, output, device=device, clip=clip, force=force, allow_outside_paths=allow_outside_paths,
-                    crowds=crowds)
+    with _progress() as progress:  # a bar on stderr when it is a terminal
+        report = decode(asset, output, device=device, clip=clip, force=force,
+                        allow_outside_paths=allow_outside_paths, crowds=crowds, progress=progress)
     if output_format == "json":
         click.echo(json.dumps(report.to_dict(), indent=2))
         return 0
