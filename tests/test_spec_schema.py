@@ -595,3 +595,18 @@ def test_vertical_power_of_two_plan_of_the_talk():
     assert (plan.row_count, plan.rows_per_second, plan.loop) == (512, 51.2, True)
     (plan,) = plan_rows((clip,), [True], BakeOptions())
     assert (plan.row_count, plan.rows_per_second) == (300, 30.0)
+
+
+def test_usd_example_is_the_committed_samples_prim(spec_text):
+    """Spec 13's usda example is the sample's animation prim, attribute for attribute."""
+    block = spec_text.split("Example (usda): the animation prim of the repository's sample", 1)[1]
+    block = block.split("```usda", 1)[1].split("```", 1)[0]
+    sample = (ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda").read_text(encoding="utf-8")
+    sample_lines = {line.strip() for line in sample.splitlines()}
+    example = [line.strip() for line in block.splitlines() if line.strip().startswith("uniform ")]
+    assert len(example) == 20  # every attribute a float16 writer authors (no unorm16 ranges)
+    for line in example:
+        if line.startswith("uniform token[] vb:bones = "):  # abridged in the spec
+            assert line.endswith(", ...]") and line[:-len(", ...]")] + "," in " ".join(sample_lines)
+            continue
+        assert line in sample_lines, line
