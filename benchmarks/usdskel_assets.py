@@ -54,7 +54,7 @@ def _row(folder: Path, path: Path, check_rows) -> list:
         texture = f"{animation.width}x{animation.height}"
         rows.append(
             f"| {name} | {animation.path} | {animation.bones} | {len(meshes)} / {points} | "
-            f"{animation.rows} @ {animation.clips[0]['rowsPerSecond']:.4g}/s | {animation.encoding} {texture} | "
+            f"{animation.rows} @ {animation.clips[0]['rows_per_second']:.4g}/s | {animation.encoding} {texture} | "
             f"{worst.max_error:.3g} ({worst.max_error_fraction:.2e}) | "
             f"{worst_exact.max_error:.2g} ({worst_exact.max_error_fraction:.1e}) | "
             f"{f'{max(normals):.3f}' if normals else '-'}; {seconds:.1f} s |")

@@ -55,7 +55,7 @@ def test_stadium_crowd_reproduces_the_talks_texture(tmp_path, capsys):
     assert animation["texel_bytes"] == 256 * 1024
     assert animation["encoding"] == "crossMatrix" and animation["texel_format"] == "float16"
     assert animation["clips"][0]["loop"] is True
-    assert animation["clips"][0]["rowsPerSecond"] == pytest.approx(51.2)
+    assert animation["clips"][0]["rows_per_second"] == pytest.approx(51.2)
     assert animation["padding_fraction"] == pytest.approx(1 - 54 / 64)
     mesh = animation["meshes"][0]
     assert (mesh["points"], mesh["kept_influences"]) == (202, 4)

@@ -464,8 +464,8 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         report.animations.append(AnimationReport(
             path=vb.path, encoding=layout.encoding.value, encoding_reason=reason,
             texel_format=layout.texel_format.value, bones=layout.bone_count, rows=layout.row_count,
-            clips=[{"name": c.name, "rows": c.row_count, "rowsPerSecond": c.rows_per_second, "loop": c.loop,
-                    "startTime": c.start_time} for c in vb.clips],
+            clips=[{"name": c.name, "rows": c.row_count, "rows_per_second": c.rows_per_second, "loop": c.loop,
+                    "start_time": c.start_time} for c in vb.clips],
             width=layout.width, height=layout.height, texel_bytes=layout.texel_bytes,
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))

@@ -155,7 +155,7 @@ def print_summary(report) -> None:
         table = Table(title=f"animation {anim.path}", title_justify="left", show_header=True)
         for name in ("encoding", "texel format", "bones", "rows", "texture", "texel bytes", "padding waste"):
             table.add_column(name)
-        clips = ", ".join(f"{c['name']}: {c['rows']} @ {c['rowsPerSecond']:.6g}/s{' loop' if c['loop'] else ''}"
+        clips = ", ".join(f"{c['name']}: {c['rows']} @ {c['rows_per_second']:.6g}/s{' loop' if c['loop'] else ''}"
                           for c in anim.clips)
         waste = anim.texel_bytes - anim.used_texel_bytes
         table.add_row(f"{anim.encoding}\n({anim.encoding_reason})", anim.texel_format, str(anim.bones),
