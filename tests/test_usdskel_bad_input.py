@@ -88,3 +88,29 @@ def test_unreadable_or_empty_stage(tmp_path, capsys, content, fragment):
     err = capsys.readouterr().err
     assert status == 2 and fragment in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.usda"]
+
+
+def test_layers_outside_the_folder_need_permission(tmp_path, capsys):
+    # The rig lives in a sibling folder and is sublayered by a stage in its own folder.
+    scenes_path = Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py"
+    import importlib.util
+
+    name = "vbusd_test_usdskel_scenes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, scenes_path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    scenes = sys.modules[name]
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "shot").mkdir()
+    scenes.write_stage(tmp_path / "lib" / "rig.usda", [scenes.RigSpec()])
+    shot = tmp_path / "shot" / "shot.usda"
+    shot.write_text('#usda 1.0\n(\n    subLayers = [@../lib/rig.usda@]\n)\n')
+    output = tmp_path / "shot" / "out.usda"
+    assert main(["convert", str(shot), "-o", str(output)]) == 2
+    err = capsys.readouterr().err
+    assert "usd.outsidePath" in err and "--allow-outside-paths" in err
+    assert not output.exists()
+    assert main(["convert", str(shot), "-o", str(output), "--allow-outside-paths"]) == 0
+    assert output.exists()
