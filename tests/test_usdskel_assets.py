@@ -79,19 +79,20 @@ def test_joint_influence_error_cases_are_refused(shared_assets, tmp_path):
     assert caught.value.location.startswith("/")
 
 
-def test_decoded_cache_matches_pixars_bake_skinning_baseline(shared_assets, tmp_path):
-    # A second, fully independent oracle: Pixar's own UsdSkel.BakeSkinning output for lbs.usda,
-    # checked into OpenUSD as a test baseline. The decoded cache must hold the same points and
-    # normals at the same time codes (float32 texels: to 1e-5).
+@pytest.mark.parametrize("folder_name, stem", [("BakeSkinning_LBS", "lbs"), ("BakeSkinning_DQS", "dqs")])
+def test_decoded_cache_matches_pixars_bake_skinning_baseline(shared_assets, tmp_path, folder_name, stem):
+    # A second, fully independent oracle: Pixar's own UsdSkel.BakeSkinning output, checked into
+    # OpenUSD as a test baseline (LBS, and dual-quaternion skinning decoded from dualQuat). The
+    # decoded cache must hold the same points and normals at the same time codes (float32 texels).
     import numpy as np
     from pxr import Usd, UsdGeom
 
     from vbusd.pointcache import decode
 
-    folder = shared_assets / "usdskel" / "BakeSkinning_LBS"
-    convert(folder / "lbs.usda", tmp_path / "lbs.usda", ConvertOptions(texel_format="float32", check_rows=0))
-    decode(tmp_path / "lbs.usda", tmp_path / "cache.usda")
-    ours, pixar = Usd.Stage.Open(str(tmp_path / "cache.usda")), Usd.Stage.Open(str(folder / "lbs.baked.usda"))
+    folder = shared_assets / "usdskel" / folder_name
+    convert(folder / f"{stem}.usda", tmp_path / "out.usda", ConvertOptions(texel_format="float32", check_rows=0))
+    decode(tmp_path / "out.usda", tmp_path / "cache.usda")
+    ours, pixar = Usd.Stage.Open(str(tmp_path / "cache.usda")), Usd.Stage.Open(str(folder / f"{stem}.baked.usda"))
     for path in ("/Root/Mesh", "/Root/MeshWithNormals", "/Root/MeshWithFaceVaryingNormals"):
         mine, theirs = UsdGeom.Mesh(ours.GetPrimAtPath(path)), UsdGeom.Mesh(pixar.GetPrimAtPath(path))
         codes = theirs.GetPointsAttr().GetTimeSamples()
