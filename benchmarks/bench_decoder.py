@@ -505,7 +505,7 @@ def hardware_study(device: str) -> dict:
     return {"probes": probes, "rows": rows}
 
 
-HEADER = ("| case      | instances x vertices | dev  | method                                     |   ms/call |    M vi/s | "
+HEADER = ("| case      | instances x vertices | dev  | method                                       |   ms/call |    M vi/s | "
           "% copy | % copy (outputs) |\n"
           "|---|---|---|---|---:|---:|---:|---:|")
 
