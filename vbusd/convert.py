@@ -356,16 +356,23 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 transforms = bone_transforms(vb, clip_index, tau)
                 decoded, decoded_normals = skin(transforms, vb.layout.encoding, bound.points, bound.bone_indices,
                                                 bound.bone_weights, bound.normals, normal_point_indices(bound))
-                exact = np.asarray(source_clip.sample(times), dtype=np.float64)
-                full = _source_lbs(exact, source_mesh.points, np.asarray(source_mesh.bone_indices),
-                                   np.asarray(source_mesh.bone_weights))
+                # Dropping influences only matters when the source has more than were kept; then
+                # compare exact-matrix LBS with all influences and with the kept ones.
+                reduced = report.source_influences > report.kept_influences
+                full = None
+                if reduced or reference is None:
+                    exact = np.asarray(source_clip.sample(times), dtype=np.float64)
+                    full = _source_lbs(exact, source_mesh.points, np.asarray(source_mesh.bone_indices),
+                                       np.asarray(source_mesh.bone_weights))
                 if reference is not None:
                     ref_points, ref_normals = reference(index, mesh_index, times)
                 else:
                     ref_points, ref_normals = full, None
-                kept = _source_lbs(exact, source_mesh.points, bound.bone_indices, bound.bone_weights)
                 error = float(np.linalg.norm(decoded - ref_points, axis=-1).max(initial=0.0))
-                dropped = float(np.linalg.norm(kept - full, axis=-1).max(initial=0.0))
+                dropped = 0.0
+                if reduced:
+                    kept = _source_lbs(exact, source_mesh.points, bound.bone_indices, bound.bone_weights)
+                    dropped = float(np.linalg.norm(kept - full, axis=-1).max(initial=0.0))
                 report.max_error = max(report.max_error or 0.0, error)
                 report.influence_error = max(report.influence_error or 0.0, dropped)
                 lows[mesh_index] = np.minimum(lows[mesh_index], ref_points.reshape(-1, 3).min(axis=0))
