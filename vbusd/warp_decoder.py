@@ -1,8 +1,9 @@
 """The Virtual Bones decoder in warp-lang, on CPU and CUDA: the executable spec, on the device.
 
 :class:`Decoder` uploads one baked animation's texture and one bound mesh to a device once and
-keeps them there; each call then decodes the bones of every instance (one launch, instances x
-bones) and skins positions and normals (one launch, instances x vertices) into float32 device
+keeps them there; each call then computes every instance's clip rows and placement (one launch,
+instances), decodes the bones of every instance (one launch, instances x bones) and skins
+positions and normals of the whole crowd (one launch, instances x vertices) into float32 device
 arrays, with no host<->device copy beyond the kernels' scalar arguments. A renderer or a
 simulation can call it every frame::
 
@@ -438,7 +439,7 @@ class Decoder:
 
     def skin_crowd(self, crowd: Union[Crowd, DeviceCrowd], t: float, out: Optional[SkinResult] = None,
                    *, fraction_steps: float = 0.0) -> SkinResult:
-        """World-space points and normals of every instance at scene time ``t`` (two launches).
+        """World-space points and normals of every instance at scene time ``t`` (three launches).
 
         Twin of ``reference.skin_crowd``. A :class:`~vbusd.model.Crowd` is uploaded on its first
         call and reused while the same object is passed again; pass a :class:`DeviceCrowd` from
