@@ -111,6 +111,9 @@ def test_module_functions_have_the_reference_call_shape(device):
     mesh, crowd = vb.meshes[0], synthetic.make_crowd(5)
     assert_agrees(wd.skin_mesh(vb, mesh, 1, [0.1, 0.2], device=device), reference.skin_mesh(vb, mesh, 1, [0.1, 0.2]))
     assert_agrees(wd.skin_crowd(vb, mesh, crowd, 2.5, device=device), reference.skin_crowd(vb, mesh, crowd, 2.5))
+    uploaded = wd._LAST_DECODER[0][-1]
+    assert_agrees(wd.skin_crowd(vb, mesh, crowd, 3.5, device=device), reference.skin_crowd(vb, mesh, crowd, 3.5))
+    assert wd._LAST_DECODER[0][-1] is uploaded  # the next frame reuses the uploaded texture and mesh
 
 
 def _stadium():

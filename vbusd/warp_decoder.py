@@ -503,14 +503,29 @@ class Decoder:
         return result
 
 
+_LAST_DECODER: list = []  # [(vb, mesh, device, sampling, Decoder)]: the module functions' upload cache
+
+
+def _cached_decoder(vb: VirtualBones, mesh: BoundMesh, device, sampling: str) -> Decoder:
+    """The Decoder of the last call when it was for the same objects: a point cache decodes one
+    frame after another, and uploading the texture and mesh once is the point of the Decoder."""
+    if _LAST_DECODER:
+        last_vb, last_mesh, last_device, last_sampling, decoder = _LAST_DECODER[0]
+        if last_vb is vb and last_mesh is mesh and last_device == str(device) and last_sampling == sampling:
+            return decoder
+    decoder = Decoder(vb, mesh, device=device, sampling=sampling)
+    _LAST_DECODER[:] = [(vb, mesh, str(device), sampling, decoder)]
+    return decoder
+
+
 def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device,
               sampling: str = "exact") -> tuple:
     """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times, on ``device``.
 
     Same call shape and meaning as ``vbusd.reference.skin_mesh``, plus ``device=``; float32 results.
+    Consecutive calls for the same ``vb`` and ``mesh`` objects reuse the uploaded data.
     """
-    result = Decoder(vb, mesh, device=device, sampling=sampling).skin(clip_index, tau)
-    return result.numpy()
+    return _cached_decoder(vb, mesh, device, sampling).skin(clip_index, tau).numpy()
 
 
 def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, device,
@@ -518,6 +533,6 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, dev
     """World-space points (N, V, 3) and normals of every instance at scene time ``t``, on ``device``.
 
     Same call shape and meaning as ``vbusd.reference.skin_crowd``, plus ``device=``; float32 results.
+    Consecutive calls for the same ``vb``, ``mesh`` and ``crowd`` objects reuse the uploaded data.
     """
-    result = Decoder(vb, mesh, device=device, sampling=sampling).skin_crowd(crowd, t)
-    return result.numpy()
+    return _cached_decoder(vb, mesh, device, sampling).skin_crowd(crowd, t).numpy()
