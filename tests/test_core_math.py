@@ -286,3 +286,30 @@ def test_unorm16_ranges_are_float32_numbers_that_contain_every_value():
     assert np.all(ranges[..., 0] <= -0.3) and np.all(ranges[..., 1] >= 0.7)
     # 0.1 is not a float32, so its bound is the float32 just below/above it, within 1 ulp.
     assert np.all(np.abs(ranges[..., 1] - 0.7) < 1e-7)
+
+
+def test_power_of_two_fill_never_overshoots_with_tiny_clips():
+    from vbusd.bake import plan_rows
+
+    def clip(duration):
+        return AnimationClip(f"c{duration}", 0.0, duration, lambda t: None, native_rate=1.0)
+
+    clips = tuple(clip(d) for d in (1.0, 1.0, 0.01, 0.01, 0.01))
+    plans = plan_rows(clips, [True] * 5, BakeOptions(vertical_padding="powerOfTwo"))
+    # Natural rows: 1 + 1 + three clips of one row = 5 -> target 8; tiny clips keep one row each.
+    assert sum(p.row_count for p in plans) == 8
+    assert [p.row_count for p in plans[2:]] == [1, 1, 1]
+
+
+def test_float16_overflow_names_the_bone_clip_and_time():
+    def far(times):
+        out = np.tile(np.eye(4), (len(np.atleast_1d(times)), 2, 1, 1))
+        out[:, 1, 0, 3] = 1e5 * np.atleast_1d(times)  # bone 1 runs away; beyond 65504 after 0.65 s
+        return out
+
+    animation = SkinnedAnimation("A", "/A", ("root", "runner"),
+                                 (AnimationClip("run", 0.0, 1.0, far, native_rate=10, loop=False),))
+    with pytest.raises(UnsupportedError) as error:
+        bake(animation, BakeOptions(texel_format="float16"))
+    assert "'runner' at time 0.7 s of clip 'run'" in str(error.value)
+    assert bake(animation, BakeOptions(texel_format="float32")).layout.row_count == 11

@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from .encoding import NonRigidError, encode_bones, make_hemispheres_continuous, pack, quantize
+from .encoding import FLOAT16_MAX, NonRigidError, encode_bones, make_hemispheres_continuous, pack, quantize
 from .errors import InputError, OptionsError, UnsupportedError
 from .layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from .model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
@@ -122,6 +122,13 @@ def plan_rows(clips: tuple, loops: list, options: BakeOptions) -> list:
             weight = sum(durations[i] for i in moving)
             exact = {i: target_spans * durations[i] / weight for i in moving}
             new = {i: max(1, math.floor(exact[i])) for i in moving}
+            # Raising tiny clips to one span can overshoot the target: take the rows back from the
+            # clips that got the most above their exact share.
+            while sum(new.values()) > target_spans:
+                donors = [i for i in moving if new[i] > 1]
+                if not donors:
+                    break
+                new[max(donors, key=lambda i: new[i] - exact[i])] -= 1
             leftover = target_spans - sum(new.values())
             for i in sorted(moving, key=lambda i: exact[i] - math.floor(exact[i]), reverse=True):
                 if leftover <= 0:
@@ -250,6 +257,21 @@ def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: A
                             code="encoding.nonRigid")
 
 
+def _check_float16_range(values: np.ndarray, animation: SkinnedAnimation, clips: list) -> None:
+    """Refuse values beyond float16's range, naming the first bone, clip and time that has one."""
+    over = np.argwhere(np.abs(values) > FLOAT16_MAX)
+    if over.size == 0:
+        return
+    row, bone = int(over[0][0]), int(over[0][1])
+    clip = next(c for c in clips if c.first_row <= row < c.first_row + c.row_count)
+    time = clip.row_time(row - clip.first_row)
+    peak = float(np.abs(values[row, bone]).max())
+    raise UnsupportedError(
+        f"bone '{animation.bones[bone]}' at time {time:.6g} s of clip '{clip.name}': a channel value of "
+        f"{peak:.6g} exceeds float16's largest value {FLOAT16_MAX:g}; use texelFormat float32 or unorm16",
+        file=animation.source, location=animation.path, code="encoding.float16Overflow")
+
+
 def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
     """Bake one skinned animation into a Virtual Bones texture with its bound meshes.
 
@@ -298,8 +320,11 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
 
     layout = Layout(options.encoding, options.texel_format, bone_count, first_row,
                     options.horizontal_padding, options.vertical_padding)
+    all_values = np.concatenate(values, axis=0)
+    if options.texel_format is TexelFormat.FLOAT16:
+        _check_float16_range(all_values, animation, clips)
     try:
-        stored, ranges = quantize(np.concatenate(values, axis=0), options.texel_format)
+        stored, ranges = quantize(all_values, options.texel_format)
     except UnsupportedError as error:
         raise error.at(file=animation.source, location=animation.path)
     texels = pack(stored, layout)

@@ -106,15 +106,22 @@ def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarra
     nw = w if normal_points is None else w[normal_points]
     if encoding is Encoding.DUAL_QUAT:
         return _skin_dqs(transforms, p, idx, w, normals, nidx, nw)
-    a = transforms.linear[:, idx]  # (n, V, K, 3, 3)
-    t = transforms.translation[:, idx]  # (n, V, K, 3)
-    moved = np.einsum("nvkij,vj->nvki", a, p) + t
-    out_points = np.einsum("nvki,vk->nvi", moved, w)
+    # LBS is linear in the transforms, so blend each vertex's matrices first (one influence slot at
+    # a time keeps every temporary at (n, V, 3, 3)), then transform the point once.
+    linear = np.zeros((transforms.linear.shape[0], p.shape[0], 3, 3))
+    translation = np.zeros((transforms.linear.shape[0], p.shape[0], 3))
+    for slot in range(idx.shape[1]):
+        weight = w[:, slot]
+        linear += transforms.linear[:, idx[:, slot]] * weight[None, :, None, None]
+        translation += transforms.translation[:, idx[:, slot]] * weight[None, :, None]
+    out_points = np.matmul(linear, p[None, :, :, None])[..., 0] + translation
     out_normals = None
     if normals is not None:
-        nm = transforms.normal[:, nidx]
-        blended = np.einsum("nvkij,vj,vk->nvi", nm, np.asarray(normals, dtype=np.float64), nw)
-        out_normals = _normalize(blended)
+        blended = np.zeros((transforms.normal.shape[0], nidx.shape[0], 3, 3))
+        for slot in range(nidx.shape[1]):
+            blended += transforms.normal[:, nidx[:, slot]] * nw[None, :, slot, None, None]
+        rest_normals = np.asarray(normals, dtype=np.float64)
+        out_normals = _normalize(np.matmul(blended, rest_normals[None, :, :, None])[..., 0])
     return out_points, out_normals
 
 
