@@ -166,3 +166,15 @@ def test_gltf_input_goes_through_the_same_command(shared_assets, tmp_path, capsy
     animation = report["animations"][0]
     assert animation["bones"] == 19 and animation["meshes"][0]["points"] == 370
     assert animation["meshes"][0]["max_error_fraction"] < 2e-3
+
+
+def test_unorm16_goes_to_png_without_naming_the_container(tmp_path, repo_root):
+    """The container follows the texel format; asking for an EXR of unorm16 is a usage error."""
+    from vbusd.cli import main
+
+    source = repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+    assert main(["convert", str(source), "-o", str(tmp_path / "a.usda"), "--texel-format", "unorm16"]) == 0
+    assert (tmp_path / "a.Skeleton.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["convert", str(source), "-o", str(tmp_path / "b.usda"), "--texel-format", "unorm16",
+                 "--container", "exr"]) == 2
+    assert not (tmp_path / "b.usda").exists()

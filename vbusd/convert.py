@@ -61,7 +61,8 @@ class ConvertOptions:
         max_influences: Influences kept per vertex (the largest, renormalized).
         skeletons: Skeletons (UsdSkel paths, glTF skin names or indices) to convert; empty: all.
         frame_range: (start, end) in the source's time unit (USD time codes), or None.
-        container: Texture container, ``exr`` or ``png`` (png requires unorm16).
+        container: Texture container, ``exr`` (float16, float32) or ``png`` (unorm16), or None to
+            follow the texel format.
         allow_outside_paths: Let the source reference files outside its folder.
         force: Replace an existing output.
         check_rows: Rows per clip compared with the source's skinning: None for all rows, 0 to skip;
@@ -78,7 +79,7 @@ class ConvertOptions:
     max_influences: int = 4
     skeletons: tuple = ()
     frame_range: Optional[tuple] = None
-    container: str = "exr"
+    container: Optional[str] = None
     allow_outside_paths: bool = False
     force: bool = False
     check_rows: Optional[int] = DEFAULT_CHECK_ROWS
@@ -104,12 +105,18 @@ class ConvertOptions:
                 allowed = ", ".join(e.value for e in kind)
                 raise OptionsError(f"{name} must be one of {allowed}, got {value!r}", file=where) from None
             object.__setattr__(self, name, value)
+        if self.container is None:
+            unorm = self.texel_format == TexelFormat.UNORM16.value
+            object.__setattr__(self, "container", "png" if unorm else "exr")
         if self.container not in CONTAINERS:
             raise OptionsError(f"container must be one of {', '.join(CONTAINERS)}, got {self.container!r}",
                                file=where)
         if self.container == "png" and self.texel_format != TexelFormat.UNORM16.value:
             raise OptionsError(f"the png container holds 16-bit integers only: use --texel-format unorm16 "
                                f"(got {self.texel_format})", file=where)
+        if self.container == "exr" and self.texel_format == TexelFormat.UNORM16.value:
+            raise OptionsError("unorm16 textures are 16-bit PNG files: use --container png "
+                               "(or leave --container out)", file=where)
         rate = self.rows_per_second
         if rate is not None:
             if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
