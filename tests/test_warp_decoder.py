@@ -134,6 +134,24 @@ def test_stadium_crowd_sample_agrees_with_reference(device):
         assert_agrees(decoder.skin_crowd(crowd, t).numpy(), reference.skin_crowd(vb, mesh, crowd, t))
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_stadium_crowd_sample_file_agrees_with_reference(device):
+    # The sample as written to disk (USD + float16 EXR texture), read back by vbusd's reader.
+    path = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+    if not path.exists():
+        pytest.skip("samples/stadium_crowd/stadium_crowd_vb.usda is not present")
+    pytest.importorskip("pxr")
+    pytest.importorskip("OpenEXR")
+    from vbusd import usd_io
+
+    asset = usd_io.read_asset(path)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    mesh = vb.meshes[0]
+    decoder = wd.Decoder(vb, mesh, device=device)
+    assert_agrees(decoder.skin_crowd(crowd, 5.2).numpy(), reference.skin_crowd(vb, mesh, crowd, 5.2))
+    assert_agrees(decoder.skin(0, [0.0, 9.99]).numpy(), reference.skin_mesh(vb, mesh, 0, [0.0, 9.99]))
+
+
 # ------------------------------------------------------------------------------ hand-worked values
 
 
