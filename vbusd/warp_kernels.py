@@ -42,6 +42,7 @@ hours times a rate of 60 rows per second would otherwise lose the blend factor's
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -583,3 +584,128 @@ def skin_normals_kernel(
             else:
                 sn += w * (load_linear(linear, instance, bone) * wp.vec4(n[0], n[1], n[2], 0.0))
         out_normals[instance, e] = wp.normalize(sn)
+
+
+@wp.func_native("""
+struct alignas(16) vbusd_float4 { float x, y, z, w; };
+*reinterpret_cast<vbusd_float4*>(out.data + index) = vbusd_float4{a, b, c, d};
+""")
+def store_float4(out: wp.array(dtype=float), index: int, a: float, b: float, c: float, d: float):
+    """One 16-byte store of four floats at ``out[index]`` (``index`` a multiple of 4, 16-byte aligned)."""
+    ...
+
+
+@functools.lru_cache(maxsize=None)
+def skin_lbs_quads_kernel(influences: int):
+    """LBS like :func:`skin_lbs_kernel`, with each thread writing four consecutive vertices as 16-byte stores.
+
+    A float3 written by one thread leaves as three strided 4-byte stores, so each store instruction
+    of a warp touches three times the memory sectors it fills; four consecutive float3 (48 bytes)
+    are three 16-byte stores instead. Thread (j, q) skins items ``4q .. 4q+3`` of the flattened
+    (instance, vertex) rows of ``super_rows`` consecutive instances (``super_rows * V`` is a
+    multiple of 4, so every quad starts 16-byte aligned), for ``rows_per_thread`` consecutive
+    groups of instances; its four vertices' rest data stays in registers across them. Outputs are
+    flat float32 views of the (instances, V) float3 arrays; a quad past the last instance is
+    written item by item.
+    """
+    index_vector = wp.types.vector(length=influences, dtype=wp.int32)
+    weight_vector = wp.types.vector(length=influences, dtype=wp.float32)
+
+    @wp.func
+    def skin_item(linear: wp.array3d(dtype=float), normal: wp.array3d(dtype=float), separate_normals: int,
+                  instance: int, bone: Any, w: Any, p: wp.vec3, n: wp.vec3):
+        p4 = wp.vec4(p[0], p[1], p[2], 1.0)
+        blend = w[0] * load_linear(linear, instance, bone[0])
+        for k in range(1, influences):
+            blend += w[k] * load_linear(linear, instance, bone[k])
+        sn = wp.vec3()
+        if separate_normals != 0:
+            nblend = w[0] * load_normal(normal, instance, bone[0])
+            for k in range(1, influences):
+                nblend += w[k] * load_normal(normal, instance, bone[k])
+            sn = nblend * n
+        else:
+            sn = blend * wp.vec4(n[0], n[1], n[2], 0.0)
+        return blend * p4, wp.normalize(sn)
+
+    @wp.func
+    def load_vertex(points: wp.array(dtype=wp.vec3), normals: wp.array(dtype=wp.vec3), with_normals: int,
+                    indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32), v: int):
+        bone = index_vector()
+        w = weight_vector()
+        for k in range(influences):
+            bone[k] = indices[v, k]
+            w[k] = weights[v, k]
+        n = wp.vec3()
+        if with_normals != 0:
+            n = normals[v]
+        return points[v], n, bone, w
+
+    @wp.kernel(module="unique", module_options={"fast_math": True})
+    def skin_lbs_quads(
+        linear: wp.array3d(dtype=float),
+        normal: wp.array3d(dtype=float),
+        separate_normals: int,
+        points: wp.array(dtype=wp.vec3),
+        normals: wp.array(dtype=wp.vec3),
+        with_normals: int,
+        indices: wp.array2d(dtype=wp.int32),
+        weights: wp.array2d(dtype=wp.float32),
+        super_rows: int,
+        rows_per_thread: int,
+        flat_points: wp.array(dtype=float),
+        flat_normals: wp.array(dtype=float),
+        out_points: wp.array2d(dtype=wp.vec3),
+        out_normals: wp.array2d(dtype=wp.vec3),
+    ):
+        j, q = wp.tid()
+        vertex_count = points.shape[0]
+        instance_count = out_points.shape[0]
+        s0 = 4 * q
+        d0 = s0 // vertex_count
+        d1 = (s0 + 1) // vertex_count
+        d2 = (s0 + 2) // vertex_count
+        d3 = (s0 + 3) // vertex_count
+        p0, n0, b0, w0 = load_vertex(points, normals, with_normals, indices, weights, s0 - d0 * vertex_count)
+        p1, n1, b1, w1 = load_vertex(points, normals, with_normals, indices, weights, s0 + 1 - d1 * vertex_count)
+        p2, n2, b2, w2 = load_vertex(points, normals, with_normals, indices, weights, s0 + 2 - d2 * vertex_count)
+        p3, n3, b3, w3 = load_vertex(points, normals, with_normals, indices, weights, s0 + 3 - d3 * vertex_count)
+        total = instance_count * vertex_count
+        groups = (instance_count + super_rows - 1) // super_rows
+        first = j * rows_per_thread
+        last = wp.min(first + rows_per_thread, groups)
+        for group in range(first, last):
+            base = group * super_rows
+            i0 = wp.min(base + d0, instance_count - 1)
+            i1 = wp.min(base + d1, instance_count - 1)
+            i2 = wp.min(base + d2, instance_count - 1)
+            i3 = wp.min(base + d3, instance_count - 1)
+            q0, m0 = skin_item(linear, normal, separate_normals, i0, b0, w0, p0, n0)
+            q1, m1 = skin_item(linear, normal, separate_normals, i1, b1, w1, p1, n1)
+            q2, m2 = skin_item(linear, normal, separate_normals, i2, b2, w2, p2, n2)
+            q3, m3 = skin_item(linear, normal, separate_normals, i3, b3, w3, p3, n3)
+            item = base * vertex_count + s0
+            if item + 4 <= total:
+                f = 3 * item
+                store_float4(flat_points, f, q0[0], q0[1], q0[2], q1[0])
+                store_float4(flat_points, f + 4, q1[1], q1[2], q2[0], q2[1])
+                store_float4(flat_points, f + 8, q2[2], q3[0], q3[1], q3[2])
+                if with_normals != 0:
+                    store_float4(flat_normals, f, m0[0], m0[1], m0[2], m1[0])
+                    store_float4(flat_normals, f + 4, m1[1], m1[2], m2[0], m2[1])
+                    store_float4(flat_normals, f + 8, m2[2], m3[0], m3[1], m3[2])
+            else:
+                if item < total:
+                    out_points[i0, s0 - d0 * vertex_count] = q0
+                    if with_normals != 0:
+                        out_normals[i0, s0 - d0 * vertex_count] = m0
+                if item + 1 < total:
+                    out_points[i1, s0 + 1 - d1 * vertex_count] = q1
+                    if with_normals != 0:
+                        out_normals[i1, s0 + 1 - d1 * vertex_count] = m1
+                if item + 2 < total:
+                    out_points[i2, s0 + 2 - d2 * vertex_count] = q2
+                    if with_normals != 0:
+                        out_normals[i2, s0 + 2 - d2 * vertex_count] = m2
+
+    return skin_lbs_quads
