@@ -178,3 +178,32 @@ def test_unorm16_goes_to_png_without_naming_the_container(tmp_path, repo_root):
     assert main(["convert", str(source), "-o", str(tmp_path / "b.usda"), "--texel-format", "unorm16",
                  "--container", "exr"]) == 2
     assert not (tmp_path / "b.usda").exists()
+
+
+def test_missing_output_folders_are_created(small_rig, tmp_path, capsys):
+    # `-o out/x.usda` works without mkdir (the README's job used to need it).
+    output = tmp_path / "out" / "deeper" / "x.usda"
+    assert main(["convert", str(small_rig), "-o", str(output)]) == 0
+    assert output.exists() and (output.parent / "x.Skel.exr").exists()
+    text = capsys.readouterr().out
+    assert "scene units" in text and "rows checked" in text
+    # A file where a folder should be is refused before any work.
+    (tmp_path / "file").write_text("")
+    assert main(["convert", str(small_rig), "-o", str(tmp_path / "file" / "x.usda")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+
+
+def test_failed_write_leaves_no_file_and_no_new_folder(small_rig, tmp_path, monkeypatch, capsys):
+    # Inject a failure while the texture is written: the transaction leaves nothing, and the
+    # folders convert created for the output are removed again.
+    import vbusd.textures
+
+    def broken(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(vbusd.textures, "write_texture", broken)
+    output = tmp_path / "new" / "x.usda"
+    status = main(["convert", str(small_rig), "-o", str(output)])
+    assert status != 0 and "Traceback" not in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .bake import BakeOptions, bake
-from .errors import OptionsError, UnsupportedError
+from .errors import OptionsError, UnsupportedError, VbusdError
 from .layout import Encoding, Padding, TexelFormat
 from .model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 
@@ -202,6 +202,7 @@ class ConvertReport:
         output: Written USD file.
         converter: Converter name.
         reference: What the errors are measured against.
+        meters_per_unit: The scene unit of every distance in the report (the stage's metersPerUnit).
         animations: One :class:`AnimationReport` per skeleton.
         warnings: The converter's and the conversion's warnings.
         files: Files written, with their sizes in bytes.
@@ -212,6 +213,7 @@ class ConvertReport:
     output: str
     converter: str
     reference: str
+    meters_per_unit: Optional[float] = None
     animations: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     files: dict = field(default_factory=dict)
@@ -234,8 +236,14 @@ def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
         raise OptionsError(f"the output must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
                            file=str(output))
-    if not output.parent.exists() or not output.parent.is_dir():
-        raise OptionsError(f"the output folder {output.parent} does not exist", file=str(output))
+    # A missing output folder is created at write time (and removed again if the write fails);
+    # here only check that the nearest existing ancestor is a folder.
+    ancestor = output.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OptionsError(f"cannot create the output folder {output.parent}: {ancestor} is not a folder",
+                           file=str(output))
     if source.exists() and output.exists() and output.resolve() == source.resolve():
         raise OptionsError("the output would overwrite the input", file=str(output))
     if output.exists() and not options.force:
@@ -462,7 +470,15 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
 
     if output.exists() and not options.force:  # it may have appeared while we worked
         raise OptionsError("the output exists; pass --force to replace it", file=str(output))
-    written = write_asset(asset, output, texture_container=options.container)
+    created = _make_folders(output.parent)
+    try:
+        written = write_asset(asset, output, texture_container=options.container)
+    except BaseException as error:
+        _remove_folders(created)  # the transaction left nothing in them; leave no trace
+        if isinstance(error, OSError):  # disk full, permission denied: one line, not a traceback
+            raise VbusdError(f"cannot write the output (nothing was written): "
+                             f"{error.strerror or error}", file=str(output), code="convert.write") from None
+        raise
     seconds["write"] = time.perf_counter() - clock
     if progress:
         progress("write", 1, 1)
@@ -472,6 +488,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     report = ConvertReport(
         source=str(source), output=str(output), converter=getattr(converter, "NAME", "?"),
         reference=reference_name or "source skinning matrices, float64 LBS with all influences",
+        meters_per_unit=scene.meters_per_unit,
         warnings=warnings, files=files, seconds={k: round(v, 4) for k, v in seconds.items()})
     for vb, reason, meshes in zip(baked, reasons, mesh_reports):
         layout = vb.layout
@@ -484,6 +501,33 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))
     return report
+
+
+def _make_folders(folder: Path) -> list:
+    """Create ``folder`` and its missing parents; return the folders created, deepest first."""
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    for path in reversed(missing):
+        try:
+            path.mkdir()
+        except FileExistsError:
+            pass
+        except OSError as error:
+            _remove_folders([p for p in missing if p.exists()])
+            raise OptionsError(f"cannot create the output folder {path}: {error.strerror or error}",
+                               file=str(path)) from None
+    return missing
+
+
+def _remove_folders(folders: list) -> None:
+    """Remove folders that :func:`_make_folders` created, if they are still empty."""
+    for path in folders:
+        try:
+            path.rmdir()
+        except OSError:
+            pass
 
 
 def _written_files(output: Path, written) -> dict:

@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .errors import OptionsError
+from .errors import OptionsError, VbusdError
 from .model import VirtualBones, VirtualBonesAsset
 
 DEVICES = ("cpu", "cuda")
@@ -255,10 +255,14 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
 
     from .fileio import AtomicTransaction
 
-    with AtomicTransaction() as transaction:
-        temporary = transaction.temp_path(output)
-        if not stage.GetRootLayer().Export(str(temporary)):
-            raise OSError(f"USD could not write {output}")
+    try:
+        with AtomicTransaction() as transaction:
+            temporary = transaction.temp_path(output)
+            if not stage.GetRootLayer().Export(str(temporary)):
+                raise OSError(f"USD could not write {output}")
+    except OSError as error:  # disk full, permission denied: one line, not a traceback
+        raise VbusdError(f"cannot write the point cache (nothing was written): {error.strerror or error}",
+                         file=str(output), code="decode.write") from None
     report.start_time_code, report.end_time_code = first_code, last_code
     report.bytes = output.stat().st_size
     report.seconds = round(time.perf_counter() - started, 4)

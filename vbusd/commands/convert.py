@@ -163,7 +163,9 @@ def print_summary(report) -> None:
                       f"{anim.rows}\n{clips}", f"{anim.width} x {anim.height}", _human_bytes(anim.texel_bytes),
                       f"{anim.padding_fraction:.1%} ({_human_bytes(waste)})")
         console.print(table)
-        meshes = Table(title=f"largest error against {report.reference}", title_justify="left")
+        unit = "" if report.meters_per_unit is None else f"; 1 scene unit = {report.meters_per_unit:g} m"
+        meshes = Table(title=f"largest error against {report.reference} (distances in scene units{unit})",
+                       title_justify="left")
         for name in ("mesh", "points", "influences", "max error", "of bbox diagonal", "from dropped influences",
                      "normals (deg)", "rows checked"):
             meshes.add_column(name, justify="left" if name == "mesh" else "right")
@@ -172,7 +174,7 @@ def print_summary(report) -> None:
                            _fmt(mesh.max_error, ".3g"),
                            "-" if mesh.max_error_fraction is None else f"{mesh.max_error_fraction:.2e}",
                            _fmt(mesh.influence_error, ".3g"), _fmt(mesh.max_normal_error_degrees, ".3g"),
-                           str(mesh.rows_checked))
+                           f"{mesh.rows_checked} of {anim.rows}")
         console.print(meshes)
     files = ", ".join(f"{path} ({_human_bytes(size)})" for path, size in report.files.items())
     console.print(f"wrote {files}")
