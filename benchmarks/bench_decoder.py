@@ -217,16 +217,6 @@ def fill_padded_kernel(instances_per_thread: int, out: wp.array3d(dtype=wp.vec4)
         out[1, instance, v] = wp.vec4(x, x, x, 1.0)
 
 
-@wp.kernel
-def fill_quads_kernel(flat_points: wp.array(dtype=float), flat_normals: wp.array(dtype=float)):
-    """Store ceiling with 16-byte stores: thread g writes float3 items 4g..4g+3 of both outputs."""
-    g = wp.tid()
-    x = float(g)
-    for k in range(3):
-        K.store_float4(flat_points, 12 * g + 4 * k, x, x, x, x)
-        K.store_float4(flat_normals, 12 * g + 4 * k, x, x, x, x)
-
-
 # ------------------------------------------------------------------------------------------ timing
 
 
@@ -306,12 +296,10 @@ def run_cuda(case_list, args) -> list:
         n, v = crowd.instance_count, mesh.points.shape[0]
         vi = n * v
         err = agreement(wd.Decoder(vb, mesh, device=device), vb, mesh, crowd, t, limit=1200 if n <= 1200 else 200)
-        variants = [(1, 128, False), (16, 128, False), (8, 128, True), (16, 128, True), (16, 256, True),
-                    (32, 128, True)] if n >= 10_000 or v >= 10_000 else \
-            [(1, 128, False), (16, 256, False), (1, 128, True), (4, 128, True)]
-        for ipt, block, vector in variants:
-            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt, block_dim=block,
-                                 vector_stores=vector)
+        variants = [(1, 256), (4, 256), (8, 256), (16, 128), (16, 256), (16, 512), (32, 256)] if n >= 10_000 \
+            or v >= 10_000 else [(1, 256), (16, 256)]
+        for ipt, block in variants:
+            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt, block_dim=block)
             uploaded = decoder.upload_crowd(crowd)
             out = decoder.allocate(n)
             counted = bytes_moved(decoder, n)
@@ -319,9 +307,8 @@ def run_cuda(case_list, args) -> list:
             buffers = decoder.decode_bones(uploaded, t)
             decode = time_cuda(lambda: decoder.decode_bones(uploaded, t), device, args.repeats)
             skin = time_cuda(lambda: decoder.skin_bones(uploaded, buffers, out), device, args.repeats)
-            stores = "16B" if vector else "4B"
-            rows.append(dict(case=name, device="cuda", method=f"warp: bones, skin ({ipt} inst/thr, {block}, {stores})",
-                             instances_per_thread=ipt, block_dim=block, vector_stores=vector, instances=n, vertices=v, seconds=total,
+            rows.append(dict(case=name, device="cuda", method=f"warp: bones, then skin ({ipt} inst/thr, {block})",
+                             instances_per_thread=ipt, block_dim=block, instances=n, vertices=v, seconds=total,
                              decode_seconds=decode, skin_seconds=skin, vertex_instances_per_second=vi / total,
                              bytes=counted, bytes_per_second=counted["total"] / total,
                              fraction_of_copy=counted["total"] / total / rate,
@@ -341,16 +328,6 @@ def run_cuda(case_list, args) -> list:
                          bytes_per_second=counted["outputs"] / fill, fraction_of_copy=counted["outputs"] / fill / rate,
                          fraction_outputs=counted["outputs"] / fill / rate, copy_bytes_per_second=rate))
         print(_row_text(rows[-1]), flush=True)
-        if (n * v) % 4 == 0:
-            flat = out.flat_views()
-            fillq = time_cuda(lambda: wp.launch(fill_quads_kernel, dim=n * v // 4, inputs=[flat[0], flat[1]],
-                                                device=device), device, args.repeats)
-            rows.append(dict(case=name, device="cuda", method="store ceiling: float3 outputs, 16-byte stores",
-                             instances=n, vertices=v, seconds=fillq, vertex_instances_per_second=vi / fillq,
-                             bytes_per_second=counted["outputs"] / fillq,
-                             fraction_of_copy=counted["outputs"] / fillq / rate,
-                             fraction_outputs=counted["outputs"] / fillq / rate, copy_bytes_per_second=rate))
-            print(_row_text(rows[-1]), flush=True)
         padded = wp.empty((2, n, v), dtype=wp.vec4, device=device)
         fill4 = time_cuda(lambda: wp.launch(fill_padded_kernel, dim=dim, inputs=[ipt, padded], device=device),
                           device, args.repeats)
@@ -422,11 +399,11 @@ def _row_text(row: dict) -> str:
     fraction = row.get("fraction_of_copy")
     fraction_text = "" if fraction is None else f"{100 * fraction:5.1f}%"
     return (f"| {row['case']:9} | {row['instances']:>7,} x {row['vertices']:>6,} | {row['device']:4} | "
-            f"{row['method']:46} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
+            f"{row['method']:44} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
             f"{fraction_text:>6} | {100 * row.get('fraction_outputs', float('nan')):5.1f}% |"
             if "fraction_outputs" in row else
             f"| {row['case']:9} | {row['instances']:>7,} x {row['vertices']:>6,} | {row['device']:4} | "
-            f"{row['method']:46} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
+            f"{row['method']:44} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
             f"{'':>6} | {'':>6} |")
 
 
@@ -528,7 +505,7 @@ def hardware_study(device: str) -> dict:
     return {"probes": probes, "rows": rows}
 
 
-HEADER = ("| case      | instances x vertices | dev  | method                                         |   ms/call |    M vi/s | "
+HEADER = ("| case      | instances x vertices | dev  | method                                       |   ms/call |    M vi/s | "
           "% copy | % copy (outputs) |\n"
           "|---|---|---|---|---:|---:|---:|---:|")
 

@@ -99,18 +99,6 @@ class SkinResult:
         """Number of instances (or times) the arrays hold."""
         return int(self.points.shape[0])
 
-    def flat_views(self) -> tuple:
-        """Flat float32 views of the points and normals (made once; for the 16-byte store kernel)."""
-        views = getattr(self, "_flat", None)
-        if views is None:
-            def flat(array):
-                if array is None:
-                    return None
-                return wp.array(ptr=array.ptr, shape=(array.size * 3,), dtype=float, device=array.device)
-
-            views = self._flat = (flat(self.points), flat(self.normals))
-        return views
-
     def numpy(self) -> tuple:
         """(points (n, V, 3), normals (n, V', 3) or None) as float32 numpy arrays (copies to host)."""
         points = self.points.numpy()
@@ -172,9 +160,6 @@ class Decoder:
             threads on CUDA; 1 on the CPU.
         block_dim: Threads per CUDA block of the skinning launch. None: 128 (fastest measured on an
             H200, ahead of 256 and 512).
-        vector_stores: LBS encodings with vertex normals: skin four consecutive vertices per thread
-            and write them as 16-byte stores (``warp_kernels.skin_lbs_quads_kernel``) instead of one
-            float3 per thread. None: on for CUDA devices.
 
     Raises:
         OptionsError: Unknown device or sampling mode, no mesh.
@@ -183,7 +168,7 @@ class Decoder:
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
                  sampling: str = "exact", instances_per_thread: Optional[int] = None,
-                 block_dim: Optional[int] = None, vector_stores: Optional[bool] = None) -> None:
+                 block_dim: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -210,7 +195,6 @@ class Decoder:
                                       not 1 <= block_dim <= 1024):
             raise OptionsError(f"block_dim must be an integer in 1..1024, got {block_dim!r}", file="warp_decoder")
         self.block_dim = 128 if block_dim is None else int(block_dim)
-        self.vector_stores = self.device.is_cuda if vector_stores is None else bool(vector_stores)
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -421,8 +405,6 @@ class Decoder:
             wp.launch(K.skin_dqs_kernel, dim=dim, device=self.device, block_dim=self.block_dim,
                       inputs=[buffers.dual, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
                               out.points, out_normals])
-        elif self.vector_stores and (fused_normals or not self.with_normals):
-            self._launch_quads(n, buffers, separate, fused_normals, ipt, out)
         else:
             wp.launch(K.skin_lbs_kernel(int(self.indices.shape[1])), dim=dim, device=self.device,
                       block_dim=self.block_dim,
@@ -433,21 +415,6 @@ class Decoder:
                               self.normal_points, self.indices, self.weights, crowd.orientations, crowd.scales,
                               out.normals])
         return out
-
-    def _launch_quads(self, n: int, buffers: BoneBuffers, separate: int, fused_normals: int, ipt: int,
-                      out: SkinResult) -> None:
-        v = self.vertex_count
-        super_rows = 1 if v % 4 == 0 else (2 if v % 2 == 0 else 4)
-        groups = -(-n // super_rows)
-        rows_per_thread = max(1, ipt // super_rows)
-        flat = out.flat_views()
-        wp.launch(K.skin_lbs_quads_kernel(int(self.indices.shape[1])),
-                  dim=(-(-groups // rows_per_thread), super_rows * v // 4), device=self.device,
-                  block_dim=self.block_dim,
-                  inputs=[buffers.linear, buffers.normal, separate, self.points, self.normals, fused_normals,
-                          self.indices, self.weights, super_rows, rows_per_thread, flat[0],
-                          flat[1] if fused_normals else flat[0], out.points,
-                          out.normals if fused_normals else out.points])
 
     def _instances_per_thread(self, n: int) -> int:
         if self.instances_per_thread is not None:
