@@ -18,7 +18,9 @@ def _split(values) -> tuple:
 
 
 @click.command(name="validate")
-@click.argument("asset", type=click.Path(dir_okay=False, path_type=str))
+# dir_okay=True on purpose: a folder (or a missing file) is reported by the validator itself as one
+# line "vbusd: FILE: CODE: message" with exit 2, not by click's multi-line usage error.
+@click.argument("asset", type=click.Path(dir_okay=True, path_type=str))
 @click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
               show_default=True, help="Report format (json follows schema/validation-report.schema.json).")
 @click.option("--only", multiple=True, metavar="CODE",
