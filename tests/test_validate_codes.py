@@ -114,3 +114,39 @@ def test_text_report_groups_by_severity_with_locations():
     assert "t.exr[row 3, column 5, bone 1, texel 2, channel R]" in text
     assert "/A.vb:texture" in text
     assert text.rstrip().endswith("INVALID: 1 error(s), 0 warning(s), 1 info, 0 hint(s)")
+
+
+# Dotted names in the validators that are not validation codes: the codes of exceptions raised
+# before any report exists (vbusd.errors, exit 2), and format / resource names.
+NOT_VALIDATION_CODES = {"file.missing", "file.unreadable", "options.code", "usd.open", "usd.validation",
+                        "vbusd.layout", "vbusd.schema", "vbusd.validationReport", "vbusd.virtualBones"}
+
+
+def test_every_code_string_in_the_validators_is_registered():
+    """Static scan: a code typed into a check but missing from the registry would only surface as
+    an ``asset.internal`` finding (KeyError) on the asset that triggers it; catch it here."""
+    import ast
+
+    pattern = re.compile(r"[a-z][A-Za-z0-9]*(\.[a-zA-Z][A-Za-z0-9]*)+")
+    unregistered = []
+    sources = sorted((ROOT / "validators").glob("*.py")) + [ROOT / "vbusd" / "commands" / "validate.py"]
+    for source in sources:
+        for node in ast.walk(ast.parse(source.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and pattern.fullmatch(node.value) \
+                    and node.value not in codes.REGISTRY and node.value not in NOT_VALIDATION_CODES:
+                unregistered.append(f"{source.name}:{node.lineno}: {node.value}")
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "finding" and node.args \
+                    and isinstance(node.args[0], ast.Constant):
+                assert node.args[0].value in codes.REGISTRY, f"{source.name}:{node.lineno}"
+    assert not unregistered, unregistered
+
+
+def test_findings_carry_the_location_kind_their_code_registers():
+    """In a USD asset every finding's location is of the kind ISSUES.md lists for its code."""
+    wrong = []
+    for asset in sorted(FIXTURES.rglob("asset.usda")):
+        for item in validate(asset).findings:
+            if item.location.kind != codes.get(item.code).location:
+                wrong.append(f"{asset.parent.name}: {item.code} at {item.location.kind}, registered "
+                             f"{codes.get(item.code).location}")
+    assert not wrong, wrong

@@ -48,7 +48,9 @@ class Code:
         severity: Default severity of its findings.
         summary: One line saying what the finding means.
         spec: The spec section it enforces (file and anchor under spec/).
-        location: The kind of location its findings carry (``usd``, ``json``, ``texel``, ``file``).
+        location: The kind of location its findings carry when a USD asset is validated (``usd``,
+            ``json``, ``texel``, ``file``). A texture or sidecar validated on its own has no prim:
+            findings about declared values then carry a ``json`` pointer into its metadata.
     """
 
     code: str
@@ -102,7 +104,7 @@ _CODES = (
     Code("texture.nonFinite", E, "A data texel channel is NaN or infinite.", f"{_VB}#texel-formats",
          "texel"),
     Code("texture.digest", E, "The texels' SHA-256 does not match the declared content digest.",
-         f"{_VB}#content-digest", "json"),
+         f"{_VB}#content-digest", "usd"),
     Code("texture.padding.nonZero", E, "A padding texel is not zero.", f"{_VB}#padding-texels", "texel"),
     Code("texture.padding.fraction", I, "Fraction of the texture that is padding (wasted texels).",
          f"{_VB}#padding-waste", "usd"),
