@@ -178,7 +178,7 @@ def texels_per_bone(encoding: int):
 
 
 # --------------------------------------------------------------------------------------------
-# Skinning (reference.skin) and the point instancer transform (reference.skin_crowd)
+# Bone buffers: structure of arrays (instances, components, bones)
 # --------------------------------------------------------------------------------------------
 
 
@@ -207,6 +207,7 @@ def load_dual(bones: wp.array3d(dtype=float), instance: int, bone: int):
 
 @wp.func
 def store_linear(bones: wp.array3d(dtype=float), instance: int, bone: int, m: mat34):
+    """Write ``[A | t]`` row by row into ``bones[instance, 0..11, bone]``."""
     for i in range(3):
         for j in range(4):
             bones[instance, i * 4 + j, bone] = m[i, j]
@@ -214,6 +215,7 @@ def store_linear(bones: wp.array3d(dtype=float), instance: int, bone: int, m: ma
 
 @wp.func
 def store_normal(bones: wp.array3d(dtype=float), instance: int, bone: int, m: wp.mat33):
+    """Write a normal matrix row by row into ``bones[instance, 0..8, bone]``."""
     for i in range(3):
         for j in range(3):
             bones[instance, i * 3 + j, bone] = m[i, j]
@@ -221,9 +223,15 @@ def store_normal(bones: wp.array3d(dtype=float), instance: int, bone: int, m: wp
 
 @wp.func
 def store_dual(bones: wp.array3d(dtype=float), instance: int, bone: int, m: dualquat):
+    """Write real then dual part into ``bones[instance, 0..7, bone]``."""
     for i in range(2):
         for j in range(4):
             bones[instance, i * 4 + j, bone] = m[i, j]
+
+
+# --------------------------------------------------------------------------------------------
+# Skinning (reference.skin) and the point instancer transform (reference.skin_crowd)
+# --------------------------------------------------------------------------------------------
 
 
 @wp.func
@@ -262,6 +270,11 @@ def place_point(p: wp.vec3, position: wp.vec3, orientation: wp.quat, scale: wp.v
 def place_normal(n: wp.vec3, orientation: wp.quat, scale: wp.vec3):
     """Normal under the instancer transform: ``normalize(R (n / scale))``."""
     return wp.normalize(wp.quat_rotate(orientation, wp.cw_div(n, scale)))
+
+
+# --------------------------------------------------------------------------------------------
+# Launches: per instance, per (instance, bone), per (instance, vertex)
+# --------------------------------------------------------------------------------------------
 
 
 @wp.struct
