@@ -460,6 +460,8 @@ class SkeletonSampler:
         if not self._world_might_vary(skel_prim, reader):
             self._static_world = self._world(self._start)
         self._memo: dict = {}
+        self.normal_memo: dict = {}
+        """UsdSkel normal matrices per (time code, joint mapping), shared by the error reference."""
 
     @staticmethod
     def _world_might_vary(prim, reader) -> bool:
@@ -838,13 +840,21 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
         p = np.asarray(points, dtype=np.float64)
         points_out[i] = p @ world[:3, :3] + world[3, :3]
         if has_normals:
-            local = xforms if mapper is None or mapper.IsIdentity() else \
-                mapper.RemapTransforms(xforms, Vt.Matrix4dArray(), 1)
-            linear = np.asarray(local, dtype=np.float64).reshape(-1, 4, 4)[:, :3, :3]
-            joint3 = Vt.Matrix3dArray.FromNumpy(np.ascontiguousarray(np.swapaxes(np.linalg.inv(linear), 1, 2)))
+            identity = mapper is None or mapper.IsIdentity()
+            # Meshes bound to one skeleton share these per time code: compute them once.
+            key = (round(code, 9), None if identity else tuple(bound.joint_map.tolist()))
+            joint3 = sampler.normal_memo.get(key)
+            if joint3 is None:
+                local = xforms if identity else mapper.RemapTransforms(xforms, Vt.Matrix4dArray(), 1)
+                linear = np.asarray(local, dtype=np.float64).reshape(-1, 4, 4)[:, :3, :3]
+                joint3 = sampler.normal_memo[key] = Vt.Matrix3dArray.FromNumpy(
+                    np.ascontiguousarray(np.swapaxes(np.linalg.inv(linear), 1, 2)))
             normals = Vt.Vec3fArray.FromNumpy(raw_normals)
             UsdSkel.SkinNormals(method, geom3, joint3, vt_ind, vt_wgt, k, normals)
-            n = np.asarray(normals, dtype=np.float64) @ np.linalg.inv(world[:3, :3]).T
+            world_normal = sampler.normal_memo.get(("world", round(code, 9)))
+            if world_normal is None:
+                world_normal = sampler.normal_memo[("world", round(code, 9))] = np.linalg.inv(world[:3, :3]).T
+            n = np.asarray(normals, dtype=np.float64) @ world_normal
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
             if normals_out is None:
                 normals_out = np.empty((times.size,) + n.shape)
