@@ -161,9 +161,14 @@ class Decoder:
         block_dim: Threads per CUDA block of the skinning launch. None: 128 (fastest measured on an
             H200, ahead of 256 and 512).
 
+    Each vertex's weights must sum to one, as the format requires: the instancer transform is
+    folded into the decoded bones (``warp_kernels.place_bone``), which equals applying it after
+    skinning only then.
+
     Raises:
         OptionsError: Unknown device or sampling mode, no mesh.
-        InputError: Mesh bone indices outside the texture's bones, mismatched mesh arrays.
+        InputError: Mesh bone indices outside the texture's bones, mismatched mesh arrays,
+            faceVarying indices outside the points.
     """
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
@@ -226,6 +231,11 @@ class Decoder:
             if np.asarray(mesh.normals).shape != (expected, 3):
                 raise InputError(f"{mesh.normals_interpolation} normals must be ({expected}, 3), got "
                                  f"{np.asarray(mesh.normals).shape}", location=mesh.path, code="mesh.normals")
+            corners = np.asarray(mesh.face_vertex_indices)
+            if mesh.normals_interpolation == "faceVarying" and corners.size and \
+                    (corners.min() < 0 or corners.max() >= points.shape[0]):
+                raise InputError(f"faceVertexIndices reach {int(corners.max())}, outside the {points.shape[0]} "
+                                 f"points", location=mesh.path, code="mesh.faceVertexIndices")
 
     def _upload_texture(self) -> None:
         vb, layout = self.vb, self.vb.layout
