@@ -231,3 +231,66 @@ def test_silenced_streams_are_restored_after_overlapping_threads():
         thread.join(timeout=30)
     assert sys.stdout is stdout and sys.stderr is stderr
     assert [(os.fstat(fd).st_dev, os.fstat(fd).st_ino) for fd in (1, 2)] == fds
+
+
+def _usda(path: Path, text: str) -> Path:
+    path.write_text("#usda 1.0\n" + text, encoding="utf-8")
+    return path
+
+
+def test_more_malformed_inputs(tmp_path, capsys):
+    """Inputs a pipeline meets by accident: empty files of every USD flavour, a folder, layers that
+    include themselves, a broken texture inside a .usdz package, and a texture whose sidecar
+    disagrees with its embedded metadata."""
+    from pxr import Sdf, UsdUtils
+
+    for suffix in (".usda", ".usdc", ".usdz", ".usd"):
+        (tmp_path / f"zero{suffix}").write_bytes(b"")
+    (tmp_path / "folder.usda").mkdir()
+    (tmp_path / "notes.txt").write_text("not an asset", encoding="utf-8")
+    _usda(tmp_path / "self_sublayer.usda", '(\n    subLayers = [@./self_sublayer.usda@]\n)\ndef Xform "A" {}\n')
+    _usda(tmp_path / "cycle_a.usda", "(\n    subLayers = [@./cycle_b.usda@]\n)\n")
+    _usda(tmp_path / "cycle_b.usda", "(\n    subLayers = [@./cycle_a.usda@]\n)\n")
+    _usda(tmp_path / "self_reference.usda", 'def Xform "A" (\n    references = @./self_reference.usda@\n) {}\n')
+
+    package_src = _copy(EXR_FIXTURE, tmp_path / "package_src")
+    exr = (package_src / EXR).read_bytes()
+    (package_src / EXR).write_bytes(exr[:len(exr) // 2])
+    package = tmp_path / "package.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(package_src / "asset.usda")), str(package))
+
+    disagree = _copy(EXR_FIXTURE, tmp_path / "disagree")
+    sidecar = disagree / (EXR + ".json")
+    meta = json.loads(sidecar.read_text(encoding="utf-8"))
+    meta["clips"][0]["rowsPerSecond"] = meta["clips"][0]["rowsPerSecond"] * 2
+    sidecar.write_text(json.dumps(meta), encoding="utf-8")
+
+    # name -> (path, exit status, the code on stderr (exit 2) or among the findings)
+    cases = {
+        "zero_usda": (tmp_path / "zero.usda", 2, "usd.open"),
+        "zero_usdc": (tmp_path / "zero.usdc", 2, "usd.open"),
+        "zero_usdz": (tmp_path / "zero.usdz", 2, "usd.open"),
+        "zero_usd": (tmp_path / "zero.usd", 2, "usd.open"),
+        "folder": (tmp_path / "folder.usda", 2, "file.unreadable"),
+        "unknown_suffix": (tmp_path / "notes.txt", 2, "usd.open"),
+        "self_sublayer": (tmp_path / "self_sublayer.usda", 0, "asset.empty"),
+        "sublayer_cycle": (tmp_path / "cycle_a.usda", 0, "asset.empty"),
+        "self_reference": (tmp_path / "self_reference.usda", 0, "asset.empty"),
+        "usdz_texture_truncated": (package, 1, "texture.unreadable"),
+        "texture_sidecar_disagrees": (disagree / EXR, 1, "metadata.sidecarMismatch"),
+    }
+    for name, (path, expected, code) in cases.items():
+        status = main(["validate", str(path), "--format", "json"])
+        out, err = capsys.readouterr()
+        assert status == expected, f"{name}: exit {status}; stderr {err!r}"
+        assert "Traceback" not in out + err, name
+        if status == 2:
+            lines = err.strip().splitlines()
+            assert len(lines) == 1 and lines[0].startswith(f"vbusd: {path}"), f"{name}: {err!r}"
+            assert f": {code}: " in lines[0], f"{name}: {lines[0]!r}"
+        else:
+            findings = json.loads(out)["findings"]
+            assert code in {f["code"] for f in findings}, f"{name}: {findings}"
+            if name == "usdz_texture_truncated":
+                unreadable = [f for f in findings if f["code"] == "texture.unreadable"][0]
+                assert unreadable["location"]["file"].startswith("package.usdz[")

@@ -107,3 +107,26 @@ def test_instancer_error_through_the_suite(validators):
     errors = _named(UsdValidation.ValidationContext([suite]).Validate(stage), "instancer.clip.range")
     assert len(errors) == 1
     assert errors[0].GetSites()[0].GetProperty().GetPath() == Sdf.Path("/VirtualBones/Crowd.primvars:vb:clip")
+
+
+def test_registration_survives_a_second_import_of_the_module(validators):
+    """Importing the module again (importlib.reload, or the same file under another module name as
+    pytest's importlib mode or a plugin loader may do) and registering again must neither fail nor
+    register the validators twice: each finding is still reported once."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "vbusd.validators._usd_validation_copy", Path(usd_validation.__file__))
+    copy = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(copy)
+    again = copy.register()
+    reloaded = importlib.reload(usd_validation).register()
+    names = [v.GetMetadata().name for v in validators]
+    assert [v.GetMetadata().name for v in again] == names == [v.GetMetadata().name for v in reloaded]
+    registry = UsdValidation.ValidationRegistry()
+    for name, schema_type in zip(names, ("VirtualBonesAnimation", "VirtualBonesBindingAPI",
+                                         "VirtualBonesInstancingAPI")):
+        assert [m.name for m in registry.GetValidatorMetadataForSchemaType(schema_type)
+                if m.name.startswith("vbusd:")] == [name]
+    errors = UsdValidation.ValidationContext(keywords=["vbusd"]).Validate(_broken_binding_stage())
+    assert len(_named(errors, "binding.indices.range")) == 1
