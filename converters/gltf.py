@@ -314,6 +314,88 @@ def _locate_structure_error(json_text: str) -> str | None:
     return None
 
 
+# JSON types of the properties the converter reads (glTF 2.0 JSON schema). pygltflib converts
+# typed fields with int()/float()/bool() as it parses: 1.5 would become 1, true a 1, "3" a 3, and
+# "x" an exception without a place. So these are checked on the raw JSON first, with their pointer.
+_INT, _NUM, _STR, _BOOL = "integer", "number", "string", "boolean"
+_INTS, _NUMS, _STRS = ("array", _INT), ("array", _NUM), ("array", _STR)
+_INT_MAP = ("map", _INT)
+_SPARSE = {"count": _INT, "indices": {"bufferView": _INT, "byteOffset": _INT, "componentType": _INT},
+           "values": {"bufferView": _INT, "byteOffset": _INT}}
+_TYPES = {
+    "scene": _INT,
+    "extensionsUsed": _STRS,
+    "extensionsRequired": _STRS,
+    "asset": {"version": _STR, "minVersion": _STR},
+    "accessors": ("array", {"bufferView": _INT, "byteOffset": _INT, "componentType": _INT,
+                            "normalized": _BOOL, "count": _INT, "type": _STR, "sparse": _SPARSE}),
+    "animations": ("array", {
+        "channels": ("array", {"sampler": _INT, "target": {"node": _INT, "path": _STR}}),
+        "samplers": ("array", {"input": _INT, "output": _INT, "interpolation": _STR})}),
+    "buffers": ("array", {"uri": _STR, "byteLength": _INT}),
+    "bufferViews": ("array", {"buffer": _INT, "byteOffset": _INT, "byteLength": _INT,
+                              "byteStride": _INT, "target": _INT}),
+    "meshes": ("array", {"primitives": ("array", {"attributes": _INT_MAP, "indices": _INT,
+                                                  "mode": _INT,
+                                                  "targets": ("array", _INT_MAP)}),
+                         "weights": _NUMS}),
+    "nodes": ("array", {"children": _INTS, "skin": _INT, "mesh": _INT, "camera": _INT,
+                        "matrix": _NUMS, "rotation": _NUMS, "scale": _NUMS, "translation": _NUMS,
+                        "weights": _NUMS}),
+    "scenes": ("array", {"nodes": _INTS}),
+    "skins": ("array", {"inverseBindMatrices": _INT, "skeleton": _INT, "joints": _INTS}),
+}
+
+
+def _type_error(value, kind, pointer: str):
+    """(pointer, problem) of the first value below ``value`` that is not of ``kind``, or None."""
+    from reprlib import repr as short   # a huge wrong value must not make a huge message
+    if kind == _INT:
+        # JSON Schema: 3.0 is an integer; 1.5, true and "3" are not.
+        ok = ((isinstance(value, int) and not isinstance(value, bool))
+              or (isinstance(value, float) and value.is_integer()))
+        return None if ok else (pointer, f"expected an integer, found {short(value)}")
+    if kind == _NUM:
+        ok = (isinstance(value, (int, float)) and not isinstance(value, bool)
+              and value == value and value not in (float("inf"), float("-inf")))
+        return None if ok else (pointer, f"expected a finite number, found {short(value)}")
+    if kind == _STR:
+        return None if isinstance(value, str) else (pointer,
+                                                    f"expected a string, found {short(value)}")
+    if kind == _BOOL:
+        return None if isinstance(value, bool) else (pointer, f"expected true or false, found "
+                                                               f"{short(value)}")
+    if isinstance(kind, tuple):
+        container, item = kind
+        if container == "array":
+            if not isinstance(value, list):
+                return pointer, f"expected an array, found {short(value)}"
+            pairs = ((str(i), v) for i, v in enumerate(value))
+        else:
+            if not isinstance(value, dict):
+                return pointer, f"expected an object, found {short(value)}"
+            pairs = value.items()
+        for key, child in pairs:
+            found = _type_error(child, item, f"{pointer}/{_escape_pointer(key)}")
+            if found:
+                return found
+        return None
+    if not isinstance(value, dict):
+        return pointer, f"expected an object, found {short(value)}"
+    for key, child_kind in kind.items():
+        # null is read as absent (as pygltflib does); the converter then asks for what it needs.
+        if value.get(key) is not None:
+            found = _type_error(value[key], child_kind, f"{pointer}/{key}")
+            if found:
+                return found
+    return None
+
+
+def _escape_pointer(key: str) -> str:
+    """A JSON pointer reference token (RFC 6901): ``~`` -> ``~0``, ``/`` -> ``~1``."""
+    return str(key).replace("~", "~0").replace("/", "~1")
+
+
 def _check_raw_structure(json_text: str, file: str) -> None:
     """Checks pygltflib cannot make: it fills a missing ``asset`` or ``asset.version`` with defaults.
 
@@ -336,6 +418,10 @@ def _check_raw_structure(json_text: str, file: str) -> None:
     if location is not None:
         raise InputError("a glTF property that must be an object or an array is not one",
                          file=file, location=location, code="gltf.json")
+    found = _type_error(root, _TYPES, "")
+    if found is not None:
+        location, problem = found
+        raise InputError(problem, file=file, location=location, code="gltf.value")
     if "version" not in root["asset"]:
         raise InputError("asset.version is missing", file=file, location="/asset",
                          code="gltf.asset.version")
