@@ -60,14 +60,20 @@ class ShaderOptions:
 
 
 _GLSL_PROLOGUE = """\
+#ifndef VB_FETCH
 #define VB_FETCH(column, row) texelFetch(vb_texture, ivec2(column, row), 0)
+#endif
 
-uniform sampler2D vb_texture;          // the Virtual Bones texture: NEAREST, no mipmaps, linear (not sRGB)
+#if VB_DECLARE_RESOURCES
+// highp: in GLSL ES 3.00 (WebGL 2) a vertex shader's samplers default to lowp, and texelFetch
+// returns values at the sampler's precision; GLSL 3.30 core accepts and ignores the qualifier.
+uniform highp sampler2D vb_texture;    // the Virtual Bones texture: NEAREST, no mipmaps, linear (not sRGB)
 uniform float vb_time;                 // scene time in seconds
 uniform vec4 vb_clips[VB_MAX_CLIPS];   // per clip: (firstRow, rowCount, rowsPerSecond, loop ? 1 : 0)
 #if VB_UNORM16
 uniform vec4 vb_rangeMin[VB_TEXELS_PER_BONE];  // unorm16: per texel slot, channel minimum
 uniform vec4 vb_rangeMax[VB_TEXELS_PER_BONE];  // unorm16: per texel slot, channel maximum
+#endif
 #endif
 """
 
@@ -77,8 +83,11 @@ _HLSL_PROLOGUE = """\
 #define vec4 float4
 #define ivec4 int4
 #define mix lerp
+#ifndef VB_FETCH
 #define VB_FETCH(column, row) vb_texture.Load(int3(column, row, 0))
+#endif
 
+#if VB_DECLARE_RESOURCES
 Texture2D<float4> vb_texture;          // the Virtual Bones texture: point sampling, no mipmaps, linear (not sRGB)
 cbuffer VirtualBones
 {
@@ -89,6 +98,7 @@ cbuffer VirtualBones
     float4 vb_rangeMax[VB_TEXELS_PER_BONE];
 #endif
 };
+#endif
 """
 
 # The shared body, in the GLSL spelling (the HLSL prologue maps vec*/mix/VB_FETCH).
@@ -348,6 +358,16 @@ VbVertexOutput main(VbVertexInput input)
 #endif
 """
 
+# The GLSL spellings are macros for the shared body only: undefine them so that they cannot clash
+# with names in the engine code that includes the module (a variable called `mix`, say).
+_HLSL_EPILOGUE = """\
+#undef vec2
+#undef vec3
+#undef vec4
+#undef ivec4
+#undef mix
+"""
+
 
 def generate(options: ShaderOptions) -> str:
     """The source of a vertex-stage module for ``options``.
@@ -370,9 +390,17 @@ def generate(options: ShaderOptions) -> str:
         "#ifndef VB_MAIN",
         f"#define VB_MAIN {1 if options.main else 0}",
         "#endif",
+        "// Define VB_DECLARE_RESOURCES 0 before the module to declare vb_texture, vb_time, vb_clips",
+        "// (and the unorm16 ranges) yourself, and VB_FETCH(column, row) to read texels another way.",
+        "#ifndef VB_DECLARE_RESOURCES",
+        "#define VB_DECLARE_RESOURCES 1",
+        "#endif",
         "",
     ]
     prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
     skin = _SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _SKIN_LBS
     main = _GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN
-    return "\n".join(header) + "\n".join([prologue, _BODY, _DECODE[options.encoding], skin, main])
+    parts = [prologue, _BODY, _DECODE[options.encoding], skin, main]
+    if options.lang == "hlsl":
+        parts.append(_HLSL_EPILOGUE)
+    return "\n".join(header) + "\n".join(parts)
