@@ -142,3 +142,15 @@ def test_textures_inside_a_usdz_package_are_checked(tmp_path):
         assert "texture.padding.fraction" in {f.code for f in report.findings}
     nan = [f for f in report.findings if f.code == "texture.nonFinite"][0]
     assert nan.location.file == f"{alone}[asset.Animation.exr]".rsplit("/", 1)[-1]
+
+
+def test_instancing_primvar_with_element_size_other_than_1_is_reported(tmp_path):
+    """One value per instance means elementSize 1 (vbusd's reader refuses any other); with
+    elementSize 3 and one value per instance, counting alone would not notice."""
+    from pxr import Usd
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    stage = Usd.Stage.Open(str(asset))
+    stage.GetPrimAtPath("/VirtualBones/Crowd").GetAttribute("primvars:vb:playbackRate").SetMetadata("elementSize", 3)
+    stage.GetRootLayer().Save()
+    assert _codes(validate(asset))[:1] == [("instancer.count", "/VirtualBones/Crowd.primvars:vb:playbackRate")]

@@ -97,6 +97,20 @@ def _typed_primvar(prim, name, type_name, code, out, required=True):
     return UsdGeom.Primvar(attribute)
 
 
+def _unindexed(primvar, code, out):
+    """The primvar, or None after a ``code`` finding when it is indexed: element ``v * K + i`` of
+    the authored array is influence ``i`` of point ``v`` (spec "Mesh binding"), and readers (vbusd's
+    included) refuse ``:indices``, so its values cannot be checked as if flattened."""
+    if primvar is None or not primvar.IsIndexed():
+        return primvar
+    name = primvar.GetAttr().GetName()
+    indices = primvar.GetIndicesAttr().Get()
+    out.append(finding(code, f"{name} is indexed ({name}:indices holds {len(indices or ())} indices); "
+                       "Virtual Bones primvars hold one value per element, unindexed",
+                       UsdSite(str(primvar.GetAttr().GetPrim().GetPath()), name)))
+    return None
+
+
 def check_binding_prim(prim):
     """Every check of one mesh bound with VirtualBonesBindingAPI.
 
@@ -125,8 +139,10 @@ def check_binding_prim(prim):
             out.append(finding("binding.points.nonFinite", f"{int(bad.sum())} rest point(s) are NaN or infinite; "
                                f"the first is point {first} = {points[first].tolist()}", UsdSite(path, "points")))
 
-    indices_pv = _typed_primvar(prim, INDICES, "int[]", "binding.primvar.missing", out)
-    weights_pv = _typed_primvar(prim, WEIGHTS, "float[]", "binding.primvar.missing", out)
+    indices_pv = _unindexed(_typed_primvar(prim, INDICES, "int[]", "binding.primvar.missing", out),
+                            "binding.primvar.indexed", out)
+    weights_pv = _unindexed(_typed_primvar(prim, WEIGHTS, "float[]", "binding.primvar.missing", out),
+                            "binding.primvar.indexed", out)
     sizes = {}
     for name, primvar in ((INDICES, indices_pv), (WEIGHTS, weights_pv)):
         if primvar is None:
@@ -236,7 +252,8 @@ def check_instancer_prim(prim):
     for name, type_name in INSTANCE_PRIMVARS.items():
         # Unauthored instancing primvars take their defaults (clip 0, offset 0, rate 1; spec
         # "Instancing"), so only authored ones are checked.
-        primvar = _typed_primvar(prim, name, type_name, "instancer.count", out, required=False)
+        primvar = _unindexed(_typed_primvar(prim, name, type_name, "instancer.count", out, required=False),
+                             "instancer.indexed", out)
         if primvar is None:
             continue
         site = UsdSite(path, name)
@@ -244,6 +261,10 @@ def check_instancer_prim(prim):
         if interpolation != UsdGeom.Tokens.vertex:
             out.append(finding("instancer.count", f"{name} has interpolation {interpolation!r}; it must be "
                                "'vertex' (one value per instance)", site))
+            continue
+        if primvar.GetElementSize() != 1:
+            out.append(finding("instancer.count", f"{name} has elementSize {primvar.GetElementSize()}; it "
+                               "must be 1 (one value per instance)", site))
             continue
         values = _array(primvar.GetAttr(), np.float64)
         if values is None:

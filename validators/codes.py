@@ -159,6 +159,8 @@ _CODES = (
          f"{_VB}#binding", "usd"),
     Code("binding.primvar.missing", E, "primvars:vb:boneIndices or primvars:vb:boneWeights is missing "
          "or has the wrong type.", f"{_VB}#binding", "usd"),
+    Code("binding.primvar.indexed", E, "A binding primvar is indexed (has :indices); its authored "
+         "elements must be the K influences of each point in order.", f"{_VB}#binding", "usd"),
     Code("binding.interpolation", E, "A binding primvar's interpolation is not vertex.", f"{_VB}#binding",
          "usd"),
     Code("binding.elementSize", E, "The binding primvars' elementSize differs, or is below 1.",
@@ -175,8 +177,10 @@ _CODES = (
     # instancers
     Code("instancer.animation", E, "vb:animation of a VirtualBonesInstancingAPI prim does not target "
          "exactly one VirtualBonesAnimation prim.", f"{_VB}#instancing", "usd"),
-    Code("instancer.count", E, "An instancing primvar does not hold one value per instance, or is not "
-         "vertex-interpolated.", f"{_VB}#instancing", "usd"),
+    Code("instancer.count", E, "An instancing primvar does not hold one value per instance, is not "
+         "vertex-interpolated, or has an elementSize other than 1.", f"{_VB}#instancing", "usd"),
+    Code("instancer.indexed", E, "An instancing primvar is indexed (has :indices); it must hold one "
+         "value per instance, unindexed.", f"{_VB}#instancing", "usd"),
     Code("instancer.clip.range", E, "An instance's clip index is negative or not below the clip count.",
          f"{_VB}#instancing", "usd"),
     Code("instancer.nonFinite", E, "An instance's time offset or playback rate is NaN or infinite.",
