@@ -762,11 +762,11 @@ class _Converter:
                      pointer: str) -> _Channel:
         rotation = path == "rotation"
         width = 4 if rotation else 3
-        components = (5126,)
-        if rotation:
-            components = (5126, 5120, 5121, 5122, 5123)
-        elif self.quantized:
-            components = (5126, 5120, 5121, 5122, 5123)
+        # glTF 2.0 (3.11, animation sampler output table): translation and scale are FLOAT only;
+        # rotation may also be a normalized integer. KHR_mesh_quantization extends mesh and morph
+        # target attributes, not animation outputs (glTF-Validator reports integer translation or
+        # scale keys as ANIMATION_SAMPLER_OUTPUT_ACCESSOR_INVALID_FORMAT).
+        components = (5126, 5120, 5121, 5122, 5123) if rotation else (5126,)
         normalized = (True,) if rotation else None
         self._accessor_format(output, pointer, f"{path} output", ("VEC4" if rotation else "VEC3",),
                               components, normalized, code="gltf.animation.output")
