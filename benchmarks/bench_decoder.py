@@ -193,20 +193,13 @@ def launch_naive(decoder: wd.Decoder, crowd: wd.DeviceCrowd, t: float, out: wd.S
 
 
 @wp.kernel
-def fill_outputs_kernel(instances_per_thread: int, interleave: int, out_points: wp.array2d(dtype=wp.vec3),
+def fill_outputs_kernel(instances_per_thread: int, out_points: wp.array2d(dtype=wp.vec3),
                         out_normals: wp.array2d(dtype=wp.vec3)):
     """Store ceiling: write every output of the skinning launch (same geometry), computing nothing."""
     j, v = wp.tid()
-    n = out_points.shape[0]
     first = j * instances_per_thread
-    step = 1
-    if interleave != 0:
-        first = j
-        step = (n + instances_per_thread - 1) // instances_per_thread
-    for iteration in range(instances_per_thread):
-        instance = first + iteration * step
-        if instance >= n:
-            break
+    last = wp.min(first + instances_per_thread, out_points.shape[0])
+    for instance in range(first, last):
         x = float(instance + v)
         out_points[instance, v] = wp.vec3(x, x, x)
         out_normals[instance, v] = wp.vec3(x, x, x)
@@ -303,12 +296,10 @@ def run_cuda(case_list, args) -> list:
         n, v = crowd.instance_count, mesh.points.shape[0]
         vi = n * v
         err = agreement(wd.Decoder(vb, mesh, device=device), vb, mesh, crowd, t, limit=1200 if n <= 1200 else 200)
-        variants = [(1, 128, False), (8, 128, False), (16, 128, False), (16, 256, False), (32, 128, False),
-                    (8, 128, True), (16, 128, True), (32, 128, True), (64, 128, True)] if n >= 10_000 \
-            or v >= 10_000 else [(1, 128, False), (16, 256, False)]
-        for ipt, block, interleave in variants:
-            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt, block_dim=block,
-                                 interleave_instances=interleave)
+        variants = [(1, 256), (4, 256), (8, 256), (16, 128), (16, 256), (16, 512), (32, 256)] if n >= 10_000 \
+            or v >= 10_000 else [(1, 256), (16, 256)]
+        for ipt, block in variants:
+            decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=ipt, block_dim=block)
             uploaded = decoder.upload_crowd(crowd)
             out = decoder.allocate(n)
             counted = bytes_moved(decoder, n)
@@ -316,9 +307,8 @@ def run_cuda(case_list, args) -> list:
             buffers = decoder.decode_bones(uploaded, t)
             decode = time_cuda(lambda: decoder.decode_bones(uploaded, t), device, args.repeats)
             skin = time_cuda(lambda: decoder.skin_bones(uploaded, buffers, out), device, args.repeats)
-            order = ", interleaved" if interleave else ""
-            rows.append(dict(case=name, device="cuda", method=f"warp: bones, skin ({ipt} inst/thr, {block}{order})",
-                             instances_per_thread=ipt, block_dim=block, interleave=interleave, instances=n, vertices=v, seconds=total,
+            rows.append(dict(case=name, device="cuda", method=f"warp: bones, then skin ({ipt} inst/thr, {block})",
+                             instances_per_thread=ipt, block_dim=block, instances=n, vertices=v, seconds=total,
                              decode_seconds=decode, skin_seconds=skin, vertex_instances_per_second=vi / total,
                              bytes=counted, bytes_per_second=counted["total"] / total,
                              fraction_of_copy=counted["total"] / total / rate,
@@ -331,17 +321,13 @@ def run_cuda(case_list, args) -> list:
         out = decoder.allocate(n)
         ipt = decoder._instances_per_thread(n)
         dim = (-(-n // ipt), v)
-        for interleave in (0, 1):
-            fill = time_cuda(lambda: wp.launch(fill_outputs_kernel, dim=dim, inputs=[ipt, interleave, out.points,
-                                                                                  out.normals], device=device),
-                             device, args.repeats)
-            order = ", interleaved" if interleave else ""
-            rows.append(dict(case=name, device="cuda", method=f"store ceiling: write float3 outputs only{order}",
-                             instances=n, vertices=v, seconds=fill, vertex_instances_per_second=vi / fill,
-                             bytes_per_second=counted["outputs"] / fill,
-                             fraction_of_copy=counted["outputs"] / fill / rate,
-                             fraction_outputs=counted["outputs"] / fill / rate, copy_bytes_per_second=rate))
-            print(_row_text(rows[-1]), flush=True)
+        fill = time_cuda(lambda: wp.launch(fill_outputs_kernel, dim=dim, inputs=[ipt, out.points, out.normals],
+                                           device=device), device, args.repeats)
+        rows.append(dict(case=name, device="cuda", method="store ceiling: write float3 outputs only",
+                         instances=n, vertices=v, seconds=fill, vertex_instances_per_second=vi / fill,
+                         bytes_per_second=counted["outputs"] / fill, fraction_of_copy=counted["outputs"] / fill / rate,
+                         fraction_outputs=counted["outputs"] / fill / rate, copy_bytes_per_second=rate))
+        print(_row_text(rows[-1]), flush=True)
         padded = wp.empty((2, n, v), dtype=wp.vec4, device=device)
         fill4 = time_cuda(lambda: wp.launch(fill_padded_kernel, dim=dim, inputs=[ipt, padded], device=device),
                           device, args.repeats)
@@ -413,11 +399,11 @@ def _row_text(row: dict) -> str:
     fraction = row.get("fraction_of_copy")
     fraction_text = "" if fraction is None else f"{100 * fraction:5.1f}%"
     return (f"| {row['case']:9} | {row['instances']:>7,} x {row['vertices']:>6,} | {row['device']:4} | "
-            f"{row['method']:48} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
+            f"{row['method']:44} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
             f"{fraction_text:>6} | {100 * row.get('fraction_outputs', float('nan')):5.1f}% |"
             if "fraction_outputs" in row else
             f"| {row['case']:9} | {row['instances']:>7,} x {row['vertices']:>6,} | {row['device']:4} | "
-            f"{row['method']:48} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
+            f"{row['method']:44} | {row['seconds'] * 1e3:9.3f} | {row['vertex_instances_per_second'] / 1e6:11,.1f} | "
             f"{'':>6} | {'':>6} |")
 
 
@@ -519,7 +505,7 @@ def hardware_study(device: str) -> dict:
     return {"probes": probes, "rows": rows}
 
 
-HEADER = ("| case      | instances x vertices | dev  | method                                           |   ms/call |    M vi/s | "
+HEADER = ("| case      | instances x vertices | dev  | method                                       |   ms/call |    M vi/s | "
           "% copy | % copy (outputs) |\n"
           "|---|---|---|---|---:|---:|---:|---:|")
 

@@ -152,17 +152,6 @@ def test_stadium_crowd_sample_file_agrees_with_reference(device):
     assert_agrees(decoder.skin(0, [0.0, 9.99]).numpy(), reference.skin_mesh(vb, mesh, 0, [0.0, 9.99]))
 
 
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("interleave", [False, True])
-def test_instances_per_thread_orders_agree_with_reference(device, interleave):
-    vb = synthetic.make_vb("crossMatrix", "float32")
-    mesh, crowd = vb.meshes[0], synthetic.make_crowd(9)
-    for instances_per_thread in (2, 4):  # 9 instances: the last thread's share is partial
-        decoder = wd.Decoder(vb, mesh, device=device, instances_per_thread=instances_per_thread,
-                             interleave_instances=interleave)
-        assert_agrees(decoder.skin_crowd(crowd, 1.9).numpy(), reference.skin_crowd(vb, mesh, crowd, 1.9))
-
-
 # ------------------------------------------------------------------------------ hand-worked values
 
 

@@ -160,8 +160,6 @@ class Decoder:
             threads on CUDA; 1 on the CPU.
         block_dim: Threads per CUDA block of the skinning launch. None: 128 (fastest measured on an
             H200, ahead of 256 and 512).
-        interleave_instances: A skinning thread takes instances ``j, j + J, ...`` (J threads along
-            the instance axis) instead of ``j * ipt, j * ipt + 1, ...``. None: off.
 
     Each vertex's weights must sum to one, as the format requires: the instancer transform is
     folded into the decoded bones (``warp_kernels.place_bone``), which equals applying it after
@@ -175,7 +173,7 @@ class Decoder:
 
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
                  sampling: str = "exact", instances_per_thread: Optional[int] = None,
-                 block_dim: Optional[int] = None, interleave_instances: Optional[bool] = None) -> None:
+                 block_dim: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
                                file="warp_decoder")
@@ -202,7 +200,6 @@ class Decoder:
                                       not 1 <= block_dim <= 1024):
             raise OptionsError(f"block_dim must be an integer in 1..1024, got {block_dim!r}", file="warp_decoder")
         self.block_dim = 128 if block_dim is None else int(block_dim)
-        self.interleave_instances = bool(interleave_instances)
         self._check_mesh(mesh)
         self._upload_texture()
         self._upload_clips()
@@ -421,8 +418,7 @@ class Decoder:
         else:
             wp.launch(K.skin_lbs_kernel(int(self.indices.shape[1])), dim=dim, device=self.device,
                       block_dim=self.block_dim,
-                      inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, int(self.interleave_instances),
-                              out.points, out_normals])
+                      inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, out.points, out_normals])
         if self.with_normals and self.face_varying:
             wp.launch(K.skin_normals_kernel, dim=(n, self.normal_count), device=self.device,
                       inputs=[self.encoding_id, buffers.linear, buffers.normal, separate, buffers.dual, self.normals,

@@ -486,15 +486,10 @@ def skin_lbs_kernel(influences: int):
         indices: wp.array2d(dtype=wp.int32),
         weights: wp.array2d(dtype=wp.float32),
         instances_per_thread: int,
-        interleave: int,
         out_points: wp.array2d(dtype=wp.vec3),
         out_normals: wp.array2d(dtype=wp.vec3),
     ):
-        """Linear blend skinning of placed bones: thread (j, v) skins vertex v of several instances.
-
-        Instances ``j*ipt .. j*ipt + ipt - 1``, or with ``interleave`` ``j, j + J, j + 2J, ...``
-        (J = threads along the instance axis), so that the whole grid writes neighbouring rows at
-        the same time.
+        """Linear blend skinning of placed bones: thread (j, v) skins vertex v of instances j*ipt ...
 
         Blends the K placed bone matrices first (the talk's linear blend of matrices, 12 FMAs per
         influence), then transforms the rest point and normal once: ``p' = (sum w M) p``,
@@ -515,14 +510,8 @@ def skin_lbs_kernel(influences: int):
             bone[k] = indices[v, k]
             w[k] = weights[v, k]
         first = j * instances_per_thread
-        step = 1
-        if interleave != 0:
-            first = j
-            step = (linear.shape[0] + instances_per_thread - 1) // instances_per_thread
-        for iteration in range(instances_per_thread):
-            instance = first + iteration * step
-            if instance >= linear.shape[0]:
-                break
+        last = wp.min(first + instances_per_thread, linear.shape[0])
+        for instance in range(first, last):
             blend = w[0] * load_linear(linear, instance, bone[0])
             for k in range(1, influences):
                 blend += w[k] * load_linear(linear, instance, bone[k])
