@@ -251,6 +251,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
     _usda(tmp_path / "self_sublayer.usda", '(\n    subLayers = [@./self_sublayer.usda@]\n)\ndef Xform "A" {}\n')
     _usda(tmp_path / "cycle_a.usda", "(\n    subLayers = [@./cycle_b.usda@]\n)\n")
     _usda(tmp_path / "cycle_b.usda", "(\n    subLayers = [@./cycle_a.usda@]\n)\n")
+    _usda(tmp_path / "missing_reference.usda", 'def Xform "A" (\n    references = @./gone.usda@\n) {}\n')
     _usda(tmp_path / "self_reference.usda", 'def Xform "A" (\n    references = @./self_reference.usda@\n) {}\n')
 
     package_src = _copy(EXR_FIXTURE, tmp_path / "package_src")
@@ -273,9 +274,11 @@ def test_more_malformed_inputs(tmp_path, capsys):
         "zero_usd": (tmp_path / "zero.usd", 2, "usd.open"),
         "folder": (tmp_path / "folder.usda", 2, "file.unreadable"),
         "unknown_suffix": (tmp_path / "notes.txt", 2, "usd.open"),
-        "self_sublayer": (tmp_path / "self_sublayer.usda", 0, "asset.empty"),
-        "sublayer_cycle": (tmp_path / "cycle_a.usda", 0, "asset.empty"),
-        "self_reference": (tmp_path / "self_reference.usda", 0, "asset.empty"),
+        # USD composes these with a warning; readers refuse them, so they are errors.
+        "self_sublayer": (tmp_path / "self_sublayer.usda", 1, "asset.composition"),
+        "sublayer_cycle": (tmp_path / "cycle_a.usda", 1, "asset.composition"),
+        "self_reference": (tmp_path / "self_reference.usda", 1, "asset.composition"),
+        "missing_reference": (tmp_path / "missing_reference.usda", 1, "asset.composition"),
         "usdz_texture_truncated": (package, 1, "texture.unreadable"),
         "texture_sidecar_disagrees": (disagree / EXR, 1, "metadata.sidecarMismatch"),
     }

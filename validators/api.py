@@ -180,6 +180,12 @@ def validate_stage(stage, asset_dir: str) -> list:
 
     findings = []
     animations = 0
+    # A missing or unreadable sublayer, reference or payload, or a cycle of layers: USD composes
+    # what it can and only warns, but readers (vbusd's included) refuse such a stage.
+    for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
+        site = getattr(error, "rootSite", None)
+        path = str(site.path) if site is not None else "/"
+        findings.append(finding("asset.composition", " ".join(str(error).split())[:300], UsdSite(path)))
     with quiet_stderr():
         iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
         for prim in iterator:

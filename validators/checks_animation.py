@@ -90,7 +90,7 @@ def check_declared_layout(declared: Declared):
 
 
 def check_clips(declared: Declared):
-    """``clip.rate``, ``clip.bounds``, ``clip.overlap``, ``clip.rows``."""
+    """``clip.rate``, ``clip.bounds``, ``clip.overlap``, ``clip.order``, ``clip.name``, ``clip.rows``."""
     clips = declared.get("clips")
     if clips is None:
         return []
@@ -116,6 +116,19 @@ def check_clips(declared: Declared):
             out.append(finding("clip.overlap", f"clips {clips[ai]['name']!r} (#{ai}, rows {a0}..{a0 + an - 1}) "
                                f"and {clips[bi]['name']!r} (#{bi}, rows {b0}..{b0 + bn - 1}) share rows",
                                declared.locate(("clips", bi, "firstRow"))))
+    overlapping = any(b0 < a0 + an for (a0, an, _), (b0, _, _) in zip(spans, spans[1:]))
+    if not overlapping:
+        # Clips that neither overlap nor leave the rows can still be listed out of row order; the
+        # spec requires the list order (clip index j, used by instancers) to be the row order.
+        for j in range(1, len(clips)):
+            before, this = clips[j - 1], clips[j]
+            if int(before["rowCount"]) >= 1 and int(this["rowCount"]) >= 1 \
+                    and int(this["firstRow"]) < int(before["firstRow"]):
+                out.append(finding("clip.order", f"clip {this['name']!r} (#{j}) starts at row "
+                                   f"{int(this['firstRow'])}, before clip {before['name']!r} (#{j - 1}) at row "
+                                   f"{int(before['firstRow'])}; clips are listed in row order",
+                                   declared.locate(("clips", j, "firstRow"))))
+                break
     seen = {}
     for i, clip in enumerate(clips):
         name = clip["name"]

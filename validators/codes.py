@@ -68,6 +68,8 @@ _CODES = (
     Code("asset.empty", W, "The stage holds no VirtualBonesAnimation prim.", f"{_VB}#usd-schema", "usd"),
     Code("asset.internal", E, "A check failed unexpectedly; the rest of the report is still valid.",
          "validation.md#robustness", "file"),
+    Code("asset.composition", E, "USD reports a composition error: a sublayer, reference or payload "
+         "cannot be found or read, or layers include each other in a cycle.", f"{_VB}#usd-schema", "usd"),
     # format version
     Code("format.version", E, "Format version missing, not an integer, below 1 or newer than this "
          "validator reads.", f"{_VB}#versioning", "usd"),
@@ -146,6 +148,8 @@ _CODES = (
     Code("clip.bounds", E, "A clip's rows lie outside the texture's data rows, or it has no rows.",
          f"{_VB}#clips", "usd"),
     Code("clip.overlap", E, "Two clips share texture rows.", f"{_VB}#clips", "usd"),
+    Code("clip.order", E, "The clips are not listed in row order (clip j must start at the row after "
+         "clip j-1's last row).", f"{_VB}#clips", "usd"),
     Code("clip.rows", E, "The clips' row counts do not add up to vb:rowCount.", f"{_VB}#clips", "usd"),
     Code("clip.name", E, "A clip name is empty or used by two clips.", f"{_VB}#clips", "usd"),
     Code("clip.rate", E, "A clip's rows per second is not a positive finite number.", f"{_VB}#clips",
