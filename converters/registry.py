@@ -168,5 +168,6 @@ def read(path, options, name: Optional[str] = None):
     if not path.exists():
         raise InputError("no such file", file=str(path), code="input.missing")
     if not path.is_file():
-        raise InputError("not a file", file=str(path), code="input.notFile")
+        raise InputError("is a folder, not a file" if path.is_dir() else "not a regular file", file=str(path),
+                         code="input.notFile")
     return find_converter(path, name).read(path, options)

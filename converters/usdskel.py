@@ -41,6 +41,10 @@ WEIGHT_SUM_TOLERANCE = 1e-3
 
 DQS = "dualQuaternion"
 
+_NOT_USD = ((b"\x89PNG", "a PNG image"), (b"\x76\x2f\x31\x01", "an OpenEXR image"), (b"\xff\xd8\xff", "a JPEG image"),
+            (b"glTF", "a binary glTF (.glb)"))
+"""Leading bytes of files that are often mistaken for USD stages."""
+
 
 def sniff(path) -> bool:
     """Whether ``path`` starts like a USD file (text ``#usda``, crate ``PXR-USDC``, or a usdz zip)."""
@@ -119,6 +123,17 @@ class _Reader:
     def _open(self):
         from pxr import Tf
 
+        try:
+            with open(self.path, "rb") as handle:
+                head = handle.read(8)
+        except OSError as error:
+            raise InputError(f"cannot read: {error.strerror or error}", file=self.file, code="usd.open") from None
+        # USD's own messages for these say little ("not a valid usda layer"): name what the file is.
+        if not head:
+            raise InputError("the file is empty, not a USD stage", file=self.file, code="usd.open")
+        for magic, what in _NOT_USD:
+            if head.startswith(magic):
+                raise InputError(f"the file is {what}, not a USD stage", file=self.file, code="usd.open")
         try:
             stage = self.Usd.Stage.Open(str(self.path))
         except Tf.ErrorException as error:

@@ -150,3 +150,18 @@ def test_crowd_decoding_places_every_instance(converted, tmp_path):
             expected, _ = scenes.usdskel_world(source, "/Root/Body", [source_code])
             placed = expected[0] @ rotations[i].T + crowd.positions[i]
             assert np.abs(points[i] - placed).max() < 5e-4, (code, i)
+
+
+def test_decode_creates_the_output_folder_and_refuses_folders_in_one_line(converted, tmp_path, capsys):
+    _, asset = converted
+    cache = tmp_path / "caches" / "shot" / "cache.usda"
+    assert main(["decode", str(asset), "-o", str(cache)]) == 0
+    assert Usd.Stage.Open(str(cache)) is not None
+    capsys.readouterr()
+    (tmp_path / "folder.usda").mkdir()
+    for arguments, fragment in (([str(tmp_path), "-o", str(tmp_path / "c.usda")], "is a folder"),
+                                ([str(asset), "-o", str(tmp_path / "folder.usda")], "the output is a folder")):
+        assert main(["decode"] + arguments) == 2
+        err = capsys.readouterr().err
+        assert fragment in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "c.usda").exists()

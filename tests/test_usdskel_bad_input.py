@@ -114,3 +114,51 @@ def test_layers_outside_the_folder_need_permission(tmp_path, capsys):
     assert not output.exists()
     assert main(["convert", str(shot), "-o", str(output), "--allow-outside-paths"]) == 0
     assert output.exists()
+
+
+def _good_stage(tmp_path) -> Path:
+    import importlib.util
+
+    name = "vbusd_test_usdskel_scenes"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    scenes = sys.modules[name]
+    return Path(scenes.write_stage(tmp_path / "good.usda", [scenes.RigSpec()]))
+
+
+def _crate_bytes(tmp_path) -> bytes:
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(_good_stage(tmp_path)))
+    stage.GetRootLayer().Export(str(tmp_path / "full.usdc"))
+    data = (tmp_path / "full.usdc").read_bytes()
+    for name in ("good.usda", "full.usdc"):
+        (tmp_path / name).unlink()
+    return data
+
+
+@pytest.mark.parametrize("name, make, fragment", [
+    ("empty.usda", lambda tmp: b"", "the file is empty"),
+    ("picture.usda", lambda tmp: b"\x89PNG\r\n\x1a\n" + bytes(64), "a PNG image"),
+    ("picture.usdz", lambda tmp: b"\x89PNG\r\n\x1a\n" + bytes(64), "a PNG image"),
+    ("half.usdc", lambda tmp: _crate_bytes(tmp)[:1500], "truncated"),
+    ("head.usdc", lambda tmp: _crate_bytes(tmp)[:100], "truncated"),
+    ("folder.usda", None, "is a folder"),
+])
+def test_unreadable_files_one_line_and_existing_output_untouched(tmp_path, capsys, name, make, fragment):
+    source = tmp_path / name
+    if make is None:
+        source.mkdir()
+    else:
+        source.write_bytes(make(tmp_path))
+    output = tmp_path / "out.usda"
+    output.write_text("precious")
+    status = main(["convert", str(source), "-o", str(output), "--force"])
+    err = capsys.readouterr().err
+    assert status == 2 and fragment in err and "Traceback" not in err, err
+    assert len(err.strip().splitlines()) == 1 and err.startswith(f"vbusd: {source}: "), err
+    assert output.read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, "out.usda"])

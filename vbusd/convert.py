@@ -244,6 +244,8 @@ def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
     if not ancestor.is_dir():
         raise OptionsError(f"cannot create the output folder {output.parent}: {ancestor} is not a folder",
                            file=str(output))
+    if output.is_dir():
+        raise OptionsError("the output is a folder; name the USD layer to write", file=str(output))
     if source.exists() and output.exists() and output.resolve() == source.resolve():
         raise OptionsError("the output would overwrite the input", file=str(output))
     if output.exists() and not options.force:

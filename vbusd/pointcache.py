@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .errors import OptionsError, VbusdError
+from .errors import InputError, OptionsError, VbusdError
 from .model import VirtualBones, VirtualBonesAsset
 
 DEVICES = ("cpu", "cuda")
@@ -174,8 +174,16 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
         raise OptionsError(f"the cache must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
                            file=str(output))
-    if not output.parent.is_dir():
-        raise OptionsError(f"the output folder {output.parent} does not exist", file=str(output))
+    if output.is_dir():
+        raise OptionsError("the output is a folder; name the USD layer to write", file=str(output))
+    ancestor = output.parent  # a missing output folder is created when the cache is written
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise OptionsError(f"cannot create the output folder {output.parent}: {ancestor} is not a folder",
+                           file=str(output))
+    if asset_path.is_dir():
+        raise InputError("is a folder, not a Virtual Bones USD asset", file=str(asset_path), code="input.notFile")
     if output.exists() and asset_path.exists() and output.resolve() == asset_path.resolve():
         raise OptionsError("the cache would overwrite the asset", file=str(output))
     if output.exists() and not force:
@@ -255,12 +263,19 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
 
     from .fileio import AtomicTransaction
 
+    from .convert import _make_folders, _remove_folders
+
+    created = _make_folders(output.parent)
     try:
         with AtomicTransaction() as transaction:
             temporary = transaction.temp_path(output)
             if not stage.GetRootLayer().Export(str(temporary)):
                 raise OSError(f"USD could not write {output}")
-    except OSError as error:  # disk full, permission denied: one line, not a traceback
+    except BaseException as error:
+        _remove_folders(created)
+        if not isinstance(error, OSError):
+            raise
+        # disk full, permission denied: one line, not a traceback
         raise VbusdError(f"cannot write the point cache (nothing was written): {error.strerror or error}",
                          file=str(output), code="decode.write") from None
     report.start_time_code, report.end_time_code = first_code, last_code

@@ -14,8 +14,8 @@ import click
 
 
 @click.command(name="decode")
-@click.argument("asset", type=click.Path(dir_okay=False, path_type=str))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=str),
+@click.argument("asset", type=click.Path(path_type=str))  # folders: one-line error from decode
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="Point cache to write (.usda, .usdc or .usd).")
 @click.option("--device", default=None, metavar="cpu|cuda",
               help="Decode with the warp kernels on this device (default: the numpy reference decoder).")
