@@ -101,6 +101,7 @@ def _chain_animation(scaled: bool, twist: bool = False) -> SkinnedAnimation:
     points = rng.uniform(-0.3, 0.3, size=(24, 3)) + np.array([0, 1.0, 0])
     normals = rng.normal(size=(24, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[5] = 0.0  # a degenerate normal (meshes have them): the spec's normalize(0) is 0, not NaN
     indices = np.stack([rng.permutation(5)[:5].tolist() + [int(rng.integers(5))] for _ in range(24)])
     weights = rng.uniform(0.05, 1.0, size=(24, 6))
     weights /= weights.sum(axis=1, keepdims=True)

@@ -236,7 +236,9 @@ void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
         position += w * (a0 * restPosition.x + a1 * restPosition.y + a2 * restPosition.z + t);
         normal += w * (n0 * restNormal.x + n1 * restNormal.y + n2 * restNormal.z);
     }
-    normal = normalize(normal);
+    // The spec's normalize(0) is 0 (a zero rest normal stays zero); GLSL's and HLSL's is NaN.
+    float normalLength = length(normal);
+    normal = normalLength > 0.0 ? normal / normalLength : normal;
 }
 """
 
@@ -269,7 +271,9 @@ void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
     // t = 2 (dual (x) conj(real)).xyz
     vec3 t = 2.0 * (real.w * dual.xyz - dual.w * real.xyz + cross(real.xyz, dual.xyz));
     position = vbRotate(real, restPosition) + t;
-    normal = normalize(vbRotate(real, restNormal));
+    normal = vbRotate(real, restNormal);
+    float normalLength = length(normal);  // the spec's normalize(0) is 0, GLSL's and HLSL's NaN
+    normal = normalLength > 0.0 ? normal / normalLength : normal;
 }
 """
 
