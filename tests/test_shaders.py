@@ -431,12 +431,37 @@ def test_hlsl_cbuffer_offsets_are_the_documented_ones(tmp_path):
 
 def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     out = tmp_path / "skin.glsl"
+    out.write_text("old")
     assert main(["shader", "--lang", "glsl", "--encoding", "dualQuat", "--texel-format", "unorm16",
                  "--max-influences", "8", "-o", str(out)]) == 0
     text = out.read_text()
     assert "#define VB_MAX_INFLUENCES 8" in text and "vb_rangeMin" in text and "vbRotate" in text
-    assert main(["shader", "--lang", "wgsl", "--encoding", "dualQuat"]) == 2
-    assert "wgsl" in capsys.readouterr().err
+    assert "void main()" in text
+    assert main(["shader", "--lang", "hlsl", "--no-main", "--max-clips", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "#define VB_MAX_CLIPS 4" in text and "#define VB_MAIN 0" in text and "Texture2D<float4>" in text
+    bad = {("--lang", "wgsl"): "--lang", ("--encoding", "quat"): "--encoding",
+           ("--texel-format", "rgba8"): "--texel-format", ("--max-influences", "0"): "--max-influences",
+           ("--max-influences", "9"): "--max-influences", ("--max-influences", "four"): "--max-influences",
+           ("--max-clips", "0"): "--max-clips", ("--max-clips", "2.5"): "--max-clips",
+           ("-o", str(tmp_path)): str(tmp_path), ("-o", str(tmp_path / "missing" / "x.glsl")): "missing"}
+    for args, named in bad.items():
+        assert main(["shader", *args]) == 2, args
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert len(lines) == 1 and named in lines[0] and not captured.out, (args, captured)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["skin.glsl"]  # no temporary left behind
+
+
+def test_shader_command_as_a_process(tmp_path):
+    out = tmp_path / "skin.hlsl"
+    done = subprocess.run([sys.executable, "-m", "vbusd.cli", "shader", "--lang", "hlsl", "--encoding",
+                           "quatTranslation", "-o", str(out)], capture_output=True, text=True)
+    assert done.returncode == 0 and not done.stderr, done.stderr
+    assert "#define VB_TEXELS_PER_BONE 2" in out.read_text()
+    done = subprocess.run([sys.executable, "-m", "vbusd.cli", "shader", "--max-influences", "x"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
 
 
 def _png_chunk_types(data: bytes) -> list:
