@@ -320,6 +320,7 @@ def _locate_structure_error(json_text: str) -> str | None:
 _INT, _NUM, _STR, _BOOL = "integer", "number", "string", "boolean"
 _INTS, _NUMS, _STRS = ("array", _INT), ("array", _NUM), ("array", _STR)
 _INT_MAP = ("map", _INT)
+_REQUIRED = "required"   # ("required", kind): the property must be present (pygltflib needs it)
 _SPARSE = {"count": _INT, "indices": {"bufferView": _INT, "byteOffset": _INT, "componentType": _INT},
            "values": {"bufferView": _INT, "byteOffset": _INT}}
 _TYPES = {
@@ -328,14 +329,16 @@ _TYPES = {
     "extensionsRequired": _STRS,
     "asset": {"version": _STR, "minVersion": _STR},
     "accessors": ("array", {"bufferView": _INT, "byteOffset": _INT, "componentType": _INT,
-                            "normalized": _BOOL, "count": _INT, "type": _STR, "sparse": _SPARSE}),
+                            "normalized": _BOOL, "count": _INT, "type": _STR, "sparse": _SPARSE,
+                            "min": _NUMS, "max": _NUMS}),
     "animations": ("array", {
         "channels": ("array", {"sampler": _INT, "target": {"node": _INT, "path": _STR}}),
         "samplers": ("array", {"input": _INT, "output": _INT, "interpolation": _STR})}),
     "buffers": ("array", {"uri": _STR, "byteLength": _INT}),
     "bufferViews": ("array", {"buffer": _INT, "byteOffset": _INT, "byteLength": _INT,
                               "byteStride": _INT, "target": _INT}),
-    "meshes": ("array", {"primitives": ("array", {"attributes": _INT_MAP, "indices": _INT,
+    "meshes": ("array", {"primitives": ("array", {"attributes": (_REQUIRED, _INT_MAP),
+                                                  "indices": _INT,
                                                   "mode": _INT,
                                                   "targets": ("array", _INT_MAP)}),
                          "weights": _NUMS}),
@@ -365,6 +368,8 @@ def _type_error(value, kind, pointer: str):
     if kind == _BOOL:
         return None if isinstance(value, bool) else (pointer, f"expected true or false, found "
                                                                f"{short(value)}")
+    if isinstance(kind, tuple) and kind[0] == _REQUIRED:
+        return _type_error(value, kind[1], pointer)
     if isinstance(kind, tuple):
         container, item = kind
         if container == "array":
@@ -383,11 +388,18 @@ def _type_error(value, kind, pointer: str):
     if not isinstance(value, dict):
         return pointer, f"expected an object, found {short(value)}"
     for key, child_kind in kind.items():
-        # null is read as absent (as pygltflib does); the converter then asks for what it needs.
-        if value.get(key) is not None:
-            found = _type_error(value[key], child_kind, f"{pointer}/{key}")
+        child = value.get(key)
+        if child is not None:
+            found = _type_error(child, child_kind, f"{pointer}/{key}")
             if found:
                 return found
+        elif isinstance(child_kind, tuple) and child_kind[0] == _REQUIRED:
+            return (f"{pointer}/{key}" if key in value else pointer or "/",
+                    f"{key} is required" + (", found null" if key in value else " and missing"))
+        elif key in value and not isinstance(child_kind, str):
+            # A null scalar reads as absent (as pygltflib does, the converter then asks for what
+            # it needs); a null array or object makes pygltflib fail, so it is named here.
+            return f"{pointer}/{key}", "expected an array or object, found null"
     return None
 
 

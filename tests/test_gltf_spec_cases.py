@@ -215,6 +215,9 @@ def test_stage_axes_units_and_prim_names_with_plain_pxr(tmp_path):
     (lambda d: d["meshes"][0]["primitives"][0]["attributes"].update(NORMAL="1"),
      "/meshes/0/primitives/0/attributes/NORMAL"),
     (lambda d: d["nodes"][2].update(rotation=[0, 0, float("nan"), 1]), "/nodes/2/rotation/2"),
+    (lambda d: d["accessors"][0].update(min=[0, "x", 0]), "/accessors/0/min/1"),
+    (lambda d: d.update(meshes=None), "/meshes"),
+    (lambda d: d["meshes"][0]["primitives"][0].pop("attributes"), "/meshes/0/primitives/0"),
     (lambda d: d.update(extensionsUsed=7), "/extensionsUsed"),
 ])
 def test_structure_errors_are_located(tmp_path, mutate, location):
