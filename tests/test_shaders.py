@@ -490,12 +490,14 @@ def test_written_textures_ask_importers_for_no_colour_processing(tmp_path):
     bit_depth, colour_type = data[24], data[25]  # IHDR: 16-bit RGBA (colour type 6)
     assert (bit_depth, colour_type) == (16, 6)
 
-    exr_vb = bake(animation, BakeOptions(texel_format="float16"))
-    write_texture(tmp_path / "t.exr", exr_vb)
-    with OpenEXR.File(str(tmp_path / "t.exr")) as exr:
-        header = dict(exr.header())  # copy: the binding's header does not outlive the file
-    assert header.get("type", OpenEXR.scanlineimage) == OpenEXR.scanlineimage  # not tiled: no mip levels
-    assert "tiles" not in header and "chromaticities" not in header
-    assert header["compression"] in (OpenEXR.NO_COMPRESSION, OpenEXR.RLE_COMPRESSION,
-                                     OpenEXR.ZIPS_COMPRESSION, OpenEXR.ZIP_COMPRESSION,
-                                     OpenEXR.PIZ_COMPRESSION)
+    for texel_format in ("float16", "float32"):  # PXR24, B44 and DWA would be lossy: only lossless codecs
+        exr_vb = bake(animation, BakeOptions(texel_format=texel_format))
+        path = tmp_path / f"t.{texel_format}.exr"
+        write_texture(path, exr_vb)
+        with OpenEXR.File(str(path)) as exr:
+            header = dict(exr.header())  # copy: the binding's header does not outlive the file
+        assert header.get("type", OpenEXR.scanlineimage) == OpenEXR.scanlineimage  # not tiled: no mip levels
+        assert "tiles" not in header and "chromaticities" not in header
+        assert header["compression"] in (OpenEXR.NO_COMPRESSION, OpenEXR.RLE_COMPRESSION,
+                                         OpenEXR.ZIPS_COMPRESSION, OpenEXR.ZIP_COMPRESSION,
+                                         OpenEXR.PIZ_COMPRESSION), (texel_format, header["compression"])
