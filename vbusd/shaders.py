@@ -25,7 +25,7 @@ class ShaderOptions:
     """What to generate; checked on construction.
 
     Attributes:
-        lang: ``glsl`` (GLSL 3.30 core and later) or ``hlsl`` (Shader Model 5 and later).
+        lang: ``glsl`` (GLSL 3.30 core and later) or ``hlsl`` (Shader Model 4 and later).
         encoding: Bone encoding the texture uses.
         texel_format: Its texel format (unorm16 adds the range uniforms).
         max_influences: Influences per vertex K, 1..8 (two attribute sets above 4).
