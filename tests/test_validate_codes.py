@@ -142,10 +142,15 @@ def test_every_code_string_in_the_validators_is_registered():
 
 
 def test_findings_carry_the_location_kind_their_code_registers():
-    """In a USD asset every finding's location is of the kind ISSUES.md lists for its code."""
+    """In a USD asset every finding's location is of the kind ISSUES.md lists for its code; and the
+    JSON report of every golden fixture follows the report schema."""
     wrong = []
+    schema = _schema()
     for asset in sorted(FIXTURES.rglob("asset.usda")):
-        for item in validate(asset).findings:
+        report = validate(asset)
+        errors = [e.message for e in schema.iter_errors(json.loads(report.to_json_text()))]
+        assert not errors, (asset.parent.name, errors)
+        for item in report.findings:
             if item.location.kind != codes.get(item.code).location:
                 wrong.append(f"{asset.parent.name}: {item.code} at {item.location.kind}, registered "
                              f"{codes.get(item.code).location}")
