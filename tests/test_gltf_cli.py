@@ -50,6 +50,10 @@ def test_convert_glb_round_trip(tmp_path):
     np.testing.assert_allclose(points[0], BEND_1, atol=1e-5)
     points, _ = skin_mesh(vb, mesh, names.index("Cubic"), np.array([0.5]))
     np.testing.assert_allclose(points[0], CUBIC_HALF, atol=1e-5)
+    # The written asset passes vbusd's own validator (another helper's command) with no errors.
+    from vbusd import cli
+
+    assert cli.main(["validate", str(out)]) == 0
 
 
 def test_convert_bad_glb_one_line_no_output(tmp_path):
