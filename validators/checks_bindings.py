@@ -124,6 +124,10 @@ def check_binding_prim(prim):
     if BINDING_API not in applied_schemas(prim):
         out.append(finding("binding.api.missing", f"{path} has vb: binding primvars but does not apply "
                            f"{BINDING_API}", UsdSite(path)))
+    elif not prim.IsA(UsdGeom.Mesh):
+        out.append(finding("binding.api.prim", f"{BINDING_API} is applied to a "
+                           f"{prim.GetTypeName() or 'typeless'} prim; it applies to Mesh prims only",
+                           UsdSite(path)))
     target, problems = _animation_target(prim, "binding.animation", BINDING_API)
     out += problems
     bone_count = _int_value(target, "vb:boneCount") if target is not None else None
@@ -207,7 +211,7 @@ def check_binding_prim(prim):
 def _check_normals(prim, path):
     from pxr import UsdGeom
 
-    attribute = None
+    attribute, name = None, None
     primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
     if primvar and primvar.HasValue():
         attribute, name = primvar.GetAttr(), "primvars:normals"
@@ -219,12 +223,35 @@ def _check_normals(prim, path):
     if normals is None or normals.size % 3:
         return []
     normals = normals.reshape(-1, 3)
+    out = []
+    # Skinning gives normal j the influences of point j (vertex) or of face-vertex j's point
+    # (faceVarying, spec "Mesh binding"): any other interpolation or count leaves normals unskinned.
+    if name == "primvars:normals":
+        interpolation = str(primvar.GetInterpolation())
+        count = len(primvar.ComputeFlattened() or ())
+    else:
+        interpolation = str(UsdGeom.PointBased(prim).GetNormalsInterpolation()) \
+            if prim.IsA(UsdGeom.PointBased) else "vertex"
+        count = len(normals)
+    points = _array(prim.GetAttribute("points"), np.float64) if prim.HasAttribute("points") else None
+    points = None if points is None else points.reshape(-1, 3)
+    face_vertices = prim.GetAttribute("faceVertexIndices").Get() if prim.HasAttribute("faceVertexIndices") \
+        else None
+    expected = {"vertex": None if points is None else len(points),
+                "faceVarying": None if face_vertices is None else len(face_vertices)}
+    if interpolation not in expected:
+        out.append(finding("binding.normals.count", f"{name} has interpolation {interpolation!r}; rest "
+                           "normals must be 'vertex' or 'faceVarying'", UsdSite(path, name)))
+    elif expected[interpolation] is not None and count != expected[interpolation]:
+        what = "points" if interpolation == "vertex" else "face-vertices"
+        out.append(finding("binding.normals.count", f"{name} holds {count} {interpolation} normals for "
+                           f"{expected[interpolation]} {what}", UsdSite(path, name)))
     length = np.linalg.norm(normals, axis=-1)
     bad = ~(np.abs(length - 1.0) <= NORMAL_LENGTH_TOLERANCE)
     if not bad.any():
-        return []
+        return out
     first = int(np.argmax(bad))
-    return [finding("binding.normals.unit", f"{int(bad.sum())} rest normal(s) are not unit length (tolerance "
+    return out + [finding("binding.normals.unit", f"{int(bad.sum())} rest normal(s) are not unit length (tolerance "
                     f"{NORMAL_LENGTH_TOLERANCE}); the first is normal {first} with length {float(length[first]):.6g}",
                     UsdSite(path, name))]
 

@@ -159,6 +159,8 @@ _CODES = (
     # mesh bindings
     Code("binding.api.missing", W, "A mesh has vb: primvars but VirtualBonesBindingAPI is not applied.",
          f"{_VB}#binding", "usd"),
+    Code("binding.api.prim", E, "VirtualBonesBindingAPI is applied to a prim that is not a Mesh.",
+         f"{_VB}#binding", "usd"),
     Code("binding.animation", E, "vb:animation does not target exactly one VirtualBonesAnimation prim.",
          f"{_VB}#binding", "usd"),
     Code("binding.primvar.missing", E, "primvars:vb:boneIndices or primvars:vb:boneWeights is missing "
@@ -177,6 +179,8 @@ _CODES = (
          "usd"),
     Code("binding.weights.sum", E, "A vertex's bone weights do not sum to one.", f"{_VB}#binding", "usd"),
     Code("binding.points.nonFinite", E, "A rest point is NaN or infinite.", f"{_VB}#binding", "usd"),
+    Code("binding.normals.count", E, "Rest normals are neither vertex nor faceVarying, or do not hold one "
+         "normal per point (vertex) or per face-vertex (faceVarying).", f"{_VB}#binding", "usd"),
     Code("binding.normals.unit", W, "A rest normal is not unit length.", f"{_VB}#binding", "usd"),
     # instancers
     Code("instancer.animation", E, "vb:animation of a VirtualBonesInstancingAPI prim does not target "
