@@ -408,7 +408,7 @@ def _escape_pointer(key: str) -> str:
     return str(key).replace("~", "~0").replace("/", "~1")
 
 
-def _check_raw_structure(json_text: str, file: str) -> None:
+def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None:
     """Checks pygltflib cannot make: it fills a missing ``asset`` or ``asset.version`` with defaults.
 
     Only the required ``asset.version`` and the kinds of the top-level arrays are looked at here;
@@ -421,8 +421,11 @@ def _check_raw_structure(json_text: str, file: str) -> None:
     except RecursionError:
         raise InputError("JSON nests too deeply", file=file, code="gltf.json") from None
     except ValueError as exc:
+        # json reports a character index into the text; the message names the byte of the file
+        # (the JSON chunk of a GLB starts at byte 20, and non-ASCII characters take several bytes).
+        at = json_start + len(json_text[:getattr(exc, "pos", 0)].encode("utf-8"))
         raise InputError(f"not valid JSON: {getattr(exc, 'msg', exc)}", file=file,
-                         location=f"byte {getattr(exc, 'pos', 0)}", code="gltf.json") from None
+                         location=f"byte {at}", code="gltf.json") from None
     if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
         raise InputError("asset is missing or not an object", file=file, location="/asset",
                          code="gltf.asset.version")
@@ -473,7 +476,7 @@ def load(path, options: ReadOptions | None = None):
     try:
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
-            _check_raw_structure(json_text, file)
+            _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
             # The chunks are checked above; pygltflib parses the same bytes. It warns (Python
             # warnings) about chunk types the GLB spec says to skip silently.
             with warnings.catch_warnings():

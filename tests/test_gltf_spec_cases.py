@@ -229,3 +229,25 @@ def test_structure_errors_are_located(tmp_path, mutate, location):
         gltf.read(path)
     assert info.value.location == location, str(info.value)
     assert "\n" not in str(info.value)
+
+
+def test_json_syntax_errors_name_the_byte_of_the_file(tmp_path):
+    import struct
+
+    # GLB: the JSON chunk's text starts at byte 20 (12-byte header, 8-byte chunk header).
+    data = bytearray((FIXTURES / "bar.glb").read_bytes())
+    at = data.index(b'"asset"')
+    data[at] = ord("x")
+    assert struct.unpack_from("<I", data, 16)[0] == 0x4E4F534A and at == 21
+    path = tmp_path / "broken.glb"
+    path.write_bytes(bytes(data))
+    with pytest.raises(VbusdError) as info:
+        gltf.read(path)
+    assert (info.value.code, info.value.location) == ("gltf.json", "byte 21")
+    # .gltf with a two-byte UTF-8 character before the error: bytes, not characters.
+    path = tmp_path / "broken.gltf"
+    path.write_bytes('{"asset": {"version": "2.0", "generator": "é"},}'.encode("utf-8"))
+    with pytest.raises(VbusdError) as info:
+        gltf.read(path)
+    # The stray "}" after the last "," is character 47, byte 48 ("é" takes two bytes).
+    assert (info.value.code, info.value.location) == ("gltf.json", "byte 48")
