@@ -246,10 +246,12 @@ def _program(ctx, lang, source, tmp_path):
             HLSL_NAMES, True)
 
 
-def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what):
-    """Run the module for ``lang`` on every (instance, vertex) and assert agreement with the reference."""
+def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what, prefix=""):
+    """Run the module for ``lang`` (after ``prefix``) on every (instance, vertex) and assert
+    agreement with the reference."""
     tau_used = offset.astype(np.float64) + rate.astype(np.float64) * time  # what the GPU is given
-    source = generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format, max_influences=max_influences))
+    source = prefix + generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format,
+                                             max_influences=max_influences))
     program, names, block = _program(ctx, lang, source, tmp_path)
     points, normals = _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, block)
     program.release()
@@ -318,6 +320,44 @@ def test_influence_counts_and_texture_shapes(gl, lang, case, tmp_path):
     time = 0.37
     offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
     _compare(gl, lang, vb, vb.meshes[0], shader_k, clip, offset, rate, time, tmp_path, case)
+
+
+# The engine hooks as an Unreal custom node or a Unity custom function uses them: the including code
+# declares the resources itself and the module's functions take the texture as an argument.
+_HOOKED_HLSL = """\
+#define VB_DECLARE_RESOURCES 0
+#define VB_ARGS_DECL Texture2D<float4> boneTexture,
+#define VB_ARGS vb_texture,
+#define VB_FETCH(column, row) boneTexture.Load(int3(column, row, 0))
+#define VB_CLIP(clip) vb_clipTable[clip]
+#define VB_RANGE_MIN(slot) vb_low[slot]
+#define VB_RANGE_MAX(slot) vb_high[slot]
+Texture2D<float4> vb_texture;
+cbuffer VirtualBones
+{
+    float vb_time;
+    float4 vb_clipTable[16];
+    float4 vb_low[3];
+    float4 vb_high[3];
+};
+"""
+
+
+@pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
+                    reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "unorm16"), ("dualQuat", "float16")])
+def test_engine_hooks_texture_as_argument_and_own_resources(gl, encoding, texel_format, tmp_path):
+    """VB_DECLARE_RESOURCES 0, VB_ARGS_DECL / VB_ARGS, VB_FETCH, VB_CLIP and VB_RANGE_MIN/MAX give
+    the same results (HLSL: the texture passed as a function argument, legalized by glslang)."""
+    vb, max_influences = _baked("chain", encoding, texel_format)
+    if vb.unorm_ranges is not None and vb.layout.texels_per_bone != 3:
+        pytest.skip("the prefix declares three range slots")
+    clip, tau, rate = _instances(vb)
+    time = 0.37
+    offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
+    prefix = _HOOKED_HLSL if texel_format == "unorm16" else _HOOKED_HLSL.replace("    float4 vb_low[3];\n    float4 vb_high[3];\n", "")
+    _compare(gl, "hlsl", vb, vb.meshes[0], max_influences, clip, offset, rate, time, tmp_path,
+             f"hooks {encoding} {texel_format}", prefix=prefix)
 
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"

@@ -103,20 +103,20 @@ cbuffer VirtualBones
 
 # The shared body, in the GLSL spelling (the HLSL prologue maps vec*/mix/VB_FETCH).
 _BODY = """\
-vec4 vbTexel(int bone, int slot, int row)
+vec4 vbTexel(VB_ARGS_DECL int bone, int slot, int row)
 {
     vec4 value = VB_FETCH(bone * VB_TEXELS_PER_BONE + slot, row);
 #if VB_UNORM16
     // The texture is sampled as normalized 16-bit, so value = u / 65535.
-    value = vb_rangeMin[slot] + (vb_rangeMax[slot] - vb_rangeMin[slot]) * value;
+    value = VB_RANGE_MIN(slot) + (VB_RANGE_MAX(slot) - VB_RANGE_MIN(slot)) * value;
 #endif
     return value;
 }
 
 // Texture rows and blend factor of a clip at clip-local time tau (spec: "Clips").
-void vbRows(int clip, float tau, out int row0, out int row1, out float blend)
+void vbRows(VB_ARGS_DECL int clip, float tau, out int row0, out int row1, out float blend)
 {
-    vec4 c = vb_clips[clip];
+    vec4 c = VB_CLIP(clip);
     float n = c.y;
     float x = tau * c.z;
     float i0;
@@ -139,33 +139,33 @@ void vbRows(int clip, float tau, out int row0, out int row1, out float blend)
 }
 
 // Channel values of one bone texel, interpolated between the two rows.
-vec4 vbLerpTexel(int bone, int slot, int row0, int row1, float blend)
+vec4 vbLerpTexel(VB_ARGS_DECL int bone, int slot, int row0, int row1, float blend)
 {
-    return mix(vbTexel(bone, slot, row0), vbTexel(bone, slot, row1), blend);
+    return mix(vbTexel(VB_ARGS bone, slot, row0), vbTexel(VB_ARGS bone, slot, row1), blend);
 }
 """
 
 _DECODE = {
     Encoding.CROSS_MATRIX: """\
 // crossMatrix: texel 0 = A e_x, texel 1 = A e_y, texel 2 = t; A e_z = cross(x, y).
-void vbBone(int bone, int row0, int row1, float blend,
+void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
             out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
 {
-    a0 = vbLerpTexel(bone, 0, row0, row1, blend).xyz;
-    a1 = vbLerpTexel(bone, 1, row0, row1, blend).xyz;
+    a0 = vbLerpTexel(VB_ARGS bone, 0, row0, row1, blend).xyz;
+    a1 = vbLerpTexel(VB_ARGS bone, 1, row0, row1, blend).xyz;
     a2 = cross(a0, a1);
-    t = vbLerpTexel(bone, 2, row0, row1, blend).xyz;
+    t = vbLerpTexel(VB_ARGS bone, 2, row0, row1, blend).xyz;
     n0 = a0; n1 = a1; n2 = a2;
 }
 """,
     Encoding.AFFINE_MATRIX: """\
 // affineMatrix: texel i = row i of [A | t]; normals use inverse(A)^T.
-void vbBone(int bone, int row0, int row1, float blend,
+void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
             out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
 {
-    vec4 r0 = vbLerpTexel(bone, 0, row0, row1, blend);
-    vec4 r1 = vbLerpTexel(bone, 1, row0, row1, blend);
-    vec4 r2 = vbLerpTexel(bone, 2, row0, row1, blend);
+    vec4 r0 = vbLerpTexel(VB_ARGS bone, 0, row0, row1, blend);
+    vec4 r1 = vbLerpTexel(VB_ARGS bone, 1, row0, row1, blend);
+    vec4 r2 = vbLerpTexel(VB_ARGS bone, 2, row0, row1, blend);
     a0 = vec3(r0.x, r1.x, r2.x);
     a1 = vec3(r0.y, r1.y, r2.y);
     a2 = vec3(r0.z, r1.z, r2.z);
@@ -184,11 +184,11 @@ vec3 vbRotate(vec4 q, vec3 v)
 }
 
 // quatTranslation: texel 0 = q (x, y, z, w), texel 1 = (t, s); A = s R(q), normals use R(q) / s.
-void vbBone(int bone, int row0, int row1, float blend,
+void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
             out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
 {
-    vec4 q = normalize(vbLerpTexel(bone, 0, row0, row1, blend));
-    vec4 ts = vbLerpTexel(bone, 1, row0, row1, blend);
+    vec4 q = normalize(vbLerpTexel(VB_ARGS bone, 0, row0, row1, blend));
+    vec4 ts = vbLerpTexel(VB_ARGS bone, 1, row0, row1, blend);
     n0 = vbRotate(q, vec3(1.0, 0.0, 0.0));
     n1 = vbRotate(q, vec3(0.0, 1.0, 0.0));
     n2 = vbRotate(q, vec3(0.0, 0.0, 1.0));
@@ -204,10 +204,10 @@ vec3 vbRotate(vec4 q, vec3 v)
 }
 
 // dualQuat: texel 0 = real part, texel 1 = dual part; each bone is normalized by |real|.
-void vbBone(int bone, int row0, int row1, float blend, out vec4 real, out vec4 dual)
+void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend, out vec4 real, out vec4 dual)
 {
-    real = vbLerpTexel(bone, 0, row0, row1, blend);
-    dual = vbLerpTexel(bone, 1, row0, row1, blend);
+    real = vbLerpTexel(VB_ARGS bone, 0, row0, row1, blend);
+    dual = vbLerpTexel(VB_ARGS bone, 1, row0, row1, blend);
     float len = length(real);
     real = real / len;
     dual = dual / len;
@@ -217,14 +217,14 @@ void vbBone(int bone, int row0, int row1, float blend, out vec4 real, out vec4 d
 
 _SKIN_LBS = """\
 // Linear blend skinning of one vertex at clip-local time tau.
-void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
+void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
             int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
             out vec3 position, out vec3 normal)
 {
     int row0;
     int row1;
     float blend;
-    vbRows(clip, tau, row0, row1, blend);
+    vbRows(VB_ARGS clip, tau, row0, row1, blend);
     position = vec3(0.0, 0.0, 0.0);
     normal = vec3(0.0, 0.0, 0.0);
     for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
@@ -232,7 +232,7 @@ void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
         float w = boneWeight[i];
         if (w == 0.0) continue;
         vec3 a0; vec3 a1; vec3 a2; vec3 t; vec3 n0; vec3 n1; vec3 n2;
-        vbBone(boneIndex[i], row0, row1, blend, a0, a1, a2, t, n0, n1, n2);
+        vbBone(VB_ARGS boneIndex[i], row0, row1, blend, a0, a1, a2, t, n0, n1, n2);
         position += w * (a0 * restPosition.x + a1 * restPosition.y + a2 * restPosition.z + t);
         normal += w * (n0 * restNormal.x + n1 * restNormal.y + n2 * restNormal.z);
     }
@@ -244,21 +244,21 @@ void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
 
 _SKIN_DQS = """\
 // Dual-quaternion skinning of one vertex at clip-local time tau (signs follow the first influence).
-void vbSkin(int clip, float tau, vec3 restPosition, vec3 restNormal,
+void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
             int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
             out vec3 position, out vec3 normal)
 {
     int row0;
     int row1;
     float blend;
-    vbRows(clip, tau, row0, row1, blend);
+    vbRows(VB_ARGS clip, tau, row0, row1, blend);
     vec4 real = vec4(0.0, 0.0, 0.0, 0.0);
     vec4 dual = vec4(0.0, 0.0, 0.0, 0.0);
     vec4 pivot = vec4(0.0, 0.0, 0.0, 1.0);
     for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
     {
         vec4 r; vec4 d;
-        vbBone(boneIndex[i], row0, row1, blend, r, d);
+        vbBone(VB_ARGS boneIndex[i], row0, row1, blend, r, d);
         if (i == 0) pivot = r;
         float w = boneWeight[i];
         if (dot(r, pivot) < 0.0) w = -w;
@@ -308,7 +308,7 @@ void main()
 #endif
     }
     float tau = vb_instanceTime.x + vb_instanceTime.y * vb_time;
-    vbSkin(vb_instanceClip, tau, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
+    vbSkin(VB_ARGS vb_instanceClip, tau, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
            vb_skinnedPosition, vb_skinnedNormal);
     gl_Position = vec4(vb_skinnedPosition, 1.0);
 }
@@ -354,7 +354,7 @@ VbVertexOutput main(VbVertexInput input)
     }
     float tau = input.instanceTime.x + input.instanceTime.y * vb_time;
     VbVertexOutput output;
-    vbSkin(input.instanceClip, tau, input.restPosition, input.restNormal, boneIndex, boneWeight,
+    vbSkin(VB_ARGS input.instanceClip, tau, input.restPosition, input.restNormal, boneIndex, boneWeight,
            output.skinnedPosition, output.skinnedNormal);
     output.position = float4(output.skinnedPosition, 1.0);
     return output;
@@ -394,10 +394,24 @@ def generate(options: ShaderOptions) -> str:
         "#ifndef VB_MAIN",
         f"#define VB_MAIN {1 if options.main else 0}",
         "#endif",
-        "// Define VB_DECLARE_RESOURCES 0 before the module to declare vb_texture, vb_time, vb_clips",
-        "// (and the unorm16 ranges) yourself, and VB_FETCH(column, row) to read texels another way.",
+        "// Engine hooks (spec/shaders.md, \"Engine hooks\"): define any of these before the module.",
         "#ifndef VB_DECLARE_RESOURCES",
         "#define VB_DECLARE_RESOURCES 1",
+        "#endif",
+        "#ifndef VB_ARGS_DECL",
+        "#define VB_ARGS_DECL",
+        "#endif",
+        "#ifndef VB_ARGS",
+        "#define VB_ARGS",
+        "#endif",
+        "#ifndef VB_CLIP",
+        "#define VB_CLIP(clip) vb_clips[clip]",
+        "#endif",
+        "#ifndef VB_RANGE_MIN",
+        "#define VB_RANGE_MIN(slot) vb_rangeMin[slot]",
+        "#endif",
+        "#ifndef VB_RANGE_MAX",
+        "#define VB_RANGE_MAX(slot) vb_rangeMax[slot]",
         "#endif",
         "",
     ]
