@@ -240,8 +240,8 @@ def _usda(path: Path, text: str) -> Path:
 
 def test_more_malformed_inputs(tmp_path, capsys):
     """Inputs a pipeline meets by accident: empty files of every USD flavour, a folder, layers that
-    include themselves, a broken texture inside a .usdz package, and a texture whose sidecar
-    disagrees with its embedded metadata."""
+    include themselves or are missing or lie outside the folder, a broken texture inside a .usdz
+    package, and a texture whose sidecar disagrees with its embedded metadata."""
     from pxr import Sdf, UsdUtils
 
     for suffix in (".usda", ".usdc", ".usdz", ".usd"):
@@ -251,6 +251,9 @@ def test_more_malformed_inputs(tmp_path, capsys):
     _usda(tmp_path / "self_sublayer.usda", '(\n    subLayers = [@./self_sublayer.usda@]\n)\ndef Xform "A" {}\n')
     _usda(tmp_path / "cycle_a.usda", "(\n    subLayers = [@./cycle_b.usda@]\n)\n")
     _usda(tmp_path / "cycle_b.usda", "(\n    subLayers = [@./cycle_a.usda@]\n)\n")
+    _usda(tmp_path / "target.usda", 'def Xform "T" {}\n')
+    (tmp_path / "inner").mkdir()
+    _usda(tmp_path / "inner" / "escape.usda", '(\n    subLayers = [@../target.usda@]\n)\n')
     _usda(tmp_path / "missing_reference.usda", 'def Xform "A" (\n    references = @./gone.usda@\n) {}\n')
     _usda(tmp_path / "self_reference.usda", 'def Xform "A" (\n    references = @./self_reference.usda@\n) {}\n')
 
@@ -279,6 +282,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
         "sublayer_cycle": (tmp_path / "cycle_a.usda", 1, "asset.composition"),
         "self_reference": (tmp_path / "self_reference.usda", 1, "asset.composition"),
         "missing_reference": (tmp_path / "missing_reference.usda", 1, "asset.composition"),
+        "sublayer_outside": (tmp_path / "inner" / "escape.usda", 0, "asset.outside"),
         "usdz_texture_truncated": (package, 1, "texture.unreadable"),
         "texture_sidecar_disagrees": (disagree / EXR, 1, "metadata.sidecarMismatch"),
     }

@@ -164,6 +164,33 @@ def _validate_usd(path: str) -> list:
     return validate_stage(stage, asset_dir)
 
 
+def _layers_outside(stage, asset_dir: str) -> list:
+    """``asset.outside``: sublayers, references and payloads must resolve inside the asset's folder
+    (the rule ``vb:texture`` follows; vbusd's reader refuses them otherwise)."""
+    from vbusd.errors import InputError
+    from vbusd.fileio import resolve_inside
+
+    root = Path(asset_dir).resolve()
+    out = []
+    for layer in stage.GetUsedLayers():
+        if layer.anonymous or not layer.realPath or "[" in layer.realPath:
+            continue  # session layers; layers inside a .usdz resolve inside the package
+        anchor = Path(layer.realPath).resolve().parent
+        for dependency in sorted(layer.GetCompositionAssetDependencies()):
+            if not dependency:
+                continue
+            authored = dependency
+            if anchor != root and not dependency.replace("\\", "/").startswith("/"):
+                authored = f"{os.path.relpath(anchor, root)}/{dependency}".replace(os.sep, "/")
+            try:
+                resolve_inside(root, authored)
+            except InputError as error:
+                why = error.message.split(": ", 1)[-1]
+                out.append(finding("asset.outside", f"layer {os.path.basename(layer.realPath)} uses "
+                                   f"@{dependency}@: {why}", UsdSite("/")))
+    return out
+
+
 def validate_stage(stage, asset_dir: str) -> list:
     """Findings of every Virtual Bones prim of an open stage.
 
@@ -186,6 +213,7 @@ def validate_stage(stage, asset_dir: str) -> list:
         site = getattr(error, "rootSite", None)
         path = str(site.path) if site is not None else "/"
         findings.append(finding("asset.composition", " ".join(str(error).split())[:300], UsdSite(path)))
+    findings += _layers_outside(stage, asset_dir)
     with quiet_stderr():
         iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
         for prim in iterator:

@@ -70,6 +70,8 @@ _CODES = (
          "validation.md#robustness", "file"),
     Code("asset.composition", E, "USD reports a composition error: a sublayer, reference or payload "
          "cannot be found or read, or layers include each other in a cycle.", f"{_VB}#usd-schema", "usd"),
+    Code("asset.outside", W, "A sublayer, reference or payload resolves outside the asset's folder or "
+         "is a remote URI.", "validation.md#asset-folder", "usd"),
     # format version
     Code("format.version", E, "Format version missing, not an integer, below 1 or newer than this "
          "validator reads.", f"{_VB}#versioning", "usd"),
