@@ -26,7 +26,6 @@ import os
 import re
 import struct
 import urllib.parse
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -477,11 +476,11 @@ def load(path, options: ReadOptions | None = None):
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
             _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
-            # The chunks are checked above; pygltflib parses the same bytes. It warns (Python
-            # warnings) about chunk types the GLB spec says to skip silently.
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                gltf = pygltflib.GLTF2.load_from_bytes(data)
+            # pygltflib parses the JSON chunk found by the checked chunk walk above. Its own
+            # load_from_bytes walks the chunks again without those checks: it decodes every chunk
+            # type as UTF-8 text (an unknown type such as b"\\x80..." escapes as a bare
+            # UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
+            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
         else:
             try:
                 json_text = data.decode("utf-8")

@@ -251,3 +251,16 @@ def test_json_syntax_errors_name_the_byte_of_the_file(tmp_path):
         gltf.read(path)
     # The stray "}" after the last "," is character 47, byte 48 ("é" takes two bytes).
     assert (info.value.code, info.value.location) == ("gltf.json", "byte 48")
+
+
+def test_glb_chunk_of_unknown_non_text_type_is_skipped(tmp_path):
+    import struct
+
+    # GLB: "client implementations MUST ignore chunks with unknown types". A type that is not
+    # UTF-8 text (pygltflib's own chunk walk decodes types as text) must not matter either.
+    data = (FIXTURES / "bar.glb").read_bytes()
+    extra = struct.pack("<I", 4) + bytes([0x80, 0x81, 0x82, 0x83]) + b"abcd"
+    data = data[:8] + struct.pack("<I", len(data) + len(extra)) + data[12:] + extra
+    path = tmp_path / "extra.glb"
+    path.write_bytes(data)
+    np.testing.assert_allclose(_points(path, "Bend", 1.0), BEND_1, atol=1e-6)
