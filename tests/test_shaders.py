@@ -10,6 +10,7 @@ looping clip's wrap, with per-instance clips, time offsets and playback rates.
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import importlib.util
 import math
 import shutil
@@ -467,6 +468,75 @@ def test_hlsl_cbuffer_offsets_are_the_documented_ones(tmp_path):
         texels = 3 if encoding == "crossMatrix" else 2
         assert offsets == {"vb_texture": -1, "vb_time": 0, "vb_clips": 16, "vb_rangeMin": 16 + 16 * clips,
                            "vb_rangeMax": 16 + 16 * clips + 16 * texels}, offsets
+
+
+ENGINES = Path(__file__).resolve().parents[1] / "docs" / "engines.md"
+
+# Enough of a three.js WebGL 2 vertex shader (three.js's prefix, the chunk markers the snippet
+# replaces) to compile and run what docs/engines.md injects; the leftover chunks are removed.
+_THREE_VERTEX = """#version 300 es
+precision highp float;
+precision highp int;
+#define attribute in
+#define varying out
+in vec3 position;
+in vec3 normal;
+#include <common>
+out vec3 vb_skinnedPosition;
+out vec3 vb_skinnedNormal;
+void main() {
+#include <uv_vertex>
+#include <beginnormal_vertex>
+#include <morphnormal_vertex>
+    vb_skinnedNormal = objectNormal;
+#include <begin_vertex>
+    vb_skinnedPosition = transformed;
+    gl_Position = vec4(transformed, 1.0);
+}
+"""
+
+
+def _three_snippet_vertex_shader(module: str) -> str:
+    """Apply the .replace(...) chain of the three.js snippet in docs/engines.md to _THREE_VERTEX."""
+    import re
+
+    text = ENGINES.read_text()
+    section = text[text.index("## three.js"):text.index("## Unity")]
+    code = section[section.index("```js"):]
+    replacements = re.findall(r"\.replace\('([^']*)',\s*(?:`([^`]*)`|'([^']*)')\)", code)
+    assert len(replacements) >= 3, "docs/engines.md: the three.js snippet's .replace calls were not found"
+    shader = _THREE_VERTEX
+    for marker, template, plain in replacements:
+        assert marker in shader, f"docs/engines.md replaces {marker!r}, which three.js shaders have not"
+        shader = shader.replace(marker, (template or plain).replace("${vbModule}", module), 1)
+    return re.sub(r"^#include <\w+>$", "", shader, flags=re.M)
+
+
+@pytest.mark.parametrize("encoding", ["crossMatrix", "dualQuat"])
+def test_three_js_snippet_compiles_as_glsl_es_and_matches_reference(gl, encoding, tmp_path):
+    """The GLSL the three.js snippet injects, with its VB_FETCH for EXRLoader's bottom-up rows, on
+    a texture uploaded bottom-up as EXRLoader does: GLSL ES 3.00 (glslang) and the same results."""
+    vb, _ = _baked("stadium", encoding, "float16")
+    module = generate(ShaderOptions("glsl", encoding, "float16", max_influences=4, main=False))
+    source = _three_snippet_vertex_shader(module)
+    if shutil.which("glslangValidator"):
+        (tmp_path / "three.vert").write_text(source)
+        compiled = subprocess.run(["glslangValidator", str(tmp_path / "three.vert")], capture_output=True, text=True)
+        assert compiled.returncode == 0, compiled.stdout + compiled.stderr
+    flipped = dataclasses.replace(vb, texels=np.ascontiguousarray(vb.texels[::-1]))  # EXRLoader's row order
+    names = {"texture": "vb_texture", "vertex": ["position", "normal", "vb_boneIndices0", "vb_boneWeights0"],
+             "instance": ["vb_instanceClip", "vb_instanceTime"]}
+    program = gl.program(vertex_shader=source, varyings=GLSL_NAMES["varyings"])
+    clip, tau, rate = _instances(vb)
+    time = 0.37
+    offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
+    mesh = vb.meshes[0]
+    points, normals = _run(gl, program, names, flipped, mesh, clip, offset, rate, time, 4, False)
+    program.release()
+    tau_used = offset.astype(np.float64) + rate.astype(np.float64) * time
+    expected_points, expected_normals = skin_mesh(vb, mesh, 0, tau_used)
+    assert np.abs(points - expected_points).max() / _diagonal(expected_points.reshape(-1, 3)) <= TOLERANCE
+    assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
 
 
 def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
