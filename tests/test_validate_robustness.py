@@ -301,3 +301,19 @@ def test_more_malformed_inputs(tmp_path, capsys):
             if name == "usdz_texture_truncated":
                 unreadable = [f for f in findings if f["code"] == "texture.unreadable"][0]
                 assert unreadable["location"]["file"].startswith("package.usdz[")
+
+
+def test_interlaced_png_is_refused_like_vbusds_reader_does(tmp_path, capsys):
+    """The spec's PNG is non-interlaced; pypng decodes Adam7 happily, so the validator must say so
+    itself (vbusd.png16 refuses it)."""
+    import png
+
+    folder = _copy(PNG_FIXTURE, tmp_path / "interlaced")
+    width, height, rows, _ = png.Reader(filename=str(folder / PNG)).read()
+    rows = [list(r) for r in rows]
+    with open(folder / PNG, "wb") as handle:
+        png.Writer(width, height, greyscale=False, alpha=True, bitdepth=16, interlace=True).write(handle, rows)
+    assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
+    findings = json.loads(capsys.readouterr().out)["findings"]
+    assert [(f["code"], f["location"]) for f in findings] == [
+        ("texture.unreadable", {"kind": "file", "file": PNG, "byteOffset": 8})]

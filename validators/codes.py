@@ -94,7 +94,8 @@ _CODES = (
     Code("texture.outside", E, "vb:texture resolves outside the asset's folder or is a remote URI.",
          f"{_VB}#texture-files", "usd"),
     Code("texture.unreadable", E, "The texture file cannot be decoded (truncated, corrupt, not EXR or "
-         "PNG, declared dimensions over the limit).", f"{_VB}#texture-files", "file"),
+         "PNG, declared dimensions over the limit) or has a structure readers refuse (multi-part, tiled "
+         "or deep EXR, displayWindow not the data window, interlaced PNG).", f"{_VB}#texture-files", "file"),
     Code("texture.size", E, "The texture file's width or height differs from the prim attributes.",
          f"{_VB}#texture-files", "file"),
     Code("texture.channels", E, "The texture does not hold exactly the four channels R, G, B, A.",

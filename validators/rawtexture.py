@@ -257,6 +257,11 @@ def _read_png(path: str, name: str, max_dimension: int):
     if width < 1 or height < 1 or width > max_dimension or height > max_dimension:
         findings.append(_too_large(name, width, height, max_dimension, 16))
         return texture, findings
+    if interlace:
+        # The spec's PNG is non-interlaced, and vbusd's reader refuses Adam7 (it reads scanlines
+        # in order); pypng would decode it, so without this the asset would pass and then fail.
+        findings.append(finding("texture.unreadable", f"PNG is interlaced (method {interlace}, Adam7); "
+                                "a Virtual Bones PNG is non-interlaced", FileLocation(name, 8)))
     if findings or not idat_seen:
         if not idat_seen and not findings:
             findings.append(finding("texture.unreadable", "PNG has no image data (IDAT)",
