@@ -65,3 +65,25 @@ def test_convert_bad_glb_one_line_no_output(tmp_path):
     assert len(lines) == 1 and "byte 8: gltf.glb:" in lines[0]
     assert "Traceback" not in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_merged_joint_sets_report_the_added_error(tmp_path, capsys):
+    """JOINTS_0/JOINTS_1 merged (8 influences), one kept: the summary reports the added error.
+
+    Worked by hand on bar_joints2 (vertices 2 and 3 are half Bone0 in set 0, half Bone1 in set 1):
+    keeping either bone alone, clip Cubic moves Bone1's points by x(t) in x while the blend moves
+    them by x(t)/2, so the error is x/2, largest after the last key (x = 2): 1.0. Bend adds at most
+    |(cos a - 1, sin a)| / 2 = sqrt(2)/2 at 90 degrees; Slide and Grow move both bones alike.
+    """
+    import json
+
+    from vbusd import cli
+
+    out = tmp_path / "j2.usda"
+    status = cli.main(["convert", str(FIXTURES / "bar_joints2.gltf"), "-o", str(out),
+                       "--max-influences", "1", "--texel-format", "float32", "--format", "json"])
+    assert status == 0
+    report = json.loads(capsys.readouterr().out)
+    (mesh,) = report["animations"][0]["meshes"]
+    assert (mesh["source_influences"], mesh["kept_influences"]) == (8, 1)
+    assert mesh["influence_error"] == pytest.approx(1.0, abs=1e-6)
