@@ -247,12 +247,12 @@ def _program(ctx, lang, source, tmp_path):
             HLSL_NAMES, True)
 
 
-def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what, prefix=""):
-    """Run the module for ``lang`` (after ``prefix``) on every (instance, vertex) and assert
+def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what, prefix="", suffix=""):
+    """Run the module for ``lang`` (between ``prefix`` and ``suffix``) on every (instance, vertex) and assert
     agreement with the reference."""
     tau_used = offset.astype(np.float64) + rate.astype(np.float64) * time  # what the GPU is given
     source = prefix + generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format,
-                                             max_influences=max_influences))
+                                             max_influences=max_influences)) + suffix
     program, names, block = _program(ctx, lang, source, tmp_path)
     points, normals = _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, block)
     program.release()
@@ -323,17 +323,18 @@ def test_influence_counts_and_texture_shapes(gl, lang, case, tmp_path):
     _compare(gl, lang, vb, vb.meshes[0], shader_k, clip, offset, rate, time, tmp_path, case)
 
 
-# The engine hooks as an Unreal custom node or a Unity custom function uses them: the including code
-# declares the resources itself and the module's functions take the texture as an argument.
+# The engine hooks as docs/engines.md uses them for an Unreal custom node: the module's functions
+# take the texture and the instance's clip row as arguments, and the caller declares everything.
 _HOOKED_HLSL = """\
+#define VB_MAIN 0
 #define VB_DECLARE_RESOURCES 0
-#define VB_ARGS_DECL Texture2D<float4> boneTexture,
-#define VB_ARGS vb_texture,
-#define VB_FETCH(column, row) boneTexture.Load(int3(column, row, 0))
-#define VB_CLIP(clip) vb_clipTable[clip]
+#define VB_ARGS_DECL Texture2D vbTexture, float4 vbClip,
+#define VB_ARGS vbTexture, vbClip,
+#define VB_FETCH(column, row) vbTexture.Load(int3(column, row, 0))
+#define VB_CLIP(clip) vbClip
 #define VB_RANGE_MIN(slot) vb_low[slot]
 #define VB_RANGE_MAX(slot) vb_high[slot]
-Texture2D<float4> vb_texture;
+Texture2D vb_texture;
 cbuffer VirtualBones
 {
     float vb_time;
@@ -342,23 +343,55 @@ cbuffer VirtualBones
     float4 vb_high[3];
 };
 """
+_HOOKED_HLSL_MAIN = """
+struct Input
+{
+    float3 restPosition : POSITION;
+    float3 restNormal : NORMAL;
+    int4 boneIndices0 : BLENDINDICES0;
+    float4 boneWeights0 : BLENDWEIGHT0;
+    int4 boneIndices1 : BLENDINDICES1;
+    float4 boneWeights1 : BLENDWEIGHT1;
+    int instanceClip : TEXCOORD6;
+    float2 instanceTime : TEXCOORD7;
+};
+struct Output
+{
+    float4 position : SV_Position;
+    float3 skinnedPosition : TEXCOORD0;
+    float3 skinnedNormal : TEXCOORD1;
+};
+Output main(Input input)
+{
+    int index[8] = { input.boneIndices0.x, input.boneIndices0.y, input.boneIndices0.z, input.boneIndices0.w,
+                     input.boneIndices1.x, input.boneIndices1.y, input.boneIndices1.z, input.boneIndices1.w };
+    float weight[8] = { input.boneWeights0.x, input.boneWeights0.y, input.boneWeights0.z, input.boneWeights0.w,
+                        input.boneWeights1.x, input.boneWeights1.y, input.boneWeights1.z, input.boneWeights1.w };
+    Output output;
+    vbSkin(vb_texture, vb_clipTable[input.instanceClip], -1, input.instanceTime.x + input.instanceTime.y * vb_time,
+           input.restPosition, input.restNormal, index, weight, output.skinnedPosition, output.skinnedNormal);
+    output.position = float4(output.skinnedPosition, 1.0);
+    return output;
+}
+"""
 
 
 @pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
                     reason="glslang-tools and spirv-cross are not installed")
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "unorm16"), ("dualQuat", "float16")])
-def test_engine_hooks_texture_as_argument_and_own_resources(gl, encoding, texel_format, tmp_path):
-    """VB_DECLARE_RESOURCES 0, VB_ARGS_DECL / VB_ARGS, VB_FETCH, VB_CLIP and VB_RANGE_MIN/MAX give
-    the same results (HLSL: the texture passed as a function argument, legalized by glslang)."""
+def test_engine_hooks_resources_as_arguments(gl, encoding, texel_format, tmp_path):
+    """VB_MAIN 0, VB_DECLARE_RESOURCES 0, VB_ARGS_DECL / VB_ARGS (texture and clip row passed down
+    as arguments, legalized by glslang), VB_FETCH, VB_CLIP and VB_RANGE_MIN/MAX give the same results."""
     vb, max_influences = _baked("chain", encoding, texel_format)
-    if vb.unorm_ranges is not None and vb.layout.texels_per_bone != 3:
-        pytest.skip("the prefix declares three range slots")
+    assert max_influences == 6  # the test's main reads eight slots, two of them zero
     clip, tau, rate = _instances(vb)
     time = 0.37
     offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
-    prefix = _HOOKED_HLSL if texel_format == "unorm16" else _HOOKED_HLSL.replace("    float4 vb_low[3];\n    float4 vb_high[3];\n", "")
-    _compare(gl, "hlsl", vb, vb.meshes[0], max_influences, clip, offset, rate, time, tmp_path,
-             f"hooks {encoding} {texel_format}", prefix=prefix)
+    prefix = _HOOKED_HLSL
+    if vb.unorm_ranges is None:
+        prefix = prefix.replace("    float4 vb_low[3];\n    float4 vb_high[3];\n", "")
+    _compare(gl, "hlsl", vb, vb.meshes[0], 8, clip, offset, rate, time, tmp_path,
+             f"hooks {encoding} {texel_format}", prefix=prefix, suffix=_HOOKED_HLSL_MAIN)
 
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
