@@ -317,3 +317,18 @@ def test_interlaced_png_is_refused_like_vbusds_reader_does(tmp_path, capsys):
     findings = json.loads(capsys.readouterr().out)["findings"]
     assert [(f["code"], f["location"]) for f in findings] == [
         ("texture.unreadable", {"kind": "file", "file": PNG, "byteOffset": 8})]
+
+
+def test_subsampled_exr_channel_is_named(tmp_path, capsys):
+    """An EXR channel with 2 x 2 sampling (the spec requires 1 x 1): one finding naming the channel,
+    not OpenEXR's generic failure plus a false "channels are none"."""
+    folder = _copy(EXR_FIXTURE, tmp_path / "subsampled")
+    data = (folder / EXR).read_bytes()
+    marker = b"channels\0chlist\0"
+    first_name_end = data.index(b"\0", data.index(marker) + len(marker) + 4)  # after "A"
+    at = first_name_end + 1 + 4 + 4  # pixel type, pLinear + reserved, then xSampling, ySampling
+    (folder / EXR).write_bytes(data[:at] + struct.pack("<ii", 2, 2) + data[at + 8:])
+    assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
+    findings = json.loads(capsys.readouterr().out)["findings"]
+    assert [f["code"] for f in findings] == ["texture.unreadable"]
+    assert "channel A is subsampled 2 x 2" in findings[0]["message"]

@@ -159,8 +159,21 @@ def _read_exr(path: str, name: str, max_dimension: int):
             or texture.height > max_dimension:
         findings.append(_too_large(name, texture.width, texture.height, max_dimension, 0))
         return texture, findings
+    header_channels = list(header.get("channels", []))
+    # Channel names come from the header, so a file whose pixels fail to decode still reports its
+    # channels truthfully (not "none").
+    texture.channels = tuple(sorted((getattr(c, "name", "") for c in header_channels),
+                                    key=lambda c: ("RGBA".find(c) if c in "RGBA" else 9, c)))
+    subsampled = [c for c in header_channels
+                  if (getattr(c, "xSampling", 1), getattr(c, "ySampling", 1)) != (1, 1)]
+    if subsampled:
+        c = subsampled[0]
+        findings.append(finding("texture.unreadable", f"channel {c.name} is subsampled {c.xSampling} x "
+                                f"{c.ySampling}; every channel of a Virtual Bones texture has sampling 1 x 1",
+                                FileLocation(name)))
+        return texture, findings
     try:
-        header_names = sorted(getattr(c, "name", "") for c in header.get("channels", []))
+        header_names = sorted(getattr(c, "name", "") for c in header_channels)
         if header_names == ["A", "B", "G", "R"]:
             # Interleaved read: OpenEXR fills one (height, width, 4) RGBA array, no stacking copy.
             with quiet_stderr():
