@@ -264,3 +264,93 @@ def test_glb_chunk_of_unknown_non_text_type_is_skipped(tmp_path):
     path = tmp_path / "extra.glb"
     path.write_bytes(data)
     np.testing.assert_allclose(_points(path, "Bend", 1.0), BEND_1, atol=1e-6)
+
+
+# -- nasty containers and sizes --------------------------------------------------------------------
+
+
+def _glb_chunk_past_eof(data: bytearray) -> bytearray:
+    import struct
+
+    struct.pack_into("<I", data, 12, len(data))   # JSON chunk claims the whole file
+    return data
+
+
+def _glb_json_not_utf8(data: bytearray) -> bytearray:
+    data[25] = 0xFF
+    return data
+
+
+@pytest.mark.parametrize("mutate,code,location", [
+    (_glb_chunk_past_eof, "gltf.glb", "byte 12"),
+    (_glb_json_not_utf8, "gltf.json", "byte 25"),
+])
+def test_glb_container_errors(tmp_path, mutate, code, location):
+    path = tmp_path / "x.glb"
+    path.write_bytes(bytes(mutate(bytearray((FIXTURES / "bar.glb").read_bytes()))))
+    with pytest.raises(VbusdError) as info:
+        gltf.read(path)
+    assert (info.value.code, info.value.location) == (code, location)
+
+
+def _with_uri(uri):
+    def mutate(doc):
+        doc["buffers"][0]["uri"] = uri
+    return mutate
+
+
+def _data_uri_with(insert: str):
+    def mutate(doc):
+        uri = doc["buffers"][0]["uri"]
+        doc["buffers"][0]["uri"] = uri[:60] + insert + uri[60:]
+    return mutate
+
+
+@pytest.mark.parametrize("mutate,code,location", [
+    (lambda d: d["accessors"][0].update(count=2 ** 31), "gltf.accessor.limit", "/accessors/0/count"),
+    (lambda d: d["bufferViews"][d["accessors"][0]["bufferView"]].update(byteStride=8),
+     "gltf.accessor.bounds", "/accessors/0"),                  # stride 8 < VEC3 FLOAT's 12 bytes
+    (_data_uri_with(" \n"), "gltf.buffer.base64", "/buffers/0/uri"),
+    (_data_uri_with("!@"), "gltf.buffer.base64", "/buffers/0/uri"),
+    (_with_uri("%2e%2e/x.bin"), "path.unsafe", "/buffers/0/uri"),   # percent-encoded ".."
+    (_with_uri("..\\x.bin"), "path.unsafe", "/buffers/0/uri"),
+    (lambda d: d["nodes"][4].update(children=[4]), "gltf.node.loop", "/nodes/4/children"),
+    (lambda d: d["asset"].update(version="3.0"), "gltf.asset.version", "/asset/version"),
+])
+def test_nasty_documents(tmp_path, mutate, code, location):
+    doc = json.loads((FIXTURES / "bar.gltf").read_text())
+    mutate(doc)
+    path = tmp_path / "x.gltf"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(VbusdError) as info:
+        gltf.read(path)
+    assert (info.value.code, info.value.location) == (code, location)
+
+
+@pytest.mark.parametrize("kind", ["data", "external", "glb"])
+def test_a_declared_gigabyte_is_refused_before_allocating(tmp_path, kind):
+    """byteLength 10^9 over a 680-byte buffer: refused while tracemalloc's peak stays small."""
+    import tracemalloc
+
+    doc = json.loads((FIXTURES / "bar.gltf").read_text())
+    doc["buffers"][0]["byteLength"] = 10 ** 9
+    if kind == "glb":
+        _, binary = MF.bar()
+        del doc["buffers"][0]["uri"]
+        path = tmp_path / "x.glb"
+        path.write_bytes(MF.glb_bytes(doc, binary))
+    else:
+        if kind == "external":
+            (tmp_path / "b.bin").write_bytes(MF.bar()[1])
+            doc["buffers"][0]["uri"] = "b.bin"
+        path = tmp_path / "x.gltf"
+        path.write_text(json.dumps(doc))
+    tracemalloc.start()
+    try:
+        with pytest.raises(VbusdError) as info:
+            gltf.read(path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert (info.value.code, info.value.location) == ("gltf.buffer.length", "/buffers/0")
+    assert peak < 16 * 2 ** 20, f"peak {peak / 2 ** 20:.1f} MiB"
