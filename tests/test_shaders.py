@@ -17,6 +17,7 @@ import shutil
 import struct
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -570,6 +571,59 @@ def test_three_js_snippet_compiles_as_glsl_es_and_matches_reference(gl, encoding
     expected_points, expected_normals = skin_mesh(vb, mesh, 0, tau_used)
     assert np.abs(points - expected_points).max() / _diagonal(expected_points.reshape(-1, 3)) <= TOLERANCE
     assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+
+
+def _hlsl_blocks(section_title: str) -> list:
+    import re
+
+    text = ENGINES.read_text()
+    start = text.index(section_title)
+    end = text.find("\n## ", start + 1)
+    return re.findall(r"```hlsl\n(.*?)```", text[start:end if end > 0 else None], flags=re.S)
+
+
+@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.parametrize("engine", ["Unity", "Unreal"])
+def test_engine_notes_hlsl_compiles(engine, tmp_path):
+    """The HLSL of docs/engines.md's Unity and Unreal steps, put together as the notes say (with
+    stand-ins for Unity's Core RP macros and Unreal's generated custom-node function), compiles."""
+    module = generate(ShaderOptions("hlsl", "crossMatrix", "float16", max_influences=4, main=False))
+    blocks = [textwrap.dedent(block) for block in _hlsl_blocks(f"## {engine}")]
+    if engine == "Unity":
+        (block,) = blocks
+        assert "// ... the module ..." in block
+        source = ("#define TEXTURE2D(name) Texture2D name\n"
+                  "#define LOAD_TEXTURE2D(name, coord) name.Load(int3(coord, 0))\n"
+                  + block.replace("// ... the module ...", module) + """
+float4 main(float3 position : POSITION, float3 normal : NORMAL, float4 indices : TEXCOORD2,
+            float4 weights : TEXCOORD3, uint instance : SV_InstanceID) : SV_Position
+{
+    float3 p; float3 n;
+    VirtualBonesSkin_float(indices, weights, instance, position, normal, p, n);
+    return float4(p + n, 1.0);
+}
+""")
+    else:
+        hooks, body = blocks
+        source = hooks + module + """
+float3 CustomExpression0(Texture2D Tex, SamplerState TexSampler, float4 ClipRow, float Tau,
+                         float4 BoneIndices, float4 BoneWeights, float3 Position, float3 Normal)
+{
+""" + body + """}
+Texture2D Tex;
+SamplerState TexSampler;
+cbuffer Material { float4 ClipRow; float Tau; };
+float4 main(float3 position : POSITION, float3 normal : NORMAL, float4 indices : TEXCOORD2,
+            float4 weights : TEXCOORD3) : SV_Position
+{
+    return float4(CustomExpression0(Tex, TexSampler, ClipRow, Tau, indices, weights, position, normal), 1.0);
+}
+"""
+    (tmp_path / "engine.hlsl").write_text(source)
+    compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "-o",
+                               str(tmp_path / "engine.spv"), str(tmp_path / "engine.hlsl")],
+                              capture_output=True, text=True)
+    assert compiled.returncode == 0, compiled.stdout + compiled.stderr
 
 
 def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
