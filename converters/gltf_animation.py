@@ -20,6 +20,11 @@ from __future__ import annotations
 import numpy as np
 
 
+KEY_TIME_TOLERANCE = 2.0 ** -23
+"""A sample time this close to a key (relative to max(|t|, 1 s)) is at the key: one float32 step
+(key times are float32; rounding a time to float32 moves it by at most half a step)."""
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices of unit quaternions ``(..., 4)`` (x, y, z, w) -> ``(..., 3, 3)``."""
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
@@ -90,15 +95,19 @@ def sample_channel(times: np.ndarray, keys: np.ndarray, values: np.ndarray, inte
     if k == 1:
         out = np.broadcast_to(points[0], (len(times),) + points.shape[1:]).copy()
         return out
+    # Key times are float32 in glTF: a sample time meant to fall on key k (a row at k/24 s, say)
+    # can be a rounding error below float32(k/24). Times within KEY_TIME_TOLERANCE (relative) of a
+    # key count as at that key; without it STEP would give the previous key's value on such rows.
+    at_or_after = times + KEY_TIME_TOLERANCE * np.maximum(np.abs(times), 1.0)
     # i: index of the key at or before each time, clamped so that [i, i+1] is a valid span.
-    i = np.clip(np.searchsorted(keys, times, side="right") - 1, 0, k - 2)
+    i = np.clip(np.searchsorted(keys, at_or_after, side="right") - 1, 0, k - 2)
     t0, t1 = keys[i], keys[i + 1]
     span = t1 - t0
     u = np.clip((times - t0) / span, 0.0, 1.0)
-    before = times < keys[0]
-    after = times >= keys[-1]
+    before = at_or_after < keys[0]
+    after = at_or_after >= keys[-1]
     if interpolation == "STEP":
-        out = np.where((u >= 1.0)[:, None], points[i + 1], points[i])
+        out = np.where((at_or_after >= t1)[:, None], points[i + 1], points[i])
     elif interpolation == "LINEAR":
         if rotation:
             out = _slerp(points[i], points[i + 1], u)

@@ -96,3 +96,18 @@ def test_strip_drops_degenerate_triangles():
     (np.array([0.0, 1.25]), 30.0), (np.array([0.0, 0.1, 0.25]), 30.0), (np.array([0.0]), 30.0)])
 def test_native_rate(keys, rate):
     assert native_rate(keys.astype(np.float32).astype(np.float64)) == rate
+
+
+def test_step_rows_on_float32_keys_take_that_key():
+    # glTF key times are float32: float32(k/24) lies up to half a float32 step above or below the
+    # float64 row time k/24. A row meant to fall on key k must get key k's value (before the
+    # tolerance, 17 of these 49 rows got key k-1's).
+    keys = (np.arange(49, dtype=np.float32) / np.float32(24)).astype(np.float64)
+    values = np.arange(49, dtype=np.float64)[:, None]
+    rows = np.arange(49) / 24.0
+    np.testing.assert_array_equal(sample_channel(rows, keys, values, "STEP", False)[:, 0],
+                                  np.arange(49))
+    # Halfway between keys STEP still holds the earlier key.
+    mid = (np.arange(48) + 0.5) / 24.0
+    np.testing.assert_array_equal(sample_channel(mid, keys, values, "STEP", False)[:, 0],
+                                  np.arange(48))
