@@ -10,7 +10,17 @@ set -uo pipefail
 missing=()
 command -v glslangValidator >/dev/null 2>&1 || missing+=(glslang-tools)
 command -v spirv-cross >/dev/null 2>&1 || missing+=(spirv-cross)
-ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so' || missing+=(libegl-mesa0 libegl1 libgl1-mesa-dri)
+# Shared libraries as the dynamic loader sees them (moderngl's glcontext finds libEGL.so.1 and
+# libGL.so.1 through `ldconfig -p` too). ldconfig lives in /sbin, which a non-root PATH may lack.
+# No `grep -q`: under pipefail its early exit can kill ldconfig with SIGPIPE and fail the test.
+libraries=$( { command -v ldconfig >/dev/null 2>&1 && ldconfig -p || /sbin/ldconfig -p; } 2>/dev/null)
+has_library() { printf '%s\n' "$libraries" | grep -F "$1" >/dev/null; }
+has_library 'libEGL.so.1 ' || missing+=(libegl1)
+has_library 'libGL.so.1 ' || missing+=(libgl1)
+has_library 'libEGL_mesa.so.0 ' || missing+=(libegl-mesa0)
+# llvmpipe, Mesa's software rasterizer, is in the DRI driver package.
+compgen -G '/usr/lib/*/dri/swrast_dri.so' >/dev/null || compgen -G '/usr/lib/dri/swrast_dri.so' >/dev/null \
+    || missing+=(libgl1-mesa-dri)
 [ ${#missing[@]} -eq 0 ] && exit 0
 
 if ! command -v apt-get >/dev/null 2>&1; then
