@@ -154,3 +154,23 @@ def test_instancing_primvar_with_element_size_other_than_1_is_reported(tmp_path)
     stage.GetPrimAtPath("/VirtualBones/Crowd").GetAttribute("primvars:vb:playbackRate").SetMetadata("elementSize", 3)
     stage.GetRootLayer().Save()
     assert _codes(validate(asset))[:1] == [("instancer.count", "/VirtualBones/Crowd.primvars:vb:playbackRate")]
+
+
+def test_authored_types_that_differ_from_the_schema_are_reported(tmp_path):
+    """USD composes a schema property with the schema's type whatever a layer authored, and Get()
+    returns the authored value: the validator must look at the authored specs (as vbusd's reader
+    does), or float[] clip rows and float[] bone indices pass unnoticed."""
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    text = asset.read_text(encoding="utf-8")
+    for old, new in (("int[] vb:clipFirstRows", "float[] vb:clipFirstRows"),
+                     ('token vb:encoding = "crossMatrix"', 'string vb:encoding = "crossMatrix"'),
+                     ("int[] primvars:vb:boneIndices", "float[] primvars:vb:boneIndices"),
+                     ("float[] primvars:vb:timeOffset", "double[] primvars:vb:timeOffset")):
+        assert old in text, old
+        text = text.replace(old, new)
+    asset.write_text(text, encoding="utf-8")
+    found = set(_codes(validate(asset)))
+    assert {("prim.attribute.missing", "/VirtualBones/Animation.vb:clipFirstRows"),
+            ("prim.attribute.missing", "/VirtualBones/Animation.vb:encoding"),
+            ("binding.primvar.missing", "/VirtualBones/Character/Body.primvars:vb:boneIndices"),
+            ("instancer.count", "/VirtualBones/Crowd.primvars:vb:timeOffset")} <= found, found

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from .declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API, wrong_type
 from .findings import UsdSite, finding
 
 WEIGHT_SUM_TOLERANCE = 1e-3
@@ -91,8 +91,9 @@ def _typed_primvar(prim, name, type_name, code, out, required=True):
         if required:
             out.append(finding(code, f"{name} ({type_name}) is missing or has no value", site))
         return None
-    if str(attribute.GetTypeName()) != type_name:
-        out.append(finding(code, f"{name} has type {attribute.GetTypeName()}, expected {type_name}", site))
+    actual = wrong_type(attribute, type_name)
+    if actual is not None:
+        out.append(finding(code, f"{name} has type {actual}, expected {type_name}", site))
         return None
     return UsdGeom.Primvar(attribute)
 

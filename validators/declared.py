@@ -169,6 +169,24 @@ def _clips_from_arrays(declared: Declared, arrays: dict, path: str) -> None:
     declared.values["clips"] = clips
 
 
+def wrong_type(attribute, type_name: str) -> Optional[str]:
+    """The type ``attribute`` has instead of ``type_name`` (``"float[] in asset.usda"``), or None.
+
+    The composed type of a schema property is the schema's even where a layer authored another
+    one (Get() then returns the authored value, and an application without the plugin sees the
+    authored type), so every authored spec is checked too, by value type: roles (point3f and
+    float3) do not matter, as for vbusd's reader.
+    """
+    from pxr import Sdf
+
+    expected = Sdf.ValueTypeNames.Find(type_name)
+    for spec in attribute.GetPropertyStack():
+        if expected and spec.typeName.type != expected.type:
+            return f"{spec.typeName} in {spec.layer.identifier.rsplit('/', 1)[-1]}"
+    actual = str(attribute.GetTypeName())
+    return None if actual == type_name else actual
+
+
 def _read_attribute(prim, name, type_name, required, findings):
     attribute = prim.GetAttribute(name)
     path = str(prim.GetPath())
@@ -177,8 +195,8 @@ def _read_attribute(prim, name, type_name, required, findings):
             findings.append(finding("prim.attribute.missing", f"required attribute {name} ({type_name}) "
                                     "is missing or has no value", UsdSite(path, name)))
         return None
-    actual = str(attribute.GetTypeName())
-    if actual != type_name:
+    actual = wrong_type(attribute, type_name)
+    if actual is not None:
         findings.append(finding("prim.attribute.missing", f"{name} has type {actual}, expected {type_name}",
                                 UsdSite(path, name)))
         return None
