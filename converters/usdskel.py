@@ -870,10 +870,11 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
             if world_normal is None:
                 world_normal = sampler.normal_memo[("world", round(code, 9))] = np.linalg.inv(world[:3, :3]).T
             n = np.asarray(normals, dtype=np.float64) @ world_normal
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
             if normals_out is None:
                 normals_out = np.empty((times.size,) + n.shape)
             normals_out[i] = n
+    if normals_out is not None:  # normalized once for all times (per-time norms cost more than skinning)
+        normals_out /= np.maximum(np.sqrt(np.einsum("nvi,nvi->nv", normals_out, normals_out))[..., None], 1e-30)
     return points_out, normals_out
 
 
