@@ -137,6 +137,7 @@ def check_binding_prim(prim):
     points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() else None
     if points is not None:
         points = points.reshape(-1, 3) if points.size % 3 == 0 else None
+    out += _check_topology(prim, path, points)
     if points is not None:
         bad = ~np.all(np.isfinite(points), axis=-1)
         if bad.any():
@@ -209,6 +210,35 @@ def check_binding_prim(prim):
     return out
 
 
+def _check_topology(prim, path, points):
+    """``binding.mesh``: skinning needs the rest points, and face-varying normals need a valid
+    face list (vbusd's reader refuses a bound mesh without them)."""
+    if points is None:
+        return [finding("binding.mesh", "the bound mesh has no readable points (point3f[], 3 values "
+                        "per point)", UsdSite(path, "points"))]
+    if not prim.HasAttribute("faceVertexCounts") and not prim.HasAttribute("faceVertexIndices"):
+        return []  # not a Mesh (binding.api.prim says so) or a point cloud: nothing more to check
+    counts = _array(prim.GetAttribute("faceVertexCounts"), np.int64)
+    indices = _array(prim.GetAttribute("faceVertexIndices"), np.int64)
+    if counts is None or indices is None:
+        missing = "faceVertexCounts" if counts is None else "faceVertexIndices"
+        return [finding("binding.mesh", f"the bound mesh has no {missing}", UsdSite(path, missing))]
+    if counts.size and counts.min() < 3:
+        face = int(np.argmax(counts < 3))
+        return [finding("binding.mesh", f"face {face} has {int(counts[face])} vertices; at least 3",
+                        UsdSite(path, "faceVertexCounts"))]
+    if int(counts.sum()) != len(indices):
+        return [finding("binding.mesh", f"faceVertexCounts sum to {int(counts.sum())} but there are "
+                        f"{len(indices)} faceVertexIndices", UsdSite(path, "faceVertexCounts"))]
+    bad = (indices < 0) | (indices >= len(points))
+    if bad.any():
+        first = int(np.argmax(bad))
+        return [finding("binding.mesh", f"{int(bad.sum())} faceVertexIndices outside 0..{len(points) - 1}; "
+                        f"the first is {int(indices[first])} at face-vertex {first}",
+                        UsdSite(path, "faceVertexIndices"))]
+    return []
+
+
 def _check_normals(prim, path):
     from pxr import UsdGeom
 
@@ -270,12 +300,15 @@ def check_instancer_prim(prim):
         names = target.GetAttribute("vb:clipNames")
         value = names.Get() if names.IsValid() else None
         clip_count = None if value is None else len(value)
+    # One instance per position (spec "Instancing": vertex primvars hold as many values as
+    # positions); without positions the instance count is unknown.
     count = None
-    for name in ("protoIndices", "positions"):
-        attribute = prim.GetAttribute(name)
-        if attribute.IsValid() and attribute.HasValue():
-            count = len(attribute.Get())
-            break
+    attribute = prim.GetAttribute("positions")
+    if attribute.IsValid() and attribute.HasValue():
+        count = len(attribute.Get())
+    else:
+        out.append(finding("instancer.count", "positions is missing: the instances are the positions",
+                           UsdSite(path, "positions")))
     arrays = {}
     for name, type_name in INSTANCE_PRIMVARS.items():
         # Unauthored instancing primvars take their defaults (clip 0, offset 0, rate 1; spec

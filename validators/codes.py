@@ -164,6 +164,9 @@ _CODES = (
          f"{_VB}#binding", "usd"),
     Code("binding.api.prim", E, "VirtualBonesBindingAPI is applied to a prim that is not a Mesh.",
          f"{_VB}#binding", "usd"),
+    Code("binding.mesh", E, "The bound mesh has no points, or its faces are invalid (a face below 3 "
+         "vertices, faceVertexCounts not summing to the faceVertexIndices, an index out of range).",
+         f"{_VB}#binding", "usd"),
     Code("binding.animation", E, "vb:animation does not target exactly one VirtualBonesAnimation prim.",
          f"{_VB}#binding", "usd"),
     Code("binding.primvar.missing", E, "primvars:vb:boneIndices or primvars:vb:boneWeights is missing "
@@ -188,8 +191,8 @@ _CODES = (
     # instancers
     Code("instancer.animation", E, "vb:animation of a VirtualBonesInstancingAPI prim does not target "
          "exactly one VirtualBonesAnimation prim.", f"{_VB}#instancing", "usd"),
-    Code("instancer.count", E, "An instancing primvar does not hold one value per instance, is not "
-         "vertex-interpolated, or has an elementSize other than 1.", f"{_VB}#instancing", "usd"),
+    Code("instancer.count", E, "An instancing primvar does not hold one value per instance (one per "
+         "position; positions missing), is not vertex-interpolated, or has an elementSize other than 1.", f"{_VB}#instancing", "usd"),
     Code("instancer.indexed", E, "An instancing primvar is indexed (has :indices); it must hold one "
          "value per instance, unindexed.", f"{_VB}#instancing", "usd"),
     Code("instancer.clip.range", E, "An instance's clip index is negative or not below the clip count.",
