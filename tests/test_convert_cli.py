@@ -239,3 +239,15 @@ def test_fast_error_check_skinning_equals_the_reference_decoder():
                                              mesh.normals, face_points)
     np.testing.assert_allclose(points, expected_points, atol=1e-12)
     np.testing.assert_allclose(normals, expected_normals, atol=1e-12)
+
+
+def test_texture_beside_the_output_is_not_replaced_without_force(small_rig, tmp_path, capsys):
+    # Only x.usda is named on the command line, but x.Skel.exr and its sidecar are written too:
+    # an unrelated file of that name must not be clobbered silently.
+    texture = tmp_path / "x.Skel.exr"
+    texture.write_text("someone else's")
+    assert main(["convert", str(small_rig), "-o", str(tmp_path / "x.usda")]) == 2
+    assert "x.Skel.exr exists beside the output" in capsys.readouterr().err
+    assert texture.read_text() == "someone else's" and not (tmp_path / "x.usda").exists()
+    assert main(["convert", str(small_rig), "-o", str(tmp_path / "x.usda"), "--force"]) == 0
+    assert texture.read_bytes()[:4] == b"\x76\x2f\x31\x01"  # now an OpenEXR file

@@ -261,6 +261,25 @@ def _dual_quaternion_meshes(scene: SourceScene, index: int, animation: SkinnedAn
     return dqs, lbs
 
 
+def _texture_files(scene: SourceScene, output: Path, options: ConvertOptions) -> list:
+    """The texture and sidecar files the writer will create (``<stem>.<animation prim name>.<ext>``)."""
+    files = []
+    for animation in scene.animations:
+        texture = output.parent / f"{output.stem}.{animation.path.rstrip('/').rsplit('/', 1)[-1]}.{options.container}"
+        files += [texture, texture.with_name(texture.name + ".json")]
+    return files
+
+
+def _check_texture_files(scene: SourceScene, output: Path, options: ConvertOptions) -> None:
+    """Without ``force``, refuse to replace a texture or sidecar that already lies beside the output."""
+    if options.force:
+        return
+    for path in _texture_files(scene, output, options):
+        if path.exists():
+            raise OptionsError(f"{path.name} exists beside the output and would be replaced; pass --force "
+                               "to replace it", file=str(output))
+
+
 def _check_row_count(animation: SkinnedAnimation, options: ConvertOptions) -> None:
     """Refuse more rows than a texture can hold before baking samples them all.
 
@@ -514,6 +533,8 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     if progress:
         progress("read", 1, 1)
 
+    _check_texture_files(scene, output, options)
+
     clock = time.perf_counter()
     baked, reasons, warnings = [], [], list(scene.warnings)
     for index in range(len(scene.animations)):
@@ -540,6 +561,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
 
     if output.exists() and not options.force:  # it may have appeared while we worked
         raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+    _check_texture_files(scene, output, options)
     created = _make_folders(output.parent)
     try:
         written = write_asset(asset, output, texture_container=options.container)
