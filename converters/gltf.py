@@ -408,10 +408,17 @@ def _escape_pointer(key: str) -> str:
 
 
 def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None:
-    """Checks pygltflib cannot make: it fills a missing ``asset`` or ``asset.version`` with defaults.
+    """Checks pygltflib cannot make, on the raw JSON, before it builds its objects.
 
-    Only the required ``asset.version`` and the kinds of the top-level arrays are looked at here;
-    everything else is read through pygltflib's objects.
+    pygltflib fills a missing ``asset`` or ``asset.version`` with defaults and coerces typed
+    properties with ``int()``/``float()``; here the required ``asset.version``, the kinds of the
+    arrays and objects, and the JSON types of every property the converter reads (:data:`_TYPES`)
+    are checked. Values are read through pygltflib's objects afterwards.
+
+    Args:
+        json_text: The JSON text (of the .gltf, or of the GLB's JSON chunk).
+        file: The file, for messages.
+        json_start: Byte offset of ``json_text`` in the file (20 in a GLB), for syntax errors.
     """
     import json
 
