@@ -37,8 +37,8 @@ except ImportError:  # the GPU-pipeline tests skip; compile-only and CLI tests s
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
 # float32 arithmetic on the GPU against float64 on the CPU, from the same stored texels.
-TOLERANCE = 5e-6         # positions: fraction of the bounding-box diagonal
-NORMAL_TOLERANCE = 1e-4  # unit normals: largest component difference
+TOLERANCE = 5e-6  # positions: fraction of the bounding-box diagonal (measured up to 9.4e-7)
+NORMAL_TOLERANCE = 2.5e-5  # unit normals: largest component difference (measured up to 4.6e-6)
 
 
 @pytest.fixture(scope="module")
