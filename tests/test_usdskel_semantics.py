@@ -280,3 +280,31 @@ def test_report_units_and_bounding_box_fraction(tmp_path):
     diagonal = np.linalg.norm(flat.max(axis=0) - flat.min(axis=0))
     assert mesh.max_error_fraction == pytest.approx(mesh.max_error / diagonal, rel=0.01)
     assert math.isclose(report.animations[0].padding_fraction, 1 - 9 / 16)
+
+
+def test_skinned_mesh_transforms_are_ignored_like_bake_skinning(tmp_path):
+    # A transformed Xform between SkelRoot and mesh, and a transform on the mesh itself: UsdSkel
+    # ignores both (the skinned points follow the Skeleton). Oracle: Pixar's UsdSkel.BakeSkinning.
+    from pxr import Sdf, UsdGeom, UsdSkel
+
+    source = scenes.write_stage(tmp_path / "source.usda", [scenes.RigSpec()])
+    layer = Sdf.Layer.FindOrOpen(str(source))
+    stage = Usd.Stage.Open(layer)
+    geo = UsdGeom.Xform.Define(stage, "/Root/Geo")
+    geo.AddTranslateOp().Set(Gf.Vec3d(5, 0, 0))
+    assert Sdf.CopySpec(layer, "/Root/Body", layer, "/Root/Geo/Body")
+    stage.RemovePrim("/Root/Body")
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Geo/Body")).AddTranslateOp().Set(Gf.Vec3d(0, 0, 7))
+    layer.Save()
+    report = convert(source, tmp_path / "asset.usda", ConvertOptions(texel_format="float32"))
+    assert [m.path for m in report.animations[0].meshes] == ["/Root/Geo/Body"]
+    decode(tmp_path / "asset.usda", tmp_path / "cache.usda")
+    codes, points, _ = scenes.read_cache(tmp_path / "cache.usda", "/Root/Geo/Body")  # world space
+
+    baked = Usd.Stage.Open(str(source))
+    assert UsdSkel.BakeSkinning(baked.Traverse())
+    mesh = UsdGeom.Mesh(baked.GetPrimAtPath("/Root/Geo/Body"))
+    for code, decoded in zip(codes, points):
+        world = np.array(mesh.ComputeLocalToWorldTransform(code))
+        expected = np.array(mesh.GetPointsAttr().Get(code)) @ world[:3, :3] + world[3, :3]
+        assert np.abs(decoded - expected).max() < TOLERANCE, code
