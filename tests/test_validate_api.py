@@ -174,3 +174,22 @@ def test_authored_types_that_differ_from_the_schema_are_reported(tmp_path):
             ("prim.attribute.missing", "/VirtualBones/Animation.vb:encoding"),
             ("binding.primvar.missing", "/VirtualBones/Character/Body.primvars:vb:boneIndices"),
             ("instancer.count", "/VirtualBones/Crowd.primvars:vb:timeOffset")} <= found, found
+
+
+def test_sidecar_and_embedded_copies_are_compared_on_every_schema_key(tmp_path):
+    """Readers refuse a sidecar that differs from the embedded copy in any value (spec "Sidecar
+    JSON"); a different generator string used to pass. Every key of the metadata schema is
+    compared, by one of the two comparisons."""
+    from vbusd.validators import checks_animation as ca
+
+    schema = json.loads((FIXTURES.parents[2] / "schema" / "layout-metadata.schema.json").read_text(encoding="utf-8"))
+    compared = set(ca.COMPARED_KEYS) | set(ca.OTHER_METADATA_KEYS) | {"clips", "unormRanges"}
+    assert compared == set(schema["properties"])
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    sidecar = asset.parent / "asset.Animation.exr.json"
+    meta = json.loads(sidecar.read_text(encoding="utf-8"))
+    meta["generator"] = "someone else 2.0"
+    sidecar.write_text(json.dumps(meta), encoding="utf-8")
+    assert [c for c in _codes(validate(asset)) if c[0] != "texture.padding.fraction"] == [
+        ("metadata.sidecarMismatch", "asset.Animation.exr.json#/generator")]

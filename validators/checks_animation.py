@@ -30,6 +30,8 @@ METADATA_KEY = "vbusd.layout"
 SCHEMA_RESOURCE = "layout-metadata.schema.json"
 COMPARED_KEYS = ("formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone", "rowCount",
                  "width", "height", "horizontalPadding", "verticalPadding", "bones", "contentDigest")
+OTHER_METADATA_KEYS = ("format", "generator", "usedWidth", "texelBytes")
+"""Layout metadata keys not in COMPARED_KEYS, clips or unormRanges (compared between the copies)."""
 CLIP_KEYS = ("name", "firstRow", "rowCount", "rowsPerSecond", "loop", "startTime")
 PIXEL_TYPE_OF_FORMAT = {"float16": ("exr", "float16"), "float32": ("exr", "float32"),
                         "unorm16": ("png", "uint16")}
@@ -245,6 +247,29 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
     return out
 
 
+def _other_key_differences(embedded, sidecar, file: str):
+    """``metadata.sidecarMismatch`` for the keys :func:`compare_declared` does not look at
+    (:data:`OTHER_METADATA_KEYS`): the sidecar holds
+    the same document as the embedded copy (spec "Sidecar JSON"), compared as parsed JSON values,
+    and readers refuse any difference."""
+    if not isinstance(embedded, dict) or not isinstance(sidecar, dict):
+        return []
+    out = []
+    # Unknown keys are left out: the schema check already reports them in the document holding them.
+    for key in OTHER_METADATA_KEYS:
+        if key not in embedded and key not in sidecar:
+            continue
+        if key not in sidecar or key not in embedded:
+            where = "the sidecar" if key not in sidecar else "the embedded metadata"
+            out.append(finding("metadata.sidecarMismatch", f"{key} is missing from {where}",
+                               JsonPointer(file, json_pointer([key]))))
+        elif embedded[key] != sidecar[key] or type(embedded[key]) is not type(sidecar[key]):
+            out.append(finding("metadata.sidecarMismatch", f"{key} is {_short(sidecar[key])} but the "
+                               f"metadata embedded in the texture says {_short(embedded[key])}",
+                               JsonPointer(file, json_pointer([key]))))
+    return out
+
+
 def _where(declared: Declared, key) -> str:
     location = declared.locate(key)
     return f"({location})"
@@ -353,6 +378,7 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     if embedded is not None and sidecar is not None:
         out += compare_declared(meta_declared[0], meta_declared[1], "metadata.sidecarMismatch",
                                 "the metadata embedded in the texture")
+        out += _other_key_differences(embedded[0], sidecar[0], sidecar[1])
     if raw is None:
         return out
     out += _check_container(raw, declared)
