@@ -247,6 +247,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
     for suffix in (".usda", ".usdc", ".usdz", ".usd"):
         (tmp_path / f"zero{suffix}").write_bytes(b"")
     (tmp_path / "folder.usda").mkdir()
+    os.mkfifo(tmp_path / "pipe.usda")  # opening it for reading would block forever
     (tmp_path / "notes.txt").write_text("not an asset", encoding="utf-8")
     _usda(tmp_path / "self_sublayer.usda", '(\n    subLayers = [@./self_sublayer.usda@]\n)\ndef Xform "A" {}\n')
     _usda(tmp_path / "cycle_a.usda", "(\n    subLayers = [@./cycle_b.usda@]\n)\n")
@@ -276,6 +277,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
         "zero_usdz": (tmp_path / "zero.usdz", 2, "usd.open"),
         "zero_usd": (tmp_path / "zero.usd", 2, "usd.open"),
         "folder": (tmp_path / "folder.usda", 2, "file.unreadable"),
+        "named_pipe": (tmp_path / "pipe.usda", 2, "file.unreadable"),
         "unknown_suffix": (tmp_path / "notes.txt", 2, "usd.open"),
         # USD composes these with a warning; readers refuse them, so they are errors.
         "self_sublayer": (tmp_path / "self_sublayer.usda", 1, "asset.composition"),

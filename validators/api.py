@@ -69,6 +69,10 @@ def validate_findings(path) -> list:
         raise InputError("file not found", file=path, code="file.missing")
     if os.path.isdir(path):
         raise InputError("is a folder, not an asset file", file=path, code="file.unreadable")
+    if not os.path.isfile(path):
+        # A named pipe would block the first read forever; devices and sockets are no assets either.
+        raise InputError("is not a regular file (a pipe, device or socket)", file=path,
+                         code="file.unreadable")
     suffix = Path(path).suffix.lower()
     if suffix in TEXTURE_SUFFIXES:
         return _validate_texture(path)
