@@ -528,8 +528,9 @@ def resolve_texture(prim, asset_dir: str, scratch: Optional[str] = None):
         if extracted is not None:
             return extracted, os.path.basename(value.resolvedPath), []
     if not resolved.is_file():
-        return None, display, [finding("texture.missing", f"vb:texture {authored!r}: no such file "
-                                       f"({display})", site)]
+        what = "not a regular file (a folder, pipe or device)" if resolved.exists() else "no such file"
+        return None, display, [finding("texture.missing", f"vb:texture {authored!r}: {what} ({display})",
+                                       site)]
     return str(resolved), display, []
 
 
