@@ -193,3 +193,19 @@ def test_sidecar_and_embedded_copies_are_compared_on_every_schema_key(tmp_path):
     sidecar.write_text(json.dumps(meta), encoding="utf-8")
     assert [c for c in _codes(validate(asset)) if c[0] != "texture.padding.fraction"] == [
         ("metadata.sidecarMismatch", "asset.Animation.exr.json#/generator")]
+
+
+def test_non_finite_playback_rate_is_reported(tmp_path):
+    """The instancer.nonFinite fixture breaks a time offset; rates are checked the same way."""
+    from pxr import Usd, Vt
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    stage = Usd.Stage.Open(str(asset))
+    rate = stage.GetPrimAtPath("/VirtualBones/Crowd").GetAttribute("primvars:vb:playbackRate")
+    values = list(rate.Get())
+    values[-1] = float("nan")
+    rate.Set(Vt.FloatArray(values))
+    stage.GetRootLayer().Save()
+    report = validate(asset)
+    assert ("instancer.nonFinite", "/VirtualBones/Crowd.primvars:vb:playbackRate") in _codes(report)
+    assert f"instance {len(values) - 1} with nan" in report.findings[0].message
