@@ -56,7 +56,9 @@ def test_registered_by_schema_type_keyword_and_suite(validators):
         assert list(registry.GetValidatorMetadata(name).GetSchemaTypes()) == [schema_type]
     assert {m.name for m in registry.GetValidatorMetadataForKeyword("vbusd")} >= {
         usd_validation.ANIMATION_VALIDATOR, usd_validation.BINDING_VALIDATOR, usd_validation.INSTANCING_VALIDATOR}
-    assert len(registry.GetOrLoadValidatorSuiteByName(usd_validation.SUITE).GetContainedValidators()) == 3
+    # The fourth runs on every prim (no schemaTypes): vb: primvars without the API schema.
+    assert not list(registry.GetValidatorMetadata(usd_validation.PRIMVARS_VALIDATOR).GetSchemaTypes())
+    assert len(registry.GetOrLoadValidatorSuiteByName(usd_validation.SUITE).GetContainedValidators()) == 4
     assert usd_validation.register()  # idempotent
 
 
@@ -130,3 +132,26 @@ def test_registration_survives_a_second_import_of_the_module(validators):
                 if m.name.startswith("vbusd:")] == [name]
     errors = UsdValidation.ValidationContext(keywords=["vbusd"]).Validate(_broken_binding_stage())
     assert len(_named(errors, "binding.indices.range")) == 1
+
+
+STAGE_LEVEL = {"asset.composition", "asset.empty", "asset.outside"}
+
+
+def test_usd_validation_reports_what_vbusd_validate_reports_on_every_fixture(validators):
+    """The same checks: over every golden fixture, each finding of `vbusd validate` (except the
+    stage-level ones, which are not prim validators) comes out of a UsdValidation context too, with
+    the same code, and USD-sited findings at the same prim or property."""
+    from vbusd.validators.api import validate
+
+    suite = UsdValidation.ValidationRegistry().GetOrLoadValidatorSuiteByName(usd_validation.SUITE)
+    for asset in sorted(FIXTURES.rglob("asset.usda")):
+        expected = {(f.code, str(f.location) if f.location.kind == "usd" else None)
+                    for f in validate(asset).findings if f.code not in STAGE_LEVEL}
+        stage = Usd.Stage.Open(str(asset))  # kept alive: error sites refer to it
+        errors = UsdValidation.ValidationContext([suite]).Validate(stage)
+        got = set()
+        for error in errors:
+            site = error.GetSites()[0]
+            path = str(site.GetProperty().GetPath() if site.IsProperty() else site.GetPrim().GetPath())
+            got |= {(error.GetName(), path), (error.GetName(), None)}
+        assert expected <= got, (asset.parent.name, sorted(expected - got, key=str))

@@ -1,8 +1,9 @@
 """The vbusd checks as OpenUSD UsdValidation validators.
 
-:func:`register` adds three prim validators to ``UsdValidation.ValidationRegistry`` (the process-wide
-singleton), each limited by ``schemaTypes`` to the TfType of a vbusd schema, and a suite holding all
-three:
+:func:`register` adds four prim validators to ``UsdValidation.ValidationRegistry`` (the process-wide
+singleton), three limited by ``schemaTypes`` to the TfType of a vbusd schema and one for prims that
+carry vbusd primvars without the API schema (which no schema-typed validator visits), and a suite
+holding all four:
 
 ========================================  ==============================  =========================
 validator                                 schemaTypes                     runs
@@ -11,6 +12,8 @@ validator                                 schemaTypes                     runs
                                                                           texture, metadata, texels
 ``vbusd:VirtualBonesBindingValidator``    ``VirtualBonesBindingAPI``      mesh bindings
 ``vbusd:VirtualBonesInstancingValidator`` ``VirtualBonesInstancingAPI``   point instancer primvars
+``vbusd:UnappliedApiValidator``           (none: every prim)              vb: primvars without the
+                                                                          API schema applied
 ``vbusd:Suite`` (suite)                   all of the above
 ========================================  ==============================  =========================
 
@@ -42,6 +45,7 @@ KEYWORD = "vbusd"
 ANIMATION_VALIDATOR = "vbusd:VirtualBonesAnimationValidator"
 BINDING_VALIDATOR = "vbusd:VirtualBonesBindingValidator"
 INSTANCING_VALIDATOR = "vbusd:VirtualBonesInstancingValidator"
+PRIMVARS_VALIDATOR = "vbusd:UnappliedApiValidator"
 SUITE = "vbusd:Suite"
 
 _LOCK = threading.Lock()
@@ -106,11 +110,31 @@ def _instancing_task(prim, time_range=None):
     return _to_errors(prim, guarded(check_instancer_prim, prim, location=UsdSite(str(prim.GetPath()))))
 
 
+def _unapplied_task(prim, time_range=None):
+    """Prims carrying vb: binding or instancing primvars without the API schema applied: a
+    schema-typed validator never visits them, yet they are findings (``binding.api.missing``) and
+    their primvars are checked as for bound meshes (what ``vbusd validate`` does)."""
+    from .api import guarded
+    from .checks_bindings import (applied_schemas, check_binding_prim, check_instancer_prim, has_binding,
+                                  has_instancing)
+
+    if prim.IsPseudoRoot() or prim.GetTypeName() == ANIMATION_TYPE:
+        return []
+    applied = applied_schemas(prim)
+    site = UsdSite(str(prim.GetPath()))
+    if INSTANCING_API not in applied and has_instancing(prim):
+        return _to_errors(prim, guarded(check_instancer_prim, prim, location=site))
+    if BINDING_API not in applied and INSTANCING_API not in applied and has_binding(prim):
+        return _to_errors(prim, guarded(check_binding_prim, prim, location=site))
+    return []
+
+
 def register() -> list:
     """Register the vbusd validators and suite with UsdValidation (idempotent, thread-safe).
 
     Returns:
-        The registered ``UsdValidation.Validator`` objects (animation, binding, instancing).
+        The registered ``UsdValidation.Validator`` objects (animation, binding, instancing,
+        unapplied API).
 
     Raises:
         UnsupportedError: The installed usd-core has no ``ValidationRegistry.RegisterPrimValidator``
@@ -138,13 +162,16 @@ def register() -> list:
          "vbusd: meshes bound with VirtualBonesBindingAPI (indices, weights, counts, normals)."),
         (INSTANCING_VALIDATOR, INSTANCING_API, _instancing_task,
          "vbusd: point instancers with VirtualBonesInstancingAPI (clip indices, offsets, rates)."),
+        (PRIMVARS_VALIDATOR, None, _unapplied_task,
+         "vbusd: prims carrying vb: binding or instancing primvars without the API schema applied."),
     )
     with _LOCK:
         for name, schema_type, task, doc in specs:
             if registry.HasValidator(name):
                 continue
             metadata = UsdValidation.ValidatorMetadata(name=name, doc=doc, keywords=[KEYWORD],
-                                                       schemaTypes=[schema_type], isSuite=False)
+                                                       schemaTypes=[schema_type] if schema_type else [],
+                                                       isSuite=False)
             registry.RegisterPrimValidator(metadata, task)
         validators = [registry.GetOrLoadValidatorByName(name) for name, *_ in specs]
         if not registry.HasValidatorSuite(SUITE):
