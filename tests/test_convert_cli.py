@@ -251,3 +251,23 @@ def test_texture_beside_the_output_is_not_replaced_without_force(small_rig, tmp_
     assert texture.read_text() == "someone else's" and not (tmp_path / "x.usda").exists()
     assert main(["convert", str(small_rig), "-o", str(tmp_path / "x.usda"), "--force"]) == 0
     assert texture.read_bytes()[:4] == b"\x76\x2f\x31\x01"  # now an OpenEXR file
+
+
+def test_sigterm_while_writing_leaves_nothing(small_rig, tmp_path):
+    # A scheduler's kill (SIGTERM) arrives after the texture's temporary is written: the
+    # transaction must still remove it and the output folder convert created.
+    code = (
+        "import os, signal, sys, vbusd.textures as t\n"
+        "orig = t.write_texture\n"
+        "def write(*a, **k):\n"
+        "    result = orig(*a, **k)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    return result\n"
+        "t.write_texture = write\n"
+        "from vbusd.cli import main\n"
+        "sys.exit(main(['convert', sys.argv[1], '-o', sys.argv[2]]))\n")
+    output = tmp_path / "new" / "x.usda"
+    result = subprocess.run([sys.executable, "-c", code, str(small_rig), str(output)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 130 and "Traceback" not in result.stderr, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]

@@ -7,6 +7,7 @@ Progress goes to stderr (only when it is a terminal); the summary goes to stdout
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 
@@ -79,7 +80,7 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
         skeletons=tuple(skeletons), frame_range=tuple(frame_range) if frame_range else None, container=container,
         allow_outside_paths=allow_outside_paths, force=force, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode])
-    with _progress() as progress:
+    with _progress() as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
     if output_format == "json":
         click.echo(json.dumps(report.to_dict(), indent=2, default=_json_default))
@@ -101,6 +102,31 @@ def _json_default(value):
     except ImportError:  # pragma: no cover
         pass
     return str(value)
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """Turn SIGTERM (``kill``, a farm scheduler) into KeyboardInterrupt while a command writes.
+
+    Python's default SIGTERM ends the process without unwinding, which would leave the write
+    transaction's hidden temporaries (and a folder it created) behind; as an interrupt the
+    transaction removes them and the command exits 130 like Ctrl-C.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 class _progress:

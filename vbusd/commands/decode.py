@@ -27,10 +27,10 @@ import click
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>.")
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
-    from vbusd.commands.convert import _progress
+    from vbusd.commands.convert import _progress, terminate_as_interrupt
     from vbusd.pointcache import decode
 
-    with _progress() as progress:  # a bar on stderr when it is a terminal
+    with _progress() as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,
                         allow_outside_paths=allow_outside_paths, crowds=crowds, progress=progress)
     if output_format == "json":
