@@ -475,6 +475,8 @@ class SkeletonSampler:
         if not self._world_might_vary(skel_prim, reader):
             self._static_world = self._world(self._start)
         self._memo: dict = {}
+        self.on_progress: Optional[Callable] = None
+        """``on_progress(done, total)`` while sampling many rows (UsdSkel evaluates them one by one)."""
         self.normal_memo: dict = {}
         """UsdSkel normal matrices per (time code, joint mapping), shared by the error reference."""
 
@@ -526,8 +528,11 @@ class SkeletonSampler:
     def __call__(self, times) -> np.ndarray:
         times = np.atleast_1d(np.asarray(times, dtype=np.float64))
         out = np.empty((times.size, self._joints, 4, 4))
+        report = self.on_progress if times.size >= 512 else None
         for i, t in enumerate(times):
             out[i] = self.at_code(self.code(t))
+            if report is not None and (i + 1) % 256 == 0:
+                report(i + 1, times.size)
         return np.ascontiguousarray(np.transpose(out, (0, 1, 3, 2)))  # row-vector -> column-vector
 
 

@@ -538,7 +538,14 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     clock = time.perf_counter()
     baked, reasons, warnings = [], [], list(scene.warnings)
     for index in range(len(scene.animations)):
+        if progress:  # long clips: let a sampler that evaluates row by row report as it goes
+            for clip in scene.animations[index].clips:
+                if hasattr(clip.sample, "on_progress"):
+                    clip.sample.on_progress = lambda done, total: progress("bake", done, total)
         vb, reason, extra = bake_animation(scene, index, options)
+        for clip in scene.animations[index].clips:
+            if getattr(clip.sample, "on_progress", None) is not None:
+                clip.sample.on_progress = None
         baked.append(vb)
         reasons.append(reason)
         warnings.extend(extra)
