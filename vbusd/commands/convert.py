@@ -31,7 +31,8 @@ def _check_rows(value: str):
 @click.command(name="convert")
 @click.argument("source", type=click.Path(path_type=str))  # folders: one-line error from convert
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
-              help="USD layer to write (.usda, .usd or .usdc); the texture and its .json sidecar go beside it.")
+              help="USD layer to write (.usda, .usd or .usdc); the texture and its .json sidecar go beside it "
+                   "(a missing folder is created).")
 @click.option("--encoding", default="auto", show_default=True,
               type=click.Choice(["auto"] + [e.value for e in Encoding]),
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
