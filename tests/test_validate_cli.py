@@ -86,6 +86,18 @@ def test_texture_given_on_its_own(capsys):
     assert ("encoding.crossMatrix.orthonormal", 5, 2) in found
 
 
+def test_readable_texture_with_a_broken_sidecar_is_a_finding_not_exit_2(capsys):
+    """Exit 2 is for the file given; a broken sidecar beside a readable texture is a finding, as it
+    is when the texture comes from a USD asset. The broken sidecar given itself is exit 2."""
+    folder = FIXTURES / "metadata.json"
+    assert main(["validate", str(folder / "asset.Animation.exr"), "--format", "json"]) == 1
+    report = json.loads(capsys.readouterr().out)
+    assert ("metadata.json", str(folder / "asset.Animation.exr.json")) in {
+        (f["code"], f["location"]["file"]) for f in report["findings"]}
+    assert main(["validate", str(folder / "asset.Animation.exr.json")]) == 2
+    assert ": metadata.json: " in capsys.readouterr().err
+
+
 def test_sidecar_without_its_texture(capsys, tmp_path):
     sidecar = tmp_path / "asset.Animation.exr.json"
     shutil.copy(FIXTURES / "valid" / "crossMatrix_float16" / sidecar.name, sidecar)

@@ -23,7 +23,7 @@ from .report import Report, build_report
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 TEXTURE_SUFFIXES = (".exr", ".png", ".json")
-_UNREADABLE_ALONE = ("texture.unreadable", "texture.missing", "metadata.json")
+_UNREADABLE_ALONE = ("texture.unreadable", "texture.missing")
 
 
 def check_filters(only: Sequence[str] = (), ignore: Sequence[str] = ()) -> None:
@@ -109,8 +109,11 @@ def _validate_texture(path: str) -> list:
         else:
             fatal = ("metadata.json",)
     findings = guarded(check_texture_only, path, location=FileLocation(path))
+    given = os.path.normpath(path)
     for item in findings:
-        if item.code in fatal:
+        # Only the file given is "the asset": its own failure is exit 2; a broken sidecar beside a
+        # readable texture, or broken metadata inside it, is a finding like it is from USD.
+        if item.code in fatal and os.path.normpath(str(getattr(item.location, "file", path))) == given:
             location = item.location
             where = None
             if getattr(location, "byte_offset", None) is not None:
