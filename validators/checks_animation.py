@@ -517,7 +517,9 @@ def resolve_texture(prim, asset_dir: str, scratch: Optional[str] = None):
     try:
         resolved = resolve_inside(base, authored, file=None, location=str(site))
     except InputError as error:
-        return None, None, [finding("texture.outside", f"vb:texture {authored!r}: {error.message}", site)]
+        # validate has no --allow-outside-paths: drop the reader's hint about it.
+        why = error.message.replace(" (or allow outside paths)", "")
+        return None, None, [finding("texture.outside", f"vb:texture {authored!r}: {why}", site)]
     root = Path(asset_dir).resolve()
     if not resolved.is_relative_to(root):
         return None, None, [finding("texture.outside", f"vb:texture {authored!r} resolves to {resolved}, "
