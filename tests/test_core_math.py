@@ -313,3 +313,28 @@ def test_float16_overflow_names_the_bone_clip_and_time():
         bake(animation, BakeOptions(texel_format="float16"))
     assert "'runner' at time 0.7 s of clip 'run'" in str(error.value)
     assert bake(animation, BakeOptions(texel_format="float32")).layout.row_count == 11
+
+
+def test_scale_error_names_the_scaled_parent_not_the_child_that_inherits_it():
+    def sample(times):
+        out = np.tile(np.eye(4), (len(np.atleast_1d(times)), 3, 1, 1))
+        out[:, 1, :3, :3] *= 1.5  # bone 1 scaled; bone 2 inherits exactly the same scale
+        out[:, 2, :3, :3] *= 1.5
+        return out
+
+    animation = SkinnedAnimation("A", "/A", ("root", "root/arm", "root/arm/hand"),
+                                 (AnimationClip("c", 0.0, 1.0, sample, native_rate=4),))
+    with pytest.raises(UnsupportedError) as error:
+        bake(animation, BakeOptions(encoding="crossMatrix"))
+    assert "bone 'root/arm' at time 0 s" in str(error.value)
+
+
+def test_absurd_row_rates_are_refused_before_sampling():
+    def sample(times):
+        if len(times) > 2:  # the loop decision may look at the two end poses, nothing more
+            raise AssertionError("sampled before the size check")
+        return np.tile(np.eye(4), (len(times), 1, 1, 1))
+
+    animation = SkinnedAnimation("A", "/A", ("root",), (AnimationClip("c", 0.0, 10.0, sample),))
+    with pytest.raises(OptionsError, match="exceeds the limit"):
+        bake(animation, BakeOptions(rows_per_second=1e6))

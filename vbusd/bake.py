@@ -292,6 +292,9 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     bone_count = animation.bone_count
     loops = [decide_loop(clip, options) for clip in animation.clips]
     plans = plan_rows(animation.clips, loops, options)
+    # Check the texture size before sampling anything: an absurd rate must not allocate first.
+    Layout(options.encoding, options.texel_format, bone_count, sum(p.row_count for p in plans),
+           options.horizontal_padding, options.vertical_padding)
     meshes = tuple(bind_mesh(m, bone_count, options.max_influences) for m in animation.meshes)
 
     values, clips, extents, first_row = [], [], [], 0

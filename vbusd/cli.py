@@ -70,6 +70,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except click.ClickException as error:
         error.show()
         return 2
+    except OSError as error:  # disk full, permissions, a vanished folder: one line, not a traceback
+        where = f"{error.filename}: " if getattr(error, "filename", None) else ""
+        click.echo(f"vbusd: {where}{error.strerror or error}", err=True)
+        return 2
     return int(result or 0)
 
 

@@ -131,7 +131,11 @@ def _raise_worst(deviation: np.ndarray, tolerance: float, kind: str, encoding: E
     bad = deviation > tolerance
     if not np.any(bad):
         return
-    index = tuple(int(i) for i in np.unravel_index(np.argmax(np.where(bad, deviation, -1)), deviation.shape))
+    # Name the first (lowest row, then lowest bone: parents come first) of the worst entries, so a
+    # scaled bone is named rather than a child that only inherits its scale.
+    peak = float(np.max(np.where(bad, deviation, -1)))
+    near_worst = bad & (deviation >= peak * (1 - 1e-6))
+    index = tuple(int(i) for i in np.unravel_index(np.argmax(near_worst), deviation.shape))
     worst = float(deviation[index])
     detail = "" if np.isinf(worst) else f" (deviation {worst:.3g} > tolerance {tolerance:.3g})"
     hint = "; use affineMatrix" if encoding is not Encoding.AFFINE_MATRIX else ""
