@@ -14,6 +14,7 @@ import dataclasses
 import importlib.util
 import math
 import shutil
+import string
 import struct
 import subprocess
 import sys
@@ -455,10 +456,14 @@ def test_every_variant_compiles_as_glsl_330_glsl_es_300_and_hlsl(tmp_path):
     VB_MAIN defined 0 before the module) called from a vertex function of the engine's own:
     GLSL 3.30 core and GLSL ES 3.00 (WebGL 2, three.js), and HLSL through glslang's HLSL front end."""
     glsl, hlsl = [], []
+    # The GLSL ES source character set (WebGL 1 refuses others even in comments): no quotes,
+    # backticks, $, @ or backslashes.
+    allowed = set(string.ascii_letters + string.digits + " \t\n_.+-/*%<>[](){}^|&~=!:;,?#")
     for encoding, texel_format, k in _variants():
         stem = f"{encoding}_{texel_format}_{k}"
         with_main = generate(ShaderOptions("glsl", encoding, texel_format, max_influences=k))
         no_main = generate(ShaderOptions("glsl", encoding, texel_format, max_influences=k, main=False))
+        assert set(with_main) <= allowed, (stem, set(with_main) - allowed)
         for version, header in _GLSL_VERSIONS.items():
             for name, text in ((f"main_{version}", header + with_main),
                                (f"nomain_{version}", header + no_main + _GLSL_CALLER),
