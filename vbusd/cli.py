@@ -57,6 +57,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         0 on success, 1 when validation found errors, 2 for unreadable input or bad usage.
     """
     args = list(sys.argv[1:] if argv is None else argv)
+    if not args:  # a bare `vbusd` is a request for help, not a usage error
+        args = ["--help"]
     try:
         result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
@@ -67,8 +69,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except click.Abort:
         click.echo("vbusd: aborted", err=True)
         return 130
+    except click.UsageError as error:  # bad usage: one line, naming the command, not click's four
+        command = error.ctx.command_path if error.ctx is not None else "vbusd"
+        click.echo(f"{command}: {error.format_message()}", err=True)
+        return 2
     except click.ClickException as error:
-        error.show()
+        click.echo(f"vbusd: {error.format_message()}", err=True)
         return 2
     except OSError as error:  # disk full, permissions, a vanished folder: one line, not a traceback
         where = f"{error.filename}: " if getattr(error, "filename", None) else ""
