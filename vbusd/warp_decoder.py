@@ -65,11 +65,23 @@ def available_devices() -> list:
     return devices
 
 
+def _init_for(name: str) -> None:
+    """Initialize warp; for CPU work, without its warning that no CUDA driver exists (irrelevant)."""
+    if name == "cpu" and hasattr(wp, "LOG_ERROR"):  # wp.init() is idempotent: only the first prints
+        level = wp.config.log_level
+        wp.config.log_level = max(level, wp.LOG_ERROR)
+        try:
+            wp.init()
+        finally:
+            wp.config.log_level = level
+    wp.init()
+
+
 def _resolve_device(device) -> "wp.context.Device":
     if device is None:
         raise OptionsError("a device must be given explicitly (\"cpu\" or \"cuda\")", file="warp_decoder")
     name = str(device)
-    wp.init()
+    _init_for(name)
     if name.startswith("cuda") and not wp.is_cuda_available():
         raise OptionsError(f"device {name!r} requested but no CUDA device is available "
                            f"(available: {', '.join(available_devices()) or 'none'})", file="warp_decoder")
