@@ -126,11 +126,12 @@ def _generator() -> str:
     return f"vbusd {__version__}"
 
 
-def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str) -> dict:
-    result: dict[str, Any] = {
-        "format": FORMAT_NAME,
-        "formatVersion": FORMAT_VERSION,
-        "generator": generator,
+def layout_fields(layout: Layout) -> dict:
+    """The metadata keys every size of ``layout`` is written under (spec: "Layout metadata").
+
+    Shared by the metadata writer and ``vbusd info``, so the two always spell them alike.
+    """
+    return {
         "encoding": layout.encoding.value,
         "texelFormat": layout.texel_format.value,
         "boneCount": layout.bone_count,
@@ -142,6 +143,15 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
         "horizontalPadding": layout.horizontal_padding.value,
         "verticalPadding": layout.vertical_padding.value,
         "texelBytes": layout.texel_bytes,
+    }
+
+
+def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str) -> dict:
+    result: dict[str, Any] = {
+        "format": FORMAT_NAME,
+        "formatVersion": FORMAT_VERSION,
+        "generator": generator,
+        **layout_fields(layout),
         "bones": [str(name) for name in bones],
         "clips": [
             {

@@ -20,6 +20,7 @@ from typing import Optional
 import click
 
 from ..errors import InputError
+from .. import metadata as md
 from ..layout import Layout
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -71,18 +72,8 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
         "path": path,
         "texture": texture,
         "formatVersion": format_version,
-        "encoding": layout.encoding.value,
-        "texelFormat": layout.texel_format.value,
-        "boneCount": layout.bone_count,
-        "texelsPerBone": layout.texels_per_bone,
+        **md.layout_fields(layout),
         "bones": [str(b) for b in bones],
-        "rowCount": layout.row_count,
-        "usedWidth": layout.used_width,
-        "width": layout.width,
-        "height": layout.height,
-        "horizontalPadding": layout.horizontal_padding.value,
-        "verticalPadding": layout.vertical_padding.value,
-        "texelBytes": layout.texel_bytes,
         "usedTexelBytes": layout.used_texel_bytes,
         "paddingBytes": layout.texel_bytes - layout.used_texel_bytes,
         "paddingFraction": layout.padding_fraction,
