@@ -13,7 +13,8 @@ from typing import Optional
 
 import numpy as np
 
-from .encoding import FLOAT16_MAX, NonRigidError, encode_bones, make_hemispheres_continuous, pack, quantize
+from .encoding import (Float16OverflowError, NonRigidError, encode_bones, make_hemispheres_continuous, pack,
+                       quantize)
 from .errors import InputError, OptionsError, UnsupportedError
 from .layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from .model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
@@ -107,12 +108,9 @@ def plan_rows(clips: tuple, loops: list, options: BakeOptions) -> list:
     vertical powerOfTwo padding, the spans are scaled so that all rows together fill the next power
     of two, distributed by duration with largest remainders.
     """
-    spans, durations = [], []
-    for clip, loop in zip(clips, loops):
-        rate = float(options.rows_per_second or clip.native_rate or DEFAULT_ROWS_PER_SECOND)
-        duration = max(0.0, clip.duration)
-        durations.append(duration)
-        spans.append(max(1, round(duration * rate)) if duration > 0 else 0)
+    rates = [float(options.rows_per_second or clip.native_rate or DEFAULT_ROWS_PER_SECOND) for clip in clips]
+    durations = [max(0.0, clip.duration) for clip in clips]
+    spans = [max(1, round(d * r)) if d > 0 else 0 for d, r in zip(durations, rates)]
     fixed = sum(0 if loop else 1 for loop in loops)  # a clamped clip has one row more than spans
     total = sum(spans) + fixed
     if options.vertical_padding is Padding.POWER_OF_TWO:
@@ -138,9 +136,8 @@ def plan_rows(clips: tuple, loops: list, options: BakeOptions) -> list:
             for i in moving:
                 spans[i] = new[i]
     plans = []
-    for span, duration, loop, clip in zip(spans, durations, loops, clips):
+    for span, duration, loop, rate in zip(spans, durations, loops, rates):
         if duration <= 0:
-            rate = float(options.rows_per_second or clip.native_rate or DEFAULT_ROWS_PER_SECOND)
             plans.append(RowPlan(1, rate, False))
         elif loop:
             plans.append(RowPlan(span, span / duration, True))
@@ -257,19 +254,13 @@ def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: A
                             code="encoding.nonRigid")
 
 
-def _check_float16_range(values: np.ndarray, animation: SkinnedAnimation, clips: list) -> None:
-    """Refuse values beyond float16's range, naming the first bone, clip and time that has one."""
-    over = np.argwhere(np.abs(values) > FLOAT16_MAX)
-    if over.size == 0:
-        return
-    row, bone = int(over[0][0]), int(over[0][1])
+def _locate_float16_overflow(error, animation: SkinnedAnimation, clips: list) -> UnsupportedError:
+    row, bone = error.index[0], error.index[1]
     clip = next(c for c in clips if c.first_row <= row < c.first_row + c.row_count)
     time = clip.row_time(row - clip.first_row)
-    peak = float(np.abs(values[row, bone]).max())
-    raise UnsupportedError(
-        f"bone '{animation.bones[bone]}' at time {time:.6g} s of clip '{clip.name}': a channel value of "
-        f"{peak:.6g} exceeds float16's largest value {FLOAT16_MAX:g}; use texelFormat float32 or unorm16",
-        file=animation.source, location=animation.path, code="encoding.float16Overflow")
+    return UnsupportedError(f"bone '{animation.bones[bone]}' at time {time:.6g} s of clip '{clip.name}': "
+                            f"{error.message}", file=animation.source, location=animation.path,
+                            code="encoding.float16Overflow")
 
 
 def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
@@ -292,10 +283,14 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     bone_count = animation.bone_count
     loops = [decide_loop(clip, options) for clip in animation.clips]
     plans = plan_rows(animation.clips, loops, options)
-    # Check the texture size before sampling anything: an absurd rate must not allocate first.
-    Layout(options.encoding, options.texel_format, bone_count, sum(p.row_count for p in plans),
-           options.horizontal_padding, options.vertical_padding)
-    meshes = tuple(bind_mesh(m, bone_count, options.max_influences) for m in animation.meshes)
+    # The layout checks the texture size before anything is sampled: an absurd rate must not
+    # allocate first.
+    layout = Layout(options.encoding, options.texel_format, bone_count, sum(p.row_count for p in plans),
+                    options.horizontal_padding, options.vertical_padding)
+    try:
+        meshes = tuple(bind_mesh(m, bone_count, options.max_influences) for m in animation.meshes)
+    except InputError as error:
+        raise error.at(file=animation.source)
 
     values, clips, extents, first_row = [], [], [], 0
     for clip, plan in zip(animation.clips, plans):
@@ -321,13 +316,10 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
                           start_time=float(clip.start_time)))
         first_row += plan.row_count
 
-    layout = Layout(options.encoding, options.texel_format, bone_count, first_row,
-                    options.horizontal_padding, options.vertical_padding)
-    all_values = np.concatenate(values, axis=0)
-    if options.texel_format is TexelFormat.FLOAT16:
-        _check_float16_range(all_values, animation, clips)
     try:
-        stored, ranges = quantize(all_values, options.texel_format)
+        stored, ranges = quantize(np.concatenate(values, axis=0), options.texel_format)
+    except Float16OverflowError as error:
+        raise _locate_float16_overflow(error, animation, clips) from None
     except UnsupportedError as error:
         raise error.at(file=animation.source, location=animation.path)
     texels = pack(stored, layout)

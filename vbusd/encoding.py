@@ -311,6 +311,16 @@ def unorm_ranges(values: np.ndarray) -> np.ndarray:
     return np.stack([low32.astype(np.float64), high32.astype(np.float64)], axis=-1)
 
 
+class Float16OverflowError(UnsupportedError):
+    """A channel value beyond float16's range; ``index`` locates the first one in the values."""
+
+    default_code = "encoding.float16Overflow"
+
+    def __init__(self, message: str, *, index: tuple) -> None:
+        super().__init__(message)
+        self.index = index
+
+
 def quantize(values: np.ndarray, texel_format: TexelFormat | str,
              ranges: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Convert float64 channel values (rows, B, T, 4) to stored texel values.
@@ -324,7 +334,8 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         (stored values of the format's dtype, the unorm16 ranges or None).
 
     Raises:
-        UnsupportedError: A value is not finite, or exceeds float16's range.
+        UnsupportedError: A value is not finite.
+        Float16OverflowError: A value exceeds float16's range (``index`` says where).
     """
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)
@@ -333,11 +344,12 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
     if texel_format is TexelFormat.FLOAT32:
         return v.astype("<f4"), None
     if texel_format is TexelFormat.FLOAT16:
-        peak = float(np.abs(v).max(initial=0.0))
-        if peak > FLOAT16_MAX:
-            raise UnsupportedError(
-                f"a channel value of {peak:.6g} exceeds float16's largest value {FLOAT16_MAX:g}; "
-                f"use texelFormat float32 or unorm16", code="encoding.float16Overflow")
+        over = np.argwhere(np.abs(v) > FLOAT16_MAX)
+        if over.size:
+            index = tuple(int(i) for i in over[0])
+            raise Float16OverflowError(
+                f"a channel value of {float(v[index]):.6g} exceeds float16's largest value "
+                f"{FLOAT16_MAX:g}; use texelFormat float32 or unorm16", index=index)
         return v.astype("<f2"), None
     if ranges is None:
         ranges = unorm_ranges(v)
