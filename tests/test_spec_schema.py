@@ -597,6 +597,20 @@ def test_vertical_power_of_two_plan_of_the_talk():
     assert (plan.row_count, plan.rows_per_second) == (300, 30.0)
 
 
+def test_vertical_power_of_two_tiny_clip_example(spec_text):
+    """Spec 10.2: a 10 s and a 0.01 s loop at 30 rows/s fill 511 + 1 = 512 rows, not 513."""
+    if importlib.util.find_spec("vbusd.bake") is None:
+        pytest.skip("vbusd.bake not available")
+    from vbusd.bake import BakeOptions, plan_rows
+    from vbusd.model import AnimationClip
+
+    assert "The short\nclip keeps one row, the long one 511 (51.1 rows/s)" in spec_text
+    clips = tuple(AnimationClip(name, 0.0, duration, sample=lambda times: None, native_rate=30.0, loop=True)
+                  for name, duration in (("long", 10.0), ("short", 0.01)))
+    plans = plan_rows(clips, [True, True], BakeOptions(vertical_padding="powerOfTwo"))
+    assert [(p.row_count, p.rows_per_second) for p in plans] == [(511, 51.1), (1, 100.0)]
+
+
 def test_usd_example_is_the_committed_samples_prim(spec_text):
     """Spec 13's usda example is the sample's animation prim, attribute for attribute."""
     block = spec_text.split("Example (usda): the animation prim of the repository's sample", 1)[1]
