@@ -12,33 +12,20 @@ Interpolation Modes"):
   tangents are multiplied by the key interval ``t_{k+1} - t_k``; rotations are normalized after
   interpolation.
 
-Everything is vectorized over sample times with numpy; nothing here knows about files.
+Everything is vectorized over sample times with numpy; nothing here knows about files. The
+quaternion-to-matrix step is :func:`vbusd.encoding.quat_to_matrix`, the one the encodings use.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from vbusd.encoding import quat_to_matrix
+
 
 KEY_TIME_TOLERANCE = 2.0 ** -23
 """A sample time this close to a key (relative to max(|t|, 1 s)) is at the key: one float32 step
 (key times are float32; rounding a time to float32 moves it by at most half a step)."""
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of unit quaternions ``(..., 4)`` (x, y, z, w) -> ``(..., 3, 3)``."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    m = np.empty(q.shape[:-1] + (3, 3))
-    m[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    m[..., 0, 1] = 2 * (x * y - z * w)
-    m[..., 0, 2] = 2 * (x * z + y * w)
-    m[..., 1, 0] = 2 * (x * y + z * w)
-    m[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    m[..., 1, 2] = 2 * (y * z - x * w)
-    m[..., 2, 0] = 2 * (x * z - y * w)
-    m[..., 2, 1] = 2 * (y * z + x * w)
-    m[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return m
 
 
 def compose_trs(t: np.ndarray, r: np.ndarray, s: np.ndarray) -> np.ndarray:
