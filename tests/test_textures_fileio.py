@@ -203,6 +203,24 @@ def test_resolve_inside_refuses_symlinks_leaving_the_folder(tmp_path):
     assert fileio.resolve_inside(inside, "alias.exr") == (inside / "real.exr").resolve()
 
 
+def test_outside_hint_is_the_callers_and_only_for_outside_paths(tmp_path):
+    # The helper cannot know whether its caller offers a way to allow outside paths (validate does
+    # not): without a hint the message suggests nothing; with one, every outside refusal carries it.
+    inside = tmp_path / "asset"
+    inside.mkdir()
+    (inside / "link.exr").symlink_to(tmp_path / "t.exr")
+    for reference in ("../x.exr", "/etc/passwd", "link.exr"):
+        with pytest.raises(InputError) as caught:
+            fileio.resolve_inside(inside, reference)
+        assert "--" not in caught.value.message and "allow outside" not in caught.value.message
+        with pytest.raises(InputError) as caught:
+            fileio.resolve_inside(inside, reference, outside_hint="use --let-me")
+        assert caught.value.message.endswith(" (use --let-me)"), caught.value.message
+    with pytest.raises(InputError) as caught:  # a URI is refused whatever the caller allows
+        fileio.resolve_inside(inside, "http://example.com/a.exr", outside_hint="use --let-me")
+    assert "--let-me" not in caught.value.message
+
+
 def test_allow_outside_accepts_paths_but_never_uris(tmp_path):
     inside = tmp_path / "asset"
     inside.mkdir()

@@ -250,7 +250,7 @@ _SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.\-]*):")
 
 
 def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=None,
-                   allow_outside: bool = False) -> Path:
+                   allow_outside: bool = False, outside_hint: Optional[str] = None) -> Path:
     """Resolve a reference found in an asset to a path, refusing ones that leave the asset's folder.
 
     Refused (unless noted): empty references and NUL characters; URIs with a scheme (``file:``,
@@ -265,6 +265,10 @@ def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=Non
         file: The file holding the reference, for messages.
         location: Where in that file, for messages.
         allow_outside: Accept absolute paths and paths outside ``base_dir`` (URIs stay refused).
+        outside_hint: How the caller's user may allow such paths (e.g. ``"use
+            --allow-outside-paths to allow it"``), added in parentheses to the refusal of an
+            absolute or outside path. Only the caller knows whether it offers such an option, so
+            without a hint the message suggests none.
 
     Returns:
         The resolved absolute path (the file need not exist).
@@ -272,7 +276,9 @@ def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=Non
     Raises:
         InputError: with code ``path.unsafe`` naming the reference and why.
     """
-    def refuse(why: str) -> InputError:
+    def refuse(why: str, *, outside: bool = False) -> InputError:
+        if outside and outside_hint:
+            why += f" ({outside_hint})"
         return InputError(f"refusing path {relative!r}: {why}", file=file, location=location,
                           code="path.unsafe")
 
@@ -287,13 +293,14 @@ def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=Non
                      f"the asset's folder")
     is_absolute = text.startswith("/") or bool(match)  # one-letter "scheme" = Windows drive
     if is_absolute and not allow_outside:
-        raise refuse("absolute paths are not allowed; give a path relative to the asset's folder "
-                     "(or allow outside paths)")
+        raise refuse("absolute paths are not allowed; give a path relative to the asset's folder",
+                     outside=True)
     base = Path(base_dir).resolve()
     candidate = Path(text) if is_absolute else base / text
     resolved = candidate.resolve()
     if not allow_outside and not resolved.is_relative_to(base):
         if ".." in Path(text).parts:
-            raise refuse(f"'..' leads outside the asset's folder {base}")
-        raise refuse(f"a symbolic link leads outside the asset's folder {base} (to {resolved})")
+            raise refuse(f"'..' leads outside the asset's folder {base}", outside=True)
+        raise refuse(f"a symbolic link leads outside the asset's folder {base} (to {resolved})",
+                     outside=True)
     return resolved

@@ -72,6 +72,9 @@ PRIMVAR_CLIP = "vb:clip"
 PRIMVAR_TIME_OFFSET = "vb:timeOffset"
 PRIMVAR_PLAYBACK_RATE = "vb:playbackRate"
 PROTOTYPES_SCOPE = "Prototypes"
+OUTSIDE_PATHS_HINT = "use --allow-outside-paths to allow it"
+"""Added to path refusals: every command reading with this module (info, decode, convert) has the
+option, as ``read_asset(..., allow_outside_paths=True)`` has in Python."""
 WEIGHT_SUM_TOLERANCE = 1e-3
 """Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
 
@@ -568,7 +571,7 @@ class _Reader:
                 prefix = os.path.relpath(anchor, self.folder).replace(os.sep, "/")
             authored = f"{prefix}/{authored}"
         return resolve_inside(self.folder, authored, file=self.file, location=location,
-                              allow_outside=self.allow_outside)
+                              allow_outside=self.allow_outside, outside_hint=OUTSIDE_PATHS_HINT)
 
     def check_dependencies(self, layer, seen: set) -> None:
         """Refuse sublayers, references and payloads that leave the asset's folder (recursively)."""
