@@ -334,3 +334,56 @@ def test_subsampled_exr_channel_is_named(tmp_path, capsys):
     findings = json.loads(capsys.readouterr().out)["findings"]
     assert [f["code"] for f in findings] == ["texture.unreadable"]
     assert "channel A is subsampled 2 x 2" in findings[0]["message"]
+
+
+def _rewrite_png_chunk(data: bytes, kind: bytes, edit) -> bytes:
+    """``data`` with the first chunk of type ``kind`` replaced by ``edit(kind, body)`` (a new type
+    and body; the CRC is recomputed)."""
+    pos = 8
+    while pos < len(data):
+        length, found = struct.unpack(">I4s", data[pos:pos + 8])
+        if found == kind:
+            new_kind, body = edit(found, data[pos + 8:pos + 8 + length])
+            chunk = new_kind + body
+            return (data[:pos] + struct.pack(">I", len(body)) + chunk
+                    + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF) + data[pos + 12 + length:])
+        pos += 12 + length
+    raise AssertionError(f"no {kind!r} chunk")
+
+
+def _as_text_chunk(kind, body):
+    keyword, _, rest = body.partition(b"\0")
+    _lang, _, rest = rest[2:].partition(b"\0")  # skip compression flag and method (0, 0)
+    _translated, _, text = rest.partition(b"\0")
+    return b"tEXt", keyword + b"\0" + text
+
+
+@pytest.mark.parametrize("case", ["png_tEXt", "png_other_keyword", "exr_other_attribute"])
+def test_metadata_only_counts_where_the_spec_puts_it(tmp_path, capsys, case):
+    """Layout metadata is the EXR string attribute or the PNG iTXt chunk named vbusd.layout, and
+    nothing else (spec "Texture files"); vbusd's reader refuses a texture whose metadata sits
+    anywhere else, so the validator must not accept it either (it once took any text chunk or
+    attribute with "layout" in its name)."""
+    from vbusd.errors import InputError
+    from vbusd.textures import read_texture
+
+    if case.startswith("png"):
+        folder, name = _copy(PNG_FIXTURE, tmp_path / case), PNG
+        data = (folder / name).read_bytes()
+        edit = _as_text_chunk if case == "png_tEXt" else (
+            lambda kind, body: (kind, body.replace(b"vbusd.layout\0", b"vbusd.layouX\0", 1)))
+        (folder / name).write_bytes(_rewrite_png_chunk(data, b"iTXt", edit))
+    else:
+        folder, name = _copy(EXR_FIXTURE, tmp_path / case), EXR
+        data = (folder / name).read_bytes()
+        assert data.count(b"vbusd.layout\0string\0") == 1
+        (folder / name).write_bytes(data.replace(b"vbusd.layout\0string\0", b"vbusd.layouX\0string\0"))
+    (folder / (name + ".json")).unlink()
+    with pytest.raises(InputError) as refused:  # the reader's verdict, independent of the validator
+        read_texture(folder / name)
+    assert refused.value.code == "metadata.missing"
+    assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
+    findings = json.loads(capsys.readouterr().out)["findings"]
+    missing = [f for f in findings if f["code"] == "metadata.missing"]
+    assert [f["location"] for f in missing] == [{"kind": "file", "file": name}]
+    assert "vbusd.layou" in missing[0]["message"]  # names what it found instead

@@ -19,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 
+from vbusd.exr import METADATA_ATTRIBUTE
 from vbusd.layout import FORMAT_VERSION, TexelFormat
 
 from . import checks_texels as texels_checks
@@ -26,7 +27,7 @@ from .declared import Declared, from_metadata, from_prim, same_value
 from .findings import FileLocation, JsonPointer, UsdSite, finding, json_pointer
 from .rawtexture import EXR_LOSSLESS, parse_metadata, read_texture, sidecar_candidates
 
-METADATA_KEY = "vbusd.layout"
+METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")
 SCHEMA_RESOURCE = "layout-metadata.schema.json"
 COMPARED_KEYS = ("formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone", "rowCount",
                  "width", "height", "horizontalPadding", "verticalPadding", "bones", "contentDigest")
@@ -291,9 +292,7 @@ def _load_metadata(raw, texture_path: str, display: str):
     findings = []
     embedded = None
     if raw is not None and raw.metadata_texts:
-        texts = dict(raw.metadata_texts)
-        key = METADATA_KEY if METADATA_KEY in texts else next(iter(texts))
-        value, problems = parse_metadata(texts[key], display)
+        value, problems = parse_metadata(raw.metadata_texts[0], display)
         findings += problems
         if not problems:
             embedded = (value, display)
@@ -355,8 +354,12 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     embedded, sidecar, problems = _load_metadata(raw, texture_path, display)
     out += problems
     if raw is not None and not raw.metadata_texts and sidecar is None and not problems:
+        misplaced = (f" (found {', '.join(raw.misplaced_metadata)}: readers look only at the "
+                     f"{'string header attribute' if raw.container == 'exr' else 'iTXt chunk'} "
+                     f"'{METADATA_KEY}')" if raw.misplaced_metadata else "")
         out.append(finding("metadata.missing", f"no '{METADATA_KEY}' metadata in the texture and no sidecar "
-                           f"{os.path.basename(texture_path)}.json beside it", FileLocation(display)))
+                           f"{os.path.basename(texture_path)}.json beside it{misplaced}",
+                           FileLocation(display)))
     docs = [_upgraded(d, out) for d in (embedded, sidecar) if d is not None]
     meta_declared = []
     for value, file in docs:
@@ -428,11 +431,10 @@ def _check_container(raw, declared: Declared):
         out.append(finding("texture.colorManagement", f"PNG carries {kinds}: the samples are bone data, and "
                            "image tools may apply gamma or colour conversion to them",
                            FileLocation(raw.file, raw.colour_chunks[0][1])))
-    keyed = [i for i, (key, _) in enumerate(raw.metadata_texts) if key == METADATA_KEY]
-    if len(keyed) > 1:
-        offset = raw.metadata_offsets[keyed[1]] if len(raw.metadata_offsets) > keyed[1] else None
-        out.append(finding("metadata.duplicate", f"{len(keyed)} '{METADATA_KEY}' chunks; a texture holds "
-                           "exactly one", FileLocation(raw.file, offset)))
+    if len(raw.metadata_texts) > 1:
+        offset = raw.metadata_offsets[1] if len(raw.metadata_offsets) > 1 else None
+        out.append(finding("metadata.duplicate", f"{len(raw.metadata_texts)} '{METADATA_KEY}' chunks; a "
+                           "texture holds exactly one", FileLocation(raw.file, offset)))
     values = declared.values
     width, height = values.get("width"), values.get("height")
     if width is not None and height is not None and (raw.width, raw.height) != (width, height):

@@ -9,9 +9,12 @@ turned into a :class:`~vbusd.validators.findings.Finding` (``texture.unreadable`
 Containers (spec/virtual-bones.md, "Texture files"):
 
 * OpenEXR, single part, channels R, G, B, A of type HALF (float16) or FLOAT (float32); layout
-  metadata in a string header attribute;
-* PNG, 16-bit RGBA (unorm16); layout metadata in an iTXt (or tEXt / zTXt) chunk;
+  metadata in the string header attribute ``vbusd.layout``;
+* PNG, 16-bit RGBA (unorm16); layout metadata in an iTXt chunk with keyword ``vbusd.layout``;
 * a sidecar ``<texture>.json`` beside either.
+
+Metadata anywhere else (a tEXt or zTXt chunk, another keyword or attribute name) is not metadata:
+vbusd's reader ignores it, so the validator does too, and only names it in ``metadata.missing``.
 
 Limits are checked before any pixel is allocated: a header that declares more than
 :data:`vbusd.layout.MAX_TEXTURE_DIMENSION` texels per side is refused.
@@ -33,7 +36,9 @@ from typing import Optional
 
 import numpy as np
 
+from vbusd.exr import METADATA_ATTRIBUTE
 from vbusd.layout import MAX_TEXTURE_DIMENSION
+from vbusd.png16 import METADATA_KEYWORD
 
 from .findings import FileLocation, finding
 
@@ -62,9 +67,12 @@ class RawTexture:
         compression: EXR compression name, ``png`` (always lossless), or None.
         texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
             not be read. Missing channels are not invented: texels is None then.
-        metadata_texts: Embedded metadata candidates: (key, text) pairs.
+        metadata_texts: Embedded layout metadata texts, one per EXR ``vbusd.layout`` string
+            attribute or PNG ``vbusd.layout`` iTXt chunk (more than one is ``metadata.duplicate``).
         colour_chunks: PNG colour-management chunks found: (chunk type, byte offset) pairs.
-        metadata_offsets: PNG byte offsets of the text chunks in ``metadata_texts``.
+        metadata_offsets: PNG byte offsets of the chunks in ``metadata_texts``.
+        misplaced_metadata: Descriptions of text that looks like layout metadata but is not where
+            the spec puts it (``tEXt chunk 'vbusd.layout'``): readers ignore it.
     """
 
     file: str
@@ -78,6 +86,7 @@ class RawTexture:
     metadata_texts: list = field(default_factory=list)
     colour_chunks: list = field(default_factory=list)
     metadata_offsets: list = field(default_factory=list)
+    misplaced_metadata: list = field(default_factory=list)
 
 
 def read_texture(path: str, display: Optional[str] = None, max_dimension: int = MAX_TEXTURE_DIMENSION):
@@ -152,8 +161,12 @@ def _read_exr(path: str, name: str, max_dimension: int):
                               FileLocation(name))]
     compression = header.get("compression")
     texture.compression = getattr(compression, "name", str(compression))
-    texture.metadata_texts = [(k, v) for k, v in header.items() if isinstance(v, str)
-                              and _looks_like_metadata_key(k, v)]
+    for key, value in header.items():
+        if key == METADATA_ATTRIBUTE and isinstance(value, str):
+            texture.metadata_texts.append(value)
+        elif _looks_like_metadata(key, value):
+            texture.misplaced_metadata.append(f"header attribute {key!r} of type "
+                                              f"{type(value).__name__}")
     findings = []
     if texture.width < 1 or texture.height < 1 or texture.width > max_dimension \
             or texture.height > max_dimension:
@@ -209,11 +222,12 @@ def _read_exr(path: str, name: str, max_dimension: int):
     return texture, findings
 
 
-def _looks_like_metadata_key(key: str, value: str) -> bool:
+def _looks_like_metadata(key: str, value) -> bool:
+    """Text or a name that suggests layout metadata written in the wrong place."""
     lowered = key.lower()
-    if "vbusd" in lowered or "virtualbones" in lowered or "layout" in lowered:
+    if "vbusd" in lowered or "virtualbones" in lowered:
         return True
-    return METADATA_FORMAT in value[:4096]
+    return isinstance(value, str) and METADATA_FORMAT in value[:4096]
 
 
 def _read_png(path: str, name: str, max_dimension: int):
@@ -248,9 +262,12 @@ def _read_png(path: str, name: str, max_dimension: int):
             ihdr = struct.unpack(">IIBBBBB", body)
         elif kind in (b"tEXt", b"zTXt", b"iTXt"):
             text = _png_text(kind, body)
-            if text is not None and _looks_like_metadata_key(*text):
-                texture.metadata_texts.append(text)
+            if text is not None and kind == b"iTXt" and text[0] == METADATA_KEYWORD:
+                texture.metadata_texts.append(text[1])
                 texture.metadata_offsets.append(offset)
+            elif text is not None and _looks_like_metadata(*text):
+                texture.misplaced_metadata.append(f"{kind.decode('ascii')} chunk {text[0]!r} at byte "
+                                                  f"{offset}")
         elif kind in (b"gAMA", b"sRGB", b"iCCP", b"cHRM"):
             texture.colour_chunks.append((kind.decode("ascii"), offset))
         elif kind == b"IDAT":
