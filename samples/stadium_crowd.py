@@ -32,7 +32,6 @@ import argparse
 import math
 import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -112,6 +111,12 @@ _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 
 # ------------------------------------------------------------------------------------------------
 # Small rotation helpers (float64, quaternions (x, y, z, w), column vectors)
+#
+# vbusd.encoding has the same Hamilton product and quaternion-to-matrix formulas (quat_multiply,
+# quat_to_matrix). They are written again here on purpose: this generator is the ground truth that
+# benchmarks/accuracy.py and the tests compare vbusd's encodings and decoders against, so its exact
+# matrices must not come from the code under test (a sign slip there would otherwise shift the
+# oracle along with the decoder and go unseen).
 # ------------------------------------------------------------------------------------------------
 
 
@@ -534,21 +539,13 @@ def crowd_placement(count: int = CROWD_SIZE, seed: int = CROWD_SEED) -> CrowdPla
 
 
 def _atomic_export(layer, path: Path) -> None:
-    """Export an Sdf layer to ``path`` through a temporary file beside it, then rename."""
+    """Export an Sdf layer to ``path`` through a temporary file beside it, then rename (vbusd.fileio)."""
+    from vbusd.fileio import atomic_write_many
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-        if not layer.Export(tmp):
+    with atomic_write_many() as transaction:
+        if not layer.Export(str(transaction.temp_path(path))):
             raise OSError(f"{path}: USD could not export the layer")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _to_usd_matrix(m: np.ndarray):
