@@ -648,6 +648,13 @@ def test_stale_sidecar_is_reported_not_guessed(tmp_path):
     sidecar.write_text(json.dumps(document), encoding="utf-8")
     with pytest.raises(InputError, match="/clips/0/loop"):
         textures.read_texture_header(path)
+    # NaN is no JSON: the sidecar is refused as broken JSON, as the embedded copy would be.
+    sidecar.write_text(json.dumps(dict(document, clips=[dict(document["clips"][0], rowsPerSecond=float("nan"))]
+                                       + document["clips"][1:])), encoding="utf-8")
+    with pytest.raises(InputError) as caught:
+        textures.read_texture(path)
+    assert (caught.value.file, caught.value.code) == (str(sidecar), "metadata.json")
+    assert "NaN" in caught.value.message
     # The sidecar is optional and can be left out of the check.
     assert textures.read_texture(path, check_sidecar=False).info.clips[0].rows_per_second == 30.0
     sidecar.unlink()

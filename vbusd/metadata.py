@@ -527,25 +527,41 @@ def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
                       generator=d["generator"])
 
 
-def loads(text: str, *, file=None, location_prefix: str = "") -> LayoutInfo:
-    """Parse metadata JSON text and validate it (:func:`from_dict`).
+def parse_json(text: str, *, file=None, location_prefix: str = "", what: str = "layout metadata"):
+    """Parse metadata JSON text without validating it (:func:`loads` validates).
 
-    Broken JSON is an :class:`InputError` located at ``line L column C`` (after the prefix).
+    Args:
+        text: The JSON text.
+        file: File the text came from, for messages.
+        location_prefix: Where the text sits in the file (e.g. ``header/vbusd.layout``).
+        what: What the text is, for messages (``"sidecar"``...).
+
+    Raises:
+        InputError: code ``metadata.json``: broken JSON (located at ``line L column C`` after the
+            prefix), NaN or Infinity (JSON has neither) or nesting too deep for Python's parser.
     """
     try:
-        d = json.loads(text, parse_constant=_refuse_constant)
+        return json.loads(text, parse_constant=_refuse_constant)
     except json.JSONDecodeError as error:
         where = f"line {error.lineno} column {error.colno}"
-        raise InputError(f"layout metadata is not valid JSON: {error.msg}", file=file,
+        raise InputError(f"{what} is not valid JSON: {error.msg}", file=file,
                          location=f"{location_prefix} {where}".strip(),
                          code="metadata.json") from None
     except ValueError as error:
-        raise InputError(f"layout metadata is not valid JSON: {error}", file=file,
+        raise InputError(f"{what} is not valid JSON: {error}", file=file,
                          location=location_prefix or "/", code="metadata.json") from None
     except RecursionError:  # Python's parser recurses per nesting level; metadata is 4 deep
-        raise InputError("layout metadata is nested too deeply to be Virtual Bones metadata",
+        raise InputError(f"{what} is nested too deeply to be Virtual Bones metadata",
                          file=file, location=location_prefix or "/", code="metadata.json") from None
-    return from_dict(d, file=file, location_prefix=location_prefix)
+
+
+def loads(text: str, *, file=None, location_prefix: str = "") -> LayoutInfo:
+    """Parse metadata JSON text (:func:`parse_json`) and validate it (:func:`from_dict`).
+
+    Broken JSON is an :class:`InputError` located at ``line L column C`` (after the prefix).
+    """
+    return from_dict(parse_json(text, file=file, location_prefix=location_prefix), file=file,
+                     location_prefix=location_prefix)
 
 
 def _refuse_constant(name: str):

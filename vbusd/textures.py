@@ -153,7 +153,8 @@ def write_sidecar(path: PathLike, vb: VirtualBones, *,
     return target
 
 
-def _read_head(path: Path, count: int) -> bytes:
+def _read_bytes(path: Path, count: int = -1) -> bytes:
+    """The first ``count`` bytes of a file (all with -1); a missing or unreadable file is one error."""
     try:
         with open(path, "rb") as stream:
             return stream.read(count)
@@ -174,7 +175,7 @@ def sniff_container(path: PathLike) -> str:
     from .exr import MAGIC
     from .png16 import SIGNATURE
 
-    head = _read_head(Path(path), 8)
+    head = _read_bytes(Path(path), 8)
     if head[:4] == MAGIC:
         return "exr"
     if head == SIGNATURE:
@@ -290,10 +291,11 @@ def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opene
 
         header = exr.scan_header(path, max_dimension=max_dimension)
         prefix = f"header/{exr.METADATA_ATTRIBUTE}"
-        text = exr.metadata_text(header, file)
-        info = md.loads(text, file=file, location_prefix=prefix)
+        embedded = md.parse_json(exr.metadata_text(header, file), file=file,
+                                 location_prefix=prefix)
+        info = md.from_dict(embedded, file=file, location_prefix=prefix)
         if check_sidecar:
-            _check_sidecar_agrees(path, text)
+            _check_sidecar_agrees(path, embedded)
         if info.layout.texel_format is TexelFormat.UNORM16:
             raise InputError("texelFormat unorm16 is stored in PNG files, not EXR", file=file,
                              location=f"{prefix}/texelFormat", code="texture.format")
@@ -304,10 +306,10 @@ def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opene
 
     chunks = png16.scan_chunks(path, max_dimension=max_dimension)
     prefix = f"iTXt {png16.METADATA_KEYWORD}"
-    text = png16.metadata_text(chunks, file)
-    info = md.loads(text, file=file, location_prefix=prefix)
+    embedded = md.parse_json(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
+    info = md.from_dict(embedded, file=file, location_prefix=prefix)
     if check_sidecar:
-        _check_sidecar_agrees(path, text)
+        _check_sidecar_agrees(path, embedded)
     if info.layout.texel_format is not TexelFormat.UNORM16:
         raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
                          "files; a PNG holds unorm16 only", file=file,
@@ -340,15 +342,8 @@ def _first_difference(a, b, parts=()) -> Optional[tuple]:
     return None
 
 
-def _read_json_file(path: Path):
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("file not found", file=str(path), location="file",
-                         code="file.missing") from None
-    except OSError as error:
-        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
-                         location="file", code="file.unreadable") from None
+def _read_json_file(path: Path) -> str:
+    raw = _read_bytes(path)
     try:
         return raw.decode("utf-8").removeprefix("\ufeff")
     except UnicodeDecodeError as error:
@@ -356,25 +351,13 @@ def _read_json_file(path: Path):
                          code="metadata.json") from None
 
 
-def _check_sidecar_agrees(texture: Path, embedded_text: str) -> None:
-    """Refuse a sidecar whose JSON document differs from the texture's embedded one."""
-    import json
-
+def _check_sidecar_agrees(texture: Path, embedded) -> None:
+    """Refuse a sidecar whose JSON document differs from the texture's embedded one (parsed)."""
     sidecar = sidecar_path(texture)
     if not sidecar.is_file():
         return
-    text = _read_json_file(sidecar)
-    try:
-        document = json.loads(text)
-    except ValueError as error:
-        where = (f"line {error.lineno} column {error.colno}"
-                 if isinstance(error, json.JSONDecodeError) else "/")
-        raise InputError(f"sidecar is not valid JSON: {getattr(error, 'msg', error)}",
-                         file=str(sidecar), location=where, code="metadata.json") from None
-    except RecursionError:
-        raise InputError("sidecar is nested too deeply to be Virtual Bones metadata",
-                         file=str(sidecar), location="/", code="metadata.json") from None
-    difference = _first_difference(json.loads(embedded_text), document)
+    document = md.parse_json(_read_json_file(sidecar), file=str(sidecar), what="sidecar")
+    difference = _first_difference(embedded, document)
     if difference is not None:
         pointer = md.json_pointer(difference) or "/"
         raise InputError(f"sidecar disagrees with the metadata embedded in {texture.name} at "
