@@ -206,7 +206,9 @@ def unfilter_png(data: bytes):
 @pytest.mark.parametrize("encoding", ENCODINGS)
 @pytest.mark.parametrize("texel_format, suffix", FORMATS)
 def test_round_trip_is_bit_identical(tmp_path, encoding, texel_format, suffix):
-    vb = make_vb(encoding, texel_format, bones=18, rows=40, seed=hash((encoding, texel_format)) % 1000)
+    # A seed that is the same in every run (hash() of a str changes with PYTHONHASHSEED).
+    vb = make_vb(encoding, texel_format, bones=18, rows=40,
+                 seed=10 * ENCODINGS.index(encoding) + [f for f, _ in FORMATS].index(texel_format))
     path = tmp_path / f"anim{suffix}"
     textures.write_texture(path, vb)
     data = textures.read_texture(path)
