@@ -3,8 +3,9 @@
 For each of the 4 encodings and 3 texel formats the script bakes the sample's 10 s cheer exactly as
 the sample does (power-of-two width and height: 512 rows, looping), decodes it with vbusd's numpy
 reference decoder, and measures the largest vertex position error against *exact* linear blend
-skinning computed here, independently of vbusd, in float64 from the generator's own matrices:
-``p' = sum_i w_i M_i(t) p``.
+skinning in float64 of the generator's own matrices, ``p' = sum_i w_i M_i(t) p``: the generator's
+``skin`` (which owes nothing to vbusd, and which tests/test_samples.py checks against UsdSkel's own
+skinning).
 
 Three columns of errors:
 
@@ -57,25 +58,8 @@ def load_generator():
     return module
 
 
-def exact_lbs(points: np.ndarray, indices: np.ndarray, weights: np.ndarray,
-              matrices: np.ndarray) -> np.ndarray:
-    """Linear blend skinning in float64, written out here so it owes nothing to vbusd.
-
-    Args:
-        points: (V, 3) rest points.
-        indices: (V, K) bone indices.
-        weights: (V, K) weights.
-        matrices: (n, B, 4, 4) skinning matrices (column vectors).
-
-    Returns:
-        (n, V, 3) skinned points: ``sum_k weights[v, k] * (M[indices[v, k]] @ [p, 1])[:3]``.
-    """
-    homogeneous = np.concatenate([points, np.ones((points.shape[0], 1))], axis=1)
-    out = np.zeros((matrices.shape[0], points.shape[0], 3))
-    for k in range(indices.shape[1]):
-        m = matrices[:, indices[:, k], :3, :]  # (n, V, 3, 4)
-        out += weights[None, :, k, None] * np.einsum("nvij,vj->nvi", m, homogeneous)
-    return out
+# The quaternion helpers below are written out here rather than taken from vbusd.encoding on
+# purpose: exact_dqs is the oracle dualQuat is measured against, so it must not share vbusd's code.
 
 
 def _matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
@@ -187,7 +171,7 @@ def measure(encoding: str, texel_format: str, gen=None, rig=None) -> Result:
         tau = (rows + offset) / clip.rows_per_second  # clip-local seconds; the clip starts at 0 s
         decoded, _ = reference.skin_mesh(vb, mesh, 0, tau)
         matrices = gen.skinning_matrices(clip.start_time + tau)
-        exact = exact_lbs(rig.points, rig.bone_indices, rig.bone_weights, matrices)
+        exact = gen.skin(rig, matrices)
         errors.append(float(np.linalg.norm(decoded - exact, axis=-1).max()))
         if offset == 0.0:
             if encoding == "dualQuat":

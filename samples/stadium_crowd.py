@@ -569,7 +569,7 @@ def write_usdskel(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
     Returns:
         The path written.
     """
-    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+    from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
 
     rig = rig or build_rig()
     path = Path(path)
