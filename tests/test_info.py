@@ -166,9 +166,7 @@ def test_usd_attributes_are_checked_as_the_reader_checks_them(tmp_path, capsys, 
 
 
 def test_usd_asset_written_by_usd_io(tmp_path, capsys):
-    usd_io = pytest.importorskip("vbusd.usd_io")
-    if not hasattr(usd_io, "write_asset"):
-        pytest.skip("vbusd.usd_io.write_asset not available yet")
+    from vbusd import usd_io
     from vbusd.model import VirtualBonesAsset
 
     vb = talk_vb()
@@ -198,6 +196,14 @@ def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
     # USD's own place of the parse error (line 3: the file ends inside the prim) is the location.
     assert err.startswith(f"vbusd: {broken}: line 3 column ") and ": usd.syntax: " in err
     assert err.count("\n") == 1 and "Traceback" not in err
+    # A named pipe is refused before any read (reading it would block forever).
+    import os
+
+    pipe = tmp_path / "pipe.exr"
+    os.mkfifo(pipe)
+    assert main(["info", str(pipe)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"vbusd: {pipe}: file: file.kind: not a regular file (a pipe, device or socket)\n"
     # A folder is one vbusd line too (click's own check would print a three-line usage error).
     assert main(["info", str(tmp_path)]) == 2
     err = capsys.readouterr().err

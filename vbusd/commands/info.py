@@ -124,7 +124,8 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         allow_outside_paths: Let a USD asset's layers and ``vb:texture`` lie outside its folder.
 
     Raises:
-        InputError: The file is missing, a folder, of an unknown kind, unsafe or unreadable.
+        InputError: The file is missing (``file.missing``), a folder, pipe or device or of an
+            unknown kind (``file.kind``), unsafe or unreadable.
     """
     from .. import textures
 
@@ -133,9 +134,11 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
     if path.is_dir():
         raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR or PNG "
                          "texture, or a sidecar .json", file=file, location="file", code="file.kind")
-    if not path.is_file():
-        raise InputError("file not found" if not path.exists() else "not a regular file", file=file,
-                         location="file", code="file.missing")
+    if not path.exists():
+        raise InputError("file not found", file=file, location="file", code="file.missing")
+    if not path.is_file():  # a named pipe would block the first read; devices are no assets
+        raise InputError("not a regular file (a pipe, device or socket)", file=file,
+                         location="file", code="file.kind")
     suffix = path.suffix.lower()
     if suffix == ".json":
         kind = "sidecar"
