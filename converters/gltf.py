@@ -34,7 +34,7 @@ import numpy as np
 from vbusd.errors import InputError, OptionsError, UnsupportedError
 from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
-from .gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, is_int, require_index,
+from .gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
                              require_int, triangles)
 from .gltf_animation import compose_trs, sample_channel
 
@@ -264,18 +264,12 @@ _NESTED_IN_ELEMENT = {"channels": ("target",), "primitives": ("attributes",),
                       "sparse": ("indices", "values")}
 
 
-def _locate_structure_error(json_text: str) -> str | None:
+def _locate_structure_error(root) -> str | None:
     """The JSON pointer of the first object-valued glTF property that is not an object (or array).
 
-    pygltflib keeps such values as they are (or fails with a bare exception); this finds them so
-    that the error can name the place. pygltflib still does the parsing.
+    pygltflib keeps such values as they are (or fails with a bare exception); this finds them in
+    the parsed JSON ``root`` so that the error can name the place. pygltflib still does the parsing.
     """
-    import json
-
-    try:
-        root = json.loads(json_text)
-    except (ValueError, RecursionError):
-        return None
     if not isinstance(root, dict):
         return ""
     for key in _TOP_LEVEL_ARRAYS:
@@ -435,7 +429,7 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
     if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
         raise InputError("asset is missing or not an object", file=file, location="/asset",
                          code="gltf.asset.version")
-    location = _locate_structure_error(json_text)
+    location = _locate_structure_error(root)
     if location is not None:
         raise InputError("a glTF property that must be an object or an array is not one",
                          file=file, location=location, code="gltf.json")
@@ -499,18 +493,14 @@ def load(path, options: ReadOptions | None = None):
     except InputError:
         raise
     except Exception as exc:  # pygltflib surfaces JSON and structure errors as raw exceptions
+        # The raw checks above have located every misplaced value they know of; what pygltflib
+        # still trips over has no better place than the file.
         detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"not valid glTF JSON: {detail}", file=file,
-                         location=_locate_structure_error(json_text), code="gltf.json") from None
-    if gltf is None:
-        raise InputError("GLB has no JSON chunk", file=file, code="gltf.glb")
+        raise InputError(f"not valid glTF JSON: {detail}", file=file, code="gltf.json") from None
+    # The raw checks made these arrays (or absent); absent ones read as empty.
     for key in ("accessors", "animations", "bufferViews", "buffers", "meshes", "nodes", "scenes",
                 "skins", "extensionsRequired", "extensionsUsed"):
-        value = getattr(gltf, key, None)
-        if value is not None and not isinstance(value, list):
-            raise InputError(f"{key} must be an array", file=file, location=f"/{key}",
-                             code="gltf.json")
-        if value is None:
+        if getattr(gltf, key, None) is None:
             setattr(gltf, key, [])
     _check_version(gltf, file)
     for i, name in enumerate(gltf.extensionsRequired):

@@ -18,8 +18,6 @@ Every problem raises :class:`vbusd.errors.InputError` with a JSON pointer.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from vbusd.errors import InputError
@@ -111,14 +109,6 @@ def element_layout(component_type: int, type_name: str) -> tuple[int, int, int, 
     column = rows * comp
     padded = (column + 3) // 4 * 4
     return columns * padded, padded, column, shape
-
-
-@dataclass
-class BufferStore:
-    """The loaded bytes of every buffer, each exactly ``byteLength`` long (checked by the loader)."""
-
-    buffers: list
-    file: str
 
 
 class AccessorReader:
