@@ -7,12 +7,13 @@ of the data window) is texture row 0.
 
 Reading is defensive because the OpenEXR library is not (measured with OpenEXR 3.5.3): a truncated
 file only prints a warning and yields zero parts, a small header can declare a 65536 x 65536 image,
-and EXR has no checksum. So :func:`read_exr` first scans the header and the chunk offset table
-itself, in pure Python and without allocating anything the size of the image; it checks the magic
-number, the dimensions against the limit, the channels, pixel types and compression, and that every
-chunk lies inside the file. Only then does OpenEXR decode the pixels (with its own maximum image
-size set as a second net), with its console chatter captured into the error message. The content
-digest in the metadata catches flipped pixel bytes.
+and EXR has no checksum. So :func:`scan_header` first reads the header and the chunk offset
+table itself, in pure Python and without allocating anything the size of the image; it checks the
+magic number, the dimensions against the limit, the channels and compression, and that every chunk
+lies inside the file (:func:`check_pixel_types` then checks the pixel types against the metadata).
+Only then does OpenEXR decode the pixels (:func:`read_pixels`, with its own maximum image size set
+as a second net), with its console chatter captured into the error message. The content digest in
+the metadata catches flipped pixel bytes.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError, OptionsError
+from .layout import MAX_TEXTURE_DIMENSION
 
 MAGIC = b"\x76\x2f\x31\x01"
 METADATA_ATTRIBUTE = "vbusd.layout"
@@ -93,7 +95,7 @@ def _read_cstring(data: bytes, pos: int, limit: int, file, what: str) -> tuple[s
         raise _bad(file, f"byte {pos}", f"{what} is not ASCII") from None
 
 
-def scan_header(path, *, max_dimension: int = 16384) -> ExrHeader:
+def scan_header(path, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> ExrHeader:
     """Check an EXR file's header and chunk table without decoding or allocating pixels.
 
     Args:
@@ -334,7 +336,7 @@ def check_pixel_types(header: ExrHeader, texel_format: str, file) -> str:
     return expected
 
 
-def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: int = 16384) -> np.ndarray:
+def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> np.ndarray:
     """Decode the pixels of a file that :func:`scan_header` accepted.
 
     Args:

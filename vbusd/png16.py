@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError, OptionsError
+from .layout import MAX_TEXTURE_DIMENSION
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 METADATA_KEYWORD = "vbusd.layout"
@@ -104,7 +105,7 @@ def parse_itxt(data: bytes, *, file=None, location: str = "iTXt") -> tuple[str, 
         raise _bad(file, location, f"iTXt text is not UTF-8 (byte {error.start})") from None
 
 
-def scan_chunks(path, *, max_dimension: int = 16384) -> PngChunks:
+def scan_chunks(path, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> PngChunks:
     """Check a PNG file's structure and header without decoding pixels.
 
     Args:
