@@ -11,7 +11,8 @@ GPU) through transform feedback, with the harness of tests/test_shaders.py, on t
 Every instance has its own playback rate and time offset. Prints a markdown table of the largest
 position error (fraction of the bounding-box diagonal) and the largest normal component error;
 both come from float32 arithmetic on the GPU against float64 in the reference, from the same
-stored texels.
+stored texels. The comparison is the test's own (``_compare``), so a variant beyond the tests'
+tolerances stops the run with the test's message.
 
 Usage: python benchmarks/shader_agreement.py
 """
@@ -40,9 +41,6 @@ def main() -> int:
     """Print the agreement table; 0 when every variant ran."""
     import moderngl
 
-    from vbusd.reference import skin_mesh
-    from vbusd.shaders import ShaderOptions, generate
-
     harness = _load_test_harness()
     ctx = moderngl.create_context(standalone=True, backend="egl")
     framebuffer = ctx.simple_framebuffer((1, 1))  # surfaceless EGL: drawing needs a framebuffer
@@ -62,22 +60,10 @@ def main() -> int:
                         clip, tau, rate = harness._instances(vb)
                         time = 0.37
                         offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
-                        tau_used = offset.astype(np.float64) + rate.astype(np.float64) * time
-                        program, names, block = harness._program(
-                            ctx, lang, generate(ShaderOptions(lang, encoding, texel_format, max_influences=k)),
-                            Path(workdir))
-                        points, normals = harness._run(ctx, program, names, vb, mesh, clip, offset, rate, time,
-                                                       k, block)
-                        program.release()
-                        expected_points = np.empty(points.shape)
-                        expected_normals = np.empty(normals.shape)
-                        for clip_index in np.unique(clip):
-                            chosen = np.flatnonzero(clip == clip_index)
-                            expected_points[chosen], expected_normals[chosen] = skin_mesh(
-                                vb, mesh, int(clip_index), tau_used[chosen])
-                        diagonal = harness._diagonal(expected_points.reshape(-1, 3))
-                        point_error = np.abs(points - expected_points).max() / diagonal
-                        normal_error = np.abs(normals - expected_normals).max()
+                        # The test's comparison (it also asserts the tests' tolerances).
+                        point_error, normal_error = harness._compare(
+                            ctx, lang, vb, mesh, k, clip, offset, rate, time, Path(workdir),
+                            f"{encoding} {texel_format} {source}")
                         print(f"| {lang} | {source} | {encoding} | {texel_format} | {len(clip)} x {len(mesh.points)} "
                               f"| {point_error:.2e} | {normal_error:.2e} |")
     framebuffer.release()
