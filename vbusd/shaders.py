@@ -145,6 +145,15 @@ vec4 vbLerpTexel(VB_ARGS_DECL int bone, int slot, int row0, int row1, float blen
 }
 """
 
+# Rotation of a vector by a unit quaternion (x, y, z, w), for the two quaternion encodings.
+_ROTATE = """\
+vec3 vbRotate(vec4 q, vec3 v)
+{
+    return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v);
+}
+
+"""
+
 _DECODE = {
     Encoding.CROSS_MATRIX: """\
 // crossMatrix: texel 0 = A e_x, texel 1 = A e_y, texel 2 = t; A e_z = cross(x, y).
@@ -177,12 +186,7 @@ void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
     n2 = cross(a0, a1) / det;
 }
 """,
-    Encoding.QUAT_TRANSLATION: """\
-vec3 vbRotate(vec4 q, vec3 v)
-{
-    return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v);
-}
-
+    Encoding.QUAT_TRANSLATION: _ROTATE + """\
 // quatTranslation: texel 0 = q (x, y, z, w), texel 1 = (t, s); A = s R(q), normals use R(q) / s.
 void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
             out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
@@ -197,12 +201,7 @@ void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
     t = ts.xyz;
 }
 """,
-    Encoding.DUAL_QUAT: """\
-vec3 vbRotate(vec4 q, vec3 v)
-{
-    return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v);
-}
-
+    Encoding.DUAL_QUAT: _ROTATE + """\
 // dualQuat: texel 0 = real part, texel 1 = dual part; each bone is normalized by |real|.
 void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend, out vec4 real, out vec4 dual)
 {
