@@ -17,7 +17,6 @@ numpy/json, no vbusd code); expected numbers are literals or closed forms derive
 
 from __future__ import annotations
 
-import copy
 import importlib.util
 import json
 import math
@@ -86,9 +85,7 @@ def _cubic_rotation_file(tmp_path: Path) -> Path:
     Keys 0, 1, 3: identity, 90 deg, 180 deg about z; every tangent zero except the out-tangent of
     key 1, (0, 0, 0.5, -0.5) per second.
     """
-    doc, binary = MF.bar(animations=False)
-    b = MF.Builder()
-    b.bin, b.doc = bytearray(binary), {k: v for k, v in doc.items() if k != "buffers"}
+    b = MF.Builder.extending(*MF.bar(animations=False))
     zero = [0.0, 0.0, 0.0, 0.0]
     values = [zero, [0, 0, 0, 1.0], zero,
               zero, [0, 0, S, S], [0, 0, 0.5, -0.5],
@@ -133,11 +130,7 @@ def _normalized_positions_file(tmp_path: Path) -> Path:
     2.55) into the inverse bind matrices of the skin: IBM_k' = IBM_k . S(2.55). Weights are
     UNSIGNED_SHORT normalized: (32768, 32767) / 65535 for the half/half vertices.
     """
-    doc, binary = MF.bar(quantized=True)
-    b = MF.Builder()
-    b.bin, b.doc = bytearray(binary), {k: v for k, v in doc.items() if k != "buffers"}
-    b.doc["accessors"] = copy.deepcopy(doc["accessors"])
-    b.doc["bufferViews"] = copy.deepcopy(doc["bufferViews"])
+    b = MF.Builder.extending(*MF.bar(quantized=True))
     padded = np.zeros((6, 4), np.uint8)
     padded[:, :3] = (MF.POINTS * 100).astype(np.uint8)
     view = b.view(padded.tobytes(), stride=4)
