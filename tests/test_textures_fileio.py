@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import stat
+import time
 
 import numpy as np
 import pytest
@@ -77,6 +78,26 @@ def test_temporary_keeps_the_suffix(tmp_path):
         assert temporary.name.startswith(".scene.usda.")
         temporary.write_text("#usda 1.0\n")
     assert names(tmp_path) == ["scene.usda"]
+
+
+def test_next_write_sweeps_stale_temporaries_of_its_own_target_only(tmp_path):
+    # A writer killed by SIGKILL leaves its hidden temporary; the next write of the same target
+    # removes it once it is older than STALE_TEMPORARY_AGE_S, and touches nothing else.
+    old = time.time() - fileio.STALE_TEMPORARY_AGE_S - 60
+    stale = tmp_path / ".scene.usda.vbusd-tmp-0123abcd.usda"
+    kept = {
+        ".scene.usda.vbusd-tmp-89abcdef.usda": time.time(),  # fresh: maybe another live writer
+        ".other.usda.vbusd-tmp-0123abcd.usda": old,  # another target's
+        ".scene.usda.vbusd-bak-0123abcd.usda": old,  # a backup may be the only old copy
+        ".scene.usda.vbusd-tmp-0123abcd.usda.keep": old,  # not the exact pattern
+        "scene.usda.vbusd-tmp-0123abcd.usda": old,  # not hidden: not ours
+    }
+    for path, mtime in [(stale, old)] + [(tmp_path / n, t) for n, t in kept.items()]:
+        path.write_text("x")
+        os.utime(path, (mtime, mtime))
+    with fileio.atomic_write(tmp_path / "scene.usda", "w") as stream:
+        stream.write("#usda 1.0\n")
+    assert names(tmp_path) == sorted(["scene.usda", *kept])
 
 
 def test_transaction_writes_all_or_nothing(tmp_path):

@@ -7,8 +7,10 @@ it was. :class:`AtomicTransaction` extends this to several files that belong tog
 its texture and the texture's sidecar): all temporaries are written first and renamed only when
 every one of them is complete.
 
-Temporary names keep the target's suffix (``.anim.exr.vbusd-tmp-1a2b3c.exr``) because some writers
-choose the file format by suffix (USD: ``.usda`` vs ``.usdc``).
+Temporary names keep the target's suffix (``.anim.exr.vbusd-tmp-1a2b3c4d.exr``) because some
+writers choose the file format by suffix (USD: ``.usda`` vs ``.usdc``). A writer killed outright
+(SIGKILL, power loss) cannot remove its temporaries; the next write of the same target removes
+those of its own name pattern that nobody has touched for :data:`STALE_TEMPORARY_AGE_S`.
 
 Reading: :func:`resolve_inside` turns a relative reference found in an asset (a USD asset path, a
 texture name) into a path and refuses references that leave the asset's folder.
@@ -20,6 +22,8 @@ import contextlib
 import os
 import re
 import secrets
+import stat
+import time
 from pathlib import Path
 from typing import IO, Iterator, Optional, Union
 
@@ -30,10 +34,38 @@ PathLike = Union[str, os.PathLike]
 _TMP_MARK = ".vbusd-tmp-"
 _BAK_MARK = ".vbusd-bak-"
 
+STALE_TEMPORARY_AGE_S = 3600.0
+"""A temporary of a target unmodified for this long is a leftover of a killed writer. A live writer
+fills its temporary and renames it within the same transaction (seconds), so an hour leaves a wide
+margin; removing a live one by mistake would only make that other write fail, never lose data."""
+
 
 def _temp_name(target: Path, mark: str = _TMP_MARK) -> Path:
     suffix = "".join(target.suffixes[-1:])
     return target.with_name(f".{target.name}{mark}{secrets.token_hex(4)}{suffix}")
+
+
+def _sweep_stale_temporaries(target: Path) -> None:
+    """Remove the temporaries of ``target`` that a killed writer left (see :data:`STALE_TEMPORARY_AGE_S`).
+
+    Only regular files named exactly as :func:`_temp_name` names this target's temporaries; backups
+    (``.vbusd-bak-``) are left alone, since after a crash during a commit they may be the only copy
+    of the old file. Best effort: errors are ignored.
+    """
+    suffix = "".join(target.suffixes[-1:])
+    pattern = re.compile(re.escape(f".{target.name}{_TMP_MARK}") + "[0-9a-f]{8}" + re.escape(suffix))
+    cutoff = time.time() - STALE_TEMPORARY_AGE_S
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return
+    for entry in entries:
+        if not pattern.fullmatch(entry.name):
+            continue
+        with contextlib.suppress(OSError):
+            info = entry.stat(follow_symlinks=False)
+            if stat.S_ISREG(info.st_mode) and info.st_mtime < cutoff:
+                os.unlink(entry.path)
 
 
 def _target_mode(target: Path) -> int:
@@ -114,6 +146,8 @@ class AtomicTransaction:
     def temp_path(self, target: PathLike) -> Path:
         """Reserve a temporary file beside ``target`` (created empty) and return its path.
 
+        Stale temporaries of the same target left by a killed writer are removed first.
+
         Args:
             target: The final file name.
 
@@ -127,6 +161,7 @@ class AtomicTransaction:
         target = Path(target)
         if any(t == target for t, _ in self._entries):
             raise ValueError(f"{target} is written twice in one transaction")
+        _sweep_stale_temporaries(target)
         while True:
             temporary = _temp_name(target)
             try:
