@@ -209,3 +209,14 @@ def test_non_finite_playback_rate_is_reported(tmp_path):
     report = validate(asset)
     assert ("instancer.nonFinite", "/VirtualBones/Crowd.primvars:vb:playbackRate") in _codes(report)
     assert f"instance {len(values) - 1} with nan" in report.findings[0].message
+
+
+def test_only_texture_json_is_the_sidecar(tmp_path):
+    """The sidecar of F is F.json (spec "Sidecar JSON"), the only file vbusd's reader compares; the
+    validator also read F-without-suffix.json and reported its unrelated content as sidecar errors."""
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    (asset.parent / "asset.Animation.exr.json").unlink()  # the metadata embedded in the EXR suffices
+    (asset.parent / "asset.Animation.json").write_text('{"generator": "a pipeline note"}', encoding="utf-8")
+    assert [c for c in _codes(validate(asset)) if c[0] != "texture.padding.fraction"] == []
+    (asset.parent / "asset.Animation.exr.json").write_text('{"generator": 1', encoding="utf-8")
+    assert [c[0] for c in _codes(validate(asset))] == ["metadata.json", "texture.padding.fraction"]

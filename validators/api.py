@@ -92,22 +92,18 @@ def guarded(check, *args, location=None):
 
 def _validate_texture(path: str) -> list:
     from .checks_animation import check_texture_only
-    from .rawtexture import MAX_METADATA_BYTES, parse_metadata
+    from .rawtexture import read_metadata_file
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
         # A sidecar given on its own: it must at least be a JSON object; its texture may be gone
-        # (reported as a finding, the sidecar itself was readable).
-        with open(path, "rb") as handle:
-            data = handle.read(MAX_METADATA_BYTES + 1)
-        value, problems = parse_metadata(data, path)
-        if problems:
-            fatal = ("metadata.json",)
-        elif not isinstance(value, dict):
+        # (reported as a finding, the sidecar itself was readable). Broken JSON is raised below,
+        # from the finding the checks make of it.
+        fatal = ("metadata.json",)
+        value, problems = read_metadata_file(path)
+        if not problems and not isinstance(value, dict):
             raise InputError(f"layout metadata must be a JSON object, this is a JSON {type(value).__name__}",
                              file=path, location="/", code="metadata.json")
-        else:
-            fatal = ("metadata.json",)
     findings = guarded(check_texture_only, path, location=FileLocation(path))
     given = os.path.normpath(path)
     for item in findings:

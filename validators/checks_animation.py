@@ -21,11 +21,12 @@ import numpy as np
 
 from vbusd.exr import METADATA_ATTRIBUTE
 from vbusd.layout import FORMAT_VERSION, TexelFormat
+from vbusd.textures import sidecar_path
 
 from . import checks_texels as texels_checks
 from .declared import Declared, from_metadata, from_prim, same_value
 from .findings import FileLocation, JsonPointer, UsdSite, finding, json_pointer
-from .rawtexture import EXR_LOSSLESS, parse_metadata, read_texture, sidecar_candidates
+from .rawtexture import EXR_LOSSLESS, parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")
 SCHEMA_RESOURCE = "layout-metadata.schema.json"
@@ -297,21 +298,13 @@ def _load_metadata(raw, texture_path: str, display: str):
         if not problems:
             embedded = (value, display)
     sidecar = None
-    for candidate in sidecar_candidates(texture_path):
-        if os.path.isfile(candidate):
-            shown = os.path.join(os.path.dirname(display), os.path.basename(candidate))
-            try:
-                with open(candidate, "rb") as handle:
-                    data = handle.read(64 * 1024 * 1024 + 1)
-            except OSError as error:
-                findings.append(finding("metadata.json", f"cannot read the sidecar: {error.strerror}",
-                                        FileLocation(shown)))
-                break
-            value, problems = parse_metadata(data, shown)
-            findings += problems
-            if not problems:
-                sidecar = (value, shown)
-            break
+    candidate = sidecar_path(texture_path)  # F.json only (spec "Sidecar JSON"), as readers look
+    if candidate.is_file():
+        shown = os.path.join(os.path.dirname(display), candidate.name)
+        value, problems = read_metadata_file(str(candidate), shown)
+        findings += problems
+        if not problems:
+            sidecar = (value, shown)
     return embedded, sidecar, findings
 
 
@@ -566,8 +559,7 @@ def check_texture_only(path: str):
     if os.path.isfile(texture):
         return check_texture_file(texture, texture, None)
     # Only the sidecar: check the document and its declared layout, and say the texture is gone.
-    with open(path, "rb") as handle:
-        value, out = parse_metadata(handle.read(64 * 1024 * 1024 + 1), path)
+    value, out = read_metadata_file(path)
     if out:
         return out
     out = [finding("texture.missing", f"the texture {os.path.basename(texture)} of this sidecar does not "

@@ -359,10 +359,21 @@ def parse_metadata(text, file: str, base_pointer: str = ""):
         return None, [finding("metadata.json", "JSON nested too deeply", FileLocation(file))]
 
 
-def sidecar_candidates(texture_path: str):
-    """Sidecar files to look for beside a texture: ``anim.exr.json``, then ``anim.json``."""
-    root, _ = os.path.splitext(texture_path)
-    return [texture_path + ".json", root + ".json"]
+def read_metadata_file(path: str, display: Optional[str] = None):
+    """Read and parse a sidecar without raising (at most :data:`MAX_METADATA_BYTES` are read).
+
+    Returns:
+        ``(value, findings)`` as :func:`parse_metadata`; an unreadable file is a ``metadata.json``
+        finding.
+    """
+    name = display or str(path)
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(MAX_METADATA_BYTES + 1)
+    except OSError as error:
+        return None, [finding("metadata.json", f"cannot read the sidecar: {error.strerror}",
+                              FileLocation(name))]
+    return parse_metadata(data, name)
 
 
 def _byte_offset(location) -> Optional[int]:
@@ -436,5 +447,5 @@ def _one_line(error: BaseException) -> str:
     return text[:300] or type(error).__name__
 
 
-__all__ = ["RawTexture", "read_texture", "parse_metadata", "sidecar_candidates", "quiet_stderr",
+__all__ = ["RawTexture", "read_texture", "parse_metadata", "read_metadata_file", "quiet_stderr",
            "EXR_LOSSLESS"]
