@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import importlib.util
 import math
 import shutil
@@ -221,8 +222,9 @@ def _diagonal(mesh_points):
     return float(np.linalg.norm(mesh_points.max(axis=0) - mesh_points.min(axis=0)))
 
 
+@functools.lru_cache(maxsize=None)
 def _stadium_module():
-    """samples/stadium_crowd.py, loaded by path (samples/ is not an installed package)."""
+    """samples/stadium_crowd.py, loaded by path (samples/ is not an installed package), once."""
     path = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd.py"
     if not path.is_file():
         pytest.skip("samples/stadium_crowd.py is not in this checkout")
