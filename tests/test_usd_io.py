@@ -770,3 +770,18 @@ def test_schema_fallbacks_are_not_relied_on(hand_written, attribute):
     with pytest.raises(InputError, match="missing required") as caught:
         usd_io.read_asset(path)
     assert caught.value.location == f"/Rig/Anim.{attribute}"
+
+
+def test_prims_below_an_instancer_are_not_read_by_either_reader(hand_written):
+    # A prototype may reference an animation prim (here a copy of /Rig/Anim); read_asset does not
+    # read below point instancers, and info (read_animation_attributes) must list the same prims.
+    path, _ = hand_written
+    _edit(path, '            def "Tri" (prepend references = </Rig/Tri>)',
+          '            def "AnimCopy" (prepend references = </Rig/Anim>)\n            {\n            }\n'
+          '            def "Tri" (prepend references = </Rig/Tri>)')
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetPrimAtPath("/Rig/Crowd/Prototypes/AnimCopy").GetTypeName() == "VirtualBonesAnimation"
+    assert [vb.path for vb in usd_io.read_asset(path).animations] == ["/Rig/Anim"]
+    assert [a.path for a in usd_io.read_animation_attributes(path)] == ["/Rig/Anim"]

@@ -913,10 +913,7 @@ class _Reader:
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
         layer, stage = self.open_stage()
         animation_prims, mesh_prims, crowd_prims = [], [], []
-        prims = iter(Usd.PrimRange(stage.GetPseudoRoot()))
-        for prim in prims:
-            if prim.IsPseudoRoot():
-                continue
+        for prim in self.walk(stage):
             if prim.GetTypeName() == ANIMATION_TYPE:
                 animation_prims.append(prim)
             if _applies_api(prim, BINDING_API):
@@ -924,11 +921,8 @@ class _Reader:
                     raise self.error(f"{BINDING_API} is applied to a {prim.GetTypeName() or 'typeless'} "
                                      "prim; it applies to Mesh only", str(prim.GetPath()), "usd.binding")
                 mesh_prims.append(prim)
-            if prim.IsA(UsdGeom.PointInstancer):
-                # Prototypes below an instancer repeat meshes defined elsewhere: not read.
-                prims.PruneChildren()
-                if _applies_api(prim, INSTANCING_API):
-                    crowd_prims.append(prim)
+            if prim.IsA(UsdGeom.PointInstancer) and _applies_api(prim, INSTANCING_API):
+                crowd_prims.append(prim)
         if not animation_prims:
             raise self.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")
 
@@ -966,6 +960,21 @@ class _Reader:
             up_axis=up_axis, meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)),
             time_codes_per_second=tcps, default_prim=layer.defaultPrim or "VirtualBones", extra=extra)
 
+    def walk(self, stage):
+        """Every prim of the stage in depth-first order, except those below a point instancer.
+
+        Prototypes below an instancer repeat prims defined elsewhere: they are not read (and
+        ``vbusd info`` lists the same animation prims as :func:`read_asset` reads).
+        """
+        Usd, UsdGeom = self.pxr[3], self.pxr[4]
+        prims = iter(Usd.PrimRange(stage.GetPseudoRoot()))
+        for prim in prims:
+            if prim.IsPseudoRoot():
+                continue
+            yield prim
+            if prim.IsA(UsdGeom.PointInstancer):
+                prims.PruneChildren()
+
     def guard(self, prim, function, *args):
         """Run ``function`` turning USD's own errors into an InputError at ``prim``."""
         Tf = self.pxr[2]
@@ -997,9 +1006,8 @@ def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = Fal
         VersionError: A newer format version than this reader knows.
     """
     reader = _Reader(Path(path), allow_outside_paths)
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = reader.pxr
     _, stage = reader.open_stage()
-    prims = [prim for prim in stage.Traverse() if prim.GetTypeName() == ANIMATION_TYPE]
+    prims = [prim for prim in reader.walk(stage) if prim.GetTypeName() == ANIMATION_TYPE]
     if not prims:
         raise reader.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")
     return [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
