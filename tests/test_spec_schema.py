@@ -598,7 +598,7 @@ def test_vertical_power_of_two_plan_of_the_talk():
 
 
 def test_vertical_power_of_two_tiny_clip_example(spec_text):
-    """Spec 10.2: a 10 s and a 0.01 s loop at 30 rows/s fill 511 + 1 = 512 rows, not 513."""
+    """Spec 10.2's examples: tiny clips keep one row and the rows never exceed the power of two."""
     if importlib.util.find_spec("vbusd.bake") is None:
         pytest.skip("vbusd.bake not available")
     from vbusd.bake import BakeOptions, plan_rows
@@ -609,6 +609,12 @@ def test_vertical_power_of_two_tiny_clip_example(spec_text):
                   for name, duration in (("long", 10.0), ("short", 0.01)))
     plans = plan_rows(clips, [True, True], BakeOptions(vertical_padding="powerOfTwo"))
     assert [(p.row_count, p.rows_per_second) for p in plans] == [(511, 51.1), (1, 100.0)]
+    # Step 2: three raised clips overshoot 8 by two, which the long clip gives back.
+    assert "the long clip gives two back: 5, 1, 1, 1." in spec_text
+    clips = tuple(AnimationClip(name, 0.0, duration, sample=lambda times: None, native_rate=0.3, loop=True)
+                  for name, duration in (("long", 10.0), ("a", 0.01), ("b", 0.01), ("c", 0.01)))
+    plans = plan_rows(clips, [True] * 4, BakeOptions(vertical_padding="powerOfTwo"))
+    assert [p.row_count for p in plans] == [5, 1, 1, 1]
 
 
 def test_usd_example_is_the_committed_samples_prim(spec_text):
