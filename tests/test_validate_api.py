@@ -220,3 +220,24 @@ def test_only_texture_json_is_the_sidecar(tmp_path):
     assert [c for c in _codes(validate(asset)) if c[0] != "texture.padding.fraction"] == []
     (asset.parent / "asset.Animation.exr.json").write_text('{"generator": 1', encoding="utf-8")
     assert [c[0] for c in _codes(validate(asset))] == ["metadata.json", "texture.padding.fraction"]
+
+
+# The spec's list ("OpenEXR": NONE, RLE, ZIPS, ZIP, PIZ are allowed), spelled as OpenEXR names them,
+# so the test does not share the validator's (vbusd.exr's) list.
+@pytest.mark.parametrize("compression,allowed", [
+    ("NO_COMPRESSION", True), ("RLE_COMPRESSION", True), ("ZIPS_COMPRESSION", True),
+    ("ZIP_COMPRESSION", True), ("PIZ_COMPRESSION", True), ("PXR24_COMPRESSION", False),
+    ("B44A_COMPRESSION", False), ("DWAB_COMPRESSION", False), ("ZSTD_COMPRESSION", False)])
+def test_exr_compressions_the_spec_allows_pass_and_others_are_refused(tmp_path, compression, allowed):
+    import OpenEXR
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    texture = asset.parent / "asset.Animation.exr"
+    with OpenEXR.File(str(texture)) as source:
+        header = dict(source.header())
+        channels = {name: channel.pixels.copy() for name, channel in source.channels().items()}
+    header["compression"] = getattr(OpenEXR, compression)
+    with OpenEXR.File(header, channels) as out:
+        out.write(str(texture))
+    found = [c for c in _codes(validate(asset)) if c[0] == "texture.compression"]
+    assert found == ([] if allowed else [("texture.compression", "asset.Animation.exr")])

@@ -19,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 
+from vbusd.exr import LOSSLESS as EXR_LOSSLESS
 from vbusd.exr import METADATA_ATTRIBUTE
 from vbusd.layout import FORMAT_VERSION, TexelFormat
 from vbusd.textures import sidecar_path
@@ -26,7 +27,7 @@ from vbusd.textures import sidecar_path
 from . import checks_texels as texels_checks
 from .declared import Declared, from_metadata, from_prim, same_value
 from .findings import FileLocation, JsonPointer, UsdSite, finding, json_pointer
-from .rawtexture import EXR_LOSSLESS, parse_metadata, read_metadata_file, read_texture
+from .rawtexture import parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")
 SCHEMA_RESOURCE = "layout-metadata.schema.json"
@@ -437,9 +438,8 @@ def _check_container(raw, declared: Declared):
         out.append(finding("texture.channels", f"channels are {', '.join(raw.channels) or 'none'}; "
                            "expected exactly R, G, B, A", location))
     if raw.container == "exr" and raw.compression not in EXR_LOSSLESS:
-        allowed = ", ".join(sorted(c.replace("_COMPRESSION", "") for c in EXR_LOSSLESS))
-        out.append(finding("texture.compression", f"compression {raw.compression.replace('_COMPRESSION', '')} "
-                           f"is not allowed: texel values must survive bit for bit (allowed: {allowed})",
+        out.append(finding("texture.compression", f"compression {raw.compression} is not allowed: texel "
+                           f"values must survive bit for bit (allowed: {', '.join(EXR_LOSSLESS)})",
                            location))
     fmt = values.get("texelFormat")
     if fmt in PIXEL_TYPE_OF_FORMAT and raw.pixel_type is not None:

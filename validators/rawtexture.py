@@ -42,12 +42,6 @@ from vbusd.png16 import METADATA_KEYWORD
 
 from .findings import FileLocation, finding
 
-EXR_LOSSLESS = {"NO_COMPRESSION", "RLE_COMPRESSION", "ZIPS_COMPRESSION", "ZIP_COMPRESSION",
-                "PIZ_COMPRESSION"}
-"""The EXR compressions the format allows (spec/virtual-bones.md, "OpenEXR"): lossless for HALF and
-FLOAT and readable by every OpenEXR version. Everything else (PXR24, B44, B44A, DWAA, DWAB and
-later methods) is refused."""
-
 METADATA_FORMAT = "vbusd.virtualBones"
 MAX_METADATA_BYTES = 16 * 1024 * 1024
 """Metadata larger than this is refused (a bone list of 16384 long names is far smaller)."""
@@ -64,7 +58,8 @@ class RawTexture:
         height: Height from the header.
         channels: Channel names in the file (``R G B A`` order when present).
         pixel_type: ``float16``, ``float32``, ``uint32``, ``uint16``, ``uint8``, or ``mixed``.
-        compression: EXR compression name, ``png`` (always lossless), or None.
+        compression: EXR compression in :data:`vbusd.exr.COMPRESSION_NAMES` spelling (``zip``),
+            ``png`` (always lossless), or None.
         texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
             not be read. Missing channels are not invented: texels is None then.
         metadata_texts: Embedded layout metadata texts, one per EXR ``vbusd.layout`` string
@@ -159,8 +154,10 @@ def _read_exr(path: str, name: str, max_dimension: int):
     except Exception:
         return None, [finding("texture.unreadable", "EXR header has no usable dataWindow",
                               FileLocation(name))]
-    compression = header.get("compression")
-    texture.compression = getattr(compression, "name", str(compression))
+    # OpenEXR's enum name (ZIP_COMPRESSION, NO_COMPRESSION) in vbusd.exr's spelling (zip, none).
+    compression = str(getattr(header.get("compression"), "name", header.get("compression")))
+    compression = compression.removesuffix("_COMPRESSION").lower()
+    texture.compression = "none" if compression == "no" else compression
     for key, value in header.items():
         if key == METADATA_ATTRIBUTE and isinstance(value, str):
             texture.metadata_texts.append(value)
@@ -447,5 +444,4 @@ def _one_line(error: BaseException) -> str:
     return text[:300] or type(error).__name__
 
 
-__all__ = ["RawTexture", "read_texture", "parse_metadata", "read_metadata_file", "quiet_stderr",
-           "EXR_LOSSLESS"]
+__all__ = ["RawTexture", "read_texture", "parse_metadata", "read_metadata_file", "quiet_stderr"]
