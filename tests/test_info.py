@@ -56,6 +56,12 @@ def test_json_of_the_talks_texture(tmp_path, capsys):
     assert clip == {"name": "cheer", "firstRow": 0, "rowCount": 512, "rowsPerSecond": 51.2,
                     "loop": True, "startTime": 0.0, "duration": pytest.approx(10.0)}
     assert len(out["animations"]) == 1 and out["animations"][0]["width"] == 64
+    # Exactly the keys `vbusd info --help` documents (copied here by hand from the help text).
+    assert set(out["animations"][0]) == {
+        "path", "texture", "formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone",
+        "bones", "rowCount", "usedWidth", "width", "height", "horizontalPadding", "verticalPadding",
+        "texelBytes", "usedTexelBytes", "paddingBytes", "paddingFraction", "contentDigest", "clips",
+        "container", "compression", "warnings"}
 
 
 def test_json_of_quaternion_unorm16_png_and_sidecar(tmp_path, capsys):

@@ -46,6 +46,8 @@ The JSON form (--format json) is one object:
                    "contentDigest", "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
+  A texture's animation also has "container" (exr | png),
+  "compression" and "warnings" (notes that did not stop reading).
 
 When there is exactly one animation its keys are repeated at the top level, so
 `vbusd info anim.exr --format json | jq .width` works; with several, use
