@@ -597,6 +597,15 @@ def test_vertical_power_of_two_plan_of_the_talk():
     assert (plan.row_count, plan.rows_per_second) == (300, 30.0)
 
 
+def test_unorm_ranges_example_is_binary32_exact(spec_text):
+    """Spec 11.5's unormRanges example holds bounds a writer following 9.3 can produce."""
+    block = spec_text.split("two slots of four pairs", 1)[1].split("```json", 1)[1].split("```", 1)[0]
+    ranges = json.loads("{" + block + "}")["unormRanges"]
+    values = np.array(ranges, dtype=np.float64)
+    assert values.shape == (2, 4, 2) and (values[..., 0] <= values[..., 1]).all()
+    assert (values.astype(np.float32).astype(np.float64) == values).all()
+
+
 def test_vertical_power_of_two_tiny_clip_example(spec_text):
     """Spec 10.2's examples: tiny clips keep one row and the rows never exceed the power of two."""
     if importlib.util.find_spec("vbusd.bake") is None:
