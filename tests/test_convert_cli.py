@@ -7,11 +7,12 @@ UsdSkel's skinning via the report (the semantics tests compare decoded caches di
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import runpy
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -26,19 +27,12 @@ STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
 
-def _scenes():
-    name = "vbusd_test_usdskel_scenes"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, FIXTURES / "scenes.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+# Not an installed module (tests import with --import-mode=importlib): load it by path.
+scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
 
 
 @pytest.fixture()
 def small_rig(tmp_path):
-    scenes = _scenes()
     return Path(scenes.write_stage(tmp_path / "rig.usda", [scenes.RigSpec()]))
 
 

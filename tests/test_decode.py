@@ -8,10 +8,10 @@ first sample.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
+import runpy
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,19 +26,12 @@ STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
 
-def _scenes():
-    name = "vbusd_test_usdskel_scenes"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, FIXTURES / "scenes.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+# Not an installed module (tests import with --import-mode=importlib): load it by path.
+scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
 
 
 @pytest.fixture()
 def converted(tmp_path):
-    scenes = _scenes()
     rig = scenes.RigSpec(root_xform=scenes.translation(2, 0, 0), codes=[11.0, 15.0, 23.0],
                          meshes=[scenes.MeshSpec(name="Body", normals="vertex"),
                                  scenes.MeshSpec(name="Shell", normals="faceVarying")])
@@ -58,7 +51,6 @@ def test_cache_keeps_paths_timeline_and_matches_usdskel(converted, tmp_path, cap
     assert stage.GetTimeCodesPerSecond() == 30
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (11, 23)
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.GetStageUpAxis(original)
-    scenes = _scenes()
     for path in ("/Root/Body", "/Root/Shell"):
         mesh = UsdGeom.Mesh(stage.GetPrimAtPath(path))
         assert mesh, path
@@ -140,7 +132,6 @@ def test_crowd_decoding_places_every_instance(converted, tmp_path):
     codes = mesh.GetPointsAttr().GetTimeSamples()
     assert codes[0] == 11 and len(codes) == 13
     start = asset.animations[0].clips[0].start_time
-    scenes = _scenes()
     rotations = [np.eye(3), np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]]), np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])]
     for code in codes[:6]:
         points = np.array(mesh.GetPointsAttr().Get(code), dtype=np.float64).reshape(3, -1, 3)

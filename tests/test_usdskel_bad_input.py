@@ -8,9 +8,11 @@ only warns, or silently skins such data; the converter must refuse it.
 from __future__ import annotations
 
 import json
+import runpy
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -19,6 +21,8 @@ pytest.importorskip("pxr")
 from vbusd.cli import main  # noqa: E402
 
 BAD = Path(__file__).parent / "fixtures" / "usdskel" / "bad"
+# Not an installed module (tests import with --import-mode=importlib): load it by path.
+scenes = SimpleNamespace(**runpy.run_path(str(BAD.parent / "scenes.py")))
 EXPECTED = json.loads((BAD / "expected.json").read_text())
 
 
@@ -92,16 +96,6 @@ def test_unreadable_or_empty_stage(tmp_path, capsys, content, fragment):
 
 def test_layers_outside_the_folder_need_permission(tmp_path, capsys):
     # The rig lives in a sibling folder and is sublayered by a stage in its own folder.
-    scenes_path = Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py"
-    import importlib.util
-
-    name = "vbusd_test_usdskel_scenes"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, scenes_path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    scenes = sys.modules[name]
     (tmp_path / "lib").mkdir()
     (tmp_path / "shot").mkdir()
     scenes.write_stage(tmp_path / "lib" / "rig.usda", [scenes.RigSpec()])
@@ -117,15 +111,6 @@ def test_layers_outside_the_folder_need_permission(tmp_path, capsys):
 
 
 def _good_stage(tmp_path) -> Path:
-    import importlib.util
-
-    name = "vbusd_test_usdskel_scenes"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    scenes = sys.modules[name]
     return Path(scenes.write_stage(tmp_path / "good.usda", [scenes.RigSpec()]))
 
 

@@ -10,10 +10,10 @@ order, a shifted timeline) fails.
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
+import runpy
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -27,18 +27,8 @@ from vbusd.pointcache import decode  # noqa: E402
 
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
-def _load_scenes():
-    name = "vbusd_test_usdskel_scenes"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, FIXTURES / "scenes.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
-
-
-scenes = _load_scenes()
+# Not an installed module (tests import with --import-mode=importlib): load it by path.
+scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
 
 TOLERANCE = 2e-4  # scene units; columns are 4 units tall, float32 texels
 
