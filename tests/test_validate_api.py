@@ -241,3 +241,23 @@ def test_exr_compressions_the_spec_allows_pass_and_others_are_refused(tmp_path, 
         out.write(str(texture))
     found = [c for c in _codes(validate(asset)) if c[0] == "texture.compression"]
     assert found == ([] if allowed else [("texture.compression", "asset.Animation.exr")])
+
+
+def test_outside_paths_are_refused_without_suggesting_an_option_validate_lacks(tmp_path):
+    """vbusd's reader suggests --allow-outside-paths; validate has no such option, so its
+    texture.outside and asset.outside messages must not suggest one."""
+    from pxr import Sdf, Usd
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    absolute = str(asset.parent / "asset.Animation.exr")
+    stage = Usd.Stage.Open(str(asset))
+    stage.GetPrimAtPath("/VirtualBones/Animation").GetAttribute("vb:texture").Set(Sdf.AssetPath(absolute))
+    stage.GetRootLayer().subLayerPaths.append(str(tmp_path / "elsewhere.usda"))
+    (tmp_path / "elsewhere.usda").write_text("#usda 1.0\n", encoding="utf-8")
+    stage.GetRootLayer().Save()
+    report = validate(asset)
+    found = {f.code: f.message for f in report.findings}
+    assert {"texture.outside", "asset.outside"} <= set(found)
+    for code in ("texture.outside", "asset.outside"):
+        assert "absolute paths are not allowed" in found[code]
+        assert "allow" not in found[code].replace("not allowed", ""), found[code]

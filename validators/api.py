@@ -188,7 +188,7 @@ def _layers_outside(stage, asset_dir: str) -> list:
             try:
                 resolve_inside(root, authored)
             except InputError as error:
-                why = error.message.split(": ", 1)[-1].replace(" (or allow outside paths)", "")
+                why = error.message.split(": ", 1)[-1]
                 out.append(finding("asset.outside", f"layer {os.path.basename(layer.realPath)} uses "
                                    f"@{dependency}@: {why}", UsdSite("/")))
     return out

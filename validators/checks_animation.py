@@ -511,10 +511,8 @@ def resolve_texture(prim, asset_dir: str, scratch: Optional[str] = None):
             break
     try:
         resolved = resolve_inside(base, authored, file=None, location=str(site))
-    except InputError as error:
-        # validate has no --allow-outside-paths: drop the reader's hint about it.
-        why = error.message.replace(" (or allow outside paths)", "")
-        return None, None, [finding("texture.outside", f"vb:texture {authored!r}: {why}", site)]
+    except InputError as error:  # no outside_hint: validate has no option to allow such paths
+        return None, None, [finding("texture.outside", error.message, site)]  # names the path
     root = Path(asset_dir).resolve()
     if not resolved.is_relative_to(root):
         return None, None, [finding("texture.outside", f"vb:texture {authored!r} resolves to {resolved}, "
