@@ -76,12 +76,15 @@ class Independent:
         blob = self.blobs[view.buffer]
         rows = [np.frombuffer(blob, dtype, width, base + k * stride) for k in range(a.count)]
         out = np.array(rows, dtype=np.float64)
-        if a.normalized:
-            out = out / (2.0 ** (8 * dtype.itemsize) - 1)
+        if a.normalized:   # glTF 2.0, 3.11: c / (2^n - 1) unsigned, max(c / (2^(n-1) - 1), -1) signed
+            bits = 8 * dtype.itemsize - (dtype.kind == "i")
+            out = np.maximum(out / (2.0 ** bits - 1), -1.0)
         return out
 
     @staticmethod
     def quat_matrix(q):
+        # Written out again on purpose (vbusd.encoding.quat_to_matrix is what the converter uses):
+        # the oracle must not share the code it checks.
         x, y, z, w = q / np.linalg.norm(q)
         return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                          [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -155,8 +158,6 @@ class Independent:
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_asset_converts_and_decodes_like_the_spec(path):
     from vbusd.bake import BakeOptions, bake
-    from vbusd.converters import gltf
-    from vbusd.model import ReadOptions
     from vbusd.reference import skin_mesh_at_rows
 
     ref = _independent(path)
@@ -192,7 +193,6 @@ def test_asset_converts_and_decodes_like_the_spec(path):
 def test_cross_matrix_converts_or_names_the_scaled_bone(path):
     """crossMatrix holds rigid transforms only: scaled joints (RecursiveSkeletons) are refused by name."""
     from vbusd.bake import BakeOptions, bake
-    from vbusd.converters import gltf
     from vbusd.errors import UnsupportedError
 
     scene = _read(path)
@@ -215,7 +215,6 @@ def test_recursive_skeletons_is_scaled():
     path = ASSETS / "RecursiveSkeletons" / "RecursiveSkeletons.glb"
     if not path.exists():
         pytest.skip("RecursiveSkeletons absent")
-    from vbusd.converters import gltf
 
     scene = _read(path)
     assert len(scene.animations) == 84
@@ -231,7 +230,6 @@ def test_rigged_simple_ignores_the_mesh_node_transform():
     path = ASSETS / "RiggedSimple" / "RiggedSimple.glb"
     if not path.exists():
         pytest.skip("RiggedSimple absent")
-    from vbusd.converters import gltf
 
     scene = _read(path)
     assert any("not identity" in w for w in scene.warnings)
@@ -280,6 +278,7 @@ def test_agrees_with_usdskel_on_the_usd_wg_conversions(name, usdz, frames):
         pytest.skip("asset pair absent")
     animation = _read(glb).animations[0]
     (mesh,) = animation.meshes
+    worst = 0.0
     for frame in frames:
         matrices = animation.clips[0].sample(np.array([frame / 24.0]))[0]
         ours = np.zeros((len(mesh.points), 3))
@@ -291,5 +290,8 @@ def test_agrees_with_usdskel_on_the_usd_wg_conversions(name, usdz, frames):
         assert len(theirs) == len(ours)
         nearest = np.array([np.sqrt(((ours[i:i + 256, None] - theirs[None]) ** 2).sum(-1)).min(1)
                             for i in range(0, len(ours), 256)], dtype=object)
-        worst = max(float(chunk.max()) for chunk in nearest)
-        assert worst < 5e-6, f"{name} frame {frame}: {worst}"
+        at_frame = max(float(chunk.max()) for chunk in nearest)
+        assert at_frame < 5e-6, f"{name} frame {frame}: {at_frame}"
+        worst = max(worst, at_frame)
+    # The figure docs/converters/gltf.md quotes (pytest -s shows it).
+    print(f"{name}: largest distance to UsdSkel's points {worst:.2g}")
