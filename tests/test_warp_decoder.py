@@ -13,6 +13,7 @@ Devices: "cpu" always (when warp's CPU backend loads), "cuda" when a CUDA device
 
 import importlib.util
 import math
+import subprocess
 import sys
 from pathlib import Path
 
@@ -300,3 +301,20 @@ def test_bad_inputs_raise_one_line_errors():
                        bone_weights=mesh.bone_weights, normals=mesh.normals)
     with pytest.raises(InputError, match="bone index 7 out of range 0..4"):
         wd.Decoder(vb, broken, device=device)
+
+
+def test_cpu_work_prints_nothing_on_stderr():
+    # Without a CUDA driver, warp's native library prints a warning straight to file descriptor 2
+    # on initialization; a CLI decoding on the CPU must still print only its own lines.
+    script = ("from vbusd import warp_decoder as wd\n"
+              "wd.available_devices()\n"
+              "try:\n"
+              "    wd._resolve_device('cuda')\n"
+              "except Exception as error:\n"
+              "    print(error)\n"
+              "print(wd._resolve_device('cpu'))\n")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stderr == ""
+    if "cuda" not in DEVICES:  # the CUDA request's one error line carries warp's reason instead
+        assert "no CUDA device is available" in run.stdout

@@ -29,6 +29,9 @@ Kernels and their numpy twins: :mod:`vbusd.warp_kernels`.
 
 from __future__ import annotations
 
+import os
+import sys
+import tempfile
 from dataclasses import dataclass
 from typing import Optional, Union
 
@@ -54,9 +57,48 @@ SAMPLING_MODES = ("exact", "hardware")
 """``exact``: the spec's blend in float32 arithmetic; ``hardware``: the texture unit's filter."""
 
 
+_WARP_INIT_NOTES: list = []
+"""What warp's native library printed on stderr at initialization, kept for the no-CUDA error."""
+_warp_initialized = False
+
+
+def _init_warp() -> None:
+    """Initialize warp, without letting its native library write a stray line on stderr.
+
+    Where no CUDA driver exists, warp's native code prints "Warp CUDA warning: Could not find or
+    load the NVIDIA CUDA driver" with ``fprintf(stderr)``: past ``wp.config.log_level`` and
+    ``sys.stderr``, so a CLI run would print it beside its own one-line result or error. The first
+    initialization therefore runs with file descriptor 2 captured. When CUDA came up, what was
+    captured is passed on to stderr (e.g. a driver-version warning); otherwise the "Warp CUDA" lines
+    are kept in ``_WARP_INIT_NOTES`` and a CUDA request reports them in its one error line
+    (:func:`_resolve_device`), while CPU work, to which they are irrelevant, stays silent.
+    """
+    global _warp_initialized
+    if _warp_initialized:
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as capture:
+        os.dup2(capture.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        capture.seek(0)
+        text = capture.read().decode("utf-8", errors="replace")
+    _warp_initialized = True
+    lines = [line for line in text.splitlines() if line.strip()]
+    if not wp.is_cuda_available():
+        _WARP_INIT_NOTES[:] = [line.strip() for line in lines if line.startswith("Warp CUDA")]
+        lines = [line for line in lines if not line.startswith("Warp CUDA")]
+    if lines:
+        sys.stderr.write("\n".join(lines) + "\n")
+
+
 def available_devices() -> list:
     """Warp device names usable here: ``"cpu"`` (when warp's CPU backend loads) and ``"cuda"``."""
-    wp.init()
+    _init_warp()
     devices = []
     if wp.is_cpu_available():
         devices.append("cpu")
@@ -65,26 +107,16 @@ def available_devices() -> list:
     return devices
 
 
-def _init_for(name: str) -> None:
-    """Initialize warp; for CPU work, without its warning that no CUDA driver exists (irrelevant)."""
-    if name == "cpu" and hasattr(wp, "LOG_ERROR"):  # wp.init() is idempotent: only the first prints
-        level = wp.config.log_level
-        wp.config.log_level = max(level, wp.LOG_ERROR)
-        try:
-            wp.init()
-        finally:
-            wp.config.log_level = level
-    wp.init()
-
-
 def _resolve_device(device) -> "wp.context.Device":
     if device is None:
         raise OptionsError("a device must be given explicitly (\"cpu\" or \"cuda\")", file="warp_decoder")
     name = str(device)
-    _init_for(name)
+    _init_warp()
     if name.startswith("cuda") and not wp.is_cuda_available():
+        reason = "".join(f"; {note}" for note in _WARP_INIT_NOTES)
         raise OptionsError(f"device {name!r} requested but no CUDA device is available "
-                           f"(available: {', '.join(available_devices()) or 'none'})", file="warp_decoder")
+                           f"(available: {', '.join(available_devices()) or 'none'}{reason})",
+                           file="warp_decoder")
     if name == "cpu" and not wp.is_cpu_available():
         raise OptionsError("device 'cpu' requested but warp's CPU backend is not available",
                            file="warp_decoder")
