@@ -785,3 +785,13 @@ def test_prims_below_an_instancer_are_not_read_by_either_reader(hand_written):
     assert stage.GetPrimAtPath("/Rig/Crowd/Prototypes/AnimCopy").GetTypeName() == "VirtualBonesAnimation"
     assert [vb.path for vb in usd_io.read_asset(path).animations] == ["/Rig/Anim"]
     assert [a.path for a in usd_io.read_animation_attributes(path)] == ["/Rig/Anim"]
+
+
+def test_composition_error_is_one_line_and_usd_prints_nothing(written, capfd):
+    # USD itself prints an unresolved reference as a warning on stderr; the reader reports it.
+    shot = written.parent / "shot.usda"
+    shot.write_text('#usda 1.0\ndef "A" (references = @./crowd.usda@</Nope>)\n{\n}\n')
+    with pytest.raises(InputError) as caught:
+        usd_io.read_asset(shot)
+    assert caught.value.code == "usd.composition" and "</Nope>" in _one_line(caught.value)
+    assert capfd.readouterr() == ("", "")

@@ -270,12 +270,13 @@ def metadata_text(header: ExrHeader, file) -> str:
 
 
 @contextlib.contextmanager
-def _captured_output(sink: list):
-    """Capture what OpenEXR prints while reading, appending it to ``sink`` as one text.
+def captured_output(sink: list):
+    """Capture what native code prints inside the block, appending it to ``sink`` as one text.
 
     OpenEXR's C++ core writes errors to file descriptor 2 and its Python binding prints warnings
     ("Exception raised reading pixel data ...") to standard output; both become part of the error
-    message instead of console noise.
+    message instead of console noise. :mod:`vbusd.usd_io` uses it for USD's composition warnings,
+    which it reports itself as one error line.
     """
     import io
 
@@ -360,7 +361,7 @@ def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: in
     error_text = None
     exr = None
     try:
-        with _max_image_size(max_dimension), _captured_output(sink):
+        with _max_image_size(max_dimension), captured_output(sink):
             exr = OpenEXR.File(file, separate_channels=True)
     except (RuntimeError, OSError, ValueError) as error:
         error_text = str(error)

@@ -897,8 +897,13 @@ class _Reader:
         if layer is None:
             raise self.error("USD could not open the file", "file", "usd.syntax")
         self.check_dependencies(layer, set())
+        from .exr import captured_output
+
         try:
-            stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
+            # USD prints composition problems as warnings on stderr; they are reported below as
+            # one error line, so the console shows them once, in vbusd's form.
+            with captured_output([]):
+                stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
         except Tf.ErrorException as error:
             raise self.syntax_error(error) from None
         if stage is None:
