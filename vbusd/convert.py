@@ -233,8 +233,22 @@ def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
     Raises:
         OptionsError: Wrong suffix, missing folder, output is the source, or exists without force.
     """
+    check_output_path(source, output, force=options.force)
+
+
+def check_output_path(source: Path, output: Path, *, force: bool, what: str = "output",
+                      source_what: str = "input") -> None:
+    """Refuse a USD layer to write that cannot be written, or exists without ``force``.
+
+    Shared by ``vbusd convert`` and ``vbusd decode`` (``what`` and ``source_what`` name the two
+    files in the messages).
+
+    Raises:
+        OptionsError: Wrong suffix, the nearest existing ancestor is not a folder, the output is a
+            folder or the source, or it exists without ``force``.
+    """
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise OptionsError(f"the output must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
+        raise OptionsError(f"the {what} must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
                            file=str(output))
     # A missing output folder is created at write time (and removed again if the write fails);
     # here only check that the nearest existing ancestor is a folder.
@@ -247,8 +261,8 @@ def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
     if output.is_dir():
         raise OptionsError("the output is a folder; name the USD layer to write", file=str(output))
     if source.exists() and output.exists() and output.resolve() == source.resolve():
-        raise OptionsError("the output would overwrite the input", file=str(output))
-    if output.exists() and not options.force:
+        raise OptionsError(f"the {what} would overwrite the {source_what}", file=str(output))
+    if output.exists() and not force:
         raise OptionsError("the output exists; pass --force to replace it", file=str(output))
 
 

@@ -34,11 +34,11 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from .convert import _make_folders, _remove_folders, _skin_checked, check_output_path
 from .errors import InputError, OptionsError, VbusdError
 from .model import VirtualBones, VirtualBonesAsset
 
 DEVICES = ("cpu", "cuda")
-OUTPUT_SUFFIXES = (".usda", ".usdc", ".usd")
 
 
 @dataclass
@@ -78,7 +78,6 @@ def _numpy_skin_mesh(vb: VirtualBones, mesh, clip_index: int, tau) -> tuple:
     Same decoded transforms and the same float64 result (see :func:`vbusd.convert._skin_checked`);
     BrainStem's 59 meshes x 1309 rows decode several times faster than with the per-influence gathers.
     """
-    from .convert import _skin_checked
     from .reference import bone_transforms, normal_point_indices
 
     transforms = bone_transforms(vb, clip_index, tau)
@@ -184,23 +183,9 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     """
     started = time.perf_counter()
     asset_path, output = Path(asset_path), Path(output)
-    if output.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise OptionsError(f"the cache must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
-                           file=str(output))
-    if output.is_dir():
-        raise OptionsError("the output is a folder; name the USD layer to write", file=str(output))
-    ancestor = output.parent  # a missing output folder is created when the cache is written
-    while not ancestor.exists() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise OptionsError(f"cannot create the output folder {output.parent}: {ancestor} is not a folder",
-                           file=str(output))
+    check_output_path(asset_path, output, force=force, what="cache", source_what="asset")
     if asset_path.is_dir():
         raise InputError("is a folder, not a Virtual Bones USD asset", file=str(asset_path), code="input.notFile")
-    if output.exists() and asset_path.exists() and output.resolve() == asset_path.resolve():
-        raise OptionsError("the cache would overwrite the asset", file=str(output))
-    if output.exists() and not force:
-        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
     warnings: list = []
     skin, skin_crowd, decoder_name = _skinner(device, warnings)
 
@@ -275,8 +260,6 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
 
     from .fileio import AtomicTransaction
-
-    from .convert import _make_folders, _remove_folders
 
     created = _make_folders(output.parent)
     try:
