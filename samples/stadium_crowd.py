@@ -724,7 +724,20 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--usdskel-only", action="store_true",
                         help="write only the UsdSkel asset (no vbusd bake)")
     args = parser.parse_args(argv)
-    for path in generate(args.out, virtual_bones=not args.usdskel_only):
+    from vbusd.errors import VbusdError
+
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        print(f"stadium_crowd: {args.out}: --out must be a folder", file=sys.stderr)
+        return 2
+    try:
+        written = generate(args.out, virtual_bones=not args.usdskel_only)
+    except OSError as error:  # one line, no traceback: an unwritable or non-folder --out
+        print(f"stadium_crowd: {error.filename or args.out}: {error.strerror or error}", file=sys.stderr)
+        return 2
+    except VbusdError as error:
+        print(f"stadium_crowd: {error}", file=sys.stderr)
+        return 2
+    for path in written:
         print(path)
     return 0
 

@@ -381,3 +381,17 @@ def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
     rest = committed.meshes[0].points
     diagonal = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
     assert np.linalg.norm(a - b, axis=-1).max() <= 2e-3 * diagonal
+
+
+def test_generator_refuses_a_bad_output_folder_in_one_line(gen, tmp_path, capsys):
+    not_a_folder = tmp_path / "file.txt"
+    not_a_folder.write_text("keep")
+    assert gen.main(["--out", str(not_a_folder)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.count("\n") == 1 and str(not_a_folder) in captured.err
+    assert not_a_folder.read_text() == "keep"
+    under_a_file = not_a_folder / "sub"  # mkdir fails: OSError, still one line
+    assert gen.main(["--out", str(under_a_file)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.count("\n") == 1 and "Traceback" not in captured.err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
