@@ -316,12 +316,14 @@ def test_png_built_by_hand_is_read_and_compressed_itxt_accepted(tmp_path):
         assert np.array_equal(data.texels, vb.texels) and data.info.clips == vb.clips
 
 
-def test_unicode_names_survive(tmp_path):
-    vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
-    vb = VirtualBones(vb.layout, vb.texels, ("Hüfte", "頭"), (Clip("jubel ✓", 0, 3, 30.0, True),))
-    for suffix, fmt in ((".exr", vb), ):
-        textures.write_texture(tmp_path / f"u{suffix}", fmt)
-        assert textures.read_texture(tmp_path / f"u{suffix}").info.bones == ("Hüfte", "頭")
+@pytest.mark.parametrize("texel_format, suffix", [("float16", ".exr"), ("unorm16", ".png")])
+def test_unicode_names_survive(tmp_path, texel_format, suffix):
+    vb = make_vb("crossMatrix", texel_format, bones=2, rows=3)
+    vb = VirtualBones(vb.layout, vb.texels, ("Hüfte", "頭"), (Clip("jubel ✓", 0, 3, 30.0, True),),
+                      unorm_ranges=vb.unorm_ranges)
+    textures.write_texture(tmp_path / f"u{suffix}", vb)
+    info = textures.read_texture(tmp_path / f"u{suffix}").info
+    assert info.bones == ("Hüfte", "頭") and info.clips[0].name == "jubel ✓"
 
 
 # ------------------------------------------------------------------------------------------------
