@@ -23,29 +23,29 @@ ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
 INSTANCING_API = "VirtualBonesInstancingAPI"
 
-# key -> (USD attribute, Sdf type name, required). Every attribute of the spec's table is required
-# and must be *authored*: readers must not rely on schema fallbacks (spec: "USD schema").
+# key -> (USD attribute, Sdf type name). Every one is required and must be *authored*: readers
+# must not rely on schema fallbacks (spec: "USD schema").
 SCALAR_ATTRIBUTES = {
-    "formatVersion": ("vb:formatVersion", "int", True),
-    "encoding": ("vb:encoding", "token", True),
-    "texelFormat": ("vb:texelFormat", "token", True),
-    "boneCount": ("vb:boneCount", "int", True),
-    "texelsPerBone": ("vb:texelsPerBone", "int", True),
-    "rowCount": ("vb:rowCount", "int", True),
-    "width": ("vb:textureWidth", "int", True),
-    "height": ("vb:textureHeight", "int", True),
-    "horizontalPadding": ("vb:horizontalPadding", "token", True),
-    "verticalPadding": ("vb:verticalPadding", "token", True),
-    "bones": ("vb:bones", "token[]", True),
-    "contentDigest": ("vb:contentDigest", "string", True),
+    "formatVersion": ("vb:formatVersion", "int"),
+    "encoding": ("vb:encoding", "token"),
+    "texelFormat": ("vb:texelFormat", "token"),
+    "boneCount": ("vb:boneCount", "int"),
+    "texelsPerBone": ("vb:texelsPerBone", "int"),
+    "rowCount": ("vb:rowCount", "int"),
+    "width": ("vb:textureWidth", "int"),
+    "height": ("vb:textureHeight", "int"),
+    "horizontalPadding": ("vb:horizontalPadding", "token"),
+    "verticalPadding": ("vb:verticalPadding", "token"),
+    "bones": ("vb:bones", "token[]"),
+    "contentDigest": ("vb:contentDigest", "string"),
 }
 CLIP_ATTRIBUTES = {
-    "name": ("vb:clipNames", "token[]", True),
-    "firstRow": ("vb:clipFirstRows", "int[]", True),
-    "rowCount": ("vb:clipRowCounts", "int[]", True),
-    "rowsPerSecond": ("vb:clipRowsPerSecond", "double[]", True),
-    "loop": ("vb:clipLoops", "bool[]", True),
-    "startTime": ("vb:clipStartTimes", "double[]", True),
+    "name": ("vb:clipNames", "token[]"),
+    "firstRow": ("vb:clipFirstRows", "int[]"),
+    "rowCount": ("vb:clipRowCounts", "int[]"),
+    "rowsPerSecond": ("vb:clipRowsPerSecond", "double[]"),
+    "loop": ("vb:clipLoops", "bool[]"),
+    "startTime": ("vb:clipStartTimes", "double[]"),
 }
 TEXTURE_ATTRIBUTE = "vb:texture"
 DEFAULTS = {"horizontalPadding": "powerOfTwo", "verticalPadding": "none"}
@@ -108,15 +108,15 @@ def from_prim(prim) -> Declared:
         return UsdSite(path, attr_of.get(key)) if key in attr_of else UsdSite(path)
 
     declared = Declared("usd", {}, locate, prim_path=path)
-    for key, (name, type_name, required) in SCALAR_ATTRIBUTES.items():
-        value = _read_attribute(prim, name, type_name, required, declared.findings)
+    for key, (name, type_name) in SCALAR_ATTRIBUTES.items():
+        value = _read_attribute(prim, name, type_name, True, declared.findings)
         if value is not None:
             declared.values[key] = list(value) if type_name.endswith("[]") else value
         elif key in DEFAULTS and not prim.GetAttribute(name).IsValid():
             declared.values[key] = DEFAULTS[key]
     arrays = {}
-    for key, (name, type_name, required) in CLIP_ATTRIBUTES.items():
-        value = _read_attribute(prim, name, type_name, required, declared.findings)
+    for key, (name, type_name) in CLIP_ATTRIBUTES.items():
+        value = _read_attribute(prim, name, type_name, True, declared.findings)
         if value is not None:
             arrays[key] = list(value)
     _clips_from_arrays(declared, arrays, path)
@@ -149,10 +149,9 @@ def from_prim(prim) -> Declared:
 
 
 def _clips_from_arrays(declared: Declared, arrays: dict, path: str) -> None:
+    if any(k not in arrays for k in CLIP_ATTRIBUTES):
+        return  # each missing array is reported already
     lengths = {key: len(v) for key, v in arrays.items()}
-    required = [k for k, spec in CLIP_ATTRIBUTES.items() if spec[2]]
-    if any(k not in arrays for k in required):
-        return
     if len(set(lengths.values())) > 1:
         detail = ", ".join(f"{CLIP_ATTRIBUTES[k][0]} {n}" for k, n in lengths.items())
         declared.findings.append(finding("clip.arrays", f"clip arrays differ in length: {detail}",
@@ -162,7 +161,6 @@ def _clips_from_arrays(declared: Declared, arrays: dict, path: str) -> None:
     clips = []
     for i in range(count):
         clip = {k: arrays[k][i] for k in arrays}
-        clip.setdefault("startTime", 0.0)
         clip["name"] = str(clip["name"])
         clip["loop"] = bool(clip["loop"])
         clips.append(clip)
