@@ -139,20 +139,6 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
         tx.commit()
 
 
-def write_sidecar(path: PathLike, vb: VirtualBones, *,
-                  transaction: Optional[AtomicTransaction] = None) -> Path:
-    """Write only the sidecar JSON of a texture (atomically); returns the sidecar's path."""
-    target = sidecar_path(path)
-    text = md.dumps(md.to_dict(vb))
-    if transaction is None:
-        with AtomicTransaction() as tx, tx.open(target, "w", newline="\n") as stream:
-            stream.write(text)
-    else:
-        with transaction.open(target, "w", newline="\n") as stream:
-            stream.write(text)
-    return target
-
-
 def _read_bytes(path: Path, count: int = -1) -> bytes:
     """The first ``count`` bytes of a file (all with -1); a missing or unreadable file is one error."""
     try:
