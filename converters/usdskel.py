@@ -112,6 +112,8 @@ class _Reader:
                              location="/", code="usdskel.timeCodesPerSecond")
         self.cache = UsdSkel.Cache()
         self.predicate = Usd.TraverseInstanceProxies()
+        self.bindings: dict = {}
+        """Per SkelRoot path: {skinning target path: (skeleton path, UsdSkel.SkinningQuery)}."""
 
     def error(self, message: str, location: str, code: str) -> InputError:
         return InputError(message, file=self.file, location=location, code=code)
@@ -614,16 +616,13 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
     _check_options(options)
     path = Path(path)
     reader = _Reader(path, options)
-    Usd, UsdGeom, UsdSkel = reader.Usd, reader.UsdGeom, reader.UsdSkel
+    UsdGeom, UsdSkel = reader.UsdGeom, reader.UsdSkel
     stage = reader.stage
     reader.check_binding_api()
 
     groups: dict[str, _SkelWork] = {}
     for prim, skel_prim in reader.skinnable_prims():
-        key = str(skel_prim.GetPath())
-        if not skel_prim.IsA(UsdSkel.Skeleton):
-            raise reader.error(f"skel:skeleton targets {key}, which is a {skel_prim.GetTypeName()}, not a "
-                               "Skeleton", str(prim.GetPath()), "usdskel.skeleton.dangling")
+        key = str(skel_prim.GetPath())  # a Skeleton: _bound_skeleton refuses anything else
         if key not in groups:
             groups[key] = _SkelWork(skel_prim, reader.check_skeleton(skel_prim))
         groups[key].targets.append(prim)
@@ -767,10 +766,10 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
         joint_map = _joint_map(reader, prim, work.joints)
         indices, weights, interp = _read_influences(reader, prim, points.shape[0], joint_map.size)
         query = _skinning_query(reader, prim, skel_path)
-        method = str(query.GetSkinningMethod()) if query is not None else "classicLinear"
         if query is None:
             raise reader.error("UsdSkel does not treat this prim as a skinning target of "
                                f"{skel_path} (check its joint influences)", location, "usdskel.binding")
+        method = str(query.GetSkinningMethod())
         if has_shapes:
             reader.warn(location, "has blend shapes (skel:blendShapes); Virtual Bones cannot hold them, so "
                         "only its joint skinning is converted")
@@ -798,9 +797,7 @@ def _skinning_query(reader: _Reader, prim, skel_path: str):
     root = reader._skel_root(prim)
     if root is None:
         return None
-    memo = getattr(reader, "_bindings", None)
-    if memo is None:
-        memo = reader._bindings = {}
+    memo = reader.bindings
     root_key = str(root.GetPath())
     if root_key not in memo:
         skel_root = reader.UsdSkel.Root(root)
@@ -824,8 +821,9 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     ``UsdSkel.SkinNormals`` with the inverse-transpose matrices, as UsdSkel.BakeSkinning does,
     per face-vertex for faceVarying normals.
     """
+    from pxr import Gf, Vt
+
     Usd, UsdSkel = reader.Usd, reader.UsdSkel
-    Vt = _vt()
     query = bound.query
     mesh = reader.UsdGeom.Mesh(bound.prim)
     times = np.atleast_1d(np.asarray(times, dtype=np.float64))
@@ -845,7 +843,7 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
         vt_wgt = Vt.FloatArray.FromNumpy(np.ascontiguousarray(wgt.reshape(-1)))
         raw_normals = np.asarray(_raw_normals(reader, mesh, bound), dtype=np.float32)
         geom = np.linalg.inv(_matrix(query.GetGeomBindTransform())[:3, :3]).T
-        geom3 = _gf().Matrix3d(*geom.reshape(-1).tolist())
+        geom3 = Gf.Matrix3d(*geom.reshape(-1).tolist())
         mapper = query.GetJointMapper()
         method = query.GetSkinningMethod()
     points_out = np.empty((times.size, len(rest), 3))
@@ -892,14 +890,3 @@ def _raw_normals(reader: _Reader, mesh, bound: _Bound) -> np.ndarray:
     reader.warnings[:] = saved
     return normals
 
-
-def _vt():
-    from pxr import Vt
-
-    return Vt
-
-
-def _gf():
-    from pxr import Gf
-
-    return Gf
