@@ -1082,11 +1082,13 @@ class _Converter:
             relevant_set = set(relevant)
             clips = []
             clip_names = NameAllocator()
+            moved = False   # some selected animation moves the skin (maybe outside the time range)
             for a in chosen_anims:
                 anim = animations[a]
                 channels = [c for c in anim.channels if c.node in relevant_set]
                 if not channels:
                     continue
+                moved = True
                 start, end = anim.start, anim.end
                 if time_range is not None:
                     start, end = max(start, lo), min(end, hi)
@@ -1096,8 +1098,9 @@ class _Converter:
                 clips.append(self.make_clip(clip_names.take(anim.name), start, end, channels,
                                             joints, relevant, ibm))
             if not clips:
-                self.warn(f"skin {s} (/skins/{s}): no animation moves its joints; a one-row rest "
-                          "clip is written")
+                why = ("the animations that move its joints lie outside the chosen time range"
+                       if moved else "no animation moves its joints")
+                self.warn(f"skin {s} (/skins/{s}): {why}; a one-row rest clip is written")
                 t0 = 0.0 if time_range is None else float(lo)
                 clips.append(self.make_clip(clip_names.take("rest"), t0, t0, [], joints,
                                             relevant, ibm))

@@ -255,6 +255,13 @@ def test_options_select_and_time_range():
             gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=bad))
 
 
+def test_time_range_past_every_animation_gives_a_rest_clip_at_its_start():
+    scene = gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=(10.0, 20.0)))
+    (clip,) = scene.animations[0].clips
+    assert (clip.name, clip.start_time, clip.end_time) == ("rest", 10.0, 10.0)
+    assert any("outside the chosen time range; a one-row rest clip" in w for w in scene.warnings)
+
+
 def test_skin_selection_by_index():
     scene = gltf.read(FIXTURES / "two_skins.gltf", ReadOptions(skeletons=("1",)))
     assert [a.path for a in scene.animations] == ["/BarScene/Second_Anim"]
