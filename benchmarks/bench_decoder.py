@@ -158,11 +158,8 @@ def naive_cross_matrix_kernel(
 ):
     """Baseline: one thread per (instance, vertex) fetching and decoding each of its K bones."""
     instance, v = wp.tid()
-    clip = instance_clip[instance]
     tau = instance_offset[instance] + instance_rate[instance] * t
-    i0, i1, f = K.row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
-    row0 = clip_first_row[clip] + i0
-    row1 = clip_first_row[clip] + i1
+    row0, row1, f = K.clip_rows(clip_first_row, clip_row_count, clip_rate, clip_loop, instance_clip[instance], tau)
     p = points[v]
     n = normals[v]
     sp = wp.vec3()

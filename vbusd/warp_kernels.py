@@ -8,6 +8,7 @@ in :mod:`vbusd.reference` and follows the spec's math (docs/architecture.md, "En
 kernel / function                  numpy twin
 =================================  ==========================================================
 :func:`row_blend`                  ``reference.row_position`` (looping / clamped rows, float64)
+:func:`clip_rows`                  the same as texture rows (clip's first row added)
 :func:`lerp_texel`                 ``reference.interpolated_values`` (blend stored values)
 :func:`sample_texel`               the same through a hardware-filtered ``wp.Texture2D``
 :func:`decode_bone`                ``encoding.decode_bones``
@@ -94,6 +95,19 @@ def row_blend(tau: wp.float64, rows_per_second: wp.float64, row_count: int, loop
         i1 = wp.min(i0 + 1, row_count - 1)
     f = x - wp.float64(i0)
     return i0, i1, wp.float32(f)
+
+
+@wp.func
+def clip_rows(clip_first_row: wp.array(dtype=wp.int32), clip_row_count: wp.array(dtype=wp.int32),
+              clip_rate: wp.array(dtype=wp.float64), clip_loop: wp.array(dtype=wp.int32), clip: int,
+              tau: wp.float64):
+    """Texture rows ``(row0, row1)`` and the weight ``f`` of ``row1`` of clip ``clip`` at time ``tau``.
+
+    :func:`row_blend` on the clip table's entry, offset by the clip's first row.
+    """
+    i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
+    first = clip_first_row[clip]
+    return first + i0, first + i1, f
 
 
 @wp.func
@@ -320,9 +334,8 @@ def instance_frames_kernel(
     filter weights); 0 is the spec's exact blend.
     """
     instance = wp.tid()
-    clip = instance_clip[instance]
     tau = instance_offset[instance] + instance_rate[instance] * t
-    i0, i1, f = row_blend(tau, clip_rate[clip], clip_row_count[clip], clip_loop[clip])
+    row0, row1, f = clip_rows(clip_first_row, clip_row_count, clip_rate, clip_loop, instance_clip[instance], tau)
     if fraction_steps > 0.0:
         f = wp.round(f * fraction_steps) / fraction_steps
     elif fraction_steps < 0.0:
@@ -330,8 +343,8 @@ def instance_frames_kernel(
     r = wp.quat_to_matrix(orientations[instance])
     s = scales[instance]
     frame = InstanceFrame()
-    frame.row0 = clip_first_row[clip] + i0
-    frame.row1 = clip_first_row[clip] + i1
+    frame.row0 = row0
+    frame.row1 = row1
     frame.f = f
     frame.placement = wp.mat33(r[0, 0] * s[0], r[0, 1] * s[1], r[0, 2] * s[2],
                                r[1, 0] * s[0], r[1, 1] * s[1], r[1, 2] * s[2],
