@@ -12,8 +12,10 @@ so the folder works wherever the wheel installs it. It declares the types
 
 Registration on ``import vbusd``
 --------------------------------
-``import vbusd`` calls :func:`register_on_import`, which keeps the import light (pxr costs 35 to
-80 ms to import and is not needed by the texture tools or the decoder):
+``import vbusd`` calls :func:`register_on_import`, which keeps the import light (pxr is not needed
+by the texture tools or the decoder, and importing it costs about 0.1 s for ``pxr.Plug`` and 0.4 s
+for ``pxr.Usd``, measured with usd-core 26.11 by
+``python -c "import time; t = time.perf_counter(); from pxr import Usd; print(time.perf_counter() - t)"``):
 
 * when pxr is not installed, it does nothing (and never tries to import it);
 * when pxr is installed but no ``pxr`` module has been imported yet, it appends the plugin folder
