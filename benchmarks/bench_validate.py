@@ -35,6 +35,7 @@ import numpy as np
 
 def make_texels(size: int, seed: int = 1):
     """A (size, size, 4) float16 crossMatrix texture of random rotations, and its layout."""
+    from vbusd.encoding import quat_to_matrix
     from vbusd.layout import Layout
 
     bones = size // 3
@@ -45,10 +46,10 @@ def make_texels(size: int, seed: int = 1):
         rows = min(256, size - start)
         q = rng.normal(size=(rows, bones, 4)).astype(np.float32)
         q /= np.linalg.norm(q, axis=-1, keepdims=True)
-        x, y, z, w = np.moveaxis(q, -1, 0)
+        rotation = quat_to_matrix(q)
         block = np.empty((rows, bones, 3, 4), np.float32)
-        block[..., 0, :3] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y + z * w), 2 * (x * z - y * w)], -1)
-        block[..., 1, :3] = np.stack([2 * (x * y - z * w), 1 - 2 * (x * x + z * z), 2 * (y * z + x * w)], -1)
+        block[..., 0, :3] = rotation[..., :, 0]  # crossMatrix texels 0 and 1: the x and y axes
+        block[..., 1, :3] = rotation[..., :, 1]
         block[..., 2, :3] = rng.normal(size=(rows, bones, 3)).astype(np.float32)
         block[..., 3] = 1.0
         texels[start:start + rows, :layout.used_width] = block.reshape(rows, -1, 4).astype(np.float16)
