@@ -34,6 +34,9 @@ Usage::
     python benchmarks/bench_decoder.py                      # every available device
     python benchmarks/bench_decoder.py --devices cpu --json benchmarks/results/decoder_cpu.json
     python benchmarks/bench_decoder.py --devices cuda --json $OUT/decoder_cuda.json   # GPU machine
+    python benchmarks/bench_decoder.py --hardware --devices cuda --json $OUT/hardware.json   # hardware path
+
+benchmarks/gpu_run.sh runs the two GPU commands (and the CUDA tests) on the device tool's machine.
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ import warp as wp  # noqa: E402
 from vbusd import reference  # noqa: E402
 from vbusd import warp_decoder as wd  # noqa: E402
 from vbusd import warp_kernels as K  # noqa: E402
+from vbusd.fileio import atomic_write  # noqa: E402
 from vbusd.model import BoundMesh, Crowd  # noqa: E402
 
 COPY_BYTES = 1 << 30
@@ -519,7 +523,8 @@ def main(argv=None) -> int:
     if args.hardware:
         result = {d: hardware_study(d) for d in args.devices.split(",")}
         if args.json:
-            _write_json(args.json, {"warp": wp.__version__, "study": result})
+            _write_json(args.json, {"warp": wp.__version__, "devices": _device_names(args.devices.split(",")),
+                                    "study": result})
         return 0
     case_list = cases(args.cases.split(","))
     print(HEADER, flush=True)
@@ -533,17 +538,21 @@ def main(argv=None) -> int:
             raise SystemExit(f"unknown device {device!r}")
     if args.json:
         _write_json(args.json, {"warp": wp.__version__, "python": platform.python_version(),
-                                "devices": {d: str(wp.get_device(d).name) for d in args.devices.split(",")},
+                                "devices": _device_names(args.devices.split(",")),
                                 "rows": rows})
     return 0
 
 
 def _write_json(path: Path, data: dict) -> None:
-    """Write beside the target, then rename: no partial results file."""
+    """Write the results through vbusd.fileio.atomic_write: no partial results file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    tmp.replace(path)
+    with atomic_write(path, "w") as stream:
+        json.dump(data, stream, indent=1)
+
+
+def _device_names(devices) -> dict:
+    """``{"cuda": "NVIDIA H100 80GB HBM3", ...}``: which hardware the results came from."""
+    return {d: str(wp.get_device(d).name) for d in devices}
 
 
 if __name__ == "__main__":

@@ -14,7 +14,9 @@
 #   (the second call within ~30 s of the first, while the machine is warm; a later call on the
 #    same warm machine needs only `bash benchmarks/gpu_run.sh run`)
 #
-# `run` writes to $OUT: pytest.log, bench.log, decoder_cuda.json, hardware.json.
+# `run` writes to $OUT: gpu.txt (nvidia-smi), pytest.log, bench.log, decoder_cuda.json, hardware.log,
+# hardware.json. Kept in benchmarks/results/ as decoder_cuda[_h100].json,
+# decoder_hardware_cuda[_h100].json and warp_tests_cuda_h100.log (no suffix: the H200 runs).
 set -euo pipefail
 cmd=${1:?usage: gpu_run.sh pack|stage N|run}
 case "$cmd" in
