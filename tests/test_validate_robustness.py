@@ -387,3 +387,16 @@ def test_metadata_only_counts_where_the_spec_puts_it(tmp_path, capsys, case):
     missing = [f for f in findings if f["code"] == "metadata.missing"]
     assert [f["location"] for f in missing] == [{"kind": "file", "file": name}]
     assert "vbusd.layou" in missing[0]["message"]  # names what it found instead
+
+
+def test_undecodable_metadata_chunk_is_named(tmp_path, capsys):
+    """An iTXt vbusd.layout chunk whose text is not UTF-8 (vbusd's reader refuses it): the finding
+    says the chunk is there but cannot be decoded, not merely that metadata is missing."""
+    folder = _copy(PNG_FIXTURE, tmp_path / "bad_utf8")
+    data = (folder / PNG).read_bytes()
+    (folder / PNG).write_bytes(_rewrite_png_chunk(data, b"iTXt", lambda kind, body: (kind, body + b"\xff\xfe")))
+    (folder / (PNG + ".json")).unlink()
+    assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
+    findings = json.loads(capsys.readouterr().out)["findings"]
+    [missing] = [f for f in findings if f["code"] == "metadata.missing"]
+    assert "cannot be decoded" in missing["message"]

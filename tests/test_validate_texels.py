@@ -19,6 +19,8 @@ from vbusd.validators import checks_texels as ct
 
 
 def _random_rotations(n, rng):
+    # Written out rather than vbusd.encoding.quat_to_matrix: the inputs of these tests must not
+    # depend on the package under test.
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     x, y, z, w = q.T

@@ -265,6 +265,10 @@ def _read_png(path: str, name: str, max_dimension: int):
             elif text is not None and _looks_like_metadata(*text):
                 texture.misplaced_metadata.append(f"{kind.decode('ascii')} chunk {text[0]!r} at byte "
                                                   f"{offset}")
+            elif text is None and body.startswith(METADATA_KEYWORD.encode("latin-1") + b"\0"):
+                texture.misplaced_metadata.append(f"{kind.decode('ascii')} chunk '{METADATA_KEYWORD}' at "
+                                                  f"byte {offset} that cannot be decoded (malformed, "
+                                                  "or not UTF-8)")
         elif kind in (b"gAMA", b"sRGB", b"iCCP", b"cHRM"):
             texture.colour_chunks.append((kind.decode("ascii"), offset))
         elif kind == b"IDAT":
