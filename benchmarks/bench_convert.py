@@ -14,7 +14,7 @@ per point, every joint rotating and translating each frame) as a .usdc, then, in
 Prints a Markdown table (wall seconds, bytes written) for benchmarks/README.md. Not part of the
 test suite.
 
-    python benchmarks/bench_convert.py [--frames 10000] [--points 50000] [--joints 100]
+    python benchmarks/bench_convert.py [--frames 10000] [--points 50000] [--joints 101]
                                        [--bake-frames 1000|all] [--check-rows 16] [--keep DIR]
 """
 

@@ -199,7 +199,9 @@ def test_failed_write_leaves_no_file_and_no_new_folder(small_rig, tmp_path, monk
     monkeypatch.setattr(vbusd.textures, "write_texture", broken)
     output = tmp_path / "new" / "x.usda"
     status = main(["convert", str(small_rig), "-o", str(output)])
-    assert status != 0 and "Traceback" not in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert ": convert.write: " in err and "No space left on device" in err
     assert not (tmp_path / "new").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]
 
