@@ -289,8 +289,8 @@ def _short(value) -> str:
 
 
 def _load_metadata(raw, texture_path: str, display: str):
-    """Embedded and sidecar metadata: ``(embedded, sidecar, sidecar_display, findings)``; each
-    document is ``(parsed value, file name)`` or None."""
+    """Embedded and sidecar metadata: ``(embedded, sidecar, findings)``; each document is
+    ``(parsed value, file name)`` or None."""
     findings = []
     embedded = None
     if raw is not None and raw.metadata_texts:

@@ -329,13 +329,12 @@ def _png_text(kind: bytes, body: bytes):
         return None
 
 
-def parse_metadata(text, file: str, base_pointer: str = ""):
+def parse_metadata(text, file: str):
     """Parse layout metadata JSON text without raising.
 
     Args:
         text: str or bytes.
         file: File name for locations.
-        base_pointer: Unused today; reserved for metadata nested in a larger document.
 
     Returns:
         ``(value, findings)``: the parsed value (None on failure) and ``metadata.json`` findings with
