@@ -185,10 +185,6 @@ class BoneBuffers:
     dual: wp.array
     frames: wp.array
 
-    def nbytes(self) -> int:
-        """Bytes of the buffers that hold data (placeholders excluded)."""
-        return sum(a.capacity for a in (self.linear, self.normal, self.dual) if a.size > 1)
-
 
 class Decoder:
     """Keeps one Virtual Bones texture and one bound mesh on a device and skins them on demand.
@@ -203,7 +199,7 @@ class Decoder:
             loaded once for all of them). None: as many (up to 16) as leave at least a million
             threads on CUDA; 1 on the CPU.
         block_dim: Threads per CUDA block of the skinning launch. None: 128 (fastest measured on an
-            H200, ahead of 256 and 512).
+            H200 and on an H100, ahead of 256 and 512).
 
     Each vertex's weights must sum to one, as the format requires: the instancer transform is
     folded into the decoded bones (``warp_kernels.place_bone``), which equals applying it after
@@ -475,8 +471,8 @@ class Decoder:
             return self.instances_per_thread
         if not self.device.is_cuda:
             return 1
-        # Measured on an H200 (benchmarks/README.md): 16 instances per thread was fastest on the
-        # large crowds; small crowds need every thread they can get to fill the GPU.
+        # Measured on an H200 and an H100 (benchmarks/README.md): 16 instances per thread was
+        # fastest on the large crowds; small crowds need every thread they can get to fill the GPU.
         ipt = 16
         while ipt > 1 and -(-n // ipt) * self.vertex_count < 1_000_000:
             ipt //= 2
