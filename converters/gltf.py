@@ -536,17 +536,17 @@ class _Animation:
 
 
 def _float_list(value, length: int, pointer: str, file: str):
+    """A node's matrix/translation/rotation/scale as float64, or None when absent.
+
+    The raw JSON checks (:data:`_TYPES`) have made it an array of finite numbers; its length is
+    checked here.
+    """
     if value is None:
         return None
-    if (not isinstance(value, list) or len(value) != length
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+    if len(value) != length:
         raise InputError(f"expected {length} numbers, found {value!r}", file=file, location=pointer,
                          code="gltf.node.transform")
-    array = np.array(value, dtype=np.float64)
-    if not np.all(np.isfinite(array)):
-        raise InputError("holds a NaN or infinite value", file=file, location=pointer,
-                         code="gltf.node.transform")
-    return array
+    return np.array(value, dtype=np.float64)
 
 
 class _Converter:
@@ -581,9 +581,7 @@ class _Converter:
         self.has_matrix = [False] * n
         for i, node in enumerate(nodes):
             where = f"/nodes/{i}"
-            children = node.children or []
-            if not isinstance(children, list):
-                raise self.fail("children must be an array", f"{where}/children", "gltf.value")
+            children = node.children or []   # an array of integers (raw JSON checks)
             for k, child in enumerate(children):
                 require_index(child, n, f"{where}/children/{k}", self.file, "node")
                 if self.parent[child] != -1:
