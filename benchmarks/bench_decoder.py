@@ -7,10 +7,11 @@ Crowds (the stadium sample's 18-bone crossMatrix float16 texture, 64x512):
 * ``mesh50k``: 1,000 instances x 50,000 vertices (the 202-vertex body tiled 248 times, shifted).
 
 Per case and device the script times full calls of ``Decoder.skin_crowd`` into preallocated
-outputs (bone decode launch + skinning launch), and on CUDA also each launch alone, a naive
-single-kernel decoder (one thread per vertex-instance fetching and decoding its K bones, the
-DESIGN.md baseline), the hardware texture path, and a device-to-device copy (``wp.copy`` of a
-1 GiB array) measured in the same run. CUDA times come from CUDA events over repeated calls;
+outputs (per-instance frame, bone decode and skinning launches). On CUDA it also times the decode
+(frame + bone decode) and the skinning launch alone, store-only kernels of the same launch
+geometry (the store ceiling), a naive single-kernel decoder (one thread per vertex-instance
+fetching and decoding its K bones, the DESIGN.md baseline), the hardware texture path, and a
+device-to-device copy (``wp.copy`` of a 1 GiB array) in the same run. CUDA times come from CUDA events over repeated calls;
 CPU times from ``time.perf_counter`` around synchronized calls.
 
 Bandwidth counting (bytes moved per call, DRAM level, each byte once):
