@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from vbusd.errors import InputError, OptionsError, UnsupportedError
+from vbusd.metadata import json_pointer
 from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
 from .gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
@@ -374,7 +375,7 @@ def _type_error(value, kind, pointer: str):
                 return pointer, f"expected an object, found {short(value)}"
             pairs = value.items()
         for key, child in pairs:
-            found = _type_error(child, item, f"{pointer}/{_escape_pointer(key)}")
+            found = _type_error(child, item, pointer + json_pointer([key]))
             if found:
                 return found
         return None
@@ -394,11 +395,6 @@ def _type_error(value, kind, pointer: str):
             # it needs); a null array or object makes pygltflib fail, so it is named here.
             return f"{pointer}/{key}", "expected an array or object, found null"
     return None
-
-
-def _escape_pointer(key: str) -> str:
-    """A JSON pointer reference token (RFC 6901): ``~`` -> ``~0``, ``/`` -> ``~1``."""
-    return str(key).replace("~", "~0").replace("/", "~1")
 
 
 def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None:

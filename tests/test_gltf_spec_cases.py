@@ -293,6 +293,9 @@ _V = "gltf.value"
     (lambda d: d["meshes"][0]["primitives"][0].pop("attributes"), _V, "/meshes/0/primitives/0"),
     (lambda d: d.update(extensionsUsed=7), _V, "/extensionsUsed"),
     (lambda d: d["accessors"][0].update(count=-6), _V, "/accessors/0/count"),
+    # RFC 6901: "/" in a key is written "~1", "~" is written "~0".
+    (lambda d: d["meshes"][0]["primitives"][0]["attributes"].update({"a/b~c": "x"}), _V,
+     "/meshes/0/primitives/0/attributes/a~1b~0c"),
     # Found by tests/test_gltf_fuzz.py's harness: pygltflib keeps such values as they are.
     (lambda d: d["meshes"][0]["primitives"][0].update(attributes={}), "gltf.mesh.attribute",
      "/meshes/0/primitives/0/attributes"),
