@@ -298,16 +298,19 @@ def _read_png(path: str, name: str, max_dimension: int):
             findings.append(finding("texture.unreadable", "PNG has no image data (IDAT)",
                                     FileLocation(name)))
         return texture, findings
-    try:
-        import png
+    # vbusd's own decoder (pypng, scanline by scanline into one array, every scanline counted).
+    # Other kinds of PNG are not decoded: texture.channels / texture.pixelType refuse them anyway.
+    from vbusd import png16
 
-        w, h, pixels, info = png.Reader(bytes=data).read_flat()
-        if planes == 4 and depth == 16 and not info.get("palette"):
-            texture.texels = np.frombuffer(np.asarray(pixels, dtype=np.uint16).tobytes(),
-                                           dtype=np.uint16).reshape(h, w, 4)
-    except Exception as error:  # pypng raises its own FormatError / ChunkError and zlib errors
-        findings.append(finding("texture.unreadable", f"PNG pixels cannot be decoded: {_one_line(error)}",
-                                FileLocation(name)))
+    if (depth, color_type) == (16, 6):
+        chunks = png16.PngChunks(width=width, height=height, bit_depth=depth, colour_type=color_type,
+                                 interlace=interlace, chunk_types=(), metadata=None, data=data)
+        try:
+            texture.texels = png16.read_pixels(chunks, name)
+        except Exception as error:  # InputError; anything else pypng raises on a corrupt stream
+            why = getattr(error, "message", None) or _one_line(error)
+            findings.append(finding("texture.unreadable", f"PNG pixels cannot be decoded: {why}",
+                                    FileLocation(name)))
     return texture, findings
 
 
