@@ -714,3 +714,21 @@ def test_corrupted_compressed_chunk_is_one_error_and_no_console_noise(tmp_path, 
     assert error.location == "pixels" and "cannot decode" in error.message
     # OpenEXR alone prints a warning to stdout and errors to stderr, and returns no parts.
     assert capfd.readouterr() == ("", "")
+
+
+def test_pipe_or_folder_as_texture_is_refused_without_blocking(tmp_path):
+    # A vb:texture can name a named pipe; opening it for reading would block forever.
+    import os
+    import signal
+
+    pipe = tmp_path / "pipe.exr"
+    os.mkfifo(pipe)
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("reading a named pipe blocked"))
+    signal.alarm(10)
+    try:
+        for path in (pipe, tmp_path):
+            error = read_error(path)
+            assert (error.location, error.code) == ("file", "file.kind")
+            assert "not a regular file" in error.message
+    finally:
+        signal.alarm(0)

@@ -14,6 +14,7 @@ included; every problem is an :class:`vbusd.errors.InputError` with the file and
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Union
@@ -140,16 +141,29 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
 
 
 def _read_bytes(path: Path, count: int = -1) -> bytes:
-    """The first ``count`` bytes of a file (all with -1); a missing or unreadable file is one error."""
+    """The first ``count`` bytes of a file (all with -1); a missing or unreadable file is one error.
+
+    Opened without blocking and checked to be a regular file before any read: a named pipe (a
+    ``vb:texture`` can name one) would otherwise block the reader forever.
+    """
     try:
-        with open(path, "rb") as stream:
-            return stream.read(count)
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
         raise InputError("file not found", file=str(path), location="file",
                          code="file.missing") from None
     except OSError as error:
         raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
                          location="file", code="file.unreadable") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise InputError("not a regular file (a folder, pipe, device or socket)", file=str(path),
+                         location="file", code="file.kind")
+    with os.fdopen(fd, "rb") as stream:
+        try:
+            return stream.read(count)
+        except OSError as error:
+            raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
+                             location="file", code="file.unreadable") from None
 
 
 def sniff_container(path: PathLike) -> str:
