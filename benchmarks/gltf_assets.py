@@ -35,7 +35,11 @@ RUNS = (("crossMatrix", "float16"), ("affineMatrix", "float16"), ("affineMatrix"
 
 
 def _lbs(points: np.ndarray, idx: np.ndarray, w: np.ndarray, matrices: np.ndarray) -> np.ndarray:
-    """(n, V, 3) LBS of rest points with (n, B, 4, 4) matrices, float64."""
+    """(n, V, 3) LBS of rest points with (n, B, 4, 4) matrices, float64.
+
+    Written here rather than taken from vbusd.reference: it is the yardstick the reference
+    decoder's output is measured against, so it must not be that decoder.
+    """
     m = matrices[:, idx]                                   # (n, V, K, 4, 4)
     moved = np.einsum("nvkij,vj->nvki", m[..., :3, :3], points) + m[..., :3, 3]
     return np.einsum("vk,nvki->nvi", w, moved)
