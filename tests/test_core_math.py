@@ -338,3 +338,24 @@ def test_absurd_row_rates_are_refused_before_sampling():
     animation = SkinnedAnimation("A", "/A", ("root",), (AnimationClip("c", 0.0, 10.0, sample),))
     with pytest.raises(OptionsError, match="exceeds the limit"):
         bake(animation, BakeOptions(rows_per_second=1e6))
+
+
+def _flattened(scales):
+    """Bones whose z scale is given: A = diag(1, 1, scale), constant over a 1 s clip."""
+    def sample(times):
+        out = np.tile(np.eye(4), (len(np.atleast_1d(times)), len(scales), 1, 1))
+        out[:, :, 2, 2] = scales
+        return out
+    names = tuple(f"b{i}" for i in range(len(scales)))
+    return SkinnedAnimation("A", "/A", names, (AnimationClip("c", 0.0, 1.0, sample, native_rate=2, loop=False),))
+
+
+def test_near_singular_affine_bones_are_refused_before_and_after_rounding():
+    # |det| = 1e-7 <= 1e-6 x (largest column norm 1)^3: singular by the spec's rule.
+    with pytest.raises(UnsupportedError, match="'b1'.*singular"):
+        bake(_flattened([1.0, 1e-7]), BakeOptions(encoding="affineMatrix", texel_format="float32"))
+    assert bake(_flattened([1.0, 5e-6]), BakeOptions(encoding="affineMatrix", texel_format="float32"))
+    # unorm16 over the channel range [-0.5, 1] has an exact zero at u = 21845 (hand-computed:
+    # -0.5 + 1.5 * 21845 / 65535 = 0), and 5e-6 rounds to it: the stored bone is singular.
+    with pytest.raises(UnsupportedError, match="'b1'.*once rounded to unorm16"):
+        bake(_flattened([-0.5, 5e-6, 1.0]), BakeOptions(encoding="affineMatrix", texel_format="unorm16"))

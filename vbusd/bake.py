@@ -13,8 +13,8 @@ from typing import Optional
 
 import numpy as np
 
-from .encoding import (Float16OverflowError, NonRigidError, encode_bones, make_hemispheres_continuous, pack,
-                       quantize)
+from .encoding import (Float16OverflowError, NonRigidError, affine_singular, dequantize, encode_bones,
+                       make_hemispheres_continuous, pack, quantize)
 from .errors import InputError, OptionsError, UnsupportedError
 from .layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from .model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
@@ -263,6 +263,24 @@ def _locate_float16_overflow(error, animation: SkinnedAnimation, clips: list) ->
                             code="encoding.float16Overflow")
 
 
+def _refuse_singular_after_rounding(stored, ranges, texel_format, animation: SkinnedAnimation,
+                                    clips: list) -> None:
+    """Refuse affine bones that rounding to the texel format made singular (e.g. a tiny scale in float16).
+
+    encode_bones checked the exact matrices; a decoder and the validator see the stored ones.
+    """
+    linear = dequantize(stored, texel_format, ranges)[..., :3]  # (rows, B, 3 texels = rows of A, 3)
+    singular = affine_singular(linear)
+    if not np.any(singular):
+        return
+    row, bone = (int(i) for i in np.argwhere(singular)[0])
+    clip = next(c for c in clips if c.first_row <= row < c.first_row + c.row_count)
+    raise UnsupportedError(
+        f"bone '{animation.bones[bone]}' at time {clip.row_time(row - clip.first_row):.6g} s of clip "
+        f"'{clip.name}': affineMatrix cannot hold a singular (zero-scaled) matrix once rounded to "
+        f"{texel_format.value}", file=animation.source, location=animation.path, code="encoding.nonRigid")
+
+
 def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
     """Bake one skinned animation into a Virtual Bones texture with its bound meshes.
 
@@ -322,6 +340,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         raise _locate_float16_overflow(error, animation, clips) from None
     except UnsupportedError as error:
         raise error.at(file=animation.source, location=animation.path)
+    if options.encoding is Encoding.AFFINE_MATRIX:
+        _refuse_singular_after_rounding(stored, ranges, options.texel_format, animation, clips)
     texels = pack(stored, layout)
     texels.setflags(write=False)
     return VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),

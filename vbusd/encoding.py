@@ -162,6 +162,21 @@ def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: floa
 # --------------------------------------------------------------------------------------------
 
 
+SINGULAR_RELATIVE_DETERMINANT = 1e-6
+"""An affine linear part A is singular when |det A| <= this x (largest column norm of A)^3."""
+
+
+def affine_singular(linear: np.ndarray) -> np.ndarray:
+    """Which (..., 3, 3) linear parts are singular by the spec's rule (spec/validation.md).
+
+    ``|det A| <= 1e-6 * (max column norm)^3``: scale-invariant, so a bone scaled down to hide
+    geometry is caught at any size, and the baker, the validator and the spec use one rule.
+    """
+    a = np.asarray(linear, dtype=np.float64)
+    scale = np.linalg.norm(a, axis=-2).max(axis=-1)
+    return np.abs(np.linalg.det(a)) <= SINGULAR_RELATIVE_DETERMINANT * np.maximum(scale, 1e-30) ** 3
+
+
 def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: float = 1e-3) -> np.ndarray:
     """Encode skinning matrices into per-bone channel values.
 
@@ -185,9 +200,8 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
     out = np.empty(m.shape[:-2] + (encoding.texels_per_bone, 4))
     if encoding is Encoding.AFFINE_MATRIX:
         # A singular linear part has no inverse transpose, so normals could not be skinned.
-        size = np.abs(linear).max(axis=(-1, -2)) ** 3
-        singular = np.abs(np.linalg.det(linear)) <= 1e-12 * np.maximum(size, 1e-300)
-        _raise_worst(np.where(singular, np.inf, 0.0), 0.0, "a singular (zero-scaled) matrix", encoding)
+        _raise_worst(np.where(affine_singular(linear), np.inf, 0.0), 0.0,
+                     "a singular (zero-scaled) matrix", encoding)
         out[..., :, :3] = linear
         out[..., :, 3] = translation
         return out
