@@ -600,7 +600,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     if progress:
         progress("write", 1, 1)
 
-    files = _written_files(output, written)
+    files = {str(path): Path(path).stat().st_size for path in written}  # the layer, then texture, sidecar
     reference_name = getattr(scene, "reference_name", None) if getattr(scene, "reference", None) else None
     report = ConvertReport(
         source=str(source), output=str(output), converter=getattr(converter, "NAME", "?"),
@@ -646,14 +646,3 @@ def _remove_folders(folders: list) -> None:
         except OSError:
             pass
 
-
-def _written_files(output: Path, written) -> dict:
-    """Sizes of the files the writer produced: its answer when it gives paths, else the USD layer."""
-    paths = []
-    if isinstance(written, (list, tuple)):
-        paths = [Path(p) for p in written if isinstance(p, (str, Path))]
-    elif isinstance(written, dict):
-        paths = [Path(p) for p in written.values() if isinstance(p, (str, Path))]
-    if output not in paths:
-        paths.insert(0, output)
-    return {str(p): p.stat().st_size for p in paths if p.exists()}
