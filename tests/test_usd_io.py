@@ -795,3 +795,24 @@ def test_composition_error_is_one_line_and_usd_prints_nothing(written, capfd):
         usd_io.read_asset(shot)
     assert caught.value.code == "usd.composition" and "</Nope>" in _one_line(caught.value)
     assert capfd.readouterr() == ("", "")
+
+
+def test_pipes_as_layer_or_sublayer_are_refused_without_blocking(written):
+    # USD opens whatever it is given; a named pipe would block the reader forever.
+    import os
+    import signal
+
+    pipe = written.parent / "pipe.usda"
+    os.mkfifo(pipe)
+    shot = written.parent / "shot.usda"
+    shot.write_text("#usda 1.0\n(\n    subLayers = [@./pipe.usda@]\n)\n")
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("reading a named pipe blocked"))
+    signal.alarm(10)
+    try:
+        for path, location in ((pipe, "file"), (shot, f"{shot} dependency @./pipe.usda@")):
+            with pytest.raises(InputError) as caught:
+                usd_io.read_asset(path)
+            assert (caught.value.code, caught.value.location) == ("file.kind", location)
+            assert "not a regular file" in _one_line(caught.value)
+    finally:
+        signal.alarm(0)

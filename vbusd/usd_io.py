@@ -584,6 +584,9 @@ class _Reader:
                 continue
             location = f"{layer.identifier} dependency @{dependency}@"
             target = self.resolve(dependency, layer, location)
+            if target.exists() and not target.is_file():  # a named pipe would block USD forever
+                raise self.error(f"layer @{dependency}@ is not a regular file (a folder, pipe, device "
+                                 "or socket)", location, "file.kind")
             try:
                 child = Sdf.Layer.FindOrOpen(str(target))
             except Tf.ErrorException as error:
@@ -884,8 +887,11 @@ class _Reader:
             (root layer, stage).
         """
         Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        if not self.path.is_file():
+        if not self.path.exists():
             raise InputError("file not found", file=self.file, location="file", code="file.missing")
+        if not self.path.is_file():  # USD would block forever reading a named pipe
+            raise InputError("not a regular file (a folder, pipe, device or socket)", file=self.file,
+                             location="file", code="file.kind")
         try:
             layer = Sdf.Layer.Find(str(self.path))
             if layer is not None:
