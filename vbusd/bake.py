@@ -303,8 +303,14 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     plans = plan_rows(animation.clips, loops, options)
     # The layout checks the texture size before anything is sampled: an absurd rate must not
     # allocate first.
-    layout = Layout(options.encoding, options.texel_format, bone_count, sum(p.row_count for p in plans),
-                    options.horizontal_padding, options.vertical_padding)
+    try:
+        layout = Layout(options.encoding, options.texel_format, bone_count, sum(p.row_count for p in plans),
+                        options.horizontal_padding, options.vertical_padding)
+    except OptionsError as error:
+        rows = ", ".join(f"'{c.name}' {p.row_count} rows at {p.rows_per_second:g}/s"
+                         for c, p in zip(animation.clips, plans))
+        raise UnsupportedError(f"{error.message} ({rows})", file=animation.source, location=animation.path,
+                               code="layout.size") from None
     try:
         meshes = tuple(bind_mesh(m, bone_count, options.max_influences) for m in animation.meshes)
     except InputError as error:
