@@ -30,7 +30,6 @@ from .findings import FileLocation, JsonPointer, UsdSite, finding, json_pointer
 from .rawtexture import parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")
-SCHEMA_RESOURCE = "layout-metadata.schema.json"
 COMPARED_KEYS = ("formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone", "rowCount",
                  "width", "height", "horizontalPadding", "verticalPadding", "bones", "contentDigest")
 OTHER_METADATA_KEYS = ("format", "generator", "usedWidth", "texelBytes")
@@ -159,21 +158,6 @@ def check_declared(declared: Declared):
 # --------------------------------------------------------------------------------------------
 
 
-def _schema_validator():
-    import importlib.resources
-    import json
-
-    import jsonschema
-
-    text = (importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE).read_text(encoding="utf-8")
-    schema = json.loads(text)
-    cls = jsonschema.validators.validator_for(schema)
-    return cls(schema)
-
-
-_VALIDATOR = []
-
-
 def check_metadata_schema(meta, file: str):
     """``metadata.schema``: every JSON Schema violation (not just the first), with its pointer.
 
@@ -183,10 +167,13 @@ def check_metadata_schema(meta, file: str):
     if isinstance(meta, dict) and isinstance(meta.get("formatVersion"), int) \
             and not isinstance(meta.get("formatVersion"), bool) and meta["formatVersion"] > FORMAT_VERSION:
         return []
-    if not _VALIDATOR:
-        _VALIDATOR.append(_schema_validator())
+    from vbusd.metadata import _schema_validator  # the reader's validator (cached), one schema load
+
+    validator = _schema_validator()
+    if validator is None:  # an installation without schema/ (asset.internal, not a silent pass)
+        raise RuntimeError("the layout metadata schema (vbusd.schema) is not installed")
     out = []
-    errors = sorted(_VALIDATOR[0].iter_errors(meta), key=lambda e: (list(map(str, e.absolute_path)),
+    errors = sorted(validator.iter_errors(meta), key=lambda e: (list(map(str, e.absolute_path)),
                                                                     e.message))
     for error in errors:
         pointer = json_pointer(error.absolute_path)

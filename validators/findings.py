@@ -15,19 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Union
 
+from vbusd.metadata import json_pointer  # noqa: F401  (RFC 6901 pointers; re-exported for the checks)
+
 from . import codes as _codes
 from .codes import Severity
 
 CHANNEL_NAMES = "RGBA"
-
-
-def _escape_pointer_token(token) -> str:
-    return str(token).replace("~", "~0").replace("/", "~1")
-
-
-def json_pointer(parts) -> str:
-    """Build an RFC 6901 pointer from path parts: ``json_pointer(["clips", 0])`` is ``/clips/0``."""
-    return "".join("/" + _escape_pointer_token(p) for p in parts)
 
 
 @dataclass(frozen=True)
