@@ -827,7 +827,12 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     query = bound.query
     mesh = reader.UsdGeom.Mesh(bound.prim)
     times = np.atleast_1d(np.asarray(times, dtype=np.float64))
-    rest = mesh.GetPointsAttr().Get(Usd.TimeCode(sampler.code(times[0])))
+    points_attr = mesh.GetPointsAttr()
+    # Time-sampled points (the converter keeps the first as the rest shape, with a warning):
+    # UsdSkel skins the points of each time code, so the reference does too and the report shows
+    # the difference.
+    varying = points_attr.GetNumTimeSamples() > 1
+    rest = points_attr.Get(Usd.TimeCode(sampler.code(times[0])))
     has_normals = bound.mesh.normals is not None
     if has_normals:
         indices, weights = query.ComputeJointInfluences()
@@ -851,7 +856,7 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     for i, t in enumerate(times):
         code = sampler.code(t)
         xforms, world = sampler.usd_transforms(code)
-        points = Vt.Vec3fArray(rest)
+        points = Vt.Vec3fArray(points_attr.Get(Usd.TimeCode(code)) if varying else rest)
         if not query.ComputeSkinnedPoints(xforms, points, Usd.TimeCode(code)):
             raise InputError(f"UsdSkel could not skin the points at time code {code:g}", file=reader.file,
                              location=str(bound.prim.GetPath()), code="usdskel.skinning")

@@ -298,3 +298,20 @@ def test_skinned_mesh_transforms_are_ignored_like_bake_skinning(tmp_path):
         world = np.array(mesh.ComputeLocalToWorldTransform(code))
         expected = np.array(mesh.GetPointsAttr().Get(code)) @ world[:3, :3] + world[3, :3]
         assert np.abs(decoded - expected).max() < TOLERANCE, code
+
+
+def test_time_sampled_points_warn_and_the_report_shows_the_difference(tmp_path):
+    # UsdSkel skins the points authored at each time code; the converter keeps the first sample as
+    # the rest shape (with a warning), so the report must measure what that drops: here the points
+    # move 1 unit along x by the last time code.
+    source = scenes.write_stage(tmp_path / "source.usda", [scenes.RigSpec()])
+    stage = Usd.Stage.Open(source)
+    points = stage.GetPrimAtPath("/Root/Body").GetAttribute("points")
+    rest = np.array(points.Get(), dtype=np.float32)
+    points.Set(rest.tolist(), 1.0)
+    points.Set((rest + np.float32([1, 0, 0])).tolist(), 13.0)
+    stage.GetRootLayer().Save()
+    report = convert(source, tmp_path / "asset.usda", ConvertOptions(texel_format="float32", check_rows=None))
+    assert any(w.startswith("/Root/Body: points are time-sampled") for w in report.warnings)
+    mesh = report.animations[0].meshes[0]
+    assert 0.9 < mesh.max_error <= 1.0 + 1e-4  # the last row: rest shape vs UsdSkel's shifted points
