@@ -22,11 +22,12 @@ import numpy as np
 from vbusd.exr import LOSSLESS as EXR_LOSSLESS
 from vbusd.exr import METADATA_ATTRIBUTE
 from vbusd.layout import FORMAT_VERSION, TexelFormat
+from vbusd.metadata import json_pointer
 from vbusd.textures import sidecar_path
 
 from . import checks_texels as texels_checks
 from .declared import Declared, from_metadata, from_prim, same_value
-from .findings import FileLocation, JsonPointer, UsdSite, finding, json_pointer
+from .findings import FileLocation, JsonPointer, UsdSite, finding
 from .rawtexture import parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")

@@ -16,8 +16,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbusd.layout import Encoding, Layout, Padding, TexelFormat
+from vbusd.metadata import json_pointer
 
-from .findings import JsonPointer, UsdSite, finding, json_pointer
+from .findings import JsonPointer, UsdSite, finding
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"

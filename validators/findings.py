@@ -15,8 +15,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Union
 
-from vbusd.metadata import json_pointer  # noqa: F401  (RFC 6901 pointers; re-exported for the checks)
-
 from . import codes as _codes
 from .codes import Severity
 
