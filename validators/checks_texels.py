@@ -130,7 +130,7 @@ def content_digest(texels: np.ndarray) -> str:
     content digest).
 
     The definition of :func:`vbusd.metadata.content_digest`, hashed through a memoryview: that one
-    copies the texels with ``tobytes()`` (128 MiB more for a 4096 x 4096 float32 texture), which
+    copies the texels with ``tobytes()`` (as large as the texture: 128 MiB at 4096 x 4096 float16), which
     the validator's bounded-memory figures (benchmarks/README.md) do not allow.
     """
     little = texels.astype(texels.dtype.newbyteorder("<"), copy=False)
