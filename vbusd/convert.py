@@ -294,24 +294,6 @@ def _check_texture_files(scene: SourceScene, output: Path, options: ConvertOptio
                                "to replace it", file=str(output))
 
 
-def _check_row_count(animation: SkinnedAnimation, options: ConvertOptions) -> None:
-    """Refuse more rows than a texture can hold before baking samples them all.
-
-    The baker samples every row before the layout checks the texture size, so ``--rows-per-second
-    1e9`` would first try to allocate gigabytes; the row plan itself is cheap.
-    """
-    from .bake import decide_loop, plan_rows
-    from .layout import MAX_TEXTURE_DIMENSION
-
-    bake_options = options.bake_options(Encoding.AFFINE_MATRIX)
-    loops = [decide_loop(clip, bake_options) for clip in animation.clips]
-    rows = sum(plan.row_count for plan in plan_rows(animation.clips, loops, bake_options))
-    if rows > MAX_TEXTURE_DIMENSION:
-        raise OptionsError(f"{animation.path} would need {rows} rows, more than a texture holds "
-                           f"({MAX_TEXTURE_DIMENSION}); lower --rows-per-second or narrow --frame-range",
-                           file="convert")
-
-
 def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> tuple[VirtualBones, str, list]:
     """Bake one animation, choosing the encoding when ``options.encoding`` is ``auto``.
 
@@ -322,8 +304,7 @@ def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> t
         UnsupportedError: The chosen encoding cannot hold the animation, or the source mixes
             skinning methods the format cannot hold in one texture.
     """
-    animation = scene.animations[index]
-    _check_row_count(animation, options)
+    animation = scene.animations[index]  # bake refuses too many rows before sampling any
     dqs, lbs = _dual_quaternion_meshes(scene, index, animation)
     warnings = []
     if dqs and lbs:
