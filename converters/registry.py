@@ -149,6 +149,21 @@ def _builtin_suffixes(name: str) -> tuple:
     return {"usdskel": (".usd", ".usda", ".usdc", ".usdz"), "gltf": (".gltf", ".glb")}.get(name, ())
 
 
+def check_source(path) -> Path:
+    """Refuse a source that is missing or not a regular file, before any converter looks at it.
+
+    Raises:
+        InputError: No such file, or a folder (or another non-file).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such file", file=str(path), code="input.missing")
+    if not path.is_file():
+        raise InputError("is a folder, not a file" if path.is_dir() else "not a regular file", file=str(path),
+                         code="input.notFile")
+    return path
+
+
 def read(path, options, name: Optional[str] = None):
     """Read ``path`` with the converter :func:`find_converter` picks.
 
@@ -164,10 +179,5 @@ def read(path, options, name: Optional[str] = None):
         InputError: The file does not exist or the converter rejects it.
         OptionsError: No converter reads it.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError("no such file", file=str(path), code="input.missing")
-    if not path.is_file():
-        raise InputError("is a folder, not a file" if path.is_dir() else "not a regular file", file=str(path),
-                         code="input.notFile")
+    path = check_source(path)
     return find_converter(path, name).read(path, options)

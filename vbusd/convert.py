@@ -524,10 +524,10 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     clock = time.perf_counter()
     if progress:
         progress("read", 0, 1)
-    converter = registry.find_converter(source, options.converter) if source.is_file() else None
+    converter = registry.find_converter(registry.check_source(source), options.converter)
     read_options = ReadOptions(skeletons=options.skeletons, time_range=options.frame_range,
                                allow_outside_paths=options.allow_outside_paths)
-    scene = registry.read(source, read_options, name=options.converter)
+    scene = converter.read(source, read_options)
     seconds["read"] = time.perf_counter() - clock
     if progress:
         progress("read", 1, 1)
@@ -584,7 +584,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     files = {str(path): Path(path).stat().st_size for path in written}  # the layer, then texture, sidecar
     reference_name = getattr(scene, "reference_name", None) if getattr(scene, "reference", None) else None
     report = ConvertReport(
-        source=str(source), output=str(output), converter=getattr(converter, "NAME", "?"),
+        source=str(source), output=str(output), converter=converter.NAME,
         reference=reference_name or "source skinning matrices, float64 LBS with all influences",
         meters_per_unit=scene.meters_per_unit,
         warnings=warnings, files=files, seconds={k: round(v, 4) for k, v in seconds.items()})
