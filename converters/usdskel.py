@@ -499,6 +499,11 @@ class SkeletonSampler:
                              file=self._file, location=self._location, code="usdskel.transform.nonFinite")
         return world
 
+    @property
+    def start_code(self) -> float:
+        """The clip's first time code (where the converter reads the rest shape)."""
+        return self._start
+
     def code(self, time: float) -> float:
         """Time code of a source time (seconds), clamped to the clip."""
         return min(max(float(time) * self._tcps, self._start), self._end)
@@ -756,6 +761,8 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
             raise reader.error(f"point {bad} is not finite", f"{location}.points", "usdskel.points.nonFinite")
         if points_attr.GetNumTimeSamples() > 1:
             reader.warn(location, f"points are time-sampled; the rest shape at time code {start_code:g} is used")
+        if _normals_attr(reader, mesh).GetNumTimeSamples() > 1:
+            reader.warn(location, f"normals are time-sampled; the rest normals at time code {start_code:g} are used")
         counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
         fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
         if counts.sum() != fvi.size or (fvi.size and (fvi.min() < 0 or fvi.max() >= points.shape[0])):
@@ -846,7 +853,9 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
             ind, wgt = ind[bound.mesh.face_vertex_indices], wgt[bound.mesh.face_vertex_indices]
         vt_ind = Vt.IntArray.FromNumpy(np.ascontiguousarray(ind.reshape(-1)))
         vt_wgt = Vt.FloatArray.FromNumpy(np.ascontiguousarray(wgt.reshape(-1)))
-        raw_normals = np.asarray(_raw_normals(reader, mesh, bound), dtype=np.float32)
+        # Time-sampled normals, like points: UsdSkel skins each time code's own.
+        normals_vary = _normals_attr(reader, mesh).GetNumTimeSamples() > 1
+        raw_normals = _raw_normals(reader, mesh, bound, Usd.TimeCode(sampler.start_code))  # the converter's
         geom = np.linalg.inv(_matrix(query.GetGeomBindTransform())[:3, :3]).T
         geom3 = Gf.Matrix3d(*geom.reshape(-1).tolist())
         mapper = query.GetJointMapper()
@@ -872,7 +881,9 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
                 linear = np.asarray(local, dtype=np.float64).reshape(-1, 4, 4)[:, :3, :3]
                 joint3 = sampler.normal_memo[key] = Vt.Matrix3dArray.FromNumpy(
                     np.ascontiguousarray(np.swapaxes(np.linalg.inv(linear), 1, 2)))
-            normals = Vt.Vec3fArray.FromNumpy(raw_normals)
+            raw = _raw_normals(reader, mesh, bound, Usd.TimeCode(code)) if normals_vary else raw_normals
+            normals = Vt.Vec3fArray.FromNumpy(raw if raw is not None and raw.shape == raw_normals.shape
+                                              else raw_normals)
             UsdSkel.SkinNormals(method, geom3, joint3, vt_ind, vt_wgt, k, normals)
             world_normal = sampler.normal_memo.get(("world", round(code, 9)))
             if world_normal is None:
@@ -886,12 +897,18 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     return points_out, normals_out
 
 
-def _raw_normals(reader: _Reader, mesh, bound: _Bound) -> np.ndarray:
-    """The mesh's authored normals, expanded like the converter expands them (no geomBind)."""
+def _normals_attr(reader: _Reader, mesh):
+    """The attribute the normals come from: ``primvars:normals`` when authored, else ``normals``."""
+    primvar = reader.UsdGeom.PrimvarsAPI(mesh.GetPrim()).GetPrimvar("normals")
+    return primvar.GetAttr() if primvar and primvar.HasAuthoredValue() else mesh.GetNormalsAttr()
+
+
+def _raw_normals(reader: _Reader, mesh, bound: _Bound, time) -> Optional[np.ndarray]:
+    """The mesh's authored normals at ``time``, expanded like the converter expands them (no geomBind)."""
     counts = bound.mesh.face_vertex_counts
     fvi = bound.mesh.face_vertex_indices
     saved = list(reader.warnings)
-    normals, _ = _normals(reader, mesh, counts, fvi, bound.mesh.points.shape[0], reader.Usd.TimeCode.EarliestTime())
+    normals, _ = _normals(reader, mesh, counts, fvi, bound.mesh.points.shape[0], time)
     reader.warnings[:] = saved
-    return normals
+    return None if normals is None else np.asarray(normals, dtype=np.float32)
 

@@ -315,3 +315,20 @@ def test_time_sampled_points_warn_and_the_report_shows_the_difference(tmp_path):
     assert any(w.startswith("/Root/Body: points are time-sampled") for w in report.warnings)
     mesh = report.animations[0].meshes[0]
     assert 0.9 < mesh.max_error <= 1.0 + 1e-4  # the last row: rest shape vs UsdSkel's shifted points
+
+
+def test_time_sampled_normals_warn_and_the_report_shows_the_difference(tmp_path):
+    # Like points: UsdSkel skins each time code's normals; the converter keeps the first sample.
+    rig = scenes.RigSpec(meshes=[scenes.MeshSpec(name="Body", normals="vertex")])
+    source = scenes.write_stage(tmp_path / "source.usda", [rig])
+    stage = Usd.Stage.Open(source)
+    normals = stage.GetPrimAtPath("/Root/Body").GetAttribute("normals")
+    rest = np.array(normals.Get(), dtype=np.float32)
+    normals.Set(rest.tolist(), 1.0)
+    normals.Set((-rest).tolist(), 13.0)  # flipped by the last time code: 180 degrees off
+    stage.GetRootLayer().Save()
+    report = convert(source, tmp_path / "asset.usda", ConvertOptions(texel_format="float32", check_rows=None))
+    assert any(w.startswith("/Root/Body: normals are time-sampled") for w in report.warnings)
+    mesh = report.animations[0].meshes[0]
+    assert mesh.max_normal_error_degrees > 170
+    assert mesh.max_error < TOLERANCE  # the points are unaffected
