@@ -261,3 +261,27 @@ def test_outside_paths_are_refused_without_suggesting_an_option_validate_lacks(t
     for code in ("texture.outside", "asset.outside"):
         assert "absolute paths are not allowed" in found[code]
         assert "allow" not in found[code].replace("not allowed", ""), found[code]
+
+
+def test_a_sidecar_alone_does_not_make_up_for_missing_embedded_metadata(tmp_path):
+    """Writers embed the metadata (spec "Conformance"); the sidecar is an optional copy, and
+    vbusd's reader refuses a texture without the embedded one even when the sidecar is there. The
+    validator used to accept the sidecar in its place."""
+    import OpenEXR
+
+    from vbusd.textures import read_texture
+
+    asset = _copy("valid/crossMatrix_float16", tmp_path)
+    texture = asset.parent / "asset.Animation.exr"
+    with OpenEXR.File(str(texture)) as source:
+        header = {k: v for k, v in source.header().items() if k != "vbusd.layout"}
+        channels = {name: channel.pixels.copy() for name, channel in source.channels().items()}
+    with OpenEXR.File(header, channels) as out:
+        out.write(str(texture))
+    assert (asset.parent / "asset.Animation.exr.json").is_file()
+    with pytest.raises(InputError) as refused:  # the reader's verdict, independent of the validator
+        read_texture(texture)
+    assert refused.value.code == "metadata.missing"
+    report = validate(asset)
+    assert ("metadata.missing", "asset.Animation.exr") in _codes(report)
+    assert report.exit_status == 1

@@ -310,11 +310,19 @@ def test_interlaced_png_is_refused_like_vbusds_reader_does(tmp_path, capsys):
     itself (vbusd.png16 refuses it)."""
     import png
 
+    import io
+
     folder = _copy(PNG_FIXTURE, tmp_path / "interlaced")
-    width, height, rows, _ = png.Reader(filename=str(folder / PNG)).read()
+    original = (folder / PNG).read_bytes()
+    width, height, rows, _ = png.Reader(bytes=original).read()
     rows = [list(r) for r in rows]
+    plain = io.BytesIO()
+    png.Writer(width, height, greyscale=False, alpha=True, bitdepth=16, interlace=True).write(plain, rows)
+    chunks = list(png.Reader(bytes=plain.getvalue()).chunks())
+    # Keep the metadata chunk, so that interlacing is the one thing wrong.
+    chunks.insert(1, next(c for c in png.Reader(bytes=original).chunks() if c[0] == b"iTXt"))
     with open(folder / PNG, "wb") as handle:
-        png.Writer(width, height, greyscale=False, alpha=True, bitdepth=16, interlace=True).write(handle, rows)
+        png.write_chunks(handle, chunks)
     assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
     findings = json.loads(capsys.readouterr().out)["findings"]
     assert [(f["code"], f["location"]) for f in findings] == [

@@ -335,13 +335,18 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     out += problems
     embedded, sidecar, problems = _load_metadata(raw, texture_path, display)
     out += problems
-    if raw is not None and not raw.metadata_texts and sidecar is None and not problems:
+    if raw is not None and not raw.metadata_texts:
+        # The embedded copy is required (spec "Conformance": writers embed the metadata in the
+        # texture; the sidecar is an optional extra copy) and is what readers, vbusd's included,
+        # read: a sidecar alone does not make the texture readable. It is still checked below.
         misplaced = (f" (found {', '.join(raw.misplaced_metadata)}: readers look only at the "
                      f"{'string header attribute' if raw.container == 'exr' else 'iTXt chunk'} "
                      f"'{METADATA_KEY}')" if raw.misplaced_metadata else "")
-        out.append(finding("metadata.missing", f"no '{METADATA_KEY}' metadata in the texture and no sidecar "
-                           f"{os.path.basename(texture_path)}.json beside it{misplaced}",
-                           FileLocation(display)))
+        beside = (f"; the sidecar {sidecar_path(texture_path).name} alone is not enough"
+                  if sidecar_path(texture_path).is_file() else
+                  f", and no sidecar {sidecar_path(texture_path).name} beside it")
+        out.append(finding("metadata.missing", f"no '{METADATA_KEY}' metadata embedded in the texture"
+                           f"{misplaced}{beside}", FileLocation(display)))
     docs = [_upgraded(d, out) for d in (embedded, sidecar) if d is not None]
     meta_declared = []
     for value, file in docs:

@@ -114,8 +114,9 @@ _CODES = (
     Code("texture.padding.fraction", I, "Fraction of the texture that is padding (wasted texels).",
          f"{_VB}#padding-waste", "usd"),
     # layout metadata
-    Code("metadata.missing", E, "No layout metadata: neither embedded in the texture nor in the sidecar "
-         "<texture>.json.", f"{_VB}#layout-metadata", "file"),
+    Code("metadata.missing", E, "The texture holds no layout metadata (EXR header attribute or PNG iTXt "
+         "chunk vbusd.layout); a sidecar <texture>.json alone is not enough.", f"{_VB}#layout-metadata",
+         "file"),
     Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON.", f"{_VB}#layout-metadata",
          "file"),
     Code("metadata.duplicate", E, "The texture holds more than one vbusd.layout metadata chunk.",
