@@ -206,37 +206,6 @@ def test_failed_write_leaves_no_file_and_no_new_folder(small_rig, tmp_path, monk
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]
 
 
-def test_fast_error_check_skinning_equals_the_reference_decoder():
-    # The report's dense LBS (few bones per mesh) must give what vbusd.reference.skin gives, for
-    # repeated indices and faceVarying normals too; else the report would check something else.
-    from types import SimpleNamespace
-
-    import numpy as np
-
-    from vbusd.convert import _skin_checked
-    from vbusd.encoding import BoneTransforms
-    from vbusd.layout import Encoding
-    from vbusd.reference import skin
-
-    rng = np.random.default_rng(7)
-    n, bones, vertices, k = 5, 12, 300, 4
-    linear = rng.normal(size=(n, bones, 3, 3))
-    transforms = BoneTransforms(linear, rng.normal(size=(n, bones, 3)),
-                                np.swapaxes(np.linalg.inv(linear), -1, -2))
-    indices = rng.integers(0, bones, size=(vertices, k))
-    indices[0] = [3, 3, 5, 5]
-    weights = rng.random((vertices, k))
-    weights /= weights.sum(axis=1, keepdims=True)
-    face_points = rng.integers(0, vertices, size=700)
-    mesh = SimpleNamespace(points=rng.normal(size=(vertices, 3)), bone_indices=indices, bone_weights=weights,
-                           normals=rng.normal(size=(700, 3)))
-    points, normals = _skin_checked(transforms, Encoding.AFFINE_MATRIX, mesh, face_points)
-    expected_points, expected_normals = skin(transforms, Encoding.AFFINE_MATRIX, mesh.points, indices, weights,
-                                             mesh.normals, face_points)
-    np.testing.assert_allclose(points, expected_points, atol=1e-12)
-    np.testing.assert_allclose(normals, expected_normals, atol=1e-12)
-
-
 def test_texture_beside_the_output_is_not_replaced_without_force(small_rig, tmp_path, capsys):
     # Only x.usda is named on the command line, but x.Skel.exr and its sidecar are written too:
     # an unrelated file of that name must not be clobbered silently.

@@ -359,3 +359,31 @@ def test_near_singular_affine_bones_are_refused_before_and_after_rounding():
     # -0.5 + 1.5 * 21845 / 65535 = 0), and 5e-6 rounds to it: the stored bone is singular.
     with pytest.raises(UnsupportedError, match="'b1'.*once rounded to unorm16"):
         bake(_flattened([-0.5, 5e-6, 1.0]), BakeOptions(encoding="affineMatrix", texel_format="unorm16"))
+
+
+@pytest.mark.parametrize("bones", [12, 90])  # dense weight-matrix path and per-slot path
+def test_reference_lbs_matches_a_per_vertex_loop(bones):
+    """reference.skin against LBS written out vertex by vertex (repeated indices, faceVarying normals)."""
+    from vbusd.encoding import BoneTransforms
+
+    rng = np.random.default_rng(7)
+    n, vertices, k = 3, 40, 4
+    linear = rng.normal(size=(n, bones, 3, 3))
+    normal = np.swapaxes(np.linalg.inv(linear), -1, -2)
+    transforms = BoneTransforms(linear, rng.normal(size=(n, bones, 3)), normal)
+    indices = rng.integers(0, bones, size=(vertices, k))
+    indices[0] = [3, 3, 5, 5]
+    weights = rng.random((vertices, k))
+    weights /= weights.sum(axis=1, keepdims=True)
+    points = rng.normal(size=(vertices, 3))
+    face_points = rng.integers(0, vertices, size=70)
+    rest_normals = rng.normal(size=(70, 3))
+    got_points, got_normals = skin(transforms, "affineMatrix", points, indices, weights, rest_normals, face_points)
+    for t in range(n):
+        for v in range(vertices):
+            expected = sum(weights[v, i] * (linear[t, indices[v, i]] @ points[v] + transforms.translation[t, indices[v, i]])
+                           for i in range(k))
+            np.testing.assert_allclose(got_points[t, v], expected, atol=1e-12)
+        for j, v in enumerate(face_points):
+            blended = sum(weights[v, i] * (normal[t, indices[v, i]] @ rest_normals[j]) for i in range(k))
+            np.testing.assert_allclose(got_normals[t, j], blended / np.linalg.norm(blended), atol=1e-12)

@@ -357,59 +357,6 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
     return skin(transforms, Encoding.AFFINE_MATRIX, points, indices, w / w.sum(axis=1, keepdims=True))[0]
 
 
-DENSE_BONE_LIMIT = 64
-"""Meshes using at most this many distinct bones are checked with the dense LBS below."""
-
-
-def _weight_matrix(indices: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The bones a mesh uses and its (V, used bones) weight matrix (duplicate indices add up)."""
-    idx = np.asarray(indices, dtype=np.int64)
-    used, local = np.unique(idx, return_inverse=True)
-    local = local.reshape(idx.shape)
-    matrix = np.zeros((idx.shape[0], used.size))
-    np.add.at(matrix, (np.arange(idx.shape[0])[:, None], local), np.asarray(weights, dtype=np.float64))
-    return used, matrix
-
-
-def _skin_checked(transforms, encoding: Encoding, bound, normal_points) -> tuple:
-    """Decoded points (n, V, 3) and normals of one mesh, as :func:`vbusd.reference.skin` computes them.
-
-    Linear blend skinning is linear in the bone matrices, so for a mesh that uses few bones the
-    blend ``sum_k w_k [A|t]_k`` is one BLAS product of the (V, used bones) weight matrix with the
-    (n, used bones, 12) matrices, instead of one (n, V, 3, 3) gather per influence slot: the same
-    float64 result (tests/test_convert_cli.py checks it against reference.skin), about three times
-    faster. BrainStem (59 meshes, 19 bones), measured on 2 idle cores: this skinning 2.3 s vs 6.7 s with
-    reference.skin for the default 256 checked rows (``vbusd convert`` 5.4 s vs 9.5 s), and
-    ``vbusd decode`` of all 1,309 rows 33 s vs 109 s (to compare, set ``DENSE_BONE_LIMIT = -1``,
-    which sends every mesh through reference.skin). Dual-quaternion skinning, and meshes using many
-    bones, go through the reference decoder.
-    """
-    from .reference import skin
-
-    used, matrix = _weight_matrix(bound.bone_indices, bound.bone_weights)
-    if encoding is Encoding.DUAL_QUAT or used.size > DENSE_BONE_LIMIT:
-        return skin(transforms, encoding, bound.points, bound.bone_indices, bound.bone_weights,
-                    bound.normals, normal_points)
-    n = transforms.linear.shape[0]
-    affine = np.concatenate([transforms.linear[:, used], transforms.translation[:, used, :, None]], axis=-1)
-    blended = np.matmul(matrix, affine.reshape(n, used.size, 12)).reshape(n, -1, 3, 4)
-    p = np.asarray(bound.points, dtype=np.float64)
-    # [A|t] p row by row: four fused multiply-adds over (n, V, 3) (einsum here is 3x slower).
-    points = blended[..., 3] + blended[..., 0] * p[None, :, 0, None] + blended[..., 1] * p[None, :, 1, None] \
-        + blended[..., 2] * p[None, :, 2, None]
-    normals = None
-    if bound.normals is not None:
-        rows = matrix if normal_points is None else matrix[normal_points]
-        normal_matrices = transforms.normal[:, used].reshape(n, used.size, 9)
-        blended_normals = np.matmul(rows, normal_matrices).reshape(n, -1, 3, 3)
-        rest = np.asarray(bound.normals, dtype=np.float64)
-        normals = blended_normals[..., 0] * rest[None, :, 0, None] + blended_normals[..., 1] * rest[None, :, 1, None] \
-            + blended_normals[..., 2] * rest[None, :, 2, None]
-        length = np.linalg.norm(normals, axis=-1, keepdims=True)
-        normals = normals / np.where(length > 0, length, 1.0)
-    return points, normals
-
-
 def _chunks(total: int, size: int):
     for start in range(0, total, size):
         yield slice(start, min(total, start + size))
@@ -430,7 +377,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from .reference import bone_transforms, normal_point_indices
+    from .reference import bone_transforms, normal_point_indices, skin
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -457,8 +404,9 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 tau = chosen / clip.rows_per_second
                 times = clip.start_time + tau
                 transforms = bone_transforms(vb, clip_index, tau)
-                decoded, decoded_normals = _skin_checked(transforms, vb.layout.encoding, bound,
-                                                         normal_point_indices(bound))
+                decoded, decoded_normals = skin(transforms, vb.layout.encoding, bound.points,
+                                                bound.bone_indices, bound.bone_weights, bound.normals,
+                                                normal_point_indices(bound))
                 # Dropping influences only matters when the source has more than were kept; then
                 # compare exact-matrix LBS with all influences and with the kept ones.
                 reduced = report.source_influences > report.kept_influences

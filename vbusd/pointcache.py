@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .convert import _make_folders, _remove_folders, _skin_checked, check_output_path
+from .convert import _make_folders, _remove_folders, check_output_path
 from .errors import InputError, OptionsError, VbusdError
 from .model import VirtualBones, VirtualBonesAsset
 
@@ -72,31 +72,19 @@ class DecodeReport:
         return asdict(self)
 
 
-def _numpy_skin_mesh(vb: VirtualBones, mesh, clip_index: int, tau) -> tuple:
-    """:func:`vbusd.reference.skin_mesh`, with linear blend skinning as one BLAS product per mesh.
-
-    Same decoded transforms and the same float64 result (see :func:`vbusd.convert._skin_checked`);
-    BrainStem's 59 meshes x 1309 rows decode several times faster than with the per-influence gathers.
-    """
-    from .reference import bone_transforms, normal_point_indices
-
-    transforms = bone_transforms(vb, clip_index, tau)
-    return _skin_checked(transforms, vb.layout.encoding, mesh, normal_point_indices(mesh))
-
-
 def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, Callable, str]:
     """(skin_mesh, skin_crowd, name): warp on ``device``, else the numpy reference decoder."""
     from . import reference
 
     if device is None:
-        return _numpy_skin_mesh, reference.skin_crowd, "numpy reference"
+        return reference.skin_mesh, reference.skin_crowd, "numpy reference"
     if device not in DEVICES and not str(device).startswith("cuda:"):
         raise OptionsError(f"device must be cpu or cuda (or cuda:N), got {device!r}", file="decode")
     try:
         from . import warp_decoder
     except ImportError as error:
         warnings.append(f"warp is not available ({error}); decoding with the numpy reference decoder")
-        return _numpy_skin_mesh, reference.skin_crowd, "numpy reference"
+        return reference.skin_mesh, reference.skin_crowd, "numpy reference"
 
     def skin(vb, mesh, clip_index, tau):
         return warp_decoder.skin_mesh(vb, mesh, clip_index, tau, device=device)
