@@ -408,3 +408,15 @@ def test_undecodable_metadata_chunk_is_named(tmp_path, capsys):
     findings = json.loads(capsys.readouterr().out)["findings"]
     [missing] = [f for f in findings if f["code"] == "metadata.missing"]
     assert "cannot be decoded" in missing["message"]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+def test_a_named_pipe_sublayer_is_refused_not_waited_on(tmp_path):
+    # USD blocks forever reading a pipe; validate must refuse it before composing the stage.
+    os.mkfifo(tmp_path / "fifo.usda")
+    (tmp_path / "asset.usda").write_text('#usda 1.0\n(\n    subLayers = [@./fifo.usda@]\n)\n')
+    run = subprocess.run([sys.executable, "-m", "vbusd", "validate", str(tmp_path / "asset.usda")],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert run.returncode == 2
+    assert "file.unreadable" in run.stderr and "fifo.usda" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1 and "Traceback" not in run.stderr

@@ -119,6 +119,29 @@ def _validate_texture(path: str) -> list:
     return findings
 
 
+def _refuse_special_dependencies(Sdf, layer, seen: set) -> None:
+    """Refuse sublayers, references and payloads that are pipes, devices or folders.
+
+    USD blocks forever reading a named pipe, so such a dependency must be refused before the stage
+    is composed; missing or outside-folder layers are left to the checks (they are findings).
+    """
+    if layer.identifier in seen:
+        return
+    seen.add(layer.identifier)
+    anchor = Path(layer.realPath).parent if layer.realPath else Path(".")
+    for dependency in sorted(layer.GetCompositionAssetDependencies()):
+        if not dependency or "://" in dependency or dependency.startswith("@"):
+            continue
+        target = Path(dependency) if Path(dependency).is_absolute() else anchor / dependency
+        if target.exists() and not target.is_file():
+            raise InputError(f"layer @{dependency}@ is not a regular file (a folder, pipe, device or "
+                             f"socket)", file=layer.realPath or layer.identifier, code="file.unreadable")
+        if target.is_file():
+            child = Sdf.Layer.FindOrOpen(str(target))
+            if child is not None:
+                _refuse_special_dependencies(Sdf, child, seen)
+
+
 def open_stage(path: str):
     """Open a USD stage quietly.
 
@@ -136,7 +159,11 @@ def open_stage(path: str):
         with quiet_stderr():
             if Sdf.FileFormat.FindByExtension(Path(path).suffix.lstrip(".").lower() or "x") is None:
                 raise InputError("not a USD file (unknown extension)", file=path, code="usd.open")
-            stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+            layer = Sdf.Layer.FindOrOpen(path)
+            if layer is None:
+                raise InputError("USD cannot open the file", file=path, code="usd.open")
+            _refuse_special_dependencies(Sdf, layer, set())
+            stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
     except Tf.ErrorException as error:
         raise InputError(f"USD cannot open the file: {_usd_message(error)}", file=path,
                          code="usd.open") from None
