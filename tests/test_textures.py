@@ -732,3 +732,23 @@ def test_pipe_or_folder_as_texture_is_refused_without_blocking(tmp_path):
             assert "not a regular file" in error.message
     finally:
         signal.alarm(0)
+
+
+def test_compressed_itxt_is_bounded_against_decompression_bombs():
+    # 200 KB of deflate that would expand to 200 MiB: refused after at most 16 MiB is inflated.
+    import tracemalloc
+    import zlib
+
+    from vbusd.errors import InputError
+    from vbusd.png16 import MAX_ITXT_TEXT_BYTES, parse_itxt
+
+    bomb = zlib.compress(b" " * (200 * 1024 * 1024), 9)
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match="expands beyond"):
+            parse_itxt(b"vbusd.layout\0\x01\x00\0\0" + bomb, file="bomb.png")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 * MAX_ITXT_TEXT_BYTES
+    assert parse_itxt(b"k\0\x01\x00\0\0" + zlib.compress(b'{"a": 1}'))[1] == '{"a": 1}'

@@ -75,6 +75,10 @@ def itxt_chunk_data(keyword: str, text: str) -> bytes:
     return key + b"\0" + b"\0\0" + b"\0" + b"\0" + text.encode("utf-8")
 
 
+MAX_ITXT_TEXT_BYTES = 16 * 1024 * 1024
+"""Largest decompressed iTXt text read (layout metadata is a few kilobytes; 16 MiB as the validator)."""
+
+
 def parse_itxt(data: bytes, *, file=None, location: str = "iTXt") -> tuple[str, str]:
     """Split iTXt chunk data into (keyword, text), decompressing the text when flagged.
 
@@ -93,10 +97,14 @@ def parse_itxt(data: bytes, *, file=None, location: str = "iTXt") -> tuple[str, 
     if flag == 1:
         if method != 0:
             raise _bad(file, location, f"iTXt compression method {method} is unknown")
+        inflater = zlib.decompressobj()
         try:
-            raw = zlib.decompress(raw)
+            # Bounded: a few kilobytes of deflate can expand to gigabytes (a decompression bomb).
+            raw = inflater.decompress(raw, MAX_ITXT_TEXT_BYTES + 1)
         except zlib.error as error:
             raise _bad(file, location, f"iTXt text cannot be decompressed: {error}") from None
+        if len(raw) > MAX_ITXT_TEXT_BYTES or inflater.unconsumed_tail:
+            raise _bad(file, location, f"iTXt text expands beyond {MAX_ITXT_TEXT_BYTES} bytes")
     elif flag != 0:
         raise _bad(file, location, f"iTXt compression flag {flag} is invalid")
     try:
