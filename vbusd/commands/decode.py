@@ -25,8 +25,8 @@ import click
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
 @click.option("--crowd", "crowds", is_flag=True,
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>. "
-                   "Large: instances x points x 24 bytes per sample (the stadium: about 3 GB as .usdc, "
-                   "9 GB as .usda); prefer a .usdc output.")
+                   "Large: instances x points x 24 bytes per sample (the stadium sample: several GB; "
+                   "prefer a .usdc output).")
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
     from vbusd.commands.convert import _progress, terminate_as_interrupt
