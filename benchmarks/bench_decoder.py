@@ -58,11 +58,11 @@ if str(ROOT) not in sys.path:
 
 import warp as wp  # noqa: E402
 
-from vbusd import reference  # noqa: E402
-from vbusd import warp_decoder as wd  # noqa: E402
-from vbusd import warp_kernels as K  # noqa: E402
-from vbusd.fileio import atomic_write  # noqa: E402
-from vbusd.model import BoundMesh, Crowd  # noqa: E402
+from vbusd.decode import reference  # noqa: E402
+from vbusd.decode import warp as wd  # noqa: E402
+from vbusd.decode import warp_kernels as K  # noqa: E402
+from vbusd.io.files import atomic_write  # noqa: E402
+from vbusd.format.model import BoundMesh, Crowd  # noqa: E402
 
 COPY_BYTES = 1 << 30
 
@@ -545,7 +545,7 @@ def main(argv=None) -> int:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    """Write the results through vbusd.fileio.atomic_write: no partial results file."""
+    """Write the results through vbusd.io.files.atomic_write: no partial results file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path, "w") as stream:
         json.dump(data, stream, indent=1)

@@ -35,8 +35,8 @@ import numpy as np
 
 def make_texels(size: int, seed: int = 1):
     """A (size, size, 4) float16 crossMatrix texture of random rotations, and its layout."""
-    from vbusd.encoding import quat_to_matrix
-    from vbusd.layout import Layout
+    from vbusd.format.encoding import quat_to_matrix
+    from vbusd.format.layout import Layout
 
     bones = size // 3
     layout = Layout("crossMatrix", "float16", bones, size)
@@ -86,8 +86,8 @@ def bench_checks(texels, layout, repeat: int) -> dict:
 
 
 def write_asset(texels, layout, folder: Path) -> Path:
-    from vbusd.model import Clip, VirtualBones, VirtualBonesAsset
-    from vbusd.usd_io import write_asset as write
+    from vbusd.format.model import Clip, VirtualBones, VirtualBonesAsset
+    from vbusd.io.usd import write_asset as write
 
     bones = tuple(f"bone{i}" for i in range(layout.bone_count))
     clip = Clip("all", 0, layout.row_count, 30.0, True, 0.0)

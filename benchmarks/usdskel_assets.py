@@ -31,7 +31,7 @@ def _assets_folder(given: str | None) -> Path:
 
 def _row(folder: Path, path: Path, check_rows) -> list:
     from vbusd.convert import ConvertOptions, convert
-    from vbusd.errors import VbusdError
+    from vbusd.format.errors import VbusdError
 
     name = str(path.relative_to(folder))
     with tempfile.TemporaryDirectory() as temp:

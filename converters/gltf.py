@@ -3,19 +3,19 @@
 The normative mapping is spec/gltf-conversion.md; docs/converters/gltf.md is the user guide.
 In short:
 
-* one :class:`vbusd.model.SkinnedAnimation` per glTF skin; its bones are the skin's joints in
+* one :class:`vbusd.format.model.SkinnedAnimation` per glTF skin; its bones are the skin's joints in
   ``skin.joints`` order and its skinning matrices are ``jointWorld(t) @ inverseBind`` in the space
   of the scene root, where ``jointWorld`` walks the full node hierarchy (non-joint ancestors
   included). The skinned mesh node's own transform is ignored, as glTF 2.0 (3.7.3.3) requires;
 * one clip per glTF animation that moves a joint of the skin or an ancestor of one;
-* one :class:`vbusd.model.SkinnedMesh` per primitive of every node that uses the skin, with the
+* one :class:`vbusd.format.model.SkinnedMesh` per primitive of every node that uses the skin, with the
   rest POSITION/NORMAL as stored and every JOINTS_n/WEIGHTS_n set merged;
 * Y up, metres; 24 time codes per second; prim names made valid and unique by the rule of
   :func:`make_identifier` and :class:`NameAllocator`.
 
 pygltflib parses the container; everything it does not check (sizes, offsets, indices, URIs,
 base64, the node graph, the skin and animation rules that Khronos' glTF-Validator reports as
-errors) is checked here and raises :class:`vbusd.errors.InputError` with a JSON pointer.
+errors) is checked here and raises :class:`vbusd.format.errors.InputError` with a JSON pointer.
 """
 
 from __future__ import annotations
@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from vbusd.errors import InputError, OptionsError, UnsupportedError
-from vbusd.metadata import json_pointer
-from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
+from vbusd.format.errors import InputError, OptionsError, UnsupportedError
+from vbusd.format.metadata import json_pointer
+from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
-from .gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
+from vbusd.converters.gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
                              require_int, triangles)
-from .gltf_animation import compose_trs, sample_channel
+from vbusd.converters.gltf_animation import compose_trs, sample_channel
 
 NAME = "gltf"
 """Converter name (``vbusd convert --from gltf``)."""
@@ -203,7 +203,7 @@ def _decode_data_uri(uri: str, pointer: str, file: str) -> bytes:
 
 def _read_external(uri: str, folder: Path, length: int, pointer: str, file: str,
                    allow_outside: bool) -> bytes:
-    from vbusd.fileio import resolve_inside
+    from vbusd.io.files import resolve_inside
 
     relative = urllib.parse.unquote(uri)
     path = resolve_inside(folder, relative, file=file, location=pointer, allow_outside=allow_outside)

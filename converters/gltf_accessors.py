@@ -13,14 +13,14 @@ Values come back as float64 (or int64 for integer data that is not normalized), 
 normalized-integer rule applied (``max(c / (2^(n-1) - 1), -1)`` signed, ``c / (2^n - 1)``
 unsigned) and matrices turned into column-vector ``(count, 4, 4)`` arrays.
 
-Every problem raises :class:`vbusd.errors.InputError` with a JSON pointer.
+Every problem raises :class:`vbusd.format.errors.InputError` with a JSON pointer.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from vbusd.errors import InputError
+from vbusd.format.errors import InputError
 
 MAX_ELEMENTS = 1 << 24
 """Largest accessor count accepted (16 Mi elements): refuses absurd sizes before allocating."""

@@ -13,14 +13,14 @@ Interpolation Modes"):
   interpolation.
 
 Everything is vectorized over sample times with numpy; nothing here knows about files. The
-quaternion-to-matrix step is :func:`vbusd.encoding.quat_to_matrix`, the one the encodings use.
+quaternion-to-matrix step is :func:`vbusd.format.encoding.quat_to_matrix`, the one the encodings use.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from vbusd.encoding import quat_to_matrix
+from vbusd.format.encoding import quat_to_matrix
 
 
 KEY_TIME_TOLERANCE = 2.0 ** -23

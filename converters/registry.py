@@ -6,7 +6,7 @@ exposes:
 
 * ``NAME``: a short name (``usdskel``);
 * ``SUFFIXES``: the file suffixes it reads, lower case with the dot (``(".usd", ".usda", ...)``);
-* ``read(path, options: vbusd.model.ReadOptions) -> vbusd.model.SourceScene``;
+* ``read(path, options: vbusd.format.model.ReadOptions) -> vbusd.format.model.SourceScene``;
 * optionally ``sniff(path) -> bool``: whether the file's first bytes look like its format.
 
 :func:`find_converter` picks by suffix; when no converter claims the suffix, or several do, it asks
@@ -24,7 +24,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Optional
 
-from vbusd.errors import InputError, OptionsError
+from vbusd.format.errors import InputError, OptionsError
 
 GROUP = "vbusd.converters"
 """The entry-point group converters register in."""
@@ -169,11 +169,11 @@ def read(path, options, name: Optional[str] = None):
 
     Args:
         path: The source file.
-        options: :class:`vbusd.model.ReadOptions`.
+        options: :class:`vbusd.format.model.ReadOptions`.
         name: Force a converter by name.
 
     Returns:
-        The converter's :class:`vbusd.model.SourceScene`.
+        The converter's :class:`vbusd.format.model.SourceScene`.
 
     Raises:
         InputError: The file does not exist or the converter rejects it.

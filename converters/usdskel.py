@@ -2,7 +2,7 @@
 
 The mapping is normative in spec/usd-conversion.md; in short:
 
-* one :class:`~vbusd.model.SkinnedAnimation` per bound Skeleton, written at the Skeleton's prim
+* one :class:`~vbusd.format.model.SkinnedAnimation` per bound Skeleton, written at the Skeleton's prim
   path, with the Skeleton's joints as bones in their order;
 * bones are UsdSkel's skinning transforms carried into the stage's *world space*:
   ``M_j(t) = (S_j(t) * W_skel(t))^T`` in USD row-vector terms, where ``S_j`` is
@@ -18,7 +18,7 @@ The mapping is normative in spec/usd-conversion.md; in short:
   interpolation between samples holds.
 
 UsdSkel only warns (or stays silent) on malformed data; every rule it relies on is checked here
-first and reported as one :class:`~vbusd.errors.InputError` naming the prim.
+first and reported as one :class:`~vbusd.format.errors.InputError` naming the prim.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.errors import InputError, OptionsError, UnsupportedError
-from vbusd.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
+from vbusd.format.errors import InputError, OptionsError, UnsupportedError
+from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
 NAME = "usdskel"
 SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
@@ -607,7 +607,7 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
     Args:
         path: A .usd, .usda, .usdc or .usdz file.
         options: Which skeletons (Skeleton prim paths) and which time codes; see
-            :class:`vbusd.model.ReadOptions`.
+            :class:`vbusd.format.model.ReadOptions`.
 
     Returns:
         A :class:`UsdSkelScene`: one :class:`SkinnedAnimation` per selected skeleton with meshes,

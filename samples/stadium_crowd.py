@@ -112,7 +112,7 @@ _J = {name: i for i, name in enumerate(JOINT_NAMES)}
 # ------------------------------------------------------------------------------------------------
 # Small rotation helpers (float64, quaternions (x, y, z, w), column vectors)
 #
-# vbusd.encoding has the same Hamilton product and quaternion-to-matrix formulas (quat_multiply,
+# vbusd.format.encoding has the same Hamilton product and quaternion-to-matrix formulas (quat_multiply,
 # quat_to_matrix). They are written again here on purpose: this generator is the ground truth that
 # benchmarks/accuracy.py and the tests compare vbusd's encodings and decoders against, so its exact
 # matrices must not come from the code under test (a sign slip there would otherwise shift the
@@ -539,8 +539,8 @@ def crowd_placement(count: int = CROWD_SIZE, seed: int = CROWD_SEED) -> CrowdPla
 
 
 def _atomic_export(layer, path: Path) -> None:
-    """Export an Sdf layer to ``path`` through a temporary file beside it, then rename (vbusd.fileio)."""
-    from vbusd.fileio import atomic_write_many
+    """Export an Sdf layer to ``path`` through a temporary file beside it, then rename (vbusd.io.files)."""
+    from vbusd.io.files import atomic_write_many
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write_many() as transaction:
@@ -637,12 +637,12 @@ def write_usdskel(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
 
 
 def make_skinned_animation(rig: Optional[Rig] = None):
-    """The cheer as a :class:`vbusd.model.SkinnedAnimation`, sampling the exact float64 matrices.
+    """The cheer as a :class:`vbusd.format.model.SkinnedAnimation`, sampling the exact float64 matrices.
 
     The clip's sampler is :func:`skinning_matrices` itself (not the USD file), so the baked texture
     carries only the format's own quantization and resampling error.
     """
-    from vbusd.model import AnimationClip, SkinnedAnimation, SkinnedMesh
+    from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 
     rig = rig or build_rig()
     clip = AnimationClip(name="cheer", start_time=0.0, end_time=DURATION, sample=skinning_matrices,
@@ -673,7 +673,7 @@ def reference_bake_options(**overrides):
 
 
 def bake_reference(rig: Optional[Rig] = None, **overrides):
-    """Bake the cheer (:func:`reference_bake_options`); returns a :class:`vbusd.model.VirtualBones`."""
+    """Bake the cheer (:func:`reference_bake_options`); returns a :class:`vbusd.format.model.VirtualBones`."""
     from vbusd.bake import bake
 
     return bake(make_skinned_animation(rig), reference_bake_options(**overrides))
@@ -681,7 +681,7 @@ def bake_reference(rig: Optional[Rig] = None, **overrides):
 
 def make_asset(rig: Optional[Rig] = None):
     """The Virtual Bones asset: the baked cheer and a crowd of 1,200 spectators on one instancer."""
-    from vbusd.model import Crowd, VirtualBonesAsset
+    from vbusd.format.model import Crowd, VirtualBonesAsset
 
     baked = bake_reference(rig)
     seats = crowd_placement()
@@ -697,8 +697,8 @@ def make_asset(rig: Optional[Rig] = None):
 
 
 def write_virtual_bones(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
-    """Write the Virtual Bones asset (USD + texture + sidecar JSON) with ``vbusd.usd_io``."""
-    from vbusd import usd_io
+    """Write the Virtual Bones asset (USD + texture + sidecar JSON) with ``vbusd.io.usd``."""
+    from vbusd.io import usd as usd_io
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -724,7 +724,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument("--usdskel-only", action="store_true",
                         help="write only the UsdSkel asset (no vbusd bake)")
     args = parser.parse_args(argv)
-    from vbusd.errors import VbusdError
+    from vbusd.format.errors import VbusdError
 
     if Path(args.out).exists() and not Path(args.out).is_dir():
         print(f"stadium_crowd: {args.out}: --out must be a folder", file=sys.stderr)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 # Before any test module touches pxr.Usd: OpenUSD builds its schema registry once per process, and
-# the Virtual Bones types are in it only if vbusd registered its plugin first (vbusd.usd_plugin).
+# the Virtual Bones types are in it only if vbusd registered its plugin first (vbusd.io.usd_plugin).
 # Importing vbusd here makes that independent of which test files run and in which order.
 import vbusd  # noqa: F401,E402
 

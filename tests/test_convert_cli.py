@@ -20,7 +20,7 @@ pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 from vbusd.convert import ConvertOptions, convert  # noqa: E402
-from vbusd.errors import OptionsError  # noqa: E402
+from vbusd.format.errors import OptionsError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
@@ -191,12 +191,12 @@ def test_missing_output_folders_are_created(small_rig, tmp_path, capsys):
 def test_failed_write_leaves_no_file_and_no_new_folder(small_rig, tmp_path, monkeypatch, capsys):
     # Inject a failure while the texture is written: the transaction leaves nothing, and the
     # folders convert created for the output are removed again.
-    import vbusd.textures
+    import vbusd.io.textures
 
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(vbusd.textures, "write_texture", broken)
+    monkeypatch.setattr(vbusd.io.textures, "write_texture", broken)
     output = tmp_path / "new" / "x.usda"
     status = main(["convert", str(small_rig), "-o", str(output)])
     err = capsys.readouterr().err
@@ -222,7 +222,7 @@ def test_sigterm_while_writing_leaves_nothing(small_rig, tmp_path):
     # A scheduler's kill (SIGTERM) arrives after the texture's temporary is written: the
     # transaction must still remove it and the output folder convert created.
     code = (
-        "import os, signal, sys, vbusd.textures as t\n"
+        "import os, signal, sys, vbusd.io.textures as t\n"
         "orig = t.write_texture\n"
         "def write(*a, **k):\n"
         "    result = orig(*a, **k)\n"

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from vbusd.bake import BakeOptions, bake, reduce_influences
-from vbusd.encoding import (decode_bones, dequantize, encode_bones, make_hemispheres_continuous,
+from vbusd.format.encoding import (decode_bones, dequantize, encode_bones, make_hemispheres_continuous,
                             quantize)
-from vbusd.errors import OptionsError, UnsupportedError
-from vbusd.layout import Layout, next_power_of_two
-from vbusd.model import AnimationClip, Clip, SkinnedAnimation, SkinnedMesh
-from vbusd.reference import row_position, skin, skin_mesh
+from vbusd.format.errors import OptionsError, UnsupportedError
+from vbusd.format.layout import Layout, next_power_of_two
+from vbusd.format.model import AnimationClip, Clip, SkinnedAnimation, SkinnedMesh
+from vbusd.decode.reference import row_position, skin, skin_mesh
 
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
@@ -364,7 +364,7 @@ def test_near_singular_affine_bones_are_refused_before_and_after_rounding():
 @pytest.mark.parametrize("bones", [12, 90])  # dense weight-matrix path and per-slot path
 def test_reference_lbs_matches_a_per_vertex_loop(bones):
     """reference.skin against LBS written out vertex by vertex (repeated indices, faceVarying normals)."""
-    from vbusd.encoding import BoneTransforms
+    from vbusd.format.encoding import BoneTransforms
 
     rng = np.random.default_rng(7)
     n, vertices, k = 3, 40, 4

@@ -109,8 +109,8 @@ def test_warp_cpu_decoder_matches_numpy(converted, tmp_path, capsys):
 def test_crowd_decoding_places_every_instance(converted, tmp_path):
     # A crowd of three instances, written by the USD writer, decoded with --crowd; each instance must
     # equal UsdSkel's skinned mesh at its own clip time, rotated and moved by the instance transform.
-    from vbusd.model import Crowd, VirtualBonesAsset
-    from vbusd.usd_io import read_asset, write_asset
+    from vbusd.format.model import Crowd, VirtualBonesAsset
+    from vbusd.io.usd import read_asset, write_asset
 
     source, asset_path = converted
     asset = read_asset(asset_path)

@@ -5,7 +5,7 @@ The independent evaluator below is written from the glTF 2.0 specification strai
 objects: its own accessor reads (byteStride honoured), its own node-world walk (the skinned mesh
 node's transform ignored, non-joint ancestors included), its own LINEAR/slerp sampling and LBS with
 JOINTS_0/WEIGHTS_0. It shares no code with vbusd.converters.gltf. The decoded points come from
-``vbusd.bake.bake`` (affineMatrix, float32) and ``vbusd.reference.skin_mesh_at_rows``: at every
+``vbusd.bake.bake`` (affineMatrix, float32) and ``vbusd.decode.reference.skin_mesh_at_rows``: at every
 texture row they must equal the evaluator's points at that row's source time.
 """
 
@@ -34,7 +34,7 @@ WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 def _read(path: Path, clips: tuple = ()):
     """gltf.read, cached: pygltflib's JSON decoding dominates the time of these tests."""
     from vbusd.converters import gltf
-    from vbusd.model import ReadOptions
+    from vbusd.format.model import ReadOptions
 
     return gltf.read(path, ReadOptions(clips=clips))
 
@@ -83,7 +83,7 @@ class Independent:
 
     @staticmethod
     def quat_matrix(q):
-        # Written out again on purpose (vbusd.encoding.quat_to_matrix is what the converter uses):
+        # Written out again on purpose (vbusd.format.encoding.quat_to_matrix is what the converter uses):
         # the oracle must not share the code it checks.
         x, y, z, w = q / np.linalg.norm(q)
         return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -158,7 +158,7 @@ class Independent:
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_asset_converts_and_decodes_like_the_spec(path):
     from vbusd.bake import BakeOptions, bake
-    from vbusd.reference import skin_mesh_at_rows
+    from vbusd.decode.reference import skin_mesh_at_rows
 
     ref = _independent(path)
     checked = 0
@@ -193,7 +193,7 @@ def test_asset_converts_and_decodes_like_the_spec(path):
 def test_cross_matrix_converts_or_names_the_scaled_bone(path):
     """crossMatrix holds rigid transforms only: scaled joints (RecursiveSkeletons) are refused by name."""
     from vbusd.bake import BakeOptions, bake
-    from vbusd.errors import UnsupportedError
+    from vbusd.format.errors import UnsupportedError
 
     scene = _read(path)
     for animation in scene.animations[:6]:

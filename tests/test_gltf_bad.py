@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from vbusd.converters import gltf
-from vbusd.errors import InputError, VbusdError
+from vbusd.format.errors import InputError, VbusdError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 BAD_DIR = FIXTURES / "bad"

@@ -21,8 +21,8 @@ def _vbusd(*args, cwd):
 
 
 def test_convert_glb_round_trip(tmp_path):
-    from vbusd.reference import skin_mesh
-    from vbusd.usd_io import read_asset
+    from vbusd.decode.reference import skin_mesh
+    from vbusd.io.usd import read_asset
 
     out = tmp_path / "bar.usda"
     result = _vbusd("convert", str(FIXTURES / "bar.glb"), "-o", str(out), "--texel-format",

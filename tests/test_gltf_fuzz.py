@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from vbusd.converters import gltf
-from vbusd.errors import VbusdError
+from vbusd.format.errors import VbusdError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 VALUES = [None, -1, 0, 1, 2, 3, 7, 10 ** 12, 1.5, "x", "", [], {}, [1, 2], True, 1e308,

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from vbusd.converters import gltf
-from vbusd.errors import OptionsError, UnsupportedError
-from vbusd.model import ReadOptions
+from vbusd.format.errors import OptionsError, UnsupportedError
+from vbusd.format.model import ReadOptions
 
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 S = math.sqrt(0.5)

@@ -28,7 +28,7 @@ import pytest
 
 from vbusd.converters import gltf
 from vbusd.converters.gltf_animation import sample_channel
-from vbusd.errors import VbusdError
+from vbusd.format.errors import VbusdError
 
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 S = math.sqrt(0.5)

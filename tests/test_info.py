@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd import textures
+from vbusd.io import textures
 from vbusd.cli import main
-from vbusd.layout import Layout
-from vbusd.model import Clip, VirtualBones
+from vbusd.format.layout import Layout
+from vbusd.format.model import Clip, VirtualBones
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
@@ -94,7 +94,7 @@ def _usd_asset(tmp_path):
     """
     from pxr import Sdf, Usd, Vt
 
-    import vbusd.usd_plugin  # noqa: F401  registers the schema
+    import vbusd.io.usd_plugin  # noqa: F401  registers the schema
 
     path = tmp_path / "crowd.usda"
     stage = Usd.Stage.CreateNew(str(path))
@@ -172,8 +172,8 @@ def test_usd_attributes_are_checked_as_the_reader_checks_them(tmp_path, capsys, 
 
 
 def test_usd_asset_written_by_usd_io(tmp_path, capsys):
-    from vbusd import usd_io
-    from vbusd.model import VirtualBonesAsset
+    from vbusd.io import usd as usd_io
+    from vbusd.format.model import VirtualBonesAsset
 
     vb = talk_vb()
     path = tmp_path / "crowd.usda"

@@ -15,10 +15,10 @@ import jsonschema
 import numpy as np
 import pytest
 
-from vbusd import metadata as md
-from vbusd.errors import InputError, VersionError
-from vbusd.layout import Layout
-from vbusd.model import Clip, VirtualBones
+from vbusd.format import metadata as md
+from vbusd.format.errors import InputError, VersionError
+from vbusd.format.layout import Layout
+from vbusd.format.model import Clip, VirtualBones
 
 KEYS = {"format", "formatVersion", "generator", "encoding", "texelFormat", "boneCount",
         "texelsPerBone", "rowCount", "usedWidth", "width", "height", "horizontalPadding",

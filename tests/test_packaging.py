@@ -93,7 +93,7 @@ def _dist_info_file(wheel_path: Path, name: str) -> str:
 
 def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
     required = [
-        "vbusd/__init__.py", "vbusd/cli.py", "vbusd/layout.py",
+        "vbusd/__init__.py", "vbusd/cli/__init__.py", "vbusd/format/layout.py",
         "vbusd/converters/__init__.py", "vbusd/validators/__init__.py",
         "vbusd/schema/__init__.py", "vbusd/schema/usd/__init__.py",
         "vbusd/schema/usd/plugInfo.json", "vbusd/schema/usd/generatedSchema.usda",

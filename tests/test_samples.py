@@ -4,7 +4,7 @@
   wound parts; convex weights), not by re-running the generator's own code.
 * The committed UsdSkel asset is skinned by UsdSkel itself (in a fresh interpreter, so any warning
   OpenUSD prints is seen) and compared with an independent float64 LBS of the generator's matrices.
-* The committed Virtual Bones asset is read back with vbusd.usd_io and decoded with the numpy
+* The committed Virtual Bones asset is read back with vbusd.io.usd and decoded with the numpy
   reference decoder at every row; UsdSkel's skinning of the UsdSkel asset at the same times is the
   reference (the error bound comes from float16 texels: 2e-3 of the bounding-box diagonal).
 * Regenerating into a temporary folder (the generator's command line) takes under 10 s and gives
@@ -199,7 +199,7 @@ def test_usdskel_skinning_matches_float64_lbs_of_the_generator(usdskel_probe, ge
 
 @pytest.fixture(scope="module")
 def vb_asset():
-    usd_io = pytest.importorskip("vbusd.usd_io")
+    usd_io = pytest.importorskip("vbusd.io.usd")
     return usd_io.read_asset(VB)
 
 
@@ -245,7 +245,7 @@ def test_vb_crowd_is_1200_spectators_facing_the_pitch(vb_asset):
 
 def test_vb_decode_matches_usdskel_at_every_row(vb_asset, usdskel_probe):
     from pxr import Usd, UsdSkel, Vt
-    from vbusd import reference
+    from vbusd.decode import reference
 
     (vb,) = vb_asset.animations
     (mesh,) = vb.meshes
@@ -322,7 +322,7 @@ def test_regenerated_usdskel_describes_the_same_rig(regenerated):
 
 
 def test_regenerated_vb_asset_describes_the_same_texture_and_crowd(regenerated, vb_asset):
-    from vbusd import usd_io
+    from vbusd.io import usd as usd_io
 
     out, _ = regenerated
     new = usd_io.read_asset(out / VB.name)
@@ -355,9 +355,10 @@ def _readme_convert_arguments() -> list:
 def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
     import os
 
-    from vbusd import reference, usd_io
+    from vbusd.decode import reference
+    from vbusd.io import usd as usd_io
 
-    if importlib.util.find_spec("vbusd.commands.convert") is None:
+    if importlib.util.find_spec("vbusd.cli.convert") is None:
         pytest.skip("vbusd convert not available")
     arguments = _readme_convert_arguments()
     output = arguments.index("-o") + 1

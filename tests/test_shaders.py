@@ -3,7 +3,7 @@
 GLSL is compiled by the OpenGL driver (any EGL device; Mesa's llvmpipe without a GPU). HLSL is
 compiled by glslang's HLSL front end to SPIR-V, cross-compiled to GLSL by spirv-cross, and run the
 same way. Skinned positions and normals come back through transform feedback and are compared with
-vbusd.reference, which is independent of the shader text, at row times, mid-row times and across a
+vbusd.decode.reference, which is independent of the shader text, at row times, mid-row times and across a
 looping clip's wrap, with per-instance clips, time offsets and playback rates.
 """
 
@@ -27,9 +27,9 @@ import pytest
 
 from vbusd.bake import BakeOptions, bake
 from vbusd.cli import main
-from vbusd.model import AnimationClip, SkinnedAnimation, SkinnedMesh
-from vbusd.reference import skin_mesh
-from vbusd.shaders import ShaderOptions, generate
+from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
+from vbusd.decode.reference import skin_mesh
+from vbusd.decode.shaders import ShaderOptions, generate
 
 try:
     import moderngl
@@ -409,7 +409,7 @@ def test_committed_sample_files_with_their_crowd(gl, lang, tmp_path):
         pytest.skip("the committed sample is not in this checkout")
     if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
         pytest.skip("glslang-tools and spirv-cross are not installed")
-    from vbusd.usd_io import read_asset
+    from vbusd.io.usd import read_asset
 
     asset = read_asset(SAMPLE)
     vb, crowd = asset.animations[0], asset.crowds[0]
@@ -683,7 +683,7 @@ def test_written_textures_ask_importers_for_no_colour_processing(tmp_path):
     """The files vbusd writes carry nothing that makes an importer apply sRGB, mips or lossy codecs."""
     import OpenEXR
 
-    from vbusd.textures import write_texture
+    from vbusd.io.textures import write_texture
 
     animation = _chain_animation(scaled=False)
     png_vb = bake(animation, BakeOptions(texel_format="unorm16"))

@@ -6,7 +6,7 @@ They check four things against independent, hand-computed values:
   worked example (tests/fixtures/spec/talk-18-bones.json) and other valid fixtures pass, each
   invalid fixture fails at the place it was broken;
 * the worked example's sizes and digest are what the spec derives by hand (64, 512, 262,144; the
-  digest of the bind-pose texture) and what :class:`vbusd.layout.Layout` computes;
+  digest of the bind-pose texture) and what :class:`vbusd.format.layout.Layout` computes;
 * the spec cannot drift silently from docs/architecture.md: every metadata key and every USD
   attribute name listed there appears in the spec, and the schema's keys are exactly that list;
 * the spec's numeric examples (texel values of one bone, unorm16 rounding, row positions,
@@ -166,7 +166,7 @@ def test_talk_example_hand_computed_sizes(talk):
 
 
 def test_talk_example_matches_layout(talk):
-    from vbusd.layout import Layout
+    from vbusd.format.layout import Layout
 
     layout = Layout(talk["encoding"], talk["texelFormat"], talk["boneCount"], talk["rowCount"],
                     talk["horizontalPadding"], talk["verticalPadding"])
@@ -186,7 +186,7 @@ def test_talk_example_digest_is_the_bind_pose_texture(talk):
 
 
 def test_talk_example_digest_agrees_with_library(talk):
-    from vbusd import metadata
+    from vbusd.format import metadata
     assert metadata.content_digest(_bind_pose_texels()) == talk["contentDigest"]
 
 
@@ -221,7 +221,7 @@ def test_talk_example_byte_offset_in_spec():
 
 
 def test_library_accepts_valid_fixtures():
-    from vbusd import metadata
+    from vbusd.format import metadata
     for name in VALID:
         info = metadata.from_dict(_load(FIXTURES / name), file=name)
         assert info.layout.texel_bytes == _load(FIXTURES / name)["texelBytes"]
@@ -279,8 +279,8 @@ def test_invalid_fixture_fails_schema_at_its_place(validator, name):
 @pytest.mark.parametrize("name", sorted(INVALID))
 def test_invalid_fixture_is_refused_by_library(name):
     """vbusd's reader refuses what the schema refuses (newer versions with a VersionError)."""
-    from vbusd import metadata
-    from vbusd.errors import InputError, VersionError
+    from vbusd.format import metadata
+    from vbusd.format.errors import InputError, VersionError
 
     expected = VersionError if name == "newer-format-version" else InputError
     with pytest.raises(expected):
@@ -315,8 +315,8 @@ def test_relation_fixture_passes_schema_but_breaks_the_rule(validator, name):
 
 @pytest.mark.parametrize("name", sorted(RELATIONS))
 def test_relation_fixture_is_refused_by_library_at_its_place(name):
-    from vbusd import metadata
-    from vbusd.errors import InputError
+    from vbusd.format import metadata
+    from vbusd.format.errors import InputError
 
     with pytest.raises(InputError) as caught:
         metadata.from_dict(_load(FIXTURES / "invalid-relations" / f"{name}.json"), file=name)
@@ -504,7 +504,7 @@ def test_example_bits_are_in_spec_and_follow_from_values(spec_text, encoding):
 
 @pytest.mark.parametrize("encoding", sorted(EXAMPLE_TEXELS))
 def test_example_texels_agree_with_library(encoding):
-    from vbusd.encoding import decode_bones, encode_bones, quantize
+    from vbusd.format.encoding import decode_bones, encode_bones, quantize
 
     values, bits = EXAMPLE_TEXELS[encoding]
     encoded = encode_bones(EXAMPLE_MATRIX[None], encoding)[0]
@@ -518,7 +518,7 @@ def test_example_texels_agree_with_library(encoding):
 
 def test_unorm16_example_agrees_with_library():
     """Spec 9.3: range [-1, 1]: 0.70710678 -> 55938, 0 -> 32768 (tie to even), 1 -> 65535."""
-    from vbusd.encoding import dequantize, quantize
+    from vbusd.format.encoding import dequantize, quantize
 
     values = np.array([S, 0.0, 1.0, -1.0]).reshape(4, 1, 1, 1) * np.ones((1, 1, 1, 4))
     ranges = np.tile(np.array([-1.0, 1.0]), (1, 4, 1))  # T = 1 slot for this test
@@ -530,7 +530,7 @@ def test_unorm16_example_agrees_with_library():
 
 def test_cross_matrix_and_quat_interpolation_examples():
     """Spec 6: halfway between identity and the example, crossMatrix shrinks, nlerp gives 45°."""
-    from vbusd.encoding import decode_bones
+    from vbusd.format.encoding import decode_bones
 
     identity = np.array([[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 0, 1]], dtype=np.float64)
     example = np.array(EXAMPLE_TEXELS["crossMatrix"][0], dtype=np.float64)
@@ -551,8 +551,8 @@ def test_cross_matrix_and_quat_interpolation_examples():
 ])
 def test_row_position_examples_agree_with_reference(tau, i0, i1, f):
     """Spec 7: the 10 s loop in 512 rows at 51.2 rows/s."""
-    from vbusd.model import Clip
-    from vbusd.reference import row_position
+    from vbusd.format.model import Clip
+    from vbusd.decode.reference import row_position
 
     clip = Clip("cheer", 0, 512, 51.2, True, 0.0)
     a, b, g = row_position(clip, tau)
@@ -561,8 +561,8 @@ def test_row_position_examples_agree_with_reference(tau, i0, i1, f):
 
 
 def test_clamped_row_position_holds_ends():
-    from vbusd.model import Clip
-    from vbusd.reference import row_position
+    from vbusd.format.model import Clip
+    from vbusd.decode.reference import row_position
 
     clip = Clip("cheer", 0, 301, 30.0, False, 0.0)  # spec 7: (301 - 1) / 30 = 10 s
     for tau, expected in ((-1.0, (0, 1, 0.0)), (10.0, (300, 300, 0.0)), (25.0, (300, 300, 0.0)),
@@ -575,7 +575,7 @@ def test_clamped_row_position_holds_ends():
 def test_vertical_power_of_two_plan_of_the_talk():
     """Spec 10.2: a 10 s loop at 30 fps (300 rows) becomes 512 rows at 51.2 rows/s."""
     from vbusd.bake import BakeOptions, plan_rows
-    from vbusd.model import AnimationClip
+    from vbusd.format.model import AnimationClip
 
     clip = AnimationClip("cheer", 0.0, 10.0, sample=lambda times: None, native_rate=30.0, loop=True)
     (plan,) = plan_rows((clip,), [True], BakeOptions(vertical_padding="powerOfTwo"))
@@ -596,7 +596,7 @@ def test_unorm_ranges_example_is_binary32_exact(spec_text):
 def test_vertical_power_of_two_tiny_clip_example(spec_text):
     """Spec 10.2's examples: tiny clips keep one row and the rows never exceed the power of two."""
     from vbusd.bake import BakeOptions, plan_rows
-    from vbusd.model import AnimationClip
+    from vbusd.format.model import AnimationClip
 
     assert "The short\nclip keeps one row, the long one 511 (51.1 rows/s)" in spec_text
     clips = tuple(AnimationClip(name, 0.0, duration, sample=lambda times: None, native_rate=30.0, loop=True)

@@ -21,11 +21,11 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from vbusd import metadata as md
-from vbusd import textures
-from vbusd.errors import InputError, OptionsError, VersionError
-from vbusd.layout import Layout
-from vbusd.model import Clip, VirtualBones
+from vbusd.format import metadata as md
+from vbusd.io import textures
+from vbusd.format.errors import InputError, OptionsError, VersionError
+from vbusd.format.layout import Layout
+from vbusd.format.model import Clip, VirtualBones
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 FORMATS = (("float16", ".exr"), ("float32", ".exr"), ("unorm16", ".png"))
@@ -739,8 +739,8 @@ def test_compressed_itxt_is_bounded_against_decompression_bombs():
     import tracemalloc
     import zlib
 
-    from vbusd.errors import InputError
-    from vbusd.png16 import MAX_ITXT_TEXT_BYTES, parse_itxt
+    from vbusd.format.errors import InputError
+    from vbusd.io.png import MAX_ITXT_TEXT_BYTES, parse_itxt
 
     bomb = zlib.compress(b" " * (200 * 1024 * 1024), 9)
     tracemalloc.start()

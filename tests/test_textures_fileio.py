@@ -9,10 +9,10 @@ import time
 import numpy as np
 import pytest
 
-from vbusd import fileio, textures
-from vbusd.errors import InputError
-from vbusd.layout import Layout
-from vbusd.model import Clip, VirtualBones
+from vbusd.io import files as fileio, textures
+from vbusd.format.errors import InputError
+from vbusd.format.layout import Layout
+from vbusd.format.model import Clip, VirtualBones
 
 
 def small_vb(value: float) -> VirtualBones:

@@ -1,4 +1,4 @@
-"""USD writer and reader of Virtual Bones assets (vbusd.usd_io).
+"""USD writer and reader of Virtual Bones assets (vbusd.io.usd).
 
 Round trips for every encoding x texel format with random valid data; the written files inspected
 with plain pxr (independent of vbusd's reader) against hand-computed values; quaternion order checked
@@ -17,11 +17,11 @@ import pytest
 pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
-from vbusd import metadata as md  # noqa: E402
-from vbusd import usd_io  # noqa: E402
-from vbusd.errors import InputError, OptionsError  # noqa: E402
-from vbusd.layout import Encoding, Layout, Padding, TexelFormat  # noqa: E402
-from vbusd.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset  # noqa: E402
+from vbusd.format import metadata as md  # noqa: E402
+from vbusd.io import usd as usd_io  # noqa: E402
+from vbusd.format.errors import InputError, OptionsError  # noqa: E402
+from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat  # noqa: E402
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset  # noqa: E402
 
 ENCODINGS = [e.value for e in Encoding]
 FORMATS = [f.value for f in TexelFormat]
@@ -308,7 +308,7 @@ def _listing(folder: Path) -> dict:
 
 
 def test_failed_texture_write_leaves_nothing(tmp_path, monkeypatch):
-    import vbusd.exr
+    import vbusd.io.exr
 
     rng = np.random.default_rng(4)
     first = make_animation(rng, "crossMatrix", "float16", path="/VirtualBones/A/Anim")
@@ -318,7 +318,7 @@ def test_failed_texture_write_leaves_nothing(tmp_path, monkeypatch):
     (tmp_path / "crowd.Other.exr").write_bytes(b"old texture")
     before = _listing(tmp_path)
 
-    real_write_exr = vbusd.exr.write_exr
+    real_write_exr = vbusd.io.exr.write_exr
     calls = []
 
     def failing_write_exr(path, *args, **kwargs):
@@ -328,7 +328,7 @@ def test_failed_texture_write_leaves_nothing(tmp_path, monkeypatch):
             raise OSError("disk full (injected)")
         return real_write_exr(path, *args, **kwargs)
 
-    monkeypatch.setattr(vbusd.exr, "write_exr", failing_write_exr)
+    monkeypatch.setattr(vbusd.io.exr, "write_exr", failing_write_exr)
     with pytest.raises(OSError, match="injected"):
         usd_io.write_asset(asset, tmp_path / "crowd.usda")
     assert len(calls) == 2 and all(p.parent == tmp_path and p.name != "crowd.A.exr" for p in calls)
@@ -553,7 +553,7 @@ def test_unknown_token_is_refused(written):
 
 
 def test_newer_format_version_is_refused(written):
-    from vbusd.errors import VersionError
+    from vbusd.format.errors import VersionError
 
     _edit(written, "vb:formatVersion = 1", "vb:formatVersion = 2")
     with pytest.raises(VersionError):
@@ -726,7 +726,7 @@ def Xform "Rig"
 @pytest.fixture
 def hand_written(tmp_path):
     """A Virtual Bones asset written by hand (not by vbusd's writer), with its texture."""
-    from vbusd.textures import write_texture
+    from vbusd.io.textures import write_texture
 
     layout = Layout("crossMatrix", "float16", 2, 3)  # 6 columns -> 8 (powerOfTwo), 3 rows
     texels = np.zeros(layout.shape, "<f2")

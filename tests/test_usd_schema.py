@@ -18,7 +18,7 @@ import pytest
 pxr = pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402  (registers the plugin)
-from vbusd import usd_plugin  # noqa: E402
+from vbusd.io import usd_plugin  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA_DIR = REPO / "schema" / "usd"
@@ -197,7 +197,7 @@ def test_plugin_dir_is_the_package_data_folder():
 _PROBE = r"""
 import json, os, sys
 import vbusd
-from vbusd import usd_plugin
+from vbusd.io import usd_plugin
 state = {"pxr_loaded_by_import": any(m.startswith("pxr.") for m in sys.modules),
          "plugin_path": os.environ.get("PXR_PLUGINPATH_NAME"),
          "vbusd_file": vbusd.__file__, "plugin_dir": str(usd_plugin.plugin_dir())}
@@ -239,8 +239,8 @@ Usd.Stage.Open(sys.argv[1])
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     import vbusd
-from vbusd import usd_io, usd_plugin
-from vbusd.errors import VbusdError
+from vbusd.io import usd as usd_io, usd_plugin
+from vbusd.format.errors import VbusdError
 sample = Usd.Stage.Open(sys.argv[2])
 body = sample.GetPrimAtPath("/StadiumCrowd/Body")
 state = {"warnings": [(w.category.__name__, str(w.message), os.path.basename(w.filename)) for w in caught],

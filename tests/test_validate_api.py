@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from vbusd.cli import main
-from vbusd.errors import InputError
+from vbusd.format.errors import InputError
 from vbusd.validators import checks_bindings
 from vbusd.validators.api import validate
 
@@ -223,7 +223,7 @@ def test_only_texture_json_is_the_sidecar(tmp_path):
 
 
 # The spec's list ("OpenEXR": NONE, RLE, ZIPS, ZIP, PIZ are allowed), spelled as OpenEXR names them,
-# so the test does not share the validator's (vbusd.exr's) list.
+# so the test does not share the validator's (vbusd.io.exr's) list.
 @pytest.mark.parametrize("compression,allowed", [
     ("NO_COMPRESSION", True), ("RLE_COMPRESSION", True), ("ZIPS_COMPRESSION", True),
     ("ZIP_COMPRESSION", True), ("PIZ_COMPRESSION", True), ("PXR24_COMPRESSION", False),
@@ -269,7 +269,7 @@ def test_a_sidecar_alone_does_not_make_up_for_missing_embedded_metadata(tmp_path
     validator used to accept the sidecar in its place."""
     import OpenEXR
 
-    from vbusd.textures import read_texture
+    from vbusd.io.textures import read_texture
 
     asset = _copy("valid/crossMatrix_float16", tmp_path)
     texture = asset.parent / "asset.Animation.exr"

@@ -11,7 +11,7 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from vbusd.validators import codes
+from vbusd.format import codes
 from vbusd.validators.api import validate
 from vbusd.validators.findings import FileLocation, Finding, JsonPointer, TexelAddress, UsdSite, finding
 from vbusd.validators.report import build_report
@@ -24,11 +24,11 @@ SPEC = ROOT / "spec"
 def test_issues_md_is_generated_from_the_registry():
     committed = (SPEC / "ISSUES.md").read_text(encoding="utf-8")
     assert committed == codes.markdown(), (
-        "spec/ISSUES.md is stale: run `python -m vbusd.validators.codes --markdown > spec/ISSUES.md`")
+        "spec/ISSUES.md is stale: run `python -m vbusd.format.codes --markdown > spec/ISSUES.md`")
 
 
 def test_generator_command_prints_the_same_text():
-    result = subprocess.run([sys.executable, "-m", "vbusd.validators.codes", "--markdown"],
+    result = subprocess.run([sys.executable, "-m", "vbusd.format.codes", "--markdown"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0
     assert result.stdout == (SPEC / "ISSUES.md").read_text(encoding="utf-8")
@@ -117,7 +117,7 @@ def test_text_report_groups_by_severity_with_locations():
 
 
 # Dotted names in the validators that are not validation codes: the codes of exceptions raised
-# before any report exists (vbusd.errors, exit 2), and format / resource names.
+# before any report exists (vbusd.format.errors, exit 2), and format / resource names.
 NOT_VALIDATION_CODES = {"file.missing", "file.unreadable", "options.code", "usd.open", "usd.validation",
                         "vbusd.layout", "vbusd.schema", "vbusd.validationReport", "vbusd.virtualBones"}
 
@@ -129,7 +129,7 @@ def test_every_code_string_in_the_validators_is_registered():
 
     pattern = re.compile(r"[a-z][A-Za-z0-9]*(\.[a-zA-Z][A-Za-z0-9]*)+")
     unregistered = []
-    sources = sorted((ROOT / "validators").glob("*.py")) + [ROOT / "vbusd" / "commands" / "validate.py"]
+    sources = sorted((ROOT / "validators").glob("*.py")) + [ROOT / "vbusd" / "cli" / "validate.py"]
     for source in sources:
         for node in ast.walk(ast.parse(source.read_text(encoding="utf-8"))):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and pattern.fullmatch(node.value) \

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from vbusd.validators import codes
+from vbusd.format import codes
 from vbusd.validators.api import validate
 
 FIXTURES = Path(__file__).parent / "fixtures" / "validate"

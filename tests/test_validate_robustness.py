@@ -307,7 +307,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
 
 def test_interlaced_png_is_refused_like_vbusds_reader_does(tmp_path, capsys):
     """The spec's PNG is non-interlaced; pypng decodes Adam7 happily, so the validator must say so
-    itself (vbusd.png16 refuses it)."""
+    itself (vbusd.io.png refuses it)."""
     import png
 
     import io
@@ -372,8 +372,8 @@ def test_metadata_only_counts_where_the_spec_puts_it(tmp_path, capsys, case):
     nothing else (spec "Texture files"); vbusd's reader refuses a texture whose metadata sits
     anywhere else, so the validator must not accept it either (it once took any text chunk or
     attribute with "layout" in its name)."""
-    from vbusd.errors import InputError
-    from vbusd.textures import read_texture
+    from vbusd.format.errors import InputError
+    from vbusd.io.textures import read_texture
 
     if case.startswith("png"):
         folder, name = _copy(PNG_FIXTURE, tmp_path / case), PNG

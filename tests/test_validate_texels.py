@@ -14,12 +14,12 @@ import math
 import numpy as np
 import pytest
 
-from vbusd.layout import Layout
+from vbusd.format.layout import Layout
 from vbusd.validators import checks_texels as ct
 
 
 def _random_rotations(n, rng):
-    # Written out rather than vbusd.encoding.quat_to_matrix: the inputs of these tests must not
+    # Written out rather than vbusd.format.encoding.quat_to_matrix: the inputs of these tests must not
     # depend on the package under test.
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)

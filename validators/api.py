@@ -1,7 +1,7 @@
 """Validate an asset: the library entry point behind ``vbusd validate``.
 
 :func:`validate` accepts a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``), a texture
-(``.exr``, ``.png``) or a sidecar (``.json``). It raises :class:`vbusd.errors.InputError` only when
+(``.exr``, ``.png``) or a sidecar (``.json``). It raises :class:`vbusd.format.errors.InputError` only when
 the asset cannot be opened at all (missing file, USD that does not parse, a texture or sidecar
 given on its own that cannot be decoded); everything wrong inside a readable asset is a finding.
 A check that fails unexpectedly becomes an ``asset.internal`` finding instead of a traceback, so
@@ -15,11 +15,11 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from vbusd.errors import InputError, OptionsError
+from vbusd.format.errors import InputError, OptionsError
 
-from . import codes as _codes
-from .findings import FileLocation, UsdSite, finding
-from .report import Report, build_report
+from vbusd.format import codes as _codes
+from vbusd.validators.findings import FileLocation, UsdSite, finding
+from vbusd.validators.report import Report, build_report
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 TEXTURE_SUFFIXES = (".exr", ".png", ".json")
@@ -91,8 +91,8 @@ def guarded(check, *args, location=None):
 
 
 def _validate_texture(path: str) -> list:
-    from .checks_animation import check_texture_only
-    from .rawtexture import read_metadata_file
+    from vbusd.validators.checks_animation import check_texture_only
+    from vbusd.validators.rawtexture import read_metadata_file
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
@@ -148,12 +148,12 @@ def open_stage(path: str):
     Raises:
         InputError: The file does not parse (USD's own message, condensed to one line).
     """
-    import vbusd.usd_plugin as plugin
+    import vbusd.io.usd_plugin as plugin
 
     plugin.register()
     from pxr import Sdf, Tf, Usd
 
-    from .rawtexture import quiet_stderr
+    from vbusd.validators.rawtexture import quiet_stderr
 
     try:
         with quiet_stderr():
@@ -197,8 +197,8 @@ def _validate_usd(path: str) -> list:
 def _layers_outside(stage, asset_dir: str) -> list:
     """``asset.outside``: sublayers, references and payloads must resolve inside the asset's folder
     (the rule ``vb:texture`` follows; vbusd's reader refuses them otherwise)."""
-    from vbusd.errors import InputError
-    from vbusd.fileio import resolve_inside
+    from vbusd.format.errors import InputError
+    from vbusd.io.files import resolve_inside
 
     root = Path(asset_dir).resolve()
     out = []
@@ -230,10 +230,10 @@ def validate_stage(stage, asset_dir: str) -> list:
     """
     from pxr import Usd
 
-    from .checks_animation import check_animation_prim
-    from .checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
-    from .declared import ANIMATION_TYPE
-    from .rawtexture import quiet_stderr
+    from vbusd.validators.checks_animation import check_animation_prim
+    from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
+    from vbusd.validators.declared import ANIMATION_TYPE
+    from vbusd.validators.rawtexture import quiet_stderr
 
     findings = []
     animations = 0

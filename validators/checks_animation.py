@@ -19,16 +19,16 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.exr import LOSSLESS as EXR_LOSSLESS
-from vbusd.exr import METADATA_ATTRIBUTE
-from vbusd.layout import FORMAT_VERSION, TexelFormat
-from vbusd.metadata import json_pointer
-from vbusd.textures import sidecar_path
+from vbusd.io.exr import LOSSLESS as EXR_LOSSLESS
+from vbusd.io.exr import METADATA_ATTRIBUTE
+from vbusd.format.layout import FORMAT_VERSION, TexelFormat
+from vbusd.format.metadata import json_pointer
+from vbusd.io.textures import sidecar_path
 
-from . import checks_texels as texels_checks
-from .declared import Declared, from_metadata, from_prim, same_value
-from .findings import FileLocation, JsonPointer, UsdSite, finding
-from .rawtexture import parse_metadata, read_metadata_file, read_texture
+from vbusd.validators import checks_texels as texels_checks
+from vbusd.validators.declared import Declared, from_metadata, from_prim, same_value
+from vbusd.validators.findings import FileLocation, JsonPointer, UsdSite, finding
+from vbusd.validators.rawtexture import parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")
 COMPARED_KEYS = ("formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone", "rowCount",
@@ -168,7 +168,7 @@ def check_metadata_schema(meta, file: str):
     if isinstance(meta, dict) and isinstance(meta.get("formatVersion"), int) \
             and not isinstance(meta.get("formatVersion"), bool) and meta["formatVersion"] > FORMAT_VERSION:
         return []
-    from vbusd.metadata import _schema_validator  # the reader's validator (cached), one schema load
+    from vbusd.format.metadata import _schema_validator  # the reader's validator (cached), one schema load
 
     validator = _schema_validator()
     if validator is None:  # an installation without schema/ (asset.internal, not a silent pass)
@@ -299,15 +299,15 @@ def _load_metadata(raw, texture_path: str, display: str):
 
 def _upgraded(document, out: list):
     """A metadata document of an older format version brought to the current one with the format's
-    explicit upgrade functions (vbusd.metadata.upgrade), so it is checked against the current
+    explicit upgrade functions (vbusd.format.metadata.upgrade), so it is checked against the current
     schema; other documents are returned as they are. A failed upgrade is a ``format.version``
     finding and the document is then checked as written."""
     value, file = document
     version = value.get("formatVersion") if isinstance(value, dict) else None
     if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version < FORMAT_VERSION:
         return document
-    from vbusd import metadata as md
-    from vbusd.errors import VbusdError
+    from vbusd.format import metadata as md
+    from vbusd.format.errors import VbusdError
 
     try:
         return md.upgrade(value, current=FORMAT_VERSION, file=file), file
@@ -488,8 +488,8 @@ def resolve_texture(prim, asset_dir: str, scratch: Optional[str] = None):
     """
     from pxr import Sdf
 
-    from vbusd.errors import InputError
-    from vbusd.fileio import resolve_inside
+    from vbusd.format.errors import InputError
+    from vbusd.io.files import resolve_inside
 
     site = UsdSite(str(prim.GetPath()), "vb:texture")
     attribute = prim.GetAttribute("vb:texture")

@@ -20,9 +20,9 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.layout import Encoding, Layout, TexelFormat
+from vbusd.format.layout import Encoding, Layout, TexelFormat
 
-from .findings import TexelAddress, finding
+from vbusd.validators.findings import TexelAddress, finding
 
 BLOCK_VALUES = 1 << 20
 """Channel values per block of rows (1 Mi values: 4 MiB as float32; larger blocks are no faster)."""
@@ -129,7 +129,7 @@ def content_digest(texels: np.ndarray) -> str:
     """``sha256:`` digest of the texels as little-endian values in file order (the format's
     content digest).
 
-    The definition of :func:`vbusd.metadata.content_digest`, hashed through a memoryview: that one
+    The definition of :func:`vbusd.format.metadata.content_digest`, hashed through a memoryview: that one
     copies the texels with ``tobytes()`` (as large as the texture: 128 MiB at 4096 x 4096 float16), which
     the validator's bounded-memory figures (benchmarks/README.md) do not allow.
     """

@@ -15,10 +15,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.layout import Encoding, Layout, Padding, TexelFormat
-from vbusd.metadata import json_pointer
+from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat
+from vbusd.format.metadata import json_pointer
 
-from .findings import JsonPointer, UsdSite, finding
+from vbusd.validators.findings import JsonPointer, UsdSite, finding
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -61,7 +61,7 @@ class Declared:
         values: Metadata key -> value, only for values present with a usable type. ``clips`` is a
             list of dicts with the metadata clip keys; ``unormRanges`` a (T, 4, 2) float64 array.
         locate: Location of a key or of a JSON-pointer-like path (``("clips", 2, "rowCount")``).
-        layout: The :class:`~vbusd.layout.Layout` the values imply, or None if they do not make one.
+        layout: The :class:`~vbusd.format.layout.Layout` the values imply, or None if they do not make one.
         prim_path: The animation prim (USD source) or None.
     """
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional, Union
 
-from . import codes as _codes
-from .codes import Severity
+from vbusd.format import codes as _codes
+from vbusd.format.codes import Severity
 
 CHANNEL_NAMES = "RGBA"
 
@@ -129,7 +129,7 @@ class Finding:
     """One problem (or note) about an asset.
 
     Attributes:
-        code: A code registered in :mod:`vbusd.validators.codes`.
+        code: A code registered in :mod:`vbusd.format.codes`.
         severity: Error, warning, info or hint.
         message: What is wrong, with the values involved.
         location: Exactly one location.

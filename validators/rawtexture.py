@@ -1,6 +1,6 @@
 """Raw, never-raising texture access for the validators.
 
-The validators read texture files here rather than through the strict readers of vbusd.textures,
+The validators read texture files here rather than through the strict readers of vbusd.io.textures,
 because they must keep going where a strict reader stops: a texture whose metadata is broken still
 has pixels worth checking for NaN, padding and encoding validity. Everything that goes wrong is
 turned into a :class:`~vbusd.validators.findings.Finding` (``texture.unreadable``,
@@ -17,7 +17,7 @@ Metadata anywhere else (a tEXt or zTXt chunk, another keyword or attribute name)
 vbusd's reader ignores it, so the validator does too, and only names it in ``metadata.missing``.
 
 Limits are checked before any pixel is allocated: a header that declares more than
-:data:`vbusd.layout.MAX_TEXTURE_DIMENSION` texels per side is refused.
+:data:`vbusd.format.layout.MAX_TEXTURE_DIMENSION` texels per side is refused.
 """
 
 from __future__ import annotations
@@ -36,11 +36,11 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.exr import METADATA_ATTRIBUTE
-from vbusd.layout import MAX_TEXTURE_DIMENSION
-from vbusd.png16 import METADATA_KEYWORD
+from vbusd.io.exr import METADATA_ATTRIBUTE
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION
+from vbusd.io.png import METADATA_KEYWORD
 
-from .findings import FileLocation, finding
+from vbusd.validators.findings import FileLocation, finding
 
 METADATA_FORMAT = "vbusd.virtualBones"
 MAX_METADATA_BYTES = 16 * 1024 * 1024
@@ -58,7 +58,7 @@ class RawTexture:
         height: Height from the header.
         channels: Channel names in the file (``R G B A`` order when present).
         pixel_type: ``float16``, ``float32``, ``uint32``, ``uint16``, ``uint8``, or ``mixed``.
-        compression: EXR compression in :data:`vbusd.exr.COMPRESSION_NAMES` spelling (``zip``),
+        compression: EXR compression in :data:`vbusd.io.exr.COMPRESSION_NAMES` spelling (``zip``),
             ``png`` (always lossless), or None.
         texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
             not be read. Missing channels are not invented: texels is None then.
@@ -120,10 +120,10 @@ def _too_large(name: str, width: int, height: int, max_dimension: int, offset: i
 def _read_exr(path: str, name: str, max_dimension: int):
     import OpenEXR
 
-    from vbusd import exr as vexr
-    from vbusd.errors import InputError
+    from vbusd.io import exr as vexr
+    from vbusd.format.errors import InputError
 
-    # vbusd.exr.scan_header walks the header and the chunk offset table in pure Python: it finds
+    # vbusd.io.exr.scan_header walks the header and the chunk offset table in pure Python: it finds
     # truncation, oversized data windows and tiled / deep / multi-part files before OpenEXR gets a
     # chance to print warnings or allocate. Compression and channel problems are not structural:
     # they are reported below with their own codes, and the pixels are still read.
@@ -154,7 +154,7 @@ def _read_exr(path: str, name: str, max_dimension: int):
     except Exception:
         return None, [finding("texture.unreadable", "EXR header has no usable dataWindow",
                               FileLocation(name))]
-    # OpenEXR's enum name (ZIP_COMPRESSION, NO_COMPRESSION) in vbusd.exr's spelling (zip, none).
+    # OpenEXR's enum name (ZIP_COMPRESSION, NO_COMPRESSION) in vbusd.io.exr's spelling (zip, none).
     compression = str(getattr(header.get("compression"), "name", header.get("compression")))
     compression = compression.removesuffix("_COMPRESSION").lower()
     texture.compression = "none" if compression == "no" else compression
@@ -300,7 +300,7 @@ def _read_png(path: str, name: str, max_dimension: int):
         return texture, findings
     # vbusd's own decoder (pypng, scanline by scanline into one array, every scanline counted).
     # Other kinds of PNG are not decoded: texture.channels / texture.pixelType refuse them anyway.
-    from vbusd import png16
+    from vbusd.io import png as png16
 
     if (depth, color_type) == (16, 6):
         chunks = png16.PngChunks(width=width, height=height, bit_depth=depth, colour_type=color_type,

@@ -11,9 +11,9 @@ import json
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
-from . import codes as _codes
-from .codes import Severity
-from .findings import Finding
+from vbusd.format import codes as _codes
+from vbusd.format.codes import Severity
+from vbusd.validators.findings import Finding
 
 REPORT_FORMAT = "vbusd.validationReport"
 REPORT_VERSION = 1

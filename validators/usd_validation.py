@@ -38,8 +38,8 @@ from __future__ import annotations
 import os
 import threading
 
-from .declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
-from .findings import UsdSite
+from vbusd.validators.declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from vbusd.validators.findings import UsdSite
 
 KEYWORD = "vbusd"
 ANIMATION_VALIDATOR = "vbusd:VirtualBonesAnimationValidator"
@@ -82,8 +82,8 @@ def _asset_dir(stage) -> str:
 
 
 def _animation_task(prim, time_range=None):
-    from .api import guarded
-    from .checks_animation import check_animation_prim
+    from vbusd.validators.api import guarded
+    from vbusd.validators.checks_animation import check_animation_prim
 
     if prim.IsPseudoRoot() or prim.GetTypeName() != ANIMATION_TYPE:
         return []
@@ -93,8 +93,8 @@ def _animation_task(prim, time_range=None):
 
 
 def _binding_task(prim, time_range=None):
-    from .api import guarded
-    from .checks_bindings import check_binding_prim, has_binding
+    from vbusd.validators.api import guarded
+    from vbusd.validators.checks_bindings import check_binding_prim, has_binding
 
     if prim.IsPseudoRoot() or not has_binding(prim):
         return []
@@ -102,8 +102,8 @@ def _binding_task(prim, time_range=None):
 
 
 def _instancing_task(prim, time_range=None):
-    from .api import guarded
-    from .checks_bindings import check_instancer_prim, has_instancing
+    from vbusd.validators.api import guarded
+    from vbusd.validators.checks_bindings import check_instancer_prim, has_instancing
 
     if prim.IsPseudoRoot() or not has_instancing(prim):
         return []
@@ -114,8 +114,8 @@ def _unapplied_task(prim, time_range=None):
     """Prims carrying vb: binding or instancing primvars without the API schema applied: a
     schema-typed validator never visits them, yet they are findings (``binding.api.missing``) and
     their primvars are checked as for bound meshes (what ``vbusd validate`` does)."""
-    from .api import guarded
-    from .checks_bindings import (applied_schemas, check_binding_prim, check_instancer_prim, has_binding,
+    from vbusd.validators.api import guarded
+    from vbusd.validators.checks_bindings import (applied_schemas, check_binding_prim, check_instancer_prim, has_binding,
                                   has_instancing)
 
     if prim.IsPseudoRoot() or prim.GetTypeName() == ANIMATION_TYPE:
@@ -141,8 +141,8 @@ def register() -> list:
             in its Python API (older releases cannot register Python validators; usd-core 26.11
             can).
     """
-    import vbusd.usd_plugin as plugin
-    from vbusd.errors import UnsupportedError
+    import vbusd.io.usd_plugin as plugin
+    from vbusd.format.errors import UnsupportedError
 
     plugin.register()  # the schema TfTypes must exist for schemaTypes filtering
     try:

@@ -1,13 +1,26 @@
 """vbusd: the Virtual Bones animation texture format, its USD schema and toolkit.
 
-Importing vbusd is light (numpy only). Importing it also makes the USD schema plugin known to
-OpenUSD without importing pxr (see :mod:`vbusd.usd_plugin`: registered at once when pxr is already
-loaded, otherwise through ``PXR_PLUGINPATH_NAME`` before pxr starts).
+The public API lives here and loads lazily: ``import vbusd`` costs numpy only, and each name below
+imports its module (pxr, OpenEXR, warp...) on first use. Importing vbusd also makes the USD schema
+plugin known to OpenUSD (see :mod:`vbusd.io.usd_plugin`).
+
+Main jobs::
+
+    vbusd.convert(source, output, options)     # UsdSkel / glTF -> Virtual Bones asset
+    vbusd.read_asset(path) / vbusd.write_asset(asset, path)
+    vbusd.validate(path)                        # a report with .valid and .findings
+    vbusd.skin(asset, clip, time)               # numpy skinned points and normals per bound mesh
+    vbusd.decode(asset, output)                 # a time-sampled USD point cache
+    vbusd.Decoder(vb, mesh, device="cuda")      # warp decoder
+    vbusd.shader("glsl", encoding, texel_format)
+
+docs/api.md shows each with a runnable example.
 """
 
 from __future__ import annotations
 
-from .layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
+import importlib
+from typing import TYPE_CHECKING
 
 try:
     from importlib.metadata import version as _dist_version
@@ -16,8 +29,72 @@ try:
 except Exception:  # pragma: no cover - running from a source tree without installing
     __version__ = "1.0.0.dev0"
 
-from .usd_plugin import register_on_import as _register_usd_plugin
+# name -> module that defines it; imported on first attribute access (PEP 562).
+_EXPORTS = {
+    # format
+    "FORMAT_VERSION": "vbusd.layout",
+    "Encoding": "vbusd.layout",
+    "Layout": "vbusd.layout",
+    "Padding": "vbusd.layout",
+    "TexelFormat": "vbusd.layout",
+    "AnimationClip": "vbusd.format.model",
+    "SkinnedMesh": "vbusd.format.model",
+    "SkinnedAnimation": "vbusd.format.model",
+    "Clip": "vbusd.format.model",
+    "BoundMesh": "vbusd.format.model",
+    "Crowd": "vbusd.format.model",
+    "VirtualBones": "vbusd.format.model",
+    "VirtualBonesAsset": "vbusd.format.model",
+    "VbusdError": "vbusd.format.errors",
+    "InputError": "vbusd.format.errors",
+    "OptionsError": "vbusd.format.errors",
+    "UnsupportedError": "vbusd.format.errors",
+    "VersionError": "vbusd.format.errors",
+    # jobs
+    "BakeOptions": "vbusd.bake",
+    "bake": "vbusd.bake",
+    "ConvertOptions": "vbusd.convert",
+    "convert": "vbusd.convert",
+    "read_asset": "vbusd.io.usd",
+    "write_asset": "vbusd.io.usd",
+    "read_texture": "vbusd.io.textures",
+    "write_texture": "vbusd.io.textures",
+    "validate": "vbusd.api",
+    "skin": "vbusd.api",
+    "shader": "vbusd.api",
+    "decode": "vbusd.decode.pointcache",
+    "Decoder": "vbusd.decode.warp",
+}
+
+__all__ = sorted(_EXPORTS) + ["__version__"]
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'vbusd' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip __getattr__
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from vbusd.api import shader, skin, validate
+    from vbusd.bake import BakeOptions, bake
+    from vbusd.convert import ConvertOptions, convert
+    from vbusd.decode.pointcache import decode
+    from vbusd.decode.warp import Decoder
+    from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError, VersionError
+    from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
+    from vbusd.format.model import (AnimationClip, BoundMesh, Clip, Crowd, SkinnedAnimation, SkinnedMesh,
+                                    VirtualBones, VirtualBonesAsset)
+    from vbusd.io.textures import read_texture, write_texture
+    from vbusd.io.usd import read_asset, write_asset
+
+from vbusd.io.usd_plugin import register_on_import as _register_usd_plugin  # noqa: E402
 
 _register_usd_plugin()
-
-__all__ = ["FORMAT_VERSION", "Encoding", "Layout", "Padding", "TexelFormat", "__version__"]

@@ -1,4 +1,4 @@
-"""Bake a :class:`~vbusd.model.SkinnedAnimation` into a :class:`~vbusd.model.VirtualBones` texture.
+"""Bake a :class:`~vbusd.format.model.SkinnedAnimation` into a :class:`~vbusd.format.model.VirtualBones` texture.
 
 The baker decides the rows of every clip (rate, looping, vertical power-of-two fill), samples the
 source's skinning matrices at those rows, encodes, quantizes and packs them, and binds the meshes
@@ -13,11 +13,11 @@ from typing import Optional
 
 import numpy as np
 
-from .encoding import (Float16OverflowError, NonRigidError, affine_singular, dequantize, encode_bones,
+from vbusd.format.encoding import (Float16OverflowError, NonRigidError, affine_singular, dequantize, encode_bones,
                        make_hemispheres_continuous, pack, quantize)
-from .errors import InputError, OptionsError, UnsupportedError
-from .layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
-from .model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
+from vbusd.format.errors import InputError, OptionsError, UnsupportedError
+from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
+from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
 
 DEFAULT_ROWS_PER_SECOND = 30.0
 """Rows per second when neither the options nor the source say (a clip without native_rate)."""

@@ -2,10 +2,10 @@
 
 The steps, each reported to an optional progress callback:
 
-1. :class:`ConvertOptions` are checked before any file is opened (:class:`~vbusd.errors.OptionsError`);
+1. :class:`ConvertOptions` are checked before any file is opened (:class:`~vbusd.format.errors.OptionsError`);
    an existing output is refused unless ``force`` is set.
 2. The converter that reads the source is picked by :mod:`vbusd.converters.registry` (UsdSkel, glTF
-   or a plugin) and returns a :class:`~vbusd.model.SourceScene`.
+   or a plugin) and returns a :class:`~vbusd.format.model.SourceScene`.
 3. Each skinned animation is baked (:func:`vbusd.bake.bake`). ``encoding="auto"`` picks
    crossMatrix when every bone transform is rigid and affineMatrix otherwise, and dualQuat when the
    source asks for dual-quaternion skinning; the report states the choice and why.
@@ -13,7 +13,7 @@ The steps, each reported to an optional progress callback:
    with the source's own skinning (for UsdSkel, ``UsdSkel.SkinningQuery.ComputeSkinnedPoints``), so
    the report holds the largest position error per mesh, and separately the part of it that comes
    from dropping influences beyond ``max_influences``.
-5. The asset, its texture and its sidecar are written by :func:`vbusd.usd_io.write_asset`, which
+5. The asset, its texture and its sidecar are written by :func:`vbusd.io.usd.write_asset`, which
    writes beside the target and renames: a failure leaves no partial output and never clobbers an
    existing file.
 
@@ -30,10 +30,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .bake import BakeOptions, bake
-from .errors import OptionsError, UnsupportedError, VbusdError
-from .layout import Encoding, Padding, TexelFormat
-from .model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
+from vbusd.bake import BakeOptions, bake
+from vbusd.format.errors import OptionsError, UnsupportedError, VbusdError
+from vbusd.format.layout import Encoding, Padding, TexelFormat
+from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
@@ -52,7 +52,7 @@ class ConvertOptions:
     """Options of a conversion; checked on construction, before any work starts.
 
     Attributes:
-        encoding: ``auto`` or an :class:`~vbusd.layout.Encoding` token.
+        encoding: ``auto`` or an :class:`~vbusd.format.layout.Encoding` token.
         texel_format: ``float16``, ``float32`` or ``unorm16``.
         rows_per_second: Rows per second of every clip; None keeps the source's rate (for UsdSkel,
             one row per time code).
@@ -345,11 +345,11 @@ def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
 def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Float64 LBS with exact source matrices (n, B, 4, 4): the influence-reduction yardstick.
 
-    The reference skinning of :mod:`vbusd.reference`, fed the source's matrices instead of decoded
+    The reference skinning of :mod:`vbusd.decode.reference`, fed the source's matrices instead of decoded
     ones, with the weights normalized as the baker normalizes them.
     """
-    from .encoding import BoneTransforms
-    from .reference import skin
+    from vbusd.format.encoding import BoneTransforms
+    from vbusd.decode.reference import skin
 
     linear = matrices[..., :3, :3]
     transforms = BoneTransforms(linear=linear, translation=matrices[..., :3, 3], normal=linear)
@@ -377,7 +377,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from .reference import bone_transforms, normal_point_indices, skin
+    from vbusd.decode.reference import bone_transforms, normal_point_indices, skin
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -511,7 +511,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     clock = time.perf_counter()
     if progress:
         progress("write", 0, 1)
-    from .usd_io import write_asset
+    from vbusd.io.usd import write_asset
 
     if output.exists() and not options.force:  # it may have appeared while we worked
         raise OptionsError("the output exists; pass --force to replace it", file=str(output))

@@ -1,7 +1,7 @@
 """``vbusd decode ASSET.usda -o CACHE.usda``: decode a Virtual Bones asset into a USD point cache.
 
 The cache holds every bound mesh at its own prim path with time-sampled points, normals and
-extents on the source's timeline (see :mod:`vbusd.pointcache`), so any USD viewer plays it.
+extents on the source's timeline (see :mod:`vbusd.decode.pointcache`), so any USD viewer plays it.
 ``--device cpu|cuda`` decodes with the warp kernels; without it (or without warp) the numpy
 reference decoder is used.
 """
@@ -29,8 +29,8 @@ import click
                    "prefer a .usdc output).")
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
-    from vbusd.commands.convert import _progress, terminate_as_interrupt
-    from vbusd.pointcache import decode
+    from vbusd.cli.convert import _progress, terminate_as_interrupt
+    from vbusd.decode.pointcache import decode
 
     with _progress() as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,

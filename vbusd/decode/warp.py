@@ -13,7 +13,7 @@ simulation can call it every frame::
     for t in frame_times:
         decoder.skin_crowd(crowd_on_device, t, out=out)   # out.points, out.normals: wp.array
 
-:func:`skin_mesh` and :func:`skin_crowd` have the call shape of :mod:`vbusd.reference`'s functions
+:func:`skin_mesh` and :func:`skin_crowd` have the call shape of :mod:`vbusd.decode.reference`'s functions
 of the same names (plus ``device=``) and return numpy arrays; ``vbusd decode --device`` uses them.
 
 Texel upload (exact path): the texture is uploaded once as float32 channel values, dequantized on
@@ -24,7 +24,7 @@ the doubled texel size costs no measurable time. The hardware path (``sampling="
 instead uploads the texels in their stored format into a ``wp.Texture2D`` and lets the texture unit
 filter between rows, as a vertex shader would; spec/hardware-sampling.md measures the difference.
 
-Kernels and their numpy twins: :mod:`vbusd.warp_kernels`.
+Kernels and their numpy twins: :mod:`vbusd.decode.warp_kernels`.
 """
 
 from __future__ import annotations
@@ -39,11 +39,11 @@ import numpy as np
 
 import warp as wp
 
-from . import warp_kernels as K
-from .errors import InputError, OptionsError
-from .layout import Encoding, TexelFormat
-from .model import BoundMesh, Crowd, VirtualBones
-from .reference import channel_values, normal_point_indices
+from vbusd.decode import warp_kernels as K
+from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.layout import Encoding, TexelFormat
+from vbusd.format.model import BoundMesh, Crowd, VirtualBones
+from vbusd.decode.reference import channel_values, normal_point_indices
 
 # The CLI prints results on stdout; warp's start-up banner and per-module compile lines would mix
 # into them (warp 1.19 replaced ``config.quiet`` by ``config.log_level``). Users who want them can
@@ -491,7 +491,7 @@ class Decoder:
                    *, fraction_steps: float = 0.0) -> SkinResult:
         """World-space points and normals of every instance at scene time ``t`` (three launches).
 
-        Twin of ``reference.skin_crowd``. A :class:`~vbusd.model.Crowd` is uploaded on its first
+        Twin of ``reference.skin_crowd``. A :class:`~vbusd.format.model.Crowd` is uploaded on its first
         call and reused while the same object is passed again; pass a :class:`DeviceCrowd` from
         :meth:`upload_crowd` to manage that yourself.
 
@@ -572,7 +572,7 @@ def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device
               sampling: str = "exact") -> tuple:
     """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times, on ``device``.
 
-    Same call shape and meaning as ``vbusd.reference.skin_mesh``, plus ``device=``; float32 results.
+    Same call shape and meaning as ``vbusd.decode.reference.skin_mesh``, plus ``device=``; float32 results.
     Consecutive calls for the same ``vb`` and ``mesh`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin(clip_index, tau).numpy()
@@ -582,7 +582,7 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, dev
                sampling: str = "exact") -> tuple:
     """World-space points (N, V, 3) and normals of every instance at scene time ``t``, on ``device``.
 
-    Same call shape and meaning as ``vbusd.reference.skin_crowd``, plus ``device=``; float32 results.
+    Same call shape and meaning as ``vbusd.decode.reference.skin_crowd``, plus ``device=``; float32 results.
     Consecutive calls for the same ``vb``, ``mesh`` and ``crowd`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin_crowd(crowd, t).numpy()

@@ -25,7 +25,7 @@ for ``pxr.Usd``, measured with usd-core 26.11 by
 * when pxr is already loaded, the registry has already read the variable, so it registers the
   folder directly with ``Plug.Registry().RegisterPlugins`` (pxr is in memory: about 1 ms).
 
-vbusd's own USD code (:mod:`vbusd.usd_io`, the validators) also calls :func:`register` before
+vbusd's own USD code (:mod:`vbusd.io.usd`, the validators) also calls :func:`register` before
 using the types, which is idempotent.
 
 Importing vbusd after pxr.Usd has been used
@@ -39,7 +39,7 @@ fallback values are missing. Nothing can repair that in-process. vbusd then:
 
 * warns once, on ``import vbusd``, with :data:`LATE_REGISTRATION_MESSAGE` (a ``RuntimeWarning``
   saying what to do: import vbusd first, or set ``PXR_PLUGINPATH_NAME`` before Python starts);
-* still **reads** Virtual Bones assets correctly (:mod:`vbusd.usd_io` relies only on authored
+* still **reads** Virtual Bones assets correctly (:mod:`vbusd.io.usd` relies only on authored
   values and on the authored ``apiSchemas`` list, as the spec requires of every reader);
 * refuses to **write** them (:func:`require_schema_types` raises ``UnsupportedError``, code
   ``usd.plugin``, with the same advice) instead of writing an incomplete asset.
@@ -50,7 +50,7 @@ Using the schema outside Python (DCCs, usdview, usdrecord, Hydra viewers)
 --------------------------------------------------------------------------
 Point OpenUSD at the installed plugin folder before the application starts::
 
-    export PXR_PLUGINPATH_NAME="$(python -c 'import vbusd.usd_plugin as p; print(p.plugin_dir())')${PXR_PLUGINPATH_NAME:+:$PXR_PLUGINPATH_NAME}"
+    export PXR_PLUGINPATH_NAME="$(python -c 'import vbusd.io.usd_plugin as p; print(p.plugin_dir())')${PXR_PLUGINPATH_NAME:+:$PXR_PLUGINPATH_NAME}"
     usdview crowd.usda
 
 (on Windows separate entries with ``;``). Without the plugin, a USD application still opens Virtual
@@ -84,7 +84,7 @@ LATE_REGISTRATION_MESSAGE = (
     "(VirtualBonesAnimation, VirtualBonesBindingAPI, VirtualBonesInstancingAPI) are unknown to USD "
     "in this process; vbusd can read Virtual Bones assets but not write them. Import vbusd before "
     "opening any USD stage, or set PXR_PLUGINPATH_NAME to the folder of vbusd's plugInfo.json "
-    "(python -c 'import vbusd.usd_plugin as p; print(p.plugin_dir())') before Python starts")
+    "(python -c 'import vbusd.io.usd_plugin as p; print(p.plugin_dir())') before Python starts")
 """Why the Virtual Bones types are missing when vbusd was imported too late, and what to do."""
 
 
@@ -95,10 +95,10 @@ def plugin_dir() -> Path:
         The absolute folder holding ``plugInfo.json``.
 
     Raises:
-        vbusd.errors.UnsupportedError: The package data is not a plain folder on disk (for example
+        vbusd.format.errors.UnsupportedError: The package data is not a plain folder on disk (for example
             vbusd imported from a zip file), so OpenUSD cannot read it.
     """
-    from .errors import UnsupportedError
+    from vbusd.format.errors import UnsupportedError
 
     folder = importlib.resources.files(PLUGIN_PACKAGE)
     # OpenUSD reads plugInfo.json from the file system itself; a zip member would not do.
@@ -116,11 +116,11 @@ def register():
         The ``pxr.Plug.Plugin`` named ``vbusd``.
 
     Raises:
-        vbusd.errors.UnsupportedError: The plugin could not be registered (unreadable plugInfo.json).
+        vbusd.format.errors.UnsupportedError: The plugin could not be registered (unreadable plugInfo.json).
     """
     from pxr import Plug
 
-    from .errors import UnsupportedError
+    from vbusd.format.errors import UnsupportedError
 
     folder = plugin_dir()
     registry = Plug.Registry()
@@ -158,10 +158,10 @@ def require_schema_types():
         The ``pxr.Plug.Plugin`` named ``vbusd``.
 
     Raises:
-        vbusd.errors.UnsupportedError: code ``usd.plugin``: the schema registry was built before
+        vbusd.format.errors.UnsupportedError: code ``usd.plugin``: the schema registry was built before
             the plugin was registered (:data:`LATE_REGISTRATION_MESSAGE`), or registration failed.
     """
-    from .errors import UnsupportedError
+    from vbusd.format.errors import UnsupportedError
 
     plugin = register()
     if not schema_types_known():

@@ -1,14 +1,14 @@
 """Virtual Bones texture files: EXR or PNG plus the sidecar JSON, written atomically, read defensively.
 
-* float16 and float32 texels go to OpenEXR (``.exr``, :mod:`vbusd.exr`);
-* unorm16 texels go to 16-bit RGBA PNG (``.png``, :mod:`vbusd.png16`);
+* float16 and float32 texels go to OpenEXR (``.exr``, :mod:`vbusd.io.exr`);
+* unorm16 texels go to 16-bit RGBA PNG (``.png``, :mod:`vbusd.io.png`);
 * next to the texture, ``<texture file name>.json`` holds the same layout metadata (the *sidecar*:
   UTF-8, sorted keys, indent 2) for tools that cannot read EXR headers or PNG text chunks.
 
-Texture and sidecar are written in one :class:`vbusd.fileio.AtomicTransaction`: both appear, or
+Texture and sidecar are written in one :class:`vbusd.io.files.AtomicTransaction`: both appear, or
 neither changes. :func:`read_texture` recognizes the container by its magic bytes (not its suffix),
 checks sizes before decoding pixels, and checks that pixels and metadata agree, content digest
-included; every problem is an :class:`vbusd.errors.InputError` with the file and a location.
+included; every problem is an :class:`vbusd.format.errors.InputError` with the file and a location.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ from typing import Optional, Union
 
 import numpy as np
 
-from . import metadata as md
-from .errors import InputError, OptionsError
-from .fileio import AtomicTransaction
-from .layout import MAX_TEXTURE_DIMENSION, TexelFormat
-from .model import VirtualBones
+from vbusd.format import metadata as md
+from vbusd.format.errors import InputError, OptionsError
+from vbusd.io.files import AtomicTransaction
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION, TexelFormat
+from vbusd.format.model import VirtualBones
 
 PathLike = Union[str, os.PathLike]
 
@@ -113,7 +113,7 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
     path = Path(path)
     container = container_for(path, vb.layout.texel_format)
     name = str(compression).lower()
-    from . import exr, png16
+    from vbusd.io import exr, png as png16
 
     allowed = exr.LOSSLESS if container == "exr" else tuple(png16.COMPRESSION_LEVELS)
     if name not in allowed:
@@ -172,8 +172,8 @@ def sniff_container(path: PathLike) -> str:
     Raises:
         InputError: Missing, unreadable, or neither an EXR nor a PNG file (location ``byte 0``).
     """
-    from .exr import MAGIC
-    from .png16 import SIGNATURE
+    from vbusd.io.exr import MAGIC
+    from vbusd.io.png import SIGNATURE
 
     head = _read_bytes(Path(path), 8)
     if head[:4] == MAGIC:
@@ -222,12 +222,12 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
     path = Path(path)
     opened = _open_checked(path, max_dimension, check_sidecar)
     if opened.container == "exr":
-        from . import exr
+        from vbusd.io import exr
 
         texels = exr.read_pixels(path, opened.raw, opened.info.layout.texel_format.value,
                                  max_dimension=max_dimension)
     else:
-        from . import png16
+        from vbusd.io import png as png16
 
         texels = png16.read_pixels(opened.raw, str(path))
     md.check_texels(opened.info, texels, file=str(path),
@@ -287,7 +287,7 @@ def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opene
     file = str(path)
     container = sniff_container(path)
     if container == "exr":
-        from . import exr
+        from vbusd.io import exr
 
         header = exr.scan_header(path, max_dimension=max_dimension)
         prefix = f"header/{exr.METADATA_ATTRIBUTE}"
@@ -302,7 +302,7 @@ def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opene
         _check_dimensions(info, header.width, header.height, file, "header/dataWindow")
         exr.check_pixel_types(header, info.layout.texel_format.value, file)
         return _Opened(info, container, header.compression, header, prefix)
-    from . import png16
+    from vbusd.io import png as png16
 
     chunks = png16.scan_chunks(path, max_dimension=max_dimension)
     prefix = f"iTXt {png16.METADATA_KEYWORD}"

@@ -13,7 +13,7 @@ import sys
 
 import click
 
-from vbusd.layout import Encoding, Padding, TexelFormat
+from vbusd.format.layout import Encoding, Padding, TexelFormat
 
 
 def _check_rows(value: str):

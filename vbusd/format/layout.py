@@ -73,7 +73,7 @@ def next_power_of_two(n: int) -> int:
 
 
 def _coerce(enum_type, value, what: str):
-    from .errors import OptionsError
+    from vbusd.format.errors import OptionsError
 
     if isinstance(value, enum_type):
         return value
@@ -105,7 +105,7 @@ class Layout:
     vertical_padding: Padding = Padding.NONE
 
     def __post_init__(self) -> None:
-        from .errors import OptionsError
+        from vbusd.format.errors import OptionsError
 
         object.__setattr__(self, "encoding", _coerce(Encoding, self.encoding, "encoding"))
         object.__setattr__(self, "texel_format", _coerce(TexelFormat, self.texel_format, "texelFormat"))

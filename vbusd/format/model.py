@@ -24,7 +24,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .layout import Layout
+from vbusd.format.layout import Layout
 
 MatrixSampler = Callable[[np.ndarray], np.ndarray]
 """``sample(times) -> (len(times), bone_count, 4, 4)`` float64 skinning matrices at source times (s)."""

@@ -20,8 +20,8 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import InputError, OptionsError
-from .layout import MAX_TEXTURE_DIMENSION
+from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 METADATA_KEYWORD = "vbusd.layout"

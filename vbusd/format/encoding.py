@@ -17,8 +17,8 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import UnsupportedError
-from .layout import Encoding, Layout, TexelFormat
+from vbusd.format.errors import UnsupportedError
+from vbusd.format.layout import Encoding, Layout, TexelFormat
 
 FLOAT16_MAX = 65504.0
 UNORM16_MAX = 65535

@@ -19,8 +19,8 @@ stadium sample's 1,200 instances x 202 points x 513 samples make about 3 GB: dec
 Transforms: the meshes' ancestors (and the meshes) keep the local transforms they have in the
 asset (copied as one matrix op where authored), so world positions match the asset's.
 
-Decoding uses the numpy reference decoder (:mod:`vbusd.reference`), or the warp decoder
-(:mod:`vbusd.warp_decoder`) when a device is named and warp can be imported. Rows are decoded in
+Decoding uses the numpy reference decoder (:mod:`vbusd.decode.reference`), or the warp decoder
+(:mod:`vbusd.decode.warp`) when a device is named and warp can be imported. Rows are decoded in
 chunks so the temporary arrays stay small; the samples themselves live in the USD layer until it is
 written. The cache is written beside the target and renamed: no partial file on failure.
 """
@@ -34,9 +34,9 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from .convert import _make_folders, _remove_folders, check_output_path
-from .errors import InputError, OptionsError, VbusdError
-from .model import VirtualBones, VirtualBonesAsset
+from vbusd.convert import _make_folders, _remove_folders, check_output_path
+from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.model import VirtualBones, VirtualBonesAsset
 
 DEVICES = ("cpu", "cuda")
 
@@ -74,14 +74,14 @@ class DecodeReport:
 
 def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, Callable, str]:
     """(skin_mesh, skin_crowd, name): warp on ``device``, else the numpy reference decoder."""
-    from . import reference
+    from vbusd.decode import reference
 
     if device is None:
         return reference.skin_mesh, reference.skin_crowd, "numpy reference"
     if device not in DEVICES and not str(device).startswith("cuda:"):
         raise OptionsError(f"device must be cpu or cuda (or cuda:N), got {device!r}", file="decode")
     try:
-        from . import warp_decoder
+        from vbusd.decode import warp as warp_decoder
     except ImportError as error:
         warnings.append(f"warp is not available ({error}); decoding with the numpy reference decoder")
         return reference.skin_mesh, reference.skin_crowd, "numpy reference"
@@ -179,7 +179,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
 
     from pxr import Gf, Usd, UsdGeom, Vt
 
-    from .usd_io import read_asset
+    from vbusd.io.usd import read_asset
 
     asset: VirtualBonesAsset = read_asset(asset_path, allow_outside_paths=allow_outside_paths)
     source_stage = Usd.Stage.Open(str(asset_path))
@@ -247,7 +247,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default}"))
     stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
 
-    from .fileio import AtomicTransaction
+    from vbusd.io.files import AtomicTransaction
 
     created = _make_folders(output.parent)
     try:

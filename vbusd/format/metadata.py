@@ -7,14 +7,14 @@ docs/architecture.md ("Layout metadata keys") and its shape is fixed by the JSON
 
 This module converts between that dict and the model:
 
-* :func:`to_dict` builds the dict of a :class:`vbusd.model.VirtualBones`, computing its content
+* :func:`to_dict` builds the dict of a :class:`vbusd.format.model.VirtualBones`, computing its content
   digest;
 * :func:`from_dict` upgrades an older dict (:func:`upgrade`), validates it (JSON Schema, then the
   cross-field checks a schema cannot express) and returns a :class:`LayoutInfo`;
 * :func:`content_digest` is the SHA-256 of the texels that catches corrupted pixel data (EXR has no
   checksum of its own).
 
-Every problem is an :class:`vbusd.errors.InputError` whose location is a JSON pointer into the dict
+Every problem is an :class:`vbusd.format.errors.InputError` whose location is a JSON pointer into the dict
 (optionally prefixed by where the dict came from, e.g. ``header/vbusd.layout``).
 """
 
@@ -30,9 +30,9 @@ from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
-from .errors import InputError, VersionError
-from .layout import FORMAT_VERSION, CHANNELS, Encoding, Layout, Padding, TexelFormat
-from .model import Clip, VirtualBones
+from vbusd.format.errors import InputError, VersionError
+from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Encoding, Layout, Padding, TexelFormat
+from vbusd.format.model import Clip, VirtualBones
 
 FORMAT_NAME = "vbusd.virtualBones"
 """Value of the ``format`` key: says what the JSON is, before any version is looked at."""
@@ -121,7 +121,7 @@ def content_digest(texels: np.ndarray) -> str:
 
 
 def _generator() -> str:
-    from . import __version__
+    from vbusd import __version__
 
     return f"vbusd {__version__}"
 
@@ -251,7 +251,7 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = N
     Args:
         d: The dict as read from a file (not modified).
         upgrades: Table of upgrade functions (default :data:`UPGRADES`; tests pass their own).
-        current: The version to reach (default :data:`vbusd.layout.FORMAT_VERSION`).
+        current: The version to reach (default :data:`vbusd.format.layout.FORMAT_VERSION`).
         file: File the dict came from, for messages.
         location_prefix: Prefix of the JSON pointers in messages (where the dict sits in the file).
 
@@ -410,7 +410,7 @@ def _schema_checks(d: Mapping, problems: _Problems) -> None:
 
 def _semantic_checks(d: Mapping, problems: _Problems) -> Optional[Layout]:
     """Cross-field agreement: every derived size must be what the layout computes."""
-    from .errors import OptionsError
+    from vbusd.format.errors import OptionsError
 
     try:
         layout = Layout(d["encoding"], d["texelFormat"], d["boneCount"], d["rowCount"],
@@ -483,7 +483,7 @@ def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
     """Validate a metadata dict read from a file and turn it into a :class:`LayoutInfo`.
 
     Steps: :func:`upgrade` to the current version (a newer version raises
-    :class:`vbusd.errors.VersionError`), the JSON Schema (when installed), structural checks, then
+    :class:`vbusd.format.errors.VersionError`), the JSON Schema (when installed), structural checks, then
     cross-field checks: every derived size (``texelsPerBone``, ``usedWidth``, ``width``,
     ``height``, ``texelBytes``) must equal what the layout computes, ``bones`` must have
     ``boneCount`` names, clips (uniquely named) must tile the rows in order without gaps, and

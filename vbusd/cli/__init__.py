@@ -1,8 +1,8 @@
-"""The ``vbusd`` command line: a thin click group whose subcommands live in ``vbusd.commands``.
+"""The ``vbusd`` command line: a thin click group whose subcommands live in ``vbusd.cli``.
 
-Each subcommand is a module ``vbusd.commands.<name>`` exposing a click command called ``command``;
+Each subcommand is a module ``vbusd.cli.<name>`` exposing a click command called ``command``;
 it is imported only when used, so ``vbusd info`` never pays for pxr or warp start-up it does not
-need. User errors (:class:`vbusd.errors.VbusdError`) print one line and set the exit status; the
+need. User errors (:class:`vbusd.format.errors.VbusdError`) print one line and set the exit status; the
 library never calls ``sys.exit``.
 """
 
@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 
 import click
 
-from .errors import VbusdError
+from vbusd.format.errors import VbusdError
 
 COMMANDS = {
     "convert": "Convert a UsdSkel or glTF asset into a Virtual Bones asset.",
@@ -27,16 +27,16 @@ COMMANDS = {
 
 class _LazyGroup(click.Group):
     def list_commands(self, ctx):
-        return [name for name in COMMANDS if importlib.util.find_spec(f"vbusd.commands.{name}")]
+        return [name for name in COMMANDS if importlib.util.find_spec(f"vbusd.cli.{name}")]
 
     def get_command(self, ctx, name):
-        if name not in COMMANDS or importlib.util.find_spec(f"vbusd.commands.{name}") is None:
+        if name not in COMMANDS or importlib.util.find_spec(f"vbusd.cli.{name}") is None:
             return None
-        return importlib.import_module(f"vbusd.commands.{name}").command
+        return importlib.import_module(f"vbusd.cli.{name}").command
 
 
 def _version() -> str:
-    from . import __version__
+    from vbusd import __version__
 
     return __version__
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from ..errors import OptionsError
-from ..fileio import atomic_write
-from ..layout import Encoding, TexelFormat
-from ..shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
+from vbusd.format.errors import OptionsError
+from vbusd.io.files import atomic_write
+from vbusd.format.layout import Encoding, TexelFormat
+from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
 
 # ShaderOptions names its fields; the command line spells them as options.
 _OPTION_NAMES = {"lang": "--lang", "encoding": "--encoding", "texel_format": "--texel-format",

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import IO, Iterator, Optional, Union
 
-from .errors import InputError
+from vbusd.format.errors import InputError
 
 PathLike = Union[str, os.PathLike]
 

@@ -3,7 +3,7 @@
 :func:`generate` writes one self-contained module: texel fetches, unorm16 dequantization, clip
 looping or clamping, per-instance clip / time offset / playback rate, interpolation between rows,
 decoding and skinning of position and normal, exactly as spec/virtual-bones.md states and as
-:mod:`vbusd.reference` computes. The interface is documented in spec/shaders.md.
+:mod:`vbusd.decode.reference` computes. The interface is documented in spec/shaders.md.
 
 Both languages share one body: the GLSL spelling is the source, and the HLSL prologue maps its
 few type names and intrinsics onto HLSL with macros, so the two cannot drift apart.
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .errors import OptionsError
-from .layout import Encoding, TexelFormat
+from vbusd.format.errors import OptionsError
+from vbusd.format.layout import Encoding, TexelFormat
 
 LANGUAGES = ("glsl", "hlsl")
 DEFAULT_MAX_CLIPS = 16

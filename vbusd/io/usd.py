@@ -1,8 +1,8 @@
 """Write and read Virtual Bones assets as USD: animation prims, bound meshes and crowds.
 
-One USD file (``.usda`` or ``.usdc``) holds a :class:`vbusd.model.VirtualBonesAsset`; each animation's
+One USD file (``.usda`` or ``.usdc``) holds a :class:`vbusd.format.model.VirtualBonesAsset`; each animation's
 texture lies beside it, named ``<usd stem>.<animation prim name>.exr`` (float16, float32) or
-``.png`` (unorm16), with its sidecar ``<texture>.json`` (:mod:`vbusd.textures`).
+``.png`` (unorm16), with its sidecar ``<texture>.json`` (:mod:`vbusd.io.textures`).
 
 Stage structure written by :func:`write_asset` (paths come from the model)::
 
@@ -30,11 +30,11 @@ Stage structure written by :func:`write_asset` (paths come from the model)::
   (``asset.extra["frames_per_second"]``, else the time codes per second).
 
 Every output (USD layer, textures, sidecars) is written in one
-:class:`vbusd.fileio.AtomicTransaction`: all files appear, or none changes.
+:class:`vbusd.io.files.AtomicTransaction`: all files appear, or none changes.
 
 :func:`read_asset` treats the prim attributes as the source of truth: the texture's own layout
 metadata must agree with them (sizes, encoding, texel format, bones, clips, unorm ranges, digest),
-or it raises :class:`vbusd.errors.InputError` naming the prim and attribute. Following the spec
+or it raises :class:`vbusd.format.errors.InputError` naming the prim and attribute. Following the spec
 (sections 13 to 15) it requires every animation attribute to be authored (schema fallbacks are not
 relied on), reads normals from ``primvars:normals`` (flattened) when authored, else ``normals``,
 and gives instances without ``vb:`` primvars clip 0, offset 0 and rate 1. Malformed USD (syntax
@@ -53,11 +53,11 @@ from typing import Optional, Union
 
 import numpy as np
 
-from .errors import InputError, OptionsError, VbusdError, VersionError
-from .fileio import AtomicTransaction, resolve_inside
-from .layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
-from .model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
-from .usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
+from vbusd.format.errors import InputError, OptionsError, VbusdError, VersionError
+from vbusd.io.files import AtomicTransaction, resolve_inside
+from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
 PathLike = Union[str, os.PathLike]
 
@@ -136,7 +136,7 @@ def _check_prim_path(Sdf, path: str, what: str) -> "Sdf.Path":
 
 def _plan_textures(asset: VirtualBonesAsset, path: Path, texture_container: Optional[str]) -> list:
     """Texture file names of every animation, checked before any file is written."""
-    from .textures import CONTAINER_OF_FORMAT, container_for
+    from vbusd.io.textures import CONTAINER_OF_FORMAT, container_for
 
     names = []
     for index, vb in enumerate(asset.animations):
@@ -203,7 +203,7 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str) -> None:
     path = Sdf.Path(vb.path)
     _define_ancestors(stage, UsdGeom, path)
     prim = stage.DefinePrim(path, ANIMATION_TYPE)
-    from .metadata import content_digest
+    from vbusd.format.metadata import content_digest
 
     values = {
         "vb:formatVersion": FORMAT_VERSION,
@@ -409,7 +409,7 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     except OptionsError as error:
         raise error.at(file=str(path))
 
-    from .textures import sidecar_path, write_texture
+    from vbusd.io.textures import sidecar_path, write_texture
 
     folder = path.parent
     written = [path]
@@ -600,7 +600,7 @@ class _Reader:
 
     def read_animation(self, prim) -> VirtualBones:
         attributes = self.animation_attributes(prim)
-        from .textures import read_texture
+        from vbusd.io.textures import read_texture
 
         texture = read_texture(attributes.texture_file)
         self.compare(attributes.path, attributes.layout, attributes.bones, attributes.clips,
@@ -903,7 +903,7 @@ class _Reader:
         if layer is None:
             raise self.error("USD could not open the file", "file", "usd.syntax")
         self.check_dependencies(layer, set())
-        from .exr import captured_output
+        from vbusd.io.exr import captured_output
 
         try:
             # USD prints composition problems as warnings on stderr; they are reported below as

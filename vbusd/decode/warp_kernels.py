@@ -1,8 +1,8 @@
-"""Warp kernels of the Virtual Bones decoder: the device twins of :mod:`vbusd.reference`.
+"""Warp kernels of the Virtual Bones decoder: the device twins of :mod:`vbusd.decode.reference`.
 
-Every kernel here runs unchanged on ``"cpu"`` and ``"cuda"`` devices; :mod:`vbusd.warp_decoder`
+Every kernel here runs unchanged on ``"cpu"`` and ``"cuda"`` devices; :mod:`vbusd.decode.warp`
 uploads the data and launches them with ``device=`` passed explicitly. Each kernel has a numpy twin
-in :mod:`vbusd.reference` and follows the spec's math (docs/architecture.md, "Encoding math"):
+in :mod:`vbusd.decode.reference` and follows the spec's math (docs/architecture.md, "Encoding math"):
 
 =================================  ==========================================================
 kernel / function                  numpy twin

@@ -1,7 +1,7 @@
 """The numpy reference decoder: clip timing, row interpolation, decoding and skinning.
 
 This is the executable definition of the spec's "Clips", "Interpolation between rows",
-"Skinning" and "Instancing" sections, in float64. The warp kernels (vbusd.warp_decoder) are its
+"Skinning" and "Instancing" sections, in float64. The warp kernels (vbusd.decode.warp) are its
 twins and are tested against it.
 
 Times passed here are *clip-local* seconds ``tau`` (0 is the clip's first row), unless a function
@@ -14,9 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from .encoding import BoneTransforms, decode_bones, dequantize, quat_multiply, quat_to_matrix, unpack
-from .layout import Encoding
-from .model import BoundMesh, Clip, Crowd, VirtualBones
+from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, quat_multiply, quat_to_matrix, unpack
+from vbusd.format.layout import Encoding
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -19,9 +19,9 @@ from typing import Optional
 
 import click
 
-from ..errors import InputError
-from .. import metadata as md
-from ..layout import Layout
+from vbusd.format.errors import InputError
+from vbusd.format import metadata as md
+from vbusd.format.layout import Layout
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -63,7 +63,7 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
 
     Args:
         layout: Sizes.
-        clips: :class:`vbusd.model.Clip` objects.
+        clips: :class:`vbusd.format.model.Clip` objects.
         bones: Bone names.
         path: Prim path of the animation, if it came from USD.
         texture: Texture file name as written in the asset.
@@ -102,11 +102,11 @@ def _describe_info(info, *, texture: Optional[str]) -> dict:
 def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     """Describe every VirtualBonesAnimation prim of a USD file from its vb:* attributes.
 
-    The prims are read and checked exactly as ``vbusd.usd_io`` reads them (every attribute authored
+    The prims are read and checked exactly as ``vbusd.io.usd`` reads them (every attribute authored
     with its schema type, consistent sizes and clips, layers and ``vb:texture`` inside the asset's
     folder), but the textures are not opened.
     """
-    from ..usd_io import read_animation_attributes
+    from vbusd.io.usd import read_animation_attributes
 
     return [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
                      format_version=a.format_version, content_digest=a.content_digest)
@@ -129,7 +129,7 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         InputError: The file is missing (``file.missing``), a folder, pipe or device or of an
             unknown kind (``file.kind``), unsafe or unreadable.
     """
-    from .. import textures
+    from vbusd.io import textures
 
     path = Path(asset)
     file = str(asset)

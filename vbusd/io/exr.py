@@ -29,8 +29,8 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import InputError, OptionsError
-from .layout import MAX_TEXTURE_DIMENSION
+from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 
 MAGIC = b"\x76\x2f\x31\x01"
 METADATA_ATTRIBUTE = "vbusd.layout"
@@ -275,7 +275,7 @@ def captured_output(sink: list):
 
     OpenEXR's C++ core writes errors to file descriptor 2 and its Python binding prints warnings
     ("Exception raised reading pixel data ...") to standard output; both become part of the error
-    message instead of console noise. :mod:`vbusd.usd_io` uses it for USD's composition warnings,
+    message instead of console noise. :mod:`vbusd.io.usd` uses it for USD's composition warnings,
     which it reports itself as one error line.
     """
     import io

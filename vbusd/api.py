@@ -1,0 +1,161 @@
+"""The public jobs of vbusd that have no other natural home: validate, skin and shader.
+
+They are thin: each checks its arguments, then calls the module that does the work
+(:mod:`vbusd.validators.api`, :mod:`vbusd.decode.reference`, :mod:`vbusd.decode.shaders`), so that
+``import vbusd`` gives a host application the main jobs under one name (see docs/api.md).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from vbusd.format.errors import OptionsError
+from vbusd.format.model import VirtualBones, VirtualBonesAsset
+
+__all__ = ["SkinnedPose", "validate", "skin", "shader", "clip_index"]
+
+AssetLike = Union[str, os.PathLike, VirtualBonesAsset, VirtualBones]
+
+
+@dataclass(frozen=True)
+class SkinnedPose:
+    """One bound mesh skinned at one time.
+
+    Attributes:
+        path: The mesh's prim path in the asset.
+        points: (V, 3) float64 skinned points in the animation's space.
+        normals: Skinned unit normals ((V, 3) vertex or (F, 3) faceVarying), or None when the
+            mesh has none.
+    """
+
+    path: str
+    points: np.ndarray
+    normals: Optional[np.ndarray]
+
+
+def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None):
+    """Validate an asset (USD layer, texture or sidecar) and return its report.
+
+    Args:
+        path: The file to check.
+        only: Report only these codes or code prefixes.
+        ignore: Leave out these codes or code prefixes.
+        max_issues: List at most this many findings (the counts still cover all).
+
+    Returns:
+        A :class:`vbusd.validators.report.Report`; ``report.valid`` is False when any error was found.
+
+    Raises:
+        InputError: The file cannot be opened at all.
+        OptionsError: An unknown code filter or a negative ``max_issues``.
+
+    Example:
+        >>> report = vbusd.validate("out/stadium_crowd.usda")  # doctest: +SKIP
+        >>> report.valid
+        True
+    """
+    from vbusd.validators.api import validate as _validate
+
+    return _validate(path, only=only, ignore=ignore, max_issues=max_issues)
+
+
+def _animation(asset: AssetLike, animation: int, what: str) -> VirtualBones:
+    if isinstance(asset, VirtualBones):
+        return asset
+    if not isinstance(asset, VirtualBonesAsset):
+        from vbusd.io.usd import read_asset
+
+        asset = read_asset(asset)
+    if isinstance(animation, bool) or not isinstance(animation, (int, np.integer)) \
+            or not 0 <= animation < len(asset.animations):
+        raise OptionsError(f"animation must be an index 0..{len(asset.animations) - 1}, got {animation!r}",
+                           file=what)
+    return asset.animations[int(animation)]
+
+
+def clip_index(vb: VirtualBones, clip, *, what: str = "skin") -> int:
+    """The index of a clip given by name or index.
+
+    Args:
+        vb: The animation.
+        clip: A clip name, or an index into ``vb.clips``.
+        what: Names the caller in the error.
+
+    Raises:
+        OptionsError: No such clip; the message lists the clips there are.
+    """
+    names = [c.name for c in vb.clips]
+    if isinstance(clip, str):
+        if clip in names:
+            return names.index(clip)
+    elif isinstance(clip, (int, np.integer)) and not isinstance(clip, bool) and 0 <= clip < len(names):
+        return int(clip)
+    raise OptionsError(f"animation {vb.path} has no clip {clip!r} (clips: {', '.join(names)})", file=what)
+
+
+def skin(asset: AssetLike, clip=0, time: float = 0.0, *, animation: int = 0) -> list:
+    """Skin every mesh bound to an animation at one clip-local time, with the numpy reference decoder.
+
+    Args:
+        asset: A Virtual Bones asset path, a read :class:`~vbusd.format.model.VirtualBonesAsset`, or
+            one :class:`~vbusd.format.model.VirtualBones`.
+        clip: Clip name or index.
+        time: Clip-local time in seconds (a looping clip wraps, a clamped one holds its ends).
+        animation: Which animation of the asset (index), when it holds several.
+
+    Returns:
+        A list of :class:`SkinnedPose`, one per bound mesh in the asset's order, in the
+        animation's space.
+
+    Raises:
+        InputError: The asset cannot be read.
+        OptionsError: No such clip or animation, or a time that is not a finite number.
+
+    Example:
+        >>> poses = vbusd.skin("out/stadium_crowd.usda", "Cheer", 1.5)  # doctest: +SKIP
+        >>> poses[0].points.shape
+        (202, 3)
+    """
+    from vbusd.decode.reference import skin_mesh
+
+    vb = _animation(asset, animation, "skin")
+    index = clip_index(vb, clip)
+    try:
+        tau = float(time)
+    except (TypeError, ValueError):
+        tau = float("nan")
+    if not np.isfinite(tau):
+        raise OptionsError(f"time must be a finite number of seconds, got {time!r}", file="skin")
+    poses = []
+    for mesh in vb.meshes:
+        points, normals = skin_mesh(vb, mesh, index, np.array([tau]))
+        poses.append(SkinnedPose(mesh.path, points[0], None if normals is None else normals[0]))
+    return poses
+
+
+def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
+           max_clips: int = 16, main: bool = True) -> str:
+    """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
+
+    Args:
+        lang: ``glsl`` or ``hlsl``.
+        encoding: Bone encoding token (``crossMatrix``, ``affineMatrix``, ``quatTranslation``, ``dualQuat``).
+        texel_format: ``float16``, ``float32`` or ``unorm16``.
+        max_influences: Influences per vertex, 1..8.
+        max_clips: Size of the clip table uniform array.
+        main: Also emit an entry point that writes the skinned position and normal.
+
+    Returns:
+        The shader source text.
+
+    Raises:
+        OptionsError: An unknown language, encoding or texel format, or a count out of range.
+    """
+    from vbusd.decode.shaders import ShaderOptions, generate
+
+    return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
+                                  max_influences=max_influences, max_clips=max_clips, main=main))

@@ -1,1 +1,0 @@
-"""Subcommands of the ``vbusd`` command line, one module each, each exposing ``command``."""
