@@ -13,7 +13,7 @@ import pytest
 
 from vbusd.format import codes
 from vbusd.validators.api import validate
-from vbusd.validators.findings import FileLocation, Finding, JsonPointer, TexelAddress, UsdSite, finding
+from vbusd.format.diagnostics import FileLocation, Finding, JsonPointer, TexelAddress, UsdSite, finding
 from vbusd.validators.report import build_report
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,7 +18,7 @@ from typing import Optional, Sequence
 from vbusd.format.errors import InputError, OptionsError
 
 from vbusd.format import codes as _codes
-from vbusd.validators.findings import FileLocation, UsdSite, finding
+from vbusd.format.diagnostics import FileLocation, UsdSite, finding
 from vbusd.validators.report import Report, build_report
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")

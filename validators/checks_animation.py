@@ -27,7 +27,7 @@ from vbusd.io.textures import sidecar_path
 
 from vbusd.validators import checks_texels as texels_checks
 from vbusd.validators.declared import Declared, from_metadata, from_prim, same_value
-from vbusd.validators.findings import FileLocation, JsonPointer, UsdSite, finding
+from vbusd.format.diagnostics import FileLocation, JsonPointer, UsdSite, finding
 from vbusd.validators.rawtexture import parse_metadata, read_metadata_file, read_texture
 
 METADATA_KEY = METADATA_ATTRIBUTE  # the EXR attribute and the PNG iTXt keyword (both "vbusd.layout")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from vbusd.validators.declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API, wrong_type
-from vbusd.validators.findings import UsdSite, finding
+from vbusd.format.diagnostics import UsdSite, finding
 
 WEIGHT_SUM_TOLERANCE = 1e-3
 """|sum of a vertex's weights - 1| allowed (spec/validation.md: weights may come from 8-bit glTF

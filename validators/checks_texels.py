@@ -22,7 +22,7 @@ import numpy as np
 
 from vbusd.format.layout import Encoding, Layout, TexelFormat
 
-from vbusd.validators.findings import TexelAddress, finding
+from vbusd.format.diagnostics import TexelAddress, finding
 
 BLOCK_VALUES = 1 << 20
 """Channel values per block of rows (1 Mi values: 4 MiB as float32; larger blocks are no faster)."""

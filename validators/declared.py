@@ -18,7 +18,7 @@ import numpy as np
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat
 from vbusd.format.metadata import json_pointer
 
-from vbusd.validators.findings import JsonPointer, UsdSite, finding
+from vbusd.format.diagnostics import JsonPointer, UsdSite, finding
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"

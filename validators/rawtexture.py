@@ -3,7 +3,7 @@
 The validators read texture files here rather than through the strict readers of vbusd.io.textures,
 because they must keep going where a strict reader stops: a texture whose metadata is broken still
 has pixels worth checking for NaN, padding and encoding validity. Everything that goes wrong is
-turned into a :class:`~vbusd.validators.findings.Finding` (``texture.unreadable``,
+turned into a :class:`~vbusd.format.diagnostics.Finding` (``texture.unreadable``,
 ``metadata.json``...) with the file and, where known, the byte offset.
 
 Containers (spec/virtual-bones.md, "Texture files"):
@@ -40,7 +40,7 @@ from vbusd.io.exr import METADATA_ATTRIBUTE
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.io.png import METADATA_KEYWORD
 
-from vbusd.validators.findings import FileLocation, finding
+from vbusd.format.diagnostics import FileLocation, finding
 
 METADATA_FORMAT = "vbusd.virtualBones"
 MAX_METADATA_BYTES = 16 * 1024 * 1024

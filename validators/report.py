@@ -13,7 +13,7 @@ from typing import Optional, Sequence
 
 from vbusd.format import codes as _codes
 from vbusd.format.codes import Severity
-from vbusd.validators.findings import Finding
+from vbusd.format.diagnostics import Finding
 
 REPORT_FORMAT = "vbusd.validationReport"
 REPORT_VERSION = 1

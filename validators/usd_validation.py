@@ -39,7 +39,7 @@ import os
 import threading
 
 from vbusd.validators.declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
-from vbusd.validators.findings import UsdSite
+from vbusd.format.diagnostics import UsdSite
 
 KEYWORD = "vbusd"
 ANIMATION_VALIDATOR = "vbusd:VirtualBonesAnimationValidator"

@@ -1,4 +1,11 @@
-"""Findings and their locations: what every check returns (never an exception).
+"""Diagnostics: findings, their locations, and the list readers and checks report into.
+
+Every reader of a container (USD asset, EXR, PNG, KTX2, sidecar JSON, glTF) reports what it finds
+into one :class:`Diagnostics` list, as glTF-Validator's reader reports into its context. Strict
+callers (convert, info, decode, ``read_asset``) make the list strict, so the first error raises as
+an :class:`~vbusd.format.errors.InputError` with the same code, file and location; ``vbusd
+validate`` keeps the list lenient, then runs its checks on what the readers returned. Every code
+is registered in :mod:`vbusd.format.codes`.
 
 A :class:`Finding` is a registered code, a severity, a message with the values involved and exactly
 one location. A location is one of:
@@ -17,6 +24,7 @@ from typing import Optional, Union
 
 from vbusd.format import codes as _codes
 from vbusd.format.codes import Severity
+from vbusd.format.errors import InputError, VbusdError
 
 CHANNEL_NAMES = "RGBA"
 
@@ -160,3 +168,91 @@ def finding(code: str, message: str, location: Location, severity: Optional[Seve
     """
     registered = _codes.get(code)
     return Finding(code, severity or registered.severity, message, location)
+
+
+def location_parts(location: Location) -> tuple:
+    """``(file, location text)`` of a location, as a one-line error prints them."""
+    if isinstance(location, FileLocation):
+        return location.file, (None if location.byte_offset is None else f"byte {location.byte_offset}")
+    if isinstance(location, JsonPointer):
+        return location.file, (location.pointer or "/")
+    if isinstance(location, UsdSite):
+        return None, str(location)
+    return None, str(location)
+
+
+def to_error(item: Finding, *, file: Optional[str] = None, error_type: type = InputError) -> VbusdError:
+    """The one-line error of a finding (what a strict reader raises).
+
+    Args:
+        item: The finding.
+        file: The file to name when the location does not name one (a prim site).
+        error_type: The :class:`~vbusd.format.errors.VbusdError` subclass to build.
+    """
+    located_file, where = location_parts(item.location)
+    return error_type(item.message, file=located_file or file, location=where, code=item.code)
+
+
+class Diagnostics:
+    """The list a reader reports into.
+
+    Args:
+        file: The file being read, named in errors whose location does not name one.
+        strict: Raise the first error as an :class:`~vbusd.format.errors.InputError` (with the
+            finding's code, file and location) instead of collecting it.
+
+    Attributes:
+        findings: Everything reported so far, in order.
+    """
+
+    def __init__(self, file=None, *, strict: bool = False) -> None:
+        self.file = None if file is None else str(file)
+        self.strict = strict
+        self.findings: list = []
+
+    def report(self, code: str, message: str, location: Location, severity: Optional[Severity] = None) -> Finding:
+        """Record one finding; in strict mode an error raises at once.
+
+        Args:
+            code: A registered code.
+            message: What is wrong, with the values involved.
+            location: Exactly one location.
+            severity: Override of the registered severity.
+
+        Returns:
+            The finding recorded.
+
+        Raises:
+            InputError: In strict mode, when the finding is an error.
+        """
+        item = finding(code, message, location, severity)
+        self.findings.append(item)
+        if self.strict and item.severity is Severity.ERROR:
+            raise to_error(item, file=self.file)
+        return item
+
+    def add(self, item: Finding) -> None:
+        """Record a finding made elsewhere (raises in strict mode when it is an error)."""
+        self.findings.append(item)
+        if self.strict and item.severity is Severity.ERROR:
+            raise to_error(item, file=self.file)
+
+    @property
+    def errors(self) -> list:
+        """The findings of severity error."""
+        return [f for f in self.findings if f.severity is Severity.ERROR]
+
+    @property
+    def warnings(self) -> list:
+        """The findings of severity warning."""
+        return [f for f in self.findings if f.severity is Severity.WARNING]
+
+    def has_errors(self) -> bool:
+        """True when any error was reported."""
+        return any(f.severity is Severity.ERROR for f in self.findings)
+
+    def raise_first_error(self) -> None:
+        """Raise the first error reported, if any, as a one-line InputError."""
+        for item in self.findings:
+            if item.severity is Severity.ERROR:
+                raise to_error(item, file=self.file)
