@@ -1,0 +1,396 @@
+"""Bring a Virtual Bones asset (a vbusd USD layer) into Blender so that it plays in the viewport.
+
+For each animation the asset holds:
+
+* an armature with one bone per texture bone. A bone rests at the weighted centre of the rest
+  vertices it moves (so the rig is visible and selectable); its pose matrix in armature space is
+  the decoded skinning matrix times its rest matrix, so Blender's Armature modifier computes
+  ``sum_i w_i M_i p``, the spec's linear blend skinning;
+* one action per clip, keyed at every texture row (location, quaternion, scale; linear
+  interpolation, a Cycles modifier on looping clips), from the transforms vbusd's numpy reference
+  decoder gives at the rows. The first clip is the armature's active action;
+* the rest meshes, with a vertex group per bone, the bone indices and weights as point
+  attributes ``vb_bone_index_<k>`` / ``vb_bone_weight_<k>``, the rest normals as custom normals,
+  and an Armature modifier;
+* each crowd instance as its own armature object (sharing the armature data) and mesh objects
+  (sharing the mesh data), placed by the instancer's transform, playing its clip through an NLA
+  strip whose start, scale and repeats give ``tau = timeOffset + playbackRate * t``, with scene
+  time ``t = (frame - scene.frame_start) / fps``.
+
+Poses are exact at texture rows. Between rows Blender interpolates location, quaternion and scale
+linearly, where the spec interpolates the stored texels; docs/blender.md gives the measured gap.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix, Quaternion
+
+from .blendcompat import assign_action, new_fcurve
+
+BONE_NAME_BYTES = 63
+INTERPOLATION_LINEAR = 1  # Keyframe.interpolation enum value of 'LINEAR' (foreach_set takes the index)
+
+
+@dataclass
+class ImportSettings:
+    """Import options.
+
+    Attributes:
+        crowds: Import point-instanced crowds (one armature and mesh object per instance).
+        max_instances: Most instances imported per crowd (the rest are skipped with a warning).
+        allow_outside_paths: Let the asset reference files outside its folder.
+    """
+
+    crowds: bool = True
+    max_instances: int = 2000
+    allow_outside_paths: bool = False
+
+
+@dataclass
+class ImportReport:
+    """What an import created.
+
+    Attributes:
+        collection: Name of the collection holding everything.
+        armatures: Armature object names, one per animation (crowd instances not included).
+        meshes: Mesh object names of the rest meshes, per animation.
+        actions: Action names, per animation, one per clip in clip order.
+        instances: Per crowd, the (armature, [mesh objects]) names of each imported instance.
+        warnings: One line each.
+    """
+
+    collection: str = ""
+    armatures: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    actions: list = field(default_factory=list)
+    instances: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    def summary(self) -> str:
+        """One line for Blender's status bar."""
+        count = sum(len(crowd) for crowd in self.instances)
+        return (f"Virtual Bones: imported {len(self.armatures)} animation(s), "
+                f"{sum(len(m) for m in self.meshes)} mesh(es), {count} crowd instance(s) into "
+                f"collection '{self.collection}'")
+
+
+def _bone_names(names) -> list:
+    """Blender bone names for texture bones: the last path component, unique, at most 63 bytes."""
+    out, seen = [], set()
+    for name in names:
+        base = str(name).rstrip("/").rsplit("/", 1)[-1] or "bone"
+        base = base.encode("utf-8")[:BONE_NAME_BYTES - 4].decode("utf-8", "ignore")
+        candidate, n = base, 1
+        while candidate in seen:
+            n += 1
+            candidate = f"{base}.{n:03d}"
+        seen.add(candidate)
+        out.append(candidate)
+    return out
+
+
+def _bone_centres(vb) -> np.ndarray:
+    """(B, 3) weighted centre of the rest points each bone moves (origin for a bone that moves none)."""
+    sums = np.zeros((vb.layout.bone_count, 3))
+    totals = np.zeros(vb.layout.bone_count)
+    for mesh in vb.meshes:
+        points = np.asarray(mesh.points, dtype=np.float64)
+        for slot in range(mesh.bone_indices.shape[1]):
+            w = np.asarray(mesh.bone_weights[:, slot], dtype=np.float64)
+            np.add.at(sums, mesh.bone_indices[:, slot], points * w[:, None])
+            np.add.at(totals, mesh.bone_indices[:, slot], w)
+    return np.where(totals[:, None] > 0, sums / np.maximum(totals, 1e-30)[:, None], 0.0)
+
+
+def _link(obj, collection):
+    collection.objects.link(obj)
+    return obj
+
+
+def _build_armature(context, vb, name: str, bone_names: list, centres: np.ndarray, collection, parent):
+    data = bpy.data.armatures.new(name)
+    rig = _link(bpy.data.objects.new(name, data), collection)
+    rig.parent = parent
+    points = np.concatenate([m.points for m in vb.meshes]) if vb.meshes else np.zeros((1, 3))
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
+    length = 0.05 * diagonal
+    previous = context.view_layer.objects.active
+    context.view_layer.update()
+    context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    try:
+        for bone_name, centre in zip(bone_names, centres):
+            bone = data.edit_bones.new(bone_name)
+            bone.head = tuple(centre)
+            bone.tail = (centre[0], centre[1] + length, centre[2])  # +Y, roll 0: rest rotation is identity
+    finally:
+        bpy.ops.object.mode_set(mode="OBJECT")
+        context.view_layer.objects.active = previous
+    for pose_bone in rig.pose.bones:
+        pose_bone.rotation_mode = "QUATERNION"
+    return rig
+
+
+def _row_matrices(vb, clip_index: int) -> np.ndarray:
+    """(rows, B, 4, 4) decoded skinning matrices at a clip's rows (vbusd's reference decoder)."""
+    from vbusd.decode.reference import bone_transforms
+
+    clip = vb.clips[clip_index]
+    transforms = bone_transforms(vb, clip_index, np.arange(clip.row_count) / clip.rows_per_second)
+    matrices = np.zeros(transforms.linear.shape[:-2] + (4, 4))
+    matrices[..., :3, :3] = transforms.linear
+    matrices[..., :3, 3] = transforms.translation
+    matrices[..., 3, 3] = 1.0
+    return matrices
+
+
+def _basis_channels(matrices: np.ndarray, centres: np.ndarray) -> tuple:
+    """Location (n, B, 3), quaternion (n, B, 4, w first, hemisphere-continuous), scale (n, B, 3).
+
+    A bone resting at ``c`` with identity rotation needs ``matrix_basis = T(-c) M T(c)`` for its
+    pose matrix in armature space to be ``M T(c)``.
+    """
+    n, bones = matrices.shape[:2]
+    location = np.empty((n, bones, 3))
+    rotation = np.empty((n, bones, 4))
+    scale = np.empty((n, bones, 3))
+    for b in range(bones):
+        c = centres[b]
+        for r in range(n):
+            m = matrices[r, b]
+            basis = Matrix([list(row) for row in m])
+            basis.translation = m[:3, :3] @ c + m[:3, 3] - c
+            loc, quat, scl = basis.decompose()
+            location[r, b], rotation[r, b], scale[r, b] = loc, quat, scl
+        for r in range(1, n):
+            if np.dot(rotation[r, b], rotation[r - 1, b]) < 0:
+                rotation[r, b] = -rotation[r, b]
+    return location, rotation, scale
+
+
+def _build_action(rig, vb, clip_index: int, bone_names: list, centres: np.ndarray, fps: float,
+                  first_frame: float, name: str):
+    clip = vb.clips[clip_index]
+    location, rotation, scale = _basis_channels(_row_matrices(vb, clip_index), centres)
+    frames = first_frame + np.arange(clip.row_count) * fps / clip.rows_per_second
+    if clip.loop:  # key the wrap back to row 0 so the last span blends into the first row
+        location = np.concatenate([location, location[:1]])
+        first = rotation[:1].copy()
+        flip = np.sign(np.einsum("rbi,rbi->rb", first, rotation[-1:]))
+        rotation = np.concatenate([rotation, first * np.where(flip == 0, 1, flip)[..., None]])
+        scale = np.concatenate([scale, scale[:1]])
+        frames = np.append(frames, first_frame + clip.row_count * fps / clip.rows_per_second)
+    action = bpy.data.actions.new(name)
+    action.use_fake_user = True
+    assign_action(rig, action)
+    for b, bone in enumerate(bone_names):
+        for prop, values in (("location", location), ("rotation_quaternion", rotation), ("scale", scale)):
+            for index in range(values.shape[2]):
+                curve = new_fcurve(action, rig, f'pose.bones["{bone}"].{prop}', index, bone)
+                curve.keyframe_points.add(len(frames))
+                co = np.stack([frames, values[:, b, index]], axis=1).astype(np.float32)
+                curve.keyframe_points.foreach_set("co", co.ravel())
+                curve.keyframe_points.foreach_set("interpolation", [INTERPOLATION_LINEAR] * len(frames))
+                if clip.loop:
+                    curve.modifiers.new("CYCLES")
+                curve.update()
+    if clip.row_count > 1:
+        action.use_frame_range = True
+        action.frame_start = float(first_frame)
+        action.frame_end = float(frames[-1])
+        action.use_cyclic = bool(clip.loop)
+    return action
+
+
+def _build_mesh_data(mesh, name: str, bone_names: list):
+    counts = np.asarray(mesh.face_vertex_counts, dtype=np.int64)
+    indices = np.asarray(mesh.face_vertex_indices, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else np.zeros(0, dtype=np.int64)
+    faces = [indices[s:s + c].tolist() for s, c in zip(starts, counts)]
+    data = bpy.data.meshes.new(name)
+    data.from_pydata(np.asarray(mesh.points, dtype=np.float64).tolist(), [], faces)
+    data.update()
+    k = mesh.bone_indices.shape[1]
+    for slot in range(k):
+        index_attribute = data.attributes.new(f"vb_bone_index_{slot}", "INT", "POINT")
+        index_attribute.data.foreach_set("value", np.asarray(mesh.bone_indices[:, slot], dtype=np.int32))
+        weight_attribute = data.attributes.new(f"vb_bone_weight_{slot}", "FLOAT", "POINT")
+        weight_attribute.data.foreach_set("value", np.asarray(mesh.bone_weights[:, slot], dtype=np.float32))
+    if mesh.normals is not None:
+        try:
+            normals = np.asarray(mesh.normals, dtype=np.float64)
+            if mesh.normals_interpolation == "faceVarying" and len(normals) == len(data.loops):
+                data.normals_split_custom_set(normals.tolist())
+            elif len(normals) == len(data.vertices):
+                data.normals_split_custom_set_from_vertices(normals.tolist())
+        except (RuntimeError, TypeError, AttributeError):
+            pass  # custom normals only change shading
+    return data
+
+
+def _add_vertex_groups(obj, mesh, bone_names: list) -> None:
+    groups = {}
+    for slot in range(mesh.bone_indices.shape[1]):
+        for vertex, (bone, weight) in enumerate(zip(mesh.bone_indices[:, slot], mesh.bone_weights[:, slot])):
+            if weight <= 0:
+                continue
+            name = bone_names[int(bone)]
+            group = groups.get(name) or groups.setdefault(name, obj.vertex_groups.new(name=name))
+            group.add([vertex], float(weight), "ADD")
+
+
+def _skinned_object(name: str, data, rig, collection):
+    obj = _link(bpy.data.objects.new(name, data), collection)
+    obj.parent = rig
+    modifier = obj.modifiers.new("Virtual Bones", "ARMATURE")
+    modifier.object = rig
+    return obj
+
+
+def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list, actions: list,
+                     collection, parent, settings: ImportSettings, report: ImportReport, fps: float,
+                     first_frame: float) -> list:
+    count = min(crowd.instance_count, int(settings.max_instances))
+    if count < crowd.instance_count:
+        report.warnings.append(f"{crowd.path}: imported {count} of {crowd.instance_count} instances "
+                               "(raise Max Instances for more)")
+    scene = context.scene
+    placed = []
+    slow = 0
+    for i in range(count):
+        x, y, z, w = (float(v) for v in crowd.orientations[i])
+        scale = (1.0, 1.0, 1.0) if crowd.scales is None else tuple(float(v) for v in crowd.scales[i])
+        matrix = (Matrix.Translation(tuple(float(v) for v in crowd.positions[i]))
+                  @ Quaternion((w, x, y, z)).normalized().to_matrix().to_4x4()
+                  @ Matrix.Diagonal(scale + (1.0,)))
+        instance = _link(bpy.data.objects.new(f"{rig.name}.{i:04d}", rig.data), collection)
+        instance.parent = parent
+        instance.matrix_parent_inverse = Matrix.Identity(4)
+        instance.matrix_basis = matrix
+        for pose_bone in instance.pose.bones:
+            pose_bone.rotation_mode = "QUATERNION"
+        objects = [_skinned_object(f"{name}.{i:04d}", data, instance, collection).name
+                   for name, data in zip(mesh_names, mesh_data)]
+        clip_index = int(crowd.clip[i])
+        if not 0 <= clip_index < len(actions):
+            clip_index = 0
+        rate = float(crowd.playback_rate[i])
+        if not rate > 0 or not math.isfinite(rate):
+            slow += 1
+            rate = 1.0
+        _play(instance, actions[clip_index], vb.clips[clip_index], float(crowd.time_offset[i]), rate, fps,
+              first_frame, scene.frame_end)
+        placed.append((instance.name, objects))
+    if slow:
+        report.warnings.append(f"{crowd.path}: {slow} instance(s) with a playback rate <= 0 play at rate 1")
+    return placed
+
+
+def _play(rig, action, clip, offset: float, rate: float, fps: float, first_frame: float, last_frame: float):
+    """Play ``action`` on ``rig`` through an NLA strip so that clip time is ``offset + rate * t``."""
+    anim = rig.animation_data or rig.animation_data_create()
+    track = anim.nla_tracks.new()
+    strip = track.strips.new(action.name, int(math.floor(first_frame)), action)
+    key_span = fps / clip.rows_per_second  # frames per row in the action
+    if clip.loop:
+        length = clip.row_count * key_span
+        start = first_frame + math.fmod(offset * fps, length)
+        if start < first_frame:
+            start += length
+        strip.action_frame_end = start + length
+        strip.action_frame_start = start
+        strip.scale = 1.0 / rate
+        scene_frames = max(1.0, last_frame - first_frame + 1.0)
+        strip.repeat = float(math.ceil(scene_frames * rate / length) + 1)
+        strip.frame_start_ui = first_frame
+    else:
+        end = first_frame + (clip.row_count - 1) * key_span
+        begin = first_frame + offset * fps
+        if begin >= end:  # already past the last pose: hold it
+            begin = end - min(1e-3, key_span) if end > first_frame else end
+        delay = 0.0
+        if begin < first_frame:  # not started yet: wait, holding the first pose
+            delay = (first_frame - begin) / rate
+            begin = first_frame
+        if end > begin:
+            strip.action_frame_end = end
+            strip.action_frame_start = begin
+        strip.scale = 1.0 / rate
+        strip.frame_start_ui = first_frame + delay
+    strip.extrapolation = "HOLD"
+    strip.blend_type = "REPLACE"
+
+
+def import_virtual_bones(context, filepath, settings: ImportSettings = ImportSettings()) -> ImportReport:
+    """Import a Virtual Bones USD asset into the current scene.
+
+    Args:
+        context: Blender context (the scene to add to).
+        filepath: The vbusd USD layer (``.usda``, ``.usdc``, ``.usd``).
+        settings: Import options.
+
+    Returns:
+        What was created.
+
+    Raises:
+        vbusd.VbusdError: The asset cannot be read (one line: file, prim, code, problem); nothing
+            was added to the scene.
+        ImportError: vbusd is not installed in Blender's Python.
+    """
+    from .export import _vbusd
+
+    _vbusd()
+    from vbusd import read_asset
+
+    path = Path(bpy.path.abspath(str(filepath)))
+    asset = read_asset(path, allow_outside_paths=settings.allow_outside_paths)  # fails before any change
+    scene = context.scene
+    fps = scene.render.fps / scene.render.fps_base
+    first_frame = float(scene.frame_start)
+    report = ImportReport()
+    collection = bpy.data.collections.new(path.stem)
+    scene.collection.children.link(collection)
+    report.collection = collection.name
+    root = _link(bpy.data.objects.new(path.stem, None), collection)
+    if asset.up_axis == "Y":  # USD Y-up to Blender's Z-up
+        root.rotation_euler = (math.pi / 2, 0.0, 0.0)
+    rigs = []
+    for vb in asset.animations:
+        name = vb.path.rstrip("/").rsplit("/", 1)[-1]
+        bone_names = _bone_names(vb.bones)
+        centres = _bone_centres(vb)
+        rig = _build_armature(context, vb, name, bone_names, centres, collection, root)
+        actions = [_build_action(rig, vb, ci, bone_names, centres, fps, first_frame, f"{name}|{clip.name}")
+                   for ci, clip in enumerate(vb.clips)]
+        assign_action(rig, actions[0])
+        mesh_data, mesh_names, objects = [], [], []
+        for mesh in vb.meshes:
+            mesh_name = mesh.path.rstrip("/").rsplit("/", 1)[-1]
+            data = _build_mesh_data(mesh, mesh_name, bone_names)
+            obj = _skinned_object(mesh_name, data, rig, collection)
+            _add_vertex_groups(obj, mesh, bone_names)
+            mesh_data.append(data)
+            mesh_names.append(mesh_name)
+            objects.append(obj.name)
+        rigs.append((vb, rig, mesh_data, mesh_names, actions))
+        report.armatures.append(rig.name)
+        report.meshes.append(objects)
+        report.actions.append([a.name for a in actions])
+        if vb.clips and any(abs(c.rows_per_second - fps) > 1e-9 for c in vb.clips):
+            report.warnings.append(f"{name}: rows play at {vb.clips[0].rows_per_second:g}/s, the scene at "
+                                   f"{fps:g} fps: frames between rows are interpolated by Blender")
+    if settings.crowds:
+        for crowd, index in zip(asset.crowds, asset.crowd_animation):
+            vb, rig, mesh_data, mesh_names, actions = rigs[int(index)]
+            holder = _link(bpy.data.objects.new(crowd.path.rstrip("/").rsplit("/", 1)[-1], None), collection)
+            holder.parent = root
+            report.instances.append(_place_instances(context, crowd, vb, rig, mesh_data, mesh_names, actions,
+                                                     collection, holder, settings, report, fps, first_frame))
+    context.view_layer.update()
+    return report
