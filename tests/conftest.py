@@ -29,9 +29,8 @@ def pytest_configure(config):
 
 
 def _shared_assets_dir() -> Path | None:
-    """The third-party test assets: $VBUSD_SHARED_ASSETS, /work/shared/assets or ../shared/assets."""
-    candidates = [os.environ.get("VBUSD_SHARED_ASSETS"), "/work/shared/assets",
-                  REPO_ROOT.parent / "shared" / "assets"]
+    """The third-party test assets: ``$VBUSD_SHARED_ASSETS``, else ``../shared/assets`` beside the checkout."""
+    candidates = [os.environ.get("VBUSD_SHARED_ASSETS"), REPO_ROOT.parent / "shared" / "assets"]
     for candidate in candidates:
         if candidate and Path(candidate).is_dir():
             return Path(candidate)

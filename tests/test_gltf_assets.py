@@ -14,14 +14,16 @@ from __future__ import annotations
 import base64
 import functools
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-ASSETS = Path(__file__).resolve().parents[2] / "shared" / "assets" / "gltf"
-if not ASSETS.is_dir():
-    ASSETS = Path("/work/shared/assets/gltf")
+# Collected at import time (the files parametrize the tests), so not through the shared_assets
+# fixture; the same two places: $VBUSD_SHARED_ASSETS, else ../shared/assets beside the checkout.
+ASSETS = Path(os.environ.get("VBUSD_SHARED_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets") \
+    / "gltf"
 FILES = sorted(ASSETS.glob("*/*.gl*")) if ASSETS.is_dir() else []
 
 pytestmark = pytest.mark.skipif(not FILES, reason="shared glTF assets absent")
