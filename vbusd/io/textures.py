@@ -29,7 +29,7 @@ from vbusd.format.model import VirtualBones
 
 PathLike = Union[str, os.PathLike]
 
-CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png"}
+CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png", ".ktx2": "ktx2"}
 CONTAINER_OF_FORMAT = {TexelFormat.FLOAT16: "exr", TexelFormat.FLOAT32: "exr",
                        TexelFormat.UNORM16: "png"}
 
@@ -42,9 +42,9 @@ class TextureData:
         texels: ``(height, width, 4)`` read-only array of the texel format's dtype (``<f2``,
             ``<f4`` or ``<u2``); row 0 is the first scanline.
         info: The validated layout metadata embedded in the file.
-        container: ``exr`` or ``png``.
+        container: ``exr``, ``png`` or ``ktx2``.
         compression: The file's compression (``none``, ``rle``, ``zips``, ``zip``, ``piz``; PNG:
-            ``zip``).
+            ``zip``; KTX2: ``none`` or ``zstd``).
         path: The file read.
         warnings: One-line notes that do not stop reading (e.g. a PNG gAMA chunk, ignored).
     """
@@ -77,14 +77,16 @@ def container_for(path: PathLike, texel_format: TexelFormat) -> str:
 
     Raises:
         OptionsError: Unknown suffix, or a format the container cannot hold (float formats need
-            ``.exr``, unorm16 needs ``.png``).
+            ``.exr`` or ``.ktx2``, unorm16 needs ``.png`` or ``.ktx2``).
     """
     suffix = Path(path).suffix.lower()
     container = CONTAINER_OF_SUFFIX.get(suffix)
     if container is None:
         raise OptionsError(f"texture file name {Path(path).name!r} must end in .exr (float16, "
-                           "float32) or .png (unorm16)", file="texture")
+                           "float32), .png (unorm16) or .ktx2 (any)", file="texture")
     texel_format = TexelFormat(texel_format)
+    if container == "ktx2":  # KTX 2.0 holds all three texel formats (spec/ktx2.md)
+        return container
     if CONTAINER_OF_FORMAT[texel_format] != container:
         wanted = CONTAINER_OF_FORMAT[texel_format]
         raise OptionsError(f"texelFormat {texel_format.value} is stored in .{wanted} files, not "
@@ -92,15 +94,16 @@ def container_for(path: PathLike, texel_format: TexelFormat) -> str:
     return container
 
 
-def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
+def write_texture(path: PathLike, vb: VirtualBones, *, compression: Optional[str] = None,
                   transaction: Optional[AtomicTransaction] = None, sidecar: bool = True) -> None:
     """Write a baked animation's texture and its sidecar JSON.
 
     Args:
-        path: Texture file: ``.exr`` for float16/float32, ``.png`` for unorm16.
+        path: Texture file: ``.exr`` for float16/float32, ``.png`` for unorm16, ``.ktx2`` for any.
         vb: The baked animation.
         compression: EXR: ``none``, ``rle``, ``zips``, ``zip`` (default) or ``piz``; PNG: ``zip``
-            (default) or ``none``. Lossy compressions are refused.
+            (default) or ``none``; KTX2: ``none`` (default) or ``zstd`` (Zstandard
+            supercompression, needs the ``zstandard`` package). Lossy compressions are refused.
         transaction: Stage the files in this transaction (the caller commits, e.g. together with a
             USD layer); by default the files are committed before returning.
         sidecar: Also write ``<path>.json`` (default True).
@@ -112,10 +115,13 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
     """
     path = Path(path)
     container = container_for(path, vb.layout.texel_format)
-    name = str(compression).lower()
-    from vbusd.io import exr, png as png16
+    from vbusd.io import exr, ktx2, png as png16
 
-    allowed = exr.LOSSLESS if container == "exr" else tuple(png16.COMPRESSION_LEVELS)
+    if compression is None:
+        compression = "none" if container == "ktx2" else "zip"
+    name = str(compression).lower()
+    allowed = {"exr": exr.LOSSLESS, "png": tuple(png16.COMPRESSION_LEVELS),
+               "ktx2": tuple(ktx2.SUPERCOMPRESSION_SCHEMES)}[container]
     if name not in allowed:
         raise OptionsError(f"{container.upper()} compression must be one of {', '.join(allowed)}, "
                            f"got {compression!r}", file="texture")
@@ -125,6 +131,10 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: str = "zip",
     try:
         if container == "exr":
             exr.write_exr(tx.temp_path(path), vb.texels, text, compression=name)
+        elif container == "ktx2":
+            data = ktx2.ktx2_bytes(vb.texels, text, supercompression=name)
+            with tx.open(path, "wb") as stream:
+                stream.write(data)
         else:
             data = png16.png_bytes(vb.texels, text, compression=name)
             with tx.open(path, "wb") as stream:
@@ -167,20 +177,24 @@ def _read_bytes(path: Path, count: int = -1) -> bytes:
 
 
 def sniff_container(path: PathLike) -> str:
-    """``exr`` or ``png`` by the file's magic bytes.
+    """``exr``, ``png`` or ``ktx2`` by the file's magic bytes.
 
     Raises:
-        InputError: Missing, unreadable, or neither an EXR nor a PNG file (location ``byte 0``).
+        InputError: Missing, unreadable, or neither an EXR, a PNG nor a KTX2 file (location
+            ``byte 0``).
     """
     from vbusd.io.exr import MAGIC
+    from vbusd.io.ktx2 import MAGIC as KTX2_MAGIC
     from vbusd.io.png import SIGNATURE
 
-    head = _read_bytes(Path(path), 8)
+    head = _read_bytes(Path(path), len(KTX2_MAGIC))
     if head[:4] == MAGIC:
         return "exr"
-    if head == SIGNATURE:
+    if head[:8] == SIGNATURE:
         return "png"
-    raise InputError("neither an OpenEXR nor a PNG file (checked the magic bytes)",
+    if head == KTX2_MAGIC:
+        return "ktx2"
+    raise InputError("neither an OpenEXR, a PNG nor a KTX2 file (checked the magic bytes)",
                      file=str(path), location="byte 0", code="texture.container")
 
 
@@ -196,7 +210,7 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
                  check_sidecar: bool = True) -> TextureData:
     """Read a texture file and check it thoroughly.
 
-    Checks, in order: the file exists and is an EXR or PNG (magic bytes); the header is complete
+    Checks, in order: the file exists and is an EXR, PNG or KTX2 (magic bytes); the header is complete
     and its dimensions are within ``max_dimension`` (before any pixel data is read or allocated);
     the channels are exactly R, G, B, A; the compression is lossless; the metadata is present,
     valid and of a known version; a sidecar, when there is one, holds the same JSON document; the
@@ -226,6 +240,10 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
 
         texels = exr.read_pixels(path, opened.raw, opened.info.layout.texel_format.value,
                                  max_dimension=max_dimension)
+    elif opened.container == "ktx2":
+        from vbusd.io import ktx2
+
+        texels = ktx2.read_level(path, opened.raw)
     else:
         from vbusd.io import png as png16
 
@@ -243,7 +261,7 @@ class TextureHeader:
 
     Attributes:
         info: The validated layout metadata.
-        container: ``exr`` or ``png``.
+        container: ``exr``, ``png`` or ``ktx2``.
         compression: The file's compression.
         path: The file.
         warnings: As :attr:`TextureData.warnings`.
@@ -277,7 +295,7 @@ class _Opened:
     info: md.LayoutInfo
     container: str
     compression: str
-    raw: object  # exr.ExrHeader or png16.PngChunks
+    raw: object  # exr.ExrHeader, png16.PngChunks or ktx2.Ktx2Header
     prefix: str  # location of the metadata inside the file
     warnings: tuple = ()
 
@@ -302,6 +320,22 @@ def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opene
         _check_dimensions(info, header.width, header.height, file, "header/dataWindow")
         exr.check_pixel_types(header, info.layout.texel_format.value, file)
         return _Opened(info, container, header.compression, header, prefix)
+    if container == "ktx2":
+        from vbusd.io import ktx2
+
+        header = ktx2.scan(path, max_dimension=max_dimension)
+        prefix = f"kvd/{ktx2.METADATA_KEY}"
+        embedded = md.parse_json(ktx2.metadata_text(header, file), file=file, location_prefix=prefix)
+        info = md.from_dict(embedded, file=file, location_prefix=prefix)
+        if check_sidecar:
+            _check_sidecar_agrees(path, embedded)
+        if info.layout.texel_format.value != header.texel_format:
+            raise InputError(f"vkFormat {header.vk_format} ({ktx2.VK_FORMAT_NAMES[header.vk_format]}) "
+                             f"holds {header.texel_format} texels but the metadata says texelFormat "
+                             f"{info.layout.texel_format.value}", file=file,
+                             location=f"{prefix}/texelFormat", code="ktx2.vkFormat")
+        _check_dimensions(info, header.width, header.height, file, "header/pixelWidth")
+        return _Opened(info, container, header.supercompression, header, prefix)
     from vbusd.io import png as png16
 
     chunks = png16.scan_chunks(path, max_dimension=max_dimension)
