@@ -6,9 +6,9 @@ For each animation the asset holds:
   vertices it moves (so the rig is visible and selectable); its pose matrix in armature space is
   the decoded skinning matrix times its rest matrix, so Blender's Armature modifier computes
   ``sum_i w_i M_i p``, the spec's linear blend skinning;
-* one action per clip, keyed at every texture row (location, quaternion, scale; linear
-  interpolation, a Cycles modifier on looping clips), from the transforms vbusd's numpy reference
-  decoder gives at the rows. The first clip is the armature's active action;
+* one action per clip, keyed ``keys_per_row`` times per texture row (location, quaternion, scale;
+  linear interpolation, a Cycles modifier on looping clips) from the transforms vbusd's numpy
+  reference decoder gives there. The first clip is the armature's active action;
 * the rest meshes, with a vertex group per bone, the bone indices and weights as point
   attributes ``vb_bone_index_<k>`` / ``vb_bone_weight_<k>``, the rest normals as custom normals,
   and an Armature modifier;
@@ -17,8 +17,9 @@ For each animation the asset holds:
   strip whose start, scale and repeats give ``tau = timeOffset + playbackRate * t``, with scene
   time ``t = (frame - scene.frame_start) / fps``.
 
-Poses are exact at texture rows. Between rows Blender interpolates location, quaternion and scale
-linearly, where the spec interpolates the stored texels; docs/blender.md gives the measured gap.
+Poses match the decoder at the keys. Between keys Blender interpolates location, quaternion and
+scale linearly, where the spec interpolates the stored texels; the gap shrinks with the square of
+``keys_per_row`` (docs/blender.md gives measured figures).
 """
 
 from __future__ import annotations
@@ -44,11 +45,16 @@ class ImportSettings:
     Attributes:
         crowds: Import point-instanced crowds (one armature and mesh object per instance).
         max_instances: Most instances imported per crowd (the rest are skipped with a warning).
+        keys_per_row: Keys per texture row: 1 keys the rows only; more keys the spec's
+            interpolation between rows too, so that instances whose times fall between rows follow
+            the texture more closely (Blender interpolates location, quaternion and scale linearly
+            between keys, the spec the stored texels).
         allow_outside_paths: Let the asset reference files outside its folder.
     """
 
     crowds: bool = True
     max_instances: int = 2000
+    keys_per_row: int = 4
     allow_outside_paths: bool = False
 
 
@@ -137,12 +143,14 @@ def _build_armature(context, vb, name: str, bone_names: list, centres: np.ndarra
     return rig
 
 
-def _row_matrices(vb, clip_index: int) -> np.ndarray:
-    """(rows, B, 4, 4) decoded skinning matrices at a clip's rows (vbusd's reference decoder)."""
+def _decoded_matrices(vb, clip_index: int, tau: np.ndarray) -> np.ndarray:
+    """(n, B, 4, 4) skinning matrices at clip-local times, from vbusd's reference decoder.
+
+    Between rows the decoder interpolates the stored texels, as a shader does.
+    """
     from vbusd.decode.reference import bone_transforms
 
-    clip = vb.clips[clip_index]
-    transforms = bone_transforms(vb, clip_index, np.arange(clip.row_count) / clip.rows_per_second)
+    transforms = bone_transforms(vb, clip_index, tau)
     matrices = np.zeros(transforms.linear.shape[:-2] + (4, 4))
     matrices[..., :3, :3] = transforms.linear
     matrices[..., :3, 3] = transforms.translation
@@ -175,10 +183,13 @@ def _basis_channels(matrices: np.ndarray, centres: np.ndarray) -> tuple:
 
 
 def _build_action(rig, vb, clip_index: int, bone_names: list, centres: np.ndarray, fps: float,
-                  first_frame: float, name: str):
+                  first_frame: float, name: str, keys_per_row: int = 1):
     clip = vb.clips[clip_index]
-    location, rotation, scale = _basis_channels(_row_matrices(vb, clip_index), centres)
-    frames = first_frame + np.arange(clip.row_count) * fps / clip.rows_per_second
+    steps = max(1, int(keys_per_row))
+    spans = clip.row_count if clip.loop else clip.row_count - 1
+    tau = np.arange(spans * steps + (0 if clip.loop else 1)) / (clip.rows_per_second * steps)
+    location, rotation, scale = _basis_channels(_decoded_matrices(vb, clip_index, tau), centres)
+    frames = first_frame + tau * fps
     if clip.loop:  # key the wrap back to row 0 so the last span blends into the first row
         location = np.concatenate([location, location[:1]])
         first = rotation[:1].copy()
@@ -272,9 +283,7 @@ def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list,
         instance = _link(bpy.data.objects.new(f"{rig.name}.{i:04d}", rig.data), collection)
         instance.parent = parent
         instance.matrix_parent_inverse = Matrix.Identity(4)
-        instance.matrix_basis = matrix
-        for pose_bone in instance.pose.bones:
-            pose_bone.rotation_mode = "QUATERNION"
+        instance.matrix_basis = matrix  # its pose bones rotate by quaternion, Blender's default mode
         objects = [_skinned_object(f"{name}.{i:04d}", data, instance, collection).name
                    for name, data in zip(mesh_names, mesh_data)]
         clip_index = int(crowd.clip[i])
@@ -366,8 +375,8 @@ def import_virtual_bones(context, filepath, settings: ImportSettings = ImportSet
         bone_names = _bone_names(vb.bones)
         centres = _bone_centres(vb)
         rig = _build_armature(context, vb, name, bone_names, centres, collection, root)
-        actions = [_build_action(rig, vb, ci, bone_names, centres, fps, first_frame, f"{name}|{clip.name}")
-                   for ci, clip in enumerate(vb.clips)]
+        actions = [_build_action(rig, vb, ci, bone_names, centres, fps, first_frame, f"{name}|{clip.name}",
+                                 settings.keys_per_row) for ci, clip in enumerate(vb.clips)]
         assign_action(rig, actions[0])
         mesh_data, mesh_names, objects = [], [], []
         for mesh in vb.meshes:

@@ -129,6 +129,10 @@ class IMPORT_SCENE_OT_virtual_bones(bpy.types.Operator, ImportHelper):
                          description="Import point-instanced crowds, one rig per instance")
     max_instances: IntProperty(name="Max Instances", default=2000, min=0,
                                description="Import at most this many instances per crowd")
+    keys_per_row: IntProperty(
+        name="Keys per Row", default=4, min=1, max=64,
+        description="Keyframes per texture row; more follow the texture's own interpolation between rows "
+                    "more closely")
     allow_outside_paths: BoolProperty(
         name="Allow Outside Paths", default=False,
         description="Let the asset reference files outside its folder")
@@ -137,7 +141,7 @@ class IMPORT_SCENE_OT_virtual_bones(bpy.types.Operator, ImportHelper):
         from .importer import ImportSettings, import_virtual_bones
 
         settings = ImportSettings(crowds=self.crowds, max_instances=self.max_instances,
-                                  allow_outside_paths=self.allow_outside_paths)
+                                  keys_per_row=self.keys_per_row, allow_outside_paths=self.allow_outside_paths)
         try:
             report = import_virtual_bones(context, self.filepath, settings)
         except _user_errors() as error:

@@ -1,0 +1,342 @@
+"""The Blender add-on (dcc/blender, package vbusd_blender) run headless with the ``bpy`` wheel.
+
+Independent yardsticks: Blender's own depsgraph-evaluated mesh (``evaluated_get(...).to_mesh()``)
+for the export, and vbusd's numpy reference decoder reading the written files for the import.
+The scene is built here in bpy: a three-bone chain with an IK constraint on its tip, a non-deform
+IK target bone, a tube mesh skinned to the chain, and two actions: ``Bend`` keys the root bone's
+rotation, ``Reach`` keys only the IK target, so every motion of the upper chain in it comes from
+the IK solver.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+try:
+    import bpy
+except ImportError:
+    pytest.skip("bpy not installed: pip install '.[blender]' (the bpy wheel needs Python 3.11)",
+                allow_module_level=True)
+
+import vbusd  # noqa: E402
+from vbusd.decode.reference import skin_crowd, skin_mesh  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "dcc" / "blender"))
+import vbusd_blender  # noqa: E402
+
+FPS = 24
+TOLERANCE = {"float32": 1e-5, "float16": 2e-3}
+"""Largest decoded-vs-Blender distance, as a fraction of the bounding box diagonal (issue 16)."""
+
+
+@pytest.fixture()
+def rig_scene():
+    """A fresh scene with the rig, the tube and the actions Bend and Reach; the add-on registered."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.render.fps_base = FPS, 1.0
+    scene.frame_start, scene.frame_end = 1, 9
+    data = bpy.data.armatures.new("RigData")
+    rig = bpy.data.objects.new("Rig", data)
+    scene.collection.objects.link(rig)
+    bpy.context.view_layer.objects.active = rig
+    bpy.ops.object.mode_set(mode="EDIT")
+    chain = [("root", None), ("mid", "root"), ("tip", "mid")]
+    for z, (name, parent) in enumerate(chain):
+        bone = data.edit_bones.new(name)
+        bone.head, bone.tail = (0, 0, z), (0, 0, z + 1)
+        if parent:
+            bone.parent = data.edit_bones[parent]
+            bone.use_connect = True
+    target = data.edit_bones.new("ik_target")
+    target.head, target.tail, target.use_deform = (0, 0, 3), (0, 0.3, 3), False
+    bpy.ops.object.mode_set(mode="OBJECT")
+    ik = rig.pose.bones["tip"].constraints.new("IK")
+    ik.target, ik.subtarget, ik.chain_count = rig, "ik_target", 2
+
+    rings, verts, faces = 7, [], []
+    for r in range(rings):
+        for k in range(4):
+            angle = math.pi / 2 * k + 0.3
+            verts.append((0.25 * math.cos(angle), 0.25 * math.sin(angle), 3.0 * r / (rings - 1)))
+    for r in range(rings - 1):
+        for k in range(4):
+            a, b = r * 4 + k, r * 4 + (k + 1) % 4
+            faces.append((a, b, b + 4, a + 4))
+    mesh = bpy.data.meshes.new("BodyMesh")
+    mesh.from_pydata(verts, [], faces)
+    body = bpy.data.objects.new("Body", mesh)
+    scene.collection.objects.link(body)
+    body.parent = rig
+    body.modifiers.new("Armature", "ARMATURE").object = rig
+    for name, centre in (("root", 0.5), ("mid", 1.5), ("tip", 2.5)):
+        group = body.vertex_groups.new(name=name)
+        for i, v in enumerate(verts):
+            weight = max(0.0, 1.0 - abs(v[2] - centre))
+            if weight > 0:
+                group.add([i], weight, "REPLACE")
+
+    pose = rig.pose.bones
+    pose["root"].rotation_mode = "XYZ"
+    rig.animation_data_create()
+    for name, keys in (("Bend", ((1, 0.0, (0, 0, 0)), (5, 0.6, (0, 0, 0)), (9, 0.0, (0, 0, 0)))),
+                       ("Reach", ((1, 0.0, (0, 0, 0)), (5, 0.0, (0, 0.8, -0.7)), (9, 0.0, (0, -0.5, -0.4))))):
+        rig.animation_data.action = bpy.data.actions.new(name)
+        for frame, angle, location in keys:
+            pose["root"].rotation_euler = (angle, 0, 0)
+            pose["root"].keyframe_insert("rotation_euler", frame=frame)
+            pose["ik_target"].location = location
+            pose["ik_target"].keyframe_insert("location", frame=frame)
+    rig.animation_data.action = bpy.data.actions["Bend"]
+    yield scene, rig, body
+    vbusd_blender.unregister()
+
+
+def evaluated_points(obj, space) -> np.ndarray:
+    """Blender's depsgraph-evaluated vertices of ``obj`` in the object space of ``space`` (None: world)."""
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    evaluated = obj.evaluated_get(depsgraph)
+    mesh = evaluated.to_mesh()
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    evaluated.to_mesh_clear()
+    matrix = np.array(evaluated.matrix_world, dtype=np.float64)
+    if space is not None:
+        matrix = np.linalg.inv(np.array(space.evaluated_get(depsgraph).matrix_world, dtype=np.float64)) @ matrix
+    return co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+
+
+def play(rig, action_name: str) -> None:
+    rig.animation_data.use_nla = False
+    rig.animation_data.action = bpy.data.actions[action_name]
+
+
+def worst_fraction(asset, scene, rig, body, actions) -> float:
+    """Largest |decoded - Blender evaluated| over every frame of every clip, over the bbox diagonal."""
+    vb = asset.animations[0]
+    worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
+    for clip_index, clip in enumerate(vb.clips):
+        play(rig, actions[clip_index])
+        start, end = (int(f) for f in bpy.data.actions[actions[clip_index]].frame_range)
+        for frame in range(start, end + 1):
+            scene.frame_set(frame)
+            expected = evaluated_points(body, rig)
+            decoded, _ = skin_mesh(vb, vb.meshes[0], clip_index, np.array([(frame - start) / FPS]))
+            worst = max(worst, float(np.linalg.norm(decoded[0] - expected, axis=1).max()))
+            low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
+    return worst / float(np.linalg.norm(high - low))
+
+
+def test_register_adds_operators_and_menus():
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    vbusd_blender.register()  # twice is harmless
+    assert "virtual_bones" in dir(bpy.ops.export_scene) and "virtual_bones" in dir(bpy.ops.import_scene)
+    assert hasattr(bpy.types, "EXPORT_SCENE_OT_virtual_bones")
+    vbusd_blender.unregister()
+    assert not hasattr(bpy.types, "EXPORT_SCENE_OT_virtual_bones")
+
+
+def test_scene_exercises_ik(rig_scene):
+    scene, rig, body = rig_scene
+    play(rig, "Reach")
+    scene.frame_set(1)
+    rest = evaluated_points(body, rig)
+    scene.frame_set(5)
+    moved = np.linalg.norm(evaluated_points(body, rig) - rest, axis=1)
+    assert moved[-4:].min() > 0.3  # the tube's top follows the IK target: only IK moves mid and tip
+
+
+@pytest.mark.parametrize("texel_format", ["float32", "float16"])
+def test_export_matches_blenders_evaluated_mesh(rig_scene, tmp_path, texel_format):
+    scene, rig, body = rig_scene
+    out = tmp_path / "rig.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", texel_format=texel_format,
+                                              actions="Bend,Reach") == {"FINISHED"}
+    asset = vbusd.read_asset(out)
+    vb = asset.animations[0]
+    assert [c.name for c in vb.clips] == ["Bend", "Reach"]
+    assert [c.loop for c in vb.clips] == [True, False]  # Bend ends where it starts; Reach does not
+    assert [c.row_count for c in vb.clips] == [8, 9]
+    assert vb.layout.texel_format.value == texel_format and vb.layout.encoding.value == "crossMatrix"
+    assert list(vb.bones) == ["root", "mid", "tip"]  # deform bones only
+    assert scene.frame_current == 1 and rig.animation_data.action.name == "Bend"  # state restored
+    assert worst_fraction(asset, scene, rig, body, ["Bend", "Reach"]) < TOLERANCE[texel_format]
+
+
+def test_export_selection_rows_per_second_and_report(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    bpy.ops.object.select_all(action="DESELECT")
+    body.select_set(True)  # a selected mesh brings its armature
+    calls = []
+    report = export_virtual_bones(bpy.context, tmp_path / "rig.usdc",
+                                  ExportSettings(actions=("Reach",), rows_per_second=48, texel_format="float32",
+                                                 container="exr"),
+                                  progress=lambda done, total: calls.append((done, total)))
+    assert calls and calls[-1][0] <= calls[-1][1] and [d for d, _ in calls] == sorted(d for d, _ in calls)
+    vb = vbusd.read_asset(tmp_path / "rig.usdc").animations[0]
+    assert vb.clips[0].rows_per_second == 48 and vb.clips[0].row_count == 17  # sub-frames sampled
+    assert report.max_error_fraction < 1e-5
+    # the rows between frames were evaluated by Blender at sub-frames: check one against a fresh evaluation
+    play(rig, "Reach")
+    scene.frame_set(3, subframe=0.5)
+    decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([2.5 / FPS]))
+    expected = evaluated_points(body, rig)
+    assert np.abs(decoded[0] - expected).max() < 1e-4
+
+
+def test_export_timeline_bakes_the_nla(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    anim = rig.animation_data
+    anim.action = None
+    track = anim.nla_tracks.new()
+    track.strips.new("reach", 1, bpy.data.actions["Reach"])
+    strip = anim.nla_tracks.new().strips.new("bend", 1, bpy.data.actions["Bend"])
+    strip.blend_type, strip.influence, strip.use_animated_influence = "ADD", 0.5, False
+    out = tmp_path / "timeline.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", source="TIMELINE",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert [c.name for c in vb.clips] == [scene.name]
+    worst = 0.0
+    for frame in range(1, 10):
+        scene.frame_set(frame)
+        decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+    assert worst < 1e-5
+
+
+def test_import_plays_back_like_the_reference_decoder(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    out = tmp_path / "rig.usda"
+    bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", texel_format="float32")
+    asset = vbusd.read_asset(out)
+    vb = asset.animations[0]
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 40
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(out)) == {"FINISHED"}
+    imported_rig, imported = bpy.data.objects["Rig"], bpy.data.objects["Body"]
+    data = imported.data
+    assert sorted(g.name for g in imported.vertex_groups) == ["mid", "root", "tip"]
+    index0 = np.empty(len(data.vertices), dtype=np.int32)
+    data.attributes["vb_bone_index_0"].data.foreach_get("value", index0)
+    np.testing.assert_array_equal(index0, vb.meshes[0].bone_indices[:, 0])
+    diagonal = float(np.linalg.norm(np.ptp(vb.meshes[0].points, axis=0)))
+    for clip_index, clip in enumerate(vb.clips):
+        imported_rig.animation_data.action = bpy.data.actions[f"Rig|{clip.name}"]
+        worst = 0.0
+        for k in range(clip.row_count + 4):  # past the end: the loop wraps, the clamped clip holds
+            scene.frame_set(1 + k)
+            decoded, _ = skin_mesh(vb, vb.meshes[0], clip_index, np.array([k / FPS]))
+            worst = max(worst, float(np.linalg.norm(decoded[0] - evaluated_points(imported, None), axis=1).max()))
+        assert worst / diagonal < 1e-5, (clip.name, worst)
+
+
+@pytest.mark.parametrize("between_rows", [False, True])
+def test_import_crowd_instances_play_their_clips(rig_scene, tmp_path, between_rows):
+    """Instances at row-aligned clip times match the decoder to float precision; instances whose
+    times fall between rows (offsets of half a row, rates 0.7 and 1.3) match within 2e-3 of the
+    bounding box with 8 keys per row (Blender blends quaternions, the spec blends texels)."""
+    scene, rig, body = rig_scene
+    baked = tmp_path / "rig.usda"
+    bpy.ops.export_scene.virtual_bones(filepath=str(baked), armatures="Rig", texel_format="float32")
+    asset = vbusd.read_asset(baked)
+    quarter = [0.0, 0.0, math.sin(math.pi / 8), math.cos(math.pi / 8)]
+    crowd = vbusd.Crowd(
+        path="/VirtualBones/Crowd",
+        positions=np.array([[0, 0, 0], [2, 0, 0], [4, 1, 0], [6, 0, 0]], dtype=np.float32),
+        orientations=np.array([[0, 0, 0, 1], quarter, [0, 0, 0, 1], quarter], dtype=np.float32),
+        scales=np.array([[1, 1, 1], [1, 1, 1], [2, 2, 2], [1, 1, 1]], dtype=np.float32),
+        clip=np.array([0, 1, 0, 1], dtype=np.int32),
+        time_offset=np.array([0.5, 2.5, 3, -2.25] if between_rows else [0, 2, 3, -2], dtype=np.float32) / FPS,
+        playback_rate=np.array([1.0, 0.7, 2.0, 1.3] if between_rows else [1, 1, 2, 1], dtype=np.float32))
+    crowd_file = tmp_path / "crowd.usda"
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), crowd_file)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 30
+    keys = 8 if between_rows else 1
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(crowd_file), keys_per_row=keys) == {"FINISHED"}
+    vb = asset.animations[0]
+    meshes = [bpy.data.objects[f"Body.{i:04d}"] for i in range(4)]
+    diagonal = float(np.linalg.norm(np.ptp(vb.meshes[0].points, axis=0)))
+    worst = np.zeros(4)
+    for frame in range(1, 25):
+        scene.frame_set(frame)
+        expected, _ = skin_crowd(vb, vb.meshes[0], crowd, (frame - 1) / FPS)
+        for i, obj in enumerate(meshes):
+            worst[i] = max(worst[i], float(np.linalg.norm(expected[i] - evaluated_points(obj, None), axis=1).max()))
+    assert (worst / diagonal < (2e-3 if between_rows else 1e-5)).all(), worst / diagonal
+
+
+# ------------------------------------------------------------------------------------------
+# Bad input: one line in Blender's UI (bpy.ops raises it as RuntimeError headless), no files
+# ------------------------------------------------------------------------------------------
+
+
+def refused(tmp_path, match, **options) -> None:
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(RuntimeError, match=match) as caught:
+        bpy.ops.export_scene.virtual_bones(**options)
+    assert "Traceback" not in str(caught.value) and str(caught.value).count("\n") <= 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_no_armature(rig_scene, tmp_path):
+    bpy.ops.object.select_all(action="DESELECT")
+    refused(tmp_path, "blender.armature: no armature to export", filepath=str(tmp_path / "a.usda"))
+    refused(tmp_path, "'Body' is a mesh object, not an armature", filepath=str(tmp_path / "a.usda"),
+            armatures="Body")
+
+
+def test_action_that_moves_no_bone(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    still = bpy.data.actions.new("Still")
+    rig.animation_data.action = still
+    rig.location = (0, 0, 0)
+    rig.keyframe_insert("location", frame=1)  # keys the object, not a bone
+    refused(tmp_path, "blender.action: action 'Still' moves no bone of armature 'Rig'",
+            filepath=str(tmp_path / "a.usda"), armatures="Rig", actions="Bend,Still")
+
+
+def test_non_uniform_scale_needs_affine_matrix(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    rig.animation_data.action = bpy.data.actions.new("Squash")
+    for frame, scale in ((1, (1, 1, 1)), (5, (1.6, 1.0, 0.7))):
+        rig.pose.bones["mid"].scale = scale
+        rig.pose.bones["mid"].keyframe_insert("scale", frame=frame)
+    refused(tmp_path, r"encoding.nonRigid: bone 'mid' .*crossMatrix cannot hold .*use affineMatrix",
+            filepath=str(tmp_path / "a.usda"), armatures="Rig", actions="Squash", encoding="crossMatrix")
+    out = tmp_path / "squash.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Squash",
+                                              encoding="affineMatrix", texel_format="float32") == {"FINISHED"}
+    asset = vbusd.read_asset(out)
+    assert worst_fraction(asset, scene, rig, body, ["Squash"]) < 1e-5
+
+
+def test_unwritable_output(rig_scene, tmp_path):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("not a folder")
+    refused(tmp_path, "not a folder", filepath=str(blocker / "out.usda"), armatures="Rig")
+    refused(tmp_path, "must be a USD layer", filepath=str(tmp_path / "out.fbx"), armatures="Rig")
+
+
+def test_import_refuses_a_bad_file_without_changing_the_scene(rig_scene, tmp_path):
+    bad = tmp_path / "bad.usda"
+    bad.write_text("#usda 1.0\ndef Xform \"Nothing\" {}\n")
+    objects = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="usd.missing|VirtualBonesAnimation"):
+        bpy.ops.import_scene.virtual_bones(filepath=str(bad))
+    assert len(bpy.data.objects) == objects
