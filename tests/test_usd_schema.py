@@ -196,10 +196,11 @@ def test_plugin_dir_is_the_package_data_folder():
 
 _PROBE = r"""
 import json, os, sys
+environment = dict(os.environ)
 import vbusd
 from vbusd.io import usd_plugin
 state = {"pxr_loaded_by_import": any(m.startswith("pxr.") for m in sys.modules),
-         "plugin_path": os.environ.get("PXR_PLUGINPATH_NAME"),
+         "environment_unchanged": dict(os.environ) == environment,
          "vbusd_file": vbusd.__file__, "plugin_dir": str(usd_plugin.plugin_dir())}
 from pxr import Usd
 stage = Usd.Stage.CreateInMemory()
@@ -220,14 +221,29 @@ def _run_probe(code: str, cwd: Path, env=None, *flags) -> dict:
 
 def test_import_vbusd_registers_without_importing_pxr(tmp_path):
     state = _run_probe(_PROBE, tmp_path)
+    # Registered by the import hook right before the probe's own `from pxr import Usd`, with no
+    # PXR_PLUGINPATH_NAME (or any other variable) set behind the host's back.
     assert state["pxr_loaded_by_import"] is False
-    assert state["plugin_path"] == state["plugin_dir"]
+    assert state["environment_unchanged"] is True
     assert state["known"] and state["encoding"] == "crossMatrix"
+
+
+@pytest.mark.parametrize("first_import", ["from pxr import Tf", "from pxr import UsdGeom", "import pxr.Sdf"])
+def test_import_hook_registers_whichever_pxr_module_comes_first(tmp_path, first_import):
+    # The hook fires on the first pxr module of any name, and takes itself off sys.meta_path.
+    probe = ("import json, os, sys\nenvironment = dict(os.environ)\nimport vbusd\n" + first_import + "\n"
+             "from pxr import Plug, Usd\n"
+             "hooks = [f for f in sys.meta_path if type(f).__name__ == '_RegisterBeforePxr']\n"
+             "print(json.dumps({'plugin': Plug.Registry().GetPluginWithName('vbusd') is not None, 'hooks': len(hooks),\n"
+             "  'known': not Usd.SchemaRegistry.GetTypeFromName('VirtualBonesAnimation').isUnknown,\n"
+             "  'environment_unchanged': dict(os.environ) == environment}))\n")
+    state = _run_probe(probe, tmp_path)
+    assert state == {"plugin": True, "hooks": 0, "known": True, "environment_unchanged": True}
 
 
 def test_import_vbusd_after_pxr_registers_directly(tmp_path):
     state = _run_probe("from pxr import Usd\n" + _PROBE, tmp_path)
-    assert state["plugin_path"] is None  # too late for the variable: registered through Plug
+    assert state["environment_unchanged"] is True  # registered through Plug
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 

@@ -15,15 +15,20 @@ Registration on ``import vbusd``
 ``import vbusd`` calls :func:`register_on_import`, which keeps the import light (pxr is not needed
 by the texture tools or the decoder, and importing it costs about 0.1 s for ``pxr.Plug`` and 0.4 s
 for ``pxr.Usd``, measured with usd-core 26.11 by
-``python -c "import time; t = time.perf_counter(); from pxr import Usd; print(time.perf_counter() - t)"``):
+``python -c "import time; t = time.perf_counter(); from pxr import Usd; print(time.perf_counter() - t)"``)
+and changes nothing a host application owns (``os.environ`` stays as it was):
 
 * when pxr is not installed, it does nothing (and never tries to import it);
-* when pxr is installed but no ``pxr`` module has been imported yet, it appends the plugin folder
-  to the ``PXR_PLUGINPATH_NAME`` environment variable of the process. OpenUSD reads that variable
-  once, when its plugin registry starts (on the first ``from pxr import ...``), so the types are
-  known to every later use of pxr in this process and in child processes it starts;
-* when pxr is already loaded, the registry has already read the variable, so it registers the
-  folder directly with ``Plug.Registry().RegisterPlugins`` (pxr is in memory: about 1 ms).
+* when pxr is installed but no ``pxr`` module has been imported yet, it puts a one-shot import hook
+  (:class:`_RegisterBeforePxr`) first on ``sys.meta_path``. The first ``from pxr import ...`` of the
+  process, whoever makes it, passes through the hook, which loads ``pxr.Plug``, registers the
+  plugin folder with ``Plug.Registry().RegisterPlugins`` and removes itself; the import then
+  proceeds as usual. pxr.Usd builds its schema registry only later, on first use, so the types are
+  in it;
+* when pxr is already loaded, it registers the folder directly (pxr is in memory: about 1 ms).
+
+Child processes do not inherit the registration (no environment variable is set): a child that
+uses the Virtual Bones types imports vbusd first, or gets ``PXR_PLUGINPATH_NAME`` (below).
 
 vbusd's own USD code (:mod:`vbusd.io.usd`, the validators) also calls :func:`register` before
 using the types, which is idempotent.
@@ -62,10 +67,13 @@ from __future__ import annotations
 
 import importlib.resources
 import importlib.util
-import os
 import sys
 import warnings
 from pathlib import Path
+
+__all__ = ["PLUGIN_PACKAGE", "PLUGIN_NAME", "ANIMATION_TYPE", "BINDING_API", "INSTANCING_API",
+           "PLUGIN_PATH_VARIABLE", "LATE_REGISTRATION_MESSAGE", "plugin_dir", "register", "schema_types_known",
+           "require_schema_types", "register_on_import"]
 
 PLUGIN_PACKAGE = "vbusd.schema.usd"
 """The import package whose folder holds plugInfo.json and generatedSchema.usda."""
@@ -78,6 +86,7 @@ BINDING_API = "VirtualBonesBindingAPI"
 INSTANCING_API = "VirtualBonesInstancingAPI"
 
 PLUGIN_PATH_VARIABLE = "PXR_PLUGINPATH_NAME"
+"""The variable that points OpenUSD at plugin folders when a process starts (the route for DCCs)."""
 
 LATE_REGISTRATION_MESSAGE = (
     "vbusd was imported after pxr.Usd built its schema registry, so the Virtual Bones schema types "
@@ -170,17 +179,67 @@ def require_schema_types():
     return plugin
 
 
+class _RegisterBeforePxr:
+    """A one-shot ``sys.meta_path`` finder: registers the plugin as the first pxr module loads.
+
+    On the first ``pxr.*`` import of the process it takes itself off ``sys.meta_path``, lets the
+    regular finders find the module and wraps its loader, so that the registration runs right after
+    that module (and the pxr modules it imports, pxr.Tf at least) has executed, before the statement
+    that imported it returns. Registering any earlier would import pxr.Plug while pxr.Tf is half
+    initialized. The module keeps its own loader afterwards.
+    """
+
+    def find_spec(self, name, path=None, target=None):
+        if not name.startswith("pxr."):
+            return None
+        self.remove()
+        for finder in list(sys.meta_path):
+            find = getattr(finder, "find_spec", None)
+            spec = find(name, path, target) if find is not None else None
+            if spec is not None:
+                if spec.loader is not None and hasattr(spec.loader, "exec_module"):
+                    spec.loader = _RegisterAfterLoading(spec.loader)
+                return spec
+        return None
+
+    def remove(self) -> None:
+        """Take the hook off ``sys.meta_path`` (no error when it is not there)."""
+        try:
+            sys.meta_path.remove(self)
+        except ValueError:
+            pass
+
+
+class _RegisterAfterLoading:
+    """Loader wrapper of :class:`_RegisterBeforePxr`: load the module, then register the plugin."""
+
+    def __init__(self, loader) -> None:
+        self._loader = loader
+
+    def create_module(self, spec):
+        return self._loader.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        module.__loader__ = self._loader  # the module keeps its real loader
+        if getattr(module, "__spec__", None) is not None:
+            module.__spec__.loader = self._loader
+        self._loader.exec_module(module)
+        try:
+            register()
+        except Exception:  # a broken plugin folder must not break the host's own pxr import
+            pass
+
+
 def register_on_import() -> str:
     """The hook ``import vbusd`` runs: make the plugin known to pxr without importing pxr.
 
     Returns:
-        ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet:
-        the folder was added to ``PXR_PLUGINPATH_NAME``), ``"late"`` (registered, but pxr.Usd had
-        already built its schema registry without the types: warns with
-        :data:`LATE_REGISTRATION_MESSAGE`) or ``"unavailable"`` (no pxr installed, or the package
-        data is not on disk).
+        ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet: an
+        import hook registers the plugin right before the first pxr module loads), ``"late"``
+        (registered, but pxr.Usd had already built its schema registry without the types: warns
+        with :data:`LATE_REGISTRATION_MESSAGE`) or ``"unavailable"`` (no pxr installed, or the
+        package data is not on disk).
     """
-    # Any pxr submodule loads Tf, which starts the plugin registry: too late for the variable.
     if any(name.startswith("pxr.") for name in list(sys.modules)):
         try:
             register()
@@ -196,11 +255,9 @@ def register_on_import() -> str:
     if importlib.util.find_spec("pxr") is None:
         return "unavailable"
     try:
-        folder = str(plugin_dir())
+        plugin_dir()
     except Exception:
         return "unavailable"
-    entries = [e for e in os.environ.get(PLUGIN_PATH_VARIABLE, "").split(os.pathsep) if e]
-    if folder not in entries:
-        entries.append(folder)
-        os.environ[PLUGIN_PATH_VARIABLE] = os.pathsep.join(entries)
+    if not any(isinstance(finder, _RegisterBeforePxr) for finder in sys.meta_path):
+        sys.meta_path.insert(0, _RegisterBeforePxr())
     return "deferred"
