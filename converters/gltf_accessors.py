@@ -314,7 +314,7 @@ class AccessorReader:
             if not np.all(np.isfinite(out)):
                 bad = int(np.nonzero(~np.isfinite(out.reshape(len(out), -1)).all(axis=1))[0][0])
                 raise InputError(f"element {bad} holds a NaN or infinite value", file=self.file,
-                                 location=where, code="gltf.accessor.nonfinite")
+                                 location=where, code="gltf.accessor.nonFinite")
             return out
         if not normalized:
             return values.astype(np.int64)

@@ -157,10 +157,10 @@ def check_source(path) -> Path:
     """
     path = Path(path)
     if not path.exists():
-        raise InputError("no such file", file=str(path), code="input.missing")
+        raise InputError("no such file", file=str(path), code="file.missing")
     if not path.is_file():
         raise InputError("is a folder, not a file" if path.is_dir() else "not a regular file", file=str(path),
-                         code="input.notFile")
+                         code="file.kind")
     return path
 
 

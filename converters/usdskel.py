@@ -155,7 +155,7 @@ class _Reader:
                 except ValueError:
                     raise InputError(f"layer '{layer.identifier}' lies outside the asset's folder {root} "
                                      "(use --allow-outside-paths to allow it)", file=self.file,
-                                     location="/", code="usd.outsidePath") from None
+                                     location="/", code="path.unsafe") from None
         return stage
 
     # ---------------------------------------------------------------------------------------

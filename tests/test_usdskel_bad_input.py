@@ -104,7 +104,7 @@ def test_layers_outside_the_folder_need_permission(tmp_path, capsys):
     output = tmp_path / "shot" / "out.usda"
     assert main(["convert", str(shot), "-o", str(output)]) == 2
     err = capsys.readouterr().err
-    assert "usd.outsidePath" in err and "--allow-outside-paths" in err
+    assert "path.unsafe" in err and "--allow-outside-paths" in err
     assert not output.exists()
     assert main(["convert", str(shot), "-o", str(output), "--allow-outside-paths"]) == 0
     assert output.exists()

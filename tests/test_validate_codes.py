@@ -39,14 +39,14 @@ def test_codes_are_stable_dotted_names_with_known_severities_and_spec_anchors():
     for code in codes.REGISTRY.values():
         assert re.fullmatch(r"[a-z][A-Za-z0-9]*(\.[a-z][A-Za-z0-9]*)+", code.code), code.code
         assert code.severity in set(codes.Severity)
-        assert code.location in {"usd", "json", "texel", "file"}
+        assert code.location in {"usd", "json", "texel", "file", "option"}
         document, _, anchor = code.spec.partition("#")
         if document == "virtual-bones.md":
             assert anchor in anchors, f"{code.code}: spec anchor #{anchor} not in spec/virtual-bones.md"
         else:
-            assert document == "validation.md"
-            text = (SPEC / "validation.md").read_text(encoding="utf-8")
-            assert f'<a id="{anchor}">' in text
+            assert document in {"validation.md", "gltf-conversion.md", "usd-conversion.md"}, code.code
+            text = (SPEC / document).read_text(encoding="utf-8")
+            assert f'<a id="{anchor}">' in text, f"{code.code}: no anchor #{anchor} in spec/{document}"
 
 
 def test_code_filters_match_whole_dotted_segments():
@@ -118,27 +118,61 @@ def test_text_report_groups_by_severity_with_locations():
 
 # Dotted names in the validators that are not validation codes: the codes of exceptions raised
 # before any report exists (vbusd.format.errors, exit 2), and format / resource names.
-NOT_VALIDATION_CODES = {"file.missing", "file.unreadable", "options.code", "usd.open", "usd.validation",
-                        "vbusd.layout", "vbusd.schema", "vbusd.validationReport", "vbusd.virtualBones"}
+NOT_CODES = {"vbusd.layout", "vbusd.schema", "vbusd.validationReport", "vbusd.virtualBones"}
+"""Dotted strings in the sources that are names, not codes (metadata keys, schema ids)."""
+
+ERROR_TYPES = {"VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError"}
+CODE_TAKING_CALLS = {"finding", "report", "error", "fail", "_bad"}
 
 
-def test_every_code_string_in_the_validators_is_registered():
-    """Static scan: a code typed into a check but missing from the registry would only surface as
-    an ``asset.internal`` finding (KeyError) on the asset that triggers it; catch it here."""
+def _sources() -> list:
+    return sorted(p for folder in ("vbusd", "converters", "validators") for p in (ROOT / folder).rglob("*.py"))
+
+
+def test_every_code_string_in_the_sources_is_registered():
+    """Static scan of every module: a code given to an error, a finding or a reader's report, a
+    class's default code, and any string of a registered area's dotted form, is in the registry.
+
+    One registry for errors and findings alike (issue 10): a code typed anywhere but missing from
+    the registry would print an unlisted code, or surface as ``asset.internal``."""
     import ast
 
     pattern = re.compile(r"[a-z][A-Za-z0-9]*(\.[a-zA-Z][A-Za-z0-9]*)+")
+    areas = {code.split(".")[0] for code in codes.REGISTRY}
     unregistered = []
-    sources = sorted((ROOT / "validators").glob("*.py")) + [ROOT / "vbusd" / "cli" / "validate.py"]
-    for source in sources:
+    for source in _sources():
+        name = source.relative_to(ROOT)
         for node in ast.walk(ast.parse(source.read_text(encoding="utf-8"))):
+            candidates = []
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and pattern.fullmatch(node.value) \
-                    and node.value not in codes.REGISTRY and node.value not in NOT_VALIDATION_CODES:
-                unregistered.append(f"{source.name}:{node.lineno}: {node.value}")
-            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "finding" and node.args \
-                    and isinstance(node.args[0], ast.Constant):
-                assert node.args[0].value in codes.REGISTRY, f"{source.name}:{node.lineno}"
+                    and node.value.split(".")[0] in areas:
+                candidates.append(node.value)
+            if isinstance(node, ast.keyword) and node.arg == "code" and isinstance(node.value, ast.Constant):
+                candidates.append(node.value.value)
+            if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "default_code" for t in node.targets):
+                candidates.append(node.value.value)
+            if isinstance(node, ast.Call):
+                func = getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+                if func in {"finding", "report"} and node.args and isinstance(node.args[0], ast.Constant):
+                    candidates.append(node.args[0].value)
+            for value in candidates:
+                if value not in codes.REGISTRY and value not in NOT_CODES:
+                    unregistered.append(f"{name}:{node.lineno}: {value}")
     assert not unregistered, unregistered
+
+
+def test_every_error_names_its_code():
+    """Every error vbusd raises for input names a registered code explicitly (the class defaults
+    exist for third-party converters); option errors may use ``options.invalid``."""
+    import ast
+
+    missing = []
+    for source in _sources():
+        for node in ast.walk(ast.parse(source.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) in ERROR_TYPES - {"OptionsError"} \
+                    and not any(k.arg == "code" for k in node.keywords):
+                missing.append(f"{source.relative_to(ROOT)}:{node.lineno}: {node.func.id} without code=")
+    assert not missing, missing
 
 
 def test_findings_carry_the_location_kind_their_code_registers():

@@ -166,18 +166,19 @@ def reduce_influences(indices: np.ndarray, weights: np.ndarray, max_influences: 
     idx = np.asarray(indices, dtype=np.int64)
     w = np.asarray(weights, dtype=np.float64)
     if idx.shape != w.shape or idx.ndim != 2:
-        raise InputError(f"bone indices {idx.shape} and weights {w.shape} must be (V, K) alike", location=mesh)
+        raise InputError(f"bone indices {idx.shape} and weights {w.shape} must be (V, K) alike", location=mesh,
+                         code="binding.count")
     if not np.all(np.isfinite(w)):
         vertex = int(np.argwhere(~np.isfinite(w))[0][0])
-        raise InputError(f"vertex {vertex} has a NaN or infinite weight", location=mesh, code="binding.weights")
+        raise InputError(f"vertex {vertex} has a NaN or infinite weight", location=mesh, code="binding.weights.negative")
     if np.any(w < 0):
         vertex = int(np.argwhere(w < 0)[0][0])
         raise InputError(f"vertex {vertex} has a negative weight {w[vertex].min():g}", location=mesh,
-                         code="binding.weights")
+                         code="binding.weights.negative")
     totals = w.sum(axis=1)
     if np.any(totals <= 0):
         raise InputError(f"vertex {int(np.argmax(totals <= 0))} has only zero weights", location=mesh,
-                         code="binding.weights")
+                         code="binding.weights.sum")
     w = w / totals[:, None]
     keep = min(idx.shape[1], max_influences)
     order = np.argsort(-w, axis=1, kind="stable")[:, :keep]
@@ -198,9 +199,9 @@ def bind_mesh(mesh: SkinnedMesh, bone_count: int, max_influences: int) -> BoundM
     """
     points = np.asarray(mesh.points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path)
+        raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path, code="binding.mesh")
     if not np.all(np.isfinite(points)):
-        raise InputError("points contain NaN or infinity", location=mesh.path, code="mesh.points")
+        raise InputError("points contain NaN or infinity", location=mesh.path, code="binding.points.nonFinite")
     idx = np.asarray(mesh.bone_indices)
     if idx.shape[0] != points.shape[0]:
         raise InputError(f"{idx.shape[0]} influence rows for {points.shape[0]} points", location=mesh.path,
@@ -208,7 +209,7 @@ def bind_mesh(mesh: SkinnedMesh, bone_count: int, max_influences: int) -> BoundM
     if idx.size and (idx.min() < 0 or idx.max() >= bone_count):
         bad = int(idx.max() if idx.max() >= bone_count else idx.min())
         raise InputError(f"bone index {bad} out of range 0..{bone_count - 1}", location=mesh.path,
-                         code="binding.indices")
+                         code="binding.indices.range")
     indices, weights, _ = reduce_influences(idx, mesh.bone_weights, max_influences, mesh=mesh.path)
     normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
     return BoundMesh(
@@ -297,7 +298,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         InputError: Bad mesh bindings.
     """
     if not animation.clips:
-        raise InputError("the animation has no clip to bake", file=animation.source, location=animation.path)
+        raise InputError("the animation has no clip to bake", file=animation.source, location=animation.path,
+                         code="animation.noClip")
     bone_count = animation.bone_count
     loops = [decide_loop(clip, options) for clip in animation.clips]
     plans = plan_rows(animation.clips, loops, options)
@@ -323,7 +325,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         if matrices.shape != (plan.row_count, bone_count, 4, 4):
             raise InputError(f"clip '{clip.name}' sampled {matrices.shape}, expected "
                              f"{(plan.row_count, bone_count, 4, 4)}", file=animation.source,
-                             location=animation.path)
+                             location=animation.path, code="animation.sampleShape")
         if not np.all(np.isfinite(matrices)):
             row, bone = (int(i) for i in np.argwhere(~np.isfinite(matrices))[0][:2])
             raise InputError(f"bone '{animation.bones[bone]}' has a NaN or infinite transform at "

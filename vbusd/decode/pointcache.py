@@ -173,7 +173,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     asset_path, output = Path(asset_path), Path(output)
     check_output_path(asset_path, output, force=force, what="cache", source_what="asset")
     if asset_path.is_dir():
-        raise InputError("is a folder, not a Virtual Bones USD asset", file=str(asset_path), code="input.notFile")
+        raise InputError("is a folder, not a Virtual Bones USD asset", file=str(asset_path), code="file.kind")
     warnings: list = []
     skin, skin_crowd, decoder_name = _skinner(device, warnings)
 

@@ -257,25 +257,25 @@ class Decoder:
         idx = np.asarray(mesh.bone_indices)
         w = np.asarray(mesh.bone_weights)
         if points.ndim != 2 or points.shape[1] != 3:
-            raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path)
+            raise InputError(f"points must be (V, 3), got {points.shape}", location=mesh.path, code="binding.mesh")
         if idx.ndim != 2 or idx.shape != w.shape or idx.shape[0] != points.shape[0] or idx.shape[1] < 1:
             raise InputError(f"bone indices {idx.shape} and weights {w.shape} must be (V, K) for "
                              f"{points.shape[0]} points", location=mesh.path, code="binding.count")
         if idx.size and (idx.min() < 0 or idx.max() >= self.bone_count):
             bad = int(idx.max() if idx.max() >= self.bone_count else idx.min())
             raise InputError(f"bone index {bad} out of range 0..{self.bone_count - 1}", location=mesh.path,
-                             code="binding.indices")
+                             code="binding.indices.range")
         if mesh.normals is not None:
             expected = points.shape[0] if mesh.normals_interpolation != "faceVarying" else \
                 np.asarray(mesh.face_vertex_indices).shape[0]
             if np.asarray(mesh.normals).shape != (expected, 3):
                 raise InputError(f"{mesh.normals_interpolation} normals must be ({expected}, 3), got "
-                                 f"{np.asarray(mesh.normals).shape}", location=mesh.path, code="mesh.normals")
+                                 f"{np.asarray(mesh.normals).shape}", location=mesh.path, code="binding.normals.count")
             corners = np.asarray(mesh.face_vertex_indices)
             if mesh.normals_interpolation == "faceVarying" and corners.size and \
                     (corners.min() < 0 or corners.max() >= points.shape[0]):
                 raise InputError(f"faceVertexIndices reach {int(corners.max())}, outside the {points.shape[0]} "
-                                 f"points", location=mesh.path, code="mesh.faceVertexIndices")
+                                 f"points", location=mesh.path, code="binding.mesh")
 
     def _upload_texture(self) -> None:
         vb, layout = self.vb, self.vb.layout
@@ -338,11 +338,11 @@ class Decoder:
         for name, value in arrays.items():
             if value.shape[0] != n:
                 raise InputError(f"primvars:vb:{name} has {value.shape[0]} values for {n} instances",
-                                 location=crowd.path)
+                                 location=crowd.path, code="instancer.count")
         if n and (clip.min() < 0 or clip.max() >= self.clip_count):
             bad = int(clip.max() if clip.max() >= self.clip_count else clip.min())
             raise InputError(f"clip index {bad} out of range 0..{self.clip_count - 1}",
-                             location=f"{crowd.path}.primvars:vb:clip", code="instancing.clip")
+                             location=f"{crowd.path}.primvars:vb:clip", code="instancer.clip.range")
         q = np.asarray(crowd.orientations, dtype=np.float64).reshape(n, 4)
         length = np.linalg.norm(q, axis=1, keepdims=True)
         q = q / np.where(length > 0, length, 1.0)

@@ -1,4 +1,9 @@
-"""The one registry of validation codes: code, severity, summary and the spec section it enforces.
+"""The one registry of codes: every error and every finding any vbusd command can print.
+
+Each code has one meaning, a default severity, a one-line summary and the spec section it enforces.
+Readers report with these codes (strict callers raise the first error with its code; ``vbusd
+validate`` lists them all), converters and the baker raise them, and the validators' checks report
+them.
 
 Codes are stable dotted names, ``<area>.<what>`` (for example ``texture.nonFinite``), in the same
 style as the codes of :mod:`vbusd.format.errors`. A code never changes meaning once released; a retired
@@ -49,7 +54,7 @@ class Code:
         summary: One line saying what the finding means.
         spec: The spec section it enforces (file and anchor under spec/).
         location: The kind of location its findings carry when a USD asset is validated (``usd``,
-            ``json``, ``texel``, ``file``). A texture or sidecar validated on its own has no prim:
+            ``json``, ``texel``, ``file``), or ``option`` for a bad command-line option or argument. A texture or sidecar validated on its own has no prim:
             findings about declared values then carry a ``json`` pointer into its metadata.
     """
 
@@ -200,6 +205,175 @@ _CODES = (
          f"{_VB}#instancing", "usd"),
     Code("instancer.nonFinite", E, "An instance's time offset or playback rate is NaN or infinite.",
          f"{_VB}#instancing", "usd"),
+    # ---- errors a command stops on (exit 2): files, options, baking, decoding ----
+    Code("file.missing", E, "The input file does not exist.", "validation.md#command", "file"),
+    Code("file.kind", E, "The input is a folder, a named pipe, a device or a socket, not a regular file.",
+         "validation.md#command", "file"),
+    Code("file.unreadable", E, "The input file exists but cannot be read (permissions, I/O error).",
+         "validation.md#command", "file"),
+    Code("path.unsafe", E, "A path inside the asset (texture, buffer, layer) leaves the asset's folder, is "
+         "absolute or is a remote URI, and outside paths were not allowed.", "validation.md#asset-folder",
+         "file"),
+    Code("input.invalid", E, "The input is malformed in a way no more specific code names (the default "
+         "of third-party converters).", "validation.md#command", "file"),
+    Code("input.unsupported", E, "The input holds what the format cannot (the default of third-party "
+         "converters).", "validation.md#command", "file"),
+    Code("options.invalid", E, "An option or argument has a value the command does not accept (the "
+         "message names the option and the allowed values).", "validation.md#command", "option"),
+    Code("options.code", E, "A --only/--ignore filter names no registered code or code prefix.",
+         "validation.md#command", "option"),
+    Code("layout.size", E, "The texture the bake needs exceeds the largest dimension readers must "
+         "support (too many bones or rows).", f"{_VB}#texel-addressing", "usd"),
+    Code("animation.noClip", E, "The animation has no clip to bake.", f"{_VB}#clips", "usd"),
+    Code("animation.sampleShape", E, "A converter's clip sampled matrices of the wrong shape (a converter "
+         "bug; report it).", f"{_VB}#bone-transforms", "usd"),
+    Code("animation.nonFinite", E, "A bone's skinning transform is NaN or infinite at some sampled time.",
+         f"{_VB}#bone-transforms", "usd"),
+    Code("encoding.nonRigid", E, "A bone transform has scale or shear (or is singular) and the chosen "
+         "encoding cannot hold it; affineMatrix holds scale and shear, no encoding holds a singular "
+         "matrix.", f"{_VB}#encodings", "usd"),
+    Code("encoding.float16Overflow", E, "A channel value exceeds float16's range (65504); use float32.",
+         f"{_VB}#float16", "usd"),
+    Code("encoding.nonFinite", E, "Values to encode contain NaN or infinity.", f"{_VB}#encodings", "usd"),
+    Code("convert.dualQuaternion", E, "The source asks for dual-quaternion skinning but the chosen "
+         "encoding decodes with linear blend skinning (use dualQuat or auto).", f"{_VB}#dqs", "usd"),
+    Code("convert.mixedSkinning", E, "Meshes bound to one skeleton mix dual-quaternion and linear blend "
+         "skinning; one texture decodes with one method.", f"{_VB}#skinning", "usd"),
+    Code("convert.write", E, "The converted asset cannot be written (disk full, permissions); nothing "
+         "was written.", f"{_VB}#conforming-writer", "file"),
+    Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
+         "written.", f"{_VB}#conforming-writer", "file"),
+    Code("usd.open", E, "The USD source cannot be opened: empty, unreadable, not a USD layer (wrong "
+         "suffix or content), or USD refused it.", "usd-conversion.md#checks", "file"),
+    Code("usd.plugin", E, "The Virtual Bones USD schema plugin is not usable in this process (not on "
+         "disk, not registered, or registered after pxr.Usd built its schema registry).",
+         f"{_VB}#usd-schema", "file"),
+    Code("usd.validation", E, "This usd-core cannot register Python validators with UsdValidation.",
+         "validation.md#usd-validation", "file"),
+    # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----
+    Code("gltf.file", E, "The glTF file cannot be read.", "gltf-conversion.md#reading", "file"),
+    Code("gltf.file.limit", E, "The glTF file is larger than the reader's limit.", "gltf-conversion.md#reading", "file"),
+    Code("gltf.glb", E, "The GLB container is malformed: short header, wrong length, bad or missing "
+         "chunks.", "gltf-conversion.md#reading", "file"),
+    Code("gltf.json", E, "The JSON is not UTF-8, not valid JSON, nests too deeply or is not an object.",
+         "gltf-conversion.md#reading", "file"),
+    Code("gltf.value", E, "A JSON value has the wrong type or is out of its range (glTF 2.0 schema).",
+         "gltf-conversion.md#reading", "json"),
+    Code("gltf.index", E, "An index into another glTF array (node, accessor, buffer view...) is out of "
+         "range.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.asset.version", E, "The asset (or GLB container) is not glTF 2.x.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.extension.required", E, "The file requires an extension vbusd does not support.",
+         "gltf-conversion.md#reading", "json"),
+    Code("gltf.buffer.base64", E, "A data URI is not valid base64.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.buffer.length", E, "A buffer holds fewer bytes than its byteLength.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.buffer.limit", E, "A buffer's byteLength exceeds the reader's limit.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.buffer.missing", E, "A buffer's file cannot be read, or a buffer without uri has no GLB "
+         "BIN chunk.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.bufferView.bounds", E, "A buffer view's bytes lie outside its buffer.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.bufferView.stride", E, "A buffer view's byteStride is out of 4..252 or not a multiple of "
+         "4.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.alignment", E, "An accessor's byteOffset is not a multiple of its component "
+         "size.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.bounds", E, "An accessor's elements lie outside its buffer view, or the view's "
+         "stride is below the element size.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.format", E, "An accessor has the wrong type, component type or normalization "
+         "for its use.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.limit", E, "An accessor's count exceeds the reader's limit.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.nonFinite", E, "An accessor holds a NaN or infinite value.", "gltf-conversion.md#reading", "json"),
+    Code("gltf.accessor.sparse", E, "A sparse accessor is malformed (count, indices not increasing or out "
+         "of range, missing parts).", "gltf-conversion.md#reading", "json"),
+    Code("gltf.node.transform", E, "A node's matrix or TRS is malformed (wrong length, both given, "
+         "zero-length rotation).", "gltf-conversion.md#transforms", "json"),
+    Code("gltf.node.parents", E, "A node is the child of two nodes.", "gltf-conversion.md#scene", "json"),
+    Code("gltf.node.loop", E, "The node hierarchy has a cycle.", "gltf-conversion.md#scene", "json"),
+    Code("gltf.scene", E, "A scene root is the child of another node.", "gltf-conversion.md#scene", "json"),
+    Code("gltf.noSkin", E, "The file has no skin used by a mesh node: nothing to bake.", "gltf-conversion.md#skins", "json"),
+    Code("gltf.skin.joints", E, "A skin has no joints or lists a node twice.", "gltf-conversion.md#skins", "json"),
+    Code("gltf.skin.skeleton", E, "A skin's skeleton node is not an ancestor of all its joints.",
+         "gltf-conversion.md#skins", "json"),
+    Code("gltf.skin.ibm", E, "A skin's inverseBindMatrices accessor is malformed or holds fewer matrices "
+         "than joints.", "gltf-conversion.md#skins", "json"),
+    Code("gltf.skin.weights", E, "A vertex has a negative weight, or its weights do not sum to one.",
+         "gltf-conversion.md#meshes", "json"),
+    Code("gltf.mesh.mode", E, "A primitive's mode is unknown or cannot be a skinned mesh (points, "
+         "lines).", "gltf-conversion.md#meshes", "json"),
+    Code("gltf.mesh.attribute", E, "A primitive lacks POSITION, or a skinned one lacks JOINTS_0/"
+         "WEIGHTS_0.", "gltf-conversion.md#meshes", "json"),
+    Code("gltf.mesh.count", E, "A vertex attribute's count differs from POSITION's.", "gltf-conversion.md#meshes", "json"),
+    Code("gltf.mesh.indices", E, "A primitive's indices are out of range, the restart value, or not a "
+         "whole number of triangles.", "gltf-conversion.md#meshes", "json"),
+    Code("gltf.animation.sampler", E, "A sampler's interpolation is unknown, or CUBICSPLINE has fewer "
+         "than 2 keys.", "gltf-conversion.md#clips", "json"),
+    Code("gltf.animation.input", E, "A sampler's input times are malformed (not float scalars, negative, "
+         "not increasing).", "gltf-conversion.md#clips", "json"),
+    Code("gltf.animation.output", E, "A sampler's output values are malformed or their count does not "
+         "match the input.", "gltf-conversion.md#clips", "json"),
+    Code("gltf.animation.target", E, "A channel has no target, an unknown path, or targets one node "
+         "property twice or a node given by a matrix.", "gltf-conversion.md#clips", "json"),
+    Code("gltf.option", E, "A glTF-specific option names no such scene, skin or animation, or is "
+         "malformed.", "gltf-conversion.md#clips", "option"),
+    # ---- UsdSkel converter (spec/usd-conversion.md) ----
+    Code("usdskel.nothing", E, "No convertible skinned mesh bound to a Skeleton was found.",
+         "usd-conversion.md#unsupported", "usd"),
+    Code("usdskel.blendShapesOnly", E, "The skeleton has no joints: its meshes are deformed by blend "
+         "shapes only.", "usd-conversion.md#unsupported", "usd"),
+    Code("usdskel.timeCodesPerSecond", E, "The stage's timeCodesPerSecond is not positive.",
+         "usd-conversion.md#time", "usd"),
+    Code("usdskel.skeleton.missing", E, "A mesh has joint influences but no skel:skeleton binding.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.skeleton.dangling", E, "skel:skeleton targets a prim that is missing or not a "
+         "Skeleton.", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.skeleton.invalid", E, "UsdSkel cannot build a query for the skeleton.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.bindingAPI", E, "skel:* properties are authored but SkelBindingAPI is not applied "
+         "(UsdSkel ignores them).", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.binding", E, "UsdSkel does not treat the prim as a skinning target of its skeleton.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.joints.empty", E, "The skeleton has no joints.", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.joints.duplicate", E, "A joint appears twice in joints.", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.joints.invalid", E, "A joint name is not a valid path.", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.joints.order", E, "A joint comes before its parent in joints.", "usd-conversion.md#checks",
+         "usd"),
+    Code("usdskel.joints.unknown", E, "A mesh's skel:joints names a joint the skeleton does not have.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.bindTransforms.missing", E, "The skeleton's bindTransforms are missing.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.bindTransforms.singular", E, "A bind transform is singular.", "usd-conversion.md#checks",
+         "usd"),
+    Code("usdskel.restTransforms.missing", E, "restTransforms are missing and the animation does not "
+         "drive every joint.", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.transform.nonFinite", E, "A skeleton transform (bind, rest or world) is not finite.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.geomBindTransform", E, "primvars:skel:geomBindTransform is singular or not finite.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.animation.incomplete", E, "The SkelAnimation lacks translations, rotations or scales "
+         "(UsdSkel silently ignores it).", "usd-conversion.md#checks", "usd"),
+    Code("usdskel.animation.count", E, "An animation array does not hold one value per joint.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.animation.nonFinite", E, "An animation value is not finite.", "usd-conversion.md#checks",
+         "usd"),
+    Code("usdskel.animation.zeroQuaternion", E, "An animation rotation is a zero quaternion.",
+         "usd-conversion.md#checks", "usd"),
+    Code("usdskel.influences.missing", E, "Only one of jointIndices and jointWeights is authored.",
+         "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.interpolation", E, "Joint influences are not vertex or constant, or the two "
+         "primvars differ.", "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.elementSize", E, "The influence primvars' elementSize differs or is below 1.",
+         "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.count", E, "An influence primvar does not hold points x elementSize values.",
+         "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.range", E, "A joint index is out of range.", "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.nonFinite", E, "A joint weight is not finite.", "usd-conversion.md#meshes",
+         "usd"),
+    Code("usdskel.influences.negative", E, "A joint weight is negative.", "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.influences.zero", E, "A point's joint weights are all zero.", "usd-conversion.md#meshes",
+         "usd"),
+    Code("usdskel.mesh.topology", E, "A mesh's faceVertexCounts, faceVertexIndices and points disagree.",
+         "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.points.nonFinite", E, "A mesh point is not finite.", "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.normals.nonFinite", E, "A mesh normal is not finite.", "usd-conversion.md#meshes", "usd"),
+    Code("usdskel.skinning", E, "UsdSkel could not compute skinning transforms or skinned points at a "
+         "time code.", "usd-conversion.md#accuracy", "usd"),
 )
 
 REGISTRY: dict[str, Code] = {c.code: c for c in _CODES}
@@ -226,15 +400,17 @@ def matches(code: str, patterns) -> bool:
 def markdown() -> str:
     """Render the registry as spec/ISSUES.md (the committed file must equal this text)."""
     lines = [
-        "# Validation issues",
+        "# Codes: errors and validation issues",
         "",
         "<!-- GENERATED by `python -m vbusd.format.codes --markdown > spec/ISSUES.md`;",
         "     do not edit by hand: edit vbusd/format/codes.py. tests/test_validate_codes.py fails when",
         "     this file is stale. -->",
         "",
-        "Every finding of `vbusd validate` carries one of these codes. Codes are stable: tests, CI",
-        "filters (`--only`, `--ignore`) and importers may rely on them. Severities are defaults;",
-        "only `error` findings make `vbusd validate` exit with status 1 (spec/validation.md).",
+        "Every error any vbusd command prints (`vbusd: FILE: LOCATION: CODE: message`, exit 2) and",
+        "every finding of `vbusd validate` carries one of these codes, and each code has one meaning.",
+        "Codes are stable: tests, CI filters (`--only`, `--ignore`) and importers may rely on them.",
+        "Severities are defaults; only `error` findings make `vbusd validate` exit with status 1",
+        "(spec/validation.md). Location `option` marks a bad command-line option or argument.",
         "",
         "| code | severity | location | spec | meaning |",
         "|---|---|---|---|---|",

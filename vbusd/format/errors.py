@@ -15,11 +15,12 @@ class VbusdError(Exception):
         file: The file the problem is in, if any.
         location: Where in the file: a JSON pointer, a USD prim path (and property), a byte offset
             or a texel address.
-        code: A short stable code (for example ``gltf.accessor.bounds``).
+        code: A code registered in :mod:`vbusd.format.codes` (for example ``gltf.accessor.bounds``).
+            vbusd's own raises always name one; the class default serves third-party converters.
     """
 
     exit_status = 2
-    default_code = "error"
+    default_code = "input.invalid"
 
     def __init__(self, message: str, *, file: str | None = None, location: str | None = None,
                  code: str | None = None) -> None:
@@ -47,19 +48,19 @@ class VbusdError(Exception):
 class InputError(VbusdError):
     """A file that cannot be read: malformed, truncated, inconsistent, out of limits or unsafe."""
 
-    default_code = "input"
+    default_code = "input.invalid"
 
 
 class OptionsError(VbusdError):
     """Options that are invalid; raised before any work starts. ``file`` names the component."""
 
-    default_code = "options"
+    default_code = "options.invalid"
 
 
 class UnsupportedError(VbusdError):
     """Source content the chosen encoding or the format cannot hold (for example scale with crossMatrix)."""
 
-    default_code = "unsupported"
+    default_code = "input.unsupported"
 
 
 class VersionError(InputError):

@@ -278,7 +278,7 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = N
     if version > current:
         raise VersionError(
             f"formatVersion {version} is newer than this reader (version {current}); "
-            f"upgrade vbusd to read it", file=file, location=where)
+            f"upgrade vbusd to read it", file=file, location=where, code="format.version")
     if version < 1:
         raise InputError(f"formatVersion must be 1 or more, got {version}", file=file,
                          location=where, code="metadata.invalid")
