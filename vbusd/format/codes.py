@@ -250,6 +250,9 @@ _CODES = (
          f"{_VB}#usd-schema", "file"),
     Code("usd.validation", E, "This usd-core cannot register Python validators with UsdValidation.",
          "validation.md#usd-validation", "file"),
+    # command line
+    Code("command.internal", E, "A command failed unexpectedly: a bug in vbusd, not a fault of the input; the "
+         "line names the command and the input (please report it with both).", "validation.md#command", "file"),
     # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----
     Code("gltf.file", E, "The glTF file cannot be read.", "gltf-conversion.md#reading", "file"),
     Code("gltf.file.limit", E, "The glTF file is larger than the reader's limit.", "gltf-conversion.md#reading", "file"),
