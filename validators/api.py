@@ -1,7 +1,7 @@
 """Validate an asset: the library entry point behind ``vbusd validate``.
 
 :func:`validate` accepts a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``), a texture
-(``.exr``, ``.png``) or a sidecar (``.json``). It raises :class:`vbusd.format.errors.InputError` only when
+(``.exr``, ``.png``, ``.ktx2``) or a sidecar (``.json``). It raises :class:`vbusd.format.errors.InputError` only when
 the asset cannot be opened at all (missing file, USD that does not parse, a texture or sidecar
 given on its own that cannot be decoded); everything wrong inside a readable asset is a finding.
 A check that fails unexpectedly becomes an ``asset.internal`` finding instead of a traceback, so
@@ -22,7 +22,7 @@ from vbusd.format.diagnostics import FileLocation, UsdSite, finding
 from vbusd.validators.report import Report, build_report
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-TEXTURE_SUFFIXES = (".exr", ".png", ".json")
+TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2", ".json")
 _UNREADABLE_ALONE = ("texture.unreadable", "texture.missing")
 
 

@@ -38,6 +38,7 @@ OTHER_METADATA_KEYS = ("format", "generator", "usedWidth", "texelBytes")
 CLIP_KEYS = ("name", "firstRow", "rowCount", "rowsPerSecond", "loop", "startTime")
 PIXEL_TYPE_OF_FORMAT = {"float16": ("exr", "float16"), "float32": ("exr", "float32"),
                         "unorm16": ("png", "uint16")}
+_METADATA_PLACE = {"exr": "string header attribute", "png": "iTXt chunk", "ktx2": "key/value entry"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -340,7 +341,7 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
         # texture; the sidecar is an optional extra copy) and is what readers, vbusd's included,
         # read: a sidecar alone does not make the texture readable. It is still checked below.
         misplaced = (f" (found {', '.join(raw.misplaced_metadata)}: readers look only at the "
-                     f"{'string header attribute' if raw.container == 'exr' else 'iTXt chunk'} "
+                     f"{_METADATA_PLACE.get(raw.container, 'iTXt chunk')} "
                      f"'{METADATA_KEY}')" if raw.misplaced_metadata else "")
         beside = (f"; the sidecar {sidecar_path(texture_path).name} alone is not enough"
                   if sidecar_path(texture_path).is_file() else
@@ -437,6 +438,8 @@ def _check_container(raw, declared: Declared):
     fmt = values.get("texelFormat")
     if fmt in PIXEL_TYPE_OF_FORMAT and raw.pixel_type is not None:
         container, pixel_type = PIXEL_TYPE_OF_FORMAT[fmt]
+        if raw.container == "ktx2":  # KTX 2.0 holds every texel format (spec/ktx2.md)
+            container = "ktx2"
         if (raw.container, raw.pixel_type) != (container, pixel_type):
             out.append(finding("texture.pixelType", f"texelFormat {fmt} is stored as {container.upper()} "
                                f"{pixel_type}; the file is {raw.container.upper()} {raw.pixel_type}", location))

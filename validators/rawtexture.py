@@ -11,6 +11,9 @@ Containers (spec/virtual-bones.md, "Texture files"):
 * OpenEXR, single part, channels R, G, B, A of type HALF (float16) or FLOAT (float32); layout
   metadata in the string header attribute ``vbusd.layout``;
 * PNG, 16-bit RGBA (unorm16); layout metadata in an iTXt chunk with keyword ``vbusd.layout``;
+* KTX 2.0 (spec/ktx2.md), any texel format; layout metadata in the key/value entry ``vbusd.layout``.
+  Its structure is checked by vbusd's own KTX2 reader (:mod:`vbusd.io.ktx2`), whose ``ktx2.*``
+  codes become findings;
 * a sidecar ``<texture>.json`` beside either.
 
 Metadata anywhere else (a tEXt or zTXt chunk, another keyword or attribute name) is not metadata:
@@ -37,6 +40,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.io.exr import METADATA_ATTRIBUTE
+from vbusd.io.ktx2 import MAGIC as KTX2_MAGIC
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.io.png import METADATA_KEYWORD
 
@@ -53,13 +57,13 @@ class RawTexture:
 
     Attributes:
         file: Path as given (for locations).
-        container: ``exr`` or ``png``.
+        container: ``exr``, ``png`` or ``ktx2``.
         width: Width from the header.
         height: Height from the header.
         channels: Channel names in the file (``R G B A`` order when present).
         pixel_type: ``float16``, ``float32``, ``uint32``, ``uint16``, ``uint8``, or ``mixed``.
         compression: EXR compression in :data:`vbusd.io.exr.COMPRESSION_NAMES` spelling (``zip``),
-            ``png`` (always lossless), or None.
+            ``png`` (always lossless), KTX2 ``none`` or ``zstd``, or None.
         texels: (height, width, 4) array in the file's pixel type, or None when the pixels could
             not be read. Missing channels are not invented: texels is None then.
         metadata_texts: Embedded layout metadata texts, one per EXR ``vbusd.layout`` string
@@ -107,7 +111,9 @@ def read_texture(path: str, display: Optional[str] = None, max_dimension: int = 
         return _read_exr(path, name, max_dimension)
     if magic == b"\x89PNG\r\n\x1a\n":
         return _read_png(path, name, max_dimension)
-    return None, [finding("texture.unreadable", f"not an OpenEXR or PNG file (starts with {magic[:8]!r})",
+    if magic == KTX2_MAGIC[:8]:
+        return _read_ktx2(path, name, max_dimension)
+    return None, [finding("texture.unreadable", f"not an OpenEXR, PNG or KTX2 file (starts with {magic[:8]!r})",
                           FileLocation(name, 0))]
 
 
@@ -217,6 +223,38 @@ def _read_exr(path: str, name: str, max_dimension: int):
         if all(p.shape == (texture.height, texture.width) for p in planes):
             texture.texels = np.stack(planes, axis=-1)
     return texture, findings
+
+
+def _ktx2_finding(error, name: str):
+    """A finding of a KTX2 reader error: its own ``ktx2.*`` code, else ``texture.unreadable``."""
+    match = re.search(r"byte (\d+)", str(error.location or ""))
+    code = error.code if error.code.startswith("ktx2.") else "texture.unreadable"
+    where = "" if match or not error.location else f"{error.location}: "
+    return finding(code, f"{where}{error.message}", FileLocation(name, int(match.group(1)) if match else None))
+
+
+def _read_ktx2(path: str, name: str, max_dimension: int):
+    from vbusd.format.errors import InputError
+    from vbusd.io import ktx2
+
+    try:
+        header = ktx2.scan(path, max_dimension=max_dimension)
+    except InputError as error:
+        return None, [_ktx2_finding(error, name)]
+    texture = RawTexture(file=name, container="ktx2", width=header.width, height=header.height,
+                         channels=("R", "G", "B", "A"),
+                         pixel_type={"unorm16": "uint16"}.get(header.texel_format, header.texel_format),
+                         compression=header.supercompression)
+    if header.metadata is not None:
+        texture.metadata_texts.append(header.metadata)
+    for key in header.key_values:
+        if key != METADATA_KEYWORD and _looks_like_metadata(key, ""):
+            texture.misplaced_metadata.append(f"key/value entry {key!r}")
+    try:
+        texture.texels = ktx2.read_level(path, header)
+    except InputError as error:
+        return texture, [_ktx2_finding(error, name)]
+    return texture, []
 
 
 def _looks_like_metadata(key: str, value) -> bool:

@@ -38,7 +38,7 @@ from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, Virtu
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
 
-CONTAINERS = ("exr", "png")
+CONTAINERS = ("exr", "png", "ktx2")
 OUTPUT_SUFFIXES = (".usda", ".usd", ".usdc")
 DEFAULT_CHECK_ROWS = 256
 """Rows per clip compared with the source's own skinning by default (all rows when fewer)."""
@@ -61,8 +61,8 @@ class ConvertOptions:
         max_influences: Influences kept per vertex (the largest, renormalized).
         skeletons: Skeletons (UsdSkel paths, glTF skin names or indices) to convert; empty: all.
         frame_range: (start, end) in the source's time unit (USD time codes), or None.
-        container: Texture container, ``exr`` (float16, float32) or ``png`` (unorm16), or None to
-            follow the texel format.
+        container: Texture container, ``exr`` (float16, float32), ``png`` (unorm16) or ``ktx2``
+            (any; spec/ktx2.md), or None to follow the texel format.
         allow_outside_paths: Let the source reference files outside its folder.
         force: Replace an existing output.
         check_rows: Rows per clip compared with the source's skinning: None for all rows, 0 to skip;

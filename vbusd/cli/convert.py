@@ -52,9 +52,9 @@ def _check_rows(value: str):
               help="Convert only this skeleton (UsdSkel Skeleton prim path, glTF skin name or index); repeatable.")
 @click.option("--frame-range", nargs=2, type=float, default=None, metavar="START END",
               help="Convert only this range, in the source's time unit (USD time codes, glTF seconds).")
-@click.option("--container", default=None, type=click.Choice(["exr", "png"]),
-              help="Texture container: exr for float16/float32, png for unorm16 (default: follows "
-                   "--texel-format).")
+@click.option("--container", default=None, type=click.Choice(["exr", "png", "ktx2"]),
+              help="Texture container: exr for float16/float32, png for unorm16, ktx2 (KTX 2.0) for "
+                   "any (default: follows --texel-format).")
 @click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]),
               help="Summary as a table or as JSON on stdout.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the source reference files outside its folder.")

@@ -6,7 +6,7 @@ ASSET may be:
   ``VirtualBonesAnimation`` prim is described from its ``vb:*`` attributes (the source of truth
   inside USD; the texture itself is not opened, but its path, like the layer's sublayers,
   references and payloads, must stay inside the asset's folder unless ``--allow-outside-paths``);
-* a texture (``.exr`` or ``.png``, recognized by its magic bytes): described from its embedded
+* a texture (``.exr``, ``.png`` or ``.ktx2``, recognized by its magic bytes): described from its embedded
   metadata; the header is checked but pixels are not decoded (``vbusd validate`` checks them);
 * a sidecar ``<texture>.json``.
 """
@@ -28,7 +28,7 @@ USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 _HELP = """Print the texture layout of a Virtual Bones asset.
 
 ASSET is a Virtual Bones USD file (every VirtualBonesAnimation prim is described from its vb:*
-attributes), a texture (.exr or .png, from its embedded metadata; pixels are not decoded) or a
+attributes), a texture (.exr, .png or .ktx2, from its embedded metadata; pixels are not decoded) or a
 sidecar <texture>.json.
 
 The text form shows, per animation: encoding, texel format, bones, rows, used and padded width,
@@ -155,7 +155,7 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
             container = textures.sniff_container(path)
         except InputError:
             raise InputError("not a Virtual Bones asset: expected a USD file (.usd, .usda, .usdc, "
-                             ".usdz), an EXR or PNG texture, or a sidecar .json", file=file,
+                             ".usdz), an EXR, PNG or KTX2 texture, or a sidecar .json", file=file,
                              location="byte 0", code="file.kind") from None
         kind = "texture"
         header = textures.read_texture_header(path)

@@ -63,7 +63,7 @@ PathLike = Union[str, os.PathLike]
 
 WRITE_SUFFIXES = (".usda", ".usdc", ".usd")
 READ_SUFFIXES = (".usda", ".usdc", ".usd")
-TEXTURE_CONTAINERS = ("exr", "png")
+TEXTURE_CONTAINERS = ("exr", "png", "ktx2")
 
 REL_ANIMATION = "vb:animation"
 PRIMVAR_BONE_INDICES = "vb:boneIndices"
@@ -374,13 +374,13 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
 
     All files are written as one transaction (temporaries beside the targets, renamed at the end):
     on any failure nothing new is left behind and existing files keep their content. Texture names
-    are always ``<usd stem>.<animation prim name>.<exr|png>``; ``VirtualBones.texture`` is ignored.
+    are always ``<usd stem>.<animation prim name>.<exr|png|ktx2>``; ``VirtualBones.texture`` is ignored.
 
     Args:
         asset: What to write.
         path: The USD file, ``.usda``, ``.usdc`` or ``.usd`` (crate).
-        texture_container: ``"exr"``, ``"png"`` or None (PNG for unorm16, EXR otherwise). EXR
-            holds float16 and float32, PNG holds unorm16.
+        texture_container: ``"exr"``, ``"png"``, ``"ktx2"`` or None (PNG for unorm16, EXR
+            otherwise). EXR holds float16 and float32, PNG holds unorm16, KTX2 any of them.
 
     Returns:
         The files written: the USD layer first, then each texture followed by its sidecar.
@@ -399,7 +399,7 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
         raise OptionsError(f"the USD file name must end in {', '.join(WRITE_SUFFIXES)}, got "
                            f"{path.name!r}", file=str(path))
     if texture_container is not None and texture_container not in TEXTURE_CONTAINERS:
-        raise OptionsError(f"texture_container must be exr, png or None, got {texture_container!r}",
+        raise OptionsError(f"texture_container must be exr, png, ktx2 or None, got {texture_container!r}",
                            file=str(path))
     if not asset.animations:
         raise OptionsError("the asset has no animation to write", file=str(path))
@@ -623,7 +623,7 @@ class _Reader:
         if version > FORMAT_VERSION:
             raise VersionError(f"format version {version} is newer than this reader's "
                                f"{FORMAT_VERSION}; upgrade vbusd", file=self.file,
-                               location=where("vb:formatVersion"))
+                               location=where("vb:formatVersion"), code="format.version")
         if version < 1:
             raise self.error(f"format version must be at least 1, found {version}",
                              where("vb:formatVersion"))
