@@ -81,7 +81,7 @@ def test_schema_registry_knows_the_types():
     definition = Usd.SchemaRegistry().FindConcretePrimDefinition("VirtualBonesAnimation")
     names = set(definition.GetPropertyNames())
     expected = {
-        "vb:formatVersion", "vb:texture", "vb:encoding", "vb:texelFormat", "vb:boneCount",
+        "vb:formatVersion", "vb:formatMinorVersion", "vb:texture", "vb:encoding", "vb:texelFormat", "vb:boneCount",
         "vb:texelsPerBone", "vb:rowCount", "vb:textureWidth", "vb:textureHeight",
         "vb:horizontalPadding", "vb:verticalPadding", "vb:bones", "vb:clipNames", "vb:clipFirstRows",
         "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops", "vb:clipStartTimes",
@@ -131,6 +131,7 @@ def test_fallbacks_come_from_the_schema():
     assert prim.GetAttribute("vb:encoding").Get() == "crossMatrix"
     assert prim.GetAttribute("vb:texelFormat").Get() == "float16"
     assert prim.GetAttribute("vb:formatVersion").Get() == 1
+    assert prim.GetAttribute("vb:formatMinorVersion").Get() == 0
     assert prim.GetAttribute("vb:horizontalPadding").Get() == "powerOfTwo"
     assert prim.GetAttribute("vb:verticalPadding").Get() == "none"
     assert not prim.GetAttribute("vb:encoding").HasAuthoredValue()
