@@ -34,6 +34,7 @@ from vbusd.bake import BakeOptions, bake
 from vbusd.format.errors import OptionsError, UnsupportedError, VbusdError
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
+from vbusd.io.files import make_folders, remove_folders
 
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
@@ -516,11 +517,11 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     if output.exists() and not options.force:  # it may have appeared while we worked
         raise OptionsError("the output exists; pass --force to replace it", file=str(output))
     _check_texture_files(scene, output, options)
-    created = _make_folders(output.parent)
+    created = make_folders(output.parent)
     try:
         written = write_asset(asset, output, texture_container=options.container)
     except BaseException as error:
-        _remove_folders(created)  # the transaction left nothing in them; leave no trace
+        remove_folders(created)  # the transaction left nothing in them; leave no trace
         if isinstance(error, OSError):  # disk full, permission denied: one line, not a traceback
             raise VbusdError(f"cannot write the output (nothing was written): "
                              f"{error.strerror or error}", file=str(output), code="convert.write") from None
@@ -547,31 +548,3 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))
     return report
-
-
-def _make_folders(folder: Path) -> list:
-    """Create ``folder`` and its missing parents; return the folders created, deepest first."""
-    missing = []
-    while not folder.exists() and folder != folder.parent:
-        missing.append(folder)
-        folder = folder.parent
-    for path in reversed(missing):
-        try:
-            path.mkdir()
-        except FileExistsError:
-            pass
-        except OSError as error:
-            _remove_folders([p for p in missing if p.exists()])
-            raise OptionsError(f"cannot create the output folder {path}: {error.strerror or error}",
-                               file=str(path)) from None
-    return missing
-
-
-def _remove_folders(folders: list) -> None:
-    """Remove folders that :func:`_make_folders` created, if they are still empty."""
-    for path in folders:
-        try:
-            path.rmdir()
-        except OSError:
-            pass
-

@@ -34,9 +34,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.convert import _make_folders, _remove_folders, check_output_path
+from vbusd.convert import check_output_path
 from vbusd.format.errors import InputError, OptionsError, VbusdError
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
+from vbusd.io.files import make_folders, remove_folders
 
 DEVICES = ("cpu", "cuda")
 
@@ -249,14 +250,14 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
 
     from vbusd.io.files import AtomicTransaction
 
-    created = _make_folders(output.parent)
+    created = make_folders(output.parent)
     try:
         with AtomicTransaction() as transaction:
             temporary = transaction.temp_path(output)
             if not stage.GetRootLayer().Export(str(temporary)):
                 raise OSError(f"USD could not write {output}")
     except BaseException as error:
-        _remove_folders(created)
+        remove_folders(created)
         if not isinstance(error, OSError):
             raise
         # disk full, permission denied: one line, not a traceback

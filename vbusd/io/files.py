@@ -25,9 +25,9 @@ import secrets
 import stat
 import time
 from pathlib import Path
-from typing import IO, Iterator, Optional, Union
+from typing import IO, Iterable, Iterator, Optional, Union
 
-from vbusd.format.errors import InputError
+from vbusd.format.errors import InputError, OptionsError
 
 PathLike = Union[str, os.PathLike]
 
@@ -339,3 +339,38 @@ def resolve_inside(base_dir: PathLike, relative: str, *, file=None, location=Non
         raise refuse(f"a symbolic link leads outside the asset's folder {base} (to {resolved})",
                      outside=True)
     return resolved
+
+
+def make_folders(folder: PathLike) -> list:
+    """Create ``folder`` and its missing parents for an output; return the folders created, deepest first.
+
+    Pass the list to :func:`remove_folders` when the write fails, so that a failed command leaves no
+    trace (convert and decode both do).
+
+    Raises:
+        OptionsError: A folder cannot be created (permissions, a file in the way); nothing created stays.
+    """
+    folder = Path(folder)
+    missing = []
+    while not folder.exists() and folder != folder.parent:
+        missing.append(folder)
+        folder = folder.parent
+    for path in reversed(missing):
+        try:
+            path.mkdir()
+        except FileExistsError:
+            pass
+        except OSError as error:
+            remove_folders([p for p in missing if p.exists()])
+            raise OptionsError(f"cannot create the output folder {path}: {error.strerror or error}",
+                               file=str(path)) from None
+    return missing
+
+
+def remove_folders(folders: Iterable) -> None:
+    """Remove folders that :func:`make_folders` created, deepest first, where they are still empty."""
+    for path in folders:
+        try:
+            Path(path).rmdir()
+        except OSError:
+            pass
