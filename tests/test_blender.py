@@ -340,3 +340,90 @@ def test_import_refuses_a_bad_file_without_changing_the_scene(rig_scene, tmp_pat
     with pytest.raises(RuntimeError, match="usd.missing|VirtualBonesAnimation"):
         bpy.ops.import_scene.virtual_bones(filepath=str(bad))
     assert len(bpy.data.objects) == objects
+
+
+# ------------------------------------------------------------------------------------------
+# Rigs built differently: transformed objects, modifiers before the armature, drivers, unweighted
+# vertices, several meshes and armatures, Preserve Volume
+# ------------------------------------------------------------------------------------------
+
+
+def add_hat(scene, rig):
+    """A second mesh, not parented, with its own transform, a Subdivision modifier before the
+    Armature modifier, weighted to the tip, plus a loose quad with no weights (it stays at rest)."""
+    verts = [(-0.3, -0.3, 0), (0.3, -0.3, 0), (0.3, 0.3, 0), (-0.3, 0.3, 0), (0, 0, 0.4),
+             (1, 1, 0), (1.2, 1, 0), (1.2, 1.2, 0), (1, 1.2, 0)]
+    faces = [(0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4), (5, 6, 7, 8)]
+    mesh = bpy.data.meshes.new("HatMesh")
+    mesh.from_pydata(verts, [], faces)
+    hat = bpy.data.objects.new("Hat", mesh)
+    scene.collection.objects.link(hat)
+    hat.matrix_world = rig.matrix_world @ __import__("mathutils").Matrix.Translation((0, 0, 3))
+    hat.modifiers.new("Subdivision", "SUBSURF").levels = 1
+    hat.modifiers.new("Armature", "ARMATURE").object = rig
+    hat.vertex_groups.new(name="tip").add([0, 1, 2, 3, 4], 1.0, "REPLACE")
+    return hat
+
+
+def test_export_transformed_rig_modifiers_drivers_and_loose_vertices(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler, rig.scale = (1.0, -2.0, 0.5), (0.0, 0.0, 0.7), (1.5, 1.5, 1.5)
+    hat = add_hat(scene, rig)
+    driver = rig.pose.bones["mid"].driver_add("rotation_euler", 2).driver
+    driver.type = "SCRIPTED"
+    variable = driver.variables.new()
+    variable.type = "TRANSFORMS"
+    variable.targets[0].id = rig
+    variable.targets[0].bone_target = "root"
+    variable.targets[0].transform_type = "ROT_X"
+    variable.targets[0].transform_space = "LOCAL_SPACE"
+    driver.expression = f"{variable.name} * 2.0"
+    rig.pose.bones["mid"].rotation_mode = "XYZ"
+    out = tmp_path / "rig.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Bend",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert list(vb.bones) == ["root", "mid", "tip", "vbusd_static"]  # the loose quad's identity bone
+    assert [m.path.rsplit("/", 1)[-1] for m in vb.meshes] == ["Body", "Hat"]
+    hat_mesh = vb.meshes[1]
+    assert len(hat_mesh.points) > 9  # subdivided before skinning
+    moved = 0.0
+    for frame in range(1, 10):
+        scene.frame_set(frame)
+        for mesh, obj in zip(vb.meshes, (body, hat)):
+            decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
+            expected = evaluated_points(obj, rig)
+            assert np.abs(decoded[0] - expected).max() < 1e-5, (obj.name, frame)
+        moved = max(moved, float(np.abs(decoded[0] - hat_mesh.points).max()))
+    assert moved > 0.3
+
+
+def test_export_two_armatures(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    rig2 = rig.copy()
+    rig2.data = rig.data.copy()
+    rig2.name = "Rig 2"  # not a USD name: becomes Rig_2
+    rig2.animation_data.action = bpy.data.actions["Reach"]
+    scene.collection.objects.link(rig2)
+    body2 = body.copy()
+    scene.collection.objects.link(body2)
+    body2.parent = rig2
+    body2.modifiers["Armature"].object = rig2
+    out = tmp_path / "two.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig,Rig 2", actions="Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    asset = vbusd.read_asset(out)
+    assert [vb.path for vb in asset.animations] == ["/VirtualBones/Animations/Rig", "/VirtualBones/Animations/Rig_2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["two.usda", "two.Rig.exr", "two.Rig.exr.json", "two.Rig_2.exr", "two.Rig_2.exr.json"])
+
+
+def test_preserve_volume_bakes_dual_quaternions(rig_scene, tmp_path):
+    scene, rig, body = rig_scene
+    body.modifiers["Armature"].use_deform_preserve_volume = True
+    out = tmp_path / "dq.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", texel_format="float32",
+                                              actions="Bend,Reach") == {"FINISHED"}
+    asset = vbusd.read_asset(out)
+    assert asset.animations[0].layout.encoding.value == "dualQuat"
+    assert worst_fraction(asset, scene, rig, body, ["Bend", "Reach"]) < 1e-5
