@@ -1092,6 +1092,13 @@ class _Converter:
                 clips.append(self.make_clip(clip_names.take(anim.name), start, end, channels,
                                             joints, relevant, ibm))
             if not clips:
+                if time_range is not None and moved and not any(_overlaps(animations[a], lo, hi) for a in chosen_anims):
+                    # No animation reaches into the range: the bake would be a held pose only.
+                    spans = [(animations[a].start, animations[a].end) for a in chosen_anims]
+                    first, last = min(p[0] for p in spans), max(p[1] for p in spans)
+                    raise OptionsError(f"the frame range {lo:g}..{hi:g} s lies outside the animations' "
+                                       f"time range {first:g}..{last:g} s", file=self.file,
+                                       location="/animations", code="gltf.option")
                 why = ("the animations that move its joints lie outside the chosen time range"
                        if moved else "no animation moves its joints")
                 self.warn(f"skin {s} (/skins/{s}): {why}; a one-row rest clip is written")
@@ -1190,6 +1197,11 @@ def sniff(path) -> bool:
         return True
     text = head.lstrip(b"\xef\xbb\xbf \t\r\n")
     return text[:1] == b"{" and b'"asset"' in text
+
+
+def _overlaps(animation, lo: float, hi: float) -> bool:
+    """Whether an animation's key time range meets ``[lo, hi]``."""
+    return animation.start <= hi and animation.end >= lo
 
 
 def check_time_range(options: ReadOptions, file: str) -> tuple[float, float] | None:

@@ -666,6 +666,11 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         codes = _time_samples(reader, skel_query, skel_prim)
         if options.time_range is not None:
             start_code, end_code = (float(v) for v in options.time_range)
+            if codes and (end_code < codes[0] or start_code > codes[-1]):
+                # Sampling there would bake held end poses only: refuse, naming both ranges.
+                raise OptionsError(f"the frame range {start_code:g}..{end_code:g} lies outside the "
+                                   f"animation's time codes {codes[0]:g}..{codes[-1]:g}",
+                                   file=reader.file, location=location)
             keys_in = [c for c in codes if start_code <= c <= end_code]
             codes = sorted(set(keys_in) | {start_code, end_code})
         elif codes:

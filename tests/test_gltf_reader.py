@@ -255,11 +255,13 @@ def test_options_select_and_time_range():
             gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=bad))
 
 
-def test_time_range_past_every_animation_gives_a_rest_clip_at_its_start():
-    scene = gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=(10.0, 20.0)))
-    (clip,) = scene.animations[0].clips
-    assert (clip.name, clip.start_time, clip.end_time) == ("rest", 10.0, 10.0)
-    assert any("outside the chosen time range; a one-row rest clip" in w for w in scene.warnings)
+def test_time_range_past_every_animation_is_an_error_naming_both_ranges():
+    # bar.gltf's one animation keys 0..2 s (its input accessor's min/max); 10..20 s would bake
+    # nothing but the held last pose (issue 10: "a frame range outside the source's is an error").
+    with pytest.raises(OptionsError, match=r"frame range 10\.\.20 s lies outside the animations' time range 0\.\.2 s") \
+            as info:
+        gltf.read(FIXTURES / "bar.gltf", ReadOptions(time_range=(10.0, 20.0)))
+    assert info.value.code == "gltf.option"
 
 
 def test_skin_selection_by_index():
