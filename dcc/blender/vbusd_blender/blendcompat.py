@@ -32,6 +32,9 @@ def assign_action(id_data, action) -> None:
 
 def new_fcurve(action, id_data, data_path: str, index: int, group: str):
     """Create an F-curve on ``action`` (already assigned to ``id_data``) for ``data_path[index]``."""
-    if hasattr(action, "fcurve_ensure_for_datablock"):  # Blender 4.4+
-        return action.fcurve_ensure_for_datablock(id_data, data_path, index=index, group_name=group)
+    if hasattr(action, "fcurve_ensure_for_datablock"):  # Blender 4.4+; group_name since 5.0
+        try:
+            return action.fcurve_ensure_for_datablock(id_data, data_path, index=index, group_name=group)
+        except TypeError:
+            return action.fcurve_ensure_for_datablock(id_data, data_path, index=index)
     return action.fcurves.new(data_path, index=index, action_group=group)
