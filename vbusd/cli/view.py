@@ -1,0 +1,46 @@
+"""``vbusd view ASSET_OR_CROWD``: the asset in a browser, drawn by the three.js runtime.
+
+Serves the viewer page, three.js and the asset on 127.0.0.1 (:mod:`vbusd.web.server`; everything
+ships inside the package, so it works offline) and opens the page in the default browser. The page
+has an orbit camera, play/pause, a time scrub, a clip picker, the instance count and the frame
+time. Ctrl-C stops the server.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import click
+
+from vbusd.format.errors import OptionsError
+
+
+@click.command("view")
+@click.argument("asset", metavar="ASSET_OR_CROWD", type=click.Path(path_type=str))
+@click.option("--port", default="0", show_default=True, metavar="P",
+              help="TCP port on 127.0.0.1 (0: any free port; the address is printed).")
+@click.option("--no-browser", is_flag=True, help="Do not open a browser; only print the address.")
+@click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
+def command(asset, port, no_browser, allow_outside_paths):
+    """Serve a Virtual Bones asset, crowd or runtime package (.glb/.gltf) in a browser viewer."""
+    from vbusd.web.server import ViewerServer
+
+    try:
+        port_number = int(port, 10)
+    except ValueError:
+        raise OptionsError(f"--port must be an integer, got {port!r}", file="view") from None
+    if not 0 <= port_number <= 65535:
+        raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
+    server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths).start()
+    click.echo(f"vbusd view: {asset} at {server.url} (Ctrl-C stops)")
+    try:
+        if not no_browser:
+            import webbrowser
+
+            webbrowser.open(server.url)
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        click.echo("vbusd view: stopped", err=True)
+    finally:
+        server.stop()
+    return 0

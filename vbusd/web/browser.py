@@ -1,0 +1,94 @@
+"""Headless Chromium for the viewer's tests, screenshots and frame-time benchmark.
+
+Drives the system's Chromium (Debian package ``chromium``) with playwright-python used only as a
+driver (playwright's own browser download is not needed): software WebGL 2 through SwiftShader,
+no sandbox (CI runs as root), no background networking.
+
+    with viewer_page(server.url + "?time=1") as page:
+        result = page.evaluate("window.vbusd.probe(0, 1.0)")
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+from typing import Iterator, Optional
+
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-default-apps",
+    "--disable-extensions",
+    "--disable-sync",
+    "--no-first-run",
+    "--mute-audio",
+]
+
+INSTALL_HINT = ("install Chromium and playwright: apt-get install chromium && pip install playwright "
+                "(scripts/install-system-deps.sh does both)")
+
+
+def chromium_executable() -> Optional[str]:
+    """The Chromium to drive: ``$VBUSD_CHROMIUM``, else ``chromium`` on PATH, else None."""
+    candidate = os.environ.get("VBUSD_CHROMIUM")
+    if candidate:
+        return candidate if os.access(candidate, os.X_OK) else None
+    for name in ("chromium", "chromium-browser"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+def unavailable_reason() -> Optional[str]:
+    """Why the browser cannot run here (one line naming what to install), or None when it can."""
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return f"playwright is not installed; {INSTALL_HINT}"
+    if chromium_executable() is None:
+        return f"no chromium executable; {INSTALL_HINT}"
+    return None
+
+
+@contextlib.contextmanager
+def chromium() -> Iterator[object]:
+    """A headless Chromium browser (playwright ``Browser``), closed on exit."""
+    from playwright.sync_api import sync_playwright
+
+    executable = chromium_executable()
+    if executable is None:
+        raise RuntimeError(unavailable_reason())
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
+        try:
+            yield browser
+        finally:
+            browser.close()
+
+
+class ViewerPage:
+    """One viewer page in ``browser``: console messages and page errors are collected."""
+
+    def __init__(self, browser, url: str, *, width: int = 960, height: int = 540, timeout_s: float = 60.0):
+        self.page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=1)
+        self.messages: list[str] = []
+        self.page.on("console", lambda message: self.messages.append(f"{message.type}: {message.text}"))
+        self.page.on("pageerror", lambda error: self.messages.append(f"pageerror: {error}"))
+        self.page.goto(url)
+        self.page.wait_for_function(
+            "window.vbusd !== undefined || document.getElementById('error').textContent !== ''",
+            timeout=timeout_s * 1000)
+        self.error = self.page.evaluate("document.getElementById('error').textContent")
+
+    def errors(self) -> list[str]:
+        """Console errors and uncaught exceptions so far."""
+        return [m for m in self.messages if m.startswith(("error:", "pageerror:"))]
+
+    def close(self) -> None:
+        self.page.close()

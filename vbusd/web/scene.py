@@ -1,0 +1,151 @@
+"""A Virtual Bones asset as the viewer's plain files: one JSON description and one binary buffer.
+
+Browsers read neither USD nor 16-bit PNGs, so ``vbusd view`` hands the page what the three.js
+runtime's plain loader (web/src/plain-loader.js) reads: a JSON document (``scene.json``) that names
+byte ranges ("views") of one little-endian binary buffer (``scene.bin``) holding, per animation, the
+texels exactly as stored (float16 bits, float32 or unorm16 integers; scanline 0 first) and the
+layout metadata of the texture (the sidecar's dict), per bound mesh the rest points, normals,
+triangles and bone indices and weights, and per crowd the instances' placement, clip, time offset
+and playback rate. docs/engines.md ("Plain files") documents the format.
+
+Polygons are split into triangle fans. Meshes with face-varying normals are unwelded (one vertex per
+face-vertex); ``pointIndex`` then maps each vertex back to its point, so the runtime's probe can
+report points in the asset's order.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Optional
+
+import numpy as np
+
+from vbusd.format.metadata import to_dict
+from vbusd.format.model import BoundMesh, VirtualBonesAsset
+
+SCENE_FORMAT = "vbusd.webScene"
+SCENE_VERSION = 1
+
+
+class _Buffer:
+    """Appends arrays 4-byte aligned and returns their views ``{byteOffset, byteLength}``."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+        self.size = 0
+
+    def add(self, array: np.ndarray, dtype: str) -> dict:
+        data = np.ascontiguousarray(array, dtype=np.dtype(dtype).newbyteorder("<")).tobytes()
+        view = {"byteOffset": self.size, "byteLength": len(data)}
+        self.parts.append(data)
+        self.size += len(data)
+        padding = -self.size % 4
+        if padding:
+            self.parts.append(b"\0" * padding)
+            self.size += padding
+        return view
+
+    def bytes(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def _triangles(counts: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Fan triangles (T, 3) over polygon corners given as positions into ``corners``."""
+    triangles = []
+    start = 0
+    for count in np.asarray(counts, dtype=np.int64):
+        for k in range(1, int(count) - 1):
+            triangles.append((corners[start], corners[start + k], corners[start + k + 1]))
+        start += int(count)
+    return np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+
+
+def _padded(values: np.ndarray, width: int, dtype) -> np.ndarray:
+    out = np.zeros((values.shape[0], width), dtype=dtype)
+    out[:, :values.shape[1]] = values
+    return out
+
+
+def _mesh(mesh: BoundMesh, buffer: _Buffer) -> dict:
+    points = np.asarray(mesh.points, dtype=np.float32)
+    face_vertices = np.asarray(mesh.face_vertex_indices, dtype=np.int64)
+    indices = np.asarray(mesh.bone_indices, dtype=np.int64)
+    weights = np.asarray(mesh.bone_weights, dtype=np.float32)
+    k = int(indices.shape[1])
+    if k > 8:
+        raise ValueError(f"{mesh.path}: {k} influences per vertex; the web runtime takes at most 8")
+    point_index: Optional[np.ndarray] = None
+    normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float32)
+    if normals is not None and mesh.normals_interpolation == "faceVarying":
+        point_index = face_vertices  # vertex j of the unwelded mesh is face-vertex j
+        triangles = _triangles(mesh.face_vertex_counts, np.arange(face_vertices.size))
+    else:
+        triangles = _triangles(mesh.face_vertex_counts, face_vertices)
+    gather = (lambda a: a) if point_index is None else (lambda a: a[point_index])
+    slots = 4 if k <= 4 else 8
+    description = {
+        "path": mesh.path,
+        "pointCount": int(points.shape[0]),
+        "vertexCount": int(points.shape[0] if point_index is None else point_index.size),
+        "maxInfluences": k,
+        "normalsInterpolation": None if normals is None else mesh.normals_interpolation,
+        "positions": buffer.add(gather(points), "f4"),
+        "normals": None if normals is None else buffer.add(normals, "f4"),
+        "triangles": buffer.add(triangles, "u4"),
+        "boneIndices": buffer.add(_padded(gather(indices), slots, np.int32), "i4"),
+        "boneWeights": buffer.add(_padded(gather(weights), slots, np.float32), "f4"),
+        "pointIndex": None if point_index is None else buffer.add(point_index, "u4"),
+    }
+    return description
+
+
+def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> tuple[dict, bytes]:
+    """The viewer's description of ``asset`` and its binary buffer.
+
+    Args:
+        asset: A Virtual Bones asset (from :func:`vbusd.read_asset`).
+        buffer_uri: What the description calls the buffer (a URL relative to the JSON).
+
+    Returns:
+        ``(scene, data)``: the JSON-ready dict and the bytes it points into.
+    """
+    buffer = _Buffer()
+    animations = []
+    for vb in asset.animations:
+        texel_dtype = {"float16": "f2", "float32": "f4", "unorm16": "u2"}[vb.layout.texel_format.value]
+        animations.append({
+            "path": vb.path,
+            "layout": to_dict(vb),
+            "texels": buffer.add(vb.texels, texel_dtype),
+            "clipExtents": None if vb.clip_extents is None
+            else np.asarray(vb.clip_extents, dtype=np.float64).tolist(),
+            "meshes": [_mesh(mesh, buffer) for mesh in vb.meshes],
+        })
+    crowds = []
+    for crowd, animation in zip(asset.crowds, asset.crowd_animation):
+        crowds.append({
+            "path": crowd.path,
+            "animation": int(animation),
+            "count": crowd.instance_count,
+            "positions": buffer.add(crowd.positions, "f4"),
+            "orientations": buffer.add(crowd.orientations, "f4"),
+            "scales": None if crowd.scales is None else buffer.add(crowd.scales, "f4"),
+            "clip": buffer.add(crowd.clip, "i4"),
+            "timeOffset": buffer.add(crowd.time_offset, "f4"),
+            "playbackRate": buffer.add(crowd.playback_rate, "f4"),
+        })
+    scene = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "upAxis": asset.up_axis,
+        "metersPerUnit": asset.meters_per_unit,
+        "buffer": {"uri": buffer_uri, "byteLength": buffer.size},
+        "animations": animations,
+        "crowds": crowds,
+    }
+    return scene, buffer.bytes()
+
+
+def scene_json(scene: dict) -> bytes:
+    """The description as UTF-8 JSON bytes."""
+    return json.dumps(scene, separators=(",", ":")).encode("utf-8")

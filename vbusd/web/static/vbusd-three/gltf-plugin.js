@@ -1,0 +1,146 @@
+// GLTFLoader plugin for the runtime package (spec/runtime-package.md): the VBUSD_virtual_bones
+// extension (animations with their KTX2 textures, primitives bound to them) and crowds as
+// EXT_mesh_gpu_instancing nodes with _VB_CLIP, _VB_TIME_OFFSET and _VB_PLAYBACK_RATE.
+//
+//   const loader = new GLTFLoader();
+//   loader.register((parser) => new VirtualBonesGLTFPlugin(parser));
+//   const gltf = await loader.loadAsync('crowd.glb');
+//   const { group, animations } = buildObjects(descriptionFromGLTF(gltf));
+//   scene.add(group);  // instead of gltf.scene, which shows the rest pose
+
+import { BufferAttribute, BufferGeometry, IntType, Matrix4 } from 'three';
+
+import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
+import { instancesFromPlacement, singleInstance } from './crowd.js';
+import { parseVirtualBonesKTX2 } from './ktx2.js';
+
+export const EXTENSION = 'VBUSD_virtual_bones';
+
+function canonical(value) {
+  if (Array.isArray(value)) return `[${value.map(canonical).join(',')}]`;
+  if (value !== null && typeof value === 'object') {
+    return `{${Object.keys(value).sort().map((key) => `${JSON.stringify(key)}:${canonical(value[key])}`).join(',')}}`;
+  }
+  return JSON.stringify(value);
+}
+
+function primitiveGeometry(source, primitiveExtension, name) {
+  const geometry = new BufferGeometry();
+  geometry.name = name;
+  geometry.setAttribute('position', source.attributes.position);
+  const hasNormals = source.attributes.normal !== undefined;
+  if (hasNormals) geometry.setAttribute('normal', source.attributes.normal);
+  if (source.index) geometry.setIndex(source.index);
+  const sets = Math.ceil(primitiveExtension.influences / 4);
+  if (sets > 2) throw new VirtualBonesError(`${name}: ${primitiveExtension.influences} influences; the runtime takes at most 8`);
+  for (let set = 0; set < sets; ++set) {
+    const joints = source.attributes[`_vb_joints_${set}`];
+    const weights = source.attributes[`_vb_weights_${set}`];
+    if (!joints || !weights) throw new VirtualBonesError(`${name}: missing _VB_JOINTS_${set} / _VB_WEIGHTS_${set}`);
+    const indices = new BufferAttribute(joints.array, 4);  // SHORT, not normalized
+    indices.gpuType = IntType;
+    geometry.setAttribute(`vb_boneIndices${set}`, indices);
+    geometry.setAttribute(`vb_boneWeights${set}`, weights);
+  }
+  if (!hasNormals) geometry.computeVertexNormals();
+  const count = geometry.attributes.position.count;
+  geometry.userData.virtualBones = { pointIndex: null, hasNormals, pointCount: count };
+  return geometry;
+}
+
+/** The plugin: register with `loader.register((parser) => new VirtualBonesGLTFPlugin(parser))`. */
+export class VirtualBonesGLTFPlugin {
+  constructor(parser) {
+    this.parser = parser;
+    this.name = EXTENSION;
+  }
+
+  async afterRoot(gltf) {
+    const parser = this.parser;
+    const json = parser.json;
+    const root = json.extensions?.[EXTENSION];
+    if (!root) return;
+    if (!(root.version >= 1)) throw new VirtualBonesError(`${EXTENSION}: version ${JSON.stringify(root.version)} is not valid`);
+    if (root.version > 1) throw new VirtualBonesError(`${EXTENSION} version ${root.version} is newer than this runtime (1)`);
+
+    const animations = await Promise.all(root.animations.map(async (entry, index) => {
+      const name = entry.name ?? `animation ${index}`;
+      const bytes = await parser.getDependency('bufferView', entry.texture.bufferView);
+      const { layout, texels } = await parseVirtualBonesKTX2(new Uint8Array(bytes), `${name} (bufferView ${entry.texture.bufferView})`);
+      if (canonical(layout) !== canonical(entry.layout)) throw new VirtualBonesError(`${name}: the extension's layout differs from the KTX2 file's vbusd.layout`);
+      return new VirtualBonesAnimation({ layout, texels, clipExtents: entry.clipExtents ?? null, name });
+    }));
+
+    // Each animation is one glTF mesh with one primitive per bound mesh, in the asset's order.
+    const meshesOfAnimation = animations.map(() => null);
+    for (let meshIndex = 0; meshIndex < (json.meshes ?? []).length; ++meshIndex) {
+      const primitives = json.meshes[meshIndex].primitives;
+      const extensions = primitives.map((p) => p.extensions?.[EXTENSION]);
+      if (!extensions.some(Boolean)) continue;
+      if (!extensions.every(Boolean)) throw new VirtualBonesError(`mesh ${meshIndex}: some primitives lack ${EXTENSION}`);
+      const animation = extensions[0].animation;
+      if (!animations[animation]) throw new VirtualBonesError(`mesh ${meshIndex}: no animation ${animation}`);
+      const object = await parser.getDependency('mesh', meshIndex);
+      const objects = object.isMesh ? [object] : object.children.filter((child) => child.isMesh);
+      meshesOfAnimation[animation] = objects.map((mesh, p) => ({
+        name: extensions[p].path ?? mesh.name,
+        maxInfluences: extensions[p].influences,
+        geometry: primitiveGeometry(mesh.geometry, extensions[p], extensions[p].path ?? mesh.name),
+        meshIndex,
+      }));
+    }
+
+    // Crowds (instanced nodes) first, then single characters, as the plain scene numbers them.
+    gltf.scene.updateMatrixWorld(true);
+    const crowds = [];
+    const singles = [];
+    for (let nodeIndex = 0; nodeIndex < (json.nodes ?? []).length; ++nodeIndex) {
+      const node = json.nodes[nodeIndex];
+      if (node.mesh === undefined) continue;
+      const entry = meshesOfAnimation.findIndex((meshes) => meshes && meshes[0].meshIndex === node.mesh);
+      if (entry < 0) continue;
+      const object = await parser.getDependency('node', nodeIndex);
+      object.updateWorldMatrix(true, false);
+      const matrix = new Matrix4().copy(object.matrixWorld);
+      const instancing = node.extensions?.EXT_mesh_gpu_instancing;
+      if (!instancing) {
+        singles.push({ animation: entry, name: node.name ?? `node ${nodeIndex}`, instances: singleInstance(0), matrix });
+        continue;
+      }
+      const accessor = async (name, required = true) => {
+        const index = instancing.attributes[name];
+        if (index === undefined) {
+          if (required) throw new VirtualBonesError(`node ${nodeIndex}: EXT_mesh_gpu_instancing has no ${name}`);
+          return null;
+        }
+        return (await parser.getDependency('accessor', index)).array;
+      };
+      const clips = await accessor('_VB_CLIP');
+      crowds.push({
+        animation: entry,
+        name: node.name ?? `node ${nodeIndex}`,
+        matrix,
+        instances: instancesFromPlacement({
+          positions: await accessor('TRANSLATION'),
+          orientations: await accessor('ROTATION'),
+          scales: await accessor('SCALE', false),
+          clip: Int32Array.from(clips, (c) => Math.floor(c + 0.5)),
+          timeOffset: await accessor('_VB_TIME_OFFSET'),
+          playbackRate: await accessor('_VB_PLAYBACK_RATE'),
+        }),
+      });
+    }
+    gltf.userData.virtualBones = {
+      upAxis: 'Y',  // the package's root node converts the asset's axes to glTF's
+      animations: animations.map((animation, a) => ({ animation, meshes: meshesOfAnimation[a] ?? [] })),
+      crowds: [...crowds, ...singles],
+    };
+  }
+}
+
+/** The runtime description of a glTF loaded with the plugin (see plain-loader.js buildObjects). */
+export function descriptionFromGLTF(gltf) {
+  const description = gltf.userData.virtualBones;
+  if (!description) throw new VirtualBonesError(`the glTF has no ${EXTENSION} extension (or the plugin was not registered)`);
+  return description;
+}

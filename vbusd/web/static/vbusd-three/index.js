@@ -1,0 +1,10 @@
+// vbusd's three.js runtime: Virtual Bones crowds (instancing and skinning in one draw call) on any
+// three.js material. See docs/engines.md ("three.js runtime") for the API and an example.
+
+export { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
+export { shaderModule, patchMaterial, patchVertexShader, skinningDeclarations, SKINNING_CALL } from './material.js';
+export { VirtualBonesCrowd, skinnedGeometry, instancesFromPlacement, singleInstance } from './crowd.js';
+export { parsePlainScene, loadPlainScene, buildObjects } from './plain-loader.js';
+export { probeCrowd } from './probe.js';
+export { parseVirtualBonesKTX2 } from './ktx2.js';
+export { VirtualBonesGLTFPlugin, descriptionFromGLTF, EXTENSION } from './gltf-plugin.js';

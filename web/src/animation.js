@@ -1,0 +1,124 @@
+// A baked Virtual Bones animation on the GPU: its texture, clip table and the shader uniforms that
+// every material skinned from it shares (spec/shaders.md, "Resources").
+
+import {
+  DataTexture, RGBAFormat, HalfFloatType, FloatType, UnsignedShortType, NearestFilter,
+  ClampToEdgeWrapping, NoColorSpace, Vector4, Box3, Vector3,
+} from 'three';
+
+import { BASE_MAX_CLIPS } from './shader-modules.js';
+
+const TEXEL_TYPES = {
+  float16: { type: HalfFloatType, array: Uint16Array, bytes: 2 },
+  float32: { type: FloatType, array: Float32Array, bytes: 4 },
+  unorm16: { type: UnsignedShortType, array: Uint16Array, bytes: 2 },
+};
+
+const ENCODINGS = { crossMatrix: 3, affineMatrix: 3, quatTranslation: 2, dualQuat: 2 };
+
+/** An error in the data handed to the runtime, or a browser that cannot run it. */
+export class VirtualBonesError extends Error {
+  constructor(message) {
+    super(`vbusd: ${message}`);
+    this.name = 'VirtualBonesError';
+  }
+}
+
+/**
+ * One Virtual Bones texture with its layout metadata.
+ *
+ * `layout` is the layout metadata dict (the texture's sidecar JSON, spec "Layout metadata");
+ * `texels` holds the stored texel values, scanline 0 first: a Uint16Array of float16 bits
+ * (float16), a Float32Array (float32) or a Uint16Array of 16-bit integers (unorm16).
+ * `clipExtents` is optional: per clip [[minX, minY, minZ], [maxX, maxY, maxZ]] of the skinned
+ * meshes (vb:clipExtents), used for frustum culling.
+ */
+export class VirtualBonesAnimation {
+  constructor({ layout, texels, clipExtents = null, name = '' }) {
+    const texelType = TEXEL_TYPES[layout.texelFormat];
+    if (!texelType) throw new VirtualBonesError(`${name}: unknown texel format ${JSON.stringify(layout.texelFormat)}`);
+    const texelsPerBone = ENCODINGS[layout.encoding];
+    if (!texelsPerBone) throw new VirtualBonesError(`${name}: unknown encoding ${JSON.stringify(layout.encoding)}`);
+    const expected = layout.width * layout.height * 4;
+    if (!(texels instanceof texelType.array) || texels.length !== expected) {
+      throw new VirtualBonesError(`${name}: texels must be a ${texelType.array.name} of ${expected} values `
+        + `(${layout.width} x ${layout.height} RGBA), got ${texels?.constructor?.name} of ${texels?.length}`);
+    }
+    this.name = name;
+    this.layout = layout;
+    this.encoding = layout.encoding;
+    this.texelFormat = layout.texelFormat;
+    this.texelsPerBone = texelsPerBone;
+    this.clips = layout.clips;
+    this.clipExtents = clipExtents;
+
+    const texture = new DataTexture(texels, layout.width, layout.height, RGBAFormat, texelType.type);
+    // Data, not colour: no colour conversion, no mipmaps, no filtering, no flip (row r = scanline r).
+    texture.colorSpace = NoColorSpace;
+    texture.generateMipmaps = false;
+    texture.minFilter = texture.magFilter = NearestFilter;
+    texture.wrapS = texture.wrapT = ClampToEdgeWrapping;
+    texture.flipY = false;
+    texture.unpackAlignment = 1;
+    texture.normalized = layout.texelFormat === 'unorm16';  // unorm16: RGBA16_EXT of EXT_texture_norm16
+    texture.needsUpdate = true;
+    this.texture = texture;
+
+    this.maxClips = Math.max(BASE_MAX_CLIPS, this.clips.length);
+    const clipTable = [];
+    for (let i = 0; i < this.maxClips; ++i) {
+      const clip = this.clips[i];
+      clipTable.push(clip ? new Vector4(clip.firstRow, clip.rowCount, clip.rowsPerSecond, clip.loop ? 1 : 0)
+        : new Vector4(0, 1, 1, 0));
+    }
+    // Shared by reference with every patched material: setting `time` moves them all.
+    this.uniforms = {
+      vb_texture: { value: texture },
+      vb_time: { value: 0 },
+      vb_clips: { value: clipTable },
+    };
+    if (layout.texelFormat === 'unorm16') {
+      const ranges = layout.unormRanges;  // [slot][channel] = [min, max]
+      this.uniforms.vb_rangeMin = { value: ranges.map((slot) => new Vector4(...slot.map((r) => r[0]))) };
+      this.uniforms.vb_rangeMax = { value: ranges.map((slot) => new Vector4(...slot.map((r) => r[1]))) };
+    }
+  }
+
+  /** Scene time in seconds: instance clip-local time is timeOffset + playbackRate * time. */
+  get time() { return this.uniforms.vb_time.value; }
+
+  set time(seconds) { this.uniforms.vb_time.value = seconds; }
+
+  /** Index of the clip called `name`, or -1. */
+  clipIndex(name) { return this.clips.findIndex((clip) => clip.name === name); }
+
+  /**
+   * Bounds covering every pose of the given clips (union of their vb:clipExtents), or null when
+   * the asset has no extents.
+   */
+  boundsOfClips(clipIndices) {
+    if (!this.clipExtents) return null;
+    const box = new Box3();
+    for (const index of clipIndices) {
+      const extent = this.clipExtents[index];
+      if (!extent) return null;
+      box.expandByPoint(new Vector3(...extent[0]));
+      box.expandByPoint(new Vector3(...extent[1]));
+    }
+    return box;
+  }
+
+  /**
+   * Throw a clear error where the browser cannot sample this texture: unorm16 needs WebGL 2's
+   * EXT_texture_norm16 (16-bit normalized formats are not core WebGL 2).
+   */
+  checkSupport(renderer) {
+    if (!renderer.capabilities.isWebGL2) throw new VirtualBonesError('Virtual Bones needs WebGL 2 (texelFetch, integer attributes)');
+    if (this.texelFormat === 'unorm16' && !renderer.extensions.has('EXT_texture_norm16')) {
+      throw new VirtualBonesError(`${this.name || 'animation'}: this unorm16 texture needs the WebGL extension `
+        + 'EXT_texture_norm16, which this browser does not offer; convert the asset with --texel-format float16 or float32');
+    }
+  }
+
+  dispose() { this.texture.dispose(); }
+}

@@ -1,0 +1,228 @@
+// The page `vbusd view` serves: a Virtual Bones asset or crowd in three.js, with an orbit camera,
+// play/pause, time scrub, clip picker, instance count and frame time.
+//
+// Query parameters (tests, screenshots and benchmarks use them): time=T (start at T seconds),
+// paused=1, camera=x,y,z,tx,ty,tz (position and target), fov=DEG, silhouette=1 (unlit white on
+// black, no ground, fog or tone mapping), ui=0 (no panel), antialias=0, instances=N, width=W and
+// height=H (fixed canvas size in CSS pixels), pixelRatio=R.
+//
+// window.vbusd: {ready (a Promise), probe(instance, time), setTime(t), render(), measureFrames(n),
+// renderer, scene, camera, crowds}. probe numbers instances across the crowds in the asset's order,
+// then one per animation that no crowd instances.
+
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+
+import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF } from './vbusd-three/index.js';
+
+const params = new URLSearchParams(window.location.search);
+const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
+const silhouette = params.get('silhouette') === '1';
+const element = (id) => document.getElementById(id);
+
+function showError(error) {
+  console.error(error);
+  element('error').textContent = String(error?.message ?? error);
+}
+
+async function loadDescription(config) {
+  if (config.kind === 'scene') return loadPlainScene(config.url);
+  if (config.kind === 'gltf') {
+    const loader = new GLTFLoader();
+    loader.register((parser) => new VirtualBonesGLTFPlugin(parser));
+    const gltf = await loader.loadAsync(config.url);
+    return descriptionFromGLTF(gltf);
+  }
+  throw new Error(`unknown asset kind ${config.kind}`);
+}
+
+async function main() {
+  const config = await (await fetch('config.json')).json();
+  element('title').textContent = config.name;
+  document.title = `vbusd view: ${config.name}`;
+  if (params.get('ui') === '0') element('panel').classList.add('hidden');
+
+  const canvas = element('view');
+  if (params.has('width')) {
+    canvas.style.width = `${number('width')}px`;
+    canvas.style.height = `${number('height')}px`;
+  }
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: params.get('antialias') !== '0', preserveDrawingBuffer: true });
+  renderer.setPixelRatio(number('pixelRatio', window.devicePixelRatio));
+  const scene = new THREE.Scene();
+  const description = await loadDescription(config);
+  const zUp = description.upAxis === 'Z';
+
+  const material = silhouette ? () => new THREE.MeshBasicMaterial({ color: 0xffffff })
+    : () => new THREE.MeshStandardMaterial({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
+  const objects = buildObjects(description, { material });
+  for (const animation of objects.animations) animation.checkSupport(renderer);
+  scene.add(objects.group);
+  const crowds = objects.crowds;
+  if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
+
+  // Frame everything drawn: the union of the crowds' culling bounds (or their rest bounds).
+  const bounds = new THREE.Box3();
+  for (const crowd of crowds) {
+    for (const mesh of crowd.meshes) {
+      mesh.computeBoundingBox();
+      bounds.union(mesh.boundingBox.clone().applyMatrix4(mesh.matrixWorld));
+    }
+  }
+  const sphere = bounds.getBoundingSphere(new THREE.Sphere());
+  const radius = Math.max(sphere.radius, 1e-3);
+
+  const camera = new THREE.PerspectiveCamera(number('fov', 40), 1, radius / 500, radius * 50);
+  const up = zUp ? new THREE.Vector3(0, 0, 1) : new THREE.Vector3(0, 1, 0);
+  camera.up.copy(up);
+  const controls = new OrbitControls(camera, canvas);
+  if (params.has('camera')) {
+    const c = params.get('camera').split(',').map(Number);
+    camera.position.set(c[0], c[1], c[2]);
+    controls.target.set(c[3], c[4], c[5]);
+  } else {
+    const side = zUp ? new THREE.Vector3(0, -1, 0) : new THREE.Vector3(0, 0, 1);
+    camera.position.copy(sphere.center).addScaledVector(side, radius * 1.9).addScaledVector(up, radius * 0.75);
+    controls.target.copy(sphere.center);
+  }
+  controls.update();
+
+  if (silhouette) {
+    scene.background = new THREE.Color(0x000000);
+    renderer.toneMapping = THREE.NoToneMapping;
+  } else {
+    scene.background = new THREE.Color(0x1d2026);
+    scene.fog = new THREE.Fog(0x1d2026, radius * 3, radius * 8);
+    renderer.toneMapping = THREE.ACESFilmicToneMapping;
+    renderer.shadowMap.enabled = true;
+    renderer.shadowMap.type = THREE.PCFShadowMap;
+    scene.add(new THREE.HemisphereLight(0xdfe8ff, 0x3a3026, 1.4));
+    const sun = new THREE.DirectionalLight(0xffffff, 2.2);
+    sun.position.copy(sphere.center).addScaledVector(up, radius * 2).add(new THREE.Vector3(radius, 0, radius * 0.6));
+    sun.target.position.copy(sphere.center);
+    sun.castShadow = true;
+    sun.shadow.mapSize.set(2048, 2048);
+    const s = sun.shadow.camera;
+    s.left = s.bottom = -radius * 1.2;
+    s.right = s.top = radius * 1.2;
+    s.near = radius * 0.1;
+    s.far = radius * 5;
+    sun.shadow.bias = -0.0005;
+    scene.add(sun, sun.target);
+    const ground = new THREE.Mesh(new THREE.CircleGeometry(radius * 6, 64),
+      new THREE.MeshStandardMaterial({ color: 0x4a505a, roughness: 0.95 }));
+    if (!zUp) ground.rotation.x = -Math.PI / 2;
+    ground.position.copy(sphere.center);
+    if (zUp) ground.position.z = bounds.min.z; else ground.position.y = bounds.min.y;
+    ground.receiveShadow = true;
+    scene.add(ground);
+  }
+
+  // Clock, clip picker and instance count.
+  let time = number('time', 0);
+  let playing = params.get('paused') !== '1' && !params.has('time');
+  let needsRender = true;  // paused and unchanged: no frame is drawn (software WebGL is slow)
+  controls.addEventListener('change', () => { needsRender = true; });
+  const setTime = (t) => {
+    needsRender = true;
+    time = t;
+    for (const animation of objects.animations) animation.time = t;
+    element('time').value = String(t % Number(element('time').max));
+    element('time-label').textContent = `${t.toFixed(2)} s`;
+  };
+  const longest = Math.max(...objects.animations.flatMap((a) => a.clips.map((c) => (c.loop ? c.rowCount : c.rowCount - 1) / c.rowsPerSecond)), 1e-3);
+  element('time').max = String(longest);
+  element('play').textContent = playing ? 'Pause' : 'Play';
+  element('play').onclick = () => { playing = !playing; element('play').textContent = playing ? 'Pause' : 'Play'; };
+  element('time').oninput = () => { playing = false; element('play').textContent = 'Play'; setTime(Number(element('time').value)); };
+  const clipNames = [...new Set(objects.animations.flatMap((a) => a.clips.map((c) => c.name)))];
+  for (const name of clipNames) element('clip').add(new Option(name, name));
+  const authored = crowds.map((crowd) => crowd.clipAttribute.array.slice());
+  element('clip').onchange = () => {
+    const choice = element('clip').value;
+    crowds.forEach((crowd, c) => {
+      const index = crowd.animation.clipIndex(choice);
+      crowd.clipAttribute.array.set(choice === '-1' || index < 0 ? authored[c] : authored[c].map(() => index));
+      crowd.clipAttribute.needsUpdate = true;
+      crowd.updateBounds();
+    });
+    needsRender = true;
+  };
+  const capacity = Math.max(...crowds.map((crowd) => crowd.capacity));
+  element('count').max = String(capacity);
+  element('count').value = String(Math.max(...crowds.map((crowd) => crowd.count)));
+  element('count-label').textContent = element('count').value;
+  element('count').oninput = () => {
+    for (const crowd of crowds) crowd.count = Number(element('count').value);
+    element('count-label').textContent = element('count').value;
+    needsRender = true;
+  };
+
+  const resize = () => {
+    const width = canvas.clientWidth;
+    const height = canvas.clientHeight;
+    if (canvas.width !== Math.floor(width * renderer.getPixelRatio()) || canvas.height !== Math.floor(height * renderer.getPixelRatio())) {
+      renderer.setSize(width, height, false);
+      camera.aspect = width / height;
+      camera.updateProjectionMatrix();
+    }
+  };
+  const render = () => { resize(); controls.update(); renderer.render(scene, camera); needsRender = false; };
+  window.addEventListener('resize', () => { needsRender = true; });
+
+  // Frame time: the mean interval between the last 60 animation frames, and the time render() takes.
+  const intervals = [];
+  let last = performance.now();
+  let renderMs = 0;
+  const loop = (now) => {
+    const dt = (now - last) / 1000;
+    last = now;
+    intervals.push(dt);
+    if (intervals.length > 60) intervals.shift();
+    if (playing) setTime(time + dt);
+    if (needsRender) {
+      const start = performance.now();
+      render();
+      renderMs = 0.9 * renderMs + 0.1 * (performance.now() - start);
+    }
+    const mean = intervals.reduce((a, b) => a + b, 0) / intervals.length;
+    const drawn = crowds.reduce((n, crowd) => n + crowd.count, 0);
+    element('stats').textContent = `frame time: ${(mean * 1000).toFixed(1)} ms (render ${renderMs.toFixed(1)} ms), ${drawn} instances`;
+    requestAnimationFrame(loop);
+  };
+  setTime(time);
+
+  // Instance numbering for probe: crowds in order, each instance of each.
+  const probeTargets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
+  const gl = renderer.getContext();
+  window.vbusd = {
+    renderer, scene, camera, controls, crowds, animations: objects.animations,
+    setTime, render,
+    get instanceCount() { return probeTargets.length; },
+    /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU. */
+    async probe(instance, t) {
+      const target = probeTargets[instance];
+      if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
+      const result = probeCrowd(renderer, target[0], target[1], t);
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals) };
+    },
+    /** Mean milliseconds per frame over `frames` frames, each rendered and finished (pixels read). */
+    measureFrames(frames = 60) {
+      const pixel = new Uint8Array(4);
+      render();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      const start = performance.now();
+      for (let i = 0; i < frames; ++i) {
+        setTime(time + 1 / 60);
+        render();
+        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      }
+      return (performance.now() - start) / frames;
+    },
+  };
+  render();
+  requestAnimationFrame(loop);
+}
+
+window.vbusdReady = main().catch((error) => { showError(error); throw error; });
