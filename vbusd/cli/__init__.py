@@ -22,6 +22,7 @@ COMMANDS = {
     "info": "Print the texture layout of a Virtual Bones asset.",
     "validate": "Validate a Virtual Bones asset and report findings with codes.",
     "shader": "Write a reference vertex shader for an encoding and texel format.",
+    "view": "Show an asset or crowd in a browser (three.js viewer on 127.0.0.1).",
 }
 
 
