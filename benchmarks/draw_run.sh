@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# Run the draw-cost benchmark (benchmarks/draw_cost.py, issue 18) and the warp decoder's CUDA tests on
+# the GPU machine of the device tool.
+#
+# The GPU image has numpy, pytest and matplotlib but no OpenGL loader libraries, no moderngl and no
+# warp. So, here, `pack` gathers what the run needs into folders that git ignores:
+#   .gl/       the GL loader libraries (libglvnd's libEGL, libOpenGL, ...; Debian .deb files),
+#   .whl/      moderngl and glcontext wheels for the image's Python 3.12,
+#   .gpuwarp/  warp, in two parts (benchmarks/gpu_run.sh pack: warp's wheel is larger than one call
+#              may carry).
+# On the machine, `stage 1` / `stage 2` keep the two warp parts in /tmp/gw, and `run` unpacks
+# everything and runs the tests and the benchmark. The two calls follow each other while the machine
+# is warm (it is given back about 30 s after a call):
+#
+#   here:        bash benchmarks/draw_run.sh pack
+#   device call: carry [".gpuwarp/p1"]                  command: bash benchmarks/draw_run.sh stage 1
+#   device call: carry [".gpuwarp/p2", ".gl", ".whl"]  command: bash benchmarks/draw_run.sh stage 2 && bash benchmarks/draw_run.sh run
+#
+# `run` writes to $OUT: gpu.txt (nvidia-smi), warp_tests.log (pytest tests/test_warp_decoder.py on
+# CUDA), draw.log and draw_cost.json. Kept in benchmarks/results/ as draw_cost_h100.json and
+# warp_tests_cuda_h100_round2.log; the table and plot are made here from the JSON:
+#   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json --markdown \
+#       --plot benchmarks/results/draw_cost_h100.png
+# DRAW_ARGS adds options to draw_cost.py run (default budget: 380 s of the call's 600).
+set -euo pipefail
+cmd=${1:?usage: draw_run.sh pack|stage N|run}
+case "$cmd" in
+pack)
+    exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
+    for ignored in /.gl/ /.whl/; do grep -qx "$ignored" "$exclude" 2>/dev/null || echo "$ignored" >> "$exclude"; done
+    mkdir -p .gl .whl /tmp/amd64/partial
+    o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+    # shellcheck disable=SC2086
+    apt-get $o update -qq
+    # shellcheck disable=SC2086
+    (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+        --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
+        --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0
+    [ -d .gpuwarp/p2 ] || bash benchmarks/gpu_run.sh pack
+    ls -l .gl .whl .gpuwarp/p*
+    ;;
+stage)
+    bash benchmarks/gpu_run.sh stage "$2"
+    ;;
+run)
+    out=${OUT:-/tmp/out}; mkdir -p "$out"
+    for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
+    if [ ! -d /tmp/site/warp ]; then
+        mkdir -p /tmp/site
+        cat /tmp/gw/part* | python3 -c 'import sys, tarfile; tarfile.open(fileobj=sys.stdin.buffer, mode="r|xz").extractall("/tmp/site")'
+    fi
+    export PYTHONPATH=/tmp/site:/tmp/glsite:$PWD PYTHONUNBUFFERED=1
+    egl_check='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"], c.info["GL_VERSION"])'
+    if ! python3 -c "$egl_check"; then
+        export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+        python3 -c "$egl_check" || echo "no EGL context: the benchmark will fail" >&2
+    fi
+    nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,clocks.max.memory --format=csv | tee "$out/gpu.txt"
+    set +e
+    timeout 150 python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/warp_tests.log"
+    # shellcheck disable=SC2086
+    timeout 420 python3 benchmarks/draw_cost.py run --json "$out/draw_cost.json" --budget 380 ${DRAW_ARGS:-} 2>&1 | tee "$out/draw.log"
+    python3 benchmarks/draw_cost.py report --json "$out/draw_cost.json" 2>&1 | tail -20
+    ;;
+*)
+    echo "usage: draw_run.sh pack|stage N|run" >&2; exit 2
+    ;;
+esac
