@@ -49,6 +49,11 @@ class Report:
         return self.counts.get("error", 0)
 
     @property
+    def valid(self) -> bool:
+        """True when no error was found (warnings, infos and hints allowed)."""
+        return self.error_count == 0
+
+    @property
     def exit_status(self) -> int:
         """1 when there is an error, else 0 (2, unreadable, never reaches a report)."""
         return 1 if self.error_count else 0

@@ -32,11 +32,11 @@ except Exception:  # pragma: no cover - running from a source tree without insta
 # name -> module that defines it; imported on first attribute access (PEP 562).
 _EXPORTS = {
     # format
-    "FORMAT_VERSION": "vbusd.layout",
-    "Encoding": "vbusd.layout",
-    "Layout": "vbusd.layout",
-    "Padding": "vbusd.layout",
-    "TexelFormat": "vbusd.layout",
+    "FORMAT_VERSION": "vbusd.format.layout",
+    "Encoding": "vbusd.format.layout",
+    "Layout": "vbusd.format.layout",
+    "Padding": "vbusd.format.layout",
+    "TexelFormat": "vbusd.format.layout",
     "AnimationClip": "vbusd.format.model",
     "SkinnedMesh": "vbusd.format.model",
     "SkinnedAnimation": "vbusd.format.model",
@@ -62,6 +62,8 @@ _EXPORTS = {
     "validate": "vbusd.api",
     "skin": "vbusd.api",
     "shader": "vbusd.api",
+    "build_crowd": "vbusd.crowd",
+    "CrowdOptions": "vbusd.crowd",
     "decode": "vbusd.decode.pointcache",
     "Decoder": "vbusd.decode.warp",
 }
@@ -86,6 +88,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from vbusd.api import shader, skin, validate
     from vbusd.bake import BakeOptions, bake
     from vbusd.convert import ConvertOptions, convert
+    from vbusd.crowd import CrowdOptions, build_crowd
     from vbusd.decode.pointcache import decode
     from vbusd.decode.warp import Decoder
     from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError, VersionError

@@ -16,14 +16,34 @@ import click
 
 from vbusd.format.errors import VbusdError
 
+__all__ = ["COMMANDS", "BUG_REPORT_HINT", "INTERNAL_ERROR_STATUS", "cli", "main", "internal_error_line"]
+
 COMMANDS = {
     "convert": "Convert a UsdSkel or glTF asset into a Virtual Bones asset.",
     "decode": "Decode a Virtual Bones asset into a USD point cache any viewer plays.",
     "info": "Print the texture layout of a Virtual Bones asset.",
     "validate": "Validate a Virtual Bones asset and report findings with codes.",
     "shader": "Write a reference vertex shader for an encoding and texel format.",
+    "export": "Export an asset or crowd for engines: a glTF 2.0 runtime package (.glb, .gltf).",
+    "crowd": "Build a USD crowd of converted characters on a point instancer.",
     "view": "Show an asset or crowd in a browser (three.js viewer on 127.0.0.1).",
 }
+
+
+BUG_REPORT_HINT = "this is a bug in vbusd, not in the input: please report it with this line and the input file"
+"""The end of the one line :func:`main` prints for an unexpected failure."""
+
+INTERNAL_ERROR_STATUS = 3
+"""Exit status of an unexpected failure (a bug), distinct from 1 (findings) and 2 (input, usage)."""
+
+_RUNNING: dict = {}
+"""The subcommand being run (``command``, ``input``), for the line of an unexpected failure."""
+
+
+def _remember_invocation(ctx: click.Context) -> None:
+    arguments = [p for p in ctx.command.params if isinstance(p, click.Argument)]
+    value = ctx.params.get(arguments[0].name) if arguments else None
+    _RUNNING.update(command=ctx.command_path, input=None if value in (None, ()) else str(value))
 
 
 class _LazyGroup(click.Group):
@@ -33,7 +53,42 @@ class _LazyGroup(click.Group):
     def get_command(self, ctx, name):
         if name not in COMMANDS or importlib.util.find_spec(f"vbusd.cli.{name}") is None:
             return None
-        return importlib.import_module(f"vbusd.cli.{name}").command
+        command = importlib.import_module(f"vbusd.cli.{name}").command
+        if not getattr(command, "_vbusd_remembers", False):  # once per command object
+            invoke = command.invoke
+
+            def remembering_invoke(sub_ctx, _invoke=invoke):
+                _remember_invocation(sub_ctx)
+                return _invoke(sub_ctx)
+
+            command.invoke = remembering_invoke
+            command._vbusd_remembers = True
+            command.short_help = command.short_help or COMMANDS[name]  # whole, not cut at "..."
+        return command
+
+
+def _one_line(text: str) -> str:
+    """``text`` with control characters (newlines, escapes from a corrupt input) shown as ``\\xNN``."""
+    return "".join(c if c.isprintable() else f"\\x{ord(c):02x}" if ord(c) < 256 else f"\\u{ord(c):04x}"
+                   for c in text)
+
+
+def _echo_error(text: str) -> None:
+    click.echo(_one_line(text), err=True)
+
+
+def internal_error_line(error: BaseException, command: Optional[str], source: Optional[str]) -> str:
+    """The one line for an unexpected failure: ``vbusd: INPUT: COMMAND: command.internal: ...``.
+
+    Args:
+        error: What was raised.
+        command: The command path (``vbusd convert``), if known.
+        source: The command's input argument, if it has one.
+    """
+    detail = " ".join(str(error).split())[:200]
+    what = type(error).__name__ + (f": {detail}" if detail else "")
+    parts = [p for p in (source, command or "vbusd") if p]
+    return "vbusd: " + ": ".join(parts) + f": command.internal: unexpected {what}; {BUG_REPORT_HINT}"
 
 
 def _version() -> str:
@@ -55,32 +110,39 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         argv: Arguments without the program name; ``sys.argv[1:]`` when None.
 
     Returns:
-        0 on success, 1 when validation found errors, 2 for unreadable input or bad usage.
+        0 on success, 1 when validation found errors, 2 for unreadable input or bad usage (and a
+        bare ``vbusd``, which prints the help), 3 for an unexpected failure (a bug; one line with
+        code ``command.internal`` naming the command and its input).
     """
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args:  # a bare `vbusd` is a request for help, not a usage error
-        args = ["--help"]
+    if not args:  # a bare `vbusd` names no job: show what there is, but as a usage error
+        click.echo(cli.get_help(click.Context(cli, info_name="vbusd", **cli.context_settings)))
+        return 2
+    _RUNNING.clear()
     try:
         result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
-        click.echo(f"vbusd: {error}", err=True)
+        _echo_error(f"vbusd: {error}")
         return error.exit_status
     except click.exceptions.Exit as done:
         return int(done.exit_code or 0)
-    except click.Abort:
-        click.echo("vbusd: aborted", err=True)
+    except (click.Abort, KeyboardInterrupt):
+        _echo_error("vbusd: aborted")
         return 130
     except click.UsageError as error:  # bad usage: one line, naming the command, not click's four
         command = error.ctx.command_path if error.ctx is not None else "vbusd"
-        click.echo(f"{command}: {error.format_message()}", err=True)
+        _echo_error(f"{command}: {error.format_message()}")
         return 2
     except click.ClickException as error:
-        click.echo(f"vbusd: {error.format_message()}", err=True)
+        _echo_error(f"vbusd: {error.format_message()}")
         return 2
     except OSError as error:  # disk full, permissions, a vanished folder: one line, not a traceback
         where = f"{error.filename}: " if getattr(error, "filename", None) else ""
-        click.echo(f"vbusd: {where}{error.strerror or error}", err=True)
+        _echo_error(f"vbusd: {where}{error.strerror or error}")
         return 2
+    except Exception as error:  # anything else is a bug: one line saying so, never a traceback
+        _echo_error(internal_error_line(error, _RUNNING.get("command"), _RUNNING.get("input")))
+        return INTERNAL_ERROR_STATUS
     return int(result or 0)
 
 

@@ -130,6 +130,11 @@ _CODES = (
          f"{_VB}#layout-metadata", "json"),
     Code("metadata.mismatch", E, "A layout metadata value disagrees with the prim attribute it mirrors.",
          f"{_VB}#layout-metadata", "json"),
+    # texture readers
+    Code("metadata.inconsistent", E, "Layout metadata contradicts itself: a derived size (texelsPerBone, "
+         "usedWidth, width, height, texelBytes) is not what its other values compute, bones does not "
+         "hold boneCount names, clips do not tile the rows in order under unique names, or a unorm16 "
+         "range has min above max.", f"{_VB}#layout-metadata", "json"),
     Code("metadata.sidecarMismatch", E, "The sidecar <texture>.json and the metadata embedded in the "
          "texture disagree.", f"{_VB}#layout-metadata", "json"),
     # encodings
@@ -253,6 +258,33 @@ _CODES = (
     # command line
     Code("command.internal", E, "A command failed unexpectedly: a bug in vbusd, not a fault of the input; the "
          "line names the command and the input (please report it with both).", "validation.md#command", "file"),
+    # ---- KTX 2.0 texture container (spec/ktx2.md) ----
+    Code("ktx2.truncated", E, "The KTX2 file ends inside its header, level index or a region it declares.",
+         "ktx2.md#reader", "file"),
+    Code("ktx2.vkFormat", E, "The KTX2 vkFormat is not 97, 109 or 91, or disagrees with the metadata's "
+         "texelFormat.", "ktx2.md#layout", "file"),
+    Code("ktx2.header", E, "A KTX2 header field (typeSize, pixelDepth, layerCount, faceCount, levelCount) "
+         "is not that of a Virtual Bones texture (one 2D image, one mip level).", "ktx2.md#layout", "file"),
+    Code("ktx2.supercompression", E, "An unknown KTX2 supercompression scheme, Zstandard without the "
+         "zstandard package, or a level that does not decompress to exactly its declared length.",
+         "ktx2.md#reader", "file"),
+    Code("ktx2.levels", E, "A KTX2 region (DFD, key/value data, level 0) lies outside the file or overlaps "
+         "another, or a level length or alignment is wrong.", "ktx2.md#reader", "file"),
+    Code("ktx2.dfd", E, "The KTX2 Data Format Descriptor is malformed or disagrees with vkFormat.",
+         "ktx2.md#dfd", "file"),
+    Code("ktx2.keyValue", E, "The KTX2 key/value data is malformed (lengths, NUL terminators, padding, a "
+         "duplicate key).", "ktx2.md#key-value", "file"),
+    Code("ktx2.orientation", E, "KTXorientation is not 'rd' (row 0 of the file first).",
+         "ktx2.md#orientation", "file"),
+    # ---- runtime package export (spec/runtime-package.md) ----
+    Code("export.noMeshes", E, "The asset has no mesh bound to an animation: there is nothing to export.",
+         "runtime-package.md#validation", "file"),
+    Code("export.mesh", E, "A bound mesh cannot be exported: no triangle, or a bone index a SHORT "
+         "attribute cannot hold.", "runtime-package.md#meshes", "usd"),
+    Code("crowd.character", E, "A character given to vbusd crowd has no animation or bound mesh to "
+         "instance, or disagrees with the others' up axis or units.", f"{_VB}#instancing", "file"),
+    Code("crowd.points", E, "The positions file of vbusd crowd --layout points is not rows of three "
+         "finite numbers (CSV) or has no USD points prim.", f"{_VB}#instancing", "file"),
     # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----
     Code("gltf.file", E, "The glTF file cannot be read.", "gltf-conversion.md#reading", "file"),
     Code("gltf.file.limit", E, "The glTF file is larger than the reader's limit.", "gltf-conversion.md#reading", "file"),

@@ -1,0 +1,73 @@
+"""``vbusd crowd CHARACTER... -o CROWD.usda``: place instances of converted characters on a point instancer.
+
+See :mod:`vbusd.crowd` for the layout of the file it writes.
+"""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from vbusd.format.errors import OptionsError
+
+
+def _pair(values, option: str):
+    if values is None:
+        return None
+    low, high = values
+    return float(low), float(high)
+
+
+def _weights(text, option: str):
+    if text is None:
+        return None
+    try:
+        return tuple(float(w) for w in text.split(","))
+    except ValueError:
+        raise OptionsError(f"{option} must be numbers separated by commas, got {text!r}", file="crowd") from None
+
+
+@click.command("crowd")
+@click.argument("characters", nargs=-1, required=True, type=click.Path(path_type=str))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=str), help="Crowd layer to write (.usda, .usdc).")
+@click.option("--layout", default="grid", show_default=True, metavar="grid|disc|points",
+              help="Placement: a grid, a disc of even density, or the points of --points FILE.")
+@click.option("--points", "points_file", metavar="FILE", help="CSV (x,y,z rows) or USD points prim for --layout points.")
+@click.option("--count", default=100, show_default=True, type=int, help="Instances (grid and disc).")
+@click.option("--spacing", default=1.0, show_default=True, type=float, help="Distance between neighbours, scene units.")
+@click.option("--clips", default=None, metavar="NAME[:W],...", help="Clips to play, with relative weights (default: all, equal).")
+@click.option("--character-weights", default=None, metavar="W,...", help="Relative share of each character.")
+@click.option("--time-offset", nargs=2, type=float, default=None, metavar="MIN MAX",
+              help="Range of time offsets in seconds (default: anywhere in the instance's clip).")
+@click.option("--rate", nargs=2, type=float, default=(1.0, 1.0), show_default=True, metavar="MIN MAX",
+              help="Range of playback rates.")
+@click.option("--yaw", nargs=2, type=float, default=(0.0, 360.0), show_default=True, metavar="MIN MAX",
+              help="Range of turns about the up axis, degrees.")
+@click.option("--scale", nargs=2, type=float, default=(1.0, 1.0), show_default=True, metavar="MIN MAX",
+              help="Range of uniform scales.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed: the same seed gives the same file, byte for byte.")
+@click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]))
+@click.option("--force", is_flag=True, help="Replace an existing output.")
+@click.option("--allow-outside-paths", is_flag=True, help="Let the crowd reference characters outside its folder.")
+def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
+            yaw, scale, seed, output_format, force, allow_outside_paths):
+    """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
+    from vbusd.crowd import CrowdOptions, build_crowd, parse_weights
+
+    options = CrowdOptions(layout=layout, count=count, spacing=spacing, points=points_file,
+                           clips=parse_weights(clips) if clips else {},
+                           characters=_weights(character_weights, "--character-weights"),
+                           time_offset=_pair(time_offset, "--time-offset"), playback_rate=_pair(rate, "--rate"),
+                           yaw=_pair(yaw, "--yaw"), scale=_pair(scale, "--scale"), seed=seed)
+    report = build_crowd(characters, output, options, force=force, allow_outside_paths=allow_outside_paths)
+    if output_format == "json":
+        click.echo(json.dumps(report.to_dict(), indent=2))
+        return 0
+    total = sum(report.instances)
+    click.echo(f"{report.output}: {total} instances of {len(report.instances)} character(s), "
+               f"{report.bytes} bytes ({report.seconds:.2f} s)")
+    for path, n, clip_counts in zip(characters, report.instances, report.clips):
+        shown = ", ".join(f"{name} {k}" for name, k in clip_counts.items())
+        click.echo(f"  {path}: {n} instances ({shown})")
+    return 0

@@ -1,0 +1,459 @@
+"""Build a USD crowd from converted characters: ``vbusd crowd`` and :func:`build_crowd`.
+
+A crowd file references each character's Virtual Bones asset (its default prim, under
+``/Crowd/Characters/<name>``, made invisible so only the instances draw) and holds one
+``UsdGeomPointInstancer`` with ``VirtualBonesInstancingAPI`` per character, whose prototype
+references that character's bound meshes. Per instance it authors position, orientation (a yaw
+about the stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing").
+
+Placement: ``grid`` (rows of ``spacing``), ``disc`` (a sunflower spiral of even density whose
+instances stand ``spacing`` apart on average) or ``points`` (a CSV of ``x,y,z`` rows, or a USD file
+whose first ``UsdGeomPoints`` / ``PointBased`` prim gives the positions). Instances are dealt to
+characters in proportion to their weights, and clips by name with weights. Everything random comes
+from one ``numpy.random.Generator`` seeded with ``seed``, and the layer is written with a fixed
+header, so the same inputs and seed give the same file, byte for byte.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from vbusd.format.errors import InputError, OptionsError
+
+__all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
+
+LAYOUTS = ("grid", "disc", "points")
+MAX_INSTANCES = 10_000_000
+"""Refused above this count: 10 M instances are ~600 MB of primvars in the layer."""
+
+CROWD_ROOT = "/Crowd"
+
+
+@dataclass(frozen=True)
+class CrowdOptions:
+    """What :func:`build_crowd` places; checked on construction.
+
+    Attributes:
+        layout: ``grid``, ``disc`` or ``points``.
+        count: Number of instances (ignored by ``points``, which places one per point).
+        spacing: Distance between neighbours in scene units (grid pitch; disc average spacing).
+        points: CSV or USD file of positions for ``layout="points"``.
+        clips: Clip name (or index as text) -> relative weight; empty: every clip, equal weights.
+            A character without a named clip keeps its own clips' equal weights.
+        characters: Relative weight of each character (same order as the inputs); None: equal.
+        time_offset: (min, max) seconds; None: uniform over each instance's clip duration.
+        playback_rate: (min, max) rate, uniform.
+        yaw: (min, max) degrees about the up axis, uniform.
+        scale: (min, max) uniform scale.
+        seed: Seed of every random choice.
+    """
+
+    layout: str = "grid"
+    count: int = 100
+    spacing: float = 1.0
+    points: Optional[str] = None
+    clips: dict = field(default_factory=dict)
+    characters: Optional[tuple] = None
+    time_offset: Optional[tuple] = None
+    playback_rate: tuple = (1.0, 1.0)
+    yaw: tuple = (0.0, 360.0)
+    scale: tuple = (1.0, 1.0)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise OptionsError(f"--layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}", file="crowd")
+        if self.layout == "points" and not self.points:
+            raise OptionsError("--layout points needs a FILE of positions (CSV or USD)", file="crowd")
+        if self.layout != "points" and (isinstance(self.count, bool) or int(self.count) != self.count
+                                        or not 1 <= self.count <= MAX_INSTANCES):
+            raise OptionsError(f"--count must be 1..{MAX_INSTANCES}, got {self.count!r}", file="crowd")
+        if not (math.isfinite(self.spacing) and self.spacing > 0):
+            raise OptionsError(f"--spacing must be a positive number, got {self.spacing!r}", file="crowd")
+        for name, pair, positive in (("--rate", self.playback_rate, False), ("--yaw", self.yaw, False),
+                                     ("--scale", self.scale, True), ("--time-offset", self.time_offset, False)):
+            if pair is None:
+                continue
+            low, high = pair
+            if not (math.isfinite(low) and math.isfinite(high) and low <= high) or (positive and low <= 0):
+                raise OptionsError(f"{name} needs MIN <= MAX, finite{' and positive' if positive else ''}; got "
+                                   f"{low:g} {high:g}", file="crowd")
+        for name, weight in self.clips.items():
+            if not (math.isfinite(weight) and weight >= 0):
+                raise OptionsError(f"--clips weight of {name!r} must be 0 or more, got {weight!r}", file="crowd")
+        if self.clips and not any(w > 0 for w in self.clips.values()):
+            raise OptionsError("--clips weights are all zero", file="crowd")
+        if self.characters is not None and (not all(math.isfinite(w) and w >= 0 for w in self.characters)
+                                            or not any(w > 0 for w in self.characters)):
+            raise OptionsError("character weights must be 0 or more and not all zero", file="crowd")
+        if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
+            raise OptionsError(f"--seed must be a non-negative integer, got {self.seed!r}", file="crowd")
+
+
+@dataclass
+class CrowdReport:
+    """What :func:`build_crowd` wrote.
+
+    Attributes:
+        output: The crowd layer.
+        instances: Instances per character (input order).
+        clips: Instances per clip name, per character.
+        bytes: Size of the layer.
+        seconds: Time taken.
+    """
+
+    output: str
+    instances: list
+    clips: list
+    bytes: int = 0
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        """JSON form (camelCase keys, as the spec's metadata)."""
+        return {"output": self.output, "instances": self.instances, "clips": self.clips, "bytes": self.bytes,
+                "seconds": round(self.seconds, 3)}
+
+
+def parse_weights(text: str) -> dict:
+    """Parse ``NAME[:WEIGHT],...`` (for example ``Walk:3,Idle:1,Cheer``) into a dict.
+
+    Raises:
+        OptionsError: A weight that is not a number, or an empty name.
+    """
+    weights = {}
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        name, _, weight = part.rpartition(":") if ":" in part else (part, "", "1")
+        if not name:
+            raise OptionsError(f"--clips entry {part!r} has no clip name", file="crowd")
+        try:
+            weights[name] = float(weight)
+        except ValueError:
+            raise OptionsError(f"--clips weight {weight!r} of {name!r} is not a number", file="crowd") from None
+    return weights
+
+
+# --------------------------------------------------------------------------------------------
+# placement
+# --------------------------------------------------------------------------------------------
+
+
+def _plane(up_axis: str, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Ground-plane coordinates (u, v) to 3D points for a Y-up or Z-up stage."""
+    zeros = np.zeros_like(u)
+    return np.stack([u, zeros, v] if up_axis == "Y" else [u, v, zeros], axis=1)
+
+
+def grid_positions(count: int, spacing: float, up_axis: str = "Y") -> np.ndarray:
+    """``count`` points on a square-ish grid of pitch ``spacing``, centred on the origin."""
+    columns = int(math.ceil(math.sqrt(count)))
+    rows = int(math.ceil(count / columns))
+    i = np.arange(count)
+    u = (i % columns - (columns - 1) / 2.0) * spacing
+    v = (i // columns - (rows - 1) / 2.0) * spacing
+    return _plane(up_axis, u, v)
+
+
+def disc_positions(count: int, spacing: float, up_axis: str = "Y") -> np.ndarray:
+    """``count`` points on a disc of even density (Vogel's sunflower spiral), ``spacing`` apart on average."""
+    i = np.arange(count) + 0.5
+    radius = spacing * np.sqrt(i / math.pi)
+    angle = i * math.pi * (3.0 - math.sqrt(5.0))
+    return _plane(up_axis, radius * np.cos(angle), radius * np.sin(angle))
+
+
+def read_points(path: str) -> np.ndarray:
+    """Positions from a CSV (``x,y,z`` per row; a header row is skipped) or a USD points prim.
+
+    Raises:
+        InputError: Unreadable file, a row that is not three finite numbers, no points.
+    """
+    source = Path(path)
+    if not source.is_file():
+        raise InputError("file not found" if not source.exists() else "not a regular file", file=str(source),
+                         code="file.missing" if not source.exists() else "file.kind")
+    if source.suffix.lower() in (".usd", ".usda", ".usdc"):
+        return _usd_points(source)
+    rows = []
+    try:
+        with open(source, newline="", encoding="utf-8") as handle:
+            for number, row in enumerate(csv.reader(handle), start=1):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                try:
+                    values = [float(c) for c in row[:3]]
+                except ValueError:
+                    if number == 1:
+                        continue  # a header
+                    raise InputError(f"row {number} is not three numbers: {','.join(row)[:80]!r}",
+                                     file=str(source), location=f"line {number}", code="crowd.points") from None
+                if len(values) != 3 or not all(math.isfinite(x) for x in values):
+                    raise InputError(f"row {number} is not three finite numbers", file=str(source),
+                                     location=f"line {number}", code="crowd.points")
+                rows.append(values)
+                if len(rows) > MAX_INSTANCES:
+                    raise InputError(f"more than {MAX_INSTANCES} points", file=str(source),
+                                     location=f"line {number}", code="crowd.points")
+    except UnicodeDecodeError as error:
+        raise InputError(f"not UTF-8 text (byte {error.start})", file=str(source), code="crowd.points") from None
+    if not rows:
+        raise InputError("no points in the file", file=str(source), code="crowd.points")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _usd_points(source: Path) -> np.ndarray:
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(source))
+    if stage is None:
+        raise InputError("USD cannot open this file", file=str(source), code="crowd.points")
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.PointBased):
+            points = UsdGeom.PointBased(prim).GetPointsAttr().Get()
+            if points:
+                array = np.asarray(points, dtype=np.float64)
+                if not np.all(np.isfinite(array)):
+                    raise InputError("points are not finite", file=str(source), location=str(prim.GetPath()),
+                                     code="crowd.points")
+                return array
+    raise InputError("no points prim (UsdGeomPoints or another PointBased prim with points)", file=str(source),
+                     code="crowd.points")
+
+
+# --------------------------------------------------------------------------------------------
+# the crowd
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Character:
+    path: Path
+    name: str
+    default_prim: str
+    up_axis: str
+    meters_per_unit: float
+    animation_path: str
+    mesh_paths: tuple
+    clip_names: tuple
+    clip_durations: tuple
+    crowd_paths: tuple
+
+
+def _character(path: Path, index: int, used: set) -> _Character:
+    from vbusd.io.usd import read_asset
+
+    asset = read_asset(path)
+    if not asset.animations:
+        raise InputError("holds no VirtualBonesAnimation to instance", file=str(path), code="crowd.character")
+    vb = asset.animations[0]
+    if not vb.meshes:
+        raise InputError(f"animation {vb.path} has no bound mesh to instance", file=str(path),
+                         location=vb.path, code="crowd.character")
+    root = "/" + asset.default_prim
+    if not vb.path.startswith(root + "/") or any(not m.path.startswith(root + "/") for m in vb.meshes):
+        raise InputError(f"the animation and its meshes must lie under the default prim {root}", file=str(path),
+                         location=vb.path, code="crowd.character")
+    base = "".join(c if c.isalnum() or c == "_" else "_" for c in path.stem) or "Character"
+    if base[0].isdigit():
+        base = "_" + base
+    name, k = base, 1
+    while name in used:
+        k += 1
+        name = f"{base}_{k}"
+    used.add(name)
+    return _Character(path=path, name=name, default_prim=asset.default_prim, up_axis=asset.up_axis,
+                      meters_per_unit=asset.meters_per_unit, animation_path=vb.path,
+                      mesh_paths=tuple(m.path for m in vb.meshes), clip_names=tuple(c.name for c in vb.clips),
+                      clip_durations=tuple(c.row_count / c.rows_per_second for c in vb.clips),
+                      crowd_paths=tuple(c.path for c in asset.crowds))
+
+
+def _clip_choice(character: _Character, clips: dict, rng: np.random.Generator, n: int) -> np.ndarray:
+    weights = np.ones(len(character.clip_names))
+    if clips:
+        chosen = np.zeros(len(character.clip_names))
+        for name, weight in clips.items():
+            if name in character.clip_names:
+                chosen[character.clip_names.index(name)] = weight
+            elif name.isdigit() and int(name) < len(character.clip_names):
+                chosen[int(name)] = weight
+        if chosen.sum() > 0:
+            weights = chosen
+    return rng.choice(len(weights), size=n, p=weights / weights.sum()).astype(np.int32)
+
+
+def _relative_reference(character: Path, output: Path, allow_outside_paths: bool) -> str:
+    relative = os.path.relpath(character.resolve(), output.resolve().parent)
+    if relative.startswith("..") and not allow_outside_paths:
+        raise OptionsError(f"character {character} lies outside the crowd's folder {output.resolve().parent}; "
+                           "write the crowd beside or above its characters, or pass --allow-outside-paths",
+                           file="crowd")
+    return Path(relative).as_posix() if not relative.startswith("..") else str(character.resolve())
+
+
+def _unique_mesh_names(paths) -> list:
+    names, seen = [], {}
+    for path in paths:
+        base = path.rsplit("/", 1)[-1]
+        seen[base] = seen.get(base, 0) + 1
+        names.append(base if seen[base] == 1 else f"{base}_{seen[base]}")
+    return names
+
+
+def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptions(), *, force: bool = False,
+                allow_outside_paths: bool = False) -> CrowdReport:
+    """Write a USD crowd of converted characters.
+
+    Args:
+        characters: Paths of Virtual Bones assets (what ``vbusd convert`` writes); each one's first
+            animation and its bound meshes are instanced.
+        output: The crowd layer to write (``.usda``, ``.usdc`` or ``.usd``).
+        options: Placement, clips, ranges and seed.
+        force: Replace an existing output.
+        allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
+
+    Returns:
+        A :class:`CrowdReport`.
+
+    Raises:
+        OptionsError: Bad options, no characters, an existing output without ``force``.
+        InputError: A character that cannot be read or has nothing to instance; bad points file.
+
+    Example:
+        >>> vbusd.build_crowd(["out/hero.usda"], "out/crowd.usda",
+        ...                   CrowdOptions(layout="disc", count=1000, seed=7))  # doctest: +SKIP
+    """
+    from vbusd.io.usd_plugin import INSTANCING_API, register, require_schema_types
+
+    register()
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    from vbusd.io.files import atomic_write
+    from vbusd.io.usd import PRIMVAR_CLIP, PRIMVAR_PLAYBACK_RATE, PRIMVAR_TIME_OFFSET, REL_ANIMATION
+
+    start = time.perf_counter()
+    output = Path(output)
+    if not characters:
+        raise OptionsError("give at least one character asset", file="crowd")
+    if output.suffix.lower() not in (".usda", ".usdc", ".usd"):
+        raise OptionsError(f"the crowd must be a .usda, .usdc or .usd file, got {output.name!r}", file="crowd")
+    if output.exists() and not force:
+        raise OptionsError(f"{output} exists; pass --force to replace it", file="crowd")
+    if options.characters is not None and len(options.characters) != len(characters):
+        raise OptionsError(f"{len(options.characters)} character weights for {len(characters)} characters",
+                           file="crowd")
+    used: set = set()
+    cast = [_character(Path(c), i, used) for i, c in enumerate(characters)]
+    up_axis = cast[0].up_axis
+    for other in cast[1:]:
+        if other.up_axis != up_axis or not math.isclose(other.meters_per_unit, cast[0].meters_per_unit):
+            raise InputError(f"up axis {other.up_axis} / metersPerUnit {other.meters_per_unit:g} differ from the "
+                             f"first character's ({up_axis} / {cast[0].meters_per_unit:g})", file=str(other.path),
+                             code="crowd.character")
+    references = [_relative_reference(c.path, output, allow_outside_paths) for c in cast]
+
+    rng = np.random.default_rng(int(options.seed))
+    if options.layout == "points":
+        positions = read_points(options.points)
+    elif options.layout == "disc":
+        positions = disc_positions(int(options.count), float(options.spacing), up_axis)
+    else:
+        positions = grid_positions(int(options.count), float(options.spacing), up_axis)
+    n = len(positions)
+    weights = np.ones(len(cast)) if options.characters is None else np.asarray(options.characters, dtype=np.float64)
+    who = rng.choice(len(cast), size=n, p=weights / weights.sum())
+    yaw = np.radians(rng.uniform(options.yaw[0], options.yaw[1], size=n))
+    scale = rng.uniform(options.scale[0], options.scale[1], size=n)
+    rate = rng.uniform(options.playback_rate[0], options.playback_rate[1], size=n)
+    unit = rng.random(size=n)  # time offsets: per instance, scaled to its clip below
+
+    require_schema_types()
+    # An in-memory layer named as the output: its relative references resolve (and compose) as they
+    # will once written, and nothing touches the disk before the one atomic write.
+    layer = Sdf.Layer.New(Sdf.FileFormat.FindById("usda"), str(output.resolve().with_suffix(".vbusd-building.usda")))
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, cast[0].meters_per_unit)
+    root = UsdGeom.Xform.Define(stage, CROWD_ROOT)
+    stage.SetDefaultPrim(root.GetPrim())
+    stage.GetRootLayer().documentation = "A Virtual Bones crowd written by vbusd crowd."
+    UsdGeom.Scope.Define(stage, f"{CROWD_ROOT}/Characters")
+    report_instances, report_clips = [], []
+    for k, (character, reference) in enumerate(zip(cast, references)):
+        holder = stage.DefinePrim(f"{CROWD_ROOT}/Characters/{character.name}")
+        holder.GetReferences().AddReference(reference)
+        UsdGeom.Imageable(holder).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+        for crowd_path in character.crowd_paths:  # a character's own crowds stay out of this one
+            inside = Sdf.Path(crowd_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
+            stage.OverridePrim(holder.GetPath().AppendPath(inside)).SetActive(False)
+        mine = np.flatnonzero(who == k)
+        m = len(mine)
+        clip = _clip_choice(character, options.clips, rng, m)
+        durations = np.asarray(character.clip_durations, dtype=np.float64)[clip]
+        if options.time_offset is None:
+            offsets = unit[mine] * durations
+        else:
+            offsets = options.time_offset[0] + unit[mine] * (options.time_offset[1] - options.time_offset[0])
+        report_instances.append(m)
+        report_clips.append({name: int(np.sum(clip == i)) for i, name in enumerate(character.clip_names)})
+        if m == 0:
+            continue
+        instancer_path = Sdf.Path(f"{CROWD_ROOT}/{character.name}Instances")
+        instancer = UsdGeom.PointInstancer.Define(stage, instancer_path)
+        prototype = instancer_path.AppendChild("Prototypes").AppendChild(character.name)
+        UsdGeom.Scope.Define(stage, prototype.GetParentPath())
+        UsdGeom.Xform.Define(stage, prototype)
+        held = Sdf.Path(f"{CROWD_ROOT}/Characters/{character.name}")
+        names = _unique_mesh_names(character.mesh_paths)
+        for mesh_path, name in zip(character.mesh_paths, names):
+            inside = Sdf.Path(mesh_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
+            child = stage.DefinePrim(prototype.AppendChild(name))
+            child.GetReferences().AddInternalReference(held.AppendPath(inside))
+            # The character's own copy is invisible; its referenced meshes draw only as instances.
+            UsdGeom.Imageable(child).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
+        instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(positions[mine], dtype=np.float32)))
+        quats = np.zeros((m, 4), dtype=np.float32)
+        axis = 1 if up_axis == "Y" else 2
+        quats[:, axis] = np.sin(yaw[mine] / 2)
+        quats[:, 3] = np.cos(yaw[mine] / 2)
+        instancer.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(quats.astype(np.float16)))
+        instancer.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(quats))
+        instancer.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(
+            np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32)))
+        instancer.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(m, dtype=np.int32)))
+        instancer.CreatePrototypesRel().SetTargets([prototype])
+        prim = instancer.GetPrim()
+        prim.ApplyAPI(INSTANCING_API)
+        prim.CreateRelationship(REL_ANIMATION).SetTargets(
+            [held.AppendPath(Sdf.Path(character.animation_path).MakeRelativePath(Sdf.Path("/" + character.default_prim)))])
+        primvars = UsdGeom.PrimvarsAPI(prim)
+        primvars.CreatePrimvar(PRIMVAR_CLIP, Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
+            Vt.IntArray.FromNumpy(clip))
+        primvars.CreatePrimvar(PRIMVAR_TIME_OFFSET, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+            Vt.FloatArray.FromNumpy(offsets.astype(np.float32)))
+        primvars.CreatePrimvar(PRIMVAR_PLAYBACK_RATE, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+            Vt.FloatArray.FromNumpy(rate[mine].astype(np.float32)))
+    if output.suffix.lower() == ".usda":
+        payload = stage.GetRootLayer().ExportToString().encode("utf-8")
+    else:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as scratch:
+            temp = Path(scratch) / ("crowd" + output.suffix)
+            if not stage.GetRootLayer().Export(str(temp), args={"format": "usdc"} if output.suffix.lower() == ".usd" else {}):
+                raise InputError("USD could not write the crowd layer", file=str(output), code="convert.write")
+            payload = temp.read_bytes()
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(output, "wb") as handle:
+        handle.write(payload)
+    return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=len(payload),
+                       seconds=time.perf_counter() - start)
