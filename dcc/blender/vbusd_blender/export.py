@@ -499,6 +499,9 @@ def _warn_unbakeable(armature, bones: list, modifier_pairs: list, warnings: list
         warnings.append(f"{armature.name}: B-Bones bend inside a bone ({', '.join(segmented[:5])}); Virtual "
                         "Bones keeps one transform per bone, the error report shows the difference")
     for obj, modifier in modifier_pairs:
+        keys = obj.data.shape_keys
+        if keys is not None and (keys.animation_data is not None or len(keys.key_blocks) > 1):
+            warnings.append(f"{obj.name}: shape keys are baked into the rest mesh at their current values")
         if modifier.use_bone_envelopes:
             warnings.append(f"{obj.name}: the Armature modifier also uses bone envelopes, which are not baked")
 
