@@ -1,0 +1,344 @@
+"""The glTF 2.0 runtime package (spec/runtime-package.md): what ``vbusd export -o OUT.glb|.gltf`` writes.
+
+A Virtual Bones asset becomes a glTF file that engines load: per animation one mesh (one primitive
+per bound mesh: rest points, normals, triangles, bone indices and weights as ``_VB_JOINTS_n`` /
+``_VB_WEIGHTS_n``), its texture as a KTX2 file (a buffer view of the ``.glb``, or a ``.ktx2`` buffer
+beside the ``.gltf``) referenced with the layout metadata from the root ``VBUSD_virtual_bones``
+extension, and each crowd as an ``EXT_mesh_gpu_instancing`` node with ``_VB_CLIP``,
+``_VB_TIME_OFFSET`` and ``_VB_PLAYBACK_RATE`` per instance. Every number of the asset is stored
+unchanged; the root node ``vbusd`` converts the asset's up axis and units to glTF's Y-up metres.
+
+The JSON and binary layout are written with the standard library (``json``, ``struct``) and numpy:
+the format is small, and writing it directly keeps every byte's place explicit. All files of one
+export are one :class:`~vbusd.io.files.AtomicTransaction`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import urllib.parse
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from vbusd.format import metadata as md
+from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.model import BoundMesh, VirtualBonesAsset
+
+EXTENSION = "VBUSD_virtual_bones"
+INSTANCING = "EXT_mesh_gpu_instancing"
+EXTENSION_VERSION = 1
+SUFFIXES = (".glb", ".gltf")
+ROOT_NODE = "vbusd"
+Z_UP_TO_Y_UP = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
+"""-90 degrees about X: +Z becomes +Y (spec/runtime-package.md, "Axes and units")."""
+
+_FLOAT, _SHORT, _USHORT, _UINT = 5126, 5122, 5123, 5125
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+_GLB_MAGIC, _GLB_JSON, _GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
+_MAX_BONE_INDEX = 32767
+
+
+@dataclass
+class ExportReport:
+    """What an export wrote.
+
+    Attributes:
+        output: The ``.glb`` or ``.gltf`` file.
+        files: Every file written, with its size in bytes (the ``.gltf`` / ``.glb`` first).
+        animations: Animation names, in package order.
+        primitives: Mesh primitives written.
+        instances: Instances per crowd node written.
+        warnings: One-line notes (a crowd without instances is not written).
+    """
+
+    output: str
+    files: dict = field(default_factory=dict)
+    animations: list = field(default_factory=list)
+    primitives: int = 0
+    instances: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of the report."""
+        return dict(self.__dict__)
+
+
+class _Buffer:
+    """One glTF buffer being filled: aligned byte views and their accessors."""
+
+    def __init__(self, index: int, gltf: dict) -> None:
+        self.index = index
+        self.data = bytearray()
+        self.gltf = gltf
+
+    def view(self, data: bytes, *, target: Optional[int] = None, align: int = 4) -> int:
+        self.data += bytes(-len(self.data) % align)
+        entry = {"buffer": self.index, "byteOffset": len(self.data), "byteLength": len(data)}
+        if target is not None:
+            entry["target"] = target
+        self.data += data
+        self.gltf["bufferViews"].append(entry)
+        return len(self.gltf["bufferViews"]) - 1
+
+    def accessor(self, array: np.ndarray, component: int, kind: str, *, target: Optional[int] = None,
+                 bounds: bool = False) -> int:
+        array = np.ascontiguousarray(array)
+        entry = {"bufferView": self.view(array.tobytes(), target=target), "componentType": component,
+                 "count": int(array.shape[0]), "type": kind}
+        if bounds:
+            flat = array.reshape(array.shape[0], -1)
+            entry["min"] = [float(v) for v in flat.min(axis=0)]
+            entry["max"] = [float(v) for v in flat.max(axis=0)]
+        self.gltf["accessors"].append(entry)
+        return len(self.gltf["accessors"]) - 1
+
+
+def _prim_name(path: str) -> str:
+    return path.rstrip("/").rsplit("/", 1)[-1] or "Animation"
+
+
+def _triangulate(mesh: BoundMesh, where: str):
+    """Per-vertex arrays and triangle indices of one bound mesh (fans; faceVarying normals split)."""
+    counts = np.asarray(mesh.face_vertex_counts, dtype=np.int64)
+    corners_of = np.asarray(mesh.face_vertex_indices, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    fan_sizes = np.maximum(counts - 2, 0)
+    if fan_sizes.sum() == 0:
+        raise InputError("the mesh has no face of 3 or more vertices: nothing to draw", file=where,
+                         location=mesh.path, code="export.mesh")
+    face_of_triangle = np.repeat(np.arange(counts.size), fan_sizes)
+    step = np.arange(int(fan_sizes.sum())) - np.repeat(np.cumsum(fan_sizes) - fan_sizes, fan_sizes)
+    first = starts[face_of_triangle]
+    corners = np.stack([first, first + step + 1, first + step + 2], axis=1)  # face-vertex positions
+    face_varying = mesh.normals is not None and mesh.normals_interpolation == "faceVarying"
+    points = np.asarray(mesh.points, dtype=np.float32)
+    indices = np.asarray(mesh.bone_indices, dtype=np.int64)
+    weights = np.asarray(mesh.bone_weights, dtype=np.float32)
+    normals = None if mesh.normals is None else np.asarray(mesh.normals, dtype=np.float64)
+    if face_varying:
+        # glTF attributes are per vertex: every face corner becomes a vertex of its own.
+        points, indices, weights = points[corners_of], indices[corners_of], weights[corners_of]
+        triangles = corners
+    else:
+        triangles = corners_of[corners]
+    if normals is not None:
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        if normals.shape[0] != points.shape[0] or not np.all(np.isfinite(length)) or np.any(length < 1e-12):
+            normals = None  # spec: omitted when a normal has zero length (glTF needs unit normals)
+        else:
+            normals = (normals / length).astype(np.float32)
+    return points, normals, indices, weights, triangles.reshape(-1)
+
+
+def _crowd_arrays(crowd):
+    count = crowd.instance_count
+    rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
+    length = np.linalg.norm(rotations, axis=1, keepdims=True)
+    rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])
+    columns = {
+        "TRANSLATION": (np.asarray(crowd.positions, dtype=np.float32).reshape(count, 3), "VEC3"),
+        "ROTATION": (rotations.astype(np.float32), "VEC4"),
+    }
+    if crowd.scales is not None:
+        columns["SCALE"] = (np.asarray(crowd.scales, dtype=np.float32).reshape(count, 3), "VEC3")
+    columns["_VB_CLIP"] = (np.asarray(crowd.clip, dtype=np.float32).reshape(count), "SCALAR")
+    columns["_VB_TIME_OFFSET"] = (np.asarray(crowd.time_offset, dtype=np.float32).reshape(count), "SCALAR")
+    columns["_VB_PLAYBACK_RATE"] = (np.asarray(crowd.playback_rate, dtype=np.float32).reshape(count), "SCALAR")
+    return columns
+
+
+def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
+                  supercompression: str = "none", where: str = "export"):
+    """The glTF document and its binary data for an asset (nothing is written).
+
+    Args:
+        asset: The Virtual Bones asset (animations with bound meshes, crowds).
+        binary: True for ``.glb`` (KTX2 inside the BIN chunk), False for ``.gltf`` (KTX2 files beside).
+        base_name: The output's stem: ``.gltf`` buffers are ``<base_name>.bin`` and
+            ``<base_name>.<animation>.ktx2``.
+        supercompression: KTX2 supercompression, ``none`` or ``zstd``.
+        where: The file named in errors.
+
+    Returns:
+        ``(gltf, buffers, report)``: the JSON dict, a list of ``(file name or None, bytes)`` per buffer
+        (None: the GLB BIN chunk), and an :class:`ExportReport` without files.
+
+    Raises:
+        InputError: No bound mesh (``export.noMeshes``), a mesh with no triangle or a bone index
+            over 32767 (``export.mesh``).
+        OptionsError: Two animations with the same prim name, or a bad supercompression.
+    """
+    from vbusd import __version__
+    from vbusd.io import ktx2
+
+    if not any(vb.meshes for vb in asset.animations):
+        raise InputError("the asset has no mesh bound to an animation: a runtime package needs the rest "
+                         "meshes (export the character asset, not only its texture)", file=where,
+                         location="file", code="export.noMeshes")
+    report = ExportReport(output=where)
+    gltf = {"asset": {"version": "2.0", "generator": f"vbusd {__version__}"},
+            "extensionsUsed": [EXTENSION], "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"name": ROOT_NODE}], "meshes": [], "accessors": [], "bufferViews": [],
+            "buffers": []}
+    main = _Buffer(0, gltf)
+    ktx_buffers = []
+    animations, mesh_of_animation, names = [], {}, set()
+    for index, vb in enumerate(asset.animations):
+        name = _prim_name(vb.path)
+        if name in names:
+            raise OptionsError(f"two animations are named {name!r}; their KTX2 files would collide "
+                               f"({vb.path})", file=where)
+        names.add(name)
+        text = md.dumps(md.to_dict(vb))
+        data = ktx2.ktx2_bytes(vb.texels, text, supercompression=supercompression)
+        if binary:
+            view = main.view(data, align=16)  # level data stays aligned for typed-array views
+        else:
+            buffer = _Buffer(1 + len(ktx_buffers), gltf)
+            view = buffer.view(data)
+            ktx_buffers.append((f"{base_name}.{name}.ktx2", buffer))
+        entry = {"name": name, "path": vb.path, "texture": {"bufferView": view, "mimeType": "image/ktx2"},
+                 "layout": json.loads(text)}
+        if vb.clip_extents is not None:
+            entry["clipExtents"] = np.asarray(vb.clip_extents, dtype=np.float64).tolist()
+        animations.append(entry)
+        report.animations.append(name)
+        if not vb.meshes:
+            continue
+        primitives = []
+        for mesh in vb.meshes:
+            points, normals, bones, weights, triangles = _triangulate(mesh, where)
+            if bones.size and (bones.min() < 0 or bones.max() > _MAX_BONE_INDEX):
+                raise InputError(f"bone index {int(bones.max())} does not fit the SHORT attribute "
+                                 f"_VB_JOINTS_n (0..{_MAX_BONE_INDEX})", file=where, location=mesh.path,
+                                 code="export.mesh")
+            influences = int(bones.shape[1])
+            sets = -(-influences // 4)
+            padded_bones = np.zeros((bones.shape[0], 4 * sets), dtype=np.int16)
+            padded_weights = np.zeros((bones.shape[0], 4 * sets), dtype=np.float32)
+            padded_bones[:, :influences] = bones
+            padded_weights[:, :influences] = weights
+            attributes = {"POSITION": main.accessor(points, _FLOAT, "VEC3", target=_ARRAY_BUFFER, bounds=True)}
+            if normals is not None:
+                attributes["NORMAL"] = main.accessor(normals, _FLOAT, "VEC3", target=_ARRAY_BUFFER)
+            for n in range(sets):
+                attributes[f"_VB_JOINTS_{n}"] = main.accessor(padded_bones[:, 4 * n:4 * n + 4], _SHORT, "VEC4",
+                                                              target=_ARRAY_BUFFER)
+                attributes[f"_VB_WEIGHTS_{n}"] = main.accessor(padded_weights[:, 4 * n:4 * n + 4], _FLOAT,
+                                                               "VEC4", target=_ARRAY_BUFFER)
+            small = points.shape[0] <= 65535  # index 65535 is primitive restart for UNSIGNED_SHORT
+            indices = main.accessor(triangles.astype(np.uint16 if small else np.uint32),
+                                    _USHORT if small else _UINT, "SCALAR", target=_ELEMENT_ARRAY_BUFFER)
+            primitives.append({"attributes": attributes, "indices": indices, "mode": 4,
+                               "extensions": {EXTENSION: {"animation": index, "influences": influences,
+                                                          "path": mesh.path}}})
+        gltf["meshes"].append({"name": name, "primitives": primitives})
+        mesh_of_animation[index] = len(gltf["meshes"]) - 1
+        report.primitives += len(primitives)
+
+    children, instanced = [], set()
+    for crowd, animation in zip(asset.crowds, asset.crowd_animation):
+        if animation not in mesh_of_animation:
+            continue
+        if crowd.instance_count == 0:
+            report.warnings.append(f"crowd {crowd.path} has no instances; not written")
+            continue
+        attributes = {name: main.accessor(values, _FLOAT, kind)
+                      for name, (values, kind) in _crowd_arrays(crowd).items()}
+        gltf["nodes"].append({"name": _prim_name(crowd.path), "mesh": mesh_of_animation[animation],
+                              "extensions": {INSTANCING: {"attributes": attributes}}})
+        children.append(len(gltf["nodes"]) - 1)
+        instanced.add(animation)
+        report.instances.append(crowd.instance_count)
+    for index, mesh in sorted(mesh_of_animation.items()):
+        if index not in instanced:
+            gltf["nodes"].append({"name": _prim_name(asset.animations[index].path), "mesh": mesh})
+            children.insert(0, len(gltf["nodes"]) - 1)
+    if report.instances:
+        gltf["extensionsUsed"].append(INSTANCING)
+    root = gltf["nodes"][0]
+    root["children"] = children
+    if str(asset.up_axis).upper() == "Z":
+        root["rotation"] = Z_UP_TO_Y_UP
+    if float(asset.meters_per_unit) != 1.0:
+        root["scale"] = [float(asset.meters_per_unit)] * 3
+    gltf["extensions"] = {EXTENSION: {"version": EXTENSION_VERSION, "animations": animations}}
+
+    main.data += bytes(-len(main.data) % 4)
+    buffers = [(None if binary else f"{base_name}.bin", main)] + ktx_buffers
+    for file_name, buffer in buffers:
+        entry = {"byteLength": len(buffer.data)}
+        if file_name is not None:
+            entry["uri"] = urllib.parse.quote(file_name)
+        gltf["buffers"].append(entry)
+    return gltf, [(name, bytes(buffer.data)) for name, buffer in buffers], report
+
+
+def glb_bytes(gltf: dict, binary_chunk: bytes) -> bytes:
+    """A binary glTF: 12-byte header, JSON chunk padded with spaces, BIN chunk padded with zeros."""
+    text = json.dumps(gltf, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    binary_chunk += bytes(-len(binary_chunk) % 4)
+    total = 12 + 8 + len(text) + 8 + len(binary_chunk)
+    return (struct.pack("<III", _GLB_MAGIC, 2, total) + struct.pack("<II", len(text), _GLB_JSON) + text
+            + struct.pack("<II", len(binary_chunk), _GLB_BIN) + binary_chunk)
+
+
+def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "none",
+                force: bool = False) -> ExportReport:
+    """Write an asset as a runtime package (``.glb``, or ``.gltf`` with ``.bin`` and ``.ktx2`` files).
+
+    Everything is built in memory first; then every file is written in one atomic transaction, so a
+    failure leaves no file behind and replaces nothing.
+
+    Args:
+        asset: The asset to export.
+        output: ``OUT.glb`` or ``OUT.gltf``.
+        supercompression: KTX2 supercompression, ``none`` (default) or ``zstd``.
+        force: Replace existing files.
+
+    Returns:
+        What was written.
+
+    Raises:
+        OptionsError: Wrong suffix, an existing file without ``force``, an output folder that cannot
+            be made; raised before anything is written.
+        InputError: As :func:`build_package`.
+    """
+    from vbusd.io.files import AtomicTransaction, make_folders, remove_folders
+
+    output = Path(output)
+    suffix = output.suffix.lower()
+    if suffix not in SUFFIXES:
+        raise OptionsError(f"the runtime package must be a .glb or .gltf file, got {output.name!r}",
+                           file=str(output))
+    if output.is_dir():
+        raise OptionsError("the output is a folder; name the .glb or .gltf to write", file=str(output))
+    binary = suffix == ".glb"
+    gltf, buffers, report = build_package(asset, binary=binary, base_name=output.stem,
+                                          supercompression=supercompression, where=str(output))
+    files = [(output, None)] + [(output.with_name(name), data) for name, data in buffers if name is not None]
+    if not force:
+        for path, _ in files:
+            if path.exists():
+                raise OptionsError(f"{path.name} exists; pass --force to replace it", file=str(output))
+    main = glb_bytes(gltf, buffers[0][1]) if binary else \
+        (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
+    created = make_folders(output.parent)
+    try:
+        with AtomicTransaction() as transaction:
+            # The .gltf references the others: it is renamed last.
+            for path, data in files[1:] + files[:1]:
+                with transaction.open(path, "wb") as stream:
+                    stream.write(main if data is None else data)
+    except BaseException:
+        remove_folders(created)
+        raise
+    report.output = str(output)
+    report.files = {str(path): path.stat().st_size for path, _ in files}
+    return report
