@@ -454,3 +454,18 @@ def test_import_the_stadium_crowd_sample(repo_root):
             got = evaluated_points(obj, None)
             worst = max(worst, float(np.linalg.norm(expected[i] @ to_blender.T - got, axis=1).max()))
     assert worst / diagonal < 1e-4, worst / diagonal  # measured 9.7e-6 with 4 keys per row
+
+
+@pytest.mark.parametrize("first", ["bpy", "pxr"])
+def test_bpy_and_usd_core_in_one_process(repo_root, first):
+    """bpy carries its own USD libraries; usd-core's pxr and vbusd's schema plugin still work beside
+    it, whichever is imported first (a fresh interpreter for each order)."""
+    import subprocess
+
+    sample = repo_root / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+    imports = "import bpy; from pxr import Usd" if first == "bpy" else "from pxr import Usd; import bpy"
+    code = (f"{imports}; import vbusd; asset = vbusd.read_asset({str(sample)!r}); "
+            "print(asset.animations[0].layout.bone_count, bpy.app.version[0] >= 4)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split()[-2:] == ["18", "True"]
