@@ -135,3 +135,156 @@ def test_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encod
     for position_error, normal_error in errors:
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
+
+
+@pytest.fixture(scope="module")
+def rig_assets(tmp_path_factory):
+    """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
+    folder = tmp_path_factory.mktemp("bar")
+    return {(encoding, texel_format): _convert(REPO / "tests" / "fixtures" / "gltf" / "bar.gltf",
+                                               folder / f"{encoding}_{texel_format}" / "bar.usda",
+                                               encoding, texel_format)
+            for encoding in ("affineMatrix", "quatTranslation") for texel_format in FORMATS}
+
+
+@pytest.mark.parametrize("texel_format", FORMATS)
+@pytest.mark.parametrize("encoding", ("affineMatrix", "quatTranslation"))
+def test_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format):
+    for position_error, normal_error in run_probes(browser, rig_assets[encoding, texel_format],
+                                                   [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)]):
+        assert position_error <= POSITION_TOLERANCE
+        assert normal_error <= NORMAL_TOLERANCE
+
+
+@pytest.mark.parametrize("texel_format", FORMATS)
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding, texel_format):
+    """A real rig (Khronos sample Fox: 24 joints, 1,728 vertices), every encoding."""
+    path = _convert(shared_assets / "gltf" / "Fox" / "Fox.glb", tmp_path / "fox.usda", encoding, texel_format)
+    for position_error, normal_error in run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)]):
+        assert position_error <= POSITION_TOLERANCE
+        assert normal_error <= NORMAL_TOLERANCE
+
+
+def test_unorm16_needs_norm16_extension(browser, tmp_path):
+    """unorm16 runs where EXT_texture_norm16 exists; elsewhere the page says so in one clear line."""
+    path = _convert(SAMPLE / "stadium_crowd.usda", tmp_path / "unorm.usda", "crossMatrix", "unorm16")
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            has_norm16 = page.page.evaluate(
+                "!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')")
+            if has_norm16:
+                assert page.error == ""
+                position_error, normal_error = check_probe(page, vbusd.read_asset(path), 0, 1.5)
+                assert position_error <= POSITION_TOLERANCE and normal_error <= NORMAL_TOLERANCE
+            else:
+                assert "EXT_texture_norm16" in page.error and "--texel-format float16" in page.error
+                assert "\n" not in page.error.strip()
+        finally:
+            page.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# (b) the picture: three's own pipeline (the patched MeshBasicMaterial, InstancedMesh) against a
+# silhouette rasterized in numpy from the decoder's vertices.
+# ------------------------------------------------------------------------------------------------
+
+SCREEN = (640, 360)
+CAMERA = "0,11,38,0,2.5,44"  # above the front rows, looking down at the stand: figures apart
+SCREENSHOT_TIME = 2.5
+
+
+def rasterize(points_ndc: np.ndarray, triangles: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Coverage at pixel centres (GL's rule, ties aside) of triangles given in clip-divided NDC.
+
+    Vectorized over triangles grouped by bounding-box size; the few largest one by one.
+    """
+    mask = np.zeros((height, width), dtype=bool)
+    pixels = np.empty_like(points_ndc[:, :2])
+    pixels[:, 0] = (points_ndc[:, 0] + 1.0) * 0.5 * width
+    pixels[:, 1] = (1.0 - points_ndc[:, 1]) * 0.5 * height  # image rows run downward
+    corners = pixels[triangles]  # (n, 3, 2)
+    lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    keep = area != 0
+
+    def cover(index, xs, ys):  # xs, ys: (n, ...) pixel centres; returns inside (n, ...)
+        extra = (slice(None),) + (None,) * (xs.ndim - 1)
+        sign = np.sign(area[index])[extra]
+        inside = np.ones(np.broadcast_shapes(xs.shape, ys.shape), dtype=bool)
+        for p, q in ((a, b), (b, c), (c, a)):
+            p, q = p[index], q[index]
+            edge = (q[:, 0][extra] - p[:, 0][extra]) * (ys - p[:, 1][extra]) \
+                - (q[:, 1][extra] - p[:, 1][extra]) * (xs - p[:, 0][extra])
+            inside &= edge * sign >= 0
+        return inside
+
+    done = np.zeros(len(triangles), dtype=bool)
+    for tile in (8, 24, 64):  # blocks of triangles whose bounding boxes fit tile x tile pixels
+        fits = keep & ~done & ((hi - lo) < tile).all(axis=1)
+        done |= fits
+        steps = np.arange(tile)
+        for chunk in np.array_split(np.flatnonzero(fits), max(1, int(fits.sum()) * tile * tile // 2_000_000)):
+            xs = lo[chunk, 0][:, None, None] + steps[None, None, :]
+            ys = lo[chunk, 1][:, None, None] + steps[None, :, None]
+            inside = cover(chunk, xs + 0.5, ys + 0.5)
+            inside &= (xs <= hi[chunk, 0][:, None, None]) & (ys <= hi[chunk, 1][:, None, None])
+            mask[np.broadcast_to(ys, inside.shape)[inside], np.broadcast_to(xs, inside.shape)[inside]] = True
+    for index in np.flatnonzero(keep & ~done):
+        xs, ys = np.meshgrid(np.arange(lo[index, 0], hi[index, 0] + 1), np.arange(lo[index, 1], hi[index, 1] + 1))
+        inside = cover(np.array([index]), xs[None] + 0.5, ys[None] + 0.5)[0]
+        mask[ys[inside], xs[inside]] = True
+    return mask
+
+
+def test_screenshot_matches_decoder_silhouette(browser):
+    from PIL import Image
+    import io
+
+    path = SAMPLE / "stadium_crowd_vb.usda"
+    asset = vbusd.read_asset(path)
+    width, height = SCREEN
+    query = (f"?time={SCREENSHOT_TIME}&paused=1&ui=0&silhouette=1&antialias=0&pixelRatio=1"
+             f"&width={width}&height={height}&camera={CAMERA}&fov=30")
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
+        try:
+            assert page.error == ""
+            page.page.evaluate("window.vbusd.render()")
+            image = Image.open(io.BytesIO(page.page.locator("#view").screenshot())).convert("L")
+            camera = page.page.evaluate(
+                "({p: window.vbusd.camera.projectionMatrix.elements, v: window.vbusd.camera.matrixWorldInverse.elements})")
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    shown = np.asarray(image) > 127
+    assert shown.shape == (height, width)
+
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    mesh = vb.meshes[0]
+    view_projection = np.asarray(camera["p"]).reshape(4, 4).T @ np.asarray(camera["v"]).reshape(4, 4).T
+    triangles = np.asarray(mesh.face_vertex_indices).reshape(-1, 3)
+    offsets = (np.arange(crowd.instance_count) * mesh.points.shape[0])[:, None, None]
+    all_triangles = (triangles[None] + offsets).reshape(-1, 3)
+
+    def silhouette(t: float) -> np.ndarray:
+        points, _ = skin_crowd(vb, mesh, crowd, t)
+        homogeneous = np.concatenate([points.reshape(-1, 3), np.ones((points.shape[0] * points.shape[1], 1))], axis=1)
+        clip = homogeneous @ view_projection.T
+        assert (clip[:, 3] > 0).all()  # the whole crowd is in front of the camera: no clipping needed
+        ndc = clip[:, :3] / clip[:, 3:]
+        visible = (np.abs(ndc[all_triangles][:, :, :2]) <= 1.05).any(axis=(1, 2))
+        return rasterize(ndc, all_triangles[visible], width, height)
+
+    def iou(a: np.ndarray, b: np.ndarray) -> float:
+        return float((a & b).sum() / (a | b).sum())
+
+    expected = silhouette(SCREENSHOT_TIME)
+    print(f"IoU {iou(shown, expected):.4f}, {expected.sum()} silhouette pixels")
+    assert 0.2 < expected.mean() < 0.8  # the camera sees figures and the gaps between them
+    assert iou(shown, expected) >= 0.98
+    # The comparison can fail: the same crowd 0.3 s later is another picture.
+    assert iou(shown, silhouette(SCREENSHOT_TIME + 0.3)) < 0.9
