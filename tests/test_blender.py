@@ -114,7 +114,11 @@ def evaluated_points(obj, space) -> np.ndarray:
 
 
 def play(rig, action_name: str) -> None:
+    """Play one action alone from the rest pose (channels it does not key stay at rest)."""
     rig.animation_data.use_nla = False
+    for pose_bone in rig.pose.bones:
+        pose_bone.location, pose_bone.rotation_quaternion, pose_bone.scale = (0, 0, 0), (1, 0, 0, 0), (1, 1, 1)
+        pose_bone.rotation_euler = (0, 0, 0)
     rig.animation_data.action = bpy.data.actions[action_name]
 
 
@@ -469,3 +473,34 @@ def test_bpy_and_usd_core_in_one_process(repo_root, first):
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split()[-2:] == ["18", "True"]
+
+
+@pytest.mark.parametrize("reset_pose", [True, False])
+def test_channels_an_action_does_not_key(rig_scene, tmp_path, reset_pose):
+    """An action keying only the root: the IK target's own (unkeyed) channel holds the rest pose when
+    reset_pose is on, and the artist's current pose when it is off; the pose is restored after."""
+    scene, rig, body = rig_scene
+    partial = bpy.data.actions.new("Partial")
+    rig.animation_data.action = partial
+    for frame, angle in ((1, 0.0), (9, 0.5)):
+        rig.pose.bones["root"].rotation_euler = (angle, 0, 0)
+        rig.pose.bones["root"].keyframe_insert("rotation_euler", frame=frame)
+    rig.animation_data.action = None
+    posed = (0.0, 0.6, -0.8)
+    rig.pose.bones["ik_target"].location = posed
+    out = tmp_path / "partial.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Partial",
+                                              texel_format="float32", reset_pose=reset_pose) == {"FINISHED"}
+    assert tuple(rig.pose.bones["ik_target"].location) == pytest.approx(posed)
+    assert rig.animation_data.action is None
+    vb = vbusd.read_asset(out).animations[0]
+    if reset_pose:
+        play(rig, "Partial")
+    else:
+        rig.animation_data.action = partial
+    worst = 0.0
+    for frame in range(1, 10):
+        scene.frame_set(frame)
+        decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+    assert worst < 1e-5

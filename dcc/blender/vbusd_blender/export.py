@@ -76,6 +76,8 @@ class ExportSettings:
         loop: ``AUTO`` (an action's Cyclic Animation flag when it has a manual frame range, else
             loop when the first and last poses agree), ``ON`` or ``OFF``.
         overwrite: Replace existing files (the USD layer, textures and sidecars).
+        reset_pose: Before each action, put the pose bones' own channels at rest, so that channels
+            the action does not key hold the rest pose rather than what the previous action left.
     """
 
     armatures: tuple = ()
@@ -90,6 +92,7 @@ class ExportSettings:
     max_influences: int = 4
     loop: str = "AUTO"
     overwrite: bool = True
+    reset_pose: bool = True
 
 
 @dataclass
@@ -274,6 +277,30 @@ def _set_time(scene, seconds: float, fps: float) -> None:
     scene.frame_set(int(whole), subframe=float(frame - whole))
 
 
+POSE_CHANNELS = ("location", "rotation_quaternion", "rotation_euler", "rotation_axis_angle", "scale")
+
+
+def reset_pose(armature) -> None:
+    """Put every pose bone's own channels at rest, so that channels an action does not key do not
+    keep what the previous action left (as Blender's glTF exporter does between actions)."""
+    for pose_bone in armature.pose.bones:
+        pose_bone.location = (0.0, 0.0, 0.0)
+        pose_bone.rotation_quaternion = (1.0, 0.0, 0.0, 0.0)
+        pose_bone.rotation_euler = (0.0, 0.0, 0.0)
+        pose_bone.rotation_axis_angle = (0.0, 0.0, 1.0, 0.0)
+        pose_bone.scale = (1.0, 1.0, 1.0)
+
+
+def _saved_pose(armature) -> list:
+    return [(pb, [tuple(getattr(pb, name)) for name in POSE_CHANNELS]) for pb in armature.pose.bones]
+
+
+def _restore_pose(saved: list) -> None:
+    for pose_bone, values in saved:
+        for name, value in zip(POSE_CHANNELS, values):
+            setattr(pose_bone, name, value)
+
+
 @dataclass
 class _ClipSource:
     name: str
@@ -299,7 +326,7 @@ class RigSampler:
     """
 
     def __init__(self, context, armature, bones: list, static: bool, meshes: list, fps: float,
-                 progress: Optional[Callable[[], None]] = None) -> None:
+                 progress: Optional[Callable[[], None]] = None, reset_pose: bool = True) -> None:
         self.context = context
         self.scene = context.scene
         self.armature = armature
@@ -308,6 +335,7 @@ class RigSampler:
         self.meshes = meshes
         self.fps = fps
         self.progress = progress
+        self.reset_pose = reset_pose
         self.rest_inverse = np.stack([np.linalg.inv(_matrix(armature.data.bones[b].matrix_local)) for b in bones])
         self.active_clip = None
         self.cache = {}
@@ -319,6 +347,8 @@ class RigSampler:
         if clip.action is not None:
             anim = self.armature.animation_data or self.armature.animation_data_create()
             anim.use_nla = False
+            if self.reset_pose:
+                reset_pose(self.armature)
             assign_action(self.armature, clip.action)
         self.active_clip = clip
 
@@ -481,6 +511,11 @@ def _convert_options(settings: ExportSettings):
 def _clip_sources(scene, armature, settings: ExportSettings) -> list:
     if settings.source == "TIMELINE":
         return [_ClipSource(scene.name, None, float(scene.frame_start), float(scene.frame_end), None)]
+    from vbusd import InputError
+
+    if armature.animation_data is not None and armature.animation_data.use_tweak_mode:
+        raise InputError(f"armature '{armature.name}' is in NLA tweak mode; leave it (Tab in the NLA editor) "
+                         "to export its actions", location=armature.name, code="blender.action")
     clips = []
     for action in find_actions(armature, settings.actions):
         start, end = (float(f) for f in action.frame_range)
@@ -577,7 +612,7 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
                     face_vertex_indices=indices, bone_indices=bone_indices, bone_weights=bone_weights,
                     normals=normals, normals_interpolation="faceVarying", source_path=obj.name))
                 meshes.append(_MeshSource(obj, modifier, len(points)))
-            sampler = RigSampler(context, armature, bones, static, meshes, fps, tick)
+            sampler = RigSampler(context, armature, bones, static, meshes, fps, tick, settings.reset_pose)
             samplers.append(sampler)
             source_clips = tuple(
                 AnimationClip(name=c.name, start_time=c.start_frame / fps, end_time=c.end_frame / fps,
@@ -695,7 +730,8 @@ def _remove_empty(folders: list) -> None:
 
 def _save_state(context, armatures) -> dict:
     scene = context.scene
-    state = {"frame": (scene.frame_current, scene.frame_subframe), "anim": []}
+    state = {"frame": (scene.frame_current, scene.frame_subframe), "anim": [],
+             "poses": [_saved_pose(a) for a in armatures if a.pose is not None]}
     for armature in armatures:
         anim = armature.animation_data
         if anim is None:
@@ -721,5 +757,7 @@ def _restore_state(context, state: dict) -> None:
             except (TypeError, RuntimeError):
                 pass
         anim.use_nla = use_nla
+    for saved in state["poses"]:
+        _restore_pose(saved)
     frame, subframe = state["frame"]
     context.scene.frame_set(frame, subframe=subframe)

@@ -82,6 +82,9 @@ class EXPORT_SCENE_OT_virtual_bones(bpy.types.Operator, ExportHelper):
                ("ON", "Loop", "Every clip loops"), ("OFF", "Clamp", "Every clip holds its ends")))
     overwrite: BoolProperty(name="Overwrite", default=True,
                             description="Replace an existing layer, texture and sidecar")
+    reset_pose: BoolProperty(name="Reset Pose Between Actions", default=True,
+                             description="Before each action, put pose bones at rest so channels it does not "
+                                         "key do not keep what the previous action left")
 
     def execute(self, context):
         from .export import ExportSettings, export_virtual_bones
@@ -91,7 +94,7 @@ class EXPORT_SCENE_OT_virtual_bones(bpy.types.Operator, ExportHelper):
             encoding=self.encoding, texel_format=self.texel_format, container=self.container,
             rows_per_second=self.rows_per_second, horizontal_padding=self.horizontal_padding,
             vertical_padding=self.vertical_padding, max_influences=self.max_influences, loop=self.loop,
-            overwrite=self.overwrite)
+            overwrite=self.overwrite, reset_pose=self.reset_pose)
         wm = context.window_manager
         started = []
 
