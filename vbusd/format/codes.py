@@ -248,6 +248,11 @@ _CODES = (
          "was written.", f"{_VB}#conforming-writer", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
+    # writes
+    Code("write.locked", E, "Another run is writing the same output and kept it locked past the wait; "
+         "the message names that run (pid, host, start time, command).", f"{_VB}#writes", "file"),
+    Code("write.failed", E, "A file cannot be written (disk full, quota, read-only, name too long, a "
+         "folder in the way); the old output is intact and nothing new is left.", f"{_VB}#writes", "file"),
     Code("usd.open", E, "The USD source cannot be opened: empty, unreadable, not a USD layer (wrong "
          "suffix or content), or USD refused it.", "usd-conversion.md#checks", "file"),
     Code("usd.plugin", E, "The Virtual Bones USD schema plugin is not usable in this process (not on "
