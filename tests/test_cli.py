@@ -36,6 +36,7 @@ def test_os_errors_are_one_line_not_a_traceback(tmp_path):
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
-def test_bare_command_prints_help(capsys):
-    assert main([]) == 0
+def test_bare_command_prints_help_and_exits_2(capsys):
+    # A bare `vbusd` names no job: the help, as a usage error (issue 10), so scripts notice.
+    assert main([]) == 2
     assert "Commands:" in capsys.readouterr().out

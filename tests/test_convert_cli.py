@@ -46,14 +46,14 @@ def test_stadium_crowd_reproduces_the_talks_texture(tmp_path, capsys):
     # The seed's reference case: 18 bones x 3 texels = 54 -> 64 wide, a 10 s loop in 512 rows,
     # RGBA half float: 64 * 512 * 4 * 2 bytes = 256 KiB.
     assert (animation["bones"], animation["width"], animation["height"]) == (18, 64, 512)
-    assert animation["texel_bytes"] == 256 * 1024
-    assert animation["encoding"] == "crossMatrix" and animation["texel_format"] == "float16"
+    assert animation["texelBytes"] == 256 * 1024
+    assert animation["encoding"] == "crossMatrix" and animation["texelFormat"] == "float16"
     assert animation["clips"][0]["loop"] is True
-    assert animation["clips"][0]["rows_per_second"] == pytest.approx(51.2)
-    assert animation["padding_fraction"] == pytest.approx(1 - 54 / 64)
+    assert animation["clips"][0]["rowsPerSecond"] == pytest.approx(51.2)
+    assert animation["paddingFraction"] == pytest.approx(1 - 54 / 64)
     mesh = animation["meshes"][0]
-    assert (mesh["points"], mesh["kept_influences"]) == (202, 4)
-    assert 0 < mesh["max_error_fraction"] < 2e-3  # float16 texels against UsdSkel
+    assert (mesh["points"], mesh["keptInfluences"]) == (202, 4)
+    assert 0 < mesh["maxErrorFraction"] < 2e-3  # float16 texels against UsdSkel
     assert set(report["files"]) == {str(output), str(tmp_path / "crowd.Skeleton.exr"),
                                     str(tmp_path / "crowd.Skeleton.exr.json")}
 
@@ -75,12 +75,12 @@ def test_json_summary_is_pure_json_on_stdout(small_rig, tmp_path, capsys):
     assert status == 0
     report = json.loads(captured.out)
     animation = report["animations"][0]
-    assert (animation["encoding"], animation["texel_format"]) == ("affineMatrix", "unorm16")
-    assert animation["encoding_reason"] == "requested"
+    assert (animation["encoding"], animation["texelFormat"]) == ("affineMatrix", "unorm16")
+    assert animation["encodingReason"] == "requested"
     assert animation["clips"][0]["rows"] == 7  # 12 time codes at 24/s = 0.5 s -> 6 spans at 12/s
-    assert animation["meshes"][0]["kept_influences"] == 1
-    assert animation["meshes"][0]["influence_error"] > 0
-    assert animation["meshes"][0]["rows_checked"] == 7
+    assert animation["meshes"][0]["keptInfluences"] == 1
+    assert animation["meshes"][0]["influenceError"] > 0
+    assert animation["meshes"][0]["rowsChecked"] == 7
     assert any(path.endswith(".png") for path in report["files"])
 
 
@@ -160,7 +160,7 @@ def test_gltf_input_goes_through_the_same_command(shared_assets, tmp_path, capsy
     assert report["converter"] == "gltf"
     animation = report["animations"][0]
     assert animation["bones"] == 19 and animation["meshes"][0]["points"] == 370
-    assert animation["meshes"][0]["max_error_fraction"] < 2e-3
+    assert animation["meshes"][0]["maxErrorFraction"] < 2e-3
 
 
 def test_unorm16_goes_to_png_without_naming_the_container(tmp_path, repo_root):

@@ -78,5 +78,5 @@ def test_merged_joint_sets_report_the_added_error(tmp_path, capsys):
     assert status == 0
     report = json.loads(capsys.readouterr().out)
     (mesh,) = report["animations"][0]["meshes"]
-    assert (mesh["source_influences"], mesh["kept_influences"]) == (8, 1)
-    assert mesh["influence_error"] == pytest.approx(1.0, abs=1e-6)
+    assert (mesh["sourceInfluences"], mesh["keptInfluences"]) == (8, 1)
+    assert mesh["influenceError"] == pytest.approx(1.0, abs=1e-6)

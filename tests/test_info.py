@@ -13,6 +13,7 @@ import pytest
 from vbusd.io import textures
 from vbusd.cli import main
 from vbusd.format.layout import Layout
+from vbusd.format.metadata import content_digest
 from vbusd.format.model import Clip, VirtualBones
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
@@ -88,9 +89,11 @@ def test_text_table(tmp_path, capsys):
 
 
 def _usd_asset(tmp_path):
-    """A Virtual Bones USD layer written with pxr by hand (two animations), no texture needed.
+    """A Virtual Bones USD layer written with pxr by hand (two animations), and their textures.
 
     Every attribute is authored, as the spec requires of writers (readers do not use fallbacks).
+    info describes the layout from the attributes but refuses a missing or unreadable texture, so
+    each animation gets a texture of its layout (zero texels; info reads only the header).
     """
     from pxr import Sdf, Usd, Vt
 
@@ -123,9 +126,15 @@ def _usd_asset(tmp_path):
             "vb:clipRowsPerSecond": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray([c[3] for c in clips])),
             "vb:clipLoops": (Sdf.ValueTypeNames.BoolArray, Vt.BoolArray([c[4] for c in clips])),
             "vb:clipStartTimes": (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray([c[5] for c in clips])),
+            "vb:contentDigest": (Sdf.ValueTypeNames.String, content_digest(np.zeros(
+                Layout(encoding, "float32", bones, rows).shape, np.float32))),
         }
         for attribute, (type_name, value) in values.items():
             prim.CreateAttribute(attribute, type_name).Set(value)
+        layout = Layout(encoding, "float32", bones, rows)
+        textures.write_texture(tmp_path / f"{name}.exr", VirtualBones(
+            layout, np.zeros(layout.shape, np.float32), tuple(f"b{i}" for i in range(bones)),
+            tuple(Clip(c[0], c[1], c[2], c[3], c[4], c[5]) for c in clips)))
     stage.GetRootLayer().Save()
     return path
 
@@ -237,6 +246,8 @@ def test_texture_path_leaving_the_folder_is_refused(tmp_path, capsys, authored, 
     # Spec 13: vb:texture must resolve inside the asset's folder, even though info does not read
     # the texture (a path is checked, never followed).
     usd = _sample_with_texture_path(tmp_path, authored, folder="inner")
+    for name in ("stadium_crowd_vb.Cheer.exr", "stadium_crowd_vb.Cheer.exr.json"):  # what '..' names
+        (tmp_path / name).write_bytes((SAMPLE / name).read_bytes())
     assert main(["info", str(usd)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err

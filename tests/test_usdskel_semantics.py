@@ -184,7 +184,7 @@ def test_time_codes_per_second_differs_from_rows_per_second(tmp_path):
     options = ConvertOptions(texel_format="float32", rows_per_second=12)
     report = roundtrip(tmp_path, [rig], options=options, stage={"tcps": 30})
     clip = report.animations[0].clips[0]
-    assert clip["rows_per_second"] == pytest.approx(12) and clip["rows"] == 19
+    assert clip.rows_per_second == pytest.approx(12) and clip.rows == 19
     codes, _, _ = scenes.read_cache(tmp_path / "cache.usda", "/Root/Body")
     np.testing.assert_allclose(codes, np.arange(19) * 2.5, atol=1e-9)  # 30 / 12 time codes per row
 
@@ -193,7 +193,7 @@ def test_start_time_code_other_than_zero(tmp_path):
     rig = scenes.RigSpec(codes=[101.0, 110.0, 121.0])
     report = roundtrip(tmp_path, [rig])
     clip = report.animations[0].clips[0]
-    assert clip["start_time"] == pytest.approx(101 / 24)
+    assert clip.start_time == pytest.approx(101 / 24)
     codes, _, _ = scenes.read_cache(tmp_path / "cache.usda", "/Root/Body")
     np.testing.assert_allclose(codes, np.arange(101, 122), atol=1e-9)
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -32,6 +32,7 @@ import numpy as np
 
 from vbusd.bake import BakeOptions, bake
 from vbusd.format.errors import OptionsError, UnsupportedError, VbusdError
+from vbusd.format.jsonform import json_ready
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
@@ -176,8 +177,19 @@ class MeshReport:
 
 
 @dataclass
+class ClipReport:
+    """One clip of a baked animation: its rows, rate, looping and start on the source's timeline."""
+
+    name: str
+    rows: int
+    rows_per_second: float
+    loop: bool
+    start_time: float
+
+
+@dataclass
 class AnimationReport:
-    """What one baked animation holds."""
+    """What one baked animation holds (``clips``: :class:`ClipReport` objects)."""
 
     path: str
     encoding: str
@@ -221,8 +233,9 @@ class ConvertReport:
     seconds: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        """A JSON-ready dict of the whole report."""
-        return asdict(self)
+        """The report as ``vbusd convert --format json`` prints it: camelCase keys, times rounded
+        (:func:`vbusd.format.jsonform.json_ready`)."""
+        return json_ready(self)
 
 
 # --------------------------------------------------------------------------------------------
@@ -542,8 +555,8 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         report.animations.append(AnimationReport(
             path=vb.path, encoding=layout.encoding.value, encoding_reason=reason,
             texel_format=layout.texel_format.value, bones=layout.bone_count, rows=layout.row_count,
-            clips=[{"name": c.name, "rows": c.row_count, "rows_per_second": c.rows_per_second, "loop": c.loop,
-                    "start_time": c.start_time} for c in vb.clips],
+            clips=[ClipReport(name=c.name, rows=c.row_count, rows_per_second=c.rows_per_second, loop=c.loop,
+                              start_time=c.start_time) for c in vb.clips],
             width=layout.width, height=layout.height, texel_bytes=layout.texel_bytes,
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))

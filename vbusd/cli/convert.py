@@ -1,19 +1,19 @@
 """``vbusd convert INPUT -o OUTPUT.usda``: convert a UsdSkel or glTF asset into Virtual Bones.
 
-Progress goes to stderr (only when it is a terminal); the summary goes to stdout as a table
-(``--format text``) or as JSON (``--format json``), with the same content. Errors are one line
+Progress goes to stderr (only when it is a terminal); the summary goes to stdout as text that fits
+80 columns (``--format text``) or as JSON (``--format json``, camelCase keys), with the same
+content. ``--quiet`` prints neither the summary nor warnings. Errors are one line
 (``vbusd: FILE: LOCATION: CODE: message``) and exit status 2, and no output file is left behind.
 """
 
 from __future__ import annotations
 
-import contextlib
-import json
-import sys
-
 import click
 
+from vbusd.cli.common import console, echo_json, progress_bar, quiet_option, terminate_as_interrupt, warn
 from vbusd.format.layout import Encoding, Padding, TexelFormat
+
+__all__ = ["command", "print_summary"]
 
 
 def _check_rows(value: str):
@@ -64,9 +64,10 @@ def _check_rows(value: str):
 @click.option("--loop", "loop_mode", default="auto", show_default=True, type=click.Choice(["auto", "loop", "clamp"]),
               help="auto loops a clip when its first and last poses agree.")
 @click.option("--converter", default=None, metavar="NAME", help="Force a converter (usdskel, gltf, or a plugin's).")
+@quiet_option
 def command(source, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
-            check_rows, loop_mode, converter):
+            check_rows, loop_mode, converter, quiet):
     """Convert a skinned UsdSkel or glTF asset into a Virtual Bones USD asset."""
     from vbusd.convert import ConvertOptions, convert
 
@@ -81,83 +82,17 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
         skeletons=tuple(skeletons), frame_range=tuple(frame_range) if frame_range else None, container=container,
         allow_outside_paths=allow_outside_paths, force=force, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode])
-    with _progress() as progress, terminate_as_interrupt():
+    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
+    if quiet:
+        return 0
     if output_format == "json":
-        click.echo(json.dumps(report.to_dict(), indent=2, default=_json_default))
-    else:
-        for warning in report.warnings:
-            click.echo(f"vbusd: warning: {warning}", err=True)
-        print_summary(report)
+        echo_json(report)
+        return 0
+    for message in report.warnings:
+        warn(message)
+    print_summary(report)
     return 0
-
-
-def _json_default(value):
-    try:
-        import numpy as np
-
-        if isinstance(value, np.generic):
-            return value.item()
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-    except ImportError:  # pragma: no cover
-        pass
-    return str(value)
-
-
-@contextlib.contextmanager
-def terminate_as_interrupt():
-    """Turn SIGTERM (``kill``, a farm scheduler) into KeyboardInterrupt while a command writes.
-
-    Python's default SIGTERM ends the process without unwinding, which would leave the write
-    transaction's hidden temporaries (and a folder it created) behind; as an interrupt the
-    transaction removes them and the command exits 130 like Ctrl-C.
-    """
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-class _progress:
-    """A rich progress bar on stderr while converting, only when stderr is a terminal."""
-
-    def __init__(self) -> None:
-        self._bar = None
-        self._tasks = {}
-
-    def __enter__(self):
-        if not sys.stderr.isatty():
-            return None
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
-
-        self._bar = Progress(TextColumn("{task.description:<6}"), BarColumn(), TaskProgressColumn(),
-                             TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-        self._bar.__enter__()
-        return self._update
-
-    def _update(self, step: str, done: int, total: int) -> None:
-        task = self._tasks.get(step)
-        if task is None:
-            task = self._tasks[step] = self._bar.add_task(step, total=max(total, 1))
-        self._bar.update(task, completed=done, total=max(total, 1))
-
-    def __exit__(self, *exc):
-        if self._bar is not None:
-            self._bar.__exit__(*exc)
-        return False
 
 
 def _human_bytes(count: int) -> str:
@@ -172,36 +107,53 @@ def _fmt(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def print_summary(report) -> None:
-    """Print a :class:`vbusd.convert.ConvertReport` as rich tables on stdout."""
-    from rich.console import Console
+def _rows(grid, pairs) -> None:
+    for key, value in pairs:
+        grid.add_row(key, value)
+
+
+def _grid():
     from rich.table import Table
 
-    console = Console(file=sys.stdout, width=None if sys.stdout.isatty() else 140, highlight=False)
-    console.print(f"[bold]{report.source}[/bold] -> [bold]{report.output}[/bold] ({report.converter})")
+    grid = Table.grid(padding=(0, 2))
+    grid.add_column(no_wrap=True)
+    grid.add_column(overflow="fold")  # wraps at spaces; folds only a word longer than the column
+    return grid
+
+
+def print_summary(report, file=None) -> None:
+    """Print a :class:`vbusd.convert.ConvertReport` on stdout as text that fits 80 columns.
+
+    One block per animation and per mesh, a field per line (labels left, values wrapped at spaces),
+    so no code, path or number is cut however narrow the terminal; ``--format json`` has the same
+    content.
+    """
+    out = console(file)
+    out.print(f"[bold]{report.source}[/bold] -> [bold]{report.output}[/bold] ({report.converter})")
+    unit = "" if report.meters_per_unit is None else f"; 1 scene unit = {report.meters_per_unit:g} m"
     for anim in report.animations:
-        table = Table(title=f"animation {anim.path}", title_justify="left", show_header=True)
-        for name in ("encoding", "texel format", "bones", "rows", "texture", "texel bytes", "padding waste"):
-            table.add_column(name)
-        clips = ", ".join(f"{c['name']}: {c['rows']} @ {c['rows_per_second']:.6g}/s{' loop' if c['loop'] else ''}"
+        clips = ", ".join(f"{c.name}: {c.rows} rows @ {c.rows_per_second:.6g}/s{' loop' if c.loop else ''}"
                           for c in anim.clips)
         waste = anim.texel_bytes - anim.used_texel_bytes
-        table.add_row(f"{anim.encoding}\n({anim.encoding_reason})", anim.texel_format, str(anim.bones),
-                      f"{anim.rows}\n{clips}", f"{anim.width} x {anim.height}", _human_bytes(anim.texel_bytes),
-                      f"{anim.padding_fraction:.1%} ({_human_bytes(waste)})")
-        console.print(table)
-        unit = "" if report.meters_per_unit is None else f"; 1 scene unit = {report.meters_per_unit:g} m"
-        meshes = Table(title=f"largest error against {report.reference} (distances in scene units{unit})",
-                       title_justify="left")
-        for name in ("mesh", "points", "influences", "max error", "of bbox diagonal", "from dropped influences",
-                     "normals (deg)", "rows checked"):
-            meshes.add_column(name, justify="left" if name == "mesh" else "right")
+        grid = _grid()
+        _rows(grid, [("encoding", f"{anim.encoding} ({anim.encoding_reason})"),
+                     ("texel format", anim.texel_format), ("bones", str(anim.bones)), ("rows", str(anim.rows)),
+                     ("clips", clips), ("texture", f"{anim.width} x {anim.height}"),
+                     ("texel bytes", _human_bytes(anim.texel_bytes)),
+                     ("padding waste", f"{anim.padding_fraction:.1%} ({_human_bytes(waste)})")])
+        out.print(f"\n[bold]animation {anim.path}[/bold]")
+        out.print(grid)
+        out.print(f"largest error against {report.reference} (distances in scene units{unit}):")
         for mesh in anim.meshes:
-            meshes.add_row(mesh.path, str(mesh.points), f"{mesh.source_influences} -> {mesh.kept_influences}",
-                           _fmt(mesh.max_error, ".3g"),
-                           "-" if mesh.max_error_fraction is None else f"{mesh.max_error_fraction:.2e}",
-                           _fmt(mesh.influence_error, ".3g"), _fmt(mesh.max_normal_error_degrees, ".3g"),
-                           f"{mesh.rows_checked} of {anim.rows}")
-        console.print(meshes)
+            grid = _grid()
+            fraction = "" if mesh.max_error_fraction is None else f" ({mesh.max_error_fraction:.2e} of bbox diagonal)"
+            _rows(grid, [("points", str(mesh.points)),
+                         ("influences", f"{mesh.source_influences} -> {mesh.kept_influences}"),
+                         ("max error", _fmt(mesh.max_error, ".3g") + fraction),
+                         ("from dropped influences", _fmt(mesh.influence_error, ".3g")),
+                         ("normals (deg)", _fmt(mesh.max_normal_error_degrees, ".3g")),
+                         ("rows checked", f"{mesh.rows_checked} of {anim.rows}")])
+            out.print(f"  mesh {mesh.path}")
+            out.print(grid, style=None)
     files = ", ".join(f"{path} ({_human_bytes(size)})" for path, size in report.files.items())
-    console.print(f"wrote {files}")
+    out.print(f"\nwrote {files}")

@@ -3,14 +3,18 @@
 The cache holds every bound mesh at its own prim path with time-sampled points, normals and
 extents on the source's timeline (see :mod:`vbusd.decode.pointcache`), so any USD viewer plays it.
 ``--device cpu|cuda`` decodes with the warp kernels; without it (or without warp) the numpy
-reference decoder is used.
+reference decoder is used. ``--format json`` prints the report with camelCase keys and times rounded
+to the time code precision; ``--quiet`` prints nothing but errors.
 """
 
 from __future__ import annotations
 
-import json
-
 import click
+
+from vbusd.cli.common import echo_json, progress_bar, quiet_option, terminate_as_interrupt, warn
+from vbusd.format.jsonform import round_time
+
+__all__ = ["command"]
 
 
 @click.command(name="decode")
@@ -27,21 +31,23 @@ import click
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>. "
                    "Large: instances x points x 24 bytes per sample (the stadium sample: several GB; "
                    "prefer a .usdc output).")
-def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds):
+@quiet_option
+def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
-    from vbusd.cli.convert import _progress, terminate_as_interrupt
     from vbusd.decode.pointcache import decode
 
-    with _progress() as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
+    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,
                         allow_outside_paths=allow_outside_paths, crowds=crowds, progress=progress)
-    if output_format == "json":
-        click.echo(json.dumps(report.to_dict(), indent=2))
+    if quiet:
         return 0
-    for warning in report.warnings:
-        click.echo(f"vbusd: warning: {warning}", err=True)
+    if output_format == "json":
+        echo_json(report)
+        return 0
+    for message in report.warnings:
+        warn(message)
     samples = sum(m["samples"] for m in report.meshes)
     click.echo(f"{report.output}: {len(report.meshes)} mesh(es), {samples} samples, time codes "
-               f"{report.start_time_code:g}..{report.end_time_code:g}, {report.bytes} bytes ({report.decoder}, "
-               f"{report.seconds:.2f} s)")
+               f"{round_time(report.start_time_code):g}..{round_time(report.end_time_code):g}, "
+               f"{report.bytes} bytes ({report.decoder}, {report.seconds:.2f} s)")
     return 0

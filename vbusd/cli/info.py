@@ -13,15 +13,17 @@ ASSET may be:
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import click
 
+from vbusd.cli import common
 from vbusd.format.errors import InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
+
+__all__ = ["USD_SUFFIXES", "describe", "asset_info", "command"]
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -108,9 +110,36 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     """
     from vbusd.io.usd import read_animation_attributes
 
+    animations = read_animation_attributes(path, allow_outside_paths=allow_outside_paths)
+    for animation in animations:
+        _check_texture(path, animation)
     return [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
                      format_version=a.format_version, content_digest=a.content_digest)
-            for a in read_animation_attributes(path, allow_outside_paths=allow_outside_paths)]
+            for a in animations]
+
+
+def _check_texture(asset: Path, animation) -> None:
+    """Refuse to describe a layout whose texture is missing or unreadable (its header, not its pixels).
+
+    A layout of a texture nobody can load is no answer to "what is in this asset"; the one line
+    names the prim's ``vb:texture`` and what is wrong with the file it names.
+    """
+    from vbusd.io import textures
+
+    location = f"{animation.path}.vb:texture"
+    texture = Path(animation.texture_file)
+    if not texture.is_file():
+        why = "does not exist" if not texture.exists() else "is not a regular file"
+        raise InputError(f"the texture {animation.texture} ({texture}) {why}", file=str(asset),
+                         location=location, code="texture.missing")
+    try:
+        textures.read_texture_header(texture)
+    except InputError as error:
+        raise InputError(f"the texture {animation.texture} cannot be read ({error})", file=str(asset),
+                         location=location, code="texture.unreadable") from None
+    except OSError as error:
+        raise InputError(f"the texture {animation.texture} cannot be read ({error.strerror or error})",
+                         file=str(asset), location=location, code="texture.unreadable") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -171,18 +200,17 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
 
 
 def _print_text(result: dict) -> None:
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console(highlight=False, soft_wrap=False)
+    console = common.console()
     console.print(f"[bold]{result['file']}[/bold] ({result['kind']}, "
                   f"{len(result['animations'])} animation{'s' if len(result['animations']) != 1 else ''})")
     for animation in result["animations"]:
         title = animation["path"] or animation["texture"] or "animation"
         table = Table(title=title, title_justify="left", show_header=False, box=None,
                       pad_edge=False)
-        table.add_column("key", style="bold")
-        table.add_column("value")
+        table.add_column("key", style="bold", no_wrap=True)
+        table.add_column("value", overflow="fold")  # wraps at spaces, never an ellipsis
         if animation["path"] and animation["texture"]:
             table.add_row("texture", animation["texture"])
         if animation.get("container"):
@@ -201,9 +229,8 @@ def _print_text(result: dict) -> None:
         for warning in animation.get("warnings", ()):
             table.add_row("warning", warning)
         console.print(table)
-        clips = Table(title="clips", title_justify="left", pad_edge=False)
-        for heading in ("name", "first row", "rows", "rows/s", "loop", "duration s"):
-            clips.add_column(heading, justify="left" if heading == "name" else "right")
+        clips = common.table("name", "first row", "rows", "rows/s", "loop", "duration s", title="clips",
+                             right=("first row", "rows", "rows/s", "loop", "duration s"), pad_edge=False)
         for clip in animation["clips"]:
             clips.add_row(clip["name"], str(clip["firstRow"]), str(clip["rowCount"]),
                           f"{clip['rowsPerSecond']:g}", "yes" if clip["loop"] else "no",
@@ -223,7 +250,7 @@ def command(asset: str, output_format: str, allow_outside_paths: bool) -> int:
     """Print the texture layout of ASSET (see the module docstring)."""
     result = asset_info(asset, allow_outside_paths=allow_outside_paths)
     if output_format == "json":
-        click.echo(json.dumps(result, indent=2, allow_nan=False))
+        common.echo_json(result)
     else:
         _print_text(result)
     return 0

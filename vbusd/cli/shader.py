@@ -1,13 +1,21 @@
-"""``vbusd shader``: write the reference vertex-stage module for an encoding and texel format."""
+"""``vbusd shader``: write the reference vertex-stage module for an encoding and texel format.
+
+``-o FILE`` writes like every other command: missing folders are created, an existing file is
+replaced only with ``--force``, and the write is atomic (:mod:`vbusd.io.files`).
+"""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from vbusd.format.errors import OptionsError
-from vbusd.io.files import atomic_write
+from vbusd.io.files import atomic_write, make_folders, remove_folders
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
+
+__all__ = ["command", "write_text"]
 
 # ShaderOptions names its fields; the command line spells them as options.
 _OPTION_NAMES = {"lang": "--lang", "encoding": "--encoding", "texel_format": "--texel-format",
@@ -32,8 +40,10 @@ def _integer(value: str, option: str) -> int:
 @click.option("--max-clips", default=str(DEFAULT_MAX_CLIPS), show_default=True, metavar="N",
               help="Size of the clip table, 1..256.")
 @click.option("--no-main", is_flag=True, help="Emit only the functions, without the example entry point.")
-@click.option("-o", "--output", metavar="FILE", help="File to write, atomically (default: standard output).")
-def command(lang, encoding, texel_format, max_influences, max_clips, no_main, output):
+@click.option("-o", "--output", metavar="FILE",
+              help="File to write, atomically; missing folders are created (default: standard output).")
+@click.option("--force", is_flag=True, help="Replace an existing output file.")
+def command(lang, encoding, texel_format, max_influences, max_clips, no_main, output, force):
     """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
 
     The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md.
@@ -52,9 +62,26 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, ou
     if output is None:
         click.echo(source, nl=False)
         return 0
-    try:
-        with atomic_write(output, mode="w") as stream:
-            stream.write(source)
-    except OSError as error:
-        raise OptionsError(f"cannot write: {error.strerror or error}", file=output) from None
+    write_text(Path(output), source, force=force)
     return 0
+
+
+def write_text(target: Path, text: str, *, force: bool) -> None:
+    """Write ``text`` to ``target`` as convert and decode write: folders created, no clobbering
+    without ``force``, atomically (a temporary beside the target, then a rename), no trace on failure.
+
+    Raises:
+        OptionsError: The target is a folder, exists without ``force``, or cannot be written.
+    """
+    if target.is_dir():
+        raise OptionsError("the output is a folder; name the file to write", file=str(target))
+    if target.exists() and not force:
+        raise OptionsError("the output exists; pass --force to replace it", file=str(target))
+    created = make_folders(target.parent)
+    try:
+        with atomic_write(target, mode="w") as stream:
+            stream.write(text)
+    except OSError as error:
+        remove_folders(created)
+        raise OptionsError(f"cannot write (nothing was written): {error.strerror or error}",
+                           file=str(target)) from None

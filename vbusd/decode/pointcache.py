@@ -28,7 +28,7 @@ written. The cache is written beside the target and renamed: no partial file on 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -36,6 +36,7 @@ import numpy as np
 
 from vbusd.convert import check_output_path
 from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
 
@@ -69,8 +70,9 @@ class DecodeReport:
     warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        """JSON-ready dict."""
-        return asdict(self)
+        """The report as ``vbusd decode --format json`` prints it: camelCase keys, times rounded
+        (:func:`vbusd.format.jsonform.json_ready`)."""
+        return json_ready(self)
 
 
 def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, Callable, str]:

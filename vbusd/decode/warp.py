@@ -29,9 +29,9 @@ Kernels and their numpy twins: :mod:`vbusd.decode.warp_kernels`.
 
 from __future__ import annotations
 
-import os
+import contextlib
+import functools
 import sys
-import tempfile
 from dataclasses import dataclass
 from typing import Optional, Union
 
@@ -44,14 +44,43 @@ from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
 from vbusd.decode.reference import channel_values, normal_point_indices
+from vbusd.io.capture import captured_output
 
-# The CLI prints results on stdout; warp's start-up banner and per-module compile lines would mix
-# into them (warp 1.19 replaced ``config.quiet`` by ``config.log_level``). Users who want them can
-# lower the level again after importing this module.
-if hasattr(wp, "LOG_WARNING") and getattr(wp.config, "log_level", 0) < wp.LOG_WARNING:
-    wp.config.log_level = wp.LOG_WARNING
-else:  # older warp
-    wp.config.quiet = True
+
+
+@contextlib.contextmanager
+def quiet_warp():
+    """Keep warp's info lines (start-up banner, per-module load times) out of the console inside the block.
+
+    The CLI prints results on stdout, and a host application owns its console: warp's banner and
+    compile lines would mix into both. warp's log level is a process-wide setting that belongs to
+    the host, so it is raised to warnings for the block only and restored afterwards (warp 1.19
+    replaced ``config.quiet`` by ``config.log_level``; older versions get ``quiet`` the same way).
+    """
+    if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
+        saved = wp.config.log_level
+        wp.config.log_level = max(saved, wp.LOG_WARNING)
+        try:
+            yield
+        finally:
+            wp.config.log_level = saved
+    else:  # pragma: no cover - warp before 1.19
+        saved = getattr(wp.config, "quiet", False)
+        wp.config.quiet = True
+        try:
+            yield
+        finally:
+            wp.config.quiet = saved
+
+
+def _quietly(function):
+    """Decorator: run a public warp entry point inside :func:`quiet_warp`."""
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        with quiet_warp():
+            return function(*args, **kwargs)
+    return wrapper
+
 
 SAMPLING_MODES = ("exact", "hardware")
 """``exact``: the spec's blend in float32 arithmetic; ``hardware``: the texture unit's filter."""
@@ -76,19 +105,11 @@ def _init_warp() -> None:
     global _warp_initialized
     if _warp_initialized:
         return
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as capture:
-        os.dup2(capture.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-        capture.seek(0)
-        text = capture.read().decode("utf-8", errors="replace")
+    printed: list = []
+    with quiet_warp(), captured_output(printed, one_line=False):
+        wp.init()
     _warp_initialized = True
-    lines = [line for line in text.splitlines() if line.strip()]
+    lines = [line for line in "".join(printed).splitlines() if line.strip()]
     if not wp.is_cuda_available():
         _WARP_INIT_NOTES[:] = [line.strip() for line in lines if line.startswith("Warp CUDA")]
         lines = [line for line in lines if not line.startswith("Warp CUDA")]
@@ -113,9 +134,12 @@ def _resolve_device(device) -> "wp.context.Device":
     name = str(device)
     _init_warp()
     if name.startswith("cuda") and not wp.is_cuda_available():
-        reason = "".join(f"; {note}" for note in _WARP_INIT_NOTES)
-        raise OptionsError(f"device {name!r} requested but no CUDA device is available "
-                           f"(available: {', '.join(available_devices()) or 'none'}{reason})",
+        # In vbusd's words, not warp's: its native note names library internals.
+        notes = " ".join(_WARP_INIT_NOTES).lower()
+        why = " (no NVIDIA CUDA driver was found)" if "driver" in notes else ""
+        instead = "use --device cpu, or leave --device out for the numpy reference decoder" \
+            if "cpu" in available_devices() else "leave --device out for the numpy reference decoder"
+        raise OptionsError(f"device {name!r} requested but no CUDA device is available here{why}; {instead}",
                            file="warp_decoder")
     if name == "cpu" and not wp.is_cpu_available():
         raise OptionsError("device 'cpu' requested but warp's CPU backend is not available",
@@ -211,6 +235,7 @@ class Decoder:
             faceVarying indices outside the points.
     """
 
+    @_quietly
     def __init__(self, vb: VirtualBones, mesh: Optional[BoundMesh] = None, *, device,
                  sampling: str = "exact", instances_per_thread: Optional[int] = None,
                  block_dim: Optional[int] = None) -> None:
@@ -322,6 +347,7 @@ class Decoder:
         if self.face_varying:
             self.normal_points = self._array(normal_point_indices(mesh).astype(np.int32), wp.int32)
 
+    @_quietly
     def upload_crowd(self, crowd: Crowd) -> DeviceCrowd:
         """Upload a crowd's per-instance arrays once; pass the result to :meth:`skin_crowd`.
 
@@ -377,6 +403,7 @@ class Decoder:
 
     # ---------------------------------------------------------------------------------- buffers
 
+    @_quietly
     def allocate(self, instance_count: int) -> SkinResult:
         """Output arrays for ``instance_count`` instances, to reuse through ``out=`` every frame."""
         points = wp.empty((instance_count, self.vertex_count), dtype=wp.vec3, device=self.device)
@@ -407,6 +434,7 @@ class Decoder:
 
     # ---------------------------------------------------------------------------------- launches
 
+    @_quietly
     def decode_bones(self, crowd: DeviceCrowd, t: float, *, fraction_steps: float = 0.0) -> BoneBuffers:
         """Launch the bone decode for every instance at scene time ``t``; returns the buffers.
 
@@ -440,6 +468,7 @@ class Decoder:
                               frames, int(separate), *outputs])
         return buffers
 
+    @_quietly
     def skin_bones(self, crowd: DeviceCrowd, buffers: BoneBuffers, out: SkinResult) -> SkinResult:
         """Launch the skinning of every (instance, vertex) from decoded bone buffers into ``out``."""
         n = crowd.instance_count
@@ -487,6 +516,7 @@ class Decoder:
                                f"use Decoder.allocate({n})", file="warp_decoder")
         return out
 
+    @_quietly
     def skin_crowd(self, crowd: Union[Crowd, DeviceCrowd], t: float, out: Optional[SkinResult] = None,
                    *, fraction_steps: float = 0.0) -> SkinResult:
         """World-space points and normals of every instance at scene time ``t`` (three launches).
@@ -514,6 +544,7 @@ class Decoder:
         buffers = self.decode_bones(crowd, t, fraction_steps=fraction_steps)
         return self.skin_bones(crowd, buffers, out)
 
+    @_quietly
     def skin(self, clip_index: int, tau, out: Optional[SkinResult] = None, *,
              fraction_steps: float = 0.0) -> SkinResult:
         """Skinned points and normals of the mesh at clip-local times ``tau`` (twin of ``reference.skin_mesh``).
@@ -532,6 +563,7 @@ class Decoder:
         buffers = self.decode_bones(crowd, 0.0, fraction_steps=fraction_steps)
         return self.skin_bones(crowd, buffers, out)
 
+    @_quietly
     def bone_transforms(self, clip_index: int, tau, *, fraction_steps: float = 0.0) -> dict:
         """Decoded bone buffers at clip-local times, as numpy (for tests and inspection).
 
@@ -568,6 +600,7 @@ def _cached_decoder(vb: VirtualBones, mesh: BoundMesh, device, sampling: str) ->
     return decoder
 
 
+@_quietly
 def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device,
               sampling: str = "exact") -> tuple:
     """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times, on ``device``.
@@ -578,6 +611,7 @@ def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device
     return _cached_decoder(vb, mesh, device, sampling).skin(clip_index, tau).numpy()
 
 
+@_quietly
 def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, device,
                sampling: str = "exact") -> tuple:
     """World-space points (N, V, 3) and normals of every instance at scene time ``t``, on ``device``.

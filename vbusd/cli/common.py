@@ -1,0 +1,131 @@
+"""What every ``vbusd`` subcommand shares: progress, interruption, quiet mode, JSON and table output.
+
+One home for these, so that the commands behave alike: a progress bar on stderr only when it is a
+terminal (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
+(:func:`terminate_as_interrupt`), ``--quiet`` (:data:`quiet_option`, :func:`warn`), JSON in one key
+style (:func:`echo_json`, camelCase with rounded times through :mod:`vbusd.format.jsonform`) and text
+tables that fit 80 columns by wrapping, never cutting, a code, path or number (:func:`console`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from typing import Optional
+
+import click
+
+from vbusd.format.jsonform import json_text
+
+__all__ = ["TEXT_WIDTH", "progress_bar", "terminate_as_interrupt", "quiet_option", "warn", "echo_json",
+           "console", "table"]
+
+TEXT_WIDTH = 80
+"""Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log)."""
+
+
+quiet_option = click.option(
+    "-q", "--quiet", is_flag=True,
+    help="Print nothing but errors (one line each): no warnings, no summary, no progress bar.")
+"""The ``--quiet`` flag of the commands that write files (convert, decode)."""
+
+
+def warn(message: str, *, quiet: bool = False) -> None:
+    """Print ``vbusd: warning: MESSAGE`` on stderr, unless ``quiet``."""
+    if not quiet:
+        click.echo(f"vbusd: warning: {message}", err=True)
+
+
+def echo_json(value) -> None:
+    """Print a report (dataclass or dict) as the JSON every ``--format json`` prints."""
+    click.echo(json_text(value))
+
+
+def console(file=None):
+    """A rich console for tables: the terminal's width, or :data:`TEXT_WIDTH` when not a terminal."""
+    from rich.console import Console
+
+    stream = sys.stdout if file is None else file
+    return Console(file=stream, width=None if stream.isatty() else TEXT_WIDTH, highlight=False,
+                   soft_wrap=False)
+
+
+def table(*columns: str, title: Optional[str] = None, right: tuple = (), show_header: bool = True, **options):
+    """A rich table whose cells wrap (``overflow="fold"``) instead of ending in an ellipsis.
+
+    Args:
+        columns: Column headings.
+        title: Table title (left-justified).
+        right: Headings of the columns to right-justify (numbers).
+        show_header: Print the headings.
+        options: Passed to ``rich.table.Table``.
+    """
+    from rich.table import Table
+
+    result = Table(title=title, title_justify="left", show_header=show_header, **options)
+    for heading in columns:
+        result.add_column(heading, justify="right" if heading in right else "left", overflow="fold")
+    return result
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+    """Turn SIGTERM (``kill``, a farm scheduler) into KeyboardInterrupt while a command writes.
+
+    Python's default SIGTERM ends the process without unwinding, which would leave the write
+    transaction's hidden temporaries (and a folder it created) behind; as an interrupt the
+    transaction removes them and the command exits 130 like Ctrl-C.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class progress_bar:
+    """A rich progress bar on stderr while a command works, only when stderr is a terminal.
+
+    ``with progress_bar() as progress:`` gives a ``progress(step, done, total)`` callback for the
+    library's ``progress=`` argument, or None (no bar: quiet, or stderr is not a terminal).
+
+    Args:
+        quiet: Never show a bar.
+    """
+
+    def __init__(self, *, quiet: bool = False) -> None:
+        self._quiet = quiet
+        self._bar = None
+        self._tasks = {}
+
+    def __enter__(self):
+        if self._quiet or not sys.stderr.isatty():
+            return None
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+        self._bar = Progress(TextColumn("{task.description:<6}"), BarColumn(), TaskProgressColumn(),
+                             TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+        self._bar.__enter__()
+        return self._update
+
+    def _update(self, step: str, done: int, total: int) -> None:
+        task = self._tasks.get(step)
+        if task is None:
+            task = self._tasks[step] = self._bar.add_task(step, total=max(total, 1))
+        self._bar.update(task, completed=done, total=max(total, 1))
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.__exit__(*exc)
+        return False
