@@ -1,16 +1,53 @@
-"""Safe file output and safe path resolution.
+"""Safe file output, the one commit point of a multi-file asset, and safe path resolution.
 
-Writing: every output file is first written to a temporary file in the target's own folder (same
-file system, so the final ``os.replace`` is atomic), flushed and fsynced, then renamed over the
-target. A failure at any point removes the temporary file and leaves an existing target exactly as
-it was. :class:`AtomicTransaction` extends this to several files that belong together (a USD layer,
-its texture and the texture's sidecar): all temporaries are written first and renamed only when
-every one of them is complete.
+Public API (what converters, decoders and exporters use):
 
-Temporary names keep the target's suffix (``.anim.exr.vbusd-tmp-1a2b3c4d.exr``) because some
-writers choose the file format by suffix (USD: ``.usda`` vs ``.usdc``). A writer killed outright
-(SIGKILL, power loss) cannot remove its temporaries; the next write of the same target removes
-those of its own name pattern that nobody has touched for :data:`STALE_TEMPORARY_AGE_S`.
+* :class:`Commit`: write an asset of several files (a USD layer or glTF file plus textures,
+  sidecars, buffers) so that readers see the old asset whole until one final rename makes the new
+  one current. Use it as a context manager::
+
+      with Commit("out/crowd.usda", replace=force) as commit:     # locks, recovers, checks
+          texture = commit.temp_path("out/crowd.Anim.exr")          # stage by file name
+          write_exr(texture, ...)
+          with commit.open("out/crowd.Anim.exr.json", "w") as f:    # or stage a stream
+              f.write(text)
+          commit.discard_after(["out/crowd.Anim.3fa9c0e1b2d4.exr"])  # old files, removed after
+          layer = commit.temp_path("out/crowd.usda", reserve=False)  # the commit point, last
+          stage.GetRootLayer().Export(str(layer))
+      # on a clean exit: fsync, rename every other file, then the target (the commit point)
+
+  Staged files are hidden temporaries beside their targets (``.<name>.vbusd-tmp-<8 hex>.<suffix>``;
+  the suffix is kept because USD chooses ``.usda``/``.usdc`` by it). Files other than the target
+  MUST be named so that they cannot collide with a file the current asset uses (a new name, or
+  the same name with the same content, e.g. a name carrying the content's digest): they are
+  renamed into place before the target, while the old target still names the old files. If the
+  block raises, every staged file and every new name is removed and nothing else changes.
+* **Output lock**: a :class:`Commit` holds an exclusive ``fcntl.flock`` on ``.<stem>.vbusd-lock``
+  beside the target (``stem`` = the target's name without its last suffix: all files of the
+  asset start with it) for its whole life. A second writer waits up to ``lock_timeout`` seconds
+  (default :data:`LOCK_TIMEOUT_S`, or ``$VBUSD_LOCK_TIMEOUT``), then raises :class:`OutputLocked`
+  naming the other run (pid, host, start time, command). The lock file is removed when the
+  commit ends; one left by a killed run is harmless (the kernel released its lock) and reused.
+* **Recovery**: before staging anything, a :class:`Commit` reads the journal
+  (``.<stem>.vbusd-journal``) a killed run left and removes what that run staged (its
+  temporaries and USD's own temporaries of them), the new files it renamed into place and the old
+  files it meant to remove, except files the current target (or a sibling layer of the same stem,
+  through the ``in_use`` callback) still uses. Under the lock no other run can be writing these
+  names, so nothing younger than the dead run is touched. Temporaries and backups of other
+  writers (:func:`atomic_write`) unmodified for :data:`STALE_TEMPORARY_AGE_S` are removed too.
+  :func:`recover` runs the same recovery on its own.
+* :func:`atomic_write` / :class:`AtomicTransaction`: one file (or a few, without a lock) through a
+  temporary beside the target, fsync, then ``os.replace``.
+* :func:`fault_point`: the fault-injection hook. Every step of a commit calls it; with
+  ``VBUSD_FAULT=kill:N`` the process SIGKILLs itself at step N, with ``VBUSD_FAULT=enospc:N``
+  (or ``eio``, ``erofs``, ``edquot``, ``eacces``) step N fails with that error, and
+  ``VBUSD_FAULT_TRACE=FILE`` appends every step's name to FILE (how many steps a run has). The
+  fault tests and ``benchmarks/fault_sweep.py`` drive it; unset, it costs one dict lookup.
+
+Errors are ``OSError`` (with ``filename``, ``errno`` and ``strerror``) for the caller to report as
+one line, except :class:`OutputLocked` (a :class:`vbusd.format.errors.VbusdError`, code
+``write.locked``) and the refusal to replace an existing target without ``replace``
+(:class:`vbusd.format.errors.OptionsError`).
 
 Reading: :func:`resolve_inside` turns a relative reference found in an asset (a USD asset path, a
 texture name) into a path and refuses references that leave the asset's folder.
@@ -19,15 +56,19 @@ texture name) into a path and refuses references that leave the asset's folder.
 from __future__ import annotations
 
 import contextlib
+import errno as errnos
+import json
 import os
 import re
 import secrets
+import signal
+import socket
 import stat
 import time
 from pathlib import Path
-from typing import IO, Iterable, Iterator, Optional, Union
+from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import InputError, OptionsError, VbusdError
 
 PathLike = Union[str, os.PathLike]
 
@@ -46,21 +87,30 @@ def _temp_name(target: Path, mark: str = _TMP_MARK) -> Path:
 
 
 def _sweep_stale_temporaries(target: Path) -> None:
-    """Remove the temporaries of ``target`` that a killed writer left (see :data:`STALE_TEMPORARY_AGE_S`).
+    """Remove what killed writers of ``target`` left, once nobody has touched it for an hour.
 
-    Only regular files named exactly as :func:`_temp_name` names this target's temporaries; backups
-    (``.vbusd-bak-``) are left alone, since after a crash during a commit they may be the only copy
-    of the old file. Best effort: errors are ignored.
+    Matched by exact name: the temporaries :func:`_temp_name` makes for this target, USD's own
+    temporaries of those (``Layer.Export`` over an existing file writes
+    ``.<name>.vbusd-tmp-<8 hex>.<6 characters>`` and renames it), and backups
+    (``.vbusd-bak-``) of a target that exists (a backup of a missing target may be the only copy
+    left of it after a crash, so it stays). Best effort: errors are ignored. See
+    :data:`STALE_TEMPORARY_AGE_S`.
     """
     suffix = "".join(target.suffixes[-1:])
-    pattern = re.compile(re.escape(f".{target.name}{_TMP_MARK}") + "[0-9a-f]{8}" + re.escape(suffix))
+    head = re.escape(f".{target.name}")
+    pattern = re.compile(head + "(?:" + re.escape(_TMP_MARK) + "[0-9a-f]{8}(?:" + re.escape(suffix)
+                         + r"|\.[A-Za-z0-9_]{6})|" + re.escape(_BAK_MARK) + "[0-9a-f]{8}"
+                         + re.escape(suffix) + ")")
     cutoff = time.time() - STALE_TEMPORARY_AGE_S
     try:
         entries = list(os.scandir(target.parent))
     except OSError:
         return
+    target_exists = os.path.lexists(target)
     for entry in entries:
         if not pattern.fullmatch(entry.name):
+            continue
+        if _BAK_MARK in entry.name and not target_exists:
             continue
         with contextlib.suppress(OSError):
             info = entry.stat(follow_symlinks=False)
@@ -279,6 +329,493 @@ def atomic_write(path: PathLike, mode: str = "wb", **kwargs) -> Iterator[IO]:
     with AtomicTransaction() as transaction:
         with transaction.open(path, mode, **kwargs) as stream:
             yield stream
+
+
+# --------------------------------------------------------------------------------------------
+# Fault injection
+# --------------------------------------------------------------------------------------------
+
+FAULT_ENV = "VBUSD_FAULT"
+"""``kill:N`` SIGKILLs the process at fault point N; ``enospc:N`` (``edquot``, ``erofs``,
+``eacces``, ``eio``, ``enametoolong``) makes step N fail with that error. Steps are counted per
+process from 1."""
+FAULT_TRACE_ENV = "VBUSD_FAULT_TRACE"
+"""A file to which every fault point appends ``N step-name`` (to learn how many steps a run has)."""
+
+_FAULT_ERRNOS = {"enospc": errnos.ENOSPC, "edquot": errnos.EDQUOT, "erofs": errnos.EROFS,
+                 "eacces": errnos.EACCES, "eio": errnos.EIO, "enametoolong": errnos.ENAMETOOLONG}
+_fault_steps = 0
+
+
+def fault_point(step: str, path: Optional[PathLike] = None) -> None:
+    """Mark one step of a write; with ``$VBUSD_FAULT`` set, fail or die at the chosen step.
+
+    Writers call it before every operation that changes the file system (and after every file a
+    library writes by name, as that write's last moment), so that a test can stop a run at each
+    step in turn and check what it leaves. Without ``$VBUSD_FAULT`` and ``$VBUSD_FAULT_TRACE`` it
+    does nothing.
+
+    Args:
+        step: A short name of the step (``rename crowd.usda``), for the trace.
+        path: The file the step writes, named by an injected error.
+
+    Raises:
+        OSError: The injected error, when this is the chosen step.
+    """
+    global _fault_steps
+    spec = os.environ.get(FAULT_ENV)
+    trace = os.environ.get(FAULT_TRACE_ENV)
+    if not spec and not trace:
+        return
+    _fault_steps += 1
+    if trace:
+        with open(trace, "a", encoding="utf-8") as stream:
+            stream.write(f"{_fault_steps} {step}\n")
+    if not spec:
+        return
+    kind, _, number = spec.partition(":")
+    if not number.isdigit() or int(number) != _fault_steps:
+        return
+    if kind == "kill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    code = _FAULT_ERRNOS.get(kind, errnos.EIO)
+    raise OSError(code, f"{os.strerror(code)} (injected at step {_fault_steps}: {step})",
+                  None if path is None else str(path))
+
+
+# --------------------------------------------------------------------------------------------
+# Output lock and commit
+# --------------------------------------------------------------------------------------------
+
+LOCK_TIMEOUT_S = 30.0
+"""How long a second writer of the same output waits for the first one before refusing
+(``$VBUSD_LOCK_TIMEOUT`` overrides it; 0 refuses at once)."""
+_LOCK_SUFFIX = ".vbusd-lock"
+_JOURNAL_SUFFIX = ".vbusd-journal"
+
+
+class OutputLocked(VbusdError):
+    """Another run holds the output's lock (code ``write.locked``); raised after the bounded wait."""
+
+    default_code = "write.locked"
+
+
+def lock_path(target: PathLike) -> Path:
+    """The lock file of an output: ``.<stem>.vbusd-lock`` beside it (one lock per file stem)."""
+    target = Path(target)
+    return target.with_name(f".{target.stem}{_LOCK_SUFFIX}")
+
+
+def journal_path(target: PathLike) -> Path:
+    """The journal of an output's running commit: ``.<stem>.vbusd-journal`` beside it."""
+    target = Path(target)
+    return target.with_name(f".{target.stem}{_JOURNAL_SUFFIX}")
+
+
+def _lock_timeout(value: Optional[float]) -> float:
+    if value is not None:
+        return max(0.0, float(value))
+    try:
+        return max(0.0, float(os.environ.get("VBUSD_LOCK_TIMEOUT", LOCK_TIMEOUT_S)))
+    except ValueError:
+        return LOCK_TIMEOUT_S
+
+
+def _describe_holder(path: Path) -> str:
+    """Who holds a lock, from what the holder wrote into the lock file."""
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+        text = f"pid {int(info['pid'])} on host {info['host']}, started {info['started']}"
+        if info.get("command"):
+            text += f" ({info['command']})"
+        return text
+    except (OSError, ValueError, KeyError, TypeError):
+        return "a run that has not yet said who it is"
+
+
+class _Lock:
+    """An exclusive ``flock`` on a lock file that is removed when released.
+
+    A waiter may lock a file the holder has just unlinked; it then sees that the path no longer
+    names the inode it locked and tries again, so two runs never both believe they hold it.
+    File systems without ``flock`` (some network mounts answer ENOLCK) run unlocked.
+    """
+
+    def __init__(self, path: Path, timeout: float, target: Path) -> None:
+        self.path = path
+        self.timeout = timeout
+        self.target = target
+        self._fd: Optional[int] = None
+
+    def acquire(self) -> None:
+        import fcntl
+
+        deadline = time.monotonic() + self.timeout
+        while True:
+            fault_point(f"lock {self.path.name}", self.path)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                if time.monotonic() >= deadline:
+                    raise OutputLocked(
+                        f"another vbusd run is writing this output: {_describe_holder(self.path)}; "
+                        f"waited {self.timeout:g} s (set VBUSD_LOCK_TIMEOUT to wait longer)",
+                        file=str(self.target)) from None
+                time.sleep(0.05)
+                continue
+            except OSError as error:
+                if error.errno not in (errnos.ENOLCK, errnos.EOPNOTSUPP, errnos.ENOSYS, errnos.EINVAL):
+                    os.close(fd)
+                    raise
+            try:
+                same = os.path.samestat(os.stat(self.path), os.fstat(fd))
+            except FileNotFoundError:
+                same = False
+            if not same:  # the holder removed the file between our open and our lock
+                os.close(fd)
+                continue
+            self._fd = fd
+            break
+        import datetime
+        import sys
+
+        started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+        command = " ".join([Path(sys.argv[0]).name] + sys.argv[1:]) if sys.argv and sys.argv[0] else ""
+        info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "started": started,
+                           "command": command[:300]})
+        with contextlib.suppress(OSError):
+            os.ftruncate(self._fd, 0)
+            os.pwrite(self._fd, info.encode("utf-8"), 0)
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)  # while still locked: see the class docstring
+        os.close(self._fd)
+        self._fd = None
+
+
+def _usd_temporaries(folder: Path, temporary_name: str) -> list:
+    """USD's own temporaries of one of our temporaries: ``<name without suffix>.<6 characters>``."""
+    stem = temporary_name.rsplit(".", 1)[0]
+    pattern = re.compile(re.escape(stem) + r"\.[A-Za-z0-9_]{6}")
+    try:
+        return [Path(e.path) for e in os.scandir(folder) if pattern.fullmatch(e.name)]
+    except OSError:
+        return []
+
+
+class Commit:
+    """Write the files of one asset so that one final rename makes the new asset current.
+
+    On entering: take the output lock (waiting at most ``lock_timeout``), recover what a killed
+    run left (see the module docstring), and refuse an existing target unless ``replace``.
+    Stage files with :meth:`temp_path` or :meth:`open`; name old files to remove with
+    :meth:`discard_after`. On a clean exit: every staged file is fsynced, every file but the
+    target is renamed into place, the folder is fsynced, the target is renamed (the commit
+    point), the folder is fsynced again, the discarded files the current asset no longer uses are
+    removed, and the lock is released. If the block raises (or any step before the commit point
+    fails), staged files and new names are removed and the old asset stays as it was.
+
+    All files must lie in the target's folder. Each step calls :func:`fault_point`.
+
+    Args:
+        target: The file whose rename is the commit point (the USD layer, the glTF file).
+        replace: Replace an existing target (``--force``); otherwise an existing target is refused
+            (checked under the lock, so two runs cannot both create it).
+        in_use: ``in_use(target) -> paths``: files that the current target and its sibling layers
+            use (recovery and cleanup never remove them). By default only the target itself.
+        lock_timeout: Seconds to wait for another writer; None: ``$VBUSD_LOCK_TIMEOUT`` or
+            :data:`LOCK_TIMEOUT_S`.
+
+    Raises:
+        OutputLocked: Another run held the lock for longer than ``lock_timeout``.
+        OptionsError: The target exists and ``replace`` is False.
+        OSError: A file could not be written, renamed or locked (nothing changed).
+    """
+
+    def __init__(self, target: PathLike, *, replace: bool = True,
+                 in_use: Optional[Callable[[Path], Iterable[PathLike]]] = None,
+                 lock_timeout: Optional[float] = None) -> None:
+        self.target = Path(target)
+        self.folder = self.target.parent
+        self._replace = replace
+        self._in_use = in_use
+        self._lock = _Lock(lock_path(self.target), _lock_timeout(lock_timeout), self.target)
+        self._journal = journal_path(self.target)
+        self._staged: list = []  # [final, temporary]
+        self._created: list = []
+        self._discard: list = []
+        self._state = "new"  # new -> open -> committed | aborted
+
+    # -- entering ---------------------------------------------------------------------------
+
+    def __enter__(self) -> "Commit":
+        self._lock.acquire()
+        try:
+            self._recover()
+            if not self._replace and os.path.lexists(self.target):
+                raise OptionsError("the output exists; pass --force to replace it", file=str(self.target))
+        except BaseException:
+            self._lock.release()
+            raise
+        self._state = "open"
+        return self
+
+    def _used(self) -> set:
+        used = {os.path.abspath(self.target)}
+        if self._in_use is not None:
+            with contextlib.suppress(Exception):  # an unreadable sibling protects nothing more
+                used |= {os.path.abspath(p) for p in self._in_use(self.target)}
+        return used
+
+    def _recover(self) -> None:
+        """Remove what a killed run of this output left (journal), then old temporaries by age."""
+        for leftover in _scan(self.folder, f".{self._journal.name}{_TMP_MARK}"):
+            _remove_quietly(Path(leftover))  # a journal rewrite the killed run did not finish
+        try:
+            text = self._journal.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            text = None
+        if text is not None:
+            try:
+                journal = json.loads(text)
+                staged = [str(n) for n in journal.get("staged", [])]
+                placed = [str(n) for n in journal.get("created", []) + journal.get("discard", [])]
+            except (ValueError, AttributeError, TypeError):
+                staged, placed = [], []
+            for name in staged:
+                if "/" in name or not name.startswith("."):
+                    continue
+                fault_point(f"recover {name}", self.folder / name)
+                _remove_quietly(self.folder / name)
+                for usd_temporary in _usd_temporaries(self.folder, name):
+                    _remove_quietly(usd_temporary)
+            used = self._used() if placed else set()
+            for name in placed:
+                path = self.folder / name
+                if "/" in name or os.path.abspath(path) in used:
+                    continue
+                fault_point(f"recover {name}", path)
+                _remove_quietly(path)
+            fault_point(f"remove {self._journal.name}", self._journal)
+            _remove_quietly(self._journal)
+        _sweep_stale_temporaries(self.target)
+
+    # -- staging ----------------------------------------------------------------------------
+
+    def _final(self, target: PathLike) -> Path:
+        final = Path(target)
+        if not final.is_absolute() and final.parent == Path("."):
+            final = self.folder / final
+        if os.path.abspath(final.parent) != os.path.abspath(self.folder):
+            raise ValueError(f"{final} is not in the folder of {self.target}")
+        return final
+
+    def _write_journal(self) -> None:
+        """Record every name this run may leave behind, before it can leave it (atomic rewrite)."""
+        document = json.dumps({"target": self.target.name,
+                               "staged": [t.name for _, t in self._staged],
+                               "created": [p.name for p in self._created],
+                               "discard": [p.name for p in self._discard]})
+        temporary = _temp_name(self._journal)
+        fault_point(f"journal {self._journal.name}", self._journal)
+        try:
+            with open(temporary, "x", encoding="utf-8") as stream:
+                stream.write(document)
+                stream.flush()
+                os.fsync(stream.fileno())
+            os.replace(temporary, self._journal)
+        except BaseException:
+            _remove_quietly(temporary)
+            raise
+
+    def temp_path(self, target: PathLike, *, reserve: bool = True) -> Path:
+        """Stage a file: return the temporary to write for ``target``.
+
+        Args:
+            target: The final file name (in the target's folder; a bare name is taken there).
+            reserve: Create the temporary empty (default). Pass False for a library that writes
+                over an existing file through its own temporary (USD's ``Layer.Export``): it then
+                writes the new file directly.
+
+        Returns:
+            The temporary's path; it is renamed to ``target`` on commit.
+
+        Raises:
+            ValueError: ``target`` is staged twice or lies in another folder.
+            OSError: The temporary cannot be created.
+        """
+        if self._state != "open":
+            raise ValueError("stage files inside the Commit's with block")
+        final = self._final(target)
+        if any(f == final for f, _ in self._staged):
+            raise ValueError(f"{final} is written twice in one commit")
+        temporary = _temp_name(final)
+        while os.path.lexists(temporary):
+            temporary = _temp_name(final)
+        self._staged.append([final, temporary])
+        self._write_journal()
+        if reserve:
+            fault_point(f"create {temporary.name}", temporary)
+            fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            os.close(fd)
+        return temporary
+
+    @contextlib.contextmanager
+    def open(self, target: PathLike, mode: str = "wb", **kwargs) -> Iterator[IO]:
+        """Stage a file written through a stream (flushed and closed when the block ends).
+
+        Args:
+            target: The final file name.
+            mode: ``"wb"`` or ``"w"`` (text; UTF-8 unless ``encoding=`` is given).
+            **kwargs: Passed to :func:`open`.
+        """
+        if "w" not in mode or "r" in mode or "+" in mode:
+            raise ValueError(f"staged files need a write mode, got {mode!r}")
+        if "b" not in mode:
+            kwargs.setdefault("encoding", "utf-8")
+        temporary = self.temp_path(target)
+        with open(temporary, mode, **kwargs) as stream:
+            yield stream
+            fault_point(f"write {temporary.name}", temporary)
+            stream.flush()
+
+    def retarget(self, target: PathLike, new_target: PathLike) -> None:
+        """Give a staged file another final name (after its content decided the name)."""
+        final, new_final = self._final(target), self._final(new_target)
+        if any(f == new_final for f, _ in self._staged):
+            raise ValueError(f"{new_final} is written twice in one commit")
+        for entry in self._staged:
+            if entry[0] == final:
+                entry[0] = new_final
+                return
+        raise ValueError(f"{final} is not staged")
+
+    def staged_path(self, target: PathLike) -> Path:
+        """The temporary staged for ``target`` (to read back what was written, e.g. to hash it)."""
+        final = self._final(target)
+        for staged_final, temporary in self._staged:
+            if staged_final == final:
+                return temporary
+        raise ValueError(f"{final} is not staged")
+
+    def discard_after(self, paths: Iterable[PathLike]) -> None:
+        """Name old files to remove once the new asset is current (kept if it still uses them)."""
+        for path in paths:
+            path = self._final(path)
+            if path not in self._discard:
+                self._discard.append(path)
+
+    # -- committing -------------------------------------------------------------------------
+
+    def commit(self) -> None:
+        """fsync, rename the other files, then the target; remove discarded files; unlock."""
+        if self._state != "open":
+            return
+        for final, temporary in self._staged:
+            fault_point(f"fsync {temporary.name}", temporary)
+            os.chmod(temporary, _target_mode(final))
+            _fsync_path(temporary)
+        others = [(f, t) for f, t in self._staged if f != self.target]
+        last = [(f, t) for f, t in self._staged if f == self.target]
+        self._created = [f for f, _ in others if not os.path.lexists(f)]
+        self._write_journal()
+        for final, temporary in others:
+            fault_point(f"rename {final.name}", final)
+            os.replace(temporary, final)
+        fault_point(f"fsync {self.folder}", self.folder)
+        _fsync_dir(self.folder)
+        for final, temporary in last:
+            fault_point(f"commit {final.name}", final)
+            os.replace(temporary, final)  # the commit point
+        self._state = "committed"
+        _fsync_dir(self.folder)
+        failed = False
+        if self._discard:
+            used = self._used() | {os.path.abspath(f) for f, _ in self._staged}
+            for path in self._discard:
+                if os.path.abspath(path) in used:
+                    continue
+                try:
+                    fault_point(f"discard {path.name}", path)
+                    _remove_quietly(path)
+                except OSError:
+                    failed = True  # the journal stays: the next run removes it
+        if not failed:
+            with contextlib.suppress(OSError):
+                fault_point(f"remove {self._journal.name}", self._journal)
+                _remove_quietly(self._journal)
+        self._lock.release()
+
+    def abort(self) -> None:
+        """Remove every staged file and new name; the old asset stays; unlock."""
+        if self._state != "open":
+            return
+        self._state = "aborted"
+        for _, temporary in self._staged:
+            _remove_quietly(temporary)
+            for usd_temporary in _usd_temporaries(self.folder, temporary.name):
+                _remove_quietly(usd_temporary)
+        for final in self._created:  # new names only: files that existed before stay
+            _remove_quietly(final)
+        _remove_quietly(self._journal)
+        self._lock.release()
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            try:
+                self.commit()
+            except BaseException:
+                self.abort()
+                raise
+        else:
+            self.abort()
+
+
+def _scan(folder: Path, prefix: str) -> list:
+    try:
+        return [e.path for e in os.scandir(folder) if e.name.startswith(prefix)]
+    except OSError:
+        return []
+
+
+def write_error(error: OSError, file: Optional[PathLike] = None, *, code: str = "write.failed",
+                what: str = "the output") -> VbusdError:
+    """The one-line error for a failed write (raise it ``from None``).
+
+    Args:
+        error: The OSError of the write (disk full, quota, read-only, permission, name too long,
+            a folder in the way, USD's export failure).
+        file: The file the user asked for (default: the error's own file name).
+        code: A registered code: ``write.failed``, or a command's own (``convert.write``).
+        what: What could not be written, for the message.
+
+    Returns:
+        A :class:`vbusd.format.errors.VbusdError` (exit status 2), e.g.
+        ``out/crowd.usda: write.failed: cannot write the output (the old one is intact, nothing
+        was left): No space left on device``.
+    """
+    reason = error.strerror or str(error)
+    return VbusdError(f"cannot write {what} (the old one is intact, nothing was left): {reason}",
+                      file=str(file if file is not None else (error.filename or "")) or None, code=code)
+
+
+def recover(target: PathLike, *, in_use: Optional[Callable[[Path], Iterable[PathLike]]] = None,
+            lock_timeout: Optional[float] = None) -> None:
+    """Remove what killed runs left beside ``target`` (see :class:`Commit`), under its lock.
+
+    Every :class:`Commit` does this first; call it to clean up without writing.
+
+    Raises:
+        OutputLocked: Another run is writing the output.
+        OSError: The lock cannot be taken (read-only folder).
+    """
+    with Commit(target, replace=True, in_use=in_use, lock_timeout=lock_timeout):
+        pass
 
 
 _SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.\-]*):")
