@@ -1,0 +1,205 @@
+"""`vbusd view`'s server and plain files, without a browser.
+
+The server is started the way a user starts it (``vbusd view ... --no-browser`` in a subprocess)
+and spoken to over raw HTTP, so paths reach it exactly as sent (``http.client`` does not normalize
+``..``). Checked: the page and the plain files are served; paths that leave the asset's folder or
+the package's static folder are refused (``..``, percent-encoded ``..``, absolute paths, a symbolic
+link leading out); Ctrl-C (SIGINT) stops it with status 0 and no traceback, and frees the port; bad
+input is one line with status 2. The plain files are checked against the asset's own content
+digest and mesh arrays.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import http.client
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import vbusd
+from vbusd.format.model import BoundMesh, VirtualBonesAsset
+from vbusd.web.scene import build_scene
+from vbusd.web.server import safe_file
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "samples" / "stadium_crowd"
+
+
+def _get(port: int, path: str, method: str = "GET") -> tuple[int, bytes, str]:
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    try:
+        connection.request(method, path)
+        response = connection.getresponse()
+        return response.status, response.read(), response.getheader("Content-Type") or ""
+    finally:
+        connection.close()
+
+
+@pytest.fixture()
+def served_folder(tmp_path):
+    """A copy of the sample's Virtual Bones asset, a secret beside its folder and a link to it."""
+    folder = tmp_path / "asset"
+    folder.mkdir()
+    for name in ("stadium_crowd_vb.usda", "stadium_crowd_vb.Cheer.exr", "stadium_crowd_vb.Cheer.exr.json"):
+        shutil.copy(SAMPLE / name, folder / name)
+    (tmp_path / "secret.txt").write_text("not yours")
+    os.symlink(tmp_path / "secret.txt", folder / "link.txt")
+    return folder
+
+
+@pytest.fixture()
+def viewer(served_folder):
+    """``vbusd view ASSET --no-browser`` running; yields (process, port)."""
+    process = subprocess.Popen([sys.executable, "-m", "vbusd", "view", str(served_folder / "stadium_crowd_vb.usda"),
+                                "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = process.stdout.readline()
+        assert "http://127.0.0.1:" in line, line + process.stderr.read()
+        port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+        yield process, port
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait(timeout=30)
+
+
+def test_serves_page_config_and_plain_files(viewer):
+    _, port = viewer
+    status, body, content_type = _get(port, "/")
+    assert status == 200 and b'<script type="module" src="viewer.js">' in body and content_type.startswith("text/html")
+    status, body, content_type = _get(port, "/three/three.module.js")
+    assert status == 200 and content_type.startswith("text/javascript")  # module scripts need a JS type
+    config = json.loads(_get(port, "/config.json")[1])
+    assert config == {"name": "stadium_crowd_vb.usda", "kind": "scene", "url": "scene/scene.json"}
+    scene = json.loads(_get(port, "/scene/scene.json")[1])
+    status, data, _ = _get(port, "/scene/scene.bin")
+    assert status == 200 and len(data) == scene["buffer"]["byteLength"]
+    status, body, _ = _get(port, "/asset/stadium_crowd_vb.Cheer.exr.json")
+    assert status == 200 and json.loads(body)["encoding"] == "crossMatrix"
+    assert _get(port, "/config.json", method="HEAD")[0] == 200
+    assert _get(port, "/config.json", method="POST")[0] == 405
+    assert _get(port, "/asset/missing.exr")[0] == 404
+
+
+@pytest.mark.parametrize("path", [
+    "/asset/../secret.txt",
+    "/asset/%2e%2e/secret.txt",
+    "/asset/..%2fsecret.txt",
+    "/asset/sub/../../secret.txt",
+    "/asset/..\\secret.txt",
+    "/asset//etc/passwd",
+    "/asset/link.txt",  # a symbolic link inside the folder that leads out of it
+    "/../../../etc/passwd",
+    "/three/../../server.py",  # the package's Python files are not the page's
+    "/%2e%2e/server.py",
+])
+def test_refuses_paths_that_leave_the_folder(viewer, path):
+    _, port = viewer
+    status, body, _ = _get(port, path)
+    assert status in (403, 404), (path, status)
+    assert b"not yours" not in body and b"import" not in body
+
+
+def test_ctrl_c_stops_cleanly(viewer):
+    process, port = viewer
+    assert _get(port, "/config.json")[0] == 200
+    process.send_signal(signal.SIGINT)
+    assert process.wait(timeout=20) == 0
+    stderr = process.stderr.read()
+    assert "Traceback" not in stderr and "stopped" in stderr
+    with pytest.raises(OSError):  # nothing listens any more
+        socket.create_connection(("127.0.0.1", port), timeout=2).close()
+
+
+@pytest.mark.parametrize("arguments, expected", [
+    (["missing.usda"], "file.missing"),
+    (["notes.txt"], "expected a USD asset"),
+    (["stadium_crowd_vb.usda", "--port", "eighty"], "--port must be an integer"),
+    (["stadium_crowd_vb.usda", "--port", "70000"], "--port must be 0..65535"),
+])
+def test_bad_input_is_one_line(served_folder, arguments, expected):
+    (served_folder / "notes.txt").write_text("hello")
+    result = subprocess.run([sys.executable, "-m", "vbusd", "view", *arguments, "--no-browser"], cwd=served_folder,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and expected in lines[0], result.stderr
+
+
+def test_port_in_use_is_one_line(served_folder):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run([sys.executable, "-m", "vbusd", "view", "stadium_crowd_vb.usda", "--port", str(port),
+                                 "--no-browser"], cwd=served_folder, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and f"--port {port}" in result.stderr
+
+
+def test_safe_file(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "b.bin").write_bytes(b"x")
+    root = tmp_path.resolve()
+    assert safe_file(root, "a/b.bin") == root / "a" / "b.bin"
+    for bad in ("", "a", "../x", "a/../a/b.bin", "/etc/passwd", "a\\b.bin", "a/./b.bin", "c:/x", "a//b.bin", "a\0"):
+        assert safe_file(root, bad) is None, bad
+
+
+def test_plain_files_hold_the_asset():
+    """Texels hash to the digest the bake stored; meshes and instances are the asset's arrays."""
+    asset = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda")
+    scene, data = build_scene(asset)
+    assert scene["format"] == "vbusd.webScene" and scene["version"] == 1
+    animation = scene["animations"][0]
+
+    def view(entry, dtype):
+        return np.frombuffer(data, dtype=dtype, count=entry["byteLength"] // np.dtype(dtype).itemsize,
+                             offset=entry["byteOffset"])
+
+    texels = data[animation["texels"]["byteOffset"]:][:animation["texels"]["byteLength"]]
+    assert "sha256:" + hashlib.sha256(texels).hexdigest() == animation["layout"]["contentDigest"]
+    mesh, source = animation["meshes"][0], asset.animations[0].meshes[0]
+    np.testing.assert_array_equal(view(mesh["positions"], "<f4").reshape(-1, 3), source.points)
+    np.testing.assert_array_equal(view(mesh["triangles"], "<u4"), source.face_vertex_indices)
+    np.testing.assert_array_equal(view(mesh["boneIndices"], "<i4").reshape(-1, 4), source.bone_indices)
+    crowd = scene["crowds"][0]
+    assert crowd["count"] == 1200
+    np.testing.assert_array_equal(view(crowd["timeOffset"], "<f4"), asset.crowds[0].time_offset)
+
+
+def test_face_varying_normals_are_unwelded():
+    """Two triangles sharing an edge, with face-varying normals: a vertex per corner, mapped back."""
+    import dataclasses
+
+    vb = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").animations[0]
+    normals = np.array([[0, 0, 1], [0, 0.6, 0.8], [0, 0.8, 0.6], [0, 1, 0], [1, 0, 0], [0.6, 0.8, 0]], np.float32)
+    mesh = BoundMesh(path="/Quad", points=np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32),
+                     face_vertex_counts=np.array([3, 3], np.int32),
+                     face_vertex_indices=np.array([0, 1, 2, 0, 2, 3], np.int32),
+                     bone_indices=np.array([[1, 2]] * 4, np.int32), bone_weights=np.array([[0.75, 0.25]] * 4, np.float32),
+                     normals=normals, normals_interpolation="faceVarying")
+    scene, data = build_scene(VirtualBonesAsset(animations=(dataclasses.replace(vb, meshes=(mesh,)),)))
+    entry = scene["animations"][0]["meshes"][0]
+    assert entry["maxInfluences"] == 2 and entry["vertexCount"] == 6 and entry["pointCount"] == 4
+
+    def view(name, dtype, width):
+        return np.frombuffer(data, dtype, entry[name]["byteLength"] // 4, entry[name]["byteOffset"]).reshape(-1, width)
+
+    point_index = view("pointIndex", "<u4", 1)[:, 0]
+    np.testing.assert_array_equal(point_index, [0, 1, 2, 0, 2, 3])
+    np.testing.assert_array_equal(view("triangles", "<u4", 3), [[0, 1, 2], [3, 4, 5]])
+    np.testing.assert_array_equal(view("positions", "<f4", 3), mesh.points[point_index])
+    np.testing.assert_array_equal(view("normals", "<f4", 3), normals)
+    np.testing.assert_array_equal(view("boneIndices", "<i4", 4), [[1, 2, 0, 0]] * 6)  # padded to four slots
+    np.testing.assert_array_equal(view("boneWeights", "<f4", 4), [[0.75, 0.25, 0, 0]] * 6)
