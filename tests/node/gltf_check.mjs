@@ -27,8 +27,10 @@ result.validator = await validator.validateBytes(bytes, {
 globalThis.ProgressEvent ??= class ProgressEvent extends Event {
   constructor(type, init = {}) { super(type); Object.assign(this, init); }
 };
-globalThis.fetch = async (request) => {
+const nodeFetch = globalThis.fetch;
+globalThis.fetch = async (request, ...rest) => {
   const url = typeof request === 'string' ? request : request.url;
+  if (!url.startsWith('file:')) return nodeFetch(request, ...rest);  // zstddec's data: URL wasm
   const name = decodeURIComponent(new URL(url).pathname);
   const data = fs.readFileSync(name);
   return new Response(data, { status: 200 });

@@ -26,7 +26,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import InputError, OptionsError, VbusdError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 
 EXTENSION = "VBUSD_virtual_bones"
@@ -336,8 +336,11 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
             for path, data in files[1:] + files[:1]:
                 with transaction.open(path, "wb") as stream:
                     stream.write(main if data is None else data)
-    except BaseException:
-        remove_folders(created)
+    except BaseException as error:
+        remove_folders(created)  # the transaction left nothing in them
+        if isinstance(error, OSError):  # disk full, permissions: one line, not a traceback
+            raise VbusdError(f"cannot write the runtime package (nothing was written): "
+                             f"{error.strerror or error}", file=str(output), code="write.failed") from None
         raise
     report.output = str(output)
     report.files = {str(path): path.stat().st_size for path, _ in files}
