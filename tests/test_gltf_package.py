@@ -336,7 +336,7 @@ def test_existing_output_needs_force_and_a_failed_write_leaves_nothing(tmp_path,
 
     from vbusd.io import files
 
-    real_open = files.AtomicTransaction.open
+    real_open = files.Commit.open
     calls = []
 
     def failing_open(self, target, *args, **kwargs):
@@ -345,7 +345,7 @@ def test_existing_output_needs_force_and_a_failed_write_leaves_nothing(tmp_path,
             raise OSError(28, "No space left on device")
         return real_open(self, target, *args, **kwargs)
 
-    monkeypatch.setattr(files.AtomicTransaction, "open", failing_open)
+    monkeypatch.setattr(files.Commit, "open", failing_open)
     assert main(["export", str(asset), "-o", str(out), "--force"]) == 2
     assert "No space left on device" in _one_error(capsys, "write.failed")
     assert out.read_text() == "keep" and sorted(p.name for p in tmp_path.iterdir()) == ["asset", "c.gltf"]

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import click
 
-from vbusd.format.errors import OptionsError
-from vbusd.io.files import atomic_write, make_folders, remove_folders
+from vbusd.format.errors import OptionsError, VbusdError
+from vbusd.io.files import Commit, make_folders, remove_folders
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
 
@@ -79,8 +79,14 @@ def write_text(target: Path, text: str, *, force: bool) -> None:
         raise OptionsError("the output exists; pass --force to replace it", file=str(target))
     created = make_folders(target.parent)
     try:
-        with atomic_write(target, mode="w") as stream:
-            stream.write(text)
+        # Under the output's lock, the existence check repeated (spec, "File names and the write
+        # guarantee"): two runs cannot both create it, and a failed write leaves no trace.
+        with Commit(target, replace=force) as commit:
+            with commit.open(target, "w", encoding="utf-8", newline="\n") as stream:
+                stream.write(text)
+    except VbusdError:  # exists (re-checked under the lock), or locked by another run
+        remove_folders(created)
+        raise
     except OSError as error:
         remove_folders(created)
         raise OptionsError(f"cannot write (nothing was written): {error.strerror or error}",

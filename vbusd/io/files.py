@@ -214,6 +214,7 @@ class AtomicTransaction:
         _sweep_stale_temporaries(target)
         while True:
             temporary = _temp_name(target)
+            fault_point(f"create {temporary.name}", temporary)
             try:
                 fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
             except FileExistsError:
@@ -239,6 +240,7 @@ class AtomicTransaction:
         temporary = self.temp_path(target)
         with open(temporary, mode.replace("a", "w"), **kwargs) as stream:
             yield stream
+            fault_point(f"write {temporary.name}", temporary)
             stream.flush()
 
     def commit(self) -> None:
@@ -246,6 +248,7 @@ class AtomicTransaction:
         if self._done:
             return
         for target, temporary in self._entries:
+            fault_point(f"fsync {temporary.name}", temporary)
             os.chmod(temporary, _target_mode(target))
             _fsync_path(temporary)
         backups: list[tuple[Path, Optional[Path]]] = []
@@ -262,6 +265,7 @@ class AtomicTransaction:
                         backup = None
                     else:
                         backups.append((target, backup))
+                fault_point(f"rename {target.name}", target)
                 os.replace(temporary, target)
                 replaced.append((target, backup, existed))
         except BaseException:

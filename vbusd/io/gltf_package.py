@@ -10,13 +10,14 @@ unchanged; the root node ``vbusd`` converts the asset's up axis and units to glT
 
 The JSON and binary layout are written with the standard library (``json``, ``struct``) and numpy:
 the format is small, and writing it directly keeps every byte's place explicit. All files of one
-export are one :class:`~vbusd.io.files.AtomicTransaction`.
+export are one :class:`~vbusd.io.files.Commit`: the old package whole or the new one, never a mix.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 import urllib.parse
 from dataclasses import dataclass, field
@@ -293,8 +294,12 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
                 force: bool = False) -> ExportReport:
     """Write an asset as a runtime package (``.glb``, or ``.gltf`` with ``.bin`` and ``.ktx2`` files).
 
-    Everything is built in memory first; then every file is written in one atomic transaction, so a
-    failure leaves no file behind and replaces nothing.
+    Everything is built in memory first; then the files are written through one
+    :class:`vbusd.io.files.Commit` (spec/virtual-bones.md, "File names and the write guarantee"):
+    under the output's lock, a failure or a kill leaves the old package whole (or the new one), no
+    mix. A ``.gltf``'s buffer that a current ``.gltf`` of the same stem uses with other content is
+    written as ``<name>.<12 hex digits of its SHA-256>.<suffix>`` (``OUT.3fa9c0e1b2d4.bin``) and its
+    ``uri`` says so; the old package's buffers the new one does not use are removed after.
 
     Args:
         asset: The asset to export.
@@ -309,8 +314,10 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
         OptionsError: Wrong suffix, an existing file without ``force``, an output folder that cannot
             be made; raised before anything is written.
         InputError: As :func:`build_package`.
+        VbusdError: ``write.failed``: a file could not be written (disk full, quota, read-only,
+            name too long, a folder in the way); ``write.locked``: another run writes the output.
     """
-    from vbusd.io.files import AtomicTransaction, make_folders, remove_folders
+    from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 
     output = Path(output)
     suffix = output.suffix.lower()
@@ -322,26 +329,86 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     binary = suffix == ".glb"
     gltf, buffers, report = build_package(asset, binary=binary, base_name=output.stem,
                                           supercompression=supercompression, where=str(output))
-    files = [(output, None)] + [(output.with_name(name), data) for name, data in buffers if name is not None]
     if not force:
-        for path, _ in files:
-            if path.exists():
-                raise OptionsError(f"{path.name} exists; pass --force to replace it", file=str(output))
-    main = glb_bytes(gltf, buffers[0][1]) if binary else \
-        (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
+        for name in [output.name] + [name for name, _ in buffers if name is not None]:
+            if output.with_name(name).exists():
+                raise OptionsError(f"{name} exists; pass --force to replace it", file=str(output))
     created = make_folders(output.parent)
     try:
-        with AtomicTransaction() as transaction:
-            # The .gltf references the others: it is renamed last.
-            for path, data in files[1:] + files[:1]:
-                with transaction.open(path, "wb") as stream:
-                    stream.write(main if data is None else data)
+        # One commit (spec/virtual-bones.md, "File names and the write guarantee"): under the
+        # output's lock, the buffers are staged and renamed under names the current package does
+        # not use with other content, then the .gltf/.glb rename makes the new package current.
+        with Commit(output, replace=force, in_use=package_files_in_use) as commit:
+            in_use = {os.path.abspath(p) for p in package_files_in_use(output)}
+            old_files = _replaced_package_files(output)
+            files = [output]
+            for index, (name, data) in enumerate(buffers):
+                if name is None:
+                    continue
+                path = _buffer_name(output.with_name(name), data, in_use)
+                gltf["buffers"][index]["uri"] = urllib.parse.quote(path.name)
+                with commit.open(path, "wb") as stream:
+                    stream.write(data)
+                files.append(path)
+            main = glb_bytes(gltf, buffers[0][1]) if binary else \
+                (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
+            with commit.open(output, "wb") as stream:  # it names the others: renamed last
+                stream.write(main)
+            commit.discard_after(old_files)
     except BaseException as error:
-        remove_folders(created)  # the transaction left nothing in them
+        remove_folders(created)  # the commit left nothing in them
         if isinstance(error, OSError):  # disk full, permissions: one line, not a traceback
-            raise VbusdError(f"cannot write the runtime package (nothing was written): "
-                             f"{error.strerror or error}", file=str(output), code="write.failed") from None
+            raise write_error(error, output, what="the runtime package") from None
         raise
+    files = [(path, None) for path in files]
     report.output = str(output)
     report.files = {str(path): path.stat().st_size for path, _ in files}
     return report
+
+
+_PACKAGE_LIMIT_BYTES = 64 << 20
+"""A ``.gltf`` larger than this is not parsed for the buffers it names (vbusd writes JSON of a few KiB)."""
+
+
+def package_files_in_use(target) -> list:
+    """Files the ``.gltf`` of ``target``'s stem names (its relative buffer and image URIs), beside it.
+
+    The ``in_use`` callback of :class:`vbusd.io.files.Commit` for runtime packages: recovery and
+    the clean-up after a commit never remove a file a current ``.gltf`` of that stem names. A
+    ``.glb`` names no other file. Anything unreadable names nothing.
+    """
+    gltf_path = Path(target).with_suffix(".gltf")
+    try:
+        if not gltf_path.is_file() or gltf_path.stat().st_size > _PACKAGE_LIMIT_BYTES:
+            return []
+        document = json.loads(gltf_path.read_text(encoding="utf-8"))
+        entries = list(document.get("buffers") or []) + list(document.get("images") or [])
+    except (OSError, ValueError, AttributeError, TypeError):
+        return []
+    found = []
+    for entry in entries:
+        uri = entry.get("uri") if isinstance(entry, dict) else None
+        if isinstance(uri, str) and uri and ":" not in uri:
+            name = urllib.parse.unquote(uri)
+            if "/" not in name and "\\" not in name and name not in (".", ".."):
+                found.append(gltf_path.with_name(name))
+    return found
+
+
+def _replaced_package_files(output: Path) -> list:
+    """The old package's buffers to remove once the new one is current: those named ``<stem>.*``."""
+    return [p for p in package_files_in_use(output) if p.name.startswith(output.stem + ".")]
+
+
+def _buffer_name(plain: Path, data: bytes, in_use: set) -> Path:
+    """``plain``, unless a current ``.gltf`` uses that file with other content: then with a digest."""
+    import hashlib
+
+    if os.path.abspath(plain) not in in_use:
+        return plain
+    try:
+        if plain.is_file() and not plain.is_symlink() and plain.read_bytes() == data:
+            return plain  # the same bytes: replacing them changes nothing a reader sees
+    except OSError:
+        pass
+    return plain.with_name(f"{plain.stem}.{hashlib.sha256(data).hexdigest()[:12]}{plain.suffix}")
