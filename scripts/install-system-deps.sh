@@ -1,6 +1,10 @@
 #!/usr/bin/env bash
 # Install the Debian packages the shader tests run on: Mesa's EGL/OpenGL (llvmpipe runs the GLSL
-# without a GPU), glslang-tools (HLSL front end) and spirv-cross (SPIR-V back to GLSL).
+# without a GPU), glslang-tools (HLSL front end) and spirv-cross (SPIR-V back to GLSL); and what the
+# browser tests (tests/test_browser.py, the README picture) run on: Debian's chromium (headless, with
+# SwiftShader's software WebGL 2) and playwright-python from the package index, used only as the
+# driver of that chromium (vbusd.web.browser passes its executable; playwright's own browser
+# download is neither run nor needed).
 #
 # Installs only what is missing, and only where apt-get can (root, or sudo without a password).
 # Elsewhere it says what to install and returns 0: tests/test_shaders.py then skips what it
@@ -21,10 +25,23 @@ has_library 'libEGL_mesa.so.0 ' || missing+=(libegl-mesa0)
 # llvmpipe, Mesa's software rasterizer, is in the DRI driver package.
 compgen -G '/usr/lib/*/dri/swrast_dri.so' >/dev/null || compgen -G '/usr/lib/dri/swrast_dri.so' >/dev/null \
     || missing+=(libgl1-mesa-dri)
+command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || missing+=(chromium)
+
+# playwright-python (the driver; a wheel with its own Node runtime inside). Allowed to fail: the
+# browser tests then skip with one line saying what to install.
+install_playwright() {
+    python -c 'import playwright.sync_api' >/dev/null 2>&1 && return 0
+    echo "install-system-deps: installing playwright (Python package) for the browser tests" >&2
+    python -m pip install -q 'playwright>=1.40' >/dev/null 2>&1 \
+        || echo "install-system-deps: pip could not install playwright; the browser tests will skip" >&2
+    return 0
+}
+install_playwright
+
 [ ${#missing[@]} -eq 0 ] && exit 0
 
 if ! command -v apt-get >/dev/null 2>&1; then
-    echo "install-system-deps: no apt-get; install ${missing[*]} (or your system's equivalents) for the shader tests" >&2
+    echo "install-system-deps: no apt-get; install ${missing[*]} (or your system's equivalents) for the shader and browser tests" >&2
     exit 0
 fi
 if [ "$(id -u)" -eq 0 ]; then
@@ -38,5 +55,5 @@ fi
 echo "install-system-deps: installing ${missing[*]}" >&2
 "${run[@]}" apt-get update -qq >/dev/null 2>&1 || true
 DEBIAN_FRONTEND=noninteractive "${run[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
-    || echo "install-system-deps: apt-get could not install ${missing[*]}; the shader tests that need them will skip" >&2
+    || echo "install-system-deps: apt-get could not install ${missing[*]}; the shader and browser tests that need them will skip" >&2
 exit 0

@@ -169,3 +169,16 @@ def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     for file in report["files"]:
         assert Path(file).resolve().is_relative_to(site.resolve()), file
     assert report["plugInfo"] and report["jsonSchema"]
+
+
+def test_viewer_and_three_js_ship_in_the_wheel(wheel_names, source_copy):
+    # `vbusd view` works offline from the wheel: every file of the viewer's package data (the page,
+    # the three.js runtime, three.js and its licence) is in it, and three.js itself is not empty.
+    static = source_copy / "vbusd" / "web" / "static"
+    expected = sorted(f"vbusd/web/static/{path.relative_to(static).as_posix()}"
+                      for path in static.rglob("*") if path.is_file())
+    assert "vbusd/web/static/three/three.module.js" in expected
+    assert "vbusd/web/static/three/three.core.js" in expected
+    assert "vbusd/web/static/vbusd-three/index.js" in expected
+    missing = [name for name in expected if name not in wheel_names]
+    assert not missing, f"viewer files not packaged: {missing}"
