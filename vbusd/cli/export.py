@@ -1,7 +1,9 @@
 """``vbusd export ASSET -o OUT``: write a Virtual Bones asset (or crowd) in a form other tools load.
 
 ``--as`` picks the form; without it the output's suffix does: ``.glb`` / ``.gltf`` give the glTF 2.0
-runtime package that engines load (spec/runtime-package.md, :mod:`vbusd.io.gltf_package`). Each
+runtime package that engines load (spec/runtime-package.md, :mod:`vbusd.io.gltf_package`);
+``--as usdskel`` writes ``.usda`` / ``.usdc`` / ``.usd``: the UsdSkel fallback that Hydra renderers skin
+themselves (spec/runtime-package.md, "UsdSkel fallback", :mod:`vbusd.export_usdskel`). Each
 form is one entry of :data:`EXPORTERS` (a function ``(asset_path, output, options) -> report dict``),
 so further forms plug in beside it.
 """
@@ -28,7 +30,24 @@ def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
     return report.to_dict()
 
 
-EXPORTERS = {"gltf": _export_gltf}
+def _export_usdskel(asset_path: Path, output: Path, options: dict) -> dict:
+    from vbusd.export_usdskel import SUFFIXES, export_usdskel
+    from vbusd.io.usd import read_asset
+
+    if output.suffix.lower() not in SUFFIXES:
+        raise OptionsError(f"--as usdskel writes .usda, .usdc or .usd files, got {output.name!r}", file=str(output))
+    if options["supercompression"] != "none":
+        raise OptionsError("--supercompression applies to the glTF runtime package, not to --as usdskel",
+                           file=str(output))
+    if output.exists() and not options["force"]:  # before reading the asset: nothing to do
+        raise OptionsError(f"{output.name} exists; pass --force to replace it", file=str(output))
+    asset = read_asset(asset_path, allow_outside_paths=options["allow_outside_paths"])
+    report = export_usdskel(asset, output, source=asset_path, force=options["force"],
+                            duration=options["duration"])
+    return report.to_dict()
+
+
+EXPORTERS = {"gltf": _export_gltf, "usdskel": _export_usdskel}
 """Export forms by ``--as`` name."""
 
 FORM_OF_SUFFIX = {".glb": "gltf", ".gltf": "gltf"}
@@ -38,29 +57,36 @@ FORM_OF_SUFFIX = {".glb": "gltf", ".gltf": "gltf"}
 @click.command(name="export")
 @click.argument("asset", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
-              help="File to write: OUT.glb or OUT.gltf (the glTF runtime package).")
+              help="File to write: OUT.glb or OUT.gltf (the glTF runtime package), OUT.usda|.usdc with "
+                   "--as usdskel.")
 @click.option("--as", "form", default=None, metavar="FORM",
-              help="What to write: gltf (the glTF 2.0 runtime package; default for .glb and .gltf).")
+              help="What to write: gltf (the glTF 2.0 runtime package; default for .glb and .gltf) or "
+                   "usdskel (UsdSkel for Hydra renderers: a Skeleton and SkelAnimation per clip, crowds as "
+                   "references with layer offsets).")
 @click.option("--supercompression", default="none", show_default=True, type=click.Choice(["none", "zstd"]),
               help="Zstandard-supercompress the KTX2 textures of a runtime package (three.js's "
                    "KTX2Loader decodes it; needs the zstandard package).")
+@click.option("--duration", default=None, type=float, metavar="SECONDS",
+              help="--as usdskel: stage seconds the fallback plays (default: clip 0's duration).")
 @click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]),
               help="Report as text or as JSON on stdout.")
 @click.option("--force", is_flag=True, help="Replace existing output files.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
-def command(asset, output, form, supercompression, output_format, force, allow_outside_paths):
-    """Export a Virtual Bones asset or crowd for engines (glTF 2.0 runtime package)."""
+def command(asset, output, form, supercompression, duration, output_format, force, allow_outside_paths):
+    """Export a Virtual Bones asset or crowd for engines (glTF 2.0) or Hydra renderers (UsdSkel)."""
     output_path = Path(output)
     if form is None:
         form = FORM_OF_SUFFIX.get(output_path.suffix.lower())
         if form is None:
             raise OptionsError(f"cannot tell what to write from {output_path.name!r}: name a .glb or .gltf "
                                f"file, or pass --as ({', '.join(EXPORTERS)})", file=str(output_path))
+    if duration is not None and form != "usdskel":
+        raise OptionsError("--duration applies to --as usdskel only", file=str(output_path))
     if form not in EXPORTERS:
         raise OptionsError(f"--as must be one of {', '.join(EXPORTERS)}, got {form!r}", file=str(output_path))
     report = EXPORTERS[form](Path(asset), output_path,
                              {"supercompression": supercompression, "force": force,
-                              "allow_outside_paths": allow_outside_paths})
+                              "allow_outside_paths": allow_outside_paths, "duration": duration})
     if output_format == "json":
         click.echo(json.dumps(report, indent=2))
         return 0
