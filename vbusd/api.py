@@ -97,14 +97,33 @@ def clip_index(vb: VirtualBones, clip, *, what: str = "skin") -> int:
     raise OptionsError(f"animation {vb.path} has no clip {clip!r} (clips: {', '.join(names)})", file=what)
 
 
-def skin(asset: AssetLike, clip=0, time: float = 0.0, *, animation: int = 0) -> list:
+def _finite_seconds(value, name: str) -> float:
+    try:
+        seconds = float(value)
+    except (TypeError, ValueError):
+        seconds = float("nan")
+    if not np.isfinite(seconds):
+        raise OptionsError(f"{name} must be a finite number of seconds, got {value!r}", file="skin")
+    return seconds
+
+
+def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_time=None, fade_weight: float = 0.0,
+         animation: int = 0) -> list:
     """Skin every mesh bound to an animation at one clip-local time, with the numpy reference decoder.
+
+    With ``fade_clip`` the mesh plays two clips at once (spec: "Crossfade", format 1.1): ``clip``
+    at ``time`` and ``fade_clip`` at ``fade_time``, blended with weight ``fade_weight`` of the fade
+    clip (the two skinned poses blended; for the matrix encodings the same as blending each bone's
+    two skinning matrices).
 
     Args:
         asset: A Virtual Bones asset path, a read :class:`~vbusd.format.model.VirtualBonesAsset`, or
             one :class:`~vbusd.format.model.VirtualBones`.
         clip: Clip name or index.
         time: Clip-local time in seconds (a looping clip wraps, a clamped one holds its ends).
+        fade_clip: The clip faded in, by name or index; None for no crossfade.
+        fade_time: The fade clip's clip-local time in seconds (required with ``fade_clip``).
+        fade_weight: Weight of the fade clip, 0..1 (0: ``clip`` alone, 1: ``fade_clip`` alone).
         animation: Which animation of the asset (index), when it holds several.
 
     Returns:
@@ -113,26 +132,42 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, animation: int = 0) -> 
 
     Raises:
         InputError: The asset cannot be read.
-        OptionsError: No such clip or animation, or a time that is not a finite number.
+        OptionsError: No such clip or animation, a time that is not a finite number, a fade
+            weight outside 0..1, or a fade clip without a fade time.
 
     Example:
         >>> poses = vbusd.skin("out/stadium_crowd.usda", "Cheer", 1.5)  # doctest: +SKIP
         >>> poses[0].points.shape
         (202, 3)
+        >>> walk_to_run = vbusd.skin("crowd.usda", "walk", 0.8, fade_clip="run", fade_time=0.1,
+        ...                          fade_weight=0.25)  # doctest: +SKIP
     """
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decode.reference import skin_mesh, skin_mesh_crossfade
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
+    tau = _finite_seconds(time, "time")
     try:
-        tau = float(time)
+        weight = float(fade_weight)
     except (TypeError, ValueError):
-        tau = float("nan")
-    if not np.isfinite(tau):
-        raise OptionsError(f"time must be a finite number of seconds, got {time!r}", file="skin")
+        weight = float("nan")
+    if not 0.0 <= weight <= 1.0:
+        raise OptionsError(f"fade_weight must be a number in 0..1, got {fade_weight!r}", file="skin")
+    fade_index = None
+    if fade_clip is not None:
+        fade_index = clip_index(vb, fade_clip)
+        if fade_time is None:
+            raise OptionsError("fade_clip needs fade_time (the fade clip's clip-local seconds)", file="skin")
+        fade_tau = _finite_seconds(fade_time, "fade_time")
+    elif weight > 0.0:
+        raise OptionsError(f"fade_weight {weight} needs a fade_clip", file="skin")
     poses = []
     for mesh in vb.meshes:
-        points, normals = skin_mesh(vb, mesh, index, np.array([tau]))
+        if fade_index is None:
+            points, normals = skin_mesh(vb, mesh, index, np.array([tau]))
+        else:
+            points, normals = skin_mesh_crossfade(vb, mesh, index, np.array([tau]), fade_index,
+                                                  np.array([fade_tau]), weight)
         poses.append(SkinnedPose(mesh.path, points[0], None if normals is None else normals[0]))
     return poses
 

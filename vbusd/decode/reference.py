@@ -1,7 +1,7 @@
 """The numpy reference decoder: clip timing, row interpolation, decoding and skinning.
 
 This is the executable definition of the spec's "Clips", "Interpolation between rows",
-"Skinning" and "Instancing" sections, in float64. The warp kernels (vbusd.decode.warp) are its
+"Skinning" (crossfades included) and "Instancing" sections, in float64. The warp kernels (vbusd.decode.warp) are its
 twins and are tested against it.
 
 Times passed here are *clip-local* seconds ``tau`` (0 is the clip's first row), unless a function
@@ -79,7 +79,8 @@ def _normalize(v: np.ndarray) -> np.ndarray:
 def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarray,
          bone_indices: np.ndarray, bone_weights: np.ndarray,
          normals: Optional[np.ndarray] = None,
-         normal_points: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+         normal_points: Optional[np.ndarray] = None, *,
+         normalize_normals: bool = True) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Skin rest points (and normals) with decoded bone transforms.
 
     Linear blend skinning for crossMatrix, affineMatrix and quatTranslation:
@@ -94,6 +95,8 @@ def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarra
         bone_weights: (V, K) weights.
         normals: (V', 3) rest normals or None.
         normal_points: (V',) point index of each normal (faceVarying normals), None when V' = V.
+        normalize_normals: False returns the skinned normals before normalization (``sum_i w_i N_i n``
+            for LBS), what a crossfade (spec "Crossfade") blends.
 
     Returns:
         (points (n, V, 3), normals (n, V', 3) or None), float64.
@@ -104,13 +107,14 @@ def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarra
     w = np.asarray(bone_weights, dtype=np.float64)
     nidx = idx if normal_points is None else idx[normal_points]
     nw = w if normal_points is None else w[normal_points]
+    finish = _normalize if normalize_normals else (lambda v: v)
     if encoding is Encoding.DUAL_QUAT:
-        return _skin_dqs(transforms, p, idx, w, normals, nidx, nw)
+        return _skin_dqs(transforms, p, idx, w, normals, nidx, nw, finish)
     # LBS is linear in the transforms, so blend each vertex's matrices first, then transform the
     # point once: sum_k w_k [A|t]_k is one (V, used bones) x (used bones, 12) product per time.
     used, weight_matrix = _weight_matrix(idx, w)
     if used.size > DENSE_BONE_LIMIT:  # many bones: one (n, V, 3, 3) gather per influence slot
-        return _skin_lbs_by_slot(transforms, p, idx, w, normals, nidx, nw)
+        return _skin_lbs_by_slot(transforms, p, idx, w, normals, nidx, nw, finish)
     n = transforms.linear.shape[0]
     affine = np.concatenate([transforms.linear[:, used], transforms.translation[:, used, :, None]], axis=-1)
     blended = np.matmul(weight_matrix, affine.reshape(n, used.size, 12)).reshape(n, -1, 3, 4)
@@ -119,7 +123,7 @@ def skin(transforms: BoneTransforms, encoding: Encoding | str, points: np.ndarra
     if normals is not None:
         rows = weight_matrix if normal_points is None else weight_matrix[normal_points]
         blended_normals = np.matmul(rows, transforms.normal[:, used].reshape(n, used.size, 9)).reshape(n, -1, 3, 3)
-        out_normals = _normalize(_apply(blended_normals, np.asarray(normals, dtype=np.float64)))
+        out_normals = finish(_apply(blended_normals, np.asarray(normals, dtype=np.float64)))
     return out_points, out_normals
 
 
@@ -143,7 +147,8 @@ def _apply(matrices: np.ndarray, vectors: np.ndarray) -> np.ndarray:
             + matrices[..., 2] * vectors[None, :, 2, None])
 
 
-def _skin_lbs_by_slot(transforms, p, idx, w, normals, nidx, nw):
+def _skin_lbs_by_slot(transforms, p, idx, w, normals, nidx, nw, finish=None):
+    finish = _normalize if finish is None else finish
     n = transforms.linear.shape[0]
     linear = np.zeros((n, p.shape[0], 3, 3))
     translation = np.zeros((n, p.shape[0], 3))
@@ -156,7 +161,7 @@ def _skin_lbs_by_slot(transforms, p, idx, w, normals, nidx, nw):
         blended = np.zeros((n, nidx.shape[0], 3, 3))
         for slot in range(nidx.shape[1]):
             blended += transforms.normal[:, nidx[:, slot]] * nw[None, :, slot, None, None]
-        out_normals = _normalize(_apply(blended, np.asarray(normals, dtype=np.float64)))
+        out_normals = finish(_apply(blended, np.asarray(normals, dtype=np.float64)))
     return out_points, out_normals
 
 
@@ -171,7 +176,8 @@ def _blend_dual_quats(transforms: BoneTransforms, idx: np.ndarray, w: np.ndarray
     return blend_real / norm, blend_dual / norm
 
 
-def _skin_dqs(transforms, p, idx, w, normals, nidx, nw):
+def _skin_dqs(transforms, p, idx, w, normals, nidx, nw, finish=None):
+    finish = _normalize if finish is None else finish
     real, dual = _blend_dual_quats(transforms, idx, w)
     rotation = quat_to_matrix(real)
     translation = 2.0 * quat_multiply(dual, real * np.array([-1.0, -1.0, -1.0, 1.0]))[..., :3]
@@ -179,8 +185,8 @@ def _skin_dqs(transforms, p, idx, w, normals, nidx, nw):
     out_normals = None
     if normals is not None:
         nreal, _ = _blend_dual_quats(transforms, nidx, nw)
-        out_normals = _normalize(np.einsum("nvij,vj->nvi", quat_to_matrix(nreal),
-                                           np.asarray(normals, dtype=np.float64)))
+        out_normals = finish(np.einsum("nvij,vj->nvi", quat_to_matrix(nreal),
+                                       np.asarray(normals, dtype=np.float64)))
     return out_points, out_normals
 
 
@@ -216,10 +222,70 @@ def instance_time(crowd: Crowd, t: float) -> np.ndarray:
     return np.asarray(crowd.time_offset, dtype=np.float64) + np.asarray(crowd.playback_rate, dtype=np.float64) * t
 
 
+def crossfade(pose_a: tuple, pose_b: tuple, weight) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Blend two skinned poses with the weight of the second (spec: "Crossfade").
+
+    ``p' = (1 - w) p_a + w p_b`` and ``n' = normalize((1 - w) n_a + w n_b)``, with the normals
+    *before* normalization (:func:`skin` with ``normalize_normals=False``). ``w`` is clamped to
+    [0, 1]; where it is 0 the result is exactly pose a, normalized.
+
+    Args:
+        pose_a: (points (n, V, 3), unnormalized normals (n, V', 3) or None) of the first clip.
+        pose_b: The same of the fade clip.
+        weight: Weight of ``pose_b``: a scalar or one per pose (n,).
+
+    Returns:
+        (points (n, V, 3), unit normals (n, V', 3) or None), float64.
+    """
+    w = np.clip(np.asarray(weight, dtype=np.float64), 0.0, 1.0)
+    w = np.broadcast_to(w.reshape(-1) if w.ndim else w, (pose_a[0].shape[0],))[:, None, None]
+    points = (1.0 - w) * pose_a[0] + w * pose_b[0]
+    normals = None
+    if pose_a[1] is not None:
+        normals = _normalize((1.0 - w) * pose_a[1] + w * pose_b[1])
+    return points, normals
+
+
+def _raw_pose(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, values=None):
+    transforms = decode_bones(interpolated_values(vb, clip_index, np.atleast_1d(tau), values), vb.layout.encoding)
+    return skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
+                mesh.normals, normal_point_indices(mesh), normalize_normals=False)
+
+
+def skin_mesh_crossfade(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, fade_clip: int, fade_tau,
+                        fade_weight) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Skinned points and normals of a bound mesh crossfading two clips (spec: "Crossfade").
+
+    Clip ``clip_index`` plays at clip-local times ``tau`` and clip ``fade_clip`` at ``fade_tau`` (as
+    many times as ``tau``), blended with weight ``fade_weight`` of the fade clip. Every encoding
+    blends the two skinned poses; for the LBS encodings that equals blending each bone's two
+    skinning matrices.
+
+    Args:
+        vb: The baked animation.
+        mesh: A bound mesh.
+        clip_index: Index of the first clip.
+        tau: Its clip-local times (n,).
+        fade_clip: Index of the fade clip.
+        fade_tau: The fade clip's clip-local times (n,).
+        fade_weight: Weight of the fade clip, scalar or (n,), clamped to [0, 1].
+
+    Returns:
+        (points (n, V, 3), normals (n, V', 3) or None), float64.
+    """
+    values = channel_values(vb)
+    tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+    fade_tau = np.broadcast_to(np.atleast_1d(np.asarray(fade_tau, dtype=np.float64)), tau.shape)
+    pose_a = _raw_pose(vb, mesh, clip_index, tau, values)
+    pose_b = _raw_pose(vb, mesh, fade_clip, fade_tau, values)
+    return crossfade(pose_a, pose_b, fade_weight)
+
+
 def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """World-space points (N, V, 3) and normals of every instance of ``mesh`` at scene time ``t``.
 
-    Each instance is skinned at its own clip and clip-local time, then placed by the point
+    Each instance is skinned at its own clip and clip-local time (crossfaded with its fade clip at
+    its own time where its fade weight is above 0, spec "Crossfade"), then placed by the point
     instancer's transform: scale, then orientation, then position.
     """
     taus = instance_time(crowd, t)
@@ -230,13 +296,23 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     normals = None if mesh.normals is None else np.empty((n,) + mesh.normals.shape)
     for clip_index in np.unique(clip_ids):
         chosen = np.flatnonzero(clip_ids == clip_index)
-        interpolated = interpolated_values(vb, int(clip_index), taus[chosen], values)
-        transforms = decode_bones(interpolated, vb.layout.encoding)
-        p, nrm = skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
-                      mesh.normals, normal_point_indices(mesh))
+        p, nrm = _raw_pose(vb, mesh, int(clip_index), taus[chosen], values)
         points[chosen] = p
         if normals is not None:
             normals[chosen] = nrm
+    if crowd.crossfades:
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        fade_weight = np.clip(fade_weight, 0.0, 1.0)
+        fade_taus = fade_offset + fade_rate * t
+        for clip_index in np.unique(fade_clip[fade_weight > 0]):
+            chosen = np.flatnonzero((fade_clip == clip_index) & (fade_weight > 0))
+            pose_b = _raw_pose(vb, mesh, int(clip_index), fade_taus[chosen], values)
+            w = fade_weight[chosen][:, None, None]
+            points[chosen] = (1.0 - w) * points[chosen] + w * pose_b[0]
+            if normals is not None:
+                normals[chosen] = (1.0 - w) * normals[chosen] + w * pose_b[1]
+    if normals is not None:
+        normals = _normalize(normals)
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
     scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
     world = np.einsum("nij,nvj->nvi", rotation, points * scale[:, None, :])

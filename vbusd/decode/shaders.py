@@ -215,10 +215,10 @@ void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend, out vec4 rea
 }
 
 _SKIN_LBS = """\
-// Linear blend skinning of one vertex at clip-local time tau.
-void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
-            int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
-            out vec3 position, out vec3 normal)
+// Linear blend skinning of one vertex at clip-local time tau; the normal is not yet normalized.
+void vbSkinPose(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
+                int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                out vec3 position, out vec3 normal)
 {
     int row0;
     int row1;
@@ -235,17 +235,15 @@ void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal
         position += w * (a0 * restPosition.x + a1 * restPosition.y + a2 * restPosition.z + t);
         normal += w * (n0 * restNormal.x + n1 * restNormal.y + n2 * restNormal.z);
     }
-    // The spec defines normalize(0) as 0 (a zero rest normal stays zero); GLSL and HLSL give NaN.
-    float normalLength = length(normal);
-    normal = normalLength > 0.0 ? normal / normalLength : normal;
 }
 """
 
 _SKIN_DQS = """\
-// Dual-quaternion skinning of one vertex at clip-local time tau (signs follow the first influence).
-void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
-            int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
-            out vec3 position, out vec3 normal)
+// Dual-quaternion skinning of one vertex at clip-local time tau (signs follow the first influence);
+// the normal is not yet normalized.
+void vbSkinPose(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
+                int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                out vec3 position, out vec3 normal)
 {
     int row0;
     int row1;
@@ -271,8 +269,48 @@ void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal
     vec3 t = 2.0 * (real.w * dual.xyz - dual.w * real.xyz + cross(real.xyz, dual.xyz));
     position = vbRotate(real, restPosition) + t;
     normal = vbRotate(real, restNormal);
-    float normalLength = length(normal);  // the spec defines normalize(0) as 0, GLSL and HLSL NaN
-    normal = normalLength > 0.0 ? normal / normalLength : normal;
+}
+"""
+
+# Shared by both skinning methods: the single-clip entry point and the crossfade (spec 8.3).
+_SKIN_ENTRY = """\
+// The spec defines normalize(0) as 0 (a zero rest normal stays zero); GLSL and HLSL give NaN.
+vec3 vbNormalize(vec3 v)
+{
+    float len = length(v);
+    return len > 0.0 ? v / len : v;
+}
+
+// Skinned position and unit normal of one vertex at clip-local time tau.
+void vbSkin(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNormal,
+            int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+            out vec3 position, out vec3 normal)
+{
+    vbSkinPose(VB_ARGS clip, tau, restPosition, restNormal, boneIndex, boneWeight, position, normal);
+    normal = vbNormalize(normal);
+}
+
+// Crossfade (spec: section Crossfade, format 1.1): clip at tau blended with fadeClip at fadeTau,
+// fadeWeight the weight of fadeClip (clamped to 0..1). The two skinned poses are blended, normals
+// before normalization; for the matrix encodings that equals blending the two matrices of each bone.
+// With fadeWeight 0 the fade clip is not read and the result is exactly that of vbSkin.
+void vbSkinCrossfade(VB_ARGS_DECL int clip, float tau, int fadeClip, float fadeTau, float fadeWeight,
+                     vec3 restPosition, vec3 restNormal,
+                     int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                     out vec3 position, out vec3 normal)
+{
+    vbSkinPose(VB_ARGS clip, tau, restPosition, restNormal, boneIndex, boneWeight, position, normal);
+    float w = clamp(fadeWeight, 0.0, 1.0);
+    if (w > 0.0)
+    {
+        vec3 fadePosition;
+        vec3 fadeNormal;
+        vbSkinPose(VB_ARGS fadeClip, fadeTau, restPosition, restNormal, boneIndex, boneWeight,
+                   fadePosition, fadeNormal);
+        position = mix(position, fadePosition, w);
+        normal = mix(normal, fadeNormal, w);
+    }
+    normal = vbNormalize(normal);
 }
 """
 
@@ -288,6 +326,10 @@ in vec4 vb_boneWeights1;
 #endif
 in int vb_instanceClip;          // per instance (divisor 1): clip index
 in vec2 vb_instanceTime;         // per instance: (timeOffset, playbackRate)
+#if VB_CROSSFADE
+in int vb_instanceFadeClip;      // per instance: fade clip index (format 1.1)
+in vec3 vb_instanceFade;         // per instance: (fadeTimeOffset, fadePlaybackRate, fadeWeight)
+#endif
 
 out vec3 vb_skinnedPosition;
 out vec3 vb_skinnedNormal;
@@ -307,8 +349,14 @@ void main()
 #endif
     }
     float tau = vb_instanceTime.x + vb_instanceTime.y * vb_time;
+#if VB_CROSSFADE
+    vbSkinCrossfade(VB_ARGS vb_instanceClip, tau, vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time,
+                    vb_instanceFade.z, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
+                    vb_skinnedPosition, vb_skinnedNormal);
+#else
     vbSkin(VB_ARGS vb_instanceClip, tau, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
            vb_skinnedPosition, vb_skinnedNormal);
+#endif
     gl_Position = vec4(vb_skinnedPosition, 1.0);
 }
 #endif
@@ -328,6 +376,10 @@ struct VbVertexInput
 #endif
     int instanceClip : TEXCOORD6;      // per instance: clip index
     float2 instanceTime : TEXCOORD7;   // per instance: (timeOffset, playbackRate)
+#if VB_CROSSFADE
+    int instanceFadeClip : TEXCOORD4;  // per instance: fade clip index (format 1.1)
+    float3 instanceFade : TEXCOORD5;   // per instance: (fadeTimeOffset, fadePlaybackRate, fadeWeight)
+#endif
 };
 
 struct VbVertexOutput
@@ -353,8 +405,15 @@ VbVertexOutput main(VbVertexInput input)
     }
     float tau = input.instanceTime.x + input.instanceTime.y * vb_time;
     VbVertexOutput output;
+#if VB_CROSSFADE
+    vbSkinCrossfade(VB_ARGS input.instanceClip, tau, input.instanceFadeClip,
+                    input.instanceFade.x + input.instanceFade.y * vb_time, input.instanceFade.z,
+                    input.restPosition, input.restNormal, boneIndex, boneWeight,
+                    output.skinnedPosition, output.skinnedNormal);
+#else
     vbSkin(VB_ARGS input.instanceClip, tau, input.restPosition, input.restNormal, boneIndex, boneWeight,
            output.skinnedPosition, output.skinnedNormal);
+#endif
     output.position = float4(output.skinnedPosition, 1.0);
     return output;
 }
@@ -393,6 +452,10 @@ def generate(options: ShaderOptions) -> str:
         "#ifndef VB_MAIN",
         f"#define VB_MAIN {1 if options.main else 0}",
         "#endif",
+        "// VB_CROSSFADE 1: the example main reads the per-instance fade clip, time and weight (format 1.1).",
+        "#ifndef VB_CROSSFADE",
+        "#define VB_CROSSFADE 0",
+        "#endif",
         "// Engine hooks (spec/shaders.md, section Engine hooks): define any of these before the module.",
         "#ifndef VB_DECLARE_RESOURCES",
         "#define VB_DECLARE_RESOURCES 1",
@@ -417,7 +480,7 @@ def generate(options: ShaderOptions) -> str:
     prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
     skin = _SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _SKIN_LBS
     main = _GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN
-    parts = [prologue, _BODY, _DECODE[options.encoding], skin, main]
+    parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, main]
     if options.lang == "hlsl":
         parts.append(_HLSL_EPILOGUE)
     return "\n".join(header) + "\n".join(parts)

@@ -185,6 +185,11 @@ class DeviceCrowd:
     orientations: wp.array
     scales: wp.array
     uniform_scale: bool = True
+    fade_clip: Optional[wp.array] = None
+    fade_time_offset: Optional[wp.array] = None
+    fade_playback_rate: Optional[wp.array] = None
+    fade_weight: Optional[wp.array] = None
+    fades: bool = False
 
     @property
     def instance_count(self) -> int:
@@ -198,7 +203,8 @@ class BoneBuffers:
 
     Structure of arrays, float32: ``linear`` (n, 12, B) the placed ``[A | t]`` row by row (LBS
     encodings), ``normal`` (n, 9, B) placed normal matrices (affineMatrix, quatTranslation, or
-    non-uniformly scaled instances), ``dual`` (n, 8, B) dual quaternions (dualQuat). A skinning
+    non-uniformly scaled instances), ``dual`` (n, 8, B) dual quaternions (dualQuat) and
+    ``dual_fade`` (n, 8, B) those of the fade clip of crossfading instances. A skinning
     warp gathers one component of its vertices' bones per load: with bones innermost, those
     addresses fall in one or two cache lines instead of one 48-byte matrix each. Unused buffers are
     1x1x1 placeholders. ``frames`` (n,) holds the per-instance rows, blend and placement.
@@ -208,6 +214,7 @@ class BoneBuffers:
     normal: wp.array
     dual: wp.array
     frames: wp.array
+    dual_fade: Optional[wp.array] = None
 
 
 class Decoder:
@@ -373,6 +380,11 @@ class Decoder:
         length = np.linalg.norm(q, axis=1, keepdims=True)
         q = q / np.where(length > 0, length, 1.0)
         scales = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, np.float64).reshape(n, 3)
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        if crowd.crossfades and (fade_clip.min() < 0 or fade_clip.max() >= self.clip_count):
+            bad = int(fade_clip.max() if fade_clip.max() >= self.clip_count else fade_clip.min())
+            raise InputError(f"fade clip index {bad} out of range 0..{self.clip_count - 1}",
+                             location=f"{crowd.path}.primvars:vb:fadeClip", code="instancer.clip.range")
         return DeviceCrowd(
             clip=self._array(clip.astype(np.int32), wp.int32),
             time_offset=self._array(np.asarray(crowd.time_offset, np.float64).reshape(n), wp.float64),
@@ -380,26 +392,58 @@ class Decoder:
             positions=self._array(np.asarray(crowd.positions, np.float32).reshape(n, 3), wp.vec3),
             orientations=self._array(q.astype(np.float32), wp.quat),
             scales=self._array(scales.astype(np.float32), wp.vec3),
-            uniform_scale=bool(np.all(scales == scales[:, :1])))
+            uniform_scale=bool(np.all(scales == scales[:, :1])),
+            **self._fade_arrays(fade_clip, fade_offset, fade_rate, fade_weight))
 
-    def _times_crowd(self, clip_index: int, tau) -> DeviceCrowd:
-        """A crowd of untransformed instances at clip-local times ``tau`` (for :meth:`skin`)."""
+    def _fade_arrays(self, fade_clip, fade_offset, fade_rate, fade_weight) -> dict:
+        """The DeviceCrowd fields of a crossfade (spec "Crossfade"): clip, offset, rate, weight per instance."""
+        weight = np.clip(np.asarray(fade_weight, np.float64), 0.0, 1.0)
+        return dict(fade_clip=self._array(np.asarray(fade_clip).astype(np.int32), wp.int32),
+                    fade_time_offset=self._array(np.asarray(fade_offset, np.float64), wp.float64),
+                    fade_playback_rate=self._array(np.asarray(fade_rate, np.float64), wp.float64),
+                    fade_weight=self._array(weight.astype(np.float32), wp.float32),
+                    fades=bool(np.any(weight > 0)))
+
+    def _check_clip(self, clip_index) -> int:
         if isinstance(clip_index, bool) or int(clip_index) != clip_index or not 0 <= clip_index < self.clip_count:
             raise OptionsError(f"clip index {clip_index!r} out of range 0..{self.clip_count - 1}",
                                file="warp_decoder")
+        return int(clip_index)
+
+    @staticmethod
+    def _finite_times(tau) -> np.ndarray:
         tau = np.atleast_1d(np.asarray(tau, dtype=np.float64)).reshape(-1)
         if not np.all(np.isfinite(tau)):
             raise OptionsError("times must be finite", file="warp_decoder")
+        return tau
+
+    def _times_crowd(self, clip_index: int, tau, fade=None) -> DeviceCrowd:
+        """A crowd of untransformed instances at clip-local times ``tau`` (for :meth:`skin`).
+
+        ``fade``: None, or (fade clip, fade clip-local times, fade weights) for a crossfade.
+        """
+        clip_index = self._check_clip(clip_index)
+        tau = self._finite_times(tau)
         n = tau.shape[0]
         identity = np.zeros((n, 4), np.float32)
         identity[:, 3] = 1.0
+        if fade is None:
+            fade_arrays = (np.zeros(n), np.zeros(n), np.ones(n), np.zeros(n))
+        else:
+            fade_clip, fade_tau, fade_weight = fade
+            fade_tau = np.broadcast_to(self._finite_times(fade_tau), (n,))
+            weight = np.broadcast_to(np.asarray(fade_weight, np.float64).reshape(-1), (n,))
+            if not np.all(np.isfinite(weight)):
+                raise OptionsError("fade weights must be finite", file="warp_decoder")
+            fade_arrays = (np.full(n, self._check_clip(fade_clip)), fade_tau, np.zeros(n), weight)
         return DeviceCrowd(
             clip=self._array(np.full(n, int(clip_index), np.int32), wp.int32),
             time_offset=self._array(tau, wp.float64),
             playback_rate=self._array(np.zeros(n), wp.float64),
             positions=self._array(np.zeros((n, 3), np.float32), wp.vec3),
             orientations=self._array(identity, wp.quat),
-            scales=self._array(np.ones((n, 3), np.float32), wp.vec3))
+            scales=self._array(np.ones((n, 3), np.float32), wp.vec3),
+            **self._fade_arrays(*fade_arrays))
 
     # ---------------------------------------------------------------------------------- buffers
 
@@ -418,8 +462,9 @@ class Decoder:
             return True
         return self.encoding is Encoding.CROSS_MATRIX and not crowd.uniform_scale
 
-    def _bone_buffers(self, n: int, own_normal: bool) -> BoneBuffers:
-        buffers = self._bones.get((n, own_normal))
+    def _bone_buffers(self, n: int, own_normal: bool, fades: bool = False) -> BoneBuffers:
+        fade_dual = fades and self.encoding is Encoding.DUAL_QUAT
+        buffers = self._bones.get((n, own_normal, fade_dual))
         if buffers is None:
             b = self.bone_count
             placeholder = (1, 1, 1)
@@ -428,8 +473,9 @@ class Decoder:
                 linear=wp.empty((n, 12, b) if lbs else placeholder, dtype=float, device=self.device),
                 normal=wp.empty((n, 9, b) if own_normal else placeholder, dtype=float, device=self.device),
                 dual=wp.empty(placeholder if lbs else (n, 8, b), dtype=float, device=self.device),
-                frames=wp.empty(n, dtype=K.InstanceFrame, device=self.device))
-            self._bones = {(n, own_normal): buffers}  # keep one size: a renderer calls with one crowd
+                frames=wp.empty(n, dtype=K.InstanceFrame, device=self.device),
+                dual_fade=wp.empty((n, 8, b) if fade_dual else placeholder, dtype=float, device=self.device))
+            self._bones = {(n, own_normal, fade_dual): buffers}  # keep one size: a renderer calls with one crowd
         return buffers
 
     # ---------------------------------------------------------------------------------- launches
@@ -447,7 +493,7 @@ class Decoder:
         """
         n = crowd.instance_count
         separate = self._separate_normals(crowd)
-        buffers = self._bone_buffers(n, separate)
+        buffers = self._bone_buffers(n, separate, crowd.fades)
         if n == 0:
             return buffers
         if self.sampling == "hardware" and fraction_steps:
@@ -456,8 +502,9 @@ class Decoder:
         wp.launch(K.instance_frames_kernel, dim=n, device=self.device,
                   inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop, crowd.clip,
                           crowd.time_offset, crowd.playback_rate, wp.float64(t), float(fraction_steps),
-                          crowd.positions, crowd.orientations, crowd.scales, frames])
-        outputs = [buffers.linear, buffers.normal, buffers.dual]
+                          crowd.positions, crowd.orientations, crowd.scales, crowd.fade_clip,
+                          crowd.fade_time_offset, crowd.fade_playback_rate, crowd.fade_weight, frames])
+        outputs = [buffers.linear, buffers.normal, buffers.dual, buffers.dual_fade]
         dim = (n, self.bone_count)
         if self.sampling == "exact":
             wp.launch(K.decode_bones, dim=dim, device=self.device,
@@ -482,7 +529,7 @@ class Decoder:
         mesh = [self.points, self.normals, fused_normals, self.indices, self.weights]
         if self.encoding is Encoding.DUAL_QUAT:
             wp.launch(K.skin_dqs_kernel, dim=dim, device=self.device, block_dim=self.block_dim,
-                      inputs=[buffers.dual, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
+                      inputs=[buffers.dual, buffers.dual_fade, buffers.frames, *mesh, crowd.positions, crowd.orientations, crowd.scales, ipt,
                               out.points, out_normals])
         else:
             wp.launch(K.skin_lbs_kernel(int(self.indices.shape[1])), dim=dim, device=self.device,
@@ -490,7 +537,8 @@ class Decoder:
                       inputs=[buffers.linear, buffers.normal, separate, *mesh, ipt, out.points, out_normals])
         if self.with_normals and self.face_varying:
             wp.launch(K.skin_normals_kernel, dim=(n, self.normal_count), device=self.device,
-                      inputs=[self.encoding_id, buffers.linear, buffers.normal, separate, buffers.dual, self.normals,
+                      inputs=[self.encoding_id, buffers.linear, buffers.normal, separate, buffers.dual,
+                              buffers.dual_fade, buffers.frames, self.normals,
                               self.normal_points, self.indices, self.weights, crowd.orientations, crowd.scales,
                               out.normals])
         return out
@@ -564,6 +612,27 @@ class Decoder:
         return self.skin_bones(crowd, buffers, out)
 
     @_quietly
+    def skin_crossfade(self, clip_index: int, tau, fade_clip: int, fade_tau, fade_weight,
+                       out: Optional[SkinResult] = None) -> SkinResult:
+        """The mesh crossfading two clips (twin of ``reference.skin_mesh_crossfade``, spec "Crossfade").
+
+        Args:
+            clip_index: Index of the first clip.
+            tau: Its clip-local times (n).
+            fade_clip: Index of the fade clip.
+            fade_tau: The fade clip's clip-local times (n, or one for all).
+            fade_weight: Weight of the fade clip (n, or one for all), clamped to [0, 1].
+            out: Arrays from :meth:`allocate` (n instances), or None.
+
+        Returns:
+            Points (n, V) and normals (n, V') on the device.
+        """
+        crowd = self._times_crowd(clip_index, tau, fade=(fade_clip, fade_tau, fade_weight))
+        out = self._check_out(out, crowd.instance_count)
+        buffers = self.decode_bones(crowd, 0.0)
+        return self.skin_bones(crowd, buffers, out)
+
+    @_quietly
     def bone_transforms(self, clip_index: int, tau, *, fraction_steps: float = 0.0) -> dict:
         """Decoded bone buffers at clip-local times, as numpy (for tests and inspection).
 
@@ -609,6 +678,17 @@ def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device
     Consecutive calls for the same ``vb`` and ``mesh`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin(clip_index, tau).numpy()
+
+
+@_quietly
+def skin_mesh_crossfade(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, fade_clip: int, fade_tau,
+                        fade_weight, *, device, sampling: str = "exact") -> tuple:
+    """A bound mesh crossfading two clips, on ``device`` (``reference.skin_mesh_crossfade`` plus ``device=``).
+
+    Float32 results; consecutive calls for the same ``vb`` and ``mesh`` objects reuse the uploaded data.
+    """
+    return _cached_decoder(vb, mesh, device, sampling).skin_crossfade(clip_index, tau, fade_clip, fade_tau,
+                                                                      fade_weight).numpy()
 
 
 @_quietly

@@ -18,7 +18,15 @@ kernel / function                  numpy twin
                                    ``reference.skin_crowd``
 :data:`skin_dqs_kernel`            ``reference.skin`` (DQS, ``_skin_dqs``) + instancer transform
 :data:`skin_normals_kernel`        faceVarying normals (``normal_points``) of the two above
+:func:`blend_bones`                ``reference.crossfade`` for LBS (blend of the two clips'
+                                   decoded matrices, equal to the blend of the two poses)
 =================================  ==========================================================
+
+Crossfade (spec "Crossfade", format 1.1): an instance whose fade weight ``w`` is above 0 also
+decodes its fade clip at the fade clip's own rows. LBS bones are blended per bone,
+``(1 - w) M_a + w M_b`` (and their normal matrices alike), which equals blending the two skinned
+poses; dualQuat keeps the fade clip's dual quaternions in a second buffer and the skinning kernel
+blends the two DQS results. An instance with ``w = 0`` takes exactly the single-clip path.
 
 Performance design (GPU), each step measured on an H200 (benchmarks/README.md):
 
@@ -301,11 +309,17 @@ class InstanceFrame:
         placement: ``R S`` of the instancer (scale, then orientation).
         normal_placement: ``R S^-1``, for normal matrices.
         position: The instance's position.
+        fade_row0, fade_row1, fade_f: The fade clip's rows and blend (spec "Crossfade").
+        fade_weight: Weight of the fade clip, clamped to [0, 1]; 0: no crossfade.
     """
 
     row0: int
     row1: int
     f: float
+    fade_row0: int
+    fade_row1: int
+    fade_f: float
+    fade_weight: float
     placement: wp.mat33
     normal_placement: wp.mat33
     position: wp.vec3
@@ -325,9 +339,15 @@ def instance_frames_kernel(
     positions: wp.array(dtype=wp.vec3),
     orientations: wp.array(dtype=wp.quat),
     scales: wp.array(dtype=wp.vec3),
+    fade_clip: wp.array(dtype=wp.int32),
+    fade_offset: wp.array(dtype=wp.float64),
+    fade_rate: wp.array(dtype=wp.float64),
+    fade_weight: wp.array(dtype=wp.float32),
     frames: wp.array(dtype=InstanceFrame),
 ):
     """One thread per instance: clip time ``tau = offset + rate * t`` (float64), rows and blend, placement.
+
+    With a fade weight above 0, also the fade clip's rows and blend at ``fadeOffset + fadeRate * t``.
 
     ``fraction_steps > 0`` rounds the row fraction to multiples of ``1/fraction_steps``, ``< 0``
     truncates it to multiples of ``1/-fraction_steps`` (models of the texture unit's fixed-point
@@ -353,6 +373,19 @@ def instance_frames_kernel(
                                       r[1, 0] / s[0], r[1, 1] / s[1], r[1, 2] / s[2],
                                       r[2, 0] / s[0], r[2, 1] / s[1], r[2, 2] / s[2])
     frame.position = positions[instance]
+    w = wp.clamp(fade_weight[instance], 0.0, 1.0)
+    frame.fade_weight = w
+    if w > 0.0:
+        fade_tau = fade_offset[instance] + fade_rate[instance] * t
+        fade_row0, fade_row1, fade_f = clip_rows(clip_first_row, clip_row_count, clip_rate, clip_loop,
+                                                 fade_clip[instance], fade_tau)
+        if fraction_steps > 0.0:
+            fade_f = wp.round(fade_f * fraction_steps) / fraction_steps
+        elif fraction_steps < 0.0:
+            fade_f = wp.floor(-fade_f * fraction_steps) / (-fraction_steps)
+        frame.fade_row0 = fade_row0
+        frame.fade_row1 = fade_row1
+        frame.fade_f = fade_f
     frames[instance] = frame
 
 
@@ -369,6 +402,52 @@ def store_bones(encoding: int, separate_normals: int, instance: int, bone: int, 
             store_normal(out_normal, instance, bone, normal)
 
 
+@wp.func
+def decode_at(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, row1: int, f: float, bone: int):
+    """Bone ``bone`` interpolated between two rows and decoded (:func:`lerp_texel`, :func:`decode_bone`)."""
+    column = bone * texels_per_bone(encoding)
+    v0 = lerp_texel(texels, row0, row1, f, column)
+    v1 = lerp_texel(texels, row0, row1, f, column + 1)
+    v2 = wp.vec4()
+    if texels_per_bone(encoding) == 3:
+        v2 = lerp_texel(texels, row0, row1, f, column + 2)
+    return decode_bone(encoding, v0, v1, v2)
+
+
+@wp.func
+def sample_decode_at(texture: wp.Texture2D, encoding: int, unorm: int, unorm_low: wp.array(dtype=wp.vec4),
+                     unorm_span: wp.array(dtype=wp.vec4), row0: int, row1: int, f: float, bone: int):
+    """:func:`decode_at` through the texture unit (:func:`sample_texel`)."""
+    column = bone * texels_per_bone(encoding)
+    low = wp.vec4()
+    span = wp.vec4()
+    if unorm != 0:
+        low = unorm_low[0]
+        span = unorm_span[0]
+    v0 = sample_texel(texture, row0, row1, f, column, low, span, unorm)
+    if unorm != 0:
+        low = unorm_low[1]
+        span = unorm_span[1]
+    v1 = sample_texel(texture, row0, row1, f, column + 1, low, span, unorm)
+    v2 = wp.vec4()
+    if texels_per_bone(encoding) == 3:
+        if unorm != 0:
+            low = unorm_low[2]
+            span = unorm_span[2]
+        v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
+    return decode_bone(encoding, v0, v1, v2)
+
+
+@wp.func
+def blend_bones(linear: mat34, normal: wp.mat33, fade_linear: mat34, fade_normal: wp.mat33, w: float):
+    """Crossfade of one LBS bone: ``(1 - w) M_a + w M_b`` and ``(1 - w) N_a + w N_b`` (spec "Crossfade").
+
+    Twin of ``reference.crossfade`` for LBS: skinning is linear in the bones' matrices and a
+    vertex's weights sum to one, so blending every bone equals blending the two skinned poses.
+    """
+    return (1.0 - w) * linear + w * fade_linear, (1.0 - w) * normal + w * fade_normal
+
+
 @wp.kernel
 def decode_bones(
     texels: wp.array2d(dtype=wp.vec4),
@@ -378,8 +457,12 @@ def decode_bones(
     out_linear: wp.array3d(dtype=float),
     out_normal: wp.array3d(dtype=float),
     out_dual: wp.array3d(dtype=float),
+    out_dual_fade: wp.array3d(dtype=float),
 ):
     """One item per (instance, bone): blend the bone's texels between the instance's rows and decode.
+
+    Crossfading instances (fade weight > 0) also decode the fade clip: LBS bones are blended with
+    it (:func:`blend_bones`), dualQuat bones are written to ``out_dual_fade``.
 
     ``texels`` holds the dequantized channel values as float32 (exact for float16 and float32
     textures). LBS bones are placed by the instance's transform (:func:`place_bone`). Outputs are
@@ -387,13 +470,14 @@ def decode_bones(
     """
     instance, bone = wp.tid()
     frame = frames[instance]
-    column = bone * texels_per_bone(encoding)
-    v0 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column)
-    v1 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 1)
-    v2 = wp.vec4()
-    if texels_per_bone(encoding) == 3:
-        v2 = lerp_texel(texels, frame.row0, frame.row1, frame.f, column + 2)
-    linear, normal, dual = decode_bone(encoding, v0, v1, v2)
+    linear, normal, dual = decode_at(texels, encoding, frame.row0, frame.row1, frame.f, bone)
+    if frame.fade_weight > 0.0:
+        fade_linear, fade_normal, fade_dual = decode_at(texels, encoding, frame.fade_row0, frame.fade_row1,
+                                                        frame.fade_f, bone)
+        if encoding == DUAL_QUAT:
+            store_dual(out_dual_fade, instance, bone, fade_dual)
+        else:
+            linear, normal = blend_bones(linear, normal, fade_linear, fade_normal, frame.fade_weight)
     if encoding != DUAL_QUAT:
         linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
     store_bones(encoding, separate_normals, instance, bone, linear, normal, dual, out_linear, out_normal,
@@ -412,6 +496,7 @@ def decode_bones_texture(
     out_linear: wp.array3d(dtype=float),
     out_normal: wp.array3d(dtype=float),
     out_dual: wp.array3d(dtype=float),
+    out_dual_fade: wp.array3d(dtype=float),
 ):
     """The hardware texture path of ``decode_bones``: rows blended by the texture unit.
 
@@ -420,27 +505,15 @@ def decode_bones_texture(
     """
     instance, bone = wp.tid()
     frame = frames[instance]
-    row0 = frame.row0
-    row1 = frame.row1
-    f = frame.f
-    column = bone * texels_per_bone(encoding)
-    low = wp.vec4()
-    span = wp.vec4()
-    if unorm != 0:
-        low = unorm_low[0]
-        span = unorm_span[0]
-    v0 = sample_texel(texture, row0, row1, f, column, low, span, unorm)
-    if unorm != 0:
-        low = unorm_low[1]
-        span = unorm_span[1]
-    v1 = sample_texel(texture, row0, row1, f, column + 1, low, span, unorm)
-    v2 = wp.vec4()
-    if texels_per_bone(encoding) == 3:
-        if unorm != 0:
-            low = unorm_low[2]
-            span = unorm_span[2]
-        v2 = sample_texel(texture, row0, row1, f, column + 2, low, span, unorm)
-    linear, normal, dual = decode_bone(encoding, v0, v1, v2)
+    linear, normal, dual = sample_decode_at(texture, encoding, unorm, unorm_low, unorm_span, frame.row0,
+                                            frame.row1, frame.f, bone)
+    if frame.fade_weight > 0.0:
+        fade_linear, fade_normal, fade_dual = sample_decode_at(texture, encoding, unorm, unorm_low, unorm_span,
+                                                               frame.fade_row0, frame.fade_row1, frame.fade_f, bone)
+        if encoding == DUAL_QUAT:
+            store_dual(out_dual_fade, instance, bone, fade_dual)
+        else:
+            linear, normal = blend_bones(linear, normal, fade_linear, fade_normal, frame.fade_weight)
     if encoding != DUAL_QUAT:
         linear, normal = place_bone(encoding, separate_normals, linear, normal, frame)
     store_bones(encoding, separate_normals, instance, bone, linear, normal, dual, out_linear, out_normal,
@@ -543,9 +616,30 @@ def skin_lbs_kernel(influences: int):
     return skin_lbs
 
 
+@wp.func
+def dqs_pose(dual: wp.array3d(dtype=float), dual_fade: wp.array3d(dtype=float), w: float, instance: int,
+             indices: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32), v: int, influences: int,
+             p: wp.vec3, n: wp.vec3):
+    """DQS point and unit normal of vertex ``v``; with ``w > 0`` the crossfade of the two clips' DQS results.
+
+    ``p' = (1 - w) p_a + w p_b``, ``n' = normalize((1 - w) n_a + w n_b)`` (spec "Crossfade": the
+    dual quaternions of two clips are never blended with each other).
+    """
+    real, du = blend_dqs(dual, instance, indices, weights, v, influences)
+    point = dqs_point(real, du, p)
+    normal = wp.quat_rotate(real, n)
+    if w > 0.0:
+        fade_real, fade_du = blend_dqs(dual_fade, instance, indices, weights, v, influences)
+        point = (1.0 - w) * point + w * dqs_point(fade_real, fade_du, p)
+        normal = (1.0 - w) * normal + w * wp.quat_rotate(fade_real, n)
+    return point, wp.normalize(normal)
+
+
 @wp.kernel
 def skin_dqs_kernel(
     dual: wp.array3d(dtype=float),
+    dual_fade: wp.array3d(dtype=float),
+    frames: wp.array(dtype=InstanceFrame),
     points: wp.array(dtype=wp.vec3),
     normals: wp.array(dtype=wp.vec3),
     with_normals: int,
@@ -568,12 +662,13 @@ def skin_dqs_kernel(
     first = j * instances_per_thread
     last = wp.min(first + instances_per_thread, dual.shape[0])
     for instance in range(first, last):
-        real, du = blend_dqs(dual, instance, indices, weights, v, influences)
+        point, normal = dqs_pose(dual, dual_fade, frames[instance].fade_weight, instance, indices, weights, v,
+                                 influences, p, n)
         orientation = orientations[instance]
         scale = scales[instance]
-        out_points[instance, v] = place_point(dqs_point(real, du, p), positions[instance], orientation, scale)
+        out_points[instance, v] = place_point(point, positions[instance], orientation, scale)
         if with_normals != 0:
-            out_normals[instance, v] = place_normal(wp.normalize(wp.quat_rotate(real, n)), orientation, scale)
+            out_normals[instance, v] = place_normal(normal, orientation, scale)
 
 
 @wp.kernel
@@ -583,6 +678,8 @@ def skin_normals_kernel(
     normal: wp.array3d(dtype=float),
     separate_normals: int,
     dual: wp.array3d(dtype=float),
+    dual_fade: wp.array3d(dtype=float),
+    frames: wp.array(dtype=InstanceFrame),
     normals: wp.array(dtype=wp.vec3),
     normal_points: wp.array(dtype=wp.int32),
     indices: wp.array2d(dtype=wp.int32),
@@ -596,9 +693,9 @@ def skin_normals_kernel(
     v = normal_points[e]
     n = normals[e]
     if encoding == DUAL_QUAT:
-        real, du = blend_dqs(dual, instance, indices, weights, v, indices.shape[1])
-        out_normals[instance, e] = place_normal(wp.normalize(wp.quat_rotate(real, n)), orientations[instance],
-                                                scales[instance])
+        unused_point, skinned = dqs_pose(dual, dual_fade, frames[instance].fade_weight, instance, indices, weights,
+                                         v, indices.shape[1], wp.vec3(), n)
+        out_normals[instance, e] = place_normal(skinned, orientations[instance], scales[instance])
     else:
         sn = wp.vec3()
         for k in range(indices.shape[1]):

@@ -209,6 +209,11 @@ class Crowd:
         clip: (N,) int32 clip index of each instance.
         time_offset: (N,) float32 seconds.
         playback_rate: (N,) float32.
+        fade_clip: (N,) int32 fade clip of each instance (format 1.1, spec "Crossfade"), or None
+            for clip 0.
+        fade_time_offset: (N,) float32 seconds of the fade clip at stage time 0, or None for 0.
+        fade_playback_rate: (N,) float32 rate of the fade clip, or None for 1.
+        fade_weight: (N,) float32 weight of the fade clip in [0, 1], or None for 0 (no crossfade).
     """
 
     path: str
@@ -218,6 +223,23 @@ class Crowd:
     time_offset: np.ndarray
     playback_rate: np.ndarray
     scales: Optional[np.ndarray] = None
+    fade_clip: Optional[np.ndarray] = None
+    fade_time_offset: Optional[np.ndarray] = None
+    fade_playback_rate: Optional[np.ndarray] = None
+    fade_weight: Optional[np.ndarray] = None
+
+    @property
+    def crossfades(self) -> bool:
+        """Whether any instance has a fade weight above 0 (a format 1.1 crowd)."""
+        return self.fade_weight is not None and bool(np.any(np.asarray(self.fade_weight) > 0))
+
+    def fade_arrays(self) -> tuple:
+        """(fade clip, fade time offset, fade playback rate, fade weight) per instance, defaults filled in."""
+        n = self.instance_count
+        def filled(value, default, dtype):
+            return np.full(n, default, dtype) if value is None else np.asarray(value, dtype).reshape(n)
+        return (filled(self.fade_clip, 0, np.int64), filled(self.fade_time_offset, 0.0, np.float64),
+                filled(self.fade_playback_rate, 1.0, np.float64), filled(self.fade_weight, 0.0, np.float64))
 
     @property
     def instance_count(self) -> int:
@@ -301,16 +323,20 @@ class ReadOptions:
     Attributes:
         skeletons: Select skeletons (UsdSkel Skeleton prim paths, glTF skin names or indices as
             strings); empty selects all.
-        clips: Select clips (glTF animation names or indices; UsdSkel: ignored); empty selects all.
+        clips: Select clips (glTF animation names or indices; UsdSkel: clip names, which are the
+            Skeleton prims' names); empty selects all; a name that selects nothing is an error.
         time_range: (start, end) in the source's time unit (USD time codes, glTF seconds), or None
             for the whole animation.
         allow_outside_paths: Let referenced files resolve outside the asset's folder.
+        strict_weights: Refuse weights that do not sum to one instead of renormalizing them as
+            engines do (glTF; spec/gltf-conversion.md, Meshes).
     """
 
     skeletons: tuple = ()
     clips: tuple = ()
     time_range: Optional[tuple] = None
     allow_outside_paths: bool = False
+    strict_weights: bool = False
 
 
 @dataclass(frozen=True)

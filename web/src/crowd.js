@@ -59,7 +59,9 @@ function pick(values, slots, set) {
  * @param {VirtualBonesAnimation} options.animation
  * @param {Array<{geometry: BufferGeometry, maxInfluences: number, name?: string}>} options.meshes
  * @param {object} options.instances {count, matrices: Float32Array(16 N) column-major, clip:
- *   Int32Array(N), timeOffset: Float32Array(N), playbackRate: Float32Array(N)}
+ *   Int32Array(N), timeOffset: Float32Array(N), playbackRate: Float32Array(N)}; optionally the
+ *   crossfade of format 1.1 (spec 8.3): fadeClip: Int32Array(N), fadeTimeOffset, fadePlaybackRate,
+ *   fadeWeight: Float32Array(N) (absent: no crossfade). `setFade` changes them per instance.
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
@@ -86,10 +88,25 @@ export class VirtualBonesCrowd extends Group {
     }
     this.clipAttribute = clip;
     this.timeAttribute = new InstancedBufferAttribute(time, 2);
+    // Crossfade (format 1.1): always bound, weight 0 by default (WebGL 2 needs every integer input fed).
+    const fadeClip = new InstancedBufferAttribute(new Int32Array(instances.count), 1);
+    fadeClip.gpuType = IntType;
+    this.fadeClipAttribute = fadeClip;
+    this.fadeAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 3), 3);
+    for (let i = 0; i < instances.count; ++i) {
+      this.setFade(i, {
+        clip: instances.fadeClip?.[i] ?? 0,
+        timeOffset: instances.fadeTimeOffset?.[i] ?? 0,
+        playbackRate: instances.fadePlaybackRate?.[i] ?? 1,
+        weight: instances.fadeWeight?.[i] ?? 0,
+      });
+    }
     this.meshes = meshes.map((entry, index) => {
       const geometry = entry.geometry;
       geometry.setAttribute('vb_instanceClip', this.clipAttribute);
       geometry.setAttribute('vb_instanceTime', this.timeAttribute);
+      geometry.setAttribute('vb_instanceFadeClip', this.fadeClipAttribute);
+      geometry.setAttribute('vb_instanceFade', this.fadeAttribute);
       const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences), instances.count);
       mesh.instanceMatrix = this.instanceMatrix;
       mesh.name = entry.name || geometry.name;
@@ -101,6 +118,23 @@ export class VirtualBonesCrowd extends Group {
       return mesh;
     });
     this.updateBounds();
+  }
+
+  /**
+   * Crossfade of instance `index` (spec 8.3, format 1.1): it also plays clip `clip` at
+   * `timeOffset + playbackRate * time`, blended with weight `weight` (0..1; 0 plays its own clip
+   * alone, 1 the fade clip alone). Call every frame to move the weight of a clip switch; call
+   * `updateBounds()` once after fading into a clip no drawn instance played before.
+   */
+  setFade(index, { clip = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+    if (!(clip >= 0 && clip < this.animation.clips.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index} fades into clip ${clip}, the animation has ${this.animation.clips.length}`);
+    }
+    if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: fade weight must be in 0..1, got ${weight}`);
+    this.fadeClipAttribute.array[index] = clip;
+    this.fadeAttribute.array.set([timeOffset, playbackRate, weight], 3 * index);
+    this.fadeClipAttribute.needsUpdate = true;
+    this.fadeAttribute.needsUpdate = true;
   }
 
   /** Instances drawn (the first `count` of the crowd). */
@@ -120,6 +154,8 @@ export class VirtualBonesCrowd extends Group {
    */
   updateBounds() {
     const used = new Set(Array.from(this.instances.clip.subarray(0, this.count)));
+    // A crossfading instance shows a blend of two poses: inside the box of both clips' extents.
+    for (let i = 0; i < this.count; ++i) if (this.fadeAttribute.array[3 * i + 2] > 0) used.add(this.fadeClipAttribute.array[i]);
     const box = this.animation.boundsOfClips(used.size ? used : [0]);
     for (const mesh of this.meshes) {
       if (box === null) {

@@ -45,6 +45,8 @@ in vec4 vb_boneWeights1;
 #endif
 in int vb_instanceClip;
 in vec2 vb_instanceTime;
+in int vb_instanceFadeClip;
+in vec3 vb_instanceFade;
 `;
 }
 
@@ -63,8 +65,11 @@ export const SKINNING_CALL = `
   }
   vec3 vbPosition;
   vec3 vbNormal;
-  vbSkin(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time, position, normal,
-         vbIndex, vbWeight, vbPosition, vbNormal);
+  // Crossfade (spec 8.3, format 1.1): vb_instanceFade = (fadeTimeOffset, fadePlaybackRate, fadeWeight);
+  // with fadeWeight 0 this is exactly vbSkin.
+  vbSkinCrossfade(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time,
+                  vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time, vb_instanceFade.z,
+                  position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 
 /** A three.js vertex shader (before #include expansion) that skins from the texture. */

@@ -116,6 +116,8 @@ export function probeCrowd(renderer, crowd, index, time) {
     // The instance's own entries of the crowd's arrays: divisor 1, offset at instance `index`.
     buffers.push(bindAttribute(gl, program, 'vb_instanceClip', crowd.clipAttribute.array, 1, { integer: true, divisor: 1, offset: 4 * index }));
     buffers.push(bindAttribute(gl, program, 'vb_instanceTime', crowd.timeAttribute.array, 2, { divisor: 1, offset: 8 * index }));
+    buffers.push(bindAttribute(gl, program, 'vb_instanceFadeClip', crowd.fadeClipAttribute.array, 1, { integer: true, divisor: 1, offset: 4 * index }));
+    buffers.push(bindAttribute(gl, program, 'vb_instanceFade', crowd.fadeAttribute.array, 3, { divisor: 1, offset: 12 * index }));
     buffers.push(bindAttribute(gl, program, 'instanceMatrix', crowd.instanceMatrix.array, 4, { divisor: 1, offset: 64 * index, columns: 4 }));
 
     gl.useProgram(program);
