@@ -504,3 +504,32 @@ def test_channels_an_action_does_not_key(rig_scene, tmp_path, reset_pose):
         decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
         worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
     assert worst < 1e-5
+
+
+def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
+    """Props parented to a bone (no Armature modifier) follow that bone, deform or not, and the export
+    starts from a posed frame (the props' rest placement is undone from the current pose)."""
+    scene, rig, body = rig_scene
+    props = []
+    for name, bone, offset in (("Sword", "tip", (0.2, 0.0, -0.5)), ("Ball", "ik_target", (0.0, 0.1, 0.0))):
+        mesh = bpy.data.meshes.new(name)
+        mesh.from_pydata([(0, 0, 0), (0.1, 0, 0), (0, 0.1, 0), (0, 0, 0.3)], [], [(0, 1, 2), (0, 1, 3), (0, 2, 3)])
+        prop = bpy.data.objects.new(name, mesh)
+        scene.collection.objects.link(prop)
+        prop.parent, prop.parent_type, prop.parent_bone = rig, "BONE", bone
+        prop.location = offset
+        props.append(prop)
+    play(rig, "Reach")
+    scene.frame_set(5)  # export from a posed frame
+    out = tmp_path / "props.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert list(vb.bones) == ["root", "mid", "tip", "ik_target"]  # the Ball's bone joins the deform bones
+    assert [m.path.rsplit("/", 1)[-1] for m in vb.meshes] == ["Body", "Sword", "Ball"]
+    play(rig, "Reach")
+    for frame in range(1, 10):
+        scene.frame_set(frame)
+        for mesh, obj in zip(vb.meshes, [body] + props):
+            decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
+            assert np.abs(decoded[0] - evaluated_points(obj, rig)).max() < 1e-5, (obj.name, frame)

@@ -180,7 +180,11 @@ def _armature_modifier(obj, armature):
 
 
 def deformed_meshes(context, armature) -> list:
-    """(mesh object, its Armature modifier) for every mesh of the view layer ``armature`` deforms.
+    """The meshes of the view layer that ``armature`` moves, as (object, Armature modifier, bone).
+
+    Skinned meshes (an enabled Armature modifier points at the armature) come with their modifier
+    and bone None; meshes parented to one of its bones (props, no Armature modifier) come with
+    modifier None and that bone's name: all their vertices follow it.
 
     Raises:
         vbusd InputError / UnsupportedError: no mesh, or a modifier stack Virtual Bones cannot hold.
@@ -211,10 +215,16 @@ def deformed_meshes(context, armature) -> list:
         if modifier.use_multi_modifier or modifier.vertex_group:
             raise UnsupportedError("the Armature modifier's vertex group mask / multi modifier cannot be "
                                    "baked; clear them", location=where, code="blender.modifiers")
-        pairs.append((obj, modifier))
+        pairs.append((obj, modifier, None))
+    for obj in context.view_layer.objects:
+        if obj.type == "MESH" and obj.parent == armature and obj.parent_type == "BONE" \
+                and obj.parent_bone in armature.data.bones \
+                and not any(m.type == "ARMATURE" and m.show_viewport for m in obj.modifiers):
+            pairs.append((obj, None, obj.parent_bone))
     if not pairs:
         raise InputError(f"armature '{armature.name}' deforms no mesh in the view layer (no enabled "
-                         "Armature modifier points at it)", location=armature.name, code="blender.armature")
+                         "Armature modifier points at it, no mesh is parented to one of its bones)",
+                         location=armature.name, code="blender.armature")
     return pairs
 
 
@@ -400,8 +410,11 @@ class RigSampler:
         return np.stack([self.evaluate(clip, float(t))[1][mesh_index] for t in times])
 
 
-def _rest_mesh(context, obj, modifier, armature, bones: list):
+def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None):
     """The mesh at rest (Armature modifier off), in armature space, with its deform weights.
+
+    A mesh parented to a bone (``modifier`` None) is moved from where the bone's current pose holds
+    it to where the bone's rest pose would, and follows that bone alone.
 
     Returns:
         (points (V, 3), counts, indices, bone indices (V, K), weights (V, K), corner normals or None,
@@ -409,7 +422,8 @@ def _rest_mesh(context, obj, modifier, armature, bones: list):
     """
     from vbusd import InputError
 
-    modifier.show_viewport = False
+    if modifier is not None:
+        modifier.show_viewport = False
     try:
         context.view_layer.update()
         depsgraph = context.evaluated_depsgraph_get()
@@ -432,21 +446,29 @@ def _rest_mesh(context, obj, modifier, armature, bones: list):
                 flat = np.empty(len(mesh.loops) * 3, dtype=np.float32)
                 mesh.corner_normals.foreach_get("vector", flat)
                 normals = flat.reshape(-1, 3)[order].astype(np.float64)
-            group_bone = {}
-            for group in obj.vertex_groups:
-                if group.name in bones:
-                    group_bone[group.index] = bones.index(group.name)
-            influences = [[(group_bone[g.group], g.weight) for g in v.groups
-                           if g.group in group_bone and g.weight > 0] for v in mesh.vertices]
+            if parent_bone is None:
+                group_bone = {}
+                for group in obj.vertex_groups:
+                    if group.name in bones:
+                        group_bone[group.index] = bones.index(group.name)
+                influences = [[(group_bone[g.group], g.weight) for g in v.groups
+                               if g.group in group_bone and g.weight > 0] for v in mesh.vertices]
+            else:
+                influences = [[(bones.index(parent_bone), 1.0)]] * vertex_count
         finally:
             evaluated.to_mesh_clear()
-        local = np.linalg.inv(_matrix(armature.matrix_world)) @ _matrix(evaluated.matrix_world)
+        arm = armature.evaluated_get(depsgraph)
+        local = np.linalg.inv(_matrix(arm.matrix_world)) @ _matrix(evaluated.matrix_world)
+        if parent_bone is not None:  # from the bone's current pose back to its rest pose
+            local = (_matrix(armature.data.bones[parent_bone].matrix_local)
+                     @ np.linalg.inv(_matrix(arm.pose.bones[parent_bone].matrix)) @ local)
     finally:
-        modifier.show_viewport = True
-        context.view_layer.update()
+        if modifier is not None:
+            modifier.show_viewport = True
+            context.view_layer.update()
     if vertex_count == 0:
         raise InputError(f"mesh '{obj.name}' has no vertices", location=obj.name, code="blender.mesh")
-    k = max(1, max(len(i) for i in influences))
+    k = max(1, max((len(i) for i in influences), default=1))
     bone_indices = np.zeros((vertex_count, k), dtype=np.int64)
     bone_weights = np.zeros((vertex_count, k), dtype=np.float64)
     for v, pairs in enumerate(influences):
@@ -533,11 +555,11 @@ def _warn_unbakeable(armature, bones: list, modifier_pairs: list, warnings: list
     if segmented:
         warnings.append(f"{armature.name}: B-Bones bend inside a bone ({', '.join(segmented[:5])}); Virtual "
                         "Bones keeps one transform per bone, the error report shows the difference")
-    for obj, modifier in modifier_pairs:
+    for obj, modifier, _ in modifier_pairs:
         keys = obj.data.shape_keys
         if keys is not None and (keys.animation_data is not None or len(keys.key_blocks) > 1):
             warnings.append(f"{obj.name}: shape keys are baked into the rest mesh at their current values")
-        if modifier.use_bone_envelopes:
+        if modifier is not None and modifier.use_bone_envelopes:
             warnings.append(f"{obj.name}: the Armature modifier also uses bone envelopes, which are not baked")
 
 
@@ -575,7 +597,8 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
     plans, warnings = [], []
     for armature, prim_name in zip(armatures, prim_names):
         pairs = deformed_meshes(context, armature)
-        bones = [b.name for b in armature.data.bones if b.use_deform]
+        carriers = {bone for _, _, bone in pairs if bone is not None}
+        bones = [b.name for b in armature.data.bones if b.use_deform or b.name in carriers]
         clips = _clip_sources(scene, armature, settings)
         _warn_unbakeable(armature, bones, pairs, warnings)
         plans.append((armature, prim_name, pairs, bones, clips))
@@ -596,11 +619,11 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
         animations, references, methods, samplers = [], [], [], []
         for armature, prim_name, pairs, bones, clips in plans:
             meshes, skinned, static = [], [], False
-            rests = [_rest_mesh(context, obj, modifier, armature, bones) for obj, modifier in pairs]
+            rests = [_rest_mesh(context, obj, modifier, armature, bones, bone) for obj, modifier, bone in pairs]
             static = any(rest[6].any() for rest in rests)
             bone_names = bones + ([_unique(bones + [STATIC_BONE])[-1]] if static else [])
-            mesh_names = _unique([usd_name(obj.name) for obj, _ in pairs])
-            for (obj, modifier), rest, mesh_name in zip(pairs, rests, mesh_names):
+            mesh_names = _unique([usd_name(obj.name) for obj, _, _ in pairs])
+            for (obj, modifier, _), rest, mesh_name in zip(pairs, rests, mesh_names):
                 points, counts, indices, bone_indices, bone_weights, normals, unweighted = rest
                 if unweighted.any():
                     bone_indices[unweighted] = 0
@@ -620,8 +643,10 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
             animations.append(SkinnedAnimation(
                 name=prim_name, path=f"/VirtualBones/Animations/{prim_name}", bones=tuple(bone_names),
                 clips=source_clips, meshes=tuple(skinned), source=armature.name))
-            methods.append(tuple("dualQuaternion" if m.use_deform_preserve_volume else "classicLinear"
-                                 for _, m in pairs))
+            # A bone-parented prop follows one bone: linear and dual-quaternion skinning agree on it.
+            dqs = any(m is not None and m.use_deform_preserve_volume for _, m, _ in pairs)
+            methods.append(tuple("dualQuaternion" if (m.use_deform_preserve_volume if m is not None else dqs)
+                                 else "classicLinear" for _, m, _ in pairs))
             references.append((sampler, clips))
 
         source = _BlenderScene(animations=tuple(animations), up_axis="Z",
