@@ -14,8 +14,10 @@ The mapping is normative in spec/usd-conversion.md; in short:
 * mesh-local ``skel:joints`` are remapped to skeleton order; constant (rigid) influences are
   repeated for every point; weights are normalized (UsdSkel does not: a warning says so);
 * one clip per skeleton, from the first to the last time sample of the animation and of the
-  skeleton's transforms (or ``ReadOptions.time_range``), sampled through UsdSkel so its own
-  interpolation between samples holds.
+  skeleton's transforms (or ``ReadOptions.time_range``), sampled as UsdSkel samples it (USD's own
+  interpolation between samples): all frames at once by :class:`AllFramesSkinning` (UsdSkel's
+  arithmetic vectorized over frames, checked against ``ComputeSkinningTransforms``), or frame by
+  frame through UsdSkel where that class cannot answer.
 
 UsdSkel only warns (or stays silent) on malformed data; every rule it relies on is checked here
 first and reported as one :class:`~vbusd.format.errors.InputError` naming the prim.
@@ -205,7 +207,62 @@ class _Reader:
                           "it, so it is not converted")
                 continue
             found.append((prim, self._bound_skeleton(prim, binding)))
-        return found
+        return found + self.inherited_targets({str(p.GetPath()) for p, _ in found})
+
+    def inherited_targets(self, known: set) -> list:
+        """UsdSkel's skinning targets whose joint influences are inherited from an ancestor.
+
+        Constant-interpolation ``jointIndices``/``jointWeights`` (a rigid binding) authored on an
+        Xform apply to every gprim below it, as primvars do; UsdSkel rigidly deforms those gprims
+        (spec: usd-conversion.md, Rigid bindings). They are found through UsdSkel's own bindings.
+
+        Args:
+            known: Paths already found with influences of their own.
+
+        Returns:
+            ``[(prim, skeleton_prim)]`` in stage order.
+        """
+        result = []
+        for prim in self.stage.Traverse(self.predicate):
+            if not prim.IsA(self.UsdSkel.Root):
+                continue
+            for entry in self.targets_of_root(prim).items():
+                path, (skel_path, _query) = entry
+                if path in known:
+                    continue
+                target = self.stage.GetPrimAtPath(path)
+                if self.influence_source(target) is None or not target.IsA(self.UsdGeom.Gprim):
+                    continue
+                result.append((target, self.stage.GetPrimAtPath(skel_path)))
+                known.add(path)
+        return result
+
+    def targets_of_root(self, root) -> dict:
+        """{skinning target path: (skeleton path, UsdSkel.SkinningQuery)} of one SkelRoot (memoized)."""
+        root_key = str(root.GetPath())
+        if root_key not in self.bindings:
+            skel_root = self.UsdSkel.Root(root)
+            self.cache.Populate(skel_root, self.predicate)
+            table = {}
+            for binding in self.cache.ComputeSkelBindings(skel_root, self.predicate):
+                for target in binding.GetSkinningTargets():
+                    table[str(target.GetPrim().GetPath())] = (str(binding.GetSkeleton().GetPath()), target)
+            self.bindings[root_key] = table
+        return self.bindings[root_key]
+
+    def influence_source(self, prim):
+        """The prim whose ``primvars:skel:jointIndices`` apply to ``prim``: itself when authored there,
+        else the nearest ancestor with constant-interpolation influences (inherited, as primvars are);
+        None when there is none."""
+        node = prim
+        while node and not node.IsPseudoRoot():
+            primvar = self.UsdSkel.BindingAPI(node).GetJointIndicesPrimvar()
+            if primvar and primvar.HasAuthoredValue():
+                if node == prim or primvar.GetInterpolation() == "constant":
+                    return node
+                return None
+            node = node.GetParent()
+        return None
 
     def _skel_root(self, prim):
         parent = prim
@@ -454,13 +511,217 @@ def _normals(reader: _Reader, mesh, counts: np.ndarray, fvi: np.ndarray, point_c
 # --------------------------------------------------------------------------------------------
 
 
+def _quaternion_matrices(quats: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Row-vector rotation matrices of quaternions stored as (i, j, k, real) along ``axis``, as Gf does it.
+
+    ``GfMatrix3f(GfQuatf)``'s formula in float32, without normalizing (a non-unit quaternion
+    scales, in UsdSkel too), so the result equals UsdSkel's bit for bit before the cast to double.
+    The 3 x 3 matrix takes the place of ``axis`` (``(..., 4)`` -> ``(..., 3, 3)``; with ``axis=1``,
+    ``(A, 4, n)`` -> ``(A, 3, 3, n)``).
+    """
+    q = np.moveaxis(np.asarray(quats, dtype=np.float32), axis, 0)
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    one, two = np.float32(1.0), np.float32(2.0)
+    m = np.empty((3, 3) + x.shape, dtype=np.float32)
+    m[0, 0] = one - two * (y * y + z * z)
+    m[0, 1] = two * (x * y + z * w)
+    m[0, 2] = two * (z * x - y * w)
+    m[1, 0] = two * (x * y - z * w)
+    m[1, 1] = one - two * (z * z + x * x)
+    m[1, 2] = two * (y * z + x * w)
+    m[2, 0] = two * (z * x + y * w)
+    m[2, 1] = two * (y * z - x * w)
+    m[2, 2] = one - two * (y * y + x * x)
+    axis = axis % np.asarray(quats).ndim
+    return np.moveaxis(m, (0, 1), (axis, axis + 1))
+
+
+def _affine_rows(matrices: np.ndarray) -> bool:
+    """Whether row-vector matrices (..., 4, 4) are affine (last column 0, 0, 0, 1 within 1e-12), as
+    skeletons' are (exporters leave 0.9999999999999998 in the corner: the difference is rounding)."""
+    return bool(np.all(np.abs(matrices[..., :3, 3]) <= 1e-12) and np.all(np.abs(matrices[..., 3, 3] - 1.0) <= 1e-12))
+
+
+def _matrix_product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``left @ right`` for 3 x 3 matrices stored frames last, (..., 3, 3, n): three broadcast
+    multiply-adds over contiguous frames (numpy's matmul loops over millions of tiny matrices)."""
+    return (left[..., :, 0, None, :] * right[..., 0, None, :, :] + left[..., :, 1, None, :] * right[..., 1, None, :, :]
+            + left[..., :, 2, None, :] * right[..., 2, None, :, :])
+
+
+def _row_times(rows: np.ndarray, matrices: np.ndarray) -> np.ndarray:
+    """Row vectors (..., 3, n) times matrices (..., 3, 3, n), frames last."""
+    return rows[..., 0, None, :] * matrices[..., 0, :, :] + rows[..., 1, None, :] * matrices[..., 1, :, :] \
+        + rows[..., 2, None, :] * matrices[..., 2, :, :]
+
+
+class AllFramesSkinning:
+    """UsdSkel's skinning transforms of one skeleton at many time codes at once.
+
+    ``SkeletonQuery.ComputeSkinningTransforms`` evaluates one time code per call (its joint local
+    transforms, the remap from the animation's joint order, the concatenation down the hierarchy
+    and the inverse bind transforms). This class reads the animation's translations, rotations and
+    scales at every time code (``Usd.AttributeQuery.Get``: USD's own interpolation between samples,
+    slerp for quaternions) and does the same arithmetic for all frames together in numpy:
+
+    * local ``L = S * R(q) * T`` (row-vector), with ``R(q)`` and the scale product in float32 as
+      ``UsdSkelMakeTransform`` computes them, then in float64;
+    * joints missing from the animation keep their rest transform (UsdSkel's sparse remap);
+    * ``skel[j] = L[j] * skel[parent(j)]``, joints in topological order (one batched product per joint);
+    * skinning ``= inverse(bind[j]) * skel[j]``.
+
+    ``compute`` returns None whenever UsdSkel could treat a frame specially (a value missing or of
+    the wrong length at some time code); the sampler then asks UsdSkel frame by frame. The result is
+    checked against ``ComputeSkinningTransforms`` on every shared asset (tests/test_usdskel_all_frames.py).
+    """
+
+    def __init__(self, usd, parents: np.ndarray, inverse_bind: np.ndarray, rest: Optional[np.ndarray],
+                 queries: Optional[tuple], anim_to_skel: Optional[np.ndarray], anim_joint_count: int) -> None:
+        self._usd = usd
+        self._parents = parents
+        self._inverse_bind = inverse_bind
+        self._rest = rest
+        self._queries = queries
+        self._anim_to_skel = anim_to_skel
+        self._anim_joint_count = anim_joint_count
+        depth = np.zeros(parents.size, dtype=np.int64)
+        for joint, parent in enumerate(parents):
+            depth[joint] = depth[parent] + 1 if parent >= 0 else 0
+        self._levels = [(np.flatnonzero(depth == d), parents[depth == d]) for d in range(1, int(depth.max(initial=0)) + 1)]
+
+    @classmethod
+    def build(cls, reader, skel_query) -> Optional["AllFramesSkinning"]:
+        """Set up for one skeleton, or None when its animation is not a plain ``UsdSkel.Animation``."""
+        Usd, UsdSkel = reader.Usd, reader.UsdSkel
+        try:
+            parents = np.asarray(skel_query.GetTopology().GetParentIndices(), dtype=np.int64)
+            joint_count = len(skel_query.GetJointOrder())
+            bind = np.asarray(skel_query.GetJointWorldBindTransforms(), dtype=np.float64).reshape(-1, 4, 4)
+            if joint_count == 0 or parents.shape != (joint_count,) or bind.shape[0] != joint_count:
+                return None
+            if np.any(parents >= np.arange(joint_count)):  # UsdSkel orders parents first; else ask it
+                return None
+            if not _affine_rows(bind):
+                return None
+            inverse_bind = np.linalg.inv(bind)
+            inverse_bind[:, :3, 3], inverse_bind[:, 3, 3] = 0.0, 1.0  # exact, as the bind's are
+            rest = None
+            if skel_query.HasRestPose():
+                rest = np.asarray(skel_query.ComputeJointLocalTransforms(Usd.TimeCode.Default(), True),
+                                  dtype=np.float64).reshape(-1, 4, 4)
+                if rest.shape[0] != joint_count or not _affine_rows(rest):
+                    return None
+            anim_query = skel_query.GetAnimQuery()
+            if not anim_query:
+                if rest is None:
+                    return None
+                return cls(Usd, parents, inverse_bind, rest, None, None, 0)
+            prim = anim_query.GetPrim()
+            if not prim.IsA(UsdSkel.Animation):
+                return None
+            anim = UsdSkel.Animation(prim)
+            anim_joints = [str(j) for j in anim_query.GetJointOrder()]
+            skel_index = {str(j): i for i, j in enumerate(skel_query.GetJointOrder())}
+            if len(set(anim_joints)) != len(anim_joints):
+                return None
+            anim_to_skel = np.array([skel_index.get(j, -1) for j in anim_joints], dtype=np.int64)
+            covered = np.zeros(joint_count, dtype=bool)
+            covered[anim_to_skel[anim_to_skel >= 0]] = True
+            if not covered.all() and rest is None:
+                return None
+            queries = tuple(Usd.AttributeQuery(attr) for attr in
+                            (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()))
+            return cls(Usd, parents, inverse_bind, rest, queries, anim_to_skel, len(anim_joints))
+        except Exception:  # noqa: BLE001 - any surprise: UsdSkel frame by frame stays the answer
+            return None
+
+    def _local(self, codes: np.ndarray) -> Optional[tuple]:
+        """Joint local transforms at ``codes`` as (linear (J, 3, 3, n), translation (J, 3, n)), frames last."""
+        joint_count, frames = self._parents.size, codes.size
+        if self._rest is not None:
+            linear = np.repeat(self._rest[:, :3, :3, None], frames, axis=-1)
+            translation = np.repeat(self._rest[:, 3, :3, None], frames, axis=-1)
+        else:
+            linear = np.empty((joint_count, 3, 3, frames))
+            translation = np.empty((joint_count, 3, frames))
+        if self._queries is None:
+            return linear, translation
+        count = self._anim_joint_count
+        translations = np.empty((frames, count, 3), dtype=np.float32)
+        rotations = np.empty((frames, count, 4), dtype=np.float32)
+        scales = np.empty((frames, count, 3), dtype=np.float16)
+        q_t, q_r, q_s = self._queries
+        TimeCode = self._usd.TimeCode
+        for i, code in enumerate(codes.tolist()):
+            time = TimeCode(code)
+            values = (q_t.Get(time), q_r.Get(time), q_s.Get(time))
+            if any(v is None or len(v) != count for v in values):
+                return None
+            translations[i], rotations[i], scales[i] = values
+        rotation = _quaternion_matrices(np.moveaxis(rotations, 0, -1), axis=1)  # (A, 3, 3, n) float32
+        anim_linear = rotation * np.moveaxis(scales, 0, -1).astype(np.float32)[:, :, None, :]
+        used = self._anim_to_skel >= 0
+        targets = self._anim_to_skel[used]
+        linear[targets] = anim_linear[used]
+        translation[targets] = np.moveaxis(translations, 0, -1)[used]
+        return linear, translation
+
+    def compute(self, codes, world: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """World-space skinning matrices ``(len(codes), joints, 4, 4)``, column-vector, or None.
+
+        Args:
+            codes: USD time codes (already clamped to the clip).
+            world: The skeleton's row-vector local-to-world matrix (4, 4), the same at every code,
+                or ``(len(codes), 4, 4)``; None for skeleton space.
+
+        Returns:
+            ``(S_j(t) * W(t))^T`` per code and joint, as :class:`SkeletonSampler` returns them;
+            None when UsdSkel must answer frame by frame.
+        """
+        codes = np.atleast_1d(np.asarray(codes, dtype=np.float64))
+        joint_count = self._parents.size
+        if world is not None and not _affine_rows(np.asarray(world)):
+            return None
+        if codes.size == 0:
+            return np.zeros((0, joint_count, 4, 4))
+        if world is not None and np.asarray(world).ndim == 3:
+            unique, inverse = codes, np.arange(codes.size)  # a moving skeleton: every code as given
+        else:
+            unique, inverse = np.unique(codes, return_inverse=True)
+        local = self._local(unique)
+        if local is None:
+            return None
+        # Affine row-vector matrices [[A, 0], [t, 1]]: (A1, t1) * (A2, t2) = (A1 A2, t1 A2 + t2);
+        # arrays hold frames last, so every product is a few multiply-adds over contiguous frames.
+        linear, translation = local
+        for joints, parents in self._levels:  # concatenated in place, one depth at a time
+            parent_linear = linear[parents]
+            translation[joints] = _row_times(translation[joints], parent_linear) + translation[parents]
+            linear[joints] = _matrix_product(linear[joints], parent_linear)
+        # Skinning transforms inverse(bind) * skel, then the skeleton's placement in the world.
+        translation = _row_times(self._inverse_bind[:, 3, :3, None], linear) + translation
+        linear = _matrix_product(self._inverse_bind[:, :3, :3, None], linear)
+        if world is not None:
+            world = np.asarray(world, dtype=np.float64)
+            world = world[..., None] if world.ndim == 2 else np.moveaxis(world, 0, -1)  # (4, 4, n | 1)
+            translation = _row_times(translation, world[:3, :3]) + world[3, :3]
+            linear = _matrix_product(linear, world[:3, :3])
+        out = np.zeros((unique.size, joint_count, 4, 4))
+        out[..., :3, :3] = linear.transpose(3, 0, 2, 1)  # column-vector: the transpose
+        out[..., :3, 3] = translation.transpose(2, 0, 1)
+        out[..., 3, 3] = 1.0
+        return out if unique.size == codes.size and world is None or inverse.size == unique.size and \
+            np.array_equal(inverse.reshape(-1), np.arange(unique.size)) else out[inverse.reshape(-1)]
+
+
 class SkeletonSampler:
     """World-space skinning matrices of one skeleton at any time, evaluated by UsdSkel.
 
-    ``sample(times)`` returns ``(len(times), joints, 4, 4)`` column-vector matrices. Each distinct
-    time code is evaluated once (UsdSkel.SkeletonQuery.ComputeSkinningTransforms, which interpolates
-    between authored samples as UsdSkel does) and cached, so the baker and the error report share
-    the work. Times outside [start, end] hold the first or last pose.
+    ``sample(times)`` returns ``(len(times), joints, 4, 4)`` column-vector matrices, all times at
+    once through :class:`AllFramesSkinning`; where it cannot answer, each distinct time code is
+    evaluated by UsdSkel.SkeletonQuery.ComputeSkinningTransforms (which interpolates between
+    authored samples as UsdSkel does) and cached. The error report always asks UsdSkel itself
+    (:meth:`usd_transforms`). Times outside [start, end] hold the first or last pose.
     """
 
     def __init__(self, reader: _Reader, skel_query, skel_prim, start_code: float, end_code: float) -> None:
@@ -481,6 +742,8 @@ class SkeletonSampler:
         """``on_progress(done, total)`` while sampling many rows (UsdSkel evaluates them one by one)."""
         self.normal_memo: dict = {}
         """UsdSkel normal matrices per (time code, joint mapping), shared by the error reference."""
+        self._all_frames = AllFramesSkinning.build(reader, skel_query)
+        """The skinning transforms of many time codes at once (None: UsdSkel, frame by frame)."""
 
     @staticmethod
     def _world_might_vary(prim, reader) -> bool:
@@ -534,10 +797,19 @@ class SkeletonSampler:
 
     def __call__(self, times) -> np.ndarray:
         times = np.atleast_1d(np.asarray(times, dtype=np.float64))
+        codes = np.array([self.code(t) for t in times], dtype=np.float64)
+        if self._all_frames is not None:
+            world = self._static_world
+            if world is None:
+                world = np.stack([self._world(code) for code in codes])
+            matrices = self._all_frames.compute(codes, world)
+            if matrices is not None:
+                return matrices
+            self._all_frames = None  # UsdSkel would treat some sample specially: ask it, frame by frame
         out = np.empty((times.size, self._joints, 4, 4))
         report = self.on_progress if times.size >= 512 else None
-        for i, t in enumerate(times):
-            out[i] = self.at_code(self.code(t))
+        for i, code in enumerate(codes):
+            out[i] = self.at_code(code)
             if report is not None and (i + 1) % 256 == 0:
                 report(i + 1, times.size)
         return np.ascontiguousarray(np.transpose(out, (0, 1, 3, 2)))  # row-vector -> column-vector
@@ -638,6 +910,15 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
             known = ", ".join(groups) or "none"
             raise OptionsError(f"no bound Skeleton at '{wanted}' (bound skeletons: {known})", file=reader.file)
     keys = [k for k in groups if not selected or k in selected]
+    if options.clips:
+        # A UsdSkel clip is named after its Skeleton prim (spec: Clips); --clips selects by that name.
+        clip_names = {k: groups[k].skel_prim.GetName() for k in keys}
+        for wanted in (str(c) for c in options.clips):
+            if wanted not in clip_names.values():
+                known = ", ".join(repr(n) for n in clip_names.values()) or "none"
+                raise OptionsError(f"no clip named {wanted!r} (clips are named after their Skeleton prims; "
+                                   f"known: {known})", file=reader.file, location="/")
+        keys = [k for k in keys if clip_names[k] in {str(c) for c in options.clips}]
     if not keys:
         raise UnsupportedError("no skinned mesh bound to a Skeleton was found", file=reader.file,
                                location="/", code="usdskel.nothing")
@@ -740,12 +1021,16 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
     UsdSkel, UsdGeom, Usd = reader.UsdSkel, reader.UsdGeom, reader.Usd
     skel_path = str(work.skel_prim.GetPath())
     bound = []
+    target_paths = {str(t.GetPath()) for t in work.targets}
     for prim in work.targets:
         location = str(prim.GetPath())
         binding = UsdSkel.BindingAPI(prim)
         shapes = binding.GetBlendShapesAttr()
         has_shapes = bool(shapes and shapes.HasAuthoredValue() and shapes.Get())
-        if not binding.GetJointIndicesPrimvar() or not binding.GetJointIndicesPrimvar().HasAuthoredValue():
+        source = reader.influence_source(prim)
+        if not prim.IsA(UsdGeom.Gprim) and any(p.startswith(location + "/") for p in target_paths):
+            continue   # an Xform whose rigid binding the gprims below it inherit (converted there)
+        if source is None:
             reader.warn(location, "is deformed by blend shapes only (no joint influences); blend shapes "
                         "cannot be held by Virtual Bones, so it is not converted")
             continue
@@ -775,8 +1060,9 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
                                f"{fvi.size} entries for {points.shape[0]} points: inconsistent topology",
                                location, "usdskel.mesh.topology")
         # Our own checks first: UsdSkel only prints warnings for these.
-        joint_map = _joint_map(reader, prim, work.joints)
-        indices, weights, interp = _read_influences(reader, prim, points.shape[0], joint_map.size)
+        joint_map = _joint_map(reader, _joints_source(reader, prim), work.joints)
+        indices, weights, interp = _read_influences(reader, source, points.shape[0], joint_map.size)
+
         query = _skinning_query(reader, prim, skel_path)
         if query is None:
             raise reader.error("UsdSkel does not treat this prim as a skinning target of "
@@ -804,22 +1090,24 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
     return bound
 
 
+def _joints_source(reader: _Reader, prim):
+    """The prim whose ``skel:joints`` (joint order) applies: the nearest ancestor-or-self with it
+    authored (it is inherited, like the binding), else ``prim``."""
+    node = prim
+    while node and not node.IsPseudoRoot():
+        attr = reader.UsdSkel.BindingAPI(node).GetJointsAttr()
+        if attr and attr.HasAuthoredValue():
+            return node
+        node = node.GetParent()
+    return prim
+
+
 def _skinning_query(reader: _Reader, prim, skel_path: str):
     """UsdSkel's own SkinningQuery of ``prim`` (via UsdSkel.Cache bindings), or None."""
     root = reader._skel_root(prim)
     if root is None:
         return None
-    memo = reader.bindings
-    root_key = str(root.GetPath())
-    if root_key not in memo:
-        skel_root = reader.UsdSkel.Root(root)
-        reader.cache.Populate(skel_root, reader.predicate)
-        table = {}
-        for binding in reader.cache.ComputeSkelBindings(skel_root, reader.predicate):
-            for target in binding.GetSkinningTargets():
-                table[str(target.GetPrim().GetPath())] = (str(binding.GetSkeleton().GetPath()), target)
-        memo[root_key] = table
-    entry = memo[root_key].get(str(prim.GetPath()))
+    entry = reader.targets_of_root(root).get(str(prim.GetPath()))
     if entry is None or entry[0] != skel_path:
         return None
     return entry[1]

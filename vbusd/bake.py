@@ -238,12 +238,16 @@ def _clip_extents(matrices: np.ndarray, meshes: tuple, bone_count: int) -> np.nd
     active = np.all(np.isfinite(lo), axis=1)
     if not np.any(active):
         return np.zeros((2, 3), dtype=np.float32)
-    lo, hi = lo[active], hi[active]
-    corners = np.stack([np.where(np.array([(c >> a) & 1 for a in range(3)], bool), hi, lo)
-                        for c in range(8)], axis=1)  # (bones, 8, 3)
+    center, half = 0.5 * (lo[active] + hi[active]), 0.5 * (hi[active] - lo[active])  # (bones, 3)
     m = matrices[:, active]  # (rows, bones, 4, 4)
-    moved = np.einsum("rbij,bcj->rbci", m[..., :3, :3], corners) + m[:, :, None, :3, 3]
-    return np.stack([moved.min(axis=(0, 1, 2)), moved.max(axis=(0, 1, 2))]).astype(np.float32)
+    # The box of a box's 8 transformed corners: center A c + t, half-size |A| h, per axis.
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    for axis in range(3):
+        row = m[:, :, axis, :3]  # (rows, bones, 3)
+        moved = (row * center).sum(axis=-1) + m[:, :, axis, 3]
+        spread = (np.abs(row) * half).sum(axis=-1)
+        low[axis], high[axis] = (moved - spread).min(), (moved + spread).max()
+    return np.stack([low, high]).astype(np.float32)
 
 
 def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: AnimationClip,
