@@ -1126,8 +1126,9 @@ def run(args) -> int:
                   f"  cpu {timing['cpu_ms']['median']:9.3f} ms  frame {timing['frame_ms']['median']:9.3f} ms"
                   f"  x{timing['runs']:<3d} err {correctness['position_error_m']:.2e} m"
                   f" {'ok' if correctness['agrees'] else 'DISAGREES'}  anim {method.anim_bytes:,} B", flush=True)
-            if args.factors and character_name == "stadium" and n == args.factor_size and method_name in ("static", "vb") \
-                    and (method_name == "static" or (encoding, texel_format) == ("crossMatrix", "float16")):
+            if args.factors and character_name == "stadium" and n == args.factor_size \
+                    and method_name in ("static", "vb", "vat", "palette") \
+                    and (method_name != "vb" or (encoding, texel_format) == ("crossMatrix", "float16")):
                 result["factors"].append(factor_study(method, scene, args))
             for item in method.release:
                 item.release()

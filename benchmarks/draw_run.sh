@@ -13,17 +13,19 @@
 # is warm (it is given back about 30 s after a call):
 #
 #   here:        bash benchmarks/draw_run.sh pack
-#   device call: carry [".gpuwarp/p1"]                  command: bash benchmarks/draw_run.sh stage 1
+#   device call: carry [".gpuwarp/p1", ".gl", ".whl"]  command: bash benchmarks/draw_run.sh stage 1 && bash benchmarks/draw_run.sh smoke
 #   device call: carry [".gpuwarp/p2", ".gl", ".whl"]  command: bash benchmarks/draw_run.sh stage 2 && bash benchmarks/draw_run.sh run
 #
-# `run` writes to $OUT: gpu.txt (nvidia-smi), warp_tests.log (pytest tests/test_warp_decoder.py on
-# CUDA), draw.log and draw_cost.json. Kept in benchmarks/results/ as draw_cost_h100.json and
-# warp_tests_cuda_h100_round2.log; the table and plot are made here from the JSON:
-#   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json --markdown \
-#       --plot benchmarks/results/draw_cost_h100.png
-# DRAW_ARGS adds options to draw_cost.py run (default budget: 380 s of the call's 600).
+# `smoke` (no warp yet) opens the EGL context and runs the GL methods at 1,200 stadium instances
+# (smoke.json, smoke.log). `run` writes to $OUT: gpu.txt (nvidia-smi), warp_tests.log (pytest
+# tests/test_warp_decoder.py on CUDA), draw_tests.log (tests/test_draw_cost.py on the NVIDIA EGL
+# driver), draw.log, draw_cost.json, and the report (draw_report.md) and plot (draw_cost.png) made
+# from the JSON (matplotlib is in the GPU image). Kept in benchmarks/results/ as draw_cost_h100.json,
+# draw_cost_h100.png, draw_report_h100.md and draw_warp_tests_cuda_h100.log. The report again, here:
+#   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json --markdown
+# DRAW_ARGS adds options to draw_cost.py run (default budget: 320 s of the call's 600).
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|run}
+cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -43,11 +45,11 @@ pack)
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-run)
+smoke|run)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
-    if [ ! -d /tmp/site/warp ]; then
+    if [ "$cmd" = run ] && [ ! -d /tmp/site/warp ]; then
         mkdir -p /tmp/site
         cat /tmp/gw/part* | python3 -c 'import sys, tarfile; tarfile.open(fileobj=sys.stdin.buffer, mode="r|xz").extractall("/tmp/site")'
     fi
@@ -59,12 +61,20 @@ run)
     fi
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,clocks.max.memory --format=csv | tee "$out/gpu.txt"
     set +e
-    timeout 150 python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/warp_tests.log"
+    if [ "$cmd" = smoke ]; then
+        timeout 90 python3 benchmarks/draw_cost.py run --json "$out/smoke.json" --sizes 1200 --characters stadium \
+            --methods static,vb,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
+        exit 0
+    fi
+    timeout 100 python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/warp_tests.log"
+    timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
     # shellcheck disable=SC2086
-    timeout 420 python3 benchmarks/draw_cost.py run --json "$out/draw_cost.json" --budget 380 ${DRAW_ARGS:-} 2>&1 | tee "$out/draw.log"
-    python3 benchmarks/draw_cost.py report --json "$out/draw_cost.json" 2>&1 | tail -20
+    timeout 360 python3 benchmarks/draw_cost.py run --json "$out/draw_cost.json" --budget 320 ${DRAW_ARGS:-} 2>&1 | tee "$out/draw.log"
+    timeout 40 python3 benchmarks/draw_cost.py report --json "$out/draw_cost.json" --markdown --plot "$out/draw_cost.png" \
+        > "$out/draw_report.md" 2>&1
+    tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|run" >&2; exit 2
+    echo "usage: draw_run.sh pack|stage N|smoke|run" >&2; exit 2
     ;;
 esac
