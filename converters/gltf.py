@@ -527,8 +527,29 @@ class _Animation:
     index: int
     name: str
     channels: list = field(default_factory=list)   # of _Channel (T/R/S only)
+    weight_channels: dict = field(default_factory=dict)   # node -> _Channel of morph weights (or None)
     start: float = 0.0
     end: float = 0.0
+
+
+@dataclass
+class _Attachment:
+    node: int            # the mesh node (no skin)
+    bone: int            # the node it follows rigidly: a joint, or an animated node (extra bone)
+    rel: np.ndarray      # (4, 4) rest transform from ``bone``'s space to ``node``'s (constant)
+
+
+@dataclass(frozen=True)
+class GltfScene(SourceScene):
+    """A :class:`SourceScene` that also says which meshes had their weights renormalized.
+
+    Attributes:
+        raw_weights: Per animation, per mesh: ``(weights, joints)`` as stored, for a mesh whose
+            weights did not sum to one (spec: Meshes, "Weights"), else None. ``vbusd convert``
+            reports the distance renormalizing moves their vertices.
+    """
+
+    raw_weights: tuple = ()
 
 
 def _float_list(value, length: int, pointer: str, file: str):
@@ -555,6 +576,9 @@ class _Converter:
         self.reader = AccessorReader(gltf, buffers, file)
         self.warnings: list[str] = []
         self.quantized = "KHR_mesh_quantization" in (gltf.extensionsUsed or [])
+        self.renormalized: dict = {}
+        self._clip_sources: dict = {}   # id(AnimationClip) -> _Animation it was made from
+        """(mesh, primitive) -> (raw weights, joints) of primitives whose weights were renormalized."""
 
     def warn(self, message: str) -> None:
         """Record a one-line warning once."""
@@ -743,10 +767,12 @@ class _Converter:
                                     f"{targets[(node, path)]}", cw, "gltf.animation.target")
                 targets[(node, path)] = c
                 if path == "weights":
-                    mesh = self.gltf.nodes[node].mesh
-                    label = (self.mesh_label(mesh) if mesh is not None else self.node_label(node))
-                    self.warn(f"{where}: morph target weights of {label} are animated; "
-                              "morph targets are not baked (the rest shape is used)")
+                    # Morph weights are not baked; they are kept to measure what dropping the
+                    # targets loses (spec: Meshes, "Morph targets").
+                    sampler = samplers[s]
+                    record.weight_channels[node] = self._read_weights_output(
+                        node, decoded_inputs[s], sampler.interpolation or "LINEAR", sampler.output,
+                        f"{where}/samplers/{s}/output")
                     continue
                 if self.has_matrix[node]:
                     raise self.fail(f"{self.node_label(node)} has a matrix; animated nodes must use "
@@ -762,6 +788,24 @@ class _Converter:
                 record.end = float(max(k[-1] for k in all_keys))
             result.append(record)
         return result
+
+    def _read_weights_output(self, node: int, keys: np.ndarray, interp: str, output, pointer: str):
+        """A morph ``weights`` channel as a _Channel of (k, targets) values, or None when its node
+        has no mesh with targets or its output does not fit (a warning then says so)."""
+        mesh = self.gltf.nodes[node].mesh
+        prims = self.gltf.meshes[mesh].primitives if mesh is not None else None
+        targets = len(prims[0].targets or []) if prims else 0
+        if targets == 0:
+            return None
+        values = np.asarray(self.reader.read(output, pointer), dtype=np.float64).reshape(-1)
+        per_key = 3 * targets if interp == "CUBICSPLINE" else targets
+        if values.size != len(keys) * per_key:
+            self.warn(f"{pointer}: morph weights output holds {values.size} values for {len(keys)} keys "
+                      f"of {targets} targets; not measured")
+            return None
+        values = values.reshape(len(keys), 3, targets) if interp == "CUBICSPLINE" else \
+            values.reshape(len(keys), targets)
+        return _Channel(node, "weights", np.asarray(keys, dtype=np.float64), values, interp)
 
     def _read_output(self, node: int, path: str, keys: np.ndarray, interp: str, output,
                      pointer: str) -> _Channel:
@@ -809,8 +853,12 @@ class _Converter:
         return (f"mesh {index} {name!r} (/meshes/{index})" if isinstance(name, str) and name
                 else f"mesh {index} (/meshes/{index})")
 
-    def read_primitive(self, m: int, p: int, joint_count: int, skin: int) -> dict:
-        """Decode one primitive of a skinned mesh; check it against a skin of ``joint_count`` joints."""
+    def read_primitive(self, m: int, p: int, joint_count: int, skin: int, rigid: bool = False) -> dict:
+        """Decode one primitive of a skinned mesh; check it against a skin of ``joint_count`` joints.
+
+        With ``rigid`` (a mesh attached to a node, spec: Rigid attachments) the primitive's
+        ``JOINTS_n``/``WEIGHTS_n`` are not read: the caller binds every vertex to one bone.
+        """
         where = f"/meshes/{m}/primitives/{p}"
         prim = self.gltf.meshes[m].primitives[p]
         mode = 4 if prim.mode is None else prim.mode
@@ -832,6 +880,7 @@ class _Converter:
         self._accessor_format(attributes["POSITION"], f"{aw}/POSITION", "POSITION", ("VEC3",),
                               pos_types)
         points = np.asarray(self.reader.read(attributes["POSITION"], f"{aw}/POSITION"), np.float64)
+        self._current_points = points
         count = len(points)
         normals = None
         if "NORMAL" in attributes:
@@ -843,7 +892,9 @@ class _Converter:
                                 f"{aw}/NORMAL", "gltf.mesh.count")
         sets = sorted({int(k.split("_")[1]) for k in attributes
                        if re.fullmatch(r"(JOINTS|WEIGHTS)_\d+", k)})
-        if 0 not in sets:
+        if rigid:
+            sets = []
+        elif 0 not in sets:
             raise self.fail(f"primitive of a skinned node (skin {skin}) has no JOINTS_0/WEIGHTS_0",
                             aw, "gltf.mesh.attribute")
         joints_all, weights_all = [], []
@@ -879,6 +930,8 @@ class _Converter:
                 joints = np.where(joints >= joint_count, 0, joints)
             joints_all.append(joints)
             weights_all.append(weights)
+        if rigid:
+            joints_all, weights_all = [np.zeros((count, 1), np.int64)], [np.ones((count, 1))]
         joints = np.concatenate(joints_all, axis=1)
         weights = np.concatenate(weights_all, axis=1)
         # Duplicate joints with weight in one vertex (glTF-Validator ACCESSOR_JOINTS_INDEX_DUPLICATE).
@@ -889,17 +942,8 @@ class _Converter:
             v = int(np.nonzero(dup)[0][0])
             raise self.fail(f"vertex {v} lists joint {int(ordered[v][1:][ordered[v][1:] == ordered[v][:-1]][0])} "
                             "twice with non-zero weight", f"{aw}/JOINTS_0", "gltf.skin.joint_index")
-        # Weight sums, as glTF-Validator: float32 running sum, 2e-7 per non-zero weight.
-        total = np.zeros(count, dtype=np.float32)
-        for c in range(weights.shape[1]):
-            total = (total + weights[:, c].astype(np.float32)).astype(np.float32)
-        threshold = WEIGHT_SUM_TOLERANCE * np.count_nonzero(weights, axis=1)
-        off = np.abs(total.astype(np.float64) - 1.0) > np.maximum(threshold, 1e-12)
-        if np.any(off):
-            v = int(np.nonzero(off)[0][0])
-            raise self.fail(f"vertex {v}: weights sum to {float(total[v]):.9g}, not 1 "
-                            f"(tolerance {WEIGHT_SUM_TOLERANCE:g} per non-zero weight)",
-                            f"{aw}/WEIGHTS_0", "gltf.skin.weights")
+        if not rigid:
+            weights, joints = self.normalize_weights(weights, joints, m, p, aw)
         # Topology.
         if prim.indices is not None:
             ip = f"{where}/indices"
@@ -921,10 +965,87 @@ class _Converter:
                             f"{where}/indices" if prim.indices is not None else where,
                             "gltf.mesh.indices")
         tris = triangles(mode, indices)
-        if prim.targets:
-            self.warn(f"{self.mesh_label(m)} has morph targets; the rest shape is used")
-        return {"points": points, "normals": normals, "tris": tris, "joints": joints,
+        targets = []
+        for t, target in enumerate(prim.targets or []):
+            target = target if isinstance(target, dict) else (vars(target) if target is not None else {})
+            index = target.get("POSITION")
+            if index is None:
+                targets.append(np.zeros_like(points))
+                continue
+            tp = f"{where}/targets/{t}/POSITION"
+            self._accessor_format(index, tp, "morph target POSITION", ("VEC3",),
+                                  (5126, 5120, 5122) if self.quantized else (5126,))
+            offsets = np.asarray(self.reader.read(index, tp), np.float64)
+            if len(offsets) != count:
+                raise self.fail(f"has {len(offsets)} elements, POSITION {count}", tp, "gltf.mesh.count")
+            targets.append(offsets)
+        return {"targets": targets, "points": points, "normals": normals, "tris": tris, "joints": joints,
                 "weights": weights}
+
+    def normalize_weights(self, weights: np.ndarray, joints: np.ndarray, m: int, p: int,
+                          pointer: str) -> tuple[np.ndarray, np.ndarray]:
+        """Renormalize one primitive's weights as engines do (spec: Meshes, "Weights").
+
+        Weights whose float32 sum is within glTF-Validator's tolerance of one are kept as stored.
+        Others are divided by their sum (one warning per primitive: how many vertices, the largest
+        deviation of a sum from one and how far that moves a vertex at the bind pose); a vertex
+        whose weights are all zero gets weight 1 on the joint of its ``JOINTS_0`` first component,
+        as three.js's ``SkinnedMesh.normalizeSkinWeights`` does (another warning). With
+        ``ReadOptions.strict_weights`` the first vertex off is an error instead.
+
+        Args:
+            weights: (V, K) non-negative float64 weights, every set concatenated.
+            joints: (V, K) joint indices (in range wherever the weight is non-zero).
+            m: Mesh index, for messages.
+            p: Primitive index, for messages.
+            pointer: JSON pointer of the primitive's attributes.
+
+        Returns:
+            (weights, joints), every row of weights summing to one.
+
+        Raises:
+            InputError: With strict weights, a vertex whose weights do not sum to one (gltf.skin.weights).
+        """
+        count = len(weights)
+        # Sums as glTF-Validator computes them: float32 running sum, 2e-7 per non-zero weight.
+        total = np.zeros(count, dtype=np.float32)
+        for c in range(weights.shape[1]):
+            total = (total + weights[:, c].astype(np.float32)).astype(np.float32)
+        threshold = WEIGHT_SUM_TOLERANCE * np.count_nonzero(weights, axis=1)
+        off = np.abs(total.astype(np.float64) - 1.0) > np.maximum(threshold, 1e-12)
+        if not np.any(off):
+            return weights, joints
+        if getattr(self.options, "strict_weights", False):
+            v = int(np.nonzero(off)[0][0])
+            raise self.fail(f"vertex {v}: weights sum to {float(total[v]):.9g}, not 1 "
+                            f"(tolerance {WEIGHT_SUM_TOLERANCE:g} per non-zero weight; "
+                            "--strict-weights)", f"{pointer}/WEIGHTS_0", "gltf.skin.weights")
+        sums = weights.sum(axis=1)
+        zero = sums <= 0
+        label = f"{self.mesh_label(m)} primitive {p}"
+        if np.any(zero):
+            weights = weights.copy()
+            joints = joints.copy()
+            first = int(np.nonzero(zero)[0][0])
+            weights[zero] = 0.0
+            weights[zero, 0] = 1.0
+            self.warn(f"{label}: {int(zero.sum())} vertices have only zero weights (first: vertex "
+                      f"{first}); each is bound with weight 1 to the joint of its JOINTS_0 first "
+                      f"component (joint {int(joints[first, 0])} for vertex {first}), as three.js does")
+            sums = np.where(zero, 1.0, sums)
+        scaled = off & ~zero
+        if np.any(scaled):
+            deviation = np.abs(sums - 1.0)
+            worst = int(np.argmax(np.where(scaled, deviation, -1.0)))
+            points = self._current_points
+            moved = float(np.max(np.where(scaled, deviation * np.linalg.norm(points, axis=1), 0.0)))
+            self.warn(f"{label}: weights of {int(scaled.sum())} vertices do not sum to 1 (largest "
+                      f"deviation {deviation[worst]:.3g}: vertex {worst} sums to {sums[worst]:.9g}); "
+                      f"renormalized, as engines do (at the bind pose that moves a vertex by up to "
+                      f"{moved:.3g} scene units; --strict-weights refuses such files)")
+            self.renormalized[(m, p)] = (weights.copy(), joints.copy())
+        weights = weights / sums[:, None]
+        return weights, joints
 
     # -- skins -----------------------------------------------------------------------------------
 
@@ -1018,11 +1139,12 @@ class _Converter:
                                "Scene")
         names = NameAllocator()
 
-        # Skinned nodes, in node order.
+        # Skinned nodes, in node order; mesh nodes without a skin are attachment candidates.
         users: dict[int, list] = {}
+        unskinned = []
         for i, node in enumerate(gltf.nodes):
             if node.mesh is not None and node.skin is None:
-                self.warn(f"{self.node_label(i)} has a mesh but no skin; left out")
+                unskinned.append(i)
             elif node.skin is not None and node.mesh is None:
                 self.warn(f"{self.node_label(i)} has a skin but no mesh; ignored")
             elif node.skin is not None:
@@ -1032,17 +1154,21 @@ class _Converter:
                               "identity; it is ignored, as glTF 2.0 requires (joint transforms "
                               "place the mesh)")
 
-        result = []
-        anim_prim_names = {}
+        converted = [s for s in skins if s in users]
         for s in skins:
             if s not in users:
                 self.warn(f"skin {s} (/skins/{s}) is used by no mesh node; left out")
-                continue
+        attachments = self.plan_attachments(unskinned, converted, [animations[a] for a in chosen_anims])
+
+        result = []
+        anim_prim_names = {}
+        for s in converted:
             base = make_identifier(gltf.skins[s].name, f"skin{s}")
             anim_prim_names[s] = names.take(f"{base}_Anim")
         mesh_names = {}
         for s in anim_prim_names:
-            for node in users[s]:
+            nodes = list(users[s]) + [a.node for a in attachments.get(s, [])]
+            for node in nodes:
                 mesh = gltf.nodes[node].mesh
                 base = make_identifier(gltf.nodes[node].name or gltf.meshes[mesh].name, f"node{node}")
                 prims = gltf.meshes[mesh].primitives or []
@@ -1052,27 +1178,61 @@ class _Converter:
                 for p in range(len(prims)):
                     mesh_names[(node, p)] = names.take(base if len(prims) == 1 else f"{base}_p{p}")
 
+        raw_weights = []
         for s, anim_name in anim_prim_names.items():
             joints, ibm = self.read_skin(s)
             bone_names = NameAllocator()
-            bones = tuple(bone_names.take(make_identifier(gltf.nodes[j].name, f"node{j}"))
-                          for j in joints)
-            meshes = []
+            bones = [bone_names.take(make_identifier(gltf.nodes[j].name, f"node{j}")) for j in joints]
+            bone_nodes = list(joints)
+            ibms = list(ibm)
+            meshes, raws, morphs = [], [], []
+
+            def add_mesh(node, m, p, data, indices, weights, rigid):
+                meshes.append(SkinnedMesh(
+                    path=f"/{root}/{mesh_names[(node, p)]}",
+                    points=data["points"],
+                    face_vertex_counts=np.full(len(data["tris"]), 3, dtype=np.int32),
+                    face_vertex_indices=data["tris"].reshape(-1).astype(np.int32),
+                    bone_indices=indices.astype(np.int32),
+                    bone_weights=weights,
+                    normals=data["normals"],
+                    normals_interpolation="vertex",
+                    source_path=f"/nodes/{node} /meshes/{m}/primitives/{p}"))
+                raws.append(None if rigid else self.renormalized.get((m, p)))
+                morphs.append((node, m, p, data["targets"]))
+
             for node in users[s]:
                 m = gltf.nodes[node].mesh
                 for p in range(len(gltf.meshes[m].primitives)):
                     data = self.read_primitive(m, p, len(joints), s)
-                    meshes.append(SkinnedMesh(
-                        path=f"/{root}/{mesh_names[(node, p)]}",
-                        points=data["points"],
-                        face_vertex_counts=np.full(len(data["tris"]), 3, dtype=np.int32),
-                        face_vertex_indices=data["tris"].reshape(-1).astype(np.int32),
-                        bone_indices=data["joints"].astype(np.int32),
-                        bone_weights=data["weights"],
-                        normals=data["normals"],
-                        normals_interpolation="vertex",
-                        source_path=f"/nodes/{node} /meshes/{m}/primitives/{p}"))
-            relevant = self.ancestors_and_self(joints)
+                    add_mesh(node, m, p, data, data["joints"], data["weights"], False)
+            for attachment in attachments.get(s, []):
+                if attachment.bone in bone_nodes[:len(joints)]:
+                    bone = bone_nodes.index(attachment.bone)
+                elif attachment.bone in bone_nodes:
+                    bone = bone_nodes.index(attachment.bone)
+                else:
+                    bone = len(bone_nodes)
+                    bone_nodes.append(attachment.bone)
+                    ibms.append(np.eye(4))
+                    bones.append(bone_names.take(make_identifier(gltf.nodes[attachment.bone].name,
+                                                                 f"node{attachment.bone}")))
+                node = attachment.node
+                m = gltf.nodes[node].mesh
+                place = self.attachment_matrix(attachment, ibms[bone])
+                for p in range(len(gltf.meshes[m].primitives)):
+                    data = self.read_primitive(m, p, len(joints), s, rigid=True)
+                    data["points"] = data["points"] @ place[:3, :3].T + place[:3, 3]
+                    if data["normals"] is not None:
+                        normals = data["normals"] @ np.linalg.inv(place[:3, :3])
+                        lengths = np.linalg.norm(normals, axis=1, keepdims=True)
+                        data["normals"] = np.divide(normals, lengths, out=np.zeros_like(normals),
+                                                    where=lengths > 0)
+                    data["targets"] = [t @ place[:3, :3].T for t in data["targets"]]
+                    count = len(data["points"])
+                    add_mesh(node, m, p, data, np.full((count, 1), bone), np.ones((count, 1)), True)
+            ibm_all = np.array(ibms)
+            relevant = self.ancestors_and_self(bone_nodes)
             relevant_set = set(relevant)
             clips = []
             clip_names = NameAllocator()
@@ -1089,8 +1249,10 @@ class _Converter:
                     if end < start:
                         self.warn(f"/animations/{a}: outside the chosen time range; left out")
                         continue
-                clips.append(self.make_clip(clip_names.take(anim.name), start, end, channels,
-                                            joints, relevant, ibm))
+                clip = self.make_clip(clip_names.take(anim.name), start, end, channels,
+                                      bone_nodes, relevant, ibm_all)
+                clips.append(clip)
+                self._clip_sources[id(clip)] = anim
             if not clips:
                 if time_range is not None and moved and not any(_overlaps(animations[a], lo, hi) for a in chosen_anims):
                     # No animation reaches into the range: the bake would be a held pose only.
@@ -1103,17 +1265,130 @@ class _Converter:
                        if moved else "no animation moves its joints")
                 self.warn(f"skin {s} (/skins/{s}): {why}; a one-row rest clip is written")
                 t0 = 0.0 if time_range is None else float(lo)
-                clips.append(self.make_clip(clip_names.take("rest"), t0, t0, [], joints,
-                                            relevant, ibm))
-            result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=bones,
+                clips.append(self.make_clip(clip_names.take("rest"), t0, t0, [], bone_nodes,
+                                            relevant, ibm_all))
+            for node, m, p, targets in morphs:
+                if targets:
+                    self.measure_morph(node, m, p, targets, clips)
+            result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=tuple(bones),
                                            clips=tuple(clips), meshes=tuple(meshes),
                                            source=self.file))
+            raw_weights.append(tuple(raws))
         if not result:
             raise UnsupportedError("no skin is used by a mesh node; nothing to bake",
                                    file=self.file, location="/skins", code="gltf.noSkin")
-        return SourceScene(animations=tuple(result), up_axis="Y", meters_per_unit=1.0,
-                           time_codes_per_second=TIME_CODES_PER_SECOND, default_prim=root,
-                           warnings=tuple(self.warnings), source=self.file)
+        return GltfScene(animations=tuple(result), up_axis="Y", meters_per_unit=1.0,
+                         time_codes_per_second=TIME_CODES_PER_SECOND, default_prim=root,
+                         warnings=tuple(self.warnings), source=self.file,
+                         raw_weights=tuple(raw_weights))
+
+    def plan_attachments(self, unskinned: list, converted: list, chosen: list) -> dict:
+        """Which converted skin, and which bone of it, every mesh node without a skin follows.
+
+        Rule (spec: Rigid attachments): a mesh node whose ancestor (or itself) is a joint of a
+        converted skin follows the nearest such joint ``J`` (of the lowest-index converted skin
+        listing it), unless a node between ``J`` (exclusive) and the mesh node (inclusive) is
+        animated by a converted animation: then it follows the deepest such node, which becomes an
+        extra bone of that skin (bone matrix: its world transform). A mesh node under no joint
+        that an animated node moves follows the deepest animated node as an extra bone of the
+        first converted skin (with a warning); a mesh node nothing animates and no joint holds is
+        scenery and is left out (with a warning).
+
+        Args:
+            unskinned: Mesh nodes without a skin, in node order.
+            converted: Converted skin indices, ascending.
+            chosen: The selected animations (_Animation records).
+
+        Returns:
+            ``{skin: [_Attachment, ...]}`` in node order.
+        """
+        animated = {c.node for anim in chosen for c in anim.channels}
+        joint_skin: dict[int, int] = {}
+        for s in converted:
+            for j in self.read_skin(s)[0]:
+                joint_skin.setdefault(j, s)
+        result: dict[int, list] = {}
+        for n in unskinned:
+            path, node = [], n
+            while node != -1 and node not in joint_skin:
+                path.append(node)
+                node = self.parent[node]
+            moving = [x for x in path if x in animated]   # deepest first
+            if node != -1:
+                skin = joint_skin[node]
+                bone = moving[0] if moving else node
+            elif moving and converted:
+                skin, bone = converted[0], moving[0]
+                self.warn(f"{self.node_label(n)} has a mesh but no skin and follows the animated "
+                          f"{self.node_label(bone)}, which is under no joint of a converted skin; it "
+                          f"is attached to skin {skin} as an extra bone")
+            else:
+                self.warn(f"{self.node_label(n)} has a mesh but no skin, and neither a joint nor an "
+                          "animation moves it (scenery); left out")
+                continue
+            below = path[:path.index(bone)] if bone in path else path   # bone (exclusive) .. n
+            rel = np.eye(4)
+            for x in reversed(below):
+                rel = rel @ self.rest_local[x]
+            result.setdefault(skin, []).append(_Attachment(n, bone, rel))
+        return result
+
+    def attachment_matrix(self, attachment: _Attachment, ibm: np.ndarray) -> np.ndarray:
+        """``inverse(IBM_bone) · rel``: takes the mesh node's POSITION into the bind space of its
+        bone, so that ``M_bone(t) · result = W_node(t)`` (spec: Rigid attachments).
+
+        Raises:
+            InputError: The bone's inverse bind matrix is singular (gltf.skin.ibm).
+        """
+        if abs(np.linalg.det(ibm[:3, :3])) < 1e-12:
+            raise self.fail(f"the inverse bind matrix of {self.node_label(attachment.bone)} is singular, "
+                            f"so {self.node_label(attachment.node)} cannot be attached to it",
+                            f"/nodes/{attachment.node}", "gltf.skin.ibm")
+        return np.linalg.inv(ibm) @ attachment.rel
+
+    def measure_morph(self, node: int, m: int, p: int, targets: list, clips: list) -> None:
+        """Warn that a primitive's morph targets are dropped, with the largest displacement they
+        cause over the converted clips (spec: Meshes, "Morph targets")."""
+        offsets = np.stack(targets)                       # (T, V, 3)
+        count = offsets.shape[0]
+        defaults = (getattr(self.gltf.nodes[node], "weights", None) or getattr(self.gltf.meshes[m], "weights", None)
+                    or [])
+        defaults = np.resize(np.asarray(defaults, dtype=np.float64), count) if len(defaults) else \
+            np.zeros(count)
+        worst = (0.0, 0, "", 0.0)
+        for clip in clips:
+            anim = self._clip_sources.get(id(clip))
+            channel = anim.weight_channels.get(node) if anim is not None else None
+            if channel is None:
+                times, weights = np.array([clip.start_time]), defaults[None, :]
+            else:
+                keys = channel.keys
+                inside = keys[(keys >= clip.start_time) & (keys <= clip.end_time)]
+                times = np.unique(np.concatenate([inside, [clip.start_time, clip.end_time]]))
+                if channel.interpolation == "CUBICSPLINE" and len(times) > 1:
+                    steps = np.linspace(0.0, 1.0, 9)[1:-1]
+                    times = np.unique(np.concatenate(
+                        [times, (times[:-1, None] + np.diff(times)[:, None] * steps).reshape(-1)]))
+                weights = sample_channel(times, keys, channel.values, channel.interpolation, False)
+                if weights.shape[1] != count:
+                    continue
+            chunk = max(1, int(4_000_000 // max(1, offsets.shape[1] * count)))
+            for start in range(0, len(times), chunk):
+                part = slice(start, start + chunk)
+                lengths = np.linalg.norm(np.einsum("nt,tvc->nvc", weights[part], offsets), axis=2)
+                row, vertex = np.unravel_index(int(np.argmax(lengths)), lengths.shape)
+                if lengths[row, vertex] > worst[0]:
+                    worst = (float(lengths[row, vertex]), int(vertex), clip.name,
+                             float(times[part][row]))
+        label = f"{self.mesh_label(m)} primitive {p} of {self.node_label(node)}"
+        rest = "the rest shape used is POSITION as stored (every target weight 0)"
+        if worst[0] > 0:
+            self.warn(f"{label}: {count} morph targets are not baked; {rest}; over the converted "
+                      f"clips the dropped targets move a vertex by up to {worst[0]:.4g} scene units "
+                      f"(vertex {worst[1]}, clip '{worst[2]}' at {worst[3]:.4g} s)")
+        else:
+            self.warn(f"{label}: {count} morph targets are not baked; {rest}; their weights stay 0 "
+                      "over the converted clips, so nothing is lost")
 
     def make_clip(self, name: str, start: float, end: float, channels: list, joints: list,
                   relevant: list, ibm: np.ndarray) -> AnimationClip:

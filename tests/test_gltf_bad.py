@@ -43,11 +43,18 @@ def test_every_bad_fixture_is_listed():
     assert len(BAD) >= 20
 
 
+STRICT_WEIGHTS = {"weights_sum", "weights_zero"}
+"""Weights that do not sum to one are renormalized by default (issue 12); --strict-weights refuses
+them as glTF-Validator reports them (tests/test_real_characters_gltf.py checks the default)."""
+
+
 @pytest.mark.parametrize("name", sorted(BAD))
 def test_bad_input_code_and_location(name):
+    from vbusd.format.model import ReadOptions
+
     code, location = BAD[name]
     with pytest.raises(VbusdError) as info:     # InputError, or UnsupportedError for extensions
-        gltf.read(_file(name))
+        gltf.read(_file(name), ReadOptions(strict_weights=name in STRICT_WEIGHTS))
     error = info.value
     assert (error.code, error.location) == (code, location)
     assert error.file == str(_file(name))
@@ -97,7 +104,7 @@ def test_cli_convert_reports_one_line_and_writes_nothing(tmp_path, capsys):
     from vbusd import cli
 
     out = tmp_path / "out.usda"
-    status = cli.main(["convert", str(_file("weights_sum")), "-o", str(out)])
+    status = cli.main(["convert", str(_file("weights_sum")), "-o", str(out), "--strict-weights"])
     captured = capsys.readouterr()
     assert status == 2
     assert "gltf.skin.weights" in captured.err

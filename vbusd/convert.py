@@ -22,6 +22,7 @@ pxr is imported only by the converters and the USD writer, not here.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -31,7 +32,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbusd.bake import BakeOptions, bake
-from vbusd.format.errors import OptionsError, UnsupportedError, VbusdError
+from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
@@ -42,6 +43,8 @@ AUTO = "auto"
 
 CONTAINERS = ("exr", "png", "ktx2")
 OUTPUT_SUFFIXES = (".usda", ".usd", ".usdc")
+BAD_CLIP_POLICIES = ("error", "skip")
+"""What ``vbusd convert --on-bad-clip`` does with a clip the encoding cannot hold."""
 DEFAULT_CHECK_ROWS = 256
 """Rows per clip compared with the source's own skinning by default (all rows when fewer)."""
 
@@ -71,6 +74,12 @@ class ConvertOptions:
             otherwise that many rows spread evenly (first and last included).
         converter: Force a converter by name (``usdskel``, ``gltf``); None picks by the file.
         loop: Force looping (True) or clamping (False); None lets the baker decide.
+        clips: Clips to convert (glTF animation names or indices, UsdSkel Skeleton prim names);
+            empty: all. A name that selects nothing is an error.
+        on_bad_clip: ``error`` (default): a clip the chosen encoding cannot hold stops the
+            conversion with a line naming it; ``skip``: it is left out (listed in the report's
+            ``skipped_clips``) and the others are converted.
+        strict_weights: Refuse glTF weights that do not sum to one instead of renormalizing them.
     """
 
     encoding: str = AUTO
@@ -87,9 +96,16 @@ class ConvertOptions:
     check_rows: Optional[int] = DEFAULT_CHECK_ROWS
     converter: Optional[str] = None
     loop: Optional[bool] = None
+    clips: tuple = ()
+    on_bad_clip: str = "error"
+    strict_weights: bool = False
 
     def __post_init__(self) -> None:
         where = "convert"
+        if self.on_bad_clip not in BAD_CLIP_POLICIES:
+            raise OptionsError(f"on_bad_clip must be one of {', '.join(BAD_CLIP_POLICIES)}, got "
+                               f"{self.on_bad_clip!r}", file=where)
+        object.__setattr__(self, "clips", tuple(str(c) for c in self.clips))
         encoding = str(getattr(self.encoding, "value", self.encoding))
         if encoding != AUTO:
             try:
@@ -163,6 +179,10 @@ class MeshReport:
             influences vs kept influences), scene units.
         max_normal_error_degrees: Largest angle between decoded and reference normals, or None.
         rows_checked: Rows compared.
+        renormalization_error: For a glTF mesh whose weights did not sum to one: the largest
+            distance between skinning with the weights as stored and with the renormalized ones
+            (what renormalizing changes; the reference is the renormalized source, as engines
+            show it), scene units; None otherwise.
     """
 
     path: str
@@ -174,6 +194,16 @@ class MeshReport:
     influence_error: Optional[float] = None
     max_normal_error_degrees: Optional[float] = None
     rows_checked: int = 0
+    renormalization_error: Optional[float] = None
+
+
+@dataclass
+class SkippedClip:
+    """A clip ``--on-bad-clip skip`` left out: the animation prim, the clip and the bake error."""
+
+    animation: str
+    clip: str
+    reason: str
 
 
 @dataclass
@@ -220,6 +250,8 @@ class ConvertReport:
         warnings: The converter's and the conversion's warnings.
         files: Files written, with their sizes in bytes.
         seconds: Wall time per step.
+        skipped_clips: :class:`SkippedClip` objects (``--on-bad-clip skip``).
+        up_axis: The stage's up axis (``Y`` or ``Z``).
     """
 
     source: str
@@ -231,6 +263,8 @@ class ConvertReport:
     warnings: list = field(default_factory=list)
     files: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
+    skipped_clips: list = field(default_factory=list)
+    up_axis: Optional[str] = None
 
     def to_dict(self) -> dict:
         """The report as ``vbusd convert --format json`` prints it: camelCase keys, times rounded
@@ -348,6 +382,69 @@ def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> t
     return bake(animation, options.bake_options(encoding)), "requested", warnings
 
 
+def _clip_at_fault(error: VbusdError, animation: SkinnedAnimation) -> Optional[str]:
+    """The clip a bake error names (its message says ``clip 'NAME'``), or None."""
+    for clip in animation.clips:
+        if f"clip '{clip.name}'" in error.message:
+            return clip.name
+    return None
+
+
+def _with_animation(scene: SourceScene, index: int, animation: SkinnedAnimation) -> SourceScene:
+    animations = list(scene.animations)
+    animations[index] = animation
+    return dataclasses.replace(scene, animations=tuple(animations))
+
+
+def bake_with_clip_policy(scene: SourceScene, index: int, options: ConvertOptions,
+                          skipped: list) -> Optional[tuple]:
+    """Bake one animation under ``options.on_bad_clip`` (spec: usd-conversion.md, Clips).
+
+    A bake error that names a clip (``encoding.nonRigid``, a singular or overflowing transform) is,
+    with ``error``, raised with a hint to ``--on-bad-clip skip`` and ``--clips`` when the scene has
+    more than one clip. With ``skip`` every clip is baked alone to find each one that fails; those
+    are left out (appended to ``skipped`` as :class:`SkippedClip`) and the rest are baked together.
+
+    Returns:
+        ``(scene, baked, reason, warnings)`` where ``scene`` holds the animation with the clips
+        that were baked; None when every clip of the animation was skipped.
+
+    Raises:
+        VbusdError: An error that names no clip, or a bad clip under ``error``.
+    """
+    animation = scene.animations[index]
+    try:
+        return (scene,) + bake_animation(scene, index, options)
+    except (UnsupportedError, InputError) as error:
+        bad_clip = _clip_at_fault(error, animation)
+        if bad_clip is None:
+            raise
+        if options.on_bad_clip == "error":
+            if sum(len(a.clips) for a in scene.animations) > 1:
+                error.message += (f" (clip '{bad_clip}' stops the whole file: convert the other clips with "
+                                  "--on-bad-clip skip, or choose clips with --clips)")
+            raise
+        first_error = error
+    bad = {}
+    for clip in animation.clips:
+        alone = dataclasses.replace(animation, clips=(clip,))
+        try:
+            bake_animation(_with_animation(scene, index, alone), index, options)
+        except (UnsupportedError, InputError) as error:
+            if _clip_at_fault(error, alone) != clip.name:
+                raise
+            bad[clip.name] = f"{error.code}: {error.message}"
+    if not bad:
+        raise first_error
+    for name, reason in bad.items():
+        skipped.append(SkippedClip(animation=animation.path, clip=name, reason=reason))
+    kept = tuple(c for c in animation.clips if c.name not in bad)
+    if not kept:
+        return None
+    scene = _with_animation(scene, index, dataclasses.replace(animation, clips=kept))
+    return (scene,) + bake_animation(scene, index, options)
+
+
 def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
     if check_rows is None or check_rows >= row_count:
         return np.arange(row_count)
@@ -369,6 +466,23 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
     transforms = BoneTransforms(linear=linear, translation=matrices[..., :3, 3], normal=linear)
     w = np.asarray(weights, dtype=np.float64)
     return skin(transforms, Encoding.AFFINE_MATRIX, points, indices, w / w.sum(axis=1, keepdims=True))[0]
+
+
+def _raw_weights(scene: SourceScene, index: int, mesh_index: int):
+    """``(weights, joints)`` as stored for a mesh whose weights were renormalized, else None."""
+    table = getattr(scene, "raw_weights", ())
+    if index < len(table) and mesh_index < len(table[index]):
+        return table[index][mesh_index]
+    return None
+
+
+def _stored_weight_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray,
+                       weights: np.ndarray) -> np.ndarray:
+    """``sum_i w_i M_i p`` with the weights as stored (not renormalized), float64, (n, V, 3)."""
+    chosen = matrices[:, np.asarray(indices)]                    # (n, V, K, 4, 4)
+    moved = np.einsum("nvkij,vj->nvki", chosen[..., :3, :3], np.asarray(points, np.float64))
+    moved += chosen[..., :3, 3]
+    return np.einsum("nvki,vk->nvi", moved, np.asarray(weights, np.float64))
 
 
 def _chunks(total: int, size: int):
@@ -424,8 +538,9 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 # Dropping influences only matters when the source has more than were kept; then
                 # compare exact-matrix LBS with all influences and with the kept ones.
                 reduced = report.source_influences > report.kept_influences
+                raw = _raw_weights(scene, index, mesh_index)
                 full = None
-                if reduced or reference is None:
+                if reduced or reference is None or raw is not None:
                     exact = np.asarray(source_clip.sample(times), dtype=np.float64)
                     full = _source_lbs(exact, source_mesh.points, np.asarray(source_mesh.bone_indices),
                                        np.asarray(source_mesh.bone_weights))
@@ -438,6 +553,11 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 if reduced:
                     kept = _source_lbs(exact, source_mesh.points, bound.bone_indices, bound.bone_weights)
                     dropped = float(np.linalg.norm(kept - full, axis=-1).max(initial=0.0))
+                if raw is not None:
+                    stored = _stored_weight_lbs(exact, source_mesh.points, raw[1], raw[0])
+                    renormalized = _source_lbs(exact, source_mesh.points, raw[1], raw[0])
+                    moved = float(np.linalg.norm(stored - renormalized, axis=-1).max(initial=0.0))
+                    report.renormalization_error = max(report.renormalization_error or 0.0, moved)
                 report.max_error = max(report.max_error or 0.0, error)
                 report.influence_error = max(report.influence_error or 0.0, dropped)
                 lows[mesh_index] = np.minimum(lows[mesh_index], ref_points.reshape(-1, 3).min(axis=0))
@@ -488,7 +608,8 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         progress("read", 0, 1)
     converter = registry.find_converter(registry.check_source(source), options.converter)
     read_options = ReadOptions(skeletons=options.skeletons, time_range=options.frame_range,
-                               allow_outside_paths=options.allow_outside_paths)
+                               allow_outside_paths=options.allow_outside_paths, clips=options.clips,
+                               strict_weights=options.strict_weights)
     scene = converter.read(source, read_options)
     seconds["read"] = time.perf_counter() - clock
     if progress:
@@ -497,16 +618,22 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     _check_texture_files(scene, output, options)
 
     clock = time.perf_counter()
-    baked, reasons, warnings = [], [], list(scene.warnings)
+    baked, reasons, warnings, kept, skipped = [], [], list(scene.warnings), [], []
     for index in range(len(scene.animations)):
         if progress:  # long clips: let a sampler that evaluates row by row report as it goes
             for clip in scene.animations[index].clips:
                 if hasattr(clip.sample, "on_progress"):
                     clip.sample.on_progress = lambda done, total: progress("bake", done, total)
-        vb, reason, extra = bake_animation(scene, index, options)
+        outcome = bake_with_clip_policy(scene, index, options, skipped)
         for clip in scene.animations[index].clips:
             if getattr(clip.sample, "on_progress", None) is not None:
                 clip.sample.on_progress = None
+        if outcome is None:
+            warnings.append(f"{scene.animations[index].path}: every clip was skipped (--on-bad-clip skip); "
+                            "the animation and its meshes are left out")
+            continue
+        scene, vb, reason, extra = outcome
+        kept.append(index)
         baked.append(vb)
         reasons.append(reason)
         warnings.extend(extra)
@@ -515,7 +642,15 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     seconds["bake"] = time.perf_counter() - clock
 
     clock = time.perf_counter()
-    mesh_reports = [measure_errors(scene, i, vb, options.check_rows, progress) for i, vb in enumerate(baked)]
+    for item in skipped:
+        warnings.append(f"{item.animation}: clip '{item.clip}' skipped (--on-bad-clip skip): {item.reason}")
+    if not baked:
+        first = skipped[0] if skipped else None
+        raise UnsupportedError("every clip was skipped, nothing to convert"
+                               + (f" (first: clip '{first.clip}': {first.reason})" if first else ""),
+                               file=str(source), location=first.animation if first else None,
+                               code="convert.nothingConverted")
+    mesh_reports = [measure_errors(scene, i, vb, options.check_rows, progress) for i, vb in zip(kept, baked)]
     seconds["check"] = time.perf_counter() - clock
 
     asset = VirtualBonesAsset(animations=tuple(baked), up_axis=scene.up_axis,
@@ -548,7 +683,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     report = ConvertReport(
         source=str(source), output=str(output), converter=converter.NAME,
         reference=reference_name or "source skinning matrices, float64 LBS with all influences",
-        meters_per_unit=scene.meters_per_unit,
+        meters_per_unit=scene.meters_per_unit, up_axis=scene.up_axis, skipped_clips=skipped,
         warnings=warnings, files=files, seconds={k: round(v, 4) for k, v in seconds.items()})
     for vb, reason, meshes in zip(baked, reasons, mesh_reports):
         layout = vb.layout

@@ -64,10 +64,19 @@ def _check_rows(value: str):
 @click.option("--loop", "loop_mode", default="auto", show_default=True, type=click.Choice(["auto", "loop", "clamp"]),
               help="auto loops a clip when its first and last poses agree.")
 @click.option("--converter", default=None, metavar="NAME", help="Force a converter (usdskel, gltf, or a plugin's).")
+@click.option("--clips", "clip_names", default=None, metavar="NAME,...",
+              help="Convert only these clips (glTF animation names or indices, UsdSkel Skeleton prim names), "
+                   "comma-separated; a name the file does not have is an error.")
+@click.option("--on-bad-clip", default="error", show_default=True, type=click.Choice(["error", "skip"]),
+              help="A clip the encoding cannot hold (a zero-scale key, say): stop with an error naming it, "
+                   "or skip it, list it in the summary and convert the others.")
+@click.option("--strict-weights", is_flag=True,
+              help="Refuse glTF weights that do not sum to 1 (glTF-Validator's rule) instead of renormalizing "
+                   "them as engines do.")
 @quiet_option
 def command(source, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
-            check_rows, loop_mode, converter, quiet):
+            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, quiet):
     """Convert a skinned UsdSkel or glTF asset into a Virtual Bones USD asset."""
     from vbusd.convert import ConvertOptions, convert
 
@@ -81,7 +90,8 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
         horizontal_padding=horizontal_padding, vertical_padding=vertical_padding, max_influences=max_influences,
         skeletons=tuple(skeletons), frame_range=tuple(frame_range) if frame_range else None, container=container,
         allow_outside_paths=allow_outside_paths, force=force, check_rows=rows, converter=converter,
-        loop={"auto": None, "loop": True, "clamp": False}[loop_mode])
+        loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
+        clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights)
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
     if quiet:
@@ -95,6 +105,16 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
     return 0
 
 
+def _split_clips(value):
+    """``--clips A,B`` as a tuple of names (empty: all); an empty name is a usage error."""
+    if value is None:
+        return ()
+    names = tuple(name.strip() for name in value.split(","))
+    if not all(names):
+        raise click.BadParameter(f"expected comma-separated clip names, got {value!r}", param_hint="'--clips'")
+    return names
+
+
 def _human_bytes(count: int) -> str:
     for unit in ("B", "KiB", "MiB", "GiB"):
         if count < 1024 or unit == "GiB":
@@ -105,6 +125,11 @@ def _human_bytes(count: int) -> str:
 
 def _fmt(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
+
+
+def _in_metres(value, metres: float) -> str:
+    """`` (X m)`` after a distance in scene units when a scene unit is not one metre."""
+    return "" if value is None or metres == 1.0 else f" ({value * metres:.3g} m)"
 
 
 def _rows(grid, pairs) -> None:
@@ -131,6 +156,7 @@ def print_summary(report, file=None) -> None:
     out = console(file)
     out.print(f"[bold]{report.source}[/bold] -> [bold]{report.output}[/bold] ({report.converter})")
     unit = "" if report.meters_per_unit is None else f"; 1 scene unit = {report.meters_per_unit:g} m"
+    metres = 1.0 if report.meters_per_unit is None else report.meters_per_unit
     for anim in report.animations:
         clips = ", ".join(f"{c.name}: {c.rows} rows @ {c.rows_per_second:.6g}/s{' loop' if c.loop else ''}"
                           for c in anim.clips)
@@ -149,11 +175,20 @@ def print_summary(report, file=None) -> None:
             fraction = "" if mesh.max_error_fraction is None else f" ({mesh.max_error_fraction:.2e} of bbox diagonal)"
             _rows(grid, [("points", str(mesh.points)),
                          ("influences", f"{mesh.source_influences} -> {mesh.kept_influences}"),
-                         ("max error", _fmt(mesh.max_error, ".3g") + fraction),
+                         ("max error", _fmt(mesh.max_error, ".3g") + _in_metres(mesh.max_error, metres) + fraction),
                          ("from dropped influences", _fmt(mesh.influence_error, ".3g")),
                          ("normals (deg)", _fmt(mesh.max_normal_error_degrees, ".3g")),
                          ("rows checked", f"{mesh.rows_checked} of {anim.rows}")])
+            if getattr(mesh, "renormalization_error", None) is not None:
+                _rows(grid, [("from renormalized weights", _fmt(mesh.renormalization_error, ".3g")
+                              + _in_metres(mesh.renormalization_error, metres))])
             out.print(f"  mesh {mesh.path}")
             out.print(grid, style=None)
+    skipped = getattr(report, "skipped_clips", None) or []
+    if skipped:
+        out.print("\n[bold]skipped clips[/bold] (--on-bad-clip skip)")
+        grid = _grid()
+        _rows(grid, [(f"{item.animation} '{item.clip}'", item.reason) for item in skipped])
+        out.print(grid)
     files = ", ".join(f"{path} ({_human_bytes(size)})" for path, size in report.files.items())
     out.print(f"\nwrote {files}")

@@ -246,6 +246,9 @@ _CODES = (
          "skinning; one texture decodes with one method.", f"{_VB}#skinning", "usd"),
     Code("convert.write", E, "The converted asset cannot be written (disk full, permissions); nothing "
          "was written.", f"{_VB}#conforming-writer", "file"),
+    Code("convert.nothingConverted", E, "--on-bad-clip skip left no clip to convert: every selected clip "
+         "failed to bake (the line names the first and why); nothing was written.",
+         "usd-conversion.md#clips", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes
