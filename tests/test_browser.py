@@ -156,6 +156,92 @@ def test_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texe
         assert normal_error <= NORMAL_TOLERANCE
 
 
+@pytest.fixture(scope="module")
+def bar_crowd(tmp_path_factory):
+    """A crowd of the bar rig (glTF fixture, 5 clips that bend, slide, step and grow it): every
+    instance its own clip, time offset (negative too), playback rate, orientation and non-uniform
+    scale."""
+    from vbusd.format.model import Crowd
+
+    folder = tmp_path_factory.mktemp("bar_crowd")
+    asset = vbusd.read_asset(_convert(REPO / "tests" / "fixtures" / "gltf" / "bar.gltf", folder / "bar.usda",
+                                      "affineMatrix", "float32"))
+    count = 10
+    rng = np.random.default_rng(14)
+    quaternions = rng.normal(size=(count, 4))
+    crowd = Crowd(path="/VirtualBones/Crowd", positions=rng.uniform(-6, 6, (count, 3)).astype(np.float32),
+                  orientations=(quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)).astype(np.float32),
+                  scales=rng.uniform(0.5, 1.6, (count, 3)).astype(np.float32),
+                  clip=(np.arange(count) % len(asset.animations[0].clips)).astype(np.int32),
+                  time_offset=rng.uniform(-1.0, 2.0, count).astype(np.float32),
+                  playback_rate=rng.uniform(0.3, 2.5, count).astype(np.float32))
+    path = folder / "crowd" / "bar_crowd.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), path)
+    return path
+
+
+def test_probe_per_instance_clip_offset_rate(browser, bar_crowd):
+    """Each instance plays its own clip at its own offset and rate (VirtualBonesInstancingAPI)."""
+    probes = [(instance, t) for instance in range(10) for t in (0.0, 0.61)]
+    for position_error, normal_error in run_probes(browser, bar_crowd, probes):
+        assert position_error <= POSITION_TOLERANCE
+        assert normal_error <= NORMAL_TOLERANCE
+
+
+def test_frustum_culling_bounds_cover_every_pose(browser, bar_crowd):
+    """The culling box is the union of the played clips' vb:clipExtents, placed at every instance:
+    every vertex the GPU skins lies inside it, while the rest pose's box would cut some off; and a
+    camera looking away draws nothing, one looking at the crowd draws it."""
+    asset = vbusd.read_asset(bar_crowd)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    extents = np.asarray(vb.clip_extents, dtype=np.float64)
+    with ViewerServer(bar_crowd) as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            assert page.error == ""
+            boxes = page.page.evaluate("""() => window.vbusd.crowds[0].meshes.map((mesh) => ({
+                geometry: [mesh.geometry.boundingBox.min.toArray(), mesh.geometry.boundingBox.max.toArray()],
+                world: [mesh.boundingBox.min.toArray(), mesh.boundingBox.max.toArray()],
+                culled: mesh.frustumCulled}))""")
+            assert boxes and all(box["culled"] for box in boxes)
+            played = np.unique(crowd.clip)
+            np.testing.assert_allclose(boxes[0]["geometry"][0], extents[played, 0].min(axis=0), rtol=1e-6, atol=1e-6)
+            np.testing.assert_allclose(boxes[0]["geometry"][1], extents[played, 1].max(axis=0), rtol=1e-6, atol=1e-6)
+            low, high = np.asarray(boxes[0]["world"][0]), np.asarray(boxes[0]["world"][1])
+            rest = np.asarray(vb.meshes[0].points, dtype=np.float64)
+            outside_rest = 0
+            for instance in range(crowd.instance_count):
+                for t in np.linspace(0.0, 4.0, 9):
+                    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, float(t)])
+                    points = np.asarray(result["positions"]).reshape(-1, 3)
+                    assert (points >= low - 1e-4).all() and (points <= high + 1e-4).all(), (instance, t)
+                    local = (points - crowd.positions[instance]) @ _rotation(crowd.orientations[instance]) \
+                        / crowd.scales[instance]
+                    outside_rest += int(((local < rest.min(0) - 1e-3) | (local > rest.max(0) + 1e-3)).any())
+            assert outside_rest > 0  # the animation leaves the rest pose's box: rest bounds would cull it
+            calls = page.page.evaluate("""() => {
+                const v = window.vbusd, box = v.crowds[0].meshes[0].boundingBox;
+                const centre = box.getCenter(box.min.clone());
+                const draws = (target) => { v.camera.position.copy(centre).addScaledVector(box.max.clone().sub(box.min), 1.5);
+                    v.controls.target.copy(target); v.render(); return v.renderer.info.render.calls; };
+                const toward = draws(centre);
+                const away = draws(v.camera.position.clone().multiplyScalar(2).sub(centre));
+                return [toward, away]; }""")
+            assert calls[0] >= 1 and calls[1] == 0, calls
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+def _rotation(quaternion) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = np.asarray(quaternion, dtype=np.float64) / np.linalg.norm(quaternion)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding, texel_format):
@@ -183,6 +269,41 @@ def test_unorm16_needs_norm16_extension(browser, tmp_path):
                 assert "\n" not in page.error.strip()
         finally:
             page.close()
+
+
+def test_shadows_follow_the_animation(browser):
+    """The crowd's shadow map is drawn with the patched depth material: with the figures hidden
+    from the camera (no colour, no depth) the shadows on the ground still change as the crowd
+    moves, and with three's own (unpatched, rest-pose) depth material instead they do not."""
+    width, height = 480, 200
+    query = (f"?paused=1&time=1.0&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
+             "&camera=-16,7,27,4,2.2,46&fov=34&instances=400")
+    with ViewerServer(SAMPLE / "stadium_crowd_vb.usda") as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
+        try:
+            assert page.error == ""
+            page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
+                mesh.material.colorWrite = false; mesh.material.depthWrite = false; } }""")
+
+            def shot(t: float) -> np.ndarray:
+                page.page.evaluate("(t) => { window.vbusd.setTime(t); window.vbusd.render(); }", t)
+                return screenshot_luminance(page.page.locator("#view").screenshot())
+
+            def changed(a: np.ndarray, b: np.ndarray) -> float:
+                return float((np.abs(a - b) > 8).mean())
+
+            patched = shot(1.0), shot(3.6)
+            page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
+                mesh.customDepthMaterial = undefined; } }""")
+            rest = shot(1.0), shot(3.6)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    print(f"shadow pixels changed: animated {changed(*patched):.4f}, rest {changed(*rest):.4f}, "
+          f"animated vs rest {changed(patched[0], rest[0]):.4f}")
+    assert changed(*patched) > 0.005  # the shadows move with the cheer
+    assert changed(*rest) == 0.0  # three's own depth material: the rest pose, frozen
+    assert changed(patched[0], rest[0]) > 0.005
 
 
 # ------------------------------------------------------------------------------------------------
