@@ -118,6 +118,18 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
             for a in animations]
 
 
+def _stage_units(path: Path) -> dict:
+    """The stage's ``upAxis`` and ``metersPerUnit`` (spec: usd-conversion.md, Scene units), read from
+    the root layer's metadata with UsdGeom's fallbacks when not authored."""
+    from pxr import Sdf, UsdGeom
+
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    root = layer.pseudoRoot if layer is not None else None
+    up = root.GetInfo("upAxis") if root is not None and root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
+    metres = root.GetInfo("metersPerUnit") if root is not None and root.HasInfo("metersPerUnit") else 0.01
+    return {"upAxis": str(up), "metersPerUnit": float(metres)}
+
+
 def _check_texture(asset: Path, animation) -> None:
     """Refuse to describe a layout whose texture is missing or unreadable (its header, not its pixels).
 
@@ -193,6 +205,8 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         animations[0]["compression"] = header.compression
         animations[0]["warnings"] = list(header.warnings)
     result = {"file": file, "kind": kind, "animations": animations}
+    if kind == "usd":
+        result.update(_stage_units(path))
     if len(animations) == 1:
         for key, value in animations[0].items():
             result.setdefault(key, value)
@@ -205,6 +219,8 @@ def _print_text(result: dict) -> None:
     console = common.console()
     console.print(f"[bold]{result['file']}[/bold] ({result['kind']}, "
                   f"{len(result['animations'])} animation{'s' if len(result['animations']) != 1 else ''})")
+    if "upAxis" in result:
+        console.print(f"scene: {result['upAxis']} up, 1 unit = {result['metersPerUnit']:g} m")
     for animation in result["animations"]:
         title = animation["path"] or animation["texture"] or "animation"
         table = Table(title=title, title_justify="left", show_header=False, box=None,

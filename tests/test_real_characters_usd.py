@@ -1,0 +1,255 @@
+"""Real characters convert whole (issue 12), UsdSkel side: hand-built stages against UsdSkel.
+
+The independent result is UsdSkel's own ``UsdSkel.BakeSkinning`` on a copy of the stage: it writes
+the skinned points (and, for rigidly deformed prims, their transforms) and the world positions
+are read back with ``UsdGeom.XformCache``. The converted asset is baked in affineMatrix/float32
+and decoded by the reference decoder at every row; the largest distance must stay within 1e-6 of
+the diagonal of UsdSkel's bounding box. The stage is Z up in centimetres, which the output keeps
+and ``vbusd info`` shows.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+from vbusd.bake import BakeOptions, bake  # noqa: E402
+from vbusd.converters import usdskel  # noqa: E402
+from vbusd.decode.reference import skin_mesh_at_rows  # noqa: E402
+from vbusd.format.model import ReadOptions  # noqa: E402
+
+TOLERANCE = 1e-6
+
+_CONSTANT_ONE = '''int[] primvars:skel:jointIndices = [{joint}] (
+            interpolation = "constant"
+            elementSize = 1
+        )
+        float[] primvars:skel:jointWeights = [1] (
+            interpolation = "constant"
+            elementSize = 1
+        )'''
+
+
+def stage_text(spawn_scale: str = "(1, 1, 1)") -> str:
+    """A character: Hips -> Head (Z up, cm); Body skinned per vertex; Helmet a Mesh with a rigid
+    (constant) binding to Head and its own (ignored) transform; Gear an Xform with a rigid binding
+    that its child Mesh Visor inherits; a second skeleton Spawner whose first key scales to
+    ``spawn_scale``."""
+    return f'''#usda 1.0
+(
+    defaultPrim = "Root"
+    metersPerUnit = 0.01
+    upAxis = "Z"
+    startTimeCode = 0
+    endTimeCode = 12
+    timeCodesPerSecond = 24
+)
+
+def SkelRoot "Root" (
+    prepend apiSchemas = ["SkelBindingAPI"]
+)
+{{
+    rel skel:skeleton = </Root/Skel>
+    rel skel:animationSource = </Root/Skel/Anim>
+
+    def Skeleton "Skel" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        uniform token[] joints = ["Hips", "Hips/Head"]
+        uniform matrix4d[] bindTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,100,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,150,1))]
+        uniform matrix4d[] restTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,100,1)), ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,50,1))]
+        rel skel:animationSource = </Root/Skel/Anim>
+
+        def SkelAnimation "Anim"
+        {{
+            uniform token[] joints = ["Hips", "Hips/Head"]
+            float3[] translations.timeSamples = {{ 0: [(0,0,100), (0,0,50)], 12: [(20,5,100), (0,0,50)] }}
+            quatf[] rotations.timeSamples = {{ 0: [(1,0,0,0), (1,0,0,0)], 6: [(0.9659258,0,0.2588190,0), (0.9238795,0.3826834,0,0)], 12: [(0.9238795,0,0.3826834,0), (0.7071068,0.7071068,0,0)] }}
+            half3[] scales = [(1,1,1), (1,1,1)]
+        }}
+    }}
+
+    def Mesh "Body" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        int[] faceVertexCounts = [3, 3, 3, 3]
+        int[] faceVertexIndices = [0, 1, 2, 0, 2, 3, 2, 4, 5, 2, 5, 3]
+        point3f[] points = [(-10,0,100), (10,0,100), (10,0,150), (-10,0,150), (10,0,190), (-10,0,190)]
+        int[] primvars:skel:jointIndices = [0, 0, 0, 0, 0, 1, 0, 1, 1, 0, 1, 0] (
+            interpolation = "vertex"
+            elementSize = 2
+        )
+        float[] primvars:skel:jointWeights = [1, 0, 1, 0, 0.5, 0.5, 0.5, 0.5, 1, 0, 1, 0] (
+            interpolation = "vertex"
+            elementSize = 2
+        )
+    }}
+
+    def Mesh "Helmet" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        int[] faceVertexCounts = [3, 3]
+        int[] faceVertexIndices = [0, 1, 2, 0, 2, 3]
+        point3f[] points = [(-10,0,190), (10,0,190), (10,0,210), (-10,0,210)]
+        {_CONSTANT_ONE.format(joint=1)}
+        double3 xformOp:translate = (0, 5, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }}
+
+    def Xform "Gear" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        {_CONSTANT_ONE.format(joint=1)}
+
+        def Mesh "Visor"
+        {{
+            int[] faceVertexCounts = [3]
+            int[] faceVertexIndices = [0, 1, 2]
+            point3f[] points = [(0,-10,195), (0,10,195), (0,0,215)]
+        }}
+    }}
+}}
+
+def SkelRoot "Spawn" (
+    prepend apiSchemas = ["SkelBindingAPI"]
+)
+{{
+    rel skel:skeleton = </Spawn/Spawner>
+
+    def Skeleton "Spawner" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        uniform token[] joints = ["Base"]
+        uniform matrix4d[] bindTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1))]
+        uniform matrix4d[] restTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,0,1))]
+        rel skel:animationSource = </Spawn/Spawner/Grow>
+
+        def SkelAnimation "Grow"
+        {{
+            uniform token[] joints = ["Base"]
+            float3[] translations = [(0,0,0)]
+            quatf[] rotations = [(1,0,0,0)]
+            half3[] scales.timeSamples = {{ 0: [{spawn_scale}], 12: [(1,1,1)] }}
+        }}
+    }}
+
+    def Mesh "Egg" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points = [(0,0,0), (10,0,0), (0,10,0)]
+        {_CONSTANT_ONE.format(joint=0)}
+    }}
+}}
+'''
+
+
+@pytest.fixture
+def character(tmp_path):
+    path = tmp_path / "character.usda"
+    path.write_text(stage_text())
+    return path
+
+
+def baked_by_usdskel(path, tmp_path, codes) -> dict:
+    """World points of every mesh at ``codes``, after ``UsdSkel.BakeSkinning`` of a copy."""
+    from pxr import Gf, Usd, UsdGeom, UsdSkel
+
+    copy = tmp_path / "baked_by_usdskel.usda"
+    copy.write_text(path.read_text())
+    stage = Usd.Stage.Open(str(copy))
+    assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(0, 12))
+    result = {}
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        poses = []
+        for code in codes:
+            time = Usd.TimeCode(code)
+            points = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), dtype=np.float64)
+            world = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(prim), dtype=np.float64)
+            poses.append(points @ world[:3, :3] + world[3, :3])
+        result[str(prim.GetPath())] = np.array(poses)
+    return result
+
+
+def test_rigid_and_inherited_bindings_match_usdskel_bake(character, tmp_path):
+    scene = usdskel.read(character, ReadOptions(skeletons=("/Root/Skel",)))
+    (animation,) = scene.animations
+    assert [m.path for m in animation.meshes] == ["/Root/Body", "/Root/Helmet", "/Root/Gear/Visor"]
+    assert not [w for w in scene.warnings if "Gear" in w], scene.warnings   # the Xform is no mesh
+    vb = bake(animation, BakeOptions(encoding="affineMatrix", texel_format="float32"))
+    (clip,) = vb.clips
+    codes = (clip.start_time + np.arange(clip.row_count) / clip.rows_per_second) * scene.time_codes_per_second
+    reference = baked_by_usdskel(character, tmp_path, codes)
+    for mesh in vb.meshes:
+        ours, _ = skin_mesh_at_rows(vb, mesh, 0)
+        theirs = reference[mesh.path]
+        diagonal = np.linalg.norm(np.ptp(theirs.reshape(-1, 3), axis=0))
+        assert np.linalg.norm(ours - theirs, axis=-1).max() <= TOLERANCE * diagonal, mesh.path
+    visor = vb.meshes[2]
+    assert np.all(visor.bone_indices == 1) and np.all(visor.bone_weights[:, 0] == 1)
+
+
+def _convert(tmp_path, source, *extra):
+    out = tmp_path / "out" / "character.usda"
+    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(source), "-o", str(out),
+                             "--format", "json", *extra], capture_output=True, text=True, timeout=300)
+    return result, out
+
+
+def test_units_and_up_axis_are_kept_and_shown(character, tmp_path):
+    from pxr import Usd, UsdGeom
+
+    result, out = _convert(tmp_path, character, "--clips", "Skel")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["metersPerUnit"] == 0.01 and report["upAxis"] == "Z"
+    stage = Usd.Stage.Open(str(out))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    info = subprocess.run([sys.executable, "-m", "vbusd", "info", str(out), "--format", "json"],
+                          capture_output=True, text=True, timeout=120)
+    assert info.returncode == 0, info.stderr
+    shown = json.loads(info.stdout)
+    assert shown["upAxis"] == "Z" and shown["metersPerUnit"] == 0.01
+    text = subprocess.run([sys.executable, "-m", "vbusd", "info", str(out)], capture_output=True, text=True,
+                          timeout=120).stdout
+    assert "Z up, 1 unit = 0.01 m" in text
+
+
+def test_clips_select_and_unknown_clip_is_one_line(character, tmp_path):
+    result, out = _convert(tmp_path, character, "--clips", "Skel")
+    assert result.returncode == 0, result.stderr
+    assert [a["path"] for a in json.loads(result.stdout)["animations"]] == ["/Root/Skel"]
+    result, out = _convert(tmp_path, character, "--clips", "Run", "--force")
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert "no clip named 'Run'" in lines[0] and "'Skel'" in lines[0] and "'Spawner'" in lines[0]
+
+
+def test_zero_scale_skeleton_skipped(tmp_path):
+    source = tmp_path / "spawn.usda"
+    source.write_text(stage_text(spawn_scale="(0, 0, 0)"))
+    result, out = _convert(tmp_path, source)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert "clip 'Spawner'" in lines[0] and "--on-bad-clip skip" in lines[0]
+    assert not out.parent.exists()
+    result, out = _convert(tmp_path, source, "--on-bad-clip", "skip")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert [a["path"] for a in report["animations"]] == ["/Root/Skel"]
+    assert [(s["animation"], s["clip"]) for s in report["skippedClips"]] == [("/Spawn/Spawner", "Spawner")]
