@@ -1,0 +1,314 @@
+"""The conformance vectors of spec/conformance/ through every decoder of vbusd.
+
+Each vector (spec/conformance/README.md) holds a texture, a mesh, instances with crossfades and the
+expected skinned points and normals at three scene times. They are run, from the vector's own
+JSON data, through:
+
+* the numpy reference decoder (it computed them: this pins the committed numbers, and the vectors
+  are anchored independently by a hand decode of exact rows, below);
+* the warp kernels on the CPU (``device="cpu"``);
+* the GLSL module in a real OpenGL pipeline (Mesa llvmpipe through EGL) and the HLSL module
+  compiled by glslang's HLSL front end and spirv-cross to GLSL, both with ``VB_CROSSFADE 1``
+  (as tests/test_shaders.py runs them);
+* the three.js runtime in headless Chromium: tests/test_conformance_browser.py.
+
+Every decoder must reproduce every vector within the vector's tolerances.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.decode.shaders import ShaderOptions, generate
+from vbusd.format.layout import Layout
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
+
+FOLDER = Path(__file__).resolve().parents[1] / "spec" / "conformance"
+VECTORS = sorted(FOLDER.glob("*.json"))
+
+
+def load(path: Path) -> dict:
+    """A vector's JSON document."""
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def vector_animation(vector: dict) -> VirtualBones:
+    """The vector's texture, clips and mesh as a :class:`VirtualBones`, from the JSON alone."""
+    layout_doc = vector["layout"]
+    layout = Layout(layout_doc["encoding"], layout_doc["texelFormat"], layout_doc["boneCount"], layout_doc["rowCount"],
+                    layout_doc["horizontalPadding"], layout_doc["verticalPadding"])
+    dtype = {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[layout_doc["texelFormat"]]
+    texels = np.array(vector["texels"], dtype=np.float64).astype(dtype).reshape(layout.height, layout.width, 4)
+    clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], c["rowsPerSecond"], c["loop"], c["startTime"])
+                  for c in layout_doc["clips"])
+    mesh = vector["mesh"]
+    bound = BoundMesh("/Conformance/Mesh", np.array(mesh["points"]), np.array([len(mesh["points"])]),
+                      np.arange(len(mesh["points"])), np.array(mesh["boneIndices"]), np.array(mesh["boneWeights"]),
+                      normals=np.array(mesh["normals"]))
+    ranges = np.array(layout_doc["unormRanges"]) if "unormRanges" in layout_doc else None
+    return VirtualBones(layout, texels, tuple(layout_doc["bones"]), clips, ranges, (bound,))
+
+
+def vector_crowd(vector: dict) -> Crowd:
+    """The vector's instances, unplaced (expected values are in animation space)."""
+    instances = vector["instances"]
+    n = len(instances)
+    column = lambda key, dtype: np.array([i[key] for i in instances], dtype=dtype)  # noqa: E731
+    orientations = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
+    return Crowd("/Conformance/Crowd", np.zeros((n, 3), np.float32), orientations, column("clip", np.int32),
+                 column("timeOffset", np.float32), column("playbackRate", np.float32),
+                 fade_clip=column("fadeClip", np.int32), fade_time_offset=column("fadeTimeOffset", np.float32),
+                 fade_playback_rate=column("fadePlaybackRate", np.float32),
+                 fade_weight=column("fadeWeight", np.float32))
+
+
+def assert_matches(vector: dict, time_index: int, points, normals, who: str) -> tuple[float, float]:
+    """Assert a decoder's points and normals (instances, V, 3) at ``expected[time_index]``."""
+    expected = vector["expected"][time_index]
+    tolerance = vector["tolerance"]
+    point_error = float(np.abs(np.asarray(points, np.float64) - np.array(expected["positions"])).max())
+    normal_error = float(np.abs(np.asarray(normals, np.float64) - np.array(expected["normals"])).max())
+    where = f"{who} {vector['vector']} at t = {expected['time']}"
+    assert point_error <= tolerance["position"], f"{where}: position error {point_error:.3g} > {tolerance['position']:.3g}"
+    assert normal_error <= tolerance["normal"], f"{where}: normal error {normal_error:.3g} > {tolerance['normal']:.3g}"
+    return point_error, normal_error
+
+
+def test_vectors_are_there_for_every_encoding_and_texel_format():
+    names = {load(path)["vector"] for path in VECTORS}
+    assert names == {f"{e}-{f}" for e in ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
+                     for f in ("float16", "float32", "unorm16")}
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_texture_file_holds_the_vector_texels_and_layout(path):
+    """The container file (EXR / PNG, metadata embedded) is the same texture as the JSON."""
+    from vbusd.io.textures import read_texture
+
+    vector = load(path)
+    texture = read_texture(FOLDER / vector["texture"])
+    vb = vector_animation(vector)
+    np.testing.assert_array_equal(np.asarray(texture.texels), vb.texels)
+    from vbusd.format.metadata import to_dict
+
+    assert to_dict(vb)["contentDigest"] == vector["layout"]["contentDigest"]
+
+
+def _hand_decode_row(vector: dict, row: int) -> tuple[np.ndarray, np.ndarray]:
+    """Skin the mesh at one texture row, decoded by hand from spec 5.1-5.4 (no vbusd decoder code)."""
+    vb = vector_animation(vector)
+    layout = vector["layout"]
+    t = layout["texelsPerBone"]
+    values = vb.texels[row, :layout["usedWidth"]].astype(np.float64).reshape(layout["boneCount"], t, 4)
+    if layout["texelFormat"] == "unorm16":
+        ranges = np.array(layout["unormRanges"])  # (T, 4, 2)
+        values = ranges[None, :, :, 0] + (ranges[None, :, :, 1] - ranges[None, :, :, 0]) * values / 65535.0
+    mesh = vb.meshes[0]
+    points, normals = np.zeros_like(mesh.points), np.zeros_like(mesh.normals)
+    encoding = layout["encoding"]
+
+    def rotation(q):
+        x, y, z, w = q / np.linalg.norm(q)
+        return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+    for v in range(len(mesh.points)):
+        if encoding == "dualQuat":  # DQS, signs relative to slot 0 (spec 8.2)
+            real_sum, dual_sum = np.zeros(4), np.zeros(4)
+            first = values[mesh.bone_indices[v, 0], 0] / np.linalg.norm(values[mesh.bone_indices[v, 0], 0])
+            for b, w in zip(mesh.bone_indices[v], mesh.bone_weights[v]):
+                n = np.linalg.norm(values[b, 0])
+                real, dual = values[b, 0] / n, values[b, 1] / n
+                sign = -1.0 if np.dot(real, first) < 0 else 1.0
+                real_sum += w * sign * real
+                dual_sum += w * sign * dual
+            m = np.linalg.norm(real_sum)
+            real, dual = real_sum / m, dual_sum / m
+            rv, rw, dv, dw = real[:3], real[3], dual[:3], dual[3]
+            translation = 2 * (rw * dv - dw * rv + np.cross(rv, dv))  # 2 (q_d (x) conj(q_r)).xyz
+            points[v] = rotation(real) @ mesh.points[v] + translation
+            normals[v] = rotation(real) @ mesh.normals[v]
+        else:
+            for b, w in zip(mesh.bone_indices[v], mesh.bone_weights[v]):
+                if encoding == "crossMatrix":
+                    x, y, translation = values[b, 0, :3], values[b, 1, :3], values[b, 2, :3]
+                    a = np.column_stack([x, y, np.cross(x, y)])
+                    normal_matrix = a
+                elif encoding == "affineMatrix":
+                    a, translation = values[b, :, :3], values[b, :, 3]
+                    normal_matrix = np.linalg.inv(a).T
+                else:
+                    r, s = rotation(values[b, 0]), values[b, 1, 3]
+                    a, translation, normal_matrix = s * r, values[b, 1, :3], r / s
+                points[v] += w * (a @ mesh.points[v] + translation)
+                normals[v] += w * (normal_matrix @ mesh.normals[v])
+        length = np.linalg.norm(normals[v])
+        normals[v] = normals[v] / length if length > 0 else normals[v]
+    return points, normals
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_vectors_agree_with_a_hand_decode_at_exact_rows(path):
+    """Instance 0 (clip 0, offset 0, rate 1, no fade) at t = 0 is row 0; instance 2 at t = 1.875
+    holds the clamped clip's last row; instance 4 (weight 1) at t = 0 is the looping clip at 1 s, row 4."""
+    vector = load(path)
+    expected = vector["expected"]
+    clamped_last = vector["layout"]["clips"][1]["firstRow"] + vector["layout"]["clips"][1]["rowCount"] - 1
+    for time_index, instance, row in ((0, 0, 0), (2, 2, clamped_last), (0, 4, 4)):
+        points, normals = _hand_decode_row(vector, row)
+        np.testing.assert_allclose(expected[time_index]["positions"][instance], points, atol=1e-9)
+        np.testing.assert_allclose(expected[time_index]["normals"][instance], normals, atol=1e-9)
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_numpy_reference_reproduces_every_vector(path):
+    from vbusd.decode.reference import skin_crowd
+
+    vector = load(path)
+    vb, crowd = vector_animation(vector), vector_crowd(vector)
+    for index, expected in enumerate(vector["expected"]):
+        points, normals = skin_crowd(vb, vb.meshes[0], crowd, expected["time"])
+        np.testing.assert_allclose(points, expected["positions"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(normals, expected["normals"], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_warp_cpu_reproduces_every_vector(path):
+    warp = pytest.importorskip("vbusd.decode.warp")
+    if "cpu" not in warp.available_devices():
+        pytest.skip("warp's CPU backend is not available")
+    vector = load(path)
+    vb, crowd = vector_animation(vector), vector_crowd(vector)
+    decoder = warp.Decoder(vb, device="cpu")
+    for index, expected in enumerate(vector["expected"]):
+        points, normals = decoder.skin_crowd(crowd, expected["time"]).numpy()
+        assert_matches(vector, index, points, normals, "warp cpu")
+
+
+# ----------------------------------------------------------------------------------------------
+# GLSL and HLSL in an OpenGL pipeline (transform feedback), the example main with VB_CROSSFADE 1
+# ----------------------------------------------------------------------------------------------
+
+try:
+    import moderngl
+except ImportError:
+    moderngl = None
+
+HAS_HLSL_TOOLS = bool(shutil.which("glslangValidator") and shutil.which("spirv-cross"))
+NAMES = {
+    "glsl": {"texture": "vb_texture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
+    "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler", "prefix": "input_",
+             "varyings": ["_entryPointOutput_skinnedPosition", "_entryPointOutput_skinnedNormal"]},
+}
+
+
+@pytest.fixture(scope="module")
+def gl():
+    if moderngl is None:
+        pytest.skip("moderngl is not installed")
+    try:
+        ctx = moderngl.create_context(standalone=True, backend="egl")
+    except Exception as error:
+        pytest.skip(f"no EGL OpenGL context: {error}")
+    framebuffer = ctx.simple_framebuffer((1, 1))
+    framebuffer.use()
+    yield ctx
+    framebuffer.release()
+    ctx.release()
+
+
+def _hlsl_to_glsl(source: str, workdir: Path) -> str:
+    hlsl, spirv = workdir / "module.hlsl", workdir / "module.spv"
+    hlsl.write_text(source)
+    compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
+                               "--auto-map-bindings", "-o", str(spirv), str(hlsl)], capture_output=True, text=True)
+    assert compiled.returncode == 0, compiled.stdout + compiled.stderr
+    crossed = subprocess.run(["spirv-cross", str(spirv), "--version", "450", "--no-es"], capture_output=True, text=True)
+    assert crossed.returncode == 0, crossed.stderr
+    return crossed.stdout
+
+
+def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
+    """Skin every (instance, vertex) of a vector with the generated module; (points, normals)."""
+    layout = vector["layout"]
+    names = NAMES[lang]
+    source = "#define VB_CROSSFADE 1\n" + generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"],
+                                                                   max_influences=vector["mesh"]["influences"]))
+    if lang == "glsl":
+        program = ctx.program(vertex_shader="#version 330 core\n" + source, varyings=names["varyings"])
+    else:
+        program = ctx.program(vertex_shader=_hlsl_to_glsl(source, workdir), varyings=names["varyings"])
+    vb = vector_animation(vector)
+    dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
+    texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    texture.use(location=0)
+    program[names["texture"]].value = 0
+    clips = [(float(c["firstRow"]), float(c["rowCount"]), float(c["rowsPerSecond"]), 1.0 if c["loop"] else 0.0)
+             for c in layout["clips"]]
+    clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
+    if lang == "glsl":
+        program["vb_time"].value = time
+        program["vb_clips"].value = clips
+        if "unormRanges" in layout:
+            ranges = np.array(layout["unormRanges"])
+            program["vb_rangeMin"].value = [tuple(r) for r in ranges[..., 0]]
+            program["vb_rangeMax"].value = [tuple(r) for r in ranges[..., 1]]
+    else:  # the cbuffer: vb_time, 16 clips, then the ranges (std140: vec4 aligned)
+        payload = np.array([time, 0, 0, 0], "<f4").tobytes() + np.array(clips, "<f4").tobytes()
+        if "unormRanges" in layout:
+            ranges = np.array(layout["unormRanges"])
+            payload += np.array(ranges[..., 0], "<f4").tobytes() + np.array(ranges[..., 1], "<f4").tobytes()
+        block = ctx.buffer(payload)
+        program["VirtualBones"].binding = 1
+        block.bind_to_uniform_block(1)
+    mesh = vector["mesh"]
+    count = len(mesh["points"])
+    indices = np.array(mesh["boneIndices"], np.int32)
+    weights = np.array(mesh["boneWeights"], np.float32)
+    vertex = np.concatenate([np.array(mesh["points"], np.float32), np.array(mesh["normals"], np.float32)], axis=1)
+    vbo = ctx.buffer(np.ascontiguousarray(np.concatenate([vertex.view(np.int32), indices, weights.view(np.int32)],
+                                                         axis=1)).tobytes())
+    instances = vector["instances"]
+    per_instance = np.zeros(len(instances), dtype=[("clip", "<i4"), ("time", "<f4", 2), ("fadeClip", "<i4"),
+                                                    ("fade", "<f4", 3)])
+    per_instance["clip"] = [i["clip"] for i in instances]
+    per_instance["time"] = [[i["timeOffset"], i["playbackRate"]] for i in instances]
+    per_instance["fadeClip"] = [i["fadeClip"] for i in instances]
+    per_instance["fade"] = [[i["fadeTimeOffset"], i["fadePlaybackRate"], i["fadeWeight"]] for i in instances]
+    ibo = ctx.buffer(per_instance.tobytes())
+    p = names["prefix"]
+    vao = ctx.vertex_array(program, [
+        (vbo, "3f 3f 4i 4f", f"{p}restPosition", f"{p}restNormal", f"{p}boneIndices0", f"{p}boneWeights0"),
+        (ibo, "1i 2f 1i 3f/i", f"{p}instanceClip", f"{p}instanceTime", f"{p}instanceFadeClip", f"{p}instanceFade")])
+    out = ctx.buffer(reserve=count * len(instances) * 6 * 4)
+    vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=len(instances))
+    result = np.frombuffer(out.read(), dtype="<f4").reshape(len(instances), count, 6)
+    for resource in (vao, vbo, ibo, out, texture, program):
+        resource.release()
+    return result[..., :3], result[..., 3:]
+
+
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shader_modules_reproduce_every_vector(gl, lang, path, tmp_path):
+    if lang == "hlsl" and not HAS_HLSL_TOOLS:
+        pytest.skip("glslang-tools and spirv-cross are not installed")
+    vector = load(path)
+    for index, expected in enumerate(vector["expected"]):
+        points, normals = run_shader(gl, lang, vector, expected["time"], tmp_path)
+        assert_matches(vector, index, points, normals, lang)
+
+
+def test_vectors_are_current():
+    """The committed vectors are what spec/conformance/make_vectors.py writes (generator string aside)."""
+    result = subprocess.run(["python", str(FOLDER / "make_vectors.py"), "--check"], capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
