@@ -1,0 +1,109 @@
+"""The conformance vectors of spec/conformance/ through the three.js runtime (web/) in headless Chromium.
+
+For each vector the page builds the runtime's own objects from the vector's JSON (a
+``VirtualBonesAnimation`` from the layout and texels, ``skinnedGeometry`` from the mesh, a
+``VirtualBonesCrowd`` whose instances carry the crossfades) and reads the GPU's skinned vertices
+back with ``probeCrowd`` (transform feedback through three's WebGL 2 context, the GLSL the patched
+materials run). Every instance at every time must be within the vector's tolerances.
+
+Reuses tests/test_browser.py's Chromium fixture and its viewer page (for a WebGL 2 renderer with
+the runtime's modules served beside it); skips as it does when Chromium or playwright is missing.
+unorm16 vectors skip where the browser lacks EXT_texture_norm16 (the runtime refuses them there,
+tests/test_browser.py checks that message).
+"""
+
+from __future__ import annotations
+
+import json
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.web.browser import ViewerPage
+from vbusd.web.server import ViewerServer
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+VECTORS = sorted((REPO / "spec" / "conformance").glob("*.json"))
+SAMPLE = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+
+browser = runpy.run_path(str(HERE / "test_browser.py"))["browser"]  # the module-scoped Chromium fixture
+
+PROBE = """
+async ([vector, texels, time]) => {
+  const runtime = await import('./vbusd-three/index.js');
+  const layout = vector.layout;
+  const arrays = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
+  const animation = new runtime.VirtualBonesAnimation({ layout, texels: new arrays[layout.texelFormat](texels),
+                                                        name: vector.vector });
+  const renderer = window.vbusd.renderer;
+  if (layout.texelFormat === 'unorm16' && !renderer.extensions.has('EXT_texture_norm16')) return { skip: true };
+  const mesh = vector.mesh;
+  const geometry = runtime.skinnedGeometry({
+    positions: new Float32Array(mesh.points.flat()), normals: new Float32Array(mesh.normals.flat()),
+    triangles: null, boneIndices: new Int32Array(mesh.boneIndices.flat()),
+    boneWeights: new Float32Array(mesh.boneWeights.flat()), name: vector.vector });
+  const list = vector.instances;
+  const column = (key, type) => new type(list.map((i) => i[key]));
+  const count = list.length;
+  const matrices = new Float32Array(16 * count);
+  for (let i = 0; i < count; ++i) for (let d = 0; d < 4; ++d) matrices[16 * i + 5 * d] = 1;
+  const crowd = new runtime.VirtualBonesCrowd({ animation, meshes: [{ geometry, maxInfluences: mesh.influences }],
+    instances: { count, matrices, clip: column('clip', Int32Array), timeOffset: column('timeOffset', Float32Array),
+                 playbackRate: column('playbackRate', Float32Array), fadeClip: column('fadeClip', Int32Array),
+                 fadeTimeOffset: column('fadeTimeOffset', Float32Array),
+                 fadePlaybackRate: column('fadePlaybackRate', Float32Array),
+                 fadeWeight: column('fadeWeight', Float32Array) }, name: vector.vector });
+  const positions = [];
+  const normals = [];
+  for (let i = 0; i < count; ++i) {
+    const probe = runtime.probeCrowd(renderer, crowd, i, time);
+    positions.push(Array.from(probe.positions));
+    normals.push(Array.from(probe.normals));
+  }
+  animation.dispose();
+  return { positions, normals };
+}
+"""
+
+
+def _texels(vector: dict) -> list:
+    """The texel array the runtime takes: float16 as their bit patterns, float32 values, unorm16 integers."""
+    values = np.array(vector["texels"], dtype=np.float64)
+    if vector["layout"]["texelFormat"] == "float16":
+        return values.astype("<f2").view("<u2").astype(int).tolist()
+    if vector["layout"]["texelFormat"] == "unorm16":
+        return values.astype(int).tolist()
+    return values.tolist()
+
+
+@pytest.fixture(scope="module")
+def page(browser):
+    if not SAMPLE.is_file():
+        pytest.skip("the committed sample is not in this checkout")
+    with ViewerServer(SAMPLE) as server:
+        viewer = ViewerPage(browser, server.url + "?paused=1&ui=0&width=64&height=64")
+        assert viewer.error == "", viewer.error
+        yield viewer
+        viewer.close()
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_threejs_runtime_reproduces_every_vector(page, path):
+    vector = json.loads(path.read_text(encoding="utf-8"))
+    texels = _texels(vector)
+    tolerance = vector["tolerance"]
+    for expected in vector["expected"]:
+        result = page.page.evaluate(PROBE, [vector, texels, expected["time"]])
+        if result.get("skip"):
+            pytest.skip("this browser has no EXT_texture_norm16 (unorm16 textures)")
+        points = np.array(result["positions"], dtype=np.float64).reshape(len(vector["instances"]), -1, 3)
+        normals = np.array(result["normals"], dtype=np.float64).reshape(len(vector["instances"]), -1, 3)
+        point_error = np.abs(points - np.array(expected["positions"])).max()
+        normal_error = np.abs(normals - np.array(expected["normals"])).max()
+        where = f"three.js {vector['vector']} at t = {expected['time']}"
+        assert point_error <= tolerance["position"], f"{where}: position error {point_error:.3g}"
+        assert normal_error <= tolerance["normal"], f"{where}: normal error {normal_error:.3g}"
+    assert page.errors() == [], page.errors()
