@@ -271,6 +271,55 @@ def test_unorm16_needs_norm16_extension(browser, tmp_path):
             page.close()
 
 
+def _package_vertices(asset, positions: np.ndarray) -> np.ndarray:
+    """Points in the runtime package's vertex order: with faceVarying normals each corner of a face
+    of 3 or more vertices is its own vertex (spec/runtime-package.md), else the asset's points."""
+    parts, at = [], 0
+    for mesh in (m for vb in asset.animations for m in vb.meshes):
+        count = mesh.points.shape[0]
+        block = positions[at:at + count]
+        at += count
+        if mesh.normals_interpolation == "faceVarying":
+            counts = np.asarray(mesh.face_vertex_counts)
+            corners = np.split(np.asarray(mesh.face_vertex_indices), np.cumsum(counts)[:-1])
+            block = block[np.concatenate([c for c in corners if len(c) >= 3])]
+        parts.append(block)
+    return np.concatenate(parts)
+
+
+@pytest.mark.parametrize("case", ["stadium.glb", "bar_crowd.gltf"])
+def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
+    """The runtime package of ``vbusd export`` (KTX2 in a buffer view, EXT_mesh_gpu_instancing with
+    _VB_CLIP, _VB_TIME_OFFSET, _VB_PLAYBACK_RATE) through three's GLTFLoader and the
+    VirtualBonesGLTFPlugin: the same vertices as the numpy decoder on the USD asset."""
+    from vbusd.io.gltf_package import export_gltf
+
+    source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
+    asset = vbusd.read_asset(source)
+    assert asset.up_axis == "Y" and asset.meters_per_unit == 1.0  # the package's root node is the identity
+    package = tmp_path / case
+    export_gltf(asset, package)
+    probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
+    with ViewerServer(package) as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            assert page.error == "", page.error
+            for instance, t in probes:
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                expected_positions, expected_normals = reference_instance(asset, instance, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                expected = _package_vertices(asset, expected_positions)
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                assert np.abs(positions - expected).max() / diagonal <= POSITION_TOLERANCE
+                normals = np.asarray(result["normals"]).reshape(-1, 3)
+                assert normals.shape == expected_normals.shape and normals.size
+                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
 def test_shadows_follow_the_animation(browser):
     """The crowd's shadow map is drawn with the patched depth material: with the figures hidden
     from the camera (no colour, no depth) the shadows on the ground still change as the crowd
