@@ -7,6 +7,8 @@ with at most ``max_influences`` bone influences per vertex. It touches no file.
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -356,6 +358,16 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         _refuse_singular_after_rounding(stored, ranges, options.texel_format, animation, clips)
     texels = pack(stored, layout)
     texels.setflags(write=False)
-    return VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
-                        unorm_ranges=ranges, meshes=meshes, path=animation.path,
-                        clip_extents=np.stack(extents))
+    baked = VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
+                         unorm_ranges=ranges, meshes=meshes, path=animation.path,
+                         clip_extents=np.stack(extents))
+    if meshes:
+        # vb:clipExtents from the decoded texels, at rows and between rows (spec 13), joined with
+        # the source's own bounds at the rows (the decoded rows differ from them by quantization).
+        from vbusd.decode.bounds import clip_extents
+
+        decoded = clip_extents(baked)
+        joined = np.stack([np.minimum(decoded[:, 0], baked.clip_extents[:, 0]),
+                           np.maximum(decoded[:, 1], baked.clip_extents[:, 1])], axis=1)
+        baked = dataclasses.replace(baked, clip_extents=joined.astype(np.float32))
+    return baked
