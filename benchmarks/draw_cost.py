@@ -48,6 +48,7 @@ benchmarks/draw_run.sh runs ``run`` on the device tool's GPU machine; ``report``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import math
@@ -449,6 +450,45 @@ void main()
 }
 """
 
+# Factor study: the rest mesh, but the skinned vertex's bone attributes are fetched too (4 attributes,
+# as VB and palette skinning read, instead of static's 2). The 1e-30 term keeps them alive.
+STATIC_SKIN_ATTRIBUTES_VS = GLSL_VERSION + _PLACE + _MESH_INPUTS + """
+void main()
+{
+    float keep = 1e-30 * (float(bone_indices.x + bone_indices.y + bone_indices.z + bone_indices.w)
+                          + bone_weights.x + bone_weights.y + bone_weights.z + bone_weights.w);
+    emit(rest_position + vec3(keep), rest_normal);
+}
+"""
+
+# Factor study: Virtual Bones with the bone indices and weights read from storage buffers by
+# gl_VertexID instead of vertex attributes (same module, same math, 2 vertex attributes like static).
+VB_MAIN_SKIN_BUFFERS = _PLACE + """
+in vec3 rest_position;
+in vec3 rest_normal;
+layout(std430, binding = 1) readonly buffer SkinIndices { ivec4 skin_index[]; };
+layout(std430, binding = 2) readonly buffer SkinWeights { vec4 skin_weight[]; };
+in int instance_clip;
+in vec2 instance_time;  // (timeOffset, playbackRate)
+void main()
+{
+    ivec4 bi = skin_index[gl_VertexID];
+    vec4 bw = skin_weight[gl_VertexID];
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        boneIndex[i] = bi[i];
+        boneWeight[i] = bw[i];
+    }
+    vec3 position;
+    vec3 normal;
+    vbSkin(VB_ARGS instance_clip, instance_time.x + instance_time.y * vb_time, rest_position, rest_normal,
+           boneIndex, boneWeight, position, normal);
+    emit(position, normal);
+}
+"""
+
 VAT_VS = GLSL_VERSION + _PLACE + """
 uniform highp sampler2D vat_positions;
 uniform highp sampler2D vat_normals;
@@ -533,10 +573,10 @@ void main()
 VARYINGS = ["world_position", "world_normal"]
 
 
-def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int) -> str:
+def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main: str = VB_MAIN) -> str:
     """The draw's vertex shader: the module ``vbusd shader`` prints (main off), then the draw's main."""
     module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False)
-    return GLSL_VERSION + module + VB_MAIN
+    return GLSL_VERSION + module + main
 
 
 # ------------------------------------------------------------------------------------------ GL scene
@@ -652,19 +692,22 @@ ANIMATION_TIME = ("animation", ("4x 2f/i", "instance_time"))
 ANIMATION_CLIP_TIME = ("animation", ("1i 2f/i", "instance_clip", "instance_time"))
 
 
-def setup_static(scene: Scene) -> Method:
-    program, tf = scene.programs(STATIC_VS)
+def setup_static(scene: Scene, vertex_shader: str = STATIC_VS, config: str = "rest mesh") -> Method:
+    program, tf = scene.programs(vertex_shader)
     draw, check = scene.vertex_arrays(program, tf, [PLACEMENT], True)
-    return Method("static", "rest mesh", draw, check, program, tf, 0)
+    return Method("static", config, draw, check, program, tf, 0)
 
 
 def _texture_dtype(texel_format: str) -> str:
     return {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[texel_format]
 
 
-def setup_vb(scene: Scene, vb, encoding: str, texel_format: str) -> Method:
+def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: bool = False) -> Method:
+    """Virtual Bones; ``skin_buffers``: bone indices and weights from storage buffers (factor study)."""
     ctx, moderngl = scene.ctx, scene.moderngl
-    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, scene.character.mesh.bone_indices.shape[1]))
+    main = VB_MAIN_SKIN_BUFFERS if skin_buffers else VB_MAIN
+    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, scene.character.mesh.bone_indices.shape[1],
+                                                  main))
     texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
                           dtype=_texture_dtype(texel_format))
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -679,13 +722,24 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str) -> Method:
             p["vb_rangeMax"].value = [tuple(r) for r in vb.unorm_ranges[..., 1]]
     draw, check = scene.vertex_arrays(program, tf, [PLACEMENT, ANIMATION_CLIP_TIME], True)
 
+    skin = []
+    if skin_buffers:
+        mesh, k = scene.character.mesh, scene.character.mesh.bone_indices.shape[1]
+        idx = np.zeros((len(mesh.points), 4), np.int32)
+        w = np.zeros((len(mesh.points), 4), np.float32)
+        idx[:, :k], w[:, :k] = mesh.bone_indices, mesh.bone_weights
+        skin = [ctx.buffer(idx.tobytes()), ctx.buffer(w.tobytes())]
+
     def set_time(p, t):
         texture.use(location=0)
+        for binding, buffer in enumerate(skin, start=1):
+            buffer.bind_to_storage_buffer(binding)
         p["vb_time"].value = t
 
     texel_bytes = int(np.asarray(vb.texels).nbytes)
-    return Method("vb", f"{encoding} {texel_format}", draw, check, program, tf,
-                  texel_bytes + 12 * scene.count, set_time=set_time, release=[texture],
+    return Method("vb", f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else ""),
+                  draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
+                  release=[texture] + skin,
                   notes=f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes")
 
 
@@ -1165,6 +1219,97 @@ def factor_study(method: Method, scene: Scene, args) -> dict:
     return out
 
 
+def fewer_influences(character: Character, k: int, bone_count: int) -> Character:
+    """The character with each vertex's ``k`` largest weights kept (renormalized): the factor study's K."""
+    mesh = character.mesh
+    dense = np.zeros((mesh.points.shape[0], bone_count))
+    np.add.at(dense, (np.repeat(np.arange(mesh.points.shape[0]), mesh.bone_indices.shape[1]),
+                      mesh.bone_indices.reshape(-1)), np.asarray(mesh.bone_weights, np.float64).reshape(-1))
+    bone_indices, bone_weights = _top_influences(dense, k)
+    return Character(f"{character.name}-k{k}", dataclasses.replace(mesh, bone_indices=bone_indices,
+                                                                   bone_weights=bone_weights),
+                     character.triangles)
+
+
+def run_factors(args) -> int:
+    """One factor at a time around Virtual Bones' vertex cost, stadium character (``factors`` command).
+
+    Every variant is checked against numpy like the main run, then timed twice: as drawn, and with
+    the rasterizer discarded (the vertex stage alone). Variants: the rest mesh (2 vertex attributes);
+    the rest mesh also fetching the skin's bone indices and weights (4 attributes, what VB and palette
+    skinning read); Virtual Bones with K = 1..4 influences kept per vertex (same 56-byte vertex);
+    Virtual Bones with the skin read from storage buffers instead of vertex attributes; the VAT.
+    """
+    import moderngl
+
+    started = time.perf_counter()
+    ctx, framebuffer = create_context()
+    ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+    result = {"issue": 18, "resolution": list(RESOLUTION), "facts": _gpu_facts(ctx), "command": " ".join(sys.argv),
+              "variants": []}
+    print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']}", flush=True)
+    vb = SAMPLE.bake_reference(encoding="crossMatrix", texel_format="float16")
+    body = stadium_character(vb)
+    nonzero = np.bincount((np.asarray(body.mesh.bone_weights) > 0).sum(axis=1), minlength=5)
+    result["nonzero_influences_histogram"] = [int(c) for c in nonzero]
+    vat = bake_vat(body.mesh, vb.clips[0])
+    for n in [int(x) for x in args.sizes.split(",")]:
+        crowd = crowd_grid(n)
+        rows = np.unique(np.concatenate([np.arange(min(32, n)), np.arange(max(n - 32, 0), n)]))
+        variants = [
+            ("attributes", "static: rest mesh (2 vertex attributes)", body, lambda sc: setup_static(sc)),
+            ("attributes", "static + skin attributes fetched (4 attributes)", body,
+             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + skin attributes")),
+            ("attributes", "vb K=4, skin from storage buffers (2 attributes)", body,
+             lambda sc: setup_vb(sc, vb, "crossMatrix", "float16", skin_buffers=True)),
+        ]
+        for k in (4, 3, 2, 1):
+            variants.append(("influences", f"vb K={k} (4 attributes)", fewer_influences(body, k, vb.layout.bone_count),
+                             lambda sc: setup_vb(sc, vb, "crossMatrix", "float16")))
+        variants.append(("reference", "vat (no vertex attributes)", body, lambda sc: setup_vat(sc, vat)))
+        for factor, label, character, setup in variants:
+            scene = Scene(ctx, framebuffer, character, crowd, rows)
+            method = setup(scene)
+            correctness = check(method, scene, vb, vat)
+            drawn = time_method(method, scene, args.per_config_s, args.max_runs)
+            ctx.enable(moderngl.RASTERIZER_DISCARD)
+            try:
+                discarded = time_method(method, scene, args.per_config_s, args.max_runs)
+            finally:
+                ctx.disable(moderngl.RASTERIZER_DISCARD)
+            row = {"factor": factor, "variant": label, "instances": n, "config": method.config,
+                   "correctness": correctness, "drawn": drawn, "rasterizer_discard": discarded}
+            result["variants"].append(row)
+            print(f"N={n:<8d} {label:52s} drawn {drawn['gpu_draw_ms']['median']:9.3f} ms  vertex stage alone "
+                  f"{discarded['gpu_draw_ms']['median']:9.3f} ms  x{drawn['runs']}/{discarded['runs']}  "
+                  f"err {correctness['position_error_m']:.1e} m {'ok' if correctness['agrees'] else 'DISAGREES'}",
+                  flush=True)
+            for item in method.release:
+                item.release()
+            for vao in (method.draw_vao, method.tf_vao):
+                vao.release()
+            method.program.release()
+            method.tf_program.release()
+            scene.release()
+            _write_json(Path(args.json), result)
+    result["elapsed_s"] = time.perf_counter() - started
+    _write_json(Path(args.json), result)
+    return 0
+
+
+def factors_markdown(data: dict) -> str:
+    """The factor study as a markdown table."""
+    rows = ["| instances | variant | GPU draw ms (drawn) | GPU draw ms (rasterizer discard) | runs "
+            "| max error vs numpy (m) |", "|--:|---|--:|--:|--:|--:|"]
+    for r in data["variants"]:
+        c = r["correctness"]
+        rows.append(f"| {r['instances']:,} | {r['variant']} | {r['drawn']['gpu_draw_ms']['median']:.3f} "
+                    f"| {r['rasterizer_discard']['gpu_draw_ms']['median']:.3f} "
+                    f"| {r['drawn']['runs']}/{r['rasterizer_discard']['runs']} "
+                    f"| {c['position_error_m']:.1e}{'' if c['agrees'] else ' (DISAGREES)'} |")
+    return "\n".join(rows)
+
+
 def _write_json(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     text = json.dumps(data, indent=1)
@@ -1263,6 +1408,10 @@ def report(args) -> int:
     data = json.loads(Path(args.json).read_text())
     facts = data.get("facts", {})
     print(f"GPU: {facts.get('nvidia_smi')} | {facts.get('GL_RENDERER')} | {facts.get('GL_VERSION')}")
+    if "variants" in data:  # a factor study
+        print(f"nonzero influences per vertex (0..4): {data.get('nonzero_influences_histogram')}")
+        print(factors_markdown(data))
+        return 0
     if args.markdown:
         print(markdown(data))
     for line in goals(data):
@@ -1293,11 +1442,18 @@ def main(argv=None) -> int:
     r.add_argument("--max-frame-s", type=float, default=8.0, help="skip a configuration predicted slower than this")
     r.add_argument("--no-factors", dest="factors", action="store_false")
     r.add_argument("--factor-size", type=int, default=100_000, help="crowd size of the one-factor study")
+    f = sub.add_parser("factors", help="one factor at a time around VB's vertex cost (stadium character)")
+    f.add_argument("--json", required=True)
+    f.add_argument("--sizes", default="100000")
+    f.add_argument("--per-config-s", type=float, default=1.0)
+    f.add_argument("--max-runs", type=int, default=20)
     p = sub.add_parser("report", help="table, goals and plot from a results JSON")
     p.add_argument("--json", required=True)
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--plot")
     args = parser.parse_args(argv)
+    if args.command == "factors":
+        return run_factors(args)
     return run(args) if args.command == "run" else report(args)
 
 

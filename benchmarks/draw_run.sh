@@ -23,9 +23,13 @@
 # from the JSON (matplotlib is in the GPU image). Kept in benchmarks/results/ as draw_cost_h100.json,
 # draw_cost_h100.png, draw_report_h100.md and draw_warp_tests_cuda_h100.log. The report again, here:
 #   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json --markdown
+# `factors` (one call, no warp part needed: carry [".gl", ".whl"]) runs the one-factor study around
+# VB's vertex cost (draw_factors.json) and the GL methods of the stadium character again
+# (draw_cost_gl.json), both on the card the call got. Kept as draw_factors_<card>.json and
+# draw_cost_gl_<card>.json.
 # DRAW_ARGS adds options to draw_cost.py run (default budget: 320 s of the call's 600).
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run}
+cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -45,7 +49,7 @@ pack)
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run)
+smoke|run|factors)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -61,6 +65,19 @@ smoke|run)
     fi
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.sm,clocks.max.memory --format=csv | tee "$out/gpu.txt"
     set +e
+    if [ "$cmd" = factors ]; then
+        # No warp needed: the one-factor study, then the GL methods of the stadium character (on
+        # whatever card this call got, so that the goal's ratios come from one card).
+        timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
+        timeout 200 python3 benchmarks/draw_cost.py factors --json "$out/draw_factors.json" --sizes 100000,10000 2>&1 \
+            | tee "$out/factors.log"
+        timeout 200 python3 benchmarks/draw_cost.py run --json "$out/draw_cost_gl.json" --characters stadium \
+            --methods static,vb,vat,palette --budget 170 2>&1 | tee "$out/draw.log"
+        python3 benchmarks/draw_cost.py report --json "$out/draw_factors.json"
+        python3 benchmarks/draw_cost.py report --json "$out/draw_cost_gl.json" --markdown > "$out/draw_report_gl.md" 2>&1
+        tail -12 "$out/draw_report_gl.md"
+        exit 0
+    fi
     if [ "$cmd" = smoke ]; then
         timeout 90 python3 benchmarks/draw_cost.py run --json "$out/smoke.json" --sizes 1200 --characters stadium \
             --methods static,vb,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
@@ -75,6 +92,6 @@ smoke|run)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|smoke|run" >&2; exit 2
+    echo "usage: draw_run.sh pack|stage N|smoke|run|factors" >&2; exit 2
     ;;
 esac

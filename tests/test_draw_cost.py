@@ -125,7 +125,12 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
         method = dc.setup_palette(scene, dc.KeyedAnimation())
     else:
         pytest.importorskip("warp", reason="install warp-lang")
-        method = dc.setup_warp(scene, baked, "cpu")
+        from vbusd.decode.warp import available_devices
+
+        devices = available_devices()  # CUDA (GL interop) where there is a GPU, else warp's CPU backend
+        if not devices:
+            pytest.skip("warp has neither a CUDA device nor its CPU backend here")
+        method = dc.setup_warp(scene, baked, "cuda" if "cuda" in devices else "cpu")
     vat = dc.bake_vat(body.mesh, baked.clips[0]) if method_name == "vat" else None
     result = dc.check(method, scene, baked, vat)
     assert result["agrees"], result
