@@ -1,5 +1,9 @@
 """``vbusd convert INPUT -o OUTPUT.usda``: convert a UsdSkel or glTF asset into Virtual Bones.
 
+``vbusd convert A B FOLDER 'GLOB' [--manifest M] -o OUT/ [--jobs N | --scheduler tcp://H:P]``
+converts a library (:mod:`vbusd.batch`): a table per asset (or ``--format json``, ``--report
+FILE``), exit 0 when all converted, 1 when some failed, 2 when none could.
+
 Progress goes to stderr (only when it is a terminal); the summary goes to stdout as text that fits
 80 columns (``--format text``) or as JSON (``--format json``, camelCase keys), with the same
 content. ``--quiet`` prints neither the summary nor warnings. Errors are one line
@@ -29,10 +33,11 @@ def _check_rows(value: str):
 
 
 @click.command(name="convert")
-@click.argument("source", type=click.Path(path_type=str))  # folders: one-line error from convert
+@click.argument("sources", nargs=-1, type=click.Path(path_type=str))  # folders, globs: vbusd.batch
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="USD layer to write (.usda, .usd or .usdc); the texture and its .json sidecar go beside it "
-                   "(a missing folder is created).")
+                   "(a missing folder is created). With several sources, a folder, a glob or --manifest: the "
+                   "output folder, each asset under its source's name.")
 @click.option("--encoding", default="auto", show_default=True,
               type=click.Choice(["auto"] + [e.value for e in Encoding]),
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
@@ -73,11 +78,30 @@ def _check_rows(value: str):
 @click.option("--strict-weights", is_flag=True,
               help="Refuse glTF weights that do not sum to 1 (glTF-Validator's rule) instead of renormalizing "
                    "them as engines do.")
+@click.option("--manifest", default=None, type=click.Path(path_type=str),
+              help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
+@click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
+              help="Batch: assets converted at once in a local process pool (default: the number of cores).")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+              help="Batch: run on this Dask cluster instead (pip install 'vbusd[dask]'); workers read and "
+                   "write the shared file system.")
+@click.option("--cache", "cache_dir", default=None, type=click.Path(path_type=str),
+              help="Batch: the cache folder (default: OUTPUT/.vbusd-cache); unchanged assets are skipped.")
+@click.option("--no-cache", is_flag=True, help="Batch: convert every asset and keep no cache records.")
+@click.option("--report", "report_file", default=None, type=click.Path(path_type=str),
+              help="Batch: also write the per-asset report as JSON to this file.")
 @quiet_option
-def command(source, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
+def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
-            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, quiet):
-    """Convert a skinned UsdSkel or glTF asset into a Virtual Bones USD asset."""
+            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, manifest, jobs, scheduler,
+            cache_dir, no_cache, report_file, quiet):
+    """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
+
+    One SOURCE converts to the layer -o names. Several sources, folders (searched for .usd, .usda,
+    .usdc, .usdz, .gltf and .glb files), globs or --manifest convert a library into the folder -o
+    names, in parallel, skipping what has not changed since the last run; exit 0 when every asset
+    converted, 1 when some failed, 2 when none could.
+    """
     from vbusd.convert import ConvertOptions, convert
 
     try:
@@ -85,13 +109,21 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
     except click.BadParameter as error:
         error.param_hint = "'--check-rows'"
         raise
-    options = ConvertOptions(
+    values = dict(
         encoding=encoding, texel_format=texel_format, rows_per_second=rows_per_second,
         horizontal_padding=horizontal_padding, vertical_padding=vertical_padding, max_influences=max_influences,
         skeletons=tuple(skeletons), frame_range=tuple(frame_range) if frame_range else None, container=container,
-        allow_outside_paths=allow_outside_paths, force=force, check_rows=rows, converter=converter,
+        allow_outside_paths=allow_outside_paths, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
         clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights)
+    if not sources and manifest is None:
+        raise click.UsageError("name a source (a file, folder or glob) or --manifest")
+    if _is_batch(sources, output, manifest, scheduler, report_file):
+        return _run_batch(sources, output, manifest, values, jobs=jobs, scheduler=scheduler, cache_dir=cache_dir,
+                          no_cache=no_cache, force=force, report_file=report_file, output_format=output_format,
+                          quiet=quiet)
+    source = sources[0]
+    options = ConvertOptions(force=force, **values)
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
     if quiet:
@@ -103,6 +135,64 @@ def command(source, output, encoding, texel_format, rows_per_second, horizontal_
         warn(message)
     print_summary(report)
     return 0
+
+
+def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
+    """Several sources, a folder, a glob, a manifest, a scheduler, a report or an output folder."""
+    from pathlib import Path
+
+    from vbusd.batch import is_glob
+
+    if manifest is not None or scheduler is not None or report_file is not None or len(sources) != 1:
+        return True
+    source = Path(sources[0])
+    return source.is_dir() or (not source.exists() and is_glob(sources[0])) or Path(output).is_dir()
+
+
+def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
+               output_format, quiet) -> int:
+    from vbusd.batch import plan_batch, run_batch
+    from vbusd.convert import ConvertOptions
+    from vbusd.io.files import atomic_write
+    from vbusd.format.jsonform import json_text
+
+    ConvertOptions(**values)  # the batch's own options: refused before anything starts
+    items = plan_batch(sources, output, manifest=manifest)
+    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
+        report = run_batch(items, values, jobs=jobs, scheduler=scheduler, cache=cache_dir, use_cache=not no_cache,
+                           force=force, progress=progress)
+    if report_file is not None:
+        with atomic_write(report_file, "w", encoding="utf-8") as stream:
+            stream.write(json_text(report.to_dict()) + "\n")
+    if output_format == "json":
+        echo_json(report.to_dict())
+    elif not quiet:
+        print_batch(report)
+    else:
+        for asset in report.assets:  # --quiet still prints errors, one line each
+            if asset.status == "failed":
+                click.echo(f"vbusd: {asset.error}", err=True)
+    return report.exit_status
+
+
+def print_batch(report, file=None) -> None:
+    """Print a :class:`vbusd.batch.BatchReport` as a table that fits 80 columns, then the totals."""
+    from pathlib import Path
+
+    from vbusd.cli.common import table
+
+    out = console(file)
+    grid = table("asset", "status", "time", "bytes", "max error", right=("time", "bytes", "max error"))
+    for asset in report.assets:
+        grid.add_row(Path(asset.source).name, asset.status, f"{asset.seconds:.1f} s",
+                     _human_bytes(asset.bytes) if asset.bytes else "-", _fmt(asset.max_error, ".3g"))
+    out.print(grid)
+    for asset in report.assets:
+        if asset.status == "failed":
+            out.print(f"failed: {asset.error}", markup=False)
+    where = f"Dask at {report.scheduler}" if report.scheduler else f"{report.jobs} job{'s' * (report.jobs != 1)}"
+    out.print(f"{report.converted} converted, {report.cached} unchanged (cached), {report.failed} failed, "
+              f"of {len(report.assets)} in {report.seconds:.1f} s ({where})", markup=False)
 
 
 def _split_clips(value):

@@ -1,0 +1,315 @@
+"""``vbusd convert`` on a library (issue 17): many sources, the cache, crash and resume, a failing
+asset among good ones, byte-identical output, manifests, a process pool and a Dask LocalCluster.
+
+Independent facts used: the bytes of files converted in fresh folders by separate processes (and by
+a Dask worker), the files a SIGKILLed run leaves (listed from the disk), file modification times of
+skipped assets, and the sources' own references (a USD sublayer, a glTF .bin buffer) edited by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pxr")
+
+from vbusd.batch import BatchItem, cache_key, dependencies, plan_batch, read_manifest, run_batch  # noqa: E402
+from vbusd.cli import main  # noqa: E402
+from vbusd.convert import ConvertOptions  # noqa: E402
+from vbusd.format.errors import OptionsError  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+FAST = ["--check-rows", "4"]
+"""Options that keep every conversion here well under a second (4 rows checked against UsdSkel)."""
+
+
+def _library(folder: Path, names=("a", "b", "c")) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        shutil.copyfile(STADIUM, folder / f"{name}.usda")
+    return folder
+
+
+def _files(folder: Path) -> dict:
+    """Visible files below a folder (the cache and hidden lock files left out) and their bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts)}
+
+
+def _run_json(args, capsys) -> tuple:
+    status = main(["convert", *args, "--format", "json", *FAST])
+    return status, json.loads(capsys.readouterr().out)
+
+
+def _statuses(report) -> dict:
+    return {Path(a["source"]).name: a["status"] for a in report["assets"]}
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def test_failing_asset_among_good_ones(tmp_path, capsys):
+    library = _library(tmp_path / "lib", ("a", "b"))
+    (library / "broken.usda").write_text("#usda 1.0\n(\n  this is not usd\n", encoding="utf-8")
+    report_file = tmp_path / "report.json"
+    status, report = _run_json([str(library), "-o", str(tmp_path / "out"), "--jobs", "1",
+                                "--report", str(report_file)], capsys)
+    assert status == 1  # some failed
+    assert _statuses(report) == {"a.usda": "converted", "b.usda": "converted", "broken.usda": "failed"}
+    broken = next(a for a in report["assets"] if a["status"] == "failed")
+    assert broken["code"] == "usd.open" and "broken.usda" in broken["error"] and "\n" not in broken["error"]
+    assert broken["files"] == {} and broken["bytes"] == 0
+    good = [a for a in report["assets"] if a["status"] == "converted"]
+    for asset in good:
+        assert asset["bytes"] == sum(os.path.getsize(f) for f in asset["files"]) > 0
+        assert 0 < asset["maxErrorFraction"] < 2e-3  # float16 texels against UsdSkel's skinning
+    assert not list((tmp_path / "out").glob("broken*"))  # nothing at all for the failed asset
+    assert json.loads(report_file.read_text()) == report  # --report holds what --format json printed
+
+
+def test_text_table_and_exit_two_when_none_converts(tmp_path, capsys):
+    library = tmp_path / "lib"
+    library.mkdir()
+    (library / "x.usda").write_text("not usd", encoding="utf-8")
+    (library / "y.glb").write_bytes(b"glTF\x02\x00\x00\x00")
+    status = main(["convert", str(library), "-o", str(tmp_path / "out"), "--jobs", "1", *FAST])
+    out = capsys.readouterr().out
+    assert status == 2  # none could be converted
+    assert "x.usda" in out and "y.glb" in out and "0 converted" in out and "2 failed" in out
+    assert max(len(line) for line in out.splitlines()) <= 80
+
+
+def test_nothing_to_convert_is_a_usage_error(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["convert", str(tmp_path / "empty"), str(STADIUM), "-o", str(tmp_path / "o")]) == 2
+    assert "batch.plan" in capsys.readouterr().err
+    with pytest.raises(OptionsError, match="would both write"):
+        plan_batch([str(STADIUM), str(STADIUM)], str(tmp_path / "o"))
+    manifest = tmp_path / "m.json"  # one stem, two layer suffixes: their textures would collide
+    manifest.write_text(json.dumps([{"source": str(STADIUM), "output": "x.usda"},
+                                    {"source": str(STADIUM), "output": "x.usdc"}]))
+    with pytest.raises(OptionsError, match="would both write x"):
+        plan_batch([], str(tmp_path / "o"), manifest=str(manifest))
+
+
+def test_folders_keep_their_structure_and_globs_expand(tmp_path):
+    _library(tmp_path / "lib" / "heroes", ("a",))
+    _library(tmp_path / "lib" / "crowd", ("a", "b"))
+    items = plan_batch([str(tmp_path / "lib")], str(tmp_path / "out"))
+    outputs = sorted(str(Path(i.output).relative_to(tmp_path / "out")) for i in items)
+    assert outputs == ["crowd/a.usda", "crowd/b.usda", "heroes/a.usda"]
+    globbed = plan_batch([str(tmp_path / "lib" / "*" / "b.usda")], str(tmp_path / "out"))
+    assert [Path(i.output).name for i in globbed] == ["b.usda"]
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+
+
+def _with_sublayer(folder: Path) -> tuple:
+    """A source whose skeleton and mesh come from a sublayer (the stadium sample)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(STADIUM, folder / "rig.usda")
+    (folder / "char.usda").write_text('#usda 1.0\n(\n    subLayers = [@./rig.usda@]\n)\n', encoding="utf-8")
+    return folder / "char.usda", folder / "rig.usda"
+
+
+def test_cache_skips_unchanged_and_reconverts_a_changed_referenced_file(tmp_path, capsys):
+    source, sublayer = _with_sublayer(tmp_path / "lib")
+    shutil.copyfile(STADIUM, tmp_path / "lib" / "other.usda")
+    out = tmp_path / "out"
+    args = [str(source), str(tmp_path / "lib" / "other.usda"), "-o", str(out), "--jobs", "1"]
+    status, first = _run_json(args, capsys)
+    assert status == 0 and _statuses(first) == {"char.usda": "converted", "other.usda": "converted"}
+    stamps = {p: p.stat().st_mtime_ns for p in out.iterdir() if p.is_file()}
+
+    status, second = _run_json(args, capsys)  # nothing changed: nothing converted or rewritten
+    assert status == 0 and _statuses(second) == {"char.usda": "cached", "other.usda": "cached"}
+    assert {p: p.stat().st_mtime_ns for p in out.iterdir() if p.is_file()} == stamps
+    assert second["assets"][0]["files"] == first["assets"][0]["files"]
+
+    # Edit the sublayer only (char.usda itself is unchanged): char reconverts, other does not.
+    text = sublayer.read_text(encoding="utf-8")
+    sublayer.write_text(text.replace("float3[] extent", "float3[] extent", 1) + '\ndef "Extra"\n{\n}\n',
+                        encoding="utf-8")
+    status, third = _run_json(args, capsys)
+    assert status == 0 and _statuses(third) == {"char.usda": "converted", "other.usda": "cached"}
+
+    # An output damaged or removed since: reconverted (the cache checks sizes and SHA-256).
+    texture = next(out.glob("other.*.exr"))
+    texture.write_bytes(texture.read_bytes()[:-7] + b"garbage")
+    status, fourth = _run_json(args, capsys)
+    assert _statuses(fourth) == {"char.usda": "cached", "other.usda": "converted"}
+    # Options are part of the key.
+    status, fifth = _run_json([*args, "--texel-format", "float32"], capsys)
+    assert _statuses(fifth) == {"char.usda": "converted", "other.usda": "converted"}
+    # --no-cache converts everything again.
+    status, sixth = _run_json([*args, "--texel-format", "float32", "--no-cache", "--force"], capsys)
+    assert _statuses(sixth) == {"char.usda": "converted", "other.usda": "converted"}
+
+
+def test_gltf_buffers_and_images_are_inputs(tmp_path):
+    gltf = tmp_path / "rig.gltf"
+    (tmp_path / "rig.bin").write_bytes(b"\x00" * 64)
+    (tmp_path / "skin.png").write_bytes(b"\x89PNG fake")
+    gltf.write_text(json.dumps({"asset": {"version": "2.0"}, "buffers": [{"uri": "rig.bin", "byteLength": 64}],
+                                "images": [{"uri": "skin.png"}, {"uri": "data:image/png;base64,AAAA"}]}))
+    assert dependencies(gltf)[1:] == [str((tmp_path / "rig.bin").resolve()), str((tmp_path / "skin.png").resolve())]
+    options = ConvertOptions()
+    key, _ = cache_key(gltf, options)
+    assert cache_key(gltf, options)[0] == key  # stable
+    (tmp_path / "rig.bin").write_bytes(b"\x01" + b"\x00" * 63)
+    changed, _ = cache_key(gltf, options)
+    assert changed != key
+    (tmp_path / "skin.png").unlink()
+    assert cache_key(gltf, options)[0] != changed  # a vanished image too
+    assert cache_key(gltf, ConvertOptions(texel_format="float32"))[0] != cache_key(gltf, options)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Crash and resume
+
+
+def _cli(args, env=None, cwd=None):
+    return subprocess.run([sys.executable, "-m", "vbusd", "convert", *args, *FAST], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, cwd=cwd, timeout=600)
+
+
+def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp_path):
+    library = _library(tmp_path / "lib")
+    out = tmp_path / "out"
+    trace = tmp_path / "trace.txt"
+    clean = _cli([str(library), "-o", str(tmp_path / "clean"), "--jobs", "1"], {"VBUSD_FAULT_TRACE": str(trace)})
+    assert clean.returncode == 0, clean.stderr
+    steps = trace.read_text().splitlines()
+    # Kill between b's texture rename and its layer commit: the most delicate moment.
+    step = next(int(line.split()[0]) for line in steps if line.split()[1:] == ["rename", "b.Skeleton.exr"])
+    killed = _cli([str(library), "-o", str(out), "--jobs", "1"], {"VBUSD_FAULT": f"kill:{step}"})
+    assert killed.returncode == -9  # SIGKILL
+    assert (out / "a.usda").is_file() and not (out / "b.usda").exists() and not (out / "c.usda").exists()
+
+    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    assert resumed.returncode == 0, resumed.stderr
+    report = json.loads(resumed.stdout)
+    assert _statuses(report) == {"a.usda": "cached", "b.usda": "converted", "c.usda": "converted"}
+    # Nothing of the killed run is left, and the result is byte for byte the clean run's.
+    assert _files(out) == _files(tmp_path / "clean")
+    assert not [p for p in out.iterdir() if "vbusd-tmp" in p.name or p.name.endswith("vbusd-journal")]
+
+
+def test_killed_after_the_commit_before_the_record(tmp_path):
+    """Killed after b's layer is committed but before its cache record: the pending record marks the
+    output as the batch's own, so the next run replaces it without --force."""
+    library = _library(tmp_path / "lib", ("a", "b"))
+    trace = tmp_path / "trace.txt"
+    assert _cli([str(library), "-o", str(tmp_path / "clean"), "--jobs", "1"],
+                {"VBUSD_FAULT_TRACE": str(trace)}).returncode == 0
+    steps = trace.read_text().splitlines()
+    step = next(int(line.split()[0]) for line in steps if line.split()[1:] == ["commit", "b.usda"]) + 1
+    out = tmp_path / "out"
+    assert _cli([str(library), "-o", str(out), "--jobs", "1"], {"VBUSD_FAULT": f"kill:{step}"}).returncode == -9
+    assert (out / "b.usda").is_file()
+    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert _statuses(json.loads(resumed.stdout)) == {"a.usda": "cached", "b.usda": "converted"}
+    assert _files(out) == _files(tmp_path / "clean")
+
+
+def test_an_existing_output_of_someone_else_needs_force(tmp_path, capsys):
+    library = _library(tmp_path / "lib", ("a",))
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.usda").write_text("#usda 1.0\n", encoding="utf-8")
+    status, report = _run_json([str(library), "-o", str(out), "--jobs", "1"], capsys)
+    assert status == 2 and "--force" in report["assets"][0]["error"]
+    assert (out / "a.usda").read_text() == "#usda 1.0\n"
+    status, report = _run_json([str(library), "-o", str(out), "--jobs", "1", "--force"], capsys)
+    assert status == 0 and _statuses(report) == {"a.usda": "converted"}
+
+
+# --------------------------------------------------------------------------------------------
+# Determinism, manifests, pool, Dask
+
+
+def test_two_conversions_are_byte_identical(tmp_path):
+    """Two runs in two processes into fresh folders give the same bytes for every writer: EXR
+    (float16, float32), 16-bit PNG, KTX2, the layer as .usda and .usdc, the JSON sidecars (no
+    timestamp, host, process or random name in any of them)."""
+    entries = [{"source": str(STADIUM), "output": "half.usda"},
+               {"source": str(STADIUM), "output": "binary.usdc"},
+               {"source": str(STADIUM), "output": "full.usda", "texel-format": "float32"},
+               {"source": str(STADIUM), "output": "unorm.usda", "texel-format": "unorm16"},
+               {"source": str(STADIUM), "output": "ktx.usda", "container": "ktx2"}]
+    runs = []
+    for name in ("one", "two"):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "m.json").write_text(json.dumps(entries))
+        result = _cli(["--manifest", str(folder / "m.json"), "-o", str(folder), "--jobs", "1", "--no-cache"])
+        assert result.returncode == 0, result.stdout + result.stderr
+        runs.append(_files(folder))
+    assert runs[0] == runs[1]
+    suffixes = {Path(name).suffix for name in runs[0]}
+    assert suffixes >= {".usda", ".usdc", ".exr", ".png", ".ktx2", ".json"}, suffixes
+
+
+def test_manifest_csv_with_per_asset_options(tmp_path, capsys):
+    library = _library(tmp_path / "lib", ("a", "b"))
+    manifest = tmp_path / "lib" / "library.csv"
+    manifest.write_text("source,output,texel-format,max-influences\n"
+                        "a.usda,../out/hero/a.usdc,unorm16,\n"
+                        "b.usda,,,2\n", encoding="utf-8")
+    items = read_manifest(manifest)
+    assert items[0] == BatchItem(str(library / "a.usda"), str(library / "../out/hero/a.usdc"),
+                                 {"texel_format": "unorm16"}, f"{manifest}:2")
+    assert items[1].options == {"max_influences": 2} and items[1].output == ""
+    status, report = _run_json(["--manifest", str(manifest), "-o", str(tmp_path / "out"), "--jobs", "1"], capsys)
+    assert status == 0
+    files = [f for a in report["assets"] for f in a["files"]]
+    assert any(f.endswith("hero/a.usdc") for f in files) and any(f.endswith("hero/a.Skeleton.png") for f in files)
+    assert any(f.endswith(str(Path("out") / "b.usda")) for f in files)
+    manifest.write_text("source,texel_fmt\na.usda,float32\n", encoding="utf-8")
+    assert main(["convert", "--manifest", str(manifest), "-o", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "library.csv:2" in err and "texel_fmt" in err and len(err.strip().splitlines()) == 1
+
+
+def test_process_pool_matches_one_process(tmp_path, capsys):
+    library = _library(tmp_path / "lib", ("a", "b"))
+    status, report = _run_json([str(library), "-o", str(tmp_path / "pool"), "--jobs", "2"], capsys)
+    assert status == 0 and _statuses(report) == {"a.usda": "converted", "b.usda": "converted"}
+    assert len({a["worker"] for a in report["assets"]}) >= 1
+    status, _ = _run_json([str(library), "-o", str(tmp_path / "one"), "--jobs", "1"], capsys)
+    assert _files(tmp_path / "pool") == _files(tmp_path / "one")
+
+
+def test_dask_local_cluster(tmp_path):
+    distributed = pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'vbusd[dask]')")
+    library = _library(tmp_path / "lib", ("a", "b"))
+    (library / "broken.usda").write_text("nope", encoding="utf-8")
+    items = plan_batch([str(library)], str(tmp_path / "dask"))
+    base = {"check_rows": 4}
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        report = run_batch(items, base, scheduler=cluster.scheduler_address)
+        again = run_batch(items, base, scheduler=cluster.scheduler_address)
+    assert [a.status for a in report.assets] == ["converted", "converted", "failed"]
+    assert report.exit_status == 1 and report.assets[2].code == "usd.open"
+    assert all(a.worker and a.worker.startswith(("tcp://", "inproc://")) for a in report.assets[:2])
+    assert [a.status for a in again.assets] == ["cached", "cached", "failed"]
+    local = run_batch(plan_batch([str(library)], str(tmp_path / "local")), base, jobs=1)
+    assert _files(tmp_path / "dask") == _files(tmp_path / "local")  # any worker, the same bytes
+
+
+def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
+    pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'vbusd[dask]')")
+    library = _library(tmp_path / "lib", ("a",))
+    status = main(["convert", str(library), "-o", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9"])
+    err = capsys.readouterr().err
+    assert status == 2 and "batch.scheduler" in err and len(err.strip().splitlines()) == 1

@@ -1,0 +1,751 @@
+"""Convert a whole character library: many sources, a process pool or a Dask cluster, a cache.
+
+``vbusd convert A.usda B.glb chars/ 'props/**/*.usdc' -o out/ --jobs 4`` (or ``--manifest
+library.csv``) plans one conversion per source and runs them in parallel; the normative rules are
+spec/batch.md. In short:
+
+* **Planning** (:func:`plan_batch`): files, folders (searched recursively for the suffixes of the
+  registered converters) and globs are expanded; each source is written under its own name, keeping
+  its folder below the sources' common folder, as ``<output>/<rel>/<stem>.usda``; a manifest (JSON
+  or CSV) names source, output and per-asset options itself. Two sources that would write one
+  output, an unknown option or a manifest row without a source make the batch refuse to start.
+* **The cache key** (:func:`cache_key`): SHA-256 of the vbusd version, the conversion options
+  (canonical JSON) and the bytes of the source and of every file it references (USD sublayers,
+  references, payloads and asset paths, found by ``UsdUtils.ComputeAllDependencies``; glTF buffers
+  and images). A conversion is skipped when the record kept for its output
+  (``<cache>/<sha256 of the output's path>.json``) holds the same key and every output file it
+  lists still has the recorded size and SHA-256.
+* **Running** (:func:`run_batch`): the parent process computes the keys and skips what is cached;
+  the rest run in a local process pool (``jobs`` workers) or, with ``scheduler``, on a Dask
+  cluster (``distributed.Client(scheduler)``; workers read and write the shared file system).
+  Each worker (:func:`convert_one`) writes a *pending* record, converts through
+  :func:`vbusd.convert.convert` (whose :class:`vbusd.io.files.Commit` leaves no partial output when
+  killed), then the final record. One failing asset never stops the others.
+* **The report** (:class:`BatchReport`): per asset its status (``converted``, ``cached``,
+  ``failed``), the one-line error and its code, the files and bytes written, the time and the
+  largest error against the source's skinning; the exit status is 0 when no asset failed, 1 when
+  some failed and 2 when none could be converted.
+
+An output that exists is replaced only with ``force``, or when the cache records it as this
+batch's own (an earlier run, or a pending record left by a killed one): re-running after a rig
+changed reconverts without ``--force``.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import json
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Callable, Iterable, Optional
+
+from vbusd.format.errors import OptionsError, VbusdError
+from vbusd.format.jsonform import json_ready
+
+__all__ = ["BatchItem", "AssetResult", "BatchReport", "SOURCE_SUFFIXES", "CACHE_FOLDER", "plan_batch",
+           "read_manifest", "cache_key", "dependencies", "convert_one", "run_batch"]
+
+SOURCE_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz", ".gltf", ".glb")
+"""Suffixes a folder source is searched for (the built-in converters'; a plugin's source is named
+explicitly or in a manifest)."""
+
+CACHE_FOLDER = ".vbusd-cache"
+"""The cache's default folder, inside the output folder."""
+
+RECORD_VERSION = 1
+"""Version of the cache record's layout (part of every key, so a new layout reconverts)."""
+
+_GLOB_CHARACTERS = set("*?[")
+
+
+def is_glob(argument: str) -> bool:
+    """Whether a command-line source is a glob pattern (``*``, ``?`` or ``[``)."""
+    return bool(_GLOB_CHARACTERS & set(str(argument)))
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One planned conversion.
+
+    Attributes:
+        source: Source file.
+        output: USD layer to write.
+        options: Per-asset :class:`vbusd.convert.ConvertOptions` values over the batch's own
+            (field names, as a manifest gives them).
+        origin: Where the item came from (``manifest.csv:3``), for error messages.
+    """
+
+    source: str
+    output: str
+    options: dict = field(default_factory=dict)
+    origin: str = ""
+
+
+@dataclass
+class AssetResult:
+    """What happened to one asset of a batch.
+
+    Attributes:
+        source: Source file.
+        output: The USD layer written (or that would have been).
+        status: ``converted``, ``cached`` (skipped: unchanged and intact) or ``failed``.
+        error: The one-line error (``FILE: LOCATION: CODE: message``) of a failed asset.
+        code: The error's registered code.
+        files: Output files and their sizes in bytes (the layer, then texture and sidecar).
+        bytes: Their total size.
+        seconds: Wall time of this asset's conversion (0 for a cached one).
+        max_error: Largest position error against the source's own skinning over every mesh
+            (scene units), None when not checked.
+        max_error_fraction: The same over the bounding-box diagonal.
+        worker: Which worker converted it (process id and host, or the Dask worker's address).
+    """
+
+    source: str
+    output: str
+    status: str
+    error: Optional[str] = None
+    code: Optional[str] = None
+    files: dict = field(default_factory=dict)
+    bytes: int = 0
+    seconds: float = 0.0
+    max_error: Optional[float] = None
+    max_error_fraction: Optional[float] = None
+    worker: Optional[str] = None
+
+
+@dataclass
+class BatchReport:
+    """The whole batch: one :class:`AssetResult` per asset, in plan order, and totals."""
+
+    assets: list
+    jobs: int
+    scheduler: Optional[str]
+    seconds: float
+    cache: Optional[str]
+
+    @property
+    def converted(self) -> int:
+        """Assets converted in this run."""
+        return sum(a.status == "converted" for a in self.assets)
+
+    @property
+    def cached(self) -> int:
+        """Assets skipped because their inputs, options and outputs were unchanged."""
+        return sum(a.status == "cached" for a in self.assets)
+
+    @property
+    def failed(self) -> int:
+        """Assets that failed (each with its one-line error)."""
+        return sum(a.status == "failed" for a in self.assets)
+
+    @property
+    def exit_status(self) -> int:
+        """0: no asset failed; 1: some failed; 2: none could be converted (every asset failed)."""
+        if not self.failed:
+            return 0
+        return 2 if self.failed == len(self.assets) else 1
+
+    def to_dict(self) -> dict:
+        """The report as ``--format json`` and ``--report`` write it (camelCase keys)."""
+        data = json_ready({"assets": self.assets, "jobs": self.jobs, "scheduler": self.scheduler,
+                           "seconds": self.seconds, "cache": self.cache})
+        data.update(converted=self.converted, cached=self.cached, failed=self.failed,
+                    exitStatus=self.exit_status)
+        return data
+
+
+# --------------------------------------------------------------------------------------------
+# Planning
+# --------------------------------------------------------------------------------------------
+
+
+def _option_names() -> set:
+    from vbusd.convert import ConvertOptions
+
+    return {f.name for f in fields(ConvertOptions)} - {"force"}
+
+
+def _normalize_options(raw: dict, origin: str) -> dict:
+    """Manifest options with CLI spellings (``texel-format``) as field names; unknown keys refused."""
+    known = _option_names()
+    options = {}
+    for key, value in raw.items():
+        name = str(key).strip().replace("-", "_")
+        if value is None or value == "":
+            continue
+        if name not in known:
+            raise OptionsError(f"unknown option '{key}' (known: {', '.join(sorted(known))})", file=origin,
+                               code="batch.manifest")
+        options[name] = _coerce(name, value, origin)
+    return options
+
+
+def _coerce(name: str, value, origin: str):
+    """A CSV cell (text) as the option's type; JSON values pass as they are."""
+    if not isinstance(value, str):
+        return tuple(value) if isinstance(value, list) else value
+    text = value.strip()
+    try:
+        if name in ("rows_per_second",):
+            return float(text)
+        if name in ("max_influences",):
+            return int(text)
+        if name == "check_rows":
+            return None if text == "all" else int(text)
+        if name == "clips":
+            return tuple(s.strip() for s in text.replace(";", ",").split(",") if s.strip())
+        if name in ("allow_outside_paths", "strict_weights"):
+            return text.lower() in ("1", "true", "yes")
+        if name == "loop":
+            return {"auto": None, "loop": True, "clamp": False, "true": True, "false": False}[text.lower()]
+        if name == "frame_range":
+            start, end = text.replace(",", " ").split()
+            return (float(start), float(end))
+        if name == "skeletons":
+            return tuple(s for s in text.replace(";", " ").split() if s)
+    except (ValueError, KeyError):
+        raise OptionsError(f"option '{name}' cannot be {value!r}", file=origin, code="batch.manifest") from None
+    return text
+
+
+def read_manifest(path) -> list:
+    """Read a manifest: JSON (a list of objects, or ``{"assets": [...]}``) or CSV (a header row).
+
+    Each entry has ``source``, optionally ``output`` and per-asset options: in JSON an
+    ``options`` object and/or option keys beside ``source``; in CSV a column per option (empty
+    cells take the batch's value). Relative paths are relative to the manifest's folder.
+
+    Returns:
+        :class:`BatchItem` objects whose ``output`` may be empty (the batch names it).
+
+    Raises:
+        OptionsError: Unreadable manifest, a row without ``source``, an unknown option (code
+            ``batch.manifest``), naming the manifest and the row.
+    """
+    path = Path(path)
+    base = path.parent
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise OptionsError(f"cannot read the manifest: {getattr(error, 'strerror', None) or error}",
+                           file=str(path), code="batch.manifest") from None
+    rows = []
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise OptionsError(f"not JSON: {error.msg} at line {error.lineno}", file=str(path),
+                               code="batch.manifest") from None
+        entries = data.get("assets") if isinstance(data, dict) else data
+        if not isinstance(entries, list):
+            raise OptionsError('expected a list of assets (or {"assets": [...]})', file=str(path),
+                               code="batch.manifest")
+        for index, entry in enumerate(entries):
+            where = f"{path}:/assets/{index}" if isinstance(data, dict) else f"{path}:/{index}"
+            if isinstance(entry, str):
+                entry = {"source": entry}
+            if not isinstance(entry, dict):
+                raise OptionsError("an asset must be an object with a source", file=where, code="batch.manifest")
+            rows.append((where, dict(entry)))
+    elif path.suffix.lower() == ".csv":
+        reader = csv.DictReader(text.splitlines())
+        if not reader.fieldnames or "source" not in [f.strip() for f in reader.fieldnames]:
+            raise OptionsError("the CSV's header must name a 'source' column", file=str(path),
+                               code="batch.manifest")
+        for number, row in enumerate(reader, start=2):
+            rows.append((f"{path}:{number}", {str(k).strip(): v for k, v in row.items() if k is not None}))
+    else:
+        raise OptionsError("a manifest is a .json or .csv file", file=str(path), code="batch.manifest")
+    items = []
+    for where, entry in rows:
+        source = entry.pop("source", None)
+        if not source or not isinstance(source, str):
+            raise OptionsError("the asset has no source", file=where, code="batch.manifest")
+        output = entry.pop("output", None) or ""
+        options = dict(entry.pop("options", None) or {})
+        options.update(entry)
+        items.append(BatchItem(source=str((base / source)), output=str(base / output) if output else "",
+                               options=_normalize_options(options, where), origin=where))
+    return items
+
+
+def _expand(argument: str, output_root: Optional[Path]) -> list:
+    """One command-line source: a file, a folder (searched recursively) or a glob."""
+    path = Path(argument)
+    if path.is_dir():
+        found = []
+        for root, folders, files in os.walk(path):
+            folders[:] = sorted(f for f in folders if not f.startswith(".")
+                                and not (output_root and Path(root, f).resolve() == output_root))
+            found += [Path(root, f) for f in sorted(files)
+                      if Path(f).suffix.lower() in SOURCE_SUFFIXES and not f.startswith(".")]
+        return found
+    if path.exists() or not (_GLOB_CHARACTERS & set(argument)):
+        return [path]  # a missing file is reported as that asset's failure
+    return [Path(p) for p in sorted(glob.glob(argument, recursive=True))
+            if Path(p).is_file() and not Path(p).name.startswith(".")]
+
+
+def _common_folder(paths: list) -> Path:
+    parents = [p.resolve().parent for p in paths]
+    try:
+        return Path(os.path.commonpath([str(p) for p in parents]))
+    except ValueError:  # different drives
+        return parents[0]
+
+
+def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] = None,
+               suffix: str = ".usda") -> list:
+    """The conversions of a batch, in a stable order.
+
+    Args:
+        sources: Files, folders and globs from the command line.
+        output: The output folder.
+        manifest: A JSON or CSV manifest (:func:`read_manifest`), added to ``sources``.
+        suffix: The USD layer suffix of named outputs (``.usda``, ``.usdc`` or ``.usd``).
+
+    Returns:
+        :class:`BatchItem` objects, one per source.
+
+    Raises:
+        OptionsError: No source found, the output is a file, two sources would write one output
+            (code ``batch.plan``), or a bad manifest (``batch.manifest``).
+    """
+    out = Path(output)
+    if out.exists() and not out.is_dir():
+        raise OptionsError("with several sources -o names an output folder, and this is a file", file=str(out),
+                           code="batch.plan")
+    output_root = out.resolve() if out.exists() else None
+    named = []
+    for argument in sources:
+        expanded = _expand(str(argument), output_root)
+        if not expanded:
+            raise OptionsError("matches no source file", file=str(argument), code="batch.plan")
+        named += expanded
+    items = []
+    if named:
+        common = _common_folder(named)
+        for path in named:
+            relative = path.resolve().parent.relative_to(common) if path.resolve().parent != common else Path()
+            items.append(BatchItem(source=str(path), output=str(out / relative / (path.stem + suffix)),
+                                   origin=str(path)))
+    if manifest is not None:
+        for item in read_manifest(manifest):
+            target = item.output or str(out / (Path(item.source).stem + suffix))
+            items.append(BatchItem(item.source, target, item.options, item.origin))
+    if not items:
+        raise OptionsError("no source to convert", file=str(manifest or output), code="batch.plan")
+    seen = {}
+    for item in items:
+        # Textures and sidecars are named <stem>.<animation>.<ext>: one stem per folder.
+        output = Path(os.path.abspath(item.output))
+        key = os.path.normcase(str(output.parent / output.stem))
+        if key in seen:
+            raise OptionsError(f"{seen[key]} and {item.source} would both write {output.stem} (and its textures) "
+                               f"in {output.parent}; give them outputs in a manifest",
+                               file=item.origin or item.source, code="batch.plan")
+        seen[key] = item.source
+    return items
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+# --------------------------------------------------------------------------------------------
+
+
+def file_digest(path) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _gltf_document(path: Path) -> Optional[dict]:
+    import struct
+
+    data = path.read_bytes()
+    if data[:4] == b"glTF":
+        if len(data) < 20:
+            return None
+        length, kind = struct.unpack_from("<II", data, 12)
+        if kind != 0x4E4F534A:
+            return None
+        data = data[20:20 + length]
+    try:
+        document = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return document if isinstance(document, dict) else None
+
+
+def dependencies(source) -> list:
+    """Every file a source references, the source first; missing ones as ``missing:NAME``.
+
+    USD: the layers and asset paths ``UsdUtils.ComputeAllDependencies`` finds (sublayers,
+    references, payloads, textures), a .usdz package as one file. glTF: ``buffers[].uri`` and
+    ``images[].uri`` other than ``data:`` URIs. Other files: the source alone. An unreadable source
+    gives the source alone (the conversion reports why).
+    """
+    from urllib.parse import unquote
+
+    source = Path(source)
+    found = [str(source.resolve())]
+    suffix = source.suffix.lower()
+    try:
+        if suffix in (".gltf", ".glb"):
+            document = _gltf_document(source) or {}
+            for group in ("buffers", "images"):
+                for entry in document.get(group) or []:
+                    uri = entry.get("uri") if isinstance(entry, dict) else None
+                    if isinstance(uri, str) and uri and not uri.startswith("data:"):
+                        target = (source.parent / unquote(uri)).resolve()
+                        found.append(str(target) if target.is_file() else f"missing:{uri}")
+        elif suffix in (".usd", ".usda", ".usdc") and source.is_file():
+            from pxr import Sdf, UsdUtils
+
+            layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(source.resolve())))
+            for layer in layers:
+                real = (layer.realPath or "").split("[", 1)[0]
+                if real:
+                    found.append(str(Path(real).resolve()))
+            for asset in assets:
+                real = str(asset).split("[", 1)[0]
+                found.append(str(Path(real).resolve()) if Path(real).is_file() else f"missing:{asset}")
+            found += [f"missing:{p}" for p in unresolved]
+    except Exception:  # noqa: BLE001 - a broken source: the conversion names the problem
+        pass
+    unique = []
+    for name in found:
+        if name not in unique:
+            unique.append(name)
+    return unique
+
+
+def _options_text(options) -> str:
+    from dataclasses import asdict
+
+    values = asdict(options)
+    values.pop("force", None)
+    return json.dumps(values, sort_keys=True, default=list, separators=(",", ":"))
+
+
+def cache_key(source, options) -> tuple:
+    """The content address of one conversion: (SHA-256 hex, the files it covers).
+
+    Args:
+        source: Source file.
+        options: Its :class:`vbusd.convert.ConvertOptions` (``force`` does not count).
+    """
+    from vbusd import __version__
+
+    digest = hashlib.sha256()
+    digest.update(f"vbusd {__version__}\nrecord {RECORD_VERSION}\n{_options_text(options)}\n".encode())
+    files = dependencies(source)
+    root = Path(source).resolve().parent
+    for name in files:
+        if name.startswith("missing:"):
+            digest.update(f"{name}\n".encode())
+            continue
+        try:
+            content = file_digest(name)
+        except OSError:
+            content = "unreadable"
+        try:
+            label = str(Path(name).relative_to(root))  # moving the library keeps the key
+        except ValueError:
+            label = name
+        digest.update(f"{label} {content}\n".encode())
+    return digest.hexdigest(), files
+
+
+def _record_path(cache: Path, output: Path) -> Path:
+    name = hashlib.sha256(os.path.normcase(os.path.abspath(output)).encode()).hexdigest()[:40]
+    return cache / f"{name}.json"
+
+
+def _read_record(cache: Path, output: Path) -> Optional[dict]:
+    try:
+        record = json.loads(_record_path(cache, output).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def _write_record(cache: Path, output: Path, record: dict) -> None:
+    from vbusd.io.files import atomic_write
+
+    cache.mkdir(parents=True, exist_ok=True)
+    with atomic_write(_record_path(cache, output), "w", encoding="utf-8") as stream:
+        json.dump(record, stream, indent=1, sort_keys=True)
+
+
+def outputs_intact(record: dict) -> bool:
+    """Whether every file a finished record lists still has its recorded size and SHA-256."""
+    files = record.get("files")
+    if record.get("state") != "done" or not isinstance(files, dict) or not files:
+        return False
+    for name, entry in files.items():
+        try:
+            if os.path.getsize(name) != entry["bytes"] or file_digest(name) != entry["sha256"]:
+                return False
+        except (OSError, KeyError, TypeError):
+            return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# Running
+# --------------------------------------------------------------------------------------------
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except Exception:  # noqa: BLE001 - not on a Dask worker
+        import socket
+
+        return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def convert_one(task: dict) -> dict:
+    """Convert one planned asset in a worker; never raises for the asset's own errors.
+
+    Args:
+        task: ``source``, ``output``, ``options`` (ConvertOptions fields), ``key``, ``cache`` (folder
+            or None) and ``force`` (replace an existing output).
+
+    Returns:
+        An :class:`AssetResult` as a dict (plain data, for any scheduler).
+    """
+    from vbusd.convert import ConvertOptions, convert
+
+    started = time.perf_counter()
+    source, output = Path(task["source"]), Path(task["output"])
+    cache = Path(task["cache"]) if task.get("cache") else None
+    result = AssetResult(source=str(source), output=str(output), status="failed", worker=_worker_name())
+    try:
+        options = ConvertOptions(**{**task["options"], "force": bool(task.get("force"))})
+        if cache is not None:  # marks the output as this batch's own before anything is written
+            _write_record(cache, output, {"state": "pending", "key": task.get("key"), "source": str(source),
+                                          "output": str(output)})
+        report = convert(source, output, options)
+        result.files = dict(report.files)
+        result.bytes = sum(report.files.values())
+        errors = [m for a in report.animations for m in a.meshes if m.max_error is not None]
+        if errors:
+            result.max_error = max(m.max_error for m in errors)
+            result.max_error_fraction = max(m.max_error_fraction or 0.0 for m in errors)
+        result.status = "converted"
+        if cache is not None:
+            _write_record(cache, output, {
+                "state": "done", "key": task.get("key"), "source": str(source), "output": str(output),
+                "files": {name: {"bytes": size, "sha256": file_digest(name)} for name, size in report.files.items()},
+                "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction})
+    except VbusdError as error:
+        result.error, result.code = " ".join(str(error).split()), error.code
+    except OSError as error:
+        where = f"{error.filename}: " if getattr(error, "filename", None) else ""
+        result.error, result.code = f"{where}write.failed: {error.strerror or error}", "write.failed"
+    except Exception as error:  # noqa: BLE001 - a bug in vbusd must not stop the other assets
+        detail = " ".join(str(error).split())[:200]
+        result.error = (f"{source}: command.internal: unexpected {type(error).__name__}"
+                        f"{': ' + detail if detail else ''}; this is a bug in vbusd, please report it")
+        result.code = "command.internal"
+    result.seconds = time.perf_counter() - started
+    return json_ready(result)
+
+
+def _result(data: dict) -> AssetResult:
+    names = {f.name: f.name for f in fields(AssetResult)}
+    from vbusd.format.jsonform import camel_case
+
+    by_camel = {camel_case(name): name for name in names}
+    return AssetResult(**{by_camel.get(k, k): v for k, v in data.items() if by_camel.get(k, k) in names})
+
+
+def _pool_initializer() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+
+
+def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, scheduler: Optional[str] = None,
+              cache: Optional[str] = None, use_cache: bool = True, force: bool = False,
+              progress: Optional[Callable[[str, int, int], None]] = None) -> BatchReport:
+    """Convert every planned item; skip the cached ones; never stop at a failing one.
+
+    Args:
+        items: From :func:`plan_batch`.
+        base_options: The batch's :class:`vbusd.convert.ConvertOptions` fields (each item's own
+            options go over them).
+        jobs: Local worker processes (default: the number of cores); 1 converts in this process.
+        scheduler: ``tcp://HOST:PORT`` of a Dask scheduler: run there instead (needs
+            ``vbusd[dask]``).
+        cache: The cache folder (default ``<common output folder>/.vbusd-cache``).
+        use_cache: False converts everything and keeps no records.
+        force: Replace existing outputs that the cache does not know as this batch's own.
+        progress: ``progress("assets", done, total)`` as assets finish.
+
+    Returns:
+        The :class:`BatchReport`.
+
+    Raises:
+        OptionsError: Bad batch options, or the scheduler cannot be reached (code ``batch.scheduler``).
+    """
+    from vbusd.convert import ConvertOptions
+
+    started = time.perf_counter()
+    jobs = max(1, int(jobs or os.cpu_count() or 1))
+    if not items:
+        raise OptionsError("no source to convert", file="convert", code="batch.plan")
+    cache_dir = None
+    if use_cache:
+        if cache:
+            cache_dir = Path(cache)
+        else:
+            folders = [str(Path(i.output).resolve().parent) for i in items]
+            cache_dir = Path(os.path.commonpath(folders)) / CACHE_FOLDER
+    results: list = [None] * len(items)
+    tasks = []
+    done = 0
+    for index, item in enumerate(items):
+        merged = {**base_options, **item.options}
+        merged.pop("force", None)
+        try:
+            options = ConvertOptions(**merged)
+        except VbusdError as error:
+            results[index] = AssetResult(item.source, item.output, "failed", error=" ".join(str(error).split()),
+                                         code=error.code)
+            continue
+        except TypeError as error:
+            results[index] = AssetResult(item.source, item.output, "failed", error=f"{item.origin}: "
+                                         f"batch.manifest: {error}", code="batch.manifest")
+            continue
+        key = None
+        own = False
+        if cache_dir is not None:
+            key, _files = cache_key(item.source, options)
+            record = _read_record(cache_dir, Path(item.output))
+            if record is not None and record.get("output") == os.path.abspath(item.output):
+                own = True  # an output this batch wrote (or began to write when killed)
+                if record.get("key") == key and outputs_intact(record):
+                    files = {name: entry["bytes"] for name, entry in record["files"].items()}
+                    results[index] = AssetResult(item.source, item.output, "cached", files=files,
+                                                 bytes=sum(files.values()), max_error=record.get("maxError"),
+                                                 max_error_fraction=record.get("maxErrorFraction"))
+                    done += 1
+                    if progress:
+                        progress("assets", done, len(items))
+                    continue
+        values = {f.name: getattr(options, f.name) for f in fields(ConvertOptions)}
+        values.pop("force")
+        # Absolute paths: a worker (a Dask one on another host) may not share this process's folder.
+        tasks.append((index, {"source": os.path.abspath(item.source), "output": os.path.abspath(item.output),
+                              "options": values, "key": key,
+                              "cache": None if cache_dir is None else str(cache_dir), "force": force or own}))
+    if progress:
+        progress("assets", done, len(items))
+
+    def finish(index: int, data: dict) -> None:
+        nonlocal done
+        result = _result(data)
+        result.source, result.output = items[index].source, items[index].output  # as the user named them
+        results[index] = result
+        done += 1
+        if progress:
+            progress("assets", done, len(items))
+
+    if tasks and scheduler:
+        _run_dask(tasks, scheduler, finish)
+    elif tasks and (jobs == 1 or len(tasks) == 1):
+        for index, task in tasks:
+            finish(index, convert_one(task))
+    elif tasks:
+        _run_pool(tasks, min(jobs, len(tasks)), finish)
+    return BatchReport(assets=results, jobs=jobs, scheduler=scheduler, seconds=time.perf_counter() - started,
+                       cache=None if cache_dir is None else str(cache_dir))
+
+
+def _run_pool(tasks: list, jobs: int, finish) -> None:
+    """Run tasks in local worker processes; a worker that dies (SIGKILL, out of memory) breaks
+    Python's pool, so the unfinished tasks go to a fresh one, and a task that was unfinished in two
+    broken pools is run alone, so only the asset that kills its worker is reported failed."""
+    import multiprocessing
+    from concurrent.futures.process import BrokenProcessPool
+
+    # spawn: a fresh interpreter per worker, never a fork of a parent that may hold pxr's threads.
+    context = multiprocessing.get_context("spawn")
+    by_index = dict(tasks)
+    breaks = {index: 0 for index, _ in tasks}
+    remaining = [index for index, _ in tasks]
+    while remaining:
+        alone = [i for i in remaining if breaks[i] >= 2]
+        batch = alone[:1] or remaining
+        workers = 1 if alone else min(jobs, len(batch))
+        broken = []
+        with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_pool_initializer) as pool:
+            pending = {pool.submit(convert_one, by_index[index]): index for index in batch}
+            try:
+                while pending:
+                    finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        index = pending.pop(future)
+                        error = future.exception()
+                        if isinstance(error, BrokenProcessPool):
+                            broken.append(index)
+                        elif error is not None:
+                            finish(index, _worker_failure(by_index[index], error))
+                        else:
+                            finish(index, future.result())
+            except BaseException:
+                for future in pending:
+                    future.cancel()
+                raise
+        finished_now = set(batch) - set(broken)
+        remaining = [i for i in remaining if i not in finished_now]
+        for index in broken:
+            breaks[index] += 1
+            if alone and index == batch[0]:  # it killed a worker of its own: this asset fails
+                finish(index, _worker_failure(by_index[index], "its worker process died (killed, or out of memory)"))
+                remaining.remove(index)
+
+
+def _worker_failure(task: dict, error) -> dict:
+    detail = error if isinstance(error, str) else f"{type(error).__name__}: {' '.join(str(error).split())[:160]}"
+    return json_ready(AssetResult(task["source"], task["output"], "failed", code="batch.worker",
+                                  error=f"{task['source']}: batch.worker: the worker converting it failed ({detail})"))
+
+
+def _run_dask(tasks: list, scheduler: str, finish) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError:
+        raise OptionsError("--scheduler needs Dask's distributed package: pip install 'vbusd[dask]'",
+                           file=scheduler, code="batch.scheduler") from None
+    try:
+        client = Client(scheduler, timeout="10s", set_as_default=False)
+    except (OSError, TimeoutError) as error:
+        raise OptionsError(f"cannot reach the Dask scheduler: {' '.join(str(error).split())[:200]}",
+                           file=scheduler, code="batch.scheduler") from None
+    try:
+        futures = {}
+        for index, task in tasks:
+            # pure=False: a conversion writes files, so it is never deduplicated or cached by Dask.
+            futures[client.submit(convert_one, task, pure=False, key=f"vbusd-convert-{index}-{os.getpid()}")] = (index, task)
+        for future in as_completed(list(futures), loop=client.loop):
+            index, task = futures[future]
+            try:
+                finish(index, future.result())
+            except Exception as error:  # noqa: BLE001 - a worker died: this asset failed, the rest go on
+                finish(index, _worker_failure(task, error))
+    finally:
+        client.close()
