@@ -827,6 +827,8 @@ class _Bound:
     query: object  # UsdSkel.SkinningQuery
     method: str
     joint_map: np.ndarray
+    implicit_points: Optional[np.ndarray] = None
+    """For a Cube, Sphere, Cylinder, Cone or Capsule: its tessellated points (prim space)."""
 
 
 @dataclass
@@ -1034,27 +1036,36 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
             reader.warn(location, "is deformed by blend shapes only (no joint influences); blend shapes "
                         "cannot be held by Virtual Bones, so it is not converted")
             continue
-        if not prim.IsA(UsdGeom.Mesh):
-            kind = prim.GetTypeName() or "typeless prim"
-            reader.warn(location, f"is a skinned {kind}, not a Mesh; Virtual Bones binds meshes only, so it "
-                        "is not converted (bake it with UsdSkel.BakeSkinning or convert it to a Mesh)")
-            continue
-        mesh = UsdGeom.Mesh(prim)
         time = Usd.TimeCode(start_code)
+        implicit = None
+        if not prim.IsA(UsdGeom.Mesh):
+            implicit = implicit_surface(reader, prim, time)
+            if implicit is None:
+                kind = prim.GetTypeName() or "typeless prim"
+                reader.warn(location, f"is a skinned {kind}, not a Mesh; Virtual Bones binds meshes only, so it "
+                            "is not converted (bake it with UsdSkel.BakeSkinning or convert it to a Mesh)")
+                continue
+        mesh = UsdGeom.Mesh(prim)
         points_attr = mesh.GetPointsAttr()
-        points = np.asarray(points_attr.Get(time) or [], dtype=np.float64).reshape(-1, 3)
+        if implicit is not None:
+            points = implicit[0]
+        else:
+            points = np.asarray(points_attr.Get(time) or [], dtype=np.float64).reshape(-1, 3)
         if points.shape[0] == 0:
             reader.warn(location, "has no points; it is not converted")
             continue
         if not _finite(points):
             bad = int(np.argwhere(~np.isfinite(points))[0][0])
             raise reader.error(f"point {bad} is not finite", f"{location}.points", "usdskel.points.nonFinite")
-        if points_attr.GetNumTimeSamples() > 1:
-            reader.warn(location, f"points are time-sampled; the rest shape at time code {start_code:g} is used")
-        if _normals_attr(reader, mesh).GetNumTimeSamples() > 1:
-            reader.warn(location, f"normals are time-sampled; the rest normals at time code {start_code:g} are used")
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-        fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+        if implicit is not None:
+            counts, fvi = implicit[1], implicit[2]
+        else:
+            if points_attr.GetNumTimeSamples() > 1:
+                reader.warn(location, f"points are time-sampled; the rest shape at time code {start_code:g} is used")
+            if _normals_attr(reader, mesh).GetNumTimeSamples() > 1:
+                reader.warn(location, f"normals are time-sampled; the rest normals at time code {start_code:g} are used")
+            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+            fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
         if counts.sum() != fvi.size or (fvi.size and (fvi.min() < 0 or fvi.max() >= points.shape[0])):
             raise reader.error(f"faceVertexCounts sum to {int(counts.sum())} and faceVertexIndices has "
                                f"{fvi.size} entries for {points.shape[0]} points: inconsistent topology",
@@ -1076,7 +1087,8 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
             raise reader.error("primvars:skel:geomBindTransform is singular or not finite",
                                f"{location}.primvars:skel:geomBindTransform", "usdskel.geomBindTransform")
         bind_points = points @ geom_bind[:3, :3] + geom_bind[3, :3]
-        normals, n_interp = _normals(reader, mesh, counts, fvi, points.shape[0], time)
+        normals, n_interp = (None, "vertex") if implicit is not None else \
+            _normals(reader, mesh, counts, fvi, points.shape[0], time)
         if normals is not None:
             normal_matrix = np.linalg.inv(geom_bind[:3, :3]).T  # row-vector inverse transpose
             normals = normals @ normal_matrix
@@ -1086,8 +1098,103 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
             path=location, points=bind_points, face_vertex_counts=counts, face_vertex_indices=fvi,
             bone_indices=joint_map[indices], bone_weights=weights, normals=normals,
             normals_interpolation=n_interp, source_path=location)
-        bound.append(_Bound(prim, skinned, query, method, joint_map))
+        bound.append(_Bound(prim, skinned, query, method, joint_map,
+                            implicit_points=None if implicit is None else points))
+        if implicit is not None:
+            detail = "" if prim.IsA(UsdGeom.Cube) else f", {IMPLICIT_SEGMENTS} segments around its axis"
+            reader.warn(location, f"is a {prim.GetTypeName()}, converted as a Mesh of {points.shape[0]} points "
+                        f"({int(counts.size)} faces{detail}) bound as UsdSkel binds it")
     return bound
+
+
+IMPLICIT_SEGMENTS = 10
+"""Segments around the axis (and half-rings per hemisphere x 2 for spheres) of a tessellated
+Sphere, Cylinder, Cone or Capsule: Hydra's default resolution (spec: Rigid bindings)."""
+
+
+def _revolution(rings: list, axis: str) -> tuple:
+    """Points, counts and indices of a closed surface of revolution about ``axis``.
+
+    Args:
+        rings: ``(radius, height)`` from bottom to top; a radius of 0 is a pole (one point).
+        axis: ``X``, ``Y`` or ``Z``.
+    """
+    n = IMPLICIT_SEGMENTS
+    angles = 2.0 * np.pi * np.arange(n) / n
+    points, starts = [], []
+    for radius, height in rings:
+        starts.append(len(points))
+        if radius == 0.0:
+            points.append((0.0, 0.0, height))
+        else:
+            points.extend((radius * np.cos(a), radius * np.sin(a), height) for a in angles)
+    faces = []
+    for k in range(len(rings) - 1):
+        a, b = starts[k], starts[k + 1]
+        pole_a, pole_b = rings[k][0] == 0.0, rings[k + 1][0] == 0.0
+        for j in range(n):
+            j1 = (j + 1) % n
+            if pole_a:
+                faces.append((a, b + j1, b + j))
+            elif pole_b:
+                faces.append((a + j, a + j1, b))
+            else:
+                faces.append((a + j, a + j1, b + j1, b + j))
+    # Closing caps for rings that end without a pole (cylinders, the cone's base).
+    if rings[0][0] != 0.0:
+        faces.append(tuple(starts[0] + j for j in reversed(range(n))))
+    if rings[-1][0] != 0.0:
+        faces.append(tuple(starts[-1] + j for j in range(n)))
+    p = np.array(points, dtype=np.float64)
+    order = {"X": [2, 0, 1], "Y": [1, 2, 0], "Z": [0, 1, 2]}[axis]   # rotations taking Z to the axis
+    p = p[:, order]
+    counts = np.array([len(f) for f in faces], dtype=np.int64)
+    return p, counts, np.array([i for f in faces for i in f], dtype=np.int64)
+
+
+def implicit_surface(reader: _Reader, prim, time) -> Optional[tuple]:
+    """A Cube, Sphere, Cylinder, Cone or Capsule as (points, faceVertexCounts, faceVertexIndices)
+    in the prim's space, or None for other prim types (spec: usd-conversion.md, Rigid bindings).
+
+    Cube: its 8 corners, 6 quads. The others: :data:`IMPLICIT_SEGMENTS` segments around the axis;
+    a sphere or a capsule's hemispheres get ``IMPLICIT_SEGMENTS // 2`` bands from pole to equator.
+    Faces wind counterclockwise seen from outside (USD's rightHanded orientation).
+    """
+    UsdGeom = reader.UsdGeom
+
+    def value(attr, default):
+        got = attr.Get(time) if attr else None
+        return float(default if got is None else got)
+
+    if prim.IsA(UsdGeom.Cube):
+        h = 0.5 * value(UsdGeom.Cube(prim).GetSizeAttr(), 2.0)
+        corners = np.array([(x, y, z) for x in (-h, h) for y in (-h, h) for z in (-h, h)])
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        return corners, np.full(6, 4, dtype=np.int64), np.array(quads, dtype=np.int64).reshape(-1)
+    half = IMPLICIT_SEGMENTS // 2
+    if prim.IsA(UsdGeom.Sphere):
+        r = value(UsdGeom.Sphere(prim).GetRadiusAttr(), 1.0)
+        bands = np.linspace(-np.pi / 2, np.pi / 2, 2 * half + 1)
+        rings = [(0.0 if k in (0, 2 * half) else r * np.cos(a), r * np.sin(a)) for k, a in enumerate(bands)]
+        return _revolution(rings, "Z")
+    for kind in (UsdGeom.Cylinder, UsdGeom.Cone, UsdGeom.Capsule):
+        if not prim.IsA(kind):
+            continue
+        shape = kind(prim)
+        r = value(shape.GetRadiusAttr(), 1.0 if kind is not UsdGeom.Capsule else 0.5)
+        height = value(shape.GetHeightAttr(), 2.0 if kind is not UsdGeom.Capsule else 1.0)
+        axis = str(shape.GetAxisAttr().Get(time) or "Z")
+        if kind is UsdGeom.Cylinder:
+            rings = [(0.0, -height / 2), (r, -height / 2), (r, height / 2), (0.0, height / 2)]
+        elif kind is UsdGeom.Cone:
+            rings = [(0.0, -height / 2), (r, -height / 2), (0.0, height / 2)]
+        else:
+            angles = np.linspace(0.0, np.pi / 2, half + 1)
+            bottom = [(r * np.sin(a), -height / 2 - r * np.cos(a)) for a in angles]
+            top = [(r * np.cos(a), height / 2 + r * np.sin(a)) for a in angles]
+            rings = [(0.0, bottom[0][1])] + bottom[1:] + top[:-1] + [(0.0, top[-1][1])]
+        return _revolution(rings, axis)
+    return None
 
 
 def _joints_source(reader: _Reader, prim):
@@ -1131,8 +1238,9 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     # Time-sampled points (the converter keeps the first as the rest shape, with a warning):
     # UsdSkel skins the points of each time code, so the reference does too and the report shows
     # the difference.
-    varying = points_attr.GetNumTimeSamples() > 1
-    rest = points_attr.Get(Usd.TimeCode(sampler.code(times[0])))
+    varying = bound.implicit_points is None and points_attr.GetNumTimeSamples() > 1
+    rest = points_attr.Get(Usd.TimeCode(sampler.code(times[0]))) if bound.implicit_points is None else \
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(bound.implicit_points, dtype=np.float32))
     has_normals = bound.mesh.normals is not None
     if has_normals:
         indices, weights = query.ComputeJointInfluences()

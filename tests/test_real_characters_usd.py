@@ -105,6 +105,33 @@ def SkelRoot "Root" (
         uniform token[] xformOpOrder = ["xformOp:translate"]
     }}
 
+    def Sphere "Ball" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        double radius = 8
+        matrix4d primvars:skel:geomBindTransform = ((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,0,200,1))
+        {_CONSTANT_ONE.format(joint=1)}
+    }}
+
+    def Capsule "Arm" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {{
+        double radius = 3
+        double height = 20
+        uniform token axis = "X"
+        matrix4d primvars:skel:geomBindTransform = ((1,0,0,0),(0,1,0,0),(0,0,1,0),(20,0,150,1))
+        int[] primvars:skel:jointIndices = [0, 1] (
+            interpolation = "constant"
+            elementSize = 2
+        )
+        float[] primvars:skel:jointWeights = [0.25, 0.75] (
+            interpolation = "constant"
+            elementSize = 2
+        )
+    }}
+
     def Xform "Gear" (
         prepend apiSchemas = ["SkelBindingAPI"]
     )
@@ -164,8 +191,11 @@ def character(tmp_path):
     return path
 
 
-def baked_by_usdskel(path, tmp_path, codes) -> dict:
-    """World points of every mesh at ``codes``, after ``UsdSkel.BakeSkinning`` of a copy."""
+def baked_by_usdskel(path, tmp_path, codes, implicit_points) -> dict:
+    """World points of every mesh at ``codes``, after ``UsdSkel.BakeSkinning`` of a copy.
+
+    ``implicit_points``: the points of each Cube, Sphere, ... in its own space (UsdSkel deforms such
+    a prim by its transform)."""
     from pxr import Gf, Usd, UsdGeom, UsdSkel
 
     copy = tmp_path / "baked_by_usdskel.usda"
@@ -174,12 +204,15 @@ def baked_by_usdskel(path, tmp_path, codes) -> dict:
     assert UsdSkel.BakeSkinning(stage.Traverse(), Gf.Interval(0, 12))
     result = {}
     for prim in stage.Traverse():
-        if not prim.IsA(UsdGeom.Mesh):
+        if not prim.IsA(UsdGeom.Gprim):
             continue
         poses = []
         for code in codes:
             time = Usd.TimeCode(code)
-            points = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), dtype=np.float64)
+            if prim.IsA(UsdGeom.Mesh):
+                points = np.array(UsdGeom.Mesh(prim).GetPointsAttr().Get(time), dtype=np.float64)
+            else:   # UsdSkel moved the prim (its transform); the points are the converted mesh's own
+                points = implicit_points[str(prim.GetPath())]
             world = np.array(UsdGeom.XformCache(time).GetLocalToWorldTransform(prim), dtype=np.float64)
             poses.append(points @ world[:3, :3] + world[3, :3])
         result[str(prim.GetPath())] = np.array(poses)
@@ -189,19 +222,52 @@ def baked_by_usdskel(path, tmp_path, codes) -> dict:
 def test_rigid_and_inherited_bindings_match_usdskel_bake(character, tmp_path):
     scene = usdskel.read(character, ReadOptions(skeletons=("/Root/Skel",)))
     (animation,) = scene.animations
-    assert [m.path for m in animation.meshes] == ["/Root/Body", "/Root/Helmet", "/Root/Gear/Visor"]
+    assert [m.path for m in animation.meshes] == ["/Root/Body", "/Root/Helmet", "/Root/Ball", "/Root/Arm",
+                                                  "/Root/Gear/Visor"]
     assert not [w for w in scene.warnings if "Gear" in w], scene.warnings   # the Xform is no mesh
+    meshes = {m.path: m for m in animation.meshes}
+    # The implicit gprims, by hand: every point of the sphere at distance 8 from its centre (z = 200
+    # in bind space), faces wound outwards (positive volume); the capsule's points within its radius
+    # of its axis segment.
+    ball = meshes["/Root/Ball"]
+    np.testing.assert_allclose(np.linalg.norm(ball.points - (0, 0, 200), axis=1), 8.0, atol=1e-9)
+    assert _volume(ball) > 0 and _volume(meshes["/Root/Arm"]) > 0
+    arm = meshes["/Root/Arm"].points - (20, 0, 150)
+    along = np.clip(arm[:, 0], -10, 10)
+    np.testing.assert_allclose(np.linalg.norm(arm - np.stack([along, 0 * along, 0 * along], 1), axis=1), 3.0,
+                               atol=1e-9)
     vb = bake(animation, BakeOptions(encoding="affineMatrix", texel_format="float32"))
     (clip,) = vb.clips
     codes = (clip.start_time + np.arange(clip.row_count) / clip.rows_per_second) * scene.time_codes_per_second
-    reference = baked_by_usdskel(character, tmp_path, codes)
-    for mesh in vb.meshes:
+    # G of the implicit prims is a translation: their own points are the bind points less it.
+    implicit = {"/Root/Ball": ball.points - (0, 0, 200), "/Root/Arm": meshes["/Root/Arm"].points - (20, 0, 150)}
+    reference = baked_by_usdskel(character, tmp_path, codes, implicit)
+    for index, mesh in enumerate(vb.meshes):
         ours, _ = skin_mesh_at_rows(vb, mesh, 0)
         theirs = reference[mesh.path]
+        if mesh.path == "/Root/Arm":
+            # Two constant influences: UsdSkel's BakeSkinning fits a transform to the blend
+            # (UsdSkelSkinTransformLBS), ComputeSkinnedPoints blends per point, as the converter does
+            # (spec: Rigid bindings). The reference is the latter, UsdSkel's own.
+            theirs, _ = scene.reference(0, index, codes / scene.time_codes_per_second)
+            fitted = reference[mesh.path]
+            assert np.linalg.norm(fitted - theirs, axis=-1).max() < 1e-3   # the fit's shear, small here
         diagonal = np.linalg.norm(np.ptp(theirs.reshape(-1, 3), axis=0))
         assert np.linalg.norm(ours - theirs, axis=-1).max() <= TOLERANCE * diagonal, mesh.path
     visor = vb.meshes[2]
     assert np.all(visor.bone_indices == 1) and np.all(visor.bone_weights[:, 0] == 1)
+
+
+def _volume(mesh) -> float:
+    """Signed volume of a closed mesh (fan triangulation of each face): positive when faces wind
+    counterclockwise seen from outside."""
+    total, start = 0.0, 0
+    for count in mesh.face_vertex_counts:
+        face = mesh.points[mesh.face_vertex_indices[start:start + count]]
+        for k in range(1, count - 1):
+            total += np.dot(face[0], np.cross(face[k], face[k + 1])) / 6.0
+        start += count
+    return total
 
 
 def _convert(tmp_path, source, *extra):

@@ -18,7 +18,7 @@ from vbusd.format.errors import InputError, UnsupportedError  # noqa: E402
 
 LBS = {
     "SkinnedArm/skinnedArm.usda": (1, 1),
-    "BakeSkinning_LBS/lbs.usda": (1, 3),
+    "BakeSkinning_LBS/lbs.usda": (1, 6),   # 3 meshes + the rigidly bound Sphere, Cube, Cylinder (issue 12)
     "SkelRoot/root.usda": (1, 1),
     "ImagingSkelSkinning/test_lbs.usda": (1, 1),
     "TwoBends/twoBends.usda": (1, 2),
