@@ -43,6 +43,8 @@ _RUNNING: dict = {}
 def _remember_invocation(ctx: click.Context) -> None:
     arguments = [p for p in ctx.command.params if isinstance(p, click.Argument)]
     value = ctx.params.get(arguments[0].name) if arguments else None
+    if isinstance(value, (tuple, list)):  # several sources (vbusd convert A B C)
+        value = " ".join(str(v) for v in value) or None
     _RUNNING.update(command=ctx.command_path, input=None if value in (None, ()) else str(value))
 
 
