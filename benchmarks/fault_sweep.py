@@ -399,6 +399,44 @@ def sweep(names: list, work: Path, errnos: tuple = ERRNOS, log=print) -> list:
     return summaries
 
 
+def race(sources: Path, work: Path, trials: int, old: str, new: str) -> dict:
+    """``trials`` times: two ``vbusd convert`` runs started together into one output, without and
+    with ``--force`` (float16 and float32, so the winner is known by content). Counts outcomes."""
+    counts = {"trials": trials, "new_path_one_refused": 0, "new_path_both_exit_0": 0,
+              "force_both_exit_0": 0, "not_ok": 0, "problems": []}
+    for trial in range(trials):
+        for force in (False, True):
+            folder = work / f"race{trial}{'f' if force else ''}"
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            target = folder / "a.usda"
+            if force:  # replacing an existing asset
+                _checked(run_process, ["convert", sources / "rig.usda", "-o", target, "--quiet",
+                                       "--texel-format", "unorm16"], {})
+            commands = [vbusd_argv("convert", sources / "rig.usda", "-o", target, "--texel-format", fmt, "--quiet",
+                                   *(["--force"] if force else [])) for fmt in ("float16", "float32")]
+            processes = [subprocess.Popen(c, env=child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                          text=True) for c in commands]
+            results = [(p.wait(timeout=600), p.stderr.read()) for p in processes]
+            statuses = sorted(status for status, _ in results)
+            state = state_of(target, old, new)
+            left = sum(leftovers(target, set()), [])
+            problems = validate(target, "usd")
+            if force:
+                counts["force_both_exit_0"] += statuses == [0, 0]
+                ok = statuses == [0, 0] and state in ("old", "new")
+            else:
+                counts["new_path_one_refused"] += statuses == [0, 2]
+                counts["new_path_both_exit_0"] += statuses == [0, 0]
+                winner = "old" if results[0][0] == 0 else "new"
+                ok = statuses == [0, 2] and state == winner and \
+                    len([e for s, e in results if s == 2][0].strip().splitlines()) == 1
+            if not ok or left or problems:
+                counts["not_ok"] += 1
+                counts["problems"].append((trial, force, statuses, state, left, problems[:2]))
+    return counts
+
+
 def markdown(summaries: list) -> str:
     """The benchmarks/README.md table."""
     rows = ["| writer | fault points | runs | killed: old / new output | killed: files left until the next run "
@@ -451,6 +489,7 @@ def main(argv=None) -> int:
     parser.add_argument("--errnos", default=",".join(ERRNOS), help="injected errors besides kill")
     parser.add_argument("--format", choices=("text", "markdown", "json"), default="markdown")
     parser.add_argument("--work", help="scratch folder (default: a temporary one, removed after)")
+    parser.add_argument("--races", type=int, default=10, help="trials of two racing convert runs (0: none)")
     parser.add_argument("--tmpfs-child", metavar="JSON", help=argparse.SUPPRESS)  # see tmpfs_child
     args = parser.parse_args(argv)
     if args.tmpfs_child:
@@ -466,9 +505,14 @@ def main(argv=None) -> int:
         work = Path(args.work) if args.work else Path(scratch)
         log = (lambda text: print(text, file=sys.stderr)) if args.format != "json" else (lambda text: None)
         summaries = sweep(names, work, errnos, log=log)
+        races = None
+        if args.races:
+            bench = prepare(WRITERS["convert"], work / "src", work / "race-refs")
+            races = race(work / "src", work / "races", args.races, bench.old, bench.new)
+            log(json.dumps(races))
     total = time.perf_counter() - clock
     if args.format == "json":
-        print(json.dumps({"writers": summaries, "seconds": round(total, 1)}, indent=1))
+        print(json.dumps({"writers": summaries, "races": races, "seconds": round(total, 1)}, indent=1))
     else:
         print(markdown(summaries))
         print(f"\n{sum(s['cases'] for s in summaries)} runs in {total:.0f} s; "
@@ -476,7 +520,13 @@ def main(argv=None) -> int:
         for s in summaries:
             for fault, verdict in s["problems"]:
                 print(f"  {s['writer']} {fault}: {verdict}")
-    return 1 if any(s["not_ok"] for s in summaries) else 0
+        if races:
+            print(f"\nraces ({races['trials']} trials each): new path, no --force: one refused "
+                  f"{races['new_path_one_refused']}, both exit 0 {races['new_path_both_exit_0']}; "
+                  f"--force over an asset: both exit 0 {races['force_both_exit_0']}; not ok {races['not_ok']}")
+            for problem in races["problems"]:
+                print(f"  race {problem}")
+    return 1 if any(s["not_ok"] for s in summaries) or (races and races["not_ok"]) else 0
 
 
 if __name__ == "__main__":
