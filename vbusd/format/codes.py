@@ -266,6 +266,15 @@ _CODES = (
     # command line
     Code("command.internal", E, "A command failed unexpectedly: a bug in vbusd, not a fault of the input; the "
          "line names the command and the input (please report it with both).", "validation.md#command", "file"),
+    # batch conversion (vbusd convert on a library, spec/batch.md)
+    Code("batch.plan", E, "A batch cannot start: no source found, the output is a file, or two assets would "
+         "write the same stem (and textures) in one folder.", "batch.md#plan", "option"),
+    Code("batch.manifest", E, "A batch manifest (JSON or CSV) is unreadable, has an entry without a source or "
+         "names an unknown option; located at FILE:ROW.", "batch.md#plan", "option"),
+    Code("batch.scheduler", E, "The Dask scheduler given with --scheduler cannot be reached, or Dask's "
+         "distributed package is not installed (pip install 'vbusd[dask]').", "batch.md#run", "option"),
+    Code("batch.worker", E, "The worker process converting an asset died (killed, out of memory) or the Dask "
+         "task failed; the other assets are not affected.", "batch.md#run", "file"),
     # ---- KTX 2.0 texture container (spec/ktx2.md) ----
     Code("ktx2.truncated", E, "The KTX2 file ends inside its header, level index or a region it declares.",
          "ktx2.md#reader", "file"),
