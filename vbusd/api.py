@@ -16,7 +16,7 @@ import numpy as np
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 
-__all__ = ["SkinnedPose", "validate", "skin", "shader", "clip_index"]
+__all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "shader", "clip_index"]
 
 AssetLike = Union[str, os.PathLike, VirtualBonesAsset, VirtualBones]
 
@@ -170,6 +170,64 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
                                                   np.array([fade_tau]), weight)
         poses.append(SkinnedPose(mesh.path, points[0], None if normals is None else normals[0]))
     return poses
+
+
+def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
+    """The index of a bone given by name (as in ``vb:bones``), by its last path element, or by index.
+
+    Raises:
+        OptionsError: No such bone, or a short name that several bones share.
+    """
+    names = list(vb.bones)
+    if isinstance(bone, str):
+        if bone in names:
+            return names.index(bone)
+        tails = [i for i, name in enumerate(names) if name.rsplit("/", 1)[-1] == bone]
+        if len(tails) == 1:
+            return tails[0]
+        if len(tails) > 1:
+            raise OptionsError(f"bone name {bone!r} is ambiguous: {', '.join(names[i] for i in tails)}", file=what)
+    elif isinstance(bone, (int, np.integer)) and not isinstance(bone, bool) and 0 <= bone < len(names):
+        return int(bone)
+    shown = ", ".join(names[:8]) + (", ..." if len(names) > 8 else "")
+    raise OptionsError(f"animation {vb.path} has no bone {bone!r} (bones: {shown})", file=what)
+
+
+def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animation: int = 0) -> np.ndarray:
+    """A joint's transform in the animation's space at one clip time: where to attach a prop (a socket).
+
+    Returns ``J = M B`` (spec "Sockets", format 1.1): the bone's decoded skinning transform ``M`` at
+    the clip time (interpolated between rows as the decoders interpolate) times the joint's bind
+    transform ``B`` stored in the asset. A prop modelled in the joint's own space follows the hand
+    with ``p' = J[:3, :3] @ p + J[:3, 3]``; for a crowd instance, apply the instance's placement
+    after it (:func:`vbusd.decode.reference.crowd_joint_transforms` does both).
+
+    Args:
+        asset: A Virtual Bones asset path, a read asset or one :class:`~vbusd.format.model.VirtualBones`.
+        bone: Bone name (full ``vb:bones`` entry, or its last path element when unique) or index.
+        clip: Clip name or index.
+        time: Clip-local time in seconds.
+        animation: Which animation of the asset (index).
+
+    Returns:
+        (4, 4) float64 matrix for column vectors, ``p' = M[:3, :3] @ p + M[:3, 3]``.
+
+    Raises:
+        InputError: The asset cannot be read or stores no bind transforms (an asset converted
+            before format 1.1: reconvert it).
+        OptionsError: No such bone, clip or animation, or a time that is not finite.
+
+    Example:
+        >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
+        >>> hand[:3, 3]   # the hand's position in animation space
+    """
+    from vbusd.decode.reference import joint_transforms
+
+    vb = _animation(asset, animation, "bone_transform")
+    index = bone_index(vb, bone)
+    clip_number = clip_index(vb, clip, what="bone_transform")
+    tau = _finite_seconds(time, "time")
+    return joint_transforms(vb, clip_number, np.array([tau]))[0, index]
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,

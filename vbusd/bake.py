@@ -358,9 +358,10 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         _refuse_singular_after_rounding(stored, ranges, options.texel_format, animation, clips)
     texels = pack(stored, layout)
     texels.setflags(write=False)
+    bind = None if animation.bind_transforms is None else np.asarray(animation.bind_transforms, np.float64)
     baked = VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
                          unorm_ranges=ranges, meshes=meshes, path=animation.path,
-                         clip_extents=np.stack(extents))
+                         clip_extents=np.stack(extents), bind_transforms=bind)
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13), joined with
         # the source's own bounds at the rows (the decoded rows differ from them by quantization).

@@ -320,3 +320,72 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     if normals is not None:
         normals = _normalize(np.einsum("nij,nvj->nvi", rotation, normals / scale[:, None, :]))
     return world, normals
+
+
+def skinning_matrices(vb: VirtualBones, clip_index: int, tau) -> np.ndarray:
+    """Decoded skinning transforms ``M_b`` (n, B, 4, 4), column vectors, at clip-local times.
+
+    Every encoding decodes to ``[A | t]`` (spec "Encodings"; for dualQuat ``A = R(q_r)`` and
+    ``t = 2 (q_d (x) conj(q_r)).xyz``), interpolated between rows as a decoder interpolates them.
+    """
+    transforms = bone_transforms(vb, clip_index, np.atleast_1d(tau))
+    n, b = transforms.linear.shape[:2]
+    out = np.zeros((n, b, 4, 4))
+    out[..., :3, :3] = transforms.linear
+    out[..., :3, 3] = transforms.translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _bind(vb: VirtualBones) -> np.ndarray:
+    from vbusd.format.errors import InputError
+
+    if vb.bind_transforms is None:
+        raise InputError("the animation stores no joint bind transforms (vb:bindTransforms, format 1.1): "
+                         "reconvert the source with this vbusd to use sockets", location=vb.path,
+                         code="socket.noBindTransforms")
+    return np.asarray(vb.bind_transforms, dtype=np.float64)
+
+
+def joint_transforms(vb: VirtualBones, clip_index: int, tau) -> np.ndarray:
+    """Every joint's transform in animation space, ``J_b = M_b B_b`` (n, B, 4, 4) (spec "Sockets").
+
+    ``M_b`` is the decoded skinning transform (:func:`skinning_matrices`), ``B_b`` the joint's bind
+    transform stored in the asset (``vb.bind_transforms``).
+
+    Raises:
+        InputError: The asset stores no bind transforms (code ``socket.noBindTransforms``).
+    """
+    return skinning_matrices(vb, clip_index, tau) @ _bind(vb)[None]
+
+
+def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) -> np.ndarray:
+    """World transform (N, 4, 4) of joint ``bone`` of every instance at scene time ``t`` (a crowd's sockets).
+
+    ``P_i ((1 - w) M_a + w M_b) B`` with ``P_i`` the instance placement (scale, orientation,
+    position), ``M_a`` and ``M_b`` the decoded transforms of the instance's clip and fade clip at
+    their own times and ``w`` its fade weight (spec "Sockets": the matrix crossfade).
+    """
+    bind = _bind(vb)[bone]
+    taus = instance_time(crowd, t)
+    clip_ids = np.asarray(crowd.clip, dtype=np.int64)
+    n = crowd.instance_count
+    local = np.empty((n, 4, 4))
+    for clip_index in np.unique(clip_ids):
+        chosen = np.flatnonzero(clip_ids == clip_index)
+        local[chosen] = skinning_matrices(vb, int(clip_index), taus[chosen])[:, bone]
+    if crowd.crossfades:
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        fade_weight = np.clip(fade_weight, 0.0, 1.0)
+        for clip_index in np.unique(fade_clip[fade_weight > 0]):
+            chosen = np.flatnonzero((fade_clip == clip_index) & (fade_weight > 0))
+            faded = skinning_matrices(vb, int(clip_index), (fade_offset + fade_rate * t)[chosen])[:, bone]
+            w = fade_weight[chosen][:, None, None]
+            local[chosen] = (1.0 - w) * local[chosen] + w * faded
+    rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
+    scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
+    placement = np.zeros((n, 4, 4))
+    placement[:, :3, :3] = rotation * scale[:, None, :]
+    placement[:, :3, 3] = np.asarray(crowd.positions, dtype=np.float64)
+    placement[:, 3, 3] = 1.0
+    return placement @ local @ bind

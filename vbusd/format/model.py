@@ -114,6 +114,9 @@ class SkinnedAnimation:
         clips: One or more clips; each becomes a run of rows of the same texture.
         meshes: Meshes bound to these bones.
         source: The file the animation came from, for messages.
+        bind_transforms: (bones, 4, 4) column-vector bind (rest) transforms ``B_b`` of the joints
+            in animation space, so that a joint's transform is ``J_b = M_b B_b`` (spec "Bone
+            transforms"; format 1.1, for sockets), or None when the converter does not know them.
     """
 
     name: str
@@ -122,6 +125,7 @@ class SkinnedAnimation:
     clips: tuple
     meshes: tuple = ()
     source: Optional[str] = None
+    bind_transforms: Optional[np.ndarray] = None
 
     @property
     def bone_count(self) -> int:
@@ -263,6 +267,8 @@ class VirtualBones:
         path: Prim path of the VirtualBonesAnimation prim.
         texture: Texture file name relative to the USD layer (set by writers and readers).
         clip_extents: (clips, 2, 3) float32 bounds of the skinned meshes per clip, or None.
+        bind_transforms: (bones, 4, 4) float64 column-vector bind transforms of the joints in
+            animation space (format 1.1, sockets: ``J_b = M_b B_b``), or None when not stored.
     """
 
     layout: Layout
@@ -274,6 +280,7 @@ class VirtualBones:
     path: str = "/VirtualBones/Animation"
     texture: Optional[str] = None
     clip_extents: Optional[np.ndarray] = None
+    bind_transforms: Optional[np.ndarray] = None
 
     def __post_init__(self) -> None:
         if self.texels.shape != self.layout.shape:
@@ -285,6 +292,8 @@ class VirtualBones:
         rows = sum(c.row_count for c in self.clips)
         if rows != self.layout.row_count:
             raise ValueError(f"clips hold {rows} rows, layout says {self.layout.row_count}")
+        if self.bind_transforms is not None and np.shape(self.bind_transforms) != (self.layout.bone_count, 4, 4):
+            raise ValueError(f"bind transforms {np.shape(self.bind_transforms)} for {self.layout.bone_count} bones")
 
 
 @dataclass(frozen=True)
