@@ -1272,7 +1272,7 @@ class _Converter:
                     self.measure_morph(node, m, p, targets, clips)
             result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=tuple(bones),
                                            clips=tuple(clips), meshes=tuple(meshes),
-                                           source=self.file))
+                                           source=self.file, bind_transforms=bind_transforms(ibm_all)))
             raw_weights.append(tuple(raws))
         if not result:
             raise UnsupportedError("no skin is used by a mesh node; nothing to bake",
@@ -1521,3 +1521,16 @@ def read(path, options: ReadOptions | None = None) -> SourceScene:
     gltf, buffers = load(path, options)
     converter = _Converter(gltf, buffers, str(path), options)
     return converter.run(Path(path).stem)
+
+
+def bind_transforms(inverse_binds: np.ndarray):
+    """The joints' bind transforms ``B = inverse(inverseBindMatrix)`` (format 1.1 sockets), or None.
+
+    The skinning matrices are ``jointWorld @ inverseBind`` in the scene root's space, so
+    ``jointWorld = M @ B``: the glTF node's world matrix that a socket returns
+    (spec/gltf-conversion.md, "Sockets"). None when an inverse bind matrix is singular.
+    """
+    inverse_binds = np.asarray(inverse_binds, dtype=np.float64)
+    if inverse_binds.size == 0 or np.any(np.abs(np.linalg.det(inverse_binds[:, :3, :3])) < 1e-12):
+        return None
+    return np.linalg.inv(inverse_binds)

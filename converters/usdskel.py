@@ -981,7 +981,8 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
                              key_times=np.asarray(codes, dtype=np.float64) / tcps)
         animations.append(SkinnedAnimation(
             name=skel_prim.GetName(), path=prim_paths[key], bones=work.joints, clips=(clip,),
-            meshes=tuple(b.mesh for b in bound), source=reader.file))
+            meshes=tuple(b.mesh for b in bound), source=reader.file,
+            bind_transforms=bind_transforms(UsdSkel.Skeleton(skel_prim), len(work.joints))))
         references.append((sampler, bound, skel_query))
         methods.append(tuple(b.method for b in bound))
 
@@ -1313,3 +1314,15 @@ def _raw_normals(reader: _Reader, mesh, bound: _Bound, time) -> Optional[np.ndar
     reader.warnings[:] = saved
     return None if normals is None else np.asarray(normals, dtype=np.float32)
 
+def bind_transforms(skeleton, joint_count: int):
+    """The joints' bind transforms in animation space (format 1.1 sockets), or None.
+
+    The skinning matrices are ``inverse(bind_j) * jointSkel_j * W_skel`` (row vectors), so the
+    joint's world transform ``jointSkel_j * W_skel`` (UsdSkel's ``ComputeJointWorldTransforms``) is
+    ``bind_j * M_j``: in column-vector form ``J = M B`` with ``B = bind_j`` transposed
+    (spec/usd-conversion.md, "Sockets").
+    """
+    value = skeleton.GetBindTransformsAttr().Get()
+    if value is None or len(value) != joint_count:
+        return None
+    return np.transpose(np.array(value, dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1)).copy()
