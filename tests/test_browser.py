@@ -83,7 +83,9 @@ def reference_instance(asset, instance: int, t: float):
             one = dataclasses.replace(crowd, **{field: None if getattr(crowd, field) is None
                                                  else getattr(crowd, field)[instance:instance + 1]
                                                  for field in ("positions", "orientations", "scales", "clip",
-                                                               "time_offset", "playback_rate")})
+                                                               "time_offset", "playback_rate", "fade_clip",
+                                                               "fade_time_offset", "fade_playback_rate",
+                                                               "fade_weight")})
             vb = asset.animations[animation]
             results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
             return (np.concatenate([p[0] for p, _ in results]),
@@ -187,6 +189,39 @@ def test_probe_per_instance_clip_offset_rate(browser, bar_crowd):
     for position_error, normal_error in run_probes(browser, bar_crowd, probes):
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
+
+
+def test_probe_crossfade_from_the_plain_files(browser, bar_crowd):
+    """A crossfading crowd (format 1.1 fade primvars) through `vbusd view`'s plain files: each
+    instance blended with its own fade clip, offset, rate and weight, as the numpy decoder does.
+    The crowd is made in memory and handed to the server as the plain files build_scene makes."""
+    from vbusd.web.scene import build_scene, scene_json
+
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count, clips = crowd.instance_count, len(asset.animations[0].clips)
+    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
+                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
+                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
+                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
+    asset = dataclasses.replace(asset, crowds=(faded,))
+    assert faded.crossfades
+    scene, data = build_scene(asset)
+    with ViewerServer(bar_crowd) as server:
+        server.generated = {"/scene/scene.json": scene_json(scene), "/scene/scene.bin": data}
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            assert page.error == "", page.error
+            for instance in range(5):
+                position_error, normal_error = check_probe(page, asset, instance, 0.83)
+                assert position_error <= POSITION_TOLERANCE, instance
+                assert normal_error <= NORMAL_TOLERANCE, instance
+            # The fade matters: the same instances without it are elsewhere.
+            unfaded = dataclasses.replace(asset, crowds=(crowd,))
+            assert check_probe(page, unfaded, 1, 0.83)[0] > 1e-3
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
 
 
 def test_frustum_culling_bounds_cover_every_pose(browser, bar_crowd):

@@ -6,7 +6,8 @@ byte ranges ("views") of one little-endian binary buffer (``scene.bin``) holding
 texels exactly as stored (float16 bits, float32 or unorm16 integers; scanline 0 first) and the
 layout metadata of the texture (the sidecar's dict), per bound mesh the rest points, normals,
 triangles and bone indices and weights, and per crowd the instances' placement, clip, time offset
-and playback rate. docs/engines.md ("Plain files") documents the format.
+and playback rate (and, for a crossfading crowd of format 1.1, the fade clip, offset, rate and
+weight). docs/engines.md ("Plain files") documents the format.
 
 Polygons are split into triangle fans. Meshes with face-varying normals are unwelded (one vertex per
 face-vertex); ``pointIndex`` then maps each vertex back to its point, so the runtime's probe can
@@ -99,6 +100,15 @@ def _mesh(mesh: BoundMesh, buffer: _Buffer) -> dict:
     return description
 
 
+def _fade(crowd, buffer: _Buffer) -> dict:
+    """A crossfading crowd's fade arrays (format 1.1, defaults filled in), or nulls without crossfade."""
+    if not crowd.crossfades:
+        return {"fadeClip": None, "fadeTimeOffset": None, "fadePlaybackRate": None, "fadeWeight": None}
+    clip, offset, rate, weight = crowd.fade_arrays()
+    return {"fadeClip": buffer.add(clip, "i4"), "fadeTimeOffset": buffer.add(offset, "f4"),
+            "fadePlaybackRate": buffer.add(rate, "f4"), "fadeWeight": buffer.add(weight, "f4")}
+
+
 def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> tuple[dict, bytes]:
     """The viewer's description of ``asset`` and its binary buffer.
 
@@ -133,6 +143,7 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
             "clip": buffer.add(crowd.clip, "i4"),
             "timeOffset": buffer.add(crowd.time_offset, "f4"),
             "playbackRate": buffer.add(crowd.playback_rate, "f4"),
+            **_fade(crowd, buffer),
         })
     scene = {
         "format": SCENE_FORMAT,

@@ -175,10 +175,11 @@ export class VirtualBonesCrowd extends Group {
 
 /**
  * Instance data from placement arrays: positions (3 N), orientations (4 N, quaternions x y z w),
- * optional scales (3 N), clip, timeOffset and playbackRate; the matrix is T R S, as the point
+ * optional scales (3 N), clip, timeOffset and playbackRate, and optionally `fade` ({fadeClip,
+ * fadeTimeOffset, fadePlaybackRate, fadeWeight}, format 1.1); the matrix is T R S, as the point
  * instancer's (scale, then orientation, then position).
  */
-export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate }) {
+export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null }) {
   const count = positions.length / 3;
   const matrices = new Float32Array(16 * count);
   const m = new Matrix4();
@@ -191,7 +192,7 @@ export function instancesFromPlacement({ positions, orientations, scales = null,
     if (scales) s.fromArray(scales, 3 * i);
     m.compose(p, q, s).toArray(matrices, 16 * i);
   }
-  return { count, matrices, clip, timeOffset, playbackRate };
+  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}) };
 }
 
 /** One instance at the origin playing clip `clip` from its start at rate 1 (a single character). */

@@ -67,6 +67,12 @@ export function parsePlainScene(scene, buffer) {
         clip: view(buffer, crowd.clip, Int32Array, `${at}.clip`),
         timeOffset: view(buffer, crowd.timeOffset, Float32Array, `${at}.timeOffset`),
         playbackRate: view(buffer, crowd.playbackRate, Float32Array, `${at}.playbackRate`),
+        fade: crowd.fadeWeight ? {  // format 1.1 crossfade
+          fadeClip: view(buffer, crowd.fadeClip, Int32Array, `${at}.fadeClip`),
+          fadeTimeOffset: view(buffer, crowd.fadeTimeOffset, Float32Array, `${at}.fadeTimeOffset`),
+          fadePlaybackRate: view(buffer, crowd.fadePlaybackRate, Float32Array, `${at}.fadePlaybackRate`),
+          fadeWeight: view(buffer, crowd.fadeWeight, Float32Array, `${at}.fadeWeight`),
+        } : null,
       }),
     };
   });
