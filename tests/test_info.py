@@ -157,10 +157,10 @@ def test_usd_asset_with_two_animations(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("attribute, change, code", [
-    ("vb:verticalPadding", None, "usd.missing"),  # left to the schema's fallback: not authored
-    ("vb:boneCount", "uniform string vb:boneCount = \"eighteen\"", "usd.type"),
-    ("vb:clipRowsPerSecond", "uniform double[] vb:clipRowsPerSecond = [nan]", "usd.clips"),
-    ("vb:textureWidth", "uniform int vb:textureWidth = 32", "usd.layout"),
+    ("vb:verticalPadding", None, "prim.attribute.missing"),  # left to the schema's fallback: not authored
+    ("vb:boneCount", "uniform string vb:boneCount = \"eighteen\"", "prim.attribute.missing"),
+    ("vb:clipRowsPerSecond", "uniform double[] vb:clipRowsPerSecond = [nan]", "clip.rate"),
+    ("vb:textureWidth", "uniform int vb:textureWidth = 32", "layout.width"),
 ])
 def test_usd_attributes_are_checked_as_the_reader_checks_them(tmp_path, capsys, attribute, change, code):
     # Spec 13: every attribute authored with its schema type, sizes derived from the layout,
@@ -209,7 +209,7 @@ def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
     assert main(["info", str(broken)]) == 2
     err = capsys.readouterr().err
     # USD's own place of the parse error (line 3: the file ends inside the prim) is the location.
-    assert err.startswith(f"vbusd: {broken}: line 3 column ") and ": usd.syntax: " in err
+    assert err.startswith(f"vbusd: {broken}: line 3 column ") and ": usd.open: " in err
     assert err.count("\n") == 1 and "Traceback" not in err
     # A named pipe is refused before any read (reading it would block forever).
     import os
@@ -251,7 +251,7 @@ def test_texture_path_leaving_the_folder_is_refused(tmp_path, capsys, authored, 
     assert main(["info", str(usd)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
-    assert err.startswith(f"vbusd: {usd}: /StadiumCrowd/Cheer.vb:texture: path.unsafe: ") and why in err
+    assert err.startswith(f"vbusd: {usd}: /StadiumCrowd/Cheer.vb:texture: texture.outside: ") and why in err
     if not authored.startswith("https"):
         # Allowed on request; the layout is then printed as usual.
         assert main(["info", str(usd), "--allow-outside-paths", "--format", "json"]) == 0
@@ -268,7 +268,7 @@ def test_sublayer_outside_the_folder_is_refused(tmp_path, capsys):
     usd.write_text('#usda 1.0\n(\n    subLayers = [@../outside.usda@]\n)\n')
     assert main(["info", str(usd)]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "path.unsafe" in err and "outside.usda" in err
+    assert err.count("\n") == 1 and "asset.outside" in err and "outside.usda" in err
 
 
 def test_subprocess_json(tmp_path):

@@ -236,6 +236,7 @@ def test_ktx_parse_and_ktx2loader_read_vbusd_files_bit_for_bit(tmp_path, texel_f
     assert loaded["type"] == {"float16": constants["HalfFloatType"], "float32": constants["FloatType"],
                               "unorm16": constants["UnsignedShortType"]}[texel_format]
     assert loaded["format"] == constants["RGBAFormat"]
+    assert loaded["normalized"] is (texel_format == "unorm16")   # RGBA16 normalized, EXT_texture_norm16
     assert loaded["flipY"] is False and loaded["mipmapCount"] == 1 and loaded["generateMipmaps"] is False
     assert loaded["minFilter"] == loaded["magFilter"] == constants["NearestFilter"]
     assert loaded["colorSpace"] in (constants["NoColorSpace"], constants["LinearSRGBColorSpace"])

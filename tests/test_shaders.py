@@ -636,8 +636,11 @@ float4 main(float3 position : POSITION, float3 normal : NORMAL, float4 indices :
 def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     out = tmp_path / "skin.glsl"
     out.write_text("old")
+    # An existing file is replaced only with --force (as convert and decode do).
+    assert main(["shader", "--lang", "glsl", "-o", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err and out.read_text() == "old"
     assert main(["shader", "--lang", "glsl", "--encoding", "dualQuat", "--texel-format", "unorm16",
-                 "--max-influences", "8", "-o", str(out)]) == 0
+                 "--max-influences", "8", "-o", str(out), "--force"]) == 0
     text = out.read_text()
     assert "#define VB_MAX_INFLUENCES 8" in text and "vb_rangeMin" in text and "vbRotate" in text
     assert "void main()" in text
@@ -648,13 +651,15 @@ def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
            ("--texel-format", "rgba8"): "--texel-format", ("--max-influences", "0"): "--max-influences",
            ("--max-influences", "9"): "--max-influences", ("--max-influences", "four"): "--max-influences",
            ("--max-clips", "0"): "--max-clips", ("--max-clips", "2.5"): "--max-clips",
-           ("-o", str(tmp_path)): str(tmp_path), ("-o", str(tmp_path / "missing" / "x.glsl")): "missing"}
+           ("-o", str(tmp_path)): str(tmp_path)}
     for args, named in bad.items():
         assert main(["shader", *args]) == 2, args
         captured = capsys.readouterr()
         lines = captured.err.strip().splitlines()
         assert len(lines) == 1 and named in lines[0] and not captured.out, (args, captured)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["skin.glsl"]  # no temporary left behind
+    nested = tmp_path / "missing" / "x.glsl"  # folders are created, as convert's -o does
+    assert main(["shader", "-o", str(nested)]) == 0 and "void main()" in nested.read_text()
 
 
 def test_shader_command_as_a_process(tmp_path):

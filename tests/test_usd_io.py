@@ -8,6 +8,7 @@ with Gf.Rotation; the write transaction, path safety, prim/texture disagreement 
 from __future__ import annotations
 
 import math
+import hashlib
 import re
 from pathlib import Path
 
@@ -340,15 +341,27 @@ def test_failed_usd_export_leaves_nothing(tmp_path, monkeypatch):
     asset = make_asset(rng)
     real_build = usd_io.build_stage
 
-    class NoExport:
+    class NoExport:  # the real stage, except that its layer's Export fails (returns False)
         def __init__(self, stage):
             self.stage = stage
 
+        def __getattr__(self, name):
+            return getattr(self.stage, name)
+
         def GetRootLayer(self):
             class Layer:
+                def __init__(self, real):
+                    object.__setattr__(self, "real", real)
+
+                def __getattr__(self, name):
+                    return getattr(self.real, name)
+
+                def __setattr__(self, name, value):
+                    setattr(self.real, name, value)
+
                 def Export(self, path):
                     return False
-            return Layer()
+            return Layer(self.stage.GetRootLayer())
 
     monkeypatch.setattr(usd_io, "build_stage", lambda *a: NoExport(real_build(*a)))
     with pytest.raises(OSError):
@@ -425,7 +438,7 @@ def test_texture_path_escape_is_refused(written):
     (written.parent.parent / "x.exr").write_bytes((written.parent / "crowd.Anim.exr").read_bytes())
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "path.unsafe"
+    assert caught.value.code == "texture.outside"  # the code vbusd validate reports for it
     assert caught.value.location == "/VirtualBones/Fan/Anim.vb:texture"
     assert caught.value.file == str(written)
     assert caught.value.message.endswith("(use --allow-outside-paths to allow it)")
@@ -440,7 +453,7 @@ def test_absolute_texture_path_is_refused(written):
     _edit(written, "@./crowd.Anim.exr@", f"@{absolute}@")
     with pytest.raises(InputError, match="absolute") as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "path.unsafe" and "--allow-outside-paths" in caught.value.message
+    assert caught.value.code == "texture.outside" and "--allow-outside-paths" in caught.value.message
     assert usd_io.read_asset(written, allow_outside_paths=True).animations[0].texture == str(absolute)
 
 
@@ -450,18 +463,20 @@ def test_sublayer_outside_the_folder_is_refused(written):
     _edit(written, "#usda 1.0\n(\n", "#usda 1.0\n(\n    subLayers = [@../outside.usda@]\n")
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "path.unsafe" and "outside.usda" in caught.value.location
+    assert caught.value.code == "asset.outside" and "outside.usda" in caught.value.location
+    assert caught.value.file == str(written)
 
 
-@pytest.mark.parametrize("old, new, attribute", [
-    ("vb:clipRowsPerSecond = [", "vb:clipRowsPerSecond = [99.25, ", "vb:clipRowsPerSecond"),
-    ('vb:encoding = "crossMatrix"', 'vb:encoding = "affineMatrix"', "vb:encoding"),
-    ('vb:bones = ["Root/b0"', 'vb:bones = ["Root/renamed"', "vb:bones"),
-    ("vb:clipLoops = [1, 0]", "vb:clipLoops = [0, 0]", "vb:clipLoops"),
-    ('vb:clipNames = ["clip0"', 'vb:clipNames = ["other"', "vb:clipNames"),
-    ('vb:contentDigest = "sha256:', 'vb:contentDigest = "sha256:0', "vb:contentDigest"),
+@pytest.mark.parametrize("old, new, attribute, pointer", [
+    ("vb:clipRowsPerSecond = [", "vb:clipRowsPerSecond = [99.25, ", "vb:clipRowsPerSecond",
+     "/clips/0/rowsPerSecond"),
+    ('vb:encoding = "crossMatrix"', 'vb:encoding = "affineMatrix"', "vb:encoding", "/encoding"),
+    ('vb:bones = ["Root/b0"', 'vb:bones = ["Root/renamed"', "vb:bones", "/bones"),
+    ("vb:clipLoops = [1, 0]", "vb:clipLoops = [0, 0]", "vb:clipLoops", "/clips/0/loop"),
+    ('vb:clipNames = ["clip0"', 'vb:clipNames = ["other"', "vb:clipNames", "/clips/0/name"),
+    ('vb:contentDigest = "sha256:', 'vb:contentDigest = "sha256:0', "vb:contentDigest", "/contentDigest"),
 ])
-def test_texture_metadata_must_agree_with_the_prim(written, old, new, attribute):
+def test_texture_metadata_must_agree_with_the_prim(written, old, new, attribute, pointer):
     if attribute == "vb:clipRowsPerSecond":  # replace the first rate, keep the count
         text = written.read_text()
         text = re.sub(r"vb:clipRowsPerSecond = \[[^,\]]+", "vb:clipRowsPerSecond = [99.25", text)
@@ -470,9 +485,10 @@ def test_texture_metadata_must_agree_with_the_prim(written, old, new, attribute)
         _edit(written, old, new)
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "usd.textureMismatch"
-    assert caught.value.location == f"/VirtualBones/Fan/Anim.{attribute}"
-    assert "crowd.Anim.exr" in _one_line(caught.value)
+    # Located where vbusd validate locates it: the metadata value that disagrees, naming the prim's.
+    assert caught.value.code == "metadata.mismatch"
+    assert (caught.value.file, caught.value.location) == ("crowd.Anim.exr", pointer)
+    assert f"/VirtualBones/Fan/Anim.{attribute}" in _one_line(caught.value)
 
 
 def test_unorm_ranges_must_agree(tmp_path):
@@ -483,21 +499,23 @@ def test_unorm_ranges_must_agree(tmp_path):
     path.write_text(text)
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(path)
-    assert caught.value.location == "/VirtualBones/Fan/Anim.vb:unormRangeMax"
+    assert (caught.value.code, caught.value.location) == ("metadata.mismatch", "/unormRanges")
+    assert "vb:unormRangeMin" in caught.value.message
 
 
 def test_inconsistent_prim_sizes_are_refused(written):
     _edit(written, "vb:textureWidth = 16", "vb:textureWidth = 32")  # 5 bones x 3 -> 16
-    with pytest.raises(InputError, match="layout gives 16") as caught:
+    with pytest.raises(InputError, match="expected 16") as caught:
         usd_io.read_asset(written)
     assert caught.value.location == "/VirtualBones/Fan/Anim.vb:textureWidth"
+    assert caught.value.code == "layout.width"
 
 
 def test_syntax_error_is_an_input_error(written):
     written.write_text(written.read_text()[:-40])  # cut the closing braces
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "usd.syntax" and caught.value.file == str(written)
+    assert caught.value.code == "usd.open" and caught.value.file == str(written)
     _one_line(caught.value)
     # The place USD names (the file ends inside a prim: its last line) becomes the location.
     last_line = written.read_text().count("\n") + 1
@@ -534,7 +552,7 @@ def test_missing_required_attribute(written):
     with pytest.raises(InputError, match="vb:boneCount") as caught:
         usd_io.read_asset(written)
     assert caught.value.location == "/VirtualBones/Fan/Anim.vb:boneCount"
-    assert caught.value.code == "usd.missing"
+    assert caught.value.code == "prim.attribute.missing"
 
 
 def test_wrongly_typed_attribute(written):
@@ -542,7 +560,7 @@ def test_wrongly_typed_attribute(written):
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
     assert caught.value.location == "/VirtualBones/Fan/Anim.vb:boneCount"
-    assert caught.value.code == "usd.type"
+    assert caught.value.code == "prim.attribute.missing" and "must be int, found float" in caught.value.message
 
 
 def test_unknown_token_is_refused(written):
@@ -571,9 +589,10 @@ def test_bone_index_out_of_range(written):
     text = re.sub(r"primvars:vb:boneIndices = \[\d+", "primvars:vb:boneIndices = [99", written.read_text(),
                   count=1)
     written.write_text(text)
-    with pytest.raises(InputError, match=r"\[0, 5\)") as caught:
+    with pytest.raises(InputError, match=r"outside 0\.\.4; the first is 99 at vertex 0") as caught:
         usd_io.read_asset(written)
     assert caught.value.location == "/VirtualBones/Fan/Body.primvars:vb:boneIndices"
+    assert caught.value.code == "binding.indices.range"
 
 
 def _replace_first_array_value(path: Path, attribute: str, value) -> float:
@@ -585,12 +604,12 @@ def _replace_first_array_value(path: Path, attribute: str, value) -> float:
     return float(match.group(1))
 
 
-@pytest.mark.parametrize("value, why", [
-    ("nan", "must be finite and non-negative"),
-    ("-0.5", "must be finite and non-negative"),
-    ("+0.25", "sum to"),  # added to the first weight below
+@pytest.mark.parametrize("value, why, code", [
+    ("nan", "the first is nan at vertex 0, influence 0", "binding.weights.negative"),
+    ("-0.5", "the first is -0.5 at vertex 0, influence 0", "binding.weights.negative"),
+    ("+0.25", "not summing to 1 (tolerance 0.001); the first is vertex 0", "binding.weights.sum"),
 ])
-def test_bad_weights_are_refused(written, value, why):
+def test_bad_weights_are_refused(written, value, why, code):
     # Spec 14: weights finite, non-negative, summing to 1 within 1e-3 per point; decoders use them
     # as stored, so a reader must not pass them on.
     attribute = "primvars:vb:boneWeights"
@@ -601,8 +620,8 @@ def test_bad_weights_are_refused(written, value, why):
         _replace_first_array_value(written, attribute, value)
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
-    assert why in caught.value.message and caught.value.code == "usd.primvar"
-    assert caught.value.location == f"/VirtualBones/Fan/Body.{attribute}[0]"
+    assert why in caught.value.message and caught.value.code == code
+    assert caught.value.location == f"/VirtualBones/Fan/Body.{attribute}"
     _one_line(caught.value)
 
 
@@ -615,9 +634,10 @@ def test_weights_within_the_tolerance_are_accepted(written):
 
 def test_non_finite_point_is_refused(written):
     _replace_first_array_value(written, "point3f[] points", "inf")
-    with pytest.raises(InputError, match="not finite") as caught:
+    with pytest.raises(InputError, match="NaN or infinite; the first is point 0 = ") as caught:
         usd_io.read_asset(written)
-    assert caught.value.location == "/VirtualBones/Fan/Body.points[0]"
+    assert caught.value.location == "/VirtualBones/Fan/Body.points"
+    assert caught.value.code == "binding.points.nonFinite"
 
 
 def test_missing_texture_and_file(written):
@@ -685,6 +705,7 @@ def Xform "Rig"
         uniform double[] vb:clipRowsPerSecond = [30]
         uniform bool[] vb:clipLoops = [1]
         uniform double[] vb:clipStartTimes = [0]
+        uniform string vb:contentDigest = "DIGEST"
     }
 
     def Mesh "Tri" (
@@ -735,7 +756,9 @@ def hand_written(tmp_path):
                       clips=(Clip("wave", 0, 3, 30.0, True, 0.0),))
     (tmp_path / "textures").mkdir()
     write_texture(tmp_path / "textures" / "rig.exr", vb)
-    (tmp_path / "rig.usda").write_text(HAND_WRITTEN)
+    # Spec 11.4: SHA-256 of the texels, little-endian, C order, padding included (by hand here).
+    digest = "sha256:" + hashlib.sha256(texels.astype("<f2").tobytes()).hexdigest()
+    (tmp_path / "rig.usda").write_text(HAND_WRITTEN.replace("DIGEST", digest))
     return tmp_path / "rig.usda", texels
 
 
@@ -793,7 +816,7 @@ def test_composition_error_is_one_line_and_usd_prints_nothing(written, capfd):
     shot.write_text('#usda 1.0\ndef "A" (references = @./crowd.usda@</Nope>)\n{\n}\n')
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(shot)
-    assert caught.value.code == "usd.composition" and "</Nope>" in _one_line(caught.value)
+    assert caught.value.code == "asset.composition" and "</Nope>" in _one_line(caught.value)
     assert capfd.readouterr() == ("", "")
 
 
@@ -809,10 +832,10 @@ def test_pipes_as_layer_or_sublayer_are_refused_without_blocking(written):
     signal.signal(signal.SIGALRM, lambda *_: pytest.fail("reading a named pipe blocked"))
     signal.alarm(10)
     try:
-        for path, location in ((pipe, "file"), (shot, f"{shot} dependency @./pipe.usda@")):
+        for path, file, location in ((pipe, str(pipe), None), (shot, str(shot), "@./pipe.usda@")):
             with pytest.raises(InputError) as caught:
                 usd_io.read_asset(path)
-            assert (caught.value.code, caught.value.location) == ("file.kind", location)
+            assert (caught.value.code, caught.value.file, caught.value.location) == ("file.kind", file, location)
             assert "not a regular file" in _one_line(caught.value)
     finally:
         signal.alarm(0)

@@ -47,18 +47,18 @@ def test_json_report(capsys):
 
 
 def test_only_ignore_and_max_issues(capsys):
-    asset = FIXTURES / "format.version" / "asset.usda"  # 1 format.version + 2 metadata.mismatch + info
+    asset = FIXTURES / "prim.bones.count" / "asset.usda"  # 1 prim.bones.count + 2 metadata.mismatch + info
     assert main(["validate", str(asset), "--format", "json", "--only", "metadata"]) == 1
     report = json.loads(capsys.readouterr().out)
     assert {f["code"] for f in report["findings"]} == {"metadata.mismatch"}
     assert report["only"] == ["metadata"]
-    assert main(["validate", str(asset), "--format", "json", "--ignore", "format.version,metadata"]) == 0
+    assert main(["validate", str(asset), "--format", "json", "--ignore", "prim.bones,metadata"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["counts"] == {"error": 0, "warning": 0, "info": 1, "hint": 0}
     assert main(["validate", str(asset), "--format", "json", "--max-issues", "1"]) == 1
     report = json.loads(capsys.readouterr().out)
     assert report["truncated"] is True and len(report["findings"]) == 1
-    assert report["counts"]["error"] == 3 and report["findings"][0]["code"] == "format.version"
+    assert report["counts"]["error"] == 3 and report["findings"][0]["code"] == "prim.bones.count"
 
 
 def test_unknown_code_filter_is_a_usage_error(capsys):

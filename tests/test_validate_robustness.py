@@ -211,7 +211,7 @@ def test_silenced_streams_are_restored_after_overlapping_threads():
     import threading
     import time
 
-    from vbusd.validators.rawtexture import quiet_stderr
+    from vbusd.io.capture import captured_output as quiet_stderr
 
     stdout, stderr = sys.stdout, sys.stderr
     fds = [(os.fstat(fd).st_dev, os.fstat(fd).st_ino) for fd in (1, 2)]
@@ -284,7 +284,7 @@ def test_more_malformed_inputs(tmp_path, capsys):
         "sublayer_cycle": (tmp_path / "cycle_a.usda", 1, "asset.composition"),
         "self_reference": (tmp_path / "self_reference.usda", 1, "asset.composition"),
         "missing_reference": (tmp_path / "missing_reference.usda", 1, "asset.composition"),
-        "sublayer_outside": (tmp_path / "inner" / "escape.usda", 0, "asset.outside"),
+        "sublayer_outside": (tmp_path / "inner" / "escape.usda", 1, "asset.outside"),  # an error, as for info
         "usdz_texture_truncated": (package, 1, "texture.unreadable"),
         "texture_sidecar_disagrees": (disagree / EXR, 1, "metadata.sidecarMismatch"),
     }
@@ -326,7 +326,7 @@ def test_interlaced_png_is_refused_like_vbusds_reader_does(tmp_path, capsys):
     assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
     findings = json.loads(capsys.readouterr().out)["findings"]
     assert [(f["code"], f["location"]) for f in findings] == [
-        ("texture.unreadable", {"kind": "file", "file": PNG, "byteOffset": 8})]
+        ("texture.unreadable", {"kind": "file", "file": PNG, "byteOffset": 8, "part": "IHDR"})]
 
 
 def test_subsampled_exr_channel_is_named(tmp_path, capsys):
@@ -393,21 +393,25 @@ def test_metadata_only_counts_where_the_spec_puts_it(tmp_path, capsys, case):
     assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
     findings = json.loads(capsys.readouterr().out)["findings"]
     missing = [f for f in findings if f["code"] == "metadata.missing"]
-    assert [f["location"] for f in missing] == [{"kind": "file", "file": name}]
+    # "part" names the PNG chunk where one holds the wrong keyword; an EXR header has none.
+    assert [{k: v for k, v in f["location"].items() if k != "part"} for f in missing] == [
+        {"kind": "file", "file": name}]
     assert "vbusd.layou" in missing[0]["message"]  # names what it found instead
 
 
 def test_undecodable_metadata_chunk_is_named(tmp_path, capsys):
     """An iTXt vbusd.layout chunk whose text is not UTF-8 (vbusd's reader refuses it): the finding
-    says the chunk is there but cannot be decoded, not merely that metadata is missing."""
+    says the chunk is there but cannot be decoded (metadata.json: not UTF-8 JSON), not merely that
+    metadata is missing."""
     folder = _copy(PNG_FIXTURE, tmp_path / "bad_utf8")
     data = (folder / PNG).read_bytes()
     (folder / PNG).write_bytes(_rewrite_png_chunk(data, b"iTXt", lambda kind, body: (kind, body + b"\xff\xfe")))
     (folder / (PNG + ".json")).unlink()
     assert main(["validate", str(folder / "asset.usda"), "--format", "json"]) == 1
     findings = json.loads(capsys.readouterr().out)["findings"]
-    [missing] = [f for f in findings if f["code"] == "metadata.missing"]
-    assert "cannot be decoded" in missing["message"]
+    [broken] = [f for f in findings if f["code"] == "metadata.json"]
+    assert "cannot be decoded" in broken["message"] and broken["location"]["file"] == PNG
+    assert "metadata.missing" not in {f["code"] for f in findings}
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
@@ -418,5 +422,5 @@ def test_a_named_pipe_sublayer_is_refused_not_waited_on(tmp_path):
     run = subprocess.run([sys.executable, "-m", "vbusd", "validate", str(tmp_path / "asset.usda")],
                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert run.returncode == 2
-    assert "file.unreadable" in run.stderr and "fifo.usda" in run.stderr
+    assert "file.kind" in run.stderr and "fifo.usda" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1 and "Traceback" not in run.stderr

@@ -91,17 +91,20 @@ def guarded(check, *args, location=None):
 
 
 def _validate_texture(path: str) -> list:
-    from vbusd.validators.checks_animation import check_texture_only
-    from vbusd.validators.rawtexture import read_metadata_file
+    """A texture or sidecar given on its own: its own failure to open is exit 2, the rest findings."""
+    from vbusd.format.diagnostics import Diagnostics, location_parts
+    from vbusd.io.textures import read_sidecar_document
+    from vbusd.validators.checks_texture import check_texture_only
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
-        # A sidecar given on its own: it must at least be a JSON object; its texture may be gone
+        # A sidecar given on its own must at least be a JSON object; its texture may be gone
         # (reported as a finding, the sidecar itself was readable). Broken JSON is raised below,
         # from the finding the checks make of it.
         fatal = ("metadata.json",)
-        value, problems = read_metadata_file(path)
-        if not problems and not isinstance(value, dict):
+        diagnostics = Diagnostics(path)
+        value = read_sidecar_document(path, diagnostics)
+        if not diagnostics.findings and not isinstance(value, dict):
             raise InputError(f"layout metadata must be a JSON object, this is a JSON {type(value).__name__}",
                              file=path, location="/", code="metadata.json")
     findings = guarded(check_texture_only, path, location=FileLocation(path))
@@ -109,158 +112,84 @@ def _validate_texture(path: str) -> list:
     for item in findings:
         # Only the file given is "the asset": its own failure is exit 2; a broken sidecar beside a
         # readable texture, or broken metadata inside it, is a finding like it is from USD.
-        if item.code in fatal and os.path.normpath(str(getattr(item.location, "file", path))) == given:
-            location = item.location
-            where = None
-            if getattr(location, "byte_offset", None) is not None:
-                where = f"byte {location.byte_offset}"
-            raise InputError(item.message, file=str(getattr(location, "file", path)), location=where,
-                             code=item.code)
+        file, where = location_parts(item.location)
+        if item.code in fatal and os.path.normpath(str(file or path)) == given:
+            raise InputError(item.message, file=str(file or path), location=where, code=item.code)
     return findings
 
 
-def _refuse_special_dependencies(Sdf, layer, seen: set) -> None:
-    """Refuse sublayers, references and payloads that are pipes, devices or folders.
-
-    USD blocks forever reading a named pipe, so such a dependency must be refused before the stage
-    is composed; missing or outside-folder layers are left to the checks (they are findings).
-    """
-    if layer.identifier in seen:
-        return
-    seen.add(layer.identifier)
-    anchor = Path(layer.realPath).parent if layer.realPath else Path(".")
-    for dependency in sorted(layer.GetCompositionAssetDependencies()):
-        if not dependency or "://" in dependency or dependency.startswith("@"):
-            continue
-        target = Path(dependency) if Path(dependency).is_absolute() else anchor / dependency
-        if target.exists() and not target.is_file():
-            raise InputError(f"layer @{dependency}@ is not a regular file (a folder, pipe, device or "
-                             f"socket)", file=layer.realPath or layer.identifier, code="file.unreadable")
-        if target.is_file():
-            child = Sdf.Layer.FindOrOpen(str(target))
-            if child is not None:
-                _refuse_special_dependencies(Sdf, child, seen)
-
-
 def open_stage(path: str):
-    """Open a USD stage quietly.
+    """Open a USD stage as every vbusd command does (:func:`vbusd.io.usd_reader.open_stage`).
 
     Raises:
-        InputError: The file does not parse (USD's own message, condensed to one line).
+        InputError: The file cannot be opened (the code and message ``convert``, ``info`` and
+            ``decode`` give for it).
     """
-    import vbusd.io.usd_plugin as plugin
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.io.usd_reader import open_stage as open_usd_stage
 
-    plugin.register()
-    from pxr import Sdf, Tf, Usd
-
-    from vbusd.validators.rawtexture import quiet_stderr
-
-    try:
-        with quiet_stderr():
-            if Sdf.FileFormat.FindByExtension(Path(path).suffix.lstrip(".").lower() or "x") is None:
-                raise InputError("not a USD file (unknown extension)", file=path, code="usd.open")
-            layer = Sdf.Layer.FindOrOpen(path)
-            if layer is None:
-                raise InputError("USD cannot open the file", file=path, code="usd.open")
-            _refuse_special_dependencies(Sdf, layer, set())
-            stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
-    except Tf.ErrorException as error:
-        raise InputError(f"USD cannot open the file: {_usd_message(error)}", file=path,
-                         code="usd.open") from None
-    except InputError:
-        raise
-    except Exception as error:
-        raise InputError(f"USD cannot open the file: {' '.join(str(error).split())[:300]}", file=path,
-                         code="usd.open") from None
+    diagnostics = Diagnostics(path)
+    stage = open_usd_stage(path, diagnostics)
     if stage is None:
-        raise InputError("USD cannot open the file", file=path, code="usd.open")
+        diagnostics.raise_first_error()
     return stage
 
 
-def _usd_message(error) -> str:
-    text = " ".join(str(error).split())
-    # Keep the parser's own complaint ("path:line:col: Expected ...") and drop C++ function names.
-    for part in text.split("Error in "):
-        if ":" in part and ("Expected" in part or "parse" in part.lower() or "syntax" in part.lower()):
-            detail = part.split(" : ", 1)[-1].strip(" '")
-            return detail[:300]
-    parts = [p.split(" : ", 1)[-1].strip(" '") for p in text.split("Error in ") if p.strip()]
-    return (parts[0] if parts else text)[:300]
-
-
 def _validate_usd(path: str) -> list:
-    stage = open_stage(path)
-    asset_dir = os.path.dirname(os.path.abspath(path))
-    return validate_stage(stage, asset_dir)
+    """The reader's findings (lenient), then the checks of every Virtual Bones prim."""
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.io.usd_reader import reading
+
+    diagnostics = Diagnostics(path)
+    with reading(path, diagnostics, outside_hint=None) as reader:
+        if reader.stage is None:  # cannot be opened at all: exit 2, the same line as other commands
+            diagnostics.raise_first_error()
+        checks = validate_stage(reader.stage, str(reader.folder), opened=True)
+        reader.report_usd_messages()  # what USD said while the checks read values
+    return diagnostics.findings + checks
 
 
-def _layers_outside(stage, asset_dir: str) -> list:
-    """``asset.outside``: sublayers, references and payloads must resolve inside the asset's folder
-    (the rule ``vb:texture`` follows; vbusd's reader refuses them otherwise)."""
-    from vbusd.format.errors import InputError
-    from vbusd.io.files import resolve_inside
-
-    root = Path(asset_dir).resolve()
-    out = []
-    for layer in stage.GetUsedLayers():
-        if layer.anonymous or not layer.realPath or "[" in layer.realPath:
-            continue  # session layers; layers inside a .usdz resolve inside the package
-        anchor = Path(layer.realPath).resolve().parent
-        for dependency in sorted(layer.GetCompositionAssetDependencies()):
-            if not dependency:
-                continue
-            authored = dependency
-            if anchor != root and not dependency.replace("\\", "/").startswith("/"):
-                authored = f"{os.path.relpath(anchor, root)}/{dependency}".replace(os.sep, "/")
-            try:
-                resolve_inside(root, authored)
-            except InputError as error:
-                why = error.message.split(": ", 1)[-1]
-                out.append(finding("asset.outside", f"layer {os.path.basename(layer.realPath)} uses "
-                                   f"@{dependency}@: {why}", UsdSite("/")))
-    return out
-
-
-def validate_stage(stage, asset_dir: str) -> list:
+def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
     """Findings of every Virtual Bones prim of an open stage.
 
     Args:
         stage: A ``Usd.Stage``.
         asset_dir: The asset's folder (textures must lie inside it).
+        opened: The stage was opened by vbusd's reader, which reported its composition errors and
+            layers outside the folder already.
     """
     from pxr import Usd
 
+    from vbusd.format import names
     from vbusd.validators.checks_animation import check_animation_prim
     from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
-    from vbusd.validators.declared import ANIMATION_TYPE
-    from vbusd.validators.rawtexture import quiet_stderr
 
     findings = []
+    if not opened:
+        # A missing or unreadable sublayer, reference or payload, or a cycle of layers: USD composes
+        # what it can and only warns, but readers (vbusd's included) refuse such a stage.
+        for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
+            site = getattr(error, "rootSite", None)
+            findings.append(finding("asset.composition", " ".join(str(error).split())[:300],
+                                    UsdSite(str(site.path) if site is not None else "/")))
     animations = 0
-    # A missing or unreadable sublayer, reference or payload, or a cycle of layers: USD composes
-    # what it can and only warns, but readers (vbusd's included) refuse such a stage.
-    for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
-        site = getattr(error, "rootSite", None)
-        path = str(site.path) if site is not None else "/"
-        findings.append(finding("asset.composition", " ".join(str(error).split())[:300], UsdSite(path)))
-    findings += _layers_outside(stage, asset_dir)
-    with quiet_stderr():
-        iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
-        for prim in iterator:
-            site = UsdSite(str(prim.GetPath()))
-            if prim.GetTypeName() == "PointInstancer":
-                # Prototypes below an instancer reference the bound meshes: checking them again
-                # would repeat every binding finding (readers skip them the same way).
-                iterator.PruneChildren()
-            if prim.GetTypeName() == ANIMATION_TYPE:
-                animations += 1
-                findings += guarded(check_animation_prim, prim, asset_dir, location=site)
-            elif has_instancing(prim):
-                findings += guarded(check_instancer_prim, prim, location=site)
-            elif has_binding(prim):
-                findings += guarded(check_binding_prim, prim, location=site)
+    iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
+    for prim in iterator:
+        site = UsdSite(str(prim.GetPath()))
+        if prim.GetTypeName() == "PointInstancer":
+            # Prototypes below an instancer reference the bound meshes: checking them again
+            # would repeat every binding finding (readers skip them the same way).
+            iterator.PruneChildren()
+        if prim.GetTypeName() == names.ANIMATION_TYPE:
+            animations += 1
+            findings += guarded(check_animation_prim, prim, asset_dir, location=site)
+        elif has_instancing(prim):
+            findings += guarded(check_instancer_prim, prim, location=site)
+        elif has_binding(prim):
+            findings += guarded(check_binding_prim, prim, location=site)
     if not animations:
+        # An error, as info and decode refuse such a file (the reader's own finding and message).
         root = stage.GetDefaultPrim()
-        findings.insert(0, finding("asset.empty", "the stage holds no VirtualBonesAnimation prim",
+        findings.insert(0, finding("asset.empty", f"the stage holds no {names.ANIMATION_TYPE} prim",
                                    UsdSite(str(root.GetPath()) if root else "/")))
     return findings

@@ -277,6 +277,12 @@ def _check_normals(prim, path):
         what = "points" if interpolation == "vertex" else "face-vertices"
         out.append(finding("binding.normals.count", f"{name} holds {count} {interpolation} normals for "
                            f"{expected[interpolation]} {what}", UsdSite(path, name)))
+    nonfinite = ~np.all(np.isfinite(normals), axis=-1)
+    if nonfinite.any():
+        first = int(np.argmax(nonfinite))
+        return out + [finding("binding.normals.nonFinite", f"{int(nonfinite.sum())} rest normal(s) are NaN or "
+                              f"infinite; the first is normal {first} = {normals[first].tolist()}",
+                              UsdSite(path, name))]
     length = np.linalg.norm(normals, axis=-1)
     bad = ~(np.abs(length - 1.0) <= NORMAL_LENGTH_TOLERANCE)
     if not bad.any():

@@ -23,6 +23,8 @@ import enum
 import sys
 from dataclasses import dataclass
 
+__all__ = ["Severity", "Code", "REGISTRY", "FINDINGS", "get", "matches", "markdown"]
+
 
 class Severity(str, enum.Enum):
     """How serious a finding is. Only ``error`` makes ``vbusd validate`` exit with status 1."""
@@ -68,15 +70,16 @@ class Code:
 E, W, I, H = Severity.ERROR, Severity.WARNING, Severity.INFO, Severity.HINT
 _VB = "virtual-bones.md"
 
-_CODES = (
+_FINDINGS = (
     # asset
-    Code("asset.empty", W, "The stage holds no VirtualBonesAnimation prim.", f"{_VB}#usd-schema", "usd"),
+    Code("asset.empty", E, "The stage holds no VirtualBonesAnimation prim (info and decode cannot read "
+         "it either).", f"{_VB}#usd-schema", "usd"),
     Code("asset.internal", E, "A check failed unexpectedly; the rest of the report is still valid.",
          "validation.md#robustness", "file"),
     Code("asset.composition", E, "USD reports a composition error: a sublayer, reference or payload "
          "cannot be found or read, or layers include each other in a cycle.", f"{_VB}#usd-schema", "usd"),
-    Code("asset.outside", W, "A sublayer, reference or payload resolves outside the asset's folder or "
-         "is a remote URI.", "validation.md#asset-folder", "usd"),
+    Code("asset.outside", E, "A sublayer, reference or payload resolves outside the asset's folder or "
+         "is a remote URI (located at the layer that names it).", "validation.md#asset-folder", "file"),
     # format version
     Code("format.version", E, "Format version missing, not an integer, below 1 or newer than this "
          "validator reads.", f"{_VB}#versioning", "usd"),
@@ -198,6 +201,7 @@ _CODES = (
     Code("binding.points.nonFinite", E, "A rest point is NaN or infinite.", f"{_VB}#binding", "usd"),
     Code("binding.normals.count", E, "Rest normals are neither vertex nor faceVarying, or do not hold one "
          "normal per point (vertex) or per face-vertex (faceVarying).", f"{_VB}#binding", "usd"),
+    Code("binding.normals.nonFinite", E, "A rest normal is NaN or infinite.", f"{_VB}#binding", "usd"),
     Code("binding.normals.unit", W, "A rest normal is not unit length.", f"{_VB}#binding", "usd"),
     # instancers
     Code("instancer.animation", E, "vb:animation of a VirtualBonesInstancingAPI prim does not target "
@@ -210,6 +214,10 @@ _CODES = (
          f"{_VB}#instancing", "usd"),
     Code("instancer.nonFinite", E, "An instance's time offset or playback rate is NaN or infinite.",
          f"{_VB}#instancing", "usd"),
+)
+"""Codes ``vbusd validate`` reports about an asset: each has a golden fixture in tests/fixtures/validate."""
+
+_COMMAND_ERRORS = (
     # ---- errors a command stops on (exit 2): files, options, baking, decoding ----
     Code("file.missing", E, "The input file does not exist.", "validation.md#command", "file"),
     Code("file.kind", E, "The input is a folder, a named pipe, a device or a socket, not a regular file.",
@@ -263,6 +271,13 @@ _CODES = (
          f"{_VB}#usd-schema", "file"),
     Code("usd.validation", E, "This usd-core cannot register Python validators with UsdValidation.",
          "validation.md#usd-validation", "file"),
+    # USD reader
+    Code("usd.value", E, "USD cannot read an authored value (a corrupt crate file fails on the lazy read) or "
+         "the value reads back as another type than its declared one.", f"{_VB}#usd-schema", "usd"),
+    Code("usd.diagnostic", W, "USD itself warned while opening or reading the stage (its message, captured "
+         "instead of printed).", "validation.md#robustness", "usd"),
+    Code("usd.usdz", E, "A .usdz package given to a command that reads only .usda, .usdc and .usd "
+         "(info, decode, read_asset); unpack it first.", f"{_VB}#usd-schema", "file"),
     # command line
     Code("command.internal", E, "A command failed unexpectedly: a bug in vbusd, not a fault of the input; the "
          "line names the command and the input (please report it with both).", "validation.md#command", "file"),
@@ -427,6 +442,13 @@ _CODES = (
     Code("usdskel.skinning", E, "UsdSkel could not compute skinning transforms or skinned points at a "
          "time code.", "usd-conversion.md#accuracy", "usd"),
 )
+
+_CODES = _FINDINGS + _COMMAND_ERRORS
+
+FINDINGS = frozenset(c.code for c in _FINDINGS)
+"""The codes of findings about an asset's content (the first part of the registry); the others are
+errors a command stops on (files, options, containers, baking, writing), which readers also report
+to ``vbusd validate`` when a file cannot be read at all."""
 
 REGISTRY: dict[str, Code] = {c.code: c for c in _CODES}
 """Every code, by name, in the order of :data:`_CODES` (which groups them by area)."""

@@ -55,6 +55,9 @@ class JsonPointer:
 
     file: str
     pointer: str
+    within: str = ""
+    """Where the document sits inside ``file`` when it is embedded (``header/vbusd.layout``); shown
+    before the pointer in one-line errors, left out of the JSON form."""
 
     kind = "json"
 
@@ -115,6 +118,9 @@ class FileLocation:
 
     file: str
     byte_offset: Optional[int] = None
+    part: Optional[str] = None
+    """A named part of the file (``IHDR``, ``header/dataWindow``, ``line 3 column 8``, a layer's
+    ``@path@``), shown instead of the byte offset in one-line errors; ``part`` in the JSON form."""
 
     kind = "file"
 
@@ -126,6 +132,8 @@ class FileLocation:
         out = {"kind": "file", "file": self.file}
         if self.byte_offset is not None:
             out["byteOffset"] = self.byte_offset
+        if self.part is not None:
+            out["part"] = self.part
         return out
 
 
@@ -173,9 +181,11 @@ def finding(code: str, message: str, location: Location, severity: Optional[Seve
 def location_parts(location: Location) -> tuple:
     """``(file, location text)`` of a location, as a one-line error prints them."""
     if isinstance(location, FileLocation):
+        if location.part:
+            return location.file, location.part
         return location.file, (None if location.byte_offset is None else f"byte {location.byte_offset}")
     if isinstance(location, JsonPointer):
-        return location.file, (location.pointer or "/")
+        return location.file, (location.within + location.pointer) or "/"
     if isinstance(location, UsdSite):
         return None, str(location)
     return None, str(location)

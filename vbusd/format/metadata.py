@@ -9,29 +9,34 @@ This module converts between that dict and the model:
 
 * :func:`to_dict` builds the dict of a :class:`vbusd.format.model.VirtualBones`, computing its content
   digest;
-* :func:`from_dict` upgrades an older dict (:func:`upgrade`), validates it (JSON Schema, then the
-  cross-field checks a schema cannot express) and returns a :class:`LayoutInfo`;
+* :func:`parse_document` is the one parser of metadata text (embedded copies and sidecars alike);
+  :func:`check_document` checks a parsed document with the JSON Schema (jsonschema, draft 2020-12)
+  and then the relations between keys a schema cannot express, and returns a :class:`LayoutInfo`.
+  Both report into a :class:`vbusd.format.diagnostics.Diagnostics` list, so ``vbusd validate`` gets
+  every problem as a finding and strict readers the first as an error;
+* :func:`from_dict` (strict) upgrades an older dict (:func:`upgrade`) and checks it;
 * :func:`content_digest` is the SHA-256 of the texels that catches corrupted pixel data (EXR has no
   checksum of its own).
 
-Every problem is an :class:`vbusd.format.errors.InputError` whose location is a JSON pointer into the dict
-(optionally prefixed by where the dict came from, e.g. ``header/vbusd.layout``).
+Locations are JSON pointers into the document, with where the document sits in its file (e.g.
+``header/vbusd.layout``) shown before them in one-line errors.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import json
-import math
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
+from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer, to_error
 from vbusd.format.errors import InputError, VersionError
-from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Encoding, Layout, Padding, TexelFormat
+from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
 from vbusd.format.model import Clip, VirtualBones
 
 FORMAT_NAME = "vbusd.virtualBones"
@@ -42,12 +47,8 @@ SCHEMA_RESOURCE = "layout-metadata.schema.json"
 
 DIGEST_PREFIX = "sha256:"
 
-UpgradeFunction = Callable[[dict], dict]
-
-UPGRADES: dict[int, UpgradeFunction] = {}
-"""Upgrade functions by the version they upgrade *from*: ``UPGRADES[v]`` turns a version ``v`` dict
-into a version ``v + 1`` dict. Version 1 is the first version, so the table is empty; when version 2
-arrives, ``UPGRADES[1]`` is added here and readers keep reading version 1 files."""
+# One upgrade path for the metadata and the USD attributes (vbusd.format.versioning).
+from vbusd.format.versioning import UPGRADES, upgrade  # noqa: E402,F401  (re-exported)
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,8 +117,10 @@ def content_digest(texels: np.ndarray) -> str:
     texels = np.asarray(texels)
     if texels.ndim != 3 or texels.shape[2] != CHANNELS:
         raise ValueError(f"texels must have shape (height, width, {CHANNELS}), got {texels.shape}")
-    little = np.ascontiguousarray(texels, dtype=texels.dtype.newbyteorder("<"))
-    return DIGEST_PREFIX + hashlib.sha256(little.tobytes(order="C")).hexdigest()
+    # Hashed through a memoryview: tobytes() would copy the whole texture (128 MiB at 4096 x 4096
+    # float16) next to the texels; only a big-endian or strided array is copied, once.
+    little = np.ascontiguousarray(texels.astype(texels.dtype.newbyteorder("<"), copy=False))
+    return DIGEST_PREFIX + hashlib.sha256(memoryview(little).cast("B")).hexdigest()
 
 
 def _generator() -> str:
@@ -207,7 +210,6 @@ def dumps(d: Mapping) -> str:
 # Reading
 # --------------------------------------------------------------------------------------------
 
-
 def json_pointer(parts) -> str:
     """RFC 6901 JSON pointer of a path of keys and indices."""
     out = ""
@@ -216,28 +218,303 @@ def json_pointer(parts) -> str:
     return out
 
 
-class _Problems:
-    """Collects (pointer, message) pairs; raises one InputError naming the first and counting the rest."""
+MAX_METADATA_BYTES = 16 * 1024 * 1024
+"""Largest metadata text read (a bone list of 16384 long names is far smaller): also the bound of a
+compressed PNG iTXt chunk's inflated text."""
 
-    def __init__(self, file, prefix: str) -> None:
-        self.file = file
-        self.prefix = prefix
-        self.items: list[tuple[str, str]] = []
 
-    def add(self, parts, message: str) -> None:
-        self.items.append((json_pointer(parts), message))
+def parse_document(text, diagnostics: Diagnostics, *, file=None, within: str = "",
+                   what: str = "layout metadata"):
+    """Parse metadata JSON text (or UTF-8 bytes) into a value, reporting what is wrong.
 
-    def raise_if_any(self) -> None:
-        if not self.items:
-            return
-        pointer, message = self.items[0]
-        rest = self.items[1:]
-        if rest:
-            shown = "; ".join(f"{p or '/'}: {m}" for p, m in rest[:3])
-            more = f", ..." if len(rest) > 3 else ""
-            message += f" (and {len(rest)} more: {shown}{more})"
-        raise InputError(message, file=self.file, location=(self.prefix + pointer) or "/",
-                         code="metadata.invalid")
+    The one JSON parser of layout metadata: the embedded copy of every container and the sidecar
+    come through here, for strict readers and ``vbusd validate`` alike.
+
+    Args:
+        text: The JSON text, or bytes that must be UTF-8 (a sidecar; a leading BOM is dropped).
+        diagnostics: Where problems go (code ``metadata.json``).
+        file: The file the text came from.
+        within: Where the text sits in the file (``header/vbusd.layout``), for locations.
+        what: What the text is, for messages (``"sidecar"``...).
+
+    Returns:
+        The parsed value (any JSON value; :func:`check_document` checks it), or None.
+    """
+    file = diagnostics.file if file is None else str(file)
+    if isinstance(text, (bytes, bytearray)):
+        if len(text) > MAX_METADATA_BYTES:
+            diagnostics.report("metadata.json", f"{what} of {len(text)} bytes is over the limit of "
+                               f"{MAX_METADATA_BYTES}", FileLocation(file, part=within or "/"))
+            return None
+        try:
+            text = bytes(text).decode("utf-8").removeprefix("\ufeff")
+        except UnicodeDecodeError as error:
+            diagnostics.report("metadata.json", f"{what} is not UTF-8 text (byte {error.start})",
+                               FileLocation(file, error.start))
+            return None
+    try:
+        return json.loads(text, parse_constant=_refuse_constant)
+    except json.JSONDecodeError as error:
+        where = f"{within} line {error.lineno} column {error.colno}".strip()
+        diagnostics.report("metadata.json", f"{what} is not valid JSON: {error.msg}",
+                           FileLocation(file, len(text[:error.pos].encode("utf-8")), part=where))
+    except ValueError as error:  # NaN or Infinity: JSON has neither
+        diagnostics.report("metadata.json", f"{what} is not valid JSON: {error}",
+                           FileLocation(file, part=within or "/"))
+    except RecursionError:  # Python's parser recurses per nesting level; metadata is 4 deep
+        diagnostics.report("metadata.json", f"{what} is nested too deeply to be Virtual Bones "
+                           "metadata", FileLocation(file, part=within or "/"))
+    return None
+
+
+def _refuse_constant(name: str):
+    raise ValueError(f"{name} is not allowed in layout metadata")
+
+
+@functools.lru_cache(maxsize=1)
+def _schema_validator():
+    """The JSON Schema (draft 2020-12) validator of layout metadata, schema checked once."""
+    import importlib.resources
+
+    import jsonschema
+
+    text = (importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE).read_text(encoding="utf-8")
+    schema = json.loads(text)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    return jsonschema.Draft202012Validator(schema)
+
+
+def check_schema(d: Any, diagnostics: Diagnostics, *, file=None, within: str = "") -> bool:
+    """Validate a document against schema/layout-metadata.schema.json.
+
+    Every violation is one ``metadata.schema`` finding located by the JSON pointer of the value
+    (sorted by pointer, so the first is the same every run).
+
+    Returns:
+        True when the document follows the schema.
+    """
+    file = diagnostics.file if file is None else str(file)
+    errors = sorted(_schema_validator().iter_errors(d),
+                    key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    for error in errors:
+        message = " ".join(error.message.split())
+        if len(message) > 300:
+            message = message[:297] + "..."
+        diagnostics.report("metadata.schema", f"{message} (schema rule {error.validator})",
+                           JsonPointer(file, json_pointer(error.absolute_path), within))
+    return not errors
+
+
+def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
+                    within: str = "") -> Optional[Layout]:
+    """The relations between keys that the schema cannot state (code ``metadata.inconsistent``).
+
+    Every derived size (``texelsPerBone``, ``usedWidth``, ``width``, ``height``, ``texelBytes``)
+    must be what the layout computes, ``bones`` must hold ``boneCount`` names, clips (uniquely
+    named) tile rows ``[0, rowCount)`` in order, and each unorm16 range has min <= max.
+
+    Args:
+        d: A document that passed :func:`check_schema`.
+
+    Returns:
+        The layout the document describes, or None when it contradicts itself.
+    """
+    from vbusd.format.errors import OptionsError
+
+    file = diagnostics.file if file is None else str(file)
+    found = len(diagnostics.findings)
+
+    def report(parts, message: str) -> None:
+        diagnostics.report("metadata.inconsistent", message, JsonPointer(file, json_pointer(parts), within))
+
+    try:
+        layout = Layout(d["encoding"], d["texelFormat"], d["boneCount"], d["rowCount"],
+                        d["horizontalPadding"], d["verticalPadding"])
+    except OptionsError as error:
+        report(["width"] if "exceeds" in error.message else [], error.message)
+        return None
+    for key, value in (("texelsPerBone", layout.texels_per_bone), ("usedWidth", layout.used_width),
+                       ("width", layout.width), ("height", layout.height),
+                       ("texelBytes", layout.texel_bytes)):
+        if d[key] != value:
+            report([key], f"{key} is {d[key]} but {layout.encoding.value} {layout.texel_format.value} "
+                          f"with {layout.bone_count} bones and {layout.row_count} rows gives {value}")
+    if len(d["bones"]) != layout.bone_count:
+        report(["bones"], f"bones lists {len(d['bones'])} names for boneCount {layout.bone_count}")
+    expected_first = 0
+    names: dict = {}
+    for i, clip in enumerate(d["clips"]):
+        if clip["name"] in names:
+            report(["clips", i, "name"], f"clip name {clip['name']!r} is already used by clip "
+                                         f"{names[clip['name']]}")
+        names.setdefault(clip["name"], i)
+        if clip["firstRow"] != expected_first:
+            report(["clips", i, "firstRow"], f"firstRow is {clip['firstRow']} but clips tile the rows "
+                                             f"in order, so it must be {expected_first}")
+        expected_first = clip["firstRow"] + clip["rowCount"]
+    if expected_first != layout.row_count:
+        report(["rowCount"], f"clips end at row {expected_first}, rowCount is {layout.row_count}")
+    for t, slot in enumerate(d.get("unormRanges") or ()):
+        for c, (low, high) in enumerate(slot):
+            if low > high:
+                report(["unormRanges", t, c], f"min {low} is greater than max {high}")
+    return layout if len(diagnostics.findings) == found else None
+
+
+def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str = "",
+                   format_version: Optional[int] = None) -> Optional[LayoutInfo]:
+    """Check an (upgraded) metadata document: the schema, then :func:`check_relations`.
+
+    Args:
+        d: The parsed document at the current format version.
+        diagnostics: Where problems go.
+        file: The file it came from.
+        within: Where it sits in the file.
+        format_version: The version it was written with (before any upgrade).
+
+    Returns:
+        The :class:`LayoutInfo`, or None when anything is wrong.
+    """
+    if not check_schema(d, diagnostics, file=file, within=within):
+        return None
+    layout = check_relations(d, diagnostics, file=file, within=within)
+    if layout is None:
+        return None
+    clips = tuple(Clip(name=c["name"], first_row=c["firstRow"], row_count=c["rowCount"],
+                       rows_per_second=float(c["rowsPerSecond"]), loop=c["loop"],
+                       start_time=float(c["startTime"])) for c in d["clips"])
+    ranges = None
+    if layout.texel_format is TexelFormat.UNORM16:
+        ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
+                                                                      CHANNELS, 2)
+        ranges.setflags(write=False)
+    return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
+                      content_digest=d["contentDigest"],
+                      format_version=d["formatVersion"] if format_version is None else format_version,
+                      generator=d["generator"])
+
+
+@functools.lru_cache(maxsize=1)
+def _schema_validator():
+    """The JSON Schema (draft 2020-12) validator of layout metadata, schema checked once."""
+    import importlib.resources
+
+    import jsonschema
+
+    text = (importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE).read_text(encoding="utf-8")
+    schema = json.loads(text)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    return jsonschema.Draft202012Validator(schema)
+
+
+def check_schema(d: Any, diagnostics: Diagnostics, *, file=None, within: str = "") -> bool:
+    """Validate a document against schema/layout-metadata.schema.json.
+
+    Every violation is one ``metadata.schema`` finding located by the JSON pointer of the value
+    (sorted by pointer, so the first is the same every run).
+
+    Returns:
+        True when the document follows the schema.
+    """
+    file = diagnostics.file if file is None else str(file)
+    errors = sorted(_schema_validator().iter_errors(d),
+                    key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    for error in errors:
+        message = " ".join(error.message.split())
+        if len(message) > 300:
+            message = message[:297] + "..."
+        diagnostics.report("metadata.schema", f"{message} (schema rule {error.validator})",
+                           JsonPointer(file, json_pointer(error.absolute_path), within))
+    return not errors
+
+
+def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
+                    within: str = "") -> Optional[Layout]:
+    """The relations between keys that the schema cannot state (code ``metadata.inconsistent``).
+
+    Every derived size (``texelsPerBone``, ``usedWidth``, ``width``, ``height``, ``texelBytes``)
+    must be what the layout computes, ``bones`` must hold ``boneCount`` names, clips (uniquely
+    named) tile rows ``[0, rowCount)`` in order, and each unorm16 range has min <= max.
+
+    Args:
+        d: A document that passed :func:`check_schema`.
+
+    Returns:
+        The layout the document describes, or None when it contradicts itself.
+    """
+    from vbusd.format.errors import OptionsError
+
+    file = diagnostics.file if file is None else str(file)
+    found = len(diagnostics.findings)
+
+    def report(parts, message: str) -> None:
+        diagnostics.report("metadata.inconsistent", message, JsonPointer(file, json_pointer(parts), within))
+
+    try:
+        layout = Layout(d["encoding"], d["texelFormat"], d["boneCount"], d["rowCount"],
+                        d["horizontalPadding"], d["verticalPadding"])
+    except OptionsError as error:
+        report(["width"] if "exceeds" in error.message else [], error.message)
+        return None
+    for key, value in (("texelsPerBone", layout.texels_per_bone), ("usedWidth", layout.used_width),
+                       ("width", layout.width), ("height", layout.height),
+                       ("texelBytes", layout.texel_bytes)):
+        if d[key] != value:
+            report([key], f"{key} is {d[key]} but {layout.encoding.value} {layout.texel_format.value} "
+                          f"with {layout.bone_count} bones and {layout.row_count} rows gives {value}")
+    if len(d["bones"]) != layout.bone_count:
+        report(["bones"], f"bones lists {len(d['bones'])} names for boneCount {layout.bone_count}")
+    expected_first = 0
+    names: dict = {}
+    for i, clip in enumerate(d["clips"]):
+        if clip["name"] in names:
+            report(["clips", i, "name"], f"clip name {clip['name']!r} is already used by clip "
+                                         f"{names[clip['name']]}")
+        names.setdefault(clip["name"], i)
+        if clip["firstRow"] != expected_first:
+            report(["clips", i, "firstRow"], f"firstRow is {clip['firstRow']} but clips tile the rows "
+                                             f"in order, so it must be {expected_first}")
+        expected_first = clip["firstRow"] + clip["rowCount"]
+    if expected_first != layout.row_count:
+        report(["rowCount"], f"clips end at row {expected_first}, rowCount is {layout.row_count}")
+    for t, slot in enumerate(d.get("unormRanges") or ()):
+        for c, (low, high) in enumerate(slot):
+            if low > high:
+                report(["unormRanges", t, c], f"min {low} is greater than max {high}")
+    return layout if len(diagnostics.findings) == found else None
+
+
+def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str = "",
+                   format_version: Optional[int] = None) -> Optional[LayoutInfo]:
+    """Check an (upgraded) metadata document: the schema, then :func:`check_relations`.
+
+    Args:
+        d: The parsed document at the current format version.
+        diagnostics: Where problems go.
+        file: The file it came from.
+        within: Where it sits in the file.
+        format_version: The version it was written with (before any upgrade).
+
+    Returns:
+        The :class:`LayoutInfo`, or None when anything is wrong.
+    """
+    if not check_schema(d, diagnostics, file=file, within=within):
+        return None
+    layout = check_relations(d, diagnostics, file=file, within=within)
+    if layout is None:
+        return None
+    clips = tuple(Clip(name=c["name"], first_row=c["firstRow"], row_count=c["rowCount"],
+                       rows_per_second=float(c["rowsPerSecond"]), loop=c["loop"],
+                       start_time=float(c["startTime"])) for c in d["clips"])
+    ranges = None
+    if layout.texel_format is TexelFormat.UNORM16:
+        ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
+                                                                      CHANNELS, 2)
+        ranges.setflags(write=False)
+    return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
+                      content_digest=d["contentDigest"],
+                      format_version=d["formatVersion"] if format_version is None else format_version,
+                      generator=d["generator"])
 
 
 def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = None,
@@ -267,21 +544,21 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = N
     where = location_prefix + "/formatVersion"
     if not isinstance(d, Mapping):
         raise InputError(f"layout metadata must be a JSON object, got {type(d).__name__}",
-                         file=file, location=location_prefix or "/", code="metadata.invalid")
+                         file=file, location=location_prefix or "/", code="metadata.schema")
     if "formatVersion" not in d:
         raise InputError("formatVersion is missing", file=file, location=where,
-                         code="metadata.invalid")
+                         code="metadata.schema")
     version = d["formatVersion"]
     if isinstance(version, bool) or not isinstance(version, int):
         raise InputError(f"formatVersion must be an integer, got {version!r}", file=file,
-                         location=where, code="metadata.invalid")
+                         location=where, code="metadata.schema")
     if version > current:
         raise VersionError(
             f"formatVersion {version} is newer than this reader (version {current}); "
             f"upgrade vbusd to read it", file=file, location=where, code="format.version")
     if version < 1:
         raise InputError(f"formatVersion must be 1 or more, got {version}", file=file,
-                         location=where, code="metadata.invalid")
+                         location=where, code="format.version")
     result = copy.deepcopy(dict(d))
     while version < current:
         step = table.get(version)
@@ -296,198 +573,25 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = N
     return result
 
 
-@functools.lru_cache(maxsize=1)
-def _schema_validator():
-    """The JSON Schema validator of layout metadata, or None while the schema file is absent."""
-    import importlib.resources
-
-    try:
-        resource = importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE
-        text = resource.read_text(encoding="utf-8")
-    except (FileNotFoundError, ModuleNotFoundError, OSError):
-        return None
-    import jsonschema
-
-    schema = json.loads(text)
-    validator_class = jsonschema.validators.validator_for(schema)
-    validator_class.check_schema(schema)
-    return validator_class(schema)
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value) -> bool:
-    return (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value))
-
-
-_TYPES = {
-    "format": (str, "a string"),
-    "formatVersion": (_is_int, "an integer"),
-    "generator": (str, "a string"),
-    "encoding": (str, "a string"),
-    "texelFormat": (str, "a string"),
-    "boneCount": (_is_int, "an integer"),
-    "texelsPerBone": (_is_int, "an integer"),
-    "rowCount": (_is_int, "an integer"),
-    "usedWidth": (_is_int, "an integer"),
-    "width": (_is_int, "an integer"),
-    "height": (_is_int, "an integer"),
-    "horizontalPadding": (str, "a string"),
-    "verticalPadding": (str, "a string"),
-    "texelBytes": (_is_int, "an integer"),
-    "bones": (list, "an array"),
-    "clips": (list, "an array"),
-    "contentDigest": (str, "a string"),
-}
-
-_CLIP_TYPES = {
-    "name": (str, "a string"),
-    "firstRow": (_is_int, "an integer"),
-    "rowCount": (_is_int, "an integer"),
-    "rowsPerSecond": (_is_number, "a finite number"),
-    "loop": (bool, "true or false"),
-    "startTime": (_is_number, "a finite number"),
-}
-
-
-def _type_ok(value, check) -> bool:
-    return check(value) if callable(check) and not isinstance(check, type) else isinstance(value, check)
-
-
-def _structural_checks(d: Mapping, problems: _Problems) -> None:
-    """The checks the JSON Schema makes, for when it is not installed (and as a second net)."""
-    for key, (check, what) in _TYPES.items():
-        if key not in d:
-            problems.add([key], f"{key} is missing")
-        elif not _type_ok(d[key], check):
-            problems.add([key], f"{key} must be {what}, got {d[key]!r:.60}")
-    if problems.items:
+def raise_summary(diagnostics: Diagnostics) -> None:
+    """Raise the first error of a lenient list as one line that counts (and names) the others."""
+    errors = diagnostics.errors
+    if not errors:
         return
-    if d["format"] != FORMAT_NAME:
-        problems.add(["format"], f"format must be {FORMAT_NAME!r}, got {d['format']!r:.60}")
-    for key, enum_type in (("encoding", Encoding), ("texelFormat", TexelFormat),
-                           ("horizontalPadding", Padding), ("verticalPadding", Padding)):
-        allowed = [e.value for e in enum_type]
-        if d[key] not in allowed:
-            problems.add([key], f"{key} must be one of {', '.join(allowed)}, got {d[key]!r:.60}")
-    for key in ("boneCount", "rowCount", "texelsPerBone", "usedWidth", "width", "height",
-                "texelBytes"):
-        if d[key] < 1:
-            problems.add([key], f"{key} must be 1 or more, got {d[key]}")
-    for i, name in enumerate(d["bones"]):
-        if not isinstance(name, str) or not name:
-            problems.add(["bones", i], f"bone name must be a non-empty string, got {name!r:.60}")
-    if not d["clips"]:
-        problems.add(["clips"], "clips must list at least one clip")
-    for i, clip in enumerate(d["clips"]):
-        if not isinstance(clip, Mapping):
-            problems.add(["clips", i], f"clip must be an object, got {clip!r:.60}")
-            continue
-        for key, (check, what) in _CLIP_TYPES.items():
-            if key not in clip:
-                problems.add(["clips", i, key], f"{key} is missing")
-            elif not _type_ok(clip[key], check):
-                problems.add(["clips", i, key], f"{key} must be {what}, got {clip[key]!r:.60}")
-    digest = d["contentDigest"]
-    hexpart = digest[len(DIGEST_PREFIX):]
-    if (not digest.startswith(DIGEST_PREFIX) or len(hexpart) != 64
-            or any(c not in "0123456789abcdef" for c in hexpart)):
-        problems.add(["contentDigest"],
-                     f"contentDigest must be 'sha256:' and 64 lowercase hex digits, got {digest!r:.80}")
-
-
-def _schema_checks(d: Mapping, problems: _Problems) -> None:
-    validator = _schema_validator()
-    if validator is None:
-        return
-    errors = sorted(validator.iter_errors(d), key=lambda e: (list(map(str, e.absolute_path)), e.message))
-    for error in errors:
-        problems.add(list(error.absolute_path), f"schema: {error.message[:200]}")
-
-
-def _semantic_checks(d: Mapping, problems: _Problems) -> Optional[Layout]:
-    """Cross-field agreement: every derived size must be what the layout computes."""
-    from vbusd.format.errors import OptionsError
-
-    try:
-        layout = Layout(d["encoding"], d["texelFormat"], d["boneCount"], d["rowCount"],
-                        d["horizontalPadding"], d["verticalPadding"])
-    except OptionsError as error:
-        key = "width" if "exceeds" in error.message else ""
-        problems.add([key] if key else [], error.message)
-        return None
-    for key, value in (("texelsPerBone", layout.texels_per_bone), ("usedWidth", layout.used_width),
-                       ("width", layout.width), ("height", layout.height),
-                       ("texelBytes", layout.texel_bytes)):
-        if d[key] != value:
-            problems.add([key], f"{key} is {d[key]} but {layout.encoding.value} "
-                                f"{layout.texel_format.value} with {layout.bone_count} bones and "
-                                f"{layout.row_count} rows gives {value}")
-    if len(d["bones"]) != layout.bone_count:
-        problems.add(["bones"], f"bones lists {len(d['bones'])} names for boneCount "
-                                f"{layout.bone_count}")
-    # Clips tile rows [0, rowCount) in order, without gaps or overlap (spec: "Clips").
-    expected_first = 0
-    names: dict = {}
-    for i, clip in enumerate(d["clips"]):
-        first, count, rate = clip["firstRow"], clip["rowCount"], clip["rowsPerSecond"]
-        if clip["name"] in names:
-            problems.add(["clips", i, "name"], f"clip name {clip['name']!r} is already used by "
-                                               f"clip {names[clip['name']]}")
-        names.setdefault(clip["name"], i)
-        if rate <= 0:
-            problems.add(["clips", i, "rowsPerSecond"], f"rowsPerSecond must be > 0, got {rate}")
-        if count < 1:
-            problems.add(["clips", i, "rowCount"], f"rowCount must be 1 or more, got {count}")
-            continue
-        if first != expected_first:
-            problems.add(["clips", i, "firstRow"],
-                         f"firstRow is {first} but clips tile the rows in order, so it must be "
-                         f"{expected_first}")
-        expected_first = first + count
-    if expected_first != layout.row_count:
-        problems.add(["rowCount"], f"clips end at row {expected_first}, rowCount is "
-                                   f"{layout.row_count}")
-    ranges = d.get("unormRanges")
-    if layout.texel_format is TexelFormat.UNORM16:
-        if ranges is None:
-            problems.add(["unormRanges"], "unormRanges is required for unorm16")
-        else:
-            _check_ranges(ranges, layout.texels_per_bone, problems)
-    elif ranges is not None:
-        problems.add(["unormRanges"], f"unormRanges is only allowed for unorm16, not "
-                                      f"{layout.texel_format.value}")
-    return layout
-
-
-def _check_ranges(ranges, slots: int, problems: _Problems) -> None:
-    if not isinstance(ranges, list) or len(ranges) != slots:
-        problems.add(["unormRanges"], f"unormRanges must be an array of {slots} texel slots")
-        return
-    for t, slot in enumerate(ranges):
-        if not isinstance(slot, list) or len(slot) != CHANNELS:
-            problems.add(["unormRanges", t], f"texel slot must hold {CHANNELS} [min, max] pairs")
-            continue
-        for c, pair in enumerate(slot):
-            if (not isinstance(pair, list) or len(pair) != 2
-                    or not all(_is_number(v) for v in pair)):
-                problems.add(["unormRanges", t, c], f"must be [min, max] finite numbers, got {pair!r:.60}")
-            elif pair[0] > pair[1]:
-                problems.add(["unormRanges", t, c], f"min {pair[0]} is greater than max {pair[1]}")
+    first, rest = errors[0], errors[1:]
+    if rest:
+        shown = "; ".join(f"{getattr(f.location, 'pointer', '') or '/'}: {f.message}" for f in rest[:3])
+        more = ", ..." if len(rest) > 3 else ""
+        first = dataclasses.replace(first, message=f"{first.message} (and {len(rest)} more: {shown}{more})")
+    raise to_error(first, file=diagnostics.file)
 
 
 def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
-    """Validate a metadata dict read from a file and turn it into a :class:`LayoutInfo`.
+    """Validate a metadata dict read from a file and turn it into a :class:`LayoutInfo` (strict).
 
     Steps: :func:`upgrade` to the current version (a newer version raises
-    :class:`vbusd.format.errors.VersionError`), the JSON Schema (when installed), structural checks, then
-    cross-field checks: every derived size (``texelsPerBone``, ``usedWidth``, ``width``,
-    ``height``, ``texelBytes``) must equal what the layout computes, ``bones`` must have
-    ``boneCount`` names, clips (uniquely named) must tile the rows in order without gaps, and
-    ``unormRanges`` must be present (T x 4 pairs, min <= max) exactly for unorm16.
+    :class:`vbusd.format.errors.VersionError`), then :func:`check_document` (JSON Schema, then the
+    relations a schema cannot express).
 
     Args:
         d: The parsed JSON.
@@ -498,102 +602,30 @@ def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
         The validated info; ``format_version`` is the version before upgrading.
 
     Raises:
-        InputError: Every problem found; the location is the JSON pointer of the first, the message
-            counts the others.
+        InputError: The first problem (``metadata.schema`` or ``metadata.inconsistent``) located by
+            its JSON pointer; the message counts the others.
         VersionError: The dict was written by a newer format version.
     """
     original_version = d.get("formatVersion") if isinstance(d, Mapping) else None
     d = upgrade(d, file=file, location_prefix=location_prefix)
-    problems = _Problems(file, location_prefix)
-    _schema_checks(d, problems)
-    _structural_checks(d, problems)
-    # Keep only the first report of each pointer (schema and structural checks overlap).
-    seen: set = set()
-    problems.items = [p for p in problems.items if not (p[0] in seen or seen.add(p[0]))]
-    problems.raise_if_any()
-    layout = _semantic_checks(d, problems)
-    problems.raise_if_any()
-    assert layout is not None
-    clips = tuple(Clip(name=c["name"], first_row=c["firstRow"], row_count=c["rowCount"],
-                       rows_per_second=float(c["rowsPerSecond"]), loop=c["loop"],
-                       start_time=float(c["startTime"])) for c in d["clips"])
-    ranges = None
-    if layout.texel_format is TexelFormat.UNORM16:
-        ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
-                                                                      CHANNELS, 2)
-        ranges.setflags(write=False)
-    return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
-                      content_digest=d["contentDigest"], format_version=original_version,
-                      generator=d["generator"])
+    diagnostics = Diagnostics(file)
+    info = check_document(d, diagnostics, within=location_prefix, format_version=original_version)
+    raise_summary(diagnostics)
+    assert info is not None
+    return info
 
 
-def parse_json(text: str, *, file=None, location_prefix: str = "", what: str = "layout metadata"):
-    """Parse metadata JSON text without validating it (:func:`loads` validates).
-
-    Args:
-        text: The JSON text.
-        file: File the text came from, for messages.
-        location_prefix: Where the text sits in the file (e.g. ``header/vbusd.layout``).
-        what: What the text is, for messages (``"sidecar"``...).
+def parse_json(text, *, file=None, location_prefix: str = "", what: str = "layout metadata"):
+    """:func:`parse_document` for strict callers: the first problem raises.
 
     Raises:
-        InputError: code ``metadata.json``: broken JSON (located at ``line L column C`` after the
-            prefix), NaN or Infinity (JSON has neither) or nesting too deep for Python's parser.
+        InputError: code ``metadata.json``, located at ``line L column C`` after the prefix (broken
+            JSON), ``byte N`` (not UTF-8) or the prefix (NaN, Infinity, nesting too deep).
     """
-    try:
-        return json.loads(text, parse_constant=_refuse_constant)
-    except json.JSONDecodeError as error:
-        where = f"line {error.lineno} column {error.colno}"
-        raise InputError(f"{what} is not valid JSON: {error.msg}", file=file,
-                         location=f"{location_prefix} {where}".strip(),
-                         code="metadata.json") from None
-    except ValueError as error:
-        raise InputError(f"{what} is not valid JSON: {error}", file=file,
-                         location=location_prefix or "/", code="metadata.json") from None
-    except RecursionError:  # Python's parser recurses per nesting level; metadata is 4 deep
-        raise InputError(f"{what} is nested too deeply to be Virtual Bones metadata",
-                         file=file, location=location_prefix or "/", code="metadata.json") from None
+    return parse_document(text, Diagnostics(file, strict=True), within=location_prefix, what=what)
 
 
-def loads(text: str, *, file=None, location_prefix: str = "") -> LayoutInfo:
-    """Parse metadata JSON text (:func:`parse_json`) and validate it (:func:`from_dict`).
-
-    Broken JSON is an :class:`InputError` located at ``line L column C`` (after the prefix).
-    """
+def loads(text, *, file=None, location_prefix: str = "") -> LayoutInfo:
+    """Parse metadata JSON text (:func:`parse_json`) and validate it (:func:`from_dict`)."""
     return from_dict(parse_json(text, file=file, location_prefix=location_prefix), file=file,
                      location_prefix=location_prefix)
-
-
-def _refuse_constant(name: str):
-    raise ValueError(f"{name} is not allowed in layout metadata")
-
-
-def check_texels(info: LayoutInfo, texels: np.ndarray, *, file=None,
-                 location: str = "pixels", digest_location: str = "/contentDigest") -> None:
-    """Check that texels read from a file agree with their metadata: shape, dtype and digest.
-
-    Args:
-        info: Metadata of the file.
-        texels: The texels read.
-        file: For messages.
-        location: Location reported for shape and dtype problems.
-        digest_location: Location reported when the digest differs.
-
-    Raises:
-        InputError: Shape, dtype or content digest differ (``texture.digest`` for the digest).
-    """
-    layout = info.layout
-    if texels.shape != layout.shape:
-        raise InputError(f"pixel data is {texels.shape[1]}x{texels.shape[0]} "
-                         f"but the metadata says {layout.width}x{layout.height}",
-                         file=file, location=location, code="texture.shape")
-    if texels.dtype != np.dtype(layout.texel_format.numpy_dtype):
-        raise InputError(f"pixel data is {texels.dtype} but texelFormat is "
-                         f"{layout.texel_format.value}", file=file, location=location,
-                         code="texture.format")
-    actual = content_digest(texels)
-    if actual != info.content_digest:
-        raise InputError(f"pixel data does not match its contentDigest (the texels are corrupted "
-                         f"or were changed): stored {info.content_digest[:23]}..., "
-                         f"computed {actual[:23]}...", file=file, location=digest_location,
-                         code="texture.digest")

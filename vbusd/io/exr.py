@@ -1,19 +1,20 @@
-"""OpenEXR container for float16 and float32 Virtual Bones textures.
+"""OpenEXR container for float16 and float32 Virtual Bones textures: writer and reader.
 
 A Virtual Bones EXR is a single-part scanline image with exactly the channels R, G, B and A, all of
 pixel type HALF (float16) or FLOAT (float32), a lossless compression (none, rle, zips, zip or piz)
 and the layout metadata JSON in the string header attribute ``vbusd.layout``. Scanline 0 (the top
 of the data window) is texture row 0.
 
-Reading is defensive because the OpenEXR library is not (measured with OpenEXR 3.5.3): a truncated
-file only prints a warning and yields zero parts, a small header can declare a 65536 x 65536 image,
-and EXR has no checksum. So :func:`scan_header` first reads the header and the chunk offset
-table itself, in pure Python and without allocating anything the size of the image; it checks the
-magic number, the dimensions against the limit, the channels and compression, and that every chunk
-lies inside the file (:func:`check_pixel_types` then checks the pixel types against the metadata).
-Only then does OpenEXR decode the pixels (:func:`read_pixels`, with its own maximum image size set
-as a second net), with its console chatter captured into the error message. The content digest in
-the metadata catches flipped pixel bytes.
+:func:`read_exr` is the one EXR reader, for strict readers and ``vbusd validate`` alike (the
+container reader :mod:`vbusd.io.textures` dispatches to). It is defensive because the OpenEXR
+library is not (measured with OpenEXR 3.5.3): a truncated file only prints a warning and yields
+zero parts, a small header can declare a 65536 x 65536 image, and EXR has no checksum. So the
+header and the chunk offset table are read here, in pure Python and without allocating anything
+the size of the image: magic number, dimensions against the limit, channels, compression, and
+every chunk inside the file. Only then does OpenEXR decode the pixels, with its own maximum image
+size set as a second net and its console chatter captured into the message. Problems are reported
+into a :class:`vbusd.format.diagnostics.Diagnostics` list; the content digest in the metadata
+catches flipped pixel bytes.
 """
 
 from __future__ import annotations
@@ -29,11 +30,15 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.diagnostics import Diagnostics, FileLocation
+from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
+from vbusd.io.textures import TextureImage, looks_like_metadata
 
 MAGIC = b"\x76\x2f\x31\x01"
 METADATA_ATTRIBUTE = "vbusd.layout"
+METADATA_PART = f"header/{METADATA_ATTRIBUTE}"
+"""Where the layout metadata sits in an EXR, as one-line errors name it."""
 
 COMPRESSION_NAMES = {0: "none", 1: "rle", 2: "zips", 3: "zip", 4: "piz", 5: "pxr24", 6: "b44",
                      7: "b44a", 8: "dwaa", 9: "dwab", 10: "htj2k256", 11: "htj2k32", 12: "lj2k",
@@ -44,12 +49,14 @@ LOSSLESS = ("none", "rle", "zips", "zip", "piz")
 """Compressions that give back every bit of half and float data (PXR24, B44, DWA and the JPEG 2000
 codecs are lossy for half or float; ZSTD is lossless but unreadable by OpenEXR before 3.4)."""
 
-_LINES_PER_CHUNK = {"none": 1, "rle": 1, "zips": 1, "zip": 16, "piz": 32}
+_LINES_PER_CHUNK = {"none": 1, "rle": 1, "zips": 1, "zip": 16, "piz": 32, "pxr24": 16, "b44": 32,
+                    "b44a": 32, "dwaa": 32, "dwab": 256, "htj2k256": 256, "htj2k32": 32, "zstd": 32}
+"""Scanlines per chunk of each compression (the OpenEXR file layout), for the offset table size."""
+_PIXEL_TYPE_NAMES = {"half": "float16", "float": "float32", "uint": "uint32"}
 
 PIXEL_TYPES = {0: "uint", 1: "half", 2: "float"}
 """EXR channel pixel type -> name."""
 
-_PIXEL_TYPE_OF_FORMAT = {"float16": "half", "float32": "float"}
 _CHANNELS = ("A", "B", "G", "R")  # EXR stores channel lists sorted by name
 
 _FLAG_TILED = 0x200
@@ -59,7 +66,7 @@ _FLAG_MULTIPART = 0x1000
 
 @dataclass(frozen=True)
 class ExrHeader:
-    """What :func:`scan_header` learned from an EXR header, before any pixel is read.
+    """What :func:`_scan_header` learned from an EXR header, before any pixel is read.
 
     Attributes:
         width: Data window width.
@@ -78,8 +85,16 @@ class ExrHeader:
     header_end: int
 
 
-def _bad(file, location: str, message: str, code: str = "texture.exr") -> InputError:
-    return InputError(message, file=file, location=location, code=code)
+class _Refused(Exception):
+    """A problem after which the file cannot be read further (reported, then reading stops)."""
+
+    def __init__(self, message: str, location: str, code: str) -> None:
+        super().__init__(message)
+        self.message, self.location, self.code = message, location, code
+
+
+def _bad(file, location: str, message: str, code: str = "texture.unreadable") -> _Refused:
+    return _Refused(message, location, code)
 
 
 def _read_cstring(data: bytes, pos: int, limit: int, file, what: str) -> tuple[str, int]:
@@ -95,22 +110,14 @@ def _read_cstring(data: bytes, pos: int, limit: int, file, what: str) -> tuple[s
         raise _bad(file, f"byte {pos}", f"{what} is not ASCII") from None
 
 
-def scan_header(path, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> ExrHeader:
+def _scan_header(path, file: str, diagnostics: Diagnostics, max_dimension: int) -> ExrHeader:
     """Check an EXR file's header and chunk table without decoding or allocating pixels.
 
-    Args:
-        path: The file.
-        max_dimension: Largest accepted width or height.
-
-    Returns:
-        The parsed header.
-
-    Raises:
-        InputError: Not an EXR file, a multi-part, deep or tiled file, truncated header or chunks,
-            a data window larger than ``max_dimension``, or a malformed attribute. The location is
-            ``byte N`` or ``header/<attribute>``.
+    A lossy compression and a channel set other than R, G, B, A are reported and reading goes on
+    (``vbusd validate`` still checks the pixels); anything else raises :class:`_Refused`: not an
+    EXR file, a multi-part, deep or tiled file, truncated header or chunks, a data window larger
+    than ``max_dimension``, or a malformed attribute (location ``byte N`` or ``header/<name>``).
     """
-    file = str(path)
     size = os.path.getsize(path)
     with open(path, "rb") as stream:
         head = stream.read(8)
@@ -179,7 +186,7 @@ def scan_header(path, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> ExrHeade
         if width > max_dimension or height > max_dimension:
             raise _bad(file, "header/dataWindow",
                        f"image of {width}x{height} exceeds the limit of {max_dimension} texels "
-                       "per side", code="texture.size")
+                       "per side; pixels not read")
         if (xmin, ymin) != (0, 0):
             raise _bad(file, "header/dataWindow",
                        f"data window starts at ({xmin}, {ymin}); a Virtual Bones texture starts at (0, 0)")
@@ -192,14 +199,21 @@ def scan_header(path, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> ExrHeade
         compression_code = attribute("compression", "compression", 1)[0]
         compression = COMPRESSION_NAMES.get(compression_code, f"unknown ({compression_code})")
         if compression not in LOSSLESS:
-            raise _bad(file, "header/compression",
-                       f"compression {compression} is not allowed: texel values must survive "
-                       f"bit for bit (allowed: {', '.join(LOSSLESS)})", code="texture.compression")
+            diagnostics.report("texture.compression", f"compression {compression} is not allowed: "
+                               f"texel values must survive bit for bit (allowed: {', '.join(LOSSLESS)})",
+                               FileLocation(file, part="header/compression"))
+        if compression not in _LINES_PER_CHUNK:
+            raise _bad(file, "header/compression", f"compression {compression} is unknown")
         channels = _parse_channels(attribute("channels", "chlist"), file)
+        where = FileLocation(file, part="header/channels")
         if tuple(sorted(channels)) != _CHANNELS:
-            raise _bad(file, "header/channels",
-                       f"channels are {', '.join(sorted(channels)) or 'none'}; a Virtual Bones "
-                       "texture has exactly R, G, B, A", code="texture.channels")
+            diagnostics.report("texture.channels", f"channels are {', '.join(sorted(channels)) or 'none'}; "
+                               "a Virtual Bones texture has exactly R, G, B, A", where)
+        kinds = set(channels.values())
+        if kinds - {"half", "float"} or len(kinds) > 1:
+            listed = ", ".join(f"{name} is {kind}" for name, kind in sorted(channels.items()))
+            diagnostics.report("texture.pixelType", f"channels must all be HALF (float16) or all FLOAT "
+                               f"(float32): {listed}", where)
         # Every chunk of the offset table must lie inside the file: this is where truncation shows.
         chunk_count = -(-height // _LINES_PER_CHUNK[compression])
         stream.seek(header_end)
@@ -240,33 +254,10 @@ def _parse_channels(value: bytes, file) -> dict:
         pixel_type, _linear, xs, ys = struct.unpack_from("<iB3xii", value, pos)
         pos += 16
         if (xs, ys) != (1, 1):
-            raise _bad(file, "header/channels", f"channel {name} is subsampled ({xs}x{ys}); "
-                       "every channel must have one sample per texel", code="texture.channels")
+            raise _bad(file, "header/channels", f"channel {name} is subsampled {xs} x {ys}; every "
+                       "channel of a Virtual Bones texture has sampling 1 x 1")
         channels[name] = PIXEL_TYPES.get(pixel_type, f"unknown ({pixel_type})")
     raise _bad(file, "header/channels", "malformed channel list")
-
-
-def metadata_text(header: ExrHeader, file) -> str:
-    """The ``vbusd.layout`` header attribute as text.
-
-    Raises:
-        InputError: The attribute is missing, not a string or not UTF-8 (location
-            ``header/vbusd.layout``).
-    """
-    location = f"header/{METADATA_ATTRIBUTE}"
-    if METADATA_ATTRIBUTE not in header.attributes:
-        raise InputError(f"the header has no {METADATA_ATTRIBUTE} attribute: this is not a "
-                         "Virtual Bones texture (or its metadata was stripped)", file=file,
-                         location=location, code="metadata.missing")
-    type_name, value = header.attributes[METADATA_ATTRIBUTE]
-    if type_name != "string":
-        raise InputError(f"{METADATA_ATTRIBUTE} has type {type_name}, expected string",
-                         file=file, location=location, code="metadata.invalid")
-    try:
-        return value.decode("utf-8")
-    except UnicodeDecodeError as error:
-        raise InputError(f"{METADATA_ATTRIBUTE} is not UTF-8 text (byte {error.start})",
-                         file=file, location=location, code="metadata.invalid") from None
 
 
 @contextlib.contextmanager
@@ -316,74 +307,91 @@ def _max_image_size(limit: int):
         OpenEXR.setMaxImageSize(*previous)
 
 
-def check_pixel_types(header: ExrHeader, texel_format: str, file) -> str:
-    """Check that every channel has the pixel type of ``texel_format``; returns that type's name.
+def read_exr(path, diagnostics: Diagnostics, *, display: Optional[str] = None,
+             max_dimension: int = MAX_TEXTURE_DIMENSION, pixels: bool = True) -> Optional[TextureImage]:
+    """Read an EXR texture, reporting every problem into ``diagnostics``.
 
-    Raises:
-        InputError: A format EXR does not hold, or a channel of another pixel type
-            (``header/channels``).
-    """
-    expected = _PIXEL_TYPE_OF_FORMAT.get(texel_format)
-    if expected is None:
-        raise InputError(f"texelFormat {texel_format} cannot be stored in EXR (only float16 and "
-                         "float32; unorm16 uses PNG)", file=file,
-                         location=f"header/{METADATA_ATTRIBUTE}/texelFormat", code="texture.format")
-    wrong = {name: kind for name, kind in header.channels.items() if kind != expected}
-    if wrong:
-        listed = ", ".join(f"{name} is {kind}" for name, kind in sorted(wrong.items()))
-        raise InputError(f"pixel type does not match texelFormat {texel_format} ({expected} "
-                         f"expected): {listed}", file=file, location="header/channels",
-                         code="texture.format")
-    return expected
-
-
-def read_pixels(path, header: ExrHeader, texel_format: str, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> np.ndarray:
-    """Decode the pixels of a file that :func:`scan_header` accepted.
+    Reports ``texture.unreadable`` (not a single-part scanline EXR, truncated header or chunks,
+    data window over ``max_dimension`` or not the display window, pixels OpenEXR cannot decode),
+    ``texture.compression`` (lossy), ``texture.channels`` (not exactly R, G, B, A, or subsampled),
+    ``texture.pixelType`` (channels not all HALF or all FLOAT) and ``metadata.json`` (a
+    ``vbusd.layout`` attribute that is not UTF-8 string). Locations are ``byte N``,
+    ``header/<attribute>`` or ``pixels``.
 
     Args:
-        path: The file.
-        header: Its scanned header.
-        texel_format: ``float16`` or ``float32``, from the metadata.
-        max_dimension: Passed to OpenEXR's maximum image size while reading.
+        path: A regular file (the caller checked).
+        diagnostics: Where problems go; a strict list raises the first error.
+        display: How findings name the file (default ``path``).
+        max_dimension: Largest accepted width or height.
+        pixels: Decode the pixels (False: header and chunk table only).
 
     Returns:
-        ``(height, width, 4)`` texels, dtype ``<f2`` or ``<f4``.
-
-    Raises:
-        InputError: The pixel type does not match ``texel_format`` (``header/channels``), or the
-            pixel data cannot be decoded (``pixels`` or ``byte N``).
+        What could be read, or None when the header could not be.
     """
+    file = display or str(path)
+    try:
+        header = _scan_header(path, file, diagnostics, max_dimension)
+    except _Refused as refused:
+        match = re.fullmatch(r"byte (\d+)", refused.location)
+        diagnostics.report(refused.code, refused.message,
+                           FileLocation(file, int(match.group(1)) if match else None, part=refused.location))
+        return None
+    kinds = {_PIXEL_TYPE_NAMES.get(kind, kind) for kind in header.channels.values()}
+    image = TextureImage(file=file, container="exr", width=header.width, height=header.height,
+                         channels=tuple(sorted(header.channels, key=lambda c: ("RGBA".find(c) % 9, c))),
+                         pixel_type=kinds.pop() if len(kinds) == 1 else "mixed",
+                         compression=header.compression, metadata_part=METADATA_PART)
+    for name, (type_name, value) in header.attributes.items():
+        if name == METADATA_ATTRIBUTE:
+            where = FileLocation(file, part=METADATA_PART)
+            text = None
+            try:
+                if type_name != "string":
+                    raise ValueError(f"has type {type_name}, expected string")
+                text = value.decode("utf-8")
+            except (ValueError, UnicodeDecodeError) as error:
+                why = f"is not UTF-8 text (byte {error.start})" if isinstance(error, UnicodeDecodeError) \
+                    else str(error)
+                diagnostics.report("metadata.json", f"the {METADATA_ATTRIBUTE} attribute cannot be "
+                                   f"decoded: it {why}", where)
+            image.metadata.append((text, where))
+        elif looks_like_metadata(name, value.decode("latin-1") if type_name == "string" else ""):
+            image.misplaced_metadata.append(f"header attribute {name!r} of type {type_name}")
+    if pixels and image.channels == ("R", "G", "B", "A") and image.pixel_type in ("float16", "float32"):
+        image.texels = _read_pixels(path, image, diagnostics, max_dimension)
+    return image
+
+
+def _read_pixels(path, image: TextureImage, diagnostics: Diagnostics, max_dimension: int):
+    """Decode the pixels of a file the header scan accepted, with OpenEXR, as one RGBA array."""
     import OpenEXR
 
-    file = str(path)
-    expected = check_pixel_types(header, texel_format, file)
     sink: list = []
     error_text = None
     exr = None
     try:
         with _max_image_size(max_dimension), captured_output(sink):
-            exr = OpenEXR.File(file, separate_channels=True)
+            exr = OpenEXR.File(str(path), separate_channels=False)
     except (RuntimeError, OSError, ValueError) as error:
         error_text = str(error)
     chatter = sink[0] if sink else ""
-    if exr is None or len(exr.parts) != 1:
+    rgba = exr.parts[0].channels.get("RGBA") if exr is not None and len(exr.parts) == 1 else None
+    if rgba is None:
         detail = "; ".join(t for t in (error_text, chatter) if t) or "OpenEXR returned no image"
         match = re.search(r"file offset (\d+)", detail)
-        location = f"byte {match.group(1)}" if match else "pixels"
-        raise InputError(f"cannot decode the pixel data: {detail[:300]}", file=file,
-                         location=location, code="texture.exr")
-    channels = exr.parts[0].channels
-    planes = []
-    dtype = np.dtype("<f2" if expected == "half" else "<f4")
-    for name in "RGBA":
-        pixels = np.asarray(channels[name].pixels)
-        if pixels.shape != (header.height, header.width) or pixels.dtype.kind != "f" or \
-                pixels.dtype.itemsize != dtype.itemsize:
-            raise InputError(f"OpenEXR decoded channel {name} as {pixels.dtype} {pixels.shape}, "
-                             f"expected {dtype} ({header.height}, {header.width})", file=file,
-                             location="pixels", code="texture.exr")
-        planes.append(pixels.astype(dtype, copy=False))
-    return np.stack(planes, axis=-1)
+        diagnostics.report("texture.unreadable", f"cannot decode the pixel data: {detail[:300]}",
+                           FileLocation(image.file, int(match.group(1)) if match else None,
+                                        part=f"byte {match.group(1)}" if match else "pixels"))
+        return None
+    texels = np.asarray(rgba.pixels)
+    dtype = np.dtype("<f2" if image.pixel_type == "float16" else "<f4")
+    if texels.shape != (image.height, image.width, 4) or texels.dtype.kind != "f" or \
+            texels.dtype.itemsize != dtype.itemsize:
+        diagnostics.report("texture.unreadable", f"OpenEXR decoded the pixels as {texels.dtype} "
+                           f"{texels.shape}, expected {dtype} ({image.height}, {image.width}, 4)",
+                           FileLocation(image.file, part="pixels"))
+        return None
+    return texels.astype(dtype, copy=False)
 
 
 def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zip") -> None:

@@ -279,7 +279,7 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
 
     Raises:
         InputError: One problem, located by byte offset or header field, with a ``ktx2.*`` code
-            (``texture.container`` for a file that is not KTX2, ``texture.size`` for dimensions).
+            (``texture.unreadable`` for a file that is not KTX2, ``texture.size`` for dimensions).
     """
     path = Path(path)
     file = str(path)
@@ -288,7 +288,7 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
         head = stream.read(HEADER_BYTES + LEVEL_INDEX_BYTES)
         if head[:len(MAGIC)] != MAGIC[:len(head)]:
             raise _bad(file, "byte 0", f"not a KTX 2.0 file (the first 12 bytes are {head[:12]!r})",
-                       "texture.container")
+                       "texture.unreadable")
         if len(head) < HEADER_BYTES + LEVEL_INDEX_BYTES:
             raise _bad(file, f"byte {len(head)}", f"file of {size} bytes ends inside the KTX2 header "
                        f"and level index ({HEADER_BYTES + LEVEL_INDEX_BYTES} bytes)", "ktx2.truncated")

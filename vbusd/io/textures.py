@@ -14,14 +14,17 @@ included; every problem is an :class:`vbusd.format.errors.InputError` with the f
 from __future__ import annotations
 
 import os
+import re
 import stat
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import numpy as np
 
+from vbusd.format import codes
 from vbusd.format import metadata as md
+from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.io.files import AtomicTransaction
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, TexelFormat
@@ -150,72 +153,382 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: Optional[str
         tx.commit()
 
 
-def _read_bytes(path: Path, count: int = -1) -> bytes:
-    """The first ``count`` bytes of a file (all with -1); a missing or unreadable file is one error.
+# --------------------------------------------------------------------------------------------
+# Reading: one reader per container, behind one interface
+# --------------------------------------------------------------------------------------------
 
-    Opened without blocking and checked to be a regular file before any read: a named pipe (a
-    ``vb:texture`` can name one) would otherwise block the reader forever.
+
+@dataclass
+class TextureImage:
+    """What the one reader of a texture file read (the container's part, then metadata and sidecar).
+
+    A container reader fills the first group of fields; :func:`read_texture_file` adds the parsed
+    metadata documents.
+
+    Attributes:
+        file: The file as findings name it.
+        container: ``exr``, ``png`` or ``ktx2``.
+        width: Width from the header.
+        height: Height from the header.
+        channels: Channel names in the file (R, G, B, A order when present).
+        pixel_type: ``float16``, ``float32`` or ``uint16`` when every channel has that type;
+            otherwise what the file holds (``uint8``, ``uint32``, ``mixed``...).
+        compression: The container's compression name (EXR ``zip``..., PNG ``zip``, KTX2 ``none`` or
+            ``zstd``).
+        texels: ``(height, width, 4)`` texels in the file's pixel type, or None when the pixels were
+            not read or could not be (missing channels are never invented).
+        metadata: Every embedded layout metadata copy with its location: ``[(text, FileLocation)]``
+            (more than one was reported as ``metadata.duplicate``; text is None for a copy that
+            cannot be decoded, reported as ``metadata.json``).
+        metadata_part: Where the metadata sits in this container (``header/vbusd.layout``), the
+            prefix of its JSON pointers in one-line errors.
+        misplaced_metadata: Text that looks like layout metadata but is not where the spec puts it
+            (``tEXt chunk 'vbusd.layout' at byte 33``); readers ignore it.
+        document: The first embedded copy, parsed (None when missing or broken).
+        sidecar: The sidecar ``<file>.json``, parsed (None when absent, not asked for, or broken).
+        sidecar_file: The sidecar's name in findings, when a sidecar exists.
     """
+
+    file: str
+    container: str
+    width: int = 0
+    height: int = 0
+    channels: tuple = ()
+    pixel_type: Optional[str] = None
+    compression: Optional[str] = None
+    texels: Optional[np.ndarray] = None
+    metadata: list = field(default_factory=list)
+    metadata_part: str = ""
+    misplaced_metadata: list = field(default_factory=list)
+    document: Any = None
+    sidecar: Any = None
+    sidecar_file: Optional[str] = None
+
+
+ContainerReader = Callable[..., Optional[TextureImage]]
+
+
+@dataclass(frozen=True)
+class Container:
+    """One texture container and its one reader.
+
+    The reader interface, which every container (EXR, PNG, KTX2) implements::
+
+        read(path, diagnostics, *, display, max_dimension, pixels) -> TextureImage | None
+
+    It reports every problem of the *container* into ``diagnostics`` (a
+    :class:`vbusd.format.diagnostics.Diagnostics`; strict lists raise the first error) with a
+    registered code and a :class:`~vbusd.format.diagnostics.FileLocation` (byte offset, and a named
+    ``part`` such as ``IHDR`` for one-line errors); it never raises on bad content. It checks
+    declared sizes against ``max_dimension`` before allocating anything, reads the pixels only when
+    ``pixels`` is true, and returns what it could read, with the embedded metadata *texts*
+    unparsed (:func:`read_texture_file` parses them and the sidecar, once, for every container).
+    Checks against the metadata or a USD prim (size, pixel type, digest) are not the reader's:
+    :func:`check_image` makes them for strict readers and ``vbusd validate`` alike.
+
+    Attributes:
+        name: ``exr``, ``png``, ``ktx2``.
+        magic: The bytes every file of the container starts with.
+        module: The module holding the reader.
+        reader: The reader's name in that module.
+        pixel_types: Texel format -> the pixel type the container stores it as (formats it cannot
+            hold are absent).
+        size_part: Where the dimensions sit (``header/dataWindow``), for one-line errors.
+        channels_part: Where the channel types sit.
+        pixel_type_code: The code of a pixel type that disagrees with the texel format.
+    """
+
+    name: str
+    magic: bytes
+    module: str
+    reader: str
+    pixel_types: dict
+    size_part: str
+    channels_part: str
+    pixel_type_code: str = "texture.pixelType"
+
+    def read(self, path, diagnostics: Diagnostics, **options) -> Optional[TextureImage]:
+        """Run this container's reader (imported on first use: OpenEXR loads only for EXR)."""
+        import importlib
+
+        return getattr(importlib.import_module(self.module), self.reader)(path, diagnostics, **options)
+
+
+CONTAINERS = {
+    "exr": Container("exr", b"\x76\x2f\x31\x01", "vbusd.io.exr", "read_exr",
+                     {"float16": "float16", "float32": "float32"}, "header/dataWindow",
+                     "header/channels"),
+    "png": Container("png", b"\x89PNG\r\n\x1a\n", "vbusd.io.png", "read_png", {"unorm16": "uint16"},
+                     "IHDR", "IHDR"),
+    "ktx2": Container("ktx2", b"\xabKTX 20\xbb\r\n\x1a\n", "vbusd.io.textures", "_read_ktx2",
+                      {"float16": "float16", "float32": "float32", "unorm16": "uint16"},
+                      "header/pixelWidth", "header/vkFormat", "ktx2.vkFormat"),
+}
+"""Every container, by name; :func:`read_texture_file` picks one by the file's magic bytes."""
+
+_MAGIC_BYTES = max(len(c.magic) for c in CONTAINERS.values())
+
+
+def looks_like_metadata(key: str, value: str) -> bool:
+    """Whether a text entry (a PNG text chunk, an EXR attribute, a KTX2 key) looks like layout
+    metadata written in the wrong place: readers ignore it, ``metadata.missing`` names it."""
+    lowered = key.lower()
+    return "vbusd" in lowered or "virtualbones" in lowered or \
+        (isinstance(value, str) and md.FORMAT_NAME in value[:4096])
+
+
+def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
+               pixels=True) -> Optional[TextureImage]:
+    """The KTX2 container behind the reader interface (:mod:`vbusd.io.ktx2` raises its findings)."""
+    from vbusd.io import ktx2
+
+    file = display or str(path)
+
+    def report(error: InputError) -> None:
+        match = re.fullmatch(r"byte (\d+)", str(error.location or ""))
+        diagnostics.report(error.code if error.code in codes.REGISTRY else "texture.unreadable",
+                           error.message, FileLocation(file, int(match.group(1)) if match else None,
+                                                       part=error.location))
+
+    try:
+        header = ktx2.scan(path, max_dimension=max_dimension)
+    except InputError as error:
+        report(error)
+        return None
+    image = TextureImage(file=file, container="ktx2", width=header.width, height=header.height,
+                         channels=("R", "G", "B", "A"),
+                         pixel_type={"unorm16": "uint16"}.get(header.texel_format, header.texel_format),
+                         compression=header.supercompression,
+                         metadata_part=f"kvd/{ktx2.METADATA_KEY}")
+    if header.metadata is not None:
+        image.metadata.append((header.metadata, FileLocation(file, part=image.metadata_part)))
+    image.misplaced_metadata += [f"key/value entry {key!r}" for key in header.key_values
+                                 if key != ktx2.METADATA_KEY and looks_like_metadata(key, "")]
+    if pixels:
+        try:
+            image.texels = ktx2.read_level(path, header)
+        except InputError as error:
+            report(error)
+    return image
+
+
+def _open_regular(path: Path, file: str, diagnostics: Diagnostics):
+    """Open a file for reading, refusing what is not a regular file before any read.
+
+    Opened without blocking: a named pipe (a ``vb:texture`` can name one) would otherwise block
+    the reader forever. Returns a binary stream, or None (reported: ``file.*``).
+    """
+    where = FileLocation(file, part="file")
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        raise InputError("file not found", file=str(path), location="file",
-                         code="file.missing") from None
+        diagnostics.report("file.missing", "file not found", where)
+        return None
     except OSError as error:
-        raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
-                         location="file", code="file.unreadable") from None
+        diagnostics.report("file.unreadable", f"cannot read the file: {error.strerror or error}", where)
+        return None
     if not stat.S_ISREG(os.fstat(fd).st_mode):
         os.close(fd)
-        raise InputError("not a regular file (a folder, pipe, device or socket)", file=str(path),
-                         location="file", code="file.kind")
-    with os.fdopen(fd, "rb") as stream:
-        try:
-            return stream.read(count)
-        except OSError as error:
-            raise InputError(f"cannot read the file: {error.strerror or error}", file=str(path),
-                             location="file", code="file.unreadable") from None
+        diagnostics.report("file.kind", "not a regular file (a folder, pipe, device or socket)", where)
+        return None
+    return os.fdopen(fd, "rb")
 
 
-def sniff_container(path: PathLike) -> str:
-    """``exr``, ``png`` or ``ktx2`` by the file's magic bytes.
+def read_texture_file(path: PathLike, diagnostics: Diagnostics, *, display: Optional[str] = None,
+                      max_dimension: int = MAX_TEXTURE_DIMENSION, pixels: bool = True,
+                      sidecar: bool = True) -> Optional[TextureImage]:
+    """The one reader of a texture file: container, embedded metadata and sidecar.
 
-    Raises:
-        InputError: Missing, unreadable, or neither an EXR, a PNG nor a KTX2 file (location
-            ``byte 0``).
+    Recognizes the container by its magic bytes (not the suffix), runs its reader
+    (:class:`Container`), reports ``metadata.missing`` when nothing is embedded, and parses the
+    first embedded copy and, when asked, the sidecar ``<file>.json`` with
+    :func:`vbusd.format.metadata.parse_document`. Strict callers pass a strict ``diagnostics``
+    (the first error raises); ``vbusd validate`` passes a lenient one and runs its checks on the
+    result.
+
+    Args:
+        path: The texture file.
+        diagnostics: Where problems go.
+        display: How findings name the file (default ``path``).
+        max_dimension: Largest accepted width or height.
+        pixels: Decode the pixels.
+        sidecar: Read the sidecar too, when it exists.
+
+    Returns:
+        What could be read, or None when not even the container's header could be.
     """
-    from vbusd.io.exr import MAGIC
-    from vbusd.io.ktx2 import MAGIC as KTX2_MAGIC
-    from vbusd.io.png import SIGNATURE
+    path = Path(path)
+    file = display or str(path)
+    stream = _open_regular(path, file, diagnostics)
+    if stream is None:
+        return None
+    with stream:
+        try:
+            head = stream.read(_MAGIC_BYTES)
+        except OSError as error:
+            diagnostics.report("file.unreadable", f"cannot read the file: {error.strerror or error}",
+                               FileLocation(file, part="file"))
+            return None
+    container = next((c for c in CONTAINERS.values() if head.startswith(c.magic)), None)
+    if container is None:
+        diagnostics.report("texture.unreadable", "neither an OpenEXR, a PNG nor a KTX2 file (checked "
+                           f"the magic bytes; it starts with {head[:8]!r})", FileLocation(file, 0))
+        return None
+    image = container.read(path, diagnostics, display=file, max_dimension=max_dimension,
+                           pixels=pixels)
+    if image is None:
+        return None
+    side = sidecar_path(path)
+    side_file = os.path.join(os.path.dirname(file), side.name)
+    if not image.metadata:
+        misplaced = (f" (found {', '.join(image.misplaced_metadata)}: readers look only at "
+                     f"{image.metadata_part})" if image.misplaced_metadata else "")
+        beside = (f"; the sidecar {side.name} alone is not enough" if side.is_file()
+                  else f", and no sidecar {side.name} beside it")
+        diagnostics.report("metadata.missing", f"no {image.metadata_part} metadata embedded in the "
+                           f"texture: this is not a Virtual Bones texture (or its metadata was "
+                           f"stripped){misplaced}{beside}", FileLocation(file, part=image.metadata_part))
+    else:
+        text, where = image.metadata[0]
+        if text is not None:
+            image.document = md.parse_document(text, diagnostics, file=file, within=where.part or "")
+    if sidecar and side.exists():
+        image.sidecar_file = side_file
+        image.sidecar = read_sidecar_document(side, diagnostics, display=side_file)
+    return image
 
-    head = _read_bytes(Path(path), len(KTX2_MAGIC))
-    if head[:4] == MAGIC:
-        return "exr"
-    if head[:8] == SIGNATURE:
-        return "png"
-    if head == KTX2_MAGIC:
-        return "ktx2"
-    raise InputError("neither an OpenEXR, a PNG nor a KTX2 file (checked the magic bytes)",
-                     file=str(path), location="byte 0", code="texture.container")
+
+def read_sidecar_document(path: PathLike, diagnostics: Diagnostics, *, display: Optional[str] = None):
+    """Read and parse a sidecar (at most :data:`vbusd.format.metadata.MAX_METADATA_BYTES`).
+
+    Returns:
+        The parsed JSON value, or None (reported: ``file.*`` or ``metadata.json``).
+    """
+    file = display or str(path)
+    stream = _open_regular(Path(path), file, diagnostics)
+    if stream is None:
+        return None
+    with stream:
+        try:
+            data = stream.read(md.MAX_METADATA_BYTES + 1)
+        except OSError as error:
+            diagnostics.report("file.unreadable", f"cannot read the file: {error.strerror or error}",
+                               FileLocation(file, part="file"))
+            return None
+    return md.parse_document(data, diagnostics, file=file, what="sidecar")
 
 
-def _check_dimensions(info: md.LayoutInfo, width: int, height: int, file: str, location: str) -> None:
+def check_image(image: TextureImage, diagnostics: Diagnostics, *, width=None, height=None,
+                texel_format=None, digest=None, format_location=None, digest_location=None,
+                what: str = "the metadata") -> None:
+    """Check a texture file against what is declared for it (its metadata, or a USD prim).
+
+    ``texture.pixelType`` (a texel format the container cannot hold, or channels of another pixel
+    type), ``texture.size`` and ``texture.digest``. Declared values that are None are not checked.
+
+    Args:
+        image: What :func:`read_texture_file` read.
+        diagnostics: Where problems go.
+        width, height, texel_format, digest: The declared values.
+        format_location: Where the declared texel format sits (default: the file).
+        digest_location: Where the declared digest sits (default: the file).
+        what: How messages name the declaration.
+    """
+    container = CONTAINERS[image.container]
+    at_size = FileLocation(image.file, part=container.size_part)
+    at_channels = FileLocation(image.file, part=container.channels_part)
+    if texel_format is not None:
+        expected = container.pixel_types.get(texel_format)
+        if expected is None:
+            holders = ", ".join(c.name.upper() for c in CONTAINERS.values() if texel_format in c.pixel_types)
+            diagnostics.report(container.pixel_type_code, f"texelFormat {texel_format} is stored in "
+                               f"{holders} files, not {container.name.upper()}",
+                               format_location or at_channels)
+    if width is not None and height is not None and (image.width, image.height) != (width, height):
+        diagnostics.report("texture.size", f"image is {image.width}x{image.height} but {what} says "
+                           f"{width}x{height}", at_size)
+    if texel_format is not None and expected is not None and image.pixel_type in _PIXEL_TYPES \
+            and image.pixel_type != expected:
+        diagnostics.report(container.pixel_type_code, f"pixel type does not match texelFormat "
+                           f"{texel_format} ({expected} expected): the file holds {image.pixel_type}",
+                           at_channels)
+    if digest is not None and image.texels is not None:
+        actual = md.content_digest(image.texels)
+        if actual != digest:
+            diagnostics.report("texture.digest", f"pixel data does not match its contentDigest (the "
+                               f"texels are corrupted or were changed): {what} says {digest[:23]}..., "
+                               f"the texels hash to {actual[:23]}...", digest_location or at_channels)
+
+
+_PIXEL_TYPES = ("float16", "float32", "uint16")
+"""Pixel types a Virtual Bones texture can have; a container reader reports any other itself."""
+
+
+def json_differences(a, b, parts=(), limit: int = 100) -> list:
+    """Paths (key and index tuples) where two parsed JSON values differ, at most ``limit``.
+
+    Values compare as JSON: ``1`` and ``true`` differ, ``30`` and ``30.0`` do not; lists of
+    different lengths differ as a whole.
+    """
+    out: list = []
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in sorted(set(a) | set(b)):
+            if len(out) >= limit:
+                break
+            if key not in a or key not in b:
+                out.append(parts + (key,))
+            else:
+                out += json_differences(a[key], b[key], parts + (key,), limit - len(out))
+    elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for i, (x, y) in enumerate(zip(a, b)):
+            if len(out) >= limit:
+                break
+            out += json_differences(x, y, parts + (i,), limit - len(out))
+    elif isinstance(a, bool) != isinstance(b, bool) or isinstance(a, (dict, list)) or \
+            isinstance(b, (dict, list)) or a != b:
+        out.append(parts)
+    return out
+
+
+def check_sidecar_agrees(image: TextureImage, diagnostics: Diagnostics) -> None:
+    """``metadata.sidecarMismatch`` for each place the sidecar's document differs from the
+    embedded one (compared as parsed JSON; the spec: all copies agree and readers do not guess)."""
+    if image.document is None or image.sidecar is None:
+        return
+    for parts in json_differences(image.document, image.sidecar):
+        pointer = md.json_pointer(parts)
+        diagnostics.report("metadata.sidecarMismatch", f"sidecar disagrees with the metadata embedded "
+                           f"in {os.path.basename(image.file)} at {pointer or '/'}; all copies must "
+                           "agree (rewrite the asset, or delete the stale sidecar)",
+                           JsonPointer(image.sidecar_file, pointer))
+
+
+def _read_checked(path: PathLike, max_dimension: int, check_sidecar: bool, pixels: bool):
+    """The strict read behind :func:`read_texture` and :func:`read_texture_header`."""
+    path = Path(path)
+    file = str(path)
+    diagnostics = Diagnostics(file, strict=True)
+    image = read_texture_file(path, diagnostics, max_dimension=max_dimension, pixels=pixels,
+                              sidecar=check_sidecar)
+    info = md.from_dict(image.document, file=file, location_prefix=image.metadata_part)
+    check_sidecar_agrees(image, diagnostics)
     layout = info.layout
-    if (width, height) != (layout.width, layout.height):
-        raise InputError(f"image is {width}x{height} but the metadata says "
-                         f"{layout.width}x{layout.height}", file=file, location=location,
-                         code="texture.shape")
+    check_image(image, diagnostics, width=layout.width, height=layout.height,
+                texel_format=layout.texel_format.value, digest=info.content_digest if pixels else None,
+                format_location=JsonPointer(file, "/texelFormat", image.metadata_part),
+                digest_location=JsonPointer(file, "/contentDigest", image.metadata_part))
+    warnings = tuple(f.message for f in diagnostics.warnings)
+    return image, info, warnings
 
 
 def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
                  check_sidecar: bool = True) -> TextureData:
-    """Read a texture file and check it thoroughly.
+    """Read a texture file and check it thoroughly (strict: the first problem raises).
 
-    Checks, in order: the file exists and is an EXR, PNG or KTX2 (magic bytes); the header is complete
-    and its dimensions are within ``max_dimension`` (before any pixel data is read or allocated);
-    the channels are exactly R, G, B, A; the compression is lossless; the metadata is present,
-    valid and of a known version; a sidecar, when there is one, holds the same JSON document; the
-    image size and pixel type match the metadata; the pixel data decodes; the content digest
-    matches.
+    :func:`read_texture_file` with a strict list, then: the metadata is valid and of a known
+    version (:func:`vbusd.format.metadata.from_dict`); a sidecar, when there is one, holds the same
+    JSON document; the image size, pixel type and content digest match the metadata
+    (:func:`check_image`).
 
     Args:
         path: The texture file.
@@ -230,29 +543,14 @@ def read_texture(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION,
         InputError: Any problem, with the file and a location such as ``byte 1234``,
             ``header/compression``, ``header/vbusd.layout/clips/0/rowCount``, ``IHDR`` or
             ``iTXt vbusd.layout``; a disagreeing sidecar is reported on the sidecar with the
-            JSON pointer of the first difference (code ``metadata.mismatch``).
+            JSON pointer of the first difference (code ``metadata.sidecarMismatch``).
         VersionError: Metadata of a newer format version.
     """
-    path = Path(path)
-    opened = _open_checked(path, max_dimension, check_sidecar)
-    if opened.container == "exr":
-        from vbusd.io import exr
-
-        texels = exr.read_pixels(path, opened.raw, opened.info.layout.texel_format.value,
-                                 max_dimension=max_dimension)
-    elif opened.container == "ktx2":
-        from vbusd.io import ktx2
-
-        texels = ktx2.read_level(path, opened.raw)
-    else:
-        from vbusd.io import png as png16
-
-        texels = png16.read_pixels(opened.raw, str(path))
-    md.check_texels(opened.info, texels, file=str(path),
-                    digest_location=f"{opened.prefix}/contentDigest")
+    image, info, warnings = _read_checked(path, max_dimension, check_sidecar, pixels=True)
+    texels = image.texels
     texels.setflags(write=False)
-    return TextureData(texels=texels, info=opened.info, container=opened.container,
-                       compression=opened.compression, path=path, warnings=opened.warnings)
+    return TextureData(texels=texels, info=info, container=image.container,
+                       compression=image.compression, path=Path(path), warnings=warnings)
 
 
 @dataclass(frozen=True)
@@ -279,129 +577,38 @@ def read_texture_header(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIME
     """Read and check a texture's header and metadata without decoding pixels (fast for any size).
 
     Makes every check of :func:`read_texture` except decoding the pixels and the content digest
-    (EXR: the chunk table is still checked, so truncation is found).
+    (the container's structure is still walked: EXR's chunk table, PNG's chunk CRCs, so
+    truncation is found).
 
     Raises:
         InputError: As :func:`read_texture`.
     """
-    path = Path(path)
-    opened = _open_checked(path, max_dimension, check_sidecar)
-    return TextureHeader(info=opened.info, container=opened.container,
-                         compression=opened.compression, path=path, warnings=opened.warnings)
+    image, info, warnings = _read_checked(path, max_dimension, check_sidecar, pixels=False)
+    return TextureHeader(info=info, container=image.container, compression=image.compression,
+                         path=Path(path), warnings=warnings)
 
 
-@dataclass(frozen=True)
-class _Opened:
-    info: md.LayoutInfo
-    container: str
-    compression: str
-    raw: object  # exr.ExrHeader, png16.PngChunks or ktx2.Ktx2Header
-    prefix: str  # location of the metadata inside the file
-    warnings: tuple = ()
+def sniff_container(path: PathLike) -> str:
+    """``exr``, ``png`` or ``ktx2`` by the file's magic bytes.
 
-
-def _open_checked(path: Path, max_dimension: int, check_sidecar: bool) -> _Opened:
-    """Every check that needs no pixel decoding: container, header, sizes, metadata, pixel types."""
+    Raises:
+        InputError: Missing, unreadable, or none of the containers (location ``byte 0``).
+    """
     file = str(path)
-    container = sniff_container(path)
-    if container == "exr":
-        from vbusd.io import exr
-
-        header = exr.scan_header(path, max_dimension=max_dimension)
-        prefix = f"header/{exr.METADATA_ATTRIBUTE}"
-        embedded = md.parse_json(exr.metadata_text(header, file), file=file,
-                                 location_prefix=prefix)
-        info = md.from_dict(embedded, file=file, location_prefix=prefix)
-        if check_sidecar:
-            _check_sidecar_agrees(path, embedded)
-        if info.layout.texel_format is TexelFormat.UNORM16:
-            raise InputError("texelFormat unorm16 is stored in PNG files, not EXR", file=file,
-                             location=f"{prefix}/texelFormat", code="texture.format")
-        _check_dimensions(info, header.width, header.height, file, "header/dataWindow")
-        exr.check_pixel_types(header, info.layout.texel_format.value, file)
-        return _Opened(info, container, header.compression, header, prefix)
-    if container == "ktx2":
-        from vbusd.io import ktx2
-
-        header = ktx2.scan(path, max_dimension=max_dimension)
-        prefix = f"kvd/{ktx2.METADATA_KEY}"
-        embedded = md.parse_json(ktx2.metadata_text(header, file), file=file, location_prefix=prefix)
-        info = md.from_dict(embedded, file=file, location_prefix=prefix)
-        if check_sidecar:
-            _check_sidecar_agrees(path, embedded)
-        if info.layout.texel_format.value != header.texel_format:
-            raise InputError(f"vkFormat {header.vk_format} ({ktx2.VK_FORMAT_NAMES[header.vk_format]}) "
-                             f"holds {header.texel_format} texels but the metadata says texelFormat "
-                             f"{info.layout.texel_format.value}", file=file,
-                             location=f"{prefix}/texelFormat", code="ktx2.vkFormat")
-        _check_dimensions(info, header.width, header.height, file, "header/pixelWidth")
-        return _Opened(info, container, header.supercompression, header, prefix)
-    from vbusd.io import png as png16
-
-    chunks = png16.scan_chunks(path, max_dimension=max_dimension)
-    prefix = f"iTXt {png16.METADATA_KEYWORD}"
-    embedded = md.parse_json(png16.metadata_text(chunks, file), file=file, location_prefix=prefix)
-    info = md.from_dict(embedded, file=file, location_prefix=prefix)
-    if check_sidecar:
-        _check_sidecar_agrees(path, embedded)
-    if info.layout.texel_format is not TexelFormat.UNORM16:
-        raise InputError(f"texelFormat {info.layout.texel_format.value} is stored in EXR "
-                         "files; a PNG holds unorm16 only", file=file,
-                         location=f"{prefix}/texelFormat", code="texture.format")
-    _check_dimensions(info, chunks.width, chunks.height, file, "IHDR")
-    return _Opened(info, container, "zip", chunks, prefix, chunks.warnings)
-
-
-def _first_difference(a, b, parts=()) -> Optional[tuple]:
-    """Path to the first place two parsed JSON values differ, or None when they are equal."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        for key in sorted(set(a) | set(b)):
-            if key not in a or key not in b:
-                return parts + (key,)
-            found = _first_difference(a[key], b[key], parts + (key,))
-            if found is not None:
-                return found
-        return None
-    if isinstance(a, list) and isinstance(b, list):
-        if len(a) != len(b):
-            return parts
-        for i, (x, y) in enumerate(zip(a, b)):
-            found = _first_difference(x, y, parts + (i,))
-            if found is not None:
-                return found
-        return None
-    if isinstance(a, bool) != isinstance(b, bool) or type(a) in (dict, list) or \
-            type(b) in (dict, list) or a != b:
-        return parts
-    return None
-
-
-def _read_json_file(path: Path) -> str:
-    raw = _read_bytes(path)
-    try:
-        return raw.decode("utf-8").removeprefix("\ufeff")
-    except UnicodeDecodeError as error:
-        raise InputError("sidecar is not UTF-8 text", file=str(path), location=f"byte {error.start}",
-                         code="metadata.json") from None
-
-
-def _check_sidecar_agrees(texture: Path, embedded) -> None:
-    """Refuse a sidecar whose JSON document differs from the texture's embedded one (parsed)."""
-    sidecar = sidecar_path(texture)
-    if not sidecar.is_file():
-        return
-    document = md.parse_json(_read_json_file(sidecar), file=str(sidecar), what="sidecar")
-    difference = _first_difference(embedded, document)
-    if difference is not None:
-        pointer = md.json_pointer(difference) or "/"
-        raise InputError(f"sidecar disagrees with the metadata embedded in {texture.name} at "
-                         f"{pointer}; all copies must agree (rewrite the asset, or delete the "
-                         "stale sidecar)", file=str(sidecar), location=pointer,
-                         code="metadata.mismatch")
+    diagnostics = Diagnostics(file, strict=True)
+    stream = _open_regular(Path(path), file, diagnostics)
+    with stream:
+        head = stream.read(_MAGIC_BYTES)
+    for container in CONTAINERS.values():
+        if head.startswith(container.magic):
+            return container.name
+    diagnostics.report("texture.unreadable", "neither an OpenEXR, a PNG nor a KTX2 file (checked "
+                       "the magic bytes)", FileLocation(file, 0))
+    raise AssertionError("unreachable: a strict list raised")  # pragma: no cover
 
 
 def read_sidecar(path: PathLike) -> md.LayoutInfo:
-    """Read and validate a sidecar JSON file (``<texture>.json``).
+    """Read and validate a sidecar JSON file (``<texture>.json``), strictly.
 
     Args:
         path: The sidecar itself (not the texture).
@@ -410,5 +617,6 @@ def read_sidecar(path: PathLike) -> md.LayoutInfo:
         InputError: Missing or unreadable file, text that is not UTF-8 (``byte N``), broken JSON
             (``line L column C``), or invalid metadata (a JSON pointer).
     """
-    path = Path(path)
-    return md.loads(_read_json_file(path), file=str(path))
+    file = str(path)
+    document = read_sidecar_document(path, Diagnostics(file, strict=True))
+    return md.from_dict(document, file=file)

@@ -2,7 +2,9 @@
 
 One USD file (``.usda`` or ``.usdc``) holds a :class:`vbusd.format.model.VirtualBonesAsset`; each animation's
 texture lies beside it, named ``<usd stem>.<animation prim name>.exr`` (float16, float32) or
-``.png`` (unorm16), with its sidecar ``<texture>.json`` (:mod:`vbusd.io.textures`).
+``.png`` (unorm16), or ``<usd stem>.<animation prim name>.<12 hex digits>.<exr|png>`` when that
+name holds the texture of the asset being replaced, with its sidecar ``<texture>.json``
+(:mod:`vbusd.io.textures`). ``vb:texture`` names the file; readers never derive the name.
 
 Stage structure written by :func:`write_asset` (paths come from the model)::
 
@@ -29,8 +31,10 @@ Stage structure written by :func:`write_asset` (paths come from the model)::
 * Stage metadata: ``upAxis``, ``metersPerUnit``, ``timeCodesPerSecond`` and ``framesPerSecond``
   (``asset.extra["frames_per_second"]``, else the time codes per second).
 
-Every output (USD layer, textures, sidecars) is written in one
-:class:`vbusd.io.files.AtomicTransaction`: all files appear, or none changes.
+Every output (USD layer, textures, sidecars) is written in one :class:`vbusd.io.files.Commit`:
+under the output's lock, textures and sidecars are staged under names that cannot collide with
+the current asset's, and the rename of the layer makes the new asset current (old asset or new
+asset, never a mix; spec, "File names and the write guarantee").
 
 :func:`read_asset` treats the prim attributes as the source of truth: the texture's own layout
 metadata must agree with them (sizes, encoding, texel format, bones, clips, unorm ranges, digest),
@@ -45,6 +49,7 @@ the asset's folder unless ``allow_outside_paths`` is given.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 from dataclasses import dataclass
@@ -53,6 +58,7 @@ from typing import Optional, Union
 
 import numpy as np
 
+from vbusd.format import names
 from vbusd.format.errors import InputError, OptionsError, VbusdError, VersionError
 from vbusd.io.files import AtomicTransaction, resolve_inside
 from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
@@ -62,21 +68,15 @@ from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, reg
 PathLike = Union[str, os.PathLike]
 
 WRITE_SUFFIXES = (".usda", ".usdc", ".usd")
-READ_SUFFIXES = (".usda", ".usdc", ".usd")
 TEXTURE_CONTAINERS = ("exr", "png", "ktx2")
 
-REL_ANIMATION = "vb:animation"
-PRIMVAR_BONE_INDICES = "vb:boneIndices"
-PRIMVAR_BONE_WEIGHTS = "vb:boneWeights"
-PRIMVAR_CLIP = "vb:clip"
-PRIMVAR_TIME_OFFSET = "vb:timeOffset"
-PRIMVAR_PLAYBACK_RATE = "vb:playbackRate"
+REL_ANIMATION = names.ANIMATION_REL
+PRIMVAR_BONE_INDICES = names.BONE_INDICES.name
+PRIMVAR_BONE_WEIGHTS = names.BONE_WEIGHTS.name
+PRIMVAR_CLIP = names.INSTANCE_CLIP.name
+PRIMVAR_TIME_OFFSET = names.INSTANCE_TIME_OFFSET.name
+PRIMVAR_PLAYBACK_RATE = names.INSTANCE_PLAYBACK_RATE.name
 PROTOTYPES_SCOPE = "Prototypes"
-OUTSIDE_PATHS_HINT = "use --allow-outside-paths to allow it"
-"""Added to path refusals: every command reading with this module (info, decode, convert) has the
-option, as ``read_asset(..., allow_outside_paths=True)`` has in Python."""
-WEIGHT_SUM_TOLERANCE = 1e-3
-"""Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
 
 
 def _pxr():
@@ -87,36 +87,11 @@ def _pxr():
     return Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 
-def _applies_api(prim, schema: str) -> bool:
-    """Whether ``prim`` applies the API schema ``schema``.
-
-    Also true when USD's schema registry does not know the schema (an application without the
-    plugin, or vbusd imported after pxr.Usd built its registry), where ``prim.HasAPI`` is False:
-    the composed, authored ``apiSchemas`` list counts (spec 13: readers rely on authored data only).
-    """
-    if schema in prim.GetAppliedSchemas():
-        return True
-    listop = prim.GetMetadata("apiSchemas")
-    if listop is None:
-        return False
-    try:
-        return schema in [str(name) for name in listop.ApplyOperations([])]
-    except Exception:  # a malformed list op applies nothing
-        return False
-
-
 def _tf_message(error: BaseException) -> str:
-    """The human part of a Tf error ("Error in 'Sdf_...' at line N in file X : 'message'").
+    """USD's error text as one clean line (:func:`vbusd.io.usd_reader.tf_message`)."""
+    from vbusd.io.usd_reader import tf_message
 
-    A Tf.ErrorException can hold several such errors; their messages are joined with "; ".
-    """
-    text = str(error).strip()
-    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]*? : '(.*?)'\s*(?=Error in '|$)",
-                       text, flags=re.S)
-    if not found:
-        match = re.search(r" : '(.*)'\s*$", text, flags=re.S)
-        found = [match.group(1)] if match else [text]
-    return "; ".join(" ".join(message.split()) for message in found)[:600]
+    return tf_message(error)
 
 
 # --------------------------------------------------------------------------------------------
@@ -205,36 +180,41 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str) -> None:
     prim = stage.DefinePrim(path, ANIMATION_TYPE)
     from vbusd.format.metadata import content_digest
 
+    # Keyed by the layout metadata keys; the names table gives each one's USD attribute.
     values = {
-        "vb:formatVersion": FORMAT_VERSION,
-        "vb:texture": Sdf.AssetPath("./" + texture_name),
-        "vb:encoding": layout.encoding.value,
-        "vb:texelFormat": layout.texel_format.value,
-        "vb:boneCount": layout.bone_count,
-        "vb:texelsPerBone": layout.texels_per_bone,
-        "vb:rowCount": layout.row_count,
-        "vb:textureWidth": layout.width,
-        "vb:textureHeight": layout.height,
-        "vb:horizontalPadding": layout.horizontal_padding.value,
-        "vb:verticalPadding": layout.vertical_padding.value,
-        "vb:bones": Vt.TokenArray([str(b) for b in vb.bones]),
-        "vb:clipNames": Vt.TokenArray([str(c.name) for c in vb.clips]),
-        "vb:clipFirstRows": Vt.IntArray([int(c.first_row) for c in vb.clips]),
-        "vb:clipRowCounts": Vt.IntArray([int(c.row_count) for c in vb.clips]),
-        "vb:clipRowsPerSecond": Vt.DoubleArray([float(c.rows_per_second) for c in vb.clips]),
-        "vb:clipLoops": Vt.BoolArray([bool(c.loop) for c in vb.clips]),
-        "vb:clipStartTimes": Vt.DoubleArray([float(c.start_time) for c in vb.clips]),
-        "vb:contentDigest": content_digest(vb.texels),
+        "formatVersion": FORMAT_VERSION,
+        "texture": Sdf.AssetPath("./" + texture_name),
+        "encoding": layout.encoding.value,
+        "texelFormat": layout.texel_format.value,
+        "boneCount": layout.bone_count,
+        "texelsPerBone": layout.texels_per_bone,
+        "rowCount": layout.row_count,
+        "width": layout.width,
+        "height": layout.height,
+        "horizontalPadding": layout.horizontal_padding.value,
+        "verticalPadding": layout.vertical_padding.value,
+        "bones": Vt.TokenArray([str(b) for b in vb.bones]),
+        "contentDigest": content_digest(vb.texels),
+    }
+    clip_values = {
+        "name": Vt.TokenArray([str(c.name) for c in vb.clips]),
+        "firstRow": Vt.IntArray([int(c.first_row) for c in vb.clips]),
+        "rowCount": Vt.IntArray([int(c.row_count) for c in vb.clips]),
+        "rowsPerSecond": Vt.DoubleArray([float(c.rows_per_second) for c in vb.clips]),
+        "loop": Vt.BoolArray([bool(c.loop) for c in vb.clips]),
+        "startTime": Vt.DoubleArray([float(c.start_time) for c in vb.clips]),
     }
     if vb.clip_extents is not None:
         extents = np.asarray(vb.clip_extents, dtype=np.float32).reshape(-1, 3)
-        values["vb:clipExtents"] = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(extents))
+        values["clipExtents"] = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(extents))
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
         # float4[] holds float32: the nearest float32 of each float64 bound (spec: USD schema).
-        values["vb:unormRangeMin"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 0], np.float32))
-        values["vb:unormRangeMax"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 1], np.float32))
-    for name, value in values.items():
+        values["unormRangeMin"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 0], np.float32))
+        values["unormRangeMax"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 1], np.float32))
+    authored = {names.BY_KEY[key].name: value for key, value in values.items()}
+    authored.update({names.CLIP_BY_KEY[key].name: value for key, value in clip_values.items()})
+    for name, value in authored.items():
         attribute = prim.GetAttribute(name)
         if not attribute or not attribute.Set(value):
             raise OptionsError(f"cannot author {vb.path}.{name} (is the schema plugin registered?)",
@@ -369,18 +349,29 @@ def build_stage(asset: VirtualBonesAsset, texture_names: list):
 
 
 def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
-                texture_container: Optional[str] = None) -> list:
+                texture_container: Optional[str] = None, replace: bool = True,
+                lock_timeout: Optional[float] = None) -> list:
     """Write a Virtual Bones asset: the USD layer, and per animation its texture and sidecar.
 
-    All files are written as one transaction (temporaries beside the targets, renamed at the end):
-    on any failure nothing new is left behind and existing files keep their content. Texture names
-    are always ``<usd stem>.<animation prim name>.<exr|png|ktx2>``; ``VirtualBones.texture`` is ignored.
+    The files are written through one :class:`vbusd.io.files.Commit` (spec, "File names and the
+    write guarantee"): under the output's lock, textures and sidecars are staged and renamed into
+    place under names no file of the current asset holds with other content, then the layer is
+    renamed over ``path``: that rename makes the new asset current. Until it happens readers see
+    the old asset whole; after it, the old asset's textures and sidecars that the new layer does
+    not use are removed. A texture is named ``<usd stem>.<animation prim name>.<exr|png|ktx2>``,
+    or, when a file of that name holds other content (the asset being replaced),
+    ``<usd stem>.<animation prim name>.<12 hex digits of the file's SHA-256>.<exr|png|ktx2>``; the
+    layer's ``vb:texture`` names it. ``VirtualBones.texture`` is ignored.
 
     Args:
         asset: What to write.
         path: The USD file, ``.usda``, ``.usdc`` or ``.usd`` (crate).
         texture_container: ``"exr"``, ``"png"``, ``"ktx2"`` or None (PNG for unorm16, EXR
             otherwise). EXR holds float16 and float32, PNG holds unorm16, KTX2 any of them.
+        replace: Replace an existing ``path`` (default); with False an existing layer is refused,
+            checked under the lock (``vbusd convert`` without ``--force``).
+        lock_timeout: Seconds to wait for another run writing the same output (None:
+            ``$VBUSD_LOCK_TIMEOUT`` or 30).
 
     Returns:
         The files written: the USD layer first, then each texture followed by its sidecar.
@@ -388,7 +379,11 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     Raises:
         OptionsError: Unsupported suffix (``.usdz`` included), a container that cannot hold a
             texel format, invalid or clashing prim paths; raised before any file is created.
-        OSError: The files could not be written (nothing was changed).
+            Also an existing layer when ``replace`` is False.
+        vbusd.io.files.OutputLocked: Another run kept the output locked past ``lock_timeout``.
+        OSError: The files could not be written (disk full, quota, read-only, name too long, a
+            folder in the way); nothing was changed. USD's own write failures are raised as
+            OSError too, with the errno its message names.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -409,644 +404,203 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     except OptionsError as error:
         raise error.at(file=str(path))
 
+    from vbusd.format import metadata as md
+    from vbusd.io.files import Commit, fault_point
     from vbusd.io.textures import sidecar_path, write_texture
 
+    _, Sdf, _, _, _, Vt = _pxr()
     folder = path.parent
     written = [path]
-    with AtomicTransaction() as transaction:
+    with Commit(path, replace=replace, in_use=asset_files_in_use, lock_timeout=lock_timeout) as commit:
+        old_files = replaced_files(path)
+        in_use = {os.path.abspath(p) for p in asset_files_in_use(path)}
         for vb, name in zip(asset.animations, texture_names):
-            texture = folder / name
-            write_texture(texture, vb, transaction=transaction)
+            plain = folder / name
+            write_texture(plain, vb, transaction=commit, sidecar=False)
+            staged = commit.staged_path(plain)
+            fault_point(f"wrote {staged.name}", staged)
+            texture = _texture_name(plain, staged, in_use)
+            if texture != plain:
+                commit.retarget(plain, texture)
+            with commit.open(sidecar_path(texture), "w", encoding="utf-8", newline="\n") as stream:
+                stream.write(md.dumps(md.to_dict(vb)))
+            stage.GetPrimAtPath(vb.path).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
             written += [texture, sidecar_path(texture)]
-        # The layer references the textures: added last, so it is renamed last.
-        temporary = transaction.temp_path(path)
-        if not stage.GetRootLayer().Export(str(temporary)):
-            raise OSError(f"USD could not write {path}")
+        layer = stage.GetRootLayer()
+        data = dict(layer.customLayerData)
+        data["vbusd"] = {"files": Vt.StringArray([p.name for p in written[1:]])}
+        layer.customLayerData = data
+        # The layer names the textures: staged last, renamed last (the commit point). Not
+        # reserved, so USD writes it directly instead of through a temporary of its own.
+        export_layer(layer, commit.temp_path(path, reserve=False), path)
+        commit.discard_after(old_files)
     return written
+
+
+_TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2")
+
+
+def _texture_name(plain: Path, staged: Path, in_use: set) -> Path:
+    """The plain name, unless a current layer uses that file (or its sidecar) with other content.
+
+    Only such a file must not change before the commit point; any other file of that name is no
+    part of a current asset and is replaced (the output exists without --force was refused).
+    """
+    digest = _sha256(staged)
+    sidecar = plain.with_name(plain.name + ".json")
+    if os.path.abspath(plain) not in in_use and os.path.abspath(sidecar) not in in_use:
+        return plain
+    try:
+        if os.path.isfile(plain) and not os.path.islink(plain) and _sha256(plain) == digest \
+                and (not os.path.lexists(sidecar) or os.path.isfile(sidecar)):
+            return plain  # the same texture: replacing it changes nothing a reader sees
+    except OSError:
+        pass
+    return plain.with_name(f"{plain.stem}.{digest[:12]}{plain.suffix}")
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def replaced_files(layer_path: PathLike) -> list:
+    """The files to remove when the layer at ``layer_path`` is replaced (none if there is none).
+
+    Of the files the current layer names (:func:`layer_files`), only those vbusd writes for a
+    layer of that name: textures in its folder named ``<stem>.<prim name>[.<12 hex>].<suffix>``
+    and their sidecars. A texture the layer shares with other assets, or names elsewhere, stays.
+    """
+    layer_path = Path(layer_path)
+    if not os.path.isfile(layer_path):
+        return []
+    files = layer_files(layer_path)
+    pattern = re.compile(re.escape(layer_path.stem) + r"\.[A-Za-z_][A-Za-z0-9_]*(?:\.[0-9a-f]{12})?(?:"
+                         + "|".join(re.escape(s) for s in _TEXTURE_SUFFIXES) + r")")
+    owned = []
+    for file in files:
+        file = Path(file)
+        if os.path.abspath(file.parent) == os.path.abspath(layer_path.parent) and pattern.fullmatch(file.name):
+            owned += [file, file.with_name(file.name + ".json")]
+    return owned
+
+
+LARGE_LAYER_BYTES = 256 << 20
+"""A layer without vbusd's file list larger than this is not parsed for ``vb:texture`` (point
+caches: gigabytes of samples and no texture)."""
+
+
+def layer_files(layer_path: PathLike) -> list:
+    """The files a layer's ``vb:texture`` attributes name, resolved beside the layer.
+
+    Read from the list vbusd writes into the layer's ``customLayerData`` (``vbusd`` ->
+    ``files``: textures and sidecars) when present, which needs only the layer's header; else
+    from every ``vb:texture`` default value in the layer itself (not its sublayers), with the
+    sidecars. Anything unreadable names no file.
+
+    Args:
+        layer_path: A USD layer.
+
+    Returns:
+        Absolute paths (the files need not exist).
+    """
+    layer_path = Path(layer_path)
+    try:
+        _, Sdf, Tf, _, _, _ = _pxr()
+    except Exception:
+        return []
+    folder = layer_path.parent
+    try:
+        header = Sdf.Layer.OpenAsAnonymous(str(layer_path), True)
+    except Exception:
+        return []
+    if header is None:
+        return []
+    recorded = (dict(header.customLayerData).get("vbusd") or {})
+    if isinstance(recorded, dict) and isinstance(recorded.get("files"), (list, tuple)):
+        return [folder / str(name) for name in recorded["files"] if "/" not in str(name)]
+    try:
+        if layer_path.stat().st_size > LARGE_LAYER_BYTES:
+            return []
+        layer = Sdf.Layer.OpenAsAnonymous(str(layer_path))
+    except Exception:
+        return []
+    if layer is None:
+        return []
+    found = []
+
+    def visit(spec_path):
+        if spec_path.IsPropertyPath() and spec_path.name == names.TEXTURE:
+            spec = layer.GetAttributeAtPath(spec_path)
+            value = spec.default if spec else None
+            authored = getattr(value, "path", None)
+            if authored and "://" not in authored:
+                texture = Path(os.path.abspath(folder / authored))
+                found.extend([texture, texture.with_name(texture.name + ".json")])
+
+    layer.Traverse(Sdf.Path.absoluteRootPath, visit)
+    return found
+
+
+def asset_files_in_use(target: PathLike) -> list:
+    """Files the layers sharing ``target``'s stem (``<stem>.usda``, ``.usdc``, ``.usd``) name.
+
+    The ``in_use`` callback of :class:`vbusd.io.files.Commit` for USD outputs: recovery and the
+    clean-up after a commit never remove a texture a current layer of that stem still names.
+    """
+    target = Path(target)
+    used = []
+    for suffix in WRITE_SUFFIXES:
+        layer = target.with_name(target.stem + suffix)
+        if os.path.isfile(layer):
+            used += layer_files(layer)
+    return used
+
+
+_ERRNO_OF_MESSAGE = tuple((os.strerror(code), code) for code in (
+    errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENAMETOOLONG,
+    errno.EISDIR, errno.ENOTDIR, errno.EFBIG, errno.ENOENT, errno.EIO))
+
+
+def export_layer(layer, temporary: Path, target: Path) -> None:
+    """``layer.Export(temporary)``, with USD's failures (exceptions or False) as one OSError.
+
+    USD reports a failed write as a Tf error whose text holds the C library's message ("Error
+    occurred writing file: No space left on device"); the errno is recovered from that text (EIO
+    when none matches), and the error names ``target``, the file the user asked for.
+
+    Raises:
+        OSError: USD could not write the layer.
+    """
+    from pxr import Tf
+
+    from vbusd.io.files import fault_point
+
+    fault_point(f"export {temporary.name}", temporary)
+    try:
+        ok = layer.Export(str(temporary))
+    except Tf.ErrorException as error:
+        message = _tf_message(error)
+        for text, code in _ERRNO_OF_MESSAGE:
+            if text in message:
+                raise OSError(code, text, str(target)) from None
+        raise OSError(errno.EIO, f"USD could not write the layer: {message}", str(target)) from None
+    if not ok:
+        raise OSError(errno.EIO, "USD could not write the layer", str(target))
+    fault_point(f"exported {temporary.name}", temporary)
 
 
 # --------------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------------
 
-
-@dataclass(frozen=True)
-class AnimationAttributes:
-    """What a ``VirtualBonesAnimation`` prim says, checked as :func:`read_asset` checks it.
-
-    Attributes:
-        path: Prim path.
-        format_version: ``vb:formatVersion``.
-        layout: The layout its sizes and tokens give (and ``vb:textureWidth`` etc. agree with).
-        bones: ``vb:bones``.
-        clips: The clips of the six clip arrays.
-        clip_extents: ``(clips, 2, 3)`` ``vb:clipExtents``, or None when not authored.
-        unorm_ranges32: ``(T, 4, 2)`` float32 ``vb:unormRangeMin``/``Max`` (unorm16), else None.
-        content_digest: ``vb:contentDigest`` or None.
-        texture: ``vb:texture`` as authored.
-        texture_file: The texture file it resolves to (inside the asset's folder unless allowed).
-    """
-
-    path: str
-    format_version: int
-    layout: Layout
-    bones: tuple
-    clips: tuple
-    clip_extents: Optional[np.ndarray]
-    unorm_ranges32: Optional[np.ndarray]
-    content_digest: Optional[str]
-    texture: str
-    texture_file: Path
-
-
-class _Reader:
-    """State of one :func:`read_asset` call: the file for messages and the pxr modules."""
-
-    def __init__(self, path: Path, allow_outside: bool) -> None:
-        self.path = path
-        self.file = str(path)
-        self.folder = path.resolve().parent
-        self.allow_outside = allow_outside
-        self.pxr = _pxr()
-
-    def error(self, message: str, location: str, code: str = "usd.invalid") -> InputError:
-        return InputError(message, file=self.file, location=location, code=code)
-
-    def syntax_error(self, error: BaseException) -> InputError:
-        """USD's parse error as an InputError located at ``line L column C`` of this file.
-
-        USD writes the place as ``/abs/path/file.usda:L:C: message``; when the place is in this
-        file it becomes the location, otherwise (a sublayer) it stays in the message.
-        """
-        message = _tf_message(error)
-        location = "file"
-        match = re.search(r"(\S+?):(\d+):(\d+): ", message)
-        if match:
-            try:
-                same = Path(match.group(1)).resolve() == self.path.resolve()
-            except (OSError, ValueError):
-                same = False
-            if same:
-                location = f"line {match.group(2)} column {match.group(3)}"
-                message = message.replace(match.group(0), "")
-        # USD often reports one parse error twice, with and without its place.
-        message = "; ".join(dict.fromkeys(message.split("; ")))
-        return self.error(message, location, "usd.syntax")
-
-    # -- attributes ----------------------------------------------------------------------------
-
-    def attribute(self, prim, name: str, type_name, *, required: bool = True):
-        """The authored value of ``prim.name`` checked against its type, or None if not authored.
-
-        Schema fallbacks do not count (spec 13: readers must not rely on them, an application
-        without the plugin does not see them): a required attribute must be authored.
-        """
-        location = f"{prim.GetPath()}.{name}"
-        attribute = prim.GetAttribute(name)
-        if not attribute or not attribute.HasAuthoredValue():
-            if required:
-                raise self.error(f"missing required attribute {name}", location, "usd.missing")
-            return None
-        # The composed type is the schema's even where a layer authored another type (and Get()
-        # then returns the authored value), so every authored spec is checked. Roles (point3f vs
-        # float3) do not matter for the values read: compare the value types.
-        found = [attribute.GetTypeName()] + [spec.typeName for spec in attribute.GetPropertyStack()]
-        for found_type in found:
-            if found_type.type != type_name.type:
-                raise self.error(f"{name} must be {type_name}, found {found_type}", location,
-                                 "usd.type")
-        value = attribute.Get()
-        if value is None and required:
-            raise self.error(f"missing required attribute {name} (no value authored)", location,
-                             "usd.missing")
-        return value
-
-    def array(self, prim, name: str, type_name, *, required: bool = True, length=None):
-        value = self.attribute(prim, name, type_name, required=required)
-        if value is None:
-            return None
-        if length is not None and len(value) != length:
-            raise self.error(f"{name} has {len(value)} entries, expected {length}",
-                             f"{prim.GetPath()}.{name}", "usd.count")
-        return value
-
-    def primvar(self, prim, name: str, type_name, *, count: int, element_size=None, default=None):
-        """A vertex-interpolated primvar's flat numpy value and its element size.
-
-        ``count`` elements of the authored elementSize (which must equal ``element_size`` if given).
-        """
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        location = f"{prim.GetPath()}.primvars:{name}"
-        primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
-        value = self.attribute(prim, f"primvars:{name}", type_name, required=default is None)
-        if value is None:  # optional and not authored: the default for every element
-            return np.full(count * (element_size or 1), default), element_size or 1
-        if primvar.IsIndexed():
-            raise self.error("indexed primvars are not allowed here", location, "usd.primvar")
-        interpolation = primvar.GetInterpolation()
-        if interpolation != UsdGeom.Tokens.vertex:
-            raise self.error(f"interpolation must be vertex, found {interpolation}", location,
-                             "usd.primvar")
-        size = primvar.GetElementSize()
-        if size < 1:
-            raise self.error(f"elementSize must be at least 1, found {size}", location, "usd.primvar")
-        if element_size is not None and size != element_size:
-            raise self.error(f"elementSize must be {element_size}, found {size}", location,
-                             "usd.primvar")
-        array = np.asarray(value)
-        if array.size != count * size:
-            raise self.error(f"{array.size} values for {count} elements of size {size}", location,
-                             "usd.count")
-        return array, size
-
-    # -- paths ---------------------------------------------------------------------------------
-
-    def resolve(self, authored: str, anchor_layer, location: str) -> Path:
-        """Resolve an asset path authored in ``anchor_layer`` against the asset's folder rules."""
-        anchor = Path(anchor_layer.realPath).resolve().parent if anchor_layer.realPath else self.folder
-        if anchor != self.folder and not Path(authored.replace("\\", "/")).is_absolute():
-            try:
-                prefix = anchor.relative_to(self.folder).as_posix()
-            except ValueError:
-                prefix = os.path.relpath(anchor, self.folder).replace(os.sep, "/")
-            authored = f"{prefix}/{authored}"
-        return resolve_inside(self.folder, authored, file=self.file, location=location,
-                              allow_outside=self.allow_outside, outside_hint=OUTSIDE_PATHS_HINT)
-
-    def check_dependencies(self, layer, seen: set) -> None:
-        """Refuse sublayers, references and payloads that leave the asset's folder (recursively)."""
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        if layer.identifier in seen:
-            return
-        seen.add(layer.identifier)
-        for dependency in sorted(layer.GetCompositionAssetDependencies()):
-            if not dependency:  # internal references (same layer) have no asset path
-                continue
-            location = f"{layer.identifier} dependency @{dependency}@"
-            target = self.resolve(dependency, layer, location)
-            if target.exists() and not target.is_file():  # a named pipe would block USD forever
-                raise self.error(f"layer @{dependency}@ is not a regular file (a folder, pipe, device "
-                                 "or socket)", location, "file.kind")
-            try:
-                child = Sdf.Layer.FindOrOpen(str(target))
-            except Tf.ErrorException as error:
-                raise self.error(f"cannot read layer @{dependency}@: {_tf_message(error)}",
-                                 location, "usd.syntax") from None
-            if child is None:
-                raise self.error(f"layer @{dependency}@ not found", location, "file.missing")
-            self.check_dependencies(child, seen)
-
-    # -- prims ---------------------------------------------------------------------------------
-
-    def read_animation(self, prim) -> VirtualBones:
-        attributes = self.animation_attributes(prim)
-        from vbusd.io.textures import read_texture
-
-        texture = read_texture(attributes.texture_file)
-        self.compare(attributes.path, attributes.layout, attributes.bones, attributes.clips,
-                     attributes.unorm_ranges32, attributes.content_digest, texture)
-        return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
-                            clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
-                            path=attributes.path, texture=attributes.texture,
-                            clip_extents=attributes.clip_extents)
-
-    def animation_attributes(self, prim) -> "AnimationAttributes":
-        """Every vb:* attribute of an animation prim, checked; the texture is located, not read."""
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        path = str(prim.GetPath())
-        names = Sdf.ValueTypeNames
-
-        def where(name: str) -> str:
-            return f"{path}.{name}"
-
-        version = self.attribute(prim, "vb:formatVersion", names.Int)
-        if version > FORMAT_VERSION:
-            raise VersionError(f"format version {version} is newer than this reader's "
-                               f"{FORMAT_VERSION}; upgrade vbusd", file=self.file,
-                               location=where("vb:formatVersion"), code="format.version")
-        if version < 1:
-            raise self.error(f"format version must be at least 1, found {version}",
-                             where("vb:formatVersion"))
-        tokens = {}
-        for name, enum_type in (("vb:encoding", Encoding), ("vb:texelFormat", TexelFormat),
-                                ("vb:horizontalPadding", Padding), ("vb:verticalPadding", Padding)):
-            value = self.attribute(prim, name, names.Token)
-            try:
-                tokens[name] = enum_type(value)
-            except ValueError:
-                allowed = ", ".join(e.value for e in enum_type)
-                raise self.error(f"{value!r} is not one of {allowed}", where(name),
-                                 "usd.token") from None
-        ints = {name: self.attribute(prim, name, names.Int)
-                for name in ("vb:boneCount", "vb:texelsPerBone", "vb:rowCount", "vb:textureWidth",
-                             "vb:textureHeight")}
-        try:
-            layout = Layout(tokens["vb:encoding"], tokens["vb:texelFormat"], ints["vb:boneCount"],
-                            ints["vb:rowCount"], tokens["vb:horizontalPadding"],
-                            tokens["vb:verticalPadding"])
-        except OptionsError as error:
-            raise self.error(error.message, path, "usd.layout") from None
-        for name, derived in (("vb:texelsPerBone", layout.texels_per_bone),
-                              ("vb:textureWidth", layout.width), ("vb:textureHeight", layout.height)):
-            if ints[name] != derived:
-                raise self.error(f"{name} is {ints[name]} but the layout gives {derived}",
-                                 where(name), "usd.layout")
-        bones = tuple(str(b) for b in self.array(prim, "vb:bones", names.TokenArray,
-                                                 length=layout.bone_count))
-        clip_names = self.array(prim, "vb:clipNames", names.TokenArray)
-        count = len(clip_names)
-        if count < 1:
-            raise self.error("an animation needs at least one clip", where("vb:clipNames"), "usd.count")
-        first_rows = self.array(prim, "vb:clipFirstRows", names.IntArray, length=count)
-        row_counts = self.array(prim, "vb:clipRowCounts", names.IntArray, length=count)
-        rates = self.array(prim, "vb:clipRowsPerSecond", names.DoubleArray, length=count)
-        loops = self.array(prim, "vb:clipLoops", names.BoolArray, length=count)
-        starts = self.array(prim, "vb:clipStartTimes", names.DoubleArray, length=count)
-        clips = tuple(Clip(str(clip_names[i]), int(first_rows[i]), int(row_counts[i]), float(rates[i]),
-                           bool(loops[i]), float(starts[i])) for i in range(count))
-        row = 0
-        for i, clip in enumerate(clips):
-            if clip.first_row != row or clip.row_count < 1:
-                raise self.error(f"clip {i} ({clip.name}) covers rows {clip.first_row}.."
-                                 f"{clip.first_row + clip.row_count - 1}; clips must stack from row 0 "
-                                 f"without gaps (next row {row})", where("vb:clipFirstRows"), "usd.clips")
-            if not np.isfinite(clip.rows_per_second) or clip.rows_per_second <= 0:
-                raise self.error(f"clip {i} ({clip.name}) has rows per second {clip.rows_per_second}",
-                                 where("vb:clipRowsPerSecond"), "usd.clips")
-            row += clip.row_count
-        if row != layout.row_count:
-            raise self.error(f"clips hold {row} rows but vb:rowCount is {layout.row_count}",
-                             where("vb:clipRowCounts"), "usd.clips")
-        extents = self.array(prim, "vb:clipExtents", names.Float3Array, required=False)
-        clip_extents = None
-        if extents is not None:
-            if len(extents) != 2 * count:
-                raise self.error(f"vb:clipExtents has {len(extents)} entries, expected {2 * count} "
-                                 "(min and max per clip)", where("vb:clipExtents"), "usd.count")
-            clip_extents = np.asarray(extents, dtype=np.float32).reshape(count, 2, 3)
-        ranges32 = None
-        if layout.texel_format is TexelFormat.UNORM16:
-            low = self.array(prim, "vb:unormRangeMin", names.Float4Array, length=layout.texels_per_bone)
-            high = self.array(prim, "vb:unormRangeMax", names.Float4Array, length=layout.texels_per_bone)
-            ranges32 = np.stack([np.asarray(low, np.float32), np.asarray(high, np.float32)], axis=-1)
-        digest = self.attribute(prim, "vb:contentDigest", names.String, required=False)
-        authored, texture_path = self.texture_file(prim)
-        return AnimationAttributes(path=path, format_version=int(version), layout=layout, bones=bones,
-                                   clips=clips, clip_extents=clip_extents, unorm_ranges32=ranges32,
-                                   content_digest=digest, texture=authored, texture_file=texture_path)
-
-    def texture_file(self, prim) -> tuple:
-        """``vb:texture`` of an animation prim: (the asset path as authored, the resolved file).
-
-        Resolved relative to the layer that authored it, and refused (``path.unsafe``) when it
-        leaves the asset's folder unless outside paths are allowed (spec 13).
-        """
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        location = f"{prim.GetPath()}.vb:texture"
-        authored = self.attribute(prim, "vb:texture", Sdf.ValueTypeNames.Asset).path
-        if not authored:
-            raise self.error("vb:texture is empty", location, "usd.missing")
-        stack = prim.GetAttribute("vb:texture").GetPropertyStack(Usd.TimeCode.Default())
-        anchor = stack[0].layer if stack else prim.GetStage().GetRootLayer()
-        return authored, self.resolve(authored, anchor, location)
-
-    def compare(self, path: str, layout: Layout, bones, clips, ranges32, digest, texture) -> None:
-        """Raise InputError where the texture's metadata disagrees with the prim attributes."""
-        info = texture.info
-        name = texture.path.name
-
-        def mismatch(attribute: str, prim_value, texture_value) -> InputError:
-            return self.error(f"prim says {prim_value!r} but the texture {name} says {texture_value!r}",
-                              f"{path}.{attribute}", "usd.textureMismatch")
-
-        theirs = info.layout
-        for attribute, ours, other in (
-                ("vb:encoding", layout.encoding.value, theirs.encoding.value),
-                ("vb:texelFormat", layout.texel_format.value, theirs.texel_format.value),
-                ("vb:boneCount", layout.bone_count, theirs.bone_count),
-                ("vb:rowCount", layout.row_count, theirs.row_count),
-                ("vb:horizontalPadding", layout.horizontal_padding.value, theirs.horizontal_padding.value),
-                ("vb:verticalPadding", layout.vertical_padding.value, theirs.vertical_padding.value),
-                ("vb:textureWidth", layout.width, theirs.width),
-                ("vb:textureHeight", layout.height, theirs.height)):
-            if ours != other:
-                raise mismatch(attribute, ours, other)
-        for i, (ours, other) in enumerate(zip(bones, info.bones)):
-            if ours != other:
-                raise self.error(f"bone {i} is {ours!r} on the prim but {other!r} in the texture {name}",
-                                 f"{path}.vb:bones", "usd.textureMismatch")
-        if len(info.clips) != len(clips):
-            raise mismatch("vb:clipNames", len(clips), len(info.clips))
-        fields = (("vb:clipNames", "name"), ("vb:clipFirstRows", "first_row"),
-                  ("vb:clipRowCounts", "row_count"), ("vb:clipRowsPerSecond", "rows_per_second"),
-                  ("vb:clipLoops", "loop"), ("vb:clipStartTimes", "start_time"))
-        for i, (ours, other) in enumerate(zip(clips, info.clips)):
-            for attribute, field in fields:
-                if getattr(ours, field) != getattr(other, field):
-                    raise self.error(f"clip {i}: prim says {getattr(ours, field)!r} but the texture "
-                                     f"{name} says {getattr(other, field)!r}", f"{path}.{attribute}",
-                                     "usd.textureMismatch")
-        if ranges32 is not None:
-            texture_ranges = np.asarray(info.unorm_ranges, dtype=np.float64).astype(np.float32)
-            for attribute, side in (("vb:unormRangeMin", 0), ("vb:unormRangeMax", 1)):
-                if not np.array_equal(ranges32[..., side], texture_ranges[..., side]):
-                    raise mismatch(attribute, ranges32[..., side].tolist(),
-                                   texture_ranges[..., side].tolist())
-        if digest and digest != info.content_digest:
-            raise mismatch("vb:contentDigest", digest, info.content_digest)
-
-    def read_mesh(self, prim, animation: VirtualBones) -> BoundMesh:
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        names = Sdf.ValueTypeNames
-        path = str(prim.GetPath())
-        points = np.asarray(self.attribute(prim, "points", names.Point3fArray), dtype=np.float32)
-        counts = np.asarray(self.attribute(prim, "faceVertexCounts", names.IntArray), dtype=np.int32)
-        indices = np.asarray(self.attribute(prim, "faceVertexIndices", names.IntArray), dtype=np.int32)
-        vertex_count = len(points)
-        if not np.all(np.isfinite(points)):
-            point = int(np.argwhere(~np.isfinite(points))[0][0])
-            raise self.error(f"point {point} is not finite: {points[point].tolist()}",
-                             f"{path}.points[{point}]", "usd.mesh")
-        if counts.sum() != len(indices) or np.any(counts < 3):
-            raise self.error(f"faceVertexCounts sum to {int(counts.sum())} (each at least 3) but there "
-                             f"are {len(indices)} faceVertexIndices", f"{path}.faceVertexCounts",
-                             "usd.mesh")
-        if len(indices) and (indices.min() < 0 or indices.max() >= vertex_count):
-            raise self.error(f"faceVertexIndices must be in [0, {vertex_count})",
-                             f"{path}.faceVertexIndices", "usd.mesh")
-        normals = None
-        interpolation = "vertex"
-        normals_name = "normals"
-        primvar_normals = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
-        mesh = UsdGeom.Mesh(prim)
-        if primvar_normals and primvar_normals.HasAuthoredValue():
-            # UsdGeom: primvars:normals, when authored, wins over the normals attribute.
-            normals_name = "primvars:normals"
-            self.attribute(prim, normals_name, names.Normal3fArray)  # type check
-            normals = np.asarray(primvar_normals.ComputeFlattened(), dtype=np.float32)
-            interpolation = str(primvar_normals.GetInterpolation())
-        elif mesh.GetNormalsAttr().HasAuthoredValue():
-            normals = np.asarray(self.attribute(prim, "normals", names.Normal3fArray), dtype=np.float32)
-            interpolation = str(mesh.GetNormalsInterpolation())
-        if normals is not None:
-            expected = {"vertex": vertex_count, "faceVarying": len(indices)}.get(interpolation)
-            if expected is None:
-                raise self.error(f"normals interpolation must be vertex or faceVarying, found "
-                                 f"{interpolation}", f"{path}.{normals_name}", "usd.mesh")
-            if len(normals) != expected:
-                raise self.error(f"{len(normals)} normals for {interpolation} interpolation, expected "
-                                 f"{expected}", f"{path}.{normals_name}", "usd.count")
-        bone_indices, k = self.primvar(prim, PRIMVAR_BONE_INDICES, names.IntArray, count=vertex_count)
-        bone_weights, _ = self.primvar(prim, PRIMVAR_BONE_WEIGHTS, names.FloatArray,
-                                       count=vertex_count, element_size=k)
-        bone_count = animation.layout.bone_count
-        if bone_indices.size and (bone_indices.min() < 0 or bone_indices.max() >= bone_count):
-            raise self.error(f"bone indices must be in [0, {bone_count}) (the animation's bones), found "
-                             f"{int(bone_indices.min())}..{int(bone_indices.max())}",
-                             f"{path}.primvars:{PRIMVAR_BONE_INDICES}", "usd.primvar")
-        self.check_weights(bone_weights.reshape(vertex_count, k), f"{path}.primvars:{PRIMVAR_BONE_WEIGHTS}")
-        return BoundMesh(path=path, points=points.reshape(-1, 3), face_vertex_counts=counts,
-                         face_vertex_indices=indices,
-                         bone_indices=bone_indices.astype(np.int32).reshape(vertex_count, k),
-                         bone_weights=bone_weights.astype(np.float32).reshape(vertex_count, k),
-                         normals=None if normals is None else normals.reshape(-1, 3),
-                         normals_interpolation=interpolation)
-
-    def check_weights(self, weights: np.ndarray, location: str) -> None:
-        """Spec 14: finite, non-negative weights whose per-point sum is 1 within 1e-3.
-
-        Decoders use the weights as stored, so a bad weight would silently distort the skinning.
-        """
-        w = np.asarray(weights, dtype=np.float64)
-        bad = ~np.isfinite(w) | (w < 0)
-        if bad.any():
-            point, slot = (int(i) for i in np.argwhere(bad)[0])
-            raise self.error(f"point {point} has weight {w[point, slot]} (influence {slot}); weights "
-                             "must be finite and non-negative", f"{location}[{point * w.shape[1] + slot}]",
-                             "usd.primvar")
-        deviation = np.abs(w.sum(axis=1) - 1.0)
-        if w.size and deviation.max() > WEIGHT_SUM_TOLERANCE:
-            point = int(np.argmax(deviation))
-            raise self.error(f"the weights of point {point} sum to {w[point].sum():.6g}, not 1 (tolerance "
-                             f"{WEIGHT_SUM_TOLERANCE:g})", f"{location}[{point * w.shape[1]}]", "usd.primvar")
-
-    def read_crowd(self, prim) -> Crowd:
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        names = Sdf.ValueTypeNames
-        path = str(prim.GetPath())
-        positions = np.asarray(self.attribute(prim, "positions", names.Point3fArray), np.float32)
-        n = len(positions)
-        instancer = UsdGeom.PointInstancer(prim)
-        orientations_f = instancer.GetOrientationsfAttr()
-        if orientations_f.HasAuthoredValue() and len(orientations_f.Get() or []):
-            quats = self.array(prim, "orientationsf", names.QuatfArray, length=n)
-        else:
-            quats = self.array(prim, "orientations", names.QuathArray, length=n, required=False)
-        if quats is None:  # UsdGeom: no orientations means no rotation
-            orientations = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
-        else:
-            orientations = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats],
-                                    dtype=np.float32).reshape(n, 4)
-        scales = None
-        if instancer.GetScalesAttr().HasAuthoredValue():
-            scales = np.asarray(self.array(prim, "scales", names.Float3Array, length=n),
-                                np.float32).reshape(n, 3)
-        # Spec 15: a primvar not authored means clip 0, offset 0, rate 1 for every instance.
-        clip, _ = self.primvar(prim, PRIMVAR_CLIP, names.IntArray, count=n, element_size=1, default=0)
-        offset, _ = self.primvar(prim, PRIMVAR_TIME_OFFSET, names.FloatArray, count=n,
-                                 element_size=1, default=0.0)
-        rate, _ = self.primvar(prim, PRIMVAR_PLAYBACK_RATE, names.FloatArray, count=n,
-                               element_size=1, default=1.0)
-        for name, values in ((PRIMVAR_TIME_OFFSET, offset), (PRIMVAR_PLAYBACK_RATE, rate)):
-            if not np.all(np.isfinite(values)):
-                bad = int(np.flatnonzero(~np.isfinite(values))[0])
-                raise self.error(f"instance {bad} has a non-finite value {values[bad]}",
-                                 f"{path}.primvars:{name}", "usd.primvar")
-        return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
-                     clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
-                     playback_rate=rate.astype(np.float32), scales=scales)
-
-    def animation_target(self, prim, by_path: dict) -> int:
-        """Index of the animation ``prim``'s ``vb:animation`` relationship targets."""
-        location = f"{prim.GetPath()}.{REL_ANIMATION}"
-        relationship = prim.GetRelationship(REL_ANIMATION)
-        targets = relationship.GetForwardedTargets() if relationship else []
-        if len(targets) != 1:
-            raise self.error(f"{REL_ANIMATION} must target exactly one VirtualBonesAnimation prim, "
-                             f"found {len(targets)} targets", location, "usd.binding")
-        index = by_path.get(str(targets[0]))
-        if index is None:
-            raise self.error(f"{REL_ANIMATION} targets {targets[0]}, which is not a "
-                             "VirtualBonesAnimation prim", location, "usd.binding")
-        return index
-
-    def open_stage(self):
-        """Open the file as a stage after checking its sublayers, references and payloads.
-
-        Returns:
-            (root layer, stage).
-        """
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        if not self.path.exists():
-            raise InputError("file not found", file=self.file, location="file", code="file.missing")
-        if not self.path.is_file():  # USD would block forever reading a named pipe
-            raise InputError("not a regular file (a folder, pipe, device or socket)", file=self.file,
-                             location="file", code="file.kind")
-        try:
-            layer = Sdf.Layer.Find(str(self.path))
-            if layer is not None:
-                layer.Reload()  # the registry may hold an older version of this file
-            else:
-                layer = Sdf.Layer.FindOrOpen(str(self.path))
-        except Tf.ErrorException as error:
-            raise self.syntax_error(error) from None
-        if layer is None:
-            raise self.error("USD could not open the file", "file", "usd.syntax")
-        self.check_dependencies(layer, set())
-        from vbusd.io.exr import captured_output
-
-        try:
-            # USD prints composition problems as warnings on stderr; they are reported below as
-            # one error line, so the console shows them once, in vbusd's form.
-            with captured_output([]):
-                stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
-        except Tf.ErrorException as error:
-            raise self.syntax_error(error) from None
-        if stage is None:
-            raise self.error("USD could not open the stage", "file", "usd.syntax")
-        errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
-        if errors:
-            raise self.error(f"composition error: {' '.join(str(errors[0]).split())}", "file",
-                             "usd.composition")
-        return layer, stage
-
-    def read(self) -> VirtualBonesAsset:
-        Gf, Sdf, Tf, Usd, UsdGeom, Vt = self.pxr
-        layer, stage = self.open_stage()
-        animation_prims, mesh_prims, crowd_prims = [], [], []
-        for prim in self.walk(stage):
-            if prim.GetTypeName() == ANIMATION_TYPE:
-                animation_prims.append(prim)
-            if _applies_api(prim, BINDING_API):
-                if not prim.IsA(UsdGeom.Mesh):
-                    raise self.error(f"{BINDING_API} is applied to a {prim.GetTypeName() or 'typeless'} "
-                                     "prim; it applies to Mesh only", str(prim.GetPath()), "usd.binding")
-                mesh_prims.append(prim)
-            if prim.IsA(UsdGeom.PointInstancer) and _applies_api(prim, INSTANCING_API):
-                crowd_prims.append(prim)
-        if not animation_prims:
-            raise self.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")
-
-        animations, by_path = [], {}
-        for prim in animation_prims:
-            by_path[str(prim.GetPath())] = len(animations)
-            animations.append(self.guard(prim, self.read_animation, prim))
-        meshes: list = [[] for _ in animations]
-        for prim in mesh_prims:
-            index = self.animation_target(prim, by_path)
-            meshes[index].append(self.guard(prim, self.read_mesh, prim, animations[index]))
-        animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
-                                   unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
-                                   texture=vb.texture, clip_extents=vb.clip_extents)
-                      for vb, found in zip(animations, meshes)]
-        crowds, crowd_animation = [], []
-        for prim in crowd_prims:
-            index = self.animation_target(prim, by_path)
-            crowd = self.guard(prim, self.read_crowd, prim)
-            clip_count = len(animations[index].clips)
-            if crowd.clip.size and (crowd.clip.min() < 0 or crowd.clip.max() >= clip_count):
-                raise self.error(f"clip indices must be in [0, {clip_count})",
-                                 f"{prim.GetPath()}.primvars:{PRIMVAR_CLIP}", "usd.primvar")
-            crowds.append(crowd)
-            crowd_animation.append(index)
-
-        up_axis = str(UsdGeom.GetStageUpAxis(stage))
-        extra = {}
-        tcps = float(stage.GetTimeCodesPerSecond())
-        fps = float(stage.GetFramesPerSecond())
-        if layer.HasFramesPerSecond() and fps != tcps:
-            extra["frames_per_second"] = fps
-        return VirtualBonesAsset(
-            animations=tuple(animations), crowds=tuple(crowds), crowd_animation=tuple(crowd_animation),
-            up_axis=up_axis, meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)),
-            time_codes_per_second=tcps, default_prim=layer.defaultPrim or "VirtualBones", extra=extra)
-
-    def walk(self, stage):
-        """Every prim of the stage in depth-first order, except those below a point instancer.
-
-        Prototypes below an instancer repeat prims defined elsewhere: they are not read (and
-        ``vbusd info`` lists the same animation prims as :func:`read_asset` reads).
-        """
-        Usd, UsdGeom = self.pxr[3], self.pxr[4]
-        prims = iter(Usd.PrimRange(stage.GetPseudoRoot()))
-        for prim in prims:
-            if prim.IsPseudoRoot():
-                continue
-            yield prim
-            if prim.IsA(UsdGeom.PointInstancer):
-                prims.PruneChildren()
-
-    def guard(self, prim, function, *args):
-        """Run ``function`` turning USD's own errors into an InputError at ``prim``."""
-        Tf = self.pxr[2]
-        try:
-            return function(*args)
-        except VbusdError:
-            raise
-        except Tf.ErrorException as error:
-            raise self.error(_tf_message(error), str(prim.GetPath()), "usd.invalid") from None
-
-
-def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = False) -> list:
-    """The checked attributes of every ``VirtualBonesAnimation`` prim of a USD file, textures unread.
-
-    The file is opened as :func:`read_asset` opens it (sublayers, references and payloads must stay
-    inside the asset's folder) and every prim is checked as it checks it (authored attributes of the
-    right types, consistent sizes and clips, ``vb:texture`` resolving safely); the textures are
-    not opened. ``vbusd info`` uses it.
-
-    Args:
-        path: A ``.usda``, ``.usdc``, ``.usd`` or ``.usdz`` file.
-        allow_outside_paths: Accept layers and textures outside the asset's folder.
-
-    Returns:
-        One :class:`AnimationAttributes` per animation prim, in stage order.
-
-    Raises:
-        InputError: As :func:`read_asset`, or no animation prim (``usd.missing``).
-        VersionError: A newer format version than this reader knows.
-    """
-    reader = _Reader(Path(path), allow_outside_paths)
-    _, stage = reader.open_stage()
-    prims = [prim for prim in reader.walk(stage) if prim.GetTypeName() == ANIMATION_TYPE]
-    if not prims:
-        raise reader.error(f"no {ANIMATION_TYPE} prim in the stage", "/", "usd.missing")
-    return [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
-
-
-def read_asset(path: PathLike, *, allow_outside_paths: bool = False) -> VirtualBonesAsset:
-    """Read a Virtual Bones USD asset: every animation prim with its texture, bound meshes, crowds.
-
-    Args:
-        path: A ``.usda``, ``.usdc`` or ``.usd`` file.
-        allow_outside_paths: Accept texture paths, sublayers, references and payloads that resolve
-            outside the asset's folder (absolute paths included). URIs stay refused.
-
-    Returns:
-        The asset; each animation's ``texture`` is the asset path as authored.
-
-    Raises:
-        InputError: Unreadable or malformed USD, missing or mistyped attributes, a texture whose
-            metadata disagrees with its prim, or an unsafe path (code ``path.unsafe``); the error
-            names the file and the prim path (and attribute).
-        VersionError: A newer format version than this reader knows.
-    """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".usdz":
-        raise InputError("reading .usdz packages is not supported; unpack it and read the .usda or "
-                         ".usdc inside", file=str(path), location="file", code="usd.unsupported")
-    if suffix not in READ_SUFFIXES:
-        raise InputError(f"not a USD file name (expected {', '.join(READ_SUFFIXES)})",
-                         file=str(path), location="file", code="usd.suffix")
-    return _Reader(path, allow_outside_paths).read()
+# One reader (vbusd.io.usd_reader) serves read_asset, info, decode, validate and the converters'
+# stage opening; re-exported here, where callers have always found it.
+from vbusd.io.usd_reader import (  # noqa: E402,F401
+    OUTSIDE_PATHS_HINT, READ_SUFFIXES, WEIGHT_SUM_TOLERANCE, AnimationAttributes, read_animation_attributes,
+    read_asset, tf_message)

@@ -1,0 +1,140 @@
+"""The ``vb:*`` names of the Virtual Bones USD schema, in one table.
+
+The USD writer, the USD reader and the validators take every attribute, relationship and primvar
+name from here (spec/virtual-bones.md sections 13 to 15; ``schema/usd/schema.usda`` defines the
+same names for OpenUSD, and a test checks that the two agree).
+
+An animation prim's attributes are read into a dict with the keys of the layout metadata
+(:attr:`Attribute.key`): ``vb:textureWidth`` becomes ``width``, the six clip arrays become the
+``clips`` objects (``vb:clipFirstRows`` gives ``clips[j].firstRow``). That dict is versioned and
+upgraded exactly as a metadata document is (:mod:`vbusd.format.versioning`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+__all__ = [
+    "ANIMATION_TYPE", "BINDING_API", "INSTANCING_API", "Attribute", "Primvar", "ANIMATION_ATTRIBUTES",
+    "CLIP_ATTRIBUTES", "BY_NAME", "BY_KEY", "TEXTURE", "CLIP_EXTENTS", "UNORM_RANGE_MIN",
+    "UNORM_RANGE_MAX", "ANIMATION_REL", "BONE_INDICES", "BONE_WEIGHTS", "INSTANCE_CLIP",
+    "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
+]
+
+ANIMATION_TYPE = "VirtualBonesAnimation"
+BINDING_API = "VirtualBonesBindingAPI"
+INSTANCING_API = "VirtualBonesInstancingAPI"
+
+
+@dataclass(frozen=True)
+class Attribute:
+    """One attribute of ``VirtualBonesAnimation``.
+
+    Attributes:
+        name: The USD property name (``vb:textureWidth``).
+        type: The Sdf value type name (``int``, ``token[]``).
+        required: Writers must author it and readers refuse a prim without it (unorm ranges are
+            required for unorm16 only: ``required`` is False and the reader says when).
+        key: The key it is read into: a layout metadata key (``width``), a clip object key when
+            :attr:`clip` is True (``firstRow``), or a USD-only key (``texture``, ``clipExtents``).
+        clip: One entry per clip (the value is ``clips[j][key]``).
+        mirrored: The layout metadata holds the same value (spec section 13, "metadata key").
+    """
+
+    name: str
+    type: str
+    required: bool
+    key: str
+    clip: bool = False
+    mirrored: bool = True
+
+
+ANIMATION_ATTRIBUTES = (
+    Attribute("vb:formatVersion", "int", True, "formatVersion"),
+    Attribute("vb:formatMinorVersion", "int", False, "formatMinorVersion"),
+    Attribute("vb:texture", "asset", True, "texture", mirrored=False),
+    Attribute("vb:encoding", "token", True, "encoding"),
+    Attribute("vb:texelFormat", "token", True, "texelFormat"),
+    Attribute("vb:boneCount", "int", True, "boneCount"),
+    Attribute("vb:texelsPerBone", "int", True, "texelsPerBone"),
+    Attribute("vb:rowCount", "int", True, "rowCount"),
+    Attribute("vb:textureWidth", "int", True, "width"),
+    Attribute("vb:textureHeight", "int", True, "height"),
+    Attribute("vb:horizontalPadding", "token", True, "horizontalPadding"),
+    Attribute("vb:verticalPadding", "token", True, "verticalPadding"),
+    Attribute("vb:bones", "token[]", True, "bones"),
+    Attribute("vb:clipNames", "token[]", True, "name", clip=True),
+    Attribute("vb:clipFirstRows", "int[]", True, "firstRow", clip=True),
+    Attribute("vb:clipRowCounts", "int[]", True, "rowCount", clip=True),
+    Attribute("vb:clipRowsPerSecond", "double[]", True, "rowsPerSecond", clip=True),
+    Attribute("vb:clipLoops", "bool[]", True, "loop", clip=True),
+    Attribute("vb:clipStartTimes", "double[]", True, "startTime", clip=True),
+    Attribute("vb:clipExtents", "float3[]", False, "clipExtents", mirrored=False),
+    Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
+    Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
+    Attribute("vb:contentDigest", "string", True, "contentDigest"),
+)
+"""Every attribute of ``VirtualBonesAnimation``, in the order writers author them."""
+
+CLIP_ATTRIBUTES = tuple(a for a in ANIMATION_ATTRIBUTES if a.clip)
+"""The six clip arrays, in the order of the clip object keys."""
+
+BY_NAME = {a.name: a for a in ANIMATION_ATTRIBUTES}
+"""Attribute by USD name."""
+
+BY_KEY = {a.key: a for a in ANIMATION_ATTRIBUTES if not a.clip}
+"""Attribute by the key it is read into (clip arrays excluded: see :data:`CLIP_ATTRIBUTES`)."""
+
+CLIP_BY_KEY = {a.key: a for a in CLIP_ATTRIBUTES}
+"""Clip array by clip object key."""
+
+TEXTURE = BY_KEY["texture"].name
+CLIP_EXTENTS = BY_KEY["clipExtents"].name
+UNORM_RANGE_MIN = BY_KEY["unormRangeMin"].name
+UNORM_RANGE_MAX = BY_KEY["unormRangeMax"].name
+
+
+@dataclass(frozen=True)
+class Primvar:
+    """A primvar of an API schema: its name below ``primvars:`` and its Sdf value type name."""
+
+    name: str
+    type: str
+
+    @property
+    def attribute(self) -> str:
+        """The full attribute name (``primvars:vb:boneIndices``)."""
+        return f"primvars:{self.name}"
+
+
+ANIMATION_REL = "vb:animation"
+"""Relationship of VirtualBonesBindingAPI and VirtualBonesInstancingAPI to the animation prim."""
+
+BONE_INDICES = Primvar("vb:boneIndices", "int[]")
+BONE_WEIGHTS = Primvar("vb:boneWeights", "float[]")
+INSTANCE_CLIP = Primvar("vb:clip", "int[]")
+INSTANCE_TIME_OFFSET = Primvar("vb:timeOffset", "float[]")
+INSTANCE_PLAYBACK_RATE = Primvar("vb:playbackRate", "float[]")
+INSTANCE_PRIMVARS = (INSTANCE_CLIP, INSTANCE_TIME_OFFSET, INSTANCE_PLAYBACK_RATE)
+
+
+def attribute_of(key) -> Optional[str]:
+    """The USD attribute that holds a key of the animation dict, or None.
+
+    Args:
+        key: A key (``"width"``), or a path into the dict as a tuple (``("clips", 2, "rowCount")``
+            is ``vb:clipRowCounts``; ``("clips",)`` is ``vb:clipNames``; ``("unormRanges", ...)``
+            is ``vb:unormRangeMin``).
+    """
+    parts = key if isinstance(key, tuple) else (key,)
+    if not parts:
+        return None
+    if parts[0] == "clips":
+        field = parts[2] if len(parts) >= 3 else "name"
+        found = CLIP_BY_KEY.get(field)
+        return found.name if found else None
+    if parts[0] == "unormRanges":
+        return UNORM_RANGE_MIN
+    found = BY_KEY.get(parts[0])
+    return found.name if found else None

@@ -1,0 +1,145 @@
+"""Format versions and the one registry of upgrade functions.
+
+A format version is ``major.minor`` (spec/virtual-bones.md, "Versioning"): ``formatVersion`` and
+``formatMinorVersion`` (absent means 0) in layout metadata, ``vb:formatVersion`` and
+``vb:formatMinorVersion`` on an animation prim. Both sources are read into a dict with the
+metadata keys and brought to :data:`CURRENT` by :func:`upgrade`, which applies the registered
+functions of :data:`UPGRADES` one version step at a time; a newer version is refused
+(:class:`~vbusd.format.errors.VersionError`, code ``format.version``).
+
+Registering the upgrade of the next minor version::
+
+    @upgrades_from(1, 0)
+    def upgrade_1_0_to_1_1(document: dict) -> dict:
+        return {**document, "formatMinorVersion": 1}
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Callable, Mapping, NamedTuple, Optional
+
+from vbusd.format.errors import InputError, VersionError
+from vbusd.format.layout import FORMAT_VERSION
+
+__all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
+           "upgrade"]
+
+FORMAT_MINOR_VERSION = 0
+"""The minor version this vbusd writes and reads (the major is ``layout.FORMAT_VERSION``)."""
+
+
+class Version(NamedTuple):
+    """A format version, ordered as versions are."""
+
+    major: int
+    minor: int = 0
+
+    def __str__(self) -> str:
+        return f"{self.major}.{self.minor}"
+
+
+CURRENT = Version(FORMAT_VERSION, FORMAT_MINOR_VERSION)
+"""The version readers bring every document to."""
+
+UpgradeFunction = Callable[[dict], dict]
+
+UPGRADES: dict = {}
+"""Upgrade functions by the :class:`Version` they upgrade *from*. Each returns a new dict at the
+next version (``v.m`` to ``v.(m+1)`` or ``(v+1).0``), with ``formatVersion`` and
+``formatMinorVersion`` set to it. Version 1.0 is the first version: the table is empty."""
+
+
+def upgrades_from(major: int, minor: int = 0) -> Callable[[UpgradeFunction], UpgradeFunction]:
+    """Register the decorated function as the upgrade from version ``major.minor``."""
+
+    def register(function: UpgradeFunction) -> UpgradeFunction:
+        key = Version(major, minor)
+        if key in UPGRADES:
+            raise ValueError(f"two upgrade functions from version {key}")
+        UPGRADES[key] = function
+        return function
+
+    return register
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def version_of(d: Mapping, *, file=None, location_prefix: str = "") -> Version:
+    """The version a dict says it has.
+
+    Raises:
+        InputError: ``formatVersion`` missing, not an integer or below 1; ``formatMinorVersion``
+            not an integer or below 0 (code ``format.version``).
+    """
+    where = location_prefix + "/formatVersion"
+    if "formatVersion" not in d:
+        raise InputError("formatVersion is missing", file=file, location=where, code="format.version")
+    major = d["formatVersion"]
+    if not _is_int(major):
+        raise InputError(f"formatVersion must be an integer, got {major!r:.60}", file=file,
+                         location=where, code="format.version")
+    if major < 1:
+        raise InputError(f"formatVersion must be 1 or more, got {major}", file=file, location=where,
+                         code="format.version")
+    minor = d.get("formatMinorVersion", 0)
+    if not _is_int(minor) or minor < 0:
+        raise InputError(f"formatMinorVersion must be an integer 0 or more, got {minor!r:.60}", file=file,
+                         location=location_prefix + "/formatMinorVersion", code="format.version")
+    return Version(major, minor)
+
+
+def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, file=None,
+            location_prefix: str = "") -> dict:
+    """Bring a dict of an older format version up to the current one.
+
+    The dict is a layout metadata document, or the attributes of an animation prim read into the
+    metadata keys (:mod:`vbusd.format.names`): both go through the same functions. A dict already
+    at the current version is returned as a copy. A missing or non-integer version is an error,
+    never taken as some default version.
+
+    Args:
+        d: The dict as read (not modified).
+        upgrades: Table of upgrade functions (default :data:`UPGRADES`; tests pass their own). Keys
+            are :class:`Version` or, for major-only steps, integers.
+        current: The version to reach (default :data:`CURRENT`); an integer means ``major.0``.
+        file: File the dict came from, for messages.
+        location_prefix: Prefix of the JSON pointers in messages (where the dict sits in the file).
+
+    Returns:
+        A new dict at version ``current``.
+
+    Raises:
+        InputError: Not an object, a bad version, or no upgrade function for some step (code
+            ``format.version``).
+        VersionError: A version newer than ``current``.
+    """
+    table = UPGRADES if upgrades is None else {(Version(k) if _is_int(k) else Version(*k)): f
+                                               for k, f in upgrades.items()}
+    target = CURRENT if current is None else (Version(current) if _is_int(current) else Version(*current))
+    if not isinstance(d, Mapping):
+        raise InputError(f"layout metadata must be a JSON object, got {type(d).__name__}", file=file,
+                         location=location_prefix or "/", code="format.version")
+    version = version_of(d, file=file, location_prefix=location_prefix)
+    where = location_prefix + "/formatVersion"
+    if version.major > target.major:
+        raise VersionError(f"formatVersion {version.major} is newer than this reader (version {target}); "
+                           "upgrade vbusd to read it", file=file, location=where, code="format.version")
+    if version > target:
+        raise VersionError(f"format version {version} is newer than this reader (version {target}); "
+                           "upgrade vbusd to read it", file=file,
+                           location=location_prefix + "/formatMinorVersion", code="format.version")
+    result = copy.deepcopy(dict(d))
+    while version < target:
+        step = table.get(version)
+        if step is None:
+            raise InputError(f"no upgrade from formatVersion {version} to a newer version", file=file,
+                             location=where, code="format.version")
+        result = step(result)
+        following = version_of(result, file=file, location_prefix=location_prefix)
+        if following <= version:
+            raise AssertionError(f"the upgrade from version {version} did not raise the version")
+        version = following
+    return result

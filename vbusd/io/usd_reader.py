@@ -1,0 +1,1093 @@
+"""The one reader of Virtual Bones USD assets: stages, animation prims, bound meshes and crowds.
+
+Every command that reads USD goes through this module: ``read_asset`` (``info``, ``decode``,
+the Python API), ``vbusd validate`` and the UsdSkel converter's stage opening. It reports what it
+finds into a :class:`vbusd.format.diagnostics.Diagnostics` list with registered codes; strict
+callers make the list strict, so the first error raises as a one-line
+:class:`~vbusd.format.errors.InputError`, and ``vbusd validate`` keeps it lenient and runs its own
+checks on what the reader returned. A bad file therefore gets the same code and message from every
+command.
+
+* :func:`open_stage` opens a file as a stage: file checks, a sniff of the leading bytes (an empty
+  file, a PNG, EXR, JPEG or glb under a USD name), sublayers, references and payloads that must
+  stay inside the asset's folder and be regular files, USD's composition errors. USD's own C++
+  diagnostics are captured (:func:`captured_usd_diagnostics`) and become findings, never raw
+  console lines. A layer a host application already has open is never reloaded or edited: the
+  file is opened as a private copy beside it.
+* :meth:`UsdReader.animation` reads an animation prim's ``vb:*`` attributes (names from
+  :mod:`vbusd.format.names`) into the versioned dict with the layout metadata keys, upgrades it
+  with the registered upgrade functions (:mod:`vbusd.format.versioning`), then checks it
+  (:func:`vbusd.format.declared.check_declared`) and makes it a model.
+* Every value read is wrapped: a corrupt crate file whose value fails on a lazy read, or reads back
+  as the wrong type, is one finding (``usd.value``), never a traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+
+from vbusd.format import names
+from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
+from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
+from vbusd.format.errors import InputError, VbusdError, VersionError
+from vbusd.format.layout import Layout, TexelFormat
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.format.versioning import upgrade as upgrade_version
+from vbusd.io.files import resolve_inside
+
+__all__ = ["AnimationAttributes", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
+           "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
+           "WEIGHT_SUM_TOLERANCE"]
+
+PathLike = Union[str, os.PathLike]
+
+READ_SUFFIXES = (".usda", ".usdc", ".usd")
+"""What :func:`read_asset` reads (``vbusd validate`` and the converters also open ``.usdz``)."""
+USD_SUFFIXES = (".usda", ".usdc", ".usd", ".usdz")
+OUTSIDE_PATHS_HINT = "use --allow-outside-paths to allow it"
+"""Added to path refusals: every command reading with this module (info, decode, convert) has the
+option, as ``read_asset(..., allow_outside_paths=True)`` has in Python."""
+WEIGHT_SUM_TOLERANCE = 1e-3
+"""Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
+
+NOT_USD = ((b"\x89PNG", "a PNG image"), (b"\x76\x2f\x31\x01", "an OpenEXR image"),
+           (b"\xff\xd8\xff", "a JPEG image"), (b"glTF", "a binary glTF (.glb)"),
+           (b"\xabKTX 20", "a KTX 2.0 texture"))
+"""Leading bytes of files often mistaken for USD stages: named, since USD's own message for them
+says little ("not a valid usda layer")."""
+
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
+
+
+def one_line(text: str, limit: int = 600) -> str:
+    """``text`` as one printable line: whitespace runs collapsed, control bytes escaped, cut."""
+    text = _CONTROL.sub(lambda m: f"\\x{ord(m.group(0)):02x}", " ".join(str(text).split()))
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _error_text(error: BaseException) -> Optional[str]:
+    try:
+        return str(error)
+    except UnicodeDecodeError:
+        return None
+
+
+def tf_message(error: BaseException) -> str:
+    """The human part of a ``Tf.ErrorException`` (or any pxr error), as one clean line.
+
+    USD formats its errors as ``Error in 'Sdf_...' at line N in file X : 'message'``; one exception
+    can hold several, joined here with "; ". When USD echoes bytes of the input that are not
+    UTF-8, ``str(error)`` itself fails; the message then says so and names USD's function, and
+    callers that know the file add the byte offset (:func:`first_non_utf8`).
+    """
+    text = _error_text(error)
+    if text is None:
+        functions = []
+        for item in getattr(error, "args", ()):
+            function = getattr(item, "sourceFunction", "") or ""
+            functions.append(function.rsplit("::", 2)[-2] if "::" in function else function)
+        where = f" (in {', '.join(f for f in functions if f)})" if any(functions) else ""
+        return f"USD reported an error whose text is not valid UTF-8{where}"
+    text = text.strip()
+    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]*? : '(.*?)'\s*(?=Error in '|$)",
+                       text, flags=re.S)
+    if not found:
+        match = re.search(r" : '(.*)'\s*$", text, flags=re.S)
+        found = [match.group(1)] if match else [text]
+    return one_line("; ".join(dict.fromkeys(" ".join(m.split()) for m in found)))
+
+
+def first_non_utf8(path: Path, limit: int = 64 << 20) -> Optional[int]:
+    """Byte offset of the first byte of ``path`` that is not UTF-8 (first ``limit`` bytes)."""
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(limit)
+    except OSError:
+        return None
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        return error.start
+    return None
+
+
+_CAPTURE_LOCK = threading.RLock()
+
+
+@contextlib.contextmanager
+def captured_usd_diagnostics(sink: list):
+    """Capture USD's warnings and status messages inside the block into ``sink``.
+
+    OpenUSD prints its diagnostics (``Warning: in _ReportErrors at line 3326 of stage.cpp``...) on
+    the console unless a diagnostic delegate is registered; this registers UsdUtils'
+    CoalescingDiagnosticDelegate for the block and appends ``(kind, one-line text)`` for each
+    diagnostic, kind being ``warning``, ``status`` or ``error``. Errors that USD raises as
+    ``Tf.ErrorException`` still raise.
+    """
+    from pxr import UsdUtils
+
+    with _CAPTURE_LOCK:
+        delegate = UsdUtils.CoalescingDiagnosticDelegate()
+        try:
+            yield sink
+        finally:
+            for item in delegate.TakeUncoalescedDiagnostics():
+                code = str(getattr(item, "diagnosticCodeString", ""))
+                kind = "warning" if "WARNING" in code else "status" if "STATUS" in code else "error"
+                try:
+                    text = item.commentary
+                except UnicodeDecodeError:
+                    text = "USD reported a diagnostic whose text is not valid UTF-8"
+                sink.append((kind, one_line(text, 300), str(getattr(item, "sourceFunction", ""))))
+            del delegate
+
+
+def _pxr():
+    from vbusd.io.usd_plugin import register
+
+    register()
+    from pxr import Sdf, Tf, Usd, UsdGeom
+
+    return Sdf, Tf, Usd, UsdGeom
+
+
+def _applied_schemas(prim) -> set:
+    """API schemas applied to ``prim``, including ones whose schema is not registered.
+
+    USD's schema registry may not know the vbusd schemas (an application without the plugin, or
+    vbusd imported after pxr.Usd built its registry), where ``prim.HasAPI`` is False: the composed,
+    authored ``apiSchemas`` list counts (spec 13: readers rely on authored data only).
+    """
+    found = set(prim.GetAppliedSchemas())
+    listop = prim.GetMetadata("apiSchemas")
+    if listop is not None:
+        with contextlib.suppress(Exception):  # a malformed list op applies nothing more
+            found.update(str(name) for name in listop.ApplyOperations([]))
+    return found
+
+
+@dataclass(frozen=True)
+class AnimationAttributes:
+    """What a ``VirtualBonesAnimation`` prim says, checked as :func:`read_asset` checks it.
+
+    Attributes:
+        path: Prim path.
+        format_version: ``vb:formatVersion`` as authored (before any upgrade).
+        layout: The layout its sizes and tokens give (and ``vb:textureWidth`` etc. agree with).
+        bones: ``vb:bones``.
+        clips: The clips of the six clip arrays.
+        clip_extents: ``(clips, 2, 3)`` ``vb:clipExtents``, or None when not authored.
+        unorm_ranges32: ``(T, 4, 2)`` float32 ``vb:unormRangeMin``/``Max`` (unorm16), else None.
+        content_digest: ``vb:contentDigest``.
+        texture: ``vb:texture`` as authored.
+        texture_file: The texture file it resolves to (inside the asset's folder unless allowed).
+        declared: The checked, upgraded values under the layout metadata keys.
+    """
+
+    path: str
+    format_version: int
+    layout: Layout
+    bones: tuple
+    clips: tuple
+    clip_extents: Optional[np.ndarray]
+    unorm_ranges32: Optional[np.ndarray]
+    content_digest: Optional[str]
+    texture: str
+    texture_file: Optional[Path]
+    declared: Optional[Declared] = None
+
+
+class _Skip(Exception):
+    """A prim cannot be read further (its problem is reported already)."""
+
+
+_SCALAR_PYTHON_TYPES = {"int": int, "token": str, "string": str, "bool": bool, "double": float}
+
+
+class UsdReader:
+    """One read of a USD asset, reporting into ``diagnostics``.
+
+    Args:
+        path: The USD file.
+        diagnostics: Where problems go (strict: the first error raises).
+        allow_outside: Accept layers and textures outside the asset's folder.
+    """
+
+    def __init__(self, path: PathLike, diagnostics: Diagnostics, *, allow_outside: bool = False,
+                 folder: Optional[PathLike] = None, outside_hint: Optional[str] = OUTSIDE_PATHS_HINT) -> None:
+        self.path = Path(path)
+        self.file = str(path)
+        self.folder = Path(folder).resolve() if folder is not None else self.path.resolve().parent
+        self.diagnostics = diagnostics
+        self.allow_outside = allow_outside
+        self.outside_hint = outside_hint
+        self.usd_messages: list = []
+        self.layer = None
+        self.stage = None
+
+    # -- reporting -------------------------------------------------------------------------------
+
+    def report(self, code: str, message: str, location) -> None:
+        if isinstance(location, str):
+            location = FileLocation(self.file) if location == "file" else UsdSite(location)
+        self.diagnostics.report(code, message, location)
+
+    def fail(self, code: str, message: str, location) -> None:
+        """Report an error that ends the reading of the current prim."""
+        self.report(code, message, location)
+        raise _Skip
+
+    # -- opening ---------------------------------------------------------------------------------
+
+    def open(self, suffixes=USD_SUFFIXES) -> bool:
+        """Open the file as a stage (see :func:`open_stage`); False when it cannot be opened."""
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        path = self.path
+        where = FileLocation(self.file)
+        if not os.path.lexists(path):
+            self.report("file.missing", "file not found", where)
+            return False
+        if not path.is_file():  # USD would block forever reading a named pipe
+            self.report("file.kind", "not a regular file (a folder, pipe, device or socket)", where)
+            return False
+        suffix = path.suffix.lower()
+        if suffix not in suffixes or Sdf.FileFormat.FindByExtension(suffix.lstrip(".")) is None:
+            self.report("usd.open", f"not a USD file name (expected {', '.join(suffixes)})", where)
+            return False
+        try:
+            with open(path, "rb") as handle:
+                head = handle.read(8)
+        except OSError as error:
+            self.report("file.unreadable", f"cannot read: {error.strerror or error}", where)
+            return False
+        if not head:
+            self.report("usd.open", "the file is empty, not a USD stage", where)
+            return False
+        for magic, what in NOT_USD:
+            if head.startswith(magic):
+                self.report("usd.open", f"the file is {what}, not a USD stage", where)
+                return False
+        try:
+            self.layer = self._open_layer(Sdf, str(path.resolve()))
+        except Tf.ErrorException as error:
+            self.report_unreadable(error)
+            return False
+        if self.layer is None:
+            self.report("usd.open", "USD could not open the file", where)
+            return False
+        if not self.check_dependencies(Sdf, Tf, self.layer, set()):
+            return False  # a layer USD would block on: the stage cannot be composed safely
+        try:
+            stage = Usd.Stage.Open(self.layer, Usd.Stage.LoadAll)
+        except Tf.ErrorException as error:
+            self.report_unreadable(error)
+            return False
+        if stage is None:
+            self.report("usd.open", "USD could not open the stage", where)
+            return False
+        self.stage = stage
+        reported = set()
+        for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
+            site = getattr(error, "rootSite", None)
+            text = one_line(str(error), 300)
+            reported.add(text)
+            self.report("asset.composition", f"composition error: {text}",
+                        UsdSite(str(site.path) if site is not None else "/"))
+        self.report_usd_messages(composition=bool(reported))
+        return True
+
+    @staticmethod
+    def _open_layer(Sdf, real_path: str):
+        """The root layer, never one a host application holds: reloading a host's layer would
+        throw away its unsaved edits, and reading it would read them. A layer the registry holds
+        already is opened again as a private copy (its own identity through a file format
+        argument), read from the file as saved, resolving relative paths as the file does."""
+        if Sdf.Layer.Find(real_path) is None:
+            return Sdf.Layer.FindOrOpen(real_path)
+        return Sdf.Layer.FindOrOpen(real_path, {"vbusd:privateRead": str(next(_PRIVATE_READS))})
+
+    def report_unreadable(self, error) -> None:
+        """``usd.open`` for a USD parse error, at ``line L column C`` when USD names a place in
+        this file, or at the first non-UTF-8 byte when USD's own text cannot be decoded."""
+        message = tf_message(error)
+        location = FileLocation(self.file)
+        if _error_text(error) is None:
+            offset = first_non_utf8(self.path)
+            if offset is not None:
+                message += f"; the file holds a byte that is not UTF-8 at byte {offset}"
+                location = FileLocation(self.file, offset)
+        match = re.search(r"(\S+?):(\d+):(\d+): ", message)
+        if match:
+            with contextlib.suppress(OSError, ValueError):
+                if Path(match.group(1)).resolve() == self.path.resolve():
+                    location = FileLocation(self.file, part=f"line {match.group(2)} column {match.group(3)}")
+                    message = message.replace(match.group(0), "")
+        # USD often reports one parse error twice, with and without its place.
+        message = "; ".join(dict.fromkeys(message.split("; ")))
+        self.report("usd.open", f"USD cannot open the file: {message}", location)
+
+    def report_usd_messages(self, composition: bool = False) -> None:
+        """USD's captured diagnostics as ``usd.diagnostic`` warnings (once each); the warnings
+        that only repeat the composition errors reported already are left out."""
+        seen = set()
+        for kind, text, function in self.usd_messages:
+            if kind == "status" or text in seen:
+                continue
+            seen.add(text)
+            if composition and ("_ReportErrors" in function or "Could not open asset" in text
+                                or "Could not load sublayer" in text or "Could not open" in text):
+                continue
+            self.report("usd.diagnostic", f"USD {kind}: {text}", UsdSite("/"))
+        self.usd_messages.clear()
+
+    def resolve(self, authored: str, anchor_layer, site: UsdSite, code: str) -> Optional[Path]:
+        """Resolve an asset path authored in ``anchor_layer`` against the asset's folder rules;
+        None (after a ``code`` finding) when it leaves the folder and that is not allowed."""
+        anchor = Path(anchor_layer.realPath).resolve().parent if anchor_layer.realPath else self.folder
+        if anchor != self.folder and not Path(authored.replace("\\", "/")).is_absolute():
+            try:
+                prefix = anchor.relative_to(self.folder).as_posix()
+            except ValueError:
+                prefix = os.path.relpath(anchor, self.folder).replace(os.sep, "/")
+            authored = f"{prefix}/{authored}"
+        try:
+            return resolve_inside(self.folder, authored, file=self.file, location=str(site),
+                                  allow_outside=self.allow_outside, outside_hint=self.outside_hint)
+        except InputError as error:
+            self.report(code, error.message, site)
+            return None
+
+    def check_dependencies(self, Sdf, Tf, layer, seen: set) -> bool:
+        """Sublayers, references and payloads: inside the asset's folder (``asset.outside``) and
+        regular files (``file.kind``: USD would block forever on a named pipe), recursively.
+        Missing or unreadable ones are left to USD's composition errors.
+
+        Returns:
+            False when a dependency is not a regular file: the stage must not be composed.
+        """
+        if layer.identifier in seen:
+            return True
+        seen.add(layer.identifier)
+        composable = True
+        for dependency in sorted(layer.GetCompositionAssetDependencies()):
+            if not dependency:  # internal references (same layer) have no asset path
+                continue
+            if layer.realPath and "[" in layer.realPath:
+                continue  # inside a .usdz package: the package resolver keeps it there
+            anchor = Path(layer.realPath).resolve().parent if layer.realPath else self.folder
+            authored = dependency
+            if anchor != self.folder and not Path(dependency.replace("\\", "/")).is_absolute():
+                authored = f"{os.path.relpath(anchor, self.folder)}/{dependency}".replace(os.sep, "/")
+            try:
+                target = resolve_inside(self.folder, authored, allow_outside=self.allow_outside,
+                                        outside_hint=self.outside_hint)
+            except InputError as error:
+                why = error.message.split(": ", 1)[-1]
+                self.report("asset.outside", f"layer {Path(layer.realPath or layer.identifier).name} uses "
+                            f"@{dependency}@: {why}", FileLocation(layer.realPath or self.file,
+                                                                   part=f"@{dependency}@"))
+                continue
+            if target.exists() and not target.is_file():
+                self.report("file.kind", f"layer @{dependency}@ is not a regular file (a folder, pipe, "
+                            "device or socket)", FileLocation(layer.realPath or self.file,
+                                                              part=f"@{dependency}@"))
+                composable = False
+                continue
+            if not target.is_file():
+                continue
+            try:
+                child = Sdf.Layer.FindOrOpen(str(target))
+            except Tf.ErrorException:
+                continue  # reported by USD as a composition error
+            if child is not None:
+                composable = self.check_dependencies(Sdf, Tf, child, seen) and composable
+        return composable
+
+    # -- values ----------------------------------------------------------------------------------
+
+    def value(self, prim, name: str, type_name: str, *, site: Optional[UsdSite] = None,
+              missing_code: str = "prim.attribute.missing"):
+        """The authored default value of ``prim.name`` checked against its type.
+
+        Schema fallbacks do not count (spec 13: readers must not rely on them). Returns
+        ``(authored, value)``: ``(False, None)`` when not authored (nothing reported), ``(True,
+        None)`` after a finding (wrong type, unreadable).
+        """
+        Sdf = _pxr()[0]
+        site = site or UsdSite(str(prim.GetPath()), name)
+        attribute = prim.GetAttribute(name)
+        try:
+            if not attribute or not attribute.HasAuthoredValue():
+                return False, None
+            expected = Sdf.ValueTypeNames.Find(type_name)
+            # The composed type is the schema's even where a layer authored another type (and Get()
+            # then returns the authored value), so every authored spec is checked. Roles (point3f vs
+            # float3) do not matter for the values read: compare the value types.
+            for spec in attribute.GetPropertyStack():
+                if expected and spec.typeName.type != expected.type:
+                    self.report(missing_code, f"{name} must be {type_name}, found {spec.typeName} in "
+                                f"{Path(spec.layer.identifier).name}", site)
+                    return True, None
+            value = attribute.Get()
+        except VbusdError:
+            raise
+        except Exception as error:  # a corrupt crate value fails on its lazy read
+            self.report("usd.value", f"{name} cannot be read: {tf_message(error)}", site)
+            return True, None
+        if value is None:
+            self.report(missing_code, f"{name} has no default value (only time samples?)", site)
+            return True, None
+        python_type = _SCALAR_PYTHON_TYPES.get(type_name)
+        wrong = (python_type is not None and (not isinstance(value, python_type)
+                                              or (python_type is int and isinstance(value, bool))))
+        if not wrong and type_name.endswith("[]"):
+            wrong = not hasattr(value, "__len__") or isinstance(value, (str, bytes))
+        if wrong:
+            self.report("usd.value", f"{name} reads back as {type(value).__name__}, not {type_name}", site)
+            return True, None
+        return True, value
+
+    def numbers(self, prim, name: str, type_name: str, dtype, *, site=None, missing_code="prim.attribute.missing",
+                width: int = 1):
+        """An array attribute as a numpy array (None when not authored or after a finding)."""
+        site = site or UsdSite(str(prim.GetPath()), name)
+        authored, value = self.value(prim, name, type_name, site=site, missing_code=missing_code)
+        if value is None:
+            return authored, None
+        try:
+            array = np.asarray(value, dtype=dtype)
+        except (TypeError, ValueError) as error:
+            self.report("usd.value", f"{name} does not read as numbers: {one_line(str(error), 200)}", site)
+            return True, None
+        if width > 1:
+            if array.size % width or (array.ndim > 1 and array.shape[-1] != width):
+                self.report("usd.value", f"{name} reads back with shape {array.shape}, not ({width},) per "
+                            "element", site)
+                return True, None
+            array = array.reshape(-1, width)
+        return True, array
+
+    # -- animation prims -------------------------------------------------------------------------
+
+    def animation(self, prim) -> Declared:
+        """The upgraded, checked declaration of an animation prim (findings reported)."""
+        path = str(prim.GetPath())
+
+        def locate(key):
+            name = names.attribute_of(key)
+            return UsdSite(path, name) if name else UsdSite(path)
+
+        declared = Declared("usd", {}, locate, prim_path=path)
+        raw: dict = {}
+        clip_arrays: dict = {}
+        for attribute in names.ANIMATION_ATTRIBUTES:
+            if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax"):
+                continue  # read below, with their own rules
+            authored, value = self.value(prim, attribute.name, attribute.type)
+            if value is None:
+                continue
+            if attribute.clip:
+                clip_arrays[attribute.key] = list(value)
+            elif attribute.type.endswith("[]"):
+                raw[attribute.key] = [str(v) for v in value]
+            else:
+                raw[attribute.key] = value
+        clips = self._clips(path, clip_arrays)
+        if clips is not None:
+            raw["clips"] = clips
+        upgraded = self._upgrade(prim, raw)
+        if upgraded is None:
+            return declared
+        for attribute in names.ANIMATION_ATTRIBUTES:
+            if not attribute.required or attribute.key == "texture":
+                continue
+            present = (attribute.key in upgraded if not attribute.clip
+                       else clips is not None and all(attribute.key in clip for clip in upgraded.get("clips", [])))
+            if not present and not (attribute.clip and clips is None and clip_arrays.get(attribute.key)):
+                fallback = self._report_missing(prim, attribute)
+                if fallback is not None and not attribute.clip:
+                    # Reported once; the checks go on with the value applications with the plugin
+                    # see, instead of piling up findings about what depends on it.
+                    upgraded[attribute.key] = fallback
+        declared.values.update({k: v for k, v in upgraded.items() if k != "clips"})
+        if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
+            declared.values["clips"] = upgraded["clips"]
+        self._unorm_ranges(prim, declared)
+        declared.layout = build_layout(declared)
+        for item in declared.findings:
+            self.diagnostics.add(item)
+        declared.findings = []
+        for item in check_declared(declared):
+            self.diagnostics.add(item)
+        if declared.layout is not None and "clips" in declared.values:
+            self._clip_extents(prim, declared)
+        return declared
+
+    def _report_missing(self, prim, attribute):
+        """Report a required attribute that is not authored; returns the schema's fallback."""
+        site = UsdSite(str(prim.GetPath()), attribute.name)
+        handle = prim.GetAttribute(attribute.name)
+        fallback = None
+        with contextlib.suppress(Exception):
+            fallback = handle.Get() if handle else None
+        if fallback is not None:
+            self.report("prim.attribute.missing", f"missing required attribute {attribute.name}: not "
+                        f"authored (only the schema fallback {fallback!r} applies); writers must author it",
+                        site)
+        else:
+            self.report("prim.attribute.missing", f"missing required attribute {attribute.name} "
+                        f"({attribute.type})", site)
+        return fallback
+
+    def _clips(self, path: str, arrays: dict) -> Optional[list]:
+        """The clip objects of the clip arrays that were read (all of the same length)."""
+        if not arrays:
+            return None
+        lengths = {key: len(values) for key, values in arrays.items()}
+        if len(set(lengths.values())) > 1:
+            detail = ", ".join(f"{names.CLIP_BY_KEY[k].name} {n}" for k, n in lengths.items())
+            self.report("clip.arrays", f"clip arrays differ in length: {detail}",
+                        UsdSite(path, names.CLIP_ATTRIBUTES[0].name))
+            return None
+        count = next(iter(lengths.values()))
+        clips = []
+        for i in range(count):
+            clip = {}
+            for key, values in arrays.items():
+                value = values[i]
+                clip[key] = (str(value) if key == "name" else bool(value) if key == "loop"
+                             else int(value) if key in ("firstRow", "rowCount") else float(value))
+            clips.append(clip)
+        return clips
+
+    def _upgrade(self, prim, raw: dict) -> Optional[dict]:
+        """The dict upgraded to the current version (None after a ``format.version`` finding)."""
+        path = str(prim.GetPath())
+        if "formatVersion" not in raw:
+            return raw  # reported as a missing required attribute
+        try:
+            return upgrade_version(raw, file=self.file)
+        except VbusdError as error:
+            key = (error.location or "/formatVersion").rsplit("/", 1)[-1]
+            name = names.attribute_of(key) or names.BY_KEY["formatVersion"].name
+            message = re.sub(r"\bformat(Minor)?Version\b", lambda m: names.attribute_of(m.group(0)),
+                             error.message)
+            item = finding(error.code, message, UsdSite(path, name))
+            if isinstance(error, VersionError) and self.diagnostics.strict:
+                self.diagnostics.findings.append(item)
+                raise to_error(item, file=self.file, error_type=VersionError) from None
+            self.diagnostics.add(item)
+            return None
+
+    def _unorm_ranges(self, prim, declared: Declared) -> None:
+        path = str(prim.GetPath())
+        unorm = declared.get("texelFormat") == TexelFormat.UNORM16.value
+        arrays = []
+        for name in (names.UNORM_RANGE_MIN, names.UNORM_RANGE_MAX):
+            authored, array = self.numbers(prim, name, names.BY_NAME[name].type, np.float64, width=4)
+            if unorm and not authored:
+                self.report("prim.attribute.missing", f"missing required attribute {name} (float4[]): "
+                            "unorm16 needs its ranges", UsdSite(path, name))
+            arrays.append(array)
+        low, high = arrays
+        if not unorm or low is None or high is None:
+            return
+        slots = declared.layout.texels_per_bone if declared.layout is not None else None
+        if low.shape != high.shape or (slots is not None and len(low) != slots):
+            self.report("prim.attribute.invalid", f"{names.UNORM_RANGE_MIN} has {len(low)} entries and "
+                        f"{names.UNORM_RANGE_MAX} {len(high)}; they hold one float4 per texel slot"
+                        + (f" ({slots})" if slots else ""), UsdSite(path, names.UNORM_RANGE_MAX))
+        elif not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low <= high)):
+            self.report("prim.attribute.invalid", f"unorm16 ranges must be finite with min <= max "
+                        f"({names.UNORM_RANGE_MIN}, {names.UNORM_RANGE_MAX})", UsdSite(path, names.UNORM_RANGE_MIN))
+        else:
+            declared.values["unormRanges"] = np.stack([low, high], axis=-1)
+
+    def _clip_extents(self, prim, declared: Declared) -> None:
+        path = str(prim.GetPath())
+        authored, extents = self.numbers(prim, names.CLIP_EXTENTS, "float3[]", np.float32, width=3)
+        if extents is None:
+            return
+        count = len(declared.values["clips"])
+        if len(extents) != 2 * count:
+            self.report("clip.arrays", f"{names.CLIP_EXTENTS} holds {len(extents)} points; 2 per clip (min, "
+                        f"max) = {2 * count} expected", UsdSite(path, names.CLIP_EXTENTS))
+            return
+        declared.values["clipExtents"] = extents.reshape(count, 2, 3)
+
+    def texture_file(self, prim) -> tuple:
+        """``vb:texture`` of an animation prim: ``(asset path as authored, resolved file or None,
+        the Sdf.AssetPath)``. Resolved relative to the layer that authored it; refused
+        (``texture.outside``) when it leaves the asset's folder unless outside paths are allowed;
+        ``texture.missing`` when not authored or empty."""
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        site = UsdSite(str(prim.GetPath()), names.TEXTURE)
+        authored, value = self.value(prim, names.TEXTURE, "asset", site=site, missing_code="texture.missing")
+        if not authored:
+            self.report("texture.missing", f"missing required attribute {names.TEXTURE} (asset)", site)
+            return "", None, None
+        text = getattr(value, "path", None) if value is not None else None
+        if not text:
+            if value is not None:
+                self.report("texture.missing", f"{names.TEXTURE} is empty", site)
+            return "", None, value
+        anchor = prim.GetStage().GetRootLayer()
+        for spec in prim.GetAttribute(names.TEXTURE).GetPropertyStack(Usd.TimeCode.Default()):
+            if spec.HasDefaultValue():
+                anchor = spec.layer
+                break
+        return text, self.resolve(text, anchor, site, "texture.outside"), value
+
+    def animation_attributes(self, prim) -> Optional[AnimationAttributes]:
+        """The model of an animation prim's attributes, or None when it has errors (reported)."""
+        before = len(self.diagnostics.errors)
+        declared = self.animation(prim)
+        texture, texture_file, _ = self.texture_file(prim)
+        if len(self.diagnostics.errors) > before or declared.layout is None:
+            return None
+        values = declared.values
+        clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], float(c["rowsPerSecond"]), c["loop"],
+                           float(c["startTime"])) for c in values["clips"])
+        ranges = values.get("unormRanges")
+        return AnimationAttributes(
+            path=str(prim.GetPath()), format_version=int(values["formatVersion"]), layout=declared.layout,
+            bones=tuple(values["bones"]), clips=clips, clip_extents=values.get("clipExtents"),
+            unorm_ranges32=None if ranges is None else np.asarray(ranges, np.float32),
+            content_digest=values.get("contentDigest"), texture=texture, texture_file=texture_file,
+            declared=declared)
+
+    def read_animation(self, prim) -> Optional[VirtualBones]:
+        """An animation prim with its texture, whose metadata must agree with the prim."""
+        attributes = self.animation_attributes(prim)
+        if attributes is None:
+            raise _Skip
+        from vbusd.io.textures import read_texture
+
+        texture = read_texture(attributes.texture_file)
+        theirs = from_metadata(texture.info.to_dict(), os.path.relpath(attributes.texture_file, self.folder))
+        for item in compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim"):
+            self.diagnostics.add(item)
+        return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
+                            clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
+                            path=attributes.path, texture=attributes.texture,
+                            clip_extents=attributes.clip_extents)
+
+    # -- bound meshes and crowds -----------------------------------------------------------------
+
+    def primvar(self, prim, primvar: names.Primvar, dtype, *, count: int, element_size=None, default=None,
+                codes=("binding.primvar.missing", "binding.primvar.indexed", "binding.interpolation",
+                       "binding.elementSize", "binding.count")):
+        """A vertex-interpolated primvar's flat numpy value and its element size.
+
+        ``count`` elements of the authored elementSize (which must equal ``element_size`` if given).
+        """
+        UsdGeom = _pxr()[3]
+        missing, indexed, interpolation_code, size_code, count_code = codes
+        site = UsdSite(str(prim.GetPath()), primvar.attribute)
+        authored, value = self.numbers(prim, primvar.attribute, primvar.type, dtype, site=site,
+                                       missing_code=missing)
+        if value is None:
+            if authored:
+                raise _Skip
+            if default is None:
+                self.fail(missing, f"{primvar.attribute} ({primvar.type}) is missing or has no value", site)
+            return np.full(count * (element_size or 1), default, dtype=dtype), element_size or 1
+        handle = UsdGeom.Primvar(prim.GetAttribute(primvar.attribute))
+        if handle.IsIndexed():
+            self.fail(indexed, f"{primvar.attribute} is indexed; Virtual Bones primvars hold one value per "
+                      "element, unindexed", site)
+        interpolation = handle.GetInterpolation()
+        if interpolation != UsdGeom.Tokens.vertex:
+            self.fail(interpolation_code, f"{primvar.attribute} has interpolation {interpolation!r}; it must be "
+                      "'vertex'", site)
+        size = handle.GetElementSize()
+        if size < 1 or (element_size is not None and size != element_size):
+            self.fail(size_code, f"elementSize is {size}; " + (f"{element_size} expected" if element_size
+                                                               else "at least 1"), site)
+        if value.size != count * size:
+            self.fail(count_code, f"{primvar.attribute} holds {value.size} values; {count} x elementSize "
+                      f"{size} = {count * size} expected", site)
+        return value, size
+
+    def read_mesh(self, prim, animation: VirtualBones) -> BoundMesh:
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        path = str(prim.GetPath())
+
+        def required(name, type_name, dtype, width=1):
+            authored, array = self.numbers(prim, name, type_name, dtype, missing_code="binding.mesh", width=width)
+            if array is None:
+                if not authored:
+                    self.fail("binding.mesh", f"the bound mesh has no {name}", UsdSite(path, name))
+                raise _Skip
+            return array
+
+        points = required("points", "point3f[]", np.float32, 3)
+        counts = required("faceVertexCounts", "int[]", np.int64)
+        indices = required("faceVertexIndices", "int[]", np.int64)
+        vertex_count = len(points)
+        bad = ~np.all(np.isfinite(points), axis=-1)
+        if bad.any():
+            first = int(np.argmax(bad))
+            self.fail("binding.points.nonFinite", f"{int(bad.sum())} rest point(s) are NaN or infinite; the "
+                      f"first is point {first} = {points[first].tolist()}", UsdSite(path, "points"))
+        if counts.size and counts.min() < 3:
+            face = int(np.argmax(counts < 3))
+            self.fail("binding.mesh", f"face {face} has {int(counts[face])} vertices; at least 3",
+                      UsdSite(path, "faceVertexCounts"))
+        if int(counts.sum()) != len(indices):
+            self.fail("binding.mesh", f"faceVertexCounts sum to {int(counts.sum())} but there are "
+                      f"{len(indices)} faceVertexIndices", UsdSite(path, "faceVertexCounts"))
+        outside = (indices < 0) | (indices >= vertex_count)
+        if outside.any():
+            first = int(np.argmax(outside))
+            self.fail("binding.mesh", f"{int(outside.sum())} faceVertexIndices outside 0..{vertex_count - 1}; "
+                      f"the first is {int(indices[first])} at face-vertex {first}",
+                      UsdSite(path, "faceVertexIndices"))
+        normals, interpolation = self.read_normals(prim, path, vertex_count, len(indices))
+        bone_indices, k = self.primvar(prim, names.BONE_INDICES, np.int64, count=vertex_count)
+        bone_weights, _ = self.primvar(prim, names.BONE_WEIGHTS, np.float64, count=vertex_count,
+                                       element_size=k)
+        bone_count = animation.layout.bone_count
+        idx = bone_indices.reshape(vertex_count, k)
+        bad = (idx < 0) | (idx >= bone_count)
+        if bad.any():
+            vertex, slot = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            self.fail("binding.indices.range", f"{int(bad.sum())} bone index(es) outside 0..{bone_count - 1}; "
+                      f"the first is {int(idx[vertex, slot])} at vertex {vertex}, influence {slot}",
+                      UsdSite(path, names.BONE_INDICES.attribute))
+        w = bone_weights.reshape(vertex_count, k)
+        self.check_weights(w, UsdSite(path, names.BONE_WEIGHTS.attribute))
+        return BoundMesh(path=path, points=points.reshape(-1, 3), face_vertex_counts=counts.astype(np.int32),
+                         face_vertex_indices=indices.astype(np.int32), bone_indices=idx.astype(np.int32),
+                         bone_weights=w.astype(np.float32), normals=normals,
+                         normals_interpolation=interpolation)
+
+    def read_normals(self, prim, path: str, vertex_count: int, face_vertex_count: int):
+        """Rest normals: ``primvars:normals`` (flattened) when authored, else ``normals``."""
+        UsdGeom = _pxr()[3]
+        primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+        name, normals, interpolation = "normals", None, "vertex"
+        try:
+            if primvar and primvar.HasAuthoredValue():
+                # UsdGeom: primvars:normals, when authored, wins over the normals attribute.
+                name = "primvars:normals"
+                authored, checked = self.numbers(prim, name, "normal3f[]", np.float32, width=3)
+                if checked is None:
+                    raise _Skip
+                normals = np.asarray(primvar.ComputeFlattened(), dtype=np.float32).reshape(-1, 3)
+                interpolation = str(primvar.GetInterpolation())
+            else:
+                authored, normals = self.numbers(prim, "normals", "normal3f[]", np.float32, width=3)
+                if authored and normals is None:
+                    raise _Skip
+                interpolation = str(UsdGeom.Mesh(prim).GetNormalsInterpolation())
+        except (_Skip, VbusdError):
+            raise
+        except Exception as error:
+            self.fail("usd.value", f"{name} cannot be read: {tf_message(error)}", UsdSite(path, name))
+        if normals is None:
+            return None, "vertex"
+        expected = {"vertex": vertex_count, "faceVarying": face_vertex_count}.get(interpolation)
+        if expected is None:
+            self.fail("binding.normals.count", f"{name} has interpolation {interpolation!r}; rest normals "
+                      "must be 'vertex' or 'faceVarying'", UsdSite(path, name))
+        if len(normals) != expected:
+            what = "points" if interpolation == "vertex" else "face-vertices"
+            self.fail("binding.normals.count", f"{name} holds {len(normals)} {interpolation} normals for "
+                      f"{expected} {what}", UsdSite(path, name))
+        bad = ~np.all(np.isfinite(normals), axis=-1)
+        if bad.any():
+            first = int(np.argmax(bad))
+            self.fail("binding.normals.nonFinite", f"{int(bad.sum())} rest normal(s) are NaN or infinite; "
+                      f"the first is normal {first} = {normals[first].tolist()}", UsdSite(path, name))
+        return normals, interpolation
+
+    def check_weights(self, w: np.ndarray, site: UsdSite) -> None:
+        """Spec 14: finite, non-negative weights whose per-point sum is 1 within 1e-3.
+
+        Decoders use the weights as stored, so a bad weight would silently distort the skinning.
+        """
+        bad = ~np.isfinite(w) | (w < 0)
+        if bad.any():
+            vertex, slot = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            self.fail("binding.weights.negative", f"{int(bad.sum())} weight(s) are negative or not finite; "
+                      f"the first is {float(w[vertex, slot])} at vertex {vertex}, influence {slot}", site)
+        sums = w.sum(axis=1)
+        off = np.abs(sums - 1.0) > WEIGHT_SUM_TOLERANCE
+        if off.any():
+            vertex = int(np.argmax(off))
+            self.fail("binding.weights.sum", f"{int(off.sum())} vertex(es) have weights not summing to 1 "
+                      f"(tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with sum "
+                      f"{float(sums[vertex]):.6g}", site)
+
+    def read_crowd(self, prim, clip_count: int) -> Crowd:
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        path = str(prim.GetPath())
+        authored, positions = self.numbers(prim, "positions", "point3f[]", np.float32, width=3,
+                                           missing_code="instancer.count")
+        if positions is None:
+            if not authored:
+                self.fail("instancer.count", "the point instancer has no positions", UsdSite(path, "positions"))
+            raise _Skip
+        n = len(positions)
+        quats = None
+        for name, type_name in (("orientationsf", "quatf[]"), ("orientations", "quath[]")):
+            authored, value = self.value(prim, name, type_name, missing_code="instancer.count")
+            if authored and value is None:
+                raise _Skip
+            if value is not None and (len(value) or name == "orientations"):
+                if len(value) != n:
+                    self.fail("instancer.count", f"{name} has {len(value)} entries for {n} instances",
+                              UsdSite(path, name))
+                quats = value
+                break
+        if quats is None:  # UsdGeom: no orientations means no rotation
+            orientations = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
+        else:
+            orientations = np.array([[*q.GetImaginary(), q.GetReal()] for q in quats],
+                                    dtype=np.float32).reshape(n, 4)
+        authored, scales = self.numbers(prim, "scales", "float3[]", np.float32, width=3,
+                                        missing_code="instancer.count")
+        if authored and scales is None:
+            raise _Skip
+        if scales is not None and len(scales) != n:
+            self.fail("instancer.count", f"scales has {len(scales)} entries for {n} instances", UsdSite(path, "scales"))
+        codes = ("instancer.count", "instancer.indexed", "instancer.count", "instancer.count", "instancer.count")
+        # Spec 15: a primvar not authored means clip 0, offset 0, rate 1 for every instance.
+        clip, _ = self.primvar(prim, names.INSTANCE_CLIP, np.int64, count=n, element_size=1, default=0,
+                               codes=codes)
+        offset, _ = self.primvar(prim, names.INSTANCE_TIME_OFFSET, np.float64, count=n, element_size=1,
+                                 default=0.0, codes=codes)
+        rate, _ = self.primvar(prim, names.INSTANCE_PLAYBACK_RATE, np.float64, count=n, element_size=1,
+                               default=1.0, codes=codes)
+        for primvar, values in ((names.INSTANCE_TIME_OFFSET, offset), (names.INSTANCE_PLAYBACK_RATE, rate)):
+            bad = ~np.isfinite(values)
+            if bad.any():
+                first = int(np.argmax(bad))
+                self.fail("instancer.nonFinite", f"{int(bad.sum())} value(s) are NaN or infinite; the first is "
+                          f"instance {first} with {float(values[first])}", UsdSite(path, primvar.attribute))
+        bad = (clip < 0) | (clip >= clip_count)
+        if bad.any():
+            first = int(np.argmax(bad))
+            self.fail("instancer.clip.range", f"{int(bad.sum())} clip index(es) outside 0..{clip_count - 1}; "
+                      f"the first is {int(clip[first])} at instance {first}",
+                      UsdSite(path, names.INSTANCE_CLIP.attribute))
+        return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
+                     clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
+                     playback_rate=rate.astype(np.float32), scales=scales)
+
+    def animation_target(self, prim, by_path: dict, code: str, api: str) -> int:
+        """Index of the animation prim ``prim``'s ``vb:animation`` relationship targets."""
+        site = UsdSite(str(prim.GetPath()), names.ANIMATION_REL)
+        relationship = prim.GetRelationship(names.ANIMATION_REL)
+        targets = relationship.GetForwardedTargets() if relationship else []
+        if len(targets) != 1:
+            self.fail(code, f"{names.ANIMATION_REL} has {len(targets)} targets; {api} needs exactly one "
+                      f"{names.ANIMATION_TYPE} prim", site)
+        index = by_path.get(str(targets[0]))
+        if index is None:
+            self.fail(code, f"{names.ANIMATION_REL} targets {targets[0]}, which is not a "
+                      f"{names.ANIMATION_TYPE} prim", site)
+        return index
+
+    def walk(self):
+        """Every prim of the stage in depth-first order, except those below a point instancer.
+
+        Prototypes below an instancer repeat prims defined elsewhere: they are not read (and
+        ``vbusd info`` lists the same animation prims as :func:`read_asset` reads).
+        """
+        Usd, UsdGeom = _pxr()[2:]
+        prims = iter(Usd.PrimRange(self.stage.GetPseudoRoot()))
+        for prim in prims:
+            if prim.IsPseudoRoot():
+                continue
+            yield prim
+            if prim.IsA(UsdGeom.PointInstancer):
+                prims.PruneChildren()
+
+    def animation_prims(self) -> list:
+        """The animation prims of the stage; ``asset.empty`` when there is none."""
+        found = [prim for prim in self.walk() if prim.GetTypeName() == names.ANIMATION_TYPE]
+        if not found:
+            root = self.stage.GetDefaultPrim()
+            self.report("asset.empty", f"the stage holds no {names.ANIMATION_TYPE} prim",
+                        UsdSite(str(root.GetPath()) if root else "/"))
+        return found
+
+    def guard(self, prim, function, *args):
+        """Run ``function``; USD's own errors on a value read become ``usd.value`` at ``prim``,
+        a prim abandoned after its finding gives None."""
+        Tf = _pxr()[1]
+        try:
+            return function(*args)
+        except _Skip:
+            return None
+        except VbusdError:
+            raise
+        except Tf.ErrorException as error:
+            self.report("usd.value", f"USD cannot read a value: {tf_message(error)}", UsdSite(str(prim.GetPath())))
+            return None
+
+    def read(self) -> Optional[VirtualBonesAsset]:
+        """The whole asset (strict callers), or None when errors were reported."""
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        stage = self.stage
+        animation_prims, mesh_prims, crowd_prims = [], [], []
+        for prim in self.walk():
+            applied = _applied_schemas(prim)
+            if prim.GetTypeName() == names.ANIMATION_TYPE:
+                animation_prims.append(prim)
+            if names.BINDING_API in applied:
+                if not prim.IsA(UsdGeom.Mesh):
+                    self.report("binding.api.prim", f"{names.BINDING_API} is applied to a "
+                                f"{prim.GetTypeName() or 'typeless'} prim; it applies to Mesh prims only",
+                                UsdSite(str(prim.GetPath())))
+                    continue
+                mesh_prims.append(prim)
+            if prim.IsA(UsdGeom.PointInstancer) and names.INSTANCING_API in applied:
+                crowd_prims.append(prim)
+        if not animation_prims:
+            self.animation_prims()
+            return None
+        animations, by_path = [], {}
+        for prim in animation_prims:
+            by_path[str(prim.GetPath())] = len(animations)
+            animations.append(self.guard(prim, self.read_animation, prim))
+        meshes: list = [[] for _ in animations]
+        for prim in mesh_prims:
+            index = self.guard(prim, self.animation_target, prim, by_path, "binding.animation", names.BINDING_API)
+            if index is not None and animations[index] is not None:
+                mesh = self.guard(prim, self.read_mesh, prim, animations[index])
+                if mesh is not None:
+                    meshes[index].append(mesh)
+        crowds, crowd_animation = [], []
+        for prim in crowd_prims:
+            index = self.guard(prim, self.animation_target, prim, by_path, "instancer.animation",
+                               names.INSTANCING_API)
+            if index is None or animations[index] is None:
+                continue
+            crowd = self.guard(prim, self.read_crowd, prim, len(animations[index].clips))
+            if crowd is not None:
+                crowds.append(crowd)
+                crowd_animation.append(index)
+        self.report_usd_messages()
+        if self.diagnostics.has_errors():
+            return None
+        animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
+                                   unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
+                                   texture=vb.texture, clip_extents=vb.clip_extents)
+                      for vb, found in zip(animations, meshes)]
+        extra = {}
+        tcps = float(stage.GetTimeCodesPerSecond())
+        fps = float(stage.GetFramesPerSecond())
+        if self.layer.HasFramesPerSecond() and fps != tcps:
+            extra["frames_per_second"] = fps
+        return VirtualBonesAsset(
+            animations=tuple(animations), crowds=tuple(crowds), crowd_animation=tuple(crowd_animation),
+            up_axis=str(UsdGeom.GetStageUpAxis(stage)), meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)),
+            time_codes_per_second=tcps, default_prim=self.layer.defaultPrim or "VirtualBones", extra=extra)
+
+
+_PRIVATE_READS = itertools.count(1)
+
+
+@contextlib.contextmanager
+def reading(path: PathLike, diagnostics: Diagnostics, *, allow_outside_paths: bool = False,
+            suffixes=USD_SUFFIXES, outside_hint: Optional[str] = OUTSIDE_PATHS_HINT):
+    """Open ``path`` as a stage for the block, USD's diagnostics captured throughout.
+
+    Yields the :class:`UsdReader` (its ``stage`` is None when the file could not be opened; the
+    reason is reported). The stage and its layers are released, inside the capture, at the end.
+    ``outside_hint`` tells how the caller's user may allow outside paths (None for a caller
+    without such an option, such as ``vbusd validate``).
+    """
+    reader = UsdReader(path, diagnostics, allow_outside=allow_outside_paths, outside_hint=outside_hint)
+    try:
+        with captured_usd_diagnostics(reader.usd_messages):
+            try:
+                reader.open(suffixes)
+                yield reader
+            finally:
+                reader.stage = None
+                reader.layer = None
+    finally:
+        reader.usd_messages.clear()
+
+
+def open_stage(path: PathLike, diagnostics: Diagnostics, *, allow_outside_paths: bool = False):
+    """Open a USD file as a stage the way every vbusd command does (see the module docstring).
+
+    Returns:
+        The ``Usd.Stage``, or None when it cannot be opened (the reason is in ``diagnostics``; a
+        strict list raised it already).
+    """
+    reader = UsdReader(path, diagnostics, allow_outside=allow_outside_paths)
+    with captured_usd_diagnostics(reader.usd_messages):
+        reader.open()
+    reader.report_usd_messages()
+    return reader.stage
+
+
+def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = False) -> list:
+    """The checked attributes of every ``VirtualBonesAnimation`` prim of a USD file, textures unread.
+
+    The file is opened and every prim checked as :func:`read_asset` does; the textures are located,
+    not opened. ``vbusd info`` uses it.
+
+    Returns:
+        One :class:`AnimationAttributes` per animation prim, in stage order.
+
+    Raises:
+        InputError: As :func:`read_asset` (``asset.empty`` when there is no animation prim).
+        VersionError: A newer format version than this reader knows.
+    """
+    diagnostics = Diagnostics(path, strict=True)
+    with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
+        found = [reader.guard(prim, reader.animation_attributes, prim) for prim in reader.animation_prims()]
+        reader.report_usd_messages()
+    return found
+
+
+def read_asset(path: PathLike, *, allow_outside_paths: bool = False,
+               diagnostics: Optional[Diagnostics] = None) -> VirtualBonesAsset:
+    """Read a Virtual Bones USD asset: every animation prim with its texture, bound meshes, crowds.
+
+    A layer a host application has open is neither reloaded nor edited: the file is read as saved.
+
+    Args:
+        path: A ``.usda``, ``.usdc`` or ``.usd`` file.
+        allow_outside_paths: Accept texture paths, sublayers, references and payloads that resolve
+            outside the asset's folder (absolute paths included). URIs stay refused.
+        diagnostics: A strict list to report into (it keeps USD's captured warnings as
+            ``usd.diagnostic`` findings); a new one by default.
+
+    Returns:
+        The asset; each animation's ``texture`` is the asset path as authored.
+
+    Raises:
+        InputError: Unreadable or malformed USD, missing or mistyped attributes, a texture whose
+            metadata disagrees with its prim, or a path leaving the asset's folder; the error
+            names the file and the prim path (and attribute), with the code ``vbusd validate``
+            reports for the same problem.
+        VersionError: A newer format version than this reader knows.
+    """
+    path = Path(path)
+    diagnostics = diagnostics if diagnostics is not None else Diagnostics(path, strict=True)
+    if path.suffix.lower() == ".usdz":
+        diagnostics.report("usd.usdz", "reading .usdz packages is not supported; unpack it and read the "
+                           ".usda or .usdc inside", FileLocation(str(path)))
+    with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
+        asset = reader.read() if reader.stage is not None else None
+    diagnostics.raise_first_error()
+    if asset is None:  # a lenient list given by the caller: its findings say why
+        raise InputError("the asset cannot be read", file=str(path), code="usd.open")
+    return asset
