@@ -624,7 +624,11 @@ class Method:
 class Scene:
     """GL resources shared by every method for one character and one crowd size."""
 
-    def __init__(self, ctx, framebuffer, character: Character, crowd, check_rows: np.ndarray):
+    def __init__(self, ctx, framebuffer, character: Character, crowd, check_rows: np.ndarray,
+                 packed_skin: bool = False):
+        """``packed_skin``: bone indices as 4 x uint8 and weights as 4 x unorm8 (a 32-byte vertex, as
+        engines pack skins) instead of 4 x int32 + 4 x float32 (56 bytes); the weights must then be
+        multiples of 1/255 (:func:`packed_weights`)."""
         import moderngl
 
         self.moderngl = moderngl
@@ -639,8 +643,19 @@ class Scene:
         idx = np.zeros((len(mesh.points), 4), np.int32)
         w = np.zeros((len(mesh.points), 4), np.float32)
         idx[:, :k], w[:, :k] = mesh.bone_indices, mesh.bone_weights
-        vertex = np.concatenate([np.asarray(mesh.points, np.float32), np.asarray(mesh.normals, np.float32),
-                                 idx.view(np.float32), w], axis=1)
+        if packed_skin:
+            w8 = np.floor(w.astype(np.float64) * 255 + 0.5)
+            assert np.array_equal(w8 / 255, w.astype(np.float64)) or np.abs(w8 / 255 - w).max() < 1e-7, \
+                "packed weights must be multiples of 1/255"
+            vertex = np.zeros((len(mesh.points), 32), np.uint8)
+            vertex[:, :24] = np.concatenate([np.asarray(mesh.points, np.float32),
+                                             np.asarray(mesh.normals, np.float32)], axis=1).view(np.uint8)
+            vertex[:, 24:28], vertex[:, 28:32] = idx.astype(np.uint8), w8.astype(np.uint8)
+            self.mesh_format = ("3f 3f 4u1 4f1",) + self.MESH_FORMAT[1:]
+        else:
+            vertex = np.concatenate([np.asarray(mesh.points, np.float32), np.asarray(mesh.normals, np.float32),
+                                     idx.view(np.float32), w], axis=1)
+            self.mesh_format = self.MESH_FORMAT
         self.vertices = ctx.buffer(np.ascontiguousarray(vertex).tobytes())
         self.indices = ctx.buffer(np.ascontiguousarray(character.triangles, dtype=np.uint32).tobytes())
         self.placement = ctx.buffer(self._placement_bytes(crowd))
@@ -664,7 +679,7 @@ class Scene:
 
     def vertex_arrays(self, program, tf_program, instance_formats, mesh_attributes: bool):
         """(draw VAO with the index buffer, read-back VAO without it over the checked instances)."""
-        mesh = [(self.vertices, *self.MESH_FORMAT)] if mesh_attributes else []
+        mesh = [(self.vertices, *self.mesh_format)] if mesh_attributes else []
         draw = mesh + [(self.placement if b == "placement" else self.animation, *f) for b, f in instance_formats]
         check = mesh + [(self.check_placement if b == "placement" else self.check_animation, *f)
                         for b, f in instance_formats]
@@ -1231,14 +1246,27 @@ def fewer_influences(character: Character, k: int, bone_count: int) -> Character
                      character.triangles)
 
 
+def packed_weights(character: Character) -> Character:
+    """The character with its weights rounded to multiples of 1/255 (still summing to one): unorm8 skins."""
+    w = np.asarray(character.mesh.bone_weights, np.float64)
+    q = np.floor(w * 255 + 0.5)
+    rows = np.arange(len(w))
+    q[rows, np.argmax(w, axis=1)] += 255 - q.sum(axis=1)
+    return Character(f"{character.name}-unorm8", dataclasses.replace(character.mesh,
+                                                                     bone_weights=(q / 255).astype(np.float32)),
+                     character.triangles)
+
+
 def run_factors(args) -> int:
     """One factor at a time around Virtual Bones' vertex cost, stadium character (``factors`` command).
 
     Every variant is checked against numpy like the main run, then timed twice: as drawn, and with
     the rasterizer discarded (the vertex stage alone). Variants: the rest mesh (2 vertex attributes);
     the rest mesh also fetching the skin's bone indices and weights (4 attributes, what VB and palette
-    skinning read); Virtual Bones with K = 1..4 influences kept per vertex (same 56-byte vertex);
-    Virtual Bones with the skin read from storage buffers instead of vertex attributes; the VAT.
+    skinning read); the same and Virtual Bones with the skin packed as engines do (4 x uint8 indices,
+    4 x unorm8 weights: a 32-byte vertex instead of 56); Virtual Bones with K = 1..4 influences kept
+    per vertex (same 56-byte vertex); Virtual Bones with the skin read from storage buffers instead
+    of vertex attributes; the VAT.
     """
     import moderngl
 
@@ -1263,12 +1291,19 @@ def run_factors(args) -> int:
             ("attributes", "vb K=4, skin from storage buffers (2 attributes)", body,
              lambda sc: setup_vb(sc, vb, "crossMatrix", "float16", skin_buffers=True)),
         ]
+        packed = packed_weights(body)
+        variants += [
+            ("packing", "static + skin attributes packed (4 attributes, 32-byte vertex)", packed,
+             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + packed skin attributes")),
+            ("packing", "vb K=4, skin attributes packed (32-byte vertex)", packed,
+             lambda sc: setup_vb(sc, vb, "crossMatrix", "float16")),
+        ]
         for k in (4, 3, 2, 1):
             variants.append(("influences", f"vb K={k} (4 attributes)", fewer_influences(body, k, vb.layout.bone_count),
                              lambda sc: setup_vb(sc, vb, "crossMatrix", "float16")))
         variants.append(("reference", "vat (no vertex attributes)", body, lambda sc: setup_vat(sc, vat)))
         for factor, label, character, setup in variants:
-            scene = Scene(ctx, framebuffer, character, crowd, rows)
+            scene = Scene(ctx, framebuffer, character, crowd, rows, packed_skin=factor == "packing")
             method = setup(scene)
             correctness = check(method, scene, vb, vat)
             drawn = time_method(method, scene, args.per_config_s, args.max_runs)

@@ -26,7 +26,7 @@
 # `factors` (one call, no warp part needed: carry [".gl", ".whl"]) runs the one-factor study around
 # VB's vertex cost (draw_factors.json) and the GL methods of the stadium character again
 # (draw_cost_gl.json), both on the card the call got. Kept as draw_factors_<card>.json and
-# draw_cost_gl_<card>.json.
+# draw_cost_gl_<card>.json. FACTOR_SIZES=100000,10000,1000000 FACTORS_ONLY=1 runs the study alone.
 # DRAW_ARGS adds options to draw_cost.py run (default budget: 320 s of the call's 600).
 set -euo pipefail
 cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors}
@@ -69,11 +69,12 @@ smoke|run|factors)
         # No warp needed: the one-factor study, then the GL methods of the stadium character (on
         # whatever card this call got, so that the goal's ratios come from one card).
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
-        timeout 200 python3 benchmarks/draw_cost.py factors --json "$out/draw_factors.json" --sizes 100000,10000 2>&1 \
-            | tee "$out/factors.log"
+        timeout 300 python3 benchmarks/draw_cost.py factors --json "$out/draw_factors.json" \
+            --sizes "${FACTOR_SIZES:-100000,10000}" 2>&1 | tee "$out/factors.log"
+        python3 benchmarks/draw_cost.py report --json "$out/draw_factors.json"
+        [ -n "${FACTORS_ONLY:-}" ] && exit 0
         timeout 200 python3 benchmarks/draw_cost.py run --json "$out/draw_cost_gl.json" --characters stadium \
             --methods static,vb,vat,palette --budget 170 2>&1 | tee "$out/draw.log"
-        python3 benchmarks/draw_cost.py report --json "$out/draw_factors.json"
         python3 benchmarks/draw_cost.py report --json "$out/draw_cost_gl.json" --markdown > "$out/draw_report_gl.md" 2>&1
         tail -12 "$out/draw_report_gl.md"
         exit 0
