@@ -9,7 +9,7 @@ JSON data, through:
 * the warp kernels on the CPU (``device="cpu"``);
 * the GLSL module in a real OpenGL pipeline (Mesa llvmpipe through EGL) and the HLSL module
   compiled by glslang's HLSL front end and spirv-cross to GLSL, both with ``VB_CROSSFADE 1``
-  (as tests/test_shaders.py runs them);
+  (as tests/test_shaders.py runs them), and their ``vbSocket`` for every (instance, bone);
 * the three.js runtime in headless Chromium: tests/test_conformance_browser.py.
 
 Every decoder must reproduce every vector within the vector's tolerances.
@@ -312,3 +312,144 @@ def test_vectors_are_current():
     result = subprocess.run(["python", str(FOLDER / "make_vectors.py"), "--check"], capture_output=True, text=True,
                             timeout=600)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+# ----------------------------------------------------------------------------------------------
+# Sockets (format 1.1): vbSocket in GLSL and HLSL, one point per (instance, bone)
+# ----------------------------------------------------------------------------------------------
+
+_SOCKET_GLSL_MAIN = """
+in int socketBone;
+in vec4 bind0; in vec4 bind1; in vec4 bind2;
+in int vb_instanceClip; in vec2 vb_instanceTime; in int vb_instanceFadeClip; in vec3 vb_instanceFade;
+out vec4 socket0; out vec4 socket1; out vec4 socket2;
+void main()
+{
+    vbSocket(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time, vb_instanceFadeClip,
+             vb_instanceFade.x + vb_instanceFade.y * vb_time, vb_instanceFade.z, socketBone,
+             bind0, bind1, bind2, socket0, socket1, socket2);
+    gl_Position = vec4(0.0, 0.0, 0.0, 1.0);
+}
+"""
+_SOCKET_HLSL_MAIN = """
+struct SocketInput
+{
+    int bone : TEXCOORD0;
+    float4 bind0 : TEXCOORD1;
+    float4 bind1 : TEXCOORD2;
+    float4 bind2 : TEXCOORD3;
+    int instanceClip : TEXCOORD6;
+    float2 instanceTime : TEXCOORD7;
+    int instanceFadeClip : TEXCOORD4;
+    float3 instanceFade : TEXCOORD5;
+};
+struct SocketOutput
+{
+    float4 position : SV_Position;
+    float4 row0 : TEXCOORD0;
+    float4 row1 : TEXCOORD1;
+    float4 row2 : TEXCOORD2;
+};
+SocketOutput main(SocketInput input)
+{
+    SocketOutput output;
+    vbSocket(input.instanceClip, input.instanceTime.x + input.instanceTime.y * vb_time, input.instanceFadeClip,
+             input.instanceFade.x + input.instanceFade.y * vb_time, input.instanceFade.z, input.bone,
+             input.bind0, input.bind1, input.bind2, output.row0, output.row1, output.row2);
+    output.position = float4(0.0, 0.0, 0.0, 1.0);
+    return output;
+}
+"""
+SOCKET_NAMES = {
+    "glsl": {"inputs": ["socketBone", "bind0", "bind1", "bind2", "vb_instanceClip", "vb_instanceTime",
+                        "vb_instanceFadeClip", "vb_instanceFade"], "varyings": ["socket0", "socket1", "socket2"]},
+    "hlsl": {"inputs": ["input_bone", "input_bind0", "input_bind1", "input_bind2", "input_instanceClip",
+                        "input_instanceTime", "input_instanceFadeClip", "input_instanceFade"],
+             "varyings": ["_entryPointOutput_row0", "_entryPointOutput_row1", "_entryPointOutput_row2"]},
+}
+
+
+def run_socket_shader(ctx, lang: str, vector: dict, time: float, workdir: Path) -> np.ndarray:
+    """vbSocket of every (instance, bone): (instances, bones, 3, 4) rows of J."""
+    layout = vector["layout"]
+    module = generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"], max_influences=4, main=False))
+    if lang == "glsl":
+        program = ctx.program(vertex_shader="#version 330 core\n" + module + _SOCKET_GLSL_MAIN,
+                              varyings=SOCKET_NAMES["glsl"]["varyings"])
+    else:
+        program = ctx.program(vertex_shader=_hlsl_to_glsl(module + _SOCKET_HLSL_MAIN, workdir),
+                              varyings=SOCKET_NAMES["hlsl"]["varyings"])
+    vb = vector_animation(vector)
+    dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
+    texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    texture.use(location=0)
+    program[NAMES[lang]["texture"]].value = 0
+    clips = [(float(c["firstRow"]), float(c["rowCount"]), float(c["rowsPerSecond"]), 1.0 if c["loop"] else 0.0)
+             for c in layout["clips"]]
+    clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
+    block = None
+    if lang == "glsl":
+        program["vb_time"].value = time
+        program["vb_clips"].value = clips
+        if "unormRanges" in layout:
+            ranges = np.array(layout["unormRanges"])
+            program["vb_rangeMin"].value = [tuple(r) for r in ranges[..., 0]]
+            program["vb_rangeMax"].value = [tuple(r) for r in ranges[..., 1]]
+    else:
+        payload = np.array([time, 0, 0, 0], "<f4").tobytes() + np.array(clips, "<f4").tobytes()
+        if "unormRanges" in layout:
+            ranges = np.array(layout["unormRanges"])
+            payload += np.array(ranges[..., 0], "<f4").tobytes() + np.array(ranges[..., 1], "<f4").tobytes()
+        block = ctx.buffer(payload)
+        program["VirtualBones"].binding = 1
+        block.bind_to_uniform_block(1)
+    binds = np.array(vector["bindTransforms"], np.float32)  # (bones, 4, 4)
+    bones = len(binds)
+    per_bone = np.zeros(bones, dtype=[("bone", "<i4"), ("rows", "<f4", (3, 4))])
+    per_bone["bone"] = np.arange(bones)
+    per_bone["rows"] = binds[:, :3, :]
+    instances = vector["instances"]
+    per_instance = np.zeros(len(instances), dtype=[("clip", "<i4"), ("time", "<f4", 2), ("fadeClip", "<i4"),
+                                                    ("fade", "<f4", 3)])
+    per_instance["clip"] = [i["clip"] for i in instances]
+    per_instance["time"] = [[i["timeOffset"], i["playbackRate"]] for i in instances]
+    per_instance["fadeClip"] = [i["fadeClip"] for i in instances]
+    per_instance["fade"] = [[i["fadeTimeOffset"], i["fadePlaybackRate"], i["fadeWeight"]] for i in instances]
+    vbo, ibo = ctx.buffer(per_bone.tobytes()), ctx.buffer(per_instance.tobytes())
+    names = SOCKET_NAMES[lang]["inputs"]
+    vao = ctx.vertex_array(program, [(vbo, "1i 4f 4f 4f", *names[:4]), (ibo, "1i 2f 1i 3f/i", *names[4:])])
+    out = ctx.buffer(reserve=bones * len(instances) * 12 * 4)
+    vao.transform(out, mode=moderngl.POINTS, vertices=bones, instances=len(instances))
+    result = np.frombuffer(out.read(), dtype="<f4").reshape(len(instances), bones, 3, 4)
+    for resource in (vao, vbo, ibo, out, texture, program) + ((block,) if block is not None else ()):
+        resource.release()
+    return result
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_numpy_reference_reproduces_every_socket(path):
+    from vbusd.decode.reference import crowd_joint_transforms
+
+    vector = load(path)
+    vb = vector_animation(vector)
+    vb = VirtualBones(vb.layout, vb.texels, vb.bones, vb.clips, vb.unorm_ranges, vb.meshes,
+                      bind_transforms=np.array(vector["bindTransforms"]))
+    crowd = vector_crowd(vector)
+    for expected in vector["expected"]:
+        sockets = np.stack([crowd_joint_transforms(vb, crowd, bone, expected["time"])
+                            for bone in range(len(vb.bones))], axis=1)
+        np.testing.assert_allclose(sockets, expected["sockets"], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shader_sockets_reproduce_every_vector(gl, lang, path, tmp_path):
+    if lang == "hlsl" and not HAS_HLSL_TOOLS:
+        pytest.skip("glslang-tools and spirv-cross are not installed")
+    vector = load(path)
+    for expected in vector["expected"]:
+        rows = run_socket_shader(gl, lang, vector, expected["time"], tmp_path)
+        error = float(np.abs(rows - np.array(expected["sockets"])[:, :, :3, :]).max())
+        assert error <= vector["tolerance"]["socket"], \
+            f"{lang} {vector['vector']} at t = {expected['time']}: socket error {error:.3g}"

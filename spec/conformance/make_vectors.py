@@ -4,7 +4,7 @@ One vector per encoding and texel format (12): a small texture (4 bones, a loopi
 and a clamped clip of 5 rows, both at 4 rows per second), a mesh of 8 vertices with 4 influences,
 8 instances (clip, time offset, playback rate and the format 1.1 crossfade: fade clip, its offset
 and rate, fade weight) and the expected skinned points and normals of every instance at three
-scene times, computed in float64 by vbusd's numpy reference decoder from the stored texels.
+scene times, with every joint's socket transform (format 1.1), computed in float64 by vbusd's numpy reference decoder from the stored texels.
 
 Every time, offset and rate is a multiple of 1/64 with few significant bits, so a decoder that
 computes ``tau = timeOffset + playbackRate * time`` in binary32 gets the same clip times as the
@@ -102,13 +102,16 @@ def _animation(encoding: str):
                        normals=normals)
     clips = (AnimationClip("sway", 0.0, 2.0, sampler(1.0, 2.0, True), native_rate=4, loop=True),
              AnimationClip("reach", 0.0, 1.0, sampler(1.3, 1.0, False), native_rate=4, loop=False))
-    return SkinnedAnimation("Conformance", "/Conformance/Anim", ("root", "spine", "arm", "hand"), clips, (mesh,))
+    binds = np.tile(np.eye(4), (4, 1, 1))
+    binds[:, 1, 3] = np.arange(4.0)  # joint b sits at (0, b, 0) in the bind pose
+    return SkinnedAnimation("Conformance", "/Conformance/Anim", ("root", "spine", "arm", "hand"), clips, (mesh,),
+                            bind_transforms=binds)
 
 
 def build(encoding: str, texel_format: str, folder: Path) -> dict:
     """Bake one vector, write its texture into ``folder`` and return its JSON document."""
     from vbusd.bake import BakeOptions, bake
-    from vbusd.decode.reference import skin_crowd
+    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd
     from vbusd.format import metadata as md
     from vbusd.format.model import Crowd
     from vbusd.io.textures import write_texture
@@ -129,7 +132,9 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
     expected = []
     for time in TIMES:
         points, normals = skin_crowd(vb, mesh, crowd, time)
-        expected.append({"time": time, "positions": points.tolist(), "normals": normals.tolist()})
+        sockets = np.stack([crowd_joint_transforms(vb, crowd, bone, time) for bone in range(len(vb.bones))], axis=1)
+        expected.append({"time": time, "positions": points.tolist(), "normals": normals.tolist(),
+                         "sockets": sockets.tolist()})
     every_point = np.array([e["positions"] for e in expected]).reshape(-1, 3)
     diagonal = float(np.linalg.norm(every_point.max(axis=0) - every_point.min(axis=0)))
     position_fraction, normal_tolerance = TOLERANCES[texel_format]
@@ -146,13 +151,15 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
         "layout": md.to_dict(vb),
         "texture": texture,
         "texels": texels,
+        "bindTransforms": vb.bind_transforms.tolist(),
         "mesh": {"points": mesh.points.tolist(), "normals": mesh.normals.tolist(),
                  "influences": int(mesh.bone_indices.shape[1]), "boneIndices": mesh.bone_indices.tolist(),
                  "boneWeights": mesh.bone_weights.tolist()},
         "instances": [dict(zip(keys, [int(row[0]), *row[1:3], int(row[3]), *row[4:]])) for row in INSTANCES],
         "expected": expected,
         "tolerance": {"position": position_fraction * diagonal, "positionFractionOfDiagonal": position_fraction,
-                      "diagonal": diagonal, "normal": normal_tolerance},
+                      "diagonal": diagonal, "normal": normal_tolerance,
+                      "socket": position_fraction * max(diagonal, 1.0)},
     }
 
 

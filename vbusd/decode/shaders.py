@@ -272,6 +272,71 @@ void vbSkinPose(VB_ARGS_DECL int clip, float tau, vec3 restPosition, vec3 restNo
 }
 """
 
+# A bone's decoded skinning transform [A | t] as three rows (spec: Sockets), per skinning method.
+_BONE_ROWS_LBS = """\
+// The decoded skinning transform [A | t] of one bone at clip-local time tau, as its three rows.
+void vbBoneRows(VB_ARGS_DECL int clip, float tau, int bone, out vec4 row0, out vec4 row1, out vec4 row2)
+{
+    int r0;
+    int r1;
+    float blend;
+    vbRows(VB_ARGS clip, tau, r0, r1, blend);
+    vec3 a0; vec3 a1; vec3 a2; vec3 t; vec3 n0; vec3 n1; vec3 n2;
+    vbBone(VB_ARGS bone, r0, r1, blend, a0, a1, a2, t, n0, n1, n2);
+    row0 = vec4(a0.x, a1.x, a2.x, t.x);
+    row1 = vec4(a0.y, a1.y, a2.y, t.y);
+    row2 = vec4(a0.z, a1.z, a2.z, t.z);
+}
+"""
+
+_BONE_ROWS_DQS = """\
+// The decoded skinning transform [A | t] of one bone at clip-local time tau, as its three rows:
+// A = R(real), t = 2 (dual (x) conj(real)).xyz.
+void vbBoneRows(VB_ARGS_DECL int clip, float tau, int bone, out vec4 row0, out vec4 row1, out vec4 row2)
+{
+    int r0;
+    int r1;
+    float blend;
+    vbRows(VB_ARGS clip, tau, r0, r1, blend);
+    vec4 real;
+    vec4 dual;
+    vbBone(VB_ARGS bone, r0, r1, blend, real, dual);
+    vec3 a0 = vbRotate(real, vec3(1.0, 0.0, 0.0));
+    vec3 a1 = vbRotate(real, vec3(0.0, 1.0, 0.0));
+    vec3 a2 = vbRotate(real, vec3(0.0, 0.0, 1.0));
+    vec3 t = 2.0 * (real.w * dual.xyz - dual.w * real.xyz + cross(real.xyz, dual.xyz));
+    row0 = vec4(a0.x, a1.x, a2.x, t.x);
+    row1 = vec4(a0.y, a1.y, a2.y, t.y);
+    row2 = vec4(a0.z, a1.z, a2.z, t.z);
+}
+"""
+
+_SOCKET = """\
+// Socket (spec: Sockets, format 1.1): the joint transform J = M B of a bone, M its decoded skinning
+// transform (crossfaded as matrices, (1 - w) M_a + w M_b, when fadeWeight > 0) and B its bind
+// transform (vb:bindTransforms), both given and returned as the three rows of a 3x4 matrix.
+// p_world = vec3(dot(row0, vec4(p, 1.0)), dot(row1, vec4(p, 1.0)), dot(row2, vec4(p, 1.0))).
+void vbSocket(VB_ARGS_DECL int clip, float tau, int fadeClip, float fadeTau, float fadeWeight, int bone,
+              vec4 bind0, vec4 bind1, vec4 bind2, out vec4 row0, out vec4 row1, out vec4 row2)
+{
+    vec4 m0; vec4 m1; vec4 m2;
+    vbBoneRows(VB_ARGS clip, tau, bone, m0, m1, m2);
+    float w = clamp(fadeWeight, 0.0, 1.0);
+    if (w > 0.0)
+    {
+        vec4 f0; vec4 f1; vec4 f2;
+        vbBoneRows(VB_ARGS fadeClip, fadeTau, bone, f0, f1, f2);
+        m0 = mix(m0, f0, w);
+        m1 = mix(m1, f1, w);
+        m2 = mix(m2, f2, w);
+    }
+    vec4 last = vec4(0.0, 0.0, 0.0, 1.0);
+    row0 = m0.x * bind0 + m0.y * bind1 + m0.z * bind2 + m0.w * last;
+    row1 = m1.x * bind0 + m1.y * bind1 + m1.z * bind2 + m1.w * last;
+    row2 = m2.x * bind0 + m2.y * bind1 + m2.z * bind2 + m2.w * last;
+}
+"""
+
 # Shared by both skinning methods: the single-clip entry point and the crossfade (spec 8.3).
 _SKIN_ENTRY = """\
 // The spec defines normalize(0) as 0 (a zero rest normal stays zero); GLSL and HLSL give NaN.
@@ -480,7 +545,8 @@ def generate(options: ShaderOptions) -> str:
     prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
     skin = _SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _SKIN_LBS
     main = _GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN
-    parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, main]
+    rows = _BONE_ROWS_DQS if options.encoding is Encoding.DUAL_QUAT else _BONE_ROWS_LBS
+    parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, rows, _SOCKET, main]
     if options.lang == "hlsl":
         parts.append(_HLSL_EPILOGUE)
     return "\n".join(header) + "\n".join(parts)
