@@ -121,3 +121,36 @@ def test_existing_output_needs_force(character, tmp_path, capsys):
     assert out.read_text() == "keep me"
     assert main(["crowd", str(character), "-o", str(out), "--count", "3", "--force"]) == 0
     assert out.read_text() != "keep me"
+
+
+def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
+    """The README's quick-start crowd line, run as written (after its convert line), in a scratch
+    folder; the package it writes is checked with pxr's view of the crowd (instances, clip)."""
+    import json
+    import os
+    import shlex
+    import subprocess
+    import sys
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text().splitlines()
+    (convert_line,) = [x for x in readme if x.startswith("pip install . && ") and "vbusd convert" in x]
+    (crowd_line,) = [x for x in readme if x.startswith("vbusd crowd ") and "vbusd export" in x]
+    (tmp_path / "samples").symlink_to(SAMPLE.parent)
+    env = dict(os.environ, PYTHONSAFEPATH="1")  # the installed vbusd, never the checkout
+    commands = [convert_line.split("&&", 1)[1]] + crowd_line.split("&&")
+    for command in commands:
+        words = shlex.split(command)
+        assert words[0] == "vbusd", command
+        result = subprocess.run([sys.executable, "-m", "vbusd", *words[1:]], capture_output=True, text=True,
+                                timeout=300, cwd=tmp_path, env=env)
+        assert result.returncode == 0, (command, result.stderr)
+    package = tmp_path / "out" / "crowd.glb"
+    length = int.from_bytes(package.read_bytes()[12:16], "little")
+    gltf = json.loads(package.read_bytes()[20:20 + length])
+    (node,) = [n for n in gltf["nodes"] if "extensions" in n]
+    count = gltf["accessors"][node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]["_VB_CLIP"]]["count"]
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(tmp_path / "out" / "crowd.usda"))
+    (instancer,) = [UsdGeom.PointInstancer(p) for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    assert count == len(instancer.GetPositionsAttr().Get()) == 1200
