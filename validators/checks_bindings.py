@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vbusd.validators.declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API, wrong_type
+from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
 from vbusd.format.diagnostics import UsdSite, finding
 
 WEIGHT_SUM_TOLERANCE = 1e-3

@@ -38,7 +38,7 @@ from __future__ import annotations
 import os
 import threading
 
-from vbusd.validators.declared import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.format.diagnostics import UsdSite
 
 KEYWORD = "vbusd"

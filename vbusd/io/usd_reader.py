@@ -46,7 +46,7 @@ from vbusd.io.files import resolve_inside
 
 __all__ = ["AnimationAttributes", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
-           "WEIGHT_SUM_TOLERANCE"]
+           "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -428,15 +428,10 @@ class UsdReader:
         try:
             if not attribute or not attribute.HasAuthoredValue():
                 return False, None
-            expected = Sdf.ValueTypeNames.Find(type_name)
-            # The composed type is the schema's even where a layer authored another type (and Get()
-            # then returns the authored value), so every authored spec is checked. Roles (point3f vs
-            # float3) do not matter for the values read: compare the value types.
-            for spec in attribute.GetPropertyStack():
-                if expected and spec.typeName.type != expected.type:
-                    self.report(missing_code, f"{name} must be {type_name}, found {spec.typeName} in "
-                                f"{Path(spec.layer.identifier).name}", site)
-                    return True, None
+            wrong = authored_type_mismatch(attribute, type_name)
+            if wrong is not None:
+                self.report(missing_code, f"{name} must be {type_name}, found {wrong}", site)
+                return True, None
             value = attribute.Get()
         except VbusdError:
             raise
@@ -998,6 +993,23 @@ class UsdReader:
 
 
 _PRIVATE_READS = itertools.count(1)
+
+
+def authored_type_mismatch(attribute, type_name: str) -> Optional[str]:
+    """The type an authored spec of ``attribute`` has instead of ``type_name`` (``"float[] in
+    asset.usda"``), or None when every authored spec has the expected value type.
+
+    The composed type of a schema property is the schema's even where a layer authored another type
+    (and Get() then returns the authored value), so every authored spec is checked. Roles (point3f
+    vs float3) do not matter for the values read: the value types are compared.
+    """
+    Sdf = _pxr()[0]
+    expected = Sdf.ValueTypeNames.Find(type_name)
+    for spec in attribute.GetPropertyStack():
+        if expected and spec.typeName.type != expected.type:
+            return f"{spec.typeName} in {Path(spec.layer.identifier).name}"
+    actual = str(attribute.GetTypeName())
+    return None if not expected or Sdf.ValueTypeNames.Find(actual).type == expected.type else actual
 
 
 @contextlib.contextmanager
