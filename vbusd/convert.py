@@ -667,7 +667,9 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     _check_texture_files(scene, output, options)
     created = make_folders(output.parent)
     try:
-        written = write_asset(asset, output, texture_container=options.container)
+        # replace=force: the existence check is repeated under the output lock, so two runs
+        # without --force cannot both create the output (the second is refused).
+        written = write_asset(asset, output, texture_container=options.container, replace=options.force)
     except BaseException as error:
         remove_folders(created)  # the transaction left nothing in them; leave no trace
         if isinstance(error, OSError):  # disk full, permission denied: one line, not a traceback

@@ -22,7 +22,9 @@ asset (copied as one matrix op where authored), so world positions match the ass
 Decoding uses the numpy reference decoder (:mod:`vbusd.decode.reference`), or the warp decoder
 (:mod:`vbusd.decode.warp`) when a device is named and warp can be imported. Rows are decoded in
 chunks so the temporary arrays stay small; the samples themselves live in the USD layer until it is
-written. The cache is written beside the target and renamed: no partial file on failure.
+written. The cache is written through :class:`vbusd.io.files.Commit`: under the output's lock,
+staged beside the target and renamed; a failure or a kill never leaves a partial cache in its
+place, and the next run writing there removes what a killed one staged.
 """
 
 from __future__ import annotations
@@ -250,14 +252,22 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default}"))
     stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
 
-    from vbusd.io.files import AtomicTransaction
+    from vbusd.io.files import Commit
+    from vbusd.io.usd import asset_files_in_use, export_layer, replaced_files
 
+    layer = stage.GetRootLayer()
+    data = dict(layer.customLayerData)
+    data["vbusd"] = {"files": Vt.StringArray()}  # names no texture: recovery need not parse it
+    layer.customLayerData = data
     created = make_folders(output.parent)
     try:
-        with AtomicTransaction() as transaction:
-            temporary = transaction.temp_path(output)
-            if not stage.GetRootLayer().Export(str(temporary)):
-                raise OSError(f"USD could not write {output}")
+        # One commit (spec, "File names and the write guarantee"): under the output's lock, the
+        # cache is staged beside the target and one rename makes it current; a run killed half
+        # way leaves a staged file that the next run writing there removes.
+        with Commit(output, replace=force, in_use=asset_files_in_use) as commit:
+            old_files = replaced_files(output)  # an asset replaced by a cache leaves no texture
+            export_layer(layer, commit.temp_path(output, reserve=False), output)
+            commit.discard_after(old_files)
     except BaseException as error:
         remove_folders(created)
         if not isinstance(error, OSError):
