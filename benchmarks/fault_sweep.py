@@ -437,6 +437,47 @@ def race(sources: Path, work: Path, trials: int, old: str, new: str) -> dict:
     return counts
 
 
+def big_decode(work: Path, kill_at_bytes: int) -> dict:
+    """``vbusd decode --crowd`` of the stadium-crowd sample (every instance: a cache of about 3 GB)
+    over an existing small cache, SIGKILLed once its staged file holds ``kill_at_bytes``.
+
+    Returns what was seen: bytes staged when killed, seconds, whether the old cache is byte for byte
+    intact, the files left (all hidden working files?) and what recovery left.
+    """
+    sample = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+    folder = work / "big"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    target = folder / "cache.usdc"
+    _checked(run_process, ["decode", sample, "-o", target, "--quiet"], {})  # the old cache: no crowd, 8 MB
+    old = hashlib.sha256(target.read_bytes()).hexdigest()
+    clock = time.perf_counter()
+    process = subprocess.Popen(vbusd_argv("decode", sample, "-o", target, "--crowd", "--force", "--quiet"),
+                               env=child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    staged, peak = 0, 0
+    while process.poll() is None:
+        sizes = [p.stat().st_size for p in folder.glob(".cache.usdc.vbusd-tmp-*") if p.exists()]
+        peak = max([peak] + sizes)
+        if peak >= kill_at_bytes:
+            process.kill()
+            staged = peak
+            break
+        time.sleep(0.01)
+    status = process.wait()
+    seconds = time.perf_counter() - clock
+    left = sorted(os.listdir(folder))
+    intact = target.is_file() and hashlib.sha256(target.read_bytes()).hexdigest() == old
+    from vbusd.io.files import recover as recover_output
+    from vbusd.io.usd import asset_files_in_use
+
+    recover_output(target, in_use=asset_files_in_use, lock_timeout=0)
+    after = sorted(os.listdir(folder))
+    return {"status": status, "killed_at_bytes": staged, "peak_staged_bytes": peak, "seconds": round(seconds, 1),
+            "old_cache_intact": intact, "left": left, "after_recovery": after,
+            "ok": status == -9 and staged > 0 and intact and all(n.startswith(".") for n in left if n != target.name)
+            and after == [target.name]}
+
+
 def markdown(summaries: list) -> str:
     """The benchmarks/README.md table."""
     rows = ["| writer | fault points | runs | killed: old / new output | killed: files left until the next run "
@@ -490,6 +531,8 @@ def main(argv=None) -> int:
     parser.add_argument("--format", choices=("text", "markdown", "json"), default="markdown")
     parser.add_argument("--work", help="scratch folder (default: a temporary one, removed after)")
     parser.add_argument("--races", type=int, default=10, help="trials of two racing convert runs (0: none)")
+    parser.add_argument("--big-decode", type=float, metavar="GB",
+                        help="only this: kill decode --crowd of the stadium sample (a ~3 GB cache) once GB are staged")
     parser.add_argument("--tmpfs-child", metavar="JSON", help=argparse.SUPPRESS)  # see tmpfs_child
     args = parser.parse_args(argv)
     if args.tmpfs_child:
@@ -500,6 +543,11 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"unknown writer {unknown[0]!r}")
     errnos = tuple(e for e in args.errnos.split(",") if e)
+    if args.big_decode:
+        with tempfile.TemporaryDirectory(prefix="vbusd-big-", dir=args.work) as scratch:
+            result = big_decode(Path(scratch), int(args.big_decode * 1e9))
+        print(json.dumps(result, indent=1))
+        return 0 if result["ok"] else 1
     clock = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="vbusd-faults-") as scratch:
         work = Path(args.work) if args.work else Path(scratch)
