@@ -456,7 +456,8 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
             offsets, scales, backwards = layer_offsets(vb, use, tcps)
             chosen = [variants[(int(c), bool(b))] for c, b in zip(use.clip, backwards)]
             quats = np.asarray(crowd.orientations, dtype=np.float64)
-            quats = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+            length = np.linalg.norm(quats, axis=1, keepdims=True)  # zero length: identity, as glTF export
+            quats = np.where(length > 0, quats / np.where(length > 0, length, 1.0), [0.0, 0.0, 0.0, 1.0])
             count = crowd.instance_count
             width = len(str(count - 1))
             pending.append((f"/{default}/{crowd_name}", character, [f"i{k:0{width}d}" for k in range(count)],
