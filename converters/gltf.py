@@ -39,6 +39,11 @@ from vbusd.converters.gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, Access
                              require_int, triangles)
 from vbusd.converters.gltf_animation import compose_trs, sample_channel
 
+__all__ = ["NAME", "SUFFIXES", "MAX_FILE_BYTES", "TIME_CODES_PER_SECOND", "DEFAULT_RATE",
+           "QUAT_UNIT_TOLERANCE", "WEIGHT_SUM_TOLERANCE", "make_identifier", "NameAllocator",
+           "load", "GltfScene", "native_rate", "sniff", "check_time_range", "read",
+           "bind_transforms"]
+
 NAME = "gltf"
 """Converter name (``vbusd convert --from gltf``)."""
 

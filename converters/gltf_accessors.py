@@ -22,6 +22,10 @@ import numpy as np
 
 from vbusd.format.errors import InputError
 
+__all__ = ["MAX_ELEMENTS", "MAX_VALUES", "MAX_TOTAL_VALUES", "COMPONENT_TYPES", "COMPONENT_NAMES",
+           "TYPE_SHAPES", "is_int", "require_int", "require_index", "element_layout",
+           "AccessorReader", "MODE_NAMES", "triangles"]
+
 MAX_ELEMENTS = 1 << 24
 """Largest accessor count accepted (16 Mi elements): refuses absurd sizes before allocating."""
 

@@ -22,6 +22,8 @@ import numpy as np
 
 from vbusd.format.encoding import quat_to_matrix
 
+__all__ = ["KEY_TIME_TOLERANCE", "compose_trs", "sample_channel"]
+
 
 KEY_TIME_TOLERANCE = 2.0 ** -23
 """A sample time this close to a key (relative to max(|t|, 1 s)) is at the key: one float32 step

@@ -26,6 +26,8 @@ from typing import Optional
 
 from vbusd.format.errors import InputError, OptionsError
 
+__all__ = ["GROUP", "ConverterEntry", "entries", "find_converter", "check_source", "read"]
+
 GROUP = "vbusd.converters"
 """The entry-point group converters register in."""
 

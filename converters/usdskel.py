@@ -35,6 +35,10 @@ import numpy as np
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
+__all__ = ["NAME", "SUFFIXES", "WEIGHT_SUM_TOLERANCE", "DQS", "sniff", "UsdSkelScene",
+           "AllFramesSkinning", "SkeletonSampler", "read", "IMPLICIT_SEGMENTS", "implicit_surface",
+           "bind_transforms"]
+
 NAME = "usdskel"
 SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 

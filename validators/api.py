@@ -21,6 +21,9 @@ from vbusd.format import codes as _codes
 from vbusd.format.diagnostics import FileLocation, UsdSite, finding
 from vbusd.validators.report import Report, build_report
 
+__all__ = ["USD_SUFFIXES", "TEXTURE_SUFFIXES", "check_filters", "validate", "validate_findings",
+           "guarded", "open_stage", "validate_stage"]
+
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2", ".json")
 _UNREADABLE_ALONE = ("texture.unreadable", "texture.missing")

@@ -21,6 +21,8 @@ from vbusd.format import names
 from vbusd.format.declared import check_declared, check_format_version, compare_declared  # noqa: F401
 from vbusd.format.diagnostics import Diagnostics, UsdSite, finding
 
+__all__ = ["MAX_PACKAGED_BYTES", "resolve_texture", "check_animation_prim"]
+
 MAX_PACKAGED_BYTES = 16384 * 16384 * 16 + (64 << 20)
 """Largest texture extracted from a .usdz package (the largest legal float32 texture plus headroom)."""
 

@@ -14,6 +14,10 @@ from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
 from vbusd.format.diagnostics import UsdSite, finding
 
+__all__ = ["WEIGHT_SUM_TOLERANCE", "NORMAL_LENGTH_TOLERANCE", "INDICES", "WEIGHTS",
+           "INSTANCE_PRIMVARS", "applied_schemas", "has_binding", "has_instancing",
+           "check_binding_prim", "check_instancer_prim"]
+
 WEIGHT_SUM_TOLERANCE = 1e-3
 """|sum of a vertex's weights - 1| allowed (spec/validation.md: weights may come from 8-bit glTF
 weights renormalized in float32; 1e-3 is far above float32 rounding and far below a visible

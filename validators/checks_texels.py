@@ -24,6 +24,10 @@ from vbusd.format.layout import Encoding, Layout, TexelFormat
 
 from vbusd.format.diagnostics import TexelAddress, finding
 
+__all__ = ["BLOCK_VALUES", "UNIT_ROUNDOFF", "FLOAT32_SOURCE_ALLOWANCE", "tolerance", "row_blocks",
+           "check_non_finite", "check_padding", "content_digest", "dequantize", "check_encoding",
+           "check_loop_jumps"]
+
 BLOCK_VALUES = 1 << 20
 """Channel values per block of rows (1 Mi values: 4 MiB as float32; larger blocks are no faster)."""
 

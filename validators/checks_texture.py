@@ -27,6 +27,9 @@ from vbusd.io import textures
 from vbusd.validators import checks_texels as texels_checks
 from vbusd.format.declared import Declared, from_metadata
 
+__all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency",
+           "check_texture_file", "check_texture_only"]
+
 TEXEL_FORMATS = ("float16", "float32", "unorm16")
 
 

@@ -15,6 +15,8 @@ from vbusd.format import codes as _codes
 from vbusd.format.codes import Severity
 from vbusd.format.diagnostics import Finding
 
+__all__ = ["REPORT_FORMAT", "REPORT_VERSION", "Report", "build_report"]
+
 REPORT_FORMAT = "vbusd.validationReport"
 REPORT_VERSION = 1
 

@@ -41,6 +41,9 @@ import threading
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.format.diagnostics import UsdSite
 
+__all__ = ["KEYWORD", "ANIMATION_VALIDATOR", "BINDING_VALIDATOR", "INSTANCING_VALIDATOR",
+           "PRIMVARS_VALIDATOR", "SUITE", "register"]
+
 KEYWORD = "vbusd"
 ANIMATION_VALIDATOR = "vbusd:VirtualBonesAnimationValidator"
 BINDING_VALIDATOR = "vbusd:VirtualBonesBindingValidator"

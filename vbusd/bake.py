@@ -21,6 +21,9 @@ from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
 
+__all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "RowPlan", "decide_loop", "plan_rows",
+           "reduce_influences", "bind_mesh", "bake"]
+
 DEFAULT_ROWS_PER_SECOND = 30.0
 """Rows per second when neither the options nor the source say (a clip without native_rate)."""
 

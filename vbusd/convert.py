@@ -38,6 +38,11 @@ from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
 
+__all__ = ["AUTO", "CONTAINERS", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
+           "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
+           "ConvertReport", "check_output", "check_output_path", "bake_animation",
+           "bake_with_clip_policy", "measure_errors", "convert"]
+
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
 

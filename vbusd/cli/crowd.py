@@ -11,6 +11,8 @@ import click
 
 from vbusd.format.errors import OptionsError
 
+__all__ = ["command"]
+
 
 def _pair(values, option: str):
     if values is None:

@@ -17,6 +17,8 @@ import click
 
 from vbusd.format.errors import OptionsError
 
+__all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
+
 
 def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
     from vbusd.io.gltf_package import SUFFIXES, export_gltf

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import click
 
+__all__ = ["command"]
+
 
 def _split(values) -> tuple:
     """``--only a,b --only c`` -> ``("a", "b", "c")``."""

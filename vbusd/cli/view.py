@@ -14,6 +14,8 @@ import click
 
 from vbusd.format.errors import OptionsError
 
+__all__ = ["command"]
+
 
 @click.command("view")
 @click.argument("asset", metavar="ASSET_OR_CROWD", type=click.Path(path_type=str))

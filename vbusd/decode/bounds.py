@@ -22,6 +22,8 @@ import numpy as np
 
 from vbusd.format.model import VirtualBones
 
+__all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
+
 SUBSTEPS = 4
 """Sample intervals per row interval (1 = rows only)."""
 

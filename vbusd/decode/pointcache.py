@@ -42,6 +42,8 @@ from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
 
+__all__ = ["DEVICES", "DecodeReport", "row_times", "decode"]
+
 DEVICES = ("cpu", "cuda")
 
 

@@ -18,6 +18,11 @@ from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, quat
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
+__all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
+           "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
+           "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
+           "joint_transforms", "crowd_joint_transforms"]
+
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows and blend factor of a clip at clip-local times.

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 
+__all__ = ["LANGUAGES", "DEFAULT_MAX_CLIPS", "ShaderOptions", "generate"]
+
 LANGUAGES = ("glsl", "hlsl")
 DEFAULT_MAX_CLIPS = 16
 

@@ -46,6 +46,9 @@ from vbusd.format.model import BoundMesh, Crowd, VirtualBones
 from vbusd.decode.reference import channel_values, normal_point_indices
 from vbusd.io.capture import captured_output
 
+__all__ = ["quiet_warp", "SAMPLING_MODES", "available_devices", "SkinResult", "DeviceCrowd",
+           "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd"]
+
 
 
 @contextlib.contextmanager

@@ -54,6 +54,14 @@ import functools
 
 import warp as wp
 
+__all__ = ["ENCODING_IDS", "CROSS_MATRIX", "AFFINE_MATRIX", "QUAT_TRANSLATION", "DUAL_QUAT",
+           "row_blend", "clip_rows", "lerp_texel", "sample_texel", "decode_bone",
+           "texels_per_bone", "load_linear", "load_normal", "load_dual", "store_linear",
+           "store_normal", "store_dual", "blend_dqs", "dqs_point", "place_point", "place_normal",
+           "InstanceFrame", "instance_frames_kernel", "store_bones", "decode_at",
+           "sample_decode_at", "blend_bones", "decode_bones", "decode_bones_texture", "place_bone",
+           "skin_lbs_kernel", "dqs_pose", "skin_dqs_kernel", "skin_normals_kernel"]
+
 # Compile only the forward kernels: the decoder never differentiates, and skipping the adjoints
 # roughly halves compile time on the CPU (LLVM) backend.
 wp.set_module_options({"enable_backward": False})

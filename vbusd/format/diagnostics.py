@@ -26,6 +26,9 @@ from vbusd.format import codes as _codes
 from vbusd.format.codes import Severity
 from vbusd.format.errors import InputError, VbusdError
 
+__all__ = ["CHANNEL_NAMES", "UsdSite", "JsonPointer", "TexelAddress", "FileLocation", "Finding",
+           "finding", "location_parts", "to_error", "Diagnostics"]
+
 CHANNEL_NAMES = "RGBA"
 
 

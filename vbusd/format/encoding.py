@@ -20,6 +20,11 @@ import numpy as np
 from vbusd.format.errors import UnsupportedError
 from vbusd.format.layout import Encoding, Layout, TexelFormat
 
+__all__ = ["FLOAT16_MAX", "UNORM16_MAX", "quat_multiply", "quat_conjugate", "quat_to_matrix",
+           "matrix_to_quat", "NonRigidError", "SINGULAR_RELATIVE_DETERMINANT", "affine_singular",
+           "encode_bones", "make_hemispheres_continuous", "BoneTransforms", "decode_bones",
+           "unorm_ranges", "Float16OverflowError", "quantize", "dequantize", "pack", "unpack"]
+
 FLOAT16_MAX = 65504.0
 UNORM16_MAX = 65535
 

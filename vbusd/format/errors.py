@@ -6,6 +6,8 @@ exits with :attr:`VbusdError.exit_status`; the library never calls ``sys.exit``.
 
 from __future__ import annotations
 
+__all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError"]
+
 
 class VbusdError(Exception):
     """Base class of every error vbusd reports to a user.

@@ -9,6 +9,9 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+__all__ = ["FORMAT_VERSION", "CHANNELS", "MAX_TEXTURE_DIMENSION", "Encoding", "TexelFormat",
+           "Padding", "next_power_of_two", "Layout"]
+
 FORMAT_VERSION = 1
 """The format version this library writes (spec/virtual-bones.md, "Versioning")."""
 

@@ -39,6 +39,11 @@ from vbusd.format.errors import InputError, VersionError
 from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
 from vbusd.format.model import Clip, VirtualBones
 
+__all__ = ["FORMAT_NAME", "SCHEMA_RESOURCE", "DIGEST_PREFIX", "LayoutInfo", "content_digest",
+           "layout_fields", "to_dict", "dumps", "json_pointer", "MAX_METADATA_BYTES",
+           "parse_document", "check_schema", "check_relations", "check_document", "upgrade",
+           "raise_summary", "from_dict", "parse_json", "loads"]
+
 FORMAT_NAME = "vbusd.virtualBones"
 """Value of the ``format`` key: says what the JSON is, before any version is looked at."""
 

@@ -26,6 +26,9 @@ import numpy as np
 
 from vbusd.format.layout import Layout
 
+__all__ = ["AnimationClip", "SkinnedMesh", "SkinnedAnimation", "Clip", "BoundMesh", "Crowd",
+           "VirtualBones", "VirtualBonesAsset", "ReadOptions", "SourceScene"]
+
 MatrixSampler = Callable[[np.ndarray], np.ndarray]
 """``sample(times) -> (len(times), bone_count, 4, 4)`` float64 skinning matrices at source times (s)."""
 

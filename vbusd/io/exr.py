@@ -35,6 +35,9 @@ from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.io.textures import TextureImage, looks_like_metadata
 
+__all__ = ["MAGIC", "METADATA_ATTRIBUTE", "METADATA_PART", "COMPRESSION_NAMES", "LOSSLESS",
+           "PIXEL_TYPES", "ExrHeader", "captured_output", "read_exr", "write_exr"]
+
 MAGIC = b"\x76\x2f\x31\x01"
 METADATA_ATTRIBUTE = "vbusd.layout"
 METADATA_PART = f"header/{METADATA_ATTRIBUTE}"

@@ -70,6 +70,11 @@ from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
 from vbusd.format.errors import InputError, OptionsError, VbusdError
 
+__all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
+           "FAULT_ENV", "FAULT_TRACE_ENV", "fault_point", "LOCK_TIMEOUT_S", "OutputLocked",
+           "lock_path", "journal_path", "Commit", "write_error", "recover", "resolve_inside",
+           "make_folders", "remove_folders"]
+
 PathLike = Union[str, os.PathLike]
 
 _TMP_MARK = ".vbusd-tmp-"

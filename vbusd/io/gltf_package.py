@@ -30,6 +30,9 @@ from vbusd.format import metadata as md
 from vbusd.format.errors import InputError, OptionsError, VbusdError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 
+__all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
+           "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use"]
+
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
 EXTENSION_VERSION = 1

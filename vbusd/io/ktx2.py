@@ -27,6 +27,14 @@ import numpy as np
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 
+__all__ = ["MAGIC", "METADATA_KEY", "ORIENTATION_KEY", "WRITER_KEY", "ORIENTATION",
+           "VK_FORMAT_R16G16B16A16_UNORM", "VK_FORMAT_R16G16B16A16_SFLOAT",
+           "VK_FORMAT_R32G32B32A32_SFLOAT", "VK_FORMAT_OF_TEXEL_FORMAT",
+           "TEXEL_FORMAT_OF_VK_FORMAT", "VK_FORMAT_NAMES", "SUPERCOMPRESSION_SCHEMES",
+           "SUPERCOMPRESSION_NAMES", "ZSTD_LEVEL", "HEADER_BYTES", "LEVEL_INDEX_BYTES",
+           "DFD_BYTES", "MAX_KEY_VALUE_BYTES", "zstd_available", "data_format_descriptor",
+           "ktx2_bytes", "Ktx2Header", "scan", "read_level", "read_ktx2", "metadata_text"]
+
 MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
 """The 12-byte KTX 2.0 file identifier."""
 

@@ -29,6 +29,10 @@ from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.format.metadata import MAX_METADATA_BYTES
 from vbusd.io.textures import TextureImage, looks_like_metadata
 
+__all__ = ["SIGNATURE", "METADATA_KEYWORD", "METADATA_PART", "COLOUR_MANAGEMENT_CHUNKS",
+           "TEXT_CHUNKS", "COMPRESSION_LEVELS", "MAX_ITXT_TEXT_BYTES", "itxt_chunk_data",
+           "text_chunk", "read_png", "png_bytes"]
+
 SIGNATURE = b"\x89PNG\r\n\x1a\n"
 METADATA_KEYWORD = "vbusd.layout"
 METADATA_PART = f"iTXt {METADATA_KEYWORD}"

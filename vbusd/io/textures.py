@@ -30,6 +30,12 @@ from vbusd.io.files import AtomicTransaction
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, TexelFormat
 from vbusd.format.model import VirtualBones
 
+__all__ = ["CONTAINER_OF_SUFFIX", "CONTAINER_OF_FORMAT", "TextureData", "sidecar_path",
+           "container_for", "write_texture", "TextureImage", "Container", "CONTAINERS",
+           "looks_like_metadata", "read_texture_file", "read_sidecar_document", "check_image",
+           "json_differences", "check_sidecar_agrees", "read_texture", "TextureHeader",
+           "read_texture_header", "sniff_container", "read_sidecar"]
+
 PathLike = Union[str, os.PathLike]
 
 CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png", ".ktx2": "ktx2"}

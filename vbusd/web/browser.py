@@ -15,6 +15,9 @@ import os
 import shutil
 from typing import Iterator, Optional
 
+__all__ = ["CHROMIUM_ARGS", "INSTALL_HINT", "chromium_executable", "unavailable_reason",
+           "chromium", "ViewerPage"]
+
 CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",

@@ -24,6 +24,8 @@ import numpy as np
 from vbusd.format.metadata import to_dict
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 
+__all__ = ["SCENE_FORMAT", "SCENE_VERSION", "build_scene", "scene_json"]
+
 SCENE_FORMAT = "vbusd.webScene"
 SCENE_VERSION = 1
 

@@ -27,6 +27,8 @@ from urllib.parse import unquote, urlsplit
 
 from vbusd.format.errors import InputError, OptionsError
 
+__all__ = ["STATIC", "GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
+
 STATIC = Path(__file__).resolve().parent / "static"
 
 GLTF_SUFFIXES = (".glb", ".gltf")

@@ -16,6 +16,8 @@ import json
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, ShaderOptions, generate
 from vbusd.format.layout import Encoding, TexelFormat
 
+__all__ = ["BASE_MAX_INFLUENCES", "javascript_module"]
+
 BASE_MAX_INFLUENCES = 4
 """Influences per vertex of the embedded modules (the runtime rewrites the define for 1..8)."""
 
