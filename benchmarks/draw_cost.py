@@ -39,10 +39,14 @@ per method (textures, per-instance animation inputs, bone palettes, decoder buff
 Usage::
 
     python benchmarks/draw_cost.py run --json OUT.json [--budget 420] [--sizes 1200,10000]
-    python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json \\
-        --markdown --plot benchmarks/results/draw_cost_h100.png
+    python benchmarks/draw_cost.py factors --json OUT.json [--sizes 100000,10000]
+    python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h200.json \\
+        --markdown --plot benchmarks/results/draw_cost_h200.png
 
-benchmarks/draw_run.sh runs ``run`` on the device tool's GPU machine; ``report`` runs here.
+``factors`` is the one-factor study around Virtual Bones' vertex cost (:func:`run_factors`): skin
+attributes fetched or not, packed or not, read from storage buffers, K influences. benchmarks/draw_run.sh
+runs ``run`` and ``factors`` on the device tool's GPU machine; ``report`` runs anywhere (the plot
+needs matplotlib).
 """
 
 from __future__ import annotations

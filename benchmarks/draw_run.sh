@@ -20,9 +20,10 @@
 # (smoke.json, smoke.log). `run` writes to $OUT: gpu.txt (nvidia-smi), warp_tests.log (pytest
 # tests/test_warp_decoder.py on CUDA), draw_tests.log (tests/test_draw_cost.py on the NVIDIA EGL
 # driver), draw.log, draw_cost.json, and the report (draw_report.md) and plot (draw_cost.png) made
-# from the JSON (matplotlib is in the GPU image). Kept in benchmarks/results/ as draw_cost_h100.json,
-# draw_cost_h100.png, draw_report_h100.md and draw_warp_tests_cuda_h100.log. The report again, here:
-#   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h100.json --markdown
+# from the JSON (matplotlib is in the GPU image). Kept in benchmarks/results/ with the card as suffix:
+# draw_cost_h200.json, draw_cost_h200.png, draw_report_h200.md, draw_warp_tests_cuda_h200.log (the
+# full run got an H200). The report again, here:
+#   python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h200.json --markdown
 # `factors` (one call, no warp part needed: carry [".gl", ".whl"]) runs the one-factor study around
 # VB's vertex cost (draw_factors.json) and the GL methods of the stadium character again
 # (draw_cost_gl.json), both on the card the call got. Kept as draw_factors_<card>.json and

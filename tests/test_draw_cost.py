@@ -147,3 +147,35 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     frame = dc.render_frame(method, scene, 2.0, scene.ctx.query(time=True))
     assert frame.wall >= frame.cpu > 0
     scene.release()
+
+
+@pytest.mark.parametrize("variant", ["skin_buffers", "packed_vb", "packed_static", "k2"])
+def test_factor_study_variants_draw_what_numpy_computes(dc, baked, gl, variant):
+    # The one-factor study (draw_cost.py factors) changes how the skin reaches the vertex shader; each
+    # variant must still draw the pose numpy computes, and the packed weights must be exact unorm8.
+    body = dc.stadium_character(baked)
+    character = {"packed_vb": dc.packed_weights(body), "packed_static": dc.packed_weights(body),
+                 "k2": dc.fewer_influences(body, 2, baked.layout.bone_count)}.get(variant, body)
+    if variant.startswith("packed"):
+        q = character.mesh.bone_weights.astype(np.float64) * 255
+        np.testing.assert_allclose(q, np.round(q), atol=1e-4)
+        np.testing.assert_allclose(character.mesh.bone_weights.sum(axis=1), 1.0, atol=1e-6)
+    ctx, framebuffer = gl
+    scene = dc.Scene(ctx, framebuffer, character, dc.crowd_grid(3), np.arange(3),
+                     packed_skin=variant.startswith("packed"))
+    if variant == "packed_static":
+        method = dc.setup_static(scene, dc.STATIC_SKIN_ATTRIBUTES_VS, "packed")
+    else:
+        method = dc.setup_vb(scene, baked, "crossMatrix", "float16", skin_buffers=variant == "skin_buffers")
+    result = dc.check(method, scene, baked, None)
+    assert result["agrees"], result
+    if variant != "packed_static":
+        # The check can fail: against the wrong pose (0.1 s later; or the original float weights, which
+        # unorm8 moves by up to 1/510 and K=2 by much more) the read-back does not agree.
+        points, _, _ = dc.read_back(method, scene, dc.CHECK_TIME)
+        if variant == "skin_buffers":
+            other, _ = dc.reference.skin_crowd(baked, body.mesh, scene.check_crowd, dc.CHECK_TIME + 0.1)
+        else:
+            other, _ = dc.reference.skin_crowd(baked, body.mesh, scene.check_crowd, dc.CHECK_TIME)
+        assert np.abs(points - other).max() > (5 if variant == "packed_vb" else 100) * dc.tolerance(other)
+    scene.release()
