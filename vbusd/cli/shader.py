@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from vbusd.format.errors import OptionsError, VbusdError
-from vbusd.io.files import Commit, make_folders, remove_folders
+from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
 
@@ -71,7 +71,9 @@ def write_text(target: Path, text: str, *, force: bool) -> None:
     without ``force``, atomically (a temporary beside the target, then a rename), no trace on failure.
 
     Raises:
-        OptionsError: The target is a folder, exists without ``force``, or cannot be written.
+        OptionsError: The target is a folder or exists without ``force``.
+        VbusdError: ``write.failed``: it cannot be written (nothing was); ``write.locked``: another
+            run writes it.
     """
     if target.is_dir():
         raise OptionsError("the output is a folder; name the file to write", file=str(target))
@@ -87,7 +89,6 @@ def write_text(target: Path, text: str, *, force: bool) -> None:
     except VbusdError:  # exists (re-checked under the lock), or locked by another run
         remove_folders(created)
         raise
-    except OSError as error:
+    except OSError as error:  # disk full, quota, read-only, name too long: one line (write.failed)
         remove_folders(created)
-        raise OptionsError(f"cannot write (nothing was written): {error.strerror or error}",
-                           file=str(target)) from None
+        raise write_error(error, target, what="the shader module") from None
