@@ -367,3 +367,26 @@ def test_crowd_built_by_vbusd_crowd_exports_and_a_missing_character_is_refused(t
     line = capsys.readouterr().err.strip().splitlines()
     assert len(line) == 1 and "stadium_crowd_vb.usda" in line[0], line
     assert sorted(p.name for p in alone.iterdir()) == ["crowd.usda"]
+
+
+@pytest.mark.parametrize("damage, code", [
+    (lambda data: data[:12] + (37).to_bytes(4, "little") + data[16:], "ktx2.vkFormat"),  # R8G8B8A8_UNORM
+    (lambda data: data[:-100], "ktx2.levels"),                                         # level over the file
+])
+@pytest.mark.parametrize("output", ["out.glb", "out.usda"])
+def test_an_asset_with_a_malformed_ktx2_texture_exports_nothing(tmp_path, capsys, damage, code, output):
+    """A KTX2-textured asset whose texture is damaged after conversion: export (runtime package and
+    UsdSkel fallback) says so in one line naming the texture, exits 2 and writes nothing."""
+    from vbusd.io.usd import read_asset, write_asset
+
+    folder = tmp_path / "ktx"
+    folder.mkdir()
+    write_asset(read_asset(SAMPLE), folder / "crowd.usda", texture_container="ktx2")
+    (texture,) = folder.glob("*.ktx2")
+    texture.write_bytes(damage(texture.read_bytes()))
+    before = sorted(p.name for p in folder.iterdir())
+    extra = ["--as", "usdskel"] if output.endswith(".usda") else []
+    assert main(["export", str(folder / "crowd.usda"), "-o", str(folder / output), *extra]) == 2
+    line = _one_error(capsys, code)
+    assert texture.name in line
+    assert sorted(p.name for p in folder.iterdir()) == before
