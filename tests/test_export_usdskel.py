@@ -252,3 +252,29 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert main(["export", str(crowd), "-o", str(out), "--as", "usdskel"]) == 2
     _one_error(capsys, "options.invalid")
     assert out.read_text() == "keep me"
+
+
+def test_openusd_validators_accept_the_fallback_and_catch_a_missing_binding(tmp_path):
+    """OpenUSD's own validators (UsdSkel's SkelBindingAPI checks, composition, stage metadata) find
+    nothing in the fallback of the stadium crowd; with SkelBindingAPI removed from the mesh they do."""
+    from pxr import Usd, UsdValidation
+
+    validators = [v for v in UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+                  if not v.GetMetadata().name.startswith("vbusd")]
+    names = {v.GetMetadata().name for v in validators}
+    assert "usdSkelValidators:SkelBindingApiAppliedValidator" in names
+    out = tmp_path / "fallback.usda"
+    export(copy_sample(tmp_path), out)
+
+    def errors(path):
+        return [f"{e.GetValidator().GetMetadata().name}: {e.GetMessage()}"
+                for e in UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(path)))]
+
+    assert errors(out) == []
+    text = out.read_text()
+    start = text.index('def Mesh "Body"')
+    schema = text.index('prepend apiSchemas = ["SkelBindingAPI"]', start)
+    broken = tmp_path / "broken.usda"
+    broken.write_text(text[:schema] + text[schema + len('prepend apiSchemas = ["SkelBindingAPI"]'):])
+    found = errors(broken)
+    assert found and all("SkelBindingApiAppliedValidator" in e for e in found)
