@@ -154,3 +154,28 @@ def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
     stage = Usd.Stage.Open(str(tmp_path / "out" / "crowd.usda"))
     (instancer,) = [UsdGeom.PointInstancer(p) for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
     assert count == len(instancer.GetPositionsAttr().Get()) == 1200
+
+
+def test_points_from_a_usd_points_prim_two_characters_and_time_offset_range(character, tmp_path):
+    """--layout points with a UsdGeomPoints prim (positions read back with pxr), two characters
+    dealt by weight, and time offsets inside the --time-offset range."""
+    from pxr import Usd, UsdGeom, Vt
+
+    import vbusd
+
+    seats = tmp_path / "seats.usda"
+    stage = Usd.Stage.CreateNew(str(seats))
+    expected = np.stack([np.arange(300) * 0.5, np.zeros(300), np.arange(300) % 7], axis=1).astype(np.float32)
+    UsdGeom.Points.Define(stage, "/Seats").CreatePointsAttr(Vt.Vec3fArray.FromNumpy(expected))
+    stage.Save()
+    other = tmp_path / "other.usda"
+    shutil.copy(character, other)  # the same asset under another name: a second character
+    out = tmp_path / "two.usda"
+    report = build_crowd([character, other], out, CrowdOptions(layout="points", points=str(seats), characters=(3, 1),
+                                                              time_offset=(2.0, 2.5), seed=5))
+    assert sum(report.instances) == 300 and report.instances[0] > 2 * report.instances[1] > 0
+    asset = vbusd.read_asset(out)
+    positions = np.concatenate([c.positions for c in asset.crowds])
+    assert sorted(map(tuple, positions.tolist())) == sorted(map(tuple, expected.tolist()))
+    offsets = np.concatenate([c.time_offset for c in asset.crowds])
+    assert np.all((offsets >= 2.0) & (offsets <= 2.5)) and np.ptp(offsets) > 0.3
