@@ -57,7 +57,7 @@ FORM_OF_SUFFIX = {".glb": "gltf", ".gltf": "gltf"}
 
 
 @click.command(name="export")
-@click.argument("asset", type=click.Path(path_type=str))
+@click.argument("asset", metavar="ASSET_OR_CROWD", type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="File to write: OUT.glb or OUT.gltf (the glTF runtime package), OUT.usda|.usdc with "
                    "--as usdskel.")
