@@ -278,3 +278,36 @@ def test_openusd_validators_accept_the_fallback_and_catch_a_missing_binding(tmp_
     broken.write_text(text[:schema] + text[schema + len('prepend apiSchemas = ["SkelBindingAPI"]'):])
     found = errors(broken)
     assert found and all("SkelBindingApiAppliedValidator" in e for e in found)
+
+
+def test_shear_that_usdskel_cannot_hold_is_reported(tmp_path, capsys):
+    """An affineMatrix bone with shear (x += 0.5 y): UsdSkel's transforms have none, so the export
+    warns with the deviation, and UsdSkel's skinning indeed differs from the reference there."""
+    from pxr import Usd
+
+    from vbusd.format.encoding import pack
+    from vbusd.format.layout import Layout
+    from vbusd.format.model import BoundMesh, VirtualBones, VirtualBonesAsset
+    from vbusd.io.usd import write_asset
+
+    layout = Layout("affineMatrix", "float32", 1, 2)
+    identity = np.eye(3, 4)
+    shear = np.eye(3, 4)
+    shear[0, 1] = 0.5
+    texels = pack(np.stack([identity, shear])[:, None].astype(np.float32), layout)  # rows of [A | t]
+    mesh = BoundMesh(path="/Rig/Tri", points=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32),
+                     face_vertex_counts=np.array([3], np.int32), face_vertex_indices=np.array([0, 1, 2], np.int32),
+                     bone_indices=np.zeros((3, 1), np.int32), bone_weights=np.ones((3, 1), np.float32))
+    vb = VirtualBones(layout=layout, texels=texels, bones=("b",), clips=(Clip("c", 0, 2, 1.0, False),),
+                      meshes=(mesh,), path="/Rig/Anim")
+    path = tmp_path / "rig" / "rig.usda"
+    path.parent.mkdir()
+    write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Rig", time_codes_per_second=1.0), path)
+    report = export(path, tmp_path / "sheared.usda")
+    assert report["maxMatrixDeviation"] > 0.1 > report["tolerance"]
+    assert len(report["warnings"]) == 1 and "shear" in report["warnings"][0]
+    stage = Usd.Stage.Open(str(tmp_path / "sheared.usda"))
+    (points,) = usdskel_points(stage, "/Rig/Anim", 1.0)  # row 1: the sheared one
+    reference, _ = skin_mesh(vb, mesh, 0, [1.0])
+    assert np.abs(reference[0][2] - [0.5, 1, 0]).max() < 1e-6       # x += 0.5 y, by hand
+    assert np.linalg.norm(points[2] - reference[0][2]) > 0.1
