@@ -73,11 +73,21 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS) + ["__version__"]
 
 
+# Jobs named after the module that holds them: vbusd.<name> is that module, made callable as the
+# job (vbusd/_callable.py), so that it is the same object whichever is imported first and
+# ``import vbusd.decode.reference`` keeps working.
+_CALLABLE_MODULES = {"bake": "vbusd.bake", "convert": "vbusd.convert", "decode": "vbusd.decode"}
+
+
 def __getattr__(name: str):
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'vbusd' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
+    if name in _CALLABLE_MODULES:
+        value = importlib.import_module(_CALLABLE_MODULES[name])
+        importlib.import_module(module)  # the job's own module, so that the call needs no import
+    else:
+        value = getattr(importlib.import_module(module), name)
     globals()[name] = value  # later lookups skip __getattr__
     return value
 

@@ -375,3 +375,9 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
                            np.maximum(decoded[:, 1], baked.clip_extents[:, 1])], axis=1)
         baked = dataclasses.replace(baked, clip_extents=joined.astype(np.float32))
     return baked
+
+
+# vbusd.bake(...) is this function whatever the import order (vbusd/_callable.py).
+from vbusd._callable import make_callable as _make_callable  # noqa: E402
+
+_make_callable(__name__, "vbusd.bake.bake")

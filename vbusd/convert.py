@@ -703,3 +703,9 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))
     return report
+
+
+# vbusd.convert(...) is this function whatever the import order (vbusd/_callable.py).
+from vbusd._callable import make_callable as _make_callable  # noqa: E402
+
+_make_callable(__name__, "vbusd.convert.convert")

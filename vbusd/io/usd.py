@@ -404,6 +404,19 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     except OptionsError as error:
         raise error.at(file=str(path))
 
+    from vbusd.io.files import make_folders, remove_folders
+
+    # Missing folders are created, as convert's -o does, and removed again when the write fails.
+    created = make_folders(path.parent)
+    try:
+        return _commit_asset(asset, path, stage, texture_names, replace, lock_timeout)
+    except BaseException:
+        remove_folders(created)
+        raise
+
+
+def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_timeout) -> list:
+    """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit."""
     from vbusd.format import metadata as md
     from vbusd.io.files import Commit, fault_point
     from vbusd.io.textures import sidecar_path, write_texture
