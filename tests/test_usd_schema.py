@@ -85,7 +85,8 @@ def test_schema_registry_knows_the_types():
         "vb:texelsPerBone", "vb:rowCount", "vb:textureWidth", "vb:textureHeight",
         "vb:horizontalPadding", "vb:verticalPadding", "vb:bones", "vb:clipNames", "vb:clipFirstRows",
         "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops", "vb:clipStartTimes",
-        "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest"}
+        "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest",
+        "vb:bindTransforms"}  # format 1.1 (sockets)
     assert names == expected
 
 

@@ -291,8 +291,10 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
 
     Each instance is skinned at its own clip and clip-local time (crossfaded with its fade clip at
     its own time where its fade weight is above 0, spec "Crossfade"), then placed by the point
-    instancer's transform: scale, then orientation, then position.
+    instancer's transform: scale, then orientation, then position. Time-sampled fade primvars are
+    evaluated at ``t`` (:meth:`~vbusd.format.model.Crowd.at`).
     """
+    crowd = crowd.at(t)
     taus = instance_time(crowd, t)
     clip_ids = np.asarray(crowd.clip, dtype=np.int64)
     values = channel_values(vb)
@@ -372,6 +374,7 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     their own times and ``w`` its fade weight (spec "Sockets": the matrix crossfade).
     """
     bind = _bind(vb)[bone]
+    crowd = crowd.at(t)
     taus = instance_time(crowd, t)
     clip_ids = np.asarray(crowd.clip, dtype=np.int64)
     n = crowd.instance_count

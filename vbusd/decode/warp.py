@@ -587,7 +587,9 @@ class Decoder:
         """
         if not np.isfinite(t):
             raise OptionsError(f"scene time must be finite, got {t!r}", file="warp_decoder")
-        if isinstance(crowd, Crowd):
+        if isinstance(crowd, Crowd) and crowd.fade_samples:
+            crowd = self.upload_crowd(crowd.at(t))  # time-sampled fades: this time's values
+        elif isinstance(crowd, Crowd):
             if self._crowd_cache[0] is not crowd:
                 self._crowd_cache = (crowd, self.upload_crowd(crowd))
             crowd = self._crowd_cache[1]

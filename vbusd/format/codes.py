@@ -441,6 +441,8 @@ _COMMAND_ERRORS = (
     Code("usdskel.normals.nonFinite", E, "A mesh normal is not finite.", "usd-conversion.md#meshes", "usd"),
     Code("usdskel.skinning", E, "UsdSkel could not compute skinning transforms or skinned points at a "
          "time code.", "usd-conversion.md#accuracy", "usd"),
+    Code("socket.noBindTransforms", E, "A socket (bone_transform) was asked of an animation that stores no "
+         "joint bind transforms (vb:bindTransforms, format 1.1); reconvert the source.", f"{_VB}#sockets", "usd"),
 )
 
 _CODES = _FINDINGS + _COMMAND_ERRORS

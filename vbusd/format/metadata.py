@@ -78,6 +78,8 @@ class LayoutInfo:
     content_digest: str
     format_version: int
     generator: str
+    bind_transforms: Optional[np.ndarray] = None
+    """Format 1.1: (bones, 4, 4) column-vector bind transforms (key ``bindTransforms``), or None."""
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, LayoutInfo):
@@ -95,7 +97,7 @@ class LayoutInfo:
     def to_dict(self) -> dict:
         """The metadata dict of this info (the current format version, keys as :func:`to_dict`)."""
         return _build_dict(self.layout, self.bones, self.clips, self.unorm_ranges,
-                           self.content_digest, self.generator)
+                           self.content_digest, self.generator, self.bind_transforms)
 
 
 # --------------------------------------------------------------------------------------------
@@ -154,10 +156,13 @@ def layout_fields(layout: Layout) -> dict:
     }
 
 
-def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str) -> dict:
+def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str,
+                bind_transforms=None) -> dict:
     result: dict[str, Any] = {
         "format": FORMAT_NAME,
         "formatVersion": FORMAT_VERSION,
+        # The lowest version that holds the document (spec 16.1): 1.1 only with a 1.1 key.
+        **({"formatMinorVersion": 1} if bind_transforms is not None else {}),
         "generator": generator,
         **layout_fields(layout),
         "bones": [str(name) for name in bones],
@@ -182,6 +187,10 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
             raise ValueError(f"unorm_ranges must have shape {expected}, got {ranges.shape}")
         # float64 -> Python float -> JSON repr round-trips exactly (shortest repr).
         result["unormRanges"] = [[[float(lo), float(hi)] for lo, hi in slot] for slot in ranges]
+    if bind_transforms is not None:
+        # Format 1.1 (spec 8.4): 16 numbers per bone, column-major like glTF (B = m.reshape(4, 4).T).
+        binds = np.asarray(bind_transforms, dtype=np.float64).reshape(-1, 4, 4)
+        result["bindTransforms"] = [[float(v) for v in matrix.T.reshape(16)] for matrix in binds]
     result["contentDigest"] = digest
     return result
 
@@ -200,7 +209,7 @@ def to_dict(vb: VirtualBones) -> dict:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
     return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, content_digest(vb.texels),
-                       _generator())
+                       _generator(), vb.bind_transforms)
 
 
 def dumps(d: Mapping) -> str:
@@ -363,6 +372,9 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
         for c, (low, high) in enumerate(slot):
             if low > high:
                 report(["unormRanges", t, c], f"min {low} is greater than max {high}")
+    if "bindTransforms" in d and len(d["bindTransforms"]) != layout.bone_count:
+        report(["bindTransforms"], f"bindTransforms holds {len(d['bindTransforms'])} matrices for boneCount "
+                                   f"{layout.bone_count}")
     return layout if len(diagnostics.findings) == found else None
 
 
@@ -393,10 +405,14 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
         ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
                                                                       CHANNELS, 2)
         ranges.setflags(write=False)
+    binds = None
+    if "bindTransforms" in d:
+        binds = np.transpose(np.array(d["bindTransforms"], dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1)).copy()
+        binds.setflags(write=False)
     return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
                       content_digest=d["contentDigest"],
                       format_version=d["formatVersion"] if format_version is None else format_version,
-                      generator=d["generator"])
+                      generator=d["generator"], bind_transforms=binds)
 
 
 @functools.lru_cache(maxsize=1)
@@ -486,6 +502,9 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
         for c, (low, high) in enumerate(slot):
             if low > high:
                 report(["unormRanges", t, c], f"min {low} is greater than max {high}")
+    if "bindTransforms" in d and len(d["bindTransforms"]) != layout.bone_count:
+        report(["bindTransforms"], f"bindTransforms holds {len(d['bindTransforms'])} matrices for boneCount "
+                                   f"{layout.bone_count}")
     return layout if len(diagnostics.findings) == found else None
 
 
@@ -516,10 +535,14 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
         ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
                                                                       CHANNELS, 2)
         ranges.setflags(write=False)
+    binds = None
+    if "bindTransforms" in d:
+        binds = np.transpose(np.array(d["bindTransforms"], dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1)).copy()
+        binds.setflags(write=False)
     return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
                       content_digest=d["contentDigest"],
                       format_version=d["formatVersion"] if format_version is None else format_version,
-                      generator=d["generator"])
+                      generator=d["generator"], bind_transforms=binds)
 
 
 def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = None,

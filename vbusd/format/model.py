@@ -221,6 +221,9 @@ class Crowd:
         fade_time_offset: (N,) float32 seconds of the fade clip at stage time 0, or None for 0.
         fade_playback_rate: (N,) float32 rate of the fade clip, or None for 1.
         fade_weight: (N,) float32 weight of the fade clip in [0, 1], or None for 0 (no crossfade).
+        fade_samples: Time-sampled fade primvars (spec "Instancing": a crowd switches clips over
+            time): ``{field: (stage times in seconds (S,), values (S, N))}`` for any of the four
+            fields above; :meth:`at` evaluates them. None when none is time-sampled.
     """
 
     path: str
@@ -234,6 +237,30 @@ class Crowd:
     fade_time_offset: Optional[np.ndarray] = None
     fade_playback_rate: Optional[np.ndarray] = None
     fade_weight: Optional[np.ndarray] = None
+    fade_samples: Optional[dict] = None
+
+    def at(self, t: float) -> "Crowd":
+        """This crowd with its time-sampled fade primvars evaluated at stage time ``t`` (seconds).
+
+        As USD resolves samples: floats interpolate linearly between the samples around ``t``,
+        integers (the fade clip) hold the sample at or before ``t``; before the first and after the
+        last sample the end sample holds. A crowd without samples is returned as it is.
+        """
+        if not self.fade_samples:
+            return self
+        import dataclasses
+
+        values = {}
+        for field_name, (times, samples) in self.fade_samples.items():
+            times = np.asarray(times, dtype=np.float64)
+            samples = np.asarray(samples)
+            if field_name == "fade_clip":
+                index = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 1))
+                values[field_name] = samples[index].astype(np.int32)
+            else:
+                columns = [np.interp(t, times, samples[:, i].astype(np.float64)) for i in range(samples.shape[1])]
+                values[field_name] = np.asarray(columns, dtype=np.float32)
+        return dataclasses.replace(self, fade_samples=None, **values)
 
     @property
     def crossfades(self) -> bool:

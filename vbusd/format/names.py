@@ -20,6 +20,7 @@ __all__ = [
     "CLIP_ATTRIBUTES", "BY_NAME", "BY_KEY", "TEXTURE", "CLIP_EXTENTS", "UNORM_RANGE_MIN",
     "UNORM_RANGE_MAX", "ANIMATION_REL", "BONE_INDICES", "BONE_WEIGHTS", "INSTANCE_CLIP",
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
+    "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS",
 ]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
@@ -71,6 +72,7 @@ ANIMATION_ATTRIBUTES = (
     Attribute("vb:clipLoops", "bool[]", True, "loop", clip=True),
     Attribute("vb:clipStartTimes", "double[]", True, "startTime", clip=True),
     Attribute("vb:clipExtents", "float3[]", False, "clipExtents", mirrored=False),
+    Attribute("vb:bindTransforms", "matrix4d[]", False, "bindTransforms"),
     Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
     Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
     Attribute("vb:contentDigest", "string", True, "contentDigest"),
@@ -117,6 +119,14 @@ INSTANCE_CLIP = Primvar("vb:clip", "int[]")
 INSTANCE_TIME_OFFSET = Primvar("vb:timeOffset", "float[]")
 INSTANCE_PLAYBACK_RATE = Primvar("vb:playbackRate", "float[]")
 INSTANCE_PRIMVARS = (INSTANCE_CLIP, INSTANCE_TIME_OFFSET, INSTANCE_PLAYBACK_RATE)
+FADE_CLIP = Primvar("vb:fadeClip", "int[]")
+FADE_TIME_OFFSET = Primvar("vb:fadeTimeOffset", "float[]")
+FADE_PLAYBACK_RATE = Primvar("vb:fadePlaybackRate", "float[]")
+FADE_WEIGHT = Primvar("vb:fadeWeight", "float[]")
+FADE_PRIMVARS = (FADE_CLIP, FADE_TIME_OFFSET, FADE_PLAYBACK_RATE, FADE_WEIGHT)
+"""Format 1.1 crossfade primvars of VirtualBonesInstancingAPI (spec "Crossfade"); defaults 0, 0, 1, 0."""
+BIND_TRANSFORMS = "vb:bindTransforms"
+"""Format 1.1: the joints' bind transforms (spec "Sockets")."""
 
 
 def attribute_of(key) -> Optional[str]:

@@ -25,8 +25,9 @@ from vbusd.format.layout import FORMAT_VERSION
 __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
            "upgrade"]
 
-FORMAT_MINOR_VERSION = 0
-"""The minor version this vbusd writes and reads (the major is ``layout.FORMAT_VERSION``)."""
+FORMAT_MINOR_VERSION = 1
+"""The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
+Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key."""
 
 
 class Version(NamedTuple):
@@ -47,7 +48,19 @@ UpgradeFunction = Callable[[dict], dict]
 UPGRADES: dict = {}
 """Upgrade functions by the :class:`Version` they upgrade *from*. Each returns a new dict at the
 next version (``v.m`` to ``v.(m+1)`` or ``(v+1).0``), with ``formatVersion`` and
-``formatMinorVersion`` set to it. Version 1.0 is the first version: the table is empty."""
+``formatMinorVersion`` set to it. Version 1.0 is the first version; 1.0 -> 1.1 is registered below."""
+
+KEYS_1_0 = frozenset((
+    "format", "formatVersion", "formatMinorVersion", "generator", "encoding", "texelFormat", "boneCount",
+    "texelsPerBone", "rowCount", "usedWidth", "width", "height", "horizontalPadding", "verticalPadding",
+    "texelBytes", "bones", "clips", "unormRanges", "contentDigest",
+    # what a USD reader adds to the dict of an animation prim (spec 13: USD-only attributes)
+    "texture", "clipExtents", "unormRangeMin", "unormRangeMax"))
+"""The keys a version 1.0 document (or animation prim dict) may hold."""
+
+KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms"}}
+"""The keys each version defines, so that a reader refusing a newer document names what it does not
+know (spec 16.1: "refused by name")."""
 
 
 def upgrades_from(major: int, minor: int = 0) -> Callable[[UpgradeFunction], UpgradeFunction]:
@@ -128,7 +141,10 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
         raise VersionError(f"formatVersion {version.major} is newer than this reader (version {target}); "
                            "upgrade vbusd to read it", file=file, location=where, code="format.version")
     if version > target:
-        raise VersionError(f"format version {version} is newer than this reader (version {target}); "
+        known = KNOWN_KEYS.get(tuple(target))
+        unknown = sorted(str(k) for k in d if known is not None and k not in known)
+        uses = (f"; it uses {', '.join(unknown)}, which version {target} does not define" if unknown else "")
+        raise VersionError(f"format version {version} is newer than this reader (version {target}){uses}; "
                            "upgrade vbusd to read it", file=file,
                            location=location_prefix + "/formatMinorVersion", code="format.version")
     result = copy.deepcopy(dict(d))
@@ -143,3 +159,9 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
             raise AssertionError(f"the upgrade from version {version} did not raise the version")
         version = following
     return result
+
+
+@upgrades_from(1, 0)
+def upgrade_1_0_to_1_1(document: dict) -> dict:
+    """1.0 -> 1.1 (spec 16.1): every 1.1 key is optional and absent means 1.0 behaviour; nothing to fill in."""
+    return {**document, "formatMinorVersion": 1}

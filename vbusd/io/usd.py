@@ -65,6 +65,14 @@ from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, Texel
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
+__all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
+           "PRIMVAR_BONE_WEIGHTS", "PRIMVAR_CLIP", "PRIMVAR_TIME_OFFSET", "PRIMVAR_PLAYBACK_RATE",
+           "PROTOTYPES_SCOPE", "build_stage", "write_asset", "replaced_files", "LARGE_LAYER_BYTES",
+           "layer_files", "asset_files_in_use", "export_layer",
+           # read through the one reader, re-exported for callers of vbusd.io.usd
+           "OUTSIDE_PATHS_HINT", "READ_SUFFIXES", "WEIGHT_SUM_TOLERANCE", "AnimationAttributes",
+           "read_animation_attributes", "read_asset", "tf_message"]
+
 PathLike = Union[str, os.PathLike]
 
 WRITE_SUFFIXES = (".usda", ".usdc", ".usd")
@@ -172,7 +180,7 @@ def _define_ancestors(stage, UsdGeom, path) -> None:
             UsdGeom.Xform.Define(stage, ancestor)
 
 
-def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str) -> None:
+def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int = 0) -> None:
     Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
     layout = vb.layout
     path = Sdf.Path(vb.path)
@@ -207,6 +215,14 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str) -> None:
     if vb.clip_extents is not None:
         extents = np.asarray(vb.clip_extents, dtype=np.float32).reshape(-1, 3)
         values["clipExtents"] = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(extents))
+    if vb.bind_transforms is not None:
+        # Format 1.1 (spec 8.4): USD row-vector matrices, B transposed.
+        values["bindTransforms"] = Vt.Matrix4dArray([Gf.Matrix4d(np.asarray(b, np.float64).T.tolist())
+                                                     for b in vb.bind_transforms])
+        minor = max(minor, 1)
+    if minor:
+        # The lowest version that holds the asset (spec 16.1): 1.1 only when it uses a 1.1 feature.
+        values["formatMinorVersion"] = int(minor)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
         # float4[] holds float32: the nearest float32 of each float64 bound (spec: USD schema).
@@ -312,6 +328,35 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
                                file="usd")
         vt = Vt.IntArray if dtype is np.int32 else Vt.FloatArray
         primvars.CreatePrimvar(name, type_name, UsdGeom.Tokens.vertex).Set(vt.FromNumpy(array))
+    if _fades(crowd):
+        _write_fades(stage, pxr, primvars, crowd)
+
+
+def _fades(crowd: Crowd) -> bool:
+    """Whether a crowd authors the format 1.1 crossfade primvars (spec 8.3, 15)."""
+    return any(value is not None for value in (crowd.fade_clip, crowd.fade_time_offset, crowd.fade_playback_rate,
+                                               crowd.fade_weight)) or bool(crowd.fade_samples)
+
+
+def _write_fades(stage, pxr, primvars, crowd: Crowd) -> None:
+    """Author the four crossfade primvars: default values, and time samples where the crowd has them."""
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    n = crowd.instance_count
+    defaults = dict(zip(("fade_clip", "fade_time_offset", "fade_playback_rate", "fade_weight"), crowd.fade_arrays()))
+    tcps = float(stage.GetTimeCodesPerSecond())
+    for field, primvar in zip(defaults, names.FADE_PRIMVARS):
+        integer = field == "fade_clip"
+        vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
+        type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
+        handle = primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex)
+        handle.Set(vt.FromNumpy(np.ascontiguousarray(defaults[field], dtype=dtype).reshape(n)))
+        times, samples = (crowd.fade_samples or {}).get(field, ((), ()))
+        for time, value in zip(times, samples):
+            array = np.ascontiguousarray(value, dtype=dtype).reshape(-1)
+            if array.shape != (n,):
+                raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} sample at {time:g} s has {array.size} "
+                                   f"values for {n} instances", file="usd")
+            handle.Set(vt.FromNumpy(array), Usd.TimeCode(float(time) * tcps))
 
 
 def build_stage(asset: VirtualBonesAsset, texture_names: list):
@@ -336,8 +381,10 @@ def build_stage(asset: VirtualBonesAsset, texture_names: list):
     stage.SetTimeCodesPerSecond(float(asset.time_codes_per_second))
     stage.SetFramesPerSecond(float(asset.extra.get("frames_per_second", asset.time_codes_per_second)))
     root = Sdf.Path.absoluteRootPath.AppendChild(asset.default_prim)
-    for vb, texture_name in zip(asset.animations, texture_names):
-        _write_animation(stage, pxr, vb, texture_name)
+    fading = {int(index) for crowd, index in zip(asset.crowds, asset.crowd_animation) if _fades(crowd)}
+    for number, (vb, texture_name) in enumerate(zip(asset.animations, texture_names)):
+        # An animation played by a crossfading crowd is format 1.1 (spec 15), so 1.0 readers refuse it.
+        _write_animation(stage, pxr, vb, texture_name, minor=1 if number in fading else 0)
         for mesh in vb.meshes:
             _write_mesh(stage, pxr, mesh, vb.path)
     for crowd, index in zip(asset.crowds, asset.crowd_animation):

@@ -485,7 +485,7 @@ class UsdReader:
         raw: dict = {}
         clip_arrays: dict = {}
         for attribute in names.ANIMATION_ATTRIBUTES:
-            if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax"):
+            if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms"):
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -517,6 +517,7 @@ class UsdReader:
         if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
+        self._bind_transforms(prim, declared)
         declared.layout = build_layout(declared)
         for item in declared.findings:
             self.diagnostics.add(item)
@@ -576,12 +577,36 @@ class UsdReader:
             name = names.attribute_of(key) or names.BY_KEY["formatVersion"].name
             message = re.sub(r"\bformat(Minor)?Version\b", lambda m: names.attribute_of(m.group(0)),
                              error.message)
+            if isinstance(error, VersionError):
+                message = self._name_crossfades(prim, message)
             item = finding(error.code, message, UsdSite(path, name))
             if isinstance(error, VersionError) and self.diagnostics.strict:
                 self.diagnostics.findings.append(item)
                 raise to_error(item, file=self.file, error_type=VersionError) from None
             self.diagnostics.add(item)
             return None
+
+    def _name_crossfades(self, prim, message: str) -> str:
+        """A newer-version message naming the format 1.1 properties found: ``vb:bindTransforms`` of
+        ``prim`` and the crossfade primvars of the instancers that play it (spec 16.1: a 1.1 asset is
+        refused *by name*)."""
+        target = prim.GetPath()
+        found = []
+        own = prim.GetAttribute(names.BIND_TRANSFORMS)
+        if own and own.HasAuthoredValue():
+            found.append(f"{names.BIND_TRANSFORMS} (on {target})")
+        for other in prim.GetStage().Traverse():
+            relationship = other.GetRelationship(names.ANIMATION_REL)
+            if not relationship or target not in relationship.GetTargets():
+                continue
+            authored = [p.attribute for p in names.FADE_PRIMVARS
+                        if other.GetAttribute(p.attribute) and other.GetAttribute(p.attribute).HasAuthoredValue()]
+            if authored:
+                found.append(f"{', '.join(authored)} (on {other.GetPath()})")
+        if not found:
+            return message
+        uses = f"; the asset uses {'; '.join(found[:3])}, which version 1.0 does not define"
+        return message.replace("; upgrade vbusd", uses + "; upgrade vbusd", 1)
 
     def _unorm_ranges(self, prim, declared: Declared) -> None:
         path = str(prim.GetPath())
@@ -606,6 +631,68 @@ class UsdReader:
                         f"({names.UNORM_RANGE_MIN}, {names.UNORM_RANGE_MAX})", UsdSite(path, names.UNORM_RANGE_MIN))
         else:
             declared.values["unormRanges"] = np.stack([low, high], axis=-1)
+
+    def _bind_transforms(self, prim, declared: Declared) -> None:
+        """Format 1.1 ``vb:bindTransforms`` (spec 8.4) into ``bindTransforms``: (bones, 4, 4) column vectors."""
+        path = str(prim.GetPath())
+        attribute = prim.GetAttribute(names.BIND_TRANSFORMS)
+        if not attribute or not attribute.HasAuthoredValue():
+            return
+        value = attribute.Get()
+        matrices = np.array([np.array(m, dtype=np.float64) for m in (value or [])]).reshape(-1, 4, 4)
+        bones = declared.get("boneCount")
+        if (bones is not None and len(matrices) != bones) or not np.all(np.isfinite(matrices)):
+            self.report("prim.attribute.invalid", f"{names.BIND_TRANSFORMS} must hold one finite matrix per bone "
+                        f"({bones}), got {len(matrices)}", UsdSite(path, names.BIND_TRANSFORMS))
+            return
+        declared.values["bindTransforms"] = np.transpose(matrices, (0, 2, 1)).copy()
+
+    def read_fades(self, prim, n: int, clip_count: int) -> dict:
+        """Format 1.1 crossfade primvars of an instancer (spec 8.3, 15) as Crowd fields ({} when none).
+
+        Each may be time-sampled: its samples go to ``fade_samples`` (stage seconds, values) and its
+        first sample is the plain field.
+        """
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        path = str(prim.GetPath())
+        tcps = float(prim.GetStage().GetTimeCodesPerSecond())
+        fields = (("fade_clip", names.FADE_CLIP, np.int32), ("fade_time_offset", names.FADE_TIME_OFFSET, np.float32),
+                  ("fade_playback_rate", names.FADE_PLAYBACK_RATE, np.float32),
+                  ("fade_weight", names.FADE_WEIGHT, np.float32))
+        out: dict = {}
+        samples: dict = {}
+        for field, primvar, dtype in fields:
+            attribute = prim.GetAttribute(primvar.attribute)
+            if not attribute or not attribute.HasAuthoredValue():
+                continue
+            site = UsdSite(path, primvar.attribute)
+            if UsdGeom.Primvar(attribute).IsIndexed():
+                self.fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+                          "must not be indexed", site)
+
+            def read(time, field=field, dtype=dtype, site=site, primvar=primvar):
+                value = attribute.Get(time)
+                array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+                if array.shape != (n,):
+                    self.fail("instancer.count", f"{primvar.attribute} has {array.size} values for {n} instances",
+                              site)
+                if not np.all(np.isfinite(array)):
+                    self.fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values", site)
+                if field == "fade_clip" and np.any((array < 0) | (array >= clip_count)):
+                    self.fail("instancer.clip.range", f"{primvar.attribute}: fade clip index outside "
+                              f"0..{clip_count - 1}", site)
+                return array.astype(dtype)
+
+            codes = attribute.GetTimeSamples()
+            if codes:
+                values = np.stack([read(Usd.TimeCode(code)) for code in codes])
+                samples[field] = (np.asarray(codes, dtype=np.float64) / tcps, values)
+                out[field] = values[0]
+            else:
+                out[field] = read(Usd.TimeCode.Default())
+        if samples:
+            out["fade_samples"] = samples
+        return out
 
     def _clip_extents(self, prim, declared: Declared) -> None:
         path = str(prim.GetPath())
@@ -671,10 +758,16 @@ class UsdReader:
         theirs = from_metadata(texture.info.to_dict(), os.path.relpath(attributes.texture_file, self.folder))
         for item in compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim"):
             self.diagnostics.add(item)
+        binds = attributes.declared.values.get("bindTransforms")
+        theirs_binds = texture.info.bind_transforms
+        if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
+            self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
+                                         f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
         return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
                             clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
                             path=attributes.path, texture=attributes.texture,
-                            clip_extents=attributes.clip_extents)
+                            clip_extents=attributes.clip_extents,
+                            bind_transforms=binds if binds is not None else theirs_binds)
 
     # -- bound meshes and crowds -----------------------------------------------------------------
 
@@ -876,9 +969,10 @@ class UsdReader:
             self.fail("instancer.clip.range", f"{int(bad.sum())} clip index(es) outside 0..{clip_count - 1}; "
                       f"the first is {int(clip[first])} at instance {first}",
                       UsdSite(path, names.INSTANCE_CLIP.attribute))
+        fades = self.read_fades(prim, n, clip_count)
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
-                     playback_rate=rate.astype(np.float32), scales=scales)
+                     playback_rate=rate.astype(np.float32), scales=scales, **fades)
 
     def animation_target(self, prim, by_path: dict, code: str, api: str) -> int:
         """Index of the animation prim ``prim``'s ``vb:animation`` relationship targets."""
@@ -979,7 +1073,8 @@ class UsdReader:
             return None
         animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
-                                   texture=vb.texture, clip_extents=vb.clip_extents)
+                                   texture=vb.texture, clip_extents=vb.clip_extents,
+                                   bind_transforms=vb.bind_transforms)
                       for vb, found in zip(animations, meshes)]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())
