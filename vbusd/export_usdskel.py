@@ -41,7 +41,7 @@ from vbusd.format.errors import InputError, OptionsError, VbusdError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 
-__all__ = ["UsdSkelReport", "export_usdskel", "format_tolerance", "SUFFIXES", "CHARACTERS_ROOT",
+__all__ = ["UsdSkelReport", "export_usdskel", "format_tolerance", "layer_offsets", "SUFFIXES", "CHARACTERS_ROOT",
            "MAX_SAMPLES", "FROZEN_SCALE"]
 
 SUFFIXES = (".usda", ".usdc", ".usd")
