@@ -1296,8 +1296,9 @@ class _Converter:
         animated by a converted animation: then it follows the deepest such node, which becomes an
         extra bone of that skin (bone matrix: its world transform). A mesh node under no joint
         that an animated node moves follows the deepest animated node as an extra bone of the
-        first converted skin (with a warning); a mesh node nothing animates and no joint holds is
-        scenery and is left out (with a warning).
+        first converted skin (with a warning); a mesh node nothing animates and no joint holds
+        follows the root of its node tree, fixed, as an extra bone of the first converted skin
+        when it is in the default scene (with a warning), else it is left out (with a warning).
 
         Args:
             unskinned: Mesh nodes without a skin, in node order.
@@ -1327,9 +1328,14 @@ class _Converter:
                 self.warn(f"{self.node_label(n)} has a mesh but no skin and follows the animated "
                           f"{self.node_label(bone)}, which is under no joint of a converted skin; it "
                           f"is attached to skin {skin} as an extra bone")
-            else:
+            elif converted and self.in_scene(n):
+                skin, bone = converted[0], path[-1]          # the root of its node tree
                 self.warn(f"{self.node_label(n)} has a mesh but no skin, and neither a joint nor an "
-                          "animation moves it (scenery); left out")
+                          f"animation moves it; it is attached to skin {skin} as an extra bone fixed "
+                          "where its node puts it (as engines show it)")
+            else:
+                self.warn(f"{self.node_label(n)} has a mesh but no skin, nothing moves it and it is not "
+                          "in the default scene; left out")
                 continue
             below = path[:path.index(bone)] if bone in path else path   # bone (exclusive) .. n
             rel = np.eye(4)
@@ -1337,6 +1343,16 @@ class _Converter:
                 rel = rel @ self.rest_local[x]
             result.setdefault(skin, []).append(_Attachment(n, bone, rel))
         return result
+
+    def in_scene(self, node: int) -> bool:
+        """Whether ``node`` is in the default scene (``scene``, else ``scenes[0]``; every node when
+        the file has no scenes)."""
+        if not self.gltf.scenes:
+            return True
+        index = self.gltf.scene if self.gltf.scene is not None else 0
+        while self.parent[node] != -1:
+            node = self.parent[node]
+        return node in (self.gltf.scenes[index].nodes or [])
 
     def attachment_matrix(self, attachment: _Attachment, ibm: np.ndarray) -> np.ndarray:
         """``inverse(IBM_bone) · rel``: takes the mesh node's POSITION into the bind space of its

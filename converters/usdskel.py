@@ -25,6 +25,8 @@ first and reported as one :class:`~vbusd.format.errors.InputError` naming the pr
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,11 +48,6 @@ WEIGHT_SUM_TOLERANCE = 1e-3
 """Weights whose sum differs from 1 by more than this are reported (UsdSkel uses them as they are)."""
 
 DQS = "dualQuaternion"
-
-_NOT_USD = ((b"\x89PNG", "a PNG image"), (b"\x76\x2f\x31\x01", "an OpenEXR image"), (b"\xff\xd8\xff", "a JPEG image"),
-            (b"glTF", "a binary glTF (.glb)"))
-"""Leading bytes of files that are often mistaken for USD stages."""
-
 
 def sniff(path) -> bool:
     """Whether ``path`` starts like a USD file (text ``#usda``, crate ``PXR-USDC``, or a usdz zip)."""
@@ -91,15 +88,6 @@ def _finite(array) -> bool:
     return bool(np.all(np.isfinite(np.asarray(array, dtype=np.float64))))
 
 
-def _tf_reason(error) -> str:
-    """The first reason in a Tf.ErrorException (the parser's line and column), without C++ noise."""
-    for chunk in str(error).split("Error in ")[1:]:
-        _, found, reason = chunk.partition(" : '")
-        if found:
-            return reason.strip().rstrip("'").strip()
-    return str(error).strip().splitlines()[0].strip() if str(error).strip() else "cannot open"
-
-
 class _Reader:
     """State of one read: the stage, its file name and collected warnings."""
 
@@ -129,39 +117,16 @@ class _Reader:
 
     # ---------------------------------------------------------------------------------------
     def _open(self):
-        from pxr import Tf
+        """The stage, opened by vbusd's one USD reader: the same checks, codes and messages as
+        every other command (file kind, sniffed content, layers outside the folder, pipes,
+        composition errors), USD's own diagnostics captured instead of printed."""
+        from vbusd.format.diagnostics import Diagnostics
+        from vbusd.io.usd_reader import open_stage
 
-        try:
-            with open(self.path, "rb") as handle:
-                head = handle.read(8)
-        except OSError as error:
-            raise InputError(f"cannot read: {error.strerror or error}", file=self.file, code="usd.open") from None
-        # USD's own messages for these say little ("not a valid usda layer"): name what the file is.
-        if not head:
-            raise InputError("the file is empty, not a USD stage", file=self.file, code="usd.open")
-        for magic, what in _NOT_USD:
-            if head.startswith(magic):
-                raise InputError(f"the file is {what}, not a USD stage", file=self.file, code="usd.open")
-        try:
-            stage = self.Usd.Stage.Open(str(self.path))
-        except Tf.ErrorException as error:
-            raise InputError(f"not a readable USD stage: {_tf_reason(error)}", file=self.file,
-                             code="usd.open") from None
-        if stage is None:
-            raise InputError("not a readable USD stage", file=self.file, code="usd.open")
-        if not self.options.allow_outside_paths:
-            root = self.path.resolve().parent
-            for layer in stage.GetUsedLayers():
-                if layer.anonymous:
-                    continue
-                real = layer.realPath or layer.identifier
-                outer = real.split("[", 1)[0]  # a usdz member "pkg.usdz[inner.usdc]" lies in pkg.usdz
-                try:
-                    Path(outer).resolve().relative_to(root)
-                except ValueError:
-                    raise InputError(f"layer '{layer.identifier}' lies outside the asset's folder {root} "
-                                     "(use --allow-outside-paths to allow it)", file=self.file,
-                                     location="/", code="path.unsafe") from None
+        diagnostics = Diagnostics(self.file, strict=True)
+        stage = open_stage(self.path, diagnostics, allow_outside_paths=self.options.allow_outside_paths)
+        for finding in diagnostics.findings:  # warnings the strict list did not raise
+            self.warn(str(finding.location), f"{finding.code}: {finding.message}")
         return stage
 
     # ---------------------------------------------------------------------------------------
@@ -748,6 +713,37 @@ class SkeletonSampler:
         """UsdSkel normal matrices per (time code, joint mapping), shared by the error reference."""
         self._all_frames = AllFramesSkinning.build(reader, skel_query)
         """The skinning transforms of many time codes at once (None: UsdSkel, frame by frame)."""
+        self.extra_prims: list = []
+        """Prims whose own local-to-world transform is an extra bone after the joints (spec:
+        usd-conversion.md, Meshes no binding reaches)."""
+
+    def extra_world(self, codes) -> np.ndarray:
+        """Row-vector local-to-world transforms ``(len(codes), extra bones, 4, 4)`` of the extra prims."""
+        out = np.empty((len(codes), len(self.extra_prims), 4, 4))
+        cache = self._usd_xform_cache
+        for i, code in enumerate(codes):
+            cache.SetTime(self._usd.TimeCode(float(code)))
+            for k, prim in enumerate(self.extra_prims):
+                out[i, k] = _matrix(cache.GetLocalToWorldTransform(prim))
+        if not _finite(out):
+            raise InputError("the local-to-world transform of a mesh no binding reaches is not finite",
+                             file=self._file, location=str(self.extra_prims[0].GetPath()),
+                             code="usdskel.transform.nonFinite")
+        return out
+
+    @property
+    def _usd_xform_cache(self):
+        if not hasattr(self, "_extra_cache"):
+            from pxr import UsdGeom
+
+            self._extra_cache = UsdGeom.XformCache()
+        return self._extra_cache
+
+    def _with_extra(self, matrices: np.ndarray, codes) -> np.ndarray:
+        if not self.extra_prims:
+            return matrices
+        extra = np.transpose(self.extra_world(codes), (0, 1, 3, 2))   # row-vector -> column-vector
+        return np.ascontiguousarray(np.concatenate([matrices, extra], axis=1))
 
     @staticmethod
     def _world_might_vary(prim, reader) -> bool:
@@ -808,7 +804,7 @@ class SkeletonSampler:
                 world = np.stack([self._world(code) for code in codes])
             matrices = self._all_frames.compute(codes, world)
             if matrices is not None:
-                return matrices
+                return self._with_extra(matrices, codes)
             self._all_frames = None  # UsdSkel would treat some sample specially: ask it, frame by frame
         out = np.empty((times.size, self._joints, 4, 4))
         report = self.on_progress if times.size >= 512 else None
@@ -816,7 +812,7 @@ class SkeletonSampler:
             out[i] = self.at_code(code)
             if report is not None and (i + 1) % 256 == 0:
                 report(i + 1, times.size)
-        return np.ascontiguousarray(np.transpose(out, (0, 1, 3, 2)))  # row-vector -> column-vector
+        return self._with_extra(np.ascontiguousarray(np.transpose(out, (0, 1, 3, 2))), codes)  # column-vector
 
 
 # --------------------------------------------------------------------------------------------
@@ -833,6 +829,8 @@ class _Bound:
     joint_map: np.ndarray
     implicit_points: Optional[np.ndarray] = None
     """For a Cube, Sphere, Cylinder, Cone or Capsule: its tessellated points (prim space)."""
+    loose: bool = False
+    """A gprim no binding reaches, following its own transform (an extra bone)."""
 
 
 @dataclass
@@ -882,6 +880,9 @@ def _native_rate(codes: list, tcps: float) -> float:
 def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
     """Read every skinned mesh and skeleton animation of a UsdSkel stage.
 
+    USD's own diagnostics while reading are captured and become warnings of the scene
+    (``usd.diagnostic``), never raw console lines.
+
     Args:
         path: A .usd, .usda, .usdc or .usdz file.
         options: Which skeletons (Skeleton prim paths) and which time codes; see
@@ -896,8 +897,19 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         InputError: The stage breaks a UsdSkel rule (one line with the prim path and the problem).
         UnsupportedError: Nothing the format can hold (a skeleton without joints, only blend shapes).
     """
+    from vbusd.io.usd_reader import captured_usd_diagnostics
+
     _check_options(options)
-    path = Path(path)
+    messages: list = []
+    with captured_usd_diagnostics(messages):
+        scene = _read(Path(path), options)
+    said = tuple(f"/: usd.diagnostic: USD {kind}: {text}" for kind, text, _ in dict.fromkeys(messages)
+                 if kind != "status")
+    return dataclasses.replace(scene, warnings=scene.warnings + said) if said else scene
+
+
+def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
+    """:func:`read` inside the capture of USD's diagnostics."""
     reader = _Reader(path, options)
     UsdGeom, UsdSkel = reader.UsdGeom, reader.UsdSkel
     stage = reader.stage
@@ -930,6 +942,7 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
                                location="/", code="usdskel.nothing")
 
     animations, references, methods = [], [], []
+    claimed_roots = {"targets": {str(p.GetPath()) for w in groups.values() for p in w.targets}, "roots": set()}
     prim_paths = _animation_paths(keys)
     for key in keys:
         work = groups[key]
@@ -979,19 +992,29 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         if not bound:
             raise UnsupportedError("no mesh bound to this skeleton can be converted (see the warnings)",
                                    file=reader.file, location=location, code="usdskel.nothing")
+        bones = work.joints
+        loose = _loose_gprims(reader, bound, claimed_roots, start_code,
+                              method=bound[0].method, first_bone=len(work.joints))
+        if loose:
+            sampler.extra_prims = [b.prim for b in loose]
+            bones = work.joints + tuple(str(b.prim.GetPath()).lstrip("/") for b in loose)
+            bound = bound + loose
         tcps = reader.tcps
         clip = AnimationClip(name=skel_prim.GetName(), start_time=start_code / tcps, end_time=end_code / tcps,
                              sample=sampler, native_rate=_native_rate(codes, tcps), loop=None,
                              key_times=np.asarray(codes, dtype=np.float64) / tcps)
         animations.append(SkinnedAnimation(
-            name=skel_prim.GetName(), path=prim_paths[key], bones=work.joints, clips=(clip,),
+            name=skel_prim.GetName(), path=prim_paths[key], bones=bones, clips=(clip,),
             meshes=tuple(b.mesh for b in bound), source=reader.file,
-            bind_transforms=bind_transforms(UsdSkel.Skeleton(skel_prim), len(work.joints))))
+            bind_transforms=_with_identity(bind_transforms(UsdSkel.Skeleton(skel_prim), len(work.joints)),
+                                           len(bones) - len(work.joints))))
         references.append((sampler, bound, skel_query))
         methods.append(tuple(b.method for b in bound))
 
     def reference(animation_index: int, mesh_index: int, times) -> tuple:
         sampler, bound, skel_query = references[animation_index]
+        if bound[mesh_index].loose:
+            return _loose_reference(sampler, bound[mesh_index], times)
         return _usdskel_reference(reader, sampler, skel_query, bound[mesh_index], times)
 
     default = stage.GetDefaultPrim()
@@ -1001,6 +1024,109 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)), time_codes_per_second=reader.tcps,
         default_prim=default_name, warnings=tuple(reader.warnings), source=reader.file,
         reference=reference, skinning_methods=tuple(methods))
+
+
+def _with_identity(binds, extra: int):
+    """Bind transforms with ``extra`` identities appended (an extra bone's matrix is its world
+    transform: J = M), or None."""
+    if binds is None or extra == 0:
+        return binds
+    return np.concatenate([binds, np.broadcast_to(np.eye(4), (extra, 4, 4))])
+
+
+def _loose_gprims(reader: _Reader, bound: list, claimed: dict, start_code: float, method: str,
+                  first_bone: int) -> list:
+    """Meshes (and implicit gprims) under the SkelRoots of ``bound`` that no binding reaches.
+
+    Rule (spec: usd-conversion.md, Meshes no binding reaches): a visible, non-guide gprim under a
+    SkelRoot whose skeleton is converted, that no skeleton binding deforms, is what every renderer
+    shows where its own transform puts it. It becomes a mesh of the first converted skeleton of
+    that SkelRoot, bound with weight 1 to an extra bone whose transform is the prim's
+    local-to-world transform at every time (constant when nothing animates it); its rest points
+    are its own points at the clip's first time code. Each SkelRoot's loose gprims go to one
+    skeleton (``claimed["roots"]`` records the roots already handled).
+    """
+    UsdGeom, Usd = reader.UsdGeom, reader.Usd
+    roots = []
+    for b in bound:
+        root = reader._skel_root(b.prim)
+        if root is not None and str(root.GetPath()) not in claimed["roots"] and root not in roots:
+            roots.append(root)
+    time = Usd.TimeCode(start_code)
+    result = []
+    for root in roots:
+        claimed["roots"].add(str(root.GetPath()))
+        # UsdSkel lists every prim bound to a skeleton as a target, even without influences (it
+        # deforms none of those): only targets with joint influences or blend shapes are skinned.
+        skinned = {path for path, (_, query) in reader.targets_of_root(root).items()
+                   if query.HasJointInfluences() or query.HasBlendShapes()} | claimed["targets"]
+        for prim in Usd.PrimRange(root, reader.predicate):
+            location = str(prim.GetPath())
+            if not prim.IsA(UsdGeom.Gprim) or location in skinned:
+                continue
+            imageable = UsdGeom.Imageable(prim)
+            if imageable.ComputeVisibility(time) == UsdGeom.Tokens.invisible or \
+                    imageable.ComputePurpose() == UsdGeom.Tokens.guide:
+                continue
+            implicit = None if prim.IsA(UsdGeom.Mesh) else implicit_surface(reader, prim, time)
+            if implicit is not None:
+                points, counts, fvi = implicit
+                normals, n_interp = None, "vertex"
+            elif prim.IsA(UsdGeom.Mesh):
+                mesh = UsdGeom.Mesh(prim)
+                points = np.asarray(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+                counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+                fvi = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+                if points.shape[0] == 0 or counts.sum() != fvi.size or \
+                        (fvi.size and (fvi.min() < 0 or fvi.max() >= points.shape[0])):
+                    reader.warn(location, "is a Mesh no binding reaches with no points or inconsistent topology; "
+                                "not converted")
+                    continue
+                if not _finite(points):
+                    raise reader.error("points are not finite", f"{location}.points", "usdskel.points.nonFinite")
+                normals, n_interp = _normals(reader, mesh, counts, fvi, points.shape[0], time)
+            else:
+                reader.warn(location, f"is a {prim.GetTypeName()} no binding reaches and not a surface; "
+                            "not converted")
+                continue
+            bone = first_bone + len(result)
+            count = points.shape[0]
+            mesh_data = SkinnedMesh(
+                path=location, points=points, face_vertex_counts=counts, face_vertex_indices=fvi,
+                bone_indices=np.full((count, 1), bone, dtype=np.int64), bone_weights=np.ones((count, 1)),
+                normals=normals, normals_interpolation=n_interp, source_path=location)
+            result.append(_Bound(prim, mesh_data, None, method, np.arange(0), implicit_points=points if implicit
+                                 is not None else None, loose=True))
+            moving = UsdGeom.Xformable(prim).TransformMightBeTimeVarying() or any(
+                UsdGeom.Xformable(a).TransformMightBeTimeVarying() for a in _ancestors(prim) if a.IsA(UsdGeom.Xformable))
+            reader.warn(location, f"is under SkelRoot {root.GetPath()} but no skeleton binding reaches it; converted "
+                        f"as a rigid mesh following its own {'animated' if moving else 'fixed'} transform "
+                        f"(an extra bone), as renderers show it")
+    return result
+
+
+def _ancestors(prim) -> list:
+    found, node = [], prim.GetParent()
+    while node and not node.IsPseudoRoot():
+        found.append(node)
+        node = node.GetParent()
+    return found
+
+
+def _loose_reference(sampler: SkeletonSampler, bound: _Bound, times) -> tuple:
+    """A loose gprim's points (and normals) placed by USD's own transform evaluation
+    (``UsdGeom.XformCache.GetLocalToWorldTransform``) at source times (seconds)."""
+    codes = [sampler.code(t) for t in np.atleast_1d(np.asarray(times, dtype=np.float64))]
+    index = sampler.extra_prims.index(bound.prim)
+    worlds = sampler.extra_world(codes)[:, index]                       # row-vector (n, 4, 4)
+    points = np.asarray(bound.mesh.points, dtype=np.float64)
+    placed = np.einsum("vi,nij->nvj", points, worlds[:, :3, :3]) + worlds[:, None, 3, :3]
+    normals = None
+    if bound.mesh.normals is not None:
+        inverse_t = np.linalg.inv(worlds[:, :3, :3])
+        normals = np.einsum("vi,nji->nvj", np.asarray(bound.mesh.normals, dtype=np.float64), inverse_t)
+        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
+    return placed, normals
 
 
 def _animation_paths(skeleton_paths: list) -> dict:
@@ -1317,6 +1443,7 @@ def _raw_normals(reader: _Reader, mesh, bound: _Bound, time) -> Optional[np.ndar
     normals, _ = _normals(reader, mesh, counts, fvi, bound.mesh.points.shape[0], time)
     reader.warnings[:] = saved
     return None if normals is None else np.asarray(normals, dtype=np.float32)
+
 
 def bind_transforms(skeleton, joint_count: int):
     """The joints' bind transforms in animation space (format 1.1 sockets), or None.

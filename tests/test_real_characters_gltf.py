@@ -69,11 +69,12 @@ class GltfBuilder:
         self.doc["accessors"].append(accessor)
         return len(self.doc["accessors"]) - 1
 
-    def node(self, name: str, parent: int | None = None, **fields) -> int:
+    def node(self, name: str, parent: int | None = None, in_scene: bool = True, **fields) -> int:
         self.doc["nodes"].append({"name": name, **fields})
         index = len(self.doc["nodes"]) - 1
         if parent is None:
-            self.doc["scenes"][0]["nodes"].append(index)
+            if in_scene:
+                self.doc["scenes"][0]["nodes"].append(index)
         else:
             self.doc["nodes"][parent].setdefault("children", []).append(index)
         return index
@@ -146,8 +147,8 @@ def soldier(weights_off: bool = True, zero_vertex: bool = True, spawn: bool = Fa
     vertex 2 has weights summing to 0.996 (three.js's soldier vertex 25), vertex 5 only zero weights
     (JOINTS_0 = (2, ...): three.js binds it to Head). Helmet: a mesh node (no skin) under Head with
     its own offset and rotation. Weapon: a mesh node under WeaponMount, an animated node (not a
-    joint) under Spine. Sword: a mesh node under Hips with a skin of its own that is not converted
-    is not in this fixture (see the spec). Animation Walk moves Hips, Spine, Head and WeaponMount;
+    joint) under Spine. CrateLid: a mesh node under the static, non-joint Crate (a prop beside the
+    character). Orphan: a mesh node in no scene. Animation Walk moves Hips, Spine, Head and WeaponMount;
     Spawn (optional) scales Hips to zero on its first key.
     """
     b = GltfBuilder()
@@ -181,6 +182,10 @@ def soldier(weights_off: bool = True, zero_vertex: bool = True, spawn: bool = Fa
     mount = b.node("WeaponMount", spine, translation=[0.4, 0, 0])
     weapon_points, weapon_faces = box((0, -0.3, 0), (0.05, 0.8, 0.05))
     b.node("Weapon", mount, mesh=b.mesh("WeaponMesh", weapon_points, weapon_faces), translation=[0.05, 0, 0])
+    crate_points, crate_faces = box((0, 0.25, 0), (0.5, 0.5, 0.5))
+    crate = b.node("Crate", translation=[1.5, 0, 0], rotation=quat((0, 1, 0), 20))
+    b.node("CrateLid", crate, mesh=b.mesh("CrateMesh", crate_points, crate_faces), translation=[0, 0.1, 0])
+    b.node("Orphan", in_scene=False, mesh=b.mesh("OrphanMesh", crate_points, crate_faces))
     worlds = [translation(0, 1, 0), translation(0, 1.5, 0), translation(0, 2, 0)]
     b.skin([hips, spine, head], [np.linalg.inv(w) for w in worlds])
     times = np.array([0.0, 0.5, 1.0])
@@ -237,7 +242,7 @@ def compare_with_three(path: Path, options: ReadOptions = ReadOptions()) -> dict
 def test_renormalized_weights_and_attachments_match_three(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     worst = compare_with_three(path)
-    assert set(worst) == {("Walk", "Body"), ("Walk", "Helmet"), ("Walk", "Weapon")}
+    assert set(worst) == {("Walk", "Body"), ("Walk", "Helmet"), ("Walk", "Weapon"), ("Walk", "CrateLid")}
     assert max(worst.values()) <= TOLERANCE, worst
 
 
@@ -245,8 +250,11 @@ def test_attachment_bones_and_rest_points(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     scene = gltf.read(path)
     (animation,) = scene.animations
-    # Helmet follows the joint Head; Weapon the animated non-joint WeaponMount (an extra bone).
-    assert animation.bones == ("Hips", "Spine", "Head", "WeaponMount")
+    # Helmet follows the joint Head; Weapon the animated non-joint WeaponMount (an extra bone);
+    # CrateLid the static root of its tree, Crate (another extra bone); Orphan, in no scene, is left out.
+    assert animation.bones == ("Hips", "Spine", "Head", "WeaponMount", "Crate")
+    assert [m.path.rsplit("/", 1)[-1] for m in animation.meshes] == ["Body", "Helmet", "Weapon", "CrateLid"]
+    assert any("'Orphan'" in w and "not in the default scene; left out" in w for w in scene.warnings)
     meshes = {m.path.rsplit("/", 1)[-1]: m for m in animation.meshes}
     assert np.all(meshes["Helmet"].bone_indices == 2) and np.all(meshes["Helmet"].bone_weights == 1)
     assert np.all(meshes["Weapon"].bone_indices == 3)

@@ -4,7 +4,8 @@ The independent result is UsdSkel's own ``UsdSkel.BakeSkinning`` on a copy of th
 the skinned points (and, for rigidly deformed prims, their transforms) and the world positions
 are read back with ``UsdGeom.XformCache``. The converted asset is baked in affineMatrix/float32
 and decoded by the reference decoder at every row; the largest distance must stay within 1e-6 of
-the diagonal of UsdSkel's bounding box. The stage is Z up in centimetres, which the output keeps
+the diagonal of UsdSkel's bounding box; a mesh no binding reaches is placed by its own transform
+(``XformCache``), as renderers show it. The stage is Z up in centimetres, which the output keeps
 and ``vbusd info`` shows.
 """
 
@@ -132,6 +133,16 @@ def SkelRoot "Root" (
         )
     }}
 
+    def Mesh "Lantern"
+    {{
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points = [(0,0,0), (4,0,0), (0,0,6)]
+        double3 xformOp:translate.timeSamples = {{ 0: (30, 0, 100), 12: (30, 10, 120) }}
+        float xformOp:rotateZ.timeSamples = {{ 0: 0, 12: 90 }}
+        uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateZ"]
+    }}
+
     def Xform "Gear" (
         prepend apiSchemas = ["SkelBindingAPI"]
     )
@@ -223,8 +234,11 @@ def test_rigid_and_inherited_bindings_match_usdskel_bake(character, tmp_path):
     scene = usdskel.read(character, ReadOptions(skeletons=("/Root/Skel",)))
     (animation,) = scene.animations
     assert [m.path for m in animation.meshes] == ["/Root/Body", "/Root/Helmet", "/Root/Ball", "/Root/Arm",
-                                                  "/Root/Gear/Visor"]
+                                                  "/Root/Gear/Visor", "/Root/Lantern"]
     assert not [w for w in scene.warnings if "Gear" in w], scene.warnings   # the Xform is no mesh
+    # Lantern: no binding reaches it; it follows its own animated transform as an extra bone.
+    assert animation.bones == ("Hips", "Hips/Head", "Root/Lantern")
+    assert any(w.startswith("/Root/Lantern:") and "own animated transform" in w for w in scene.warnings)
     meshes = {m.path: m for m in animation.meshes}
     # The implicit gprims, by hand: every point of the sphere at distance 8 from its centre (z = 200
     # in bind space), faces wound outwards (positive volume); the capsule's points within its radius

@@ -25,7 +25,7 @@ LBS = {
     "usdwg_CesiumMan/CesiumMan.usdz": (1, 1),
     "usdwg_RiggedFigure/RiggedFigure.usdz": (1, 1),
     "usdwg_RiggedSimple/RiggedSimple.usdz": (1, 1),
-    "usdwg_ElephantWithMonochord/SoC-ElephantWithMonochord.usdc": (2, 2),
+    "usdwg_ElephantWithMonochord/SoC-ElephantWithMonochord.usdc": (2, 3),   # + the unbound Monochord_Base (issue 12)
     "usdwg_BrainStem/BrainStem.usdz": (1, 59),
 }
 

@@ -3,7 +3,8 @@
 // tests/test_real_characters_gltf.py. What three.js shows: GLTFLoader renormalizes skin weights
 // (SkinnedMesh.normalizeSkinWeights), meshes of nodes under joints follow them through the scene
 // graph, morph targets are applied with their weights.
-// Usage: node skin_pose.mjs FILE.gltf|FILE.glb ANIMATION_NAME|- T0 [T1 ...]
+// Output: {animations, poses: [{time, meshes: {name: [x, y, z, ...]}, byNode: {"node:primitive": [...]}}]}.
+// Usage: node skin_pose.mjs FILE.gltf|FILE.glb ANIMATION_NAME|#INDEX|- T0 [T1 ...]
 import fs from 'node:fs';
 import path from 'node:path';
 import * as THREE from 'three';
@@ -19,11 +20,15 @@ const clipName = process.argv[3];
 const times = process.argv.slice(4).map(Number);
 const bytes = fs.readFileSync(file);
 const buffer = bytes.buffer.slice(bytes.byteOffset, bytes.byteOffset + bytes.byteLength);
-const gltf = await new GLTFLoader().parseAsync(buffer, 'file://' + path.dirname(file) + '/');
+// Geometry only: Node has no image decoder, so textures are not loaded (a plugin answering
+// loadTexture first, as GLTFLoader's own extensions do).
+const loader = new GLTFLoader().register(() => ({ name: 'vbusd_no_textures', loadTexture: () => Promise.resolve(null) }));
+const gltf = await loader.parseAsync(buffer, 'file://' + path.dirname(file) + '/');
 const scene = gltf.scene;
 const mixer = new THREE.AnimationMixer(scene);
 if (clipName !== '-') {
-  const clip = gltf.animations.find((c) => c.name === clipName);
+  const clip = clipName.startsWith('#') ? gltf.animations[Number(clipName.slice(1))]
+    : gltf.animations.find((c) => c.name === clipName);
   if (!clip) throw new Error(`no animation ${clipName}`);
   const action = mixer.clipAction(clip);
   action.setLoop(THREE.LoopOnce, 1);
@@ -36,6 +41,7 @@ for (const t of times) {
   mixer.setTime(t);
   scene.updateMatrixWorld(true);
   const meshes = {};
+  const byNode = {};
   scene.traverse((object) => {
     if (!object.isMesh) return;
     const count = object.geometry.attributes.position.count;
@@ -46,7 +52,13 @@ for (const t of times) {
       out[3 * i] = vertex.x; out[3 * i + 1] = vertex.y; out[3 * i + 2] = vertex.z;
     }
     meshes[object.name] = out;
+    // "node:primitive" of the glTF (GLTFLoader's associations; a multi-primitive mesh is a group
+    // of meshes under the node's object).
+    const own = gltf.parser.associations.get(object) || {};
+    const parent = object.parent ? gltf.parser.associations.get(object.parent) || {} : {};
+    const node = own.nodes !== undefined ? own.nodes : parent.nodes;
+    byNode[`${node}:${own.primitives !== undefined ? own.primitives : 0}`] = out;
   });
-  poses.push({ time: t, meshes });
+  poses.push({ time: t, meshes, byNode });
 }
 process.stdout.write(JSON.stringify({ animations: gltf.animations.map((c) => c.name), poses }));
