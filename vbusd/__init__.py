@@ -11,6 +11,7 @@ Main jobs::
     vbusd.validate(path)                        # a report with .valid and .findings
     vbusd.skin(asset, clip, time)               # numpy skinned points and normals per bound mesh
     vbusd.bone_transform(asset, bone, clip, time)  # a joint's 4x4 transform (sockets, format 1.1)
+    vbusd.root_motion(asset, clip, t0, t1)      # root displacement of a clip baked in place (1.1)
     vbusd.decode(asset, output)                 # a time-sampled USD point cache
     vbusd.Decoder(vb, mesh, device="cuda")      # warp decoder
     vbusd.shader("glsl", encoding, texel_format)
@@ -63,6 +64,7 @@ _EXPORTS = {
     "validate": "vbusd.api",
     "skin": "vbusd.api",
     "bone_transform": "vbusd.api",
+    "root_motion": "vbusd.api",
     "shader": "vbusd.api",
     "build_crowd": "vbusd.crowd",
     "CrowdOptions": "vbusd.crowd",
@@ -97,7 +99,7 @@ def __dir__():
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from vbusd.api import bone_transform, shader, skin, validate
+    from vbusd.api import bone_transform, root_motion, shader, skin, validate
     from vbusd.bake import BakeOptions, bake
     from vbusd.convert import ConvertOptions, convert
     from vbusd.crowd import CrowdOptions, build_crowd

@@ -16,7 +16,7 @@ import numpy as np
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 
-__all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "shader", "clip_index"]
+__all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "root_motion", "shader", "clip_index"]
 
 AssetLike = Union[str, os.PathLike, VirtualBonesAsset, VirtualBones]
 
@@ -228,6 +228,40 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
     clip_number = clip_index(vb, clip, what="bone_transform")
     tau = _finite_seconds(time, "time")
     return joint_transforms(vb, clip_number, np.array([tau]))[0, index]
+
+
+def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, animation: int = 0) -> np.ndarray:
+    """How far a clip baked in place moves the character between two clip times (spec "Root motion").
+
+    For an asset converted with ``--root-motion extract`` (or ``extractYaw``) the clips play in
+    place and each keeps its root track ``D(t)``; this returns ``D(t1) D(t0)^-1``, the displacement
+    (translation, and the turn about the up axis with ``extractYaw``) to apply to an instance's
+    placement, in the animation's space. Looping clips accumulate: two loops of a walk move twice
+    as far. An animation without a root track returns the identity.
+
+    Args:
+        asset: A Virtual Bones asset path, a read asset or one :class:`~vbusd.format.model.VirtualBones`.
+        clip: Clip name or index.
+        t0: Clip-local start time in seconds.
+        t1: Clip-local end time in seconds.
+        animation: Which animation of the asset (index).
+
+    Returns:
+        (4, 4) float64 matrix for column vectors.
+
+    Raises:
+        InputError: The asset cannot be read.
+        OptionsError: No such clip or animation, or a time that is not finite.
+
+    Example:
+        >>> step = vbusd.root_motion("walk.usda", "walk", 0.0, 1.0)  # doctest: +SKIP
+        >>> step[:3, 3]   # metres walked in the first second
+    """
+    from vbusd.decode.reference import root_motion as displacement
+
+    vb = _animation(asset, animation, "root_motion")
+    index = clip_index(vb, clip, what="root_motion")
+    return displacement(vb, index, _finite_seconds(t0, "t0"), _finite_seconds(t1, "t1"))
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,

@@ -57,6 +57,8 @@ class BakeOptions:
     loop: Optional[bool] = None
     rigid_tolerance: float = 1e-3
     loop_tolerance: float = 1e-5
+    root_motion: str = "keep"
+    up_axis: str = "Y"
 
     def __post_init__(self) -> None:
         for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat),
@@ -310,6 +312,17 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         raise InputError("the animation has no clip to bake", file=animation.source, location=animation.path,
                          code="animation.noClip")
     bone_count = animation.bone_count
+    trackers = None
+    from vbusd.rootmotion import RootMotion, check_mode, in_place_clip
+
+    mode = check_mode(options.root_motion)
+    if mode != "keep":
+        # Root motion (spec "Root motion"): bake every clip in place, keep the root track apart.
+        bind_root = np.eye(4) if animation.bind_transforms is None else np.asarray(animation.bind_transforms[0])
+        wrapped = [in_place_clip(clip, 0, bind_root, options.up_axis, mode == "extractYaw")
+                   for clip in animation.clips]
+        animation = dataclasses.replace(animation, clips=tuple(w[0] for w in wrapped))
+        trackers = [w[1] for w in wrapped]
     loops = [decide_loop(clip, options) for clip in animation.clips]
     plans = plan_rows(animation.clips, loops, options)
     # The layout checks the texture size before anything is sampled: an absurd rate must not
@@ -362,9 +375,16 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     texels = pack(stored, layout)
     texels.setflags(write=False)
     bind = None if animation.bind_transforms is None else np.asarray(animation.bind_transforms, np.float64)
+    motion = None
+    if trackers is not None:
+        tracks = []
+        for clip, plan, track in zip(animation.clips, plans, trackers):
+            entries = plan.row_count + (1 if plan.loop else 0)
+            tracks.append(track(clip.start_time + np.arange(entries, dtype=np.float64) / plan.rows_per_second))
+        motion = RootMotion(options.up_axis, tuple(tracks))
     baked = VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
                          unorm_ranges=ranges, meshes=meshes, path=animation.path,
-                         clip_extents=np.stack(extents), bind_transforms=bind)
+                         clip_extents=np.stack(extents), bind_transforms=bind, root_motion=motion)
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13), joined with
         # the source's own bounds at the rows (the decoded rows differ from them by quantization).

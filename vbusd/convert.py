@@ -85,6 +85,9 @@ class ConvertOptions:
             conversion with a line naming it; ``skip``: it is left out (listed in the report's
             ``skipped_clips``) and the others are converted.
         strict_weights: Refuse glTF weights that do not sum to one instead of renormalizing them.
+        root_motion: ``keep`` (default), ``extract`` (bake every clip in place and keep the root
+            joint's horizontal translation as a root track, format 1.1, spec "Root motion") or
+            ``extractYaw`` (also its rotation about the up axis).
     """
 
     encoding: str = AUTO
@@ -104,9 +107,13 @@ class ConvertOptions:
     clips: tuple = ()
     on_bad_clip: str = "error"
     strict_weights: bool = False
+    root_motion: str = "keep"
 
     def __post_init__(self) -> None:
         where = "convert"
+        from vbusd.rootmotion import check_mode
+
+        object.__setattr__(self, "root_motion", check_mode(self.root_motion))
         if self.on_bad_clip not in BAD_CLIP_POLICIES:
             raise OptionsError(f"on_bad_clip must be one of {', '.join(BAD_CLIP_POLICIES)}, got "
                                f"{self.on_bad_clip!r}", file=where)
@@ -160,12 +167,13 @@ class ConvertOptions:
             raise OptionsError(f"check rows must be a non-negative integer, got {self.check_rows!r}", file=where)
         object.__setattr__(self, "skeletons", tuple(str(s) for s in self.skeletons))
 
-    def bake_options(self, encoding: Encoding) -> BakeOptions:
-        """The :class:`BakeOptions` for one animation baked with ``encoding``."""
+    def bake_options(self, encoding: Encoding, up_axis: str = "Y") -> BakeOptions:
+        """The :class:`BakeOptions` for one animation baked with ``encoding`` (``up_axis``: the scene's)."""
         return BakeOptions(encoding=encoding, texel_format=self.texel_format,
                            rows_per_second=self.rows_per_second, horizontal_padding=self.horizontal_padding,
                            vertical_padding=self.vertical_padding, max_influences=int(self.max_influences),
-                           loop=self.loop)
+                           loop=self.loop, root_motion=self.root_motion,
+                           up_axis="Z" if str(up_axis).upper() == "Z" else "Y")
 
 
 @dataclass
@@ -366,16 +374,16 @@ def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> t
                                "method", file=scene.source, location=animation.path, code="convert.mixedSkinning")
     if options.encoding == AUTO:
         if dqs:
-            return bake(animation, options.bake_options(Encoding.DUAL_QUAT)), \
+            return bake(animation, options.bake_options(Encoding.DUAL_QUAT, scene.up_axis)), \
                 "auto: the source uses dual-quaternion skinning (skel:skinningMethod)", warnings
         try:
-            return bake(animation, options.bake_options(Encoding.CROSS_MATRIX)), \
+            return bake(animation, options.bake_options(Encoding.CROSS_MATRIX, scene.up_axis)), \
                 "auto: every bone transform is rigid", warnings
         except UnsupportedError as error:
             if error.code != "encoding.nonRigid":
                 raise
             reason = f"auto: crossMatrix cannot hold it ({error.message.split(';')[0]})"
-            return bake(animation, options.bake_options(Encoding.AFFINE_MATRIX)), reason, warnings
+            return bake(animation, options.bake_options(Encoding.AFFINE_MATRIX, scene.up_axis)), reason, warnings
     encoding = Encoding(options.encoding)
     if dqs and encoding is not Encoding.DUAL_QUAT:
         raise UnsupportedError(f"{dqs[0]} uses skel:skinningMethod dualQuaternion, which {encoding.value} "
@@ -384,7 +392,7 @@ def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> t
     if encoding is Encoding.DUAL_QUAT and not dqs:
         warnings.append(f"{animation.path}: the source skins with linear blend skinning; dualQuat decodes "
                         "with dual-quaternion skinning (the error report shows the difference)")
-    return bake(animation, options.bake_options(encoding)), "requested", warnings
+    return bake(animation, options.bake_options(encoding, scene.up_axis)), "requested", warnings
 
 
 def _clip_at_fault(error: VbusdError, animation: SkinnedAnimation) -> Optional[str]:
@@ -540,6 +548,15 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 decoded, decoded_normals = skin(transforms, vb.layout.encoding, bound.points,
                                                 bound.bone_indices, bound.bone_weights, bound.normals,
                                                 normal_point_indices(bound))
+                if vb.root_motion is not None:
+                    # Clips baked in place (spec "Root motion"): the root track gives back the source motion.
+                    from vbusd.rootmotion import at as root_at
+
+                    moves = np.stack([root_at(vb.root_motion.tracks[clip_index], clip, t, vb.root_motion.up_axis)
+                                      for t in tau])
+                    decoded = np.einsum("nij,nvj->nvi", moves[:, :3, :3], decoded) + moves[:, None, :3, 3]
+                    if decoded_normals is not None:
+                        decoded_normals = np.einsum("nij,nvj->nvi", moves[:, :3, :3], decoded_normals)
                 # Dropping influences only matters when the source has more than were kept; then
                 # compare exact-matrix LBS with all influences and with the kept ones.
                 reduced = report.source_influences > report.kept_influences

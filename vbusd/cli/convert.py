@@ -78,6 +78,11 @@ def _check_rows(value: str):
 @click.option("--strict-weights", is_flag=True,
               help="Refuse glTF weights that do not sum to 1 (glTF-Validator's rule) instead of renormalizing "
                    "them as engines do.")
+@click.option("--root-motion", "root_motion", default="keep", show_default=True,
+              type=click.Choice(["keep", "extract", "extractYaw"]),
+              help="extract: bake every clip in place (the root joint's horizontal translation removed) and "
+                   "keep that motion as a root track per clip (format 1.1; vbusd.root_motion); extractYaw: "
+                   "also its turn about the up axis.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
@@ -93,8 +98,8 @@ def _check_rows(value: str):
 @quiet_option
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
-            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, manifest, jobs, scheduler,
-            cache_dir, no_cache, report_file, quiet):
+            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, manifest, jobs,
+            scheduler, cache_dir, no_cache, report_file, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
     One SOURCE converts to the layer -o names. Several sources, folders (searched for .usd, .usda,
@@ -115,7 +120,8 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
         skeletons=tuple(skeletons), frame_range=tuple(frame_range) if frame_range else None, container=container,
         allow_outside_paths=allow_outside_paths, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
-        clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights)
+        clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights,
+        root_motion=root_motion)
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):

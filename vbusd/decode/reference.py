@@ -397,3 +397,18 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     placement[:, :3, 3] = np.asarray(crowd.positions, dtype=np.float64)
     placement[:, 3, 3] = 1.0
     return placement @ local @ bind
+
+
+def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.ndarray:
+    """The root displacement (4, 4) of a clip baked in place between clip-local times ``t0`` and ``t1``.
+
+    ``D(t1) D(t0)^-1`` of the clip's root track (spec "Root motion"), in the animation's space: the
+    source pose at ``t`` is ``D(t)`` applied to the decoded in-place pose, so a character that
+    stands at ``D(t0)`` at ``t0`` stands at ``D(t1)`` at ``t1``; looping clips accumulate one
+    loop's displacement per period. The identity when the animation has no root track.
+    """
+    if vb.root_motion is None:
+        return np.eye(4)
+    from vbusd.rootmotion import displacement
+
+    return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)

@@ -311,6 +311,8 @@ class VirtualBones:
     texture: Optional[str] = None
     clip_extents: Optional[np.ndarray] = None
     bind_transforms: Optional[np.ndarray] = None
+    root_motion: Optional[object] = None
+    """Format 1.1: a :class:`vbusd.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
 
     def __post_init__(self) -> None:
         if self.texels.shape != self.layout.shape:

@@ -20,7 +20,8 @@ __all__ = [
     "CLIP_ATTRIBUTES", "BY_NAME", "BY_KEY", "TEXTURE", "CLIP_EXTENTS", "UNORM_RANGE_MIN",
     "UNORM_RANGE_MAX", "ANIMATION_REL", "BONE_INDICES", "BONE_WEIGHTS", "INSTANCE_CLIP",
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
-    "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS",
+    "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS", "CLIP_ROOT_MOTION",
+    "ROOT_MOTION_UP_AXIS",
 ]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
@@ -73,6 +74,8 @@ ANIMATION_ATTRIBUTES = (
     Attribute("vb:clipStartTimes", "double[]", True, "startTime", clip=True),
     Attribute("vb:clipExtents", "float3[]", False, "clipExtents", mirrored=False),
     Attribute("vb:bindTransforms", "matrix4d[]", False, "bindTransforms"),
+    Attribute("vb:clipRootMotion", "double4[]", False, "clipRootMotion", mirrored=False),
+    Attribute("vb:rootMotionUpAxis", "token", False, "rootMotionUpAxis", mirrored=False),
     Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
     Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
     Attribute("vb:contentDigest", "string", True, "contentDigest"),
@@ -126,6 +129,9 @@ FADE_WEIGHT = Primvar("vb:fadeWeight", "float[]")
 FADE_PRIMVARS = (FADE_CLIP, FADE_TIME_OFFSET, FADE_PLAYBACK_RATE, FADE_WEIGHT)
 """Format 1.1 crossfade primvars of VirtualBonesInstancingAPI (spec "Crossfade"); defaults 0, 0, 1, 0."""
 BIND_TRANSFORMS = "vb:bindTransforms"
+CLIP_ROOT_MOTION = "vb:clipRootMotion"
+"""Format 1.1: per clip, the root track of a clip baked in place (spec "Root motion")."""
+ROOT_MOTION_UP_AXIS = "vb:rootMotionUpAxis"
 """Format 1.1: the joints' bind transforms (spec "Sockets")."""
 
 

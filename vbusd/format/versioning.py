@@ -58,7 +58,7 @@ KEYS_1_0 = frozenset((
     "texture", "clipExtents", "unormRangeMin", "unormRangeMax"))
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
-KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms"}}
+KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
 

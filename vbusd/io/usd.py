@@ -220,6 +220,12 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["bindTransforms"] = Vt.Matrix4dArray([Gf.Matrix4d(np.asarray(b, np.float64).T.tolist())
                                                      for b in vb.bind_transforms])
         minor = max(minor, 1)
+    if vb.root_motion is not None:
+        # Format 1.1 (spec "Root motion"): each clip's track, rows (+1 for a looping clip) in clip order.
+        entries = np.concatenate([np.asarray(t, np.float64).reshape(-1, 4) for t in vb.root_motion.tracks])
+        values["clipRootMotion"] = Vt.Vec4dArray.FromNumpy(np.ascontiguousarray(entries))
+        values["rootMotionUpAxis"] = str(vb.root_motion.up_axis)
+        minor = max(minor, 1)
     if minor:
         # The lowest version that holds the asset (spec 16.1): 1.1 only when it uses a 1.1 feature.
         values["formatMinorVersion"] = int(minor)

@@ -485,7 +485,8 @@ class UsdReader:
         raw: dict = {}
         clip_arrays: dict = {}
         for attribute in names.ANIMATION_ATTRIBUTES:
-            if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms"):
+            if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms",
+                                 "clipRootMotion", "rootMotionUpAxis"):
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -526,6 +527,7 @@ class UsdReader:
             self.diagnostics.add(item)
         if declared.layout is not None and "clips" in declared.values:
             self._clip_extents(prim, declared)
+            self._root_motion(prim, declared)
         return declared
 
     def _report_missing(self, prim, attribute):
@@ -592,9 +594,10 @@ class UsdReader:
         refused *by name*)."""
         target = prim.GetPath()
         found = []
-        own = prim.GetAttribute(names.BIND_TRANSFORMS)
-        if own and own.HasAuthoredValue():
-            found.append(f"{names.BIND_TRANSFORMS} (on {target})")
+        for name in (names.BIND_TRANSFORMS, names.CLIP_ROOT_MOTION):
+            own = prim.GetAttribute(name)
+            if own and own.HasAuthoredValue():
+                found.append(f"{name} (on {target})")
         for other in prim.GetStage().Traverse():
             relationship = other.GetRelationship(names.ANIMATION_REL)
             if not relationship or target not in relationship.GetTargets():
@@ -646,6 +649,32 @@ class UsdReader:
                         f"({bones}), got {len(matrices)}", UsdSite(path, names.BIND_TRANSFORMS))
             return
         declared.values["bindTransforms"] = np.transpose(matrices, (0, 2, 1)).copy()
+
+    def _root_motion(self, prim, declared: Declared) -> None:
+        """Format 1.1 ``vb:clipRootMotion`` and ``vb:rootMotionUpAxis`` (spec "Root motion") into ``rootMotion``."""
+        path = str(prim.GetPath())
+        attribute = prim.GetAttribute(names.CLIP_ROOT_MOTION)
+        if not attribute or not attribute.HasAuthoredValue():
+            return
+        site = UsdSite(path, names.CLIP_ROOT_MOTION)
+        entries = np.array([list(v) for v in (attribute.Get() or [])], dtype=np.float64).reshape(-1, 4)
+        clips = declared.values["clips"]
+        counts = [int(c["rowCount"]) + (1 if c["loop"] else 0) for c in clips]
+        axis_attribute = prim.GetAttribute(names.ROOT_MOTION_UP_AXIS)
+        up_axis = str(axis_attribute.Get()) if axis_attribute and axis_attribute.HasAuthoredValue() else ""
+        if len(entries) != sum(counts) or not np.all(np.isfinite(entries)):
+            self.report("prim.attribute.invalid", f"{names.CLIP_ROOT_MOTION} must hold one finite entry per row of "
+                        f"every clip, plus one per looping clip ({sum(counts)}), got {len(entries)}", site)
+            return
+        if up_axis not in ("Y", "Z"):
+            self.report("prim.attribute.invalid", f"{names.ROOT_MOTION_UP_AXIS} must be Y or Z with "
+                        f"{names.CLIP_ROOT_MOTION}, got {up_axis!r}", UsdSite(path, names.ROOT_MOTION_UP_AXIS))
+            return
+        from vbusd.rootmotion import RootMotion
+
+        offsets = np.cumsum([0] + counts)
+        declared.values["rootMotion"] = RootMotion(up_axis, tuple(entries[a:b] for a, b in zip(offsets[:-1],
+                                                                                                offsets[1:])))
 
     def read_fades(self, prim, n: int, clip_count: int) -> dict:
         """Format 1.1 crossfade primvars of an instancer (spec 8.3, 15) as Crowd fields ({} when none).
@@ -767,7 +796,8 @@ class UsdReader:
                             clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
                             path=attributes.path, texture=attributes.texture,
                             clip_extents=attributes.clip_extents,
-                            bind_transforms=binds if binds is not None else theirs_binds)
+                            bind_transforms=binds if binds is not None else theirs_binds,
+                            root_motion=attributes.declared.values.get("rootMotion"))
 
     # -- bound meshes and crowds -----------------------------------------------------------------
 
@@ -1074,7 +1104,7 @@ class UsdReader:
         animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
                                    texture=vb.texture, clip_extents=vb.clip_extents,
-                                   bind_transforms=vb.bind_transforms)
+                                   bind_transforms=vb.bind_transforms, root_motion=vb.root_motion)
                       for vb, found in zip(animations, meshes)]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())
