@@ -107,3 +107,49 @@ def test_threejs_runtime_reproduces_every_vector(page, path):
         assert point_error <= tolerance["position"], f"{where}: position error {point_error:.3g}"
         assert normal_error <= tolerance["normal"], f"{where}: normal error {normal_error:.3g}"
     assert page.errors() == [], page.errors()
+
+
+# ----------------------------------------------------------------------------------------------
+# The runtime's CPU sockets and root motion (web/src/sockets.js) under Node: no browser needed
+# ----------------------------------------------------------------------------------------------
+
+
+def _run_node(*args):
+    import shutil
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None or not (REPO / "web" / "node_modules" / "three" / "package.json").is_file():
+        pytest.skip("Node.js or web/node_modules/three is missing (npm ci in web/)")
+    result = subprocess.run([node, str(HERE / "node" / "runtime_sockets.mjs"), *map(str, args)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-4000:]
+    return json.loads(result.stdout)
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_threejs_socket_matrix_reproduces_every_vector(path):
+    vector = json.loads(path.read_text(encoding="utf-8"))
+    result = _run_node(path)
+    for expected, got in zip(vector["expected"], result["sockets"]):
+        matrices = np.array(got, dtype=np.float64).reshape(len(vector["instances"]), -1, 4, 4).transpose(0, 1, 3, 2)
+        error = float(np.abs(matrices - np.array(expected["sockets"])).max())
+        assert error <= vector["tolerance"]["socket"], f"{vector['vector']} at t = {expected['time']}: {error:.3g}"
+
+
+def test_threejs_root_motion_matches_vbusd(tmp_path):
+    import vbusd
+    from vbusd.bake import BakeOptions, bake
+
+    animation = runpy.run_path(str(HERE / "test_root_motion.py"))["_loop_walk"](0.4)
+    vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
+    pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0)]
+    clip = vb.clips[0]
+    track = {"clips": [{"rowCount": clip.row_count, "rowsPerSecond": clip.rows_per_second, "loop": clip.loop}],
+             "rootMotion": {"upAxis": vb.root_motion.up_axis, "tracks": [vb.root_motion.tracks[0].tolist()]},
+             "pairs": pairs}
+    root_file = tmp_path / "root.json"
+    root_file.write_text(json.dumps(track))
+    result = _run_node(VECTORS[0], root_file)
+    for (t0, t1), got in zip(pairs, result["rootMotion"]):
+        np.testing.assert_allclose(np.array(got).reshape(4, 4).T, vbusd.root_motion(vb, 0, t0, t1), atol=1e-12)

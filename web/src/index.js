@@ -8,3 +8,4 @@ export { parsePlainScene, loadPlainScene, buildObjects } from './plain-loader.js
 export { probeCrowd } from './probe.js';
 export { parseVirtualBonesKTX2 } from './ktx2.js';
 export { VirtualBonesGLTFPlugin, descriptionFromGLTF, EXTENSION } from './gltf-plugin.js';
+export { boneRows, rowPosition, socketMatrix, rootMotionMatrix } from './sockets.js';

@@ -9,6 +9,7 @@ import {
 } from 'three';
 
 import { patchMaterial } from './material.js';
+import { socketMatrix } from './sockets.js';
 import { VirtualBonesError } from './animation.js';
 
 /**
@@ -135,6 +136,21 @@ export class VirtualBonesCrowd extends Group {
     this.fadeAttribute.array.set([timeOffset, playbackRate, weight], 3 * index);
     this.fadeClipAttribute.needsUpdate = true;
     this.fadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * Socket of instance `index` (spec 8.4, format 1.1): the world transform of `bone` at scene time
+   * `time` (instance placement, crossfade included) as a Matrix4: a prop instanced over the crowd
+   * follows each character's hand with `prop.matrix = crowd.socketMatrix(i, bone, t)`.
+   */
+  socketMatrix(index, bone, time) {
+    const clip = this.clipAttribute.array[index];
+    const [offset, rate] = [this.timeAttribute.array[2 * index], this.timeAttribute.array[2 * index + 1]];
+    const fade = this.fadeAttribute.array.subarray(3 * index, 3 * index + 3);
+    const joint = socketMatrix(this.animation, bone, clip, offset + rate * time,
+      { clip: this.fadeClipAttribute.array[index], tau: fade[0] + fade[1] * time, weight: fade[2] });
+    const placement = new Matrix4().fromArray(this.instanceMatrix.array, 16 * index);
+    return this.matrixWorld.clone().multiply(placement).multiply(joint);
   }
 
   /** Instances drawn (the first `count` of the crowd). */
