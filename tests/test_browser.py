@@ -400,10 +400,12 @@ CAMERA = "0,11,38,0,2.5,44"  # above the front rows, looking down at the stand: 
 SCREENSHOT_TIME = 2.5
 
 
-def rasterize(points_ndc: np.ndarray, triangles: np.ndarray, width: int, height: int) -> np.ndarray:
+def rasterize(points_ndc: np.ndarray, triangles: np.ndarray, width: int, height: int,
+              budget: int = 4_000_000) -> np.ndarray:
     """Coverage at pixel centres (GL's rule, ties aside) of triangles given in clip-divided NDC.
 
-    Vectorized over triangles grouped by bounding-box size; the few largest one by one.
+    Every pixel of every triangle's bounding box is tested against its three edges, vectorized
+    over chunks of about ``budget`` (triangle, pixel) pairs.
     """
     mask = np.zeros((height, width), dtype=bool)
     pixels = np.empty_like(points_ndc[:, :2])
@@ -414,34 +416,28 @@ def rasterize(points_ndc: np.ndarray, triangles: np.ndarray, width: int, height:
     hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
     a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
     area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    keep = area != 0
-
-    def cover(index, xs, ys):  # xs, ys: (n, ...) pixel centres; returns inside (n, ...)
-        extra = (slice(None),) + (None,) * (xs.ndim - 1)
-        sign = np.sign(area[index])[extra]
-        inside = np.ones(np.broadcast_shapes(xs.shape, ys.shape), dtype=bool)
+    keep = np.flatnonzero(area != 0)
+    spans = (hi - lo + 1)[keep]
+    counts = spans[:, 0] * spans[:, 1]
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(keep):
+        stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + budget, side="right")))
+        n = counts[start:stop]
+        which = np.repeat(np.arange(stop - start), n)
+        local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        width_of = spans[start:stop, 0][which]
+        triangle = keep[start:stop][which]
+        xs = lo[triangle, 0] + local % width_of
+        ys = lo[triangle, 1] + local // width_of
+        sign = np.sign(area[triangle])
+        inside = np.ones(xs.shape, dtype=bool)
         for p, q in ((a, b), (b, c), (c, a)):
-            p, q = p[index], q[index]
-            edge = (q[:, 0][extra] - p[:, 0][extra]) * (ys - p[:, 1][extra]) \
-                - (q[:, 1][extra] - p[:, 1][extra]) * (xs - p[:, 0][extra])
-            inside &= edge * sign >= 0
-        return inside
-
-    done = np.zeros(len(triangles), dtype=bool)
-    for tile in (8, 24, 64):  # blocks of triangles whose bounding boxes fit tile x tile pixels
-        fits = keep & ~done & ((hi - lo) < tile).all(axis=1)
-        done |= fits
-        steps = np.arange(tile)
-        for chunk in np.array_split(np.flatnonzero(fits), max(1, int(fits.sum()) * tile * tile // 2_000_000)):
-            xs = lo[chunk, 0][:, None, None] + steps[None, None, :]
-            ys = lo[chunk, 1][:, None, None] + steps[None, :, None]
-            inside = cover(chunk, xs + 0.5, ys + 0.5)
-            inside &= (xs <= hi[chunk, 0][:, None, None]) & (ys <= hi[chunk, 1][:, None, None])
-            mask[np.broadcast_to(ys, inside.shape)[inside], np.broadcast_to(xs, inside.shape)[inside]] = True
-    for index in np.flatnonzero(keep & ~done):
-        xs, ys = np.meshgrid(np.arange(lo[index, 0], hi[index, 0] + 1), np.arange(lo[index, 1], hi[index, 1] + 1))
-        inside = cover(np.array([index]), xs[None] + 0.5, ys[None] + 0.5)[0]
+            p, q = p[triangle], q[triangle]
+            inside &= ((q[:, 0] - p[:, 0]) * (ys + 0.5 - p[:, 1])
+                       - (q[:, 1] - p[:, 1]) * (xs + 0.5 - p[:, 0])) * sign >= 0
         mask[ys[inside], xs[inside]] = True
+        start = stop
     return mask
 
 
