@@ -24,6 +24,9 @@ import numpy as np
 
 from vbusd.format.errors import OptionsError
 
+__all__ = ["MODES", "RootMotion", "rotation_about_up", "track_entries", "matrices", "in_place_clip", "at",
+           "displacement", "check_mode"]
+
 MODES = ("keep", "extract", "extractYaw")
 """``keep``: bake as the source moves; ``extract``: remove the root's horizontal translation;
 ``extractYaw``: also its rotation about the up axis."""
