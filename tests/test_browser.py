@@ -120,6 +120,8 @@ def run_probes(browser, path: Path, probes) -> list:
             assert page.error == "", page.error
             errors = [check_probe(page, asset, instance, t) for instance, t in probes]
             assert page.errors() == [], page.errors()
+            # Offline: the page, three.js, the runtime and the asset all come from the server.
+            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
         finally:
             page.close()
     return errors

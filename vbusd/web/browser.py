@@ -81,6 +81,8 @@ class ViewerPage:
     def __init__(self, browser, url: str, *, width: int = 960, height: int = 540, timeout_s: float = 60.0):
         self.page = browser.new_page(viewport={"width": width, "height": height}, device_scale_factor=1)
         self.messages: list[str] = []
+        self.requests: list[str] = []  # every URL the page asked for (offline check: all on 127.0.0.1)
+        self.page.on("request", lambda request: self.requests.append(request.url))
         self.page.on("console", lambda message: self.messages.append(f"{message.type}: {message.text}"))
         self.page.on("pageerror", lambda error: self.messages.append(f"pageerror: {error}"))
         self.page.goto(url)
