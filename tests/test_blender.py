@@ -533,3 +533,56 @@ def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
         for mesh, obj in zip(vb.meshes, [body] + props):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
             assert np.abs(decoded[0] - evaluated_points(obj, rig)).max() < 1e-5, (obj.name, frame)
+
+
+def test_unusual_scene(rig_scene, tmp_path):
+    """A scene unlike the others: 29.97 fps (fps_base 1001), non-ASCII bone and action names, a bone
+    constrained to an animated empty, a uniformly scaling bone (so auto picks affineMatrix), a
+    second object sharing the body's mesh data, and a mesh of loose edges without faces. Every
+    mesh decodes to Blender's evaluated vertices at every frame."""
+    scene, rig, body = rig_scene
+    scene.render.fps, scene.render.fps_base = 30000, 1001
+    fps = 30000 / 1001
+    rig.data.bones["mid"].name = "Körper.001 mid"
+    action = bpy.data.actions["Bend"]
+    action.name = "Beugen ü"
+    empty = bpy.data.objects.new("Mover", None)
+    scene.collection.objects.link(empty)
+    empty.animation_data_create()
+    empty.animation_data.action = bpy.data.actions.new("MoverAction")
+    for frame, x in ((1, 0.0), (9, 1.5)):
+        empty.location = (x, 0.0, 0.0)
+        empty.keyframe_insert("location", frame=frame)
+    rig.pose.bones["root"].constraints.new("COPY_LOCATION").target = empty
+    rig.animation_data.action = action
+    for frame, s in ((1, 1.0), (5, 1.4), (9, 1.0)):
+        rig.pose.bones["Körper.001 mid"].scale = (s, s, s)
+        rig.pose.bones["Körper.001 mid"].keyframe_insert("scale", frame=frame)
+    twin = body.copy()  # shares the mesh data
+    scene.collection.objects.link(twin)
+    twin.location = (1.0, 0.0, 0.0)
+    wire_data = bpy.data.meshes.new("WireData")
+    wire_data.from_pydata([(0, 0, 0.5), (0, 0.2, 1.5), (0, 0, 2.5)], [(0, 1), (1, 2)], [])
+    wire = bpy.data.objects.new("Wire", wire_data)
+    scene.collection.objects.link(wire)
+    wire.parent = rig
+    wire.modifiers.new("Armature", "ARMATURE").object = rig
+    wire.vertex_groups.new(name="root").add([0], 1.0, "REPLACE")
+    wire.vertex_groups.new(name="tip").add([1, 2], 1.0, "REPLACE")
+
+    out = tmp_path / "unusual.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Beugen ü",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert vb.layout.encoding.value == "affineMatrix"
+    assert "Körper.001 mid" in vb.bones and [c.name for c in vb.clips] == ["Beugen ü"]
+    objects = [body, twin, wire]
+    assert len(vb.meshes) == 3
+    play(rig, "Beugen ü")
+    worst, diagonal = 0.0, float(np.linalg.norm(np.ptp(evaluated_points(body, rig), axis=0)))
+    for frame in range(1, 10):
+        scene.frame_set(frame)
+        for mesh, obj in zip(vb.meshes, objects):
+            decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / fps]))
+            worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, rig)).max()))
+    assert worst / diagonal < 1e-5
