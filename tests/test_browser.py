@@ -357,6 +357,53 @@ def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_pat
             page.close()
 
 
+# MeshStandardMaterial: the README picture, the shadow test; MeshBasicMaterial: the probes' pages.
+MATERIALS = ("MeshLambertMaterial", "MeshPhongMaterial", "MeshPhysicalMaterial", "MeshToonMaterial",
+             "MeshNormalMaterial")
+
+
+def test_any_three_material_skins(browser):
+    """patchMaterial works on three's other mesh materials: each draws the crowd where the patched
+    MeshBasicMaterial does (emissive white, so unlit materials show their coverage), while an
+    unpatched material draws the rest pose elsewhere."""
+    width, height = 320, 180
+    query = (f"?paused=1&time=2.5&ui=0&silhouette=1&antialias=0&pixelRatio=1&width={width}&height={height}"
+             f"&camera={CAMERA}&fov=30")
+    script = """async (name) => {
+        const THREE = await import(location.origin + '/three/three.module.js');
+        const { patchMaterial } = await import(location.origin + '/vbusd-three/index.js');
+        for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
+            const options = name === 'MeshNormalMaterial' ? {}
+                : { color: 0xffffff, emissive: 0xffffff };
+            const material = name === 'unpatched' ? new THREE.MeshBasicMaterial({ color: 0xffffff })
+                : patchMaterial(new THREE[name](options), crowd.animation, mesh.userData.virtualBones.maxInfluences);
+            mesh.material = material;
+        }
+        window.vbusd.render();
+    }"""
+    with ViewerServer(SAMPLE / "stadium_crowd_vb.usda") as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
+        try:
+            assert page.error == ""
+            page.page.evaluate("window.vbusd.render()")
+            basic = screenshot_luminance(page.page.locator("#view").screenshot()) > 20
+            masks = {}
+            for name in MATERIALS + ("unpatched",):
+                page.page.evaluate(script, name)
+                masks[name] = screenshot_luminance(page.page.locator("#view").screenshot()) > 20
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+    def iou(a, b):
+        return float((a & b).sum() / (a | b).sum())
+
+    assert 0.1 < basic.mean() < 0.9
+    for name in MATERIALS:
+        assert iou(masks[name], basic) >= 0.99, (name, iou(masks[name], basic))
+    assert iou(masks["unpatched"], basic) < 0.9
+
+
 def test_shadows_follow_the_animation(browser):
     """The crowd's shadow map is drawn with the patched depth material: with the figures hidden
     from the camera (no colour, no depth) the shadows on the ground still change as the crowd
