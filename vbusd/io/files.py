@@ -38,9 +38,10 @@ Public API (what converters, decoders and exporters use):
   :func:`recover` runs the same recovery on its own.
 * :func:`atomic_write` / :class:`AtomicTransaction`: one file (or a few, without a lock) through a
   temporary beside the target, fsync, then ``os.replace``.
-* :func:`fault_point`: the fault-injection hook. Every step of a commit calls it; with
-  ``VBUSD_FAULT=kill:N`` the process SIGKILLs itself at step N, with ``VBUSD_FAULT=enospc:N``
-  (or ``eio``, ``erofs``, ``edquot``, ``eacces``) step N fails with that error, and
+* :func:`fault_point`: the fault-injection hook. Every step of a commit (and of an
+  :class:`AtomicTransaction`) calls it; with ``VBUSD_FAULT=kill:N`` the process SIGKILLs itself
+  at step N, with ``VBUSD_FAULT=enospc:N`` (or ``edquot``, ``erofs``, ``eacces``, ``eio``,
+  ``enametoolong``) step N fails with that error, and
   ``VBUSD_FAULT_TRACE=FILE`` appends every step's name to FILE (how many steps a run has). The
   fault tests and ``benchmarks/fault_sweep.py`` drive it; unset, it costs one dict lookup.
 
