@@ -226,6 +226,40 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd):
             page.close()
 
 
+def test_viewer_controls(browser, bar_crowd):
+    """The page's controls act on the crowd: the clip picker makes every instance play that clip,
+    the instance count draws fewer instances, play advances the clock and pause stops it."""
+    asset = vbusd.read_asset(bar_crowd)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    with ViewerServer(bar_crowd) as server:
+        page = ViewerPage(browser, server.url + "?ui=1&silhouette=1&width=320&height=180")
+        try:
+            assert page.error == ""
+            assert page.page.locator("#play").text_content() == "Pause"  # playing when opened
+            started_at = page.page.locator("#time-label").text_content()
+            page.page.wait_for_function(f"document.getElementById('time-label').textContent !== {started_at!r}",
+                                        timeout=20_000)  # the clock runs
+            page.page.click("#play")
+            assert page.page.locator("#play").text_content() == "Play"
+            paused_at = page.page.locator("#time-label").text_content()
+            page.page.wait_for_timeout(300)
+            assert page.page.locator("#time-label").text_content() == paused_at
+            page.page.select_option("#clip", "Slide")
+            slide = [c.name for c in vb.clips].index("Slide")
+            all_slide = dataclasses.replace(asset, crowds=(dataclasses.replace(
+                crowd, clip=np.full(crowd.instance_count, slide, dtype=np.int32)),))
+            for instance in (0, 3):
+                position_error, _ = check_probe(page, all_slide, instance, 0.7)
+                assert position_error <= POSITION_TOLERANCE
+            page.page.locator("#count").fill("4")
+            assert page.page.evaluate("window.vbusd.crowds[0].count") == 4
+            assert page.page.locator("#count-label").text_content() == "4"
+            assert "frame time:" in page.page.locator("#stats").text_content()
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
 def test_frustum_culling_bounds_cover_every_pose(browser, bar_crowd):
     """The culling box is the union of the played clips' vb:clipExtents, placed at every instance:
     every vertex the GPU skins lies inside it, while the rest pose's box would cut some off; and a
