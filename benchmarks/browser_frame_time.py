@@ -102,6 +102,7 @@ def measure(browser, path: Path, variant: str, frames: int) -> float:
 
 
 def main() -> None:
+    """Print the frame-time table (markdown) for the requested instance counts."""
     parser = argparse.ArgumentParser(description="vbusd view frame time in headless Chromium (software WebGL)")
     parser.add_argument("--frames", type=int, default=5)
     parser.add_argument("--counts", type=int, nargs="+", default=[1200, 10000])

@@ -59,6 +59,14 @@ def render_png(asset: Path = ASSET) -> bytes:
 
 
 def main(argv=None) -> int:
+    """Render the picture and write it atomically.
+
+    Args:
+        argv: Command-line arguments (default: ``sys.argv[1:]``).
+
+    Returns:
+        0 when written, 2 when Chromium or playwright is missing (one line on stderr says which).
+    """
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("-o", "--output", type=Path, default=OUTPUT, help="PNG to write (default: %(default)s)")
     args = parser.parse_args(argv)
