@@ -121,6 +121,7 @@ def first_non_utf8(path: Path, limit: int = 64 << 20) -> Optional[int]:
 
 
 _CAPTURE_LOCK = threading.RLock()
+_USD_PREFIX = re.compile(r"^(Warning|Error|Status|Coding Error): in \S+ at line \d+ of \S+ -- ")
 
 
 @contextlib.contextmanager
@@ -131,15 +132,26 @@ def captured_usd_diagnostics(sink: list):
     the console unless a diagnostic delegate is registered; this registers UsdUtils'
     CoalescingDiagnosticDelegate for the block and appends ``(kind, one-line text)`` for each
     diagnostic, kind being ``warning``, ``status`` or ``error``. Errors that USD raises as
-    ``Tf.ErrorException`` still raise.
+    ``Tf.ErrorException`` still raise. What USD's lower layers print past the delegate (``failed
+    call to posix_madvise``, ``~_DeferredDiagnostics`` warnings of a corrupt crate file) is taken
+    from the file descriptors (:func:`vbusd.io.capture.captured_output`) and added as warnings.
     """
     from pxr import UsdUtils
 
+    from vbusd.io.capture import captured_output
+
+    printed: list = []
     with _CAPTURE_LOCK:
         delegate = UsdUtils.CoalescingDiagnosticDelegate()
         try:
-            yield sink
+            with captured_output(printed, one_line=False):
+                yield sink
         finally:
+            for text in printed:
+                for line in text.splitlines():
+                    line = _USD_PREFIX.sub("", line.strip())
+                    if line:
+                        sink.append(("warning", one_line(line, 300), "console"))
             for item in delegate.TakeUncoalescedDiagnostics():
                 code = str(getattr(item, "diagnosticCodeString", ""))
                 kind = "warning" if "WARNING" in code else "status" if "STATUS" in code else "error"
@@ -276,6 +288,8 @@ class UsdReader:
             if head.startswith(magic):
                 self.report("usd.open", f"the file is {what}, not a USD stage", where)
                 return False
+        if not self.probe(path, where):
+            return False
         try:
             self.layer = self._open_layer(Sdf, str(path.resolve()))
         except Tf.ErrorException as error:
@@ -304,6 +318,19 @@ class UsdReader:
                         UsdSite(str(site.path) if site is not None else "/"))
         self.report_usd_messages(composition=bool(reported))
         return True
+
+    def probe(self, path: Path, where) -> bool:
+        """A crate file is read whole in a bounded child process first (:mod:`vbusd.io.usd_probe`):
+        a corrupt one could otherwise take gigabytes, minutes or the process itself. False after a
+        ``usd.open`` finding when it is unsafe."""
+        from vbusd.io.usd_probe import is_crate, probe_crate
+
+        if not is_crate(path):
+            return True
+        result = probe_crate(path)
+        if not result.ok:
+            self.report("usd.open", result.problem, where)
+        return result.ok
 
     @staticmethod
     def _open_layer(Sdf, real_path: str):
@@ -403,6 +430,9 @@ class UsdReader:
                 composable = False
                 continue
             if not target.is_file():
+                continue
+            if not self.probe(target, FileLocation(layer.realPath or self.file, part=f"@{dependency}@")):
+                composable = False
                 continue
             try:
                 child = Sdf.Layer.FindOrOpen(str(target))

@@ -1,0 +1,62 @@
+"""Corrupt crate files are refused with one line in bounded time and memory (vbusd/io/usd_probe.py).
+
+The fixtures are mutants that, opened in-process by OpenUSD, crash, loop or allocate gigabytes
+(tests/fixtures/corrupt_usdc/README.md). Each command runs as a child process whose peak memory,
+its own and its children's, is measured by the kernel (getrusage), not by vbusd.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+FIXTURES = Path(__file__).parent / "fixtures"
+CORRUPT = sorted((FIXTURES / "corrupt_usdc").glob("*.usdc"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", CORRUPT, ids=[p.stem for p in CORRUPT])
+def test_corrupt_crate_is_one_line_in_bounded_time_and_memory(path, tmp_path):
+    # A fresh parent process runs the command, so its RUSAGE_CHILDREN peak is this run's alone
+    # (the command and the probe it starts).
+    watcher = ("import resource, subprocess, sys; "
+               "done = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+               "sys.stdout.write(done.stderr); "
+               "print(done.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    run = subprocess.run([sys.executable, "-c", watcher, sys.executable, "-m", "vbusd", "info", str(path)],
+                         capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    *lines, last = run.stdout.strip().splitlines()
+    status, peak_kb = map(int, last.split())
+    assert status == 2
+    assert len(lines) == 1 and lines[0].startswith(f"vbusd: {path}: usd.open: "), run.stdout
+    assert peak_kb / 1024 <= 500, f"{peak_kb / 1024:.0f} MB"
+
+
+def test_a_valid_crate_passes_the_probe(tmp_path):
+    from pxr import Sdf, Usd, UsdGeom
+
+    from vbusd.io.usd_probe import is_crate, probe_crate
+
+    path = tmp_path / "ok.usdc"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Mesh.Define(stage, "/M").GetPointsAttr().Set([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    stage.GetRootLayer().Save()
+    assert is_crate(path) and not is_crate(Path(__file__))
+    assert probe_crate(path).ok
+    assert Sdf.Layer.FindOrOpen(str(path)) is not None
+
+
+def test_a_probe_over_its_memory_limit_refuses(tmp_path, monkeypatch):
+    from pxr import Usd
+
+    from vbusd.io import usd_probe
+
+    path = tmp_path / "ok.usdc"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.GetRootLayer().Save()
+    monkeypatch.setattr(usd_probe, "_BASE_MEMORY", 8 << 20)  # too little even to import pxr
+    result = usd_probe.probe_crate(path)
+    assert not result.ok and "MB" in result.problem
