@@ -76,6 +76,10 @@ materials, textures or lights (which a Virtual Bones texture does not carry)."""
 
 _IDENTIFIER_BAD = re.compile(r"[^A-Za-z0-9_]")
 
+VIRTUAL_SKIN = -1
+"""Key of the animation made for mesh nodes that animations move when the file converts no skin
+(spec: Rigid attachments): its bones are only extra bones, and its prim is ``/<root>/Nodes_Anim``."""
+
 
 # ------------------------------------------------------------------------------------------------
 # Names
@@ -1122,9 +1126,6 @@ class _Converter:
         gltf = self.gltf
         self.read_nodes()
         animations = self.read_animations()
-        if not gltf.skins:
-            raise UnsupportedError("the file has no skins; Virtual Bones bakes skinned meshes",
-                                   file=self.file, location="/skins", code="gltf.noSkin")
         skin_names = [s.name if isinstance(s.name, str) else "" for s in gltf.skins]
         anim_names = [a.name if isinstance(a.name, str) else "" for a in gltf.animations]
         skins = self.select(self.options.skeletons, skin_names, "skin")
@@ -1159,20 +1160,28 @@ class _Converter:
                               "identity; it is ignored, as glTF 2.0 requires (joint transforms "
                               "place the mesh)")
 
-        converted = [s for s in skins if s in users]
+        attachments = self.plan_attachments(unskinned, skins, set(users),
+                                            [animations[a] for a in chosen_anims])
+        converted = [s for s in skins if s in users or s in attachments]
         for s in skins:
-            if s not in users:
+            if s not in converted:
                 self.warn(f"skin {s} (/skins/{s}) is used by no mesh node; left out")
-        attachments = self.plan_attachments(unskinned, converted, [animations[a] for a in chosen_anims])
+        if VIRTUAL_SKIN in attachments:
+            converted.append(VIRTUAL_SKIN)
+        if not converted:
+            why = ("the file has no skins and no animation moves a mesh" if not gltf.skins
+                   else "no skin is used by a mesh node and no animation moves a mesh")
+            raise UnsupportedError(f"{why}; Virtual Bones bakes skinned or animated meshes",
+                                   file=self.file, location="/skins", code="gltf.noSkin")
 
         result = []
         anim_prim_names = {}
         for s in converted:
-            base = make_identifier(gltf.skins[s].name, f"skin{s}")
+            base = "Nodes" if s == VIRTUAL_SKIN else make_identifier(gltf.skins[s].name, f"skin{s}")
             anim_prim_names[s] = names.take(f"{base}_Anim")
         mesh_names = {}
         for s in anim_prim_names:
-            nodes = list(users[s]) + [a.node for a in attachments.get(s, [])]
+            nodes = list(users.get(s, [])) + [a.node for a in attachments.get(s, [])]
             for node in nodes:
                 mesh = gltf.nodes[node].mesh
                 base = make_identifier(gltf.nodes[node].name or gltf.meshes[mesh].name, f"node{node}")
@@ -1185,7 +1194,7 @@ class _Converter:
 
         raw_weights = []
         for s, anim_name in anim_prim_names.items():
-            joints, ibm = self.read_skin(s)
+            joints, ibm = self.read_skin(s) if s != VIRTUAL_SKIN else ([], np.zeros((0, 4, 4)))
             bone_names = NameAllocator()
             bones = [bone_names.take(make_identifier(gltf.nodes[j].name, f"node{j}")) for j in joints]
             bone_nodes = list(joints)
@@ -1206,7 +1215,7 @@ class _Converter:
                 raws.append(None if rigid else self.renormalized.get((m, p)))
                 morphs.append((node, m, p, data["targets"]))
 
-            for node in users[s]:
+            for node in users.get(s, []):
                 m = gltf.nodes[node].mesh
                 for p in range(len(gltf.meshes[m].primitives)):
                     data = self.read_primitive(m, p, len(joints), s)
@@ -1287,62 +1296,82 @@ class _Converter:
                          warnings=tuple(self.warnings), source=self.file,
                          raw_weights=tuple(raw_weights))
 
-    def plan_attachments(self, unskinned: list, converted: list, chosen: list) -> dict:
-        """Which converted skin, and which bone of it, every mesh node without a skin follows.
+    def plan_attachments(self, unskinned: list, skins: list, used: set, chosen: list) -> dict:
+        """Which skin, and which bone of it, every mesh node without a skin follows.
 
         Rule (spec: Rigid attachments): a mesh node whose ancestor (or itself) is a joint of a
-        converted skin follows the nearest such joint ``J`` (of the lowest-index converted skin
-        listing it), unless a node between ``J`` (exclusive) and the mesh node (inclusive) is
-        animated by a converted animation: then it follows the deepest such node, which becomes an
-        extra bone of that skin (bone matrix: its world transform). A mesh node under no joint
-        that an animated node moves follows the deepest animated node as an extra bone of the
-        first converted skin (with a warning); a mesh node nothing animates and no joint holds
-        follows the root of its node tree, fixed, as an extra bone of the first converted skin
-        when it is in the default scene (with a warning), else it is left out (with a warning).
+        selected skin follows the nearest such joint ``J`` (of the lowest-index selected skin
+        listing it; that skin is converted even when no skinned mesh uses it), unless a node between
+        ``J`` (exclusive) and the mesh node (inclusive) is animated by a selected animation: then it
+        follows the deepest such node, which becomes an extra bone of that skin (bone matrix: its
+        world transform). A mesh node under no joint that an animated node moves follows the
+        deepest animated node as an extra bone of the first converted skin, or, when no skin is
+        converted, of an animation of its own (:data:`VIRTUAL_SKIN`); a mesh node in the default
+        scene that nothing moves follows the root of its tree, fixed, as an extra bone of the first
+        converted skin (when there is one). Every case but the joint one is warned about.
 
         Args:
             unskinned: Mesh nodes without a skin, in node order.
-            converted: Converted skin indices, ascending.
+            skins: Selected skin indices, ascending.
+            used: Skins used by a skinned mesh node.
             chosen: The selected animations (_Animation records).
 
         Returns:
-            ``{skin: [_Attachment, ...]}`` in node order.
+            ``{skin: [_Attachment, ...]}``: mesh nodes under joints in node order, then the others
+            (moved ones first); the key :data:`VIRTUAL_SKIN` holds the attachments of an animation
+            without a skin.
         """
         animated = {c.node for anim in chosen for c in anim.channels}
         joint_skin: dict[int, int] = {}
-        for s in converted:
+        for s in skins:
             for j in self.read_skin(s)[0]:
                 joint_skin.setdefault(j, s)
         result: dict[int, list] = {}
+        pending = []   # (node, path, moving) of mesh nodes under no joint
         for n in unskinned:
             path, node = [], n
             while node != -1 and node not in joint_skin:
                 path.append(node)
                 node = self.parent[node]
             moving = [x for x in path if x in animated]   # deepest first
-            if node != -1:
-                skin = joint_skin[node]
-                bone = moving[0] if moving else node
-            elif moving and converted:
-                skin, bone = converted[0], moving[0]
-                self.warn(f"{self.node_label(n)} has a mesh but no skin and follows the animated "
-                          f"{self.node_label(bone)}, which is under no joint of a converted skin; it "
-                          f"is attached to skin {skin} as an extra bone")
-            elif converted and self.in_scene(n):
-                skin, bone = converted[0], path[-1]          # the root of its node tree
-                self.warn(f"{self.node_label(n)} has a mesh but no skin, and neither a joint nor an "
-                          f"animation moves it; it is attached to skin {skin} as an extra bone fixed "
-                          "where its node puts it (as engines show it)")
-            else:
-                self.warn(f"{self.node_label(n)} has a mesh but no skin, nothing moves it and it is not "
-                          "in the default scene; left out")
+            if node == -1:
+                pending.append((n, path, moving))
                 continue
-            below = path[:path.index(bone)] if bone in path else path   # bone (exclusive) .. n
-            rel = np.eye(4)
-            for x in reversed(below):
-                rel = rel @ self.rest_local[x]
-            result.setdefault(skin, []).append(_Attachment(n, bone, rel))
+            bone = moving[0] if moving else node
+            self._attach(result, joint_skin[node], n, bone, path)
+        converted = [s for s in skins if s in used or s in result]
+        pending.sort(key=lambda item: not item[2])   # moved ones first: they may make the virtual skin
+        for n, path, moving in pending:
+            if moving:
+                skin = converted[0] if converted else VIRTUAL_SKIN
+                target = f"skin {skin}" if converted else "an animation of its own (the file converts no skin)"
+                self.warn(f"{self.node_label(n)} has a mesh but no skin and follows the animated "
+                          f"{self.node_label(moving[0])}, which is under no joint of a converted skin; it "
+                          f"is attached to {target} as an extra bone")
+                self._attach(result, skin, n, moving[0], path)
+            elif converted and self.in_scene(n):
+                self.warn(f"{self.node_label(n)} has a mesh but no skin, and neither a joint nor an "
+                          f"animation moves it; it is attached to skin {converted[0]} as an extra bone "
+                          "fixed where its node puts it (as engines show it)")
+                self._attach(result, converted[0], n, path[-1], path)
+            elif self.in_scene(n) and VIRTUAL_SKIN in result:
+                self.warn(f"{self.node_label(n)} has a mesh but no skin, and nothing moves it; it is "
+                          "attached to the animation of the file's animated meshes as a fixed extra bone")
+                self._attach(result, VIRTUAL_SKIN, n, path[-1], path)
+            else:
+                self.warn(f"{self.node_label(n)} has a mesh but no skin, nothing moves it and "
+                          f"{'it is not in the default scene' if converted else 'the file converts no skin'}; "
+                          "left out")
         return result
+
+    def _attach(self, result: dict, skin: int, node: int, bone: int, path: list) -> None:
+        """Record that ``node`` follows ``bone`` (an ancestor-or-self on ``path``, or the joint above
+        it) with the constant rest transform between them."""
+        below = path[:path.index(bone)] if bone in path else path   # bone (exclusive) .. node
+        rel = np.eye(4)
+        for x in reversed(below):
+            rel = rel @ self.rest_local[x]
+        result.setdefault(skin, []).append(_Attachment(node, bone, rel))
 
     def in_scene(self, node: int) -> bool:
         """Whether ``node`` is in the default scene (``scene``, else ``scenes[0]``; every node when

@@ -271,6 +271,47 @@ def test_attachment_bones_and_rest_points(tmp_path):
     np.testing.assert_allclose(meshes["Weapon"].points, local + (0.05, 0, 0), atol=1e-6)
 
 
+def rigid_robot(with_skin: bool) -> GltfBuilder:
+    """A robot made of rigid parts, as three.js's example robot is apart from its hands: a torso under
+    the joint Body, a head under the joint Neck. ``with_skin``: the skin exists but no mesh is skinned
+    (so no skin is "used"); without it the parts hang under plain animated nodes and the file has no
+    skin at all. A Pedestal stands beside it, moved by nothing."""
+    b = GltfBuilder()
+    body = b.node("Body", translation=[0, 1, 0])
+    neck = b.node("Neck", body, translation=[0, 0.6, 0])
+    torso_points, faces = box((0, 0.3, 0), (0.6, 0.6, 0.3))
+    b.node("Torso", body, mesh=b.mesh("TorsoMesh", torso_points, faces))
+    head_points, _ = box((0, 0.2, 0), (0.3, 0.3, 0.3))
+    b.node("HeadPart", neck, mesh=b.mesh("HeadMesh", head_points, faces), translation=[0, 0.05, 0],
+           rotation=quat((0, 0, 1), 10))
+    pedestal_points, _ = box((0, 0.1, 0), (1.0, 0.2, 1.0))
+    b.node("Pedestal", mesh=b.mesh("PedestalMesh", pedestal_points, faces), translation=[0, -0.2, 0])
+    if with_skin:
+        b.skin([body, neck], [np.linalg.inv(translation(0, 1, 0)), np.linalg.inv(translation(0, 1.6, 0))])
+    times = np.array([0.0, 0.5, 1.0])
+    b.animation("Wave", [
+        (body, "rotation", times, [quat((0, 1, 0), 0), quat((0, 1, 0), 45), quat((0, 1, 0), 90)], "LINEAR"),
+        (neck, "rotation", times, [quat((1, 0, 0), 0), quat((1, 0, 0), -30), quat((1, 0, 0), 20)], "LINEAR"),
+        (neck, "scale", times, [[1, 1, 1], [1.2, 1.2, 1.2], [1, 1, 1]], "LINEAR"),
+    ])
+    return b
+
+
+@pytest.mark.parametrize("with_skin", [True, False], ids=["unused-skin", "no-skin"])
+def test_rigid_parts_without_skinned_mesh_match_three(tmp_path, with_skin):
+    path = rigid_robot(with_skin).save(tmp_path / "robot.gltf")
+    scene = gltf.read(path)
+    (animation,) = scene.animations
+    if with_skin:   # the skin's joints are the bones; the pedestal a fixed extra bone
+        assert animation.path == "/Scene/skin0_Anim" and animation.bones == ("Body", "Neck", "Pedestal")
+    else:           # no skin: an animation of the animated nodes' own
+        assert animation.path == "/Scene/Nodes_Anim" and animation.bones == ("Body", "Neck", "Pedestal")
+    assert [m.path for m in animation.meshes] == ["/Scene/Torso", "/Scene/HeadPart", "/Scene/Pedestal"]
+    worst = compare_with_three(path)
+    assert set(worst) == {("Wave", "Torso"), ("Wave", "HeadPart"), ("Wave", "Pedestal")}
+    assert max(worst.values()) <= TOLERANCE, worst
+
+
 def test_weight_warnings_state_count_and_deviation(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     scene = gltf.read(path)

@@ -354,7 +354,8 @@ _COMMAND_ERRORS = (
     Code("gltf.node.parents", E, "A node is the child of two nodes.", "gltf-conversion.md#scene", "json"),
     Code("gltf.node.loop", E, "The node hierarchy has a cycle.", "gltf-conversion.md#scene", "json"),
     Code("gltf.scene", E, "A scene root is the child of another node.", "gltf-conversion.md#scene", "json"),
-    Code("gltf.noSkin", E, "The file has no skin used by a mesh node: nothing to bake.", "gltf-conversion.md#skins", "json"),
+    Code("gltf.noSkin", E, "Nothing to bake: no skin used by a mesh node or holding a rigid attachment, "
+         "and no mesh moved by an animation.", "gltf-conversion.md#skins", "json"),
     Code("gltf.skin.joints", E, "A skin has no joints or lists a node twice.", "gltf-conversion.md#skins", "json"),
     Code("gltf.skin.skeleton", E, "A skin's skeleton node is not an ancestor of all its joints.",
          "gltf-conversion.md#skins", "json"),
