@@ -406,6 +406,32 @@ def _type_error(value, kind, pointer: str):
     return None
 
 
+MAX_ARRAY_ENTRIES = 1 << 18
+"""Entries of one top-level glTF array (nodes, meshes, accessors...) the reader accepts: counted on
+the raw JSON before pygltflib builds an object per entry (a million nodes take it minutes and
+gigabytes)."""
+
+
+def _check_counts(root, file: str) -> None:
+    """Bound the top-level arrays and every skin's joint list on the raw JSON (spec: reading)."""
+    from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
+
+    if not isinstance(root, dict):
+        return
+    for key, value in root.items():
+        if isinstance(value, list) and len(value) > MAX_ARRAY_ENTRIES:
+            raise InputError(f"{key} holds {len(value)} entries; the reader accepts at most {MAX_ARRAY_ENTRIES}",
+                             file=file, location=f"/{key}", code="gltf.json.limit")
+    most_bones = MAX_TEXTURE_DIMENSION // min(e.texels_per_bone for e in Encoding)
+    skins = root.get("skins")
+    for index, skin in enumerate(skins if isinstance(skins, list) else ()):
+        joints = skin.get("joints") if isinstance(skin, dict) else None
+        if isinstance(joints, list) and len(joints) > most_bones:
+            raise InputError(f"the skin lists {len(joints)} joints; a Virtual Bones texture holds at most "
+                             f"{most_bones} bones ({MAX_TEXTURE_DIMENSION} texels per row)", file=file,
+                             location=f"/skins/{index}/joints", code="layout.size")
+
+
 def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None:
     """Checks pygltflib cannot make, on the raw JSON, before it builds its objects.
 
@@ -434,6 +460,7 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
     if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
         raise InputError("asset is missing or not an object", file=file, location="/asset",
                          code="gltf.asset.version")
+    _check_counts(root, file)
     location = _locate_structure_error(root)
     if location is not None:
         raise InputError("a glTF property that must be an object or an array is not one",

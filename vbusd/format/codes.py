@@ -324,6 +324,8 @@ _COMMAND_ERRORS = (
          "chunks.", "gltf-conversion.md#reading", "file"),
     Code("gltf.json", E, "The JSON is not UTF-8, not valid JSON, nests too deeply or is not an object.",
          "gltf-conversion.md#reading", "file"),
+    Code("gltf.json.limit", E, "A top-level array (nodes, meshes, accessors...) holds more entries than the "
+         "reader accepts (counted on the raw JSON before objects are built).", "gltf-conversion.md#reading", "json"),
     Code("gltf.value", E, "A JSON value has the wrong type or is out of its range (glTF 2.0 schema).",
          "gltf-conversion.md#reading", "json"),
     Code("gltf.index", E, "An index into another glTF array (node, accessor, buffer view...) is out of "

@@ -1,0 +1,36 @@
+"""The glTF reader bounds counts on the raw JSON before pygltflib builds objects (issue 10 item 7):
+a file with a million nodes, or a skin with more joints than a texture row can hold, is one line
+naming the array, in time and memory proportional to the file."""
+
+from __future__ import annotations
+
+import json
+
+from vbusd.cli import main
+
+
+def _gltf(path, node_count: int, joint_count: int):
+    doc = {"asset": {"version": "2.0"},
+           "nodes": [{"name": f"j{i}"} for i in range(node_count)] + [{"mesh": 0, "skin": 0}],
+           "skins": [{"joints": list(range(joint_count))}],
+           "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+           "accessors": [{"count": 3, "componentType": 5126, "type": "VEC3"}]}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_too_many_nodes_is_refused_on_the_raw_json(tmp_path, capsys):
+    source = _gltf(tmp_path / "crowd.gltf", 300_000, 3)
+    assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"vbusd: {source}: /nodes: gltf.json.limit: nodes holds 300001 entries; the reader "
+                   "accepts at most 262144"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["crowd.gltf"]
+
+
+def test_more_joints_than_a_row_holds_is_layout_size(tmp_path, capsys):
+    # 16384 texels per row / 2 texels per bone (the smallest encodings) = 8192 bones at most.
+    source = _gltf(tmp_path / "rig.gltf", 8193, 8193)
+    assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
+    err = capsys.readouterr().err
+    assert f"{source}: /skins/0/joints: layout.size: the skin lists 8193 joints" in err and "8192 bones" in err
