@@ -524,6 +524,39 @@ def tmpfs_child(spec: dict) -> list:
     return cases
 
 
+def tmpfs_sweep(names: list, work: Path, pages: int, log=print) -> list:
+    """Every writer on real small file systems: a tmpfs 0 .. ``pages`` 4 KiB pages larger than the
+    old output (full at each write in turn, until the new output fits), then a read-only one.
+
+    Needs ``unshare -rm`` (a private user and mount namespace); returns one summary per writer.
+    """
+    sources = make_sources(work / "src")
+    summaries = []
+    for name in names:
+        bench = prepare(WRITERS[name], sources, work)
+        result = subprocess.run(
+            ["unshare", "-rm", sys.executable, str(Path(__file__).resolve()), "--tmpfs-child",
+             json.dumps({"writer": name, "sources": str(sources), "old_dir": str(bench.old_dir),
+                         "mount": str(work / name / "mnt"), "old": bench.old, "new": bench.new,
+                         "pages": list(range(pages + 1))})],
+            capture_output=True, text=True, env=child_env(), timeout=3600)
+        if result.returncode != 0:
+            raise RuntimeError(f"tmpfs child failed: {result.stderr.strip()[-800:]}")
+        cases = json.loads(result.stdout)
+        sized, read_only = cases[:-1], cases[-1]
+        full = [c for c in sized if c["status"] == 2]
+        reasons = sorted({c["lines"][0].rsplit(": ", 1)[-1] for c in full if c["lines"]})
+        summary = {"writer": name, "sizes": len(sized), "full_exit_2_old": sum(c["state"] == "old" for c in full),
+                   "fitted_exit_0_new": sum(c["status"] == 0 and c["state"] == "new" for c in sized),
+                   "read_only": "exit 2, old" if read_only["status"] == 2 and read_only["state"] == "old" else "?",
+                   "reasons": reasons + [read_only["lines"][0].rsplit(": ", 1)[-1]] if read_only["lines"] else reasons,
+                   "not_ok": sum(c["verdict"] != "ok" for c in cases),
+                   "problems": [(c["fault"], c["verdict"]) for c in cases if c["verdict"] != "ok"][:10]}
+        log(json.dumps(summary))
+        summaries.append(summary)
+    return summaries
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--writers", default=",".join(WRITERS), help="comma-separated: " + ", ".join(WRITERS))
@@ -533,6 +566,9 @@ def main(argv=None) -> int:
     parser.add_argument("--races", type=int, default=10, help="trials of two racing convert runs (0: none)")
     parser.add_argument("--big-decode", type=float, metavar="GB",
                         help="only this: kill decode --crowd of the stadium sample (a ~3 GB cache) once GB are staged")
+    parser.add_argument("--tmpfs", type=int, metavar="PAGES",
+                        help="only this: real tmpfs file systems 0..PAGES pages larger than the old output, "
+                             "then a read-only one (needs unshare -rm)")
     parser.add_argument("--tmpfs-child", metavar="JSON", help=argparse.SUPPRESS)  # see tmpfs_child
     args = parser.parse_args(argv)
     if args.tmpfs_child:
@@ -543,6 +579,19 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f"unknown writer {unknown[0]!r}")
     errnos = tuple(e for e in args.errnos.split(",") if e)
+    if args.tmpfs is not None:
+        with tempfile.TemporaryDirectory(prefix="vbusd-tmpfs-", dir=args.work) as scratch:
+            summaries = tmpfs_sweep(names, Path(scratch), args.tmpfs,
+                                    log=lambda text: print(text, file=sys.stderr))
+        if args.format == "json":
+            print(json.dumps(summaries, indent=1))
+        else:
+            print("| writer | tmpfs sizes | full: exit 2, one line, old output | fits: exit 0, new output "
+                  "| read-only | messages | not ok |\n|---|--:|--:|--:|---|---|--:|")
+            for s in summaries:
+                print(f"| {s['writer']} | {s['sizes']} | {s['full_exit_2_old']} | {s['fitted_exit_0_new']} "
+                      f"| {s['read_only']} | {'; '.join(s['reasons'])} | {s['not_ok']} |")
+        return 1 if any(s["not_ok"] for s in summaries) else 0
     if args.big_decode:
         with tempfile.TemporaryDirectory(prefix="vbusd-big-", dir=args.work) as scratch:
             result = big_decode(Path(scratch), int(args.big_decode * 1e9))
