@@ -264,6 +264,21 @@ class _Reader:
                          location, "usdskel.skeleton.missing")
 
     # ---------------------------------------------------------------------------------------
+    def check_joint_counts(self) -> None:
+        """Every Skeleton's joint count within what a texture row holds, before UsdSkel builds a
+        topology for it (a million joints would take it seconds and gigabytes first)."""
+        from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
+
+        most = MAX_TEXTURE_DIMENSION // min(e.texels_per_bone for e in Encoding)
+        for prim in self.stage.Traverse(self.predicate):
+            if not prim.IsA(self.UsdSkel.Skeleton):
+                continue
+            joints = self.UsdSkel.Skeleton(prim).GetJointsAttr().Get()
+            if joints is not None and len(joints) > most:
+                raise self.error(f"the skeleton has {len(joints)} joints; a Virtual Bones texture holds at most "
+                                 f"{most} bones ({MAX_TEXTURE_DIMENSION} texels per row)",
+                                 f"{prim.GetPath()}.joints", "layout.size")
+
     def check_skeleton(self, skel_prim) -> tuple:
         """Check a Skeleton's joints, bind and rest transforms. Returns its joint tokens."""
         location = str(skel_prim.GetPath())
@@ -914,6 +929,7 @@ def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
     UsdGeom, UsdSkel = reader.UsdGeom, reader.UsdSkel
     stage = reader.stage
     reader.check_binding_api()
+    reader.check_joint_counts()
 
     groups: dict[str, _SkelWork] = {}
     for prim, skel_prim in reader.skinnable_prims():

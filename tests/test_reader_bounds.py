@@ -1,4 +1,4 @@
-"""The glTF reader bounds counts on the raw JSON before pygltflib builds objects (issue 10 item 7):
+"""Readers bound counts before a library builds objects (issue 10 item 7). glTF, on the raw JSON:
 a file with a million nodes, or a skin with more joints than a texture row can hold, is one line
 naming the array, in time and memory proportional to the file."""
 
@@ -34,3 +34,20 @@ def test_more_joints_than_a_row_holds_is_layout_size(tmp_path, capsys):
     assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
     err = capsys.readouterr().err
     assert f"{source}: /skins/0/joints: layout.size: the skin lists 8193 joints" in err and "8192 bones" in err
+
+
+def test_a_skeleton_with_more_joints_than_a_row_holds_is_refused_before_usdskel(tmp_path, capsys):
+    from pxr import Usd, UsdGeom, UsdSkel, Vt
+
+    source = tmp_path / "rig.usdc"
+    stage = Usd.Stage.CreateNew(str(source))
+    UsdSkel.Root.Define(stage, "/R")
+    UsdSkel.Skeleton.Define(stage, "/R/S").GetJointsAttr().Set(Vt.TokenArray([f"j{i}" for i in range(8193)]))
+    binding = UsdSkel.BindingAPI.Apply(UsdGeom.Mesh.Define(stage, "/R/M").GetPrim())
+    binding.CreateSkeletonRel().SetTargets(["/R/S"])
+    binding.CreateJointIndicesPrimvar(False, 1).Set([0])
+    binding.CreateJointWeightsPrimvar(False, 1).Set([1.0])
+    stage.GetRootLayer().Save()
+    assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{source}: /R/S.joints: layout.size: the skeleton has 8193 joints" in err[0]
