@@ -853,6 +853,9 @@ class _SkelWork:
     skel_prim: object
     joints: tuple
     targets: list = field(default_factory=list)
+    codes: list = field(default_factory=list)
+    """The clip's key time codes (set before the meshes are read)."""
+    anim_query: object = None
 
 
 def _check_options(options: ReadOptions) -> None:
@@ -995,6 +998,7 @@ def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
             start_code = end_code = (float(stage.GetStartTimeCode()) if stage.HasAuthoredTimeCodeRange() else 0.0)
             codes = [start_code]
         sampler = SkeletonSampler(reader, skel_query, skel_prim, start_code, end_code)
+        work.codes, work.anim_query = list(codes), skel_query.GetAnimQuery()
 
         bound = _bind_targets(reader, work, skel_query, start_code)
         if not work.joints:
@@ -1228,7 +1232,8 @@ def _bind_targets(reader: _Reader, work: _SkelWork, skel_query, start_code: floa
         method = str(query.GetSkinningMethod())
         if has_shapes:
             reader.warn(location, "has blend shapes (skel:blendShapes); Virtual Bones cannot hold them, so "
-                        "only its joint skinning is converted")
+                        "only its joint skinning is converted; " + _blend_shape_loss(
+                            reader, prim, query, work, points))
         geom_bind = _matrix(query.GetGeomBindTransform(time))
         if not _finite(geom_bind) or abs(np.linalg.det(geom_bind[:3, :3])) < 1e-12:
             raise reader.error("primvars:skel:geomBindTransform is singular or not finite",
@@ -1342,6 +1347,52 @@ def implicit_surface(reader: _Reader, prim, time) -> Optional[tuple]:
             rings = [(0.0, bottom[0][1])] + bottom[1:] + top[:-1] + [(0.0, top[-1][1])]
         return _revolution(rings, axis)
     return None
+
+
+def _blend_shape_loss(reader: _Reader, prim, query, work: _SkelWork, points: np.ndarray) -> str:
+    """What dropping a mesh's blend shapes loses, in words (spec: usd-conversion.md, Meshes).
+
+    UsdSkel's own ``BlendShapeQuery.ComputeDeformedPoints`` deforms the rest points with the
+    animation's ``blendShapeWeights`` (remapped to the mesh's ``skel:blendShapes`` order, inbetweens
+    included) at every key time code of the clip and every time sample of the weights inside it;
+    the largest distance a point moves, in the mesh's own space before skinning, is the figure.
+    """
+    from pxr import Vt
+
+    UsdSkel, Usd = reader.UsdSkel, reader.Usd
+    rest = "the rest shape used is the points as authored (every blend shape weight 0)"
+    shapes = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(prim))
+    count = shapes.GetNumBlendShapes() if shapes else 0
+    anim = work.anim_query
+    if count == 0:
+        return rest
+    point_indices = shapes.ComputeBlendShapePointIndices()
+    offsets = shapes.ComputeSubShapePointOffsets()
+    mapper = query.GetBlendShapeMapper()
+    source = np.ascontiguousarray(points, dtype=np.float32)
+    worst = (0.0, -1, 0.0)
+    codes = list(work.codes or [0.0])
+    if anim:   # the weights' own keys inside the clip (they blend linearly between keys)
+        low, high = min(codes), max(codes)
+        codes = sorted(set(codes) | {float(c) for c in anim.GetBlendShapeWeightTimeSamples() if low <= c <= high})
+    for code in codes:
+        weights = anim.ComputeBlendShapeWeights(Usd.TimeCode(code)) if anim else None
+        if weights is None or len(weights) == 0:
+            weights = Vt.FloatArray(count, 0.0)
+        elif mapper is not None and not mapper.IsNull() and not mapper.IsIdentity():
+            weights = mapper.Remap(weights)
+        sub_weights, shape_indices, sub_indices = shapes.ComputeSubShapeWeights(weights)
+        moved = Vt.Vec3fArray.FromNumpy(source.copy())
+        if not shapes.ComputeDeformedPoints(sub_weights, shape_indices, sub_indices, point_indices, offsets, moved):
+            continue
+        distance = np.linalg.norm(np.asarray(moved, dtype=np.float64) - source, axis=1)
+        point = int(np.argmax(distance)) if distance.size else -1
+        if point >= 0 and distance[point] > worst[0]:
+            worst = (float(distance[point]), point, float(code))
+    if worst[0] == 0.0:
+        return f"{rest}; their weights stay 0 over the clip, so nothing is lost"
+    return (f"{rest}; over the clip the dropped blend shapes move a point by up to {worst[0]:.4g} scene units "
+            f"(point {worst[1]}, time code {worst[2]:g})")
 
 
 def _joints_source(reader: _Reader, prim):

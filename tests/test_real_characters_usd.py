@@ -333,3 +333,91 @@ def test_zero_scale_skeleton_skipped(tmp_path):
     report = json.loads(result.stdout)
     assert [a["path"] for a in report["animations"]] == ["/Root/Skel"]
     assert [(s["animation"], s["clip"]) for s in report["skippedClips"]] == [("/Spawn/Spawner", "Spawner")]
+
+
+BLEND = """#usda 1.0
+(
+    defaultPrim = "Root"
+    startTimeCode = 0
+    endTimeCode = 12
+    timeCodesPerSecond = 24
+    upAxis = "Y"
+)
+
+def SkelRoot "Root" (
+    prepend apiSchemas = ["SkelBindingAPI"]
+)
+{
+    rel skel:skeleton = </Root/Skel>
+
+    def Skeleton "Skel" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {
+        uniform token[] joints = ["Hips"]
+        uniform matrix4d[] bindTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,1,0,1))]
+        uniform matrix4d[] restTransforms = [((1,0,0,0),(0,1,0,0),(0,0,1,0),(0,1,0,1))]
+        rel skel:animationSource = </Root/Skel/Anim>
+
+        def SkelAnimation "Anim"
+        {
+            uniform token[] joints = ["Hips"]
+            float3[] translations.timeSamples = { 0: [(0,1,0)], 12: [(0,1,2)] }
+            quatf[] rotations = [(1,0,0,0)]
+            half3[] scales = [(1,1,1)]
+            uniform token[] blendShapes = ["Smile", "Frown"]
+            float[] blendShapeWeights.timeSamples = { 0: [0, 0], 6: [1, 0.25], 12: [0.5, 0] }
+        }
+    }
+
+    def Mesh "Face" (
+        prepend apiSchemas = ["SkelBindingAPI"]
+    )
+    {
+        int[] faceVertexCounts = [3]
+        int[] faceVertexIndices = [0, 1, 2]
+        point3f[] points = [(0,1,0), (1,1,0), (0,2,0)]
+        int[] primvars:skel:jointIndices = [0] (
+            interpolation = "constant"
+            elementSize = 1
+        )
+        float[] primvars:skel:jointWeights = [1] (
+            interpolation = "constant"
+            elementSize = 1
+        )
+        uniform token[] skel:blendShapes = ["Frown", "Smile"]
+        rel skel:blendShapeTargets = [</Root/Face/Frown>, </Root/Face/Smile>]
+
+        def BlendShape "Smile"
+        {
+            uniform vector3f[] offsets = [(0, 0, 3)]
+            uniform int[] pointIndices = [1]
+        }
+
+        def BlendShape "Frown"
+        {
+            uniform vector3f[] offsets = [(0, -4, 0)]
+            uniform int[] pointIndices = [2]
+        }
+    }
+}
+"""
+
+
+def test_blend_shape_warning_states_largest_displacement(tmp_path):
+    """By hand: at time code 6 Smile (weight 1) moves point 1 by 3 and Frown (0.25) point 2 by 1;
+    the largest is 3 (the mesh's own blend shape order differs from the animation's, which the
+    mapper resolves). UsdSkel.BakeSkinning, which applies them, differs from the conversion by
+    exactly that at that frame."""
+    source = tmp_path / "face.usda"
+    source.write_text(BLEND)
+    scene = usdskel.read(source)
+    (warning,) = [w for w in scene.warnings if "blend shapes" in w]
+    assert warning.endswith("move a point by up to 3 scene units (point 1, time code 6)"), warning
+    vb = bake(scene.animations[0], BakeOptions(encoding="affineMatrix", texel_format="float32"))
+    clip = vb.clips[0]
+    codes = (clip.start_time + np.arange(clip.row_count) / clip.rows_per_second) * scene.time_codes_per_second
+    reference = baked_by_usdskel(source, tmp_path, codes, {})["/Root/Face"]
+    ours, _ = skin_mesh_at_rows(vb, vb.meshes[0], 0)
+    row = int(np.argmin(np.abs(codes - 6)))
+    np.testing.assert_allclose(np.linalg.norm(reference[row] - ours[row], axis=1), [0, 3, 1], atol=1e-5)
