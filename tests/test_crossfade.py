@@ -6,7 +6,7 @@ Checked against things the decoders do not compute themselves:
 * UsdSkel's own skinning (``SkinningQuery.ComputeSkinnedPoints``) at the two source times, blended
   with the same weight: the crossfade of a converted UsdSkel rig agrees with it within the accuracy
   bound of version 1 at the rows (float32 texels), for the three LBS encodings and for dualQuat
-  on a dual-quaternion rig;
+  on a dual-quaternion rig; and three.js's own skinning of a glTF (the shared Fox, Walk into Run);
 * w = 0 gives the single-clip result bit for bit and w = 1 the fade clip's (the spec's promise
   that a 1.0 crowd is unchanged);
 * the warp kernels (CPU) and ``vbusd.skin(..., fade_clip=, fade_time=, fade_weight=)`` agree with
@@ -210,3 +210,36 @@ def test_crossfade_equals_blend_of_usdskel_poses(tmp_path, encoding):
         assert angle < 0.05, (encoding, angle)
     # and the crossfade is a real blend here: it differs from both poses by much more than the bound
     assert np.linalg.norm(expected[0] - expected[1], axis=-1).max() > 100 * USDSKEL_TOLERANCE
+
+
+def test_gltf_crossfade_equals_blend_of_threejs_poses(shared_assets):
+    """Fox: Walk at one row blended with Run at another (w = 0.4) against three.js's own skinning
+    (GLTFLoader + AnimationMixer + SkinnedMesh, tests/node/skin_pose.mjs) at the two source times,
+    blended; float32 texels, within 1e-6 of the bounding-box diagonal (version 1's bound for
+    glTF rigs at rows, tests/test_real_characters_gltf.py)."""
+    import importlib.util
+
+    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
+    if not path.is_file():
+        pytest.skip("Fox.glb is not among the shared assets")
+    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
+    node_tools = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(node_tools)
+    from vbusd.converters import gltf
+
+    scene = gltf.read(path)
+    vb = bake(scene.animations[0], BakeOptions(encoding="crossMatrix", texel_format="float32"))
+    clips = {clip.name: clip for clip in vb.clips}
+    walk, run = clips["Walk"], clips["Run"]
+    tau_a, tau_b, weight = 7 / walk.rows_per_second, 11 / run.rows_per_second, 0.4
+    poses = []
+    for clip, tau in ((walk, tau_a), (run, tau_b)):
+        result = node_tools.run_json("skin_pose.mjs", path, clip.name, f"{clip.start_time + tau:.17g}",
+                                     packages=("three",))
+        poses.append(np.array(result["poses"][0]["meshes"]["fox"], dtype=np.float64).reshape(-1, 3))
+    expected = (1 - weight) * poses[0] + weight * poses[1]
+    ours = vbusd.skin(vb, "Walk", tau_a, fade_clip="Run", fade_time=tau_b, fade_weight=weight)[0].points
+    diagonal = float(np.linalg.norm(expected.max(axis=0) - expected.min(axis=0)))
+    error = float(np.linalg.norm(ours - expected, axis=-1).max()) / diagonal
+    assert error <= 1e-6, f"crossfade differs from three.js's blended poses by {error:.3g} of the diagonal"
+    assert float(np.linalg.norm(poses[0] - poses[1], axis=-1).max()) / diagonal > 1e-2  # a real blend
