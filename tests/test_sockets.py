@@ -148,3 +148,29 @@ def test_crowd_sockets_are_placement_times_the_crossfaded_joint(usdskel_rig):
     second = np.eye(4)
     second[:3, 3] = (0, 0, -3)
     np.testing.assert_allclose(sockets[1], second @ joint_transforms(vb, 0, [0.2 + t])[0, 2], atol=1e-6)
+
+
+def test_bone_transform_per_crowd_instance_from_the_file(usdskel_rig, tmp_path):
+    """vbusd.bone_transform(..., instance=i): the written crowd's instance i, placement and crossfade."""
+    _, animation, _ = usdskel_rig
+    vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))
+    crowd = Crowd("/Root/Crowd", positions=np.array([[3.0, 0, 0], [0, 0, 5.0]], np.float32),
+                  orientations=np.array([[0, 0, 0, 1], [0, 0, 0, 1]], np.float32), clip=np.zeros(2, np.int32),
+                  time_offset=np.array([0.1, 0.3], np.float32), playback_rate=np.ones(2, np.float32),
+                  fade_clip=np.zeros(2, np.int32), fade_time_offset=np.array([0.0, 0.4], np.float32),
+                  fade_playback_rate=np.ones(2, np.float32), fade_weight=np.array([0.0, 0.5], np.float32))
+    asset = vbusd.VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,), default_prim="Root")
+    path = tmp_path / "crowd.usda"
+    vbusd.write_asset(asset, path)
+    t = 0.05
+    first = vbusd.bone_transform(path, 2, time=t, instance=0)
+    expected = joint_transforms(vb, 0, [0.1 + t])[0, 2]
+    expected[:3, 3] += (3.0, 0, 0)
+    np.testing.assert_allclose(first, expected, atol=1e-6)
+    second = vbusd.bone_transform(path, 2, time=t, instance=1)
+    blend = 0.5 * skinning_matrices(vb, 0, [0.3 + t])[0, 2] + 0.5 * skinning_matrices(vb, 0, [0.4 + t])[0, 2]
+    expected = blend @ vb.bind_transforms[2]
+    expected[:3, 3] += (0, 0, 5.0)
+    np.testing.assert_allclose(second, expected, atol=1e-6)
+    with pytest.raises(OptionsError, match="instance must be an index 0..1"):
+        vbusd.bone_transform(path, 2, time=t, instance=2)

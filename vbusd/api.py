@@ -7,6 +7,7 @@ They are thin: each checks its arguments, then calls the module that does the wo
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 from typing import Optional, Sequence, Union
@@ -172,6 +173,10 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
     return poses
 
 
+_PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
+                 "fade_time_offset", "fade_playback_rate", "fade_weight")
+
+
 def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
     """The index of a bone given by name (as in ``vb:bones``), by its last path element, or by index.
 
@@ -193,7 +198,8 @@ def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
     raise OptionsError(f"animation {vb.path} has no bone {bone!r} (bones: {shown})", file=what)
 
 
-def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animation: int = 0) -> np.ndarray:
+def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animation: int = 0,
+                   instance: Optional[int] = None, crowd: int = 0) -> np.ndarray:
     """A joint's transform in the animation's space at one clip time: where to attach a prop (a socket).
 
     Returns ``J = M B`` (spec "Sockets", format 1.1): the bone's decoded skinning transform ``M`` at
@@ -206,8 +212,12 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         asset: A Virtual Bones asset path, a read asset or one :class:`~vbusd.format.model.VirtualBones`.
         bone: Bone name (full ``vb:bones`` entry, or its last path element when unique) or index.
         clip: Clip name or index.
-        time: Clip-local time in seconds.
+        time: Clip-local time in seconds; with ``instance``, the scene time.
         animation: Which animation of the asset (index).
+        instance: Per instance of a crowd: the index of the instance in crowd ``crowd`` of the
+            asset; ``clip`` is then the instance's own (and its crossfade), ``time`` the scene time,
+            and the result is in the world of the instancer (its placement applied).
+        crowd: Which crowd of the asset (index), with ``instance``.
 
     Returns:
         (4, 4) float64 matrix for column vectors, ``p' = M[:3, :3] @ p + M[:3, 3]``.
@@ -221,8 +231,28 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
         >>> hand[:3, 3]   # the hand's position in animation space
     """
-    from vbusd.decode.reference import joint_transforms
+    from vbusd.decode.reference import crowd_joint_transforms, joint_transforms
 
+    if instance is not None:
+        if not isinstance(asset, VirtualBonesAsset):
+            from vbusd.io.usd import read_asset
+
+            asset = read_asset(asset)
+        if not 0 <= crowd < len(asset.crowds):
+            raise OptionsError(f"crowd must be an index 0..{len(asset.crowds) - 1}, got {crowd!r}",
+                               file="bone_transform")
+        crowd_data = asset.crowds[crowd]
+        if isinstance(instance, bool) or not 0 <= int(instance) < crowd_data.instance_count:
+            raise OptionsError(f"instance must be an index 0..{crowd_data.instance_count - 1}, got {instance!r}",
+                               file="bone_transform")
+        vb = asset.animations[int(asset.crowd_animation[crowd])]
+        single = dataclasses.replace(crowd_data, **{name: np.asarray(getattr(crowd_data, name))[[int(instance)]]
+                                                   for name in _PER_INSTANCE if getattr(crowd_data, name) is not None})
+        if crowd_data.fade_samples:
+            single = dataclasses.replace(single, fade_samples={
+                key: (times, np.asarray(values)[:, [int(instance)]])
+                for key, (times, values) in crowd_data.fade_samples.items()})
+        return crowd_joint_transforms(vb, single, bone_index(vb, bone), _finite_seconds(time, "time"))[0]
     vb = _animation(asset, animation, "bone_transform")
     index = bone_index(vb, bone)
     clip_number = clip_index(vb, clip, what="bone_transform")
