@@ -216,7 +216,8 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         animation: Which animation of the asset (index).
         instance: Per instance of a crowd: the index of the instance in crowd ``crowd`` of the
             asset; ``clip`` is then the instance's own (and its crossfade), ``time`` the scene time,
-            and the result is in the world of the instancer (its placement applied).
+            and the result is in the instancer's local space (the instance's placement applied;
+            the instancer's own transform, as for its points, is not).
         crowd: Which crowd of the asset (index), with ``instance``.
 
     Returns:
