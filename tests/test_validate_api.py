@@ -286,3 +286,29 @@ def test_a_sidecar_alone_does_not_make_up_for_missing_embedded_metadata(tmp_path
     report = validate(asset)
     assert ("metadata.missing", "asset.Animation.exr") in _codes(report)
     assert report.exit_status == 1
+
+
+@pytest.mark.parametrize("primvar, values, type_name, code", [
+    ("primvars:vb:fadeClip", [0, 5, 0], "int[]", "instancer.clip.range"),
+    ("primvars:vb:fadeWeight", [0.0, float("nan"), 1.0], "float[]", "instancer.nonFinite"),
+])
+def test_crossfade_primvars_are_checked_like_the_first_clips(tmp_path, primvar, values, type_name, code):
+    # Format 1.1 crossfade primvars (spec "Crossfade"): the second clip's index in range, its
+    # offset, rate and weight finite, as for vb:clip, vb:timeOffset and vb:playbackRate.
+    import shutil
+
+    from pxr import Sdf, Usd, UsdGeom
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(Path(__file__).parent / "fixtures" / "validate" / "valid" / "crossMatrix_float16", folder)
+    stage = Usd.Stage.Open(str(folder / "asset.usda"))
+    instancers = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    assert instancers, "the valid fixture has a crowd"
+    count = len(UsdGeom.PointInstancer(instancers[0]).GetPositionsAttr().Get())
+    values = (values * count)[:count]
+    UsdGeom.PrimvarsAPI(instancers[0]).CreatePrimvar(
+        primvar.split(":", 1)[1], Sdf.ValueTypeNames.Find(type_name), UsdGeom.Tokens.vertex).Set(values)
+    stage.GetRootLayer().Save()
+    report = validate(folder / "asset.usda")
+    found = [(f.code, f.location.property) for f in report.findings if f.code.startswith("instancer.")]
+    assert found == [(code, primvar)]

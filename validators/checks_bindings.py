@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vbusd.format import names as vb_names
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
 from vbusd.format.diagnostics import UsdSite, finding
@@ -26,10 +27,14 @@ shrink of a skinned vertex toward the origin)."""
 NORMAL_LENGTH_TOLERANCE = 1e-3
 """| |n| - 1 | allowed for rest normals (float32 normals written by DCCs are within 1e-6)."""
 
-INDICES = "primvars:vb:boneIndices"
-WEIGHTS = "primvars:vb:boneWeights"
-INSTANCE_PRIMVARS = {"primvars:vb:clip": "int[]", "primvars:vb:timeOffset": "float[]",
-                     "primvars:vb:playbackRate": "float[]"}
+INDICES = vb_names.BONE_INDICES.attribute
+WEIGHTS = vb_names.BONE_WEIGHTS.attribute
+INSTANCE_PRIMVARS = {p.attribute: p.type for p in vb_names.INSTANCE_PRIMVARS + vb_names.FADE_PRIMVARS}
+"""Every instancing primvar, crossfade ones (format 1.1) included, with its Sdf type."""
+_CLIP_PRIMVARS = (vb_names.INSTANCE_CLIP.attribute, vb_names.FADE_CLIP.attribute)
+_REAL_PRIMVARS = tuple(p.attribute for p in (vb_names.INSTANCE_TIME_OFFSET, vb_names.INSTANCE_PLAYBACK_RATE,
+                                             vb_names.FADE_TIME_OFFSET, vb_names.FADE_PLAYBACK_RATE,
+                                             vb_names.FADE_WEIGHT))
 
 
 def applied_schemas(prim) -> set:
@@ -57,8 +62,8 @@ def has_instancing(prim) -> bool:
 def _animation_target(prim, code: str, api: str):
     """The single VirtualBonesAnimation prim targeted by ``vb:animation`` (or None, findings)."""
     path = str(prim.GetPath())
-    site = UsdSite(path, "vb:animation")
-    relationship = prim.GetRelationship("vb:animation")
+    site = UsdSite(path, vb_names.ANIMATION_REL)
+    relationship = prim.GetRelationship(vb_names.ANIMATION_REL)
     targets = relationship.GetTargets() if relationship.IsValid() else []
     if len(targets) != 1:
         return None, [finding(code, f"vb:animation has {len(targets)} targets; {api} needs exactly one "
@@ -136,7 +141,7 @@ def check_binding_prim(prim):
                            UsdSite(path)))
     target, problems = _animation_target(prim, "binding.animation", BINDING_API)
     out += problems
-    bone_count = _int_value(target, "vb:boneCount") if target is not None else None
+    bone_count = _int_value(target, vb_names.BY_KEY["boneCount"].name) if target is not None else None
 
     points_attr = UsdGeom.Mesh(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else prim.GetAttribute("points")
     points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() else None
@@ -308,8 +313,8 @@ def check_instancer_prim(prim):
     out += problems
     clip_count = None
     if target is not None:
-        names = target.GetAttribute("vb:clipNames")
-        value = names.Get() if names.IsValid() else None
+        clip_names = target.GetAttribute(vb_names.CLIP_BY_KEY["name"].name)
+        value = clip_names.Get() if clip_names.IsValid() else None
         clip_count = None if value is None else len(value)
     # One instance per position (spec "Instancing": vertex primvars hold as many values as
     # positions); without positions the instance count is unknown.
@@ -346,15 +351,17 @@ def check_instancer_prim(prim):
                                site))
             continue
         arrays[name] = values
-    clips = arrays.get("primvars:vb:clip")
-    if clips is not None and clip_count is not None:
+    for name in _CLIP_PRIMVARS:
+        clips = arrays.get(name)
+        if clips is None or clip_count is None:
+            continue
         bad = (clips < 0) | (clips >= clip_count)
         if bad.any():
             first = int(np.argmax(bad))
             out.append(finding("instancer.clip.range", f"{int(bad.sum())} instance(s) play a clip outside "
                                f"0..{clip_count - 1}; the first is instance {first} with clip {int(clips[first])}",
-                               UsdSite(path, "primvars:vb:clip")))
-    for name in ("primvars:vb:timeOffset", "primvars:vb:playbackRate"):
+                               UsdSite(path, name)))
+    for name in _REAL_PRIMVARS:
         values = arrays.get(name)
         if values is None:
             continue

@@ -38,7 +38,7 @@ from __future__ import annotations
 import os
 import threading
 
-from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
+from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API, TEXTURE
 from vbusd.format.diagnostics import UsdSite
 
 __all__ = ["KEYWORD", "ANIMATION_VALIDATOR", "BINDING_VALIDATOR", "INSTANCING_VALIDATOR",
@@ -71,7 +71,7 @@ def _to_errors(prim, findings):
                 path = path.AppendProperty(location.property)
             message = item.message
         else:
-            path = prim.GetPath().AppendProperty("vb:texture") if prim.GetTypeName() == ANIMATION_TYPE \
+            path = prim.GetPath().AppendProperty(TEXTURE) if prim.GetTypeName() == ANIMATION_TYPE \
                 else prim.GetPath()
             message = f"{location}: {item.message}"
         site = UsdValidation.ValidationErrorSite(stage, path)

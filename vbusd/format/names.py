@@ -129,10 +129,11 @@ FADE_WEIGHT = Primvar("vb:fadeWeight", "float[]")
 FADE_PRIMVARS = (FADE_CLIP, FADE_TIME_OFFSET, FADE_PLAYBACK_RATE, FADE_WEIGHT)
 """Format 1.1 crossfade primvars of VirtualBonesInstancingAPI (spec "Crossfade"); defaults 0, 0, 1, 0."""
 BIND_TRANSFORMS = "vb:bindTransforms"
+"""Format 1.1: the joints' bind transforms (spec "Sockets")."""
 CLIP_ROOT_MOTION = "vb:clipRootMotion"
 """Format 1.1: per clip, the root track of a clip baked in place (spec "Root motion")."""
 ROOT_MOTION_UP_AXIS = "vb:rootMotionUpAxis"
-"""Format 1.1: the joints' bind transforms (spec "Sockets")."""
+"""Format 1.1: the up axis the root track's yaw turns about (spec "Root motion")."""
 
 
 def attribute_of(key) -> Optional[str]:
