@@ -50,6 +50,8 @@ The JSON form (--format json) is one object:
                    "duration"}]}, ...]}
   A texture's animation also has "container" (exr | png),
   "compression" and "warnings" (notes that did not stop reading).
+  A USD asset also has "upAxis" (Y | Z) and "metersPerUnit": the
+  stage's scene units (text: "scene: Z up, 1 unit = 0.01 m").
 
 When there is exactly one animation its keys are repeated at the top level, so
 `vbusd info anim.exr --format json | jq .width` works; with several, use
