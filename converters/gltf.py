@@ -9,7 +9,12 @@ In short:
   included). The skinned mesh node's own transform is ignored, as glTF 2.0 (3.7.3.3) requires;
 * one clip per glTF animation that moves a joint of the skin or an ancestor of one;
 * one :class:`vbusd.format.model.SkinnedMesh` per primitive of every node that uses the skin, with the
-  rest POSITION/NORMAL as stored and every JOINTS_n/WEIGHTS_n set merged;
+  rest POSITION/NORMAL as stored and every JOINTS_n/WEIGHTS_n set merged; weights that do not sum
+  to one renormalized as engines do (``ReadOptions.strict_weights`` refuses them instead);
+* mesh nodes without a skin as rigid attachments: one influence on the joint above them, or on an
+  extra bone (an animated non-joint node, or the root of a prop's tree), the node offset baked into
+  the rest points (spec "Rigid attachments"); morph targets dropped with the largest displacement
+  they cause stated in a warning;
 * Y up, metres; 24 time codes per second; prim names made valid and unique by the rule of
   :func:`make_identifier` and :class:`NameAllocator`.
 

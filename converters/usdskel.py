@@ -12,7 +12,10 @@ The mapping is normative in spec/usd-conversion.md; in short:
 * rest points are the mesh points with ``primvars:skel:geomBindTransform`` applied (bind space);
   the skinned mesh's own transform is ignored, as UsdSkel ignores it;
 * mesh-local ``skel:joints`` are remapped to skeleton order; constant (rigid) influences are
-  repeated for every point; weights are normalized (UsdSkel does not: a warning says so);
+  repeated for every point, also for gprims that inherit them from an Xform above; rigidly bound
+  Cube/Sphere/Cylinder/Cone/Capsule prims become tessellated meshes; meshes under the SkelRoot that
+  no binding reaches follow their own transform as extra bones; weights are normalized (UsdSkel
+  does not: a warning says so);
 * one clip per skeleton, from the first to the last time sample of the animation and of the
   skeleton's transforms (or ``ReadOptions.time_range``), sampled as UsdSkel samples it (USD's own
   interpolation between samples): all frames at once by :class:`AllFramesSkinning` (UsdSkel's
