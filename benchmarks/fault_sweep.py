@@ -512,8 +512,9 @@ def tmpfs_child(spec: dict) -> list:
             shutil.copytree(old_dir, bench.case_dir, symlinks=True)
             if extra == "read-only":
                 subprocess.run(["mount", "-o", "remount,ro", str(mount)], check=True)
+            before = set(os.listdir(bench.case_dir)) - {writer.target} - {p.name for p in named_files(bench.target)}
             status, stderr = run_process(writer.new(sources, bench.target) + ["--force"], {})
-            hidden, visible = leftovers(bench.target, set())
+            hidden, visible = leftovers(bench.target, before)
             case = Case(fault="read-only" if extra == "read-only" else f"tmpfs:{size}", status=status,
                         lines=stderr.strip().splitlines(), state=state_of(bench.target, bench.old, bench.new),
                         problems=validate(bench.target, writer.kind), hidden=hidden, visible=visible)

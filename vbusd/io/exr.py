@@ -433,4 +433,13 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
         with OpenEXR.File(header, channels) as exr:
             exr.write(str(path))
     except RuntimeError as error:
-        raise OSError(f"cannot write {path}: {error}") from None
+        # OpenEXR says why in words ("... No space left on device."): keep the errno, so that the
+        # caller's one line reads like any other failed write (spec 12.4 #writes).
+        import errno as errnos
+
+        message = " ".join(str(error).split())
+        for code in (errnos.ENOSPC, errnos.EDQUOT, errnos.EROFS, errnos.EACCES, errnos.EPERM,
+                     errnos.ENAMETOOLONG, errnos.EISDIR, errnos.ENOTDIR, errnos.EFBIG, errnos.EIO):
+            if os.strerror(code) in message:
+                raise OSError(code, os.strerror(code), str(path)) from None
+        raise OSError(errnos.EIO, f"OpenEXR could not write the texture: {message}", str(path)) from None
