@@ -370,4 +370,13 @@ def check_instancer_prim(prim):
             first = int(np.argmax(bad))
             out.append(finding("instancer.nonFinite", f"{int(bad.sum())} value(s) are NaN or infinite; the first "
                                f"is instance {first} with {float(values[first])}", UsdSite(path, name)))
+    weights = arrays.get(vb_names.FADE_WEIGHT.attribute)
+    if weights is not None:
+        # Spec "Instancing" (format 1.1 crossfade): weights lie in [0, 1]; decoders clamp the others.
+        outside = np.isfinite(weights) & ((weights < 0) | (weights > 1))
+        if outside.any():
+            first = int(np.argmax(outside))
+            out.append(finding("instancer.fadeWeight.range", f"{int(outside.sum())} fade weight(s) outside [0, 1]; "
+                               f"the first is instance {first} with {float(weights[first]):g} (decoders clamp it)",
+                               UsdSite(path, vb_names.FADE_WEIGHT.attribute)))
     return out

@@ -748,7 +748,12 @@ class UsdReader:
                 samples[field] = (np.asarray(codes, dtype=np.float64) / tcps, values)
                 out[field] = values[0]
             else:
-                out[field] = read(Usd.TimeCode.Default())
+                values = out[field] = read(Usd.TimeCode.Default())
+            if field == "fade_weight":
+                outside = (np.asarray(values) < 0) | (np.asarray(values) > 1)
+                if outside.any():
+                    self.report("instancer.fadeWeight.range", f"{int(outside.sum())} fade weight(s) outside [0, 1] "
+                                f"(the first: {float(np.asarray(values)[outside][0]):g}); decoders clamp them", site)
         if samples:
             out["fade_samples"] = samples
         return out
