@@ -1267,7 +1267,14 @@ class _Converter:
                 m = gltf.nodes[node].mesh
                 place = self.attachment_matrix(attachment, ibms[bone])
                 for p in range(len(gltf.meshes[m].primitives)):
-                    data = self.read_primitive(m, p, len(joints), s, rigid=True)
+                    try:
+                        data = self.read_primitive(m, p, len(joints), s, rigid=True)
+                    except UnsupportedError as error:
+                        if error.code != "gltf.mesh.mode":
+                            raise
+                        # Points and lines attached to a bone: Virtual Bones binds triangles only.
+                        self.warn(f"{self.node_label(node)} primitive {p}: {error.message}; left out")
+                        continue
                     data["points"] = data["points"] @ place[:3, :3].T + place[:3, 3]
                     if data["normals"] is not None:
                         normals = data["normals"] @ np.linalg.inv(place[:3, :3])

@@ -312,6 +312,17 @@ def test_rigid_parts_without_skinned_mesh_match_three(tmp_path, with_skin):
     assert max(worst.values()) <= TOLERANCE, worst
 
 
+def test_attached_lines_are_left_out_with_a_warning(tmp_path):
+    b = rigid_robot(with_skin=True)
+    strand = b.mesh("StrandMesh", [[0, 0, 0], [0, 0.5, 0]], [[0, 1, 0]])
+    b.doc["meshes"][strand]["primitives"][0]["mode"] = 1            # LINES
+    b.node("Antenna", 1, mesh=strand)                               # under the joint Neck
+    scene = gltf.read(b.save(tmp_path / "robot.gltf"))
+    assert [m.path for m in scene.animations[0].meshes] == ["/Scene/Torso", "/Scene/HeadPart", "/Scene/Pedestal"]
+    assert any(w.startswith("node 5 'Antenna' primitive 0: primitive mode LINES") and w.endswith("; left out")
+               for w in scene.warnings), scene.warnings
+
+
 def test_weight_warnings_state_count_and_deviation(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     scene = gltf.read(path)
