@@ -1203,6 +1203,8 @@ class _Converter:
         if not converted:
             why = ("the file has no skins and no animation moves a mesh" if not gltf.skins
                    else "no skin is used by a mesh node and no animation moves a mesh")
+            if any(animations[a].weight_channels for a in chosen_anims):
+                why += " (its animations move only morph target weights, which Virtual Bones cannot hold)"
             raise UnsupportedError(f"{why}; Virtual Bones bakes skinned or animated meshes",
                                    file=self.file, location="/skins", code="gltf.noSkin")
 

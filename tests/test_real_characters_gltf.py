@@ -323,6 +323,24 @@ def test_attached_lines_are_left_out_with_a_warning(tmp_path):
                for w in scene.warnings), scene.warnings
 
 
+def test_morph_only_animation_is_refused_by_name(tmp_path, capsys):
+    """Three.js's Horse or Parrot: one mesh, no skin, only morph weights animated: nothing a bone can
+    hold; one line that says why, nothing written."""
+    from vbusd import cli
+
+    b = GltfBuilder()
+    points, faces = box((0, 0, 0), (1, 1, 1))
+    mesh = b.mesh("HorseMesh", points, faces, targets=(np.ones((8, 3)),), weights_default=[0.0])
+    horse = b.node("Horse", mesh=mesh)
+    b.animation("Gallop", [(horse, "weights", np.array([0.0, 1.0]), [0.0, 1.0], "LINEAR")])
+    path = b.save(tmp_path / "horse.gltf")
+    status = cli.main(["convert", str(path), "-o", str(tmp_path / "out" / "horse.usda")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1, err
+    assert "gltf.noSkin" in err[0] and "only morph target weights" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
 def test_weight_warnings_state_count_and_deviation(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     scene = gltf.read(path)
