@@ -489,15 +489,6 @@ def _raw_weights(scene: SourceScene, index: int, mesh_index: int):
     return None
 
 
-def _stored_weight_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray,
-                       weights: np.ndarray) -> np.ndarray:
-    """``sum_i w_i M_i p`` with the weights as stored (not renormalized), float64, (n, V, 3)."""
-    chosen = matrices[:, np.asarray(indices)]                    # (n, V, K, 4, 4)
-    moved = np.einsum("nvkij,vj->nvki", chosen[..., :3, :3], np.asarray(points, np.float64))
-    moved += chosen[..., :3, 3]
-    return np.einsum("nvki,vk->nvi", moved, np.asarray(weights, np.float64))
-
-
 def _chunks(total: int, size: int):
     for start in range(0, total, size):
         yield slice(start, min(total, start + size))
@@ -576,10 +567,12 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                     kept = _source_lbs(exact, source_mesh.points, bound.bone_indices, bound.bone_weights)
                     dropped = float(np.linalg.norm(kept - full, axis=-1).max(initial=0.0))
                 if raw is not None:
-                    stored = _stored_weight_lbs(exact, source_mesh.points, raw[1], raw[0])
-                    renormalized = _source_lbs(exact, source_mesh.points, raw[1], raw[0])
-                    moved = float(np.linalg.norm(stored - renormalized, axis=-1).max(initial=0.0))
-                    report.renormalization_error = max(report.renormalization_error or 0.0, moved)
+                    # With the weights as stored, summing to s, LBS gives s times the renormalized
+                    # point: renormalizing moves each vertex by |1 - s| times its distance from the origin.
+                    sums = np.asarray(raw[0], dtype=np.float64).sum(axis=1)
+                    moved = np.abs(1.0 - sums)[None, :] * np.linalg.norm(full, axis=-1)
+                    report.renormalization_error = max(report.renormalization_error or 0.0,
+                                                       float(moved.max(initial=0.0)))
                 report.max_error = max(report.max_error or 0.0, error)
                 report.influence_error = max(report.influence_error or 0.0, dropped)
                 lows[mesh_index] = np.minimum(lows[mesh_index], ref_points.reshape(-1, 3).min(axis=0))
