@@ -118,3 +118,20 @@ def test_the_installed_command_in_a_subprocess(tmp_path):
     result = subprocess.run([sys.executable, "-m", "vbusd", "validate", str(VALID)],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
+
+
+def test_text_report_lines_fit_80_columns_without_cutting_words(capsys):
+    # Every message line wraps at 80 columns between words; joined again it is the JSON message.
+    asset = FIXTURES / "texture.padding.nonZero" / "asset.usda"
+    assert main(["validate", str(asset)]) == 1
+    text = capsys.readouterr().out.splitlines()
+    assert all(len(line) <= 80 for line in text[1:]), [line for line in text[1:] if len(line) > 80]
+    assert main(["validate", str(asset), "--format", "json"]) == 1
+    message = json.loads(capsys.readouterr().out)["findings"][0]["message"]
+    start = next(i for i, line in enumerate(text) if line.startswith("  texture.padding.nonZero")) + 1
+    wrapped = []
+    for line in text[start:]:
+        if not line.startswith("      "):
+            break
+        wrapped.append(line.strip())
+    assert len(wrapped) > 1 and " ".join(wrapped) == message

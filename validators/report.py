@@ -7,6 +7,8 @@ ones cut by ``--max-issues``), and a ``truncated`` flag.
 
 from __future__ import annotations
 
+import textwrap
+
 import json
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -19,6 +21,10 @@ __all__ = ["REPORT_FORMAT", "REPORT_VERSION", "Report", "build_report"]
 
 REPORT_FORMAT = "vbusd.validationReport"
 REPORT_VERSION = 1
+
+
+TEXT_WIDTH = 80
+"""Columns of the text report: messages wrap at word boundaries to fit."""
 
 
 @dataclass
@@ -91,8 +97,12 @@ class Report:
             lines.append(f"{severity.value}s ({self.counts.get(severity.value, 0)}):"
                          if severity is not Severity.INFO else f"info ({self.counts.get('info', 0)}):")
             for item in group:
+                # Code and location stay whole on their line (they are what CI greps for); the
+                # message wraps at 80 columns between words, never inside a path or a number.
                 lines.append(f"  {item.code}  {item.location}")
-                lines.append(f"      {item.message}")
+                lines.extend(textwrap.wrap(item.message, TEXT_WIDTH, initial_indent=" " * 6,
+                                           subsequent_indent=" " * 6, break_long_words=False,
+                                           break_on_hyphens=False) or [" " * 6])
         lines.append("")
         summary = ", ".join(f"{self.counts.get(s.value, 0)} {s.value}{'' if s is Severity.INFO else '(s)'}"
                             for s in Severity)
