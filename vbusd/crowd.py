@@ -449,7 +449,8 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
         with tempfile.TemporaryDirectory() as scratch:
             temp = Path(scratch) / ("crowd" + output.suffix)
             try:
-                exported = stage.GetRootLayer().Export(str(temp), args={"format": "usdc"} if output.suffix.lower() == ".usd" else {})
+                export_args = {"format": "usdc"} if output.suffix.lower() == ".usd" else {}
+                exported = stage.GetRootLayer().Export(str(temp), args=export_args)
             except Exception as error:  # Tf.ErrorException: the scratch folder is full or unwritable
                 raise VbusdError(f"USD could not write the crowd layer: {' '.join(str(error).split())[:200]}",
                                  file=str(output), code="write.failed") from None
