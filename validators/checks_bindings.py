@@ -370,6 +370,17 @@ def check_instancer_prim(prim):
             first = int(np.argmax(bad))
             out.append(finding("instancer.nonFinite", f"{int(bad.sum())} value(s) are NaN or infinite; the first "
                                f"is instance {first} with {float(values[first])}", UsdSite(path, name)))
+    fading = [p.attribute for p in vb_names.FADE_PRIMVARS
+              if prim.GetAttribute(p.attribute).IsValid() and prim.GetAttribute(p.attribute).HasAuthoredValue()]
+    if fading and target is not None:
+        # Spec "Instancing": a crossfading instancer binds a format 1.1 animation, so that a 1.0
+        # reader refuses it instead of silently playing the first clip alone.
+        minor = target.GetAttribute(vb_names.BY_KEY["formatMinorVersion"].name)
+        value = minor.Get() if minor.IsValid() and minor.HasAuthoredValue() else 0
+        if not isinstance(value, int) or value < 1:
+            out.append(finding("instancer.fade.version", f"{', '.join(fading)} (format 1.1 crossfade) on an "
+                               f"instancer whose animation {target.GetPath()} is format 1.{value or 0}; set "
+                               f"{vb_names.BY_KEY['formatMinorVersion'].name} = 1 there", UsdSite(path, fading[0])))
     weights = arrays.get(vb_names.FADE_WEIGHT.attribute)
     if weights is not None:
         # Spec "Instancing" (format 1.1 crossfade): weights lie in [0, 1]; decoders clamp the others.

@@ -214,6 +214,8 @@ _FINDINGS = (
          f"{_VB}#instancing", "usd"),
     Code("instancer.nonFinite", E, "An instance's time offset or playback rate is NaN or infinite.",
          f"{_VB}#instancing", "usd"),
+    Code("instancer.fade.version", E, "An instancer authors crossfade primvars (primvars:vb:fade*, format "
+         "1.1) but its animation is format 1.0 (vb:formatMinorVersion absent or 0).", f"{_VB}#instancing", "usd"),
     Code("instancer.fadeWeight.range", W, "An instance's fade weight (primvars:vb:fadeWeight, format 1.1 "
          "crossfade) is outside [0, 1]; decoders clamp it.", f"{_VB}#instancing", "usd"),
 )
