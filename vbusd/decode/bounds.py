@@ -8,8 +8,10 @@ interpolate the stored channel values and decode the blend (section 6), which fo
 linear blend of the two rows' points: a point can leave the box of the rows.
 
 The bounds are therefore computed from what a decoder computes, the numpy reference decoder on
-the stored texels: every vertex at every row and at :data:`SUBSTEPS` - 1 times between
-consecutive rows (a looping clip's wrap interval included). The path of a point between two
+the stored texels: every vertex at every row and at ``SUBSTEPS[encoding] - 1`` times between
+consecutive rows (a looping clip's wrap interval included): none for affineMatrix, whose points
+move linearly between rows, the midpoint for crossMatrix (quadratic in the blend factor: ``cross``
+of two linear axes), three for the quaternion encodings (normalized quaternions). The path of a point between two
 samples is smooth; it deviates from the chord between them by at most ``h^2 / 8 * max |p''|`` for
 the sample spacing ``h``, and ``p''`` is estimated from the samples' second differences, so each
 axis is widened by :data:`CURVATURE_MARGIN` times the largest second difference (twice the
@@ -24,8 +26,8 @@ from vbusd.format.model import VirtualBones
 
 __all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
 
-SUBSTEPS = 4
-"""Sample intervals per row interval (1 = rows only)."""
+SUBSTEPS = {"affineMatrix": 1, "crossMatrix": 2, "quatTranslation": 4, "dualQuat": 4}
+"""Sample intervals per row interval, per encoding (1 = rows only)."""
 
 CURVATURE_MARGIN = 0.25
 """Widening per axis as a multiple of the largest second difference of any point's samples."""
@@ -43,12 +45,12 @@ def _sample_times(clip, substeps: int) -> np.ndarray:
     return steps / clip.rows_per_second
 
 
-def clip_extents(vb: VirtualBones, *, substeps: int = SUBSTEPS, chunk: int = 4_000_000) -> np.ndarray:
+def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> np.ndarray:
     """``(clips, 2, 3)`` float32 boxes (min, max) that contain every decoded vertex of every clip.
 
     Args:
         vb: The baked animation with its bound meshes (texels as stored).
-        substeps: Sample intervals per row interval.
+        substeps: Sample intervals per row interval; None: :data:`SUBSTEPS` of the encoding.
         chunk: Largest number of (time, vertex) pairs skinned at once (bounds memory).
 
     Returns:
@@ -57,6 +59,7 @@ def clip_extents(vb: VirtualBones, *, substeps: int = SUBSTEPS, chunk: int = 4_0
     from vbusd.decode.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
 
     values = channel_values(vb)
+    substeps = SUBSTEPS[vb.layout.encoding.value] if substeps is None else int(substeps)
     boxes = np.zeros((len(vb.clips), 2, 3))
     for index, clip in enumerate(vb.clips):
         times = _sample_times(clip, substeps)
