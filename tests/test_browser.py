@@ -342,6 +342,48 @@ def test_unorm16_needs_norm16_extension(browser, tmp_path):
             page.close()
 
 
+def test_unorm16_dequantization_in_the_runtime(browser, tmp_path):
+    """The runtime's unorm16 path (the module's VB_UNORM16 branch, vb_rangeMin/vb_rangeMax from
+    the layout's unormRanges) where EXT_texture_norm16 is missing: the stored 16-bit texels are
+    handed to the shader as the floats a normalized fetch returns (u / 65535, a float32 texture),
+    and the GPU's vertices match the numpy decoder's for the unorm16 asset."""
+    path = _convert(SAMPLE / "stadium_crowd.usda", tmp_path / "unorm.usda", "quatTranslation", "unorm16")
+    asset = vbusd.read_asset(path)
+    script = """async ([t]) => {
+        const THREE = await import(location.origin + '/three/three.module.js');
+        const V = await import(location.origin + '/vbusd-three/index.js');
+        const { crowds, animations } = V.buildObjects(await V.loadPlainScene('scene/scene.json'), {});
+        const animation = animations[0];
+        const { width, height, data } = animation.texture.image;
+        const texture = new THREE.DataTexture(Float32Array.from(data, (u) => u / 65535), width, height,
+                                              THREE.RGBAFormat, THREE.FloatType);
+        texture.minFilter = texture.magFilter = THREE.NearestFilter;
+        texture.generateMipmaps = false;
+        texture.needsUpdate = true;
+        animation.texture = texture;
+        animation.uniforms.vb_texture.value = texture;
+        animation.checkSupport = () => {};  // the float texture needs no extension
+        const renderer = new THREE.WebGLRenderer({ canvas: document.createElement('canvas') });
+        const result = V.probeCrowd(renderer, crowds[0], 0, t);
+        return { positions: Array.from(result.positions), normals: Array.from(result.normals),
+                 ranges: !!animation.uniforms.vb_rangeMin };
+    }"""
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            for t in (0.0, 1.5, 7.77):
+                result = page.page.evaluate(script, [t])
+                assert result["ranges"]
+                expected_positions, expected_normals = reference_instance(asset, 0, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                diagonal = float(np.linalg.norm(np.ptp(expected_positions, axis=0)))
+                assert np.abs(positions - expected_positions).max() / diagonal <= POSITION_TOLERANCE
+                normals = np.asarray(result["normals"]).reshape(-1, 3)
+                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+        finally:
+            page.close()
+
+
 def _package_vertices(asset, positions: np.ndarray) -> np.ndarray:
     """Points in the runtime package's vertex order: with faceVarying normals each corner of a face
     of 3 or more vertices is its own vertex (spec/runtime-package.md), else the asset's points."""
