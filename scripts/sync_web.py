@@ -66,6 +66,14 @@ def stale(files: dict[Path, bytes]) -> list[Path]:
 
 
 def main(argv=None) -> int:
+    """Write the stale files (or, with ``--check``, list them and return 1 if any).
+
+    Args:
+        argv: Command-line arguments (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status.
+    """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="list stale files, exit 1 if any; write nothing")
     args = parser.parse_args(argv)
@@ -79,11 +87,12 @@ def main(argv=None) -> int:
         for path in outdated:
             print(f"stale: {path.relative_to(REPO)}")
         return 1 if outdated else 0
+    from vbusd.io.files import atomic_write
+
     for path in outdated:
         path.parent.mkdir(parents=True, exist_ok=True)
-        temporary = path.with_name(path.name + ".tmp")
-        temporary.write_bytes(files[path])
-        temporary.replace(path)
+        with atomic_write(path) as handle:
+            handle.write(files[path])
         print(f"wrote {path.relative_to(REPO)}")
     return 0
 
