@@ -193,12 +193,10 @@ def test_probe_per_instance_clip_offset_rate(browser, bar_crowd):
         assert normal_error <= NORMAL_TOLERANCE
 
 
-def test_probe_crossfade_from_the_plain_files(browser, bar_crowd):
-    """A crossfading crowd (format 1.1 fade primvars) through `vbusd view`'s plain files: each
-    instance blended with its own fade clip, offset, rate and weight, as the numpy decoder does.
-    The crowd is made in memory and handed to the server as the plain files build_scene makes."""
-    from vbusd.web.scene import build_scene, scene_json
-
+def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path):
+    """A crossfading crowd (format 1.1 fade primvars, written and read back) through `vbusd view`'s
+    plain files: each instance blended with its own fade clip, offset, rate and weight, as the
+    numpy decoder does."""
     asset = vbusd.read_asset(bar_crowd)
     crowd = asset.crowds[0]
     count, clips = crowd.instance_count, len(asset.animations[0].clips)
@@ -206,11 +204,12 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd):
                                 fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
                                 fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
                                 fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
-    asset = dataclasses.replace(asset, crowds=(faded,))
-    assert faded.crossfades
-    scene, data = build_scene(asset)
-    with ViewerServer(bar_crowd) as server:
-        server.generated = {"/scene/scene.json": scene_json(scene), "/scene/scene.bin": data}
+    path = tmp_path / "faded" / "faded.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    asset = vbusd.read_asset(path)
+    assert asset.crowds[0].crossfades
+    with ViewerServer(path) as server:
         page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
         try:
             assert page.error == "", page.error
