@@ -964,7 +964,7 @@ class _Converter:
             if np.any(bad):
                 v, c = (int(x[0]) for x in np.nonzero(bad))
                 raise self.fail(f"vertex {v} component {c}: joint {joints[v, c]} is out of range "
-                                f"(skin {skin} has {joint_count} joints)", jp, "gltf.skin.joint_index")
+                                f"(skin {skin} has {joint_count} joints)", jp, "gltf.skin.jointIndex")
             if np.any(joints >= joint_count):
                 # Out-of-range joints with zero weight cannot move anything; index 0 is harmless.
                 self.warn(f"{jp}: joints out of range with zero weight set to 0")
@@ -982,7 +982,7 @@ class _Converter:
         if np.any(dup):
             v = int(np.nonzero(dup)[0][0])
             raise self.fail(f"vertex {v} lists joint {int(ordered[v][1:][ordered[v][1:] == ordered[v][:-1]][0])} "
-                            "twice with non-zero weight", f"{aw}/JOINTS_0", "gltf.skin.joint_index")
+                            "twice with non-zero weight", f"{aw}/JOINTS_0", "gltf.skin.jointIndex")
         if not rigid:
             weights, joints = self.normalize_weights(weights, joints, m, p, aw)
         # Topology.

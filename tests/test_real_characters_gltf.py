@@ -500,7 +500,7 @@ def _set_joint(b: GltfBuilder, vertex: int, component: int, value: int) -> None:
 @pytest.mark.parametrize("case, code, words", [
     ("negative", "gltf.skin.weights", "vertex 3 component 1: weight -0.25 is negative"),
     ("nan", "gltf.accessor.nonFinite", "NaN"),
-    ("joint", "gltf.skin.joint_index", "vertex 4 component 0: joint 7 is out of range (skin 0 has 3 joints)"),
+    ("joint", "gltf.skin.jointIndex", "vertex 4 component 0: joint 7 is out of range (skin 0 has 3 joints)"),
     ("clips", "gltf.option", "no animation named 'Run' (known: 'Walk')"),
 ])
 def test_bad_input_one_line_no_output(tmp_path, capsys, case, code, words):

@@ -127,7 +127,7 @@ CODE_TAKING_CALLS = {"finding", "report", "error", "fail", "_bad"}
 
 
 def _sources() -> list:
-    return sorted(p for folder in ("vbusd", "converters", "validators") for p in (ROOT / folder).rglob("*.py"))
+    return sorted(p for folder in ("vbusd", "converters", "validators", "dcc") for p in (ROOT / folder).rglob("*.py"))
 
 
 def test_every_code_string_in_the_sources_is_registered():
@@ -138,7 +138,8 @@ def test_every_code_string_in_the_sources_is_registered():
     the registry would print an unlisted code, or surface as ``asset.internal``."""
     import ast
 
-    pattern = re.compile(r"[a-z][A-Za-z0-9]*(\.[a-zA-Z][A-Za-z0-9]*)+")
+    # Underscores too: a snake_case code would break the registry's naming rule unnoticed.
+    pattern = re.compile(r"[a-z][A-Za-z0-9_]*(\.[a-zA-Z_][A-Za-z0-9_]*)+")
     areas = {code.split(".")[0] for code in codes.REGISTRY}
     unregistered = []
     for source in _sources():

@@ -317,6 +317,14 @@ _COMMAND_ERRORS = (
          "runtime-package.md#validation", "file"),
     Code("export.mesh", E, "A bound mesh cannot be exported: no triangle, or a bone index a SHORT "
          "attribute cannot hold.", "runtime-package.md#meshes", "usd"),
+    # ---- Blender add-on (dcc/blender, docs/blender.md) ----
+    Code("blender.armature", E, "No armature to export, a name in armatures= that is not an armature, or an "
+         "armature that deforms no mesh.", f"{_VB}#binding", "file"),
+    Code("blender.action", E, "An action to bake does not exist or moves no bone of the armature, or the "
+         "armature is in NLA tweak mode.", f"{_VB}#clips", "file"),
+    Code("blender.mesh", E, "A mesh deformed by the armature has no vertices.", f"{_VB}#binding", "file"),
+    Code("blender.modifiers", E, "A mesh's modifier stack cannot be baked as one skinning: two Armature "
+         "modifiers, a modifier after it, no vertex groups, or a group mask.", f"{_VB}#skinning", "file"),
     Code("crowd.character", E, "A character given to vbusd crowd has no animation or bound mesh to "
          "instance, or disagrees with the others' up axis or units.", f"{_VB}#instancing", "file"),
     Code("crowd.points", E, "The positions file of vbusd crowd --layout points is not rows of three "
@@ -367,6 +375,8 @@ _COMMAND_ERRORS = (
          "gltf-conversion.md#skins", "json"),
     Code("gltf.skin.ibm", E, "A skin's inverseBindMatrices accessor is malformed or holds fewer matrices "
          "than joints.", "gltf-conversion.md#skins", "json"),
+    Code("gltf.skin.jointIndex", E, "A vertex's JOINTS_n value with non-zero weight is not below the skin's "
+         "joint count, or a vertex names one joint twice with non-zero weight.", "gltf-conversion.md#meshes", "json"),
     Code("gltf.skin.weights", E, "A vertex has a negative weight, or its weights do not sum to one.",
          "gltf-conversion.md#meshes", "json"),
     Code("gltf.mesh.mode", E, "A primitive's mode is unknown or cannot be a skinned mesh (points, "

@@ -739,7 +739,7 @@ def _write(asset, path: Path, container: str, overwrite: bool) -> list:
     except OSError as error:
         _remove_empty(created)
         raise VbusdError(f"cannot write the output (nothing was written): {error.strerror or error}",
-                         file=str(path), code="blender.write") from None
+                         file=str(path), code="write.failed") from None
     except BaseException:
         _remove_empty(created)
         raise
