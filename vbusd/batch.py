@@ -565,11 +565,11 @@ def convert_one(task: dict) -> dict:
 
 
 def _result(data: dict) -> AssetResult:
-    names = {f.name: f.name for f in fields(AssetResult)}
+    """An :class:`AssetResult` back from its JSON form (camelCase keys), as workers return it."""
     from vbusd.format.jsonform import camel_case
 
-    by_camel = {camel_case(name): name for name in names}
-    return AssetResult(**{by_camel.get(k, k): v for k, v in data.items() if by_camel.get(k, k) in names})
+    by_camel = {camel_case(f.name): f.name for f in fields(AssetResult)}
+    return AssetResult(**{by_camel[key]: value for key, value in data.items() if key in by_camel})
 
 
 def _pool_initializer() -> None:
@@ -737,10 +737,13 @@ def _run_dask(tasks: list, scheduler: str, finish) -> None:
         raise OptionsError(f"cannot reach the Dask scheduler: {' '.join(str(error).split())[:200]}",
                            file=scheduler, code="batch.scheduler") from None
     try:
+        import secrets
+
         futures = {}
+        run = secrets.token_hex(6)  # task keys unique to this run, whoever else uses the cluster
         for index, task in tasks:
             # pure=False: a conversion writes files, so it is never deduplicated or cached by Dask.
-            futures[client.submit(convert_one, task, pure=False, key=f"vbusd-convert-{index}-{os.getpid()}")] = (index, task)
+            futures[client.submit(convert_one, task, pure=False, key=f"vbusd-convert-{run}-{index}")] = (index, task)
         for future in as_completed(list(futures), loop=client.loop):
             index, task = futures[future]
             try:
