@@ -47,7 +47,7 @@ from vbusd.converters.gltf_animation import compose_trs, sample_channel
 __all__ = ["NAME", "SUFFIXES", "MAX_FILE_BYTES", "TIME_CODES_PER_SECOND", "DEFAULT_RATE",
            "QUAT_UNIT_TOLERANCE", "WEIGHT_SUM_TOLERANCE", "make_identifier", "NameAllocator",
            "load", "GltfScene", "native_rate", "sniff", "check_time_range", "read",
-           "bind_transforms"]
+           "bind_transforms", "json_text_of", "referenced_uris"]
 
 NAME = "gltf"
 """Converter name (``vbusd convert --from gltf``)."""
@@ -479,6 +479,40 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
                          code="gltf.asset.version")
 
 
+def json_text_of(data: bytes, file: str) -> str:
+    """The JSON text of a .gltf or .glb file's bytes: the GLB container checked chunk by chunk
+    (:func:`_parse_glb`), or the whole file decoded as UTF-8. The one container walk of glTF in
+    vbusd: the converter, the batch cache and the runtime package writer all read through it.
+
+    Raises:
+        InputError: A malformed GLB container or text that is not UTF-8 (``gltf.glb``, ``gltf.json``).
+    """
+    if data[:4] == _GLB_MAGIC:
+        return _parse_glb(data, file)[0]
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a GLB and not UTF-8 JSON ({exc.reason})", file=file,
+                         location=f"byte {exc.start}", code="gltf.json") from None
+
+
+def referenced_uris(path, *, limit: int = MAX_FILE_BYTES) -> list:
+    """The ``uri`` of every buffer and image of a .gltf or .glb file, as written (``data:`` URIs
+    included), or an empty list when the file cannot be read as glTF JSON (the converter says
+    why when it reads the file)."""
+    import json
+
+    path = Path(path)
+    try:
+        if path.stat().st_size > limit:
+            return []
+        document = json.loads(json_text_of(path.read_bytes(), str(path)))
+        entries = list(document.get("buffers") or []) + list(document.get("images") or [])
+    except (OSError, ValueError, AttributeError, TypeError, RecursionError, InputError):
+        return []
+    return [e["uri"] for e in entries if isinstance(e, dict) and isinstance(e.get("uri"), str) and e["uri"]]
+
+
 def load(path, options: ReadOptions | None = None):
     """Parse a .gltf or .glb file with pygltflib and load its buffers, checking the container.
 
@@ -520,11 +554,7 @@ def load(path, options: ReadOptions | None = None):
             # UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
             gltf = pygltflib.GLTF2.gltf_from_json(json_text)
         else:
-            try:
-                json_text = data.decode("utf-8")
-            except UnicodeDecodeError as exc:
-                raise InputError(f"not a GLB and not UTF-8 JSON ({exc.reason})", file=file,
-                                 location=f"byte {exc.start}", code="gltf.json") from None
+            json_text = json_text_of(data, file)
             _check_raw_structure(json_text, file)
             gltf = pygltflib.GLTF2.gltf_from_json(json_text)
     except InputError:

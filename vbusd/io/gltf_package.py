@@ -380,18 +380,14 @@ def package_files_in_use(target) -> list:
     the clean-up after a commit never remove a file a current ``.gltf`` of that stem names. A
     ``.glb`` names no other file. Anything unreadable names nothing.
     """
+    from vbusd.converters.gltf import referenced_uris
+
     gltf_path = Path(target).with_suffix(".gltf")
-    try:
-        if not gltf_path.is_file() or gltf_path.stat().st_size > _PACKAGE_LIMIT_BYTES:
-            return []
-        document = json.loads(gltf_path.read_text(encoding="utf-8"))
-        entries = list(document.get("buffers") or []) + list(document.get("images") or [])
-    except (OSError, ValueError, AttributeError, TypeError):
+    if not gltf_path.is_file():
         return []
     found = []
-    for entry in entries:
-        uri = entry.get("uri") if isinstance(entry, dict) else None
-        if isinstance(uri, str) and uri and ":" not in uri:
+    for uri in referenced_uris(gltf_path, limit=_PACKAGE_LIMIT_BYTES):
+        if ":" not in uri:
             name = urllib.parse.unquote(uri)
             if "/" not in name and "\\" not in name and name not in (".", ".."):
                 found.append(gltf_path.with_name(name))
