@@ -506,14 +506,18 @@ def outputs_intact(record: dict) -> bool:
 
 
 def _worker_name() -> str:
-    try:
-        from distributed import get_worker
+    import sys
 
-        return str(get_worker().address)
-    except Exception:  # noqa: BLE001 - not on a Dask worker
-        import socket
+    if "distributed" in sys.modules:  # on a Dask worker it is loaded; never import it in a pool worker
+        try:
+            from distributed import get_worker
 
-        return f"{socket.gethostname()}:{os.getpid()}"
+            return str(get_worker().address)
+        except Exception:  # noqa: BLE001 - not on a Dask worker
+            pass
+    import socket
+
+    return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def convert_one(task: dict) -> dict:
