@@ -97,6 +97,8 @@ def test_points_layout_from_csv_and_clip_weights(character, tmp_path, capsys):
     (["--count", "0"], "options.invalid"),
     (["--layout", "points", "--points", "missing.csv"], "file.missing"),
     (["--clips", "cheer:x"], "options.invalid"),
+    (["--clips", "Nope"], "options.invalid"),     # a clip no character has: not "play them all"
+    (["--clips", "7:1"], "options.invalid"),      # an index past the clips
 ])
 def test_bad_options_are_one_line_and_write_nothing(character, tmp_path, capsys, args, code):
     out = tmp_path / "bad.usda"
@@ -179,3 +181,16 @@ def test_points_from_a_usd_points_prim_two_characters_and_time_offset_range(char
     assert sorted(map(tuple, positions.tolist())) == sorted(map(tuple, expected.tolist()))
     offsets = np.concatenate([c.time_offset for c in asset.crowds])
     assert np.all((offsets >= 2.0) & (offsets <= 2.5)) and np.ptp(offsets) > 0.3
+
+
+def test_layout_points_takes_its_file_as_the_issue_spells_it(character, tmp_path):
+    # `--layout points FILE` and `--layout=points FILE` are `--layout points --points FILE`.
+    points = tmp_path / "seats.csv"
+    points.write_text("0,0,0\n2,0,0\n4,0,1\n")
+    import vbusd
+
+    for i, spelled in enumerate((["--layout", "points", str(points)], [f"--layout=points", str(points)])):
+        out = tmp_path / f"seats{i}.usda"
+        assert main(["crowd", str(character), *spelled, "-o", str(out)]) == 0
+        crowd = vbusd.read_asset(out).crowds[0]
+        assert np.allclose(crowd.positions, [[0, 0, 0], [2, 0, 0], [4, 0, 1]])

@@ -359,6 +359,12 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                              f"first character's ({up_axis} / {cast[0].meters_per_unit:g})", file=str(other.path),
                              code="crowd.character")
     references = [_relative_reference(c.path, output, allow_outside_paths) for c in cast]
+    for name in options.clips:  # a clip no character has would silently play every clip
+        if not any(name in c.clip_names or (name.isdigit() and int(name) < len(c.clip_names)) for c in cast):
+            known = sorted({clip for c in cast for clip in c.clip_names})
+            raise OptionsError(f"--clips names clip {name!r}, which no character has (clips: "
+                               f"{', '.join(known)}; or an index below {max(len(c.clip_names) for c in cast)})",
+                               file="crowd")
 
     rng = np.random.default_rng(int(options.seed))
     if options.layout == "points":

@@ -30,11 +30,25 @@ def _weights(text, option: str):
         raise OptionsError(f"{option} must be numbers separated by commas, got {text!r}", file="crowd") from None
 
 
-@click.command("crowd")
+class _CrowdCommand(click.Command):
+    """``--layout points FILE`` (the form the issue and the docs give) as ``--layout points --points FILE``."""
+
+    def parse_args(self, ctx, args):
+        args = list(args)
+        for i, arg in enumerate(args[:-1]):
+            spelled = (arg == "--layout" and args[i + 1] == "points" and i + 2 < len(args)) or arg == "--layout=points"
+            following = i + 2 if arg == "--layout" else i + 1
+            if spelled and following < len(args) and not args[following].startswith("-"):
+                args.insert(following, "--points")
+                break
+        return super().parse_args(ctx, args)
+
+
+@click.command("crowd", cls=_CrowdCommand)
 @click.argument("characters", nargs=-1, required=True, type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str), help="Crowd layer to write (.usda, .usdc).")
-@click.option("--layout", default="grid", show_default=True, metavar="grid|disc|points",
-              help="Placement: a grid, a disc of even density, or the points of --points FILE.")
+@click.option("--layout", default="grid", show_default=True, metavar="grid|disc|points FILE",
+              help="Placement: a grid, a disc of even density, or the points of FILE (also --points FILE).")
 @click.option("--points", "points_file", metavar="FILE", help="CSV (x,y,z rows) or USD points prim for --layout points.")
 @click.option("--count", default=100, show_default=True, type=int, help="Instances (grid and disc).")
 @click.option("--spacing", default=1.0, show_default=True, type=float, help="Distance between neighbours, scene units.")
