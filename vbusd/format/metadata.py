@@ -415,62 +415,6 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
                       generator=d["generator"], bind_transforms=binds)
 
 
-def upgrade(d: Mapping, *, upgrades: Optional[Mapping[int, UpgradeFunction]] = None,
-            current: int = FORMAT_VERSION, file=None, location_prefix: str = "") -> dict:
-    """Bring a metadata dict of an older format version up to the current one.
-
-    Each step is an explicit function from version ``v`` to ``v + 1`` (:data:`UPGRADES`); a dict
-    already at the current version is returned as a copy. A missing or non-integer
-    ``formatVersion`` is an error, never taken as some default version.
-
-    Args:
-        d: The dict as read from a file (not modified).
-        upgrades: Table of upgrade functions (default :data:`UPGRADES`; tests pass their own).
-        current: The version to reach (default :data:`vbusd.format.layout.FORMAT_VERSION`).
-        file: File the dict came from, for messages.
-        location_prefix: Prefix of the JSON pointers in messages (where the dict sits in the file).
-
-    Returns:
-        A new dict at version ``current``.
-
-    Raises:
-        InputError: Not an object, ``formatVersion`` missing, not an integer, below 1, or no
-            upgrade function for some step.
-        VersionError: ``formatVersion`` newer than ``current``.
-    """
-    table = UPGRADES if upgrades is None else upgrades
-    where = location_prefix + "/formatVersion"
-    if not isinstance(d, Mapping):
-        raise InputError(f"layout metadata must be a JSON object, got {type(d).__name__}",
-                         file=file, location=location_prefix or "/", code="metadata.schema")
-    if "formatVersion" not in d:
-        raise InputError("formatVersion is missing", file=file, location=where,
-                         code="metadata.schema")
-    version = d["formatVersion"]
-    if isinstance(version, bool) or not isinstance(version, int):
-        raise InputError(f"formatVersion must be an integer, got {version!r}", file=file,
-                         location=where, code="metadata.schema")
-    if version > current:
-        raise VersionError(
-            f"formatVersion {version} is newer than this reader (version {current}); "
-            f"upgrade vbusd to read it", file=file, location=where, code="format.version")
-    if version < 1:
-        raise InputError(f"formatVersion must be 1 or more, got {version}", file=file,
-                         location=where, code="format.version")
-    result = copy.deepcopy(dict(d))
-    while version < current:
-        step = table.get(version)
-        if step is None:
-            raise InputError(f"no upgrade from formatVersion {version} to {version + 1}",
-                             file=file, location=where, code="format.version")
-        result = step(result)
-        if result.get("formatVersion") != version + 1:
-            raise AssertionError(f"upgrade from version {version} did not set formatVersion "
-                                 f"{version + 1}")
-        version += 1
-    return result
-
-
 def raise_summary(diagnostics: Diagnostics) -> None:
     """Raise the first error of a lenient list as one line that counts (and names) the others."""
     errors = diagnostics.errors
