@@ -110,6 +110,9 @@ class _Reader:
         self.cache = UsdSkel.Cache()
         self.predicate = Usd.TraverseInstanceProxies()
         self.bindings: dict = {}
+        self.animation_values: dict = {}
+        """Per SkelAnimation path: {attribute name: {time code rounded to 1e-9: numpy array}}, the
+        values :meth:`check_animation` read, reused by :class:`AllFramesSkinning`."""
         """Per SkelRoot path: {skinning target path: (skeleton path, UsdSkel.SkinningQuery)}."""
 
     def error(self, message: str, location: str, code: str) -> InputError:
@@ -351,10 +354,15 @@ class _Reader:
             missing = sorted(set(attrs) - set(authored))
             raise self.error(f"{', '.join(missing)} missing: UsdSkel ignores an animation without all of "
                              "translations, rotations and scales", location, "usdskel.animation.incomplete")
+        stash = self.animation_values.setdefault(location, {})
         for name, attr in authored.items():
             times = attr.GetTimeSamples()
+            kept = stash.setdefault(name, {})
             for time in (times or [None]):
                 value = attr.Get() if time is None else attr.Get(time)
+                if value is not None:
+                    value = np.asarray(value)  # once, for the checks and for AllFramesSkinning
+                    kept[None if time is None else round(float(time), 9)] = value  # None: no samples
                 count = 0 if value is None else len(value)
                 where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
                 if count != len(joints):
@@ -529,19 +537,6 @@ def _affine_rows(matrices: np.ndarray) -> bool:
     return bool(np.all(np.abs(matrices[..., :3, 3]) <= 1e-12) and np.all(np.abs(matrices[..., 3, 3] - 1.0) <= 1e-12))
 
 
-def _matrix_product(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """``left @ right`` for 3 x 3 matrices stored frames last, (..., 3, 3, n): three broadcast
-    multiply-adds over contiguous frames (numpy's matmul loops over millions of tiny matrices)."""
-    return (left[..., :, 0, None, :] * right[..., 0, None, :, :] + left[..., :, 1, None, :] * right[..., 1, None, :, :]
-            + left[..., :, 2, None, :] * right[..., 2, None, :, :])
-
-
-def _row_times(rows: np.ndarray, matrices: np.ndarray) -> np.ndarray:
-    """Row vectors (..., 3, n) times matrices (..., 3, 3, n), frames last."""
-    return rows[..., 0, None, :] * matrices[..., 0, :, :] + rows[..., 1, None, :] * matrices[..., 1, :, :] \
-        + rows[..., 2, None, :] * matrices[..., 2, :, :]
-
-
 class AllFramesSkinning:
     """UsdSkel's skinning transforms of one skeleton at many time codes at once.
 
@@ -571,6 +566,8 @@ class AllFramesSkinning:
         self._queries = queries
         self._anim_to_skel = anim_to_skel
         self._anim_joint_count = anim_joint_count
+        self._read: tuple = ({}, {}, {})
+        """Values already read at authored time codes (translations, rotations, scales)."""
         depth = np.zeros(parents.size, dtype=np.int64)
         for joint, parent in enumerate(parents):
             depth[joint] = depth[parent] + 1 if parent >= 0 else 0
@@ -618,7 +615,10 @@ class AllFramesSkinning:
                 return None
             queries = tuple(Usd.AttributeQuery(attr) for attr in
                             (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()))
-            return cls(Usd, parents, inverse_bind, rest, queries, anim_to_skel, len(anim_joints))
+            fast = cls(Usd, parents, inverse_bind, rest, queries, anim_to_skel, len(anim_joints))
+            read = getattr(reader, "animation_values", {}).get(str(prim.GetPath())) or {}
+            fast._read = tuple(read.get(name) or {} for name in ("translations", "rotations", "scales"))
+            return fast
         except Exception:  # noqa: BLE001 - any surprise: UsdSkel frame by frame stays the answer
             return None
 
@@ -634,17 +634,31 @@ class AllFramesSkinning:
         if self._queries is None:
             return linear, translation
         count = self._anim_joint_count
-        translations = np.empty((frames, count, 3), dtype=np.float32)
-        rotations = np.empty((frames, count, 4), dtype=np.float32)
-        scales = np.empty((frames, count, 3), dtype=np.float16)
         q_t, q_r, q_s = self._queries
+        read_t, read_r, read_s = self._read
         TimeCode = self._usd.TimeCode
-        for i, code in enumerate(codes.tolist()):
-            time = TimeCode(code)
-            values = (q_t.Get(time), q_r.Get(time), q_s.Get(time))
-            if any(v is None or len(v) != count for v in values):
-                return None
-            translations[i], rotations[i], scales[i] = values
+        columns = ([], [], [])
+        for code in codes.tolist():
+            key = round(code, 9)  # an authored sample the reader's checks already read: no second read
+            values = (read_t.get(key, read_t.get(None)), read_r.get(key, read_r.get(None)),
+                      read_s.get(key, read_s.get(None)))
+            if values[0] is None or values[1] is None or values[2] is None:
+                time = TimeCode(code)
+                values = (q_t.Get(time), q_r.Get(time), q_s.Get(time))
+                if any(v is None for v in values):
+                    return None
+                values = tuple(np.asarray(v) for v in values)
+            for column, value in zip(columns, values):
+                column.append(value)
+        try:
+            translations = np.stack(columns[0]).astype(np.float32, copy=False)
+            rotations = np.stack(columns[1]).astype(np.float32, copy=False)
+            scales = np.stack(columns[2]).astype(np.float16, copy=False)
+        except ValueError:  # arrays of different lengths at different times
+            return None
+        if translations.shape != (frames, count, 3) or rotations.shape != (frames, count, 4) \
+                or scales.shape != (frames, count, 3):
+            return None
         rotation = _quaternion_matrices(np.moveaxis(rotations, 0, -1), axis=1)  # (A, 3, 3, n) float32
         anim_linear = rotation * np.moveaxis(scales, 0, -1).astype(np.float32)[:, :, None, :]
         used = self._anim_to_skel >= 0
@@ -683,16 +697,20 @@ class AllFramesSkinning:
         linear, translation = local
         for joints, parents in self._levels:  # concatenated in place, one depth at a time
             parent_linear = linear[parents]
-            translation[joints] = _row_times(translation[joints], parent_linear) + translation[parents]
-            linear[joints] = _matrix_product(linear[joints], parent_linear)
+            translation[joints] = np.einsum("kbn,kbcn->kcn", translation[joints], parent_linear) + translation[parents]
+            linear[joints] = np.einsum("kabn,kbcn->kacn", linear[joints], parent_linear)
         # Skinning transforms inverse(bind) * skel, then the skeleton's placement in the world.
-        translation = _row_times(self._inverse_bind[:, 3, :3, None], linear) + translation
-        linear = _matrix_product(self._inverse_bind[:, :3, :3, None], linear)
+        translation = np.einsum("jb,jbcn->jcn", self._inverse_bind[:, 3, :3], linear) + translation
+        linear = np.einsum("jab,jbcn->jacn", self._inverse_bind[:, :3, :3], linear)
         if world is not None:
             world = np.asarray(world, dtype=np.float64)
-            world = world[..., None] if world.ndim == 2 else np.moveaxis(world, 0, -1)  # (4, 4, n | 1)
-            translation = _row_times(translation, world[:3, :3]) + world[3, :3]
-            linear = _matrix_product(linear, world[:3, :3])
+            if world.ndim == 2:
+                translation = np.einsum("jbn,bc->jcn", translation, world[:3, :3]) + world[3, :3, None]
+                linear = np.einsum("jabn,bc->jacn", linear, world[:3, :3])
+            else:  # (n, 4, 4): a skeleton that moves
+                rotation = np.moveaxis(world[:, :3, :3], 0, -1)
+                translation = np.einsum("jbn,bcn->jcn", translation, rotation) + world[:, 3, :3].T
+                linear = np.einsum("jabn,bcn->jacn", linear, rotation)
         out = np.zeros((unique.size, joint_count, 4, 4))
         out[..., :3, :3] = linear.transpose(3, 0, 2, 1)  # column-vector: the transpose
         out[..., :3, 3] = translation.transpose(2, 0, 1)
@@ -786,8 +804,17 @@ class SkeletonSampler:
         return self._start
 
     def code(self, time: float) -> float:
-        """Time code of a source time (seconds), clamped to the clip."""
-        return min(max(float(time) * self._tcps, self._start), self._end)
+        """Time code of a source time (seconds), clamped to the clip.
+
+        A code within 1e-9 (relative) of a whole time code is that time code: ``(1/24 + 8098/24) * 24``
+        is 8099.000000000001 in floating point, and USD would interpolate the samples there in
+        float32 instead of returning the authored sample (a 1e-6 difference on a deep rig).
+        """
+        code = float(time) * self._tcps
+        whole = round(code)
+        if abs(code - whole) <= 1e-9 * max(1.0, abs(code)):
+            code = float(whole)
+        return min(max(code, self._start), self._end)
 
     def usd_transforms(self, code: float) -> tuple:
         """(UsdSkel's skel-space skinning transforms as a Vt.Matrix4dArray, row-vector world matrix)."""

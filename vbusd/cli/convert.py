@@ -152,6 +152,8 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
     if manifest is not None or scheduler is not None or report_file is not None or len(sources) != 1:
         return True
     source = Path(sources[0])
+    if source.is_dir() and Path(output).suffix.lower() in (".usd", ".usda", ".usdc") and not Path(output).is_dir():
+        return False  # a folder given where a file was meant: the single conversion says "is a folder"
     return source.is_dir() or (not source.exists() and is_glob(sources[0])) or Path(output).is_dir()
 
 
