@@ -161,8 +161,10 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
                output_format, quiet) -> int:
     from vbusd.batch import plan_batch, run_batch
     from vbusd.convert import ConvertOptions
-    from vbusd.io.files import atomic_write
+    from pathlib import Path
+
     from vbusd.format.jsonform import json_text
+    from vbusd.io.files import atomic_write, make_folders
 
     ConvertOptions(**values)  # the batch's own options: refused before anything starts
     items = plan_batch(sources, output, manifest=manifest)
@@ -170,6 +172,7 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
         report = run_batch(items, values, jobs=jobs, scheduler=scheduler, cache=cache_dir, use_cache=not no_cache,
                            force=force, progress=progress)
     if report_file is not None:
+        make_folders(Path(report_file).parent)
         with atomic_write(report_file, "w", encoding="utf-8") as stream:
             stream.write(json_text(report.to_dict()) + "\n")
     if output_format == "json":
