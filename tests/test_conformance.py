@@ -179,17 +179,28 @@ def test_numpy_reference_reproduces_every_vector(path):
         np.testing.assert_allclose(normals, expected["normals"], rtol=0, atol=1e-12)
 
 
+def _warp_devices() -> list:
+    """Every device warp offers here: the CPU, and CUDA on a GPU machine (the vectors run on each)."""
+    try:
+        from vbusd.decode.warp import available_devices
+
+        return list(available_devices()) or ["cpu"]
+    except Exception:  # no warp: the test skips below
+        return ["cpu"]
+
+
+@pytest.mark.parametrize("device", _warp_devices())
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
-def test_warp_cpu_reproduces_every_vector(path):
+def test_warp_reproduces_every_vector(path, device):
     warp = pytest.importorskip("vbusd.decode.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    if device not in warp.available_devices():
+        pytest.skip(f"warp has no {device} device here")
     vector = load(path)
     vb, crowd = vector_animation(vector), vector_crowd(vector)
-    decoder = warp.Decoder(vb, device="cpu")
+    decoder = warp.Decoder(vb, device=device)
     for index, expected in enumerate(vector["expected"]):
         points, normals = decoder.skin_crowd(crowd, expected["time"]).numpy()
-        assert_matches(vector, index, points, normals, "warp cpu")
+        assert_matches(vector, index, points, normals, f"warp {device}")
 
 
 # ----------------------------------------------------------------------------------------------
