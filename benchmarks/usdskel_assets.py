@@ -21,7 +21,10 @@ from pathlib import Path
 
 
 def _assets_folder(given: str | None) -> Path:
-    candidates = [given, "/work/shared/assets/usdskel",
+    import os
+
+    shared = os.environ.get("VBUSD_SHARED_ASSETS")
+    candidates = [given, shared and str(Path(shared) / "usdskel"),
                   str(Path(__file__).resolve().parents[2] / "shared" / "assets" / "usdskel")]
     for candidate in candidates:
         if candidate and Path(candidate).is_dir():

@@ -133,7 +133,7 @@ def available_devices() -> list:
 
 def _resolve_device(device) -> "wp.context.Device":
     if device is None:
-        raise OptionsError("a device must be given explicitly (\"cpu\" or \"cuda\")", file="warp_decoder")
+        raise OptionsError("a device must be given explicitly (\"cpu\" or \"cuda\")", file="decode")
     name = str(device)
     _init_warp()
     if name.startswith("cuda") and not wp.is_cuda_available():
@@ -143,14 +143,14 @@ def _resolve_device(device) -> "wp.context.Device":
         instead = "use --device cpu, or leave --device out for the numpy reference decoder" \
             if "cpu" in available_devices() else "leave --device out for the numpy reference decoder"
         raise OptionsError(f"device {name!r} requested but no CUDA device is available here{why}; {instead}",
-                           file="warp_decoder")
+                           file="decode")
     if name == "cpu" and not wp.is_cpu_available():
         raise OptionsError("device 'cpu' requested but warp's CPU backend is not available",
-                           file="warp_decoder")
+                           file="decode")
     try:
         return wp.get_device(name)
     except Exception as error:  # warp raises RuntimeError/ValueError for unknown names
-        raise OptionsError(f"unknown device {name!r}: {error}", file="warp_decoder") from None
+        raise OptionsError(f"unknown device {name!r}: {error}", file="decode") from None
 
 
 @dataclass
@@ -251,10 +251,10 @@ class Decoder:
                  block_dim: Optional[int] = None) -> None:
         if sampling not in SAMPLING_MODES:
             raise OptionsError(f"sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}",
-                               file="warp_decoder")
+                               file="decode")
         if mesh is None:
             if not vb.meshes:
-                raise OptionsError("the animation has no bound mesh to skin", file="warp_decoder",
+                raise OptionsError("the animation has no bound mesh to skin", file="decode",
                                    location=vb.path)
             mesh = vb.meshes[0]
         self.device = _resolve_device(device)
@@ -269,11 +269,11 @@ class Decoder:
                                                  int(instances_per_thread) != instances_per_thread or
                                                  instances_per_thread < 1):
             raise OptionsError(f"instances_per_thread must be a positive integer, got {instances_per_thread!r}",
-                               file="warp_decoder")
+                               file="decode")
         self.instances_per_thread = instances_per_thread
         if block_dim is not None and (isinstance(block_dim, bool) or int(block_dim) != block_dim or
                                       not 1 <= block_dim <= 1024):
-            raise OptionsError(f"block_dim must be an integer in 1..1024, got {block_dim!r}", file="warp_decoder")
+            raise OptionsError(f"block_dim must be an integer in 1..1024, got {block_dim!r}", file="decode")
         self.block_dim = 128 if block_dim is None else int(block_dim)
         self._check_mesh(mesh)
         self._upload_texture()
@@ -410,14 +410,14 @@ class Decoder:
     def _check_clip(self, clip_index) -> int:
         if isinstance(clip_index, bool) or int(clip_index) != clip_index or not 0 <= clip_index < self.clip_count:
             raise OptionsError(f"clip index {clip_index!r} out of range 0..{self.clip_count - 1}",
-                               file="warp_decoder")
+                               file="decode")
         return int(clip_index)
 
     @staticmethod
     def _finite_times(tau) -> np.ndarray:
         tau = np.atleast_1d(np.asarray(tau, dtype=np.float64)).reshape(-1)
         if not np.all(np.isfinite(tau)):
-            raise OptionsError("times must be finite", file="warp_decoder")
+            raise OptionsError("times must be finite", file="decode")
         return tau
 
     def _times_crowd(self, clip_index: int, tau, fade=None) -> DeviceCrowd:
@@ -437,7 +437,7 @@ class Decoder:
             fade_tau = np.broadcast_to(self._finite_times(fade_tau), (n,))
             weight = np.broadcast_to(np.asarray(fade_weight, np.float64).reshape(-1), (n,))
             if not np.all(np.isfinite(weight)):
-                raise OptionsError("fade weights must be finite", file="warp_decoder")
+                raise OptionsError("fade weights must be finite", file="decode")
             fade_arrays = (np.full(n, self._check_clip(fade_clip)), fade_tau, np.zeros(n), weight)
         return DeviceCrowd(
             clip=self._array(np.full(n, int(clip_index), np.int32), wp.int32),
@@ -500,7 +500,7 @@ class Decoder:
         if n == 0:
             return buffers
         if self.sampling == "hardware" and fraction_steps:
-            raise OptionsError("fraction_steps models the texture unit on the exact path only", file="warp_decoder")
+            raise OptionsError("fraction_steps models the texture unit on the exact path only", file="decode")
         frames = buffers.frames
         wp.launch(K.instance_frames_kernel, dim=n, device=self.device,
                   inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop, crowd.clip,
@@ -564,7 +564,7 @@ class Decoder:
         if out.points.shape != (n, self.vertex_count) or out.points.device != self.device or \
                 (self.with_normals and (out.normals is None or out.normals.shape != (n, self.normal_count))):
             raise OptionsError(f"out arrays do not fit {n} instances of this mesh on {self.device}; "
-                               f"use Decoder.allocate({n})", file="warp_decoder")
+                               f"use Decoder.allocate({n})", file="decode")
         return out
 
     @_quietly
@@ -586,7 +586,7 @@ class Decoder:
             ``out`` (or new arrays): points (N, V) and normals (N, V') as ``wp.vec3`` arrays.
         """
         if not np.isfinite(t):
-            raise OptionsError(f"scene time must be finite, got {t!r}", file="warp_decoder")
+            raise OptionsError(f"scene time must be finite, got {t!r}", file="decode")
         if isinstance(crowd, Crowd) and crowd.fade_samples:
             crowd = self.upload_crowd(crowd.at(t))  # time-sampled fades: this time's values
         elif isinstance(crowd, Crowd):
