@@ -668,6 +668,8 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
         if progress:
             progress("assets", done, len(items))
 
+    # Largest sources first: the batch ends with small assets instead of waiting on one big one.
+    tasks.sort(key=lambda entry: (-_size(entry[1]["source"]), entry[0]))
     if tasks and scheduler:
         _run_dask(tasks, scheduler, finish)
     elif tasks and (jobs == 1 or len(tasks) == 1):
@@ -677,6 +679,13 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
         _run_pool(tasks, min(jobs, len(tasks)), finish)
     return BatchReport(assets=results, jobs=jobs, scheduler=scheduler, seconds=time.perf_counter() - started,
                        cache=None if cache_dir is None else str(cache_dir))
+
+
+def _size(path: str) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
 
 
 def _run_pool(tasks: list, jobs: int, finish) -> None:
