@@ -367,24 +367,6 @@ def file_digest(path) -> str:
     return digest.hexdigest()
 
 
-def _gltf_document(path: Path) -> Optional[dict]:
-    import struct
-
-    data = path.read_bytes()
-    if data[:4] == b"glTF":
-        if len(data) < 20:
-            return None
-        length, kind = struct.unpack_from("<II", data, 12)
-        if kind != 0x4E4F534A:
-            return None
-        data = data[20:20 + length]
-    try:
-        document = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    return document if isinstance(document, dict) else None
-
-
 def dependencies(source) -> list:
     """Every file a source references, the source first; missing ones as ``missing:NAME``.
 
@@ -400,15 +382,19 @@ def dependencies(source) -> list:
     suffix = source.suffix.lower()
     try:
         if suffix in (".gltf", ".glb"):
-            document = _gltf_document(source) or {}
-            for group in ("buffers", "images"):
-                for entry in document.get(group) or []:
-                    uri = entry.get("uri") if isinstance(entry, dict) else None
-                    if isinstance(uri, str) and uri and not uri.startswith("data:"):
-                        target = (source.parent / unquote(uri)).resolve()
-                        found.append(str(target) if target.is_file() else f"missing:{uri}")
+            from vbusd.converters.gltf import referenced_uris  # the converter's own container walk
+
+            for uri in referenced_uris(source):
+                if not uri.startswith("data:"):
+                    target = (source.parent / unquote(uri)).resolve()
+                    found.append(str(target) if target.is_file() else f"missing:{uri}")
         elif suffix in (".usd", ".usda", ".usdc") and source.is_file():
             from pxr import Sdf, UsdUtils
+
+            from vbusd.io.usd_probe import is_crate, probe_crate
+
+            if is_crate(source) and not probe_crate(source).ok:
+                return found  # a corrupt crate file would take this process down: the conversion says why
 
             layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(source.resolve())))
             for layer in layers:
