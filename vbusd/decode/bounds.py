@@ -8,7 +8,12 @@ interpolate the stored channel values and decode the blend (section 6), which fo
 linear blend of the two rows' points: a point can leave the box of the rows.
 
 The bounds are therefore computed from what a decoder computes, the numpy reference decoder on
-the stored texels: every vertex at every row and at ``SUBSTEPS[encoding] - 1`` times between
+the stored texels. For the linear-blend encodings (crossMatrix, affineMatrix, quatTranslation) the
+decoded bone transforms bound the points: each bone's box of the rest points it moves, transformed
+at every sample time, and the union of those boxes holds every skinned point (a convex combination
+of its bones' transforms of it), at a cost of bones x times instead of vertices x times. Dual
+quaternion skinning is not such a combination, so for dualQuat the points themselves are skinned:
+every vertex at every row and at ``SUBSTEPS[encoding] - 1`` times between
 consecutive rows (a looping clip's wrap interval included): none for affineMatrix, whose points
 move linearly between rows, the midpoint for crossMatrix (quadratic in the blend factor: ``cross``
 of two linear axes), three for the quaternion encodings (normalized quaternions). The path of a point between two
@@ -45,6 +50,74 @@ def _sample_times(clip, substeps: int) -> np.ndarray:
     return steps / clip.rows_per_second
 
 
+def _bone_boxes(vb: VirtualBones):
+    """Per bone, the rest box (center, half-size) of the points it moves with non-zero weight, and
+    how far any point's weights sum from 1; None when no bone moves a point."""
+    bone_count = vb.layout.bone_count
+    lo = np.full((bone_count, 3), np.inf)
+    hi = np.full((bone_count, 3), -np.inf)
+    weight_slack = 0.0
+    for mesh in vb.meshes:
+        weights = np.asarray(mesh.bone_weights, dtype=np.float64)
+        if weights.size:
+            weight_slack = max(weight_slack, float(np.abs(weights.sum(axis=1) - 1.0).max()))
+        for slot in range(mesh.bone_indices.shape[1]):
+            used = weights[:, slot] > 0
+            bones = np.asarray(mesh.bone_indices)[used, slot]
+            points = np.asarray(mesh.points, dtype=np.float64)[used]
+            np.minimum.at(lo, bones, points)
+            np.maximum.at(hi, bones, points)
+    active = np.all(np.isfinite(lo), axis=1)
+    if not np.any(active):
+        return None
+    return active, 0.5 * (lo[active] + hi[active]), 0.5 * (hi[active] - lo[active]), weight_slack
+
+
+def _box_images(transforms, rest) -> tuple:
+    """(n, bones, 3) low and high corners of each bone's rest box under its transform at n times."""
+    active, center, half, _ = rest
+    linear = transforms.linear[:, active]
+    moved = np.einsum("nbij,bj->nbi", linear, center) + transforms.translation[:, active]
+    spread = np.einsum("nbij,bj->nbi", np.abs(linear), half)
+    return moved - spread, moved + spread
+
+
+def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, values, rest, chunk: int):
+    """Bounds of a linear-blend clip from its bones' boxes: ``(low, high, curvature)``.
+
+    A point skinned by linear blend skinning is a convex combination (weights non-negative, summing
+    to one) of its bones' transforms of it, and it lies in each of those bones' rest boxes, so it
+    lies in the union of the bones' transformed boxes: those boxes bound the clip at each sample
+    time. Between samples the boxes' corners move smoothly; their second differences give the
+    curvature margin, as for points. Weights that sum to ``1 +- e`` scale a point by at most that
+    factor, which widens the box by ``e`` times its distance from the origin. The cost is bones x
+    times, not vertices x times.
+    """
+    from vbusd.decode.reference import bone_transforms, decode_bones, interpolated_values
+
+    encoding = vb.layout.encoding
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    curvature = np.zeros(3)
+    per = max(1, chunk // max(1, int(rest[0].sum()) * 8))
+    previous = None
+    for start in range(0, len(times), per):
+        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, times[start:start + per], values), encoding),
+                             rest)
+        low, high = np.minimum(low, lo.min(axis=(0, 1))), np.maximum(high, hi.max(axis=(0, 1)))
+        corners = np.concatenate([lo, hi], axis=1)
+        run = corners if previous is None else np.concatenate([previous, corners])
+        if run.shape[0] >= 3:
+            curvature = np.maximum(curvature, np.abs(run[2:] - 2 * run[1:-1] + run[:-2]).max(axis=(0, 1)))
+        previous = run[-2:]
+    if clip.loop and len(times) >= 2:  # the wrap: ..., last sample, row N (= row 0), first step
+        tail = np.concatenate([times[-2:], [times[-1] + times[1] - times[0]]])
+        lo, hi = _box_images(bone_transforms(vb, index, tail), rest)
+        corners = np.concatenate([lo, hi], axis=1)
+        curvature = np.maximum(curvature, np.abs(corners[2] - 2 * corners[1] + corners[0]).max(axis=0))
+    slack = rest[3] * np.maximum(np.abs(low), np.abs(high))
+    return low - slack, high + slack, curvature
+
+
 def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> np.ndarray:
     """``(clips, 2, 3)`` float32 boxes (min, max) that contain every decoded vertex of every clip.
 
@@ -61,11 +134,16 @@ def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> 
     values = channel_values(vb)
     substeps = SUBSTEPS[vb.layout.encoding.value] if substeps is None else int(substeps)
     boxes = np.zeros((len(vb.clips), 2, 3))
+    linear_blend = vb.layout.encoding.value != "dualQuat"
+    rest = _bone_boxes(vb) if linear_blend else None
     for index, clip in enumerate(vb.clips):
         times = _sample_times(clip, substeps)
         low, high = np.full(3, np.inf), np.full(3, -np.inf)
         curvature = np.zeros(3)
-        for mesh in vb.meshes:
+        if linear_blend:
+            if rest is not None:
+                low, high, curvature = _bone_box_bounds(vb, index, clip, times, values, rest, chunk)
+        for mesh in (() if linear_blend else vb.meshes):
             per = max(1, chunk // max(1, len(mesh.points)))
             previous = None  # the last two samples of the last chunk, for second differences across chunks
             for start in range(0, len(times), per):
