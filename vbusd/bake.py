@@ -358,7 +358,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         except NonRigidError as error:
             raise _locate_non_rigid(error, animation, clip, times) from None
         values.append(make_hemispheres_continuous(encoded, options.encoding))
-        extents.append(_clip_extents(matrices, meshes, bone_count))
+        # With meshes the extents come from the decoded texels below (what decoders compute).
+        extents.append(np.zeros((2, 3), np.float32) if meshes else _clip_extents(matrices, meshes, bone_count))
         clips.append(Clip(name=clip.name, first_row=first_row, row_count=plan.row_count,
                           rows_per_second=plan.rows_per_second, loop=plan.loop,
                           start_time=float(clip.start_time)))
@@ -386,14 +387,11 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
                          unorm_ranges=ranges, meshes=meshes, path=animation.path,
                          clip_extents=np.stack(extents), bind_transforms=bind, root_motion=motion)
     if meshes:
-        # vb:clipExtents from the decoded texels, at rows and between rows (spec 13), joined with
-        # the source's own bounds at the rows (the decoded rows differ from them by quantization).
+        # vb:clipExtents from the decoded texels, at rows and between rows (spec 13): they bound
+        # what every decoder computes, quantization included.
         from vbusd.decode.bounds import clip_extents
 
-        decoded = clip_extents(baked)
-        joined = np.stack([np.minimum(decoded[:, 0], baked.clip_extents[:, 0]),
-                           np.maximum(decoded[:, 1], baked.clip_extents[:, 1])], axis=1)
-        baked = dataclasses.replace(baked, clip_extents=joined.astype(np.float32))
+        baked = dataclasses.replace(baked, clip_extents=clip_extents(baked).astype(np.float32))
     return baked
 
 
