@@ -211,11 +211,15 @@ def read_points(path: str) -> np.ndarray:
 
 
 def _usd_points(source: Path) -> np.ndarray:
-    from pxr import Usd, UsdGeom
+    from pxr import UsdGeom
 
-    stage = Usd.Stage.Open(str(source))
-    if stage is None:
-        raise InputError("USD cannot open this file", file=str(source), code="crowd.points")
+    from vbusd.io.usd_reader import stage_for_reading
+
+    with stage_for_reading(source, allow_outside_paths=True) as stage:  # a points file, not an asset
+        return _first_points(stage, source, UsdGeom)
+
+
+def _first_points(stage, source: Path, UsdGeom) -> np.ndarray:
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.PointBased):
             points = UsdGeom.PointBased(prim).GetPointsAttr().Get()

@@ -230,13 +230,22 @@ def layer_offsets(vb: VirtualBones, use: _Use, time_codes_per_second: float):
 # --------------------------------------------------------------------------------------------
 
 
-def _local_to_world(source_stage, path: str):
+def _world_transforms(source: Optional[Path], paths) -> dict:
+    """``{path: local-to-world matrix}`` of the source asset's prims, read once through the one USD
+    reader (a host's open layer untouched, USD's diagnostics captured); identity where absent."""
     from pxr import Gf, Usd, UsdGeom
 
-    prim = source_stage.GetPrimAtPath(path) if source_stage is not None else None
-    if not prim or not prim.IsA(UsdGeom.Xformable):
-        return Gf.Matrix4d(1.0)
-    return UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    from vbusd.io.usd_reader import stage_for_reading
+
+    found = {path: Gf.Matrix4d(1.0) for path in paths}
+    if source is None:
+        return found
+    with stage_for_reading(source, allow_outside_paths=True) as stage:  # read_asset checked the paths
+        for path in paths:
+            prim = stage.GetPrimAtPath(path)
+            if prim and prim.IsA(UsdGeom.Xformable):
+                found[path] = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    return found
 
 
 def _write_character(stage, vb: VirtualBones, name: str, ranges: dict, tcps: float, joints, clip_names):
@@ -385,7 +394,9 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
                          location="file", code="export.noMeshes")
     tcps = float(asset.time_codes_per_second)
     report = UsdSkelReport(output=str(output))
-    source_stage = Usd.Stage.Open(str(source)) if source is not None else None
+    world = _world_transforms(Path(source) if source is not None else None,
+                              [vb.meshes[0].path for vb in asset.animations if vb.meshes]
+                              + [crowd.path for crowd in asset.crowds])
 
     layer = Sdf.Layer.CreateAnonymous(".usda")  # held here: it outlives the stage (see below)
     stage = Usd.Stage.Open(layer)
@@ -446,11 +457,11 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
             prim = stage.DefinePrim(f"/{default}/{drawn}")  # typeless: SkelRoot comes from the reference
             offsets, scales, _ = layer_offsets(vb, uses[0], tcps)
             prim.GetReferences().AddInternalReference(character, Sdf.LayerOffset(float(offsets[0]), float(scales[0])))
-            UsdGeom.Xformable(prim).AddTransformOp().Set(_local_to_world(source_stage, vb.meshes[0].path))
+            UsdGeom.Xformable(prim).AddTransformOp().Set(world[vb.meshes[0].path])
             continue
         for crowd, crowd_name in crowds:
             group = UsdGeom.Xform.Define(stage, f"/{default}/{crowd_name}")
-            group.AddTransformOp().Set(_local_to_world(source_stage, crowd.path))
+            group.AddTransformOp().Set(world[crowd.path])
             use = _Use(clip=np.asarray(crowd.clip, np.int64), offset=np.asarray(crowd.time_offset, np.float64),
                        rate=np.asarray(crowd.playback_rate, np.float64))
             offsets, scales, backwards = layer_offsets(vb, use, tcps)

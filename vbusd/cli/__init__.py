@@ -121,8 +121,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         click.echo(cli.get_help(click.Context(cli, info_name="vbusd", **cli.context_settings)))
         return 2
     _RUNNING.clear()
+    import numpy as np
+
     try:
-        result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
+        # Corrupt input can hold NaN and infinities: readers and checks name them as findings and
+        # errors, so numpy's own floating-point warnings would only add raw lines to the terminal.
+        with np.errstate(all="ignore"):
+            result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
         _echo_error(f"vbusd: {error}")
         return error.exit_status

@@ -123,12 +123,14 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
 def _stage_units(path: Path) -> dict:
     """The stage's ``upAxis`` and ``metersPerUnit`` (spec: usd-conversion.md, Scene units), read from
     the root layer's metadata with UsdGeom's fallbacks when not authored."""
-    from pxr import Sdf, UsdGeom
+    from pxr import UsdGeom
 
-    layer = Sdf.Layer.FindOrOpen(str(path))
-    root = layer.pseudoRoot if layer is not None else None
-    up = root.GetInfo("upAxis") if root is not None and root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
-    metres = root.GetInfo("metersPerUnit") if root is not None and root.HasInfo("metersPerUnit") else 0.01
+    from vbusd.io.usd_reader import stage_for_reading
+
+    with stage_for_reading(path, allow_outside_paths=True) as stage:  # paths were checked already
+        root = stage.GetRootLayer().pseudoRoot
+        up = root.GetInfo("upAxis") if root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
+        metres = root.GetInfo("metersPerUnit") if root.HasInfo("metersPerUnit") else 0.01
     return {"upAxis": str(up), "metersPerUnit": float(metres)}
 
 

@@ -134,22 +134,47 @@ def _snap(codes: np.ndarray) -> np.ndarray:
     return np.where(np.abs(codes - nearest) <= 1e-9 * np.maximum(1.0, np.abs(codes)), nearest, codes)
 
 
-def _copy_transform(source_prim, target_prim, UsdGeom) -> None:
-    """Copy a prim's local transform (as one matrix op) when it has one."""
-    if not source_prim or not source_prim.IsA(UsdGeom.Xformable):
+def _source_transforms(asset_path: Path, paths, allow_outside_paths: bool) -> tuple:
+    """The asset's local transforms of ``paths`` and their ancestors, and its frames per second.
+
+    Read once, through the one USD reader (a host's open layer is not touched, USD's diagnostics
+    are captured), before the long decode: ``{path: (resets, [(time code or None, matrix)])}`` for
+    each Xformable prim that has a transform.
+    """
+    from pxr import Sdf, UsdGeom
+
+    from vbusd.io.usd_reader import stage_for_reading
+
+    table = {}
+    with stage_for_reading(asset_path, allow_outside_paths=allow_outside_paths) as stage:
+        wanted = {str(prefix) for path in paths for prefix in Sdf.Path(path).GetPrefixes()}
+        for path in sorted(wanted):
+            prim = stage.GetPrimAtPath(path)
+            if not prim or not prim.IsA(UsdGeom.Xformable):
+                continue
+            xformable = UsdGeom.Xformable(prim)
+            if not xformable.GetOrderedXformOps() and not xformable.GetResetXformStack():
+                continue
+            times = xformable.GetTimeSamples()
+            samples = [(code, xformable.GetLocalTransformation(code)) for code in times] if times \
+                else [(None, xformable.GetLocalTransformation())]
+            table[path] = (xformable.GetResetXformStack(), samples)
+        return table, float(stage.GetFramesPerSecond())
+
+
+def _copy_transform(source, target_prim, UsdGeom) -> None:
+    """Author a prim's local transform (one matrix op) from :func:`_source_transforms`' entry."""
+    if source is None:
         return
-    xformable = UsdGeom.Xformable(source_prim)
-    if not xformable.GetOrderedXformOps() and not xformable.GetResetXformStack():
-        return
+    resets, samples = source
     target = UsdGeom.Xformable(target_prim)
-    target.SetResetXformStack(xformable.GetResetXformStack())
-    times = xformable.GetTimeSamples()
+    target.SetResetXformStack(resets)
     op = target.AddTransformOp()
-    if times:
-        for code in times:
-            op.Set(xformable.GetLocalTransformation(code), code)
-    else:
-        op.Set(xformable.GetLocalTransformation())
+    for code, matrix in samples:
+        if code is None:
+            op.Set(matrix)
+        else:
+            op.Set(matrix, code)
 
 
 def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force: bool = False,
@@ -189,13 +214,14 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     from vbusd.io.usd import read_asset
 
     asset: VirtualBonesAsset = read_asset(asset_path, allow_outside_paths=allow_outside_paths)
-    source_stage = Usd.Stage.Open(str(asset_path))
+    placed = [m.path for vb in asset.animations for m in vb.meshes] + [c.path + "/x" for c in asset.crowds]
+    transforms, source_fps = _source_transforms(asset_path, placed, allow_outside_paths)
     tcps = float(asset.time_codes_per_second)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if asset.up_axis == "Z" else UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, float(asset.meters_per_unit))
     stage.SetTimeCodesPerSecond(tcps)
-    stage.SetFramesPerSecond(float(asset.extra.get("frames_per_second", source_stage.GetFramesPerSecond())))
+    stage.SetFramesPerSecond(float(asset.extra.get("frames_per_second", source_fps)))
 
     report = DecodeReport(asset=str(asset_path), output=str(output), decoder=decoder_name, warnings=warnings)
     first_code, last_code = np.inf, -np.inf
@@ -207,9 +233,9 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         codes = _snap(seconds * tcps)
         first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
         for mesh in vb.meshes:
-            _define_path(stage, source_stage, mesh.path, UsdGeom)
+            _define_path(stage, transforms, mesh.path, UsdGeom)
             prim = UsdGeom.Mesh.Define(stage, mesh.path)
-            _copy_transform(source_stage.GetPrimAtPath(mesh.path), prim.GetPrim(), UsdGeom)
+            _copy_transform(transforms.get(mesh.path), prim.GetPrim(), UsdGeom)
             prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_counts, np.int32)))
             prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_indices, np.int32)))
             prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
@@ -244,7 +270,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
             vb = asset.animations[animation_index]
             codes = _snap(row_times(vb, 0)[1] * tcps)
             first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
-            report.meshes.extend(_decode_crowd(stage, source_stage, vb, crowd, codes, tcps, skin_crowd))
+            report.meshes.extend(_decode_crowd(stage, transforms, vb, crowd, codes, tcps, skin_crowd))
     if not report.meshes:
         raise OptionsError("the asset has no bound mesh to decode", file=str(asset_path))
     stage.SetStartTimeCode(first_code)
@@ -283,7 +309,7 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     return report
 
 
-def _decode_crowd(stage, source_stage, vb: VirtualBones, crowd, codes: np.ndarray, tcps: float,
+def _decode_crowd(stage, transforms: dict, vb: VirtualBones, crowd, codes: np.ndarray, tcps: float,
                   skin_crowd: Callable) -> list:
     """Write one mesh per bound mesh holding every instance of ``crowd``, time-sampled at ``codes``.
 
@@ -292,9 +318,9 @@ def _decode_crowd(stage, source_stage, vb: VirtualBones, crowd, codes: np.ndarra
     """
     from pxr import Gf, Usd, UsdGeom, Vt
 
-    _define_path(stage, source_stage, crowd.path + "/x", UsdGeom)
+    _define_path(stage, transforms, crowd.path + "/x", UsdGeom)
     holder = UsdGeom.Xform.Define(stage, crowd.path).GetPrim()
-    _copy_transform(source_stage.GetPrimAtPath(crowd.path), holder, UsdGeom)
+    _copy_transform(transforms.get(crowd.path), holder, UsdGeom)
     count = crowd.instance_count
     written = []
     for mesh in vb.meshes:
@@ -329,7 +355,7 @@ def _decode_crowd(stage, source_stage, vb: VirtualBones, crowd, codes: np.ndarra
     return written
 
 
-def _define_path(stage, source_stage, path: str, UsdGeom) -> None:
+def _define_path(stage, transforms: dict, path: str, UsdGeom) -> None:
     """Define the ancestors of ``path`` as Xforms carrying the asset's transforms."""
     from pxr import Sdf
 
@@ -337,4 +363,4 @@ def _define_path(stage, source_stage, path: str, UsdGeom) -> None:
         if stage.GetPrimAtPath(ancestor):
             continue
         prim = UsdGeom.Xform.Define(stage, ancestor).GetPrim()
-        _copy_transform(source_stage.GetPrimAtPath(ancestor), prim, UsdGeom)
+        _copy_transform(transforms.get(str(ancestor)), prim, UsdGeom)

@@ -46,7 +46,7 @@ from vbusd.io.files import resolve_inside
 
 __all__ = ["AnimationAttributes", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
-           "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch"]
+           "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -1149,10 +1149,17 @@ class UsdReader:
         return VirtualBonesAsset(
             animations=tuple(animations), crowds=tuple(crowds), crowd_animation=tuple(crowd_animation),
             up_axis=str(UsdGeom.GetStageUpAxis(stage)), meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)),
-            time_codes_per_second=tcps, default_prim=self.layer.defaultPrim or "VirtualBones", extra=extra)
+            time_codes_per_second=tcps, default_prim=_default_prim_name(self.layer.defaultPrim), extra=extra)
 
 
 _PRIVATE_READS = itertools.count(1)
+
+
+def _default_prim_name(authored: str) -> str:
+    """The layer's defaultPrim when it names a root prim (a valid identifier); else "VirtualBones"
+    (a corrupt or hostile value such as ``/etc/hostname`` names no prim)."""
+    Sdf = _pxr()[0]
+    return authored if authored and Sdf.Path.IsValidIdentifier(authored) else "VirtualBones"
 
 
 def authored_type_mismatch(attribute, type_name: str) -> Optional[str]:
@@ -1193,6 +1200,23 @@ def reading(path: PathLike, diagnostics: Diagnostics, *, allow_outside_paths: bo
                 reader.layer = None
     finally:
         reader.usd_messages.clear()
+
+
+@contextlib.contextmanager
+def stage_for_reading(path: PathLike, *, allow_outside_paths: bool = False, suffixes=USD_SUFFIXES):
+    """A stage of ``path`` for the block, opened as every vbusd command opens one: the file's checks,
+    a private copy of a layer a host holds, USD's diagnostics captured (never printed). For code
+    that needs the composed stage itself (transforms, stage metadata), not the model
+    :func:`read_asset` returns.
+
+    Raises:
+        InputError: The file cannot be opened (the same one line ``info`` gives).
+    """
+    diagnostics = Diagnostics(path, strict=True)
+    with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=suffixes) as reader:
+        if reader.stage is None:
+            diagnostics.raise_first_error()
+        yield reader.stage
 
 
 def open_stage(path: PathLike, diagnostics: Diagnostics, *, allow_outside_paths: bool = False):
