@@ -172,6 +172,20 @@ def mutate(data: bytes, suffix: str, rng: random.Random) -> tuple:
     return bytes(out), op
 
 
+def _peak_rss_mb() -> float:
+    """This worker's peak resident set, in MB: VmHWM of its own address space. (``ru_maxrss`` is
+    preserved across execve, so a worker started by a large process, pytest after a long session
+    say, would report its parent's peak.)"""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError):
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def make_mutants(root: Path, count: int, seed: int) -> list:
     """Write ``count`` mutant folders under ``root``; returns one job description per mutant."""
     rng = random.Random(seed)
@@ -278,7 +292,7 @@ def worker() -> int:
             shutil.rmtree(out_dir, ignore_errors=True)
         command = argv[0]
         raw = [l for l in stderr.splitlines() if l.strip() and not l.startswith(("vbusd", f"{command}:"))]
-        rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        rss_mb = _peak_rss_mb()
         answer.write(json.dumps({"status": status, "escaped": escaped, "traceback": "Traceback (most recent" in text,
                                  "left": left, "clobbered": clobbered, "raw": raw[:3], "rss_mb": rss_mb,
                                  "seconds": seconds, "first_line": stderr.strip().splitlines()[0][:300] if stderr.strip() else ""})
