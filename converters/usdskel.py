@@ -948,9 +948,17 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
     from vbusd.io.usd_reader import captured_usd_diagnostics
 
     _check_options(options)
+    from pxr import Tf
+
+    from vbusd.io.usd_reader import tf_message
+
     messages: list = []
-    with captured_usd_diagnostics(messages):
-        scene = _read(Path(path), options)
+    try:
+        with captured_usd_diagnostics(messages):
+            scene = _read(Path(path), options)
+    except Tf.ErrorException as error:  # a corrupt crate value that fails on its lazy read
+        raise InputError(f"USD cannot read a value of the stage: {tf_message(error)}", file=str(path),
+                         code="usd.value") from None
     said = tuple(f"/: usd.diagnostic: USD {kind}: {text}" for kind, text, _ in dict.fromkeys(messages)
                  if kind != "status")
     return dataclasses.replace(scene, warnings=scene.warnings + said) if said else scene

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 FIXTURES = Path(__file__).parent / "fixtures"
-CORRUPT = sorted((FIXTURES / "corrupt_usdc").glob("*.usdc"))
+CORRUPT = [FIXTURES / "corrupt_usdc" / f"{name}.usdc"
+           for name in ("crash_or_huge_alloc", "endless_value_read", "four_gigabyte_value")]
 
 
 @pytest.mark.slow
@@ -60,3 +61,15 @@ def test_a_probe_over_its_memory_limit_refuses(tmp_path, monkeypatch):
     monkeypatch.setattr(usd_probe, "_BASE_MEMORY", 8 << 20)  # too little even to import pxr
     result = usd_probe.probe_crate(path)
     assert not result.ok and "MB" in result.problem
+
+
+def test_a_value_that_fails_its_lazy_read_during_convert_is_usd_value(tmp_path, capsys):
+    # Mutant 3194: the crate opens and reads whole, but UsdPrim's property list fails a USD
+    # verification when the UsdSkel converter traverses it. One line, exit 2, no output.
+    from vbusd.cli import main
+
+    path = FIXTURES / "corrupt_usdc" / "property_spec_type.usdc"
+    assert main(["convert", str(path), "-o", str(tmp_path / "out" / "o.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"vbusd: {path}: usd.value: "), err
+    assert not (tmp_path / "out").exists()
