@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 
@@ -373,8 +373,7 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
-    from vbusd.io.files import Commit, make_folders, remove_folders
-    from vbusd.io.usd import asset_files_in_use, export_layer, replaced_files
+    from vbusd.io.usd import write_layer
 
     started = time.perf_counter()
     output = Path(output)
@@ -486,22 +485,7 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
     if worst > tolerance:
         report.warnings.append(f"UsdSkel cannot hold these bone transforms exactly (no shear, half scales): "
                                f"the matrices differ by up to {worst:.3g} (texel format bound {tolerance:.3g})")
-    data = dict(layer.customLayerData)
-    data["vbusd"] = {"files": Vt.StringArray()}  # names no texture: recovery need not parse it
-    layer.customLayerData = data
-
-    created = make_folders(output.parent)
-    try:
-        with Commit(output, replace=force, in_use=asset_files_in_use) as commit:
-            old_files = replaced_files(output)
-            export_layer(layer, commit.temp_path(output, reserve=False), output)
-            commit.discard_after(old_files)
-    except BaseException as error:
-        remove_folders(created)
-        if not isinstance(error, OSError):
-            raise
-        raise VbusdError(f"cannot write the UsdSkel fallback (nothing was written): {error.strerror or error}",
-                         file=str(output), code="write.failed") from None
+    write_layer(layer, output, replace=force, what="UsdSkel fallback")
     report.start_time_code, report.end_time_code = window_start * tcps, window_end * tcps
     report.files = {str(output): output.stat().st_size}
     report.seconds = round(time.perf_counter() - started, 4)

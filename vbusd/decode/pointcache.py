@@ -37,10 +37,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from vbusd.convert import check_output_path
-from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
-from vbusd.io.files import make_folders, remove_folders
 
 __all__ = ["DEVICES", "DecodeReport", "row_times", "decode"]
 
@@ -280,29 +279,12 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default}"))
     stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
 
-    from vbusd.io.files import Commit
-    from vbusd.io.usd import asset_files_in_use, export_layer, replaced_files
+    from vbusd.io.usd import write_layer
 
-    layer = stage.GetRootLayer()
-    data = dict(layer.customLayerData)
-    data["vbusd"] = {"files": Vt.StringArray()}  # names no texture: recovery need not parse it
-    layer.customLayerData = data
-    created = make_folders(output.parent)
-    try:
-        # One commit (spec, "File names and the write guarantee"): under the output's lock, the
-        # cache is staged beside the target and one rename makes it current; a run killed half
-        # way leaves a staged file that the next run writing there removes.
-        with Commit(output, replace=force, in_use=asset_files_in_use) as commit:
-            old_files = replaced_files(output)  # an asset replaced by a cache leaves no texture
-            export_layer(layer, commit.temp_path(output, reserve=False), output)
-            commit.discard_after(old_files)
-    except BaseException as error:
-        remove_folders(created)
-        if not isinstance(error, OSError):
-            raise
-        # disk full, permission denied: one line, not a traceback
-        raise VbusdError(f"cannot write the point cache (nothing was written): {error.strerror or error}",
-                         file=str(output), code="decode.write") from None
+    # One commit (spec, "File names and the write guarantee"): under the output's lock, the cache
+    # is staged beside the target and one rename makes it current; a run killed half way leaves a
+    # staged file that the next run writing there removes.
+    write_layer(stage.GetRootLayer(), output, replace=force, what="point cache", code="decode.write")
     report.start_time_code, report.end_time_code = first_code, last_code
     report.bytes = output.stat().st_size
     report.seconds = round(time.perf_counter() - started, 4)

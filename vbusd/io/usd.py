@@ -68,7 +68,7 @@ from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, reg
 __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
            "PRIMVAR_BONE_WEIGHTS", "PRIMVAR_CLIP", "PRIMVAR_TIME_OFFSET", "PRIMVAR_PLAYBACK_RATE",
            "PROTOTYPES_SCOPE", "build_stage", "write_asset", "replaced_files", "LARGE_LAYER_BYTES",
-           "layer_files", "asset_files_in_use", "export_layer",
+           "layer_files", "asset_files_in_use", "export_layer", "write_layer",
            # read through the one reader, re-exported for callers of vbusd.io.usd
            "OUTSIDE_PATHS_HINT", "READ_SUFFIXES", "WEIGHT_SUM_TOLERANCE", "AnimationAttributes",
            "read_animation_attributes", "read_asset", "tf_message"]
@@ -501,6 +501,42 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
         export_layer(layer, commit.temp_path(path, reserve=False), path)
         commit.discard_after(old_files)
     return written
+
+
+def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.failed") -> None:
+    """Write one USD layer that names no texture (a point cache, a UsdSkel fallback) as an asset is
+    written: missing folders created, one commit under the output's lock, the files of an asset it
+    replaces removed after the commit (spec, "File names and the write guarantee").
+
+    Args:
+        layer: The ``Sdf.Layer`` to write (its ``customLayerData`` is stamped as naming no file).
+        output: The target path.
+        replace: Replace an existing output (``--force``).
+        what: What it is, for the message (``"point cache"``).
+        code: The error code of a failed write.
+
+    Raises:
+        VbusdError: The write failed (disk full, permissions...): one line; nothing was written.
+    """
+    from vbusd.io.files import Commit, make_folders, remove_folders
+
+    Vt = _pxr()[5]
+    output = Path(output)
+    data = dict(layer.customLayerData)
+    data["vbusd"] = {"files": Vt.StringArray()}  # names no texture: recovery need not parse it
+    layer.customLayerData = data
+    created = make_folders(output.parent)
+    try:
+        with Commit(output, replace=replace, in_use=asset_files_in_use) as commit:
+            old_files = replaced_files(output)  # an asset replaced by this layer leaves no texture
+            export_layer(layer, commit.temp_path(output, reserve=False), output)
+            commit.discard_after(old_files)
+    except BaseException as error:
+        remove_folders(created)
+        if not isinstance(error, OSError):
+            raise
+        raise VbusdError(f"cannot write the {what} (nothing was written): {error.strerror or error}",
+                         file=str(output), code=code) from None
 
 
 _TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2")
