@@ -73,6 +73,30 @@ def run_process(args: list, env: dict) -> tuple:
     return process.returncode, process.stderr
 
 
+def run_in_process(args: list, env: dict, *, quiet: bool = False) -> tuple:
+    """Run ``vbusd ARGS`` in this process with ``env`` set (the fault counter reset before and after);
+    return (exit status, ""). For set-up runs that must succeed, where a child process would only
+    cost time; ``quiet`` adds ``--quiet`` to convert and decode."""
+    from vbusd.cli import main
+    from vbusd.io import files
+
+    saved = {name: os.environ.get(name) for name in list(env) + [files.FAULT_ENV, files.FAULT_TRACE_ENV]}
+    try:
+        for name in (files.FAULT_ENV, files.FAULT_TRACE_ENV):
+            os.environ.pop(name, None)
+        os.environ.update({name: str(value) for name, value in env.items()})
+        files._fault_steps = 0
+        extra = ["--quiet"] if quiet and args[0] in ("convert", "decode") else []
+        return main([str(a) for a in args] + extra), ""
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+        files._fault_steps = 0
+
+
 @dataclass
 class Writer:
     """One vbusd writer: how to make the old output and the command that replaces it."""

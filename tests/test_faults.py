@@ -65,21 +65,8 @@ def in_process(monkeypatch, capfd):
 
 
 def run_here(args, env):
-    """The same runner for module fixtures (set-up runs that must succeed; stderr is not kept)."""
-    saved = {name: os.environ.get(name) for name in list(env) + [files.FAULT_ENV, files.FAULT_TRACE_ENV]}
-    try:
-        for name in (files.FAULT_ENV, files.FAULT_TRACE_ENV):
-            os.environ.pop(name, None)
-        os.environ.update({name: str(value) for name, value in env.items()})
-        files._fault_steps = 0
-        return main([str(a) for a in args] + (["--quiet"] if args[0] in ("convert", "decode") else [])), ""
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-        files._fault_steps = 0
+    """The sweep's in-process runner, for module fixtures (set-up runs that must succeed)."""
+    return sweep.run_in_process(args, env, quiet=True)
 
 
 @pytest.fixture(scope="module")

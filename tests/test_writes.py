@@ -23,7 +23,6 @@ import pytest
 pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (before pxr: registers the schema)
-from vbusd.cli import main  # noqa: E402
 from vbusd.io import files  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,21 +43,8 @@ sweep = _load_sweep()
 
 
 def run_here(args, env):
-    """Run ``vbusd ARGS`` in this process with ``env`` set (module fixtures: stderr not kept)."""
-    saved = {name: os.environ.get(name) for name in list(env) + [files.FAULT_ENV, files.FAULT_TRACE_ENV]}
-    try:
-        for name in (files.FAULT_ENV, files.FAULT_TRACE_ENV):
-            os.environ.pop(name, None)
-        os.environ.update({name: str(value) for name, value in env.items()})
-        files._fault_steps = 0
-        return main([str(a) for a in args]), ""
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-        files._fault_steps = 0
+    """The sweep's in-process runner, for module fixtures (set-up runs that must succeed)."""
+    return sweep.run_in_process(args, env, quiet=False)
 
 
 @pytest.fixture()
