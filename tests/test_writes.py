@@ -23,7 +23,6 @@ import pytest
 pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (before pxr: registers the schema)
-from vbusd.io import files  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
