@@ -246,25 +246,20 @@ def _hlsl_to_glsl(source: str, workdir: Path) -> str:
     return crossed.stdout
 
 
-def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
-    """Skin every (instance, vertex) of a vector with the generated module; (points, normals)."""
+def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
+    """Upload a vector's texture and bind the module's inputs (texture, time, clips, unorm ranges:
+    uniforms in GLSL, the VirtualBones cbuffer in HLSL); returns what must outlive the draw."""
     layout = vector["layout"]
-    names = NAMES[lang]
-    source = "#define VB_CROSSFADE 1\n" + generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"],
-                                                                   max_influences=vector["mesh"]["influences"]))
-    if lang == "glsl":
-        program = ctx.program(vertex_shader="#version 330 core\n" + source, varyings=names["varyings"])
-    else:
-        program = ctx.program(vertex_shader=_hlsl_to_glsl(source, workdir), varyings=names["varyings"])
     vb = vector_animation(vector)
     dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
     texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
     texture.use(location=0)
-    program[names["texture"]].value = 0
+    program[NAMES[lang]["texture"]].value = 0
     clips = [(float(c["firstRow"]), float(c["rowCount"]), float(c["rowsPerSecond"]), 1.0 if c["loop"] else 0.0)
              for c in layout["clips"]]
     clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
+    block = None
     if lang == "glsl":
         program["vb_time"].value = time
         program["vb_clips"].value = clips
@@ -280,6 +275,20 @@ def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
         block = ctx.buffer(payload)
         program["VirtualBones"].binding = 1
         block.bind_to_uniform_block(1)
+    return texture, block
+
+
+def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
+    """Skin every (instance, vertex) of a vector with the generated module; (points, normals)."""
+    layout = vector["layout"]
+    names = NAMES[lang]
+    source = "#define VB_CROSSFADE 1\n" + generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"],
+                                                                   max_influences=vector["mesh"]["influences"]))
+    if lang == "glsl":
+        program = ctx.program(vertex_shader="#version 330 core\n" + source, varyings=names["varyings"])
+    else:
+        program = ctx.program(vertex_shader=_hlsl_to_glsl(source, workdir), varyings=names["varyings"])
+    texture, block = _bind_animation(ctx, program, lang, vector, time)
     mesh = vector["mesh"]
     count = len(mesh["points"])
     indices = np.array(mesh["boneIndices"], np.int32)
@@ -390,31 +399,7 @@ def run_socket_shader(ctx, lang: str, vector: dict, time: float, workdir: Path) 
     else:
         program = ctx.program(vertex_shader=_hlsl_to_glsl(module + _SOCKET_HLSL_MAIN, workdir),
                               varyings=SOCKET_NAMES["hlsl"]["varyings"])
-    vb = vector_animation(vector)
-    dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
-    texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
-    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-    texture.use(location=0)
-    program[NAMES[lang]["texture"]].value = 0
-    clips = [(float(c["firstRow"]), float(c["rowCount"]), float(c["rowsPerSecond"]), 1.0 if c["loop"] else 0.0)
-             for c in layout["clips"]]
-    clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
-    block = None
-    if lang == "glsl":
-        program["vb_time"].value = time
-        program["vb_clips"].value = clips
-        if "unormRanges" in layout:
-            ranges = np.array(layout["unormRanges"])
-            program["vb_rangeMin"].value = [tuple(r) for r in ranges[..., 0]]
-            program["vb_rangeMax"].value = [tuple(r) for r in ranges[..., 1]]
-    else:
-        payload = np.array([time, 0, 0, 0], "<f4").tobytes() + np.array(clips, "<f4").tobytes()
-        if "unormRanges" in layout:
-            ranges = np.array(layout["unormRanges"])
-            payload += np.array(ranges[..., 0], "<f4").tobytes() + np.array(ranges[..., 1], "<f4").tobytes()
-        block = ctx.buffer(payload)
-        program["VirtualBones"].binding = 1
-        block.bind_to_uniform_block(1)
+    texture, block = _bind_animation(ctx, program, lang, vector, time)
     binds = np.array(vector["bindTransforms"], np.float32)  # (bones, 4, 4)
     bones = len(binds)
     per_bone = np.zeros(bones, dtype=[("bone", "<i4"), ("rows", "<f4", (3, 4))])
