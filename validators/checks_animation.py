@@ -18,8 +18,7 @@ from pathlib import Path
 from typing import Optional
 
 from vbusd.format import names
-from vbusd.format.declared import check_declared, check_format_version, compare_declared  # noqa: F401
-from vbusd.format.diagnostics import Diagnostics, UsdSite, finding
+from vbusd.format.diagnostics import Diagnostics, UsdSite
 
 __all__ = ["MAX_PACKAGED_BYTES", "resolve_texture", "check_animation_prim"]
 

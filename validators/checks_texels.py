@@ -14,7 +14,6 @@ begin with. For unorm16 the absolute error per channel is half a quantization st
 
 from __future__ import annotations
 
-import hashlib
 import math
 from typing import Optional
 
@@ -25,7 +24,7 @@ from vbusd.format.layout import Encoding, Layout, TexelFormat
 from vbusd.format.diagnostics import TexelAddress, finding
 
 __all__ = ["BLOCK_VALUES", "UNIT_ROUNDOFF", "FLOAT32_SOURCE_ALLOWANCE", "tolerance", "row_blocks",
-           "check_non_finite", "check_padding", "content_digest", "dequantize", "check_encoding",
+           "check_non_finite", "check_padding", "dequantize", "check_encoding",
            "check_loop_jumps"]
 
 BLOCK_VALUES = 1 << 20
@@ -127,18 +126,6 @@ def check_padding(texels: np.ndarray, file: str, layout: Layout):
     return [finding("texture.padding.nonZero", f"{count} padding channel value(s) are not zero; the "
                     f"first is {float(value)} at row {row}, column {column} (data: {layout.used_width} "
                     f"columns x {layout.row_count} rows)", _address(file, None, row, column, int(channel)))]
-
-
-def content_digest(texels: np.ndarray) -> str:
-    """``sha256:`` digest of the texels as little-endian values in file order (the format's
-    content digest).
-
-    The definition of :func:`vbusd.format.metadata.content_digest`, hashed through a memoryview: that one
-    copies the texels with ``tobytes()`` (as large as the texture: 128 MiB at 4096 x 4096 float16), which
-    the validator's bounded-memory figures (benchmarks/README.md) do not allow.
-    """
-    little = texels.astype(texels.dtype.newbyteorder("<"), copy=False)
-    return "sha256:" + hashlib.sha256(memoryview(np.ascontiguousarray(little)).cast("B")).hexdigest()
 
 
 def dequantize(block: np.ndarray, layout: Layout, unorm_ranges: Optional[np.ndarray]) -> np.ndarray:

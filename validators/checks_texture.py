@@ -169,7 +169,7 @@ def _check_texels(tex: np.ndarray, display: str, declared: Declared, site: Optio
 
 def check_texture_only(path: str) -> list:
     """Checks of a texture (``.exr``, ``.png``, ``.ktx2``) or a sidecar (``.json``) on its own."""
-    from vbusd.validators.checks_animation import check_declared
+    from vbusd.format.declared import check_declared
 
     if not path.lower().endswith(".json"):
         return check_texture_file(path, path, None)

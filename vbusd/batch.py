@@ -46,6 +46,7 @@ from typing import Callable, Iterable, Optional
 
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.jsonform import json_ready
+from vbusd.io.files import file_sha256
 
 __all__ = ["BatchItem", "AssetResult", "BatchReport", "SOURCE_SUFFIXES", "CACHE_FOLDER", "plan_batch",
            "read_manifest", "cache_key", "dependencies", "convert_one", "run_batch"]
@@ -358,15 +359,6 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
 # --------------------------------------------------------------------------------------------
 
 
-def file_digest(path) -> str:
-    """SHA-256 of a file's bytes (hex)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def dependencies(source) -> list:
     """Every file a source references, the source first; missing ones as ``missing:NAME``.
 
@@ -435,7 +427,7 @@ def cache_key(source, options) -> tuple:
             digest.update(f"{name}\n".encode())
             continue
         try:
-            content = file_digest(name)
+            content = file_sha256(name)
         except OSError:
             content = "unreadable"
         try:
@@ -474,7 +466,7 @@ def outputs_intact(record: dict) -> bool:
         return False
     for name, entry in files.items():
         try:
-            if os.path.getsize(name) != entry["bytes"] or file_digest(name) != entry["sha256"]:
+            if os.path.getsize(name) != entry["bytes"] or file_sha256(name) != entry["sha256"]:
                 return False
         except (OSError, KeyError, TypeError):
             return False
@@ -546,7 +538,7 @@ def convert_one(task: dict) -> dict:
         if cache is not None:
             _write_record(cache, output, {
                 "state": "done", "key": task.get("key"), "source": str(source), "output": str(output),
-                "files": {name: {"bytes": size, "sha256": file_digest(name)} for name, size in report.files.items()},
+                "files": {name: {"bytes": size, "sha256": file_sha256(name)} for name, size in report.files.items()},
                 "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction})
     except VbusdError as error:
         result.error, result.code = " ".join(str(error).split()), error.code

@@ -24,18 +24,16 @@ Locations are JSON pointers into the document, with where the document sits in i
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import hashlib
 import json
 from dataclasses import dataclass
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer, to_error
-from vbusd.format.errors import InputError, VersionError
 from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
 from vbusd.format.model import Clip, VirtualBones
 
@@ -53,7 +51,7 @@ SCHEMA_RESOURCE = "layout-metadata.schema.json"
 DIGEST_PREFIX = "sha256:"
 
 # One upgrade path for the metadata and the USD attributes (vbusd.format.versioning).
-from vbusd.format.versioning import UPGRADES, upgrade  # noqa: E402,F401  (re-exported)
+from vbusd.format.versioning import upgrade  # noqa: E402  (re-exported: metadata documents upgrade through it)
 
 
 @dataclass(frozen=True, eq=False)

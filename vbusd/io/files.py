@@ -74,7 +74,7 @@ from vbusd.format.errors import InputError, OptionsError, VbusdError
 __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
            "FAULT_ENV", "FAULT_TRACE_ENV", "fault_point", "LOCK_TIMEOUT_S", "OutputLocked",
            "lock_path", "journal_path", "Commit", "write_error", "recover", "resolve_inside",
-           "make_folders", "remove_folders"]
+           "make_folders", "remove_folders", "file_sha256"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -921,3 +921,14 @@ def remove_folders(folders: Iterable) -> None:
             Path(path).rmdir()
         except OSError:
             pass
+
+
+def file_sha256(path) -> str:
+    """SHA-256 of a file's bytes (hex), read in 1 MiB blocks."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -52,17 +52,16 @@ from __future__ import annotations
 import errno
 import os
 import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Union
 
 import numpy as np
 
 from vbusd.format import names
-from vbusd.format.errors import InputError, OptionsError, VbusdError, VersionError
-from vbusd.io.files import AtomicTransaction, resolve_inside
-from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
-from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.format.errors import OptionsError, VbusdError
+from vbusd.format.layout import FORMAT_VERSION, TexelFormat
+from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.io.files import file_sha256
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
 __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
@@ -93,13 +92,6 @@ def _pxr():
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
     return Gf, Sdf, Tf, Usd, UsdGeom, Vt
-
-
-def _tf_message(error: BaseException) -> str:
-    """USD's error text as one clean line (:func:`vbusd.io.usd_reader.tf_message`)."""
-    from vbusd.io.usd_reader import tf_message
-
-    return tf_message(error)
 
 
 # --------------------------------------------------------------------------------------------
@@ -548,27 +540,18 @@ def _texture_name(plain: Path, staged: Path, in_use: set) -> Path:
     Only such a file must not change before the commit point; any other file of that name is no
     part of a current asset and is replaced (the output exists without --force was refused).
     """
-    digest = _sha256(staged)
+    digest = file_sha256(staged)
     sidecar = plain.with_name(plain.name + ".json")
     if os.path.abspath(plain) not in in_use and os.path.abspath(sidecar) not in in_use:
         return plain
     try:
-        if os.path.isfile(plain) and not os.path.islink(plain) and _sha256(plain) == digest \
+        if os.path.isfile(plain) and not os.path.islink(plain) and file_sha256(plain) == digest \
                 and (not os.path.lexists(sidecar) or os.path.isfile(sidecar)):
             return plain  # the same texture: replacing it changes nothing a reader sees
     except OSError:
         pass
     return plain.with_name(f"{plain.stem}.{digest[:12]}{plain.suffix}")
 
-
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def replaced_files(layer_path: PathLike) -> list:
@@ -687,7 +670,7 @@ def export_layer(layer, temporary: Path, target: Path) -> None:
     try:
         ok = layer.Export(str(temporary))
     except Tf.ErrorException as error:
-        message = _tf_message(error)
+        message = tf_message(error)
         for text, code in _ERRNO_OF_MESSAGE:
             if text in message:
                 raise OSError(code, text, str(target)) from None
