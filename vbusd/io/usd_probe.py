@@ -27,16 +27,17 @@ __all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "is_crate", "memory_limi
 CRATE_MAGIC = b"PXR-USDC"
 
 _BASE_MEMORY = 384 << 20
-"""Data segment of a child that imports pxr and reads a small valid asset (about 90 MB), with room."""
+"""Data segment of a child that imports pxr and reads a small valid asset (about 90 MiB), with room."""
 _MEMORY_PER_BYTE = 48
 """Decoded USD data is rarely over 10x its crate size (LZ4 and integer compression); 48x is slack."""
 _BASE_SECONDS = 20.0
-_SECONDS_PER_MB = 2.0
+_SECONDS_PER_MIB = 2.0
 
 _PASSED: set = set()
 """(real path, size, mtime) of crate files that passed in this process: not probed twice."""
 
-_EXIT_REFUSED = 3  # USD refused the file within the bounds (the in-process reader reports why)
+_EXIT_REFUSED = 3  # USD refused the file within the bounds; its message is the child's last stderr line
+_EXIT_MEMORY = 5  # the child ran out of its data segment in Python code
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ def memory_limit(size: int) -> int:
 
 def time_limit(size: int) -> float:
     """The time limit, in seconds, for probing a crate file of ``size`` bytes."""
-    return _BASE_SECONDS + _SECONDS_PER_MB * size / (1 << 20)
+    return _BASE_SECONDS + _SECONDS_PER_MIB * size / (1 << 20)
 
 
 def _limit_memory(limit: int):
@@ -86,8 +87,11 @@ def probe_crate(path) -> ProbeResult:
         A :class:`ProbeResult`; ``ok`` False names the bound the file broke.
     """
     path = Path(path)
-    stat = path.stat()
-    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    try:
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    except OSError as error:
+        return ProbeResult(False, problem=f"cannot read it: {error.strerror or error}")
     if key in _PASSED:  # the same unchanged file, read again by the same run
         return ProbeResult(True)
     size = stat.st_size
@@ -103,23 +107,28 @@ def probe_crate(path) -> ProbeResult:
     if done.returncode == 0:
         _PASSED.add(key)
         return ProbeResult(True)
+    said = done.stderr.decode("utf-8", "replace").strip().splitlines()
+    last = " ".join(said[-1].split())[:300] if said else ""
     if done.returncode == _EXIT_REFUSED:
-        said = done.stderr.decode("utf-8", "replace").strip().splitlines()
-        return ProbeResult(False, problem=f"USD cannot open the file: {said[-1] if said else 'refused'}")
-    mb = memory >> 20
-    if done.returncode < 0:
-        return ProbeResult(False, problem=f"USD crashes reading it (signal {-done.returncode}) or needs more "
-                                          f"than {mb} MB for a file of {size} bytes (the file is corrupt)")
-    return ProbeResult(False, problem=f"USD needs more than {mb} MB to read a file of {size} bytes "
-                                      "(the file is probably corrupt)")
+        return ProbeResult(False, problem=f"USD cannot open the file: {last or 'refused'}")
+    mib = memory >> 20
+    out_of_memory = any(sign in " ".join(said) for sign in ("MemoryError", "Cannot allocate memory", "bad_alloc"))
+    if done.returncode == _EXIT_MEMORY or out_of_memory:
+        return ProbeResult(False, problem=f"USD needs more than {mib} MiB to read a file of {size} bytes "
+                                          "(the file is probably corrupt)")
+    if done.returncode < 0:  # a C++ allocation failure under the limit aborts (SIGABRT) or crashes
+        return ProbeResult(False, problem=f"USD crashes reading it (signal {-done.returncode}), or needs more "
+                                          f"than {mib} MiB for a file of {size} bytes (the file is corrupt)")
+    return ProbeResult(False, problem=f"the bounded read of it failed (exit {done.returncode}): "
+                                      f"{last or 'no message'}")
 
 
 def _read_everything(path: str) -> int:
     """The child: open, compose and read every authored value and time sample."""
-    try:
-        from pxr import Sdf, Tf, Usd
-    except ImportError:  # pragma: no cover - no usd-core in this interpreter: nothing to probe with
-        return 0
+    from pxr import Sdf, Tf, Usd  # failing here is exit 1: the parent reports it, nothing passes unread
+
+    from vbusd.io.usd_reader import tf_message
+
     try:
         layer = Sdf.Layer.FindOrOpen(path)
         if layer is None:
@@ -133,9 +142,9 @@ def _read_everything(path: str) -> int:
                     attribute.Get(time)
             for relationship in prim.GetAuthoredRelationships():
                 relationship.GetTargets()
+    except MemoryError:
+        return _EXIT_MEMORY
     except (Tf.ErrorException, RuntimeError, ValueError, TypeError) as error:
-        from vbusd.io.usd_reader import tf_message
-
         sys.stderr.write(tf_message(error).replace("\n", " ") + "\n")
         return _EXIT_REFUSED
     return 0
