@@ -227,36 +227,6 @@ def bind_mesh(mesh: SkinnedMesh, bone_count: int, max_influences: int) -> BoundM
         normals_interpolation=mesh.normals_interpolation)
 
 
-def _clip_extents(matrices: np.ndarray, meshes: tuple, bone_count: int) -> np.ndarray:
-    """Conservative (2, 3) bounds of the skinned meshes over the given poses.
-
-    Every skinned point is a convex combination of its influencing bones' transforms of it, so it
-    lies inside the box spanned by each bone's transformed rest box of the points it influences.
-    """
-    lo = np.full((bone_count, 3), np.inf)
-    hi = np.full((bone_count, 3), -np.inf)
-    for mesh in meshes:
-        for slot in range(mesh.bone_indices.shape[1]):
-            used = mesh.bone_weights[:, slot] > 0
-            bones = mesh.bone_indices[used, slot]
-            pts = mesh.points[used].astype(np.float64)
-            np.minimum.at(lo, bones, pts)
-            np.maximum.at(hi, bones, pts)
-    active = np.all(np.isfinite(lo), axis=1)
-    if not np.any(active):
-        return np.zeros((2, 3), dtype=np.float32)
-    center, half = 0.5 * (lo[active] + hi[active]), 0.5 * (hi[active] - lo[active])  # (bones, 3)
-    m = matrices[:, active]  # (rows, bones, 4, 4)
-    # The box of a box's 8 transformed corners: center A c + t, half-size |A| h, per axis.
-    low, high = np.full(3, np.inf), np.full(3, -np.inf)
-    for axis in range(3):
-        row = m[:, :, axis, :3]  # (rows, bones, 3)
-        moved = (row * center).sum(axis=-1) + m[:, :, axis, 3]
-        spread = (np.abs(row) * half).sum(axis=-1)
-        low[axis], high[axis] = (moved - spread).min(), (moved + spread).max()
-    return np.stack([low, high]).astype(np.float32)
-
-
 def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: AnimationClip,
                       times: np.ndarray) -> UnsupportedError:
     row, bone = error.index[0], error.index[1]
@@ -358,8 +328,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         except NonRigidError as error:
             raise _locate_non_rigid(error, animation, clip, times) from None
         values.append(make_hemispheres_continuous(encoded, options.encoding))
-        # With meshes the extents come from the decoded texels below (what decoders compute).
-        extents.append(np.zeros((2, 3), np.float32) if meshes else _clip_extents(matrices, meshes, bone_count))
+        # Zero boxes without meshes; with meshes they come from the decoded texels below.
+        extents.append(np.zeros((2, 3), np.float32))
         clips.append(Clip(name=clip.name, first_row=first_row, row_count=plan.row_count,
                           rows_per_second=plan.rows_per_second, loop=plan.loop,
                           start_time=float(clip.start_time)))
