@@ -80,10 +80,15 @@ def test_text_table_and_exit_two_when_none_converts(tmp_path, capsys):
     (library / "x.usda").write_text("not usd", encoding="utf-8")
     (library / "y.glb").write_bytes(b"glTF\x02\x00\x00\x00")
     status = main(["convert", str(library), "-o", str(tmp_path / "out"), "--jobs", "1", *FAST])
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert status == 2  # none could be converted
     assert "x.usda" in out and "y.glb" in out and "0 converted" in out and "2 failed" in out
     assert max(len(line) for line in out.splitlines()) <= 80
+    # Each failed asset's error: one unwrapped line on stderr, as a single convert prints it.
+    lines = err.strip().splitlines()
+    assert len(lines) == 2 and all(line.startswith("vbusd: ") and ": usd.open: " in line or ": gltf." in line
+                                   for line in lines), lines
+    assert not (tmp_path / "out").exists()  # nothing converted: no output folder, no cache records
 
 
 def test_nothing_to_convert_is_a_usage_error(tmp_path, capsys):
@@ -313,3 +318,16 @@ def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
     status = main(["convert", str(library), "-o", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9"])
     err = capsys.readouterr().err
     assert status == 2 and "batch.scheduler" in err and len(err.strip().splitlines()) == 1
+
+
+def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):
+    # `-o x.usda` with several sources would make a folder called x.usda: refused, nothing made.
+    library = tmp_path / "lib"
+    library.mkdir()
+    (library / "a.usda").write_text("not usd", encoding="utf-8")
+    (library / "b.usda").write_text("not usd", encoding="utf-8")
+    out = tmp_path / "out" / "x.usda"
+    assert main(["convert", str(library / "a.usda"), str(library / "b.usda"), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "batch.plan" in err[0] and "not a USD file" in err[0], err
+    assert not (tmp_path / "out").exists()

@@ -33,6 +33,7 @@ changed reconverts without ``--force``.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import hashlib
@@ -321,6 +322,9 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
     if out.exists() and not out.is_dir():
         raise OptionsError("with several sources -o names an output folder, and this is a file", file=str(out),
                            code="batch.plan")
+    if not out.exists() and out.suffix.lower() in (".usda", ".usdc", ".usd", ".usdz"):
+        raise OptionsError("with several sources -o names an output folder, not a USD file (each asset is "
+                           "written in it under its source's name)", file=str(out), code="batch.plan")
     output_root = out.resolve() if out.exists() else None
     named = []
     for argument in sources:
@@ -604,6 +608,10 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
         else:
             folders = [str(Path(i.output).resolve().parent) for i in items]
             cache_dir = Path(os.path.commonpath(folders)) / CACHE_FOLDER
+    # Folders this run may create (output folders, the cache): removed again if they end up empty.
+    watched = {Path(i.output).resolve().parent for i in items} | ({cache_dir.resolve()} if cache_dir else set())
+    missing = sorted({f for folder in watched for f in (folder, *folder.parents) if not f.exists()},
+                     key=lambda f: len(f.parts), reverse=True)
     results: list = [None] * len(items)
     tasks = []
     done = 0
@@ -663,8 +671,25 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
             finish(index, convert_one(task))
     elif tasks:
         _run_pool(tasks, min(jobs, len(tasks)), finish)
+    _forget_failures(results, cache_dir, missing)
     return BatchReport(assets=results, jobs=jobs, scheduler=scheduler, seconds=time.perf_counter() - started,
                        cache=None if cache_dir is None else str(cache_dir))
+
+
+def _forget_failures(results: list, cache_dir: Optional[Path], created: list) -> None:
+    """After the run: a failed asset wrote nothing (each conversion is one commit), so its "pending"
+    record goes when it has no output, and folders this run created that are still empty go too. A
+    batch where nothing converted leaves nothing behind."""
+    for result in results:
+        if cache_dir is not None and result is not None and result.status == "failed" \
+                and not Path(result.output).exists():
+            with contextlib.suppress(OSError):
+                record = _record_path(cache_dir, Path(result.output))
+                if (_read_record(cache_dir, Path(result.output)) or {}).get("state") == "pending":
+                    record.unlink()
+    for folder in created:  # deepest first
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def _size(path: str) -> int:

@@ -179,10 +179,9 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
         echo_json(report.to_dict())
     elif not quiet:
         print_batch(report)
-    else:
-        for asset in report.assets:  # --quiet still prints errors, one line each
-            if asset.status == "failed":
-                click.echo(f"vbusd: {asset.error}", err=True)
+    for asset in report.assets:  # each failed asset's one-line error, unwrapped, on stderr (--quiet too)
+        if asset.status == "failed" and output_format != "json":
+            click.echo(f"vbusd: {asset.error}", err=True)
     return report.exit_status
 
 
@@ -198,9 +197,6 @@ def print_batch(report, file=None) -> None:
         grid.add_row(Path(asset.source).name, asset.status, f"{asset.seconds:.1f} s",
                      _human_bytes(asset.bytes) if asset.bytes else "-", _fmt(asset.max_error, ".3g"))
     out.print(grid)
-    for asset in report.assets:
-        if asset.status == "failed":
-            out.print(f"failed: {asset.error}", markup=False)
     where = f"Dask at {report.scheduler}" if report.scheduler else f"{report.jobs} job{'s' * (report.jobs != 1)}"
     out.print(f"{report.converted} converted, {report.cached} unchanged (cached), {report.failed} failed, "
               f"of {len(report.assets)} in {report.seconds:.1f} s ({where})", markup=False)
