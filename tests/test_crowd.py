@@ -194,3 +194,11 @@ def test_layout_points_takes_its_file_as_the_issue_spells_it(character, tmp_path
         assert main(["crowd", str(character), *spelled, "-o", str(out)]) == 0
         crowd = vbusd.read_asset(out).crowds[0]
         assert np.allclose(crowd.positions, [[0, 0, 0], [2, 0, 0], [4, 0, 1]])
+
+
+def test_mesh_names_stay_unique_when_a_suffix_is_taken():
+    # Meshes called a, a and a_2 must not give two "a_2" prims under one prototype.
+    from vbusd.format.names import unique_names
+
+    assert unique_names(["a", "a", "a_2"]) == ["a", "a_2", "a_2_2"]
+    assert len(set(unique_names(["Body"] * 5 + ["Body_3"]))) == 6

@@ -27,6 +27,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.names import unique_names
 
 __all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
 
@@ -304,15 +305,6 @@ def _relative_reference(character: Path, output: Path, allow_outside_paths: bool
     return Path(relative).as_posix() if not relative.startswith("..") else str(character.resolve())
 
 
-def _unique_mesh_names(paths) -> list:
-    names, seen = [], {}
-    for path in paths:
-        base = path.rsplit("/", 1)[-1]
-        seen[base] = seen.get(base, 0) + 1
-        names.append(base if seen[base] == 1 else f"{base}_{seen[base]}")
-    return names
-
-
 def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptions(), *, force: bool = False,
                 allow_outside_paths: bool = False) -> CrowdReport:
     """Write a USD crowd of converted characters.
@@ -422,7 +414,7 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
         UsdGeom.Scope.Define(stage, prototype.GetParentPath())
         UsdGeom.Xform.Define(stage, prototype)
         held = Sdf.Path(f"{CROWD_ROOT}/Characters/{character.name}")
-        names = _unique_mesh_names(character.mesh_paths)
+        names = unique_names([path.rsplit("/", 1)[-1] for path in character.mesh_paths])
         for mesh_path, name in zip(character.mesh_paths, names):
             inside = Sdf.Path(mesh_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
             child = stage.DefinePrim(prototype.AppendChild(name))

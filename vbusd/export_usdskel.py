@@ -40,6 +40,7 @@ import numpy as np
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
+from vbusd.format.names import unique_names
 
 __all__ = ["UsdSkelReport", "export_usdskel", "format_tolerance", "layer_offsets", "SUFFIXES", "CHARACTERS_ROOT",
            "MAX_SAMPLES", "FROZEN_SCALE"]
@@ -150,16 +151,7 @@ def _identifier(text: str, fallback: str) -> str:
 
 
 def _unique(names, fallback: str) -> list:
-    out, used = [], set()
-    for name in names:
-        base = _identifier(name, fallback)
-        candidate, k = base, 1
-        while candidate in used:
-            k += 1
-            candidate = f"{base}_{k}"
-        used.add(candidate)
-        out.append(candidate)
-    return out
+    return unique_names([_identifier(name, fallback) for name in names])
 
 
 # --------------------------------------------------------------------------------------------

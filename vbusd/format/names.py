@@ -21,8 +21,7 @@ __all__ = [
     "UNORM_RANGE_MAX", "ANIMATION_REL", "BONE_INDICES", "BONE_WEIGHTS", "INSTANCE_CLIP",
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
     "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS", "CLIP_ROOT_MOTION",
-    "ROOT_MOTION_UP_AXIS",
-]
+    "ROOT_MOTION_UP_AXIS", "unique_names"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -155,3 +154,18 @@ def attribute_of(key) -> Optional[str]:
         return UNORM_RANGE_MIN
     found = BY_KEY.get(parts[0])
     return found.name if found else None
+
+
+def unique_names(names) -> list:
+    """``names`` made unique in order: a repeat gets ``_2``, ``_3``... (skipping any name already
+    taken, so ``a, a, a_2`` become ``a, a_2, a_2_2``)."""
+    used: set = set()
+    result = []
+    for name in names:
+        candidate, k = name, 1
+        while candidate in used:
+            k += 1
+            candidate = f"{name}_{k}"
+        used.add(candidate)
+        result.append(candidate)
+    return result

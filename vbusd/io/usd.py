@@ -58,6 +58,7 @@ from typing import Optional, Union
 import numpy as np
 
 from vbusd.format import names
+from vbusd.format.names import unique_names
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.layout import FORMAT_VERSION, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
@@ -269,19 +270,6 @@ def _write_mesh(stage, pxr, mesh: BoundMesh, animation_path: str) -> None:
                            k).Set(Vt.FloatArray.FromNumpy(weights))
 
 
-def _unique_names(names) -> list:
-    used: set = set()
-    result = []
-    for name in names:
-        candidate, n = name, 1
-        while candidate in used:
-            candidate = f"{name}_{n}"
-            n += 1
-        used.add(candidate)
-        result.append(candidate)
-    return result
-
-
 def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
     path = Sdf.Path(crowd.path)
@@ -293,7 +281,7 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     UsdGeom.Scope.Define(stage, path.AppendChild(PROTOTYPES_SCOPE))
     prototype_path = path.AppendChild(PROTOTYPES_SCOPE).AppendChild(Sdf.Path(vb.path).name)
     UsdGeom.Xform.Define(stage, prototype_path)
-    mesh_names = _unique_names([Sdf.Path(m.path).name for m in vb.meshes])
+    mesh_names = unique_names([Sdf.Path(m.path).name for m in vb.meshes])
     for mesh, name in zip(vb.meshes, mesh_names):
         child = stage.DefinePrim(prototype_path.AppendChild(name))
         child.GetReferences().AddInternalReference(Sdf.Path(mesh.path))
