@@ -98,13 +98,13 @@ def clip_index(vb: VirtualBones, clip, *, what: str = "skin") -> int:
     raise OptionsError(f"animation {vb.path} has no clip {clip!r} (clips: {', '.join(names)})", file=what)
 
 
-def _finite_seconds(value, name: str) -> float:
+def _finite_seconds(value, name: str, job: str) -> float:
     try:
         seconds = float(value)
     except (TypeError, ValueError):
         seconds = float("nan")
     if not np.isfinite(seconds):
-        raise OptionsError(f"{name} must be a finite number of seconds, got {value!r}", file="skin")
+        raise OptionsError(f"{name} must be a finite number of seconds, got {value!r}", file=job)
     return seconds
 
 
@@ -147,7 +147,7 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
-    tau = _finite_seconds(time, "time")
+    tau = _finite_seconds(time, "time", "skin")
     try:
         weight = float(fade_weight)
     except (TypeError, ValueError):
@@ -159,7 +159,7 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         fade_index = clip_index(vb, fade_clip)
         if fade_time is None:
             raise OptionsError("fade_clip needs fade_time (the fade clip's clip-local seconds)", file="skin")
-        fade_tau = _finite_seconds(fade_time, "fade_time")
+        fade_tau = _finite_seconds(fade_time, "fade_time", "skin")
     elif weight > 0.0:
         raise OptionsError(f"fade_weight {weight} needs a fade_clip", file="skin")
     poses = []
@@ -253,11 +253,12 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
             single = dataclasses.replace(single, fade_samples={
                 key: (times, np.asarray(values)[:, [int(instance)]])
                 for key, (times, values) in crowd_data.fade_samples.items()})
-        return crowd_joint_transforms(vb, single, bone_index(vb, bone), _finite_seconds(time, "time"))[0]
+        seconds = _finite_seconds(time, "time", "bone_transform")
+        return crowd_joint_transforms(vb, single, bone_index(vb, bone), seconds)[0]
     vb = _animation(asset, animation, "bone_transform")
     index = bone_index(vb, bone)
     clip_number = clip_index(vb, clip, what="bone_transform")
-    tau = _finite_seconds(time, "time")
+    tau = _finite_seconds(time, "time", "bone_transform")
     return joint_transforms(vb, clip_number, np.array([tau]))[0, index]
 
 
@@ -292,7 +293,7 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
     vb = _animation(asset, animation, "root_motion")
     index = clip_index(vb, clip, what="root_motion")
-    return displacement(vb, index, _finite_seconds(t0, "t0"), _finite_seconds(t1, "t1"))
+    return displacement(vb, index, _finite_seconds(t0, "t0", "root_motion"), _finite_seconds(t1, "t1", "root_motion"))
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
