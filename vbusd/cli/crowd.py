@@ -35,10 +35,12 @@ class _CrowdCommand(click.Command):
 
     def parse_args(self, ctx, args):
         args = list(args)
+        given = any(a == "--points" or a.startswith("--points=") for a in args)
         for i, arg in enumerate(args[:-1]):
             spelled = (arg == "--layout" and args[i + 1] == "points" and i + 2 < len(args)) or arg == "--layout=points"
             following = i + 2 if arg == "--layout" else i + 1
-            if spelled and following < len(args) and not args[following].startswith("-"):
+            if spelled and following < len(args) and not args[following].startswith("-") and not given:
+                # With --points given too, the word after `points` is a character, as before.
                 args.insert(following, "--points")
                 break
         return super().parse_args(ctx, args)
