@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.names import unique_names
 
 __all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
@@ -443,44 +443,10 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
             Vt.FloatArray.FromNumpy(offsets.astype(np.float32)))
         primvars.CreatePrimvar(PRIMVAR_PLAYBACK_RATE, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
             Vt.FloatArray.FromNumpy(rate[mine].astype(np.float32)))
-    if output.suffix.lower() == ".usda":
-        payload = stage.GetRootLayer().ExportToString().encode("utf-8")
-    else:
-        import tempfile
+    from vbusd.io.usd import write_layer
 
-        with tempfile.TemporaryDirectory() as scratch:
-            temp = Path(scratch) / ("crowd" + output.suffix)
-            try:
-                export_args = {"format": "usdc"} if output.suffix.lower() == ".usd" else {}
-                exported = stage.GetRootLayer().Export(str(temp), args=export_args)
-            except Exception as error:  # Tf.ErrorException: the scratch folder is full or unwritable
-                raise VbusdError(f"USD could not write the crowd layer: {' '.join(str(error).split())[:200]}",
-                                 file=str(output), code="write.failed") from None
-            if not exported:
-                raise VbusdError("USD could not write the crowd layer", file=str(output), code="write.failed")
-            payload = temp.read_bytes()
-    _commit_layer(output, payload, force)
-    return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=len(payload),
+    # One commit as every vbusd output (spec, "File names and the write guarantee"): under the
+    # output's lock, staged beside the target and renamed; a failed write is one write.failed line.
+    write_layer(stage.GetRootLayer(), output, replace=force, what="crowd layer")
+    return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
                        seconds=time.perf_counter() - start)
-
-
-def _commit_layer(output: Path, payload: bytes, force: bool) -> None:
-    """Write the crowd layer as every vbusd output is written (spec, "File names and the write guarantee").
-
-    Under the output's lock (a second run waits, then stops with ``write.locked``), the existence
-    check repeated (two runs without ``--force`` cannot both create it), staged beside the target
-    and renamed; a failed write (disk full, quota, read-only, name too long, a folder in the way) is
-    one line (``write.failed``) and leaves the old layer and no new file or folder.
-    """
-    from vbusd.io.files import Commit, make_folders, remove_folders, write_error
-
-    created = make_folders(output.parent)
-    try:
-        with Commit(output, replace=force) as commit:
-            with commit.open(output, "wb") as handle:
-                handle.write(payload)
-    except BaseException as error:
-        remove_folders(created)
-        if isinstance(error, OSError):
-            raise write_error(error, output, what="the crowd layer") from None
-        raise
