@@ -73,3 +73,45 @@ def test_a_value_that_fails_its_lazy_read_during_convert_is_usd_value(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"vbusd: {path}: usd.value: "), err
     assert not (tmp_path / "out").exists()
+
+
+def _small_crate(path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Mesh.Define(stage, "/M").GetPointsAttr().Set([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_one_probe_server_serves_many_files_and_a_dead_one_is_replaced(tmp_path):
+    # Each file is read in its own forked child; the server that imported pxr is started once,
+    # and one that died is started again rather than failing the next file.
+    from vbusd.io import usd_probe
+
+    first, second = _small_crate(tmp_path / "a.usdc"), _small_crate(tmp_path / "b.usdc")
+    assert usd_probe.probe_crate(first).ok
+    server = usd_probe._SERVER.process.pid
+    assert usd_probe.probe_crate(second).ok
+    assert usd_probe._SERVER.process.pid == server
+    usd_probe._SERVER.process.kill()
+    usd_probe._SERVER.process.wait()
+    third = _small_crate(tmp_path / "c.usdc")
+    assert usd_probe.probe_crate(third).ok
+    assert usd_probe._SERVER.process.pid != server
+
+
+def test_a_read_that_never_ends_is_stopped_at_the_time_limit(tmp_path, monkeypatch):
+    # A FIFO with no writer blocks USD's open forever: the child's alarm ends it.
+    import os
+    import time
+
+    from vbusd.io import usd_probe
+
+    fifo = tmp_path / "blocked.usdc"
+    os.mkfifo(fifo)
+    monkeypatch.setattr(usd_probe, "_BASE_SECONDS", 1.0)
+    started = time.monotonic()
+    result = usd_probe.probe_crate(fifo)
+    assert not result.ok and "takes more than 1 s" in result.problem, result
+    assert time.monotonic() - started < 8  # the alarm, not the server watchdog (11 s)

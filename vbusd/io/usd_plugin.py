@@ -73,7 +73,7 @@ from pathlib import Path
 
 __all__ = ["PLUGIN_PACKAGE", "PLUGIN_NAME", "ANIMATION_TYPE", "BINDING_API", "INSTANCING_API",
            "PLUGIN_PATH_VARIABLE", "LATE_REGISTRATION_MESSAGE", "plugin_dir", "register", "schema_types_known",
-           "require_schema_types", "register_on_import"]
+           "require_schema_types", "register_on_import", "cancel_deferred_registration"]
 
 PLUGIN_PACKAGE = "vbusd.schema.usd"
 """The import package whose folder holds plugInfo.json and generatedSchema.usda."""
@@ -228,6 +228,18 @@ class _RegisterAfterLoading:
             register()
         except Exception:  # a broken plugin folder must not break the host's own pxr import
             pass
+
+
+def cancel_deferred_registration() -> None:
+    """Take the one-shot import hook off ``sys.meta_path`` (nothing happens when it is not there).
+
+    For a process that must import pxr and stay single-threaded until it forks (the crate probe
+    server, :mod:`vbusd.io.usd_probe`): ``RegisterPlugins`` starts OpenUSD's worker threads, so
+    such a process leaves the registration to its forked children, which call :func:`register`.
+    """
+    for finder in list(sys.meta_path):
+        if isinstance(finder, _RegisterBeforePxr):
+            finder.remove()
 
 
 def register_on_import() -> str:

@@ -10,14 +10,23 @@ opened in-process; one that needs more, crashes USD, or that USD refuses (its me
 under the limit a corrupt count often ends as USD's "exception thrown unpacking a value", which
 in-process would first allocate gigabytes) is refused with one line (``usd.open``).
 
+The child is forked from a probe server that imported pxr once per vbusd process (:class:`_Server`),
+so a probe costs the read, not another start of Python and pxr.
+
 Text layers (``.usda``) are parsed by a grammar with no counts to trust and are not probed.
 """
 
 from __future__ import annotations
 
+import atexit
+import json
+import math
 import os
+import signal
 import subprocess
 import sys
+import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -96,31 +105,177 @@ def probe_crate(path) -> ProbeResult:
         return ProbeResult(True)
     size = stat.st_size
     memory, seconds = memory_limit(size), time_limit(size)
-    env = dict(os.environ, PYTHONSAFEPATH="1")
-    try:
-        done = subprocess.run([sys.executable, "-m", "vbusd.io.usd_probe", str(path)], env=env,
-                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                              timeout=seconds, preexec_fn=_limit_memory(memory))
-    except subprocess.TimeoutExpired:
+    with _SERVER_LOCK:
+        answer = _server().probe(str(path), memory, seconds)
+    if answer is None:
         return ProbeResult(False, problem=f"reading it takes more than {seconds:.0f} s, far longer than a "
                                           f"valid file of {size} bytes would (the file is probably corrupt)")
-    if done.returncode == 0:
+    returncode, said = answer
+    if returncode == 0:
         _PASSED.add(key)
         return ProbeResult(True)
-    said = done.stderr.decode("utf-8", "replace").strip().splitlines()
+    said = said.strip().splitlines()
     last = " ".join(said[-1].split())[:300] if said else ""
-    if done.returncode == _EXIT_REFUSED:
+    if returncode == _EXIT_REFUSED:
         return ProbeResult(False, problem=f"USD cannot open the file: {last or 'refused'}")
     mib = memory >> 20
+    if returncode == -signal.SIGALRM:
+        return ProbeResult(False, problem=f"reading it takes more than {seconds:.0f} s, far longer than a "
+                                          f"valid file of {size} bytes would (the file is probably corrupt)")
     out_of_memory = any(sign in " ".join(said) for sign in ("MemoryError", "Cannot allocate memory", "bad_alloc"))
-    if done.returncode == _EXIT_MEMORY or out_of_memory:
+    if returncode == _EXIT_MEMORY or out_of_memory:
         return ProbeResult(False, problem=f"USD needs more than {mib} MiB to read a file of {size} bytes "
                                           "(the file is probably corrupt)")
-    if done.returncode < 0:  # a C++ allocation failure under the limit aborts (SIGABRT) or crashes
-        return ProbeResult(False, problem=f"USD crashes reading it (signal {-done.returncode}), or needs more "
+    if returncode < 0:  # a C++ allocation failure under the limit aborts (SIGABRT) or crashes
+        return ProbeResult(False, problem=f"USD crashes reading it (signal {-returncode}), or needs more "
                                           f"than {mib} MiB for a file of {size} bytes (the file is corrupt)")
-    return ProbeResult(False, problem=f"the bounded read of it failed (exit {done.returncode}): "
+    return ProbeResult(False, problem=f"the bounded read of it failed (exit {returncode}): "
                                       f"{last or 'no message'}")
+
+
+class _Server:
+    """The parent's handle on one probe server: a child that imported pxr once and forks per file.
+
+    Importing pxr costs about 0.2 s, several times what reading a typical character's crate costs,
+    so a child per file spent most of a batch's time importing. The server imports pxr and
+    nothing that starts threads, never runs USD itself, and forks one child per file: the child
+    is the same bounded, disposable process as before (its own ``RLIMIT_DATA``, killed by
+    ``SIGALRM`` at the time limit), minus the import. A server that dies or stops answering is
+    replaced on the next probe.
+    """
+
+    def __init__(self) -> None:
+        env = dict(os.environ, PYTHONSAFEPATH="1", OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1",
+                   MKL_NUM_THREADS="1")
+        self.owner = os.getpid()
+        self.process = subprocess.Popen([sys.executable, "-m", "vbusd.io.usd_probe", "--serve"], env=env,
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        stderr=subprocess.DEVNULL, text=True, bufsize=1)
+        self.started = False
+
+    def alive(self) -> bool:
+        return self.owner == os.getpid() and self.process.poll() is None
+
+    def probe(self, path: str, memory: int, seconds: float):
+        """(exit status, the child's stderr) of one bounded read, or None when it ran out of time."""
+        request = json.dumps({"path": path, "memory": memory, "seconds": seconds})
+        try:
+            if not self.started:  # the import of pxr, bounded like a probe of an empty file
+                ready = self._answer(_BASE_SECONDS)
+                if not ready or not ready.get("ready"):
+                    return 1, (ready or {}).get("problem", "the probe server did not start")
+                self.started = True
+            self.process.stdin.write(request + "\n")
+            self.process.stdin.flush()
+            # The child's own alarm ends it at `seconds`; this margin only covers a stuck server.
+            answer = self._answer(seconds + 10.0)
+        except (OSError, ValueError):
+            answer = None
+        if answer is None:
+            self.close(kill=True)
+            return None
+        return int(answer["returncode"]), str(answer.get("stderr", ""))
+
+    def _answer(self, seconds: float):
+        import selectors
+
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.process.stdout, selectors.EVENT_READ)
+            if not selector.select(timeout=seconds):
+                return None
+        line = self.process.stdout.readline()
+        return json.loads(line) if line else None
+
+    def close(self, kill: bool = False) -> None:
+        if self.owner != os.getpid():
+            return
+        try:
+            if kill:
+                self.process.kill()
+            else:
+                self.process.stdin.close()
+            self.process.wait(timeout=10)
+        except (OSError, ValueError, subprocess.TimeoutExpired):
+            self.process.kill()
+
+
+_SERVER: Optional[_Server] = None
+_SERVER_LOCK = threading.Lock()
+
+
+def _server() -> _Server:
+    global _SERVER
+    if _SERVER is None or not _SERVER.alive():
+        if _SERVER is not None:
+            _SERVER.close(kill=True)
+        _SERVER = _Server()
+    return _SERVER
+
+
+@atexit.register
+def _stop_server() -> None:
+    if _SERVER is not None:
+        _SERVER.close()
+
+
+def _serve() -> int:
+    """The server: import pxr once, then fork one bounded child per requested file."""
+    # Answers go to a private copy of stdout; whatever pxr or a child prints goes nowhere.
+    answers = os.fdopen(os.dup(1), "w")
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+    try:
+        from vbusd.io import usd_plugin
+
+        usd_plugin.cancel_deferred_registration()  # registering starts threads: each child registers
+        from pxr import Sdf, Tf, Usd  # noqa: F401  (imported once here, inherited by every child)
+
+        import vbusd.io.usd_reader  # noqa: F401  (the children's error messages; numpy with one thread)
+    except Exception as error:  # noqa: BLE001 - any failure to import is the answer to every probe
+        print(json.dumps({"ready": False, "problem": f"importing pxr failed: {error}"}), file=answers, flush=True)
+        return 1
+    # fork() is only safe in a process with one thread; with more, each file gets a fresh process.
+    forking = os.path.isdir("/proc/self/task") and len(os.listdir("/proc/self/task")) == 1
+    print(json.dumps({"ready": True}), file=answers, flush=True)
+    for line in sys.stdin:
+        request = json.loads(line)
+        with tempfile.TemporaryFile() as said:
+            if forking:
+                returncode = _forked_read(request, said)
+            else:
+                try:
+                    returncode = subprocess.run([sys.executable, "-m", "vbusd.io.usd_probe", request["path"]],
+                                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=said,
+                                                preexec_fn=_limit_memory(request["memory"]),
+                                                timeout=request["seconds"]).returncode
+                except subprocess.TimeoutExpired:
+                    returncode = -signal.SIGALRM
+            said.seek(max(0, os.fstat(said.fileno()).st_size - 4096))
+            text = said.read().decode("utf-8", "replace")
+        print(json.dumps({"returncode": returncode, "stderr": text}), file=answers, flush=True)
+    return 0
+
+
+def _forked_read(request: dict, said) -> int:
+    pid = os.fork()
+    if pid == 0:  # the child: bounded, and nothing it prints reaches the server's answers
+        code = 1
+        try:
+            devnull = os.open(os.devnull, os.O_RDWR)
+            os.dup2(devnull, 0)
+            os.dup2(devnull, 1)
+            os.dup2(said.fileno(), 2)
+            _limit_memory(request["memory"])()
+            signal.alarm(max(1, math.ceil(request["seconds"])))
+            from vbusd.io.usd_plugin import register
+
+            register()  # as in the parent: the same schema types while reading
+            code = _read_everything(request["path"])
+        except MemoryError:
+            code = _EXIT_MEMORY
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status)
 
 
 def _read_everything(path: str) -> int:
@@ -150,5 +305,5 @@ def _read_everything(path: str) -> int:
     return 0
 
 
-if __name__ == "__main__":  # pragma: no cover - run as the child of probe_crate
-    sys.exit(_read_everything(sys.argv[1]))
+if __name__ == "__main__":  # pragma: no cover - run as the probe server, or its child without fork
+    sys.exit(_serve() if sys.argv[1:] == ["--serve"] else _read_everything(sys.argv[1]))
