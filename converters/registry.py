@@ -17,6 +17,7 @@ candidate, in which case the import error is reported.
 
 from __future__ import annotations
 
+import functools
 import importlib
 from dataclasses import dataclass
 from importlib import metadata
@@ -68,9 +69,17 @@ class ConverterEntry:
 def entries() -> list[ConverterEntry]:
     """All registered converters, from the ``vbusd.converters`` entry-point group.
 
+    The installed metadata is scanned once per process (about 10 ms, once per asset in a batch
+    otherwise); a converter installed while the process runs is found by the next process.
+
     Returns:
         Entries sorted by name; vbusd's built-in converters when no metadata is installed.
     """
+    return list(_discovered())
+
+
+@functools.lru_cache(maxsize=1)
+def _discovered() -> tuple[ConverterEntry, ...]:
     found = {}
     try:
         for entry in metadata.entry_points(group=GROUP):
@@ -79,7 +88,7 @@ def entries() -> list[ConverterEntry]:
         found = {}
     for name, module in _BUILTIN.items():
         found.setdefault(name, ConverterEntry(name, module))
-    return [found[name] for name in sorted(found)]
+    return tuple(found[name] for name in sorted(found))
 
 
 def _loadable() -> list[tuple[ConverterEntry, Optional[ModuleType], Optional[OptionsError]]]:

@@ -295,6 +295,57 @@ def test_process_pool_matches_one_process(tmp_path, capsys):
     assert _files(tmp_path / "pool") == _files(tmp_path / "one")
 
 
+_IDLE_THREADS = """
+import multiprocessing, os, sys, time
+from concurrent.futures import ProcessPoolExecutor
+
+
+def convert_then_idle(task):
+    from vbusd.batch import convert_one
+
+    status = convert_one(task)["status"]
+    def ticks():  # CPU time (user + system, clock ticks) of each thread of this process, by the kernel
+        found = {}
+        for thread in os.listdir("/proc/self/task"):
+            fields = open(f"/proc/self/task/{thread}/stat").read().rsplit(") ", 1)[1].split()
+            found[thread] = int(fields[11]) + int(fields[12])
+        return found
+    before = ticks()
+    time.sleep(1.0)
+    after = ticks()
+    return status, max(after[t] - before.get(t, 0) for t in after) / os.sysconf("SC_CLK_TCK")
+
+
+if __name__ == "__main__":
+    from vbusd.batch import _pool_initializer
+
+    task = {"source": sys.argv[1], "output": sys.argv[2], "options": {"check_rows": 4}, "key": None,
+            "cache": None, "force": True}
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_pool_initializer) as pool:
+        print(*pool.submit(convert_then_idle, task).result())
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc to read thread CPU times")
+def test_an_idle_pool_worker_burns_no_cpu(tmp_path):
+    # Each worker converts on one core. Limiting OpenUSD's threads after they started left one
+    # spinning at 100% of a core in every worker, which halved --jobs 2 on two cores.
+    from pxr import Usd
+
+    source = tmp_path / "rig.usdc"
+    Usd.Stage.Open(str(STADIUM)).Export(str(source))  # a crate file: read through the probe server too
+    script = tmp_path / "idle.py"
+    script.write_text(_IDLE_THREADS)
+    done = subprocess.run([sys.executable, str(script), str(source), str(tmp_path / "out" / "rig.usda")],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    status, busiest = done.stdout.split()
+    assert status == "converted"
+    assert float(busiest) < 0.2, f"a thread of the idle worker used {busiest} s of CPU in 1 s"
+    assert "PXR_WORK_THREAD_LIMIT" not in done.stderr  # no banner for the override
+
+
 def test_dask_local_cluster(tmp_path):
     distributed = pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'vbusd[dask]')")
     library = _library(tmp_path / "lib", ("a", "b"))

@@ -497,16 +497,32 @@ def _worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def _one_core() -> None:
-    """Each asset of a batch converts on one core: the batch's parallelism is its workers
-    (``--jobs N``, or Dask's), and OpenUSD's own worker threads in every one of them would
-    oversubscribe the cores (measured: 200 assets on 2 cores took longer with 2 workers than 1)."""
-    try:
-        from pxr import Work
+_ONE_THREAD = {"PXR_WORK_THREAD_LIMIT": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+               "MKL_NUM_THREADS": "1"}
+"""What a batch worker runs with: its parallelism is the number of workers, one core each."""
 
-        Work.SetConcurrencyLimit(1)
-    except Exception:  # noqa: BLE001 - no pxr (a glTF-only worker): nothing to limit
-        pass
+
+def _one_core() -> None:
+    """Make this worker process convert on one core, when that can still be chosen.
+
+    OpenUSD's and OpenBLAS's thread pools read these variables once, when they start; so this
+    sets the ones the user has not set, in this worker process only, before pxr and numpy load
+    (the pool's initializer; a Dask worker's first task). Once they have loaded nothing is
+    changed: ``Work.SetConcurrencyLimit(1)`` after OpenUSD started its worker threads leaves one
+    of them spinning at 100% of a core for the rest of the process (measured with usd-core
+    26.11: two workers on two cores each converted 1.6x slower than one alone). Dask's nanny
+    already starts its workers with one BLAS thread.
+    """
+    import sys
+
+    if any(name == "pxr" or name.startswith("pxr.") for name in sys.modules):
+        return
+    chosen = {name: value for name, value in _ONE_THREAD.items() if name not in os.environ}
+    if "numpy" in sys.modules:  # too late for BLAS: its threads started with numpy
+        chosen = {name: value for name, value in chosen.items() if name == "PXR_WORK_THREAD_LIMIT"}
+    if "PXR_WORK_THREAD_LIMIT" in chosen:
+        chosen["TF_ENV_SETTING_ALERTS_ENABLED"] = "0"  # no banner on stderr for the override
+    os.environ.update(chosen)
 
 
 def convert_one(task: dict) -> dict:
@@ -521,7 +537,6 @@ def convert_one(task: dict) -> dict:
     """
     from vbusd.convert import ConvertOptions, convert
 
-    _one_core()
     started = time.perf_counter()
     source, output = Path(task["source"]), Path(task["output"])
     cache = Path(task["cache"]) if task.get("cache") else None
@@ -558,6 +573,12 @@ def convert_one(task: dict) -> dict:
     return json_ready(result)
 
 
+def _convert_on_dask(task: dict) -> dict:
+    """:func:`convert_one` as a Dask task: the worker's first one also picks one core."""
+    _one_core()
+    return convert_one(task)
+
+
 def _result(data: dict) -> AssetResult:
     """An :class:`AssetResult` back from its JSON form (camelCase keys), as workers return it."""
     from vbusd.format.jsonform import camel_case
@@ -568,6 +589,8 @@ def _result(data: dict) -> AssetResult:
 
 def _pool_initializer() -> None:
     import signal
+
+    _one_core()  # runs before the first task imports pxr and numpy
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
 
@@ -767,7 +790,7 @@ def _run_dask(tasks: list, scheduler: str, finish) -> None:
         run = secrets.token_hex(6)  # task keys unique to this run, whoever else uses the cluster
         for index, task in tasks:
             # pure=False: a conversion writes files, so it is never deduplicated or cached by Dask.
-            futures[client.submit(convert_one, task, pure=False, key=f"vbusd-convert-{run}-{index}")] = (index, task)
+            futures[client.submit(_convert_on_dask, task, pure=False, key=f"vbusd-convert-{run}-{index}")] = (index, task)
         for future in as_completed(list(futures), loop=client.loop):
             index, task = futures[future]
             try:
