@@ -115,3 +115,28 @@ def test_a_read_that_never_ends_is_stopped_at_the_time_limit(tmp_path, monkeypat
     result = usd_probe.probe_crate(fifo)
     assert not result.ok and "takes more than 1 s" in result.problem, result
     assert time.monotonic() - started < 8  # the alarm, not the server watchdog (11 s)
+
+
+def _usdz(path, member: Path) -> Path:
+    """A .usdz package of one file (stored, its data 64-byte aligned as the usdz spec asks)."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:
+        info = zipfile.ZipInfo(member.name)
+        start = archive.fp.tell() + 30 + len(member.name.encode()) + 4
+        padding = -start % 64
+        info.extra = b"\x86\x19" + padding.to_bytes(2, "little") + bytes(padding)
+        archive.writestr(info, member.read_bytes())
+    return path
+
+
+def test_a_corrupt_crate_inside_a_usdz_package_is_probed_too(tmp_path):
+    # The package's bytes start with the zip magic, not the crate's; opened in-process unprobed,
+    # this one crashed vbusd (signal 11) with no message.
+    package = _usdz(tmp_path / "bad.usdz", CORRUPT[0])
+    run = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(package), "-o", str(tmp_path / "out" / "o.usda")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert run.returncode == 2, run
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"vbusd: {package}: usd.open: USD crashes reading it"), lines
+    assert not (tmp_path / "out").exists()

@@ -13,7 +13,8 @@ in-process would first allocate gigabytes) is refused with one line (``usd.open`
 The child is forked from a probe server that imported pxr once per vbusd process (:class:`_Server`),
 so a probe costs the read, not another start of Python and pxr.
 
-Text layers (``.usda``) are parsed by a grammar with no counts to trust and are not probed.
+A .usdz package is probed whole (its layers are usually crate files). Text layers (``.usda``) are
+parsed by a grammar with no counts to trust and are not probed.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "is_crate", "memory_limit", "time_limit"]
+__all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "is_crate", "needs_probe", "memory_limit", "time_limit"]
 
 CRATE_MAGIC = b"PXR-USDC"
 
@@ -60,6 +61,17 @@ class ProbeResult:
 
     ok: bool
     problem: Optional[str] = None
+
+
+def needs_probe(path) -> bool:
+    """Whether ``path`` must pass :func:`probe_crate` before it is opened in-process: a crate
+    file, or a zip archive (a .usdz package, whose layers are usually crate files)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(len(CRATE_MAGIC))
+    except OSError:
+        return False
+    return head == CRATE_MAGIC or head.startswith(b"PK\x03\x04")
 
 
 def is_crate(path) -> bool:

@@ -323,9 +323,9 @@ class UsdReader:
         """A crate file is read whole in a bounded child process first (:mod:`vbusd.io.usd_probe`):
         a corrupt one could otherwise take gigabytes, minutes or the process itself. False after a
         ``usd.open`` finding when it is unsafe."""
-        from vbusd.io.usd_probe import is_crate, probe_crate
+        from vbusd.io.usd_probe import needs_probe, probe_crate
 
-        if not is_crate(path):
+        if not needs_probe(path):
             return True
         result = probe_crate(path)
         if not result.ok:
