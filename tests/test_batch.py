@@ -160,6 +160,37 @@ def test_cache_skips_unchanged_and_reconverts_a_changed_referenced_file(tmp_path
     assert _statuses(sixth) == {"char.usda": "converted", "other.usda": "converted"}
 
 
+def test_a_reference_that_appears_later_reconverts(tmp_path, capsys):
+    # A missing asset path counts by its name; the parent cannot tell from the record whether it
+    # exists now, so the worker computes the key again: unchanged -> cached, appeared -> converted.
+    source, _ = _with_sublayer(tmp_path / "lib")
+    source.write_text(source.read_text(encoding="utf-8") + 'def "Look"\n{\n    asset tint = @./tint.png@\n}\n',
+                      encoding="utf-8")
+    args = [str(source), str(tmp_path / "lib" / "rig.usda"), "-o", str(tmp_path / "out"), "--jobs", "1"]
+    status, first = _run_json(args, capsys)
+    assert status == 0 and _statuses(first) == {"char.usda": "converted", "rig.usda": "converted"}
+    status, second = _run_json(args, capsys)
+    assert _statuses(second) == {"char.usda": "cached", "rig.usda": "cached"}
+    (tmp_path / "lib" / "tint.png").write_bytes(b"not even a PNG: only its bytes count")
+    status, third = _run_json(args, capsys)
+    assert status == 0 and _statuses(third) == {"char.usda": "converted", "rig.usda": "cached"}
+
+
+def test_a_corrupt_crate_fails_alone(tmp_path, capsys):
+    # Planning once opened every USD source in the command's own process to find its
+    # dependencies: this crate crashed the whole batch (signal 11). Now it is one failed asset.
+    library = _library(tmp_path / "lib", ("a", "b"))
+    shutil.copyfile(REPO / "tests" / "fixtures" / "corrupt_usdc" / "crash_or_huge_alloc.usdc", library / "bad.usdc")
+    run = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(library), "-o", str(tmp_path / "out"),
+                          "--jobs", "2", "--format", "json", *FAST], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 1, run.stderr
+    report = json.loads(run.stdout)
+    assert _statuses(report) == {"a.usda": "converted", "b.usda": "converted", "bad.usdc": "failed"}
+    bad = next(a for a in report["assets"] if a["status"] == "failed")
+    assert bad["code"] == "usd.open" and bad["error"].startswith(f"{library / 'bad.usdc'}: usd.open: "), bad
+    assert run.stderr == ""
+
+
 def test_gltf_buffers_and_images_are_inputs(tmp_path):
     gltf = tmp_path / "rig.gltf"
     (tmp_path / "rig.bin").write_bytes(b"\x00" * 64)

@@ -15,10 +15,13 @@ spec/batch.md. In short:
   and images). A conversion is skipped when the record kept for its output
   (``<cache>/<sha256 of the output's path>.json``) holds the same key and every output file it
   lists still has the recorded size and SHA-256.
-* **Running** (:func:`run_batch`): the parent process computes the keys and skips what is cached;
-  the rest run in a local process pool (``jobs`` workers) or, with ``scheduler``, on a Dask
-  cluster (``distributed.Client(scheduler)``; workers read and write the shared file system).
-  Each worker (:func:`convert_one`) writes a *pending* record, converts through
+* **Running** (:func:`run_batch`): the parent process skips an asset whose record's listed inputs
+  still give its key and whose outputs are intact; it opens no USD file itself. The rest run in a
+  local process pool (``jobs`` workers, one core each) or, with ``scheduler``, on a Dask cluster
+  (``distributed.Client(scheduler)``; workers read and write the shared file system). Each worker
+  (:func:`convert_one`) computes the key (its USD layers opened through the reader, crate probe
+  first), reports the asset cached when the record matches after all (a reference that was missing
+  and still is), or writes a *pending* record, converts through
   :func:`vbusd.convert.convert` (whose :class:`vbusd.io.files.Commit` leaves no partial output when
   killed), then the final record. One failing asset never stops the others.
 * **The report** (:class:`BatchReport`): per asset its status (``converted``, ``cached``,
@@ -384,16 +387,14 @@ def dependencies(source) -> list:
                 if not uri.startswith("data:"):
                     target = (source.parent / unquote(uri)).resolve()
                     found.append(str(target) if target.is_file() else f"missing:{uri}")
-        elif suffix in (".usd", ".usda", ".usdc") and source.is_file():
-            from pxr import Sdf, UsdUtils
+        elif suffix in (".usd", ".usda", ".usdc", ".usdz") and source.is_file():
+            from vbusd.io.usd_reader import file_dependencies
 
-            layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(source.resolve())))
+            layers, assets, unresolved = file_dependencies(source) or ([], [], [])
             for layer in layers:
-                real = (layer.realPath or "").split("[", 1)[0]
-                if real:
-                    found.append(str(Path(real).resolve()))
+                found.append(str(Path(layer.split("[", 1)[0]).resolve()))
             for asset in assets:
-                real = str(asset).split("[", 1)[0]
+                real = asset.split("[", 1)[0]
                 found.append(str(Path(real).resolve()) if Path(real).is_file() else f"missing:{asset}")
             found += [f"missing:{p}" for p in unresolved]
     except Exception:  # noqa: BLE001 - a broken source: the conversion names the problem
@@ -420,11 +421,16 @@ def cache_key(source, options) -> tuple:
         source: Source file.
         options: Its :class:`vbusd.convert.ConvertOptions` (``force`` does not count).
     """
+    files = dependencies(source)
+    return _key_of(source, options, files), files
+
+
+def _key_of(source, options, files: list) -> str:
+    """The key of ``source`` converted with ``options`` when it uses ``files`` (see :func:`cache_key`)."""
     from vbusd import __version__
 
     digest = hashlib.sha256()
     digest.update(f"vbusd {__version__}\nrecord {RECORD_VERSION}\n{_options_text(options)}\n".encode())
-    files = dependencies(source)
     root = Path(source).resolve().parent
     for name in files:
         if name.startswith("missing:"):
@@ -439,7 +445,22 @@ def cache_key(source, options) -> tuple:
         except ValueError:
             label = name
         digest.update(f"{label} {content}\n".encode())
-    return digest.hexdigest(), files
+    return digest.hexdigest()
+
+
+def _unchanged(record: dict, source, options) -> bool:
+    """Whether the inputs a finished record lists still give its key: each listed file has the same
+    bytes, so the source still uses the same files (what it references is in those bytes). A
+    record with a reference that was missing is not decided here: the file may exist now, so the
+    worker looks again (:func:`convert_one`)."""
+    inputs = record.get("inputs")
+    if not isinstance(inputs, list) or not inputs or not all(isinstance(n, str) for n in inputs):
+        return False
+    if any(name.startswith("missing:") for name in inputs):
+        return False
+    if inputs[0] != str(Path(source).resolve()):
+        return False
+    return record.get("key") == _key_of(source, options, inputs)
 
 
 def _record_path(cache: Path, output: Path) -> Path:
@@ -529,8 +550,8 @@ def convert_one(task: dict) -> dict:
     """Convert one planned asset in a worker; never raises for the asset's own errors.
 
     Args:
-        task: ``source``, ``output``, ``options`` (ConvertOptions fields), ``key``, ``cache`` (folder
-            or None) and ``force`` (replace an existing output).
+        task: ``source``, ``output``, ``options`` (ConvertOptions fields), ``cache`` (folder or None)
+            and ``force`` (replace an existing output).
 
     Returns:
         An :class:`AssetResult` as a dict (plain data, for any scheduler).
@@ -543,8 +564,21 @@ def convert_one(task: dict) -> dict:
     result = AssetResult(source=str(source), output=str(output), status="failed", worker=_worker_name())
     try:
         options = ConvertOptions(**{**task["options"], "force": bool(task.get("force"))})
-        if cache is not None:  # marks the output as this batch's own before anything is written
-            _write_record(cache, output, {"state": "pending", "key": task.get("key"), "source": str(source),
+        key = inputs = None
+        if cache is not None:
+            # The key is computed here, not in the parent: it opens the source's USD layers (after
+            # their probes), which is a worker's job, and the parent stays free to dispatch.
+            key, inputs = cache_key(source, options)
+            record = _read_record(cache, output)
+            if record is not None and record.get("output") == str(output) and record.get("key") == key \
+                    and outputs_intact(record):
+                result.status = "cached"
+                result.files = {name: entry["bytes"] for name, entry in record["files"].items()}
+                result.bytes = sum(result.files.values())
+                result.max_error, result.max_error_fraction = record.get("maxError"), record.get("maxErrorFraction")
+                return json_ready(result)
+            # marks the output as this batch's own before anything is written
+            _write_record(cache, output, {"state": "pending", "key": key, "source": str(source),
                                           "output": str(output)})
         report = convert(source, output, options)
         result.files = dict(report.files)
@@ -556,7 +590,7 @@ def convert_one(task: dict) -> dict:
         result.status = "converted"
         if cache is not None:
             _write_record(cache, output, {
-                "state": "done", "key": task.get("key"), "source": str(source), "output": str(output),
+                "state": "done", "key": key, "inputs": inputs, "source": str(source), "output": str(output),
                 "files": {name: {"bytes": size, "sha256": file_sha256(name)} for name, size in report.files.items()},
                 "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction})
     except VbusdError as error:
@@ -651,14 +685,12 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
             results[index] = AssetResult(item.source, item.output, "failed", error=f"{item.origin}: "
                                          f"batch.manifest: {error}", code="batch.manifest")
             continue
-        key = None
         own = False
         if cache_dir is not None:
-            key, _files = cache_key(item.source, options)
             record = _read_record(cache_dir, Path(item.output))
             if record is not None and record.get("output") == os.path.abspath(item.output):
                 own = True  # an output this batch wrote (or began to write when killed)
-                if record.get("key") == key and outputs_intact(record):
+                if _unchanged(record, item.source, options) and outputs_intact(record):
                     files = {name: entry["bytes"] for name, entry in record["files"].items()}
                     results[index] = AssetResult(item.source, item.output, "cached", files=files,
                                                  bytes=sum(files.values()), max_error=record.get("maxError"),
@@ -671,7 +703,7 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
         values.pop("force")
         # Absolute paths: a worker (a Dask one on another host) may not share this process's folder.
         tasks.append((index, {"source": os.path.abspath(item.source), "output": os.path.abspath(item.output),
-                              "options": values, "key": key,
+                              "options": values,
                               "cache": None if cache_dir is None else str(cache_dir), "force": force or own}))
     if progress:
         progress("assets", done, len(items))

@@ -46,7 +46,8 @@ from vbusd.io.files import resolve_inside
 
 __all__ = ["AnimationAttributes", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
-           "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading"]
+           "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
+           "file_dependencies"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -263,6 +264,33 @@ class UsdReader:
     def open(self, suffixes=USD_SUFFIXES) -> bool:
         """Open the file as a stage (see :func:`open_stage`); False when it cannot be opened."""
         Sdf, Tf, Usd, UsdGeom = _pxr()
+        if not self.open_layers(suffixes):
+            return False
+        where = FileLocation(self.file)
+        try:
+            stage = Usd.Stage.Open(self.layer, Usd.Stage.LoadAll)
+        except Tf.ErrorException as error:
+            self.report_unreadable(error)
+            return False
+        if stage is None:
+            self.report("usd.open", "USD could not open the stage", where)
+            return False
+        self.stage = stage
+        reported = set()
+        for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
+            site = getattr(error, "rootSite", None)
+            text = one_line(str(error), 300)
+            reported.add(text)
+            self.report("asset.composition", f"composition error: {text}",
+                        UsdSite(str(site.path) if site is not None else "/"))
+        self.report_usd_messages(composition=bool(reported))
+        return True
+
+    def open_layers(self, suffixes=USD_SUFFIXES) -> bool:
+        """Open the root layer (``self.layer``) after the file's checks and the crate probe, and
+        check and probe every layer it uses, recursively, without composing a stage; False when
+        USD cannot safely go on."""
+        Sdf, Tf, Usd, UsdGeom = _pxr()
         path = self.path
         where = FileLocation(self.file)
         if not os.path.lexists(path):
@@ -298,26 +326,8 @@ class UsdReader:
         if self.layer is None:
             self.report("usd.open", "USD could not open the file", where)
             return False
-        if not self.check_dependencies(Sdf, Tf, self.layer, set()):
-            return False  # a layer USD would block on: the stage cannot be composed safely
-        try:
-            stage = Usd.Stage.Open(self.layer, Usd.Stage.LoadAll)
-        except Tf.ErrorException as error:
-            self.report_unreadable(error)
-            return False
-        if stage is None:
-            self.report("usd.open", "USD could not open the stage", where)
-            return False
-        self.stage = stage
-        reported = set()
-        for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
-            site = getattr(error, "rootSite", None)
-            text = one_line(str(error), 300)
-            reported.add(text)
-            self.report("asset.composition", f"composition error: {text}",
-                        UsdSite(str(site.path) if site is not None else "/"))
-        self.report_usd_messages(composition=bool(reported))
-        return True
+        # False: a layer USD would block on or that failed its probe; nothing may be composed.
+        return self.check_dependencies(Sdf, Tf, self.layer, set())
 
     def probe(self, path: Path, where) -> bool:
         """A crate file is read whole in a bounded child process first (:mod:`vbusd.io.usd_probe`):
@@ -1217,6 +1227,31 @@ def stage_for_reading(path: PathLike, *, allow_outside_paths: bool = False, suff
         if reader.stage is None:
             diagnostics.raise_first_error()
         yield reader.stage
+
+
+def file_dependencies(path: PathLike) -> Optional[tuple]:
+    """The files a USD source uses, found by ``UsdUtils.ComputeAllDependencies`` once every layer
+    passed the reader's checks and crate probes (opening an unprobed corrupt crate can crash the
+    process).
+
+    Returns:
+        ``(layers, assets, unresolved)``: the real paths of the layers (a .usdz package as one
+        file), of the asset paths (textures and other files) and the authored paths that could not
+        be resolved; None when the file cannot be opened safely (its conversion reports why).
+    """
+    from pxr import Sdf, UsdUtils
+
+    reader = UsdReader(path, Diagnostics(path), allow_outside=True)
+    with captured_usd_diagnostics(reader.usd_messages):
+        try:
+            if not reader.open_layers(USD_SUFFIXES):
+                return None
+            layers, assets, unresolved = UsdUtils.ComputeAllDependencies(Sdf.AssetPath(str(reader.path.resolve())))
+        finally:
+            reader.layer = None
+    reader.usd_messages.clear()
+    return ([layer.realPath for layer in layers if layer.realPath], [str(asset) for asset in assets],
+            [str(name) for name in unresolved])
 
 
 def open_stage(path: PathLike, diagnostics: Diagnostics, *, allow_outside_paths: bool = False):
