@@ -364,20 +364,31 @@ class _Reader:
                     value = np.asarray(value)  # once, for the checks and for AllFramesSkinning
                     kept[None if time is None else round(float(time), 9)] = value  # None: no samples
                 count = 0 if value is None else len(value)
-                where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
                 if count != len(joints):
+                    where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
                     raise self.error(f"{name} has {count} values for {len(joints)} joints", where,
                                      "usdskel.animation.count")
-                if count and not _finite(value):
-                    bad = int(np.argwhere(~np.isfinite(np.asarray(value, dtype=np.float64)))[0][0])
-                    raise self.error(f"{name}[{bad}] (joint '{joints[bad]}') is not finite", where,
-                                     "usdskel.animation.nonFinite")
-                if name == "rotations" and count:
-                    norms = np.linalg.norm(np.asarray(value, dtype=np.float64).reshape(-1, 4), axis=1)
-                    if np.any(norms < 1e-6):
-                        bad = int(np.argmax(norms < 1e-6))
-                        raise self.error(f"rotations[{bad}] (joint '{joints[bad]}') is a zero quaternion",
-                                         where, "usdskel.animation.zeroQuaternion")
+            if joints:  # every sample at once: (samples, joints, components)
+                self._check_values(name, kept, location, joints, bool(times))
+
+    def _check_values(self, name: str, kept: dict, location: str, joints: list, sampled: bool) -> None:
+        """Finite values, and no zero quaternion, in every sample of one animation attribute; the
+        first bad value (earliest time, then lowest joint) is the one reported."""
+        stacked = np.stack([np.asarray(v, dtype=np.float64).reshape(len(joints), -1) for v in kept.values()])
+        bad = ~np.isfinite(stacked).all(axis=2)
+        problem = "is not finite"
+        code = "usdskel.animation.nonFinite"
+        if not bad.any() and name == "rotations":
+            bad = np.sqrt((stacked * stacked).sum(axis=2)) < 1e-6
+            problem, code = "is a zero quaternion", "usdskel.animation.zeroQuaternion"
+        if not bad.any():
+            return
+        sample, joint = (int(i) for i in np.argwhere(bad)[0])
+        time = list(kept)[sample]
+        where = f"{location}.{name}" + (f" at time {time:g}" if sampled else "")
+        label = f"{name}[{joint}] (joint '{joints[joint]}')" if code.endswith("nonFinite") else \
+            f"rotations[{joint}] (joint '{joints[joint]}')"
+        raise self.error(f"{label} {problem}", where, code)
 
 
 # --------------------------------------------------------------------------------------------

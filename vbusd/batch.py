@@ -625,6 +625,9 @@ def _pool_initializer() -> None:
     import signal
 
     _one_core()  # runs before the first task imports pxr and numpy
+    from vbusd.io.usd_probe import prestart
+
+    prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
 

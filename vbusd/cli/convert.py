@@ -107,6 +107,10 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     names, in parallel, skipping what has not changed since the last run; exit 0 when every asset
     converted, 1 when some failed, 2 when none could.
     """
+    from vbusd.io.usd_probe import needs_probe, prestart
+
+    if len(sources) == 1 and needs_probe(sources[0]):
+        prestart()  # the crate probe's server starts while this process imports the converters
     from vbusd.convert import ConvertOptions, convert
 
     try:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "is_crate", "needs_probe", "memory_limit", "time_limit"]
+__all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "is_crate", "needs_probe", "prestart", "memory_limit", "time_limit"]
 
 CRATE_MAGIC = b"PXR-USDC"
 
@@ -222,6 +222,13 @@ def _server() -> _Server:
             _SERVER.close(kill=True)
         _SERVER = _Server()
     return _SERVER
+
+
+def prestart() -> None:
+    """Start the probe server now, without waiting for it: its import of pxr then overlaps with the
+    caller's own start-up (a command that will open a crate file, a batch worker)."""
+    with _SERVER_LOCK:
+        _server()
 
 
 @atexit.register
