@@ -167,10 +167,10 @@ def main(argv=None) -> int:
           f"Mean conversion time per asset (in its worker, --jobs 1): {per_asset:.2f} s; "
           f"{out_bytes / max(1, len(converted)) / 1e3:.0f} kB written per asset.")
     cores = args.nodes * args.node_cores
-    hours = args.characters * per_asset / cores / 3600
+    seconds = args.characters * per_asset / cores
     print(f"\nOn paper, {args.characters:,} characters on {args.nodes} nodes x {args.node_cores} cores "
           f"({cores:,} Dask worker processes): {args.characters:,} x {per_asset:.2f} s / {cores:,} = "
-          f"{hours * 60:.1f} min of conversion if the per-asset cost holds, plus reading "
+          f"{seconds:.1f} s of conversion if the per-asset cost holds, plus reading "
           f"{args.characters * size / max(1, len(assets)) / 1e9:.1f} GB and writing "
           f"{args.characters * out_bytes / max(1, len(converted)) / 1e9:.1f} GB through the shared file system.")
     return 0

@@ -621,10 +621,32 @@ def _result(data: dict) -> AssetResult:
     return AssetResult(**{by_camel[key]: value for key, value in data.items() if key in by_camel})
 
 
+def _keep_freed_memory() -> None:
+    """Let this worker's glibc keep up to 256 MiB it freed, and map only blocks over 32 MiB afresh.
+
+    A conversion allocates and frees many numpy arrays of a few MiB. By default glibc maps each
+    afresh and unmaps it on free, so the kernel zeroes its pages again every time; with two workers
+    on two cores that zeroing competed for memory bandwidth (each asset 18% slower beside another
+    worker, 3-8% with these settings; benchmarks/README.md). Only pool workers, which are vbusd's
+    own processes, are changed; nothing happens off glibc.
+    """
+    import ctypes
+    import platform
+    import sys
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None)
+        libc.mallopt(-1, 256 << 20)  # M_TRIM_THRESHOLD
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD (its largest value on 64-bit glibc)
+
+
 def _pool_initializer() -> None:
     import signal
 
     _one_core()  # runs before the first task imports pxr and numpy
+    _keep_freed_memory()
     from vbusd.io.usd_probe import prestart
 
     prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
