@@ -413,3 +413,12 @@ def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "batch.plan" in err[0] and "not a USD file" in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_batch_options_on_one_source_are_named_not_ignored(tmp_path, capsys):
+    output = tmp_path / "one.usda"
+    assert main(["convert", str(STADIUM), "-o", str(output), "--jobs", "2", "--no-cache", *FAST]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vbusd: warning: --jobs, --no-cache apply to a batch (several sources, a folder, a glob or "
+                   "--manifest, or -o an existing folder); one source converts in this process, uncached"], err
+    assert output.is_file() and not (tmp_path / ".vbusd-cache").exists()

@@ -133,6 +133,12 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
                           no_cache=no_cache, force=force, report_file=report_file, output_format=output_format,
                           quiet=quiet)
     source = sources[0]
+    ignored = [name for name, given in (("--jobs", jobs is not None), ("--cache", cache_dir is not None),
+                                        ("--no-cache", no_cache)) if given]
+    if ignored:  # one source into one layer is not a batch: say so rather than ignore them silently
+        warn(f"{', '.join(ignored)} {'applies' if len(ignored) == 1 else 'apply'} to a batch (several sources, "
+             "a folder, a glob or --manifest, or -o an existing folder); one source converts in this "
+             "process, uncached", quiet=quiet)
     options = ConvertOptions(force=force, **values)
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
