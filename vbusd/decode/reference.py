@@ -243,12 +243,45 @@ def crossfade(pose_a: tuple, pose_b: tuple, weight) -> tuple[np.ndarray, Optiona
         (points (n, V, 3), unit normals (n, V', 3) or None), float64.
     """
     w = np.clip(np.asarray(weight, dtype=np.float64), 0.0, 1.0)
-    w = np.broadcast_to(w.reshape(-1) if w.ndim else w, (pose_a[0].shape[0],))[:, None, None]
-    points = (1.0 - w) * pose_a[0] + w * pose_b[0]
-    normals = None
-    if pose_a[1] is not None:
-        normals = _normalize((1.0 - w) * pose_a[1] + w * pose_b[1])
+    w = np.broadcast_to(w.reshape(-1) if w.ndim else w, (pose_a[0].shape[0],))
+    points = _blend(pose_a[0], pose_b[0], w)
+    normals = None if pose_a[1] is None else _normalize(_blend(pose_a[1], pose_b[1], w))
     return points, normals
+
+
+def _blend(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """``(1 - w) a + w b`` with one weight per leading entry (spec "Crossfade"): poses or matrices."""
+    w = np.asarray(weight, dtype=np.float64).reshape((-1,) + (1,) * (np.ndim(a) - 1))
+    return (1.0 - w) * a + w * b
+
+
+def _per_instance(crowd: Crowd, t: float, evaluate) -> list:
+    """Every instance's values at its clip and clip-local time, its fade clip blended in where its
+    fade weight is above 0 (spec "Crossfade"). ``evaluate(clip, taus)`` returns a tuple of arrays
+    with one entry per time (an entry may be None); the result has one row per instance."""
+    taus = instance_time(crowd, t)
+    clip_ids = np.asarray(crowd.clip, dtype=np.int64)
+    n = crowd.instance_count
+    out = None
+    for clip_index in np.unique(clip_ids):
+        chosen = np.flatnonzero(clip_ids == clip_index)
+        parts = evaluate(int(clip_index), taus[chosen])
+        if out is None:
+            out = [None if part is None else np.empty((n,) + part.shape[1:]) for part in parts]
+        for whole, part in zip(out, parts):
+            if whole is not None:
+                whole[chosen] = part
+    if crowd.crossfades:
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        fade_weight = np.clip(fade_weight, 0.0, 1.0)
+        fade_taus = fade_offset + fade_rate * t
+        for clip_index in np.unique(fade_clip[fade_weight > 0]):
+            chosen = np.flatnonzero((fade_clip == clip_index) & (fade_weight > 0))
+            faded = evaluate(int(clip_index), fade_taus[chosen])
+            for whole, part in zip(out, faded):
+                if whole is not None:
+                    whole[chosen] = _blend(whole[chosen], part, fade_weight[chosen])
+    return out
 
 
 def _raw_pose(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, values=None):
@@ -295,29 +328,11 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     evaluated at ``t`` (:meth:`~vbusd.format.model.Crowd.at`).
     """
     crowd = crowd.at(t)
-    taus = instance_time(crowd, t)
-    clip_ids = np.asarray(crowd.clip, dtype=np.int64)
     values = channel_values(vb)
-    n, v = crowd.instance_count, mesh.points.shape[0]
-    points = np.empty((n, v, 3))
-    normals = None if mesh.normals is None else np.empty((n,) + mesh.normals.shape)
-    for clip_index in np.unique(clip_ids):
-        chosen = np.flatnonzero(clip_ids == clip_index)
-        p, nrm = _raw_pose(vb, mesh, int(clip_index), taus[chosen], values)
-        points[chosen] = p
-        if normals is not None:
-            normals[chosen] = nrm
-    if crowd.crossfades:
-        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
-        fade_weight = np.clip(fade_weight, 0.0, 1.0)
-        fade_taus = fade_offset + fade_rate * t
-        for clip_index in np.unique(fade_clip[fade_weight > 0]):
-            chosen = np.flatnonzero((fade_clip == clip_index) & (fade_weight > 0))
-            pose_b = _raw_pose(vb, mesh, int(clip_index), fade_taus[chosen], values)
-            w = fade_weight[chosen][:, None, None]
-            points[chosen] = (1.0 - w) * points[chosen] + w * pose_b[0]
-            if normals is not None:
-                normals[chosen] = (1.0 - w) * normals[chosen] + w * pose_b[1]
+    n = crowd.instance_count
+    if n == 0:
+        return np.empty((0,) + mesh.points.shape), None if mesh.normals is None else np.empty((0,) + mesh.normals.shape)
+    points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
     if normals is not None:
         normals = _normalize(normals)
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
@@ -375,21 +390,10 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     """
     bind = _bind(vb)[bone]
     crowd = crowd.at(t)
-    taus = instance_time(crowd, t)
-    clip_ids = np.asarray(crowd.clip, dtype=np.int64)
     n = crowd.instance_count
-    local = np.empty((n, 4, 4))
-    for clip_index in np.unique(clip_ids):
-        chosen = np.flatnonzero(clip_ids == clip_index)
-        local[chosen] = skinning_matrices(vb, int(clip_index), taus[chosen])[:, bone]
-    if crowd.crossfades:
-        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
-        fade_weight = np.clip(fade_weight, 0.0, 1.0)
-        for clip_index in np.unique(fade_clip[fade_weight > 0]):
-            chosen = np.flatnonzero((fade_clip == clip_index) & (fade_weight > 0))
-            faded = skinning_matrices(vb, int(clip_index), (fade_offset + fade_rate * t)[chosen])[:, bone]
-            w = fade_weight[chosen][:, None, None]
-            local[chosen] = (1.0 - w) * local[chosen] + w * faded
+    if n == 0:
+        return np.empty((0, 4, 4))
+    local, = _per_instance(crowd, t, lambda clip, taus: (skinning_matrices(vb, clip, taus)[:, bone],))
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
     scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
     placement = np.zeros((n, 4, 4))
