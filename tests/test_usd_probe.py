@@ -138,5 +138,29 @@ def test_a_corrupt_crate_inside_a_usdz_package_is_probed_too(tmp_path):
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert run.returncode == 2, run
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"vbusd: {package}: usd.open: USD crashes reading it"), lines
+    # Under the memory limit this mutant either crashes USD or fails an allocation, run to run.
+    assert len(lines) == 1 and lines[0].startswith(f"vbusd: {package}: usd.open: USD "), lines
+    assert "crashes reading it" in lines[0] or "needs more than" in lines[0], lines
     assert not (tmp_path / "out").exists()
+
+
+def test_a_server_killed_during_a_probe_is_replaced_and_the_file_read_again(tmp_path, monkeypatch):
+    # The server dies while the file is read (the OOM killer, an operator): that says nothing
+    # about the file, so a fresh server reads it once more.
+    import os
+    import signal
+    import threading
+
+    from vbusd.io import usd_probe
+
+    fifo = tmp_path / "slow.usdc"
+    os.mkfifo(fifo)
+    usd_probe.prestart()
+    server = usd_probe._SERVER.process.pid
+    killer = threading.Timer(1.0, os.kill, (server, signal.SIGKILL))
+    killer.start()
+    monkeypatch.setattr(usd_probe, "_BASE_SECONDS", 3.0)
+    result = usd_probe.probe_crate(fifo)  # the first server dies; the second one's child times out
+    killer.join()
+    assert usd_probe._SERVER.process.pid != server
+    assert not result.ok and "takes more than 3 s" in result.problem, result

@@ -117,8 +117,14 @@ def probe_crate(path) -> ProbeResult:
         return ProbeResult(True)
     size = stat.st_size
     memory, seconds = memory_limit(size), time_limit(size)
-    with _SERVER_LOCK:
-        answer = _server().probe(str(path), memory, seconds)
+    for _attempt in range(2):  # a server that died (killed, out of memory) is replaced once
+        with _SERVER_LOCK:
+            answer = _server().probe(str(path), memory, seconds)
+        if answer is not _DIED:
+            break
+    if answer is _DIED:
+        return ProbeResult(False, problem="the process that reads it in isolation died twice (killed, or out "
+                                          "of memory)")
     if answer is None:
         return ProbeResult(False, problem=f"reading it takes more than {seconds:.0f} s, far longer than a "
                                           f"valid file of {size} bytes would (the file is probably corrupt)")
@@ -134,7 +140,8 @@ def probe_crate(path) -> ProbeResult:
     if returncode == -signal.SIGALRM:
         return ProbeResult(False, problem=f"reading it takes more than {seconds:.0f} s, far longer than a "
                                           f"valid file of {size} bytes would (the file is probably corrupt)")
-    out_of_memory = any(sign in " ".join(said) for sign in ("MemoryError", "Cannot allocate memory", "bad_alloc"))
+    text = " ".join(said).lower()
+    out_of_memory = any(sign in text for sign in ("memoryerror", "cannot allocate memory", "bad_alloc"))
     if returncode == _EXIT_MEMORY or out_of_memory:
         return ProbeResult(False, problem=f"USD needs more than {mib} MiB to read a file of {size} bytes "
                                           "(the file is probably corrupt)")
@@ -169,23 +176,25 @@ class _Server:
         return self.owner == os.getpid() and self.process.poll() is None
 
     def probe(self, path: str, memory: int, seconds: float):
-        """(exit status, the child's stderr) of one bounded read, or None when it ran out of time."""
+        """(exit status, the child's stderr) of one bounded read; None when it ran out of time,
+        ``_DIED`` when the server ended without answering."""
         request = json.dumps({"path": path, "memory": memory, "seconds": seconds})
         try:
             if not self.started:  # the import of pxr, bounded like a probe of an empty file
                 ready = self._answer(_BASE_SECONDS)
-                if not ready or not ready.get("ready"):
-                    return 1, (ready or {}).get("problem", "the probe server did not start")
+                if ready is None or ready is _DIED or not ready.get("ready"):
+                    problem = ready.get("problem") if isinstance(ready, dict) else None
+                    return 1, problem or "the probe server did not start"
                 self.started = True
             self.process.stdin.write(request + "\n")
             self.process.stdin.flush()
             # The child's own alarm ends it at `seconds`; this margin only covers a stuck server.
             answer = self._answer(seconds + 10.0)
-        except (OSError, ValueError):
-            answer = None
-        if answer is None:
+        except (OSError, ValueError):  # a closed pipe: the server is gone
+            answer = _DIED
+        if answer is None or answer is _DIED:
             self.close(kill=True)
-            return None
+            return answer
         return int(answer["returncode"]), str(answer.get("stderr", ""))
 
     def _answer(self, seconds: float):
@@ -196,7 +205,7 @@ class _Server:
             if not selector.select(timeout=seconds):
                 return None
         line = self.process.stdout.readline()
-        return json.loads(line) if line else None
+        return json.loads(line) if line else _DIED
 
     def close(self, kill: bool = False) -> None:
         if self.owner != os.getpid():
@@ -211,6 +220,8 @@ class _Server:
             self.process.kill()
 
 
+_DIED = object()
+"""What :meth:`_Server.probe` returns when the server ended without answering."""
 _SERVER: Optional[_Server] = None
 _SERVER_LOCK = threading.Lock()
 
