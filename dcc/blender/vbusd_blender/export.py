@@ -133,18 +133,6 @@ def usd_name(name: str) -> str:
     return "_" + valid if valid[0].isdigit() else valid
 
 
-def _unique(names) -> list:
-    seen, out = set(), []
-    for name in names:
-        candidate, n = name, 1
-        while candidate in seen:
-            n += 1
-            candidate = f"{name}_{n}"
-        seen.add(candidate)
-        out.append(candidate)
-    return out
-
-
 def find_armatures(context, names) -> list:
     """The armature objects to export: by name, else the selection.
 
@@ -538,13 +526,15 @@ def _clip_sources(scene, armature, settings: ExportSettings) -> list:
     if armature.animation_data is not None and armature.animation_data.use_tweak_mode:
         raise InputError(f"armature '{armature.name}' is in NLA tweak mode; leave it (Tab in the NLA editor) "
                          "to export its actions", location=armature.name, code="blender.action")
+    from vbusd.format.names import unique_names
+
     clips = []
     for action in find_actions(armature, settings.actions):
         start, end = (float(f) for f in action.frame_range)
         manual = bool(getattr(action, "use_frame_range", False))
         loop = bool(action.use_cyclic) if manual else None
         clips.append(_ClipSource(action.name, action, start, end, loop))
-    names = _unique([c.name for c in clips])
+    names = unique_names([c.name for c in clips])
     for clip, name in zip(clips, names):
         clip.name = name
     return clips
@@ -584,13 +574,14 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
     """
     convert_module = _vbusd()
     from vbusd import AnimationClip, SkinnedAnimation, SkinnedMesh, VirtualBonesAsset
+    from vbusd.format.names import unique_names
 
     options = _convert_options(settings)
     scene = context.scene
     fps = scene.render.fps / scene.render.fps_base
     path = Path(bpy.path.abspath(str(filepath)))
     armatures = find_armatures(context, tuple(settings.armatures))
-    prim_names = _unique([usd_name(a.name) for a in armatures])
+    prim_names = unique_names([usd_name(a.name) for a in armatures])
     container = options.container
     _check_output(path, settings, container, prim_names)
 
@@ -621,8 +612,8 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
             meshes, skinned, static = [], [], False
             rests = [_rest_mesh(context, obj, modifier, armature, bones, bone) for obj, modifier, bone in pairs]
             static = any(rest[6].any() for rest in rests)
-            bone_names = bones + ([_unique(bones + [STATIC_BONE])[-1]] if static else [])
-            mesh_names = _unique([usd_name(obj.name) for obj, _, _ in pairs])
+            bone_names = bones + ([unique_names(bones + [STATIC_BONE])[-1]] if static else [])
+            mesh_names = unique_names([usd_name(obj.name) for obj, _, _ in pairs])
             for (obj, modifier, _), rest, mesh_name in zip(pairs, rests, mesh_names):
                 points, counts, indices, bone_indices, bone_weights, normals, unweighted = rest
                 if unweighted.any():
