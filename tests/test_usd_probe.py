@@ -39,13 +39,13 @@ def test_corrupt_crate_is_one_line_in_bounded_time_and_memory(path, tmp_path):
 def test_a_valid_crate_passes_the_probe(tmp_path):
     from pxr import Sdf, Usd, UsdGeom
 
-    from vbusd.io.usd_probe import is_crate, probe_crate
+    from vbusd.io.usd_probe import needs_probe, probe_crate
 
     path = tmp_path / "ok.usdc"
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.Mesh.Define(stage, "/M").GetPointsAttr().Set([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
     stage.GetRootLayer().Save()
-    assert is_crate(path) and not is_crate(Path(__file__))
+    assert needs_probe(path) and not needs_probe(Path(__file__))
     assert probe_crate(path).ok
     assert Sdf.Layer.FindOrOpen(str(path)) is not None
 
