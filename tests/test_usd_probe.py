@@ -164,3 +164,21 @@ def test_a_server_killed_during_a_probe_is_replaced_and_the_file_read_again(tmp_
     killer.join()
     assert usd_probe._SERVER.process.pid != server
     assert not result.ok and "takes more than 3 s" in result.problem, result
+
+
+def test_a_server_with_threads_reads_each_file_in_a_fresh_process(tmp_path):
+    # fork() is unsafe once a process has several threads; a server started with BLAS threads
+    # (numpy) falls back to one fresh process per file and answers the same.
+    import json
+    import os
+
+    good = _small_crate(tmp_path / "good.usdc")
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2", PYTHONSAFEPATH="1")
+    requests = "".join(json.dumps({"path": str(path), "memory": 384 << 20, "seconds": 60}) + "\n"
+                       for path in (good, CORRUPT[1]))
+    run = subprocess.run([sys.executable, "-m", "vbusd.io.usd_probe", "--serve"], input=requests, env=env,
+                         capture_output=True, text=True, timeout=180)
+    ready, first, second = (json.loads(line) for line in run.stdout.splitlines())
+    assert ready == {"ready": True}
+    assert first["returncode"] == 0
+    assert second["returncode"] == 3 and "Corrupt asset" in second["stderr"], second

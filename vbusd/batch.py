@@ -463,6 +463,13 @@ def _unchanged(record: dict, source, options) -> bool:
     return record.get("key") == _key_of(source, options, inputs)
 
 
+def _cached_result(source: str, output: str, record: dict) -> AssetResult:
+    """The report of an asset skipped because its ``done`` record still holds (files, bytes, errors)."""
+    files = {name: entry["bytes"] for name, entry in record["files"].items()}
+    return AssetResult(source, output, "cached", files=files, bytes=sum(files.values()),
+                       max_error=record.get("maxError"), max_error_fraction=record.get("maxErrorFraction"))
+
+
 def _record_path(cache: Path, output: Path) -> Path:
     name = hashlib.sha256(os.path.normcase(os.path.abspath(output)).encode()).hexdigest()[:40]
     return cache / f"{name}.json"
@@ -572,11 +579,9 @@ def convert_one(task: dict) -> dict:
             record = _read_record(cache, output)
             if record is not None and record.get("output") == str(output) and record.get("key") == key \
                     and outputs_intact(record):
-                result.status = "cached"
-                result.files = {name: entry["bytes"] for name, entry in record["files"].items()}
-                result.bytes = sum(result.files.values())
-                result.max_error, result.max_error_fraction = record.get("maxError"), record.get("maxErrorFraction")
-                return json_ready(result)
+                cached = _cached_result(str(source), str(output), record)
+                cached.worker = result.worker
+                return json_ready(cached)
             # marks the output as this batch's own before anything is written
             _write_record(cache, output, {"state": "pending", "key": key, "source": str(source),
                                           "output": str(output)})
@@ -716,10 +721,7 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
             if record is not None and record.get("output") == os.path.abspath(item.output):
                 own = True  # an output this batch wrote (or began to write when killed)
                 if _unchanged(record, item.source, options) and outputs_intact(record):
-                    files = {name: entry["bytes"] for name, entry in record["files"].items()}
-                    results[index] = AssetResult(item.source, item.output, "cached", files=files,
-                                                 bytes=sum(files.values()), max_error=record.get("maxError"),
-                                                 max_error_fraction=record.get("maxErrorFraction"))
+                    results[index] = _cached_result(item.source, item.output, record)
                     done += 1
                     if progress:
                         progress("assets", done, len(items))
