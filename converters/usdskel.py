@@ -386,9 +386,7 @@ class _Reader:
         sample, joint = (int(i) for i in np.argwhere(bad)[0])
         time = list(kept)[sample]
         where = f"{location}.{name}" + (f" at time {time:g}" if sampled else "")
-        label = f"{name}[{joint}] (joint '{joints[joint]}')" if code.endswith("nonFinite") else \
-            f"rotations[{joint}] (joint '{joints[joint]}')"
-        raise self.error(f"{label} {problem}", where, code)
+        raise self.error(f"{name}[{joint}] (joint '{joints[joint]}') {problem}", where, code)
 
 
 # --------------------------------------------------------------------------------------------
