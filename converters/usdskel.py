@@ -546,6 +546,12 @@ def _affine_rows(matrices: np.ndarray) -> bool:
     return bool(np.all(np.abs(matrices[..., :3, 3]) <= 1e-12) and np.all(np.abs(matrices[..., 3, 3] - 1.0) <= 1e-12))
 
 
+def _in_code_order(out: np.ndarray, inverse: np.ndarray) -> np.ndarray:
+    """Results per distinct sorted code (``np.unique``) back in the order and repeats of the codes."""
+    inverse = inverse.reshape(-1)
+    return out if np.array_equal(inverse, np.arange(out.shape[0])) else out[inverse]
+
+
 class AllFramesSkinning:
     """UsdSkel's skinning transforms of one skeleton at many time codes at once.
 
@@ -631,18 +637,10 @@ class AllFramesSkinning:
         except Exception:  # noqa: BLE001 - any surprise: UsdSkel frame by frame stays the answer
             return None
 
-    def _local(self, codes: np.ndarray) -> Optional[tuple]:
-        """Joint local transforms at ``codes`` as (linear (J, 3, 3, n), translation (J, 3, n)), frames last."""
-        joint_count, frames = self._parents.size, codes.size
-        if self._rest is not None:
-            linear = np.repeat(self._rest[:, :3, :3, None], frames, axis=-1)
-            translation = np.repeat(self._rest[:, 3, :3, None], frames, axis=-1)
-        else:
-            linear = np.empty((joint_count, 3, 3, frames))
-            translation = np.empty((joint_count, 3, frames))
-        if self._queries is None:
-            return linear, translation
-        count = self._anim_joint_count
+    def _animation_values(self, codes: np.ndarray) -> Optional[tuple]:
+        """The animation's ``(translations (n, A, 3) float32, rotations (n, A, 4) float32, scales
+        (n, A, 3) float16)`` at ``codes``; None when a value is missing or of the wrong length."""
+        frames, count = codes.size, self._anim_joint_count
         q_t, q_r, q_s = self._queries
         read_t, read_r, read_s = self._read
         TimeCode = self._usd.TimeCode
@@ -668,6 +666,21 @@ class AllFramesSkinning:
         if translations.shape != (frames, count, 3) or rotations.shape != (frames, count, 4) \
                 or scales.shape != (frames, count, 3):
             return None
+        return translations, rotations, scales
+
+    def _local(self, codes: np.ndarray, animated: Optional[tuple]) -> tuple:
+        """Joint local transforms at ``codes`` as (linear (J, 3, 3, n), translation (J, 3, n)), frames
+        last, from :meth:`_animation_values` (None: no animation, every joint at rest)."""
+        joint_count, frames = self._parents.size, codes.size
+        if self._rest is not None:
+            linear = np.repeat(self._rest[:, :3, :3, None], frames, axis=-1)
+            translation = np.repeat(self._rest[:, 3, :3, None], frames, axis=-1)
+        else:
+            linear = np.empty((joint_count, 3, 3, frames))
+            translation = np.empty((joint_count, 3, frames))
+        if animated is None:
+            return linear, translation
+        translations, rotations, scales = animated
         rotation = _quaternion_matrices(np.moveaxis(rotations, 0, -1), axis=1)  # (A, 3, 3, n) float32
         anim_linear = rotation * np.moveaxis(scales, 0, -1).astype(np.float32)[:, :, None, :]
         used = self._anim_to_skel >= 0
@@ -698,9 +711,20 @@ class AllFramesSkinning:
             unique, inverse = codes, np.arange(codes.size)  # a moving skeleton: every code as given
         else:
             unique, inverse = np.unique(codes, return_inverse=True)
-        local = self._local(unique)
-        if local is None:
+        animated = None if self._queries is None else self._animation_values(unique)
+        if self._queries is not None and animated is None:
             return None
+        if animated is not None and (world is None or np.asarray(world).ndim == 2):
+            from vbusd import bake_kernels
+
+            anim_joint = np.full(joint_count, -1, dtype=np.int64)
+            used = self._anim_to_skel >= 0
+            anim_joint[self._anim_to_skel[used]] = np.flatnonzero(used)
+            out = bake_kernels.skinning_transforms(*animated, anim_joint, self._rest, self._parents,
+                                                   self._inverse_bind, world)
+            if out is not None:  # the same products, compiled, frame by frame
+                return _in_code_order(out, inverse)
+        local = self._local(unique, animated)
         # Affine row-vector matrices [[A, 0], [t, 1]]: (A1, t1) * (A2, t2) = (A1 A2, t1 A2 + t2);
         # arrays hold frames last, so every product is a few multiply-adds over contiguous frames.
         linear, translation = local
@@ -724,8 +748,7 @@ class AllFramesSkinning:
         out[..., :3, :3] = linear.transpose(3, 0, 2, 1)  # column-vector: the transpose
         out[..., :3, 3] = translation.transpose(2, 0, 1)
         out[..., 3, 3] = 1.0
-        return out if unique.size == codes.size and world is None or inverse.size == unique.size and \
-            np.array_equal(inverse.reshape(-1), np.arange(unique.size)) else out[inverse.reshape(-1)]
+        return _in_code_order(out, inverse)
 
 
 class SkeletonSampler:

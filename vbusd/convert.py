@@ -481,6 +481,24 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
     return skin(transforms, Encoding.AFFINE_MATRIX, points, indices, w / w.sum(axis=1, keepdims=True))[0]
 
 
+def _skin_checked(transforms, encoding: Encoding, bound, normal_points) -> tuple:
+    """The reference decoder's skinning of a bound mesh; linear blend skinning of many points runs
+    compiled (:func:`vbusd.bake_kernels.skin_lbs`, the same sums in the same order)."""
+    from vbusd import bake_kernels
+    from vbusd.decode.reference import skin
+
+    if encoding is not Encoding.DUAL_QUAT:
+        indices, weights = np.asarray(bound.bone_indices), np.asarray(bound.bone_weights)
+        normal_indices = indices if normal_points is None else indices[normal_points]
+        normal_weights = weights if normal_points is None else weights[normal_points]
+        compiled = bake_kernels.skin_lbs(transforms.linear, transforms.translation, transforms.normal, bound.points,
+                                         indices, weights, bound.normals, normal_indices, normal_weights)
+        if compiled is not None:
+            return compiled
+    return skin(transforms, encoding, bound.points, bound.bone_indices, bound.bone_weights, bound.normals,
+                normal_points)
+
+
 def _raw_weights(scene: SourceScene, index: int, mesh_index: int):
     """``(weights, joints)`` as stored for a mesh whose weights were renormalized, else None."""
     table = getattr(scene, "raw_weights", ())
@@ -509,7 +527,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from vbusd.decode.reference import bone_transforms, normal_point_indices, skin
+    from vbusd.decode.reference import channel_values, decode_bones, interpolated_values, normal_point_indices
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -523,6 +541,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     plans = [(ci, clip, _checked_rows(clip.row_count, check_rows)) for ci, clip in enumerate(vb.clips)]
     total = sum(len(rows) for _, _, rows in plans) * max(1, len(vb.meshes))
     done = 0
+    values = channel_values(vb)  # dequantized once, not per chunk
     lows = [np.full(3, np.inf) for _ in vb.meshes]
     highs = [np.full(3, -np.inf) for _ in vb.meshes]
     for clip_index, clip, rows in plans:
@@ -535,10 +554,9 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 chosen = rows[part]
                 tau = chosen / clip.rows_per_second
                 times = clip.start_time + tau
-                transforms = bone_transforms(vb, clip_index, tau)
-                decoded, decoded_normals = skin(transforms, vb.layout.encoding, bound.points,
-                                                bound.bone_indices, bound.bone_weights, bound.normals,
-                                                normal_point_indices(bound))
+                transforms = decode_bones(interpolated_values(vb, clip_index, tau, values), vb.layout.encoding)
+                decoded, decoded_normals = _skin_checked(transforms, vb.layout.encoding, bound,
+                                                         normal_point_indices(bound))
                 if vb.root_motion is not None:
                     # Clips baked in place (spec "Root motion"): the root track gives back the source motion.
                     from vbusd.rootmotion import at as root_at

@@ -82,6 +82,27 @@ def _box_images(transforms, rest) -> tuple:
     return moved - spread, moved + spread
 
 
+def _box_bounds_at(vb: VirtualBones, index: int, times: np.ndarray, values, rest, chunk: int):
+    """``(low, high, curvature)`` of the bones' boxes at ``times``, in chunks (numpy twin of
+    :func:`vbusd.bake_kernels.bone_box_bounds`)."""
+    from vbusd.decode.reference import decode_bones, interpolated_values
+
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    curvature = np.zeros(3)
+    per = max(1, chunk // max(1, int(rest[0].sum()) * 8))
+    previous = None
+    for start in range(0, len(times), per):
+        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, times[start:start + per], values),
+                                          vb.layout.encoding), rest)
+        low, high = np.minimum(low, lo.min(axis=(0, 1))), np.maximum(high, hi.max(axis=(0, 1)))
+        corners = np.concatenate([lo, hi], axis=1)
+        run = corners if previous is None else np.concatenate([previous, corners])
+        if run.shape[0] >= 3:
+            curvature = np.maximum(curvature, np.abs(run[2:] - 2 * run[1:-1] + run[:-2]).max(axis=(0, 1)))
+        previous = run[-2:]
+    return low, high, curvature
+
+
 def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, values, rest, chunk: int):
     """Bounds of a linear-blend clip from its bones' boxes: ``(low, high, curvature)``.
 
@@ -93,25 +114,20 @@ def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, valu
     factor, which widens the box by ``e`` times its distance from the origin. The cost is bones x
     times, not vertices x times.
     """
-    from vbusd.decode.reference import bone_transforms, decode_bones, interpolated_values
+    from vbusd import bake_kernels
+    from vbusd.decode.reference import decode_bones, interpolated_values, row_position
 
     encoding = vb.layout.encoding
-    low, high = np.full(3, np.inf), np.full(3, -np.inf)
-    curvature = np.zeros(3)
-    per = max(1, chunk // max(1, int(rest[0].sum()) * 8))
-    previous = None
-    for start in range(0, len(times), per):
-        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, times[start:start + per], values), encoding),
-                             rest)
-        low, high = np.minimum(low, lo.min(axis=(0, 1))), np.maximum(high, hi.max(axis=(0, 1)))
-        corners = np.concatenate([lo, hi], axis=1)
-        run = corners if previous is None else np.concatenate([previous, corners])
-        if run.shape[0] >= 3:
-            curvature = np.maximum(curvature, np.abs(run[2:] - 2 * run[1:-1] + run[:-2]).max(axis=(0, 1)))
-        previous = run[-2:]
+    i0, i1, f = row_position(clip, times)
+    compiled = bake_kernels.bone_box_bounds(values, (clip.first_row + i0, clip.first_row + i1, f), encoding.value,
+                                            np.flatnonzero(rest[0]), rest[1], rest[2])
+    if compiled is not None:  # the same boxes, one pass per bone
+        low, high, curvature = compiled
+    else:
+        low, high, curvature = _box_bounds_at(vb, index, times, values, rest, chunk)
     if clip.loop and len(times) >= 2:  # the wrap: ..., last sample, row N (= row 0), first step
         tail = np.concatenate([times[-2:], [times[-1] + times[1] - times[0]]])
-        lo, hi = _box_images(bone_transforms(vb, index, tail), rest)
+        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, tail, values), encoding), rest)
         corners = np.concatenate([lo, hi], axis=1)
         curvature = np.maximum(curvature, np.abs(corners[2] - 2 * corners[1] + corners[0]).max(axis=0))
     slack = rest[3] * np.maximum(np.abs(low), np.abs(high))

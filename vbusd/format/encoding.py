@@ -165,6 +165,12 @@ def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Pola
     """
     if not 0 < tolerance < 1 or linear.size == 0:
         return None
+    from vbusd import bake_kernels
+
+    compiled = bake_kernels.near_rotation_polar(linear, tolerance)  # the same iteration, compiled
+    if compiled is not None:
+        rotation, det = compiled
+        return None if rotation is None else _Polar(rotation=rotation, singular=np.ones(linear.shape[:-1]), det=det)
     shape = linear.shape
     a = np.moveaxis(linear.reshape(-1, 3, 3), 0, -1)  # (3, 3, N), frames last
     a = np.ascontiguousarray(a, dtype=np.float64)
@@ -256,6 +262,12 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
     """
     encoding = Encoding(encoding)
     m = np.asarray(matrices, dtype=np.float64)
+    if encoding is Encoding.CROSS_MATRIX:
+        from vbusd import bake_kernels
+
+        compiled = bake_kernels.encode_cross_matrix(m, tolerance)  # None: small, or some matrix fails
+        if compiled is not None:
+            return compiled
     linear, translation = m[..., :3, :3], m[..., :3, 3]
     out = np.empty(m.shape[:-2] + (encoding.texels_per_bone, 4))
     if encoding is Encoding.AFFINE_MATRIX:
@@ -413,12 +425,14 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
     """
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)
-    if not np.all(np.isfinite(v)):
+    # Two passes without temporaries decide the common case (NaN propagates through min and max).
+    low, high = (v.min(), v.max()) if v.size else (0.0, 0.0)
+    if not (np.isfinite(low) and np.isfinite(high)):
         raise UnsupportedError("bone transforms contain NaN or infinity", code="encoding.nonFinite")
     if texel_format is TexelFormat.FLOAT32:
         return v.astype("<f4"), None
     if texel_format is TexelFormat.FLOAT16:
-        over = np.argwhere(np.abs(v) > FLOAT16_MAX)
+        over = np.argwhere(np.abs(v) > FLOAT16_MAX) if max(-low, high) > FLOAT16_MAX else np.zeros((0, v.ndim))
         if over.size:
             index = tuple(int(i) for i in over[0])
             raise Float16OverflowError(

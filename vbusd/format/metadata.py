@@ -206,7 +206,7 @@ def to_dict(vb: VirtualBones) -> dict:
     Raises:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
-    return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, content_digest(vb.texels),
+    return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, vb.content_digest,
                        _generator(), vb.bind_transforms)
 
 

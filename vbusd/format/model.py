@@ -19,6 +19,7 @@ Nothing here does I/O.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
@@ -326,6 +327,14 @@ class VirtualBones:
             raise ValueError(f"clips hold {rows} rows, layout says {self.layout.row_count}")
         if self.bind_transforms is not None and np.shape(self.bind_transforms) != (self.layout.bone_count, 4, 4):
             raise ValueError(f"bind transforms {np.shape(self.bind_transforms)} for {self.layout.bone_count} bones")
+
+    @functools.cached_property
+    def content_digest(self) -> str:
+        """The texels' ``contentDigest`` (:func:`vbusd.format.metadata.content_digest`), hashed once:
+        the writer needs it for the layer, the texture's metadata and the sidecar."""
+        from vbusd.format.metadata import content_digest
+
+        return content_digest(self.texels)
 
 
 @dataclass(frozen=True)

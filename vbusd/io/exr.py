@@ -25,6 +25,7 @@ import re
 import struct
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from typing import Optional
 
@@ -397,6 +398,29 @@ def _read_pixels(path, image: TextureImage, diagnostics: Diagnostics, max_dimens
     return texels.astype(dtype, copy=False)
 
 
+_THREADS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _compressing_on_every_core(OpenEXR):
+    """OpenEXR compresses the file's chunks on a pool of threads (same bytes, written in order);
+    its size is a process-wide setting, so it is raised for the write and then restored."""
+    if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
+        yield
+        return
+    with _THREADS_LOCK:
+        saved = OpenEXR.global_thread_count()
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover - not Linux
+            cores = os.cpu_count() or 1
+        OpenEXR.set_global_thread_count(max(saved, cores))
+        try:
+            yield
+        finally:
+            OpenEXR.set_global_thread_count(saved)
+
+
 def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zip") -> None:
     """Write texels and their metadata JSON as an EXR file (not atomic: give a temporary path).
 
@@ -430,7 +454,7 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
     native = texels.dtype.newbyteorder("=")
     channels = {c: np.ascontiguousarray(texels[..., i], dtype=native) for i, c in enumerate("RGBA")}
     try:
-        with OpenEXR.File(header, channels) as exr:
+        with _compressing_on_every_core(OpenEXR), OpenEXR.File(header, channels) as exr:
             exr.write(str(path))
     except RuntimeError as error:
         # OpenEXR says why in words ("... No space left on device."): keep the errno, so that the

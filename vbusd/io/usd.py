@@ -179,7 +179,6 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
     path = Sdf.Path(vb.path)
     _define_ancestors(stage, UsdGeom, path)
     prim = stage.DefinePrim(path, ANIMATION_TYPE)
-    from vbusd.format.metadata import content_digest
 
     # Keyed by the layout metadata keys; the names table gives each one's USD attribute.
     values = {
@@ -195,7 +194,7 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         "horizontalPadding": layout.horizontal_padding.value,
         "verticalPadding": layout.vertical_padding.value,
         "bones": Vt.TokenArray([str(b) for b in vb.bones]),
-        "contentDigest": content_digest(vb.texels),
+        "contentDigest": vb.content_digest,
     }
     clip_values = {
         "name": Vt.TokenArray([str(c.name) for c in vb.clips]),
