@@ -110,10 +110,11 @@ class _Reader:
         self.cache = UsdSkel.Cache()
         self.predicate = Usd.TraverseInstanceProxies()
         self.bindings: dict = {}
-        self.animation_values: dict = {}
-        """Per SkelAnimation path: {attribute name: {time code rounded to 1e-9: numpy array}}, the
-        values :meth:`check_animation` read, reused by :class:`AllFramesSkinning`."""
         """Per SkelRoot path: {skinning target path: (skeleton path, UsdSkel.SkinningQuery)}."""
+        self.animation_values: dict = {}
+        """Per SkelAnimation path: {attribute name: (time codes (n,) float64 in order, or None for
+        a value without time samples; values (n, joints, components) as USD stores them)}, what
+        :meth:`check_animation` read, reused by :class:`AllFramesSkinning`."""
 
     def error(self, message: str, location: str, code: str) -> InputError:
         return InputError(message, file=self.file, location=location, code=code)
@@ -356,36 +357,37 @@ class _Reader:
                              "translations, rotations and scales", location, "usdskel.animation.incomplete")
         stash = self.animation_values.setdefault(location, {})
         for name, attr in authored.items():
-            times = attr.GetTimeSamples()
-            kept = stash.setdefault(name, {})
+            times = list(attr.GetTimeSamples())
+            kept = []
             for time in (times or [None]):
                 value = attr.Get() if time is None else attr.Get(time)
-                if value is not None:
-                    value = np.asarray(value)  # once, for the checks and for AllFramesSkinning
-                    kept[None if time is None else round(float(time), 9)] = value  # None: no samples
                 count = 0 if value is None else len(value)
                 if count != len(joints):
                     where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
                     raise self.error(f"{name} has {count} values for {len(joints)} joints", where,
                                      "usdskel.animation.count")
+                kept.append(np.asarray(value))  # once, for the checks and for AllFramesSkinning
             if joints:  # every sample at once: (samples, joints, components)
-                self._check_values(name, kept, location, joints, bool(times))
+                stacked = np.stack(kept).reshape(len(kept), len(joints), -1)
+                self._check_values(name, stacked, times, location, joints)
+                stash[name] = (np.asarray(times, dtype=np.float64) if times else None, stacked)
 
-    def _check_values(self, name: str, kept: dict, location: str, joints: list, sampled: bool) -> None:
+    def _check_values(self, name: str, stacked: np.ndarray, times: list, location: str, joints: list) -> None:
         """Finite values, and no zero quaternion, in every sample of one animation attribute; the
         first bad value (earliest time, then lowest joint) is the one reported."""
-        stacked = np.stack([np.asarray(v, dtype=np.float64).reshape(len(joints), -1) for v in kept.values()])
-        bad = ~np.isfinite(stacked).all(axis=2)
-        problem = "is not finite"
-        code = "usdskel.animation.nonFinite"
-        if not bad.any() and name == "rotations":
-            bad = np.sqrt((stacked * stacked).sum(axis=2)) < 1e-6
+        bad = None
+        # A float64 sum is finite when every value is (float32 and half values cannot overflow it).
+        if not np.isfinite(stacked.sum(dtype=np.float64)):
+            bad = ~np.isfinite(stacked).all(axis=2)
+            problem, code = "is not finite", "usdskel.animation.nonFinite"
+        elif name == "rotations":
+            wide = stacked.astype(np.float64)
+            bad = np.sqrt((wide * wide).sum(axis=2)) < 1e-6
             problem, code = "is a zero quaternion", "usdskel.animation.zeroQuaternion"
-        if not bad.any():
+        if bad is None or not bad.any():
             return
         sample, joint = (int(i) for i in np.argwhere(bad)[0])
-        time = list(kept)[sample]
-        where = f"{location}.{name}" + (f" at time {time:g}" if sampled else "")
+        where = f"{location}.{name}" + (f" at time {times[sample]:g}" if times else "")
         raise self.error(f"{name}[{joint}] (joint '{joints[joint]}') {problem}", where, code)
 
 
@@ -546,6 +548,21 @@ def _affine_rows(matrices: np.ndarray) -> bool:
     return bool(np.all(np.abs(matrices[..., :3, 3]) <= 1e-12) and np.all(np.abs(matrices[..., 3, 3] - 1.0) <= 1e-12))
 
 
+def _at_authored_codes(read: Optional[tuple], codes: np.ndarray) -> Optional[np.ndarray]:
+    """The values a reader read, ``(time codes or None, (n, ...) values)``, at ``codes``; None when
+    nothing was read or some code falls between authored time codes."""
+    if read is None:
+        return None
+    times, values = read
+    if times is None:  # one value, no time samples: the same at every code
+        return np.broadcast_to(values[0], (codes.size,) + values.shape[1:])
+    # The nearest authored code, taken when within the 1e-9 the sampler's codes are rounded to.
+    right = np.clip(np.searchsorted(times, codes), 0, times.size - 1)
+    left = np.maximum(right - 1, 0)
+    nearest = np.where(np.abs(times[left] - codes) < np.abs(times[right] - codes), left, right)
+    return values[nearest] if np.all(np.abs(times[nearest] - codes) <= 5e-10) else None
+
+
 def _in_code_order(out: np.ndarray, inverse: np.ndarray) -> np.ndarray:
     """Results per distinct sorted code (``np.unique``) back in the order and repeats of the codes."""
     inverse = inverse.reshape(-1)
@@ -581,8 +598,9 @@ class AllFramesSkinning:
         self._queries = queries
         self._anim_to_skel = anim_to_skel
         self._anim_joint_count = anim_joint_count
-        self._read: tuple = ({}, {}, {})
-        """Values already read at authored time codes (translations, rotations, scales)."""
+        self._read: tuple = (None, None, None)
+        """Values the reader's checks read (translations, rotations, scales): ``(time codes or None,
+        (n, A, components) values)`` each, or None."""
         depth = np.zeros(parents.size, dtype=np.int64)
         for joint, parent in enumerate(parents):
             depth[joint] = depth[parent] + 1 if parent >= 0 else 0
@@ -632,7 +650,7 @@ class AllFramesSkinning:
                             (anim.GetTranslationsAttr(), anim.GetRotationsAttr(), anim.GetScalesAttr()))
             fast = cls(Usd, parents, inverse_bind, rest, queries, anim_to_skel, len(anim_joints))
             read = getattr(reader, "animation_values", {}).get(str(prim.GetPath())) or {}
-            fast._read = tuple(read.get(name) or {} for name in ("translations", "rotations", "scales"))
+            fast._read = tuple(read.get(name) for name in ("translations", "rotations", "scales"))
             return fast
         except Exception:  # noqa: BLE001 - any surprise: UsdSkel frame by frame stays the answer
             return None
@@ -641,32 +659,36 @@ class AllFramesSkinning:
         """The animation's ``(translations (n, A, 3) float32, rotations (n, A, 4) float32, scales
         (n, A, 3) float16)`` at ``codes``; None when a value is missing or of the wrong length."""
         frames, count = codes.size, self._anim_joint_count
-        q_t, q_r, q_s = self._queries
-        read_t, read_r, read_s = self._read
-        TimeCode = self._usd.TimeCode
-        columns = ([], [], [])
-        for code in codes.tolist():
-            key = round(code, 9)  # an authored sample the reader's checks already read: no second read
-            values = (read_t.get(key, read_t.get(None)), read_r.get(key, read_r.get(None)),
-                      read_s.get(key, read_s.get(None)))
-            if values[0] is None or values[1] is None or values[2] is None:
-                time = TimeCode(code)
-                values = (q_t.Get(time), q_r.Get(time), q_s.Get(time))
-                if any(v is None for v in values):
-                    return None
-                values = tuple(np.asarray(v) for v in values)
-            for column, value in zip(columns, values):
-                column.append(value)
+        gathered = [_at_authored_codes(read, codes) for read in self._read]
+        if any(g is None for g in gathered):  # some code between samples: USD interpolates
+            gathered = self._animation_values_from_usd(codes)
+            if gathered is None:
+                return None
         try:
-            translations = np.stack(columns[0]).astype(np.float32, copy=False)
-            rotations = np.stack(columns[1]).astype(np.float32, copy=False)
-            scales = np.stack(columns[2]).astype(np.float16, copy=False)
+            translations = np.asarray(gathered[0]).astype(np.float32, copy=False)
+            rotations = np.asarray(gathered[1]).astype(np.float32, copy=False)
+            scales = np.asarray(gathered[2]).astype(np.float16, copy=False)
         except ValueError:  # arrays of different lengths at different times
             return None
         if translations.shape != (frames, count, 3) or rotations.shape != (frames, count, 4) \
                 or scales.shape != (frames, count, 3):
             return None
         return translations, rotations, scales
+
+    def _animation_values_from_usd(self, codes: np.ndarray) -> Optional[list]:
+        """Values at every code through ``Usd.AttributeQuery.Get`` (USD's interpolation), or None."""
+        TimeCode = self._usd.TimeCode
+        columns: list = [[], [], []]
+        for code in codes.tolist():
+            values = tuple(query.Get(TimeCode(code)) for query in self._queries)
+            if any(v is None for v in values):
+                return None
+            for column, value in zip(columns, values):
+                column.append(np.asarray(value))
+        try:
+            return [np.stack(column) for column in columns]
+        except ValueError:
+            return None
 
     def _local(self, codes: np.ndarray, animated: Optional[tuple]) -> tuple:
         """Joint local transforms at ``codes`` as (linear (J, 3, 3, n), translation (J, 3, n)), frames
@@ -842,11 +864,14 @@ class SkeletonSampler:
         is 8099.000000000001 in floating point, and USD would interpolate the samples there in
         float32 instead of returning the authored sample (a 1e-6 difference on a deep rig).
         """
-        code = float(time) * self._tcps
-        whole = round(code)
-        if abs(code - whole) <= 1e-9 * max(1.0, abs(code)):
-            code = float(whole)
-        return min(max(code, self._start), self._end)
+        return float(self.codes(np.array([float(time)]))[0])
+
+    def codes(self, times: np.ndarray) -> np.ndarray:
+        """:meth:`code` of every time in ``times`` (float64 seconds), at once."""
+        code = np.asarray(times, dtype=np.float64) * self._tcps
+        whole = np.round(code)  # half to even, as Python's round
+        code = np.where(np.abs(code - whole) <= 1e-9 * np.maximum(1.0, np.abs(code)), whole, code)
+        return np.minimum(np.maximum(code, self._start), self._end)
 
     def usd_transforms(self, code: float) -> tuple:
         """(UsdSkel's skel-space skinning transforms as a Vt.Matrix4dArray, row-vector world matrix)."""
@@ -874,7 +899,7 @@ class SkeletonSampler:
 
     def __call__(self, times) -> np.ndarray:
         times = np.atleast_1d(np.asarray(times, dtype=np.float64))
-        codes = np.array([self.code(t) for t in times], dtype=np.float64)
+        codes = self.codes(times)
         if self._all_frames is not None:
             world = self._static_world
             if world is None:
@@ -1206,7 +1231,7 @@ def _ancestors(prim) -> list:
 def _loose_reference(sampler: SkeletonSampler, bound: _Bound, times) -> tuple:
     """A loose gprim's points (and normals) placed by USD's own transform evaluation
     (``UsdGeom.XformCache.GetLocalToWorldTransform``) at source times (seconds)."""
-    codes = [sampler.code(t) for t in np.atleast_1d(np.asarray(times, dtype=np.float64))]
+    codes = sampler.codes(np.atleast_1d(np.asarray(times, dtype=np.float64))).tolist()
     index = sampler.extra_prims.index(bound.prim)
     worlds = sampler.extra_world(codes)[:, index]                       # row-vector (n, 4, 4)
     points = np.asarray(bound.mesh.points, dtype=np.float64)

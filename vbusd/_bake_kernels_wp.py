@@ -6,6 +6,8 @@ twin's order of operations, so both compute the same numbers up to rounding of s
 
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False, "fast_math": False})
@@ -144,20 +146,20 @@ def skinning_transforms(translations: wp.array2d(dtype=wp.vec3f), rotations: wp.
 
 
 @wp.func
-def _texel(values: wp.array3d(dtype=wp.float64), row0: int, row1: int, f: wp.float64, bone: int, k: int):
-    """Channel ``k`` (texel * 4 + channel) of a bone, blended between two rows as the reference does."""
-    return (_ONE - f) * values[row0, bone, k] + f * values[row1, bone, k]
+def _texel(values: wp.array2d(dtype=Any), row0: int, row1: int, f: wp.float64, column: int):
+    """One stored channel value, blended between two rows as the reference does (in float64)."""
+    return (_ONE - f) * wp.float64(values[row0, column]) + f * wp.float64(values[row1, column])
 
 
 @wp.kernel
-def bone_box_bounds(values: wp.array3d(dtype=wp.float64), row0: wp.array(dtype=wp.int32),
+def bone_box_bounds(values: wp.array2d(dtype=Any), per_bone: int, row0: wp.array(dtype=wp.int32),
                     row1: wp.array(dtype=wp.int32), blend: wp.array(dtype=wp.float64), encoding: int,
                     bones: wp.array(dtype=wp.int32), center: wp.array(dtype=wp.vec3d),
                     half: wp.array(dtype=wp.vec3d), low: wp.array(dtype=wp.vec3d), high: wp.array(dtype=wp.vec3d),
                     curvature: wp.array(dtype=wp.vec3d)):
     """One bone: its rest box transformed at every sample; the box of those boxes and their curvature."""
     i = wp.tid()
-    b = bones[i]
+    first = bones[i] * per_bone  # the bone's first column: texels side by side, 4 channels each
     c = center[i]
     h = half[i]
     inf = wp.float64(1e308) * wp.float64(10.0)
@@ -175,35 +177,35 @@ def bone_box_bounds(values: wp.array3d(dtype=wp.float64), row0: wp.array(dtype=w
         linear = wp.mat33d()
         translation = wp.vec3d()
         if encoding == 0:  # crossMatrix: columns x, y, cross(x, y)
-            x = wp.vec3d(_texel(values, r0, r1, f, b, 0), _texel(values, r0, r1, f, b, 1), _texel(values, r0, r1, f, b, 2))
-            y = wp.vec3d(_texel(values, r0, r1, f, b, 4), _texel(values, r0, r1, f, b, 5), _texel(values, r0, r1, f, b, 6))
+            x = wp.vec3d(_texel(values, r0, r1, f, first + 0), _texel(values, r0, r1, f, first + 1), _texel(values, r0, r1, f, first + 2))
+            y = wp.vec3d(_texel(values, r0, r1, f, first + 4), _texel(values, r0, r1, f, first + 5), _texel(values, r0, r1, f, first + 6))
             z = wp.cross(x, y)
             linear = wp.mat33d(x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2])
-            translation = wp.vec3d(_texel(values, r0, r1, f, b, 8), _texel(values, r0, r1, f, b, 9),
-                                   _texel(values, r0, r1, f, b, 10))
+            translation = wp.vec3d(_texel(values, r0, r1, f, first + 8), _texel(values, r0, r1, f, first + 9),
+                                   _texel(values, r0, r1, f, first + 10))
         elif encoding == 1:  # affineMatrix: three rows [A | t]
             for r in range(3):
                 for k in range(3):
-                    linear[r, k] = _texel(values, r0, r1, f, b, r * 4 + k)
-                translation[r] = _texel(values, r0, r1, f, b, r * 4 + 3)
+                    linear[r, k] = _texel(values, r0, r1, f, first + r * 4 + k)
+                translation[r] = _texel(values, r0, r1, f, first + r * 4 + 3)
         else:  # quatTranslation: normalized quaternion, uniform scale
-            q = wp.vec4d(_texel(values, r0, r1, f, b, 0), _texel(values, r0, r1, f, b, 1),
-                         _texel(values, r0, r1, f, b, 2), _texel(values, r0, r1, f, b, 3))
+            q = wp.vec4d(_texel(values, r0, r1, f, first + 0), _texel(values, r0, r1, f, first + 1),
+                         _texel(values, r0, r1, f, first + 2), _texel(values, r0, r1, f, first + 3))
             q = q / wp.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
             qx = q[0]
             qy = q[1]
             qz = q[2]
             qw = q[3]
             two = wp.float64(2.0)
-            scale = _texel(values, r0, r1, f, b, 7)
+            scale = _texel(values, r0, r1, f, first + 7)
             linear = wp.mat33d((_ONE - two * (qy * qy + qz * qz)) * scale, (two * (qx * qy - qz * qw)) * scale,
                                (two * (qx * qz + qy * qw)) * scale,
                                (two * (qx * qy + qz * qw)) * scale, (_ONE - two * (qx * qx + qz * qz)) * scale,
                                (two * (qy * qz - qx * qw)) * scale,
                                (two * (qx * qz - qy * qw)) * scale, (two * (qy * qz + qx * qw)) * scale,
                                (_ONE - two * (qx * qx + qy * qy)) * scale)
-            translation = wp.vec3d(_texel(values, r0, r1, f, b, 4), _texel(values, r0, r1, f, b, 5),
-                                   _texel(values, r0, r1, f, b, 6))
+            translation = wp.vec3d(_texel(values, r0, r1, f, first + 4), _texel(values, r0, r1, f, first + 5),
+                                   _texel(values, r0, r1, f, first + 6))
         moved = linear * c + translation
         spread = wp.vec3d(wp.abs(linear[0, 0]) * h[0] + wp.abs(linear[0, 1]) * h[1] + wp.abs(linear[0, 2]) * h[2],
                           wp.abs(linear[1, 0]) * h[0] + wp.abs(linear[1, 1]) * h[1] + wp.abs(linear[1, 2]) * h[2],
@@ -263,3 +265,7 @@ def skin_normals_lbs(start: int, normal: wp.array2d(dtype=wp.mat33d), normals: w
         if length > _ZERO:
             r = r / length
     out[n, v] = r
+
+
+for _dtype in (wp.float16, wp.float32, wp.float64):  # stored float16 / float32 texels, dequantized unorm16
+    wp.overload(bone_box_bounds, {"values": wp.array2d(dtype=_dtype)})

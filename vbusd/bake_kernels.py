@@ -229,7 +229,8 @@ def bone_box_bounds(values: np.ndarray, rows: tuple, encoding: str, bones: np.nd
     """The bones' boxes over sample times (kernel twin of ``decode.bounds._bone_box_bounds``).
 
     Args:
-        values: ``(rows, B, T, 4)`` float64 channel values of the whole texture.
+        values: ``(rows, B, T, 4)`` channel values of the whole texture: the stored float16 or
+            float32 values as they are, or dequantized float64.
         rows: ``(row0, row1, blend)`` per sample time: texture rows and the weight of ``row1``.
         encoding: A key of :data:`ENCODING_IDS`.
         bones: ``(A,)`` the bones that move points.
@@ -247,9 +248,11 @@ def bone_box_bounds(values: np.ndarray, rows: tuple, encoding: str, bones: np.nd
         return None
     import warp as wp
 
-    data = np.ascontiguousarray(values, dtype=np.float64)
-    data = _array(data.reshape(data.shape[0], data.shape[1], -1), wp.float64)
-    inputs = [data, _array(np.asarray(row0, np.int32), wp.int32), _array(np.asarray(row1, np.int32), wp.int32),
+    kind = {np.dtype(np.float16): wp.float16, np.dtype(np.float32): wp.float32}.get(np.asarray(values).dtype, wp.float64)
+    data = np.ascontiguousarray(values, dtype=None if kind is not wp.float64 else np.float64)
+    per_bone = int(np.prod(data.shape[2:]))
+    data = _array(data.reshape(data.shape[0], -1), kind)
+    inputs = [data, per_bone, _array(np.asarray(row0, np.int32), wp.int32), _array(np.asarray(row1, np.int32), wp.int32),
               _array(np.asarray(blend, np.float64), wp.float64), ENCODING_IDS[encoding]]
     bone_array = _array(np.asarray(bones, np.int32), wp.int32)
     center_array, half_array = _array(np.asarray(center, np.float64), wp.vec3d), _array(np.asarray(half, np.float64), wp.vec3d)

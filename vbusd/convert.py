@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -527,7 +528,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from vbusd.decode.reference import channel_values, decode_bones, interpolated_values, normal_point_indices
+    from vbusd.decode.reference import bone_transforms, normal_point_indices
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -541,7 +542,6 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     plans = [(ci, clip, _checked_rows(clip.row_count, check_rows)) for ci, clip in enumerate(vb.clips)]
     total = sum(len(rows) for _, _, rows in plans) * max(1, len(vb.meshes))
     done = 0
-    values = channel_values(vb)  # dequantized once, not per chunk
     lows = [np.full(3, np.inf) for _ in vb.meshes]
     highs = [np.full(3, -np.inf) for _ in vb.meshes]
     for clip_index, clip, rows in plans:
@@ -554,7 +554,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 chosen = rows[part]
                 tau = chosen / clip.rows_per_second
                 times = clip.start_time + tau
-                transforms = decode_bones(interpolated_values(vb, clip_index, tau, values), vb.layout.encoding)
+                transforms = bone_transforms(vb, clip_index, tau)
                 decoded, decoded_normals = _skin_checked(transforms, vb.layout.encoding, bound,
                                                          normal_point_indices(bound))
                 if vb.root_motion is not None:
@@ -610,6 +610,31 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     return reports
 
 
+LARGE_SOURCE_BYTES = 2 << 20
+"""A source file this large is likely to bake enough matrices for :mod:`vbusd.bake_kernels`."""
+
+
+def _prepare_for(source: Path) -> None:
+    """Load the compiled bake kernels for a large source while its crate probe runs in the probe
+    server: the probe only waits on a pipe, so the two overlap (the reader's own probe of the file
+    is then a lookup)."""
+    from vbusd import bake_kernels
+    from vbusd.io import usd_probe
+
+    try:
+        if source.stat().st_size < LARGE_SOURCE_BYTES:
+            return
+    except OSError:
+        return  # the reader says why, in its words
+    probe = None
+    if usd_probe.needs_probe(source):
+        probe = threading.Thread(target=usd_probe.probe_crate, args=(source,), daemon=True)
+        probe.start()
+    bake_kernels.available()
+    if probe is not None:
+        probe.join()
+
+
 def convert(source, output, options: ConvertOptions = ConvertOptions(),
             progress: Optional[Progress] = None) -> ConvertReport:
     """Convert a skinned source file into a Virtual Bones USD asset.
@@ -640,6 +665,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     if progress:
         progress("read", 0, 1)
     converter = registry.find_converter(registry.check_source(source), options.converter)
+    _prepare_for(source)
     read_options = ReadOptions(skeletons=options.skeletons, time_range=options.frame_range,
                                allow_outside_paths=options.allow_outside_paths, clips=options.clips,
                                strict_weights=options.strict_weights)

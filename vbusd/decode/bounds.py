@@ -25,8 +25,12 @@ bound) plus a relative float32 rounding margin.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
+from vbusd.format.encoding import unpack
+from vbusd.format.layout import TexelFormat
 from vbusd.format.model import VirtualBones
 
 __all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
@@ -57,16 +61,21 @@ def _bone_boxes(vb: VirtualBones):
     lo = np.full((bone_count, 3), np.inf)
     hi = np.full((bone_count, 3), -np.inf)
     weight_slack = 0.0
+    pairs_bones, pairs_points = [], []  # every (bone, point it moves), over meshes and slots
     for mesh in vb.meshes:
         weights = np.asarray(mesh.bone_weights, dtype=np.float64)
         if weights.size:
             weight_slack = max(weight_slack, float(np.abs(weights.sum(axis=1) - 1.0).max()))
-        for slot in range(mesh.bone_indices.shape[1]):
-            used = weights[:, slot] > 0
-            bones = np.asarray(mesh.bone_indices)[used, slot]
-            points = np.asarray(mesh.points, dtype=np.float64)[used]
-            np.minimum.at(lo, bones, points)
-            np.maximum.at(hi, bones, points)
+        used = weights > 0
+        pairs_bones.append(np.asarray(mesh.bone_indices)[used])
+        pairs_points.append(np.asarray(mesh.points, dtype=np.float64)[np.nonzero(used)[0]])
+    bones = np.concatenate(pairs_bones) if pairs_bones else np.zeros(0, dtype=np.int64)
+    if bones.size:  # per bone min and max: sort by bone, reduce each run (ufunc.at is slow)
+        order = np.argsort(bones, kind="stable")
+        bones, points = bones[order], np.concatenate(pairs_points)[order]
+        starts = np.flatnonzero(np.concatenate([[True], bones[1:] != bones[:-1]]))
+        lo[bones[starts]] = np.minimum.reduceat(points, starts, axis=0)
+        hi[bones[starts]] = np.maximum.reduceat(points, starts, axis=0)
     active = np.all(np.isfinite(lo), axis=1)
     if not np.any(active):
         return None
@@ -119,15 +128,17 @@ def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, valu
 
     encoding = vb.layout.encoding
     i0, i1, f = row_position(clip, times)
-    compiled = bake_kernels.bone_box_bounds(values, (clip.first_row + i0, clip.first_row + i1, f), encoding.value,
+    # float16 and float32 texels are read as stored (their float64 values are exact); unorm16 dequantized
+    stored = unpack(vb.texels, vb.layout) if vb.layout.texel_format is not TexelFormat.UNORM16 else values()
+    compiled = bake_kernels.bone_box_bounds(stored, (clip.first_row + i0, clip.first_row + i1, f), encoding.value,
                                             np.flatnonzero(rest[0]), rest[1], rest[2])
     if compiled is not None:  # the same boxes, one pass per bone
         low, high, curvature = compiled
     else:
-        low, high, curvature = _box_bounds_at(vb, index, times, values, rest, chunk)
+        low, high, curvature = _box_bounds_at(vb, index, times, values(), rest, chunk)
     if clip.loop and len(times) >= 2:  # the wrap: ..., last sample, row N (= row 0), first step
         tail = np.concatenate([times[-2:], [times[-1] + times[1] - times[0]]])
-        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, tail, values), encoding), rest)
+        lo, hi = _box_images(decode_bones(interpolated_values(vb, index, tail), encoding), rest)
         corners = np.concatenate([lo, hi], axis=1)
         curvature = np.maximum(curvature, np.abs(corners[2] - 2 * corners[1] + corners[0]).max(axis=0))
     slack = rest[3] * np.maximum(np.abs(low), np.abs(high))
@@ -147,7 +158,7 @@ def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> 
     """
     from vbusd.decode.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
 
-    values = channel_values(vb)
+    values = functools.cache(lambda: channel_values(vb))  # the whole texture in float64, when needed
     substeps = SUBSTEPS[vb.layout.encoding.value] if substeps is None else int(substeps)
     boxes = np.zeros((len(vb.clips), 2, 3))
     linear_blend = vb.layout.encoding.value != "dualQuat"
@@ -164,7 +175,7 @@ def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> 
             previous = None  # the last two samples of the last chunk, for second differences across chunks
             for start in range(0, len(times), per):
                 taus = times[start:start + per]
-                transforms = decode_bones(interpolated_values(vb, index, taus, values), vb.layout.encoding)
+                transforms = decode_bones(interpolated_values(vb, index, taus, values()), vb.layout.encoding)
                 points, _ = skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices,
                                  mesh.bone_weights)
                 low = np.minimum(low, points.min(axis=(0, 1)))

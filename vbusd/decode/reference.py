@@ -63,10 +63,14 @@ def interpolated_values(vb: VirtualBones, clip_index: int, tau, values: Optional
         values: :func:`channel_values` of ``vb``, to avoid recomputing it.
     """
     clip = vb.clips[clip_index]
-    values = channel_values(vb) if values is None else values
     i0, i1, f = row_position(clip, np.atleast_1d(tau))
-    row0 = values[clip.first_row + i0]
-    row1 = values[clip.first_row + i1]
+    if values is None:  # only the rows needed, not the whole texture
+        stored = unpack(vb.texels, vb.layout)
+        row0 = dequantize(stored[clip.first_row + i0], vb.layout.texel_format, vb.unorm_ranges)
+        row1 = dequantize(stored[clip.first_row + i1], vb.layout.texel_format, vb.unorm_ranges)
+    else:
+        row0 = values[clip.first_row + i0]
+        row1 = values[clip.first_row + i1]
     f = f[:, None, None, None]
     return (1.0 - f) * row0 + f * row1
 

@@ -304,13 +304,14 @@ def make_hemispheres_continuous(values: np.ndarray, encoding: Encoding | str) ->
         encoding: The encoding; matrix encodings are returned unchanged.
 
     Returns:
-        A copy where, for quatTranslation and dualQuat, ``dot(q[r], q[r-1]) >= 0`` for every
-        row r > 0 and bone (the first row keeps w >= 0). Both dual quaternion parts flip together.
+        For quatTranslation and dualQuat, a copy where ``dot(q[r], q[r-1]) >= 0`` for every row
+        r > 0 and bone (the first row keeps w >= 0); both dual quaternion parts flip together.
+        Matrix encodings have no hemispheres: their values are returned as they are (not copied).
     """
     encoding = Encoding(encoding)
-    out = np.array(values, dtype=np.float64, copy=True)
     if encoding in (Encoding.CROSS_MATRIX, Encoding.AFFINE_MATRIX):
-        return out
+        return np.asarray(values, dtype=np.float64)
+    out = np.array(values, dtype=np.float64, copy=True)
     parts = 2 if encoding is Encoding.DUAL_QUAT else 1
     # Sign of each row relative to the previous one; the cumulative product gives each row's flip.
     dots = np.einsum("rbc,rbc->rb", out[1:, :, 0, :], out[:-1, :, 0, :])

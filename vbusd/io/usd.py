@@ -527,10 +527,10 @@ def _texture_name(plain: Path, staged: Path, in_use: set) -> Path:
     Only such a file must not change before the commit point; any other file of that name is no
     part of a current asset and is replaced (the output exists without --force was refused).
     """
-    digest = file_sha256(staged)
     sidecar = plain.with_name(plain.name + ".json")
     if os.path.abspath(plain) not in in_use and os.path.abspath(sidecar) not in in_use:
         return plain
+    digest = file_sha256(staged)
     try:
         if os.path.isfile(plain) and not os.path.islink(plain) and file_sha256(plain) == digest \
                 and (not os.path.lexists(sidecar) or os.path.isfile(sidecar)):

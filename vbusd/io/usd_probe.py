@@ -106,7 +106,13 @@ def probe_crate(path) -> ProbeResult:
         return ProbeResult(False, problem=f"cannot read it: {error.strerror or error}")
     if key in _PASSED:  # the same unchanged file, read again by the same run
         return ProbeResult(True)
-    size = stat.st_size
+    result = _probe(path, stat.st_size)
+    if result.ok:
+        _PASSED.add(key)
+    return result
+
+
+def _probe(path: Path, size: int) -> ProbeResult:
     memory, seconds = memory_limit(size), time_limit(size)
     for _attempt in range(2):  # a server that died (killed, out of memory) is replaced once
         with _SERVER_LOCK:
@@ -119,7 +125,6 @@ def probe_crate(path) -> ProbeResult:
     # None: the server itself stopped answering in time, which ends as the child's alarm does
     returncode, said = (-signal.SIGALRM, "") if answer is None else answer
     if returncode == 0:
-        _PASSED.add(key)
         return ProbeResult(True)
     said = said.strip().splitlines()
     last = " ".join(said[-1].split())[:300] if said else ""
