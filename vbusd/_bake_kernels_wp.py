@@ -109,10 +109,12 @@ def skinning_transforms(translations: wp.array2d(dtype=wp.vec3f), rotations: wp.
                         rest_linear: wp.array(dtype=wp.mat33d), rest_translation: wp.array(dtype=wp.vec3d),
                         parents: wp.array(dtype=wp.int32), inverse_bind_linear: wp.array(dtype=wp.mat33d),
                         inverse_bind_translation: wp.array(dtype=wp.vec3d), world_linear: wp.mat33d,
-                        world_translation: wp.vec3d,
-                        skel_linear: wp.array2d(dtype=wp.mat33d), skel_translation: wp.array2d(dtype=wp.vec3d),
-                        out: wp.array2d(dtype=wp.mat44d)):
-    """One frame: local S * R(q) * T per joint, down the hierarchy, then inverse(bind) and the world."""
+                        world_translation: wp.vec3d, out: wp.array2d(dtype=wp.mat44d)):
+    """One frame: local S * R(q) * T per joint, down the hierarchy, then inverse(bind) and the world.
+
+    The joints' skeleton-space transforms are kept in ``out`` (row-vector linear part in the upper
+    3 x 3, translation in the last row) until the second loop replaces each by its result.
+    """
     f = wp.tid()
     for j in range(parents.shape[0]):
         a = anim_joint[j]
@@ -128,14 +130,20 @@ def skinning_transforms(translations: wp.array2d(dtype=wp.vec3f), rotations: wp.
             translation = wp.vec3d(translations[f, a])
         p = parents[j]
         if p >= 0:
-            parent_linear = skel_linear[f, p]
-            translation = translation * parent_linear + skel_translation[f, p]
+            parent = out[f, p]
+            parent_linear = wp.mat33d(parent[0, 0], parent[0, 1], parent[0, 2], parent[1, 0], parent[1, 1],
+                                      parent[1, 2], parent[2, 0], parent[2, 1], parent[2, 2])
+            translation = translation * parent_linear + wp.vec3d(parent[3, 0], parent[3, 1], parent[3, 2])
             linear = linear * parent_linear
-        skel_linear[f, j] = linear
-        skel_translation[f, j] = translation
+        out[f, j] = wp.mat44d(linear[0, 0], linear[0, 1], linear[0, 2], _ZERO,
+                              linear[1, 0], linear[1, 1], linear[1, 2], _ZERO,
+                              linear[2, 0], linear[2, 1], linear[2, 2], _ZERO,
+                              translation[0], translation[1], translation[2], _ONE)
     for j in range(parents.shape[0]):
-        linear = skel_linear[f, j]
-        translation = inverse_bind_translation[j] * linear + skel_translation[f, j]
+        skel = out[f, j]
+        linear = wp.mat33d(skel[0, 0], skel[0, 1], skel[0, 2], skel[1, 0], skel[1, 1], skel[1, 2],
+                           skel[2, 0], skel[2, 1], skel[2, 2])
+        translation = inverse_bind_translation[j] * linear + wp.vec3d(skel[3, 0], skel[3, 1], skel[3, 2])
         linear = inverse_bind_linear[j] * linear
         translation = translation * world_linear + world_translation
         linear = linear * world_linear

@@ -39,7 +39,7 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["MIN_ITEMS", "available", "near_rotation_polar", "encode_cross_matrix", "skinning_transforms", "bone_box_bounds",
-           "skin_lbs", "ENCODING_IDS"]
+           "skin_lbs", "ENCODING_IDS", "split_work"]
 
 MIN_ITEMS = 65_536
 """Smallest work (matrices, bone samples or skinned points) for which the kernels are used."""
@@ -89,8 +89,9 @@ def _workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _split(count: int, launch) -> None:
-    """Run ``launch(start, stop)`` over ``[0, count)`` in one slice per core, in parallel."""
+def split_work(count: int, launch) -> None:
+    """Run ``launch(start, stop)`` over ``[0, count)`` in one slice per core, in parallel threads
+    (for work that releases Python's lock: warp launches, numpy casts and reductions)."""
     parts = min(_workers(), max(1, count // 1024))
     bounds = np.linspace(0, count, parts + 1).astype(int)
     if parts == 1:
@@ -136,7 +137,7 @@ def near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[tuple]
                   inputs=[source[start:stop], float(tolerance)], outputs=[out[start:stop], dets[start:stop], flags[start:stop]],
                   device="cpu")
 
-    _split(count, launch)
+    split_work(count, launch)
     if not ok.all():
         return None, None
     return rotation.reshape(linear.shape), det.reshape(linear.shape[:-2])
@@ -169,7 +170,7 @@ def encode_cross_matrix(matrices: np.ndarray, tolerance: float) -> Optional[np.n
         wp.launch(compiled.encode_cross_matrix, dim=stop - start, inputs=[source[start:stop], float(tolerance)],
                   outputs=[out[start:stop], flags[start:stop]], device="cpu")
 
-    _split(count, launch)
+    split_work(count, launch)
     return values.reshape(matrices.shape[:-2] + (3, 4)) if ok.all() else None
 
 
@@ -211,16 +212,14 @@ def skinning_transforms(translations: np.ndarray, rotations: np.ndarray, scales:
              _array(np.asarray(inverse_bind, np.float64)[:, 3, :3], wp.vec3d),
              wp.mat33d(*world[:3, :3].reshape(-1).tolist()), wp.vec3d(*world[3, :3].tolist())]
     out = np.empty((frames, joint_count, 4, 4))
-    # Per frame, the joints' skeleton-space transforms (row-vector linear part and translation).
-    skel = (_array(np.empty((frames, joint_count, 3, 3)), wp.mat33d), _array(np.empty((frames, joint_count, 3)), wp.vec3d))
     out_array = _array(out, wp.mat44d)
 
     def launch(start: int, stop: int) -> None:
         wp.launch(compiled.skinning_transforms, dim=stop - start,
                   inputs=[a[start:stop] for a in args] + fixed,
-                  outputs=[skel[0][start:stop], skel[1][start:stop], out_array[start:stop]], device="cpu")
+                  outputs=[out_array[start:stop]], device="cpu")
 
-    _split(frames, launch)
+    split_work(frames, launch)
     return out
 
 
@@ -323,9 +322,9 @@ def skin_lbs(linear: np.ndarray, translation: np.ndarray, normal: np.ndarray, po
         wp.launch(compiled.skin_normals_lbs, dim=(n, stop - start), inputs=[start] + normal_args,
                   outputs=[normals_array], device="cpu")
 
-    _split(vertex_count, launch)
+    split_work(vertex_count, launch)
     if normals is not None:
-        _split(normals.shape[0], launch_normals)
+        split_work(normals.shape[0], launch_normals)
     return out_points, out_normals
 
 

@@ -424,22 +424,28 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         UnsupportedError: A value is not finite.
         Float16OverflowError: A value exceeds float16's range (``index`` says where).
     """
+    from vbusd.bake_kernels import split_work
+
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)
-    # Two passes without temporaries decide the common case (NaN propagates through min and max).
-    low, high = (v.min(), v.max()) if v.size else (0.0, 0.0)
+    rows = v.shape[0] if v.ndim else 0
+    # Min and max without temporaries decide the common case (NaN propagates through both), one
+    # slice of rows per core; so does the cast.
+    extremes = [(0.0, 0.0)]
+    if v.size:
+        split_work(rows, lambda a, b: extremes.append((v[a:b].min(), v[a:b].max())))
+    low, high = np.min([e[0] for e in extremes]), np.max([e[1] for e in extremes])  # NaN wins, as in numpy
     if not (np.isfinite(low) and np.isfinite(high)):
         raise UnsupportedError("bone transforms contain NaN or infinity", code="encoding.nonFinite")
-    if texel_format is TexelFormat.FLOAT32:
-        return v.astype("<f4"), None
-    if texel_format is TexelFormat.FLOAT16:
-        over = np.argwhere(np.abs(v) > FLOAT16_MAX) if max(-low, high) > FLOAT16_MAX else np.zeros((0, v.ndim))
-        if over.size:
-            index = tuple(int(i) for i in over[0])
+    if texel_format in (TexelFormat.FLOAT32, TexelFormat.FLOAT16):
+        if texel_format is TexelFormat.FLOAT16 and max(-low, high) > FLOAT16_MAX:
+            index = tuple(int(i) for i in np.argwhere(np.abs(v) > FLOAT16_MAX)[0])
             raise Float16OverflowError(
                 f"a channel value of {float(v[index]):.6g} exceeds float16's largest value "
                 f"{FLOAT16_MAX:g}; use texelFormat float32 or unorm16", index=index)
-        return v.astype("<f2"), None
+        stored = np.empty(v.shape, "<f4" if texel_format is TexelFormat.FLOAT32 else "<f2")
+        split_work(rows, lambda a, b: np.copyto(stored[a:b], v[a:b], casting="unsafe"))
+        return stored, None
     if ranges is None:
         ranges = unorm_ranges(v)
     low, high = ranges[..., 0], ranges[..., 1]

@@ -53,7 +53,7 @@ import errno
 import os
 import re
 from pathlib import Path
-from typing import Optional, Union
+from typing import Callable, Optional, Union
 
 import numpy as np
 
@@ -382,7 +382,7 @@ def build_stage(asset: VirtualBonesAsset, texture_names: list):
 
 def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
                 texture_container: Optional[str] = None, replace: bool = True,
-                lock_timeout: Optional[float] = None) -> list:
+                lock_timeout: Optional[float] = None, before_commit: Optional[Callable[[], None]] = None) -> list:
     """Write a Virtual Bones asset: the USD layer, and per animation its texture and sidecar.
 
     The files are written through one :class:`vbusd.io.files.Commit` (spec, "File names and the
@@ -404,6 +404,9 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
             checked under the lock (``vbusd convert`` without ``--force``).
         lock_timeout: Seconds to wait for another run writing the same output (None:
             ``$VBUSD_LOCK_TIMEOUT`` or 30).
+        before_commit: Called once the textures and sidecars are staged, just before the layer
+            makes them current; what it raises aborts the write with nothing changed (convert
+            waits there for its accuracy check, which runs while the textures are written).
 
     Returns:
         The files written: the USD layer first, then each texture followed by its sidecar.
@@ -441,13 +444,14 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     # Missing folders are created, as convert's -o does, and removed again when the write fails.
     created = make_folders(path.parent)
     try:
-        return _commit_asset(asset, path, stage, texture_names, replace, lock_timeout)
+        return _commit_asset(asset, path, stage, texture_names, replace, lock_timeout, before_commit)
     except BaseException:
         remove_folders(created)
         raise
 
 
-def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_timeout) -> list:
+def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_timeout,
+                  before_commit: Optional[Callable[[], None]] = None) -> list:
     """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit."""
     from vbusd.format import metadata as md
     from vbusd.io.files import Commit, fault_point
@@ -475,6 +479,8 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
         data = dict(layer.customLayerData)
         data["vbusd"] = {"files": Vt.StringArray([p.name for p in written[1:]])}
         layer.customLayerData = data
+        if before_commit is not None:
+            before_commit()
         # The layer names the textures: staged last, renamed last (the commit point). Not
         # reserved, so USD writes it directly instead of through a temporary of its own.
         export_layer(layer, commit.temp_path(path, reserve=False), path)
