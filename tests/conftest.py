@@ -50,3 +50,19 @@ def shared_assets() -> Path:
     if path is None:
         pytest.skip("shared third-party assets not found (set VBUSD_SHARED_ASSETS)")
     return path
+
+
+@pytest.fixture(params=["numpy", "compiled"])
+def both_bake_paths(request, monkeypatch) -> str:
+    """Run a test twice: on the bake's numpy code, then with every compiled twin in
+    :mod:`vbusd.bake_kernels` forced on (however small the input). Skips the compiled run where
+    warp's CPU backend cannot run."""
+    from vbusd import bake_kernels
+
+    if request.param == "compiled":
+        if not bake_kernels.available():
+            pytest.skip("warp's CPU backend cannot compile kernels here (pip install warp-lang)")
+        monkeypatch.setattr(bake_kernels, "MIN_ITEMS", 0)
+    else:
+        monkeypatch.setattr(bake_kernels, "MIN_ITEMS", 1 << 62)
+    return request.param

@@ -6,7 +6,8 @@ extents read back from the written USD (float3, as a renderer reads them), and e
 every bound mesh decoded by the numpy reference at every row, at 16 times inside every row
 interval (the looping wrap included) and at 400 random clip times must lie inside its clip's box.
 Between rows crossMatrix (cross of blended axes) and the quaternion encodings (normalized
-quaternions) leave the box of the rows' points, which is what this checks.
+quaternions) leave the box of the rows' points, which is what this checks. Every case runs with the
+bake's numpy code and with its compiled twins (``vbusd.bake_kernels``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import pytest
 import vbusd
 from vbusd.decode.reference import skin_mesh
 from vbusd.format.errors import UnsupportedError
+
+pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.bake_kernels)
 
 CASES = [
     ("gltf/Fox/Fox.glb", ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")),

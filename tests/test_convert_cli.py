@@ -236,3 +236,43 @@ def test_sigterm_while_writing_leaves_nothing(small_rig, tmp_path):
                             text=True, timeout=120)
     assert result.returncode == 130 and "Traceback" not in result.stderr, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]
+
+
+def _failing_check(monkeypatch):
+    """Make the accuracy check fail as a UsdSkel evaluation failure would, after a moment (so the
+    write it overlaps with has staged its texture by then)."""
+    import time
+
+    from vbusd import convert as convert_module
+    from vbusd.format.errors import InputError
+
+    def measure_errors(*args, **kwargs):
+        time.sleep(0.3)
+        raise InputError("UsdSkel could not compute skinning transforms at time code 3", file="rig.usda",
+                         location="/Root/Skel", code="usdskel.skinning")
+
+    monkeypatch.setattr(convert_module, "measure_errors", measure_errors)
+
+
+def test_a_check_that_fails_during_the_write_leaves_nothing(small_rig, tmp_path, monkeypatch, capsys):
+    """The check runs while the texture is written; the write's commit waits for it, so its failure
+    is the command's one error line and the output folder is left as it was (here: not created)."""
+    _failing_check(monkeypatch)
+    output = tmp_path / "out" / "rig.vb.usda"
+    assert main(["convert", str(small_rig), "-o", str(output)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vbusd: rig.usda: /Root/Skel: usdskel.skinning: UsdSkel could not compute skinning transforms at "
+                   "time code 3"], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_check_that_fails_while_replacing_an_output_keeps_the_old_one(small_rig, tmp_path,
+                                                                                monkeypatch, capsys):
+    output = tmp_path / "rig.vb.usda"
+    assert main(["convert", str(small_rig), "-o", str(output)]) == 0
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("rig.vb")}
+    capsys.readouterr()
+    _failing_check(monkeypatch)
+    assert main(["convert", str(small_rig), "-o", str(output), "--force"]) == 2
+    assert "usdskel.skinning" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("rig.vb")} == before

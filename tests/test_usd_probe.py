@@ -182,3 +182,17 @@ def test_a_server_with_threads_reads_each_file_in_a_fresh_process(tmp_path):
     assert ready == {"ready": True}
     assert first["returncode"] == 0
     assert second["returncode"] == 3 and "Corrupt asset" in second["stderr"], second
+
+
+def test_a_large_corrupt_source_is_probed_ahead_and_still_one_line(tmp_path, monkeypatch, capsys):
+    """convert probes a large source while it loads the bake kernels (vbusd.convert._prepare_for);
+    a refusal there changes nothing: the reader's own probe gives the same one line."""
+    from vbusd import convert as convert_module
+    from vbusd.cli import main
+
+    monkeypatch.setattr(convert_module, "LARGE_SOURCE_BYTES", 0)  # every source counts as large
+    source = CORRUPT[0]
+    assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"vbusd: {source}: usd.open: "), err
+    assert not (tmp_path / "out.usda").exists()
