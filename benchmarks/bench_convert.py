@@ -3,28 +3,39 @@
 Generates a rig of about 100 joints, 10,000 frames and 50,000 points (one grid mesh, 4 influences
 per point, every joint rotating and translating each frame) as a .usdc, then, in one run:
 
+* compiles vbusd's bake kernels into warp's cache (``python -m vbusd.bake_kernels``: once per
+  machine and vbusd version; nothing to do when the cache is warm) and reports how long that took;
+* ``vbusd convert`` as a command in a fresh process (Python's start-up and every import included);
 * ``vbusd.convert.convert`` of the whole animation to a Virtual Bones asset (.usdc + EXR texture +
-  JSON sidecar), with the accuracy check limited to ``--check-rows`` rows;
+  JSON sidecar), with the accuracy check limited to ``--check-rows`` rows, ``--repeat`` times in
+  this process: the first call also starts the process's crate-probe server and imports warp, the
+  later ones are the conversion alone (their median is the steady figure, as a batch worker or any
+  long-lived host pays it);
 * ``UsdSkel.BakeSkinning`` of the same stage to a point cache (time-sampled points and extents on the
   mesh, saved as .usdc), over ``--bake-frames`` frames (default 1,000: BakeSkinning's cache grows by
   50,000 x 12 bytes per frame, so the full 10,000 frames need about 6 GB of memory and disk; the
   wall time and bytes for all frames are then extrapolated linearly and labelled so; pass
   ``--bake-frames all`` to measure them).
 
-Prints a Markdown table (wall seconds, bytes written) for benchmarks/README.md. Not part of the
-test suite.
+Prints a Markdown table (wall seconds, bytes written, the ratio to BakeSkinning for each way of
+running vbusd) for benchmarks/README.md, and writes the figures as JSON with ``--json FILE``. Not
+part of the test suite.
 
     python benchmarks/bench_convert.py [--frames 10000] [--points 50000] [--joints 101]
-                                       [--bake-frames 1000|all] [--check-rows 16] [--keep DIR]
+                                       [--bake-frames 1000|all] [--check-rows 16] [--repeat 5]
+                                       [--keep DIR] [--json FILE]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import platform
 import shutil
+import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -155,6 +166,28 @@ def run_bake_skinning(source: Path, folder: Path, frames) -> dict:
     return {"seconds": seconds, "bytes": baked.stat().st_size}
 
 
+def run_cli(source: Path, folder: Path, check_rows: int) -> float:
+    """Wall seconds of ``python -m vbusd convert`` in a fresh process (start-up and imports included)."""
+    output = folder / "cli" / "rig.vb.usdc"
+    command = [sys.executable, "-m", "vbusd", "convert", str(source), "-o", str(output), "--force", "--quiet",
+               "--check-rows", str(check_rows)]
+    started = time.perf_counter()
+    subprocess.run(command, check=True)
+    return time.perf_counter() - started
+
+
+def warm_kernel_cache() -> float:
+    """Seconds ``python -m vbusd.bake_kernels`` took (compiling the kernels when warp's cache is cold)."""
+    started = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "vbusd.bake_kernels"], check=True)
+    return time.perf_counter() - started
+
+
+def _steps(run: dict) -> str:
+    steps = run["steps"]
+    return ", ".join(f"{name} {steps.get(name, 0):.2f} s" for name in ("read", "bake", "check", "write"))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=10_000)
@@ -162,9 +195,12 @@ def main(argv=None) -> int:
     parser.add_argument("--joints", type=int, default=101)
     parser.add_argument("--bake-frames", default="1000", help="frames UsdSkel.BakeSkinning bakes, or 'all'")
     parser.add_argument("--check-rows", type=int, default=16)
+    parser.add_argument("--repeat", type=int, default=5, help="conversions in this process (at least 2)")
     parser.add_argument("--keep", default=None, help="folder to keep the files in (default: a temporary one)")
+    parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
     bake_frames = args.frames if args.bake_frames == "all" else min(args.frames, int(args.bake_frames))
+    repeat = max(2, args.repeat)
 
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="vbusd-bench-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -175,8 +211,14 @@ def main(argv=None) -> int:
         build_seconds = time.perf_counter() - started
         print(f"rig: {made['joints']} joints, {made['points']} points, {made['frames']} frames, "
               f"{source.stat().st_size} bytes (.usdc), built in {build_seconds:.1f} s", file=sys.stderr)
-        vb = run_vbusd(source, folder, args.check_rows)
-        print(f"vbusd convert: {vb['seconds']:.1f} s {vb['steps']}", file=sys.stderr)
+        kernels = warm_kernel_cache()
+        print(f"bake kernels ready in {kernels:.1f} s", file=sys.stderr)
+        cli = run_cli(source, folder, args.check_rows)
+        print(f"vbusd convert (command, fresh process): {cli:.2f} s", file=sys.stderr)
+        runs = []
+        for _ in range(repeat):
+            runs.append(run_vbusd(source, folder, args.check_rows))
+            print(f"vbusd.convert: {runs[-1]['seconds']:.2f} s ({_steps(runs[-1])})", file=sys.stderr)
         bake = run_bake_skinning(source, folder, bake_frames)
         print(f"UsdSkel.BakeSkinning {bake_frames} frames: {bake['seconds']:.1f} s, {bake['bytes']} bytes",
               file=sys.stderr)
@@ -186,22 +228,42 @@ def main(argv=None) -> int:
 
     scale = args.frames / bake_frames
     label = "measured" if bake_frames == args.frames else f"extrapolated x{scale:g} from {bake_frames} frames"
+    baked_seconds = bake["seconds"] * scale
+    first, later = runs[0], runs[1:]
+    steady = statistics.median(r["seconds"] for r in later)
+    vb = later[0]
     machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
     print(f"Rig: {made['joints']} joints, {made['points']} points (4 influences each), {made['frames']} frames "
-          f"at 24 time codes per second. Machine: {machine}.\n")
-    print("| | wall time | bytes written | notes |")
-    print("|---|---|---|---|")
-    print(f"| vbusd convert (all {args.frames} frames) | {vb['seconds']:.1f} s | {vb['bytes']:,} | "
-          f"{vb['texture']}; read {vb['steps'].get('read', 0):.1f} s, bake {vb['steps'].get('bake', 0):.1f} s, "
-          f"check {vb['rows_checked']} rows {vb['steps'].get('check', 0):.1f} s, write "
-          f"{vb['steps'].get('write', 0):.1f} s; max error {vb['error']:.3g} ({vb['fraction']:.1e} of bbox) |")
-    print(f"| UsdSkel.BakeSkinning ({bake_frames} frames, measured) | {bake['seconds']:.1f} s | {bake['bytes']:,} | "
-          f"points + extents per frame, .usdc |")
+          f"at 24 time codes per second. Machine: {machine}. Texture {vb['texture']}; max error against "
+          f"UsdSkel {vb['error']:.3g} ({vb['fraction']:.1e} of the bounding box), {vb['rows_checked']} rows checked.\n")
+    print("| | wall time | BakeSkinning / this | bytes written | notes |")
+    print("|---|--:|--:|--:|---|")
+    print(f"| `vbusd.convert`, steady (median of {len(later)} calls after the first) | {steady:.2f} s | "
+          f"**{baked_seconds / steady:.1f}x** | {vb['bytes']:,} | runs {min(r['seconds'] for r in later):.2f} to "
+          f"{max(r['seconds'] for r in later):.2f} s; {_steps(vb)} (check overlaps the write) |")
+    print(f"| `vbusd.convert`, first call in the process | {first['seconds']:.2f} s | "
+          f"{baked_seconds / first['seconds']:.1f}x | {first['bytes']:,} | also starts the crate-probe server and "
+          f"imports warp; {_steps(first)} |")
+    print(f"| `vbusd convert` command, fresh process | {cli:.2f} s | {baked_seconds / cli:.1f}x | | "
+          f"Python start-up and every import included |")
+    print(f"| `UsdSkel.BakeSkinning` ({bake_frames} frames, measured) | {bake['seconds']:.1f} s | | "
+          f"{bake['bytes']:,} | points + extents per frame, .usdc |")
     if bake_frames != args.frames:
-        print(f"| UsdSkel.BakeSkinning (all {args.frames} frames, {label}) | {bake['seconds'] * scale:.0f} s | "
+        print(f"| `UsdSkel.BakeSkinning` (all {args.frames} frames, {label}) | {baked_seconds:.0f} s | | "
               f"{int(bake['bytes'] * scale):,} | linear in frames |")
-    print(f"\nRatio for all frames: BakeSkinning / vbusd = {bake['seconds'] * scale / vb['seconds']:.1f}x time, "
-          f"{bake['bytes'] * scale / vb['bytes']:.0f}x bytes.")
+    print(f"\nBake kernels ready in {kernels:.1f} s (`python -m vbusd.bake_kernels`; compiling them, when "
+          f"warp's cache is cold, is once per machine and vbusd version). Bytes: BakeSkinning / vbusd = "
+          f"{bake['bytes'] * scale / vb['bytes']:.0f}x.")
+    if args.json:
+        Path(args.json).write_text(json.dumps({
+            "rig": made, "machine": machine, "check_rows": args.check_rows, "kernel_cache_seconds": kernels,
+            "cli_seconds": cli, "convert_seconds": [r["seconds"] for r in runs],
+            "convert_steps": [r["steps"] for r in runs], "steady_seconds": steady,
+            "bake_skinning": {"frames": bake_frames, "seconds": bake["seconds"], "bytes": bake["bytes"],
+                              "all_frames_seconds": baked_seconds, "label": label},
+            "ratio_steady": baked_seconds / steady, "ratio_first": baked_seconds / first["seconds"],
+            "ratio_cli": baked_seconds / cli, "vbusd_bytes": vb["bytes"], "max_error": vb["error"],
+            "max_error_fraction": vb["fraction"]}, indent=2) + "\n")
     return 0
 
 

@@ -21,8 +21,9 @@ function                           numpy twin
 Each wrapper returns None when its kernel should not run: the work is small (under
 :data:`MIN_ITEMS`, where importing warp would cost more than it saves) or warp's CPU backend is not
 available; the caller then runs the numpy twin, which gives the same result to rounding
-(tests/test_bake_kernels.py compares every pair). Work is split over the machine's cores: warp
-releases Python's lock while a CPU kernel runs, so one launch per thread runs in parallel.
+(tests/test_bake_kernels.py compares every pair). Work is split over the usable cores
+(``$VBUSD_THREADS``, :mod:`vbusd._cores`): warp releases Python's lock while a CPU kernel runs, so
+one launch per thread runs in parallel.
 
 Warp compiles this module once per machine and warp version into its kernel cache (a few
 seconds; ``python -m vbusd.bake_kernels`` does it ahead of time); later processes load it in
@@ -31,7 +32,6 @@ milliseconds.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
@@ -83,10 +83,9 @@ def _wanted(items: int):
 
 
 def _workers() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    from vbusd._cores import usable_cores
+
+    return usable_cores()
 
 
 def split_work(count: int, launch) -> None:

@@ -630,10 +630,16 @@ LARGE_SOURCE_BYTES = 2 << 20
 """A source file this large is likely to bake enough matrices for :mod:`vbusd.bake_kernels`."""
 
 
+_IMPORTED_LATER = ("vbusd.io.usd_reader", "vbusd.decode.bounds", "vbusd.io.usd", "vbusd.io.exr", "OpenEXR")
+"""Modules a conversion imports on its way (the reader, the bounds, the writer)."""
+
+
 def _prepare_for(source: Path) -> None:
-    """Load the compiled bake kernels for a large source while its crate probe runs in the probe
-    server: the probe only waits on a pipe, so the two overlap (the reader's own probe of the file
-    is then a lookup)."""
+    """Load the compiled bake kernels, and import what the conversion will import, while a large
+    source's crate probe runs in the probe server: the probe only waits on a pipe, so the two
+    overlap (the reader's own probe of the file is then a lookup)."""
+    import importlib
+
     from vbusd import bake_kernels
     from vbusd.io import usd_probe
 
@@ -647,6 +653,8 @@ def _prepare_for(source: Path) -> None:
         probe = threading.Thread(target=usd_probe.probe_crate, args=(source,), daemon=True)
         probe.start()
     bake_kernels.available()
+    for name in _IMPORTED_LATER:
+        importlib.import_module(name)
     if probe is not None:
         probe.join()
 

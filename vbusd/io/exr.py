@@ -403,18 +403,17 @@ _THREADS_LOCK = threading.Lock()
 
 @contextlib.contextmanager
 def _compressing_on_every_core(OpenEXR):
-    """OpenEXR compresses the file's chunks on a pool of threads (same bytes, written in order);
-    its size is a process-wide setting, so it is raised for the write and then restored."""
+    """OpenEXR compresses the file's chunks on a pool of threads (same bytes, written in order), one
+    per usable core (``$VBUSD_THREADS``); its size is a process-wide setting, so it is raised for the
+    write and then restored."""
     if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
         yield
         return
+    from vbusd._cores import usable_cores
+
     with _THREADS_LOCK:
         saved = OpenEXR.global_thread_count()
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:  # pragma: no cover - not Linux
-            cores = os.cpu_count() or 1
-        OpenEXR.set_global_thread_count(max(saved, cores))
+        OpenEXR.set_global_thread_count(max(saved, usable_cores()))
         try:
             yield
         finally:
