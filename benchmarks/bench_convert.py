@@ -136,6 +136,7 @@ def _bytes(paths) -> int:
 
 
 def run_vbusd(source: Path, folder: Path, check_rows: int) -> dict:
+    """One ``vbusd.convert.convert`` of ``source`` into ``folder`` (a new asset: give a fresh folder)."""
     from vbusd.convert import ConvertOptions, convert
 
     output = folder / "rig.vb.usdc"
@@ -216,8 +217,12 @@ def main(argv=None) -> int:
         cli = run_cli(source, folder, args.check_rows)
         print(f"vbusd convert (command, fresh process): {cli:.2f} s", file=sys.stderr)
         runs = []
-        for _ in range(repeat):
-            runs.append(run_vbusd(source, folder, args.check_rows))
+        for index in range(repeat):
+            # Each a new asset, as in a batch: a copy of the source (probed again, as a new file is)
+            # into a new folder (replacing an output would also hash the old one).
+            (folder / f"convert{index}").mkdir()
+            copy = shutil.copyfile(source, folder / f"convert{index}" / source.name)
+            runs.append(run_vbusd(Path(copy), folder / f"convert{index}", args.check_rows))
             print(f"vbusd.convert: {runs[-1]['seconds']:.2f} s ({_steps(runs[-1])})", file=sys.stderr)
         bake = run_bake_skinning(source, folder, bake_frames)
         print(f"UsdSkel.BakeSkinning {bake_frames} frames: {bake['seconds']:.1f} s, {bake['bytes']} bytes",

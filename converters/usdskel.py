@@ -358,15 +358,19 @@ class _Reader:
         stash = self.animation_values.setdefault(location, {})
         for name, attr in authored.items():
             times = list(attr.GetTimeSamples())
-            kept = []
-            for time in (times or [None]):
-                value = attr.Get() if time is None else attr.Get(time)
+            if times:  # a query resolves where the value comes from once, not per sample
+                query = self.Usd.AttributeQuery(attr)
+                kept = [query.Get(time) for time in times]
+            else:
+                kept = [attr.Get()]
+            # once, for the checks and for AllFramesSkinning
+            kept = [None if value is None else np.asarray(value) for value in kept]
+            for index, value in enumerate(kept):
                 count = 0 if value is None else len(value)
                 if count != len(joints):
-                    where = f"{location}.{name}" + ("" if time is None else f" at time {time:g}")
+                    where = f"{location}.{name}" + (f" at time {times[index]:g}" if times else "")
                     raise self.error(f"{name} has {count} values for {len(joints)} joints", where,
                                      "usdskel.animation.count")
-                kept.append(np.asarray(value))  # once, for the checks and for AllFramesSkinning
             if joints:  # every sample at once: (samples, joints, components)
                 stacked = np.stack(kept).reshape(len(kept), len(joints), -1)
                 self._check_values(name, stacked, times, location, joints)

@@ -195,3 +195,17 @@ def test_work_is_split_into_disjoint_slices_that_cover_it(monkeypatch):
     assert (seen == 1).all()
     bake_kernels.split_work(0, mark)
     assert (seen == 1).all()
+
+
+def test_vbusd_threads_limits_the_slices(monkeypatch):
+    """A batch worker runs with VBUSD_THREADS=1: one slice, on the calling thread."""
+    import threading
+
+    calls = []
+    monkeypatch.setenv("VBUSD_THREADS", "1")
+    bake_kernels.split_work(50_000, lambda a, b: calls.append((a, b, threading.current_thread())))
+    assert calls == [(0, 50_000, threading.current_thread())]
+    monkeypatch.setenv("VBUSD_THREADS", "2")
+    calls.clear()
+    bake_kernels.split_work(50_000, lambda a, b: calls.append((a, b, threading.current_thread())))
+    assert sorted(c[:2] for c in calls) == [(0, 25_000), (25_000, 50_000)]

@@ -263,6 +263,16 @@ def _refuse_singular_after_rounding(stored, ranges, texel_format, animation: Ski
         f"{texel_format.value}", file=animation.source, location=animation.path, code="encoding.nonRigid")
 
 
+def _all_finite(matrices: np.ndarray) -> bool:
+    """Whether every value is finite: a slice's sum is finite when all its values are (one pass, no
+    temporary, one slice per core); a huge finite slice whose sum overflows is checked value by value."""
+    from vbusd.bake_kernels import split_work
+
+    sums: list = []
+    split_work(len(matrices), lambda start, stop: sums.append(matrices[start:stop].sum()))
+    return bool(np.isfinite(sums).all()) or bool(np.all(np.isfinite(matrices)))
+
+
 def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
     """Bake one skinned animation into a Virtual Bones texture with its bound meshes.
 
@@ -318,8 +328,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
             raise InputError(f"clip '{clip.name}' sampled {matrices.shape}, expected "
                              f"{(plan.row_count, bone_count, 4, 4)}", file=animation.source,
                              location=animation.path, code="animation.sampleShape")
-        # The sum is finite when every matrix is (cheap; a huge finite sum overflowing is rechecked).
-        if not np.isfinite(matrices.sum()) and not np.all(np.isfinite(matrices)):
+        if not _all_finite(matrices):
             row, bone = (int(i) for i in np.argwhere(~np.isfinite(matrices))[0][:2])
             raise InputError(f"bone '{animation.bones[bone]}' has a NaN or infinite transform at "
                              f"{times[row]:.6g} s of clip '{clip.name}'", file=animation.source,
@@ -337,7 +346,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         first_row += plan.row_count
 
     try:
-        stored, ranges = quantize(np.concatenate(values, axis=0), options.texel_format)
+        stored, ranges = quantize(values[0] if len(values) == 1 else np.concatenate(values, axis=0),
+                                  options.texel_format)
     except Float16OverflowError as error:
         raise _locate_float16_overflow(error, animation, clips) from None
     except UnsupportedError as error:
