@@ -236,7 +236,7 @@ def main(argv=None) -> int:
     baked_seconds = bake["seconds"] * scale
     first, later = runs[0], runs[1:]
     steady = statistics.median(r["seconds"] for r in later)
-    vb = later[0]
+    vb = sorted(later, key=lambda r: r["seconds"])[len(later) // 2]  # a median run, for its steps
     machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
     print(f"Rig: {made['joints']} joints, {made['points']} points (4 influences each), {made['frames']} frames "
           f"at 24 time codes per second. Machine: {machine}. Texture {vb['texture']}; max error against "

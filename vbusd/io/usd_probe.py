@@ -317,8 +317,11 @@ def _read_everything(path: str) -> int:
         for prim in stage.TraverseAll():
             for attribute in prim.GetAuthoredAttributes():
                 attribute.Get()
-                for time in attribute.GetTimeSamples()[:100000]:
-                    attribute.Get(time)
+                times = attribute.GetTimeSamples()[:100000]
+                if times:  # a query resolves where the values come from once, not per sample
+                    query = Usd.AttributeQuery(attribute)
+                    for time in times:
+                        query.Get(time)
             for relationship in prim.GetAuthoredRelationships():
                 relationship.GetTargets()
     except MemoryError:
