@@ -276,3 +276,37 @@ def test_a_check_that_fails_while_replacing_an_output_keeps_the_old_one(small_ri
     assert main(["convert", str(small_rig), "-o", str(output), "--force"]) == 2
     assert "usdskel.skinning" in capsys.readouterr().err
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("rig.vb")} == before
+
+
+def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) while the texture is written: the command stops, and the accuracy check
+    running beside the write stops at its next chunk instead of running on to its end."""
+    import threading
+    import time
+
+    from vbusd import convert as convert_module
+    from vbusd.io import usd as usd_io
+
+    chunks = []
+
+    def measure_errors(scene, index, vb, check_rows, progress=None):
+        for chunk in range(500):  # 5 s unless stopped
+            progress("check", chunk, 500)
+            chunks.append(chunk)
+            time.sleep(0.01)
+        return []
+
+    def write_asset(*args, **kwargs):
+        time.sleep(0.1)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(convert_module, "measure_errors", measure_errors)
+    monkeypatch.setattr(usd_io, "write_asset", write_asset)
+    with pytest.raises(KeyboardInterrupt):
+        convert(small_rig, tmp_path / "out.usda", ConvertOptions())
+    deadline = time.monotonic() + 2.0
+    while any(t.name.startswith("vbusd-check") for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not any(t.name.startswith("vbusd-check") for t in threading.enumerate())
+    assert len(chunks) < 100, len(chunks)
+    assert not (tmp_path / "out.usda").exists()

@@ -659,6 +659,10 @@ def _prepare_for(source: Path) -> None:
         probe.join()
 
 
+class _CheckStopped(Exception):
+    """Ends an accuracy check whose conversion was interrupted (never reaches the caller)."""
+
+
 def _write_checked(scene: SourceScene, baked: list, output: Path, options: ConvertOptions, checking,
                    seconds: dict, progress: Optional[Progress]) -> list:
     """Write the converted asset; its commit waits for the accuracy check (``checking``, a future)."""
@@ -766,9 +770,17 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                                file=str(source), location=first.animation if first else None,
                                code="convert.nothingConverted")
 
+    interrupted = threading.Event()
+
+    def check_progress(step: str, done: int, total: int) -> None:
+        if interrupted.is_set():  # Ctrl-C or SIGTERM in the command: stop at the next chunk
+            raise _CheckStopped()
+        if progress:
+            progress(step, done, total)
+
     def check() -> list:
         started = time.perf_counter()
-        reports = [measure_errors(scene, i, vb, options.check_rows, progress) for i, vb in zip(kept, baked)]
+        reports = [measure_errors(scene, i, vb, options.check_rows, check_progress) for i, vb in zip(kept, baked)]
         seconds["check"] = time.perf_counter() - started
         return reports
 
@@ -782,6 +794,9 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         failed = checking.exception()  # the check's own error came first, as before the overlap
         if failed is not None:
             raise failed from None
+        raise
+    except BaseException:
+        interrupted.set()
         raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
