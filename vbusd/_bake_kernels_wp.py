@@ -32,28 +32,41 @@ def _largest_entry(g: wp.mat33d):
     return m
 
 
-@wp.kernel
-def near_rotation_polar(linear: wp.array(dtype=wp.mat33d), tolerance: wp.float64,
-                        rotation: wp.array(dtype=wp.mat33d), det: wp.array(dtype=wp.float64),
-                        ok: wp.array(dtype=wp.int32)):
-    """Newton-Schulz polar rotation of one matrix within ``tolerance`` of a rotation (else ok = 0)."""
-    i = wp.tid()
-    x = linear[i]
-    det[i] = wp.determinant(x)
+@wp.func
+def _near_rotation(x: wp.mat33d, tolerance: wp.float64):
+    """Whether ``||X^T X - I||_F <= tolerance`` with a positive determinant (False for NaN)."""
     g = _gram_minus_identity(x)
     frobenius = _ZERO
     for r in range(3):
         for c in range(3):
             frobenius += g[r, c] * g[r, c]
-    if not (det[i] > _ZERO and wp.sqrt(frobenius) <= tolerance):
-        ok[i] = 0
-        return
+    return wp.determinant(x) > _ZERO and wp.sqrt(frobenius) <= tolerance
+
+
+@wp.func
+def _polar_rotation(x: wp.mat33d):
+    """The Newton-Schulz iteration ``X <- X (3 I - X^T X) / 2`` to convergence (X near a rotation)."""
+    g = _gram_minus_identity(x)
     for _step in range(8):
         if _largest_entry(g) <= _CONVERGED:  # far below float32's and float16's resolution
             break
-        x = x - _HALF * (x * g)  # X (3 I - X^T X) / 2
+        x = x - _HALF * (x * g)
         g = _gram_minus_identity(x)
-    rotation[i] = x
+    return x
+
+
+@wp.kernel
+def near_rotation_polar(linear: wp.array(dtype=wp.mat33d), tolerance: wp.float64,
+                        rotation: wp.array(dtype=wp.mat33d), det: wp.array(dtype=wp.float64),
+                        ok: wp.array(dtype=wp.int32)):
+    """The polar rotation of one matrix within ``tolerance`` of a rotation (else ok = 0)."""
+    i = wp.tid()
+    x = linear[i]
+    det[i] = wp.determinant(x)
+    if not _near_rotation(x, tolerance):
+        ok[i] = 0
+        return
+    rotation[i] = _polar_rotation(x)
     ok[i] = 1
 
 
@@ -65,20 +78,11 @@ def encode_cross_matrix(matrices: wp.array(dtype=wp.mat44d), tolerance: wp.float
     i = wp.tid()
     m = matrices[i]
     x = wp.mat33d(m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2], m[2, 0], m[2, 1], m[2, 2])
-    g = _gram_minus_identity(x)
-    frobenius = _ZERO
-    for r in range(3):
-        for c in range(3):
-            frobenius += g[r, c] * g[r, c]
     finite = wp.isfinite(m[0, 3]) and wp.isfinite(m[1, 3]) and wp.isfinite(m[2, 3])
-    if not (wp.determinant(x) > _ZERO and wp.sqrt(frobenius) <= tolerance and finite):
+    if not (finite and _near_rotation(x, tolerance)):
         ok[i] = 0
         return
-    for _step in range(8):
-        if _largest_entry(g) <= _CONVERGED:
-            break
-        x = x - _HALF * (x * g)
-        g = _gram_minus_identity(x)
+    x = _polar_rotation(x)
     for r in range(3):
         values[i, r] = x[r, 0]
         values[i, 4 + r] = x[r, 1]
@@ -185,8 +189,10 @@ def bone_box_bounds(values: wp.array2d(dtype=Any), per_bone: int, row0: wp.array
         linear = wp.mat33d()
         translation = wp.vec3d()
         if encoding == 0:  # crossMatrix: columns x, y, cross(x, y)
-            x = wp.vec3d(_texel(values, r0, r1, f, first + 0), _texel(values, r0, r1, f, first + 1), _texel(values, r0, r1, f, first + 2))
-            y = wp.vec3d(_texel(values, r0, r1, f, first + 4), _texel(values, r0, r1, f, first + 5), _texel(values, r0, r1, f, first + 6))
+            x = wp.vec3d(_texel(values, r0, r1, f, first + 0), _texel(values, r0, r1, f, first + 1),
+                         _texel(values, r0, r1, f, first + 2))
+            y = wp.vec3d(_texel(values, r0, r1, f, first + 4), _texel(values, r0, r1, f, first + 5),
+                         _texel(values, r0, r1, f, first + 6))
             z = wp.cross(x, y)
             linear = wp.mat33d(x[0], y[0], z[0], x[1], y[1], z[1], x[2], y[2], z[2])
             translation = wp.vec3d(_texel(values, r0, r1, f, first + 8), _texel(values, r0, r1, f, first + 9),

@@ -38,8 +38,8 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["MIN_ITEMS", "available", "near_rotation_polar", "encode_cross_matrix", "skinning_transforms", "bone_box_bounds",
-           "skin_lbs", "ENCODING_IDS", "split_work"]
+__all__ = ["MIN_ITEMS", "ENCODING_IDS", "available", "split_work", "near_rotation_polar", "encode_cross_matrix",
+           "skinning_transforms", "bone_box_bounds", "skin_lbs"]
 
 MIN_ITEMS = 65_536
 """Smallest work (matrices, bone samples or skinned points) for which the kernels are used."""
@@ -88,10 +88,11 @@ def _workers() -> int:
     return usable_cores()
 
 
-def split_work(count: int, launch) -> None:
+def split_work(count: int, launch, grain: int = 1024) -> None:
     """Run ``launch(start, stop)`` over ``[0, count)`` in one slice per core, in parallel threads
-    (for work that releases Python's lock: warp launches, numpy casts and reductions)."""
-    parts = min(_workers(), max(1, count // 1024))
+    (for work that releases Python's lock: warp launches, numpy casts and reductions); a slice
+    holds at least ``grain`` items."""
+    parts = min(_workers(), max(1, count // max(1, grain)))
     bounds = np.linspace(0, count, parts + 1).astype(int)
     if parts == 1:
         launch(0, count)
@@ -133,7 +134,8 @@ def near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[tuple]
 
     def launch(start: int, stop: int) -> None:
         wp.launch(compiled.near_rotation_polar, dim=stop - start,
-                  inputs=[source[start:stop], float(tolerance)], outputs=[out[start:stop], dets[start:stop], flags[start:stop]],
+                  inputs=[source[start:stop], float(tolerance)],
+                  outputs=[out[start:stop], dets[start:stop], flags[start:stop]],
                   device="cpu")
 
     split_work(count, launch)
@@ -246,14 +248,17 @@ def bone_box_bounds(values: np.ndarray, rows: tuple, encoding: str, bones: np.nd
         return None
     import warp as wp
 
-    kind = {np.dtype(np.float16): wp.float16, np.dtype(np.float32): wp.float32}.get(np.asarray(values).dtype, wp.float64)
+    stored_types = {np.dtype(np.float16): wp.float16, np.dtype(np.float32): wp.float32}
+    kind = stored_types.get(np.asarray(values).dtype, wp.float64)
     data = np.ascontiguousarray(values, dtype=None if kind is not wp.float64 else np.float64)
     per_bone = int(np.prod(data.shape[2:]))
     data = _array(data.reshape(data.shape[0], -1), kind)
-    inputs = [data, per_bone, _array(np.asarray(row0, np.int32), wp.int32), _array(np.asarray(row1, np.int32), wp.int32),
+    inputs = [data, per_bone, _array(np.asarray(row0, np.int32), wp.int32),
+              _array(np.asarray(row1, np.int32), wp.int32),
               _array(np.asarray(blend, np.float64), wp.float64), ENCODING_IDS[encoding]]
     bone_array = _array(np.asarray(bones, np.int32), wp.int32)
-    center_array, half_array = _array(np.asarray(center, np.float64), wp.vec3d), _array(np.asarray(half, np.float64), wp.vec3d)
+    center_array = _array(np.asarray(center, np.float64), wp.vec3d)
+    half_array = _array(np.asarray(half, np.float64), wp.vec3d)
     low, high, curvature = (np.empty((len(bones), 3)) for _ in range(3))
     outputs = [_array(low, wp.vec3d), _array(high, wp.vec3d), _array(curvature, wp.vec3d)]
 
@@ -262,12 +267,7 @@ def bone_box_bounds(values: np.ndarray, rows: tuple, encoding: str, bones: np.nd
                   inputs=inputs + [bone_array[start:stop], center_array[start:stop], half_array[start:stop]],
                   outputs=[o[start:stop] for o in outputs], device="cpu")
 
-    # One bone per thread, every sample in a loop: the bones are few, so split finely.
-    parts = min(_workers(), len(bones))
-    bounds = np.linspace(0, len(bones), parts + 1).astype(int)
-    with ThreadPoolExecutor(parts) as pool:
-        for future in [pool.submit(launch, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]:
-            future.result()
+    split_work(len(bones), launch, grain=1)  # a bone's samples are a loop in its thread: few, long items
     return low.min(axis=0), high.max(axis=0), curvature.max(axis=0)
 
 

@@ -609,7 +609,8 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                 report.max_error = max(report.max_error or 0.0, error)
                 report.influence_error = max(report.influence_error or 0.0, dropped)
                 low, high = _box_of(ref_points)
-                lows[mesh_index], highs[mesh_index] = np.minimum(lows[mesh_index], low), np.maximum(highs[mesh_index], high)
+                lows[mesh_index] = np.minimum(lows[mesh_index], low)
+                highs[mesh_index] = np.maximum(highs[mesh_index], high)
                 if ref_normals is not None and decoded_normals is not None and ref_normals.shape == decoded_normals.shape:
                     # arccos falls as the cosine rises: the largest angle is that of the smallest cosine
                     cosine = np.einsum("nvi,nvi->nv", decoded_normals, ref_normals).min(initial=1.0)
