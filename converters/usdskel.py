@@ -379,14 +379,15 @@ class _Reader:
     def _check_values(self, name: str, stacked: np.ndarray, times: list, location: str, joints: list) -> None:
         """Finite values, and no zero quaternion, in every sample of one animation attribute; the
         first bad value (earliest time, then lowest joint) is the one reported."""
-        bad = None
-        # A float64 sum is finite when every value is (float32 and half values cannot overflow it).
-        if not np.isfinite(stacked.sum(dtype=np.float64)):
-            bad = ~np.isfinite(stacked).all(axis=2)
-            problem, code = "is not finite", "usdskel.animation.nonFinite"
-        elif name == "rotations":
-            wide = stacked.astype(np.float64)
-            bad = np.sqrt((wide * wide).sum(axis=2)) < 1e-6
+        # The sum is finite when every value is (one pass, no temporary); when it is not, either a
+        # value is not finite or finite values overflowed it: the values then say which.
+        with np.errstate(over="ignore", invalid="ignore"):
+            suspect = not np.isfinite(stacked.sum())
+        bad = ~np.isfinite(stacked).all(axis=2) if suspect else None
+        problem, code = "is not finite", "usdskel.animation.nonFinite"
+        if (bad is None or not bad.any()) and name == "rotations":
+            wide = stacked.astype(np.float32, copy=False)  # half's squares would underflow
+            bad = np.sqrt(np.einsum("sjc,sjc->sj", wide, wide)) < 1e-6
             problem, code = "is a zero quaternion", "usdskel.animation.zeroQuaternion"
         if bad is None or not bad.any():
             return
