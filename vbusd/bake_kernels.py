@@ -32,6 +32,7 @@ milliseconds.
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
@@ -88,17 +89,34 @@ def _workers() -> int:
     return usable_cores()
 
 
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """This process's threads for :func:`split_work` (starting threads costs milliseconds each, and
+    a conversion splits a dozen steps); a forked child, which has none of them, makes its own."""
+    with _lock:
+        pool = _state.get("pool")
+        if pool is None or _state.get("pool_owner") != (os.getpid(), threads):
+            if pool is not None and _state["pool_owner"][0] == os.getpid():
+                pool.shutdown(wait=False)  # sized for another thread count
+            pool = _state["pool"] = ThreadPoolExecutor(threads, thread_name_prefix="vbusd-split")
+            _state["pool_owner"] = (os.getpid(), threads)
+        return pool
+
+
 def split_work(count: int, launch, grain: int = 1024) -> None:
     """Run ``launch(start, stop)`` over ``[0, count)`` in one slice per core, in parallel threads
     (for work that releases Python's lock: warp launches, numpy casts and reductions); a slice
-    holds at least ``grain`` items."""
+    holds at least ``grain`` items. The calling thread runs the first slice."""
     parts = min(_workers(), max(1, count // max(1, grain)))
     bounds = np.linspace(0, count, parts + 1).astype(int)
     if parts == 1:
         launch(0, count)
         return
-    with ThreadPoolExecutor(parts) as pool:
-        for future in [pool.submit(launch, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]:
+    pool = _pool(parts - 1)
+    others = [pool.submit(launch, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:]) if b > a]
+    try:
+        launch(int(bounds[0]), int(bounds[1]))
+    finally:
+        for future in others:
             future.result()
 
 

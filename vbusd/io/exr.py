@@ -403,17 +403,21 @@ _THREADS_LOCK = threading.Lock()
 
 @contextlib.contextmanager
 def _compressing_on_every_core(OpenEXR):
-    """OpenEXR compresses the file's chunks on a pool of threads (same bytes, written in order), one
-    per usable core (``$VBUSD_THREADS``); its size is a process-wide setting, so it is raised for the
-    write and then restored."""
+    """OpenEXR compresses the file's chunks on a pool of threads (same bytes, written in order) sized
+    by the usable cores (``$VBUSD_THREADS``); its size is a process-wide setting, so it is raised for
+    the write and then restored."""
     if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
         yield
         return
     from vbusd._cores import usable_cores
 
+    cores = usable_cores()
     with _THREADS_LOCK:
         saved = OpenEXR.global_thread_count()
-        OpenEXR.set_global_thread_count(max(saved, usable_cores()))
+        # One more than the cores: the calling thread writes while the pool compresses (measured:
+        # 3 threads on 2 cores compress the 41 MB texture of benchmarks/bench_convert.py in 0.21-0.24 s,
+        # 2 in 0.27-0.43 s). One core: OpenEXR's own default, all in the calling thread.
+        OpenEXR.set_global_thread_count(max(saved, cores + 1 if cores > 1 else 0))
         try:
             yield
         finally:
