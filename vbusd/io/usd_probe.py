@@ -252,8 +252,6 @@ def _serve() -> int:
 
         usd_plugin.cancel_deferred_registration()  # registering starts threads: each child registers
         from pxr import Sdf, Tf, Usd  # noqa: F401  (imported once here, inherited by every child)
-
-        import vbusd.io.usd_reader  # noqa: F401  (the children's error messages; numpy with one thread)
     except Exception as error:  # noqa: BLE001 - any failure to import is the answer to every probe
         print(json.dumps({"ready": False, "problem": f"importing pxr failed: {error}"}), file=answers, flush=True)
         return 1
@@ -306,8 +304,6 @@ def _read_everything(path: str) -> int:
     """The child: open, compose and read every authored value and time sample."""
     from pxr import Sdf, Tf, Usd  # failing here is exit 1: the parent reports it, nothing passes unread
 
-    from vbusd.io.usd_reader import tf_message
-
     try:
         layer = Sdf.Layer.FindOrOpen(path)
         if layer is None:
@@ -327,6 +323,9 @@ def _read_everything(path: str) -> int:
     except MemoryError:
         return _EXIT_MEMORY
     except (Tf.ErrorException, RuntimeError, ValueError, TypeError) as error:
+        # Imported only here: the server starts sooner without the reader (and numpy) loaded.
+        from vbusd.io.usd_reader import tf_message
+
         sys.stderr.write(tf_message(error).replace("\n", " ") + "\n")
         return _EXIT_REFUSED
     return 0
