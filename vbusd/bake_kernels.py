@@ -58,7 +58,7 @@ def _kernels():
         if "kernels" not in _state:
             _state["kernels"] = None
             try:
-                from vbusd.decode.warp import _init_warp, quiet_warp
+                from vbusd._warp_setup import _init_warp, quiet_warp
 
                 _init_warp()
                 import warp as wp
