@@ -22,7 +22,7 @@ running vbusd) for benchmarks/README.md, and writes the figures as JSON with ``-
 part of the test suite.
 
     python benchmarks/bench_convert.py [--frames 10000] [--points 50000] [--joints 101]
-                                       [--bake-frames 1000|all] [--check-rows 16] [--repeat 5]
+                                       [--bake-frames 1000|all] [--check-rows 16] [--repeat 6]
                                        [--keep DIR] [--json FILE]
 """
 
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
     parser.add_argument("--joints", type=int, default=101)
     parser.add_argument("--bake-frames", default="1000", help="frames UsdSkel.BakeSkinning bakes, or 'all'")
     parser.add_argument("--check-rows", type=int, default=16)
-    parser.add_argument("--repeat", type=int, default=5, help="conversions in this process (at least 2)")
+    parser.add_argument("--repeat", type=int, default=6, help="conversions in this process (at least 2)")
     parser.add_argument("--keep", default=None, help="folder to keep the files in (default: a temporary one)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
