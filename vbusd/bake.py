@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format.encoding import (Float16OverflowError, NonRigidError, affine_singular, dequantize, encode_bones,
-                       make_hemispheres_continuous, pack, quantize)
+                       make_hemispheres_continuous, quantize, unpack)
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
@@ -345,16 +345,17 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
                           start_time=float(clip.start_time)))
         first_row += plan.row_count
 
+    # Quantized straight into the zero-padded texture (no separate array of stored values to pack).
+    texels = np.zeros(layout.shape, dtype=layout.texel_format.numpy_dtype)
     try:
         stored, ranges = quantize(values[0] if len(values) == 1 else np.concatenate(values, axis=0),
-                                  options.texel_format)
+                                  options.texel_format, out=unpack(texels, layout))
     except Float16OverflowError as error:
         raise _locate_float16_overflow(error, animation, clips) from None
     except UnsupportedError as error:
         raise error.at(file=animation.source, location=animation.path)
     if options.encoding is Encoding.AFFINE_MATRIX:
         _refuse_singular_after_rounding(stored, ranges, options.texel_format, animation, clips)
-    texels = pack(stored, layout)
     texels.setflags(write=False)
     bind = None if animation.bind_transforms is None else np.asarray(animation.bind_transforms, np.float64)
     motion = None

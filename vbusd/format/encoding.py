@@ -409,16 +409,19 @@ class Float16OverflowError(UnsupportedError):
 
 
 def quantize(values: np.ndarray, texel_format: TexelFormat | str,
-             ranges: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+             ranges: Optional[np.ndarray] = None, *,
+             out: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Convert float64 channel values (rows, B, T, 4) to stored texel values.
 
     Args:
         values: Channel values.
         texel_format: Target format.
         ranges: unorm16 only: (T, 4, 2) [min, max]; computed from ``values`` when None.
+        out: Where to store them (the shape of ``values``, the format's dtype), or None: e.g. the
+            :func:`unpack` view of a zeroed texture, which then needs no :func:`pack`.
 
     Returns:
-        (stored values of the format's dtype, the unorm16 ranges or None).
+        (stored values of the format's dtype: ``out`` when given, the unorm16 ranges or None).
 
     Raises:
         UnsupportedError: A value is not finite.
@@ -443,7 +446,8 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
             raise Float16OverflowError(
                 f"a channel value of {float(v[index]):.6g} exceeds float16's largest value "
                 f"{FLOAT16_MAX:g}; use texelFormat float32 or unorm16", index=index)
-        stored = np.empty(v.shape, "<f4" if texel_format is TexelFormat.FLOAT32 else "<f2")
+        dtype = "<f4" if texel_format is TexelFormat.FLOAT32 else "<f2"
+        stored = np.empty(v.shape, dtype) if out is None else out
         split_work(rows, lambda a, b: np.copyto(stored[a:b], v[a:b], casting="unsafe"))
         return stored, None
     if ranges is None:
@@ -452,7 +456,11 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
     span = high - low
     safe = np.where(span > 0, span, 1.0)
     u = np.where(span > 0, np.rint((v - low) / safe * UNORM16_MAX), 0.0)
-    return np.clip(u, 0, UNORM16_MAX).astype("<u2"), np.array(ranges, dtype=np.float64)
+    stored = np.clip(u, 0, UNORM16_MAX).astype("<u2")
+    if out is not None:
+        out[...] = stored
+        stored = out
+    return stored, np.array(ranges, dtype=np.float64)
 
 
 def dequantize(stored: np.ndarray, texel_format: TexelFormat | str,
@@ -484,11 +492,12 @@ def pack(stored: np.ndarray, layout: Layout) -> np.ndarray:
     if (rows, bones, texels) != (layout.row_count, layout.bone_count, layout.texels_per_bone):
         raise ValueError(f"values of shape {stored.shape} do not fit layout {layout}")
     out = np.zeros(layout.shape, dtype=layout.texel_format.numpy_dtype)
-    out[:rows, :layout.used_width, :] = stored.reshape(rows, bones * texels, channels)
+    unpack(out, layout)[...] = stored
     return out
 
 
 def unpack(texels: np.ndarray, layout: Layout) -> np.ndarray:
-    """The stored values (rows, B, T, 4) of a (height, width, 4) texture's data texels."""
+    """The stored values (rows, B, T, 4) of a (height, width, 4) texture's data texels: a view,
+    writable when the texture is."""
     data = texels[:layout.row_count, :layout.used_width, :]
     return data.reshape(layout.row_count, layout.bone_count, layout.texels_per_bone, 4)
