@@ -69,8 +69,9 @@ def _kernels():
                     with quiet_warp():
                         wp.load_module(compiled, device="cpu")
                     _state["kernels"] = compiled
-            except Exception:  # noqa: BLE001 - no compiler, no writable kernel cache: numpy twins
+            except Exception as error:  # noqa: BLE001 - no compiler, no writable kernel cache: numpy twins
                 _state["kernels"] = None
+                _state["why"] = " ".join(f"{type(error).__name__}: {error}".split())[:300]
         return _state["kernels"]
 
 
@@ -350,9 +351,10 @@ def _main() -> int:
     import sys
 
     if not available():
-        print("vbusd.bake_kernels: warp's CPU backend is not available; conversions use numpy", file=sys.stderr)
+        why = _state.get("why", "warp's CPU backend is not available")
+        print(f"vbusd.bake_kernels: the kernels cannot run here ({why}); conversions use numpy", file=sys.stderr)
         return 1
-    print("vbusd.bake_kernels: compiled and cached", file=sys.stderr)
+    print("vbusd.bake_kernels: the kernels are in warp's kernel cache", file=sys.stderr)
     return 0
 
 
