@@ -49,7 +49,8 @@ ENCODING_IDS = {"crossMatrix": 0, "affineMatrix": 1, "quatTranslation": 2}
 """Encodings :func:`bone_box_bounds` decodes (linear blend; dualQuat bounds come from points)."""
 
 _state: dict = {}
-_lock = threading.Lock()
+_lock = threading.Lock()  # loading the kernels
+_pool_lock = threading.Lock()  # the threads of split_work
 
 
 def _kernels():
@@ -93,7 +94,7 @@ def _workers() -> int:
 def _pool(threads: int) -> ThreadPoolExecutor:
     """This process's threads for :func:`split_work` (starting threads costs milliseconds each, and
     a conversion splits a dozen steps); a forked child, which has none of them, makes its own."""
-    with _lock:
+    with _pool_lock:
         pool = _state.get("pool")
         if pool is None or _state.get("pool_owner") != (os.getpid(), threads):
             if pool is not None and _state["pool_owner"][0] == os.getpid():
