@@ -579,19 +579,22 @@ class AllFramesSkinning:
 
     ``SkeletonQuery.ComputeSkinningTransforms`` evaluates one time code per call (its joint local
     transforms, the remap from the animation's joint order, the concatenation down the hierarchy
-    and the inverse bind transforms). This class reads the animation's translations, rotations and
-    scales at every time code (``Usd.AttributeQuery.Get``: USD's own interpolation between samples,
-    slerp for quaternions) and does the same arithmetic for all frames together in numpy:
+    and the inverse bind transforms). This class takes the animation's translations, rotations and
+    scales at every time code (the samples the reader's checks already read when the codes are the
+    authored ones; else ``Usd.AttributeQuery.Get``: USD's own interpolation between samples, slerp
+    for quaternions) and does the same arithmetic for all frames together, in numpy, or for many
+    frames in its compiled twin (:func:`vbusd.bake_kernels.skinning_transforms`):
 
     * local ``L = S * R(q) * T`` (row-vector), with ``R(q)`` and the scale product in float32 as
       ``UsdSkelMakeTransform`` computes them, then in float64;
     * joints missing from the animation keep their rest transform (UsdSkel's sparse remap);
-    * ``skel[j] = L[j] * skel[parent(j)]``, joints in topological order (one batched product per joint);
+    * ``skel[j] = L[j] * skel[parent(j)]``, joints in topological order (one batched product per depth);
     * skinning ``= inverse(bind[j]) * skel[j]``.
 
     ``compute`` returns None whenever UsdSkel could treat a frame specially (a value missing or of
-    the wrong length at some time code); the sampler then asks UsdSkel frame by frame. The result is
-    checked against ``ComputeSkinningTransforms`` on every shared asset (tests/test_usdskel_all_frames.py).
+    the wrong length at some time code); the sampler then asks UsdSkel frame by frame. Both paths
+    are checked against ``ComputeSkinningTransforms`` on every shared asset
+    (tests/test_usdskel_all_frames.py).
     """
 
     def __init__(self, usd, parents: np.ndarray, inverse_bind: np.ndarray, rest: Optional[np.ndarray],

@@ -537,18 +537,20 @@ def _one_core() -> None:
     sets the ones the user has not set, in this worker process only, before pxr and numpy load
     (the pool's initializer; a Dask worker's first task). ``VBUSD_THREADS`` (vbusd's own compiled
     loops and EXR compression) is read at each conversion, so it is always set. Once pxr and numpy
-    have loaded their variables are left alone: ``Work.SetConcurrencyLimit(1)`` after OpenUSD started its worker threads leaves one
-    of them spinning at 100% of a core for the rest of the process (measured with usd-core
-    26.11: two workers on two cores each converted 1.6x slower than one alone). Dask's nanny
-    already starts its workers with one BLAS thread.
+    have loaded, their variables are left alone: ``Work.SetConcurrencyLimit(1)`` after OpenUSD
+    started its worker threads leaves one of them spinning at 100% of a core for the rest of the
+    process (measured with usd-core 26.11: two workers on two cores each converted 1.6x slower
+    than one alone). Dask's nanny already starts its workers with one BLAS thread.
     """
     import sys
 
     chosen = {name: value for name, value in _ONE_THREAD.items() if name not in os.environ}
+    late = set()  # variables read when their library loads, too late to set once it has
     if any(name == "pxr" or name.startswith("pxr.") for name in sys.modules):
-        chosen = {name: value for name, value in chosen.items() if name == "VBUSD_THREADS"}  # read per call
-    if "numpy" in sys.modules:  # too late for BLAS: its threads started with numpy
-        chosen = {name: value for name, value in chosen.items() if name in ("PXR_WORK_THREAD_LIMIT", "VBUSD_THREADS")}
+        late.add("PXR_WORK_THREAD_LIMIT")
+    if "numpy" in sys.modules:  # BLAS's threads started with numpy
+        late |= {"OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"}
+    chosen = {name: value for name, value in chosen.items() if name not in late}
     if "PXR_WORK_THREAD_LIMIT" in chosen:
         chosen["TF_ENV_SETTING_ALERTS_ENABLED"] = "0"  # no banner on stderr for the override
     os.environ.update(chosen)

@@ -156,16 +156,17 @@ def attribute_of(key) -> Optional[str]:
     return found.name if found else None
 
 
-def unique_names(names) -> list:
-    """``names`` made unique in order: a repeat gets ``_2``, ``_3``... (skipping any name already
-    taken, so ``a, a, a_2`` become ``a, a_2, a_2_2``)."""
+def unique_names(names, suffix: str = "_{}") -> list:
+    """``names`` made unique in order: a repeat gets ``suffix`` formatted with 2, 3... (``_2``,
+    ``_3``; Blender's own rule is ``".{:03d}"``), skipping any name already taken, so ``a, a, a_2``
+    become ``a, a_2, a_2_2``."""
     used: set = set()
     result = []
     for name in names:
         candidate, k = name, 1
         while candidate in used:
             k += 1
-            candidate = f"{name}_{k}"
+            candidate = name + suffix.format(k)
         used.add(candidate)
         result.append(candidate)
     return result

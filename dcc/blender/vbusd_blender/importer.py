@@ -88,17 +88,11 @@ class ImportReport:
 
 def _bone_names(names) -> list:
     """Blender bone names for texture bones: the last path component, unique, at most 63 bytes."""
-    out, seen = [], set()
-    for name in names:
-        base = str(name).rstrip("/").rsplit("/", 1)[-1] or "bone"
-        base = base.encode("utf-8")[:BONE_NAME_BYTES - 4].decode("utf-8", "ignore")
-        candidate, n = base, 1
-        while candidate in seen:
-            n += 1
-            candidate = f"{base}.{n:03d}"
-        seen.add(candidate)
-        out.append(candidate)
-    return out
+    from vbusd.format.names import unique_names
+
+    bases = [(str(name).rstrip("/").rsplit("/", 1)[-1] or "bone") for name in names]
+    return unique_names([b.encode("utf-8")[:BONE_NAME_BYTES - 4].decode("utf-8", "ignore") for b in bases],
+                        suffix=".{:03d}")
 
 
 def _bone_centres(vb) -> np.ndarray:
