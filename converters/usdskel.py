@@ -37,6 +37,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from vbusd.format.encoding import all_finite
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
@@ -88,7 +89,8 @@ def _matrix(value) -> np.ndarray:
 
 
 def _finite(array) -> bool:
-    return bool(np.all(np.isfinite(np.asarray(array, dtype=np.float64))))
+    """Whether every value of a USD array (Vt array, Gf matrix, list) is finite."""
+    return all_finite(np.asarray(array, dtype=np.float64))
 
 
 class _Reader:
@@ -379,11 +381,7 @@ class _Reader:
     def _check_values(self, name: str, stacked: np.ndarray, times: list, location: str, joints: list) -> None:
         """Finite values, and no zero quaternion, in every sample of one animation attribute; the
         first bad value (earliest time, then lowest joint) is the one reported."""
-        # The sum is finite when every value is (one pass, no temporary); when it is not, either a
-        # value is not finite or finite values overflowed it: the values then say which.
-        with np.errstate(over="ignore", invalid="ignore"):
-            suspect = not np.isfinite(stacked.sum())
-        bad = ~np.isfinite(stacked).all(axis=2) if suspect else None
+        bad = None if all_finite(stacked) else ~np.isfinite(stacked).all(axis=2)
         problem, code = "is not finite", "usdskel.animation.nonFinite"
         if (bad is None or not bad.any()) and name == "rotations":
             wide = stacked.astype(np.float32, copy=False)  # half's squares would underflow

@@ -387,3 +387,18 @@ def test_reference_lbs_matches_a_per_vertex_loop(bones):
         for j, v in enumerate(face_points):
             blended = sum(weights[v, i] * (normal[t, indices[v, i]] @ rest_normals[j]) for i in range(k))
             np.testing.assert_allclose(got_normals[t, j], blended / np.linalg.norm(blended), atol=1e-12)
+
+
+def test_all_finite_in_one_pass_and_exactly_when_a_sum_overflows():
+    from vbusd.format.encoding import all_finite
+
+    values = np.ones((5000, 3))
+    assert all_finite(values)
+    values[4321, 2] = np.nan
+    assert not all_finite(values)
+    values[4321, 2] = -np.inf
+    assert not all_finite(values)
+    huge = np.full((5000, 3), 1e308)  # finite values whose sum overflows: checked one by one
+    assert all_finite(huge)
+    assert all_finite(np.full((10, 3), np.float16(65504)))
+    assert all_finite(np.zeros(0)) and all_finite(np.float64(2.0)) and not all_finite(np.float64(np.nan))

@@ -202,3 +202,4 @@ def test_mesh_names_stay_unique_when_a_suffix_is_taken():
 
     assert unique_names(["a", "a", "a_2"]) == ["a", "a_2", "a_2_2"]
     assert len(set(unique_names(["Body"] * 5 + ["Body_3"]))) == 6
+    assert unique_names(["hand", "hand", "hand"], suffix=".{:03d}") == ["hand", "hand.002", "hand.003"]

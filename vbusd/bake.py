@@ -16,7 +16,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format.encoding import (Float16OverflowError, NonRigidError, affine_singular, dequantize, encode_bones,
-                       make_hemispheres_continuous, quantize, unpack)
+                       make_hemispheres_continuous, quantize, unpack, all_finite)
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
@@ -263,16 +263,6 @@ def _refuse_singular_after_rounding(stored, ranges, texel_format, animation: Ski
         f"{texel_format.value}", file=animation.source, location=animation.path, code="encoding.nonRigid")
 
 
-def _all_finite(matrices: np.ndarray) -> bool:
-    """Whether every value is finite: a slice's sum is finite when all its values are (one pass, no
-    temporary, one slice per core); a huge finite slice whose sum overflows is checked value by value."""
-    from vbusd.bake_kernels import split_work
-
-    sums: list = []
-    split_work(len(matrices), lambda start, stop: sums.append(matrices[start:stop].sum()))
-    return bool(np.isfinite(sums).all()) or bool(np.all(np.isfinite(matrices)))
-
-
 def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> VirtualBones:
     """Bake one skinned animation into a Virtual Bones texture with its bound meshes.
 
@@ -328,7 +318,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
             raise InputError(f"clip '{clip.name}' sampled {matrices.shape}, expected "
                              f"{(plan.row_count, bone_count, 4, 4)}", file=animation.source,
                              location=animation.path, code="animation.sampleShape")
-        if not _all_finite(matrices):
+        if not all_finite(matrices):
             row, bone = (int(i) for i in np.argwhere(~np.isfinite(matrices))[0][:2])
             raise InputError(f"bone '{animation.bones[bone]}' has a NaN or infinite transform at "
                              f"{times[row]:.6g} s of clip '{clip.name}'", file=animation.source,

@@ -23,7 +23,7 @@ from vbusd.format.layout import Encoding, Layout, TexelFormat
 __all__ = ["FLOAT16_MAX", "UNORM16_MAX", "quat_multiply", "quat_conjugate", "quat_to_matrix",
            "matrix_to_quat", "NonRigidError", "SINGULAR_RELATIVE_DETERMINANT", "affine_singular",
            "encode_bones", "make_hemispheres_continuous", "BoneTransforms", "decode_bones",
-           "unorm_ranges", "Float16OverflowError", "quantize", "dequantize", "pack", "unpack"]
+           "unorm_ranges", "all_finite", "Float16OverflowError", "quantize", "dequantize", "pack", "unpack"]
 
 FLOAT16_MAX = 65504.0
 UNORM16_MAX = 65535
@@ -396,6 +396,25 @@ def unorm_ranges(values: np.ndarray) -> np.ndarray:
     low32 = np.where(low32.astype(np.float64) > low, np.nextafter(low32, np.float32(-np.inf)), low32)
     high32 = np.where(high32.astype(np.float64) < high, np.nextafter(high32, np.float32(np.inf)), high32)
     return np.stack([low32.astype(np.float64), high32.astype(np.float64)], axis=-1)
+
+
+def all_finite(values: np.ndarray) -> bool:
+    """Whether every value is finite, in one pass without a temporary: a slice's sum is finite when
+    all its values are (one slice per core); when a sum is not, the values are checked one by one
+    (finite values can overflow a sum)."""
+    from vbusd.bake_kernels import split_work
+
+    values = np.asarray(values)
+    if values.ndim == 0:
+        return bool(np.isfinite(values))
+    sums: list = []
+
+    def add(start: int, stop: int) -> None:
+        with np.errstate(over="ignore", invalid="ignore"):  # numpy's error state is per thread
+            sums.append(values[start:stop].sum())
+
+    split_work(len(values), add)
+    return bool(np.isfinite(sums).all()) or bool(np.all(np.isfinite(values)))
 
 
 class Float16OverflowError(UnsupportedError):

@@ -412,7 +412,7 @@ def _compressing_on_every_core(OpenEXR):
     from vbusd._cores import usable_cores
 
     cores = usable_cores()
-    with _THREADS_LOCK:
+    with _THREADS_LOCK:  # held for the write: threads of one process write their EXR files in turn
         saved = OpenEXR.global_thread_count()
         # One more than the cores: the calling thread writes while the pool compresses (measured:
         # 3 threads on 2 cores compress the 41 MB texture of benchmarks/bench_convert.py in 0.21-0.24 s,
