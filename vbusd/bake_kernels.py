@@ -54,7 +54,15 @@ _pool_lock = threading.Lock()  # the threads of split_work
 
 
 def _kernels():
-    """The compiled kernels (a namespace), or None where warp's CPU backend cannot run them."""
+    """The compiled kernels (a namespace), or None where warp's CPU backend cannot run them.
+
+    A helper thread never loads them (no import off the main thread: vbusd/_threads.py): there,
+    kernels that the job did not load beforehand are None, and the numpy twin runs.
+    """
+    if "kernels" in _state:
+        return _state["kernels"]
+    if threading.current_thread().name.startswith("vbusd-"):
+        return None
     with _lock:
         if "kernels" not in _state:
             _state["kernels"] = None

@@ -27,12 +27,14 @@ import math
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FuturesTimeout
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
 
+from vbusd import _threads
 from vbusd.bake import BakeOptions, bake
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
@@ -631,42 +633,37 @@ LARGE_SOURCE_BYTES = 2 << 20
 """A source file this large is likely to bake enough matrices for :mod:`vbusd.bake_kernels`."""
 
 
-_IMPORTED_LATER = ("vbusd.io.usd_reader", "vbusd.decode.bounds", "vbusd.io.usd", "vbusd.io.exr", "OpenEXR")
-"""Modules a conversion imports on its way (the reader, the bounds, the writer)."""
-
-
 def _prepare_for(source: Path) -> None:
-    """Load the compiled bake kernels, and import what the conversion will import, while a large
-    source's crate probe runs in the probe server: the probe only waits on a pipe, so the two
-    overlap (the reader's own probe of the file is then a lookup)."""
-    import importlib
-
-    from vbusd import bake_kernels
-    from vbusd.io import usd_probe
+    """Load everything the conversion and its helper threads will use, before any helper starts
+    (vbusd/_threads.py): the modules, USD's plugins and, for a large source, the compiled bake
+    kernels. A large crate source is probed meanwhile: the request goes to the probe server, whose
+    child reads the file while this thread loads, and the answer is read after (no thread: the
+    reader's own probe of the file is then a lookup)."""
+    from vbusd import _threads
 
     try:
-        if source.stat().st_size < LARGE_SOURCE_BYTES:
-            return
+        large = source.stat().st_size >= LARGE_SOURCE_BYTES
     except OSError:
-        return  # the reader says why, in its words
-    probe = None
-    if usd_probe.needs_probe(source):
-        probe = threading.Thread(target=usd_probe.probe_crate, args=(source,), daemon=True)
-        probe.start()
-    bake_kernels.available()
-    for name in _IMPORTED_LATER:
-        importlib.import_module(name)
-    if probe is not None:
-        probe.join()
+        large = False  # the reader says why, in its words
+    pending = None
+    if large:
+        from vbusd.io import usd_probe
+
+        pending = usd_probe.start_probe(source)
+    try:
+        _threads.prepare("convert", kernels=large)
+    finally:
+        if pending is not None:
+            pending.result()  # its problem, if any, is reported by the reader's own probe
 
 
 class _CheckStopped(Exception):
     """Ends an accuracy check whose conversion was interrupted (never reaches the caller)."""
 
 
-def _write_checked(scene: SourceScene, baked: list, output: Path, options: ConvertOptions, checking,
+def _write_checked(scene: SourceScene, baked: list, output: Path, options: ConvertOptions, check_result,
                    seconds: dict, progress: Optional[Progress]) -> list:
-    """Write the converted asset; its commit waits for the accuracy check (``checking``, a future)."""
+    """Write the converted asset; its commit waits for the accuracy check (``check_result()``)."""
     from vbusd.io.usd import write_asset
 
     asset = VirtualBonesAsset(animations=tuple(baked), up_axis=scene.up_axis,
@@ -684,7 +681,7 @@ def _write_checked(scene: SourceScene, baked: list, output: Path, options: Conve
         # replace=force: the existence check is repeated under the output lock, so two runs
         # without --force cannot both create the output (the second is refused).
         written = write_asset(asset, output, texture_container=options.container, replace=options.force,
-                              before_commit=checking.result)
+                              before_commit=check_result)
     except BaseException as error:
         remove_folders(created)  # the transaction left nothing in them; leave no trace
         if isinstance(error, OSError):  # disk full, permission denied: one line, not a traceback
@@ -772,12 +769,12 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                                code="convert.nothingConverted")
 
     interrupted = threading.Event()
+    counts: dict = {}
 
     def check_progress(step: str, done: int, total: int) -> None:
         if interrupted.is_set():  # Ctrl-C or SIGTERM in the command: stop at the next chunk
             raise _CheckStopped()
-        if progress:
-            progress(step, done, total)
+        counts[step] = (done, total)  # reported by the calling thread (a callback may import)
 
     def check() -> list:
         started = time.perf_counter()
@@ -785,12 +782,24 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         seconds["check"] = time.perf_counter() - started
         return reports
 
+    def check_result() -> list:
+        """The check's reports, waited for in the calling thread, passing its progress on."""
+        while True:
+            try:
+                return checking.result(timeout=0.2)
+            except FuturesTimeout:
+                if progress:
+                    for step, (done, total) in list(counts.items()):
+                        progress(step, done, total)
+
     # The accuracy check runs while the textures are compressed and staged; the write waits for it
-    # before its commit point, so a check that fails still leaves nothing written.
+    # before its commit point, so a check that fails still leaves nothing written. Everything the
+    # check and the write use is loaded before the check's thread starts (vbusd/_threads.py).
+    _threads.prepare("convert")
     pool = ThreadPoolExecutor(1, thread_name_prefix="vbusd-check")
     checking = pool.submit(check)
     try:
-        written = _write_checked(scene, baked, output, options, checking, seconds, progress)
+        written = _write_checked(scene, baked, output, options, check_result, seconds, progress)
     except Exception:
         failed = checking.exception()  # the check's own error came first, as before the overlap
         if failed is not None:
@@ -801,7 +810,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
-    mesh_reports = checking.result()
+    mesh_reports = check_result()
 
     files = {str(path): Path(path).stat().st_size for path in written}  # the layer, then texture, sidecar
     reference_name = getattr(scene, "reference_name", None) if getattr(scene, "reference", None) else None

@@ -114,7 +114,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     Returns:
         0 on success, 1 when validation found errors, 2 for unreadable input or bad usage (and a
         bare ``vbusd``, which prints the help), 3 for an unexpected failure (a bug; one line with
-        code ``command.internal`` naming the command and its input).
+        code ``command.internal`` naming the command and its input), 130 after SIGINT (Ctrl-C) and
+        143 after SIGTERM.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     if not args:  # a bare `vbusd` names no job: show what there is, but as a usage error
@@ -123,19 +124,23 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     _RUNNING.clear()
     import numpy as np
 
+    from vbusd import _signals
+
     try:
         # Corrupt input can hold NaN and infinities: readers and checks name them as findings and
         # errors, so numpy's own floating-point warnings would only add raw lines to the terminal.
-        with np.errstate(all="ignore"):
+        # SIGINT and SIGTERM end any command within seconds, with 130 or 143 (vbusd/_signals.py).
+        with np.errstate(all="ignore"), _signals.handling_signals():
             result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
         _echo_error(f"vbusd: {error}")
         return error.exit_status
     except click.exceptions.Exit as done:
         return int(done.exit_code or 0)
-    except (click.Abort, KeyboardInterrupt):
+    except (click.Abort, KeyboardInterrupt) as error:
         _echo_error("vbusd: aborted")
-        return 130
+        # click turns KeyboardInterrupt into Abort: the signal is on the original interrupt
+        return _signals.exit_status(error.__cause__ or error.__context__ or error)
     except click.UsageError as error:  # bad usage: one line, naming the command, not click's four
         command = error.ctx.command_path if error.ctx is not None else "vbusd"
         _echo_error(f"{command}: {error.format_message()}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
+import time
 from typing import Optional
 
 import click
@@ -68,29 +69,16 @@ def table(*columns: str, title: Optional[str] = None, right: tuple = (), show_he
     return result
 
 
-@contextlib.contextmanager
 def terminate_as_interrupt():
-    """Turn SIGTERM (``kill``, a farm scheduler) into KeyboardInterrupt while a command writes.
+    """SIGINT and SIGTERM as interrupts while a command writes (:func:`vbusd._signals.handling_signals`,
+    which :func:`vbusd.cli.main` already wraps around every command; nested, it does nothing).
 
-    Python's default SIGTERM ends the process without unwinding, which would leave the write
-    transaction's hidden temporaries (and a folder it created) behind; as an interrupt the
-    transaction removes them and the command exits 130 like Ctrl-C.
+    As an interrupt, the write transaction removes its temporaries (and a folder it created) and
+    the command exits 130 (SIGINT) or 143 (SIGTERM).
     """
-    import signal
-    import threading
+    from vbusd import _signals
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    return _signals.handling_signals()
 
 
 class progress_bar:
@@ -114,8 +102,12 @@ class progress_bar:
         from rich.console import Console
         from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
+        # auto_refresh off: rich's refresh thread would render (and import) beside the job's own
+        # imports; the bar is drawn from the calling thread instead (vbusd/_threads.py).
         self._bar = Progress(TextColumn("{task.description:<6}"), BarColumn(), TaskProgressColumn(),
-                             TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+                             TimeElapsedColumn(), console=Console(stderr=True), transient=True,
+                             auto_refresh=False)
+        self._drawn = 0.0
         self._bar.__enter__()
         return self._update
 
@@ -124,6 +116,10 @@ class progress_bar:
         if task is None:
             task = self._tasks[step] = self._bar.add_task(step, total=max(total, 1))
         self._bar.update(task, completed=done, total=max(total, 1))
+        now = time.monotonic()
+        if now - self._drawn >= 0.1 or done >= total:
+            self._drawn = now
+            self._bar.refresh()
 
     def __exit__(self, *exc):
         if self._bar is not None:

@@ -69,6 +69,7 @@ import time
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
+from vbusd import _signals
 from vbusd.format.errors import InputError, OptionsError, VbusdError
 
 __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
@@ -573,6 +574,9 @@ class Commit:
             self._lock.release()
             raise
         self._state = "open"
+        # A process ended by vbusd._signals (a signal the main thread could not act on in time)
+        # aborts this transaction first: the old asset stays, nothing staged is left.
+        _signals.on_hard_exit(id(self), self.abort)
         return self
 
     def _used(self) -> set:
@@ -664,15 +668,16 @@ class Commit:
         final = self._final(target)
         if any(f == final for f, _ in self._staged):
             raise ValueError(f"{final} is written twice in one commit")
-        temporary = _temp_name(final)
-        while os.path.lexists(temporary):
+        with _signals.critical():  # named in the journal and created together, or neither
             temporary = _temp_name(final)
-        self._staged.append([final, temporary])
-        self._write_journal()
-        if reserve:
-            fault_point(f"create {temporary.name}", temporary)
-            fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            os.close(fd)
+            while os.path.lexists(temporary):
+                temporary = _temp_name(final)
+            self._staged.append([final, temporary])
+            self._write_journal()
+            if reserve:
+                fault_point(f"create {temporary.name}", temporary)
+                fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+                os.close(fd)
         return temporary
 
     @contextlib.contextmanager
@@ -726,6 +731,10 @@ class Commit:
         """fsync, rename the other files, then the target; remove discarded files; unlock."""
         if self._state != "open":
             return
+        with _signals.critical():  # a signal waits for the renames: old asset or new, never a mix
+            self._commit()
+
+    def _commit(self) -> None:
         for final, temporary in self._staged:
             fault_point(f"fsync {temporary.name}", temporary)
             os.chmod(temporary, _target_mode(final))
@@ -759,6 +768,7 @@ class Commit:
             with contextlib.suppress(OSError):
                 fault_point(f"remove {self._journal.name}", self._journal)
                 _remove_quietly(self._journal)
+        _signals.on_hard_exit(id(self), None)
         self._lock.release()
 
     def abort(self) -> None:
@@ -773,6 +783,7 @@ class Commit:
         for final in self._created:  # new names only: files that existed before stay
             _remove_quietly(final)
         _remove_quietly(self._journal)
+        _signals.on_hard_exit(id(self), None)
         self._lock.release()
 
     def __exit__(self, exc_type, exc, tb) -> None:

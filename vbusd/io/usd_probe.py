@@ -23,6 +23,7 @@ import atexit
 import json
 import math
 import os
+import selectors
 import signal
 import subprocess
 import sys
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-__all__ = ["CRATE_MAGIC", "ProbeResult", "probe_crate", "needs_probe", "prestart", "memory_limit", "time_limit"]
+__all__ = ["CRATE_MAGIC", "ProbeResult", "PendingProbe", "start_probe", "probe_crate", "needs_probe", "prestart", "memory_limit", "time_limit"]
 
 CRATE_MAGIC = b"PXR-USDC"
 
@@ -92,6 +93,72 @@ def _limit_memory(limit: int):
     return apply
 
 
+class PendingProbe:
+    """A probe asked of the server and not yet answered (see :func:`start_probe`)."""
+
+    def __init__(self, path: Path, key, size: int, sent) -> None:
+        self.path, self._key, self._size, self._sent = path, key, size, sent
+        self._result: Optional[ProbeResult] = None
+
+    def result(self) -> ProbeResult:
+        """Wait for the answer (bounded by the probe's time limit) and return it."""
+        if self._result is None:
+            answer = self._sent
+            if answer is None:  # asked and not answered yet: only the asking thread waits here
+                try:
+                    answer = _SERVER.receive(time_limit(self._size)) if _SERVER is not None else _DIED
+                finally:
+                    self._sent = _DIED
+                    _SERVER_LOCK.release()
+                if answer is None:  # the server stopped answering in time: as the child's alarm
+                    answer = (-signal.SIGALRM, "")
+            # a server that died is asked again (once), as probe_crate does
+            self._result = _probe(self.path, self._size, sent=None if answer is _DIED else answer)
+            if self._result.ok:
+                _PASSED.add(self._key)
+        return self._result
+
+    def cancel(self) -> None:
+        """Give the server back unanswered (its answer would be read by the next probe: it is
+        stopped instead, and the next probe starts a fresh one)."""
+        if self._result is None and self._sent is None:
+            self._sent = _DIED
+            try:
+                if _SERVER is not None:
+                    _SERVER.close(kill=True)
+            finally:
+                _SERVER_LOCK.release()
+
+
+def start_probe(path) -> Optional[PendingProbe]:
+    """Ask the probe server to read ``path`` and return at once, without a thread: the caller
+    goes on (imports, loading kernels) while the server's child reads, then calls ``result()``.
+
+    Returns:
+        None when the file needs no probe or passed already in this process; else a
+        :class:`PendingProbe` whose ``result()`` must be called (it holds the server until then).
+    """
+    path = Path(path)
+    if not needs_probe(path):
+        return None
+    try:
+        stat = path.stat()
+        key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    except OSError:
+        return None  # the reader says why, in its words
+    if key in _PASSED:
+        return None
+    _SERVER_LOCK.acquire()
+    try:
+        sent = _server().send(str(path), memory_limit(stat.st_size), time_limit(stat.st_size))
+    except BaseException:
+        _SERVER_LOCK.release()
+        raise
+    if sent is not None:
+        _SERVER_LOCK.release()
+    return PendingProbe(path, key, stat.st_size, sent)
+
+
 def probe_crate(path) -> ProbeResult:
     """Open, compose and read ``path`` whole in a child process under memory and time limits.
 
@@ -112,13 +179,15 @@ def probe_crate(path) -> ProbeResult:
     return result
 
 
-def _probe(path: Path, size: int) -> ProbeResult:
+def _probe(path: Path, size: int, sent=None) -> ProbeResult:
+    """The result of one probe: ``sent`` is an answer already received (:class:`PendingProbe`)."""
     memory, seconds = memory_limit(size), time_limit(size)
-    for _attempt in range(2):  # a server that died (killed, out of memory) is replaced once
-        with _SERVER_LOCK:
-            answer = _server().probe(str(path), memory, seconds)
+    answer = _DIED if sent is None else sent
+    for _attempt in range(2 if sent is None else 1):  # a server that died is replaced once
         if answer is not _DIED:
             break
+        with _SERVER_LOCK:
+            answer = _server().probe(str(path), memory, seconds)
     if answer is _DIED:
         return ProbeResult(False, problem="the process that reads it in isolation died twice (killed, or out "
                                           "of memory)")
@@ -172,6 +241,12 @@ class _Server:
     def probe(self, path: str, memory: int, seconds: float):
         """(exit status, the child's stderr) of one bounded read; None when it ran out of time,
         ``_DIED`` when the server ended without answering."""
+        sent = self.send(path, memory, seconds)
+        return sent if sent is not None else self.receive(seconds)
+
+    def send(self, path: str, memory: int, seconds: float):
+        """Ask for one bounded read; None when asked (:meth:`receive` gets the answer), else the
+        answer already known (the server did not start, or is gone)."""
         request = json.dumps({"path": path, "memory": memory, "seconds": seconds})
         try:
             if not self.started:  # the import of pxr, bounded like a probe of an empty file
@@ -182,6 +257,14 @@ class _Server:
                 self.started = True
             self.process.stdin.write(request + "\n")
             self.process.stdin.flush()
+        except (OSError, ValueError):  # a closed pipe: the server is gone
+            self.close(kill=True)
+            return _DIED
+        return None
+
+    def receive(self, seconds: float):
+        """The answer to :meth:`send` (as :meth:`probe` returns it)."""
+        try:
             # The child's own alarm ends it at `seconds`; this margin only covers a stuck server.
             answer = self._answer(seconds + 10.0)
         except (OSError, ValueError):  # a closed pipe: the server is gone
@@ -192,8 +275,6 @@ class _Server:
         return int(answer["returncode"]), str(answer.get("stderr", ""))
 
     def _answer(self, seconds: float):
-        import selectors
-
         with selectors.DefaultSelector() as selector:
             selector.register(self.process.stdout, selectors.EVENT_READ)
             if not selector.select(timeout=seconds):

@@ -1,0 +1,148 @@
+"""No import off the main thread, and nothing loaded while a helper runs (vbusd/_threads.py).
+
+Each case runs whole conversions in a fresh interpreter (so nothing is imported yet) under
+``vbusd._threads.ImportGuard``, which records every module a thread other than the main one asks
+for, and snapshots the loaded modules and shared libraries the moment the accuracy check's thread
+is started: nothing may be imported or mapped after that moment, by any thread, until the
+conversion returns. That is the condition under which two threads cannot deadlock on the
+dynamic loader's lock and Python's lock (the hang of issue 23).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+_SCRIPT = textwrap.dedent("""
+    import json, sys, threading
+    from pathlib import Path
+    import vbusd
+    from vbusd import _threads, bake_kernels
+    import vbusd.convert as convert_module
+
+    kernels, out = sys.argv[1], Path(sys.argv[2])
+    sources = sys.argv[3:]
+    if kernels == "on":  # every compiled twin, however small the work
+        bake_kernels.MIN_ITEMS = 0
+        convert_module.LARGE_SOURCE_BYTES = 0
+    else:
+        bake_kernels.MIN_ITEMS = 1 << 62
+        convert_module.LARGE_SOURCE_BYTES = 1 << 62
+
+    snapshot = {}
+    real_pool = convert_module.ThreadPoolExecutor
+
+    class Watched(real_pool):
+        def submit(self, *args, **kwargs):
+            # the moment before the check's helper thread starts
+            snapshot["modules"] = set(sys.modules)
+            snapshot["libraries"] = _threads.loaded_libraries()
+            return super().submit(*args, **kwargs)
+
+    convert_module.ThreadPoolExecutor = Watched
+    results = []
+    for index, source in enumerate(sources):
+        snapshot.clear()
+        with _threads.ImportGuard() as guard:
+            report = vbusd.convert(source, out / f"asset{index}.usda",
+                                   vbusd.ConvertOptions(texel_format="float32"))
+        helpers = sorted(t.name for t in threading.enumerate() if t.name.startswith("vbusd-"))
+        results.append({
+            "source": source,
+            "max_error": max(m.max_error for a in report.animations for m in a.meshes),
+            "helper_imports": guard.offenders,
+            "imported_after_helper_start": sorted(set(sys.modules) - snapshot.get("modules", set(sys.modules))),
+            "loaded_after_helper_start": sorted(_threads.loaded_libraries() - snapshot.get("libraries", set())),
+            "checked_in_a_helper": bool(snapshot),
+            "kernels_loaded": bake_kernels._state.get("kernels") is not None,
+        })
+    print(json.dumps(results))
+""")
+
+
+def _run(tmp_path, kernels: str, sources: list) -> list:
+    env = {k: v for k, v in os.environ.items() if k != "VBUSD_THREADS"}
+    env["VBUSD_THREADS"] = "2"  # split work even on one core: the split threads are helpers too
+    done = subprocess.run([sys.executable, "-c", _SCRIPT, kernels, str(tmp_path), *map(str, sources)],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _sources(repo_root, shared_assets=None) -> list:
+    found = [repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"]
+    if shared_assets is not None:
+        found += [shared_assets / "gltf" / "Fox" / "Fox.glb",
+                  shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"]
+        found += sorted((shared_assets / "usdskel" / "usdwg_RiggedFigure").glob("*.usd*"))[:1]
+    return [s for s in found if s.exists()]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kernels", ["off", "on"])
+def test_no_helper_imports_and_nothing_loads_while_helpers_run(tmp_path, repo_root, kernels, request):
+    try:
+        shared = request.getfixturevalue("shared_assets")
+    except pytest.skip.Exception:
+        shared = None
+    sources = _sources(repo_root, shared)
+    if kernels == "on":
+        pytest.importorskip("warp")
+    results = _run(tmp_path, kernels, sources)
+    assert len(results) == len(sources)
+    kinds = {os.path.splitext(r["source"])[1] for r in results}
+    for result in results:
+        where = f"{result['source']} (kernels {kernels})"
+        assert result["checked_in_a_helper"], where  # the overlap this test is about took place
+        assert result["helper_imports"] == [], f"{where}: imported off the main thread: {result['helper_imports']}"
+        assert result["imported_after_helper_start"] == [], \
+            f"{where}: imported while a helper ran: {result['imported_after_helper_start']}"
+        assert result["loaded_after_helper_start"] == [], \
+            f"{where}: shared libraries loaded while a helper ran: {result['loaded_after_helper_start']}"
+        assert result["max_error"] >= 0.0
+    if kernels == "on" and results:
+        assert any(r["kernels_loaded"] for r in results), "the compiled kernels were never used"
+    assert ".usda" in kinds
+
+
+def test_the_guard_sees_an_import_from_another_thread():
+    """The hook itself: an import in a second thread is recorded, one in the owner thread is not."""
+    import threading
+
+    from vbusd._threads import ImportGuard
+
+    for name in ("colorsys", "this_module_does_not_exist_vbusd"):
+        sys.modules.pop(name, None)
+    with ImportGuard() as guard:
+        import colorsys  # noqa: F401 - the owner's own import is allowed
+
+        def other():
+            try:
+                import this_module_does_not_exist_vbusd  # noqa: F401
+            except ImportError:
+                pass
+
+        thread = threading.Thread(target=other, name="vbusd-test")
+        thread.start()
+        thread.join()
+    assert guard.offenders == [("this_module_does_not_exist_vbusd", "vbusd-test")]
+
+
+def test_kernels_are_never_loaded_by_a_helper(monkeypatch):
+    """A helper asking for kernels that the job did not load gets the numpy twin (None)."""
+    import threading
+
+    from vbusd import bake_kernels
+
+    monkeypatch.setattr(bake_kernels, "_state", {})
+    seen = []
+    thread = threading.Thread(target=lambda: seen.append(bake_kernels._kernels()), name="vbusd-check_0")
+    thread.start()
+    thread.join()
+    assert seen == [None]
+    assert "kernels" not in bake_kernels._state  # nothing was loaded, nor marked unavailable
