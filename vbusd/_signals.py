@@ -33,7 +33,7 @@ from typing import Callable, Iterator, Optional
 __all__ = ["GRACE_SECONDS", "Interrupted", "handling_signals", "critical", "on_hard_exit", "exit_status",
            "die_with_parent"]
 
-GRACE_SECONDS = 4.0
+GRACE_SECONDS = 3.5
 """How long the main thread has to unwind after the first SIGINT/SIGTERM before the process ends."""
 
 _STOP = 255
@@ -94,10 +94,16 @@ def critical() -> Iterator[None]:
 
 
 def _hard_exit(signum: int) -> None:
-    with _COMMIT_LOCK:
-        for cleanup in list(_CLEANUPS.values()):
-            with contextlib.suppress(Exception):
-                cleanup()
+    # A commit renaming takes a moment: wait for it. One stuck inside its renames (a hung file
+    # system) is left as it is: its journal names what it placed, and the next run of that output
+    # removes it (vbusd.io.files.Commit recovery).
+    if _COMMIT_LOCK.acquire(timeout=0.5):
+        try:
+            for cleanup in list(_CLEANUPS.values()):
+                with contextlib.suppress(Exception):
+                    cleanup()
+        finally:
+            _COMMIT_LOCK.release()
     os._exit(128 + signum)
 
 
@@ -138,17 +144,20 @@ def _watch(read_fd: int) -> None:
 
 
 @contextlib.contextmanager
-def handling_signals() -> Iterator[None]:
+def handling_signals(signals: tuple = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
     """Turn SIGINT and SIGTERM into :class:`Interrupted` in the block, bounded as the module says.
 
     Only in the main thread (elsewhere the block runs unchanged). Nests: an inner block does nothing.
+
+    Args:
+        signals: The signals handled (a batch worker leaves SIGINT to its parent: ``(SIGTERM,)``).
     """
     if threading.current_thread() is not threading.main_thread() or _state.get("active"):
         yield
         return
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous = {s: signal.getsignal(s) for s in signals}
     old_wakeup = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     watcher = threading.Thread(target=_watch, args=(read_fd,), name="vbusd-signals", daemon=True)
     _state.update(signum=None, at=None, active=True)

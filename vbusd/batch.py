@@ -42,6 +42,7 @@ import glob
 import hashlib
 import json
 import os
+import signal
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field, fields
@@ -566,6 +567,45 @@ def convert_one(task: dict) -> dict:
     Returns:
         An :class:`AssetResult` as a dict (plain data, for any scheduler).
     """
+    from vbusd import _signals, _threads
+
+    _threads.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
+    with _signals.handling_signals(signals=(signal.SIGTERM,)), _Heartbeat(task) as beat:
+        return _convert_one(task, beat)
+
+
+class _Heartbeat:
+    """A worker's sign of progress: the file ``<task["heartbeat"]>/<task["index"]>`` holds the
+    worker's process id and Dask address, and its modification time is the last progress. The
+    parent ends a worker whose file has not changed for the stall timeout (:func:`_stalled`)."""
+
+    def __init__(self, task: dict) -> None:
+        folder = task.get("heartbeat")
+        self.path = None if folder is None else Path(folder) / str(task.get("index", 0))
+        self.last = 0.0
+
+    def __enter__(self) -> "_Heartbeat":
+        if self.path is not None:
+            with contextlib.suppress(OSError):
+                self.path.write_text(json.dumps({"pid": os.getpid(), "worker": _worker_name()}), encoding="utf-8")
+                self.last = time.monotonic()
+        return self
+
+    def __call__(self, step: str = "", done: int = 0, total: int = 0) -> None:
+        """A progress callback: touch the file (at most twice a second)."""
+        now = time.monotonic()
+        if self.path is not None and now - self.last >= 0.5:
+            self.last = now
+            with contextlib.suppress(OSError):
+                os.utime(self.path)
+
+    def __exit__(self, *exc) -> None:
+        if self.path is not None:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+
+
+def _convert_one(task: dict, beat: "_Heartbeat") -> dict:
     from vbusd.convert import ConvertOptions, convert
 
     started = time.perf_counter()
@@ -588,7 +628,8 @@ def convert_one(task: dict) -> dict:
             # marks the output as this batch's own before anything is written
             _write_record(cache, output, {"state": "pending", "key": key, "source": str(source),
                                           "output": str(output)})
-        report = convert(source, output, options)
+        beat()
+        report = convert(source, output, options, progress=beat)
         result.files = dict(report.files)
         result.bytes = sum(report.files.values())
         errors = [m for a in report.animations for m in a.meshes if m.max_error is not None]
@@ -650,21 +691,55 @@ def _keep_freed_memory() -> None:
         libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD (its largest value on 64-bit glibc)
 
 
-def _pool_initializer() -> None:
-    import signal
+def _pool_initializer(parent: int) -> None:
+    """A pool worker's start: one core, its probe server, everything a conversion loads (in this,
+    the worker's main thread: vbusd/_threads.py), and an end that follows its parent's."""
+    from vbusd import _signals
 
+    # A parent killed with SIGKILL must not leave workers behind: SIGTERM ends this one (as an
+    # interrupt while it converts: its write aborts), whatever the parent could do.
+    _signals.die_with_parent(signal.SIGTERM, parent)
     _one_core()  # runs before the first task imports pxr and numpy
     _keep_freed_memory()
     from vbusd.io.usd_probe import prestart
 
     prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
+    from vbusd import _threads
 
+    _threads.prepare("batch")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+
+
+STALL_TIMEOUT_S = 600.0
+"""Seconds a batch worker may go without progress before it is ended (``--stall-timeout``)."""
+
+
+def _stalled(folder: Path, pending: Iterable[int], timeout: float) -> dict:
+    """``{index: heartbeat}`` of the running tasks whose heartbeat is older than ``timeout``."""
+    found = {}
+    now = time.time()
+    for index in pending:
+        path = folder / str(index)
+        try:
+            age = now - path.stat().st_mtime
+            if age > timeout:
+                found[index] = json.loads(path.read_text(encoding="utf-8") or "{}")
+        except (OSError, ValueError):
+            continue  # not started yet, or just finished
+    return found
+
+
+def _stall_failure(task: dict, timeout: float) -> dict:
+    return json_ready(AssetResult(task["source"], task["output"], "failed", code="batch.stalled",
+                                  error=f"{task['source']}: batch.stalled: no progress for {timeout:g} s; "
+                                        "its worker was ended (raise --stall-timeout if the asset is "
+                                        "just that large)"))
 
 
 def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, scheduler: Optional[str] = None,
               cache: Optional[str] = None, use_cache: bool = True, force: bool = False,
-              progress: Optional[Callable[[str, int, int], None]] = None) -> BatchReport:
+              progress: Optional[Callable[[str, int, int], None]] = None,
+              stall_timeout: Optional[float] = None) -> BatchReport:
     """Convert every planned item; skip the cached ones; never stop at a failing one.
 
     Args:
@@ -678,6 +753,8 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
         use_cache: False converts everything and keeps no records.
         force: Replace existing outputs that the cache does not know as this batch's own.
         progress: ``progress("assets", done, total)`` as assets finish.
+        stall_timeout: Seconds a worker may go without progress before it is ended and its asset
+            reported failed (``batch.stalled``); None: :data:`STALL_TIMEOUT_S`.
 
     Returns:
         The :class:`BatchReport`.
@@ -689,6 +766,10 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
 
     started = time.perf_counter()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
+    stall_timeout = STALL_TIMEOUT_S if stall_timeout is None else float(stall_timeout)
+    if not stall_timeout > 0:
+        raise OptionsError(f"the stall timeout must be a positive number of seconds, got {stall_timeout}",
+                           file="convert", code="options.invalid")
     if not items:
         raise OptionsError("no source to convert", file="convert", code="batch.plan")
     cache_dir = None
@@ -750,12 +831,12 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
     # Largest sources first: the batch ends with small assets instead of waiting on one big one.
     tasks.sort(key=lambda entry: (-_size(entry[1]["source"]), entry[0]))
     if tasks and scheduler:
-        _run_dask(tasks, scheduler, finish)
+        _run_dask(tasks, scheduler, finish, stall_timeout)
     elif tasks and (jobs == 1 or len(tasks) == 1):
         for index, task in tasks:
             finish(index, convert_one(task))
     elif tasks:
-        _run_pool(tasks, min(jobs, len(tasks)), finish)
+        _run_pool(tasks, min(jobs, len(tasks)), finish, stall_timeout)
     _forget_failures(results, cache_dir, missing)
     return BatchReport(assets=results, jobs=jobs, scheduler=scheduler, seconds=time.perf_counter() - started,
                        cache=None if cache_dir is None else str(cache_dir))
@@ -784,48 +865,85 @@ def _size(path: str) -> int:
         return 0
 
 
-def _run_pool(tasks: list, jobs: int, finish) -> None:
+def _run_pool(tasks: list, jobs: int, finish, stall_timeout: float = STALL_TIMEOUT_S) -> None:
     """Run tasks in local worker processes; a worker that dies (SIGKILL, out of memory) breaks
     Python's pool, so the unfinished tasks go to a fresh one, and a task that was unfinished in two
-    broken pools is run alone, so only the asset that kills its worker is reported failed."""
+    broken pools is run alone, so only the asset that kills its worker is reported failed. A worker
+    whose heartbeat is older than ``stall_timeout`` is killed: its asset fails (``batch.stalled``)
+    and the others go to a fresh pool without counting that break against them. On an interrupt
+    (Ctrl-C, SIGTERM) every worker is sent SIGTERM (its write aborts) and is gone within seconds."""
     import multiprocessing
+    import shutil
+    import tempfile
     from concurrent.futures.process import BrokenProcessPool
 
     # spawn: a fresh interpreter per worker, never a fork of a parent that may hold pxr's threads.
     context = multiprocessing.get_context("spawn")
-    by_index = dict(tasks)
+    beats = Path(tempfile.mkdtemp(prefix="vbusd-batch-"))
+    by_index = {index: dict(task, heartbeat=str(beats), index=index) for index, task in tasks}
     breaks = {index: 0 for index, _ in tasks}
     remaining = [index for index, _ in tasks]
-    while remaining:
-        alone = [i for i in remaining if breaks[i] >= 2]
-        batch = alone[:1] or remaining
-        workers = 1 if alone else min(jobs, len(batch))
-        broken = []
-        with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_pool_initializer) as pool:
-            pending = {pool.submit(convert_one, by_index[index]): index for index in batch}
+    try:
+        while remaining:
+            alone = [i for i in remaining if breaks[i] >= 2]
+            batch = alone[:1] or remaining
+            workers = 1 if alone else min(jobs, len(batch))
+            broken, stalled = [], set()
+            pool = ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=_pool_initializer,
+                                       initargs=(os.getpid(),))
             try:
+                pending = {pool.submit(convert_one, by_index[index]): index for index in batch}
                 while pending:
-                    finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    finished, _ = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
                     for future in finished:
                         index = pending.pop(future)
                         error = future.exception()
-                        if isinstance(error, BrokenProcessPool):
+                        if index in stalled:
+                            finish(index, _stall_failure(by_index[index], stall_timeout))
+                        elif isinstance(error, BrokenProcessPool):
                             broken.append(index)
                         elif error is not None:
                             finish(index, _worker_failure(by_index[index], error))
                         else:
                             finish(index, future.result())
+                    for index, beat in _stalled(beats, [i for i in pending.values() if i not in stalled],
+                                                stall_timeout).items():
+                        stalled.add(index)
+                        with contextlib.suppress(OSError, TypeError, ValueError):
+                            os.kill(int(beat.get("pid")), signal.SIGKILL)
             except BaseException:
-                for future in pending:
-                    future.cancel()
+                _stop_workers(pool)
                 raise
-        finished_now = set(batch) - set(broken)
-        remaining = [i for i in remaining if i not in finished_now]
-        for index in broken:
-            breaks[index] += 1
-            if alone and index == batch[0]:  # it killed a worker of its own: this asset fails
-                finish(index, _worker_failure(by_index[index], "its worker process died (killed, or out of memory)"))
-                remaining.remove(index)
+            pool.shutdown(wait=True)
+            finished_now = set(batch) - set(broken)
+            remaining = [i for i in remaining if i not in finished_now]
+            for index in broken:
+                if stalled:
+                    continue  # the break was ours (a stalled worker ended): not the asset's fault
+                breaks[index] += 1
+                if alone and index == batch[0]:  # it killed a worker of its own: this asset fails
+                    finish(index, _worker_failure(by_index[index],
+                                                  "its worker process died (killed, or out of memory)"))
+                    remaining.remove(index)
+    finally:
+        shutil.rmtree(beats, ignore_errors=True)
+
+
+def _stop_workers(pool: ProcessPoolExecutor, grace: float = 3.0) -> None:
+    """End a pool now: SIGTERM to every worker (a conversion aborts its write), SIGKILL to what is
+    left after ``grace`` seconds; queued tasks are cancelled."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            process.terminate()
+    deadline = time.monotonic() + grace
+    for process in processes:
+        with contextlib.suppress(OSError, ValueError, AttributeError, AssertionError):
+            process.join(max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.kill()
+                process.join(1.0)
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _worker_failure(task: dict, error) -> dict:
@@ -834,9 +952,25 @@ def _worker_failure(task: dict, error) -> dict:
                                   error=f"{task['source']}: batch.worker: the worker converting it failed ({detail})"))
 
 
-def _run_dask(tasks: list, scheduler: str, finish) -> None:
+class _PrepareWorker:
+    """A Dask worker plugin: load what a conversion needs in the worker's own main thread (its
+    event loop), before any task thread converts (vbusd/_threads.py)."""
+
+    name = "vbusd-prepare"
+
+    def setup(self, worker=None) -> None:
+        _one_core()
+        from vbusd import _threads
+
+        _threads.prepare("batch")
+
+    def teardown(self, worker=None) -> None:
+        pass
+
+
+def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_TIMEOUT_S) -> None:
     try:
-        from distributed import Client, as_completed
+        from distributed import Client, wait as dask_wait
     except ImportError:
         raise OptionsError("--scheduler needs Dask's distributed package: pip install 'vbusd[dask]'",
                            file=scheduler, code="batch.scheduler") from None
@@ -845,19 +979,47 @@ def _run_dask(tasks: list, scheduler: str, finish) -> None:
     except (OSError, TimeoutError) as error:
         raise OptionsError(f"cannot reach the Dask scheduler: {' '.join(str(error).split())[:200]}",
                            file=scheduler, code="batch.scheduler") from None
-    try:
-        import secrets
+    import secrets
+    import shutil
+    import tempfile
 
+    # Heartbeats: seen where the workers share this machine's temporary folder (a local cluster);
+    # a task whose heartbeat never shows is never taken for stalled.
+    beats = Path(tempfile.mkdtemp(prefix="vbusd-batch-"))
+    try:
+        register = getattr(client, "register_plugin", None) or client.register_worker_plugin
+        with contextlib.suppress(Exception):  # an old cluster without plugins: tasks prepare themselves
+            register(_PrepareWorker())
         futures = {}
         run = secrets.token_hex(6)  # task keys unique to this run, whoever else uses the cluster
         for index, task in tasks:
+            task = dict(task, heartbeat=str(beats), index=index)
             # pure=False: a conversion writes files, so it is never deduplicated or cached by Dask.
             futures[client.submit(_convert_on_dask, task, pure=False, key=f"vbusd-convert-{run}-{index}")] = (index, task)
-        for future in as_completed(list(futures), loop=client.loop):
-            index, task = futures[future]
-            try:
-                finish(index, future.result())
-            except Exception as error:  # noqa: BLE001 - a worker died: this asset failed, the rest go on
-                finish(index, _worker_failure(task, error))
+        pending = dict(futures)
+        while pending:
+            if not any(future.done() for future in pending):
+                with contextlib.suppress(TimeoutError):
+                    dask_wait(list(pending), timeout=1.0, return_when="FIRST_COMPLETED")
+            finished = [future for future in pending if future.done()]
+            for future in finished:
+                index, task = pending.pop(future)
+                try:
+                    finish(index, future.result())
+                except Exception as error:  # noqa: BLE001 - a worker died: this asset failed, the rest go on
+                    finish(index, _worker_failure(task, error))
+            by_index = {index: future for future, (index, _) in pending.items()}
+            for index, beat in _stalled(beats, by_index, stall_timeout).items():
+                future = by_index[index]
+                finish(index, _stall_failure(pending.pop(future)[1], stall_timeout))
+                future.cancel()
+                with contextlib.suppress(Exception):  # the worker thread cannot be stopped: its process is
+                    client.restart_workers([beat.get("worker")])
+    except BaseException:
+        with contextlib.suppress(Exception):
+            client.cancel(list(futures), force=True)
+        raise
     finally:
         client.close()
+        shutil.rmtree(beats, ignore_errors=True)
+

@@ -353,6 +353,12 @@ def _check_texture_files(scene: SourceScene, output: Path, options: ConvertOptio
     """Without ``force``, refuse to replace a texture or sidecar that already lies beside the output."""
     if options.force:
         return
+    from vbusd.io.files import journal_path, recover
+
+    if journal_path(output).exists():  # a killed run's files are removed first, not taken for ours
+        from vbusd.io.usd import asset_files_in_use
+
+        recover(output, in_use=asset_files_in_use)
     for path in _texture_files(scene, output, options):
         if path.exists():
             raise OptionsError(f"{path.name} exists beside the output and would be replaced; pass --force "

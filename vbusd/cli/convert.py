@@ -95,11 +95,14 @@ def _check_rows(value: str):
 @click.option("--no-cache", is_flag=True, help="Batch: convert every asset and keep no cache records.")
 @click.option("--report", "report_file", default=None, type=click.Path(path_type=str),
               help="Batch: also write the per-asset report as JSON to this file.")
+@click.option("--stall-timeout", default=None, type=click.FloatRange(min=0, min_open=True), metavar="SECONDS",
+              help="Batch: end a worker that makes no progress for this long and report its asset failed "
+                   "(batch.stalled); the others go on (default: 600).")
 @quiet_option
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
             check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, manifest, jobs,
-            scheduler, cache_dir, no_cache, report_file, quiet):
+            scheduler, cache_dir, no_cache, report_file, stall_timeout, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
     One SOURCE converts to the layer -o names. Several sources, folders (searched for .usd, .usda,
@@ -131,10 +134,10 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     if _is_batch(sources, output, manifest, scheduler, report_file):
         return _run_batch(sources, output, manifest, values, jobs=jobs, scheduler=scheduler, cache_dir=cache_dir,
                           no_cache=no_cache, force=force, report_file=report_file, output_format=output_format,
-                          quiet=quiet)
+                          quiet=quiet, stall_timeout=stall_timeout)
     source = sources[0]
     ignored = [name for name, given in (("--jobs", jobs is not None), ("--cache", cache_dir is not None),
-                                        ("--no-cache", no_cache)) if given]
+                                        ("--no-cache", no_cache), ("--stall-timeout", stall_timeout is not None)) if given]
     if ignored:  # one source into one layer is not a batch: say so rather than ignore them silently
         warn(f"{', '.join(ignored)} {'applies' if len(ignored) == 1 else 'apply'} to a batch (several sources, "
              "a folder, a glob or --manifest, or -o an existing folder); one source converts in this "
@@ -168,7 +171,7 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
 
 
 def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
-               output_format, quiet) -> int:
+               output_format, quiet, stall_timeout=None) -> int:
     from vbusd.batch import plan_batch, run_batch
     from vbusd.convert import ConvertOptions
     from pathlib import Path
@@ -180,7 +183,7 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
     items = plan_batch(sources, output, manifest=manifest)
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = run_batch(items, values, jobs=jobs, scheduler=scheduler, cache=cache_dir, use_cache=not no_cache,
-                           force=force, progress=progress)
+                           force=force, progress=progress, stall_timeout=stall_timeout)
     if report_file is not None:
         make_folders(Path(report_file).parent)
         with atomic_write(report_file, "w", encoding="utf-8") as stream:

@@ -294,6 +294,8 @@ _COMMAND_ERRORS = (
          "distributed package is not installed (pip install 'vbusd[dask]').", "batch.md#run", "option"),
     Code("batch.worker", E, "The worker process converting an asset died (killed, out of memory) or the Dask "
          "task failed; the other assets are not affected.", "batch.md#run", "file"),
+    Code("batch.stalled", E, "The worker converting an asset made no progress for the batch's stall timeout "
+         "(--stall-timeout); it was ended and the other assets go on.", "batch.md#run", "file"),
     # ---- KTX 2.0 texture container (spec/ktx2.md) ----
     Code("ktx2.truncated", E, "The KTX2 file ends inside its header, level index or a region it declares.",
          "ktx2.md#reader", "file"),

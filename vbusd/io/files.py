@@ -359,7 +359,10 @@ _fault_steps = 0
 
 
 def fault_point(step: str, path: Optional[PathLike] = None) -> None:
-    """Mark one step of a write; with ``$VBUSD_FAULT`` set, fail or die at the chosen step.
+    """Mark one step of a write; with ``$VBUSD_FAULT`` set, fail, die or hang at the chosen step.
+
+    ``$VBUSD_FAULT`` is ``KIND:STEP``: ``kill`` (SIGKILL), ``hang`` (the thread blocks in C for
+    good, deaf to Python's signal handlers: for the signal tests), or an errno name (``enospc``...).
 
     Writers call it before every operation that changes the file system (and after every file a
     library writes by name, as that write's last moment), so that a test can stop a run at each
@@ -389,6 +392,13 @@ def fault_point(step: str, path: Optional[PathLike] = None) -> None:
         return
     if kind == "kill":
         os.kill(os.getpid(), signal.SIGKILL)
+    if kind == "hang":  # stuck in C for good (a mutex locked twice), as a deadlock would be
+        import ctypes
+
+        libc = ctypes.CDLL(None)
+        mutex = ctypes.create_string_buffer(64)  # zeroes: PTHREAD_MUTEX_INITIALIZER on Linux
+        libc.pthread_mutex_lock(mutex)
+        libc.pthread_mutex_lock(mutex)
     code = _FAULT_ERRNOS.get(kind, errnos.EIO)
     raise OSError(code, f"{os.strerror(code)} (injected at step {_fault_steps}: {step})",
                   None if path is None else str(path))

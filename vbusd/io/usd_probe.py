@@ -328,6 +328,10 @@ def _serve() -> int:
     # Answers go to a private copy of stdout; whatever pxr or a child prints goes nowhere.
     answers = os.fdopen(os.dup(1), "w")
     os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+    from vbusd._signals import die_with_parent
+
+    parent = os.getppid()
+    die_with_parent(signal.SIGKILL, parent)  # a vbusd process killed outright leaves no server behind
     try:
         from vbusd.io import usd_plugin
 
@@ -359,6 +363,9 @@ def _serve() -> int:
 
 
 def _forked_read(request: dict, said) -> int:
+    from vbusd._signals import die_with_parent
+
+    server = os.getpid()
     pid = os.fork()
     if pid == 0:  # the child: bounded, and nothing it prints reaches the server's answers
         code = 1
@@ -367,6 +374,7 @@ def _forked_read(request: dict, said) -> int:
             os.dup2(devnull, 0)
             os.dup2(devnull, 1)
             os.dup2(said.fileno(), 2)
+            die_with_parent(signal.SIGKILL, server)  # fork clears it: nor a child without its server
             _limit_memory(request["memory"])()
             signal.alarm(max(1, math.ceil(request["seconds"])))
             from vbusd.io.usd_plugin import register

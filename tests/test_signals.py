@@ -1,0 +1,239 @@
+"""SIGINT and SIGTERM end any vbusd run within 5 s, with 130/143, leaving the old output or none.
+
+The moments are chosen, not timed: the write's fault trace ($VBUSD_FAULT_TRACE) says where a run
+is, and ``$VBUSD_FAULT=hang:N`` blocks the main thread in C at step N (a mutex locked twice: deaf
+to Python's signal handlers, as a deadlocked thread is), so that only vbusd/_signals.py's helper
+can end it. A batch's parent killed with SIGKILL must leave no worker or probe server behind.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+BOUND_S = 5.0
+
+
+def _vbusd(*args, env=None, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "vbusd.cli", *map(str, args)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs)
+
+
+def _wait_for(predicate, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError("the run never reached the moment the test waits for")
+
+
+def _ended_within(process: subprocess.Popen, seconds: float) -> tuple:
+    started = time.monotonic()
+    try:
+        process.wait(timeout=seconds + 10)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    return process.returncode, time.monotonic() - started
+
+
+def _leftovers(folder: Path) -> list:
+    return sorted(p.name for p in folder.rglob("*") if ".vbusd-" in p.name) if folder.exists() else []
+
+
+def _steps(trace: Path) -> list:
+    try:
+        return trace.read_text().splitlines()
+    except OSError:
+        return []
+
+
+@pytest.fixture()
+def sample(repo_root) -> Path:
+    return repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+
+
+def _trace_of_a_whole_run(sample, tmp_path) -> list:
+    trace = tmp_path / "trace.txt"
+    env = dict(os.environ, VBUSD_FAULT_TRACE=str(trace))
+    done = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", tmp_path / "probe" / "a.usda"],
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return _steps(trace)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_run_stuck_in_c_ends_within_the_bound_and_leaves_nothing(sample, tmp_path, signum, status):
+    steps = _trace_of_a_whole_run(sample, tmp_path)
+    first_fsync = next(i for i, line in enumerate(steps, 1) if line.split()[1] == "fsync")
+    # the first step of the write, one inside a library's write, the last before the commit's renames
+    for step in (1, 4, first_fsync - 1):
+        out = tmp_path / f"out{step}"
+        trace = tmp_path / f"trace{step}.txt"
+        env = dict(os.environ, VBUSD_FAULT=f"hang:{step}", VBUSD_FAULT_TRACE=str(trace))
+        process = _vbusd("convert", sample, "-o", out / "a.usda", env=env)
+        _wait_for(lambda: len(_steps(trace)) >= step)
+        time.sleep(0.2)  # inside the hang
+        process.send_signal(signum)
+        code, took = _ended_within(process, BOUND_S)
+        assert code == status, process.stderr.read()
+        assert took <= BOUND_S
+        assert not (out / "a.usda").exists()
+        assert _leftovers(out) == []
+        assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.slow
+def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, tmp_path):
+    """Stuck between the commit's renames (a hung file system): the process still ends within the
+    bound; the asset is not current (no layer), and the next run of the output removes what the
+    stuck one placed (its journal) and writes a whole asset."""
+    steps = _trace_of_a_whole_run(sample, tmp_path)
+    rename = next(i for i, line in enumerate(steps, 1) if line.split()[1] == "rename")
+    out = tmp_path / "out"
+    trace = tmp_path / "trace2.txt"
+    env = dict(os.environ, VBUSD_FAULT=f"hang:{rename + 1}", VBUSD_FAULT_TRACE=str(trace))
+    process = _vbusd("convert", sample, "-o", out / "a.usda", env=env)
+    _wait_for(lambda: len(_steps(trace)) >= rename + 1)
+    time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    code, took = _ended_within(process, BOUND_S)
+    assert code == 143 and took <= BOUND_S
+    assert not (out / "a.usda").exists()
+    again = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", out / "a.usda"],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["a.Skeleton.exr", "a.Skeleton.exr.json", "a.usda"]
+
+
+@pytest.mark.slow
+def test_a_second_sigint_ends_a_stuck_run_at_once(sample, tmp_path):
+    trace = tmp_path / "trace.txt"
+    env = dict(os.environ, VBUSD_FAULT="hang:4", VBUSD_FAULT_TRACE=str(trace))  # the texture's write
+    out = tmp_path / "out"
+    process = _vbusd("convert", sample, "-o", out / "a.usda", env=env)
+    _wait_for(lambda: len(_steps(trace)) >= 4)
+    time.sleep(0.2)
+    process.send_signal(signal.SIGINT)
+    time.sleep(0.3)
+    process.send_signal(signal.SIGINT)
+    code, took = _ended_within(process, 1.0)
+    assert code == 130
+    assert took < 1.0  # well before the grace period of the first signal
+    assert _leftovers(out) == []
+
+
+@pytest.mark.slow
+def test_an_interrupted_replacement_keeps_the_old_asset(sample, tmp_path):
+    """--force over an existing asset, interrupted mid-write: the old asset is intact."""
+    out = tmp_path / "out"
+    first = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", out / "a.usda"],
+                           capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    trace = tmp_path / "trace.txt"
+    env = dict(os.environ, VBUSD_FAULT="hang:4", VBUSD_FAULT_TRACE=str(trace))
+    process = _vbusd("convert", sample, "-o", out / "a.usda", "--force", "--rows-per-second", "20", env=env)
+    _wait_for(lambda: len(_steps(trace)) >= 4)
+    time.sleep(0.2)
+    process.send_signal(signal.SIGTERM)
+    code, took = _ended_within(process, BOUND_S)
+    assert code == 143
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_signals_at_many_moments_of_a_conversion(sample, tmp_path, signum, status):
+    """From start-up (imports) to the end: 130/143 or a finished run, within the bound, and the
+    output is either the whole new asset or nothing."""
+    for delay in (0.05, 0.2, 0.4, 0.6, 0.8, 1.0):
+        out = tmp_path / f"out{delay}"
+        process = _vbusd("convert", sample, "-o", out / "a.usda")
+        time.sleep(delay)
+        process.send_signal(signum)
+        code, took = _ended_within(process, BOUND_S)
+        assert took <= BOUND_S
+        # -signum: the signal came before vbusd's handlers were installed (Python still starting,
+        # nothing written yet) and ended the process as a shell reports it: 128 + signum
+        assert code in (status, 0, -signum), (delay, process.stderr.read())
+        assert _leftovers(out) == []
+        written = {p.name for p in out.iterdir()} if out.exists() else set()
+        whole = {"a.usda", "a.Skeleton.exr", "a.Skeleton.exr.json"}
+        if code == 0:
+            assert written == whole
+        else:  # nothing, or (a signal after the commit point) the whole new asset
+            assert written in (set(), whole), (delay, written)
+
+
+def _descendants(pid: int) -> set:
+    found, frontier = set(), {pid}
+    while frontier:
+        children = set()
+        for parent in frontier:
+            try:
+                text = Path(f"/proc/{parent}/task/{parent}/children").read_text()
+            except OSError:
+                continue
+            children |= {int(c) for c in text.split()}
+        found |= children
+        frontier = children
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG and /proc are Linux's")
+def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_path):
+    sources = tmp_path / "src"
+    sources.mkdir()
+    sample = repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+    for index in range(12):
+        (sources / f"s{index}.usda").write_bytes(sample.read_bytes())
+    process = _vbusd("convert", sources, "-o", tmp_path / "out", "--jobs", "2")
+    # wait until the workers (and their probe servers) run, then kill the parent outright
+    _wait_for(lambda: len(_descendants(process.pid)) >= 2, timeout=60)
+    time.sleep(1.0)
+    family = _descendants(process.pid)
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + BOUND_S
+    while time.monotonic() < deadline and any(_alive(p) for p in family):
+        time.sleep(0.1)
+    assert [p for p in family if _alive(p)] == []
+    assert _leftovers(tmp_path / "out") == []
+
+
+@pytest.mark.slow
+def test_an_interrupted_batch_ends_its_workers_within_the_bound(repo_root, tmp_path):
+    sources = tmp_path / "src"
+    sources.mkdir()
+    sample = repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+    for index in range(12):
+        (sources / f"s{index}.usda").write_bytes(sample.read_bytes())
+    process = _vbusd("convert", sources, "-o", tmp_path / "out", "--jobs", "2")
+    _wait_for(lambda: len(_descendants(process.pid)) >= 2, timeout=60)
+    time.sleep(1.5)
+    family = _descendants(process.pid)
+    process.send_signal(signal.SIGTERM)
+    code, took = _ended_within(process, BOUND_S)
+    assert code == 143
+    assert took <= BOUND_S
+    time.sleep(0.5)
+    assert [p for p in family if _alive(p)] == []
+    assert _leftovers(tmp_path / "out") == []
