@@ -422,3 +422,44 @@ def test_batch_options_on_one_source_are_named_not_ignored(tmp_path, capsys):
     assert err == ["vbusd: warning: --jobs, --no-cache apply to a batch (several sources, a folder, a glob or "
                    "--manifest, or -o an existing folder); one source converts in this process, uncached"], err
     assert output.is_file() and not (tmp_path / ".vbusd-cache").exists()
+
+
+def _with_a_stalling_source(folder: Path) -> Path:
+    """A library whose third source never finishes reading: a FIFO no one writes (a hung network
+    share looks the same to the worker: blocked in ``open``, no progress)."""
+    library = _library(folder, ("a", "b"))
+    os.mkfifo(library / "stuck.usda")
+    return library
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_stalled_worker_is_ended_and_the_batch_goes_on(tmp_path, capsys):
+    library = _with_a_stalling_source(tmp_path / "lib")
+    status, report = _run_json([str(library), "-o", str(tmp_path / "out"), "--jobs", "2", "--stall-timeout", "3"],
+                               capsys)
+    assert _statuses(report) == {"a.usda": "converted", "b.usda": "converted", "stuck.usda": "failed"}
+    stuck = next(a for a in report["assets"] if a["source"].endswith("stuck.usda"))
+    assert stuck["code"] == "batch.stalled" and "stuck.usda" in stuck["error"]
+    assert status == 1
+    assert sorted(_files(tmp_path / "out")) == ["a.Skeleton.exr", "a.Skeleton.exr.json", "a.usda",
+                                               "b.Skeleton.exr", "b.Skeleton.exr.json", "b.usda"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_stalled_dask_task_is_ended_and_the_batch_goes_on(tmp_path):
+    distributed = pytest.importorskip("distributed", reason="Dask's distributed is not installed (pip install 'vbusd[dask]')")
+    library = _with_a_stalling_source(tmp_path / "lib")
+    items = plan_batch([str(library)], str(tmp_path / "dask"))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        report = run_batch(items, {"check_rows": 4}, scheduler=cluster.scheduler_address, stall_timeout=3)
+    statuses = {Path(a.source).name: (a.status, a.code) for a in report.assets}
+    assert statuses["stuck.usda"] == ("failed", "batch.stalled")
+    assert statuses["a.usda"][0] == statuses["b.usda"][0] == "converted"
+
+
+def test_a_stall_timeout_must_be_positive(tmp_path):
+    library = _library(tmp_path / "lib", ("a", "b"))
+    with pytest.raises(OptionsError):
+        run_batch(plan_batch([str(library)], str(tmp_path / "o")), {}, jobs=2, stall_timeout=0)

@@ -691,7 +691,7 @@ def _keep_freed_memory() -> None:
         libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD (its largest value on 64-bit glibc)
 
 
-def _pool_initializer(parent: int) -> None:
+def _pool_initializer(parent: Optional[int] = None) -> None:
     """A pool worker's start: one core, its probe server, everything a conversion loads (in this,
     the worker's main thread: vbusd/_threads.py), and an end that follows its parent's."""
     from vbusd import _signals
@@ -970,7 +970,7 @@ class _PrepareWorker:
 
 def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_TIMEOUT_S) -> None:
     try:
-        from distributed import Client, wait as dask_wait
+        from distributed import Client
     except ImportError:
         raise OptionsError("--scheduler needs Dask's distributed package: pip install 'vbusd[dask]'",
                            file=scheduler, code="batch.scheduler") from None
@@ -998,10 +998,9 @@ def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_
             futures[client.submit(_convert_on_dask, task, pure=False, key=f"vbusd-convert-{run}-{index}")] = (index, task)
         pending = dict(futures)
         while pending:
-            if not any(future.done() for future in pending):
-                with contextlib.suppress(TimeoutError):
-                    dask_wait(list(pending), timeout=1.0, return_when="FIRST_COMPLETED")
             finished = [future for future in pending if future.done()]
+            if not finished:  # polled: distributed.wait needs a default client, which this is not
+                time.sleep(0.2)
             for future in finished:
                 index, task = pending.pop(future)
                 try:
