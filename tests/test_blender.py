@@ -586,3 +586,281 @@ def test_unusual_scene(rig_scene, tmp_path):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / fps]))
             worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, rig)).max()))
     assert worst / diagonal < 1e-5
+
+
+# ------------------------------------------------------------------------------------------
+# Where the export lands (issue 24): the decoded asset, with the USD transforms of the written
+# layer composed, is Blender's evaluated mesh in WORLD space, whatever moves, turns, scales or
+# parents the armature; the import puts it back there.
+# ------------------------------------------------------------------------------------------
+
+TURN = math.radians(20.0)
+
+
+@pytest.fixture()
+def moved_rig(rig_scene):
+    """The rig at (0.5, -0.3, 0) turned 20 degrees about Z, the tube parented to it, and a third
+    action ``Walk`` that moves the root bone (root motion) while it sways."""
+    scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler = (0.5, -0.3, 0.0), (0.0, 0.0, TURN)
+    root = rig.pose.bones["root"]
+    rig.animation_data.action = bpy.data.actions.new("Walk")
+    for frame, location, angle in ((1, (0, 0, 0), 0.0), (5, (0.3, 0.1, 0.4), 0.3), (9, (0.6, 0.0, 0.8), 0.0)):
+        root.location, root.rotation_euler = location, (angle, 0, 0)
+        root.keyframe_insert("location", frame=frame)
+        root.keyframe_insert("rotation_euler", frame=frame)
+    rig.animation_data.action = bpy.data.actions["Walk"]
+    root.location, root.rotation_euler = (0, 0, 0), (0, 0, 0)
+    return scene, rig, body
+
+
+def composed_world(layer, clip, tau: float) -> dict:
+    """{mesh path: (V, 3) points} of an asset skinned by vbusd.skin at clip-local ``tau``, each moved by
+    its prim's local-to-world transform in the written layer (USD row vectors: p' = p M)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(layer))
+    world = {}
+    for pose in vbusd.skin(layer, clip, tau):
+        matrix = np.array(UsdGeom.Xformable(stage.GetPrimAtPath(pose.path)).ComputeLocalToWorldTransform(
+            Usd.TimeCode.Default()), dtype=np.float64)
+        world[pose.path] = pose.points @ matrix[:3, :3] + matrix[3, :3]
+    return world
+
+
+def world_fraction(layer, scene, rig, objects, actions, fps=FPS) -> float:
+    """Largest |decoded (USD transforms composed) - Blender's world-space evaluated mesh| over every
+    frame of every clip and every object, over the diagonal of Blender's evaluated bounding box."""
+    paths = [m.path for m in vbusd.read_asset(layer).animations[0].meshes]
+    worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
+    for clip_index, action in enumerate(actions):
+        saved = tuple(rig.location), tuple(rig.rotation_euler), tuple(rig.scale)
+        play(rig, action)
+        start, end = (int(f) for f in bpy.data.actions[action].frame_range)
+        for frame in range(start, end + 1):
+            scene.frame_set(frame)
+            decoded = composed_world(layer, clip_index, (frame - start) / fps)
+            for path, obj in zip(paths, objects):
+                expected = evaluated_points(obj, None)
+                worst = max(worst, float(np.linalg.norm(decoded[path] - expected, axis=1).max()))
+                low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
+        rig.location, rig.rotation_euler, rig.scale = saved  # an action may key the object itself
+    return worst / float(np.linalg.norm(high - low))
+
+
+def test_moved_turned_rig_decodes_to_blenders_world_mesh(moved_rig, tmp_path):
+    """The issue's scene: `vbusd decode` of the export (a point cache, its prims' transforms composed)
+    is Blender's world-space evaluated mesh at every frame of the walk and the IK reach, and so is
+    vbusd.skin of the asset; the operator's own check says the same."""
+    from pxr import Usd, UsdGeom
+
+    from vbusd.cli import main as vbusd_main
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = moved_rig
+    out = tmp_path / "walk.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Walk", "Reach"),
+                                                                  texel_format="float32"))
+    assert report.max_error_fraction < 1e-5
+    path = vbusd.read_asset(out).animations[0].meshes[0].path
+    worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
+    for clip in ("Walk", "Reach"):
+        cache = tmp_path / f"{clip}.usda"
+        assert vbusd_main(["decode", str(out), "-o", str(cache), "--clip", clip, "-q"]) == 0
+        stage = Usd.Stage.Open(str(cache))
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(path))
+        play(rig, clip)
+        for frame in range(1, 10):  # time code = frame: the cache keeps the source's timeline
+            scene.frame_set(frame)
+            code = Usd.TimeCode(frame)
+            matrix = np.array(mesh.ComputeLocalToWorldTransform(code), dtype=np.float64)
+            decoded = np.array(mesh.GetPointsAttr().Get(code), dtype=np.float64) @ matrix[:3, :3] + matrix[3, :3]
+            expected = evaluated_points(body, None)
+            worst = max(worst, float(np.linalg.norm(decoded - expected, axis=1).max()))
+            low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
+    assert worst / float(np.linalg.norm(high - low)) < 1e-5, worst
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+
+
+def test_accuracy_report_measures_in_world_space(rig_scene, tmp_path):
+    """B-Bones the texture cannot follow, on a rig scaled by 2: the operator's reported error is the
+    distance measured independently in world space (twice the one in the armature's own space)."""
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler, rig.scale = (0.5, -0.3, 0.0), (0.0, 0.0, TURN), (2.0, 2.0, 2.0)
+    rig.data.bones["mid"].bbone_segments = 6
+    out = tmp_path / "bbone.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Bend", "Reach"),
+                                                                  texel_format="float32"))
+    assert any("B-Bones" in w for w in report.warnings)
+    paths = [m.path for m in vbusd.read_asset(out).animations[0].meshes]
+    worst = 0.0
+    for clip_index, action in enumerate(("Bend", "Reach")):
+        play(rig, action)
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            decoded = composed_world(out, clip_index, (frame - 1) / FPS)[paths[0]]
+            worst = max(worst, float(np.linalg.norm(decoded - evaluated_points(body, None), axis=1).max()))
+    assert worst > 1e-3  # B-Bones bend inside a bone: the texture cannot follow
+    assert report.max_error == pytest.approx(worst, rel=1e-4)
+
+
+def test_rig_under_a_moving_scaled_parent_with_parent_inverses(moved_rig, tmp_path):
+    """Object parenting and parent-inverse matrices: the rig is parented (keeping its transform) to an
+    empty that is turned, uniformly scaled by 1.5 and animated; a second mesh is parented to the rig
+    after the rig moved (a non-identity parent inverse). The bones stay rigid (crossMatrix)."""
+    from mathutils import Matrix
+
+    scene, rig, body = moved_rig
+    stage = bpy.data.objects.new("Stage", None)
+    scene.collection.objects.link(stage)
+    stage.location, stage.rotation_euler, stage.scale = (1.0, 2.0, 0.5), (0.2, 0.1, 0.5), (1.5, 1.5, 1.5)
+    stage.animation_data_create()
+    stage.animation_data.action = bpy.data.actions.new("StageMove")
+    for frame, x in ((1, 1.0), (9, 1.6)):
+        stage.location.x = x
+        stage.keyframe_insert("location", frame=frame)
+    scene.frame_set(1)
+    rig.parent = stage
+    rig.matrix_parent_inverse = stage.matrix_world.inverted()  # Set Parent To > Object (keep transform)
+    cape = body.copy()
+    cape.name = "Cape"
+    scene.collection.objects.link(cape)
+    cape.parent = None
+    cape.location = (0.4, 0.0, 0.2)
+    bpy.context.view_layer.update()
+    cape.parent = rig
+    cape.matrix_parent_inverse = rig.matrix_world.inverted()
+    bpy.context.view_layer.update()
+    assert not np.allclose(np.array(cape.matrix_parent_inverse), np.eye(4))
+    out = tmp_path / "parented.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert vb.layout.encoding.value == "crossMatrix"  # a uniform scale keeps every bone rigid
+    assert [m.path.rsplit("/", 1)[-1] for m in vb.meshes] == ["Body", "Cape"]
+    assert world_fraction(out, scene, rig, [body, cape], ["Walk", "Reach"]) < 1e-5
+
+
+def test_rig_parented_to_an_animated_bone(moved_rig, tmp_path):
+    """Bone parenting: the rig rides a bone of another, animated armature."""
+    scene, rig, body = moved_rig
+    carrier_data = bpy.data.armatures.new("CarrierData")
+    carrier = bpy.data.objects.new("Carrier", carrier_data)
+    scene.collection.objects.link(carrier)
+    carrier.location = (-1.0, 0.5, 0.0)
+    bpy.context.view_layer.objects.active = carrier
+    bpy.ops.object.mode_set(mode="EDIT")
+    hand = carrier_data.edit_bones.new("hand")
+    hand.head, hand.tail = (0, 0, 0), (0.5, 0, 0.5)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    carrier.animation_data_create()
+    carrier.animation_data.action = bpy.data.actions.new("Carry")
+    pose = carrier.pose.bones["hand"]
+    pose.rotation_mode = "XYZ"
+    for frame, angle in ((1, 0.0), (9, 0.8)):
+        pose.rotation_euler = (0.0, angle, 0.3 * angle)
+        pose.keyframe_insert("rotation_euler", frame=frame)
+    scene.frame_set(1)
+    rig.parent, rig.parent_type, rig.parent_bone = carrier, "BONE", "hand"
+    bpy.context.view_layer.update()
+    out = tmp_path / "carried.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+
+
+def test_non_uniform_rig_scale_is_exact_or_refused(moved_rig, tmp_path):
+    """A non-uniform object scale: linear blend skinning is exported exactly (auto takes
+    affineMatrix); an encoding or Preserve Volume that cannot hold it is refused in one line that
+    names the object."""
+    scene, rig, body = moved_rig
+    rig.scale = (1.0, 1.8, 0.7)
+    out = tmp_path / "squashed.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    assert vbusd.read_asset(out).animations[0].layout.encoding.value == "affineMatrix"
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+    for encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
+        refused(tmp_path, rf"^Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*{encoding}",
+                filepath=str(tmp_path / "a.usda"), armatures="Rig", encoding=encoding)
+    body.modifiers["Armature"].use_deform_preserve_volume = True
+    refused(tmp_path, r"^Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*Preserve Volume",
+            filepath=str(tmp_path / "a.usda"), armatures="Rig")
+
+
+def test_armature_object_motion_in_an_action_is_baked_and_restored(moved_rig, tmp_path):
+    """An action that keys the armature object as well as a bone: the object's motion is baked (it is
+    what Blender shows); the next action starts from the object's own transform, which the export
+    restores; a mesh that does not move with the armature is warned about."""
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = moved_rig
+    stride = bpy.data.actions.new("Stride")
+    rig.animation_data.action = stride
+    for frame, x, angle in ((1, 0.5, 0.0), (9, 2.0, 0.5)):
+        rig.location.x = x
+        rig.keyframe_insert("location", frame=frame)
+        rig.pose.bones["root"].rotation_euler = (angle, 0, 0)
+        rig.pose.bones["root"].keyframe_insert("rotation_euler", frame=frame)
+    rig.animation_data.action = bpy.data.actions["Walk"]
+    rig.location = (0.5, -0.3, 0.0)
+    hat = add_hat(scene, rig)  # not parented: stays put while the armature object moves
+    out = tmp_path / "stride.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Stride", "Walk"),
+                                                                  texel_format="float32"))
+    assert tuple(rig.location) == pytest.approx((0.5, -0.3, 0.0))
+    assert any(w.startswith("Hat:") and "armature 'Rig'" in w for w in report.warnings), report.warnings
+    assert world_fraction(out, scene, rig, [body], ["Stride", "Walk"]) < 1e-5
+    del hat
+
+
+def test_mirrored_mesh_keeps_its_faces_outward(moved_rig, tmp_path):
+    """A mesh with a negative scale: its faces are written wound so that USD's right-handed
+    orientation agrees with the normals Blender shows."""
+    scene, rig, body = moved_rig
+    body.scale = (-1.0, 1.0, 1.0)
+    out = tmp_path / "mirrored.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk",
+                                              texel_format="float32") == {"FINISHED"}
+    mesh = vbusd.read_asset(out).animations[0].meshes[0]
+    assert mesh.normals_interpolation == "faceVarying"
+    start = 0
+    for count in mesh.face_vertex_counts:
+        corners = mesh.face_vertex_indices[start:start + count]
+        p = np.asarray(mesh.points, dtype=np.float64)[corners]
+        geometric = np.cross(p[1] - p[0], p[2] - p[0])  # right-handed, counter-clockwise front
+        assert float(np.dot(geometric, mesh.normals[start:start + count].sum(axis=0))) > 0
+        start += count
+    assert world_fraction(out, scene, rig, [body], ["Walk"]) < 1e-5
+
+
+def test_import_puts_the_rig_back_where_it_was_exported(moved_rig, tmp_path):
+    """Export the moved, turned rig, import it into an empty scene: the imported mesh plays where
+    Blender showed the original, frame by frame."""
+    scene, rig, body = moved_rig
+    out = tmp_path / "walk.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    shown = {}
+    for action in ("Walk", "Reach"):
+        play(rig, action)
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            shown[action, frame] = evaluated_points(body, None)
+    diagonal = float(np.linalg.norm(np.ptp(np.concatenate(list(shown.values())), axis=0)))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 9
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(out)) == {"FINISHED"}
+    imported_rig, imported = bpy.data.objects["Rig"], bpy.data.objects["Body"]
+    worst = 0.0
+    for action in ("Walk", "Reach"):
+        imported_rig.animation_data.action = bpy.data.actions[f"Rig|{action}"]
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            worst = max(worst, float(np.linalg.norm(evaluated_points(imported, None) - shown[action, frame],
+                                                    axis=1).max()))
+    assert worst / diagonal < 1e-5, worst
