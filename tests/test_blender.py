@@ -100,7 +100,8 @@ def rig_scene():
 
 
 def evaluated_points(obj, space) -> np.ndarray:
-    """Blender's depsgraph-evaluated vertices of ``obj`` in the object space of ``space`` (None: world)."""
+    """Blender's depsgraph-evaluated vertices of ``obj`` in the object space of ``space`` (None: world,
+    the export's animation space)."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
@@ -123,7 +124,8 @@ def play(rig, action_name: str) -> None:
 
 
 def worst_fraction(asset, scene, rig, body, actions) -> float:
-    """Largest |decoded - Blender evaluated| over every frame of every clip, over the bbox diagonal."""
+    """Largest |decoded - Blender evaluated (world space)| over every frame of every clip, over the
+    bbox diagonal. The asset's animation space is Blender's world space."""
     vb = asset.animations[0]
     worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
     for clip_index, clip in enumerate(vb.clips):
@@ -131,7 +133,7 @@ def worst_fraction(asset, scene, rig, body, actions) -> float:
         start, end = (int(f) for f in bpy.data.actions[actions[clip_index]].frame_range)
         for frame in range(start, end + 1):
             scene.frame_set(frame)
-            expected = evaluated_points(body, rig)
+            expected = evaluated_points(body, None)
             decoded, _ = skin_mesh(vb, vb.meshes[0], clip_index, np.array([(frame - start) / FPS]))
             worst = max(worst, float(np.linalg.norm(decoded[0] - expected, axis=1).max()))
             low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
@@ -194,7 +196,7 @@ def test_export_selection_rows_per_second_and_report(rig_scene, tmp_path):
     play(rig, "Reach")
     scene.frame_set(3, subframe=0.5)
     decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([2.5 / FPS]))
-    expected = evaluated_points(body, rig)
+    expected = evaluated_points(body, None)
     assert np.abs(decoded[0] - expected).max() < 1e-4
 
 
@@ -215,7 +217,7 @@ def test_export_timeline_bakes_the_nla(rig_scene, tmp_path):
     for frame in range(1, 10):
         scene.frame_set(frame)
         decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
-        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, None)).max()))
     assert worst < 1e-5
 
 
@@ -396,7 +398,7 @@ def test_export_transformed_rig_modifiers_drivers_and_loose_vertices(rig_scene, 
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, (body, hat)):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
-            expected = evaluated_points(obj, rig)
+            expected = evaluated_points(obj, None)
             assert np.abs(decoded[0] - expected).max() < 1e-5, (obj.name, frame)
         moved = max(moved, float(np.abs(decoded[0] - hat_mesh.points).max()))
     assert moved > 0.3
@@ -423,7 +425,10 @@ def test_export_two_armatures(rig_scene, tmp_path):
 
 
 def test_preserve_volume_bakes_dual_quaternions(rig_scene, tmp_path):
+    """Preserve Volume on a moved, turned rig scaled uniformly by 1.5: the bones stay rigid (the scale
+    is conjugated into the rest mesh), so dual quaternions hold them and match Blender in world space."""
     scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler, rig.scale = (0.5, -0.3, 0.0), (0.0, 0.0, math.radians(20.0)), (1.5, 1.5, 1.5)
     body.modifiers["Armature"].use_deform_preserve_volume = True
     out = tmp_path / "dq.usda"
     assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", texel_format="float32",
@@ -502,14 +507,16 @@ def test_channels_an_action_does_not_key(rig_scene, tmp_path, reset_pose):
     for frame in range(1, 10):
         scene.frame_set(frame)
         decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
-        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, None)).max()))
     assert worst < 1e-5
 
 
 def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
-    """Props parented to a bone (no Armature modifier) follow that bone, deform or not, and the export
-    starts from a posed frame (the props' rest placement is undone from the current pose)."""
+    """Props parented to a bone (no Armature modifier) follow that bone, deform or not, in world space
+    (the rig moved and turned), and the export starts from a posed frame (the props' rest placement
+    is undone from the current pose)."""
     scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler = (0.5, -0.3, 0.0), (0.0, 0.0, math.radians(20.0))
     props = []
     for name, bone, offset in (("Sword", "tip", (0.2, 0.0, -0.5)), ("Ball", "ik_target", (0.0, 0.1, 0.0))):
         mesh = bpy.data.meshes.new(name)
@@ -532,7 +539,7 @@ def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, [body] + props):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
-            assert np.abs(decoded[0] - evaluated_points(obj, rig)).max() < 1e-5, (obj.name, frame)
+            assert np.abs(decoded[0] - evaluated_points(obj, None)).max() < 1e-5, (obj.name, frame)
 
 
 def test_unusual_scene(rig_scene, tmp_path):
@@ -584,7 +591,7 @@ def test_unusual_scene(rig_scene, tmp_path):
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, objects):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / fps]))
-            worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, rig)).max()))
+            worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, None)).max()))
     assert worst / diagonal < 1e-5
 
 
@@ -783,10 +790,10 @@ def test_non_uniform_rig_scale_is_exact_or_refused(moved_rig, tmp_path):
     assert vbusd.read_asset(out).animations[0].layout.encoding.value == "affineMatrix"
     assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
     for encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
-        refused(tmp_path, rf"^Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*{encoding}",
+        refused(tmp_path, rf"Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*{encoding}",
                 filepath=str(tmp_path / "a.usda"), armatures="Rig", encoding=encoding)
     body.modifiers["Armature"].use_deform_preserve_volume = True
-    refused(tmp_path, r"^Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*Preserve Volume",
+    refused(tmp_path, r"Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*Preserve Volume",
             filepath=str(tmp_path / "a.usda"), armatures="Rig")
 
 
@@ -863,4 +870,60 @@ def test_import_puts_the_rig_back_where_it_was_exported(moved_rig, tmp_path):
             scene.frame_set(frame)
             worst = max(worst, float(np.linalg.norm(evaluated_points(imported, None) - shown[action, frame],
                                                     axis=1).max()))
+    assert worst / diagonal < 1e-5, worst
+
+
+def test_import_follows_the_layers_transforms(moved_rig, tmp_path):
+    """An asset whose layer moves its meshes and its crowd (transforms authored on /VirtualBones, on
+    the point instancer and on the prototype): the imported rig and instances stand where USD's
+    own composition (ComputeLocalToWorldTransform, PointInstancer.ComputeInstanceTransformsAtTime)
+    puts the decoded points."""
+    from pxr import Gf, Usd, UsdGeom
+
+    scene, rig, body = moved_rig
+    baked = tmp_path / "walk.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(baked), armatures="Rig", actions="Walk",
+                                              texel_format="float32") == {"FINISHED"}
+    asset = vbusd.read_asset(baked)
+    crowd = vbusd.Crowd(
+        path="/VirtualBones/Crowd", positions=np.array([[0, 0, 0], [3, 1, 0]], dtype=np.float32),
+        orientations=np.array([[0, 0, 0, 1], [0, 0, math.sin(0.3), math.cos(0.3)]], dtype=np.float32),
+        scales=None, clip=np.zeros(2, dtype=np.int32), time_offset=np.array([0, 2], dtype=np.float32) / FPS,
+        playback_rate=np.ones(2, dtype=np.float32))
+    layer = tmp_path / "crowd.usda"
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), layer)
+    stage = Usd.Stage.Open(str(layer))
+    for path, offset, angle in (("/VirtualBones", (1, 2, 0.5), 30), ("/VirtualBones/Crowd", (0, -4, 0), -15),
+                                ("/VirtualBones/Crowd/Prototypes/Rig", (0.2, 0, 0), 10)):
+        xform = UsdGeom.Xformable(stage.GetPrimAtPath(path))
+        xform.AddTranslateOp().Set(Gf.Vec3d(*offset))
+        xform.AddRotateZOp().Set(angle)
+    stage.GetRootLayer().Save()
+    stage = Usd.Stage.Open(str(layer))
+    mesh_path = asset.animations[0].meshes[0].path
+    mesh_world = np.array(UsdGeom.Xformable(stage.GetPrimAtPath(mesh_path)).ComputeLocalToWorldTransform(0))
+    instancer = UsdGeom.PointInstancer(stage.GetPrimAtPath("/VirtualBones/Crowd"))
+    instance_world = [np.array(m) @ np.array(instancer.ComputeLocalToWorldTransform(0))
+                      for m in instancer.ComputeInstanceTransformsAtTime(0, 0)]  # prototype root included
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 9
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(layer), keys_per_row=1) == {"FINISHED"}
+    vb = vbusd.read_asset(layer).animations[0]
+    diagonal = float(np.linalg.norm(np.ptp(vb.meshes[0].points, axis=0)))
+    worst = 0.0
+    for frame in range(1, 8):
+        scene.frame_set(frame)
+        t = (frame - 1) / FPS
+        points = vbusd.skin(layer, 0, t)[0].points
+        worst = max(worst, float(np.abs(points @ mesh_world[:3, :3] + mesh_world[3, :3]
+                                        - evaluated_points(bpy.data.objects["Body"], None)).max()))
+        for i, matrix in enumerate(instance_world):
+            tau = float(crowd.time_offset[i]) + t
+            local = vbusd.skin(layer, 0, tau)[0].points
+            expected = local @ matrix[:3, :3] + matrix[3, :3]
+            got = evaluated_points(bpy.data.objects[f"Body.{i:04d}"], None)
+            worst = max(worst, float(np.abs(expected - got).max()))
     assert worst / diagonal < 1e-5, worst
