@@ -100,7 +100,8 @@ def rig_scene():
 
 
 def evaluated_points(obj, space) -> np.ndarray:
-    """Blender's depsgraph-evaluated vertices of ``obj`` in the object space of ``space`` (None: world)."""
+    """Blender's depsgraph-evaluated vertices of ``obj`` in the object space of ``space`` (None: world,
+    the export's animation space)."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
@@ -123,7 +124,8 @@ def play(rig, action_name: str) -> None:
 
 
 def worst_fraction(asset, scene, rig, body, actions) -> float:
-    """Largest |decoded - Blender evaluated| over every frame of every clip, over the bbox diagonal."""
+    """Largest |decoded - Blender evaluated (world space)| over every frame of every clip, over the
+    bbox diagonal. The asset's animation space is Blender's world space."""
     vb = asset.animations[0]
     worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
     for clip_index, clip in enumerate(vb.clips):
@@ -131,7 +133,7 @@ def worst_fraction(asset, scene, rig, body, actions) -> float:
         start, end = (int(f) for f in bpy.data.actions[actions[clip_index]].frame_range)
         for frame in range(start, end + 1):
             scene.frame_set(frame)
-            expected = evaluated_points(body, rig)
+            expected = evaluated_points(body, None)
             decoded, _ = skin_mesh(vb, vb.meshes[0], clip_index, np.array([(frame - start) / FPS]))
             worst = max(worst, float(np.linalg.norm(decoded[0] - expected, axis=1).max()))
             low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
@@ -194,7 +196,7 @@ def test_export_selection_rows_per_second_and_report(rig_scene, tmp_path):
     play(rig, "Reach")
     scene.frame_set(3, subframe=0.5)
     decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([2.5 / FPS]))
-    expected = evaluated_points(body, rig)
+    expected = evaluated_points(body, None)
     assert np.abs(decoded[0] - expected).max() < 1e-4
 
 
@@ -215,7 +217,7 @@ def test_export_timeline_bakes_the_nla(rig_scene, tmp_path):
     for frame in range(1, 10):
         scene.frame_set(frame)
         decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
-        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, None)).max()))
     assert worst < 1e-5
 
 
@@ -396,7 +398,7 @@ def test_export_transformed_rig_modifiers_drivers_and_loose_vertices(rig_scene, 
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, (body, hat)):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
-            expected = evaluated_points(obj, rig)
+            expected = evaluated_points(obj, None)
             assert np.abs(decoded[0] - expected).max() < 1e-5, (obj.name, frame)
         moved = max(moved, float(np.abs(decoded[0] - hat_mesh.points).max()))
     assert moved > 0.3
@@ -423,7 +425,10 @@ def test_export_two_armatures(rig_scene, tmp_path):
 
 
 def test_preserve_volume_bakes_dual_quaternions(rig_scene, tmp_path):
+    """Preserve Volume on a moved, turned rig scaled uniformly by 1.5: the bones stay rigid (the scale
+    is conjugated into the rest mesh), so dual quaternions hold them and match Blender in world space."""
     scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler, rig.scale = (0.5, -0.3, 0.0), (0.0, 0.0, math.radians(20.0)), (1.5, 1.5, 1.5)
     body.modifiers["Armature"].use_deform_preserve_volume = True
     out = tmp_path / "dq.usda"
     assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", texel_format="float32",
@@ -502,14 +507,16 @@ def test_channels_an_action_does_not_key(rig_scene, tmp_path, reset_pose):
     for frame in range(1, 10):
         scene.frame_set(frame)
         decoded, _ = skin_mesh(vb, vb.meshes[0], 0, np.array([(frame - 1) / FPS]))
-        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, rig)).max()))
+        worst = max(worst, float(np.abs(decoded[0] - evaluated_points(body, None)).max()))
     assert worst < 1e-5
 
 
 def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
-    """Props parented to a bone (no Armature modifier) follow that bone, deform or not, and the export
-    starts from a posed frame (the props' rest placement is undone from the current pose)."""
+    """Props parented to a bone (no Armature modifier) follow that bone, deform or not, in world space
+    (the rig moved and turned), and the export starts from a posed frame (the props' rest placement
+    is undone from the current pose)."""
     scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler = (0.5, -0.3, 0.0), (0.0, 0.0, math.radians(20.0))
     props = []
     for name, bone, offset in (("Sword", "tip", (0.2, 0.0, -0.5)), ("Ball", "ik_target", (0.0, 0.1, 0.0))):
         mesh = bpy.data.meshes.new(name)
@@ -532,7 +539,7 @@ def test_meshes_parented_to_bones_follow_them(rig_scene, tmp_path):
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, [body] + props):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / FPS]))
-            assert np.abs(decoded[0] - evaluated_points(obj, rig)).max() < 1e-5, (obj.name, frame)
+            assert np.abs(decoded[0] - evaluated_points(obj, None)).max() < 1e-5, (obj.name, frame)
 
 
 def test_unusual_scene(rig_scene, tmp_path):
@@ -584,5 +591,339 @@ def test_unusual_scene(rig_scene, tmp_path):
         scene.frame_set(frame)
         for mesh, obj in zip(vb.meshes, objects):
             decoded, _ = skin_mesh(vb, mesh, 0, np.array([(frame - 1) / fps]))
-            worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, rig)).max()))
+            worst = max(worst, float(np.abs(decoded[0] - evaluated_points(obj, None)).max()))
     assert worst / diagonal < 1e-5
+
+
+# ------------------------------------------------------------------------------------------
+# Where the export lands (issue 24): the decoded asset, with the USD transforms of the written
+# layer composed, is Blender's evaluated mesh in WORLD space, whatever moves, turns, scales or
+# parents the armature; the import puts it back there.
+# ------------------------------------------------------------------------------------------
+
+TURN = math.radians(20.0)
+
+
+@pytest.fixture()
+def moved_rig(rig_scene):
+    """The rig at (0.5, -0.3, 0) turned 20 degrees about Z, the tube parented to it, and a third
+    action ``Walk`` that moves the root bone (root motion) while it sways."""
+    scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler = (0.5, -0.3, 0.0), (0.0, 0.0, TURN)
+    root = rig.pose.bones["root"]
+    rig.animation_data.action = bpy.data.actions.new("Walk")
+    for frame, location, angle in ((1, (0, 0, 0), 0.0), (5, (0.3, 0.1, 0.4), 0.3), (9, (0.6, 0.0, 0.8), 0.0)):
+        root.location, root.rotation_euler = location, (angle, 0, 0)
+        root.keyframe_insert("location", frame=frame)
+        root.keyframe_insert("rotation_euler", frame=frame)
+    rig.animation_data.action = bpy.data.actions["Walk"]
+    root.location, root.rotation_euler = (0, 0, 0), (0, 0, 0)
+    return scene, rig, body
+
+
+def composed_world(layer, clip, tau: float) -> dict:
+    """{mesh path: (V, 3) points} of an asset skinned by vbusd.skin at clip-local ``tau``, each moved by
+    its prim's local-to-world transform in the written layer (USD row vectors: p' = p M)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(layer))
+    world = {}
+    for pose in vbusd.skin(layer, clip, tau):
+        matrix = np.array(UsdGeom.Xformable(stage.GetPrimAtPath(pose.path)).ComputeLocalToWorldTransform(
+            Usd.TimeCode.Default()), dtype=np.float64)
+        world[pose.path] = pose.points @ matrix[:3, :3] + matrix[3, :3]
+    return world
+
+
+def world_fraction(layer, scene, rig, objects, actions, fps=FPS) -> float:
+    """Largest |decoded (USD transforms composed) - Blender's world-space evaluated mesh| over every
+    frame of every clip and every object, over the diagonal of Blender's evaluated bounding box."""
+    paths = [m.path for m in vbusd.read_asset(layer).animations[0].meshes]
+    worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
+    for clip_index, action in enumerate(actions):
+        saved = tuple(rig.location), tuple(rig.rotation_euler), tuple(rig.scale)
+        play(rig, action)
+        start, end = (int(f) for f in bpy.data.actions[action].frame_range)
+        for frame in range(start, end + 1):
+            scene.frame_set(frame)
+            decoded = composed_world(layer, clip_index, (frame - start) / fps)
+            for path, obj in zip(paths, objects):
+                expected = evaluated_points(obj, None)
+                worst = max(worst, float(np.linalg.norm(decoded[path] - expected, axis=1).max()))
+                low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
+        rig.location, rig.rotation_euler, rig.scale = saved  # an action may key the object itself
+    return worst / float(np.linalg.norm(high - low))
+
+
+def test_moved_turned_rig_decodes_to_blenders_world_mesh(moved_rig, tmp_path):
+    """The issue's scene: `vbusd decode` of the export (a point cache, its prims' transforms composed)
+    is Blender's world-space evaluated mesh at every frame of the walk and the IK reach, and so is
+    vbusd.skin of the asset; the operator's own check says the same."""
+    from pxr import Usd, UsdGeom
+
+    from vbusd.cli import main as vbusd_main
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = moved_rig
+    out = tmp_path / "walk.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Walk", "Reach"),
+                                                                  texel_format="float32"))
+    assert report.max_error_fraction < 1e-5
+    path = vbusd.read_asset(out).animations[0].meshes[0].path
+    worst, low, high = 0.0, np.full(3, np.inf), np.full(3, -np.inf)
+    for clip in ("Walk", "Reach"):
+        cache = tmp_path / f"{clip}.usda"
+        assert vbusd_main(["decode", str(out), "-o", str(cache), "--clip", clip, "-q"]) == 0
+        stage = Usd.Stage.Open(str(cache))
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(path))
+        play(rig, clip)
+        for frame in range(1, 10):  # time code = frame: the cache keeps the source's timeline
+            scene.frame_set(frame)
+            code = Usd.TimeCode(frame)
+            matrix = np.array(mesh.ComputeLocalToWorldTransform(code), dtype=np.float64)
+            decoded = np.array(mesh.GetPointsAttr().Get(code), dtype=np.float64) @ matrix[:3, :3] + matrix[3, :3]
+            expected = evaluated_points(body, None)
+            worst = max(worst, float(np.linalg.norm(decoded - expected, axis=1).max()))
+            low, high = np.minimum(low, expected.min(axis=0)), np.maximum(high, expected.max(axis=0))
+    assert worst / float(np.linalg.norm(high - low)) < 1e-5, worst
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+
+
+def test_accuracy_report_measures_in_world_space(rig_scene, tmp_path):
+    """B-Bones the texture cannot follow, on a rig scaled by 2: the operator's reported error is the
+    distance measured independently in world space (twice the one in the armature's own space)."""
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = rig_scene
+    rig.location, rig.rotation_euler, rig.scale = (0.5, -0.3, 0.0), (0.0, 0.0, TURN), (2.0, 2.0, 2.0)
+    rig.data.bones["mid"].bbone_segments = 6
+    out = tmp_path / "bbone.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Bend", "Reach"),
+                                                                  texel_format="float32"))
+    assert any("B-Bones" in w for w in report.warnings)
+    paths = [m.path for m in vbusd.read_asset(out).animations[0].meshes]
+    worst = 0.0
+    for clip_index, action in enumerate(("Bend", "Reach")):
+        play(rig, action)
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            decoded = composed_world(out, clip_index, (frame - 1) / FPS)[paths[0]]
+            worst = max(worst, float(np.linalg.norm(decoded - evaluated_points(body, None), axis=1).max()))
+    assert worst > 1e-3  # B-Bones bend inside a bone: the texture cannot follow
+    assert report.max_error == pytest.approx(worst, rel=1e-4)
+
+
+def test_rig_under_a_moving_scaled_parent_with_parent_inverses(moved_rig, tmp_path):
+    """Object parenting and parent-inverse matrices: the rig is parented (keeping its transform) to an
+    empty that is turned, uniformly scaled by 1.5 and animated; a second mesh is parented to the rig
+    after the rig moved (a non-identity parent inverse). The bones stay rigid (crossMatrix)."""
+    from mathutils import Matrix
+
+    scene, rig, body = moved_rig
+    stage = bpy.data.objects.new("Stage", None)
+    scene.collection.objects.link(stage)
+    stage.location, stage.rotation_euler, stage.scale = (1.0, 2.0, 0.5), (0.2, 0.1, 0.5), (1.5, 1.5, 1.5)
+    stage.animation_data_create()
+    stage.animation_data.action = bpy.data.actions.new("StageMove")
+    for frame, x in ((1, 1.0), (9, 1.6)):
+        stage.location.x = x
+        stage.keyframe_insert("location", frame=frame)
+    scene.frame_set(1)
+    rig.parent = stage
+    rig.matrix_parent_inverse = stage.matrix_world.inverted()  # Set Parent To > Object (keep transform)
+    cape = body.copy()
+    cape.name = "Cape"
+    scene.collection.objects.link(cape)
+    cape.parent = None
+    cape.location = (0.4, 0.0, 0.2)
+    bpy.context.view_layer.update()
+    cape.parent = rig
+    cape.matrix_parent_inverse = rig.matrix_world.inverted()
+    bpy.context.view_layer.update()
+    assert not np.allclose(np.array(cape.matrix_parent_inverse), np.eye(4))
+    out = tmp_path / "parented.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    vb = vbusd.read_asset(out).animations[0]
+    assert vb.layout.encoding.value == "crossMatrix"  # a uniform scale keeps every bone rigid
+    assert [m.path.rsplit("/", 1)[-1] for m in vb.meshes] == ["Body", "Cape"]
+    assert world_fraction(out, scene, rig, [body, cape], ["Walk", "Reach"]) < 1e-5
+
+
+def test_rig_parented_to_an_animated_bone(moved_rig, tmp_path):
+    """Bone parenting: the rig rides a bone of another, animated armature."""
+    scene, rig, body = moved_rig
+    carrier_data = bpy.data.armatures.new("CarrierData")
+    carrier = bpy.data.objects.new("Carrier", carrier_data)
+    scene.collection.objects.link(carrier)
+    carrier.location = (-1.0, 0.5, 0.0)
+    bpy.context.view_layer.objects.active = carrier
+    bpy.ops.object.mode_set(mode="EDIT")
+    hand = carrier_data.edit_bones.new("hand")
+    hand.head, hand.tail = (0, 0, 0), (0.5, 0, 0.5)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    carrier.animation_data_create()
+    carrier.animation_data.action = bpy.data.actions.new("Carry")
+    pose = carrier.pose.bones["hand"]
+    pose.rotation_mode = "XYZ"
+    for frame, angle in ((1, 0.0), (9, 0.8)):
+        pose.rotation_euler = (0.0, angle, 0.3 * angle)
+        pose.keyframe_insert("rotation_euler", frame=frame)
+    scene.frame_set(1)
+    rig.parent, rig.parent_type, rig.parent_bone = carrier, "BONE", "hand"
+    bpy.context.view_layer.update()
+    out = tmp_path / "carried.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+
+
+def test_non_uniform_rig_scale_is_exact_or_refused(moved_rig, tmp_path):
+    """A non-uniform object scale: linear blend skinning is exported exactly (auto takes
+    affineMatrix); an encoding or Preserve Volume that cannot hold it is refused in one line that
+    names the object."""
+    scene, rig, body = moved_rig
+    rig.scale = (1.0, 1.8, 0.7)
+    out = tmp_path / "squashed.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    assert vbusd.read_asset(out).animations[0].layout.encoding.value == "affineMatrix"
+    assert world_fraction(out, scene, rig, [body], ["Walk", "Reach"]) < 1e-5
+    for encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
+        refused(tmp_path, rf"Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*{encoding}",
+                filepath=str(tmp_path / "a.usda"), armatures="Rig", encoding=encoding)
+    body.modifiers["Armature"].use_deform_preserve_volume = True
+    refused(tmp_path, r"Rig: encoding.nonRigid: armature 'Rig' has a non-uniform scale .*Preserve Volume",
+            filepath=str(tmp_path / "a.usda"), armatures="Rig")
+
+
+def test_armature_object_motion_in_an_action_is_baked_and_restored(moved_rig, tmp_path):
+    """An action that keys the armature object as well as a bone: the object's motion is baked (it is
+    what Blender shows); the next action starts from the object's own transform, which the export
+    restores; a mesh that does not move with the armature is warned about."""
+    from vbusd_blender.export import ExportSettings, export_virtual_bones
+
+    scene, rig, body = moved_rig
+    stride = bpy.data.actions.new("Stride")
+    rig.animation_data.action = stride
+    for frame, x, angle in ((1, 0.5, 0.0), (9, 2.0, 0.5)):
+        rig.location.x = x
+        rig.keyframe_insert("location", frame=frame)
+        rig.pose.bones["root"].rotation_euler = (angle, 0, 0)
+        rig.pose.bones["root"].keyframe_insert("rotation_euler", frame=frame)
+    rig.animation_data.action = bpy.data.actions["Walk"]
+    rig.location = (0.5, -0.3, 0.0)
+    hat = add_hat(scene, rig)  # not parented: stays put while the armature object moves
+    out = tmp_path / "stride.usda"
+    report = export_virtual_bones(bpy.context, out, ExportSettings(armatures=("Rig",), actions=("Stride", "Walk"),
+                                                                  texel_format="float32"))
+    assert tuple(rig.location) == pytest.approx((0.5, -0.3, 0.0))
+    assert any(w.startswith("Hat:") and "armature 'Rig'" in w for w in report.warnings), report.warnings
+    assert world_fraction(out, scene, rig, [body], ["Stride", "Walk"]) < 1e-5
+    del hat
+
+
+def test_mirrored_mesh_keeps_its_faces_outward(moved_rig, tmp_path):
+    """A mesh with a negative scale: its faces are written wound so that USD's right-handed
+    orientation agrees with the normals Blender shows."""
+    scene, rig, body = moved_rig
+    body.scale = (-1.0, 1.0, 1.0)
+    out = tmp_path / "mirrored.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk",
+                                              texel_format="float32") == {"FINISHED"}
+    mesh = vbusd.read_asset(out).animations[0].meshes[0]
+    assert mesh.normals_interpolation == "faceVarying"
+    start = 0
+    for count in mesh.face_vertex_counts:
+        corners = mesh.face_vertex_indices[start:start + count]
+        p = np.asarray(mesh.points, dtype=np.float64)[corners]
+        geometric = np.cross(p[1] - p[0], p[2] - p[0])  # right-handed, counter-clockwise front
+        assert float(np.dot(geometric, mesh.normals[start:start + count].sum(axis=0))) > 0
+        start += count
+    assert world_fraction(out, scene, rig, [body], ["Walk"]) < 1e-5
+
+
+def test_import_puts_the_rig_back_where_it_was_exported(moved_rig, tmp_path):
+    """Export the moved, turned rig, import it into an empty scene: the imported mesh plays where
+    Blender showed the original, frame by frame."""
+    scene, rig, body = moved_rig
+    out = tmp_path / "walk.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", actions="Walk,Reach",
+                                              texel_format="float32") == {"FINISHED"}
+    shown = {}
+    for action in ("Walk", "Reach"):
+        play(rig, action)
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            shown[action, frame] = evaluated_points(body, None)
+    diagonal = float(np.linalg.norm(np.ptp(np.concatenate(list(shown.values())), axis=0)))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 9
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(out)) == {"FINISHED"}
+    imported_rig, imported = bpy.data.objects["Rig"], bpy.data.objects["Body"]
+    worst = 0.0
+    for action in ("Walk", "Reach"):
+        imported_rig.animation_data.action = bpy.data.actions[f"Rig|{action}"]
+        for frame in range(1, 10):
+            scene.frame_set(frame)
+            worst = max(worst, float(np.linalg.norm(evaluated_points(imported, None) - shown[action, frame],
+                                                    axis=1).max()))
+    assert worst / diagonal < 1e-5, worst
+
+
+def test_import_follows_the_layers_transforms(moved_rig, tmp_path):
+    """An asset whose layer moves its meshes and its crowd (transforms authored on /VirtualBones, on
+    the point instancer and on the prototype): the imported rig and instances stand where USD's
+    own composition (ComputeLocalToWorldTransform, PointInstancer.ComputeInstanceTransformsAtTime)
+    puts the decoded points."""
+    from pxr import Gf, Usd, UsdGeom
+
+    scene, rig, body = moved_rig
+    baked = tmp_path / "walk.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(baked), armatures="Rig", actions="Walk",
+                                              texel_format="float32") == {"FINISHED"}
+    asset = vbusd.read_asset(baked)
+    crowd = vbusd.Crowd(
+        path="/VirtualBones/Crowd", positions=np.array([[0, 0, 0], [3, 1, 0]], dtype=np.float32),
+        orientations=np.array([[0, 0, 0, 1], [0, 0, math.sin(0.3), math.cos(0.3)]], dtype=np.float32),
+        scales=None, clip=np.zeros(2, dtype=np.int32), time_offset=np.array([0, 2], dtype=np.float32) / FPS,
+        playback_rate=np.ones(2, dtype=np.float32))
+    layer = tmp_path / "crowd.usda"
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), layer)
+    stage = Usd.Stage.Open(str(layer))
+    for path, offset, angle in (("/VirtualBones", (1, 2, 0.5), 30), ("/VirtualBones/Crowd", (0, -4, 0), -15),
+                                ("/VirtualBones/Crowd/Prototypes/Rig", (0.2, 0, 0), 10)):
+        xform = UsdGeom.Xformable(stage.GetPrimAtPath(path))
+        xform.AddTranslateOp().Set(Gf.Vec3d(*offset))
+        xform.AddRotateZOp().Set(angle)
+    stage.GetRootLayer().Save()
+    stage = Usd.Stage.Open(str(layer))
+    mesh_path = asset.animations[0].meshes[0].path
+    mesh_world = np.array(UsdGeom.Xformable(stage.GetPrimAtPath(mesh_path)).ComputeLocalToWorldTransform(0))
+    instancer = UsdGeom.PointInstancer(stage.GetPrimAtPath("/VirtualBones/Crowd"))
+    instance_world = [np.array(m) @ np.array(instancer.ComputeLocalToWorldTransform(0))
+                      for m in instancer.ComputeInstanceTransformsAtTime(0, 0)]  # prototype root included
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    vbusd_blender.register()
+    scene = bpy.context.scene
+    scene.render.fps, scene.frame_start, scene.frame_end = FPS, 1, 9
+    assert bpy.ops.import_scene.virtual_bones(filepath=str(layer), keys_per_row=1) == {"FINISHED"}
+    vb = vbusd.read_asset(layer).animations[0]
+    diagonal = float(np.linalg.norm(np.ptp(vb.meshes[0].points, axis=0)))
+    worst = 0.0
+    for frame in range(1, 8):
+        scene.frame_set(frame)
+        t = (frame - 1) / FPS
+        points = vbusd.skin(layer, 0, t)[0].points
+        worst = max(worst, float(np.abs(points @ mesh_world[:3, :3] + mesh_world[3, :3]
+                                        - evaluated_points(bpy.data.objects["Body"], None)).max()))
+        for i, matrix in enumerate(instance_world):
+            tau = float(crowd.time_offset[i]) + t
+            local = vbusd.skin(layer, 0, tau)[0].points
+            expected = local @ matrix[:3, :3] + matrix[3, :3]
+            got = evaluated_points(bpy.data.objects[f"Body.{i:04d}"], None)
+            worst = max(worst, float(np.abs(expected - got).max()))
+    assert worst / diagonal < 1e-5, worst

@@ -2,14 +2,23 @@
 
 The rig is evaluated as Blender shows it: for every texture row the scene is set to that time
 (sub-frames included) and the depsgraph-evaluated pose is read, so constraints, IK, drivers and,
-with ``source="TIMELINE"``, the NLA are baked as visual transforms. Each bone's skinning matrix is
-its evaluated pose matrix in armature space times the inverse of its rest matrix, which is what
-Blender's Armature modifier applies; the rest meshes are the meshes evaluated with the Armature
-modifier switched off, moved into the armature object's space (the animation space).
+with ``source="TIMELINE"``, the NLA are baked as visual transforms.
 
-The baked animation is then compared, row by row, with Blender's own evaluated mesh (the same
-frames, ``evaluated_get(...).to_mesh()``), and written by vbusd's atomic writer: all files appear
-or none does.
+The animation space is Blender's world space, so the asset shows what the viewport shows wherever
+the armature stands (docs/blender.md, "What is baked"). With ``W(t)`` the armature object's world
+matrix (its own transform, its parents, its parent inverse; animated or not), ``W0`` its value when
+the export starts, ``P_b(t)`` bone ``b``'s evaluated pose matrix in armature space and ``R_b`` its
+rest matrix, bone ``b``'s skinning matrix is ``W(t) P_b(t) R_b^-1 W0^-1``, and the rest meshes are
+the meshes evaluated with the Armature modifier switched off, in world space when the export
+starts. Blender's Armature modifier puts a vertex ``v`` of a mesh whose world matrix is ``O`` at
+``W P R^-1 W^-1 O v``: the two agree while the mesh keeps its place relative to the armature
+(a warning says when it does not). Conjugating by ``W0`` keeps the bones rigid under a uniform
+scale; a non-uniform one makes them affine, which linear blend skinning (affineMatrix) holds
+exactly and the other encodings refuse, naming the armature.
+
+The baked animation is then compared, row by row, with Blender's own evaluated mesh in world space
+(the same frames, ``evaluated_get(...).to_mesh()`` moved by the object's world matrix), and written
+by vbusd's atomic writer: all files appear or none does.
 
 Nothing here registers anything with Blender; :mod:`vbusd_blender.operators` wraps it.
 """
@@ -308,23 +317,76 @@ class _ClipSource:
     loop: Optional[bool]
 
 
+OBJECT_CHANNELS = ("location", "rotation_quaternion", "rotation_euler", "rotation_axis_angle", "scale",
+                   "delta_location", "delta_rotation_quaternion", "delta_rotation_euler", "delta_scale")
+"""An object's own transform channels (what an action may key on the armature object itself)."""
+
+RELATIVE_TOLERANCE = 1e-5
+"""Largest change (matrix entries, over the matrix's largest entry plus one) of a mesh's place
+relative to what moves it before the export warns that the bake cannot follow it."""
+
+
+def _saved_object(obj) -> tuple:
+    return obj, [tuple(getattr(obj, name)) for name in OBJECT_CHANNELS]
+
+
+def _restore_object(saved: tuple) -> None:
+    obj, values = saved
+    for name, value in zip(OBJECT_CHANNELS, values):
+        setattr(obj, name, value)
+
+
+def world_scale(matrix: np.ndarray) -> Optional[tuple]:
+    """The scale of a non-uniformly scaled or sheared 4x4 matrix (its singular values), or None
+    when it is a rotation times a uniform scale (what keeps rigid bones rigid once conjugated)."""
+    values = np.linalg.svd(np.asarray(matrix, dtype=np.float64)[:3, :3], compute_uv=False)
+    if values.max() - values.min() <= 1e-6 * max(values.max(), 1e-30):
+        return None
+    return tuple(float(v) for v in values)
+
+
+def non_uniform_error(armature, scale: tuple, needs: str, when: str = ""):
+    """The one-line refusal of an armature whose world matrix an encoding cannot hold."""
+    from vbusd import UnsupportedError
+
+    shown = ", ".join(f"{v:.4g}" for v in scale)
+    return UnsupportedError(
+        f"armature '{armature.name}' has a non-uniform scale or shear in the world (its own or its parents'; "
+        f"scales {shown}){when}; {needs} cannot hold it: apply the scale (Object > Apply > Scale)"
+        + ("" if "Preserve Volume" in needs else " or export with affineMatrix"),
+        location=armature.name, code="encoding.nonRigid")
+
+
 @dataclass
 class _MeshSource:
+    """A mesh the sampler evaluates: ``relative`` is its world matrix relative to what moves it (the
+    armature, or the armature's bone ``bone`` for a prop) when the export started."""
+
     obj: object
     modifier: object
     vertex_count: int
+    relative: np.ndarray = None
+    bone: Optional[str] = None
 
 
 class RigSampler:
     """Evaluates one armature at source times and remembers Blender's evaluated meshes there.
 
-    Skinning matrices are ``pose_bone.matrix @ bone.matrix_local.inverted()`` of the evaluated
-    armature (armature space); the optional static bone is the identity. Mesh points are read from
-    ``evaluated_get(depsgraph).to_mesh()`` and moved into armature space.
+    Skinning matrices are ``W(t) @ P_b(t) @ R_b^-1 @ W0^-1`` (module docstring): the armature's
+    world matrix ``W``, the evaluated ``pose_bone.matrix`` ``P_b``, the rest ``bone.matrix_local``
+    ``R_b`` and ``W0``, the armature's world matrix when the export started; the optional static
+    bone is ``W(t) @ W0^-1`` (vertices the Armature modifier leaves at rest move with the object).
+    Mesh points are read from ``evaluated_get(depsgraph).to_mesh()`` and moved into world space.
+
+    ``drift`` records, per mesh, the largest change of its place relative to what moves it, with
+    the clip where it happened; ``similar_only`` names what needs ``W(t)`` to be a rotation times a
+    uniform scale (None: anything goes), and a time where it is not raises.
     """
 
     def __init__(self, context, armature, bones: list, static: bool, meshes: list, fps: float,
-                 progress: Optional[Callable[[], None]] = None, reset_pose: bool = True) -> None:
+                 progress: Optional[Callable[[], None]] = None, reset_pose: bool = True,
+                 bind_world: Optional[np.ndarray] = None, object_state: Optional[tuple] = None,
+                 similar_only: Optional[str] = None) -> None:
         self.context = context
         self.scene = context.scene
         self.armature = armature
@@ -335,11 +397,20 @@ class RigSampler:
         self.progress = progress
         self.reset_pose = reset_pose
         self.rest_inverse = np.stack([np.linalg.inv(_matrix(armature.data.bones[b].matrix_local)) for b in bones])
+        self.bind_world = np.eye(4) if bind_world is None else np.asarray(bind_world, dtype=np.float64)
+        self.bind_inverse = np.linalg.inv(self.bind_world)
+        self.object_state = object_state
+        self.similar_only = similar_only
+        self.drift = [(0.0, None)] * len(meshes)
         self.active_clip = None
         self.cache = {}
 
     def activate(self, clip: _ClipSource) -> None:
-        """Make ``clip``'s action the armature's only animation (the timeline: leave it as it is)."""
+        """Make ``clip``'s action the armature's only animation (the timeline: leave it as it is).
+
+        The armature object's own channels go back to what they were when the export started, so
+        an action that keys the object does not leave its motion to the next one.
+        """
         if self.active_clip is clip:
             return
         if clip.action is not None:
@@ -347,6 +418,8 @@ class RigSampler:
             anim.use_nla = False
             if self.reset_pose:
                 reset_pose(self.armature)
+            if self.object_state is not None:
+                _restore_object(self.object_state)
             assign_action(self.armature, clip.action)
         self.active_clip = clip
 
@@ -359,13 +432,19 @@ class RigSampler:
         _set_time(self.scene, seconds, self.fps)
         depsgraph = self.context.evaluated_depsgraph_get()
         arm = self.armature.evaluated_get(depsgraph)
+        world = _matrix(arm.matrix_world)
+        if self.similar_only is not None:
+            scale = world_scale(world)
+            if scale is not None:
+                raise non_uniform_error(self.armature, scale, self.similar_only,
+                                        f" at time {seconds:.6g} s of clip '{clip.name}'")
         pose = np.stack([_matrix(arm.pose.bones[b].matrix) for b in self.bones])
-        matrices = pose @ self.rest_inverse
+        matrices = world @ pose @ self.rest_inverse @ self.bind_inverse
         if self.static:
-            matrices = np.concatenate([matrices, np.eye(4)[None]], axis=0)
-        to_armature = np.linalg.inv(_matrix(arm.matrix_world))
+            matrices = np.concatenate([matrices, (world @ self.bind_inverse)[None]], axis=0)
+        to_armature = np.linalg.inv(world)
         points = []
-        for mesh in self.meshes:
+        for index, mesh in enumerate(self.meshes):
             obj = mesh.obj.evaluated_get(depsgraph)
             data = obj.to_mesh()
             try:
@@ -373,9 +452,16 @@ class RigSampler:
                 data.vertices.foreach_get("co", co)
             finally:
                 obj.to_mesh_clear()
-            local = to_armature @ _matrix(obj.matrix_world)
+            placed = _matrix(obj.matrix_world)
             p = co.reshape(-1, 3).astype(np.float64)
-            points.append(p @ local[:3, :3].T + local[:3, 3])
+            points.append(p @ placed[:3, :3].T + placed[:3, 3])
+            if mesh.relative is not None:
+                holder = to_armature if mesh.bone is None else \
+                    np.linalg.inv(_matrix(arm.pose.bones[mesh.bone].matrix)) @ to_armature
+                change = float(np.abs(holder @ placed - mesh.relative).max())
+                change /= 1.0 + float(np.abs(mesh.relative).max())
+                if change > self.drift[index][0]:
+                    self.drift[index] = (change, clip.name)
         self.cache[key] = (matrices, points)
         if self.progress:
             self.progress()
@@ -392,21 +478,25 @@ class RigSampler:
         return sample
 
     def reference(self, clip: _ClipSource, mesh_index: int, times) -> np.ndarray:
-        """Blender's evaluated points (n, V, 3) of one mesh at source times, armature space."""
+        """Blender's evaluated points (n, V, 3) of one mesh at source times, world space."""
         start, end = clip.start_frame / self.fps, clip.end_frame / self.fps
         times = np.clip(np.asarray(times, dtype=np.float64), start, end)
         return np.stack([self.evaluate(clip, float(t))[1][mesh_index] for t in times])
 
 
-def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None):
-    """The mesh at rest (Armature modifier off), in armature space, with its deform weights.
+def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None, bind_world=None):
+    """The mesh at rest (Armature modifier off), in world space, with its deform weights.
 
-    A mesh parented to a bone (``modifier`` None) is moved from where the bone's current pose holds
-    it to where the bone's rest pose would, and follows that bone alone.
+    Points are where the armature's world matrix ``bind_world`` (``W0``, default: its current one)
+    puts the mesh's place in armature space. A mesh parented to a bone (``modifier`` None) is moved
+    from where the bone's current pose holds it to where the bone's rest pose would, and follows
+    that bone alone. A mesh whose placement mirrors it (negative determinant) has its faces wound
+    the other way, so that USD's right-handed orientation agrees with its normals.
 
     Returns:
         (points (V, 3), counts, indices, bone indices (V, K), weights (V, K), corner normals or None,
-        unweighted vertex mask)
+        unweighted vertex mask, its world matrix relative to the armature (or to the pose of
+        ``parent_bone``) now)
     """
     from vbusd import InputError
 
@@ -446,10 +536,12 @@ def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None):
         finally:
             evaluated.to_mesh_clear()
         arm = armature.evaluated_get(depsgraph)
-        local = np.linalg.inv(_matrix(arm.matrix_world)) @ _matrix(evaluated.matrix_world)
+        arm_world = _matrix(arm.matrix_world)
+        relative = local = np.linalg.inv(arm_world) @ _matrix(evaluated.matrix_world)
         if parent_bone is not None:  # from the bone's current pose back to its rest pose
-            local = (_matrix(armature.data.bones[parent_bone].matrix_local)
-                     @ np.linalg.inv(_matrix(arm.pose.bones[parent_bone].matrix)) @ local)
+            relative = np.linalg.inv(_matrix(arm.pose.bones[parent_bone].matrix)) @ local
+            local = _matrix(armature.data.bones[parent_bone].matrix_local) @ relative
+        local = (arm_world if bind_world is None else np.asarray(bind_world, dtype=np.float64)) @ local
     finally:
         if modifier is not None:
             modifier.show_viewport = True
@@ -470,7 +562,15 @@ def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None):
         normals = normals @ normal_matrix.T
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         normals = normals / np.where(lengths > 0, lengths, 1.0)
-    return points, counts, indices, bone_indices, bone_weights, normals, unweighted
+    if np.linalg.det(local[:3, :3]) < 0:  # mirrored: reverse each face's corners (and their normals)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        face = np.repeat(np.arange(len(counts)), counts)
+        within = np.arange(len(indices)) - starts[face]
+        flipped = starts[face] + counts[face] - 1 - within
+        indices = indices[flipped]
+        if normals is not None:
+            normals = normals[flipped]
+    return points, counts, indices, bone_indices, bone_weights, normals, unweighted, relative
 
 
 # --------------------------------------------------------------------------------------------
@@ -592,10 +692,15 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
         bones = [b.name for b in armature.data.bones if b.use_deform or b.name in carriers]
         clips = _clip_sources(scene, armature, settings)
         _warn_unbakeable(armature, bones, pairs, warnings)
-        plans.append((armature, prim_name, pairs, bones, clips))
+        bind_world = _matrix(armature.evaluated_get(context.evaluated_depsgraph_get()).matrix_world)
+        similar_only = _needs_similar_world(settings, pairs)
+        scale = world_scale(bind_world)
+        if similar_only is not None and scale is not None:
+            raise non_uniform_error(armature, scale, similar_only)
+        plans.append((armature, prim_name, pairs, bones, clips, bind_world, similar_only))
 
     rate = options.rows_per_second or fps
-    total = sum(int(round((c.end_frame - c.start_frame) / fps * rate)) + 2 for *_, clips in plans for c in clips)
+    total = sum(int(round((c.end_frame - c.start_frame) / fps * rate)) + 2 for plan in plans for c in plan[4])
     done = [0]
 
     def tick():
@@ -608,14 +713,15 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
         if context.object is not None and context.object.mode == "EDIT":
             bpy.ops.object.mode_set(mode="OBJECT")
         animations, references, methods, samplers = [], [], [], []
-        for armature, prim_name, pairs, bones, clips in plans:
+        for armature, prim_name, pairs, bones, clips, bind_world, similar_only in plans:
             meshes, skinned, static = [], [], False
-            rests = [_rest_mesh(context, obj, modifier, armature, bones, bone) for obj, modifier, bone in pairs]
+            rests = [_rest_mesh(context, obj, modifier, armature, bones, bone, bind_world)
+                     for obj, modifier, bone in pairs]
             static = any(rest[6].any() for rest in rests)
             bone_names = bones + ([unique_names(bones + [STATIC_BONE])[-1]] if static else [])
             mesh_names = unique_names([usd_name(obj.name) for obj, _, _ in pairs])
-            for (obj, modifier, _), rest, mesh_name in zip(pairs, rests, mesh_names):
-                points, counts, indices, bone_indices, bone_weights, normals, unweighted = rest
+            for (obj, modifier, bone), rest, mesh_name in zip(pairs, rests, mesh_names):
+                points, counts, indices, bone_indices, bone_weights, normals, unweighted, relative = rest
                 if unweighted.any():
                     bone_indices[unweighted] = 0
                     bone_weights[unweighted] = 0.0
@@ -625,8 +731,10 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
                     path=f"/VirtualBones/{prim_name}/{mesh_name}", points=points, face_vertex_counts=counts,
                     face_vertex_indices=indices, bone_indices=bone_indices, bone_weights=bone_weights,
                     normals=normals, normals_interpolation="faceVarying", source_path=obj.name))
-                meshes.append(_MeshSource(obj, modifier, len(points)))
-            sampler = RigSampler(context, armature, bones, static, meshes, fps, tick, settings.reset_pose)
+                meshes.append(_MeshSource(obj, modifier, len(points), relative, bone))
+            sampler = RigSampler(context, armature, bones, static, meshes, fps, tick, settings.reset_pose,
+                                 bind_world=bind_world, object_state=_saved_object(armature),
+                                 similar_only=similar_only)
             samplers.append(sampler)
             source_clips = tuple(
                 AnimationClip(name=c.name, start_time=c.start_frame / fps, end_time=c.end_frame / fps,
@@ -652,6 +760,7 @@ def export_virtual_bones(context, filepath, settings: ExportSettings = ExportSet
             baked.append(vb)
             sampler, clips = references[index]
             errors = measure_against_blender(vb, sampler, clips)
+            report.warnings.extend(_drift_warnings(armatures[index], sampler))
             report.animations.append({"armature": armatures[index].name, "encoding": vb.layout.encoding.value,
                                       "reason": reason, "texel_format": vb.layout.texel_format.value,
                                       "width": vb.layout.width, "height": vb.layout.height,
@@ -683,11 +792,42 @@ if _SourceScene is not object:
         skinning_methods: tuple = ()
 
 
-def measure_against_blender(vb, sampler: RigSampler, clips: list) -> list:
-    """Largest distance between the decoded texture and Blender's evaluated mesh, per mesh.
+def _needs_similar_world(settings: ExportSettings, pairs: list) -> Optional[str]:
+    """What needs the armature's world matrix to be a rotation times a uniform scale, or None.
 
-    Every row of every clip is decoded with vbusd's numpy reference decoder and compared with the
-    mesh Blender evaluated at that row's time (cached while baking).
+    A non-uniform scale (or shear) makes every skinning matrix affine: linear blend skinning holds
+    it exactly (affineMatrix, what auto takes), the rigid encodings and dual quaternions do not.
+    """
+    if settings.encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
+        return settings.encoding
+    if settings.encoding == "auto" and any(m is not None and m.use_deform_preserve_volume for _, m, _ in pairs):
+        return "Preserve Volume (dual-quaternion skinning)"
+    return None
+
+
+def _drift_warnings(armature, sampler: RigSampler) -> list:
+    """One line per mesh that moved relative to what moves it while the clips were sampled."""
+    lines = []
+    for mesh, (change, clip) in zip(sampler.meshes, sampler.drift):
+        if change <= RELATIVE_TOLERANCE:
+            continue
+        if mesh.bone is None:
+            lines.append(f"{mesh.obj.name}: moves relative to armature '{armature.name}' in clip '{clip}' (it is "
+                         "not parented to it, or is animated itself); the Armature modifier deforms it in the "
+                         "armature's space, the bake keeps it where it was when the export started: parent it "
+                         "to the armature (the error report shows the difference)")
+        else:
+            lines.append(f"{mesh.obj.name}: moves relative to bone '{mesh.bone}' of armature '{armature.name}' in "
+                         f"clip '{clip}'; its own animation is not baked (the error report shows the difference)")
+    return lines
+
+
+def measure_against_blender(vb, sampler: RigSampler, clips: list) -> list:
+    """Largest distance between the decoded texture and Blender's evaluated mesh, per mesh, in world space.
+
+    Every row of every clip is decoded with vbusd's numpy reference decoder (animation space is
+    world space) and compared with the mesh Blender evaluated at that row's time (cached while
+    baking) moved by its object's world matrix.
 
     Returns:
         One dict per mesh: ``path``, ``max_error`` (scene units), ``max_error_fraction`` (of the
@@ -747,7 +887,8 @@ def _remove_empty(folders: list) -> None:
 def _save_state(context, armatures) -> dict:
     scene = context.scene
     state = {"frame": (scene.frame_current, scene.frame_subframe), "anim": [],
-             "poses": [_saved_pose(a) for a in armatures if a.pose is not None]}
+             "poses": [_saved_pose(a) for a in armatures if a.pose is not None],
+             "objects": [_saved_object(a) for a in armatures]}
     for armature in armatures:
         anim = armature.animation_data
         if anim is None:
@@ -775,5 +916,7 @@ def _restore_state(context, state: dict) -> None:
         anim.use_nla = use_nla
     for saved in state["poses"]:
         _restore_pose(saved)
+    for saved in state["objects"]:
+        _restore_object(saved)
     frame, subframe = state["frame"]
     context.scene.frame_set(frame, subframe=subframe)

@@ -17,6 +17,15 @@ For each animation the asset holds:
   strip whose start, scale and repeats give ``tau = timeOffset + playbackRate * t``, with scene
   time ``t = (frame - scene.frame_start) / fps``.
 
+Placement follows the layer's transforms as USD composes them, so the import stands where a USD
+renderer (and ``vbusd decode``) puts the asset: an animation's armature object gets the
+local-to-world transform of its bound meshes (animation space is their local space; spec, "Mesh
+binding"), a crowd's holder the point instancer's local-to-world transform, and each instance the
+instance transform times the prototype's own transform and that of the mesh inside it
+(UsdGeomPointInstancer's order). vbusd's writers author none of these (the Blender export's
+animation space is Blender's world space), so its own assets land where they were exported. A
+transform with time samples is taken at its first sample, with a warning.
+
 Poses match the decoder at the keys. Between keys Blender interpolates location, quaternion and
 scale linearly, where the spec interpolates the stored texels; the gap shrinks with the square of
 ``keys_per_row`` (docs/blender.md gives measured figures).
@@ -106,6 +115,59 @@ def _bone_centres(vb) -> np.ndarray:
             np.add.at(sums, mesh.bone_indices[:, slot], points * w[:, None])
             np.add.at(totals, mesh.bone_indices[:, slot], w)
     return np.where(totals[:, None] > 0, sums / np.maximum(totals, 1e-30)[:, None], 0.0)
+
+
+def _blender_matrix(usd_matrix) -> Matrix:
+    """A USD (row-vector) Gf.Matrix4d as a Blender (column-vector) Matrix."""
+    return Matrix([[float(usd_matrix[c][r]) for c in range(4)] for r in range(4)])
+
+
+def _moves(prim, UsdGeom) -> bool:
+    while prim and prim.GetPath().pathString != "/":
+        if prim.IsA(UsdGeom.Xformable) and UsdGeom.Xformable(prim).TransformMightBeTimeVarying():
+            return True
+        prim = prim.GetParent()
+    return False
+
+
+def _placements(path: Path, asset, allow_outside_paths: bool, warnings: list) -> tuple:
+    """Where the layer's transforms put each animation's meshes and each crowd.
+
+    Returns:
+        (per animation, the local-to-world Matrix of its first bound mesh; per crowd, (the point
+        instancer's local-to-world Matrix, the transform of the prototype's first mesh relative to
+        the instancer: the prototype root's and the mesh's own)), at the first time sample.
+    """
+    from pxr import Usd, UsdGeom
+
+    from vbusd.io.usd_reader import stage_for_reading
+
+    with stage_for_reading(path, allow_outside_paths=allow_outside_paths) as stage:
+        cache = UsdGeom.XformCache(Usd.TimeCode.EarliestTime())
+        animated = []
+
+        def world(prim) -> Matrix:
+            if _moves(prim, UsdGeom):
+                animated.append(str(prim.GetPath()))
+            return _blender_matrix(cache.GetLocalToWorldTransform(prim))
+
+        meshes = [world(stage.GetPrimAtPath(vb.meshes[0].path)) if vb.meshes else Matrix.Identity(4)
+                  for vb in asset.animations]
+        crowds = []
+        for crowd in asset.crowds:
+            prim = stage.GetPrimAtPath(crowd.path)
+            inside = Matrix.Identity(4)
+            for target in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets()[:1]:
+                found = [p for p in Usd.PrimRange(stage.GetPrimAtPath(target)) if p.IsA(UsdGeom.Mesh)]
+                if found:
+                    if _moves(found[0], UsdGeom):
+                        animated.append(str(found[0].GetPath()))
+                    inside = _blender_matrix(cache.ComputeRelativeTransform(found[0], prim)[0])
+            crowds.append((world(prim), inside))
+    for where in dict.fromkeys(animated):
+        warnings.append(f"{where}: its transform (or an ancestor's) is animated; imported where its first "
+                        "time sample puts it")
+    return meshes, crowds
 
 
 def _link(obj, collection):
@@ -260,7 +322,7 @@ def _skinned_object(name: str, data, rig, collection):
 
 def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list, actions: list,
                      collection, parent, settings: ImportSettings, report: ImportReport, fps: float,
-                     first_frame: float) -> list:
+                     first_frame: float, inside: Matrix = None) -> list:
     count = min(crowd.instance_count, int(settings.max_instances))
     if count < crowd.instance_count:
         report.warnings.append(f"{crowd.path}: imported {count} of {crowd.instance_count} instances "
@@ -277,7 +339,8 @@ def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list,
         instance = _link(bpy.data.objects.new(f"{rig.name}.{i:04d}", rig.data), collection)
         instance.parent = parent
         instance.matrix_parent_inverse = Matrix.Identity(4)
-        instance.matrix_basis = matrix  # its pose bones rotate by quaternion, Blender's default mode
+        # its pose bones rotate by quaternion, Blender's default mode; ``inside`` places the mesh in the prototype
+        instance.matrix_basis = matrix if inside is None else matrix @ inside
         objects = [_skinned_object(f"{name}.{i:04d}", data, instance, collection).name
                    for name, data in zip(mesh_names, mesh_data)]
         clip_index = int(crowd.clip[i])
@@ -353,10 +416,11 @@ def import_virtual_bones(context, filepath, settings: ImportSettings = ImportSet
 
     path = Path(bpy.path.abspath(str(filepath)))
     asset = read_asset(path, allow_outside_paths=settings.allow_outside_paths)  # fails before any change
+    report = ImportReport()
+    mesh_places, crowd_places = _placements(path, asset, settings.allow_outside_paths, report.warnings)
     scene = context.scene
     fps = scene.render.fps / scene.render.fps_base
     first_frame = float(scene.frame_start)
-    report = ImportReport()
     collection = bpy.data.collections.new(path.stem)
     scene.collection.children.link(collection)
     report.collection = collection.name
@@ -364,11 +428,12 @@ def import_virtual_bones(context, filepath, settings: ImportSettings = ImportSet
     if asset.up_axis == "Y":  # USD Y-up to Blender's Z-up
         root.rotation_euler = (math.pi / 2, 0.0, 0.0)
     rigs = []
-    for vb in asset.animations:
+    for vb, place in zip(asset.animations, mesh_places):
         name = vb.path.rstrip("/").rsplit("/", 1)[-1]
         bone_names = _bone_names(vb.bones)
         centres = _bone_centres(vb)
         rig = _build_armature(context, vb, name, bone_names, centres, collection, root)
+        rig.matrix_basis = place  # animation space is the bound meshes' local space
         actions = [_build_action(rig, vb, ci, bone_names, centres, fps, first_frame, f"{name}|{clip.name}",
                                  settings.keys_per_row) for ci, clip in enumerate(vb.clips)]
         assign_action(rig, actions[0])
@@ -389,11 +454,13 @@ def import_virtual_bones(context, filepath, settings: ImportSettings = ImportSet
             report.warnings.append(f"{name}: rows play at {vb.clips[0].rows_per_second:g}/s, the scene at "
                                    f"{fps:g} fps: frames between rows are interpolated by Blender")
     if settings.crowds:
-        for crowd, index in zip(asset.crowds, asset.crowd_animation):
+        for crowd, index, (instancer, inside) in zip(asset.crowds, asset.crowd_animation, crowd_places):
             vb, rig, mesh_data, mesh_names, actions = rigs[int(index)]
             holder = _link(bpy.data.objects.new(crowd.path.rstrip("/").rsplit("/", 1)[-1], None), collection)
             holder.parent = root
+            holder.matrix_basis = instancer
             report.instances.append(_place_instances(context, crowd, vb, rig, mesh_data, mesh_names, actions,
-                                                     collection, holder, settings, report, fps, first_frame))
+                                                     collection, holder, settings, report, fps, first_frame,
+                                                     inside))
     context.view_layer.update()
     return report
