@@ -658,9 +658,12 @@ def _prepare_for(source: Path) -> None:
         pending = usd_probe.start_probe(source)
     try:
         _threads.prepare("convert", kernels=large)
-    finally:
+    except BaseException:
         if pending is not None:
-            pending.result()  # its problem, if any, is reported by the reader's own probe
+            pending.cancel()  # interrupted: do not wait for the answer
+        raise
+    if pending is not None:
+        pending.result()  # its problem, if any, is reported by the reader's own probe
 
 
 class _CheckStopped(Exception):

@@ -33,12 +33,12 @@ def command(asset, port, no_browser, allow_outside_paths):
         raise OptionsError(f"--port must be an integer, got {port!r}", file="view") from None
     if not 0 <= port_number <= 65535:
         raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
+    import webbrowser  # before the server's threads start: no import beside them (vbusd/_threads.py)
+
     server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths).start()
     click.echo(f"vbusd view: {asset} at {server.url} (Ctrl-C stops)")
     try:
         if not no_browser:
-            import webbrowser
-
             webbrowser.open(server.url)
         threading.Event().wait()
     except KeyboardInterrupt:

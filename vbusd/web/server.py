@@ -18,6 +18,7 @@ down and closes the socket.
 from __future__ import annotations
 
 import json
+import socketserver
 import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -135,6 +136,16 @@ class _Server(ThreadingHTTPServer):
     def __init__(self, address, viewer: "ViewerServer"):
         self.viewer = viewer
         super().__init__(address, _Handler)
+
+    def process_request(self, request, client_address):
+        """One named daemon thread per request (``vbusd-view-request``): it only reads files and
+        bytes made before the server started, and imports nothing (vbusd/_threads.py)."""
+        if self.block_on_close:
+            vars(self).setdefault("_threads", socketserver._Threads())
+        thread = threading.Thread(target=self.process_request_thread, args=(request, client_address),
+                                  name="vbusd-view-request", daemon=True)
+        self._threads.append(thread)
+        thread.start()
 
 
 class ViewerServer:
