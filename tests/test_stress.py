@@ -1,0 +1,29 @@
+"""The short stress run (issue 23): tens of conversions with every core busy and signals at random
+moments, each under a watchdog; none may hang, fail, leave files or processes behind, or write an
+invalid asset. The long run (1,000+ conversions) is ``python benchmarks/stress.py``; its figures
+are in benchmarks/README.md.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.slow
+def test_conversions_under_full_load_never_hang(repo_root, tmp_path):
+    pytest.importorskip("pxr")
+    out = tmp_path / "stress.json"
+    done = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "stress.py"), "--conversions", "30",
+                           "--no-dask", "--timeout", "120", "--seed", "7", "--out", str(out),
+                           "--work", str(tmp_path / "work")],
+                          capture_output=True, text=True, timeout=1200)
+    summary = json.loads(out.read_text())
+    assert summary["conversions"] >= 30
+    assert summary["runs"] >= 10
+    for count in ("hangs", "failures", "leftovers", "invalid", "orphans"):
+        assert summary[count] == 0, (count, summary["problems"], done.stderr[-3000:])
+    assert done.returncode == 0
