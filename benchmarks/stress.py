@@ -171,6 +171,12 @@ def main(argv=None) -> int:
     parser.add_argument("--batch-size", type=int, default=8, help="Sources per --jobs 2 batch.")
     parser.add_argument("--no-dask", action="store_true", help="Leave out the Dask LocalCluster batches.")
     parser.add_argument("--python", default=sys.executable, help="The Python whose vbusd is stressed.")
+    parser.add_argument("--kinds", default=None,
+                        help="Comma-separated run kinds to cycle (single,library2,batch,dask); default: the mix.")
+    parser.add_argument("--source", action="append", default=None,
+                        help="Only sources whose file name is this (repeatable), e.g. Fox.glb.")
+    parser.add_argument("--texel-format", default=None, help="Always this texel format (default: float16 or float32).")
+    parser.add_argument("--signal-fraction", type=float, default=0.25, help="Share of single runs sent a signal.")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", default=None, help="Write the results as JSON here.")
     parser.add_argument("--work", default=None, help="Folder for outputs (default: a temporary one, removed).")
@@ -189,6 +195,12 @@ def main(argv=None) -> int:
     except ImportError:
         dask = False
     kinds = ["single", "single", "single", "single", "library2", "batch"] + (["dask"] if dask else [])
+    if args.kinds:
+        kinds = [k for k in args.kinds.split(",") if k != "dask" or dask]
+    if args.source:
+        found = {kind: [s for s in found[kind] if s.name in args.source] for kind in found}
+        if not any(found.values()):
+            parser.error(f"no source named {args.source}")
     counts = {"conversions": 0, "runs": 0, "hangs": 0, "failures": 0, "leftovers": 0, "invalid": 0,
               "signalled": 0, "orphans": 0}
     problems = []
@@ -205,8 +217,8 @@ def main(argv=None) -> int:
                 source = rng.choice(found["gltf"] + found["usd"])
                 layer = folder / "out" / f"{source.stem}.usda"
                 command = vbusd + ["convert", str(source), "-o", str(layer), "-q",
-                                   "--texel-format", rng.choice(["float16", "float32"])]
-                signum = rng.choice([signal.SIGTERM, signal.SIGINT]) if rng.random() < 0.25 else None
+                                   "--texel-format", args.texel_format or rng.choice(["float16", "float32"])]
+                signum = rng.choice([signal.SIGTERM, signal.SIGINT]) if rng.random() < args.signal_fraction else None
                 at = rng.uniform(0.0, 4.0) if signum else None
                 result = _run(command, args.timeout, env=env, signal_at=at, signum=signum)
                 record.update(source=source.name, signal=signum and signal.Signals(signum).name, at=at)
