@@ -95,21 +95,15 @@ def guarded(check, *args, location=None):
 
 def _validate_texture(path: str) -> list:
     """A texture or sidecar given on its own: its own failure to open is exit 2, the rest findings."""
-    from vbusd.format.diagnostics import Diagnostics, location_parts
-    from vbusd.io.textures import read_sidecar_document
+    from vbusd.format.diagnostics import location_parts
     from vbusd.validators.checks_texture import check_texture_only
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
-        # A sidecar given on its own must at least be a JSON object; its texture may be gone
-        # (reported as a finding, the sidecar itself was readable). Broken JSON is raised below,
-        # from the finding the checks make of it.
+        # A sidecar given on its own must at least be a JSON object (the parser's metadata.json
+        # finding otherwise, raised below); its texture may be gone (reported as a finding, the
+        # sidecar itself was readable).
         fatal = ("metadata.json",)
-        diagnostics = Diagnostics(path)
-        value = read_sidecar_document(path, diagnostics)
-        if not diagnostics.findings and not isinstance(value, dict):
-            raise InputError(f"layout metadata must be a JSON object, this is a JSON {type(value).__name__}",
-                             file=path, location="/", code="metadata.json")
     findings = guarded(check_texture_only, path, location=FileLocation(path))
     given = os.path.normpath(path)
     for item in findings:

@@ -125,7 +125,8 @@ _FINDINGS = (
     Code("metadata.missing", E, "The texture holds no layout metadata (EXR header attribute or PNG iTXt "
          "chunk vbusd.layout); a sidecar <texture>.json alone is not enough.", f"{_VB}#layout-metadata",
          "file"),
-    Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON.", f"{_VB}#layout-metadata",
+    Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON, or is JSON but not an object (null, "
+         "an array, a number, a string or a boolean).", f"{_VB}#layout-metadata",
          "file"),
     Code("metadata.duplicate", E, "The texture holds more than one vbusd.layout metadata chunk.",
          f"{_VB}#png", "file"),
