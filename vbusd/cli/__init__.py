@@ -129,7 +129,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         with np.errstate(all="ignore"):
             result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
-        _echo_error(f"vbusd: {error}")
+        from vbusd.cli.common import command_line_spelling
+
+        _echo_error(f"vbusd: {command_line_spelling(str(error))}")  # force=True -> --force
         return error.exit_status
     except click.exceptions.Exit as done:
         return int(done.exit_code or 0)

@@ -262,13 +262,15 @@ def _print_text(result: dict) -> None:
 # A plain path: asset_info reports a missing file or a folder as one vbusd error line (exit 2),
 # where click.Path would print its own three-line usage error.
 @click.argument("asset", type=click.Path(path_type=str))
-@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
-              show_default=True, help="Output form.")
+@common.format_option
 @click.option("--allow-outside-paths", is_flag=True,
               help="Let a USD asset's layers and vb:texture lie outside its folder.")
-def command(asset: str, output_format: str, allow_outside_paths: bool) -> int:
+@common.quiet_option
+def command(asset: str, output_format: str, allow_outside_paths: bool, quiet: bool) -> int:
     """Print the texture layout of ASSET (see the module docstring)."""
     result = asset_info(asset, allow_outside_paths=allow_outside_paths)
+    if quiet:  # it could be read and described: exit 0 (an unreadable asset was one line, exit 2)
+        return 0
     if output_format == "json":
         common.echo_json(result)
     else:

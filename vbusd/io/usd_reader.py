@@ -38,7 +38,7 @@ import numpy as np
 from vbusd.format import names
 from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
-from vbusd.format.errors import InputError, VbusdError, VersionError
+from vbusd.format.errors import OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
@@ -54,9 +54,8 @@ PathLike = Union[str, os.PathLike]
 READ_SUFFIXES = (".usda", ".usdc", ".usd")
 """What :func:`read_asset` reads (``vbusd validate`` and the converters also open ``.usdz``)."""
 USD_SUFFIXES = (".usda", ".usdc", ".usd", ".usdz")
-OUTSIDE_PATHS_HINT = "use --allow-outside-paths to allow it"
-"""Added to path refusals: every command reading with this module (info, decode, convert) has the
-option, as ``read_asset(..., allow_outside_paths=True)`` has in Python."""
+# OUTSIDE_PATHS_HINT (vbusd.format.errors, re-exported): added to path refusals; every command reading
+# with this module (info, decode, convert) has the option, as read_asset(..., allow_outside_paths=True).
 WEIGHT_SUM_TOLERANCE = 1e-3
 """Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
 
