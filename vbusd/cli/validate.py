@@ -34,7 +34,8 @@ def _split(values) -> tuple:
               help="Report at most N findings (the counts still cover all of them).")
 @quiet_option
 def command(asset: str, output_format: str, only, ignore, max_issues, quiet) -> int:
-    """Validate ASSET (a .usd/.usda/.usdc/.usdz file, a texture or its sidecar .json).
+    """Validate ASSET (a .usd/.usda/.usdc/.usdz file, a texture, its sidecar .json, or the runtime package
+    .glb/.gltf that vbusd export writes).
 
     Exit status 0: no errors; 1: errors; 2: the asset cannot be read.
     """
