@@ -245,3 +245,32 @@ def test_the_command_prints_one_line_for_a_bad_manifest(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "batch.manifest" in err[0] and "/0/options" in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Batch cache records (vbusd's own files, but a disk can hold anything)
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text", ["null", "[]", '"text"', '{"state": "done", "files": null, "inputs": null}'])
+def test_a_cache_record_of_the_wrong_kind_vouches_for_nothing(tmp_path, capsys, text):
+    """Such a record is no record: the output it would vouch for is not the batch's own, so it is
+    replaced only with --force (one line naming it), never 'cached' and never a crash."""
+    library = tmp_path / "lib"
+    library.mkdir()
+    for name in ("a", "b"):
+        (library / f"{name}.gltf").write_bytes((FIXTURES / "gltf" / "bar.gltf").read_bytes())
+    args = ["convert", str(library), "-o", str(tmp_path / "out"), "--jobs", "1", "--check-rows", "2",
+            "--format", "json"]
+    assert main(args) == 0
+    capsys.readouterr()
+    records = sorted((tmp_path / "out" / ".vbusd-cache").glob("*.json"))
+    assert len(records) == 2
+    records[0].write_text(text, encoding="utf-8")
+    assert main(args) == 1
+    assets = json.loads(capsys.readouterr().out)["assets"]
+    assert sorted(a["status"] for a in assets) == ["cached", "failed"]
+    (failed,) = [a for a in assets if a["status"] == "failed"]
+    assert failed["code"] == "options.invalid" and "--force" in failed["error"]
+    assert main([*args, "--force"]) == 0
+    assert sorted(a["status"] for a in json.loads(capsys.readouterr().out)["assets"]) == ["cached", "converted"]
