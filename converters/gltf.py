@@ -471,12 +471,13 @@ def _extension_error(root) -> tuple | None:
     return None
 
 
-def _drop_foreign_extras(root: dict) -> dict:
-    """Remove, in place, every ``extras`` that is not an object; returns ``root``.
+def _drop_foreign_extras(root: dict) -> bool:
+    """Remove, in place, every ``extras`` that is not an object; returns whether any was.
 
     ``extras`` may hold any JSON value (glTF 2.0), but pygltflib reads them as objects and fails
     on a list or a number with a bare exception; the converter never reads them.
     """
+    dropped = False
     pending = [root]
     while pending:   # iterative: JSON nesting must not become Python recursion
         value = pending.pop()
@@ -485,11 +486,12 @@ def _drop_foreign_extras(root: dict) -> dict:
         elif isinstance(value, dict):
             if "extras" in value and not isinstance(value["extras"], dict):
                 del value["extras"]
+                dropped = True
             pending += [child for key, child in value.items() if key != "extras"]
-    return root
+    return dropped
 
 
-def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> dict:
+def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
     """Checks pygltflib cannot make, on the raw JSON, before it builds its objects.
 
     pygltflib fills a missing ``asset`` or ``asset.version`` with defaults and coerces typed
@@ -503,8 +505,8 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> dict
         json_start: Byte offset of ``json_text`` in the file (20 in a GLB), for syntax errors.
 
     Returns:
-        The parsed JSON object, for pygltflib (``extras`` that are not objects dropped:
-        :func:`_drop_foreign_extras`).
+        The JSON text for pygltflib: ``json_text``, or the document without its ``extras`` that
+        are not objects (:func:`_drop_foreign_extras`) when it has any.
     """
     import json
 
@@ -542,7 +544,7 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> dict
     if found is not None:
         location, problem = found
         raise InputError(problem, file=file, location=location, code="gltf.value")
-    return _drop_foreign_extras(root)
+    return json.dumps(root) if _drop_foreign_extras(root) else json_text
 
 
 def json_text_of(data: bytes, file: str) -> str:
@@ -613,16 +615,15 @@ def load(path, options: ReadOptions | None = None):
     try:
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
-            root = _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
-            # pygltflib builds its objects from the JSON chunk found by the checked chunk walk
-            # above. Its own load_from_bytes walks the chunks again without those checks: it decodes
-            # every chunk type as UTF-8 text (an unknown type such as b"\\x80..." escapes as a bare
+            json_text = _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
+            # pygltflib parses the JSON chunk found by the checked chunk walk above. Its own
+            # load_from_bytes walks the chunks again without those checks: it decodes every chunk
+            # type as UTF-8 text (an unknown type such as b"\\x80..." escapes as a bare
             # UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
+            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
         else:
-            json_text = json_text_of(data, file)
-            root = _check_raw_structure(json_text, file)
-        # What gltf_from_json does after its json.loads, on the value already parsed and checked.
-        gltf = pygltflib.GLTF2.from_dict(root, infer_missing=True)
+            json_text = _check_raw_structure(json_text_of(data, file), file)
+            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
     except InputError:
         raise
     except Exception as exc:  # pygltflib surfaces JSON and structure errors as raw exceptions
