@@ -47,8 +47,13 @@ import numpy as np
 import vbusd  # noqa: F401  (registers the Virtual Bones USD schema before pxr builds its registry)
 
 
-def build_rig(path: Path, frames: int, points: int, joints: int, tcps: float = 24.0) -> dict:
-    """Write the rig: a branching skeleton over a grid mesh; returns what was made."""
+def build_rig(path: Path, frames: int, points: int, joints: int, tcps: float = 24.0, normals: bool = False) -> dict:
+    """Write the rig: a branching skeleton over a grid mesh; returns what was made.
+
+    ``normals=True`` also authors the grid's vertex normals (those of its surface
+    ``y = 0.25 * sqrt(x^2 + z^2)``, computed by hand), so that a conversion checks its skinned
+    normals against UsdSkel's; the benchmark's rig has none.
+    """
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
     rng = np.random.default_rng(7)
@@ -117,6 +122,14 @@ def build_rig(path: Path, frames: int, points: int, joints: int, tcps: float = 2
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(fvi) // 4, 4, dtype=np.int32)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(fvi.astype(np.int32)))
     mesh.CreateSubdivisionSchemeAttr("none")
+    if normals:
+        # The surface's normal is (-dy/dx, 1, -dy/dz), dy/dx = 0.25 x / r; (0, 1, 0) at the apex.
+        r = np.maximum(np.sqrt(gx ** 2 + gz ** 2), 1e-12).reshape(-1)
+        slope = np.where(r > 1e-9, 0.25 / r, 0.0)
+        n = np.stack([-slope * gx.reshape(-1), np.ones_like(r), -slope * gz.reshape(-1)], axis=-1)
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(n.astype(np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
     # Influences: the 4 nearest joint heads, weighted by inverse distance.
     head_array = np.array(heads)
     distance = np.linalg.norm(pts[:, None, :] - head_array[None], axis=-1)

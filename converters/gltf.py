@@ -437,7 +437,61 @@ def _check_counts(root, file: str) -> None:
                              location=f"/skins/{index}/joints", code="layout.size")
 
 
-def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None:
+def _extension_error(root) -> tuple | None:
+    """(pointer, problem) of the first ``extensions`` that is not an object of objects, or None.
+
+    glTF 2.0's schema makes every ``extensions`` property an object whose values (one per
+    extension) are objects; ``null`` is neither, so it is named here instead of reading as absent.
+    ``extras`` (application data, any JSON value) are not entered.
+    """
+    from vbusd.format.metadata import json_kind
+
+    pending = [("", root)]
+    while pending:   # iterative: JSON nesting must not become Python recursion
+        pointer, value = pending.pop()
+        if isinstance(value, list):
+            pending += [(f"{pointer}/{i}", item) for i, item in reversed(list(enumerate(value)))]
+            continue
+        if not isinstance(value, dict):
+            continue
+        children = []
+        for key, child in value.items():
+            where = pointer + json_pointer([key])
+            if key == "extras":
+                continue
+            if key == "extensions":
+                if not isinstance(child, dict):
+                    return where, f"extensions must be an object, found JSON {json_kind(child)}"
+                for name, body in child.items():
+                    if not isinstance(body, dict):
+                        return (where + json_pointer([name]),
+                                f"extension {name!r} must be an object, found JSON {json_kind(body)}")
+            children.append((where, child))
+        pending += reversed(children)
+    return None
+
+
+def _drop_foreign_extras(root: dict) -> bool:
+    """Remove, in place, every ``extras`` that is not an object; returns whether any was.
+
+    ``extras`` may hold any JSON value (glTF 2.0), but pygltflib reads them as objects and fails
+    on a list or a number with a bare exception; the converter never reads them.
+    """
+    dropped = False
+    pending = [root]
+    while pending:   # iterative: JSON nesting must not become Python recursion
+        value = pending.pop()
+        if isinstance(value, list):
+            pending += value
+        elif isinstance(value, dict):
+            if "extras" in value and not isinstance(value["extras"], dict):
+                del value["extras"]
+                dropped = True
+            pending += [child for key, child in value.items() if key != "extras"]
+    return dropped
+
+
+def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
     """Checks pygltflib cannot make, on the raw JSON, before it builds its objects.
 
     pygltflib fills a missing ``asset`` or ``asset.version`` with defaults and coerces typed
@@ -449,8 +503,14 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
         json_text: The JSON text (of the .gltf, or of the GLB's JSON chunk).
         file: The file, for messages.
         json_start: Byte offset of ``json_text`` in the file (20 in a GLB), for syntax errors.
+
+    Returns:
+        The JSON text for pygltflib: ``json_text``, or the document without its ``extras`` that
+        are not objects (:func:`_drop_foreign_extras`) when it has any.
     """
     import json
+
+    from vbusd.format.metadata import json_kind
 
     try:
         root = json.loads(json_text)
@@ -462,7 +522,10 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
         at = json_start + len(json_text[:getattr(exc, "pos", 0)].encode("utf-8"))
         raise InputError(f"not valid JSON: {getattr(exc, 'msg', exc)}", file=file,
                          location=f"byte {at}", code="gltf.json") from None
-    if isinstance(root, dict) and not isinstance(root.get("asset"), dict):
+    if not isinstance(root, dict):
+        raise InputError(f"a glTF document is a JSON object; this is JSON {json_kind(root)}", file=file,
+                         location="/", code="gltf.json")
+    if not isinstance(root.get("asset"), dict):
         raise InputError("asset is missing or not an object", file=file, location="/asset",
                          code="gltf.asset.version")
     _check_counts(root, file)
@@ -477,6 +540,11 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> None
     if "version" not in root["asset"]:
         raise InputError("asset.version is missing", file=file, location="/asset",
                          code="gltf.asset.version")
+    found = _extension_error(root)
+    if found is not None:
+        location, problem = found
+        raise InputError(problem, file=file, location=location, code="gltf.value")
+    return json.dumps(root) if _drop_foreign_extras(root) else json_text
 
 
 def json_text_of(data: bytes, file: str) -> str:
@@ -547,15 +615,14 @@ def load(path, options: ReadOptions | None = None):
     try:
         if data[:4] == _GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
-            _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
+            json_text = _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
             # pygltflib parses the JSON chunk found by the checked chunk walk above. Its own
             # load_from_bytes walks the chunks again without those checks: it decodes every chunk
             # type as UTF-8 text (an unknown type such as b"\\x80..." escapes as a bare
             # UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
             gltf = pygltflib.GLTF2.gltf_from_json(json_text)
         else:
-            json_text = json_text_of(data, file)
-            _check_raw_structure(json_text, file)
+            json_text = _check_raw_structure(json_text_of(data, file), file)
             gltf = pygltflib.GLTF2.gltf_from_json(json_text)
     except InputError:
         raise

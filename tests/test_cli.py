@@ -40,3 +40,97 @@ def test_bare_command_prints_help_and_exits_2(capsys):
     # A bare `vbusd` names no job: the help, as a usage error (issue 10), so scripts notice.
     assert main([]) == 2
     assert "Commands:" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------------------------
+# The options every command has (issue 24: `vbusd crowd -q` was "No such option")
+# ----------------------------------------------------------------------------------------------
+
+
+def _leaf_commands():
+    """(path, command) of every command of the click tree under ``vbusd``, groups walked."""
+    import click
+
+    from vbusd.cli import cli
+
+    found = []
+
+    def walk(group, path):
+        context = click.Context(group, info_name=path[-1])
+        for name in group.list_commands(context):
+            command = group.get_command(context, name)
+            if isinstance(command, click.Group):
+                walk(command, path + [name])
+            else:
+                found.append((" ".join(path + [name]), command))
+
+    walk(cli, ["vbusd"])
+    return found
+
+
+def _shared(decorator):
+    """The click parameter a shared option decorator (vbusd.cli.common) adds."""
+    import click
+
+    return click.command()(decorator(lambda **kwargs: None)).params[0]
+
+
+def _same(param, reference) -> list:
+    """What differs between a command's parameter and the shared one."""
+    keys = ("name", "opts", "secondary_opts", "is_flag", "default", "help", "multiple", "required")
+    differences = [k for k in keys if getattr(param, k, None) != getattr(reference, k, None)]
+    if getattr(param.type, "choices", None) != getattr(reference.type, "choices", None):
+        differences.append("choices")
+    return differences
+
+
+def test_every_command_has_the_options_every_command_has():
+    from vbusd.cli.common import force_option, format_option, quiet_option
+
+    commands = _leaf_commands()
+    assert {path.split()[-1] for path, _ in commands} == set(COMMANDS)
+    shared = {"--quiet": _shared(quiet_option), "--format": _shared(format_option), "--force": _shared(force_option)}
+    problems = []
+    for path, command in commands:
+        by_flag = {opt: p for p in command.params for opt in p.opts}
+        writes = "--output" in by_flag  # a command that writes files names them with -o/--output
+        for flag, reference in shared.items():
+            if flag == "--force" and not writes:
+                if flag in by_flag:
+                    problems.append(f"{path}: --force but it writes no file")
+                continue
+            param = by_flag.get(flag)
+            if param is None:
+                problems.append(f"{path}: no {flag}")
+            elif _same(param, reference):
+                problems.append(f"{path}: {flag} differs in {_same(param, reference)}")
+    assert not problems, "\n".join(problems)
+
+
+def test_quiet_prints_no_report_and_json_is_one_document(tmp_path, capsys):
+    """-q: nothing on stdout, the exit status tells; --format json: one JSON document."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    valid = Path(__file__).parent / "fixtures" / "validate" / "valid" / "quatTranslation_float16"
+    asset = tmp_path / "character" / "asset.usda"
+    shutil.copytree(valid, asset.parent)
+    crowd = tmp_path / "crowd.usda"
+    runs = [
+        (["validate", str(asset)], 0),
+        (["info", str(asset)], 0),
+        (["shader", "-o", str(tmp_path / "skin.glsl")], 0),
+        (["crowd", str(asset), "-o", str(crowd), "--count", "4"], 0),
+        (["export", str(asset), "-o", str(tmp_path / "asset.glb")], 0),
+    ]
+    for argv, status in runs:
+        assert main([*argv, "-q", "--force"] if "-o" in argv else [*argv, "-q"]) == status, argv
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err == "", (argv, captured)
+        assert main([*argv, "--format", "json", "--force"] if "-o" in argv else [*argv, "--format", "json"]) == status
+        json.loads(capsys.readouterr().out)
+    for sidecar in asset.parent.glob("asset.*.json"):
+        sidecar.write_text("null", encoding="utf-8")
+    assert main(["validate", str(asset), "-q"]) == 1  # invalid: only the exit status says so
+    assert capsys.readouterr().out == ""

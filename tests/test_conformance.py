@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -329,9 +330,41 @@ def test_shader_modules_reproduce_every_vector(gl, lang, path, tmp_path):
 
 def test_vectors_are_current():
     """The committed vectors are what spec/conformance/make_vectors.py writes (generator string aside)."""
-    result = subprocess.run(["python", str(FOLDER / "make_vectors.py"), "--check"], capture_output=True, text=True,
-                            timeout=600)
+    result = subprocess.run([sys.executable, str(FOLDER / "make_vectors.py"), "--check"], capture_output=True,
+                            text=True, timeout=600)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_the_check_compares_numbers_not_their_text(tmp_path, monkeypatch, capsys):
+    """numpy 2.4 computes a vector's tolerance.diagonal one bit apart (6.1913571590537355 against
+    6.191357159053735): the same number for the check; a change of 1e-9 of it is not."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_vectors", FOLDER / "make_vectors.py")
+    make_vectors = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_vectors)
+    folder = tmp_path / "conformance"
+    shutil.copytree(FOLDER, folder)
+    monkeypatch.setattr(make_vectors, "HERE", folder)
+    vector = folder / "crossMatrix-float16.json"
+    document = json.loads(vector.read_text(encoding="utf-8"))
+
+    def rewrite(change):
+        changed = json.loads(json.dumps(document))
+        change(changed)
+        vector.write_text(json.dumps(changed), encoding="utf-8")
+
+    def last_bit(d):
+        d["tolerance"]["diagonal"] = float(np.nextafter(d["tolerance"]["diagonal"], np.inf))
+        d["expected"][1]["positions"][0][0][0] = float(np.nextafter(d["expected"][1]["positions"][0][0][0], -np.inf))
+
+    rewrite(last_bit)
+    assert make_vectors.main(["--check"]) == 0, capsys.readouterr().out
+    rewrite(lambda d: d["tolerance"].__setitem__("diagonal", d["tolerance"]["diagonal"] * (1 + 1e-9)))
+    assert make_vectors.main(["--check"]) == 1
+    assert capsys.readouterr().out.strip() == "stale: crossMatrix-float16.json at /tolerance/diagonal"
+    rewrite(lambda d: d["instances"][0].__setitem__("clip", 1))  # integers compare exactly
+    assert make_vectors.main(["--check"]) == 1
 
 
 # ----------------------------------------------------------------------------------------------

@@ -222,8 +222,7 @@ def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
     # A folder is one vbusd line too (click's own check would print a three-line usage error).
     assert main(["info", str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err == f"vbusd: {tmp_path}: file: file.kind: is a folder; expected a USD file (.usd, .usda, " \
-                  ".usdc), an EXR or PNG texture, or a sidecar .json\n"
+    assert err.startswith(f"vbusd: {tmp_path}: file: file.kind: is a folder; expected ") and err.count("\n") == 1
 
 
 def _sample_with_texture_path(tmp_path, authored: str, folder: str = "."):

@@ -441,7 +441,7 @@ def test_texture_path_escape_is_refused(written):
     assert caught.value.code == "texture.outside"  # the code vbusd validate reports for it
     assert caught.value.location == "/VirtualBones/Fan/Anim.vb:texture"
     assert caught.value.file == str(written)
-    assert caught.value.message.endswith("(use --allow-outside-paths to allow it)")
+    assert caught.value.message.endswith("(pass allow_outside_paths=True to allow it)")  # the caller's words
     _one_line(caught.value)
     # The user may allow it; then the same texture reads fine.
     back = usd_io.read_asset(written, allow_outside_paths=True)
@@ -453,7 +453,7 @@ def test_absolute_texture_path_is_refused(written):
     _edit(written, "@./crowd.Anim.exr@", f"@{absolute}@")
     with pytest.raises(InputError, match="absolute") as caught:
         usd_io.read_asset(written)
-    assert caught.value.code == "texture.outside" and "--allow-outside-paths" in caught.value.message
+    assert caught.value.code == "texture.outside" and "allow_outside_paths=True" in caught.value.message
     assert usd_io.read_asset(written, allow_outside_paths=True).animations[0].texture == str(absolute)
 
 

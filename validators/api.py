@@ -1,7 +1,8 @@
 """Validate an asset: the library entry point behind ``vbusd validate``.
 
 :func:`validate` accepts a USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``), a texture
-(``.exr``, ``.png``, ``.ktx2``) or a sidecar (``.json``). It raises :class:`vbusd.format.errors.InputError` only when
+(``.exr``, ``.png``, ``.ktx2``), a sidecar (``.json``) or a runtime package (``.glb``, ``.gltf``:
+:mod:`vbusd.validators.checks_package`). It raises :class:`vbusd.format.errors.InputError` only when
 the asset cannot be opened at all (missing file, USD that does not parse, a texture or sidecar
 given on its own that cannot be decoded); everything wrong inside a readable asset is a finding.
 A check that fails unexpectedly becomes an ``asset.internal`` finding instead of a traceback, so
@@ -21,11 +22,12 @@ from vbusd.format import codes as _codes
 from vbusd.format.diagnostics import FileLocation, UsdSite, finding
 from vbusd.validators.report import Report, build_report
 
-__all__ = ["USD_SUFFIXES", "TEXTURE_SUFFIXES", "check_filters", "validate", "validate_findings",
+__all__ = ["USD_SUFFIXES", "TEXTURE_SUFFIXES", "PACKAGE_SUFFIXES", "check_filters", "validate", "validate_findings",
            "guarded", "open_stage", "validate_stage"]
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2", ".json")
+PACKAGE_SUFFIXES = (".glb", ".gltf")
 _UNREADABLE_ALONE = ("texture.unreadable", "texture.missing")
 
 
@@ -46,7 +48,7 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (),
     """Validate one asset.
 
     Args:
-        path: USD file, texture or sidecar.
+        path: USD file, texture, sidecar or runtime package.
         only: Report only these codes (or code prefixes).
         ignore: Do not report these codes (or code prefixes).
         max_issues: Report at most this many findings (counts still cover all).
@@ -79,6 +81,10 @@ def validate_findings(path) -> list:
     suffix = Path(path).suffix.lower()
     if suffix in TEXTURE_SUFFIXES:
         return _validate_texture(path)
+    if suffix in PACKAGE_SUFFIXES:
+        from vbusd.validators.checks_package import check_package
+
+        return check_package(path)
     return _validate_usd(path)
 
 
@@ -95,21 +101,15 @@ def guarded(check, *args, location=None):
 
 def _validate_texture(path: str) -> list:
     """A texture or sidecar given on its own: its own failure to open is exit 2, the rest findings."""
-    from vbusd.format.diagnostics import Diagnostics, location_parts
-    from vbusd.io.textures import read_sidecar_document
+    from vbusd.format.diagnostics import location_parts
     from vbusd.validators.checks_texture import check_texture_only
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
-        # A sidecar given on its own must at least be a JSON object; its texture may be gone
-        # (reported as a finding, the sidecar itself was readable). Broken JSON is raised below,
-        # from the finding the checks make of it.
+        # A sidecar given on its own must at least be a JSON object (the parser's metadata.json
+        # finding otherwise, raised below); its texture may be gone (reported as a finding, the
+        # sidecar itself was readable).
         fatal = ("metadata.json",)
-        diagnostics = Diagnostics(path)
-        value = read_sidecar_document(path, diagnostics)
-        if not diagnostics.findings and not isinstance(value, dict):
-            raise InputError(f"layout metadata must be a JSON object, this is a JSON {type(value).__name__}",
-                             file=path, location="/", code="metadata.json")
     findings = guarded(check_texture_only, path, location=FileLocation(path))
     given = os.path.normpath(path)
     for item in findings:

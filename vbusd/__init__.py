@@ -24,6 +24,46 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING
 
+
+def _alias_checkout_folders() -> None:
+    """Import ``vbusd.converters``, ``vbusd.validators`` and ``vbusd.schema`` from a checkout.
+
+    The wheel maps the repository's folders ``converters/``, ``validators/`` and ``schema/`` into
+    the package (pyproject.toml, ``package-dir``). Python run from the repository's root (what
+    docs/api.md tells a reader to do) imports this checkout's ``vbusd/`` folder instead of the
+    installed package, and there those three folders are siblings of ``vbusd/``, not inside it:
+    this finder maps exactly those three names to them, so the checkout imports the same way as
+    the installed package (and never half from another installed copy). Installed, the folders
+    are inside the package and nothing is added.
+    """
+    import importlib.abc
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parent
+    root = package.parent
+    folders = {f"{__name__}.{name}": root / name for name in ("converters", "validators", "schema")
+               if not (package / name).exists() and (root / name / "__init__.py").is_file()}
+    if not folders or not (root / "pyproject.toml").is_file():
+        return
+
+    class _CheckoutFolders(importlib.abc.MetaPathFinder):
+        """``vbusd.<folder>`` -> the checkout's ``<folder>/`` (its submodules then load normally)."""
+
+        def find_spec(self, fullname, path=None, target=None):
+            folder = folders.get(fullname)
+            if folder is None:
+                return None
+            return importlib.util.spec_from_file_location(fullname, folder / "__init__.py",
+                                                          submodule_search_locations=[str(folder)])
+
+    if not any(type(finder).__name__ == "_CheckoutFolders" for finder in sys.meta_path):
+        sys.meta_path.insert(0, _CheckoutFolders())
+
+
+_alias_checkout_folders()
+
 try:
     from importlib.metadata import version as _dist_version
 

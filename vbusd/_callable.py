@@ -6,7 +6,8 @@ package ``vbusd/decode/`` also holds the decoders). Python's import system sets 
 attribute to the submodule when the submodule is first imported, so which of the two
 ``vbusd.convert`` is would depend on import order. Making the module callable, forwarding to its
 function, removes that dependence: ``vbusd.convert(...)`` works either way, and
-``vbusd.decode.reference`` stays importable.
+``vbusd.decode.reference`` stays importable. ``help(vbusd.convert)`` and
+``inspect.signature(vbusd.convert)`` describe the function.
 """
 
 from __future__ import annotations
@@ -19,12 +20,36 @@ __all__ = ["make_callable"]
 
 
 class _CallableModule(types.ModuleType):
-    """A module whose call forwards to one function, found on first call."""
+    """A module whose call forwards to one function, found on first call.
+
+    What describes a callable describes the function: ``inspect.signature`` (IDEs, notebooks) gives
+    the function's signature, and the docstring ``help()`` and ``pydoc`` show starts with the
+    function's signature and docstring, then the module's own.
+    """
+
+    def _target(self):
+        module_name, _, function = self.__dict__["__call_target__"].rpartition(".")
+        return getattr(importlib.import_module(module_name), function)
 
     def __call__(self, *args, **kwargs):
-        target = self.__dict__.get("__call_target__")
-        module_name, _, function = target.rpartition(".")
-        return getattr(importlib.import_module(module_name), function)(*args, **kwargs)
+        return self._target()(*args, **kwargs)
+
+    @property
+    def __signature__(self):
+        import inspect
+
+        return inspect.signature(self._target())
+
+    @property
+    def __doc__(self):  # a data descriptor: found before the module's own __doc__ in its __dict__
+        import inspect
+
+        own = self.__dict__.get("__doc__") or ""
+        if "__call_target__" not in self.__dict__:
+            return own
+        target = self._target()
+        function = f"{target.__name__}{inspect.signature(target)}\n\n{inspect.getdoc(target) or ''}".rstrip()
+        return f"{function}\n\nThe module {self.__name__}: {inspect.cleandoc(own)}" if own else function
 
 
 def make_callable(module_name: str, target: str) -> None:

@@ -230,33 +230,57 @@ def read_manifest(path) -> list:
         :class:`BatchItem` objects whose ``output`` may be empty (the batch names it).
 
     Raises:
-        OptionsError: Unreadable manifest, a row without ``source``, an unknown option (code
+        OptionsError: Unreadable manifest, a row without ``source``, an unknown option, a JSON
+            value of the wrong kind (``null`` included: a key is left out, never null; an
+            ``options`` that is not an object, an ``output`` that is not a string) (code
             ``batch.manifest``), naming the manifest and the row.
     """
+    from vbusd.format.metadata import json_kind
+
     path = Path(path)
     base = path.parent
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte order mark (Windows editors) is dropped
     except (OSError, UnicodeDecodeError) as error:
         raise OptionsError(f"cannot read the manifest: {getattr(error, 'strerror', None) or error}",
                            file=str(path), code="batch.manifest") from None
     rows = []
     if path.suffix.lower() == ".json":
+        def refuse_constant(name):
+            raise ValueError(f"{name} is not JSON")
+
         try:
-            data = json.loads(text)
+            data = json.loads(text, parse_constant=refuse_constant)
         except json.JSONDecodeError as error:
             raise OptionsError(f"not JSON: {error.msg} at line {error.lineno}", file=str(path),
                                code="batch.manifest") from None
+        except (ValueError, RecursionError) as error:
+            raise OptionsError(f"not JSON: {error if isinstance(error, ValueError) else 'nested too deeply'}",
+                               file=str(path), code="batch.manifest") from None
         entries = data.get("assets") if isinstance(data, dict) else data
         if not isinstance(entries, list):
-            raise OptionsError('expected a list of assets (or {"assets": [...]})', file=str(path),
-                               code="batch.manifest")
+            found = f"JSON {json_kind(data)}" if not isinstance(data, dict) else \
+                ("no assets" if "assets" not in data else f'"assets" as JSON {json_kind(entries)}')
+            raise OptionsError(f'expected a list of assets (or {{"assets": [...]}}), found {found}',
+                               file=str(path), code="batch.manifest")
         for index, entry in enumerate(entries):
             where = f"{path}:/assets/{index}" if isinstance(data, dict) else f"{path}:/{index}"
             if isinstance(entry, str):
                 entry = {"source": entry}
             if not isinstance(entry, dict):
-                raise OptionsError("an asset must be an object with a source", file=where, code="batch.manifest")
+                raise OptionsError(f"an asset must be an object with a source (or a source's path), found "
+                                   f"JSON {json_kind(entry)}", file=where, code="batch.manifest")
+            options = entry.get("options", {})
+            if not isinstance(options, dict):
+                raise OptionsError(f"options must be an object, found JSON {json_kind(options)}",
+                                   file=f"{where}/options", code="batch.manifest")
+            for key, value in list(entry.items()) + [(f"options/{k}", v) for k, v in options.items()]:
+                if value is None:
+                    raise OptionsError(f"{key} is null: leave the key out to take the batch's value",
+                                       file=f"{where}/{key}", code="batch.manifest")
+            if "output" in entry and not isinstance(entry["output"], str):
+                raise OptionsError(f"output must be a path (a string), found JSON {json_kind(entry['output'])}",
+                                   file=f"{where}/output", code="batch.manifest")
             rows.append((where, dict(entry)))
     elif path.suffix.lower() == ".csv":
         reader = csv.DictReader(text.splitlines())

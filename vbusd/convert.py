@@ -36,7 +36,7 @@ import numpy as np
 
 from vbusd import _threads
 from vbusd.bake import BakeOptions, bake
-from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError
+from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
@@ -328,7 +328,7 @@ def check_output_path(source: Path, output: Path, *, force: bool, what: str = "o
     if source.exists() and output.exists() and output.resolve() == source.resolve():
         raise OptionsError(f"the {what} would overwrite the {source_what}", file=str(output))
     if output.exists() and not force:
-        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+        raise OptionsError(f"the output exists; {FORCE_HINT}", file=str(output))
 
 
 def _dual_quaternion_meshes(scene: SourceScene, index: int, animation: SkinnedAnimation) -> tuple[list, list]:
@@ -361,8 +361,8 @@ def _check_texture_files(scene: SourceScene, output: Path, options: ConvertOptio
         recover(output, in_use=asset_files_in_use)
     for path in _texture_files(scene, output, options):
         if path.exists():
-            raise OptionsError(f"{path.name} exists beside the output and would be replaced; pass --force "
-                               "to replace it", file=str(output))
+            raise OptionsError(f"{path.name} exists beside the output and would be replaced; {FORCE_HINT}",
+                               file=str(output))
 
 
 def bake_animation(scene: SourceScene, index: int, options: ConvertOptions) -> tuple[VirtualBones, str, list]:
@@ -683,7 +683,7 @@ def _write_checked(scene: SourceScene, baked: list, output: Path, options: Conve
     if progress:
         progress("write", 0, 1)
     if output.exists() and not options.force:  # it may have appeared while we worked
-        raise OptionsError("the output exists; pass --force to replace it", file=str(output))
+        raise OptionsError(f"the output exists; {FORCE_HINT}", file=str(output))
     _check_texture_files(scene, output, options)
     created = make_folders(output.parent)
     try:

@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import FORCE_HINT, OUTSIDE_PATHS_HINT, InputError, OptionsError
 from vbusd.format.names import unique_names
 
 __all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
@@ -55,6 +55,8 @@ class CrowdOptions:
         yaw: (min, max) degrees about the up axis, uniform.
         scale: (min, max) uniform scale.
         seed: Seed of every random choice.
+        force: Replace an existing output (as :class:`vbusd.convert.ConvertOptions`).
+        allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
     """
 
     layout: str = "grid"
@@ -68,6 +70,8 @@ class CrowdOptions:
     yaw: tuple = (0.0, 360.0)
     scale: tuple = (1.0, 1.0)
     seed: int = 0
+    force: bool = False
+    allow_outside_paths: bool = False
 
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
@@ -300,28 +304,28 @@ def _relative_reference(character: Path, output: Path, allow_outside_paths: bool
     relative = os.path.relpath(character.resolve(), output.resolve().parent)
     if relative.startswith("..") and not allow_outside_paths:
         raise OptionsError(f"character {character} lies outside the crowd's folder {output.resolve().parent}; "
-                           "write the crowd beside or above its characters, or pass --allow-outside-paths",
+                           f"write the crowd beside or above its characters, or {OUTSIDE_PATHS_HINT}",
                            file="crowd")
     return Path(relative).as_posix() if not relative.startswith("..") else str(character.resolve())
 
 
-def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptions(), *, force: bool = False,
-                allow_outside_paths: bool = False) -> CrowdReport:
+def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptions(), *,
+                force: Optional[bool] = None, allow_outside_paths: Optional[bool] = None) -> CrowdReport:
     """Write a USD crowd of converted characters.
 
     Args:
         characters: Paths of Virtual Bones assets (what ``vbusd convert`` writes); each one's first
             animation and its bound meshes are instanced.
         output: The crowd layer to write (``.usda``, ``.usdc`` or ``.usd``).
-        options: Placement, clips, ranges and seed.
-        force: Replace an existing output.
-        allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
+        options: Placement, clips, ranges and seed; ``options.force`` replaces an existing output.
+        force: Kept for callers of earlier versions: when given, it sets ``options.force``.
+        allow_outside_paths: Likewise for ``options.allow_outside_paths``.
 
     Returns:
         A :class:`CrowdReport`.
 
     Raises:
-        OptionsError: Bad options, no characters, an existing output without ``force``.
+        OptionsError: Bad options, no characters, an existing output without ``options.force``.
         InputError: A character that cannot be read or has nothing to instance; bad points file.
 
     Example:
@@ -336,13 +340,19 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     from vbusd.io.usd import PRIMVAR_CLIP, PRIMVAR_PLAYBACK_RATE, PRIMVAR_TIME_OFFSET, REL_ANIMATION
 
     start = time.perf_counter()
+    if force is not None or allow_outside_paths is not None:
+        import dataclasses
+
+        options = dataclasses.replace(options, **{k: bool(v) for k, v in (("force", force), (
+            "allow_outside_paths", allow_outside_paths)) if v is not None})
+    force, allow_outside_paths = options.force, options.allow_outside_paths
     output = Path(output)
     if not characters:
         raise OptionsError("give at least one character asset", file="crowd")
     if output.suffix.lower() not in (".usda", ".usdc", ".usd"):
         raise OptionsError(f"the crowd must be a .usda, .usdc or .usd file, got {output.name!r}", file="crowd")
     if output.exists() and not force:
-        raise OptionsError(f"{output} exists; pass --force to replace it", file="crowd")
+        raise OptionsError(f"{output} exists; {FORCE_HINT}", file="crowd")
     if options.characters is not None and len(options.characters) != len(characters):
         raise OptionsError(f"{len(options.characters)} character weights for {len(characters)} characters",
                            file="crowd")

@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import FORCE_HINT, InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.format.names import unique_names
@@ -376,7 +376,7 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
     if output.is_dir():
         raise OptionsError("the output is a folder; name the .usda to write", file=str(output))
     if output.exists() and not force:
-        raise OptionsError(f"{output.name} exists; pass --force to replace it", file=str(output))
+        raise OptionsError(f"{output.name} exists; {FORCE_HINT}", file=str(output))
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise OptionsError(f"--duration must be a positive number of seconds, got {duration!r}", file=str(output))
     if not any(vb.meshes for vb in asset.animations):

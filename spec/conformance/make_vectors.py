@@ -11,7 +11,8 @@ computes ``tau = timeOffset + playbackRate * time`` in binary32 gets the same cl
 reference, and the tolerances measure only the decoder's arithmetic.
 
 Usage (from the repository root): ``python spec/conformance/make_vectors.py`` rewrites the
-vectors; ``--check`` only compares them with what it would write (exit 1 on a difference).
+vectors; ``--check`` only compares them with what it would write (exit 1 on a difference): as
+numbers, floats within :data:`CHECK_TOLERANCE`, not as text.
 """
 
 from __future__ import annotations
@@ -176,6 +177,30 @@ def write_all(folder: Path) -> list[Path]:
     return written
 
 
+CHECK_TOLERANCE = 1e-12
+"""``--check`` compares numbers, not their text: two floats agree when they differ by at most this
+fraction of the larger magnitude (or of 1 below it). A float64 result may change in its last bits
+with the numpy release (a norm, a matrix product summed in another order); 1e-12 is a millionth of
+the smallest conformance tolerance, so a vector whose content changed is still stale."""
+
+
+def differences(fresh, old, pointer: str = "") -> list[str]:
+    """JSON pointers where two parsed vectors differ: strings, integers, booleans and shapes
+    exactly, floats within :data:`CHECK_TOLERANCE`."""
+    if isinstance(fresh, dict) and isinstance(old, dict):
+        if fresh.keys() != old.keys():
+            return [f"{pointer or '/'} (keys)"]
+        return [d for key in fresh for d in differences(fresh[key], old[key], f"{pointer}/{key}")]
+    if isinstance(fresh, list) and isinstance(old, list):
+        if len(fresh) != len(old):
+            return [f"{pointer} (length)"]
+        return [d for i, (a, b) in enumerate(zip(fresh, old)) for d in differences(a, b, f"{pointer}/{i}")]
+    numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (fresh, old))
+    if numbers and (isinstance(fresh, float) or isinstance(old, float)):
+        return [] if abs(fresh - old) <= CHECK_TOLERANCE * max(1.0, abs(fresh), abs(old)) else [pointer]
+    return [] if type(fresh) is type(old) and fresh == old else [pointer]
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="compare with the committed vectors, write nothing")
@@ -193,8 +218,9 @@ def main(argv=None) -> int:
                 old = json.loads(committed.read_text()) if committed.is_file() else None
                 for document in (fresh, old or {}):
                     document.get("layout", {}).pop("generator", None)
-                if fresh != old:
-                    stale.append(path.name)
+                where = differences(fresh, old) if old is not None else ["(missing)"]
+                if where:
+                    stale.append(f"{path.name} at {', '.join(where[:5])}{' ...' if len(where) > 5 else ''}")
         for name in stale:
             print(f"stale: {name}")
         return 1 if stale else 0

@@ -21,8 +21,8 @@ __all__ = ["COMMANDS", "BUG_REPORT_HINT", "INTERNAL_ERROR_STATUS", "cli", "main"
 COMMANDS = {
     "convert": "Convert a UsdSkel or glTF asset into a Virtual Bones asset.",
     "decode": "Decode a Virtual Bones asset into a USD point cache any viewer plays.",
-    "info": "Print the texture layout of a Virtual Bones asset.",
-    "validate": "Validate a Virtual Bones asset and report findings with codes.",
+    "info": "Describe a Virtual Bones asset, texture or runtime package: texture layouts and crowds.",
+    "validate": "Validate a Virtual Bones asset, texture or runtime package: findings with codes.",
     "shader": "Write a reference vertex shader for an encoding and texel format.",
     "export": "Export an asset or crowd for engines: a glTF 2.0 runtime package (.glb, .gltf).",
     "crowd": "Build a USD crowd of converted characters on a point instancer.",
@@ -133,7 +133,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         with np.errstate(all="ignore"), _signals.handling_signals():
             result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
-        _echo_error(f"vbusd: {error}")
+        from vbusd.cli.common import command_line_spelling
+
+        _echo_error(f"vbusd: {command_line_spelling(str(error))}")  # force=True -> --force
         return error.exit_status
     except click.exceptions.Exit as done:
         return int(done.exit_code or 0)

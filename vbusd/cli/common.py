@@ -2,7 +2,9 @@
 
 One home for these, so that the commands behave alike: a progress bar on stderr only when it is a
 terminal (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
-(:func:`terminate_as_interrupt`), ``--quiet`` (:data:`quiet_option`, :func:`warn`), JSON in one key
+(:func:`terminate_as_interrupt`), the options every command has (:data:`quiet_option`,
+:data:`format_option`, and :data:`force_option` where it writes; tests/test_cli.py walks the command
+tree and checks them), warnings (:func:`warn`), JSON in one key
 style (:func:`echo_json`, camelCase with rounded times through :mod:`vbusd.format.jsonform`) and text
 tables that fit 80 columns by wrapping, never cutting, a code, path or number (:func:`console`).
 """
@@ -18,8 +20,8 @@ import click
 
 from vbusd.format.jsonform import json_text
 
-__all__ = ["TEXT_WIDTH", "progress_bar", "terminate_as_interrupt", "quiet_option", "warn", "echo_json",
-           "console", "table"]
+__all__ = ["TEXT_WIDTH", "progress_bar", "terminate_as_interrupt", "quiet_option", "format_option", "force_option",
+           "warn", "echo_json", "console", "table", "command_line_spelling"]
 
 TEXT_WIDTH = 80
 """Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log)."""
@@ -27,14 +29,38 @@ TEXT_WIDTH = 80
 
 quiet_option = click.option(
     "-q", "--quiet", is_flag=True,
-    help="Print nothing but errors (one line each): no warnings, no summary, no progress bar.")
-"""The ``--quiet`` flag of the commands that write files (convert, decode)."""
+    help="Print no report, summary, warning or progress bar; errors still print, one line each, and the "
+         "exit status tells the outcome.")
+"""``-q/--quiet``: every command has it, with this meaning (what a command produces on stdout as its
+job, such as ``vbusd shader``'s module without ``-o``, is not a report and still prints)."""
+
+format_option = click.option(
+    "--format", "output_format", type=click.Choice(["text", "json"]), default="text", show_default=True,
+    help="Print the report as text, or as one JSON document (camelCase keys) on stdout.")
+"""``--format text|json``: every command has it, with this meaning."""
+
+force_option = click.option("--force", is_flag=True, help="Replace existing output files.")
+"""``--force``: every command that writes files (it has ``-o/--output``) has it, with this meaning."""
+
+
+def command_line_spelling(text: str) -> str:
+    """``text`` (a library message) with options spelled as the command line spells them.
+
+    Library messages name what a caller of the function sets (``pass force=True to replace it``);
+    a command's user sets a flag (``--force``). :data:`vbusd.format.errors.COMMAND_LINE_SPELLINGS`
+    lists the spellings.
+    """
+    from vbusd.format.errors import COMMAND_LINE_SPELLINGS
+
+    for library, command_line in COMMAND_LINE_SPELLINGS.items():
+        text = text.replace(library, command_line)
+    return text
 
 
 def warn(message: str, *, quiet: bool = False) -> None:
     """Print ``vbusd: warning: MESSAGE`` on stderr, unless ``quiet``."""
     if not quiet:
-        click.echo(f"vbusd: warning: {message}", err=True)
+        click.echo(f"vbusd: warning: {command_line_spelling(message)}", err=True)
 
 
 def echo_json(value) -> None:

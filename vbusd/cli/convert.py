@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import click
 
-from vbusd.cli.common import console, echo_json, progress_bar, quiet_option, terminate_as_interrupt, warn
+from vbusd.cli.common import (command_line_spelling, console, echo_json, force_option, format_option, progress_bar,
+                              quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 
 __all__ = ["command", "print_summary"]
@@ -60,10 +61,9 @@ def _check_rows(value: str):
 @click.option("--container", default=None, type=click.Choice(["exr", "png", "ktx2"]),
               help="Texture container: exr for float16/float32, png for unorm16, ktx2 (KTX 2.0) for "
                    "any (default: follows --texel-format).")
-@click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]),
-              help="Summary as a table or as JSON on stdout.")
+@format_option
 @click.option("--allow-outside-paths", is_flag=True, help="Let the source reference files outside its folder.")
-@click.option("--force", is_flag=True, help="Replace an existing output.")
+@force_option
 @click.option("--check-rows", default="256", show_default=True, metavar="N|all",
               help="Rows per clip compared with the source's own skinning (0 skips the check).")
 @click.option("--loop", "loop_mode", default="auto", show_default=True, type=click.Choice(["auto", "loop", "clamp"]),
@@ -184,16 +184,21 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
         report = run_batch(items, values, jobs=jobs, scheduler=scheduler, cache=cache_dir, use_cache=not no_cache,
                            force=force, progress=progress, stall_timeout=stall_timeout)
+    for asset in report.assets:  # the library's force=True is the command line's --force
+        if asset.error:
+            asset.error = command_line_spelling(asset.error)
     if report_file is not None:
         make_folders(Path(report_file).parent)
         with atomic_write(report_file, "w", encoding="utf-8") as stream:
             stream.write(json_text(report.to_dict()) + "\n")
-    if output_format == "json":
+    if quiet:
+        pass  # no report: only the failed assets' lines below, and the exit status
+    elif output_format == "json":
         echo_json(report.to_dict())
-    elif not quiet:
+    else:
         print_batch(report)
     for asset in report.assets:  # each failed asset's one-line error, unwrapped, on stderr (--quiet too)
-        if asset.status == "failed" and output_format != "json":
+        if asset.status == "failed" and (quiet or output_format != "json"):
             click.echo(f"vbusd: {asset.error}", err=True)
     return report.exit_status
 

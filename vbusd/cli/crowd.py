@@ -9,6 +9,7 @@ import json
 
 import click
 
+from vbusd.cli.common import force_option, format_option, quiet_option
 from vbusd.format.errors import OptionsError
 
 __all__ = ["command"]
@@ -65,11 +66,12 @@ class _CrowdCommand(click.Command):
 @click.option("--scale", nargs=2, type=float, default=(1.0, 1.0), show_default=True, metavar="MIN MAX",
               help="Range of uniform scales.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed: the same seed gives the same file, byte for byte.")
-@click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]))
-@click.option("--force", is_flag=True, help="Replace an existing output.")
+@format_option
+@force_option
 @click.option("--allow-outside-paths", is_flag=True, help="Let the crowd reference characters outside its folder.")
+@quiet_option
 def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
-            yaw, scale, seed, output_format, force, allow_outside_paths):
+            yaw, scale, seed, output_format, force, allow_outside_paths, quiet):
     """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
     from vbusd.crowd import CrowdOptions, build_crowd, parse_weights
 
@@ -77,8 +79,11 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
                            clips=parse_weights(clips) if clips else {},
                            characters=_weights(character_weights, "--character-weights"),
                            time_offset=_pair(time_offset, "--time-offset"), playback_rate=_pair(rate, "--rate"),
-                           yaw=_pair(yaw, "--yaw"), scale=_pair(scale, "--scale"), seed=seed)
-    report = build_crowd(characters, output, options, force=force, allow_outside_paths=allow_outside_paths)
+                           yaw=_pair(yaw, "--yaw"), scale=_pair(scale, "--scale"), seed=seed, force=force,
+                           allow_outside_paths=allow_outside_paths)
+    report = build_crowd(characters, output, options)
+    if quiet:
+        return 0
     if output_format == "json":
         click.echo(json.dumps(report.to_dict(), indent=2))
         return 0

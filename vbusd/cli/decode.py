@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import click
 
-from vbusd.cli.common import echo_json, progress_bar, quiet_option, terminate_as_interrupt, warn
+from vbusd.cli.common import (echo_json, force_option, format_option, progress_bar, quiet_option,
+                              terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
 
 __all__ = ["command"]
@@ -24,8 +25,8 @@ __all__ = ["command"]
 @click.option("--device", default=None, metavar="cpu|cuda",
               help="Decode with the warp kernels on this device (default: the numpy reference decoder).")
 @click.option("--clip", default=None, metavar="NAME|INDEX", help="Clip to play (default: clip 0 of every animation).")
-@click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]))
-@click.option("--force", is_flag=True, help="Replace an existing output.")
+@format_option
+@force_option
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
 @click.option("--crowd", "crowds", is_flag=True,
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>. "

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import click
 
-from vbusd.format.errors import OptionsError
+from vbusd.cli.common import force_option, format_option, quiet_option, warn
+from vbusd.format.errors import FORCE_HINT, OptionsError
 
 __all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
 
@@ -42,7 +43,7 @@ def _export_usdskel(asset_path: Path, output: Path, options: dict) -> dict:
         raise OptionsError("--supercompression applies to the glTF runtime package, not to --as usdskel",
                            file=str(output))
     if output.exists() and not options["force"]:  # before reading the asset: nothing to do
-        raise OptionsError(f"{output.name} exists; pass --force to replace it", file=str(output))
+        raise OptionsError(f"{output.name} exists; {FORCE_HINT}", file=str(output))
     asset = read_asset(asset_path, allow_outside_paths=options["allow_outside_paths"])
     report = export_usdskel(asset, output, source=asset_path, force=options["force"],
                             duration=options["duration"])
@@ -70,11 +71,11 @@ FORM_OF_SUFFIX = {".glb": "gltf", ".gltf": "gltf"}
                    "KTX2Loader decodes it; needs the zstandard package).")
 @click.option("--duration", default=None, type=float, metavar="SECONDS",
               help="--as usdskel: stage seconds the fallback plays (default: clip 0's duration).")
-@click.option("--format", "output_format", default="text", show_default=True, type=click.Choice(["text", "json"]),
-              help="Report as text or as JSON on stdout.")
-@click.option("--force", is_flag=True, help="Replace existing output files.")
+@format_option
+@force_option
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
-def command(asset, output, form, supercompression, duration, output_format, force, allow_outside_paths):
+@quiet_option
+def command(asset, output, form, supercompression, duration, output_format, force, allow_outside_paths, quiet):
     """Export a Virtual Bones asset or crowd for engines (glTF 2.0) or Hydra renderers (UsdSkel)."""
     output_path = Path(output)
     if form is None:
@@ -89,11 +90,13 @@ def command(asset, output, form, supercompression, duration, output_format, forc
     report = EXPORTERS[form](Path(asset), output_path,
                              {"supercompression": supercompression, "force": force,
                               "allow_outside_paths": allow_outside_paths, "duration": duration})
+    if quiet:
+        return 0
     if output_format == "json":
         click.echo(json.dumps(report, indent=2))
         return 0
     for warning in report.get("warnings", ()):
-        click.echo(f"vbusd: warning: {warning}", err=True)
+        warn(warning)
     files = ", ".join(f"{Path(path).name} ({size / 1024:.1f} KiB)" for path, size in report["files"].items())
     click.echo(f"wrote {files}")
     return 0

@@ -8,7 +8,12 @@ ASSET may be:
   references and payloads, must stay inside the asset's folder unless ``--allow-outside-paths``);
 * a texture (``.exr``, ``.png`` or ``.ktx2``, recognized by its magic bytes): described from its embedded
   metadata; the header is checked but pixels are not decoded (``vbusd validate`` checks them);
-* a sidecar ``<texture>.json``.
+* a sidecar ``<texture>.json``;
+* the runtime package ``vbusd export`` writes (``.glb``, ``.gltf``): its animations (from the
+  ``VBUSD_virtual_bones`` extension), meshes and crowds (spec/runtime-package.md).
+
+USD files and packages also list their crowds: each point instancer (USD) or
+``EXT_mesh_gpu_instancing`` node (glTF) with its instance count, prototypes and clips played.
 """
 
 from __future__ import annotations
@@ -23,15 +28,18 @@ from vbusd.format.errors import InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
 
-__all__ = ["USD_SUFFIXES", "describe", "asset_info", "command"]
+__all__ = ["USD_SUFFIXES", "PACKAGE_SUFFIXES", "describe", "asset_info", "command"]
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+PACKAGE_SUFFIXES = (".glb", ".gltf")
+EXTENSION_NAME = "VBUSD_virtual_bones"
 
 _HELP = """Print the texture layout of a Virtual Bones asset.
 
 ASSET is a Virtual Bones USD file (every VirtualBonesAnimation prim is described from its vb:*
-attributes), a texture (.exr, .png or .ktx2, from its embedded metadata; pixels are not decoded) or a
-sidecar <texture>.json.
+attributes), a texture (.exr, .png or .ktx2, from its embedded metadata; pixels are not decoded), a
+sidecar <texture>.json, or the runtime package vbusd export writes (.glb, .gltf). USD files and
+packages also list their crowds: instances, prototypes and the clips they play.
 
 The text form shows, per animation: encoding, texel format, bones, rows, used and padded width,
 height, texel bytes, padding waste and the clips.
@@ -39,7 +47,7 @@ height, texel bytes, padding waste and the clips.
 The JSON form (--format json) is one object:
 
 \b
-  {"file": ASSET, "kind": "usd" | "texture" | "sidecar",
+  {"file": ASSET, "kind": "usd" | "texture" | "sidecar" | "package",
    "animations": [{"path", "texture", "formatVersion", "encoding",
                    "texelFormat", "boneCount", "texelsPerBone", "bones",
                    "rowCount", "usedWidth", "width", "height",
@@ -48,10 +56,18 @@ The JSON form (--format json) is one object:
                    "contentDigest", "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
-  A texture's animation also has "container" (exr | png),
+  A texture's animation also has "container" (exr | png | ktx2),
   "compression" and "warnings" (notes that did not stop reading).
   A USD asset also has "upAxis" (Y | Z) and "metersPerUnit": the
   stage's scene units (text: "scene: Z up, 1 unit = 0.01 m").
+  A USD asset or package also has "instances" (all crowds) and
+  "crowds": [{"path", "animation", "instances",
+              "prototypes": [{"path", "instances"}],
+              "clips": {NAME: instances}}].
+  A package also has "container" (glb | gltf), "extensionVersion",
+  "meshes": [{"name", "primitives", "vertices", "animation"}],
+  "characters" (nodes drawing one character) and, per animation,
+  "name".
 
 When there is exactly one animation its keys are repeated at the top level, so
 `vbusd info anim.exr --format json | jq .width` works; with several, use
@@ -110,14 +126,60 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     with its schema type, consistent sizes and clips, layers and ``vb:texture`` inside the asset's
     folder), but the textures are not opened.
     """
-    from vbusd.io.usd import read_animation_attributes
+    from vbusd.io.usd_reader import read_summary
 
-    animations = read_animation_attributes(path, allow_outside_paths=allow_outside_paths)
+    animations, crowds = read_summary(path, allow_outside_paths=allow_outside_paths)
     for animation in animations:
         _check_texture(path, animation)
-    return [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
-                     format_version=a.format_version, content_digest=a.content_digest)
-            for a in animations]
+    described = [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
+                          format_version=a.format_version, content_digest=a.content_digest)
+                 for a in animations]
+    return described, [{"path": c.path, "animation": c.animation, "instances": c.instances,
+                        "prototypes": [{"path": p, "instances": n} for p, n in c.prototypes], "clips": c.clips}
+                       for c in crowds]
+
+
+# --------------------------------------------------------------------------------------------
+# Runtime package (.glb, .gltf)
+# --------------------------------------------------------------------------------------------
+
+
+def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
+    """Describe a runtime package: its animations (layouts from the extension), meshes and crowds.
+
+    Read strictly with :func:`vbusd.io.package_reader.read_package` (its structure, the extension
+    against its schema, the crowds' instance attributes); the KTX2 textures are located, not
+    decoded (``vbusd validate`` checks them).
+    """
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.io.package_reader import EXTENSION, read_package
+
+    file = str(path)
+    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths,
+                           textures=False)
+    animations = []
+    for animation in package.animations:
+        info = md.from_dict(animation.layout, file=file,
+                            location_prefix=f"/extensions/{EXTENSION}/animations/{animation.index}/layout")
+        entry = {"name": animation.name, **describe(info.layout, info.clips, bones=info.bones, path=animation.path,
+                                                    texture=animation.texture, format_version=info.format_version,
+                                                    content_digest=info.content_digest)}
+        animations.append(entry)
+    names = {a.index: a.name for a in package.animations}
+    crowds = []
+    for crowd in package.crowds:
+        clips = animations[[a.index for a in package.animations].index(crowd.animation)]["clips"] \
+            if crowd.animation in names else []
+        counts = {}
+        if crowd.clips is not None and clips:
+            counts = {c["name"]: int((crowd.clips == i).sum()) for i, c in enumerate(clips)}
+        crowds.append({"path": crowd.node, "animation": names.get(crowd.animation), "instances": crowd.instances,
+                       "prototypes": [{"path": crowd.mesh, "instances": crowd.instances}], "clips": counts})
+    return {"animations": animations, "crowds": crowds, "container": package.container,
+            "extensionVersion": package.version,
+            "meshes": [{"name": name, "primitives": primitives, "vertices": vertices,
+                        "animation": names.get(animation)} for name, primitives, vertices, animation in package.meshes],
+            "characters": package.characters}
 
 
 def _stage_units(path: Path) -> dict:
@@ -179,14 +241,15 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
     path = Path(asset)
     file = str(asset)
     if path.is_dir():
-        raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR or PNG "
-                         "texture, or a sidecar .json", file=file, location="file", code="file.kind")
+        raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR, PNG or KTX2 "
+                         "texture, a sidecar .json or a runtime package (.glb, .gltf)", file=file, location="file", code="file.kind")
     if not path.exists():
         raise InputError("file not found", file=file, location="file", code="file.missing")
     if not path.is_file():  # a named pipe would block the first read; devices are no assets
         raise InputError("not a regular file (a pipe, device or socket)", file=file,
                          location="file", code="file.kind")
     suffix = path.suffix.lower()
+    crowds, extra = None, {}
     if suffix == ".json":
         kind = "sidecar"
         info = textures.read_sidecar(path)
@@ -194,13 +257,18 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         animations = [_describe_info(info, texture=texture)]
     elif suffix in USD_SUFFIXES:
         kind = "usd"
-        animations = _usd_animations(path, allow_outside_paths=allow_outside_paths)
+        animations, crowds = _usd_animations(path, allow_outside_paths=allow_outside_paths)
+    elif suffix in PACKAGE_SUFFIXES:
+        kind = "package"
+        extra = _package(path, allow_outside_paths=allow_outside_paths)
+        animations, crowds = extra.pop("animations"), extra.pop("crowds")
     else:
         try:
             container = textures.sniff_container(path)
         except InputError:
             raise InputError("not a Virtual Bones asset: expected a USD file (.usd, .usda, .usdc, "
-                             ".usdz), an EXR, PNG or KTX2 texture, or a sidecar .json", file=file,
+                             ".usdz), an EXR, PNG or KTX2 texture, a sidecar .json or a runtime package "
+                             "(.glb, .gltf)", file=file,
                              location="byte 0", code="file.kind") from None
         kind = "texture"
         header = textures.read_texture_header(path)
@@ -209,6 +277,10 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         animations[0]["compression"] = header.compression
         animations[0]["warnings"] = list(header.warnings)
     result = {"file": file, "kind": kind, "animations": animations}
+    if crowds is not None:
+        result["crowds"] = crowds
+        result["instances"] = sum(c["instances"] for c in crowds)
+    result.update(extra)
     if kind == "usd":
         result.update(_stage_units(path))
     if len(animations) == 1:
@@ -218,6 +290,7 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
 
 
 def _print_text(result: dict) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     console = common.console()
@@ -225,14 +298,20 @@ def _print_text(result: dict) -> None:
                   f"{len(result['animations'])} animation{'s' if len(result['animations']) != 1 else ''})")
     if "upAxis" in result:
         console.print(f"scene: {result['upAxis']} up, 1 unit = {result['metersPerUnit']:g} m")
+    if result["kind"] == "package":
+        meshes = result["meshes"]
+        console.print(f"package: {result['container']}, {EXTENSION_NAME} version {result['extensionVersion']}, "
+                      f"{len(meshes)} mesh{'es' if len(meshes) != 1 else ''} "
+                      f"({sum(m['primitives'] for m in meshes)} primitives, {sum(m['vertices'] for m in meshes):,} "
+                      "vertices)", markup=False)
     for animation in result["animations"]:
-        title = animation["path"] or animation["texture"] or "animation"
+        title = animation.get("name") or animation["path"] or animation["texture"] or "animation"
         table = Table(title=title, title_justify="left", show_header=False, box=None,
                       pad_edge=False)
         table.add_column("key", style="bold", no_wrap=True)
         table.add_column("value", overflow="fold")  # wraps at spaces, never an ellipsis
         if animation["path"] and animation["texture"]:
-            table.add_row("texture", animation["texture"])
+            table.add_row("texture", escape(animation["texture"]))  # "PACKAGE.glb[bufferView 3]" is no markup
         if animation.get("container"):
             table.add_row("container", f"{animation['container']} ({animation['compression']})")
         table.add_row("encoding", animation["encoding"])
@@ -256,19 +335,42 @@ def _print_text(result: dict) -> None:
                           f"{clip['rowsPerSecond']:g}", "yes" if clip["loop"] else "no",
                           f"{clip['duration']:.4g}")
         console.print(clips)
+    _print_crowds(console, result)
+
+
+def _print_crowds(console, result: dict) -> None:
+    """The crowds table (USD files and packages): instances, prototypes, clips played."""
+    from rich.markup import escape
+
+    if "crowds" not in result:
+        return
+    crowds = result["crowds"]
+    console.print(f"crowds: {len(crowds)}, {result['instances']:,} instances", markup=False)
+    if not crowds:
+        return
+    grid = common.table("crowd", "instances", "animation", "prototypes", "clips", right=("instances",),
+                        pad_edge=False)
+    for crowd in crowds:
+        prototypes = ", ".join(f"{p['path']} ({p['instances']:,})" for p in crowd["prototypes"])
+        clips = ", ".join(f"{name} {n:,}" for name, n in crowd["clips"].items())
+        grid.add_row(*(escape(text) for text in (crowd["path"], f"{crowd['instances']:,}", str(crowd["animation"]),
+                                                 prototypes, clips)))
+    console.print(grid)
 
 
 @click.command("info", help=_HELP)
 # A plain path: asset_info reports a missing file or a folder as one vbusd error line (exit 2),
 # where click.Path would print its own three-line usage error.
 @click.argument("asset", type=click.Path(path_type=str))
-@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
-              show_default=True, help="Output form.")
+@common.format_option
 @click.option("--allow-outside-paths", is_flag=True,
               help="Let a USD asset's layers and vb:texture lie outside its folder.")
-def command(asset: str, output_format: str, allow_outside_paths: bool) -> int:
+@common.quiet_option
+def command(asset: str, output_format: str, allow_outside_paths: bool, quiet: bool) -> int:
     """Print the texture layout of ASSET (see the module docstring)."""
     result = asset_info(asset, allow_outside_paths=allow_outside_paths)
+    if quiet:  # it could be read and described: exit 0 (an unreadable asset was one line, exit 2)
+        return 0
     if output_format == "json":
         common.echo_json(result)
     else:

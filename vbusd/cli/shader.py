@@ -10,7 +10,8 @@ from pathlib import Path
 
 import click
 
-from vbusd.format.errors import OptionsError, VbusdError
+from vbusd.cli.common import echo_json, force_option, format_option, quiet_option
+from vbusd.format.errors import FORCE_HINT, OptionsError, VbusdError
 from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
@@ -42,11 +43,15 @@ def _integer(value: str, option: str) -> int:
 @click.option("--no-main", is_flag=True, help="Emit only the functions, without the example entry point.")
 @click.option("-o", "--output", metavar="FILE",
               help="File to write, atomically; missing folders are created (default: standard output).")
-@click.option("--force", is_flag=True, help="Replace an existing output file.")
-def command(lang, encoding, texel_format, max_influences, max_clips, no_main, output, force):
+@force_option
+@format_option
+@quiet_option
+def command(lang, encoding, texel_format, max_influences, max_clips, no_main, output, force, output_format, quiet):
     """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
 
-    The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md.
+    The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md. Without -o
+    the module goes to standard output (with --format json, as the "source" of one JSON object);
+    with -o it is written to FILE and the report says so.
     """
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
@@ -59,10 +64,23 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, ou
                 message = option + message[len(field):]
         raise OptionsError(message, file="shader") from None
     source = generate(options)
-    if output is None:
-        click.echo(source, nl=False)
+    described = {"lang": options.lang, "encoding": Encoding(options.encoding).value,
+                 "texelFormat": TexelFormat(options.texel_format).value, "maxInfluences": options.max_influences,
+                 "maxClips": options.max_clips, "main": options.main}
+    if output is None:  # the module is what this command prints: -q does not hold it back
+        if output_format == "json":
+            echo_json({**described, "source": source})
+        else:
+            click.echo(source, nl=False)
         return 0
     write_text(Path(output), source, force=force)
+    if quiet:
+        return 0
+    size = Path(output).stat().st_size
+    if output_format == "json":
+        echo_json({**described, "output": output, "bytes": size})
+    else:
+        click.echo(f"wrote {output} ({size} bytes)")
     return 0
 
 
@@ -78,7 +96,7 @@ def write_text(target: Path, text: str, *, force: bool) -> None:
     if target.is_dir():
         raise OptionsError("the output is a folder; name the file to write", file=str(target))
     if target.exists() and not force:
-        raise OptionsError("the output exists; pass --force to replace it", file=str(target))
+        raise OptionsError(f"the output exists; {FORCE_HINT}", file=str(target))
     created = make_folders(target.parent)
     try:
         # Under the output's lock, the existence check repeated (spec, "File names and the write

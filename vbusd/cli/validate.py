@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import click
 
+from vbusd.cli.common import format_option, quiet_option
+
 __all__ = ["command"]
 
 
@@ -23,22 +25,25 @@ def _split(values) -> tuple:
 # dir_okay=True on purpose: a folder (or a missing file) is reported by the validator itself as one
 # line "vbusd: FILE: CODE: message" with exit 2, not by click's multi-line usage error.
 @click.argument("asset", type=click.Path(dir_okay=True, path_type=str))
-@click.option("--format", "output_format", type=click.Choice(["text", "json"]), default="text",
-              show_default=True, help="Report format (json follows schema/validation-report.schema.json).")
+@format_option  # the JSON report follows schema/validation-report.schema.json
 @click.option("--only", multiple=True, metavar="CODE",
               help="Report only this code or code prefix (repeat or separate with commas).")
 @click.option("--ignore", multiple=True, metavar="CODE",
               help="Do not report this code or code prefix (repeat or separate with commas).")
 @click.option("--max-issues", type=click.IntRange(min=0), default=None, metavar="N",
               help="Report at most N findings (the counts still cover all of them).")
-def command(asset: str, output_format: str, only, ignore, max_issues) -> int:
-    """Validate ASSET (a .usd/.usda/.usdc/.usdz file, a texture or its sidecar .json).
+@quiet_option
+def command(asset: str, output_format: str, only, ignore, max_issues, quiet) -> int:
+    """Validate ASSET (a .usd/.usda/.usdc/.usdz file, a texture, its sidecar .json, or the runtime package
+    .glb/.gltf that vbusd export writes).
 
     Exit status 0: no errors; 1: errors; 2: the asset cannot be read.
     """
     from vbusd.validators.api import validate
 
     report = validate(asset, only=_split(only), ignore=_split(ignore), max_issues=max_issues)
+    if quiet:  # the exit status says it: 0 valid, 1 errors (2, unreadable, was one line on stderr)
+        return report.exit_status
     if output_format == "json":
         click.echo(report.to_json_text())
     else:

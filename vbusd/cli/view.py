@@ -12,6 +12,7 @@ import threading
 
 import click
 
+from vbusd.cli.common import echo_json, format_option, quiet_option
 from vbusd.format.errors import OptionsError
 
 __all__ = ["command"]
@@ -23,8 +24,14 @@ __all__ = ["command"]
               help="TCP port on 127.0.0.1 (0: any free port; the address is printed).")
 @click.option("--no-browser", is_flag=True, help="Do not open a browser; only print the address.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
-def command(asset, port, no_browser, allow_outside_paths):
-    """Serve a Virtual Bones asset, crowd or runtime package (.glb/.gltf) in a browser viewer."""
+@format_option
+@quiet_option
+def command(asset, port, no_browser, allow_outside_paths, output_format, quiet):
+    """Serve a Virtual Bones asset, crowd or runtime package (.glb/.gltf) in a browser viewer.
+
+    The address is printed once the server listens (--format json: {"asset", "url"}); it writes no
+    file, so it has no --force.
+    """
     from vbusd.web.server import ViewerServer
 
     try:
@@ -36,13 +43,19 @@ def command(asset, port, no_browser, allow_outside_paths):
     import webbrowser  # before the server's threads start: no import beside them (vbusd/_threads.py)
 
     server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths).start()
-    click.echo(f"vbusd view: {asset} at {server.url} (Ctrl-C stops)")
+    if quiet:
+        pass
+    elif output_format == "json":
+        echo_json({"asset": asset, "url": server.url})
+    else:
+        click.echo(f"vbusd view: {asset} at {server.url} (Ctrl-C stops)")
     try:
         if not no_browser:
             webbrowser.open(server.url)
         threading.Event().wait()
     except KeyboardInterrupt:
-        click.echo("vbusd view: stopped", err=True)
+        if not quiet:
+            click.echo("vbusd view: stopped", err=True)
     finally:
         server.stop()
     return 0

@@ -125,7 +125,8 @@ _FINDINGS = (
     Code("metadata.missing", E, "The texture holds no layout metadata (EXR header attribute or PNG iTXt "
          "chunk vbusd.layout); a sidecar <texture>.json alone is not enough.", f"{_VB}#layout-metadata",
          "file"),
-    Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON.", f"{_VB}#layout-metadata",
+    Code("metadata.json", E, "Layout metadata is not valid UTF-8 JSON, or is JSON but not an object (null, "
+         "an array, a number, a string or a boolean).", f"{_VB}#layout-metadata",
          "file"),
     Code("metadata.duplicate", E, "The texture holds more than one vbusd.layout metadata chunk.",
          f"{_VB}#png", "file"),
@@ -220,6 +221,24 @@ _FINDINGS = (
          "crossfade) is outside [0, 1]; decoders clamp it.", f"{_VB}#instancing", "usd"),
 )
 """Codes ``vbusd validate`` reports about an asset: each has a golden fixture in tests/fixtures/validate."""
+
+_RUNTIME_PACKAGE = "runtime-package.md"
+_FINDINGS += (
+    # runtime package (a .glb or .gltf that vbusd export wrote)
+    Code("package.extension", E, "The VBUSD_virtual_bones extension is missing, not listed in extensionsUsed, "
+         "listed in extensionsRequired, or its root or primitive object violates "
+         "schema/VBUSD_virtual_bones.schema.json.", f"{_RUNTIME_PACKAGE}#extension", "json"),
+    Code("package.texture", E, "An animation's texture buffer view does not exist, has a byteStride or target, "
+         "or (in a .glb) does not start at a multiple of 16 bytes.", f"{_RUNTIME_PACKAGE}#root", "json"),
+    Code("package.layout", E, "An animation's layout differs from the vbusd.layout entry of its KTX2 texture.",
+         f"{_RUNTIME_PACKAGE}#root", "json"),
+    Code("package.primitive", E, "A bound primitive names an animation that does not exist, lacks a "
+         "_VB_JOINTS_n or _VB_WEIGHTS_n attribute its influences need, has one with another vertex count, or "
+         "a bone index outside the animation's bones.", f"{_RUNTIME_PACKAGE}#meshes", "json"),
+    Code("package.instances", E, "A crowd node lacks _VB_CLIP, _VB_TIME_OFFSET or _VB_PLAYBACK_RATE, has "
+         "instance attributes of different counts, a clip the animation does not have, or a time offset or "
+         "rate that is not finite.", f"{_RUNTIME_PACKAGE}#nodes", "json"),
+)
 
 _COMMAND_ERRORS = (
     # ---- errors a command stops on (exit 2): files, options, baking, decoding ----

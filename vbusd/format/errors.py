@@ -6,7 +6,18 @@ exits with :attr:`VbusdError.exit_status`; the library never calls ``sys.exit``.
 
 from __future__ import annotations
 
-__all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError"]
+__all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError", "FORCE_HINT",
+           "OUTSIDE_PATHS_HINT", "COMMAND_LINE_SPELLINGS"]
+
+FORCE_HINT = "pass force=True to replace it"
+"""How an error about an existing output says to replace it: in the library's words (the field of
+an options object, or the keyword of a function without one); the command line shows ``--force``."""
+
+OUTSIDE_PATHS_HINT = "pass allow_outside_paths=True to allow it"
+"""How an error about a path outside the asset's folder says to allow it (``--allow-outside-paths``)."""
+
+COMMAND_LINE_SPELLINGS = {"force=True": "--force", "allow_outside_paths=True": "--allow-outside-paths"}
+"""The library's spelling of an option in a message -> the command line's, which ``vbusd`` prints."""
 
 
 class VbusdError(Exception):

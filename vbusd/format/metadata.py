@@ -40,7 +40,7 @@ from vbusd.format.model import Clip, VirtualBones
 __all__ = ["FORMAT_NAME", "SCHEMA_RESOURCE", "DIGEST_PREFIX", "LayoutInfo", "content_digest",
            "layout_fields", "to_dict", "dumps", "json_pointer", "MAX_METADATA_BYTES",
            "parse_document", "check_schema", "check_relations", "check_document", "upgrade",
-           "raise_summary", "from_dict", "parse_json", "loads"]
+           "raise_summary", "from_dict", "parse_json", "loads", "json_kind"]
 
 FORMAT_NAME = "vbusd.virtualBones"
 """Value of the ``format`` key: says what the JSON is, before any version is looked at."""
@@ -250,7 +250,9 @@ def parse_document(text, diagnostics: Diagnostics, *, file=None, within: str = "
         what: What the text is, for messages (``"sidecar"``...).
 
     Returns:
-        The parsed value (any JSON value; :func:`check_document` checks it), or None.
+        The parsed JSON object (a dict; :func:`check_document` checks it), or None: the text is not
+        JSON, or its value is not an object (``null``, a list, a number, a string or a boolean are
+        ``metadata.json`` findings too, so a ``null`` document never reads as "no document").
     """
     file = diagnostics.file if file is None else str(file)
     if isinstance(text, (bytes, bytearray)):
@@ -265,7 +267,7 @@ def parse_document(text, diagnostics: Diagnostics, *, file=None, within: str = "
                                FileLocation(file, error.start))
             return None
     try:
-        return json.loads(text, parse_constant=_refuse_constant)
+        value = json.loads(text, parse_constant=_refuse_constant)
     except json.JSONDecodeError as error:
         where = f"{within} line {error.lineno} column {error.colno}".strip()
         diagnostics.report("metadata.json", f"{what} is not valid JSON: {error.msg}",
@@ -276,7 +278,26 @@ def parse_document(text, diagnostics: Diagnostics, *, file=None, within: str = "
     except RecursionError:  # Python's parser recurses per nesting level; metadata is 4 deep
         diagnostics.report("metadata.json", f"{what} is nested too deeply to be Virtual Bones "
                            "metadata", FileLocation(file, part=within or "/"))
+    else:
+        if isinstance(value, dict):
+            return value
+        diagnostics.report("metadata.json", f"{what} must be a JSON object; this is JSON "
+                           f"{json_kind(value)}", FileLocation(file, part=within or "/"))
     return None
+
+
+def json_kind(value) -> str:
+    """The JSON name of a parsed value's type: ``null``, ``boolean``, ``number``, ``string``,
+    ``array`` or ``object`` (for messages about a value of the wrong kind)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, (int, float)):
+        return "number"
+    if isinstance(value, str):
+        return "string"
+    return "array" if isinstance(value, list) else "object"
 
 
 def _refuse_constant(name: str):

@@ -70,7 +70,7 @@ from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
 from vbusd import _signals
-from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
 
 __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
            "FAULT_ENV", "FAULT_TRACE_ENV", "fault_point", "LOCK_TIMEOUT_S", "OutputLocked",
@@ -579,7 +579,7 @@ class Commit:
         try:
             self._recover()
             if not self._replace and os.path.lexists(self.target):
-                raise OptionsError("the output exists; pass --force to replace it", file=str(self.target))
+                raise OptionsError(f"the output exists; {FORCE_HINT}", file=str(self.target))
         except BaseException:
             self._lock.release()
             raise

@@ -27,7 +27,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import InputError, OptionsError, VbusdError
+from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
@@ -335,7 +335,7 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     if not force:
         for name in [output.name] + [name for name, _ in buffers if name is not None]:
             if output.with_name(name).exists():
-                raise OptionsError(f"{name} exists; pass --force to replace it", file=str(output))
+                raise OptionsError(f"{name} exists; {FORCE_HINT}", file=str(output))
     created = make_folders(output.parent)
     try:
         # One commit (spec/virtual-bones.md, "File names and the write guarantee"): under the

@@ -38,14 +38,14 @@ import numpy as np
 from vbusd.format import names
 from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
-from vbusd.format.errors import InputError, VbusdError, VersionError
+from vbusd.format.errors import OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
-__all__ = ["AnimationAttributes", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
-           "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
+__all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
+           "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
            "file_dependencies"]
 
@@ -54,9 +54,8 @@ PathLike = Union[str, os.PathLike]
 READ_SUFFIXES = (".usda", ".usdc", ".usd")
 """What :func:`read_asset` reads (``vbusd validate`` and the converters also open ``.usdz``)."""
 USD_SUFFIXES = (".usda", ".usdc", ".usd", ".usdz")
-OUTSIDE_PATHS_HINT = "use --allow-outside-paths to allow it"
-"""Added to path refusals: every command reading with this module (info, decode, convert) has the
-option, as ``read_asset(..., allow_outside_paths=True)`` has in Python."""
+# OUTSIDE_PATHS_HINT (vbusd.format.errors, re-exported): added to path refusals; every command reading
+# with this module (info, decode, convert) has the option, as read_asset(..., allow_outside_paths=True).
 WEIGHT_SUM_TOLERANCE = 1e-3
 """Largest |sum of a point's weights - 1| a reader accepts (spec 14)."""
 
@@ -1272,7 +1271,7 @@ def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = Fal
     """The checked attributes of every ``VirtualBonesAnimation`` prim of a USD file, textures unread.
 
     The file is opened and every prim checked as :func:`read_asset` does; the textures are located,
-    not opened. ``vbusd info`` uses it.
+    not opened.
 
     Returns:
         One :class:`AnimationAttributes` per animation prim, in stage order.
@@ -1281,11 +1280,65 @@ def read_animation_attributes(path: PathLike, *, allow_outside_paths: bool = Fal
         InputError: As :func:`read_asset` (``asset.empty`` when there is no animation prim).
         VersionError: A newer format version than this reader knows.
     """
+    return read_summary(path, allow_outside_paths=allow_outside_paths)[0]
+
+
+@dataclass(frozen=True)
+class CrowdSummary:
+    """A point instancer with ``VirtualBonesInstancingAPI``, read and checked as :func:`read_asset` reads it.
+
+    Attributes:
+        path: Its prim path.
+        animation: The animation prim its ``vb:animation`` targets.
+        prototypes: ``(prototype prim path, instances drawing it)`` in ``prototypes`` order.
+        instances: How many instances it places.
+        clips: Clip name -> instances playing it (clip order).
+    """
+
+    path: str
+    animation: str
+    prototypes: tuple
+    instances: int
+    clips: dict
+
+
+def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[list, list]:
+    """What ``vbusd info`` describes of a USD file: every animation prim's attributes
+    (:func:`read_animation_attributes`) and every crowd (:class:`CrowdSummary`), textures unread.
+
+    Raises:
+        InputError: As :func:`read_asset`, for the animation prims and the crowds.
+        VersionError: A newer format version than this reader knows.
+    """
     diagnostics = Diagnostics(path, strict=True)
     with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
-        found = [reader.guard(prim, reader.animation_attributes, prim) for prim in reader.animation_prims()]
+        prims = reader.animation_prims()
+        found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
+        by_path = {str(prim.GetPath()): i for i, prim in enumerate(prims)}
+        crowds = []
+        UsdGeom = _pxr()[3]
+        for prim in reader.walk():
+            if not (prim.IsA(UsdGeom.PointInstancer) and names.INSTANCING_API in _applied_schemas(prim)):
+                continue
+            index = reader.guard(prim, reader.animation_target, prim, by_path, "instancer.animation",
+                                 names.INSTANCING_API)
+            animation = found[index] if index is not None else None
+            if animation is None:
+                continue
+            crowd = reader.guard(prim, reader.read_crowd, prim, len(animation.clips))
+            if crowd is None:
+                continue
+            instancer = UsdGeom.PointInstancer(prim)
+            targets = [str(t) for t in instancer.GetPrototypesRel().GetForwardedTargets()]
+            indices = np.asarray(instancer.GetProtoIndicesAttr().Get() or [], dtype=np.int64)
+            drawn = np.bincount(indices[(indices >= 0) & (indices < len(targets))], minlength=len(targets))
+            clips = np.bincount(crowd.clip, minlength=len(animation.clips))
+            crowds.append(CrowdSummary(
+                path=crowd.path, animation=animation.path, instances=int(crowd.instance_count),
+                prototypes=tuple((t, int(n)) for t, n in zip(targets, drawn)),
+                clips={clip.name: int(n) for clip, n in zip(animation.clips, clips)}))
         reader.report_usd_messages()
-    return found
+    return found, crowds
 
 
 def read_asset(path: PathLike, *, allow_outside_paths: bool = False,

@@ -1,0 +1,404 @@
+"""Reading the glTF runtime package that ``vbusd export`` writes (spec/runtime-package.md).
+
+:func:`read_package` reads a ``.glb`` or ``.gltf`` and reports what is wrong into a
+:class:`~vbusd.format.diagnostics.Diagnostics` list, as the texture and USD readers do: strict for
+``vbusd info`` (the first error raises), lenient for ``vbusd validate`` (every problem is a
+finding). It checks
+
+* the container and the glTF JSON with the glTF converter's own reader
+  (:func:`vbusd.converters.gltf.load`: GLB chunks, JSON types, buffers and their URIs);
+* the ``VBUSD_virtual_bones`` extension: listed in ``extensionsUsed``, never required, the root
+  object and every primitive object against ``schema/VBUSD_virtual_bones.schema.json`` (the layout
+  against the layout metadata schema it references) (``package.extension``, ``metadata.schema``);
+* each animation's texture: its buffer view (no stride, no target, 16-byte aligned in a ``.glb``;
+  ``package.texture``), the KTX2 file it holds with every check of a KTX2 texture
+  (:func:`vbusd.validators.checks_texture.check_texture_file` does those for ``vbusd validate``),
+  and the extension's ``layout`` against the KTX2 file's own (``package.layout``);
+* each bound primitive: its animation exists, its ``_VB_JOINTS_n`` / ``_VB_WEIGHTS_n`` pairs are
+  there for its influences, with as many vertices as ``POSITION`` and bone indices below the
+  animation's bone count (``package.primitive``);
+* each crowd node (``EXT_mesh_gpu_instancing`` on a mesh bound to an animation): the three ``_VB_``
+  instance attributes, one value per instance, clips that the animation has, finite times and
+  rates (``package.instances``).
+
+Locations are JSON pointers into the package's JSON (the ``.gltf``, or the ``.glb``'s JSON chunk).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
+from vbusd.format.errors import InputError, VbusdError
+from vbusd.format.metadata import json_kind, json_pointer
+
+__all__ = ["SUFFIXES", "PackageAnimation", "PackageCrowd", "Package", "read_package"]
+
+SUFFIXES = (".glb", ".gltf")
+EXTENSION = "VBUSD_virtual_bones"
+INSTANCING = "EXT_mesh_gpu_instancing"
+INSTANCE_ATTRIBUTES = ("_VB_CLIP", "_VB_TIME_OFFSET", "_VB_PLAYBACK_RATE")
+_ROOT = f"/extensions/{EXTENSION}"
+
+
+@dataclass
+class PackageAnimation:
+    """One entry of the root object's ``animations``.
+
+    Attributes:
+        index: Its index.
+        name: Its name.
+        path: The USD prim path it came from, if given.
+        layout: The layout metadata document of the extension.
+        texture: How findings name its KTX2 file (the ``.ktx2`` beside a ``.gltf``, or
+            ``PACKAGE.glb[bufferView N]``).
+        ktx2: The KTX2 file's bytes, when its buffer view could be read.
+    """
+
+    index: int
+    name: str
+    path: Optional[str]
+    layout: dict
+    texture: str = ""
+    ktx2: Optional[bytes] = None
+
+
+@dataclass
+class PackageCrowd:
+    """A node instancing a bound mesh with ``EXT_mesh_gpu_instancing``.
+
+    Attributes:
+        node: The node's name.
+        mesh: The mesh's name (the prototype every instance draws).
+        animation: The index of the animation its primitives play.
+        instances: The instance count.
+        clips: The clip index of each instance (None when ``_VB_CLIP`` is missing).
+    """
+
+    node: str
+    mesh: str
+    animation: int
+    instances: int
+    clips: Optional[np.ndarray] = None
+
+
+@dataclass
+class Package:
+    """What :func:`read_package` read.
+
+    Attributes:
+        file: The package as findings name it.
+        container: ``glb`` or ``gltf``.
+        version: The extension's version.
+        animations: The root object's animations whose entry follows the schema.
+        meshes: Per mesh, ``(name, primitive count, vertex count, animation index or None)``.
+        crowds: The crowd nodes.
+        characters: Nodes drawing a bound mesh once (no instancing), by name.
+    """
+
+    file: str
+    container: str
+    version: Optional[int] = None
+    animations: list = field(default_factory=list)
+    meshes: list = field(default_factory=list)
+    crowds: list = field(default_factory=list)
+    characters: list = field(default_factory=list)
+
+
+@functools.lru_cache(maxsize=1)
+def _validators():
+    """JSON Schema validators of the root object and of ``$defs/primitive`` (schema checked once)."""
+    import importlib.resources
+
+    import jsonschema
+    import referencing
+
+    schemas = [json.loads((importlib.resources.files("vbusd.schema") / name).read_text(encoding="utf-8"))
+               for name in ("VBUSD_virtual_bones.schema.json", "layout-metadata.schema.json")]
+    for schema in schemas:
+        jsonschema.Draft202012Validator.check_schema(schema)
+    registry = referencing.Registry().with_resources(
+        [(s["$id"], referencing.Resource.from_contents(s)) for s in schemas])
+    root = jsonschema.Draft202012Validator(schemas[0], registry=registry)
+    primitive = jsonschema.Draft202012Validator({"$ref": schemas[0]["$id"] + "#/$defs/primitive"},
+                                                registry=registry)
+    return root, primitive
+
+
+def _schema(validator, value, pointer: str, file: str, diagnostics: Diagnostics) -> bool:
+    """Report every schema violation under ``pointer``; the layout's own as ``metadata.schema``."""
+    errors = sorted(validator.iter_errors(value), key=lambda e: (list(map(str, e.absolute_path)), e.message))
+    for error in errors:
+        parts = list(error.absolute_path)
+        in_layout = len(parts) >= 3 and parts[0] == "animations" and parts[2] == "layout"
+        message = " ".join(error.message.split())
+        message = (message[:297] + "...") if len(message) > 300 else message
+        diagnostics.report("metadata.schema" if in_layout else "package.extension",
+                           f"{message} (schema rule {error.validator})",
+                           JsonPointer(file, pointer + json_pointer(parts)))
+    return not errors
+
+
+def _parse(path: Path, file: str) -> dict:
+    """The package's JSON as parsed by the glTF reader (a bad container or JSON raises: exit 2)."""
+    from vbusd.converters.gltf import json_text_of
+
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise InputError(f"cannot read the file: {error.strerror or error}", file=file, code="file.unreadable") \
+            from None
+    text = json_text_of(data, file)
+    try:
+        root = json.loads(text)
+    except (ValueError, RecursionError) as error:
+        raise InputError(f"not valid JSON: {getattr(error, 'msg', error)}", file=file, code="gltf.json") from None
+    if not isinstance(root, dict):
+        raise InputError(f"a glTF document is a JSON object; this is JSON {json_kind(root)}", file=file,
+                         location="/", code="gltf.json")
+    return root
+
+
+def _check_extension(root: dict, file: str, diagnostics: Diagnostics) -> Optional[dict]:
+    """The extension's listing and objects; returns the root object when it follows the schema."""
+    used = root.get("extensionsUsed")
+    if not (isinstance(used, list) and EXTENSION in used):
+        diagnostics.report("package.extension", f"{EXTENSION} is not listed in extensionsUsed",
+                           JsonPointer(file, "/extensionsUsed"))
+    required = root.get("extensionsRequired")
+    if isinstance(required, list) and EXTENSION in required:
+        diagnostics.report("package.extension", f"{EXTENSION} is listed in extensionsRequired; it must only be "
+                           "used, so that a loader without it still draws the rest pose",
+                           JsonPointer(file, f"/extensionsRequired/{required.index(EXTENSION)}"))
+    root_validator, primitive_validator = _validators()
+    meshes = root.get("meshes")
+    for m, mesh in enumerate(meshes if isinstance(meshes, list) else ()):
+        primitives = mesh.get("primitives") if isinstance(mesh, dict) else None
+        for p, primitive in enumerate(primitives if isinstance(primitives, list) else ()):
+            extensions = primitive.get("extensions") if isinstance(primitive, dict) else None
+            if isinstance(extensions, dict) and EXTENSION in extensions:
+                _schema(primitive_validator, extensions[EXTENSION],
+                        f"/meshes/{m}/primitives/{p}/extensions/{EXTENSION}", file, diagnostics)
+    extensions = root.get("extensions")
+    if not isinstance(extensions, dict) or EXTENSION not in extensions:
+        where = "/extensions" if isinstance(extensions, dict) or "extensions" in root else ""
+        diagnostics.report("package.extension", f"no {EXTENSION} object at the root: this is not a Virtual Bones "
+                           "runtime package (vbusd convert reads a glTF character; vbusd export writes the "
+                           "package)", JsonPointer(file, where or "/extensions"))
+        return None
+    value = extensions[EXTENSION]
+    if not isinstance(value, dict):
+        diagnostics.report("package.extension", f"{EXTENSION} must be an object, found JSON {json_kind(value)}",
+                           JsonPointer(file, _ROOT))
+        return None
+    _schema(root_validator, value, _ROOT, file, diagnostics)
+    return value
+
+
+def _texture_name(gltf, view_index: int, data: bytes, file: str) -> str:
+    """How findings name a texture: the ``.ktx2`` file a whole external buffer is, else the view."""
+    import urllib.parse
+
+    view = gltf.bufferViews[view_index]
+    buffer = gltf.buffers[view.buffer] if view.buffer < len(gltf.buffers) else None
+    uri = getattr(buffer, "uri", None)
+    if uri and not uri.startswith("data:") and not (view.byteOffset or 0) and buffer.byteLength == len(data):
+        return urllib.parse.unquote(uri)
+    return f"{file}[bufferView {view_index}]"
+
+
+def _read_texture(gltf, reader, entry: dict, index: int, binary: bool, file: str,
+                  diagnostics: Diagnostics) -> tuple[Optional[bytes], str]:
+    """The bytes of one animation's KTX2 file, with its buffer view checked (``package.texture``)."""
+    where = f"{_ROOT}/animations/{index}/texture/bufferView"
+    view_index = entry["texture"]["bufferView"]
+    if view_index >= len(gltf.bufferViews):
+        diagnostics.report("package.texture", f"buffer view {view_index} does not exist (the package has "
+                           f"{len(gltf.bufferViews)})", JsonPointer(file, where))
+        return None, ""
+    view = gltf.bufferViews[view_index]
+    at_view = JsonPointer(file, f"/bufferViews/{view_index}")
+    if view.byteStride is not None or view.target is not None:
+        diagnostics.report("package.texture", "the texture's buffer view has a byteStride or a target: it holds "
+                           "a whole KTX2 file, not vertex data", at_view)
+    if binary and view.buffer == 0 and (view.byteOffset or 0) % 16:
+        diagnostics.report("package.texture", f"the texture's buffer view starts at byte {view.byteOffset} of the "
+                           "BIN chunk, not at a multiple of 16", at_view)
+    try:
+        data = bytes(reader.view(view_index, where)[0])
+    except InputError as error:
+        diagnostics.report(error.code, error.message, JsonPointer(file, error.location or where))
+        return None, ""
+    return data, _texture_name(gltf, view_index, data, file)
+
+
+def _count(root: dict, accessor) -> Optional[int]:
+    """The ``count`` of accessor ``accessor`` in the raw JSON, or None for a bad index."""
+    accessors = root.get("accessors") or []
+    if isinstance(accessor, int) and not isinstance(accessor, bool) and 0 <= accessor < len(accessors):
+        return accessors[accessor].get("count")
+    return None
+
+
+def _check_primitives(root: dict, reader, animations: list, file: str, diagnostics: Diagnostics,
+                      package: Package, decode: bool) -> dict:
+    """``package.primitive`` for every bound primitive; returns mesh index -> animation index."""
+    bound = {}
+    declared = len(root["extensions"][EXTENSION].get("animations") or ())
+    for m, mesh in enumerate(root.get("meshes") or []):
+        vertices, playing = 0, None
+        primitives = mesh.get("primitives") or []
+        for p, primitive in enumerate(primitives):
+            ext = (primitive.get("extensions") or {}).get(EXTENSION)
+            attributes = primitive.get("attributes") or {}
+            count = _count(root, attributes.get("POSITION")) or 0
+            vertices += count
+            if not isinstance(ext, dict) or not _validators()[1].is_valid(ext):
+                continue  # not bound, or its object broke the schema (reported)
+            where = f"/meshes/{m}/primitives/{p}"
+            index = ext["animation"]
+            if index >= declared:
+                diagnostics.report("package.primitive", f"animation {index} does not exist (the package has "
+                                   f"{declared})", JsonPointer(file, f"{where}/extensions/{EXTENSION}/animation"))
+                continue
+            playing = index
+            animation = next((a for a in animations if a.index == index), None)
+            bones = animation.layout.get("boneCount") if animation is not None else None
+            for n in range(-(-ext["influences"] // 4)):
+                for name in (f"_VB_JOINTS_{n}", f"_VB_WEIGHTS_{n}"):
+                    accessor = attributes.get(name)
+                    if accessor is None:
+                        diagnostics.report("package.primitive", f"{ext['influences']} influences need {name}, which "
+                                           "the primitive does not have", JsonPointer(file, f"{where}/attributes"))
+                        continue
+                    at = JsonPointer(file, f"{where}/attributes/{name}")
+                    values = _count(root, accessor)
+                    if values is None:
+                        continue  # the glTF reader reports a bad index
+                    if values != count:
+                        diagnostics.report("package.primitive", f"{name} has {values} values for {count} vertices", at)
+                    elif decode and name.startswith("_VB_JOINTS") and isinstance(bones, int):
+                        try:
+                            indices = reader.read(accessor, f"/accessors/{accessor}")
+                        except InputError as error:
+                            diagnostics.report(error.code, error.message,
+                                               JsonPointer(file, error.location or f"/accessors/{accessor}"))
+                            continue
+                        bad = (indices < 0) | (indices >= bones)
+                        if bad.any():
+                            vertex = int(np.argwhere(bad)[0][0])
+                            diagnostics.report("package.primitive", f"bone index {int(indices[bad].flat[0])} of "
+                                               f"vertex {vertex} is outside 0..{bones - 1}", at)
+        package.meshes.append((mesh.get("name") or f"mesh{m}", len(primitives), vertices, playing))
+        if playing is not None:
+            bound[m] = playing
+    return bound
+
+
+def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, diagnostics: Diagnostics,
+                 package: Package) -> None:
+    """``package.instances`` for every crowd node; collects crowds and single characters."""
+    for n, node in enumerate(root.get("nodes") or []):
+        if node.get("mesh") not in bound:
+            continue
+        name = node.get("name") or f"node{n}"
+        mesh = int(node["mesh"])
+        mesh_name = package.meshes[mesh][0]
+        ext = (node.get("extensions") or {}).get(INSTANCING)
+        if not isinstance(ext, dict) or not isinstance(ext.get("attributes"), dict):
+            package.characters.append(name)
+            continue
+        where = f"/nodes/{n}/extensions/{INSTANCING}/attributes"
+        attributes = ext["attributes"]
+        counts = {k: c for k, c in ((k, _count(root, v)) for k, v in attributes.items()) if c is not None}
+        instances = counts.get("TRANSLATION", max(counts.values(), default=0))
+        for key, count in counts.items():
+            if count != instances:
+                diagnostics.report("package.instances", f"{key} has {count} values for {instances} instances",
+                                   JsonPointer(file, f"{where}/{key}"))
+        animation = next((a for a in animations if a.index == bound[mesh]), None)
+        clip_count = len(animation.layout.get("clips") or ()) if animation is not None else None
+        values = {}
+        for key in INSTANCE_ATTRIBUTES:
+            if key not in attributes:
+                diagnostics.report("package.instances", f"the crowd has no {key} (every crowd node carries "
+                                   f"{', '.join(INSTANCE_ATTRIBUTES)})", JsonPointer(file, where))
+                continue
+            if counts.get(key) != instances:
+                continue
+            try:
+                values[key] = reader.read(attributes[key], f"{where}/{key}").reshape(-1)
+            except InputError as error:
+                diagnostics.report(error.code, error.message, JsonPointer(file, error.location or f"{where}/{key}"))
+        for key, array in values.items():
+            bad = ~np.isfinite(array)
+            if key == "_VB_CLIP" and isinstance(clip_count, int):
+                bad |= (array != np.round(array)) | (array < 0) | (array >= clip_count)
+            if bad.any():
+                first = int(np.argmax(bad))
+                diagnostics.report("package.instances", f"instance {first} has {key} {float(array[first])!r}"
+                                   + (f" (clips 0..{clip_count - 1})" if key == "_VB_CLIP" else " (not finite)"),
+                                   JsonPointer(file, f"{where}/{key}"))
+        clips = values.get("_VB_CLIP")
+        package.crowds.append(PackageCrowd(node=name, mesh=mesh_name, animation=bound[mesh],
+                                           instances=int(instances),
+                                           clips=None if clips is None else np.round(clips).astype(np.int64)))
+
+
+def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = False,
+                 textures: bool = True) -> Optional[Package]:
+    """Read and check a runtime package (see the module docstring).
+
+    Args:
+        path: The ``.glb`` or ``.gltf``.
+        diagnostics: Where problems go (strict: the first error raises).
+        allow_outside_paths: Let buffer URIs resolve outside the package's folder.
+        textures: Read each animation's KTX2 bytes (``vbusd validate`` then checks them) and the
+            bone indices; ``vbusd info`` leaves both out.
+
+    Returns:
+        What could be read, or None when not even the glTF reader could read the file's buffers.
+
+    Raises:
+        InputError: The container or the JSON cannot be read at all (whatever ``diagnostics``).
+    """
+    from vbusd.converters.gltf import load
+    from vbusd.converters.gltf_accessors import AccessorReader
+    from vbusd.format.model import ReadOptions
+
+    path = Path(path)
+    file = str(path)
+    root = _parse(path, file)
+    binary = path.read_bytes()[:4] == b"glTF"
+    package = Package(file=file, container="glb" if binary else "gltf")
+    extension = _check_extension(root, file, diagnostics)
+    try:
+        gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))
+    except VbusdError as error:  # InputError, or UnsupportedError for a required extension
+        seen = {str(getattr(f.location, "pointer", "")) for f in diagnostics.findings}
+        if not any(error.location and p and p.startswith(error.location) for p in seen):
+            diagnostics.report(error.code, error.message, JsonPointer(file, error.location) if error.location and
+                               error.location.startswith("/") else FileLocation(file, part=error.location))
+        return None
+    if extension is None:
+        return package
+    package.version = extension.get("version")
+    reader = AccessorReader(gltf, buffers, file)
+    entries = extension.get("animations") if isinstance(extension.get("animations"), list) else []
+    root_validator = _validators()[0]
+    for index, entry in enumerate(entries):
+        # Only entries that follow the schema are read further (the others were reported).
+        if not root_validator.is_valid({"version": 1, "animations": [entry]}):
+            continue
+        animation = PackageAnimation(index=index, name=entry["name"], path=entry.get("path"), layout=entry["layout"])
+        animation.ktx2, animation.texture = _read_texture(gltf, reader, entry, index, binary, file, diagnostics)
+        package.animations.append(animation)
+    bound = _check_primitives(root, reader, package.animations, file, diagnostics, package, textures)
+    _check_nodes(root, reader, bound, package.animations, file, diagnostics, package)
+    return package
