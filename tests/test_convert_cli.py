@@ -234,7 +234,7 @@ def test_sigterm_while_writing_leaves_nothing(small_rig, tmp_path):
     output = tmp_path / "new" / "x.usda"
     result = subprocess.run([sys.executable, "-c", code, str(small_rig), str(output)], capture_output=True,
                             text=True, timeout=120)
-    assert result.returncode == 130 and "Traceback" not in result.stderr, result.stderr
+    assert result.returncode == 143 and "Traceback" not in result.stderr, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig.usda"]
 
 

@@ -165,9 +165,12 @@ def test_signals_at_many_moments_of_a_conversion(sample, tmp_path, signum, statu
         process.send_signal(signum)
         code, took = _ended_within(process, BOUND_S)
         assert took <= BOUND_S
-        # -signum: the signal came before vbusd's handlers were installed (Python still starting,
-        # nothing written yet) and ended the process as a shell reports it: 128 + signum
-        assert code in (status, 0, -signum), (delay, process.stderr.read())
+        stderr = process.stderr.read()
+        # -signum, or Python's own "init_import_site" failure: the signal came before vbusd's
+        # handlers were installed (Python still starting, nothing written yet), and ended the
+        # process as Python does; a shell reports -signum as 128 + signum
+        before_vbusd = code == -signum or (code == 1 and "init_import_site" in stderr)
+        assert code in (status, 0) or before_vbusd, (delay, stderr)
         assert _leftovers(out) == []
         written = {p.name for p in out.iterdir()} if out.exists() else set()
         whole = {"a.usda", "a.Skeleton.exr", "a.Skeleton.exr.json"}
