@@ -29,6 +29,7 @@ import numpy as np
 from vbusd.format import metadata as md
 from vbusd.format.errors import InputError, OptionsError, VbusdError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
+from vbusd.format.names import unique_names
 
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
            "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use"]
@@ -175,7 +176,7 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
     Raises:
         InputError: No bound mesh (``export.noMeshes``), a mesh with no triangle or a bone index
             over 32767 (``export.mesh``).
-        OptionsError: Two animations with the same prim name, or a bad supercompression.
+        OptionsError: A bad supercompression.
     """
     from vbusd import __version__
     from vbusd.io import ktx2
@@ -191,13 +192,12 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             "buffers": []}
     main = _Buffer(0, gltf)
     ktx_buffers = []
-    animations, mesh_of_animation, names = [], {}, set()
-    for index, vb in enumerate(asset.animations):
-        name = _prim_name(vb.path)
-        if name in names:
-            raise OptionsError(f"two animations are named {name!r}; their KTX2 files would collide "
-                               f"({vb.path})", file=where)
-        names.add(name)
+    animations, mesh_of_animation = [], {}
+    # Animations of different characters may share a prim name (two glTF characters whose skins
+    # have no names both give skin0_Anim): the package's names, and the .gltf's KTX2 files named
+    # after them, are made unique in order (skin0_Anim, skin0_Anim_2), as the UsdSkel fallback's.
+    names = unique_names([_prim_name(vb.path) for vb in asset.animations])
+    for index, (vb, name) in enumerate(zip(asset.animations, names)):
         text = md.dumps(md.to_dict(vb))
         data = ktx2.ktx2_bytes(vb.texels, text, supercompression=supercompression)
         if binary:
