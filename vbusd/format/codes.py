@@ -326,7 +326,8 @@ _COMMAND_ERRORS = (
     Code("blender.modifiers", E, "A mesh's modifier stack cannot be baked as one skinning: two Armature "
          "modifiers, a modifier after it, no vertex groups, or a group mask.", f"{_VB}#skinning", "file"),
     Code("crowd.character", E, "A character given to vbusd crowd has no animation or bound mesh to "
-         "instance, or disagrees with the others' up axis or units.", f"{_VB}#instancing", "file"),
+         "instance, animations whose clips match neither by name nor in number, or disagrees with the "
+         "others' up axis or units.", f"{_VB}#instancing", "file"),
     Code("crowd.points", E, "The positions file of vbusd crowd --layout points is not rows of three "
          "finite numbers (CSV) or has no USD points prim.", f"{_VB}#instancing", "file"),
     # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----
