@@ -258,6 +258,31 @@ def test_killed_after_the_commit_before_the_record(tmp_path):
     assert _files(out) == _files(tmp_path / "clean")
 
 
+def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(tmp_path):
+    """Issue 24: a batch killed and run again over outputs of other content (here an earlier run
+    with other options) ended with textures named by digest (a.Skeleton.5e354db5539d.exr) where a
+    clean run has plain names. Killed between the commit that used the digest name and the one
+    that gives the plain name back, then resumed: the clean run's files, name for name."""
+    library = _library(tmp_path / "lib", ("a", "b"))
+    new_options = ["--jobs", "1", "--texel-format", "float32"]
+    assert _cli([str(library), "-o", str(tmp_path / "clean"), *new_options]).returncode == 0
+    out, traced = tmp_path / "out", tmp_path / "traced"
+    for folder in (out, traced):
+        assert _cli([str(library), "-o", str(folder), "--jobs", "1"]).returncode == 0  # float16 first
+    trace = tmp_path / "trace.txt"
+    assert _cli([str(library), "-o", str(traced), *new_options], {"VBUSD_FAULT_TRACE": str(trace)}).returncode == 0
+    assert _files(traced) == _files(tmp_path / "clean")  # replaced without a kill: the clean run's files
+    steps = [line.split(" ", 1) for line in trace.read_text().splitlines()]
+    first_commit = next(int(n) for n, step in steps if step == "commit a.usda")
+    killed = _cli([str(library), "-o", str(out), *new_options], {"VBUSD_FAULT": f"kill:{first_commit + 1}"})
+    assert killed.returncode == -9
+    assert any(".Skeleton." in name and name.endswith(".exr") and len(name.split(".")) == 4
+               for name in os.listdir(out)), os.listdir(out)  # killed while a's texture had a digest name
+    resumed = _cli([str(library), "-o", str(out), *new_options, "--format", "json"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert _files(out) == _files(tmp_path / "clean")
+
+
 def test_an_existing_output_of_someone_else_needs_force(tmp_path, capsys):
     library = _library(tmp_path / "lib", ("a",))
     out = tmp_path / "out"

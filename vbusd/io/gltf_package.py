@@ -301,8 +301,10 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     :class:`vbusd.io.files.Commit` (spec/virtual-bones.md, "File names and the write guarantee"):
     under the output's lock, a failure or a kill leaves the old package whole (or the new one), no
     mix. A ``.gltf``'s buffer that a current ``.gltf`` of the same stem uses with other content is
-    written as ``<name>.<12 hex digits of its SHA-256>.<suffix>`` (``OUT.3fa9c0e1b2d4.bin``) and its
-    ``uri`` says so; the old package's buffers the new one does not use are removed after.
+    first made current as ``<name>.<12 hex digits of its SHA-256>.<suffix>``
+    (``OUT.3fa9c0e1b2d4.bin``), then renamed back to its plain name in a second commit under the same
+    lock, so the files never depend on what the folder held; the old package's buffers the new one
+    does not use are removed after.
 
     Args:
         asset: The asset to export.
@@ -341,7 +343,9 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
         # One commit (spec/virtual-bones.md, "File names and the write guarantee"): under the
         # output's lock, the buffers are staged and renamed under names the current package does
         # not use with other content, then the .gltf/.glb rename makes the new package current.
-        with Commit(output, replace=force, in_use=package_files_in_use) as commit:
+        commit = Commit(output, replace=force, in_use=package_files_in_use)
+        renamed = []  # (buffer index, digest-named file, plain name)
+        with commit:
             in_use = {os.path.abspath(p) for p in package_files_in_use(output)}
             old_files = _replaced_package_files(output)
             files = [output]
@@ -349,15 +353,22 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
                 if name is None:
                     continue
                 path = _buffer_name(output.with_name(name), data, in_use)
+                if path.name != name:
+                    renamed.append((index, path, output.with_name(name)))
                 gltf["buffers"][index]["uri"] = urllib.parse.quote(path.name)
                 with commit.open(path, "wb") as stream:
                     stream.write(data)
                 files.append(path)
-            main = glb_bytes(gltf, buffers[0][1]) if binary else \
-                (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
             with commit.open(output, "wb") as stream:  # it names the others: renamed last
-                stream.write(main)
+                stream.write(_main_file(gltf, buffers, binary))
             commit.discard_after(old_files)
+            if renamed:
+                commit.hold()
+        if renamed:
+            try:
+                files = _settle_names(commit, output, gltf, buffers, binary, files, renamed)
+            finally:
+                commit.release()
     except BaseException as error:
         remove_folders(created)  # the commit left nothing in them
         if isinstance(error, OSError):  # disk full, permissions: one line, not a traceback
@@ -367,6 +378,46 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     report.output = str(output)
     report.files = {str(path): path.stat().st_size for path, _ in files}
     return report
+
+
+def _main_file(gltf: dict, buffers: list, binary: bool) -> bytes:
+    """The bytes of the ``.glb`` or ``.gltf`` itself."""
+    return glb_bytes(gltf, buffers[0][1]) if binary else \
+        (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
+
+
+def _settle_names(commit, output: Path, gltf: dict, buffers: list, binary: bool, files: list,
+                  renamed: list) -> list:
+    """The second commit of an export that replaced a package: the buffers that took a digest
+    name (the old ``.gltf`` used the plain one with other content) get their plain names back,
+    staged as hard links (copies without hard links), with the ``.gltf`` naming them; the digest
+    files are removed after. A failed write keeps the first commit's package (whole, current)."""
+    import shutil
+
+    from vbusd.io.files import fault_point
+
+    settled = list(files)
+    try:
+        with commit.again():
+            in_use = {os.path.abspath(p) for p in package_files_in_use(output)} - \
+                {os.path.abspath(p) for p in files}
+            for index, old, plain in renamed:
+                if os.path.abspath(plain) in in_use:
+                    continue
+                staged = commit.temp_path(plain, reserve=False)
+                fault_point(f"link {staged.name}", staged)
+                try:
+                    os.link(old, staged)
+                except OSError:
+                    shutil.copyfile(old, staged)
+                gltf["buffers"][index]["uri"] = urllib.parse.quote(plain.name)
+                settled[settled.index(old)] = plain
+                commit.discard_after([old])
+            with commit.open(output, "wb") as stream:
+                stream.write(_main_file(gltf, buffers, binary))
+    except OSError:
+        return files
+    return settled
 
 
 _PACKAGE_LIMIT_BYTES = 64 << 20
