@@ -283,6 +283,31 @@ def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(t
     assert _files(out) == _files(tmp_path / "clean")
 
 
+def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_path):
+    """Issue 24: the converters' warnings (a skinned mesh node whose transform glTF ignores) showed
+    in a single conversion but neither on stderr nor in --report in a batch, converted or cached."""
+    bar = REPO / "tests" / "fixtures" / "gltf" / "bar.gltf"
+    node = json.loads(bar.read_text())["nodes"][3]
+    assert "skin" in node and any(key in node for key in ("translation", "rotation", "scale", "matrix"))
+    library = _library(tmp_path / "lib", ("a",))
+    shutil.copyfile(bar, library / "bar.gltf")
+    single = _cli([str(bar), "-o", str(tmp_path / "single" / "bar.usda")])
+    assert single.returncode == 0, single.stderr
+    (expected,) = [line[len("vbusd: warning: "):] for line in single.stderr.splitlines()
+                   if line.startswith("vbusd: warning: ")]
+    assert "skinned mesh node's transform is not identity" in expected
+    report = tmp_path / "report.json"
+    for status in ("converted", "cached"):
+        run = _cli([str(library), "-o", str(tmp_path / "out"), "--jobs", "2", "--report", str(report)])
+        assert run.returncode == 0, run.stderr
+        assert run.stderr.splitlines() == [f"vbusd: warning: {library / 'bar.gltf'}: {expected}"], run.stderr
+        assets = {Path(a["source"]).name: a for a in json.loads(report.read_text())["assets"]}
+        assert {name: a["status"] for name, a in assets.items()} == {"a.usda": status, "bar.gltf": status}
+        assert assets["bar.gltf"]["warnings"] == [expected] and assets["a.usda"]["warnings"] == []
+    quiet = _cli([str(library), "-o", str(tmp_path / "out"), "--quiet"])
+    assert quiet.returncode == 0 and quiet.stderr == ""
+
+
 def test_an_existing_output_of_someone_else_needs_force(tmp_path, capsys):
     library = _library(tmp_path / "lib", ("a",))
     out = tmp_path / "out"

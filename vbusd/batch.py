@@ -108,6 +108,8 @@ class AssetResult:
             (scene units), None when not checked.
         max_error_fraction: The same over the bounding-box diagonal.
         worker: Which worker converted it (process id and host, or the Dask worker's address).
+        warnings: The converter's and the conversion's warnings, as a single conversion prints
+            them (kept in the cache record, so a cached asset reports them too).
     """
 
     source: str
@@ -121,6 +123,7 @@ class AssetResult:
     max_error: Optional[float] = None
     max_error_fraction: Optional[float] = None
     worker: Optional[str] = None
+    warnings: list = field(default_factory=list)
 
 
 @dataclass
@@ -466,8 +469,10 @@ def _unchanged(record: dict, source, options) -> bool:
 def _cached_result(source: str, output: str, record: dict) -> AssetResult:
     """The report of an asset skipped because its ``done`` record still holds (files, bytes, errors)."""
     files = {name: entry["bytes"] for name, entry in record["files"].items()}
+    warnings = record.get("warnings")
     return AssetResult(source, output, "cached", files=files, bytes=sum(files.values()),
-                       max_error=record.get("maxError"), max_error_fraction=record.get("maxErrorFraction"))
+                       max_error=record.get("maxError"), max_error_fraction=record.get("maxErrorFraction"),
+                       warnings=[w for w in warnings if isinstance(w, str)] if isinstance(warnings, list) else [])
 
 
 def _record_path(cache: Path, output: Path) -> Path:
@@ -595,12 +600,14 @@ def convert_one(task: dict) -> dict:
         if errors:
             result.max_error = max(m.max_error for m in errors)
             result.max_error_fraction = max(m.max_error_fraction or 0.0 for m in errors)
+        result.warnings = [str(w) for w in report.warnings]
         result.status = "converted"
         if cache is not None:
             _write_record(cache, output, {
                 "state": "done", "key": key, "inputs": inputs, "source": str(source), "output": str(output),
                 "files": {name: {"bytes": size, "sha256": file_sha256(name)} for name, size in report.files.items()},
-                "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction})
+                "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction,
+                "warnings": result.warnings})
     except VbusdError as error:
         result.error, result.code = " ".join(str(error).split()), error.code
     except OSError as error:

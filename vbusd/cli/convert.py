@@ -185,6 +185,9 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
         make_folders(Path(report_file).parent)
         with atomic_write(report_file, "w", encoding="utf-8") as stream:
             stream.write(json_text(report.to_dict()) + "\n")
+    for asset in report.assets:  # the converters' warnings, as a single conversion prints them
+        for message in asset.warnings or ():
+            warn(f"{asset.source}: {message}", quiet=quiet)
     if output_format == "json":
         echo_json(report.to_dict())
     elif not quiet:
