@@ -317,6 +317,11 @@ _COMMAND_ERRORS = (
          "runtime-package.md#validation", "file"),
     Code("export.mesh", E, "A bound mesh cannot be exported: no triangle, or a bone index a SHORT "
          "attribute cannot hold.", "runtime-package.md#meshes", "usd"),
+    Code("package.extension", E, "A .glb/.gltf given as a runtime package has no valid root "
+         "VBUSD_virtual_bones extension (a plain glTF file, or a version or animations it cannot hold).",
+         "runtime-package.md#root", "json"),
+    Code("package.texture", E, "An animation's texture in a runtime package is not a buffer view inside its "
+         "buffer holding a KTX2 file.", "runtime-package.md#root", "json"),
     # ---- Blender add-on (dcc/blender, docs/blender.md) ----
     Code("blender.armature", E, "No armature to export, a name in armatures= that is not an armature, or an "
          "armature that deforms no mesh.", f"{_VB}#binding", "file"),

@@ -32,7 +32,7 @@ from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
-           "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use"]
+           "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use", "check_package"]
 
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
@@ -418,6 +418,78 @@ def _settle_names(commit, output: Path, gltf: dict, buffers: list, binary: bool,
     except OSError:
         return files
     return settled
+
+
+def check_package(path, *, allow_outside_paths: bool = False) -> dict:
+    """Check that a ``.glb`` / ``.gltf`` is a runtime package a loader can draw, before serving it.
+
+    What ``vbusd view`` (and anything handing the file to an engine) checks first, so that an
+    empty, truncated or plain glTF file is one line here rather than an error inside a browser:
+    the container and every buffer (the glTF reader's checks: GLB header and chunks, JSON, buffer
+    files present and long enough), the root ``VBUSD_virtual_bones`` extension (an object with a
+    known ``version`` and at least one animation), and each animation's texture: a buffer view
+    inside its buffer whose bytes start with the KTX2 signature.
+
+    Args:
+        path: The ``.glb`` or ``.gltf`` file.
+        allow_outside_paths: Let a ``.gltf``'s buffer URIs leave its folder.
+
+    Returns:
+        The root extension object (``{"version": 1, "animations": [...]}``).
+
+    Raises:
+        InputError: One line naming the file, the place (byte offset or JSON pointer) and the
+            problem: ``file.missing``, ``gltf.file`` (empty), the glTF reader's ``gltf.*`` codes,
+            ``package.extension`` (not a Virtual Bones runtime package) or ``package.texture``.
+    """
+    from vbusd.converters.gltf import load
+    from vbusd.format.model import ReadOptions
+    from vbusd.io.ktx2 import MAGIC
+
+    path = Path(path)
+    file = str(path)
+    if not path.exists():
+        raise InputError("no such file", file=file, code="file.missing")
+    if not path.is_file():
+        raise InputError("not a regular file (a folder, pipe or device)", file=file, code="file.kind")
+    if path.stat().st_size == 0:
+        raise InputError("the file is empty (0 bytes)", file=file, code="gltf.file")
+    gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))
+    root = (gltf.extensions or {}).get(EXTENSION) if isinstance(gltf.extensions, dict) else None
+    if root is None:
+        raise InputError(f"a plain glTF file: no {EXTENSION} extension, so no Virtual Bones animation to play "
+                         "(vbusd export writes the runtime package)", file=file, location="/extensions",
+                         code="package.extension")
+    where = f"/extensions/{EXTENSION}"
+    if not isinstance(root, dict):
+        raise InputError(f"the extension is {type(root).__name__}, not an object", file=file, location=where,
+                         code="package.extension")
+    version = root.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= EXTENSION_VERSION:
+        raise InputError(f"version {version!r} is not one this reader knows (1..{EXTENSION_VERSION})", file=file,
+                         location=f"{where}/version", code="package.extension")
+    animations = root.get("animations")
+    if not isinstance(animations, list) or not animations:
+        raise InputError("animations is not a non-empty array", file=file, location=f"{where}/animations",
+                         code="package.extension")
+    views = gltf.bufferViews or []
+    for i, animation in enumerate(animations):
+        at = f"{where}/animations/{i}"
+        texture = animation.get("texture") if isinstance(animation, dict) else None
+        index = texture.get("bufferView") if isinstance(texture, dict) else None
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(views):
+            raise InputError(f"texture.bufferView {index!r} is not a buffer view of the file ({len(views)})",
+                             file=file, location=f"{at}/texture/bufferView", code="package.texture")
+        view = views[index]
+        buffer, offset, length = view.buffer, view.byteOffset or 0, view.byteLength
+        if not (isinstance(buffer, int) and 0 <= buffer < len(buffers) and isinstance(length, int)
+                and isinstance(offset, int) and offset >= 0 and offset + length <= len(buffers[buffer])):
+            raise InputError(f"buffer view {index} does not lie inside its buffer", file=file,
+                             location=f"/bufferViews/{index}", code="package.texture")
+        if buffers[buffer][offset:offset + len(MAGIC)] != MAGIC:
+            raise InputError(f"buffer view {index} does not hold a KTX2 file (no KTX2 signature)", file=file,
+                             location=f"{at}/texture/bufferView", code="package.texture")
+    return root
 
 
 _PACKAGE_LIMIT_BYTES = 64 << 20
