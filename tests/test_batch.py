@@ -114,6 +114,21 @@ def test_folders_keep_their_structure_and_globs_expand(tmp_path):
     assert [Path(i.output).name for i in globbed] == ["b.usda"]
 
 
+def test_sources_from_different_trees_do_not_mirror_their_absolute_paths(tmp_path):
+    """Issue 24: outputs were placed below the common folder of all sources, so sources in
+    different trees wrote OUT/<their whole paths>. Each is now placed below its own argument."""
+    hero = _library(tmp_path / "x" / "deep" / "heroes", ("hero",)) / "hero.usda"
+    library = tmp_path / "y" / "other" / "lib"
+    _library(library / "crowd", ("walker",))
+    _library(tmp_path / "z" / "globbed" / "set1", ("extra",))
+    out = tmp_path / "out"
+    items = plan_batch([str(hero), str(library), str(tmp_path / "z" / "globbed" / "*" / "*.usda")], str(out))
+    outputs = sorted(str(Path(i.output).relative_to(out)) for i in items)
+    assert outputs == ["crowd/walker.usda", "hero.usda", "set1/extra.usda"]
+    with pytest.raises(OptionsError, match="would both write hero"):  # one stem twice in one folder
+        plan_batch([str(hero), str(_library(tmp_path / "w", ("hero",)) / "hero.usda")], str(out))
+
+
 # --------------------------------------------------------------------------------------------
 # Cache
 

@@ -282,8 +282,13 @@ def read_manifest(path) -> list:
     return items
 
 
-def _expand(argument: str, output_root: Optional[Path]) -> list:
-    """One command-line source: a file, a folder (searched recursively) or a glob."""
+def _expand(argument: str, output_root: Optional[Path]) -> tuple:
+    """One command-line source: a file, a folder (searched recursively) or a glob.
+
+    Returns:
+        ``(files, base)``: the files found and the folder their outputs are placed relative to:
+        the folder itself, a glob's leading folders without wildcards, a file's own folder.
+    """
     path = Path(argument)
     if path.is_dir():
         found = []
@@ -292,19 +297,16 @@ def _expand(argument: str, output_root: Optional[Path]) -> list:
                                 and not (output_root and Path(root, f).resolve() == output_root))
             found += [Path(root, f) for f in sorted(files)
                       if Path(f).suffix.lower() in SOURCE_SUFFIXES and not f.startswith(".")]
-        return found
+        return found, path
     if path.exists() or not (_GLOB_CHARACTERS & set(argument)):
-        return [path]  # a missing file is reported as that asset's failure
-    return [Path(p) for p in sorted(glob.glob(argument, recursive=True))
-            if Path(p).is_file() and not Path(p).name.startswith(".")]
-
-
-def _common_folder(paths: list) -> Path:
-    parents = [p.resolve().parent for p in paths]
-    try:
-        return Path(os.path.commonpath([str(p) for p in parents]))
-    except ValueError:  # different drives
-        return parents[0]
+        return [path], path.parent  # a missing file is reported as that asset's failure
+    fixed = []
+    for part in path.parts[:-1]:
+        if _GLOB_CHARACTERS & set(part):
+            break
+        fixed.append(part)
+    return ([Path(p) for p in sorted(glob.glob(argument, recursive=True))
+             if Path(p).is_file() and not Path(p).name.startswith(".")], Path(*fixed) if fixed else Path("."))
 
 
 def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] = None,
@@ -318,7 +320,9 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
         suffix: The USD layer suffix of named outputs (``.usda``, ``.usdc`` or ``.usd``).
 
     Returns:
-        :class:`BatchItem` objects, one per source.
+        :class:`BatchItem` objects, one per source, each written under ``output`` at its path below
+        the argument that named it (a folder's files keep their structure; a file named on its own
+        goes in ``output`` itself), never at a path mirroring the sources' absolute paths.
 
     Raises:
         OptionsError: No source found, the output is a file, two sources would write one output
@@ -332,17 +336,15 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
         raise OptionsError("with several sources -o names an output folder, not a USD file (each asset is "
                            "written in it under its source's name)", file=str(out), code="batch.plan")
     output_root = out.resolve() if out.exists() else None
-    named = []
+    items = []
     for argument in sources:
-        expanded = _expand(str(argument), output_root)
+        expanded, base = _expand(str(argument), output_root)
         if not expanded:
             raise OptionsError("matches no source file", file=str(argument), code="batch.plan")
-        named += expanded
-    items = []
-    if named:
-        common = _common_folder(named)
-        for path in named:
-            relative = path.resolve().parent.relative_to(common) if path.resolve().parent != common else Path()
+        for path in expanded:
+            # Below the argument that named it, never below a common folder of all sources: sources
+            # from different trees must not mirror their absolute paths into the output.
+            relative = Path(os.path.relpath(path.parent, base))
             items.append(BatchItem(source=str(path), output=str(out / relative / (path.stem + suffix)),
                                    origin=str(path)))
     if manifest is not None:
