@@ -480,10 +480,29 @@ def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("existing", [True, False])
+def test_one_source_into_a_folder_is_a_batch_either_way_and_says_so(tmp_path, capsys, existing):
+    """Issue 24: `-o existing_dir/` with one source switched to a batch without a word, while
+    `-o new_dir/` was refused ("the output must be a USD layer"). Both are a batch of one, said so."""
+    folder = tmp_path / "out"
+    if existing:
+        folder.mkdir()
+    status = main(["convert", str(STADIUM), "-o", f"{folder}/", *FAST])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert (folder / "stadium_crowd.usda").is_file()
+    assert captured.err.splitlines() == [
+        f"vbusd: note: -o {folder}/ names a folder: {STADIUM} is converted into it as a batch of one "
+        f"({folder / 'stadium_crowd.usda'}); name a .usda file for the single conversion"], captured.err
+    assert "1 converted" in captured.out
+    assert main(["convert", str(STADIUM), "-o", str(folder), "--quiet", *FAST]) == 0  # cached, and quiet
+    assert capsys.readouterr().err == ""
+
+
 def test_batch_options_on_one_source_are_named_not_ignored(tmp_path, capsys):
     output = tmp_path / "one.usda"
     assert main(["convert", str(STADIUM), "-o", str(output), "--jobs", "2", "--no-cache", *FAST]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["vbusd: warning: --jobs, --no-cache apply to a batch (several sources, a folder, a glob or "
-                   "--manifest, or -o an existing folder); one source converts in this process, uncached"], err
+                   "--manifest, or -o a folder); one source converts in this process, uncached"], err
     assert output.is_file() and not (tmp_path / ".vbusd-cache").exists()
