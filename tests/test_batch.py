@@ -114,6 +114,21 @@ def test_folders_keep_their_structure_and_globs_expand(tmp_path):
     assert [Path(i.output).name for i in globbed] == ["b.usda"]
 
 
+def test_sources_from_different_trees_do_not_mirror_their_absolute_paths(tmp_path):
+    """Issue 24: outputs were placed below the common folder of all sources, so sources in
+    different trees wrote OUT/<their whole paths>. Each is now placed below its own argument."""
+    hero = _library(tmp_path / "x" / "deep" / "heroes", ("hero",)) / "hero.usda"
+    library = tmp_path / "y" / "other" / "lib"
+    _library(library / "crowd", ("walker",))
+    _library(tmp_path / "z" / "globbed" / "set1", ("extra",))
+    out = tmp_path / "out"
+    items = plan_batch([str(hero), str(library), str(tmp_path / "z" / "globbed" / "*" / "*.usda")], str(out))
+    outputs = sorted(str(Path(i.output).relative_to(out)) for i in items)
+    assert outputs == ["crowd/walker.usda", "hero.usda", "set1/extra.usda"]
+    with pytest.raises(OptionsError, match="would both write hero"):  # one stem twice in one folder
+        plan_batch([str(hero), str(_library(tmp_path / "w", ("hero",)) / "hero.usda")], str(out))
+
+
 # --------------------------------------------------------------------------------------------
 # Cache
 
@@ -256,6 +271,56 @@ def test_killed_after_the_commit_before_the_record(tmp_path):
     assert resumed.returncode == 0, resumed.stderr
     assert _statuses(json.loads(resumed.stdout)) == {"a.usda": "cached", "b.usda": "converted"}
     assert _files(out) == _files(tmp_path / "clean")
+
+
+def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(tmp_path):
+    """Issue 24: a batch killed and run again over outputs of other content (here an earlier run
+    with other options) ended with textures named by digest (a.Skeleton.5e354db5539d.exr) where a
+    clean run has plain names. Killed between the commit that used the digest name and the one
+    that gives the plain name back, then resumed: the clean run's files, name for name."""
+    library = _library(tmp_path / "lib", ("a", "b"))
+    new_options = ["--jobs", "1", "--texel-format", "float32"]
+    assert _cli([str(library), "-o", str(tmp_path / "clean"), *new_options]).returncode == 0
+    out, traced = tmp_path / "out", tmp_path / "traced"
+    for folder in (out, traced):
+        assert _cli([str(library), "-o", str(folder), "--jobs", "1"]).returncode == 0  # float16 first
+    trace = tmp_path / "trace.txt"
+    assert _cli([str(library), "-o", str(traced), *new_options], {"VBUSD_FAULT_TRACE": str(trace)}).returncode == 0
+    assert _files(traced) == _files(tmp_path / "clean")  # replaced without a kill: the clean run's files
+    steps = [line.split(" ", 1) for line in trace.read_text().splitlines()]
+    first_commit = next(int(n) for n, step in steps if step == "commit a.usda")
+    killed = _cli([str(library), "-o", str(out), *new_options], {"VBUSD_FAULT": f"kill:{first_commit + 1}"})
+    assert killed.returncode == -9
+    assert any(".Skeleton." in name and name.endswith(".exr") and len(name.split(".")) == 4
+               for name in os.listdir(out)), os.listdir(out)  # killed while a's texture had a digest name
+    resumed = _cli([str(library), "-o", str(out), *new_options, "--format", "json"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert _files(out) == _files(tmp_path / "clean")
+
+
+def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_path):
+    """Issue 24: the converters' warnings (a skinned mesh node whose transform glTF ignores) showed
+    in a single conversion but neither on stderr nor in --report in a batch, converted or cached."""
+    bar = REPO / "tests" / "fixtures" / "gltf" / "bar.gltf"
+    node = json.loads(bar.read_text())["nodes"][3]
+    assert "skin" in node and any(key in node for key in ("translation", "rotation", "scale", "matrix"))
+    library = _library(tmp_path / "lib", ("a",))
+    shutil.copyfile(bar, library / "bar.gltf")
+    single = _cli([str(bar), "-o", str(tmp_path / "single" / "bar.usda")])
+    assert single.returncode == 0, single.stderr
+    (expected,) = [line[len("vbusd: warning: "):] for line in single.stderr.splitlines()
+                   if line.startswith("vbusd: warning: ")]
+    assert "skinned mesh node's transform is not identity" in expected
+    report = tmp_path / "report.json"
+    for status in ("converted", "cached"):
+        run = _cli([str(library), "-o", str(tmp_path / "out"), "--jobs", "2", "--report", str(report)])
+        assert run.returncode == 0, run.stderr
+        assert run.stderr.splitlines() == [f"vbusd: warning: {library / 'bar.gltf'}: {expected}"], run.stderr
+        assets = {Path(a["source"]).name: a for a in json.loads(report.read_text())["assets"]}
+        assert {name: a["status"] for name, a in assets.items()} == {"a.usda": status, "bar.gltf": status}
+        assert assets["bar.gltf"]["warnings"] == [expected] and assets["a.usda"]["warnings"] == []
+    quiet = _cli([str(library), "-o", str(tmp_path / "out"), "--quiet"])
+    assert quiet.returncode == 0 and quiet.stderr == ""
 
 
 def test_an_existing_output_of_someone_else_needs_force(tmp_path, capsys):
@@ -415,12 +480,31 @@ def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("existing", [True, False])
+def test_one_source_into_a_folder_is_a_batch_either_way_and_says_so(tmp_path, capsys, existing):
+    """Issue 24: `-o existing_dir/` with one source switched to a batch without a word, while
+    `-o new_dir/` was refused ("the output must be a USD layer"). Both are a batch of one, said so."""
+    folder = tmp_path / "out"
+    if existing:
+        folder.mkdir()
+    status = main(["convert", str(STADIUM), "-o", f"{folder}/", *FAST])
+    captured = capsys.readouterr()
+    assert status == 0, captured.err
+    assert (folder / "stadium_crowd.usda").is_file()
+    assert captured.err.splitlines() == [
+        f"vbusd: note: -o {folder}/ names a folder: {STADIUM} is converted into it as a batch of one "
+        f"({folder / 'stadium_crowd.usda'}); name a .usda file for the single conversion"], captured.err
+    assert "1 converted" in captured.out
+    assert main(["convert", str(STADIUM), "-o", str(folder), "--quiet", *FAST]) == 0  # cached, and quiet
+    assert capsys.readouterr().err == ""
+
+
 def test_batch_options_on_one_source_are_named_not_ignored(tmp_path, capsys):
     output = tmp_path / "one.usda"
     assert main(["convert", str(STADIUM), "-o", str(output), "--jobs", "2", "--no-cache", *FAST]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["vbusd: warning: --jobs, --no-cache apply to a batch (several sources, a folder, a glob or "
-                   "--manifest, or -o an existing folder); one source converts in this process, uncached"], err
+                   "--manifest, or -o a folder); one source converts in this process, uncached"], err
     assert output.is_file() and not (tmp_path / ".vbusd-cache").exists()
 
 

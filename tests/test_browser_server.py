@@ -136,6 +136,60 @@ def test_bad_input_is_one_line(served_folder, arguments, expected):
     assert len(lines) == 1 and expected in lines[0], result.stderr
 
 
+def _glb(document: dict, binary: bytes = b"") -> bytes:
+    """A GLB container built by hand (glTF 2.0, section 4.4): header, JSON chunk, BIN chunk."""
+    import struct
+
+    text = json.dumps(document).encode()
+    text += b" " * (-len(text) % 4)
+    binary += bytes(-len(binary) % 4)
+    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
+    if binary:
+        chunks += struct.pack("<II", len(binary), 0x004E4942) + binary
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(chunks)) + chunks
+
+
+def _damaged_packages(folder: Path) -> dict:
+    """Runtime packages no loader could draw, made from a good one: name -> expected code."""
+    from vbusd.cli import main
+
+    assert main(["export", str(folder / "stadium_crowd_vb.usda"), "-o", str(folder / "good.glb")]) == 0
+    assert main(["export", str(folder / "stadium_crowd_vb.usda"), "-o", str(folder / "split.gltf")]) == 0
+    good = (folder / "good.glb").read_bytes()
+    (folder / "empty.glb").write_bytes(b"")
+    (folder / "truncated.glb").write_bytes(good[:len(good) // 2])
+    plain = {"asset": {"version": "2.0"}, "scenes": [{"nodes": [0]}], "nodes": [{"name": "nothing"}]}
+    (folder / "plain.glb").write_bytes(_glb(plain))
+    (folder / "plain.gltf").write_text(json.dumps(plain))
+    document = json.loads((folder / "split.gltf").read_text())
+    (ktx2,) = [b["uri"] for b in document["buffers"] if b["uri"].endswith(".ktx2")]
+    shutil.copy(folder / "split.gltf", folder / "noktx2.gltf")
+    (folder / "noktx2.gltf").write_text((folder / "split.gltf").read_text().replace(ktx2, "gone.ktx2"))
+    texture = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["texture"]
+    geometry = next(i for i, view in enumerate(document["bufferViews"]) if "target" in view)  # vertex data
+    assert geometry != texture["bufferView"]
+    texture["bufferView"] = geometry
+    (folder / "notktx2.gltf").write_text(json.dumps(document))
+    return {"empty.glb": "gltf.file", "truncated.glb": "gltf.glb", "plain.glb": "package.extension",
+            "plain.gltf": "package.extension", "noktx2.gltf": "gltf.buffer.missing",
+            "notktx2.gltf": "package.texture"}
+
+
+def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder):
+    """Issue 24: vbusd view served an empty, truncated or plain .glb and the error appeared only in
+    the browser. It is one line and exit 2 before anything is served; the good package is served."""
+    for name, code in _damaged_packages(served_folder).items():
+        result = subprocess.run([sys.executable, "-m", "vbusd", "view", name, "--no-browser"], cwd=served_folder,
+                                capture_output=True, text=True, timeout=60)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 2 and len(lines) == 1 and code in lines[0] and name in lines[0], (name, result)
+        assert result.stdout == "", (name, result.stdout)  # no address printed: nothing was served
+    from vbusd.io.gltf_package import check_package
+
+    for name in ("good.glb", "split.gltf"):
+        assert check_package(served_folder / name)["animations"][0]["name"] == "Cheer"
+
+
 def test_port_in_use_is_one_line(served_folder):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -3,6 +3,7 @@ back through USD itself (pxr) and vbusd's reader, and validated clean."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -135,12 +136,12 @@ def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
     import sys
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text().splitlines()
-    (convert_line,) = [x for x in readme if x.startswith("pip install . && ") and "vbusd convert" in x]
+    (convert_line,) = [x for x in readme if "pip install . && " in x and "vbusd convert" in x]
     (crowd_line,) = [x for x in readme if x.startswith("vbusd crowd ") and "vbusd export" in x]
     (tmp_path / "samples").symlink_to(SAMPLE.parent)
     env = dict(os.environ, PYTHONSAFEPATH="1")  # the installed vbusd, never the checkout
-    commands = [convert_line.split("&&", 1)[1]] + crowd_line.split("&&")
-    for command in commands:
+    commands = ["vbusd convert" + convert_line.split("vbusd convert", 1)[1]] + crowd_line.split("&&")
+    for command in commands + commands:  # twice: the README's commands run again (--force)
         words = shlex.split(command)
         assert words[0] == "vbusd", command
         result = subprocess.run([sys.executable, "-m", "vbusd", *words[1:]], capture_output=True, text=True,
@@ -203,3 +204,173 @@ def test_mesh_names_stay_unique_when_a_suffix_is_taken():
     assert unique_names(["a", "a", "a_2"]) == ["a", "a_2", "a_2_2"]
     assert len(set(unique_names(["Body"] * 5 + ["Body_3"]))) == 6
     assert unique_names(["hand", "hand", "hand"], suffix=".{:03d}") == ["hand", "hand.002", "hand.003"]
+
+
+# ------------------------------------------------------------------------------------------------
+# Characters of several animations (issue 24): every animation is instanced, together
+# ------------------------------------------------------------------------------------------------
+
+GLTF_FIXTURES = Path(__file__).resolve().parent / "fixtures" / "gltf"
+
+
+def _instancers(path: Path) -> dict:
+    """Point instancers of a crowd read with pxr itself: path -> (animation target, arrays, mesh prims)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    found = {}
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdGeom.PointInstancer):
+            continue
+        instancer = UsdGeom.PointInstancer(prim)
+        primvars = UsdGeom.PrimvarsAPI(prim)
+        (prototype,) = instancer.GetPrototypesRel().GetTargets()
+        meshes = [p for p in Usd.PrimRange(stage.GetPrimAtPath(prototype)) if p.IsA(UsdGeom.Mesh)]
+        found[str(prim.GetPath())] = {
+            "animation": str(prim.GetRelationship("vb:animation").GetTargets()[0]),
+            "positions": np.asarray(instancer.GetPositionsAttr().Get()),
+            "orientations": np.asarray(instancer.GetOrientationsfAttr().Get()),
+            "scales": np.asarray(instancer.GetScalesAttr().Get()),
+            "clip": np.asarray(primvars.GetPrimvar("vb:clip").Get()),
+            "timeOffset": np.asarray(primvars.GetPrimvar("vb:timeOffset").Get()),
+            "playbackRate": np.asarray(primvars.GetPrimvar("vb:playbackRate").Get()),
+            "points": [len(UsdGeom.Mesh(m).GetPointsAttr().Get()) for m in meshes],
+        }
+    return found
+
+
+def test_every_animation_of_a_character_is_instanced_with_the_same_instances(tmp_path, capsys):
+    """two_skins.gltf converts to two animations (Bar_Anim, Second_Anim), each with its own mesh; a
+    crowd of it drew only the first. Both play on the same instances, in USD and in the glTF package."""
+    character = tmp_path / "two_skins.usda"
+    assert main(["convert", str(GLTF_FIXTURES / "two_skins.gltf"), "-o", str(character)]) == 0
+    crowd = tmp_path / "crowd.usda"
+    assert main(["crowd", str(character), "-o", str(crowd), "--count", "7", "--rate", "0.5", "2", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "2 animations each" in out, out
+    found = _instancers(crowd)
+    assert sorted(found) == ["/Crowd/two_skins_Bar_AnimInstances", "/Crowd/two_skins_Second_AnimInstances"]
+    first, second = found["/Crowd/two_skins_Bar_AnimInstances"], found["/Crowd/two_skins_Second_AnimInstances"]
+    assert first["animation"] == "/Crowd/Characters/two_skins/Bar_Anim"
+    assert second["animation"] == "/Crowd/Characters/two_skins/Second_Anim"
+    for key in ("positions", "orientations", "scales", "clip", "timeOffset", "playbackRate"):
+        assert len(first[key]) == 7 and np.array_equal(first[key], second[key]), key
+    assert np.ptp(first["playbackRate"]) > 0  # the instances differ; both instancers agree per instance
+    # Each prototype holds its own skinned node's mesh (read from the glTF fixture: two skinned nodes).
+    fixture = json.loads((GLTF_FIXTURES / "two_skins.gltf").read_text())
+    accessors = fixture["accessors"]
+    counts = sorted(accessors[fixture["meshes"][n["mesh"]]["primitives"][0]["attributes"]["POSITION"]]["count"]
+                    for n in fixture["nodes"] if "skin" in n and "mesh" in n)
+    assert sorted(first["points"] + second["points"]) == counts
+    import vbusd
+
+    assert vbusd.validate(crowd).valid
+
+    package = tmp_path / "crowd.gltf"
+    assert main(["export", str(crowd), "-o", str(package)]) == 0
+    gltf = json.loads(package.read_text())
+    nodes = [n for n in gltf["nodes"] if "mesh" in n]
+    assert len(nodes) == 2 and all("extensions" in n for n in nodes)  # no character left alone at the origin
+    translations = [gltf["accessors"][n["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]["TRANSLATION"]]
+                    for n in nodes]
+    assert [a["count"] for a in translations] == [7, 7]
+
+
+def _two_animation_character(folder: Path, second_clips) -> Path:
+    from vbusd.format.layout import Layout
+    from vbusd.format.model import BoundMesh, Clip, VirtualBones, VirtualBonesAsset
+    from vbusd.io.usd import write_asset
+
+    def animation(name, clips, rows):
+        layout = Layout("crossMatrix", "float16", 1, rows)
+        texels = np.zeros(layout.shape, dtype=np.float16)
+        texels[:, :3] = [[1, 0, 0, 1], [0, 1, 0, 1], [0, 0, 0, 1]]  # identity in every row
+        mesh = BoundMesh(path=f"/Rig/{name}Mesh", points=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32),
+                         face_vertex_counts=np.array([3], np.int32), face_vertex_indices=np.arange(3, dtype=np.int32),
+                         bone_indices=np.zeros((3, 1), np.int32), bone_weights=np.ones((3, 1), np.float32))
+        return VirtualBones(layout=layout, texels=texels, bones=("root",), clips=clips, meshes=(mesh,),
+                            path=f"/Rig/{name}")
+
+    asset = VirtualBonesAsset(animations=(animation("Body", (Clip("walk", 0, 2, 24.0, True), Clip("run", 2, 2, 24.0, True)), 4),
+                                          animation("Prop", second_clips, 4)),
+                              up_axis="Y", meters_per_unit=1.0, default_prim="Rig")
+    path = folder / "rig.usda"
+    write_asset(asset, path)
+    return path
+
+
+def test_a_second_animation_plays_the_clip_of_the_same_name(tmp_path):
+    from vbusd.format.model import Clip
+
+    rig = _two_animation_character(tmp_path, (Clip("run", 0, 2, 24.0, True), Clip("walk", 2, 2, 24.0, True)))
+    out = tmp_path / "crowd.usda"
+    build_crowd([rig], out, CrowdOptions(count=40, seed=2))
+    found = _instancers(out)
+    body, prop = found["/Crowd/rig_BodyInstances"], found["/Crowd/rig_PropInstances"]
+    assert set(body["clip"]) == {0, 1}
+    # walk is clip 0 of Body and clip 1 of Prop; run the other way round.
+    assert np.array_equal(prop["clip"], 1 - body["clip"])
+
+
+def test_animations_whose_clips_do_not_match_are_refused_in_one_line(tmp_path, capsys):
+    from vbusd.format.model import Clip
+
+    rig = _two_animation_character(tmp_path, (Clip("jump", 0, 4, 24.0, True),))
+    out = tmp_path / "crowd.usda"
+    assert main(["crowd", str(rig), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "crowd.character" in err[0] and "/Rig/Prop" in err[0], err
+    assert not out.exists()
+
+
+def test_default_spacing_comes_from_the_characters_size(character, tmp_path):
+    """Without --spacing the grid pitch is twice the character's reach from the up axis (its clip
+    extents, read here with pxr) times the largest scale: 1,000 Foxes at spacing 1 were a blob."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(character))
+    (extents,) = [np.asarray(p.GetAttribute("vb:clipExtents").Get(), dtype=np.float64) for p in stage.Traverse()
+                  if p.GetTypeName() == "VirtualBonesAnimation"]
+    corners = extents.reshape(-1, 2, 3)[:, :, [0, 2]]  # Y up: the ground plane is x, z
+    reach = max(np.hypot(np.abs(c[:, 0]).max(), np.abs(c[:, 1]).max()) for c in corners)
+    out = tmp_path / "grid.usda"
+    report = build_crowd([character], out, CrowdOptions(layout="grid", count=4, yaw=(0, 0), scale=(1.0, 1.5)))
+    expected = 2 * reach * 1.5
+    assert report.spacing == pytest.approx(expected, rel=1e-6)
+    (only,) = _instancers(out).values()
+    xs = sorted({round(float(x), 5) for x in only["positions"][:, 0]})
+    assert len(xs) == 2 and xs[1] - xs[0] == pytest.approx(expected, rel=1e-5)
+    # --spacing still wins.
+    assert build_crowd([character], tmp_path / "one.usda", CrowdOptions(count=4, spacing=1.0)).spacing == 1.0
+
+
+@pytest.mark.parametrize("source, animations", [
+    ("usdskel/usdwg_ElephantWithMonochord/SoC-ElephantWithMonochord.usdc", 2),
+    pytest.param("gltf/RecursiveSkeletons/RecursiveSkeletons.glb", 84, marks=pytest.mark.slow),
+])
+def test_khronos_characters_of_several_skeletons_stay_whole(shared_assets, tmp_path, capsys, source, animations):
+    """The Elephant's instrument played once at the origin instead of with each elephant, and
+    RecursiveSkeletons instanced 1 of its 84 skins: each instance now carries every animation,
+    in USD (pxr's view) and in the runtime package (no node outside the crowd)."""
+    from pxr import Usd
+
+    character = tmp_path / "character.usda"
+    assert main(["convert", str(shared_assets / source), "-o", str(character), "--check-rows", "0", "-q"]) == 0
+    stage = Usd.Stage.Open(str(character))
+    bound = {str(p.GetRelationship("vb:animation").GetTargets()[0]) for p in stage.Traverse()
+             if p.HasRelationship("vb:animation")}
+    assert len(bound) == animations
+    crowd = tmp_path / "crowd.usda"
+    assert main(["crowd", str(character), "-o", str(crowd), "--count", "3"]) == 0
+    found = _instancers(crowd)
+    assert {f["animation"].replace("/Crowd/Characters/character", "/" + stage.GetDefaultPrim().GetName())
+            for f in found.values()} == bound
+    first = next(iter(found.values()))
+    assert all(np.array_equal(f["positions"], first["positions"]) for f in found.values())
+    package = tmp_path / "crowd.glb"
+    capsys.readouterr()
+    assert main(["export", str(crowd), "-o", str(package)]) == 0, capsys.readouterr().err
+    data = package.read_bytes()
+    gltf = json.loads(data[20:20 + int.from_bytes(data[12:16], "little")])
+    drawn = [n for n in gltf["nodes"] if "mesh" in n]
+    assert len(drawn) == animations and all("extensions" in n for n in drawn)

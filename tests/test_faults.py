@@ -88,15 +88,26 @@ def _step(bench, kind, nth=0):
 def test_the_commit_renames_the_layer_last_and_cleans_up_after(convert_bench):
     kinds = [step.split(" ")[0] for step in convert_bench.steps]
     assert kinds[0] == "lock" and kinds[-1] == "remove"  # the journal goes last
-    commit = kinds.index("commit")
-    assert convert_bench.steps[commit] == "commit a.usda"
-    # Every other file is renamed into place before the layer; the old files go after it.
-    assert max(i for i, k in enumerate(kinds) if k == "rename") < commit < min(
-        i for i, k in enumerate(kinds) if k == "discard")
-    assert {"create", "export", "exported", "fsync", "journal"} <= set(kinds[:commit])
+    # The new texture differs from the old one of the same name: it is made current under a digest
+    # name, then a second commit under the same lock gives it the plain name back (spec 12.4).
+    ends = [i for i, k in enumerate(kinds) if k == "remove"]
+    assert len(ends) == 2 and kinds.count("lock") == 1, convert_bench.steps
+    for start, end in zip([0] + [e + 1 for e in ends[:-1]], ends):
+        phase = kinds[start:end + 1]
+        commit = phase.index("commit")
+        assert convert_bench.steps[start + commit] == "commit a.usda"
+        # Every other file is renamed into place before the layer; the old files go after it.
+        assert max(i for i, k in enumerate(phase) if k == "rename") < commit < min(
+            i for i, k in enumerate(phase) if k == "discard")
+        assert {"export", "exported", "fsync", "journal"} <= set(phase[:commit])
+    second = convert_bench.steps[ends[0] + 1:]
+    assert {s.split(" ", 1)[1] for s in second if s.startswith("rename ")} == {"a.Skel.exr", "a.Skel.exr.json"}
+    assert [s for s in second if s.startswith("discard ")] and all(
+        len(s.split(" ", 1)[1].split(".")) >= 4 for s in second if s.startswith("discard "))  # digest names
 
 
-@pytest.mark.parametrize("kind,nth", [("export", 0), ("commit", 0), ("discard", 0)])
+@pytest.mark.parametrize("kind,nth", [("export", 0), ("commit", 0), ("discard", 0), ("link", 0), ("commit", 1),
+                                      ("discard", 1)])
 def test_a_kill_at_each_kind_of_step_leaves_old_or_new_and_the_next_run_cleans_up(convert_bench, kind, nth):
     number = _step(convert_bench, kind, nth)
     case = sweep.run_case(convert_bench, f"kill:{number}")
@@ -108,7 +119,9 @@ def test_a_kill_at_each_kind_of_step_leaves_old_or_new_and_the_next_run_cleans_u
 
 
 def test_a_killed_run_is_cleaned_up_by_the_next_convert(convert_bench):
-    case = sweep.run_case(convert_bench, f"kill:{_step(convert_bench, 'rename', -1)}", recover=False)
+    commit = _step(convert_bench, "commit")  # the last rename before it: the new files are in place
+    last_rename = max(n for n in range(1, commit) if convert_bench.steps[n - 1].startswith("rename "))
+    case = sweep.run_case(convert_bench, f"kill:{last_rename}", recover=False)
     assert case.verdict == "ok" and case.state == "old", case
     assert case.hidden and case.visible  # lock, journal, staged layer; new texture + sidecar in place
     status, stderr = sweep.run_process(convert_bench.writer.new(convert_bench.sources, convert_bench.target)

@@ -369,6 +369,40 @@ def test_crowd_built_by_vbusd_crowd_exports_and_a_missing_character_is_refused(t
     assert sorted(p.name for p in alone.iterdir()) == ["crowd.usda"]
 
 
+GLTF_FIXTURES = Path(__file__).resolve().parent / "fixtures" / "gltf"
+
+
+@pytest.mark.parametrize("name", ["two.glb", "two.gltf"])
+def test_a_crowd_of_two_characters_with_one_animation_name_exports(tmp_path, capsys, name):
+    """Issue 24: two glTF characters whose animations share a prim name (bar.gltf twice gives
+    Bar_Anim twice) were refused ("their KTX2 files would collide"), even as a .glb."""
+    folder = tmp_path / "asset"
+    for stem in ("a", "b"):
+        assert main(["convert", str(GLTF_FIXTURES / "bar.gltf"), "-o", str(folder / f"{stem}.usda")]) == 0
+    crowd = folder / "two.usda"
+    assert main(["crowd", str(folder / "a.usda"), str(folder / "b.usda"), "-o", str(crowd), "--count", "6",
+                 "--seed", "1"]) == 0
+    out = tmp_path / name
+    capsys.readouterr()
+    assert main(["export", str(crowd), "-o", str(out)]) == 0, capsys.readouterr().err
+    if name.endswith(".glb"):
+        data = out.read_bytes()
+        (length,) = np.frombuffer(data[12:16], dtype="<u4")
+        gltf = json.loads(data[20:20 + int(length)])
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["asset", "two.glb"]  # no KTX2 file beside
+    else:
+        gltf = json.loads(out.read_text())
+        assert sorted(p.name for p in tmp_path.iterdir()) == [
+            "asset", "two.Bar_Anim.ktx2", "two.Bar_Anim_2.ktx2", "two.bin", "two.gltf"]
+    animations = gltf["extensions"]["VBUSD_virtual_bones"]["animations"]
+    assert [a["name"] for a in animations] == ["Bar_Anim", "Bar_Anim_2"]
+    assert [a["path"] for a in animations] == ["/Crowd/Characters/a/Bar_Anim", "/Crowd/Characters/b/Bar_Anim"]
+    # Each crowd node draws the mesh of its own character's animation.
+    meshes = [m["name"] for m in gltf["meshes"]]
+    drawn = {node["name"]: meshes[node["mesh"]] for node in gltf["nodes"] if "mesh" in node}
+    assert drawn == {"aInstances": "Bar_Anim", "bInstances": "Bar_Anim_2"}
+
+
 @pytest.mark.parametrize("damage, code", [
     (lambda data: data[:12] + (37).to_bytes(4, "little") + data[16:], "ktx2.vkFormat"),  # R8G8B8A8_UNORM
     (lambda data: data[:-100], "ktx2.levels"),                                         # level over the file

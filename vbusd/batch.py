@@ -109,6 +109,8 @@ class AssetResult:
             (scene units), None when not checked.
         max_error_fraction: The same over the bounding-box diagonal.
         worker: Which worker converted it (process id and host, or the Dask worker's address).
+        warnings: The converter's and the conversion's warnings, as a single conversion prints
+            them (kept in the cache record, so a cached asset reports them too).
     """
 
     source: str
@@ -122,6 +124,7 @@ class AssetResult:
     max_error: Optional[float] = None
     max_error_fraction: Optional[float] = None
     worker: Optional[str] = None
+    warnings: list = field(default_factory=list)
 
 
 @dataclass
@@ -304,8 +307,13 @@ def read_manifest(path) -> list:
     return items
 
 
-def _expand(argument: str, output_root: Optional[Path]) -> list:
-    """One command-line source: a file, a folder (searched recursively) or a glob."""
+def _expand(argument: str, output_root: Optional[Path]) -> tuple:
+    """One command-line source: a file, a folder (searched recursively) or a glob.
+
+    Returns:
+        ``(files, base)``: the files found and the folder their outputs are placed relative to:
+        the folder itself, a glob's leading folders without wildcards, a file's own folder.
+    """
     path = Path(argument)
     if path.is_dir():
         found = []
@@ -314,19 +322,16 @@ def _expand(argument: str, output_root: Optional[Path]) -> list:
                                 and not (output_root and Path(root, f).resolve() == output_root))
             found += [Path(root, f) for f in sorted(files)
                       if Path(f).suffix.lower() in SOURCE_SUFFIXES and not f.startswith(".")]
-        return found
+        return found, path
     if path.exists() or not (_GLOB_CHARACTERS & set(argument)):
-        return [path]  # a missing file is reported as that asset's failure
-    return [Path(p) for p in sorted(glob.glob(argument, recursive=True))
-            if Path(p).is_file() and not Path(p).name.startswith(".")]
-
-
-def _common_folder(paths: list) -> Path:
-    parents = [p.resolve().parent for p in paths]
-    try:
-        return Path(os.path.commonpath([str(p) for p in parents]))
-    except ValueError:  # different drives
-        return parents[0]
+        return [path], path.parent  # a missing file is reported as that asset's failure
+    fixed = []
+    for part in path.parts[:-1]:
+        if _GLOB_CHARACTERS & set(part):
+            break
+        fixed.append(part)
+    return ([Path(p) for p in sorted(glob.glob(argument, recursive=True))
+             if Path(p).is_file() and not Path(p).name.startswith(".")], Path(*fixed) if fixed else Path("."))
 
 
 def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] = None,
@@ -340,7 +345,9 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
         suffix: The USD layer suffix of named outputs (``.usda``, ``.usdc`` or ``.usd``).
 
     Returns:
-        :class:`BatchItem` objects, one per source.
+        :class:`BatchItem` objects, one per source, each written under ``output`` at its path below
+        the argument that named it (a folder's files keep their structure; a file named on its own
+        goes in ``output`` itself), never at a path mirroring the sources' absolute paths.
 
     Raises:
         OptionsError: No source found, the output is a file, two sources would write one output
@@ -354,17 +361,15 @@ def plan_batch(sources: Iterable[str], output: str, *, manifest: Optional[str] =
         raise OptionsError("with several sources -o names an output folder, not a USD file (each asset is "
                            "written in it under its source's name)", file=str(out), code="batch.plan")
     output_root = out.resolve() if out.exists() else None
-    named = []
+    items = []
     for argument in sources:
-        expanded = _expand(str(argument), output_root)
+        expanded, base = _expand(str(argument), output_root)
         if not expanded:
             raise OptionsError("matches no source file", file=str(argument), code="batch.plan")
-        named += expanded
-    items = []
-    if named:
-        common = _common_folder(named)
-        for path in named:
-            relative = path.resolve().parent.relative_to(common) if path.resolve().parent != common else Path()
+        for path in expanded:
+            # Below the argument that named it, never below a common folder of all sources: sources
+            # from different trees must not mirror their absolute paths into the output.
+            relative = Path(os.path.relpath(path.parent, base))
             items.append(BatchItem(source=str(path), output=str(out / relative / (path.stem + suffix)),
                                    origin=str(path)))
     if manifest is not None:
@@ -491,8 +496,10 @@ def _unchanged(record: dict, source, options) -> bool:
 def _cached_result(source: str, output: str, record: dict) -> AssetResult:
     """The report of an asset skipped because its ``done`` record still holds (files, bytes, errors)."""
     files = {name: entry["bytes"] for name, entry in record["files"].items()}
+    warnings = record.get("warnings")
     return AssetResult(source, output, "cached", files=files, bytes=sum(files.values()),
-                       max_error=record.get("maxError"), max_error_fraction=record.get("maxErrorFraction"))
+                       max_error=record.get("maxError"), max_error_fraction=record.get("maxErrorFraction"),
+                       warnings=[w for w in warnings if isinstance(w, str)] if isinstance(warnings, list) else [])
 
 
 def _record_path(cache: Path, output: Path) -> Path:
@@ -660,12 +667,14 @@ def _convert_one(task: dict, beat: "_Heartbeat") -> dict:
         if errors:
             result.max_error = max(m.max_error for m in errors)
             result.max_error_fraction = max(m.max_error_fraction or 0.0 for m in errors)
+        result.warnings = [str(w) for w in report.warnings]
         result.status = "converted"
         if cache is not None:
             _write_record(cache, output, {
                 "state": "done", "key": key, "inputs": inputs, "source": str(source), "output": str(output),
                 "files": {name: {"bytes": size, "sha256": file_sha256(name)} for name, size in report.files.items()},
-                "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction})
+                "maxError": result.max_error, "maxErrorFraction": result.max_error_fraction,
+                "warnings": result.warnings})
     except VbusdError as error:
         result.error, result.code = " ".join(str(error).split()), error.code
     except OSError as error:

@@ -2,13 +2,15 @@
 
 A crowd file references each character's Virtual Bones asset (its default prim, under
 ``/Crowd/Characters/<name>``, made invisible so only the instances draw) and holds one
-``UsdGeomPointInstancer`` with ``VirtualBonesInstancingAPI`` per character, whose prototype
-references that character's bound meshes. Per instance it authors position, orientation (a yaw
-about the stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing").
+``UsdGeomPointInstancer`` with ``VirtualBonesInstancingAPI`` per character and animation (a
+character of several skeletons has several, with the same instances), whose prototype references
+that animation's bound meshes. Per instance it authors position, orientation (a yaw about the
+stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing").
 
 Placement: ``grid`` (rows of ``spacing``), ``disc`` (a sunflower spiral of even density whose
 instances stand ``spacing`` apart on average) or ``points`` (a CSV of ``x,y,z`` rows, or a USD file
-whose first ``UsdGeomPoints`` / ``PointBased`` prim gives the positions). Instances are dealt to
+whose first ``UsdGeomPoints`` / ``PointBased`` prim gives the positions). The default spacing comes
+from the characters' size (:class:`CrowdOptions`). Instances are dealt to
 characters in proportion to their weights, and clips by name with weights. Everything random comes
 from one ``numpy.random.Generator`` seeded with ``seed``, and the layer is written with a fixed
 header, so the same inputs and seed give the same file, byte for byte.
@@ -46,6 +48,9 @@ class CrowdOptions:
         layout: ``grid``, ``disc`` or ``points``.
         count: Number of instances (ignored by ``points``, which places one per point).
         spacing: Distance between neighbours in scene units (grid pitch; disc average spacing).
+            None (default): from the characters' size, twice the largest distance of any of their
+            skinned meshes (clip extents, else rest points) from the up axis, times the largest
+            scale, so that no two instances overlap whatever their yaw.
         points: CSV or USD file of positions for ``layout="points"``.
         clips: Clip name (or index as text) -> relative weight; empty: every clip, equal weights.
             A character without a named clip keeps its own clips' equal weights.
@@ -61,7 +66,7 @@ class CrowdOptions:
 
     layout: str = "grid"
     count: int = 100
-    spacing: float = 1.0
+    spacing: Optional[float] = None
     points: Optional[str] = None
     clips: dict = field(default_factory=dict)
     characters: Optional[tuple] = None
@@ -81,7 +86,8 @@ class CrowdOptions:
         if self.layout != "points" and (isinstance(self.count, bool) or int(self.count) != self.count
                                         or not 1 <= self.count <= MAX_INSTANCES):
             raise OptionsError(f"--count must be 1..{MAX_INSTANCES}, got {self.count!r}", file="crowd")
-        if not (math.isfinite(self.spacing) and self.spacing > 0):
+        if self.spacing is not None and not (isinstance(self.spacing, (int, float)) and math.isfinite(self.spacing)
+                                             and self.spacing > 0):
             raise OptionsError(f"--spacing must be a positive number, got {self.spacing!r}", file="crowd")
         for name, pair, positive in (("--rate", self.playback_rate, False), ("--yaw", self.yaw, False),
                                      ("--scale", self.scale, True), ("--time-offset", self.time_offset, False)):
@@ -113,6 +119,10 @@ class CrowdReport:
         clips: Instances per clip name, per character.
         bytes: Size of the layer.
         seconds: Time taken.
+        animations: Animations each instance of a character plays together (one point instancer
+            each), per character.
+        spacing: The spacing used (scene units): the option's, or the one derived from the
+            characters' size.
     """
 
     output: str
@@ -120,10 +130,13 @@ class CrowdReport:
     clips: list
     bytes: int = 0
     seconds: float = 0.0
+    animations: list = field(default_factory=list)
+    spacing: Optional[float] = None
 
     def to_dict(self) -> dict:
         """JSON form (camelCase keys, as the spec's metadata)."""
-        return {"output": self.output, "instances": self.instances, "clips": self.clips, "bytes": self.bytes,
+        return {"output": self.output, "instances": self.instances, "clips": self.clips,
+                "animations": self.animations, "spacing": self.spacing, "bytes": self.bytes,
                 "seconds": round(self.seconds, 3)}
 
 
@@ -244,17 +257,60 @@ def _first_points(stage, source: Path, UsdGeom) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class _Animation:
+    """One animation of a character that the crowd instances, with its bound meshes."""
+
+    path: str
+    mesh_paths: tuple
+    clip_of: tuple
+    """For each of the character's clips (its first animation's), this animation's clip index."""
+
+
+@dataclass(frozen=True)
 class _Character:
     path: Path
     name: str
     default_prim: str
     up_axis: str
     meters_per_unit: float
-    animation_path: str
-    mesh_paths: tuple
+    animations: tuple
+    """Every animation with a bound mesh (asset order): an instance draws all of them, together."""
     clip_names: tuple
     clip_durations: tuple
     crowd_paths: tuple
+    radius: float
+    """Largest distance of the skinned meshes from the up axis through the origin (scene units)."""
+
+
+def _clip_map(lead, vb, file: str) -> tuple:
+    """Which clip of ``vb`` plays when an instance plays each clip of ``lead`` (by name, else by index).
+
+    Raises:
+        InputError: The clips match neither by name nor in number (``crowd.character``).
+    """
+    lead_names = tuple(c.name for c in lead.clips)
+    names = tuple(c.name for c in vb.clips)
+    if all(name in names for name in lead_names):
+        return tuple(names.index(name) for name in lead_names)
+    if len(names) == len(lead_names):
+        return tuple(range(len(names)))
+    raise InputError(f"animation {vb.path} has clips ({', '.join(names)}) that match neither by name nor in "
+                     f"number those of {lead.path} ({', '.join(lead_names)}): an instance could not play them "
+                     "together", file=file, location=vb.path, code="crowd.character")
+
+
+def _radius(vb, up_axis: str) -> float:
+    """Largest distance from the up axis of ``vb``'s skinned meshes: its clip extents' corners, or
+    its rest points when the asset stores no extents (0 when neither is finite)."""
+    horizontal = [0, 2] if up_axis == "Y" else [0, 1]
+    extents = None if vb.clip_extents is None else np.asarray(vb.clip_extents, dtype=np.float64)
+    if extents is not None and extents.size and np.all(np.isfinite(extents)):
+        farthest = np.max(np.abs(extents[:, :, horizontal]), axis=1)  # per clip, the box's far corner
+        return float(np.max(np.linalg.norm(farthest, axis=1)))
+    points = [np.asarray(m.points, dtype=np.float64).reshape(-1, 3)[:, horizontal] for m in vb.meshes]
+    distances = np.linalg.norm(np.concatenate(points), axis=1) if points else np.zeros(1)
+    distances = distances[np.isfinite(distances)]
+    return float(distances.max()) if distances.size else 0.0
 
 
 def _character(path: Path, index: int, used: set) -> _Character:
@@ -263,14 +319,18 @@ def _character(path: Path, index: int, used: set) -> _Character:
     asset = read_asset(path)
     if not asset.animations:
         raise InputError("holds no VirtualBonesAnimation to instance", file=str(path), code="crowd.character")
-    vb = asset.animations[0]
-    if not vb.meshes:
-        raise InputError(f"animation {vb.path} has no bound mesh to instance", file=str(path),
-                         location=vb.path, code="crowd.character")
+    drawn = [vb for vb in asset.animations if vb.meshes]
+    if not drawn:
+        raise InputError(f"animation {asset.animations[0].path} has no bound mesh to instance", file=str(path),
+                         location=asset.animations[0].path, code="crowd.character")
     root = "/" + asset.default_prim
-    if not vb.path.startswith(root + "/") or any(not m.path.startswith(root + "/") for m in vb.meshes):
-        raise InputError(f"the animation and its meshes must lie under the default prim {root}", file=str(path),
-                         location=vb.path, code="crowd.character")
+    for vb in drawn:
+        if not vb.path.startswith(root + "/") or any(not m.path.startswith(root + "/") for m in vb.meshes):
+            raise InputError(f"the animation and its meshes must lie under the default prim {root}",
+                             file=str(path), location=vb.path, code="crowd.character")
+    lead = drawn[0]
+    animations = tuple(_Animation(path=vb.path, mesh_paths=tuple(m.path for m in vb.meshes),
+                                  clip_of=_clip_map(lead, vb, str(path))) for vb in drawn)
     base = "".join(c if c.isalnum() or c == "_" else "_" for c in path.stem) or "Character"
     if base[0].isdigit():
         base = "_" + base
@@ -280,10 +340,11 @@ def _character(path: Path, index: int, used: set) -> _Character:
         name = f"{base}_{k}"
     used.add(name)
     return _Character(path=path, name=name, default_prim=asset.default_prim, up_axis=asset.up_axis,
-                      meters_per_unit=asset.meters_per_unit, animation_path=vb.path,
-                      mesh_paths=tuple(m.path for m in vb.meshes), clip_names=tuple(c.name for c in vb.clips),
-                      clip_durations=tuple(c.row_count / c.rows_per_second for c in vb.clips),
-                      crowd_paths=tuple(c.path for c in asset.crowds))
+                      meters_per_unit=asset.meters_per_unit, animations=animations,
+                      clip_names=tuple(c.name for c in lead.clips),
+                      clip_durations=tuple(c.row_count / c.rows_per_second for c in lead.clips),
+                      crowd_paths=tuple(c.path for c in asset.crowds),
+                      radius=max(_radius(vb, asset.up_axis) for vb in drawn))
 
 
 def _clip_choice(character: _Character, clips: dict, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -314,8 +375,12 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     """Write a USD crowd of converted characters.
 
     Args:
-        characters: Paths of Virtual Bones assets (what ``vbusd convert`` writes); each one's first
-            animation and its bound meshes are instanced.
+        characters: Paths of Virtual Bones assets (what ``vbusd convert`` writes). Every animation
+            of a character that has bound meshes is instanced (one point instancer each, the same
+            placement, time offset and rate per instance), so a character of several skeletons
+            (a rider and its horse, an elephant and its instrument) stays whole; an instance's clip
+            is chosen among the first such animation's clips, and the others play theirs of the same
+            name (else of the same index).
         output: The crowd layer to write (``.usda``, ``.usdc`` or ``.usd``).
         options: Placement, clips, ranges and seed; ``options.force`` replaces an existing output.
         force: Kept for callers of earlier versions: when given, it sets ``options.force``.
@@ -326,7 +391,8 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
 
     Raises:
         OptionsError: Bad options, no characters, an existing output without ``options.force``.
-        InputError: A character that cannot be read or has nothing to instance; bad points file.
+        InputError: A character that cannot be read or has nothing to instance, or whose animations'
+            clips match neither by name nor in number; bad points file.
 
     Example:
         >>> vbusd.build_crowd(["out/hero.usda"], "out/crowd.usda",
@@ -373,12 +439,16 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                                file="crowd")
 
     rng = np.random.default_rng(int(options.seed))
+    spacing = options.spacing
+    if spacing is None:  # from the characters' size: turned any way, two neighbours never overlap
+        spacing = 2.0 * max(c.radius for c in cast) * max(options.scale)
+        spacing = spacing if math.isfinite(spacing) and spacing > 0 else 1.0
     if options.layout == "points":
         positions = read_points(options.points)
     elif options.layout == "disc":
-        positions = disc_positions(int(options.count), float(options.spacing), up_axis)
+        positions = disc_positions(int(options.count), float(spacing), up_axis)
     else:
-        positions = grid_positions(int(options.count), float(options.spacing), up_axis)
+        positions = grid_positions(int(options.count), float(spacing), up_axis)
     n = len(positions)
     weights = np.ones(len(cast)) if options.characters is None else np.asarray(options.characters, dtype=np.float64)
     who = rng.choice(len(cast), size=n, p=weights / weights.sum())
@@ -399,6 +469,12 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     stage.GetRootLayer().documentation = "A Virtual Bones crowd written by vbusd crowd."
     UsdGeom.Scope.Define(stage, f"{CROWD_ROOT}/Characters")
     report_instances, report_clips = [], []
+    # One point instancer per (character, animation): a character's animations play together on the
+    # same instances. A character of one animation keeps the name <character>Instances.
+    instancer_names = iter(unique_names([
+        f"{c.name}Instances" if len(c.animations) == 1 else f"{c.name}_{a.path.rsplit('/', 1)[-1]}Instances"
+        for c in cast for a in c.animations]))
+    axis = 1 if up_axis == "Y" else 2
     for k, (character, reference) in enumerate(zip(cast, references)):
         holder = stage.DefinePrim(f"{CROWD_ROOT}/Characters/{character.name}")
         holder.GetReferences().AddReference(reference)
@@ -416,47 +492,51 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
             offsets = options.time_offset[0] + unit[mine] * (options.time_offset[1] - options.time_offset[0])
         report_instances.append(m)
         report_clips.append({name: int(np.sum(clip == i)) for i, name in enumerate(character.clip_names)})
+        names_here = [next(instancer_names) for _ in character.animations]
         if m == 0:
             continue
-        instancer_path = Sdf.Path(f"{CROWD_ROOT}/{character.name}Instances")
-        instancer = UsdGeom.PointInstancer.Define(stage, instancer_path)
-        prototype = instancer_path.AppendChild("Prototypes").AppendChild(character.name)
-        UsdGeom.Scope.Define(stage, prototype.GetParentPath())
-        UsdGeom.Xform.Define(stage, prototype)
         held = Sdf.Path(f"{CROWD_ROOT}/Characters/{character.name}")
-        names = unique_names([path.rsplit("/", 1)[-1] for path in character.mesh_paths])
-        for mesh_path, name in zip(character.mesh_paths, names):
-            inside = Sdf.Path(mesh_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
-            child = stage.DefinePrim(prototype.AppendChild(name))
-            child.GetReferences().AddInternalReference(held.AppendPath(inside))
-            # The character's own copy is invisible; its referenced meshes draw only as instances.
-            UsdGeom.Imageable(child).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
-        instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(positions[mine], dtype=np.float32)))
         quats = np.zeros((m, 4), dtype=np.float32)
-        axis = 1 if up_axis == "Y" else 2
         quats[:, axis] = np.sin(yaw[mine] / 2)
         quats[:, 3] = np.cos(yaw[mine] / 2)
-        instancer.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(quats.astype(np.float16)))
-        instancer.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(quats))
-        instancer.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(
-            np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32)))
-        instancer.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(m, dtype=np.int32)))
-        instancer.CreatePrototypesRel().SetTargets([prototype])
-        prim = instancer.GetPrim()
-        prim.ApplyAPI(INSTANCING_API)
-        prim.CreateRelationship(REL_ANIMATION).SetTargets(
-            [held.AppendPath(Sdf.Path(character.animation_path).MakeRelativePath(Sdf.Path("/" + character.default_prim)))])
-        primvars = UsdGeom.PrimvarsAPI(prim)
-        primvars.CreatePrimvar(PRIMVAR_CLIP, Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
-            Vt.IntArray.FromNumpy(clip))
-        primvars.CreatePrimvar(PRIMVAR_TIME_OFFSET, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-            Vt.FloatArray.FromNumpy(offsets.astype(np.float32)))
-        primvars.CreatePrimvar(PRIMVAR_PLAYBACK_RATE, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-            Vt.FloatArray.FromNumpy(rate[mine].astype(np.float32)))
+        for animation, instancer_name in zip(character.animations, names_here):
+            instancer_path = Sdf.Path(f"{CROWD_ROOT}/{instancer_name}")
+            instancer = UsdGeom.PointInstancer.Define(stage, instancer_path)
+            prototype = instancer_path.AppendChild("Prototypes").AppendChild(character.name)
+            UsdGeom.Scope.Define(stage, prototype.GetParentPath())
+            UsdGeom.Xform.Define(stage, prototype)
+            names = unique_names([path.rsplit("/", 1)[-1] for path in animation.mesh_paths])
+            for mesh_path, name in zip(animation.mesh_paths, names):
+                inside = Sdf.Path(mesh_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
+                child = stage.DefinePrim(prototype.AppendChild(name))
+                child.GetReferences().AddInternalReference(held.AppendPath(inside))
+                # The character's own copy is invisible; its referenced meshes draw only as instances.
+                UsdGeom.Imageable(child).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
+            instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(
+                np.ascontiguousarray(positions[mine], dtype=np.float32)))
+            instancer.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(quats.astype(np.float16)))
+            instancer.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(quats))
+            instancer.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(
+                np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32)))
+            instancer.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(m, dtype=np.int32)))
+            instancer.CreatePrototypesRel().SetTargets([prototype])
+            prim = instancer.GetPrim()
+            prim.ApplyAPI(INSTANCING_API)
+            prim.CreateRelationship(REL_ANIMATION).SetTargets(
+                [held.AppendPath(Sdf.Path(animation.path).MakeRelativePath(Sdf.Path("/" + character.default_prim)))])
+            primvars = UsdGeom.PrimvarsAPI(prim)
+            own_clip = np.asarray(animation.clip_of, dtype=np.int32)[clip]
+            primvars.CreatePrimvar(PRIMVAR_CLIP, Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
+                Vt.IntArray.FromNumpy(own_clip))
+            primvars.CreatePrimvar(PRIMVAR_TIME_OFFSET, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+                Vt.FloatArray.FromNumpy(offsets.astype(np.float32)))
+            primvars.CreatePrimvar(PRIMVAR_PLAYBACK_RATE, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
+                Vt.FloatArray.FromNumpy(rate[mine].astype(np.float32)))
     from vbusd.io.usd import write_layer
 
     # One commit as every vbusd output (spec, "File names and the write guarantee"): under the
     # output's lock, staged beside the target and renamed; a failed write is one write.failed line.
     write_layer(stage.GetRootLayer(), output, replace=force, what="crowd layer")
     return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
-                       seconds=time.perf_counter() - start)
+                       seconds=time.perf_counter() - start, animations=[len(c.animations) for c in cast],
+                       spacing=None if options.layout == "points" else float(spacing))

@@ -21,7 +21,7 @@ import click
 from vbusd.format.jsonform import json_text
 
 __all__ = ["TEXT_WIDTH", "progress_bar", "terminate_as_interrupt", "quiet_option", "format_option", "force_option",
-           "warn", "echo_json", "console", "table", "command_line_spelling"]
+           "warn", "echo_json", "console", "table", "command_line_spelling", "human_bytes"]
 
 TEXT_WIDTH = 80
 """Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log)."""
@@ -61,6 +61,24 @@ def warn(message: str, *, quiet: bool = False) -> None:
     """Print ``vbusd: warning: MESSAGE`` on stderr, unless ``quiet``."""
     if not quiet:
         click.echo(f"vbusd: warning: {command_line_spelling(message)}", err=True)
+
+
+def human_bytes(count: int, *, exact: bool = False) -> str:
+    """A size as every text output prints it: ``812 B``, ``31.3 KiB``, ``49.9 MiB``, ``1.2 GiB``.
+
+    Args:
+        count: Bytes.
+        exact: Also give the exact count, ``256.0 KiB (262,144 bytes)``, where it is a design figure
+            (a texture's texel bytes) rather than a file's size.
+    """
+    count = int(count)
+    value, unit = float(count), "B"
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(value) < 1024 or unit == "TiB":
+            break
+        value /= 1024.0
+    text = f"{count} B" if unit == "B" else f"{value:.1f} {unit}"
+    return f"{text} ({count:,} bytes)" if exact and unit != "B" else text
 
 
 def echo_json(value) -> None:

@@ -12,6 +12,9 @@ content. ``--quiet`` prints neither the summary nor warnings. Errors are one lin
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import click
 
 from vbusd.cli.common import (command_line_spelling, console, echo_json, force_option, format_option, progress_bar,
@@ -37,8 +40,9 @@ def _check_rows(value: str):
 @click.argument("sources", nargs=-1, type=click.Path(path_type=str))  # folders, globs: vbusd.batch
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="USD layer to write (.usda, .usd or .usdc); the texture and its .json sidecar go beside it "
-                   "(a missing folder is created). With several sources, a folder, a glob or --manifest: the "
-                   "output folder, each asset under its source's name.")
+                   "(a missing folder is created). With several sources, a folder, a glob or --manifest, or when "
+                   "it names a folder (an existing one, or a path ending in /): the output folder, each asset "
+                   "under its source's name.")
 @click.option("--encoding", default="auto", show_default=True,
               type=click.Choice(["auto"] + [e.value for e in Encoding]),
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
@@ -132,6 +136,11 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):
+        if len(sources) == 1 and manifest is None and Path(sources[0]).is_file() and not quiet:
+            # One file into a folder is a batch of one: say so, since its summary is the batch's table.
+            click.echo(f"vbusd: note: -o {output} names a folder: {sources[0]} is converted into it as a batch of "
+                       f"one ({Path(output) / (Path(sources[0]).stem + '.usda')}); name a .usda file for the "
+                       "single conversion", err=True)
         return _run_batch(sources, output, manifest, values, jobs=jobs, scheduler=scheduler, cache_dir=cache_dir,
                           no_cache=no_cache, force=force, report_file=report_file, output_format=output_format,
                           quiet=quiet, stall_timeout=stall_timeout)
@@ -140,7 +149,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
                                         ("--no-cache", no_cache), ("--stall-timeout", stall_timeout is not None)) if given]
     if ignored:  # one source into one layer is not a batch: say so rather than ignore them silently
         warn(f"{', '.join(ignored)} {'applies' if len(ignored) == 1 else 'apply'} to a batch (several sources, "
-             "a folder, a glob or --manifest, or -o an existing folder); one source converts in this "
+             "a folder, a glob or --manifest, or -o a folder); one source converts in this "
              "process, uncached", quiet=quiet)
     options = ConvertOptions(force=force, **values)
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
@@ -158,8 +167,6 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
 
 def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
     """Several sources, a folder, a glob, a manifest, a scheduler, a report or an output folder."""
-    from pathlib import Path
-
     from vbusd.batch import is_glob
 
     if manifest is not None or scheduler is not None or report_file is not None or len(sources) != 1:
@@ -167,7 +174,9 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
     source = Path(sources[0])
     if source.is_dir() and Path(output).suffix.lower() in (".usd", ".usda", ".usdc") and not Path(output).is_dir():
         return False  # a folder given where a file was meant: the single conversion says "is a folder"
-    return source.is_dir() or (not source.exists() and is_glob(sources[0])) or Path(output).is_dir()
+    # An output folder is an existing folder or, existing or not, a path ending in a separator.
+    named_folder = Path(output).is_dir() or output.endswith(("/", os.sep))
+    return source.is_dir() or (not source.exists() and is_glob(sources[0])) or named_folder
 
 
 def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
@@ -191,6 +200,9 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
         make_folders(Path(report_file).parent)
         with atomic_write(report_file, "w", encoding="utf-8") as stream:
             stream.write(json_text(report.to_dict()) + "\n")
+    for asset in report.assets:  # the converters' warnings, as a single conversion prints them
+        for message in asset.warnings or ():
+            warn(f"{asset.source}: {message}", quiet=quiet)
     if quiet:
         pass  # no report: only the failed assets' lines below, and the exit status
     elif output_format == "json":

@@ -9,7 +9,7 @@ import json
 
 import click
 
-from vbusd.cli.common import force_option, format_option, quiet_option
+from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option
 from vbusd.format.errors import OptionsError
 
 __all__ = ["command"]
@@ -54,7 +54,9 @@ class _CrowdCommand(click.Command):
               help="Placement: a grid, a disc of even density, or the points of FILE (also --points FILE).")
 @click.option("--points", "points_file", metavar="FILE", help="CSV (x,y,z rows) or USD points prim for --layout points.")
 @click.option("--count", default=100, show_default=True, type=int, help="Instances (grid and disc).")
-@click.option("--spacing", default=1.0, show_default=True, type=float, help="Distance between neighbours, scene units.")
+@click.option("--spacing", default=None, type=float,
+              help="Distance between neighbours, scene units (default: from the characters' size, twice their "
+                   "largest reach from the up axis times the largest --scale, so turned instances never overlap).")
 @click.option("--clips", default=None, metavar="NAME[:W],...", help="Clips to play, with relative weights (default: all, equal).")
 @click.option("--character-weights", default=None, metavar="W,...", help="Relative share of each character.")
 @click.option("--time-offset", nargs=2, type=float, default=None, metavar="MIN MAX",
@@ -88,9 +90,12 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
         click.echo(json.dumps(report.to_dict(), indent=2))
         return 0
     total = sum(report.instances)
-    click.echo(f"{report.output}: {total} instances of {len(report.instances)} character(s), "
-               f"{report.bytes} bytes ({report.seconds:.2f} s)")
-    for path, n, clip_counts in zip(characters, report.instances, report.clips):
+    origin = "" if spacing is not None else " (from the characters' size)"
+    spaced = "" if report.spacing is None else f", spacing {report.spacing:.4g}{origin}"
+    click.echo(f"{report.output}: {total} instances of {len(report.instances)} character(s){spaced}, "
+               f"{human_bytes(report.bytes)} ({report.seconds:.2f} s)")
+    for path, n, clip_counts, animations in zip(characters, report.instances, report.clips, report.animations):
         shown = ", ".join(f"{name} {k}" for name, k in clip_counts.items())
-        click.echo(f"  {path}: {n} instances ({shown})")
+        together = f", {animations} animations each" if animations > 1 else ""
+        click.echo(f"  {path}: {n} instances ({shown}){together}")
     return 0

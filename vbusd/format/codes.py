@@ -225,11 +225,13 @@ _FINDINGS = (
 _RUNTIME_PACKAGE = "runtime-package.md"
 _FINDINGS += (
     # runtime package (a .glb or .gltf that vbusd export wrote)
-    Code("package.extension", E, "The VBUSD_virtual_bones extension is missing, not listed in extensionsUsed, "
-         "listed in extensionsRequired, or its root or primitive object violates "
-         "schema/VBUSD_virtual_bones.schema.json.", f"{_RUNTIME_PACKAGE}#extension", "json"),
-    Code("package.texture", E, "An animation's texture buffer view does not exist, has a byteStride or target, "
-         "or (in a .glb) does not start at a multiple of 16 bytes.", f"{_RUNTIME_PACKAGE}#root", "json"),
+    Code("package.extension", E, "The VBUSD_virtual_bones extension is missing (a plain glTF file given as a "
+         "runtime package, e.g. to vbusd view), not listed in extensionsUsed, listed in extensionsRequired, or "
+         "its root or primitive object violates schema/VBUSD_virtual_bones.schema.json (a version or "
+         "animations it cannot hold).", f"{_RUNTIME_PACKAGE}#extension", "json"),
+    Code("package.texture", E, "An animation's texture buffer view does not exist, lies outside its buffer, "
+         "does not hold a KTX2 file, has a byteStride or target, or (in a .glb) does not start at a multiple "
+         "of 16 bytes.", f"{_RUNTIME_PACKAGE}#root", "json"),
     Code("package.layout", E, "An animation's layout differs from the vbusd.layout entry of its KTX2 texture.",
          f"{_RUNTIME_PACKAGE}#root", "json"),
     Code("package.primitive", E, "A bound primitive names an animation that does not exist, lacks a "
@@ -347,7 +349,8 @@ _COMMAND_ERRORS = (
     Code("blender.modifiers", E, "A mesh's modifier stack cannot be baked as one skinning: two Armature "
          "modifiers, a modifier after it, no vertex groups, or a group mask.", f"{_VB}#skinning", "file"),
     Code("crowd.character", E, "A character given to vbusd crowd has no animation or bound mesh to "
-         "instance, or disagrees with the others' up axis or units.", f"{_VB}#instancing", "file"),
+         "instance, animations whose clips match neither by name nor in number, or disagrees with the "
+         "others' up axis or units.", f"{_VB}#instancing", "file"),
     Code("crowd.points", E, "The positions file of vbusd crowd --layout points is not rows of three "
          "finite numbers (CSV) or has no USD points prim.", f"{_VB}#instancing", "file"),
     # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----

@@ -21,7 +21,10 @@ Public API (what converters, decoders and exporters use):
   MUST be named so that they cannot collide with a file the current asset uses (a new name, or
   the same name with the same content, e.g. a name carrying the content's digest): they are
   renamed into place before the target, while the old target still names the old files. If the
-  block raises, every staged file and every new name is removed and nothing else changes.
+  block raises, every staged file and every new name is removed and nothing else changes. A writer
+  that had to give a file a new name only because the old asset used the plain one can make the
+  plain name current in a second commit under the same lock (:meth:`Commit.hold`,
+  :meth:`Commit.again`), so that the files never depend on what was there before.
 * **Output lock**: a :class:`Commit` holds an exclusive ``fcntl.flock`` on ``.<stem>.vbusd-lock``
   beside the target (``stem`` = the target's name without its last suffix: all files of the
   asset start with it) for its whole life. A second writer waits up to ``lock_timeout`` seconds
@@ -571,6 +574,7 @@ class Commit:
         self._created: list = []
         self._discard: list = []
         self._state = "new"  # new -> open -> committed | aborted
+        self._hold = False
 
     # -- entering ---------------------------------------------------------------------------
 
@@ -779,12 +783,59 @@ class Commit:
                 fault_point(f"remove {self._journal.name}", self._journal)
                 _remove_quietly(self._journal)
         _signals.on_hard_exit(id(self), None)
-        self._lock.release()
+        if not self._hold:
+            self._lock.release()
+
+    def hold(self) -> None:
+        """Keep the output's lock once this commit is done, for a second commit (:meth:`again`).
+
+        Call it inside the ``with`` block; then call :meth:`release` (in a ``finally``) after the
+        block, whether or not :meth:`again` ran. An aborted commit releases the lock anyway.
+        """
+        if self._state != "open":
+            raise ValueError("hold the lock from inside the Commit's with block")
+        self._hold = True
+
+    @contextlib.contextmanager
+    def again(self) -> Iterator["Commit"]:
+        """A second commit of the same target, under the lock the first one kept (:meth:`hold`).
+
+        The new asset is current and nothing else can have changed it: stage files and name files
+        to discard as in the first block; a clean exit commits (the same steps and journal, so a
+        kill in between leaves either asset whole), an exception aborts it and leaves the first
+        commit's asset as it is. The lock is released when the block ends.
+
+        Raises:
+            ValueError: The first commit did not finish or did not hold its lock.
+        """
+        if self._state != "committed" or not self._hold:
+            raise ValueError("again() follows a finished commit that held its lock")
+        self._hold = False
+        self._staged, self._created, self._discard = [], [], []
+        self._state = "open"
+        _signals.on_hard_exit(id(self), self.abort)
+        try:
+            yield self
+        except BaseException:
+            self.abort()
+            raise
+        try:
+            self.commit()
+        except BaseException:
+            self.abort()
+            raise
+
+    def release(self) -> None:
+        """Release a lock kept by :meth:`hold` (nothing if it is not held)."""
+        if self._state != "open":
+            self._hold = False
+            self._lock.release()
 
     def abort(self) -> None:
         """Remove every staged file and new name; the old asset stays; unlock."""
         if self._state != "open":
             return
+        self._hold = False
         self._state = "aborted"
         for _, temporary in self._staged:
             _remove_quietly(temporary)

@@ -29,9 +29,10 @@ import numpy as np
 from vbusd.format import metadata as md
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
+from vbusd.format.names import unique_names
 
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
-           "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use"]
+           "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use", "check_package"]
 
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
@@ -175,7 +176,7 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
     Raises:
         InputError: No bound mesh (``export.noMeshes``), a mesh with no triangle or a bone index
             over 32767 (``export.mesh``).
-        OptionsError: Two animations with the same prim name, or a bad supercompression.
+        OptionsError: A bad supercompression.
     """
     from vbusd import __version__
     from vbusd.io import ktx2
@@ -191,13 +192,12 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             "buffers": []}
     main = _Buffer(0, gltf)
     ktx_buffers = []
-    animations, mesh_of_animation, names = [], {}, set()
-    for index, vb in enumerate(asset.animations):
-        name = _prim_name(vb.path)
-        if name in names:
-            raise OptionsError(f"two animations are named {name!r}; their KTX2 files would collide "
-                               f"({vb.path})", file=where)
-        names.add(name)
+    animations, mesh_of_animation = [], {}
+    # Animations of different characters may share a prim name (two glTF characters whose skins
+    # have no names both give skin0_Anim): the package's names, and the .gltf's KTX2 files named
+    # after them, are made unique in order (skin0_Anim, skin0_Anim_2), as the UsdSkel fallback's.
+    names = unique_names([_prim_name(vb.path) for vb in asset.animations])
+    for index, (vb, name) in enumerate(zip(asset.animations, names)):
         text = md.dumps(md.to_dict(vb))
         data = ktx2.ktx2_bytes(vb.texels, text, supercompression=supercompression)
         if binary:
@@ -301,8 +301,10 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     :class:`vbusd.io.files.Commit` (spec/virtual-bones.md, "File names and the write guarantee"):
     under the output's lock, a failure or a kill leaves the old package whole (or the new one), no
     mix. A ``.gltf``'s buffer that a current ``.gltf`` of the same stem uses with other content is
-    written as ``<name>.<12 hex digits of its SHA-256>.<suffix>`` (``OUT.3fa9c0e1b2d4.bin``) and its
-    ``uri`` says so; the old package's buffers the new one does not use are removed after.
+    first made current as ``<name>.<12 hex digits of its SHA-256>.<suffix>``
+    (``OUT.3fa9c0e1b2d4.bin``), then renamed back to its plain name in a second commit under the same
+    lock, so the files never depend on what the folder held; the old package's buffers the new one
+    does not use are removed after.
 
     Args:
         asset: The asset to export.
@@ -341,7 +343,9 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
         # One commit (spec/virtual-bones.md, "File names and the write guarantee"): under the
         # output's lock, the buffers are staged and renamed under names the current package does
         # not use with other content, then the .gltf/.glb rename makes the new package current.
-        with Commit(output, replace=force, in_use=package_files_in_use) as commit:
+        commit = Commit(output, replace=force, in_use=package_files_in_use)
+        renamed = []  # (buffer index, digest-named file, plain name)
+        with commit:
             in_use = {os.path.abspath(p) for p in package_files_in_use(output)}
             old_files = _replaced_package_files(output)
             files = [output]
@@ -349,15 +353,22 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
                 if name is None:
                     continue
                 path = _buffer_name(output.with_name(name), data, in_use)
+                if path.name != name:
+                    renamed.append((index, path, output.with_name(name)))
                 gltf["buffers"][index]["uri"] = urllib.parse.quote(path.name)
                 with commit.open(path, "wb") as stream:
                     stream.write(data)
                 files.append(path)
-            main = glb_bytes(gltf, buffers[0][1]) if binary else \
-                (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
             with commit.open(output, "wb") as stream:  # it names the others: renamed last
-                stream.write(main)
+                stream.write(_main_file(gltf, buffers, binary))
             commit.discard_after(old_files)
+            if renamed:
+                commit.hold()
+        if renamed:
+            try:
+                files = _settle_names(commit, output, gltf, buffers, binary, files, renamed)
+            finally:
+                commit.release()
     except BaseException as error:
         remove_folders(created)  # the commit left nothing in them
         if isinstance(error, OSError):  # disk full, permissions: one line, not a traceback
@@ -367,6 +378,118 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
     report.output = str(output)
     report.files = {str(path): path.stat().st_size for path, _ in files}
     return report
+
+
+def _main_file(gltf: dict, buffers: list, binary: bool) -> bytes:
+    """The bytes of the ``.glb`` or ``.gltf`` itself."""
+    return glb_bytes(gltf, buffers[0][1]) if binary else \
+        (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
+
+
+def _settle_names(commit, output: Path, gltf: dict, buffers: list, binary: bool, files: list,
+                  renamed: list) -> list:
+    """The second commit of an export that replaced a package: the buffers that took a digest
+    name (the old ``.gltf`` used the plain one with other content) get their plain names back,
+    staged as hard links (copies without hard links), with the ``.gltf`` naming them; the digest
+    files are removed after. A failed write keeps the first commit's package (whole, current)."""
+    import shutil
+
+    from vbusd.io.files import fault_point
+
+    settled = list(files)
+    try:
+        with commit.again():
+            in_use = {os.path.abspath(p) for p in package_files_in_use(output)} - \
+                {os.path.abspath(p) for p in files}
+            for index, old, plain in renamed:
+                if os.path.abspath(plain) in in_use:
+                    continue
+                staged = commit.temp_path(plain, reserve=False)
+                fault_point(f"link {staged.name}", staged)
+                try:
+                    os.link(old, staged)
+                except OSError:
+                    shutil.copyfile(old, staged)
+                gltf["buffers"][index]["uri"] = urllib.parse.quote(plain.name)
+                settled[settled.index(old)] = plain
+                commit.discard_after([old])
+            with commit.open(output, "wb") as stream:
+                stream.write(_main_file(gltf, buffers, binary))
+    except OSError:
+        return files
+    return settled
+
+
+def check_package(path, *, allow_outside_paths: bool = False) -> dict:
+    """Check that a ``.glb`` / ``.gltf`` is a runtime package a loader can draw, before serving it.
+
+    What ``vbusd view`` (and anything handing the file to an engine) checks first, so that an
+    empty, truncated or plain glTF file is one line here rather than an error inside a browser:
+    the container and every buffer (the glTF reader's checks: GLB header and chunks, JSON, buffer
+    files present and long enough), the root ``VBUSD_virtual_bones`` extension (an object with a
+    known ``version`` and at least one animation), and each animation's texture: a buffer view
+    inside its buffer whose bytes start with the KTX2 signature.
+
+    Args:
+        path: The ``.glb`` or ``.gltf`` file.
+        allow_outside_paths: Let a ``.gltf``'s buffer URIs leave its folder.
+
+    Returns:
+        The root extension object (``{"version": 1, "animations": [...]}``).
+
+    Raises:
+        InputError: One line naming the file, the place (byte offset or JSON pointer) and the
+            problem: ``file.missing``, ``gltf.file`` (empty), the glTF reader's ``gltf.*`` codes,
+            ``package.extension`` (not a Virtual Bones runtime package) or ``package.texture``.
+    """
+    from vbusd.converters.gltf import load
+    from vbusd.format.model import ReadOptions
+    from vbusd.io.ktx2 import MAGIC
+
+    path = Path(path)
+    file = str(path)
+    if not path.exists():
+        raise InputError("no such file", file=file, code="file.missing")
+    if not path.is_file():
+        raise InputError("not a regular file (a folder, pipe or device)", file=file, code="file.kind")
+    if path.stat().st_size == 0:
+        raise InputError("the file is empty (0 bytes)", file=file, code="gltf.file")
+    gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))
+    root = (gltf.extensions or {}).get(EXTENSION) if isinstance(gltf.extensions, dict) else None
+    if root is None:
+        raise InputError(f"a plain glTF file: no {EXTENSION} extension, so no Virtual Bones animation to play "
+                         "(vbusd export writes the runtime package)", file=file, location="/extensions",
+                         code="package.extension")
+    where = f"/extensions/{EXTENSION}"
+    if not isinstance(root, dict):
+        raise InputError(f"the extension is {type(root).__name__}, not an object", file=file, location=where,
+                         code="package.extension")
+    version = root.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= EXTENSION_VERSION:
+        raise InputError(f"version {version!r} is not one this reader knows (1..{EXTENSION_VERSION})", file=file,
+                         location=f"{where}/version", code="package.extension")
+    animations = root.get("animations")
+    if not isinstance(animations, list) or not animations:
+        raise InputError("animations is not a non-empty array", file=file, location=f"{where}/animations",
+                         code="package.extension")
+    views = gltf.bufferViews or []
+    for i, animation in enumerate(animations):
+        at = f"{where}/animations/{i}"
+        texture = animation.get("texture") if isinstance(animation, dict) else None
+        index = texture.get("bufferView") if isinstance(texture, dict) else None
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(views):
+            raise InputError(f"texture.bufferView {index!r} is not a buffer view of the file ({len(views)})",
+                             file=file, location=f"{at}/texture/bufferView", code="package.texture")
+        view = views[index]
+        buffer, offset, length = view.buffer, view.byteOffset or 0, view.byteLength
+        if not (isinstance(buffer, int) and 0 <= buffer < len(buffers) and isinstance(length, int)
+                and isinstance(offset, int) and offset >= 0 and offset + length <= len(buffers[buffer])):
+            raise InputError(f"buffer view {index} does not lie inside its buffer", file=file,
+                             location=f"/bufferViews/{index}", code="package.texture")
+        if buffers[buffer][offset:offset + len(MAGIC)] != MAGIC:
+            raise InputError(f"buffer view {index} does not hold a KTX2 file (no KTX2 signature)", file=file,
+                             location=f"{at}/texture/bufferView", code="package.texture")
+    return root
 
 
 _PACKAGE_LIMIT_BYTES = 64 << 20

@@ -390,10 +390,13 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     place under names no file of the current asset holds with other content, then the layer is
     renamed over ``path``: that rename makes the new asset current. Until it happens readers see
     the old asset whole; after it, the old asset's textures and sidecars that the new layer does
-    not use are removed. A texture is named ``<usd stem>.<animation prim name>.<exr|png|ktx2>``,
-    or, when a file of that name holds other content (the asset being replaced),
-    ``<usd stem>.<animation prim name>.<12 hex digits of the file's SHA-256>.<exr|png|ktx2>``; the
-    layer's ``vb:texture`` names it. ``VirtualBones.texture`` is ignored.
+    not use are removed. A texture is named ``<usd stem>.<animation prim name>.<exr|png|ktx2>``.
+    When the asset being replaced holds that name with other content, the texture is first made
+    current as ``<usd stem>.<animation prim name>.<12 hex digits of its SHA-256>.<exr|png|ktx2>``,
+    then a second commit under the same lock gives it the plain name back: the files a write
+    leaves are the same whatever the folder held before (a digest name stays only where a sibling
+    layer of the same stem still uses the plain one). The layer's ``vb:texture`` names the file.
+    ``VirtualBones.texture`` is ignored.
 
     Args:
         asset: What to write.
@@ -452,7 +455,12 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
 
 def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_timeout,
                   before_commit: Optional[Callable[[], None]] = None) -> list:
-    """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit."""
+    """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit.
+
+    A texture that had to take a digest name (the current asset used the plain one with other
+    content) gets its plain name back in a second commit under the same lock, so the files are
+    the same whatever the folder held before (:func:`_settle_names`).
+    """
     from vbusd.format import metadata as md
     from vbusd.io.files import Commit, fault_point
     from vbusd.io.textures import sidecar_path, write_texture
@@ -460,7 +468,9 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
     _, Sdf, _, _, _, Vt = _pxr()
     folder = path.parent
     written = [path]
-    with Commit(path, replace=replace, in_use=asset_files_in_use, lock_timeout=lock_timeout) as commit:
+    renamed = []  # (animation path, digest-named texture, plain name)
+    commit = Commit(path, replace=replace, in_use=asset_files_in_use, lock_timeout=lock_timeout)
+    with commit:
         old_files = replaced_files(path)
         in_use = {os.path.abspath(p) for p in asset_files_in_use(path)}
         for vb, name in zip(asset.animations, texture_names):
@@ -471,21 +481,77 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
             texture = _texture_name(plain, staged, in_use)
             if texture != plain:
                 commit.retarget(plain, texture)
+                renamed.append((vb.path, texture, plain))
             with commit.open(sidecar_path(texture), "w", encoding="utf-8", newline="\n") as stream:
                 stream.write(md.dumps(md.to_dict(vb)))
             stage.GetPrimAtPath(vb.path).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
             written += [texture, sidecar_path(texture)]
         layer = stage.GetRootLayer()
-        data = dict(layer.customLayerData)
-        data["vbusd"] = {"files": Vt.StringArray([p.name for p in written[1:]])}
-        layer.customLayerData = data
+        _record_files(layer, written[1:], Vt)
         if before_commit is not None:
             before_commit()
         # The layer names the textures: staged last, renamed last (the commit point). Not
         # reserved, so USD writes it directly instead of through a temporary of its own.
         export_layer(layer, commit.temp_path(path, reserve=False), path)
         commit.discard_after(old_files)
-    return written
+        if renamed:
+            commit.hold()
+    if not renamed:
+        return written
+    try:
+        return _settle_names(commit, stage, path, written, renamed)
+    finally:
+        commit.release()
+
+
+def _record_files(layer, files, Vt) -> None:
+    """Write the layer's own list of the files it names (``customLayerData`` ``vbusd.files``)."""
+    data = dict(layer.customLayerData)
+    data["vbusd"] = {"files": Vt.StringArray([Path(p).name for p in files])}
+    layer.customLayerData = data
+
+
+def _settle_names(commit, stage, path: Path, written: list, renamed: list) -> list:
+    """The second commit: the digest-named textures (and sidecars) of a commit that replaced an
+    asset get their plain names, now that the old asset that held those names is gone.
+
+    Each plain name is staged as a hard link to the digest-named file (a copy where the file
+    system has no hard links), the layer is staged naming the plain files, and its rename makes
+    them current; the digest-named files are removed after. A name a sibling layer of the same
+    stem still uses keeps its digest name. A failed write leaves the first commit's asset, which
+    is whole and current, and returns its files.
+    """
+    import shutil
+
+    from vbusd.io.files import fault_point
+    from vbusd.io.textures import sidecar_path
+
+    _, Sdf, _, _, _, Vt = _pxr()
+    layer = stage.GetRootLayer()
+    settled = list(written)
+    try:
+        with commit.again():
+            in_use = {os.path.abspath(p) for p in asset_files_in_use(path)} - \
+                {os.path.abspath(p) for p in written}
+            for animation, texture, plain in renamed:
+                pairs = [(texture, plain), (sidecar_path(texture), sidecar_path(plain))]
+                if any(os.path.abspath(new) in in_use for _, new in pairs):
+                    continue
+                for old, new in pairs:
+                    staged = commit.temp_path(new, reserve=False)
+                    fault_point(f"link {staged.name}", staged)
+                    try:
+                        os.link(old, staged)
+                    except OSError:
+                        shutil.copyfile(old, staged)
+                    settled[settled.index(old)] = new
+                commit.discard_after([old for old, _ in pairs])
+                stage.GetPrimAtPath(animation).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{plain.name}"))
+            _record_files(layer, settled[1:], Vt)
+            export_layer(layer, commit.temp_path(path, reserve=False), path)
+    except OSError:
+        return written
+    return settled
 
 
 def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.failed") -> None:

@@ -158,7 +158,9 @@ class ViewerServer:
         allow_outside_paths: Let a USD asset reference textures outside its folder.
 
     Raises:
-        InputError: The asset cannot be read (the same one-line errors as every command).
+        InputError: The asset cannot be read (the same one-line errors as every command); a
+            ``.glb``/``.gltf`` that is not a whole runtime package
+            (:func:`vbusd.io.gltf_package.check_package`).
         OptionsError: Not a USD or glTF file name, or the port cannot be bound.
     """
 
@@ -169,13 +171,16 @@ class ViewerServer:
             raise OptionsError(f"cannot view {path.name}: expected a USD asset ({', '.join(USD_SUFFIXES)}) "
                                f"or a runtime package ({', '.join(GLTF_SUFFIXES)})", file=str(path))
         if not path.is_file():
-            raise InputError("file not found" if not path.exists() else "not a regular file",
-                             file=str(path), location="file", code="file.missing"
-                             if not path.exists() else "file.kind")
+            raise InputError("no such file" if not path.exists() else "not a regular file", file=str(path),
+                             code="file.missing" if not path.exists() else "file.kind")
         self.asset = path
         self.root = path.resolve().parent
         self.generated: dict[str, bytes] = {}
         if suffix in GLTF_SUFFIXES:
+            from vbusd.io.gltf_package import check_package
+
+            # Checked here, not in the browser: an empty, truncated or plain glTF is one line.
+            check_package(path, allow_outside_paths=allow_outside_paths)
             self.config = {"name": path.name, "kind": "gltf", "url": f"asset/{path.name}"}
         else:
             from vbusd.io.usd import read_asset
