@@ -187,7 +187,7 @@ def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder)
     from vbusd.io.gltf_package import check_package
 
     for name in ("good.glb", "split.gltf"):
-        assert check_package(served_folder / name)["animations"][0]["name"] == "Cheer"
+        assert check_package(served_folder / name).animations[0].name == "Cheer"
 
 
 def test_port_in_use_is_one_line(served_folder):

@@ -435,16 +435,15 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
         allow_outside_paths: Let a ``.gltf``'s buffer URIs leave its folder.
 
     Returns:
-        The root extension object (``{"version": 1, "animations": [...]}``).
+        The :class:`vbusd.io.package_reader.Package` read (its animations, meshes and crowds).
 
     Raises:
         InputError: One line naming the file, the place (byte offset or JSON pointer) and the
             problem: ``file.missing``, ``gltf.file`` (empty), the glTF reader's ``gltf.*`` codes,
             ``package.extension`` (not a Virtual Bones runtime package) or ``package.texture``.
     """
-    from vbusd.converters.gltf import load
-    from vbusd.format.model import ReadOptions
-    from vbusd.io.ktx2 import MAGIC
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.io.package_reader import read_package
 
     path = Path(path)
     file = str(path)
@@ -454,42 +453,14 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
         raise InputError("not a regular file (a folder, pipe or device)", file=file, code="file.kind")
     if path.stat().st_size == 0:
         raise InputError("the file is empty (0 bytes)", file=file, code="gltf.file")
-    gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))
-    root = (gltf.extensions or {}).get(EXTENSION) if isinstance(gltf.extensions, dict) else None
-    if root is None:
+    # The package reader's checks, strict: the first problem is the one line (vbusd validate
+    # reports them all as findings).
+    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths)
+    if package is None or not package.animations:
         raise InputError(f"a plain glTF file: no {EXTENSION} extension, so no Virtual Bones animation to play "
                          "(vbusd export writes the runtime package)", file=file, location="/extensions",
                          code="package.extension")
-    where = f"/extensions/{EXTENSION}"
-    if not isinstance(root, dict):
-        raise InputError(f"the extension is {type(root).__name__}, not an object", file=file, location=where,
-                         code="package.extension")
-    version = root.get("version")
-    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= EXTENSION_VERSION:
-        raise InputError(f"version {version!r} is not one this reader knows (1..{EXTENSION_VERSION})", file=file,
-                         location=f"{where}/version", code="package.extension")
-    animations = root.get("animations")
-    if not isinstance(animations, list) or not animations:
-        raise InputError("animations is not a non-empty array", file=file, location=f"{where}/animations",
-                         code="package.extension")
-    views = gltf.bufferViews or []
-    for i, animation in enumerate(animations):
-        at = f"{where}/animations/{i}"
-        texture = animation.get("texture") if isinstance(animation, dict) else None
-        index = texture.get("bufferView") if isinstance(texture, dict) else None
-        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(views):
-            raise InputError(f"texture.bufferView {index!r} is not a buffer view of the file ({len(views)})",
-                             file=file, location=f"{at}/texture/bufferView", code="package.texture")
-        view = views[index]
-        buffer, offset, length = view.buffer, view.byteOffset or 0, view.byteLength
-        if not (isinstance(buffer, int) and 0 <= buffer < len(buffers) and isinstance(length, int)
-                and isinstance(offset, int) and offset >= 0 and offset + length <= len(buffers[buffer])):
-            raise InputError(f"buffer view {index} does not lie inside its buffer", file=file,
-                             location=f"/bufferViews/{index}", code="package.texture")
-        if buffers[buffer][offset:offset + len(MAGIC)] != MAGIC:
-            raise InputError(f"buffer view {index} does not hold a KTX2 file (no KTX2 signature)", file=file,
-                             location=f"{at}/texture/bufferView", code="package.texture")
-    return root
+    return package
 
 
 _PACKAGE_LIMIT_BYTES = 64 << 20
