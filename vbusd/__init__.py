@@ -110,6 +110,7 @@ _EXPORTS = {
     "CrowdOptions": "vbusd.crowd",
     "decode": "vbusd.decode.pointcache",
     "Decoder": "vbusd.decode.warp",
+    "prepare": "vbusd._threads",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
@@ -145,6 +146,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from vbusd.crowd import CrowdOptions, build_crowd
     from vbusd.decode.pointcache import decode
     from vbusd.decode.warp import Decoder
+    from vbusd._threads import prepare
     from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError, VersionError
     from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
     from vbusd.format.model import (AnimationClip, BoundMesh, Clip, Crowd, SkinnedAnimation, SkinnedMesh,
