@@ -30,7 +30,7 @@ import sys
 import threading
 from typing import Iterable, Optional
 
-__all__ = ["HELPER_PREFIX", "JOBS", "prepare", "prepared", "in_helper", "ImportGuard", "loaded_libraries"]
+__all__ = ["HELPER_PREFIX", "JOBS", "prepare", "prepared", "prepared_by", "in_helper", "ImportGuard", "loaded_libraries"]
 
 HELPER_PREFIX = "vbusd-"
 """Every thread vbusd starts has a name that begins with this."""
@@ -62,6 +62,8 @@ JOBS = {
 """The modules each job imports before its first helper thread (missing optional ones are skipped)."""
 
 _prepared: set = set()
+_prepared_by: dict = {}
+"""``{job: thread name}``: the thread that prepared each job (tests check it was the main thread)."""
 _lock = threading.Lock()
 
 
@@ -73,6 +75,11 @@ def in_helper() -> bool:
 def prepared(job: str) -> bool:
     """Whether :func:`prepare` ran for ``job`` in this process."""
     return job in _prepared
+
+
+def prepared_by(job: str) -> Optional[str]:
+    """The name of the thread that prepared ``job`` in this process (None: not prepared)."""
+    return _prepared_by.get(job)
 
 
 def prepare(job: str, *, kernels: bool = False) -> None:
@@ -103,6 +110,7 @@ def prepare(job: str, *, kernels: bool = False) -> None:
                 bake_kernels.available()
             _prepared.add(job)
             _prepared.add(key)
+            _prepared_by.setdefault(job, threading.current_thread().name)
 
 
 def _import_all(names: Iterable[str]) -> None:

@@ -985,20 +985,27 @@ def _worker_failure(task: dict, error) -> dict:
                                   error=f"{task['source']}: batch.worker: the worker converting it failed ({detail})"))
 
 
-class _PrepareWorker:
-    """A Dask worker plugin: load what a conversion needs in the worker's own main thread (its
-    event loop), before any task thread converts (vbusd/_threads.py)."""
+def _prepare_worker() -> None:
+    """What the ``vbusd-prepare`` Dask worker plugin runs in the worker's event-loop (main) thread."""
+    _one_core()
+    from vbusd import _threads
 
-    name = "vbusd-prepare"
+    _threads.prepare("batch")
 
-    def setup(self, worker=None) -> None:
-        _one_core()
-        from vbusd import _threads
 
-        _threads.prepare("batch")
+def _prepare_plugin():
+    """A Dask worker plugin (``vbusd-prepare``): load what a conversion needs in the worker's own main
+    thread, its event loop, before any task thread converts (vbusd/_threads.py). Dask refuses plugins
+    that are not ``WorkerPlugin`` subclasses, and this module does not import Dask: made here."""
+    from distributed.diagnostics.plugin import WorkerPlugin
 
-    def teardown(self, worker=None) -> None:
-        pass
+    class PrepareWorker(WorkerPlugin):
+        name = "vbusd-prepare"
+
+        def setup(self, worker) -> None:
+            _prepare_worker()
+
+    return PrepareWorker()
 
 
 def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_TIMEOUT_S) -> None:
@@ -1021,8 +1028,13 @@ def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_
     beats = Path(tempfile.mkdtemp(prefix="vbusd-batch-"))
     try:
         register = getattr(client, "register_plugin", None) or client.register_worker_plugin
-        with contextlib.suppress(Exception):  # an old cluster without plugins: tasks prepare themselves
-            register(_PrepareWorker())
+        try:
+            register(_prepare_plugin())
+        except (TypeError, ValueError, ImportError) as error:  # an old Dask: each task prepares itself
+            import warnings
+
+            warnings.warn(f"the Dask workers could not be prepared ({error}); each task loads what it needs",
+                          RuntimeWarning, stacklevel=2)
         futures = {}
         run = secrets.token_hex(6)  # task keys unique to this run, whoever else uses the cluster
         for index, task in tasks:
