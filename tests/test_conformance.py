@@ -9,7 +9,8 @@ JSON data, through:
 * the warp kernels on the CPU (``device="cpu"``);
 * the GLSL module in a real OpenGL pipeline (Mesa llvmpipe through EGL) and the HLSL module
   compiled by glslang's HLSL front end and spirv-cross to GLSL, both with ``VB_CROSSFADE 1``
-  (as tests/test_shaders.py runs them), and their ``vbSocket`` for every (instance, bone);
+  (as tests/test_shaders.py runs them), in both skin bindings (``attributes``; ``pulled`` from a
+  storage buffer and from an RGBA32UI texture), and their ``vbSocket`` for every (instance, bone);
 * the three.js runtime in headless Chromium: tests/test_conformance_browser.py.
 
 Every decoder must reproduce every vector within the vector's tolerances.
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.decode.shaders import ShaderOptions, generate
+from vbusd.decode.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
@@ -215,8 +216,9 @@ except ImportError:
 
 HAS_HLSL_TOOLS = bool(shutil.which("glslangValidator") and shutil.which("spirv-cross"))
 NAMES = {
-    "glsl": {"texture": "vb_texture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
-    "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler", "prefix": "input_",
+    "glsl": {"texture": "vb_texture", "skinTexture": "vb_skinTexture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
+    "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler",
+             "skinTexture": "SPIRV_Cross_Combinedvb_skinTextureSPIRV_Cross_DummySampler", "prefix": "input_",
              "varyings": ["_entryPointOutput_skinnedPosition", "_entryPointOutput_skinnedNormal"]},
 }
 
@@ -279,24 +281,59 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
     return texture, block
 
 
-def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
-    """Skin every (instance, vertex) of a vector with the generated module; (points, normals)."""
+SKIN_BUFFER_BINDING = 3
+
+
+def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path, skin: str = "attributes"):
+    """Skin every (instance, vertex) of a vector with the generated module; (points, normals).
+
+    ``skin``: ``attributes``, ``pulled-buffer`` (GLSL 4.30 storage buffer / HLSL StructuredBuffer)
+    or ``pulled-texture`` (GLSL 3.30 / HLSL ``VB_SKIN_STORAGE 0``: an RGBA32UI texture, 5 texels wide
+    so that records straddle rows)."""
     layout = vector["layout"]
     names = NAMES[lang]
+    k = vector["mesh"]["influences"]
     source = "#define VB_CROSSFADE 1\n" + generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"],
-                                                                   max_influences=vector["mesh"]["influences"]))
+                                                                   max_influences=k,
+                                                                   skin="attributes" if skin == "attributes" else "pulled"))
     if lang == "glsl":
-        program = ctx.program(vertex_shader="#version 330 core\n" + source, varyings=names["varyings"])
+        version = "#version 430 core\n" if skin == "pulled-buffer" else "#version 330 core\n"
+        if skin == "pulled-buffer":
+            version += f"#define VB_SKIN_BUFFER_LAYOUT std430, binding = {SKIN_BUFFER_BINDING}\n"
+        compiled = version + source
     else:
-        program = ctx.program(vertex_shader=_hlsl_to_glsl(source, workdir), varyings=names["varyings"])
+        compiled = _hlsl_to_glsl(("#define VB_SKIN_STORAGE 0\n" if skin == "pulled-texture" else "") + source, workdir)
+    program = ctx.program(vertex_shader=compiled, varyings=names["varyings"])
     texture, block = _bind_animation(ctx, program, lang, vector, time)
     mesh = vector["mesh"]
     count = len(mesh["points"])
     indices = np.array(mesh["boneIndices"], np.int32)
     weights = np.array(mesh["boneWeights"], np.float32)
     vertex = np.concatenate([np.array(mesh["points"], np.float32), np.array(mesh["normals"], np.float32)], axis=1)
-    vbo = ctx.buffer(np.ascontiguousarray(np.concatenate([vertex.view(np.int32), indices, weights.view(np.int32)],
-                                                         axis=1)).tobytes())
+    skin_resource = None
+    p = names["prefix"]
+    if skin == "attributes":
+        vbo = ctx.buffer(np.ascontiguousarray(np.concatenate([vertex.view(np.int32), indices, weights.view(np.int32)],
+                                                             axis=1)).tobytes())
+        vertex_inputs = ("3f 3f 4i 4f", f"{p}restPosition", f"{p}restNormal", f"{p}boneIndices0", f"{p}boneWeights0")
+    else:  # pulled: position and normal only; the skin records by vertex index
+        vbo = ctx.buffer(np.ascontiguousarray(vertex).tobytes())
+        vertex_inputs = ("3f 3f", f"{p}restPosition", f"{p}restNormal")
+        records = pack_skin(indices, weights, k)
+        if skin == "pulled-buffer":
+            import re
+
+            found = re.search(r"std430, binding = (\d+)|binding = (\d+), std430", compiled)
+            skin_resource = ctx.buffer(records.tobytes())
+            skin_resource.bind_to_storage_buffer(int(found[1] or found[2]))
+        else:
+            width, height = skin_texture_shape(len(records), 5)
+            data = np.zeros((width * height, 4), "<u4")
+            data[:len(records)] = records
+            skin_resource = ctx.texture((width, height), 4, data.tobytes(), dtype="u4")
+            skin_resource.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            skin_resource.use(location=1)
+            program[names["skinTexture"]].value = 1
     instances = vector["instances"]
     per_instance = np.zeros(len(instances), dtype=[("clip", "<i4"), ("time", "<f4", 2), ("fadeClip", "<i4"),
                                                     ("fade", "<f4", 3)])
@@ -305,27 +342,28 @@ def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path):
     per_instance["fadeClip"] = [i["fadeClip"] for i in instances]
     per_instance["fade"] = [[i["fadeTimeOffset"], i["fadePlaybackRate"], i["fadeWeight"]] for i in instances]
     ibo = ctx.buffer(per_instance.tobytes())
-    p = names["prefix"]
     vao = ctx.vertex_array(program, [
-        (vbo, "3f 3f 4i 4f", f"{p}restPosition", f"{p}restNormal", f"{p}boneIndices0", f"{p}boneWeights0"),
+        (vbo, *vertex_inputs),
         (ibo, "1i 2f 1i 3f/i", f"{p}instanceClip", f"{p}instanceTime", f"{p}instanceFadeClip", f"{p}instanceFade")])
     out = ctx.buffer(reserve=count * len(instances) * 6 * 4)
     vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=len(instances))
     result = np.frombuffer(out.read(), dtype="<f4").reshape(len(instances), count, 6)
-    for resource in (vao, vbo, ibo, out, texture, program):
-        resource.release()
+    for resource in (vao, vbo, ibo, out, texture, program, skin_resource):
+        if resource is not None:
+            resource.release()
     return result[..., :3], result[..., 3:]
 
 
+@pytest.mark.parametrize("skin", ["attributes", "pulled-buffer", "pulled-texture"])
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
-def test_shader_modules_reproduce_every_vector(gl, lang, path, tmp_path):
+def test_shader_modules_reproduce_every_vector(gl, lang, path, skin, tmp_path):
     if lang == "hlsl" and not HAS_HLSL_TOOLS:
         pytest.skip("glslang-tools and spirv-cross are not installed")
     vector = load(path)
     for index, expected in enumerate(vector["expected"]):
-        points, normals = run_shader(gl, lang, vector, expected["time"], tmp_path)
-        assert_matches(vector, index, points, normals, lang)
+        points, normals = run_shader(gl, lang, vector, expected["time"], tmp_path, skin)
+        assert_matches(vector, index, points, normals, f"{lang} ({skin})")
 
 
 def test_vectors_are_current():

@@ -4,7 +4,10 @@ GLSL is compiled by the OpenGL driver (any EGL device; Mesa's llvmpipe without a
 compiled by glslang's HLSL front end to SPIR-V, cross-compiled to GLSL by spirv-cross, and run the
 same way. Skinned positions and normals come back through transform feedback and are compared with
 vbusd.decode.reference, which is independent of the shader text, at row times, mid-row times and across a
-looping clip's wrap, with per-instance clips, time offsets and playback rates.
+looping clip's wrap, with per-instance clips, time offsets and playback rates. Each module runs in
+both skin bindings: ``attributes`` (bone indices and weights as vertex attributes) and ``pulled``
+(skin records read by vertex index from a storage buffer or an RGBA32UI texture; spec/shaders.md,
+Skin bindings).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import importlib.util
+import json
 import math
 import shutil
 import string
@@ -29,7 +33,7 @@ from vbusd.bake import BakeOptions, bake
 from vbusd.cli import main
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 from vbusd.decode.reference import skin_mesh
-from vbusd.decode.shaders import ShaderOptions, generate
+from vbusd.decode.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 
 try:
     import moderngl
@@ -41,6 +45,11 @@ FORMATS = ["float16", "float32", "unorm16"]
 # float32 arithmetic on the GPU against float64 on the CPU, from the same stored texels.
 TOLERANCE = 5e-6  # positions: fraction of the bounding-box diagonal (measured up to 9.4e-7)
 NORMAL_TOLERANCE = 2.5e-5  # unit normals: largest component difference (measured up to 4.6e-6)
+# Skin bindings as the tests run them: attributes, pulled from a storage buffer (GLSL 4.30 / HLSL
+# StructuredBuffer) and pulled from an RGBA32UI texture (GLSL 3.30 / HLSL Texture2D<uint4>).
+SKINS = ["attributes", "pulled-buffer", "pulled-texture"]
+SKIN_TEXTURE_TEST_WIDTH = 61  # odd and prime: records straddle texture rows
+SKIN_BUFFER_BINDING = 2
 
 
 @pytest.fixture(scope="module")
@@ -153,7 +162,31 @@ def _vertex_bytes(mesh, max_influences):
     return np.ascontiguousarray(np.concatenate(parts, axis=1)).tobytes()
 
 
-def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, uniform_block):
+def _bind_skin(ctx, program, names, mesh, max_influences, skin, source):
+    """Upload the mesh's skin records for a pulled module: a storage buffer at its binding, or an
+    RGBA32UI texture (nearest, SKIN_TEXTURE_TEST_WIDTH wide) on texture unit 1."""
+    records = pack_skin(mesh.bone_indices, mesh.bone_weights, max_influences)
+    if skin == "pulled-buffer":
+        import re
+
+        # GLSL: the binding the test gave through VB_SKIN_BUFFER_LAYOUT; HLSL: spirv-cross's layout.
+        found = re.search(r"std430, binding = (\d+)|binding = (\d+), std430", source)
+        assert found, "no storage buffer in the pulled module"
+        buffer = ctx.buffer(records.tobytes())
+        buffer.bind_to_storage_buffer(int(found[1] or found[2]))
+        return buffer
+    width, height = skin_texture_shape(len(records), SKIN_TEXTURE_TEST_WIDTH)
+    data = np.zeros((width * height, 4), "<u4")
+    data[:len(records)] = records
+    texture = ctx.texture((width, height), 4, data.tobytes(), dtype="u4")
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)  # integer textures cannot be filtered
+    texture.use(location=1)
+    program[names["skinTexture"]].value = 1
+    return texture
+
+
+def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, uniform_block,
+         skin="attributes", source=""):
     dtype, data = _texture_data(vb)
     texture = ctx.texture((vb.layout.width, vb.layout.height), 4, data, dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -177,9 +210,15 @@ def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences
         if ranges_min is not None:
             program["vb_rangeMin"].value = ranges_min
             program["vb_rangeMax"].value = ranges_max
-    vertex_format = "3f 3f 4i 4f" + (" 4i 4f" if max_influences > 4 else "")
-    vertex_names = names["vertex"][: 4 if max_influences <= 4 else 6]
-    vbo = ctx.buffer(_vertex_bytes(mesh, max_influences))
+    skin_resource = None
+    if skin == "attributes":
+        vertex_format = "3f 3f 4i 4f" + (" 4i 4f" if max_influences > 4 else "")
+        vertex_names = names["vertex"][: 4 if max_influences <= 4 else 6]
+        vbo = ctx.buffer(_vertex_bytes(mesh, max_influences))
+    else:  # pulled: position and normal only, as a static mesh
+        vertex_format, vertex_names = "3f 3f", names["vertex"][:2]
+        vbo = ctx.buffer(np.ascontiguousarray(np.concatenate([mesh.points, mesh.normals], axis=1), "<f4").tobytes())
+        skin_resource = _bind_skin(ctx, program, names, mesh, max_influences, skin, source)
     instance = ctx.buffer(np.rec.fromarrays([clip.astype("<i4"), offset.astype("<f4"), rate.astype("<f4")]).tobytes())
     vao = ctx.vertex_array(program, [(vbo, vertex_format, *vertex_names),
                                      (instance, "1i 2f/i", *names["instance"])])
@@ -187,17 +226,19 @@ def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences
     out = ctx.buffer(reserve=count * instances * 6 * 4)
     vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=instances)
     result = np.frombuffer(out.read(), dtype="<f4").reshape(instances, count, 6)
-    for resource in (vao, vbo, instance, out, texture):
-        resource.release()
+    for resource in (vao, vbo, instance, out, texture, skin_resource):
+        if resource is not None:
+            resource.release()
     return result[..., :3], result[..., 3:]
 
 
-GLSL_NAMES = {"texture": "vb_texture",
+GLSL_NAMES = {"texture": "vb_texture", "skinTexture": "vb_skinTexture",
               "vertex": ["vb_restPosition", "vb_restNormal", "vb_boneIndices0", "vb_boneWeights0",
                          "vb_boneIndices1", "vb_boneWeights1"],
               "instance": ["vb_instanceClip", "vb_instanceTime"],
               "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]}
 HLSL_NAMES = {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler",
+              "skinTexture": "SPIRV_Cross_Combinedvb_skinTextureSPIRV_Cross_DummySampler",
               "vertex": ["input_restPosition", "input_restNormal", "input_boneIndices0", "input_boneWeights0",
                          "input_boneIndices1", "input_boneWeights1"],
               "instance": ["input_instanceClip", "input_instanceTime"],
@@ -244,21 +285,34 @@ def _baked(source, encoding, texel_format):
     return bake(animation, BakeOptions(encoding=encoding, texel_format=texel_format, max_influences=6)), 6
 
 
-def _program(ctx, lang, source, tmp_path):
+def _program(ctx, lang, source, tmp_path, skin="attributes"):
+    """(program, names, cbuffer?, the GLSL the driver compiled). GLSL: version 3.30 core, 4.30 core
+    for the storage-buffer skin (the module picks the buffer there by itself; the test gives its
+    binding through VB_SKIN_BUFFER_LAYOUT); HLSL: the texture skin with VB_SKIN_STORAGE 0."""
     if lang == "glsl":
-        return ctx.program(vertex_shader="#version 330 core\n" + source, varyings=GLSL_NAMES["varyings"]), GLSL_NAMES, False
-    return (ctx.program(vertex_shader=_hlsl_to_glsl(source, tmp_path), varyings=HLSL_NAMES["varyings"]),
-            HLSL_NAMES, True)
+        version = "#version 430 core\n" if skin == "pulled-buffer" else "#version 330 core\n"
+        if skin == "pulled-buffer":
+            version += f"#define VB_SKIN_BUFFER_LAYOUT std430, binding = {SKIN_BUFFER_BINDING}\n"
+        glsl = version + source
+        return ctx.program(vertex_shader=glsl, varyings=GLSL_NAMES["varyings"]), GLSL_NAMES, False, glsl
+    if skin == "pulled-texture":
+        source = "#define VB_SKIN_STORAGE 0\n" + source
+    glsl = _hlsl_to_glsl(source, tmp_path)
+    return ctx.program(vertex_shader=glsl, varyings=HLSL_NAMES["varyings"]), HLSL_NAMES, True, glsl
 
 
-def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what, prefix="", suffix=""):
-    """Run the module for ``lang`` (between ``prefix`` and ``suffix``) on every (instance, vertex) and assert
-    agreement with the reference."""
+def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_path, what, prefix="", suffix="",
+             skin="attributes"):
+    """Run the module for ``lang`` (between ``prefix`` and ``suffix``) in skin binding ``skin`` on every
+    (instance, vertex) and assert agreement with the reference. A pulled skin is also compared with the
+    attribute binding's results, within the same tolerances. Returns (position error, normal error)."""
     tau_used = offset.astype(np.float64) + rate.astype(np.float64) * time  # what the GPU is given
     source = prefix + generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format,
-                                             max_influences=max_influences)) + suffix
-    program, names, block = _program(ctx, lang, source, tmp_path)
-    points, normals = _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, block)
+                                             max_influences=max_influences,
+                                             skin="attributes" if skin == "attributes" else "pulled")) + suffix
+    program, names, block, compiled = _program(ctx, lang, source, tmp_path, skin)
+    points, normals = _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, block, skin,
+                           compiled)
     program.release()
     expected_points = np.empty_like(points, dtype=np.float64)
     expected_normals = np.empty_like(normals, dtype=np.float64)
@@ -268,34 +322,45 @@ def _compare(ctx, lang, vb, mesh, max_influences, clip, offset, rate, time, tmp_
     scale = _diagonal(expected_points.reshape(-1, 3))
     point_error = np.abs(points - expected_points).max() / scale
     normal_error = np.abs(normals - expected_normals).max()
+    what = f"{what} ({skin})"
     assert point_error <= TOLERANCE, f"{lang} {what}: position error {point_error:.3g} of the diagonal"
     assert normal_error <= NORMAL_TOLERANCE, f"{lang} {what}: normal error {normal_error:.3g}"
+    if skin != "attributes" and not prefix and not suffix:  # the same skinning code: the same results
+        source = generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format, max_influences=max_influences))
+        program, names, block, _ = _program(ctx, lang, source, tmp_path)
+        attribute_points, attribute_normals = _run(ctx, program, names, vb, mesh, clip, offset, rate, time,
+                                                   max_influences, block)
+        program.release()
+        assert np.abs(points - attribute_points).max() / scale <= TOLERANCE, f"{lang} {what}: against attributes"
+        assert np.abs(normals - attribute_normals).max() <= NORMAL_TOLERANCE, f"{lang} {what}: against attributes"
     return point_error, normal_error
 
 
-def _check(ctx, lang, encoding, texel_format, tmp_path, source):
+def _check(ctx, lang, encoding, texel_format, tmp_path, source, skin="attributes"):
     vb, max_influences = _baked(source, encoding, texel_format)
     clip, tau, rate = _instances(vb)
     time = 0.37
     offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
     return _compare(ctx, lang, vb, vb.meshes[0], max_influences, clip, offset, rate, time, tmp_path,
-                    f"{encoding} {texel_format} {source}")
+                    f"{encoding} {texel_format} {source}", skin=skin)
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)
-def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, tmp_path):
-    _check(gl, "glsl", encoding, texel_format, tmp_path, source)
+def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, skin, tmp_path):
+    _check(gl, "glsl", encoding, texel_format, tmp_path, source, skin)
 
 
 @pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
                     reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)
-def test_hlsl_compiles_cross_compiles_runs_and_matches_reference(gl, encoding, texel_format, source, tmp_path):
-    _check(gl, "hlsl", encoding, texel_format, tmp_path, source)
+def test_hlsl_compiles_cross_compiles_runs_and_matches_reference(gl, encoding, texel_format, source, skin, tmp_path):
+    _check(gl, "hlsl", encoding, texel_format, tmp_path, source, skin)
 
 
 SHAPE_CASES = {
@@ -308,9 +373,10 @@ SHAPE_CASES = {
 }
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("case", list(SHAPE_CASES))
-def test_influence_counts_and_texture_shapes(gl, lang, case, tmp_path):
+def test_influence_counts_and_texture_shapes(gl, lang, case, skin, tmp_path):
     """K = 1 and K = 8; a non-power-of-two width; a texture taller than 4096 rows (second clip at row 4200)."""
     if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
         pytest.skip("glslang-tools and spirv-cross are not installed")
@@ -324,7 +390,7 @@ def test_influence_counts_and_texture_shapes(gl, lang, case, tmp_path):
     clip, tau, rate = _instances(vb)
     time = 0.37
     offset = (tau - rate.astype(np.float64) * time).astype(np.float32)
-    _compare(gl, lang, vb, vb.meshes[0], shader_k, clip, offset, rate, time, tmp_path, case)
+    _compare(gl, lang, vb, vb.meshes[0], shader_k, clip, offset, rate, time, tmp_path, case, skin=skin)
 
 
 # The engine hooks as docs/engines.md uses them for an Unreal custom node: the module's functions
@@ -401,8 +467,9 @@ def test_engine_hooks_resources_as_arguments(gl, encoding, texel_format, tmp_pat
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
-def test_committed_sample_files_with_their_crowd(gl, lang, tmp_path):
+def test_committed_sample_files_with_their_crowd(gl, lang, skin, tmp_path):
     """The committed sample as files (EXR texture, USD mesh and point instancer): 1,200 instances
     with their own time offsets and playback rates, at two scene times, one of them past the 10 s loop."""
     if not SAMPLE.is_file():
@@ -416,7 +483,7 @@ def test_committed_sample_files_with_their_crowd(gl, lang, tmp_path):
     for time in (3.3, 17.05):
         _compare(gl, lang, vb, vb.meshes[0], vb.meshes[0].bone_indices.shape[1], np.asarray(crowd.clip, np.int32),
                  np.asarray(crowd.time_offset, np.float32), np.asarray(crowd.playback_rate, np.float32), time,
-                 tmp_path, f"sample at t = {time}")
+                 tmp_path, f"sample at t = {time}", skin=skin)
 
 
 def _variants():
@@ -492,6 +559,108 @@ def test_every_variant_compiles_as_glsl_330_glsl_es_300_and_hlsl(tmp_path):
     with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
         for path, compiled in pool.map(compile_hlsl, hlsl):
             assert compiled.returncode == 0, f"{path.name}\n{compiled.stdout[-3000:]}{compiled.stderr[-3000:]}"
+
+
+_GLSL_PULLED_CALLER = """
+in vec3 position; in vec3 normal; out vec3 skinnedNormal;
+void main()
+{
+    int index[VB_MAX_INFLUENCES]; float weight[VB_MAX_INFLUENCES];
+    vbSkinInfluences(gl_VertexID, index, weight);
+    vec3 skinned;
+    vbSkin(0, vb_time, position, normal, index, weight, skinned, skinnedNormal);
+    gl_Position = vec4(skinned, 1.0);
+}
+"""
+_HLSL_PULLED_CALLER = """
+float4 main(float3 position : POSITION, float3 normal : NORMAL, uint vertex : SV_VertexID,
+            out float3 skinnedNormal : NORMAL0) : SV_Position
+{
+    int index[VB_MAX_INFLUENCES]; float weight[VB_MAX_INFLUENCES];
+    vbSkinInfluences(int(vertex), index, weight);
+    float3 skinned;
+    vbSkin(0, vb_time, position, normal, index, weight, skinned, skinnedNormal);
+    return float4(skinned, 1.0);
+}
+"""
+_GLSL_PULLED_VERSIONS = {**_GLSL_VERSIONS, "430": "#version 430 core\n",
+                         "es310": "#version 310 es\nprecision highp float;\nprecision highp int;\n"}
+
+
+@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+def test_every_pulled_variant_compiles(tmp_path):
+    """Every pulled variant (4 encodings x 3 texel formats x K = 1..8): GLSL 3.30 core and GLSL ES
+    3.00 (the texture), GLSL 4.30 core and GLSL ES 3.10 (the storage buffer), with the example main and
+    functions only; HLSL with the StructuredBuffer and, for K = 1, 4, 5 and 8, with VB_SKIN_STORAGE 0
+    (Texture2D<uint4>) and functions only. The storage buffer is chosen by the GLSL version alone."""
+    import re
+
+    allowed = set(string.ascii_letters + string.digits + " \t\n_.+-/*%<>[](){}^|&~=!:;,?#")
+    glsl, hlsl = [], []
+    for encoding, texel_format, k in _variants():
+        stem = f"{encoding}_{texel_format}_{k}"
+        with_main = generate(ShaderOptions("glsl", encoding, texel_format, max_influences=k, skin="pulled"))
+        no_main = generate(ShaderOptions("glsl", encoding, texel_format, max_influences=k, main=False, skin="pulled"))
+        assert set(with_main) <= allowed, (stem, set(with_main) - allowed)
+        assert not re.search(r"vb_bone(Indices|Weights)", with_main), stem  # no skin attributes
+        for version, header in _GLSL_PULLED_VERSIONS.items():
+            for name, text in ((f"main_{version}", header + with_main),
+                               (f"nomain_{version}", header + no_main + _GLSL_PULLED_CALLER)):
+                path = tmp_path / f"{stem}_{name}.vert"
+                path.write_text(text)
+                glsl.append(str(path))
+        hlsl_texts = [("main", generate(ShaderOptions("hlsl", encoding, texel_format, max_influences=k,
+                                                      skin="pulled")))]
+        if k in (1, 4, 5, 8):
+            no_main = generate(ShaderOptions("hlsl", encoding, texel_format, max_influences=k, main=False,
+                                             skin="pulled"))
+            hlsl_texts += [("texture", "#define VB_SKIN_STORAGE 0\n" + hlsl_texts[0][1]),
+                           ("nomain", no_main + _HLSL_PULLED_CALLER)]
+        for name, text in hlsl_texts:
+            path = tmp_path / f"{stem}_{name}.hlsl"
+            path.write_text(text)
+            hlsl.append(path)
+    compiled = subprocess.run(["glslangValidator", *glsl], capture_output=True, text=True)
+    assert compiled.returncode == 0, compiled.stdout[-3000:] + compiled.stderr[-3000:]
+
+    def compile_hlsl(path):
+        return path, subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main",
+                                     "-o", str(path.with_suffix(".spv")), str(path)], capture_output=True, text=True)
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=4) as pool:
+        for path, compiled in pool.map(compile_hlsl, hlsl):
+            assert compiled.returncode == 0, f"{path.name}\n{compiled.stdout[-3000:]}{compiled.stderr[-3000:]}"
+    # The storage buffer is where the version has one, the texture elsewhere (preprocessed text).
+    for version, header in _GLSL_PULLED_VERSIONS.items():
+        path = tmp_path / f"pre_{version}.vert"
+        path.write_text(header + generate(ShaderOptions("glsl", skin="pulled")))
+        done = subprocess.run(["glslangValidator", "-E", str(path)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stdout + done.stderr
+        buffer = version in ("430", "es310")
+        assert ("readonly buffer VbSkin" in done.stdout) == buffer, version
+        assert ("usampler2D vb_skinTexture" in done.stdout) != buffer, version
+
+
+def test_skin_records_are_the_spec_example():
+    """spec/shaders.md, Skin records: K = 4, vertex 5 with indices (3, 17, 0, 0) and weights
+    (0.75, 0.25, 0, 0) is texels 10 and 11, bytes 160..191, written out by hand in the spec."""
+    indices = np.zeros((6, 4), np.int32)
+    weights = np.zeros((6, 4), np.float32)
+    indices[5], weights[5] = (3, 17, 0, 0), (0.75, 0.25, 0, 0)
+    records = pack_skin(indices, weights, 4)
+    assert records.shape == (12, 4) and records.dtype == np.dtype("<u4")
+    assert records[10].tolist() == [0x00110003, 0, 0x3F400000, 0x3E800000] and records[11].tolist() == [0, 0, 0, 0]
+    assert records.tobytes()[160:192] == bytes.fromhex("03001100 00000000 0000403f 0000803e") + bytes(16)
+    # Odd K, zero-padded to the module's K: K = 3 stored as K = 5 (3 + 5 = 8 words, 2 texels)
+    odd = pack_skin([[1, 2, 65535]], [[0.5, 0.25, 0.25]], 5)
+    assert odd.tolist() == [[1 + (2 << 16), 65535, 0, 0x3F000000], [0x3E800000, 0x3E800000, 0, 0]]
+    assert skin_texture_shape(12) == (12, 1) and skin_texture_shape(10000) == (4096, 3)
+    from vbusd.format.errors import OptionsError
+
+    for bad in (lambda: pack_skin([[70000]], [[1.0]]), lambda: pack_skin([[0, 1]], [[1.0]]),
+                lambda: pack_skin([[0, 1]], [[0.5, 0.5]], 1), lambda: pack_skin([[0]], [[1.0]], 9)):
+        with pytest.raises(OptionsError):
+            bad()
 
 
 @pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
@@ -647,10 +816,18 @@ def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     assert main(["shader", "--lang", "hlsl", "--no-main", "--max-clips", "4"]) == 0
     text = capsys.readouterr().out
     assert "#define VB_MAX_CLIPS 4" in text and "#define VB_MAIN 0" in text and "Texture2D<float4>" in text
+    assert "vbSkinInfluences" not in text  # attributes is the default binding
+    assert main(["shader", "--lang", "hlsl", "--skin", "pulled", "--max-influences", "6"]) == 0
+    text = capsys.readouterr().out
+    assert "StructuredBuffer<uint4> vb_skin;" in text and "SV_VertexID" in text and "BLENDINDICES" not in text
+    assert "#define VB_SKIN_TEXELS 3" in text  # 3 index words + 6 weights = 9 words
+    assert main(["shader", "--skin", "pulled", "--format", "json"]) == 0
+    described = json.loads(capsys.readouterr().out)
+    assert described["skin"] == "pulled" and "vb_boneIndices0" not in described["source"]
     bad = {("--lang", "wgsl"): "--lang", ("--encoding", "quat"): "--encoding",
            ("--texel-format", "rgba8"): "--texel-format", ("--max-influences", "0"): "--max-influences",
            ("--max-influences", "9"): "--max-influences", ("--max-influences", "four"): "--max-influences",
-           ("--max-clips", "0"): "--max-clips", ("--max-clips", "2.5"): "--max-clips",
+           ("--max-clips", "0"): "--max-clips", ("--max-clips", "2.5"): "--max-clips", ("--skin", "pull"): "--skin",
            ("-o", str(tmp_path)): str(tmp_path)}
     for args, named in bad.items():
         assert main(["shader", *args]) == 2, args

@@ -297,7 +297,7 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
-           max_clips: int = 16, main: bool = True) -> str:
+           max_clips: int = 16, main: bool = True, skin: str = "attributes") -> str:
     """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
 
     Args:
@@ -307,14 +307,16 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         max_influences: Influences per vertex, 1..8.
         max_clips: Size of the clip table uniform array.
         main: Also emit an entry point that writes the skinned position and normal.
+        skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
+            vertex index from skin records, ``vbusd.decode.shaders.pack_skin``; spec/shaders.md).
 
     Returns:
         The shader source text.
 
     Raises:
-        OptionsError: An unknown language, encoding or texel format, or a count out of range.
+        OptionsError: An unknown language, encoding, texel format or skin binding, or a count out of range.
     """
     from vbusd.decode.shaders import ShaderOptions, generate
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
-                                  max_influences=max_influences, max_clips=max_clips, main=main))
+                                  max_influences=max_influences, max_clips=max_clips, main=main, skin=skin))

@@ -14,13 +14,13 @@ from vbusd.cli.common import echo_json, force_option, format_option, quiet_optio
 from vbusd.format.errors import FORCE_HINT, OptionsError, VbusdError
 from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 from vbusd.format.layout import Encoding, TexelFormat
-from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, ShaderOptions, generate
+from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
 
 __all__ = ["command", "write_text"]
 
 # ShaderOptions names its fields; the command line spells them as options.
 _OPTION_NAMES = {"lang": "--lang", "encoding": "--encoding", "texel_format": "--texel-format",
-                 "max_influences": "--max-influences", "max_clips": "--max-clips"}
+                 "max_influences": "--max-influences", "max_clips": "--max-clips", "skin": "--skin"}
 
 
 def _integer(value: str, option: str) -> int:
@@ -41,12 +41,16 @@ def _integer(value: str, option: str) -> int:
 @click.option("--max-clips", default=str(DEFAULT_MAX_CLIPS), show_default=True, metavar="N",
               help="Size of the clip table, 1..256.")
 @click.option("--no-main", is_flag=True, help="Emit only the functions, without the example entry point.")
+@click.option("--skin", default=SKINS[0], show_default=True, metavar="BINDING",
+              help="How bone indices and weights reach the shader: attributes (vertex attributes) or pulled "
+                   "(read by vertex index from a storage buffer or texture; spec/shaders.md, Skin bindings).")
 @click.option("-o", "--output", metavar="FILE",
               help="File to write, atomically; missing folders are created (default: standard output).")
 @force_option
 @format_option
 @quiet_option
-def command(lang, encoding, texel_format, max_influences, max_clips, no_main, output, force, output_format, quiet):
+def command(lang, encoding, texel_format, max_influences, max_clips, no_main, skin, output, force, output_format,
+            quiet):
     """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
 
     The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md. Without -o
@@ -56,7 +60,7 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, ou
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),
-                                max_clips=_integer(max_clips, "--max-clips"), main=not no_main)
+                                max_clips=_integer(max_clips, "--max-clips"), main=not no_main, skin=skin)
     except OptionsError as error:
         message = error.message
         for field, option in _OPTION_NAMES.items():
@@ -66,7 +70,7 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, ou
     source = generate(options)
     described = {"lang": options.lang, "encoding": Encoding(options.encoding).value,
                  "texelFormat": TexelFormat(options.texel_format).value, "maxInfluences": options.max_influences,
-                 "maxClips": options.max_clips, "main": options.main}
+                 "maxClips": options.max_clips, "main": options.main, "skin": options.skin}
     if output is None:  # the module is what this command prints: -q does not hold it back
         if output_format == "json":
             echo_json({**described, "source": source})

@@ -6,19 +6,27 @@ decoding and skinning of position and normal, exactly as spec/virtual-bones.md s
 :mod:`vbusd.decode.reference` computes. The interface is documented in spec/shaders.md.
 
 Both languages share one body: the GLSL spelling is the source, and the HLSL prologue maps its
-few type names and intrinsics onto HLSL with macros, so the two cannot drift apart.
+few type names and intrinsics onto HLSL with macros, so the two cannot drift apart. Both skin
+bindings share it too: ``attributes`` passes each vertex's bone indices and weights as vertex
+attributes, ``pulled`` reads them by vertex index from skin records (:func:`pack_skin`) in a storage
+buffer or a texture; only that fetch and the example entry point differ.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 
-__all__ = ["LANGUAGES", "DEFAULT_MAX_CLIPS", "ShaderOptions", "generate"]
+__all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "SKIN_TEXTURE_WIDTH", "ShaderOptions", "generate",
+           "skin_record_texels", "pack_skin", "skin_texture_shape"]
 
 LANGUAGES = ("glsl", "hlsl")
+SKINS = ("attributes", "pulled")  # spec/shaders.md, Skin bindings; attributes is the default
+SKIN_TEXTURE_WIDTH = 4096  # the widest skin texture vbusd lays out (spec: W = min(texels, 4096))
 DEFAULT_MAX_CLIPS = 16
 
 
@@ -35,6 +43,8 @@ class ShaderOptions:
         main: Also emit an entry point ``main`` that writes the skinned position and normal to
             outputs (for transform feedback or as a starting point); engines usually call
             ``vbSkin`` from their own vertex function instead.
+        skin: How the bone indices and weights reach the shader: ``attributes`` (vertex
+            attributes) or ``pulled`` (skin records read by vertex index, ``vbSkinInfluences``).
     """
 
     lang: str = "glsl"
@@ -43,10 +53,13 @@ class ShaderOptions:
     max_influences: int = 4
     max_clips: int = DEFAULT_MAX_CLIPS
     main: bool = True
+    skin: str = "attributes"
 
     def __post_init__(self) -> None:
         if self.lang not in LANGUAGES:
             raise OptionsError(f"lang must be one of {', '.join(LANGUAGES)}, got {self.lang!r}", file="shader")
+        if self.skin not in SKINS:
+            raise OptionsError(f"skin must be one of {', '.join(SKINS)}, got {self.skin!r}", file="shader")
         for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat)):
             try:
                 object.__setattr__(self, name, kind(getattr(self, name)))
@@ -385,13 +398,7 @@ _GLSL_MAIN = """\
 #if VB_MAIN
 in vec3 vb_restPosition;
 in vec3 vb_restNormal;
-in ivec4 vb_boneIndices0;
-in vec4 vb_boneWeights0;
-#if VB_MAX_INFLUENCES > 4
-in ivec4 vb_boneIndices1;
-in vec4 vb_boneWeights1;
-#endif
-in int vb_instanceClip;          // per instance (divisor 1): clip index
+@SKIN_INPUTS@in int vb_instanceClip;          // per instance (divisor 1): clip index
 in vec2 vb_instanceTime;         // per instance: (timeOffset, playbackRate)
 #if VB_CROSSFADE
 in int vb_instanceFadeClip;      // per instance: fade clip index (format 1.1)
@@ -405,17 +412,7 @@ void main()
 {
     int boneIndex[VB_MAX_INFLUENCES];
     float boneWeight[VB_MAX_INFLUENCES];
-    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
-    {
-#if VB_MAX_INFLUENCES > 4
-        boneIndex[i] = i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4];
-        boneWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];
-#else
-        boneIndex[i] = vb_boneIndices0[i];
-        boneWeight[i] = vb_boneWeights0[i];
-#endif
-    }
-    float tau = vb_instanceTime.x + vb_instanceTime.y * vb_time;
+@SKIN_FETCH@    float tau = vb_instanceTime.x + vb_instanceTime.y * vb_time;
 #if VB_CROSSFADE
     vbSkinCrossfade(VB_ARGS vb_instanceClip, tau, vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time,
                     vb_instanceFade.z, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
@@ -435,13 +432,7 @@ struct VbVertexInput
 {
     float3 restPosition : POSITION;
     float3 restNormal : NORMAL;
-    int4 boneIndices0 : BLENDINDICES0;
-    float4 boneWeights0 : BLENDWEIGHT0;
-#if VB_MAX_INFLUENCES > 4
-    int4 boneIndices1 : BLENDINDICES1;
-    float4 boneWeights1 : BLENDWEIGHT1;
-#endif
-    int instanceClip : TEXCOORD6;      // per instance: clip index
+@SKIN_INPUTS@    int instanceClip : TEXCOORD6;      // per instance: clip index
     float2 instanceTime : TEXCOORD7;   // per instance: (timeOffset, playbackRate)
 #if VB_CROSSFADE
     int instanceFadeClip : TEXCOORD4;  // per instance: fade clip index (format 1.1)
@@ -460,17 +451,7 @@ VbVertexOutput main(VbVertexInput input)
 {
     int boneIndex[VB_MAX_INFLUENCES];
     float boneWeight[VB_MAX_INFLUENCES];
-    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
-    {
-#if VB_MAX_INFLUENCES > 4
-        boneIndex[i] = i < 4 ? input.boneIndices0[i] : input.boneIndices1[i - 4];
-        boneWeight[i] = i < 4 ? input.boneWeights0[i] : input.boneWeights1[i - 4];
-#else
-        boneIndex[i] = input.boneIndices0[i];
-        boneWeight[i] = input.boneWeights0[i];
-#endif
-    }
-    float tau = input.instanceTime.x + input.instanceTime.y * vb_time;
+@SKIN_FETCH@    float tau = input.instanceTime.x + input.instanceTime.y * vb_time;
     VbVertexOutput output;
 #if VB_CROSSFADE
     vbSkinCrossfade(VB_ARGS input.instanceClip, tau, input.instanceFadeClip,
@@ -485,6 +466,156 @@ VbVertexOutput main(VbVertexInput input)
     return output;
 }
 #endif
+"""
+
+# How the example main gets the skin: (inputs, fetch) per language and binding.
+_MAIN_SKIN = {
+    ("glsl", "attributes"): ("""\
+in ivec4 vb_boneIndices0;
+in vec4 vb_boneWeights0;
+#if VB_MAX_INFLUENCES > 4
+in ivec4 vb_boneIndices1;
+in vec4 vb_boneWeights1;
+#endif
+""", """\
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+#if VB_MAX_INFLUENCES > 4
+        boneIndex[i] = i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4];
+        boneWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];
+#else
+        boneIndex[i] = vb_boneIndices0[i];
+        boneWeight[i] = vb_boneWeights0[i];
+#endif
+    }
+"""),
+    ("hlsl", "attributes"): ("""\
+    int4 boneIndices0 : BLENDINDICES0;
+    float4 boneWeights0 : BLENDWEIGHT0;
+#if VB_MAX_INFLUENCES > 4
+    int4 boneIndices1 : BLENDINDICES1;
+    float4 boneWeights1 : BLENDWEIGHT1;
+#endif
+""", """\
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+#if VB_MAX_INFLUENCES > 4
+        boneIndex[i] = i < 4 ? input.boneIndices0[i] : input.boneIndices1[i - 4];
+        boneWeight[i] = i < 4 ? input.boneWeights0[i] : input.boneWeights1[i - 4];
+#else
+        boneIndex[i] = input.boneIndices0[i];
+        boneWeight[i] = input.boneWeights0[i];
+#endif
+    }
+"""),
+    ("glsl", "pulled"): ("", """\
+    vbSkinInfluences(VB_ARGS gl_VertexID, boneIndex, boneWeight);  // the skin record of this vertex
+"""),
+    ("hlsl", "pulled"): ("""\
+    uint vertexId : SV_VertexID;       // the vertex's index in the mesh: its skin record
+""", """\
+    vbSkinInfluences(VB_ARGS int(input.vertexId), boneIndex, boneWeight);
+"""),
+}
+
+# Pulled skin: the record resources (spec/shaders.md, Skin bindings), after the prologue.
+_GLSL_PULLED = """\
+#ifndef VB_SKIN_STORAGE
+#ifdef GL_ES
+#if __VERSION__ >= 310
+#define VB_SKIN_STORAGE 1
+#else
+#define VB_SKIN_STORAGE 0
+#endif
+#elif __VERSION__ >= 430
+#define VB_SKIN_STORAGE 1
+#else
+#define VB_SKIN_STORAGE 0
+#endif
+#endif
+#ifndef VB_SKIN_BUFFER_LAYOUT
+#define VB_SKIN_BUFFER_LAYOUT std430
+#endif
+
+#if VB_DECLARE_RESOURCES
+#if VB_SKIN_STORAGE
+layout(VB_SKIN_BUFFER_LAYOUT) readonly buffer VbSkin { uvec4 vb_skin[]; };  // skin records, 16 bytes a texel
+#else
+uniform highp usampler2D vb_skinTexture;  // skin records as an RGBA32UI texture, NEAREST
+#endif
+#endif
+
+#ifndef VB_SKIN_FETCH
+#if VB_SKIN_STORAGE
+#define VB_SKIN_FETCH(texel) vb_skin[texel]
+#else
+// Texel t of the records is at column t % width, row t / width.
+uvec4 vbSkinTexel(int texel)
+{
+    int width = textureSize(vb_skinTexture, 0).x;
+    return texelFetch(vb_skinTexture, ivec2(texel % width, texel / width), 0);
+}
+#define VB_SKIN_FETCH(texel) vbSkinTexel(texel)
+#endif
+#endif
+"""
+
+_HLSL_PULLED = """\
+#define uvec4 uint4
+#define uintBitsToFloat asfloat
+#ifndef VB_SKIN_STORAGE
+#define VB_SKIN_STORAGE 1
+#endif
+
+#if VB_DECLARE_RESOURCES
+#if VB_SKIN_STORAGE
+StructuredBuffer<uint4> vb_skin;       // skin records, 16 bytes a texel
+#else
+Texture2D<uint4> vb_skinTexture;       // skin records as an R32G32B32A32_UINT texture
+#endif
+#endif
+
+#ifndef VB_SKIN_FETCH
+#if VB_SKIN_STORAGE
+#define VB_SKIN_FETCH(texel) vb_skin[texel]
+#else
+// Texel t of the records is at column t % width, row t / width.
+uint4 vbSkinTexel(int texel)
+{
+    uint width;
+    uint height;
+    vb_skinTexture.GetDimensions(width, height);
+    int w = int(width);
+    return vb_skinTexture.Load(int3(texel % w, texel / w, 0));
+}
+#define VB_SKIN_FETCH(texel) vbSkinTexel(texel)
+#endif
+#endif
+"""
+
+# The pulled fetch, shared by both languages (GLSL spelling).
+_SKIN_INFLUENCES = """\
+// Pulled skin (spec: Skin bindings): the bone indices and weights of one vertex from its record of
+// VB_SKIN_TEXELS texels: ceil(K / 2) words of 16-bit index pairs (low half first), then K binary32 weights.
+void vbSkinInfluences(VB_ARGS_DECL int vertex, out int boneIndex[VB_MAX_INFLUENCES],
+                      out float boneWeight[VB_MAX_INFLUENCES])
+{
+    uint words[VB_SKIN_TEXELS * 4];
+    for (int j = 0; j < VB_SKIN_TEXELS; ++j)
+    {
+        uvec4 texel = VB_SKIN_FETCH(vertex * VB_SKIN_TEXELS + j);
+        words[4 * j] = texel.x;
+        words[4 * j + 1] = texel.y;
+        words[4 * j + 2] = texel.z;
+        words[4 * j + 3] = texel.w;
+    }
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        uint pair = words[i / 2];
+        boneIndex[i] = int((i % 2 == 0) ? (pair & 65535u) : (pair >> 16));
+        boneWeight[i] = uintBitsToFloat(words[(VB_MAX_INFLUENCES + 1) / 2 + i]);
+    }
+}
 """
 
 # The GLSL spellings are macros for the shared body only: undefine them so that they cannot clash
@@ -516,6 +647,11 @@ def generate(options: ShaderOptions) -> str:
         f"#define VB_MAX_INFLUENCES {options.max_influences}",
         f"#define VB_MAX_CLIPS {options.max_clips}",
         f"#define VB_UNORM16 {1 if options.texel_format is TexelFormat.UNORM16 else 0}",
+        *(["// Skin binding pulled: bone indices and weights read by vertex index (spec/shaders.md, Skin bindings).",
+           "#define VB_SKIN_PULLED 1",
+           f"#define VB_SKIN_WORDS {(options.max_influences + 1) // 2 + options.max_influences}",
+           f"#define VB_SKIN_TEXELS {skin_record_texels(options.max_influences)}"]
+          if options.skin == "pulled" else []),
         "#ifndef VB_MAIN",
         f"#define VB_MAIN {1 if options.main else 0}",
         "#endif",
@@ -546,9 +682,81 @@ def generate(options: ShaderOptions) -> str:
     ]
     prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
     skin = _SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _SKIN_LBS
-    main = _GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN
+    skin_inputs, skin_fetch = _MAIN_SKIN[options.lang, options.skin]
+    main = (_GLSL_MAIN if options.lang == "glsl" else _HLSL_MAIN).replace("@SKIN_INPUTS@", skin_inputs)
+    main = main.replace("@SKIN_FETCH@", skin_fetch)
     rows = _BONE_ROWS_DQS if options.encoding is Encoding.DUAL_QUAT else _BONE_ROWS_LBS
     parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, rows, _SOCKET, main]
+    if options.skin == "pulled":
+        parts[1:1] = [_GLSL_PULLED if options.lang == "glsl" else _HLSL_PULLED]
+        parts[-1:-1] = [_SKIN_INFLUENCES]
     if options.lang == "hlsl":
-        parts.append(_HLSL_EPILOGUE)
+        parts.append(_HLSL_EPILOGUE + ("#undef uvec4\n#undef uintBitsToFloat\n" if options.skin == "pulled" else ""))
     return "\n".join(header) + "\n".join(parts)
+
+
+def skin_record_texels(max_influences: int) -> int:
+    """16-byte texels of one vertex's skin record for ``max_influences`` K (spec: Skin records).
+
+    Args:
+        max_influences: K, 1..8.
+
+    Returns:
+        ``ceil((ceil(K / 2) + K) / 4)``: 1 for K <= 2, 2 for K <= 5, 3 for K <= 8.
+    """
+    words = (max_influences + 1) // 2 + max_influences
+    return (words + 3) // 4
+
+
+def pack_skin(bone_indices, bone_weights, max_influences: int | None = None) -> np.ndarray:
+    """The skin records of a mesh for a ``pulled`` module (spec/shaders.md, Skin records).
+
+    Args:
+        bone_indices: (V, k) bone indices, 0..65535.
+        bone_weights: (V, k) weights; stored as binary32.
+        max_influences: The module's K (k..8; the record's slots past k hold index 0, weight 0);
+            k when omitted.
+
+    Returns:
+        (V * texels, 4) little-endian uint32: the storage buffer's content, and the texture form's
+        texels in order (:func:`skin_texture_shape`).
+
+    Raises:
+        OptionsError: Shapes that differ, K out of k..8, or an index outside 0..65535.
+    """
+    indices = np.asarray(bone_indices)
+    weights = np.asarray(bone_weights)
+    if indices.ndim != 2 or indices.shape != weights.shape:
+        raise OptionsError(f"bone indices {indices.shape} and weights {weights.shape} must both be (vertices, K)",
+                           file="skin")
+    count, k = indices.shape
+    k_out = k if max_influences is None else max_influences
+    if isinstance(k_out, bool) or int(k_out) != k_out or not max(k, 1) <= k_out <= 8:
+        raise OptionsError(f"max_influences must be {max(k, 1)}..8 for {k} influences per vertex, got {k_out!r}",
+                           file="skin")
+    if indices.size and (indices.min() < 0 or indices.max() > 65535):
+        raise OptionsError("bone indices must be 0..65535 (16-bit in a skin record)", file="skin")
+    padded = np.zeros((count, k_out + (k_out % 2)), np.uint32)
+    padded[:, :k] = indices
+    pairs = padded[:, 0::2] | (padded[:, 1::2] << np.uint32(16))
+    texels = skin_record_texels(k_out)
+    words = np.zeros((count, texels * 4), "<u4")
+    words[:, :pairs.shape[1]] = pairs
+    bits = np.zeros((count, k_out), "<f4")
+    bits[:, :k] = weights
+    words[:, pairs.shape[1]:pairs.shape[1] + k_out] = bits.view("<u4")
+    return words.reshape(count * texels, 4)
+
+
+def skin_texture_shape(texel_count: int, width: int = SKIN_TEXTURE_WIDTH) -> tuple[int, int]:
+    """(width, height) of the RGBA32UI texture form of ``texel_count`` record texels.
+
+    Args:
+        texel_count: Texels of all records (``len(pack_skin(...))``).
+        width: The widest row to use (vbusd uses 4096).
+
+    Returns:
+        ``(min(texel_count, width), ceil(texel_count / that))``; texel t at column t % width, row t // width.
+    """
+    w = max(1, min(texel_count, width))
+    return w, max(1, -(-texel_count // w))
