@@ -15,6 +15,7 @@ from pathlib import Path
 
 import click
 
+from vbusd.cli.common import human_bytes
 from vbusd.format.errors import OptionsError
 
 __all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
@@ -94,6 +95,6 @@ def command(asset, output, form, supercompression, duration, output_format, forc
         return 0
     for warning in report.get("warnings", ()):
         click.echo(f"vbusd: warning: {warning}", err=True)
-    files = ", ".join(f"{Path(path).name} ({size / 1024:.1f} KiB)" for path, size in report["files"].items())
+    files = ", ".join(f"{Path(path).name} ({human_bytes(size)})" for path, size in report["files"].items())
     click.echo(f"wrote {files}")
     return 0

@@ -19,7 +19,7 @@ from typing import Optional
 import click
 
 from vbusd.cli import common
-from vbusd.format.errors import InputError
+from vbusd.format.errors import MISSING_FILE, InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
 
@@ -48,7 +48,7 @@ The JSON form (--format json) is one object:
                    "contentDigest", "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
-  A texture's animation also has "container" (exr | png),
+  A texture's animation also has "container" (exr | png | ktx2),
   "compression" and "warnings" (notes that did not stop reading).
   A USD asset also has "upAxis" (Y | Z) and "metersPerUnit": the
   stage's scene units (text: "scene: Z up, 1 unit = 0.01 m").
@@ -182,7 +182,7 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR or PNG "
                          "texture, or a sidecar .json", file=file, location="file", code="file.kind")
     if not path.exists():
-        raise InputError("file not found", file=file, location="file", code="file.missing")
+        raise InputError(MISSING_FILE, file=file, code="file.missing")
     if not path.is_file():  # a named pipe would block the first read; devices are no assets
         raise InputError("not a regular file (a pipe, device or socket)", file=file,
                          location="file", code="file.kind")
@@ -226,9 +226,9 @@ def _print_text(result: dict) -> None:
     if "upAxis" in result:
         console.print(f"scene: {result['upAxis']} up, 1 unit = {result['metersPerUnit']:g} m")
     for animation in result["animations"]:
-        title = animation["path"] or animation["texture"] or "animation"
-        table = Table(title=title, title_justify="left", show_header=False, box=None,
-                      pad_edge=False)
+        # The path on a line of its own: a table title would wrap at the table's width.
+        console.print(animation["path"] or animation["texture"] or "animation", markup=False)
+        table = Table(show_header=False, box=None, pad_edge=False)
         table.add_column("key", style="bold", no_wrap=True)
         table.add_column("value", overflow="fold")  # wraps at spaces, never an ellipsis
         if animation["path"] and animation["texture"]:
@@ -243,9 +243,9 @@ def _print_text(result: dict) -> None:
                                f"(horizontal padding {animation['horizontalPadding']})")
         table.add_row("height", f"{animation['height']} (vertical padding "
                                 f"{animation['verticalPadding']})")
-        table.add_row("texel bytes", f"{animation['texelBytes']:,}")
+        table.add_row("texel bytes", common.human_bytes(animation["texelBytes"], exact=True))
         table.add_row("padding waste", f"{animation['paddingFraction'] * 100:.2f}% "
-                                       f"({animation['paddingBytes']:,} bytes)")
+                                       f"({common.human_bytes(animation['paddingBytes'], exact=True)})")
         for warning in animation.get("warnings", ()):
             table.add_row("warning", warning)
         console.print(table)

@@ -6,7 +6,10 @@ exits with :attr:`VbusdError.exit_status`; the library never calls ``sys.exit``.
 
 from __future__ import annotations
 
-__all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError"]
+__all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError", "MISSING_FILE"]
+
+MISSING_FILE = "no such file"
+"""The one wording of a missing input file (code ``file.missing``), in every command and reader."""
 
 
 class VbusdError(Exception):
