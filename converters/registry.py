@@ -25,7 +25,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Optional
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 
 __all__ = ["GROUP", "ConverterEntry", "entries", "find_converter", "check_source", "read"]
 
@@ -168,7 +168,7 @@ def check_source(path) -> Path:
     """
     path = Path(path)
     if not path.exists():
-        raise InputError("no such file", file=str(path), code="file.missing")
+        raise InputError(MISSING_FILE, file=str(path), code="file.missing")
     if not path.is_file():
         raise InputError("is a folder, not a file" if path.is_dir() else "not a regular file", file=str(path),
                          code="file.kind")

@@ -291,8 +291,8 @@ def _two_animation_character(folder: Path, second_clips) -> Path:
         return VirtualBones(layout=layout, texels=texels, bones=("root",), clips=clips, meshes=(mesh,),
                             path=f"/Rig/{name}")
 
-    asset = VirtualBonesAsset(animations=(animation("Body", (Clip("walk", 0, 2, 24.0, True), Clip("run", 2, 2, 24.0, True)), 4),
-                                          animation("Prop", second_clips, 4)),
+    body_clips = (Clip("walk", 0, 2, 24.0, True), Clip("run", 2, 2, 24.0, True))
+    asset = VirtualBonesAsset(animations=(animation("Body", body_clips, 4), animation("Prop", second_clips, 4)),
                               up_axis="Y", meters_per_unit=1.0, default_prim="Rig")
     path = folder / "rig.usda"
     write_asset(asset, path)

@@ -84,7 +84,7 @@ def test_text_table(tmp_path, capsys):
     assert main(["info", str(path)]) == 0
     text = capsys.readouterr().out
     for expected in ("crossMatrix", "float16", "18 x 3 texels", "512", "54 used, 64 padded",
-                     "262,144", "15.62% (40,960 bytes)", "cheer", "51.2", "yes", "10"):
+                     "256.0 KiB, 262,144 bytes", "15.62% (40.0 KiB, 40,960 bytes)", "cheer", "51.2", "yes", "10"):
         assert expected in text, expected
 
 
@@ -195,7 +195,7 @@ def test_usd_asset_written_by_usd_io(tmp_path, capsys):
 def test_errors_are_one_line_with_exit_status_2(tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.exr")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "missing.exr: file: file.missing" in err
+    assert err.count("\n") == 1 and "missing.exr: file.missing: no such file" in err
     other = tmp_path / "notes.txt"
     other.write_text("hello")
     assert main(["info", str(other)]) == 2

@@ -645,7 +645,7 @@ def test_missing_texture_and_file(written):
     with pytest.raises(InputError) as caught:
         usd_io.read_asset(written)
     assert caught.value.code == "file.missing"
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(InputError, match="no such file"):
         usd_io.read_asset(written.parent / "nothing.usda")
     with pytest.raises(InputError, match="usdz"):
         usd_io.read_asset(written.parent / "crowd.usdz")

@@ -75,7 +75,7 @@ def test_missing_asset_exits_2_with_one_line(capsys, tmp_path):
     missing = tmp_path / "nothere.usda"
     assert main(["validate", str(missing)]) == 2
     out, err = capsys.readouterr()
-    assert out == "" and err.strip() == f"vbusd: {missing}: file.missing: file not found"
+    assert out == "" and err.strip() == f"vbusd: {missing}: file.missing: no such file"
 
 
 def test_texture_given_on_its_own(capsys):
@@ -120,15 +120,20 @@ def test_the_installed_command_in_a_subprocess(tmp_path):
     assert result.returncode == 0, result.stderr
 
 
-def test_text_report_lines_fit_80_columns_without_cutting_words(capsys):
-    # Every message line wraps at 80 columns between words; joined again it is the JSON message.
+def test_text_report_wraps_between_words_on_a_terminal_and_not_at_all_in_a_pipe(capsys):
+    # Not a terminal (a log, a pipe): each message is one line, the JSON message (issue 24: wrapping
+    # at 80 columns there broke lines for grep). At a width (a terminal's), lines wrap between words.
     asset = FIXTURES / "texture.padding.nonZero" / "asset.usda"
-    assert main(["validate", str(asset)]) == 1
-    text = capsys.readouterr().out.splitlines()
-    assert all(len(line) <= 80 for line in text[1:]), [line for line in text[1:] if len(line) > 80]
     assert main(["validate", str(asset), "--format", "json"]) == 1
     message = json.loads(capsys.readouterr().out)["findings"][0]["message"]
+    assert main(["validate", str(asset)]) == 1
+    text = capsys.readouterr().out.splitlines()
     start = next(i for i, line in enumerate(text) if line.startswith("  texture.padding.nonZero")) + 1
+    assert text[start] == "      " + message and not text[start + 1].startswith("      ")
+    from vbusd.validators.api import validate
+
+    text = validate(asset).to_text(width=80).splitlines()
+    assert all(len(line) <= 80 for line in text[1:]), [line for line in text[1:] if len(line) > 80]
     wrapped = []
     for line in text[start:]:
         if not line.startswith("      "):

@@ -16,7 +16,7 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 
 from vbusd.format import codes as _codes
 from vbusd.format.diagnostics import FileLocation, UsdSite, finding
@@ -71,7 +71,7 @@ def validate_findings(path) -> list:
     """All findings of one asset, unfiltered (see :func:`validate`)."""
     path = str(path)
     if not os.path.exists(path):
-        raise InputError("file not found", file=path, code="file.missing")
+        raise InputError(MISSING_FILE, file=path, code="file.missing")
     if os.path.isdir(path):
         raise InputError("is a folder, not an asset file", file=path, code="file.unreadable")
     if not os.path.isfile(path):

@@ -24,7 +24,8 @@ REPORT_VERSION = 1
 
 
 TEXT_WIDTH = 80
-"""Columns of the text report: messages wrap at word boundaries to fit."""
+"""Default columns of :meth:`Report.to_text`: messages wrap at word boundaries to fit (``vbusd
+validate`` passes the terminal's width, or None, no wrapping, when stdout is not a terminal)."""
 
 
 @dataclass
@@ -86,8 +87,12 @@ class Report:
         """JSON text, indented, keys in schema order."""
         return json.dumps(self.to_json(), indent=2, allow_nan=False)
 
-    def to_text(self) -> str:
-        """Human-readable report: a header, findings grouped by severity with locations, a summary."""
+    def to_text(self, width: Optional[int] = TEXT_WIDTH) -> str:
+        """Human-readable report: a header, findings grouped by severity with locations, a summary.
+
+        Args:
+            width: Columns messages wrap at (between words); None: each message on one line.
+        """
         lines = [f"vbusd {self.vbusd_version} validate {self.asset}"]
         for severity in Severity:
             group = [f for f in self.findings if f.severity is severity]
@@ -100,7 +105,10 @@ class Report:
                 # Code and location stay whole on their line (they are what CI greps for); the
                 # message wraps at 80 columns between words, never inside a path or a number.
                 lines.append(f"  {item.code}  {item.location}")
-                lines.extend(textwrap.wrap(item.message, TEXT_WIDTH, initial_indent=" " * 6,
+                if width is None:
+                    lines.append(" " * 6 + " ".join(item.message.split()))
+                    continue
+                lines.extend(textwrap.wrap(item.message, width, initial_indent=" " * 6,
                                            subsequent_indent=" " * 6, break_long_words=False,
                                            break_on_hyphens=False) or [" " * 6])
         lines.append("")

@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from vbusd.format.errors import FORCE_HINT, OUTSIDE_PATHS_HINT, InputError, OptionsError
+from vbusd.format.errors import FORCE_HINT, MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, OptionsError
 from vbusd.format.names import unique_names
 
 __all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
@@ -197,7 +197,7 @@ def read_points(path: str) -> np.ndarray:
     """
     source = Path(path)
     if not source.is_file():
-        raise InputError("file not found" if not source.exists() else "not a regular file", file=str(source),
+        raise InputError(MISSING_FILE if not source.exists() else "not a regular file", file=str(source),
                          code="file.missing" if not source.exists() else "file.kind")
     if source.suffix.lower() in (".usd", ".usda", ".usdc"):
         return _usd_points(source)

@@ -1,18 +1,19 @@
 """What every ``vbusd`` subcommand shares: progress, interruption, quiet mode, JSON and table output.
 
-One home for these, so that the commands behave alike: a progress bar on stderr only when it is a
-terminal (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
+One home for these, so that the commands behave alike: progress on stderr, a bar on a terminal and
+plain lines at a modest rate otherwise (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
 (:func:`terminate_as_interrupt`), the options every command has (:data:`quiet_option`,
 :data:`format_option`, and :data:`force_option` where it writes; tests/test_cli.py walks the command
 tree and checks them), warnings (:func:`warn`), JSON in one key
 style (:func:`echo_json`, camelCase with rounded times through :mod:`vbusd.format.jsonform`) and text
-tables that fit 80 columns by wrapping, never cutting, a code, path or number (:func:`console`).
+tables that wrap at the terminal's width, never cutting a code, path or number, and do not wrap at
+all when stdout is not a terminal (:func:`console`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import sys
+import threading
 import time
 from typing import Optional
 
@@ -20,16 +21,22 @@ import click
 
 from vbusd.format.jsonform import json_text
 
-__all__ = ["TEXT_WIDTH", "progress_bar", "terminate_as_interrupt", "quiet_option", "format_option", "force_option",
-           "warn", "echo_json", "console", "table", "command_line_spelling", "human_bytes"]
+__all__ = ["TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
+           "format_option", "force_option", "warn", "echo_json", "console", "table", "command_line_spelling",
+           "human_bytes"]
 
-TEXT_WIDTH = 80
-"""Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log)."""
+TEXT_WIDTH = None
+"""Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log): None, no
+wrapping at all, so a path, a code or a number is never broken across lines in a log or for grep.
+On a terminal, text wraps at the terminal's width, at spaces."""
+
+_UNWRAPPED = 1 << 16
+"""The width given to rich when nothing may wrap (rich needs a number; lines are never padded to it)."""
 
 
 quiet_option = click.option(
     "-q", "--quiet", is_flag=True,
-    help="Print no report, summary, warning or progress bar; errors still print, one line each, and the "
+    help="Print no report, summary, warning or progress; errors still print, one line each, and the "
          "exit status tells the outcome.")
 """``-q/--quiet``: every command has it, with this meaning (what a command produces on stdout as its
 job, such as ``vbusd shader``'s module without ``-o``, is not a report and still prints)."""
@@ -68,7 +75,7 @@ def human_bytes(count: int, *, exact: bool = False) -> str:
 
     Args:
         count: Bytes.
-        exact: Also give the exact count, ``256.0 KiB (262,144 bytes)``, where it is a design figure
+        exact: Also give the exact count, ``256.0 KiB, 262,144 bytes``, where it is a design figure
             (a texture's texel bytes) rather than a file's size.
     """
     count = int(count)
@@ -78,7 +85,7 @@ def human_bytes(count: int, *, exact: bool = False) -> str:
             break
         value /= 1024.0
     text = f"{count} B" if unit == "B" else f"{value:.1f} {unit}"
-    return f"{text} ({count:,} bytes)" if exact and unit != "B" else text
+    return f"{text}, {count:,} bytes" if exact and unit != "B" else text
 
 
 def echo_json(value) -> None:
@@ -87,12 +94,14 @@ def echo_json(value) -> None:
 
 
 def console(file=None):
-    """A rich console for tables: the terminal's width, or :data:`TEXT_WIDTH` when not a terminal."""
+    """A rich console for tables: the terminal's width on a terminal; no wrapping otherwise
+    (:data:`TEXT_WIDTH`), so that no path or number is broken in two in a log or a pipe."""
     from rich.console import Console
 
     stream = sys.stdout if file is None else file
-    return Console(file=stream, width=None if stream.isatty() else TEXT_WIDTH, highlight=False,
-                   soft_wrap=False)
+    terminal = stream.isatty()
+    return Console(file=stream, width=None if terminal else (TEXT_WIDTH or _UNWRAPPED), highlight=False,
+                   soft_wrap=False, force_terminal=None if terminal else False)
 
 
 def table(*columns: str, title: Optional[str] = None, right: tuple = (), show_header: bool = True, **options):
@@ -125,14 +134,49 @@ def terminate_as_interrupt():
     return _signals.handling_signals()
 
 
+PROGRESS_INTERVAL_S = 10.0
+"""When stderr is not a terminal (a log, a pipe), a plain progress line at most this often, the first
+after this long: work shorter than it prints nothing, long work shows that it is alive."""
+
+
+class _PlainProgress:
+    """``progress(step, done, total)`` as plain lines on a stream that is not a terminal:
+    ``vbusd: progress: STEP DONE/TOTAL (P%), T s``, at most one per ``interval`` seconds, the first
+    after ``interval``, and a last one for a step that printed when it completes. Callbacks may come
+    from several threads (a lock orders them); nothing is imported here."""
+
+    def __init__(self, stream, interval: float, clock=time.monotonic) -> None:
+        self._stream, self._interval, self._clock = stream, interval, clock
+        self._start = self._last = clock()
+        self._printed: set = set()
+        self._lock = threading.Lock()
+
+    def __call__(self, step: str, done: int, total: int) -> None:
+        with self._lock:
+            now = self._clock()
+            finished = total > 0 and done >= total
+            if now - self._last < self._interval and not (finished and step in self._printed):
+                return
+            if finished and step in self._printed:
+                self._printed.discard(step)
+            else:
+                self._printed.add(step)
+            self._last = now
+            share = f" ({100.0 * done / total:.0f}%)" if total > 0 else ""
+            self._stream.write(f"vbusd: progress: {step} {done}/{total}{share}, {now - self._start:.0f} s\n")
+            self._stream.flush()
+
+
 class progress_bar:
-    """A rich progress bar on stderr while a command works, only when stderr is a terminal.
+    """Progress on stderr while a command works: a rich bar on a terminal, plain lines otherwise.
 
     ``with progress_bar() as progress:`` gives a ``progress(step, done, total)`` callback for the
-    library's ``progress=`` argument, or None (no bar: quiet, or stderr is not a terminal).
+    library's ``progress=`` argument, or None (quiet). When stderr is not a terminal (a CI log, a
+    pipe), the callback prints a plain line at most every :data:`PROGRESS_INTERVAL_S` seconds, so
+    long work shows it is alive without filling the log; short work prints nothing.
 
     Args:
-        quiet: Never show a bar.
+        quiet: Show no progress at all.
     """
 
     def __init__(self, *, quiet: bool = False) -> None:
@@ -141,8 +185,10 @@ class progress_bar:
         self._tasks = {}
 
     def __enter__(self):
-        if self._quiet or not sys.stderr.isatty():
+        if self._quiet:
             return None
+        if not sys.stderr.isatty():
+            return _PlainProgress(sys.stderr, PROGRESS_INTERVAL_S)
         from rich.console import Console
         from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 

@@ -4,9 +4,10 @@
 converts a library (:mod:`vbusd.batch`): a table per asset (or ``--format json``, ``--report
 FILE``), exit 0 when all converted, 1 when some failed, 2 when none could.
 
-Progress goes to stderr (only when it is a terminal); the summary goes to stdout as text that fits
-80 columns (``--format text``) or as JSON (``--format json``, camelCase keys), with the same
-content. ``--quiet`` prints neither the summary nor warnings. Errors are one line
+Progress goes to stderr (a bar on a terminal, a plain line every 10 s otherwise); the summary goes to
+stdout as text (``--format text``: wrapped at a terminal's width, not at all in a pipe) or as JSON
+(``--format json``, camelCase keys), with the same content. ``--quiet`` prints neither the summary
+nor warnings. Errors are one line
 (``vbusd: FILE: LOCATION: CODE: message``) and exit status 2, and no output file is left behind.
 """
 
@@ -17,8 +18,8 @@ from pathlib import Path
 
 import click
 
-from vbusd.cli.common import (command_line_spelling, console, echo_json, force_option, format_option, progress_bar,
-                              quiet_option, terminate_as_interrupt, warn)
+from vbusd.cli.common import (command_line_spelling, console, echo_json, force_option, format_option, human_bytes,
+                              progress_bar, quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.layout import Encoding, Padding, TexelFormat
 
 __all__ = ["command", "print_summary"]
@@ -48,11 +49,16 @@ def _check_rows(value: str):
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
                    "dualQuat when the source asks for dual-quaternion skinning.")
 @click.option("--texel-format", default=TexelFormat.FLOAT16.value, show_default=True,
-              type=click.Choice([e.value for e in TexelFormat]))
+              type=click.Choice([e.value for e in TexelFormat]),
+              help="Texel storage: float16 (the talk's half floats, 11 significant bits), float32 (24 "
+                   "significant bits, twice the bytes) or unorm16 (16-bit integers with per-channel ranges in the "
+                   "metadata: a PNG, or KTX2).")
 @click.option("--rows-per-second", type=float, default=None,
               help="Rows per second of every clip (default: the source's, one row per USD time code).")
 @click.option("--horizontal-padding", default=Padding.POWER_OF_TWO.value, show_default=True,
-              type=click.Choice([e.value for e in Padding]))
+              type=click.Choice([e.value for e in Padding]),
+              help="powerOfTwo rounds the width (texels per bone x bones) up to the next power of two, as "
+                   "the talk does (the padding texels are zero; info reports the waste); none keeps it exact.")
 @click.option("--vertical-padding", default=Padding.NONE.value, show_default=True,
               type=click.Choice([e.value for e in Padding]),
               help="powerOfTwo resamples every clip so the rows fill the next power of two.")
@@ -216,7 +222,7 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
 
 
 def print_batch(report, file=None) -> None:
-    """Print a :class:`vbusd.batch.BatchReport` as a table that fits 80 columns, then the totals."""
+    """Print a :class:`vbusd.batch.BatchReport` as a table (wrapped only on a terminal), then the totals."""
     from pathlib import Path
 
     from vbusd.cli.common import table
@@ -225,7 +231,7 @@ def print_batch(report, file=None) -> None:
     grid = table("asset", "status", "time", "bytes", "max error", right=("time", "bytes", "max error"))
     for asset in report.assets:
         grid.add_row(Path(asset.source).name, asset.status, f"{asset.seconds:.1f} s",
-                     _human_bytes(asset.bytes) if asset.bytes else "-", _fmt(asset.max_error, ".3g"))
+                     human_bytes(asset.bytes) if asset.bytes else "-", _fmt(asset.max_error, ".3g"))
     out.print(grid)
     where = f"Dask at {report.scheduler}" if report.scheduler else f"{report.jobs} job{'s' * (report.jobs != 1)}"
     out.print(f"{report.converted} converted, {report.cached} unchanged (cached), {report.failed} failed, "
@@ -240,14 +246,6 @@ def _split_clips(value):
     if not all(names):
         raise click.BadParameter(f"expected comma-separated clip names, got {value!r}", param_hint="'--clips'")
     return names
-
-
-def _human_bytes(count: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if count < 1024 or unit == "GiB":
-            return f"{count:.0f} {unit}" if unit == "B" else f"{count:.1f} {unit}"
-        count /= 1024.0
-    return str(count)  # pragma: no cover
 
 
 def _fmt(value, spec: str) -> str:
@@ -274,7 +272,7 @@ def _grid():
 
 
 def print_summary(report, file=None) -> None:
-    """Print a :class:`vbusd.convert.ConvertReport` on stdout as text that fits 80 columns.
+    """Print a :class:`vbusd.convert.ConvertReport` on stdout as text (wrapped only on a terminal).
 
     One block per animation and per mesh, a field per line (labels left, values wrapped at spaces),
     so no code, path or number is cut however narrow the terminal; ``--format json`` has the same
@@ -292,8 +290,8 @@ def print_summary(report, file=None) -> None:
         _rows(grid, [("encoding", f"{anim.encoding} ({anim.encoding_reason})"),
                      ("texel format", anim.texel_format), ("bones", str(anim.bones)), ("rows", str(anim.rows)),
                      ("clips", clips), ("texture", f"{anim.width} x {anim.height}"),
-                     ("texel bytes", _human_bytes(anim.texel_bytes)),
-                     ("padding waste", f"{anim.padding_fraction:.1%} ({_human_bytes(waste)})")])
+                     ("texel bytes", human_bytes(anim.texel_bytes)),
+                     ("padding waste", f"{anim.padding_fraction:.1%} ({human_bytes(waste)})")])
         out.print(f"\n[bold]animation {anim.path}[/bold]")
         out.print(grid)
         out.print(f"largest error against {report.reference} (distances in scene units{unit}):")
@@ -317,5 +315,5 @@ def print_summary(report, file=None) -> None:
         grid = _grid()
         _rows(grid, [(f"{item.animation} '{item.clip}'", item.reason) for item in skipped])
         out.print(grid)
-    files = ", ".join(f"{path} ({_human_bytes(size)})" for path, size in report.files.items())
+    files = ", ".join(f"{path} ({human_bytes(size)})" for path, size in report.files.items())
     out.print(f"\nwrote {files}")

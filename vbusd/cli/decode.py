@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import click
 
-from vbusd.cli.common import (echo_json, force_option, format_option, progress_bar, quiet_option,
+from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, quiet_option,
                               terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
 
@@ -50,5 +50,5 @@ def command(asset, output, device, clip, output_format, force, allow_outside_pat
     samples = sum(m["samples"] for m in report.meshes)
     click.echo(f"{report.output}: {len(report.meshes)} mesh(es), {samples} samples, time codes "
                f"{round_time(report.start_time_code):g}..{round_time(report.end_time_code):g}, "
-               f"{report.bytes} bytes ({report.decoder}, {report.seconds:.2f} s)")
+               f"{human_bytes(report.bytes)} ({report.decoder}, {report.seconds:.2f} s)")
     return 0

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from vbusd.cli.common import force_option, format_option, quiet_option, warn
+from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option, warn
 from vbusd.format.errors import FORCE_HINT, OptionsError
 
 __all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
@@ -97,6 +97,6 @@ def command(asset, output, form, supercompression, duration, output_format, forc
         return 0
     for warning in report.get("warnings", ()):
         warn(warning)
-    files = ", ".join(f"{Path(path).name} ({size / 1024:.1f} KiB)" for path, size in report["files"].items())
+    files = ", ".join(f"{Path(path).name} ({human_bytes(size)})" for path, size in report["files"].items())
     click.echo(f"wrote {files}")
     return 0

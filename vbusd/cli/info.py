@@ -24,7 +24,7 @@ from typing import Optional
 import click
 
 from vbusd.cli import common
-from vbusd.format.errors import InputError
+from vbusd.format.errors import MISSING_FILE, InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
 
@@ -244,7 +244,7 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         raise InputError("is a folder; expected a USD file (.usd, .usda, .usdc), an EXR, PNG or KTX2 "
                          "texture, a sidecar .json or a runtime package (.glb, .gltf)", file=file, location="file", code="file.kind")
     if not path.exists():
-        raise InputError("file not found", file=file, location="file", code="file.missing")
+        raise InputError(MISSING_FILE, file=file, code="file.missing")
     if not path.is_file():  # a named pipe would block the first read; devices are no assets
         raise InputError("not a regular file (a pipe, device or socket)", file=file,
                          location="file", code="file.kind")
@@ -305,9 +305,9 @@ def _print_text(result: dict) -> None:
                       f"({sum(m['primitives'] for m in meshes)} primitives, {sum(m['vertices'] for m in meshes):,} "
                       "vertices)", markup=False)
     for animation in result["animations"]:
-        title = animation.get("name") or animation["path"] or animation["texture"] or "animation"
-        table = Table(title=title, title_justify="left", show_header=False, box=None,
-                      pad_edge=False)
+        # The name or path on a line of its own: a table title would wrap at the table's width.
+        console.print(animation.get("name") or animation["path"] or animation["texture"] or "animation", markup=False)
+        table = Table(show_header=False, box=None, pad_edge=False)
         table.add_column("key", style="bold", no_wrap=True)
         table.add_column("value", overflow="fold")  # wraps at spaces, never an ellipsis
         if animation["path"] and animation["texture"]:
@@ -322,9 +322,9 @@ def _print_text(result: dict) -> None:
                                f"(horizontal padding {animation['horizontalPadding']})")
         table.add_row("height", f"{animation['height']} (vertical padding "
                                 f"{animation['verticalPadding']})")
-        table.add_row("texel bytes", f"{animation['texelBytes']:,}")
+        table.add_row("texel bytes", common.human_bytes(animation["texelBytes"], exact=True))
         table.add_row("padding waste", f"{animation['paddingFraction'] * 100:.2f}% "
-                                       f"({animation['paddingBytes']:,} bytes)")
+                                       f"({common.human_bytes(animation['paddingBytes'], exact=True)})")
         for warning in animation.get("warnings", ()):
             table.add_row("warning", warning)
         console.print(table)

@@ -47,5 +47,10 @@ def command(asset: str, output_format: str, only, ignore, max_issues, quiet) -> 
     if output_format == "json":
         click.echo(report.to_json_text())
     else:
-        click.echo(report.to_text(), nl=False)
+        import shutil
+        import sys
+
+        # On a terminal, messages wrap at its width between words; in a log or a pipe not at all.
+        width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None
+        click.echo(report.to_text(width=width), nl=False)
     return report.exit_status

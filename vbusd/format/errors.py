@@ -7,7 +7,7 @@ exits with :attr:`VbusdError.exit_status`; the library never calls ``sys.exit``.
 from __future__ import annotations
 
 __all__ = ["VbusdError", "InputError", "OptionsError", "UnsupportedError", "VersionError", "FORCE_HINT",
-           "OUTSIDE_PATHS_HINT", "COMMAND_LINE_SPELLINGS"]
+           "OUTSIDE_PATHS_HINT", "COMMAND_LINE_SPELLINGS", "MISSING_FILE"]
 
 FORCE_HINT = "pass force=True to replace it"
 """How an error about an existing output says to replace it: in the library's words (the field of
@@ -18,6 +18,9 @@ OUTSIDE_PATHS_HINT = "pass allow_outside_paths=True to allow it"
 
 COMMAND_LINE_SPELLINGS = {"force=True": "--force", "allow_outside_paths=True": "--allow-outside-paths"}
 """The library's spelling of an option in a message -> the command line's, which ``vbusd`` prints."""
+
+MISSING_FILE = "no such file"
+"""The one wording of a missing input file (code ``file.missing``), in every command and reader."""
 
 
 class VbusdError(Exception):

@@ -27,7 +27,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
+from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 
@@ -448,7 +448,7 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
     path = Path(path)
     file = str(path)
     if not path.exists():
-        raise InputError("no such file", file=file, code="file.missing")
+        raise InputError(MISSING_FILE, file=file, code="file.missing")
     if not path.is_file():
         raise InputError("not a regular file (a folder, pipe or device)", file=file, code="file.kind")
     if path.stat().st_size == 0:

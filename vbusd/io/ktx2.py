@@ -24,7 +24,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 
 __all__ = ["MAGIC", "METADATA_KEY", "ORIENTATION_KEY", "WRITER_KEY", "ORIENTATION",
@@ -254,7 +254,7 @@ def _open_regular(path: Path):
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        raise _bad(file, "file", "file not found", "file.missing") from None
+        raise _bad(file, "file", MISSING_FILE, "file.missing") from None
     except OSError as error:
         raise _bad(file, "file", f"cannot read the file: {error.strerror or error}",
                    "file.unreadable") from None

@@ -25,7 +25,7 @@ import numpy as np
 from vbusd.format import codes
 from vbusd.format import metadata as md
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.io.files import AtomicTransaction
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, TexelFormat
 from vbusd.format.model import VirtualBones
@@ -328,7 +328,7 @@ def _open_regular(path: Path, file: str, diagnostics: Diagnostics):
     try:
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        diagnostics.report("file.missing", "file not found", where)
+        diagnostics.report("file.missing", MISSING_FILE, where)
         return None
     except OSError as error:
         diagnostics.report("file.unreadable", f"cannot read the file: {error.strerror or error}", where)

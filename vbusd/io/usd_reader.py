@@ -38,7 +38,7 @@ import numpy as np
 from vbusd.format import names
 from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
-from vbusd.format.errors import OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
+from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
@@ -293,7 +293,7 @@ class UsdReader:
         path = self.path
         where = FileLocation(self.file)
         if not os.path.lexists(path):
-            self.report("file.missing", "file not found", where)
+            self.report("file.missing", MISSING_FILE, where)
             return False
         if not path.is_file():  # USD would block forever reading a named pipe
             self.report("file.kind", "not a regular file (a folder, pipe, device or socket)", where)

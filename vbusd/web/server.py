@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import unquote, urlsplit
 
-from vbusd.format.errors import InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 
 __all__ = ["STATIC", "GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
 
@@ -171,7 +171,7 @@ class ViewerServer:
             raise OptionsError(f"cannot view {path.name}: expected a USD asset ({', '.join(USD_SUFFIXES)}) "
                                f"or a runtime package ({', '.join(GLTF_SUFFIXES)})", file=str(path))
         if not path.is_file():
-            raise InputError("no such file" if not path.exists() else "not a regular file", file=str(path),
+            raise InputError(MISSING_FILE if not path.exists() else "not a regular file", file=str(path),
                              code="file.missing" if not path.exists() else "file.kind")
         self.asset = path
         self.root = path.resolve().parent
