@@ -832,6 +832,7 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         records = pack_skin(mesh.bone_indices, mesh.bone_weights, k)
         records_bytes = int(records.nbytes)
         skin_objects = [(SKIN_BINDING, ctx.buffer(np.ascontiguousarray(records).tobytes()))]
+        skin_records = skin_objects[0][1]
         for p in (program, tf):
             p["VbSkin"].binding = SKIN_BINDING
 
@@ -850,9 +851,12 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
     else:
         config = f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else "")
         notes += f"; vertex {scene.skin_stride} bytes (position, normal, bone indices, bone weights)"
-    return Method("vb_pulled" if pulled else "vb", config,
-                  draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
-                  release=[texture] + [buffer for _, buffer in skin_objects], notes=notes)
+    method = Method("vb_pulled" if pulled else "vb", config,
+                    draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
+                    release=[texture] + [buffer for _, buffer in skin_objects], notes=notes)
+    if pulled:
+        method.skin_records = skin_records  # the storage buffer the module reads (tests look into it)
+    return method
 
 
 def setup_vat(scene: Scene, vat: VertexAnimation) -> Method:
@@ -1633,7 +1637,8 @@ def report(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line, with ``run``'s defaults (and a named plan's) filled in."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="measure (needs moderngl with an EGL driver, numpy, warp)")
@@ -1672,6 +1677,11 @@ def main(argv=None) -> int:
                 args.factors = args.factors and value
             elif getattr(args, key) is None:
                 setattr(args, key, value)
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     if args.command == "factors":
         return run_factors(args)
     return run(args) if args.command == "run" else report(args)
