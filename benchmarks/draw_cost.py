@@ -1,12 +1,18 @@
 """Draw-time cost of Virtual Bones against the alternatives, in a real OpenGL pipeline (issue 18).
 
 N instances of a character are drawn into a 1920 x 1080 colour + depth framebuffer (depth test,
-back-face culling, one Lambert light) by five methods:
+back-face culling, one Lambert light) by six methods:
 
-1. ``static``: the rest mesh placed per instance, no animation (the floor);
+1. ``static``: the rest mesh placed per instance, no animation (the floor), from a vertex buffer of
+   position and normal only (24 bytes a vertex), as a static mesh is stored;
 2. ``vb``: Virtual Bones, the reference GLSL module exactly as ``vbusd shader`` prints it (with
    ``main`` off, so the draw's own vertex function calls ``vbSkin`` and then places and projects),
-   one instanced draw, per encoding and texel format;
+   one instanced draw, per encoding and texel format; the skin binding ``attributes``: bone indices
+   and weights as vertex attributes (a 56-byte vertex);
+2b. ``vb_pulled``: the same with the module of ``vbusd shader --skin pulled`` (issue 25): the mesh
+   keeps position and normal (the static mesh's vertex buffer), and the module's
+   ``vbSkinInfluences`` reads each vertex's skin record (``vbusd.decode.shaders.pack_skin``) by
+   ``gl_VertexID`` from its storage buffer ``VbSkin``;
 3. ``vat``: a vertex animation texture, the talk's "previous work": positions and normals of every
    vertex at every row of the same clip (same 51.2 rows/s, looping, linear interpolation between
    rows), RGBA float16, fetched by ``gl_VertexID``;
@@ -39,14 +45,22 @@ per method (textures, per-instance animation inputs, bone palettes, decoder buff
 Usage::
 
     python benchmarks/draw_cost.py run --json OUT.json [--budget 420] [--sizes 1200,10000]
+    python benchmarks/draw_cost.py run --plan issue25 --json OUT.json   # issue 25's set, one device call
     python benchmarks/draw_cost.py factors --json OUT.json [--sizes 100000,10000]
     python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h200.json \\
         --markdown --plot benchmarks/results/draw_cost_h200.png
 
+``--plan issue25`` runs exactly issue 25's configurations (:data:`PLANS`): static, ``vb``,
+``vb_pulled`` and the VAT, crossMatrix float16, stadium character at 100,000, 1,000,000 and 10,000
+instances and the dense one at 1,200 and 10,000, within a 400 s budget and at least 10 timed frames
+each; ``report`` then adds a table of each method's GPU draw time as a factor of static, with every
+row's error against numpy (:func:`bindings_markdown`).
+
 ``factors`` is the one-factor study around Virtual Bones' vertex cost (:func:`run_factors`): skin
-attributes fetched or not, packed or not, read from storage buffers, K influences. benchmarks/draw_run.sh
-runs ``run`` and ``factors`` on the device tool's GPU machine; ``report`` runs anywhere (the plot
-needs matplotlib).
+attributes fetched or not, packed or not, read from storage buffers, K influences; its variants keep
+the 56-byte vertex of the attribute binding, static included, so that one factor changes at a time.
+benchmarks/draw_run.sh runs ``run``, ``run --plan issue25`` and ``factors`` on the device tool's GPU
+machine; ``report`` runs anywhere (the plot needs matplotlib).
 """
 
 from __future__ import annotations
@@ -1532,8 +1546,8 @@ def bindings_markdown(data: dict) -> str:
     position error against numpy in the read-back (metres), marked where it is over the tolerance.
     """
     runs = data["runs"]
-    head = ["character", "instances", "static GPU ms"] + [f"{label} GPU ms (x static)" for _, label in BINDING_METHODS] \
-        + ["static error vs numpy (m)"] + [f"{label} error (m)" for _, label in BINDING_METHODS] \
+    head = ["character", "instances", "static GPU ms"] \
+        + [f"{label} GPU ms (x static)" for _, label in BINDING_METHODS] + ["static error vs numpy (m)"] + [f"{label} error (m)" for _, label in BINDING_METHODS] \
         + ["timed frames"]
     rows = ["| " + " | ".join(head) + " |", "|---|--:|--:|" + "--:|" * (2 * len(BINDING_METHODS) + 2)]
     keys = sorted({(r["character"], r["instances"]) for r in runs if r["method"] == "static"},
