@@ -1130,14 +1130,22 @@ def check(method: Method, scene: Scene, vb, vat) -> dict:
             "exact_normal_error": float(np.abs(normals - exact_normals).max()) if method.name != "static" else None}
 
 
-def time_method(method: Method, scene: Scene, budget_s: float, max_runs: int, min_runs: int = 3) -> dict:
-    """Warm-up frames, then up to ``max_runs`` timed frames within ``budget_s`` (at least ``min_runs``)."""
+def time_method(method: Method, scene: Scene, budget_s: float, max_runs: int, min_runs: int = 3,
+                warm_s: float = 0.0) -> dict:
+    """Warm-up frames, then up to ``max_runs`` timed frames within ``budget_s`` (at least ``min_runs``).
+
+    ``warm_s``: keep drawing untimed frames this long first (the run's first configuration, so that
+    the GPU has left its idle clocks before anything is timed).
+    """
     query = scene.ctx.query(time=True)
     t = 2.0
     first = render_frame(method, scene, t, query)
     warm = [first]
     if first.wall < 500:
         warm.append(render_frame(method, scene, t + FRAME_STEP, query))
+    warm_until = time.perf_counter() + warm_s
+    while time.perf_counter() < warm_until:
+        warm.append(render_frame(method, scene, t + len(warm) * FRAME_STEP, query))
     per_frame = warm[-1].wall / 1e3
     runs = int(max(min_runs, min(max_runs, budget_s / max(per_frame, 1e-4))))
     frames = [render_frame(method, scene, t + (k + 2) * FRAME_STEP, query) for k in range(runs)]
@@ -1173,7 +1181,8 @@ PLANS = {
                                      ("dense", 1_200), ("dense", 10_000))
                 for method in ("static", "vb", "vb_pulled", "vat")],
 }
-PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "factors": False}}
+PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
+                             "factors": False}}
 
 
 def _plan(args) -> list:
@@ -1314,7 +1323,8 @@ def run(args) -> int:
             if hasattr(method, "count_bytes"):
                 method.count_bytes()
             budget = min(args.per_config_s, max(remaining / 8, 0.5))
-            timing = time_method(method, scene, budget, args.max_runs, args.min_runs)
+            timing = time_method(method, scene, budget, args.max_runs, args.min_runs,
+                                 warm_s=0.0 if result["runs"] else args.warmup_s)
             row = {"character": character_name, "vertices": character.vertex_count, "instances": n,
                    "method": method_name, "config": method.config, "encoding": encoding,
                    "texel_format": texel_format, "anim_bytes": int(method.anim_bytes), "notes": method.notes,
@@ -1670,6 +1680,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                                                       "issue25: 3)")
     r.add_argument("--min-runs", type=int, help="timed frames per configuration at least (default 3; issue25: 10)")
     r.add_argument("--max-runs", type=int, default=30)
+    r.add_argument("--warmup-s", type=float, help="untimed frames before the first timed configuration, seconds "
+                                                  "(default 0; issue25: 3)")
     r.add_argument("--max-frame-s", type=float, default=8.0, help="skip a configuration predicted slower than this")
     r.add_argument("--no-factors", dest="factors", action="store_false")
     r.add_argument("--factor-size", type=int, default=100_000, help="crowd size of the one-factor study")
@@ -1684,7 +1696,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--plot")
     args = parser.parse_args(argv)
     if args.command == "run":
-        defaults = {"budget": 420.0, "per_config_s": 1.5, "min_runs": 3}
+        defaults = {"budget": 420.0, "per_config_s": 1.5, "min_runs": 3, "warmup_s": 0.0}
         defaults.update(PLAN_DEFAULTS.get(args.plan, {}))
         for key, value in defaults.items():
             if key == "factors":

@@ -269,10 +269,11 @@ def test_issue25_plan_is_exactly_the_issue_set(dc):
                for _, _, m, e, f in plan)
     assert [(c, n) for c, n, *_ in plan[:8]] == [("stadium", 100_000)] * 4 + [("stadium", 1_000_000)] * 4
     # One device call of 600 s: the run stops starting configurations well before it, no factor study.
-    assert args.budget <= 450 and args.min_runs >= 10 and not args.factors
+    assert args.budget <= 450 and args.min_runs >= 10 and args.warmup_s > 0 and not args.factors
     assert dc.parse_args(["run", "--json", "o", "--plan", "issue25", "--budget", "100"]).budget == 100
     default = dc.parse_args(["run", "--json", "o"])
-    assert (default.budget, default.per_config_s, default.min_runs, default.factors) == (420.0, 1.5, 3, True)
+    assert (default.budget, default.per_config_s, default.min_runs, default.warmup_s, default.factors) == \
+        (420.0, 1.5, 3, 0.0, True)
     assert "vb_pulled" in {m for _, _, m, *_ in dc._plan(default)}
 
 
