@@ -99,7 +99,7 @@ SEAT = (0.6, 0.85)  # metres between neighbours across and along the grid
 FRAME_STEP = 1.0 / 60.0  # scene time advances one 60 Hz frame per timed frame
 CHECK_TIME = 1.2345  # scene time of the read-back checks
 MAX_OUTPUT_GIB = 40.0  # warp: largest decoded vertex buffers (positions + normals) we allocate
-SKIN_BINDING = 3  # vb_pulled: storage binding of the module's skin records (palette and warp use 0 and 1)
+SKIN_BINDING = 3  # vb_pulled: storage binding of the skin records (palette: 0, warp: 0 and 1, factor study: 1 and 2)
 
 
 def _load_sample():
