@@ -1557,8 +1557,8 @@ def bindings_markdown(data: dict) -> str:
     """
     runs = data["runs"]
     head = ["character", "instances", "static GPU ms"] \
-        + [f"{label} GPU ms (x static)" for _, label in BINDING_METHODS] + ["static error vs numpy (m)"] + [f"{label} error (m)" for _, label in BINDING_METHODS] \
-        + ["timed frames"]
+        + [f"{label} GPU ms (x static)" for _, label in BINDING_METHODS] + ["static error vs numpy (m)"] \
+        + [f"{label} error (m)" for _, label in BINDING_METHODS] + ["timed frames"]
     rows = ["| " + " | ".join(head) + " |", "|---|--:|--:|" + "--:|" * (2 * len(BINDING_METHODS) + 2)]
     keys = sorted({(r["character"], r["instances"]) for r in runs if r["method"] == "static"},
                   key=lambda key: (key[0] != "stadium", key[1]))
