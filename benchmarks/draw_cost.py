@@ -1,12 +1,18 @@
 """Draw-time cost of Virtual Bones against the alternatives, in a real OpenGL pipeline (issue 18).
 
 N instances of a character are drawn into a 1920 x 1080 colour + depth framebuffer (depth test,
-back-face culling, one Lambert light) by five methods:
+back-face culling, one Lambert light) by six methods:
 
-1. ``static``: the rest mesh placed per instance, no animation (the floor);
+1. ``static``: the rest mesh placed per instance, no animation (the floor), from a vertex buffer of
+   position and normal only (24 bytes a vertex), as a static mesh is stored;
 2. ``vb``: Virtual Bones, the reference GLSL module exactly as ``vbusd shader`` prints it (with
    ``main`` off, so the draw's own vertex function calls ``vbSkin`` and then places and projects),
-   one instanced draw, per encoding and texel format;
+   one instanced draw, per encoding and texel format; the skin binding ``attributes``: bone indices
+   and weights as vertex attributes (a 56-byte vertex);
+2b. ``vb_pulled``: the same with the module of ``vbusd shader --skin pulled`` (issue 25): the mesh
+   keeps position and normal (the static mesh's vertex buffer), and the module's
+   ``vbSkinInfluences`` reads each vertex's skin record (``vbusd.decode.shaders.pack_skin``) by
+   ``gl_VertexID`` from its storage buffer ``VbSkin``;
 3. ``vat``: a vertex animation texture, the talk's "previous work": positions and normals of every
    vertex at every row of the same clip (same 51.2 rows/s, looping, linear interpolation between
    rows), RGBA float16, fetched by ``gl_VertexID``;
@@ -39,14 +45,22 @@ per method (textures, per-instance animation inputs, bone palettes, decoder buff
 Usage::
 
     python benchmarks/draw_cost.py run --json OUT.json [--budget 420] [--sizes 1200,10000]
+    python benchmarks/draw_cost.py run --plan issue25 --json OUT.json   # issue 25's set, one device call
     python benchmarks/draw_cost.py factors --json OUT.json [--sizes 100000,10000]
     python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h200.json \\
         --markdown --plot benchmarks/results/draw_cost_h200.png
 
+``--plan issue25`` runs exactly issue 25's configurations (:data:`PLANS`): static, ``vb``,
+``vb_pulled`` and the VAT, crossMatrix float16, stadium character at 100,000, 1,000,000 and 10,000
+instances and the dense one at 1,200 and 10,000, within a 400 s budget and at least 10 timed frames
+each; ``report`` then adds a table of each method's GPU draw time as a factor of static, with every
+row's error against numpy (:func:`bindings_markdown`).
+
 ``factors`` is the one-factor study around Virtual Bones' vertex cost (:func:`run_factors`): skin
-attributes fetched or not, packed or not, read from storage buffers, K influences. benchmarks/draw_run.sh
-runs ``run`` and ``factors`` on the device tool's GPU machine; ``report`` runs anywhere (the plot
-needs matplotlib).
+attributes fetched or not, packed or not, read from storage buffers, K influences; its variants keep
+the 56-byte vertex of the attribute binding, static included, so that one factor changes at a time.
+benchmarks/draw_run.sh runs ``run``, ``run --plan issue25`` and ``factors`` on the device tool's GPU
+machine; ``report`` runs anywhere (the plot needs matplotlib).
 """
 
 from __future__ import annotations
@@ -73,6 +87,7 @@ if str(ROOT) not in sys.path:
 
 import vbusd  # noqa: E402
 from vbusd.decode import reference  # noqa: E402
+from vbusd.decode.shaders import pack_skin  # noqa: E402
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 FORMATS = ("float16", "float32", "unorm16")
@@ -84,6 +99,7 @@ SEAT = (0.6, 0.85)  # metres between neighbours across and along the grid
 FRAME_STEP = 1.0 / 60.0  # scene time advances one 60 Hz frame per timed frame
 CHECK_TIME = 1.2345  # scene time of the read-back checks
 MAX_OUTPUT_GIB = 40.0  # warp: largest decoded vertex buffers (positions + normals) we allocate
+SKIN_BINDING = 3  # vb_pulled: storage binding of the skin records (palette: 0, warp: 0 and 1, factor study: 1 and 2)
 
 
 def _load_sample():
@@ -493,6 +509,27 @@ void main()
 }
 """
 
+# Virtual Bones with the pulled skin binding (issue 25): the module ``vbusd shader --skin pulled``
+# prints, its skin records (vbusd.decode.shaders.pack_skin) in its storage buffer ``VbSkin``, read by
+# the module's own vbSkinInfluences at gl_VertexID; the mesh has 2 vertex attributes, like static.
+VB_MAIN_PULLED = _PLACE + """
+in vec3 rest_position;
+in vec3 rest_normal;
+in int instance_clip;
+in vec2 instance_time;  // (timeOffset, playbackRate)
+void main()
+{
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    vbSkinInfluences(VB_ARGS gl_VertexID, boneIndex, boneWeight);
+    vec3 position;
+    vec3 normal;
+    vbSkin(VB_ARGS instance_clip, instance_time.x + instance_time.y * vb_time, rest_position, rest_normal,
+           boneIndex, boneWeight, position, normal);
+    emit(position, normal);
+}
+"""
+
 VAT_VS = GLSL_VERSION + _PLACE + """
 uniform highp sampler2D vat_positions;
 uniform highp sampler2D vat_normals;
@@ -577,9 +614,21 @@ void main()
 VARYINGS = ["world_position", "world_normal"]
 
 
-def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main: str = VB_MAIN) -> str:
-    """The draw's vertex shader: the module ``vbusd shader`` prints (main off), then the draw's main."""
-    module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False)
+def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main: str = VB_MAIN,
+                     skin: str = "attributes") -> str:
+    """The draw's vertex shader: the module ``vbusd shader --skin SKIN`` prints (main off), then the draw's main.
+
+    Args:
+        encoding: Bone encoding token.
+        texel_format: ``float16``, ``float32`` or ``unorm16``.
+        max_influences: The module's K.
+        main: The draw's entry point (it calls the module's functions, then places and projects).
+        skin: The module's skin binding, ``attributes`` or ``pulled``.
+
+    Returns:
+        GLSL 4.30 source: the version line, the shipped module unchanged, the draw's ``main``.
+    """
+    module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False, skin=skin)
     return GLSL_VERSION + module + main
 
 
@@ -661,6 +710,11 @@ class Scene:
                                      idx.view(np.float32), w], axis=1)
             self.mesh_format = self.MESH_FORMAT
         self.vertices = ctx.buffer(np.ascontiguousarray(vertex).tobytes())
+        self.skin_stride = int(np.ascontiguousarray(vertex).nbytes // len(mesh.points))
+        # The mesh without its skin (static, vb_pulled): position and normal, 24 bytes a vertex.
+        rest = np.concatenate([np.asarray(mesh.points, np.float32), np.asarray(mesh.normals, np.float32)], axis=1)
+        self.rest_vertices = ctx.buffer(np.ascontiguousarray(rest).tobytes())
+        self.rest_stride = int(rest.shape[1] * 4)
         self.indices = ctx.buffer(np.ascontiguousarray(character.triangles, dtype=np.uint32).tobytes())
         self.placement = ctx.buffer(self._placement_bytes(crowd))
         self.animation = ctx.buffer(self._animation_bytes(crowd))
@@ -680,10 +734,19 @@ class Scene:
         return rec.tobytes()
 
     MESH_FORMAT = ("3f 3f 4i 4f", "rest_position", "rest_normal", "bone_indices", "bone_weights")
+    REST_FORMAT = ("3f 3f", "rest_position", "rest_normal")
 
-    def vertex_arrays(self, program, tf_program, instance_formats, mesh_attributes: bool):
-        """(draw VAO with the index buffer, read-back VAO without it over the checked instances)."""
-        mesh = [(self.vertices, *self.mesh_format)] if mesh_attributes else []
+    def vertex_arrays(self, program, tf_program, instance_formats, mesh_attributes):
+        """(draw VAO with the index buffer, read-back VAO without it over the checked instances).
+
+        ``mesh_attributes``: True reads the mesh from the vertex buffer with the skin (position,
+        normal, bone indices, bone weights), ``"rest"`` from the one without it (position, normal),
+        False reads no mesh attributes.
+        """
+        if mesh_attributes == "rest":
+            mesh = [(self.rest_vertices, *self.REST_FORMAT)]
+        else:
+            mesh = [(self.vertices, *self.mesh_format)] if mesh_attributes else []
         draw = mesh + [(self.placement if b == "placement" else self.animation, *f) for b, f in instance_formats]
         check = mesh + [(self.check_placement if b == "placement" else self.check_animation, *f)
                         for b, f in instance_formats]
@@ -701,8 +764,8 @@ class Scene:
         return program, tf_program
 
     def release(self) -> None:
-        for buffer in (self.vertices, self.indices, self.placement, self.animation, self.check_placement,
-                       self.check_animation):
+        for buffer in (self.vertices, self.rest_vertices, self.indices, self.placement, self.animation,
+                       self.check_placement, self.check_animation):
             buffer.release()
 
 
@@ -711,22 +774,52 @@ ANIMATION_TIME = ("animation", ("4x 2f/i", "instance_time"))
 ANIMATION_CLIP_TIME = ("animation", ("1i 2f/i", "instance_clip", "instance_time"))
 
 
-def setup_static(scene: Scene, vertex_shader: str = STATIC_VS, config: str = "rest mesh") -> Method:
+def setup_static(scene: Scene, vertex_shader: str = STATIC_VS, config: str = "rest mesh",
+                 skinned_vertex: Optional[bool] = None) -> Method:
+    """The rest mesh placed per instance: the floor.
+
+    ``skinned_vertex``: read it from the vertex buffer that also holds the skin (the factor study's
+    variants, one factor at a time; the default for a vertex shader other than ``STATIC_VS``, which
+    may read the skin attributes); otherwise from the mesh as a static mesh is stored, position and
+    normal only (24 bytes a vertex), the vertex buffer ``vb_pulled`` draws too.
+    """
+    if skinned_vertex is None:
+        skinned_vertex = vertex_shader != STATIC_VS
     program, tf = scene.programs(vertex_shader)
-    draw, check = scene.vertex_arrays(program, tf, [PLACEMENT], True)
-    return Method("static", config, draw, check, program, tf, 0)
+    draw, check = scene.vertex_arrays(program, tf, [PLACEMENT], True if skinned_vertex else "rest")
+    stride = scene.skin_stride if skinned_vertex else scene.rest_stride
+    return Method("static", config, draw, check, program, tf, 0, notes=f"vertex {stride} bytes")
 
 
 def _texture_dtype(texel_format: str) -> str:
     return {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[texel_format]
 
 
-def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: bool = False) -> Method:
-    """Virtual Bones; ``skin_buffers``: bone indices and weights from storage buffers (factor study)."""
+def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: bool = False,
+             skin: str = "attributes") -> Method:
+    """Virtual Bones, the shipped module in one of its skin bindings.
+
+    Args:
+        scene: The character, crowd and shared GL objects.
+        vb: The baked Virtual Bones texture and clips.
+        encoding: Bone encoding token.
+        texel_format: Texel format token.
+        skin_buffers: Factor study only (attribute module): bone indices and weights from two storage
+            buffers of the study's own layout, by ``gl_VertexID``.
+        skin: ``attributes`` (method ``vb``: indices and weights as vertex attributes) or ``pulled``
+            (method ``vb_pulled``: the module of ``vbusd shader --skin pulled``, the mesh's skin records
+            from ``pack_skin`` in its storage buffer; the mesh keeps position and normal only).
+
+    Returns:
+        The method, ready to check and time.
+    """
     ctx, moderngl = scene.ctx, scene.moderngl
-    main = VB_MAIN_SKIN_BUFFERS if skin_buffers else VB_MAIN
-    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, scene.character.mesh.bone_indices.shape[1],
-                                                  main))
+    pulled = skin == "pulled"
+    if pulled and skin_buffers:
+        raise ValueError("skin_buffers is the factor study's variant of the attribute module")
+    k = scene.character.mesh.bone_indices.shape[1]
+    main = VB_MAIN_PULLED if pulled else VB_MAIN_SKIN_BUFFERS if skin_buffers else VB_MAIN
+    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, k, main, skin=skin))
     texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
                           dtype=_texture_dtype(texel_format))
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -739,27 +832,45 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         if vb.unorm_ranges is not None:
             p["vb_rangeMin"].value = [tuple(r) for r in vb.unorm_ranges[..., 0]]
             p["vb_rangeMax"].value = [tuple(r) for r in vb.unorm_ranges[..., 1]]
-    draw, check = scene.vertex_arrays(program, tf, [PLACEMENT, ANIMATION_CLIP_TIME], True)
+    draw, check = scene.vertex_arrays(program, tf, [PLACEMENT, ANIMATION_CLIP_TIME], "rest" if pulled else True)
 
-    skin = []
+    mesh = scene.character.mesh
+    skin_objects = []  # (storage binding, buffer)
     if skin_buffers:
-        mesh, k = scene.character.mesh, scene.character.mesh.bone_indices.shape[1]
         idx = np.zeros((len(mesh.points), 4), np.int32)
         w = np.zeros((len(mesh.points), 4), np.float32)
         idx[:, :k], w[:, :k] = mesh.bone_indices, mesh.bone_weights
-        skin = [ctx.buffer(idx.tobytes()), ctx.buffer(w.tobytes())]
+        skin_objects = [(1, ctx.buffer(idx.tobytes())), (2, ctx.buffer(w.tobytes()))]
+    records_bytes = 0
+    if pulled:
+        records = pack_skin(mesh.bone_indices, mesh.bone_weights, k)
+        records_bytes = int(records.nbytes)
+        skin_objects = [(SKIN_BINDING, ctx.buffer(np.ascontiguousarray(records).tobytes()))]
+        skin_records = skin_objects[0][1]
+        for p in (program, tf):
+            p["VbSkin"].binding = SKIN_BINDING
 
     def set_time(p, t):
         texture.use(location=0)
-        for binding, buffer in enumerate(skin, start=1):
+        for binding, buffer in skin_objects:
             buffer.bind_to_storage_buffer(binding)
         p["vb_time"].value = t
 
     texel_bytes = int(np.asarray(vb.texels).nbytes)
-    return Method("vb", f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else ""),
-                  draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
-                  release=[texture] + skin,
-                  notes=f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes")
+    notes = f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes"
+    if pulled:
+        config = f"{encoding} {texel_format}, skin pulled (storage buffer)"
+        notes += (f"; skin records {records_bytes // len(mesh.points)} bytes a vertex ({records_bytes} bytes) in a "
+                  f"storage buffer; vertex {scene.rest_stride} bytes (position, normal)")
+    else:
+        config = f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else "")
+        notes += f"; vertex {scene.skin_stride} bytes (position, normal, bone indices, bone weights)"
+    method = Method("vb_pulled" if pulled else "vb", config,
+                    draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
+                    release=[texture] + [buffer for _, buffer in skin_objects], notes=notes)
+    if pulled:
+        method.skin_records = skin_records  # the storage buffer the module reads (tests look into it)
+    return method
 
 
 def setup_vat(scene: Scene, vat: VertexAnimation) -> Method:
@@ -991,7 +1102,7 @@ def expected(method: Method, scene: Scene, t: float, vb, vat, extra):
         s = crowd.instance_count
         return place(crowd, np.broadcast_to(np.asarray(mesh.points, np.float64), (s,) + mesh.points.shape),
                      np.broadcast_to(np.asarray(mesh.normals, np.float64), (s,) + mesh.normals.shape))
-    if method.name in ("vb", "warp"):
+    if method.name in ("vb", "vb_pulled", "warp"):
         return reference.skin_crowd(vb, mesh, crowd, t)
     if method.name == "vat":
         return vat_pose(vat, crowd, scene.character.vertex_count, t)
@@ -1019,16 +1130,24 @@ def check(method: Method, scene: Scene, vb, vat) -> dict:
             "exact_normal_error": float(np.abs(normals - exact_normals).max()) if method.name != "static" else None}
 
 
-def time_method(method: Method, scene: Scene, budget_s: float, max_runs: int) -> dict:
-    """Warm-up frames, then up to ``max_runs`` timed frames within ``budget_s`` (at least 3)."""
+def time_method(method: Method, scene: Scene, budget_s: float, max_runs: int, min_runs: int = 3,
+                warm_s: float = 0.0) -> dict:
+    """Warm-up frames, then up to ``max_runs`` timed frames within ``budget_s`` (at least ``min_runs``).
+
+    ``warm_s``: keep drawing untimed frames this long first (the run's first configuration, so that
+    the GPU has left its idle clocks before anything is timed).
+    """
     query = scene.ctx.query(time=True)
     t = 2.0
     first = render_frame(method, scene, t, query)
     warm = [first]
     if first.wall < 500:
         warm.append(render_frame(method, scene, t + FRAME_STEP, query))
+    warm_until = time.perf_counter() + warm_s
+    while time.perf_counter() < warm_until:
+        warm.append(render_frame(method, scene, t + len(warm) * FRAME_STEP, query))
     per_frame = warm[-1].wall / 1e3
-    runs = int(max(3, min(max_runs, budget_s / max(per_frame, 1e-4))))
+    runs = int(max(min_runs, min(max_runs, budget_s / max(per_frame, 1e-4))))
     frames = [render_frame(method, scene, t + (k + 2) * FRAME_STEP, query) for k in range(runs)]
 
 
@@ -1053,8 +1172,23 @@ def _gpu_facts(ctx) -> dict:
     return facts
 
 
+# Named plans (``run --plan NAME``): exactly these configurations, in this order (the goal's first).
+# issue25: the shipped module in both skin bindings beside the static mesh and the VAT, crossMatrix
+# float16; the stadium character at 100,000 and 1,000,000 instances (the goal's sizes) first.
+PLANS = {
+    "issue25": [(character, n, method) + (("crossMatrix", "float16") if method.startswith("vb") else (None, None))
+                for character, n in (("stadium", 100_000), ("stadium", 1_000_000), ("stadium", 10_000),
+                                     ("dense", 1_200), ("dense", 10_000))
+                for method in ("static", "vb", "vb_pulled", "vat")],
+}
+PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
+                             "factors": False}}
+
+
 def _plan(args) -> list:
     """(character, N, method, encoding, format) in priority order: what the goal needs first."""
+    if getattr(args, "plan", None):
+        return list(PLANS[args.plan])
     sizes = [int(s) for s in args.sizes.split(",")]
     characters = args.characters.split(",")
     methods = args.methods.split(",")
@@ -1067,7 +1201,7 @@ def _plan(args) -> list:
             if item not in plan:
                 plan.append(item)
 
-    five = [("static",), ("vb",) + main_vb, ("vat",), ("palette",), ("warp",) + main_vb]
+    five = [("static",), ("vb",) + main_vb, ("vb_pulled",) + main_vb, ("vat",), ("palette",), ("warp",) + main_vb]
     for n in sorted(sizes, key=lambda s: (s != 100_000, s)):
         for m in five:
             add("stadium", n, *m)
@@ -1100,7 +1234,10 @@ def run(args) -> int:
     import moderngl
 
     started = time.perf_counter()
+    plan = _plan(args)
     try:
+        if not any(item[2] == "warp" for item in plan):
+            raise ImportError("no warp method in the plan")
         import warp as wp  # started before any GL work so that its start-up is not timed
 
         wp.config.quiet = True
@@ -1110,7 +1247,8 @@ def run(args) -> int:
         device = None
     ctx, framebuffer = create_context()
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-    result = {"issue": 18, "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
+    result = {"issue": 25 if args.plan == "issue25" else 18, "plan": args.plan, "budget_s": args.budget,
+              "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
               "command": " ".join(sys.argv), "runs": [], "skipped": [], "factors": []}
     print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']} | warp on {device}", flush=True)
 
@@ -1123,7 +1261,7 @@ def run(args) -> int:
 
     base_vb = vb_for("crossMatrix", "float16")
     characters = {"stadium": stadium_character(base_vb)}
-    if "dense" in args.characters:
+    if any(item[0] == "dense" for item in plan):
         characters["dense"] = subdivide(characters["stadium"], DENSE_SPLITS, base_vb.layout.bone_count)
     vats = {}
     keys = KeyedAnimation()
@@ -1131,7 +1269,6 @@ def run(args) -> int:
         result.setdefault("characters", {})[name] = {"vertices": ch.vertex_count, "triangles": int(len(ch.triangles))}
     print(f"# characters: {result['characters']}", flush=True)
 
-    plan = _plan(args)
     block_limit = int(ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE", 1 << 27))
     result["facts"]["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"] = block_limit
     per_vertex_instance = {}  # (method, encoding, format) -> frame seconds per vertex-instance
@@ -1149,7 +1286,7 @@ def run(args) -> int:
             per_vertex_instance.get((character_name, method_name, "crossMatrix", "float16"))
         predicted = rate * n * character.vertex_count if rate else None
         reason = too_big
-        if reason is None and predicted is not None and predicted * 6 + 2 > remaining:
+        if reason is None and predicted is not None and predicted * (args.min_runs + 3) + 2 > remaining:
             reason = f"predicted {predicted:.2f} s per frame; {remaining:.0f} s of the budget left"
         if reason is None and remaining < 5:
             reason = "time budget spent"
@@ -1170,8 +1307,9 @@ def run(args) -> int:
                 scene_key = (character_name, n)
             if method_name == "static":
                 method = setup_static(scene)
-            elif method_name == "vb":
-                method = setup_vb(scene, vb_for(encoding, texel_format), encoding, texel_format)
+            elif method_name in ("vb", "vb_pulled"):
+                method = setup_vb(scene, vb_for(encoding, texel_format), encoding, texel_format,
+                                  skin="pulled" if method_name == "vb_pulled" else "attributes")
             elif method_name == "vat":
                 if character_name not in vats:
                     vats[character_name] = bake_vat(character.mesh, base_vb.clips[0])
@@ -1185,7 +1323,8 @@ def run(args) -> int:
             if hasattr(method, "count_bytes"):
                 method.count_bytes()
             budget = min(args.per_config_s, max(remaining / 8, 0.5))
-            timing = time_method(method, scene, budget, args.max_runs)
+            timing = time_method(method, scene, budget, args.max_runs, args.min_runs,
+                                 warm_s=0.0 if result["runs"] else args.warmup_s)
             row = {"character": character_name, "vertices": character.vertex_count, "instances": n,
                    "method": method_name, "config": method.config, "encoding": encoding,
                    "texel_format": texel_format, "anim_bytes": int(method.anim_bytes), "notes": method.notes,
@@ -1289,16 +1428,17 @@ def run_factors(args) -> int:
         crowd = crowd_grid(n)
         rows = np.unique(np.concatenate([np.arange(min(32, n)), np.arange(max(n - 32, 0), n)]))
         variants = [
-            ("attributes", "static: rest mesh (2 vertex attributes)", body, lambda sc: setup_static(sc)),
+            ("attributes", "static: rest mesh (2 vertex attributes)", body,
+             lambda sc: setup_static(sc, skinned_vertex=True)),
             ("attributes", "static + skin attributes fetched (4 attributes)", body,
-             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + skin attributes")),
+             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + skin attributes", True)),
             ("attributes", "vb K=4, skin from storage buffers (2 attributes)", body,
              lambda sc: setup_vb(sc, vb, "crossMatrix", "float16", skin_buffers=True)),
         ]
         packed = packed_weights(body)
         variants += [
             ("packing", "static + skin attributes packed (4 attributes, 32-byte vertex)", packed,
-             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + packed skin attributes")),
+             lambda sc: setup_static(sc, STATIC_SKIN_ATTRIBUTES_VS, "rest mesh + packed skin attributes", True)),
             ("packing", "vb K=4, skin attributes packed (32-byte vertex)", packed,
              lambda sc: setup_vb(sc, vb, "crossMatrix", "float16")),
         ]
@@ -1381,6 +1521,16 @@ def goals(data: dict) -> list:
         lines.append(f"VB GPU time at 100,000 stadium instances = {ratio:.2f} x static "
                      f"({vb['gpu_draw_ms']['median']:.2f} vs {static['gpu_draw_ms']['median']:.2f} ms): "
                      f"goal <= 1.3x {'MET' if ratio <= 1.3 else 'MISSED by ' + format(ratio / 1.3 - 1, '.0%')}")
+    for n in (100_000, 1_000_000):  # issue 25: the shipped pulled binding at most 1.05x static
+        static_n = _find(runs, "stadium", n, "static")
+        pulled = _find(runs, "stadium", n, "vb_pulled", "crossMatrix", "float16")
+        if static_n and pulled:
+            ratio = pulled["gpu_draw_ms"]["median"] / static_n["gpu_draw_ms"]["median"]
+            agrees = pulled["correctness"]["agrees"] and static_n["correctness"]["agrees"]
+            lines.append(f"VB pulled GPU time at {n:,} stadium instances = {ratio:.3f} x static "
+                         f"({pulled['gpu_draw_ms']['median']:.3f} vs {static_n['gpu_draw_ms']['median']:.3f} ms): "
+                         f"goal <= 1.05x {'MET' if ratio <= 1.05 else 'MISSED'}"
+                         f"{'' if agrees else ' (a read-back DISAGREES with numpy)'}")
     if vb and vat:
         ratio = vb["gpu_draw_ms"]["median"] / vat["gpu_draw_ms"]["median"]
         lines.append(f"VB GPU time / VAT GPU time at 100,000 = {ratio:.2f}: goal < 1 {'MET' if ratio < 1 else 'MISSED'}")
@@ -1396,12 +1546,51 @@ def goals(data: dict) -> list:
     return lines
 
 
+BINDING_METHODS = (("vb", "VB attributes"), ("vb_pulled", "VB pulled"), ("vat", "VAT"))
+
+
+def bindings_markdown(data: dict) -> str:
+    """Issue 25's table: per character and size, static and each method's GPU draw time as a factor of static.
+
+    The Virtual Bones rows are crossMatrix float16 (the plan's); each method's error is its largest
+    position error against numpy in the read-back (metres), marked where it is over the tolerance.
+    """
+    runs = data["runs"]
+    head = ["character", "instances", "static GPU ms"] \
+        + [f"{label} GPU ms (x static)" for _, label in BINDING_METHODS] + ["static error vs numpy (m)"] \
+        + [f"{label} error (m)" for _, label in BINDING_METHODS] + ["timed frames"]
+    rows = ["| " + " | ".join(head) + " |", "|---|--:|--:|" + "--:|" * (2 * len(BINDING_METHODS) + 2)]
+    keys = sorted({(r["character"], r["instances"]) for r in runs if r["method"] == "static"},
+                  key=lambda key: (key[0] != "stadium", key[1]))
+    for character, n in keys:
+        static = _find(runs, character, n, "static")
+        found = [_find(runs, character, n, m, *(("crossMatrix", "float16") if m.startswith("vb") else (None, None)))
+                 for m, _ in BINDING_METHODS]
+        base = static["gpu_draw_ms"]["median"]
+
+        def error(r):
+            if r is None:
+                return "not run"
+            c = r["correctness"]
+            return f"{c['position_error_m']:.1e}" + ("" if c["agrees"] else " (DISAGREES)")
+
+        cells = [character, f"{n:,}", f"{base:.3f}"]
+        for r in found:
+            cells.append("not run" if r is None else
+                         f"{r['gpu_draw_ms']['median']:.3f} ({r['gpu_draw_ms']['median'] / base:.2f}x)")
+        cells += [error(static)] + [error(r) for r in found]
+        cells.append("/".join(str(r["runs"]) if r else "-" for r in [static] + found))
+        rows.append("| " + " | ".join(cells) + " |")
+    return "\n".join(rows)
+
+
 def markdown(data: dict) -> str:
     rows = ["| character | instances | method | configuration | GPU draw ms | GPU other ms | CPU ms | frame ms "
             "| runs | animation bytes on GPU | max error vs numpy (m) | vs exact (m) |",
             "|---|--:|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for r in sorted(data["runs"], key=lambda r: (r["character"] != "stadium", r["instances"],
-                                                 ["static", "vb", "vat", "palette", "warp"].index(r["method"]),
+                                                 ["static", "vb", "vb_pulled", "vat", "palette", "warp"].index(
+                                                     r["method"]),
                                                  r["config"])):
         c = r["correctness"]
         rows.append(f"| {r['character']} | {r['instances']:,} | {r['method']} | {r['config']} "
@@ -1419,12 +1608,13 @@ def plot(data: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
-    styles = {"static": "k--", "vb": "C0-o", "vat": "C1-s", "palette": "C3-^", "warp": "C2-d"}
+    styles = {"static": "k--", "vb": "C0-o", "vb_pulled": "C4-v", "vat": "C1-s", "palette": "C3-^", "warp": "C2-d"}
     for ax, character in zip(axes, ("stadium", "dense")):
         for method, style in styles.items():
             points = sorted((r["instances"], r["frame_ms"]["median"], r["gpu_draw_ms"]["median"] + r["gpu_other_ms"]["median"])
                             for r in data["runs"] if r["character"] == character and r["method"] == method and
-                            (method not in ("vb", "warp") or (r["encoding"], r["texel_format"]) == ("crossMatrix", "float16")))
+                            (method not in ("vb", "vb_pulled", "warp") or
+                             (r["encoding"], r["texel_format"]) == ("crossMatrix", "float16")))
             if not points:
                 continue
             n, frame, gpu = zip(*points)
@@ -1453,6 +1643,10 @@ def report(args) -> int:
         return 0
     if args.markdown:
         print(markdown(data))
+    if any(r["method"] == "vb_pulled" for r in data["runs"]):
+        print()
+        print(bindings_markdown(data))
+        print()
     for line in goals(data):
         print("*", line)
     for s in data.get("skipped", []):
@@ -1467,17 +1661,27 @@ def report(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
+def parse_args(argv=None) -> argparse.Namespace:
+    """The command line, with ``run``'s defaults (and a named plan's) filled in."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="measure (needs moderngl with an EGL driver, numpy, warp)")
     r.add_argument("--json", required=True, help="where the results go (rewritten after every configuration)")
+    r.add_argument("--plan", choices=sorted(PLANS),
+                   help="run exactly this named set of configurations (--sizes, --characters and --methods are "
+                        "then ignored); issue25: stadium 10,000 / 100,000 / 1,000,000 and dense 1,200 / 10,000 "
+                        "instances, static, vb, vb_pulled and vat")
     r.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
     r.add_argument("--characters", default="stadium,dense")
-    r.add_argument("--methods", default="static,vb,vat,palette,warp")
-    r.add_argument("--budget", type=float, default=420.0, help="seconds for the whole run; the rest is skipped")
-    r.add_argument("--per-config-s", type=float, default=1.5, help="seconds of timed frames per configuration")
+    r.add_argument("--methods", default="static,vb,vb_pulled,vat,palette,warp")
+    r.add_argument("--budget", type=float, help="seconds for the whole run; the rest is skipped (default 420; "
+                                                "issue25: 400)")
+    r.add_argument("--per-config-s", type=float, help="seconds of timed frames per configuration (default 1.5; "
+                                                      "issue25: 3)")
+    r.add_argument("--min-runs", type=int, help="timed frames per configuration at least (default 3; issue25: 10)")
     r.add_argument("--max-runs", type=int, default=30)
+    r.add_argument("--warmup-s", type=float, help="untimed frames before the first timed configuration, seconds "
+                                                  "(default 0; issue25: 3)")
     r.add_argument("--max-frame-s", type=float, default=8.0, help="skip a configuration predicted slower than this")
     r.add_argument("--no-factors", dest="factors", action="store_false")
     r.add_argument("--factor-size", type=int, default=100_000, help="crowd size of the one-factor study")
@@ -1491,6 +1695,19 @@ def main(argv=None) -> int:
     p.add_argument("--markdown", action="store_true")
     p.add_argument("--plot")
     args = parser.parse_args(argv)
+    if args.command == "run":
+        defaults = {"budget": 420.0, "per_config_s": 1.5, "min_runs": 3, "warmup_s": 0.0}
+        defaults.update(PLAN_DEFAULTS.get(args.plan, {}))
+        for key, value in defaults.items():
+            if key == "factors":
+                args.factors = args.factors and value
+            elif getattr(args, key) is None:
+                setattr(args, key, value)
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
     if args.command == "factors":
         return run_factors(args)
     return run(args) if args.command == "run" else report(args)

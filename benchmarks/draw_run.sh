@@ -29,8 +29,17 @@
 # (draw_cost_gl.json), both on the card the call got. Kept as draw_factors_<card>.json and
 # draw_cost_gl_<card>.json. FACTOR_SIZES=100000,10000,1000000 FACTORS_ONLY=1 runs the study alone.
 # DRAW_ARGS adds options to draw_cost.py run (default budget: 320 s of the call's 600).
+#
+# Issue 25 (the shipped module in both skin bindings, static and VAT beside it): ONE device call, no
+# warp (the VB methods need none), after `NO_WARP=1 bash benchmarks/draw_run.sh pack` here:
+#   device call: carry [".gl", ".whl"]  command: bash benchmarks/draw_run.sh issue25
+# It runs tests/test_draw_cost.py on the NVIDIA EGL driver (draw_tests.log), then
+# `draw_cost.py run --plan issue25` (stadium 10,000 / 100,000 / 1,000,000 and dense 1,200 / 10,000
+# instances; static, vb, vb_pulled, vat; each read back against numpy first; budget 400 s, killed at
+# 470 s: the JSON is rewritten after every configuration) into draw_issue25.json and draw_issue25.log,
+# and the report with the factor table into draw_issue25_report.md.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors}
+cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors|issue25}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -44,13 +53,17 @@ pack)
     python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
         --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0
-    [ -d .gpuwarp/p2 ] || bash benchmarks/gpu_run.sh pack
-    ls -l .gl .whl .gpuwarp/p*
+    if [ -n "${NO_WARP:-}" ]; then  # issue25 needs no warp
+        ls -l .gl .whl
+    else
+        [ -d .gpuwarp/p2 ] || bash benchmarks/gpu_run.sh pack
+        ls -l .gl .whl .gpuwarp/p*
+    fi
     ;;
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors)
+smoke|run|factors|issue25)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -82,7 +95,17 @@ smoke|run|factors)
     fi
     if [ "$cmd" = smoke ]; then
         timeout 90 python3 benchmarks/draw_cost.py run --json "$out/smoke.json" --sizes 1200 --characters stadium \
-            --methods static,vb,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
+            --methods static,vb,vb_pulled,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
+        exit 0
+    fi
+    if [ "$cmd" = issue25 ]; then
+        timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
+        # shellcheck disable=SC2086
+        timeout 470 python3 benchmarks/draw_cost.py run --plan issue25 --json "$out/draw_issue25.json" ${DRAW_ARGS:-} \
+            2>&1 | tee "$out/draw_issue25.log"
+        timeout 20 python3 benchmarks/draw_cost.py report --json "$out/draw_issue25.json" --markdown \
+            > "$out/draw_issue25_report.md" 2>&1
+        tail -20 "$out/draw_issue25_report.md"
         exit 0
     fi
     timeout 100 python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/warp_tests.log"
@@ -94,6 +117,6 @@ smoke|run|factors)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|smoke|run|factors" >&2; exit 2
+    echo "usage: draw_run.sh pack|stage N|smoke|run|factors|issue25" >&2; exit 2
     ;;
 esac

@@ -5,12 +5,17 @@ tiny crowd, what the GPU run relies on: the dense character is a crack-free refi
 the keyed animation that palette skinning evaluates matches the generator's exact matrices at its
 keys; the vertex animation texture holds the exact skinned mesh at its rows; and, in a real OpenGL
 pipeline (any EGL driver, Mesa's llvmpipe without a GPU), the read-back of each method's draw shader
-agrees with its numpy reference, which in turn disagrees when the time is off.
+agrees with its numpy reference, which in turn disagrees when the time is off. Issue 25: the
+``vb_pulled`` method draws the shipped pulled module with the skin records read by ``gl_VertexID``
+(every encoding and texel format, K = 1..4, a larger mesh), ``run --plan issue25`` is exactly the
+issue's set of configurations, and the report's table states each time as a factor of static.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import io
 import sys
 from pathlib import Path
 
@@ -111,7 +116,7 @@ def _scene(dc, gl, character, count=3):
     return dc.Scene(ctx, framebuffer, character, crowd, np.arange(count))
 
 
-@pytest.mark.parametrize("method_name", ["static", "vb", "vat", "palette", "warp"])
+@pytest.mark.parametrize("method_name", ["static", "vb", "vb_pulled", "vat", "palette", "warp"])
 def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     body = dc.stadium_character(baked)
     scene = _scene(dc, gl, body)
@@ -119,6 +124,8 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
         method = dc.setup_static(scene)
     elif method_name == "vb":
         method = dc.setup_vb(scene, baked, "crossMatrix", "float16")
+    elif method_name == "vb_pulled":
+        method = dc.setup_vb(scene, baked, "crossMatrix", "float16", skin="pulled")
     elif method_name == "vat":
         method = dc.setup_vat(scene, dc.bake_vat(body.mesh, baked.clips[0]))
     elif method_name == "palette":
@@ -179,3 +186,116 @@ def test_factor_study_variants_draw_what_numpy_computes(dc, baked, gl, variant):
             other, _ = dc.reference.skin_crowd(baked, body.mesh, scene.check_crowd, dc.CHECK_TIME)
         assert np.abs(points - other).max() > (5 if variant == "packed_vb" else 100) * dc.tolerance(other)
     scene.release()
+
+
+def _words(indices, weights):
+    """The skin record words of one K <= 4 vertex, by hand from spec/shaders.md (Skin records)."""
+    k = len(indices)
+    padded = list(indices) + [0] * (k % 2)
+    pairs = [int(padded[2 * i]) | int(padded[2 * i + 1]) << 16 for i in range(len(padded) // 2)]
+    bits = list(np.asarray(weights, "<f4").view("<u4"))
+    words = pairs + bits
+    return words + [0] * (-len(words) % 4)
+
+
+@pytest.mark.parametrize("encoding,texel_format,variant", [
+    ("crossMatrix", "float16", "dense"), ("crossMatrix", "float32", "k1"), ("crossMatrix", "unorm16", "k3"),
+    ("affineMatrix", "float16", "k2"), ("affineMatrix", "float32", "body"), ("affineMatrix", "unorm16", "body"),
+    ("quatTranslation", "float16", "body"), ("quatTranslation", "float32", "k3"),
+    ("quatTranslation", "unorm16", "body"), ("dualQuat", "float16", "k2"), ("dualQuat", "float32", "body"),
+    ("dualQuat", "unorm16", "dense")])
+def test_pulled_method_reads_the_skin_records_by_vertex_id(dc, gl, encoding, texel_format, variant):
+    # vb_pulled (issue 25) must draw the shipped pulled module: the mesh has no skin attributes, the
+    # skin comes from the records in the module's storage buffer at gl_VertexID, and the read-back
+    # agrees with numpy (and with the attribute binding) for every encoding, texel format and K.
+    vb = dc.SAMPLE.bake_reference(encoding=encoding, texel_format=texel_format)
+    body = dc.stadium_character(vb)
+    character = {"dense": lambda: dc.subdivide(body, 3, vb.layout.bone_count),
+                 "k1": lambda: dc.fewer_influences(body, 1, vb.layout.bone_count),
+                 "k2": lambda: dc.fewer_influences(body, 2, vb.layout.bone_count),
+                 "k3": lambda: dc.fewer_influences(body, 3, vb.layout.bone_count)}.get(variant, lambda: body)()
+    k = character.mesh.bone_indices.shape[1]
+    scene = _scene(dc, gl, character, count=5)
+    method = dc.setup_vb(scene, vb, encoding, texel_format, skin="pulled")
+    assert method.name == "vb_pulled"
+    # The module is what `vbusd shader --skin pulled --no-main` prints, unchanged (the GPU image of
+    # benchmarks/draw_run.sh has no click: there, what the CLI calls).
+    source = dc.vb_vertex_shader(encoding, texel_format, k, dc.VB_MAIN_PULLED, skin="pulled")
+    try:
+        from vbusd.cli import main as vbusd_main
+    except ImportError:
+        module = dc.vbusd.shader("glsl", encoding, texel_format, max_influences=k, main=False, skin="pulled")
+    else:
+        printed = io.StringIO()
+        with contextlib.redirect_stdout(printed):
+            assert vbusd_main(["shader", "--lang", "glsl", "--encoding", encoding, "--texel-format", texel_format,
+                               "--max-influences", str(k), "--skin", "pulled", "--no-main"]) == 0
+        module = printed.getvalue()
+    assert "#define VB_SKIN_PULLED 1" in module and module.strip() in source
+    assert "bone_indices" not in source and "bone_weights" not in source
+    assert {"bone_indices", "bone_weights"}.isdisjoint(name for name in method.program)
+    # The storage buffer holds each vertex's record as the spec lays it out (words by hand).
+    texels = -(-(-(-k // 2) + k) // 4)
+    stored = np.frombuffer(method.skin_records.read(), "<u4").reshape(character.vertex_count, 4 * texels)
+    for vertex in (0, 1, character.vertex_count // 2, character.vertex_count - 1):
+        assert list(stored[vertex]) == _words(character.mesh.bone_indices[vertex], character.mesh.bone_weights[vertex])
+
+    result = dc.check(method, scene, vb, None)
+    assert result["agrees"], result
+    assert result["exact_position_error_m"] < 2e-2
+    pulled, pulled_normals, _ = dc.read_back(method, scene, dc.CHECK_TIME)
+    attributes = dc.setup_vb(scene, vb, encoding, texel_format)
+    points, normals, _ = dc.read_back(attributes, scene, dc.CHECK_TIME)
+    assert np.abs(pulled - points).max() <= dc.tolerance(points)
+    assert np.abs(pulled_normals - normals).max() <= 1e-5
+    # The records are what the shader reads: each vertex given its neighbour's skin draws another pose.
+    method.skin_records.write(np.roll(stored, 1, axis=0).tobytes())
+    moved, _, _ = dc.read_back(method, scene, dc.CHECK_TIME)
+    want, _ = dc.expected(method, scene, dc.CHECK_TIME, vb, None, None)
+    assert np.abs(moved - want).max() > 100 * dc.tolerance(want)
+    scene.release()
+
+
+def test_issue25_plan_is_exactly_the_issue_set(dc):
+    args = dc.parse_args(["run", "--json", "out.json", "--plan", "issue25", "--sizes", "5", "--methods", "warp"])
+    plan = dc._plan(args)
+    assert len(plan) == len(set(plan)) == 20
+    assert {(c, n) for c, n, *_ in plan} == {("stadium", 10_000), ("stadium", 100_000), ("stadium", 1_000_000),
+                                             ("dense", 1_200), ("dense", 10_000)}
+    for character, n in {(c, n) for c, n, *_ in plan}:
+        assert sorted(m for c, size, m, *_ in plan if (c, size) == (character, n)) == \
+            ["static", "vat", "vb", "vb_pulled"]
+    assert all((e, f) == (("crossMatrix", "float16") if m.startswith("vb") else (None, None))
+               for _, _, m, e, f in plan)
+    assert [(c, n) for c, n, *_ in plan[:8]] == [("stadium", 100_000)] * 4 + [("stadium", 1_000_000)] * 4
+    # One device call of 600 s: the run stops starting configurations well before it, no factor study.
+    assert args.budget <= 450 and args.min_runs >= 10 and args.warmup_s > 0 and not args.factors
+    assert dc.parse_args(["run", "--json", "o", "--plan", "issue25", "--budget", "100"]).budget == 100
+    default = dc.parse_args(["run", "--json", "o"])
+    assert (default.budget, default.per_config_s, default.min_runs, default.warmup_s, default.factors) == \
+        (420.0, 1.5, 3, 0.0, True)
+    assert "vb_pulled" in {m for _, _, m, *_ in dc._plan(default)}
+
+
+def test_bindings_table_states_times_as_factors_of_static(dc):
+    def row(character, n, method, ms, error, agrees=True, runs=10):
+        vb = method.startswith("vb")
+        return {"character": character, "instances": n, "method": method, "encoding": "crossMatrix" if vb else None,
+                "texel_format": "float16" if vb else None, "gpu_draw_ms": {"median": ms}, "runs": runs,
+                "frame_ms": {"median": ms}, "anim_bytes": 20 * n + 1000,
+                "correctness": {"position_error_m": error, "agrees": agrees}}
+
+    data = {"runs": [row("dense", 1_200, "static", 4.0, 0.0), row("dense", 1_200, "vb", 10.0, 2e-6),
+                     row("stadium", 100_000, "static", 20.0, 2.5e-7), row("stadium", 100_000, "vb", 33.0, 1e-6),
+                     row("stadium", 100_000, "vb_pulled", 20.5, 1.1e-6),
+                     row("stadium", 100_000, "vat", 25.0, 3e-3, agrees=False)]}
+    lines = dc.bindings_markdown(data).splitlines()
+    assert len(lines) == 4
+    stadium = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert stadium[:6] == ["stadium", "100,000", "20.000", "33.000 (1.65x)", "20.500 (1.02x)", "25.000 (1.25x)"]
+    assert stadium[6:10] == ["2.5e-07", "1.0e-06", "1.1e-06", "3.0e-03 (DISAGREES)"]
+    dense = [c.strip() for c in lines[3].strip("|").split("|")]
+    assert dense[:6] == ["dense", "1,200", "4.000", "10.000 (2.50x)", "not run", "not run"]
+    goal = [line for line in dc.goals(data) if "VB pulled" in line]
+    assert goal == ["VB pulled GPU time at 100,000 stadium instances = 1.025 x static (20.500 vs 20.000 ms): "
+                    "goal <= 1.05x MET"]
