@@ -7,11 +7,14 @@ fixed 1280 x 720 canvas (pixel ratio 1, antialiasing on), with the default camer
 whole crowd. ``window.vbusd.measureFrames(n)`` advances the clock by 1/60 s, renders and reads one
 pixel back (so every frame is finished, not only queued), n times; the figure is the mean.
 
-Three variants per crowd:
+Five variants per crowd, measured one after another in this order for each count:
 
 * ``lit + shadows``: the viewer as it opens (patched MeshStandardMaterial, a 2048^2 shadow map
   drawn with the patched depth material, fog, ACES tone mapping): two skinned passes;
 * ``unlit``: ``silhouette=1`` (patched MeshBasicMaterial, no shadow pass): one skinned pass;
+* each of those two in both skin bindings (spec/shaders.md, "Skin bindings"; the page's
+  ``?skin=``): ``attributes`` (bone indices and weights as vertex attributes) and ``pulled`` (the
+  skin records in an RGBA32UI texture read by ``gl_VertexID``);
 * ``static``: the same InstancedMesh and lights with the materials replaced by unpatched ones (the
   rest pose, no texture fetches): what instancing costs without Virtual Bones skinning.
 
@@ -22,7 +25,7 @@ shared cores), so the absolute numbers are orders of magnitude above any hardwar
 
 Usage::
 
-    python benchmarks/browser_frame_time.py [--frames 5] [--counts 1200 10000]
+    python benchmarks/browser_frame_time.py [--frames 5] [--counts 1200 10000] [--repeats 1]
 """
 
 from __future__ import annotations
@@ -80,9 +83,13 @@ def crowd_asset(count: int, folder: Path) -> Path:
     return path
 
 
-def measure(browser, path: Path, variant: str, frames: int) -> float:
-    """Mean milliseconds per finished frame of one variant."""
-    query = f"?ui=0&paused=1&time=1.0&pixelRatio=1&width={WIDTH}&height={HEIGHT}"
+VARIANTS = (("lit", "attributes"), ("lit", "pulled"), ("unlit", "attributes"), ("unlit", "pulled"),
+            ("static", "attributes"))
+
+
+def measure(browser, path: Path, variant: str, frames: int, skin: str = "attributes") -> float:
+    """Mean milliseconds per finished frame of one variant in skin binding ``skin``."""
+    query = f"?ui=0&paused=1&time=1.0&pixelRatio=1&width={WIDTH}&height={HEIGHT}&skin={skin}"
     if variant == "unlit":
         query += "&silhouette=1"
     with ViewerServer(path) as server:
@@ -106,6 +113,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description="vbusd view frame time in headless Chromium (software WebGL)")
     parser.add_argument("--frames", type=int, default=5)
     parser.add_argument("--counts", type=int, nargs="+", default=[1200, 10000])
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="measure every variant this many times, interleaved, and print each round")
     args = parser.parse_args()
     reason = unavailable_reason()
     if reason:
@@ -114,13 +123,15 @@ def main() -> None:
         print(f"SOFTWARE rendering (SwiftShader), Chromium {browser.version}, {platform.processor() or platform.machine()}, "
               f"{WIDTH} x {HEIGHT}, {args.frames} frames each, {os.cpu_count()} CPUs, "
               f"load average {os.getloadavg()[0]:.1f} at the start")
-        print("| instances | skinned vertices per pass | lit + shadows (ms) | unlit (ms) | static, unpatched (ms) |")
-        print("| ---: | ---: | ---: | ---: | ---: |")
+        print("| round | instances | skinned vertices per pass | lit + shadows, attributes (ms) | lit + shadows, "
+              "pulled (ms) | unlit, attributes (ms) | unlit, pulled (ms) | static, unpatched (ms) |")
+        print("| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
         for count in args.counts:
             path = crowd_asset(count, Path(folder))
-            times = {variant: measure(browser, path, variant, args.frames) for variant in ("lit", "unlit", "static")}
-            print(f"| {count:,} | {count * 202:,} | {times['lit']:.1f} | {times['unlit']:.1f} | {times['static']:.1f} |",
-                  flush=True)
+            for round_ in range(1, args.repeats + 1):
+                times = [measure(browser, path, variant, args.frames, skin) for variant, skin in VARIANTS]
+                print(f"| {round_} | {count:,} | {count * 202:,} | " + " | ".join(f"{t:.1f}" for t in times) + " |",
+                      flush=True)
 
 
 if __name__ == "__main__":

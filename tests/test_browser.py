@@ -15,6 +15,11 @@ shares no code with the browser's GLSL path beyond the stored texels:
 * (c) no console error on any page; unorm16 without EXT_texture_norm16 fails with the runtime's
   one clear message instead.
 
+The probes run in both skin bindings (spec/shaders.md, "Skin bindings"; the page's ``?skin=``):
+``attributes`` and ``pulled`` (the skin records in an RGBA32UI texture read by ``gl_VertexID``,
+packed by the runtime from the plain files' or the glTF package's bone attributes), with the same
+tolerances; each pulled page is checked to have no bone attributes left on its geometries.
+
 Skips with one line naming what to install when Chromium or playwright is missing.
 """
 
@@ -37,6 +42,8 @@ ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 FORMATS = ("float16", "float32")
 POSITION_TOLERANCE = 1e-6  # of the instance's bounding-box diagonal
 NORMAL_TOLERANCE = 1e-5
+SKINS = ("attributes", "pulled")
+PAGE = "?paused=1&ui=0&silhouette=1&width=320&height=180"
 
 
 @pytest.fixture(scope="module")
@@ -112,12 +119,28 @@ def check_probe(page: ViewerPage, asset, instance: int, t: float) -> tuple[float
     return position_error, normal_error
 
 
-def run_probes(browser, path: Path, probes) -> list:
+def check_skin_binding(page: ViewerPage, skin: str) -> None:
+    """Every crowd of the page draws with ``skin``: pulled geometries keep no bone attributes
+    and carry skin records; attribute geometries keep them."""
+    state = page.page.evaluate("""() => window.vbusd.crowds.flatMap((crowd) => crowd.meshes.map((mesh) => ({
+        skin: crowd.skin, material: mesh.material.userData.virtualBones.skin,
+        depth: mesh.customDepthMaterial.userData.virtualBones.skin,
+        distance: mesh.customDistanceMaterial.userData.virtualBones.skin,
+        attributes: Object.keys(mesh.geometry.attributes).filter((name) => name.startsWith('vb_bone')).length,
+        records: mesh.geometry.userData.virtualBones.skin?.records.length ?? 0})))""")
+    assert state
+    for mesh in state:
+        assert mesh["skin"] == mesh["material"] == mesh["depth"] == mesh["distance"] == skin, mesh
+        assert (mesh["attributes"] == 0 and mesh["records"] > 0) if skin == "pulled" else mesh["attributes"] >= 2
+
+
+def run_probes(browser, path: Path, probes, skin: str = "attributes") -> list:
     asset = vbusd.read_asset(path)
     with ViewerServer(path) as server:
-        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
         try:
             assert page.error == "", page.error
+            check_skin_binding(page, skin)
             errors = [check_probe(page, asset, instance, t) for instance, t in probes]
             assert page.errors() == [], page.errors()
             # Offline: the page, three.js, the runtime and the asset all come from the server.
@@ -131,11 +154,12 @@ def run_probes(browser, path: Path, probes) -> list:
 STADIUM_PROBES = [(0, 0.0), (0, 1.2345), (777, 3.71), (1199, 12.05)]
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)
-def test_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
-    errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
-    print(encoding, texel_format, errors)
+def test_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format, skin):
+    errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES, skin)
+    print(encoding, texel_format, skin, errors)
     for position_error, normal_error in errors:
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
@@ -151,11 +175,12 @@ def rig_assets(tmp_path_factory):
             for encoding in ("affineMatrix", "quatTranslation") for texel_format in FORMATS}
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ("affineMatrix", "quatTranslation"))
-def test_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format):
+def test_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format, skin):
     for position_error, normal_error in run_probes(browser, rig_assets[encoding, texel_format],
-                                                   [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)]):
+                                                   [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)], skin):
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
 
@@ -185,15 +210,17 @@ def bar_crowd(tmp_path_factory):
     return path
 
 
-def test_probe_per_instance_clip_offset_rate(browser, bar_crowd):
+@pytest.mark.parametrize("skin", SKINS)
+def test_probe_per_instance_clip_offset_rate(browser, bar_crowd, skin):
     """Each instance plays its own clip at its own offset and rate (VirtualBonesInstancingAPI)."""
     probes = [(instance, t) for instance in range(10) for t in (0.0, 0.61)]
-    for position_error, normal_error in run_probes(browser, bar_crowd, probes):
+    for position_error, normal_error in run_probes(browser, bar_crowd, probes, skin):
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
 
 
-def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path):
+@pytest.mark.parametrize("skin", SKINS)
+def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path, skin):
     """A crossfading crowd (format 1.1 fade primvars, written and read back) through `vbusd view`'s
     plain files: each instance blended with its own fade clip, offset, rate and weight, as the
     numpy decoder does."""
@@ -210,9 +237,10 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path):
     asset = vbusd.read_asset(path)
     assert asset.crowds[0].crossfades
     with ViewerServer(path) as server:
-        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
         try:
             assert page.error == "", page.error
+            check_skin_binding(page, skin)
             for instance in range(5):
                 position_error, normal_error = check_probe(page, asset, instance, 0.83)
                 assert position_error <= POSITION_TOLERANCE, instance
@@ -312,21 +340,23 @@ def _rotation(quaternion) -> np.ndarray:
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)
-def test_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding, texel_format):
+def test_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding, texel_format, skin):
     """A real rig (Khronos sample Fox: 24 joints, 1,728 vertices), every encoding."""
     path = _convert(shared_assets / "gltf" / "Fox" / "Fox.glb", tmp_path / "fox.usda", encoding, texel_format)
-    for position_error, normal_error in run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)]):
+    for position_error, normal_error in run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)], skin):
         assert position_error <= POSITION_TOLERANCE
         assert normal_error <= NORMAL_TOLERANCE
 
 
-def test_unorm16_needs_norm16_extension(browser, tmp_path):
+@pytest.mark.parametrize("skin", SKINS)
+def test_unorm16_needs_norm16_extension(browser, tmp_path, skin):
     """unorm16 runs where EXT_texture_norm16 exists; elsewhere the page says so in one clear line."""
     path = _convert(SAMPLE / "stadium_crowd.usda", tmp_path / "unorm.usda", "crossMatrix", "unorm16")
     with ViewerServer(path) as server:
-        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
         try:
             has_norm16 = page.page.evaluate(
                 "!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')")
@@ -399,8 +429,9 @@ def _package_vertices(asset, positions: np.ndarray) -> np.ndarray:
     return np.concatenate(parts)
 
 
+@pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("case", ["stadium.glb", "bar_crowd.gltf"])
-def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
+def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_path, case, skin):
     """The runtime package of ``vbusd export`` (KTX2 in a buffer view, EXT_mesh_gpu_instancing with
     _VB_CLIP, _VB_TIME_OFFSET, _VB_PLAYBACK_RATE) through three's GLTFLoader and the
     VirtualBonesGLTFPlugin: the same vertices as the numpy decoder on the USD asset."""
@@ -413,9 +444,10 @@ def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_pat
     export_gltf(asset, package)
     probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
     with ViewerServer(package) as server:
-        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
         try:
             assert page.error == "", page.error
+            check_skin_binding(page, skin)  # pulled: records packed from _VB_JOINTS_n/_VB_WEIGHTS_n
             for instance, t in probes:
                 result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
                 expected_positions, expected_normals = reference_instance(asset, instance, t)
@@ -479,17 +511,19 @@ def test_any_three_material_skins(browser):
     assert iou(masks["unpatched"], basic) < 0.9
 
 
-def test_shadows_follow_the_animation(browser):
+@pytest.mark.parametrize("skin", SKINS)
+def test_shadows_follow_the_animation(browser, skin):
     """The crowd's shadow map is drawn with the patched depth material: with the figures hidden
     from the camera (no colour, no depth) the shadows on the ground still change as the crowd
     moves, and with three's own (unpatched, rest-pose) depth material instead they do not."""
     width, height = 480, 200
     query = (f"?paused=1&time=1.0&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
-             "&camera=-16,7,27,4,2.2,46&fov=34&instances=400")
+             f"&camera=-16,7,27,4,2.2,46&fov=34&instances=400&skin={skin}")
     with ViewerServer(SAMPLE / "stadium_crowd_vb.usda") as server:
         page = ViewerPage(browser, server.url + query, width=width, height=height)
         try:
             assert page.error == ""
+            check_skin_binding(page, skin)
             page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
                 mesh.material.colorWrite = false; mesh.material.depthWrite = false; } }""")
 

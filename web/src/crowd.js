@@ -11,6 +11,7 @@ import {
 import { patchMaterial } from './material.js';
 import { socketMatrix } from './sockets.js';
 import { VirtualBonesError } from './animation.js';
+import { checkSkinBinding, pullSkin } from './skin.js';
 
 /**
  * A BufferGeometry for the runtime from plain arrays of one bound mesh.
@@ -66,11 +67,16 @@ function pick(values, slots, set) {
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
+ * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `attributes`
+ *   (default: bone indices and weights as vertex attributes) or `pulled` (the geometry's skin moves
+ *   into an RGBA32UI texture read by gl_VertexID, and its bone attributes are removed; skin.js).
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '' }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = 'attributes' }) {
     super();
+    checkSkinBinding(skin, name);
     this.name = name;
+    this.skin = skin;
     this.animation = animation;
     this.instances = instances;
     this.capacity = instances.count;
@@ -104,15 +110,18 @@ export class VirtualBonesCrowd extends Group {
     }
     this.meshes = meshes.map((entry, index) => {
       const geometry = entry.geometry;
+      let binding = { skin };
+      if (skin === 'pulled') binding = { skin, skinTexture: pullSkin(geometry, entry.maxInfluences).texture };
+      else if (!geometry.attributes.vb_boneIndices0) throw new VirtualBonesError(`${geometry.name}: the geometry has no bone attributes (its skin was pulled); use skin 'pulled'`);
       geometry.setAttribute('vb_instanceClip', this.clipAttribute);
       geometry.setAttribute('vb_instanceTime', this.timeAttribute);
       geometry.setAttribute('vb_instanceFadeClip', this.fadeClipAttribute);
       geometry.setAttribute('vb_instanceFade', this.fadeAttribute);
-      const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences), instances.count);
+      const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = this.instanceMatrix;
       mesh.name = entry.name || geometry.name;
-      mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences);
-      mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences);
+      mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
+      mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
       mesh.castShadow = mesh.receiveShadow = true;
       mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this };
       this.add(mesh);

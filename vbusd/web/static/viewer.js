@@ -4,7 +4,7 @@
 // Query parameters (tests, screenshots and benchmarks use them): time=T (start at T seconds),
 // paused=1, camera=x,y,z,tx,ty,tz (position and target), fov=DEG, silhouette=1 (unlit white on
 // black, no ground, fog or tone mapping), ui=0 (no panel), antialias=0, instances=N, width=W and
-// height=H (fixed canvas size in CSS pixels), pixelRatio=R.
+// height=H (fixed canvas size in CSS pixels), pixelRatio=R, skin=attributes|pulled (the skin binding).
 //
 // window.vbusd: {ready (a Promise), probe(instance, time), setTime(t), render(), measureFrames(n),
 // renderer, scene, camera, crowds}. probe numbers instances across the crowds in the asset's order,
@@ -56,7 +56,8 @@ async function main() {
 
   const material = silhouette ? () => new THREE.MeshBasicMaterial({ color: 0xffffff })
     : () => new THREE.MeshStandardMaterial({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
-  const objects = buildObjects(description, { material });
+  // ?skin=pulled: the skin read by gl_VertexID from a texture (spec/shaders.md, Skin bindings).
+  const objects = buildObjects(description, { material, skin: params.get('skin') ?? 'attributes' });
   for (const animation of objects.animations) animation.checkSupport(renderer);
   scene.add(objects.group);
   const crowds = objects.crowds;

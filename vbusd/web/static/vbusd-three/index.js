@@ -2,7 +2,8 @@
 // three.js material. See docs/engines.md ("three.js runtime") for the API and an example.
 
 export { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
-export { shaderModule, patchMaterial, patchVertexShader, skinningDeclarations, SKINNING_CALL } from './material.js';
+export { shaderModule, patchMaterial, patchVertexShader, skinningDeclarations, skinningCall, SKINNING_CALL } from './material.js';
+export { SKIN_BINDINGS, packSkin, pullSkin, skinTexture, skinRecordTexels, skinRecordWords } from './skin.js';
 export { VirtualBonesCrowd, skinnedGeometry, instancesFromPlacement, singleInstance } from './crowd.js';
 export { parsePlainScene, loadPlainScene, buildObjects } from './plain-loader.js';
 export { probeCrowd } from './probe.js';

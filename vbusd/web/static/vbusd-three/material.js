@@ -3,15 +3,17 @@
 // lighting, fog, shadows and tone mapping work unchanged. The GLSL is the module `vbusd shader`
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
-import { GLSL_MODULES, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS } from './shader-modules.js';
+import { GLSL_MODULES, GLSL_PULLED_MODULES, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS } from './shader-modules.js';
 import { VirtualBonesError } from './animation.js';
+import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
 
 /**
  * The GLSL of `vbusd shader --lang glsl --no-main --encoding E --texel-format F
- * --max-influences K --max-clips C`, character for character.
+ * --max-influences K --max-clips C --skin S`, character for character.
  */
-export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS) {
-  const base = GLSL_MODULES[`${encoding}/${texelFormat}`];
+export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes') {
+  checkSkinBinding(skin);
+  const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
   if (base === undefined) throw new VirtualBonesError(`no shader module for encoding ${encoding}, texel format ${texelFormat}`);
   if (!Number.isInteger(maxInfluences) || maxInfluences < 1 || maxInfluences > 8) {
     throw new VirtualBonesError(`maxInfluences must be 1..8, got ${maxInfluences}`);
@@ -19,10 +21,16 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
   if (!Number.isInteger(maxClips) || maxClips < 1 || maxClips > 256) {
     throw new VirtualBonesError(`maxClips must be 1..256, got ${maxClips}`);
   }
-  return replaceOnce(replaceOnce(replaceOnce(base,
+  let text = replaceOnce(replaceOnce(replaceOnce(base,
     `up to ${BASE_MAX_INFLUENCES} influences.`, `up to ${maxInfluences} influences.`),
   `#define VB_MAX_INFLUENCES ${BASE_MAX_INFLUENCES}\n`, `#define VB_MAX_INFLUENCES ${maxInfluences}\n`),
   `#define VB_MAX_CLIPS ${BASE_MAX_CLIPS}\n`, `#define VB_MAX_CLIPS ${maxClips}\n`);
+  if (skin === 'pulled') {
+    text = replaceOnce(replaceOnce(text,
+      `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
+    `#define VB_SKIN_TEXELS ${skinRecordTexels(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_TEXELS ${skinRecordTexels(maxInfluences)}\n`);
+  }
+  return text;
 }
 
 function replaceOnce(text, search, replacement) {
@@ -34,9 +42,19 @@ function replaceOnce(text, search, replacement) {
 /**
  * Declarations added after three's `#include <common>`: the module and the vertex inputs of
  * spec/shaders.md ("Vertex inputs"); three declares `position` and `normal` (the rest mesh).
+ * With the `pulled` skin there are no bone inputs: the module declares `vb_skinTexture`.
  */
-export function skinningDeclarations(animation, maxInfluences) {
-  return `${shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips)}
+export function skinningDeclarations(animation, maxInfluences, skin = 'attributes') {
+  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin);
+  if (skin === 'pulled') {
+    return `${module}
+in int vb_instanceClip;
+in vec2 vb_instanceTime;
+in int vb_instanceFadeClip;
+in vec3 vb_instanceFade;
+`;
+  }
+  return `${module}
 in ivec4 vb_boneIndices0;
 in vec4 vb_boneWeights0;
 #if VB_MAX_INFLUENCES > 4
@@ -50,8 +68,7 @@ in vec3 vb_instanceFade;
 `;
 }
 
-/** Statements at the top of main(): skin the rest vertex into vbPosition / vbNormal. */
-export const SKINNING_CALL = `
+const SKIN_FROM_ATTRIBUTES = `
   int vbIndex[VB_MAX_INFLUENCES];
   float vbWeight[VB_MAX_INFLUENCES];
   for (int i = 0; i < VB_MAX_INFLUENCES; ++i) {
@@ -62,7 +79,16 @@ export const SKINNING_CALL = `
     vbIndex[i] = vb_boneIndices0[i];
     vbWeight[i] = vb_boneWeights0[i];
 #endif
-  }
+  }`;
+
+// gl_VertexID is the vertex's index in the geometry (drawElements: the index read; WebGL 2 has no
+// base vertex), which is its skin record.
+const SKIN_PULLED = `
+  int vbIndex[VB_MAX_INFLUENCES];
+  float vbWeight[VB_MAX_INFLUENCES];
+  vbSkinInfluences(gl_VertexID, vbIndex, vbWeight);`;
+
+const SKIN_AND_CROSSFADE = `
   vec3 vbPosition;
   vec3 vbNormal;
   // Crossfade (spec 8.3, format 1.1): vb_instanceFade = (fadeTimeOffset, fadePlaybackRate, fadeWeight);
@@ -72,10 +98,19 @@ export const SKINNING_CALL = `
                   position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 
+/** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition / vbNormal. */
+export function skinningCall(skin = 'attributes') {
+  checkSkinBinding(skin);
+  return (skin === 'pulled' ? SKIN_PULLED : SKIN_FROM_ATTRIBUTES) + SKIN_AND_CROSSFADE;
+}
+
+/** The attribute binding's statements (skinningCall('attributes')). */
+export const SKINNING_CALL = skinningCall('attributes');
+
 /** A three.js vertex shader (before #include expansion) that skins from the texture. */
-export function patchVertexShader(vertexShader, animation, maxInfluences) {
-  let source = replaceOnce(vertexShader, '#include <common>', `#include <common>\n${skinningDeclarations(animation, maxInfluences)}`);
-  source = replaceOnce(source, 'void main() {', `void main() {\n${SKINNING_CALL}`);
+export function patchVertexShader(vertexShader, animation, maxInfluences, skin = 'attributes') {
+  let source = replaceOnce(vertexShader, '#include <common>', `#include <common>\n${skinningDeclarations(animation, maxInfluences, skin)}`);
+  source = replaceOnce(source, 'void main() {', `void main() {\n${skinningCall(skin)}`);
   source = replaceOnce(source, '#include <begin_vertex>', 'vec3 transformed = vbPosition;');
   // Depth and distance materials include beginnormal_vertex only with a displacement map.
   if (source.includes('#include <beginnormal_vertex>')) {
@@ -91,18 +126,25 @@ export function patchVertexShader(vertexShader, animation, maxInfluences) {
  * Make `material` skin from `animation` (in place; returns it). The mesh must be an InstancedMesh
  * whose geometry carries the Virtual Bones attributes (see crowd.js). Materials that share an
  * animation share its uniforms, so `animation.time = t` moves them all.
+ *
+ * `skin` is the skin binding: `attributes` (default) or `pulled`, which reads each vertex's skin
+ * record from `skinTexture` (skin.js: pullSkin) by gl_VertexID; a pulled material draws only
+ * meshes of that geometry (the texture is the material's uniform).
  */
-export function patchMaterial(material, animation, maxInfluences) {
+export function patchMaterial(material, animation, maxInfluences, { skin = 'attributes', skinTexture = null } = {}) {
+  checkSkinBinding(skin, material.name);
+  if (skin === 'pulled' && !skinTexture?.isDataTexture) throw new VirtualBonesError('the pulled skin binding needs the geometry\'s skin texture (pullSkin)');
+  const skinUniforms = skin === 'pulled' ? { vb_skinTexture: { value: skinTexture } } : {};
   const previous = material.onBeforeCompile;
   material.onBeforeCompile = (shader, renderer) => {
     previous?.call(material, shader, renderer);
-    Object.assign(shader.uniforms, animation.uniforms);
-    shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences);
+    Object.assign(shader.uniforms, animation.uniforms, skinUniforms);
+    shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin);
   };
-  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}`;
+  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
-  material.userData.virtualBones = { animation, maxInfluences };
+  material.userData.virtualBones = { animation, maxInfluences, skin };
   material.needsUpdate = true;
   return material;
 }

@@ -93,9 +93,10 @@ export async function loadPlainScene(url) {
 /**
  * Objects to draw a description: one VirtualBonesCrowd per crowd, and a single instance for each
  * animation that no crowd instances. Crowds may carry a `matrix` (their node's world transform).
+ * `skin` is the skin binding of every crowd (`attributes`, the default, or `pulled`).
  * Returns `{group, crowds, animations}`; `crowds` is the order `probe` numbers instances in.
  */
-export function buildObjects(description, { material } = {}) {
+export function buildObjects(description, { material, skin = 'attributes' } = {}) {
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));
@@ -103,7 +104,7 @@ export function buildObjects(description, { material } = {}) {
     const entry = description.animations[animationIndex];
     if (!entry) throw new VirtualBonesError(`${name}: no animation ${animationIndex}`);
     const meshes = entry.meshes.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
-    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name });
+    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin });
     crowd.userData.animationIndex = animationIndex;
     if (matrix) {
       crowd.matrixAutoUpdate = false;

@@ -3,7 +3,7 @@
 // the instance data of the crowd's own attribute arrays.
 
 import { VirtualBonesError } from './animation.js';
-import { SKINNING_CALL, skinningDeclarations } from './material.js';
+import { skinningCall, skinningDeclarations } from './material.js';
 
 const FRAGMENT = `#version 300 es
 precision highp float;
@@ -11,11 +11,11 @@ out vec4 vbColor;
 void main() { vbColor = vec4(0.0); }
 `;
 
-function vertexSource(animation, maxInfluences) {
+function vertexSource(animation, maxInfluences, skin) {
   return `#version 300 es
 precision highp float;
 precision highp int;
-${skinningDeclarations(animation, maxInfluences)}
+${skinningDeclarations(animation, maxInfluences, skin)}
 in vec3 position;
 in vec3 normal;
 in mat4 instanceMatrix;
@@ -23,7 +23,7 @@ uniform mat4 modelMatrix;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
 void main() {
-${SKINNING_CALL}
+${skinningCall(skin)}
   mat4 world = modelMatrix * instanceMatrix;
   vbWorldPosition = (world * vec4(vbPosition, 1.0)).xyz;
   vec3 n = transpose(inverse(mat3(world))) * vbNormal;
@@ -48,13 +48,13 @@ function compile(gl, type, source) {
 
 const programs = new WeakMap();
 
-function probeProgram(gl, animation, maxInfluences) {
+function probeProgram(gl, animation, maxInfluences, skin) {
   let cache = programs.get(gl);
   if (!cache) programs.set(gl, cache = new Map());
-  const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}`;
+  const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${skin}`;
   if (cache.has(key)) return cache.get(key);
   const program = gl.createProgram();
-  gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource(animation, maxInfluences)));
+  gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource(animation, maxInfluences, skin)));
   gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
   gl.transformFeedbackVaryings(program, ['vbWorldPosition', 'vbWorldNormal'], gl.SEPARATE_ATTRIBS);
   gl.linkProgram(program);
@@ -83,7 +83,9 @@ function bindAttribute(gl, program, name, data, size, { integer = false, divisor
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
  * computed by the GPU: `{positions, normals}` as Float32Arrays, each mesh of the animation in
  * order, points in the asset's order (normals in the asset's normal order: per point, or per
- * face-vertex for face-varying normals; empty for meshes without normals).
+ * face-vertex for face-varying normals; empty for meshes without normals). The crowd's own skin
+ * binding is used: with `pulled`, the skin records are read from the geometry's skin texture by
+ * gl_VertexID, as the crowd's materials read them.
  */
 export function probeCrowd(renderer, crowd, index, time) {
   const gl = renderer.getContext();
@@ -98,18 +100,29 @@ export function probeCrowd(renderer, crowd, index, time) {
   const normals = [];
   for (const mesh of crowd.meshes) {
     const { maxInfluences } = mesh.userData.virtualBones;
-    const program = probeProgram(gl, animation, maxInfluences);
+    const skin = crowd.skin ?? 'attributes';
+    const program = probeProgram(gl, animation, maxInfluences, skin);
     const geometry = mesh.geometry;
     const vertexCount = geometry.attributes.position.count;
+    let skinTexture = null;
+    if (skin === 'pulled') {
+      const records = geometry.userData.virtualBones.skin?.texture;
+      if (!records) throw new VirtualBonesError(`${geometry.name}: the pulled skin has no texture`);
+      renderer.initTexture(records);
+      skinTexture = renderer.properties.get(records).__webglTexture;
+      if (!skinTexture) throw new VirtualBonesError(`${geometry.name}: the skin texture was not uploaded`);
+    }
     const vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
     const buffers = [
       bindAttribute(gl, program, 'position', geometry.attributes.position.array, 3),
       bindAttribute(gl, program, 'normal', geometry.attributes.normal.array, 3),
-      bindAttribute(gl, program, 'vb_boneIndices0', geometry.attributes.vb_boneIndices0.array, 4, { integer: true }),
-      bindAttribute(gl, program, 'vb_boneWeights0', geometry.attributes.vb_boneWeights0.array, 4),
     ];
-    if (geometry.attributes.vb_boneIndices1) {
+    if (skin === 'attributes') {
+      buffers.push(bindAttribute(gl, program, 'vb_boneIndices0', geometry.attributes.vb_boneIndices0.array, 4, { integer: true }));
+      buffers.push(bindAttribute(gl, program, 'vb_boneWeights0', geometry.attributes.vb_boneWeights0.array, 4));
+    }
+    if (skin === 'attributes' && geometry.attributes.vb_boneIndices1) {
       buffers.push(bindAttribute(gl, program, 'vb_boneIndices1', geometry.attributes.vb_boneIndices1.array, 4, { integer: true }));
       buffers.push(bindAttribute(gl, program, 'vb_boneWeights1', geometry.attributes.vb_boneWeights1.array, 4));
     }
@@ -124,6 +137,11 @@ export function probeCrowd(renderer, crowd, index, time) {
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, webglTexture);
     gl.uniform1i(gl.getUniformLocation(program, 'vb_texture'), 0);
+    if (skinTexture) {
+      gl.activeTexture(gl.TEXTURE1);
+      gl.bindTexture(gl.TEXTURE_2D, skinTexture);
+      gl.uniform1i(gl.getUniformLocation(program, 'vb_skinTexture'), 1);
+    }
     gl.uniform1f(gl.getUniformLocation(program, 'vb_time'), time);
     const clips = new Float32Array(4 * animation.maxClips);
     animation.uniforms.vb_clips.value.forEach((v, i) => v.toArray(clips, 4 * i));
