@@ -68,7 +68,10 @@ def sources() -> dict:
     return found
 
 
-def _hog() -> None:  # pragma: no cover - runs in the hog processes
+def _hog(parent: int) -> None:  # pragma: no cover - runs in the hog processes
+    from vbusd._signals import die_with_parent
+
+    die_with_parent(signal.SIGKILL, parent)  # a killed stress run leaves no hog spinning
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     value = 0
     while True:
@@ -78,7 +81,7 @@ def _hog() -> None:  # pragma: no cover - runs in the hog processes
 def start_hogs(count: int) -> list:
     """One busy process per core (spawned: they import nothing of vbusd)."""
     context = multiprocessing.get_context("spawn")
-    hogs = [context.Process(target=_hog, daemon=True) for _ in range(count)]
+    hogs = [context.Process(target=_hog, args=(os.getpid(),), daemon=True) for _ in range(count)]
     for hog in hogs:
         hog.start()
     return hogs
