@@ -601,8 +601,17 @@ def convert_one(task: dict) -> dict:
     from vbusd import _signals, _threads
 
     _threads.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
-    with _signals.handling_signals(signals=(signal.SIGTERM,)), _Heartbeat(task) as beat:
-        return _convert_one(task, beat)
+    try:
+        with _signals.handling_signals(signals=(signal.SIGTERM,)), _Heartbeat(task) as beat:
+            return _convert_one(task, beat)
+    except KeyboardInterrupt as error:
+        if _IN_POOL_WORKER:  # its write aborted; a worker told to stop (or orphaned) ends here
+            os._exit(_signals.exit_status(error))
+        raise
+
+
+_IN_POOL_WORKER = False
+"""Set in a local pool worker (:func:`_pool_initializer`): an interrupt ends the process."""
 
 
 class _Heartbeat:
@@ -731,6 +740,8 @@ def _pool_initializer(parent: Optional[int] = None) -> None:
 
     # A parent killed with SIGKILL must not leave workers behind: SIGTERM ends this one (as an
     # interrupt while it converts: its write aborts), whatever the parent could do.
+    global _IN_POOL_WORKER
+    _IN_POOL_WORKER = True
     _signals.die_with_parent(signal.SIGTERM, parent)
     _one_core()  # runs before the first task imports pxr and numpy
     _keep_freed_memory()
