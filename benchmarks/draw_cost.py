@@ -615,7 +615,7 @@ VARYINGS = ["world_position", "world_normal"]
 
 
 def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main: str = VB_MAIN,
-                     skin: str = "attributes") -> str:
+                     skin: str = "attributes", skin_storage: bool = True) -> str:
     """The draw's vertex shader: the module ``vbusd shader --skin SKIN`` prints (main off), then the draw's main.
 
     Args:
@@ -624,12 +624,16 @@ def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main
         max_influences: The module's K.
         main: The draw's entry point (it calls the module's functions, then places and projects).
         skin: The module's skin binding, ``attributes`` or ``pulled``.
+        skin_storage: Pulled only: False defines ``VB_SKIN_STORAGE 0`` before the module (its own
+            switch, spec/shaders.md), so it reads the records from the ``RGBA32UI`` texture, as WebGL 2
+            and the three.js runtime must.
 
     Returns:
         GLSL 4.30 source: the version line, the shipped module unchanged, the draw's ``main``.
     """
     module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False, skin=skin)
-    return GLSL_VERSION + module + main
+    switch = "#define VB_SKIN_STORAGE 0\n" if skin == "pulled" and not skin_storage else ""
+    return GLSL_VERSION + switch + module + main
 
 
 # ------------------------------------------------------------------------------------------ GL scene
@@ -809,17 +813,22 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         skin: ``attributes`` (method ``vb``: indices and weights as vertex attributes) or ``pulled``
             (method ``vb_pulled``: the module of ``vbusd shader --skin pulled``, the mesh's skin records
             from ``pack_skin`` in its storage buffer; the mesh keeps position and normal only).
+            ``pulled_texture`` (method ``vb_pulled_texture``): the same module with ``VB_SKIN_STORAGE
+            0``, the records in an ``RGBA32UI`` texture ``min(texels, 4096)`` wide read by
+            ``texelFetch``, as in WebGL 2 and the three.js runtime (``skinTexture``).
 
     Returns:
         The method, ready to check and time.
     """
     ctx, moderngl = scene.ctx, scene.moderngl
-    pulled = skin == "pulled"
+    in_texture = skin == "pulled_texture"
+    pulled = skin in ("pulled", "pulled_texture")
     if pulled and skin_buffers:
         raise ValueError("skin_buffers is the factor study's variant of the attribute module")
     k = scene.character.mesh.bone_indices.shape[1]
     main = VB_MAIN_PULLED if pulled else VB_MAIN_SKIN_BUFFERS if skin_buffers else VB_MAIN
-    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, k, main, skin=skin))
+    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, k, main, skin="pulled" if pulled else skin,
+                                                  skin_storage=not in_texture))
     texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
                           dtype=_texture_dtype(texel_format))
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -845,13 +854,20 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
     if pulled:
         records = pack_skin(mesh.bone_indices, mesh.bone_weights, k)
         records_bytes = int(records.nbytes)
-        skin_objects = [(SKIN_BINDING, ctx.buffer(np.ascontiguousarray(records).tobytes()))]
-        skin_records = skin_objects[0][1]
-        for p in (program, tf):
-            p["VbSkin"].binding = SKIN_BINDING
+        if in_texture:
+            skin_records = _skin_texture(ctx, moderngl, records)
+            for p in (program, tf):
+                p["vb_skinTexture"].value = 1
+        else:
+            skin_objects = [(SKIN_BINDING, ctx.buffer(np.ascontiguousarray(records).tobytes()))]
+            skin_records = skin_objects[0][1]
+            for p in (program, tf):
+                p["VbSkin"].binding = SKIN_BINDING
 
     def set_time(p, t):
         texture.use(location=0)
+        if in_texture:
+            skin_records.use(location=1)
         for binding, buffer in skin_objects:
             buffer.bind_to_storage_buffer(binding)
         p["vb_time"].value = t
@@ -859,18 +875,33 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
     texel_bytes = int(np.asarray(vb.texels).nbytes)
     notes = f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes"
     if pulled:
-        config = f"{encoding} {texel_format}, skin pulled (storage buffer)"
+        where = "RGBA32UI texture" if in_texture else "storage buffer"
+        config = f"{encoding} {texel_format}, skin pulled ({where})"
         notes += (f"; skin records {records_bytes // len(mesh.points)} bytes a vertex ({records_bytes} bytes) in a "
-                  f"storage buffer; vertex {scene.rest_stride} bytes (position, normal)")
+                  f"{where}; vertex {scene.rest_stride} bytes (position, normal)")
     else:
         config = f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else "")
         notes += f"; vertex {scene.skin_stride} bytes (position, normal, bone indices, bone weights)"
-    method = Method("vb_pulled" if pulled else "vb", config,
+    name = "vb_pulled_texture" if in_texture else "vb_pulled" if pulled else "vb"
+    method = Method(name, config,
                     draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
-                    release=[texture] + [buffer for _, buffer in skin_objects], notes=notes)
+                    release=[texture] + [buffer for _, buffer in skin_objects] + ([skin_records] if in_texture else []),
+                    notes=notes)
     if pulled:
         method.skin_records = skin_records  # the storage buffer the module reads (tests look into it)
     return method
+
+
+def _skin_texture(ctx, moderngl, records: np.ndarray):
+    """The skin records as the three.js runtime uploads them: RGBA32UI, ``min(texels, 4096)`` wide, NEAREST."""
+    texels = np.ascontiguousarray(records, dtype=np.uint32).reshape(-1, 4)
+    width = min(len(texels), 4096)
+    height = -(-len(texels) // width)
+    padded = np.zeros((width * height, 4), np.uint32)
+    padded[:len(texels)] = texels
+    texture = ctx.texture((width, height), 4, padded.tobytes(), dtype="u4")
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    return texture
 
 
 def setup_vat(scene: Scene, vat: VertexAnimation) -> Method:
@@ -1102,7 +1133,7 @@ def expected(method: Method, scene: Scene, t: float, vb, vat, extra):
         s = crowd.instance_count
         return place(crowd, np.broadcast_to(np.asarray(mesh.points, np.float64), (s,) + mesh.points.shape),
                      np.broadcast_to(np.asarray(mesh.normals, np.float64), (s,) + mesh.normals.shape))
-    if method.name in ("vb", "vb_pulled", "warp"):
+    if method.name in ("vb", "vb_pulled", "vb_pulled_texture", "warp"):
         return reference.skin_crowd(vb, mesh, crowd, t)
     if method.name == "vat":
         return vat_pose(vat, crowd, scene.character.vertex_count, t)
@@ -1180,9 +1211,18 @@ PLANS = {
                 for character, n in (("stadium", 100_000), ("stadium", 1_000_000), ("stadium", 10_000),
                                      ("dense", 1_200), ("dense", 10_000))
                 for method in ("static", "vb", "vb_pulled", "vat")],
+    # issue25-texture: the pulled binding as WebGL 2 and the three.js runtime must read it (records in an
+    # RGBA32UI texture, VB_SKIN_STORAGE 0) beside the storage buffer, static and attributes: what the
+    # runtime's default skin binding is chosen by (docs/engines.md).
+    "issue25-texture": [(character, n, method) + (("crossMatrix", "float16") if method.startswith("vb") else (None, None))
+                        for character, n in (("stadium", 100_000), ("stadium", 1_000_000), ("stadium", 10_000),
+                                             ("dense", 1_200), ("dense", 10_000))
+                        for method in ("static", "vb", "vb_pulled", "vb_pulled_texture")],
 }
 PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
-                             "factors": False}}
+                             "factors": False},
+                 "issue25-texture": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
+                                     "factors": False}}
 
 
 def _plan(args) -> list:
@@ -1307,9 +1347,10 @@ def run(args) -> int:
                 scene_key = (character_name, n)
             if method_name == "static":
                 method = setup_static(scene)
-            elif method_name in ("vb", "vb_pulled"):
+            elif method_name in ("vb", "vb_pulled", "vb_pulled_texture"):
                 method = setup_vb(scene, vb_for(encoding, texel_format), encoding, texel_format,
-                                  skin="pulled" if method_name == "vb_pulled" else "attributes")
+                                  skin={"vb": "attributes", "vb_pulled": "pulled",
+                                        "vb_pulled_texture": "pulled_texture"}[method_name])
             elif method_name == "vat":
                 if character_name not in vats:
                     vats[character_name] = bake_vat(character.mesh, base_vb.clips[0])
@@ -1546,7 +1587,8 @@ def goals(data: dict) -> list:
     return lines
 
 
-BINDING_METHODS = (("vb", "VB attributes"), ("vb_pulled", "VB pulled"), ("vat", "VAT"))
+BINDING_METHODS = (("vb", "VB attributes"), ("vb_pulled", "VB pulled"), ("vb_pulled_texture", "VB pulled (texture)"),
+                   ("vat", "VAT"))
 
 
 def bindings_markdown(data: dict) -> str:
@@ -1589,7 +1631,7 @@ def markdown(data: dict) -> str:
             "| runs | animation bytes on GPU | max error vs numpy (m) | vs exact (m) |",
             "|---|--:|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for r in sorted(data["runs"], key=lambda r: (r["character"] != "stadium", r["instances"],
-                                                 ["static", "vb", "vb_pulled", "vat", "palette", "warp"].index(
+                                                 ["static", "vb", "vb_pulled", "vb_pulled_texture", "vat", "palette", "warp"].index(
                                                      r["method"]),
                                                  r["config"])):
         c = r["correctness"]
@@ -1608,12 +1650,12 @@ def plot(data: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
-    styles = {"static": "k--", "vb": "C0-o", "vb_pulled": "C4-v", "vat": "C1-s", "palette": "C3-^", "warp": "C2-d"}
+    styles = {"static": "k--", "vb": "C0-o", "vb_pulled": "C4-v", "vb_pulled_texture": "C5-<", "vat": "C1-s", "palette": "C3-^", "warp": "C2-d"}
     for ax, character in zip(axes, ("stadium", "dense")):
         for method, style in styles.items():
             points = sorted((r["instances"], r["frame_ms"]["median"], r["gpu_draw_ms"]["median"] + r["gpu_other_ms"]["median"])
                             for r in data["runs"] if r["character"] == character and r["method"] == method and
-                            (method not in ("vb", "vb_pulled", "warp") or
+                            (method not in ("vb", "vb_pulled", "vb_pulled_texture", "warp") or
                              (r["encoding"], r["texel_format"]) == ("crossMatrix", "float16")))
             if not points:
                 continue
@@ -1670,7 +1712,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     r.add_argument("--plan", choices=sorted(PLANS),
                    help="run exactly this named set of configurations (--sizes, --characters and --methods are "
                         "then ignored); issue25: stadium 10,000 / 100,000 / 1,000,000 and dense 1,200 / 10,000 "
-                        "instances, static, vb, vb_pulled and vat")
+                        "instances, static, vb, vb_pulled and vat; issue25-texture: the same sizes, static, vb, "
+                        "vb_pulled and vb_pulled_texture (the skin records in an RGBA32UI texture, as WebGL 2)")
     r.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
     r.add_argument("--characters", default="stadium,dense")
     r.add_argument("--methods", default="static,vb,vb_pulled,vat,palette,warp")

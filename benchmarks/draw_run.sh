@@ -37,9 +37,11 @@
 # `draw_cost.py run --plan issue25` (stadium 10,000 / 100,000 / 1,000,000 and dense 1,200 / 10,000
 # instances; static, vb, vb_pulled, vat; each read back against numpy first; budget 400 s, killed at
 # 470 s: the JSON is rewritten after every configuration) into draw_issue25.json and draw_issue25.log,
-# and the report with the factor table into draw_issue25_report.md.
+# and the report with the factor table into draw_issue25_report.md. `issue25-texture` (same call, same
+# carry) runs `--plan issue25-texture`: static, vb, vb_pulled and vb_pulled_texture (the records in an
+# RGBA32UI texture, as WebGL 2 reads them) at the same sizes, into draw_issue25_texture*.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors|issue25}
+cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors|issue25|issue25-texture}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -63,7 +65,7 @@ pack)
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors|issue25)
+smoke|run|factors|issue25|issue25-texture)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -98,14 +100,15 @@ smoke|run|factors|issue25)
             --methods static,vb,vb_pulled,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
         exit 0
     fi
-    if [ "$cmd" = issue25 ]; then
+    if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ]; then
+        plan=$cmd; name=${cmd//-/_}
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
         # shellcheck disable=SC2086
-        timeout 470 python3 benchmarks/draw_cost.py run --plan issue25 --json "$out/draw_issue25.json" ${DRAW_ARGS:-} \
-            2>&1 | tee "$out/draw_issue25.log"
-        timeout 20 python3 benchmarks/draw_cost.py report --json "$out/draw_issue25.json" --markdown \
-            > "$out/draw_issue25_report.md" 2>&1
-        tail -20 "$out/draw_issue25_report.md"
+        timeout 470 python3 benchmarks/draw_cost.py run --plan "$plan" --json "$out/draw_$name.json" ${DRAW_ARGS:-} \
+            2>&1 | tee "$out/draw_$name.log"
+        timeout 20 python3 benchmarks/draw_cost.py report --json "$out/draw_$name.json" --markdown \
+            > "$out/draw_${name}_report.md" 2>&1
+        tail -20 "$out/draw_${name}_report.md"
         exit 0
     fi
     timeout 100 python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/warp_tests.log"
@@ -117,6 +120,6 @@ smoke|run|factors|issue25)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|smoke|run|factors|issue25" >&2; exit 2
+    echo "usage: draw_run.sh pack|stage N|smoke|run|factors|issue25|issue25-texture" >&2; exit 2
     ;;
 esac

@@ -256,6 +256,49 @@ def test_pulled_method_reads_the_skin_records_by_vertex_id(dc, gl, encoding, tex
     scene.release()
 
 
+@pytest.mark.parametrize("encoding,texel_format,variant", [
+    ("crossMatrix", "float16", "body"), ("quatTranslation", "unorm16", "k3"), ("dualQuat", "float32", "dense")])
+def test_pulled_texture_method_reads_the_records_as_webgl_must(dc, gl, encoding, texel_format, variant):
+    # vb_pulled_texture: the same shipped module with VB_SKIN_STORAGE 0, the records in an RGBA32UI
+    # texture (what WebGL 2 and the three.js runtime read); it must agree with numpy, and the texture
+    # must be what the shader reads (each vertex given its neighbour's record draws another pose).
+    vb = dc.SAMPLE.bake_reference(encoding=encoding, texel_format=texel_format)
+    body = dc.stadium_character(vb)
+    character = {"dense": lambda: dc.subdivide(body, 3, vb.layout.bone_count),
+                 "k3": lambda: dc.fewer_influences(body, 3, vb.layout.bone_count)}.get(variant, lambda: body)()
+    k = character.mesh.bone_indices.shape[1]
+    scene = _scene(dc, gl, character, count=5)
+    method = dc.setup_vb(scene, vb, encoding, texel_format, skin="pulled_texture")
+    assert method.name == "vb_pulled_texture" and "RGBA32UI texture" in method.config
+    assert {"bone_indices", "bone_weights", "VbSkin"}.isdisjoint(name for name in method.program)
+    assert "vb_skinTexture" in {name for name in method.program}
+    texels = -(-(-(-k // 2) + k) // 4)
+    width, height = method.skin_records.size
+    assert width == min(character.vertex_count * texels, 4096)
+    stored = np.frombuffer(method.skin_records.read(), "<u4").reshape(-1, 4)[:character.vertex_count * texels]
+    stored = stored.reshape(character.vertex_count, 4 * texels)
+    for vertex in (0, character.vertex_count // 2, character.vertex_count - 1):
+        assert list(stored[vertex]) == _words(character.mesh.bone_indices[vertex], character.mesh.bone_weights[vertex])
+    result = dc.check(method, scene, vb, None)
+    assert result["agrees"], result
+    rolled = np.zeros((width * height, 4), np.uint32)
+    rolled[:character.vertex_count * texels] = np.roll(stored, 1, axis=0).reshape(-1, 4)
+    method.skin_records.write(rolled.tobytes())
+    moved, _, _ = dc.read_back(method, scene, dc.CHECK_TIME)
+    want, _ = dc.expected(method, scene, dc.CHECK_TIME, vb, None, None)
+    assert np.abs(moved - want).max() > 100 * dc.tolerance(want)
+    scene.release()
+
+
+def test_issue25_texture_plan_sets_the_texture_variant_beside_the_buffer(dc):
+    args = dc.parse_args(["run", "--json", "out.json", "--plan", "issue25-texture"])
+    plan = dc._plan(args)
+    assert len(plan) == len(set(plan)) == 20
+    assert plan[:4] == [("stadium", 100_000, m, *(("crossMatrix", "float16") if m != "static" else (None, None)))
+                        for m in ("static", "vb", "vb_pulled", "vb_pulled_texture")]
+    assert args.budget <= 450 and not args.factors
+
+
 def test_issue25_plan_is_exactly_the_issue_set(dc):
     args = dc.parse_args(["run", "--json", "out.json", "--plan", "issue25", "--sizes", "5", "--methods", "warp"])
     plan = dc._plan(args)
