@@ -483,7 +483,8 @@ def test_any_three_material_skins(browser):
             const options = name === 'MeshNormalMaterial' ? {}
                 : { color: 0xffffff, emissive: 0xffffff };
             const material = name === 'unpatched' ? new THREE.MeshBasicMaterial({ color: 0xffffff })
-                : patchMaterial(new THREE[name](options), crowd.animation, mesh.userData.virtualBones.maxInfluences);
+                : patchMaterial(new THREE[name](options), crowd.animation, mesh.userData.virtualBones.maxInfluences,
+                                mesh.userData.virtualBones.binding);  // the crowd's skin binding (pulled by default)
             mesh.material = material;
         }
         window.vbusd.render();

@@ -2,7 +2,7 @@
 
 For each vector the page builds the runtime's own objects from the vector's JSON (a
 ``VirtualBonesAnimation`` from the layout and texels, ``skinnedGeometry`` from the mesh, a
-``VirtualBonesCrowd`` whose instances carry the crossfades) and reads the GPU's skinned vertices
+``VirtualBonesCrowd`` whose instances carry the crossfades, in each skin binding) and reads the GPU's skinned vertices
 back with ``probeCrowd`` (transform feedback through three's WebGL 2 context, the GLSL the patched
 materials run). Every instance at every time must be within the vector's tolerances.
 
@@ -32,7 +32,7 @@ SAMPLE = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 browser = runpy.run_path(str(HERE / "test_browser.py"))["browser"]  # the module-scoped Chromium fixture
 
 PROBE = """
-async ([vector, texels, time]) => {
+async ([vector, texels, time, skin]) => {
   const runtime = await import('./vbusd-three/index.js');
   const layout = vector.layout;
   const arrays = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
@@ -55,7 +55,7 @@ async ([vector, texels, time]) => {
                  playbackRate: column('playbackRate', Float32Array), fadeClip: column('fadeClip', Int32Array),
                  fadeTimeOffset: column('fadeTimeOffset', Float32Array),
                  fadePlaybackRate: column('fadePlaybackRate', Float32Array),
-                 fadeWeight: column('fadeWeight', Float32Array) }, name: vector.vector });
+                 fadeWeight: column('fadeWeight', Float32Array) }, name: vector.vector, skin });
   const positions = [];
   const normals = [];
   for (let i = 0; i < count; ++i) {
@@ -90,20 +90,21 @@ def page(browser):
         viewer.close()
 
 
+@pytest.mark.parametrize("skin", ["attributes", "pulled"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
-def test_threejs_runtime_reproduces_every_vector(page, path):
+def test_threejs_runtime_reproduces_every_vector(page, path, skin):
     vector = json.loads(path.read_text(encoding="utf-8"))
     texels = _texels(vector)
     tolerance = vector["tolerance"]
     for expected in vector["expected"]:
-        result = page.page.evaluate(PROBE, [vector, texels, expected["time"]])
+        result = page.page.evaluate(PROBE, [vector, texels, expected["time"], skin])
         if result.get("skip"):
             pytest.skip("this browser has no EXT_texture_norm16 (unorm16 textures)")
         points = np.array(result["positions"], dtype=np.float64).reshape(len(vector["instances"]), -1, 3)
         normals = np.array(result["normals"], dtype=np.float64).reshape(len(vector["instances"]), -1, 3)
         point_error = np.abs(points - np.array(expected["positions"])).max()
         normal_error = np.abs(normals - np.array(expected["normals"])).max()
-        where = f"three.js {vector['vector']} at t = {expected['time']}"
+        where = f"three.js {vector['vector']} ({skin} skin) at t = {expected['time']}"
         assert point_error <= tolerance["position"], f"{where}: position error {point_error:.3g}"
         assert normal_error <= tolerance["normal"], f"{where}: normal error {normal_error:.3g}"
     assert page.errors() == [], page.errors()

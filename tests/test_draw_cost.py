@@ -331,14 +331,16 @@ def test_bindings_table_states_times_as_factors_of_static(dc):
     data = {"runs": [row("dense", 1_200, "static", 4.0, 0.0), row("dense", 1_200, "vb", 10.0, 2e-6),
                      row("stadium", 100_000, "static", 20.0, 2.5e-7), row("stadium", 100_000, "vb", 33.0, 1e-6),
                      row("stadium", 100_000, "vb_pulled", 20.5, 1.1e-6),
+                     row("stadium", 100_000, "vb_pulled_texture", 21.0, 1.2e-6),
                      row("stadium", 100_000, "vat", 25.0, 3e-3, agrees=False)]}
     lines = dc.bindings_markdown(data).splitlines()
     assert len(lines) == 4
     stadium = [c.strip() for c in lines[2].strip("|").split("|")]
-    assert stadium[:6] == ["stadium", "100,000", "20.000", "33.000 (1.65x)", "20.500 (1.02x)", "25.000 (1.25x)"]
-    assert stadium[6:10] == ["2.5e-07", "1.0e-06", "1.1e-06", "3.0e-03 (DISAGREES)"]
+    assert stadium[:7] == ["stadium", "100,000", "20.000", "33.000 (1.65x)", "20.500 (1.02x)", "21.000 (1.05x)",
+                           "25.000 (1.25x)"]
+    assert stadium[7:12] == ["2.5e-07", "1.0e-06", "1.1e-06", "1.2e-06", "3.0e-03 (DISAGREES)"]
     dense = [c.strip() for c in lines[3].strip("|").split("|")]
-    assert dense[:6] == ["dense", "1,200", "4.000", "10.000 (2.50x)", "not run", "not run"]
+    assert dense[:7] == ["dense", "1,200", "4.000", "10.000 (2.50x)", "not run", "not run", "not run"]
     goal = [line for line in dc.goals(data) if "VB pulled" in line]
     assert goal == ["VB pulled GPU time at 100,000 stadium instances = 1.025 x static (20.500 vs 20.000 ms): "
                     "goal <= 1.05x MET"]

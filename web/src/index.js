@@ -3,7 +3,7 @@
 
 export { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 export { shaderModule, patchMaterial, patchVertexShader, skinningDeclarations, skinningCall, SKINNING_CALL } from './material.js';
-export { SKIN_BINDINGS, packSkin, pullSkin, skinTexture, skinRecordTexels, skinRecordWords } from './skin.js';
+export { SKIN_BINDINGS, DEFAULT_SKIN, packSkin, pullSkin, skinTexture, skinRecordTexels, skinRecordWords } from './skin.js';
 export { VirtualBonesCrowd, skinnedGeometry, instancesFromPlacement, singleInstance } from './crowd.js';
 export { parsePlainScene, loadPlainScene, buildObjects } from './plain-loader.js';
 export { probeCrowd } from './probe.js';

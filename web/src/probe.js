@@ -4,6 +4,7 @@
 
 import { VirtualBonesError } from './animation.js';
 import { skinningCall, skinningDeclarations } from './material.js';
+import { DEFAULT_SKIN } from './skin.js';
 
 const FRAGMENT = `#version 300 es
 precision highp float;
@@ -100,7 +101,7 @@ export function probeCrowd(renderer, crowd, index, time) {
   const normals = [];
   for (const mesh of crowd.meshes) {
     const { maxInfluences } = mesh.userData.virtualBones;
-    const skin = crowd.skin ?? 'attributes';
+    const skin = crowd.skin ?? DEFAULT_SKIN;
     const program = probeProgram(gl, animation, maxInfluences, skin);
     const geometry = mesh.geometry;
     const vertexCount = geometry.attributes.position.count;

@@ -11,7 +11,7 @@ import {
 import { patchMaterial } from './material.js';
 import { socketMatrix } from './sockets.js';
 import { VirtualBonesError } from './animation.js';
-import { checkSkinBinding, pullSkin } from './skin.js';
+import { DEFAULT_SKIN, checkSkinBinding, pullSkin } from './skin.js';
 
 /**
  * A BufferGeometry for the runtime from plain arrays of one bound mesh.
@@ -67,12 +67,14 @@ function pick(values, slots, set) {
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
- * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `attributes`
- *   (default: bone indices and weights as vertex attributes) or `pulled` (the geometry's skin moves
- *   into an RGBA32UI texture read by gl_VertexID, and its bone attributes are removed; skin.js).
+ * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `pulled`
+ *   (default, DEFAULT_SKIN: the geometry's skin moves into an RGBA32UI texture read by gl_VertexID,
+ *   and its bone attributes are removed; skin.js) or `attributes` (bone indices and weights as
+ *   vertex attributes). Each mesh's `userData.virtualBones.binding` is the `{skin, skinTexture}` to
+ *   give `patchMaterial` when swapping in another material.
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = 'attributes' }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = DEFAULT_SKIN }) {
     super();
     checkSkinBinding(skin, name);
     this.name = name;
@@ -123,7 +125,7 @@ export class VirtualBonesCrowd extends Group {
       mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
       mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
       mesh.castShadow = mesh.receiveShadow = true;
-      mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this };
+      mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this, binding };
       this.add(mesh);
       return mesh;
     });

@@ -6,6 +6,7 @@ import { Group } from 'three';
 
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { VirtualBonesCrowd, instancesFromPlacement, singleInstance, skinnedGeometry } from './crowd.js';
+import { DEFAULT_SKIN } from './skin.js';
 
 const TEXEL_ARRAYS = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
 
@@ -93,10 +94,10 @@ export async function loadPlainScene(url) {
 /**
  * Objects to draw a description: one VirtualBonesCrowd per crowd, and a single instance for each
  * animation that no crowd instances. Crowds may carry a `matrix` (their node's world transform).
- * `skin` is the skin binding of every crowd (`attributes`, the default, or `pulled`).
+ * `skin` is the skin binding of every crowd (`pulled`, the default, or `attributes`).
  * Returns `{group, crowds, animations}`; `crowds` is the order `probe` numbers instances in.
  */
-export function buildObjects(description, { material, skin = 'attributes' } = {}) {
+export function buildObjects(description, { material, skin = DEFAULT_SKIN } = {}) {
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));

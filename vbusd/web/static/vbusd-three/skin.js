@@ -10,6 +10,14 @@ import { VirtualBonesError } from './animation.js';
 /** The skin bindings: `attributes` (bone indices and weights as vertex attributes) and `pulled`. */
 export const SKIN_BINDINGS = ['attributes', 'pulled'];
 
+/**
+ * The binding crowds use unless told otherwise: `pulled`. On a GPU (H200, OpenGL) the skin records
+ * read from an RGBA32UI texture by gl_VertexID draw the stadium crowd at 1.00-1.02x the static
+ * mesh's cost, vertex attributes at 1.68-1.72x (benchmarks/README.md, "pulled"); only on SwiftShader's
+ * CPU rasterizer is the attribute fetch cheaper. docs/engines.md says how this was chosen.
+ */
+export const DEFAULT_SKIN = 'pulled';
+
 /** The widest skin texture the runtime lays out (spec: W = min(texels, 4096)). */
 export const SKIN_TEXTURE_WIDTH = 4096;
 
