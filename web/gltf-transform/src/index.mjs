@@ -26,6 +26,7 @@
  */
 
 import { Extension, ExtensionProperty, PropertyType, Accessor, Format } from '@gltf-transform/core';
+import { KHRMeshQuantization } from '@gltf-transform/extensions';
 import { quantize, reorder } from '@gltf-transform/functions';
 
 export const VBUSD_VIRTUAL_BONES = 'VBUSD_virtual_bones';
@@ -34,8 +35,17 @@ export const EXTENSION_VERSION = 1;
 /** Alignment of a texture's buffer view in a GLB's BIN chunk (spec/runtime-package.md 3). */
 export const TEXTURE_ALIGNMENT = 16;
 const KTX2_SIGNATURE = [0xab, 0x4b, 0x54, 0x58, 0x20, 0x32, 0x30, 0xbb, 0x0d, 0x0a, 0x1a, 0x0a];
-/** The per-instance attributes of a crowd node, and the values a character node plays with. */
-export const INSTANCE_DEFAULTS = { _VB_CLIP: 0, _VB_TIME_OFFSET: 0, _VB_PLAYBACK_RATE: 1 };
+/**
+ * The instance attributes a crowd node must have (spec/runtime-package.md 5), with the values of
+ * a character node drawn alone (at its node, clip 0 from time 0 at rate 1).
+ */
+export const INSTANCE_DEFAULTS = {
+  TRANSLATION: ['VEC3', [0, 0, 0]],
+  ROTATION: ['VEC4', [0, 0, 0, 1]],
+  _VB_CLIP: ['SCALAR', [0]],
+  _VB_TIME_OFFSET: ['SCALAR', [0]],
+  _VB_PLAYBACK_RATE: ['SCALAR', [1]],
+};
 /** quantize() pattern that leaves the attributes Virtual Bones skinning reads exact. */
 export const VBUSD_QUANTIZE_PATTERN = /^(?!POSITION$|_VB_)/;
 
@@ -238,8 +248,16 @@ export class VBUSDVirtualBones extends Extension {
       const uri = context.options.format === Format.GLB && bufferIndex === 0 ? '@glb.bin' : bufferDef.uri;
       const bytes = context.jsonDoc.resources[uri];
       if (!bytes) return;
-      const views = json.bufferViews.map((def, index) => ({ def, index })).filter(({ def }) => def.buffer === bufferIndex)
-        .sort((a, b) => (a.def.byteOffset ?? 0) - (b.def.byteOffset ?? 0));
+      // Byte ranges of this buffer: its buffer views, and the compressed ranges that
+      // EXT_meshopt_compression records in a view's extension (the view itself then points into
+      // a fallback buffer), whichever extension wrote first.
+      const views = [];
+      json.bufferViews.forEach((def, index) => {
+        if (def.buffer === bufferIndex) views.push({ def, index });
+        const meshopt = def.extensions?.EXT_meshopt_compression;
+        if (meshopt && meshopt.buffer === bufferIndex) views.push({ def: meshopt, index: -1 });
+      });
+      views.sort((a, b) => (a.def.byteOffset ?? 0) - (b.def.byteOffset ?? 0));
       if (!views.some(({ def, index }) => ours.has(index) && (def.byteOffset ?? 0) % TEXTURE_ALIGNMENT)) return;
       const moved = [];
       let end = 0;
@@ -323,18 +341,35 @@ export function vbusdInstanceDefaults() {
       const template = batch.listAttributes()[0];
       if (!template) continue;
       const buffer = template.getBuffer();
-      for (const [name, value] of Object.entries(INSTANCE_DEFAULTS)) {
+      for (const [name, [type, value]] of Object.entries(INSTANCE_DEFAULTS)) {
         if (batch.getAttribute(name)) continue;
-        const array = new Float32Array(template.getCount()).fill(value);
-        batch.setAttribute(name, document.createAccessor(name).setType('SCALAR').setArray(array).setBuffer(buffer));
+        const array = new Float32Array(template.getCount() * value.length).map((_, i) => value[i % value.length]);
+        batch.setAttribute(name, document.createAccessor(name).setType(type).setArray(array).setBuffer(buffer));
       }
     }
   };
 }
 
-/** quantize() that leaves POSITION and the _VB_ attributes exact (see VBUSD_QUANTIZE_PATTERN). */
+/**
+ * quantize() that leaves POSITION and the _VB_ attributes exact (see VBUSD_QUANTIZE_PATTERN),
+ * quantizing the others (normals, texture coordinates, colors) as quantize() does.
+ */
 export function vbusdQuantize(options = {}) {
-  return quantize({ ...options, pattern: VBUSD_QUANTIZE_PATTERN, patternTargets: VBUSD_QUANTIZE_PATTERN });
+  return quantizeExcept(options, VBUSD_QUANTIZE_PATTERN);
+}
+
+function quantizeExcept(options, pattern) {
+  const inner = quantize({ ...options, pattern, patternTargets: pattern });
+  return async (document) => {
+    await document.transform(inner);
+    // quantize() (4.5.1) decides whether KHR_mesh_quantization is needed from POSITION alone;
+    // with POSITION left as FLOAT, a quantized NORMAL would otherwise be written without it
+    // (glTF-Validator: MESH_PRIMITIVE_ATTRIBUTES_ACCESSOR_INVALID_FORMAT).
+    const quantized = document.getRoot().listMeshes().flatMap((m) => m.listPrimitives()).some((prim) => ['NORMAL', 'TANGENT']
+      .some((semantic) => prim.getAttribute(semantic) && prim.getAttribute(semantic).getComponentType() !== 5126)
+      || prim.listSemantics().some((semantic) => semantic.startsWith('TEXCOORD_') && [5120, 5122].includes(prim.getAttribute(semantic).getComponentType())));
+    if (quantized) document.createExtension(KHRMeshQuantization).setRequired(true);
+  };
 }
 
 /**
@@ -346,7 +381,14 @@ export function vbusdQuantize(options = {}) {
 export function vbusdMeshopt({ encoder, extension, level = 'high' } = {}) {
   if (!encoder || !extension) throw new Error('vbusdMeshopt: pass {encoder: MeshoptEncoder, extension: EXTMeshoptCompression}');
   return async (document) => {
-    await document.transform(reorder({ encoder, target: 'size' }), vbusdQuantize({ quantizeNormal: 8 }));
+    // As meshopt() does: in 'high' mode (filters) normals and tangents stay float for the
+    // octahedral filter, and only what no filter takes is quantized; POSITION and _VB_ never.
+    const pattern = level === 'medium' ? VBUSD_QUANTIZE_PATTERN : /^(TEXCOORD|COLOR|JOINTS|WEIGHTS)(_\d+)?$/;
+    await document.transform(reorder({ encoder, target: 'size' }), quantizeExcept({ quantizeNormal: 8 }, pattern));
+    // The octahedral filter writes normals and tangents as normalized bytes, which only
+    // KHR_mesh_quantization allows (meshopt() gets it from quantizing POSITION).
+    const filtered = document.getRoot().listMeshes().flatMap((m) => m.listPrimitives()).some((p) => p.getAttribute('NORMAL') || p.getAttribute('TANGENT'));
+    if (level !== 'medium' && filtered) document.createExtension(KHRMeshQuantization).setRequired(true);
     document.createExtension(extension).setRequired(true)
       .setEncoderOptions({ method: level === 'medium' ? extension.EncoderMethod.QUANTIZE : extension.EncoderMethod.FILTER });
   };
