@@ -294,7 +294,7 @@ export class VBUSDVirtualBones extends Extension {
         const position = prim.getAttribute('POSITION');
         if (!position) throw new VirtualBonesError(`${place} has no POSITION`);
         if (position.getComponentType() !== Accessor.ComponentType.FLOAT || position.getNormalized()) {
-          throw new VirtualBonesError(`${place}: POSITION is quantized; Virtual Bones skin the rest positions in mesh space, and quantize() / meshopt() put the dequantization in the node or instance transform, applied after skinning. Quantize with vbusdQuantize() or pattern ${VBUSD_QUANTIZE_PATTERN}, compress with vbusdMeshopt() or Draco`);
+          throw new VirtualBonesError(`${place}: POSITION is quantized; Virtual Bones skin the rest positions in mesh space, and quantize() / meshopt() put the dequantization in the node or instance transform, applied after skinning. Quantize with vbusdQuantize() or pattern ${VBUSD_QUANTIZE_PATTERN}, compress with vbusdMeshopt() or Draco (CLI: optimize --compress draco or false, or vbusd-meshopt, with web/gltf-transform/gltf-transform.config.mjs)`);
         }
         const k = binding.getInfluences();
         if (!Number.isInteger(k) || k < 1) throw new VirtualBonesError(`${place}: influences ${JSON.stringify(k)} is not a positive integer`);

@@ -26,7 +26,8 @@ function canonical(value) {
 
 // A tightly packed copy of an attribute: glTF-Transform and other tools write interleaved vertex
 // buffers (GLTFLoader then gives InterleavedBufferAttributes, whose .array is the whole
-// interleaved buffer), and the bone indices must become their own integer attribute.
+// interleaved buffer); the bone indices must become their own integer attribute, and the skin
+// packing and the probe read attributes' arrays as tightly packed.
 function packed(attribute) {
   if (!attribute.isInterleavedBufferAttribute) return attribute;
   const { count, itemSize } = attribute;
@@ -40,9 +41,9 @@ function packed(attribute) {
 function primitiveGeometry(source, primitiveExtension, name) {
   const geometry = new BufferGeometry();
   geometry.name = name;
-  geometry.setAttribute('position', source.attributes.position);
+  geometry.setAttribute('position', packed(source.attributes.position));
   const hasNormals = source.attributes.normal !== undefined;
-  if (hasNormals) geometry.setAttribute('normal', source.attributes.normal);
+  if (hasNormals) geometry.setAttribute('normal', packed(source.attributes.normal));
   if (source.index) geometry.setIndex(source.index);
   const sets = Math.ceil(primitiveExtension.influences / 4);
   if (sets > 2) throw new VirtualBonesError(`${name}: ${primitiveExtension.influences} influences; the runtime takes at most 8`);
