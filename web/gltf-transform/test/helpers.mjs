@@ -126,7 +126,8 @@ export async function loadThree(bytes) {
  * Skinned world positions of a package, per animation name: for each drawing (crowd node or
  * character node) and each of its sampled instances (first, middle, last), each vertex the
  * indices reference, one point [x(t0), y(t0), z(t0), x(t1), ...] at the given scene times.
- * Returns {animationName: {points: Float64Array, stride, count}}.
+ * Returns {animationName: {points: Float64Array, stride, count, restDiagonal}}, restDiagonal the
+ * bounding-box diagonal of the rest positions (mesh space: the character's size).
  */
 export async function skinnedPoints(bytes, times) {
   const { THREE: T, sockets } = await three();
@@ -146,6 +147,8 @@ export async function skinnedPoints(bytes, times) {
     const { instances } = crowd;
     const picks = [...new Set([0, Math.floor(instances.count / 2), instances.count - 1])];
     const values = [];
+    const restMin = [Infinity, Infinity, Infinity];
+    const restMax = [-Infinity, -Infinity, -Infinity];
     for (const i of picks) {
       const world = new T.Matrix4().copy(crowd.matrix).multiply(new T.Matrix4().fromArray(instances.matrices, 16 * i));
       const e = world.elements;
@@ -156,6 +159,7 @@ export async function skinnedPoints(bytes, times) {
         const sets = Math.ceil(mesh.maxInfluences / 4);
         for (const v of used) {
           const p = [position.getX(v), position.getY(v), position.getZ(v)];
+          for (let c = 0; c < 3; ++c) { restMin[c] = Math.min(restMin[c], p[c]); restMax[c] = Math.max(restMax[c], p[c]); }
           for (const t of times) {
             const tau = instances.timeOffset[i] + instances.playbackRate[i] * t;
             const s = [0, 0, 0];
@@ -176,7 +180,8 @@ export async function skinnedPoints(bytes, times) {
     }
     const previous = out[name]?.points ?? [];
     const points = Float64Array.from([...previous, ...values]);
-    out[name] = { points, stride, count: points.length / stride };
+    const restDiagonal = Math.max(out[name]?.restDiagonal ?? 0, Math.hypot(...restMax.map((m, c) => m - restMin[c])));
+    out[name] = { points, stride, count: points.length / stride, restDiagonal };
   }
   return out;
 }

@@ -22,11 +22,12 @@ import {
 
 const TIMES = [0, 0.37, 1.2345];  // a row time, between rows, further on
 const TOLERANCE = 1e-6;  // of the bounding-box diagonal of the sampled skinned vertices
-// Draco's defaults: POSITION on 14 bits, the skin weights (generic attributes) on 12 bits over
-// each attribute's range. A vertex moves by at most 2^-14 of the mesh's extent, and each of its
-// K = 4 weights by 2^-12, which moves the skinned point by at most 4 * 2^-12 of the bone-space
-// offsets |M p| (below the diagonal here): together below 2^-9 of the diagonal.
-const DRACO_TOLERANCE = 2 ** -9;
+// Draco's defaults quantize inside the codec: POSITION on 14 bits over the mesh's largest extent
+// E (each coordinate within half a step: |dp| <= sqrt(3) E / 2^15 = 5.3e-5 E) and the weights
+// (generic attributes) on 12 bits over [0, 1] (each within 1 / 8190; the K = 4 weights move the
+// skinned point by at most 4.9e-4 max|M p|, and |M p| stays below the character's size here).
+// Together below 2^-10 of the character's rest diagonal (measured: 1.3e-4 at most, CesiumMan).
+const DRACO_TOLERANCE = 2 ** -10;
 
 const { packages, missing } = fixtures();
 const skip = threeMissing() ?? (Object.keys(packages).length ? false : missing.join('; ') || 'no packages');
@@ -44,8 +45,8 @@ const TRANSFORMS = [
   ['join (keepMeshes: false)', () => [join({ keepMeshes: false, keepNamed: false })]],
   ['meshopt (vbusdMeshopt)', () => [vbusdMeshopt({ encoder: MeshoptEncoder, extension: EXTMeshoptCompression })]],
   ['meshopt medium (vbusdMeshopt)', () => [vbusdMeshopt({ encoder: MeshoptEncoder, extension: EXTMeshoptCompression, level: 'medium' })]],
-  ['draco', () => [draco()], { decode: true, tolerance: DRACO_TOLERANCE }],
-  ['draco (lossless skin)', () => [draco({ quantizeGeneric: 0 })], { decode: true, tolerance: DRACO_TOLERANCE }],
+  ['draco', () => [draco()], { decode: true, tolerance: DRACO_TOLERANCE, ofRest: true }],
+  ['draco (weights not quantized)', () => [draco({ quantizeGeneric: 0 })], { decode: true, tolerance: DRACO_TOLERANCE, ofRest: true }],
 ];
 
 async function roundTrip(io, bytes, transforms) {
@@ -61,12 +62,14 @@ async function decoded(io, bytes) {
   return io.writeBinary(document);
 }
 
-async function compare(before, after, tolerance) {
+async function compare(before, after, tolerance, ofRest = false) {
   const a = await skinnedPoints(before, TIMES);
   const b = await skinnedPoints(after, TIMES);
   assert.deepEqual(Object.keys(b).sort(), Object.keys(a).sort());
   for (const name of Object.keys(a)) {
-    const diag = diagonal(a[name]);
+    // The bounding box of the sampled skinned vertices (lossless transforms), or of the rest
+    // mesh, the character's size (Draco's bound scales with it, not with the crowd's spread).
+    const diag = ofRest ? a[name].restDiagonal : diagonal(a[name]);
     const distance = skinDistance(a[name], b[name], tolerance * diag * 4);
     assert.ok(distance <= tolerance * diag, `${name}: skinned positions moved by ${distance} (${distance / diag} of the diagonal ${diag})`);
   }
@@ -86,7 +89,7 @@ describe('transforms keep Virtual Bones skinning', { skip }, () => {
         for (const { texture } of json.extensions[VBUSD_VIRTUAL_BONES].animations) {
           assert.equal(json.bufferViews[texture.bufferView].byteOffset % 16, 0, 'texture buffer view not 16-byte aligned');
         }
-        await compare(before, options.decode ? await decoded(io, after) : after, options.tolerance ?? TOLERANCE);
+        await compare(before, options.decode ? await decoded(io, after) : after, options.tolerance ?? TOLERANCE, options.ofRest);
       });
     }
 
@@ -104,6 +107,22 @@ describe('transforms keep Virtual Bones skinning', { skip }, () => {
       assert.ok(json.nodes.some((n) => n.extensions?.EXT_mesh_gpu_instancing?.attributes?._VB_CLIP !== undefined && n.name !== 'Crowd'));
       assert.deepEqual(await validatorErrors(after), []);
       await compare(before, after, TOLERANCE);
+    });
+
+    test(`${fixture}: the skinned-position check sees a broken skin (negative control)`, async () => {
+      const io = await createIO();
+      const before = new Uint8Array(fs.readFileSync(file));
+      const document = await io.readBinary(before);
+      // Every vertex bound to bone 0 only: the rest pose moved rigidly by one bone.
+      for (const prim of document.getRoot().listMeshes().flatMap((m) => m.listPrimitives())) {
+        for (const semantic of prim.listSemantics().filter((s) => s.startsWith('_VB_JOINTS_'))) {
+          const joints = prim.getAttribute(semantic).clone();
+          const Ctor = joints.getArray().constructor;
+          joints.setArray(new Ctor(joints.getArray().length));
+          prim.setAttribute(semantic, joints);
+        }
+      }
+      await assert.rejects(compare(before, await io.writeBinary(document), TOLERANCE), /skinned positions moved/);
     });
 
     test(`${fixture}: quantize() and meshopt() of POSITION are refused with a clear error`, async () => {
