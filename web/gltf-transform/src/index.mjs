@@ -306,7 +306,7 @@ export class VBUSDVirtualBones extends Extension {
             if (accessor.getCount() !== position.getCount()) throw new VirtualBonesError(`${place}: ${name} has ${accessor.getCount()} elements, POSITION ${position.getCount()}`);
           }
           const jointType = joints.getComponentType();
-          if (joints.getType() !== 'VEC4' || joints.getNormalized() || (jointType !== Accessor.ComponentType.SHORT && jointType !== Accessor.ComponentType.UNSIGNED_SHORT)) {
+          if (joints.getType() !== 'VEC4' || joints.getNormalized() || jointType !== Accessor.ComponentType.SHORT) {
             throw new VirtualBonesError(`${place}: _VB_JOINTS_${set} is no longer VEC4 SHORT bone indices (a transform converted it)`);
           }
           if (weights.getType() !== 'VEC4' || weights.getComponentType() !== Accessor.ComponentType.FLOAT || weights.getNormalized()) {
