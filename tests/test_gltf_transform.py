@@ -74,6 +74,7 @@ def packages(tmp_path_factory, request) -> Path:
     assets are there (built with vbusd, as a user would)."""
     folder = tmp_path_factory.mktemp("gltf_transform")
     assert main(["export", str(SAMPLE), "-o", str(folder / "crowd.glb")]) == 0
+    assert main(["export", str(SAMPLE), "-o", str(folder / "gltf" / "crowd.gltf")]) == 0
     assets = _shared_assets()
     if assets is not None:
         for name in ("CesiumMan", "Fox"):

@@ -56,7 +56,8 @@ let fixturesCache = null;
  * The test packages: {name: path}: the stadium crowd sample (`crowd.glb`) and two glTF
  * characters (CesiumMan, Fox from the shared assets) converted and exported by vbusd. Taken from
  * $VBUSD_GLTF_TRANSFORM_FIXTURES when set (tests/test_gltf_transform.py builds them), else built
- * with $VBUSD_PYTHON (default python3) `-m vbusd`. Returns {packages, missing: [reasons]}.
+ * with $VBUSD_PYTHON (default python3) `-m vbusd`. Returns {packages, separate, missing: [reasons]},
+ * `separate` the crowd as a .gltf with its .bin and .ktx2 beside it (gltf/crowd.gltf), or null.
  */
 export function fixtures() {
   if (fixturesCache) return fixturesCache;
@@ -68,6 +69,7 @@ export function fixtures() {
     const vbusd = (...args) => execFileSync(python, ['-m', 'vbusd', ...args], { stdio: 'pipe', env: { ...process.env, PYTHONSAFEPATH: '1' } });
     try {
       vbusd('export', path.join(REPO, 'samples', 'stadium_crowd', 'stadium_crowd_vb.usda'), '-o', path.join(folder, 'crowd.glb'));
+      vbusd('export', path.join(REPO, 'samples', 'stadium_crowd', 'stadium_crowd_vb.usda'), '-o', path.join(folder, 'gltf', 'crowd.gltf'));
       const assets = sharedAssets();
       if (!assets) missing.push('shared glTF characters not found (set VBUSD_SHARED_ASSETS)');
       for (const name of assets ? ['CesiumMan', 'Fox'] : []) {
@@ -83,7 +85,8 @@ export function fixtures() {
     const file = path.join(folder, `${name}.glb`);
     if (fs.existsSync(file)) packages[name] = file;
   }
-  fixturesCache = { packages, missing };
+  const separate = path.join(folder, 'gltf', 'crowd.gltf');
+  fixturesCache = { packages, separate: fs.existsSync(separate) ? separate : null, missing };
   return fixturesCache;
 }
 

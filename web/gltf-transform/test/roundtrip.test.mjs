@@ -6,12 +6,16 @@ import assert from 'node:assert/strict';
 import fs from 'node:fs';
 import { describe, test } from 'node:test';
 
+import os from 'node:os';
+import path from 'node:path';
+
 import { NodeIO } from '@gltf-transform/core';
+import { unpartition, weld } from '@gltf-transform/functions';
 
 import { VBUSD_VIRTUAL_BONES, VBUSDVirtualBones, VirtualBonesError } from '../src/index.mjs';
 import { createIO, fixtures } from './helpers.mjs';
 
-const { packages, missing } = fixtures();
+const { packages, separate, missing } = fixtures();
 const skip = Object.keys(packages).length ? false : missing.join('; ') || 'no packages';
 
 /** {json, bin} of a GLB, parsed here (not by glTF-Transform). */
@@ -77,6 +81,29 @@ describe('VBUSD_virtual_bones round trip', { skip }, () => {
         && error.message.includes(`mesh "${mesh.getName()}" primitive 0`) && /_VB_WEIGHTS_0/.test(error.message));
     });
   }
+
+  test('a .gltf package: written back as .gltf the KTX2 stays its own file, byte for byte; unpartition() makes a GLB', { skip: separate ? false : 'no .gltf package' }, async () => {
+    const io = await createIO();
+    const out = fs.mkdtempSync(path.join(os.tmpdir(), 'vbusd-gltf-transform-'));
+    const document = await io.read(separate);
+    await document.transform(weld());
+    await io.write(path.join(out, 'crowd.gltf'), document);
+    const json = JSON.parse(fs.readFileSync(path.join(out, 'crowd.gltf'), 'utf8'));
+    const [animation] = json.extensions[VBUSD_VIRTUAL_BONES].animations;
+    const view = json.bufferViews[animation.texture.bufferView];
+    const uri = json.buffers[view.buffer].uri;
+    assert.equal(uri, 'crowd.Cheer.ktx2');
+    assert.equal(view.byteOffset ?? 0, 0);
+    assert.deepEqual(fs.readFileSync(path.join(out, uri)), fs.readFileSync(path.join(path.dirname(separate), uri)));
+    // GLB holds one buffer: unpartition() (the CLI does it for a .glb output) moves the texture too.
+    await assert.rejects(io.writeBinary(await io.read(separate)), /GLB must have 0–1 buffers/);
+    const merged = await io.read(separate);
+    await merged.transform(unpartition());
+    const glb = parseGLB(await io.writeBinary(merged));
+    const [moved] = glb.json.extensions[VBUSD_VIRTUAL_BONES].animations;
+    assert.deepEqual(Buffer.from(textureBytes(glb, moved)), fs.readFileSync(path.join(path.dirname(separate), uri)));
+    assert.equal(glb.json.bufferViews[moved.texture.bufferView].byteOffset % 16, 0);
+  });
 
   test('an unknown extension version is refused with one clear line', async () => {
     const io = await createIO();
