@@ -9,7 +9,7 @@ import { describe, test } from 'node:test';
 
 import { EXTMeshoptCompression } from '@gltf-transform/extensions';
 import {
-  dedup, draco, flatten, instance, join, meshopt, prune, quantize, reorder, resample, weld,
+  dedup, draco, flatten, instance, join, mergeDocuments, meshopt, prune, quantize, reorder, resample, unpartition, weld,
 } from '@gltf-transform/functions';
 import { MeshoptEncoder } from 'meshoptimizer';
 
@@ -134,4 +134,21 @@ describe('transforms keep Virtual Bones skinning', { skip }, () => {
       }
     });
   }
+
+  test('merge (gltf-transform merge) of the crowd and a character keeps both animations', { skip: packages.crowd && packages.Fox ? false : 'needs crowd and Fox' }, async () => {
+    const io = await createIO();
+    const merged = await io.read(packages.crowd);
+    mergeDocuments(merged, await io.read(packages.Fox));
+    await merged.transform(unpartition());
+    const after = await io.writeBinary(merged);
+    assert.deepEqual(await validatorErrors(after), []);
+    const skinnedAfter = await skinnedPoints(after, TIMES);
+    for (const name of ['crowd', 'Fox']) {
+      const before = await skinnedPoints(new Uint8Array(fs.readFileSync(packages[name])), TIMES);
+      for (const [animation, points] of Object.entries(before)) {
+        const distance = skinDistance(points, skinnedAfter[animation], TOLERANCE * diagonal(points) * 4);
+        assert.ok(distance <= TOLERANCE * diagonal(points), `${animation}: moved by ${distance}`);
+      }
+    }
+  });
 });
