@@ -27,7 +27,7 @@
 
 import { Extension, ExtensionProperty, PropertyType, Accessor, Format } from '@gltf-transform/core';
 import { KHRMeshQuantization } from '@gltf-transform/extensions';
-import { quantize, reorder } from '@gltf-transform/functions';
+import { join, quantize, reorder } from '@gltf-transform/functions';
 
 export const VBUSD_VIRTUAL_BONES = 'VBUSD_virtual_bones';
 /** The version of the extension's structure this implementation reads and writes. */
@@ -309,9 +309,23 @@ export class VBUSDVirtualBones extends Extension {
           if (joints.getType() !== 'VEC4' || joints.getNormalized() || jointType !== Accessor.ComponentType.SHORT) {
             throw new VirtualBonesError(`${place}: _VB_JOINTS_${set} is no longer VEC4 SHORT bone indices (a transform converted it)`);
           }
+          const bones = binding.getAnimation().getLayout()?.boneCount;
+          const indices = joints.getArray();
+          if (Number.isInteger(bones) && indices) {
+            for (let i = 0; i < indices.length; ++i) {
+              if (indices[i] < 0 || indices[i] >= bones) throw new VirtualBonesError(`${place}: _VB_JOINTS_${set} holds bone ${indices[i]}, but animation "${binding.getAnimation().getName()}" has ${bones} bones (primitives of different animations joined?)`);
+            }
+          }
           if (weights.getType() !== 'VEC4' || weights.getComponentType() !== Accessor.ComponentType.FLOAT || weights.getNormalized()) {
             throw new VirtualBonesError(`${place}: _VB_WEIGHTS_${set} is quantized; the weights are binary32, read bit for bit (spec 7.1). Quantize with vbusdQuantize() or pattern ${VBUSD_QUANTIZE_PATTERN}`);
           }
+        }
+      });
+    }
+    for (const mesh of root.listMeshes()) {
+      mesh.listPrimitives().forEach((prim, primIndex) => {
+        if (!prim.getExtension(VBUSD_VIRTUAL_BONES) && prim.listSemantics().some((s) => s.startsWith('_VB_JOINTS_'))) {
+          throw new VirtualBonesError(`${where(mesh, primIndex)} has _VB_JOINTS_n but no ${VBUSD_VIRTUAL_BONES} binding: join() across nodes makes new primitives without it (and moves rest vertices between node spaces); use vbusdJoin()`);
         }
       });
     }
@@ -393,3 +407,31 @@ export function vbusdMeshopt({ encoder, extension, level = 'high' } = {}) {
       .setEncoderOptions({ method: level === 'medium' ? extension.EncoderMethod.QUANTIZE : extension.EncoderMethod.FILTER });
   };
 }
+
+/** The node draws a mesh with a primitive bound to a Virtual Bones animation. */
+function drawsVirtualBones(node) {
+  return !!node.getMesh()?.listPrimitives().some((p) => p.getExtension(VBUSD_VIRTUAL_BONES));
+}
+
+/**
+ * join() that never breaks a skin. glTF-Transform's join() groups primitives by material, mode and
+ * attribute types only: across nodes (`keepMeshes: false`) it would merge primitives of different
+ * animations under one binding, and it moves vertices into the joined node's space, which for a
+ * skinned rest mesh is not the same as moving the skinned result. Here nodes drawing Virtual
+ * Bones meshes join only their own primitives of one animation and one influence count (as
+ * `keepMeshes: true` does), and every other node joins as `options` say.
+ */
+export function vbusdJoin(options = {}) {
+  const filter = options.filter ?? (() => true);
+  const uniform = (node) => {
+    const bindings = node.getMesh().listPrimitives().map((p) => p.getExtension(VBUSD_VIRTUAL_BONES));
+    return bindings.every((b) => b && b.getAnimation() === bindings[0].getAnimation() && b.getInfluences() === bindings[0].getInfluences());
+  };
+  return async (document) => {
+    await document.transform(
+      join({ ...options, keepMeshes: true, filter: (node) => filter(node) && drawsVirtualBones(node) && uniform(node) }),
+      join({ ...options, filter: (node) => filter(node) && !drawsVirtualBones(node) }),
+    );
+  };
+}
+

@@ -14,7 +14,7 @@ import {
 import { MeshoptEncoder } from 'meshoptimizer';
 
 import {
-  VBUSD_VIRTUAL_BONES, VirtualBonesError, vbusdInstanceDefaults, vbusdMeshopt, vbusdQuantize,
+  VBUSD_VIRTUAL_BONES, VirtualBonesError, vbusdInstanceDefaults, vbusdJoin, vbusdMeshopt, vbusdQuantize,
 } from '../src/index.mjs';
 import {
   createIO, diagonal, fixtures, skinDistance, skinnedPoints, threeMissing, validatorErrors,
@@ -123,6 +123,22 @@ describe('transforms keep Virtual Bones skinning', { skip }, () => {
         }
       }
       await assert.rejects(compare(before, await io.writeBinary(document), TOLERANCE), /skinned positions moved/);
+    });
+
+    test(`${fixture}: join() across nodes is refused at write; vbusdJoin() keeps each character's skin`, async () => {
+      const io = await createIO();
+      // A second character node beside the first, moved: join({keepMeshes: false}) would move its
+      // rest vertices into the first node's space, which skinning does not commute with.
+      const document = await io.readBinary(new Uint8Array(fs.readFileSync(file)));
+      const mesh = document.getRoot().listMeshes().find((m) => m.listPrimitives().some((p) => p.getExtension(VBUSD_VIRTUAL_BONES)));
+      const parent = document.getRoot().listNodes().find((n) => n.getName() === 'vbusd');
+      parent.addChild(document.createNode('moved').setMesh(mesh).setTranslation([2, 0, 1]));
+      const before = await io.writeBinary(document);
+      await assert.rejects(roundTrip(io, before, [join({ keepMeshes: false, keepNamed: false })]),
+        (error) => error instanceof VirtualBonesError && /no VBUSD_virtual_bones binding/.test(error.message) && /vbusdJoin/.test(error.message));
+      const after = await roundTrip(io, before, [vbusdJoin({ keepMeshes: false, keepNamed: false })]);
+      assert.deepEqual(await validatorErrors(after), []);
+      await compare(before, after, TOLERANCE);
     });
 
     test(`${fixture}: quantize() and meshopt() of POSITION are refused with a clear error`, async () => {
