@@ -132,7 +132,9 @@ describe('transforms keep Virtual Bones skinning', { skip }, () => {
       const document = await io.readBinary(new Uint8Array(fs.readFileSync(file)));
       const mesh = document.getRoot().listMeshes().find((m) => m.listPrimitives().some((p) => p.getExtension(VBUSD_VIRTUAL_BONES)));
       const parent = document.getRoot().listNodes().find((n) => n.getName() === 'vbusd');
+      // Two of them, so that the crowd (whose instanced node join() skips) has a pair too.
       parent.addChild(document.createNode('moved').setMesh(mesh).setTranslation([2, 0, 1]));
+      parent.addChild(document.createNode('moved2').setMesh(mesh).setTranslation([-2, 0, 1]));
       const before = await io.writeBinary(document);
       await assert.rejects(roundTrip(io, before, [join({ keepMeshes: false, keepNamed: false })]),
         (error) => error instanceof VirtualBonesError && /no VBUSD_virtual_bones binding/.test(error.message) && /vbusdJoin/.test(error.message));
