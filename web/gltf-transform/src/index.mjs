@@ -80,6 +80,8 @@ export class VirtualBonesAnimation extends ExtensionProperty {
   /** The layout metadata document (JSON object), equal to the KTX2 file's vbusd.layout. */
   getLayout() { return this.get('layout'); }
   setLayout(layout) { return this.set('layout', layout); }
+  /** The layout's clips ({name, firstRow, rowCount, rowsPerSecond, loop, startTime}), in order. */
+  listClips() { return this.get('layout')?.clips ?? []; }
   /** Per clip [[minX, minY, minZ], [maxX, maxY, maxZ]] in mesh space, or null. */
   getClipExtents() { return this.get('clipExtents'); }
   setClipExtents(extents) { return this.set('clipExtents', extents); }

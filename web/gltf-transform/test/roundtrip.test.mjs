@@ -57,6 +57,20 @@ describe('VBUSD_virtual_bones round trip', { skip }, () => {
         assert.equal(viewAfter.byteStride, undefined);
         assert.equal(viewAfter.target, undefined);
       });
+      // The typed view agrees with the file: clips from the layout, bindings to their animations.
+      const document = await io.readBinary(input);
+      const extension = document.getRoot().listExtensionsUsed().find((e) => e.extensionName === VBUSD_VIRTUAL_BONES);
+      const typed = extension.listAnimations();
+      assert.deepEqual(typed.map((a) => a.getName()), rootBefore.animations.map((a) => a.name));
+      assert.deepEqual(typed.map((a) => a.listClips().map((c) => c.name)), rootBefore.animations.map((a) => a.layout.clips.map((c) => c.name)));
+      for (const [m, mesh] of document.getRoot().listMeshes().entries()) {
+        for (const [p, prim] of mesh.listPrimitives().entries()) {
+          const def = before.json.meshes[m].primitives[p].extensions?.[VBUSD_VIRTUAL_BONES];
+          const binding = prim.getExtension(VBUSD_VIRTUAL_BONES);
+          assert.equal(binding ? typed.indexOf(binding.getAnimation()) : undefined, def?.animation);
+          assert.equal(binding?.getInfluences(), def?.influences);
+        }
+      }
       const bindings = (json) => json.meshes.flatMap((m) => m.primitives.map((p) => p.extensions?.[VBUSD_VIRTUAL_BONES] ?? null));
       assert.deepEqual(bindings(after.json), bindings(before.json));
       assert.ok(after.json.extensionsUsed.includes(VBUSD_VIRTUAL_BONES));
