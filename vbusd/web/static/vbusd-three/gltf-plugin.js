@@ -24,18 +24,32 @@ function canonical(value) {
   return JSON.stringify(value);
 }
 
+// A tightly packed copy of an attribute: glTF-Transform and other tools write interleaved vertex
+// buffers (GLTFLoader then gives InterleavedBufferAttributes, whose .array is the whole
+// interleaved buffer); the bone indices must become their own integer attribute, and the skin
+// packing and the probe read attributes' arrays as tightly packed.
+function packed(attribute) {
+  if (!attribute.isInterleavedBufferAttribute) return attribute;
+  const { count, itemSize } = attribute;
+  const array = new attribute.array.constructor(count * itemSize);
+  for (let i = 0; i < count; ++i) {
+    for (let c = 0; c < itemSize; ++c) array[i * itemSize + c] = attribute.data.array[i * attribute.data.stride + attribute.offset + c];
+  }
+  return new BufferAttribute(array, itemSize, attribute.normalized);
+}
+
 function primitiveGeometry(source, primitiveExtension, name) {
   const geometry = new BufferGeometry();
   geometry.name = name;
-  geometry.setAttribute('position', source.attributes.position);
+  geometry.setAttribute('position', packed(source.attributes.position));
   const hasNormals = source.attributes.normal !== undefined;
-  if (hasNormals) geometry.setAttribute('normal', source.attributes.normal);
+  if (hasNormals) geometry.setAttribute('normal', packed(source.attributes.normal));
   if (source.index) geometry.setIndex(source.index);
   const sets = Math.ceil(primitiveExtension.influences / 4);
   if (sets > 2) throw new VirtualBonesError(`${name}: ${primitiveExtension.influences} influences; the runtime takes at most 8`);
   for (let set = 0; set < sets; ++set) {
-    const joints = source.attributes[`_vb_joints_${set}`];
-    const weights = source.attributes[`_vb_weights_${set}`];
+    const joints = source.attributes[`_vb_joints_${set}`] && packed(source.attributes[`_vb_joints_${set}`]);
+    const weights = source.attributes[`_vb_weights_${set}`] && packed(source.attributes[`_vb_weights_${set}`]);
     if (!joints || !weights) throw new VirtualBonesError(`${name}: missing _VB_JOINTS_${set} / _VB_WEIGHTS_${set}`);
     const indices = new BufferAttribute(joints.array, 4);  // SHORT, not normalized
     indices.gpuType = IntType;

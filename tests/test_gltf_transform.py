@@ -1,0 +1,179 @@
+"""glTF pipelines keep Virtual Bones (issue 28): the glTF-Transform extension in web/gltf-transform.
+
+* Its Node tests (``node --test`` in web/gltf-transform), on packages this test builds with
+  ``vbusd export``: the stadium crowd sample and two glTF characters (CesiumMan, Fox from the
+  shared assets): every listed transform, glTF-Validator, skinned positions in three.js.
+* The gltf-transform CLI with ``web/gltf-transform/gltf-transform.config.mjs``: ``optimize`` of
+  ``crowd.glb`` gives a package that ``vbusd validate`` accepts and that the browser viewer loads
+  and animates, its GPU-skinned vertices (the viewer's probe) those of the numpy decoder on the USD
+  asset; ``optimize`` with its default meshopt compression (which quantizes POSITION) is refused
+  with the extension's one-line error; without the config the texture is silently dropped.
+
+Skips with one line when node, the npm packages (scripts/install-node-deps.sh) or the shared
+assets are missing.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+FOLDER = REPO / "web" / "gltf-transform"
+CONFIG = FOLDER / "gltf-transform.config.mjs"
+SAMPLE = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+INSTALL_HINT = "run scripts/install-node-deps.sh (npm ci in web/gltf-transform and web; needs Node.js 18 or newer)"
+POSITION_TOLERANCE = 1e-6  # of the bounding-box diagonal, as tests/test_browser.py
+
+
+def _load(name: str):
+    """A module of tests/ by path (the tests import vbusd with --import-mode=importlib; tests/ is not a package)."""
+    spec = importlib.util.spec_from_file_location(f"_gltf_transform_{name}", REPO / "tests" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _shared_assets() -> Path | None:
+    for candidate in (os.environ.get("VBUSD_SHARED_ASSETS"), REPO.parent / "shared" / "assets"):
+        if candidate and (Path(candidate) / "gltf").is_dir():
+            return Path(candidate)
+    return None
+
+
+def _node() -> str:
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip(f"node not found: install Node.js 18 or newer, then {INSTALL_HINT}")
+    for folder, package in ((FOLDER, "@gltf-transform/core"), (FOLDER, "@gltf-transform/cli"), (REPO / "web", "three")):
+        if not (folder / "node_modules" / package / "package.json").is_file():
+            pytest.skip(f"npm package {package} missing in {folder.relative_to(REPO)}: {INSTALL_HINT}")
+    return node
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    _node()
+    cli = FOLDER / "node_modules" / "@gltf-transform" / "cli" / "bin" / "cli.js"
+    return subprocess.run([shutil.which("node"), str(cli), *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.fixture(scope="module")
+def packages(tmp_path_factory, request) -> Path:
+    """The packages the Node tests run on: crowd.glb, and CesiumMan.glb and Fox.glb when the shared
+    assets are there (built with vbusd, as a user would)."""
+    folder = tmp_path_factory.mktemp("gltf_transform")
+    assert main(["export", str(SAMPLE), "-o", str(folder / "crowd.glb")]) == 0
+    assert main(["export", str(SAMPLE), "-o", str(folder / "gltf" / "crowd.gltf")]) == 0
+    assets = _shared_assets()
+    if assets is not None:
+        for name in ("CesiumMan", "Fox"):
+            usd = folder / name / f"{name}.usda"
+            assert main(["convert", str(assets / "gltf" / name / f"{name}.glb"), "-o", str(usd)]) == 0
+            assert main(["export", str(usd), "-o", str(folder / f"{name}.glb")]) == 0
+    return folder
+
+
+def test_node_tests_pass(packages, shared_assets):
+    """Every transform on the three packages, round trip and refusals (web/gltf-transform/test)."""
+    node = _node()
+    tests = sorted(str(p.relative_to(FOLDER)) for p in (FOLDER / "test").glob("*.test.mjs"))
+    assert tests
+    env = {**os.environ, "VBUSD_GLTF_TRANSFORM_FIXTURES": str(packages), "VBUSD_PYTHON": sys.executable}
+    result = subprocess.run([node, "--test", *tests], cwd=FOLDER, capture_output=True, text=True, timeout=900, env=env)
+    summary = [line for line in result.stdout.splitlines() if line.startswith(("# pass", "# fail", "# skipped"))]
+    assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]
+    assert "# fail 0" in summary and "# skipped 0" in summary, summary
+    # Three packages x (13 transforms + instance + refusals) + round trips: none silently skipped.
+    passed = int(next(line for line in summary if line.startswith("# pass")).split()[-1])
+    assert passed >= 3 * 15, summary
+
+
+def test_optimize_without_the_config_drops_the_extension(packages):
+    out = packages / "plain.glb"
+    result = _cli("optimize", str(packages / "crowd.glb"), str(out), "--compress", "false")
+    assert result.returncode == 0, result.stderr
+    assert main(["validate", str(out)]) != 0  # no VBUSD_virtual_bones left: not a package
+
+
+def test_optimize_default_meshopt_is_refused_with_one_clear_line(packages, capsys):
+    out = packages / "meshopt.glb"
+    result = _cli("optimize", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    lines = [line for line in (result.stdout + result.stderr).splitlines() if "VBUSD_virtual_bones" in line]
+    assert len(lines) == 1 and 'mesh "Cheer" primitive 0: POSITION is quantized' in lines[0], result.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("compress", ["false", "draco"])
+def test_optimize_with_the_config_validates(packages, compress, capsys):
+    out = packages / f"optimized_{compress}.glb"
+    result = _cli("optimize", str(packages / "crowd.glb"), str(out), "--compress", compress, "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    report = subprocess.run([_node(), "test/validate.mjs", str(out)], cwd=FOLDER, capture_output=True, text=True,
+                            timeout=120)
+    assert report.returncode == 0, report.stderr
+    issues = json.loads(report.stdout)["issues"]
+    assert issues["numErrors"] == 0, issues["messages"]
+    if compress == "false":
+        capsys.readouterr()
+        assert main(["validate", str(out)]) == 0, capsys.readouterr()
+
+
+def _match(probed: np.ndarray, expected: np.ndarray) -> float:
+    """Largest distance from a probed vertex to the nearest expected one (vertex order, welding
+    and simplification change which vertices there are and in what order, never where a kept
+    vertex is skinned)."""
+    distances = np.linalg.norm(probed[:, None, :] - expected[None, :, :], axis=2)
+    return float(distances.min(axis=1).max())
+
+
+@pytest.mark.parametrize("skin", ["attributes", "pulled"])
+def test_optimized_crowd_animates_in_the_browser(packages, skin):
+    """`gltf-transform optimize` (dedup, flatten, join, weld, simplify, prune, sparse) of crowd.glb
+    with the config: the viewer's GPU-skinned vertices of instances at several times are vertices
+    of the numpy decoder's skinned character, and the character moves between the times."""
+    test_browser = _load("test_browser")
+    from vbusd.web.browser import ViewerPage, chromium, unavailable_reason  # noqa: PLC0415
+    from vbusd.web.server import ViewerServer  # noqa: PLC0415
+    import vbusd  # noqa: PLC0415
+
+    reason = unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    out = packages / "optimized_browser.glb"
+    result = None if out.exists() else _cli("optimize", str(packages / "crowd.glb"), str(out), "--compress", "false", "--config", str(CONFIG))
+    assert result is None or result.returncode == 0, result.stderr
+    asset = vbusd.read_asset(SAMPLE)
+    probes = [(0, 0.0), (3, 0.61), (777, 3.71), (1199, 12.05)]
+    with chromium() as browser, ViewerServer(out) as server:
+        page = ViewerPage(browser, server.url + test_browser.PAGE + f"&skin={skin}")
+        try:
+            assert page.error == "", page.error
+            test_browser.check_skin_binding(page, skin)  # pulled: records packed from the de-interleaved skin
+            previous = None
+            for instance, t in probes:
+                probe = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                positions = np.asarray(probe["positions"], dtype=np.float64).reshape(-1, 3)
+                expected, _ = test_browser.reference_instance(asset, instance, t)
+                assert positions.shape[0] > 0
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                assert _match(positions, expected) / diagonal <= POSITION_TOLERANCE, (instance, t)
+                # ...and nearly all of them are there (simplify drops 3 of the 202 at its default error).
+                covered = np.linalg.norm(expected[:, None, :] - positions[None, :, :], axis=2).min(axis=1)
+                assert (covered / diagonal <= POSITION_TOLERANCE).mean() >= 0.95, (instance, t)
+                if previous is not None and previous.shape == positions.shape:
+                    assert np.abs(positions - previous).max() > 1e-3  # it animates
+                previous = positions
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
