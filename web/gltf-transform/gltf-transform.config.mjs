@@ -3,7 +3,7 @@
  *
  *   npm ci                                   # in web/gltf-transform
  *   npx gltf-transform --config web/gltf-transform/gltf-transform.config.mjs \
- *       optimize crowd.glb out.glb --compress draco
+ *       optimize crowd.glb out.glb [--compress draco]
  *
  * It registers VBUSD_virtual_bones beside every extension the CLI knows (a config's
  * `extensions` replaces the CLI's list, so ALL_EXTENSIONS is repeated here), and adds two
@@ -15,6 +15,25 @@ import { ALL_EXTENSIONS, EXTMeshoptCompression } from '@gltf-transform/extension
 import { MeshoptEncoder } from 'meshoptimizer';
 
 import { VBUSDVirtualBones, vbusdInstanceDefaults, vbusdMeshopt } from './src/index.mjs';
+
+// `gltf-transform --config PATH COMMAND ...` (the order this package documents): the CLI imports
+// this file from `--config` wherever it stands, before it parses the command line, but its parser
+// (gltf-transform 4.5) takes options only after the command and stops with "Unknown command
+// --config". Moving the pair to the end of process.argv here, before the parse, makes both orders work.
+const configAt = process.argv.indexOf('--config');
+if (configAt >= 2 && configAt + 2 < process.argv.length && process.argv[configAt + 2] && !process.argv[configAt + 2].startsWith('-')) {
+  process.argv.push(...process.argv.splice(configAt, 2));
+}
+// `optimize` compresses with meshopt unless told otherwise, and meshopt quantizes POSITION into the
+// node transform, which Virtual Bones cannot skin (the extension refuses it). With this config a
+// plain `optimize` therefore runs every other step and leaves the geometry uncompressed, saying so;
+// `--compress draco` (lossy, within 2^-10 of the character's size) or `vbusd-meshopt` compress.
+if (process.argv.slice(2).find((word) => !word.startsWith('-')) === 'optimize'
+    && !process.argv.some((word) => word === '--compress' || word.startsWith('--compress='))) {
+  process.argv.push('--compress', 'false');
+  process.stderr.write('vbusd: optimize without --compress leaves the geometry uncompressed here (meshopt would quantize '
+    + 'the positions Virtual Bones skin); use --compress draco or the vbusd-meshopt command to compress\n');
+}
 
 export default {
   extensions: [...ALL_EXTENSIONS, VBUSDVirtualBones],
