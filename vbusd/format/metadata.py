@@ -155,14 +155,12 @@ def layout_fields(layout: Layout) -> dict:
 
 
 def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str,
-                bind_transforms=None, minor: int = 0) -> dict:
-    # The lowest version that holds the document (spec 16.1): 1.1 only with a 1.1 key; 1.2 when the
-    # animation's meshes have levels of detail (spec 20.5: every copy says the prim's version).
-    minor = max(minor, 1 if bind_transforms is not None else 0)
+                bind_transforms=None) -> dict:
     result: dict[str, Any] = {
         "format": FORMAT_NAME,
         "formatVersion": FORMAT_VERSION,
-        **({"formatMinorVersion": minor} if minor else {}),
+        # The lowest version that holds the document (spec 16.1): 1.1 only with a 1.1 key.
+        **({"formatMinorVersion": 1} if bind_transforms is not None else {}),
         "generator": generator,
         **layout_fields(layout),
         "bones": [str(name) for name in bones],
@@ -209,7 +207,7 @@ def to_dict(vb: VirtualBones) -> dict:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
     return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, vb.content_digest,
-                       _generator(), vb.bind_transforms, minor=2 if vb.lods is not None else 0)
+                       _generator(), vb.bind_transforms)
 
 
 def dumps(d: Mapping) -> str:

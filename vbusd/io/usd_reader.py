@@ -41,7 +41,7 @@ from vbusd.format.declared import Declared, build_layout, check_declared, compar
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
 from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
-from vbusd.format.model import BoundMesh, Clip, Crowd, LevelsOfDetail, VirtualBones, VirtualBonesAsset
+from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
@@ -217,10 +217,6 @@ class AnimationAttributes:
     texture: str
     texture_file: Optional[Path]
     declared: Optional[Declared] = None
-
-
-LOD_ROOT_API = "LODRootAPI"
-"""UsdLod's API schema of a level-of-detail root (spec 20.1), as it appears in apiSchemas."""
 
 
 class _Skip(Exception):
@@ -939,63 +935,18 @@ class UsdReader:
                          normals_interpolation=interpolation)
 
     def read_levels(self, animation: VirtualBones, meshes: list):
-        """The levels of detail of an animation's meshes (spec 20.1): (meshes with their level, LevelsOfDetail)
-        or None when no mesh lies under a UsdLod LODRootAPI prim; ``lod.structure`` or
-        ``lod.heuristic`` findings when the levels break the spec's rules."""
-        if not meshes:
+        """The levels of detail of an animation's meshes (spec 20.1): (meshes with their level,
+        LevelsOfDetail), or None when no mesh lies under a UsdLod LODRootAPI prim."""
+        from vbusd.io.usd_lod import levels_of
+
+        findings, levels, lods = levels_of(self.stage, animation.path, [m.path for m in meshes])
+        for item in findings:
+            self.diagnostics.add(item)
+        if findings:
+            raise _Skip
+        if lods is None:
             return None
-        Sdf = _pxr()[0]
-        stage = self.stage
-        roots = []
-        for mesh in meshes:
-            found = None
-            for ancestor in Sdf.Path(mesh.path).GetAncestorsRange():
-                prim = stage.GetPrimAtPath(ancestor)
-                if prim and ancestor != Sdf.Path(mesh.path) and LOD_ROOT_API in _applied_schemas(prim):
-                    found = prim  # the innermost root: a nested root's levels belong to it
-            roots.append(found)
-        if all(root is None for root in roots):
-            return None
-        where = UsdSite(animation.path)
-        paths = {str(root.GetPath()) if root else None for root in roots}
-        if len(paths) != 1:
-            listed = ", ".join(sorted(p or "(no LOD root)" for p in paths))
-            self.fail("lod.structure", f"the meshes bound to this animation lie under different LOD roots or "
-                      f"outside one: {listed}; all must lie under one LODRootAPI prim", where)
-        root = roots[0]
-        root_site = UsdSite(str(root.GetPath()))
-        items = list(root.GetChildren())
-        if not 2 <= len(items) <= 8:
-            self.fail("lod.structure", f"the LOD root has {len(items)} children (levels); 2 to 8", root_site)
-        level_of = {item.GetPath(): level for level, item in enumerate(items)}
-        leveled = []
-        for mesh in meshes:
-            path = Sdf.Path(mesh.path)
-            level = next((level_of[a] for a in path.GetAncestorsRange() if a in level_of), None)
-            leveled.append(dataclasses.replace(mesh, lod=int(level)))
-        empty = [str(item.GetPath()) for level, item in enumerate(items) if not any(m.lod == level for m in leveled)]
-        if empty:
-            self.fail("lod.structure", f"level(s) {', '.join(empty)} hold no mesh bound to {animation.path}", root_site)
-        targets = root.GetRelationship("lod:heuristics").GetTargets() if root.GetRelationship("lod:heuristics") else []
-        heuristics = [stage.GetPrimAtPath(t) for t in targets]
-        screen = [h for h in heuristics if h and h.GetTypeName() == "LODScreenSizeHeuristic"]
-        heuristic_site = UsdSite(str(root.GetPath()), "lod:heuristics")
-        if len(screen) != 1:
-            self.fail("lod.heuristic", f"lod:heuristics targets {len(screen)} LODScreenSizeHeuristic prims; "
-                      "exactly one", heuristic_site)
-        attribute = screen[0].GetAttribute("thresholds")
-        thresholds = np.asarray(attribute.Get() if attribute and attribute.HasAuthoredValue() else [], np.float64)
-        site = UsdSite(str(screen[0].GetPath()), "thresholds")
-        if len(thresholds) != len(items) - 1:
-            self.fail("lod.heuristic", f"{len(thresholds)} thresholds for {len(items)} levels; "
-                      f"{len(items) - 1} are needed", site)
-        if not np.all(np.isfinite(thresholds)) or np.any((thresholds <= 0) | (thresholds > 1)) or \
-                np.any(np.diff(thresholds) >= 0):
-            self.fail("lod.heuristic", f"thresholds {thresholds.tolist()} must lie in (0, 1] and decrease "
-                      "strictly", site)
-        lods = LevelsOfDetail(root=str(root.GetPath()), screen_sizes=tuple(float(t) for t in thresholds),
-                              item_names=tuple(item.GetName() for item in items))
-        return leveled, lods
+        return [dataclasses.replace(m, lod=int(level)) for m, level in zip(meshes, levels)], lods
 
     def read_normals(self, prim, path: str, vertex_count: int, face_vertex_count: int):
         """Rest normals: ``primvars:normals`` (flattened) when authored, else ``normals``."""

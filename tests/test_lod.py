@@ -1,0 +1,189 @@
+"""Levels of detail sharing one texture (format 1.2, spec/virtual-bones.md section 20).
+
+Independent yardsticks: OpenUSD's own UsdLod (``ComputeScreenSize`` and ``ComputeLOD`` of
+``UsdLodScreenSizeHeuristic``, C++) for the selection, ``vbusd validate`` for the written assets,
+and the LOD 0 mesh's own rest points and weights for what simplification may keep.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+STADIUM = ROOT / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+
+pytest.importorskip("meshoptimizer")
+
+
+def _heuristic(thresholds, extent):
+    from pxr import Usd, UsdLod
+
+    stage = Usd.Stage.CreateInMemory()
+    heuristic = UsdLod.ScreenSizeHeuristic.Define(stage, "/H")
+    heuristic.CreateLodDomainAttr("imaging")
+    heuristic.CreateThresholdsAttr(list(thresholds))
+    heuristic.CreateExtentAttr([tuple(map(float, extent[0])), tuple(map(float, extent[1]))])
+    return stage, heuristic
+
+
+def test_screen_size_and_level_agree_with_usdlod():
+    """vbusd.lod.screen_size / select_levels against UsdLodScreenSizeHeuristic on random views and
+    instance transforms in view (rotation, uniform scale, translation): sizes within 1e-6 relative, and
+    the same level wherever the size is not within 1e-6 of a threshold."""
+    from pxr import Gf
+
+    from vbusd.lod import screen_size, select_levels
+
+    rng = np.random.default_rng(29)
+    extent = np.array([[-0.5, 0.0, -0.3], [0.6, 1.8, 0.4]])
+    thresholds = (0.1, 0.02, 0.004)
+    stage, heuristic = _heuristic(thresholds, extent)
+    compared = 0
+    for _ in range(200):
+        fov, aspect = rng.uniform(20, 90), rng.uniform(0.5, 2.5)
+        eye = rng.uniform(-40, 40, 3)
+        frustum = Gf.Frustum()
+        frustum.SetPerspective(fov, aspect, 0.1, 10000)
+        frustum.SetPosition(Gf.Vec3d(*eye))
+        angle, axis = rng.uniform(0, 2 * math.pi), rng.normal(size=3)
+        scale = rng.uniform(0.5, 2.0)
+        rotation = Gf.Matrix4d().SetRotate(Gf.Rotation(Gf.Vec3d(*axis), math.degrees(angle)))
+        # In front of the camera (it looks down -Z), inside the view: UsdLod gives 0 to what it culls.
+        depth = rng.uniform(2.0, 300.0)
+        half = depth * math.tan(math.radians(fov) / 2) * 0.5
+        place = eye + np.array([rng.uniform(-half, half) * aspect, rng.uniform(-half, half), -depth])
+        world = Gf.Matrix4d().SetScale(scale) * rotation * Gf.Matrix4d().SetTranslate(Gf.Vec3d(*place))
+        expected = heuristic.ComputeScreenSize(frustum, world)
+        ours = screen_size(extent, np.array(world).T, eye, fov, aspect)[0]  # Gf is row-vector: transpose
+        assert ours == pytest.approx(expected, rel=1e-6)  # UsdLod computes in part in float32
+        if min(abs(expected - t) for t in thresholds) > 1e-6:
+            assert select_levels([ours], thresholds)[0] == int(heuristic.ComputeLOD(frustum, world))
+            compared += 1
+    assert compared > 150
+
+
+def test_hysteresis_holds_the_finer_level_only_past_the_margin():
+    from vbusd.lod import select_levels
+
+    t = (0.1, 0.02)
+    # Coarser at once; finer only above t * 1.1 (hand-computed).
+    assert select_levels([0.09], t, previous=[0], hysteresis=0.1).tolist() == [1]
+    assert select_levels([0.105], t, previous=[1], hysteresis=0.1).tolist() == [1]
+    assert select_levels([0.111], t, previous=[1], hysteresis=0.1).tolist() == [0]
+    assert select_levels([0.5], t, previous=[2], hysteresis=0.1).tolist() == [0]
+
+
+@pytest.fixture(scope="module")
+def stadium_lods(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("lod")
+    out = folder / "stadium.usda"
+    assert main(["convert", str(STADIUM), "-o", str(out), "--lod-ratios", "0.5,0.2", "-q"]) == 0
+    return out
+
+
+def test_stadium_with_three_levels_validates_clean_and_follows_the_spec(stadium_lods):
+    from pxr import Usd, UsdLod
+
+    from vbusd.io.usd import read_asset
+    from vbusd.validators.api import validate
+
+    report = validate(stadium_lods)
+    assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
+    stage = Usd.Stage.Open(str(stadium_lods))
+    root = stage.GetPrimAtPath("/StadiumCrowd/Skeleton_lods")
+    assert root.HasAPI(UsdLod.RootAPI)
+    assert [c.GetName() for c in root.GetChildren()] == ["lod0", "lod1", "lod2"]
+    targets = UsdLod.RootAPI(root).GetLodHeuristicsRel().GetTargets()
+    heuristic = UsdLod.ScreenSizeHeuristic(stage.GetPrimAtPath(targets[0]))
+    assert list(heuristic.GetThresholdsAttr().Get()) == pytest.approx([0.1, 0.02])
+    assert heuristic.GetProjectionMethodAttr().Get() == "projectedSphere"
+    animation = stage.GetPrimAtPath("/StadiumCrowd/Skeleton")
+    assert animation.GetAttribute("vb:formatMinorVersion").Get() == 2
+
+    vb = read_asset(stadium_lods).animations[0]
+    assert vb.lods is not None and vb.lods.level_count == 3
+    by_level = {m.lod: m for m in vb.meshes}
+    base = by_level[0]
+    assert len(base.face_vertex_counts) == 352 and base.max_influences == 4
+    for level, ratio in ((1, 0.5), (2, 0.2)):
+        mesh = by_level[level]
+        triangles = len(mesh.face_vertex_counts)
+        assert triangles <= math.ceil(ratio * 352) and triangles >= 0.5 * ratio * 352, (level, triangles)
+        assert mesh.max_influences == 4 >> level
+        assert np.allclose(mesh.bone_weights.sum(axis=1), 1.0, atol=1e-6)
+        # Every kept point is a LOD 0 rest point, and its bones are among that point's LOD 0 bones,
+        # the heaviest of them.
+        for point, bones, weights in zip(mesh.points, mesh.bone_indices, mesh.bone_weights):
+            source = int(np.argmin(np.linalg.norm(base.points - point, axis=1)))
+            assert np.array_equal(base.points[source], point)
+            order = np.argsort(-base.bone_weights[source], kind="stable")
+            heaviest = base.bone_indices[source][order[:mesh.max_influences]]
+            assert set(bones[weights > 0]) <= set(heaviest.tolist())
+
+
+def test_crowd_of_a_character_with_levels_references_its_lod_root(stadium_lods):
+    from pxr import Usd, UsdLod
+
+    from vbusd.validators.api import validate
+
+    crowd = stadium_lods.parent / "crowd.usda"  # beside its character
+    assert main(["crowd", str(stadium_lods), "-o", str(crowd), "--count", "50", "-q"]) == 0
+    report = validate(crowd)
+    assert report.error_count == 0, [f.code for f in report.findings]
+    stage = Usd.Stage.Open(str(crowd))
+    prototypes = [p for p in stage.Traverse() if p.GetParent().GetName() == "Prototypes"]
+    assert prototypes
+    for prototype in prototypes:
+        (child,) = prototype.GetChildren()
+        assert child.HasAPI(UsdLod.RootAPI)  # brought by the one reference: each instance selects
+        assert [c.GetName() for c in child.GetChildren()] == ["lod0", "lod1", "lod2"]
+
+
+def test_a_1_1_reader_refuses_an_asset_with_levels(stadium_lods, monkeypatch):
+    from vbusd.format import versioning
+    from vbusd.format.errors import VersionError
+    from vbusd.io.usd import read_asset
+
+    monkeypatch.setattr(versioning, "CURRENT", versioning.Version(1, 1))
+    with pytest.raises(VersionError, match="1.2 is newer than this reader"):
+        read_asset(stadium_lods)
+
+
+@pytest.mark.parametrize("ratios", ["0.2,0.5", "1.5", "0", "a,b", "0.9,0.8,0.7,0.6,0.5,0.4,0.3,0.2"])
+def test_bad_ratios_are_one_line_exit_2(ratios, tmp_path, capsys):
+    assert main(["convert", str(STADIUM), "-o", str(tmp_path / "x.usda"), "--lod-ratios", ratios]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--lod-ratios" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "x.usda").exists()
+
+
+def test_lod_structure_findings(stadium_lods, tmp_path):
+    """A level emptied of its mesh, and thresholds out of order: lod.structure and lod.heuristic."""
+    import shutil
+
+    from pxr import Usd, UsdLod
+
+    from vbusd.validators.api import validate
+
+    for name in ("lod.structure", "lod.heuristic"):
+        folder = tmp_path / name
+        folder.mkdir()
+        for file in stadium_lods.parent.iterdir():
+            if file.name.startswith("stadium"):
+                shutil.copy(file, folder / file.name)
+        stage = Usd.Stage.Open(str(folder / "stadium.usda"))
+        if name == "lod.structure":
+            stage.RemovePrim("/StadiumCrowd/Skeleton_lods/lod1/Body")
+        else:
+            UsdLod.ScreenSizeHeuristic(stage.GetPrimAtPath("/StadiumCrowd/Skeleton_lods_screenSize")) \
+                .GetThresholdsAttr().Set([0.02, 0.1])
+        stage.Save()
+        report = validate(folder / "stadium.usda")
+        assert name in {f.code for f in report.findings}, [f.code for f in report.findings]
+        assert report.exit_status == 1

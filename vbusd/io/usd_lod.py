@@ -1,0 +1,91 @@
+"""The levels of detail of an animation's meshes on a USD stage (format 1.2, spec/virtual-bones.md 20.1).
+
+One function, :func:`levels_of`, shared by the strict reader (:mod:`vbusd.io.usd_reader`) and
+``vbusd validate`` (:mod:`vbusd.validators.api`), so both apply the same rules and codes:
+``lod.structure`` (one LOD root for all of an animation's meshes, 2 to 8 levels, none empty) and
+``lod.heuristic`` (one LODScreenSizeHeuristic, thresholds one per level after the first, in (0, 1],
+strictly decreasing).
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from vbusd.format.diagnostics import UsdSite, finding
+from vbusd.format.model import LevelsOfDetail
+
+__all__ = ["LOD_ROOT_API", "levels_of"]
+
+LOD_ROOT_API = "LODRootAPI"
+"""UsdLod's API schema of a level-of-detail root, as it appears in apiSchemas."""
+
+
+def _root_of(stage, Sdf, mesh_path: str):
+    """The innermost LODRootAPI ancestor of a mesh (a nested root's levels belong to it), or None."""
+    found = None
+    path = Sdf.Path(mesh_path)
+    for ancestor in path.GetAncestorsRange():
+        prim = stage.GetPrimAtPath(ancestor)
+        if ancestor != path and prim and LOD_ROOT_API in prim.GetAppliedSchemas():
+            found = prim
+    return found
+
+
+def levels_of(stage, animation_path: str, mesh_paths: list) -> tuple:
+    """The level of each of an animation's bound meshes and its :class:`LevelsOfDetail`.
+
+    Args:
+        stage: The open ``Usd.Stage``.
+        animation_path: The VirtualBonesAnimation the meshes are bound to.
+        mesh_paths: Their prim paths.
+
+    Returns:
+        ``(findings, levels, lods)``: ``levels`` (one int per mesh) and ``lods`` are None when no
+        mesh lies under a LOD root, or when a finding makes the levels unusable.
+    """
+    from pxr import Sdf
+
+    roots = [_root_of(stage, Sdf, p) for p in mesh_paths]
+    if not mesh_paths or all(root is None for root in roots):
+        return [], None, None
+    paths = {str(root.GetPath()) if root else None for root in roots}
+    if len(paths) != 1:
+        listed = ", ".join(sorted(p or "(no LOD root)" for p in paths))
+        return [finding("lod.structure", f"the meshes bound to {animation_path} lie under different LOD roots or "
+                        f"partly outside one: {listed}; all must lie under one LODRootAPI prim",
+                        UsdSite(animation_path))], None, None
+    root = roots[0]
+    root_site = UsdSite(str(root.GetPath()))
+    items = list(root.GetChildren())
+    if not 2 <= len(items) <= 8:
+        return [finding("lod.structure", f"the LOD root has {len(items)} children (levels); 2 to 8",
+                        root_site)], None, None
+    level_of = {item.GetPath(): level for level, item in enumerate(items)}
+    levels = [next(level_of[a] for a in Sdf.Path(p).GetAncestorsRange() if a in level_of) for p in mesh_paths]
+    empty = [str(item.GetPath()) for level, item in enumerate(items) if level not in levels]
+    if empty:
+        return [finding("lod.structure", f"level(s) {', '.join(empty)} hold no mesh bound to {animation_path}",
+                        root_site)], None, None
+    relationship = root.GetRelationship("lod:heuristics")
+    targets = relationship.GetTargets() if relationship else []
+    screen = [stage.GetPrimAtPath(t) for t in targets]
+    screen = [h for h in screen if h and h.GetTypeName() == "LODScreenSizeHeuristic"]
+    if len(screen) != 1:
+        return [finding("lod.heuristic", f"lod:heuristics targets {len(screen)} LODScreenSizeHeuristic prims; "
+                        "exactly one", UsdSite(str(root.GetPath()), "lod:heuristics"))], None, None
+    attribute = screen[0].GetAttribute("thresholds")
+    value: Optional[object] = attribute.Get() if attribute and attribute.HasAuthoredValue() else None
+    thresholds = np.asarray(value if value is not None else [], np.float64).reshape(-1)
+    site = UsdSite(str(screen[0].GetPath()), "thresholds")
+    if len(thresholds) != len(items) - 1:
+        return [finding("lod.heuristic", f"{len(thresholds)} thresholds for {len(items)} levels; "
+                        f"{len(items) - 1} are needed", site)], None, None
+    if not np.all(np.isfinite(thresholds)) or np.any((thresholds <= 0) | (thresholds > 1)) or \
+            np.any(np.diff(thresholds) >= 0):
+        return [finding("lod.heuristic", f"thresholds {thresholds.tolist()} must lie in (0, 1] and decrease "
+                        "strictly", site)], None, None
+    lods = LevelsOfDetail(root=str(root.GetPath()), screen_sizes=tuple(float(t) for t in thresholds),
+                          item_names=tuple(item.GetName() for item in items))
+    return [], levels, lods
