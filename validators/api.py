@@ -164,6 +164,7 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
     from pxr import Usd
 
     from vbusd.format import names
+    from vbusd.io.usd_lod import check_animation_levels
     from vbusd.validators.checks_animation import check_animation_prim
     from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
 
@@ -176,7 +177,6 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
             findings.append(finding("asset.composition", " ".join(str(error).split())[:300],
                                     UsdSite(str(site.path) if site is not None else "/")))
     animations = 0
-    bound: dict = {}  # animation path -> its bound meshes' paths
     iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))
     for prim in iterator:
         site = UsdSite(str(prim.GetPath()))
@@ -187,18 +187,12 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
         if prim.GetTypeName() == names.ANIMATION_TYPE:
             animations += 1
             findings += guarded(check_animation_prim, prim, asset_dir, location=site)
+            # Levels of detail (format 1.2, spec 20.1): the rules the reader applies.
+            findings += guarded(check_animation_levels, prim, location=site)
         elif has_instancing(prim):
             findings += guarded(check_instancer_prim, prim, location=site)
         elif has_binding(prim):
             findings += guarded(check_binding_prim, prim, location=site)
-            target = prim.GetRelationship(names.ANIMATION_REL)
-            for animation in (target.GetTargets() if target else [])[:1]:
-                bound.setdefault(str(animation), []).append(str(prim.GetPath()))
-    # Levels of detail (format 1.2, spec 20.1): the same rules the reader applies.
-    from vbusd.io.usd_lod import levels_of
-
-    for animation, meshes in bound.items():
-        findings += guarded(lambda a=animation, m=meshes: levels_of(stage, a, m)[0], location=UsdSite(animation))
     if not animations:
         # An error, as info and decode refuse such a file (the reader's own finding and message).
         root = stage.GetDefaultPrim()

@@ -48,22 +48,22 @@ def parse_ratios(text: str, *, option: str = "--lod-ratios") -> tuple:
 
     Raises:
         OptionsError: Not numbers, out of (0, 1), not strictly descending, or too many levels
-            (code ``options.value``).
+            (code ``options.invalid``).
     """
     try:
         values = tuple(float(part) for part in str(text).split(","))
     except ValueError:
         raise OptionsError(f"{option} takes numbers separated by commas, e.g. 0.5,0.2; got {text!r}",
-                           location=option, code="options.value") from None
+                           location=option, code="options.invalid") from None
     if not values or any(not (0.0 < v < 1.0) or not math.isfinite(v) for v in values):
         raise OptionsError(f"{option}: every ratio must be above 0 and below 1, got {text}", location=option,
-                           code="options.value")
+                           code="options.invalid")
     if any(b >= a for a, b in zip(values, values[1:])):
         raise OptionsError(f"{option}: ratios must decrease strictly (LOD 1 keeps the most), got {text}",
-                           location=option, code="options.value")
+                           location=option, code="options.invalid")
     if len(values) + 1 > MAX_LEVELS:
         raise OptionsError(f"{option}: at most {MAX_LEVELS - 1} ratios ({MAX_LEVELS} levels), got {len(values)}",
-                           location=option, code="options.value")
+                           location=option, code="options.invalid")
     return values
 
 
@@ -71,15 +71,15 @@ def check_screen_sizes(sizes: Sequence[float], count: int, *, option: str = "--l
     """Check ``count - 1`` thresholds strictly descending in (0, 1] (spec 20.1) and return them.
 
     Raises:
-        OptionsError: Wrong count or values (code ``options.value``).
+        OptionsError: Wrong count or values (code ``options.invalid``).
     """
     sizes = tuple(float(s) for s in sizes)
     if len(sizes) != count - 1:
         raise OptionsError(f"{option}: {count} levels need {count - 1} screen sizes, got {len(sizes)}",
-                           location=option, code="options.value")
+                           location=option, code="options.invalid")
     if any(not (0.0 < s <= 1.0) for s in sizes) or any(b >= a for a, b in zip(sizes, sizes[1:])):
         raise OptionsError(f"{option}: screen sizes must lie in (0, 1] and decrease strictly, got "
-                           f"{','.join(f'{s:g}' for s in sizes)}", location=option, code="options.value")
+                           f"{','.join(f'{s:g}' for s in sizes)}", location=option, code="options.invalid")
     return sizes
 
 
@@ -89,7 +89,7 @@ def _meshoptimizer():
     except ImportError:
         raise UnsupportedError("generating levels of detail needs meshoptimizer: pip install 'vbusd[lod]' "
                                "(or pip install meshoptimizer)", location="--lod-ratios",
-                               code="options.dependency") from None
+                               code="convert.lodSimplifier") from None
     return meshoptimizer
 
 
@@ -184,13 +184,13 @@ def add_levels(vb: VirtualBones, ratios: Sequence[float], *, screen_sizes: Optio
 
     Raises:
         OptionsError: The animation already has levels or has no mesh; bad ratios or sizes.
-        UnsupportedError: meshoptimizer is not installed (code ``options.dependency``).
+        UnsupportedError: meshoptimizer is not installed (code ``convert.lodSimplifier``).
     """
     if vb.lods is not None:
         raise OptionsError(f"{vb.path} already has levels of detail from its source; --lod-ratios would add "
-                           "a second set", location="--lod-ratios", code="options.conflict")
+                           "a second set", location="--lod-ratios", code="options.invalid")
     if not vb.meshes:
-        raise OptionsError(f"{vb.path} has no mesh to make levels of", location="--lod-ratios", code="options.value")
+        raise OptionsError(f"{vb.path} has no mesh to make levels of", location="--lod-ratios", code="options.invalid")
     ratios = tuple(float(r) for r in ratios)
     count = len(ratios) + 1
     sizes = check_screen_sizes(default_screen_sizes(count) if screen_sizes is None else screen_sizes, count)

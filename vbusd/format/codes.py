@@ -289,6 +289,8 @@ _COMMAND_ERRORS = (
     Code("convert.nothingConverted", E, "--on-bad-clip skip left no clip to convert: every selected clip "
          "failed to bake (the line names the first and why); nothing was written.",
          "usd-conversion.md#clips", "file"),
+    Code("convert.lodSimplifier", E, "--lod-ratios needs meshoptimizer's simplifier, which is not installed "
+         "(pip install 'vbusd[lod]').", f"{_VB}#levels-of-detail", "option"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes

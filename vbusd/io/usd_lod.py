@@ -89,3 +89,28 @@ def levels_of(stage, animation_path: str, mesh_paths: list) -> tuple:
     lods = LevelsOfDetail(root=str(root.GetPath()), screen_sizes=tuple(float(t) for t in thresholds),
                           item_names=tuple(item.GetName() for item in items))
     return [], levels, lods
+
+
+def check_animation_levels(prim) -> list:
+    """``lod.*`` findings of one VirtualBonesAnimation prim: :func:`levels_of` over the meshes bound to it.
+
+    Meshes below a point instancer are prototypes referencing the bound meshes (readers skip them),
+    so they are not counted twice.
+    """
+    from pxr import Usd, UsdGeom
+
+    from vbusd.format import names
+
+    target = prim.GetPath()
+    meshes = []
+    iterator = iter(Usd.PrimRange(prim.GetStage().GetPseudoRoot()))
+    for other in iterator:
+        if other.IsA(UsdGeom.PointInstancer):
+            iterator.PruneChildren()
+            continue
+        if names.BINDING_API not in other.GetAppliedSchemas():
+            continue
+        relationship = other.GetRelationship(names.ANIMATION_REL)
+        if relationship and list(relationship.GetTargets())[:1] == [target]:
+            meshes.append(str(other.GetPath()))
+    return levels_of(prim.GetStage(), str(target), meshes)[0]
