@@ -187,3 +187,39 @@ def test_lod_structure_findings(stadium_lods, tmp_path):
         report = validate(folder / "stadium.usda")
         assert name in {f.code for f in report.findings}, [f.code for f in report.findings]
         assert report.exit_status == 1
+
+
+def test_export_writes_msft_lod_that_the_khronos_validator_accepts(stadium_lods):
+    """The crowd of the 3-level stadium exported as a .glb: glTF-Validator reports no error or
+    warning, three.js's GLTFLoader loads it, and the crowd node lists its LOD nodes in MSFT_lod with
+    MSFT_screencoverage [t0, t1, 0], every level instanced with the same instance attributes."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
+    node_tools = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(node_tools)
+    import json
+    import struct
+
+    crowd = stadium_lods.parent / "export_crowd.usda"
+    assert main(["crowd", str(stadium_lods), "-o", str(crowd), "--count", "30", "-q"]) == 0
+    package = stadium_lods.parent / "export_crowd.glb"
+    assert main(["export", str(crowd), "-o", str(package), "-q"]) == 0
+    result = node_tools.run_json("gltf_check.mjs", package, packages=("three", "gltf-validator"))
+    issues = result["validator"]["issues"]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
+    data = package.read_bytes()
+    (length,) = struct.unpack_from("<I", data, 12)  # the GLB's first chunk: its JSON
+    gltf = json.loads(data[20:20 + length])
+    assert "MSFT_lod" in gltf["extensionsUsed"] and "MSFT_lod" not in gltf.get("extensionsRequired", [])
+    (crowd_node,) = [n for n in gltf["nodes"] if "MSFT_lod" in n.get("extensions", {})]
+    ids = crowd_node["extensions"]["MSFT_lod"]["ids"]
+    assert len(ids) == 2
+    assert crowd_node["extras"]["MSFT_screencoverage"] == pytest.approx([0.1, 0.02, 0.0])
+    triangles = []
+    for node in [crowd_node] + [gltf["nodes"][i] for i in ids]:
+        assert node["extensions"]["EXT_mesh_gpu_instancing"] == crowd_node["extensions"]["EXT_mesh_gpu_instancing"]
+        (primitive,) = gltf["meshes"][node["mesh"]]["primitives"]
+        triangles.append(gltf["accessors"][primitive["indices"]]["count"] // 3)
+        assert primitive["extensions"]["VBUSD_virtual_bones"]["animation"] == 0
+    assert triangles[0] == 352 and triangles[0] > triangles[1] > triangles[2]
