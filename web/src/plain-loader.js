@@ -100,11 +100,14 @@ export function buildObjects(description, { material, skin = 'attributes' } = {}
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));
-  const make = (animationIndex, instances, name, shareGeometry, matrix = null) => {
+  const make = (animationIndex, instances, name, shareGeometry, matrix = null, lod = {}) => {
     const entry = description.animations[animationIndex];
     if (!entry) throw new VirtualBonesError(`${name}: no animation ${animationIndex}`);
-    const meshes = entry.meshes.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
-    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin });
+    const copy = (entries) => entries.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
+    const meshes = copy(entry.meshes);
+    // Levels of detail (format 1.2): the crowd selects one per instance (crowd.updateLevels).
+    const levels = lod.levels ? lod.levels.map(copy) : null;
+    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin, levels, screenSizes: lod.screenSizes ?? null });
     crowd.userData.animationIndex = animationIndex;
     if (matrix) {
       crowd.matrixAutoUpdate = false;
@@ -117,7 +120,7 @@ export function buildObjects(description, { material, skin = 'attributes' } = {}
   };
   const used = new Set();
   description.crowds.forEach((crowd) => {
-    make(crowd.animation, crowd.instances, crowd.name, !used.has(crowd.animation), crowd.matrix);
+    make(crowd.animation, crowd.instances, crowd.name, !used.has(crowd.animation), crowd.matrix, crowd);
     used.add(crowd.animation);
   });
   description.animations.forEach((entry, index) => {
