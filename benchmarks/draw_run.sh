@@ -38,8 +38,16 @@
 # instances; static, vb, vb_pulled, vat; each read back against numpy first; budget 400 s, killed at
 # 470 s: the JSON is rewritten after every configuration) into draw_issue25.json and draw_issue25.log,
 # and the report with the factor table into draw_issue25_report.md.
+#
+# Issue 29 (levels of detail: the stadium at 1,000,000 / 100,000 / 10,000 instances seen from the grid's
+# edge, one level against three sharing the texture): ONE device call, no warp. The GPU image has no
+# meshoptimizer, so the levels are made here first (the same vbusd.lod call) into .lod/:
+#   here:        NO_WARP=1 bash benchmarks/draw_run.sh pack && bash benchmarks/draw_run.sh pack-lod
+#   device call: carry [".gl", ".whl", ".lod"]  command: bash benchmarks/draw_run.sh issue29
+# It writes draw_tests.log, draw_issue29.json, draw_issue29.log and draw_issue29_report.md (the table of
+# frame time, GPU time and triangles drawn per crowd size and level count) to $OUT.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors|issue25}
+cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue29}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -60,10 +68,16 @@ pack)
         ls -l .gl .whl .gpuwarp/p*
     fi
     ;;
+pack-lod)
+    exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
+    grep -qx /.lod/ "$exclude" 2>/dev/null || echo /.lod/ >> "$exclude"
+    # PYTHON: an interpreter with vbusd and meshoptimizer (pip install -e '.[lod]'), default python3.
+    "${PYTHON:-python3}" benchmarks/draw_cost.py lod-meshes --out .lod/stadium_lods.npz
+    ;;
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors|issue25)
+smoke|run|factors|issue25|issue29)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -98,6 +112,17 @@ smoke|run|factors|issue25)
             --methods static,vb,vb_pulled,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
         exit 0
     fi
+    if [ "$cmd" = issue29 ]; then
+        export VBUSD_LOD_MESHES=.lod/stadium_lods.npz  # the levels made here by pack-lod (no meshoptimizer there)
+        timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
+        # shellcheck disable=SC2086
+        timeout 470 python3 benchmarks/draw_cost.py run --plan issue29 \
+            --json "$out/draw_issue29.json" ${DRAW_ARGS:-} 2>&1 | tee "$out/draw_issue29.log"
+        timeout 20 python3 benchmarks/draw_cost.py report --json "$out/draw_issue29.json" --markdown \
+            > "$out/draw_issue29_report.md" 2>&1
+        tail -12 "$out/draw_issue29_report.md"
+        exit 0
+    fi
     if [ "$cmd" = issue25 ]; then
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
         # shellcheck disable=SC2086
@@ -117,6 +142,6 @@ smoke|run|factors|issue25)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|smoke|run|factors|issue25" >&2; exit 2
+    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue29" >&2; exit 2
     ;;
 esac

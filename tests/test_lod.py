@@ -101,7 +101,7 @@ def test_stadium_with_three_levels_validates_clean_and_follows_the_spec(stadium_
     assert [c.GetName() for c in root.GetChildren()] == ["lod0", "lod1", "lod2"]
     targets = UsdLod.RootAPI(root).GetLodHeuristicsRel().GetTargets()
     heuristic = UsdLod.ScreenSizeHeuristic(stage.GetPrimAtPath(targets[0]))
-    assert list(heuristic.GetThresholdsAttr().Get()) == pytest.approx([0.1, 0.02])
+    assert list(heuristic.GetThresholdsAttr().Get()) == pytest.approx([0.01, 0.001])
     assert heuristic.GetProjectionMethodAttr().Get() == "projectedSphere"
     animation = stage.GetPrimAtPath("/StadiumCrowd/Skeleton")
     assert animation.GetAttribute("vb:formatMinorVersion").Get() == 2
@@ -215,7 +215,7 @@ def test_export_writes_msft_lod_that_the_khronos_validator_accepts(stadium_lods)
     (crowd_node,) = [n for n in gltf["nodes"] if "MSFT_lod" in n.get("extensions", {})]
     ids = crowd_node["extensions"]["MSFT_lod"]["ids"]
     assert len(ids) == 2
-    assert crowd_node["extras"]["MSFT_screencoverage"] == pytest.approx([0.1, 0.02, 0.0])
+    assert crowd_node["extras"]["MSFT_screencoverage"] == pytest.approx([0.01, 0.001, 0.0])
     triangles = []
     for node in [crowd_node] + [gltf["nodes"][i] for i in ids]:
         assert node["extensions"]["EXT_mesh_gpu_instancing"] == crowd_node["extensions"]["EXT_mesh_gpu_instancing"]

@@ -35,12 +35,13 @@ HYSTERESIS = 0.1
 
 
 def default_screen_sizes(count: int) -> tuple:
-    """Thresholds for ``count`` levels: 0.1 for LOD 1, then a fifth of the one before (spec 20.3).
+    """Thresholds for ``count`` levels: 0.01 for LOD 1, then a tenth of the one before (spec 20.3).
 
-    A level per factor 5 of screen area is about a factor 2.2 of distance: the same step as the
-    triangle ratios 0.5, 0.2 that ``--lod-ratios`` suggests.
+    LOD 1 once the character's bounding sphere covers 1 % of the view or less (about a sixth of the
+    screen's height across), LOD 2 below 0.1 %: a level per factor 10 of screen area, about 3.2 of
+    distance, as crowd tools step their levels.
     """
-    return tuple(0.1 * 0.2 ** i for i in range(count - 1))
+    return tuple(0.01 * 0.1 ** i for i in range(count - 1))
 
 
 def parse_ratios(text: str, *, option: str = "--lod-ratios") -> tuple:

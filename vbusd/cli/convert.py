@@ -99,7 +99,7 @@ def _check_rows(value: str):
                    "pip install 'vbusd[lod]').")
 @click.option("--lod-screen-sizes", "lod_screen_sizes", default=None, metavar="S1,S2,...",
               help="Screen sizes (fraction of the view covered) below which LOD 1, 2, ... take over; one per "
-                   "ratio, decreasing (default 0.1, 0.02, ...).")
+                   "ratio, decreasing (default 0.01, 0.001, ...).")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
