@@ -223,3 +223,40 @@ def test_export_writes_msft_lod_that_the_khronos_validator_accepts(stadium_lods)
         triangles.append(gltf["accessors"][primitive["indices"]]["count"] // 3)
         assert primitive["extensions"]["VBUSD_virtual_bones"]["animation"] == 0
     assert triangles[0] == 352 and triangles[0] > triangles[1] > triangles[2]
+
+
+def test_gltf_source_levels_msft_lod_are_kept(tmp_path):
+    """A glTF whose skinned node lists a second skinned node in MSFT_lod (with MSFT_screencoverage)
+    converts to one animation with two levels under a UsdLod root, thresholds from the coverage,
+    validate clean; asking for generated levels as well is one line, exit 2."""
+    import json
+    import shutil
+
+    from pxr import Usd, UsdLod
+
+    from vbusd.io.usd import read_asset
+    from vbusd.validators.api import validate
+
+    fixtures = ROOT / "tests" / "fixtures" / "gltf"
+    document = json.loads((fixtures / "bar.gltf").read_text())
+    for buffer in document["buffers"]:
+        if "uri" in buffer and not buffer["uri"].startswith("data:"):
+            shutil.copy(fixtures / buffer["uri"], tmp_path / buffer["uri"])
+    bar = next(i for i, n in enumerate(document["nodes"]) if n.get("skin") is not None)
+    document["nodes"].append({**document["nodes"][bar], "name": "Bar_LOD1"})  # outside the scene, as MSFT_lod has it
+    document["nodes"][bar]["extensions"] = {"MSFT_lod": {"ids": [len(document["nodes"]) - 1]}}
+    document["nodes"][bar]["extras"] = {"MSFT_screencoverage": [0.05, 0.0]}
+    document["extensionsUsed"] = ["MSFT_lod"]
+    source = tmp_path / "bar_lod.gltf"
+    source.write_text(json.dumps(document))
+    out = tmp_path / "bar_lod.usda"
+    assert main(["convert", str(source), "-o", str(out), "-q"]) == 0
+    report = validate(out)
+    assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
+    vb = read_asset(out).animations[0]
+    assert vb.lods is not None and vb.lods.screen_sizes == pytest.approx((0.05,))
+    assert sorted(m.lod for m in vb.meshes) == [0, 1]
+    stage = Usd.Stage.Open(str(out))
+    root = stage.GetPrimAtPath(vb.lods.root)
+    assert root.HasAPI(UsdLod.RootAPI) and [c.GetName() for c in root.GetChildren()] == ["lod0", "lod1"]
+    assert main(["convert", str(source), "-o", str(tmp_path / "again.usda"), "--lod-ratios", "0.5"]) == 2

@@ -785,7 +785,17 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                             "the animation and its meshes are left out")
             continue
         scene, vb, reason, extra = outcome
-        if options.lod_ratios:
+        source_levels = any(m.lod for m in vb.meshes)
+        if source_levels and options.lod_ratios:
+            raise OptionsError(f"{vb.path}: the source has levels of detail already (glTF MSFT_lod); leave "
+                               "out --lod-ratios to keep them", file=str(source), location="--lod-ratios",
+                               code="options.invalid")
+        if source_levels:
+            from vbusd.lod import adopt_levels
+
+            # The source's own levels (spec 20.3), every one bound to the one texture.
+            vb = adopt_levels(vb, scene.animations[index].lod_screen_sizes)
+        elif options.lod_ratios:
             from vbusd.lod import add_levels
 
             # After the bake: every level shares the texture and its clip extents (spec 20.3).

@@ -25,7 +25,7 @@ from vbusd.format.model import BoundMesh, LevelsOfDetail, VirtualBones
 from vbusd.format.names import unique_names
 
 __all__ = ["MAX_LEVELS", "default_screen_sizes", "parse_ratios", "check_screen_sizes", "simplify_mesh",
-           "add_levels", "screen_size", "select_levels", "level_meshes"]
+           "add_levels", "adopt_levels", "screen_size", "select_levels", "level_meshes"]
 
 MAX_LEVELS = 8
 """Most levels an animation may have (spec 20.1)."""
@@ -206,6 +206,47 @@ def add_levels(vb: VirtualBones, ratios: Sequence[float], *, screen_sizes: Optio
             influences = max(1, mesh.max_influences >> level)
             meshes.append(simplify_mesh(mesh, ratio, influences, f"{lods.item_path(level)}/{name}", level))
     return dataclasses.replace(vb, meshes=tuple(meshes), lods=lods)
+
+
+def adopt_levels(vb: VirtualBones, screen_sizes: Optional[Sequence[float]] = None, *,
+                 root: Optional[str] = None) -> VirtualBones:
+    """Give a baked animation the levels its source gave its meshes (``BoundMesh.lod``; glTF ``MSFT_lod``).
+
+    The meshes keep their order (the accuracy check pairs them with the source's) and move under
+    ``<root>/lod<i>``; the root defaults as in :func:`add_levels`. Levels the source leaves empty
+    are an error, as are thresholds that break spec 20.1.
+
+    Args:
+        vb: A baked animation whose meshes carry their level.
+        screen_sizes: The source's thresholds (one per level after the first), default
+            :func:`default_screen_sizes`.
+        root: Prim path of the LOD root.
+
+    Returns:
+        The animation with ``lods`` set, or ``vb`` itself when every mesh is at level 0.
+    """
+    count = max((m.lod for m in vb.meshes), default=0) + 1
+    if count == 1:
+        return vb
+    if count > MAX_LEVELS:
+        raise OptionsError(f"{vb.path}: the source has {count} levels of detail; at most {MAX_LEVELS}",
+                           location=vb.path, code="options.invalid")
+    missing = [level for level in range(count) if not any(m.lod == level for m in vb.meshes)]
+    if missing:
+        raise OptionsError(f"{vb.path}: level(s) {missing} of detail have no mesh bound to this animation",
+                           location=vb.path, code="options.invalid")
+    sizes = tuple(screen_sizes)[:count - 1] if screen_sizes is not None else ()
+    if len(sizes) != count - 1:
+        sizes = default_screen_sizes(count)
+    sizes = check_screen_sizes(sizes, count, option="MSFT_screencoverage")
+    if root is None:
+        first = next(m for m in vb.meshes if m.lod == 0)
+        parent = first.path.rsplit("/", 1)[0] or ""
+        root = f"{parent}/{vb.path.rstrip('/').rsplit('/', 1)[-1]}_lods"
+    lods = LevelsOfDetail(root=root, screen_sizes=sizes)
+    names = unique_names([m.path.rstrip("/").rsplit("/", 1)[-1] for m in vb.meshes])
+    meshes = tuple(dataclasses.replace(m, path=f"{lods.item_path(m.lod)}/{name}") for m, name in zip(vb.meshes, names))
+    return dataclasses.replace(vb, meshes=meshes, lods=lods)
 
 
 def level_meshes(vb: VirtualBones, level: int) -> tuple:

@@ -94,6 +94,7 @@ class SkinnedMesh:
         normals: (V, 3) or (face-vertices, 3) rest normals, or None.
         normals_interpolation: ``vertex`` or ``faceVarying``.
         source_path: Where the mesh came from in its source, for messages.
+        lod: The level of detail the source gives the mesh (glTF ``MSFT_lod``; format 1.2), 0 otherwise.
     """
 
     path: str
@@ -105,6 +106,7 @@ class SkinnedMesh:
     normals: Optional[np.ndarray] = None
     normals_interpolation: str = "vertex"
     source_path: Optional[str] = None
+    lod: int = 0
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,8 @@ class SkinnedAnimation:
         bind_transforms: (bones, 4, 4) column-vector bind (rest) transforms ``B_b`` of the joints
             in animation space, so that a joint's transform is ``J_b = M_b B_b`` (spec "Bone
             transforms"; format 1.1, for sockets), or None when the converter does not know them.
+        lod_screen_sizes: When the source gives its meshes levels of detail (``SkinnedMesh.lod``),
+            the screen sizes below which LOD 1, 2, ... take over (spec "Levels of detail"), else None.
     """
 
     name: str
@@ -130,6 +134,7 @@ class SkinnedAnimation:
     meshes: tuple = ()
     source: Optional[str] = None
     bind_transforms: Optional[np.ndarray] = None
+    lod_screen_sizes: Optional[tuple] = None
 
     @property
     def bone_count(self) -> int:
