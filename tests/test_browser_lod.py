@@ -119,3 +119,29 @@ def test_runtime_selects_the_level_usdlod_selects_and_skins_it(browser, row_pack
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+def test_vbusd_view_of_a_usd_crowd_with_levels_draws_one_level_per_instance(browser, tmp_path):
+    """The plain files of a USD asset carry the levels too: ``vbusd view`` of the 3-level stadium crowd
+    (USD, not a package) draws each instance at one level, never every level at once."""
+    asset_path = tmp_path / "stadium.usda"
+    vbusd.convert(STADIUM, asset_path, vbusd.ConvertOptions(lod_ratios=(0.5, 0.2), check_rows=0))
+    from vbusd.cli import main
+
+    crowd = tmp_path / "crowd.usda"
+    assert main(["crowd", str(asset_path), "-o", str(crowd), "--count", "40", "-q"]) == 0
+    with ViewerServer(crowd) as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&silhouette=1&width=320&height=180")
+        try:
+            assert page.error == "", page.error
+            page.page.evaluate("() => window.vbusd.render()")
+            state = page.page.evaluate("""() => window.vbusd.crowds.map((crowd) => ({
+                levels: crowd.levels ? crowd.levels.length : 0,
+                drawn: crowd.levels ? crowd.levels.map((meshes) => meshes[0].count) : [],
+                lod: Array.from({ length: crowd.capacity }, (_, i) => crowd.levelOf(i))}))""")
+            (only,) = state
+            assert only["levels"] == 3
+            assert sum(only["drawn"]) == sum(1 for level in only["lod"] if level >= 0) > 0
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
