@@ -260,3 +260,26 @@ def test_gltf_source_levels_msft_lod_are_kept(tmp_path):
     root = stage.GetPrimAtPath(vb.lods.root)
     assert root.HasAPI(UsdLod.RootAPI) and [c.GetName() for c in root.GetChildren()] == ["lod0", "lod1"]
     assert main(["convert", str(source), "-o", str(tmp_path / "again.usda"), "--lod-ratios", "0.5"]) == 2
+
+
+def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared_assets, tmp_path):
+    """The Khronos CesiumMan (a glTF character) converted with --lod-ratios 0.5,0.2: vbusd validate
+    clean, and its runtime package (MSFT_lod) clean for the Khronos glTF-Validator."""
+    import importlib.util
+
+    from vbusd.validators.api import validate
+
+    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
+    if not source.is_file():
+        pytest.skip(f"{source} is missing")
+    out = tmp_path / "cesium.usda"
+    assert main(["convert", str(source), "-o", str(out), "--lod-ratios", "0.5,0.2", "-q"]) == 0
+    report = validate(out)
+    assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
+    package = tmp_path / "cesium.glb"
+    assert main(["export", str(out), "-o", str(package), "-q"]) == 0
+    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
+    node_tools = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(node_tools)
+    issues = node_tools.run_json("gltf_check.mjs", package, packages=("three", "gltf-validator"))["validator"]["issues"]
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
