@@ -283,3 +283,51 @@ def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared
     spec.loader.exec_module(node_tools)
     issues = node_tools.run_json("gltf_check.mjs", package, packages=("three", "gltf-validator"))["validator"]["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
+
+
+def _usd_source_with_levels(folder: Path, thresholds=(0.02,)) -> Path:
+    """The stadium's UsdSkel asset with its Body moved under a UsdLod root: LOD0/Body (the body) and
+    LOD1/Body (the same body again: what matters here is the structure), a screen-size heuristic."""
+    from pxr import Sdf, Usd, UsdLod
+
+    stage = Usd.Stage.Open(str(STADIUM))
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.TransferContent(stage.Flatten())
+    root = Sdf.Path("/StadiumCrowd/Body_LODs")
+    edited = Usd.Stage.Open(layer)
+    edited.DefinePrim(root, "Xform")
+    for item in ("LOD0", "LOD1"):
+        edited.DefinePrim(root.AppendChild(item), "Xform")
+        assert Sdf.CopySpec(layer, "/StadiumCrowd/Body", layer, root.AppendChild(item).AppendChild("Body"))
+    edited.RemovePrim("/StadiumCrowd/Body")
+    UsdLod.RootAPI.Apply(edited.GetPrimAtPath(root))
+    heuristic = UsdLod.ScreenSizeHeuristic.Define(edited, "/StadiumCrowd/Body_LODs_screenSize")
+    heuristic.CreateLodDomainAttr("imaging")
+    heuristic.CreateThresholdsAttr(list(thresholds))
+    UsdLod.RootAPI(edited.GetPrimAtPath(root)).CreateLodHeuristicsRel().SetTargets([heuristic.GetPath()])
+    source = folder / "stadium_lod_source.usda"
+    layer.Export(str(source))
+    return source
+
+
+def test_usd_source_lod_root_is_kept(tmp_path):
+    """A UsdSkel source whose meshes lie under a UsdLod root converts with that root, its level names
+    and its thresholds; validate clean."""
+    from pxr import Usd, UsdLod
+
+    from vbusd.io.usd import read_asset
+    from vbusd.validators.api import validate
+
+    source = _usd_source_with_levels(tmp_path)
+    out = tmp_path / "converted.usda"
+    assert main(["convert", str(source), "-o", str(out), "-q"]) == 0
+    report = validate(out)
+    assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
+    vb = read_asset(out).animations[0]
+    assert vb.lods is not None and vb.lods.root == "/StadiumCrowd/Body_LODs"
+    assert vb.lods.item_names == ("LOD0", "LOD1") and vb.lods.screen_sizes == pytest.approx((0.02,))
+    assert sorted((m.lod, m.path) for m in vb.meshes) == [(0, "/StadiumCrowd/Body_LODs/LOD0/Body"),
+                                                           (1, "/StadiumCrowd/Body_LODs/LOD1/Body")]
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetPrimAtPath("/StadiumCrowd/Body_LODs").HasAPI(UsdLod.RootAPI)
+    assert stage.GetPrimAtPath("/StadiumCrowd/Skeleton").GetAttribute("vb:formatMinorVersion").Get() == 2

@@ -790,7 +790,10 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             raise OptionsError(f"{vb.path}: the source has levels of detail already (glTF MSFT_lod); leave "
                                "out --lod-ratios to keep them", file=str(source), location="--lod-ratios",
                                code="options.invalid")
-        if source_levels:
+        if source_levels and scene.animations[index].lods is not None:
+            # A USD source's UsdLod root: the meshes already lie under its levels (spec 20.3).
+            vb = dataclasses.replace(vb, lods=scene.animations[index].lods)
+        elif source_levels:
             from vbusd.lod import adopt_levels
 
             # The source's own levels (spec 20.3), every one bound to the one texture.

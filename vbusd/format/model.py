@@ -125,6 +125,8 @@ class SkinnedAnimation:
             transforms"; format 1.1, for sockets), or None when the converter does not know them.
         lod_screen_sizes: When the source gives its meshes levels of detail (``SkinnedMesh.lod``),
             the screen sizes below which LOD 1, 2, ... take over (spec "Levels of detail"), else None.
+        lods: The source's own UsdLod root when the meshes' paths already lie under its levels
+            (a USD source), kept as it is; None otherwise.
     """
 
     name: str
@@ -135,6 +137,7 @@ class SkinnedAnimation:
     source: Optional[str] = None
     bind_transforms: Optional[np.ndarray] = None
     lod_screen_sizes: Optional[tuple] = None
+    lods: Optional["LevelsOfDetail"] = None
 
     @property
     def bone_count(self) -> int:
