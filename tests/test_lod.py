@@ -331,3 +331,26 @@ def test_usd_source_lod_root_is_kept(tmp_path):
     stage = Usd.Stage.Open(str(out))
     assert stage.GetPrimAtPath("/StadiumCrowd/Body_LODs").HasAPI(UsdLod.RootAPI)
     assert stage.GetPrimAtPath("/StadiumCrowd/Skeleton").GetAttribute("vb:formatMinorVersion").Get() == 2
+
+
+def test_meshes_named_for_their_level_become_levels(tmp_path):
+    """A UsdSkel source with Body_LOD0 and Body_LOD1 (no UsdLod root): two levels, default thresholds."""
+    from pxr import Sdf, Usd
+
+    from vbusd.io.usd import read_asset
+    from vbusd.validators.api import validate
+
+    stage = Usd.Stage.Open(str(STADIUM))
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    layer.TransferContent(stage.Flatten())
+    for name in ("Body_LOD0", "Body_LOD1"):
+        assert Sdf.CopySpec(layer, "/StadiumCrowd/Body", layer, f"/StadiumCrowd/{name}")
+    Usd.Stage.Open(layer).RemovePrim("/StadiumCrowd/Body")
+    source = tmp_path / "named.usda"
+    layer.Export(str(source))
+    out = tmp_path / "out.usda"
+    assert main(["convert", str(source), "-o", str(out), "-q"]) == 0
+    assert validate(out).error_count == 0
+    vb = read_asset(out).animations[0]
+    assert vb.lods is not None and vb.lods.screen_sizes == pytest.approx((0.01,))
+    assert sorted((m.lod, m.path.rsplit("/", 1)[-1]) for m in vb.meshes) == [(0, "Body_LOD0"), (1, "Body_LOD1")]

@@ -785,6 +785,11 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                             "the animation and its meshes are left out")
             continue
         scene, vb, reason, extra = outcome
+        if not any(m.lod for m in vb.meshes):
+            from vbusd.lod import levels_from_names
+
+            # Meshes named for their level (Body_LOD0, Body_LOD1: spec 20.3) are levels too.
+            vb = levels_from_names(vb) or vb
         source_levels = any(m.lod for m in vb.meshes)
         if source_levels and options.lod_ratios:
             raise OptionsError(f"{vb.path}: the source has levels of detail already (glTF MSFT_lod); leave "

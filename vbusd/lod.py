@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Optional, Sequence
 
 import numpy as np
@@ -25,7 +26,7 @@ from vbusd.format.model import BoundMesh, LevelsOfDetail, VirtualBones
 from vbusd.format.names import unique_names
 
 __all__ = ["MAX_LEVELS", "default_screen_sizes", "parse_ratios", "check_screen_sizes", "simplify_mesh",
-           "add_levels", "adopt_levels", "screen_size", "select_levels", "level_meshes"]
+           "add_levels", "adopt_levels", "levels_from_names", "screen_size", "select_levels", "level_meshes"]
 
 MAX_LEVELS = 8
 """Most levels an animation may have (spec 20.1)."""
@@ -247,6 +248,26 @@ def adopt_levels(vb: VirtualBones, screen_sizes: Optional[Sequence[float]] = Non
     names = unique_names([m.path.rstrip("/").rsplit("/", 1)[-1] for m in vb.meshes])
     meshes = tuple(dataclasses.replace(m, path=f"{lods.item_path(m.lod)}/{name}") for m, name in zip(vb.meshes, names))
     return dataclasses.replace(vb, meshes=meshes, lods=lods)
+
+
+LOD_NAME = re.compile(r"^(?P<base>.*?)[_-]?LOD(?P<level>[0-9])$", re.IGNORECASE)
+"""A mesh named for its level, as DCCs and engines name them (Unity's and Unreal's ``Body_LOD1``)."""
+
+
+def levels_from_names(vb: VirtualBones) -> Optional[VirtualBones]:
+    """The meshes' levels from their names (spec 20.3): every mesh named ``<name>_LOD<i>`` (or
+    ``LOD<i>``, any case) with levels 0 .. n-1 all present, n >= 2; None when the names do not say.
+    """
+    levels = []
+    for mesh in vb.meshes:
+        match = LOD_NAME.match(mesh.path.rstrip("/").rsplit("/", 1)[-1])
+        if match is None:
+            return None
+        levels.append(int(match.group("level")))
+    if len(set(levels)) < 2 or set(levels) != set(range(max(levels) + 1)):
+        return None
+    return dataclasses.replace(vb, meshes=tuple(dataclasses.replace(m, lod=level)
+                                                for m, level in zip(vb.meshes, levels)))
 
 
 def level_meshes(vb: VirtualBones, level: int) -> tuple:
