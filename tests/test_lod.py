@@ -354,3 +354,26 @@ def test_meshes_named_for_their_level_become_levels(tmp_path):
     vb = read_asset(out).animations[0]
     assert vb.lods is not None and vb.lods.screen_sizes == pytest.approx((0.01,))
     assert sorted((m.lod, m.path.rsplit("/", 1)[-1]) for m in vb.meshes) == [(0, "Body_LOD0"), (1, "Body_LOD1")]
+
+
+def test_point_cache_and_usdskel_fallback_keep_the_lod_root(stadium_lods):
+    """vbusd decode and export --as usdskel of a 3-level asset: each output has the UsdLod root with the
+    three levels in order (a viewer draws one level, not all three on top of each other)."""
+    from pxr import Usd, UsdLod, UsdSkel
+
+    folder = stadium_lods.parent
+    cache, fallback = folder / "cache.usda", folder / "fallback.usda"
+    assert main(["decode", str(stadium_lods), "-o", str(cache), "-q"]) == 0
+    assert main(["export", str(stadium_lods), "-o", str(fallback), "--as", "usdskel", "-q"]) == 0
+    for path in (cache, fallback):
+        stage = Usd.Stage.Open(str(path))
+        roots = [p for p in stage.Traverse() if p.HasAPI(UsdLod.RootAPI)]
+        assert len(roots) == 1, path
+        assert [c.GetName() for c in roots[0].GetChildren()] == ["lod0", "lod1", "lod2"], path
+        targets = UsdLod.RootAPI(roots[0]).GetLodHeuristicsRel().GetTargets()
+        thresholds = UsdLod.ScreenSizeHeuristic(stage.GetPrimAtPath(targets[0])).GetThresholdsAttr().Get()
+        assert list(thresholds) == pytest.approx([0.01, 0.001])
+        meshes = [p for p in Usd.PrimRange(roots[0]) if p.GetTypeName() == "Mesh"]
+        assert len(meshes) == 3
+        if path == fallback:
+            assert all(UsdSkel.BindingAPI(m).GetSkeletonRel().GetTargets() for m in meshes)

@@ -100,10 +100,6 @@ def _pxr():
 # --------------------------------------------------------------------------------------------
 
 
-LOD_HEURISTIC_SUFFIX = "_screenSize"
-"""The LODScreenSizeHeuristic of a LOD root is its sibling ``<root name>_screenSize`` (spec 20.1)."""
-
-
 def _check_prim_path(Sdf, path: str, what: str) -> "Sdf.Path":
     if not isinstance(path, str) or not Sdf.Path.IsValidPathString(path):
         raise OptionsError(f"{what} {path!r} is not a valid USD prim path", file="usd")
@@ -294,29 +290,9 @@ def _write_mesh(stage, pxr, mesh: BoundMesh, animation_path: str) -> None:
 def _write_lod_root(stage, pxr, vb: VirtualBones) -> None:
     """Author the UsdLod root of ``vb``'s levels (spec 20.1): LODRootAPI, its children in level
     order, and a LODScreenSizeHeuristic beside it (a child would count as a level)."""
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
-    from pxr import UsdLod
+    from vbusd.io.usd_lod import author_lod_root
 
-    lods = vb.lods
-    root_path = Sdf.Path(lods.root)
-    _define_ancestors(stage, UsdGeom, root_path)
-    root = UsdGeom.Xform.Define(stage, root_path).GetPrim()
-    # The children first, in level order: UsdLod takes the level from the child's position.
-    for level in range(lods.level_count):
-        UsdGeom.Xform.Define(stage, Sdf.Path(lods.item_path(level)))
-    api = UsdLod.RootAPI.Apply(root)
-    api.CreateLodDefaultIndexAttr(0)
-    heuristic = UsdLod.ScreenSizeHeuristic.Define(stage, root_path.GetParentPath().AppendChild(
-        root_path.name + LOD_HEURISTIC_SUFFIX))
-    heuristic.CreateLodDomainAttr(UsdLod.Tokens.imaging)
-    heuristic.CreateProjectionMethodAttr(UsdLod.Tokens.projectedSphere)
-    heuristic.CreateThresholdsAttr(Vt.FloatArray([float(t) for t in lods.screen_sizes]))
-    if vb.clip_extents is not None and len(vb.clip_extents):
-        # Every pose of every clip: the choice must not depend on the pose (spec 20.1).
-        extents = np.asarray(vb.clip_extents, dtype=np.float32)
-        box = np.stack([extents[:, 0].min(axis=0), extents[:, 1].max(axis=0)])
-        heuristic.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(box)))
-    api.CreateLodHeuristicsRel().SetTargets([heuristic.GetPath()])
+    author_lod_root(stage, vb.lods, vb.clip_extents)
 
 
 def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:

@@ -114,3 +114,50 @@ def check_animation_levels(prim) -> list:
         if relationship and list(relationship.GetTargets())[:1] == [target]:
             meshes.append(str(other.GetPath()))
     return levels_of(prim.GetStage(), str(target), meshes)[0]
+
+
+HEURISTIC_SUFFIX = "_screenSize"
+"""The LODScreenSizeHeuristic of a LOD root is its sibling ``<root name>_screenSize`` (spec 20.1)."""
+
+
+def author_lod_root(stage, lods: LevelsOfDetail, clip_extents=None, root: Optional[str] = None):
+    """Author a UsdLod root (spec 20.1) on ``stage``: the ``LODRootAPI`` prim, its children in level order
+    and a ``LODScreenSizeHeuristic`` beside it. Call it before defining the levels' meshes, so that the
+    children are the levels in order.
+
+    Shared by the asset writer, the point cache and the UsdSkel fallback, so that each keeps the levels.
+
+    Args:
+        stage: The stage being written.
+        lods: The levels (root path, thresholds, child names).
+        clip_extents: (clips, 2, 3) extents; their union is the heuristic's ``extent``. None: not authored.
+        root: Where to author the root instead of ``lods.root`` (the UsdSkel fallback nests it).
+
+    Returns:
+        The root's ``Sdf.Path``.
+    """
+    from pxr import Sdf, UsdGeom, UsdLod, Vt
+
+    root_path = Sdf.Path(root or lods.root)
+    for ancestor in root_path.GetParentPath().GetPrefixes():
+        if not stage.GetPrimAtPath(ancestor):
+            UsdGeom.Xform.Define(stage, ancestor)
+    prim = stage.GetPrimAtPath(root_path) or UsdGeom.Xform.Define(stage, root_path).GetPrim()
+    for level in range(lods.level_count):
+        item = root_path.AppendChild(lods.item_name(level))
+        if not stage.GetPrimAtPath(item):
+            UsdGeom.Xform.Define(stage, item)
+    api = UsdLod.RootAPI.Apply(prim)
+    api.CreateLodDefaultIndexAttr(0)
+    heuristic = UsdLod.ScreenSizeHeuristic.Define(stage, root_path.GetParentPath().AppendChild(
+        root_path.name + HEURISTIC_SUFFIX))
+    heuristic.CreateLodDomainAttr(UsdLod.Tokens.imaging)
+    heuristic.CreateProjectionMethodAttr(UsdLod.Tokens.projectedSphere)
+    heuristic.CreateThresholdsAttr(Vt.FloatArray([float(t) for t in lods.screen_sizes]))
+    if clip_extents is not None and len(clip_extents):
+        # Every pose of every clip: the choice must not depend on the pose (spec 20.1).
+        extents = np.asarray(clip_extents, dtype=np.float32)
+        box = np.stack([extents[:, 0].min(axis=0), extents[:, 1].max(axis=0)])
+        heuristic.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(box)))
+    api.CreateLodHeuristicsRel().SetTargets([heuristic.GetPath()])
+    return root_path
