@@ -377,3 +377,13 @@ def test_point_cache_and_usdskel_fallback_keep_the_lod_root(stadium_lods):
         assert len(meshes) == 3
         if path == fallback:
             assert all(UsdSkel.BindingAPI(m).GetSkeletonRel().GetTargets() for m in meshes)
+
+
+def test_missing_meshoptimizer_is_one_line_naming_what_to_install(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "meshoptimizer", None)  # import meshoptimizer now raises ImportError
+    assert main(["convert", str(STADIUM), "-o", str(tmp_path / "x.usda"), "--lod-ratios", "0.5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "convert.lodSimplifier" in err and "vbusd[lod]" in err, err
+    assert not (tmp_path / "x.usda").exists()
