@@ -6,7 +6,8 @@ instances in a row at chosen distances, exported as a runtime package (MSFT_lod)
 
 * the level ``window.vbusd.probe`` reports for each instance equals OpenUSD's own choice,
   ``UsdLodScreenSizeHeuristic.ComputeLOD`` with a ``GfFrustum`` of the page's camera (field of
-  view, aspect, position) and the package's thresholds;
+  view, aspect, position) and the package's thresholds; an instance behind the camera, to which
+  UsdLod gives screen size 0, is culled (-1);
 * the skinned vertices the GPU returns for each instance are that level's mesh skinned by vbusd's
   numpy decoder, within 1e-6 of the bounding-box diagonal plus one float32 rounding of the world
   coordinate (the far instances stand 90 m away);
@@ -31,7 +32,7 @@ pytest.importorskip("meshoptimizer")
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
-DISTANCES = (3.0, 9.0, 16.0, 40.0, 90.0)  # metres in front of the camera
+DISTANCES = (3.0, 9.0, 16.0, 40.0, 90.0, -10.0)  # metres in front of the camera (the last: behind it)
 FOV, WIDTH, HEIGHT = 40.0, 320, 180
 EYE = (0.0, 1.0, 0.0)
 PAGE = f"?paused=1&ui=0&silhouette=1&width={WIDTH}&height={HEIGHT}&pixelRatio=1&fov={FOV}&camera=0,1,0,0,1,-100"
@@ -83,14 +84,19 @@ def _usdlod_levels(asset) -> list:
     frustum = Gf.Frustum()
     frustum.SetPerspective(FOV, WIDTH / HEIGHT, 0.01, 1000.0)
     frustum.SetPosition(Gf.Vec3d(*EYE))  # looking down -Z, as the page's camera does
-    return [int(heuristic.ComputeLOD(frustum, Gf.Matrix4d().SetTranslate(Gf.Vec3d(0.0, 0.0, -d)))) for d in DISTANCES]
+    levels = []
+    for d in DISTANCES:
+        world = Gf.Matrix4d().SetTranslate(Gf.Vec3d(0.0, 0.0, -d))
+        # UsdLod gives what lies outside the frustum screen size 0; the runtime culls it (-1).
+        levels.append(-1 if heuristic.ComputeScreenSize(frustum, world) == 0 else int(heuristic.ComputeLOD(frustum, world)))
+    return levels
 
 
 def test_runtime_selects_the_level_usdlod_selects_and_skins_it(browser, row_package):
     asset, package = row_package
     vb = asset.animations[0]
     expected_levels = _usdlod_levels(asset)
-    assert sorted(set(expected_levels)) == [0, 1, 2], expected_levels  # the distances span every level
+    assert sorted(set(expected_levels)) == [-1, 0, 1, 2], expected_levels  # every level, and one culled
     meshes = {m.lod: m for m in vb.meshes}
     t = 1.37
     with ViewerServer(package) as server:
@@ -100,12 +106,14 @@ def test_runtime_selects_the_level_usdlod_selects_and_skins_it(browser, row_pack
             page.page.evaluate("() => window.vbusd.render()")
             levels = page.page.evaluate("() => window.vbusd.levels()")
             assert levels["lod"] == expected_levels
-            triangles = [len(meshes[level].face_vertex_counts) for level in expected_levels]
+            triangles = [len(meshes[level].face_vertex_counts) for level in expected_levels if level >= 0]
             assert levels["triangles"] == sum(triangles) < len(DISTANCES) * len(meshes[0].face_vertex_counts)
             crowd = asset.crowds[0]
             for instance, level in enumerate(expected_levels):
                 result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
                 assert result["lod"] == level
+                if level < 0:
+                    continue  # culled: nothing drawn to compare
                 one = dataclasses.replace(crowd, **{f: getattr(crowd, f)[instance:instance + 1] for f in
                                                     ("positions", "orientations", "clip", "time_offset", "playback_rate")})
                 expected, _ = skin_crowd(vb, meshes[level], one, t)
