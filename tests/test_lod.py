@@ -387,3 +387,12 @@ def test_missing_meshoptimizer_is_one_line_naming_what_to_install(tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "convert.lodSimplifier" in err and "vbusd[lod]" in err, err
     assert not (tmp_path / "x.usda").exists()
+
+
+def test_info_lists_the_levels(stadium_lods, capsys):
+    import json
+
+    assert main(["info", str(stadium_lods), "--format", "json"]) == 0
+    (animation,) = json.loads(capsys.readouterr().out)["animations"]
+    assert animation["levelsOfDetail"] == {"root": "/StadiumCrowd/Skeleton_lods", "levels": 3,
+                                           "screenSizes": pytest.approx([0.01, 0.001])}

@@ -16,7 +16,7 @@ import numpy as np
 from vbusd.format.diagnostics import UsdSite, finding
 from vbusd.format.model import LevelsOfDetail
 
-__all__ = ["LOD_ROOT_API", "levels_of"]
+__all__ = ["LOD_ROOT_API", "levels_of", "levels_of_animation", "check_animation_levels", "author_lod_root"]
 
 LOD_ROOT_API = "LODRootAPI"
 """UsdLod's API schema of a level-of-detail root, as it appears in apiSchemas."""
@@ -92,7 +92,12 @@ def levels_of(stage, animation_path: str, mesh_paths: list) -> tuple:
 
 
 def check_animation_levels(prim) -> list:
-    """``lod.*`` findings of one VirtualBonesAnimation prim: :func:`levels_of` over the meshes bound to it.
+    """``lod.*`` findings of one VirtualBonesAnimation prim: :func:`levels_of` over the meshes bound to it."""
+    return levels_of_animation(prim)[0]
+
+
+def levels_of_animation(prim) -> tuple:
+    """:func:`levels_of` over the meshes bound to one VirtualBonesAnimation prim: ``(findings, levels, lods)``.
 
     Meshes below a point instancer are prototypes referencing the bound meshes (readers skip them),
     so they are not counted twice.
@@ -113,7 +118,7 @@ def check_animation_levels(prim) -> list:
         relationship = other.GetRelationship(names.ANIMATION_REL)
         if relationship and list(relationship.GetTargets())[:1] == [target]:
             meshes.append(str(other.GetPath()))
-    return levels_of(prim.GetStage(), str(target), meshes)[0]
+    return levels_of(prim.GetStage(), str(target), meshes)
 
 
 HEURISTIC_SUFFIX = "_screenSize"

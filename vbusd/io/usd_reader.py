@@ -41,7 +41,7 @@ from vbusd.format.declared import Declared, build_layout, check_declared, compar
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
 from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
-from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.format.model import BoundMesh, Clip, Crowd, LevelsOfDetail, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
@@ -217,6 +217,8 @@ class AnimationAttributes:
     texture: str
     texture_file: Optional[Path]
     declared: Optional[Declared] = None
+    lods: Optional[LevelsOfDetail] = None
+    """Format 1.2: the levels of detail of its bound meshes (filled by :func:`read_summary`), or None."""
 
 
 class _Skip(Exception):
@@ -1334,6 +1336,11 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
     with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
         prims = reader.animation_prims()
         found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
+        from vbusd.io.usd_lod import levels_of_animation
+
+        # Levels of detail (format 1.2) for info; their findings are validate's to report.
+        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=levels_of_animation(prim)[2])
+                 for prim, attributes in zip(prims, found)]
         by_path = {str(prim.GetPath()): i for i, prim in enumerate(prims)}
         crowds = []
         UsdGeom = _pxr()[3]
