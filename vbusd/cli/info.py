@@ -59,7 +59,9 @@ The JSON form (--format json) is one object:
   A texture's animation also has "container" (exr | png | ktx2),
   "compression" and "warnings" (notes that did not stop reading).
   A USD asset also has "upAxis" (Y | Z) and "metersPerUnit": the
-  stage's scene units (text: "scene: Z up, 1 unit = 0.01 m").
+  stage's scene units (text: "scene: Z up, 1 unit = 0.01 m"); an
+  animation with levels of detail (format 1.2) has "levelsOfDetail":
+  {"root", "levels", "screenSizes"}.
   A USD asset or package also has "instances" (all crowds) and
   "crowds": [{"path", "animation", "instances",
               "prototypes": [{"path", "instances"}],
