@@ -396,3 +396,16 @@ def test_info_lists_the_levels(stadium_lods, capsys):
     (animation,) = json.loads(capsys.readouterr().out)["animations"]
     assert animation["levelsOfDetail"] == {"root": "/StadiumCrowd/Skeleton_lods", "levels": 3,
                                            "screenSizes": pytest.approx([0.01, 0.001])}
+
+
+def test_info_of_a_package_counts_a_crowd_with_levels_once(stadium_lods, capsys):
+    import json
+
+    crowd = stadium_lods.parent / "info_crowd.usda"
+    assert main(["crowd", str(stadium_lods), "-o", str(crowd), "--count", "25", "-q"]) == 0
+    package = stadium_lods.parent / "info_crowd.glb"
+    assert main(["export", str(crowd), "-o", str(package), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(package), "--format", "json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["instances"] == 25 and len(result["crowds"]) == 1 and result["characters"] == []
