@@ -20,6 +20,11 @@ back-face culling, one Lambert light) by six methods:
    matrices from the animation's keys (the sample's joint-local translations and rotations at its
    30 fps time codes: lerp / nlerp, hierarchy, inverse bind, vectorized numpy, float32), uploads
    them into a shader storage buffer, and the vertex shader skins with them;
+5b. ``vb_lod`` (issue 29): Virtual Bones with three levels of detail sharing the texture (LOD 1 and 2
+   made by ``vbusd.lod`` at 0.5 and 0.2 of the triangles, 2 and 1 influences); per frame a compute
+   shader picks every instance's level (UsdLod's projectedSphere screen size, thresholds 0.01 and
+   0.001, culled by the view), writes per-level instance lists and the instance counts of three
+   indirect draws, which read their lists by ``gl_InstanceID`` (no draw call per instance);
 5. ``warp``: vbusd's warp decoder (``vbusd.Decoder.skin_crowd``) writes world-space positions and
    normals into GL buffers (CUDA-GL interop when CUDA is there, else a copy through the host,
    reported as such), then a draw pulls them by ``gl_InstanceID`` and ``gl_VertexID``.
@@ -55,6 +60,12 @@ Usage::
 instances and the dense one at 1,200 and 10,000, within a 400 s budget and at least 10 timed frames
 each; ``report`` then adds a table of each method's GPU draw time as a factor of static, with every
 row's error against numpy (:func:`bindings_markdown`).
+
+``--plan issue29`` compares ``vb`` (one level) with ``vb_lod`` (three) for the stadium at 1,000,000,
+100,000 and 10,000 instances seen from the grid's edge (:func:`stand_camera`, the same view for
+both); ``report`` adds frame and GPU time and triangles drawn per level (:func:`lod_markdown`).
+``lod-meshes --out FILE`` writes the generated levels for a machine without meshoptimizer
+(``$VBUSD_LOD_MESHES``).
 
 ``factors`` is the one-factor study around Virtual Bones' vertex cost (:func:`run_factors`): skin
 attributes fetched or not, packed or not, read from storage buffers, K influences; its variants keep
@@ -260,6 +271,49 @@ def view_projection(count: int) -> np.ndarray:
     projection[2, 2], projection[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
     projection[3, 2] = -1.0
     return projection @ view
+
+
+@dataclass
+class Camera:
+    """A perspective camera (issue 29's levels of detail need its eye, field of view and aspect)."""
+
+    eye: np.ndarray
+    fov_y_degrees: float
+    aspect: float
+    view_projection: np.ndarray
+    planes: np.ndarray  # (6, 4) frustum planes a x + b y + c z + d >= 0 inside, normalized
+
+
+def _look(eye, target, fov_y_degrees: float, near: float, far: float) -> Camera:
+    eye, target = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+    forward = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    view = np.eye(4)
+    view[0, :3], view[1, :3], view[2, :3] = right, up, -forward
+    view[:3, 3] = -view[:3, :3] @ eye
+    aspect = RESOLUTION[0] / RESOLUTION[1]
+    f = 1.0 / math.tan(math.radians(fov_y_degrees) / 2)
+    projection = np.zeros((4, 4))
+    projection[0, 0], projection[1, 1] = f / aspect, f
+    projection[2, 2], projection[2, 3] = (far + near) / (near - far), 2 * far * near / (near - far)
+    projection[3, 2] = -1.0
+    m = projection @ view
+    planes = np.array([m[3] + m[0], m[3] - m[0], m[3] + m[1], m[3] - m[1], m[3] + m[2], m[3] - m[2]])
+    planes /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    return Camera(eye, fov_y_degrees, aspect, m, planes)
+
+
+def stand_camera(count: int) -> Camera:
+    """Issue 29's view of the stadium: from 6 m up, 3 m before the grid's near edge, looking across it 6
+    degrees down, so that near spectators are large and far ones a few pixels (60 degree field of view)."""
+    side = math.ceil(math.sqrt(count))
+    rows = -(-count // side)
+    depth = rows * SEAT[1]
+    eye = np.array([0.0, 6.0, depth / 2 + 3.0])
+    target = eye + np.array([0.0, -math.tan(math.radians(6.0)), -1.0])
+    return _look(eye, target, 60.0, 0.5, depth + 50.0)
 
 
 def quat_matrices(q: np.ndarray) -> np.ndarray:
@@ -682,7 +736,7 @@ class Scene:
     """GL resources shared by every method for one character and one crowd size."""
 
     def __init__(self, ctx, framebuffer, character: Character, crowd, check_rows: np.ndarray,
-                 packed_skin: bool = False):
+                 packed_skin: bool = False, view: str = "grid"):
         """``packed_skin``: bone indices as 4 x uint8 and weights as 4 x unorm8 (a 32-byte vertex, as
         engines pack skins) instead of 4 x int32 + 4 x float32 (56 bytes); the weights must then be
         multiples of 1/255 (:func:`packed_weights`)."""
@@ -693,7 +747,10 @@ class Scene:
         self.count = crowd.instance_count
         self.check_rows = check_rows
         self.check_crowd = crowd_rows(crowd, check_rows)
-        self.view_projection = view_projection(self.count)
+        # "grid" frames the whole grid from above; "stand" (issue 29) looks across it from its edge.
+        self.view = view
+        self.camera = stand_camera(self.count) if view == "stand" else None
+        self.view_projection = view_projection(self.count) if view == "grid" else self.camera.view_projection
         mesh = character.mesh
         k = mesh.bone_indices.shape[1]
         assert k <= 4, "the draw shaders read one ivec4/vec4 pair"
@@ -904,6 +961,296 @@ def _skin_texture(ctx, moderngl, records: np.ndarray):
     return texture
 
 
+# Issue 29: levels of detail. Per frame a compute shader picks every instance's level (UsdLod's
+# projectedSphere screen size, spec/virtual-bones.md 20.2; culled when the bounding sphere of its
+# clips' extents is outside the view) and appends the instance to that level's list with an atomic
+# counter that is the instanceCount of the level's indirect draw command; then one indirect draw per
+# level reads its list by gl_InstanceID. No draw call per instance, no CPU pass over the instances.
+LOD_BINDINGS = {"placement": 4, "animation": 5, "lists": 6, "commands": 7}
+LOD_RATIOS = (0.5, 0.2)  # vbusd convert --lod-ratios 0.5,0.2: LOD 1 and 2
+LOD_SCREEN_SIZES = (0.01, 0.001)  # vbusd's default thresholds for 3 levels (vbusd.lod.default_screen_sizes)
+
+LOD_SELECT_CS = GLSL_VERSION + """
+layout(local_size_x = 256) in;
+layout(std430, binding = 4) readonly buffer Placement { float placement[]; };
+layout(std430, binding = 6) writeonly buffer Lists { uint lists[]; };
+layout(std430, binding = 7) buffer Commands { uint commands[]; };  // 5 per level: DrawElementsIndirectCommand
+uniform uint instance_count;
+uniform vec3 eye;
+uniform vec3 centre_local;
+uniform float radius;
+uniform float inverse_tangent;  // 1 / tan(fovY / 2)
+uniform float aspect;
+uniform vec4 planes[6];
+uniform float thresholds[7];
+uniform int threshold_count;
+vec3 placeRotate(vec4 q, vec3 v) { return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v); }
+void main()
+{
+    uint i = gl_GlobalInvocationID.x;
+    if (i >= instance_count) return;
+    vec3 p = vec3(placement[7u * i], placement[7u * i + 1u], placement[7u * i + 2u]);
+    vec4 q = vec4(placement[7u * i + 3u], placement[7u * i + 4u], placement[7u * i + 5u], placement[7u * i + 6u]);
+    vec3 c = placeRotate(q, centre_local) + p;
+    for (int k = 0; k < 6; ++k)
+        if (dot(planes[k].xyz, c) + planes[k].w < -radius) return;  // outside the view: culled
+    float projected = radius * inverse_tangent / distance(c, eye);
+    float size = 3.14159265358979 * projected * projected / (4.0 * aspect);
+    int level = 0;
+    for (int k = 0; k < threshold_count; ++k)
+        if (size <= thresholds[k]) ++level;
+    uint slot = atomicAdd(commands[5 * level + 1], 1u);
+    lists[uint(level) * instance_count + slot] = i;
+}
+"""
+
+VB_MAIN_LOD = """
+uniform mat4 view_projection;
+uniform uint level_base;
+layout(std430, binding = 4) readonly buffer Placement { float placement[]; };
+struct VbInstance { int clip; float offset; float rate; };
+layout(std430, binding = 5) readonly buffer Animation { VbInstance animation[]; };
+layout(std430, binding = 6) readonly buffer Lists { uint lists[]; };
+in vec3 rest_position;
+in vec3 rest_normal;
+in ivec4 bone_indices;
+in vec4 bone_weights;
+out vec3 world_position;
+out vec3 world_normal;
+vec3 placeRotate(vec4 q, vec3 v) { return v + 2.0 * cross(q.xyz, cross(q.xyz, v) + q.w * v); }
+void main()
+{
+    uint i = lists[level_base + uint(gl_InstanceID)];
+    vec3 p = vec3(placement[7u * i], placement[7u * i + 1u], placement[7u * i + 2u]);
+    vec4 q = vec4(placement[7u * i + 3u], placement[7u * i + 4u], placement[7u * i + 5u], placement[7u * i + 6u]);
+    VbInstance a = animation[i];
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    for (int k = 0; k < VB_MAX_INFLUENCES; ++k)
+    {
+        boneIndex[k] = bone_indices[k];
+        boneWeight[k] = bone_weights[k];
+    }
+    vec3 position;
+    vec3 normal;
+    vbSkin(VB_ARGS a.clip, a.offset + a.rate * vb_time, rest_position, rest_normal, boneIndex, boneWeight,
+           position, normal);
+    world_position = placeRotate(q, position) + p;
+    world_normal = placeRotate(q, normal);
+    gl_Position = view_projection * vec4(world_position, 1.0);
+}
+"""
+
+
+LOD_FIELDS = ("points", "face_vertex_counts", "face_vertex_indices", "bone_indices", "bone_weights", "normals")
+
+
+def lod_meshes(mesh) -> list:
+    """LOD 0 (the mesh) and the levels ``vbusd convert --lod-ratios 0.5,0.2`` makes of it (vbusd.lod).
+
+    The GPU machine has no meshoptimizer (no wheel for its Python, no compiler needed there): with
+    ``$VBUSD_LOD_MESHES`` set, the levels come from the file ``draw_cost.py lod-meshes`` wrote here
+    (benchmarks/draw_run.sh pack-lod), made by the same call.
+    """
+    saved = os.environ.get("VBUSD_LOD_MESHES")
+    if saved:
+        data = np.load(saved)
+        if not np.array_equal(data["lod0_points"], np.asarray(mesh.points, np.float32)):
+            raise ValueError(f"{saved} was made from another LOD 0 mesh; run draw_cost.py lod-meshes again")
+        return [mesh] + [vbusd.BoundMesh(path=f"/lod{level}", lod=level, normals_interpolation="vertex",
+                                         **{name: data[f"lod{level}_{name}"] for name in LOD_FIELDS})
+                         for level in range(1, len(LOD_RATIOS) + 1)]
+    from vbusd.lod import simplify_mesh
+
+    levels = [mesh]
+    for level, ratio in enumerate(LOD_RATIOS, start=1):
+        levels.append(simplify_mesh(mesh, ratio, max(1, mesh.max_influences >> level), f"/lod{level}", level))
+    return levels
+
+
+def save_lod_meshes(args) -> int:
+    """``lod-meshes --out FILE``: the stadium character's levels (see :func:`lod_meshes`) as one .npz."""
+    mesh = stadium_character(SAMPLE.bake_reference()).mesh
+    arrays = {"lod0_points": np.asarray(mesh.points, np.float32)}
+    for level, lod in enumerate(lod_meshes(mesh)[1:], start=1):
+        arrays.update({f"lod{level}_{name}": np.asarray(getattr(lod, name)) for name in LOD_FIELDS})
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    np.savez(args.out, **arrays)
+    print(f"wrote {args.out}: " + ", ".join(f"LOD {i} {len(arrays[f'lod{i}_face_vertex_counts'])} triangles"
+                                           for i in range(1, len(LOD_RATIOS) + 1)))
+    return 0
+
+
+def lod_extent(vb) -> np.ndarray:
+    """The UsdLod heuristic's extent (spec 20.1): the union of the animation's clip extents."""
+    extents = np.asarray(vb.clip_extents, np.float64)
+    return np.stack([extents[:, 0].min(axis=0), extents[:, 1].max(axis=0)])
+
+
+def expected_levels(scene: Scene, extent: np.ndarray, chunk: int = 100_000) -> np.ndarray:
+    """Each instance's level by vbusd.lod (UsdLod's rule, tested against UsdLod itself), -1 when culled."""
+    from vbusd.lod import screen_size, select_levels
+
+    camera = scene.camera
+    centre_local = extent.mean(axis=0)
+    radius = 0.5 * float(np.linalg.norm(extent[1] - extent[0]))
+    out = np.empty(scene.count, np.int32)
+    for start in range(0, scene.count, chunk):
+        crowd = crowd_rows(scene.crowd, np.arange(start, min(start + chunk, scene.count)))
+        world = np.zeros((crowd.instance_count, 4, 4))
+        world[:, :3, :3] = quat_matrices(np.asarray(crowd.orientations, np.float64))
+        world[:, :3, 3] = crowd.positions
+        world[:, 3, 3] = 1.0
+        sizes = screen_size(extent, world, camera.eye, camera.fov_y_degrees, camera.aspect)
+        levels = select_levels(sizes, LOD_SCREEN_SIZES)
+        centres = world[:, :3, :3] @ centre_local + world[:, :3, 3]
+        inside = np.all(centres @ camera.planes[:, :3].T + camera.planes[:, 3] >= -radius, axis=1)
+        out[start:start + crowd.instance_count] = np.where(inside, levels, -1)
+    return out
+
+
+def setup_vb_lod(scene: Scene, vb, encoding: str, texel_format: str) -> Method:
+    """Virtual Bones with 3 levels of detail sharing one texture (issue 29), selected per instance on the GPU.
+
+    Needs the scene's ``stand`` camera (its eye, field of view and aspect feed the selection).
+    """
+    ctx, moderngl = scene.ctx, scene.moderngl
+    if scene.camera is None:
+        raise ValueError("vb_lod needs a Scene with view='stand'")
+    camera = scene.camera
+    meshes = lod_meshes(scene.character.mesh)
+    extent = lod_extent(vb)
+    n = scene.count
+    texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
+                          dtype=_texture_dtype(texel_format))
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    clips = [(float(c.first_row), float(c.row_count), float(c.rows_per_second), 1.0 if c.loop else 0.0)
+             for c in vb.clips]
+    clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
+    lists = ctx.buffer(reserve=4 * n * len(meshes))
+    check_lists = ctx.buffer(np.arange(len(scene.check_rows), dtype=np.uint32).tobytes())
+    levels, release = [], [texture, lists, check_lists]
+    for level, mesh in enumerate(meshes):
+        k = mesh.max_influences
+        program = ctx.program(vertex_shader=vb_vertex_shader(encoding, texel_format, k, VB_MAIN_LOD),
+                              fragment_shader=FRAGMENT)
+        tf_program = ctx.program(vertex_shader=vb_vertex_shader(encoding, texel_format, k, VB_MAIN_LOD),
+                                 varyings=VARYINGS)
+        for p in (program, tf_program):
+            p["view_projection"].write(camera.view_projection.T.astype("f4").tobytes())
+            p["vb_texture"].value = 0
+            p["vb_clips"].value = clips
+            if vb.unorm_ranges is not None:
+                p["vb_rangeMin"].value = [tuple(r) for r in vb.unorm_ranges[..., 0]]
+                p["vb_rangeMax"].value = [tuple(r) for r in vb.unorm_ranges[..., 1]]
+        idx = np.zeros((len(mesh.points), 4), np.int32)
+        w = np.zeros((len(mesh.points), 4), np.float32)
+        idx[:, :k], w[:, :k] = mesh.bone_indices, mesh.bone_weights
+        vertex = np.concatenate([np.asarray(mesh.points, np.float32), np.asarray(mesh.normals, np.float32),
+                                 idx.view(np.float32), w], axis=1)
+        vertices = ctx.buffer(np.ascontiguousarray(vertex).tobytes())
+        triangles = np.asarray(mesh.face_vertex_indices, np.uint32).reshape(-1, 3)
+        indices = ctx.buffer(np.ascontiguousarray(triangles).tobytes())
+        layout = [(vertices, *Scene.MESH_FORMAT)]
+        draw = ctx.vertex_array(program, layout, index_buffer=indices, index_element_size=4, skip_errors=True)
+        tf = ctx.vertex_array(tf_program, layout, skip_errors=True)
+        levels.append({"mesh": mesh, "program": program, "tf_program": tf_program, "draw": draw, "tf": tf,
+                       "triangles": int(len(triangles)), "vertices": int(len(mesh.points))})
+        # LOD 0's VAOs and programs are the method's own (run() releases them).
+        release += [vertices, indices] + ([draw, tf, program, tf_program] if level else [])
+    commands = ctx.buffer(reserve=20 * len(levels))
+    reset = np.zeros((len(levels), 5), np.uint32)
+    reset[:, 0] = [3 * lv["triangles"] for lv in levels]
+    select = ctx.compute_shader(LOD_SELECT_CS)
+    select["instance_count"].value = n
+    select["eye"].value = tuple(float(v) for v in camera.eye)
+    select["centre_local"].value = tuple(float(v) for v in extent.mean(axis=0))
+    select["radius"].value = 0.5 * float(np.linalg.norm(extent[1] - extent[0]))
+    select["inverse_tangent"].value = 1.0 / math.tan(math.radians(camera.fov_y_degrees) / 2)
+    select["aspect"].value = float(camera.aspect)
+    select["planes"].value = [tuple(float(v) for v in plane) for plane in camera.planes]
+    select["thresholds"].value = list(LOD_SCREEN_SIZES) + [0.0] * (7 - len(LOD_SCREEN_SIZES))
+    select["threshold_count"].value = len(LOD_SCREEN_SIZES)
+    release += [commands, select]
+    state = {"t": 0.0}
+
+    def set_time(p, t):
+        state["t"] = t
+
+    def select_levels():
+        commands.write(reset.tobytes())
+        scene.placement.bind_to_storage_buffer(LOD_BINDINGS["placement"])
+        lists.bind_to_storage_buffer(LOD_BINDINGS["lists"])
+        commands.bind_to_storage_buffer(LOD_BINDINGS["commands"])
+        select.run(group_x=-(-n // 256))
+        ctx.memory_barrier()
+
+    def draw_levels():
+        select_levels()
+        texture.use(location=0)
+        scene.animation.bind_to_storage_buffer(LOD_BINDINGS["animation"])
+        for level, entry in enumerate(levels):
+            entry["program"]["vb_time"].value = state["t"]
+            entry["program"]["level_base"].value = level * n
+            entry["draw"].render_indirect(commands, moderngl.TRIANGLES, count=1, first=level)
+
+    def counts() -> np.ndarray:
+        return np.frombuffer(commands.read(), dtype=np.uint32).reshape(-1, 5)[:, 1].copy()
+
+    def custom_check() -> dict:
+        """Each level's skinned vertices against numpy, and the GPU's choice against vbusd.lod."""
+        s = len(scene.check_rows)
+        check_placement = scene.check_placement
+        point_error = normal_error = exact_error = 0.0
+        limit = 0.0
+        for level, entry in enumerate(levels):
+            p = entry["tf_program"]
+            p["vb_time"].value = CHECK_TIME
+            p["level_base"].value = 0
+            texture.use(location=0)
+            check_placement.bind_to_storage_buffer(LOD_BINDINGS["placement"])
+            scene.check_animation.bind_to_storage_buffer(LOD_BINDINGS["animation"])
+            check_lists.bind_to_storage_buffer(LOD_BINDINGS["lists"])
+            v = entry["vertices"]
+            out = ctx.buffer(reserve=s * v * 24)
+            entry["tf"].transform(out, mode=moderngl.POINTS, vertices=v, instances=s)
+            data = np.frombuffer(out.read(), dtype="<f4").reshape(s, v, 6).astype(np.float64)
+            out.release()
+            want_points, want_normals = reference.skin_crowd(vb, entry["mesh"], scene.check_crowd, CHECK_TIME)
+            point_error = max(point_error, float(np.abs(data[..., :3] - want_points).max()))
+            normal_error = max(normal_error, float(np.abs(data[..., 3:] - want_normals).max()))
+            limit = max(limit, tolerance(want_points))
+            if level == 0:
+                exact_points, _ = exact_pose(scene.check_crowd, entry["mesh"], CHECK_TIME)
+                exact_error = float(np.abs(data[..., :3] - exact_points).max())
+        select_levels()
+        gpu = counts()
+        want = expected_levels(scene, extent)
+        cpu = np.array([(want == level).sum() for level in range(len(levels))])
+        # float32 on the GPU against float64: an instance within rounding of a threshold or of the
+        # view's edge may fall on the other side; at most 1 in 10,000 is allowed to.
+        mismatch = int(np.abs(gpu.astype(np.int64) - cpu).sum())
+        agrees = point_error <= limit and normal_error <= 1e-3 and mismatch <= max(2, n // 10_000)
+        return {"instances_checked": int(s), "position_error_m": point_error, "normal_error": normal_error,
+                "tolerance_m": limit, "agrees": bool(agrees), "exact_position_error_m": exact_error,
+                "exact_normal_error": None, "levels_gpu": gpu.tolist(), "levels_numpy": cpu.tolist(),
+                "culled_numpy": int((want < 0).sum()), "level_count_mismatch": mismatch}
+
+    texel_bytes = int(np.asarray(vb.texels).nbytes)
+    notes = (f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes; levels "
+             + ", ".join(f"LOD {i} {lv['triangles']} triangles K={lv['mesh'].max_influences}" for i, lv in enumerate(levels))
+             + f"; screen sizes {LOD_SCREEN_SIZES}; selection by compute shader, {len(levels)} indirect draws")
+    method = Method("vb_lod", f"{encoding} {texel_format}, 3 levels", levels[0]["draw"], levels[0]["tf"],
+                    levels[0]["program"], levels[0]["tf_program"],
+                    texel_bytes + 12 * n + 4 * n * len(levels) + 20 * len(levels), set_time=set_time,
+                    release=release, notes=notes)
+    method.draw_levels = draw_levels
+    method.custom_check = custom_check
+    method.level_counts = counts
+    method.level_triangles = [lv["triangles"] for lv in levels]
+    return method
+
+
 def setup_vat(scene: Scene, vat: VertexAnimation) -> Method:
     ctx, moderngl = scene.ctx, scene.moderngl
     program, tf = scene.programs(VAT_VS)
@@ -1068,6 +1415,9 @@ def _decoder_buffer_bytes(decoder) -> int:
 
 
 def _draw(method: Method, scene: Scene) -> None:
+    if getattr(method, "draw_levels", None) is not None:  # vb_lod: selection, then one draw per level
+        method.draw_levels()
+        return
     for start, count in method.draws:
         count = scene.count if count is None else count
         if hasattr(method, "bind"):  # warp: each draw reads its range of the decoded buffers
@@ -1219,10 +1569,18 @@ PLANS = {
                                              ("dense", 1_200), ("dense", 10_000))
                         for method in ("static", "vb", "vb_pulled", "vb_pulled_texture")],
 }
+# issue29: the million-spectator stadium (and 100,000 and 10,000) seen from its edge ("stand" view),
+# one level of detail (vb) against three sharing the texture (vb_lod), crossMatrix float16.
+PLANS["issue29"] = [("stadium", n, method, "crossMatrix", "float16")
+                    for n in (1_000_000, 100_000, 10_000) for method in ("vb", "vb_lod")]
 PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
                              "factors": False},
                  "issue25-texture": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
-                                     "factors": False}}
+                                     "factors": False},
+                 "issue29": {"budget": 400.0, "per_config_s": 5.0, "min_runs": 10, "warmup_s": 3.0,
+                             "factors": False}}
+PLAN_VIEWS = {"issue29": "stand"}
+"""The camera of a plan's scenes (default ``grid``)."""
 
 
 def _plan(args) -> list:
@@ -1287,7 +1645,7 @@ def run(args) -> int:
         device = None
     ctx, framebuffer = create_context()
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-    result = {"issue": 25 if args.plan == "issue25" else 18, "plan": args.plan, "budget_s": args.budget,
+    result = {"issue": {"issue25": 25, "issue29": 29}.get(args.plan, 18), "plan": args.plan, "budget_s": args.budget,
               "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
               "command": " ".join(sys.argv), "runs": [], "skipped": [], "factors": []}
     print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']} | warp on {device}", flush=True)
@@ -1343,7 +1701,7 @@ def run(args) -> int:
                 crowd = crowd_grid(n)
                 s = 32 if character_name == "stadium" else 4
                 rows = np.unique(np.concatenate([np.arange(min(s, n)), np.arange(max(n - s, 0), n)]))
-                scene = Scene(ctx, framebuffer, character, crowd, rows)
+                scene = Scene(ctx, framebuffer, character, crowd, rows, view=PLAN_VIEWS.get(args.plan, "grid"))
                 scene_key = (character_name, n)
             if method_name == "static":
                 method = setup_static(scene)
@@ -1351,6 +1709,8 @@ def run(args) -> int:
                 method = setup_vb(scene, vb_for(encoding, texel_format), encoding, texel_format,
                                   skin={"vb": "attributes", "vb_pulled": "pulled",
                                         "vb_pulled_texture": "pulled_texture"}[method_name])
+            elif method_name == "vb_lod":
+                method = setup_vb_lod(scene, vb_for(encoding, texel_format), encoding, texel_format)
             elif method_name == "vat":
                 if character_name not in vats:
                     vats[character_name] = bake_vat(character.mesh, base_vb.clips[0])
@@ -1359,8 +1719,11 @@ def run(args) -> int:
                 method = setup_palette(scene, keys)
             else:
                 method = setup_warp(scene, vb_for(encoding, texel_format), device)
-            correctness = check(method, scene, vb_for(encoding or "crossMatrix", texel_format or "float16"),
-                                vats.get(character_name))
+            if hasattr(method, "custom_check"):
+                correctness = method.custom_check()
+            else:
+                correctness = check(method, scene, vb_for(encoding or "crossMatrix", texel_format or "float16"),
+                                    vats.get(character_name))
             if hasattr(method, "count_bytes"):
                 method.count_bytes()
             budget = min(args.per_config_s, max(remaining / 8, 0.5))
@@ -1372,6 +1735,14 @@ def run(args) -> int:
                    "correctness": correctness, **timing}
             if method_name == "warp":
                 row["interop"] = method.uses_interop
+            if method_name == "vb_lod":  # what the last timed frame drew, level by level
+                drawn = method.level_counts()
+                row["levels"] = {"instances": drawn.tolist(), "triangles_each": method.level_triangles,
+                                 "culled": int(n - drawn.sum())}
+                row["triangles_drawn"] = int(sum(int(c) * t for c, t in zip(drawn, method.level_triangles)))
+            else:
+                row["triangles_drawn"] = int(n * len(character.triangles))
+            row["view"] = scene.view
             result["runs"].append(row)
             per_vertex_instance[(character_name, method_name, encoding, texel_format)] = \
                 timing["frame_ms"]["median"] / 1e3 / (n * character.vertex_count)
@@ -1675,6 +2046,24 @@ def plot(data: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def lod_markdown(data: dict) -> str:
+    """Issue 29's table: per crowd size, one level against three in the same view (frame and GPU time,
+    triangles drawn, instances per level and culled), each row's error against numpy."""
+    lines = ["| instances | levels | frame ms | GPU ms (selection + draws) | triangles drawn | per level (LOD 0 / 1 / 2), culled "
+             "| max error vs numpy (m) |", "|---:|---|---:|---:|---:|---|---:|"]
+    for n in sorted({r["instances"] for r in data["runs"]}, reverse=True):
+        for method, label in (("vb", "1 (LOD 0 only)"), ("vb_lod", "3 (0.5, 0.2 of the triangles)")):
+            row = _find(data["runs"], "stadium", n, method, "crossMatrix", "float16")
+            if row is None:
+                continue
+            levels = row.get("levels")
+            per = (" / ".join(f"{c:,}" for c in levels["instances"]) + f", {levels['culled']:,} culled") if levels \
+                else f"{n:,} / 0 / 0, not culled"
+            lines.append(f"| {n:,} | {label} | {row['frame_ms']['median']:.2f} | {row['gpu_draw_ms']['median']:.2f} "
+                         f"| {row.get('triangles_drawn', 0):,} | {per} | {row['correctness']['position_error_m']:.1e} |")
+    return "\n".join(lines)
+
+
 def report(args) -> int:
     data = json.loads(Path(args.json).read_text())
     facts = data.get("facts", {})
@@ -1688,6 +2077,10 @@ def report(args) -> int:
     if any(r["method"] == "vb_pulled" for r in data["runs"]):
         print()
         print(bindings_markdown(data))
+        print()
+    if any(r["method"] == "vb_lod" for r in data["runs"]):
+        print()
+        print(lod_markdown(data))
         print()
     for line in goals(data):
         print("*", line)
@@ -1713,7 +2106,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="run exactly this named set of configurations (--sizes, --characters and --methods are "
                         "then ignored); issue25: stadium 10,000 / 100,000 / 1,000,000 and dense 1,200 / 10,000 "
                         "instances, static, vb, vb_pulled and vat; issue25-texture: the same sizes, static, vb, "
-                        "vb_pulled and vb_pulled_texture (the skin records in an RGBA32UI texture, as WebGL 2)")
+                        "vb_pulled and vb_pulled_texture (the skin records in an RGBA32UI texture, as WebGL 2); "
+                        "issue29: stadium 1,000,000 / 100,000 / 10,000 seen from the grid's edge, vb (one level) "
+                        "and vb_lod (three)")
     r.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
     r.add_argument("--characters", default="stadium,dense")
     r.add_argument("--methods", default="static,vb,vb_pulled,vat,palette,warp")
@@ -1733,6 +2128,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     f.add_argument("--sizes", default="100000")
     f.add_argument("--per-config-s", type=float, default=1.0)
     f.add_argument("--max-runs", type=int, default=20)
+    lod = sub.add_parser("lod-meshes", help="issue 29: write the stadium character's generated levels (needs "
+                                            "meshoptimizer) for a run on a machine without it ($VBUSD_LOD_MESHES)")
+    lod.add_argument("--out", required=True)
     p = sub.add_parser("report", help="table, goals and plot from a results JSON")
     p.add_argument("--json", required=True)
     p.add_argument("--markdown", action="store_true")
@@ -1753,6 +2151,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     if args.command == "factors":
         return run_factors(args)
+    if args.command == "lod-meshes":
+        return save_lod_meshes(args)
     return run(args) if args.command == "run" else report(args)
 
 

@@ -40,8 +40,16 @@
 # and the report with the factor table into draw_issue25_report.md. `issue25-texture` (same call, same
 # carry) runs `--plan issue25-texture`: static, vb, vb_pulled and vb_pulled_texture (the records in an
 # RGBA32UI texture, as WebGL 2 reads them) at the same sizes, into draw_issue25_texture*.
+#
+# Issue 29 (levels of detail: the stadium at 1,000,000 / 100,000 / 10,000 instances seen from the grid's
+# edge, one level against three sharing the texture): ONE device call, no warp. The GPU image has no
+# meshoptimizer, so the levels are made here first (the same vbusd.lod call) into .lod/:
+#   here:        NO_WARP=1 bash benchmarks/draw_run.sh pack && bash benchmarks/draw_run.sh pack-lod
+#   device call: carry [".gl", ".whl", ".lod"]  command: bash benchmarks/draw_run.sh issue29
+# It writes draw_tests.log, draw_issue29.json, draw_issue29.log and draw_issue29_report.md (the table of
+# frame time, GPU time and triangles drawn per crowd size and level count) to $OUT.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|stage N|smoke|run|factors|issue25|issue25-texture}
+cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -62,10 +70,16 @@ pack)
         ls -l .gl .whl .gpuwarp/p*
     fi
     ;;
+pack-lod)
+    exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
+    grep -qx /.lod/ "$exclude" 2>/dev/null || echo /.lod/ >> "$exclude"
+    # PYTHON: an interpreter with vbusd and meshoptimizer (pip install -e '.[lod]'), default python3.
+    "${PYTHON:-python3}" benchmarks/draw_cost.py lod-meshes --out .lod/stadium_lods.npz
+    ;;
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors|issue25|issue25-texture)
+smoke|run|factors|issue25|issue25-texture|issue29)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -100,6 +114,17 @@ smoke|run|factors|issue25|issue25-texture)
             --methods static,vb,vb_pulled,vat,palette --budget 60 --per-config-s 0.5 --no-factors 2>&1 | tee "$out/smoke.log"
         exit 0
     fi
+    if [ "$cmd" = issue29 ]; then
+        export VBUSD_LOD_MESHES=.lod/stadium_lods.npz  # the levels made here by pack-lod (no meshoptimizer there)
+        timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
+        # shellcheck disable=SC2086
+        timeout 470 python3 benchmarks/draw_cost.py run --plan issue29 \
+            --json "$out/draw_issue29.json" ${DRAW_ARGS:-} 2>&1 | tee "$out/draw_issue29.log"
+        timeout 20 python3 benchmarks/draw_cost.py report --json "$out/draw_issue29.json" --markdown \
+            > "$out/draw_issue29_report.md" 2>&1
+        tail -12 "$out/draw_issue29_report.md"
+        exit 0
+    fi
     if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ]; then
         plan=$cmd; name=${cmd//-/_}
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
@@ -120,6 +145,6 @@ smoke|run|factors|issue25|issue25-texture)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|stage N|smoke|run|factors|issue25|issue25-texture" >&2; exit 2
+    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29" >&2; exit 2
     ;;
 esac

@@ -1323,6 +1323,7 @@ class _Converter:
                 for p in range(len(prims)):
                     mesh_names[(node, p)] = names.take(base if len(prims) == 1 else f"{base}_p{p}")
 
+        lod_of_node, lod_sizes = self.read_lods(users)
         raw_weights = []
         for s, anim_name in anim_prim_names.items():
             joints, ibm = self.read_skin(s) if s != VIRTUAL_SKIN else ([], np.zeros((0, 4, 4)))
@@ -1333,6 +1334,7 @@ class _Converter:
             meshes, raws, morphs = [], [], []
 
             def add_mesh(node, m, p, data, indices, weights, rigid):
+                level = lod_of_node.get(node, (None, 0))
                 meshes.append(SkinnedMesh(
                     path=f"/{root}/{mesh_names[(node, p)]}",
                     points=data["points"],
@@ -1342,7 +1344,8 @@ class _Converter:
                     bone_weights=weights,
                     normals=data["normals"],
                     normals_interpolation="vertex",
-                    source_path=f"/nodes/{node} /meshes/{m}/primitives/{p}"))
+                    source_path=f"/nodes/{node} /meshes/{m}/primitives/{p}",
+                    lod=level[1] if level[0] in users.get(s, []) else 0))
                 raws.append(None if rigid else self.renormalized.get((m, p)))
                 morphs.append((node, m, p, data["targets"]))
 
@@ -1422,9 +1425,12 @@ class _Converter:
             for node, m, p, targets in morphs:
                 if targets:
                     self.measure_morph(node, m, p, targets, clips)
+            leveled = [lod_of_node[n][0] for n in users.get(s, []) if lod_of_node.get(n, (None, 0))[1] > 0
+                       and lod_of_node[n][0] in users.get(s, [])]
             result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=tuple(bones),
                                            clips=tuple(clips), meshes=tuple(meshes),
-                                           source=self.file, bind_transforms=bind_transforms(ibm_all)))
+                                           source=self.file, bind_transforms=bind_transforms(ibm_all),
+                                           lod_screen_sizes=lod_sizes.get(leveled[0]) if leveled else None))
             raw_weights.append(tuple(raws))
         if not result:
             raise UnsupportedError("no skin is used by a mesh node; nothing to bake",
@@ -1433,6 +1439,38 @@ class _Converter:
                          time_codes_per_second=TIME_CODES_PER_SECOND, default_prim=root,
                          warnings=tuple(self.warnings), source=self.file,
                          raw_weights=tuple(raw_weights))
+
+    def read_lods(self, users: dict) -> tuple:
+        """Levels of detail from ``MSFT_lod`` on skinned nodes (spec/virtual-bones.md 20.3).
+
+        Returns ``({node: (LOD 0 node, level)}, {LOD 0 node: screen sizes or None})``: a node with
+        ``extensions.MSFT_lod.ids`` is level 0 and its ids are levels 1, 2, ...; its
+        ``extras.MSFT_screencoverage`` (one value per level) gives the thresholds, its last entry
+        (where LOD n-1 ends) dropped. A level node bound to another skin than its LOD 0 is left at
+        level 0 of its own skin, with a warning.
+        """
+        levels, sizes = {}, {}
+        skin_of = {node: s for s, nodes in users.items() for node in nodes}
+        for i, node in enumerate(self.gltf.nodes):
+            lod = (node.extensions or {}).get("MSFT_lod") if isinstance(node.extensions, dict) else None
+            if not isinstance(lod, dict) or i not in skin_of:
+                continue
+            ids = lod.get("ids")
+            if not isinstance(ids, list) or not all(isinstance(k, int) and 0 <= k < len(self.gltf.nodes) for k in ids):
+                raise self.fail("MSFT_lod ids must be node indices", f"/nodes/{i}/extensions/MSFT_lod/ids",
+                                "gltf.index")
+            levels[i] = (i, 0)
+            for level, k in enumerate(ids, start=1):
+                if skin_of.get(k) != skin_of[i]:
+                    self.warn(f"{self.node_label(i)}: MSFT_lod level {level} ({self.node_label(k)}) is not "
+                              "skinned with the same skin; it is not a level of this character")
+                    continue
+                levels[k] = (i, level)
+            coverage = (node.extras or {}).get("MSFT_screencoverage") if isinstance(node.extras, dict) else None
+            ok = isinstance(coverage, list) and len(coverage) >= len(ids) and \
+                all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in coverage)
+            sizes[i] = tuple(float(c) for c in coverage[:len(ids)]) if ok else None
+        return levels, sizes
 
     def plan_attachments(self, unskinned: list, skins: list, used: set, chosen: list) -> dict:
         """Which skin, and which bone of it, every mesh node without a skin follows.

@@ -1124,9 +1124,10 @@ def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
         clip = AnimationClip(name=skel_prim.GetName(), start_time=start_code / tcps, end_time=end_code / tcps,
                              sample=sampler, native_rate=_native_rate(codes, tcps), loop=None,
                              key_times=np.asarray(codes, dtype=np.float64) / tcps)
+        meshes, lods = _levels(reader, prim_paths[key], [b.mesh for b in bound])
         animations.append(SkinnedAnimation(
             name=skel_prim.GetName(), path=prim_paths[key], bones=bones, clips=(clip,),
-            meshes=tuple(b.mesh for b in bound), source=reader.file,
+            meshes=meshes, source=reader.file, lods=lods,
             bind_transforms=_with_identity(bind_transforms(UsdSkel.Skeleton(skel_prim), len(work.joints)),
                                            len(bones) - len(work.joints))))
         references.append((sampler, bound, skel_query))
@@ -1145,6 +1146,26 @@ def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
         meters_per_unit=float(UsdGeom.GetStageMetersPerUnit(stage)), time_codes_per_second=reader.tcps,
         default_prim=default_name, warnings=tuple(reader.warnings), source=reader.file,
         reference=reference, skinning_methods=tuple(methods))
+
+
+def _levels(reader: _Reader, animation_path: str, meshes: list) -> tuple:
+    """The meshes with their level of detail and the source's UsdLod root (spec/virtual-bones.md 20.3).
+
+    The meshes bound to one skeleton that lie under one LODRootAPI prim keep it: level = the root's
+    child they sit under, thresholds from its LODScreenSizeHeuristic (the rules the reader applies,
+    vbusd.io.usd_lod). Where the levels break a rule (another heuristic, an empty level, meshes
+    partly outside the root), they convert as level-0 meshes, with a warning naming the rule.
+    """
+    from vbusd.io.usd_lod import levels_of
+
+    findings, levels, lods = levels_of(reader.stage, animation_path, [m.path for m in meshes])
+    if findings:
+        reader.warn(str(findings[0].location), f"levels of detail not kept ({findings[0].code}: "
+                    f"{findings[0].message}); every mesh converts as level 0")
+        return tuple(meshes), None
+    if lods is None:
+        return tuple(meshes), None
+    return tuple(dataclasses.replace(m, lod=int(level)) for m, level in zip(meshes, levels)), lods
 
 
 def _with_identity(binds, extra: int):

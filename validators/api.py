@@ -164,6 +164,7 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
     from pxr import Usd
 
     from vbusd.format import names
+    from vbusd.io.usd_lod import check_animation_levels
     from vbusd.validators.checks_animation import check_animation_prim
     from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
 
@@ -186,6 +187,8 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
         if prim.GetTypeName() == names.ANIMATION_TYPE:
             animations += 1
             findings += guarded(check_animation_prim, prim, asset_dir, location=site)
+            # Levels of detail (format 1.2, spec 20.1): the rules the reader applies.
+            findings += guarded(check_animation_levels, prim, location=site)
         elif has_instancing(prim):
             findings += guarded(check_instancer_prim, prim, location=site)
         elif has_binding(prim):

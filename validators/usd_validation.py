@@ -9,7 +9,8 @@ holding all four:
 validator                                 schemaTypes                     runs
 ========================================  ==============================  =========================
 ``vbusd:VirtualBonesAnimationValidator``  ``VirtualBonesAnimation``       prim attributes, clips,
-                                                                          texture, metadata, texels
+                                                                          texture, metadata, texels,
+                                                                          levels of detail
 ``vbusd:VirtualBonesBindingValidator``    ``VirtualBonesBindingAPI``      mesh bindings
 ``vbusd:VirtualBonesInstancingValidator`` ``VirtualBonesInstancingAPI``   point instancer primvars
 ``vbusd:UnappliedApiValidator``           (none: every prim)              vb: primvars without the
@@ -92,6 +93,10 @@ def _animation_task(prim, time_range=None):
         return []
     findings = guarded(check_animation_prim, prim, _asset_dir(prim.GetStage()),
                        location=UsdSite(str(prim.GetPath())))
+    # Levels of detail (format 1.2): the lod.* checks of the animation's bound meshes.
+    from vbusd.io.usd_lod import check_animation_levels
+
+    findings += guarded(check_animation_levels, prim, location=UsdSite(str(prim.GetPath())))
     return _to_errors(prim, findings)
 
 

@@ -224,7 +224,7 @@ def bind_mesh(mesh: SkinnedMesh, bone_count: int, max_influences: int) -> BoundM
         face_vertex_counts=np.asarray(mesh.face_vertex_counts, dtype=np.int32),
         face_vertex_indices=np.asarray(mesh.face_vertex_indices, dtype=np.int32),
         bone_indices=indices, bone_weights=weights, normals=normals,
-        normals_interpolation=mesh.normals_interpolation)
+        normals_interpolation=mesh.normals_interpolation, lod=int(getattr(mesh, "lod", 0)))
 
 
 def _locate_non_rigid(error: NonRigidError, animation: SkinnedAnimation, clip: AnimationClip,

@@ -92,6 +92,10 @@ class ConvertOptions:
         root_motion: ``keep`` (default), ``extract`` (bake every clip in place and keep the root
             joint's horizontal translation as a root track, format 1.1, spec "Root motion") or
             ``extractYaw`` (also its rotation about the up axis).
+        lod_ratios: Triangle ratios of generated levels of detail 1, 2, ... (strictly descending in
+            (0, 1); format 1.2, spec "Levels of detail"), or empty for none. Needs meshoptimizer.
+        lod_screen_sizes: Screen-size thresholds of those levels (one per ratio), or None for
+            :func:`vbusd.lod.default_screen_sizes`.
     """
 
     encoding: str = AUTO
@@ -112,11 +116,32 @@ class ConvertOptions:
     on_bad_clip: str = "error"
     strict_weights: bool = False
     root_motion: str = "keep"
+    lod_ratios: tuple = ()
+    lod_screen_sizes: Optional[tuple] = None
 
     def __post_init__(self) -> None:
         where = "convert"
+        from vbusd.lod import check_screen_sizes, parse_ratios
         from vbusd.rootmotion import check_mode
 
+        ratios = self.lod_ratios
+        if isinstance(ratios, str):
+            ratios = parse_ratios(ratios) if ratios else ()
+        elif ratios:
+            ratios = parse_ratios(",".join(str(r) for r in ratios))
+        object.__setattr__(self, "lod_ratios", tuple(ratios or ()))
+        if self.lod_screen_sizes is not None:
+            sizes = self.lod_screen_sizes
+            if isinstance(sizes, str):
+                try:
+                    sizes = [float(v) for v in sizes.split(",")]
+                except ValueError:
+                    raise OptionsError(f"--lod-screen-sizes takes numbers separated by commas, got {sizes!r}",
+                                       file=where) from None
+            if not self.lod_ratios:
+                raise OptionsError("--lod-screen-sizes needs --lod-ratios (the levels they select)", file=where)
+            object.__setattr__(self, "lod_screen_sizes",
+                               check_screen_sizes(sizes, len(self.lod_ratios) + 1))
         object.__setattr__(self, "root_motion", check_mode(self.root_motion))
         if self.on_bad_clip not in BAD_CLIP_POLICIES:
             raise OptionsError(f"on_bad_clip must be one of {', '.join(BAD_CLIP_POLICIES)}, got "
@@ -760,6 +785,29 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                             "the animation and its meshes are left out")
             continue
         scene, vb, reason, extra = outcome
+        if not any(m.lod for m in vb.meshes):
+            from vbusd.lod import levels_from_names
+
+            # Meshes named for their level (Body_LOD0, Body_LOD1: spec 20.3) are levels too.
+            vb = levels_from_names(vb) or vb
+        source_levels = any(m.lod for m in vb.meshes)
+        if source_levels and options.lod_ratios:
+            raise OptionsError(f"{vb.path}: the source has levels of detail already (glTF MSFT_lod); leave "
+                               "out --lod-ratios to keep them", file=str(source), location="--lod-ratios",
+                               code="options.invalid")
+        if source_levels and scene.animations[index].lods is not None:
+            # A USD source's UsdLod root: the meshes already lie under its levels (spec 20.3).
+            vb = dataclasses.replace(vb, lods=scene.animations[index].lods)
+        elif source_levels:
+            from vbusd.lod import adopt_levels
+
+            # The source's own levels (spec 20.3), every one bound to the one texture.
+            vb = adopt_levels(vb, scene.animations[index].lod_screen_sizes)
+        elif options.lod_ratios:
+            from vbusd.lod import add_levels
+
+            # After the bake: every level shares the texture and its clip extents (spec 20.3).
+            vb = add_levels(vb, options.lod_ratios, screen_sizes=options.lod_screen_sizes)
         kept.append(index)
         baked.append(vb)
         reasons.append(reason)

@@ -329,7 +329,10 @@ def _character(path: Path, index: int, used: set) -> _Character:
             raise InputError(f"the animation and its meshes must lie under the default prim {root}",
                              file=str(path), location=vb.path, code="crowd.character")
     lead = drawn[0]
-    animations = tuple(_Animation(path=vb.path, mesh_paths=tuple(m.path for m in vb.meshes),
+    # An animation with levels of detail: the prototype references its UsdLod root, which brings every
+    # level and the LODRootAPI, so each instance selects its level (spec 20.2).
+    animations = tuple(_Animation(path=vb.path, mesh_paths=(vb.lods.root,) if vb.lods is not None else
+                                  tuple(m.path for m in vb.meshes),
                                   clip_of=_clip_map(lead, vb, str(path))) for vb in drawn)
     base = "".join(c if c.isalnum() or c == "_" else "_" for c in path.stem) or "Character"
     if base[0].isdigit():

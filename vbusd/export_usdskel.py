@@ -279,8 +279,16 @@ def _write_character(stage, vb: VirtualBones, name: str, ranges: dict, tcps: flo
             r_attr.Set(Vt.QuatfArray.FromNumpy(np.ascontiguousarray(rotations[row])), code)  # memory order x, y, z, w
             s_attr.Set(Vt.Vec3hArray.FromNumpy(np.ascontiguousarray(scales[row])), code)
             samples += 1
+    lod_root = None
+    if vb.lods is not None:
+        from vbusd.io.usd_lod import author_lod_root
+
+        # Levels of detail: under the SkelRoot, a UsdLod root whose children hold each level's meshes.
+        lod_root = author_lod_root(stage, vb.lods, vb.clip_extents,
+                                   root=str(root_path.AppendChild(vb.lods.root.rstrip("/").rsplit("/", 1)[-1])))
     for mesh, mesh_name in zip(vb.meshes, _unique([m.path.rsplit("/", 1)[-1] for m in vb.meshes], "Mesh")):
-        prim = UsdGeom.Mesh.Define(stage, root_path.AppendChild(mesh_name))
+        parent = root_path if lod_root is None else lod_root.AppendChild(vb.lods.item_name(mesh.lod))
+        prim = UsdGeom.Mesh.Define(stage, parent.AppendChild(mesh_name))
         prim.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(mesh.points, dtype=np.float32)))
         prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_counts,
                                                                                   dtype=np.int32)))

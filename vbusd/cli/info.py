@@ -59,7 +59,9 @@ The JSON form (--format json) is one object:
   A texture's animation also has "container" (exr | png | ktx2),
   "compression" and "warnings" (notes that did not stop reading).
   A USD asset also has "upAxis" (Y | Z) and "metersPerUnit": the
-  stage's scene units (text: "scene: Z up, 1 unit = 0.01 m").
+  stage's scene units (text: "scene: Z up, 1 unit = 0.01 m"); an
+  animation with levels of detail (format 1.2) has "levelsOfDetail":
+  {"root", "levels", "screenSizes"}.
   A USD asset or package also has "instances" (all crowds) and
   "crowds": [{"path", "animation", "instances",
               "prototypes": [{"path", "instances"}],
@@ -134,6 +136,10 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     described = [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
                           format_version=a.format_version, content_digest=a.content_digest)
                  for a in animations]
+    for entry, a in zip(described, animations):
+        if a.lods is not None:  # format 1.2
+            entry["levelsOfDetail"] = {"root": a.lods.root, "levels": a.lods.level_count,
+                                       "screenSizes": [float(t) for t in a.lods.screen_sizes]}
     return described, [{"path": c.path, "animation": c.animation, "instances": c.instances,
                         "prototypes": [{"path": p, "instances": n} for p, n in c.prototypes], "clips": c.clips}
                        for c in crowds]
@@ -325,6 +331,10 @@ def _print_text(result: dict) -> None:
         table.add_row("texel bytes", common.human_bytes(animation["texelBytes"], exact=True))
         table.add_row("padding waste", f"{animation['paddingFraction'] * 100:.2f}% "
                                        f"({common.human_bytes(animation['paddingBytes'], exact=True)})")
+        lods = animation.get("levelsOfDetail")
+        if lods:
+            table.add_row("levels of detail", f"{lods['levels']} under {lods['root']}, screen sizes "
+                                              + ", ".join(f"{t:g}" for t in lods["screenSizes"]))
         for warning in animation.get("warnings", ()):
             table.add_row("warning", warning)
         console.print(table)

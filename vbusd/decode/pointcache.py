@@ -231,6 +231,11 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         tau, seconds = row_times(vb, clip_index)
         codes = _snap(seconds * tcps)
         first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
+        if vb.lods is not None:
+            from vbusd.io.usd_lod import author_lod_root
+
+            # Levels of detail: the cache keeps the UsdLod root, so a viewer draws one level.
+            author_lod_root(stage, vb.lods, vb.clip_extents)
         for mesh in vb.meshes:
             _define_path(stage, transforms, mesh.path, UsdGeom)
             prim = UsdGeom.Mesh.Define(stage, mesh.path)

@@ -217,6 +217,13 @@ _FINDINGS = (
          f"{_VB}#instancing", "usd"),
     Code("instancer.fade.version", E, "An instancer authors crossfade primvars (primvars:vb:fade*, format "
          "1.1) but its animation is format 1.0 (vb:formatMinorVersion absent or 0).", f"{_VB}#instancing", "usd"),
+    # levels of detail (format 1.2)
+    Code("lod.structure", E, "The meshes bound to an animation lie under more than one UsdLod LODRootAPI prim (or "
+         "some under one and some outside), the root has fewer than 2 or more than 8 children (levels), or a "
+         "level holds no mesh bound to the animation.", f"{_VB}#levels-of-detail", "usd"),
+    Code("lod.heuristic", E, "A LOD root's lod:heuristics does not target exactly one LODScreenSizeHeuristic, "
+         "or its thresholds are not one per level after the first, in (0, 1], strictly decreasing.",
+         f"{_VB}#levels-of-detail", "usd"),
     Code("instancer.fadeWeight.range", W, "An instance's fade weight (primvars:vb:fadeWeight, format 1.1 "
          "crossfade) is outside [0, 1]; decoders clamp it.", f"{_VB}#instancing", "usd"),
 )
@@ -282,6 +289,8 @@ _COMMAND_ERRORS = (
     Code("convert.nothingConverted", E, "--on-bad-clip skip left no clip to convert: every selected clip "
          "failed to bake (the line names the first and why); nothing was written.",
          "usd-conversion.md#clips", "file"),
+    Code("convert.lodSimplifier", E, "--lod-ratios needs meshoptimizer's simplifier, which is not installed "
+         "(pip install 'vbusd[lod]').", f"{_VB}#levels-of-detail", "option"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes

@@ -28,7 +28,7 @@ import numpy as np
 from vbusd.format.layout import Layout
 
 __all__ = ["AnimationClip", "SkinnedMesh", "SkinnedAnimation", "Clip", "BoundMesh", "Crowd",
-           "VirtualBones", "VirtualBonesAsset", "ReadOptions", "SourceScene"]
+           "LevelsOfDetail", "VirtualBones", "VirtualBonesAsset", "ReadOptions", "SourceScene"]
 
 MatrixSampler = Callable[[np.ndarray], np.ndarray]
 """``sample(times) -> (len(times), bone_count, 4, 4)`` float64 skinning matrices at source times (s)."""
@@ -94,6 +94,7 @@ class SkinnedMesh:
         normals: (V, 3) or (face-vertices, 3) rest normals, or None.
         normals_interpolation: ``vertex`` or ``faceVarying``.
         source_path: Where the mesh came from in its source, for messages.
+        lod: The level of detail the source gives the mesh (glTF ``MSFT_lod``; format 1.2), 0 otherwise.
     """
 
     path: str
@@ -105,6 +106,7 @@ class SkinnedMesh:
     normals: Optional[np.ndarray] = None
     normals_interpolation: str = "vertex"
     source_path: Optional[str] = None
+    lod: int = 0
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,10 @@ class SkinnedAnimation:
         bind_transforms: (bones, 4, 4) column-vector bind (rest) transforms ``B_b`` of the joints
             in animation space, so that a joint's transform is ``J_b = M_b B_b`` (spec "Bone
             transforms"; format 1.1, for sockets), or None when the converter does not know them.
+        lod_screen_sizes: When the source gives its meshes levels of detail (``SkinnedMesh.lod``),
+            the screen sizes below which LOD 1, 2, ... take over (spec "Levels of detail"), else None.
+        lods: The source's own UsdLod root when the meshes' paths already lie under its levels
+            (a USD source), kept as it is; None otherwise.
     """
 
     name: str
@@ -130,6 +136,8 @@ class SkinnedAnimation:
     meshes: tuple = ()
     source: Optional[str] = None
     bind_transforms: Optional[np.ndarray] = None
+    lod_screen_sizes: Optional[tuple] = None
+    lods: Optional["LevelsOfDetail"] = None
 
     @property
     def bone_count(self) -> int:
@@ -186,6 +194,8 @@ class BoundMesh:
         bone_weights: (V, K) float32 weights, rows summing to one.
         normals: (V, 3) or (face-vertices, 3) float32 rest normals, or None.
         normals_interpolation: ``vertex`` or ``faceVarying``.
+        lod: Level of detail the mesh belongs to (format 1.2, spec "Levels of detail"): 0 unless its
+            animation has :class:`LevelsOfDetail`, whose root's child ``lod`` holds the mesh.
     """
 
     path: str
@@ -196,6 +206,7 @@ class BoundMesh:
     bone_weights: np.ndarray
     normals: Optional[np.ndarray] = None
     normals_interpolation: str = "vertex"
+    lod: int = 0
 
     @property
     def max_influences(self) -> int:
@@ -283,6 +294,38 @@ class Crowd:
 
 
 @dataclass(frozen=True)
+class LevelsOfDetail:
+    """The levels of detail of one animation's meshes (format 1.2, spec "Levels of detail").
+
+    Every level is bound to the same texture; a mesh's level is :attr:`BoundMesh.lod`.
+
+    Attributes:
+        root: Prim path of the UsdLod ``LODRootAPI`` prim whose children, in order, are the levels.
+        screen_sizes: The ``LODScreenSizeHeuristic`` thresholds, one per level after the first,
+            strictly descending in (0, 1]: an instance whose screen size ``s`` is at most
+            ``screen_sizes[i]`` uses a level past ``i``.
+        item_names: Names of the root's children (the levels), in order (default ``lod0``, ``lod1``, ...).
+    """
+
+    root: str
+    screen_sizes: tuple
+    item_names: tuple = ()
+
+    @property
+    def level_count(self) -> int:
+        """n: number of levels (thresholds + 1)."""
+        return len(self.screen_sizes) + 1
+
+    def item_name(self, level: int) -> str:
+        """The name of the root's child holding ``level``."""
+        return self.item_names[level] if self.item_names else f"lod{level}"
+
+    def item_path(self, level: int) -> str:
+        """Prim path of the root's child holding ``level``."""
+        return f"{self.root.rstrip('/')}/{self.item_name(level)}"
+
+
+@dataclass(frozen=True)
 class VirtualBones:
     """One baked Virtual Bones animation: a layout, its texels and what is bound to it.
 
@@ -314,6 +357,8 @@ class VirtualBones:
     bind_transforms: Optional[np.ndarray] = None
     root_motion: Optional[object] = None
     """Format 1.1: a :class:`vbusd.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
+    lods: Optional[LevelsOfDetail] = None
+    """Format 1.2: the meshes' levels of detail (spec "Levels of detail"), or None for one level."""
 
     def __post_init__(self) -> None:
         if self.texels.shape != self.layout.shape:

@@ -25,9 +25,10 @@ from vbusd.format.layout import FORMAT_VERSION
 __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
            "upgrade"]
 
-FORMAT_MINOR_VERSION = 1
+FORMAT_MINOR_VERSION = 2
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
-Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key."""
+Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key,
+1.2 for levels of detail (spec 20.5)."""
 
 
 class Version(NamedTuple):
@@ -59,6 +60,8 @@ KEYS_1_0 = frozenset((
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
 KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}}
+# Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims, not on the animation.
+KNOWN_KEYS[(1, 2)] = KNOWN_KEYS[(1, 1)]
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
 
@@ -165,3 +168,9 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
 def upgrade_1_0_to_1_1(document: dict) -> dict:
     """1.0 -> 1.1 (spec 16.1): every 1.1 key is optional and absent means 1.0 behaviour; nothing to fill in."""
     return {**document, "formatMinorVersion": 1}
+
+
+@upgrades_from(1, 1)
+def upgrade_1_1_to_1_2(document: dict) -> dict:
+    """1.1 -> 1.2 (spec 20.5): levels of detail are optional UsdLod prims; nothing to fill in."""
+    return {**document, "formatMinorVersion": 2}

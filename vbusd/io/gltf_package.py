@@ -36,6 +36,8 @@ __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NOD
 
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
+MSFT_LOD = "MSFT_lod"
+MSFT_SCREEN_COVERAGE = "MSFT_screencoverage"
 EXTENSION_VERSION = 1
 SUFFIXES = (".glb", ".gltf")
 ROOT_NODE = "vbusd"
@@ -157,6 +159,38 @@ def _crowd_arrays(crowd):
     return columns
 
 
+def _primitives(main, meshes, index: int, where: str) -> list:
+    """The glTF primitives of bound meshes of animation ``index`` (accessors appended to ``main``)."""
+    primitives = []
+    for mesh in meshes:
+        points, normals, bones, weights, triangles = _triangulate(mesh, where)
+        if bones.size and (bones.min() < 0 or bones.max() > _MAX_BONE_INDEX):
+            raise InputError(f"bone index {int(bones.max())} does not fit the SHORT attribute "
+                             f"_VB_JOINTS_n (0..{_MAX_BONE_INDEX})", file=where, location=mesh.path,
+                             code="export.mesh")
+        influences = int(bones.shape[1])
+        sets = -(-influences // 4)
+        padded_bones = np.zeros((bones.shape[0], 4 * sets), dtype=np.int16)
+        padded_weights = np.zeros((bones.shape[0], 4 * sets), dtype=np.float32)
+        padded_bones[:, :influences] = bones
+        padded_weights[:, :influences] = weights
+        attributes = {"POSITION": main.accessor(points, _FLOAT, "VEC3", target=_ARRAY_BUFFER, bounds=True)}
+        if normals is not None:
+            attributes["NORMAL"] = main.accessor(normals, _FLOAT, "VEC3", target=_ARRAY_BUFFER)
+        for n in range(sets):
+            attributes[f"_VB_JOINTS_{n}"] = main.accessor(padded_bones[:, 4 * n:4 * n + 4], _SHORT, "VEC4",
+                                                          target=_ARRAY_BUFFER)
+            attributes[f"_VB_WEIGHTS_{n}"] = main.accessor(padded_weights[:, 4 * n:4 * n + 4], _FLOAT,
+                                                           "VEC4", target=_ARRAY_BUFFER)
+        small = points.shape[0] <= 65535  # index 65535 is primitive restart for UNSIGNED_SHORT
+        indices = main.accessor(triangles.astype(np.uint16 if small else np.uint32),
+                                _USHORT if small else _UINT, "SCALAR", target=_ELEMENT_ARRAY_BUFFER)
+        primitives.append({"attributes": attributes, "indices": indices, "mode": 4,
+                           "extensions": {EXTENSION: {"animation": index, "influences": influences,
+                                                      "path": mesh.path}}})
+    return primitives
+
+
 def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
                   supercompression: str = "none", where: str = "export"):
     """The glTF document and its binary data for an asset (nothing is written).
@@ -192,7 +226,7 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             "buffers": []}
     main = _Buffer(0, gltf)
     ktx_buffers = []
-    animations, mesh_of_animation = [], {}
+    animations, mesh_of_animation, lod_meshes = [], {}, {}
     # Animations of different characters may share a prim name (two glTF characters whose skins
     # have no names both give skin0_Anim): the package's names, and the .gltf's KTX2 files named
     # after them, are made unique in order (skin0_Anim, skin0_Anim_2), as the UsdSkel fallback's.
@@ -214,38 +248,35 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
         report.animations.append(name)
         if not vb.meshes:
             continue
-        primitives = []
-        for mesh in vb.meshes:
-            points, normals, bones, weights, triangles = _triangulate(mesh, where)
-            if bones.size and (bones.min() < 0 or bones.max() > _MAX_BONE_INDEX):
-                raise InputError(f"bone index {int(bones.max())} does not fit the SHORT attribute "
-                                 f"_VB_JOINTS_n (0..{_MAX_BONE_INDEX})", file=where, location=mesh.path,
-                                 code="export.mesh")
-            influences = int(bones.shape[1])
-            sets = -(-influences // 4)
-            padded_bones = np.zeros((bones.shape[0], 4 * sets), dtype=np.int16)
-            padded_weights = np.zeros((bones.shape[0], 4 * sets), dtype=np.float32)
-            padded_bones[:, :influences] = bones
-            padded_weights[:, :influences] = weights
-            attributes = {"POSITION": main.accessor(points, _FLOAT, "VEC3", target=_ARRAY_BUFFER, bounds=True)}
-            if normals is not None:
-                attributes["NORMAL"] = main.accessor(normals, _FLOAT, "VEC3", target=_ARRAY_BUFFER)
-            for n in range(sets):
-                attributes[f"_VB_JOINTS_{n}"] = main.accessor(padded_bones[:, 4 * n:4 * n + 4], _SHORT, "VEC4",
-                                                              target=_ARRAY_BUFFER)
-                attributes[f"_VB_WEIGHTS_{n}"] = main.accessor(padded_weights[:, 4 * n:4 * n + 4], _FLOAT,
-                                                               "VEC4", target=_ARRAY_BUFFER)
-            small = points.shape[0] <= 65535  # index 65535 is primitive restart for UNSIGNED_SHORT
-            indices = main.accessor(triangles.astype(np.uint16 if small else np.uint32),
-                                    _USHORT if small else _UINT, "SCALAR", target=_ELEMENT_ARRAY_BUFFER)
-            primitives.append({"attributes": attributes, "indices": indices, "mode": 4,
-                               "extensions": {EXTENSION: {"animation": index, "influences": influences,
-                                                          "path": mesh.path}}})
-        gltf["meshes"].append({"name": name, "primitives": primitives})
-        mesh_of_animation[index] = len(gltf["meshes"]) - 1
-        report.primitives += len(primitives)
+        levels = 1 if vb.lods is None else vb.lods.level_count
+        for level in range(levels):
+            # Levels of detail (spec/virtual-bones.md 20.4): one glTF mesh per level, LOD 0 first.
+            meshes = vb.meshes if vb.lods is None else tuple(m for m in vb.meshes if m.lod == level)
+            primitives = _primitives(main, meshes, index, where)
+            gltf["meshes"].append({"name": name if level == 0 else f"{name}_lod{level}", "primitives": primitives})
+            if level == 0:
+                mesh_of_animation[index] = len(gltf["meshes"]) - 1
+            else:
+                lod_meshes.setdefault(index, []).append(len(gltf["meshes"]) - 1)
+            report.primitives += len(primitives)
 
     children, instanced = [], set()
+
+    def add_node(node: dict, index: int) -> int:
+        """Append a node drawing animation ``index``'s LOD 0, with MSFT_lod nodes for its other levels."""
+        gltf["nodes"].append(node)
+        at = len(gltf["nodes"]) - 1
+        if index in lod_meshes:
+            ids = []
+            for mesh in lod_meshes[index]:
+                gltf["nodes"].append({**node, "name": f"{node['name']}_lod{len(ids) + 1}", "mesh": mesh})
+                ids.append(len(gltf["nodes"]) - 1)
+            sizes = [float(t) for t in asset.animations[index].lods.screen_sizes]
+            node["extensions"] = {**node.get("extensions", {}), MSFT_LOD: {"ids": ids}}
+            # LOD i while the coverage is at least entry i; the last level to the end (spec 20.4).
+            node["extras"] = {MSFT_SCREEN_COVERAGE: sizes + [0.0]}
+        return at
+
     for crowd, animation in zip(asset.crowds, asset.crowd_animation):
         if animation not in mesh_of_animation:
             continue
@@ -254,17 +285,17 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             continue
         attributes = {name: main.accessor(values, _FLOAT, kind)
                       for name, (values, kind) in _crowd_arrays(crowd).items()}
-        gltf["nodes"].append({"name": _prim_name(crowd.path), "mesh": mesh_of_animation[animation],
-                              "extensions": {INSTANCING: {"attributes": attributes}}})
-        children.append(len(gltf["nodes"]) - 1)
+        children.append(add_node({"name": _prim_name(crowd.path), "mesh": mesh_of_animation[animation],
+                                  "extensions": {INSTANCING: {"attributes": attributes}}}, animation))
         instanced.add(animation)
         report.instances.append(crowd.instance_count)
     for index, mesh in sorted(mesh_of_animation.items()):
         if index not in instanced:
-            gltf["nodes"].append({"name": _prim_name(asset.animations[index].path), "mesh": mesh})
-            children.insert(0, len(gltf["nodes"]) - 1)
+            children.insert(0, add_node({"name": _prim_name(asset.animations[index].path), "mesh": mesh}, index))
     if report.instances:
         gltf["extensionsUsed"].append(INSTANCING)
+    if lod_meshes:
+        gltf["extensionsUsed"].append(MSFT_LOD)  # not required: a loader without it draws LOD 0
     root = gltf["nodes"][0]
     root["children"] = children
     if str(asset.up_axis).upper() == "Z":

@@ -304,7 +304,13 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
 def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, diagnostics: Diagnostics,
                  package: Package) -> None:
     """``package.instances`` for every crowd node; collects crowds and single characters."""
-    for n, node in enumerate(root.get("nodes") or []):
+    nodes = root.get("nodes") or []
+    # MSFT_lod (format 1.2): the nodes another node lists are its levels, drawn instead of it per
+    # instance, not more characters or crowds; their instance attributes are still checked.
+    levels = {i for node in nodes if isinstance(node, dict)
+              for i in (((node.get("extensions") or {}).get("MSFT_lod") or {}).get("ids") or [])
+              if isinstance(i, int)}
+    for n, node in enumerate(nodes):
         if node.get("mesh") not in bound:
             continue
         name = node.get("name") or f"node{n}"
@@ -312,7 +318,8 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         mesh_name = package.meshes[mesh][0]
         ext = (node.get("extensions") or {}).get(INSTANCING)
         if not isinstance(ext, dict) or not isinstance(ext.get("attributes"), dict):
-            package.characters.append(name)
+            if n not in levels:
+                package.characters.append(name)
             continue
         where = f"/nodes/{n}/extensions/{INSTANCING}/attributes"
         attributes = ext["attributes"]
@@ -346,6 +353,8 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
                                    + (f" (clips 0..{clip_count - 1})" if key == "_VB_CLIP" else " (not finite)"),
                                    JsonPointer(file, f"{where}/{key}"))
         clips = values.get("_VB_CLIP")
+        if n in levels:
+            continue  # a level of another crowd node: the same instances, not another crowd
         package.crowds.append(PackageCrowd(node=name, mesh=mesh_name, animation=bound[mesh],
                                            instances=int(instances),
                                            clips=None if clips is None else np.round(clips).astype(np.int64)))

@@ -151,6 +151,8 @@ def _check_asset(Sdf, asset: VirtualBonesAsset) -> None:
 
     for i, vb in enumerate(asset.animations):
         claim(vb.path, f"animation {i}")
+        if vb.lods is not None:
+            _check_lods(Sdf, vb)
         for j, mesh in enumerate(vb.meshes):
             claim(mesh.path, f"mesh {j} of animation {i}")
             if mesh.normals_interpolation not in ("vertex", "faceVarying"):
@@ -164,6 +166,22 @@ def _check_asset(Sdf, asset: VirtualBonesAsset) -> None:
         if not 0 <= int(target) < len(asset.animations):
             raise OptionsError(f"crowd {crowd.path} instances animation {target}, but the asset has "
                                f"{len(asset.animations)}", file="usd")
+
+
+def _check_lods(Sdf, vb: VirtualBones) -> None:
+    """Every mesh of an animation with levels lies under the child of the LOD root of its level."""
+    lods = vb.lods
+    _check_prim_path(Sdf, lods.root, f"the LOD root of {vb.path}")
+    if not 2 <= lods.level_count <= 8:
+        raise OptionsError(f"animation {vb.path}: {lods.level_count} levels of detail; 2 to 8", file="usd")
+    for mesh in vb.meshes:
+        item = Sdf.Path(lods.item_path(mesh.lod)) if 0 <= mesh.lod < lods.level_count else None
+        if item is None or not Sdf.Path(mesh.path).HasPrefix(item) or Sdf.Path(mesh.path) == item:
+            raise OptionsError(f"mesh {mesh.path} of level {mesh.lod} is not under {lods.root}'s child for "
+                               "that level", file="usd")
+    for level in range(lods.level_count):
+        if not any(m.lod == level for m in vb.meshes):
+            raise OptionsError(f"animation {vb.path}: level {level} of detail has no mesh", file="usd")
 
 
 def _define_ancestors(stage, UsdGeom, path) -> None:
@@ -269,6 +287,14 @@ def _write_mesh(stage, pxr, mesh: BoundMesh, animation_path: str) -> None:
                            k).Set(Vt.FloatArray.FromNumpy(weights))
 
 
+def _write_lod_root(stage, pxr, vb: VirtualBones) -> None:
+    """Author the UsdLod root of ``vb``'s levels (spec 20.1): LODRootAPI, its children in level
+    order, and a LODScreenSizeHeuristic beside it (a child would count as a level)."""
+    from vbusd.io.usd_lod import author_lod_root
+
+    author_lod_root(stage, vb.lods, vb.clip_extents)
+
+
 def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
     path = Sdf.Path(crowd.path)
@@ -280,10 +306,16 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     UsdGeom.Scope.Define(stage, path.AppendChild(PROTOTYPES_SCOPE))
     prototype_path = path.AppendChild(PROTOTYPES_SCOPE).AppendChild(Sdf.Path(vb.path).name)
     UsdGeom.Xform.Define(stage, prototype_path)
-    mesh_names = unique_names([Sdf.Path(m.path).name for m in vb.meshes])
-    for mesh, name in zip(vb.meshes, mesh_names):
-        child = stage.DefinePrim(prototype_path.AppendChild(name))
-        child.GetReferences().AddInternalReference(Sdf.Path(mesh.path))
+    if vb.lods is not None:
+        # One reference to the LOD root brings every level and its LODRootAPI: each instance
+        # selects its level (spec 20.2).
+        child = stage.DefinePrim(prototype_path.AppendChild(Sdf.Path(vb.lods.root).name))
+        child.GetReferences().AddInternalReference(Sdf.Path(vb.lods.root))
+    else:
+        mesh_names = unique_names([Sdf.Path(m.path).name for m in vb.meshes])
+        for mesh, name in zip(vb.meshes, mesh_names):
+            child = stage.DefinePrim(prototype_path.AppendChild(name))
+            child.GetReferences().AddInternalReference(Sdf.Path(mesh.path))
 
     positions = np.ascontiguousarray(crowd.positions, dtype=np.float32).reshape(n, 3)
     instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(positions))
@@ -369,7 +401,11 @@ def build_stage(asset: VirtualBonesAsset, texture_names: list):
     fading = {int(index) for crowd, index in zip(asset.crowds, asset.crowd_animation) if _fades(crowd)}
     for number, (vb, texture_name) in enumerate(zip(asset.animations, texture_names)):
         # An animation played by a crossfading crowd is format 1.1 (spec 15), so 1.0 readers refuse it.
-        _write_animation(stage, pxr, vb, texture_name, minor=1 if number in fading else 0)
+        # Levels of detail are 1.2 (spec 20.5): a 1.1 reader must refuse rather than draw every level.
+        minor = 2 if vb.lods is not None else 1 if number in fading else 0
+        _write_animation(stage, pxr, vb, texture_name, minor=minor)
+        if vb.lods is not None:
+            _write_lod_root(stage, pxr, vb)
         for mesh in vb.meshes:
             _write_mesh(stage, pxr, mesh, vb.path)
     for crowd, index in zip(asset.crowds, asset.crowd_animation):

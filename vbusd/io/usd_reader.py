@@ -25,6 +25,7 @@ command.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import os
 import re
@@ -40,7 +41,7 @@ from vbusd.format.declared import Declared, build_layout, check_declared, compar
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
 from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
 from vbusd.format.layout import Layout, TexelFormat
-from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.format.model import BoundMesh, Clip, Crowd, LevelsOfDetail, VirtualBones, VirtualBonesAsset
 from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
@@ -216,6 +217,8 @@ class AnimationAttributes:
     texture: str
     texture_file: Optional[Path]
     declared: Optional[Declared] = None
+    lods: Optional[LevelsOfDetail] = None
+    """Format 1.2: the levels of detail of its bound meshes (filled by :func:`read_summary`), or None."""
 
 
 class _Skip(Exception):
@@ -933,6 +936,20 @@ class UsdReader:
                          bone_weights=w.astype(np.float32), normals=normals,
                          normals_interpolation=interpolation)
 
+    def read_levels(self, animation: VirtualBones, meshes: list):
+        """The levels of detail of an animation's meshes (spec 20.1): (meshes with their level,
+        LevelsOfDetail), or None when no mesh lies under a UsdLod LODRootAPI prim."""
+        from vbusd.io.usd_lod import levels_of
+
+        findings, levels, lods = levels_of(self.stage, animation.path, [m.path for m in meshes])
+        for item in findings:
+            self.diagnostics.add(item)
+        if findings:
+            raise _Skip
+        if lods is None:
+            return None
+        return [dataclasses.replace(m, lod=int(level)) for m, level in zip(meshes, levels)], lods
+
     def read_normals(self, prim, path: str, vertex_count: int, face_vertex_count: int):
         """Rest normals: ``primvars:normals`` (flattened) when authored, else ``normals``."""
         UsdGeom = _pxr()[3]
@@ -1145,11 +1162,16 @@ class UsdReader:
         self.report_usd_messages()
         if self.diagnostics.has_errors():
             return None
+        levels = [None if vb is None else self.guard(stage.GetPrimAtPath(vb.path), self.read_levels, vb, found)
+                  for vb, found in zip(animations, meshes)]
+        if self.diagnostics.has_errors():
+            return None
         animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
                                    texture=vb.texture, clip_extents=vb.clip_extents,
-                                   bind_transforms=vb.bind_transforms, root_motion=vb.root_motion)
-                      for vb, found in zip(animations, meshes)]
+                                   bind_transforms=vb.bind_transforms, root_motion=vb.root_motion,
+                                   lods=lods)
+                      for vb, (found, lods) in zip(animations, [lv or (m, None) for lv, m in zip(levels, meshes)])]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())
         fps = float(stage.GetFramesPerSecond())
@@ -1314,6 +1336,11 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
     with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
         prims = reader.animation_prims()
         found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
+        from vbusd.io.usd_lod import levels_of_animation
+
+        # Levels of detail (format 1.2) for info; their findings are validate's to report.
+        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=levels_of_animation(prim)[2])
+                 for prim, attributes in zip(prims, found)]
         by_path = {str(prim.GetPath()): i for i, prim in enumerate(prims)}
         crowds = []
         UsdGeom = _pxr()[3]

@@ -131,7 +131,12 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
             "texels": buffer.add(vb.texels, texel_dtype),
             "clipExtents": None if vb.clip_extents is None
             else np.asarray(vb.clip_extents, dtype=np.float64).tolist(),
-            "meshes": [_mesh(mesh, buffer) for mesh in vb.meshes],
+            # Levels of detail (format 1.2): LOD 0 as "meshes", the others in "levels" with their
+            # thresholds; the runtime picks one per instance (docs/engines.md, "Plain files").
+            "meshes": [_mesh(mesh, buffer) for mesh in vb.meshes if vb.lods is None or mesh.lod == 0],
+            "levels": None if vb.lods is None else [[_mesh(mesh, buffer) for mesh in vb.meshes if mesh.lod == level]
+                                                    for level in range(1, vb.lods.level_count)],
+            "screenSizes": None if vb.lods is None else [float(t) for t in vb.lods.screen_sizes],
         })
     crowds = []
     for crowd, animation in zip(asset.crowds, asset.crowd_animation):

@@ -85,8 +85,10 @@ export class VirtualBonesGLTFPlugin {
       return new VirtualBonesAnimation({ layout, texels, clipExtents: entry.clipExtents ?? null, name });
     }));
 
-    // Each animation is one glTF mesh with one primitive per bound mesh, in the asset's order.
+    // Each animation is one glTF mesh with one primitive per bound mesh, in the asset's order (with
+    // levels of detail, one glTF mesh per level, LOD 0 first: MSFT_lod on the node names the others).
     const meshesOfAnimation = animations.map(() => null);
+    const entriesOfMesh = new Map();
     for (let meshIndex = 0; meshIndex < (json.meshes ?? []).length; ++meshIndex) {
       const primitives = json.meshes[meshIndex].primitives;
       const extensions = primitives.map((p) => p.extensions?.[EXTENSION]);
@@ -96,13 +98,28 @@ export class VirtualBonesGLTFPlugin {
       if (!animations[animation]) throw new VirtualBonesError(`mesh ${meshIndex}: no animation ${animation}`);
       const object = await parser.getDependency('mesh', meshIndex);
       const objects = object.isMesh ? [object] : object.children.filter((child) => child.isMesh);
-      meshesOfAnimation[animation] = objects.map((mesh, p) => ({
+      const entries = objects.map((mesh, p) => ({
         name: extensions[p].path ?? mesh.name,
         maxInfluences: extensions[p].influences,
         geometry: primitiveGeometry(mesh.geometry, extensions[p], extensions[p].path ?? mesh.name),
         meshIndex,
       }));
+      entriesOfMesh.set(meshIndex, entries);
+      meshesOfAnimation[animation] ??= entries;
     }
+    // MSFT_lod (spec/runtime-package.md, Nodes): the node's further levels and their screen coverages.
+    const levelsOf = (node, nodeIndex) => {
+      const ids = node.extensions?.MSFT_lod?.ids;
+      if (!ids || !ids.length) return {};
+      const levels = ids.map((id) => {
+        const entries = entriesOfMesh.get(json.nodes[id]?.mesh);
+        if (!entries) throw new VirtualBonesError(`node ${nodeIndex}: MSFT_lod names node ${id}, which draws no ${EXTENSION} mesh`);
+        return entries;
+      });
+      const coverage = node.extras?.MSFT_screencoverage;
+      if (!Array.isArray(coverage) || coverage.length < ids.length) throw new VirtualBonesError(`node ${nodeIndex}: MSFT_lod without MSFT_screencoverage for its ${ids.length + 1} levels`);
+      return { levels, screenSizes: coverage.slice(0, ids.length) };
+    };
 
     // Crowds (instanced nodes) first, then single characters, as the plain scene numbers them.
     gltf.scene.updateMatrixWorld(true);
@@ -118,7 +135,7 @@ export class VirtualBonesGLTFPlugin {
       const matrix = new Matrix4().copy(object.matrixWorld);
       const instancing = node.extensions?.EXT_mesh_gpu_instancing;
       if (!instancing) {
-        singles.push({ animation: entry, name: node.name ?? `node ${nodeIndex}`, instances: singleInstance(0), matrix });
+        singles.push({ animation: entry, name: node.name ?? `node ${nodeIndex}`, instances: singleInstance(0), matrix, ...levelsOf(node, nodeIndex) });
         continue;
       }
       const accessor = async (name, required = true) => {
@@ -134,6 +151,7 @@ export class VirtualBonesGLTFPlugin {
         animation: entry,
         name: node.name ?? `node ${nodeIndex}`,
         matrix,
+        ...levelsOf(node, nodeIndex),
         instances: instancesFromPlacement({
           positions: await accessor('TRANSLATION'),
           orientations: await accessor('ROTATION'),

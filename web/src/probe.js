@@ -82,7 +82,8 @@ function bindAttribute(gl, program, name, data, size, { integer = false, divisor
 
 /**
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
- * computed by the GPU: `{positions, normals}` as Float32Arrays, each mesh of the animation in
+ * computed by the GPU: `{positions, normals, lod}` (Float32Arrays, and the level of detail the
+ * instance was drawn with at the crowd's last updateLevels, whose meshes are skinned), each mesh of the animation in
  * order, points in the asset's order (normals in the asset's normal order: per point, or per
  * face-vertex for face-varying normals; empty for meshes without normals). The crowd's own skin
  * binding is used: with `pulled`, the skin records are read from the geometry's skin texture by
@@ -99,7 +100,9 @@ export function probeCrowd(renderer, crowd, index, time) {
   crowd.updateMatrixWorld(true);
   const positions = [];
   const normals = [];
-  for (const mesh of crowd.meshes) {
+  // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
+  const lod = crowd.levelOf ? crowd.levelOf(index) : 0;
+  for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const { maxInfluences } = mesh.userData.virtualBones;
     const skin = crowd.skin ?? DEFAULT_SKIN;
     const program = probeProgram(gl, animation, maxInfluences, skin);
@@ -199,5 +202,5 @@ export function probeCrowd(renderer, crowd, index, time) {
     for (const a of arrays) { out.set(a, at); at += a.length; }
     return out;
   };
-  return { positions: concat(positions), normals: concat(normals) };
+  return { positions: concat(positions), normals: concat(normals), lod };
 }

@@ -6,7 +6,7 @@
 // black, no ground, fog or tone mapping), ui=0 (no panel), antialias=0, instances=N, width=W and
 // height=H (fixed canvas size in CSS pixels), pixelRatio=R, skin=attributes|pulled (the skin binding).
 //
-// window.vbusd: {ready (a Promise), probe(instance, time), setTime(t), render(), measureFrames(n),
+// window.vbusd: {ready (a Promise), probe(instance, time), levels(), setTime(t), render(), measureFrames(n),
 // renderer, scene, camera, crowds}. probe numbers instances across the crowds in the asset's order,
 // then one per animation that no crowd instances.
 
@@ -66,6 +66,10 @@ async function main() {
   // Frame everything drawn: the union of the crowds' culling bounds (or their rest bounds).
   const bounds = new THREE.Box3();
   for (const crowd of crowds) {
+    if (crowd.levels) {  // levels of detail: the instances' boxes (their level meshes draw none yet)
+      bounds.union(crowd.boundsOfInstances());
+      continue;
+    }
     for (const mesh of crowd.meshes) {
       mesh.computeBoundingBox();
       bounds.union(mesh.boundingBox.clone().applyMatrix4(mesh.matrixWorld));
@@ -169,7 +173,14 @@ async function main() {
       camera.updateProjectionMatrix();
     }
   };
-  const render = () => { resize(); controls.update(); renderer.render(scene, camera); needsRender = false; };
+  const render = () => {
+    resize();
+    controls.update();
+    // Levels of detail (format 1.2): each crowd picks every instance's level for this camera.
+    for (const crowd of crowds) crowd.updateLevels(camera);
+    renderer.render(scene, camera);
+    needsRender = false;
+  };
   window.addEventListener('resize', () => { needsRender = true; });
 
   // Frame time: the mean interval between the last 60 animation frames, and the time render() takes.
@@ -189,7 +200,8 @@ async function main() {
     }
     const mean = intervals.reduce((a, b) => a + b, 0) / intervals.length;
     const drawn = crowds.reduce((n, crowd) => n + crowd.count, 0);
-    element('stats').textContent = `frame time: ${(mean * 1000).toFixed(1)} ms (render ${renderMs.toFixed(1)} ms), ${drawn} instances`;
+    const triangles = crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0);
+    element('stats').textContent = `frame time: ${(mean * 1000).toFixed(1)} ms (render ${renderMs.toFixed(1)} ms), ${drawn} instances, ${triangles} triangles`;
     requestAnimationFrame(loop);
   };
   setTime(time);
@@ -201,12 +213,21 @@ async function main() {
     renderer, scene, camera, controls, crowds, animations: objects.animations,
     setTime, render,
     get instanceCount() { return probeTargets.length; },
-    /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU. */
+    /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU,
+     * and `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without
+     * levels); the vertices are that level's (LOD 0's when culled). */
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
       const result = probeCrowd(renderer, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals) };
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+    },
+    /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
+    levels() {
+      return {
+        lod: probeTargets.map(([crowd, i]) => crowd.levelOf(i)),
+        triangles: crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0),
+      };
     },
     /** Mean milliseconds per frame over `frames` frames, each rendered and finished (pixels read). */
     measureFrames(frames = 60) {

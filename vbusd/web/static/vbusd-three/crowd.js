@@ -3,9 +3,9 @@
 // cover every pose of the clips the instances play.
 
 import {
-  BufferAttribute, BufferGeometry, Float32BufferAttribute, Group, InstancedBufferAttribute, InstancedMesh,
-  IntType, Matrix4, MeshDepthMaterial, MeshDistanceMaterial, MeshStandardMaterial, Quaternion,
-  RGBADepthPacking, Sphere, Vector3,
+  Box3, BufferAttribute, BufferGeometry, DynamicDrawUsage, Float32BufferAttribute, Frustum, Group,
+  InstancedBufferAttribute, InstancedMesh, IntType, Matrix4, MeshDepthMaterial, MeshDistanceMaterial,
+  MeshStandardMaterial, Quaternion, RGBADepthPacking, Sphere, Vector3,
 } from 'three';
 
 import { patchMaterial } from './material.js';
@@ -72,9 +72,18 @@ function pick(values, slots, set) {
  *   and its bone attributes are removed; skin.js) or `attributes` (bone indices and weights as
  *   vertex attributes). Each mesh's `userData.virtualBones.binding` is the `{skin, skinTexture}` to
  *   give `patchMaterial` when swapping in another material.
+ * @param {Array<Array<object>>} [options.levels] levels of detail 1, 2, ... (format 1.2, spec
+ *   virtual-bones.md 20): for each, its meshes as `meshes` gives LOD 0's. With levels, call
+ *   `updateLevels(camera)` before each render: every instance gets the level its screen size
+ *   selects and is culled by its clips' bounds, and each level draws its instances in one
+ *   instanced draw per mesh (no draw call per instance).
+ * @param {Array<number>} [options.screenSizes] the levels' thresholds (UsdLod's, MSFT_screencoverage
+ *   without its last 0), one per level after LOD 0, decreasing.
+ * @param {number} [options.hysteresis] a finer level only once the screen size passes its
+ *   threshold by this fraction (default 0.1, spec 20.2).
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = DEFAULT_SKIN }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = DEFAULT_SKIN, levels = null, screenSizes = null, hysteresis = 0.1 }) {
     super();
     checkSkinBinding(skin, name);
     this.name = name;
@@ -110,17 +119,21 @@ export class VirtualBonesCrowd extends Group {
         weight: instances.fadeWeight?.[i] ?? 0,
       });
     }
-    this.meshes = meshes.map((entry, index) => {
+    const shared = {
+      clip: this.clipAttribute, time: this.timeAttribute, fadeClip: this.fadeClipAttribute, fade: this.fadeAttribute,
+      matrix: this.instanceMatrix,
+    };
+    const makeMesh = (entry, index, attributes) => {
       const geometry = entry.geometry;
       let binding = { skin };
       if (skin === 'pulled') binding = { skin, skinTexture: pullSkin(geometry, entry.maxInfluences).texture };
       else if (!geometry.attributes.vb_boneIndices0) throw new VirtualBonesError(`${geometry.name}: the geometry has no bone attributes (its skin was pulled); use skin 'pulled'`);
-      geometry.setAttribute('vb_instanceClip', this.clipAttribute);
-      geometry.setAttribute('vb_instanceTime', this.timeAttribute);
-      geometry.setAttribute('vb_instanceFadeClip', this.fadeClipAttribute);
-      geometry.setAttribute('vb_instanceFade', this.fadeAttribute);
+      geometry.setAttribute('vb_instanceClip', attributes.clip);
+      geometry.setAttribute('vb_instanceTime', attributes.time);
+      geometry.setAttribute('vb_instanceFadeClip', attributes.fadeClip);
+      geometry.setAttribute('vb_instanceFade', attributes.fade);
       const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
-      mesh.instanceMatrix = this.instanceMatrix;
+      mesh.instanceMatrix = attributes.matrix;
       mesh.name = entry.name || geometry.name;
       mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
       mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
@@ -128,7 +141,44 @@ export class VirtualBonesCrowd extends Group {
       mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this, binding };
       this.add(mesh);
       return mesh;
-    });
+    };
+    this.levels = null;
+    this.drawn = instances.count;
+    if (levels && levels.length) {
+      // Levels of detail (spec 20.2): per level, compact instance arrays that updateLevels() fills
+      // with the instances choosing that level; the full arrays above stay the source of truth
+      // (setFade, socketMatrix and probe read them).
+      const thresholds = Array.from(screenSizes ?? []);
+      if (thresholds.length !== levels.length) throw new VirtualBonesError(`${name}: ${levels.length + 1} levels need ${levels.length} screen sizes, got ${thresholds.length}`);
+      for (let t = 0; t < thresholds.length; ++t) {
+        if (!(thresholds[t] > 0 && thresholds[t] <= 1) || (t > 0 && !(thresholds[t] < thresholds[t - 1]))) {
+          throw new VirtualBonesError(`${name}: screen sizes must lie in (0, 1] and decrease, got ${thresholds.join(', ')}`);
+        }
+      }
+      this.screenSizes = thresholds;
+      this.hysteresis = hysteresis;
+      this.levelOfInstance = new Int32Array(instances.count);
+      this.levelCounts = new Array(levels.length + 1).fill(0);
+      const n = instances.count;
+      const dynamic = (array, size) => new InstancedBufferAttribute(array, size).setUsage(DynamicDrawUsage);
+      this.levelAttributes = [meshes, ...levels].map(() => {
+        const clip = dynamic(new Int32Array(n), 1);
+        clip.gpuType = IntType;
+        const fadeClip = dynamic(new Int32Array(n), 1);
+        fadeClip.gpuType = IntType;
+        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3) };
+      });
+      this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry, index) => {
+        const mesh = makeMesh(entry, index, this.levelAttributes[level]);
+        mesh.count = 0;
+        mesh.frustumCulled = false;  // culled per instance by updateLevels
+        mesh.userData.virtualBones.level = level;
+        return mesh;
+      }));
+      this.meshes = this.levels[0];
+    } else {
+      this.meshes = meshes.map((entry, index) => makeMesh(entry, index, shared));
+    }
     this.updateBounds();
   }
 
@@ -165,12 +215,113 @@ export class VirtualBonesCrowd extends Group {
   }
 
   /** Instances drawn (the first `count` of the crowd). */
-  get count() { return this.meshes[0]?.count ?? 0; }
+  get count() { return this.levels ? this.drawn : (this.meshes[0]?.count ?? 0); }
 
   set count(n) {
     const count = Math.max(0, Math.min(this.capacity, Math.floor(n)));
-    for (const mesh of this.meshes) mesh.count = count;
+    this.drawn = count;
+    if (!this.levels) for (const mesh of this.meshes) mesh.count = count;
     this.updateBounds();
+  }
+
+  /** The meshes of level `level` (LOD 0's without levels). */
+  meshesOfLevel(level) { return this.levels ? this.levels[level] : this.meshes; }
+
+  /** The level instance `index` drew at the last updateLevels (-1: culled); 0 without levels. */
+  levelOf(index) { return this.levels ? this.levelOfInstance[index] : 0; }
+
+  /**
+   * Levels of detail (spec virtual-bones.md 20.2): choose each drawn instance's level from its
+   * screen size seen by `camera` (UsdLod's projectedSphere size of the box of every clip's
+   * extents: the fraction of the view plane its bounding sphere covers), cull it when its clips'
+   * bounds lie outside the view, and write each level's instance list. One instanced draw per
+   * level and mesh follows; no draw call per instance. Without levels it does nothing.
+   */
+  updateLevels(camera) {
+    if (!this.levels) return;
+    camera.updateMatrixWorld();
+    this.updateMatrixWorld(true);
+    const frustum = new Frustum().setFromProjectionMatrix(new Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse));
+    const eye = new Vector3().setFromMatrixPosition(camera.matrixWorld);
+    const tangent = Math.tan((camera.fov ?? 0) * Math.PI / 360);
+    const aspect = camera.aspect ?? 1;
+    const all = this.animation.boundsOfClips(this.animation.clips.map((_, c) => c));
+    const extent = all ?? this.meshes[0].geometry.boundingBox ?? new Box3().setFromBufferAttribute(this.meshes[0].geometry.attributes.position);
+    const centre = extent.getCenter(new Vector3());
+    const radius = 0.5 * extent.max.distanceTo(extent.min);
+    const cull = this.cullBox ? this.cullBox.getBoundingSphere(new Sphere()) : null;
+    const world = new Matrix4();
+    const instance = new Matrix4();
+    const point = new Vector3();
+    const sphere = new Sphere();
+    const counts = this.levelCounts.fill(0);
+    const thresholds = this.screenSizes;
+    const source = { matrix: this.instanceMatrix.array, clip: this.clipAttribute.array, time: this.timeAttribute.array, fadeClip: this.fadeClipAttribute.array, fade: this.fadeAttribute.array };
+    for (let i = 0; i < this.drawn; ++i) {
+      instance.fromArray(source.matrix, 16 * i);
+      world.multiplyMatrices(this.matrixWorld, instance);
+      const scale = world.getMaxScaleOnAxis();
+      if (cull) {
+        sphere.center.copy(cull.center).applyMatrix4(world);
+        sphere.radius = cull.radius * scale;
+        if (!frustum.intersectsSphere(sphere)) { this.levelOfInstance[i] = -1; continue; }
+      }
+      let level = 0;
+      if (camera.isPerspectiveCamera) {
+        point.copy(centre).applyMatrix4(world);
+        const projected = (radius * scale) / (point.distanceTo(eye) * tangent);
+        const size = Math.PI * projected * projected / (4 * aspect);
+        for (const t of thresholds) if (size <= t) ++level;
+        const previous = this.levelOfInstance[i];
+        if (level < previous) {
+          // Finer only past the threshold by the hysteresis margin; coarser at once.
+          let raised = 0;
+          for (const t of thresholds) if (size <= t * (1 + this.hysteresis)) ++raised;
+          level = Math.min(previous, raised);
+        }
+      }
+      this.levelOfInstance[i] = level;
+      const at = counts[level]++;
+      const target = this.levelAttributes[level];
+      target.matrix.array.set(source.matrix.subarray(16 * i, 16 * i + 16), 16 * at);
+      target.clip.array[at] = source.clip[i];
+      target.time.array[2 * at] = source.time[2 * i];
+      target.time.array[2 * at + 1] = source.time[2 * i + 1];
+      target.fadeClip.array[at] = source.fadeClip[i];
+      target.fade.array.set(source.fade.subarray(3 * i, 3 * i + 3), 3 * at);
+    }
+    this.levels.forEach((meshes, level) => {
+      const attributes = this.levelAttributes[level];
+      for (const [key, attribute] of Object.entries(attributes)) {
+        attribute.clearUpdateRanges();
+        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3 }[key];
+        if (counts[level]) attribute.addUpdateRange(0, counts[level] * size);
+        attribute.needsUpdate = true;
+      }
+      for (const mesh of meshes) mesh.count = counts[level];
+    });
+  }
+
+  /** World-space box of the drawn instances: the clips' bounds (or LOD 0's rest bounds) at each. */
+  boundsOfInstances() {
+    this.updateMatrixWorld(true);
+    const geometry = this.meshes[0].geometry;
+    if (!geometry.boundingBox) geometry.computeBoundingBox();
+    const local = this.cullBox ?? geometry.boundingBox;
+    const box = new Box3();
+    const world = new Matrix4();
+    for (let i = 0; i < this.drawn; ++i) {
+      world.multiplyMatrices(this.matrixWorld, new Matrix4().fromArray(this.instanceMatrix.array, 16 * i));
+      box.union(local.clone().applyMatrix4(world));
+    }
+    return box;
+  }
+
+  /** Triangles the crowd draws with the levels chosen at the last updateLevels (all at LOD 0 without levels). */
+  get trianglesDrawn() {
+    const triangles = (mesh) => (mesh.geometry.index ? mesh.geometry.index.count : mesh.geometry.attributes.position.count) / 3;
+    if (!this.levels) return this.meshes.reduce((n, mesh) => n + triangles(mesh) * mesh.count, 0);
+    return this.levels.reduce((n, meshes, level) => n + meshes.reduce((m, mesh) => m + triangles(mesh), 0) * this.levelCounts[level], 0);
   }
 
   /**
@@ -184,6 +335,8 @@ export class VirtualBonesCrowd extends Group {
     // A crossfading instance shows a blend of two poses: inside the box of both clips' extents.
     for (let i = 0; i < this.count; ++i) if (this.fadeAttribute.array[3 * i + 2] > 0) used.add(this.fadeClipAttribute.array[i]);
     const box = this.animation.boundsOfClips(used.size ? used : [0]);
+    this.cullBox = box;
+    if (this.levels) return;  // updateLevels culls each instance with cullBox
     for (const mesh of this.meshes) {
       if (box === null) {
         mesh.frustumCulled = false;

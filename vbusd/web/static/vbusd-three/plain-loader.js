@@ -37,8 +37,7 @@ export function parsePlainScene(scene, buffer) {
       clipExtents: entry.clipExtents,
       name: entry.path,
     });
-    const meshes = entry.meshes.map((mesh, m) => {
-      const at = `${where}.meshes[${m}]`;
+    const parseMesh = (mesh, at) => {
       return {
         name: mesh.path,
         maxInfluences: mesh.maxInfluences,
@@ -53,8 +52,11 @@ export function parsePlainScene(scene, buffer) {
           pointCount: mesh.pointCount,
         }),
       };
-    });
-    return { animation, meshes };
+    };
+    const meshes = entry.meshes.map((mesh, m) => parseMesh(mesh, `${where}.meshes[${m}]`));
+    // Levels of detail (format 1.2): LOD 1, 2, ... and their screen-size thresholds.
+    const levels = entry.levels ? entry.levels.map((level, l) => level.map((mesh, m) => parseMesh(mesh, `${where}.levels[${l}][${m}]`))) : null;
+    return { animation, meshes, levels, screenSizes: entry.screenSizes ?? null };
   });
   const crowds = scene.crowds.map((crowd, c) => {
     const at = `crowds[${c}] (${crowd.path})`;
@@ -101,11 +103,16 @@ export function buildObjects(description, { material, skin = DEFAULT_SKIN } = {}
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));
-  const make = (animationIndex, instances, name, shareGeometry, matrix = null) => {
+  const make = (animationIndex, instances, name, shareGeometry, matrix = null, lod = {}) => {
     const entry = description.animations[animationIndex];
     if (!entry) throw new VirtualBonesError(`${name}: no animation ${animationIndex}`);
-    const meshes = entry.meshes.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
-    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin });
+    const copy = (entries) => entries.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
+    const meshes = copy(entry.meshes);
+    // Levels of detail (format 1.2): the crowd selects one per instance (crowd.updateLevels); from
+    // the glTF node's MSFT_lod, or the plain files' animation.
+    const source = lod.levels ? lod : entry;
+    const levels = source.levels ? source.levels.map(copy) : null;
+    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin, levels, screenSizes: source.screenSizes ?? null });
     crowd.userData.animationIndex = animationIndex;
     if (matrix) {
       crowd.matrixAutoUpdate = false;
@@ -118,7 +125,7 @@ export function buildObjects(description, { material, skin = DEFAULT_SKIN } = {}
   };
   const used = new Set();
   description.crowds.forEach((crowd) => {
-    make(crowd.animation, crowd.instances, crowd.name, !used.has(crowd.animation), crowd.matrix);
+    make(crowd.animation, crowd.instances, crowd.name, !used.has(crowd.animation), crowd.matrix, crowd);
     used.add(crowd.animation);
   });
   description.animations.forEach((entry, index) => {
