@@ -2002,7 +2002,7 @@ def markdown(data: dict) -> str:
             "| runs | animation bytes on GPU | max error vs numpy (m) | vs exact (m) |",
             "|---|--:|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for r in sorted(data["runs"], key=lambda r: (r["character"] != "stadium", r["instances"],
-                                                 ["static", "vb", "vb_pulled", "vb_pulled_texture", "vat", "palette", "warp"].index(
+                                                 ["static", "vb", "vb_pulled", "vb_pulled_texture", "vb_lod", "vat", "palette", "warp"].index(
                                                      r["method"]),
                                                  r["config"])):
         c = r["correctness"]
