@@ -93,6 +93,9 @@ def _check_rows(value: str):
               help="extract: bake every clip in place (the root joint's horizontal translation removed) and "
                    "keep that motion as a root track per clip (format 1.1; vbusd.root_motion); extractYaw: "
                    "also its turn about the up axis.")
+@click.option("--mask", "masks", multiple=True, metavar="NAME=BONE",
+              help="A bone mask for layers (format 1.2; vbusd.skin(..., layers=...)): BONE and every bone below "
+                   "it; repeatable.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
@@ -111,7 +114,7 @@ def _check_rows(value: str):
 @quiet_option
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
-            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, manifest, jobs,
+            check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, masks, manifest, jobs,
             scheduler, cache_dir, no_cache, report_file, stall_timeout, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
@@ -138,7 +141,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
         allow_outside_paths=allow_outside_paths, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
         clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights,
-        root_motion=root_motion)
+        root_motion=root_motion, masks=tuple(masks))
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):

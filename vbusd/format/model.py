@@ -121,6 +121,8 @@ class SkinnedAnimation:
         bind_transforms: (bones, 4, 4) column-vector bind (rest) transforms ``B_b`` of the joints
             in animation space, so that a joint's transform is ``J_b = M_b B_b`` (spec "Bone
             transforms"; format 1.1, for sockets), or None when the converter does not know them.
+        bone_parents: (bones,) index of each bone's parent bone, -1 for a root (format 1.2, for
+            layers and masks), or None when the converter does not know them.
     """
 
     name: str
@@ -130,6 +132,7 @@ class SkinnedAnimation:
     meshes: tuple = ()
     source: Optional[str] = None
     bind_transforms: Optional[np.ndarray] = None
+    bone_parents: Optional[tuple] = None
 
     @property
     def bone_count(self) -> int:
@@ -314,6 +317,11 @@ class VirtualBones:
     bind_transforms: Optional[np.ndarray] = None
     root_motion: Optional[object] = None
     """Format 1.1: a :class:`vbusd.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
+    bone_parents: Optional[tuple] = None
+    """Format 1.2: per bone, the index of its parent bone or -1 (spec "Layers and bone masks"), or None."""
+    masks: tuple = ()
+    """Format 1.2: the named bone masks, ``(name, (bones,) float64 weights in [0, 1])`` pairs (spec
+    "Layers and bone masks"); stored only with ``bone_parents`` and ``bind_transforms``."""
 
     def __post_init__(self) -> None:
         if self.texels.shape != self.layout.shape:
@@ -327,6 +335,13 @@ class VirtualBones:
             raise ValueError(f"clips hold {rows} rows, layout says {self.layout.row_count}")
         if self.bind_transforms is not None and np.shape(self.bind_transforms) != (self.layout.bone_count, 4, 4):
             raise ValueError(f"bind transforms {np.shape(self.bind_transforms)} for {self.layout.bone_count} bones")
+        if self.bone_parents is not None and len(self.bone_parents) != self.layout.bone_count:
+            raise ValueError(f"{len(self.bone_parents)} bone parents for {self.layout.bone_count} bones")
+        if self.masks and (self.bone_parents is None or self.bind_transforms is None):
+            raise ValueError("bone masks need bone parents and bind transforms (spec 8.6)")
+        for name, weights in self.masks:
+            if np.shape(weights) != (self.layout.bone_count,):
+                raise ValueError(f"mask {name!r} holds {np.shape(weights)} weights for {self.layout.bone_count} bones")
 
     @functools.cached_property
     def content_digest(self) -> str:

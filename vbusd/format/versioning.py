@@ -25,9 +25,10 @@ from vbusd.format.layout import FORMAT_VERSION
 __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
            "upgrade"]
 
-FORMAT_MINOR_VERSION = 1
+FORMAT_MINOR_VERSION = 2
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
-Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key."""
+Writers write the lowest version that holds an asset (spec 16.1, 16.2): 1.0 unless it uses a 1.1 or
+1.2 key."""
 
 
 class Version(NamedTuple):
@@ -58,7 +59,9 @@ KEYS_1_0 = frozenset((
     "texture", "clipExtents", "unormRangeMin", "unormRangeMax"))
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
-KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}}
+KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
+KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
+              (1, 2): KEYS_1_1 | {"boneParents", "masks"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
 
@@ -165,3 +168,9 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
 def upgrade_1_0_to_1_1(document: dict) -> dict:
     """1.0 -> 1.1 (spec 16.1): every 1.1 key is optional and absent means 1.0 behaviour; nothing to fill in."""
     return {**document, "formatMinorVersion": 1}
+
+
+@upgrades_from(1, 1)
+def upgrade_1_1_to_1_2(document: dict) -> dict:
+    """1.1 -> 1.2 (spec 16.2): bone parents and masks (layers) are optional; nothing to fill in."""
+    return {**document, "formatMinorVersion": 2}

@@ -218,8 +218,17 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["clipRootMotion"] = Vt.Vec4dArray.FromNumpy(np.ascontiguousarray(entries))
         values["rootMotionUpAxis"] = str(vb.root_motion.up_axis)
         minor = max(minor, 1)
+    if vb.bone_parents is not None:
+        # Format 1.2 (spec "Layers and bone masks").
+        values["boneParents"] = Vt.IntArray([int(p) for p in vb.bone_parents])
+        minor = max(minor, 2)
+    if vb.masks:
+        values["maskNames"] = Vt.TokenArray([str(name) for name, _ in vb.masks])
+        values["maskWeights"] = Vt.FloatArray([float(w) for _, weights in vb.masks for w in weights])
+        minor = max(minor, 2)
     if minor:
-        # The lowest version that holds the asset (spec 16.1): 1.1 only when it uses a 1.1 feature.
+        # The lowest version that holds the asset (spec 16.1, 16.2): 1.1 or 1.2 only when it uses
+        # a feature of that version.
         values["formatMinorVersion"] = int(minor)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)

@@ -525,7 +525,7 @@ class UsdReader:
         clip_arrays: dict = {}
         for attribute in names.ANIMATION_ATTRIBUTES:
             if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms",
-                                 "clipRootMotion", "rootMotionUpAxis"):
+                                 "clipRootMotion", "rootMotionUpAxis", "boneParents", "maskNames", "maskWeights"):
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -558,6 +558,7 @@ class UsdReader:
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
         self._bind_transforms(prim, declared)
+        self._masks(prim, declared)
         declared.layout = build_layout(declared)
         for item in declared.findings:
             self.diagnostics.add(item)
@@ -688,6 +689,47 @@ class UsdReader:
                         f"({bones}), got {len(matrices)}", UsdSite(path, names.BIND_TRANSFORMS))
             return
         declared.values["bindTransforms"] = np.transpose(matrices, (0, 2, 1)).copy()
+
+    def _masks(self, prim, declared: Declared) -> None:
+        """Format 1.2 ``vb:boneParents``, ``vb:maskNames`` and ``vb:maskWeights`` (spec 8.6) into
+        ``boneParents`` (ints) and ``masks`` (``{"name", "weights"}`` objects, as in the metadata)."""
+        from vbusd.format.metadata import parents_problem
+
+        path = str(prim.GetPath())
+        bones = declared.get("boneCount")
+        parents_attr = prim.GetAttribute(names.BONE_PARENTS)
+        if parents_attr and parents_attr.HasAuthoredValue():
+            parents = [int(p) for p in (parents_attr.Get() or [])]
+            problem = parents_problem(parents, bones) if isinstance(bones, int) else None
+            if problem is not None:
+                self.report("prim.attribute.invalid", f"{names.BONE_PARENTS}: {problem[1]}",
+                            UsdSite(path, names.BONE_PARENTS))
+                return
+            declared.values["boneParents"] = parents
+        names_attr = prim.GetAttribute(names.MASK_NAMES)
+        if not names_attr or not names_attr.HasAuthoredValue():
+            return
+        mask_names = [str(n) for n in (names_attr.Get() or [])]
+        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
+        weights = np.array(weights_attr.Get() if weights_attr else [], dtype=np.float64)
+        site = UsdSite(path, names.MASK_WEIGHTS)
+        if not isinstance(bones, int) or weights.size != bones * len(mask_names):
+            self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} must hold boneCount ({bones}) weights "
+                        f"per mask ({len(mask_names)}), got {weights.size}", site)
+            return
+        if not np.all((weights >= 0) & (weights <= 1)):
+            self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} must lie in [0, 1]", site)
+            return
+        if len(set(mask_names)) != len(mask_names) or not all(mask_names):
+            self.report("prim.attribute.invalid", f"{names.MASK_NAMES} must be unique and non-empty",
+                        UsdSite(path, names.MASK_NAMES))
+            return
+        if "boneParents" not in declared.values or "bindTransforms" not in declared.values:
+            self.report("prim.attribute.invalid", f"{names.MASK_NAMES} needs {names.BONE_PARENTS} and "
+                        f"{names.BIND_TRANSFORMS} (spec 8.6)", UsdSite(path, names.MASK_NAMES))
+            return
+        declared.values["masks"] = [{"name": name, "weights": row.tolist()}
+                                    for name, row in zip(mask_names, weights.reshape(len(mask_names), bones))]
 
     def _root_motion(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:clipRootMotion`` and ``vb:rootMotionUpAxis`` (spec "Root motion") into ``rootMotion``."""
@@ -836,12 +878,27 @@ class UsdReader:
         if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
             self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
                                          f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
+        parents = attributes.declared.values.get("boneParents")
+        parents = tuple(parents) if parents is not None else texture.info.bone_parents
+        if texture.info.bone_parents is not None and parents != texture.info.bone_parents:
+            self.diagnostics.add(finding("metadata.mismatch", f"boneParents differ from the prim's "
+                                         f"{names.BONE_PARENTS}", theirs.locate("boneParents")))
+        masks = tuple((m["name"], np.asarray(m["weights"], np.float64))
+                      for m in attributes.declared.values.get("masks") or ()) or texture.info.masks
+        if texture.info.masks and ([n for n, _ in masks] != [n for n, _ in texture.info.masks] or not all(
+                np.array_equal(np.float32(a), np.float32(b)) for (_, a), (_, b) in zip(masks, texture.info.masks))):
+            # vb:maskWeights is float[]: compared as float32, as unorm ranges are.
+            self.diagnostics.add(finding("metadata.mismatch", f"masks differ from the prim's {names.MASK_NAMES} "
+                                         f"and {names.MASK_WEIGHTS}", theirs.locate("masks")))
+        if texture.info.masks:
+            masks = texture.info.masks  # the metadata's float64 weights, when both agree
         return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
                             clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
                             path=attributes.path, texture=attributes.texture,
                             clip_extents=attributes.clip_extents,
                             bind_transforms=binds if binds is not None else theirs_binds,
-                            root_motion=attributes.declared.values.get("rootMotion"))
+                            root_motion=attributes.declared.values.get("rootMotion"),
+                            bone_parents=parents, masks=masks)
 
     # -- bound meshes and crowds -----------------------------------------------------------------
 
@@ -1148,7 +1205,8 @@ class UsdReader:
         animations = [VirtualBones(layout=vb.layout, texels=vb.texels, bones=vb.bones, clips=vb.clips,
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
                                    texture=vb.texture, clip_extents=vb.clip_extents,
-                                   bind_transforms=vb.bind_transforms, root_motion=vb.root_motion)
+                                   bind_transforms=vb.bind_transforms, root_motion=vb.root_motion,
+                                   bone_parents=vb.bone_parents, masks=vb.masks)
                       for vb, found in zip(animations, meshes)]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())
