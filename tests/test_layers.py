@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import vbusd
+from vbusd.api import clip_index
 from vbusd.bake import BakeOptions, bake
 from vbusd.format import versioning
 from vbusd.format.errors import InputError, OptionsError, VersionError
@@ -148,7 +149,7 @@ def test_fox_walking_with_its_upper_body_surveying_matches_threejs(fox, encoding
     masked = [int(b) for b in np.flatnonzero(mask)]
     assert [vb.bones[b] for b in masked][:2] == ["b_Spine01_02", "b_Spine02_03"] and "b_Hip_01" not in \
         [vb.bones[b] for b in masked]
-    walk, survey = (vbusd.api.clip_index(vb, name) for name in ("Walk", "Survey"))
+    walk, survey = (clip_index(vb, name) for name in ("Walk", "Survey"))
     base_rows = [0, 5, 11, vb.clips[walk].row_count - 1]
     layer_rows = [3, 40, 17, vb.clips[survey].row_count // 2]
     pairs = [(r / vb.clips[walk].rows_per_second, s / vb.clips[survey].rows_per_second)
@@ -175,3 +176,63 @@ def test_fox_walking_with_its_upper_body_surveying_matches_threejs(fox, encoding
             # The layer moved the upper body: the check is not of the walk alone.
             plain = vbusd.skin(vb, "Walk", tau)[0].points
             assert float(np.abs(plain - theirs_points).max()) > 1e-3 * diagonal
+
+
+def test_convert_mask_writes_format_1_2_that_reads_back_and_validates(fox, tmp_path, capsys):
+    """vbusd convert --mask: masks and bone parents in the sidecar and on the prim (format 1.2),
+    vbusd validate clean, the layered pose from the file equal to the three.js-checked one of the
+    bake, and a 1.1 reader refusing the asset by naming the 1.2 keys."""
+    from pxr import Usd
+
+    from vbusd.cli import main
+
+    path, animation = fox
+    out = tmp_path / "fox.usda"
+    code = main(["convert", str(path), "-o", str(out), "--texel-format", "float32", "--encoding", "crossMatrix",
+                 "--mask", "upper=b_Spine01_02", "--mask", "tail=b_Tail01_012", "-q"])
+    assert code == 0, capsys.readouterr().err
+    assert vbusd.validate(out).valid
+    stage = Usd.Stage.Open(str(out))
+    prim = next(p for p in stage.Traverse() if p.GetTypeName() == "VirtualBonesAnimation")
+    assert prim.GetAttribute("vb:formatMinorVersion").Get() == 2
+    assert list(prim.GetAttribute("vb:maskNames").Get()) == ["upper", "tail"]
+    bones = list(prim.GetAttribute("vb:bones").Get())
+    weights = np.array(prim.GetAttribute("vb:maskWeights").Get()).reshape(2, len(bones))
+    # The tail mask is the three tail bones (the Fox's own hierarchy, read by the glTF converter).
+    assert [bones[b] for b in np.flatnonzero(weights[1])] == ["b_Tail01_012", "b_Tail02_013", "b_Tail03_014"]
+    sidecar = next(tmp_path.rglob("*.exr.json"))
+    meta = json.loads(sidecar.read_text())
+    assert meta["formatMinorVersion"] == 2 and [m["name"] for m in meta["masks"]] == ["upper", "tail"]
+    assert meta["boneParents"] == list(prim.GetAttribute("vb:boneParents").Get())
+    layers = [{"clip": "Survey", "time": 0.5, "weight": 0.6, "mask": "upper"},
+              {"clip": "Run", "time": 0.1, "weight": 1.0, "mask": "tail"}]
+    from_file = vbusd.skin(out, "Walk", 0.3, layers=layers)[0].points
+    baked = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32",
+                                        masks=(("upper", "b_Spine01_02"), ("tail", "b_Tail01_012"))))
+    np.testing.assert_array_equal(from_file, vbusd.skin(baked, "Walk", 0.3, layers=layers)[0].points)
+    with pytest.raises(VersionError) as error:
+        versioning.upgrade(meta, current=(1, 1))
+    assert "boneParents, masks" in str(error.value) and "version 1.1" in str(error.value)
+
+
+def test_bad_mask_is_one_line(fox, tmp_path, capsys):
+    from vbusd.cli import main
+
+    path, _ = fox
+    code = main(["convert", str(path), "-o", str(tmp_path / "fox.usda"), "--mask", "upper=b_Spine99"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "convert.mask" in err[0] and "b_Spine99" in err[0], err
+    assert not (tmp_path / "fox.usda").exists()
+    code = main(["convert", str(path), "-o", str(tmp_path / "fox.usda"), "--mask", "upper"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "NAME=BONE" in err[0], err
+
+
+def test_an_asset_without_masks_is_written_as_before(fox, tmp_path):
+    """No --mask: no 1.2 key, the version the asset needs (1.1 for the Fox's bind transforms)."""
+    path, animation = fox
+    vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))
+    from vbusd.format.metadata import to_dict
+
+    meta = to_dict(vb)
+    assert meta["formatMinorVersion"] == 1 and "boneParents" not in meta and "masks" not in meta

@@ -554,6 +554,11 @@ class UsdReader:
                     # see, instead of piling up findings about what depends on it.
                     upgraded[attribute.key] = fallback
         declared.values.update({k: v for k, v in upgraded.items() if k != "clips"})
+        # The version as authored, compared with the texture's metadata as written: an upgrade
+        # step (1.1 -> 1.2) must not make a 1.1 prim disagree with its 1.1 texture.
+        declared.values.pop("formatMinorVersion", None)
+        if "formatMinorVersion" in raw:
+            declared.values["formatMinorVersion"] = raw["formatMinorVersion"]
         if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
