@@ -236,3 +236,69 @@ def test_an_asset_without_masks_is_written_as_before(fox, tmp_path):
 
     meta = to_dict(vb)
     assert meta["formatMinorVersion"] == 1 and "boneParents" not in meta and "masks" not in meta
+
+
+def test_usdskel_layer_equals_the_same_blend_of_usdskel_poses(tmp_path):
+    """A 5-joint UsdSkel chain (placed by a rotated, moving skeleton): clip time a with the joints
+    from j2 down overridden by the same clip at time b, against UsdSkel's own local joint poses
+    (SkeletonQuery.ComputeJointLocalTransforms) blended as spec 8.6 says with USD's math
+    (UsdSkel.DecomposeTransform, Gf.Slerp, UsdSkel.MakeTransform) and concatenated by
+    UsdSkel.ConcatJointTransforms under the skeleton's world transform."""
+    pxr = pytest.importorskip("pxr")  # noqa: F841
+    import runpy
+    from types import SimpleNamespace
+
+    from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
+
+    from vbusd.converters import usdskel
+
+    scenes = SimpleNamespace(**runpy.run_path(str(HERE / "fixtures" / "usdskel" / "scenes.py")))
+    rig = scenes.RigSpec(joints=scenes.chain_joints(5), bend=70.0,
+                         skel_xform=scenes.rotation((0, 1, 0), 30) * scenes.translation(1, 2, 3),
+                         root_xform={1.0: scenes.translation(0, 0, 0), 13.0: scenes.translation(2, 0, -1)})
+    source = scenes.write_stage(tmp_path / "source.usda", [rig])
+    scene = usdskel.read(source)
+    animation = scene.animations[0]
+    for encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
+        vb = bake(animation, BakeOptions(encoding=encoding, texel_format="float32", masks=(("upper", "j2"),)))
+        mask = np.asarray(vb.masks[0][1])
+        assert mask.tolist() == [0, 0, 1, 1, 1]
+        stage = Usd.Stage.Open(source)
+        query = UsdSkel.Cache().GetSkelQuery(UsdSkel.Skeleton(stage.GetPrimAtPath("/Root/Skel")))
+        clip = vb.clips[0]
+        tcps = stage.GetTimeCodesPerSecond()
+        worst, moved, diagonal = 0.0, 0.0, 0.0
+        for row_a, row_b, weight in ((1, clip.row_count - 2, 0.3), (clip.row_count // 2, 0, 0.8), (3, 9, 1.0)):
+            tau_a, tau_b = row_a / clip.rows_per_second, row_b / clip.rows_per_second
+            code_a, code_b = ((clip.start_time + tau) * tcps for tau in (tau_a, tau_b))
+            local_a = query.ComputeJointLocalTransforms(code_a)
+            local_b = query.ComputeJointLocalTransforms(code_b)
+            blended = []
+            for joint, (m_a, m_b) in enumerate(zip(local_a, local_b)):
+                alpha = weight * mask[joint]
+                if alpha == 0.0:
+                    blended.append(m_a)
+                    continue
+                t_a, r_a, s_a = UsdSkel.DecomposeTransform(m_a)
+                t_b, r_b, s_b = UsdSkel.DecomposeTransform(m_b)
+                rotation = Gf.Slerp(alpha, Gf.Quatd(r_a), Gf.Quatd(r_b))
+                # USD row vectors: scale, then rotation, then translation (UsdSkel.MakeTransform's
+                # order, in double precision).
+                scale = Gf.Vec3d(s_a) * (1 - alpha) + Gf.Vec3d(s_b) * alpha
+                translate = Gf.Vec3d(t_a) * (1 - alpha) + Gf.Vec3d(t_b) * alpha
+                blended.append(Gf.Matrix4d().SetScale(scale) * Gf.Matrix4d().SetRotate(rotation)
+                               * Gf.Matrix4d().SetTranslate(translate))
+            skel_world = UsdGeom.Xformable(query.GetPrim()).ComputeLocalToWorldTransform(code_a)
+            joints = UsdSkel.ConcatJointTransforms(query.GetTopology(), Vt.Matrix4dArray(blended), skel_world)
+            expected = np.transpose(np.array(joints, dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1))
+            plain = np.transpose(np.array(query.ComputeJointWorldTransforms(UsdGeom.XformCache(code_a)),
+                                          dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1))
+            diagonal = max(diagonal, float(np.ptp(expected[:, :3, 3], axis=0).max()), 1.0)
+            layers = [{"clip": 0, "time": tau_b, "weight": weight, "mask": "upper"}]
+            for b in range(len(vb.bones)):
+                ours = vbusd.bone_transform(vb, b, 0, tau_a, layers=layers)
+                worst = max(worst, float(np.abs(ours - expected[b]).max()))
+                moved = max(moved, float(np.abs(expected[b] - plain[b]).max()))
+        # Measured 1.1e-7 to 1.8e-7 of the diagonal (UsdSkel.DecomposeTransform returns float32).
+        assert worst <= 1e-6 * diagonal, f"{encoding}: {worst:.3g}"
+        assert moved > 0.1, "the layer does not change the pose: the check checks nothing"
