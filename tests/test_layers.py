@@ -51,8 +51,10 @@ def _spec_example(masks=(("arm", "b1"),)):
     """Spec 8.6's example: two bones (bone 1 below bone 0), bind transforms the identity."""
     walk = np.stack([_translation(0, 1, 0), _translation(0, 2, 0)])
     wave = np.stack([_translation(5, 0, 0), _translation(5, 0, 0) @ _rot_z(90)])
-    mesh = SkinnedMesh("/Example/Mesh", np.array([[1.0, 0, 0]]), np.array([1]), np.array([0]),
-                       np.array([[1]]), np.array([[1.0]]), normals=np.array([[1.0, 0, 0]]))
+    # One triangle bound to bone 1; its vertex 0 is the example's point (1, 0, 0).
+    mesh = SkinnedMesh("/Example/Mesh", np.array([[1.0, 0, 0], [1.0, 0.5, 0], [1.0, 0, 0.5]]), np.array([3]),
+                       np.array([0, 1, 2]), np.array([[1]] * 3), np.array([[1.0]] * 3),
+                       normals=np.array([[1.0, 0, 0]] * 3))
     clips = (AnimationClip("walk", 0.0, 1.0, _constant(walk), native_rate=2, loop=False),
              AnimationClip("wave", 0.0, 1.0, _constant(wave), native_rate=2, loop=False))
     animation = SkinnedAnimation("Example", "/Example/Anim", ("b0", "b1"), clips, (mesh,),
@@ -302,3 +304,57 @@ def test_usdskel_layer_equals_the_same_blend_of_usdskel_poses(tmp_path):
         # Measured 1.1e-7 to 1.8e-7 of the diagonal (UsdSkel.DecomposeTransform returns float32).
         assert worst <= 1e-6 * diagonal, f"{encoding}: {worst:.3g}"
         assert moved > 0.1, "the layer does not change the pose: the check checks nothing"
+
+
+def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
+    """primvars:vb:layer* (elementSize L) written, read back, and each instance skinned as
+    vbusd.skin skins its clip, layers and crossfade at its own times; decoders that do not
+    implement layers yet refuse the crowd (layers.unsupported) instead of drawing it without them."""
+    from pxr import Usd, UsdGeom
+
+    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.format.model import Crowd, VirtualBonesAsset
+
+    vb = bake(_spec_example(), BakeOptions(encoding="quatTranslation", texel_format="float32",
+                                           masks=(("arm", "b1"), ("all", "b0"))))
+    n = 3
+    crowd = Crowd("/VirtualBones/Crowd", positions=np.array([[0, 0, 0], [3, 0, 0], [6, 0, 0]], np.float32),
+                  orientations=np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  clip=np.array([0, 0, 1], np.int32), time_offset=np.zeros(n, np.float32),
+                  playback_rate=np.ones(n, np.float32),
+                  fade_clip=np.array([0, 1, 0], np.int32), fade_time_offset=np.zeros(n, np.float32),
+                  fade_playback_rate=np.ones(n, np.float32), fade_weight=np.array([0, 0.25, 0], np.float32),
+                  layer_clip=np.array([[1, 0], [1, 1], [0, 0]], np.int32),
+                  layer_time_offset=np.full((n, 2), 0.25, np.float32),
+                  layer_playback_rate=np.ones((n, 2), np.float32),
+                  layer_weight=np.array([[0.5, 0.0], [1.0, 0.75], [0.0, 0.0]], np.float32),
+                  layer_mask=np.array([[0, 0], [0, 1], [0, 0]], np.int32))
+    asset = VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,))
+    out = tmp_path / "crowd.usda"
+    vbusd.write_asset(asset, out)
+    assert vbusd.validate(out).valid
+    stage = Usd.Stage.Open(str(out))
+    weight = UsdGeom.Primvar(stage.GetPrimAtPath("/VirtualBones/Crowd").GetAttribute("primvars:vb:layerWeight"))
+    assert weight.GetElementSize() == 2 and weight.GetInterpolation() == "vertex"
+    back = vbusd.read_asset(out)
+    read_crowd = back.crowds[0]
+    np.testing.assert_array_equal(read_crowd.layer_mask, crowd.layer_mask)
+    np.testing.assert_array_equal(read_crowd.layer_weight, crowd.layer_weight)
+    t = 0.5
+    points, _ = skin_crowd(back.animations[0], back.animations[0].meshes[0], read_crowd, t)
+    for i, layers in enumerate([
+            [{"clip": 1, "time": 0.75, "weight": 0.5, "mask": "arm"}],
+            [{"clip": 1, "time": 0.75, "weight": 1.0, "mask": "arm"}, {"clip": 1, "time": 0.75, "weight": 0.75,
+                                                                     "mask": "all"}],
+            []]):
+        fade = dict(fade_clip=1, fade_time=t, fade_weight=0.25) if i == 1 else {}
+        expected = vbusd.skin(vb, int(crowd.clip[i]), t, layers=layers or None, **fade)[0].points
+        np.testing.assert_allclose(points[i], expected + crowd.positions[i], atol=1e-12)
+    # The instance's socket follows its layered bone.
+    joint = crowd_joint_transforms(back.animations[0], read_crowd, 1, t)[0]
+    expected_joint = vbusd.bone_transform(vb, 1, 0, t, layers=[{"clip": 1, "time": 0.75, "weight": 0.5, "mask": "arm"}])
+    np.testing.assert_allclose(joint, expected_joint, atol=1e-12)
+    warp = pytest.importorskip("vbusd.decode.warp")
+    with pytest.raises(vbusd.UnsupportedError) as error:
+        warp.skin_crowd(back.animations[0], back.animations[0].meshes[0], read_crowd, t, device="cpu")
+    assert error.value.code == "layers.unsupported"

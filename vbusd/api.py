@@ -187,7 +187,8 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
 
 _PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
-                 "fade_time_offset", "fade_playback_rate", "fade_weight")
+                 "fade_time_offset", "fade_playback_rate", "fade_weight", "layer_clip", "layer_time_offset",
+                 "layer_playback_rate", "layer_weight", "layer_mask")
 
 
 _LAYER_KEYS = ("clip", "time", "weight", "mask")

@@ -23,7 +23,7 @@ __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transf
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
-           "mix_local", "mask_weights", "layered_skinning", "skin_mesh_layered"]
+           "mix_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -338,7 +338,10 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     n = crowd.instance_count
     if n == 0:
         return np.empty((0,) + mesh.points.shape), None if mesh.normals is None else np.empty((0,) + mesh.normals.shape)
-    points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
+    if crowd.layered:
+        points, normals = _layered_instances(vb, mesh, crowd, t)
+    else:
+        points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
     if normals is not None:
         normals = _normalize(normals)
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
@@ -399,7 +402,20 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     n = crowd.instance_count
     if n == 0:
         return np.empty((0, 4, 4))
-    local, = _per_instance(crowd, t, lambda clip, taus: (skinning_matrices(vb, clip, taus)[:, bone],))
+    if crowd.layered:
+        # Spec 8.6 and 8.4: each side of the crossfade layered, the two layered transforms blended.
+        taus = instance_time(crowd, t)
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        local = np.empty((n, 4, 4))
+        for i, layers in enumerate(instance_layers(vb, crowd, t)):
+            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers)[0])[0, bone]
+            w = float(np.clip(fade_weight[i], 0.0, 1.0)) if crowd.crossfades else 0.0
+            if w > 0:
+                fade_tau = np.array([fade_offset[i] + fade_rate[i] * t])
+                faded = _matrices(layered_skinning(vb, int(fade_clip[i]), fade_tau, layers)[0])[0, bone]
+                local[i] = (1.0 - w) * local[i] + w * faded
+    else:
+        local, = _per_instance(crowd, t, lambda clip, taus: (skinning_matrices(vb, clip, taus)[:, bone],))
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
     scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
     placement = np.zeros((n, 4, 4))
@@ -616,3 +632,33 @@ def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, l
         return pose(clip_index, tau, True)
     fade_tau = np.broadcast_to(np.atleast_1d(np.asarray(fade_tau, dtype=np.float64)), tau.shape)
     return crossfade(pose(clip_index, tau, False), pose(fade_clip, fade_tau, False), fade_weight)
+
+
+def instance_layers(vb: VirtualBones, crowd: Crowd, t: float) -> list:
+    """Each instance's layers at scene time ``t`` as :func:`layered_skinning` takes them (spec 15,
+    ``primvars:vb:layer*``): layers of weight 0 are left out."""
+    if crowd.layer_weight is None:
+        return [[] for _ in range(crowd.instance_count)]
+    weight = np.asarray(crowd.layer_weight, dtype=np.float64)
+    clip = np.asarray(crowd.layer_clip, dtype=np.int64).reshape(weight.shape)
+    offset = np.asarray(crowd.layer_time_offset, dtype=np.float64).reshape(weight.shape)
+    rate = np.asarray(crowd.layer_playback_rate, dtype=np.float64).reshape(weight.shape)
+    mask = np.asarray(crowd.layer_mask, dtype=np.int64).reshape(weight.shape)
+    return [[(int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
+              mask_weights(vb, int(mask[i, j]))) for j in range(weight.shape[1]) if weight[i, j] > 0]
+            for i in range(weight.shape[0])]
+
+
+def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float):
+    """Skinned points and normals (N, V, 3) of a layered crowd, one instance at a time."""
+    taus = instance_time(crowd, t)
+    fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+    points, normals = [], []
+    for i, layers in enumerate(instance_layers(vb, crowd, t)):
+        fading = crowd.crossfades and fade_weight[i] > 0
+        p, n = skin_mesh_layered(vb, mesh, int(crowd.clip[i]), taus[i:i + 1], layers,
+                                 fade_clip=int(fade_clip[i]) if fading else None,
+                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i])
+        points.append(p[0])
+        normals.append(None if n is None else n[0])
+    return np.stack(points), None if normals[0] is None else np.stack(normals)

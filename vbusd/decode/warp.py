@@ -310,6 +310,13 @@ class Decoder:
             InputError: A clip index out of range or mismatched per-instance array lengths.
         """
         n = crowd.instance_count
+        if crowd.layered:
+            # Spec 8.6 layers are not in the kernels yet: refuse rather than skin without them.
+            from vbusd.format.errors import UnsupportedError
+
+            raise UnsupportedError("the crowd plays layers (format 1.2), which the warp decoder does not "
+                                   "implement yet; use the numpy reference (vbusd.decode.reference.skin_crowd)",
+                                   location=f"{crowd.path}.primvars:vb:layerWeight", code="layers.unsupported")
         clip = np.asarray(crowd.clip, dtype=np.int64).reshape(-1)
         arrays = {"clip": clip, "timeOffset": np.asarray(crowd.time_offset).reshape(-1),
                   "playbackRate": np.asarray(crowd.playback_rate).reshape(-1)}

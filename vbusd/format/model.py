@@ -228,6 +228,12 @@ class Crowd:
         fade_samples: Time-sampled fade primvars (spec "Instancing": a crowd switches clips over
             time): ``{field: (stage times in seconds (S,), values (S, N))}`` for any of the four
             fields above; :meth:`at` evaluates them. None when none is time-sampled.
+        layer_clip: (N, L) int32 clip of each instance's ``L`` layers (format 1.2, spec "Layers and
+            bone masks"), or None for no layers.
+        layer_time_offset: (N, L) float32 clip-local seconds of each layer at stage time 0.
+        layer_playback_rate: (N, L) float32 clip seconds per stage second of each layer.
+        layer_weight: (N, L) float32 weight of each layer in [0, 1] (0: the layer slot is unused).
+        layer_mask: (N, L) int32 mask of each layer, an index into the animation's masks.
     """
 
     path: str
@@ -242,6 +248,16 @@ class Crowd:
     fade_playback_rate: Optional[np.ndarray] = None
     fade_weight: Optional[np.ndarray] = None
     fade_samples: Optional[dict] = None
+    layer_clip: Optional[np.ndarray] = None
+    layer_time_offset: Optional[np.ndarray] = None
+    layer_playback_rate: Optional[np.ndarray] = None
+    layer_weight: Optional[np.ndarray] = None
+    layer_mask: Optional[np.ndarray] = None
+
+    @property
+    def layered(self) -> bool:
+        """Whether any instance has a layer of weight above 0 (a format 1.2 crowd)."""
+        return self.layer_weight is not None and bool(np.any(np.asarray(self.layer_weight) > 0))
 
     def at(self, t: float) -> "Crowd":
         """This crowd with its time-sampled fade primvars evaluated at stage time ``t`` (seconds).
@@ -258,12 +274,14 @@ class Crowd:
         for field_name, (times, samples) in self.fade_samples.items():
             times = np.asarray(times, dtype=np.float64)
             samples = np.asarray(samples)
-            if field_name == "fade_clip":
+            if field_name in ("fade_clip", "layer_clip", "layer_mask"):
                 index = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 1))
                 values[field_name] = samples[index].astype(np.int32)
             else:
-                columns = [np.interp(t, times, samples[:, i].astype(np.float64)) for i in range(samples.shape[1])]
-                values[field_name] = np.asarray(columns, dtype=np.float32)
+                # (S, N) fade samples or (S, N, L) layer samples: each value interpolated on its own.
+                flat = samples.reshape(len(times), -1).astype(np.float64)
+                columns = [np.interp(t, times, flat[:, i]) for i in range(flat.shape[1])]
+                values[field_name] = np.asarray(columns, dtype=np.float32).reshape(samples.shape[1:])
         return dataclasses.replace(self, fade_samples=None, **values)
 
     @property

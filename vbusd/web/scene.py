@@ -104,6 +104,13 @@ def _mesh(mesh: BoundMesh, buffer: _Buffer) -> dict:
 
 def _fade(crowd, buffer: _Buffer) -> dict:
     """A crossfading crowd's fade arrays (format 1.1, defaults filled in), or nulls without crossfade."""
+    if crowd.layered:
+        # Spec 8.6 layers are not in the three.js runtime yet: refuse rather than draw without them.
+        from vbusd.format.errors import UnsupportedError
+
+        raise UnsupportedError("the crowd plays layers (format 1.2), which the three.js runtime does not "
+                               "implement yet", location=f"{crowd.path}.primvars:vb:layerWeight",
+                               code="layers.unsupported")
     if not crowd.crossfades:
         return {"fadeClip": None, "fadeTimeOffset": None, "fadePlaybackRate": None, "fadeWeight": None}
     clip, offset, rate, weight = crowd.fade_arrays()
