@@ -357,7 +357,7 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
-           max_clips: int = 16, main: bool = True, skin: str = "attributes") -> str:
+           max_clips: int = 16, main: bool = True, skin: str = "attributes", layers: bool = False) -> str:
     """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
 
     Args:
@@ -369,6 +369,7 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         main: Also emit an entry point that writes the skinned position and normal.
         skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
             vertex index from skin records, ``vbusd.decode.shaders.pack_skin``; spec/shaders.md).
+        layers: Also emit the format 1.2 layer functions (``vbSkinLayered``; spec/shaders.md, Layers).
 
     Returns:
         The shader source text.
@@ -379,4 +380,5 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
     from vbusd.decode.shaders import ShaderOptions, generate
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
-                                  max_influences=max_influences, max_clips=max_clips, main=main, skin=skin))
+                                  max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,
+                                  layers=layers))
