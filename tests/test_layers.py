@@ -838,3 +838,46 @@ def test_warp_layers_match_threejs_on_the_fox(fox, encoding):
             diagonal = float(np.linalg.norm(theirs.max(axis=0) - theirs.min(axis=0)))
             error = float(np.abs(points[index] - theirs).max()) / diagonal
             assert error <= 1e-6, f"warp {encoding} {weight=} pose {index}: {error:.3g} of the diagonal"
+
+
+def test_validate_reports_bad_parents_and_masks_with_codes(tmp_path):
+    """A cycle in boneParents (metadata.inconsistent, in the sidecar), a prim whose vb:boneParents
+    points outside the bones (prim.attribute.invalid), and a prim whose mask weights disagree with
+    the texture's (metadata.mismatch): each one finding with its code, never a traceback."""
+    from pxr import Sdf, Usd, Vt
+
+    vb = bake(_spec_example(), BakeOptions(encoding="crossMatrix", texel_format="float32", masks=(("arm", "b1"),)))
+    from vbusd.format.model import VirtualBonesAsset
+
+    out = tmp_path / "rig.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,)), out)
+    assert vbusd.validate(out).valid
+    sidecar = next(tmp_path.glob("*.exr.json"))
+    meta = json.loads(sidecar.read_text())
+    from vbusd.format import metadata as md
+
+    for parents, pointer in (([1, 0], "/boneParents/0"), ([-1, 2], "/boneParents/1"), ([-1], "/boneParents")):
+        with pytest.raises(InputError) as error:
+            md.from_dict({**meta, "boneParents": parents}, file="rig.exr.json")
+        assert error.value.code == "metadata.inconsistent" and error.value.location.endswith(pointer), error.value
+    with pytest.raises(InputError) as error:
+        md.from_dict({**meta, "masks": meta["masks"] * 2}, file="rig.exr.json")
+    assert error.value.code == "metadata.inconsistent" and "already used" in str(error.value)
+    with pytest.raises(InputError) as error:  # the schema: masks need bone parents
+        md.from_dict({k: v for k, v in meta.items() if k != "boneParents"}, file="rig.exr.json")
+    assert error.value.code.startswith("metadata")
+    sidecar.write_text(json.dumps({**meta, "boneParents": [1, 0]}))
+    assert not vbusd.validate(out).valid  # the sidecar disagrees with the texture's metadata
+
+    out2 = tmp_path / "b" / "rig.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,)), out2)
+    stage = Usd.Stage.Open(str(out2))
+    prim = stage.GetPrimAtPath(vb.path)
+    prim.GetAttribute("vb:boneParents").Set(Vt.IntArray([-1, 5]))
+    stage.Save()
+    findings = vbusd.validate(out2).findings
+    assert any(f.code == "prim.attribute.invalid" and "vb:boneParents" in str(f.location) for f in findings), findings
+    prim.GetAttribute("vb:boneParents").Set(Vt.IntArray([-1, 0]))
+    prim.GetAttribute("vb:maskWeights").Set(Vt.FloatArray([0.0, 0.5]))
+    stage.Save()
+    assert "metadata.mismatch" in {f.code for f in vbusd.validate(out2).findings}

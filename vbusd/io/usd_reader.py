@@ -883,20 +883,12 @@ class UsdReader:
         if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
             self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
                                          f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
+        # Bone parents and masks (format 1.2): compare_declared above reports a disagreement; the
+        # metadata's float64 mask weights are kept when both hold them (vb:maskWeights is float32).
         parents = attributes.declared.values.get("boneParents")
         parents = tuple(parents) if parents is not None else texture.info.bone_parents
-        if texture.info.bone_parents is not None and parents != texture.info.bone_parents:
-            self.diagnostics.add(finding("metadata.mismatch", f"boneParents differ from the prim's "
-                                         f"{names.BONE_PARENTS}", theirs.locate("boneParents")))
-        masks = tuple((m["name"], np.asarray(m["weights"], np.float64))
-                      for m in attributes.declared.values.get("masks") or ()) or texture.info.masks
-        if texture.info.masks and ([n for n, _ in masks] != [n for n, _ in texture.info.masks] or not all(
-                np.array_equal(np.float32(a), np.float32(b)) for (_, a), (_, b) in zip(masks, texture.info.masks))):
-            # vb:maskWeights is float[]: compared as float32, as unorm ranges are.
-            self.diagnostics.add(finding("metadata.mismatch", f"masks differ from the prim's {names.MASK_NAMES} "
-                                         f"and {names.MASK_WEIGHTS}", theirs.locate("masks")))
-        if texture.info.masks:
-            masks = texture.info.masks  # the metadata's float64 weights, when both agree
+        masks = texture.info.masks or tuple((m["name"], np.asarray(m["weights"], np.float64))
+                                            for m in attributes.declared.values.get("masks") or ())
         return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
                             clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
                             path=attributes.path, texture=attributes.texture,
