@@ -881,3 +881,19 @@ def test_validate_reports_bad_parents_and_masks_with_codes(tmp_path):
     prim.GetAttribute("vb:maskWeights").Set(Vt.FloatArray([0.0, 0.5]))
     stage.Save()
     assert "metadata.mismatch" in {f.code for f in vbusd.validate(out2).findings}
+
+
+def test_shader_command_layers_option(capsys):
+    """vbusd shader --layers prints the module with the layer functions; without it nothing changes."""
+    from vbusd.cli import main
+    from vbusd.decode.shaders import ShaderOptions, generate
+
+    assert main(["shader", "--layers", "--no-main", "--encoding", "quatTranslation"]) == 0
+    text = capsys.readouterr().out
+    assert text.rstrip("\n") == generate(ShaderOptions("glsl", "quatTranslation", main=False, layers=True)).rstrip("\n")
+    assert "void vbSkinLayered(" in text and "uniform highp sampler2D vb_rig;" in text
+    assert main(["shader", "--no-main"]) == 0
+    assert "vbSkinLayered" not in capsys.readouterr().out
+    assert main(["shader", "--lang", "hlsl", "--layers", "--format", "json"]) == 0
+    document = json.loads(capsys.readouterr().out)
+    assert document["layers"] is True and "Texture2D<float4> vb_rig;" in document["source"]
