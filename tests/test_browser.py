@@ -92,7 +92,9 @@ def reference_instance(asset, instance: int, t: float):
                                                  for field in ("positions", "orientations", "scales", "clip",
                                                                "time_offset", "playback_rate", "fade_clip",
                                                                "fade_time_offset", "fade_playback_rate",
-                                                               "fade_weight")})
+                                                               "fade_weight", "layer_clip", "layer_time_offset",
+                                                               "layer_playback_rate", "layer_weight",
+                                                               "layer_mask")})
             vb = asset.animations[animation]
             results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
             return (np.concatenate([p[0] for p, _ in results]),
@@ -248,6 +250,51 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path, skin
             # The fade matters: the same instances without it are elsewhere.
             unfaded = dataclasses.replace(asset, crowds=(crowd,))
             assert check_probe(page, unfaded, 1, 0.83)[0] > 1e-3
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+@pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "float32"), ("quatTranslation", "float16"),
+                                                  ("dualQuat", "float32")])
+def test_probe_layers_from_the_plain_files(browser, tmp_path, encoding, texel_format):
+    """Layers with bone masks (format 1.2): the stadium converted with --mask upper=spine and
+    --mask arm=R_upperArm, its crowd given two layers per instance (primvars:vb:layer*, written and
+    read back) on top of crossfades; the runtime's GPU skinning (vbSkinLayered) matches the numpy
+    decoder within the usual tolerances."""
+    converted = tmp_path / "c" / "stadium.usda"
+    vbusd.convert(SAMPLE / "stadium_crowd.usda", converted,
+                  vbusd.ConvertOptions(encoding=encoding, texel_format=texel_format, check_rows=0,
+                                       masks=("upper=spine", "arm=R_upperArm")))
+    asset = vbusd.read_asset(converted)
+    crowd = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").crowds[0]
+    n = crowd.instance_count
+    weight = np.zeros((n, 2), np.float32)
+    weight[:6, 0] = [0.0, 1.0, 0.25, 0.5, 0.8, 0.6]
+    weight[:6, 1] = [0.0, 0.0, 0.0, 0.7, 1.0, 0.0]
+    layered = dataclasses.replace(
+        crowd, layer_clip=np.zeros((n, 2), np.int32), layer_mask=np.tile(np.array([0, 1], np.int32), (n, 1)),
+        layer_time_offset=np.tile(np.array([3.25, 7.5], np.float32), (n, 1)),
+        layer_playback_rate=np.tile(np.array([1.0, 0.5], np.float32), (n, 1)), layer_weight=weight,
+        fade_clip=np.zeros(n, np.int32), fade_time_offset=np.full(n, 1.5, np.float32),
+        fade_playback_rate=np.ones(n, np.float32), fade_weight=np.array([0, 0, 0, 0, 0, 0.4] + [0] * (n - 6),
+                                                                        np.float32))
+    path = tmp_path / "layered" / "layered.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
+    asset = vbusd.read_asset(path)
+    assert asset.crowds[0].layered and asset.animations[0].masks
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance in range(6):
+                position_error, normal_error = check_probe(page, asset, instance, 0.83)
+                assert position_error <= POSITION_TOLERANCE, (instance, position_error)
+                assert normal_error <= NORMAL_TOLERANCE, (instance, normal_error)
+            # The layers matter: the same instance without them is elsewhere.
+            plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
+            assert check_probe(page, plain, 4, 0.83)[0] > 1e-3
             assert page.errors() == [], page.errors()
         finally:
             page.close()

@@ -897,3 +897,33 @@ def test_shader_command_layers_option(capsys):
     assert main(["shader", "--lang", "hlsl", "--layers", "--format", "json"]) == 0
     document = json.loads(capsys.readouterr().out)
     assert document["layers"] is True and "Texture2D<float4> vb_rig;" in document["source"]
+
+
+def test_runtime_layered_shader_module_equals_vbusd_shader():
+    """The three.js runtime's shaderModule(..., layers = true) is `vbusd shader --layers --no-main`,
+    character for character, for every encoding and texel format and other sizes."""
+    import shutil
+    import subprocess
+
+    web = HERE.parent / "web"
+    node = shutil.which("node")
+    if node is None or not (web / "node_modules" / "three" / "package.json").is_file():
+        pytest.skip("node or web/node_modules missing: npm ci in web/")
+    script = """
+import { shaderModule } from './src/material.js';
+const out = {};
+for (const encoding of ['crossMatrix', 'affineMatrix', 'quatTranslation', 'dualQuat'])
+  for (const format of ['float16', 'float32', 'unorm16'])
+    for (const [k, clips] of [[1, 1], [4, 16], [8, 40]])
+      out[`${encoding}/${format}/${k}/${clips}`] = shaderModule(encoding, format, k, clips, 'attributes', true);
+process.stdout.write(JSON.stringify(out));
+"""
+    result = subprocess.run([node, "--input-type=module", "-e", script], cwd=web, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr[-4000:]
+    modules = json.loads(result.stdout)
+    assert len(modules) == 4 * 3 * 3
+    for key, text in modules.items():
+        encoding, texel_format, k, clips = key.split("/")
+        assert text == vbusd.shader("glsl", encoding, texel_format, max_influences=int(k), max_clips=int(clips),
+                                    main=False, layers=True), key

@@ -629,7 +629,6 @@ _LAYERS_RESOURCES_GLSL = """\
 // Layers (format 1.2): the rig texture (spec/shaders.md, Layers): RGBA32F, NEAREST, no mipmaps.
 uniform highp sampler2D vb_rig;
 #endif
-float vbAtan2(float y, float x) { return atan(y, x); }
 """
 
 _LAYERS_RESOURCES_HLSL = """\
@@ -640,7 +639,6 @@ _LAYERS_RESOURCES_HLSL = """\
 // Layers (format 1.2): the rig texture (spec/shaders.md, Layers): float4, point sampling, no mipmaps.
 Texture2D<float4> vb_rig;
 #endif
-float vbAtan2(float y, float x) { return atan2(y, x); }
 """
 
 # Layers and bone masks (spec/virtual-bones.md 8.6) in the shared GLSL spelling. Affine transforms
@@ -738,17 +736,36 @@ void vbCompose(vec3 t, vec4 q, vec3 s, out vec4 a0, out vec4 a1, out vec4 a2)
     a2 = vec4(c0.z, c1.z, c2.z, t.z);
 }
 
+// atan(x) for 0 <= x <= 1 and sin(x) for 0 <= x <= pi/2 as series, accurate to float32 (below
+// 1e-7): the slerp's weights must not depend on the driver's sin and atan, whose accuracy varies
+// (SwiftShader's cost 2e-5 of a character's size where llvmpipe's cost 2e-7).
+float vbAtanUnit(float x)
+{
+    bool shifted = x > 0.41421356;  // tan(pi / 8): atan(x) = pi / 4 + atan((x - 1) / (x + 1))
+    if (shifted) x = (x - 1.0) / (x + 1.0);
+    float x2 = x * x;
+    float p = x * (1.0 + x2 * (-0.33333333 + x2 * (0.2 + x2 * (-0.14285714 + x2 * (0.11111111
+              + x2 * (-0.09090909 + x2 * (0.07692308 + x2 * (-0.06666667 + x2 * 0.05882353))))))));
+    return shifted ? p + 0.78539816 : p;
+}
+
+float vbSinHalfPi(float x)
+{
+    float x2 = x * x;
+    return x * (1.0 + x2 * (-0.16666667 + x2 * (0.0083333333 + x2 * (-0.00019841270 + x2 * (2.7557319e-6
+           + x2 * (-2.5052108e-8 + x2 * 1.6059044e-10))))));
+}
+
 // Shortest-arc slerp (three.js' Quaternion.slerpFlat). The angle comes from |a - b| and |a + b|,
 // not from 1 - dot(a, b)^2, which loses every digit of a small angle in float32; below 0.01 rad a
-// normalized lerp is used, within 1e-8 rad of the slerp there and free of the float32 error of
-// sin and atan at small arguments (spec/shaders.md, Layers).
+// normalized lerp is used (within 1e-8 rad of the slerp there) (spec/shaders.md, Layers).
 vec4 vbSlerp(vec4 a, vec4 b, float t)
 {
     vec4 c = dot(a, b) >= 0.0 ? b : -b;
-    float angle = 2.0 * vbAtan2(length(a - c), length(a + c));
+    float angle = 2.0 * vbAtanUnit(length(a - c) / length(a + c));  // in [0, pi / 2]
     if (angle < 0.01) return normalize(mix(a, c, t));
-    float s = sin(angle);
-    return a * (sin((1.0 - t) * angle) / s) + c * (sin(t * angle) / s);
+    float s = vbSinHalfPi(angle);
+    return a * (vbSinHalfPi((1.0 - t) * angle) / s) + c * (vbSinHalfPi(t * angle) / s);
 }
 
 // mix(X, Y, alpha) of spec 8.6 on local transforms given as rows: X at 0, Y at 1, else translation

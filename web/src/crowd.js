@@ -64,6 +64,9 @@ function pick(values, slots, set) {
  *   Int32Array(N), timeOffset: Float32Array(N), playbackRate: Float32Array(N)}; optionally the
  *   crossfade of format 1.1 (spec 8.3): fadeClip: Int32Array(N), fadeTimeOffset, fadePlaybackRate,
  *   fadeWeight: Float32Array(N) (absent: no crossfade). `setFade` changes them per instance.
+ *   Optionally the layers of format 1.2 (spec 8.6), two per instance: layerClip, layerMask:
+ *   Int32Array(2 N), layerTimeOffset, layerPlaybackRate, layerWeight: Float32Array(2 N) (absent: no
+ *   layers); the animation must store bone masks. `setLayer` changes them per instance.
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
@@ -108,15 +111,38 @@ export class VirtualBonesCrowd extends Group {
         weight: instances.fadeWeight?.[i] ?? 0,
       });
     }
+    // Layers (format 1.2): bound only for a crowd that plays them (its materials run vbSkinLayered).
+    this.layered = Boolean(instances.layerWeight);  // not `layers`: Object3D.layers is three's render layers
+    if (this.layered) {
+      if (skin !== 'attributes') throw new VirtualBonesError(`${name}: layers (format 1.2) need the attributes skin binding`);
+      if (!animation.uniforms.vb_rig) throw new VirtualBonesError(`${name}: the crowd plays layers but its animation stores no bone masks`);
+      const clipMask = new InstancedBufferAttribute(new Int32Array(instances.count * 4), 4);  // (clip, mask) x 2
+      clipMask.gpuType = IntType;
+      this.layerClipMaskAttribute = clipMask;
+      this.layerTimeAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 4), 4);
+      this.layerWeightAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 2), 2);
+      for (let i = 0; i < instances.count; ++i) {
+        for (let j = 0; j < 2; ++j) {
+          const k = 2 * i + j;
+          this.setLayer(i, j, { clip: instances.layerClip[k], mask: instances.layerMask[k], timeOffset: instances.layerTimeOffset[k],
+            playbackRate: instances.layerPlaybackRate[k], weight: instances.layerWeight[k] });
+        }
+      }
+    }
     this.meshes = meshes.map((entry, index) => {
       const geometry = entry.geometry;
-      let binding = { skin };
+      let binding = { skin, layers: this.layered };
       if (skin === 'pulled') binding = { skin, skinTexture: pullSkin(geometry, entry.maxInfluences).texture };
       else if (!geometry.attributes.vb_boneIndices0) throw new VirtualBonesError(`${geometry.name}: the geometry has no bone attributes (its skin was pulled); use skin 'pulled'`);
       geometry.setAttribute('vb_instanceClip', this.clipAttribute);
       geometry.setAttribute('vb_instanceTime', this.timeAttribute);
       geometry.setAttribute('vb_instanceFadeClip', this.fadeClipAttribute);
       geometry.setAttribute('vb_instanceFade', this.fadeAttribute);
+      if (this.layered) {
+        geometry.setAttribute('vb_instanceLayerClipMask', this.layerClipMaskAttribute);
+        geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
+        geometry.setAttribute('vb_instanceLayerWeight', this.layerWeightAttribute);
+      }
       const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = this.instanceMatrix;
       mesh.name = entry.name || geometry.name;
@@ -145,6 +171,30 @@ export class VirtualBonesCrowd extends Group {
     this.fadeAttribute.array.set([timeOffset, playbackRate, weight], 3 * index);
     this.fadeClipAttribute.needsUpdate = true;
     this.fadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
+   * playbackRate * time` overrides the bones of mask `mask` (an index into the animation's masks,
+   * or its name) with weight `weight` (0..1; 0 leaves the slot out).
+   */
+  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers`);
+    const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
+    if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
+    if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: layer weight must be in 0..1, got ${weight}`);
+    if (weight > 0 && !(clip >= 0 && clip < this.animation.clips.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index} layers clip ${clip}, the animation has ${this.animation.clips.length}`);
+    }
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
+    }
+    this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
+    this.layerTimeAttribute.array.set([timeOffset, playbackRate], 4 * index + 2 * slot);
+    this.layerWeightAttribute.array[2 * index + slot] = weight;
+    for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
+      attribute.needsUpdate = true;
+    }
   }
 
   /**
@@ -181,7 +231,8 @@ export class VirtualBonesCrowd extends Group {
     const used = new Set(Array.from(this.instances.clip.subarray(0, this.count)));
     // A crossfading instance shows a blend of two poses: inside the box of both clips' extents.
     for (let i = 0; i < this.count; ++i) if (this.fadeAttribute.array[3 * i + 2] > 0) used.add(this.fadeClipAttribute.array[i]);
-    const box = this.animation.boundsOfClips(used.size ? used : [0]);
+    // A layered pose mixes local transforms of two clips: no clip's extents bound it, so culling is off.
+    const box = this.layered ? null : this.animation.boundsOfClips(used.size ? used : [0]);
     for (const mesh of this.meshes) {
       if (box === null) {
         mesh.frustumCulled = false;
@@ -204,7 +255,7 @@ export class VirtualBonesCrowd extends Group {
  * fadeTimeOffset, fadePlaybackRate, fadeWeight}, format 1.1); the matrix is T R S, as the point
  * instancer's (scale, then orientation, then position).
  */
-export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null }) {
+export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null, layers = null }) {
   const count = positions.length / 3;
   const matrices = new Float32Array(16 * count);
   const m = new Matrix4();
@@ -217,7 +268,7 @@ export function instancesFromPlacement({ positions, orientations, scales = null,
     if (scales) s.fromArray(scales, 3 * i);
     m.compose(p, q, s).toArray(matrices, 16 * i);
   }
-  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}) };
+  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}), ...(layers ?? {}) };
 }
 
 /** One instance at the origin playing clip `clip` from its start at rate 1 (a single character). */

@@ -73,6 +73,13 @@ export function parsePlainScene(scene, buffer) {
           fadePlaybackRate: view(buffer, crowd.fadePlaybackRate, Float32Array, `${at}.fadePlaybackRate`),
           fadeWeight: view(buffer, crowd.fadeWeight, Float32Array, `${at}.fadeWeight`),
         } : null,
+        layers: crowd.layerWeight ? {  // format 1.2 layers: two per instance
+          layerClip: view(buffer, crowd.layerClip, Int32Array, `${at}.layerClip`),
+          layerMask: view(buffer, crowd.layerMask, Int32Array, `${at}.layerMask`),
+          layerTimeOffset: view(buffer, crowd.layerTimeOffset, Float32Array, `${at}.layerTimeOffset`),
+          layerPlaybackRate: view(buffer, crowd.layerPlaybackRate, Float32Array, `${at}.layerPlaybackRate`),
+          layerWeight: view(buffer, crowd.layerWeight, Float32Array, `${at}.layerWeight`),
+        } : null,
       }),
     };
   });
