@@ -300,6 +300,65 @@ def test_probe_layers_from_the_plain_files(browser, tmp_path, encoding, texel_fo
             page.close()
 
 
+def test_runtime_layers_match_threejs_animation_mixer_on_the_fox(browser, shared_assets, tmp_path):
+    """The Fox walking with its upper body surveying, drawn by the three.js runtime (a crowd of one
+    instance per pose: the walk's time as its offset, rate 0, the Survey layer under the mask upper
+    = b_Spine01_02 at weights 0.35 and 1) against three.js' own AnimationMixer blend of the glTF
+    (tests/node/layered_pose.mjs), float32 texels: within 1e-6 of the bounding-box diagonal."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "tests" / "node"))
+    try:
+        import node_tools
+    finally:
+        sys.path.pop(0)
+    from vbusd.format.model import Crowd
+
+    source = shared_assets / "gltf" / "Fox" / "Fox.glb"
+    if not source.is_file():
+        pytest.skip("Fox.glb is not among the shared assets")
+    converted = tmp_path / "c" / "fox.usda"
+    vbusd.convert(source, converted, vbusd.ConvertOptions(encoding="crossMatrix", texel_format="float32", check_rows=0,
+                                                          masks=("upper=b_Spine01_02",)))
+    asset = vbusd.read_asset(converted)
+    vb = asset.animations[0]
+    names = [c.name for c in vb.clips]
+    walk, survey = names.index("Walk"), names.index("Survey")
+    masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
+    pairs = [(r / vb.clips[walk].rows_per_second, q / vb.clips[survey].rows_per_second) for r, q in ((0, 3), (5, 40), (11, 17))]
+    poses = [(a, b, w) for w in (0.35, 1.0) for a, b in pairs]
+    n = len(poses)
+    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.full(n, walk, np.int32), np.array([a for a, _, _ in poses], np.float32), np.zeros(n, np.float32),
+                  layer_clip=np.full((n, 1), survey, np.int32),
+                  layer_time_offset=np.array([[b] for _, b, _ in poses], np.float32),
+                  layer_playback_rate=np.zeros((n, 1), np.float32),
+                  layer_weight=np.array([[w] for _, _, w in poses], np.float32), layer_mask=np.zeros((n, 1), np.int32))
+    path = tmp_path / "layered" / "fox.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), path)
+    expected = []
+    for weight in (0.35, 1.0):
+        result = node_tools.run_json(
+            "layered_pose.mjs", source, 0, "Walk", "Survey", ",".join(map(str, masked)), weight,
+            *[f"{vb.clips[walk].start_time + a:.17g}:{vb.clips[survey].start_time + b:.17g}" for a, b in pairs],
+            packages=("three",))
+        expected += [np.array(p["meshes"][0]["positions"]).reshape(-1, 3) for p in result["poses"]]
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance, theirs in enumerate(expected):
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, 0.0])
+                ours = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
+                diagonal = float(np.linalg.norm(theirs.max(0) - theirs.min(0)))
+                error = float(np.abs(ours - theirs).max()) / diagonal
+                assert error <= POSITION_TOLERANCE, (instance, error)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
 def test_viewer_controls(browser, bar_crowd):
     """The page's controls act on the crowd: the clip picker makes every instance play that clip,
     the instance count draws fewer instances, play advances the clock and pause stops it."""
