@@ -325,7 +325,8 @@ def test_runtime_layers_match_threejs_animation_mixer_on_the_fox(browser, shared
     names = [c.name for c in vb.clips]
     walk, survey = names.index("Walk"), names.index("Survey")
     masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
-    pairs = [(r / vb.clips[walk].rows_per_second, q / vb.clips[survey].rows_per_second) for r, q in ((0, 3), (5, 40), (11, 17))]
+    pairs = [(r / vb.clips[walk].rows_per_second, q / vb.clips[survey].rows_per_second)
+             for r, q in ((0, 3), (5, 40), (11, 17))]
     poses = [(a, b, w) for w in (0.35, 1.0) for a, b in pairs]
     n = len(poses)
     crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
