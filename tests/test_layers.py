@@ -927,3 +927,25 @@ process.stdout.write(JSON.stringify(out));
         encoding, texel_format, k, clips = key.split("/")
         assert text == vbusd.shader("glsl", encoding, texel_format, max_influences=int(k), max_clips=int(clips),
                                     main=False, layers=True), key
+
+
+def test_a_1_1_reader_refuses_a_layered_crowd_by_name(tmp_path, monkeypatch):
+    """Spec 16.2: a reader of version 1.1 stops at the 1.2 animation and names what it does not know."""
+    from vbusd.format.model import Crowd, VirtualBonesAsset
+
+    vb = bake(_spec_example(), BakeOptions(encoding="crossMatrix", texel_format="float32", masks=(("arm", "b1"),)))
+    crowd = Crowd("/VirtualBones/Crowd", np.zeros((1, 3), np.float32), np.array([[0, 0, 0, 1]], np.float32),
+                  np.zeros(1, np.int32), np.zeros(1, np.float32), np.ones(1, np.float32),
+                  layer_clip=np.ones((1, 1), np.int32), layer_time_offset=np.zeros((1, 1), np.float32),
+                  layer_playback_rate=np.ones((1, 1), np.float32), layer_weight=np.ones((1, 1), np.float32),
+                  layer_mask=np.zeros((1, 1), np.int32))
+    out = tmp_path / "crowd.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), out)
+    monkeypatch.setattr(versioning, "CURRENT", versioning.Version(1, 1))
+    with pytest.raises(VersionError) as error:
+        vbusd.read_asset(out)
+    message = str(error.value)
+    assert "format version 1.2 is newer than this reader (version 1.1)" in message
+    assert "vb:boneParents" in message and "primvars:vb:layerWeight" in message
+    assert "version 1.1 does not define" in message
+    assert "vb:bindTransforms" not in message  # 1.1 knows it

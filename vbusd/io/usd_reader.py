@@ -634,12 +634,21 @@ class UsdReader:
             return None
 
     def _name_crossfades(self, prim, message: str) -> str:
-        """A newer-version message naming the format 1.1 properties found: ``vb:bindTransforms`` of
-        ``prim`` and the crossfade primvars of the instancers that play it (spec 16.1: a 1.1 asset is
-        refused *by name*)."""
+        """A newer-version message naming the properties of versions newer than this reader found
+        on ``prim`` (1.1: ``vb:bindTransforms``, ``vb:clipRootMotion``; 1.2: ``vb:boneParents``,
+        ``vb:maskNames``) and on the instancers that play it (1.1: the crossfade primvars; 1.2: the
+        layer primvars) (spec 16.1, 16.2: a newer asset is refused *by name*)."""
+        from vbusd.format import versioning
+
+        current = versioning.CURRENT
+        own_names = [name for version, name in (((1, 1), names.BIND_TRANSFORMS), ((1, 1), names.CLIP_ROOT_MOTION),
+                                                ((1, 2), names.BONE_PARENTS), ((1, 2), names.MASK_NAMES))
+                     if version > tuple(current)]
+        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS))
+                    if version > tuple(current) for p in group]
         target = prim.GetPath()
         found = []
-        for name in (names.BIND_TRANSFORMS, names.CLIP_ROOT_MOTION):
+        for name in own_names:
             own = prim.GetAttribute(name)
             if own and own.HasAuthoredValue():
                 found.append(f"{name} (on {target})")
@@ -647,13 +656,13 @@ class UsdReader:
             relationship = other.GetRelationship(names.ANIMATION_REL)
             if not relationship or target not in relationship.GetTargets():
                 continue
-            authored = [p.attribute for p in names.FADE_PRIMVARS
+            authored = [p.attribute for p in primvars
                         if other.GetAttribute(p.attribute) and other.GetAttribute(p.attribute).HasAuthoredValue()]
             if authored:
                 found.append(f"{', '.join(authored)} (on {other.GetPath()})")
         if not found:
             return message
-        uses = f"; the asset uses {'; '.join(found[:3])}, which version 1.0 does not define"
+        uses = f"; the asset uses {'; '.join(found[:3])}, which version {current} does not define"
         return message.replace("; upgrade vbusd", uses + "; upgrade vbusd", 1)
 
     def _unorm_ranges(self, prim, declared: Declared) -> None:
