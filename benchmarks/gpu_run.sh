@@ -18,7 +18,7 @@
 # hardware.json. Kept in benchmarks/results/ as decoder_cuda[_h100].json,
 # decoder_hardware_cuda[_h100].json and warp_tests_cuda_h100.log (no suffix: the H200 runs).
 set -euo pipefail
-cmd=${1:?usage: gpu_run.sh pack|stage N|run}
+cmd=${1:?usage: gpu_run.sh pack|stage N|run|layers}
 case "$cmd" in
 pack)
     site=$(python3 -c 'import os, warp; print(os.path.dirname(os.path.dirname(warp.__file__)))')
@@ -47,7 +47,23 @@ run)
     python3 benchmarks/bench_decoder.py --devices cuda --json "$out/decoder_cuda.json" 2>&1 | tee "$out/bench.log"
     python3 benchmarks/bench_decoder.py --hardware --devices cuda --json "$out/hardware.json" 2>&1 | tee "$out/hardware.log"
     ;;
+layers)
+    # Issue 29 (layers with bone masks): what layers cost the warp decoder, 100,000 instances of
+    # the stadium crowd (benchmarks/bench_layers.py). On a warm machine after `stage 1`, `stage 2`.
+    if [ ! -d /tmp/site/warp ]; then
+        mkdir -p /tmp/site
+        cat /tmp/gw/part* | python3 -c 'import sys, tarfile; tarfile.open(fileobj=sys.stdin.buffer, mode="r|xz").extractall("/tmp/site")'
+    fi
+    export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+    out=${OUT:-/tmp/out}; mkdir -p "$out"
+    nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.memory --format=csv | tee "$out/gpu.txt"
+    python3 benchmarks/bench_layers.py --device cuda --instances 100000 --frames 30 --format json \
+        > "$out/layers_cuda.json" 2> "$out/layers.log"
+    python3 benchmarks/bench_layers.py --device cuda --instances 1000000 --frames 10 --encodings crossMatrix \
+        --format json > "$out/layers_cuda_1m.json" 2>> "$out/layers.log"
+    cat "$out/layers_cuda.json" "$out/layers_cuda_1m.json"
+    ;;
 *)
-    echo "usage: gpu_run.sh pack|stage N|run" >&2; exit 2
+    echo "usage: gpu_run.sh pack|stage N|run|layers" >&2; exit 2
     ;;
 esac

@@ -816,6 +816,17 @@ class _Converter:
                                     f"{self.parent[root]}", f"/scenes/{si}/nodes/{k}",
                                     "gltf.scene")
 
+    def bone_parents(self, bone_nodes) -> tuple:
+        """Each bone's parent bone (spec 8.6): the nearest ancestor node that is a bone, else -1."""
+        index = {node: b for b, node in enumerate(bone_nodes)}
+        parents = []
+        for node in bone_nodes:
+            up = self.parent[node]
+            while up != -1 and up not in index:
+                up = self.parent[up]
+            parents.append(index.get(up, -1))
+        return tuple(parents)
+
     def ancestors_and_self(self, nodes) -> list:
         """Nodes and all their ancestors, parents before children."""
         found = set()
@@ -1430,7 +1441,8 @@ class _Converter:
             result.append(SkinnedAnimation(name=anim_name, path=f"/{root}/{anim_name}", bones=tuple(bones),
                                            clips=tuple(clips), meshes=tuple(meshes),
                                            source=self.file, bind_transforms=bind_transforms(ibm_all),
-                                           lod_screen_sizes=lod_sizes.get(leveled[0]) if leveled else None))
+                                           lod_screen_sizes=lod_sizes.get(leveled[0]) if leveled else None,
+                                           bone_parents=self.bone_parents(bone_nodes)))
             raw_weights.append(tuple(raws))
         if not result:
             raise UnsupportedError("no skin is used by a mesh node; nothing to bake",

@@ -1129,7 +1129,8 @@ def _read(path: Path, options: ReadOptions) -> UsdSkelScene:
             name=skel_prim.GetName(), path=prim_paths[key], bones=bones, clips=(clip,),
             meshes=meshes, source=reader.file, lods=lods,
             bind_transforms=_with_identity(bind_transforms(UsdSkel.Skeleton(skel_prim), len(work.joints)),
-                                           len(bones) - len(work.joints))))
+                                           len(bones) - len(work.joints)),
+            bone_parents=_joint_parents(work.joints) + (-1,) * (len(bones) - len(work.joints))))
         references.append((sampler, bound, skel_query))
         methods.append(tuple(b.method for b in bound))
 
@@ -1632,6 +1633,12 @@ def _raw_normals(reader: _Reader, mesh, bound: _Bound, time) -> Optional[np.ndar
     normals, _ = _normals(reader, mesh, counts, fvi, bound.mesh.points.shape[0], time)
     reader.warnings[:] = saved
     return None if normals is None else np.asarray(normals, dtype=np.float32)
+
+
+def _joint_parents(joints) -> tuple:
+    """Each joint's parent joint index (spec 8.6), by path as UsdSkel's topology defines it; -1 for a root."""
+    index = {str(j): i for i, j in enumerate(joints)}
+    return tuple(index.get(str(j).rsplit("/", 1)[0], -1) if "/" in str(j) else -1 for j in joints)
 
 
 def bind_transforms(skeleton, joint_count: int):

@@ -92,7 +92,9 @@ def reference_instance(asset, instance: int, t: float):
                                                  for field in ("positions", "orientations", "scales", "clip",
                                                                "time_offset", "playback_rate", "fade_clip",
                                                                "fade_time_offset", "fade_playback_rate",
-                                                               "fade_weight")})
+                                                               "fade_weight", "layer_clip", "layer_time_offset",
+                                                               "layer_playback_rate", "layer_weight",
+                                                               "layer_mask")})
             vb = asset.animations[animation]
             results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
             return (np.concatenate([p[0] for p, _ in results]),
@@ -248,6 +250,111 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path, skin
             # The fade matters: the same instances without it are elsewhere.
             unfaded = dataclasses.replace(asset, crowds=(crowd,))
             assert check_probe(page, unfaded, 1, 0.83)[0] > 1e-3
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+@pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "float32"), ("quatTranslation", "float16"),
+                                                  ("dualQuat", "float32")])
+def test_probe_layers_from_the_plain_files(browser, tmp_path, encoding, texel_format):
+    """Layers with bone masks (format 1.2): the stadium converted with --mask upper=spine and
+    --mask arm=R_upperArm, its crowd given two layers per instance (primvars:vb:layer*, written and
+    read back) on top of crossfades; the runtime's GPU skinning (vbSkinLayered) matches the numpy
+    decoder within the usual tolerances."""
+    converted = tmp_path / "c" / "stadium.usda"
+    vbusd.convert(SAMPLE / "stadium_crowd.usda", converted,
+                  vbusd.ConvertOptions(encoding=encoding, texel_format=texel_format, check_rows=0,
+                                       masks=("upper=spine", "arm=R_upperArm")))
+    asset = vbusd.read_asset(converted)
+    crowd = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").crowds[0]
+    n = crowd.instance_count
+    weight = np.zeros((n, 2), np.float32)
+    weight[:6, 0] = [0.0, 1.0, 0.25, 0.5, 0.8, 0.6]
+    weight[:6, 1] = [0.0, 0.0, 0.0, 0.7, 1.0, 0.0]
+    layered = dataclasses.replace(
+        crowd, layer_clip=np.zeros((n, 2), np.int32), layer_mask=np.tile(np.array([0, 1], np.int32), (n, 1)),
+        layer_time_offset=np.tile(np.array([3.25, 7.5], np.float32), (n, 1)),
+        layer_playback_rate=np.tile(np.array([1.0, 0.5], np.float32), (n, 1)), layer_weight=weight,
+        fade_clip=np.zeros(n, np.int32), fade_time_offset=np.full(n, 1.5, np.float32),
+        fade_playback_rate=np.ones(n, np.float32), fade_weight=np.array([0, 0, 0, 0, 0, 0.4] + [0] * (n - 6),
+                                                                        np.float32))
+    path = tmp_path / "layered" / "layered.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
+    asset = vbusd.read_asset(path)
+    assert asset.crowds[0].layered and asset.animations[0].masks
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance in range(6):
+                position_error, normal_error = check_probe(page, asset, instance, 0.83)
+                assert position_error <= POSITION_TOLERANCE, (instance, position_error)
+                assert normal_error <= NORMAL_TOLERANCE, (instance, normal_error)
+            # The layers matter: the same instance without them is elsewhere.
+            plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
+            assert check_probe(page, plain, 4, 0.83)[0] > 1e-3
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+def test_runtime_layers_match_threejs_animation_mixer_on_the_fox(browser, shared_assets, tmp_path):
+    """The Fox walking with its upper body surveying, drawn by the three.js runtime (a crowd of one
+    instance per pose: the walk's time as its offset, rate 0, the Survey layer under the mask upper
+    = b_Spine01_02 at weights 0.35 and 1) against three.js' own AnimationMixer blend of the glTF
+    (tests/node/layered_pose.mjs), float32 texels: within 1e-6 of the bounding-box diagonal."""
+    import sys
+
+    sys.path.insert(0, str(REPO / "tests" / "node"))
+    try:
+        import node_tools
+    finally:
+        sys.path.pop(0)
+    from vbusd.format.model import Crowd
+
+    source = shared_assets / "gltf" / "Fox" / "Fox.glb"
+    if not source.is_file():
+        pytest.skip("Fox.glb is not among the shared assets")
+    converted = tmp_path / "c" / "fox.usda"
+    vbusd.convert(source, converted, vbusd.ConvertOptions(encoding="crossMatrix", texel_format="float32", check_rows=0,
+                                                          masks=("upper=b_Spine01_02",)))
+    asset = vbusd.read_asset(converted)
+    vb = asset.animations[0]
+    names = [c.name for c in vb.clips]
+    walk, survey = names.index("Walk"), names.index("Survey")
+    masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
+    pairs = [(r / vb.clips[walk].rows_per_second, q / vb.clips[survey].rows_per_second)
+             for r, q in ((0, 3), (5, 40), (11, 17))]
+    poses = [(a, b, w) for w in (0.35, 1.0) for a, b in pairs]
+    n = len(poses)
+    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.full(n, walk, np.int32), np.array([a for a, _, _ in poses], np.float32), np.zeros(n, np.float32),
+                  layer_clip=np.full((n, 1), survey, np.int32),
+                  layer_time_offset=np.array([[b] for _, b, _ in poses], np.float32),
+                  layer_playback_rate=np.zeros((n, 1), np.float32),
+                  layer_weight=np.array([[w] for _, _, w in poses], np.float32), layer_mask=np.zeros((n, 1), np.int32))
+    path = tmp_path / "layered" / "fox.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), path)
+    expected = []
+    for weight in (0.35, 1.0):
+        result = node_tools.run_json(
+            "layered_pose.mjs", source, 0, "Walk", "Survey", ",".join(map(str, masked)), weight,
+            *[f"{vb.clips[walk].start_time + a:.17g}:{vb.clips[survey].start_time + b:.17g}" for a, b in pairs],
+            packages=("three",))
+        expected += [np.array(p["meshes"][0]["positions"]).reshape(-1, 3) for p in result["poses"]]
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance, theirs in enumerate(expected):
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, 0.0])
+                ours = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
+                diagonal = float(np.linalg.norm(theirs.max(0) - theirs.min(0)))
+                error = float(np.abs(ours - theirs).max()) / diagonal
+                assert error <= POSITION_TOLERANCE, (instance, error)
             assert page.errors() == [], page.errors()
         finally:
             page.close()

@@ -17,6 +17,7 @@ import pytest
 
 from vbusd.format import metadata as md
 from vbusd.format.errors import InputError, VersionError
+from vbusd.format.versioning import CURRENT
 from vbusd.format.layout import Layout
 from vbusd.format.model import Clip, VirtualBones
 
@@ -118,13 +119,12 @@ def test_dumps_is_sorted_indented_and_refuses_nan():
 
 def test_upgrade_current_version_is_identity_copy():
     # Writers write the lowest version that holds the asset (1.0 here); the one upgrade path
-    # (vbusd.format.versioning, shared with the USD attributes) brings it to the current 1.2 by
-    # setting the minor version alone (1.0 -> 1.1 -> 1.2, neither step fills anything in), and
-    # leaves a current document as an equal copy.
+    # (vbusd.format.versioning, shared with the USD attributes) brings it to the current version by
+    # setting the minor version alone, and leaves a current document as an equal copy.
     d = md.to_dict(make_vb(bones=2, rows=3))
     assert "formatMinorVersion" not in d or d["formatMinorVersion"] == 0
     out = md.upgrade(d)
-    assert out == {**d, "formatMinorVersion": 2} and out is not d
+    assert out == {**d, "formatMinorVersion": CURRENT.minor} and out is not d
     again = md.upgrade(out)
     assert again == out and again is not out
 

@@ -376,7 +376,8 @@ def _architecture_usd_names() -> list:
 
 def test_architecture_lists_are_parsed():
     top, clip = _architecture_metadata_keys()
-    assert len(top) == 20 and top[0] == "format" and top[-1] == "contentDigest"  # 20: bindTransforms (1.1)
+    # 22: bindTransforms (1.1), boneParents and masks (1.2)
+    assert len(top) == 22 and top[0] == "format" and top[-1] == "contentDigest"
     assert clip == ["name", "firstRow", "rowCount", "rowsPerSecond", "loop", "startTime"]
     assert "vb:textureWidth" in _architecture_usd_names()
     assert "primvars:vb:playbackRate" in _architecture_usd_names()
@@ -388,7 +389,7 @@ def test_schema_keys_are_exactly_the_architecture_keys(schema):
     assert sorted(schema["$defs"]["clip"]["properties"]) == sorted(clip)
     assert sorted(schema["$defs"]["clip"]["required"]) == sorted(clip)
     assert sorted(schema["required"]) == sorted(k for k in top if k not in ("unormRanges", "formatMinorVersion",
-                                                                            "bindTransforms"))
+                                                                            "bindTransforms", "boneParents", "masks"))
 
 
 def test_spec_names_every_metadata_key(spec_text):

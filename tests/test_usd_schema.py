@@ -86,7 +86,8 @@ def test_schema_registry_knows_the_types():
         "vb:horizontalPadding", "vb:verticalPadding", "vb:bones", "vb:clipNames", "vb:clipFirstRows",
         "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops", "vb:clipStartTimes",
         "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest",
-        "vb:bindTransforms", "vb:clipRootMotion", "vb:rootMotionUpAxis"}  # format 1.1 (sockets, root motion)
+        "vb:bindTransforms", "vb:clipRootMotion", "vb:rootMotionUpAxis",  # format 1.1 (sockets, root motion)
+        "vb:boneParents", "vb:maskNames", "vb:maskWeights"}  # format 1.2 (layers and bone masks)
     assert names == expected
 
 

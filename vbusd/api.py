@@ -109,7 +109,7 @@ def _finite_seconds(value, name: str, job: str) -> float:
 
 
 def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_time=None, fade_weight: float = 0.0,
-         animation: int = 0) -> list:
+         animation: int = 0, layers=None) -> list:
     """Skin every mesh bound to an animation at one clip-local time, with the numpy reference decoder.
 
     With ``fade_clip`` the mesh plays two clips at once (spec: "Crossfade", format 1.1): ``clip``
@@ -126,15 +126,20 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         fade_time: The fade clip's clip-local time in seconds (required with ``fade_clip``).
         fade_weight: Weight of the fade clip, 0..1 (0: ``clip`` alone, 1: ``fade_clip`` alone).
         animation: Which animation of the asset (index), when it holds several.
+        layers: Format 1.2 layers (spec "Layers and bone masks"), applied in order on top of the
+            clip (and on each side of a crossfade): a list of ``{"clip": name or index, "time":
+            clip-local seconds, "weight": 0..1 (default 1), "mask": mask name}``; each overrides
+            the bones of its mask in local space (translation and scale lerped, rotation slerped).
 
     Returns:
         A list of :class:`SkinnedPose`, one per bound mesh in the asset's order, in the
         animation's space.
 
     Raises:
-        InputError: The asset cannot be read.
+        InputError: The asset cannot be read, or a layer names a mask it does not store (code
+            ``layers.noMask``).
         OptionsError: No such clip or animation, a time that is not a finite number, a fade
-            weight outside 0..1, or a fade clip without a fade time.
+            weight outside 0..1, a fade clip without a fade time, or a malformed layer.
 
     Example:
         >>> poses = vbusd.skin("out/stadium_crowd.usda", "Cheer", 1.5)  # doctest: +SKIP
@@ -142,8 +147,10 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         (202, 3)
         >>> walk_to_run = vbusd.skin("crowd.usda", "walk", 0.8, fade_clip="run", fade_time=0.1,
         ...                          fade_weight=0.25)  # doctest: +SKIP
+        >>> waving = vbusd.skin("fox.usda", "Walk", 0.5,
+        ...                     layers=[{"clip": "Survey", "time": 1.0, "weight": 1.0, "mask": "upper"}])  # doctest: +SKIP
     """
-    from vbusd.decode.reference import skin_mesh, skin_mesh_crossfade
+    from vbusd.decode.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
@@ -162,9 +169,15 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         fade_tau = _finite_seconds(fade_time, "fade_time", "skin")
     elif weight > 0.0:
         raise OptionsError(f"fade_weight {weight} needs a fade_clip", file="skin")
+    resolved = _layers(vb, layers, "skin")
     poses = []
     for mesh in vb.meshes:
-        if fade_index is None:
+        if resolved:
+            points, normals = skin_mesh_layered(vb, mesh, index, np.array([tau]), resolved,
+                                                fade_clip=fade_index,
+                                                fade_tau=None if fade_index is None else np.array([fade_tau]),
+                                                fade_weight=weight)
+        elif fade_index is None:
             points, normals = skin_mesh(vb, mesh, index, np.array([tau]))
         else:
             points, normals = skin_mesh_crossfade(vb, mesh, index, np.array([tau]), fade_index,
@@ -174,7 +187,46 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
 
 _PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
-                 "fade_time_offset", "fade_playback_rate", "fade_weight")
+                 "fade_time_offset", "fade_playback_rate", "fade_weight", "layer_clip", "layer_time_offset",
+                 "layer_playback_rate", "layer_weight", "layer_mask")
+
+
+_LAYER_KEYS = ("clip", "time", "weight", "mask")
+
+
+def _layers(vb: VirtualBones, layers, job: str) -> list:
+    """Layers given as dicts, checked and resolved to ``(clip index, times, weight, mask weights)``."""
+    from vbusd.decode.reference import mask_weights
+
+    if layers is None:
+        return []
+    if isinstance(layers, dict) or not isinstance(layers, (list, tuple)):
+        raise OptionsError(f"layers must be a list of dicts with keys {', '.join(_LAYER_KEYS)}, got "
+                           f"{type(layers).__name__}", file=job)
+    resolved = []
+    for j, layer in enumerate(layers):
+        if not isinstance(layer, dict):
+            raise OptionsError(f"layers[{j}] must be a dict with keys {', '.join(_LAYER_KEYS)}, got "
+                               f"{type(layer).__name__}", file=job)
+        unknown = sorted(str(k) for k in layer if k not in _LAYER_KEYS)
+        missing = [k for k in ("clip", "time", "mask") if k not in layer]
+        if unknown or missing:
+            raise OptionsError(f"layers[{j}]: " + "; ".join(
+                ([f"unknown keys {', '.join(unknown)}"] if unknown else [])
+                + ([f"missing {', '.join(missing)}"] if missing else []))
+                + f" (keys: {', '.join(_LAYER_KEYS)}; weight defaults to 1)", file=job)
+        try:
+            weight = float(layer.get("weight", 1.0))
+        except (TypeError, ValueError):
+            weight = float("nan")
+        if not 0.0 <= weight <= 1.0:
+            raise OptionsError(f"layers[{j}]: weight must be a number in 0..1, got {layer.get('weight')!r}",
+                               file=job)
+        clip = clip_index(vb, layer["clip"], what=job)
+        seconds = _finite_seconds(layer["time"], f"layers[{j}] time", job)
+        mask = mask_weights(vb, layer["mask"], what=job)
+        resolved.append((clip, np.array([seconds]), weight, mask))
+    return resolved
 
 
 def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
@@ -199,7 +251,7 @@ def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
 
 
 def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animation: int = 0,
-                   instance: Optional[int] = None, crowd: int = 0) -> np.ndarray:
+                   instance: Optional[int] = None, crowd: int = 0, layers=None) -> np.ndarray:
     """A joint's transform in the animation's space at one clip time: where to attach a prop (a socket).
 
     Returns ``J = M B`` (spec "Sockets", format 1.1): the bone's decoded skinning transform ``M`` at
@@ -219,6 +271,8 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
             and the result is in the instancer's local space (the instance's placement applied;
             the instancer's own transform, as for its points, is not).
         crowd: Which crowd of the asset (index), with ``instance``.
+        layers: Format 1.2 layers, as in :func:`skin` (not with ``instance``): the joint of the
+            layered pose, ``J'_b`` (spec "Layers and bone masks").
 
     Returns:
         (4, 4) float64 matrix for column vectors, ``p' = M[:3, :3] @ p + M[:3, 3]``.
@@ -232,8 +286,11 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
         >>> hand[:3, 3]   # the hand's position in animation space
     """
-    from vbusd.decode.reference import crowd_joint_transforms, joint_transforms
+    from vbusd.decode.reference import crowd_joint_transforms, joint_transforms, layered_skinning
 
+    if instance is not None and layers:
+        raise OptionsError("layers apply to one animation's clip, not with instance= (a crowd's layers are its "
+                           "primvars)", file="bone_transform")
     if instance is not None:
         if not isinstance(asset, VirtualBonesAsset):
             from vbusd.io.usd import read_asset
@@ -259,6 +316,9 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
     index = bone_index(vb, bone)
     clip_number = clip_index(vb, clip, what="bone_transform")
     tau = _finite_seconds(time, "time", "bone_transform")
+    resolved = _layers(vb, layers, "bone_transform")
+    if resolved:
+        return layered_skinning(vb, clip_number, np.array([tau]), resolved)[1][0, index]
     return joint_transforms(vb, clip_number, np.array([tau]))[0, index]
 
 
@@ -297,7 +357,7 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
-           max_clips: int = 16, main: bool = True, skin: str = "attributes") -> str:
+           max_clips: int = 16, main: bool = True, skin: str = "attributes", layers: bool = False) -> str:
     """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
 
     Args:
@@ -309,6 +369,7 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         main: Also emit an entry point that writes the skinned position and normal.
         skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
             vertex index from skin records, ``vbusd.decode.shaders.pack_skin``; spec/shaders.md).
+        layers: Also emit the format 1.2 layer functions (``vbSkinLayered``; spec/shaders.md, Layers).
 
     Returns:
         The shader source text.
@@ -319,4 +380,5 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
     from vbusd.decode.shaders import ShaderOptions, generate
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
-                                  max_influences=max_influences, max_clips=max_clips, main=main, skin=skin))
+                                  max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,
+                                  layers=layers))

@@ -21,7 +21,7 @@ from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
 
-__all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "RowPlan", "decide_loop", "plan_rows",
+__all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "bone_masks", "RowPlan", "decide_loop", "plan_rows",
            "reduce_influences", "bind_mesh", "bake"]
 
 DEFAULT_ROWS_PER_SECOND = 30.0
@@ -59,6 +59,9 @@ class BakeOptions:
     loop_tolerance: float = 1e-5
     root_motion: str = "keep"
     up_axis: str = "Y"
+    masks: tuple = ()
+    """Format 1.2: ``(name, bone)`` pairs, each a bone mask of ``bone`` and every bone below it
+    (spec "Layers and bone masks"; ``vbusd convert --mask NAME=BONE``)."""
 
     def __post_init__(self) -> None:
         for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat),
@@ -282,6 +285,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         raise InputError("the animation has no clip to bake", file=animation.source, location=animation.path,
                          code="animation.noClip")
     bone_count = animation.bone_count
+    # Masks are resolved before any pose is sampled: a misspelt bone fails at once.
+    parents, masks = bone_masks(animation, options.masks) if options.masks else (None, ())
     trackers = None
     from vbusd.rootmotion import RootMotion, check_mode, in_place_clip
 
@@ -357,7 +362,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
         motion = RootMotion(options.up_axis, tuple(tracks))
     baked = VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
                          unorm_ranges=ranges, meshes=meshes, path=animation.path,
-                         clip_extents=np.stack(extents), bind_transforms=bind, root_motion=motion)
+                         clip_extents=np.stack(extents), bind_transforms=bind, root_motion=motion,
+                         bone_parents=parents, masks=masks)
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13): they bound
         # what every decoder computes, quantization included.
@@ -365,6 +371,54 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
 
         baked = dataclasses.replace(baked, clip_extents=clip_extents(baked).astype(np.float32))
     return baked
+
+
+def bone_masks(animation: SkinnedAnimation, requests) -> tuple:
+    """The bone parents and named masks of ``--mask NAME=BONE`` requests (spec "Layers and bone masks").
+
+    Each mask weighs 1 the bone named and every bone below it (its descendants under the
+    animation's bone parents), 0 every other bone.
+
+    Args:
+        animation: The converter's animation; it must know its bones' parents and bind transforms.
+        requests: ``(name, bone)`` pairs; a bone is a full bone name or its last path element.
+
+    Returns:
+        ``(parents tuple, ((name, weights), ...))``.
+
+    Raises:
+        OptionsError: A bone no bone of the animation is named, an ambiguous short name, a repeated
+            mask name, or an animation without parents or bind transforms (code ``convert.mask``).
+    """
+    where = dict(file=animation.source, location=animation.path, code="convert.mask")
+    if animation.bone_parents is None or animation.bind_transforms is None:
+        raise OptionsError("--mask needs the bones' hierarchy and bind transforms, which this source's "
+                           "converter does not give", **where)
+    parents = tuple(int(p) for p in animation.bone_parents)
+    names = [str(b) for b in animation.bones]
+    children: dict = {}
+    for b, p in enumerate(parents):
+        children.setdefault(p, []).append(b)
+    masks, seen = [], set()
+    for name, bone in requests:
+        if name in seen:
+            raise OptionsError(f"--mask {name}={bone}: the mask name {name!r} is given twice", **where)
+        seen.add(name)
+        found = [i for i, n in enumerate(names) if n == bone] or \
+            [i for i, n in enumerate(names) if n.rsplit("/", 1)[-1] == bone]
+        if len(found) != 1:
+            shown = ", ".join(n.rsplit("/", 1)[-1] for n in names[:12]) + (", ..." if len(names) > 12 else "")
+            why = "is ambiguous" if found else "is not a bone of the animation"
+            raise OptionsError(f"--mask {name}={bone}: {bone!r} {why} (bones: {shown})", **where)
+        weights = np.zeros(len(names))
+        stack = [found[0]]
+        while stack:
+            b = stack.pop()
+            weights[b] = 1.0
+            stack.extend(children.get(b, ()))
+        weights.setflags(write=False)
+        masks.append((str(name), weights))
+    return parents, tuple(masks)
 
 
 # vbusd.bake(...) is this function whatever the import order (vbusd/_callable.py).

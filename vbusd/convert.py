@@ -42,7 +42,7 @@ from vbusd.format.layout import Encoding, Padding, TexelFormat
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
 
-__all__ = ["AUTO", "CONTAINERS", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
+__all__ = ["AUTO", "CONTAINERS", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
            "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
            "ConvertReport", "check_output", "check_output_path", "bake_animation",
            "bake_with_clip_policy", "measure_errors", "convert"]
@@ -96,6 +96,8 @@ class ConvertOptions:
             (0, 1); format 1.2, spec "Levels of detail"), or empty for none. Needs meshoptimizer.
         lod_screen_sizes: Screen-size thresholds of those levels (one per ratio), or None for
             :func:`vbusd.lod.default_screen_sizes`.
+        masks: Format 1.2 bone masks for layers (spec "Layers and bone masks"): ``(name, bone)``
+            pairs or ``"NAME=BONE"`` strings, each weighing ``bone`` and every bone below it.
     """
 
     encoding: str = AUTO
@@ -118,9 +120,11 @@ class ConvertOptions:
     root_motion: str = "keep"
     lod_ratios: tuple = ()
     lod_screen_sizes: Optional[tuple] = None
+    masks: tuple = ()
 
     def __post_init__(self) -> None:
         where = "convert"
+        object.__setattr__(self, "masks", parse_masks(self.masks))
         from vbusd.lod import check_screen_sizes, parse_ratios
         from vbusd.rootmotion import check_mode
 
@@ -202,7 +206,30 @@ class ConvertOptions:
                            rows_per_second=self.rows_per_second, horizontal_padding=self.horizontal_padding,
                            vertical_padding=self.vertical_padding, max_influences=int(self.max_influences),
                            loop=self.loop, root_motion=self.root_motion,
-                           up_axis="Z" if str(up_axis).upper() == "Z" else "Y")
+                           up_axis="Z" if str(up_axis).upper() == "Z" else "Y", masks=self.masks)
+
+
+def parse_masks(masks) -> tuple:
+    """``--mask`` values as ``(name, bone)`` pairs: each a ``"NAME=BONE"`` string or a pair.
+
+    Raises:
+        OptionsError: A value that is not ``NAME=BONE`` with both parts non-empty (code ``convert.mask``).
+    """
+    pairs = []
+    for mask in masks or ():
+        if isinstance(mask, str):
+            name, _, bone = mask.partition("=")
+        else:
+            try:
+                name, bone = mask
+            except (TypeError, ValueError):
+                name, bone = "", ""
+        name, bone = str(name).strip(), str(bone).strip()
+        if not name or not bone:
+            raise OptionsError(f"--mask must be NAME=BONE (a mask name and the bone it starts at), got {mask!r}",
+                               file="convert", code="convert.mask")
+        pairs.append((name, bone))
+    return tuple(pairs)
 
 
 @dataclass

@@ -100,6 +100,9 @@ def _check_rows(value: str):
 @click.option("--lod-screen-sizes", "lod_screen_sizes", default=None, metavar="S1,S2,...",
               help="Screen sizes (fraction of the view covered) below which LOD 1, 2, ... take over; one per "
                    "ratio, decreasing (default 0.01, 0.001, ...).")
+@click.option("--mask", "masks", multiple=True, metavar="NAME=BONE",
+              help="A bone mask for layers (format 1.2; vbusd.skin(..., layers=...)): BONE and every bone below "
+                   "it; repeatable.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
@@ -119,7 +122,7 @@ def _check_rows(value: str):
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
             check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, lod_ratios,
-            lod_screen_sizes, manifest, jobs,
+            lod_screen_sizes, masks, manifest, jobs,
             scheduler, cache_dir, no_cache, report_file, stall_timeout, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
@@ -146,7 +149,8 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
         allow_outside_paths=allow_outside_paths, check_rows=rows, converter=converter,
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
         clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights,
-        root_motion=root_motion, lod_ratios=lod_ratios or (), lod_screen_sizes=lod_screen_sizes)
+        root_motion=root_motion, lod_ratios=lod_ratios or (), lod_screen_sizes=lod_screen_sizes,
+        masks=tuple(masks))
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):

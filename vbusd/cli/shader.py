@@ -44,13 +44,16 @@ def _integer(value: str, option: str) -> int:
 @click.option("--skin", default=SKINS[0], show_default=True, metavar="BINDING",
               help="How bone indices and weights reach the shader: attributes (vertex attributes) or pulled "
                    "(read by vertex index from a storage buffer or texture; spec/shaders.md, Skin bindings).")
+@click.option("--layers", is_flag=True,
+              help="Also emit the layer functions of format 1.2 (vbSkinLayered and the rig texture vb_rig; "
+                   "spec/shaders.md, Layers).")
 @click.option("-o", "--output", metavar="FILE",
               help="File to write, atomically; missing folders are created (default: standard output).")
 @force_option
 @format_option
 @quiet_option
-def command(lang, encoding, texel_format, max_influences, max_clips, no_main, skin, output, force, output_format,
-            quiet):
+def command(lang, encoding, texel_format, max_influences, max_clips, no_main, skin, layers, output, force,
+            output_format, quiet):
     """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
 
     The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md. Without -o
@@ -60,7 +63,8 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, sk
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),
-                                max_clips=_integer(max_clips, "--max-clips"), main=not no_main, skin=skin)
+                                max_clips=_integer(max_clips, "--max-clips"), main=not no_main, skin=skin,
+                                layers=layers)
     except OptionsError as error:
         message = error.message
         for field, option in _OPTION_NAMES.items():
@@ -70,7 +74,8 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, sk
     source = generate(options)
     described = {"lang": options.lang, "encoding": Encoding(options.encoding).value,
                  "texelFormat": TexelFormat(options.texel_format).value, "maxInfluences": options.max_influences,
-                 "maxClips": options.max_clips, "main": options.main, "skin": options.skin}
+                 "maxClips": options.max_clips, "main": options.main, "skin": options.skin,
+                 **({"layers": True} if options.layers else {})}
     if output is None:  # the module is what this command prints: -q does not hold it back
         if output_format == "json":
             echo_json({**described, "source": source})

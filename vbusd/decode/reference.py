@@ -14,14 +14,16 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, quat_multiply, quat_to_matrix, unpack
+from vbusd.format.encoding import (BoneTransforms, decode_bones, dequantize, matrix_to_quat, quat_multiply,
+                                   quat_to_matrix, unpack)
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
-           "joint_transforms", "crowd_joint_transforms"]
+           "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
+           "mix_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -336,7 +338,10 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     n = crowd.instance_count
     if n == 0:
         return np.empty((0,) + mesh.points.shape), None if mesh.normals is None else np.empty((0,) + mesh.normals.shape)
-    points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
+    if crowd.layered:
+        points, normals = _layered_instances(vb, mesh, crowd, t)
+    else:
+        points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
     if normals is not None:
         normals = _normalize(normals)
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
@@ -397,7 +402,20 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     n = crowd.instance_count
     if n == 0:
         return np.empty((0, 4, 4))
-    local, = _per_instance(crowd, t, lambda clip, taus: (skinning_matrices(vb, clip, taus)[:, bone],))
+    if crowd.layered:
+        # Spec 8.6 and 8.4: each side of the crossfade layered, the two layered transforms blended.
+        taus = instance_time(crowd, t)
+        fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+        local = np.empty((n, 4, 4))
+        for i, layers in enumerate(instance_layers(vb, crowd, t)):
+            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers)[0])[0, bone]
+            w = float(np.clip(fade_weight[i], 0.0, 1.0)) if crowd.crossfades else 0.0
+            if w > 0:
+                fade_tau = np.array([fade_offset[i] + fade_rate[i] * t])
+                faded = _matrices(layered_skinning(vb, int(fade_clip[i]), fade_tau, layers)[0])[0, bone]
+                local[i] = (1.0 - w) * local[i] + w * faded
+    else:
+        local, = _per_instance(crowd, t, lambda clip, taus: (skinning_matrices(vb, clip, taus)[:, bone],))
     rotation = quat_to_matrix(_normalize(np.asarray(crowd.orientations, dtype=np.float64)))
     scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
     placement = np.zeros((n, 4, 4))
@@ -420,3 +438,227 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
     from vbusd.rootmotion import displacement
 
     return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)
+
+
+# --------------------------------------------------------------------------------------------
+# Layers and bone masks (format 1.2, spec "Layers and bone masks")
+# --------------------------------------------------------------------------------------------
+
+
+def bone_order(parents) -> np.ndarray:
+    """Bone indices ordered parents before children (glTF lists skin joints in any order)."""
+    parents = np.asarray(parents, dtype=np.int64)
+    depth = np.zeros(parents.size, dtype=np.int64)
+    for b in range(parents.size):
+        node, d = int(parents[b]), 0
+        while node != -1:
+            node, d = int(parents[node]), d + 1
+        depth[b] = d
+    return np.argsort(depth, kind="stable")
+
+
+def decompose_trs(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Translation, unit quaternion (x, y, z, w) and scale of (..., 4, 4) matrices, as three.js'
+    ``Matrix4.decompose``: scale = column lengths (x negated when the determinant is negative),
+    rotation = the 3x3 part with its columns divided by the scale."""
+    linear = matrices[..., :3, :3]
+    scale = np.linalg.norm(linear, axis=-2)
+    scale[..., 0] *= np.where(np.linalg.det(linear) < 0, -1.0, 1.0)
+    rotation = linear / np.where(scale == 0, 1.0, scale)[..., None, :]
+    return matrices[..., :3, 3].copy(), matrix_to_quat(rotation), scale
+
+
+def compose_trs(translation: np.ndarray, quaternion: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``T(t) R(q) S(s)`` as (..., 4, 4) matrices."""
+    out = np.zeros(translation.shape[:-1] + (4, 4))
+    out[..., :3, :3] = quat_to_matrix(quaternion) * scale[..., None, :]
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Shortest-arc spherical interpolation of (..., 4) unit quaternions by (...) weights, as
+    three.js' ``Quaternion.slerpFlat`` (the sign of ``q1`` that makes the dot product >= 0; a
+    normalized lerp where the two are nearly equal)."""
+    cos = np.sum(q0 * q1, axis=-1)
+    direction = np.where(cos >= 0, 1.0, -1.0)
+    sin_squared = 1.0 - cos * cos
+    near = sin_squared <= np.finfo(np.float64).eps
+    sin = np.sqrt(np.where(near, 1.0, sin_squared))
+    angle = np.arctan2(sin, cos * direction)
+    s0 = np.where(near, 1.0 - alpha, np.sin((1.0 - alpha) * angle) / sin)
+    s1 = np.where(near, alpha, np.sin(alpha * angle) / sin)
+    out = q0 * s0[..., None] + q1 * (s1 * direction)[..., None]
+    return np.where(near[..., None], out / np.linalg.norm(out, axis=-1, keepdims=True), out)
+
+
+def mix_local(x: np.ndarray, y: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``mix(X, Y, alpha)`` of spec 8.6 for (..., 4, 4) local transforms and (...) weights in [0, 1]:
+    X at 0, Y at 1, else translation and scale lerped and rotation slerped."""
+    out = np.where((alpha >= 1.0)[..., None, None], y, x)
+    partial = (alpha > 0.0) & (alpha < 1.0)
+    if np.any(partial):
+        a = alpha[partial]
+        tx, qx, sx = decompose_trs(x[partial])
+        ty, qy, sy = decompose_trs(y[partial])
+        out[partial] = compose_trs((1.0 - a)[:, None] * tx + a[:, None] * ty, slerp(qx, qy, a),
+                                   (1.0 - a)[:, None] * sx + a[:, None] * sy)
+    return out
+
+
+def _local(joints: np.ndarray, parents: np.ndarray) -> np.ndarray:
+    """Local transforms ``J_p^-1 J_b`` (a root's is ``J_b``) of (n, B, 4, 4) joint transforms."""
+    local = joints.copy()
+    child = parents >= 0
+    local[:, child] = np.linalg.solve(joints[:, parents[child]], joints[:, child])
+    return local
+
+
+def mask_weights(vb: VirtualBones, mask, *, what: str = "skin") -> np.ndarray:
+    """The (B,) weights of a mask given by name or index (spec 8.6).
+
+    Raises:
+        InputError: The animation stores no masks, or none of that name (code ``layers.noMask``).
+    """
+    from vbusd.format.errors import InputError
+
+    names = [name for name, _ in vb.masks]
+    if isinstance(mask, str) and mask in names:
+        return np.asarray(vb.masks[names.index(mask)][1], dtype=np.float64)
+    if isinstance(mask, (int, np.integer)) and not isinstance(mask, bool) and 0 <= mask < len(names):
+        return np.asarray(vb.masks[int(mask)][1], dtype=np.float64)
+    have = f"masks: {', '.join(names)}" if names else "it stores none (format 1.2): reconvert with --mask NAME=BONE"
+    raise InputError(f"animation {vb.path} has no bone mask {mask!r} ({have})", file=what, location=vb.path,
+                     code="layers.noMask")
+
+
+def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None) -> tuple[BoneTransforms, np.ndarray]:
+    """Decoded bone transforms of one clip with layers applied (spec "Layers and bone masks").
+
+    Args:
+        vb: The baked animation (with bone parents, bind transforms and masks).
+        clip_index: The base clip.
+        tau: Its clip-local times (n,).
+        layers: ``(clip index, times (n,), weight (scalar or (n,)), mask weights (B,))`` per layer,
+            applied in order.
+        values: :func:`channel_values` of ``vb``, to avoid recomputing it.
+
+    Returns:
+        ``(transforms, joints)``: the :class:`BoneTransforms` to skin with (a bone the layers leave
+        unchanged keeps its decoded transform exactly) and the layered joint transforms ``J'``
+        (n, B, 4, 4).
+    """
+    tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+    encoding = vb.layout.encoding
+    base = decode_bones(interpolated_values(vb, clip_index, tau, values), encoding)
+    bind = _bind(vb)
+    joints = _matrices(base) @ bind[None]
+    if not layers:
+        return base, joints
+    parents = np.asarray(vb.bone_parents, dtype=np.int64)
+    local = _local(joints, parents)
+    changed = np.zeros(local.shape[:2], dtype=bool)
+    for clip, times, weight, mask in layers:
+        times = np.broadcast_to(np.atleast_1d(np.asarray(times, dtype=np.float64)), tau.shape)
+        layer = _matrices(decode_bones(interpolated_values(vb, clip, times, values), encoding)) @ bind[None]
+        w = np.clip(np.broadcast_to(np.asarray(weight, dtype=np.float64), tau.shape), 0.0, 1.0)
+        alpha = w[:, None] * np.asarray(mask, dtype=np.float64)[None, :]
+        local = mix_local(local, _local(layer, parents), alpha)
+        changed |= alpha > 0.0
+    layered = joints.copy()
+    for b in bone_order(parents):
+        p = parents[b]
+        if p >= 0:
+            changed[:, b] |= changed[:, p]
+        rows = changed[:, b]
+        if np.any(rows):
+            layered[rows, b] = local[rows, b] if p < 0 else layered[rows, p] @ local[rows, b]
+    matrices = layered @ np.linalg.inv(bind)[None]
+    linear = np.where(changed[..., None, None], matrices[..., :3, :3], base.linear)
+    translation = np.where(changed[..., None], matrices[..., :3, 3], base.translation)
+    normal = base.normal.copy()
+    if np.any(changed):
+        normal[changed] = np.swapaxes(np.linalg.inv(linear[changed]), -1, -2)
+    real, dual = base.dual_real, base.dual_dual
+    if encoding is Encoding.DUAL_QUAT:
+        real, dual = real.copy(), dual.copy()
+        if np.any(changed):
+            q = matrix_to_quat(linear[changed] / np.linalg.norm(linear[changed], axis=-2)[..., None, :])
+            real[changed] = q
+            dual[changed] = 0.5 * quat_multiply(np.concatenate([translation[changed], np.zeros(q.shape[:-1] + (1,))],
+                                                               axis=-1), q)
+    return BoneTransforms(linear, translation, normal, real, dual), layered
+
+
+def _matrices(transforms: BoneTransforms) -> np.ndarray:
+    n, b = transforms.linear.shape[:2]
+    out = np.zeros((n, b, 4, 4))
+    out[..., :3, :3] = transforms.linear
+    out[..., :3, 3] = transforms.translation
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, layers, *, fade_clip=None,
+                      fade_tau=None, fade_weight=0.0) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Skinned points and normals of a bound mesh with layers (spec "Layers and bone masks").
+
+    With a fade clip, each side of the crossfade is layered and the two layered poses are blended
+    as :func:`skin_mesh_crossfade` blends unlayered ones.
+
+    Args:
+        vb: The baked animation.
+        mesh: A bound mesh.
+        clip_index: The base clip.
+        tau: Its clip-local times (n,).
+        layers: As :func:`layered_skinning`.
+        fade_clip: The fade clip's index, or None.
+        fade_tau: Its clip-local times.
+        fade_weight: Its weight (clamped to [0, 1]).
+
+    Returns:
+        (points (n, V, 3), normals (n, V', 3) or None), float64.
+    """
+    values = channel_values(vb)
+    tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
+
+    def pose(clip, times, finish):
+        transforms, _ = layered_skinning(vb, clip, times, layers, values)
+        return skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
+                    mesh.normals, normal_point_indices(mesh), normalize_normals=finish)
+
+    if fade_clip is None:
+        return pose(clip_index, tau, True)
+    fade_tau = np.broadcast_to(np.atleast_1d(np.asarray(fade_tau, dtype=np.float64)), tau.shape)
+    return crossfade(pose(clip_index, tau, False), pose(fade_clip, fade_tau, False), fade_weight)
+
+
+def instance_layers(vb: VirtualBones, crowd: Crowd, t: float) -> list:
+    """Each instance's layers at scene time ``t`` as :func:`layered_skinning` takes them (spec 15,
+    ``primvars:vb:layer*``): layers of weight 0 are left out."""
+    if crowd.layer_weight is None:
+        return [[] for _ in range(crowd.instance_count)]
+    weight = np.asarray(crowd.layer_weight, dtype=np.float64)
+    clip = np.asarray(crowd.layer_clip, dtype=np.int64).reshape(weight.shape)
+    offset = np.asarray(crowd.layer_time_offset, dtype=np.float64).reshape(weight.shape)
+    rate = np.asarray(crowd.layer_playback_rate, dtype=np.float64).reshape(weight.shape)
+    mask = np.asarray(crowd.layer_mask, dtype=np.int64).reshape(weight.shape)
+    return [[(int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
+              mask_weights(vb, int(mask[i, j]))) for j in range(weight.shape[1]) if weight[i, j] > 0]
+            for i in range(weight.shape[0])]
+
+
+def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float):
+    """Skinned points and normals (N, V, 3) of a layered crowd, one instance at a time."""
+    taus = instance_time(crowd, t)
+    fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
+    points, normals = [], []
+    for i, layers in enumerate(instance_layers(vb, crowd, t)):
+        fading = crowd.crossfades and fade_weight[i] > 0
+        p, n = skin_mesh_layered(vb, mesh, int(crowd.clip[i]), taus[i:i + 1], layers,
+                                 fade_clip=int(fade_clip[i]) if fading else None,
+                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i])
+        points.append(p[0])
+        normals.append(None if n is None else n[0])
+    return np.stack(points), None if normals[0] is None else np.stack(normals)

@@ -22,7 +22,7 @@ from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 
 __all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "SKIN_TEXTURE_WIDTH", "ShaderOptions", "generate",
-           "skin_record_texels", "pack_skin", "skin_texture_shape"]
+           "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
 
 LANGUAGES = ("glsl", "hlsl")
 SKINS = ("attributes", "pulled")  # spec/shaders.md, Skin bindings; attributes is the default
@@ -45,6 +45,8 @@ class ShaderOptions:
             ``vbSkin`` from their own vertex function instead.
         skin: How the bone indices and weights reach the shader: ``attributes`` (vertex
             attributes) or ``pulled`` (skin records read by vertex index, ``vbSkinInfluences``).
+        layers: Also emit the layer functions of format 1.2 (``vbSkinLayered``, the rig texture
+            ``vb_rig``; spec/virtual-bones.md 8.6, spec/shaders.md "Layers").
     """
 
     lang: str = "glsl"
@@ -54,6 +56,7 @@ class ShaderOptions:
     max_clips: int = DEFAULT_MAX_CLIPS
     main: bool = True
     skin: str = "attributes"
+    layers: bool = False
 
     def __post_init__(self) -> None:
         if self.lang not in LANGUAGES:
@@ -618,6 +621,379 @@ void vbSkinInfluences(VB_ARGS_DECL int vertex, out int boneIndex[VB_MAX_INFLUENC
 }
 """
 
+_LAYERS_RESOURCES_GLSL = """\
+#ifndef VB_RIG_FETCH
+#define VB_RIG_FETCH(column, row) texelFetch(vb_rig, ivec2(column, row), 0)
+#endif
+#if VB_DECLARE_RESOURCES
+// Layers (format 1.2): the rig texture (spec/shaders.md, Layers): RGBA32F, NEAREST, no mipmaps.
+uniform highp sampler2D vb_rig;
+#endif
+"""
+
+_LAYERS_RESOURCES_HLSL = """\
+#ifndef VB_RIG_FETCH
+#define VB_RIG_FETCH(column, row) vb_rig.Load(int3(column, row, 0))
+#endif
+#if VB_DECLARE_RESOURCES
+// Layers (format 1.2): the rig texture (spec/shaders.md, Layers): float4, point sampling, no mipmaps.
+Texture2D<float4> vb_rig;
+#endif
+"""
+
+# Layers and bone masks (spec/virtual-bones.md 8.6) in the shared GLSL spelling. Affine transforms
+# are passed as their three rows (vec4: the 3x4 [A | t]), as vbSocket does, so that the same text
+# compiles as GLSL and HLSL without matrix types, whose conventions differ.
+_LAYERS = """\
+#ifndef VB_MAX_LAYERS
+#define VB_MAX_LAYERS 2
+#endif
+#ifndef VB_MAX_DEPTH
+#define VB_MAX_DEPTH 32
+#endif
+
+// Rig texture row 0, per bone b: texels 8b..8b+2 the rows of its bind transform B, 8b+3..8b+5 those
+// of B^-1, 8b+6 = (parent index or -1, 0, 0, 0). Row 1 + m: texel b = (weight of bone b in mask m).
+int vbParent(int bone) { return int(VB_RIG_FETCH(bone * 8 + 6, 0).x); }
+float vbMaskWeight(int mask, int bone) { return VB_RIG_FETCH(bone, 1 + mask).x; }
+
+// c = a b for affine transforms given as rows.
+void vbAffineMul(vec4 a0, vec4 a1, vec4 a2, vec4 b0, vec4 b1, vec4 b2, out vec4 c0, out vec4 c1, out vec4 c2)
+{
+    vec4 last = vec4(0.0, 0.0, 0.0, 1.0);
+    c0 = a0.x * b0 + a0.y * b1 + a0.z * b2 + a0.w * last;
+    c1 = a1.x * b0 + a1.y * b1 + a1.z * b2 + a1.w * last;
+    c2 = a2.x * b0 + a2.y * b1 + a2.z * b2 + a2.w * last;
+}
+
+// The inverse of an affine transform given as rows: the columns of A^-1 are the cross products of
+// A's rows over the determinant, and t' = -A^-1 t.
+void vbAffineInverse(vec4 a0, vec4 a1, vec4 a2, out vec4 i0, out vec4 i1, out vec4 i2)
+{
+    vec3 c0 = cross(a1.xyz, a2.xyz);
+    vec3 c1 = cross(a2.xyz, a0.xyz);
+    vec3 c2 = cross(a0.xyz, a1.xyz);
+    float det = dot(a0.xyz, c0);
+    c0 = c0 / det; c1 = c1 / det; c2 = c2 / det;
+    vec3 t = vec3(a0.w, a1.w, a2.w);
+    vec3 r0 = vec3(c0.x, c1.x, c2.x);
+    vec3 r1 = vec3(c0.y, c1.y, c2.y);
+    vec3 r2 = vec3(c0.z, c1.z, c2.z);
+    i0 = vec4(r0, -dot(r0, t));
+    i1 = vec4(r1, -dot(r1, t));
+    i2 = vec4(r2, -dot(r2, t));
+}
+
+// Unit quaternion (x, y, z, w) of a rotation given by its columns (Shepperd's method, as
+// vbusd.format.encoding.matrix_to_quat).
+vec4 vbQuatFromColumns(vec3 c0, vec3 c1, vec3 c2)
+{
+    float trace = c0.x + c1.y + c2.z;
+    vec4 q;
+    if (trace >= c0.x && trace >= c1.y && trace >= c2.z)
+    {
+        float s = sqrt(1.0 + trace) * 2.0;
+        q = vec4((c1.z - c2.y) / s, (c2.x - c0.z) / s, (c0.y - c1.x) / s, 0.25 * s);
+    }
+    else if (c0.x >= c1.y && c0.x >= c2.z)
+    {
+        float s = sqrt(1.0 + c0.x - c1.y - c2.z) * 2.0;
+        q = vec4(0.25 * s, (c1.x + c0.y) / s, (c2.x + c0.z) / s, (c1.z - c2.y) / s);
+    }
+    else if (c1.y >= c2.z)
+    {
+        float s = sqrt(1.0 - c0.x + c1.y - c2.z) * 2.0;
+        q = vec4((c1.x + c0.y) / s, 0.25 * s, (c2.y + c1.z) / s, (c2.x - c0.z) / s);
+    }
+    else
+    {
+        float s = sqrt(1.0 - c0.x - c1.y + c2.z) * 2.0;
+        q = vec4((c2.x + c0.z) / s, (c2.y + c1.z) / s, 0.25 * s, (c0.y - c1.x) / s);
+    }
+    return normalize(q);
+}
+
+// Translation, rotation and scale of an affine transform (three.js' Matrix4.decompose).
+void vbDecompose(vec4 a0, vec4 a1, vec4 a2, out vec3 t, out vec4 q, out vec3 s)
+{
+    vec3 c0 = vec3(a0.x, a1.x, a2.x);
+    vec3 c1 = vec3(a0.y, a1.y, a2.y);
+    vec3 c2 = vec3(a0.z, a1.z, a2.z);
+    s = vec3(length(c0), length(c1), length(c2));
+    if (dot(c0, cross(c1, c2)) < 0.0) s.x = -s.x;
+    q = vbQuatFromColumns(c0 / s.x, c1 / s.y, c2 / s.z);
+    t = vec3(a0.w, a1.w, a2.w);
+}
+
+// T(t) R(q) S(s) as rows.
+void vbCompose(vec3 t, vec4 q, vec3 s, out vec4 a0, out vec4 a1, out vec4 a2)
+{
+    vec3 c0 = vbRotate(q, vec3(1.0, 0.0, 0.0)) * s.x;
+    vec3 c1 = vbRotate(q, vec3(0.0, 1.0, 0.0)) * s.y;
+    vec3 c2 = vbRotate(q, vec3(0.0, 0.0, 1.0)) * s.z;
+    a0 = vec4(c0.x, c1.x, c2.x, t.x);
+    a1 = vec4(c0.y, c1.y, c2.y, t.y);
+    a2 = vec4(c0.z, c1.z, c2.z, t.z);
+}
+
+// atan(x) for 0 <= x <= 1 and sin(x) for 0 <= x <= pi/2 as series, accurate to float32 (below
+// 1e-7): the slerp's weights must not depend on the driver's sin and atan, whose accuracy varies
+// (SwiftShader's cost 2e-5 of a character's size where llvmpipe's cost 2e-7).
+float vbAtanUnit(float x)
+{
+    bool shifted = x > 0.41421356;  // tan(pi / 8): atan(x) = pi / 4 + atan((x - 1) / (x + 1))
+    if (shifted) x = (x - 1.0) / (x + 1.0);
+    float x2 = x * x;
+    float p = x * (1.0 + x2 * (-0.33333333 + x2 * (0.2 + x2 * (-0.14285714 + x2 * (0.11111111
+              + x2 * (-0.09090909 + x2 * (0.07692308 + x2 * (-0.06666667 + x2 * 0.05882353))))))));
+    return shifted ? p + 0.78539816 : p;
+}
+
+float vbSinHalfPi(float x)
+{
+    float x2 = x * x;
+    return x * (1.0 + x2 * (-0.16666667 + x2 * (0.0083333333 + x2 * (-0.00019841270 + x2 * (2.7557319e-6
+           + x2 * (-2.5052108e-8 + x2 * 1.6059044e-10))))));
+}
+
+// Shortest-arc slerp (three.js' Quaternion.slerpFlat). The angle comes from |a - b| and |a + b|,
+// not from 1 - dot(a, b)^2, which loses every digit of a small angle in float32; below 0.01 rad a
+// normalized lerp is used (within 1e-8 rad of the slerp there) (spec/shaders.md, Layers).
+vec4 vbSlerp(vec4 a, vec4 b, float t)
+{
+    vec4 c = dot(a, b) >= 0.0 ? b : -b;
+    float angle = 2.0 * vbAtanUnit(length(a - c) / length(a + c));  // in [0, pi / 2]
+    if (angle < 0.01) return normalize(mix(a, c, t));
+    float s = vbSinHalfPi(angle);
+    return a * (vbSinHalfPi((1.0 - t) * angle) / s) + c * (vbSinHalfPi(t * angle) / s);
+}
+
+// mix(X, Y, alpha) of spec 8.6 on local transforms given as rows: X at 0, Y at 1, else translation
+// and scale lerped, rotation slerped.
+void vbMixLocal(inout vec4 x0, inout vec4 x1, inout vec4 x2, vec4 y0, vec4 y1, vec4 y2, float alpha)
+{
+    if (alpha <= 0.0) return;
+    if (alpha >= 1.0)
+    {
+        x0 = y0; x1 = y1; x2 = y2;
+        return;
+    }
+    vec3 tx; vec4 qx; vec3 sx;
+    vec3 ty; vec4 qy; vec3 sy;
+    vbDecompose(x0, x1, x2, tx, qx, sx);
+    vbDecompose(y0, y1, y2, ty, qy, sy);
+    vbCompose(mix(tx, ty, alpha), vbSlerp(qx, qy, alpha), mix(sx, sy, alpha), x0, x1, x2);
+}
+
+// A bone's joint transform J = M B at clip-local time tau (spec 8.4), as rows.
+void vbJointRows(VB_ARGS_DECL int clip, float tau, int bone, out vec4 j0, out vec4 j1, out vec4 j2)
+{
+    vec4 m0; vec4 m1; vec4 m2;
+    vbBoneRows(VB_ARGS clip, tau, bone, m0, m1, m2);
+    vbAffineMul(m0, m1, m2, VB_RIG_FETCH(bone * 8, 0), VB_RIG_FETCH(bone * 8 + 1, 0), VB_RIG_FETCH(bone * 8 + 2, 0),
+                j0, j1, j2);
+}
+
+// The layered skinning transform M' of one bone (spec 8.6): clip at tau with layer j playing
+// layerClip[j] at layerTau[j] with weight layerWeight[j] under mask layerMask[j] (a weight of 0
+// leaves the layer out). Walks from the bone up to the root-most ancestor some layer weighs, then
+// down again blending local transforms. changed is false, and M' the decoded M, when no layer
+// touches the bone or its ancestors.
+void vbLayeredBoneRows(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS], int bone,
+                       out vec4 m0, out vec4 m1, out vec4 m2, out bool changed)
+{
+    int chain[VB_MAX_DEPTH];
+    int depth = 0;
+    int top = -1;
+    int b = bone;
+    while (b >= 0 && depth < VB_MAX_DEPTH)
+    {
+        chain[depth] = b;
+        for (int j = 0; j < VB_MAX_LAYERS; ++j)
+        {
+            if (clamp(layerWeight[j], 0.0, 1.0) * vbMaskWeight(layerMask[j], b) > 0.0) top = depth;
+        }
+        depth += 1;
+        b = vbParent(b);
+    }
+    changed = top >= 0;
+    if (!changed)
+    {
+        vbBoneRows(VB_ARGS clip, tau, bone, m0, m1, m2);
+        return;
+    }
+    // Above the top bone nothing changes: its parent keeps the decoded joint transform.
+    vec4 base0 = vec4(1.0, 0.0, 0.0, 0.0);
+    vec4 base1 = vec4(0.0, 1.0, 0.0, 0.0);
+    vec4 base2 = vec4(0.0, 0.0, 1.0, 0.0);
+    vec4 layer0[VB_MAX_LAYERS];
+    vec4 layer1[VB_MAX_LAYERS];
+    vec4 layer2[VB_MAX_LAYERS];
+    int parent = vbParent(chain[top]);
+    if (parent >= 0) vbJointRows(VB_ARGS clip, tau, parent, base0, base1, base2);
+    for (int j = 0; j < VB_MAX_LAYERS; ++j)
+    {
+        layer0[j] = vec4(1.0, 0.0, 0.0, 0.0);
+        layer1[j] = vec4(0.0, 1.0, 0.0, 0.0);
+        layer2[j] = vec4(0.0, 0.0, 1.0, 0.0);
+        if (parent >= 0 && layerWeight[j] > 0.0)
+            vbJointRows(VB_ARGS layerClip[j], layerTau[j], parent, layer0[j], layer1[j], layer2[j]);
+    }
+    vec4 out0 = base0; vec4 out1 = base1; vec4 out2 = base2;
+    for (int k = top; k >= 0; --k)
+    {
+        b = chain[k];
+        vec4 j0; vec4 j1; vec4 j2;
+        vbJointRows(VB_ARGS clip, tau, b, j0, j1, j2);
+        vec4 i0; vec4 i1; vec4 i2;
+        vec4 l0; vec4 l1; vec4 l2;
+        vbAffineInverse(base0, base1, base2, i0, i1, i2);
+        vbAffineMul(i0, i1, i2, j0, j1, j2, l0, l1, l2);
+        base0 = j0; base1 = j1; base2 = j2;
+        for (int j = 0; j < VB_MAX_LAYERS; ++j)
+        {
+            if (layerWeight[j] <= 0.0) continue;
+            vec4 k0; vec4 k1; vec4 k2;
+            vbJointRows(VB_ARGS layerClip[j], layerTau[j], b, k0, k1, k2);
+            vec4 y0; vec4 y1; vec4 y2;
+            vbAffineInverse(layer0[j], layer1[j], layer2[j], i0, i1, i2);
+            vbAffineMul(i0, i1, i2, k0, k1, k2, y0, y1, y2);
+            layer0[j] = k0; layer1[j] = k1; layer2[j] = k2;
+            vbMixLocal(l0, l1, l2, y0, y1, y2, clamp(layerWeight[j], 0.0, 1.0) * vbMaskWeight(layerMask[j], b));
+        }
+        vec4 n0; vec4 n1; vec4 n2;
+        vbAffineMul(out0, out1, out2, l0, l1, l2, n0, n1, n2);
+        out0 = n0; out1 = n1; out2 = n2;
+    }
+    vbAffineMul(out0, out1, out2, VB_RIG_FETCH(bone * 8 + 3, 0), VB_RIG_FETCH(bone * 8 + 4, 0),
+                VB_RIG_FETCH(bone * 8 + 5, 0), m0, m1, m2);
+}
+"""
+
+_LAYERS_SKIN_LBS = """\
+// Layered LBS of one vertex at clip-local time tau (spec 8.6); the normal is not yet normalized. A
+// bone the layers change skins with M' and inverse(A')^T, an unchanged one exactly as vbSkinPose.
+void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS],
+                       vec3 restPosition, vec3 restNormal,
+                       int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                       out vec3 position, out vec3 normal)
+{
+    int row0;
+    int row1;
+    float blend;
+    vbRows(VB_ARGS clip, tau, row0, row1, blend);
+    position = vec3(0.0, 0.0, 0.0);
+    normal = vec3(0.0, 0.0, 0.0);
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        float w = boneWeight[i];
+        if (w == 0.0) continue;
+        vec3 a0; vec3 a1; vec3 a2; vec3 t; vec3 n0; vec3 n1; vec3 n2;
+        vec4 m0; vec4 m1; vec4 m2;
+        bool changed;
+        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, boneIndex[i],
+                          m0, m1, m2, changed);
+        if (changed)
+        {
+            a0 = vec3(m0.x, m1.x, m2.x);
+            a1 = vec3(m0.y, m1.y, m2.y);
+            a2 = vec3(m0.z, m1.z, m2.z);
+            t = vec3(m0.w, m1.w, m2.w);
+            float det = dot(a0, cross(a1, a2));
+            n0 = cross(a1, a2) / det;
+            n1 = cross(a2, a0) / det;
+            n2 = cross(a0, a1) / det;
+        }
+        else
+        {
+            vbBone(VB_ARGS boneIndex[i], row0, row1, blend, a0, a1, a2, t, n0, n1, n2);
+        }
+        position += w * (a0 * restPosition.x + a1 * restPosition.y + a2 * restPosition.z + t);
+        normal += w * (n0 * restNormal.x + n1 * restNormal.y + n2 * restNormal.z);
+    }
+}
+"""
+
+_LAYERS_SKIN_DQS = """\
+// Layered DQS of one vertex at clip-local time tau (spec 8.6): a bone the layers change skins with
+// the dual quaternion of M'; the normal is not yet normalized.
+void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS],
+                       vec3 restPosition, vec3 restNormal,
+                       int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                       out vec3 position, out vec3 normal)
+{
+    int row0;
+    int row1;
+    float blend;
+    vbRows(VB_ARGS clip, tau, row0, row1, blend);
+    vec4 real = vec4(0.0, 0.0, 0.0, 0.0);
+    vec4 dual = vec4(0.0, 0.0, 0.0, 0.0);
+    vec4 pivot = vec4(0.0, 0.0, 0.0, 1.0);
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        vec4 r; vec4 d;
+        vec4 m0; vec4 m1; vec4 m2;
+        bool changed;
+        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, boneIndex[i],
+                          m0, m1, m2, changed);
+        if (changed)
+        {
+            vec3 c0 = vec3(m0.x, m1.x, m2.x);
+            vec3 c1 = vec3(m0.y, m1.y, m2.y);
+            vec3 c2 = vec3(m0.z, m1.z, m2.z);
+            r = vbQuatFromColumns(c0 / length(c0), c1 / length(c1), c2 / length(c2));
+            vec3 t = vec3(m0.w, m1.w, m2.w);
+            // d = 0.5 (t, 0) (x) r
+            d = 0.5 * vec4(r.w * t + cross(t, r.xyz), -dot(t, r.xyz));
+        }
+        else
+        {
+            vbBone(VB_ARGS boneIndex[i], row0, row1, blend, r, d);
+        }
+        if (i == 0) pivot = r;
+        float w = boneWeight[i];
+        if (dot(r, pivot) < 0.0) w = -w;
+        real += w * r;
+        dual += w * d;
+    }
+    float len = length(real);
+    real = real / len;
+    dual = dual / len;
+    vec3 t = 2.0 * (real.w * dual.xyz - dual.w * real.xyz + cross(real.xyz, dual.xyz));
+    position = vbRotate(real, restPosition) + t;
+    normal = vbRotate(real, restNormal);
+}
+"""
+
+_LAYERS_ENTRY = """\
+// Layers (spec 8.6, format 1.2) on top of the crossfade (8.3): each side layered, then blended.
+// With every layer weight 0 the result is exactly that of vbSkinCrossfade.
+void vbSkinLayered(VB_ARGS_DECL int clip, float tau, int fadeClip, float fadeTau, float fadeWeight,
+                   int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS], float layerWeight[VB_MAX_LAYERS],
+                   int layerMask[VB_MAX_LAYERS], vec3 restPosition, vec3 restNormal,
+                   int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
+                   out vec3 position, out vec3 normal)
+{
+    vbSkinLayeredPose(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, restPosition, restNormal,
+                      boneIndex, boneWeight, position, normal);
+    float w = clamp(fadeWeight, 0.0, 1.0);
+    if (w > 0.0)
+    {
+        vec3 fadePosition;
+        vec3 fadeNormal;
+        vbSkinLayeredPose(VB_ARGS fadeClip, fadeTau, layerClip, layerTau, layerWeight, layerMask, restPosition,
+                          restNormal, boneIndex, boneWeight, fadePosition, fadeNormal);
+        position = mix(position, fadePosition, w);
+        normal = mix(normal, fadeNormal, w);
+    }
+    normal = vbNormalize(normal);
+}
+"""
+
+
 # The GLSL spellings are macros for the shared body only: undefine them so that they cannot clash
 # with names in the engine code that includes the module (a variable called `mix`, say).
 _HLSL_EPILOGUE = """\
@@ -687,6 +1063,12 @@ def generate(options: ShaderOptions) -> str:
     main = main.replace("@SKIN_FETCH@", skin_fetch)
     rows = _BONE_ROWS_DQS if options.encoding is Encoding.DUAL_QUAT else _BONE_ROWS_LBS
     parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, rows, _SOCKET, main]
+    if options.layers:
+        # Layers (format 1.2) after the functions they call, before the example main.
+        rotate = "" if options.encoding in (Encoding.QUAT_TRANSLATION, Encoding.DUAL_QUAT) else _ROTATE
+        parts[-1:-1] = [_LAYERS_RESOURCES_GLSL if options.lang == "glsl" else _LAYERS_RESOURCES_HLSL, rotate, _LAYERS,
+                        _LAYERS_SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _LAYERS_SKIN_LBS,
+                        _LAYERS_ENTRY]
     if options.skin == "pulled":
         parts[1:1] = [_GLSL_PULLED if options.lang == "glsl" else _HLSL_PULLED]
         parts[-1:-1] = [_SKIN_INFLUENCES]
@@ -760,3 +1142,31 @@ def skin_texture_shape(texel_count: int, width: int = SKIN_TEXTURE_WIDTH) -> tup
     """
     w = max(1, min(texel_count, width))
     return w, max(1, -(-texel_count // w))
+
+
+RIG_TEXELS_PER_BONE = 8
+"""Texels per bone in row 0 of the rig texture of layers (spec/shaders.md, Layers)."""
+
+
+def rig_texels(bind_transforms, bone_parents, masks) -> np.ndarray:
+    """The rig texture of the layer functions (spec/shaders.md, Layers): float32 (1 + masks, 8 B, 4).
+
+    Row 0, per bone ``b``: texels ``8b .. 8b+2`` the rows of its bind transform ``B``, ``8b+3 ..
+    8b+5`` the rows of ``B^-1`` (inverted in float64), ``8b+6`` = (parent index or -1, 0, 0, 0),
+    ``8b+7`` zero. Row ``1 + m``: texel ``b`` = (weight of bone ``b`` in mask ``m``, 0, 0, 0).
+
+    Args:
+        bind_transforms: (B, 4, 4) column-vector bind transforms (``VirtualBones.bind_transforms``).
+        bone_parents: (B,) parent indices, -1 for a root.
+        masks: ``(name, (B,) weights)`` pairs (``VirtualBones.masks``).
+    """
+    binds = np.asarray(bind_transforms, dtype=np.float64)
+    count = binds.shape[0]
+    out = np.zeros((1 + len(masks), RIG_TEXELS_PER_BONE * count, 4), np.float32)
+    row = out[0].reshape(count, RIG_TEXELS_PER_BONE, 4)
+    row[:, 0:3] = binds[:, :3, :]
+    row[:, 3:6] = np.linalg.inv(binds)[:, :3, :]
+    row[:, 6, 0] = np.asarray(bone_parents, dtype=np.float64)
+    for m, (_, weights) in enumerate(masks):
+        out[1 + m, :count, 0] = np.asarray(weights, dtype=np.float64)
+    return out

@@ -135,11 +135,22 @@ class DeviceCrowd:
     fade_playback_rate: Optional[wp.array] = None
     fade_weight: Optional[wp.array] = None
     fades: bool = False
+    layer_clip: Optional[wp.array] = None
+    """Format 1.2 layers (spec "Layers and bone masks"): (n, L) arrays, None without layers."""
+    layer_time_offset: Optional[wp.array] = None
+    layer_playback_rate: Optional[wp.array] = None
+    layer_weight: Optional[wp.array] = None
+    layer_mask: Optional[wp.array] = None
 
     @property
     def instance_count(self) -> int:
         """Number of instances."""
         return int(self.clip.shape[0])
+
+    @property
+    def layer_count(self) -> int:
+        """L: layers per instance (0 without layers)."""
+        return 0 if self.layer_weight is None else int(self.layer_weight.shape[1])
 
 
 @dataclass
@@ -310,6 +321,7 @@ class Decoder:
             InputError: A clip index out of range or mismatched per-instance array lengths.
         """
         n = crowd.instance_count
+        layers = self._layer_arrays(crowd) if crowd.layered else {}
         clip = np.asarray(crowd.clip, dtype=np.int64).reshape(-1)
         arrays = {"clip": clip, "timeOffset": np.asarray(crowd.time_offset).reshape(-1),
                   "playbackRate": np.asarray(crowd.playback_rate).reshape(-1)}
@@ -338,7 +350,51 @@ class Decoder:
             orientations=self._array(q.astype(np.float32), wp.quat),
             scales=self._array(scales.astype(np.float32), wp.vec3),
             uniform_scale=bool(np.all(scales == scales[:, :1])),
-            **self._fade_arrays(fade_clip, fade_offset, fade_rate, fade_weight))
+            **self._fade_arrays(fade_clip, fade_offset, fade_rate, fade_weight), **layers)
+
+    def _layer_arrays(self, crowd: Crowd) -> dict:
+        """The DeviceCrowd fields of a layered crowd (format 1.2), with the animation's rig uploaded once.
+
+        Raises:
+            UnsupportedError: Hardware sampling (the layer kernel reads exact texels) (code
+                ``layers.unsupported``).
+            InputError: The animation stores no masks, a mask or clip index out of range (code
+                ``layers.noMask``, ``instancer.clip.range``).
+        """
+        from vbusd.format.errors import UnsupportedError
+
+        vb = self.vb
+        where = f"{crowd.path}.primvars:vb:layerWeight"
+        if self.sampling != "exact":
+            raise UnsupportedError("layers (format 1.2) are decoded on the exact path only; use sampling='exact'",
+                                   location=where, code="layers.unsupported")
+        if not vb.masks or vb.bone_parents is None or vb.bind_transforms is None:
+            raise InputError("the crowd plays layers but its animation stores no bone masks (format 1.2)",
+                             location=where, code="layers.noMask")
+        weight = np.asarray(crowd.layer_weight, np.float32)
+        n, count = weight.shape
+        clip = np.asarray(crowd.layer_clip, np.int64).reshape(n, count)
+        mask = np.asarray(crowd.layer_mask, np.int64).reshape(n, count)
+        active = weight > 0
+        if np.any(active & ((clip < 0) | (clip >= self.clip_count))):
+            raise InputError(f"a layer clip index is outside 0..{self.clip_count - 1}", location=where,
+                             code="instancer.clip.range")
+        if np.any(active & ((mask < 0) | (mask >= len(vb.masks)))):
+            raise InputError(f"a layer mask index is outside 0..{len(vb.masks) - 1}", location=where,
+                             code="layers.noMask")
+        if not hasattr(self, "rig_bind"):
+            binds = np.asarray(vb.bind_transforms, np.float64)
+            self.rig_bind = self._array(binds.astype(np.float32), wp.mat44)
+            self.rig_inverse_bind = self._array(np.linalg.inv(binds).astype(np.float32), wp.mat44)
+            self.rig_parents = self._array(np.asarray(vb.bone_parents, np.int32), wp.int32)
+            self.rig_masks = self._array(np.stack([np.asarray(w, np.float32) for _, w in vb.masks]), wp.float32)
+        return dict(layer_clip=self._array(np.where(active, clip, 0).astype(np.int32), wp.int32),
+                    layer_time_offset=self._array(np.asarray(crowd.layer_time_offset, np.float64).reshape(n, count),
+                                                  wp.float64),
+                    layer_playback_rate=self._array(np.asarray(crowd.layer_playback_rate, np.float64).reshape(n, count),
+                                                    wp.float64),
+                    layer_weight=self._array(np.clip(weight, 0.0, 1.0), wp.float32),
+                    layer_mask=self._array(np.where(active, mask, 0).astype(np.int32), wp.int32))
 
     def _fade_arrays(self, fade_clip, fade_offset, fade_rate, fade_weight) -> dict:
         """The DeviceCrowd fields of a crossfade (spec "Crossfade"): clip, offset, rate, weight per instance."""
@@ -405,6 +461,8 @@ class Decoder:
         """Whether placed bones need their own normal matrices (else N is the linear part of M)."""
         if self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION):
             return True
+        if crowd.layer_count and self.encoding is Encoding.CROSS_MATRIX:
+            return True  # a layered bone's normal matrix is inverse(A')^T (spec 8.6), not A itself
         return self.encoding is Encoding.CROSS_MATRIX and not crowd.uniform_scale
 
     def _bone_buffers(self, n: int, own_normal: bool, fades: bool = False) -> BoneBuffers:
@@ -454,6 +512,17 @@ class Decoder:
         if self.sampling == "exact":
             wp.launch(K.decode_bones, dim=dim, device=self.device,
                       inputs=[self.texels, self.encoding_id, frames, int(separate), *outputs])
+            if crowd.layer_count:
+                # Layers (spec 8.6): each layer's rows, then the bones they change rewritten.
+                rows = wp.empty((n, crowd.layer_count, 3), dtype=float, device=self.device)
+                wp.launch(K.layer_rows_kernel, dim=(n, crowd.layer_count), device=self.device,
+                          inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
+                                  crowd.layer_clip, crowd.layer_time_offset, crowd.layer_playback_rate,
+                                  wp.float64(t), rows])
+                wp.launch(K.layer_bones, dim=dim, device=self.device,
+                          inputs=[self.texels, self.encoding_id, frames, int(separate), rows, crowd.layer_count,
+                                  crowd.layer_weight, crowd.layer_mask, self.rig_bind, self.rig_inverse_bind,
+                                  self.rig_parents, self.rig_masks, *outputs])
         else:
             wp.launch(K.decode_bones_texture, dim=dim, device=self.device,
                       inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,

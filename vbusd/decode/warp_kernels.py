@@ -60,7 +60,8 @@ __all__ = ["ENCODING_IDS", "CROSS_MATRIX", "AFFINE_MATRIX", "QUAT_TRANSLATION", 
            "store_normal", "store_dual", "blend_dqs", "dqs_point", "place_point", "place_normal",
            "InstanceFrame", "instance_frames_kernel", "store_bones", "decode_at",
            "sample_decode_at", "blend_bones", "decode_bones", "decode_bones_texture", "place_bone",
-           "skin_lbs_kernel", "dqs_pose", "skin_dqs_kernel", "skin_normals_kernel"]
+           "skin_lbs_kernel", "dqs_pose", "skin_dqs_kernel", "skin_normals_kernel", "bone_matrix", "joint_local",
+           "layer_slerp", "mix_local", "layered_matrix", "layer_rows_kernel", "dual_of", "layer_bones"]
 
 # Compile only the forward kernels: the decoder never differentiates, and skipping the adjoints
 # roughly halves compile time on the CPU (LLVM) backend.
@@ -714,3 +715,224 @@ def skin_normals_kernel(
             else:
                 sn += w * (load_linear(linear, instance, bone) * wp.vec4(n[0], n[1], n[2], 0.0))
         out_normals[instance, e] = wp.normalize(sn)
+
+
+# --------------------------------------------------------------------------------------------
+# Layers and bone masks (format 1.2, spec "Layers and bone masks"; twin of
+# reference.layered_skinning): one item per (instance, bone), after decode_bones, rewriting the
+# bones the instance's layers change.
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def bone_matrix(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, row1: int, f: float, bone: int):
+    """The decoded skinning transform ``M`` of a bone as a 4x4 matrix (every encoding; spec 8.4)."""
+    linear, normal, dual = decode_at(texels, encoding, row0, row1, f, bone)
+    if encoding == DUAL_QUAT:
+        real = wp.quat(dual[0, 0], dual[0, 1], dual[0, 2], dual[0, 3])
+        d = wp.quat(dual[1, 0], dual[1, 1], dual[1, 2], dual[1, 3])
+        tq = d * wp.quat_inverse(real)
+        r = wp.quat_to_matrix(real)
+        return wp.mat44(r[0, 0], r[0, 1], r[0, 2], 2.0 * tq[0],
+                        r[1, 0], r[1, 1], r[1, 2], 2.0 * tq[1],
+                        r[2, 0], r[2, 1], r[2, 2], 2.0 * tq[2],
+                        0.0, 0.0, 0.0, 1.0)
+    return wp.mat44(linear[0, 0], linear[0, 1], linear[0, 2], linear[0, 3],
+                    linear[1, 0], linear[1, 1], linear[1, 2], linear[1, 3],
+                    linear[2, 0], linear[2, 1], linear[2, 2], linear[2, 3],
+                    0.0, 0.0, 0.0, 1.0)
+
+
+@wp.func
+def joint_local(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, row1: int, f: float, bone: int,
+                parent: int, bind: wp.array(dtype=wp.mat44)):
+    """``J_p^-1 J_b`` (``J_b`` for a root), ``J = M B`` (spec 8.6)."""
+    joint = bone_matrix(texels, encoding, row0, row1, f, bone) * bind[bone]
+    if parent < 0:
+        return joint
+    return wp.inverse(bone_matrix(texels, encoding, row0, row1, f, parent) * bind[parent]) * joint
+
+
+@wp.func
+def layer_slerp(a: wp.quat, b: wp.quat, t: float):
+    """Shortest-arc slerp, angle from |a - b| and |a + b| (float32-safe; a normalized lerp below 0.01 rad)."""
+    va = wp.vec4(a[0], a[1], a[2], a[3])
+    vb = wp.vec4(b[0], b[1], b[2], b[3])
+    if wp.dot(va, vb) < 0.0:
+        vb = -vb
+    angle = 2.0 * wp.atan2(wp.length(va - vb), wp.length(va + vb))
+    out = wp.vec4()
+    if angle < 0.01:
+        out = wp.normalize(va * (1.0 - t) + vb * t)
+    else:
+        s = wp.sin(angle)
+        out = va * (wp.sin((1.0 - t) * angle) / s) + vb * (wp.sin(t * angle) / s)
+    return wp.quat(out[0], out[1], out[2], out[3])
+
+
+@wp.func
+def layer_decompose_rotation(m: wp.mat44, s: wp.vec3):
+    c0 = wp.vec3(m[0, 0], m[1, 0], m[2, 0]) / s[0]
+    c1 = wp.vec3(m[0, 1], m[1, 1], m[2, 1]) / s[1]
+    c2 = wp.vec3(m[0, 2], m[1, 2], m[2, 2]) / s[2]
+    return wp.normalize(wp.quat_from_matrix(wp.mat33(c0[0], c1[0], c2[0], c0[1], c1[1], c2[1], c0[2], c1[2], c2[2])))
+
+
+@wp.func
+def layer_scale(m: wp.mat44):
+    c0 = wp.vec3(m[0, 0], m[1, 0], m[2, 0])
+    c1 = wp.vec3(m[0, 1], m[1, 1], m[2, 1])
+    c2 = wp.vec3(m[0, 2], m[1, 2], m[2, 2])
+    s = wp.vec3(wp.length(c0), wp.length(c1), wp.length(c2))
+    if wp.dot(c0, wp.cross(c1, c2)) < 0.0:
+        s = wp.vec3(-s[0], s[1], s[2])
+    return s
+
+
+@wp.func
+def mix_local(x: wp.mat44, y: wp.mat44, alpha: float):
+    """``mix(X, Y, alpha)`` of spec 8.6 (twin of ``reference.mix_local``)."""
+    if alpha <= 0.0:
+        return x
+    if alpha >= 1.0:
+        return y
+    sx = layer_scale(x)
+    sy = layer_scale(y)
+    q = layer_slerp(layer_decompose_rotation(x, sx), layer_decompose_rotation(y, sy), alpha)
+    s = sx * (1.0 - alpha) + sy * alpha
+    t = wp.vec3(x[0, 3], x[1, 3], x[2, 3]) * (1.0 - alpha) + wp.vec3(y[0, 3], y[1, 3], y[2, 3]) * alpha
+    r = wp.quat_to_matrix(q)
+    return wp.mat44(r[0, 0] * s[0], r[0, 1] * s[1], r[0, 2] * s[2], t[0],
+                    r[1, 0] * s[0], r[1, 1] * s[1], r[1, 2] * s[2], t[1],
+                    r[2, 0] * s[0], r[2, 1] * s[1], r[2, 2] * s[2], t[2],
+                    0.0, 0.0, 0.0, 1.0)
+
+
+@wp.func
+def ancestor(parents: wp.array(dtype=wp.int32), bone: int, steps: int):
+    node = bone
+    for _ in range(steps):
+        node = parents[node]
+    return node
+
+
+@wp.func
+def layered_matrix(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, row1: int, f: float, bone: int,
+                   top: int, layer_rows: wp.array3d(dtype=float), instance: int, layer_count: int,
+                   layer_weight: wp.array2d(dtype=wp.float32), layer_mask: wp.array2d(dtype=wp.int32),
+                   bind: wp.array(dtype=wp.mat44), inverse_bind: wp.array(dtype=wp.mat44),
+                   parents: wp.array(dtype=wp.int32), masks: wp.array2d(dtype=wp.float32)):
+    """``M'`` of one bone of one clip side: rebuilt from the root-most changed ancestor (``top``
+    steps above the bone) down, blending local transforms (spec 8.6)."""
+    out = wp.identity(n=4, dtype=float)
+    top_parent = parents[ancestor(parents, bone, top)]
+    if top_parent >= 0:
+        out = bone_matrix(texels, encoding, row0, row1, f, top_parent) * bind[top_parent]
+    k = top
+    while k >= 0:
+        node = ancestor(parents, bone, k)
+        parent = parents[node]
+        local = joint_local(texels, encoding, row0, row1, f, node, parent, bind)
+        for j in range(layer_count):
+            w = wp.clamp(layer_weight[instance, j], 0.0, 1.0)
+            if w > 0.0:
+                other = joint_local(texels, encoding, int(layer_rows[instance, j, 0]), int(layer_rows[instance, j, 1]),
+                                    layer_rows[instance, j, 2], node, parent, bind)
+                local = mix_local(local, other, w * masks[layer_mask[instance, j], node])
+        out = out * local
+        k -= 1
+    return out * inverse_bind[bone]
+
+
+@wp.kernel
+def layer_rows_kernel(
+    clip_first_row: wp.array(dtype=wp.int32),
+    clip_row_count: wp.array(dtype=wp.int32),
+    clip_rate: wp.array(dtype=wp.float64),
+    clip_loop: wp.array(dtype=wp.int32),
+    layer_clip: wp.array2d(dtype=wp.int32),
+    layer_offset: wp.array2d(dtype=wp.float64),
+    layer_rate: wp.array2d(dtype=wp.float64),
+    t: wp.float64,
+    out_rows: wp.array3d(dtype=float),
+):
+    """One item per (instance, layer): the layer clip's rows and blend at ``offset + rate * t`` (float64)."""
+    instance, j = wp.tid()
+    tau = layer_offset[instance, j] + layer_rate[instance, j] * t
+    row0, row1, f = clip_rows(clip_first_row, clip_row_count, clip_rate, clip_loop, layer_clip[instance, j], tau)
+    out_rows[instance, j, 0] = float(row0)
+    out_rows[instance, j, 1] = float(row1)
+    out_rows[instance, j, 2] = f
+
+
+@wp.func
+def dual_of(m: wp.mat44):
+    """The unit dual quaternion of a rigid ``M'`` (columns normalized): ``q_d = 0.5 (t, 0) (x) q_r``."""
+    s = wp.vec3(wp.length(wp.vec3(m[0, 0], m[1, 0], m[2, 0])), wp.length(wp.vec3(m[0, 1], m[1, 1], m[2, 1])),
+                wp.length(wp.vec3(m[0, 2], m[1, 2], m[2, 2])))
+    q = layer_decompose_rotation(m, s)
+    tq = wp.quat(m[0, 3], m[1, 3], m[2, 3], 0.0) * q
+    return dualquat(q[0], q[1], q[2], q[3], 0.5 * tq[0], 0.5 * tq[1], 0.5 * tq[2], 0.5 * tq[3])
+
+
+@wp.kernel
+def layer_bones(
+    texels: wp.array2d(dtype=wp.vec4),
+    encoding: int,
+    frames: wp.array(dtype=InstanceFrame),
+    separate_normals: int,
+    layer_rows: wp.array3d(dtype=float),
+    layer_count: int,
+    layer_weight: wp.array2d(dtype=wp.float32),
+    layer_mask: wp.array2d(dtype=wp.int32),
+    bind: wp.array(dtype=wp.mat44),
+    inverse_bind: wp.array(dtype=wp.mat44),
+    parents: wp.array(dtype=wp.int32),
+    masks: wp.array2d(dtype=wp.float32),
+    out_linear: wp.array3d(dtype=float),
+    out_normal: wp.array3d(dtype=float),
+    out_dual: wp.array3d(dtype=float),
+    out_dual_fade: wp.array3d(dtype=float),
+):
+    """One item per (instance, bone), after :data:`decode_bones`: a bone the instance's layers
+    change (it or an ancestor weighed by a layer) is rewritten with ``M'``; each side of a
+    crossfade is layered, then blended as ``decode_bones`` blends (spec 8.6 and 8.3). A bone no
+    layer changes keeps what ``decode_bones`` wrote, bit for bit."""
+    instance, bone = wp.tid()
+    frame = frames[instance]
+    top = int(-1)
+    node = bone
+    steps = int(0)
+    while node >= 0 and steps < 64:
+        for j in range(layer_count):
+            if wp.clamp(layer_weight[instance, j], 0.0, 1.0) * masks[layer_mask[instance, j], node] > 0.0:
+                top = steps
+        node = parents[node]
+        steps += 1
+    if top < 0:
+        return
+    m = layered_matrix(texels, encoding, frame.row0, frame.row1, frame.f, bone, top, layer_rows, instance,
+                       layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks)
+    fade = wp.identity(n=4, dtype=float)
+    if frame.fade_weight > 0.0:
+        fade = layered_matrix(texels, encoding, frame.fade_row0, frame.fade_row1, frame.fade_f, bone, top, layer_rows,
+                              instance, layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks)
+    if encoding == DUAL_QUAT:
+        store_dual(out_dual, instance, bone, dual_of(m))
+        if frame.fade_weight > 0.0:
+            store_dual(out_dual_fade, instance, bone, dual_of(fade))
+        return
+    a = wp.mat33(m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2], m[2, 0], m[2, 1], m[2, 2])
+    normal = wp.transpose(wp.inverse(a))
+    linear = mat34(m[0, 0], m[0, 1], m[0, 2], m[0, 3], m[1, 0], m[1, 1], m[1, 2], m[1, 3],
+                   m[2, 0], m[2, 1], m[2, 2], m[2, 3])
+    if frame.fade_weight > 0.0:
+        fa = wp.mat33(fade[0, 0], fade[0, 1], fade[0, 2], fade[1, 0], fade[1, 1], fade[1, 2],
+                      fade[2, 0], fade[2, 1], fade[2, 2])
+        fade_linear = mat34(fade[0, 0], fade[0, 1], fade[0, 2], fade[0, 3], fade[1, 0], fade[1, 1], fade[1, 2],
+                            fade[1, 3], fade[2, 0], fade[2, 1], fade[2, 2], fade[2, 3])
+        linear, normal = blend_bones(linear, normal, fade_linear, wp.transpose(wp.inverse(fa)), frame.fade_weight)
+    # crossMatrix keeps A as its normal matrix (place_bone): for a rigid A' that is inverse(A')^T.
+    linear, normal = place_bone(AFFINE_MATRIX, separate_normals, linear, normal, frame)
+    store_bones(encoding, separate_normals, instance, bone, linear, normal, dualquat(), out_linear, out_normal,
+                out_dual)

@@ -101,6 +101,13 @@ def from_metadata(meta, file: str) -> Declared:
     clips = meta.get("clips")
     if isinstance(clips, list) and all(_usable_clip(c) for c in clips):
         declared.values["clips"] = [dict(c, startTime=c.get("startTime", 0.0)) for c in clips]
+    parents = meta.get("boneParents")
+    if isinstance(parents, list) and all(_is_int(p) for p in parents):
+        declared.values["boneParents"] = [int(p) for p in parents]
+    masks = meta.get("masks")
+    if isinstance(masks, list) and all(isinstance(m, dict) and isinstance(m.get("name"), str)
+                                       and isinstance(m.get("weights"), list) for m in masks):
+        declared.values["masks"] = [{"name": m["name"], "weights": m["weights"]} for m in masks]
     ranges = meta.get("unormRanges")
     if ranges is not None:
         try:
@@ -320,6 +327,18 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
                         out.append(finding(code, f"clips[{i}].{key} is {_short(cb[key])} but {what} "
                                            f"{_where(reference, ('clips', i, key))} says {_short(ca[key])}",
                                            other.locate(("clips", i, key))))
+    a, b = reference.get("boneParents"), other.get("boneParents")
+    if a is not None and b is not None and list(a) != list(b):
+        out.append(finding(code, f"boneParents differ from {what} {_where(reference, 'boneParents')}",
+                           other.locate("boneParents")))
+    a, b = reference.get("masks"), other.get("masks")
+    if a is not None and b is not None and (
+            [m["name"] for m in a] != [m["name"] for m in b]
+            or not all(np.shape(ma["weights"]) == np.shape(mb["weights"])
+                       and same_value(np.asarray(ma["weights"], np.float32), np.asarray(mb["weights"], np.float32))
+                       for ma, mb in zip(a, b))):
+        # vb:maskWeights is float[]: compared as float32, as the unorm ranges are.
+        out.append(finding(code, f"masks differ from {what} {_where(reference, 'masks')}", other.locate("masks")))
     a, b = reference.get("unormRanges"), other.get("unormRanges")
     if a is not None and b is not None and not same_value(np.asarray(a, np.float32), np.asarray(b, np.float32)):
         out.append(finding(code, f"unormRanges differ from {what} {_where(reference, 'unormRanges')}",

@@ -40,7 +40,7 @@ from vbusd.format.model import Clip, VirtualBones
 __all__ = ["FORMAT_NAME", "SCHEMA_RESOURCE", "DIGEST_PREFIX", "LayoutInfo", "content_digest",
            "layout_fields", "to_dict", "dumps", "json_pointer", "MAX_METADATA_BYTES",
            "parse_document", "check_schema", "check_relations", "check_document", "upgrade",
-           "raise_summary", "from_dict", "parse_json", "loads", "json_kind"]
+           "raise_summary", "from_dict", "parse_json", "loads", "json_kind", "parents_problem"]
 
 FORMAT_NAME = "vbusd.virtualBones"
 """Value of the ``format`` key: says what the JSON is, before any version is looked at."""
@@ -78,6 +78,10 @@ class LayoutInfo:
     generator: str
     bind_transforms: Optional[np.ndarray] = None
     """Format 1.1: (bones, 4, 4) column-vector bind transforms (key ``bindTransforms``), or None."""
+    bone_parents: Optional[tuple] = None
+    """Format 1.2: per bone its parent's index or -1 (key ``boneParents``), or None."""
+    masks: tuple = ()
+    """Format 1.2: ``(name, weights)`` pairs (key ``masks``)."""
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, LayoutInfo):
@@ -95,7 +99,8 @@ class LayoutInfo:
     def to_dict(self) -> dict:
         """The metadata dict of this info (the current format version, keys as :func:`to_dict`)."""
         return _build_dict(self.layout, self.bones, self.clips, self.unorm_ranges,
-                           self.content_digest, self.generator, self.bind_transforms)
+                           self.content_digest, self.generator, self.bind_transforms,
+                           self.bone_parents, self.masks)
 
 
 # --------------------------------------------------------------------------------------------
@@ -155,12 +160,14 @@ def layout_fields(layout: Layout) -> dict:
 
 
 def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str,
-                bind_transforms=None) -> dict:
+                bind_transforms=None, bone_parents=None, masks=()) -> dict:
+    # The lowest version that holds the document (spec 16.1, 16.2): 1.2 only with a 1.2 key
+    # (bone parents, masks), 1.1 only with a 1.1 key.
+    minor = 2 if (bone_parents is not None or masks) else 1 if bind_transforms is not None else 0
     result: dict[str, Any] = {
         "format": FORMAT_NAME,
         "formatVersion": FORMAT_VERSION,
-        # The lowest version that holds the document (spec 16.1): 1.1 only with a 1.1 key.
-        **({"formatMinorVersion": 1} if bind_transforms is not None else {}),
+        **({"formatMinorVersion": minor} if minor else {}),
         "generator": generator,
         **layout_fields(layout),
         "bones": [str(name) for name in bones],
@@ -189,6 +196,10 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
         # Format 1.1 (spec 8.4): 16 numbers per bone, column-major like glTF (B = m.reshape(4, 4).T).
         binds = np.asarray(bind_transforms, dtype=np.float64).reshape(-1, 4, 4)
         result["bindTransforms"] = [[float(v) for v in matrix.T.reshape(16)] for matrix in binds]
+    if bone_parents is not None:
+        result["boneParents"] = [int(p) for p in bone_parents]
+    if masks:
+        result["masks"] = [{"name": str(name), "weights": [float(w) for w in weights]} for name, weights in masks]
     result["contentDigest"] = digest
     return result
 
@@ -207,7 +218,7 @@ def to_dict(vb: VirtualBones) -> dict:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
     return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, vb.content_digest,
-                       _generator(), vb.bind_transforms)
+                       _generator(), vb.bind_transforms, vb.bone_parents, vb.masks)
 
 
 def dumps(d: Mapping) -> str:
@@ -394,6 +405,18 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
     if "bindTransforms" in d and len(d["bindTransforms"]) != layout.bone_count:
         report(["bindTransforms"], f"bindTransforms holds {len(d['bindTransforms'])} matrices for boneCount "
                                    f"{layout.bone_count}")
+    if "boneParents" in d:
+        problem = parents_problem(d["boneParents"], layout.bone_count)
+        if problem is not None:
+            report(["boneParents"] + ([problem[0]] if problem[0] is not None else []), problem[1])
+    mask_names: dict = {}
+    for j, mask in enumerate(d.get("masks") or ()):
+        if mask["name"] in mask_names:
+            report(["masks", j, "name"], f"mask name {mask['name']!r} is already used by mask {mask_names[mask['name']]}")
+        mask_names.setdefault(mask["name"], j)
+        if len(mask["weights"]) != layout.bone_count:
+            report(["masks", j, "weights"], f"mask {mask['name']!r} holds {len(mask['weights'])} weights for "
+                                            f"boneCount {layout.bone_count}")
     return layout if len(diagnostics.findings) == found else None
 
 
@@ -428,10 +451,39 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
     if "bindTransforms" in d:
         binds = np.transpose(np.array(d["bindTransforms"], dtype=np.float64).reshape(-1, 4, 4), (0, 2, 1)).copy()
         binds.setflags(write=False)
+    parents = tuple(int(p) for p in d["boneParents"]) if "boneParents" in d else None
+    masks = tuple((m["name"], _frozen(np.array(m["weights"], dtype=np.float64))) for m in d.get("masks") or ())
     return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
                       content_digest=d["contentDigest"],
                       format_version=d["formatVersion"] if format_version is None else format_version,
-                      generator=d["generator"], bind_transforms=binds)
+                      generator=d["generator"], bind_transforms=binds, bone_parents=parents, masks=masks)
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array.setflags(write=False)
+    return array
+
+
+def parents_problem(parents, bone_count: int):
+    """What is wrong with a ``boneParents`` list (spec 8.6), or None.
+
+    Returns:
+        ``(index or None, message)``: the first entry out of range, or a bone on a cycle.
+    """
+    if len(parents) != bone_count:
+        return None, f"boneParents holds {len(parents)} entries for boneCount {bone_count}"
+    for b, p in enumerate(parents):
+        if not -1 <= int(p) < bone_count or int(p) == b:
+            return b, f"bone {b}'s parent {p} is not -1 or another bone's index (0..{bone_count - 1})"
+    for b in range(bone_count):
+        # A chain longer than the bone count has gone round a cycle.
+        node, steps = b, 0
+        while node != -1 and steps <= bone_count:
+            node, steps = int(parents[node]), steps + 1
+        if node != -1:
+            return b, f"bone {b} is its own ancestor: boneParents must not form a cycle"
+    return None
+
 
 
 def raise_summary(diagnostics: Diagnostics) -> None:

@@ -127,6 +127,8 @@ class SkinnedAnimation:
             the screen sizes below which LOD 1, 2, ... take over (spec "Levels of detail"), else None.
         lods: The source's own UsdLod root when the meshes' paths already lie under its levels
             (a USD source), kept as it is; None otherwise.
+        bone_parents: (bones,) index of each bone's parent bone, -1 for a root (format 1.2, for
+            layers and masks), or None when the converter does not know them.
     """
 
     name: str
@@ -138,6 +140,7 @@ class SkinnedAnimation:
     bind_transforms: Optional[np.ndarray] = None
     lod_screen_sizes: Optional[tuple] = None
     lods: Optional["LevelsOfDetail"] = None
+    bone_parents: Optional[tuple] = None
 
     @property
     def bone_count(self) -> int:
@@ -236,6 +239,12 @@ class Crowd:
         fade_samples: Time-sampled fade primvars (spec "Instancing": a crowd switches clips over
             time): ``{field: (stage times in seconds (S,), values (S, N))}`` for any of the four
             fields above; :meth:`at` evaluates them. None when none is time-sampled.
+        layer_clip: (N, L) int32 clip of each instance's ``L`` layers (format 1.2, spec "Layers and
+            bone masks"), or None for no layers.
+        layer_time_offset: (N, L) float32 clip-local seconds of each layer at stage time 0.
+        layer_playback_rate: (N, L) float32 clip seconds per stage second of each layer.
+        layer_weight: (N, L) float32 weight of each layer in [0, 1] (0: the layer slot is unused).
+        layer_mask: (N, L) int32 mask of each layer, an index into the animation's masks.
     """
 
     path: str
@@ -250,6 +259,16 @@ class Crowd:
     fade_playback_rate: Optional[np.ndarray] = None
     fade_weight: Optional[np.ndarray] = None
     fade_samples: Optional[dict] = None
+    layer_clip: Optional[np.ndarray] = None
+    layer_time_offset: Optional[np.ndarray] = None
+    layer_playback_rate: Optional[np.ndarray] = None
+    layer_weight: Optional[np.ndarray] = None
+    layer_mask: Optional[np.ndarray] = None
+
+    @property
+    def layered(self) -> bool:
+        """Whether any instance has a layer of weight above 0 (a format 1.2 crowd)."""
+        return self.layer_weight is not None and bool(np.any(np.asarray(self.layer_weight) > 0))
 
     def at(self, t: float) -> "Crowd":
         """This crowd with its time-sampled fade primvars evaluated at stage time ``t`` (seconds).
@@ -266,12 +285,14 @@ class Crowd:
         for field_name, (times, samples) in self.fade_samples.items():
             times = np.asarray(times, dtype=np.float64)
             samples = np.asarray(samples)
-            if field_name == "fade_clip":
+            if field_name in ("fade_clip", "layer_clip", "layer_mask"):
                 index = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 1))
                 values[field_name] = samples[index].astype(np.int32)
             else:
-                columns = [np.interp(t, times, samples[:, i].astype(np.float64)) for i in range(samples.shape[1])]
-                values[field_name] = np.asarray(columns, dtype=np.float32)
+                # (S, N) fade samples or (S, N, L) layer samples: each value interpolated on its own.
+                flat = samples.reshape(len(times), -1).astype(np.float64)
+                columns = [np.interp(t, times, flat[:, i]) for i in range(flat.shape[1])]
+                values[field_name] = np.asarray(columns, dtype=np.float32).reshape(samples.shape[1:])
         return dataclasses.replace(self, fade_samples=None, **values)
 
     @property
@@ -359,6 +380,11 @@ class VirtualBones:
     """Format 1.1: a :class:`vbusd.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
     lods: Optional[LevelsOfDetail] = None
     """Format 1.2: the meshes' levels of detail (spec "Levels of detail"), or None for one level."""
+    bone_parents: Optional[tuple] = None
+    """Format 1.2: per bone, the index of its parent bone or -1 (spec "Layers and bone masks"), or None."""
+    masks: tuple = ()
+    """Format 1.2: the named bone masks, ``(name, (bones,) float64 weights in [0, 1])`` pairs (spec
+    "Layers and bone masks"); stored only with ``bone_parents`` and ``bind_transforms``."""
 
     def __post_init__(self) -> None:
         if self.texels.shape != self.layout.shape:
@@ -372,6 +398,13 @@ class VirtualBones:
             raise ValueError(f"clips hold {rows} rows, layout says {self.layout.row_count}")
         if self.bind_transforms is not None and np.shape(self.bind_transforms) != (self.layout.bone_count, 4, 4):
             raise ValueError(f"bind transforms {np.shape(self.bind_transforms)} for {self.layout.bone_count} bones")
+        if self.bone_parents is not None and len(self.bone_parents) != self.layout.bone_count:
+            raise ValueError(f"{len(self.bone_parents)} bone parents for {self.layout.bone_count} bones")
+        if self.masks and (self.bone_parents is None or self.bind_transforms is None):
+            raise ValueError("bone masks need bone parents and bind transforms (spec 8.6)")
+        for name, weights in self.masks:
+            if np.shape(weights) != (self.layout.bone_count,):
+                raise ValueError(f"mask {name!r} holds {np.shape(weights)} weights for {self.layout.bone_count} bones")
 
     @functools.cached_property
     def content_digest(self) -> str:

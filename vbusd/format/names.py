@@ -21,7 +21,8 @@ __all__ = [
     "UNORM_RANGE_MAX", "ANIMATION_REL", "BONE_INDICES", "BONE_WEIGHTS", "INSTANCE_CLIP",
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
     "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS", "CLIP_ROOT_MOTION",
-    "ROOT_MOTION_UP_AXIS", "unique_names"]
+    "ROOT_MOTION_UP_AXIS", "unique_names", "BONE_PARENTS", "MASK_NAMES", "MASK_WEIGHTS", "LAYER_CLIP",
+    "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -75,6 +76,9 @@ ANIMATION_ATTRIBUTES = (
     Attribute("vb:bindTransforms", "matrix4d[]", False, "bindTransforms"),
     Attribute("vb:clipRootMotion", "double4[]", False, "clipRootMotion", mirrored=False),
     Attribute("vb:rootMotionUpAxis", "token", False, "rootMotionUpAxis", mirrored=False),
+    Attribute("vb:boneParents", "int[]", False, "boneParents"),
+    Attribute("vb:maskNames", "token[]", False, "maskNames", mirrored=False),
+    Attribute("vb:maskWeights", "float[]", False, "maskWeights", mirrored=False),
     Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
     Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
     Attribute("vb:contentDigest", "string", True, "contentDigest"),
@@ -133,6 +137,18 @@ CLIP_ROOT_MOTION = "vb:clipRootMotion"
 """Format 1.1: per clip, the root track of a clip baked in place (spec "Root motion")."""
 ROOT_MOTION_UP_AXIS = "vb:rootMotionUpAxis"
 """Format 1.1: the up axis the root track's yaw turns about (spec "Root motion")."""
+BONE_PARENTS = "vb:boneParents"
+"""Format 1.2: each bone's parent bone index or -1 (spec "Layers and bone masks")."""
+MASK_NAMES = "vb:maskNames"
+MASK_WEIGHTS = "vb:maskWeights"
+"""Format 1.2: the named bone masks, ``boneCount`` weights per mask, mask after mask."""
+LAYER_CLIP = Primvar("vb:layerClip", "int[]")
+LAYER_TIME_OFFSET = Primvar("vb:layerTimeOffset", "float[]")
+LAYER_PLAYBACK_RATE = Primvar("vb:layerPlaybackRate", "float[]")
+LAYER_WEIGHT = Primvar("vb:layerWeight", "float[]")
+LAYER_MASK = Primvar("vb:layerMask", "int[]")
+LAYER_PRIMVARS = (LAYER_CLIP, LAYER_TIME_OFFSET, LAYER_PLAYBACK_RATE, LAYER_WEIGHT, LAYER_MASK)
+"""Format 1.2: per-instance layer primvars of VirtualBonesInstancingAPI (elementSize L, spec "Layers")."""
 
 
 def attribute_of(key) -> Optional[str]:

@@ -27,8 +27,8 @@ __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_f
 
 FORMAT_MINOR_VERSION = 2
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
-Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key,
-1.2 for levels of detail (spec 20.5)."""
+Writers write the lowest version that holds an asset (spec 16.1, 16.2, 20.5): 1.0 unless it uses a 1.1
+key, 1.2 for levels of detail or a 1.2 key (bone parents, masks)."""
 
 
 class Version(NamedTuple):
@@ -59,9 +59,10 @@ KEYS_1_0 = frozenset((
     "texture", "clipExtents", "unormRangeMin", "unormRangeMax"))
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
-KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}}
-# Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims, not on the animation.
-KNOWN_KEYS[(1, 2)] = KNOWN_KEYS[(1, 1)]
+KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
+KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
+              # Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims.
+              (1, 2): KEYS_1_1 | {"boneParents", "masks"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
 
@@ -172,5 +173,6 @@ def upgrade_1_0_to_1_1(document: dict) -> dict:
 
 @upgrades_from(1, 1)
 def upgrade_1_1_to_1_2(document: dict) -> dict:
-    """1.1 -> 1.2 (spec 20.5): levels of detail are optional UsdLod prims; nothing to fill in."""
+    """1.1 -> 1.2 (spec 16.2, 20.5): bone parents and masks (layers) and levels of detail (UsdLod prims)
+    are optional; nothing to fill in."""
     return {**document, "formatMinorVersion": 2}

@@ -144,6 +144,13 @@ def _triangulate(mesh: BoundMesh, where: str):
 
 def _crowd_arrays(crowd):
     count = crowd.instance_count
+    if crowd.layered:
+        # Spec 8.6 layers have no glTF transport yet: refuse rather than export the crowd without them.
+        from vbusd.format.errors import UnsupportedError
+
+        raise UnsupportedError("the crowd plays layers (format 1.2), which the glTF runtime package does not "
+                               "carry yet", location=f"{crowd.path}.primvars:vb:layerWeight",
+                               code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
     rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])

@@ -236,8 +236,17 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["clipRootMotion"] = Vt.Vec4dArray.FromNumpy(np.ascontiguousarray(entries))
         values["rootMotionUpAxis"] = str(vb.root_motion.up_axis)
         minor = max(minor, 1)
+    if vb.bone_parents is not None:
+        # Format 1.2 (spec "Layers and bone masks").
+        values["boneParents"] = Vt.IntArray([int(p) for p in vb.bone_parents])
+        minor = max(minor, 2)
+    if vb.masks:
+        values["maskNames"] = Vt.TokenArray([str(name) for name, _ in vb.masks])
+        values["maskWeights"] = Vt.FloatArray([float(w) for _, weights in vb.masks for w in weights])
+        minor = max(minor, 2)
     if minor:
-        # The lowest version that holds the asset (spec 16.1): 1.1 only when it uses a 1.1 feature.
+        # The lowest version that holds the asset (spec 16.1, 16.2): 1.1 or 1.2 only when it uses
+        # a feature of that version.
         values["formatMinorVersion"] = int(minor)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
@@ -347,6 +356,34 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
         primvars.CreatePrimvar(name, type_name, UsdGeom.Tokens.vertex).Set(vt.FromNumpy(array))
     if _fades(crowd):
         _write_fades(stage, pxr, primvars, crowd)
+    if crowd.layer_weight is not None:
+        _write_layers(pxr, primvars, crowd, len(vb.masks))
+
+
+def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
+    """Author the five layer primvars (format 1.2, spec 15): elementSize L, one row per instance."""
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    weight = np.asarray(crowd.layer_weight, dtype=np.float32)
+    n = crowd.instance_count
+    if weight.ndim != 2 or weight.shape[0] != n:
+        raise OptionsError(f"crowd {crowd.path}: layer weights must be (instances, layers), got {weight.shape}",
+                           file="usd")
+    if not mask_count:
+        raise OptionsError(f"crowd {crowd.path}: layers need an animation that stores bone masks (format 1.2; "
+                           "convert with --mask NAME=BONE)", file="usd", code="layers.noMask")
+    count = weight.shape[1]
+    for primvar, values, integer in ((names.LAYER_CLIP, crowd.layer_clip, True),
+                                     (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),
+                                     (names.LAYER_PLAYBACK_RATE, crowd.layer_playback_rate, False),
+                                     (names.LAYER_WEIGHT, weight, False), (names.LAYER_MASK, crowd.layer_mask, True)):
+        vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
+        array = np.ascontiguousarray(values, dtype=dtype).reshape(-1)
+        if array.shape != (n * count,):
+            raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} instances "
+                               f"x {count} layers", file="usd")
+        type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
+        handle = primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count)
+        handle.Set(vt.FromNumpy(array))
 
 
 def _fades(crowd: Crowd) -> bool:

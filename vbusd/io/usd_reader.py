@@ -528,7 +528,7 @@ class UsdReader:
         clip_arrays: dict = {}
         for attribute in names.ANIMATION_ATTRIBUTES:
             if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms",
-                                 "clipRootMotion", "rootMotionUpAxis"):
+                                 "clipRootMotion", "rootMotionUpAxis", "boneParents", "maskNames", "maskWeights"):
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -557,10 +557,16 @@ class UsdReader:
                     # see, instead of piling up findings about what depends on it.
                     upgraded[attribute.key] = fallback
         declared.values.update({k: v for k, v in upgraded.items() if k != "clips"})
+        # The version as authored, compared with the texture's metadata as written: an upgrade
+        # step (1.1 -> 1.2) must not make a 1.1 prim disagree with its 1.1 texture.
+        declared.values.pop("formatMinorVersion", None)
+        if "formatMinorVersion" in raw:
+            declared.values["formatMinorVersion"] = raw["formatMinorVersion"]
         if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
         self._bind_transforms(prim, declared)
+        self._masks(prim, declared)
         declared.layout = build_layout(declared)
         for item in declared.findings:
             self.diagnostics.add(item)
@@ -631,12 +637,21 @@ class UsdReader:
             return None
 
     def _name_crossfades(self, prim, message: str) -> str:
-        """A newer-version message naming the format 1.1 properties found: ``vb:bindTransforms`` of
-        ``prim`` and the crossfade primvars of the instancers that play it (spec 16.1: a 1.1 asset is
-        refused *by name*)."""
+        """A newer-version message naming the properties of versions newer than this reader found
+        on ``prim`` (1.1: ``vb:bindTransforms``, ``vb:clipRootMotion``; 1.2: ``vb:boneParents``,
+        ``vb:maskNames``) and on the instancers that play it (1.1: the crossfade primvars; 1.2: the
+        layer primvars) (spec 16.1, 16.2: a newer asset is refused *by name*)."""
+        from vbusd.format import versioning
+
+        current = versioning.CURRENT
+        own_names = [name for version, name in (((1, 1), names.BIND_TRANSFORMS), ((1, 1), names.CLIP_ROOT_MOTION),
+                                                ((1, 2), names.BONE_PARENTS), ((1, 2), names.MASK_NAMES))
+                     if version > tuple(current)]
+        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS))
+                    if version > tuple(current) for p in group]
         target = prim.GetPath()
         found = []
-        for name in (names.BIND_TRANSFORMS, names.CLIP_ROOT_MOTION):
+        for name in own_names:
             own = prim.GetAttribute(name)
             if own and own.HasAuthoredValue():
                 found.append(f"{name} (on {target})")
@@ -644,13 +659,13 @@ class UsdReader:
             relationship = other.GetRelationship(names.ANIMATION_REL)
             if not relationship or target not in relationship.GetTargets():
                 continue
-            authored = [p.attribute for p in names.FADE_PRIMVARS
+            authored = [p.attribute for p in primvars
                         if other.GetAttribute(p.attribute) and other.GetAttribute(p.attribute).HasAuthoredValue()]
             if authored:
                 found.append(f"{', '.join(authored)} (on {other.GetPath()})")
         if not found:
             return message
-        uses = f"; the asset uses {'; '.join(found[:3])}, which version 1.0 does not define"
+        uses = f"; the asset uses {'; '.join(found[:3])}, which version {current} does not define"
         return message.replace("; upgrade vbusd", uses + "; upgrade vbusd", 1)
 
     def _unorm_ranges(self, prim, declared: Declared) -> None:
@@ -691,6 +706,47 @@ class UsdReader:
                         f"({bones}), got {len(matrices)}", UsdSite(path, names.BIND_TRANSFORMS))
             return
         declared.values["bindTransforms"] = np.transpose(matrices, (0, 2, 1)).copy()
+
+    def _masks(self, prim, declared: Declared) -> None:
+        """Format 1.2 ``vb:boneParents``, ``vb:maskNames`` and ``vb:maskWeights`` (spec 8.6) into
+        ``boneParents`` (ints) and ``masks`` (``{"name", "weights"}`` objects, as in the metadata)."""
+        from vbusd.format.metadata import parents_problem
+
+        path = str(prim.GetPath())
+        bones = declared.get("boneCount")
+        parents_attr = prim.GetAttribute(names.BONE_PARENTS)
+        if parents_attr and parents_attr.HasAuthoredValue():
+            parents = [int(p) for p in (parents_attr.Get() or [])]
+            problem = parents_problem(parents, bones) if isinstance(bones, int) else None
+            if problem is not None:
+                self.report("prim.attribute.invalid", f"{names.BONE_PARENTS}: {problem[1]}",
+                            UsdSite(path, names.BONE_PARENTS))
+                return
+            declared.values["boneParents"] = parents
+        names_attr = prim.GetAttribute(names.MASK_NAMES)
+        if not names_attr or not names_attr.HasAuthoredValue():
+            return
+        mask_names = [str(n) for n in (names_attr.Get() or [])]
+        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
+        weights = np.array(weights_attr.Get() if weights_attr else [], dtype=np.float64)
+        site = UsdSite(path, names.MASK_WEIGHTS)
+        if not isinstance(bones, int) or weights.size != bones * len(mask_names):
+            self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} must hold boneCount ({bones}) weights "
+                        f"per mask ({len(mask_names)}), got {weights.size}", site)
+            return
+        if not np.all((weights >= 0) & (weights <= 1)):
+            self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} must lie in [0, 1]", site)
+            return
+        if len(set(mask_names)) != len(mask_names) or not all(mask_names):
+            self.report("prim.attribute.invalid", f"{names.MASK_NAMES} must be unique and non-empty",
+                        UsdSite(path, names.MASK_NAMES))
+            return
+        if "boneParents" not in declared.values or "bindTransforms" not in declared.values:
+            self.report("prim.attribute.invalid", f"{names.MASK_NAMES} needs {names.BONE_PARENTS} and "
+                        f"{names.BIND_TRANSFORMS} (spec 8.6)", UsdSite(path, names.MASK_NAMES))
+            return
+        declared.values["masks"] = [{"name": name, "weights": row.tolist()}
+                                    for name, row in zip(mask_names, weights.reshape(len(mask_names), bones))]
 
     def _root_motion(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:clipRootMotion`` and ``vb:rootMotionUpAxis`` (spec "Root motion") into ``rootMotion``."""
@@ -839,12 +895,19 @@ class UsdReader:
         if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
             self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
                                          f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
+        # Bone parents and masks (format 1.2): compare_declared above reports a disagreement; the
+        # metadata's float64 mask weights are kept when both hold them (vb:maskWeights is float32).
+        parents = attributes.declared.values.get("boneParents")
+        parents = tuple(parents) if parents is not None else texture.info.bone_parents
+        masks = texture.info.masks or tuple((m["name"], np.asarray(m["weights"], np.float64))
+                                            for m in attributes.declared.values.get("masks") or ())
         return VirtualBones(layout=attributes.layout, texels=texture.texels, bones=attributes.bones,
                             clips=attributes.clips, unorm_ranges=texture.info.unorm_ranges, meshes=(),
                             path=attributes.path, texture=attributes.texture,
                             clip_extents=attributes.clip_extents,
                             bind_transforms=binds if binds is not None else theirs_binds,
-                            root_motion=attributes.declared.values.get("rootMotion"))
+                            root_motion=attributes.declared.values.get("rootMotion"),
+                            bone_parents=parents, masks=masks)
 
     # -- bound meshes and crowds -----------------------------------------------------------------
 
@@ -1008,7 +1071,7 @@ class UsdReader:
                       f"(tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with sum "
                       f"{float(sums[vertex]):.6g}", site)
 
-    def read_crowd(self, prim, clip_count: int) -> Crowd:
+    def read_crowd(self, prim, clip_count: int, mask_count: int = 0) -> Crowd:
         Sdf, Tf, Usd, UsdGeom = _pxr()
         path = str(prim.GetPath())
         authored, positions = self.numbers(prim, "positions", "point3f[]", np.float32, width=3,
@@ -1061,9 +1124,78 @@ class UsdReader:
                       f"the first is {int(clip[first])} at instance {first}",
                       UsdSite(path, names.INSTANCE_CLIP.attribute))
         fades = self.read_fades(prim, n, clip_count)
+        layers = self.read_layers(prim, n, clip_count, mask_count)
+        if "fade_samples" in layers:
+            fades["fade_samples"] = {**fades.get("fade_samples", {}), **layers.pop("fade_samples")}
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
-                     playback_rate=rate.astype(np.float32), scales=scales, **fades)
+                     playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers)
+
+    def read_layers(self, prim, n: int, clip_count: int, mask_count: int) -> dict:
+        """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none).
+
+        All five have elementSize L; time samples go to ``fade_samples`` (stage seconds, values
+        (S, N, L)), evaluated by :meth:`Crowd.at`, the first sample being the plain field.
+        """
+        Sdf, Tf, Usd, UsdGeom = _pxr()
+        path = str(prim.GetPath())
+        fields = (("layer_clip", names.LAYER_CLIP, np.int32), ("layer_time_offset", names.LAYER_TIME_OFFSET, np.float32),
+                  ("layer_playback_rate", names.LAYER_PLAYBACK_RATE, np.float32),
+                  ("layer_weight", names.LAYER_WEIGHT, np.float32), ("layer_mask", names.LAYER_MASK, np.int32))
+        authored = {field: prim.GetAttribute(primvar.attribute) for field, primvar, _ in fields}
+        authored = {field: a for field, a in authored.items() if a and a.HasAuthoredValue()}
+        if not authored:
+            return {}
+        site = UsdSite(path, names.LAYER_WEIGHT.attribute)
+        missing = [primvar.attribute for field, primvar, _ in fields if field not in authored]
+        if missing:
+            self.fail("instancer.count", f"layers need all five layer primvars; {', '.join(missing)} missing", site)
+        sizes = {UsdGeom.Primvar(a).GetElementSize() for a in authored.values()}
+        if len(sizes) != 1 or min(sizes) < 1:
+            self.fail("instancer.count", f"the layer primvars must share one elementSize (layers per instance), "
+                      f"got {sorted(sizes)}", site)
+        count = sizes.pop()
+        if mask_count == 0:
+            self.fail("layers.noMask", "the instancer plays layers but its animation stores no bone masks "
+                      "(vb:maskNames, format 1.2)", site)
+        tcps = float(prim.GetStage().GetTimeCodesPerSecond())
+        out: dict = {}
+        samples: dict = {}
+        for field, primvar, dtype in fields:
+            attribute = authored[field]
+            where = UsdSite(path, primvar.attribute)
+            handle = UsdGeom.Primvar(attribute)
+            if handle.IsIndexed():
+                self.fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+                          "must not be indexed", where)
+            if handle.GetInterpolation() != UsdGeom.Tokens.vertex:
+                self.fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex'", where)
+
+            def read(time, field=field, dtype=dtype, where=where, primvar=primvar, attribute=attribute):
+                value = attribute.Get(time)
+                array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+                if array.size != n * count:
+                    self.fail("instancer.count", f"{primvar.attribute} has {array.size} values for {n} instances "
+                              f"x {count} layers", where)
+                if not np.all(np.isfinite(array)):
+                    self.fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values", where)
+                if field == "layer_clip" and np.any((array < 0) | (array >= clip_count)):
+                    self.fail("instancer.clip.range", f"{primvar.attribute}: clip index outside 0..{clip_count - 1}",
+                              where)
+                if field == "layer_mask" and np.any((array < 0) | (array >= max(mask_count, 1))):
+                    self.fail("layers.noMask", f"{primvar.attribute}: mask index outside 0..{mask_count - 1}", where)
+                return array.astype(dtype).reshape(n, count)
+
+            codes = attribute.GetTimeSamples()
+            if codes:
+                values = np.stack([read(Usd.TimeCode(code)) for code in codes])
+                samples[field] = (np.asarray(codes, dtype=np.float64) / tcps, values)
+                out[field] = values[0]
+            else:
+                out[field] = read(Usd.TimeCode.Default())
+        if samples:
+            out["fade_samples"] = samples
+        return out
 
     def animation_target(self, prim, by_path: dict, code: str, api: str) -> int:
         """Index of the animation prim ``prim``'s ``vb:animation`` relationship targets."""
@@ -1155,7 +1287,8 @@ class UsdReader:
                                names.INSTANCING_API)
             if index is None or animations[index] is None:
                 continue
-            crowd = self.guard(prim, self.read_crowd, prim, len(animations[index].clips))
+            crowd = self.guard(prim, self.read_crowd, prim, len(animations[index].clips),
+                               len(animations[index].masks))
             if crowd is not None:
                 crowds.append(crowd)
                 crowd_animation.append(index)
@@ -1170,7 +1303,7 @@ class UsdReader:
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
                                    texture=vb.texture, clip_extents=vb.clip_extents,
                                    bind_transforms=vb.bind_transforms, root_motion=vb.root_motion,
-                                   lods=lods)
+                                   lods=lods, bone_parents=vb.bone_parents, masks=vb.masks)
                       for vb, (found, lods) in zip(animations, [lv or (m, None) for lv, m in zip(levels, meshes)])]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())
@@ -1352,7 +1485,8 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
             animation = found[index] if index is not None else None
             if animation is None:
                 continue
-            crowd = reader.guard(prim, reader.read_crowd, prim, len(animation.clips))
+            crowd = reader.guard(prim, reader.read_crowd, prim, len(animation.clips),
+                                 len(animation.declared.values.get("masks") or ()))
             if crowd is None:
                 continue
             instancer = UsdGeom.PointInstancer(prim)

@@ -102,6 +102,36 @@ def _mesh(mesh: BoundMesh, buffer: _Buffer) -> dict:
     return description
 
 
+RUNTIME_LAYERS = 2
+"""Layers per instance the three.js runtime plays (its modules' VB_MAX_LAYERS)."""
+
+
+def _layers(crowd, buffer: _Buffer) -> dict:
+    """A layered crowd's layer arrays (format 1.2; 2 per instance, unused slots weight 0), or nothing."""
+    if not crowd.layered:
+        return {}
+    weight = np.asarray(crowd.layer_weight, dtype=np.float32)
+    n, count = weight.shape
+    if count > RUNTIME_LAYERS and np.any(weight[:, RUNTIME_LAYERS:] > 0):
+        from vbusd.format.errors import UnsupportedError
+
+        raise UnsupportedError(f"the crowd plays {count} layers per instance; the three.js runtime plays at most "
+                               f"{RUNTIME_LAYERS}", location=f"{crowd.path}.primvars:vb:layerWeight",
+                               code="layers.unsupported")
+
+    def padded(values, dtype):
+        out = np.zeros((n, RUNTIME_LAYERS), dtype=dtype)
+        used = min(count, RUNTIME_LAYERS)
+        out[:, :used] = np.asarray(values, dtype=dtype).reshape(n, count)[:, :used]
+        return out
+
+    return {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),
+            "layerMask": buffer.add(padded(crowd.layer_mask, np.int32), "i4"),
+            "layerTimeOffset": buffer.add(padded(crowd.layer_time_offset, np.float32), "f4"),
+            "layerPlaybackRate": buffer.add(padded(crowd.layer_playback_rate, np.float32), "f4"),
+            "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
+
+
 def _fade(crowd, buffer: _Buffer) -> dict:
     """A crossfading crowd's fade arrays (format 1.1, defaults filled in), or nulls without crossfade."""
     if not crowd.crossfades:
@@ -151,6 +181,7 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
             "timeOffset": buffer.add(crowd.time_offset, "f4"),
             "playbackRate": buffer.add(crowd.playback_rate, "f4"),
             **_fade(crowd, buffer),
+            **_layers(crowd, buffer),
         })
     scene = {
         "format": SCENE_FORMAT,

@@ -17,10 +17,35 @@ import json
 from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, ShaderOptions, generate
 from vbusd.format.layout import Encoding, TexelFormat
 
-__all__ = ["BASE_MAX_INFLUENCES", "javascript_module"]
+__all__ = ["BASE_MAX_INFLUENCES", "LAYER_MARK", "layer_blocks", "javascript_module"]
 
 BASE_MAX_INFLUENCES = 4
 """Influences per vertex of the embedded modules (the runtime rewrites the define for 1..8)."""
+
+
+LAYER_MARK = "#if VB_MAIN\n"
+"""Where ``vbusd shader --layers`` inserts the layer functions: before the example main's block."""
+
+
+def layer_blocks() -> dict:
+    """Per encoding, the text ``vbusd shader --layers --no-main`` inserts before :data:`LAYER_MARK`
+    (the attribute skin binding): the runtime's ``shaderModule(..., layers)`` adds it to the
+    embedded module. Checked here against :func:`generate` for every texel format."""
+    blocks = {}
+    for encoding in Encoding:
+        block = None
+        for texel_format in TexelFormat:
+            options = dict(lang="glsl", encoding=encoding, texel_format=texel_format, max_influences=BASE_MAX_INFLUENCES,
+                           max_clips=DEFAULT_MAX_CLIPS, main=False, skin="attributes")
+            base = generate(ShaderOptions(**options))
+            layered = generate(ShaderOptions(**options, layers=True))
+            at = base.index(LAYER_MARK)
+            assert base.count(LAYER_MARK) == 1 and layered.startswith(base[:at]) and layered.endswith(base[at:])
+            found = layered[at:len(layered) - len(base) + at]
+            assert block in (None, found), "the layer functions depend on the texel format"
+            block = found
+        blocks[encoding.value] = block
+    return blocks
 
 
 def javascript_module() -> str:
@@ -54,5 +79,11 @@ def javascript_module() -> str:
     lines.append("export const GLSL_PULLED_MODULES = {")
     for key, source in pulled.items():
         lines.append(f"  {json.dumps(key)}: {json.dumps(source)},")
+    lines.append("};")
+    lines.append(f"// Format 1.2 layers: inserted before {json.dumps(LAYER_MARK)} by shaderModule(..., layers = true).")
+    lines.append(f"export const GLSL_LAYER_MARK = {json.dumps(LAYER_MARK)};")
+    lines.append("export const GLSL_LAYER_BLOCKS = {")
+    for key, block in layer_blocks().items():
+        lines.append(f"  {json.dumps(key)}: {json.dumps(block)},")
     lines.append("};")
     return "\n".join(lines) + "\n"

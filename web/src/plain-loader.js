@@ -6,7 +6,6 @@ import { Group } from 'three';
 
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { VirtualBonesCrowd, instancesFromPlacement, singleInstance, skinnedGeometry } from './crowd.js';
-import { DEFAULT_SKIN } from './skin.js';
 
 const TEXEL_ARRAYS = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
 
@@ -76,6 +75,13 @@ export function parsePlainScene(scene, buffer) {
           fadePlaybackRate: view(buffer, crowd.fadePlaybackRate, Float32Array, `${at}.fadePlaybackRate`),
           fadeWeight: view(buffer, crowd.fadeWeight, Float32Array, `${at}.fadeWeight`),
         } : null,
+        layers: crowd.layerWeight ? {  // format 1.2 layers: two per instance
+          layerClip: view(buffer, crowd.layerClip, Int32Array, `${at}.layerClip`),
+          layerMask: view(buffer, crowd.layerMask, Int32Array, `${at}.layerMask`),
+          layerTimeOffset: view(buffer, crowd.layerTimeOffset, Float32Array, `${at}.layerTimeOffset`),
+          layerPlaybackRate: view(buffer, crowd.layerPlaybackRate, Float32Array, `${at}.layerPlaybackRate`),
+          layerWeight: view(buffer, crowd.layerWeight, Float32Array, `${at}.layerWeight`),
+        } : null,
       }),
     };
   });
@@ -96,10 +102,11 @@ export async function loadPlainScene(url) {
 /**
  * Objects to draw a description: one VirtualBonesCrowd per crowd, and a single instance for each
  * animation that no crowd instances. Crowds may carry a `matrix` (their node's world transform).
- * `skin` is the skin binding of every crowd (`pulled`, the default, or `attributes`).
+ * `skin` is the skin binding of every crowd (`pulled`, the default, or `attributes`; a crowd that
+ * plays layers defaults to `attributes`, the one binding layers run in).
  * Returns `{group, crowds, animations}`; `crowds` is the order `probe` numbers instances in.
  */
-export function buildObjects(description, { material, skin = DEFAULT_SKIN } = {}) {
+export function buildObjects(description, { material, skin = null } = {}) {
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));

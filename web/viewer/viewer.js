@@ -14,7 +14,7 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
-import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF, DEFAULT_SKIN } from './vbusd-three/index.js';
+import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF } from './vbusd-three/index.js';
 
 const params = new URLSearchParams(window.location.search);
 const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
@@ -57,7 +57,7 @@ async function main() {
   const material = silhouette ? () => new THREE.MeshBasicMaterial({ color: 0xffffff })
     : () => new THREE.MeshStandardMaterial({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
   // ?skin=pulled: the skin read by gl_VertexID from a texture (spec/shaders.md, Skin bindings).
-  const objects = buildObjects(description, { material, skin: params.get('skin') ?? DEFAULT_SKIN });
+  const objects = buildObjects(description, { material, skin: params.get('skin') });  // null: DEFAULT_SKIN (attributes for a layered crowd)
   for (const animation of objects.animations) animation.checkSupport(renderer);
   scene.add(objects.group);
   const crowds = objects.crowds;

@@ -3,7 +3,7 @@
 
 import {
   DataTexture, RGBAFormat, HalfFloatType, FloatType, UnsignedShortType, NearestFilter,
-  ClampToEdgeWrapping, NoColorSpace, Vector4, Box3, Vector3,
+  ClampToEdgeWrapping, NoColorSpace, Vector4, Box3, Vector3, Matrix4,
 } from 'three';
 
 import { BASE_MAX_CLIPS } from './shader-modules.js';
@@ -77,6 +77,11 @@ export class VirtualBonesAnimation {
       vb_time: { value: 0 },
       vb_clips: { value: clipTable },
     };
+    this.masks = (layout.masks ?? []).map((mask) => mask.name);
+    if (layout.masks && layout.boneParents && layout.bindTransforms) {
+      this.rigTexture = rigTexture(layout);
+      this.uniforms.vb_rig = { value: this.rigTexture };
+    }
     if (layout.texelFormat === 'unorm16') {
       const ranges = layout.unormRanges;  // [slot][channel] = [min, max]
       this.uniforms.vb_rangeMin = { value: ranges.map((slot) => new Vector4(...slot.map((r) => r[0]))) };
@@ -120,5 +125,42 @@ export class VirtualBonesAnimation {
     }
   }
 
-  dispose() { this.texture.dispose(); }
+  /** Index of the bone mask called `name` (format 1.2), or -1. */
+  maskIndex(name) { return this.masks.indexOf(name); }
+
+  dispose() {
+    this.texture.dispose();
+    this.rigTexture?.dispose();
+  }
+}
+
+/**
+ * The rig texture of the layer functions (spec/shaders.md, "Layers"; vbusd.decode.shaders.rig_texels):
+ * RGBA32F, 8 texels per bone in row 0 (rows of B, rows of B^-1, (parent, 0, 0, 0), 0), then one row
+ * per mask (texel b = (weight of bone b, 0, 0, 0)).
+ */
+export function rigTexture(layout) {
+  const bones = layout.boneCount;
+  const width = 8 * bones;
+  const data = new Float32Array(width * (1 + layout.masks.length) * 4);
+  const inverse = new Matrix4();
+  layout.bindTransforms.forEach((columnMajor, b) => {
+    const bind = new Matrix4().fromArray(columnMajor);
+    inverse.copy(bind).invert();
+    for (const [slot, m] of [[0, bind], [3, inverse]]) {
+      const e = m.elements;  // column-major: row i is e[i], e[4 + i], e[8 + i], e[12 + i]
+      for (let i = 0; i < 3; ++i) data.set([e[i], e[4 + i], e[8 + i], e[12 + i]], 4 * (8 * b + slot + i));
+    }
+    data[4 * (8 * b + 6)] = layout.boneParents[b];
+  });
+  layout.masks.forEach((mask, m) => mask.weights.forEach((w, b) => { data[4 * ((1 + m) * width + b)] = w; }));
+  const texture = new DataTexture(data, width, 1 + layout.masks.length, RGBAFormat, FloatType);
+  texture.colorSpace = NoColorSpace;
+  texture.generateMipmaps = false;
+  texture.minFilter = texture.magFilter = NearestFilter;
+  texture.wrapS = texture.wrapT = ClampToEdgeWrapping;
+  texture.flipY = false;
+  texture.unpackAlignment = 1;
+  texture.needsUpdate = true;
+  return texture;
 }

@@ -64,6 +64,9 @@ function pick(values, slots, set) {
  *   Int32Array(N), timeOffset: Float32Array(N), playbackRate: Float32Array(N)}; optionally the
  *   crossfade of format 1.1 (spec 8.3): fadeClip: Int32Array(N), fadeTimeOffset, fadePlaybackRate,
  *   fadeWeight: Float32Array(N) (absent: no crossfade). `setFade` changes them per instance.
+ *   Optionally the layers of format 1.2 (spec 8.6), two per instance: layerClip, layerMask:
+ *   Int32Array(2 N), layerTimeOffset, layerPlaybackRate, layerWeight: Float32Array(2 N) (absent: no
+ *   layers); the animation must store bone masks. `setLayer` changes them per instance.
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
@@ -83,8 +86,10 @@ function pick(values, slots, set) {
  *   threshold by this fraction (default 0.1, spec 20.2).
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = DEFAULT_SKIN, levels = null, screenSizes = null, hysteresis = 0.1 }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1 }) {
     super();
+    // Layers (format 1.2) run only in the attributes binding: a layered crowd defaults to it.
+    skin = skin ?? (instances.layerWeight ? 'attributes' : DEFAULT_SKIN);
     checkSkinBinding(skin, name);
     this.name = name;
     this.skin = skin;
@@ -119,19 +124,42 @@ export class VirtualBonesCrowd extends Group {
         weight: instances.fadeWeight?.[i] ?? 0,
       });
     }
+    // Layers (format 1.2): bound only for a crowd that plays them (its materials run vbSkinLayered).
+    this.layered = Boolean(instances.layerWeight);  // not `layers`: Object3D.layers is three's render layers
+    if (this.layered) {
+      if (skin !== 'attributes') throw new VirtualBonesError(`${name}: layers (format 1.2) need the attributes skin binding`);
+      if (!animation.uniforms.vb_rig) throw new VirtualBonesError(`${name}: the crowd plays layers but its animation stores no bone masks`);
+      const clipMask = new InstancedBufferAttribute(new Int32Array(instances.count * 4), 4);  // (clip, mask) x 2
+      clipMask.gpuType = IntType;
+      this.layerClipMaskAttribute = clipMask;
+      this.layerTimeAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 4), 4);
+      this.layerWeightAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 2), 2);
+      for (let i = 0; i < instances.count; ++i) {
+        for (let j = 0; j < 2; ++j) {
+          const k = 2 * i + j;
+          this.setLayer(i, j, { clip: instances.layerClip[k], mask: instances.layerMask[k], timeOffset: instances.layerTimeOffset[k],
+            playbackRate: instances.layerPlaybackRate[k], weight: instances.layerWeight[k] });
+        }
+      }
+    }
     const shared = {
       clip: this.clipAttribute, time: this.timeAttribute, fadeClip: this.fadeClipAttribute, fade: this.fadeAttribute,
       matrix: this.instanceMatrix,
     };
     const makeMesh = (entry, index, attributes) => {
       const geometry = entry.geometry;
-      let binding = { skin };
+      let binding = { skin, layers: this.layered };
       if (skin === 'pulled') binding = { skin, skinTexture: pullSkin(geometry, entry.maxInfluences).texture };
       else if (!geometry.attributes.vb_boneIndices0) throw new VirtualBonesError(`${geometry.name}: the geometry has no bone attributes (its skin was pulled); use skin 'pulled'`);
       geometry.setAttribute('vb_instanceClip', attributes.clip);
       geometry.setAttribute('vb_instanceTime', attributes.time);
       geometry.setAttribute('vb_instanceFadeClip', attributes.fadeClip);
       geometry.setAttribute('vb_instanceFade', attributes.fade);
+      if (this.layered) {
+        geometry.setAttribute('vb_instanceLayerClipMask', this.layerClipMaskAttribute);
+        geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
+        geometry.setAttribute('vb_instanceLayerWeight', this.layerWeightAttribute);
+      }
       const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = attributes.matrix;
       mesh.name = entry.name || geometry.name;
@@ -144,7 +172,11 @@ export class VirtualBonesCrowd extends Group {
     };
     this.levels = null;
     this.drawn = instances.count;
-    if (levels && levels.length) {
+    if (levels && levels.length && this.layered) {
+      // Each level draws compacted copies of the per-instance attributes; the layer attributes are
+      // not among them, so a layered crowd draws LOD 0 for every instance (and says so once).
+      console.warn(`${name}: layered instances draw LOD 0 only (levels of detail with layers are not supported by this runtime)`);
+    } else if (levels && levels.length) {
       // Levels of detail (spec 20.2): per level, compact instance arrays that updateLevels() fills
       // with the instances choosing that level; the full arrays above stay the source of truth
       // (setFade, socketMatrix and probe read them).
@@ -197,6 +229,30 @@ export class VirtualBonesCrowd extends Group {
     this.fadeAttribute.array.set([timeOffset, playbackRate, weight], 3 * index);
     this.fadeClipAttribute.needsUpdate = true;
     this.fadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
+   * playbackRate * time` overrides the bones of mask `mask` (an index into the animation's masks,
+   * or its name) with weight `weight` (0..1; 0 leaves the slot out).
+   */
+  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers`);
+    const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
+    if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
+    if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: layer weight must be in 0..1, got ${weight}`);
+    if (weight > 0 && !(clip >= 0 && clip < this.animation.clips.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index} layers clip ${clip}, the animation has ${this.animation.clips.length}`);
+    }
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
+    }
+    this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
+    this.layerTimeAttribute.array.set([timeOffset, playbackRate], 4 * index + 2 * slot);
+    this.layerWeightAttribute.array[2 * index + slot] = weight;
+    for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
+      attribute.needsUpdate = true;
+    }
   }
 
   /**
@@ -334,7 +390,8 @@ export class VirtualBonesCrowd extends Group {
     const used = new Set(Array.from(this.instances.clip.subarray(0, this.count)));
     // A crossfading instance shows a blend of two poses: inside the box of both clips' extents.
     for (let i = 0; i < this.count; ++i) if (this.fadeAttribute.array[3 * i + 2] > 0) used.add(this.fadeClipAttribute.array[i]);
-    const box = this.animation.boundsOfClips(used.size ? used : [0]);
+    // A layered pose mixes local transforms of two clips: no clip's extents bound it, so culling is off.
+    const box = this.layered ? null : this.animation.boundsOfClips(used.size ? used : [0]);
     this.cullBox = box;
     if (this.levels) return;  // updateLevels culls each instance with cullBox
     for (const mesh of this.meshes) {
@@ -359,7 +416,7 @@ export class VirtualBonesCrowd extends Group {
  * fadeTimeOffset, fadePlaybackRate, fadeWeight}, format 1.1); the matrix is T R S, as the point
  * instancer's (scale, then orientation, then position).
  */
-export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null }) {
+export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null, layers = null }) {
   const count = positions.length / 3;
   const matrices = new Float32Array(16 * count);
   const m = new Matrix4();
@@ -372,7 +429,7 @@ export function instancesFromPlacement({ positions, orientations, scales = null,
     if (scales) s.fromArray(scales, 3 * i);
     m.compose(p, q, s).toArray(matrices, 16 * i);
   }
-  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}) };
+  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}), ...(layers ?? {}) };
 }
 
 /** One instance at the origin playing clip `clip` from its start at rate 1 (a single character). */

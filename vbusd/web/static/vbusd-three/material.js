@@ -3,16 +3,20 @@
 // lighting, fog, shadows and tone mapping work unchanged. The GLSL is the module `vbusd shader`
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
-import { GLSL_MODULES, GLSL_PULLED_MODULES, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS } from './shader-modules.js';
+import {
+  GLSL_MODULES, GLSL_PULLED_MODULES, GLSL_LAYER_BLOCKS, GLSL_LAYER_MARK, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS,
+} from './shader-modules.js';
 import { VirtualBonesError } from './animation.js';
 import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
 
 /**
  * The GLSL of `vbusd shader --lang glsl --no-main --encoding E --texel-format F
- * --max-influences K --max-clips C --skin S`, character for character.
+ * --max-influences K --max-clips C --skin S [--layers]`, character for character. The layer
+ * functions of format 1.2 (spec/shaders.md, "Layers") come with the attribute binding only.
  */
-export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes') {
+export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', layers = false) {
   checkSkinBinding(skin);
+  if (layers && skin !== 'attributes') throw new VirtualBonesError('layers (format 1.2) need the attributes skin binding');
   const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
   if (base === undefined) throw new VirtualBonesError(`no shader module for encoding ${encoding}, texel format ${texelFormat}`);
   if (!Number.isInteger(maxInfluences) || maxInfluences < 1 || maxInfluences > 8) {
@@ -30,6 +34,7 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
       `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
     `#define VB_SKIN_TEXELS ${skinRecordTexels(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_TEXELS ${skinRecordTexels(maxInfluences)}\n`);
   }
+  if (layers) text = replaceOnce(text, GLSL_LAYER_MARK, GLSL_LAYER_BLOCKS[encoding] + GLSL_LAYER_MARK);
   return text;
 }
 
@@ -44,8 +49,8 @@ function replaceOnce(text, search, replacement) {
  * spec/shaders.md ("Vertex inputs"); three declares `position` and `normal` (the rest mesh).
  * With the `pulled` skin there are no bone inputs: the module declares `vb_skinTexture`.
  */
-export function skinningDeclarations(animation, maxInfluences, skin = 'attributes') {
-  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin);
+export function skinningDeclarations(animation, maxInfluences, skin = 'attributes', layers = false) {
+  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin, layers);
   if (skin === 'pulled') {
     return `${module}
 in int vb_instanceClip;
@@ -65,8 +70,16 @@ in int vb_instanceClip;
 in vec2 vb_instanceTime;
 in int vb_instanceFadeClip;
 in vec3 vb_instanceFade;
-`;
+${layers ? LAYER_INPUTS : ''}`;
 }
+
+// Format 1.2 layers (spec 8.6): two per instance (VB_MAX_LAYERS 2): (clip, mask) of each in one
+// ivec4, (timeOffset, playbackRate) of each in one vec4, the weights (0 leaves a slot out) in a vec2:
+// three attributes, as WebGL 2 guarantees only 16 and the crowd already uses 12.
+const LAYER_INPUTS = `in ivec4 vb_instanceLayerClipMask;
+in vec4 vb_instanceLayerTime;
+in vec2 vb_instanceLayerWeight;
+`;
 
 const SKIN_FROM_ATTRIBUTES = `
   int vbIndex[VB_MAX_INFLUENCES];
@@ -98,19 +111,40 @@ const SKIN_AND_CROSSFADE = `
                   position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 
+const SKIN_LAYERED = `
+  vec3 vbPosition;
+  vec3 vbNormal;
+  // Layers (spec 8.6, format 1.2) on each side of the crossfade (8.3); with every layer weight 0
+  // this is exactly vbSkinCrossfade.
+  int vbLayerClip[VB_MAX_LAYERS];
+  float vbLayerTau[VB_MAX_LAYERS];
+  float vbLayerWeight[VB_MAX_LAYERS];
+  int vbLayerMask[VB_MAX_LAYERS];
+  for (int j = 0; j < VB_MAX_LAYERS; ++j) {
+    vbLayerClip[j] = vb_instanceLayerClipMask[2 * j];
+    vbLayerTau[j] = vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_time;
+    vbLayerWeight[j] = vb_instanceLayerWeight[j];
+    vbLayerMask[j] = vb_instanceLayerClipMask[2 * j + 1];
+  }
+  vbSkinLayered(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time,
+                vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time, vb_instanceFade.z,
+                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
+`;
+
 /** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition / vbNormal. */
-export function skinningCall(skin = 'attributes') {
+export function skinningCall(skin = 'attributes', layers = false) {
   checkSkinBinding(skin);
-  return (skin === 'pulled' ? SKIN_PULLED : SKIN_FROM_ATTRIBUTES) + SKIN_AND_CROSSFADE;
+  return (skin === 'pulled' ? SKIN_PULLED : SKIN_FROM_ATTRIBUTES) + (layers ? SKIN_LAYERED : SKIN_AND_CROSSFADE);
 }
 
 /** The attribute binding's statements (skinningCall('attributes')). */
 export const SKINNING_CALL = skinningCall('attributes');
 
 /** A three.js vertex shader (before #include expansion) that skins from the texture. */
-export function patchVertexShader(vertexShader, animation, maxInfluences, skin = 'attributes') {
-  let source = replaceOnce(vertexShader, '#include <common>', `#include <common>\n${skinningDeclarations(animation, maxInfluences, skin)}`);
-  source = replaceOnce(source, 'void main() {', `void main() {\n${skinningCall(skin)}`);
+export function patchVertexShader(vertexShader, animation, maxInfluences, skin = 'attributes', layers = false) {
+  let source = replaceOnce(vertexShader, '#include <common>', `#include <common>\n${skinningDeclarations(animation, maxInfluences, skin, layers)}`);
+  source = replaceOnce(source, 'void main() {', `void main() {\n${skinningCall(skin, layers)}`);
   source = replaceOnce(source, '#include <begin_vertex>', 'vec3 transformed = vbPosition;');
   // Depth and distance materials include beginnormal_vertex only with a displacement map.
   if (source.includes('#include <beginnormal_vertex>')) {
@@ -131,20 +165,21 @@ export function patchVertexShader(vertexShader, animation, maxInfluences, skin =
  * record from `skinTexture` (skin.js: pullSkin) by gl_VertexID; a pulled material draws only
  * meshes of that geometry (the texture is the material's uniform).
  */
-export function patchMaterial(material, animation, maxInfluences, { skin = 'attributes', skinTexture = null } = {}) {
+export function patchMaterial(material, animation, maxInfluences, { skin = 'attributes', skinTexture = null, layers = false } = {}) {
   checkSkinBinding(skin, material.name);
+  if (layers && !animation.uniforms.vb_rig) throw new VirtualBonesError(`${animation.name}: layers need an animation with bone masks (format 1.2)`);
   if (skin === 'pulled' && !skinTexture?.isDataTexture) throw new VirtualBonesError('the pulled skin binding needs the geometry\'s skin texture (pullSkin)');
   const skinUniforms = skin === 'pulled' ? { vb_skinTexture: { value: skinTexture } } : {};
   const previous = material.onBeforeCompile;
   material.onBeforeCompile = (shader, renderer) => {
     previous?.call(material, shader, renderer);
     Object.assign(shader.uniforms, animation.uniforms, skinUniforms);
-    shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin);
+    shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin, layers);
   };
-  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}`;
+  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}${layers ? ':layers' : ''}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
-  material.userData.virtualBones = { animation, maxInfluences, skin };
+  material.userData.virtualBones = { animation, maxInfluences, skin, layers };
   material.needsUpdate = true;
   return material;
 }

@@ -12,11 +12,11 @@ out vec4 vbColor;
 void main() { vbColor = vec4(0.0); }
 `;
 
-function vertexSource(animation, maxInfluences, skin) {
+function vertexSource(animation, maxInfluences, skin, layers) {
   return `#version 300 es
 precision highp float;
 precision highp int;
-${skinningDeclarations(animation, maxInfluences, skin)}
+${skinningDeclarations(animation, maxInfluences, skin, layers)}
 in vec3 position;
 in vec3 normal;
 in mat4 instanceMatrix;
@@ -24,7 +24,7 @@ uniform mat4 modelMatrix;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
 void main() {
-${skinningCall(skin)}
+${skinningCall(skin, layers)}
   mat4 world = modelMatrix * instanceMatrix;
   vbWorldPosition = (world * vec4(vbPosition, 1.0)).xyz;
   vec3 n = transpose(inverse(mat3(world))) * vbNormal;
@@ -49,13 +49,13 @@ function compile(gl, type, source) {
 
 const programs = new WeakMap();
 
-function probeProgram(gl, animation, maxInfluences, skin) {
+function probeProgram(gl, animation, maxInfluences, skin, layers) {
   let cache = programs.get(gl);
   if (!cache) programs.set(gl, cache = new Map());
-  const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${skin}`;
+  const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${skin}/${layers}`;
   if (cache.has(key)) return cache.get(key);
   const program = gl.createProgram();
-  gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource(animation, maxInfluences, skin)));
+  gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource(animation, maxInfluences, skin, layers)));
   gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
   gl.transformFeedbackVaryings(program, ['vbWorldPosition', 'vbWorldNormal'], gl.SEPARATE_ATTRIBS);
   gl.linkProgram(program);
@@ -95,6 +95,7 @@ export function probeCrowd(renderer, crowd, index, time) {
   const animation = crowd.animation;
   animation.checkSupport(renderer);
   renderer.initTexture(animation.texture);
+  if (crowd.layered) renderer.initTexture(animation.rigTexture);  // before any raw binding: three binds on unit 0
   const webglTexture = renderer.properties.get(animation.texture).__webglTexture;
   if (!webglTexture) throw new VirtualBonesError('the animation texture was not uploaded');
   crowd.updateMatrixWorld(true);
@@ -105,7 +106,8 @@ export function probeCrowd(renderer, crowd, index, time) {
   for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const { maxInfluences } = mesh.userData.virtualBones;
     const skin = crowd.skin ?? DEFAULT_SKIN;
-    const program = probeProgram(gl, animation, maxInfluences, skin);
+    const layers = Boolean(crowd.layered);
+    const program = probeProgram(gl, animation, maxInfluences, skin, layers);
     const geometry = mesh.geometry;
     const vertexCount = geometry.attributes.position.count;
     let skinTexture = null;
@@ -136,6 +138,11 @@ export function probeCrowd(renderer, crowd, index, time) {
     buffers.push(bindAttribute(gl, program, 'vb_instanceFadeClip', crowd.fadeClipAttribute.array, 1, { integer: true, divisor: 1, offset: 4 * index }));
     buffers.push(bindAttribute(gl, program, 'vb_instanceFade', crowd.fadeAttribute.array, 3, { divisor: 1, offset: 12 * index }));
     buffers.push(bindAttribute(gl, program, 'instanceMatrix', crowd.instanceMatrix.array, 4, { divisor: 1, offset: 64 * index, columns: 4 }));
+    if (layers) {  // format 1.2: the instance's two layers
+      buffers.push(bindAttribute(gl, program, 'vb_instanceLayerClipMask', crowd.layerClipMaskAttribute.array, 4, { integer: true, divisor: 1, offset: 16 * index }));
+      buffers.push(bindAttribute(gl, program, 'vb_instanceLayerTime', crowd.layerTimeAttribute.array, 4, { divisor: 1, offset: 16 * index }));
+      buffers.push(bindAttribute(gl, program, 'vb_instanceLayerWeight', crowd.layerWeightAttribute.array, 2, { divisor: 1, offset: 8 * index }));
+    }
 
     gl.useProgram(program);
     gl.activeTexture(gl.TEXTURE0);
@@ -145,6 +152,11 @@ export function probeCrowd(renderer, crowd, index, time) {
       gl.activeTexture(gl.TEXTURE1);
       gl.bindTexture(gl.TEXTURE_2D, skinTexture);
       gl.uniform1i(gl.getUniformLocation(program, 'vb_skinTexture'), 1);
+    }
+    if (layers) {
+      gl.activeTexture(gl.TEXTURE2);
+      gl.bindTexture(gl.TEXTURE_2D, renderer.properties.get(animation.rigTexture).__webglTexture);
+      gl.uniform1i(gl.getUniformLocation(program, 'vb_rig'), 2);
     }
     gl.uniform1f(gl.getUniformLocation(program, 'vb_time'), time);
     const clips = new Float32Array(4 * animation.maxClips);
