@@ -25,9 +25,10 @@ from vbusd.format.layout import FORMAT_VERSION
 __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
            "upgrade"]
 
-FORMAT_MINOR_VERSION = 1
+FORMAT_MINOR_VERSION = 2
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
-Writers write the lowest version that holds an asset (spec 16.1): 1.0 unless it uses a 1.1 key."""
+Writers write the lowest version that holds an asset (spec 16.1, 16.2): 1.0 unless it uses a 1.1
+key, 1.2 when it uses the compact encoding."""
 
 
 class Version(NamedTuple):
@@ -58,9 +59,23 @@ KEYS_1_0 = frozenset((
     "texture", "clipExtents", "unormRangeMin", "unormRangeMax"))
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
-KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}}
+KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
+
+KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
+              (1, 2): KEYS_1_1 | {"compactRanges", "compactRangeMin", "compactRangeMax"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
+
+ENCODINGS_1_0 = frozenset(("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"))
+KNOWN_VALUES = {
+    "encoding": {(1, 0): ENCODINGS_1_0, (1, 1): ENCODINGS_1_0,
+                 (1, 2): ENCODINGS_1_0 | {"compactQuatTranslation"}},
+    "texelFormat": {(1, 0): frozenset(("float16", "float32", "unorm16")),
+                    (1, 1): frozenset(("float16", "float32", "unorm16")),
+                    (1, 2): frozenset(("float16", "float32", "unorm16", "uint32"))},
+}
+"""The encodings and texel formats each version defines: a reader refusing a newer document names
+the encoding it cannot decode first (spec 16.2), then any keys it does not know."""
 
 
 def upgrades_from(major: int, minor: int = 0) -> Callable[[UpgradeFunction], UpgradeFunction]:
@@ -142,7 +157,9 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
                            "upgrade vbusd to read it", file=file, location=where, code="format.version")
     if version > target:
         known = KNOWN_KEYS.get(tuple(target))
-        unknown = sorted(str(k) for k in d if known is not None and k not in known)
+        unknown = [f"{key} {d[key]}" for key, table in KNOWN_VALUES.items()
+                   if tuple(target) in table and isinstance(d.get(key), str) and d[key] not in table[tuple(target)]]
+        unknown += sorted(str(k) for k in d if known is not None and k not in known)
         uses = (f"; it uses {', '.join(unknown)}, which version {target} does not define" if unknown else "")
         raise VersionError(f"format version {version} is newer than this reader (version {target}){uses}; "
                            "upgrade vbusd to read it", file=file,
@@ -159,6 +176,12 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
             raise AssertionError(f"the upgrade from version {version} did not raise the version")
         version = following
     return result
+
+
+@upgrades_from(1, 1)
+def upgrade_1_1_to_1_2(document: dict) -> dict:
+    """1.1 -> 1.2 (spec 16.2): 1.2 adds the compact encoding, which no 1.1 document uses; nothing to fill in."""
+    return {**document, "formatMinorVersion": 2}
 
 
 @upgrades_from(1, 0)

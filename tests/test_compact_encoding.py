@@ -1,0 +1,156 @@
+"""The compact encoding of format 1.2 (spec 5.6, issue 26): layout, bit packing, accuracy, versions.
+
+Accuracy is measured against independent skinning: the stadium sample generator's own ``skin``
+(checked against UsdSkel in tests/test_samples.py) and exact float64 LBS of the glTF converter's
+matrices written here. Packing is checked against words computed by hand from spec 5.6's table.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.format.compact import decode_compact_fields, encode_compact, pack_words, unpack_words
+from vbusd.format.errors import OptionsError, VersionError
+from vbusd.format.layout import Layout
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _generator():
+    name = "vbusd_samples_stadium_crowd"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, REPO / "samples" / "stadium_crowd.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def test_layout_one_texel_of_twelve_bytes_per_bone_key():
+    layout = Layout("compactQuatTranslation", "uint32", 18, 512, "none", "none")
+    assert layout.texels_per_bone == 1
+    assert layout.used_texel_bytes == 18 * 512 * 12  # 12 bytes per bone-key
+    with pytest.raises(OptionsError, match="go together"):
+        Layout("compactQuatTranslation", "float16", 18, 512)
+    with pytest.raises(OptionsError, match="go together"):
+        Layout("crossMatrix", "uint32", 18, 512)
+
+
+def test_words_match_the_spec_table_by_hand():
+    # Spec 5.6.2: R = qa | qb << 16, G = qc | tx << 16, B = ty | tz << 15 | index << 30.
+    words = pack_words(np.array([3]), np.array([[0x1234, 0xFFFF, 0x0001]]), np.array([[0x7FFF, 0x0002, 0x4000]]))
+    assert [hex(int(w)) for w in words[0]] == ["0xffff1234", "0x7fff0001", "0xe0000002"]
+    index, uq, ut = unpack_words(words)
+    assert int(index[0]) == 3 and uq[0].tolist() == [0x1234, 0xFFFF, 1] and ut[0].tolist() == [0x7FFF, 2, 0x4000]
+
+
+def test_worked_example_of_the_spec():
+    # Spec 5.6.5: a 90-degree turn about y, q = (0, sin 45, 0, cos 45), t = (0.25, 1.5, -0.5), one
+    # bone with ranges q: x [0, 0], y [0, 0.75], z [0, 0], w [0.7, 0.75]; t: [0, 0.5], [1, 2], [-1, 0].
+    ranges = np.array([[[0, 0], [0, 0.75], [0, 0], [0.7, 0.75], [0, 0.5], [1, 2], [-1, 0]]], float)
+    s = np.sqrt(0.5)
+    q = np.array([[[0.0, s, 0.0, s]]])
+    t = np.array([[[0.25, 1.5, -0.5]]])
+    words, _ = encode_compact(q, t, ranges=ranges, dropped=np.array([[3]]))
+    # kept x, y, z: u_y = round(0.70710678 / 0.75 * 65535) = 61787; x, z have empty ranges: 0
+    # t: round(0.5 * 32767) = 16384 (0.49998.. rounds to 16383.5 -> 16384) for all three
+    assert words[0, 0].tolist() == [61787 << 16, 16384 << 16, 16384 | (16384 << 15) | (3 << 30)]
+    dq, dt = decode_compact_fields(words, ranges)
+    assert np.allclose(dq[0, 0], [0, s, 0, s], atol=1e-5)
+    assert np.allclose(dt[0, 0], [0.25, 1.5, -0.5], atol=2e-5)
+
+
+def test_stadium_spectator_within_a_hundredth_of_a_centimetre():
+    """Must show: the 2.5 m spectator within 1e-4 m at every row, against the generator's skinning."""
+    from vbusd.decode.reference import skin_mesh
+
+    gen = _generator()
+    rig = gen.build_rig()
+    vb = gen.bake_reference(rig, encoding="compactQuatTranslation", texel_format="uint32")
+    assert vb.layout.used_texel_bytes / (vb.layout.bone_count * vb.layout.row_count) == 12
+    clip = vb.clips[0]
+    taus = np.arange(clip.row_count) / clip.rows_per_second
+    decoded, _ = skin_mesh(vb, vb.meshes[0], 0, taus)
+    expected = gen.skin(rig, gen.skinning_matrices(taus))
+    error = float(np.linalg.norm(decoded - expected, axis=-1).max())
+    assert error <= 1e-4, error  # measured 7.3e-5 m
+
+
+def _lbs(points, idx, w, matrices):
+    m = matrices[:, idx]
+    moved = np.einsum("nvkij,vj->nvki", m[..., :3, :3], points) + m[..., :3, 3]
+    return np.einsum("vk,nvki->nvi", w, moved)
+
+
+@pytest.mark.parametrize("name", ["CesiumMan", "Fox", "RiggedFigure", "RiggedSimple", "SimpleSkin"])
+def test_shared_gltf_characters_within_5e_5_of_the_diagonal(shared_assets, name):
+    """Must show: every rigid shared glTF character within 5e-5 of its bounding-box diagonal at rows."""
+    from vbusd.bake import BakeOptions, bake
+    from vbusd.converters import gltf
+    from vbusd.decode.reference import skin_mesh
+
+    path = next((shared_assets / "gltf" / name).glob("*.gl*"))
+    for animation in gltf.read(path).animations:
+        vb = bake(animation, BakeOptions(encoding="compactQuatTranslation", texel_format="uint32"))
+        for ci, clip in enumerate(vb.clips):
+            source = animation.clips[ci]
+            taus = np.arange(clip.row_count) / clip.rows_per_second
+            matrices = source.sample(source.start_time + taus)
+            for mesh, bound in zip(animation.meshes, vb.meshes):
+                w = np.asarray(mesh.bone_weights, float)
+                expected = _lbs(np.asarray(mesh.points, float), np.asarray(mesh.bone_indices),
+                                w / w.sum(axis=1, keepdims=True), matrices)
+                decoded, _ = skin_mesh(vb, bound, ci, taus)
+                diag = float(np.linalg.norm(np.ptp(np.asarray(mesh.points, float), axis=0)))
+                # bind_mesh keeps at most 4 influences; these assets have at most 4
+                assert float(np.linalg.norm(decoded - expected, axis=-1).max()) / diag <= 5e-5
+
+
+def test_metadata_is_version_1_2_and_a_1_1_reader_refuses_it_by_encoding():
+    from vbusd.format import metadata
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.format.versioning import upgrade
+
+    vb = _generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32")
+    d = metadata.to_dict(vb)
+    assert (d["formatVersion"], d["formatMinorVersion"]) == (1, 2)
+    assert np.array_equal(np.array(d["compactRanges"]), vb.unorm_ranges)
+    diagnostics = Diagnostics(file="cheer.json")
+    info = metadata.check_document(upgrade(d), diagnostics)
+    assert not diagnostics.findings and np.array_equal(info.unorm_ranges, vb.unorm_ranges)
+    with pytest.raises(VersionError) as refused:
+        upgrade(d, current=(1, 1), file="cheer.json")
+    line = str(refused.value)
+    assert "\n" not in line and "cheer.json" in line and "encoding compactQuatTranslation" in line
+
+
+def test_a_1_1_document_reads_unchanged():
+    from vbusd.format import metadata
+    from vbusd.format.diagnostics import Diagnostics
+    from vbusd.format.versioning import upgrade
+
+    vb = _generator().bake_reference(encoding="quatTranslation", texel_format="unorm16")
+    d = {**metadata.to_dict(vb), "formatMinorVersion": 1}
+    upgraded = upgrade(d)
+    assert {k: v for k, v in upgraded.items() if k != "formatMinorVersion"} == \
+        {k: v for k, v in d.items() if k != "formatMinorVersion"}
+    info = metadata.check_document(upgraded, Diagnostics(file="x.json"))
+    assert info.layout == vb.layout and np.array_equal(info.unorm_ranges, vb.unorm_ranges)
+    assert metadata.to_dict(vb).get("formatMinorVersion", 0) == 0  # still written as 1.0
+
+
+def test_schema_refuses_compact_without_ranges_or_with_another_texel_format():
+    from vbusd.format import metadata
+    from vbusd.format.diagnostics import Diagnostics
+
+    d = metadata.to_dict(_generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32"))
+    for broken in ({k: v for k, v in d.items() if k != "compactRanges"}, {**d, "texelFormat": "float16"},
+                   {**d, "formatMinorVersion": 1}):
+        diagnostics = Diagnostics(file="x.json")
+        assert metadata.check_schema(broken, diagnostics) is False
+        assert {f.code for f in diagnostics.findings} == {"metadata.schema"}
