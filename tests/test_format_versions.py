@@ -78,4 +78,4 @@ def test_a_newer_major_version_in_the_texture_metadata_is_one_line(asset, capsys
     assert main(["info", str(exr)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"vbusd: {exr}: header/vbusd.layout/formatVersion: format.version: formatVersion 2 is newer "
-                   "than this reader (version 1.1); upgrade vbusd to read it"]
+                   "than this reader (version 1.2); upgrade vbusd to read it"]

@@ -17,6 +17,7 @@ import pytest
 
 from vbusd.format import metadata as md
 from vbusd.format.errors import InputError, VersionError
+from vbusd.format.versioning import CURRENT
 from vbusd.format.layout import Layout
 from vbusd.format.model import Clip, VirtualBones
 
@@ -123,7 +124,7 @@ def test_upgrade_current_version_is_identity_copy():
     d = md.to_dict(make_vb(bones=2, rows=3))
     assert "formatMinorVersion" not in d or d["formatMinorVersion"] == 0
     out = md.upgrade(d)
-    assert out == {**d, "formatMinorVersion": 1} and out is not d
+    assert out == {**d, "formatMinorVersion": CURRENT.minor} and out is not d
     again = md.upgrade(out)
     assert again == out and again is not out
 

@@ -376,7 +376,7 @@ def _architecture_usd_names() -> list:
 
 def test_architecture_lists_are_parsed():
     top, clip = _architecture_metadata_keys()
-    assert len(top) == 20 and top[0] == "format" and top[-1] == "contentDigest"  # 20: bindTransforms (1.1)
+    assert len(top) == 21 and top[0] == "format" and top[-1] == "contentDigest"  # bindTransforms (1.1), compactRanges (1.2)
     assert clip == ["name", "firstRow", "rowCount", "rowsPerSecond", "loop", "startTime"]
     assert "vb:textureWidth" in _architecture_usd_names()
     assert "primvars:vb:playbackRate" in _architecture_usd_names()
@@ -388,7 +388,7 @@ def test_schema_keys_are_exactly_the_architecture_keys(schema):
     assert sorted(schema["$defs"]["clip"]["properties"]) == sorted(clip)
     assert sorted(schema["$defs"]["clip"]["required"]) == sorted(clip)
     assert sorted(schema["required"]) == sorted(k for k in top if k not in ("unormRanges", "formatMinorVersion",
-                                                                            "bindTransforms"))
+                                                                            "bindTransforms", "compactRanges"))
 
 
 def test_spec_names_every_metadata_key(spec_text):

@@ -554,6 +554,13 @@ class UsdReader:
                     # see, instead of piling up findings about what depends on it.
                     upgraded[attribute.key] = fallback
         declared.values.update({k: v for k, v in upgraded.items() if k != "clips"})
+        # The version compared with the texture's metadata is the one authored, not the upgraded
+        # one: a 1.1 prim and its 1.1 texture agree although this reader upgrades both to 1.2.
+        for key in ("formatVersion", "formatMinorVersion"):
+            if key in raw:
+                declared.values[key] = raw[key]
+            else:
+                declared.values.pop(key, None)
         if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
