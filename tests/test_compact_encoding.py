@@ -154,3 +154,72 @@ def test_schema_refuses_compact_without_ranges_or_with_another_texel_format():
         diagnostics = Diagnostics(file="x.json")
         assert metadata.check_schema(broken, diagnostics) is False
         assert {f.code for f in diagnostics.findings} == {"metadata.schema"}
+
+
+# ------------------------------------------------------------------------------------------------
+# Containers: EXR (UINT channels), KTX2 (VK_FORMAT_R32G32B32_UINT), PNG refuses
+# ------------------------------------------------------------------------------------------------
+
+
+def _node_tools():
+    spec = importlib.util.spec_from_file_location("vbusd_node_tools", REPO / "tests" / "node" / "node_tools.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def compact_cheer():
+    return _generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32")
+
+
+@pytest.mark.parametrize("name", ["cheer.exr", "cheer.ktx2"])
+def test_containers_round_trip_the_words_bit_for_bit(tmp_path, compact_cheer, name):
+    from vbusd.io.textures import read_texture, write_texture
+
+    write_texture(tmp_path / name, compact_cheer)
+    back = read_texture(tmp_path / name)
+    assert back.texels.dtype == np.dtype("<u4") and np.array_equal(back.texels, compact_cheer.texels)
+    assert np.array_equal(back.info.unorm_ranges, compact_cheer.unorm_ranges)
+
+
+def test_exr_stores_three_uint_channels(tmp_path, compact_cheer):
+    import OpenEXR
+
+    from vbusd.io.textures import write_texture
+
+    write_texture(tmp_path / "cheer.exr", compact_cheer, sidecar=False)
+    with OpenEXR.File(str(tmp_path / "cheer.exr"), separate_channels=True) as exr:
+        channels = exr.parts[0].channels
+        assert sorted(channels) == ["B", "G", "R"]
+        for i, c in enumerate("RGB"):
+            assert channels[c].pixels.dtype == np.uint32
+            assert np.array_equal(channels[c].pixels, compact_cheer.texels[..., i])
+
+
+def test_png_refuses_uint32_in_one_line(tmp_path, compact_cheer):
+    from vbusd.io.textures import write_texture
+
+    with pytest.raises(OptionsError, match="uint32 .* cannot be stored in PNG"):
+        write_texture(tmp_path / "cheer.png", compact_cheer)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ktx_parse_reads_r32g32b32_uint(tmp_path, compact_cheer):
+    """ktx-parse (three.js's KTX2 parser) reads vkFormat 104, three 32-bit samples and the words."""
+    import base64
+
+    from vbusd.io.textures import write_texture
+
+    path = tmp_path / "cheer.ktx2"
+    write_texture(path, compact_cheer, sidecar=False)
+    result = _node_tools().run_json("ktx2_read.mjs", path, packages=("ktx-parse", "three"))
+    parsed = result["ktxParse"]
+    assert (parsed["vkFormat"], parsed["typeSize"]) == (104, 4)   # VK_FORMAT_R32G32B32_UINT
+    (dfd,) = parsed["dataFormatDescriptor"]
+    assert dfd["bytesPlane"][0] == 12 and len(dfd["samples"]) == 3
+    for i, sample in enumerate(dfd["samples"]):
+        assert (sample["bitOffset"], sample["bitLength"], sample["channelType"]) == (32 * i, 31, i)
+    (level,) = parsed["levels"]
+    words = np.ascontiguousarray(compact_cheer.texels[..., :3], "<u4").tobytes()
+    assert base64.b64decode(level["base64"]) == words
