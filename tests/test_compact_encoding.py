@@ -223,3 +223,69 @@ def test_ktx_parse_reads_r32g32b32_uint(tmp_path, compact_cheer):
     (level,) = parsed["levels"]
     words = np.ascontiguousarray(compact_cheer.texels[..., :3], "<u4").tobytes()
     assert base64.b64decode(level["base64"]) == words
+
+
+# ------------------------------------------------------------------------------------------------
+# Validator
+# ------------------------------------------------------------------------------------------------
+
+
+def _codes(findings):
+    return sorted({f.code for f in findings})
+
+
+def test_validator_accepts_the_baked_texels_and_names_broken_words(compact_cheer):
+    from vbusd.validators import checks_texels
+
+    vb = compact_cheer
+    assert checks_texels.check_encoding(vb.texels, "t.exr", vb.layout, vb.unorm_ranges) == []
+    broken = vb.texels.copy()
+    broken[7, 3, 1] |= np.uint32(1 << 31)                       # reserved bit of G
+    found = checks_texels.check_encoding(broken, "t.exr", vb.layout, vb.unorm_ranges)
+    assert _codes(found) == ["encoding.compact.reservedBit"]
+    assert (found[0].location.row, found[0].location.bone) == (7, 3)
+    # Kept fields at the top of ranges that reach 0.75: squares sum far over 3/4 (dropped < 1/2).
+    ranges = vb.unorm_ranges.copy()
+    ranges[5, :4] = [[-0.1, 0.75], [-0.1, 0.75], [-0.1, 0.75], [-0.1, 0.75]]
+    words = vb.texels.copy()
+    words[9, 5, 0] = 0xFFFFFFFF
+    words[9, 5, 1] = (words[9, 5, 1] & np.uint32(0xFFFF0000)) | np.uint32(0xFFFF)
+    found = checks_texels.check_encoding(words, "t.exr", vb.layout, ranges)
+    assert "encoding.compact.dropped" in _codes(found)
+    dropped = next(f for f in found if f.code == "encoding.compact.dropped")
+    assert (dropped.location.row, dropped.location.bone) == (9, 5)
+    assert checks_texels.check_encoding(vb.texels, "t.exr", vb.layout, None) == []  # reported where read
+
+
+def test_usd_asset_validates_and_reads_back(tmp_path, compact_cheer):
+    import dataclasses
+
+    from vbusd.io import usd
+    from vbusd.validators.api import validate_findings
+
+    asset = dataclasses.replace(_generator().make_asset(), animations=(compact_cheer,))
+    usd.write_asset(asset, tmp_path / "crowd.usda")
+    text = (tmp_path / "crowd.usda").read_text()
+    assert "uniform int vb:formatMinorVersion = 2" in text and "vb:compactRangeMin" in text
+    back = usd.read_asset(tmp_path / "crowd.usda").animations[0]
+    assert np.array_equal(back.texels, compact_cheer.texels)
+    assert np.array_equal(back.unorm_ranges, compact_cheer.unorm_ranges)
+    severe = [f for f in validate_findings(str(tmp_path / "crowd.usda")) if f.severity.value in ("error", "warning")]
+    assert severe == []
+
+
+def test_validator_warns_when_the_error_bound_exceeds_the_target(tmp_path, compact_cheer):
+    import dataclasses
+
+    from vbusd.io import usd
+    from vbusd.validators.api import validate_findings
+
+    # Bone 0's ranges 4 units wider: its bound (spec 5.6.3), 1.2e-4 m (4.9e-5 of the diagonal) as
+    # baked, grows past 5e-5 of the diagonal.
+    ranges = compact_cheer.unorm_ranges.copy()
+    ranges[0, :, 0] -= 2.0
+    ranges[0, :, 1] += 2.0
+    wide = dataclasses.replace(compact_cheer, unorm_ranges=ranges)
+    usd.write_asset(dataclasses.replace(_generator().make_asset(), animations=(wide,)), tmp_path / "crowd.usda")
+    found = [f for f in validate_findings(str(tmp_path / "crowd.usda")) if f.code == "encoding.compact.errorBound"]
+    assert len(found) == 1 and "bone 0" in found[0].message
