@@ -289,3 +289,33 @@ def test_validator_warns_when_the_error_bound_exceeds_the_target(tmp_path, compa
     usd.write_asset(dataclasses.replace(_generator().make_asset(), animations=(wide,)), tmp_path / "crowd.usda")
     found = [f for f in validate_findings(str(tmp_path / "crowd.usda")) if f.code == "encoding.compact.errorBound"]
     assert len(found) == 1 and "bone 0" in found[0].message
+
+
+# ------------------------------------------------------------------------------------------------
+# vbusd convert / info / validate
+# ------------------------------------------------------------------------------------------------
+
+
+def test_convert_cli_picks_uint32_for_the_compact_encoding(tmp_path, shared_assets, capsys):
+    from vbusd.cli import main
+
+    source = next((shared_assets / "gltf" / "CesiumMan").glob("*.gl*"))
+    out = tmp_path / "cesium.usda"
+    assert main(["convert", str(source), "-o", str(out), "--encoding", "compactQuatTranslation", "--check-rows", "0"]) == 0
+    texture = next(tmp_path.glob("*.exr"))
+    import json
+
+    capsys.readouterr()
+    assert main(["info", str(out), "--format", "json"]) == 0
+    (animation,) = json.loads(capsys.readouterr().out)["animations"]
+    assert (animation["encoding"], animation["bytesPerBoneKey"], animation["fetchesPerBoneAndRow"]) == \
+        ("compactQuatTranslation", 12, 1)
+    assert main(["validate", str(out)]) == 0
+    meta = json.loads(texture.with_name(texture.name + ".json").read_text())
+    assert (meta["encoding"], meta["texelFormat"], meta["texelsPerBone"], meta["formatMinorVersion"]) == \
+        ("compactQuatTranslation", "uint32", 1, 2)
+    capsys.readouterr()
+    assert main(["convert", str(source), "-o", str(tmp_path / "x.usda"), "--encoding", "crossMatrix",
+                 "--texel-format", "uint32"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "compactQuatTranslation and texel format uint32 go together" in err[0]
