@@ -323,7 +323,7 @@ def _print_text(result: dict) -> None:
         table.add_row("texel format", animation["texelFormat"])
         table.add_row("bones", f"{animation['boneCount']} x {animation['texelsPerBone']} texels")
         if "bytesPerBoneKey" in animation:
-            table.add_row("per bone and row", f"{animation['bytesPerBoneKey']} bytes, "
+            table.add_row("bone-key", f"{animation['bytesPerBoneKey']} bytes, "
                                               f"{animation['fetchesPerBoneAndRow']} texel fetch(es)")
         table.add_row("rows", str(animation["rowCount"]))
         table.add_row("width", f"{animation['usedWidth']} used, {animation['width']} padded "
