@@ -204,6 +204,9 @@ class Decoder:
         self.mesh = mesh
         self.sampling = sampling
         self.encoding = vb.layout.encoding
+        if self.encoding is Encoding.COMPACT_QUAT_TRANSLATION and sampling != "exact":
+            raise OptionsError("compactQuatTranslation texels are integers, read with texelFetch only "
+                               "(spec 9.4): use sampling='exact'", file="decode")
         self.encoding_id = K.ENCODING_IDS[self.encoding.value]
         self.bone_count = vb.layout.bone_count
         self.vertex_count = int(np.asarray(mesh.points).shape[0])
@@ -259,8 +262,10 @@ class Decoder:
         self.unorm = layout.texel_format is TexelFormat.UNORM16
         if self.sampling == "exact":
             values = channel_values(vb)  # (rows, B, T, 4) float64, dequantized like the reference
-            texels = np.zeros((layout.height, layout.width, 4), dtype=np.float32)
-            texels[:layout.row_count, :layout.used_width] = values.reshape(layout.row_count, layout.used_width, 4)
+            # compactQuatTranslation: its words unpacked into 2 vec4 per bone (quaternion; t and 1)
+            columns = values.shape[1] * values.shape[2]
+            texels = np.zeros((layout.height, max(layout.width, columns), 4), dtype=np.float32)
+            texels[:layout.row_count, :columns] = values.reshape(layout.row_count, columns, 4)
             self.texels = self._array(texels, wp.vec4)
             self.texture = None
             return
