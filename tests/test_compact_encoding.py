@@ -319,3 +319,28 @@ def test_convert_cli_picks_uint32_for_the_compact_encoding(tmp_path, shared_asse
                  "--texel-format", "uint32"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "compactQuatTranslation and texel format uint32 go together" in err[0]
+
+
+def test_numpy_reference_blends_opposite_stored_signs_the_short_way():
+    """Spec 5.6.4 by hand (as tests/test_warp_decoder.py checks warp): rows turning 106.26 and 270
+    degrees about x, stored with opposite signs, are 188.13 degrees halfway (the short way)."""
+    import math
+
+    from vbusd.decode.reference import skin_mesh
+    from vbusd.format.model import BoundMesh, Clip, VirtualBones
+
+    q = np.array([[[0.8, 0.0, 0.0, 0.6]], [[0.7, 0.0, 0.0, -0.7]]])
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    words, ranges = encode_compact(q, np.zeros((2, 1, 3)), dropped=np.array([[0], [3]]))
+    stored_q, _ = decode_compact_fields(words, ranges)
+    assert float(np.dot(stored_q[0, 0], stored_q[1, 0])) < 0  # the case the flip exists for
+    layout = Layout("compactQuatTranslation", "uint32", 1, 2, "none", "none")
+    texels = np.zeros(layout.shape, "<u4")
+    texels[:, 0, :3] = words[:, 0]
+    points = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    mesh = BoundMesh("/M", points, np.array([2]), np.arange(2), np.zeros((2, 1), int), np.ones((2, 1)))
+    vb = VirtualBones(layout, texels, ("b",), (Clip("c", 0, 2, 1.0, False, 0.0),), ranges, (mesh,))
+    halfway, _ = skin_mesh(vb, mesh, 0, np.array([0.5]))
+    angle = math.radians(188.13010235415598)
+    np.testing.assert_allclose(halfway[0], [[0, math.cos(angle), math.sin(angle)],
+                                            [0, -math.sin(angle), math.cos(angle)]], atol=2e-4)

@@ -410,7 +410,8 @@ class Decoder:
         """Whether placed bones need their own normal matrices (else N is the linear part of M)."""
         if self.encoding in (Encoding.AFFINE_MATRIX, Encoding.QUAT_TRANSLATION):
             return True
-        return self.encoding is Encoding.CROSS_MATRIX and not crowd.uniform_scale
+        # crossMatrix and compactQuatTranslation: N = A (a rotation) until a non-uniform scale places it
+        return self.encoding in (Encoding.CROSS_MATRIX, Encoding.COMPACT_QUAT_TRANSLATION) and not crowd.uniform_scale
 
     def _bone_buffers(self, n: int, own_normal: bool, fades: bool = False) -> BoneBuffers:
         fade_dual = fades and self.encoding is Encoding.DUAL_QUAT
