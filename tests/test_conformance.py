@@ -286,8 +286,14 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
     uniforms in GLSL, the VirtualBones cbuffer in HLSL); returns what must outlive the draw."""
     layout = vector["layout"]
     vb = vector_animation(vector)
-    dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
-    texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
+    compact = layout["texelFormat"] == "uint32"
+    if compact:  # format 1.2: the words as an RGB32UI texture, as the file stores them (spec 9.4)
+        texture = ctx.texture((layout["width"], layout["height"]), 3,
+                              np.ascontiguousarray(vb.texels[..., :3]).tobytes(), dtype="u4")
+    else:
+        dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
+        texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(),
+                              dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
     texture.use(location=0)
     program[NAMES[lang]["texture"]].value = 0
@@ -295,9 +301,18 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
              for c in layout["clips"]]
     clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
     block = None
+    compact_ranges = None
+    if compact:  # per bone: q min, q max, (t min, 0), (t max, 0); padded to VB_MAX_BONES (64)
+        r = np.array(layout["compactRanges"], dtype=np.float64)
+        per_bone = np.zeros((64, 4, 4), "<f4")
+        per_bone[:len(r), 0], per_bone[:len(r), 1] = r[:, :4, 0], r[:, :4, 1]
+        per_bone[:len(r), 2, :3], per_bone[:len(r), 3, :3] = r[:, 4:, 0], r[:, 4:, 1]
+        compact_ranges = per_bone.reshape(-1, 4)
     if lang == "glsl":
         program["vb_time"].value = time
         program["vb_clips"].value = clips
+        if compact_ranges is not None:
+            program["vb_compactRange"].write(compact_ranges.tobytes())
         if "unormRanges" in layout:
             ranges = np.array(layout["unormRanges"])
             program["vb_rangeMin"].value = [tuple(r) for r in ranges[..., 0]]
@@ -307,6 +322,8 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
         if "unormRanges" in layout:
             ranges = np.array(layout["unormRanges"])
             payload += np.array(ranges[..., 0], "<f4").tobytes() + np.array(ranges[..., 1], "<f4").tobytes()
+        if compact_ranges is not None:
+            payload += compact_ranges.tobytes()
         block = ctx.buffer(payload)
         program["VirtualBones"].binding = 1
         block.bind_to_uniform_block(1)
