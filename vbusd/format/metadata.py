@@ -109,7 +109,8 @@ def content_digest(texels: np.ndarray) -> str:
 
     The bytes hashed are the whole ``(height, width, 4)`` array, padding included, in C order
     (row 0 = first scanline), each channel little-endian in the array's own dtype (``<f2``,
-    ``<f4`` or ``<u2``), so the digest is the same on every machine.
+    ``<f4`` or ``<u2``), so the digest is the same on every machine. uint32 texels (format 1.2)
+    are hashed as the files store them: channels R, G, B only (12 bytes a texel, spec 9.4).
 
     Args:
         texels: ``(height, width, 4)`` array.
@@ -125,6 +126,8 @@ def content_digest(texels: np.ndarray) -> str:
         raise ValueError(f"texels must have shape (height, width, {CHANNELS}), got {texels.shape}")
     # Hashed through a memoryview: tobytes() would copy the whole texture (128 MiB at 4096 x 4096
     # float16) next to the texels; only a big-endian or strided array is copied, once.
+    if texels.dtype.kind == "u" and texels.dtype.itemsize == 4:
+        texels = texels[..., :3]  # uint32: the three stored words, not the in-memory A = 0
     little = np.ascontiguousarray(texels.astype(texels.dtype.newbyteorder("<"), copy=False))
     return DIGEST_PREFIX + hashlib.sha256(memoryview(little).cast("B")).hexdigest()
 
