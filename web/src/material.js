@@ -4,14 +4,14 @@
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
 import { GLSL_MODULES, GLSL_PULLED_MODULES, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS } from './shader-modules.js';
-import { VirtualBonesError } from './animation.js';
+import { VirtualBonesError, BASE_MAX_BONES } from './animation.js';
 import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
 
 /**
  * The GLSL of `vbusd shader --lang glsl --no-main --encoding E --texel-format F
  * --max-influences K --max-clips C --skin S`, character for character.
  */
-export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes') {
+export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', maxBones = BASE_MAX_BONES) {
   checkSkinBinding(skin);
   const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
   if (base === undefined) throw new VirtualBonesError(`no shader module for encoding ${encoding}, texel format ${texelFormat}`);
@@ -25,6 +25,10 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
     `up to ${BASE_MAX_INFLUENCES} influences.`, `up to ${maxInfluences} influences.`),
   `#define VB_MAX_INFLUENCES ${BASE_MAX_INFLUENCES}\n`, `#define VB_MAX_INFLUENCES ${maxInfluences}\n`),
   `#define VB_MAX_CLIPS ${BASE_MAX_CLIPS}\n`, `#define VB_MAX_CLIPS ${maxClips}\n`);
+  if (encoding === 'compactQuatTranslation') {  // `vbusd shader --max-bones N`: the range uniforms' size
+    if (!Number.isInteger(maxBones) || maxBones < 1 || maxBones > 1024) throw new VirtualBonesError(`maxBones must be 1..1024, got ${maxBones}`);
+    text = replaceOnce(text, `#define VB_MAX_BONES ${BASE_MAX_BONES}\n`, `#define VB_MAX_BONES ${maxBones}\n`);
+  }
   if (skin === 'pulled') {
     text = replaceOnce(replaceOnce(text,
       `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
@@ -45,7 +49,8 @@ function replaceOnce(text, search, replacement) {
  * With the `pulled` skin there are no bone inputs: the module declares `vb_skinTexture`.
  */
 export function skinningDeclarations(animation, maxInfluences, skin = 'attributes') {
-  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin);
+  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin,
+    animation.maxBones ?? BASE_MAX_BONES);
   if (skin === 'pulled') {
     return `${module}
 in int vb_instanceClip;
@@ -141,7 +146,7 @@ export function patchMaterial(material, animation, maxInfluences, { skin = 'attr
     Object.assign(shader.uniforms, animation.uniforms, skinUniforms);
     shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin);
   };
-  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}`;
+  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}:${animation.maxBones ?? BASE_MAX_BONES}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
   material.userData.virtualBones = { animation, maxInfluences, skin };
