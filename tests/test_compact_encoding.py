@@ -344,3 +344,26 @@ def test_numpy_reference_blends_opposite_stored_signs_the_short_way():
     angle = math.radians(188.13010235415598)
     np.testing.assert_allclose(halfway[0], [[0, math.cos(angle), math.sin(angle)],
                                             [0, -math.sin(angle), math.cos(angle)]], atol=2e-4)
+
+
+def test_gltf_runtime_package_of_the_compact_encoding(tmp_path, compact_cheer):
+    """`vbusd export` packs the compact texture as a VK_FORMAT_R32G32B32_UINT KTX2 in the glTF: the
+    Khronos glTF-Validator reports no error or warning and three.js's GLTFLoader loads it."""
+    import dataclasses
+
+    from vbusd.cli import main
+    from vbusd.io import usd
+
+    spec = importlib.util.spec_from_file_location("vbusd_test_gltf_package", REPO / "tests" / "test_gltf_package.py")
+    package_tests = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(package_tests)
+    asset = dataclasses.replace(_generator().make_asset(), animations=(compact_cheer,))
+    source = tmp_path / "in" / "crowd.usda"
+    usd.write_asset(asset, source)
+    out = tmp_path / "out" / "crowd.glb"
+    assert main(["export", str(source), "-o", str(out)]) == 0
+    result = package_tests.check(out)
+    (animation,) = result["three"]["rootExtensions"]["VBUSD_virtual_bones"]["animations"]
+    assert (animation["layout"]["encoding"], animation["layout"]["texelFormat"]) == ("compactQuatTranslation", "uint32")
+    (mesh,) = result["three"]["meshes"]
+    assert mesh["isInstancedMesh"] and mesh["count"] == 1200
