@@ -367,3 +367,23 @@ def test_gltf_runtime_package_of_the_compact_encoding(tmp_path, compact_cheer):
     assert (animation["layout"]["encoding"], animation["layout"]["texelFormat"]) == ("compactQuatTranslation", "uint32")
     (mesh,) = result["three"]["meshes"]
     assert mesh["isInstancedMesh"] and mesh["count"] == 1200
+
+
+def test_a_1_1_usd_reader_refuses_the_compact_asset_in_one_line_naming_the_encoding(tmp_path, compact_cheer,
+                                                                                      monkeypatch, capsys):
+    """vbusd as a 1.1-only reader (the registry's CURRENT set to 1.1, as spec 16.1 simulates 1.0):
+    `vbusd info` of the compact USD asset exits 2 with one line naming the encoding."""
+    import dataclasses
+
+    from vbusd.cli import main
+    from vbusd.format import versioning
+    from vbusd.io import usd
+
+    path = tmp_path / "crowd.usda"
+    usd.write_asset(dataclasses.replace(_generator().make_asset(), animations=(compact_cheer,)), path)
+    monkeypatch.setattr(versioning, "CURRENT", versioning.Version(1, 1))
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "1.2 is newer than this reader (version 1.1)" in err[0], err
+    assert "compactQuatTranslation" in err[0], err
