@@ -14,7 +14,8 @@ float64 LBS of the source matrices (``_lbs`` below, written here, not vbusd's de
 Candidates (all at most 96 bits, 12 bytes, one R32G32B32_UINT texel):
 
 * ``st16/t15``: smallest-three quaternion, 2-bit index + 3 x 16 bits; translation 3 x 15 bits (the
-  format's choice: smallest error at rows on the stadium spectator, CesiumMan, Fox, RiggedFigure);
+  format's choice: the only split within both targets on every subject, and the most exact at rows
+  on the stadium spectator, Fox and RiggedFigure);
 * ``st15/t16``, ``st14/t17`` and ``st17/t14``: the same 95 bits split the other ways;
 * range modes: ``bone`` (ranges per bone: the chosen format), ``bone+clip`` (per bone and clip),
   ``global`` (no range reduction: quaternion components in [-1/sqrt2, 1/sqrt2], translation per
