@@ -14,7 +14,7 @@
 #   (the second call within ~30 s of the first, while the machine is warm; a later call on the
 #    same warm machine needs only `bash benchmarks/gpu_run.sh run`)
 #
-# `run` writes to $OUT: gpu.txt (nvidia-smi), pytest.log, bench.log, decoder_cuda.json, hardware.log,
+# `run` writes to $OUT: gpu.txt (nvidia-smi), pytest.log, conformance.log, bench.log, decoder_cuda.json, hardware.log,
 # hardware.json. Kept in benchmarks/results/ as decoder_cuda[_h100].json,
 # decoder_hardware_cuda[_h100].json and warp_tests_cuda_h100.log (no suffix: the H200 runs).
 set -euo pipefail
@@ -44,6 +44,8 @@ run)
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.max.memory --format=csv | tee "$out/gpu.txt"
     set +e
     python3 -m pytest -p no:cacheprovider --noconftest tests/test_warp_decoder.py -q -rs 2>&1 | tee "$out/pytest.log"
+    # the conformance vectors on CUDA, the compact encoding's (format 1.2) included
+    python3 -m pytest -p no:cacheprovider --noconftest tests/test_conformance.py -k warp -q -rs 2>&1 | tee "$out/conformance.log"
     python3 benchmarks/bench_decoder.py --devices cuda --json "$out/decoder_cuda.json" 2>&1 | tee "$out/bench.log"
     python3 benchmarks/bench_decoder.py --hardware --devices cuda --json "$out/hardware.json" 2>&1 | tee "$out/hardware.log"
     ;;

@@ -156,6 +156,29 @@ def run_probes(browser, path: Path, probes, skin: str = "attributes") -> list:
 STADIUM_PROBES = [(0, 0.0), (0, 1.2345), (777, 3.71), (1199, 12.05)]
 
 
+@pytest.fixture(scope="module")
+def compact_stadium(tmp_path_factory):
+    """Format 1.2: the stadium converted with compactQuatTranslation (uint32 words), with its crowd."""
+    crowd_asset = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda")
+    folder = tmp_path_factory.mktemp("compact")
+    converted = _convert(SAMPLE / "stadium_crowd.usda", folder / "c.usda", "compactQuatTranslation", "uint32")
+    asset = dataclasses.replace(vbusd.read_asset(converted), crowds=crowd_asset.crowds, crowd_animation=(0,))
+    path = folder / "compact" / "stadium.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(asset, path)
+    return path
+
+
+@pytest.mark.parametrize("skin", SKINS)
+def test_probe_matches_reference_compact_encoding(browser, compact_stadium, skin):
+    """The compact encoding in three.js: an RGB32UI texture read with texelFetch from a usampler2D,
+    the per-bone range uniforms, the same tolerances as the other encodings."""
+    errors = run_probes(browser, compact_stadium, STADIUM_PROBES, skin)
+    print("compactQuatTranslation uint32", skin, errors)
+    for position_error, normal_error in errors:
+        assert position_error <= POSITION_TOLERANCE and normal_error <= NORMAL_TOLERANCE
+
+
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("encoding", ENCODINGS)

@@ -19,6 +19,7 @@ Every decoder must reproduce every vector within the vector's tolerances.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -45,8 +46,12 @@ def vector_animation(vector: dict) -> VirtualBones:
     layout_doc = vector["layout"]
     layout = Layout(layout_doc["encoding"], layout_doc["texelFormat"], layout_doc["boneCount"], layout_doc["rowCount"],
                     layout_doc["horizontalPadding"], layout_doc["verticalPadding"])
-    dtype = {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[layout_doc["texelFormat"]]
-    texels = np.array(vector["texels"], dtype=np.float64).astype(dtype).reshape(layout.height, layout.width, 4)
+    if layout_doc["texelFormat"] == "uint32":  # format 1.2: three words per texel, widened with A = 0
+        texels = np.zeros((layout.height, layout.width, 4), "<u4")
+        texels[..., :3] = np.array(vector["texels"], dtype=np.uint64).reshape(layout.height, layout.width, 3)
+    else:
+        dtype = {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[layout_doc["texelFormat"]]
+        texels = np.array(vector["texels"], dtype=np.float64).astype(dtype).reshape(layout.height, layout.width, 4)
     clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], c["rowsPerSecond"], c["loop"], c["startTime"])
                   for c in layout_doc["clips"])
     mesh = vector["mesh"]
@@ -54,6 +59,8 @@ def vector_animation(vector: dict) -> VirtualBones:
                       np.arange(len(mesh["points"])), np.array(mesh["boneIndices"]), np.array(mesh["boneWeights"]),
                       normals=np.array(mesh["normals"]))
     ranges = np.array(layout_doc["unormRanges"]) if "unormRanges" in layout_doc else None
+    if "compactRanges" in layout_doc:
+        ranges = np.array(layout_doc["compactRanges"], dtype=np.float64)
     return VirtualBones(layout, texels, tuple(layout_doc["bones"]), clips, ranges, (bound,))
 
 
@@ -85,7 +92,7 @@ def assert_matches(vector: dict, time_index: int, points, normals, who: str) -> 
 def test_vectors_are_there_for_every_encoding_and_texel_format():
     names = {load(path)["vector"] for path in VECTORS}
     assert names == {f"{e}-{f}" for e in ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
-                     for f in ("float16", "float32", "unorm16")}
+                     for f in ("float16", "float32", "unorm16")} | {"compactQuatTranslation-uint32"}  # 1.2
 
 
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
@@ -102,12 +109,37 @@ def test_texture_file_holds_the_vector_texels_and_layout(path):
     assert to_dict(vb)["contentDigest"] == vector["layout"]["contentDigest"]
 
 
+def _hand_decode_compact(words: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+    """Spec 5.6.4 by hand, one bone at a time in plain Python integers: (B, 2, 4) values as
+    quatTranslation stores them (unit quaternion; translation and scale 1)."""
+    out = np.zeros((len(words), 2, 4))
+    for bone, word in enumerate(words):
+        r, g, b = (int(v) for v in word)
+        index = b >> 30
+        fields = [r & 0xFFFF, r >> 16, g & 0xFFFF]
+        kept = [c for c in range(4) if c != index]
+        q = [0.0] * 4
+        for c, u in zip(kept, fields):
+            lo, hi = ranges[bone][c]
+            q[c] = lo + (hi - lo) * u / 65535
+        q[index] = math.sqrt(max(0.0, 1.0 - sum(q[c] ** 2 for c in kept)))
+        t = []
+        for k, u in enumerate(((g >> 16) & 0x7FFF, b & 0x7FFF, (b >> 15) & 0x7FFF)):
+            lo, hi = ranges[bone][4 + k]
+            t.append(lo + (hi - lo) * u / 32767)
+        out[bone, 0] = q
+        out[bone, 1] = (*t, 1.0)
+    return out
+
+
 def _hand_decode_row(vector: dict, row: int) -> tuple[np.ndarray, np.ndarray]:
     """Skin the mesh at one texture row, decoded by hand from spec 5.1-5.4 (no vbusd decoder code)."""
     vb = vector_animation(vector)
     layout = vector["layout"]
     t = layout["texelsPerBone"]
     values = vb.texels[row, :layout["usedWidth"]].astype(np.float64).reshape(layout["boneCount"], t, 4)
+    if layout["texelFormat"] == "uint32":
+        values = _hand_decode_compact(vb.texels[row, :layout["usedWidth"], :3], np.array(layout["compactRanges"]))
     if layout["texelFormat"] == "unorm16":
         ranges = np.array(layout["unormRanges"])  # (T, 4, 2)
         values = ranges[None, :, :, 0] + (ranges[None, :, :, 1] - ranges[None, :, :, 0]) * values / 65535.0
@@ -254,8 +286,14 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
     uniforms in GLSL, the VirtualBones cbuffer in HLSL); returns what must outlive the draw."""
     layout = vector["layout"]
     vb = vector_animation(vector)
-    dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
-    texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(), dtype=dtype)
+    compact = layout["texelFormat"] == "uint32"
+    if compact:  # format 1.2: the words as an RGB32UI texture, as the file stores them (spec 9.4)
+        texture = ctx.texture((layout["width"], layout["height"]), 3,
+                              np.ascontiguousarray(vb.texels[..., :3]).tobytes(), dtype="u4")
+    else:
+        dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[layout["texelFormat"]]
+        texture = ctx.texture((layout["width"], layout["height"]), 4, np.ascontiguousarray(vb.texels).tobytes(),
+                              dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
     texture.use(location=0)
     program[NAMES[lang]["texture"]].value = 0
@@ -263,9 +301,18 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
              for c in layout["clips"]]
     clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
     block = None
+    compact_ranges = None
+    if compact:  # per bone: q min, q max, (t min, 0), (t max, 0); padded to VB_MAX_BONES (64)
+        r = np.array(layout["compactRanges"], dtype=np.float64)
+        per_bone = np.zeros((64, 4, 4), "<f4")
+        per_bone[:len(r), 0], per_bone[:len(r), 1] = r[:, :4, 0], r[:, :4, 1]
+        per_bone[:len(r), 2, :3], per_bone[:len(r), 3, :3] = r[:, 4:, 0], r[:, 4:, 1]
+        compact_ranges = per_bone.reshape(-1, 4)
     if lang == "glsl":
         program["vb_time"].value = time
         program["vb_clips"].value = clips
+        if compact_ranges is not None:
+            program["vb_compactRange"].write(compact_ranges.tobytes())
         if "unormRanges" in layout:
             ranges = np.array(layout["unormRanges"])
             program["vb_rangeMin"].value = [tuple(r) for r in ranges[..., 0]]
@@ -275,6 +322,8 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
         if "unormRanges" in layout:
             ranges = np.array(layout["unormRanges"])
             payload += np.array(ranges[..., 0], "<f4").tobytes() + np.array(ranges[..., 1], "<f4").tobytes()
+        if compact_ranges is not None:
+            payload += compact_ranges.tobytes()
         block = ctx.buffer(payload)
         program["VirtualBones"].binding = 1
         block.bind_to_uniform_block(1)

@@ -35,7 +35,7 @@ PROBE = """
 async ([vector, texels, time, skin]) => {
   const runtime = await import('./vbusd-three/index.js');
   const layout = vector.layout;
-  const arrays = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
+  const arrays = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array, uint32: Uint32Array };
   const animation = new runtime.VirtualBonesAnimation({ layout, texels: new arrays[layout.texelFormat](texels),
                                                         name: vector.vector });
   const renderer = window.vbusd.renderer;
@@ -74,8 +74,8 @@ def _texels(vector: dict) -> list:
     values = np.array(vector["texels"], dtype=np.float64)
     if vector["layout"]["texelFormat"] == "float16":
         return values.astype("<f2").view("<u2").astype(int).tolist()
-    if vector["layout"]["texelFormat"] == "unorm16":
-        return values.astype(int).tolist()
+    if vector["layout"]["texelFormat"] in ("unorm16", "uint32"):  # integers (uint32: the three words)
+        return values.astype(np.int64).tolist()
     return values.tolist()
 
 

@@ -61,8 +61,9 @@ def test_json_of_the_talks_texture(tmp_path, capsys):
     assert set(out["animations"][0]) == {
         "path", "texture", "formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone",
         "bones", "rowCount", "usedWidth", "width", "height", "horizontalPadding", "verticalPadding",
-        "texelBytes", "usedTexelBytes", "paddingBytes", "paddingFraction", "contentDigest", "clips",
-        "container", "compression", "warnings"}
+        "texelBytes", "usedTexelBytes", "bytesPerBoneKey", "fetchesPerBoneAndRow", "paddingBytes",
+        "paddingFraction", "contentDigest", "clips", "container", "compression", "warnings"}
+    assert (out["bytesPerBoneKey"], out["fetchesPerBoneAndRow"]) == (24, 3)  # 3 RGBA float16 texels
 
 
 def test_json_of_quaternion_unorm16_png_and_sidecar(tmp_path, capsys):

@@ -42,6 +42,9 @@ except ImportError:  # the GPU-pipeline tests skip; compile-only and CLI tests s
 
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
+# Every encoding x texel format pair the format allows: the 1.0 ones, and format 1.2's compact encoding,
+# whose only texel format is uint32 (spec 5.6).
+PAIRS = [(e, f) for e in ENCODINGS for f in FORMATS] + [("compactQuatTranslation", "uint32")]
 # float32 arithmetic on the GPU against float64 on the CPU, from the same stored texels.
 TOLERANCE = 5e-6  # positions: fraction of the bounding-box diagonal (measured up to 9.4e-7)
 NORMAL_TOLERANCE = 2.5e-5  # unit normals: largest component difference (measured up to 4.6e-6)
@@ -139,8 +142,20 @@ def _instances(vb):
 
 
 def _texture_data(vb):
+    """(moderngl dtype, components, bytes): uint32 as RGB32UI, the three words the file stores."""
+    if vb.layout.texel_format.value == "uint32":
+        return "u4", 3, np.ascontiguousarray(vb.texels[..., :3]).tobytes()
     dtype = {"float16": "f2", "float32": "f4", "unorm16": "nu2"}[vb.layout.texel_format.value]
-    return dtype, np.ascontiguousarray(vb.texels).tobytes()
+    return dtype, 4, np.ascontiguousarray(vb.texels).tobytes()
+
+
+def _compact_ranges(vb, max_bones=64):
+    """vb_compactRange: per bone q min, q max, (t min, 0), (t max, 0), padded to VB_MAX_BONES."""
+    r = np.asarray(vb.unorm_ranges, np.float64)
+    out = np.zeros((max_bones, 4, 4), "<f4")
+    out[:len(r), 0], out[:len(r), 1] = r[:, :4, 0], r[:, :4, 1]
+    out[:len(r), 2, :3], out[:len(r), 3, :3] = r[:, 4:, 0], r[:, 4:, 1]
+    return out.reshape(-1, 4)
 
 
 def _clip_table(vb, size=16):
@@ -187,20 +202,23 @@ def _bind_skin(ctx, program, names, mesh, max_influences, skin, source):
 
 def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences, uniform_block,
          skin="attributes", source=""):
-    dtype, data = _texture_data(vb)
-    texture = ctx.texture((vb.layout.width, vb.layout.height), 4, data, dtype=dtype)
+    dtype, components, data = _texture_data(vb)
+    texture = ctx.texture((vb.layout.width, vb.layout.height), components, data, dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
     texture.use(location=0)
     program[names["texture"]].value = 0
     clips = _clip_table(vb)
     ranges_min = ranges_max = None
-    if vb.unorm_ranges is not None:
+    compact = vb.layout.texel_format.value == "uint32"
+    if vb.unorm_ranges is not None and not compact:
         ranges_min = [tuple(r) for r in vb.unorm_ranges[..., 0]]
         ranges_max = [tuple(r) for r in vb.unorm_ranges[..., 1]]
     if uniform_block:
         payload = struct.pack("<f12x", time) + np.array(clips, "<f4").tobytes()
         if ranges_min is not None:
             payload += np.array(ranges_min, "<f4").tobytes() + np.array(ranges_max, "<f4").tobytes()
+        if compact:
+            payload += _compact_ranges(vb).tobytes()
         block = ctx.buffer(payload)
         program["VirtualBones"].binding = 1
         block.bind_to_uniform_block(1)
@@ -210,6 +228,8 @@ def _run(ctx, program, names, vb, mesh, clip, offset, rate, time, max_influences
         if ranges_min is not None:
             program["vb_rangeMin"].value = ranges_min
             program["vb_rangeMax"].value = ranges_max
+        if compact:
+            program["vb_compactRange"].write(_compact_ranges(vb).tobytes())
     skin_resource = None
     if skin == "attributes":
         vertex_format = "3f 3f 4i 4f" + (" 4i 4f" if max_influences > 4 else "")
@@ -347,8 +367,7 @@ def _check(ctx, lang, encoding, texel_format, tmp_path, source, skin="attributes
 
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding, texel_format", PAIRS)
 def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, skin, tmp_path):
     _check(gl, "glsl", encoding, texel_format, tmp_path, source, skin)
 
@@ -357,8 +376,7 @@ def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, ski
                     reason="glslang-tools and spirv-cross are not installed")
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding, texel_format", PAIRS)
 def test_hlsl_compiles_cross_compiles_runs_and_matches_reference(gl, encoding, texel_format, source, skin, tmp_path):
     _check(gl, "hlsl", encoding, texel_format, tmp_path, source, skin)
 
@@ -487,10 +505,9 @@ def test_committed_sample_files_with_their_crowd(gl, lang, skin, tmp_path):
 
 
 def _variants():
-    for encoding in ENCODINGS:
-        for texel_format in FORMATS:
-            for k in range(1, 9):
-                yield encoding, texel_format, k
+    for encoding, texel_format in PAIRS:
+        for k in range(1, 9):
+            yield encoding, texel_format, k
 
 
 # A vertex function of the engine's own that calls vbSkin (what engines do with --no-main).
@@ -521,7 +538,7 @@ _GLSL_VERSIONS = {"330": "#version 330 core\n",
 
 @pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
 def test_every_variant_compiles_as_glsl_330_glsl_es_300_and_hlsl(tmp_path):
-    """All 96 variants per language, with the example main and functions only (--no-main, and
+    """All 104 variants per language (96, and 8 of the compact encoding), with the example main and functions only (--no-main, and
     VB_MAIN defined 0 before the module) called from a vertex function of the engine's own:
     GLSL 3.30 core and GLSL ES 3.00 (WebGL 2, three.js), and HLSL through glslang's HLSL front end."""
     glsl, hlsl = [], []

@@ -87,7 +87,8 @@ def test_schema_registry_knows_the_types():
         "vb:clipRowCounts", "vb:clipRowsPerSecond", "vb:clipLoops", "vb:clipStartTimes",
         "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest",
         "vb:bindTransforms", "vb:clipRootMotion", "vb:rootMotionUpAxis",  # format 1.1 (sockets, root motion)
-        "vb:boneParents", "vb:maskNames", "vb:maskWeights"}  # format 1.2 (layers and bone masks)
+        "vb:boneParents", "vb:maskNames", "vb:maskWeights",  # format 1.2 (layers and bone masks)
+        "vb:compactRangeMin", "vb:compactRangeMax"}  # format 1.2 (compact encoding)
     assert names == expected
 
 
@@ -106,8 +107,9 @@ def test_attribute_types_and_allowed_tokens():
         assert spec.GetTypeName() == type_name, name
         assert spec.GetVariability() == Sdf.VariabilityUniform, name
     allowed = {
-        "vb:encoding": ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"],
-        "vb:texelFormat": ["float16", "float32", "unorm16"],
+        "vb:encoding": ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat",
+                        "compactQuatTranslation"],  # format 1.2
+        "vb:texelFormat": ["float16", "float32", "unorm16", "uint32"],
         "vb:horizontalPadding": ["powerOfTwo", "none"], "vb:verticalPadding": ["none", "powerOfTwo"]}
     for name, tokens in allowed.items():
         assert list(definition.GetPropertyMetadata(name, "allowedTokens")) == tokens

@@ -89,6 +89,53 @@ def test_skin_agrees_with_reference_for_every_encoding_and_format(device, encodi
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_compact_encoding_agrees_with_reference(device):
+    """Format 1.2's compactQuatTranslation (uint32 words, spec 5.6) on every device, CUDA included:
+    rows, mid-rows with the per-row sign flip, the loop's wrap, clamping, crowds and bone buffers."""
+    vb = synthetic.make_vb("compactQuatTranslation", "uint32")
+    mesh = vb.meshes[0]
+    decoder = wd.Decoder(vb, mesh, device=device)
+    for clip_index in range(len(vb.clips)):
+        assert_agrees(decoder.skin(clip_index, TIMES).numpy(), reference.skin_mesh(vb, mesh, clip_index, TIMES))
+    crowd = synthetic.make_crowd()
+    for t in (0.0, 0.77, -5.25):
+        assert_agrees(decoder.skin_crowd(crowd, t).numpy(), reference.skin_crowd(vb, mesh, crowd, t))
+    tau = np.linspace(-0.4, 1.6, 23)
+    got, want = decoder.bone_transforms(0, tau), reference.bone_transforms(vb, 0, tau)
+    np.testing.assert_allclose(got["linear"][..., :3], want.linear, atol=2e-6)
+    np.testing.assert_allclose(got["linear"][..., 3], want.translation, atol=2e-6)
+    with pytest.raises(OptionsError, match="texelFetch only"):
+        wd.Decoder(vb, mesh, device=device, sampling="hardware")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_compact_rows_with_opposite_signs_blend_the_short_way(device):
+    """Row 0 drops x of q0 = (0.8, 0, 0, 0.6); row 1 drops w of q1 = (0.7, 0, 0, -0.7) / |.|, stored
+    negated so that w >= 0 (spec 5.6.1): the stored quaternions have a negative dot product. By hand:
+    row 0 turns 106.26 degrees about x, row 1 270 (= -90); the short way between them (164 degrees)
+    passes 188.13 halfway, which the flip of spec 5.6.4 gives; without it the blend would take the
+    long way (196 degrees) through 8.13."""
+    from vbusd.format.compact import encode_compact
+
+    q = np.array([[[0.8, 0.0, 0.0, 0.6]], [[0.7, 0.0, 0.0, -0.7]]])
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    words, ranges = encode_compact(q, np.zeros((2, 1, 3)), dropped=np.array([[0], [3]]))
+    layout = Layout("compactQuatTranslation", "uint32", 1, 2, "none", "none")
+    texels = np.zeros(layout.shape, "<u4")
+    texels[:, 0, :3] = words[:, 0]
+    points = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0]], np.float32)
+    mesh = BoundMesh("/M", points, np.array([3], np.int32), np.arange(3, dtype=np.int32),
+                     np.zeros((3, 1), np.int32), np.ones((3, 1), np.float32), normals=points / np.linalg.norm(points, axis=1, keepdims=True))
+    vb = VirtualBones(layout, texels, ("b",), (Clip("c", 0, 2, 1.0, False, 0.0),), ranges, (mesh,))
+    halfway, _ = wd.Decoder(vb, mesh, device=device).skin(0, np.array([0.5])).numpy()
+    angle = 0.5 * (2 * math.atan2(0.8, 0.6) + 2 * math.atan2(1.0, -1.0))  # mean of 106.26 and 270 degrees
+    c, s = math.cos(angle), math.sin(angle)
+    expected = points.astype(np.float64) @ np.array([[1, 0, 0], [0, c, s], [0, -s, c]])  # rows: R p
+    # nlerp halfway of two unit quaternions is the slerp midpoint: exact, not approximate
+    np.testing.assert_allclose(halfway[0], expected, atol=2e-4)
+
+
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_bone_buffers_agree_with_reference_transforms(device, encoding):
     vb = synthetic.make_vb(encoding, "float32")

@@ -217,7 +217,45 @@ def check_binding_prim(prim):
                                f"to 1 (tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with "
                                f"sum {float(sums[vertex]):.6g}", UsdSite(path, WEIGHTS)))
     out += _check_normals(prim, path)
+    if target is not None and points is not None and INDICES in arrays and WEIGHTS in arrays and bone_count:
+        out += _check_compact_error_bound(target, path, points, arrays[INDICES], arrays[WEIGHTS], bone_count)
     return out
+
+
+COMPACT_ERROR_FRACTION = 5e-5
+"""The compact encoding's accuracy target (issue 26): 5e-5 of the mesh's bounding-box diagonal."""
+
+
+def _check_compact_error_bound(target, path, points, indices, weights, bone_count):
+    """``encoding.compact.errorBound``: the first-order quantization error bound of spec 5.6.3 for each
+    bone of a compactQuatTranslation animation, at the farthest rest point it moves, against 5e-5 of
+    the mesh's bounding-box diagonal (a warning: the bound is above what decoders measure)."""
+    from vbusd.format.compact import error_bound
+
+    if target.GetAttribute(vb_names.BY_KEY["texelFormat"].name).Get() != "uint32":
+        return []
+    low = _array(target.GetAttribute(vb_names.COMPACT_RANGE_MIN), np.float64)
+    high = _array(target.GetAttribute(vb_names.COMPACT_RANGE_MAX), np.float64)
+    if low is None or high is None or low.size != 7 * bone_count or high.size != low.size:
+        return []  # reported by the animation prim's own checks
+    ranges = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
+    if not np.all(np.isfinite(points)) or not len(points):
+        return []
+    radius = np.zeros(bone_count)
+    distance = np.linalg.norm(points, axis=1)
+    valid = (indices >= 0) & (indices < bone_count) & (weights > 0)
+    for k in range(indices.shape[1]):
+        np.maximum.at(radius, indices[valid[:, k], k], distance[valid[:, k]])
+    bound = error_bound(ranges, radius)
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0))) or 1.0
+    bone = int(np.argmax(bound))
+    if bound[bone] <= COMPACT_ERROR_FRACTION * diagonal:
+        return []
+    return [finding("encoding.compact.errorBound", f"bone {bone}'s compact quantization error bound is "
+                    f"{bound[bone]:.3g} at its farthest point ({radius[bone]:.4g} from the origin), "
+                    f"{bound[bone] / diagonal:.3g} of the mesh's diagonal {diagonal:.4g} (target "
+                    f"{COMPACT_ERROR_FRACTION:g}); ranges per bone and clip or another encoding are more exact",
+                    UsdSite(path, "points"))]
 
 
 def _check_topology(prim, path, points):

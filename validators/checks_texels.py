@@ -129,8 +129,17 @@ def check_padding(texels: np.ndarray, file: str, layout: Layout):
 
 
 def dequantize(block: np.ndarray, layout: Layout, unorm_ranges: Optional[np.ndarray]) -> np.ndarray:
-    """Data texels of a row block as float32 (rows, B, T, 4), unorm16 mapped through its ranges."""
+    """Data texels of a row block as float32 (rows, B, T, 4), unorm16 mapped through its ranges.
+
+    uint32 (compactQuatTranslation) texels come back as the three rows of ``[R | t]`` (rows, B, 3, 4):
+    unlike the stored quaternion, whose sign is canonical per row, they change smoothly between rows.
+    """
     rows = block.shape[0]
+    if layout.texel_format is TexelFormat.UINT32:
+        from vbusd.format.compact import decode_compact
+
+        words = block[:, :layout.used_width, :3].reshape(rows, layout.bone_count, 3)
+        return decode_compact(words, np.asarray(unorm_ranges, np.float64))[..., :3, :].astype(np.float32)
     data = block[:, :layout.used_width].reshape(rows, layout.bone_count, layout.texels_per_bone, 4)
     if block.dtype.kind == "f":
         return data.astype(np.float32, copy=False)
@@ -181,6 +190,8 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
     if width < layout.used_width or height < layout.row_count:
         return []
     encoding = layout.encoding
+    if encoding is Encoding.COMPACT_QUAT_TRANSLATION:
+        return _check_compact(texels, file, layout, unorm_ranges)
     tol = tolerance(layout.texel_format, unorm_ranges)
     worst = {code: _Worst() for code in ("orth", "alpha", "quat", "dqunit", "dqorth", "singular", "scale",
                                          "qscale")}
@@ -271,6 +282,56 @@ def check_encoding(texels: np.ndarray, file: str, layout: Layout, unorm_ranges=N
     return findings
 
 
+MIN_DROPPED_SQUARED_SLACK = 1e-6
+"""Slack on ``q_i^2 >= 1/4`` for the dropped component: the kept fields' own rounding (half a step of
+a range at most 1.42 wide) moves ``1 - |v|^2`` by about 2e-5, and a writer that drops a component of
+exactly 1/2 may land just below it."""
+
+
+def _check_compact(texels, file, layout, ranges):
+    """compactQuatTranslation texels (spec 5.6): the reserved bit, the smallest-three index (the dropped
+    component must be at least 1/2, so the kept ones' squares sum to at most 3/4) and range-free fields.
+
+    Findings: ``encoding.compact.reservedBit`` (bit 31 of G set) and ``encoding.compact.dropped``
+    (the kept components leave less than 1/2 for the dropped one: a writer that did not drop the
+    largest component, or corrupted words). Ranges missing or of another shape are reported where
+    they are read (``metadata.schema``, ``metadata.inconsistent``, ``prim.attribute.*``); without
+    them there is nothing to check.
+    """
+    from vbusd.format.compact import decode_compact_fields, unpack_words
+
+    out = []
+    if ranges is None or np.shape(ranges) != (layout.bone_count, 7, 2):
+        return []
+    ranges = np.asarray(ranges, np.float64)
+    reserved, dropped = _Worst(), _Worst()
+    for start, stop in row_blocks(layout.row_count, layout.used_width):
+        words = texels[start:stop, :layout.used_width, :3].reshape(stop - start, layout.bone_count, 3)
+        bit = (words[..., 1] >> 31).astype(np.float64)
+        reserved.add(bit, start, 0.5)
+        index, uq, _ = unpack_words(words)
+        from vbusd.format.compact import KEPT_COMPONENTS, ROTATION_BITS
+
+        component = KEPT_COMPONENTS[index.astype(np.int64)]
+        lo = np.take_along_axis(np.broadcast_to(ranges[None, :, :4, 0], index.shape + (4,)), component, axis=-1)
+        hi = np.take_along_axis(np.broadcast_to(ranges[None, :, :4, 1], index.shape + (4,)), component, axis=-1)
+        kept = lo + (hi - lo) * (uq / ((1 << ROTATION_BITS) - 1))
+        squares = (kept * kept).sum(axis=-1)
+        dropped.add(squares, start, 0.75 + MIN_DROPPED_SQUARED_SLACK, extra=index)
+    if reserved.count:
+        row, bone, _ = reserved.where
+        out.append(finding("encoding.compact.reservedBit", f"bit 31 of channel G is set at {reserved.count} "
+                           f"bone-row(s), first worst at bone {bone}, row {row}; writers leave it 0",
+                           TexelAddress(file, row, layout.column(bone, 0), bone, 0, 1)))
+    if dropped.count:
+        row, bone, index = dropped.where
+        out.append(finding("encoding.compact.dropped", f"the kept quaternion components leave less than 1/2 "
+                           f"for the dropped one (index {int(index)}) at {dropped.count} bone-row(s); worst "
+                           f"sum of squares {dropped.value:.6g} > 0.75 at bone {bone}, row {row}",
+                           TexelAddress(file, row, layout.column(bone, 0), bone, 0, 2)))
+    return out
+
+
 def _hemisphere(texels, file, layout, unorm_ranges, clips):
     count, first = 0, None
     for clip in clips:
@@ -328,10 +389,12 @@ def check_loop_jumps(texels: np.ndarray, file: str, layout: Layout, unorm_ranges
         scale = max(1.0, float(np.max(np.abs(first))))
         if jump > 4 * median and jump > 1.5 * largest and jump > tol * scale:
             bone, texel, channel = np.unravel_index(int(np.argmax(wrap)), wrap.shape)
+            if layout.encoding is Encoding.COMPACT_QUAT_TRANSLATION:  # rows of [R | t], one texel
+                texel, channel = 0, None
             findings.append(finding(
                 "clip.loopJump", f"looping clip {clip.get('name')!r} (#{index}) jumps by {jump:.4g} from its "
                 f"last row {r0 + n - 1} back to its first row {r0}; its row-to-row steps have median "
                 f"{median:.4g} and maximum {largest:.4g}",
                 TexelAddress(file, r0 + n - 1, layout.column(int(bone), int(texel)), int(bone), int(texel),
-                             int(channel))))
+                             None if channel is None else int(channel))))
     return findings

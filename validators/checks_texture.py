@@ -30,7 +30,7 @@ from vbusd.format.declared import Declared, from_metadata
 __all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency",
            "check_texture_file", "check_texture_only"]
 
-TEXEL_FORMATS = ("float16", "float32", "unorm16")
+TEXEL_FORMATS = ("float16", "float32", "unorm16", "uint32")
 
 
 def check_metadata_schema(meta, file: str) -> list:
@@ -59,10 +59,11 @@ def check_metadata_consistency(meta_declared: Declared) -> list:
         out.append(finding("metadata.inconsistent", f"usedWidth is {values['usedWidth']}, but boneCount x "
                            f"texelsPerBone is {layout.used_width}", meta_declared.locate("usedWidth")))
     if "texelBytes" in values and "width" in values and "height" in values:
-        expected = values["width"] * values["height"] * 4 * layout.texel_format.bytes_per_channel
+        channels = layout.texel_format.stored_channels  # 3 for uint32 (format 1.2)
+        expected = values["width"] * values["height"] * channels * layout.texel_format.bytes_per_channel
         if values["texelBytes"] != expected:
             out.append(finding("metadata.inconsistent", f"texelBytes is {values['texelBytes']}, but width x "
-                               f"height x 4 x {layout.texel_format.bytes_per_channel} is {expected}",
+                               f"height x {channels} x {layout.texel_format.bytes_per_channel} is {expected}",
                                meta_declared.locate("texelBytes")))
     return out
 
@@ -151,6 +152,16 @@ def _check_texels(tex: np.ndarray, display: str, declared: Declared, site: Optio
     if tex.shape != layout.shape or tex.dtype != np.dtype(layout.texel_format.numpy_dtype):
         return out  # size / pixel type already reported; the encoding checks need the declared layout
     unorm = declared.get("unormRanges") if layout.texel_format is TexelFormat.UNORM16 else None
+    if layout.texel_format is TexelFormat.UINT32:
+        # format 1.2: the compact encoding's per-bone ranges (checked for shape by check_encoding)
+        unorm = declared.get("compactRanges")
+        if unorm is None or np.shape(unorm) != (layout.bone_count, 7, 2):
+            return out  # reported where the ranges are read
+        clips = declared.get("clips") or ()
+        out += texels_checks.check_padding(tex, display, layout)
+        out += texels_checks.check_encoding(tex, display, layout, unorm, clips)
+        out += texels_checks.check_loop_jumps(tex, display, layout, unorm, clips)
+        return out + _padding_fraction(layout, site, declared)
     if layout.texel_format is TexelFormat.UNORM16 and unorm is None:
         return out
     if unorm is not None and np.asarray(unorm).shape != (layout.texels_per_bone, 4, 2):
@@ -159,12 +170,16 @@ def _check_texels(tex: np.ndarray, display: str, declared: Declared, site: Optio
     out += texels_checks.check_padding(tex, display, layout)
     out += texels_checks.check_encoding(tex, display, layout, unorm, clips)
     out += texels_checks.check_loop_jumps(tex, display, layout, unorm, clips)
-    if layout.padding_fraction > 0:
-        location = site if site is not None else declared.locate("width")
-        out.append(finding("texture.padding.fraction", f"{layout.padding_fraction:.1%} of the "
-                           f"{layout.width}x{layout.height} texture is padding ({layout.used_width}x"
-                           f"{layout.row_count} texels hold data)", location))
-    return out
+    return out + _padding_fraction(layout, site, declared)
+
+
+def _padding_fraction(layout, site, declared) -> list:
+    if layout.padding_fraction <= 0:
+        return []
+    location = site if site is not None else declared.locate("width")
+    return [finding("texture.padding.fraction", f"{layout.padding_fraction:.1%} of the "
+                    f"{layout.width}x{layout.height} texture is padding ({layout.used_width}x"
+                    f"{layout.row_count} texels hold data)", location)]
 
 
 def check_texture_only(path: str) -> list:

@@ -67,7 +67,8 @@ class ConvertOptions:
 
     Attributes:
         encoding: ``auto`` or an :class:`~vbusd.format.layout.Encoding` token.
-        texel_format: ``float16``, ``float32`` or ``unorm16``.
+        texel_format: ``float16``, ``float32``, ``unorm16`` or ``uint32`` (only with
+            compactQuatTranslation, format 1.2; with ``auto`` it picks that encoding).
         rows_per_second: Rows per second of every clip; None keeps the source's rate (for UsdSkel,
             one row per time code).
         horizontal_padding: ``powerOfTwo`` or ``none``.
@@ -168,12 +169,21 @@ class ConvertOptions:
                 allowed = ", ".join(e.value for e in kind)
                 raise OptionsError(f"{name} must be one of {allowed}, got {value!r}", file=where) from None
             object.__setattr__(self, name, value)
+        compact = Encoding.COMPACT_QUAT_TRANSLATION.value
+        if self.texel_format == TexelFormat.UINT32.value and self.encoding == AUTO:
+            object.__setattr__(self, "encoding", compact)  # uint32 holds only the compact encoding
+        if (self.encoding == compact) != (self.texel_format == TexelFormat.UINT32.value):
+            raise OptionsError(f"encoding compactQuatTranslation and texel format uint32 go together (spec 5.6), "
+                               f"got {self.encoding} with {self.texel_format}", file=where)
         if self.container is None:
             unorm = self.texel_format == TexelFormat.UNORM16.value
             object.__setattr__(self, "container", "png" if unorm else "exr")
         if self.container not in CONTAINERS:
             raise OptionsError(f"container must be one of {', '.join(CONTAINERS)}, got {self.container!r}",
                                file=where)
+        if self.container == "png" and self.texel_format == TexelFormat.UINT32.value:
+            raise OptionsError("texel format uint32 (compactQuatTranslation) cannot be stored in PNG, which has "
+                               "no 32-bit channels: use --container exr or ktx2", file=where)
         if self.container == "png" and self.texel_format != TexelFormat.UNORM16.value:
             raise OptionsError(f"the png container holds 16-bit integers only: use --texel-format unorm16 "
                                f"(got {self.texel_format})", file=where)

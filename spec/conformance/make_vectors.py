@@ -29,6 +29,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 TEXEL_FORMATS = ("float16", "float32", "unorm16")
+VECTORS = tuple((e, f) for e in ENCODINGS for f in TEXEL_FORMATS) + (("compactQuatTranslation", "uint32"),)
+"""Every vector: each 1.0 encoding in each 1.0 texel format, and the compact encoding of format 1.2."""
 TIMES = (0.0, 0.375, 1.875)
 INSTANCES = (
     # clip, timeOffset, playbackRate, fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight
@@ -44,7 +46,9 @@ INSTANCES = (
 # Largest difference allowed from the float64 expectation, as a fraction of the diagonal of the
 # bounding box of all expected points (positions) and per unit-normal component (normals): binary32
 # arithmetic, and for unorm16 the binary32 dequantization min + (max - min) * u / 65535.
-TOLERANCES = {"float16": (1e-6, 1e-5), "float32": (1e-6, 1e-5), "unorm16": (2e-6, 2e-5)}
+TOLERANCES = {"float16": (1e-6, 1e-5), "float32": (1e-6, 1e-5), "unorm16": (2e-6, 2e-5), "uint32": (2e-6, 2e-5)}
+"""uint32 (compactQuatTranslation): binary32 dequantization of the fields, the square root of the
+dropped component and the normalization, as for unorm16."""
 
 
 def _rotation(axis, angle: float) -> np.ndarray:
@@ -119,7 +123,7 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
 
     vb = bake(_animation(encoding), BakeOptions(encoding=encoding, texel_format=texel_format, max_influences=4))
     mesh = vb.meshes[0]
-    suffix = "png" if texel_format == "unorm16" else "exr"
+    suffix = "png" if texel_format == "unorm16" else "exr"  # uint32: three UINT channels in EXR
     texture = f"{encoding}-{texel_format}.{suffix}"
     write_texture(folder / texture, vb, sidecar=False)
     table = np.array(INSTANCES, dtype=np.float64)
@@ -140,13 +144,17 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
     diagonal = float(np.linalg.norm(every_point.max(axis=0) - every_point.min(axis=0)))
     position_fraction, normal_tolerance = TOLERANCES[texel_format]
     stored = np.ascontiguousarray(vb.texels)
-    texels = stored.astype(np.float64).reshape(-1).tolist() if texel_format != "unorm16" else \
-        stored.astype(np.int64).reshape(-1).tolist()
+    if texel_format == "uint32":  # the file's three words R, G, B per texel (spec 9.4), as integers
+        texels = stored[..., :3].astype(np.int64).reshape(-1).tolist()
+    elif texel_format == "unorm16":
+        texels = stored.astype(np.int64).reshape(-1).tolist()
+    else:
+        texels = stored.astype(np.float64).reshape(-1).tolist()
     keys = ("clip", "timeOffset", "playbackRate", "fadeClip", "fadeTimeOffset", "fadePlaybackRate", "fadeWeight")
     return {
         "vector": f"{encoding}-{texel_format}",
         "formatVersion": 1,
-        "formatMinorVersion": 1,
+        "formatMinorVersion": 2 if texel_format == "uint32" else 1,
         "description": f"4 bones, {encoding}, {texel_format}: a looping clip (8 rows) and a clamped clip (5 rows) "
                        "at 4 rows/s, 8 vertices with 4 influences, 8 instances with crossfades, 3 scene times",
         "layout": md.to_dict(vb),
@@ -167,13 +175,12 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
 def write_all(folder: Path) -> list[Path]:
     """Write every vector (JSON and texture) into ``folder``; returns the written paths."""
     written = []
-    for encoding in ENCODINGS:
-        for texel_format in TEXEL_FORMATS:
-            document = build(encoding, texel_format, folder)
-            path = folder / f"{encoding}-{texel_format}.json"
-            lines = [f"  {json.dumps(key)}: {json.dumps(value, separators=(',', ':'))}" for key, value in document.items()]
-            path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
-            written += [path, folder / document["texture"]]
+    for encoding, texel_format in VECTORS:
+        document = build(encoding, texel_format, folder)
+        path = folder / f"{encoding}-{texel_format}.json"
+        lines = [f"  {json.dumps(key)}: {json.dumps(value, separators=(',', ':'))}" for key, value in document.items()]
+        path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+        written += [path, folder / document["texture"]]
     return written
 
 

@@ -26,6 +26,8 @@ if (layout.texelFormat === 'float16') {
     else half[i] = sign | (exponent << 10) | (mantissa >> 13);
   });
   texels = half;
+} else if (layout.texelFormat === 'uint32') {  // format 1.2: the three words per texel
+  texels = new Uint32Array(texels);
 } else {
   texels = new arrays[layout.texelFormat](texels);
 }

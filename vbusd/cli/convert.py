@@ -47,12 +47,13 @@ def _check_rows(value: str):
 @click.option("--encoding", default="auto", show_default=True,
               type=click.Choice(["auto"] + [e.value for e in Encoding]),
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
-                   "dualQuat when the source asks for dual-quaternion skinning.")
-@click.option("--texel-format", default=TexelFormat.FLOAT16.value, show_default=True,
+                   "dualQuat when the source asks for dual-quaternion skinning. compactQuatTranslation (format "
+                   "1.2): one 12-byte uint32 texel per bone and row, rigid bones only.")
+@click.option("--texel-format", default=None, show_default="float16; uint32 with compactQuatTranslation",
               type=click.Choice([e.value for e in TexelFormat]),
               help="Texel storage: float16 (the talk's half floats, 11 significant bits), float32 (24 "
-                   "significant bits, twice the bytes) or unorm16 (16-bit integers with per-channel ranges in the "
-                   "metadata: a PNG, or KTX2).")
+                   "significant bits, twice the bytes), unorm16 (16-bit integers with per-channel ranges in the "
+                   "metadata: a PNG, or KTX2) or uint32 (the words of compactQuatTranslation: EXR or KTX2).")
 @click.option("--rows-per-second", type=float, default=None,
               help="Rows per second of every clip (default: the source's, one row per USD time code).")
 @click.option("--horizontal-padding", default=Padding.POWER_OF_TWO.value, show_default=True,
@@ -142,6 +143,8 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     except click.BadParameter as error:
         error.param_hint = "'--check-rows'"
         raise
+    if texel_format is None:  # the compact encoding has one texel format (spec 5.6)
+        texel_format = (TexelFormat.UINT32 if encoding == "compactQuatTranslation" else TexelFormat.FLOAT16).value
     values = dict(
         encoding=encoding, texel_format=texel_format, rows_per_second=rows_per_second,
         horizontal_padding=horizontal_padding, vertical_padding=vertical_padding, max_influences=max_influences,

@@ -52,7 +52,8 @@ The JSON form (--format json) is one object:
                    "texelFormat", "boneCount", "texelsPerBone", "bones",
                    "rowCount", "usedWidth", "width", "height",
                    "horizontalPadding", "verticalPadding", "texelBytes",
-                   "usedTexelBytes", "paddingBytes", "paddingFraction",
+                   "usedTexelBytes", "bytesPerBoneKey",
+                   "fetchesPerBoneAndRow", "paddingBytes", "paddingFraction",
                    "contentDigest", "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
@@ -99,6 +100,10 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
         **md.layout_fields(layout),
         "bones": [str(b) for b in bones],
         "usedTexelBytes": layout.used_texel_bytes,
+        # bytes and texel fetches one bone costs per row (12 and 1 for the compact encoding)
+        "bytesPerBoneKey": layout.texels_per_bone * layout.texel_format.stored_channels
+        * layout.texel_format.bytes_per_channel,
+        "fetchesPerBoneAndRow": layout.texels_per_bone,
         "paddingBytes": layout.texel_bytes - layout.used_texel_bytes,
         "paddingFraction": layout.padding_fraction,
         "contentDigest": content_digest,
@@ -323,6 +328,9 @@ def _print_text(result: dict) -> None:
         table.add_row("encoding", animation["encoding"])
         table.add_row("texel format", animation["texelFormat"])
         table.add_row("bones", f"{animation['boneCount']} x {animation['texelsPerBone']} texels")
+        if "bytesPerBoneKey" in animation:
+            table.add_row("bone-key", f"{animation['bytesPerBoneKey']} bytes, "
+                                              f"{animation['fetchesPerBoneAndRow']} texel fetch(es)")
         table.add_row("rows", str(animation["rowCount"]))
         table.add_row("width", f"{animation['usedWidth']} used, {animation['width']} padded "
                                f"(horizontal padding {animation['horizontalPadding']})")

@@ -14,13 +14,14 @@ from vbusd.cli.common import echo_json, force_option, format_option, quiet_optio
 from vbusd.format.errors import FORCE_HINT, OptionsError, VbusdError
 from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 from vbusd.format.layout import Encoding, TexelFormat
-from vbusd.decode.shaders import DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
+from vbusd.decode.shaders import DEFAULT_MAX_BONES, DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
 
 __all__ = ["command", "write_text"]
 
 # ShaderOptions names its fields; the command line spells them as options.
 _OPTION_NAMES = {"lang": "--lang", "encoding": "--encoding", "texel_format": "--texel-format",
-                 "max_influences": "--max-influences", "max_clips": "--max-clips", "skin": "--skin"}
+                 "max_influences": "--max-influences", "max_clips": "--max-clips", "skin": "--skin",
+                 "max_bones": "--max-bones"}
 
 
 def _integer(value: str, option: str) -> int:
@@ -35,11 +36,13 @@ def _integer(value: str, option: str) -> int:
 @click.option("--lang", default="glsl", show_default=True, metavar="LANG", help=f"Shading language: {', '.join(LANGUAGES)}.")
 @click.option("--encoding", default=Encoding.CROSS_MATRIX.value, show_default=True, metavar="E",
               help="Bone encoding: " + ", ".join(e.value for e in Encoding) + ".")
-@click.option("--texel-format", default=TexelFormat.FLOAT16.value, show_default=True, metavar="F",
+@click.option("--texel-format", default=None, show_default="float16; uint32 with compactQuatTranslation", metavar="F",
               help="Texel format: " + ", ".join(f.value for f in TexelFormat) + ".")
 @click.option("--max-influences", default="4", show_default=True, metavar="K", help="Influences per vertex, 1..8.")
 @click.option("--max-clips", default=str(DEFAULT_MAX_CLIPS), show_default=True, metavar="N",
               help="Size of the clip table, 1..256.")
+@click.option("--max-bones", default=str(DEFAULT_MAX_BONES), show_default=True, metavar="B",
+              help="compactQuatTranslation only: bones its range uniforms hold (VB_MAX_BONES), 1..1024.")
 @click.option("--no-main", is_flag=True, help="Emit only the functions, without the example entry point.")
 @click.option("--skin", default=SKINS[0], show_default=True, metavar="BINDING",
               help="How bone indices and weights reach the shader: attributes (vertex attributes) or pulled "
@@ -52,7 +55,7 @@ def _integer(value: str, option: str) -> int:
 @force_option
 @format_option
 @quiet_option
-def command(lang, encoding, texel_format, max_influences, max_clips, no_main, skin, layers, output, force,
+def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, no_main, skin, layers, output, force,
             output_format, quiet):
     """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
 
@@ -60,11 +63,14 @@ def command(lang, encoding, texel_format, max_influences, max_clips, no_main, sk
     the module goes to standard output (with --format json, as the "source" of one JSON object);
     with -o it is written to FILE and the report says so.
     """
+    if texel_format is None:  # the compact encoding has one texel format (spec 5.6)
+        compact = encoding == Encoding.COMPACT_QUAT_TRANSLATION.value
+        texel_format = (TexelFormat.UINT32 if compact else TexelFormat.FLOAT16).value
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),
                                 max_clips=_integer(max_clips, "--max-clips"), main=not no_main, skin=skin,
-                                layers=layers)
+                                layers=layers, max_bones=_integer(max_bones, "--max-bones"))
     except OptionsError as error:
         message = error.message
         for field, option in _OPTION_NAMES.items():

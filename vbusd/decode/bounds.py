@@ -35,7 +35,7 @@ from vbusd.format.model import VirtualBones
 
 __all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
 
-SUBSTEPS = {"affineMatrix": 1, "crossMatrix": 2, "quatTranslation": 4, "dualQuat": 4}
+SUBSTEPS = {"affineMatrix": 1, "crossMatrix": 2, "quatTranslation": 4, "dualQuat": 4, "compactQuatTranslation": 4}
 """Sample intervals per row interval, per encoding (1 = rows only)."""
 
 CURVATURE_MARGIN = 0.25
@@ -129,7 +129,9 @@ def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, valu
     encoding = vb.layout.encoding
     i0, i1, f = row_position(clip, times)
     # float16 and float32 texels are read as stored (their float64 values are exact); unorm16 dequantized
-    stored = unpack(vb.texels, vb.layout) if vb.layout.texel_format is not TexelFormat.UNORM16 else values()
+    # uint32 (compact) texels are words: always dequantized
+    exact = vb.layout.texel_format in (TexelFormat.FLOAT16, TexelFormat.FLOAT32)
+    stored = unpack(vb.texels, vb.layout) if exact else values()
     compiled = bake_kernels.bone_box_bounds(stored, (clip.first_row + i0, clip.first_row + i1, f), encoding.value,
                                             np.flatnonzero(rest[0]), rest[1], rest[2])
     if compiled is not None:  # the same boxes, one pass per bone

@@ -74,6 +74,12 @@ def interpolated_values(vb: VirtualBones, clip_index: int, tau, values: Optional
         row0 = values[clip.first_row + i0]
         row1 = values[clip.first_row + i1]
     f = f[:, None, None, None]
+    if vb.layout.encoding is Encoding.COMPACT_QUAT_TRANSLATION:
+        # Compact texels are canonical per row (spec 5.6.4), not hemisphere-continuous as
+        # quatTranslation's: the second row's quaternion is negated where the two disagree.
+        row1 = np.array(row1, dtype=np.float64, copy=True)
+        opposite = np.einsum("...c,...c->...", row0[..., 0, :], row1[..., 0, :]) < 0
+        row1[..., 0, :][opposite] *= -1.0
     return (1.0 - f) * row0 + f * row1
 
 

@@ -21,13 +21,16 @@ import numpy as np
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 
-__all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "SKIN_TEXTURE_WIDTH", "ShaderOptions", "generate",
-           "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
+__all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "DEFAULT_MAX_BONES", "SKIN_TEXTURE_WIDTH", "ShaderOptions",
+           "generate", "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
 
 LANGUAGES = ("glsl", "hlsl")
 SKINS = ("attributes", "pulled")  # spec/shaders.md, Skin bindings; attributes is the default
 SKIN_TEXTURE_WIDTH = 4096  # the widest skin texture vbusd lays out (spec: W = min(texels, 4096))
 DEFAULT_MAX_CLIPS = 16
+DEFAULT_MAX_BONES = 64
+"""compactQuatTranslation's range uniforms: 4 vec4 per bone (64 bones: 256 vec4, 4 KiB, inside the
+16 KiB every uniform buffer holds; a GLSL default uniform block holds at least 256 vec4 in all)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,7 @@ class ShaderOptions:
         texel_format: Its texel format (unorm16 adds the range uniforms).
         max_influences: Influences per vertex K, 1..8 (two attribute sets above 4).
         max_clips: Size of the clip table uniform array.
+        max_bones: compactQuatTranslation only: bones the range uniform array holds (4 vec4 each).
         main: Also emit an entry point ``main`` that writes the skinned position and normal to
             outputs (for transform feedback or as a starting point); engines usually call
             ``vbSkin`` from their own vertex function instead.
@@ -57,6 +61,7 @@ class ShaderOptions:
     main: bool = True
     skin: str = "attributes"
     layers: bool = False
+    max_bones: int = DEFAULT_MAX_BONES
 
     def __post_init__(self) -> None:
         if self.lang not in LANGUAGES:
@@ -75,6 +80,11 @@ class ShaderOptions:
             raise OptionsError(f"max_influences must be 1..8, got {k!r}", file="shader")
         if isinstance(self.max_clips, bool) or int(self.max_clips) != self.max_clips or not 1 <= self.max_clips <= 256:
             raise OptionsError(f"max_clips must be 1..256, got {self.max_clips!r}", file="shader")
+        if isinstance(self.max_bones, bool) or int(self.max_bones) != self.max_bones or not 1 <= self.max_bones <= 1024:
+            raise OptionsError(f"max_bones must be 1..1024, got {self.max_bones!r}", file="shader")
+        if (self.encoding is Encoding.COMPACT_QUAT_TRANSLATION) != (self.texel_format is TexelFormat.UINT32):
+            raise OptionsError("encoding compactQuatTranslation and texel format uint32 go together (spec 5.6), "
+                               f"got {self.encoding.value} with {self.texel_format.value}", file="shader")
 
 
 _GLSL_PROLOGUE = """\
@@ -82,10 +92,19 @@ _GLSL_PROLOGUE = """\
 #define VB_FETCH(column, row) texelFetch(vb_texture, ivec2(column, row), 0)
 #endif
 
+#ifndef VB_FETCH_WORDS
+#define VB_FETCH_WORDS(column, row) texelFetch(vb_texture, ivec2(column, row), 0)
+#endif
+
 #if VB_DECLARE_RESOURCES
 // highp: in GLSL ES 3.00 (WebGL 2) samplers of a vertex shader default to lowp, and texelFetch
 // returns values at the precision of the sampler; GLSL 3.30 core accepts and ignores the qualifier.
+#ifdef VB_COMPACT
+uniform highp usampler2D vb_texture;   // compactQuatTranslation: RGB32UI (or RGBA32UI, A = 0), NEAREST, texelFetch only
+uniform vec4 vb_compactRange[VB_MAX_BONES * 4];  // per bone: q min, q max, t min, t max (spec 5.6.3)
+#else
 uniform highp sampler2D vb_texture;    // the Virtual Bones texture: NEAREST, no mipmaps, linear (not sRGB)
+#endif
 uniform float vb_time;                 // scene time in seconds
 uniform vec4 vb_clips[VB_MAX_CLIPS];   // per clip: (firstRow, rowCount, rowsPerSecond, loop ? 1 : 0)
 #if VB_UNORM16
@@ -104,9 +123,19 @@ _HLSL_PROLOGUE = """\
 #ifndef VB_FETCH
 #define VB_FETCH(column, row) vb_texture.Load(int3(column, row, 0))
 #endif
+#ifndef VB_FETCH_WORDS
+#define VB_FETCH_WORDS(column, row) vb_texture.Load(int3(column, row, 0))
+#endif
+#ifdef VB_COMPACT
+#define uvec4 uint4
+#endif
 
 #if VB_DECLARE_RESOURCES
+#ifdef VB_COMPACT
+Texture2D<uint4> vb_texture;           // compactQuatTranslation: R32G32B32_UINT (or R32G32B32A32_UINT, A = 0), Load only
+#else
 Texture2D<float4> vb_texture;          // the Virtual Bones texture: point sampling, no mipmaps, linear (not sRGB)
+#endif
 cbuffer VirtualBones
 {
     float vb_time;                     // scene time in seconds
@@ -115,12 +144,16 @@ cbuffer VirtualBones
     float4 vb_rangeMin[VB_TEXELS_PER_BONE];
     float4 vb_rangeMax[VB_TEXELS_PER_BONE];
 #endif
+#ifdef VB_COMPACT
+    float4 vb_compactRange[VB_MAX_BONES * 4];  // per bone: q min, q max, t min, t max (spec 5.6.3)
+#endif
 };
 #endif
 """
 
 # The shared body, in the GLSL spelling (the HLSL prologue maps vec*/mix/VB_FETCH).
 _BODY = """\
+#ifndef VB_COMPACT
 vec4 vbTexel(VB_ARGS_DECL int bone, int slot, int row)
 {
     vec4 value = VB_FETCH(bone * VB_TEXELS_PER_BONE + slot, row);
@@ -130,6 +163,7 @@ vec4 vbTexel(VB_ARGS_DECL int bone, int slot, int row)
 #endif
     return value;
 }
+#endif
 
 // Texture rows and blend factor of a clip at clip-local time tau (spec: section Clips).
 void vbRows(VB_ARGS_DECL int clip, float tau, out int row0, out int row1, out float blend)
@@ -156,11 +190,13 @@ void vbRows(VB_ARGS_DECL int clip, float tau, out int row0, out int row1, out fl
     row1 = int(c.x + i1);
 }
 
+#ifndef VB_COMPACT
 // Channel values of one bone texel, interpolated between the two rows.
 vec4 vbLerpTexel(VB_ARGS_DECL int bone, int slot, int row0, int row1, float blend)
 {
     return mix(vbTexel(VB_ARGS bone, slot, row0), vbTexel(VB_ARGS bone, slot, row1), blend);
 }
+#endif
 """
 
 # Rotation of a vector by a unit quaternion (x, y, z, w), for the two quaternion encodings.
@@ -172,7 +208,50 @@ vec3 vbRotate(vec4 q, vec3 v)
 
 """
 
+_COMPACT = _ROTATE + """\
+// compactQuatTranslation (format 1.2, spec 5.6): one uint32 texel per bone and row.
+// R = q_a | q_b << 16, G = q_c | t_x << 16, B = t_y | t_z << 15 | index << 30.
+void vbCompactRow(VB_ARGS_DECL int bone, int row, out vec4 q, out vec3 t)
+{
+    uvec4 w = VB_FETCH_WORDS(bone, row);
+    int index = int(w.z >> 30u);
+    vec3 kept = vec3(float(w.x & 65535u), float(w.x >> 16u), float(w.y & 65535u)) / 65535.0;
+    // the kept fields in component order, the dropped slot masked out
+    vec4 u = index == 0 ? vec4(0.0, kept) : index == 1 ? vec4(kept.x, 0.0, kept.yz)
+           : index == 2 ? vec4(kept.xy, 0.0, kept.z) : vec4(kept, 0.0);
+    vec4 mask = index == 0 ? vec4(0.0, 1.0, 1.0, 1.0) : index == 1 ? vec4(1.0, 0.0, 1.0, 1.0)
+              : index == 2 ? vec4(1.0, 1.0, 0.0, 1.0) : vec4(1.0, 1.0, 1.0, 0.0);
+    vec4 lo = VB_COMPACT_RANGE(bone, 0);
+    vec4 hi = VB_COMPACT_RANGE(bone, 1);
+    q = (lo + (hi - lo) * u) * mask;
+    q += (vec4(1.0, 1.0, 1.0, 1.0) - mask) * sqrt(max(0.0, 1.0 - dot(q, q)));
+    q = normalize(q);
+    vec3 f = vec3(float((w.y >> 16u) & 32767u), float(w.z & 32767u), float((w.z >> 15u) & 32767u)) / 32767.0;
+    vec3 tlo = VB_COMPACT_RANGE(bone, 2).xyz;
+    vec3 thi = VB_COMPACT_RANGE(bone, 3).xyz;
+    t = tlo + (thi - tlo) * f;
+}
+
+// Decode both rows, negate the second quaternion when the two disagree in sign (texels are
+// canonical per row), then blend as quatTranslation: A = N = R(normalize(mix(q0, q1))).
+void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
+            out vec3 a0, out vec3 a1, out vec3 a2, out vec3 t, out vec3 n0, out vec3 n1, out vec3 n2)
+{
+    vec4 q0; vec3 t0; vec4 q1; vec3 t1;
+    vbCompactRow(VB_ARGS bone, row0, q0, t0);
+    vbCompactRow(VB_ARGS bone, row1, q1, t1);
+    if (dot(q0, q1) < 0.0) q1 = -q1;
+    vec4 q = normalize(mix(q0, q1, blend));
+    t = mix(t0, t1, blend);
+    a0 = vbRotate(q, vec3(1.0, 0.0, 0.0));
+    a1 = vbRotate(q, vec3(0.0, 1.0, 0.0));
+    a2 = vbRotate(q, vec3(0.0, 0.0, 1.0));
+    n0 = a0; n1 = a1; n2 = a2;
+}
+"""
+
 _DECODE = {
+    Encoding.COMPACT_QUAT_TRANSLATION: _COMPACT,
     Encoding.CROSS_MATRIX: """\
 // crossMatrix: texel 0 = A e_x, texel 1 = A e_y, texel 2 = t; A e_z = cross(x, y).
 void vbBone(VB_ARGS_DECL int bone, int row0, int row1, float blend,
@@ -1023,6 +1102,9 @@ def generate(options: ShaderOptions) -> str:
         f"#define VB_MAX_INFLUENCES {options.max_influences}",
         f"#define VB_MAX_CLIPS {options.max_clips}",
         f"#define VB_UNORM16 {1 if options.texel_format is TexelFormat.UNORM16 else 0}",
+        *(["// compactQuatTranslation (format 1.2): uint32 words, one texel per bone and row (spec 5.6).",
+           "#define VB_COMPACT 1", "#ifndef VB_MAX_BONES", f"#define VB_MAX_BONES {options.max_bones}", "#endif"]
+          if options.encoding is Encoding.COMPACT_QUAT_TRANSLATION else []),
         *(["// Skin binding pulled: bone indices and weights read by vertex index (spec/shaders.md, Skin bindings).",
            "#define VB_SKIN_PULLED 1",
            f"#define VB_SKIN_WORDS {(options.max_influences + 1) // 2 + options.max_influences}",
@@ -1054,6 +1136,11 @@ def generate(options: ShaderOptions) -> str:
         "#ifndef VB_RANGE_MAX",
         "#define VB_RANGE_MAX(slot) vb_rangeMax[slot]",
         "#endif",
+        *(["// compactQuatTranslation: range k (0 q min, 1 q max, 2 t min, 3 t max) of a bone; an engine may",
+           "// read them from a texture or a uniform buffer of its own instead.",
+           "#ifndef VB_COMPACT_RANGE",
+           "#define VB_COMPACT_RANGE(bone, k) vb_compactRange[(bone) * 4 + (k)]",
+           "#endif"] if options.encoding is Encoding.COMPACT_QUAT_TRANSLATION else []),
         "",
     ]
     prologue = _GLSL_PROLOGUE if options.lang == "glsl" else _HLSL_PROLOGUE
@@ -1065,7 +1152,8 @@ def generate(options: ShaderOptions) -> str:
     parts = [prologue, _BODY, _DECODE[options.encoding], skin, _SKIN_ENTRY, rows, _SOCKET, main]
     if options.layers:
         # Layers (format 1.2) after the functions they call, before the example main.
-        rotate = "" if options.encoding in (Encoding.QUAT_TRANSLATION, Encoding.DUAL_QUAT) else _ROTATE
+        rotate = "" if options.encoding in (Encoding.QUAT_TRANSLATION, Encoding.DUAL_QUAT,
+                                            Encoding.COMPACT_QUAT_TRANSLATION) else _ROTATE  # theirs define vbRotate
         parts[-1:-1] = [_LAYERS_RESOURCES_GLSL if options.lang == "glsl" else _LAYERS_RESOURCES_HLSL, rotate, _LAYERS,
                         _LAYERS_SKIN_DQS if options.encoding is Encoding.DUAL_QUAT else _LAYERS_SKIN_LBS,
                         _LAYERS_ENTRY]
@@ -1073,7 +1161,9 @@ def generate(options: ShaderOptions) -> str:
         parts[1:1] = [_GLSL_PULLED if options.lang == "glsl" else _HLSL_PULLED]
         parts[-1:-1] = [_SKIN_INFLUENCES]
     if options.lang == "hlsl":
-        parts.append(_HLSL_EPILOGUE + ("#undef uvec4\n#undef uintBitsToFloat\n" if options.skin == "pulled" else ""))
+        compact = options.encoding is Encoding.COMPACT_QUAT_TRANSLATION
+        parts.append(_HLSL_EPILOGUE + ("#undef uvec4\n" if options.skin == "pulled" or compact else "")
+                     + ("#undef uintBitsToFloat\n" if options.skin == "pulled" else ""))
     return "\n".join(header) + "\n".join(parts)
 
 

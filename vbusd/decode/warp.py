@@ -215,6 +215,9 @@ class Decoder:
         self.mesh = mesh
         self.sampling = sampling
         self.encoding = vb.layout.encoding
+        if self.encoding is Encoding.COMPACT_QUAT_TRANSLATION and sampling != "exact":
+            raise OptionsError("compactQuatTranslation texels are integers, read with texelFetch only "
+                               "(spec 9.4): use sampling='exact'", file="decode")
         self.encoding_id = K.ENCODING_IDS[self.encoding.value]
         self.bone_count = vb.layout.bone_count
         self.vertex_count = int(np.asarray(mesh.points).shape[0])
@@ -270,8 +273,10 @@ class Decoder:
         self.unorm = layout.texel_format is TexelFormat.UNORM16
         if self.sampling == "exact":
             values = channel_values(vb)  # (rows, B, T, 4) float64, dequantized like the reference
-            texels = np.zeros((layout.height, layout.width, 4), dtype=np.float32)
-            texels[:layout.row_count, :layout.used_width] = values.reshape(layout.row_count, layout.used_width, 4)
+            # compactQuatTranslation: its words unpacked into 2 vec4 per bone (quaternion; t and 1)
+            columns = values.shape[1] * values.shape[2]
+            texels = np.zeros((layout.height, max(layout.width, columns), 4), dtype=np.float32)
+            texels[:layout.row_count, :columns] = values.reshape(layout.row_count, columns, 4)
             self.texels = self._array(texels, wp.vec4)
             self.texture = None
             return
@@ -463,7 +468,8 @@ class Decoder:
             return True
         if crowd.layer_count and self.encoding is Encoding.CROSS_MATRIX:
             return True  # a layered bone's normal matrix is inverse(A')^T (spec 8.6), not A itself
-        return self.encoding is Encoding.CROSS_MATRIX and not crowd.uniform_scale
+        # crossMatrix and compactQuatTranslation: N = A (a rotation) until a non-uniform scale places it
+        return self.encoding in (Encoding.CROSS_MATRIX, Encoding.COMPACT_QUAT_TRANSLATION) and not crowd.uniform_scale
 
     def _bone_buffers(self, n: int, own_normal: bool, fades: bool = False) -> BoneBuffers:
         fade_dual = fades and self.encoding is Encoding.DUAL_QUAT

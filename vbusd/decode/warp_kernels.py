@@ -67,13 +67,18 @@ __all__ = ["ENCODING_IDS", "CROSS_MATRIX", "AFFINE_MATRIX", "QUAT_TRANSLATION", 
 # roughly halves compile time on the CPU (LLVM) backend.
 wp.set_module_options({"enable_backward": False})
 
-ENCODING_IDS = {"crossMatrix": 0, "affineMatrix": 1, "quatTranslation": 2, "dualQuat": 3}
+ENCODING_IDS = {"crossMatrix": 0, "affineMatrix": 1, "quatTranslation": 2, "dualQuat": 3,
+                "compactQuatTranslation": 4}
 """Integer ids the kernels use for the spec's encodings."""
 
 CROSS_MATRIX = wp.constant(0)
 AFFINE_MATRIX = wp.constant(1)
 QUAT_TRANSLATION = wp.constant(2)
 DUAL_QUAT = wp.constant(3)
+COMPACT_QUAT_TRANSLATION = wp.constant(4)
+"""Format 1.2 (spec 5.6). Its words are unpacked on upload into two vec4 per bone and row (unit
+quaternion; translation and 1), so the kernels read it as quatTranslation, except that the second
+row's quaternion is negated when the two rows disagree in sign (texels are canonical per row)."""
 
 mat34 = wp.types.matrix(shape=(3, 4), dtype=wp.float32)
 """A bone's ``[A | t]``: rows ``(A[i, 0], A[i, 1], A[i, 2], t[i])``."""
@@ -187,7 +192,7 @@ def decode_bone(encoding: int, v0: wp.vec4, v1: wp.vec4, v2: wp.vec4):
         linear = wp.matrix_from_rows(v0, v1, v2)
         a = wp.mat33(v0[0], v0[1], v0[2], v1[0], v1[1], v1[2], v2[0], v2[1], v2[2])
         normal = wp.transpose(wp.inverse(a))
-    elif encoding == QUAT_TRANSLATION:
+    elif encoding == QUAT_TRANSLATION or encoding == COMPACT_QUAT_TRANSLATION:
         r = wp.quat_to_matrix(wp.normalize(wp.quat(v0[0], v0[1], v0[2], v0[3])))
         s = v1[3]
         linear = mat34(s * r[0, 0], s * r[0, 1], s * r[0, 2], v1[0],
@@ -416,6 +421,12 @@ def decode_at(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, row1:
     """Bone ``bone`` interpolated between two rows and decoded (:func:`lerp_texel`, :func:`decode_bone`)."""
     column = bone * texels_per_bone(encoding)
     v0 = lerp_texel(texels, row0, row1, f, column)
+    if encoding == COMPACT_QUAT_TRANSLATION:  # spec 5.6.4: decode both rows, flip, then blend
+        q0 = texels[row0, column]
+        q1 = texels[row1, column]
+        if wp.dot(q0, q1) < 0.0:
+            q1 = -q1
+        v0 = (1.0 - f) * q0 + f * q1
     v1 = lerp_texel(texels, row0, row1, f, column + 1)
     v2 = wp.vec4()
     if texels_per_bone(encoding) == 3:

@@ -157,6 +157,14 @@ _FINDINGS = (
          "tolerance.", f"{_VB}#dualquat", "texel"),
     Code("encoding.dualQuat.orthogonal", E, "A dual quaternion's real and dual parts are not orthogonal "
          "(real . dual != 0): it is not a rigid transform.", f"{_VB}#dualquat", "texel"),
+    Code("encoding.compact.reservedBit", E, "A compactQuatTranslation texel has bit 31 of channel G set "
+         "(format 1.2 leaves it 0).", f"{_VB}#compact", "texel"),
+    Code("encoding.compact.dropped", E, "A compactQuatTranslation texel's kept quaternion components leave "
+         "less than 1/2 for the dropped one (the smallest-three index does not name a largest component).",
+         f"{_VB}#compact", "texel"),
+    Code("encoding.compact.errorBound", W, "The quantization error bound of a compactQuatTranslation bone "
+         "(spec 5.6.3) at its meshes' farthest point exceeds 5e-5 of their bounding-box diagonal.",
+         f"{_VB}#compact", "usd"),
     Code("encoding.affine.singular", E, "An affineMatrix 3x3 part is singular, so normals cannot be "
          "transformed by its inverse transpose.", f"{_VB}#affinematrix", "texel"),
     Code("encoding.affine.scale", H, "affineMatrix bones carry scale or shear: decoders must transform "

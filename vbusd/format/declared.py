@@ -339,10 +339,11 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
                        for ma, mb in zip(a, b))):
         # vb:maskWeights is float[]: compared as float32, as the unorm ranges are.
         out.append(finding(code, f"masks differ from {what} {_where(reference, 'masks')}", other.locate("masks")))
-    a, b = reference.get("unormRanges"), other.get("unormRanges")
-    if a is not None and b is not None and not same_value(np.asarray(a, np.float32), np.asarray(b, np.float32)):
-        out.append(finding(code, f"unormRanges differ from {what} {_where(reference, 'unormRanges')}",
-                           other.locate("unormRanges")))
+    for key in ("unormRanges", "compactRanges"):
+        a, b = reference.get(key), other.get(key)
+        if a is not None and b is not None and (np.shape(a) != np.shape(b) or
+                                                not same_value(np.asarray(a, np.float32), np.asarray(b, np.float32))):
+            out.append(finding(code, f"{key} differ from {what} {_where(reference, key)}", other.locate(key)))
     return out
 
 

@@ -206,7 +206,7 @@ def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Pola
 
 
 def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: float) -> _Polar:
-    if encoding in (Encoding.CROSS_MATRIX, Encoding.DUAL_QUAT):
+    if encoding in (Encoding.CROSS_MATRIX, Encoding.DUAL_QUAT, Encoding.COMPACT_QUAT_TRANSLATION):
         fast = _near_rotation_polar(linear, tolerance)
         if fast is not None:
             return fast
@@ -253,7 +253,8 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
             for crossMatrix and dualQuat, relative spread for quatTranslation).
 
     Returns:
-        (..., T, 4) float64 channel values (T texels per bone). Quaternions are returned with
+        (..., T, 4) float64 channel values (T texels per bone; compactQuatTranslation gives the
+        two slots of quatTranslation, scale 1, which :func:`quantize` packs into one texel). Quaternions are returned with
         w >= 0; call :func:`make_hemispheres_continuous` along the row axis afterwards.
 
     Raises:
@@ -269,7 +270,7 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
         if compiled is not None:
             return compiled
     linear, translation = m[..., :3, :3], m[..., :3, 3]
-    out = np.empty(m.shape[:-2] + (encoding.texels_per_bone, 4))
+    out = np.empty(m.shape[:-2] + (encoding.value_texels, 4))
     if encoding is Encoding.AFFINE_MATRIX:
         # A singular linear part has no inverse transpose, so normals could not be skinned.
         _raise_worst(np.where(affine_singular(linear), np.inf, 0.0), 0.0,
@@ -289,6 +290,12 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
         out[..., 0, :] = q
         out[..., 1, :3] = translation
         out[..., 1, 3] = polar.singular.mean(axis=-1)
+        return out
+    if encoding is Encoding.COMPACT_QUAT_TRANSLATION:
+        # Rigid (checked above as for crossMatrix): the texel holds no scale; A of slot 1 is 1.
+        out[..., 0, :] = q
+        out[..., 1, :3] = translation
+        out[..., 1, 3] = 1.0
         return out
     t_quat = np.concatenate([translation, np.zeros(translation.shape[:-1] + (1,))], axis=-1)
     out[..., 0, :] = q
@@ -367,7 +374,7 @@ def decode_bones(values: np.ndarray, encoding: Encoding | str) -> BoneTransforms
         return BoneTransforms(linear, v[..., :, 3].copy(), normal)
     q = v[..., 0, :]
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if encoding is Encoding.QUAT_TRANSLATION:
+    if encoding in (Encoding.QUAT_TRANSLATION, Encoding.COMPACT_QUAT_TRANSLATION):
         rotation = quat_to_matrix(q / norm)
         scale = v[..., 1, 3][..., None, None]
         return BoneTransforms(rotation * scale, v[..., 1, :3].copy(), rotation / scale)
@@ -435,12 +442,14 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
     Args:
         values: Channel values.
         texel_format: Target format.
-        ranges: unorm16 only: (T, 4, 2) [min, max]; computed from ``values`` when None.
+        ranges: unorm16: (T, 4, 2) [min, max]; uint32 (compactQuatTranslation): (B, 7, 2) per-bone
+            ranges (spec 5.6); computed from ``values`` when None.
         out: Where to store them (the shape of ``values``, the format's dtype), or None: e.g. the
             :func:`unpack` view of a zeroed texture, which then needs no :func:`pack`.
 
     Returns:
-        (stored values of the format's dtype: ``out`` when given, the unorm16 ranges or None).
+        (stored values of the format's dtype: ``out`` when given, the ranges or None). For uint32
+        the stored values are (rows, B, 1, 4): the three words of spec 5.6 and A = 0.
 
     Raises:
         UnsupportedError: A value is not finite.
@@ -469,6 +478,14 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         stored = np.empty(v.shape, dtype) if out is None else out
         split_work(rows, lambda a, b: np.copyto(stored[a:b], v[a:b], casting="unsafe"))
         return stored, None
+    if texel_format is TexelFormat.UINT32:
+        from vbusd.format.compact import encode_compact
+
+        words, ranges = encode_compact(v[..., 0, :], v[..., 1, :3], ranges=ranges)
+        stored = np.zeros(v.shape[:-2] + (1, 4), "<u4") if out is None else out
+        stored[..., 0, :3] = words
+        stored[..., 0, 3] = 0
+        return stored, ranges
     if ranges is None:
         ranges = unorm_ranges(v)
     low, high = ranges[..., 0], ranges[..., 1]
@@ -489,9 +506,25 @@ def dequantize(stored: np.ndarray, texel_format: TexelFormat | str,
     Args:
         stored: Values of the format's dtype.
         texel_format: Their format.
-        ranges: unorm16 only: (T, 4, 2) [min, max].
+        ranges: unorm16: (T, 4, 2) [min, max]; uint32: (B, 7, 2) compact ranges.
+
+    Returns:
+        (rows, B, T, 4) values; for uint32 (rows, B, 2, 4): unit quaternion and translation with 1
+        in A, the values quatTranslation stores, so blending and decoding follow it.
     """
     texel_format = TexelFormat(texel_format)
+    if texel_format is TexelFormat.UINT32:
+        # (..., B, 1, 4) words -> (..., B, 2, 4) quatTranslation-like values, scale 1 (spec 5.6).
+        from vbusd.format.compact import decode_compact_fields
+
+        if ranges is None:
+            raise ValueError("uint32 texels need their compact ranges")
+        q, t = decode_compact_fields(np.asarray(stored)[..., 0, :3], np.asarray(ranges, dtype=np.float64))
+        out = np.empty(q.shape[:-1] + (2, 4))
+        out[..., 0, :] = q
+        out[..., 1, :3] = t
+        out[..., 1, 3] = 1.0
+        return out
     if texel_format is not TexelFormat.UNORM16:
         return np.asarray(stored, dtype=np.float64)
     if ranges is None:

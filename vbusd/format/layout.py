@@ -29,6 +29,8 @@ class Encoding(str, enum.Enum):
     AFFINE_MATRIX = "affineMatrix"
     QUAT_TRANSLATION = "quatTranslation"
     DUAL_QUAT = "dualQuat"
+    COMPACT_QUAT_TRANSLATION = "compactQuatTranslation"
+    """Format 1.2 (spec 5.6): one 96-bit uint32 texel per bone and row."""
 
     def __str__(self) -> str:
         return self.value
@@ -36,7 +38,15 @@ class Encoding(str, enum.Enum):
     @property
     def texels_per_bone(self) -> int:
         """Texels one bone occupies in a row (T in the spec)."""
+        if self is Encoding.COMPACT_QUAT_TRANSLATION:
+            return 1
         return 3 if self in (Encoding.CROSS_MATRIX, Encoding.AFFINE_MATRIX) else 2
+
+    @property
+    def value_texels(self) -> int:
+        """Texel slots of the float64 channel values before quantization: T, except the compact
+        encoding, whose quaternion and translation (two slots, as quatTranslation) share one texel."""
+        return 2 if self is Encoding.COMPACT_QUAT_TRANSLATION else self.texels_per_bone
 
 
 class TexelFormat(str, enum.Enum):
@@ -45,6 +55,10 @@ class TexelFormat(str, enum.Enum):
     FLOAT16 = "float16"
     FLOAT32 = "float32"
     UNORM16 = "unorm16"
+    UINT32 = "uint32"
+    """Format 1.2: three 32-bit unsigned integer channels (R32G32B32_UINT), only with
+    compactQuatTranslation. In memory (and on upload where RGB32UI cannot be sampled) the texel is
+    widened to RGBA with A = 0; files store three channels."""
 
     def __str__(self) -> str:
         return self.value
@@ -52,12 +66,17 @@ class TexelFormat(str, enum.Enum):
     @property
     def bytes_per_channel(self) -> int:
         """Bytes of one channel of one texel."""
-        return 4 if self is TexelFormat.FLOAT32 else 2
+        return 4 if self in (TexelFormat.FLOAT32, TexelFormat.UINT32) else 2
+
+    @property
+    def stored_channels(self) -> int:
+        """Channels a file stores per texel: 3 for uint32 (R, G, B), else 4."""
+        return 3 if self is TexelFormat.UINT32 else CHANNELS
 
     @property
     def numpy_dtype(self) -> str:
         """The numpy dtype of stored texels (little-endian)."""
-        return {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[self.value]
+        return {"float16": "<f2", "float32": "<f4", "unorm16": "<u2", "uint32": "<u4"}[self.value]
 
 
 class Padding(str, enum.Enum):
@@ -121,6 +140,11 @@ class Layout:
             if isinstance(value, bool) or int(value) != value or value < 1:
                 raise OptionsError(f"{name} must be a positive integer, got {value!r}", file="layout")
             object.__setattr__(self, name, int(value))
+        compact = self.encoding is Encoding.COMPACT_QUAT_TRANSLATION
+        if compact != (self.texel_format is TexelFormat.UINT32):
+            raise OptionsError("encoding compactQuatTranslation and texelFormat uint32 go together "
+                               f"(spec 5.6), got {self.encoding.value} with {self.texel_format.value}",
+                               file="layout")
         if self.width > MAX_TEXTURE_DIMENSION or self.height > MAX_TEXTURE_DIMENSION:
             raise OptionsError(
                 f"texture of {self.width}x{self.height} exceeds the limit of {MAX_TEXTURE_DIMENSION} "
@@ -158,12 +182,13 @@ class Layout:
     @property
     def texel_bytes(self) -> int:
         """Bytes of all texels, padding included."""
-        return self.width * self.height * CHANNELS * self.texel_format.bytes_per_channel
+        return self.width * self.height * self.texel_format.stored_channels * self.texel_format.bytes_per_channel
 
     @property
     def used_texel_bytes(self) -> int:
         """Bytes of the texels that hold bone data."""
-        return self.used_width * self.row_count * CHANNELS * self.texel_format.bytes_per_channel
+        return (self.used_width * self.row_count * self.texel_format.stored_channels
+                * self.texel_format.bytes_per_channel)
 
     @property
     def padding_fraction(self) -> float:

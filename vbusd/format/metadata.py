@@ -62,7 +62,8 @@ class LayoutInfo:
         layout: Sizes of the texture.
         bones: Bone names in texture order.
         clips: Clips in the order listed.
-        unorm_ranges: For unorm16, (T, 4, 2) float64 ``[min, max]`` per texel slot and channel;
+        unorm_ranges: The texel format's ranges (uint32, format 1.2: the (B, 7, 2) compactRanges of spec 5.6).
+            For unorm16, (T, 4, 2) float64 ``[min, max]`` per texel slot and channel;
             None for the float formats.
         content_digest: ``"sha256:<hex>"`` of the texels (see :func:`content_digest`).
         format_version: The version the dict was written with (before any upgrade).
@@ -113,7 +114,8 @@ def content_digest(texels: np.ndarray) -> str:
 
     The bytes hashed are the whole ``(height, width, 4)`` array, padding included, in C order
     (row 0 = first scanline), each channel little-endian in the array's own dtype (``<f2``,
-    ``<f4`` or ``<u2``), so the digest is the same on every machine.
+    ``<f4`` or ``<u2``), so the digest is the same on every machine. uint32 texels (format 1.2)
+    are hashed as the files store them: channels R, G, B only (12 bytes a texel, spec 9.4).
 
     Args:
         texels: ``(height, width, 4)`` array.
@@ -129,6 +131,8 @@ def content_digest(texels: np.ndarray) -> str:
         raise ValueError(f"texels must have shape (height, width, {CHANNELS}), got {texels.shape}")
     # Hashed through a memoryview: tobytes() would copy the whole texture (128 MiB at 4096 x 4096
     # float16) next to the texels; only a big-endian or strided array is copied, once.
+    if texels.dtype.kind == "u" and texels.dtype.itemsize == 4:
+        texels = texels[..., :3]  # uint32: the three stored words, not the in-memory A = 0
     little = np.ascontiguousarray(texels.astype(texels.dtype.newbyteorder("<"), copy=False))
     return DIGEST_PREFIX + hashlib.sha256(memoryview(little).cast("B")).hexdigest()
 
@@ -161,9 +165,10 @@ def layout_fields(layout: Layout) -> dict:
 
 def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str,
                 bind_transforms=None, bone_parents=None, masks=()) -> dict:
-    # The lowest version that holds the document (spec 16.1, 16.2): 1.2 only with a 1.2 key
-    # (bone parents, masks), 1.1 only with a 1.1 key.
-    minor = 2 if (bone_parents is not None or masks) else 1 if bind_transforms is not None else 0
+    # The lowest version that holds the document (spec 16.1, 16.2): 1.2 only with the compact
+    # encoding or a 1.2 key (bone parents, masks), 1.1 only with a 1.1 key.
+    minor = (2 if (bone_parents is not None or masks or layout.texel_format is TexelFormat.UINT32)
+             else 1 if bind_transforms is not None else 0)
     result: dict[str, Any] = {
         "format": FORMAT_NAME,
         "formatVersion": FORMAT_VERSION,
@@ -192,6 +197,13 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
             raise ValueError(f"unorm_ranges must have shape {expected}, got {ranges.shape}")
         # float64 -> Python float -> JSON repr round-trips exactly (shortest repr).
         result["unormRanges"] = [[[float(lo), float(hi)] for lo, hi in slot] for slot in ranges]
+    if layout.texel_format is TexelFormat.UINT32:
+        if unorm_ranges is None:
+            raise ValueError("uint32 texels need their compact ranges")
+        ranges = np.asarray(unorm_ranges, dtype=np.float64)
+        if ranges.shape != (layout.bone_count, 7, 2):
+            raise ValueError(f"compact ranges must have shape {(layout.bone_count, 7, 2)}, got {ranges.shape}")
+        result["compactRanges"] = [[[float(lo), float(hi)] for lo, hi in bone] for bone in ranges]
     if bind_transforms is not None:
         # Format 1.1 (spec 8.4): 16 numbers per bone, column-major like glTF (B = m.reshape(4, 4).T).
         binds = np.asarray(bind_transforms, dtype=np.float64).reshape(-1, 4, 4)
@@ -398,6 +410,13 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
         expected_first = clip["firstRow"] + clip["rowCount"]
     if expected_first != layout.row_count:
         report(["rowCount"], f"clips end at row {expected_first}, rowCount is {layout.row_count}")
+    if "compactRanges" in d and len(d["compactRanges"]) != layout.bone_count:
+        report(["compactRanges"], f"compactRanges holds {len(d['compactRanges'])} bones for boneCount "
+                                  f"{layout.bone_count}")
+    for b, bone in enumerate(d.get("compactRanges") or ()):
+        for c, (low, high) in enumerate(bone):
+            if low > high:
+                report(["compactRanges", b, c], f"min {low} is greater than max {high}")
     for t, slot in enumerate(d.get("unormRanges") or ()):
         for c, (low, high) in enumerate(slot):
             if low > high:
@@ -446,6 +465,10 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.array(d["unormRanges"], dtype=np.float64).reshape(layout.texels_per_bone,
                                                                       CHANNELS, 2)
+        ranges.setflags(write=False)
+    elif layout.texel_format is TexelFormat.UINT32:
+        # The compact ranges travel in the model's unorm_ranges field (the texel format's ranges).
+        ranges = np.array(d["compactRanges"], dtype=np.float64).reshape(layout.bone_count, 7, 2)
         ranges.setflags(write=False)
     binds = None
     if "bindTransforms" in d:

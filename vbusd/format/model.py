@@ -356,7 +356,8 @@ class VirtualBones:
             texels are zero.
         bones: Bone names, ``layout.bone_count`` of them.
         clips: Clips, in row order.
-        unorm_ranges: For unorm16, (T, 4, 2) float64 ``[min, max]`` per texel slot and channel;
+        unorm_ranges: The texel format's ranges (uint32, format 1.2: the (B, 7, 2) compactRanges of spec 5.6).
+            For unorm16, (T, 4, 2) float64 ``[min, max]`` per texel slot and channel;
             None otherwise.
         meshes: Bound meshes.
         path: Prim path of the VirtualBonesAnimation prim.

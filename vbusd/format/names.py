@@ -81,6 +81,8 @@ ANIMATION_ATTRIBUTES = (
     Attribute("vb:maskWeights", "float[]", False, "maskWeights", mirrored=False),
     Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
     Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
+    Attribute("vb:compactRangeMin", "float[]", False, "compactRangeMin"),
+    Attribute("vb:compactRangeMax", "float[]", False, "compactRangeMax"),
     Attribute("vb:contentDigest", "string", True, "contentDigest"),
 )
 """Every attribute of ``VirtualBonesAnimation``, in the order writers author them."""
@@ -101,6 +103,8 @@ TEXTURE = BY_KEY["texture"].name
 CLIP_EXTENTS = BY_KEY["clipExtents"].name
 UNORM_RANGE_MIN = BY_KEY["unormRangeMin"].name
 UNORM_RANGE_MAX = BY_KEY["unormRangeMax"].name
+COMPACT_RANGE_MIN = BY_KEY["compactRangeMin"].name
+COMPACT_RANGE_MAX = BY_KEY["compactRangeMax"].name
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_f
 FORMAT_MINOR_VERSION = 2
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
 Writers write the lowest version that holds an asset (spec 16.1, 16.2, 20.5): 1.0 unless it uses a 1.1
-key, 1.2 for levels of detail or a 1.2 key (bone parents, masks)."""
+key, 1.2 for the compact encoding, levels of detail or a 1.2 key (bone parents, masks)."""
 
 
 class Version(NamedTuple):
@@ -62,9 +62,21 @@ KEYS_1_0 = frozenset((
 KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
 KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
               # Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims.
-              (1, 2): KEYS_1_1 | {"boneParents", "masks"}}
+              (1, 2): KEYS_1_1 | {"boneParents", "masks", "compactRanges", "compactRangeMin",
+                                   "compactRangeMax"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
+
+ENCODINGS_1_0 = frozenset(("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"))
+KNOWN_VALUES = {
+    "encoding": {(1, 0): ENCODINGS_1_0, (1, 1): ENCODINGS_1_0,
+                 (1, 2): ENCODINGS_1_0 | {"compactQuatTranslation"}},
+    "texelFormat": {(1, 0): frozenset(("float16", "float32", "unorm16")),
+                    (1, 1): frozenset(("float16", "float32", "unorm16")),
+                    (1, 2): frozenset(("float16", "float32", "unorm16", "uint32"))},
+}
+"""The encodings and texel formats each version defines: a reader refusing a newer document names
+the encoding it cannot decode first (spec 16.2), then any keys it does not know."""
 
 
 def upgrades_from(major: int, minor: int = 0) -> Callable[[UpgradeFunction], UpgradeFunction]:
@@ -146,7 +158,9 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
                            "upgrade vbusd to read it", file=file, location=where, code="format.version")
     if version > target:
         known = KNOWN_KEYS.get(tuple(target))
-        unknown = sorted(str(k) for k in d if known is not None and k not in known)
+        unknown = [f"{key} {d[key]}" for key, table in KNOWN_VALUES.items()
+                   if tuple(target) in table and isinstance(d.get(key), str) and d[key] not in table[tuple(target)]]
+        unknown += sorted(str(k) for k in d if known is not None and k not in known)
         uses = (f"; it uses {', '.join(unknown)}, which version {target} does not define" if unknown else "")
         raise VersionError(f"format version {version} is newer than this reader (version {target}){uses}; "
                            "upgrade vbusd to read it", file=file,
@@ -173,6 +187,6 @@ def upgrade_1_0_to_1_1(document: dict) -> dict:
 
 @upgrades_from(1, 1)
 def upgrade_1_1_to_1_2(document: dict) -> dict:
-    """1.1 -> 1.2 (spec 16.2, 20.5): bone parents and masks (layers) and levels of detail (UsdLod prims)
-    are optional; nothing to fill in."""
+    """1.1 -> 1.2 (spec 16.2, 20.5): the compact encoding (which no 1.1 document uses), bone parents and
+    masks (layers) and levels of detail (UsdLod prims) are all optional; nothing to fill in."""
     return {**document, "formatMinorVersion": 2}

@@ -1,7 +1,8 @@
-"""OpenEXR container for float16 and float32 Virtual Bones textures: writer and reader.
+"""OpenEXR container for float16, float32 and uint32 Virtual Bones textures: writer and reader.
 
 A Virtual Bones EXR is a single-part scanline image with exactly the channels R, G, B and A, all of
-pixel type HALF (float16) or FLOAT (float32), a lossless compression (none, rle, zips, zip or piz)
+pixel type HALF (float16) or FLOAT (float32), or (format 1.2, spec 9.4) exactly R, G, B of pixel
+type UINT (uint32, the compact encoding's words), a lossless compression (none, rle, zips, zip or piz)
 and the layout metadata JSON in the string header attribute ``vbusd.layout``. Scanline 0 (the top
 of the data window) is texture row 0.
 
@@ -62,6 +63,7 @@ PIXEL_TYPES = {0: "uint", 1: "half", 2: "float"}
 """EXR channel pixel type -> name."""
 
 _CHANNELS = ("A", "B", "G", "R")  # EXR stores channel lists sorted by name
+_UINT_CHANNELS = ("B", "G", "R")  # uint32 (format 1.2): three words, no A
 
 _FLAG_TILED = 0x200
 _FLAG_DEEP = 0x800
@@ -210,14 +212,15 @@ def _scan_header(path, file: str, diagnostics: Diagnostics, max_dimension: int) 
             raise _bad(file, "header/compression", f"compression {compression} is unknown")
         channels = _parse_channels(attribute("channels", "chlist"), file)
         where = FileLocation(file, part="header/channels")
-        if tuple(sorted(channels)) != _CHANNELS:
-            diagnostics.report("texture.channels", f"channels are {', '.join(sorted(channels)) or 'none'}; "
-                               "a Virtual Bones texture has exactly R, G, B, A", where)
         kinds = set(channels.values())
-        if kinds - {"half", "float"} or len(kinds) > 1:
+        wanted = _UINT_CHANNELS if kinds == {"uint"} else _CHANNELS
+        if tuple(sorted(channels)) != wanted:
+            diagnostics.report("texture.channels", f"channels are {', '.join(sorted(channels)) or 'none'}; "
+                               "a Virtual Bones texture has exactly R, G, B, A (R, G, B when UINT)", where)
+        if kinds - {"half", "float", "uint"} or len(kinds) > 1:
             listed = ", ".join(f"{name} is {kind}" for name, kind in sorted(channels.items()))
-            diagnostics.report("texture.pixelType", f"channels must all be HALF (float16) or all FLOAT "
-                               f"(float32): {listed}", where)
+            diagnostics.report("texture.pixelType", f"channels must all be HALF (float16), all FLOAT "
+                               f"(float32) or all UINT (uint32): {listed}", where)
         # Every chunk of the offset table must lie inside the file: this is where truncation shows.
         chunk_count = -(-height // _LINES_PER_CHUNK[compression])
         stream.seek(header_end)
@@ -361,7 +364,8 @@ def read_exr(path, diagnostics: Diagnostics, *, display: Optional[str] = None,
             image.metadata.append((text, where))
         elif looks_like_metadata(name, value.decode("latin-1") if type_name == "string" else ""):
             image.misplaced_metadata.append(f"header attribute {name!r} of type {type_name}")
-    if pixels and image.channels == ("R", "G", "B", "A") and image.pixel_type in ("float16", "float32"):
+    if pixels and ((image.channels == ("R", "G", "B", "A") and image.pixel_type in ("float16", "float32"))
+                   or (image.channels == ("R", "G", "B") and image.pixel_type == "uint32")):
         image.texels = _read_pixels(path, image, diagnostics, max_dimension)
     return image
 
@@ -379,7 +383,8 @@ def _read_pixels(path, image: TextureImage, diagnostics: Diagnostics, max_dimens
     except (RuntimeError, OSError, ValueError) as error:
         error_text = str(error)
     chatter = sink[0] if sink else ""
-    rgba = exr.parts[0].channels.get("RGBA") if exr is not None and len(exr.parts) == 1 else None
+    words = image.pixel_type == "uint32"
+    rgba = exr.parts[0].channels.get("RGB" if words else "RGBA") if exr is not None and len(exr.parts) == 1 else None
     if rgba is None:
         detail = "; ".join(t for t in (error_text, chatter) if t) or "OpenEXR returned no image"
         match = re.search(r"file offset (\d+)", detail)
@@ -388,6 +393,16 @@ def _read_pixels(path, image: TextureImage, diagnostics: Diagnostics, max_dimens
                                         part=f"byte {match.group(1)}" if match else "pixels"))
         return None
     texels = np.asarray(rgba.pixels)
+    if words:
+        # uint32 (spec 9.4): held in memory widened to RGBA with A = 0, as a GPU upload widens it.
+        if texels.shape != (image.height, image.width, 3) or texels.dtype.kind != "u" or texels.dtype.itemsize != 4:
+            diagnostics.report("texture.unreadable", f"OpenEXR decoded the pixels as {texels.dtype} "
+                               f"{texels.shape}, expected uint32 ({image.height}, {image.width}, 3)",
+                               FileLocation(image.file, part="pixels"))
+            return None
+        widened = np.zeros((image.height, image.width, 4), "<u4")
+        widened[..., :3] = texels
+        return widened
     dtype = np.dtype("<f2" if image.pixel_type == "float16" else "<f4")
     if texels.shape != (image.height, image.width, 4) or texels.dtype.kind != "f" or \
             texels.dtype.itemsize != dtype.itemsize:
@@ -429,7 +444,8 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
 
     Args:
         path: Output file.
-        texels: ``(height, width, 4)`` float16 or float32.
+        texels: ``(height, width, 4)`` float16 or float32, or uint32 (written as the three UINT
+            channels R, G, B; A must be 0).
         metadata: The layout metadata JSON text, stored in the ``vbusd.layout`` attribute.
         compression: One of :data:`LOSSLESS`.
 
@@ -443,9 +459,10 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
     if name not in LOSSLESS:
         raise OptionsError(f"EXR compression must be one of {', '.join(LOSSLESS)} (lossless), "
                            f"got {compression!r}", file="exr")
-    if texels.ndim != 3 or texels.shape[2] != 4 or texels.dtype.kind != "f" or \
-            texels.dtype.itemsize not in (2, 4):
-        raise OptionsError(f"EXR holds float16 or float32 RGBA texels, got {texels.dtype} "
+    words = texels.dtype.kind == "u" and texels.dtype.itemsize == 4
+    if texels.ndim != 3 or texels.shape[2] != 4 or not (words or (texels.dtype.kind == "f" and
+                                                                  texels.dtype.itemsize in (2, 4))):
+        raise OptionsError(f"EXR holds float16 or float32 RGBA texels or uint32 RGB words, got {texels.dtype} "
                            f"{texels.shape}", file="exr")
     code = {v: k for k, v in COMPRESSION_NAMES.items()}[name]
     header = {
@@ -455,7 +472,7 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
         METADATA_ATTRIBUTE: metadata,
     }
     native = texels.dtype.newbyteorder("=")
-    channels = {c: np.ascontiguousarray(texels[..., i], dtype=native) for i, c in enumerate("RGBA")}
+    channels = {c: np.ascontiguousarray(texels[..., i], dtype=native) for i, c in enumerate("RGB" if words else "RGBA")}
     try:
         with _compressing_on_every_core(OpenEXR), OpenEXR.File(header, channels) as exr:
             exr.write(str(path))

@@ -15,6 +15,7 @@ file, the byte offset or header field, and a ``ktx2.*`` code (spec/ktx2.md, "Rea
 from __future__ import annotations
 
 import io
+import math
 import os
 import stat
 import struct
@@ -47,15 +48,19 @@ ORIENTATION = "rd"
 VK_FORMAT_R16G16B16A16_UNORM = 91
 VK_FORMAT_R16G16B16A16_SFLOAT = 97
 VK_FORMAT_R32G32B32A32_SFLOAT = 109
+VK_FORMAT_R32G32B32_UINT = 104
+"""Format 1.2 (spec 9.4, spec/ktx2.md): the compact encoding's three words, 12 bytes per texel."""
 
 VK_FORMAT_OF_TEXEL_FORMAT = {"float16": VK_FORMAT_R16G16B16A16_SFLOAT,
                              "float32": VK_FORMAT_R32G32B32A32_SFLOAT,
-                             "unorm16": VK_FORMAT_R16G16B16A16_UNORM}
+                             "unorm16": VK_FORMAT_R16G16B16A16_UNORM,
+                             "uint32": VK_FORMAT_R32G32B32_UINT}
 TEXEL_FORMAT_OF_VK_FORMAT = {v: k for k, v in VK_FORMAT_OF_TEXEL_FORMAT.items()}
 VK_FORMAT_NAMES = {91: "VK_FORMAT_R16G16B16A16_UNORM", 97: "VK_FORMAT_R16G16B16A16_SFLOAT",
-                   109: "VK_FORMAT_R32G32B32A32_SFLOAT"}
-_DTYPE_OF_VK_FORMAT = {91: "<u2", 97: "<f2", 109: "<f4"}
-_TYPE_SIZE = {91: 2, 97: 2, 109: 4}
+                   109: "VK_FORMAT_R32G32B32A32_SFLOAT", 104: "VK_FORMAT_R32G32B32_UINT"}
+_DTYPE_OF_VK_FORMAT = {91: "<u2", 97: "<f2", 109: "<f4", 104: "<u4"}
+_TYPE_SIZE = {91: 2, 97: 2, 109: 4, 104: 4}
+_CHANNEL_COUNT = {91: 4, 97: 4, 109: 4, 104: 3}
 
 SUPERCOMPRESSION_SCHEMES = {"none": 0, "zstd": 2}
 """Supercompression names accepted by the writer, and their KTX 2.0 scheme numbers."""
@@ -116,21 +121,26 @@ def data_format_descriptor(vk_format: int, *, supercompressed: bool = False) -> 
             KTX 2.0 requires of supercompressed files).
     """
     type_size = _TYPE_SIZE[vk_format]
+    count = _CHANNEL_COUNT[vk_format]
     bits = 8 * type_size
-    is_float = vk_format != VK_FORMAT_R16G16B16A16_UNORM
-    block_size = 24 + 16 * 4
+    is_float = vk_format not in (VK_FORMAT_R16G16B16A16_UNORM, VK_FORMAT_R32G32B32_UINT)
+    block_size = 24 + 16 * count
     block = bytearray()
     block += struct.pack("<I", 0)                                # vendorId 0, descriptorType 0
     block += struct.pack("<HH", 2, block_size)                   # versionNumber, descriptorBlockSize
     block += bytes([_KHR_DF_MODEL_RGBSDA, _KHR_DF_PRIMARIES_BT709, _KHR_DF_TRANSFER_LINEAR, 0])
     block += bytes([0, 0, 0, 0])                                 # texelBlockDimension: 1 x 1 x 1 x 1
-    block += bytes([0 if supercompressed else 4 * type_size, 0, 0, 0, 0, 0, 0, 0])
-    for index, channel in enumerate((0, 1, 2, _KHR_DF_CHANNEL_ALPHA)):
+    block += bytes([0 if supercompressed else count * type_size, 0, 0, 0, 0, 0, 0, 0])
+    for index, channel in enumerate((0, 1, 2, _KHR_DF_CHANNEL_ALPHA)[:count]):
         qualifiers = _QUALIFIER_FLOAT_SIGNED if is_float else 0
         block += struct.pack("<HBB", index * bits, bits - 1, channel | qualifiers)
         block += bytes(4)                                        # samplePosition 0..3
         if is_float:
             block += struct.pack("<II", _FLOAT_MINUS_ONE, _FLOAT_ONE)
+        elif vk_format == VK_FORMAT_R32G32B32_UINT:
+            # Non-normalized integers: sampleUpper 1 (Khronos Data Format 1.3, "sampleUpper": an
+            # integer format that is not normalized has upper 1), as libktx's vk2dfd writes for _UINT.
+            block += struct.pack("<II", 0, 1)
         else:
             block += struct.pack("<II", 0, (1 << bits) - 1)
     return struct.pack("<I", 4 + len(block)) + bytes(block)
@@ -149,6 +159,11 @@ def _key_value_data(entries: dict) -> bytes:
         out += struct.pack("<I", len(body)) + body
         out += bytes(-len(out) % 4)
     return bytes(out)
+
+
+def _alignment(vk_format: int) -> int:
+    """KTX 2.0's level alignment without supercompression: lcm(texel block size, 4)."""
+    return math.lcm(_CHANNEL_COUNT[vk_format] * _TYPE_SIZE[vk_format], 4)
 
 
 def ktx2_bytes(texels: np.ndarray, metadata: str, *, supercompression: str = "none",
@@ -174,13 +189,15 @@ def ktx2_bytes(texels: np.ndarray, metadata: str, *, supercompression: str = "no
         raise OptionsError(f"KTX2 supercompression must be one of {', '.join(SUPERCOMPRESSION_SCHEMES)}, "
                            f"got {supercompression!r}", file="texture")
     texels = np.asarray(texels)
-    kinds = {np.dtype(np.float16): 97, np.dtype(np.float32): 109, np.dtype(np.uint16): 91}
+    kinds = {np.dtype(np.float16): 97, np.dtype(np.float32): 109, np.dtype(np.uint16): 91,
+             np.dtype(np.uint32): VK_FORMAT_R32G32B32_UINT}
     if texels.ndim != 3 or texels.shape[2] != 4 or texels.dtype.newbyteorder("=") not in kinds:
-        raise ValueError(f"texels must be (height, width, 4) float16, float32 or uint16, got "
+        raise ValueError(f"texels must be (height, width, 4) float16, float32, uint16 or uint32, got "
                          f"{texels.shape} {texels.dtype}")
     vk_format = kinds[texels.dtype.newbyteorder("=")]
     height, width = int(texels.shape[0]), int(texels.shape[1])
-    raw = np.ascontiguousarray(texels, dtype=_DTYPE_OF_VK_FORMAT[vk_format]).tobytes()
+    # uint32 texels are held widened to RGBA (A = 0); the file stores R, G, B (spec 9.4).
+    raw = np.ascontiguousarray(texels[..., :_CHANNEL_COUNT[vk_format]], dtype=_DTYPE_OF_VK_FORMAT[vk_format]).tobytes()
     if scheme == 2:
         try:
             zstandard = _zstandard()
@@ -201,7 +218,7 @@ def ktx2_bytes(texels: np.ndarray, metadata: str, *, supercompression: str = "no
     kvd_offset = dfd_offset + len(dfd)
     level_offset = kvd_offset + len(kvd)
     if scheme == 0:
-        level_offset += -level_offset % (4 * _TYPE_SIZE[vk_format])   # lcm(texel block size, 4)
+        level_offset += -level_offset % _alignment(vk_format)
     out = bytearray(MAGIC)
     out += struct.pack("<9I", vk_format, _TYPE_SIZE[vk_format], width, height, 0, 0, 1, 1, scheme)
     out += struct.pack("<IIIIQQ", dfd_offset, len(dfd), kvd_offset, len(kvd), 0, 0)
@@ -309,7 +326,7 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
         if vk_format not in TEXEL_FORMAT_OF_VK_FORMAT:
             raise _bad(file, "header/vkFormat (byte 12)", f"vkFormat {vk_format} is not a Virtual Bones "
                        "texel format (97 R16G16B16A16_SFLOAT, 109 R32G32B32A32_SFLOAT, "
-                       "91 R16G16B16A16_UNORM)", "ktx2.vkFormat")
+                       "91 R16G16B16A16_UNORM, 104 R32G32B32_UINT)", "ktx2.vkFormat")
         if type_size != _TYPE_SIZE[vk_format]:
             raise _bad(file, "header/typeSize (byte 16)", f"typeSize {type_size} for "
                        f"{VK_FORMAT_NAMES[vk_format]}, expected {_TYPE_SIZE[vk_format]}", "ktx2.header")
@@ -324,10 +341,11 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
         if scheme not in SUPERCOMPRESSION_NAMES:
             raise _bad(file, "header/supercompressionScheme (byte 44)", f"supercompression scheme "
                        f"{scheme} is not supported (0 none, 2 Zstandard)", "ktx2.supercompression")
-        texel_bytes = width * height * 4 * type_size
+        count = _CHANNEL_COUNT[vk_format]
+        texel_bytes = width * height * count * type_size
         if uncompressed_length != texel_bytes:
             raise _bad(file, "levels/0/uncompressedByteLength (byte 96)", f"level 0 declares "
-                       f"{uncompressed_length} bytes; {width}x{height} RGBA of {type_size}-byte "
+                       f"{uncompressed_length} bytes; {width}x{height} {'RGBA'[:count]} of {type_size}-byte "
                        f"channels is {texel_bytes}", "ktx2.levels")
         if scheme == 0 and level_length != texel_bytes:
             raise _bad(file, "levels/0/byteLength (byte 88)", f"level 0 is {level_length} bytes; "
@@ -347,12 +365,13 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
                            f"bytes at byte {offset} lies outside the file of {size} bytes or overlaps "
                            f"what comes before it (byte {cursor})", "ktx2.levels")
             cursor = offset + length
-        if scheme == 0 and level_offset % (4 * type_size):
+        if scheme == 0 and level_offset % _alignment(vk_format):
             raise _bad(file, "levels/0/byteOffset (byte 80)", f"level 0 at byte {level_offset} is not "
-                       f"aligned to {4 * type_size} bytes", "ktx2.levels")
-        if dfd_length != DFD_BYTES:
+                       f"aligned to {_alignment(vk_format)} bytes", "ktx2.levels")
+        dfd_bytes = DFD_BYTES - 16 * (4 - count)
+        if dfd_length != dfd_bytes:
             raise _bad(file, f"byte {dfd_offset}", f"DFD of {dfd_length} bytes; one basic block of "
-                       f"four samples is {DFD_BYTES}", "ktx2.dfd")
+                       f"{count} samples is {dfd_bytes}", "ktx2.dfd")
         if kvd_length > MAX_KEY_VALUE_BYTES:
             raise _bad(file, f"byte {kvd_offset}", f"key/value data of {kvd_length} bytes is over the "
                        f"limit of {MAX_KEY_VALUE_BYTES}", "ktx2.keyValue")
@@ -392,7 +411,7 @@ def _check_dfd(dfd: bytes, vk_format: int, scheme: int, offset: int, file: str) 
               (10, 2, "descriptorBlockSize"), (12, 1, "colorModel"), (13, 1, "colorPrimaries"),
               (14, 1, "transferFunction"), (15, 1, "flags"), (16, 4, "texelBlockDimension"),
               (20, 8, "bytesPlane")]
-    for sample in range(4):
+    for sample in range(_CHANNEL_COUNT[vk_format]):
         base = 28 + 16 * sample
         fields += [(base, 2, f"samples/{sample}/bitOffset"), (base + 2, 1, f"samples/{sample}/bitLength"),
                    (base + 3, 1, f"samples/{sample}/channelType"),
@@ -483,7 +502,13 @@ def read_level(path: PathLike, header: Ktx2Header) -> np.ndarray:
     else:
         raw = stored
     texels = np.frombuffer(raw, dtype=_DTYPE_OF_VK_FORMAT[header.vk_format])
-    return texels.reshape(header.height, header.width, 4).copy()
+    count = _CHANNEL_COUNT[header.vk_format]
+    if count == 4:
+        return texels.reshape(header.height, header.width, 4).copy()
+    # R32G32B32_UINT: widened to RGBA with A = 0, as vbusd holds uint32 texels (spec 9.4)
+    widened = np.zeros((header.height, header.width, 4), texels.dtype)
+    widened[..., :count] = texels.reshape(header.height, header.width, count)
+    return widened
 
 
 def read_ktx2(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION):

@@ -40,7 +40,7 @@ PathLike = Union[str, os.PathLike]
 
 CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png", ".ktx2": "ktx2"}
 CONTAINER_OF_FORMAT = {TexelFormat.FLOAT16: "exr", TexelFormat.FLOAT32: "exr",
-                       TexelFormat.UNORM16: "png"}
+                       TexelFormat.UNORM16: "png", TexelFormat.UINT32: "exr"}
 
 
 @dataclass(frozen=True)
@@ -94,8 +94,11 @@ def container_for(path: PathLike, texel_format: TexelFormat) -> str:
         raise OptionsError(f"texture file name {Path(path).name!r} must end in .exr (float16, "
                            "float32), .png (unorm16) or .ktx2 (any)", file="texture")
     texel_format = TexelFormat(texel_format)
-    if container == "ktx2":  # KTX 2.0 holds all three texel formats (spec/ktx2.md)
+    if container == "ktx2":  # KTX 2.0 holds every texel format (spec/ktx2.md)
         return container
+    if container == "png" and texel_format is TexelFormat.UINT32:
+        raise OptionsError(f"texelFormat uint32 (compactQuatTranslation) cannot be stored in PNG, which "
+                           f"has no 32-bit channels; use .exr or .ktx2 ({Path(path).name})", file="texture")
     if CONTAINER_OF_FORMAT[texel_format] != container:
         wanted = CONTAINER_OF_FORMAT[texel_format]
         raise OptionsError(f"texelFormat {texel_format.value} is stored in .{wanted} files, not "
@@ -262,12 +265,12 @@ class Container:
 
 CONTAINERS = {
     "exr": Container("exr", b"\x76\x2f\x31\x01", "vbusd.io.exr", "read_exr",
-                     {"float16": "float16", "float32": "float32"}, "header/dataWindow",
+                     {"float16": "float16", "float32": "float32", "uint32": "uint32"}, "header/dataWindow",
                      "header/channels"),
     "png": Container("png", b"\x89PNG\r\n\x1a\n", "vbusd.io.png", "read_png", {"unorm16": "uint16"},
                      "IHDR", "IHDR"),
     "ktx2": Container("ktx2", b"\xabKTX 20\xbb\r\n\x1a\n", "vbusd.io.textures", "_read_ktx2",
-                      {"float16": "float16", "float32": "float32", "unorm16": "uint16"},
+                      {"float16": "float16", "float32": "float32", "unorm16": "uint16", "uint32": "uint32"},
                       "header/pixelWidth", "header/vkFormat", "ktx2.vkFormat"),
 }
 """Every container, by name; :func:`read_texture_file` picks one by the file's magic bytes."""
@@ -466,7 +469,7 @@ def check_image(image: TextureImage, diagnostics: Diagnostics, *, width=None, he
                                f"the texels hash to {actual[:23]}...", digest_location or at_channels)
 
 
-_PIXEL_TYPES = ("float16", "float32", "uint16")
+_PIXEL_TYPES = ("float16", "float32", "uint16", "uint32")
 """Pixel types a Virtual Bones texture can have; a container reader reports any other itself."""
 
 

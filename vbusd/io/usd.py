@@ -244,15 +244,21 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["maskNames"] = Vt.TokenArray([str(name) for name, _ in vb.masks])
         values["maskWeights"] = Vt.FloatArray([float(w) for _, weights in vb.masks for w in weights])
         minor = max(minor, 2)
-    if minor:
-        # The lowest version that holds the asset (spec 16.1, 16.2): 1.1 or 1.2 only when it uses
-        # a feature of that version.
-        values["formatMinorVersion"] = int(minor)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
         # float4[] holds float32: the nearest float32 of each float64 bound (spec: USD schema).
         values["unormRangeMin"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 0], np.float32))
         values["unormRangeMax"] = Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(ranges[..., 1], np.float32))
+    if layout.texel_format is TexelFormat.UINT32:
+        # Format 1.2 (spec 5.6.3): 7 ranges per bone, bone-major; float32 copies of the widened bounds.
+        ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
+        values["compactRangeMin"] = Vt.FloatArray.FromNumpy(np.ascontiguousarray(ranges[..., 0].reshape(-1), np.float32))
+        values["compactRangeMax"] = Vt.FloatArray.FromNumpy(np.ascontiguousarray(ranges[..., 1].reshape(-1), np.float32))
+        minor = max(minor, 2)
+    if minor:
+        # The lowest version that holds the asset (spec 16.1, 16.2): 1.1 only when it uses a 1.1
+        # feature, 1.2 with the compact encoding.
+        values["formatMinorVersion"] = int(minor)
     authored = {names.BY_KEY[key].name: value for key, value in values.items()}
     authored.update({names.CLIP_BY_KEY[key].name: value for key, value in clip_values.items()})
     for name, value in authored.items():

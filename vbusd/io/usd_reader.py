@@ -528,7 +528,8 @@ class UsdReader:
         clip_arrays: dict = {}
         for attribute in names.ANIMATION_ATTRIBUTES:
             if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms",
-                                 "clipRootMotion", "rootMotionUpAxis", "boneParents", "maskNames", "maskWeights"):
+                                 "clipRootMotion", "rootMotionUpAxis", "boneParents", "maskNames", "maskWeights",
+                                 "compactRangeMin", "compactRangeMax"):
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -557,14 +558,17 @@ class UsdReader:
                     # see, instead of piling up findings about what depends on it.
                     upgraded[attribute.key] = fallback
         declared.values.update({k: v for k, v in upgraded.items() if k != "clips"})
-        # The version as authored, compared with the texture's metadata as written: an upgrade
-        # step (1.1 -> 1.2) must not make a 1.1 prim disagree with its 1.1 texture.
-        declared.values.pop("formatMinorVersion", None)
-        if "formatMinorVersion" in raw:
-            declared.values["formatMinorVersion"] = raw["formatMinorVersion"]
+        # The version compared with the texture's metadata is the one authored, not the upgraded
+        # one: a 1.1 prim and its 1.1 texture agree although this reader upgrades both to 1.2.
+        for key in ("formatVersion", "formatMinorVersion"):
+            if key in raw:
+                declared.values[key] = raw[key]
+            else:
+                declared.values.pop(key, None)
         if "clips" in upgraded and all(all(k in clip for k in names.CLIP_BY_KEY) for clip in upgraded["clips"]):
             declared.values["clips"] = upgraded["clips"]
         self._unorm_ranges(prim, declared)
+        self._compact_ranges(prim, declared)
         self._bind_transforms(prim, declared)
         self._masks(prim, declared)
         declared.layout = build_layout(declared)
@@ -691,6 +695,32 @@ class UsdReader:
                         f"({names.UNORM_RANGE_MIN}, {names.UNORM_RANGE_MAX})", UsdSite(path, names.UNORM_RANGE_MIN))
         else:
             declared.values["unormRanges"] = np.stack([low, high], axis=-1)
+
+    def _compact_ranges(self, prim, declared: Declared) -> None:
+        """Format 1.2 ``vb:compactRangeMin``/``Max`` (spec 5.6.3) into ``compactRanges``: (bones, 7, 2)."""
+        path = str(prim.GetPath())
+        compact = declared.get("texelFormat") == TexelFormat.UINT32.value
+        arrays = []
+        for name in (names.COMPACT_RANGE_MIN, names.COMPACT_RANGE_MAX):
+            authored, array = self.numbers(prim, name, names.BY_NAME[name].type, np.float64)
+            if compact and not authored:
+                self.report("prim.attribute.missing", f"missing required attribute {name} (float[]): "
+                            "compactQuatTranslation needs its per-bone ranges", UsdSite(path, name))
+            arrays.append(array)
+        low, high = arrays
+        if not compact or low is None or high is None:
+            return
+        bones = declared.get("boneCount")
+        if low.shape != high.shape or (isinstance(bones, int) and low.size != 7 * bones):
+            self.report("prim.attribute.invalid", f"{names.COMPACT_RANGE_MIN} has {low.size} values and "
+                        f"{names.COMPACT_RANGE_MAX} {high.size}; they hold 7 per bone"
+                        + (f" ({7 * bones})" if isinstance(bones, int) else ""),
+                        UsdSite(path, names.COMPACT_RANGE_MAX))
+        elif not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low <= high)):
+            self.report("prim.attribute.invalid", f"compact ranges must be finite with min <= max "
+                        f"({names.COMPACT_RANGE_MIN}, {names.COMPACT_RANGE_MAX})", UsdSite(path, names.COMPACT_RANGE_MIN))
+        else:
+            declared.values["compactRanges"] = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
 
     def _bind_transforms(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:bindTransforms`` (spec 8.4) into ``bindTransforms``: (bones, 4, 4) column vectors."""
@@ -872,6 +902,8 @@ class UsdReader:
         clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], float(c["rowsPerSecond"]), c["loop"],
                            float(c["startTime"])) for c in values["clips"])
         ranges = values.get("unormRanges")
+        if ranges is None:
+            ranges = values.get("compactRanges")  # format 1.2: the uint32 texel format's ranges
         return AnimationAttributes(
             path=str(prim.GetPath()), format_version=int(values["formatVersion"]), layout=declared.layout,
             bones=tuple(values["bones"]), clips=clips, clip_extents=values.get("clipExtents"),

@@ -154,11 +154,13 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
     buffer = _Buffer()
     animations = []
     for vb in asset.animations:
-        texel_dtype = {"float16": "f2", "float32": "f4", "unorm16": "u2"}[vb.layout.texel_format.value]
+        texel_dtype = {"float16": "f2", "float32": "f4", "unorm16": "u2", "uint32": "u4"}[vb.layout.texel_format.value]
+        # uint32 (format 1.2): the three stored words per texel, as EXR and KTX2 hold them
+        stored = vb.texels[..., :3] if vb.layout.texel_format.value == "uint32" else vb.texels
         animations.append({
             "path": vb.path,
             "layout": to_dict(vb),
-            "texels": buffer.add(vb.texels, texel_dtype),
+            "texels": buffer.add(np.ascontiguousarray(stored), texel_dtype),
             "clipExtents": None if vb.clip_extents is None
             else np.asarray(vb.clip_extents, dtype=np.float64).tolist(),
             # Levels of detail (format 1.2): LOD 0 as "meshes", the others in "levels" with their

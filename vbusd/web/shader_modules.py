@@ -35,6 +35,8 @@ def layer_blocks() -> dict:
     for encoding in Encoding:
         block = None
         for texel_format in TexelFormat:
+            if (encoding is Encoding.COMPACT_QUAT_TRANSLATION) != (texel_format is TexelFormat.UINT32):
+                continue  # uint32 is the compact encoding's texel format, and its only one (spec 5.6)
             options = dict(lang="glsl", encoding=encoding, texel_format=texel_format, max_influences=BASE_MAX_INFLUENCES,
                            max_clips=DEFAULT_MAX_CLIPS, main=False, skin="attributes")
             base = generate(ShaderOptions(**options))
@@ -60,6 +62,8 @@ def javascript_module() -> str:
     pulled = {}
     for encoding in Encoding:
         for texel_format in TexelFormat:
+            if (encoding is Encoding.COMPACT_QUAT_TRANSLATION) != (texel_format is TexelFormat.UINT32):
+                continue  # uint32 is the compact encoding's texel format, and its only one (spec 5.6)
             for skin, table in (("attributes", modules), ("pulled", pulled)):
                 options = ShaderOptions(lang="glsl", encoding=encoding, texel_format=texel_format,
                                         max_influences=BASE_MAX_INFLUENCES, max_clips=DEFAULT_MAX_CLIPS,

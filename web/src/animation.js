@@ -2,19 +2,27 @@
 // every material skinned from it shares (spec/shaders.md, "Resources").
 
 import {
-  DataTexture, RGBAFormat, HalfFloatType, FloatType, UnsignedShortType, NearestFilter,
-  ClampToEdgeWrapping, NoColorSpace, Vector4, Box3, Vector3, Matrix4,
+  DataTexture, RGBAFormat, RGBAIntegerFormat, HalfFloatType, FloatType, UnsignedShortType, UnsignedIntType,
+  NearestFilter, ClampToEdgeWrapping, NoColorSpace, Vector4, Box3, Vector3, Matrix4,
 } from 'three';
 
 import { BASE_MAX_CLIPS } from './shader-modules.js';
 
 const TEXEL_TYPES = {
-  float16: { type: HalfFloatType, array: Uint16Array, bytes: 2 },
-  float32: { type: FloatType, array: Float32Array, bytes: 4 },
-  unorm16: { type: UnsignedShortType, array: Uint16Array, bytes: 2 },
+  float16: { type: HalfFloatType, array: Uint16Array, bytes: 2, channels: 4, format: RGBAFormat },
+  float32: { type: FloatType, array: Float32Array, bytes: 4, channels: 4, format: RGBAFormat },
+  unorm16: { type: UnsignedShortType, array: Uint16Array, bytes: 2, channels: 4, format: RGBAFormat },
+  // Format 1.2 (spec 9.4): the compact encoding's three words per texel, read with texelFetch from
+  // a usampler2D, never filtered; uploaded widened to RGBA32UI (A = 0): three's RGB32UI upload read
+  // back as zeros in Chromium (measured, SwiftShader WebGL 2), RGBA32UI is color-renderable and
+  // sampled everywhere.
+  uint32: { type: UnsignedIntType, array: Uint32Array, bytes: 4, channels: 3, format: RGBAIntegerFormat },
 };
 
-const ENCODINGS = { crossMatrix: 3, affineMatrix: 3, quatTranslation: 2, dualQuat: 2 };
+const ENCODINGS = { crossMatrix: 3, affineMatrix: 3, quatTranslation: 2, dualQuat: 2, compactQuatTranslation: 1 };
+
+/** Bones the compact module's range uniforms hold unless an animation needs more (VB_MAX_BONES). */
+export const BASE_MAX_BONES = 64;
 
 /** An error in the data handed to the runtime, or a browser that cannot run it. */
 export class VirtualBonesError extends Error {
@@ -39,10 +47,14 @@ export class VirtualBonesAnimation {
     if (!texelType) throw new VirtualBonesError(`${name}: unknown texel format ${JSON.stringify(layout.texelFormat)}`);
     const texelsPerBone = ENCODINGS[layout.encoding];
     if (!texelsPerBone) throw new VirtualBonesError(`${name}: unknown encoding ${JSON.stringify(layout.encoding)}`);
-    const expected = layout.width * layout.height * 4;
+    const expected = layout.width * layout.height * texelType.channels;
     if (!(texels instanceof texelType.array) || texels.length !== expected) {
       throw new VirtualBonesError(`${name}: texels must be a ${texelType.array.name} of ${expected} values `
-        + `(${layout.width} x ${layout.height} RGBA), got ${texels?.constructor?.name} of ${texels?.length}`);
+        + `(${layout.width} x ${layout.height} ${'RGBA'.slice(0, texelType.channels)}), got ${texels?.constructor?.name} of ${texels?.length}`);
+    }
+    if ((layout.encoding === 'compactQuatTranslation') !== (layout.texelFormat === 'uint32')) {
+      throw new VirtualBonesError(`${name}: encoding compactQuatTranslation and texel format uint32 go together, `
+        + `got ${layout.encoding} with ${layout.texelFormat}`);
     }
     this.name = name;
     this.layout = layout;
@@ -52,7 +64,17 @@ export class VirtualBonesAnimation {
     this.clips = layout.clips;
     this.clipExtents = clipExtents;
 
-    const texture = new DataTexture(texels, layout.width, layout.height, RGBAFormat, texelType.type);
+    let data = texels;
+    if (layout.texelFormat === 'uint32') {  // widen R, G, B words to RGBA with A = 0
+      data = new Uint32Array(layout.width * layout.height * 4);
+      for (let i = 0, n = layout.width * layout.height; i < n; ++i) {
+        data[4 * i] = texels[3 * i];
+        data[4 * i + 1] = texels[3 * i + 1];
+        data[4 * i + 2] = texels[3 * i + 2];
+      }
+    }
+    const texture = new DataTexture(data, layout.width, layout.height, texelType.format, texelType.type);
+    if (layout.texelFormat === 'uint32') texture.internalFormat = 'RGBA32UI';
     // Data, not colour: no colour conversion, no mipmaps, no filtering, no flip (row r = scanline r).
     texture.colorSpace = NoColorSpace;
     texture.generateMipmaps = false;
@@ -86,6 +108,19 @@ export class VirtualBonesAnimation {
       const ranges = layout.unormRanges;  // [slot][channel] = [min, max]
       this.uniforms.vb_rangeMin = { value: ranges.map((slot) => new Vector4(...slot.map((r) => r[0]))) };
       this.uniforms.vb_rangeMax = { value: ranges.map((slot) => new Vector4(...slot.map((r) => r[1]))) };
+    }
+    this.maxBones = Math.max(BASE_MAX_BONES, layout.boneCount);
+    if (layout.texelFormat === 'uint32') {
+      // Per bone (spec 5.6.3): q min, q max, (t min, 0), (t max, 0); the array is VB_MAX_BONES long.
+      const ranges = layout.compactRanges;  // [bone][k][min, max], k = qx qy qz qw tx ty tz
+      const value = [];
+      for (let b = 0; b < this.maxBones; ++b) {
+        const r = ranges[b];
+        if (!r) { value.push(new Vector4(), new Vector4(), new Vector4(), new Vector4()); continue; }
+        value.push(new Vector4(r[0][0], r[1][0], r[2][0], r[3][0]), new Vector4(r[0][1], r[1][1], r[2][1], r[3][1]),
+          new Vector4(r[4][0], r[5][0], r[6][0], 0), new Vector4(r[4][1], r[5][1], r[6][1], 0));
+      }
+      this.uniforms.vb_compactRange = { value };
     }
   }
 

@@ -11,6 +11,7 @@ const FORMATS = {
   97: { texelFormat: 'float16', typeSize: 2, array: Uint16Array },   // VK_FORMAT_R16G16B16A16_SFLOAT
   109: { texelFormat: 'float32', typeSize: 4, array: Float32Array },  // VK_FORMAT_R32G32B32A32_SFLOAT
   91: { texelFormat: 'unorm16', typeSize: 2, array: Uint16Array },    // VK_FORMAT_R16G16B16A16_UNORM
+  104: { texelFormat: 'uint32', typeSize: 4, array: Uint32Array, channels: 3 },  // VK_FORMAT_R32G32B32_UINT (format 1.2)
 };
 
 let zstd = null;
@@ -46,7 +47,7 @@ export async function parseVirtualBonesKTX2(bytes, name = 'texture.ktx2') {
     throw new VirtualBonesError(`${name}: not a KTX2 file (${error.message})`);
   }
   const format = FORMATS[container.vkFormat];
-  if (!format) throw new VirtualBonesError(`${name}: vkFormat ${container.vkFormat} is not a Virtual Bones format (97, 109 or 91)`);
+  if (!format) throw new VirtualBonesError(`${name}: vkFormat ${container.vkFormat} is not a Virtual Bones format (97, 109, 91 or 104)`);
   if (container.levelCount !== 1 || container.layerCount !== 0 || container.faceCount !== 1 || container.pixelDepth !== 0) {
     throw new VirtualBonesError(`${name}: not a single 2D level (levels ${container.levelCount}, layers ${container.layerCount}, faces ${container.faceCount})`);
   }
@@ -66,7 +67,7 @@ export async function parseVirtualBonesKTX2(bytes, name = 'texture.ktx2') {
     throw new VirtualBonesError(`${name}: ${container.pixelWidth} x ${container.pixelHeight} texels, the metadata says ${layout.width} x ${layout.height}`);
   }
   const level = container.levels[0];
-  const size = layout.width * layout.height * 4 * format.typeSize;
+  const size = layout.width * layout.height * (format.channels ?? 4) * format.typeSize;
   if (level.uncompressedByteLength !== size) throw new VirtualBonesError(`${name}: level 0 holds ${level.uncompressedByteLength} bytes, ${size} expected`);
   let levelData;
   if (container.supercompressionScheme === 0) levelData = level.levelData;

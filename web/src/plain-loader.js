@@ -7,7 +7,7 @@ import { Group } from 'three';
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { VirtualBonesCrowd, instancesFromPlacement, singleInstance, skinnedGeometry } from './crowd.js';
 
-const TEXEL_ARRAYS = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array };
+const TEXEL_ARRAYS = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array, uint32: Uint32Array };
 
 function view(buffer, range, ArrayType, what) {
   if (range === null || range === undefined) return null;

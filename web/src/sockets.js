@@ -47,6 +47,27 @@ function quatRows(q) {
 }
 
 /**
+ * One compactQuatTranslation texel (format 1.2, spec 5.6.4) decoded: [q (4), t (3)]. The texture
+ * holds the words widened to RGBA (A = 0).
+ */
+function compactRow(animation, bone, row) {
+  const base = 4 * (row * animation.layout.width + bone);
+  const words = animation.texture.image.data;
+  const [r, g, b] = [words[base], words[base + 1], words[base + 2]];
+  const ranges = animation.layout.compactRanges[bone];
+  const index = b >>> 30;
+  const fields = [r & 0xffff, r >>> 16, g & 0xffff];
+  const kept = [0, 1, 2, 3].filter((c) => c !== index);
+  const q = [0, 0, 0, 0];
+  kept.forEach((c, k) => { q[c] = ranges[c][0] + (ranges[c][1] - ranges[c][0]) * (fields[k] / 65535); });
+  q[index] = Math.sqrt(Math.max(0, 1 - kept.reduce((sum, c) => sum + q[c] * q[c], 0)));
+  const length = Math.hypot(...q);
+  const t = [(g >>> 16) & 0x7fff, b & 0x7fff, (b >>> 15) & 0x7fff]
+    .map((u, k) => ranges[4 + k][0] + (ranges[4 + k][1] - ranges[4 + k][0]) * (u / 32767));
+  return [...q.map((v) => v / length), ...t];
+}
+
+/**
  * The decoded skinning transform [A | t] of `bone` at clip-local time `tau` of clip `clipIndex`,
  * as three rows of four numbers (spec "Encodings", "Interpolation between rows").
  */
@@ -54,6 +75,16 @@ export function boneRows(animation, clipIndex, tau, bone) {
   const clip = animation.clips[clipIndex];
   if (!clip) throw new VirtualBonesError(`${animation.name}: no clip ${clipIndex}`);
   const { i0, i1, f } = rowPosition(clip, tau);
+  if (animation.encoding === 'compactQuatTranslation') {
+    // decode both rows, negate the second quaternion when they disagree in sign, then blend
+    const a = compactRow(animation, bone, clip.firstRow + i0);
+    const b = compactRow(animation, bone, clip.firstRow + i1);
+    const sign = a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] < 0 ? -1 : 1;
+    const mixed = a.map((v, k) => (1 - f) * v + f * (k < 4 ? sign : 1) * b[k]);
+    const length = Math.hypot(mixed[0], mixed[1], mixed[2], mixed[3]);
+    const r = quatRows(mixed.slice(0, 4).map((v) => v / length));
+    return [0, 1, 2].map((i) => [r[i][0], r[i][1], r[i][2], mixed[4 + i]]);
+  }
   const values = [];
   for (let slot = 0; slot < animation.texelsPerBone; ++slot) {
     const a = texel(animation, bone, slot, clip.firstRow + i0);

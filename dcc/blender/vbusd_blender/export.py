@@ -36,8 +36,8 @@ import numpy as np
 
 from .blendcompat import action_fcurves, assign_action
 
-ENCODINGS = ("auto", "crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
-TEXEL_FORMATS = ("float16", "float32", "unorm16")
+ENCODINGS = ("auto", "crossMatrix", "affineMatrix", "quatTranslation", "dualQuat", "compactQuatTranslation")
+TEXEL_FORMATS = ("float16", "float32", "unorm16", "uint32")
 CONTAINERS = ("auto", "exr", "png")
 PADDINGS = ("powerOfTwo", "none")
 LOOP_MODES = ("AUTO", "ON", "OFF")
@@ -76,7 +76,8 @@ class ExportSettings:
         source: ``ACTIONS`` (each action alone, NLA off) or ``TIMELINE`` (the scene's frame range
             as it plays, NLA included: one clip named after the scene).
         encoding: ``auto`` or a vbusd encoding token.
-        texel_format: ``float16``, ``float32`` or ``unorm16``.
+        texel_format: ``float16``, ``float32``, ``unorm16`` or ``uint32`` (compactQuatTranslation;
+            float16, the default, becomes uint32 with that encoding).
         container: ``auto`` (EXR for float formats, PNG for unorm16), ``exr`` or ``png``.
         rows_per_second: Texture rows per second; 0 keeps the scene's frame rate.
         horizontal_padding: ``powerOfTwo`` or ``none``.
@@ -609,8 +610,11 @@ def _convert_options(settings: ExportSettings):
     if not math.isfinite(rate) or rate < 0:
         raise OptionsError(f"rows_per_second must be 0 (the scene's frame rate) or positive, got {rate!r}",
                            file="export")
+    texel_format = settings.texel_format
+    if settings.encoding == "compactQuatTranslation" and texel_format == "float16":
+        texel_format = "uint32"  # the compact encoding's one texel format (format 1.2), as vbusd convert does
     return ConvertOptions(
-        encoding=settings.encoding, texel_format=settings.texel_format,
+        encoding=settings.encoding, texel_format=texel_format,
         rows_per_second=rate or None, horizontal_padding=settings.horizontal_padding,
         vertical_padding=settings.vertical_padding, max_influences=int(settings.max_influences),
         container=None if settings.container == "auto" else settings.container,
@@ -798,7 +802,7 @@ def _needs_similar_world(settings: ExportSettings, pairs: list) -> Optional[str]
     A non-uniform scale (or shear) makes every skinning matrix affine: linear blend skinning holds
     it exactly (affineMatrix, what auto takes), the rigid encodings and dual quaternions do not.
     """
-    if settings.encoding in ("crossMatrix", "quatTranslation", "dualQuat"):
+    if settings.encoding in ("crossMatrix", "quatTranslation", "dualQuat", "compactQuatTranslation"):
         return settings.encoding
     if settings.encoding == "auto" and any(m is not None and m.use_deform_preserve_volume for _, m, _ in pairs):
         return "Preserve Volume (dual-quaternion skinning)"

@@ -55,11 +55,14 @@ class EXPORT_SCENE_OT_virtual_bones(bpy.types.Operator, ExportHelper):
                ("crossMatrix", "Cross Matrix", "3 texels per bone, rigid (the talk's)"),
                ("affineMatrix", "Affine Matrix", "3 texels per bone, scale and shear allowed"),
                ("quatTranslation", "Quaternion + Translation", "2 texels per bone, uniform scale"),
-               ("dualQuat", "Dual Quaternion", "2 texels per bone, rigid, dual-quaternion skinning")))
+               ("dualQuat", "Dual Quaternion", "2 texels per bone, rigid, dual-quaternion skinning"),
+               ("compactQuatTranslation", "Compact (format 1.2)",
+                "1 texel of 12 bytes per bone, rigid; uint32 texels (EXR or KTX2)")))
     texel_format: EnumProperty(
         name="Texel Format", default="float16",
         items=(("float16", "Float 16", "Half floats (EXR)"), ("float32", "Float 32", "Floats (EXR)"),
-               ("unorm16", "UNorm 16", "16-bit integers with ranges (PNG)")))
+               ("unorm16", "UNorm 16", "16-bit integers with ranges (PNG)"),
+               ("uint32", "UInt 32", "The compact encoding's words (EXR); Float 16 with it means this")))
     container: EnumProperty(
         name="Container", default="auto",
         items=(("auto", "Auto", "EXR for float formats, PNG for unorm16"), ("exr", "OpenEXR", ""),

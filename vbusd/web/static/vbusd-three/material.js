@@ -6,7 +6,7 @@
 import {
   GLSL_MODULES, GLSL_PULLED_MODULES, GLSL_LAYER_BLOCKS, GLSL_LAYER_MARK, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS,
 } from './shader-modules.js';
-import { VirtualBonesError } from './animation.js';
+import { VirtualBonesError, BASE_MAX_BONES } from './animation.js';
 import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
 
 /**
@@ -14,7 +14,7 @@ import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
  * --max-influences K --max-clips C --skin S [--layers]`, character for character. The layer
  * functions of format 1.2 (spec/shaders.md, "Layers") come with the attribute binding only.
  */
-export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', layers = false) {
+export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', layers = false, maxBones = BASE_MAX_BONES) {
   checkSkinBinding(skin);
   if (layers && skin !== 'attributes') throw new VirtualBonesError('layers (format 1.2) need the attributes skin binding');
   const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
@@ -29,6 +29,10 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
     `up to ${BASE_MAX_INFLUENCES} influences.`, `up to ${maxInfluences} influences.`),
   `#define VB_MAX_INFLUENCES ${BASE_MAX_INFLUENCES}\n`, `#define VB_MAX_INFLUENCES ${maxInfluences}\n`),
   `#define VB_MAX_CLIPS ${BASE_MAX_CLIPS}\n`, `#define VB_MAX_CLIPS ${maxClips}\n`);
+  if (encoding === 'compactQuatTranslation') {  // `vbusd shader --max-bones N`: the range uniforms' size
+    if (!Number.isInteger(maxBones) || maxBones < 1 || maxBones > 1024) throw new VirtualBonesError(`maxBones must be 1..1024, got ${maxBones}`);
+    text = replaceOnce(text, `#define VB_MAX_BONES ${BASE_MAX_BONES}\n`, `#define VB_MAX_BONES ${maxBones}\n`);
+  }
   if (skin === 'pulled') {
     text = replaceOnce(replaceOnce(text,
       `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
@@ -50,7 +54,8 @@ function replaceOnce(text, search, replacement) {
  * With the `pulled` skin there are no bone inputs: the module declares `vb_skinTexture`.
  */
 export function skinningDeclarations(animation, maxInfluences, skin = 'attributes', layers = false) {
-  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin, layers);
+  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin, layers,
+    animation.maxBones ?? BASE_MAX_BONES);
   if (skin === 'pulled') {
     return `${module}
 in int vb_instanceClip;
@@ -176,7 +181,7 @@ export function patchMaterial(material, animation, maxInfluences, { skin = 'attr
     Object.assign(shader.uniforms, animation.uniforms, skinUniforms);
     shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin, layers);
   };
-  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}${layers ? ':layers' : ''}`;
+  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}:${animation.maxBones ?? BASE_MAX_BONES}${layers ? ':layers' : ''}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
   material.userData.virtualBones = { animation, maxInfluences, skin, layers };

@@ -167,6 +167,12 @@ export function probeCrowd(renderer, crowd, index, time) {
       gl.uniform4fv(gl.getUniformLocation(program, 'vb_rangeMin'), flat(animation.uniforms.vb_rangeMin.value));
       gl.uniform4fv(gl.getUniformLocation(program, 'vb_rangeMax'), flat(animation.uniforms.vb_rangeMax.value));
     }
+    if (animation.uniforms.vb_compactRange) {  // format 1.2: per-bone ranges of the compact encoding
+      const ranges = animation.uniforms.vb_compactRange.value;
+      const a = new Float32Array(4 * ranges.length);
+      ranges.forEach((v, i) => v.toArray(a, 4 * i));
+      gl.uniform4fv(gl.getUniformLocation(program, 'vb_compactRange'), a);
+    }
     gl.uniformMatrix4fv(gl.getUniformLocation(program, 'modelMatrix'), false, mesh.matrixWorld.elements);
 
     const outputs = [gl.createBuffer(), gl.createBuffer()];
