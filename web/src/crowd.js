@@ -70,9 +70,13 @@ function pick(values, slots, set) {
  * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `attributes`
  *   (default: bone indices and weights as vertex attributes) or `pulled` (the geometry's skin moves
  *   into an RGBA32UI texture read by gl_VertexID, and its bone attributes are removed; skin.js).
+ * @param {function} [options.skinMaterial] how a material is made to skin: `(material, animation,
+ *   maxInfluences, binding) => material`; default patchMaterial (WebGLRenderer, with patched depth
+ *   and distance materials for shadows). The three.js WebGPU runtime passes its skinNodeMaterial
+ *   (webgpu/material.js), whose shadows need no extra materials.
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = 'attributes' }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = 'attributes', skinMaterial = null }) {
     super();
     checkSkinBinding(skin, name);
     this.name = name;
@@ -117,11 +121,14 @@ export class VirtualBonesCrowd extends Group {
       geometry.setAttribute('vb_instanceTime', this.timeAttribute);
       geometry.setAttribute('vb_instanceFadeClip', this.fadeClipAttribute);
       geometry.setAttribute('vb_instanceFade', this.fadeAttribute);
-      const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
+      const skinned = skinMaterial ?? patchMaterial;
+      const mesh = new InstancedMesh(geometry, skinned(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = this.instanceMatrix;
       mesh.name = entry.name || geometry.name;
-      mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
-      mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
+      if (!skinMaterial) {
+        mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
+        mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
+      }
       mesh.castShadow = mesh.receiveShadow = true;
       mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this };
       this.add(mesh);

@@ -93,10 +93,11 @@ export async function loadPlainScene(url) {
 /**
  * Objects to draw a description: one VirtualBonesCrowd per crowd, and a single instance for each
  * animation that no crowd instances. Crowds may carry a `matrix` (their node's world transform).
- * `skin` is the skin binding of every crowd (`attributes`, the default, or `pulled`).
+ * `skin` is the skin binding of every crowd (`attributes`, the default, or `pulled`); `skinMaterial`
+ * how their materials skin (VirtualBonesCrowd's option; default: the WebGL runtime's patchMaterial).
  * Returns `{group, crowds, animations}`; `crowds` is the order `probe` numbers instances in.
  */
-export function buildObjects(description, { material, skin = 'attributes' } = {}) {
+export function buildObjects(description, { material, skin = 'attributes', skinMaterial = null } = {}) {
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));
@@ -104,7 +105,7 @@ export function buildObjects(description, { material, skin = 'attributes' } = {}
     const entry = description.animations[animationIndex];
     if (!entry) throw new VirtualBonesError(`${name}: no animation ${animationIndex}`);
     const meshes = entry.meshes.map((mesh) => ({ ...mesh, geometry: shareGeometry ? mesh.geometry : mesh.geometry.clone() }));
-    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin });
+    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin, skinMaterial });
     crowd.userData.animationIndex = animationIndex;
     if (matrix) {
       crowd.matrixAutoUpdate = false;
