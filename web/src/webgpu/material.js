@@ -21,10 +21,12 @@ import { animationNodes, skinVertex } from './skinning.js';
 
 /**
  * The per-instance values of VirtualBonesCrowd (`vb_instanceClip`, `vb_instanceTime`,
- * `vb_instanceFadeClip`, `vb_instanceFade`) as nodes. On the WebGPU backend they are read from
- * storage buffers by instance index: WebGPU allows 8 vertex buffers, and the rest mesh, two bone
- * sets, these four and the instance matrix would need 11. On the WebGL 2 backend (no storage
- * buffers in the vertex stage; 16 attributes) they stay instanced attributes.
+ * `vb_instanceFadeClip`, `vb_instanceFade`) as nodes. On the WebGPU backend the clip, time and
+ * fade clip are read from storage buffers by instance index: WebGPU allows 8 vertex buffers, and
+ * the rest mesh, two bone sets, these four and the instance matrix would need 11. The fade stays
+ * an instanced attribute: three pads a vec3 attribute bound as storage to vec4 in place (its
+ * array and itemSize change), which would break the crowd's own indexing. On the WebGL 2 backend
+ * (no storage buffers in the vertex stage; 16 attributes) all four stay instanced attributes.
  */
 function instanceInputs(builder) {
   const attributes = builder.geometry.attributes;
@@ -33,12 +35,11 @@ function instanceInputs(builder) {
     const clip = read('vb_instanceClip', 'int', 1);
     const time = read('vb_instanceTime', 'float', 2);
     const fadeClip = read('vb_instanceFadeClip', 'int', 1);
-    const fade = read('vb_instanceFade', 'float', 3);
+    const fade = attribute('vb_instanceFade', 'vec3');
     const i = int(instanceIndex);
     return {
       clip: clip.element(i), offset: time.element(i.mul(2)), rate: time.element(i.mul(2).add(1)),
-      fadeClip: fadeClip.element(i), fadeOffset: fade.element(i.mul(3)), fadeRate: fade.element(i.mul(3).add(1)),
-      fadeWeight: fade.element(i.mul(3).add(2)),
+      fadeClip: fadeClip.element(i), fadeOffset: fade.x, fadeRate: fade.y, fadeWeight: fade.z,
     };
   }
   const time = attribute('vb_instanceTime', 'vec2');

@@ -1,10 +1,11 @@
 // The GPU's own skinned vertices under WebGPURenderer, read back for tests: a compute pass runs the
 // node graph the materials run (skinning.js: skinVertex) over every vertex of a mesh, fed with one
 // instance's clip, times and fade from the crowd's own attribute arrays, and writes world-space
-// positions and normals to storage buffers that are read back. On the WebGL 2 backend three runs
-// the same compute node through transform feedback.
+// positions and normals to storage buffers that are read back. WebGPU backend only: three r187 runs
+// compute on its WebGL 2 backend through transform feedback with every storage buffer as a separate
+// output, and the probe's eight buffers exceed WebGL 2's four separate outputs.
 
-import { Matrix3, Matrix4 } from 'three/webgpu';
+import { Matrix3, Matrix4, Vector4 } from 'three/webgpu';
 import { Fn, instancedArray, instanceIndex, uniform, vec4, int } from 'three/tsl';
 
 import { VirtualBonesError } from '../animation.js';
@@ -40,9 +41,10 @@ function meshProbe(mesh) {
   }
   const positions = instancedArray(count, 'vec4');
   const normals = instancedArray(count, 'vec4');
+  // The instance as two vec4 uniforms: (clip, timeOffset, playbackRate, time) and (fadeClip,
+  // fadeTimeOffset, fadePlaybackRate, fadeWeight); the clips are small integers, exact as floats.
   const inputs = {
-    clip: uniform(0, 'int'), offset: uniform(0), rate: uniform(1), time: uniform(0),
-    fadeClip: uniform(0, 'int'), fadeOffset: uniform(0), fadeRate: uniform(1), fadeWeight: uniform(0),
+    instance: uniform(new Vector4()), fade: uniform(new Vector4()),
     world: uniform(new Matrix4()), normalMatrix: uniform(new Matrix3()),
   };
   const compute = Fn(() => {
@@ -61,11 +63,11 @@ function meshProbe(mesh) {
       normal: restNormal.element(instanceIndex).xyz,
       indices,
       weights,
-      clip: inputs.clip,
-      tau: inputs.offset.add(inputs.rate.mul(inputs.time)),
-      fadeClip: inputs.fadeClip,
-      fadeTau: inputs.fadeOffset.add(inputs.fadeRate.mul(inputs.time)),
-      fadeWeight: inputs.fadeWeight,
+      clip: int(inputs.instance.x),
+      tau: inputs.instance.y.add(inputs.instance.z.mul(inputs.instance.w)),
+      fadeClip: int(inputs.fade.x),
+      fadeTau: inputs.fade.y.add(inputs.fade.z.mul(inputs.instance.w)),
+      fadeWeight: inputs.fade.w,
     });
     positions.element(instanceIndex).assign(inputs.world.mul(vec4(skinned.position, 1.0)));
     normals.element(instanceIndex).assign(vec4(safeNormalize(inputs.normalMatrix.mul(skinned.normal)), 0.0));
@@ -77,11 +79,14 @@ function meshProbe(mesh) {
 
 /**
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
- * computed by the GPU with WebGPURenderer `renderer` (either backend): a Promise of
+ * computed by the GPU with WebGPURenderer `renderer` (WebGPU backend): a Promise of
  * `{positions, normals}` as Float32Arrays, in the order and shape of the WebGL runtime's
  * probeCrowd (meshes in order, points in the asset's order; normals empty for meshes without).
  */
 export async function probeNodeCrowd(renderer, crowd, index, time) {
+  if (!renderer.backend.isWebGPUBackend) {
+    throw new VirtualBonesError('the WebGPU runtime\'s probe needs WebGPURenderer\'s WebGPU backend (this one runs on WebGL 2)');
+  }
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   crowd.updateMatrixWorld(true);
   const placement = new Matrix4().fromArray(crowd.instanceMatrix.array, 16 * index);
@@ -90,12 +95,9 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
   for (const mesh of crowd.meshes) {
     const probe = meshProbe(mesh);
     const { inputs } = probe;
-    inputs.clip.value = crowd.clipAttribute.array[index];
-    inputs.offset.value = crowd.timeAttribute.array[2 * index];
-    inputs.rate.value = crowd.timeAttribute.array[2 * index + 1];
-    inputs.time.value = time;
-    inputs.fadeClip.value = crowd.fadeClipAttribute.array[index];
-    [inputs.fadeOffset.value, inputs.fadeRate.value, inputs.fadeWeight.value] = crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3);
+    inputs.instance.value.set(crowd.clipAttribute.array[index], crowd.timeAttribute.array[2 * index],
+      crowd.timeAttribute.array[2 * index + 1], time);
+    inputs.fade.value.set(crowd.fadeClipAttribute.array[index], ...crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3));
     inputs.world.value.multiplyMatrices(mesh.matrixWorld, placement);
     inputs.normalMatrix.value.getNormalMatrix(inputs.world.value);
     await renderer.computeAsync(probe.compute);
