@@ -1,0 +1,183 @@
+"""The three.js WebGPU (TSL) runtime in a real browser: headless Chromium, WebGPU on SwiftShader.
+
+``vbusd view --engine three-webgpu`` draws with WebGPURenderer and web/src/webgpu (node materials:
+the skinning as TSL before three's instancing, shadows through ``castShadowPositionNode``). Chromium
+offers WebGPU headless with :data:`vbusd.web.browser.WEBGPU_ARGS` (``--enable-unsafe-webgpu
+--enable-features=Vulkan --use-vulkan=swiftshader``: Dawn on SwiftShader's Vulkan). Checked against
+vbusd's numpy reference decoder, which shares no code with the TSL path beyond the stored texels:
+
+* ``window.vbusd.probe(instance, time)``, the same contract as the WebGL page: world-space skinned
+  positions and normals from a compute pass running the materials' own node graph, on the stadium
+  crowd in every encoding and both float formats, on the bar glTF rig, on a crowd with per-instance
+  clips, offsets and rates, and on a crossfading crowd: positions within 1e-6 of the instance's
+  bounding-box diagonal, unit normals within 1e-5 (float16 too: the decoder reads the same
+  float16 texels, so the bound is float32 arithmetic);
+* the shadows follow the animation (the figures hidden, their shadows move; without the skinned
+  shadow position they are frozen in the rest pose);
+* no console error on any page; WebGPURenderer's WebGL 2 backend draws the crowd, and its probe
+  refuses with one clear line (three r187 runs compute there through transform feedback, with too
+  few outputs for the probe).
+
+Skips with one line naming what to install when Chromium or playwright is missing, and when the
+browser offers no WebGPU adapter.
+"""
+
+from __future__ import annotations
+
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+from vbusd.web.server import ViewerServer
+
+HERE = Path(__file__).resolve().parent
+_helpers = runpy.run_path(str(HERE / "test_browser.py"))
+stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
+rig_assets = _helpers["rig_assets"]
+bar_crowd = _helpers["bar_crowd"]
+check_probe = _helpers["check_probe"]
+screenshot_luminance = _helpers["screenshot_luminance"]
+SAMPLE = _helpers["SAMPLE"]
+ENCODINGS = _helpers["ENCODINGS"]
+FORMATS = _helpers["FORMATS"]
+STADIUM_PROBES = _helpers["STADIUM_PROBES"]
+POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
+NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
+PAGE = _helpers["PAGE"]
+
+import vbusd  # noqa: E402  (after the helpers: same module objects)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    reason = unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    with chromium(webgpu=True) as launched:
+        yield launched
+
+
+def open_page(browser, server: ViewerServer, query: str, **kwargs) -> ViewerPage:
+    page = ViewerPage(browser, server.url + query, **kwargs)
+    if "WebGPU is not available" in " ".join(page.messages):
+        page.close()
+        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+    return page
+
+
+def run_probes(browser, path: Path, probes) -> list:
+    asset = vbusd.read_asset(path)
+    with ViewerServer(path, engine="three-webgpu") as server:
+        page = open_page(browser, server, PAGE)
+        try:
+            assert page.error == "", page.error
+            assert page.page.evaluate("[window.vbusd.engine, window.vbusd.backend]") == ["three-webgpu", "webgpu"]
+            errors = [check_probe(page, asset, instance, t) for instance, t in probes]
+            assert page.errors() == [], page.errors()
+            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
+        finally:
+            page.close()
+    return errors
+
+
+def assert_within(errors) -> None:
+    for position_error, normal_error in errors:
+        assert position_error <= POSITION_TOLERANCE
+        assert normal_error <= NORMAL_TOLERANCE
+
+
+@pytest.mark.parametrize("texel_format", FORMATS)
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_webgpu_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
+    errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
+    print(encoding, texel_format, errors)
+    assert_within(errors)
+
+
+@pytest.mark.parametrize("texel_format", FORMATS)
+@pytest.mark.parametrize("encoding", ("affineMatrix", "quatTranslation"))
+def test_webgpu_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format):
+    errors = run_probes(browser, rig_assets[encoding, texel_format], [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)])
+    print(encoding, texel_format, errors)
+    assert_within(errors)
+
+
+def test_webgpu_probe_per_instance_clip_offset_rate(browser, bar_crowd):
+    """Each instance its own clip, offset (negative too), rate, orientation and scale."""
+    assert_within(run_probes(browser, bar_crowd, [(i, t) for i in range(10) for t in (0.0, 1.37)]))
+
+
+def test_webgpu_probe_crossfade(browser, bar_crowd, tmp_path):
+    """A crossfading crowd (format 1.1): each instance blended with its own fade clip, offset,
+    rate and weight, as the reference decoder blends them."""
+    import dataclasses
+
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count = crowd.instance_count
+    clips = len(asset.animations[0].clips)
+    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
+                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
+                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
+                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
+    path = tmp_path / "faded" / "faded.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    errors = run_probes(browser, path, [(i, t) for i in range(count) for t in (0.0, 0.83)])
+    print(errors)
+    assert_within(errors)
+
+
+def test_webgpu_shadows_follow_the_animation(browser):
+    """The shadow pass skins too: with the figures hidden from the camera (no colour, no depth) the
+    shadows on the ground change as the crowd moves; without castShadowPositionNode (three's shadow
+    material on the rest mesh) they do not."""
+    width, height = 480, 200
+    query = (f"?paused=1&time=1.0&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
+             f"&camera=-16,7,27,4,2.2,46&fov=34&instances=400")
+    with ViewerServer(SAMPLE / "stadium_crowd_vb.usda", engine="three-webgpu") as server:
+        page = open_page(browser, server, query, width=width, height=height)
+        try:
+            assert page.error == ""
+            page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
+                mesh.material.colorWrite = false; mesh.material.depthWrite = false; } }""")
+
+            def shot(t: float) -> np.ndarray:
+                page.page.evaluate("(t) => { window.vbusd.setTime(t); window.vbusd.render(); }", t)
+                return screenshot_luminance(page.page.locator("#view").screenshot())
+
+            def changed(a: np.ndarray, b: np.ndarray) -> float:
+                return float((np.abs(a - b) > 8).mean())
+
+            skinned = shot(1.0), shot(3.6)
+            page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) for (const mesh of crowd.meshes) {
+                mesh.material.castShadowPositionNode = null; mesh.material.needsUpdate = true; } }""")
+            rest = shot(1.0), shot(3.6)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    print(f"shadow pixels changed: animated {changed(*skinned):.4f}, rest {changed(*rest):.4f}, "
+          f"animated vs rest {changed(skinned[0], rest[0]):.4f}")
+    assert changed(*skinned) > 0.005
+    assert changed(*rest) == 0.0
+    assert changed(skinned[0], rest[0]) > 0.005
+
+
+def test_webgl2_backend_draws_and_its_probe_refuses(browser, stadium_assets):
+    """``backend=webgl``: WebGPURenderer's WebGL 2 backend draws the crowd without a console error;
+    the probe says in one line that it needs the WebGPU backend."""
+    with ViewerServer(stadium_assets["crossMatrix", "float16"], engine="three-webgpu") as server:
+        page = ViewerPage(browser, server.url + PAGE + "&backend=webgl")
+        try:
+            assert page.error == "", page.error
+            assert page.page.evaluate("window.vbusd.backend") == "webgl2"
+            luminance = screenshot_luminance(page.page.locator("#view").screenshot())
+            assert (luminance > 128).mean() > 0.001  # white figures drawn on black
+            with pytest.raises(Exception, match="needs WebGPURenderer's WebGPU backend"):
+                page.page.evaluate("window.vbusd.probe(0, 0.0)")
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
