@@ -181,3 +181,14 @@ def test_webgl2_backend_draws_and_its_probe_refuses(browser, stadium_assets):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_webgpu_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding):
+    """A real rig (Khronos sample Fox: 24 joints, 1,728 vertices), every encoding, float16."""
+    path = tmp_path / "fox.usda"
+    vbusd.convert(shared_assets / "gltf" / "Fox" / "Fox.glb", path,
+                  vbusd.ConvertOptions(encoding=encoding, texel_format="float16", check_rows=0))
+    errors = run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)])
+    print(encoding, errors)
+    assert_within(errors)
