@@ -192,3 +192,37 @@ def test_webgpu_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_
     errors = run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)])
     print(encoding, errors)
     assert_within(errors)
+
+
+@pytest.mark.parametrize("case", ["stadium.glb", "bar_crowd.gltf"])
+def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
+    """The runtime package of ``vbusd export`` (KTX2, EXT_mesh_gpu_instancing with the _VB_*
+    attributes) through three's GLTFLoader and the VirtualBonesGLTFPlugin, drawn by WebGPURenderer:
+    the same vertices as the numpy decoder on the USD asset."""
+    from vbusd.io.gltf_package import export_gltf
+
+    package_vertices = _helpers["_package_vertices"]
+    reference_instance = _helpers["reference_instance"]
+    source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
+    asset = vbusd.read_asset(source)
+    package = tmp_path / case
+    export_gltf(asset, package)
+    probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
+    with ViewerServer(package, engine="three-webgpu") as server:
+        page = open_page(browser, server, PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance, t in probes:
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                expected_positions, expected_normals = reference_instance(asset, instance, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                expected = package_vertices(asset, expected_positions)
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                assert np.abs(positions - expected).max() / diagonal <= POSITION_TOLERANCE
+                normals = np.asarray(result["normals"]).reshape(-1, 3)
+                assert normals.shape == expected_normals.shape and normals.size
+                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
