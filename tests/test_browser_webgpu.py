@@ -226,3 +226,54 @@ def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+def test_docs_engines_example_runs(browser, tmp_path):
+    """docs/engines.md's three.js WebGPU page, as written, on a folder laid out as it says (the
+    package's static files and a ``vbusd export`` package): it draws lit, shadowed figures and
+    logs no error."""
+    import functools
+    import http.server
+    import re
+    import shutil
+    import threading
+
+    from vbusd.io.gltf_package import export_gltf
+
+    text = (HERE.parent / "docs" / "engines.md").read_text(encoding="utf-8")
+    section = text[text.index("## three.js WebGPU (TSL)"):]
+    html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
+    shutil.copytree(HERE.parent / "vbusd" / "web" / "static", tmp_path / "site")
+    (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
+    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path / "site")))
+    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
+    thread.start()
+    try:
+        page = browser.new_page(viewport={"width": 480, "height": 270}, device_scale_factor=1)
+        messages = []
+        page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
+        page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
+        page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
+        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
+        picture = page.screenshot()
+        luminance = screenshot_luminance(picture)
+        (tmp_path / "example.png").write_bytes(picture)
+        page.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
+    assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
+    if any("WebGPU is not available" in m for m in messages):
+        pytest.skip("this Chromium offers no WebGPU adapter")
+    # Lit figures (above the ground's ~84), the dark background (33) and shadows on the ground
+    # (between the two): all three present.
+    figures, background = (luminance > 95).mean(), (luminance < 40).mean()
+    shadows = ((luminance > 45) & (luminance < 75)).mean()
+    assert figures > 0.002 and background > 0.05 and shadows > 0.02, (figures, background, shadows)
