@@ -131,6 +131,44 @@ def test_webgpu_probe_crossfade(browser, bar_crowd, tmp_path):
     assert_within(errors)
 
 
+def test_webgpu_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path):
+    """Sockets (format 1.1) on the WebGPU page: ``crowd.socketMatrix(i, bone, t)`` of every
+    instance of a crossfading crowd equals the decoder's ``crowd_joint_transforms`` (placement
+    times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
+    import dataclasses
+
+    from vbusd.decode.reference import crowd_joint_transforms
+
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count = crowd.instance_count
+    clips = len(asset.animations[0].clips)
+    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 1) % clips).astype(np.int32),
+                                fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
+                                fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
+                                fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
+    path = tmp_path / "sockets" / "faded.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    asset = vbusd.read_asset(path)
+    vb = asset.animations[0]
+    extent = float(np.linalg.norm(np.ptp(np.asarray(faded.positions), axis=0))) + 1.0
+    with ViewerServer(path, engine="three-webgpu") as server:
+        page = open_page(browser, server, PAGE)
+        try:
+            for bone in range(vb.layout.bone_count):
+                for t in (0.0, 0.61):
+                    got = np.asarray(page.page.evaluate(
+                        """([bone, t, n]) => Array.from({ length: n }, (_, i) =>
+                            window.vbusd.crowds[0].socketMatrix(i, bone, t).toArray())""", [bone, t, count]))
+                    expected = crowd_joint_transforms(vb, asset.crowds[0], bone, t)
+                    got = got.reshape(count, 4, 4).transpose(0, 2, 1)  # three's column-major
+                    assert np.abs(got - expected).max() <= 1e-6 * extent, (bone, t)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
 def test_webgpu_shadows_follow_the_animation(browser):
     """The shadow pass skins too: with the figures hidden from the camera (no colour, no depth) the
     shadows on the ground change as the crowd moves; without castShadowPositionNode (three's shadow
