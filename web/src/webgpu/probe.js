@@ -1,9 +1,11 @@
 // The GPU's own skinned vertices under WebGPURenderer, read back for tests: a compute pass runs the
 // node graph the materials run (skinning.js: skinVertex) over every vertex of a mesh, fed with one
 // instance's clip, times and fade from the crowd's own attribute arrays, and writes world-space
-// positions and normals to storage buffers that are read back. WebGPU backend only: three r187 runs
-// compute on its WebGL 2 backend through transform feedback with every storage buffer as a separate
-// output, and the probe's eight buffers exceed WebGL 2's four separate outputs.
+// positions and normals to storage buffers that are read back. On the WebGL 2 backend three r187
+// runs compute through transform feedback, with every storage buffer the pass touches as one
+// separate output (WebGL 2 guarantees four): so the probe writes its results over its rest
+// position and rest normal buffers (each invocation reads its own vertex first) and refills them
+// before every run, which keeps it at four buffers for up to 4 influences.
 
 import { Matrix3, Matrix4, Vector4 } from 'three/webgpu';
 import { Fn, instancedArray, instanceIndex, uniform, vec4, int } from 'three/tsl';
@@ -39,8 +41,9 @@ function meshProbe(mesh) {
     boneIndices.push(instancedArray(Float32Array.from(geometry.attributes[`vb_boneIndices${set}`].array), 'vec4'));
     boneWeights.push(instancedArray(Float32Array.from(geometry.attributes[`vb_boneWeights${set}`].array), 'vec4'));
   }
-  const positions = instancedArray(count, 'vec4');
-  const normals = instancedArray(count, 'vec4');
+  const positions = rest;  // written in place (see above)
+  const normals = restNormal;
+  const initial = [rest.value.array.slice(), restNormal.value.array.slice()];
   // The instance as two vec4 uniforms: (clip, timeOffset, playbackRate, time) and (fadeClip,
   // fadeTimeOffset, fadePlaybackRate, fadeWeight); the clips are small integers, exact as floats.
   const inputs = {
@@ -72,21 +75,18 @@ function meshProbe(mesh) {
     positions.element(instanceIndex).assign(inputs.world.mul(vec4(skinned.position, 1.0)));
     normals.element(instanceIndex).assign(vec4(safeNormalize(inputs.normalMatrix.mul(skinned.normal)), 0.0));
   })().compute(count);
-  probe = { compute, positions, normals, inputs, count };
+  probe = { compute, positions, normals, inputs, count, initial, sets };
   probes.set(mesh, probe);
   return probe;
 }
 
 /**
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
- * computed by the GPU with WebGPURenderer `renderer` (WebGPU backend): a Promise of
+ * computed by the GPU with WebGPURenderer `renderer` (either backend): a Promise of
  * `{positions, normals}` as Float32Arrays, in the order and shape of the WebGL runtime's
  * probeCrowd (meshes in order, points in the asset's order; normals empty for meshes without).
  */
 export async function probeNodeCrowd(renderer, crowd, index, time) {
-  if (!renderer.backend.isWebGPUBackend) {
-    throw new VirtualBonesError('the WebGPU runtime\'s probe needs WebGPURenderer\'s WebGPU backend (this one runs on WebGL 2)');
-  }
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   crowd.updateMatrixWorld(true);
   const placement = new Matrix4().fromArray(crowd.instanceMatrix.array, 16 * index);
@@ -94,7 +94,14 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
   const normals = [];
   for (const mesh of crowd.meshes) {
     const probe = meshProbe(mesh);
+    if (!renderer.backend.isWebGPUBackend && probe.sets > 1) {
+      throw new VirtualBonesError(`${mesh.name}: the probe on WebGPURenderer's WebGL 2 backend reads up to 4 influences (transform feedback has 4 outputs), this mesh has ${mesh.userData.virtualBones.maxInfluences}`);
+    }
     const { inputs } = probe;
+    probe.positions.value.array.set(probe.initial[0]);
+    probe.normals.value.array.set(probe.initial[1]);
+    probe.positions.value.needsUpdate = true;
+    probe.normals.value.needsUpdate = true;
     inputs.instance.value.set(crowd.clipAttribute.array[index], crowd.timeAttribute.array[2 * index],
       crowd.timeAttribute.array[2 * index + 1], time);
     inputs.fade.value.set(crowd.fadeClipAttribute.array[index], ...crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3));
