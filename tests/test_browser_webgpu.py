@@ -275,6 +275,14 @@ def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
             page.close()
 
 
+@pytest.mark.parametrize("backend_query", ["", "&backend=webgl"])
+def test_webgpu_screenshot_matches_decoder_silhouette(browser, backend_query):
+    """WebGPURenderer's picture (MeshBasicNodeMaterial, unlit white on black) against the silhouette
+    rasterized from the decoder's vertices with the page's camera (tests/test_browser.py), on
+    WebGPU and on the WebGL 2 backend: IoU >= 0.98."""
+    _helpers["check_silhouette"](browser, "three-webgpu", backend_query)
+
+
 def test_docs_engines_example_runs(browser, tmp_path):
     """docs/engines.md's three.js WebGPU page, as written, on a folder laid out as it says (the
     package's static files and a ``vbusd export`` package): it draws lit, shadowed figures and
