@@ -231,10 +231,12 @@ def test_webgl2_backend_per_instance_and_picture(browser, bar_crowd, stadium_ass
 
 
 @pytest.mark.parametrize("encoding", ENCODINGS)
-def test_webgpu_probe_matches_reference_on_gltf_fox(browser, shared_assets, tmp_path, encoding):
-    """A real rig (Khronos sample Fox: 24 joints, 1,728 vertices), every encoding, float16."""
-    path = tmp_path / "fox.usda"
-    vbusd.convert(shared_assets / "gltf" / "Fox" / "Fox.glb", path,
+@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+def test_webgpu_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
+    """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
+    joints, 3,273 vertices with normals), every encoding, float16."""
+    path = tmp_path / f"{character}.usda"
+    vbusd.convert(shared_assets / "gltf" / character / f"{character}.glb", path,
                   vbusd.ConvertOptions(encoding=encoding, texel_format="float16", check_rows=0))
     errors = run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)])
     print(encoding, errors)
