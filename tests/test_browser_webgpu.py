@@ -8,10 +8,14 @@ vbusd's numpy reference decoder, which shares no code with the TSL path beyond t
 
 * ``window.vbusd.probe(instance, time)``, the same contract as the WebGL page: world-space skinned
   positions and normals from a compute pass running the materials' own node graph, on the stadium
-  crowd in every encoding and both float formats, on the bar glTF rig, on a crowd with per-instance
-  clips, offsets and rates, and on a crossfading crowd: positions within 1e-6 of the instance's
+  crowd in every encoding and both float formats, on the bar glTF rig and the Khronos Fox and
+  CesiumMan (shared assets), on a crowd with per-instance clips, offsets and rates, on a
+  crossfading crowd, and on ``vbusd export`` packages through GLTFLoader: positions within 1e-6 of the instance's
   bounding-box diagonal, unit normals within 1e-5 (float16 too: the decoder reads the same
   float16 texels, so the bound is float32 arithmetic);
+* sockets of a crossfading crowd (``crowd.socketMatrix``) against the decoder's joint transforms;
+* the picture against the decoder's silhouette (IoU >= 0.98), on both backends;
+* docs/engines.md's example page, as written, draws lit and shadowed figures;
 * the shadows follow the animation (the figures hidden, their shadows move; without the skinned
   shadow position they are frozen in the rest pose);
 * the same probes on WebGPURenderer's WebGL 2 backend (``backend=webgl``: the node graph as GLSL,
