@@ -2,7 +2,7 @@
 
 1. Writes web/src/shader-modules.js from vbusd.decode.shaders (vbusd.web.shader_modules), so the
    three.js runtime runs the GLSL ``vbusd shader`` prints, never a retyped copy.
-2. Copies the runtime (web/src/*.js) to vbusd/web/static/vbusd-three/ and the viewer page
+2. Copies the runtime (web/src/*.js, web/src/webgpu/*.js) to vbusd/web/static/vbusd-three/ and the viewer pages
    (web/viewer/*) to vbusd/web/static/.
 3. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
    from web/node_modules/three (``npm ci`` in web/ installs the version package-lock.json pins) to
@@ -26,6 +26,8 @@ THREE = WEB / "node_modules" / "three"
 THREE_FILES = {
     "build/three.module.js": "three/three.module.js",
     "build/three.core.js": "three/three.core.js",
+    "build/three.webgpu.js": "three/three.webgpu.js",  # `vbusd view --engine three-webgpu`
+    "build/three.tsl.js": "three/three.tsl.js",
     "LICENSE": "three/LICENSE",
     "examples/jsm/controls/OrbitControls.js": "three/addons/controls/OrbitControls.js",
     "examples/jsm/loaders/GLTFLoader.js": "three/addons/loaders/GLTFLoader.js",
@@ -51,6 +53,8 @@ def planned_files(*, with_three: bool = True) -> dict[Path, bytes]:
     for source in sorted((WEB / "src").glob("*.js")):
         if source.name != "shader-modules.js":
             files[STATIC / "vbusd-three" / source.name] = source.read_bytes()
+    for source in sorted((WEB / "src" / "webgpu").glob("*.js")):  # the three.js WebGPU (TSL) runtime
+        files[STATIC / "vbusd-three" / "webgpu" / source.name] = source.read_bytes()
     files[STATIC / "vbusd-three" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
     for source in sorted((WEB / "viewer").iterdir()):
         files[STATIC / source.name] = source.read_bytes()

@@ -80,7 +80,7 @@ def test_serves_page_config_and_plain_files(viewer):
     status, body, content_type = _get(port, "/three/three.module.js")
     assert status == 200 and content_type.startswith("text/javascript")  # module scripts need a JS type
     config = json.loads(_get(port, "/config.json")[1])
-    assert config == {"name": "stadium_crowd_vb.usda", "kind": "scene", "url": "scene/scene.json"}
+    assert config == {"name": "stadium_crowd_vb.usda", "kind": "scene", "url": "scene/scene.json", "engine": "three"}
     scene = json.loads(_get(port, "/scene/scene.json")[1])
     status, data, _ = _get(port, "/scene/scene.bin")
     assert status == 200 and len(data) == scene["buffer"]["byteLength"]
@@ -126,6 +126,7 @@ def test_ctrl_c_stops_cleanly(viewer):
     (["notes.txt"], "expected a USD asset"),
     (["stadium_crowd_vb.usda", "--port", "eighty"], "--port must be an integer"),
     (["stadium_crowd_vb.usda", "--port", "70000"], "--port must be 0..65535"),
+    (["stadium_crowd_vb.usda", "--engine", "unreal"], "'unreal' is not one of 'three', 'three-webgpu'"),
 ])
 def test_bad_input_is_one_line(served_folder, arguments, expected):
     (served_folder / "notes.txt").write_text("hello")
@@ -134,6 +135,31 @@ def test_bad_input_is_one_line(served_folder, arguments, expected):
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and expected in lines[0], result.stderr
+
+
+def test_engine_three_webgpu_serves_its_page(served_folder):
+    """``--engine three-webgpu``: the same asset and config (with the engine), the page that maps
+    three.js to its WebGPU build, and that build and the TSL runtime, all from the package."""
+    process = subprocess.Popen([sys.executable, "-m", "vbusd", "view", str(served_folder / "stadium_crowd_vb.usda"),
+                                "--no-browser", "--engine", "three-webgpu", "--format", "json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        text = ""
+        while not text.rstrip().endswith("}"):  # the indented JSON report, line by line
+            text += process.stdout.readline()
+        printed = json.loads(text)
+        assert printed["engine"] == "three-webgpu"
+        port = int(printed["url"].split("http://127.0.0.1:")[1].split("/")[0])
+        status, body, _ = _get(port, "/")
+        assert status == 200 and b'"three": "./three/three.webgpu.js"' in body and b'src="viewer.js"' in body
+        assert json.loads(_get(port, "/config.json")[1])["engine"] == "three-webgpu"
+        for path in ("/three/three.webgpu.js", "/three/three.tsl.js", "/vbusd-three/webgpu/index.js",
+                     "/vbusd-three/webgpu/skinning.js"):
+            status, _, content_type = _get(port, path)
+            assert status == 200 and content_type.startswith("text/javascript"), path
+    finally:
+        process.kill()
+        process.wait(timeout=30)
 
 
 def _glb(document: dict, binary: bytes = b"") -> bytes:

@@ -1,4 +1,8 @@
-"""``vbusd view ASSET_OR_CROWD``: the asset in a browser, drawn by the three.js runtime.
+"""``vbusd view ASSET_OR_CROWD``: the asset in a browser, drawn by a web runtime.
+
+``--engine three`` (default) draws it with three.js' WebGLRenderer and the GLSL runtime;
+``--engine three-webgpu`` with WebGPURenderer and the TSL runtime (WebGPU, or WebGL 2 where the
+browser offers no WebGPU). Every engine's page offers the same ``window.vbusd.probe(instance, time)``.
 
 Serves the viewer page, three.js and the asset on 127.0.0.1 (:mod:`vbusd.web.server`; everything
 ships inside the package, so it works offline) and opens the page in the default browser. The page
@@ -14,6 +18,7 @@ import click
 
 from vbusd.cli.common import echo_json, format_option, quiet_option
 from vbusd.format.errors import OptionsError
+from vbusd.web.engines import ENGINES
 
 __all__ = ["command"]
 
@@ -24,9 +29,12 @@ __all__ = ["command"]
               help="TCP port on 127.0.0.1 (0: any free port; the address is printed).")
 @click.option("--no-browser", is_flag=True, help="Do not open a browser; only print the address.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
+@click.option("--engine", type=click.Choice(ENGINES), default="three", show_default=True,
+              help="The web engine that draws it: three.js WebGLRenderer (three) or WebGPURenderer with "
+                   "the TSL runtime (three-webgpu).")
 @format_option
 @quiet_option
-def command(asset, port, no_browser, allow_outside_paths, output_format, quiet):
+def command(asset, port, no_browser, allow_outside_paths, engine, output_format, quiet):
     """Serve a Virtual Bones asset, crowd or runtime package (.glb/.gltf) in a browser viewer.
 
     The address is printed once the server listens (--format json: {"asset", "url"}); it writes no
@@ -42,13 +50,13 @@ def command(asset, port, no_browser, allow_outside_paths, output_format, quiet):
         raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
     import webbrowser  # before the server's threads start: no import beside them (vbusd/_threads.py)
 
-    server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths).start()
+    server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths, engine=engine).start()
     if quiet:
         pass
     elif output_format == "json":
-        echo_json({"asset": asset, "url": server.url})
+        echo_json({"asset": asset, "url": server.url, "engine": engine})
     else:
-        click.echo(f"vbusd view: {asset} at {server.url} (Ctrl-C stops)")
+        click.echo(f"vbusd view: {asset} at {server.url} with {engine} (Ctrl-C stops)")
     try:
         if not no_browser:
             webbrowser.open(server.url)

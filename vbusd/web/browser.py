@@ -15,7 +15,7 @@ import os
 import shutil
 from typing import Iterator, Optional
 
-__all__ = ["CHROMIUM_ARGS", "INSTALL_HINT", "chromium_executable", "unavailable_reason",
+__all__ = ["CHROMIUM_ARGS", "WEBGPU_ARGS", "INSTALL_HINT", "chromium_executable", "unavailable_reason",
            "chromium", "ViewerPage"]
 
 CHROMIUM_ARGS = [
@@ -30,6 +30,18 @@ CHROMIUM_ARGS = [
     "--disable-sync",
     "--no-first-run",
     "--mute-audio",
+]
+
+# WebGPU in headless Chromium (for `vbusd view --engine three-webgpu`), measured with Chromium 156:
+# the API is behind --enable-unsafe-webgpu on Linux; Vulkan on SwiftShader gives a software adapter
+# (Dawn) that can also present to a canvas. With --use-webgpu-adapter=swiftshader alone an adapter
+# appears, but the first canvas frame fails to create its shared image and drops the GPU instance
+# ("A valid external Instance reference no longer exists"). Pages must be a secure context
+# (127.0.0.1 is).
+WEBGPU_ARGS = [
+    "--enable-unsafe-webgpu",
+    "--enable-features=Vulkan",
+    "--use-vulkan=swiftshader",
 ]
 
 INSTALL_HINT = ("install Chromium and playwright: apt-get install chromium && pip install playwright "
@@ -60,15 +72,19 @@ def unavailable_reason() -> Optional[str]:
 
 
 @contextlib.contextmanager
-def chromium() -> Iterator[object]:
-    """A headless Chromium browser (playwright ``Browser``), closed on exit."""
+def chromium(*, webgpu: bool = False) -> Iterator[object]:
+    """A headless Chromium browser (playwright ``Browser``), closed on exit.
+
+    Args:
+        webgpu: Also offer WebGPU through SwiftShader (:data:`WEBGPU_ARGS`).
+    """
     from playwright.sync_api import sync_playwright
 
     executable = chromium_executable()
     if executable is None:
         raise RuntimeError(unavailable_reason())
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS)
+        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else []))
         try:
             yield browser
         finally:

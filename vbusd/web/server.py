@@ -27,6 +27,7 @@ from typing import Optional
 from urllib.parse import unquote, urlsplit
 
 from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
+from vbusd.web.engines import ENGINE_PAGES, ENGINES
 
 __all__ = ["STATIC", "GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
 
@@ -106,7 +107,7 @@ class _Handler(BaseHTTPRequestHandler):
         viewer = self.server.viewer
         path = unquote(urlsplit(self.path).path)
         if path in ("/", "/index.html"):
-            path = "/index.html"
+            path = ENGINE_PAGES[viewer.engine]
         if path == "/config.json":
             return self._send(json.dumps(viewer.config).encode(), CONTENT_TYPES[".json"], body)
         if path in viewer.generated:
@@ -156,6 +157,8 @@ class ViewerServer:
             runtime package (``.glb``/``.gltf``).
         port: TCP port; 0 picks a free one.
         allow_outside_paths: Let a USD asset reference textures outside its folder.
+        engine: The web engine of the page (:data:`vbusd.web.engines.ENGINES`): ``three``
+            (WebGLRenderer, ``index.html``) or ``three-webgpu`` (WebGPURenderer, ``webgpu.html``).
 
     Raises:
         InputError: The asset cannot be read (the same one-line errors as every command); a
@@ -164,7 +167,10 @@ class ViewerServer:
         OptionsError: Not a USD or glTF file name, or the port cannot be bound.
     """
 
-    def __init__(self, asset, *, port: int = 0, allow_outside_paths: bool = False) -> None:
+    def __init__(self, asset, *, port: int = 0, allow_outside_paths: bool = False, engine: str = "three") -> None:
+        if engine not in ENGINES:
+            raise OptionsError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}", file="view")
+        self.engine = engine
         path = Path(asset)
         suffix = path.suffix.lower()
         if suffix not in GLTF_SUFFIXES + USD_SUFFIXES:
@@ -181,14 +187,14 @@ class ViewerServer:
 
             # Checked here, not in the browser: an empty, truncated or plain glTF is one line.
             check_package(path, allow_outside_paths=allow_outside_paths)
-            self.config = {"name": path.name, "kind": "gltf", "url": f"asset/{path.name}"}
+            self.config = {"name": path.name, "kind": "gltf", "url": f"asset/{path.name}", "engine": engine}
         else:
             from vbusd.io.usd import read_asset
             from vbusd.web.scene import build_scene, scene_json
 
             scene, data = build_scene(read_asset(path, allow_outside_paths=allow_outside_paths))
             self.generated = {"/scene/scene.json": scene_json(scene), "/scene/scene.bin": data}
-            self.config = {"name": path.name, "kind": "scene", "url": "scene/scene.json"}
+            self.config = {"name": path.name, "kind": "scene", "url": "scene/scene.json", "engine": engine}
         try:
             self._server = _Server(("127.0.0.1", int(port)), self)
         except OSError as error:

@@ -6,8 +6,12 @@
 // black, no ground, fog or tone mapping), ui=0 (no panel), antialias=0, instances=N, width=W and
 // height=H (fixed canvas size in CSS pixels), pixelRatio=R, skin=attributes|pulled (the skin binding).
 //
+// The engine comes from config.json (`vbusd view --engine`): `three` (WebGLRenderer, index.html) or
+// `three-webgpu` (WebGPURenderer and the TSL runtime, webgpu.html, which maps three to
+// three/webgpu); with three-webgpu, backend=webgl forces WebGPURenderer's WebGL 2 backend.
+//
 // window.vbusd: {ready (a Promise), probe(instance, time), levels(), setTime(t), render(), measureFrames(n),
-// renderer, scene, camera, crowds}. probe numbers instances across the crowds in the asset's order,
+// renderer, scene, camera, crowds, engine, backend}. probe numbers instances across the crowds in the asset's order,
 // then one per animation that no crowd instances.
 
 import * as THREE from 'three';
@@ -48,17 +52,33 @@ async function main() {
     canvas.style.width = `${number('width')}px`;
     canvas.style.height = `${number('height')}px`;
   }
-  const renderer = new THREE.WebGLRenderer({ canvas, antialias: params.get('antialias') !== '0', preserveDrawingBuffer: true });
+  const engine = config.engine ?? 'three';
+  const antialias = params.get('antialias') !== '0';
+  let renderer;
+  let webgpu = null;  // the TSL runtime, with three-webgpu
+  if (engine === 'three-webgpu') {
+    webgpu = await import('./vbusd-three/webgpu/index.js');
+    renderer = new THREE.WebGPURenderer({ canvas, antialias, forceWebGL: params.get('backend') === 'webgl' });
+    await renderer.init();
+  } else {
+    renderer = new THREE.WebGLRenderer({ canvas, antialias, preserveDrawingBuffer: true });
+  }
+  const backend = webgpu ? (renderer.backend.isWebGPUBackend ? 'webgpu' : 'webgl2') : 'webgl2';
   renderer.setPixelRatio(number('pixelRatio', window.devicePixelRatio));
   const scene = new THREE.Scene();
   const description = await loadDescription(config);
   const zUp = description.upAxis === 'Z';
 
-  const material = silhouette ? () => new THREE.MeshBasicMaterial({ color: 0xffffff })
-    : () => new THREE.MeshStandardMaterial({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
+  // Node materials for WebGPURenderer (the TSL runtime skins those), three's classic ones for WebGL.
+  const Basic = webgpu ? THREE.MeshBasicNodeMaterial : THREE.MeshBasicMaterial;
+  const Standard = webgpu ? THREE.MeshStandardNodeMaterial : THREE.MeshStandardMaterial;
+  const material = silhouette ? () => new Basic({ color: 0xffffff })
+    : () => new Standard({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
   // ?skin=pulled: the skin read by gl_VertexID from a texture (spec/shaders.md, Skin bindings).
-  const objects = buildObjects(description, { material, skin: params.get('skin') });  // null: DEFAULT_SKIN (attributes for a layered crowd)
-  for (const animation of objects.animations) animation.checkSupport(renderer);
+  // The WebGPU runtime has the attribute skin binding only; WebGL's default is DEFAULT_SKIN (pulled).
+  const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null),
+    skinMaterial: webgpu ? webgpu.skinNodeMaterial : null });
+  if (!webgpu) for (const animation of objects.animations) animation.checkSupport(renderer);
   scene.add(objects.group);
   const crowds = objects.crowds;
   if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
@@ -116,7 +136,7 @@ async function main() {
     sun.shadow.bias = -0.0005;
     scene.add(sun, sun.target);
     const ground = new THREE.Mesh(new THREE.CircleGeometry(radius * 6, 64),
-      new THREE.MeshStandardMaterial({ color: 0x4a505a, roughness: 0.95 }));
+      new Standard({ color: 0x4a505a, roughness: 0.95 }));
     if (!zUp) ground.rotation.x = -Math.PI / 2;
     ground.position.copy(sphere.center);
     if (zUp) ground.position.z = bounds.min.z; else ground.position.y = bounds.min.y;
@@ -208,9 +228,9 @@ async function main() {
 
   // Instance numbering for probe: crowds in order, each instance of each.
   const probeTargets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
-  const gl = renderer.getContext();
+  const gl = webgpu ? null : renderer.getContext();
   window.vbusd = {
-    renderer, scene, camera, controls, crowds, animations: objects.animations,
+    renderer, scene, camera, controls, crowds, animations: objects.animations, engine, backend,
     setTime, render,
     get instanceCount() { return probeTargets.length; },
     /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU,
@@ -219,7 +239,8 @@ async function main() {
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
-      const result = probeCrowd(renderer, target[0], target[1], t);
+      const result = webgpu ? await webgpu.probeNodeCrowd(renderer, target[0], target[1], t)
+        : probeCrowd(renderer, target[0], target[1], t);
       return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
@@ -231,6 +252,7 @@ async function main() {
     },
     /** Mean milliseconds per frame over `frames` frames, each rendered and finished (pixels read). */
     measureFrames(frames = 60) {
+      if (webgpu) return measureNodeFrames(frames);
       const pixel = new Uint8Array(4);
       render();
       gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
@@ -243,6 +265,23 @@ async function main() {
       return (performance.now() - start) / frames;
     },
   };
+  // WebGPURenderer: each frame rendered and finished (the GPU queue drained, or a pixel read back on
+  // the WebGL 2 backend), as WebGLRenderer's readPixels finishes it.
+  const finish = async () => {
+    if (renderer.backend.isWebGPUBackend) await renderer.backend.device.queue.onSubmittedWorkDone();
+    else { const c = renderer.backend.gl; c.readPixels(0, 0, 1, 1, c.RGBA, c.UNSIGNED_BYTE, new Uint8Array(4)); }
+  };
+  async function measureNodeFrames(frames) {
+    render();
+    await finish();
+    const start = performance.now();
+    for (let i = 0; i < frames; ++i) {
+      setTime(time + 1 / 60);
+      render();
+      await finish();
+    }
+    return (performance.now() - start) / frames;
+  }
   render();
   requestAnimationFrame(loop);
 }

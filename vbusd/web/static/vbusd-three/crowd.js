@@ -84,9 +84,13 @@ function pick(values, slots, set) {
  *   without its last 0), one per level after LOD 0, decreasing.
  * @param {number} [options.hysteresis] a finer level only once the screen size passes its
  *   threshold by this fraction (default 0.1, spec 20.2).
+ * @param {function} [options.skinMaterial] how a material is made to skin: `(material, animation,
+ *   maxInfluences, binding) => material`; default patchMaterial (WebGLRenderer, with patched depth
+ *   and distance materials for shadows). The three.js WebGPU runtime passes its skinNodeMaterial
+ *   (webgpu/material.js), whose shadows need no extra materials.
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1 }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1, skinMaterial = null }) {
     super();
     // Layers (format 1.2) run only in the attributes binding: a layered crowd defaults to it.
     skin = skin ?? (instances.layerWeight ? 'attributes' : DEFAULT_SKIN);
@@ -160,11 +164,14 @@ export class VirtualBonesCrowd extends Group {
         geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
         geometry.setAttribute('vb_instanceLayerWeight', this.layerWeightAttribute);
       }
-      const mesh = new InstancedMesh(geometry, patchMaterial(material(index), animation, entry.maxInfluences, binding), instances.count);
+      const skinned = skinMaterial ?? patchMaterial;
+      const mesh = new InstancedMesh(geometry, skinned(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = attributes.matrix;
       mesh.name = entry.name || geometry.name;
-      mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
-      mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
+      if (!skinMaterial) {
+        mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
+        mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
+      }
       mesh.castShadow = mesh.receiveShadow = true;
       mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this, binding };
       this.add(mesh);

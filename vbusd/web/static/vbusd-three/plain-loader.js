@@ -103,10 +103,11 @@ export async function loadPlainScene(url) {
  * Objects to draw a description: one VirtualBonesCrowd per crowd, and a single instance for each
  * animation that no crowd instances. Crowds may carry a `matrix` (their node's world transform).
  * `skin` is the skin binding of every crowd (`pulled`, the default, or `attributes`; a crowd that
- * plays layers defaults to `attributes`, the one binding layers run in).
+ * plays layers defaults to `attributes`, the one binding layers run in); `skinMaterial` how their
+ * materials skin (VirtualBonesCrowd's option; default: the WebGL runtime's patchMaterial).
  * Returns `{group, crowds, animations}`; `crowds` is the order `probe` numbers instances in.
  */
-export function buildObjects(description, { material, skin = null } = {}) {
+export function buildObjects(description, { material, skin = null, skinMaterial = null } = {}) {
   const group = new Group();
   const crowds = [];
   const instanced = new Set(description.crowds.map((crowd) => crowd.animation));
@@ -119,7 +120,8 @@ export function buildObjects(description, { material, skin = null } = {}) {
     // the glTF node's MSFT_lod, or the plain files' animation.
     const source = lod.levels ? lod : entry;
     const levels = source.levels ? source.levels.map(copy) : null;
-    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin, levels, screenSizes: source.screenSizes ?? null });
+    const crowd = new VirtualBonesCrowd({ animation: entry.animation, meshes, instances, material, name, skin, levels,
+      screenSizes: source.screenSizes ?? null, skinMaterial });
     crowd.userData.animationIndex = animationIndex;
     if (matrix) {
       crowd.matrixAutoUpdate = false;

@@ -1,0 +1,59 @@
+"""The side-by-side benchmark's own correctness logic (benchmarks/engines_side_by_side.py, issue 27).
+
+Its pose-difference column is only worth something if three's SkinnedMesh clones play the same
+clip time as the vbusd instances: at a tiny crowd of the Khronos CesiumMan (shared assets; skips
+without them or without Chromium), vbusd's probe and three's CPU skinning of the clone agree within
+the bake's float16 error (< 5e-3 of the diagonal), and the same comparison with the clone 0.25 s
+off disagrees (> 2e-2): the measure can fail. The table row's figures are positive and the GPU
+bytes follow the stated formula (texture + 92 bytes per instance; 64 bytes per joint per clone).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+from vbusd.web.server import ViewerServer
+
+BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "engines_side_by_side.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("vbusd_bench_engines_side_by_side", BENCHMARK)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_clones_play_the_vbusd_clip_time(bench, shared_assets, tmp_path):
+    reason = unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
+    if not source.is_file():
+        pytest.skip("no CesiumMan among the shared assets")
+    crowd = bench.build_crowd(source, tmp_path, 4)
+    with chromium(webgpu=True) as browser, ViewerServer(crowd, engine="three-webgpu", allow_outside_paths=True) as server:
+        page = ViewerPage(browser, server.url + "?ui=0&paused=1&width=320&height=180")
+        try:
+            assert page.error == "", page.error
+            ours = page.page.evaluate(bench.MEASURE, [1, "vbusd", ""])
+            texture = page.page.evaluate("((l) => l.width * l.height * 4 * 2)(window.vbusd.animations[0].layout)")
+            assert ours["bytes"] == texture + 4 * 92 and ours["frame"] > 0 and ours["cpu"] > 0
+            result = page.page.evaluate(bench.MEASURE, [1, "clones", server.url + "asset/source.glb"])
+            joints = page.page.evaluate("window.vbusdClones[0].clone.getObjectByProperty('isSkinnedMesh', true)"
+                                        ".skeleton.bones.length")
+            assert result["bytes"] == 4 * joints * 64 and result["frame"] > 0 and result["cpu"] > 0
+            same = max(bench.pose_difference(page, i, t) for i in range(4) for t in bench.PROBE_TIMES)
+            page.page.evaluate("for (const c of window.vbusdClones) c.offset += 0.25")
+            shifted = max(bench.pose_difference(page, i, t) for i in range(4) for t in bench.PROBE_TIMES)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    print(f"pose difference {same:.2e}, clones 0.25 s off {shifted:.2e}")
+    assert same < 5e-3
+    assert shifted > 2e-2

@@ -1,0 +1,136 @@
+// The GPU's own skinned vertices under WebGPURenderer, read back for tests: a compute pass runs the
+// node graph the materials run (skinning.js: skinVertex) over every vertex of a mesh, fed with one
+// instance's clip, times and fade from the crowd's own attribute arrays, and writes world-space
+// positions and normals to storage buffers that are read back. On the WebGL 2 backend three r187
+// runs compute through transform feedback, with every storage buffer the pass touches as one
+// separate output (WebGL 2 guarantees four): so the probe writes its results over its rest
+// position and rest normal buffers (each invocation reads its own vertex first) and refills them
+// before every run, which keeps it at four buffers for up to 4 influences.
+
+import { Matrix3, Matrix4, Vector4 } from 'three/webgpu';
+import { Fn, instancedArray, instanceIndex, uniform, vec4, int } from 'three/tsl';
+
+import { VirtualBonesError } from '../animation.js';
+import { safeNormalize, skinVertex } from './skinning.js';
+
+const probes = new WeakMap();
+
+function padded(array, from, count) {
+  // vec4 per vertex: storage arrays of vec3 have a 16-byte stride in WGSL.
+  const out = new Float32Array(4 * count);
+  for (let v = 0; v < count; ++v) for (let c = 0; c < from; ++c) out[4 * v + c] = array[from * v + c];
+  return out;
+}
+
+/** The compute node and its buffers for one mesh (built once, fed per probe). */
+function meshProbe(mesh) {
+  let probe = probes.get(mesh);
+  if (probe) return probe;
+  const { maxInfluences } = mesh.userData.virtualBones;
+  const crowd = mesh.userData.virtualBones.crowd;
+  const geometry = mesh.geometry;
+  const count = geometry.attributes.position.count;
+  const rest = instancedArray(padded(geometry.attributes.position.array, 3, count), 'vec4');
+  const restNormal = instancedArray(padded(geometry.attributes.normal.array, 3, count), 'vec4');
+  const sets = Math.ceil(maxInfluences / 4);
+  // Bone indices as floats (exact below 2^24): integer vertex streams are not portable to the WebGL 2
+  // backend's transform-feedback compute.
+  const boneIndices = [];
+  const boneWeights = [];
+  for (let set = 0; set < sets; ++set) {
+    boneIndices.push(instancedArray(Float32Array.from(geometry.attributes[`vb_boneIndices${set}`].array), 'vec4'));
+    boneWeights.push(instancedArray(Float32Array.from(geometry.attributes[`vb_boneWeights${set}`].array), 'vec4'));
+  }
+  const positions = rest;  // written in place (see above)
+  const normals = restNormal;
+  const initial = [rest.value.array.slice(), restNormal.value.array.slice()];
+  // The instance as two vec4 uniforms: (clip, timeOffset, playbackRate, time) and (fadeClip,
+  // fadeTimeOffset, fadePlaybackRate, fadeWeight); the clips are small integers, exact as floats.
+  const inputs = {
+    instance: uniform(new Vector4()), fade: uniform(new Vector4()),
+    world: uniform(new Matrix4()), normalMatrix: uniform(new Matrix3()),
+  };
+  const compute = Fn(() => {
+    const indices = [];
+    const weights = [];
+    for (let set = 0; set < sets; ++set) {
+      const i4 = boneIndices[set].element(instanceIndex).toVar();
+      const w4 = boneWeights[set].element(instanceIndex).toVar();
+      for (let i = 0; i < 4 && 4 * set + i < maxInfluences; ++i) {
+        indices.push(int(i4.element(i)));
+        weights.push(w4.element(i));
+      }
+    }
+    const skinned = skinVertex(crowd.animation, {
+      position: rest.element(instanceIndex).xyz,
+      normal: restNormal.element(instanceIndex).xyz,
+      indices,
+      weights,
+      clip: int(inputs.instance.x),
+      tau: inputs.instance.y.add(inputs.instance.z.mul(inputs.instance.w)),
+      fadeClip: int(inputs.fade.x),
+      fadeTau: inputs.fade.y.add(inputs.fade.z.mul(inputs.instance.w)),
+      fadeWeight: inputs.fade.w,
+    });
+    positions.element(instanceIndex).assign(inputs.world.mul(vec4(skinned.position, 1.0)));
+    normals.element(instanceIndex).assign(vec4(safeNormalize(inputs.normalMatrix.mul(skinned.normal)), 0.0));
+  })().compute(count);
+  probe = { compute, positions, normals, inputs, count, initial, sets };
+  probes.set(mesh, probe);
+  return probe;
+}
+
+/**
+ * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
+ * computed by the GPU with WebGPURenderer `renderer` (either backend): a Promise of
+ * `{positions, normals}` as Float32Arrays, in the order and shape of the WebGL runtime's
+ * probeCrowd (meshes in order, points in the asset's order; normals empty for meshes without).
+ */
+export async function probeNodeCrowd(renderer, crowd, index, time) {
+  if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
+  crowd.updateMatrixWorld(true);
+  const placement = new Matrix4().fromArray(crowd.instanceMatrix.array, 16 * index);
+  const positions = [];
+  const normals = [];
+  for (const mesh of crowd.meshes) {
+    const probe = meshProbe(mesh);
+    if (!renderer.backend.isWebGPUBackend && probe.sets > 1) {
+      throw new VirtualBonesError(`${mesh.name}: the probe on WebGPURenderer's WebGL 2 backend reads up to 4 influences (transform feedback has 4 outputs), this mesh has ${mesh.userData.virtualBones.maxInfluences}`);
+    }
+    const { inputs } = probe;
+    probe.positions.value.array.set(probe.initial[0]);
+    probe.normals.value.array.set(probe.initial[1]);
+    probe.positions.value.needsUpdate = true;
+    probe.normals.value.needsUpdate = true;
+    inputs.instance.value.set(crowd.clipAttribute.array[index], crowd.timeAttribute.array[2 * index],
+      crowd.timeAttribute.array[2 * index + 1], time);
+    inputs.fade.value.set(crowd.fadeClipAttribute.array[index], ...crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3));
+    inputs.world.value.multiplyMatrices(mesh.matrixWorld, placement);
+    inputs.normalMatrix.value.getNormalMatrix(inputs.world.value);
+    await renderer.computeAsync(probe.compute);
+    const read = async (buffer) => {
+      const data = new Float32Array(await renderer.getArrayBufferAsync(buffer.value));
+      const out = new Float32Array(3 * probe.count);
+      for (let v = 0; v < probe.count; ++v) out.set(data.subarray(4 * v, 4 * v + 3), 3 * v);
+      return out;
+    };
+    const p = await read(probe.positions);
+    const n = await read(probe.normals);
+    const { pointIndex, hasNormals, pointCount } = mesh.geometry.userData.virtualBones;
+    if (pointIndex) {
+      const points = new Float32Array(pointCount * 3);
+      pointIndex.forEach((point, j) => points.set(p.subarray(3 * j, 3 * j + 3), 3 * point));
+      positions.push(points);
+    } else {
+      positions.push(p);
+    }
+    normals.push(hasNormals ? n : new Float32Array(0));
+  }
+  const concat = (arrays) => {
+    const out = new Float32Array(arrays.reduce((n, a) => n + a.length, 0));
+    let at = 0;
+    for (const a of arrays) { out.set(a, at); at += a.length; }
+    return out;
+  };
+  return { positions: concat(positions), normals: concat(normals) };
+}
