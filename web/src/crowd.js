@@ -92,8 +92,9 @@ function pick(values, slots, set) {
 export class VirtualBonesCrowd extends Group {
   constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1, skinMaterial = null }) {
     super();
-    // Layers (format 1.2) run only in the attributes binding: a layered crowd defaults to it.
-    skin = skin ?? (instances.layerWeight ? 'attributes' : DEFAULT_SKIN);
+    // Layers (format 1.2) and the three.js WebGPU runtime's skinMaterial run only in the attributes
+    // binding: a layered crowd or one given its own skinMaterial defaults to it.
+    skin = skin ?? (instances.layerWeight || skinMaterial ? 'attributes' : DEFAULT_SKIN);
     checkSkinBinding(skin, name);
     this.name = name;
     this.skin = skin;
