@@ -177,6 +177,20 @@ def test_export_matches_blenders_evaluated_mesh(rig_scene, tmp_path, texel_forma
     assert worst_fraction(asset, scene, rig, body, ["Bend", "Reach"]) < TOLERANCE[texel_format]
 
 
+def test_export_compact_encoding_matches_blenders_evaluated_mesh(rig_scene, tmp_path):
+    # Format 1.2's compact encoding from the add-on's option: one 12-byte uint32 texel per bone and
+    # row, decoded within 5e-5 of the bounding-box diagonal of Blender's own evaluated mesh.
+    scene, rig, body = rig_scene
+    out = tmp_path / "rig.usda"
+    assert bpy.ops.export_scene.virtual_bones(filepath=str(out), armatures="Rig", encoding="compactQuatTranslation",
+                                              texel_format="uint32", actions="Bend,Reach") == {"FINISHED"}
+    asset = vbusd.read_asset(out)
+    vb = asset.animations[0]
+    assert (vb.layout.encoding.value, vb.layout.texel_format.value) == ("compactQuatTranslation", "uint32")
+    assert vb.layout.texels_per_bone == 1 and vb.layout.texel_bytes == 12 * vb.layout.width * vb.layout.height
+    assert worst_fraction(asset, scene, rig, body, ["Bend", "Reach"]) < 5e-5
+
+
 def test_export_selection_rows_per_second_and_report(rig_scene, tmp_path):
     scene, rig, body = rig_scene
     from vbusd_blender.export import ExportSettings, export_virtual_bones
