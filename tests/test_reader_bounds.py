@@ -29,11 +29,11 @@ def test_too_many_nodes_is_refused_on_the_raw_json(tmp_path, capsys):
 
 
 def test_more_joints_than_a_row_holds_is_layout_size(tmp_path, capsys):
-    # 16384 texels per row / 2 texels per bone (the smallest encodings) = 8192 bones at most.
-    source = _gltf(tmp_path / "rig.gltf", 8193, 8193)
+    # 16384 texels per row / 1 texel per bone (compactQuatTranslation, format 1.2) = 16384 bones at most.
+    source = _gltf(tmp_path / "rig.gltf", 16385, 16385)
     assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
     err = capsys.readouterr().err
-    assert f"{source}: /skins/0/joints: layout.size: the skin lists 8193 joints" in err and "8192 bones" in err
+    assert f"{source}: /skins/0/joints: layout.size: the skin lists 16385 joints" in err and "16384 bones" in err
 
 
 def test_a_skeleton_with_more_joints_than_a_row_holds_is_refused_before_usdskel(tmp_path, capsys):
@@ -42,7 +42,7 @@ def test_a_skeleton_with_more_joints_than_a_row_holds_is_refused_before_usdskel(
     source = tmp_path / "rig.usdc"
     stage = Usd.Stage.CreateNew(str(source))
     UsdSkel.Root.Define(stage, "/R")
-    UsdSkel.Skeleton.Define(stage, "/R/S").GetJointsAttr().Set(Vt.TokenArray([f"j{i}" for i in range(8193)]))
+    UsdSkel.Skeleton.Define(stage, "/R/S").GetJointsAttr().Set(Vt.TokenArray([f"j{i}" for i in range(16385)]))
     binding = UsdSkel.BindingAPI.Apply(UsdGeom.Mesh.Define(stage, "/R/M").GetPrim())
     binding.CreateSkeletonRel().SetTargets(["/R/S"])
     binding.CreateJointIndicesPrimvar(False, 1).Set([0])
@@ -50,4 +50,4 @@ def test_a_skeleton_with_more_joints_than_a_row_holds_is_refused_before_usdskel(
     stage.GetRootLayer().Save()
     assert main(["convert", str(source), "-o", str(tmp_path / "out.usda")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"{source}: /R/S.joints: layout.size: the skeleton has 8193 joints" in err[0]
+    assert len(err) == 1 and f"{source}: /R/S.joints: layout.size: the skeleton has 16385 joints" in err[0]
