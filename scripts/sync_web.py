@@ -22,6 +22,10 @@ REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
 STATIC = REPO / "vbusd" / "web" / "static"
 THREE = WEB / "node_modules" / "three"
+BABYLON = WEB / "babylon"
+#: Babylon.js' modules, bundled once by esbuild (``npm run bundle`` in web/babylon: @babylonjs/core's
+#: ES modules are ~1,800 files); the bundle is committed, so the wheel builds without node.
+BABYLON_BUNDLE = BABYLON / "dist" / "babylon.bundle.js"
 
 THREE_FILES = {
     "build/three.module.js": "three/three.module.js",
@@ -56,6 +60,14 @@ def planned_files(*, with_three: bool = True) -> dict[Path, bytes]:
     for source in sorted((WEB / "src" / "webgpu").glob("*.js")):  # the three.js WebGPU (TSL) runtime
         files[STATIC / "vbusd-three" / "webgpu" / source.name] = source.read_bytes()
     files[STATIC / "vbusd-three" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    # The Babylon.js runtime (web/babylon/src) with its own copy of the shader modules.
+    files[BABYLON / "src" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    for source in sorted((BABYLON / "src").glob("*.js")):
+        if source.name not in ("shader-modules.js", "babylon-entry.js"):
+            files[STATIC / "vbusd-babylon" / source.name] = source.read_bytes()
+    files[STATIC / "vbusd-babylon" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    if BABYLON_BUNDLE.is_file():
+        files[STATIC / "babylon" / "babylon.bundle.js"] = BABYLON_BUNDLE.read_bytes()
     for source in sorted((WEB / "viewer").iterdir()):
         files[STATIC / source.name] = source.read_bytes()
     if with_three:
