@@ -34,6 +34,17 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
 }
 
 /**
+ * The module for Babylon's shader preprocessor, which runs in JavaScript before the GPU compiler
+ * and reads a bare `#if NAME` as `#if defined(NAME)` (so the module's `#define VB_MAIN 0` would
+ * switch its example main on). Each bare `#if VB_X` becomes `#if VB_X > 0`: the same test for the
+ * module's integer macros in a C preprocessor, and the one Babylon's evaluates by value. Nothing
+ * else of the module changes.
+ */
+export function babylonModule(encoding, texelFormat, maxInfluences, maxClips) {
+  return shaderModule(encoding, texelFormat, maxInfluences, maxClips).replace(/^#if (VB_[A-Z0-9_]+)[ \t]*$/gm, '#if $1 > 0');
+}
+
+/**
  * Declarations: the module, then the vertex streams. Bone indices arrive as floats (exact below
  * 2^24; Babylon's custom vertex buffers are float streams), and each instance's playback as two
  * vec4 thin-instance streams: vb_instanceA = (clip, timeOffset, playbackRate, fadeClip),
@@ -41,7 +52,7 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
  * in Babylon's shaders (its GLSL 1 style, migrated to `in` on WebGL 2) and `in` in the probe.
  */
 export function skinningDeclarations(animation, maxInfluences, keyword = 'attribute') {
-  return `${shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips)}
+  return `${babylonModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips)}
 ${keyword} vec4 vb_boneIndices0;
 ${keyword} vec4 vb_boneWeights0;
 ${maxInfluences > 4 ? `${keyword} vec4 vb_boneIndices1;\n${keyword} vec4 vb_boneWeights1;\n` : ''}${keyword} vec4 vb_instanceA;
