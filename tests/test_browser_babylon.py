@@ -29,6 +29,8 @@ from vbusd.web.server import ViewerServer
 HERE = Path(__file__).resolve().parent
 _helpers = runpy.run_path(str(HERE / "test_browser.py"))
 stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
+bar_crowd = _helpers["bar_crowd"]
+screenshot_luminance = _helpers["screenshot_luminance"]
 check_probe = _helpers["check_probe"]
 ENCODINGS = _helpers["ENCODINGS"]
 FORMATS = _helpers["FORMATS"]
@@ -77,3 +79,63 @@ def test_babylon_probe_matches_reference_on_stadium_crowd(browser, stadium_asset
     errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
     print(encoding, texel_format, errors)
     assert_within(errors)
+
+
+def test_babylon_probe_per_instance_clip_offset_rate(browser, bar_crowd):
+    """Each instance its own clip, offset (negative too), rate, orientation and scale."""
+    assert_within(run_probes(browser, bar_crowd, [(i, t) for i in range(10) for t in (0.0, 1.37)]))
+
+
+def test_babylon_probe_crossfade(browser, bar_crowd, tmp_path):
+    """A crossfading crowd (format 1.1): each instance blended with its own fade clip, offset,
+    rate and weight, as the reference decoder blends them."""
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count = crowd.instance_count
+    clips = len(asset.animations[0].clips)
+    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
+                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
+                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
+                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
+    path = tmp_path / "faded" / "faded.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    errors = run_probes(browser, path, [(i, t) for i in range(count) for t in (0.0, 0.83)])
+    print(errors)
+    assert_within(errors)
+
+
+def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
+    """The lit page: the ShadowGenerator darkens the ground (against the same frame with an empty
+    shadow render list), and with the figures hidden from the camera (layer mask) their shadows
+    alone change between two times: the depth pass skins (in the rest pose they would not move)."""
+    path = stadium_assets["quatTranslation", "float16"]
+    with ViewerServer(path, engine="babylon") as server:
+        page = ViewerPage(browser, server.url + "?paused=1&ui=0&width=480&height=270&antialias=0&instances=200",
+                          width=480, height=270)
+        try:
+            assert page.error == "", page.error
+
+            def shot(t: float, shadows: bool = True, hidden: bool = False):
+                page.page.evaluate("""([t, shadows, hidden]) => {
+                    const { shadowGenerator, camera } = window.vbusd.babylon;
+                    const meshes = window.vbusd.crowds.flatMap((crowd) => crowd.meshes);
+                    shadowGenerator.getShadowMap().renderList = shadows ? meshes : [];
+                    for (const mesh of meshes) mesh.layerMask = hidden ? 0x10000000 : 0x0FFFFFFF;
+                    camera.layerMask = 0x0FFFFFFF;
+                    window.vbusd.setTime(t);
+                    window.vbusd.render();
+                }""", [t, shadows, hidden])
+                return screenshot_luminance(page.page.screenshot())
+
+            lit, unshadowed = shot(1.0), shot(1.0, shadows=False)
+            darker = int(((unshadowed - lit) > 8).sum())
+            print("pixels darkened by shadows:", darker)
+            assert darker > 500
+            first, second = shot(0.0, hidden=True), shot(2.5, hidden=True)
+            moved = int((np.abs(first - second) > 8).sum())
+            print("shadow pixels that move between 0 s and 2.5 s:", moved)
+            assert moved > 100
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
