@@ -130,7 +130,7 @@ async function main() {
     sun.position = center.subtract(sunDirection.scale(radius * 3));
     sun.intensity = 1.6;
     shadowGenerator = new ShadowGenerator(2048, sun);
-    shadowGenerator.usePercentageCloserFiltering = true;
+    shadowGenerator.usePoissonSampling = true;
     for (const crowd of crowds) for (const mesh of crowd.meshes) shadowGenerator.addShadowCaster(mesh);
     const ground = MeshBuilder.CreateDisc('ground', { radius: radius * 6, tessellation: 64 }, scene);
     ground.material = Object.assign(new StandardMaterial('ground', scene), { diffuseColor: new Color3(0.29, 0.31, 0.35), specularColor: new Color3(0, 0, 0) });

@@ -40,6 +40,9 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
     const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}`;
     if (!variants.has(key)) variants.set(key, variants.size + 1);
     this.variant = variants.get(key);
+    // hardBindForSubMesh (every draw, the shadow pass included) is one of the plugin manager's
+    // extra events: dispatched only to plugins that register for them.
+    this.registerForExtraEvents = true;
     this._enable(true);
   }
 
