@@ -139,3 +139,54 @@ def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+def test_babylon_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
+    """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
+    joints, 3,273 vertices with normals), every float encoding, float16."""
+    path = tmp_path / f"{character}.usda"
+    vbusd.convert(shared_assets / "gltf" / character / f"{character}.glb", path,
+                  vbusd.ConvertOptions(encoding=encoding, texel_format="float16", check_rows=0))
+    errors = run_probes(browser, path, [(0, 0.0), (0, 0.8137), (0, 2.9)])
+    print(encoding, errors)
+    assert_within(errors)
+
+
+@pytest.mark.parametrize("case", ["stadium.glb", "bar_crowd.gltf"])
+def test_babylon_probe_through_gltf_loader(browser, bar_crowd, tmp_path, case):
+    """The runtime package of ``vbusd export`` (KTX2 in a buffer view, EXT_mesh_gpu_instancing with
+    the _VB_* attributes, _VB_JOINTS_n / _VB_WEIGHTS_n) through Babylon's own glTF loader and the
+    VBUSD_virtual_bones extension, skinned by the plugin: the same vertices as the numpy decoder on
+    the USD asset."""
+    from vbusd.io.gltf_package import export_gltf
+
+    package_vertices = _helpers["_package_vertices"]
+    reference_instance = _helpers["reference_instance"]
+    source = _helpers["SAMPLE"] / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
+    asset = vbusd.read_asset(source)
+    package = tmp_path / case
+    export_gltf(asset, package)
+    probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
+    with ViewerServer(package, engine="babylon") as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for instance, t in probes:
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                expected_positions, expected_normals = reference_instance(asset, instance, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                expected = package_vertices(asset, expected_positions)
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                error = np.abs(positions - expected).max() / diagonal
+                print(case, instance, t, error)
+                assert error <= POSITION_TOLERANCE
+                normals = np.asarray(result["normals"]).reshape(-1, 3)
+                assert normals.shape == expected_normals.shape and normals.size
+                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+            assert page.errors() == [], page.errors()
+            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
+        finally:
+            page.close()

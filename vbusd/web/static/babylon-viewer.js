@@ -10,10 +10,12 @@
 
 import {
   Engine, Scene, Vector3, Color3, Color4, StandardMaterial, DirectionalLight, HemisphericLight,
-  ArcRotateCamera, MeshBuilder, ShadowGenerator,
+  ArcRotateCamera, MeshBuilder, ShadowGenerator, ImportMeshAsync,
 } from '@babylonjs/core';
 
-import { VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd } from './vbusd-babylon/index.js';
+import {
+  VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd, registerVirtualBonesGLTFExtension,
+} from './vbusd-babylon/index.js';
 
 const params = new URLSearchParams(window.location.search);
 const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
@@ -27,7 +29,7 @@ function showError(error) {
 
 /** The asset as engine-neutral arrays: animations ({layout, texels, meshes}) and crowds. */
 async function loadArrays(config) {
-  if (config.kind !== 'scene') throw new Error(`the Babylon.js page reads USD assets (plain files); ${config.kind} assets: not yet`);
+  if (config.kind !== 'scene') throw new Error(`unknown asset kind ${config.kind}`);
   const { loadPlainScene } = await import('./vbusd-three/index.js');
   const description = await loadPlainScene(config.url);
   const meshArrays = (mesh) => {
@@ -78,20 +80,30 @@ async function main() {
   if (engine.webGLVersion < 2) throw new Error('the Babylon.js runtime needs WebGL 2');
   const scene = new Scene(engine);
   scene.useRightHandedSystem = true;  // vbusd's data is right-handed (USD, glTF): used as stored
-  const asset = await loadArrays(config);
-  const zUp = asset.upAxis === 'Z';
-
   const material = (name) => (silhouette
     ? Object.assign(new StandardMaterial(name, scene), { disableLighting: true, emissiveColor: new Color3(1, 1, 1) })
     : Object.assign(new StandardMaterial(name, scene), { diffuseColor: new Color3(0.72, 0.74, 0.78), specularColor: new Color3(0.1, 0.1, 0.1) }));
-  const animations = asset.animations.map((entry) => new VirtualBonesAnimation(scene, entry));
-  const crowds = asset.crowds.map((crowd) => new VirtualBonesCrowd(scene, {
-    animation: animations[crowd.animation], meshes: asset.animations[crowd.animation].meshes,
-    instances: crowd.instances, material, name: crowd.name }));
-  const instanced = new Set(asset.crowds.map((crowd) => crowd.animation));
-  asset.animations.forEach((entry, a) => {
-    if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: oneInstance(), material, name: entry.name }));
-  });
+  let crowds;
+  let animations;
+  let zUp = false;
+  if (config.kind === 'gltf') {
+    // A `vbusd export` package through Babylon's own glTF loader and the VBUSD_virtual_bones extension.
+    registerVirtualBonesGLTFExtension({ material });
+    await ImportMeshAsync(config.url, scene);
+    if (!scene.metadata?.virtualBones) throw new Error('the glTF has no VBUSD_virtual_bones meshes');
+    ({ crowds, animations } = scene.metadata.virtualBones);
+  } else {
+    const asset = await loadArrays(config);
+    zUp = asset.upAxis === 'Z';
+    animations = asset.animations.map((entry) => new VirtualBonesAnimation(scene, entry));
+    crowds = asset.crowds.map((crowd) => new VirtualBonesCrowd(scene, {
+      animation: animations[crowd.animation], meshes: asset.animations[crowd.animation].meshes,
+      instances: crowd.instances, material, name: crowd.name }));
+    const instanced = new Set(asset.crowds.map((crowd) => crowd.animation));
+    asset.animations.forEach((entry, a) => {
+      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: oneInstance(), material, name: entry.name }));
+    });
+  }
   if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
 
   // Frame the instances' rest bounds.

@@ -21,7 +21,7 @@ import { skinMaterial } from './plugin.js';
  *   StandardMaterial); the plugin is added to it.
  */
 export class VirtualBonesCrowd {
-  constructor(scene, { animation, meshes, instances, material = null, name = 'crowd' }) {
+  constructor(scene, { animation, meshes = [], instances, material = null, name = 'crowd', adopt = null }) {
     this.scene = scene;
     this.animation = animation;
     this.name = name;
@@ -33,8 +33,11 @@ export class VirtualBonesCrowd {
       this.instanceA.set([instances.clip[i], instances.timeOffset[i], instances.playbackRate[i], instances.fadeClip?.[i] ?? 0], 4 * i);
       this.instanceB.set([instances.fadeTimeOffset?.[i] ?? 0, instances.fadePlaybackRate?.[i] ?? 1, instances.fadeWeight?.[i] ?? 0, 0], 4 * i);
     }
-    this.matrices = Float32Array.from(instances.matrices);
-    this.meshes = meshes.map((entry) => this._mesh(entry, material));
+    this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
+    // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
+    // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
+    this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
+      : meshes.map((entry) => this._mesh(entry, material));
   }
 
   _mesh(entry, material) {
@@ -51,6 +54,15 @@ export class VirtualBonesCrowd {
       VertexData.ComputeNormals(data.positions, data.indices, data.normals, { useRightHandedSystem: this.scene.useRightHandedSystem });
     }
     data.applyToMesh(mesh, false);
+    mesh.metadata = { virtualBones: { pointIndex: entry.pointIndex ?? null, hasNormals: Boolean(entry.normals),
+      pointCount: entry.pointCount ?? vertexCount } };
+    return this._skin(mesh, entry, material);
+  }
+
+  _skin(mesh, entry, material) {
+    const vertexCount = mesh.getTotalVertices();
+    const slots = entry.boneIndices.length / vertexCount;
+    if (slots !== 4 && slots !== 8) throw new VirtualBonesError(`${mesh.name}: bone indices must be 4 or 8 per vertex, got ${slots}`);
     for (let set = 0; set < slots / 4; ++set) {
       const indices = new Float32Array(4 * vertexCount);
       const weights = new Float32Array(4 * vertexCount);
@@ -64,17 +76,20 @@ export class VirtualBonesCrowd {
       mesh.setVerticesData(`vb_boneWeights${set}`, weights, false, 4);
     }
     const maxInfluences = entry.maxInfluences ?? slots;
-    const mat = material ? material(entry.name) : Object.assign(new StandardMaterial(`${entry.name} material`, this.scene),
-      { diffuseColor: new Color3(0.72, 0.74, 0.78) });
+    // The given material, else the mesh's own (a glTF's PBRMaterial), else a grey StandardMaterial;
+    // a material some other skinned mesh already uses is cloned (the plugin holds one animation).
+    let mat = material ? material(mesh.name) : mesh.material;
+    if (!mat) mat = Object.assign(new StandardMaterial(`${mesh.name} material`, this.scene), { diffuseColor: new Color3(0.72, 0.74, 0.78) });
+    else if (mat.metadata?.virtualBones) mat = mat.clone(`${mat.name} (${mesh.name})`);
     skinMaterial(mat, this.animation, maxInfluences);
     mesh.material = mat;
-    mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
+    if (this.matrices) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
     mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
     mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
     // Skinned vertices leave the rest bounds: the crowd is never culled by them.
     mesh.alwaysSelectAsActiveMesh = true;
-    mesh.metadata = { virtualBones: { crowd: this, maxInfluences, pointIndex: entry.pointIndex ?? null,
-      hasNormals: Boolean(entry.normals), pointCount: entry.pointCount ?? vertexCount } };
+    mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals: true, pointCount: vertexCount,
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences } };
     return mesh;
   }
 
@@ -100,5 +115,7 @@ export class VirtualBonesCrowd {
   }
 
   /** Instance `i`'s placement as a Babylon Matrix. */
-  instanceMatrix(i) { return Matrix.FromArray(this.matrices, 16 * i); }
+  instanceMatrix(i) {
+    return this.matrices ? Matrix.FromArray(this.matrices, 16 * i) : this.meshes[0].thinInstanceGetWorldMatrices()[i].clone();
+  }
 }

@@ -6,3 +6,4 @@ export { VirtualBonesAnimation } from './animation.js';
 export { VirtualBonesPluginMaterial, skinMaterial, vertexInputs } from './plugin.js';
 export { VirtualBonesCrowd } from './crowd.js';
 export { probeBabylonCrowd } from './probe.js';
+export { VirtualBonesGLTFLoaderExtension, registerVirtualBonesGLTFExtension, EXTENSION } from './gltf-extension.js';
