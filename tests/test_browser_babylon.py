@@ -9,8 +9,12 @@ stored texels:
   skinned positions and normals from a WebGL 2 transform-feedback pass on Babylon's own context
   running the plugin's GLSL, on the stadium crowd in every float encoding and both float formats:
   positions within 1e-6 of the instance's bounding-box diagonal, unit normals within 1e-5;
-* a crossfading crowd;
-* the lit page draws shadows (the ground darker where the figures' shadows fall);
+* the Khronos Fox and CesiumMan (shared assets), a crowd with per-instance clips, offsets, rates
+  and scales, a crossfading crowd, and ``vbusd export`` packages through Babylon's own glTF loader
+  and the VBUSD_virtual_bones extension;
+* the lit page draws shadows (the ground darker where the figures' shadows fall), and with the
+  figures hidden from the camera their shadows alone move with the animation (the depth pass skins);
+* docs/engines.md's example page, as written (PBR materials), draws lit and shadowed figures;
 * no console error on any page, every request served by the viewer (offline).
 """
 
@@ -190,3 +194,60 @@ def test_babylon_probe_through_gltf_loader(browser, bar_crowd, tmp_path, case):
             assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
         finally:
             page.close()
+
+
+def test_docs_engines_babylon_example_runs(browser, tmp_path):
+    """docs/engines.md's Babylon.js page, as written, on a folder laid out as it says (the
+    package's static files and a ``vbusd export`` package): PBR materials with the plugin, lit
+    figures, shadows on the ground, no error."""
+    import functools
+    import http.server
+    import re
+    import shutil
+    import threading
+
+    from vbusd.io.gltf_package import export_gltf
+
+    text = (HERE.parent / "docs" / "engines.md").read_text(encoding="utf-8")
+    section = text[text.index("## Babylon.js: `web/babylon/`"):]
+    html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
+    shutil.copytree(HERE.parent / "vbusd" / "web" / "static", tmp_path / "site")
+    (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
+    export_gltf(vbusd.read_asset(_helpers["SAMPLE"] / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path / "site")))
+    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
+    thread.start()
+    try:
+        page = browser.new_page(viewport={"width": 480, "height": 270}, device_scale_factor=1)
+        messages = []
+        page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
+        page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
+        page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
+        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
+        materials = page.evaluate("""() => {
+            const scene = BABYLON_SCENE();
+            return scene.metadata.virtualBones.crowds.flatMap((crowd) => crowd.meshes.map((mesh) =>
+                [mesh.material.getClassName(), mesh.material.pluginManager._plugins.map((p) => p.getClassName())]));
+        }""".replace("BABYLON_SCENE()", "(await import('@babylonjs/core')).EngineStore.LastCreatedScene")
+                                  .replace("() => {", "async () => {"))
+        picture = page.screenshot()
+        luminance = screenshot_luminance(picture)
+        (tmp_path / "example.png").write_bytes(picture)
+        page.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
+    assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
+    assert materials and all(name == "PBRMaterial" and "VirtualBonesPluginMaterial" in plugins for name, plugins in materials), materials
+    # The dark sky (~28), the lit ground and figures (above 120) and the shadows on the ground
+    # (between the two): all three present.
+    background, lit = (luminance < 40).mean(), (luminance > 120).mean()
+    shadows = ((luminance > 45) & (luminance < 75)).mean()
+    print("background, lit, shadows:", background, lit, shadows)
+    assert background > 0.05 and lit > 0.2 and shadows > 0.01, (background, lit, shadows)
