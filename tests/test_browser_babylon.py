@@ -109,6 +109,13 @@ def test_babylon_probe_crossfade(browser, bar_crowd, tmp_path):
     assert_within(errors)
 
 
+def test_babylon_screenshot_matches_decoder_silhouette(browser):
+    """Babylon's picture (unlit white on black) against the silhouette rasterized from the
+    decoder's vertices with the page's own camera (tests/test_browser.py): IoU >= 0.98, and the
+    same crowd 0.3 s later does not match."""
+    _helpers["check_silhouette"](browser, "babylon")
+
+
 def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
     """The lit page: the ShadowGenerator darkens the ground (against the same frame with an empty
     shadow render list), and with the figures hidden from the camera (layer mask) their shadows

@@ -1,8 +1,8 @@
 // The page `vbusd view --engine babylon` serves: a Virtual Bones asset drawn by Babylon.js with the
 // material plugin (web/babylon/src), thin instances, a shadow-casting sun and an orbit camera.
 //
-// Query parameters as viewer.js's: time=T, paused=1, silhouette=1, ui=0, width=W, height=H,
-// instances=N, antialias=0. The plain files of a USD asset are parsed with the three.js runtime's
+// Query parameters as viewer.js's: time=T, paused=1, camera=x,y,z,tx,ty,tz, fov=DEG, silhouette=1,
+// ui=0, width=W, height=H, instances=N, antialias=0. The plain files of a USD asset are parsed with the three.js runtime's
 // loadPlainScene (its arrays only: nothing of three draws here).
 //
 // window.vbusd: {ready, probe(instance, time), setTime(t), render(), measureFrames(n), engine
@@ -122,8 +122,14 @@ async function main() {
   const up = zUp ? new Vector3(0, 0, 1) : new Vector3(0, 1, 0);
   const camera = new ArcRotateCamera('camera', 0, 0, radius * 2.1, center, scene);
   camera.upVector = up;
-  const side = zUp ? new Vector3(0, -1, 0) : new Vector3(0, 0, 1);
-  camera.setPosition(center.add(side.scale(radius * 1.9)).add(up.scale(radius * 0.75)));
+  if (params.has('camera')) {  // camera=x,y,z,tx,ty,tz: position and target, as viewer.js's
+    const c = params.get('camera').split(',').map(Number);
+    camera.setTarget(new Vector3(c[3], c[4], c[5]));
+    camera.setPosition(new Vector3(c[0], c[1], c[2]));
+  } else {
+    const side = zUp ? new Vector3(0, -1, 0) : new Vector3(0, 0, 1);
+    camera.setPosition(center.add(side.scale(radius * 1.9)).add(up.scale(radius * 0.75)));
+  }
   camera.minZ = radius / 500;
   camera.maxZ = radius * 50;
   camera.fov = (number('fov', 40) * Math.PI) / 180;
@@ -177,6 +183,13 @@ async function main() {
   const gl = engine._gl;
   window.vbusd = {
     engine: 'babylon', backend: 'webgl2', babylon: { engine, scene, camera, shadowGenerator }, crowds, animations,
+    /** The camera's projection and view matrices as three.js' pages give them (column-major
+     * `elements` of column-vector matrices: Babylon's row-vector `m` arrays, which are the same
+     * numbers), for tests that project the decoder's vertices with the page's own camera. */
+    camera: {
+      get projectionMatrix() { return { elements: Array.from(camera.getProjectionMatrix(true).m) }; },
+      get matrixWorldInverse() { return { elements: Array.from(camera.getViewMatrix(true).m) }; },
+    },
     setTime, render,
     get instanceCount() { return probeTargets.length; },
     /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU. */
