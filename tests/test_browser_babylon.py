@@ -14,6 +14,8 @@ stored texels:
   and the VBUSD_virtual_bones extension;
 * the lit page draws shadows (the ground darker where the figures' shadows fall), and with the
   figures hidden from the camera their shadows alone move with the animation (the depth pass skins);
+* sockets of a crossfading crowd (``crowd.socketMatrix``) against the decoder's joint transforms;
+* the picture against the decoder's silhouette (IoU >= 0.98);
 * docs/engines.md's example page, as written (PBR materials), draws lit and shadowed figures;
 * no console error on any page, every request served by the viewer (offline).
 """
@@ -258,3 +260,40 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
     shadows = ((luminance > 45) & (luminance < 75)).mean()
     print("background, lit, shadows:", background, lit, shadows)
     assert background > 0.05 and lit > 0.2 and shadows > 0.01, (background, lit, shadows)
+
+
+def test_babylon_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path):
+    """Sockets (format 1.1) on the Babylon page: ``crowd.socketMatrix(i, bone, t)`` of every
+    instance of a crossfading crowd equals the decoder's ``crowd_joint_transforms`` (placement
+    times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
+    from vbusd.decode.reference import crowd_joint_transforms
+
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count = crowd.instance_count
+    clips = len(asset.animations[0].clips)
+    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 1) % clips).astype(np.int32),
+                                fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
+                                fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
+                                fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
+    path = tmp_path / "sockets" / "faded.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    asset = vbusd.read_asset(path)
+    vb = asset.animations[0]
+    extent = float(np.linalg.norm(np.ptp(np.asarray(faded.positions), axis=0))) + 1.0
+    with ViewerServer(path, engine="babylon") as server:
+        page = ViewerPage(browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            for bone in range(vb.layout.bone_count):
+                for t in (0.0, 0.61):
+                    got = np.asarray(page.page.evaluate(
+                        """([bone, t, n]) => Array.from({ length: n }, (_, i) =>
+                            Array.from(window.vbusd.crowds[0].socketMatrix(i, bone, t).m))""", [bone, t, count]))
+                    expected = crowd_joint_transforms(vb, asset.crowds[0], bone, t)
+                    got = got.reshape(count, 4, 4).transpose(0, 2, 1)  # Babylon's row vectors
+                    assert np.abs(got - expected).max() <= 1e-6 * extent, (bone, t)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()

@@ -7,3 +7,4 @@ export { VirtualBonesPluginMaterial, skinMaterial, vertexInputs } from './plugin
 export { VirtualBonesCrowd } from './crowd.js';
 export { probeBabylonCrowd } from './probe.js';
 export { VirtualBonesGLTFLoaderExtension, registerVirtualBonesGLTFExtension, EXTENSION } from './gltf-extension.js';
+export { crowdSocketMatrix } from './sockets.js';

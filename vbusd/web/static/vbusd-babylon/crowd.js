@@ -6,6 +6,7 @@ import { Mesh, VertexData, Matrix, StandardMaterial, Color3 } from '@babylonjs/c
 
 import { VirtualBonesError } from './skinning.js';
 import { skinMaterial } from './plugin.js';
+import { crowdSocketMatrix } from './sockets.js';
 
 /**
  * @param {Scene} scene
@@ -113,6 +114,9 @@ export class VirtualBonesCrowd {
     for (let i = 0; i < this.capacity; ++i) this.instanceA[4 * i] = typeof clips === 'number' ? clips : clips[i];
     for (const mesh of this.meshes) mesh.thinInstanceBufferUpdated('vb_instanceA');
   }
+
+  /** Socket (spec 8.4): the world transform of `bone` of instance `index` at scene time `time`. */
+  socketMatrix(index, bone, time) { return crowdSocketMatrix(this, index, bone, time); }
 
   /** Instance `i`'s placement as a Babylon Matrix. */
   instanceMatrix(i) {
