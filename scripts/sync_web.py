@@ -4,7 +4,10 @@
    three.js runtime runs the GLSL ``vbusd shader`` prints, never a retyped copy.
 2. Copies the runtime (web/src/*.js, web/src/webgpu/*.js) to vbusd/web/static/vbusd-three/ and the viewer pages
    (web/viewer/*) to vbusd/web/static/.
-3. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
+3. Copies the Babylon.js runtime (web/babylon/src/*.js) to vbusd/web/static/vbusd-babylon/ with its own
+   copy of the shader modules, and the esbuild bundle of Babylon.js (web/babylon/dist, built by
+   ``npm run bundle`` in web/babylon; the copy under static/babylon/ is committed) with its licence.
+4. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
    from web/node_modules/three (``npm ci`` in web/ installs the version package-lock.json pins) to
    vbusd/web/static/three/, so ``vbusd view`` works offline from the wheel, without a CDN.
 
@@ -68,6 +71,9 @@ def planned_files(*, with_three: bool = True) -> dict[Path, bytes]:
     files[STATIC / "vbusd-babylon" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
     if BABYLON_BUNDLE.is_file():
         files[STATIC / "babylon" / "babylon.bundle.js"] = BABYLON_BUNDLE.read_bytes()
+    licence = BABYLON / "node_modules" / "@babylonjs" / "core" / "license.md"
+    if licence.is_file():
+        files[STATIC / "babylon" / "LICENSE"] = licence.read_bytes()
     for source in sorted((WEB / "viewer").iterdir()):
         files[STATIC / source.name] = source.read_bytes()
     if with_three:
