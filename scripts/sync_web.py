@@ -4,7 +4,10 @@
    three.js runtime runs the GLSL ``vbusd shader`` prints, never a retyped copy.
 2. Copies the runtime (web/src/*.js, web/src/webgpu/*.js) to vbusd/web/static/vbusd-three/ and the viewer pages
    (web/viewer/*) to vbusd/web/static/.
-3. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
+3. Copies the Babylon.js runtime (web/babylon/src/*.js) to vbusd/web/static/vbusd-babylon/ with its own
+   copy of the shader modules, and the esbuild bundle of Babylon.js (web/babylon/dist, built by
+   ``npm run bundle`` in web/babylon; the copy under static/babylon/ is committed) with its licence.
+4. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
    from web/node_modules/three (``npm ci`` in web/ installs the version package-lock.json pins) to
    vbusd/web/static/three/, so ``vbusd view`` works offline from the wheel, without a CDN.
 
@@ -22,6 +25,10 @@ REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
 STATIC = REPO / "vbusd" / "web" / "static"
 THREE = WEB / "node_modules" / "three"
+BABYLON = WEB / "babylon"
+#: Babylon.js' modules, bundled once by esbuild (``npm run bundle`` in web/babylon: @babylonjs/core's
+#: ES modules are ~1,800 files); the bundle is committed, so the wheel builds without node.
+BABYLON_BUNDLE = BABYLON / "dist" / "babylon.bundle.js"
 
 THREE_FILES = {
     "build/three.module.js": "three/three.module.js",
@@ -56,6 +63,17 @@ def planned_files(*, with_three: bool = True) -> dict[Path, bytes]:
     for source in sorted((WEB / "src" / "webgpu").glob("*.js")):  # the three.js WebGPU (TSL) runtime
         files[STATIC / "vbusd-three" / "webgpu" / source.name] = source.read_bytes()
     files[STATIC / "vbusd-three" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    # The Babylon.js runtime (web/babylon/src) with its own copy of the shader modules.
+    files[BABYLON / "src" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    for source in sorted((BABYLON / "src").glob("*.js")):
+        if source.name not in ("shader-modules.js", "babylon-entry.js"):
+            files[STATIC / "vbusd-babylon" / source.name] = source.read_bytes()
+    files[STATIC / "vbusd-babylon" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
+    if BABYLON_BUNDLE.is_file():
+        files[STATIC / "babylon" / "babylon.bundle.js"] = BABYLON_BUNDLE.read_bytes()
+    licence = BABYLON / "node_modules" / "@babylonjs" / "core" / "license.md"
+    if licence.is_file():
+        files[STATIC / "babylon" / "LICENSE"] = licence.read_bytes()
     for source in sorted((WEB / "viewer").iterdir()):
         files[STATIC / source.name] = source.read_bytes()
     if with_three:

@@ -121,3 +121,16 @@ def test_runtime_packs_skin_records_as_the_spec_states():
     # K = 8: 4 index words + 8 weights = 12 words, 3 texels; 8191 = 0x1fff; -2.0 = 0xc0000000.
     assert records["k8"] == ["00020001", "00040003", "00060005", "1fff0007", "3f800000", "00000000", "00000000",
                              "00000000", "00000000", "00000000", "c0000000", "3f000000"]
+
+
+def test_shipped_babylon_is_the_pinned_version():
+    """web/babylon pins @babylonjs/core and @babylonjs/loaders exactly (package.json and its lock
+    agree), and the committed bundle is that Babylon.js (its Engine.Version), with its licence."""
+    babylon = WEB / "babylon"
+    lock = json.loads((babylon / "package-lock.json").read_text())
+    dependencies = json.loads((babylon / "package.json").read_text())["dependencies"]
+    for name in ("@babylonjs/core", "@babylonjs/loaders"):
+        assert dependencies[name] == lock["packages"][f"node_modules/{name}"]["version"]
+    bundle = (STATIC / "babylon" / "babylon.bundle.js").read_text(encoding="utf-8")
+    assert f'Version(){{return"{dependencies["@babylonjs/core"]}"}}' in bundle
+    assert (STATIC / "babylon" / "LICENSE").read_text().startswith("# Apache License 2.0")

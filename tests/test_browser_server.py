@@ -126,7 +126,7 @@ def test_ctrl_c_stops_cleanly(viewer):
     (["notes.txt"], "expected a USD asset"),
     (["stadium_crowd_vb.usda", "--port", "eighty"], "--port must be an integer"),
     (["stadium_crowd_vb.usda", "--port", "70000"], "--port must be 0..65535"),
-    (["stadium_crowd_vb.usda", "--engine", "unreal"], "'unreal' is not one of 'three', 'three-webgpu'"),
+    (["stadium_crowd_vb.usda", "--engine", "unreal"], "'unreal' is not one of 'three', 'three-webgpu', 'babylon'"),
 ])
 def test_bad_input_is_one_line(served_folder, arguments, expected):
     (served_folder / "notes.txt").write_text("hello")
@@ -283,3 +283,17 @@ def test_face_varying_normals_are_unwelded():
     np.testing.assert_array_equal(view("normals", "<f4", 3), normals)
     np.testing.assert_array_equal(view("boneIndices", "<i4", 4), [[1, 2, 0, 0]] * 6)  # padded to four slots
     np.testing.assert_array_equal(view("boneWeights", "<f4", 4), [[0.75, 0.25, 0, 0]] * 6)
+
+
+def test_engine_babylon_serves_its_page(served_folder):
+    """``--engine babylon``: the same asset and config (with the engine), Babylon's page, its
+    bundle and the Babylon runtime, all from the package."""
+    from vbusd.web.server import ViewerServer
+
+    with ViewerServer(served_folder / "stadium_crowd_vb.usda", engine="babylon") as server:
+        port = int(server.url.rsplit(":", 1)[1].strip("/"))
+        assert json.loads(_get(port, "/config.json")[1])["engine"] == "babylon"
+        page = _get(port, "/")[1].decode("utf-8")
+        assert "babylon-viewer.js" in page and "./babylon/babylon.bundle.js" in page
+        for path in ("/babylon/babylon.bundle.js", "/vbusd-babylon/index.js", "/vbusd-babylon/shader-modules.js"):
+            assert _get(port, path)[0] == 200, path

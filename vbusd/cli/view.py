@@ -2,7 +2,8 @@
 
 ``--engine three`` (default) draws it with three.js' WebGLRenderer and the GLSL runtime;
 ``--engine three-webgpu`` with WebGPURenderer and the TSL runtime (WebGPU, or WebGL 2 where the
-browser offers no WebGPU). Every engine's page offers the same ``window.vbusd.probe(instance, time)``.
+browser offers no WebGPU); ``--engine babylon`` with Babylon.js and the material plugin of web/babylon
+(WebGL 2). Every engine's page offers the same ``window.vbusd.probe(instance, time)``.
 
 Serves the viewer page, three.js and the asset on 127.0.0.1 (:mod:`vbusd.web.server`; everything
 ships inside the package, so it works offline) and opens the page in the default browser. The page
@@ -30,8 +31,8 @@ __all__ = ["command"]
 @click.option("--no-browser", is_flag=True, help="Do not open a browser; only print the address.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")
 @click.option("--engine", type=click.Choice(ENGINES), default="three", show_default=True,
-              help="The web engine that draws it: three.js WebGLRenderer (three) or WebGPURenderer with "
-                   "the TSL runtime (three-webgpu).")
+              help="The web engine that draws it: three.js WebGLRenderer (three), WebGPURenderer with "
+                   "the TSL runtime (three-webgpu) or Babylon.js with the vbusd material plugin (babylon).")
 @format_option
 @quiet_option
 def command(asset, port, no_browser, allow_outside_paths, engine, output_format, quiet):

@@ -10,8 +10,10 @@ from __future__ import annotations
 __all__ = ["ENGINES", "ENGINE_PAGES"]
 
 #: Engine names, the default first.
-ENGINES = ("three", "three-webgpu")
+ENGINES = ("three", "three-webgpu", "babylon")
 
 #: The page of each engine under vbusd/web/static: three.js mapped to WebGLRenderer's build
 #: (index.html) or to three/webgpu (webgpu.html); both run viewer.js.
-ENGINE_PAGES = {"three": "/index.html", "three-webgpu": "/webgpu.html"}
+#: Babylon.js: babylon.html and babylon-viewer.js (the material plugin of web/babylon on thin
+#: instances; Babylon's modules bundled once by esbuild).
+ENGINE_PAGES = {"three": "/index.html", "three-webgpu": "/webgpu.html", "babylon": "/babylon.html"}

@@ -158,7 +158,8 @@ class ViewerServer:
         port: TCP port; 0 picks a free one.
         allow_outside_paths: Let a USD asset reference textures outside its folder.
         engine: The web engine of the page (:data:`vbusd.web.engines.ENGINES`): ``three``
-            (WebGLRenderer, ``index.html``) or ``three-webgpu`` (WebGPURenderer, ``webgpu.html``).
+            (WebGLRenderer, ``index.html``), ``three-webgpu`` (WebGPURenderer, ``webgpu.html``) or
+            ``babylon`` (Babylon.js, ``babylon.html``).
 
     Raises:
         InputError: The asset cannot be read (the same one-line errors as every command); a

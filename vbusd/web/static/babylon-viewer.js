@@ -1,0 +1,219 @@
+// The page `vbusd view --engine babylon` serves: a Virtual Bones asset drawn by Babylon.js with the
+// material plugin (web/babylon/src), thin instances, a shadow-casting sun and an orbit camera.
+//
+// Query parameters as viewer.js's: time=T, paused=1, camera=x,y,z,tx,ty,tz, fov=DEG, silhouette=1,
+// ui=0, width=W, height=H, instances=N, antialias=0. The plain files of a USD asset are parsed with the three.js runtime's
+// loadPlainScene (its arrays only: nothing of three draws here).
+//
+// window.vbusd: {ready, probe(instance, time), setTime(t), render(), measureFrames(n), engine
+// ('babylon'), backend ('webgl2'), babylon: {engine, scene, camera}, crowds, animations}.
+
+import {
+  Engine, Scene, Vector3, Color3, Color4, StandardMaterial, DirectionalLight, HemisphericLight,
+  ArcRotateCamera, MeshBuilder, ShadowGenerator, ImportMeshAsync,
+} from '@babylonjs/core';
+
+import {
+  VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd, registerVirtualBonesGLTFExtension,
+} from './vbusd-babylon/index.js';
+
+const params = new URLSearchParams(window.location.search);
+const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
+const silhouette = params.get('silhouette') === '1';
+const element = (id) => document.getElementById(id);
+
+function showError(error) {
+  console.error(error);
+  element('error').textContent = String(error?.message ?? error);
+}
+
+/** The asset as engine-neutral arrays: animations ({layout, texels, meshes}) and crowds. */
+async function loadArrays(config) {
+  if (config.kind !== 'scene') throw new Error(`unknown asset kind ${config.kind}`);
+  const { loadPlainScene } = await import('./vbusd-three/index.js');
+  const description = await loadPlainScene(config.url);
+  const meshArrays = (mesh) => {
+    const g = mesh.geometry;
+    const { pointIndex, hasNormals, pointCount } = g.userData.virtualBones;
+    const sets = g.attributes.vb_boneIndices1 ? 2 : 1;
+    const vertexCount = g.attributes.position.count;
+    const boneIndices = new Float32Array(4 * sets * vertexCount);
+    const boneWeights = new Float32Array(4 * sets * vertexCount);
+    for (let set = 0; set < sets; ++set) {
+      for (let v = 0; v < vertexCount; ++v) {
+        for (let i = 0; i < 4; ++i) {
+          boneIndices[v * 4 * sets + 4 * set + i] = g.attributes[`vb_boneIndices${set}`].array[4 * v + i];
+          boneWeights[v * 4 * sets + 4 * set + i] = g.attributes[`vb_boneWeights${set}`].array[4 * v + i];
+        }
+      }
+    }
+    return { name: mesh.name, maxInfluences: mesh.maxInfluences, positions: g.attributes.position.array,
+      normals: hasNormals ? g.attributes.normal.array : null, indices: g.index.array, boneIndices, boneWeights,
+      pointIndex, pointCount };
+  };
+  return {
+    upAxis: description.upAxis,
+    animations: description.animations.map((entry) => ({
+      name: entry.animation.name, layout: entry.animation.layout, texels: entry.animation.texture.image.data,
+      meshes: entry.meshes.map(meshArrays),
+    })),
+    crowds: description.crowds,
+  };
+}
+
+function oneInstance() {
+  return { count: 1, matrices: new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]),
+    clip: new Int32Array([0]), timeOffset: new Float32Array([0]), playbackRate: new Float32Array([1]) };
+}
+
+async function main() {
+  const config = await (await fetch('config.json')).json();
+  element('title').textContent = config.name;
+  document.title = `vbusd view: ${config.name}`;
+  if (params.get('ui') === '0') element('panel').classList.add('hidden');
+  const canvas = element('view');
+  if (params.has('width')) {
+    canvas.style.width = `${number('width')}px`;
+    canvas.style.height = `${number('height')}px`;
+  }
+  const engine = new Engine(canvas, params.get('antialias') !== '0', { preserveDrawingBuffer: true, stencil: true });
+  if (engine.webGLVersion < 2) throw new Error('the Babylon.js runtime needs WebGL 2');
+  const scene = new Scene(engine);
+  scene.useRightHandedSystem = true;  // vbusd's data is right-handed (USD, glTF): used as stored
+  const material = (name) => (silhouette
+    ? Object.assign(new StandardMaterial(name, scene), { disableLighting: true, emissiveColor: new Color3(1, 1, 1) })
+    : Object.assign(new StandardMaterial(name, scene), { diffuseColor: new Color3(0.72, 0.74, 0.78), specularColor: new Color3(0.1, 0.1, 0.1) }));
+  let crowds;
+  let animations;
+  let zUp = false;
+  if (config.kind === 'gltf') {
+    // A `vbusd export` package through Babylon's own glTF loader and the VBUSD_virtual_bones extension.
+    registerVirtualBonesGLTFExtension({ material });
+    await ImportMeshAsync(config.url, scene);
+    if (!scene.metadata?.virtualBones) throw new Error('the glTF has no VBUSD_virtual_bones meshes');
+    ({ crowds, animations } = scene.metadata.virtualBones);
+  } else {
+    const asset = await loadArrays(config);
+    zUp = asset.upAxis === 'Z';
+    animations = asset.animations.map((entry) => new VirtualBonesAnimation(scene, entry));
+    crowds = asset.crowds.map((crowd) => new VirtualBonesCrowd(scene, {
+      animation: animations[crowd.animation], meshes: asset.animations[crowd.animation].meshes,
+      instances: crowd.instances, material, name: crowd.name }));
+    const instanced = new Set(asset.crowds.map((crowd) => crowd.animation));
+    asset.animations.forEach((entry, a) => {
+      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: oneInstance(), material, name: entry.name }));
+    });
+  }
+  if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
+
+  // Frame the instances' rest bounds.
+  let min = new Vector3(Infinity, Infinity, Infinity);
+  let max = new Vector3(-Infinity, -Infinity, -Infinity);
+  for (const crowd of crowds) {
+    for (const mesh of crowd.meshes) {
+      mesh.thinInstanceRefreshBoundingInfo(false);
+      const box = mesh.getBoundingInfo().boundingBox;
+      min = Vector3.Minimize(min, box.minimumWorld);
+      max = Vector3.Maximize(max, box.maximumWorld);
+    }
+  }
+  const center = min.add(max).scale(0.5);
+  const radius = Math.max(max.subtract(min).length() / 2, 1e-3);
+  const up = zUp ? new Vector3(0, 0, 1) : new Vector3(0, 1, 0);
+  const camera = new ArcRotateCamera('camera', 0, 0, radius * 2.1, center, scene);
+  camera.upVector = up;
+  if (params.has('camera')) {  // camera=x,y,z,tx,ty,tz: position and target, as viewer.js's
+    const c = params.get('camera').split(',').map(Number);
+    camera.setTarget(new Vector3(c[3], c[4], c[5]));
+    camera.setPosition(new Vector3(c[0], c[1], c[2]));
+  } else {
+    const side = zUp ? new Vector3(0, -1, 0) : new Vector3(0, 0, 1);
+    camera.setPosition(center.add(side.scale(radius * 1.9)).add(up.scale(radius * 0.75)));
+  }
+  camera.minZ = radius / 500;
+  camera.maxZ = radius * 50;
+  camera.fov = (number('fov', 40) * Math.PI) / 180;
+  camera.attachControl(canvas, true);
+
+  let shadowGenerator = null;
+  if (silhouette) {
+    scene.clearColor = new Color4(0, 0, 0, 1);
+  } else {
+    scene.clearColor = Color4.FromHexString('#1d2026ff');
+    const sky = new HemisphericLight('sky', up, scene);
+    sky.intensity = 0.6;
+    sky.groundColor = new Color3(0.23, 0.19, 0.15);
+    const sunDirection = up.scale(-2).add(new Vector3(-1, 0, -0.6)).normalize();
+    const sun = new DirectionalLight('sun', sunDirection, scene);
+    sun.position = center.subtract(sunDirection.scale(radius * 3));
+    sun.intensity = 1.6;
+    shadowGenerator = new ShadowGenerator(2048, sun);
+    shadowGenerator.usePoissonSampling = true;
+    for (const crowd of crowds) for (const mesh of crowd.meshes) shadowGenerator.addShadowCaster(mesh);
+    const ground = MeshBuilder.CreateDisc('ground', { radius: radius * 6, tessellation: 64 }, scene);
+    ground.material = Object.assign(new StandardMaterial('ground', scene), { diffuseColor: new Color3(0.29, 0.31, 0.35), specularColor: new Color3(0, 0, 0) });
+    if (zUp) { ground.position = new Vector3(center.x, center.y, min.z); } else { ground.rotation.x = Math.PI / 2; ground.position = new Vector3(center.x, min.y, center.z); }
+    ground.receiveShadows = true;
+  }
+
+  let time = number('time', 0);
+  let playing = params.get('paused') !== '1' && !params.has('time');
+  const setTime = (t) => {
+    time = t;
+    for (const animation of animations) animation.time = t;
+    element('time-label').textContent = `${t.toFixed(2)} s`;
+  };
+  element('play').textContent = playing ? 'Pause' : 'Play';
+  element('play').onclick = () => { playing = !playing; element('play').textContent = playing ? 'Pause' : 'Play'; };
+  setTime(time);
+  const render = () => scene.render();
+  await scene.whenReadyAsync();
+  render();
+  let last = performance.now();
+  engine.runRenderLoop(() => {
+    const now = performance.now();
+    if (playing) setTime(time + (now - last) / 1000);
+    last = now;
+    render();
+    element('stats').textContent = `frame time: ${engine.getDeltaTime().toFixed(1)} ms, ${crowds.reduce((n, c) => n + c.count, 0)} instances`;
+  });
+  window.addEventListener('resize', () => engine.resize());
+
+  const probeTargets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
+  const gl = engine._gl;
+  window.vbusd = {
+    engine: 'babylon', backend: 'webgl2', babylon: { engine, scene, camera, shadowGenerator }, crowds, animations,
+    /** The camera's projection and view matrices as three.js' pages give them (column-major
+     * `elements` of column-vector matrices: Babylon's row-vector `m` arrays, which are the same
+     * numbers), for tests that project the decoder's vertices with the page's own camera. */
+    camera: {
+      get projectionMatrix() { return { elements: Array.from(camera.getProjectionMatrix(true).m) }; },
+      get matrixWorldInverse() { return { elements: Array.from(camera.getViewMatrix(true).m) }; },
+    },
+    setTime, render,
+    get instanceCount() { return probeTargets.length; },
+    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU. */
+    async probe(instance, t) {
+      const target = probeTargets[instance];
+      if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
+      const result = probeBabylonCrowd(engine, target[0], target[1], t);
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: 0 };
+    },
+    /** Mean milliseconds per frame over `frames` frames, each rendered and finished (a pixel read). */
+    measureFrames(frames = 60) {
+      engine.stopRenderLoop();
+      const pixel = new Uint8Array(4);
+      render();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      const start = performance.now();
+      for (let i = 0; i < frames; ++i) {
+        setTime(time + 1 / 60);
+        render();
+        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      }
+      return (performance.now() - start) / frames;
+    },
+  };
+}
+
+window.vbusdReady = main().catch((error) => { showError(error); throw error; });

@@ -1,0 +1,113 @@
+// Babylon.js glTF loader extension VBUSD_virtual_bones (spec/runtime-package.md): Babylon's own
+// GLTFLoader reads a `vbusd export` package. Babylon loads the rest meshes and, through its
+// EXT_mesh_gpu_instancing, the crowd's thin-instance matrices; this extension then reads each
+// animation's KTX2 texture from its buffer view (the three.js runtime's parser, web/src/ktx2.js),
+// each primitive's _VB_JOINTS_n / _VB_WEIGHTS_n and each crowd's _VB_CLIP, _VB_TIME_OFFSET and
+// _VB_PLAYBACK_RATE, and skins the meshes with the material plugin (VirtualBonesCrowd).
+//
+//   registerVirtualBonesGLTFExtension();
+//   const result = await ImportMeshAsync('crowd.glb', scene);
+//   const { crowds, animations } = scene.metadata.virtualBones;  // animations[a].time = t
+
+import { GLTFLoader } from '@babylonjs/loaders/glTF/2.0';
+import { parseVirtualBonesKTX2 } from '@vbusd/three';
+
+import { VirtualBonesAnimation } from './animation.js';
+import { VirtualBonesCrowd } from './crowd.js';
+import { VirtualBonesError } from './skinning.js';
+
+export const EXTENSION = 'VBUSD_virtual_bones';
+
+export class VirtualBonesGLTFLoaderExtension {
+  constructor(loader, { material = null } = {}) {
+    this.name = EXTENSION;
+    this.enabled = loader.isExtensionUsed(EXTENSION);
+    this._loader = loader;
+    this._material = material;
+    this._animations = null;
+    this._crowds = [];
+  }
+
+  dispose() { this._loader = null; }
+
+  _floats(context, index) {
+    const accessor = this._loader.gltf.accessors[index];
+    if (!accessor) throw new VirtualBonesError(`${context}: no accessor ${index}`);
+    return this._loader._loadFloatAccessorAsync(`/accessors/${index}`, accessor);
+  }
+
+  _loadAnimations() {
+    if (this._animations) return this._animations;
+    const root = this._loader.gltf.extensions?.[EXTENSION];
+    if (!root) throw new VirtualBonesError(`the glTF uses ${EXTENSION} but has no root ${EXTENSION} object`);
+    if (root.version > 1) throw new VirtualBonesError(`${EXTENSION} version ${root.version} is newer than this runtime (1)`);
+    const scene = this._loader.babylonScene;
+    this._animations = Promise.all(root.animations.map(async (entry, index) => {
+      const name = entry.name ?? `animation ${index}`;
+      const bufferView = this._loader.gltf.bufferViews[entry.texture.bufferView];
+      const bytes = await this._loader.loadBufferViewAsync(`/bufferViews/${entry.texture.bufferView}`, bufferView);
+      const { layout, texels } = await parseVirtualBonesKTX2(new Uint8Array(bytes), `${name} (bufferView ${entry.texture.bufferView})`);
+      return new VirtualBonesAnimation(scene, { layout, texels, name });
+    }));
+    return this._animations;
+  }
+
+  loadNodeAsync(context, node, assign) {
+    const mesh = node.mesh === undefined ? null : this._loader.gltf.meshes[node.mesh];
+    const primitives = mesh?.primitives.map((p) => p.extensions?.[EXTENSION]) ?? [];
+    if (!primitives.some(Boolean)) return null;
+    return GLTFLoader.LoadExtensionAsync(context, mesh.primitives[primitives.findIndex(Boolean)], EXTENSION, async () => {
+      const loaded = await this._loader.loadNodeAsync(`/nodes/${node.index}`, node, assign);
+      const animations = await this._loadAnimations();
+      const animation = animations[primitives[0].animation];
+      if (!animation) throw new VirtualBonesError(`${context}: no animation ${primitives[0].animation}`);
+      const adopt = await Promise.all(mesh.primitives.map(async (primitive, p) => {
+        const extension = primitive.extensions?.[EXTENSION];
+        if (!extension) throw new VirtualBonesError(`${context}: primitive ${p} lacks ${EXTENSION}`);
+        const sets = Math.ceil(extension.influences / 4);
+        const boneIndices = [];
+        const boneWeights = [];
+        for (let set = 0; set < sets; ++set) {
+          const joints = primitive.attributes[`_VB_JOINTS_${set}`];
+          const weights = primitive.attributes[`_VB_WEIGHTS_${set}`];
+          if (joints === undefined || weights === undefined) throw new VirtualBonesError(`${context}: primitive ${p} has no _VB_JOINTS_${set} / _VB_WEIGHTS_${set}`);
+          boneIndices.push(await this._floats(context, joints));
+          boneWeights.push(await this._floats(context, weights));
+        }
+        const interleave = (arrays) => {  // 4 or 8 per vertex, set 0 first
+          if (arrays.length === 1) return arrays[0];
+          const out = new Float32Array(arrays[0].length * 2);
+          for (let v = 0; v < arrays[0].length / 4; ++v) for (let i = 0; i < 4; ++i) { out[8 * v + i] = arrays[0][4 * v + i]; out[8 * v + 4 + i] = arrays[1][4 * v + i]; }
+          return out;
+        };
+        return { mesh: node._primitiveBabylonMeshes[p], maxInfluences: extension.influences,
+          boneIndices: interleave(boneIndices), boneWeights: interleave(boneWeights) };
+      }));
+      const instancing = node.extensions?.EXT_mesh_gpu_instancing?.attributes;
+      const count = instancing ? this._loader.gltf.accessors[instancing._VB_CLIP].count : 1;
+      const read = async (name, fallback) => (instancing?.[name] !== undefined ? this._floats(context, instancing[name]) : new Float32Array(count).fill(fallback));
+      const clip = await read('_VB_CLIP', 0);
+      const instances = { count, matrices: null, clip: Int32Array.from(clip, (c) => Math.floor(c + 0.5)),
+        timeOffset: await read('_VB_TIME_OFFSET', 0), playbackRate: await read('_VB_PLAYBACK_RATE', 1) };
+      if (!instancing) for (const entry of adopt) entry.mesh.thinInstanceSetBuffer('matrix', new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]), 16, true);
+      const crowd = new VirtualBonesCrowd(this._loader.babylonScene, { animation, instances, adopt, material: this._material,
+        name: node.name ?? `node ${node.index}` });
+      // Crowds (instanced nodes) first, then single characters, as the plain files number them.
+      crowd.instanced = Boolean(instancing);
+      this._crowds.push(crowd);
+      const scene = this._loader.babylonScene;
+      const crowds = [...this._crowds].sort((a, b) => Number(b.instanced) - Number(a.instanced));
+      scene.metadata = { ...(scene.metadata ?? {}), virtualBones: { crowds, animations } };
+      return loaded;
+    });
+  }
+}
+
+/**
+ * Register VBUSD_virtual_bones with Babylon's glTF loader (every later load uses it).
+ * `material(name)` makes each skinned mesh's material (default: the glTF's own, kept).
+ */
+export function registerVirtualBonesGLTFExtension({ material = null } = {}) {
+  GLTFLoader.UnregisterExtension(EXTENSION);
+  GLTFLoader.RegisterExtension(EXTENSION, (loader) => new VirtualBonesGLTFLoaderExtension(loader, { material }));
+}

@@ -1,0 +1,107 @@
+// A Babylon.js material plugin (MaterialPluginBase) that skins a mesh's thin instances from a
+// Virtual Bones texture, for StandardMaterial and PBRMaterial (any material whose vertex shader
+// has Babylon's CUSTOM_VERTEX_UPDATE_POSITION hook and positionUpdated / normalUpdated). The skin
+// runs before Babylon's instancing, so lighting, fog and shadows work unchanged.
+//
+// Shadows: Babylon's BakedVertexAnimationManager skins in ShadowGenerator's depth shader because
+// that shader carries its include (bakedVertexAnimation) under BAKED_VERTEX_ANIMATION_TEXTURE, and
+// the generator binds the manager. A plugin cannot reach that shader, so skinMaterial() gives the
+// material a ShadowDepthWrapper: the generator then renders depth with the material's own vertex
+// shader (plugin code included) and calls the material's bind, so the depth pass skins the same
+// way the colour pass does.
+
+import { MaterialPluginBase, ShadowDepthWrapper } from '@babylonjs/core';
+
+import { VirtualBonesError, skinningCall, skinningDeclarations } from './skinning.js';
+
+const PLUGIN_NAME = 'VirtualBones';
+// Shader variants (encoding, texel format, influences, clips) get a number: the plugin's define
+// VB_VARIANT keeps Babylon from sharing one compiled effect between different modules.
+const variants = new Map();
+
+/** Vertex streams of a skinned mesh (the plugin's attributes). */
+export function vertexInputs(maxInfluences) {
+  return ['vb_boneIndices0', 'vb_boneWeights0', ...(maxInfluences > 4 ? ['vb_boneIndices1', 'vb_boneWeights1'] : []),
+    'vb_instanceA', 'vb_instanceB'];
+}
+
+export class VirtualBonesPluginMaterial extends MaterialPluginBase {
+  /**
+   * @param {Material} material a StandardMaterial or PBRMaterial (GLSL: WebGL 2)
+   * @param {VirtualBonesAnimation} animation the texture, clip table and clock
+   * @param {number} maxInfluences bone influences per vertex of the meshes it draws (1..8)
+   */
+  constructor(material, animation, maxInfluences = 4) {
+    // The base constructor asks getCustomCode for its injection points before the fields below are
+    // set (getCustomCode answers the same keys then); enabled once they are.
+    super(material, PLUGIN_NAME, 200, { VIRTUAL_BONES: false, VB_VARIANT: 0 }, true, false);
+    this.animation = animation;
+    this.maxInfluences = maxInfluences;
+    const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}`;
+    if (!variants.has(key)) variants.set(key, variants.size + 1);
+    this.variant = variants.get(key);
+    // hardBindForSubMesh (every draw, the shadow pass included) is one of the plugin manager's
+    // extra events: dispatched only to plugins that register for them.
+    this.registerForExtraEvents = true;
+    this._enable(true);
+  }
+
+  getClassName() { return 'VirtualBonesPluginMaterial'; }
+
+  isCompatible(shaderLanguage) { return shaderLanguage === 0; }  // ShaderLanguage.GLSL
+
+  prepareDefines(defines) {
+    defines.VIRTUAL_BONES = true;
+    defines.VB_VARIANT = this.variant;
+  }
+
+  getAttributes(attributes) { attributes.push(...vertexInputs(this.maxInfluences)); }
+
+  getSamplers(samplers) { samplers.push('vb_texture'); }
+
+  // Declared by the module itself (VB_DECLARE_RESOURCES 1), so outside Babylon's uniform buffers.
+  getUniforms() { return { externalUniforms: ['vb_time', 'vb_clips'] }; }
+
+  // Every draw (the colour pass and ShadowGenerator's, whose depth effect is subMesh.effect then).
+  hardBindForSubMesh(uniformBuffer, scene, engine, subMesh) {
+    const effect = subMesh.effect;
+    if (!effect) return;
+    effect.setTexture('vb_texture', this.animation.texture);
+    effect.setFloat('vb_time', this.animation.time);
+    effect.setArray4('vb_clips', this.animation.clipTable);
+  }
+
+  getCustomCode(shaderType) {
+    if (shaderType !== 'vertex') return null;
+    if (!this.animation) return { CUSTOM_VERTEX_DEFINITIONS: '', CUSTOM_VERTEX_UPDATE_POSITION: '' };
+    return {
+      CUSTOM_VERTEX_DEFINITIONS: skinningDeclarations(this.animation, this.maxInfluences, 'attribute'),
+      // positionUpdated / normalUpdated are the rest vertex here, before morph-free instancing.
+      CUSTOM_VERTEX_UPDATE_POSITION: `{
+#ifdef NORMAL
+  vec3 vbRestNormal = normalUpdated;
+#else
+  vec3 vbRestNormal = vec3(0.0, 0.0, 1.0);
+#endif
+${skinningCall('positionUpdated', 'vbRestNormal', this.maxInfluences)}
+  positionUpdated = vbPosition;
+#ifdef NORMAL
+  normalUpdated = vbNormal;
+#endif
+}
+`,
+    };
+  }
+}
+
+/**
+ * Make `material` skin from `animation` (in place; returns the plugin): the plugin, and a
+ * ShadowDepthWrapper so that shadow generators skin too.
+ */
+export function skinMaterial(material, animation, maxInfluences = 4) {
+  if (!material || typeof material.getClassName !== 'function') throw new VirtualBonesError('skinMaterial needs a Babylon material');
+  const plugin = new VirtualBonesPluginMaterial(material, animation, maxInfluences);
+  material.shadowDepthWrapper = new ShadowDepthWrapper(material, material.getScene());
+  material.metadata = { ...(material.metadata ?? {}), virtualBones: { animation, maxInfluences } };
+  return plugin;
+}

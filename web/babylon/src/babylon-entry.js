@@ -1,0 +1,13 @@
+// The Babylon.js modules `vbusd view --engine babylon` and docs/engines.md's example import, bundled
+// once by esbuild (`npm run bundle` in web/babylon) into dist/babylon.bundle.js: @babylonjs/core's
+// ES modules are ~1,800 files, too many to copy into the wheel. scripts/sync_web.py copies the
+// bundle to vbusd/web/static/babylon/; the page's import map points '@babylonjs/core' and
+// '@babylonjs/loaders/glTF/2.0' at it.
+export {
+  Engine, Scene, Mesh, VertexData, Matrix, Vector3, Color3, Color4, StandardMaterial, PBRMaterial,
+  MaterialPluginBase, ShadowDepthWrapper, ShadowGenerator, DirectionalLight, HemisphericLight,
+  ArcRotateCamera, MeshBuilder, RawTexture, Constants, SceneLoader, LoadAssetContainerAsync,
+  ImportMeshAsync, BakedVertexAnimationManager, VertexAnimationBaker, AnimationRange, Quaternion,
+  Tools, VertexBuffer, EngineStore,
+} from '@babylonjs/core';
+export { GLTFLoader } from '@babylonjs/loaders/glTF/2.0/index.js';
