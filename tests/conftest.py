@@ -28,6 +28,51 @@ def pytest_configure(config):
                    "installed, network access); deselect with -m 'not packaging'")
 
 
+# The browser tests draw every engine (three.js WebGL, three.js WebGPU, Babylon.js) in software
+# (SwiftShader on the CPU): each probe case is a page load and a shader compile, seconds each. By
+# default they run a covering set: every encoding, every texel format and both skin bindings at
+# least once per engine and per character, each (encoding, texel format) pair once, so that the
+# whole suite stays within 15 minutes on 2 cores. VBUSD_FULL_MATRIX=1 runs every combination.
+BROWSER_FILES = {"test_browser.py", "test_browser_babylon.py", "test_browser_webgpu.py"}
+COVER = {("crossMatrix", "float16"): "pulled", ("affineMatrix", "float32"): "attributes",
+         ("quatTranslation", "float16"): "attributes", ("dualQuat", "float32"): "pulled"}
+"""The (encoding, texel format) pairs of the default browser matrix, with the skin binding each runs in."""
+CHARACTER_COVER = {("Fox", "crossMatrix"), ("Fox", "quatTranslation"), ("CesiumMan", "affineMatrix"),
+                   ("CesiumMan", "dualQuat")}
+
+
+def _in_browser_cover(item) -> bool:
+    """Whether a browser test case is in the default matrix. Only full products are thinned (an
+    ``encoding`` parametrization beside a ``texel_format`` or ``character`` one); cases listed
+    pair by pair all run."""
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    axes = {m.args[0] for m in item.iter_markers("parametrize") if m.args}
+    encoding = params.get("encoding")
+    if "encoding" in axes and "texel_format" in axes:
+        pair = (encoding, params.get("texel_format"))
+        return pair in COVER and params.get("skin") in (None, COVER[pair])
+    if "encoding" in axes and "character" in axes:
+        return (params.get("character"), encoding) in CHARACTER_COVER
+    return True
+
+
+def pytest_collection_modifyitems(config, items):
+    if os.environ.get("VBUSD_FULL_MATRIX") == "1":
+        return
+    keep, drop = [], []
+    for item in items:
+        (keep if Path(str(item.fspath)).name not in BROWSER_FILES or _in_browser_cover(item) else drop).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
+
+
+def pytest_terminal_summary(terminalreporter):
+    if os.environ.get("VBUSD_FULL_MATRIX") != "1":
+        terminalreporter.write_line("browser tests ran their covering matrix (every encoding, texel format and skin "
+                                    "binding); VBUSD_FULL_MATRIX=1 runs every combination")
+
+
 def _shared_assets_dir() -> Path | None:
     """The third-party test assets: ``$VBUSD_SHARED_ASSETS``, else ``../shared/assets`` beside the checkout."""
     candidates = [os.environ.get("VBUSD_SHARED_ASSETS"), REPO_ROOT.parent / "shared" / "assets"]
