@@ -156,7 +156,7 @@ def measure(encoding: str, texel_format: str, gen=None, rig=None) -> Result:
     Returns:
         The :class:`Result`.
     """
-    from vbusd.decode import reference
+    from vbusd.decoders import reference
 
     gen = gen or load_generator()
     rig = rig or gen.build_rig()
@@ -192,7 +192,7 @@ def measure(encoding: str, texel_format: str, gen=None, rig=None) -> Result:
 def _mid_row_format_error(encoding: str, clip, mesh, decoded: np.ndarray, gen) -> float:
     """Largest distance between ``decoded`` (mid-row times, from the stored texels) and the same
     row blend computed from the exact float64 matrices of the rows (no texel format involved)."""
-    from vbusd.decode import reference
+    from vbusd.decoders import reference
     from vbusd.format.encoding import decode_bones, encode_bones, make_hemispheres_continuous
 
     assert clip.loop, "the cheer loops: the last row blends into row 0"

@@ -3,10 +3,10 @@
 Generates a rig of about 100 joints, 10,000 frames and 50,000 points (one grid mesh, 4 influences
 per point, every joint rotating and translating each frame) as a .usdc, then, in one run:
 
-* compiles vbusd's bake kernels into warp's cache (``python -m vbusd.bake_kernels``: once per
+* compiles vbusd's bake kernels into warp's cache (``python -m vbusd.kernels.bake``: once per
   machine and vbusd version; nothing to do when the cache is warm) and reports how long that took;
 * ``vbusd convert`` as a command in a fresh process (Python's start-up and every import included);
-* ``vbusd.convert.convert`` of the whole animation to a Virtual Bones asset (.usdc + EXR texture +
+* ``vbusd.jobs.conversion.convert`` of the whole animation to a Virtual Bones asset (.usdc + EXR texture +
   JSON sidecar), with the accuracy check limited to ``--check-rows`` rows, ``--repeat`` times in
   this process: the first call also starts the process's crate-probe server and imports warp, the
   later ones are the conversion alone (their median is the steady figure, as a batch worker or any
@@ -150,8 +150,8 @@ def _bytes(paths) -> int:
 
 
 def run_vbusd(source: Path, folder: Path, check_rows: int) -> dict:
-    """One ``vbusd.convert.convert`` of ``source`` into ``folder`` (a new asset: give a fresh folder)."""
-    from vbusd.convert import ConvertOptions, convert
+    """One ``vbusd.jobs.conversion.convert`` of ``source`` into ``folder`` (a new asset: give a fresh folder)."""
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     output = folder / "rig.vb.usdc"
     cpu, started = _cpu_seconds(), time.perf_counter()
@@ -199,9 +199,9 @@ def run_cli(source: Path, folder: Path, check_rows: int) -> float:
 
 
 def warm_kernel_cache() -> float:
-    """Seconds ``python -m vbusd.bake_kernels`` took (compiling the kernels when warp's cache is cold)."""
+    """Seconds ``python -m vbusd.kernels.bake`` took (compiling the kernels when warp's cache is cold)."""
     started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "vbusd.bake_kernels"], check=True)
+    subprocess.run([sys.executable, "-m", "vbusd.kernels.bake"], check=True)
     return time.perf_counter() - started
 
 
@@ -280,7 +280,7 @@ def main(argv=None) -> int:
     steady_cpu = statistics.median(r["cpu"] for r in later)
     print(f"\nCPU time (every thread of the process): vbusd {steady_cpu:.2f} s a steady conversion, BakeSkinning "
           f"{bake['cpu'] * scale:.1f} s: {bake['cpu'] * scale / steady_cpu:.1f}x.")
-    print(f"\nBake kernels ready in {kernels:.1f} s (`python -m vbusd.bake_kernels`; compiling them, when "
+    print(f"\nBake kernels ready in {kernels:.1f} s (`python -m vbusd.kernels.bake`; compiling them, when "
           f"warp's cache is cold, is once per machine and vbusd version). Bytes: BakeSkinning / vbusd = "
           f"{bake['bytes'] * scale / vb['bytes']:.0f}x.")
     if args.json:

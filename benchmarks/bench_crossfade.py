@@ -1,7 +1,7 @@
 """What a crossfade costs the warp decoder (spec virtual-bones.md 8.3, format 1.1).
 
 The stadium crowd (18 bones, 202 vertices) replicated to N instances, skinned by
-``vbusd.decode.warp.Decoder.skin_crowd`` every frame with no crossfade (every fade weight 0: the
+``vbusd.decoders.warp.Decoder.skin_crowd`` every frame with no crossfade (every fade weight 0: the
 single-clip path), with every instance crossfading (weight 0.5, a second clip time), and with half
 of them crossfading. Each configuration is first checked against the numpy reference on the first
 instances, then timed (median of the frames, after warm-up; device synchronized).
@@ -51,8 +51,8 @@ def crowd_of(n: int, fading: float, seed: int = 15):
 def run(device: str, instances: int, encodings, frames: int) -> list:
     import warp as wp
 
-    from vbusd.decode.reference import skin_crowd
-    from vbusd.decode.warp import Decoder
+    from vbusd.decoders.reference import skin_crowd
+    from vbusd.decoders.warp import Decoder
 
     sample = _sample_module()
     rows = []

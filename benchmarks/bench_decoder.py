@@ -58,9 +58,9 @@ if str(ROOT) not in sys.path:
 
 import warp as wp  # noqa: E402
 
-from vbusd.decode import reference  # noqa: E402
-from vbusd.decode import warp as wd  # noqa: E402
-from vbusd.decode import warp_kernels as K  # noqa: E402
+from vbusd.decoders import reference  # noqa: E402
+from vbusd.decoders import warp as wd  # noqa: E402
+from vbusd.decoders import warp_kernels as K  # noqa: E402
 from vbusd.io.files import atomic_write  # noqa: E402
 from vbusd.format.model import BoundMesh, Crowd  # noqa: E402
 

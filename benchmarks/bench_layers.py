@@ -2,7 +2,7 @@
 
 The stadium crowd (18 bones, 202 vertices, the cheer) with its bone parents and bind transforms
 and the mask "upper" (spine and every bone above it: 12 of 18 bones), replicated to N instances and
-skinned by ``vbusd.decode.warp.Decoder.skin_crowd`` every frame: without layers (every layer weight
+skinned by ``vbusd.decoders.warp.Decoder.skin_crowd`` every frame: without layers (every layer weight
 0: the path of format 1.1, plus the layer kernel's check that nothing changes), with half of the
 instances playing one layer (the cheer at another time, weight 0.8, under "upper"), and with all of
 them. Each configuration is first checked against the numpy reference on the first instances, then
@@ -40,7 +40,7 @@ def _sample_module():
 
 def layered_animation(sample, encoding: str):
     """The cheer baked with the sample's joint hierarchy and bind transforms and the mask "upper"."""
-    from vbusd.bake import bake
+    from vbusd.baking.baker import bake
 
     animation = dataclasses.replace(sample.make_skinned_animation(), bind_transforms=sample.bind_matrices(),
                                     bone_parents=tuple(int(p) for p in sample.PARENTS))
@@ -65,8 +65,8 @@ def crowd_of(n: int, layered: float, seed: int = 15):
 def run(device: str, instances: int, encodings, frames: int) -> list:
     import warp as wp
 
-    from vbusd.decode.reference import skin_crowd
-    from vbusd.decode.warp import Decoder
+    from vbusd.decoders.reference import skin_crowd
+    from vbusd.decoders.warp import Decoder
 
     sample = _sample_module()
     rows = []

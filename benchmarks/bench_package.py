@@ -83,7 +83,7 @@ def asset_files(layer: Path) -> list:
 
 def vat_bytes(vb, instances: int, with_scale: bool) -> dict:
     """A vertex animation texture of clip 0, computed with the reference decoder."""
-    from vbusd.decode.reference import skin_mesh_at_rows
+    from vbusd.decoders.reference import skin_mesh_at_rows
 
     textures = 0
     rest = 0
@@ -117,7 +117,7 @@ def subcrowd(asset, count: int):
 
 def point_cache(asset, folder: Path, probe: tuple) -> dict:
     """Character cache measured; crowd cache per instance from two probe sub-crowds (extrapolated)."""
-    from vbusd.decode.pointcache import decode
+    from vbusd.jobs.pointcache import decode
     from vbusd.io.usd import write_asset
 
     character = folder / "character" / "character.usda"
@@ -140,7 +140,7 @@ def fallback_accuracy(fallback: Path, asset) -> dict:
     """UsdSkel's skinning of the stadium fallback against the reference decode (metres)."""
     from pxr import Gf, Usd, UsdGeom, UsdSkel
 
-    from vbusd.decode.reference import skin_crowd
+    from vbusd.decoders.reference import skin_crowd
 
     stage = Usd.Stage.Open(str(fallback))
     vb, crowd = asset.animations[0], asset.crowds[0]
@@ -169,8 +169,8 @@ def row_accuracy(folder: Path, asset) -> float:
     """Largest UsdSkel-vs-reference distance at the character's row times (metres)."""
     from pxr import Gf, Usd, UsdGeom, UsdSkel
 
-    from vbusd.decode.reference import skin_mesh_at_rows
-    from vbusd.export_usdskel import export_usdskel
+    from vbusd.decoders.reference import skin_mesh_at_rows
+    from vbusd.jobs.export_usdskel import export_usdskel
 
     character_asset = replace(asset, crowds=(), crowd_animation=())
     out = folder / "character_fallback.usdc"
@@ -197,7 +197,7 @@ def row_accuracy(folder: Path, asset) -> float:
 
 
 def measure(label: str, crowd_layer: Path, folder: Path, cache: dict, *, usda: bool) -> dict:
-    from vbusd.export_usdskel import export_usdskel
+    from vbusd.jobs.export_usdskel import export_usdskel
     from vbusd.io.gltf_package import export_gltf
     from vbusd.io.usd import read_asset
 
@@ -243,7 +243,7 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="Write the figures here as JSON.")
     args = parser.parse_args(argv)
 
-    from vbusd.crowd import CrowdOptions, build_crowd
+    from vbusd.jobs.crowd import CrowdOptions, build_crowd
     from vbusd.io.usd import read_asset
 
     folder = Path(tempfile.mkdtemp(prefix="vbusd_bench_package_")) if args.keep is None else args.keep

@@ -68,7 +68,7 @@ def _stadium():
 
 def subjects() -> list:
     """(label, SkinnedAnimation, BakeOptions) of the stadium sample and every shared glTF animation."""
-    from vbusd.bake import BakeOptions
+    from vbusd.baking.baker import BakeOptions
     from vbusd.converters import gltf
 
     out = [("stadium spectator", *_stadium())]
@@ -83,7 +83,7 @@ def subjects() -> list:
 
 def _rows(animation, options):
     """Per clip: (row times, mid-row times, matrices at rows, matrices at mid-rows, loop)."""
-    from vbusd.bake import decide_loop, plan_rows
+    from vbusd.baking.baker import decide_loop, plan_rows
 
     loops = [decide_loop(c, options) for c in animation.clips]
     plans = plan_rows(animation.clips, loops, options)

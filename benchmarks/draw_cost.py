@@ -11,7 +11,7 @@ back-face culling, one Lambert light) by six methods:
    and weights as vertex attributes (a 56-byte vertex);
 2b. ``vb_pulled``: the same with the module of ``vbusd shader --skin pulled`` (issue 25): the mesh
    keeps position and normal (the static mesh's vertex buffer), and the module's
-   ``vbSkinInfluences`` reads each vertex's skin record (``vbusd.decode.shaders.pack_skin``) by
+   ``vbSkinInfluences`` reads each vertex's skin record (``vbusd.decoders.shaders.pack_skin``) by
    ``gl_VertexID`` from its storage buffer ``VbSkin``;
 3. ``vat``: a vertex animation texture, the talk's "previous work": positions and normals of every
    vertex at every row of the same clip (same 51.2 rows/s, looping, linear interpolation between
@@ -21,7 +21,7 @@ back-face culling, one Lambert light) by six methods:
    30 fps time codes: lerp / nlerp, hierarchy, inverse bind, vectorized numpy, float32), uploads
    them into a shader storage buffer, and the vertex shader skins with them;
 5b. ``vb_lod`` (issue 29): Virtual Bones with three levels of detail sharing the texture (LOD 1 and 2
-   made by ``vbusd.lod`` at 0.5 and 0.2 of the triangles, 2 and 1 influences); per frame a compute
+   made by ``vbusd.baking.lod`` at 0.5 and 0.2 of the triangles, 2 and 1 influences); per frame a compute
    shader picks every instance's level (UsdLod's projectedSphere screen size, thresholds 0.01 and
    0.001, culled by the view), writes per-level instance lists and the instance counts of three
    indirect draws, which read their lists by ``gl_InstanceID`` (no draw call per instance);
@@ -37,7 +37,7 @@ with seeded yaw, clip offsets in [0, 10) s and rates in [0.9, 1.1]; the camera f
 
 Per configuration the script first reads back, through transform feedback of the very vertex
 shader it times, the world-space positions and normals of the first and last instances and
-compares them with an independent numpy computation (``vbusd.decode.reference.skin_crowd`` for
+compares them with an independent numpy computation (``vbusd.decoders.reference.skin_crowd`` for
 Virtual Bones and warp; float64 interpolation of the stored float16 texels for the VAT; float64
 linear blend skinning with the uploaded matrices for palette skinning; the placed rest mesh for
 static). It also reports each method's distance from the exact animation (the generator's float64
@@ -97,8 +97,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 import vbusd  # noqa: E402
-from vbusd.decode import reference  # noqa: E402
-from vbusd.decode.shaders import pack_skin  # noqa: E402
+from vbusd.decoders import reference  # noqa: E402
+from vbusd.decoders.shaders import pack_skin  # noqa: E402
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 FORMATS = ("float16", "float32", "unorm16")
@@ -564,7 +564,7 @@ void main()
 """
 
 # Virtual Bones with the pulled skin binding (issue 25): the module ``vbusd shader --skin pulled``
-# prints, its skin records (vbusd.decode.shaders.pack_skin) in its storage buffer ``VbSkin``, read by
+# prints, its skin records (vbusd.decoders.shaders.pack_skin) in its storage buffer ``VbSkin``, read by
 # the module's own vbSkinInfluences at gl_VertexID; the mesh has 2 vertex attributes, like static.
 VB_MAIN_PULLED = _PLACE + """
 in vec3 rest_position;
@@ -968,7 +968,7 @@ def _skin_texture(ctx, moderngl, records: np.ndarray):
 # level reads its list by gl_InstanceID. No draw call per instance, no CPU pass over the instances.
 LOD_BINDINGS = {"placement": 4, "animation": 5, "lists": 6, "commands": 7}
 LOD_RATIOS = (0.5, 0.2)  # vbusd convert --lod-ratios 0.5,0.2: LOD 1 and 2
-LOD_SCREEN_SIZES = (0.01, 0.001)  # vbusd's default thresholds for 3 levels (vbusd.lod.default_screen_sizes)
+LOD_SCREEN_SIZES = (0.01, 0.001)  # vbusd's default thresholds for 3 levels (vbusd.baking.lod.default_screen_sizes)
 
 LOD_SELECT_CS = GLSL_VERSION + """
 layout(local_size_x = 256) in;
@@ -1046,7 +1046,7 @@ LOD_FIELDS = ("points", "face_vertex_counts", "face_vertex_indices", "bone_indic
 
 
 def lod_meshes(mesh) -> list:
-    """LOD 0 (the mesh) and the levels ``vbusd convert --lod-ratios 0.5,0.2`` makes of it (vbusd.lod).
+    """LOD 0 (the mesh) and the levels ``vbusd convert --lod-ratios 0.5,0.2`` makes of it (vbusd.baking.lod).
 
     The GPU machine has no meshoptimizer (no wheel for its Python, no compiler needed there): with
     ``$VBUSD_LOD_MESHES`` set, the levels come from the file ``draw_cost.py lod-meshes`` wrote here
@@ -1060,7 +1060,7 @@ def lod_meshes(mesh) -> list:
         return [mesh] + [vbusd.BoundMesh(path=f"/lod{level}", lod=level, normals_interpolation="vertex",
                                          **{name: data[f"lod{level}_{name}"] for name in LOD_FIELDS})
                          for level in range(1, len(LOD_RATIOS) + 1)]
-    from vbusd.lod import simplify_mesh
+    from vbusd.baking.lod import simplify_mesh
 
     levels = [mesh]
     for level, ratio in enumerate(LOD_RATIOS, start=1):
@@ -1088,8 +1088,8 @@ def lod_extent(vb) -> np.ndarray:
 
 
 def expected_levels(scene: Scene, extent: np.ndarray, chunk: int = 100_000) -> np.ndarray:
-    """Each instance's level by vbusd.lod (UsdLod's rule, tested against UsdLod itself), -1 when culled."""
-    from vbusd.lod import screen_size, select_levels
+    """Each instance's level by vbusd.baking.lod (UsdLod's rule, tested against UsdLod itself), -1 when culled."""
+    from vbusd.baking.lod import screen_size, select_levels
 
     camera = scene.camera
     centre_local = extent.mean(axis=0)
@@ -1198,7 +1198,7 @@ def setup_vb_lod(scene: Scene, vb, encoding: str, texel_format: str) -> Method:
         return np.frombuffer(commands.read(), dtype=np.uint32).reshape(-1, 5)[:, 1].copy()
 
     def custom_check() -> dict:
-        """Each level's skinned vertices against numpy, and the GPU's choice against vbusd.lod."""
+        """Each level's skinned vertices against numpy, and the GPU's choice against vbusd.baking.lod."""
         s = len(scene.check_rows)
         check_placement = scene.check_placement
         point_error = normal_error = exact_error = 0.0
@@ -1323,7 +1323,7 @@ def setup_warp(scene: Scene, vb, device: str) -> Method:
     """The warp decoder writing GL buffers (interop on CUDA, else through the host), then a draw."""
     import warp as wp
 
-    from vbusd.decode.warp import SkinResult
+    from vbusd.decoders.warp import SkinResult
 
     ctx = scene.ctx
     program, tf = scene.programs(WARP_VS)

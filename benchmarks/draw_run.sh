@@ -43,7 +43,7 @@
 #
 # Issue 29 (levels of detail: the stadium at 1,000,000 / 100,000 / 10,000 instances seen from the grid's
 # edge, one level against three sharing the texture): ONE device call, no warp. The GPU image has no
-# meshoptimizer, so the levels are made here first (the same vbusd.lod call) into .lod/:
+# meshoptimizer, so the levels are made here first (the same vbusd.baking.lod call) into .lod/:
 #   here:        NO_WARP=1 bash benchmarks/draw_run.sh pack && bash benchmarks/draw_run.sh pack-lod
 #   device call: carry [".gl", ".whl", ".lod"]  command: bash benchmarks/draw_run.sh issue29
 # It writes draw_tests.log, draw_issue29.json, draw_issue29.log and draw_issue29_report.md (the table of

@@ -63,8 +63,8 @@ def subjects():
 
 def measure(animation, encoding, texel_format, extra) -> dict:
     """Largest error at rows of one bake, or the refusal."""
-    from vbusd.bake import BakeOptions, bake
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.decoders.reference import skin_mesh
     from vbusd.format.errors import VbusdError
 
     try:

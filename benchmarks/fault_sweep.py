@@ -21,8 +21,8 @@ writer's own bookkeeping:
 
 Run it (about 6 minutes on the 2-core CI machine)::
 
-    PYTHONSAFEPATH=1 python benchmarks/fault_sweep.py               # a table per writer
-    PYTHONSAFEPATH=1 python benchmarks/fault_sweep.py --format json --writers convert,decode
+    python benchmarks/fault_sweep.py               # a table per writer
+    python benchmarks/fault_sweep.py --format json --writers convert,decode
 
 The functions here are also used by ``tests/test_faults.py`` (a fast subset of the same checks).
 """

@@ -37,7 +37,7 @@ RUNS = (("crossMatrix", "float16"), ("affineMatrix", "float16"), ("affineMatrix"
 def _lbs(points: np.ndarray, idx: np.ndarray, w: np.ndarray, matrices: np.ndarray) -> np.ndarray:
     """(n, V, 3) LBS of rest points with (n, B, 4, 4) matrices, float64.
 
-    Written here rather than taken from vbusd.decode.reference: it is the yardstick the reference
+    Written here rather than taken from vbusd.decoders.reference: it is the yardstick the reference
     decoder's output is measured against, so it must not be that decoder.
     """
     m = matrices[:, idx]                                   # (n, V, K, 4, 4)
@@ -47,9 +47,9 @@ def _lbs(points: np.ndarray, idx: np.ndarray, w: np.ndarray, matrices: np.ndarra
 
 def measure(animation, encoding: str, texel_format: str) -> dict:
     """Bake one animation; return sizes and errors, or the error line."""
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
     from vbusd.format.errors import VbusdError
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
 
     try:
         vb = bake(animation, BakeOptions(encoding=encoding, texel_format=texel_format))

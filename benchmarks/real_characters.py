@@ -58,9 +58,9 @@ def _rows(count: int, limit: int) -> np.ndarray:
 
 def gltf_entry(path: Path, limit: int) -> dict:
     """Convert one glTF asset and compare every converted mesh with three.js."""
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
     from vbusd.converters import gltf
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
     from vbusd.format.errors import VbusdError
 
     start = time.perf_counter()
@@ -134,7 +134,7 @@ def _shown_gprims(path: Path) -> dict:
 def usd_entry(path: Path, root: Path, limit: int) -> dict:
     """Convert one UsdSkel asset with vbusd convert's accuracy report (UsdSkel's own skinning)."""
     import vbusd  # noqa: F401  (schema)
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
     from vbusd.format.errors import VbusdError
 
     start = time.perf_counter()

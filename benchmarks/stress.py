@@ -69,7 +69,7 @@ def sources() -> dict:
 
 
 def _hog(parent: int) -> None:  # pragma: no cover - runs in the hog processes
-    from vbusd._signals import die_with_parent
+    from vbusd.process.signals import die_with_parent
 
     die_with_parent(signal.SIGKILL, parent)  # a killed stress run leaves no hog spinning
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -263,7 +263,7 @@ def main(argv=None) -> int:
                 if kind == "batch":
                     command = vbusd + ["convert", str(library), "-o", str(folder / "out"), "--jobs", "2", "-q"]
                 else:
-                    script = ("import sys, distributed, vbusd.batch as b\n"
+                    script = ("import sys, distributed, vbusd.jobs.batch as b\n"
                               "with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,"
                               " dashboard_address=None) as c:\n"
                               "    r = b.run_batch(b.plan_batch([sys.argv[1]], sys.argv[2]), {},"

@@ -1,6 +1,6 @@
 """Convert every shared UsdSkel asset and print the table of errors in docs/converters/usdskel.md.
 
-For each asset: ``vbusd.convert.convert`` with default options (encoding auto, float16, one row per
+For each asset: ``vbusd.jobs.conversion.convert`` with default options (encoding auto, float16, one row per
 time code, every row compared with ``UsdSkel.SkinningQuery.ComputeSkinnedPoints`` in world space),
 then the same with float32 texels to show what is quantization. Assets the format cannot hold are
 listed with the one-line message ``vbusd convert`` prints.
@@ -33,7 +33,7 @@ def _assets_folder(given: str | None) -> Path:
 
 
 def _row(folder: Path, path: Path, check_rows) -> list:
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
     from vbusd.format.errors import VbusdError
 
     name = str(path.relative_to(folder))

@@ -661,10 +661,10 @@ def make_skinned_animation(rig: Optional[Rig] = None):
 def reference_bake_options(**overrides):
     """The talk's bake: crossMatrix, float16, power-of-two width and height, looping.
 
-    Keyword arguments override fields of :class:`vbusd.bake.BakeOptions` (the accuracy benchmark
+    Keyword arguments override fields of :class:`vbusd.baking.baker.BakeOptions` (the accuracy benchmark
     sweeps encodings and texel formats this way).
     """
-    from vbusd.bake import BakeOptions
+    from vbusd.baking.baker import BakeOptions
 
     options = dict(encoding="crossMatrix", texel_format="float16", horizontal_padding="powerOfTwo",
                    vertical_padding="powerOfTwo", loop=True)
@@ -674,7 +674,7 @@ def reference_bake_options(**overrides):
 
 def bake_reference(rig: Optional[Rig] = None, **overrides):
     """Bake the cheer (:func:`reference_bake_options`); returns a :class:`vbusd.format.model.VirtualBones`."""
-    from vbusd.bake import bake
+    from vbusd.baking.baker import bake
 
     return bake(make_skinned_animation(rig), reference_bake_options(**overrides))
 

@@ -1,6 +1,6 @@
 """Build the viewer's package data from web/: run after changing web/, vbusd's shaders or three.js.
 
-1. Writes web/src/shader-modules.js from vbusd.decode.shaders (vbusd.web.shader_modules), so the
+1. Writes web/src/shader-modules.js from vbusd.decoders.shaders (vbusd.web.shader_modules), so the
    three.js runtime runs the GLSL ``vbusd shader`` prints, never a retyped copy.
 2. Copies the runtime (web/src/*.js, web/src/webgpu/*.js) to vbusd/web/static/vbusd-three/ and the viewer pages
    (web/viewer/*) to vbusd/web/static/.

@@ -100,9 +100,9 @@ def shared_assets() -> Path:
 @pytest.fixture(params=["numpy", "compiled"])
 def both_bake_paths(request, monkeypatch) -> str:
     """Run a test twice: on the bake's numpy code, then with every compiled twin in
-    :mod:`vbusd.bake_kernels` forced on (however small the input). Skips the compiled run where
+    :mod:`vbusd.kernels.bake` forced on (however small the input). Skips the compiled run where
     warp's CPU backend cannot run."""
-    from vbusd import bake_kernels
+    from vbusd.kernels import bake as bake_kernels
 
     if request.param == "compiled":
         if not bake_kernels.available():

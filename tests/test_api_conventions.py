@@ -5,8 +5,8 @@
   keyword of a function without one (``decode``).
 * Library errors speak to the caller of the function (``pass force=True``); the command line
   prints the same error with its own flags (``--force``, ``--allow-outside-paths``).
-* ``help(vbusd.convert)`` and ``inspect.signature(vbusd.convert)`` describe the function, not the
-  module that holds it (likewise ``vbusd.bake`` and ``vbusd.decode``).
+* ``help(vbusd.convert)`` and ``inspect.signature(vbusd.convert)`` describe the function (likewise
+  ``vbusd.bake`` and ``vbusd.decode``): plain functions, no module shares their names.
 """
 
 from __future__ import annotations
@@ -77,19 +77,16 @@ def test_an_outside_path_refusal_names_the_keyword(tmp_path, character):
     vbusd.build_crowd([str(character)], crowd, vbusd.CrowdOptions(allow_outside_paths=True, count=2))
 
 
-@pytest.mark.parametrize("name, function", [("convert", "vbusd.convert.convert"), ("bake", "vbusd.bake.bake"),
-                                            ("decode", "vbusd.decode.pointcache.decode")])
+@pytest.mark.parametrize("name, function", [("convert", "vbusd.jobs.conversion.convert"), ("bake", "vbusd.baking.baker.bake"),
+                                            ("decode", "vbusd.jobs.pointcache.decode")])
 def test_help_and_signature_describe_the_function(name, function):
     import importlib
 
     module_name, _, attribute = function.rpartition(".")
     target = getattr(importlib.import_module(module_name), attribute)
     job = getattr(vbusd, name)
-    assert inspect.signature(job) == inspect.signature(target)
+    assert job is target and inspect.isfunction(job)  # the function itself, not a module made callable
     first = inspect.getdoc(target).splitlines()[0]
     text = pydoc.render_doc(job, renderer=pydoc.plaintext)
-    head = text.split("DESCRIPTION")[0] + text.split("DESCRIPTION")[1][:400]
-    assert f"{attribute}{inspect.signature(target)}" in head, head[:600]
-    assert first in head, head[:600]
-    assert "(*args, **kwargs)" not in text.split("CLASSES")[0]
-    assert job.__doc__.startswith(f"{attribute}(")
+    assert f"{attribute}{inspect.signature(target)}" in text, text[:600]
+    assert first in text, text[:600]

@@ -1,4 +1,4 @@
-"""The compiled twins of the bake (vbusd.bake_kernels) against their numpy twins and UsdSkel.
+"""The compiled twins of the bake (vbusd.kernels.bake) against their numpy twins and UsdSkel.
 
 Each kernel is compared with the numpy code it replaces on the same inputs (random near-rotations,
 random skinning, baked animations in every linear-blend encoding and texel format), and a whole
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import vbusd  # noqa: F401  (registers the schema before pxr builds its registry)
-from vbusd import bake_kernels
+from vbusd.kernels import bake as bake_kernels
 from vbusd.format import encoding as enc
 
 pytestmark = pytest.mark.skipif(not bake_kernels.available(),
@@ -96,8 +96,8 @@ def test_cross_matrix_encoding_equals_numpy_and_falls_back_on_bad_matrices(monke
 
 @pytest.mark.parametrize("dense", [True, False], ids=["few-bones", "many-bones"])
 def test_linear_blend_skinning_equals_the_reference(monkeypatch, dense):
-    from vbusd.convert import _skin_checked
-    from vbusd.decode.reference import decode_bones, skin
+    from vbusd.jobs.conversion import _skin_checked
+    from vbusd.decoders.reference import decode_bones, skin
     from vbusd.format.layout import Encoding
     from vbusd.format.model import BoundMesh
 
@@ -141,10 +141,10 @@ def rig(tmp_path_factory) -> Path:
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "float16"), ("affineMatrix", "float32"),
                                                    ("quatTranslation", "unorm16")])
 def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_format):
-    from vbusd.convert import ConvertOptions, bake_animation
+    from vbusd.jobs.conversion import ConvertOptions, bake_animation
     from vbusd.converters import usdskel
-    from vbusd.decode import bounds
-    from vbusd.decode.reference import channel_values
+    from vbusd.decoders import bounds
+    from vbusd.decoders.reference import channel_values
     from vbusd.format.model import ReadOptions
 
     scene = usdskel.read(rig, ReadOptions())
@@ -163,7 +163,7 @@ def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_f
 
 
 def test_a_whole_conversion_is_the_same_either_way_and_matches_usdskel(monkeypatch, rig, tmp_path):
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
     from vbusd.io.usd_reader import read_asset
 
     reports, assets = {}, {}

@@ -19,9 +19,9 @@ import pytest
 
 pytest.importorskip("pxr")
 
-from vbusd.batch import BatchItem, cache_key, dependencies, plan_batch, read_manifest, run_batch  # noqa: E402
+from vbusd.jobs.batch import BatchItem, cache_key, dependencies, plan_batch, read_manifest, run_batch  # noqa: E402
 from vbusd.cli import main  # noqa: E402
-from vbusd.convert import ConvertOptions  # noqa: E402
+from vbusd.jobs.conversion import ConvertOptions  # noqa: E402
 from vbusd.format.errors import OptionsError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -396,7 +396,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 
 def convert_then_idle(task):
-    from vbusd.batch import convert_one
+    from vbusd.jobs.batch import convert_one
 
     status = convert_one(task)["status"]
     def ticks():  # CPU time (user + system, clock ticks) of each thread of this process, by the kernel
@@ -412,7 +412,7 @@ def convert_then_idle(task):
 
 
 if __name__ == "__main__":
-    from vbusd.batch import _pool_initializer
+    from vbusd.jobs.batch import _pool_initializer
 
     task = {"source": sys.argv[1], "output": sys.argv[2], "options": {"check_rows": 4}, "key": None,
             "cache": None, "force": True}
@@ -538,7 +538,7 @@ def test_a_stalled_dask_task_is_ended_and_the_batch_goes_on(tmp_path):
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         report = run_batch(items, {"check_rows": 4}, scheduler=cluster.scheduler_address, stall_timeout=3)
         with distributed.Client(cluster) as client:  # the worker loaded vbusd in its own main thread
-            from vbusd import _threads
+            from vbusd.process import threads as _threads
 
             prepared = list(client.run(_threads.prepared_by, "batch").values())
     statuses = {Path(a.source).name: (a.status, a.code) for a in report.assets}

@@ -25,7 +25,7 @@ except ImportError:
                 allow_module_level=True)
 
 import vbusd  # noqa: E402
-from vbusd.decode.reference import skin_crowd, skin_mesh  # noqa: E402
+from vbusd.decoders.reference import skin_crowd, skin_mesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "dcc" / "blender"))
 import vbusd_blender  # noqa: E402

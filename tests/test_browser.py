@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.decode.reference import normal_point_indices, skin_crowd, skin_mesh
+from vbusd.decoders.reference import normal_point_indices, skin_crowd, skin_mesh
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 

@@ -266,7 +266,7 @@ def test_babylon_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_pat
     """Sockets (format 1.1) on the Babylon page: ``crowd.socketMatrix(i, bone, t)`` of every
     instance of a crossfading crowd equals the decoder's ``crowd_joint_transforms`` (placement
     times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
-    from vbusd.decode.reference import crowd_joint_transforms
+    from vbusd.decoders.reference import crowd_joint_transforms
 
     asset = vbusd.read_asset(bar_crowd)
     crowd = asset.crowds[0]

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.decode.reference import skin_crowd
+from vbusd.decoders.reference import skin_crowd
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 

@@ -143,7 +143,7 @@ def test_webgpu_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path
     times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
     import dataclasses
 
-    from vbusd.decode.reference import crowd_joint_transforms
+    from vbusd.decoders.reference import crowd_joint_transforms
 
     asset = vbusd.read_asset(bar_crowd)
     crowd = asset.crowds[0]

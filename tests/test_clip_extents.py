@@ -7,7 +7,7 @@ every bound mesh decoded by the numpy reference at every row, at 16 times inside
 interval (the looping wrap included) and at 400 random clip times must lie inside its clip's box.
 Between rows crossMatrix (cross of blended axes) and the quaternion encodings (normalized
 quaternions) leave the box of the rows' points, which is what this checks. Every case runs with the
-bake's numpy code and with its compiled twins (``vbusd.bake_kernels``).
+bake's numpy code and with its compiled twins (``vbusd.kernels.bake``).
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.decode.reference import skin_mesh
+from vbusd.decoders.reference import skin_mesh
 from vbusd.format.errors import UnsupportedError
 
-pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.bake_kernels)
+pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.kernels.bake)
 
 CASES = [
     ("gltf/Fox/Fox.glb", ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")),

@@ -67,7 +67,7 @@ def test_worked_example_of_the_spec():
 
 def test_stadium_spectator_within_a_hundredth_of_a_centimetre():
     """Must show: the 2.5 m spectator within 1e-4 m at every row, against the generator's skinning."""
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
 
     gen = _generator()
     rig = gen.build_rig()
@@ -90,9 +90,9 @@ def _lbs(points, idx, w, matrices):
 @pytest.mark.parametrize("name", ["CesiumMan", "Fox", "RiggedFigure", "RiggedSimple", "SimpleSkin"])
 def test_shared_gltf_characters_within_5e_5_of_the_diagonal(shared_assets, name):
     """Must show: every rigid shared glTF character within 5e-5 of its bounding-box diagonal at rows."""
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
     from vbusd.converters import gltf
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
 
     path = next((shared_assets / "gltf" / name).glob("*.gl*"))
     for animation in gltf.read(path).animations:
@@ -326,7 +326,7 @@ def test_numpy_reference_blends_opposite_stored_signs_the_short_way():
     degrees about x, stored with opposite signs, are 188.13 degrees halfway (the short way)."""
     import math
 
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
     from vbusd.format.model import BoundMesh, Clip, VirtualBones
 
     q = np.array([[[0.8, 0.0, 0.0, 0.6]], [[0.7, 0.0, 0.0, -0.7]]])

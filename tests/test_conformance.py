@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.decode.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
+from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
@@ -203,7 +203,7 @@ def test_vectors_agree_with_a_hand_decode_at_exact_rows(path):
 
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_numpy_reference_reproduces_every_vector(path):
-    from vbusd.decode.reference import skin_crowd
+    from vbusd.decoders.reference import skin_crowd
 
     vector = load(path)
     vb, crowd = vector_animation(vector), vector_crowd(vector)
@@ -216,7 +216,7 @@ def test_numpy_reference_reproduces_every_vector(path):
 def _warp_devices() -> list:
     """Every device warp offers here: the CPU, and CUDA on a GPU machine (the vectors run on each)."""
     try:
-        from vbusd.decode.warp import available_devices
+        from vbusd.decoders.warp import available_devices
 
         return list(available_devices()) or ["cpu"]
     except Exception:  # no warp: the test skips below
@@ -226,7 +226,7 @@ def _warp_devices() -> list:
 @pytest.mark.parametrize("device", _warp_devices())
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_warp_reproduces_every_vector(path, device):
-    warp = pytest.importorskip("vbusd.decode.warp")
+    warp = pytest.importorskip("vbusd.decoders.warp")
     if device not in warp.available_devices():
         pytest.skip(f"warp has no {device} device here")
     vector = load(path)
@@ -545,7 +545,7 @@ def run_socket_shader(ctx, lang: str, vector: dict, time: float, workdir: Path) 
 
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_numpy_reference_reproduces_every_socket(path):
-    from vbusd.decode.reference import crowd_joint_transforms
+    from vbusd.decoders.reference import crowd_joint_transforms
 
     vector = load(path)
     vb = vector_animation(vector)

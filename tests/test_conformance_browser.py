@@ -140,7 +140,7 @@ def test_threejs_socket_matrix_reproduces_every_vector(path):
 
 def test_threejs_root_motion_matches_vbusd(tmp_path):
     import vbusd
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
 
     animation = runpy.run_path(str(HERE / "test_root_motion.py"))["_loop_walk"](0.4)
     vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))

@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
-from vbusd.convert import ConvertOptions, convert  # noqa: E402
+from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import OptionsError  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -243,7 +243,7 @@ def _failing_check(monkeypatch):
     write it overlaps with has staged its texture by then)."""
     import time
 
-    from vbusd import convert as convert_module
+    from vbusd.jobs import conversion as convert_module
     from vbusd.format.errors import InputError
 
     def measure_errors(*args, **kwargs):
@@ -284,7 +284,7 @@ def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypat
     import threading
     import time
 
-    from vbusd import convert as convert_module
+    from vbusd.jobs import conversion as convert_module
     from vbusd.io import usd as usd_io
 
     chunks = []

@@ -9,13 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from vbusd.bake import BakeOptions, bake, reduce_influences
+from vbusd.baking.baker import BakeOptions, bake, reduce_influences
 from vbusd.format.encoding import (decode_bones, dequantize, encode_bones, make_hemispheres_continuous,
                             quantize)
 from vbusd.format.errors import OptionsError, UnsupportedError
 from vbusd.format.layout import Layout, next_power_of_two
 from vbusd.format.model import AnimationClip, Clip, SkinnedAnimation, SkinnedMesh
-from vbusd.decode.reference import row_position, skin, skin_mesh
+from vbusd.decoders.reference import row_position, skin, skin_mesh
 
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
@@ -289,7 +289,7 @@ def test_unorm16_ranges_are_float32_numbers_that_contain_every_value():
 
 
 def test_power_of_two_fill_never_overshoots_with_tiny_clips():
-    from vbusd.bake import plan_rows
+    from vbusd.baking.baker import plan_rows
 
     def clip(duration):
         return AnimationClip(f"c{duration}", 0.0, duration, lambda t: None, native_rate=1.0)

@@ -27,8 +27,8 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.bake import BakeOptions, bake
-from vbusd.decode.reference import skin_mesh, skin_mesh_crossfade
+from vbusd.baking.baker import BakeOptions, bake
+from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 
@@ -92,7 +92,7 @@ def test_weight_zero_is_the_first_clip_and_one_the_fade_clip_bit_for_bit(chains,
 
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_warp_cpu_crossfade_matches_reference(chains, encoding):
-    warp = pytest.importorskip("vbusd.decode.warp")
+    warp = pytest.importorskip("vbusd.decoders.warp")
     if "cpu" not in warp.available_devices():
         pytest.skip("warp's CPU backend is not available")
     vb = chains[encoding]
@@ -108,10 +108,10 @@ def test_warp_cpu_crossfade_matches_reference(chains, encoding):
 
 def test_warp_crowd_crossfade_matches_reference(chains):
     """A crowd whose instances fade per instance (placed, non-uniform scale) through Decoder.skin_crowd."""
-    warp = pytest.importorskip("vbusd.decode.warp")
+    warp = pytest.importorskip("vbusd.decoders.warp")
     if "cpu" not in warp.available_devices():
         pytest.skip("warp's CPU backend is not available")
-    from vbusd.decode.reference import skin_crowd
+    from vbusd.decoders.reference import skin_crowd
     from vbusd.format.model import Crowd
 
     rng = np.random.default_rng(3)
@@ -166,7 +166,7 @@ DQS_TOLERANCE = 1e-3
 
 def _raw_normals(vb, tau):
     """Skinned normals of the first mesh before normalization (their lengths), clip 0 at ``tau``."""
-    from vbusd.decode.reference import bone_transforms, normal_point_indices, skin
+    from vbusd.decoders.reference import bone_transforms, normal_point_indices, skin
 
     mesh = vb.meshes[0]
     return skin(bone_transforms(vb, 0, [tau]), vb.layout.encoding, mesh.points, mesh.bone_indices,

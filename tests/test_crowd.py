@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
-from vbusd.crowd import CrowdOptions, build_crowd, disc_positions, grid_positions  # noqa: E402
+from vbusd.jobs.crowd import CrowdOptions, build_crowd, disc_positions, grid_positions  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 

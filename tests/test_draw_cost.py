@@ -132,7 +132,7 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
         method = dc.setup_palette(scene, dc.KeyedAnimation())
     else:
         pytest.importorskip("warp", reason="install warp-lang")
-        from vbusd.decode.warp import available_devices
+        from vbusd.decoders.warp import available_devices
 
         devices = available_devices()  # CUDA (GL interop) where there is a GPU, else warp's CPU backend
         if not devices:
@@ -349,7 +349,7 @@ def test_bindings_table_states_times_as_factors_of_static(dc):
 def test_lod_method_draws_each_level_and_selects_as_vbusd_lod(dc, baked, gl):
     """Issue 29's ``vb_lod``: three levels sharing the texture, chosen per instance by a compute shader.
     Each level's transform feedback agrees with numpy's skinning of that level's mesh, and the GPU's
-    instances per level equal vbusd.lod's choice (UsdLod's rule; tests/test_lod.py checks it against
+    instances per level equal vbusd.baking.lod's choice (UsdLod's rule; tests/test_lod.py checks it against
     UsdLod itself) with frustum culling, on a crowd large enough that two levels appear."""
     import os
 

@@ -4,7 +4,7 @@ Independence: the fallback is skinned by UsdSkel itself (``UsdSkel.Cache`` ->
 ``SkelQuery.ComputeSkinningTransforms`` -> ``SkinningQuery.ComputeSkinnedPoints``, with the time
 mapping of USD's own layer offsets and variant selections and the instance transforms from
 ``UsdGeom.Xformable.ComputeLocalToWorldTransform``), and compared with vbusd's numpy reference
-decode of the asset (:mod:`vbusd.decode.reference`), which is itself tested against the spec's
+decode of the asset (:mod:`vbusd.decoders.reference`), which is itself tested against the spec's
 hand-computed examples. The bound is the texel format's rounding bound ``tol`` of
 spec/validation.md, computed here by hand, times the rest point's length, plus float32 rounding.
 The comparison is made at row times, where both sides read stored rows exactly; between rows
@@ -25,7 +25,7 @@ pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
 from vbusd.cli import main  # noqa: E402
-from vbusd.decode.reference import skin_crowd, skin_mesh  # noqa: E402
+from vbusd.decoders.reference import skin_crowd, skin_mesh  # noqa: E402
 from vbusd.format.model import Clip, Crowd  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

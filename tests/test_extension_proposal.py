@@ -2,7 +2,7 @@
 
 * The README has the sections of a Khronos extension and its relative links lead to files.
 * The proposal's split schemas (Khronos style, referencing the glTF core schemas) accept what the
-  self-contained schema/VBUSD_virtual_bones.schema.json accepts and refuse what it refuses, on the
+  self-contained vbusd/schema/VBUSD_virtual_bones.schema.json accepts and refuse what it refuses, on the
   sample's objects, the spec's example and broken variants of them.
 * The sample folder (glTF-Sample-Assets layout) holds the model, a README with the screenshot and a
   license; the model is what ``vbusd export`` writes now, and the Khronos glTF-Validator reports no
@@ -52,8 +52,8 @@ def _validators():
     for path in (PROPOSAL / "schema").glob("*.schema.json"):
         contents = json.loads(path.read_text(encoding="utf-8"))
         resources.append((contents["$id"], Resource.from_contents(contents)))
-    layout = json.loads((REPO / "schema" / "layout-metadata.schema.json").read_text(encoding="utf-8"))
-    whole = json.loads((REPO / "schema" / "VBUSD_virtual_bones.schema.json").read_text(encoding="utf-8"))
+    layout = json.loads((REPO / "vbusd" / "schema" / "layout-metadata.schema.json").read_text(encoding="utf-8"))
+    whole = json.loads((REPO / "vbusd" / "schema" / "VBUSD_virtual_bones.schema.json").read_text(encoding="utf-8"))
     resources += [(layout["$id"], Resource.from_contents(layout)), (whole["$id"], Resource.from_contents(whole))]
     registry = Registry().with_resources(resources)
 
@@ -80,7 +80,7 @@ def _split_accepts(split, kind: str, value) -> bool:
 def _documents():
     """(kind, object) pairs: the sample's and the example's objects."""
     out = []
-    for gltf in (_glb_json(MODEL), json.loads((REPO / "schema" / "VBUSD_virtual_bones.example.gltf").read_text())):
+    for gltf in (_glb_json(MODEL), json.loads((REPO / "vbusd" / "schema" / "VBUSD_virtual_bones.example.gltf").read_text())):
         out.append(("root", gltf["extensions"][NAME]))
         out += [("primitive", p["extensions"][NAME]) for m in gltf["meshes"] for p in m["primitives"]
                 if NAME in p.get("extensions", {})]

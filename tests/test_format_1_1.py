@@ -55,7 +55,7 @@ def test_a_1_0_asset_reads_decodes_and_writes_back_as_1_0(tmp_path):
     vb = asset.animations[0]
     assert vb.bind_transforms is None and not asset.crowds[0].crossfades
     # Decoded unchanged: the sample's crowd (1,200 instances) equals the single-clip formula by hand.
-    from vbusd.decode.reference import skin_crowd, skin_mesh
+    from vbusd.decoders.reference import skin_crowd, skin_mesh
 
     crowd = asset.crowds[0]
     world, _ = skin_crowd(vb, vb.meshes[0], crowd, 3.3)
@@ -130,8 +130,8 @@ def test_a_1_0_reader_refuses_a_crossfading_crowd_by_name(tmp_path, monkeypatch)
 def test_crossfade_primvars_round_trip_and_decode_honours_them(tmp_path):
     if not SAMPLE.is_file():
         pytest.skip("the committed sample is not in this checkout")
-    from vbusd.decode.pointcache import decode
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.jobs.pointcache import decode
+    from vbusd.decoders.reference import skin_mesh
 
     path, authored = _fading_asset(tmp_path)
     back = vbusd.read_asset(path).crowds[0]

@@ -5,7 +5,7 @@ The independent evaluator below is written from the glTF 2.0 specification strai
 objects: its own accessor reads (byteStride honoured), its own node-world walk (the skinned mesh
 node's transform ignored, non-joint ancestors included), its own LINEAR/slerp sampling and LBS with
 JOINTS_0/WEIGHTS_0. It shares no code with vbusd.converters.gltf. The decoded points come from
-``vbusd.bake.bake`` (affineMatrix, float32) and ``vbusd.decode.reference.skin_mesh_at_rows``: at every
+``vbusd.baking.baker.bake`` (affineMatrix, float32) and ``vbusd.decoders.reference.skin_mesh_at_rows``: at every
 texture row they must equal the evaluator's points at that row's source time.
 """
 
@@ -159,8 +159,8 @@ class Independent:
 
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_asset_converts_and_decodes_like_the_spec(path):
-    from vbusd.bake import BakeOptions, bake
-    from vbusd.decode.reference import skin_mesh_at_rows
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.decoders.reference import skin_mesh_at_rows
 
     ref = _independent(path)
     checked = 0
@@ -194,7 +194,7 @@ def test_asset_converts_and_decodes_like_the_spec(path):
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_cross_matrix_converts_or_names_the_scaled_bone(path):
     """crossMatrix holds rigid transforms only: scaled joints (RecursiveSkeletons) are refused by name."""
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
     from vbusd.format.errors import UnsupportedError
 
     scene = _read(path)

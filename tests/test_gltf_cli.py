@@ -21,7 +21,7 @@ def _vbusd(*args, cwd):
 
 
 def test_convert_glb_round_trip(tmp_path):
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
     from vbusd.io.usd import read_asset
 
     out = tmp_path / "bar.usda"

@@ -178,7 +178,7 @@ def test_extension_objects_match_the_schema(tmp_path, capsys):
     out = export(tmp_path, copy_sample(tmp_path), "c.gltf")
     capsys.readouterr()
     gltf = json.loads(out.read_text())
-    schemas = [json.loads((ROOT / "schema" / name).read_text())
+    schemas = [json.loads((ROOT / "vbusd" / "schema" / name).read_text())
                for name in ("VBUSD_virtual_bones.schema.json", "layout-metadata.schema.json")]
     registry = referencing.Registry().with_resources(
         [(s["$id"], referencing.Resource.from_contents(s)) for s in schemas])
@@ -190,7 +190,7 @@ def test_extension_objects_match_the_schema(tmp_path, capsys):
         for p in mesh["primitives"]:
             primitive.validate(p["extensions"]["VBUSD_virtual_bones"])
     assert "VBUSD_virtual_bones" in gltf["extensionsUsed"] and "extensionsRequired" not in gltf
-    example = json.loads((ROOT / "schema" / "VBUSD_virtual_bones.example.gltf").read_text())
+    example = json.loads((ROOT / "vbusd" / "schema" / "VBUSD_virtual_bones.example.gltf").read_text())
     root.validate(example["extensions"]["VBUSD_virtual_bones"])
     primitive.validate(example["meshes"][0]["primitives"][0]["extensions"]["VBUSD_virtual_bones"])
     with pytest.raises(jsonschema.ValidationError):

@@ -170,7 +170,7 @@ def test_quantized_mesh_with_float_translation_keys():
 
 
 def test_merged_joint_sets_flow_through_the_bake():
-    from vbusd.bake import BakeOptions, bake
+    from vbusd.baking.baker import BakeOptions, bake
 
     animation = gltf.read(FIXTURES / "bar_joints2.gltf").animations[0]
     vb = bake(animation, BakeOptions(encoding="affineMatrix", texel_format="float32",

@@ -48,7 +48,7 @@ def test_the_warp_decoder_leaves_warps_settings_as_the_host_set_them(asset_path)
         wp.config.log_level = host = wp.LOG_DEBUG if hasattr(wp, "LOG_DEBUG") else 0
     else:
         wp.config.quiet = host = False
-    from vbusd.decode.warp import Decoder  # importing sets nothing
+    from vbusd.decoders.warp import Decoder  # importing sets nothing
 
     current = (lambda: wp.config.log_level) if has_level else (lambda: wp.config.quiet)
     assert current() == host

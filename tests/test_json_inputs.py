@@ -138,7 +138,7 @@ def test_the_command_says_invalid_with_exit_1(tmp_path, capsys):
 
 
 def _convert_gltf(tmp_path, change):
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     document = json.loads((FIXTURES / "gltf" / "bar.gltf").read_text(encoding="utf-8"))
     document = change(document) or document
@@ -175,7 +175,7 @@ def test_a_gltf_extension_whose_body_is_null_is_refused(tmp_path):
 
 @pytest.mark.parametrize("text", ["null", "[]", "3"])
 def test_a_gltf_document_that_is_not_an_object_is_refused(tmp_path, text):
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     (tmp_path / "bad.gltf").write_text(text, encoding="utf-8")
     with pytest.raises(InputError) as caught:
@@ -218,7 +218,7 @@ def test_gltf_extras_of_any_json_kind_are_accepted(tmp_path, value):
     ('[{"source": "a.usda", "rows_per_second": NaN}]', ""),
 ])
 def test_a_manifest_value_of_the_wrong_json_kind_is_one_error_at_its_place(tmp_path, text, where):
-    from vbusd.batch import read_manifest
+    from vbusd.jobs.batch import read_manifest
 
     manifest = tmp_path / "m.json"
     manifest.write_text(text, encoding="utf-8")
@@ -229,7 +229,7 @@ def test_a_manifest_value_of_the_wrong_json_kind_is_one_error_at_its_place(tmp_p
 
 
 def test_a_manifest_with_a_byte_order_mark_reads(tmp_path):
-    from vbusd.batch import read_manifest
+    from vbusd.jobs.batch import read_manifest
 
     (tmp_path / "m.json").write_text('\ufeff[{"source": "a.usda", "texel-format": "float32"}]', encoding="utf-8")
     (tmp_path / "m.csv").write_text("\ufeffsource,texel-format\na.usda,float32\n", encoding="utf-8")

@@ -19,7 +19,7 @@ import pytest
 
 import vbusd
 from vbusd.api import clip_index
-from vbusd.bake import BakeOptions, bake
+from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format import versioning
 from vbusd.format.errors import InputError, OptionsError, VersionError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
@@ -312,7 +312,7 @@ def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
     implement layers yet refuse the crowd (layers.unsupported) instead of drawing it without them."""
     from pxr import Usd, UsdGeom
 
-    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
     from vbusd.format.model import Crowd, VirtualBonesAsset
 
     vb = bake(_spec_example(), BakeOptions(encoding="quatTranslation", texel_format="float32",
@@ -430,7 +430,7 @@ def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
 
     import moderngl
 
-    from vbusd.decode.shaders import ShaderOptions, generate, rig_texels
+    from vbusd.decoders.shaders import ShaderOptions, generate, rig_texels
 
     layout = vb.layout
     module = generate(ShaderOptions(lang, layout.encoding, layout.texel_format, max_influences=4, main=False,
@@ -681,7 +681,7 @@ def test_layer_vectors_are_there_and_current():
 
 @pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
 def test_numpy_reference_reproduces_every_layer_vector(path):
-    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd, skin_mesh_crossfade
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd, skin_mesh_crossfade
 
     vector = json.loads(path.read_text())
     vb = layer_vector_animation(vector)
@@ -707,7 +707,7 @@ def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
 
     import moderngl
 
-    from vbusd.decode.shaders import ShaderOptions, generate, rig_texels
+    from vbusd.decoders.shaders import ShaderOptions, generate, rig_texels
 
     vb = layer_vector_animation(vector)
     layout = vb.layout
@@ -789,7 +789,7 @@ def test_shader_layers_reproduce_every_layer_vector(gl, lang, path, tmp_path):
 
 
 def _warp_cpu():
-    warp = pytest.importorskip("vbusd.decode.warp")
+    warp = pytest.importorskip("vbusd.decoders.warp")
     if "cpu" not in warp.available_devices():
         pytest.skip("warp's CPU backend is not available")
     return warp
@@ -886,7 +886,7 @@ def test_validate_reports_bad_parents_and_masks_with_codes(tmp_path):
 def test_shader_command_layers_option(capsys):
     """vbusd shader --layers prints the module with the layer functions; without it nothing changes."""
     from vbusd.cli import main
-    from vbusd.decode.shaders import ShaderOptions, generate
+    from vbusd.decoders.shaders import ShaderOptions, generate
 
     assert main(["shader", "--layers", "--no-main", "--encoding", "quatTranslation"]) == 0
     text = capsys.readouterr().out

@@ -33,12 +33,12 @@ def _heuristic(thresholds, extent):
 
 
 def test_screen_size_and_level_agree_with_usdlod():
-    """vbusd.lod.screen_size / select_levels against UsdLodScreenSizeHeuristic on random views and
+    """vbusd.baking.lod.screen_size / select_levels against UsdLodScreenSizeHeuristic on random views and
     instance transforms in view (rotation, uniform scale, translation): sizes within 1e-6 relative, and
     the same level wherever the size is not within 1e-6 of a threshold."""
     from pxr import Gf
 
-    from vbusd.lod import screen_size, select_levels
+    from vbusd.baking.lod import screen_size, select_levels
 
     rng = np.random.default_rng(29)
     extent = np.array([[-0.5, 0.0, -0.3], [0.6, 1.8, 0.4]])
@@ -69,7 +69,7 @@ def test_screen_size_and_level_agree_with_usdlod():
 
 
 def test_hysteresis_holds_the_finer_level_only_past_the_margin():
-    from vbusd.lod import select_levels
+    from vbusd.baking.lod import select_levels
 
     t = (0.1, 0.02)
     # Coarser at once; finer only above t * 1.1 (hand-computed).

@@ -10,9 +10,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-# Source folder -> import package (converters/ and validators/ install as vbusd.converters and
-# vbusd.validators).
-FOLDERS = {"vbusd": "vbusd", "converters": "vbusd.converters", "validators": "vbusd.validators"}
+# The tree is the package: vbusd/ and every folder under it.
+FOLDERS = {"vbusd": "vbusd"}
 
 
 def _modules():

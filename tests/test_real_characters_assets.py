@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.bake import BakeOptions, bake
-from vbusd.decode.reference import skin_mesh
+from vbusd.baking.baker import BakeOptions, bake
+from vbusd.decoders.reference import skin_mesh
 from vbusd.format.errors import VbusdError
 from vbusd.format.model import ReadOptions
 

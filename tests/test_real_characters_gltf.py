@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.bake import BakeOptions, bake
+from vbusd.baking.baker import BakeOptions, bake
 from vbusd.converters import gltf
-from vbusd.decode.reference import skin_mesh_at_rows
+from vbusd.decoders.reference import skin_mesh_at_rows
 from vbusd.format.model import ReadOptions
 
 _spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
@@ -355,7 +355,7 @@ def test_weight_warnings_state_count_and_deviation(tmp_path):
 
 
 def test_renormalization_error_in_report(tmp_path):
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     path = soldier(zero_vertex=False).save(tmp_path / "soldier.gltf")
     report = convert(path, tmp_path / "out" / "soldier.usda",

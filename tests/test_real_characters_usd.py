@@ -20,9 +20,9 @@ import pytest
 
 pytest.importorskip("pxr")
 
-from vbusd.bake import BakeOptions, bake  # noqa: E402
+from vbusd.baking.baker import BakeOptions, bake  # noqa: E402
 from vbusd.converters import usdskel  # noqa: E402
-from vbusd.decode.reference import skin_mesh_at_rows  # noqa: E402
+from vbusd.decoders.reference import skin_mesh_at_rows  # noqa: E402
 from vbusd.format.model import ReadOptions  # noqa: E402
 
 TOLERANCE = 1e-6

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.bake import BakeOptions, bake
+from vbusd.baking.baker import BakeOptions, bake
 from vbusd.cli import main
-from vbusd.decode.reference import joint_transforms, skin_mesh
+from vbusd.decoders.reference import joint_transforms, skin_mesh
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 
 pxr = pytest.importorskip("pxr")

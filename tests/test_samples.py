@@ -245,7 +245,7 @@ def test_vb_crowd_is_1200_spectators_facing_the_pitch(vb_asset):
 
 def test_vb_decode_matches_usdskel_at_every_row(vb_asset, usdskel_probe):
     from pxr import Usd, UsdSkel, Vt
-    from vbusd.decode import reference
+    from vbusd.decoders import reference
 
     (vb,) = vb_asset.animations
     (mesh,) = vb.meshes
@@ -449,7 +449,7 @@ def test_both_readme_commands_make_and_enter_a_venv_first():
 def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
     import os
 
-    from vbusd.decode import reference
+    from vbusd.decoders import reference
     from vbusd.io import usd as usd_io
 
     if importlib.util.find_spec("vbusd.cli.convert") is None:

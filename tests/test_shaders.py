@@ -3,7 +3,7 @@
 GLSL is compiled by the OpenGL driver (any EGL device; Mesa's llvmpipe without a GPU). HLSL is
 compiled by glslang's HLSL front end to SPIR-V, cross-compiled to GLSL by spirv-cross, and run the
 same way. Skinned positions and normals come back through transform feedback and are compared with
-vbusd.decode.reference, which is independent of the shader text, at row times, mid-row times and across a
+vbusd.decoders.reference, which is independent of the shader text, at row times, mid-row times and across a
 looping clip's wrap, with per-instance clips, time offsets and playback rates. Each module runs in
 both skin bindings: ``attributes`` (bone indices and weights as vertex attributes) and ``pulled``
 (skin records read by vertex index from a storage buffer or an RGBA32UI texture; spec/shaders.md,
@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.bake import BakeOptions, bake
+from vbusd.baking.baker import BakeOptions, bake
 from vbusd.cli import main
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
-from vbusd.decode.reference import skin_mesh
-from vbusd.decode.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
+from vbusd.decoders.reference import skin_mesh
+from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 
 try:
     import moderngl

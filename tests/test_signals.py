@@ -2,7 +2,7 @@
 
 The moments are chosen, not timed: the write's fault trace ($VBUSD_FAULT_TRACE) says where a run
 is, and ``$VBUSD_FAULT=hang:N`` blocks the main thread in C at step N (a mutex locked twice: deaf
-to Python's signal handlers, as a deadlocked thread is), so that only vbusd/_signals.py's helper
+to Python's signal handlers, as a deadlocked thread is), so that only vbusd/process/signals.py's helper
 can end it. A batch's parent killed with SIGKILL must leave no worker or probe server behind.
 """
 

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.bake import BakeOptions, bake
-from vbusd.decode.reference import crowd_joint_transforms, joint_transforms, skinning_matrices
+from vbusd.baking.baker import BakeOptions, bake
+from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, skinning_matrices
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.model import Crowd
 
@@ -78,7 +78,7 @@ def test_socket_equals_usdskel_joint_world_transforms(usdskel_rig, encoding):
 
 
 def _rows_points(vb):
-    from vbusd.decode.reference import skin_mesh_at_rows
+    from vbusd.decoders.reference import skin_mesh_at_rows
 
     for mesh in vb.meshes:
         yield skin_mesh_at_rows(vb, mesh, 0)[0].reshape(-1, 3)

@@ -30,8 +30,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SPEC = ROOT / "spec" / "virtual-bones.md"
 SPEC_INDEX = ROOT / "spec" / "README.md"
 ARCHITECTURE = ROOT / "docs" / "architecture.md"
-SCHEMA = ROOT / "schema" / "layout-metadata.schema.json"
-USD_SCHEMA = ROOT / "schema" / "usd" / "schema.usda"
+SCHEMA = ROOT / "vbusd" / "schema" / "layout-metadata.schema.json"
+USD_SCHEMA = ROOT / "vbusd" / "schema" / "usd" / "schema.usda"
 FIXTURES = ROOT / "tests" / "fixtures" / "spec"
 TALK = FIXTURES / "talk-18-bones.json"
 
@@ -407,7 +407,7 @@ def test_spec_names_every_usd_attribute(spec_text):
 
 def test_usd_schema_file_has_the_architecture_attributes():
     if not USD_SCHEMA.exists():
-        pytest.skip("schema/usd/schema.usda not written yet")
+        pytest.skip("vbusd/schema/usd/schema.usda not written yet")
     declared = set(re.findall(r"^\s*(?:uniform\s+)?[\w\[\]]+\s+((?:primvars:)?vb:\w+)", USD_SCHEMA.read_text(),
                               re.MULTILINE))
     declared |= set(re.findall(r"^\s*rel\s+(vb:\w+)", USD_SCHEMA.read_text(), re.MULTILINE))
@@ -467,7 +467,7 @@ def test_spec_index_links_every_spec_file():
     for name in ("virtual-bones.md", "usd-conversion.md", "gltf-conversion.md", "validation.md",
                  "ISSUES.md", "hardware-sampling.md", "shaders.md"):
         assert f"]({name})" in text, name
-    assert "../schema/layout-metadata.schema.json" in text
+    assert "../vbusd/schema/layout-metadata.schema.json" in text
 
 
 # ------------------------------------------------------------------------------------------
@@ -554,7 +554,7 @@ def test_cross_matrix_and_quat_interpolation_examples():
 def test_row_position_examples_agree_with_reference(tau, i0, i1, f):
     """Spec 7: the 10 s loop in 512 rows at 51.2 rows/s."""
     from vbusd.format.model import Clip
-    from vbusd.decode.reference import row_position
+    from vbusd.decoders.reference import row_position
 
     clip = Clip("cheer", 0, 512, 51.2, True, 0.0)
     a, b, g = row_position(clip, tau)
@@ -564,7 +564,7 @@ def test_row_position_examples_agree_with_reference(tau, i0, i1, f):
 
 def test_clamped_row_position_holds_ends():
     from vbusd.format.model import Clip
-    from vbusd.decode.reference import row_position
+    from vbusd.decoders.reference import row_position
 
     clip = Clip("cheer", 0, 301, 30.0, False, 0.0)  # spec 7: (301 - 1) / 30 = 10 s
     for tau, expected in ((-1.0, (0, 1, 0.0)), (10.0, (300, 300, 0.0)), (25.0, (300, 300, 0.0)),
@@ -576,7 +576,7 @@ def test_clamped_row_position_holds_ends():
 
 def test_vertical_power_of_two_plan_of_the_talk():
     """Spec 10.2: a 10 s loop at 30 fps (300 rows) becomes 512 rows at 51.2 rows/s."""
-    from vbusd.bake import BakeOptions, plan_rows
+    from vbusd.baking.baker import BakeOptions, plan_rows
     from vbusd.format.model import AnimationClip
 
     clip = AnimationClip("cheer", 0.0, 10.0, sample=lambda times: None, native_rate=30.0, loop=True)
@@ -597,7 +597,7 @@ def test_unorm_ranges_example_is_binary32_exact(spec_text):
 
 def test_vertical_power_of_two_tiny_clip_example(spec_text):
     """Spec 10.2's examples: tiny clips keep one row and the rows never exceed the power of two."""
-    from vbusd.bake import BakeOptions, plan_rows
+    from vbusd.baking.baker import BakeOptions, plan_rows
     from vbusd.format.model import AnimationClip
 
     assert "The short\nclip keeps one row, the long one 511 (51.1 rows/s)" in spec_text

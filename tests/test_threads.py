@@ -1,7 +1,7 @@
-"""No import off the main thread, and nothing loaded while a helper runs (vbusd/_threads.py).
+"""No import off the main thread, and nothing loaded while a helper runs (vbusd/process/threads.py).
 
 Each case runs whole conversions in a fresh interpreter (so nothing is imported yet) under
-``vbusd._threads.ImportGuard``, which records every module a thread other than the main one asks
+``vbusd.process.threads.ImportGuard``, which records every module a thread other than the main one asks
 for, and snapshots the loaded modules and shared libraries the moment the accuracy check's thread
 is started: nothing may be imported or mapped after that moment, by any thread, until the
 conversion returns. That is the condition under which two threads cannot deadlock on the
@@ -22,8 +22,9 @@ _SCRIPT = textwrap.dedent("""
     import json, sys, threading
     from pathlib import Path
     import vbusd
-    from vbusd import _threads, bake_kernels
-    import vbusd.convert as convert_module
+    from vbusd.process import threads as _threads
+    from vbusd.kernels import bake as bake_kernels
+    import vbusd.jobs.conversion as convert_module
 
     kernels, out = sys.argv[1], Path(sys.argv[2])
     sources = sys.argv[3:]
@@ -114,7 +115,7 @@ def test_the_guard_sees_an_import_from_another_thread():
     """The hook itself: an import in a second thread is recorded, one in the owner thread is not."""
     import threading
 
-    from vbusd._threads import ImportGuard
+    from vbusd.process.threads import ImportGuard
 
     for name in ("colorsys", "this_module_does_not_exist_vbusd"):
         sys.modules.pop(name, None)
@@ -137,7 +138,7 @@ def test_kernels_are_never_loaded_by_a_helper(monkeypatch):
     """A helper asking for kernels that the job did not load gets the numpy twin (None)."""
     import threading
 
-    from vbusd import bake_kernels
+    from vbusd.kernels import bake as bake_kernels
 
     monkeypatch.setattr(bake_kernels, "_state", {})
     seen = []

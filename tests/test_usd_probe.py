@@ -185,9 +185,9 @@ def test_a_server_with_threads_reads_each_file_in_a_fresh_process(tmp_path):
 
 
 def test_a_large_corrupt_source_is_probed_ahead_and_still_one_line(tmp_path, monkeypatch, capsys):
-    """convert probes a large source while it loads the bake kernels (vbusd.convert._prepare_for);
+    """convert probes a large source while it loads the bake kernels (vbusd.jobs.conversion._prepare_for);
     a refusal there changes nothing: the reader's own probe gives the same one line."""
-    from vbusd import convert as convert_module
+    from vbusd.jobs import conversion as convert_module
     from vbusd.cli import main
 
     monkeypatch.setattr(convert_module, "LARGE_SOURCE_BYTES", 0)  # every source counts as large

@@ -21,7 +21,7 @@ import vbusd  # noqa: E402  (registers the plugin)
 from vbusd.io import usd_plugin  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-SCHEMA_DIR = REPO / "schema" / "usd"
+SCHEMA_DIR = REPO / "vbusd" / "schema" / "usd"
 
 # usdGenSchema writes these placeholders into a new plugInfo.json; the committed file replaces them
 # with relative paths (a codeless plugin has no library). Nothing else may differ.
@@ -45,7 +45,7 @@ def test_generated_files_match_usdgenschema(tmp_path):
     assert result.returncode == 0, result.stderr
     generated = (tmp_path / "generatedSchema.usda").read_text()
     assert generated == (SCHEMA_DIR / "generatedSchema.usda").read_text(), \
-        "generatedSchema.usda is stale: run python -m pxr.Usd.usdGenSchema schema/usd/schema.usda schema/usd"
+        "generatedSchema.usda is stale: run python -m pxr.Usd.usdGenSchema vbusd/schema/usd/schema.usda schema/usd"
     pluginfo = (tmp_path / "plugInfo.json").read_text()
     for placeholder, committed in PLUGINFO_PLACEHOLDERS.items():
         assert placeholder in pluginfo, f"usdGenSchema no longer writes {placeholder}"
@@ -206,6 +206,8 @@ import vbusd
 from vbusd.io import usd_plugin
 state = {"pxr_loaded_by_import": any(m.startswith("pxr.") for m in sys.modules),
          "environment_unchanged": dict(os.environ) == environment,
+         "environment_added": sorted(set(os.environ) - set(environment)),
+         "plugin_path": os.environ.get("PXR_PLUGINPATH_NAME", ""),
          "vbusd_file": vbusd.__file__, "plugin_dir": str(usd_plugin.plugin_dir())}
 from pxr import Usd
 stage = Usd.Stage.CreateInMemory()
@@ -226,24 +228,27 @@ def _run_probe(code: str, cwd: Path, env=None, *flags) -> dict:
 
 def test_import_vbusd_registers_without_importing_pxr(tmp_path):
     state = _run_probe(_PROBE, tmp_path)
-    # Registered by the import hook right before the probe's own `from pxr import Usd`, with no
-    # PXR_PLUGINPATH_NAME (or any other variable) set behind the host's back.
+    # pxr is not imported by `import vbusd`: the plugin folder goes on PXR_PLUGINPATH_NAME, which pxr
+    # reads when its plugin registry starts (the probe's own `from pxr import Usd`); nothing else set.
     assert state["pxr_loaded_by_import"] is False
-    assert state["environment_unchanged"] is True
+    assert state["environment_added"] == ["PXR_PLUGINPATH_NAME"]
+    assert state["plugin_path"].split(os.pathsep)[0] == state["plugin_dir"]
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 
 @pytest.mark.parametrize("first_import", ["from pxr import Tf", "from pxr import UsdGeom", "import pxr.Sdf"])
-def test_import_hook_registers_whichever_pxr_module_comes_first(tmp_path, first_import):
-    # The hook fires on the first pxr module of any name, and takes itself off sys.meta_path.
-    probe = ("import json, os, sys\nenvironment = dict(os.environ)\nimport vbusd\n" + first_import + "\n"
+def test_registration_holds_whichever_pxr_module_comes_first(tmp_path, first_import):
+    # pxr reads the plugin path as its registry starts, whichever pxr module is imported first; the
+    # host's own entries stay on the path after vbusd's; no import hook is installed.
+    probe = ("import json, os, sys\nos.environ['PXR_PLUGINPATH_NAME'] = '/nonexistent-host-plugins'\n"
+             "import vbusd\n" + first_import + "\n"
              "from pxr import Plug, Usd\n"
-             "hooks = [f for f in sys.meta_path if type(f).__name__ == '_RegisterBeforePxr']\n"
+             "hooks = [f for f in sys.meta_path if type(f).__module__.startswith('vbusd')]\n"
              "print(json.dumps({'plugin': Plug.Registry().GetPluginWithName('vbusd') is not None, 'hooks': len(hooks),\n"
              "  'known': not Usd.SchemaRegistry.GetTypeFromName('VirtualBonesAnimation').isUnknown,\n"
-             "  'environment_unchanged': dict(os.environ) == environment}))\n")
+             "  'host_entry_kept': os.environ['PXR_PLUGINPATH_NAME'].endswith('/nonexistent-host-plugins')}))\n")
     state = _run_probe(probe, tmp_path)
-    assert state == {"plugin": True, "hooks": 0, "known": True, "environment_unchanged": True}
+    assert state == {"plugin": True, "hooks": 0, "known": True, "host_entry_kept": True}
 
 
 def test_import_vbusd_after_pxr_registers_directly(tmp_path):
@@ -313,17 +318,17 @@ def test_late_import_with_plugin_path_set_is_fine(tmp_path):
 
 
 def _install_like_a_wheel(target: Path) -> None:
-    """Lay the packages out as the wheel does, following pyproject's package-dir and package-data."""
+    """Lay the package out as the wheel does: the vbusd/ tree as it is, with its package-data."""
     tomllib = pytest.importorskip("tomllib")
     config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    package_dir = config["package-dir"]
+    assert "package-dir" not in config, "the tree is the package: no folder is remapped"
     package_data = config.get("package-data", {})
-    for package in config["packages"]:
-        source = REPO / package_dir.get(package, package.replace(".", "/"))
+    for init in (REPO / "vbusd").rglob("__init__.py"):
+        source = init.parent
+        package = ".".join(source.relative_to(REPO).parts)
         dest = target.joinpath(*package.split("."))
         dest.mkdir(parents=True, exist_ok=True)
-        patterns = ["*.py"] + list(package_data.get(package, []))
-        for pattern in patterns:
+        for pattern in ["*.py"] + list(package_data.get(package, [])):
             for file in source.glob(pattern):
                 shutil.copy2(file, dest / file.name)
 

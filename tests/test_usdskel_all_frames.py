@@ -2,7 +2,7 @@
 
 ``vbusd.converters.usdskel.AllFramesSkinning`` computes the skinning transforms of every time code
 of a clip at once (issue 17 item 5): in numpy, or for many frames in its compiled twin
-(``vbusd.bake_kernels.skinning_transforms``); every test here runs on both. The yardstick is
+(``vbusd.kernels.bake.skinning_transforms``); every test here runs on both. The yardstick is
 ``UsdSkel.SkeletonQuery.ComputeSkinningTransforms`` called at each time code: on every skeleton of
 every shared UsdSkel asset (../shared/assets or $VBUSD_SHARED_ASSETS; skipped when absent), at every
 authored time code and half-way between them (USD's interpolation, slerp for rotations), and on a
@@ -18,7 +18,7 @@ import pytest
 import vbusd  # noqa: F401  (registers the schema before pxr builds its registry)
 from vbusd.converters import usdskel
 
-pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.bake_kernels)
+pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.kernels.bake)
 
 TOLERANCE = 1e-9
 """Largest difference allowed, relative to the largest matrix entry (UsdSkel works in double too)."""

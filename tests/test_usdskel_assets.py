@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("pxr")
 
-from vbusd.convert import ConvertOptions, convert  # noqa: E402
+from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import InputError, UnsupportedError  # noqa: E402
 
 LBS = {
@@ -88,7 +88,7 @@ def test_decoded_cache_matches_pixars_bake_skinning_baseline(shared_assets, tmp_
     import numpy as np
     from pxr import Usd, UsdGeom
 
-    from vbusd.decode.pointcache import decode
+    from vbusd.jobs.pointcache import decode
 
     folder = shared_assets / "usdskel" / folder_name
     convert(folder / f"{stem}.usda", tmp_path / "out.usda", ConvertOptions(texel_format="float32", check_rows=0))

@@ -1,7 +1,7 @@
 """UsdSkel semantics: every converted and decoded row matches UsdSkel's own skinning, in world space.
 
 Each test writes a small UsdSkel stage (tests/fixtures/usdskel/scenes.py), runs ``vbusd.convert``
-and ``vbusd.decode.pointcache.decode``, and compares the decoded point cache, sample by sample, with
+and ``vbusd.jobs.pointcache.decode``, and compares the decoded point cache, sample by sample, with
 ``UsdSkel.SkinningQuery.ComputeSkinnedPoints`` (normals: ``UsdSkel.SkinNormalsLBS``) placed in the
 world by the Skeleton's local-to-world transform, at the same time codes. float32 texels keep the
 quantization error far below the tolerances, so a wrong mapping (a missed transform, a wrong joint
@@ -21,9 +21,9 @@ import pytest
 pxr = pytest.importorskip("pxr")
 from pxr import Gf, Usd  # noqa: E402
 
-from vbusd.convert import ConvertOptions, convert  # noqa: E402
+from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import UnsupportedError  # noqa: E402
-from vbusd.decode.pointcache import decode  # noqa: E402
+from vbusd.jobs.pointcache import decode  # noqa: E402
 
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 

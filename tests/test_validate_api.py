@@ -182,7 +182,7 @@ def test_sidecar_and_embedded_copies_are_compared_on_every_schema_key(tmp_path):
     compared: the copies are compared as whole JSON documents, as the strict reader compares them."""
     from vbusd.io.textures import json_differences
 
-    schema = json.loads((FIXTURES.parents[2] / "schema" / "layout-metadata.schema.json").read_text(encoding="utf-8"))
+    schema = json.loads((FIXTURES.parents[2] / "vbusd" / "schema" / "layout-metadata.schema.json").read_text(encoding="utf-8"))
     keys = set(schema["properties"])
     differing = json_differences({k: 1 for k in keys}, {k: 2 for k in keys})
     assert {parts[0] for parts in differing} == keys

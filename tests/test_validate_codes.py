@@ -64,7 +64,7 @@ def test_finding_with_an_unregistered_code_is_a_programming_error():
 
 
 def _schema():
-    schema = json.loads((ROOT / "schema" / "validation-report.schema.json").read_text(encoding="utf-8"))
+    schema = json.loads((ROOT / "vbusd" / "schema" / "validation-report.schema.json").read_text(encoding="utf-8"))
     jsonschema.Draft202012Validator.check_schema(schema)
     return jsonschema.Draft202012Validator(schema)
 

@@ -211,7 +211,7 @@ def test_silenced_streams_are_restored_after_overlapping_threads():
     import threading
     import time
 
-    from vbusd.io.capture import captured_output as quiet_stderr
+    from vbusd.process.capture import captured_output as quiet_stderr
 
     stdout, stderr = sys.stdout, sys.stderr
     fds = [(os.fstat(fd).st_dev, os.fstat(fd).st_ino) for fd in (1, 2)]

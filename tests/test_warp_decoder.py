@@ -1,10 +1,10 @@
-"""Tests of the warp decoder (vbusd.decode.warp) on every available device.
+"""Tests of the warp decoder (vbusd.decoders.warp) on every available device.
 
 Two kinds of expected values, neither produced by the kernels themselves:
 
 * hand-worked results of tiny textures (the talk's linear blend of matrices, dual-quaternion
   blending, looping and clamping rows, the point instancer transform);
-* the numpy reference decoder (vbusd.decode.reference, float64), on a synthetic animation baked in every
+* the numpy reference decoder (vbusd.decoders.reference, float64), on a synthetic animation baked in every
   encoding and texel format and on the stadium crowd sample: positions must agree within 1e-6 of
   the bounding-box diagonal (the spec's conformance tolerance), unit normals within 5e-6.
 
@@ -22,8 +22,8 @@ import pytest
 
 wp = pytest.importorskip("warp")
 
-from vbusd.decode import reference  # noqa: E402
-from vbusd.decode import warp as wd  # noqa: E402
+from vbusd.decoders import reference  # noqa: E402
+from vbusd.decoders import warp as wd  # noqa: E402
 from vbusd.format.errors import InputError, OptionsError  # noqa: E402
 from vbusd.format.layout import Layout  # noqa: E402
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones  # noqa: E402
@@ -355,7 +355,7 @@ def test_bad_inputs_raise_one_line_errors():
 def test_cpu_work_prints_nothing_on_stderr():
     # Without a CUDA driver, warp's native library prints a warning straight to file descriptor 2
     # on initialization; a CLI decoding on the CPU must still print only its own lines.
-    script = ("from vbusd.decode import warp as wd\n"
+    script = ("from vbusd.decoders import warp as wd\n"
               "wd.available_devices()\n"
               "try:\n"
               "    wd._resolve_device('cuda')\n"

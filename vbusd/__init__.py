@@ -25,45 +25,6 @@ import importlib
 from typing import TYPE_CHECKING
 
 
-def _alias_checkout_folders() -> None:
-    """Import ``vbusd.converters``, ``vbusd.validators`` and ``vbusd.schema`` from a checkout.
-
-    The wheel maps the repository's folders ``converters/``, ``validators/`` and ``schema/`` into
-    the package (pyproject.toml, ``package-dir``). Python run from the repository's root (what
-    docs/api.md tells a reader to do) imports this checkout's ``vbusd/`` folder instead of the
-    installed package, and there those three folders are siblings of ``vbusd/``, not inside it:
-    this finder maps exactly those three names to them, so the checkout imports the same way as
-    the installed package (and never half from another installed copy). Installed, the folders
-    are inside the package and nothing is added.
-    """
-    import importlib.abc
-    import importlib.util
-    import sys
-    from pathlib import Path
-
-    package = Path(__file__).resolve().parent
-    root = package.parent
-    folders = {f"{__name__}.{name}": root / name for name in ("converters", "validators", "schema")
-               if not (package / name).exists() and (root / name / "__init__.py").is_file()}
-    if not folders or not (root / "pyproject.toml").is_file():
-        return
-
-    class _CheckoutFolders(importlib.abc.MetaPathFinder):
-        """``vbusd.<folder>`` -> the checkout's ``<folder>/`` (its submodules then load normally)."""
-
-        def find_spec(self, fullname, path=None, target=None):
-            folder = folders.get(fullname)
-            if folder is None:
-                return None
-            return importlib.util.spec_from_file_location(fullname, folder / "__init__.py",
-                                                          submodule_search_locations=[str(folder)])
-
-    if not any(type(finder).__name__ == "_CheckoutFolders" for finder in sys.meta_path):
-        sys.meta_path.insert(0, _CheckoutFolders())
-
-
-_alias_checkout_folders()
-
 try:
     from importlib.metadata import version as _dist_version
 
@@ -93,10 +54,10 @@ _EXPORTS = {
     "UnsupportedError": "vbusd.format.errors",
     "VersionError": "vbusd.format.errors",
     # jobs
-    "BakeOptions": "vbusd.bake",
-    "bake": "vbusd.bake",
-    "ConvertOptions": "vbusd.convert",
-    "convert": "vbusd.convert",
+    "BakeOptions": "vbusd.baking.baker",
+    "bake": "vbusd.baking.baker",
+    "ConvertOptions": "vbusd.jobs.conversion",
+    "convert": "vbusd.jobs.conversion",
     "read_asset": "vbusd.io.usd",
     "write_asset": "vbusd.io.usd",
     "read_texture": "vbusd.io.textures",
@@ -106,31 +67,21 @@ _EXPORTS = {
     "bone_transform": "vbusd.api",
     "root_motion": "vbusd.api",
     "shader": "vbusd.api",
-    "build_crowd": "vbusd.crowd",
-    "CrowdOptions": "vbusd.crowd",
-    "decode": "vbusd.decode.pointcache",
-    "Decoder": "vbusd.decode.warp",
-    "prepare": "vbusd._threads",
+    "build_crowd": "vbusd.jobs.crowd",
+    "CrowdOptions": "vbusd.jobs.crowd",
+    "decode": "vbusd.jobs.pointcache",
+    "Decoder": "vbusd.decoders.warp",
+    "prepare": "vbusd.process.threads",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
-
-
-# Jobs named after the module that holds them: vbusd.<name> is that module, made callable as the
-# job (vbusd/_callable.py), so that it is the same object whichever is imported first and
-# ``import vbusd.decode.reference`` keeps working.
-_CALLABLE_MODULES = {"bake": "vbusd.bake", "convert": "vbusd.convert", "decode": "vbusd.decode"}
 
 
 def __getattr__(name: str):
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'vbusd' has no attribute {name!r}")
-    if name in _CALLABLE_MODULES:
-        value = importlib.import_module(_CALLABLE_MODULES[name])
-        importlib.import_module(module)  # the job's own module, so that the call needs no import
-    else:
-        value = getattr(importlib.import_module(module), name)
+    value = getattr(importlib.import_module(module), name)
     globals()[name] = value  # later lookups skip __getattr__
     return value
 
@@ -141,12 +92,12 @@ def __dir__():
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from vbusd.api import bone_transform, root_motion, shader, skin, validate
-    from vbusd.bake import BakeOptions, bake
-    from vbusd.convert import ConvertOptions, convert
-    from vbusd.crowd import CrowdOptions, build_crowd
-    from vbusd.decode.pointcache import decode
-    from vbusd.decode.warp import Decoder
-    from vbusd._threads import prepare
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.jobs.conversion import ConvertOptions, convert
+    from vbusd.jobs.crowd import CrowdOptions, build_crowd
+    from vbusd.jobs.pointcache import decode
+    from vbusd.decoders.warp import Decoder
+    from vbusd.process.threads import prepare
     from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError, VersionError
     from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
     from vbusd.format.model import (AnimationClip, BoundMesh, Clip, Crowd, SkinnedAnimation, SkinnedMesh,

@@ -1,7 +1,7 @@
 """The public jobs of vbusd that have no other natural home: validate, skin and shader.
 
 They are thin: each checks its arguments, then calls the module that does the work
-(:mod:`vbusd.validators.api`, :mod:`vbusd.decode.reference`, :mod:`vbusd.decode.shaders`), so that
+(:mod:`vbusd.validators.api`, :mod:`vbusd.decoders.reference`, :mod:`vbusd.decoders.shaders`), so that
 ``import vbusd`` gives a host application the main jobs under one name (see docs/api.md).
 """
 
@@ -150,7 +150,7 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         >>> waving = vbusd.skin("fox.usda", "Walk", 0.5,
         ...                     layers=[{"clip": "Survey", "time": 1.0, "weight": 1.0, "mask": "upper"}])  # doctest: +SKIP
     """
-    from vbusd.decode.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
+    from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
@@ -196,7 +196,7 @@ _LAYER_KEYS = ("clip", "time", "weight", "mask")
 
 def _layers(vb: VirtualBones, layers, job: str) -> list:
     """Layers given as dicts, checked and resolved to ``(clip index, times, weight, mask weights)``."""
-    from vbusd.decode.reference import mask_weights
+    from vbusd.decoders.reference import mask_weights
 
     if layers is None:
         return []
@@ -258,7 +258,7 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
     the clip time (interpolated between rows as the decoders interpolate) times the joint's bind
     transform ``B`` stored in the asset. A prop modelled in the joint's own space follows the hand
     with ``p' = J[:3, :3] @ p + J[:3, 3]``; for a crowd instance, apply the instance's placement
-    after it (:func:`vbusd.decode.reference.crowd_joint_transforms` does both).
+    after it (:func:`vbusd.decoders.reference.crowd_joint_transforms` does both).
 
     Args:
         asset: A Virtual Bones asset path, a read asset or one :class:`~vbusd.format.model.VirtualBones`.
@@ -286,7 +286,7 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
         >>> hand[:3, 3]   # the hand's position in animation space
     """
-    from vbusd.decode.reference import crowd_joint_transforms, joint_transforms, layered_skinning
+    from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, layered_skinning
 
     if instance is not None and layers:
         raise OptionsError("layers apply to one animation's clip, not with instance= (a crowd's layers are its "
@@ -349,7 +349,7 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
         >>> step = vbusd.root_motion("walk.usda", "walk", 0.0, 1.0)  # doctest: +SKIP
         >>> step[:3, 3]   # metres walked in the first second
     """
-    from vbusd.decode.reference import root_motion as displacement
+    from vbusd.decoders.reference import root_motion as displacement
 
     vb = _animation(asset, animation, "root_motion")
     index = clip_index(vb, clip, what="root_motion")
@@ -368,7 +368,7 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         max_clips: Size of the clip table uniform array.
         main: Also emit an entry point that writes the skinned position and normal.
         skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
-            vertex index from skin records, ``vbusd.decode.shaders.pack_skin``; spec/shaders.md).
+            vertex index from skin records, ``vbusd.decoders.shaders.pack_skin``; spec/shaders.md).
         layers: Also emit the format 1.2 layer functions (``vbSkinLayered``; spec/shaders.md, Layers).
 
     Returns:
@@ -377,7 +377,7 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
     Raises:
         OptionsError: An unknown language, encoding, texel format or skin binding, or a count out of range.
     """
-    from vbusd.decode.shaders import ShaderOptions, generate
+    from vbusd.decoders.shaders import ShaderOptions, generate
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                   max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,

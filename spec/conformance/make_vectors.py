@@ -115,8 +115,8 @@ def _animation(encoding: str):
 
 def build(encoding: str, texel_format: str, folder: Path) -> dict:
     """Bake one vector, write its texture into ``folder`` and return its JSON document."""
-    from vbusd.bake import BakeOptions, bake
-    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
     from vbusd.format import metadata as md
     from vbusd.format.model import Crowd
     from vbusd.io.textures import write_texture

@@ -124,12 +124,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     _RUNNING.clear()
     import numpy as np
 
-    from vbusd import _signals
+    from vbusd.process import signals as _signals
 
     try:
         # Corrupt input can hold NaN and infinities: readers and checks name them as findings and
         # errors, so numpy's own floating-point warnings would only add raw lines to the terminal.
-        # SIGINT and SIGTERM end any command within seconds, with 130 or 143 (vbusd/_signals.py).
+        # SIGINT and SIGTERM end any command within seconds, with 130 or 143 (vbusd/process/signals.py).
         with np.errstate(all="ignore"), _signals.handling_signals():
             result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:

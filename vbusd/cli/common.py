@@ -123,13 +123,13 @@ def table(*columns: str, title: Optional[str] = None, right: tuple = (), show_he
 
 
 def terminate_as_interrupt():
-    """SIGINT and SIGTERM as interrupts while a command writes (:func:`vbusd._signals.handling_signals`,
+    """SIGINT and SIGTERM as interrupts while a command writes (:func:`vbusd.process.signals.handling_signals`,
     which :func:`vbusd.cli.main` already wraps around every command; nested, it does nothing).
 
     As an interrupt, the write transaction removes its temporaries (and a folder it created) and
     the command exits 130 (SIGINT) or 143 (SIGTERM).
     """
-    from vbusd import _signals
+    from vbusd.process import signals as _signals
 
     return _signals.handling_signals()
 
@@ -193,7 +193,7 @@ class progress_bar:
         from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
         # auto_refresh off: rich's refresh thread would render (and import) beside the job's own
-        # imports; the bar is drawn from the calling thread instead (vbusd/_threads.py).
+        # imports; the bar is drawn from the calling thread instead (vbusd/process/threads.py).
         self._bar = Progress(TextColumn("{task.description:<6}"), BarColumn(), TaskProgressColumn(),
                              TimeElapsedColumn(), console=Console(stderr=True), transient=True,
                              auto_refresh=False)

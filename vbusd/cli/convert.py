@@ -1,7 +1,7 @@
 """``vbusd convert INPUT -o OUTPUT.usda``: convert a UsdSkel or glTF asset into Virtual Bones.
 
 ``vbusd convert A B FOLDER 'GLOB' [--manifest M] -o OUT/ [--jobs N | --scheduler tcp://H:P]``
-converts a library (:mod:`vbusd.batch`): a table per asset (or ``--format json``, ``--report
+converts a library (:mod:`vbusd.jobs.batch`): a table per asset (or ``--format json``, ``--report
 FILE``), exit 0 when all converted, 1 when some failed, 2 when none could.
 
 Progress goes to stderr (a bar on a terminal, a plain line every 10 s otherwise); the summary goes to
@@ -38,7 +38,7 @@ def _check_rows(value: str):
 
 
 @click.command(name="convert")
-@click.argument("sources", nargs=-1, type=click.Path(path_type=str))  # folders, globs: vbusd.batch
+@click.argument("sources", nargs=-1, type=click.Path(path_type=str))  # folders, globs: vbusd.jobs.batch
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="USD layer to write (.usda, .usd or .usdc); the texture and its .json sidecar go beside it "
                    "(a missing folder is created). With several sources, a folder, a glob or --manifest, or when "
@@ -136,7 +136,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
 
     if len(sources) == 1 and needs_probe(sources[0]):
         prestart()  # the crate probe's server starts while this process imports the converters
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     try:
         rows = _check_rows(check_rows)
@@ -188,7 +188,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
 
 def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
     """Several sources, a folder, a glob, a manifest, a scheduler, a report or an output folder."""
-    from vbusd.batch import is_glob
+    from vbusd.jobs.batch import is_glob
 
     if manifest is not None or scheduler is not None or report_file is not None or len(sources) != 1:
         return True
@@ -202,8 +202,8 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
 
 def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
                output_format, quiet, stall_timeout=None) -> int:
-    from vbusd.batch import plan_batch, run_batch
-    from vbusd.convert import ConvertOptions
+    from vbusd.jobs.batch import plan_batch, run_batch
+    from vbusd.jobs.conversion import ConvertOptions
     from pathlib import Path
 
     from vbusd.format.jsonform import json_text
@@ -237,7 +237,7 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
 
 
 def print_batch(report, file=None) -> None:
-    """Print a :class:`vbusd.batch.BatchReport` as a table (wrapped only on a terminal), then the totals."""
+    """Print a :class:`vbusd.jobs.batch.BatchReport` as a table (wrapped only on a terminal), then the totals."""
     from pathlib import Path
 
     from vbusd.cli.common import table
@@ -287,7 +287,7 @@ def _grid():
 
 
 def print_summary(report, file=None) -> None:
-    """Print a :class:`vbusd.convert.ConvertReport` on stdout as text (wrapped only on a terminal).
+    """Print a :class:`vbusd.jobs.conversion.ConvertReport` on stdout as text (wrapped only on a terminal).
 
     One block per animation and per mesh, a field per line (labels left, values wrapped at spaces),
     so no code, path or number is cut however narrow the terminal; ``--format json`` has the same

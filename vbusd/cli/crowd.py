@@ -1,6 +1,6 @@
 """``vbusd crowd CHARACTER... -o CROWD.usda``: place instances of converted characters on a point instancer.
 
-See :mod:`vbusd.crowd` for the layout of the file it writes.
+See :mod:`vbusd.jobs.crowd` for the layout of the file it writes.
 """
 
 from __future__ import annotations
@@ -75,7 +75,7 @@ class _CrowdCommand(click.Command):
 def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
             yaw, scale, seed, output_format, force, allow_outside_paths, quiet):
     """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
-    from vbusd.crowd import CrowdOptions, build_crowd, parse_weights
+    from vbusd.jobs.crowd import CrowdOptions, build_crowd, parse_weights
 
     options = CrowdOptions(layout=layout, count=count, spacing=spacing, points=points_file,
                            clips=parse_weights(clips) if clips else {},

@@ -1,7 +1,7 @@
 """``vbusd decode ASSET.usda -o CACHE.usda``: decode a Virtual Bones asset into a USD point cache.
 
 The cache holds every bound mesh at its own prim path with time-sampled points, normals and
-extents on the source's timeline (see :mod:`vbusd.decode.pointcache`), so any USD viewer plays it.
+extents on the source's timeline (see :mod:`vbusd.jobs.pointcache`), so any USD viewer plays it.
 ``--device cpu|cuda`` decodes with the warp kernels; without it (or without warp) the numpy
 reference decoder is used. ``--format json`` prints the report with camelCase keys and times rounded
 to the time code precision; ``--quiet`` prints nothing but errors.
@@ -35,7 +35,7 @@ __all__ = ["command"]
 @quiet_option
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
-    from vbusd.decode.pointcache import decode
+    from vbusd.jobs.pointcache import decode
 
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,

@@ -3,7 +3,7 @@
 ``--as`` picks the form; without it the output's suffix does: ``.glb`` / ``.gltf`` give the glTF 2.0
 runtime package that engines load (spec/runtime-package.md, :mod:`vbusd.io.gltf_package`);
 ``--as usdskel`` writes ``.usda`` / ``.usdc`` / ``.usd``: the UsdSkel fallback that Hydra renderers skin
-themselves (spec/runtime-package.md, "UsdSkel fallback", :mod:`vbusd.export_usdskel`). Each
+themselves (spec/runtime-package.md, "UsdSkel fallback", :mod:`vbusd.jobs.export_usdskel`). Each
 form is one entry of :data:`EXPORTERS` (a function ``(asset_path, output, options) -> report dict``),
 so further forms plug in beside it.
 """
@@ -34,7 +34,7 @@ def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
 
 
 def _export_usdskel(asset_path: Path, output: Path, options: dict) -> dict:
-    from vbusd.export_usdskel import SUFFIXES, export_usdskel
+    from vbusd.jobs.export_usdskel import SUFFIXES, export_usdskel
     from vbusd.io.usd import read_asset
 
     if output.suffix.lower() not in SUFFIXES:

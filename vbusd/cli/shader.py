@@ -14,7 +14,7 @@ from vbusd.cli.common import echo_json, force_option, format_option, quiet_optio
 from vbusd.format.errors import FORCE_HINT, OptionsError, VbusdError
 from vbusd.io.files import Commit, make_folders, remove_folders, write_error
 from vbusd.format.layout import Encoding, TexelFormat
-from vbusd.decode.shaders import DEFAULT_MAX_BONES, DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
+from vbusd.decoders.shaders import DEFAULT_MAX_BONES, DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
 
 __all__ = ["command", "write_text"]
 

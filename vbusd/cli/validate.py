@@ -25,7 +25,7 @@ def _split(values) -> tuple:
 # dir_okay=True on purpose: a folder (or a missing file) is reported by the validator itself as one
 # line "vbusd: FILE: CODE: message" with exit 2, not by click's multi-line usage error.
 @click.argument("asset", type=click.Path(dir_okay=True, path_type=str))
-@format_option  # the JSON report follows schema/validation-report.schema.json
+@format_option  # the JSON report follows vbusd/schema/validation-report.schema.json
 @click.option("--only", multiple=True, metavar="CODE",
               help="Report only this code or code prefix (repeat or separate with commas).")
 @click.option("--ignore", multiple=True, metavar="CODE",

@@ -49,7 +49,7 @@ def command(asset, port, no_browser, allow_outside_paths, engine, output_format,
         raise OptionsError(f"--port must be an integer, got {port!r}", file="view") from None
     if not 0 <= port_number <= 65535:
         raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
-    import webbrowser  # before the server's threads start: no import beside them (vbusd/_threads.py)
+    import webbrowser  # before the server's threads start: no import beside them (vbusd/process/threads.py)
 
     server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths, engine=engine).start()
     if quiet:

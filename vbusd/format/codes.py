@@ -130,7 +130,7 @@ _FINDINGS = (
          "file"),
     Code("metadata.duplicate", E, "The texture holds more than one vbusd.layout metadata chunk.",
          f"{_VB}#png", "file"),
-    Code("metadata.schema", E, "Layout metadata violates schema/layout-metadata.schema.json.",
+    Code("metadata.schema", E, "Layout metadata violates vbusd/schema/layout-metadata.schema.json.",
          f"{_VB}#layout-metadata", "json"),
     Code("metadata.mismatch", E, "A layout metadata value disagrees with the prim attribute it mirrors.",
          f"{_VB}#layout-metadata", "json"),
@@ -242,7 +242,7 @@ _FINDINGS += (
     # runtime package (a .glb or .gltf that vbusd export wrote)
     Code("package.extension", E, "The VBUSD_virtual_bones extension is missing (a plain glTF file given as a "
          "runtime package, e.g. to vbusd view), not listed in extensionsUsed, listed in extensionsRequired, or "
-         "its root or primitive object violates schema/VBUSD_virtual_bones.schema.json (a version or "
+         "its root or primitive object violates vbusd/schema/VBUSD_virtual_bones.schema.json (a version or "
          "animations it cannot hold).", f"{_RUNTIME_PACKAGE}#extension", "json"),
     Code("package.texture", E, "An animation's texture buffer view does not exist, lies outside its buffer, "
          "does not hold a KTX2 file, has a byteStride or target, or (in a .glb) does not start at a multiple "

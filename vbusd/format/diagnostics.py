@@ -45,7 +45,7 @@ class UsdSite:
         return self.prim_path if not self.property else f"{self.prim_path}.{self.property}"
 
     def to_json(self) -> dict:
-        """JSON form (schema/validation-report.schema.json, ``usdSite``)."""
+        """JSON form (vbusd/schema/validation-report.schema.json, ``usdSite``)."""
         out = {"kind": "usd", "primPath": self.prim_path}
         if self.property:
             out["property"] = self.property
@@ -163,7 +163,7 @@ class Finding:
         return f"{self.location}: {self.severity.value}: {self.code}: {self.message}"
 
     def to_json(self) -> dict:
-        """JSON form (``finding`` in schema/validation-report.schema.json)."""
+        """JSON form (``finding`` in vbusd/schema/validation-report.schema.json)."""
         return {"code": self.code, "severity": self.severity.value, "message": self.message,
                 "location": self.location.to_json()}
 

@@ -165,7 +165,7 @@ def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Pola
     """
     if not 0 < tolerance < 1 or linear.size == 0:
         return None
-    from vbusd import bake_kernels
+    from vbusd.kernels import bake as bake_kernels
 
     compiled = bake_kernels.near_rotation_polar(linear, tolerance)  # the same iteration, compiled
     if compiled is not None:
@@ -264,7 +264,7 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
     encoding = Encoding(encoding)
     m = np.asarray(matrices, dtype=np.float64)
     if encoding is Encoding.CROSS_MATRIX:
-        from vbusd import bake_kernels
+        from vbusd.kernels import bake as bake_kernels
 
         compiled = bake_kernels.encode_cross_matrix(m, tolerance)  # None: small, or some matrix fails
         if compiled is not None:
@@ -409,7 +409,7 @@ def all_finite(values: np.ndarray) -> bool:
     """Whether every value is finite, in one pass without a temporary: a slice's sum is finite when
     all its values are (one slice per core); when a sum is not, the values are checked one by one
     (finite values can overflow a sum)."""
-    from vbusd.bake_kernels import split_work
+    from vbusd.kernels.bake import split_work
 
     values = np.asarray(values)
     if values.ndim == 0:
@@ -455,7 +455,7 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         UnsupportedError: A value is not finite.
         Float16OverflowError: A value exceeds float16's range (``index`` says where).
     """
-    from vbusd.bake_kernels import split_work
+    from vbusd.kernels.bake import split_work
 
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)

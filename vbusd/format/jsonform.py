@@ -6,7 +6,7 @@ decimals, the precision of a time code, so a time stored as float32 prints as ``
 ``27.799999237060547``. Other numbers (errors, fractions) keep their full precision. Non-finite
 numbers become ``null`` so that the output is strict JSON.
 
-Reports (:class:`vbusd.convert.ConvertReport`, :class:`vbusd.decode.pointcache.DecodeReport`)
+Reports (:class:`vbusd.jobs.conversion.ConvertReport`, :class:`vbusd.jobs.pointcache.DecodeReport`)
 build their ``to_dict()`` with :func:`json_ready`; ``vbusd info`` passes its dict through it too.
 """
 

@@ -3,7 +3,7 @@
 The same dict is stored in the EXR header (string attribute ``vbusd.layout``), in the PNG iTXt
 chunk ``vbusd.layout`` and in the sidecar ``<texture>.json``. Its keys are listed in
 docs/architecture.md ("Layout metadata keys") and its shape is fixed by the JSON Schema
-``schema/layout-metadata.schema.json`` (installed as ``vbusd.schema``).
+``vbusd/schema/layout-metadata.schema.json`` (installed as ``vbusd.schema``).
 
 This module converts between that dict and the model:
 
@@ -341,7 +341,7 @@ def _schema_validator():
 
 
 def check_schema(d: Any, diagnostics: Diagnostics, *, file=None, within: str = "") -> bool:
-    """Validate a document against schema/layout-metadata.schema.json.
+    """Validate a document against vbusd/schema/layout-metadata.schema.json.
 
     Every violation is one ``metadata.schema`` finding located by the JSON pointer of the value
     (sorted by pointer, so the first is the same every run).

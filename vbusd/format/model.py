@@ -378,7 +378,7 @@ class VirtualBones:
     clip_extents: Optional[np.ndarray] = None
     bind_transforms: Optional[np.ndarray] = None
     root_motion: Optional[object] = None
-    """Format 1.1: a :class:`vbusd.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
+    """Format 1.1: a :class:`vbusd.baking.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
     lods: Optional[LevelsOfDetail] = None
     """Format 1.2: the meshes' levels of detail (spec "Levels of detail"), or None for one level."""
     bone_parents: Optional[tuple] = None

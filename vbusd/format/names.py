@@ -1,7 +1,7 @@
 """The ``vb:*`` names of the Virtual Bones USD schema, in one table.
 
 The USD writer, the USD reader and the validators take every attribute, relationship and primvar
-name from here (spec/virtual-bones.md sections 13 to 15; ``schema/usd/schema.usda`` defines the
+name from here (spec/virtual-bones.md sections 13 to 15; ``vbusd/schema/usd/schema.usda`` defines the
 same names for OpenUSD, and a test checks that the two agree).
 
 An animation prim's attributes are read into a dict with the keys of the layout metadata

@@ -424,7 +424,7 @@ def _compressing_on_every_core(OpenEXR):
     if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
         yield
         return
-    from vbusd._cores import usable_cores
+    from vbusd.kernels.cores import usable_cores
 
     cores = usable_cores()
     with _THREADS_LOCK:  # held for the write: threads of one process write their EXR files in turn

@@ -72,7 +72,7 @@ import time
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
-from vbusd import _signals
+from vbusd.process import signals as _signals
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
 
 __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
@@ -588,7 +588,7 @@ class Commit:
             self._lock.release()
             raise
         self._state = "open"
-        # A process ended by vbusd._signals (a signal the main thread could not act on in time)
+        # A process ended by vbusd.process.signals (a signal the main thread could not act on in time)
         # aborts this transaction first: the old asset stays, nothing staged is left.
         _signals.on_hard_exit(id(self), self.abort)
         return self

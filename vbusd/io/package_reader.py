@@ -8,7 +8,7 @@ finding). It checks
 * the container and the glTF JSON with the glTF converter's own reader
   (:func:`vbusd.converters.gltf.load`: GLB chunks, JSON types, buffers and their URIs);
 * the ``VBUSD_virtual_bones`` extension: listed in ``extensionsUsed``, never required, the root
-  object and every primitive object against ``schema/VBUSD_virtual_bones.schema.json`` (the layout
+  object and every primitive object against ``vbusd/schema/VBUSD_virtual_bones.schema.json`` (the layout
   against the layout metadata schema it references) (``package.extension``, ``metadata.schema``);
 * each animation's texture: its buffer view (no stride, no target, 16-byte aligned in a ``.glb``;
   ``package.texture``), the KTX2 file it holds with every check of a KTX2 texture

@@ -16,19 +16,15 @@ Registration on ``import vbusd``
 by the texture tools or the decoder, and importing it costs about 0.1 s for ``pxr.Plug`` and 0.4 s
 for ``pxr.Usd``, measured with usd-core 26.11 by
 ``python -c "import time; t = time.perf_counter(); from pxr import Usd; print(time.perf_counter() - t)"``)
-and changes nothing a host application owns (``os.environ`` stays as it was):
+and uses OpenUSD's own mechanism, no import hook:
 
 * when pxr is not installed, it does nothing (and never tries to import it);
-* when pxr is installed but no ``pxr`` module has been imported yet, it puts a one-shot import hook
-  (:class:`_RegisterBeforePxr`) first on ``sys.meta_path``. The first ``from pxr import ...`` of the
-  process, whoever makes it, passes through the hook, which loads ``pxr.Plug``, registers the
-  plugin folder with ``Plug.Registry().RegisterPlugins`` and removes itself; the import then
-  proceeds as usual. pxr.Usd builds its schema registry only later, on first use, so the types are
-  in it;
+* when pxr is installed but no ``pxr`` module has been imported yet, it puts the plugin folder
+  first on ``PXR_PLUGINPATH_NAME`` (the variable OpenUSD reads when its plugin registry starts, on
+  the first pxr import of the process, whoever makes it). Entries the host set are kept after it.
+  Child processes inherit the variable, so a DCC or usdview started from this process sees the
+  types too;
 * when pxr is already loaded, it registers the folder directly (pxr is in memory: about 1 ms).
-
-Child processes do not inherit the registration (no environment variable is set): a child that
-uses the Virtual Bones types imports vbusd first, or gets ``PXR_PLUGINPATH_NAME`` (below).
 
 vbusd's own USD code (:mod:`vbusd.io.usd`, the validators) also calls :func:`register` before
 using the types, which is idempotent.
@@ -67,6 +63,7 @@ from __future__ import annotations
 
 import importlib.resources
 import importlib.util
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -179,75 +176,30 @@ def require_schema_types():
     return plugin
 
 
-class _RegisterBeforePxr:
-    """A one-shot ``sys.meta_path`` finder: registers the plugin as the first pxr module loads.
-
-    On the first ``pxr.*`` import of the process it takes itself off ``sys.meta_path``, lets the
-    regular finders find the module and wraps its loader, so that the registration runs right after
-    that module (and the pxr modules it imports, pxr.Tf at least) has executed, before the statement
-    that imported it returns. Registering any earlier would import pxr.Plug while pxr.Tf is half
-    initialized. The module keeps its own loader afterwards.
-    """
-
-    def find_spec(self, name, path=None, target=None):
-        if not name.startswith("pxr."):
-            return None
-        self.remove()
-        for finder in list(sys.meta_path):
-            find = getattr(finder, "find_spec", None)
-            spec = find(name, path, target) if find is not None else None
-            if spec is not None:
-                if spec.loader is not None and hasattr(spec.loader, "exec_module"):
-                    spec.loader = _RegisterAfterLoading(spec.loader)
-                return spec
-        return None
-
-    def remove(self) -> None:
-        """Take the hook off ``sys.meta_path`` (no error when it is not there)."""
-        try:
-            sys.meta_path.remove(self)
-        except ValueError:
-            pass
-
-
-class _RegisterAfterLoading:
-    """Loader wrapper of :class:`_RegisterBeforePxr`: load the module, then register the plugin."""
-
-    def __init__(self, loader) -> None:
-        self._loader = loader
-
-    def create_module(self, spec):
-        return self._loader.create_module(spec)
-
-    def exec_module(self, module) -> None:
-        module.__loader__ = self._loader  # the module keeps its real loader
-        if getattr(module, "__spec__", None) is not None:
-            module.__spec__.loader = self._loader
-        self._loader.exec_module(module)
-        try:
-            register()
-        except Exception:  # a broken plugin folder must not break the host's own pxr import
-            pass
-
-
 def cancel_deferred_registration() -> None:
-    """Take the one-shot import hook off ``sys.meta_path`` (nothing happens when it is not there).
+    """Take the plugin folder off ``PXR_PLUGINPATH_NAME`` again (nothing happens when it is not there).
 
     For a process that must import pxr and stay single-threaded until it forks (the crate probe
-    server, :mod:`vbusd.io.usd_probe`): ``RegisterPlugins`` starts OpenUSD's worker threads, so
+    server, :mod:`vbusd.io.usd_probe`): registering plugins starts OpenUSD's worker threads, so
     such a process leaves the registration to its forked children, which call :func:`register`.
     """
-    for finder in list(sys.meta_path):
-        if isinstance(finder, _RegisterBeforePxr):
-            finder.remove()
+    try:
+        folder = str(plugin_dir())
+    except Exception:
+        return
+    entries = [e for e in os.environ.get(PLUGIN_PATH_VARIABLE, "").split(os.pathsep) if e and e != folder]
+    if entries:
+        os.environ[PLUGIN_PATH_VARIABLE] = os.pathsep.join(entries)
+    else:
+        os.environ.pop(PLUGIN_PATH_VARIABLE, None)
 
 
 def register_on_import() -> str:
     """The hook ``import vbusd`` runs: make the plugin known to pxr without importing pxr.
 
     Returns:
-        ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet: an
-        import hook registers the plugin right before the first pxr module loads), ``"late"``
+        ``"registered"`` (pxr was loaded: registered now), ``"deferred"`` (pxr not loaded yet: the
+        folder is on ``PXR_PLUGINPATH_NAME``, which pxr reads as its plugin registry starts), ``"late"``
         (registered, but pxr.Usd had already built its schema registry without the types: warns
         with :data:`LATE_REGISTRATION_MESSAGE`) or ``"unavailable"`` (no pxr installed, or the
         package data is not on disk).
@@ -267,9 +219,10 @@ def register_on_import() -> str:
     if importlib.util.find_spec("pxr") is None:
         return "unavailable"
     try:
-        plugin_dir()
+        folder = str(plugin_dir())
     except Exception:
         return "unavailable"
-    if not any(isinstance(finder, _RegisterBeforePxr) for finder in sys.meta_path):
-        sys.meta_path.insert(0, _RegisterBeforePxr())
+    entries = [e for e in os.environ.get(PLUGIN_PATH_VARIABLE, "").split(os.pathsep) if e]
+    if folder not in entries:
+        os.environ[PLUGIN_PATH_VARIABLE] = os.pathsep.join([folder] + entries)
     return "deferred"

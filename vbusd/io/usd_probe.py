@@ -328,7 +328,7 @@ def _serve() -> int:
     # Answers go to a private copy of stdout; whatever pxr or a child prints goes nowhere.
     answers = os.fdopen(os.dup(1), "w")
     os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
-    from vbusd._signals import die_with_parent
+    from vbusd.process.signals import die_with_parent
 
     parent = os.getppid()
     die_with_parent(signal.SIGKILL, parent)  # a vbusd process killed outright leaves no server behind
@@ -363,7 +363,7 @@ def _serve() -> int:
 
 
 def _forked_read(request: dict, said) -> int:
-    from vbusd._signals import die_with_parent
+    from vbusd.process.signals import die_with_parent
 
     server = os.getpid()
     pid = os.fork()

@@ -135,11 +135,11 @@ def captured_usd_diagnostics(sink: list):
     diagnostic, kind being ``warning``, ``status`` or ``error``. Errors that USD raises as
     ``Tf.ErrorException`` still raise. What USD's lower layers print past the delegate (``failed
     call to posix_madvise``, ``~_DeferredDiagnostics`` warnings of a corrupt crate file) is taken
-    from the file descriptors (:func:`vbusd.io.capture.captured_output`) and added as warnings.
+    from the file descriptors (:func:`vbusd.process.capture.captured_output`) and added as warnings.
     """
     from pxr import UsdUtils
 
-    from vbusd.io.capture import captured_output
+    from vbusd.process.capture import captured_output
 
     printed: list = []
     with _CAPTURE_LOCK:
@@ -798,7 +798,7 @@ class UsdReader:
             self.report("prim.attribute.invalid", f"{names.ROOT_MOTION_UP_AXIS} must be Y or Z with "
                         f"{names.CLIP_ROOT_MOTION}, got {up_axis!r}", UsdSite(path, names.ROOT_MOTION_UP_AXIS))
             return
-        from vbusd.rootmotion import RootMotion
+        from vbusd.baking.rootmotion import RootMotion
 
         offsets = np.cumsum([0] + counts)
         declared.values["rootMotion"] = RootMotion(up_axis, tuple(entries[a:b] for a, b in zip(offsets[:-1],

@@ -2,7 +2,7 @@
 
 * :mod:`vbusd.web.shader_modules` writes the JavaScript module of GLSL strings that the three.js
   runtime (``web/`` in the repository) patches into three's materials, generated from
-  :mod:`vbusd.decode.shaders` so the browser runs the very module ``vbusd shader`` prints;
+  :mod:`vbusd.decoders.shaders` so the browser runs the very module ``vbusd shader`` prints;
 * :mod:`vbusd.web.scene` turns a Virtual Bones asset into the viewer's plain files (a JSON
   description and one binary buffer of texels, meshes and instances);
 * :mod:`vbusd.web.server` serves the viewer page, three.js and the asset on 127.0.0.1.

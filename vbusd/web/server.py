@@ -140,7 +140,7 @@ class _Server(ThreadingHTTPServer):
 
     def process_request(self, request, client_address):
         """One named daemon thread per request (``vbusd-view-request``): it only reads files and
-        bytes made before the server started, and imports nothing (vbusd/_threads.py)."""
+        bytes made before the server started, and imports nothing (vbusd/process/threads.py)."""
         if self.block_on_close:
             vars(self).setdefault("_threads", socketserver._Threads())
         thread = threading.Thread(target=self.process_request_thread, args=(request, client_address),

@@ -581,7 +581,7 @@ def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None, 
 
 def _check_output(path: Path, settings: ExportSettings, container: str, animation_names: list) -> None:
     from vbusd import OptionsError
-    from vbusd.convert import check_output_path
+    from vbusd.jobs.conversion import check_output_path
 
     check_output_path(Path(""), path, force=settings.overwrite)
     if not settings.overwrite:
@@ -837,7 +837,7 @@ def measure_against_blender(vb, sampler: RigSampler, clips: list) -> list:
         One dict per mesh: ``path``, ``max_error`` (scene units), ``max_error_fraction`` (of the
         diagonal of Blender's evaluated bounding box over all rows) and ``rows``.
     """
-    from vbusd.decode.reference import skin_mesh
+    from vbusd.decoders.reference import skin_mesh
 
     results = []
     for mesh_index, mesh in enumerate(vb.meshes):

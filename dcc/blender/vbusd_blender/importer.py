@@ -204,7 +204,7 @@ def _decoded_matrices(vb, clip_index: int, tau: np.ndarray) -> np.ndarray:
 
     Between rows the decoder interpolates the stored texels, as a shader does.
     """
-    from vbusd.decode.reference import bone_transforms
+    from vbusd.decoders.reference import bone_transforms
 
     transforms = bone_transforms(vb, clip_index, tau)
     matrices = np.zeros(transforms.linear.shape[:-2] + (4, 4))

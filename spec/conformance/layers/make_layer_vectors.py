@@ -63,8 +63,8 @@ def _crowd(vb):
 
 def build(encoding: str, texel_format: str, folder: Path) -> dict:
     """Bake one vector, write its texture into ``folder`` and return its JSON document."""
-    from vbusd.bake import BakeOptions, bake
-    from vbusd.decode.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
     from vbusd.format import metadata as md
     from vbusd.io.textures import write_texture
 

@@ -170,7 +170,7 @@ export class VirtualBonesAnimation {
 }
 
 /**
- * The rig texture of the layer functions (spec/shaders.md, "Layers"; vbusd.decode.shaders.rig_texels):
+ * The rig texture of the layer functions (spec/shaders.md, "Layers"; vbusd.decoders.shaders.rig_texels):
  * RGBA32F, 8 texels per bone in row 0 (rows of B, rows of B^-1, (parent, 0, 0, 0), 0), then one row
  * per mask (texel b = (weight of bone b, 0, 0, 0)).
  */

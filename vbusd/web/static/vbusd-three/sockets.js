@@ -1,6 +1,6 @@
 // Sockets and root motion on the CPU (spec/virtual-bones.md 8.4 and 8.5, format 1.1): where to attach
 // a prop to a bone of each instance, and how far a clip baked in place moves its instance. The same
-// math as vbusd.decode.reference (joint_transforms, crowd_joint_transforms, root_motion) and the
+// math as vbusd.decoders.reference (joint_transforms, crowd_joint_transforms, root_motion) and the
 // shader modules' vbSocket: the bone is decoded from the animation's own texels, blended between
 // rows as a decoder blends them.
 

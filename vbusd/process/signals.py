@@ -16,7 +16,7 @@ long C call (an import, a USD write, a kernel compile) would not see Ctrl-C unti
 A commit's renames are a critical section (:func:`critical`): a signal that arrives during them is
 held until they are done, so the asset is the old one or the new one, never a mix.
 
-The helper runs only code that is loaded before it starts (vbusd/_threads.py) and ends with the
+The helper runs only code that is loaded before it starts (vbusd/process/threads.py) and ends with the
 block (a byte on its own pipe wakes it).
 """
 

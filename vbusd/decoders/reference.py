@@ -1,7 +1,7 @@
 """The numpy reference decoder: clip timing, row interpolation, decoding and skinning.
 
 This is the executable definition of the spec's "Clips", "Interpolation between rows",
-"Skinning" (crossfades included) and "Instancing" sections, in float64. The warp kernels (vbusd.decode.warp) are its
+"Skinning" (crossfades included) and "Instancing" sections, in float64. The warp kernels (vbusd.decoders.warp) are its
 twins and are tested against it.
 
 Times passed here are *clip-local* seconds ``tau`` (0 is the clip's first row), unless a function
@@ -441,7 +441,7 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
     """
     if vb.root_motion is None:
         return np.eye(4)
-    from vbusd.rootmotion import displacement
+    from vbusd.baking.rootmotion import displacement
 
     return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)
 

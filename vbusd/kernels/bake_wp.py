@@ -1,4 +1,4 @@
-"""The warp kernels behind :mod:`vbusd.bake_kernels` (imported only when they run: it imports warp).
+"""The warp kernels behind :mod:`vbusd.kernels.bake` (imported only when they run: it imports warp).
 
 Float64 throughout, floating-point contraction off, and each expression written in its numpy
 twin's order of operations, so both compute the same numbers up to rounding of sums.
@@ -9,6 +9,9 @@ from __future__ import annotations
 from typing import Any
 
 import warp as wp
+
+__all__ = ["near_rotation_polar", "encode_cross_matrix", "skinning_transforms", "bone_box_bounds", "skin_points_lbs",
+           "skin_normals_lbs"]
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False, "fast_math": False})
 
@@ -95,7 +98,7 @@ def encode_cross_matrix(matrices: wp.array(dtype=wp.mat44d), tolerance: wp.float
 
 @wp.func
 def _quaternion_rows(q: wp.vec4f):
-    """GfMatrix3f(GfQuatf) in float32, as converters/usdskel.py's _quaternion_matrices (row-vector)."""
+    """GfMatrix3f(GfQuatf) in float32, as vbusd/converters/usdskel.py's _quaternion_matrices (row-vector)."""
     x = q[0]
     y = q[1]
     z = q[2]

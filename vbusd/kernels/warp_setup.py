@@ -1,8 +1,8 @@
 """Warp's start-up for vbusd: initialized once, quietly (its banner and native CUDA notes kept off the
 console), and its log level raised around vbusd's own calls.
 
-Shared by the decoder (:mod:`vbusd.decode.warp`) and the bake's compiled loops
-(:mod:`vbusd.bake_kernels`); importing this module imports warp but none of the decoder's kernels.
+Shared by the decoder (:mod:`vbusd.decoders.warp`) and the bake's compiled loops
+(:mod:`vbusd.kernels.bake`); importing this module imports warp but none of the decoder's kernels.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import sys
 
 import warp as wp
 
-from vbusd.io.capture import captured_output
+from vbusd.process.capture import captured_output
 
 __all__ = ["quiet_warp"]
 
@@ -56,7 +56,7 @@ def _init_warp() -> None:
     initialization therefore runs with file descriptor 2 captured. When CUDA came up, what was
     captured is passed on to stderr (e.g. a driver-version warning); otherwise the "Warp CUDA" lines
     are kept in ``_WARP_INIT_NOTES`` and a CUDA request reports them in its one error line
-    (``vbusd.decode.warp._resolve_device``), while CPU work, to which they are irrelevant, stays silent.
+    (``vbusd.decoders.warp._resolve_device``), while CPU work, to which they are irrelevant, stays silent.
     """
     global _warp_initialized
     if _warp_initialized:

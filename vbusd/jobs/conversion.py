@@ -6,7 +6,7 @@ The steps, each reported to an optional progress callback:
    an existing output is refused unless ``force`` is set.
 2. The converter that reads the source is picked by :mod:`vbusd.converters.registry` (UsdSkel, glTF
    or a plugin) and returns a :class:`~vbusd.format.model.SourceScene`.
-3. Each skinned animation is baked (:func:`vbusd.bake.bake`). ``encoding="auto"`` picks
+3. Each skinned animation is baked (:func:`vbusd.baking.baker.bake`). ``encoding="auto"`` picks
    crossMatrix when every bone transform is rigid and affineMatrix otherwise, and dualQuat when the
    source asks for dual-quaternion skinning; the report states the choice and why.
 4. Every bound mesh is decoded with the numpy reference decoder at the checked rows and compared
@@ -34,8 +34,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd import _threads
-from vbusd.bake import BakeOptions, bake
+from vbusd.process import threads as _threads
+from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.layout import Encoding, Padding, TexelFormat
@@ -96,7 +96,7 @@ class ConvertOptions:
         lod_ratios: Triangle ratios of generated levels of detail 1, 2, ... (strictly descending in
             (0, 1); format 1.2, spec "Levels of detail"), or empty for none. Needs meshoptimizer.
         lod_screen_sizes: Screen-size thresholds of those levels (one per ratio), or None for
-            :func:`vbusd.lod.default_screen_sizes`.
+            :func:`vbusd.baking.lod.default_screen_sizes`.
         masks: Format 1.2 bone masks for layers (spec "Layers and bone masks"): ``(name, bone)``
             pairs or ``"NAME=BONE"`` strings, each weighing ``bone`` and every bone below it.
     """
@@ -126,8 +126,8 @@ class ConvertOptions:
     def __post_init__(self) -> None:
         where = "convert"
         object.__setattr__(self, "masks", parse_masks(self.masks))
-        from vbusd.lod import check_screen_sizes, parse_ratios
-        from vbusd.rootmotion import check_mode
+        from vbusd.baking.lod import check_screen_sizes, parse_ratios
+        from vbusd.baking.rootmotion import check_mode
 
         ratios = self.lod_ratios
         if isinstance(ratios, str):
@@ -541,11 +541,11 @@ def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
 def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Float64 LBS with exact source matrices (n, B, 4, 4): the influence-reduction yardstick.
 
-    The reference skinning of :mod:`vbusd.decode.reference`, fed the source's matrices instead of decoded
+    The reference skinning of :mod:`vbusd.decoders.reference`, fed the source's matrices instead of decoded
     ones, with the weights normalized as the baker normalizes them.
     """
     from vbusd.format.encoding import BoneTransforms
-    from vbusd.decode.reference import skin
+    from vbusd.decoders.reference import skin
 
     linear = matrices[..., :3, :3]
     transforms = BoneTransforms(linear=linear, translation=matrices[..., :3, 3], normal=linear)
@@ -555,9 +555,9 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
 
 def _skin_checked(transforms, encoding: Encoding, bound, normal_points) -> tuple:
     """The reference decoder's skinning of a bound mesh; linear blend skinning of many points runs
-    compiled (:func:`vbusd.bake_kernels.skin_lbs`, the same sums in the same order)."""
-    from vbusd import bake_kernels
-    from vbusd.decode.reference import skin
+    compiled (:func:`vbusd.kernels.bake.skin_lbs`, the same sums in the same order)."""
+    from vbusd.kernels import bake as bake_kernels
+    from vbusd.decoders.reference import skin
 
     if encoding is not Encoding.DUAL_QUAT:
         indices, weights = np.asarray(bound.bone_indices), np.asarray(bound.bone_weights)
@@ -613,7 +613,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from vbusd.decode.reference import bone_transforms, normal_point_indices
+    from vbusd.decoders.reference import bone_transforms, normal_point_indices
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -644,7 +644,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                                                          normal_point_indices(bound))
                 if vb.root_motion is not None:
                     # Clips baked in place (spec "Root motion"): the root track gives back the source motion.
-                    from vbusd.rootmotion import at as root_at
+                    from vbusd.baking.rootmotion import at as root_at
 
                     moves = np.stack([root_at(vb.root_motion.tracks[clip_index], clip, t, vb.root_motion.up_axis)
                                       for t in tau])
@@ -698,16 +698,16 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
 
 
 LARGE_SOURCE_BYTES = 2 << 20
-"""A source file this large is likely to bake enough matrices for :mod:`vbusd.bake_kernels`."""
+"""A source file this large is likely to bake enough matrices for :mod:`vbusd.kernels.bake`."""
 
 
 def _prepare_for(source: Path) -> None:
     """Load everything the conversion and its helper threads will use, before any helper starts
-    (vbusd/_threads.py): the modules, USD's plugins and, for a large source, the compiled bake
+    (vbusd/process/threads.py): the modules, USD's plugins and, for a large source, the compiled bake
     kernels. A large crate source is probed meanwhile: the request goes to the probe server, whose
     child reads the file while this thread loads, and the answer is read after (no thread: the
     reader's own probe of the file is then a lookup)."""
-    from vbusd import _threads
+    from vbusd.process import threads as _threads
 
     try:
         large = source.stat().st_size >= LARGE_SOURCE_BYTES
@@ -823,7 +823,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             continue
         scene, vb, reason, extra = outcome
         if not any(m.lod for m in vb.meshes):
-            from vbusd.lod import levels_from_names
+            from vbusd.baking.lod import levels_from_names
 
             # Meshes named for their level (Body_LOD0, Body_LOD1: spec 20.3) are levels too.
             vb = levels_from_names(vb) or vb
@@ -836,12 +836,12 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             # A USD source's UsdLod root: the meshes already lie under its levels (spec 20.3).
             vb = dataclasses.replace(vb, lods=scene.animations[index].lods)
         elif source_levels:
-            from vbusd.lod import adopt_levels
+            from vbusd.baking.lod import adopt_levels
 
             # The source's own levels (spec 20.3), every one bound to the one texture.
             vb = adopt_levels(vb, scene.animations[index].lod_screen_sizes)
         elif options.lod_ratios:
-            from vbusd.lod import add_levels
+            from vbusd.baking.lod import add_levels
 
             # After the bake: every level shares the texture and its clip extents (spec 20.3).
             vb = add_levels(vb, options.lod_ratios, screen_sizes=options.lod_screen_sizes)
@@ -888,7 +888,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
 
     # The accuracy check runs while the textures are compressed and staged; the write waits for it
     # before its commit point, so a check that fails still leaves nothing written. Everything the
-    # check and the write use is loaded before the check's thread starts (vbusd/_threads.py).
+    # check and the write use is loaded before the check's thread starts (vbusd/process/threads.py).
     _threads.prepare("convert")
     pool = ThreadPoolExecutor(1, thread_name_prefix="vbusd-check")
     checking = pool.submit(check)
@@ -924,9 +924,3 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             used_texel_bytes=layout.used_texel_bytes, padding_fraction=layout.padding_fraction,
             meshes=meshes))
     return report
-
-
-# vbusd.convert(...) is this function whatever the import order (vbusd/_callable.py).
-from vbusd._callable import make_callable as _make_callable  # noqa: E402
-
-_make_callable(__name__, "vbusd.convert.convert")

@@ -60,7 +60,7 @@ class CrowdOptions:
         yaw: (min, max) degrees about the up axis, uniform.
         scale: (min, max) uniform scale.
         seed: Seed of every random choice.
-        force: Replace an existing output (as :class:`vbusd.convert.ConvertOptions`).
+        force: Replace an existing output (as :class:`vbusd.jobs.conversion.ConvertOptions`).
         allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
     """
 

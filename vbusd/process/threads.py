@@ -13,7 +13,7 @@ in eight). So, in vbusd:
    (numpy's temporary elision calls glibc's ``backtrace()``, which loads libgcc_s on first use).
 2. **Helpers never import.** A helper thread (every thread vbusd starts is named ``vbusd-*``)
    runs only code that is already loaded; code shared with helpers checks :func:`in_helper` and
-   takes its loaded-only path (e.g. :mod:`vbusd.bake_kernels` falls back to its numpy twins).
+   takes its loaded-only path (e.g. :mod:`vbusd.kernels.bake` falls back to its numpy twins).
 3. **Proven by tests.** tests/test_threads.py runs whole conversions under :class:`ImportGuard`
    (a ``sys.meta_path`` hook that records every module imported by a thread other than the one
    that entered it) and checks :func:`loaded_libraries` does not grow while helpers run;
@@ -39,7 +39,7 @@ _COMMON = ("json", "encodings.ascii", "encodings.latin_1", "hashlib", "zlib", "t
            "numpy", "numpy.linalg", "numpy.ma", "fcntl", "datetime", "secrets", "socket", "vbusd.format.layout", "vbusd.format.model", "vbusd.format.encoding",
            "vbusd.format.metadata", "vbusd.format.names", "vbusd.format.codes", "vbusd.format.diagnostics",
            "vbusd.format.declared", "vbusd.format.versioning", "vbusd.format.jsonform", "vbusd.io.files",
-           "vbusd.io.capture", "vbusd._cores", "vbusd.decode.reference", "vbusd.decode.bounds")
+           "vbusd.process.capture", "vbusd.kernels.cores", "vbusd.decoders.reference", "vbusd.decoders.bounds")
 
 _USD = ("pxr.Tf", "pxr.Plug", "pxr.Gf", "pxr.Vt", "pxr.Sdf", "pxr.Ar", "pxr.Usd", "pxr.UsdGeom", "pxr.UsdSkel",
         "pxr.UsdUtils", "vbusd.io.usd_plugin", "vbusd.io.usd_reader", "vbusd.io.usd", "vbusd.io.usd_probe")
@@ -47,14 +47,14 @@ _USD = ("pxr.Tf", "pxr.Plug", "pxr.Gf", "pxr.Vt", "pxr.Sdf", "pxr.Ar", "pxr.Usd"
 _TEXTURES = ("OpenEXR", "png", "zstandard", "vbusd.io.exr", "vbusd.io.png", "vbusd.io.ktx2", "vbusd.io.textures")
 
 JOBS = {
-    "convert": _COMMON + _USD + _TEXTURES + ("vbusd.bake", "vbusd.bake_kernels", "vbusd.convert",
+    "convert": _COMMON + _USD + _TEXTURES + ("vbusd.bake", "vbusd.kernels.bake", "vbusd.convert",
                                               "vbusd.converters.registry", "vbusd.converters.usdskel",
                                               "vbusd.converters.gltf", "vbusd.converters.gltf_accessors",
                                               "pygltflib", "jsonschema"),
-    "decode": _COMMON + _USD + _TEXTURES + ("vbusd.decode.pointcache", "jsonschema"),
+    "decode": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.pointcache", "jsonschema"),
     "export": _COMMON + _USD + _TEXTURES + ("vbusd.io.gltf_package", "pygltflib", "jsonschema"),
-    "crowd": _COMMON + _USD + _TEXTURES + ("vbusd.crowd", "jsonschema"),
-    "batch": _COMMON + _USD + _TEXTURES + ("vbusd.batch", "vbusd.bake", "vbusd.bake_kernels", "vbusd.convert",
+    "crowd": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.crowd", "jsonschema"),
+    "batch": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.batch", "vbusd.bake", "vbusd.kernels.bake", "vbusd.convert",
                                             "vbusd.converters.registry", "vbusd.converters.usdskel",
                                             "vbusd.converters.gltf", "vbusd.converters.gltf_accessors",
                                             "pygltflib", "jsonschema"),
@@ -90,7 +90,7 @@ def prepare(job: str, *, kernels: bool = False) -> None:
 
     Args:
         job: A key of :data:`JOBS` (``convert``, ``decode``, ``export``, ``crowd``, ``batch``).
-        kernels: Also compile or load :mod:`vbusd.bake_kernels`' warp kernels (and so import warp):
+        kernels: Also compile or load :mod:`vbusd.kernels.bake`' warp kernels (and so import warp):
             for work large enough to use them.
     """
     if in_helper():
@@ -105,7 +105,7 @@ def prepare(job: str, *, kernels: bool = False) -> None:
             if any(name.startswith("pxr.") for name in JOBS[job]):
                 _load_usd_plugins()
             if kernels:
-                from vbusd import bake_kernels
+                from vbusd.kernels import bake as bake_kernels
 
                 bake_kernels.available()
             _prepared.add(job)

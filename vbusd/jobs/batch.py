@@ -22,7 +22,7 @@ spec/batch.md. In short:
   (:func:`convert_one`) computes the key (its USD layers opened through the reader, crate probe
   first), reports the asset cached when the record matches after all (a reference that was missing
   and still is), or writes a *pending* record, converts through
-  :func:`vbusd.convert.convert` (whose :class:`vbusd.io.files.Commit` leaves no partial output when
+  :func:`vbusd.jobs.conversion.convert` (whose :class:`vbusd.io.files.Commit` leaves no partial output when
   killed), then the final record. One failing asset never stops the others.
 * **The report** (:class:`BatchReport`): per asset its status (``converted``, ``cached``,
   ``failed``), the one-line error and its code, the files and bytes written, the time and the
@@ -81,7 +81,7 @@ class BatchItem:
     Attributes:
         source: Source file.
         output: USD layer to write.
-        options: Per-asset :class:`vbusd.convert.ConvertOptions` values over the batch's own
+        options: Per-asset :class:`vbusd.jobs.conversion.ConvertOptions` values over the batch's own
             (field names, as a manifest gives them).
         origin: Where the item came from (``manifest.csv:3``), for error messages.
     """
@@ -174,7 +174,7 @@ class BatchReport:
 
 
 def _option_names() -> set:
-    from vbusd.convert import ConvertOptions
+    from vbusd.jobs.conversion import ConvertOptions
 
     return {f.name for f in fields(ConvertOptions)} - {"force"}
 
@@ -449,7 +449,7 @@ def cache_key(source, options) -> tuple:
 
     Args:
         source: Source file.
-        options: Its :class:`vbusd.convert.ConvertOptions` (``force`` does not count).
+        options: Its :class:`vbusd.jobs.conversion.ConvertOptions` (``force`` does not count).
     """
     files = dependencies(source)
     return _key_of(source, options, files), files
@@ -598,7 +598,8 @@ def convert_one(task: dict) -> dict:
     Returns:
         An :class:`AssetResult` as a dict (plain data, for any scheduler).
     """
-    from vbusd import _signals, _threads
+    from vbusd.process import signals as _signals
+    from vbusd.process import threads as _threads
 
     _threads.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
     try:
@@ -646,7 +647,7 @@ class _Heartbeat:
 
 
 def _convert_one(task: dict, beat: "_Heartbeat") -> dict:
-    from vbusd.convert import ConvertOptions, convert
+    from vbusd.jobs.conversion import ConvertOptions, convert
 
     started = time.perf_counter()
     source, output = Path(task["source"]), Path(task["output"])
@@ -735,8 +736,8 @@ def _keep_freed_memory() -> None:
 
 def _pool_initializer(parent: Optional[int] = None) -> None:
     """A pool worker's start: one core, its probe server, everything a conversion loads (in this,
-    the worker's main thread: vbusd/_threads.py), and an end that follows its parent's."""
-    from vbusd import _signals
+    the worker's main thread: vbusd/process/threads.py), and an end that follows its parent's."""
+    from vbusd.process import signals as _signals
 
     # A parent killed with SIGKILL must not leave workers behind: SIGTERM ends this one (as an
     # interrupt while it converts: its write aborts), whatever the parent could do.
@@ -748,7 +749,7 @@ def _pool_initializer(parent: Optional[int] = None) -> None:
     from vbusd.io.usd_probe import prestart
 
     prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
-    from vbusd import _threads
+    from vbusd.process import threads as _threads
 
     _threads.prepare("batch")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
@@ -788,7 +789,7 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
 
     Args:
         items: From :func:`plan_batch`.
-        base_options: The batch's :class:`vbusd.convert.ConvertOptions` fields (each item's own
+        base_options: The batch's :class:`vbusd.jobs.conversion.ConvertOptions` fields (each item's own
             options go over them).
         jobs: Local worker processes (default: the number of cores); 1 converts in this process.
         scheduler: ``tcp://HOST:PORT`` of a Dask scheduler: run there instead (needs
@@ -806,7 +807,7 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
     Raises:
         OptionsError: Bad batch options, or the scheduler cannot be reached (code ``batch.scheduler``).
     """
-    from vbusd.convert import ConvertOptions
+    from vbusd.jobs.conversion import ConvertOptions
 
     started = time.perf_counter()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
@@ -999,14 +1000,14 @@ def _worker_failure(task: dict, error) -> dict:
 def _prepare_worker() -> None:
     """What the ``vbusd-prepare`` Dask worker plugin runs in the worker's event-loop (main) thread."""
     _one_core()
-    from vbusd import _threads
+    from vbusd.process import threads as _threads
 
     _threads.prepare("batch")
 
 
 def _prepare_plugin():
     """A Dask worker plugin (``vbusd-prepare``): load what a conversion needs in the worker's own main
-    thread, its event loop, before any task thread converts (vbusd/_threads.py). Dask refuses plugins
+    thread, its event loop, before any task thread converts (vbusd/process/threads.py). Dask refuses plugins
     that are not ``WorkerPlugin`` subclasses, and this module does not import Dask: made here."""
     from distributed.diagnostics.plugin import WorkerPlugin
 

@@ -3,7 +3,7 @@
 :func:`generate` writes one self-contained module: texel fetches, unorm16 dequantization, clip
 looping or clamping, per-instance clip / time offset / playback rate, interpolation between rows,
 decoding and skinning of position and normal, exactly as spec/virtual-bones.md states and as
-:mod:`vbusd.decode.reference` computes. The interface is documented in spec/shaders.md.
+:mod:`vbusd.decoders.reference` computes. The interface is documented in spec/shaders.md.
 
 Both languages share one body: the GLSL spelling is the source, and the HLSL prologue maps its
 few type names and intrinsics onto HLSL with macros, so the two cannot drift apart. Both skin

@@ -1,6 +1,6 @@
 """Validation reports: findings filtered, ordered, counted and rendered as text or JSON.
 
-The JSON form follows schema/validation-report.schema.json (draft 2020-12) and carries the vbusd
+The JSON form follows vbusd/schema/validation-report.schema.json (draft 2020-12) and carries the vbusd
 version, counts per severity (of every finding that passed ``--only`` / ``--ignore``, including the
 ones cut by ``--max-issues``), and a ``truncated`` flag.
 """
@@ -68,7 +68,7 @@ class Report:
         return 1 if self.error_count else 0
 
     def to_json(self) -> dict:
-        """The report as a JSON-ready dict (schema/validation-report.schema.json)."""
+        """The report as a JSON-ready dict (vbusd/schema/validation-report.schema.json)."""
         return {
             "format": REPORT_FORMAT,
             "reportVersion": REPORT_VERSION,

@@ -19,8 +19,8 @@ stadium sample's 1,200 instances x 202 points x 513 samples make about 3 GB: dec
 Transforms: the meshes' ancestors (and the meshes) keep the local transforms they have in the
 asset (copied as one matrix op where authored), so world positions match the asset's.
 
-Decoding uses the numpy reference decoder (:mod:`vbusd.decode.reference`), or the warp decoder
-(:mod:`vbusd.decode.warp`) when a device is named and warp can be imported. Rows are decoded in
+Decoding uses the numpy reference decoder (:mod:`vbusd.decoders.reference`), or the warp decoder
+(:mod:`vbusd.decoders.warp`) when a device is named and warp can be imported. Rows are decoded in
 chunks so the temporary arrays stay small; the samples themselves live in the USD layer until it is
 written. The cache is written through :class:`vbusd.io.files.Commit`: under the output's lock,
 staged beside the target and renamed; a failure or a kill never leaves a partial cache in its
@@ -36,7 +36,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.convert import check_output_path
+from vbusd.jobs.conversion import check_output_path
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
@@ -80,14 +80,14 @@ class DecodeReport:
 
 def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, Callable, str]:
     """(skin_mesh, skin_crowd, name): warp on ``device``, else the numpy reference decoder."""
-    from vbusd.decode import reference
+    from vbusd.decoders import reference
 
     if device is None:
         return reference.skin_mesh, reference.skin_crowd, "numpy reference"
     if device not in DEVICES and not str(device).startswith("cuda:"):
         raise OptionsError(f"device must be cpu or cuda (or cuda:N), got {device!r}", file="decode")
     try:
-        from vbusd.decode import warp as warp_decoder
+        from vbusd.decoders import warp as warp_decoder
     except ImportError as error:
         warnings.append(f"warp is not available ({error}); decoding with the numpy reference decoder")
         return reference.skin_mesh, reference.skin_crowd, "numpy reference"

@@ -13,7 +13,7 @@ simulation can call it every frame::
     for t in frame_times:
         decoder.skin_crowd(crowd_on_device, t, out=out)   # out.points, out.normals: wp.array
 
-:func:`skin_mesh` and :func:`skin_crowd` have the call shape of :mod:`vbusd.decode.reference`'s functions
+:func:`skin_mesh` and :func:`skin_crowd` have the call shape of :mod:`vbusd.decoders.reference`'s functions
 of the same names (plus ``device=``) and return numpy arrays; ``vbusd decode --device`` uses them.
 
 Texel upload (exact path): the texture is uploaded once as float32 channel values, dequantized on
@@ -24,7 +24,7 @@ the doubled texel size costs no measurable time. The hardware path (``sampling="
 instead uploads the texels in their stored format into a ``wp.Texture2D`` and lets the texture unit
 filter between rows, as a vertex shader would; spec/hardware-sampling.md measures the difference.
 
-Kernels and their numpy twins: :mod:`vbusd.decode.warp_kernels`.
+Kernels and their numpy twins: :mod:`vbusd.decoders.warp_kernels`.
 """
 
 from __future__ import annotations
@@ -37,12 +37,12 @@ import numpy as np
 
 import warp as wp
 
-from vbusd.decode import warp_kernels as K
+from vbusd.decoders import warp_kernels as K
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
-from vbusd.decode.reference import channel_values, normal_point_indices
-from vbusd._warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
+from vbusd.decoders.reference import channel_values, normal_point_indices
+from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
 
 __all__ = ["quiet_warp", "SAMPLING_MODES", "available_devices", "SkinResult", "DeviceCrowd",
            "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd"]
@@ -696,7 +696,7 @@ def skin_mesh(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, *, device
               sampling: str = "exact") -> tuple:
     """Skinned points (n, V, 3) and normals of a bound mesh at clip-local times, on ``device``.
 
-    Same call shape and meaning as ``vbusd.decode.reference.skin_mesh``, plus ``device=``; float32 results.
+    Same call shape and meaning as ``vbusd.decoders.reference.skin_mesh``, plus ``device=``; float32 results.
     Consecutive calls for the same ``vb`` and ``mesh`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin(clip_index, tau).numpy()
@@ -718,7 +718,7 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, dev
                sampling: str = "exact") -> tuple:
     """World-space points (N, V, 3) and normals of every instance at scene time ``t``, on ``device``.
 
-    Same call shape and meaning as ``vbusd.decode.reference.skin_crowd``, plus ``device=``; float32 results.
+    Same call shape and meaning as ``vbusd.decoders.reference.skin_crowd``, plus ``device=``; float32 results.
     Consecutive calls for the same ``vb``, ``mesh`` and ``crowd`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin_crowd(crowd, t).numpy()

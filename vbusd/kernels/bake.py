@@ -22,11 +22,11 @@ Each wrapper returns None when its kernel should not run: the work is small (und
 :data:`MIN_ITEMS`, where importing warp would cost more than it saves) or warp's CPU backend is not
 available; the caller then runs the numpy twin, which gives the same result to rounding
 (tests/test_bake_kernels.py compares every pair). Work is split over the usable cores
-(``$VBUSD_THREADS``, :mod:`vbusd._cores`): warp releases Python's lock while a CPU kernel runs, so
+(``$VBUSD_THREADS``, :mod:`vbusd.kernels.cores`): warp releases Python's lock while a CPU kernel runs, so
 one launch per thread runs in parallel.
 
 Warp compiles this module once per machine and warp version into its kernel cache (a few
-seconds; ``python -m vbusd.bake_kernels`` does it ahead of time); later processes load it in
+seconds; ``python -m vbusd.kernels.bake`` does it ahead of time); later processes load it in
 milliseconds.
 """
 
@@ -56,7 +56,7 @@ _pool_lock = threading.Lock()  # the threads of split_work
 def _kernels():
     """The compiled kernels (a namespace), or None where warp's CPU backend cannot run them.
 
-    A helper thread never loads them (no import off the main thread: vbusd/_threads.py): there,
+    A helper thread never loads them (no import off the main thread: vbusd/process/threads.py): there,
     kernels that the job did not load beforehand are None, and the numpy twin runs.
     """
     if "kernels" in _state:
@@ -67,13 +67,13 @@ def _kernels():
         if "kernels" not in _state:
             _state["kernels"] = None
             try:
-                from vbusd._warp_setup import _init_warp, quiet_warp
+                from vbusd.kernels.warp_setup import _init_warp, quiet_warp
 
                 _init_warp()
                 import warp as wp
 
                 if wp.is_cpu_available():
-                    from vbusd import _bake_kernels_wp as compiled
+                    from vbusd.kernels import bake_wp as compiled
 
                     with quiet_warp():
                         wp.load_module(compiled, device="cpu")
@@ -94,7 +94,7 @@ def _wanted(items: int):
 
 
 def _workers() -> int:
-    from vbusd._cores import usable_cores
+    from vbusd.kernels.cores import usable_cores
 
     return usable_cores()
 
@@ -356,14 +356,14 @@ def skin_lbs(linear: np.ndarray, translation: np.ndarray, normal: np.ndarray, po
 
 
 def _main() -> int:
-    """Compile the kernels into warp's cache now (``python -m vbusd.bake_kernels``)."""
+    """Compile the kernels into warp's cache now (``python -m vbusd.kernels.bake``)."""
     import sys
 
     if not available():
         why = _state.get("why", "warp's CPU backend is not available")
-        print(f"vbusd.bake_kernels: the kernels cannot run here ({why}); conversions use numpy", file=sys.stderr)
+        print(f"vbusd.kernels.bake: the kernels cannot run here ({why}); conversions use numpy", file=sys.stderr)
         return 1
-    print("vbusd.bake_kernels: the kernels are in warp's kernel cache", file=sys.stderr)
+    print("vbusd.kernels.bake: the kernels are in warp's kernel cache", file=sys.stderr)
     return 0
 
 

@@ -1,8 +1,8 @@
-"""Warp kernels of the Virtual Bones decoder: the device twins of :mod:`vbusd.decode.reference`.
+"""Warp kernels of the Virtual Bones decoder: the device twins of :mod:`vbusd.decoders.reference`.
 
-Every kernel here runs unchanged on ``"cpu"`` and ``"cuda"`` devices; :mod:`vbusd.decode.warp`
+Every kernel here runs unchanged on ``"cpu"`` and ``"cuda"`` devices; :mod:`vbusd.decoders.warp`
 uploads the data and launches them with ``device=`` passed explicitly. Each kernel has a numpy twin
-in :mod:`vbusd.decode.reference` and follows the spec's math (docs/architecture.md, "Encoding math"):
+in :mod:`vbusd.decoders.reference` and follows the spec's math (docs/architecture.md, "Encoding math"):
 
 =================================  ==========================================================
 kernel / function                  numpy twin

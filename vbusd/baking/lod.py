@@ -142,7 +142,7 @@ def simplify_mesh(mesh: BoundMesh, ratio: float, max_influences: int, path: str,
     Returns:
         The simplified mesh (triangles only, vertex normals when the source had normals).
     """
-    from vbusd.bake import reduce_influences
+    from vbusd.baking.baker import reduce_influences
 
     meshopt = _meshoptimizer()
     triangles, _ = _triangles(mesh)

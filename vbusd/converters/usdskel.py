@@ -581,7 +581,7 @@ class AllFramesSkinning:
     scales at every time code (the samples the reader's checks already read when the codes are the
     authored ones; else ``Usd.AttributeQuery.Get``: USD's own interpolation between samples, slerp
     for quaternions) and does the same arithmetic for all frames together, in numpy, or for many
-    frames in its compiled twin (:func:`vbusd.bake_kernels.skinning_transforms`):
+    frames in its compiled twin (:func:`vbusd.kernels.bake.skinning_transforms`):
 
     * local ``L = S * R(q) * T`` (row-vector), with ``R(q)`` and the scale product in float32 as
       ``UsdSkelMakeTransform`` computes them, then in float64;
@@ -743,7 +743,7 @@ class AllFramesSkinning:
         if self._queries is not None and animated is None:
             return None
         if animated is not None and (world is None or np.asarray(world).ndim == 2):
-            from vbusd import bake_kernels
+            from vbusd.kernels import bake as bake_kernels
 
             anim_joint = np.full(joint_count, -1, dtype=np.int64)
             used = self._anim_to_skel >= 0

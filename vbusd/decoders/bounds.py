@@ -93,8 +93,8 @@ def _box_images(transforms, rest) -> tuple:
 
 def _box_bounds_at(vb: VirtualBones, index: int, times: np.ndarray, values, rest, chunk: int):
     """``(low, high, curvature)`` of the bones' boxes at ``times``, in chunks (numpy twin of
-    :func:`vbusd.bake_kernels.bone_box_bounds`)."""
-    from vbusd.decode.reference import decode_bones, interpolated_values
+    :func:`vbusd.kernels.bake.bone_box_bounds`)."""
+    from vbusd.decoders.reference import decode_bones, interpolated_values
 
     low, high = np.full(3, np.inf), np.full(3, -np.inf)
     curvature = np.zeros(3)
@@ -123,8 +123,8 @@ def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, valu
     factor, which widens the box by ``e`` times its distance from the origin. The cost is bones x
     times, not vertices x times.
     """
-    from vbusd import bake_kernels
-    from vbusd.decode.reference import decode_bones, interpolated_values, row_position
+    from vbusd.kernels import bake as bake_kernels
+    from vbusd.decoders.reference import decode_bones, interpolated_values, row_position
 
     encoding = vb.layout.encoding
     i0, i1, f = row_position(clip, times)
@@ -158,7 +158,7 @@ def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> 
     Returns:
         Boxes in animation space; a clip of an animation without bound meshes gets zeros.
     """
-    from vbusd.decode.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
+    from vbusd.decoders.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
 
     values = functools.cache(lambda: channel_values(vb))  # the whole texture in float64, when needed
     substeps = SUBSTEPS[vb.layout.encoding.value] if substeps is None else int(substeps)

@@ -288,7 +288,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     # Masks are resolved before any pose is sampled: a misspelt bone fails at once.
     parents, masks = bone_masks(animation, options.masks) if options.masks else (None, ())
     trackers = None
-    from vbusd.rootmotion import RootMotion, check_mode, in_place_clip
+    from vbusd.baking.rootmotion import RootMotion, check_mode, in_place_clip
 
     mode = check_mode(options.root_motion)
     if mode != "keep":
@@ -367,7 +367,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13): they bound
         # what every decoder computes, quantization included.
-        from vbusd.decode.bounds import clip_extents
+        from vbusd.decoders.bounds import clip_extents
 
         baked = dataclasses.replace(baked, clip_extents=clip_extents(baked).astype(np.float32))
     return baked
@@ -419,9 +419,3 @@ def bone_masks(animation: SkinnedAnimation, requests) -> tuple:
         weights.setflags(write=False)
         masks.append((str(name), weights))
     return parents, tuple(masks)
-
-
-# vbusd.bake(...) is this function whatever the import order (vbusd/_callable.py).
-from vbusd._callable import make_callable as _make_callable  # noqa: E402
-
-_make_callable(__name__, "vbusd.bake.bake")

@@ -1,0 +1,1 @@
+"""Process plumbing: helper threads, signals and captured native output."""
