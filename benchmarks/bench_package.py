@@ -32,6 +32,8 @@ suite.
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import argparse
 import json
 import os
@@ -224,7 +226,7 @@ def measure(label: str, crowd_layer: Path, folder: Path, cache: dict, *, usda: b
     from vbusd.io import ktx2
     from vbusd.format import metadata as md
 
-    row["vbTextureKtx2"] = len(ktx2.ktx2_bytes(vb.texels, md.dumps(md.to_dict(vb))))
+    row["vbTextureKtx2"] = len(ktx2.ktx2_bytes(vb.texels, md.dumps(md.to_dict(vb, generator=GENERATOR))))
     return row
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 def make_texels(size: int, seed: int = 1):
     """A (size, size, 4) float16 crossMatrix texture of random rotations, and its layout."""
-    from vbusd.format.encoding import quat_to_matrix
+    from vbusd.format.quaternion import quat_to_matrix
     from vbusd.format.layout import Layout
 
     bones = size // 3

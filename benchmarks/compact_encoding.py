@@ -95,7 +95,7 @@ def _rows(animation, options):
 
 
 def _rigid(matrices: np.ndarray):
-    from vbusd.format.encoding import matrix_to_quat
+    from vbusd.format.quaternion import matrix_to_quat
 
     u, _, vt = np.linalg.svd(matrices[..., :3, :3])
     rot = u @ vt
@@ -115,7 +115,7 @@ def measure(animation, options, bits, mode: str) -> dict:
     """Largest errors (metres and of the diagonal) of one animation under one candidate."""
     from vbusd.format.compact import (CompactBits, blend_compact, choose_dropped, compact_ranges,
                                       decode_compact_fields, encode_compact)
-    from vbusd.format.encoding import quat_to_matrix
+    from vbusd.format.quaternion import quat_to_matrix
 
     cb = CompactBits(*bits)
     per_clip = _rows(animation, options)
@@ -166,7 +166,7 @@ def measure(animation, options, bits, mode: str) -> dict:
 def _exact_blend_error(animation, options) -> dict:
     """Mid-row error of the row blend itself on exact (unquantized) rows: what interpolation costs."""
     from vbusd.format.compact import blend_compact
-    from vbusd.format.encoding import quat_to_matrix
+    from vbusd.format.quaternion import quat_to_matrix
 
     worst = {"mid_m": 0.0, "mid_diag": 0.0}
     for clip, plan, matrices in _rows(animation, options):

@@ -19,6 +19,7 @@ import pytest
 
 import vbusd  # noqa: F401  (registers the schema before pxr builds its registry)
 from vbusd.kernels import bake as bake_kernels
+from vbusd.process import parallel
 from vbusd.format import encoding as enc
 
 pytestmark = pytest.mark.skipif(not bake_kernels.available(),
@@ -50,9 +51,9 @@ def _matrices(linear: np.ndarray, seed: int = 6) -> np.ndarray:
 def test_polar_rotation_equals_the_numpy_iteration(monkeypatch):
     linear = _near_rotations(3000, 2e-5).reshape(30, 100, 3, 3)
     _force(monkeypatch, True)
-    compiled = enc._near_rotation_polar(linear, 1e-3)
+    compiled = enc._near_rotation_polar(linear, 1e-3, bake_kernels)
     _force(monkeypatch, False)
-    reference = enc._near_rotation_polar(linear, 1e-3)
+    reference = enc._near_rotation_polar(linear, 1e-3, bake_kernels)
     assert compiled.rotation.shape == reference.rotation.shape == linear.shape
     assert np.abs(compiled.rotation - reference.rotation).max() <= 1e-14
     assert np.abs(compiled.det - reference.det).max() <= 1e-14
@@ -69,17 +70,17 @@ def test_polar_refuses_what_numpy_refuses(monkeypatch, case):
     else:
         linear[77] *= -1.0
     _force(monkeypatch, True)
-    assert enc._near_rotation_polar(linear, 1e-3) is None
+    assert enc._near_rotation_polar(linear, 1e-3, bake_kernels) is None
     _force(monkeypatch, False)
-    assert enc._near_rotation_polar(linear, 1e-3) is None
+    assert enc._near_rotation_polar(linear, 1e-3, bake_kernels) is None
 
 
 def test_cross_matrix_encoding_equals_numpy_and_falls_back_on_bad_matrices(monkeypatch):
     matrices = _matrices(_near_rotations(4000, 2e-5))
     _force(monkeypatch, True)
-    compiled = enc.encode_bones(matrices, "crossMatrix")
+    compiled = enc.encode_bones(matrices, "crossMatrix", compiled=bake_kernels)
     _force(monkeypatch, False)
-    reference = enc.encode_bones(matrices, "crossMatrix")
+    reference = enc.encode_bones(matrices, "crossMatrix", compiled=bake_kernels)
     assert compiled.shape == reference.shape == (4000, 3, 4)
     assert np.abs(compiled - reference).max() <= 1e-14
     # A non-finite translation or a non-rigid matrix: the kernel declines, numpy answers and reports
@@ -90,7 +91,7 @@ def test_cross_matrix_encoding_equals_numpy_and_falls_back_on_bad_matrices(monke
     assert bake_kernels.encode_cross_matrix(matrices, 1e-3) is None
     _force(monkeypatch, True)
     with pytest.raises(enc.NonRigidError) as raised:
-        enc.encode_bones(matrices, "crossMatrix")
+        enc.encode_bones(matrices, "crossMatrix", compiled=bake_kernels)
     assert raised.value.index == (20,)
 
 
@@ -192,13 +193,13 @@ def test_a_whole_conversion_is_the_same_either_way_and_matches_usdskel(monkeypat
 
 
 def test_work_is_split_into_disjoint_slices_that_cover_it(monkeypatch):
-    monkeypatch.setattr(bake_kernels, "_workers", lambda: 3)
+    monkeypatch.setattr(parallel, "_workers", lambda: 3)
     seen = np.zeros(10_000, dtype=np.int64)
 
     def mark(start, stop):
         seen[start:stop] += 1
 
-    bake_kernels.split_work(10_000, mark)
+    parallel.split_work(10_000, mark)
     assert (seen == 1).all()
     bake_kernels.split_work(0, mark)
     assert (seen == 1).all()

@@ -7,6 +7,8 @@ matrices written here. Packing is checked against words computed by hand from sp
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import importlib.util
 import sys
 from pathlib import Path
@@ -117,7 +119,7 @@ def test_metadata_is_version_1_2_and_a_1_1_reader_refuses_it_by_encoding():
     from vbusd.format.versioning import upgrade
 
     vb = _generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32")
-    d = metadata.to_dict(vb)
+    d = metadata.to_dict(vb, generator=GENERATOR)
     assert (d["formatVersion"], d["formatMinorVersion"]) == (1, 2)
     assert np.array_equal(np.array(d["compactRanges"]), vb.unorm_ranges)
     diagnostics = Diagnostics(file="cheer.json")
@@ -135,20 +137,20 @@ def test_a_1_1_document_reads_unchanged():
     from vbusd.format.versioning import upgrade
 
     vb = _generator().bake_reference(encoding="quatTranslation", texel_format="unorm16")
-    d = {**metadata.to_dict(vb), "formatMinorVersion": 1}
+    d = {**metadata.to_dict(vb, generator=GENERATOR), "formatMinorVersion": 1}
     upgraded = upgrade(d)
     assert {k: v for k, v in upgraded.items() if k != "formatMinorVersion"} == \
         {k: v for k, v in d.items() if k != "formatMinorVersion"}
     info = metadata.check_document(upgraded, Diagnostics(file="x.json"))
     assert info.layout == vb.layout and np.array_equal(info.unorm_ranges, vb.unorm_ranges)
-    assert metadata.to_dict(vb).get("formatMinorVersion", 0) == 0  # still written as 1.0
+    assert metadata.to_dict(vb, generator=GENERATOR).get("formatMinorVersion", 0) == 0  # still written as 1.0
 
 
 def test_schema_refuses_compact_without_ranges_or_with_another_texel_format():
     from vbusd.format import metadata
     from vbusd.format.diagnostics import Diagnostics
 
-    d = metadata.to_dict(_generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32"))
+    d = metadata.to_dict(_generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32"), generator=GENERATOR)
     for broken in ({k: v for k, v in d.items() if k != "compactRanges"}, {**d, "texelFormat": "float16"},
                    {**d, "formatMinorVersion": 1}):
         diagnostics = Diagnostics(file="x.json")

@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import json
 import sys
 from pathlib import Path
@@ -236,7 +238,7 @@ def test_an_asset_without_masks_is_written_as_before(fox, tmp_path):
     vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))
     from vbusd.format.metadata import to_dict
 
-    meta = to_dict(vb)
+    meta = to_dict(vb, generator=GENERATOR)
     assert meta["formatMinorVersion"] == 1 and "boneParents" not in meta and "masks" not in meta
 
 

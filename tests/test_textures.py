@@ -9,6 +9,8 @@ vbusd. Expected digests come from hashlib.
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import hashlib
 import json
 import struct
@@ -278,7 +280,7 @@ def test_exr_header_attribute_and_pixel_types_read_independently(tmp_path):
 def test_exr_written_by_hand_is_read(tmp_path):
     vb = make_vb("quatTranslation", "float32", bones=4, rows=6)
     path = tmp_path / "hand.exr"
-    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb))})
+    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))})
     data = textures.read_texture(path)
     assert data.texels.tobytes() == vb.texels.tobytes() and data.compression == "none"
 
@@ -307,7 +309,7 @@ def test_png_chunks_parsed_independently(tmp_path):
 
 def test_png_built_by_hand_is_read_and_compressed_itxt_accepted(tmp_path):
     vb = make_vb("dualQuat", "unorm16", bones=3, rows=5)
-    text = json.dumps(md.to_dict(vb))
+    text = json.dumps(md.to_dict(vb, generator=GENERATOR))
     compressed = b"vbusd.layout\0\x01\0\0\0" + zlib.compress(text.encode())
     for body in (itxt("vbusd.layout", text), compressed):
         path = tmp_path / "hand.png"
@@ -481,7 +483,7 @@ def test_max_dimension_is_configurable(exr_file):
 def test_exr_channel_set_must_be_exactly_rgba(tmp_path, names):
     vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
     path = tmp_path / "c.exr"
-    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb))},
+    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))},
                            channel_names=names)
     error = read_error(path)
     assert error.location == "header/channels" and error.code == "texture.channels"
@@ -491,7 +493,7 @@ def test_exr_pixel_type_must_match_texel_format(tmp_path):
     vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
     path = tmp_path / "t.exr"
     as_float = vb.texels.astype("<f4")
-    write_uncompressed_exr(path, as_float, {"vbusd.layout": md.dumps(md.to_dict(vb))})
+    write_uncompressed_exr(path, as_float, {"vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))})
     error = read_error(path)
     assert error.location == "header/channels" and "float16" in error.message
 
@@ -502,7 +504,7 @@ def test_lossy_exr_compression_flagged_on_read(tmp_path, code, name):
     vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
     path = tmp_path / "l.exr"
     # Header says lossy: the reader must refuse before touching pixel data.
-    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb))},
+    write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))},
                            compression=code)
     error = read_error(path)
     assert error.location == "header/compression" and name in error.message
@@ -513,7 +515,7 @@ def test_lossy_exr_written_by_openexr_is_refused(tmp_path):
     vb = make_vb("crossMatrix", "float16", bones=2, rows=3)
     path = tmp_path / "p.exr"
     header = {"compression": OpenEXR.PXR24_COMPRESSION, "type": OpenEXR.scanlineimage,
-              "vbusd.layout": md.dumps(md.to_dict(vb))}
+              "vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))}
     channels = {c: np.ascontiguousarray(vb.texels[..., i]) for i, c in enumerate("RGBA")}
     with OpenEXR.File(header, channels) as exr:
         exr.write(str(path))
@@ -539,12 +541,12 @@ def test_broken_and_disagreeing_embedded_metadata(tmp_path):
     error = read_error(path)
     assert error.location.startswith("header/vbusd.layout line 1 column")
     # Metadata for 18 bones (64 columns) on an 8-column image.
-    other = md.to_dict(make_vb("crossMatrix", "float16", bones=18, rows=3))
+    other = md.to_dict(make_vb("crossMatrix", "float16", bones=18, rows=3), generator=GENERATOR)
     write_uncompressed_exr(path, vb.texels, {"vbusd.layout": md.dumps(other)})
     error = read_error(path)
     assert error.location == "header/dataWindow" and "64x3" in error.message
     # Newer format version.
-    newer = dict(md.to_dict(vb), formatVersion=2)
+    newer = dict(md.to_dict(vb, generator=GENERATOR), formatVersion=2)
     write_uncompressed_exr(path, vb.texels, {"vbusd.layout": json.dumps(newer)})
     with pytest.raises(VersionError) as caught:
         textures.read_texture(path)
@@ -566,11 +568,11 @@ def test_png_must_be_16_bit_rgba(tmp_path):
 def test_unorm16_in_exr_and_float_in_png_are_refused(tmp_path):
     vb = make_vb("crossMatrix", "unorm16", bones=2, rows=3)
     path = tmp_path / "u.exr"
-    write_uncompressed_exr(path, vb.texels.view("<f2"), {"vbusd.layout": md.dumps(md.to_dict(vb))})
+    write_uncompressed_exr(path, vb.texels.view("<f2"), {"vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))})
     assert read_error(path).location == "header/vbusd.layout/texelFormat"
     fvb = make_vb("crossMatrix", "float16", bones=2, rows=3)
     png = tmp_path / "f.png"
-    png.write_bytes(build_png(fvb.texels.view("<u2"), [(b"iTXt", itxt("vbusd.layout", md.dumps(md.to_dict(fvb))))]))
+    png.write_bytes(build_png(fvb.texels.view("<u2"), [(b"iTXt", itxt("vbusd.layout", md.dumps(md.to_dict(fvb, generator=GENERATOR))))]))
     assert read_error(png).location == "iTXt vbusd.layout/texelFormat"
 
 
@@ -669,7 +671,7 @@ def test_colour_management_chunks_are_reported_and_ignored(tmp_path):
     vb = make_vb("dualQuat", "unorm16", bones=3, rows=5)
     path = tmp_path / "g.png"
     gama = (b"gAMA", struct.pack(">I", 45455))
-    path.write_bytes(build_png(vb.texels, [gama, (b"iTXt", itxt("vbusd.layout", md.dumps(md.to_dict(vb))))]))
+    path.write_bytes(build_png(vb.texels, [gama, (b"iTXt", itxt("vbusd.layout", md.dumps(md.to_dict(vb, generator=GENERATOR))))]))
     data = textures.read_texture(path)
     assert np.array_equal(data.texels, vb.texels)  # samples exactly as stored, no gamma applied
     assert len(data.warnings) == 1 and data.warnings[0].startswith("gAMA chunk present")
@@ -685,7 +687,7 @@ def test_exr_display_window_must_equal_data_window(exr_file):
 
 def test_two_metadata_chunks_are_refused(tmp_path):
     vb = make_vb("dualQuat", "unorm16", bones=3, rows=5)
-    body = itxt("vbusd.layout", md.dumps(md.to_dict(vb)))
+    body = itxt("vbusd.layout", md.dumps(md.to_dict(vb, generator=GENERATOR)))
     path = tmp_path / "twice.png"
     path.write_bytes(build_png(vb.texels, [(b"iTXt", body), (b"iTXt", body)]))
     error = read_error(path)
@@ -696,7 +698,7 @@ def test_decreasing_line_order_still_maps_scanline_y_to_row_y(tmp_path):
     vb = make_vb("crossMatrix", "float16", bones=4, rows=40)
     path = tmp_path / "dec.exr"
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              "lineOrder": OpenEXR.DECREASING_Y, "vbusd.layout": md.dumps(md.to_dict(vb))}
+              "lineOrder": OpenEXR.DECREASING_Y, "vbusd.layout": md.dumps(md.to_dict(vb, generator=GENERATOR))}
     channels = {c: np.ascontiguousarray(vb.texels[..., i]) for i, c in enumerate("RGBA")}
     with OpenEXR.File(header, channels) as exr:
         exr.write(str(path))

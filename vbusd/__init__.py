@@ -25,12 +25,7 @@ import importlib
 from typing import TYPE_CHECKING
 
 
-try:
-    from importlib.metadata import version as _dist_version
-
-    __version__ = _dist_version("vbusd")
-except Exception:  # pragma: no cover - running from a source tree without installing
-    __version__ = "1.0.0.dev0"
+from vbusd.io.generator import VERSION as __version__
 
 # name -> module that defines it; imported on first attribute access (PEP 562).
 _EXPORTS = {

@@ -17,6 +17,8 @@ numbers, floats within :data:`CHECK_TOLERANCE`, not as text.
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import argparse
 import json
 import math
@@ -157,7 +159,7 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
         "formatMinorVersion": 2 if texel_format == "uint32" else 1,
         "description": f"4 bones, {encoding}, {texel_format}: a looping clip (8 rows) and a clamped clip (5 rows) "
                        "at 4 rows/s, 8 vertices with 4 influences, 8 instances with crossfades, 3 scene times",
-        "layout": md.to_dict(vb),
+        "layout": md.to_dict(vb, generator=GENERATOR),
         "texture": texture,
         "texels": texels,
         "bindTransforms": vb.bind_transforms.tolist(),

@@ -20,6 +20,7 @@ from vbusd.format.encoding import (Float16OverflowError, NonRigidError, affine_s
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
+from vbusd.kernels import bake as bake_kernels
 
 __all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "bone_masks", "RowPlan", "decide_loop", "plan_rows",
            "reduce_influences", "bind_mesh", "bake"]
@@ -288,7 +289,8 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     # Masks are resolved before any pose is sampled: a misspelt bone fails at once.
     parents, masks = bone_masks(animation, options.masks) if options.masks else (None, ())
     trackers = None
-    from vbusd.baking.rootmotion import RootMotion, check_mode, in_place_clip
+    from vbusd.baking.rootmotion import in_place_clip
+    from vbusd.format.rootmotion import RootMotion, check_mode
 
     mode = check_mode(options.root_motion)
     if mode != "keep":
@@ -329,7 +331,7 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
                              f"{times[row]:.6g} s of clip '{clip.name}'", file=animation.source,
                              location=animation.path, code="animation.nonFinite")
         try:
-            encoded = encode_bones(matrices, options.encoding, tolerance=options.rigid_tolerance)
+            encoded = encode_bones(matrices, options.encoding, tolerance=options.rigid_tolerance, compiled=bake_kernels)
         except NonRigidError as error:
             raise _locate_non_rigid(error, animation, clip, times) from None
         values.append(make_hemispheres_continuous(encoded, options.encoding))

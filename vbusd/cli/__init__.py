@@ -16,6 +16,7 @@ import click
 
 from vbusd.format.errors import VbusdError
 
+from vbusd.io.generator import VERSION
 __all__ = ["COMMANDS", "BUG_REPORT_HINT", "INTERNAL_ERROR_STATUS", "cli", "main", "internal_error_line"]
 
 COMMANDS = {
@@ -94,9 +95,7 @@ def internal_error_line(error: BaseException, command: Optional[str], source: Op
 
 
 def _version() -> str:
-    from vbusd import __version__
-
-    return __version__
+    return VERSION
 
 
 @click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

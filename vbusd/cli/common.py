@@ -20,10 +20,17 @@ from typing import Optional
 import click
 
 from vbusd.format.jsonform import json_text
+from vbusd.format.layout import Encoding, default_texel_format
 
-__all__ = ["TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
+__all__ = ["DEFAULT_TEXEL_FORMATS", "TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
            "format_option", "force_option", "warn", "echo_json", "console", "table", "command_line_spelling",
            "human_bytes"]
+
+DEFAULT_TEXEL_FORMATS = "; ".join(
+    [default_texel_format(Encoding.CROSS_MATRIX).value]
+    + [f"{default_texel_format(e).value} with {e.value}" for e in Encoding
+       if default_texel_format(e) is not default_texel_format(Encoding.CROSS_MATRIX)])
+"""The help's default of --texel-format, from the format's own rule (float16; uint32 with compactQuatTranslation)."""
 
 TEXT_WIDTH = None
 """Columns of the text output when stdout is not a terminal (a pipe, a file, a CI log): None, no

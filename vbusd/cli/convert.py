@@ -18,9 +18,9 @@ from pathlib import Path
 
 import click
 
-from vbusd.cli.common import (command_line_spelling, console, echo_json, force_option, format_option, human_bytes,
+from vbusd.cli.common import (DEFAULT_TEXEL_FORMATS, command_line_spelling, console, echo_json, force_option, format_option, human_bytes,
                               progress_bar, quiet_option, terminate_as_interrupt, warn)
-from vbusd.format.layout import Encoding, Padding, TexelFormat
+from vbusd.format.layout import Encoding, Padding, TexelFormat, default_texel_format
 
 __all__ = ["command", "print_summary"]
 
@@ -49,7 +49,7 @@ def _check_rows(value: str):
               help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
                    "dualQuat when the source asks for dual-quaternion skinning. compactQuatTranslation (format "
                    "1.2): one 12-byte uint32 texel per bone and row, rigid bones only.")
-@click.option("--texel-format", default=None, show_default="float16; uint32 with compactQuatTranslation",
+@click.option("--texel-format", default=None, show_default=DEFAULT_TEXEL_FORMATS,
               type=click.Choice([e.value for e in TexelFormat]),
               help="Texel storage: float16 (the talk's half floats, 11 significant bits), float32 (24 "
                    "significant bits, twice the bytes), unorm16 (16-bit integers with per-channel ranges in the "
@@ -143,8 +143,10 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     except click.BadParameter as error:
         error.param_hint = "'--check-rows'"
         raise
-    if texel_format is None:  # the compact encoding has one texel format (spec 5.6)
-        texel_format = (TexelFormat.UINT32 if encoding == "compactQuatTranslation" else TexelFormat.FLOAT16).value
+    if texel_format is None and encoding != "auto":
+        texel_format = default_texel_format(encoding).value
+    elif texel_format is None:
+        texel_format = default_texel_format(Encoding.CROSS_MATRIX).value
     values = dict(
         encoding=encoding, texel_format=texel_format, rows_per_second=rows_per_second,
         horizontal_padding=horizontal_padding, vertical_padding=vertical_padding, max_influences=max_influences,

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import click
 
-from vbusd.cli.common import echo_json, force_option, format_option, quiet_option
+from vbusd.cli.common import DEFAULT_TEXEL_FORMATS, echo_json, force_option, format_option, quiet_option
 from vbusd.format.errors import FORCE_HINT, OptionsError, VbusdError
 from vbusd.io.files import Commit, make_folders, remove_folders, write_error
-from vbusd.format.layout import Encoding, TexelFormat
+from vbusd.format.layout import Encoding, TexelFormat, default_texel_format
 from vbusd.decoders.shaders import DEFAULT_MAX_BONES, DEFAULT_MAX_CLIPS, LANGUAGES, SKINS, ShaderOptions, generate
 
 __all__ = ["command", "write_text"]
@@ -36,7 +36,7 @@ def _integer(value: str, option: str) -> int:
 @click.option("--lang", default="glsl", show_default=True, metavar="LANG", help=f"Shading language: {', '.join(LANGUAGES)}.")
 @click.option("--encoding", default=Encoding.CROSS_MATRIX.value, show_default=True, metavar="E",
               help="Bone encoding: " + ", ".join(e.value for e in Encoding) + ".")
-@click.option("--texel-format", default=None, show_default="float16; uint32 with compactQuatTranslation", metavar="F",
+@click.option("--texel-format", default=None, show_default=DEFAULT_TEXEL_FORMATS, metavar="F",
               help="Texel format: " + ", ".join(f.value for f in TexelFormat) + ".")
 @click.option("--max-influences", default="4", show_default=True, metavar="K", help="Influences per vertex, 1..8.")
 @click.option("--max-clips", default=str(DEFAULT_MAX_CLIPS), show_default=True, metavar="N",
@@ -63,9 +63,8 @@ def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, 
     the module goes to standard output (with --format json, as the "source" of one JSON object);
     with -o it is written to FILE and the report says so.
     """
-    if texel_format is None:  # the compact encoding has one texel format (spec 5.6)
-        compact = encoding == Encoding.COMPACT_QUAT_TRANSLATION.value
-        texel_format = (TexelFormat.UINT32 if compact else TexelFormat.FLOAT16).value
+    if texel_format is None:
+        texel_format = default_texel_format(encoding).value
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),

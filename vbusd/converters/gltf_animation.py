@@ -13,14 +13,14 @@ Interpolation Modes"):
   interpolation.
 
 Everything is vectorized over sample times with numpy; nothing here knows about files. The
-quaternion-to-matrix step is :func:`vbusd.format.encoding.quat_to_matrix`, the one the encodings use.
+quaternion-to-matrix step is :func:`vbusd.format.quaternion.quat_to_matrix`, the one the encodings use.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from vbusd.format.encoding import quat_to_matrix
+from vbusd.format.quaternion import quat_to_matrix
 
 __all__ = ["KEY_TIME_TOLERANCE", "compose_trs", "sample_channel"]
 

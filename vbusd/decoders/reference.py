@@ -14,10 +14,10 @@ from typing import Optional
 
 import numpy as np
 
-from vbusd.format.encoding import (BoneTransforms, decode_bones, dequantize, matrix_to_quat, quat_multiply,
-                                   quat_to_matrix, unpack)
+from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpack
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
+from vbusd.format.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
@@ -441,7 +441,7 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
     """
     if vb.root_motion is None:
         return np.eye(4)
-    from vbusd.baking.rootmotion import displacement
+    from vbusd.format.rootmotion import displacement
 
     return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)
 

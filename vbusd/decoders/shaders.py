@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vbusd.format.errors import OptionsError
-from vbusd.format.layout import Encoding, TexelFormat
+from vbusd.format.layout import Encoding, TexelFormat, pairing_error
 
 __all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "DEFAULT_MAX_BONES", "SKIN_TEXTURE_WIDTH", "ShaderOptions",
            "generate", "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
@@ -82,9 +82,9 @@ class ShaderOptions:
             raise OptionsError(f"max_clips must be 1..256, got {self.max_clips!r}", file="shader")
         if isinstance(self.max_bones, bool) or int(self.max_bones) != self.max_bones or not 1 <= self.max_bones <= 1024:
             raise OptionsError(f"max_bones must be 1..1024, got {self.max_bones!r}", file="shader")
-        if (self.encoding is Encoding.COMPACT_QUAT_TRANSLATION) != (self.texel_format is TexelFormat.UINT32):
-            raise OptionsError("encoding compactQuatTranslation and texel format uint32 go together (spec 5.6), "
-                               f"got {self.encoding.value} with {self.texel_format.value}", file="shader")
+        mismatch = pairing_error(self.encoding, self.texel_format)
+        if mismatch:
+            raise OptionsError(mismatch, file="shader")
 
 
 _GLSL_PROLOGUE = """\
@@ -764,7 +764,7 @@ void vbAffineInverse(vec4 a0, vec4 a1, vec4 a2, out vec4 i0, out vec4 i1, out ve
 }
 
 // Unit quaternion (x, y, z, w) of a rotation given by its columns (Shepperd's method, as
-// vbusd.format.encoding.matrix_to_quat).
+// vbusd.format.quaternion.matrix_to_quat).
 vec4 vbQuatFromColumns(vec3 c0, vec3 c1, vec3 c2)
 {
     float trace = c0.x + c1.y + c2.z;

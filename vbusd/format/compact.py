@@ -36,6 +36,8 @@ from typing import Optional
 
 import numpy as np
 
+from vbusd.format.quaternion import quat_to_matrix
+
 __all__ = ["ROTATION_BITS", "TRANSLATION_BITS", "RANGE_SLOTS", "KEPT_COMPONENTS", "MIN_DROPPED",
            "CompactBits", "DEFAULT_BITS", "compact_ranges", "choose_dropped", "encode_compact",
            "decode_compact_fields", "pack_words", "unpack_words", "decode_compact", "blend_compact",
@@ -233,8 +235,6 @@ def blend_compact(q0: np.ndarray, t0: np.ndarray, q1: np.ndarray, t1: np.ndarray
 
 def decode_compact(words: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     """(..., B, 4, 4) column-vector matrices ``[R | t]`` of (..., B, 3) texels."""
-    from vbusd.format.encoding import quat_to_matrix
-
     q, t = decode_compact_fields(words, ranges)
     m = np.zeros(q.shape[:-1] + (4, 4))
     m[..., :3, :3] = quat_to_matrix(q)

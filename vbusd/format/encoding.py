@@ -18,84 +18,16 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format.errors import UnsupportedError
+from vbusd.format.compact import decode_compact_fields, encode_compact
 from vbusd.format.layout import Encoding, Layout, TexelFormat
+from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
 
-__all__ = ["FLOAT16_MAX", "UNORM16_MAX", "quat_multiply", "quat_conjugate", "quat_to_matrix",
-           "matrix_to_quat", "NonRigidError", "SINGULAR_RELATIVE_DETERMINANT", "affine_singular",
+__all__ = ["FLOAT16_MAX", "UNORM16_MAX", "NonRigidError", "SINGULAR_RELATIVE_DETERMINANT", "affine_singular",
            "encode_bones", "make_hemispheres_continuous", "BoneTransforms", "decode_bones",
            "unorm_ranges", "all_finite", "Float16OverflowError", "quantize", "dequantize", "pack", "unpack"]
 
 FLOAT16_MAX = 65504.0
 UNORM16_MAX = 65535
-
-
-# --------------------------------------------------------------------------------------------
-# Quaternion helpers
-# --------------------------------------------------------------------------------------------
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a (x) b`` of (..., 4) quaternions in (x, y, z, w) order."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Conjugate of (..., 4) quaternions (x, y, z, w)."""
-    return q * np.array([-1.0, -1.0, -1.0, 1.0])
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) in (x, y, z, w) order."""
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
-
-
-def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4), (x, y, z, w) with w >= 0, of rotation matrices (..., 3, 3).
-
-    Uses the largest-diagonal branch per matrix (Shepperd's method) for full precision everywhere.
-    """
-    m = np.asarray(rotation, dtype=np.float64)
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    trace = m00 + m11 + m22
-    candidates = np.stack([trace, m00, m11, m22], axis=-1)
-    branch = np.argmax(candidates, axis=-1)
-    q = np.empty(m.shape[:-2] + (4,))
-    # w largest
-    s = np.sqrt(np.maximum(1.0 + trace, 1e-300)) * 2
-    qw = np.stack([(m[..., 2, 1] - m[..., 1, 2]) / s, (m[..., 0, 2] - m[..., 2, 0]) / s,
-                   (m[..., 1, 0] - m[..., 0, 1]) / s, 0.25 * s], axis=-1)
-    s = np.sqrt(np.maximum(1.0 + m00 - m11 - m22, 1e-300)) * 2
-    qx = np.stack([0.25 * s, (m[..., 0, 1] + m[..., 1, 0]) / s, (m[..., 0, 2] + m[..., 2, 0]) / s,
-                   (m[..., 2, 1] - m[..., 1, 2]) / s], axis=-1)
-    s = np.sqrt(np.maximum(1.0 - m00 + m11 - m22, 1e-300)) * 2
-    qy = np.stack([(m[..., 0, 1] + m[..., 1, 0]) / s, 0.25 * s, (m[..., 1, 2] + m[..., 2, 1]) / s,
-                   (m[..., 0, 2] - m[..., 2, 0]) / s], axis=-1)
-    s = np.sqrt(np.maximum(1.0 - m00 - m11 + m22, 1e-300)) * 2
-    qz = np.stack([(m[..., 0, 2] + m[..., 2, 0]) / s, (m[..., 1, 2] + m[..., 2, 1]) / s, 0.25 * s,
-                   (m[..., 1, 0] - m[..., 0, 1]) / s], axis=-1)
-    for index, value in enumerate((qw, qx, qy, qz)):
-        chosen = branch == index
-        q[chosen] = value[chosen]
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    q[q[..., 3] < 0] *= -1.0
-    return q
-
-
-# --------------------------------------------------------------------------------------------
-# Analysis of the linear part
-# --------------------------------------------------------------------------------------------
 
 
 class NonRigidError(UnsupportedError):
@@ -148,7 +80,7 @@ def _raise_worst(deviation: np.ndarray, tolerance: float, kind: str, encoding: E
                         index=index, deviation=worst, kind=kind)
 
 
-def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Polar]:
+def _near_rotation_polar(linear: np.ndarray, tolerance: float, compiled=None) -> Optional[_Polar]:
     """The polar rotation of matrices that all lie within ``tolerance`` of a rotation, without an SVD.
 
     When ``||A^T A - I||_F <= tolerance`` (< 1) every singular value s of A has
@@ -161,15 +93,13 @@ def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Pola
     Returns:
         A :class:`_Polar` with ``singular`` set to ones (within tolerance by the bound above), or
         None when some matrix is farther from a rotation or mirrored (the caller then takes the SVD
-        and reports the worst one exactly).
+        and reports the worst one exactly). ``compiled``: see :func:`encode_bones`.
     """
     if not 0 < tolerance < 1 or linear.size == 0:
         return None
-    from vbusd.kernels import bake as bake_kernels
-
-    compiled = bake_kernels.near_rotation_polar(linear, tolerance)  # the same iteration, compiled
-    if compiled is not None:
-        rotation, det = compiled
+    fast = None if compiled is None else compiled.near_rotation_polar(linear, tolerance)  # the same iteration
+    if fast is not None:
+        rotation, det = fast
         return None if rotation is None else _Polar(rotation=rotation, singular=np.ones(linear.shape[:-1]), det=det)
     shape = linear.shape
     a = np.moveaxis(linear.reshape(-1, 3, 3), 0, -1)  # (3, 3, N), frames last
@@ -205,9 +135,9 @@ def _near_rotation_polar(linear: np.ndarray, tolerance: float) -> Optional[_Pola
     return _Polar(rotation=rotation, singular=np.ones(shape[:-1]), det=np.moveaxis(det, -1, 0).reshape(shape[:-2]))
 
 
-def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: float) -> _Polar:
+def _check_representable(linear: np.ndarray, encoding: Encoding, tolerance: float, compiled=None) -> _Polar:
     if encoding in (Encoding.CROSS_MATRIX, Encoding.DUAL_QUAT, Encoding.COMPACT_QUAT_TRANSLATION):
-        fast = _near_rotation_polar(linear, tolerance)
+        fast = _near_rotation_polar(linear, tolerance, compiled)
         if fast is not None:
             return fast
     polar = _polar(linear)
@@ -243,7 +173,8 @@ def affine_singular(linear: np.ndarray) -> np.ndarray:
     return np.abs(np.linalg.det(a)) <= SINGULAR_RELATIVE_DETERMINANT * np.maximum(scale, 1e-30) ** 3
 
 
-def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: float = 1e-3) -> np.ndarray:
+def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: float = 1e-3,
+                 compiled=None) -> np.ndarray:
     """Encode skinning matrices into per-bone channel values.
 
     Args:
@@ -251,6 +182,8 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
         encoding: Target encoding.
         tolerance: Largest allowed deviation from what the encoding holds (singular values from 1
             for crossMatrix and dualQuat, relative spread for quatTranslation).
+        compiled: Compiled twins of the loops here (:mod:`vbusd.kernels.bake`, which the baker
+            passes), tried first; each returns None for work it does not take. None: numpy only.
 
     Returns:
         (..., T, 4) float64 channel values (T texels per bone; compactQuatTranslation gives the
@@ -263,12 +196,10 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
     """
     encoding = Encoding(encoding)
     m = np.asarray(matrices, dtype=np.float64)
-    if encoding is Encoding.CROSS_MATRIX:
-        from vbusd.kernels import bake as bake_kernels
-
-        compiled = bake_kernels.encode_cross_matrix(m, tolerance)  # None: small, or some matrix fails
-        if compiled is not None:
-            return compiled
+    if encoding is Encoding.CROSS_MATRIX and compiled is not None:
+        encoded = compiled.encode_cross_matrix(m, tolerance)  # None: small, or some matrix fails
+        if encoded is not None:
+            return encoded
     linear, translation = m[..., :3, :3], m[..., :3, 3]
     out = np.empty(m.shape[:-2] + (encoding.value_texels, 4))
     if encoding is Encoding.AFFINE_MATRIX:
@@ -278,7 +209,7 @@ def encode_bones(matrices: np.ndarray, encoding: Encoding | str, *, tolerance: f
         out[..., :, :3] = linear
         out[..., :, 3] = translation
         return out
-    polar = _check_representable(linear, encoding, tolerance)
+    polar = _check_representable(linear, encoding, tolerance, compiled)
     if encoding is Encoding.CROSS_MATRIX:
         out[..., 0, :3] = polar.rotation[..., :, 0]
         out[..., 1, :3] = polar.rotation[..., :, 1]
@@ -409,7 +340,7 @@ def all_finite(values: np.ndarray) -> bool:
     """Whether every value is finite, in one pass without a temporary: a slice's sum is finite when
     all its values are (one slice per core); when a sum is not, the values are checked one by one
     (finite values can overflow a sum)."""
-    from vbusd.kernels.bake import split_work
+    from vbusd.process.parallel import split_work
 
     values = np.asarray(values)
     if values.ndim == 0:
@@ -455,7 +386,7 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         UnsupportedError: A value is not finite.
         Float16OverflowError: A value exceeds float16's range (``index`` says where).
     """
-    from vbusd.kernels.bake import split_work
+    from vbusd.process.parallel import split_work
 
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)
@@ -479,8 +410,6 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         split_work(rows, lambda a, b: np.copyto(stored[a:b], v[a:b], casting="unsafe"))
         return stored, None
     if texel_format is TexelFormat.UINT32:
-        from vbusd.format.compact import encode_compact
-
         words, ranges = encode_compact(v[..., 0, :], v[..., 1, :3], ranges=ranges)
         stored = np.zeros(v.shape[:-2] + (1, 4), "<u4") if out is None else out
         stored[..., 0, :3] = words
@@ -515,8 +444,6 @@ def dequantize(stored: np.ndarray, texel_format: TexelFormat | str,
     texel_format = TexelFormat(texel_format)
     if texel_format is TexelFormat.UINT32:
         # (..., B, 1, 4) words -> (..., B, 2, 4) quatTranslation-like values, scale 1 (spec 5.6).
-        from vbusd.format.compact import decode_compact_fields
-
         if ranges is None:
             raise ValueError("uint32 texels need their compact ranges")
         q, t = decode_compact_fields(np.asarray(stored)[..., 0, :3], np.asarray(ranges, dtype=np.float64))

@@ -10,7 +10,8 @@ import enum
 from dataclasses import dataclass
 
 __all__ = ["FORMAT_VERSION", "CHANNELS", "MAX_TEXTURE_DIMENSION", "Encoding", "TexelFormat",
-           "Padding", "next_power_of_two", "Layout"]
+           "Padding", "next_power_of_two", "texel_formats_of", "default_texel_format", "pairs", "pairing_error",
+           "Layout"]
 
 FORMAT_VERSION = 1
 """The format version this library writes (spec/virtual-bones.md, "Versioning")."""
@@ -89,6 +90,33 @@ class Padding(str, enum.Enum):
         return self.value
 
 
+def texel_formats_of(encoding) -> tuple:
+    """The texel formats ``encoding`` may be stored in (spec 5.6: uint32 is the compact encoding's
+    only texel format, and holds no other encoding)."""
+    if Encoding(encoding) is Encoding.COMPACT_QUAT_TRANSLATION:
+        return (TexelFormat.UINT32,)
+    return (TexelFormat.FLOAT16, TexelFormat.FLOAT32, TexelFormat.UNORM16)
+
+
+def default_texel_format(encoding) -> TexelFormat:
+    """The texel format a writer picks when none is asked for: the first of :func:`texel_formats_of`
+    (float16; uint32 for compactQuatTranslation)."""
+    return texel_formats_of(encoding)[0]
+
+
+def pairs() -> list:
+    """Every valid ``(encoding, texel format)`` pair, in enum order."""
+    return [(e, t) for e in Encoding for t in texel_formats_of(e)]
+
+
+def pairing_error(encoding, texel_format):
+    """``None`` when the pair is valid, else the one-line reason (for an OptionsError of the caller's)."""
+    if TexelFormat(texel_format) in texel_formats_of(encoding):
+        return None
+    return (f"encoding compactQuatTranslation and texel format uint32 go together (spec 5.6), "
+            f"got {Encoding(encoding).value} with {TexelFormat(texel_format).value}")
+
+
 def next_power_of_two(n: int) -> int:
     """Smallest power of two >= n (1 for n <= 1): the talk's "closest power of two", rounded up."""
     return 1 if n <= 1 else 1 << (int(n) - 1).bit_length()
@@ -140,11 +168,9 @@ class Layout:
             if isinstance(value, bool) or int(value) != value or value < 1:
                 raise OptionsError(f"{name} must be a positive integer, got {value!r}", file="layout")
             object.__setattr__(self, name, int(value))
-        compact = self.encoding is Encoding.COMPACT_QUAT_TRANSLATION
-        if compact != (self.texel_format is TexelFormat.UINT32):
-            raise OptionsError("encoding compactQuatTranslation and texelFormat uint32 go together "
-                               f"(spec 5.6), got {self.encoding.value} with {self.texel_format.value}",
-                               file="layout")
+        mismatch = pairing_error(self.encoding, self.texel_format)
+        if mismatch:
+            raise OptionsError(mismatch, file="layout")
         if self.width > MAX_TEXTURE_DIMENSION or self.height > MAX_TEXTURE_DIMENSION:
             raise OptionsError(
                 f"texture of {self.width}x{self.height} exceeds the limit of {MAX_TEXTURE_DIMENSION} "

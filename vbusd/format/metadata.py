@@ -33,6 +33,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
+from vbusd.format.digest import DIGEST_PREFIX, content_digest
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer, to_error
 from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
 from vbusd.format.model import Clip, VirtualBones
@@ -48,7 +49,6 @@ FORMAT_NAME = "vbusd.virtualBones"
 SCHEMA_RESOURCE = "layout-metadata.schema.json"
 """File name of the layout metadata JSON Schema inside the ``vbusd.schema`` package."""
 
-DIGEST_PREFIX = "sha256:"
 
 # One upgrade path for the metadata and the USD attributes (vbusd.format.versioning).
 from vbusd.format.versioning import upgrade  # noqa: E402  (re-exported: metadata documents upgrade through it)
@@ -107,40 +107,6 @@ class LayoutInfo:
 # --------------------------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------------------------
-
-
-def content_digest(texels: np.ndarray) -> str:
-    """SHA-256 of a texel array, as stored in the ``contentDigest`` key.
-
-    The bytes hashed are the whole ``(height, width, 4)`` array, padding included, in C order
-    (row 0 = first scanline), each channel little-endian in the array's own dtype (``<f2``,
-    ``<f4`` or ``<u2``), so the digest is the same on every machine. uint32 texels (format 1.2)
-    are hashed as the files store them: channels R, G, B only (12 bytes a texel, spec 9.4).
-
-    Args:
-        texels: ``(height, width, 4)`` array.
-
-    Returns:
-        ``"sha256:"`` followed by 64 lowercase hex digits.
-
-    Raises:
-        ValueError: ``texels`` is not a ``(height, width, 4)`` array.
-    """
-    texels = np.asarray(texels)
-    if texels.ndim != 3 or texels.shape[2] != CHANNELS:
-        raise ValueError(f"texels must have shape (height, width, {CHANNELS}), got {texels.shape}")
-    # Hashed through a memoryview: tobytes() would copy the whole texture (128 MiB at 4096 x 4096
-    # float16) next to the texels; only a big-endian or strided array is copied, once.
-    if texels.dtype.kind == "u" and texels.dtype.itemsize == 4:
-        texels = texels[..., :3]  # uint32: the three stored words, not the in-memory A = 0
-    little = np.ascontiguousarray(texels.astype(texels.dtype.newbyteorder("<"), copy=False))
-    return DIGEST_PREFIX + hashlib.sha256(memoryview(little).cast("B")).hexdigest()
-
-
-def _generator() -> str:
-    from vbusd import __version__
-
-    return f"vbusd {__version__}"
 
 
 def layout_fields(layout: Layout) -> dict:
@@ -216,11 +182,12 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
     return result
 
 
-def to_dict(vb: VirtualBones) -> dict:
+def to_dict(vb: VirtualBones, *, generator: str) -> dict:
     """The layout metadata dict of a baked animation (current format version).
 
     Args:
         vb: The baked animation; its texels are hashed into ``contentDigest``.
+        generator: Who writes it (``vbusd.io.generator.GENERATOR`` for vbusd's writers).
 
     Returns:
         A JSON-ready dict with exactly the keys of docs/architecture.md ("Layout metadata keys");
@@ -230,7 +197,7 @@ def to_dict(vb: VirtualBones) -> dict:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
     return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, vb.content_digest,
-                       _generator(), vb.bind_transforms, vb.bone_parents, vb.masks)
+                       generator, vb.bind_transforms, vb.bone_parents, vb.masks)
 
 
 def dumps(d: Mapping) -> str:

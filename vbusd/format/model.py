@@ -25,7 +25,9 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from vbusd.format.digest import content_digest
 from vbusd.format.layout import Layout
+from vbusd.format.rootmotion import RootMotion
 
 __all__ = ["AnimationClip", "SkinnedMesh", "SkinnedAnimation", "Clip", "BoundMesh", "Crowd",
            "LevelsOfDetail", "VirtualBones", "VirtualBonesAsset", "ReadOptions", "SourceScene"]
@@ -377,8 +379,8 @@ class VirtualBones:
     texture: Optional[str] = None
     clip_extents: Optional[np.ndarray] = None
     bind_transforms: Optional[np.ndarray] = None
-    root_motion: Optional[object] = None
-    """Format 1.1: a :class:`vbusd.baking.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
+    root_motion: Optional[RootMotion] = None
+    """Format 1.1: a :class:`vbusd.format.rootmotion.RootMotion` (clips baked in place, spec "Root motion"), or None."""
     lods: Optional[LevelsOfDetail] = None
     """Format 1.2: the meshes' levels of detail (spec "Levels of detail"), or None for one level."""
     bone_parents: Optional[tuple] = None
@@ -409,10 +411,8 @@ class VirtualBones:
 
     @functools.cached_property
     def content_digest(self) -> str:
-        """The texels' ``contentDigest`` (:func:`vbusd.format.metadata.content_digest`), hashed once:
+        """The texels' ``contentDigest`` (:func:`vbusd.format.digest.content_digest`), hashed once:
         the writer needs it for the layer, the texture's metadata and the sidecar."""
-        from vbusd.format.metadata import content_digest
-
         return content_digest(self.texels)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 from vbusd.format.diagnostics import Diagnostics, FileLocation
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
-from vbusd.io.textures import TextureImage, looks_like_metadata
+from vbusd.io.texture_image import TextureImage, looks_like_metadata
 
 __all__ = ["MAGIC", "METADATA_ATTRIBUTE", "METADATA_PART", "COMPRESSION_NAMES", "LOSSLESS",
            "PIXEL_TYPES", "ExrHeader", "captured_output", "read_exr", "write_exr"]
@@ -424,7 +424,7 @@ def _compressing_on_every_core(OpenEXR):
     if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
         yield
         return
-    from vbusd.kernels.cores import usable_cores
+    from vbusd.process.parallel import usable_cores
 
     cores = usable_cores()
     with _THREADS_LOCK:  # held for the write: threads of one process write their EXR files in turn

@@ -31,6 +31,7 @@ from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsErr
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 
+from vbusd.io.generator import GENERATOR
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
            "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use", "check_package"]
 
@@ -219,7 +220,6 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             over 32767 (``export.mesh``).
         OptionsError: A bad supercompression.
     """
-    from vbusd import __version__
     from vbusd.io import ktx2
 
     if not any(vb.meshes for vb in asset.animations):
@@ -227,7 +227,7 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
                          "meshes (export the character asset, not only its texture)", file=where,
                          location="file", code="export.noMeshes")
     report = ExportReport(output=where)
-    gltf = {"asset": {"version": "2.0", "generator": f"vbusd {__version__}"},
+    gltf = {"asset": {"version": "2.0", "generator": GENERATOR},
             "extensionsUsed": [EXTENSION], "scene": 0, "scenes": [{"nodes": [0]}],
             "nodes": [{"name": ROOT_NODE}], "meshes": [], "accessors": [], "bufferViews": [],
             "buffers": []}
@@ -239,7 +239,7 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
     # after them, are made unique in order (skin0_Anim, skin0_Anim_2), as the UsdSkel fallback's.
     names = unique_names([_prim_name(vb.path) for vb in asset.animations])
     for index, (vb, name) in enumerate(zip(asset.animations, names)):
-        text = md.dumps(md.to_dict(vb))
+        text = md.dumps(md.to_dict(vb, generator=GENERATOR))
         data = ktx2.ktx2_bytes(vb.texels, text, supercompression=supercompression)
         if binary:
             view = main.view(data, align=16)  # level data stays aligned for typed-array views

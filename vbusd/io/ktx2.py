@@ -28,6 +28,7 @@ import numpy as np
 from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 
+from vbusd.io.generator import GENERATOR
 __all__ = ["MAGIC", "METADATA_KEY", "ORIENTATION_KEY", "WRITER_KEY", "ORIENTATION",
            "VK_FORMAT_R16G16B16A16_UNORM", "VK_FORMAT_R16G16B16A16_SFLOAT",
            "VK_FORMAT_R32G32B32A32_SFLOAT", "VK_FORMAT_OF_TEXEL_FORMAT",
@@ -207,9 +208,7 @@ def ktx2_bytes(texels: np.ndarray, metadata: str, *, supercompression: str = "no
     else:
         level = raw
     if writer is None:
-        from vbusd import __version__
-
-        writer = f"vbusd {__version__}"
+        writer = GENERATOR
     dfd = data_format_descriptor(vk_format, supercompressed=scheme != 0)
     kvd = _key_value_data({ORIENTATION_KEY: ORIENTATION.encode() + b"\0",
                            WRITER_KEY: writer.encode("utf-8") + b"\0",

@@ -27,7 +27,7 @@ from vbusd.format.diagnostics import Diagnostics, FileLocation
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.format.metadata import MAX_METADATA_BYTES
-from vbusd.io.textures import TextureImage, looks_like_metadata
+from vbusd.io.texture_image import TextureImage, looks_like_metadata
 
 __all__ = ["SIGNATURE", "METADATA_KEYWORD", "METADATA_PART", "COLOUR_MANAGEMENT_CHUNKS",
            "TEXT_CHUNKS", "COMPRESSION_LEVELS", "MAX_ITXT_TEXT_BYTES", "itxt_chunk_data",

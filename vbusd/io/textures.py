@@ -27,10 +27,14 @@ from vbusd.format import metadata as md
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
 from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.io.files import AtomicTransaction
+from vbusd.format.containers import CONTAINER_OF_SUFFIX, container_error, default_container
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, TexelFormat
 from vbusd.format.model import VirtualBones
 
-__all__ = ["CONTAINER_OF_SUFFIX", "CONTAINER_OF_FORMAT", "TextureData", "sidecar_path",
+from vbusd.io import exr, ktx2, png
+from vbusd.io.generator import GENERATOR
+from vbusd.io.texture_image import TextureImage, looks_like_metadata
+__all__ = ["TextureData", "sidecar_path",
            "container_for", "write_texture", "TextureImage", "Container", "CONTAINERS",
            "looks_like_metadata", "read_texture_file", "read_sidecar_document", "check_image",
            "json_differences", "check_sidecar_agrees", "read_texture", "TextureHeader",
@@ -38,9 +42,6 @@ __all__ = ["CONTAINER_OF_SUFFIX", "CONTAINER_OF_FORMAT", "TextureData", "sidecar
 
 PathLike = Union[str, os.PathLike]
 
-CONTAINER_OF_SUFFIX = {".exr": "exr", ".png": "png", ".ktx2": "ktx2"}
-CONTAINER_OF_FORMAT = {TexelFormat.FLOAT16: "exr", TexelFormat.FLOAT32: "exr",
-                       TexelFormat.UNORM16: "png", TexelFormat.UINT32: "exr"}
 
 
 @dataclass(frozen=True)
@@ -93,16 +94,9 @@ def container_for(path: PathLike, texel_format: TexelFormat) -> str:
     if container is None:
         raise OptionsError(f"texture file name {Path(path).name!r} must end in .exr (float16, "
                            "float32), .png (unorm16) or .ktx2 (any)", file="texture")
-    texel_format = TexelFormat(texel_format)
-    if container == "ktx2":  # KTX 2.0 holds every texel format (spec/ktx2.md)
-        return container
-    if container == "png" and texel_format is TexelFormat.UINT32:
-        raise OptionsError(f"texelFormat uint32 (compactQuatTranslation) cannot be stored in PNG, which "
-                           f"has no 32-bit channels; use .exr or .ktx2 ({Path(path).name})", file="texture")
-    if CONTAINER_OF_FORMAT[texel_format] != container:
-        wanted = CONTAINER_OF_FORMAT[texel_format]
-        raise OptionsError(f"texelFormat {texel_format.value} is stored in .{wanted} files, not "
-                           f"{suffix} ({Path(path).name})", file="texture")
+    mismatch = container_error(container, texel_format)
+    if mismatch:
+        raise OptionsError(f"{mismatch} ({Path(path).name})", file="texture")
     return container
 
 
@@ -127,17 +121,16 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: Optional[str
     """
     path = Path(path)
     container = container_for(path, vb.layout.texel_format)
-    from vbusd.io import exr, ktx2, png as png16
 
     if compression is None:
         compression = "none" if container == "ktx2" else "zip"
     name = str(compression).lower()
-    allowed = {"exr": exr.LOSSLESS, "png": tuple(png16.COMPRESSION_LEVELS),
+    allowed = {"exr": exr.LOSSLESS, "png": tuple(png.COMPRESSION_LEVELS),
                "ktx2": tuple(ktx2.SUPERCOMPRESSION_SCHEMES)}[container]
     if name not in allowed:
         raise OptionsError(f"{container.upper()} compression must be one of {', '.join(allowed)}, "
                            f"got {compression!r}", file="texture")
-    text = md.dumps(md.to_dict(vb))
+    text = md.dumps(md.to_dict(vb, generator=GENERATOR))
     own = transaction is None
     tx = AtomicTransaction() if own else transaction
     try:
@@ -148,7 +141,7 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: Optional[str
             with tx.open(path, "wb") as stream:
                 stream.write(data)
         else:
-            data = png16.png_bytes(vb.texels, text, compression=name)
+            data = png.png_bytes(vb.texels, text, compression=name)
             with tx.open(path, "wb") as stream:
                 stream.write(data)
         if sidecar:
@@ -165,53 +158,6 @@ def write_texture(path: PathLike, vb: VirtualBones, *, compression: Optional[str
 # --------------------------------------------------------------------------------------------
 # Reading: one reader per container, behind one interface
 # --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class TextureImage:
-    """What the one reader of a texture file read (the container's part, then metadata and sidecar).
-
-    A container reader fills the first group of fields; :func:`read_texture_file` adds the parsed
-    metadata documents.
-
-    Attributes:
-        file: The file as findings name it.
-        container: ``exr``, ``png`` or ``ktx2``.
-        width: Width from the header.
-        height: Height from the header.
-        channels: Channel names in the file (R, G, B, A order when present).
-        pixel_type: ``float16``, ``float32`` or ``uint16`` when every channel has that type;
-            otherwise what the file holds (``uint8``, ``uint32``, ``mixed``...).
-        compression: The container's compression name (EXR ``zip``..., PNG ``zip``, KTX2 ``none`` or
-            ``zstd``).
-        texels: ``(height, width, 4)`` texels in the file's pixel type, or None when the pixels were
-            not read or could not be (missing channels are never invented).
-        metadata: Every embedded layout metadata copy with its location: ``[(text, FileLocation)]``
-            (more than one was reported as ``metadata.duplicate``; text is None for a copy that
-            cannot be decoded, reported as ``metadata.json``).
-        metadata_part: Where the metadata sits in this container (``header/vbusd.layout``), the
-            prefix of its JSON pointers in one-line errors.
-        misplaced_metadata: Text that looks like layout metadata but is not where the spec puts it
-            (``tEXt chunk 'vbusd.layout' at byte 33``); readers ignore it.
-        document: The first embedded copy, parsed (None when missing or broken).
-        sidecar: The sidecar ``<file>.json``, parsed (None when absent, not asked for, or broken).
-        sidecar_file: The sidecar's name in findings, when a sidecar exists.
-    """
-
-    file: str
-    container: str
-    width: int = 0
-    height: int = 0
-    channels: tuple = ()
-    pixel_type: Optional[str] = None
-    compression: Optional[str] = None
-    texels: Optional[np.ndarray] = None
-    metadata: list = field(default_factory=list)
-    metadata_part: str = ""
-    misplaced_metadata: list = field(default_factory=list)
-    document: Any = None
-    sidecar: Any = None
-    sidecar_file: Optional[str] = None
 
 
 ContainerReader = Callable[..., Optional[TextureImage]]
@@ -238,8 +184,7 @@ class Container:
     Attributes:
         name: ``exr``, ``png``, ``ktx2``.
         magic: The bytes every file of the container starts with.
-        module: The module holding the reader.
-        reader: The reader's name in that module.
+        read: The reader (the interface above).
         pixel_types: Texel format -> the pixel type the container stores it as (formats it cannot
             hold are absent).
         size_part: Where the dimensions sit (``header/dataWindow``), for one-line errors.
@@ -249,48 +194,18 @@ class Container:
 
     name: str
     magic: bytes
-    module: str
-    reader: str
+    read: ContainerReader
     pixel_types: dict
     size_part: str
     channels_part: str
     pixel_type_code: str = "texture.pixelType"
 
-    def read(self, path, diagnostics: Diagnostics, **options) -> Optional[TextureImage]:
-        """Run this container's reader (imported on first use: OpenEXR loads only for EXR)."""
-        import importlib
 
-        return getattr(importlib.import_module(self.module), self.reader)(path, diagnostics, **options)
-
-
-CONTAINERS = {
-    "exr": Container("exr", b"\x76\x2f\x31\x01", "vbusd.io.exr", "read_exr",
-                     {"float16": "float16", "float32": "float32", "uint32": "uint32"}, "header/dataWindow",
-                     "header/channels"),
-    "png": Container("png", b"\x89PNG\r\n\x1a\n", "vbusd.io.png", "read_png", {"unorm16": "uint16"},
-                     "IHDR", "IHDR"),
-    "ktx2": Container("ktx2", b"\xabKTX 20\xbb\r\n\x1a\n", "vbusd.io.textures", "_read_ktx2",
-                      {"float16": "float16", "float32": "float32", "unorm16": "uint16", "uint32": "uint32"},
-                      "header/pixelWidth", "header/vkFormat", "ktx2.vkFormat"),
-}
-"""Every container, by name; :func:`read_texture_file` picks one by the file's magic bytes."""
-
-_MAGIC_BYTES = max(len(c.magic) for c in CONTAINERS.values())
-
-
-def looks_like_metadata(key: str, value: str) -> bool:
-    """Whether a text entry (a PNG text chunk, an EXR attribute, a KTX2 key) looks like layout
-    metadata written in the wrong place: readers ignore it, ``metadata.missing`` names it."""
-    lowered = key.lower()
-    return "vbusd" in lowered or "virtualbones" in lowered or \
-        (isinstance(value, str) and md.FORMAT_NAME in value[:4096])
 
 
 def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
                pixels=True) -> Optional[TextureImage]:
     """The KTX2 container behind the reader interface (:mod:`vbusd.io.ktx2` raises its findings)."""
-    from vbusd.io import ktx2
-
     file = display or str(path)
 
     def report(error: InputError) -> None:
@@ -319,6 +234,21 @@ def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MA
         except InputError as error:
             report(error)
     return image
+
+
+CONTAINERS = {
+    "exr": Container("exr", b"\x76\x2f\x31\x01", exr.read_exr,
+                     {"float16": "float16", "float32": "float32", "uint32": "uint32"}, "header/dataWindow",
+                     "header/channels"),
+    "png": Container("png", b"\x89PNG\r\n\x1a\n", png.read_png, {"unorm16": "uint16"},
+                     "IHDR", "IHDR"),
+    "ktx2": Container("ktx2", b"\xabKTX 20\xbb\r\n\x1a\n", _read_ktx2,
+                      {"float16": "float16", "float32": "float32", "unorm16": "uint16", "uint32": "uint32"},
+                      "header/pixelWidth", "header/vkFormat", "ktx2.vkFormat"),
+}
+"""Every container, by name; :func:`read_texture_file` picks one by the file's magic bytes."""
+
+_MAGIC_BYTES = max(len(c.magic) for c in CONTAINERS.values())
 
 
 def _open_regular(path: Path, file: str, diagnostics: Diagnostics):

@@ -65,6 +65,8 @@ from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import file_sha256
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
+from vbusd.format.containers import CONTAINERS, default_container, texture_file_name
+from vbusd.io.generator import GENERATOR
 __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
            "PRIMVAR_BONE_WEIGHTS", "PRIMVAR_CLIP", "PRIMVAR_TIME_OFFSET", "PRIMVAR_PLAYBACK_RATE",
            "PROTOTYPES_SCOPE", "build_stage", "write_asset", "replaced_files", "LARGE_LAYER_BYTES",
@@ -76,7 +78,7 @@ __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BON
 PathLike = Union[str, os.PathLike]
 
 WRITE_SUFFIXES = (".usda", ".usdc", ".usd")
-TEXTURE_CONTAINERS = ("exr", "png", "ktx2")
+TEXTURE_CONTAINERS = CONTAINERS
 
 REL_ANIMATION = names.ANIMATION_REL
 PRIMVAR_BONE_INDICES = names.BONE_INDICES.name
@@ -112,13 +114,13 @@ def _check_prim_path(Sdf, path: str, what: str) -> "Sdf.Path":
 
 def _plan_textures(asset: VirtualBonesAsset, path: Path, texture_container: Optional[str]) -> list:
     """Texture file names of every animation, checked before any file is written."""
-    from vbusd.io.textures import CONTAINER_OF_FORMAT, container_for
+    from vbusd.io.textures import container_for
 
     names = []
     for index, vb in enumerate(asset.animations):
-        container = texture_container or CONTAINER_OF_FORMAT[vb.layout.texel_format]
+        container = texture_container or default_container(vb.layout.texel_format)
         prim_name = vb.path.rstrip("/").rsplit("/", 1)[-1]
-        name = f"{path.stem}.{prim_name}.{container}"
+        name = texture_file_name(path.stem, prim_name, container)
         try:
             container_for(name, vb.layout.texel_format)
         except OptionsError as error:
@@ -562,7 +564,7 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
                 commit.retarget(plain, texture)
                 renamed.append((vb.path, texture, plain))
             with commit.open(sidecar_path(texture), "w", encoding="utf-8", newline="\n") as stream:
-                stream.write(md.dumps(md.to_dict(vb)))
+                stream.write(md.dumps(md.to_dict(vb, generator=GENERATOR)))
             stage.GetPrimAtPath(vb.path).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
             written += [texture, sidecar_path(texture)]
         layer = stage.GetRootLayer()

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
+from vbusd.io.usd_errors import tf_message
 __all__ = ["CRATE_MAGIC", "ProbeResult", "PendingProbe", "start_probe", "probe_crate", "needs_probe", "prestart", "memory_limit", "time_limit"]
 
 CRATE_MAGIC = b"PXR-USDC"
@@ -412,9 +413,6 @@ def _read_everything(path: str) -> int:
     except MemoryError:
         return _EXIT_MEMORY
     except (Tf.ErrorException, RuntimeError, ValueError, TypeError) as error:
-        # Imported only here: the server starts sooner without the reader (and numpy) loaded.
-        from vbusd.io.usd_reader import tf_message
-
         sys.stderr.write(tf_message(error).replace("\n", " ") + "\n")
         return _EXIT_REFUSED
     return 0

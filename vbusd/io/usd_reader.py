@@ -45,6 +45,7 @@ from vbusd.format.model import BoundMesh, Clip, Crowd, LevelsOfDetail, VirtualBo
 from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
+from vbusd.io.usd_errors import error_text, one_line, tf_message
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
@@ -65,47 +66,6 @@ NOT_USD = ((b"\x89PNG", "a PNG image"), (b"\x76\x2f\x31\x01", "an OpenEXR image"
            (b"\xabKTX 20", "a KTX 2.0 texture"))
 """Leading bytes of files often mistaken for USD stages: named, since USD's own message for them
 says little ("not a valid usda layer")."""
-
-_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
-
-
-def one_line(text: str, limit: int = 600) -> str:
-    """``text`` as one printable line: whitespace runs collapsed, control bytes escaped, cut."""
-    text = _CONTROL.sub(lambda m: f"\\x{ord(m.group(0)):02x}", " ".join(str(text).split()))
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
-def _error_text(error: BaseException) -> Optional[str]:
-    try:
-        return str(error)
-    except UnicodeDecodeError:
-        return None
-
-
-def tf_message(error: BaseException) -> str:
-    """The human part of a ``Tf.ErrorException`` (or any pxr error), as one clean line.
-
-    USD formats its errors as ``Error in 'Sdf_...' at line N in file X : 'message'``; one exception
-    can hold several, joined here with "; ". When USD echoes bytes of the input that are not
-    UTF-8, ``str(error)`` itself fails; the message then says so and names USD's function, and
-    callers that know the file add the byte offset (:func:`first_non_utf8`).
-    """
-    text = _error_text(error)
-    if text is None:
-        functions = []
-        for item in getattr(error, "args", ()):
-            function = getattr(item, "sourceFunction", "") or ""
-            functions.append(function.rsplit("::", 2)[-2] if "::" in function else function)
-        where = f" (in {', '.join(f for f in functions if f)})" if any(functions) else ""
-        return f"USD reported an error whose text is not valid UTF-8{where}"
-    text = text.strip()
-    found = re.findall(r"Error in '[^']*' at line \d+ in file [^:]*? : '(.*?)'\s*(?=Error in '|$)",
-                       text, flags=re.S)
-    if not found:
-        match = re.search(r" : '(.*)'\s*$", text, flags=re.S)
-        found = [match.group(1)] if match else [text]
-    return one_line("; ".join(dict.fromkeys(" ".join(m.split()) for m in found)))
-
 
 def first_non_utf8(path: Path, limit: int = 64 << 20) -> Optional[int]:
     """Byte offset of the first byte of ``path`` that is not UTF-8 (first ``limit`` bytes)."""
@@ -359,7 +319,7 @@ class UsdReader:
         this file, or at the first non-UTF-8 byte when USD's own text cannot be decoded."""
         message = tf_message(error)
         location = FileLocation(self.file)
-        if _error_text(error) is None:
+        if error_text(error) is None:
             offset = first_non_utf8(self.path)
             if offset is not None:
                 message += f"; the file holds a byte that is not UTF-8 at byte {offset}"
@@ -798,7 +758,7 @@ class UsdReader:
             self.report("prim.attribute.invalid", f"{names.ROOT_MOTION_UP_AXIS} must be Y or Z with "
                         f"{names.CLIP_ROOT_MOTION}, got {up_axis!r}", UsdSite(path, names.ROOT_MOTION_UP_AXIS))
             return
-        from vbusd.baking.rootmotion import RootMotion
+        from vbusd.format.rootmotion import RootMotion
 
         offsets = np.cumsum([0] + counts)
         declared.values["rootMotion"] = RootMotion(up_axis, tuple(entries[a:b] for a, b in zip(offsets[:-1],

@@ -53,6 +53,7 @@ from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.jsonform import json_ready
 from vbusd.io.files import file_sha256
 
+from vbusd.io.generator import GENERATOR
 __all__ = ["BatchItem", "AssetResult", "BatchReport", "SOURCE_SUFFIXES", "CACHE_FOLDER", "plan_batch",
            "read_manifest", "cache_key", "dependencies", "convert_one", "run_batch"]
 
@@ -457,10 +458,8 @@ def cache_key(source, options) -> tuple:
 
 def _key_of(source, options, files: list) -> str:
     """The key of ``source`` converted with ``options`` when it uses ``files`` (see :func:`cache_key`)."""
-    from vbusd import __version__
-
     digest = hashlib.sha256()
-    digest.update(f"vbusd {__version__}\nrecord {RECORD_VERSION}\n{_options_text(options)}\n".encode())
+    digest.update(f"{GENERATOR}\nrecord {RECORD_VERSION}\n{_options_text(options)}\n".encode())
     root = Path(source).resolve().parent
     for name in files:
         if name.startswith("missing:"):

@@ -38,11 +38,12 @@ from vbusd.process import threads as _threads
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
-from vbusd.format.layout import Encoding, Padding, TexelFormat
+from vbusd.format.containers import container_error, default_container, texture_file_name
+from vbusd.format.layout import Encoding, Padding, TexelFormat, pairing_error, texel_formats_of
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
 
-__all__ = ["AUTO", "CONTAINERS", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
+__all__ = ["AUTO", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
            "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
            "ConvertReport", "check_output", "check_output_path", "bake_animation",
            "bake_with_clip_policy", "measure_errors", "convert"]
@@ -50,7 +51,6 @@ __all__ = ["AUTO", "CONTAINERS", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POL
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
 
-CONTAINERS = ("exr", "png", "ktx2")
 OUTPUT_SUFFIXES = (".usda", ".usd", ".usdc")
 BAD_CLIP_POLICIES = ("error", "skip")
 """What ``vbusd convert --on-bad-clip`` does with a clip the encoding cannot hold."""
@@ -127,7 +127,7 @@ class ConvertOptions:
         where = "convert"
         object.__setattr__(self, "masks", parse_masks(self.masks))
         from vbusd.baking.lod import check_screen_sizes, parse_ratios
-        from vbusd.baking.rootmotion import check_mode
+        from vbusd.format.rootmotion import check_mode
 
         ratios = self.lod_ratios
         if isinstance(ratios, str):
@@ -169,27 +169,18 @@ class ConvertOptions:
                 allowed = ", ".join(e.value for e in kind)
                 raise OptionsError(f"{name} must be one of {allowed}, got {value!r}", file=where) from None
             object.__setattr__(self, name, value)
-        compact = Encoding.COMPACT_QUAT_TRANSLATION.value
-        if self.texel_format == TexelFormat.UINT32.value and self.encoding == AUTO:
-            object.__setattr__(self, "encoding", compact)  # uint32 holds only the compact encoding
-        if (self.encoding == compact) != (self.texel_format == TexelFormat.UINT32.value):
-            raise OptionsError(f"encoding compactQuatTranslation and texel format uint32 go together (spec 5.6), "
-                               f"got {self.encoding} with {self.texel_format}", file=where)
+        if self.encoding == AUTO:
+            # a texel format that holds one encoding only (uint32: the compact one) decides "auto"
+            only = [e for e in Encoding if texel_formats_of(e) == (TexelFormat(self.texel_format),)]
+            if only:
+                object.__setattr__(self, "encoding", only[0].value)
+        elif pairing_error(self.encoding, self.texel_format):
+            raise OptionsError(pairing_error(self.encoding, self.texel_format), file=where)
         if self.container is None:
-            unorm = self.texel_format == TexelFormat.UNORM16.value
-            object.__setattr__(self, "container", "png" if unorm else "exr")
-        if self.container not in CONTAINERS:
-            raise OptionsError(f"container must be one of {', '.join(CONTAINERS)}, got {self.container!r}",
-                               file=where)
-        if self.container == "png" and self.texel_format == TexelFormat.UINT32.value:
-            raise OptionsError("texel format uint32 (compactQuatTranslation) cannot be stored in PNG, which has "
-                               "no 32-bit channels: use --container exr or ktx2", file=where)
-        if self.container == "png" and self.texel_format != TexelFormat.UNORM16.value:
-            raise OptionsError(f"the png container holds 16-bit integers only: use --texel-format unorm16 "
-                               f"(got {self.texel_format})", file=where)
-        if self.container == "exr" and self.texel_format == TexelFormat.UNORM16.value:
-            raise OptionsError("unorm16 textures are 16-bit PNG files: use --container png "
-                               "(or leave --container out)", file=where)
+            object.__setattr__(self, "container", default_container(self.texel_format))
+        mismatch = container_error(self.container, self.texel_format)
+        if mismatch:
+            raise OptionsError(mismatch, file=where)
         rate = self.rows_per_second
         if rate is not None:
             if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
@@ -406,7 +397,8 @@ def _texture_files(scene: SourceScene, output: Path, options: ConvertOptions) ->
     """The texture and sidecar files the writer will create (``<stem>.<animation prim name>.<ext>``)."""
     files = []
     for animation in scene.animations:
-        texture = output.parent / f"{output.stem}.{animation.path.rstrip('/').rsplit('/', 1)[-1]}.{options.container}"
+        prim_name = animation.path.rstrip('/').rsplit('/', 1)[-1]
+        texture = output.parent / texture_file_name(output.stem, prim_name, options.container)
         files += [texture, texture.with_name(texture.name + ".json")]
     return files
 
@@ -644,7 +636,7 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                                                          normal_point_indices(bound))
                 if vb.root_motion is not None:
                     # Clips baked in place (spec "Root motion"): the root track gives back the source motion.
-                    from vbusd.baking.rootmotion import at as root_at
+                    from vbusd.format.rootmotion import at as root_at
 
                     moves = np.stack([root_at(vb.root_motion.tracks[clip_index], clip, t, vb.root_motion.up_axis)
                                       for t in tau])

@@ -119,7 +119,8 @@ def _joint_samples(vb: VirtualBones, where: Optional[str] = None):
     """Per texture row: translations (rows, B, 3) f32, rotations (rows, B, 4) xyzw f32, scales f16,
     and the worst difference between the decoded ``[A | t]`` and the rebuilt one."""
     from vbusd.decoders.reference import channel_values
-    from vbusd.format.encoding import decode_bones, matrix_to_quat, quat_to_matrix
+    from vbusd.format.encoding import decode_bones
+    from vbusd.format.quaternion import matrix_to_quat, quat_to_matrix
 
     transforms = decode_bones(channel_values(vb), vb.layout.encoding)
     linear = np.asarray(transforms.linear, dtype=np.float64)  # (rows, B, 3, 3)

@@ -22,7 +22,7 @@ Each wrapper returns None when its kernel should not run: the work is small (und
 :data:`MIN_ITEMS`, where importing warp would cost more than it saves) or warp's CPU backend is not
 available; the caller then runs the numpy twin, which gives the same result to rounding
 (tests/test_bake_kernels.py compares every pair). Work is split over the usable cores
-(``$VBUSD_THREADS``, :mod:`vbusd.kernels.cores`): warp releases Python's lock while a CPU kernel runs, so
+(``$VBUSD_THREADS``, :mod:`vbusd.process.parallel`): warp releases Python's lock while a CPU kernel runs, so
 one launch per thread runs in parallel.
 
 Warp compiles this module once per machine and warp version into its kernel cache (a few
@@ -39,6 +39,8 @@ from typing import Optional
 
 import numpy as np
 
+from vbusd.process.parallel import split_work
+
 __all__ = ["MIN_ITEMS", "ENCODING_IDS", "available", "split_work", "near_rotation_polar", "encode_cross_matrix",
            "skinning_transforms", "bone_box_bounds", "skin_lbs"]
 
@@ -50,7 +52,6 @@ ENCODING_IDS = {"crossMatrix": 0, "affineMatrix": 1, "quatTranslation": 2}
 
 _state: dict = {}
 _lock = threading.Lock()  # loading the kernels
-_pool_lock = threading.Lock()  # the threads of split_work
 
 
 def _kernels():
@@ -91,43 +92,6 @@ def available() -> bool:
 
 def _wanted(items: int):
     return _kernels() if items >= MIN_ITEMS else None
-
-
-def _workers() -> int:
-    from vbusd.kernels.cores import usable_cores
-
-    return usable_cores()
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """This process's threads for :func:`split_work` (starting threads costs milliseconds each, and
-    a conversion splits a dozen steps); a forked child, which has none of them, makes its own."""
-    with _pool_lock:
-        pool = _state.get("pool")
-        if pool is None or _state.get("pool_owner") != (os.getpid(), threads):
-            if pool is not None and _state["pool_owner"][0] == os.getpid():
-                pool.shutdown(wait=False)  # sized for another thread count
-            pool = _state["pool"] = ThreadPoolExecutor(threads, thread_name_prefix="vbusd-split")
-            _state["pool_owner"] = (os.getpid(), threads)
-        return pool
-
-
-def split_work(count: int, launch, grain: int = 1024) -> None:
-    """Run ``launch(start, stop)`` over ``[0, count)`` in one slice per core, in parallel threads
-    (for work that releases Python's lock: warp launches, numpy casts and reductions); a slice
-    holds at least ``grain`` items. The calling thread runs the first slice."""
-    parts = min(_workers(), max(1, count // max(1, grain)))
-    bounds = np.linspace(0, count, parts + 1).astype(int)
-    if parts == 1:
-        launch(0, count)
-        return
-    pool = _pool(parts - 1)
-    others = [pool.submit(launch, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:]) if b > a]
-    try:
-        launch(int(bounds[0]), int(bounds[1]))
-    finally:
-        for future in others:
-            future.result()
 
 
 def _array(values: np.ndarray, dtype):

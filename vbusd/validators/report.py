@@ -17,6 +17,7 @@ from vbusd.format import codes as _codes
 from vbusd.format.codes import Severity
 from vbusd.format.diagnostics import Finding
 
+from vbusd.io.generator import VERSION
 __all__ = ["REPORT_FORMAT", "REPORT_VERSION", "Report", "build_report"]
 
 REPORT_FORMAT = "vbusd.validationReport"
@@ -122,9 +123,7 @@ class Report:
 
 
 def _version() -> str:
-    from vbusd import __version__
-
-    return __version__
+    return VERSION
 
 
 def build_report(asset: str, findings: Sequence[Finding], *, only: Sequence[str] = (),

@@ -22,6 +22,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format.metadata import to_dict
+from vbusd.io.generator import GENERATOR
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 
 __all__ = ["SCENE_FORMAT", "SCENE_VERSION", "build_scene", "scene_json"]
@@ -154,12 +155,13 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
     buffer = _Buffer()
     animations = []
     for vb in asset.animations:
-        texel_dtype = {"float16": "f2", "float32": "f4", "unorm16": "u2", "uint32": "u4"}[vb.layout.texel_format.value]
-        # uint32 (format 1.2): the three stored words per texel, as EXR and KTX2 hold them
-        stored = vb.texels[..., :3] if vb.layout.texel_format.value == "uint32" else vb.texels
+        texel_format = vb.layout.texel_format
+        texel_dtype = texel_format.numpy_dtype.lstrip("<")
+        # the channels a file stores (uint32: the three words, as EXR and KTX2 hold them)
+        stored = vb.texels[..., :texel_format.stored_channels]
         animations.append({
             "path": vb.path,
-            "layout": to_dict(vb),
+            "layout": to_dict(vb, generator=GENERATOR),
             "texels": buffer.add(np.ascontiguousarray(stored), texel_dtype),
             "clipExtents": None if vb.clip_extents is None
             else np.asarray(vb.clip_extents, dtype=np.float64).tolist(),

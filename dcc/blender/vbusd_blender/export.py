@@ -54,9 +54,7 @@ Progress = Callable[[int, int], None]
 def _vbusd():
     """Import vbusd, or raise an ImportError that says how to install it into Blender's Python."""
     try:
-        import importlib
-
-        convert_module = importlib.import_module("vbusd.convert")  # vbusd.convert is also a function
+        from vbusd.jobs import conversion as convert_module
     except ImportError as error:
         raise ImportError(f"vbusd is not installed in Blender's Python ({error}); see docs/blender.md: "
                           "install the extension with its wheels, or pip install vbusd into Blender's "

@@ -14,6 +14,8 @@ the vectors; ``--check`` compares them with what it would write (exit 1 on a dif
 
 from __future__ import annotations
 
+from vbusd.io.generator import GENERATOR
+
 import argparse
 import dataclasses
 import json
@@ -100,7 +102,7 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
         "formatMinorVersion": 2,
         "description": f"the 4-bone chain of the 1.1 vectors ({encoding}, {texel_format}) with bone parents, masks "
                        "'upper' and 'soft', and 6 instances with up to 2 layers on top of the crossfade",
-        "layout": md.to_dict(vb),
+        "layout": md.to_dict(vb, generator=GENERATOR),
         "texture": texture,
         "texels": np.ascontiguousarray(vb.texels).astype(np.float64).reshape(-1).tolist(),
         "bindTransforms": vb.bind_transforms.tolist(),
