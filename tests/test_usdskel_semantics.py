@@ -332,3 +332,35 @@ def test_time_sampled_normals_warn_and_the_report_shows_the_difference(tmp_path)
     mesh = report.animations[0].meshes[0]
     assert mesh.max_normal_error_degrees > 170
     assert mesh.max_error < TOLERANCE  # the points are unaffected
+
+
+def test_auto_encoding_samples_a_non_rigid_source_once(tmp_path, monkeypatch):
+    """``--encoding auto`` on a non-rigid rig: crossMatrix fails, affineMatrix is baked from the poses
+    the first bake sampled (issue 32): each clip's source is evaluated once per time, not twice."""
+    from vbusd.converters import usdskel
+
+    joints = scenes.chain_joints(3)
+    rig = scenes.RigSpec(scale_keys={joints[1]: [(9.0, (1.5, 1, 1))]})
+    source = scenes.write_stage(tmp_path / "source.usda", [rig])
+    calls = []
+    read = usdskel.read
+
+    def counting_read(*args, **kwargs):
+        scene = read(*args, **kwargs)
+        for animation in scene.animations:
+            for clip in animation.clips:
+                sample = clip.sample
+
+                def wrapped(times, _name=clip.name, _sample=sample):
+                    calls.append((_name, np.asarray(times).tobytes()))
+                    return _sample(times)
+
+                object.__setattr__(clip, "sample", wrapped)
+        return scene
+
+    monkeypatch.setattr(usdskel, "read", counting_read)
+    report = convert(source, tmp_path / "asset.usda", ConvertOptions(texel_format="float32", check_rows=0))
+    assert report.animations[0].encoding == "affineMatrix"
+    assert "crossMatrix cannot hold" in report.animations[0].encoding_reason
+    # One evaluation per clip and set of times: the loop check's two poses, then the rows once.
+    assert len(calls) == len(set(calls)) == 2, [(name, len(times) // 8) for name, times in calls]

@@ -489,9 +489,14 @@ def bake_with_clip_policy(scene: SourceScene, index: int, options: ConvertOption
     Raises:
         VbusdError: An error that names no clip, or a bad clip under ``error``.
     """
-    animation = scene.animations[index]
+    original = scene.animations[index]
+    # Every bake below (auto's second encoding, each clip alone under skip) reuses the poses the
+    # first one sampled: a source is sampled once per clip and time, however often it is baked.
+    animation = dataclasses.replace(original, clips=tuple(dataclasses.replace(c, sample=_SampledOnce(c.sample))
+                                                          for c in original.clips))
+    scene = _with_animation(scene, index, animation)
     try:
-        return (scene,) + bake_animation(scene, index, options)
+        return _released(bake_animation(scene, index, options), scene, index, original)
     except (UnsupportedError, InputError) as error:
         bad_clip = _clip_at_fault(error, animation)
         if bad_clip is None:
@@ -519,7 +524,40 @@ def bake_with_clip_policy(scene: SourceScene, index: int, options: ConvertOption
     if not kept:
         return None
     scene = _with_animation(scene, index, dataclasses.replace(animation, clips=kept))
-    return (scene,) + bake_animation(scene, index, options)
+    return _released(bake_animation(scene, index, options), scene, index,
+                     dataclasses.replace(original, clips=tuple(c for c in original.clips if c.name not in bad)))
+
+
+class _SampledOnce:
+    """A clip's sampler that keeps what it sampled: asked again for the same times (the same rows of
+    a second bake), it answers from memory instead of evaluating the source again."""
+
+    def __init__(self, sample) -> None:
+        self._sample = sample
+        self._kept: dict = {}
+
+    @property
+    def on_progress(self):
+        return getattr(self._sample, "on_progress", None)
+
+    @on_progress.setter
+    def on_progress(self, callback) -> None:
+        if hasattr(self._sample, "on_progress"):
+            self._sample.on_progress = callback
+
+    def __call__(self, times):
+        times = np.asarray(times, dtype=np.float64)
+        key = (times.shape, times.tobytes())
+        if key not in self._kept:
+            poses = np.asarray(self._sample(times), dtype=np.float64)
+            poses.setflags(write=False)
+            self._kept[key] = poses
+        return self._kept[key]
+
+
+def _released(outcome: tuple, scene: SourceScene, index: int, original: SkinnedAnimation) -> tuple:
+    """``(scene, *outcome)`` with the animation's own samplers back (the kept poses are let go)."""
+    return (_with_animation(scene, index, original),) + outcome
 
 
 def _checked_rows(row_count: int, check_rows: Optional[int]) -> np.ndarray:
