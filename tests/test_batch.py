@@ -538,9 +538,9 @@ def test_a_stalled_dask_task_is_ended_and_the_batch_goes_on(tmp_path):
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         report = run_batch(items, {"check_rows": 4}, scheduler=cluster.scheduler_address, stall_timeout=3)
         with distributed.Client(cluster) as client:  # the worker loaded vbusd in its own main thread
-            from vbusd.process import threads as _threads
+            from vbusd.jobs import warmup
 
-            prepared = list(client.run(_threads.prepared_by, "batch").values())
+            prepared = list(client.run(warmup.prepared_by, "batch").values())
     statuses = {Path(a.source).name: (a.status, a.code) for a in report.assets}
     assert statuses["stuck.usda"] == ("failed", "batch.stalled")
     assert statuses["a.usda"][0] == statuses["b.usda"][0] == "converted"

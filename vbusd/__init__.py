@@ -66,7 +66,7 @@ _EXPORTS = {
     "CrowdOptions": "vbusd.jobs.crowd",
     "decode": "vbusd.jobs.pointcache",
     "Decoder": "vbusd.decoders.warp",
-    "prepare": "vbusd.process.threads",
+    "prepare": "vbusd.jobs.warmup",
 }
 
 __all__ = sorted(_EXPORTS) + ["__version__"]
@@ -92,7 +92,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from vbusd.jobs.crowd import CrowdOptions, build_crowd
     from vbusd.jobs.pointcache import decode
     from vbusd.decoders.warp import Decoder
-    from vbusd.process.threads import prepare
+    from vbusd.jobs.warmup import prepare
     from vbusd.format.errors import InputError, OptionsError, UnsupportedError, VbusdError, VersionError
     from vbusd.format.layout import FORMAT_VERSION, Encoding, Layout, Padding, TexelFormat
     from vbusd.format.model import (AnimationClip, BoundMesh, Clip, Crowd, SkinnedAnimation, SkinnedMesh,

@@ -598,9 +598,9 @@ def convert_one(task: dict) -> dict:
         An :class:`AssetResult` as a dict (plain data, for any scheduler).
     """
     from vbusd.process import signals as _signals
-    from vbusd.process import threads as _threads
+    from vbusd.jobs import warmup
 
-    _threads.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
+    warmup.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
     try:
         with _signals.handling_signals(signals=(signal.SIGTERM,)), _Heartbeat(task) as beat:
             return _convert_one(task, beat)
@@ -748,9 +748,9 @@ def _pool_initializer(parent: Optional[int] = None) -> None:
     from vbusd.io.usd_probe import prestart
 
     prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
-    from vbusd.process import threads as _threads
+    from vbusd.jobs import warmup
 
-    _threads.prepare("batch")
+    warmup.prepare("batch")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
 
 
@@ -999,9 +999,9 @@ def _worker_failure(task: dict, error) -> dict:
 def _prepare_worker() -> None:
     """What the ``vbusd-prepare`` Dask worker plugin runs in the worker's event-loop (main) thread."""
     _one_core()
-    from vbusd.process import threads as _threads
+    from vbusd.jobs import warmup
 
-    _threads.prepare("batch")
+    warmup.prepare("batch")
 
 
 def _prepare_plugin():

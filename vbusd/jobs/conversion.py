@@ -34,7 +34,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.process import threads as _threads
+from vbusd.jobs import warmup
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import json_ready
@@ -737,7 +737,7 @@ def _prepare_for(source: Path) -> None:
     kernels. A large crate source is probed meanwhile: the request goes to the probe server, whose
     child reads the file while this thread loads, and the answer is read after (no thread: the
     reader's own probe of the file is then a lookup)."""
-    from vbusd.process import threads as _threads
+    from vbusd.jobs import warmup
 
     try:
         large = source.stat().st_size >= LARGE_SOURCE_BYTES
@@ -749,7 +749,7 @@ def _prepare_for(source: Path) -> None:
 
         pending = usd_probe.start_probe(source)
     try:
-        _threads.prepare("convert", kernels=large)
+        warmup.prepare("convert", kernels=large)
     except BaseException:
         if pending is not None:
             pending.cancel()  # interrupted: do not wait for the answer
@@ -919,7 +919,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
     # The accuracy check runs while the textures are compressed and staged; the write waits for it
     # before its commit point, so a check that fails still leaves nothing written. Everything the
     # check and the write use is loaded before the check's thread starts (vbusd/process/threads.py).
-    _threads.prepare("convert")
+    warmup.prepare("convert")
     pool = ThreadPoolExecutor(1, thread_name_prefix="vbusd-check")
     checking = pool.submit(check)
     try:
