@@ -40,8 +40,9 @@ from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.metadata import json_pointer
 from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
 
-from vbusd.converters.gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
-                             require_int, triangles)
+from vbusd.io.gltf_accessors import (COMPONENT_NAMES, MODE_NAMES, AccessorReader, require_index,
+                                     require_int, triangles)
+
 from vbusd.converters.gltf_animation import compose_trs, sample_channel
 
 __all__ = ["NAME", "SUFFIXES", "MAX_FILE_BYTES", "TIME_CODES_PER_SECOND", "DEFAULT_RATE",

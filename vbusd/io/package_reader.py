@@ -37,6 +37,7 @@ import numpy as np
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
 from vbusd.format.errors import InputError, VbusdError
 from vbusd.format.metadata import json_kind, json_pointer
+from vbusd.io.gltf_accessors import AccessorReader
 
 __all__ = ["SUFFIXES", "PackageAnimation", "PackageCrowd", "Package", "read_package"]
 
@@ -378,7 +379,6 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
         InputError: The container or the JSON cannot be read at all (whatever ``diagnostics``).
     """
     from vbusd.converters.gltf import load
-    from vbusd.converters.gltf_accessors import AccessorReader
     from vbusd.format.model import ReadOptions
 
     path = Path(path)
