@@ -49,14 +49,14 @@ _TEXTURES = ("OpenEXR", "png", "zstandard", "vbusd.io.exr", "vbusd.io.png", "vbu
 JOBS = {
     "convert": _COMMON + _USD + _TEXTURES + ("vbusd.bake", "vbusd.kernels.bake", "vbusd.convert",
                                               "vbusd.converters.registry", "vbusd.converters.usdskel",
-                                              "vbusd.io.gltf_accessors", "vbusd.converters.gltf",
+                                              "vbusd.io.gltf", "vbusd.io.gltf_accessors", "vbusd.converters.gltf",
                                               "pygltflib", "jsonschema"),
     "decode": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.pointcache", "jsonschema"),
     "export": _COMMON + _USD + _TEXTURES + ("vbusd.io.gltf_package", "pygltflib", "jsonschema"),
     "crowd": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.crowd", "jsonschema"),
     "batch": _COMMON + _USD + _TEXTURES + ("vbusd.jobs.batch", "vbusd.bake", "vbusd.kernels.bake", "vbusd.convert",
                                             "vbusd.converters.registry", "vbusd.converters.usdskel",
-                                            "vbusd.io.gltf_accessors", "vbusd.converters.gltf",
+                                            "vbusd.io.gltf", "vbusd.io.gltf_accessors", "vbusd.converters.gltf",
                                             "pygltflib", "jsonschema"),
 }
 """The modules each job imports before its first helper thread (missing optional ones are skipped)."""
