@@ -62,6 +62,7 @@ def gltf_entry(path: Path, limit: int) -> dict:
     from vbusd.converters import gltf
     from vbusd.decoders.reference import skin_mesh
     from vbusd.format.errors import VbusdError
+    from vbusd.io.gltf import load
 
     start = time.perf_counter()
     shown = set(_three(path, "-", [0.0])["poses"][0]["byNode"])
@@ -71,7 +72,7 @@ def gltf_entry(path: Path, limit: int) -> dict:
     except VbusdError as error:
         entry.update(refused=str(error), converted=0, attachments=0, dropped=sorted(shown))
         return entry
-    document, _ = gltf.load(path)
+    document, _ = load(path)
     names = [gltf.make_identifier(a.name, f"animation{i}") for i, a in enumerate(document.animations)]
     converted, attachments, skinned = {}, 0, 0
     for ai, animation in enumerate(scene.animations):

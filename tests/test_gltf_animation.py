@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from vbusd.converters.gltf import native_rate
-from vbusd.converters.gltf_accessors import element_layout, triangles
 from vbusd.converters.gltf_animation import compose_trs, sample_channel
+from vbusd.io.gltf_accessors import element_layout, triangles
 
 S = math.sqrt(0.5)
 

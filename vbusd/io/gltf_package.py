@@ -30,6 +30,7 @@ from vbusd.format import metadata as md
 from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
+from vbusd.io.gltf import referenced_uris
 
 from vbusd.io.generator import GENERATOR
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
@@ -512,8 +513,6 @@ def package_files_in_use(target) -> list:
     the clean-up after a commit never remove a file a current ``.gltf`` of that stem names. A
     ``.glb`` names no other file. Anything unreadable names nothing.
     """
-    from vbusd.converters.gltf import referenced_uris
-
     gltf_path = Path(target).with_suffix(".gltf")
     if not gltf_path.is_file():
         return []

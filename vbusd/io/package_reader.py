@@ -5,8 +5,8 @@
 ``vbusd info`` (the first error raises), lenient for ``vbusd validate`` (every problem is a
 finding). It checks
 
-* the container and the glTF JSON with the glTF converter's own reader
-  (:func:`vbusd.converters.gltf.load`: GLB chunks, JSON types, buffers and their URIs);
+* the container and the glTF JSON with the glTF container reader the converter uses
+  (:func:`vbusd.io.gltf.load`: GLB chunks, JSON types, buffers and their URIs);
 * the ``VBUSD_virtual_bones`` extension: listed in ``extensionsUsed``, never required, the root
   object and every primitive object against ``vbusd/schema/VBUSD_virtual_bones.schema.json`` (the layout
   against the layout metadata schema it references) (``package.extension``, ``metadata.schema``);
@@ -37,6 +37,8 @@ import numpy as np
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
 from vbusd.format.errors import InputError, VbusdError
 from vbusd.format.metadata import json_kind, json_pointer
+from vbusd.io.gltf import json_text_of, load
+from vbusd.io.gltf_accessors import AccessorReader
 
 __all__ = ["SUFFIXES", "PackageAnimation", "PackageCrowd", "Package", "read_package"]
 
@@ -147,8 +149,6 @@ def _schema(validator, value, pointer: str, file: str, diagnostics: Diagnostics)
 
 def _parse(path: Path, file: str) -> dict:
     """The package's JSON as parsed by the glTF reader (a bad container or JSON raises: exit 2)."""
-    from vbusd.converters.gltf import json_text_of
-
     try:
         data = path.read_bytes()
     except OSError as error:
@@ -377,8 +377,6 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
     Raises:
         InputError: The container or the JSON cannot be read at all (whatever ``diagnostics``).
     """
-    from vbusd.converters.gltf import load
-    from vbusd.converters.gltf_accessors import AccessorReader
     from vbusd.format.model import ReadOptions
 
     path = Path(path)

@@ -52,6 +52,7 @@ from typing import Callable, Iterable, Optional
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.jsonform import json_ready
 from vbusd.io.files import file_sha256
+from vbusd.io.gltf import referenced_uris
 
 from vbusd.io.generator import GENERATOR
 __all__ = ["BatchItem", "AssetResult", "BatchReport", "SOURCE_SUFFIXES", "CACHE_FOLDER", "plan_batch",
@@ -412,8 +413,6 @@ def dependencies(source) -> list:
     suffix = source.suffix.lower()
     try:
         if suffix in (".gltf", ".glb"):
-            from vbusd.converters.gltf import referenced_uris  # the converter's own container walk
-
             for uri in referenced_uris(source):
                 if not uri.startswith("data:"):
                     target = (source.parent / unquote(uri)).resolve()
