@@ -63,13 +63,35 @@ def _layers() -> list:
     return rows
 
 
-def _listed(name: str) -> list:
-    """The backquoted entries of the bullet list that follows ``name:`` in the Layers section."""
+def _bullets(name: str) -> list:
+    """The bullets of the list that follows ``name`` (a paragraph ending in ``:``) in the Layers section,
+    continuation lines joined."""
     section = _section("Layers")
-    match = re.search(rf"^{re.escape(name)}:\n((?:\s*[*-] .*\n?)+)", section, flags=re.M)
-    assert match, f"docs/architecture.md, Layers: no list '{name}:'"
-    return [re.match(r"\s*[*-] `([^`]+)`", line).group(1) for line in match.group(1).splitlines()
-            if re.match(r"\s*[*-] `", line)]
+    match = re.search(rf"^{re.escape(name)}[^\n]*(?:\n[^\n*-][^\n]*)*:\n((?:[*-] .*\n?|  .*\n?)+)", section, flags=re.M)
+    assert match, f"docs/architecture.md, Layers: no list '{name}'"
+    bullets = []
+    for line in match.group(1).splitlines():
+        if re.match(r"[*-] ", line):
+            bullets.append(line[2:])
+        elif bullets:
+            bullets[-1] += " " + line.strip()
+    return bullets
+
+
+def _listed(name: str) -> list:
+    """The first backquoted entry of each bullet of the list ``name``."""
+    return [m.group(1) for m in (re.match(r"`([^`]+)`", b) for b in _bullets(name)) if m]
+
+
+def _imported_where_used() -> dict:
+    r"""``{module: importers}`` of the list "Imported where used": an entry ``\`m\` in \`a\`, \`b\`: why``
+    may be imported inside functions of ``a`` and ``b`` only; ``\`m\`: why`` anywhere (None)."""
+    allowed = {}
+    for bullet in _bullets("Imported where used"):
+        match = re.match(r"`([^`]+)`(?: in ((?:`[^`]+`(?:, | and )?)+))?:", bullet)
+        assert match, bullet
+        allowed[match.group(1)] = None if match.group(2) is None else set(re.findall(r"`([^`]+)`", match.group(2)))
+    return allowed
 
 
 def _layer_of(module: str, layers: list):
@@ -181,13 +203,20 @@ def test_imports_sit_at_the_top_of_modules():
     """No vbusd or standard-library import inside a function: what a job's helper threads run is
     imported when the job's module is (vbusd/process/threads.py). Heavy optional packages that only
     some commands use may be imported where they are used; the table lists them."""
-    optional = set(_listed("Imported where used"))
+    allowed = _imported_where_used()
+
+    def excused(target: str, module: str) -> bool:
+        for name, importers in allowed.items():
+            if (target == name or target.startswith(name + ".")) and (importers is None or module in importers):
+                return True
+        return False
+
     deferred = []
     for module, path in MODULES.items():
         for line, target, in_function, statement in _imports(path):
-            top = target.split(".")[0]
-            if in_function and top not in optional:
+            if in_function and not excused(target, module):
                 deferred.append(f"{path.relative_to(REPO)}:{line}: {statement}")
+    deferred = list(dict.fromkeys(deferred))  # one line per statement, not per name it imports
     assert deferred == [], "imports inside functions:\n" + "\n".join(deferred)
 
 

@@ -16,6 +16,13 @@ import numpy as np
 
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
+from vbusd.validators.api import validate as _validate
+from vbusd.io.usd import read_asset
+from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
+from vbusd.decoders.reference import mask_weights
+from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, layered_skinning
+from vbusd.decoders.reference import root_motion as displacement
+from vbusd.decoders.shaders import ShaderOptions, generate
 
 __all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "root_motion", "shader", "clip_index"]
 
@@ -59,7 +66,6 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_
         >>> report.valid
         True
     """
-    from vbusd.validators.api import validate as _validate
 
     return _validate(path, only=only, ignore=ignore, max_issues=max_issues)
 
@@ -68,7 +74,6 @@ def _animation(asset: AssetLike, animation: int, what: str) -> VirtualBones:
     if isinstance(asset, VirtualBones):
         return asset
     if not isinstance(asset, VirtualBonesAsset):
-        from vbusd.io.usd import read_asset
 
         asset = read_asset(asset)
     if isinstance(animation, bool) or not isinstance(animation, (int, np.integer)) \
@@ -150,7 +155,6 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         >>> waving = vbusd.skin("fox.usda", "Walk", 0.5,
         ...                     layers=[{"clip": "Survey", "time": 1.0, "weight": 1.0, "mask": "upper"}])  # doctest: +SKIP
     """
-    from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
@@ -196,7 +200,6 @@ _LAYER_KEYS = ("clip", "time", "weight", "mask")
 
 def _layers(vb: VirtualBones, layers, job: str) -> list:
     """Layers given as dicts, checked and resolved to ``(clip index, times, weight, mask weights)``."""
-    from vbusd.decoders.reference import mask_weights
 
     if layers is None:
         return []
@@ -286,14 +289,12 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
         >>> hand[:3, 3]   # the hand's position in animation space
     """
-    from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, layered_skinning
 
     if instance is not None and layers:
         raise OptionsError("layers apply to one animation's clip, not with instance= (a crowd's layers are its "
                            "primvars)", file="bone_transform")
     if instance is not None:
         if not isinstance(asset, VirtualBonesAsset):
-            from vbusd.io.usd import read_asset
 
             asset = read_asset(asset)
         if not 0 <= crowd < len(asset.crowds):
@@ -349,7 +350,6 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
         >>> step = vbusd.root_motion("walk.usda", "walk", 0.0, 1.0)  # doctest: +SKIP
         >>> step[:3, 3]   # metres walked in the first second
     """
-    from vbusd.decoders.reference import root_motion as displacement
 
     vb = _animation(asset, animation, "root_motion")
     index = clip_index(vb, clip, what="root_motion")
@@ -377,7 +377,6 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
     Raises:
         OptionsError: An unknown language, encoding, texel format or skin binding, or a count out of range.
     """
-    from vbusd.decoders.shaders import ShaderOptions, generate
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                   max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,

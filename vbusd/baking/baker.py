@@ -21,6 +21,9 @@ from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat, next_power_of_two
 from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation, SkinnedMesh, VirtualBones
 from vbusd.kernels import bake as bake_kernels
+from vbusd.baking.rootmotion import in_place_clip
+from vbusd.format.rootmotion import RootMotion, check_mode
+from vbusd.decoders.bounds import clip_extents
 
 __all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "bone_masks", "RowPlan", "decide_loop", "plan_rows",
            "reduce_influences", "bind_mesh", "bake"]
@@ -289,8 +292,6 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     # Masks are resolved before any pose is sampled: a misspelt bone fails at once.
     parents, masks = bone_masks(animation, options.masks) if options.masks else (None, ())
     trackers = None
-    from vbusd.baking.rootmotion import in_place_clip
-    from vbusd.format.rootmotion import RootMotion, check_mode
 
     mode = check_mode(options.root_motion)
     if mode != "keep":
@@ -369,7 +370,6 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13): they bound
         # what every decoder computes, quantization included.
-        from vbusd.decoders.bounds import clip_extents
 
         baked = dataclasses.replace(baked, clip_extents=clip_extents(baked).astype(np.float32))
     return baked

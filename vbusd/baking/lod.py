@@ -24,6 +24,7 @@ import numpy as np
 from vbusd.format.errors import OptionsError, UnsupportedError
 from vbusd.format.model import BoundMesh, LevelsOfDetail, VirtualBones
 from vbusd.format.names import unique_names
+from vbusd.baking.baker import reduce_influences
 
 __all__ = ["MAX_LEVELS", "default_screen_sizes", "parse_ratios", "check_screen_sizes", "simplify_mesh",
            "add_levels", "adopt_levels", "levels_from_names", "screen_size", "select_levels", "level_meshes"]
@@ -142,7 +143,6 @@ def simplify_mesh(mesh: BoundMesh, ratio: float, max_influences: int, path: str,
     Returns:
         The simplified mesh (triangles only, vertex normals when the source had normals).
     """
-    from vbusd.baking.baker import reduce_influences
 
     meshopt = _meshoptimizer()
     triangles, _ = _triangles(mesh)

@@ -17,6 +17,9 @@ import click
 from vbusd.format.errors import VbusdError
 
 from vbusd.io.generator import VERSION
+import numpy as np
+from vbusd.process import signals as _signals
+from vbusd.cli.common import command_line_spelling
 __all__ = ["COMMANDS", "BUG_REPORT_HINT", "INTERNAL_ERROR_STATUS", "cli", "main", "internal_error_line"]
 
 COMMANDS = {
@@ -121,9 +124,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         click.echo(cli.get_help(click.Context(cli, info_name="vbusd", **cli.context_settings)))
         return 2
     _RUNNING.clear()
-    import numpy as np
 
-    from vbusd.process import signals as _signals
 
     try:
         # Corrupt input can hold NaN and infinities: readers and checks name them as findings and
@@ -132,7 +133,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         with np.errstate(all="ignore"), _signals.handling_signals():
             result = cli.main(args=args, prog_name="vbusd", standalone_mode=False)
     except VbusdError as error:
-        from vbusd.cli.common import command_line_spelling
 
         _echo_error(f"vbusd: {command_line_spelling(str(error))}")  # force=True -> --force
         return error.exit_status

@@ -21,6 +21,11 @@ import click
 
 from vbusd.format.jsonform import json_text
 from vbusd.format.layout import Encoding, default_texel_format
+from vbusd.format.errors import COMMAND_LINE_SPELLINGS
+from rich.console import Console
+from rich.table import Table
+from vbusd.process import signals as _signals
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 __all__ = ["DEFAULT_TEXEL_FORMATS", "TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
            "format_option", "force_option", "warn", "echo_json", "console", "table", "command_line_spelling",
@@ -64,7 +69,6 @@ def command_line_spelling(text: str) -> str:
     a command's user sets a flag (``--force``). :data:`vbusd.format.errors.COMMAND_LINE_SPELLINGS`
     lists the spellings.
     """
-    from vbusd.format.errors import COMMAND_LINE_SPELLINGS
 
     for library, command_line in COMMAND_LINE_SPELLINGS.items():
         text = text.replace(library, command_line)
@@ -103,7 +107,6 @@ def echo_json(value) -> None:
 def console(file=None):
     """A rich console for tables: the terminal's width on a terminal; no wrapping otherwise
     (:data:`TEXT_WIDTH`), so that no path or number is broken in two in a log or a pipe."""
-    from rich.console import Console
 
     stream = sys.stdout if file is None else file
     terminal = stream.isatty()
@@ -121,7 +124,6 @@ def table(*columns: str, title: Optional[str] = None, right: tuple = (), show_he
         show_header: Print the headings.
         options: Passed to ``rich.table.Table``.
     """
-    from rich.table import Table
 
     result = Table(title=title, title_justify="left", show_header=show_header, **options)
     for heading in columns:
@@ -136,7 +138,6 @@ def terminate_as_interrupt():
     As an interrupt, the write transaction removes its temporaries (and a folder it created) and
     the command exits 130 (SIGINT) or 143 (SIGTERM).
     """
-    from vbusd.process import signals as _signals
 
     return _signals.handling_signals()
 
@@ -196,8 +197,6 @@ class progress_bar:
             return None
         if not sys.stderr.isatty():
             return _PlainProgress(sys.stderr, PROGRESS_INTERVAL_S)
-        from rich.console import Console
-        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
         # auto_refresh off: rich's refresh thread would render (and import) beside the job's own
         # imports; the bar is drawn from the calling thread instead (vbusd/process/threads.py).

@@ -21,6 +21,15 @@ import click
 from vbusd.cli.common import (DEFAULT_TEXEL_FORMATS, command_line_spelling, console, echo_json, force_option, format_option, human_bytes,
                               progress_bar, quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.layout import Encoding, Padding, TexelFormat, default_texel_format
+from vbusd.io.usd_probe import needs_probe, prestart
+from vbusd.jobs.conversion import ConvertOptions, convert
+from vbusd.jobs.batch import is_glob
+from vbusd.jobs.batch import plan_batch, run_batch
+from vbusd.jobs.conversion import ConvertOptions
+from vbusd.format.jsonform import json_text
+from vbusd.io.files import atomic_write, make_folders
+from vbusd.cli.common import table
+from rich.table import Table
 
 __all__ = ["command", "print_summary"]
 
@@ -132,11 +141,9 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     names, in parallel, skipping what has not changed since the last run; exit 0 when every asset
     converted, 1 when some failed, 2 when none could.
     """
-    from vbusd.io.usd_probe import needs_probe, prestart
 
     if len(sources) == 1 and needs_probe(sources[0]):
         prestart()  # the crate probe's server starts while this process imports the converters
-    from vbusd.jobs.conversion import ConvertOptions, convert
 
     try:
         rows = _check_rows(check_rows)
@@ -190,7 +197,6 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
 
 def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
     """Several sources, a folder, a glob, a manifest, a scheduler, a report or an output folder."""
-    from vbusd.jobs.batch import is_glob
 
     if manifest is not None or scheduler is not None or report_file is not None or len(sources) != 1:
         return True
@@ -204,12 +210,7 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
 
 def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
                output_format, quiet, stall_timeout=None) -> int:
-    from vbusd.jobs.batch import plan_batch, run_batch
-    from vbusd.jobs.conversion import ConvertOptions
-    from pathlib import Path
 
-    from vbusd.format.jsonform import json_text
-    from vbusd.io.files import atomic_write, make_folders
 
     ConvertOptions(**values)  # the batch's own options: refused before anything starts
     items = plan_batch(sources, output, manifest=manifest)
@@ -240,9 +241,7 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
 
 def print_batch(report, file=None) -> None:
     """Print a :class:`vbusd.jobs.batch.BatchReport` as a table (wrapped only on a terminal), then the totals."""
-    from pathlib import Path
 
-    from vbusd.cli.common import table
 
     out = console(file)
     grid = table("asset", "status", "time", "bytes", "max error", right=("time", "bytes", "max error"))
@@ -280,7 +279,6 @@ def _rows(grid, pairs) -> None:
 
 
 def _grid():
-    from rich.table import Table
 
     grid = Table.grid(padding=(0, 2))
     grid.add_column(no_wrap=True)

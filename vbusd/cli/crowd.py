@@ -11,6 +11,7 @@ import click
 
 from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option
 from vbusd.format.errors import OptionsError
+from vbusd.jobs.crowd import CrowdOptions, build_crowd, parse_weights
 
 __all__ = ["command"]
 
@@ -75,7 +76,6 @@ class _CrowdCommand(click.Command):
 def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
             yaw, scale, seed, output_format, force, allow_outside_paths, quiet):
     """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
-    from vbusd.jobs.crowd import CrowdOptions, build_crowd, parse_weights
 
     options = CrowdOptions(layout=layout, count=count, spacing=spacing, points=points_file,
                            clips=parse_weights(clips) if clips else {},

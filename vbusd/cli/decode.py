@@ -14,6 +14,7 @@ import click
 from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, quiet_option,
                               terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
+from vbusd.jobs.pointcache import decode
 
 __all__ = ["command"]
 
@@ -35,7 +36,6 @@ __all__ = ["command"]
 @quiet_option
 def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
-    from vbusd.jobs.pointcache import decode
 
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,

@@ -17,13 +17,14 @@ import click
 
 from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option, warn
 from vbusd.format.errors import FORCE_HINT, OptionsError
+from vbusd.io.gltf_package import SUFFIXES, export_gltf
+from vbusd.io.usd import read_asset
+from vbusd.jobs.export_usdskel import SUFFIXES, export_usdskel
 
 __all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
 
 
 def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
-    from vbusd.io.gltf_package import SUFFIXES, export_gltf
-    from vbusd.io.usd import read_asset
 
     if output.suffix.lower() not in SUFFIXES:
         raise OptionsError(f"--as gltf writes .glb or .gltf files, got {output.name!r}", file=str(output))
@@ -34,8 +35,6 @@ def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
 
 
 def _export_usdskel(asset_path: Path, output: Path, options: dict) -> dict:
-    from vbusd.jobs.export_usdskel import SUFFIXES, export_usdskel
-    from vbusd.io.usd import read_asset
 
     if output.suffix.lower() not in SUFFIXES:
         raise OptionsError(f"--as usdskel writes .usda, .usdc or .usd files, got {output.name!r}", file=str(output))

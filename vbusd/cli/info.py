@@ -27,6 +27,14 @@ from vbusd.cli import common
 from vbusd.format.errors import MISSING_FILE, InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
+from vbusd.io.usd_reader import read_summary
+from vbusd.format.diagnostics import Diagnostics
+from vbusd.io.package_reader import EXTENSION, read_package
+from pxr import UsdGeom
+from vbusd.io.usd_reader import stage_for_reading
+from vbusd.io import textures
+from rich.markup import escape
+from rich.table import Table
 
 __all__ = ["USD_SUFFIXES", "PACKAGE_SUFFIXES", "describe", "asset_info", "command"]
 
@@ -133,7 +141,6 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     with its schema type, consistent sizes and clips, layers and ``vb:texture`` inside the asset's
     folder), but the textures are not opened.
     """
-    from vbusd.io.usd_reader import read_summary
 
     animations, crowds = read_summary(path, allow_outside_paths=allow_outside_paths)
     for animation in animations:
@@ -162,8 +169,6 @@ def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
     against its schema, the crowds' instance attributes); the KTX2 textures are located, not
     decoded (``vbusd validate`` checks them).
     """
-    from vbusd.format.diagnostics import Diagnostics
-    from vbusd.io.package_reader import EXTENSION, read_package
 
     file = str(path)
     package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths,
@@ -196,9 +201,7 @@ def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
 def _stage_units(path: Path) -> dict:
     """The stage's ``upAxis`` and ``metersPerUnit`` (spec: usd-conversion.md, Scene units), read from
     the root layer's metadata with UsdGeom's fallbacks when not authored."""
-    from pxr import UsdGeom
 
-    from vbusd.io.usd_reader import stage_for_reading
 
     with stage_for_reading(path, allow_outside_paths=True) as stage:  # paths were checked already
         root = stage.GetRootLayer().pseudoRoot
@@ -213,7 +216,6 @@ def _check_texture(asset: Path, animation) -> None:
     A layout of a texture nobody can load is no answer to "what is in this asset"; the one line
     names the prim's ``vb:texture`` and what is wrong with the file it names.
     """
-    from vbusd.io import textures
 
     location = f"{animation.path}.vb:texture"
     texture = Path(animation.texture_file)
@@ -247,7 +249,6 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
         InputError: The file is missing (``file.missing``), a folder, pipe or device or of an
             unknown kind (``file.kind``), unsafe or unreadable.
     """
-    from vbusd.io import textures
 
     path = Path(asset)
     file = str(asset)
@@ -301,8 +302,6 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
 
 
 def _print_text(result: dict) -> None:
-    from rich.markup import escape
-    from rich.table import Table
 
     console = common.console()
     console.print(f"[bold]{result['file']}[/bold] ({result['kind']}, "
@@ -358,7 +357,6 @@ def _print_text(result: dict) -> None:
 
 def _print_crowds(console, result: dict) -> None:
     """The crowds table (USD files and packages): instances, prototypes, clips played."""
-    from rich.markup import escape
 
     if "crowds" not in result:
         return

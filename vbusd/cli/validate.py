@@ -9,6 +9,9 @@ from __future__ import annotations
 import click
 
 from vbusd.cli.common import format_option, quiet_option
+from vbusd.validators.api import validate
+import shutil
+import sys
 
 __all__ = ["command"]
 
@@ -39,7 +42,6 @@ def command(asset: str, output_format: str, only, ignore, max_issues, quiet) -> 
 
     Exit status 0: no errors; 1: errors; 2: the asset cannot be read.
     """
-    from vbusd.validators.api import validate
 
     report = validate(asset, only=_split(only), ignore=_split(ignore), max_issues=max_issues)
     if quiet:  # the exit status says it: 0 valid, 1 errors (2, unreadable, was one line on stderr)
@@ -47,8 +49,6 @@ def command(asset: str, output_format: str, only, ignore, max_issues, quiet) -> 
     if output_format == "json":
         click.echo(report.to_json_text())
     else:
-        import shutil
-        import sys
 
         # On a terminal, messages wrap at its width between words; in a log or a pipe not at all.
         width = shutil.get_terminal_size().columns if sys.stdout.isatty() else None

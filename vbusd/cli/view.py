@@ -20,6 +20,8 @@ import click
 from vbusd.cli.common import echo_json, format_option, quiet_option
 from vbusd.format.errors import OptionsError
 from vbusd.web.engines import ENGINES
+from vbusd.web.server import ViewerServer
+import webbrowser
 
 __all__ = ["command"]
 
@@ -41,7 +43,6 @@ def command(asset, port, no_browser, allow_outside_paths, engine, output_format,
     The address is printed once the server listens (--format json: {"asset", "url"}); it writes no
     file, so it has no --force.
     """
-    from vbusd.web.server import ViewerServer
 
     try:
         port_number = int(port, 10)
@@ -49,7 +50,6 @@ def command(asset, port, no_browser, allow_outside_paths, engine, output_format,
         raise OptionsError(f"--port must be an integer, got {port!r}", file="view") from None
     if not 0 <= port_number <= 65535:
         raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
-    import webbrowser  # before the server's threads start: no import beside them (vbusd/process/threads.py)
 
     server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths, engine=engine).start()
     if quiet:

@@ -40,6 +40,19 @@ import numpy as np
 from vbusd.format.encoding import all_finite
 from vbusd.format.errors import InputError, OptionsError, UnsupportedError
 from vbusd.format.model import AnimationClip, ReadOptions, SkinnedAnimation, SkinnedMesh, SourceScene
+from pxr import Usd, UsdGeom, UsdSkel
+from vbusd.format.diagnostics import Diagnostics
+from vbusd.io.usd_reader import open_stage
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
+from pxr import Sdf
+from vbusd.kernels import bake as bake_kernels
+from pxr import UsdGeom
+from vbusd.io.usd_reader import captured_usd_diagnostics
+from pxr import Tf
+from vbusd.io.usd_reader import tf_message
+from vbusd.io.usd_lod import levels_of
+from pxr import Vt
+from pxr import Gf, Vt
 
 __all__ = ["NAME", "SUFFIXES", "WEIGHT_SUM_TOLERANCE", "DQS", "sniff", "UsdSkelScene",
            "AllFramesSkinning", "SkeletonSampler", "read", "IMPLICIT_SEGMENTS", "implicit_surface",
@@ -97,7 +110,6 @@ class _Reader:
     """State of one read: the stage, its file name and collected warnings."""
 
     def __init__(self, path: Path, options: ReadOptions) -> None:
-        from pxr import Usd, UsdGeom, UsdSkel  # heavy import: only at the edge
 
         self.Usd, self.UsdGeom, self.UsdSkel = Usd, UsdGeom, UsdSkel
         self.path = path
@@ -129,8 +141,6 @@ class _Reader:
         """The stage, opened by vbusd's one USD reader: the same checks, codes and messages as
         every other command (file kind, sniffed content, layers outside the folder, pipes,
         composition errors), USD's own diagnostics captured instead of printed."""
-        from vbusd.format.diagnostics import Diagnostics
-        from vbusd.io.usd_reader import open_stage
 
         diagnostics = Diagnostics(self.file, strict=True)
         stage = open_stage(self.path, diagnostics, allow_outside_paths=self.options.allow_outside_paths)
@@ -276,7 +286,6 @@ class _Reader:
     def check_joint_counts(self) -> None:
         """Every Skeleton's joint count within what a texture row holds, before UsdSkel builds a
         topology for it (a million joints would take it seconds and gigabytes first)."""
-        from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
 
         most = MAX_TEXTURE_DIMENSION // min(e.texels_per_bone for e in Encoding)
         for prim in self.stage.Traverse(self.predicate):
@@ -299,7 +308,6 @@ class _Reader:
                 raise self.error(f"joint '{joint}' appears twice in joints (indices {seen[joint]} and {i})",
                                  f"{location}.joints", "usdskel.joints.duplicate")
             seen[joint] = i
-        from pxr import Sdf
 
         for i, joint in enumerate(joints):
             if not Sdf.Path.IsValidPathString(str(joint)):
@@ -743,7 +751,6 @@ class AllFramesSkinning:
         if self._queries is not None and animated is None:
             return None
         if animated is not None and (world is None or np.asarray(world).ndim == 2):
-            from vbusd.kernels import bake as bake_kernels
 
             anim_joint = np.full(joint_count, -1, dtype=np.int64)
             used = self._anim_to_skel >= 0
@@ -830,7 +837,6 @@ class SkeletonSampler:
     @property
     def _usd_xform_cache(self):
         if not hasattr(self, "_extra_cache"):
-            from pxr import UsdGeom
 
             self._extra_cache = UsdGeom.XformCache()
         return self._extra_cache
@@ -1008,12 +1014,9 @@ def read(path, options: ReadOptions = ReadOptions()) -> UsdSkelScene:
         InputError: The stage breaks a UsdSkel rule (one line with the prim path and the problem).
         UnsupportedError: Nothing the format can hold (a skeleton without joints, only blend shapes).
     """
-    from vbusd.io.usd_reader import captured_usd_diagnostics
 
     _check_options(options)
-    from pxr import Tf
 
-    from vbusd.io.usd_reader import tf_message
 
     messages: list = []
     try:
@@ -1157,7 +1160,6 @@ def _levels(reader: _Reader, animation_path: str, meshes: list) -> tuple:
     vbusd.io.usd_lod). Where the levels break a rule (another heuristic, an empty level, meshes
     partly outside the root), they convert as level-0 meshes, with a warning naming the rule.
     """
-    from vbusd.io.usd_lod import levels_of
 
     findings, levels, lods = levels_of(reader.stage, animation_path, [m.path for m in meshes])
     if findings:
@@ -1480,7 +1482,6 @@ def _blend_shape_loss(reader: _Reader, prim, query, work: _SkelWork, points: np.
     included) at every key time code of the clip and every time sample of the weights inside it;
     the largest distance a point moves, in the mesh's own space before skinning, is the figure.
     """
-    from pxr import Vt
 
     UsdSkel, Usd = reader.UsdSkel, reader.Usd
     rest = "the rest shape used is the points as authored (every blend shape weight 0)"
@@ -1549,7 +1550,6 @@ def _usdskel_reference(reader: _Reader, sampler: SkeletonSampler, skel_query, bo
     ``UsdSkel.SkinNormals`` with the inverse-transpose matrices, as UsdSkel.BakeSkinning does,
     per face-vertex for faceVarying normals.
     """
-    from pxr import Gf, Vt
 
     Usd, UsdSkel = reader.Usd, reader.UsdSkel
     query = bound.query

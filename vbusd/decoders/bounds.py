@@ -32,6 +32,10 @@ import numpy as np
 from vbusd.format.encoding import unpack
 from vbusd.format.layout import TexelFormat
 from vbusd.format.model import VirtualBones
+from vbusd.decoders.reference import decode_bones, interpolated_values
+from vbusd.kernels import bake as bake_kernels
+from vbusd.decoders.reference import decode_bones, interpolated_values, row_position
+from vbusd.decoders.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
 
 __all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
 
@@ -94,7 +98,6 @@ def _box_images(transforms, rest) -> tuple:
 def _box_bounds_at(vb: VirtualBones, index: int, times: np.ndarray, values, rest, chunk: int):
     """``(low, high, curvature)`` of the bones' boxes at ``times``, in chunks (numpy twin of
     :func:`vbusd.kernels.bake.bone_box_bounds`)."""
-    from vbusd.decoders.reference import decode_bones, interpolated_values
 
     low, high = np.full(3, np.inf), np.full(3, -np.inf)
     curvature = np.zeros(3)
@@ -123,8 +126,6 @@ def _bone_box_bounds(vb: VirtualBones, index: int, clip, times: np.ndarray, valu
     factor, which widens the box by ``e`` times its distance from the origin. The cost is bones x
     times, not vertices x times.
     """
-    from vbusd.kernels import bake as bake_kernels
-    from vbusd.decoders.reference import decode_bones, interpolated_values, row_position
 
     encoding = vb.layout.encoding
     i0, i1, f = row_position(clip, times)
@@ -158,7 +159,6 @@ def clip_extents(vb: VirtualBones, *, substeps=None, chunk: int = 4_000_000) -> 
     Returns:
         Boxes in animation space; a clip of an animation without bound meshes gets zeros.
     """
-    from vbusd.decoders.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
 
     values = functools.cache(lambda: channel_values(vb))  # the whole texture in float64, when needed
     substeps = SUBSTEPS[vb.layout.encoding.value] if substeps is None else int(substeps)

@@ -18,6 +18,8 @@ from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpa
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 from vbusd.format.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
+from vbusd.format.errors import InputError
+from vbusd.format.rootmotion import displacement
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
@@ -375,7 +377,6 @@ def skinning_matrices(vb: VirtualBones, clip_index: int, tau) -> np.ndarray:
 
 
 def _bind(vb: VirtualBones) -> np.ndarray:
-    from vbusd.format.errors import InputError
 
     if vb.bind_transforms is None:
         raise InputError("the animation stores no joint bind transforms (vb:bindTransforms, format 1.1): "
@@ -441,7 +442,6 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
     """
     if vb.root_motion is None:
         return np.eye(4)
-    from vbusd.format.rootmotion import displacement
 
     return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)
 
@@ -527,7 +527,6 @@ def mask_weights(vb: VirtualBones, mask, *, what: str = "skin") -> np.ndarray:
     Raises:
         InputError: The animation stores no masks, or none of that name (code ``layers.noMask``).
     """
-    from vbusd.format.errors import InputError
 
     names = [name for name, _ in vb.masks]
     if isinstance(mask, str) and mask in names:

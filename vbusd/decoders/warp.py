@@ -43,6 +43,7 @@ from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
 from vbusd.decoders.reference import channel_values, normal_point_indices
 from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
+from vbusd.format.errors import UnsupportedError
 
 __all__ = ["quiet_warp", "SAMPLING_MODES", "available_devices", "SkinResult", "DeviceCrowd",
            "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd"]
@@ -366,7 +367,6 @@ class Decoder:
             InputError: The animation stores no masks, a mask or clip index out of range (code
                 ``layers.noMask``, ``instancer.clip.range``).
         """
-        from vbusd.format.errors import UnsupportedError
 
         vb = self.vb
         where = f"{crowd.path}.primvars:vb:layerWeight"

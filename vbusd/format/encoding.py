@@ -21,6 +21,7 @@ from vbusd.format.errors import UnsupportedError
 from vbusd.format.compact import decode_compact_fields, encode_compact
 from vbusd.format.layout import Encoding, Layout, TexelFormat
 from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
+from vbusd.process.parallel import split_work
 
 __all__ = ["FLOAT16_MAX", "UNORM16_MAX", "NonRigidError", "SINGULAR_RELATIVE_DETERMINANT", "affine_singular",
            "encode_bones", "make_hemispheres_continuous", "BoneTransforms", "decode_bones",
@@ -340,7 +341,6 @@ def all_finite(values: np.ndarray) -> bool:
     """Whether every value is finite, in one pass without a temporary: a slice's sum is finite when
     all its values are (one slice per core); when a sum is not, the values are checked one by one
     (finite values can overflow a sum)."""
-    from vbusd.process.parallel import split_work
 
     values = np.asarray(values)
     if values.ndim == 0:
@@ -386,7 +386,6 @@ def quantize(values: np.ndarray, texel_format: TexelFormat | str,
         UnsupportedError: A value is not finite.
         Float16OverflowError: A value exceeds float16's range (``index`` says where).
     """
-    from vbusd.process.parallel import split_work
 
     texel_format = TexelFormat(texel_format)
     v = np.asarray(values, dtype=np.float64)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from vbusd.format.errors import OptionsError
 
 __all__ = ["FORMAT_VERSION", "CHANNELS", "MAX_TEXTURE_DIMENSION", "Encoding", "TexelFormat",
            "Padding", "next_power_of_two", "texel_formats_of", "default_texel_format", "pairs", "pairing_error",
@@ -123,7 +124,6 @@ def next_power_of_two(n: int) -> int:
 
 
 def _coerce(enum_type, value, what: str):
-    from vbusd.format.errors import OptionsError
 
     if isinstance(value, enum_type):
         return value
@@ -155,7 +155,6 @@ class Layout:
     vertical_padding: Padding = Padding.NONE
 
     def __post_init__(self) -> None:
-        from vbusd.format.errors import OptionsError
 
         object.__setattr__(self, "encoding", _coerce(Encoding, self.encoding, "encoding"))
         object.__setattr__(self, "texel_format", _coerce(TexelFormat, self.texel_format, "texelFormat"))

@@ -52,6 +52,9 @@ SCHEMA_RESOURCE = "layout-metadata.schema.json"
 
 # One upgrade path for the metadata and the USD attributes (vbusd.format.versioning).
 from vbusd.format.versioning import upgrade  # noqa: E402  (re-exported: metadata documents upgrade through it)
+import importlib.resources
+import jsonschema
+from vbusd.format.errors import OptionsError
 
 
 @dataclass(frozen=True, eq=False)
@@ -297,9 +300,7 @@ def _refuse_constant(name: str):
 @functools.lru_cache(maxsize=1)
 def _schema_validator():
     """The JSON Schema (draft 2020-12) validator of layout metadata, schema checked once."""
-    import importlib.resources
 
-    import jsonschema
 
     text = (importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE).read_text(encoding="utf-8")
     schema = json.loads(text)
@@ -342,7 +343,6 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
     Returns:
         The layout the document describes, or None when it contradicts itself.
     """
-    from vbusd.format.errors import OptionsError
 
     file = diagnostics.file if file is None else str(file)
     found = len(diagnostics.findings)

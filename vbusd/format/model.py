@@ -28,6 +28,7 @@ import numpy as np
 from vbusd.format.digest import content_digest
 from vbusd.format.layout import Layout
 from vbusd.format.rootmotion import RootMotion
+import dataclasses
 
 __all__ = ["AnimationClip", "SkinnedMesh", "SkinnedAnimation", "Clip", "BoundMesh", "Crowd",
            "LevelsOfDetail", "VirtualBones", "VirtualBonesAsset", "ReadOptions", "SourceScene"]
@@ -281,7 +282,6 @@ class Crowd:
         """
         if not self.fade_samples:
             return self
-        import dataclasses
 
         values = {}
         for field_name, (times, samples) in self.fade_samples.items():

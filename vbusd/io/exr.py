@@ -36,6 +36,10 @@ from vbusd.format.diagnostics import Diagnostics, FileLocation
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.io.texture_image import TextureImage, looks_like_metadata
+import io
+import OpenEXR
+from vbusd.process.parallel import usable_cores
+import errno as errnos
 
 __all__ = ["MAGIC", "METADATA_ATTRIBUTE", "METADATA_PART", "COMPRESSION_NAMES", "LOSSLESS",
            "PIXEL_TYPES", "ExrHeader", "captured_output", "read_exr", "write_exr"]
@@ -276,7 +280,6 @@ def captured_output(sink: list):
     message instead of console noise. :mod:`vbusd.io.usd` uses it for USD's composition warnings,
     which it reports itself as one error line.
     """
-    import io
 
     python_side = io.StringIO()
     for stream in (sys.stdout, sys.stderr):
@@ -304,7 +307,6 @@ def captured_output(sink: list):
 
 @contextlib.contextmanager
 def _max_image_size(limit: int):
-    import OpenEXR
 
     previous = OpenEXR.getMaxImageSize()
     OpenEXR.setMaxImageSize(limit, limit)
@@ -372,7 +374,6 @@ def read_exr(path, diagnostics: Diagnostics, *, display: Optional[str] = None,
 
 def _read_pixels(path, image: TextureImage, diagnostics: Diagnostics, max_dimension: int):
     """Decode the pixels of a file the header scan accepted, with OpenEXR, as one RGBA array."""
-    import OpenEXR
 
     sink: list = []
     error_text = None
@@ -424,7 +425,6 @@ def _compressing_on_every_core(OpenEXR):
     if not hasattr(OpenEXR, "set_global_thread_count"):  # pragma: no cover - OpenEXR before 3.3
         yield
         return
-    from vbusd.process.parallel import usable_cores
 
     cores = usable_cores()
     with _THREADS_LOCK:  # held for the write: threads of one process write their EXR files in turn
@@ -453,7 +453,6 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
         OptionsError: A lossy or unknown compression, or texels that are not float16/float32.
         OSError: The file cannot be written.
     """
-    import OpenEXR
 
     name = str(compression).lower()
     if name not in LOSSLESS:
@@ -479,7 +478,6 @@ def write_exr(path, texels: np.ndarray, metadata: str, *, compression: str = "zi
     except RuntimeError as error:
         # OpenEXR says why in words ("... No space left on device."): keep the errno, so that the
         # caller's one line reads like any other failed write (spec 12.4 #writes).
-        import errno as errnos
 
         message = " ".join(str(error).split())
         for code in (errnos.ENOSPC, errnos.EDQUOT, errnos.EROFS, errnos.EACCES, errnos.EPERM,

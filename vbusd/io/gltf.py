@@ -32,6 +32,12 @@ from vbusd.format.errors import InputError, UnsupportedError
 from vbusd.format.metadata import json_pointer
 from vbusd.format.model import ReadOptions
 from vbusd.io.gltf_accessors import require_int
+from vbusd.io.files import resolve_inside
+from reprlib import repr as short
+from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
+from vbusd.format.metadata import json_kind
+import json
+import pygltflib
 
 __all__ = ["MAX_FILE_BYTES", "MAX_ARRAY_ENTRIES", "GLB_MAGIC", "load", "json_text_of", "referenced_uris"]
 
@@ -140,7 +146,6 @@ def _decode_data_uri(uri: str, pointer: str, file: str) -> bytes:
 
 def _read_external(uri: str, folder: Path, length: int, pointer: str, file: str,
                    allow_outside: bool) -> bytes:
-    from vbusd.io.files import resolve_inside
 
     relative = urllib.parse.unquote(uri)
     path = resolve_inside(folder, relative, file=file, location=pointer, allow_outside=allow_outside)
@@ -283,7 +288,6 @@ _TYPES = {
 
 def _type_error(value, kind, pointer: str):
     """(pointer, problem) of the first value below ``value`` that is not of ``kind``, or None."""
-    from reprlib import repr as short   # a huge wrong value must not make a huge message
     if kind == _INT:
         # JSON Schema: 3.0 is an integer; 1.5, true and "3" are not.
         ok = ((isinstance(value, int) and not isinstance(value, bool))
@@ -342,7 +346,6 @@ gigabytes)."""
 
 def _check_counts(root, file: str) -> None:
     """Bound the top-level arrays and every skin's joint list on the raw JSON (spec: reading)."""
-    from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
 
     if not isinstance(root, dict):
         return
@@ -367,7 +370,6 @@ def _extension_error(root) -> tuple | None:
     extension) are objects; ``null`` is neither, so it is named here instead of reading as absent.
     ``extras`` (application data, any JSON value) are not entered.
     """
-    from vbusd.format.metadata import json_kind
 
     pending = [("", root)]
     while pending:   # iterative: JSON nesting must not become Python recursion
@@ -431,9 +433,7 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
         The JSON text for pygltflib: ``json_text``, or the document without its ``extras`` that
         are not objects (:func:`_drop_foreign_extras`) when it has any.
     """
-    import json
 
-    from vbusd.format.metadata import json_kind
 
     try:
         root = json.loads(json_text)
@@ -491,7 +491,6 @@ def referenced_uris(path, *, limit: int = MAX_FILE_BYTES) -> list:
     """The ``uri`` of every buffer and image of a .gltf or .glb file, as written (``data:`` URIs
     included), or an empty list when the file cannot be read as glTF JSON (the converter says
     why when it reads the file)."""
-    import json
 
     path = Path(path)
     try:
@@ -521,7 +520,6 @@ def load(path, options: ReadOptions | None = None):
         InputError: Unreadable file, bad GLB container, bad JSON, unknown major version,
             unsupported required extension, unsafe or bad buffer URIs, short buffers.
     """
-    import pygltflib
 
     options = options or ReadOptions()
     path = Path(path)

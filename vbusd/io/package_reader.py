@@ -39,6 +39,11 @@ from vbusd.format.errors import InputError, VbusdError
 from vbusd.format.metadata import json_kind, json_pointer
 from vbusd.io.gltf import json_text_of, load
 from vbusd.io.gltf_accessors import AccessorReader
+import importlib.resources
+import jsonschema
+import referencing
+import urllib.parse
+from vbusd.format.model import ReadOptions
 
 __all__ = ["SUFFIXES", "PackageAnimation", "PackageCrowd", "Package", "read_package"]
 
@@ -116,10 +121,7 @@ class Package:
 @functools.lru_cache(maxsize=1)
 def _validators():
     """JSON Schema validators of the root object and of ``$defs/primitive`` (schema checked once)."""
-    import importlib.resources
 
-    import jsonschema
-    import referencing
 
     schemas = [json.loads((importlib.resources.files("vbusd.schema") / name).read_text(encoding="utf-8"))
                for name in ("VBUSD_virtual_bones.schema.json", "layout-metadata.schema.json")]
@@ -203,7 +205,6 @@ def _check_extension(root: dict, file: str, diagnostics: Diagnostics) -> Optiona
 
 def _texture_name(gltf, view_index: int, data: bytes, file: str) -> str:
     """How findings name a texture: the ``.ktx2`` file a whole external buffer is, else the view."""
-    import urllib.parse
 
     view = gltf.bufferViews[view_index]
     buffer = gltf.buffers[view.buffer] if view.buffer < len(gltf.buffers) else None
@@ -377,7 +378,6 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
     Raises:
         InputError: The container or the JSON cannot be read at all (whatever ``diagnostics``).
     """
-    from vbusd.format.model import ReadOptions
 
     path = Path(path)
     file = str(path)

@@ -28,6 +28,8 @@ from vbusd.format.errors import OptionsError
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION
 from vbusd.format.metadata import MAX_METADATA_BYTES
 from vbusd.io.texture_image import TextureImage, looks_like_metadata
+import io
+import png
 
 __all__ = ["SIGNATURE", "METADATA_KEYWORD", "METADATA_PART", "COLOUR_MANAGEMENT_CHUNKS",
            "TEXT_CHUNKS", "COMPRESSION_LEVELS", "MAX_ITXT_TEXT_BYTES", "itxt_chunk_data",
@@ -344,9 +346,7 @@ def png_bytes(texels: np.ndarray, metadata: str, *, compression: str = "zip") ->
     Raises:
         OptionsError: Unknown compression or texels that are not uint16 RGBA.
     """
-    import io
 
-    import png
 
     name = str(compression).lower()
     if name not in COMPRESSION_LEVELS:

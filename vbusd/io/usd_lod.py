@@ -15,6 +15,10 @@ import numpy as np
 
 from vbusd.format.diagnostics import UsdSite, finding
 from vbusd.format.model import LevelsOfDetail
+from pxr import Sdf
+from pxr import Usd, UsdGeom
+from vbusd.format import names
+from pxr import Sdf, UsdGeom, UsdLod, Vt
 
 __all__ = ["LOD_ROOT_API", "levels_of", "levels_of_animation", "check_animation_levels", "author_lod_root"]
 
@@ -45,7 +49,6 @@ def levels_of(stage, animation_path: str, mesh_paths: list) -> tuple:
         ``(findings, levels, lods)``: ``levels`` (one int per mesh) and ``lods`` are None when no
         mesh lies under a LOD root, or when a finding makes the levels unusable.
     """
-    from pxr import Sdf
 
     roots = [_root_of(stage, Sdf, p) for p in mesh_paths]
     if not mesh_paths or all(root is None for root in roots):
@@ -102,9 +105,7 @@ def levels_of_animation(prim) -> tuple:
     Meshes below a point instancer are prototypes referencing the bound meshes (readers skip them),
     so they are not counted twice.
     """
-    from pxr import Usd, UsdGeom
 
-    from vbusd.format import names
 
     target = prim.GetPath()
     meshes = []
@@ -141,7 +142,6 @@ def author_lod_root(stage, lods: LevelsOfDetail, clip_extents=None, root: Option
     Returns:
         The root's ``Sdf.Path``.
     """
-    from pxr import Sdf, UsdGeom, UsdLod, Vt
 
     root_path = Sdf.Path(root or lods.root)
     for ancestor in root_path.GetParentPath().GetPrefixes():

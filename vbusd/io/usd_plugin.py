@@ -67,6 +67,7 @@ import os
 import sys
 import warnings
 from pathlib import Path
+from vbusd.format.errors import UnsupportedError
 
 __all__ = ["PLUGIN_PACKAGE", "PLUGIN_NAME", "ANIMATION_TYPE", "BINDING_API", "INSTANCING_API",
            "PLUGIN_PATH_VARIABLE", "LATE_REGISTRATION_MESSAGE", "plugin_dir", "register", "schema_types_known",
@@ -104,7 +105,6 @@ def plugin_dir() -> Path:
         vbusd.format.errors.UnsupportedError: The package data is not a plain folder on disk (for example
             vbusd imported from a zip file), so OpenUSD cannot read it.
     """
-    from vbusd.format.errors import UnsupportedError
 
     folder = importlib.resources.files(PLUGIN_PACKAGE)
     # OpenUSD reads plugInfo.json from the file system itself; a zip member would not do.
@@ -126,7 +126,6 @@ def register():
     """
     from pxr import Plug
 
-    from vbusd.format.errors import UnsupportedError
 
     folder = plugin_dir()
     registry = Plug.Registry()
@@ -167,7 +166,6 @@ def require_schema_types():
         vbusd.format.errors.UnsupportedError: code ``usd.plugin``: the schema registry was built before
             the plugin was registered (:data:`LATE_REGISTRATION_MESSAGE`), or registration failed.
     """
-    from vbusd.format.errors import UnsupportedError
 
     plugin = register()
     if not schema_types_known():

@@ -34,6 +34,10 @@ from pathlib import Path
 from typing import Optional
 
 from vbusd.io.usd_errors import tf_message
+import resource
+from vbusd.process.signals import die_with_parent
+from vbusd.io import usd_plugin
+from vbusd.io.usd_plugin import register
 __all__ = ["CRATE_MAGIC", "ProbeResult", "PendingProbe", "start_probe", "probe_crate", "needs_probe", "prestart", "memory_limit", "time_limit"]
 
 CRATE_MAGIC = b"PXR-USDC"
@@ -88,7 +92,6 @@ def time_limit(size: int) -> float:
 
 def _limit_memory(limit: int):
     def apply() -> None:
-        import resource
 
         resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))
     return apply
@@ -329,13 +332,10 @@ def _serve() -> int:
     # Answers go to a private copy of stdout; whatever pxr or a child prints goes nowhere.
     answers = os.fdopen(os.dup(1), "w")
     os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
-    from vbusd.process.signals import die_with_parent
 
     parent = os.getppid()
     die_with_parent(signal.SIGKILL, parent)  # a vbusd process killed outright leaves no server behind
     try:
-        from vbusd.io import usd_plugin
-
         usd_plugin.cancel_deferred_registration()  # registering starts threads: each child registers
         from pxr import Sdf, Tf, Usd  # noqa: F401  (imported once here, inherited by every child)
     except Exception as error:  # noqa: BLE001 - any failure to import is the answer to every probe
@@ -364,7 +364,6 @@ def _serve() -> int:
 
 
 def _forked_read(request: dict, said) -> int:
-    from vbusd.process.signals import die_with_parent
 
     server = os.getpid()
     pid = os.fork()
@@ -378,7 +377,6 @@ def _forked_read(request: dict, said) -> int:
             die_with_parent(signal.SIGKILL, server)  # fork clears it: nor a child without its server
             _limit_memory(request["memory"])()
             signal.alarm(max(1, math.ceil(request["seconds"])))
-            from vbusd.io.usd_plugin import register
 
             register()  # as in the parent: the same schema types while reading
             code = _read_everything(request["path"])

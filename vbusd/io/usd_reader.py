@@ -46,6 +46,18 @@ from vbusd.format.versioning import upgrade as upgrade_version
 from vbusd.io.files import resolve_inside
 
 from vbusd.io.usd_errors import error_text, one_line, tf_message
+from pxr import UsdUtils
+from vbusd.process.capture import captured_output
+from vbusd.io.usd_plugin import register
+from pxr import Sdf, Tf, Usd, UsdGeom
+from vbusd.io.usd_probe import needs_probe, probe_crate
+from vbusd.format import versioning
+from vbusd.format.metadata import parents_problem
+from vbusd.format.rootmotion import RootMotion
+from vbusd.io.textures import read_texture
+from vbusd.io.usd_lod import levels_of
+from pxr import Sdf, UsdUtils
+from vbusd.io.usd_lod import levels_of_animation
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
@@ -97,9 +109,7 @@ def captured_usd_diagnostics(sink: list):
     call to posix_madvise``, ``~_DeferredDiagnostics`` warnings of a corrupt crate file) is taken
     from the file descriptors (:func:`vbusd.process.capture.captured_output`) and added as warnings.
     """
-    from pxr import UsdUtils
 
-    from vbusd.process.capture import captured_output
 
     printed: list = []
     with _CAPTURE_LOCK:
@@ -125,10 +135,8 @@ def captured_usd_diagnostics(sink: list):
 
 
 def _pxr():
-    from vbusd.io.usd_plugin import register
 
     register()
-    from pxr import Sdf, Tf, Usd, UsdGeom
 
     return Sdf, Tf, Usd, UsdGeom
 
@@ -295,7 +303,6 @@ class UsdReader:
         """A crate file is read whole in a bounded child process first (:mod:`vbusd.io.usd_probe`):
         a corrupt one could otherwise take gigabytes, minutes or the process itself. False after a
         ``usd.open`` finding when it is unsafe."""
-        from vbusd.io.usd_probe import needs_probe, probe_crate
 
         if not needs_probe(path):
             return True
@@ -605,7 +612,6 @@ class UsdReader:
         on ``prim`` (1.1: ``vb:bindTransforms``, ``vb:clipRootMotion``; 1.2: ``vb:boneParents``,
         ``vb:maskNames``) and on the instancers that play it (1.1: the crossfade primvars; 1.2: the
         layer primvars) (spec 16.1, 16.2: a newer asset is refused *by name*)."""
-        from vbusd.format import versioning
 
         current = versioning.CURRENT
         own_names = [name for version, name in (((1, 1), names.BIND_TRANSFORMS), ((1, 1), names.CLIP_ROOT_MOTION),
@@ -700,7 +706,6 @@ class UsdReader:
     def _masks(self, prim, declared: Declared) -> None:
         """Format 1.2 ``vb:boneParents``, ``vb:maskNames`` and ``vb:maskWeights`` (spec 8.6) into
         ``boneParents`` (ints) and ``masks`` (``{"name", "weights"}`` objects, as in the metadata)."""
-        from vbusd.format.metadata import parents_problem
 
         path = str(prim.GetPath())
         bones = declared.get("boneCount")
@@ -758,7 +763,6 @@ class UsdReader:
             self.report("prim.attribute.invalid", f"{names.ROOT_MOTION_UP_AXIS} must be Y or Z with "
                         f"{names.CLIP_ROOT_MOTION}, got {up_axis!r}", UsdSite(path, names.ROOT_MOTION_UP_AXIS))
             return
-        from vbusd.format.rootmotion import RootMotion
 
         offsets = np.cumsum([0] + counts)
         declared.values["rootMotion"] = RootMotion(up_axis, tuple(entries[a:b] for a, b in zip(offsets[:-1],
@@ -876,7 +880,6 @@ class UsdReader:
         attributes = self.animation_attributes(prim)
         if attributes is None:
             raise _Skip
-        from vbusd.io.textures import read_texture
 
         texture = read_texture(attributes.texture_file)
         theirs = from_metadata(texture.info.to_dict(), os.path.relpath(attributes.texture_file, self.folder))
@@ -994,7 +997,6 @@ class UsdReader:
     def read_levels(self, animation: VirtualBones, meshes: list):
         """The levels of detail of an animation's meshes (spec 20.1): (meshes with their level,
         LevelsOfDetail), or None when no mesh lies under a UsdLod LODRootAPI prim."""
-        from vbusd.io.usd_lod import levels_of
 
         findings, levels, lods = levels_of(self.stage, animation.path, [m.path for m in meshes])
         for item in findings:
@@ -1385,7 +1387,6 @@ def file_dependencies(path: PathLike) -> Optional[tuple]:
         file), of the asset paths (textures and other files) and the authored paths that could not
         be resolved; None when the file cannot be opened safely (its conversion reports why).
     """
-    from pxr import Sdf, UsdUtils
 
     reader = UsdReader(path, Diagnostics(path), allow_outside=True)
     with captured_usd_diagnostics(reader.usd_messages):
@@ -1461,7 +1462,6 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
     with reading(path, diagnostics, allow_outside_paths=allow_outside_paths, suffixes=READ_SUFFIXES) as reader:
         prims = reader.animation_prims()
         found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
-        from vbusd.io.usd_lod import levels_of_animation
 
         # Levels of detail (format 1.2) for info; their findings are validate's to report.
         found = [attributes if attributes is None else dataclasses.replace(attributes, lods=levels_of_animation(prim)[2])

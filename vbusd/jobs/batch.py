@@ -55,6 +55,27 @@ from vbusd.io.files import file_sha256
 from vbusd.io.gltf import referenced_uris
 
 from vbusd.io.generator import GENERATOR
+from vbusd.jobs.conversion import ConvertOptions
+from vbusd.format.metadata import json_kind
+from urllib.parse import unquote
+from vbusd.io.usd_reader import file_dependencies
+from dataclasses import asdict
+from vbusd.io.files import atomic_write
+import sys
+import socket
+from vbusd.process import signals as _signals
+from vbusd.jobs import warmup
+from vbusd.jobs.conversion import ConvertOptions, convert
+from vbusd.format.jsonform import camel_case
+import ctypes
+import platform
+from vbusd.io.usd_probe import prestart
+import multiprocessing
+import shutil
+import tempfile
+from concurrent.futures.process import BrokenProcessPool
+import secrets
+import warnings
 __all__ = ["BatchItem", "AssetResult", "BatchReport", "SOURCE_SUFFIXES", "CACHE_FOLDER", "plan_batch",
            "read_manifest", "cache_key", "dependencies", "convert_one", "run_batch"]
 
@@ -176,7 +197,6 @@ class BatchReport:
 
 
 def _option_names() -> set:
-    from vbusd.jobs.conversion import ConvertOptions
 
     return {f.name for f in fields(ConvertOptions)} - {"force"}
 
@@ -240,7 +260,6 @@ def read_manifest(path) -> list:
             ``options`` that is not an object, an ``output`` that is not a string) (code
             ``batch.manifest``), naming the manifest and the row.
     """
-    from vbusd.format.metadata import json_kind
 
     path = Path(path)
     base = path.parent
@@ -406,7 +425,6 @@ def dependencies(source) -> list:
     ``images[].uri`` other than ``data:`` URIs. Other files: the source alone. An unreadable source
     gives the source alone (the conversion reports why).
     """
-    from urllib.parse import unquote
 
     source = Path(source)
     found = [str(source.resolve())]
@@ -418,7 +436,6 @@ def dependencies(source) -> list:
                     target = (source.parent / unquote(uri)).resolve()
                     found.append(str(target) if target.is_file() else f"missing:{uri}")
         elif suffix in (".usd", ".usda", ".usdc", ".usdz") and source.is_file():
-            from vbusd.io.usd_reader import file_dependencies
 
             layers, assets, unresolved = file_dependencies(source) or ([], [], [])
             for layer in layers:
@@ -437,7 +454,6 @@ def dependencies(source) -> list:
 
 
 def _options_text(options) -> str:
-    from dataclasses import asdict
 
     values = asdict(options)
     values.pop("force", None)
@@ -514,7 +530,6 @@ def _read_record(cache: Path, output: Path) -> Optional[dict]:
 
 
 def _write_record(cache: Path, output: Path, record: dict) -> None:
-    from vbusd.io.files import atomic_write
 
     cache.mkdir(parents=True, exist_ok=True)
     with atomic_write(_record_path(cache, output), "w", encoding="utf-8") as stream:
@@ -541,7 +556,6 @@ def outputs_intact(record: dict) -> bool:
 
 
 def _worker_name() -> str:
-    import sys
 
     if "distributed" in sys.modules:  # on a Dask worker it is loaded; never import it in a pool worker
         try:
@@ -550,7 +564,6 @@ def _worker_name() -> str:
             return str(get_worker().address)
         except Exception:  # noqa: BLE001 - not on a Dask worker
             pass
-    import socket
 
     return f"{socket.gethostname()}:{os.getpid()}"
 
@@ -572,7 +585,6 @@ def _one_core() -> None:
     process (measured with usd-core 26.11: two workers on two cores each converted 1.6x slower
     than one alone). Dask's nanny already starts its workers with one BLAS thread.
     """
-    import sys
 
     chosen = {name: value for name, value in _ONE_THREAD.items() if name not in os.environ}
     late = set()  # variables read when their library loads, too late to set once it has
@@ -596,8 +608,6 @@ def convert_one(task: dict) -> dict:
     Returns:
         An :class:`AssetResult` as a dict (plain data, for any scheduler).
     """
-    from vbusd.process import signals as _signals
-    from vbusd.jobs import warmup
 
     warmup.prepare("batch")  # a no-op in a prepared worker; here before any helper thread
     try:
@@ -645,7 +655,6 @@ class _Heartbeat:
 
 
 def _convert_one(task: dict, beat: "_Heartbeat") -> dict:
-    from vbusd.jobs.conversion import ConvertOptions, convert
 
     started = time.perf_counter()
     source, output = Path(task["source"]), Path(task["output"])
@@ -705,7 +714,6 @@ def _convert_on_dask(task: dict) -> dict:
 
 def _result(data: dict) -> AssetResult:
     """An :class:`AssetResult` back from its JSON form (camelCase keys), as workers return it."""
-    from vbusd.format.jsonform import camel_case
 
     by_camel = {camel_case(f.name): f.name for f in fields(AssetResult)}
     return AssetResult(**{by_camel[key]: value for key, value in data.items() if key in by_camel})
@@ -720,9 +728,6 @@ def _keep_freed_memory() -> None:
     worker, 3-8% with these settings; benchmarks/README.md). Only pool workers, which are vbusd's
     own processes, are changed; nothing happens off glibc.
     """
-    import ctypes
-    import platform
-    import sys
 
     if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
         return
@@ -735,7 +740,6 @@ def _keep_freed_memory() -> None:
 def _pool_initializer(parent: Optional[int] = None) -> None:
     """A pool worker's start: one core, its probe server, everything a conversion loads (in this,
     the worker's main thread: vbusd/process/threads.py), and an end that follows its parent's."""
-    from vbusd.process import signals as _signals
 
     # A parent killed with SIGKILL must not leave workers behind: SIGTERM ends this one (as an
     # interrupt while it converts: its write aborts), whatever the parent could do.
@@ -744,10 +748,8 @@ def _pool_initializer(parent: Optional[int] = None) -> None:
     _signals.die_with_parent(signal.SIGTERM, parent)
     _one_core()  # runs before the first task imports pxr and numpy
     _keep_freed_memory()
-    from vbusd.io.usd_probe import prestart
 
     prestart()  # the worker's crate probe server imports pxr while the worker imports vbusd
-    from vbusd.jobs import warmup
 
     warmup.prepare("batch")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
@@ -805,7 +807,6 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
     Raises:
         OptionsError: Bad batch options, or the scheduler cannot be reached (code ``batch.scheduler``).
     """
-    from vbusd.jobs.conversion import ConvertOptions
 
     started = time.perf_counter()
     jobs = max(1, int(jobs or os.cpu_count() or 1))
@@ -915,10 +916,6 @@ def _run_pool(tasks: list, jobs: int, finish, stall_timeout: float = STALL_TIMEO
     whose heartbeat is older than ``stall_timeout`` is killed: its asset fails (``batch.stalled``)
     and the others go to a fresh pool without counting that break against them. On an interrupt
     (Ctrl-C, SIGTERM) every worker is sent SIGTERM (its write aborts) and is gone within seconds."""
-    import multiprocessing
-    import shutil
-    import tempfile
-    from concurrent.futures.process import BrokenProcessPool
 
     # spawn: a fresh interpreter per worker, never a fork of a parent that may hold pxr's threads.
     context = multiprocessing.get_context("spawn")
@@ -998,7 +995,6 @@ def _worker_failure(task: dict, error) -> dict:
 def _prepare_worker() -> None:
     """What the ``vbusd-prepare`` Dask worker plugin runs in the worker's event-loop (main) thread."""
     _one_core()
-    from vbusd.jobs import warmup
 
     warmup.prepare("batch")
 
@@ -1029,9 +1025,6 @@ def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_
     except (OSError, TimeoutError) as error:
         raise OptionsError(f"cannot reach the Dask scheduler: {' '.join(str(error).split())[:200]}",
                            file=scheduler, code="batch.scheduler") from None
-    import secrets
-    import shutil
-    import tempfile
 
     # Heartbeats: seen where the workers share this machine's temporary folder (a local cluster);
     # a task whose heartbeat never shows is never taken for stalled.
@@ -1041,7 +1034,6 @@ def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_
         try:
             register(_prepare_plugin())
         except (TypeError, ValueError, ImportError) as error:  # an old Dask: each task prepares itself
-            import warnings
 
             warnings.warn(f"the Dask workers could not be prepared ({error}); each task loads what it needs",
                           RuntimeWarning, stacklevel=2)

@@ -42,6 +42,21 @@ from vbusd.format.containers import container_error, default_container, texture_
 from vbusd.format.layout import Encoding, Padding, TexelFormat, pairing_error, texel_formats_of
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
 from vbusd.io.files import make_folders, remove_folders
+from vbusd.baking.lod import check_screen_sizes, parse_ratios
+from vbusd.format.rootmotion import check_mode
+from vbusd.io.files import journal_path, recover
+from vbusd.io.usd import asset_files_in_use
+from vbusd.format.encoding import BoneTransforms
+from vbusd.decoders.reference import skin
+from vbusd.kernels import bake as bake_kernels
+from vbusd.decoders.reference import bone_transforms, normal_point_indices
+from vbusd.format.rootmotion import at as root_at
+from vbusd.io import usd_probe
+from vbusd.io.usd import write_asset
+from vbusd.converters import registry
+from vbusd.baking.lod import levels_from_names
+from vbusd.baking.lod import adopt_levels
+from vbusd.baking.lod import add_levels
 
 __all__ = ["AUTO", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
            "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
@@ -126,8 +141,6 @@ class ConvertOptions:
     def __post_init__(self) -> None:
         where = "convert"
         object.__setattr__(self, "masks", parse_masks(self.masks))
-        from vbusd.baking.lod import check_screen_sizes, parse_ratios
-        from vbusd.format.rootmotion import check_mode
 
         ratios = self.lod_ratios
         if isinstance(ratios, str):
@@ -407,10 +420,8 @@ def _check_texture_files(scene: SourceScene, output: Path, options: ConvertOptio
     """Without ``force``, refuse to replace a texture or sidecar that already lies beside the output."""
     if options.force:
         return
-    from vbusd.io.files import journal_path, recover
 
     if journal_path(output).exists():  # a killed run's files are removed first, not taken for ours
-        from vbusd.io.usd import asset_files_in_use
 
         recover(output, in_use=asset_files_in_use)
     for path in _texture_files(scene, output, options):
@@ -574,8 +585,6 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
     The reference skinning of :mod:`vbusd.decoders.reference`, fed the source's matrices instead of decoded
     ones, with the weights normalized as the baker normalizes them.
     """
-    from vbusd.format.encoding import BoneTransforms
-    from vbusd.decoders.reference import skin
 
     linear = matrices[..., :3, :3]
     transforms = BoneTransforms(linear=linear, translation=matrices[..., :3, 3], normal=linear)
@@ -586,8 +595,6 @@ def _source_lbs(matrices: np.ndarray, points: np.ndarray, indices: np.ndarray, w
 def _skin_checked(transforms, encoding: Encoding, bound, normal_points) -> tuple:
     """The reference decoder's skinning of a bound mesh; linear blend skinning of many points runs
     compiled (:func:`vbusd.kernels.bake.skin_lbs`, the same sums in the same order)."""
-    from vbusd.kernels import bake as bake_kernels
-    from vbusd.decoders.reference import skin
 
     if encoding is not Encoding.DUAL_QUAT:
         indices, weights = np.asarray(bound.bone_indices), np.asarray(bound.bone_weights)
@@ -643,7 +650,6 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
     Returns:
         One :class:`MeshReport` per mesh.
     """
-    from vbusd.decoders.reference import bone_transforms, normal_point_indices
 
     animation = scene.animations[index]
     reference = getattr(scene, "reference", None)
@@ -674,7 +680,6 @@ def measure_errors(scene: SourceScene, index: int, vb: VirtualBones, check_rows:
                                                          normal_point_indices(bound))
                 if vb.root_motion is not None:
                     # Clips baked in place (spec "Root motion"): the root track gives back the source motion.
-                    from vbusd.format.rootmotion import at as root_at
 
                     moves = np.stack([root_at(vb.root_motion.tracks[clip_index], clip, t, vb.root_motion.up_axis)
                                       for t in tau])
@@ -737,7 +742,6 @@ def _prepare_for(source: Path) -> None:
     kernels. A large crate source is probed meanwhile: the request goes to the probe server, whose
     child reads the file while this thread loads, and the answer is read after (no thread: the
     reader's own probe of the file is then a lookup)."""
-    from vbusd.jobs import warmup
 
     try:
         large = source.stat().st_size >= LARGE_SOURCE_BYTES
@@ -745,7 +749,6 @@ def _prepare_for(source: Path) -> None:
         large = False  # the reader says why, in its words
     pending = None
     if large:
-        from vbusd.io import usd_probe
 
         pending = usd_probe.start_probe(source)
     try:
@@ -765,7 +768,6 @@ class _CheckStopped(Exception):
 def _write_checked(scene: SourceScene, baked: list, output: Path, options: ConvertOptions, check_result,
                    seconds: dict, progress: Optional[Progress]) -> list:
     """Write the converted asset; its commit waits for the accuracy check (``check_result()``)."""
-    from vbusd.io.usd import write_asset
 
     asset = VirtualBonesAsset(animations=tuple(baked), up_axis=scene.up_axis,
                               meters_per_unit=scene.meters_per_unit,
@@ -813,7 +815,6 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         InputError: The source is unreadable or breaks its format's rules.
         UnsupportedError: The source holds what the format cannot (the message names the prim).
     """
-    from vbusd.converters import registry
 
     if not isinstance(options, ConvertOptions):
         raise OptionsError(f"options must be ConvertOptions, got {type(options).__name__}", file="convert")
@@ -853,7 +854,6 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             continue
         scene, vb, reason, extra = outcome
         if not any(m.lod for m in vb.meshes):
-            from vbusd.baking.lod import levels_from_names
 
             # Meshes named for their level (Body_LOD0, Body_LOD1: spec 20.3) are levels too.
             vb = levels_from_names(vb) or vb
@@ -866,12 +866,10 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
             # A USD source's UsdLod root: the meshes already lie under its levels (spec 20.3).
             vb = dataclasses.replace(vb, lods=scene.animations[index].lods)
         elif source_levels:
-            from vbusd.baking.lod import adopt_levels
 
             # The source's own levels (spec 20.3), every one bound to the one texture.
             vb = adopt_levels(vb, scene.animations[index].lod_screen_sizes)
         elif options.lod_ratios:
-            from vbusd.baking.lod import add_levels
 
             # After the bake: every level shares the texture and its clip extents (spec 20.3).
             vb = add_levels(vb, options.lod_ratios, screen_sizes=options.lod_screen_sizes)

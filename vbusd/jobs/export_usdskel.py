@@ -41,6 +41,17 @@ from vbusd.format.errors import FORCE_HINT, InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.format.names import unique_names
+from vbusd.format.jsonform import json_ready
+from vbusd.decoders.reference import channel_values
+from vbusd.format.encoding import decode_bones
+from vbusd.format.quaternion import matrix_to_quat, quat_to_matrix
+from pxr import Gf, Usd, UsdGeom
+from vbusd.io.usd_reader import stage_for_reading
+from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
+from vbusd.io.usd_lod import author_lod_root
+from pxr import Gf, Sdf
+from pxr import Sdf, Usd, UsdGeom, Vt
+from vbusd.io.usd import write_layer
 
 __all__ = ["UsdSkelReport", "export_usdskel", "format_tolerance", "layer_offsets", "SUFFIXES", "CHARACTERS_ROOT",
            "MAX_SAMPLES", "FROZEN_SCALE"]
@@ -88,7 +99,6 @@ class UsdSkelReport:
 
     def to_dict(self) -> dict:
         """A JSON-ready dict of the report (camelCase keys, times rounded: vbusd.format.jsonform)."""
-        from vbusd.format.jsonform import json_ready
 
         return json_ready(self)
 
@@ -118,9 +128,6 @@ def format_tolerance(vb: VirtualBones) -> float:
 def _joint_samples(vb: VirtualBones, where: Optional[str] = None):
     """Per texture row: translations (rows, B, 3) f32, rotations (rows, B, 4) xyzw f32, scales f16,
     and the worst difference between the decoded ``[A | t]`` and the rebuilt one."""
-    from vbusd.decoders.reference import channel_values
-    from vbusd.format.encoding import decode_bones
-    from vbusd.format.quaternion import matrix_to_quat, quat_to_matrix
 
     transforms = decode_bones(channel_values(vb), vb.layout.encoding)
     linear = np.asarray(transforms.linear, dtype=np.float64)  # (rows, B, 3, 3)
@@ -226,9 +233,7 @@ def layer_offsets(vb: VirtualBones, use: _Use, time_codes_per_second: float):
 def _world_transforms(source: Optional[Path], paths) -> dict:
     """``{path: local-to-world matrix}`` of the source asset's prims, read once through the one USD
     reader (a host's open layer untouched, USD's diagnostics captured); identity where absent."""
-    from pxr import Gf, Usd, UsdGeom
 
-    from vbusd.io.usd_reader import stage_for_reading
 
     found = {path: Gf.Matrix4d(1.0) for path in paths}
     if source is None:
@@ -243,7 +248,6 @@ def _world_transforms(source: Optional[Path], paths) -> dict:
 
 def _write_character(stage, vb: VirtualBones, name: str, ranges: dict, tcps: float, joints, clip_names):
     """Define the character class; returns (samples written, variant name per (clip, backwards))."""
-    from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
 
     translations, rotations, scales, _ = joints
     root_path = Sdf.Path(CHARACTERS_ROOT).AppendChild(name)
@@ -282,7 +286,6 @@ def _write_character(stage, vb: VirtualBones, name: str, ranges: dict, tcps: flo
             samples += 1
     lod_root = None
     if vb.lods is not None:
-        from vbusd.io.usd_lod import author_lod_root
 
         # Levels of detail: under the SkelRoot, a UsdLod root whose children hold each level's meshes.
         lod_root = author_lod_root(stage, vb.lods, vb.clip_extents,
@@ -328,7 +331,6 @@ def _write_character(stage, vb: VirtualBones, name: str, ranges: dict, tcps: flo
 def _instance_specs(layer, parent: str, character: str, names, offsets, scales, variants_of, positions,
                     orientations, instance_scales) -> None:
     """Author the instances with the Sdf API (one change block: fast for 100,000 instances)."""
-    from pxr import Gf, Sdf
 
     parent_spec = layer.GetPrimAtPath(Sdf.Path(parent))
     target = Sdf.Path(character)
@@ -372,9 +374,7 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
         InputError: No bound mesh (``export.noMeshes``); bones that decode to NaN or infinity
             (``texture.nonFinite``).
     """
-    from pxr import Sdf, Usd, UsdGeom, Vt
 
-    from vbusd.io.usd import write_layer
 
     started = time.perf_counter()
     output = Path(output)

@@ -40,6 +40,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.process.parallel import split_work
+import sys
 
 __all__ = ["MIN_ITEMS", "ENCODING_IDS", "available", "split_work", "near_rotation_polar", "encode_cross_matrix",
            "skinning_transforms", "bone_box_bounds", "skin_lbs"]
@@ -74,7 +75,7 @@ def _kernels():
                 import warp as wp
 
                 if wp.is_cpu_available():
-                    from vbusd.kernels import bake_wp as compiled
+                    from vbusd.kernels import bake_wp as compiled  # imports warp: only where the kernels run
 
                     with quiet_warp():
                         wp.load_module(compiled, device="cpu")
@@ -321,7 +322,6 @@ def skin_lbs(linear: np.ndarray, translation: np.ndarray, normal: np.ndarray, po
 
 def _main() -> int:
     """Compile the kernels into warp's cache now (``python -m vbusd.kernels.bake``)."""
-    import sys
 
     if not available():
         why = _state.get("why", "warp's CPU backend is not available")

@@ -21,6 +21,7 @@ import sys
 import tempfile
 import threading
 from typing import Iterator, Optional
+import ctypes
 
 __all__ = ["captured_output", "CAPTURE_LIMIT"]
 
@@ -64,7 +65,6 @@ def _flush_c_streams() -> None:
     # C code's stdout is block-buffered once it points at a file: flush it into the capture now,
     # not into the terminal after the descriptors are restored.
     with contextlib.suppress(Exception):
-        import ctypes
 
         ctypes.CDLL(None).fflush(None)
 

@@ -29,6 +29,8 @@ import signal
 import threading
 import time
 from typing import Callable, Iterator, Optional
+import sys
+import ctypes
 
 __all__ = ["GRACE_SECONDS", "Interrupted", "handling_signals", "critical", "on_hard_exit", "exit_status",
            "die_with_parent"]
@@ -186,12 +188,10 @@ def die_with_parent(signum: int = signal.SIGTERM, parent: Optional[int] = None) 
     that a parent killed with SIGKILL leaves none running. Elsewhere it does nothing. If the parent
     already died (``getppid()`` is no longer ``parent``), the signal is sent now.
     """
-    import sys
 
     if not sys.platform.startswith("linux"):
         return
     try:
-        import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signum), 0, 0, 0)  # PR_SET_PDEATHSIG

@@ -21,6 +21,17 @@ from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.format import codes as _codes
 from vbusd.format.diagnostics import FileLocation, UsdSite, finding
 from vbusd.validators.report import Report, build_report
+from vbusd.validators.checks_package import check_package
+from vbusd.format.diagnostics import location_parts
+from vbusd.validators.checks_texture import check_texture_only
+from vbusd.format.diagnostics import Diagnostics
+from vbusd.io.usd_reader import open_stage as open_usd_stage
+from vbusd.io.usd_reader import reading
+from pxr import Usd
+from vbusd.format import names
+from vbusd.io.usd_lod import check_animation_levels
+from vbusd.validators.checks_animation import check_animation_prim
+from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
 
 __all__ = ["USD_SUFFIXES", "TEXTURE_SUFFIXES", "PACKAGE_SUFFIXES", "check_filters", "validate", "validate_findings",
            "guarded", "open_stage", "validate_stage"]
@@ -82,7 +93,6 @@ def validate_findings(path) -> list:
     if suffix in TEXTURE_SUFFIXES:
         return _validate_texture(path)
     if suffix in PACKAGE_SUFFIXES:
-        from vbusd.validators.checks_package import check_package
 
         return check_package(path)
     return _validate_usd(path)
@@ -101,8 +111,6 @@ def guarded(check, *args, location=None):
 
 def _validate_texture(path: str) -> list:
     """A texture or sidecar given on its own: its own failure to open is exit 2, the rest findings."""
-    from vbusd.format.diagnostics import location_parts
-    from vbusd.validators.checks_texture import check_texture_only
 
     fatal = _UNREADABLE_ALONE
     if path.lower().endswith(".json"):
@@ -128,8 +136,6 @@ def open_stage(path: str):
         InputError: The file cannot be opened (the code and message ``convert``, ``info`` and
             ``decode`` give for it).
     """
-    from vbusd.format.diagnostics import Diagnostics
-    from vbusd.io.usd_reader import open_stage as open_usd_stage
 
     diagnostics = Diagnostics(path)
     stage = open_usd_stage(path, diagnostics)
@@ -140,8 +146,6 @@ def open_stage(path: str):
 
 def _validate_usd(path: str) -> list:
     """The reader's findings (lenient), then the checks of every Virtual Bones prim."""
-    from vbusd.format.diagnostics import Diagnostics
-    from vbusd.io.usd_reader import reading
 
     diagnostics = Diagnostics(path)
     with reading(path, diagnostics, outside_hint=None) as reader:
@@ -161,12 +165,7 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
         opened: The stage was opened by vbusd's reader, which reported its composition errors and
             layers outside the folder already.
     """
-    from pxr import Usd
 
-    from vbusd.format import names
-    from vbusd.io.usd_lod import check_animation_levels
-    from vbusd.validators.checks_animation import check_animation_prim
-    from vbusd.validators.checks_bindings import check_binding_prim, check_instancer_prim, has_binding, has_instancing
 
     findings = []
     if not opened:

@@ -19,6 +19,9 @@ from typing import Optional
 
 from vbusd.format import names
 from vbusd.format.diagnostics import Diagnostics, UsdSite
+from pxr import Ar
+from vbusd.io.usd_reader import UsdReader
+from vbusd.validators.checks_texture import check_texture_file
 
 __all__ = ["MAX_PACKAGED_BYTES", "resolve_texture", "check_animation_prim"]
 
@@ -32,7 +35,6 @@ def _extract_packaged(value, authored: str, scratch: str):
     Returns:
         The extracted texture's path, or None when the package does not hold it.
     """
-    from pxr import Ar
 
     resolver = Ar.GetResolver()
     resolved = value.resolvedPath
@@ -84,7 +86,6 @@ def check_animation_prim(prim, asset_dir: str):
         prim: The ``Usd.Prim``.
         asset_dir: The asset's folder (textures must lie inside it).
     """
-    from vbusd.io.usd_reader import UsdReader
 
     root = prim.GetStage().GetRootLayer()
     diagnostics = Diagnostics(root.realPath or asset_dir)
@@ -96,7 +97,6 @@ def check_animation_prim(prim, asset_dir: str):
         path, display = reader.guard(prim, resolve_texture, prim, reader, scratch) or (None, None)
         out = list(diagnostics.findings)
         if path is not None and declared is not None:
-            from vbusd.validators.checks_texture import check_texture_file
 
             out += check_texture_file(path, display, declared, UsdSite(str(prim.GetPath()), names.TEXTURE))
     return out

@@ -14,6 +14,8 @@ from vbusd.format import names as vb_names
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
 from vbusd.format.diagnostics import UsdSite, finding
+from pxr import UsdGeom
+from vbusd.format.compact import error_bound
 
 __all__ = ["WEIGHT_SUM_TOLERANCE", "NORMAL_LENGTH_TOLERANCE", "INDICES", "WEIGHTS",
            "INSTANCE_PRIMVARS", "applied_schemas", "has_binding", "has_instancing",
@@ -93,7 +95,6 @@ def _array(attribute, dtype):
 
 
 def _typed_primvar(prim, name, type_name, code, out, required=True):
-    from pxr import UsdGeom
 
     attribute = prim.GetAttribute(name)
     site = UsdSite(str(prim.GetPath()), name)
@@ -128,7 +129,6 @@ def check_binding_prim(prim):
     Args:
         prim: A ``Usd.Prim`` (normally a Mesh) applying the API or carrying its primvars.
     """
-    from pxr import UsdGeom
 
     out = []
     path = str(prim.GetPath())
@@ -230,7 +230,6 @@ def _check_compact_error_bound(target, path, points, indices, weights, bone_coun
     """``encoding.compact.errorBound``: the first-order quantization error bound of spec 5.6.3 for each
     bone of a compactQuatTranslation animation, at the farthest rest point it moves, against 5e-5 of
     the mesh's bounding-box diagonal (a warning: the bound is above what decoders measure)."""
-    from vbusd.format.compact import error_bound
 
     if target.GetAttribute(vb_names.BY_KEY["texelFormat"].name).Get() != "uint32":
         return []
@@ -288,7 +287,6 @@ def _check_topology(prim, path, points):
 
 
 def _check_normals(prim, path):
-    from pxr import UsdGeom
 
     attribute, name = None, None
     primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
@@ -343,7 +341,6 @@ def _check_normals(prim, path):
 
 def check_instancer_prim(prim):
     """Every check of one point instancer with VirtualBonesInstancingAPI."""
-    from pxr import UsdGeom
 
     out = []
     path = str(prim.GetPath())

@@ -15,14 +15,17 @@ import os
 import tempfile
 
 from vbusd.format.diagnostics import Diagnostics, JsonPointer, finding
+from vbusd.io import textures
+from vbusd.validators.checks_texture import check_texture_file
+from vbusd.io.package_reader import EXTENSION, read_package
+from vbusd.io.textures import json_differences
+from vbusd.format.metadata import json_pointer
 
 __all__ = ["check_package"]
 
 
 def _ktx2_findings(animation, folder: str) -> tuple[list, object]:
     """Every check of the animation's KTX2 file, and its parsed ``vbusd.layout`` document (or None)."""
-    from vbusd.io import textures
-    from vbusd.validators.checks_texture import check_texture_file
 
     path = os.path.join(folder, f"{animation.index}.ktx2")
     with open(path, "wb") as stream:
@@ -43,9 +46,6 @@ def check_package(path: str, *, allow_outside_paths: bool = False) -> list:
     Raises:
         InputError: The container or its JSON cannot be read at all.
     """
-    from vbusd.io.package_reader import EXTENSION, read_package
-    from vbusd.io.textures import json_differences
-    from vbusd.format.metadata import json_pointer
 
     diagnostics = Diagnostics(path)
     package = read_package(path, diagnostics, allow_outside_paths=allow_outside_paths)

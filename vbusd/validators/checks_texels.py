@@ -22,6 +22,9 @@ import numpy as np
 from vbusd.format.layout import Encoding, Layout, TexelFormat
 
 from vbusd.format.diagnostics import TexelAddress, finding
+from vbusd.format.compact import decode_compact
+from vbusd.format.compact import decode_compact_fields, unpack_words
+from vbusd.format.compact import KEPT_COMPONENTS, ROTATION_BITS
 
 __all__ = ["BLOCK_VALUES", "UNIT_ROUNDOFF", "FLOAT32_SOURCE_ALLOWANCE", "tolerance", "row_blocks",
            "check_non_finite", "check_padding", "dequantize", "check_encoding",
@@ -136,7 +139,6 @@ def dequantize(block: np.ndarray, layout: Layout, unorm_ranges: Optional[np.ndar
     """
     rows = block.shape[0]
     if layout.texel_format is TexelFormat.UINT32:
-        from vbusd.format.compact import decode_compact
 
         words = block[:, :layout.used_width, :3].reshape(rows, layout.bone_count, 3)
         return decode_compact(words, np.asarray(unorm_ranges, np.float64))[..., :3, :].astype(np.float32)
@@ -298,7 +300,6 @@ def _check_compact(texels, file, layout, ranges):
     they are read (``metadata.schema``, ``metadata.inconsistent``, ``prim.attribute.*``); without
     them there is nothing to check.
     """
-    from vbusd.format.compact import decode_compact_fields, unpack_words
 
     out = []
     if ranges is None or np.shape(ranges) != (layout.bone_count, 7, 2):
@@ -310,7 +311,6 @@ def _check_compact(texels, file, layout, ranges):
         bit = (words[..., 1] >> 31).astype(np.float64)
         reserved.add(bit, start, 0.5)
         index, uq, _ = unpack_words(words)
-        from vbusd.format.compact import KEPT_COMPONENTS, ROTATION_BITS
 
         component = KEPT_COMPONENTS[index.astype(np.int64)]
         lo = np.take_along_axis(np.broadcast_to(ranges[None, :, :4, 0], index.shape + (4,)), component, axis=-1)

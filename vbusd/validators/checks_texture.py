@@ -26,6 +26,10 @@ from vbusd.format.layout import FORMAT_VERSION, TexelFormat
 from vbusd.io import textures
 from vbusd.validators import checks_texels as texels_checks
 from vbusd.format.declared import Declared, from_metadata
+from vbusd.format.diagnostics import JsonPointer
+from vbusd.format.errors import VbusdError
+from vbusd.format.declared import check_declared, check_format_version, compare_declared
+from vbusd.format.declared import check_declared
 
 __all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency",
            "check_texture_file", "check_texture_only"]
@@ -76,8 +80,6 @@ def _upgraded(value, file: str, out: list):
     version = value.get("formatVersion") if isinstance(value, dict) else None
     if not isinstance(version, int) or isinstance(version, bool) or not 1 <= version < FORMAT_VERSION:
         return value
-    from vbusd.format.diagnostics import JsonPointer
-    from vbusd.format.errors import VbusdError
 
     try:
         return md.upgrade(value, current=FORMAT_VERSION, file=file)
@@ -100,7 +102,6 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     Returns:
         Findings.
     """
-    from vbusd.format.declared import check_declared, check_format_version, compare_declared
 
     diagnostics = Diagnostics(display)
     image = textures.read_texture_file(texture_path, diagnostics, display=display)
@@ -184,7 +185,6 @@ def _padding_fraction(layout, site, declared) -> list:
 
 def check_texture_only(path: str) -> list:
     """Checks of a texture (``.exr``, ``.png``, ``.ktx2``) or a sidecar (``.json``) on its own."""
-    from vbusd.format.declared import check_declared
 
     if not path.lower().endswith(".json"):
         return check_texture_file(path, path, None)

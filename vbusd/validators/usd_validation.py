@@ -41,6 +41,15 @@ import threading
 
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API, TEXTURE
 from vbusd.format.diagnostics import UsdSite
+from pxr import Sdf, UsdValidation
+from vbusd.validators.api import guarded
+from vbusd.validators.checks_animation import check_animation_prim
+from vbusd.io.usd_lod import check_animation_levels
+from vbusd.validators.checks_bindings import check_binding_prim, has_binding
+from vbusd.validators.checks_bindings import check_instancer_prim, has_instancing
+from vbusd.validators.checks_bindings import applied_schemas, check_binding_prim, check_instancer_prim, has_binding, has_instancing
+import vbusd.io.usd_plugin as plugin
+from vbusd.format.errors import UnsupportedError
 
 __all__ = ["KEYWORD", "ANIMATION_VALIDATOR", "BINDING_VALIDATOR", "INSTANCING_VALIDATOR",
            "PRIMVARS_VALIDATOR", "SUITE", "register"]
@@ -56,7 +65,6 @@ _LOCK = threading.Lock()
 
 
 def _to_errors(prim, findings):
-    from pxr import Sdf, UsdValidation
 
     kinds = {"error": UsdValidation.ValidationErrorType.Error,
              "warning": UsdValidation.ValidationErrorType.Warn,
@@ -86,23 +94,18 @@ def _asset_dir(stage) -> str:
 
 
 def _animation_task(prim, time_range=None):
-    from vbusd.validators.api import guarded
-    from vbusd.validators.checks_animation import check_animation_prim
 
     if prim.IsPseudoRoot() or prim.GetTypeName() != ANIMATION_TYPE:
         return []
     findings = guarded(check_animation_prim, prim, _asset_dir(prim.GetStage()),
                        location=UsdSite(str(prim.GetPath())))
     # Levels of detail (format 1.2): the lod.* checks of the animation's bound meshes.
-    from vbusd.io.usd_lod import check_animation_levels
 
     findings += guarded(check_animation_levels, prim, location=UsdSite(str(prim.GetPath())))
     return _to_errors(prim, findings)
 
 
 def _binding_task(prim, time_range=None):
-    from vbusd.validators.api import guarded
-    from vbusd.validators.checks_bindings import check_binding_prim, has_binding
 
     if prim.IsPseudoRoot() or not has_binding(prim):
         return []
@@ -110,8 +113,6 @@ def _binding_task(prim, time_range=None):
 
 
 def _instancing_task(prim, time_range=None):
-    from vbusd.validators.api import guarded
-    from vbusd.validators.checks_bindings import check_instancer_prim, has_instancing
 
     if prim.IsPseudoRoot() or not has_instancing(prim):
         return []
@@ -122,9 +123,6 @@ def _unapplied_task(prim, time_range=None):
     """Prims carrying vb: binding or instancing primvars without the API schema applied: a
     schema-typed validator never visits them, yet they are findings (``binding.api.missing``) and
     their primvars are checked as for bound meshes (what ``vbusd validate`` does)."""
-    from vbusd.validators.api import guarded
-    from vbusd.validators.checks_bindings import (applied_schemas, check_binding_prim, check_instancer_prim, has_binding,
-                                  has_instancing)
 
     if prim.IsPseudoRoot() or prim.GetTypeName() == ANIMATION_TYPE:
         return []
@@ -149,8 +147,6 @@ def register() -> list:
             in its Python API (older releases cannot register Python validators; usd-core 26.11
             can).
     """
-    import vbusd.io.usd_plugin as plugin
-    from vbusd.format.errors import UnsupportedError
 
     plugin.register()  # the schema TfTypes must exist for schemaTypes filtering
     try:

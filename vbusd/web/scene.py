@@ -24,6 +24,7 @@ import numpy as np
 from vbusd.format.metadata import to_dict
 from vbusd.io.generator import GENERATOR
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
+from vbusd.format.errors import UnsupportedError
 
 __all__ = ["SCENE_FORMAT", "SCENE_VERSION", "build_scene", "scene_json"]
 
@@ -114,7 +115,6 @@ def _layers(crowd, buffer: _Buffer) -> dict:
     weight = np.asarray(crowd.layer_weight, dtype=np.float32)
     n, count = weight.shape
     if count > RUNTIME_LAYERS and np.any(weight[:, RUNTIME_LAYERS:] > 0):
-        from vbusd.format.errors import UnsupportedError
 
         raise UnsupportedError(f"the crowd plays {count} layers per instance; the three.js runtime plays at most "
                                f"{RUNTIME_LAYERS}", location=f"{crowd.path}.primvars:vb:layerWeight",

@@ -28,6 +28,9 @@ from urllib.parse import unquote, urlsplit
 
 from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
 from vbusd.web.engines import ENGINE_PAGES, ENGINES
+from vbusd.io.gltf_package import check_package
+from vbusd.io.usd import read_asset
+from vbusd.web.scene import build_scene, scene_json
 
 __all__ = ["STATIC", "GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
 
@@ -184,14 +187,11 @@ class ViewerServer:
         self.root = path.resolve().parent
         self.generated: dict[str, bytes] = {}
         if suffix in GLTF_SUFFIXES:
-            from vbusd.io.gltf_package import check_package
 
             # Checked here, not in the browser: an empty, truncated or plain glTF is one line.
             check_package(path, allow_outside_paths=allow_outside_paths)
             self.config = {"name": path.name, "kind": "gltf", "url": f"asset/{path.name}", "engine": engine}
         else:
-            from vbusd.io.usd import read_asset
-            from vbusd.web.scene import build_scene, scene_json
 
             scene, data = build_scene(read_asset(path, allow_outside_paths=allow_outside_paths))
             self.generated = {"/scene/scene.json": scene_json(scene), "/scene/scene.bin": data}
