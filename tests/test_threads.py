@@ -147,3 +147,58 @@ def test_kernels_are_never_loaded_by_a_helper(monkeypatch):
     thread.join()
     assert seen == [None]
     assert "kernels" not in bake_kernels._state  # nothing was loaded, nor marked unavailable
+
+
+_JOB_SCRIPT = textwrap.dedent("""
+    import json, sys, threading
+    import vbusd.cli
+    from vbusd.process.threads import HELPER_PREFIX, ImportGuard
+
+    started = []
+    real_start = threading.Thread.start
+
+    def start(self, *args, **kwargs):
+        started.append(self.name)
+        return real_start(self, *args, **kwargs)
+
+    threading.Thread.start = start
+    with ImportGuard() as guard:
+        try:
+            status = vbusd.cli.main(sys.argv[1:])
+        except SystemExit as stop:
+            status = stop.code
+    print(json.dumps({"status": status, "offenders": guard.offenders,
+                      "helpers": sorted({n for n in started if n.startswith(HELPER_PREFIX)})}))
+""")
+
+
+def _job(tmp_path, *args) -> dict:
+    env = dict(os.environ, VBUSD_THREADS="2")  # split work even on one core: the split threads are helpers too
+    done = subprocess.run([sys.executable, "-c", _JOB_SCRIPT, *map(str, args)], capture_output=True, text=True,
+                          timeout=600, env=env, cwd=tmp_path)
+    assert done.stdout.strip(), done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_no_job_kind_imports_off_the_main_thread(tmp_path, repo_root):
+    """Every job kind, run as its command in a fresh interpreter under the import guard: the
+    threads each one starts (its signal watcher, split work, the accuracy check, a batch's
+    watchers) import nothing (issue 32: by structure, with no list of modules to load first)."""
+    source = repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+    asset = tmp_path / "asset.usda"
+    jobs = {
+        "convert": ["convert", source, "-o", asset, "--check-rows", "8"],
+        "batch": ["convert", source, repo_root / "tests" / "fixtures" / "gltf" / "bar.gltf", "-o", tmp_path / "many",
+                  "--jobs", "1", "--check-rows", "4"],
+        "crowd": ["crowd", asset, "-o", tmp_path / "crowd.usda", "--count", "8"],
+        "export": ["export", tmp_path / "crowd.usda", "-o", tmp_path / "crowd.glb"],
+        "decode": ["decode", asset, "-o", tmp_path / "cache.usda"],
+        "validate": ["validate", tmp_path / "crowd.usda"],
+        "info": ["info", tmp_path / "crowd.glb"],
+    }
+    for kind, args in jobs.items():  # in this order: each uses what the one before wrote
+        result = _job(tmp_path, *args)
+        assert result["status"] == 0, (kind, result)
+        assert result["helpers"], f"{kind} started no helper thread: the guard saw nothing to guard"
+        assert result["offenders"] == [], f"{kind}: imported off the main thread: {result['offenders']}"

@@ -242,7 +242,6 @@ def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir,
 def print_batch(report, file=None) -> None:
     """Print a :class:`vbusd.jobs.batch.BatchReport` as a table (wrapped only on a terminal), then the totals."""
 
-
     out = console(file)
     grid = table("asset", "status", "time", "bytes", "max error", right=("time", "bytes", "max error"))
     for asset in report.assets:
@@ -279,7 +278,6 @@ def _rows(grid, pairs) -> None:
 
 
 def _grid():
-
     grid = Table.grid(padding=(0, 2))
     grid.add_column(no_wrap=True)
     grid.add_column(overflow="fold")  # wraps at spaces; folds only a word longer than the column

@@ -17,16 +17,15 @@ import click
 
 from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option, warn
 from vbusd.format.errors import FORCE_HINT, OptionsError
-from vbusd.io.gltf_package import SUFFIXES, export_gltf
+from vbusd.io.gltf_package import SUFFIXES as GLTF_SUFFIXES, export_gltf
 from vbusd.io.usd import read_asset
-from vbusd.jobs.export_usdskel import SUFFIXES, export_usdskel
+from vbusd.jobs.export_usdskel import SUFFIXES as USDSKEL_SUFFIXES, export_usdskel
 
 __all__ = ["EXPORTERS", "FORM_OF_SUFFIX", "command"]
 
 
 def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
-
-    if output.suffix.lower() not in SUFFIXES:
+    if output.suffix.lower() not in GLTF_SUFFIXES:
         raise OptionsError(f"--as gltf writes .glb or .gltf files, got {output.name!r}", file=str(output))
     asset = read_asset(asset_path, allow_outside_paths=options["allow_outside_paths"])
     report = export_gltf(asset, output, supercompression=options["supercompression"],
@@ -35,8 +34,7 @@ def _export_gltf(asset_path: Path, output: Path, options: dict) -> dict:
 
 
 def _export_usdskel(asset_path: Path, output: Path, options: dict) -> dict:
-
-    if output.suffix.lower() not in SUFFIXES:
+    if output.suffix.lower() not in USDSKEL_SUFFIXES:
         raise OptionsError(f"--as usdskel writes .usda, .usdc or .usd files, got {output.name!r}", file=str(output))
     if options["supercompression"] != "none":
         raise OptionsError("--supercompression applies to the glTF runtime package, not to --as usdskel",

@@ -202,7 +202,6 @@ def _stage_units(path: Path) -> dict:
     """The stage's ``upAxis`` and ``metersPerUnit`` (spec: usd-conversion.md, Scene units), read from
     the root layer's metadata with UsdGeom's fallbacks when not authored."""
 
-
     with stage_for_reading(path, allow_outside_paths=True) as stage:  # paths were checked already
         root = stage.GetRootLayer().pseudoRoot
         up = root.GetInfo("upAxis") if root.HasInfo("upAxis") else UsdGeom.GetFallbackUpAxis()
@@ -302,7 +301,6 @@ def asset_info(asset, *, allow_outside_paths: bool = False) -> dict:
 
 
 def _print_text(result: dict) -> None:
-
     console = common.console()
     console.print(f"[bold]{result['file']}[/bold] ({result['kind']}, "
                   f"{len(result['animations'])} animation{'s' if len(result['animations']) != 1 else ''})")

@@ -110,7 +110,6 @@ class _Reader:
     """State of one read: the stage, its file name and collected warnings."""
 
     def __init__(self, path: Path, options: ReadOptions) -> None:
-
         self.Usd, self.UsdGeom, self.UsdSkel = Usd, UsdGeom, UsdSkel
         self.path = path
         self.file = str(path)

@@ -377,7 +377,6 @@ def skinning_matrices(vb: VirtualBones, clip_index: int, tau) -> np.ndarray:
 
 
 def _bind(vb: VirtualBones) -> np.ndarray:
-
     if vb.bind_transforms is None:
         raise InputError("the animation stores no joint bind transforms (vb:bindTransforms, format 1.1): "
                          "reconvert the source with this vbusd to use sockets", location=vb.path,

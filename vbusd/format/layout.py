@@ -124,7 +124,6 @@ def next_power_of_two(n: int) -> int:
 
 
 def _coerce(enum_type, value, what: str):
-
     if isinstance(value, enum_type):
         return value
     try:
@@ -155,7 +154,6 @@ class Layout:
     vertical_padding: Padding = Padding.NONE
 
     def __post_init__(self) -> None:
-
         object.__setattr__(self, "encoding", _coerce(Encoding, self.encoding, "encoding"))
         object.__setattr__(self, "texel_format", _coerce(TexelFormat, self.texel_format, "texelFormat"))
         object.__setattr__(self, "horizontal_padding",

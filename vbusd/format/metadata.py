@@ -301,7 +301,6 @@ def _refuse_constant(name: str):
 def _schema_validator():
     """The JSON Schema (draft 2020-12) validator of layout metadata, schema checked once."""
 
-
     text = (importlib.resources.files("vbusd.schema") / SCHEMA_RESOURCE).read_text(encoding="utf-8")
     schema = json.loads(text)
     jsonschema.Draft202012Validator.check_schema(schema)

@@ -307,7 +307,6 @@ def captured_output(sink: list):
 
 @contextlib.contextmanager
 def _max_image_size(limit: int):
-
     previous = OpenEXR.getMaxImageSize()
     OpenEXR.setMaxImageSize(limit, limit)
     try:

@@ -434,7 +434,6 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
         are not objects (:func:`_drop_foreign_extras`) when it has any.
     """
 
-
     try:
         root = json.loads(json_text)
     except RecursionError:

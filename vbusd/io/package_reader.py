@@ -122,7 +122,6 @@ class Package:
 def _validators():
     """JSON Schema validators of the root object and of ``$defs/primitive`` (schema checked once)."""
 
-
     schemas = [json.loads((importlib.resources.files("vbusd.schema") / name).read_text(encoding="utf-8"))
                for name in ("VBUSD_virtual_bones.schema.json", "layout-metadata.schema.json")]
     for schema in schemas:

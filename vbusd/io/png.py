@@ -347,7 +347,6 @@ def png_bytes(texels: np.ndarray, metadata: str, *, compression: str = "zip") ->
         OptionsError: Unknown compression or texels that are not uint16 RGBA.
     """
 
-
     name = str(compression).lower()
     if name not in COMPRESSION_LEVELS:
         raise OptionsError(f"PNG compression must be one of {', '.join(COMPRESSION_LEVELS)}, "

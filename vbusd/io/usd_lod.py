@@ -106,7 +106,6 @@ def levels_of_animation(prim) -> tuple:
     so they are not counted twice.
     """
 
-
     target = prim.GetPath()
     meshes = []
     iterator = iter(Usd.PrimRange(prim.GetStage().GetPseudoRoot()))

@@ -92,7 +92,6 @@ def time_limit(size: int) -> float:
 
 def _limit_memory(limit: int):
     def apply() -> None:
-
         resource.setrlimit(resource.RLIMIT_DATA, (limit, limit))
     return apply
 
@@ -364,7 +363,6 @@ def _serve() -> int:
 
 
 def _forked_read(request: dict, said) -> int:
-
     server = os.getpid()
     pid = os.fork()
     if pid == 0:  # the child: bounded, and nothing it prints reaches the server's answers

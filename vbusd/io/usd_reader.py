@@ -110,7 +110,6 @@ def captured_usd_diagnostics(sink: list):
     from the file descriptors (:func:`vbusd.process.capture.captured_output`) and added as warnings.
     """
 
-
     printed: list = []
     with _CAPTURE_LOCK:
         delegate = UsdUtils.CoalescingDiagnosticDelegate()
@@ -135,7 +134,6 @@ def captured_usd_diagnostics(sink: list):
 
 
 def _pxr():
-
     register()
 
     return Sdf, Tf, Usd, UsdGeom

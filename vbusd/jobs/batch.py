@@ -197,7 +197,6 @@ class BatchReport:
 
 
 def _option_names() -> set:
-
     return {f.name for f in fields(ConvertOptions)} - {"force"}
 
 
@@ -454,7 +453,6 @@ def dependencies(source) -> list:
 
 
 def _options_text(options) -> str:
-
     values = asdict(options)
     values.pop("force", None)
     return json.dumps(values, sort_keys=True, default=list, separators=(",", ":"))
@@ -530,7 +528,6 @@ def _read_record(cache: Path, output: Path) -> Optional[dict]:
 
 
 def _write_record(cache: Path, output: Path, record: dict) -> None:
-
     cache.mkdir(parents=True, exist_ok=True)
     with atomic_write(_record_path(cache, output), "w", encoding="utf-8") as stream:
         json.dump(record, stream, indent=1, sort_keys=True)
@@ -556,7 +553,6 @@ def outputs_intact(record: dict) -> bool:
 
 
 def _worker_name() -> str:
-
     if "distributed" in sys.modules:  # on a Dask worker it is loaded; never import it in a pool worker
         try:
             from distributed import get_worker
@@ -655,7 +651,6 @@ class _Heartbeat:
 
 
 def _convert_one(task: dict, beat: "_Heartbeat") -> dict:
-
     started = time.perf_counter()
     source, output = Path(task["source"]), Path(task["output"])
     cache = Path(task["cache"]) if task.get("cache") else None

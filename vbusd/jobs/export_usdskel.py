@@ -234,7 +234,6 @@ def _world_transforms(source: Optional[Path], paths) -> dict:
     """``{path: local-to-world matrix}`` of the source asset's prims, read once through the one USD
     reader (a host's open layer untouched, USD's diagnostics captured); identity where absent."""
 
-
     found = {path: Gf.Matrix4d(1.0) for path in paths}
     if source is None:
         return found
@@ -374,7 +373,6 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
         InputError: No bound mesh (``export.noMeshes``); bones that decode to NaN or infinity
             (``texture.nonFinite``).
     """
-
 
     started = time.perf_counter()
     output = Path(output)

@@ -78,6 +78,7 @@ def _warm_first_use() -> None:
         np.einsum("ij,ij->i", np.ones((2, 3)), np.ones((2, 3)))
         np.linalg.det(np.eye(3)[None])
         np.linalg.svd(np.eye(3)[None])
+        np.unique(np.arange(3))  # numpy 2 imports numpy.ma on the first np.unique (np.ma.is_masked)
 
 
 def _load_usd_plugins() -> None:

@@ -166,7 +166,6 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
             layers outside the folder already.
     """
 
-
     findings = []
     if not opened:
         # A missing or unreadable sublayer, reference or payload, or a cycle of layers: USD composes

@@ -95,7 +95,6 @@ def _array(attribute, dtype):
 
 
 def _typed_primvar(prim, name, type_name, code, out, required=True):
-
     attribute = prim.GetAttribute(name)
     site = UsdSite(str(prim.GetPath()), name)
     if not attribute.IsValid() or not attribute.HasValue():
@@ -287,7 +286,6 @@ def _check_topology(prim, path, points):
 
 
 def _check_normals(prim, path):
-
     attribute, name = None, None
     primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
     if primvar and primvar.HasValue():

@@ -65,7 +65,6 @@ _LOCK = threading.Lock()
 
 
 def _to_errors(prim, findings):
-
     kinds = {"error": UsdValidation.ValidationErrorType.Error,
              "warning": UsdValidation.ValidationErrorType.Warn,
              "info": UsdValidation.ValidationErrorType.Info,
@@ -94,7 +93,6 @@ def _asset_dir(stage) -> str:
 
 
 def _animation_task(prim, time_range=None):
-
     if prim.IsPseudoRoot() or prim.GetTypeName() != ANIMATION_TYPE:
         return []
     findings = guarded(check_animation_prim, prim, _asset_dir(prim.GetStage()),
@@ -106,14 +104,12 @@ def _animation_task(prim, time_range=None):
 
 
 def _binding_task(prim, time_range=None):
-
     if prim.IsPseudoRoot() or not has_binding(prim):
         return []
     return _to_errors(prim, guarded(check_binding_prim, prim, location=UsdSite(str(prim.GetPath()))))
 
 
 def _instancing_task(prim, time_range=None):
-
     if prim.IsPseudoRoot() or not has_instancing(prim):
         return []
     return _to_errors(prim, guarded(check_instancer_prim, prim, location=UsdSite(str(prim.GetPath()))))
