@@ -57,12 +57,14 @@ from typing import Callable, Optional, Union
 
 import numpy as np
 
+from vbusd.format import metadata as md
 from vbusd.format import names
 from vbusd.format.names import unique_names
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.layout import FORMAT_VERSION, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
-from vbusd.io.files import file_sha256
+from vbusd.io.files import Commit, fault_point, file_sha256, free_name, make_folders, remove_folders, settle_names
+from vbusd.io.textures import sidecar_path, write_texture
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
 __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
@@ -521,8 +523,6 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     except OptionsError as error:
         raise error.at(file=str(path))
 
-    from vbusd.io.files import make_folders, remove_folders
-
     # Missing folders are created, as convert's -o does, and removed again when the write fails.
     created = make_folders(path.parent)
     try:
@@ -537,13 +537,10 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
     """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit.
 
     A texture that had to take a digest name (the current asset used the plain one with other
-    content) gets its plain name back in a second commit under the same lock, so the files are
-    the same whatever the folder held before (:func:`_settle_names`).
+    content: :func:`vbusd.io.files.free_name`) gets its plain name back in a second commit under
+    the same lock (:func:`vbusd.io.files.settle_names`), so the files are the same whatever the
+    folder held before.
     """
-    from vbusd.format import metadata as md
-    from vbusd.io.files import Commit, fault_point
-    from vbusd.io.textures import sidecar_path, write_texture
-
     _, Sdf, _, _, _, Vt = _pxr()
     folder = path.parent
     written = [path]
@@ -557,13 +554,13 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
             write_texture(plain, vb, transaction=commit, sidecar=False)
             staged = commit.staged_path(plain)
             fault_point(f"wrote {staged.name}", staged)
-            texture = _texture_name(plain, staged, in_use)
+            texture = free_name(plain, in_use, lambda: file_sha256(staged), companions=_sidecars)
             if texture != plain:
                 commit.retarget(plain, texture)
                 renamed.append((vb.path, texture, plain))
             with commit.open(sidecar_path(texture), "w", encoding="utf-8", newline="\n") as stream:
                 stream.write(md.dumps(md.to_dict(vb)))
-            stage.GetPrimAtPath(vb.path).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
+            _name_texture(stage, vb.path, texture)
             written += [texture, sidecar_path(texture)]
         layer = stage.GetRootLayer()
         _record_files(layer, written[1:], Vt)
@@ -575,12 +572,26 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
         commit.discard_after(old_files)
         if renamed:
             commit.hold()
-    if not renamed:
-        return written
-    try:
-        return _settle_names(commit, stage, path, written, renamed)
-    finally:
-        commit.release()
+
+    def stage_layer(files: list) -> None:
+        _record_files(layer, files[1:], Vt)
+        export_layer(layer, commit.temp_path(path, reserve=False), path)
+
+    # The digest-named textures (and sidecars) take their plain names; a name a sibling layer of
+    # the same stem still uses keeps its digest name; a failed write keeps the first commit's files.
+    return settle_names(commit, written, renamed, stage_target=stage_layer, companions=_sidecars,
+                        rename=lambda animation, plain: _name_texture(stage, animation, plain))
+
+
+def _sidecars(texture: Path) -> list:
+    """The files renamed with a texture: its sidecar."""
+    return [sidecar_path(texture)]
+
+
+def _name_texture(stage, animation: str, texture: Path) -> None:
+    """Point the animation prim's ``vb:texture`` at ``texture`` (beside the layer)."""
+    Sdf = _pxr()[1]
+    stage.GetPrimAtPath(animation).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
 
 
 def _record_files(layer, files, Vt) -> None:
@@ -588,49 +599,6 @@ def _record_files(layer, files, Vt) -> None:
     data = dict(layer.customLayerData)
     data["vbusd"] = {"files": Vt.StringArray([Path(p).name for p in files])}
     layer.customLayerData = data
-
-
-def _settle_names(commit, stage, path: Path, written: list, renamed: list) -> list:
-    """The second commit: the digest-named textures (and sidecars) of a commit that replaced an
-    asset get their plain names, now that the old asset that held those names is gone.
-
-    Each plain name is staged as a hard link to the digest-named file (a copy where the file
-    system has no hard links), the layer is staged naming the plain files, and its rename makes
-    them current; the digest-named files are removed after. A name a sibling layer of the same
-    stem still uses keeps its digest name. A failed write leaves the first commit's asset, which
-    is whole and current, and returns its files.
-    """
-    import shutil
-
-    from vbusd.io.files import fault_point
-    from vbusd.io.textures import sidecar_path
-
-    _, Sdf, _, _, _, Vt = _pxr()
-    layer = stage.GetRootLayer()
-    settled = list(written)
-    try:
-        with commit.again():
-            in_use = {os.path.abspath(p) for p in asset_files_in_use(path)} - \
-                {os.path.abspath(p) for p in written}
-            for animation, texture, plain in renamed:
-                pairs = [(texture, plain), (sidecar_path(texture), sidecar_path(plain))]
-                if any(os.path.abspath(new) in in_use for _, new in pairs):
-                    continue
-                for old, new in pairs:
-                    staged = commit.temp_path(new, reserve=False)
-                    fault_point(f"link {staged.name}", staged)
-                    try:
-                        os.link(old, staged)
-                    except OSError:
-                        shutil.copyfile(old, staged)
-                    settled[settled.index(old)] = new
-                commit.discard_after([old for old, _ in pairs])
-                stage.GetPrimAtPath(animation).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{plain.name}"))
-            _record_files(layer, settled[1:], Vt)
-            export_layer(layer, commit.temp_path(path, reserve=False), path)
-    except OSError:
-        return written
-    return settled
 
 
 def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.failed") -> None:
@@ -648,8 +616,6 @@ def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.f
     Raises:
         VbusdError: The write failed (disk full, permissions...): one line; nothing was written.
     """
-    from vbusd.io.files import Commit, make_folders, remove_folders
-
     Vt = _pxr()[5]
     output = Path(output)
     data = dict(layer.customLayerData)
@@ -670,26 +636,6 @@ def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.f
 
 
 _TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2")
-
-
-def _texture_name(plain: Path, staged: Path, in_use: set) -> Path:
-    """The plain name, unless a current layer uses that file (or its sidecar) with other content.
-
-    Only such a file must not change before the commit point; any other file of that name is no
-    part of a current asset and is replaced (the output exists without --force was refused).
-    """
-    sidecar = plain.with_name(plain.name + ".json")
-    if os.path.abspath(plain) not in in_use and os.path.abspath(sidecar) not in in_use:
-        return plain
-    digest = file_sha256(staged)
-    try:
-        if os.path.isfile(plain) and not os.path.islink(plain) and file_sha256(plain) == digest \
-                and (not os.path.lexists(sidecar) or os.path.isfile(sidecar)):
-            return plain  # the same texture: replacing it changes nothing a reader sees
-    except OSError:
-        pass
-    return plain.with_name(f"{plain.stem}.{digest[:12]}{plain.suffix}")
-
 
 
 def replaced_files(layer_path: PathLike) -> list:
@@ -801,8 +747,6 @@ def export_layer(layer, temporary: Path, target: Path) -> None:
         OSError: USD could not write the layer.
     """
     from pxr import Tf
-
-    from vbusd.io.files import fault_point
 
     fault_point(f"export {temporary.name}", temporary)
     try:
