@@ -36,10 +36,10 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.jobs.conversion import check_output_path
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
+from vbusd.io.paths import check_output_path
 
 __all__ = ["DEVICES", "DecodeReport", "row_times", "decode"]
 
