@@ -305,9 +305,8 @@ def _decode_crowd(stage, transforms: dict, vb: VirtualBones, crowd, codes: np.nd
     """
     from pxr import Gf, Usd, UsdGeom, Vt
 
+    # The crowd prim and its ancestors, each with the asset's transform (copied once).
     _define_path(stage, transforms, crowd.path + "/x", UsdGeom)
-    holder = UsdGeom.Xform.Define(stage, crowd.path).GetPrim()
-    _copy_transform(transforms.get(crowd.path), holder, UsdGeom)
     count = crowd.instance_count
     written = []
     for mesh in vb.meshes:
