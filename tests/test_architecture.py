@@ -121,7 +121,8 @@ def _imports(path: Path) -> list:
             elif isinstance(child, ast.ImportFrom) and child.module and not child.level:
                 for alias in child.names:
                     full = f"{child.module}.{alias.name}"
-                    found.append((child.lineno, full if full in MODULES else child.module, in_function,
+                    vbusd = child.module.split(".")[0] == "vbusd"
+                    found.append((child.lineno, full if full in MODULES or not vbusd else child.module, in_function,
                                   ast.unparse(child)))
             elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
                 continue  # for type checkers only: never runs

@@ -143,6 +143,35 @@ def test_crowd_decoding_places_every_instance(converted, tmp_path):
             assert np.abs(points[i] - placed).max() < 5e-4, (code, i)
 
 
+def test_crowd_decoding_keeps_the_instancer_s_own_transform(converted, tmp_path):
+    # An instancer with a transform of its own: the cache's crowd prim carries it, once (copying it
+    # twice made USD refuse the second transform op, and the decode fail).
+    from pxr import Gf
+
+    from vbusd.format.model import Crowd, VirtualBonesAsset
+    from vbusd.io.usd import read_asset, write_asset
+
+    _, asset_path = converted
+    asset = read_asset(asset_path)
+    crowd = Crowd(path="/Root/Crowd", positions=np.zeros((2, 3), np.float32),
+                  orientations=np.tile(np.array([0, 0, 0, 1], np.float32), (2, 1)), clip=np.zeros(2, np.int32),
+                  time_offset=np.zeros(2, np.float32), playback_rate=np.ones(2, np.float32))
+    crowd_asset = tmp_path / "moved_crowd.usda"
+    write_asset(VirtualBonesAsset(animations=asset.animations, crowds=(crowd,), crowd_animation=(0,),
+                                  up_axis=asset.up_axis, meters_per_unit=asset.meters_per_unit,
+                                  time_codes_per_second=asset.time_codes_per_second,
+                                  default_prim=asset.default_prim), crowd_asset)
+    stage = Usd.Stage.Open(str(crowd_asset))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Crowd")).AddTranslateOp().Set(Gf.Vec3d(1, 2, 3))
+    stage.Save()
+    cache = tmp_path / "moved_cache.usda"
+    assert main(["decode", str(crowd_asset), "-o", str(cache), "--crowd"]) == 0
+    cached = Usd.Stage.Open(str(cache))
+    held = UsdGeom.Xformable(cached.GetPrimAtPath("/Root/Crowd"))
+    assert len(held.GetOrderedXformOps()) == 1
+    assert held.GetLocalTransformation().ExtractTranslation() == Gf.Vec3d(1, 2, 3)
+
+
 def test_decode_creates_the_output_folder_and_refuses_folders_in_one_line(converted, tmp_path, capsys):
     _, asset = converted
     cache = tmp_path / "caches" / "shot" / "cache.usda"

@@ -65,6 +65,7 @@ import json
 import os
 import re
 import secrets
+import shutil
 import signal
 import socket
 import stat
@@ -74,11 +75,17 @@ from typing import IO, Callable, Iterable, Iterator, Optional, Union
 
 from vbusd.process import signals as _signals
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, VbusdError
+import ctypes
+import fcntl
+import datetime
+import sys
+import hashlib
 
 __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "atomic_write",
            "FAULT_ENV", "FAULT_TRACE_ENV", "fault_point", "LOCK_TIMEOUT_S", "OutputLocked",
            "lock_path", "journal_path", "Commit", "write_error", "recover", "resolve_inside",
-           "make_folders", "remove_folders", "file_sha256"]
+           "make_folders", "remove_folders", "file_sha256", "digest_name", "free_name",
+           "settle_names"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -396,7 +403,6 @@ def fault_point(step: str, path: Optional[PathLike] = None) -> None:
     if kind == "kill":
         os.kill(os.getpid(), signal.SIGKILL)
     if kind == "hang":  # stuck in C for good (a mutex locked twice), as a deadlock would be
-        import ctypes
 
         libc = ctypes.CDLL(None)
         mutex = ctypes.create_string_buffer(64)  # zeroes: PTHREAD_MUTEX_INITIALIZER on Linux
@@ -472,7 +478,6 @@ class _Lock:
         self._fd: Optional[int] = None
 
     def acquire(self) -> None:
-        import fcntl
 
         deadline = time.monotonic() + self.timeout
         while True:
@@ -502,8 +507,6 @@ class _Lock:
                 continue
             self._fd = fd
             break
-        import datetime
-        import sys
 
         started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
         command = " ".join([Path(sys.argv[0]).name] + sys.argv[1:]) if sys.argv and sys.argv[0] else ""
@@ -900,6 +903,108 @@ def recover(target: PathLike, *, in_use: Optional[Callable[[Path], Iterable[Path
         pass
 
 
+# --------------------------------------------------------------------------------------------
+# Plain names: a staged file takes a content name only while the current asset holds its name
+# --------------------------------------------------------------------------------------------
+
+
+def digest_name(plain: PathLike, digest: str) -> Path:
+    """``plain`` with the first 12 hex digits of a SHA-256 before its suffix: ``crowd.Anim.3fa9c0e1b2d4.exr``."""
+    plain = Path(plain)
+    return plain.with_name(f"{plain.stem}.{digest[:12]}{plain.suffix}")
+
+
+def free_name(plain: PathLike, in_use: set, digest: Callable[[], str], *,
+              companions: Callable[[Path], Iterable[Path]] = lambda path: ()) -> Path:
+    """The name a file other than the target is staged under in a :class:`Commit`.
+
+    Its plain name, unless a current asset uses that file (or one of its companions, e.g. a
+    texture's sidecar) with other content: only such a file must not change before the commit
+    point; any other file of that name is no part of a current asset and is replaced. Then the
+    name carrying the new content's digest (:func:`digest_name`); :func:`settle_names` gives it
+    the plain name back after the commit.
+
+    Args:
+        plain: The file's plain name.
+        in_use: Absolute paths of the files the current asset uses (the Commit's ``in_use``).
+        digest: Returns the SHA-256 (hex) of the new content; called only when the name is used.
+        companions: ``companions(path)``: the files that share ``path``'s name and fate (a
+            texture's sidecar); the plain name is kept for the same content only where each of
+            them is absent or a regular file.
+
+    Returns:
+        ``plain`` or its digest name.
+    """
+    plain = Path(plain)
+    others = list(companions(plain))
+    if all(os.path.abspath(p) not in in_use for p in [plain, *others]):
+        return plain
+    new = digest()
+    try:
+        if os.path.isfile(plain) and not os.path.islink(plain) and file_sha256(plain) == new \
+                and all(not os.path.lexists(p) or os.path.isfile(p) for p in others):
+            return plain  # the same content: replacing it changes nothing a reader sees
+    except OSError:
+        pass
+    return digest_name(plain, new)
+
+
+def settle_names(commit: "Commit", files: list, renamed: list, *, rename: Callable[[object, Path], None],
+                 stage_target: Callable[[list], None],
+                 companions: Callable[[Path], Iterable[Path]] = lambda path: ()) -> list:
+    """The second commit of a write whose files took digest names (:func:`free_name`): they get
+    their plain names back, now that the old asset that held those names is gone.
+
+    Call it after the first commit's ``with`` block, which called :meth:`Commit.hold` when
+    ``renamed`` is not empty; the lock is released when it returns. Under that lock each plain
+    name (and its companions') is staged as a hard link to the digest-named file (a copy where
+    the file system has no hard links), ``rename`` points the target at it, ``stage_target``
+    stages the target again, and its rename makes the plain files current; the digest-named files
+    are removed after. A name that a sibling of the target (the Commit's ``in_use``) still uses
+    keeps its digest name. A failed write leaves the first commit's asset, which is whole and
+    current, and returns its files: the same files, name for name, whatever the folder held.
+
+    Args:
+        commit: The first commit, finished, that held its lock.
+        files: The files the first commit made current (the target first).
+        renamed: ``(key, digest-named file, plain name)`` per file that took a digest name.
+        rename: ``rename(key, plain)``: make the target being built name ``plain`` for ``key``.
+        stage_target: ``stage_target(files)``: stage the target, which names ``files``, in
+            ``commit``.
+        companions: As for :func:`free_name`: files renamed with each one (its sidecar).
+
+    Returns:
+        The files current after the call (the target first).
+    """
+    try:
+        if not renamed:
+            return files
+        settled = list(files)
+        try:
+            with commit.again():
+                in_use = commit._used() - {os.path.abspath(p) for p in files}
+                for key, old, plain in renamed:
+                    pairs = [(old, plain), *zip(companions(old), companions(plain))]
+                    if any(os.path.abspath(new) in in_use for _, new in pairs):
+                        continue
+                    for before, after in pairs:
+                        staged = commit.temp_path(after, reserve=False)
+                        fault_point(f"link {staged.name}", staged)
+                        try:
+                            os.link(before, staged)
+                        except OSError:
+                            shutil.copyfile(before, staged)
+                        settled[settled.index(before)] = after
+                    commit.discard_after([before for before, _ in pairs])
+                    rename(key, plain)
+                stage_target(settled)
+        except OSError:
+            return files
+        return settled
+    finally:
+        commit.release()
+
+
 _SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9+.\-]*):")
 
 
@@ -997,7 +1102,6 @@ def remove_folders(folders: Iterable) -> None:
 
 def file_sha256(path) -> str:
     """SHA-256 of a file's bytes (hex), read in 1 MiB blocks."""
-    import hashlib
 
     digest = hashlib.sha256()
     with open(path, "rb") as stream:

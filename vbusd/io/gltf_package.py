@@ -15,6 +15,7 @@ export are one :class:`~vbusd.io.files.Commit`: the old package whole or the new
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -31,8 +32,13 @@ from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsErr
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 from vbusd.io.gltf import referenced_uris
+from vbusd.io.files import Commit, free_name, make_folders, remove_folders, settle_names, write_error
 
 from vbusd.io.generator import GENERATOR
+from vbusd.format.errors import UnsupportedError
+from vbusd.io import ktx2
+from vbusd.format.diagnostics import Diagnostics
+from vbusd.io.package_reader import read_package
 __all__ = ["EXTENSION", "INSTANCING", "EXTENSION_VERSION", "SUFFIXES", "ROOT_NODE", "Z_UP_TO_Y_UP",
            "ExportReport", "build_package", "glb_bytes", "export_gltf", "package_files_in_use", "check_package"]
 
@@ -148,7 +154,6 @@ def _crowd_arrays(crowd):
     count = crowd.instance_count
     if crowd.layered:
         # Spec 8.6 layers have no glTF transport yet: refuse rather than export the crowd without them.
-        from vbusd.format.errors import UnsupportedError
 
         raise UnsupportedError("the crowd plays layers (format 1.2), which the glTF runtime package does not "
                                "carry yet", location=f"{crowd.path}.primvars:vb:layerWeight",
@@ -221,7 +226,6 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             over 32767 (``export.mesh``).
         OptionsError: A bad supercompression.
     """
-    from vbusd.io import ktx2
 
     if not any(vb.meshes for vb in asset.animations):
         raise InputError("the asset has no mesh bound to an animation: a runtime package needs the rest "
@@ -361,8 +365,6 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
         VbusdError: ``write.failed``: a file could not be written (disk full, quota, read-only,
             name too long, a folder in the way); ``write.locked``: another run writes the output.
     """
-    from vbusd.io.files import Commit, make_folders, remove_folders, write_error
-
     output = Path(output)
     suffix = output.suffix.lower()
     if suffix not in SUFFIXES:
@@ -391,7 +393,7 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
             for index, (name, data) in enumerate(buffers):
                 if name is None:
                     continue
-                path = _buffer_name(output.with_name(name), data, in_use)
+                path = free_name(output.with_name(name), in_use, lambda: hashlib.sha256(data).hexdigest())
                 if path.name != name:
                     renamed.append((index, path, output.with_name(name)))
                 gltf["buffers"][index]["uri"] = urllib.parse.quote(path.name)
@@ -403,11 +405,16 @@ def export_gltf(asset: VirtualBonesAsset, output, *, supercompression: str = "no
             commit.discard_after(old_files)
             if renamed:
                 commit.hold()
-        if renamed:
-            try:
-                files = _settle_names(commit, output, gltf, buffers, binary, files, renamed)
-            finally:
-                commit.release()
+
+        def rename(index: int, plain: Path) -> None:
+            gltf["buffers"][index]["uri"] = urllib.parse.quote(plain.name)
+
+        def stage_main_file(settled: list) -> None:
+            with commit.open(output, "wb") as stream:
+                stream.write(_main_file(gltf, buffers, binary))
+
+        # The buffers that took a digest name get their plain names back in a second commit.
+        files = settle_names(commit, files, renamed, rename=rename, stage_target=stage_main_file)
     except BaseException as error:
         remove_folders(created)  # the commit left nothing in them
         if isinstance(error, OSError):  # disk full, permissions: one line, not a traceback
@@ -423,40 +430,6 @@ def _main_file(gltf: dict, buffers: list, binary: bool) -> bytes:
     """The bytes of the ``.glb`` or ``.gltf`` itself."""
     return glb_bytes(gltf, buffers[0][1]) if binary else \
         (json.dumps(gltf, indent=1, ensure_ascii=False) + "\n").encode("utf-8")
-
-
-def _settle_names(commit, output: Path, gltf: dict, buffers: list, binary: bool, files: list,
-                  renamed: list) -> list:
-    """The second commit of an export that replaced a package: the buffers that took a digest
-    name (the old ``.gltf`` used the plain one with other content) get their plain names back,
-    staged as hard links (copies without hard links), with the ``.gltf`` naming them; the digest
-    files are removed after. A failed write keeps the first commit's package (whole, current)."""
-    import shutil
-
-    from vbusd.io.files import fault_point
-
-    settled = list(files)
-    try:
-        with commit.again():
-            in_use = {os.path.abspath(p) for p in package_files_in_use(output)} - \
-                {os.path.abspath(p) for p in files}
-            for index, old, plain in renamed:
-                if os.path.abspath(plain) in in_use:
-                    continue
-                staged = commit.temp_path(plain, reserve=False)
-                fault_point(f"link {staged.name}", staged)
-                try:
-                    os.link(old, staged)
-                except OSError:
-                    shutil.copyfile(old, staged)
-                gltf["buffers"][index]["uri"] = urllib.parse.quote(plain.name)
-                settled[settled.index(old)] = plain
-                commit.discard_after([old])
-            with commit.open(output, "wb") as stream:
-                stream.write(_main_file(gltf, buffers, binary))
-    except OSError:
-        return files
-    return settled
 
 
 def check_package(path, *, allow_outside_paths: bool = False) -> dict:
@@ -481,8 +454,6 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
             problem: ``file.missing``, ``gltf.file`` (empty), the glTF reader's ``gltf.*`` codes,
             ``package.extension`` (not a Virtual Bones runtime package) or ``package.texture``.
     """
-    from vbusd.format.diagnostics import Diagnostics
-    from vbusd.io.package_reader import read_package
 
     path = Path(path)
     file = str(path)
@@ -528,17 +499,3 @@ def package_files_in_use(target) -> list:
 def _replaced_package_files(output: Path) -> list:
     """The old package's buffers to remove once the new one is current: those named ``<stem>.*``."""
     return [p for p in package_files_in_use(output) if p.name.startswith(output.stem + ".")]
-
-
-def _buffer_name(plain: Path, data: bytes, in_use: set) -> Path:
-    """``plain``, unless a current ``.gltf`` uses that file with other content: then with a digest."""
-    import hashlib
-
-    if os.path.abspath(plain) not in in_use:
-        return plain
-    try:
-        if plain.is_file() and not plain.is_symlink() and plain.read_bytes() == data:
-            return plain  # the same bytes: replacing them changes nothing a reader sees
-    except OSError:
-        pass
-    return plain.with_name(f"{plain.stem}.{hashlib.sha256(data).hexdigest()[:12]}{plain.suffix}")

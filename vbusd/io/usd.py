@@ -30,6 +30,8 @@ Stage structure written by :func:`write_asset` (paths come from the model)::
   constructed as (real, imaginary).
 * Stage metadata: ``upAxis``, ``metersPerUnit``, ``timeCodesPerSecond`` and ``framesPerSecond``
   (``asset.extra["frames_per_second"]``, else the time codes per second).
+* Every point instancer vbusd writes, an asset's crowds and ``vbusd crowd``'s layers
+  (:func:`write_crowd_layer`) alike, is authored by :func:`write_instancer`.
 
 Every output (USD layer, textures, sidecars) is written in one :class:`vbusd.io.files.Commit`:
 under the output's lock, textures and sidecars are staged under names that cannot collide with
@@ -52,17 +54,20 @@ from __future__ import annotations
 import errno
 import os
 import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Union
 
 import numpy as np
 
+from vbusd.format import metadata as md
 from vbusd.format import names
 from vbusd.format.names import unique_names
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.layout import FORMAT_VERSION, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
-from vbusd.io.files import file_sha256
+from vbusd.io.files import Commit, fault_point, file_sha256, free_name, make_folders, remove_folders, settle_names
+from vbusd.io.textures import sidecar_path, write_texture
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
 
 from vbusd.format.containers import CONTAINERS, default_container, texture_file_name
@@ -70,7 +75,8 @@ from vbusd.io.generator import GENERATOR
 __all__ = ["WRITE_SUFFIXES", "TEXTURE_CONTAINERS", "REL_ANIMATION", "PRIMVAR_BONE_INDICES",
            "PRIMVAR_BONE_WEIGHTS", "PRIMVAR_CLIP", "PRIMVAR_TIME_OFFSET", "PRIMVAR_PLAYBACK_RATE",
            "PROTOTYPES_SCOPE", "build_stage", "write_asset", "replaced_files", "LARGE_LAYER_BYTES",
-           "layer_files", "asset_files_in_use", "export_layer", "write_layer",
+           "layer_files", "asset_files_in_use", "export_layer", "write_layer", "write_instancer",
+           "CharacterReference", "CharacterInstancer", "write_crowd_layer",
            # read through the one reader, re-exported for callers of vbusd.io.usd
            "OUTSIDE_PATHS_HINT", "READ_SUFFIXES", "WEIGHT_SUM_TOLERANCE", "AnimationAttributes",
            "read_animation_attributes", "read_asset", "tf_message"]
@@ -92,7 +98,6 @@ PROTOTYPES_SCOPE = "Prototypes"
 def _pxr():
     """Import pxr (after making sure the schema plugin is registered)."""
     register()
-    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
     return Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
@@ -114,7 +119,6 @@ def _check_prim_path(Sdf, path: str, what: str) -> "Sdf.Path":
 
 def _plan_textures(asset: VirtualBonesAsset, path: Path, texture_container: Optional[str]) -> list:
     """Texture file names of every animation, checked before any file is written."""
-    from vbusd.io.textures import container_for
 
     names = []
     for index, vb in enumerate(asset.animations):
@@ -307,41 +311,75 @@ def _write_mesh(stage, pxr, mesh: BoundMesh, animation_path: str) -> None:
 def _write_lod_root(stage, pxr, vb: VirtualBones) -> None:
     """Author the UsdLod root of ``vb``'s levels (spec 20.1): LODRootAPI, its children in level
     order, and a LODScreenSizeHeuristic beside it (a child would count as a level)."""
-    from vbusd.io.usd_lod import author_lod_root
 
     author_lod_root(stage, vb.lods, vb.clip_extents)
 
 
 def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
-    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    """An asset's crowd: its prototype references the animation's bound meshes (or its LOD root)."""
+    Sdf = pxr[1]
+    targets = (vb.lods.root,) if vb.lods is not None else tuple(m.path for m in vb.meshes)
+    write_instancer(stage, crowd, vb.path, Sdf.Path(vb.path).name, targets, mask_count=len(vb.masks))
+
+
+def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets, *, mask_count: int = 0,
+                    show_targets: bool = False):
+    """Author one UsdGeomPointInstancer with VirtualBonesInstancingAPI (spec 15, "Instancing").
+
+    The one author of a Virtual Bones point instancer, for :func:`write_asset` (an asset's crowds)
+    and :func:`write_crowd_layer` (``vbusd crowd``). At ``crowd.path``: the prototype
+    ``Prototypes/<prototype>`` under the instancer (so renderers do not draw it on its own) with one
+    internal reference per target; ``positions``; ``orientations`` twice, ``quath[]`` (which every
+    PointInstancer reader knows) and ``orientationsf`` (``quatf[]``, the exact float32 values,
+    preferred by UsdGeom when authored); ``scales`` when the crowd has them; ``protoIndices`` (all
+    0); ``vb:animation``; the clip, time offset and playback rate primvars (interpolation
+    ``vertex``), and the crossfade (format 1.1) and layer (format 1.2) primvars when the crowd has
+    them.
+
+    Args:
+        stage: The stage to author on (ancestors missing are defined as Xforms).
+        crowd: The instancer's path and per-instance values; orientations are (x, y, z, w).
+        animation: Prim path of the VirtualBonesAnimation the instances play.
+        prototype: Name of the prototype prim.
+        targets: Prim paths the prototype references, one child each named after the target's
+            last path element (made unique): the animation's bound meshes, or its LOD root (each
+            instance then selects its level, spec 20.2).
+        mask_count: Masks the animation stores (layers need at least one).
+        show_targets: Author ``visibility = inherited`` on each child, for targets that lie under
+            an invisible prim (``vbusd crowd``'s referenced characters): they draw as instances.
+
+    Returns:
+        The ``UsdGeom.PointInstancer``.
+
+    Raises:
+        OptionsError: A primvar whose count is not one value (or one row of layers) per instance;
+            layers on an animation without masks.
+    """
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr = _pxr()
     path = Sdf.Path(crowd.path)
     _define_ancestors(stage, UsdGeom, path)
     instancer = UsdGeom.PointInstancer.Define(stage, path)
     n = crowd.instance_count
 
-    # The prototype: under the instancer (not drawn on its own), one reference per bound mesh.
+    # The prototype: under the instancer (not drawn on its own), one reference per target.
     UsdGeom.Scope.Define(stage, path.AppendChild(PROTOTYPES_SCOPE))
-    prototype_path = path.AppendChild(PROTOTYPES_SCOPE).AppendChild(Sdf.Path(vb.path).name)
+    prototype_path = path.AppendChild(PROTOTYPES_SCOPE).AppendChild(prototype)
     UsdGeom.Xform.Define(stage, prototype_path)
-    if vb.lods is not None:
-        # One reference to the LOD root brings every level and its LODRootAPI: each instance
-        # selects its level (spec 20.2).
-        child = stage.DefinePrim(prototype_path.AppendChild(Sdf.Path(vb.lods.root).name))
-        child.GetReferences().AddInternalReference(Sdf.Path(vb.lods.root))
-    else:
-        mesh_names = unique_names([Sdf.Path(m.path).name for m in vb.meshes])
-        for mesh, name in zip(vb.meshes, mesh_names):
-            child = stage.DefinePrim(prototype_path.AppendChild(name))
-            child.GetReferences().AddInternalReference(Sdf.Path(mesh.path))
+    targets = [Sdf.Path(str(target)) for target in targets]
+    for target, name in zip(targets, unique_names([target.name for target in targets])):
+        child = stage.DefinePrim(prototype_path.AppendChild(name))
+        child.GetReferences().AddInternalReference(target)
+        if show_targets:
+            UsdGeom.Imageable(child).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
 
     positions = np.ascontiguousarray(crowd.positions, dtype=np.float32).reshape(n, 3)
     instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(positions))
-    quats = np.asarray(crowd.orientations, dtype=np.float32).reshape(n, 4)
-    # vbusd: (x, y, z, w). Gf: (real, imaginary) -- build each quaternion explicitly.
-    instancer.CreateOrientationsAttr(Vt.QuathArray(
-        [Gf.Quath(float(w), Gf.Vec3h(float(x), float(y), float(z))) for x, y, z, w in quats]))
-    instancer.CreateOrientationsfAttr(Vt.QuatfArray(
-        [Gf.Quatf(float(w), Gf.Vec3f(float(x), float(y), float(z))) for x, y, z, w in quats]))
+    # vbusd: (x, y, z, w). Gf quaternions are constructed as (real, imaginary) but hold the
+    # imaginary part first in memory, so (x, y, z, w) rows are their layout: FromNumpy gives the
+    # same values as Gf.Quath(w, Gf.Vec3h(x, y, z)) per instance (test_usd_io checks with Gf.Rotation).
+    quats = np.ascontiguousarray(crowd.orientations, dtype=np.float32).reshape(n, 4)
+    instancer.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(quats.astype(np.float16)))
+    instancer.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(quats))
     if crowd.scales is not None:
         scales = np.ascontiguousarray(crowd.scales, dtype=np.float32).reshape(n, 3)
         instancer.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(scales))
@@ -350,7 +388,7 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
 
     prim = instancer.GetPrim()
     prim.ApplyAPI(INSTANCING_API)
-    prim.GetRelationship(REL_ANIMATION).SetTargets([Sdf.Path(vb.path)])
+    prim.CreateRelationship(REL_ANIMATION).SetTargets([Sdf.Path(str(animation))])
     primvars = UsdGeom.PrimvarsAPI(prim)
     for name, type_name, values, dtype in (
             (PRIMVAR_CLIP, Sdf.ValueTypeNames.IntArray, crowd.clip, np.int32),
@@ -365,7 +403,8 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     if _fades(crowd):
         _write_fades(stage, pxr, primvars, crowd)
     if crowd.layer_weight is not None:
-        _write_layers(pxr, primvars, crowd, len(vb.masks))
+        _write_layers(pxr, primvars, crowd, mask_count)
+    return instancer
 
 
 def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
@@ -523,8 +562,6 @@ def write_asset(asset: VirtualBonesAsset, path: PathLike, *,
     except OptionsError as error:
         raise error.at(file=str(path))
 
-    from vbusd.io.files import make_folders, remove_folders
-
     # Missing folders are created, as convert's -o does, and removed again when the write fails.
     created = make_folders(path.parent)
     try:
@@ -539,13 +576,10 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
     """Stage the textures, sidecars and layer of ``asset`` and make them current in one commit.
 
     A texture that had to take a digest name (the current asset used the plain one with other
-    content) gets its plain name back in a second commit under the same lock, so the files are
-    the same whatever the folder held before (:func:`_settle_names`).
+    content: :func:`vbusd.io.files.free_name`) gets its plain name back in a second commit under
+    the same lock (:func:`vbusd.io.files.settle_names`), so the files are the same whatever the
+    folder held before.
     """
-    from vbusd.format import metadata as md
-    from vbusd.io.files import Commit, fault_point
-    from vbusd.io.textures import sidecar_path, write_texture
-
     _, Sdf, _, _, _, Vt = _pxr()
     folder = path.parent
     written = [path]
@@ -559,13 +593,13 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
             write_texture(plain, vb, transaction=commit, sidecar=False)
             staged = commit.staged_path(plain)
             fault_point(f"wrote {staged.name}", staged)
-            texture = _texture_name(plain, staged, in_use)
+            texture = free_name(plain, in_use, lambda: file_sha256(staged), companions=_sidecars)
             if texture != plain:
                 commit.retarget(plain, texture)
                 renamed.append((vb.path, texture, plain))
             with commit.open(sidecar_path(texture), "w", encoding="utf-8", newline="\n") as stream:
                 stream.write(md.dumps(md.to_dict(vb, generator=GENERATOR)))
-            stage.GetPrimAtPath(vb.path).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
+            _name_texture(stage, vb.path, texture)
             written += [texture, sidecar_path(texture)]
         layer = stage.GetRootLayer()
         _record_files(layer, written[1:], Vt)
@@ -577,12 +611,26 @@ def _commit_asset(asset, path: Path, stage, texture_names, replace: bool, lock_t
         commit.discard_after(old_files)
         if renamed:
             commit.hold()
-    if not renamed:
-        return written
-    try:
-        return _settle_names(commit, stage, path, written, renamed)
-    finally:
-        commit.release()
+
+    def stage_layer(files: list) -> None:
+        _record_files(layer, files[1:], Vt)
+        export_layer(layer, commit.temp_path(path, reserve=False), path)
+
+    # The digest-named textures (and sidecars) take their plain names; a name a sibling layer of
+    # the same stem still uses keeps its digest name; a failed write keeps the first commit's files.
+    return settle_names(commit, written, renamed, stage_target=stage_layer, companions=_sidecars,
+                        rename=lambda animation, plain: _name_texture(stage, animation, plain))
+
+
+def _sidecars(texture: Path) -> list:
+    """The files renamed with a texture: its sidecar."""
+    return [sidecar_path(texture)]
+
+
+def _name_texture(stage, animation: str, texture: Path) -> None:
+    """Point the animation prim's ``vb:texture`` at ``texture`` (beside the layer)."""
+    Sdf = _pxr()[1]
+    stage.GetPrimAtPath(animation).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{texture.name}"))
 
 
 def _record_files(layer, files, Vt) -> None:
@@ -590,49 +638,6 @@ def _record_files(layer, files, Vt) -> None:
     data = dict(layer.customLayerData)
     data["vbusd"] = {"files": Vt.StringArray([Path(p).name for p in files])}
     layer.customLayerData = data
-
-
-def _settle_names(commit, stage, path: Path, written: list, renamed: list) -> list:
-    """The second commit: the digest-named textures (and sidecars) of a commit that replaced an
-    asset get their plain names, now that the old asset that held those names is gone.
-
-    Each plain name is staged as a hard link to the digest-named file (a copy where the file
-    system has no hard links), the layer is staged naming the plain files, and its rename makes
-    them current; the digest-named files are removed after. A name a sibling layer of the same
-    stem still uses keeps its digest name. A failed write leaves the first commit's asset, which
-    is whole and current, and returns its files.
-    """
-    import shutil
-
-    from vbusd.io.files import fault_point
-    from vbusd.io.textures import sidecar_path
-
-    _, Sdf, _, _, _, Vt = _pxr()
-    layer = stage.GetRootLayer()
-    settled = list(written)
-    try:
-        with commit.again():
-            in_use = {os.path.abspath(p) for p in asset_files_in_use(path)} - \
-                {os.path.abspath(p) for p in written}
-            for animation, texture, plain in renamed:
-                pairs = [(texture, plain), (sidecar_path(texture), sidecar_path(plain))]
-                if any(os.path.abspath(new) in in_use for _, new in pairs):
-                    continue
-                for old, new in pairs:
-                    staged = commit.temp_path(new, reserve=False)
-                    fault_point(f"link {staged.name}", staged)
-                    try:
-                        os.link(old, staged)
-                    except OSError:
-                        shutil.copyfile(old, staged)
-                    settled[settled.index(old)] = new
-                commit.discard_after([old for old, _ in pairs])
-                stage.GetPrimAtPath(animation).GetAttribute(names.TEXTURE).Set(Sdf.AssetPath(f"./{plain.name}"))
-            _record_files(layer, settled[1:], Vt)
-            export_layer(layer, commit.temp_path(path, reserve=False), path)
-    except OSError:
-        return written
-    return settled
 
 
 def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.failed") -> None:
@@ -650,8 +655,6 @@ def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.f
     Raises:
         VbusdError: The write failed (disk full, permissions...): one line; nothing was written.
     """
-    from vbusd.io.files import Commit, make_folders, remove_folders
-
     Vt = _pxr()[5]
     output = Path(output)
     data = dict(layer.customLayerData)
@@ -674,24 +677,101 @@ def write_layer(layer, output, *, replace: bool, what: str, code: str = "write.f
 _TEXTURE_SUFFIXES = (".exr", ".png", ".ktx2")
 
 
-def _texture_name(plain: Path, staged: Path, in_use: set) -> Path:
-    """The plain name, unless a current layer uses that file (or its sidecar) with other content.
+@dataclass(frozen=True)
+class CharacterReference:
+    """A character asset that a crowd layer (:func:`write_crowd_layer`) references.
 
-    Only such a file must not change before the commit point; any other file of that name is no
-    part of a current asset and is replaced (the output exists without --force was refused).
+    Attributes:
+        name: Its prim name under ``<root>/Characters``.
+        reference: The asset path of its layer as the crowd layer names it (relative to the crowd's
+            folder where it can be).
+        default_prim: The character's default prim: the referenced prim, so paths in the
+            character's asset are taken relative to it.
+        crowd_paths: The character's own crowds (prim paths in its asset), deactivated in the crowd.
     """
-    sidecar = plain.with_name(plain.name + ".json")
-    if os.path.abspath(plain) not in in_use and os.path.abspath(sidecar) not in in_use:
-        return plain
-    digest = file_sha256(staged)
-    try:
-        if os.path.isfile(plain) and not os.path.islink(plain) and file_sha256(plain) == digest \
-                and (not os.path.lexists(sidecar) or os.path.isfile(sidecar)):
-            return plain  # the same texture: replacing it changes nothing a reader sees
-    except OSError:
-        pass
-    return plain.with_name(f"{plain.stem}.{digest[:12]}{plain.suffix}")
 
+    name: str
+    reference: str
+    default_prim: str
+    crowd_paths: tuple = ()
+
+
+@dataclass(frozen=True)
+class CharacterInstancer:
+    """One point instancer of a crowd layer: instances of one animation of a referenced character.
+
+    Attributes:
+        crowd: The instancer's path and per-instance values (:class:`vbusd.format.model.Crowd`).
+        character: The :attr:`CharacterReference.name` of the character it instances.
+        animation: The animation's prim path in the character's asset.
+        targets: Prim paths in the character's asset the prototype references: the animation's
+            bound meshes, or its LOD root.
+    """
+
+    crowd: Crowd
+    character: str
+    animation: str
+    targets: tuple
+
+
+def write_crowd_layer(output, characters, instancers, *, up_axis: str, meters_per_unit: float,
+                      replace: bool, root: str = "/Crowd") -> None:
+    """Write a crowd layer (``vbusd crowd``): referenced characters and point instancers of them.
+
+    The layer's default prim is ``root`` (an Xform). Each character is referenced at
+    ``<root>/Characters/<name>`` and made invisible, with its own crowds deactivated, so only the
+    instances draw; each instancer (:func:`write_instancer`) has the character's name as its
+    prototype, which references the character's meshes through that prim with
+    ``visibility = inherited``. The layer is built in memory under a name beside ``output`` (its
+    relative references resolve as they will once written) and written in one commit
+    (:func:`write_layer`): the same arguments give the same file, byte for byte.
+
+    Args:
+        output: The crowd layer (``.usda``, ``.usdc`` or ``.usd``).
+        characters: :class:`CharacterReference` per character, in order.
+        instancers: :class:`CharacterInstancer` per point instancer, in order.
+        up_axis: ``"Y"`` or ``"Z"``.
+        meters_per_unit: The stage's ``metersPerUnit``.
+        replace: Replace an existing output.
+        root: The root prim's path.
+
+    Raises:
+        UnsupportedError: The schema's types are unknown to this process (``usd.plugin``).
+        VbusdError: The write failed (``write.failed``): one line; nothing was written.
+    """
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = _pxr()
+    require_schema_types()
+    output = Path(output)
+    # An in-memory layer named as the output: its relative references resolve (and compose) as they
+    # will once written, and nothing touches the disk before the one atomic write.
+    layer = Sdf.Layer.New(Sdf.FileFormat.FindById("usda"), str(output.resolve().with_suffix(".vbusd-building.usda")))
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
+    root_prim = UsdGeom.Xform.Define(stage, root)
+    stage.SetDefaultPrim(root_prim.GetPrim())
+    stage.GetRootLayer().documentation = "A Virtual Bones crowd written by vbusd crowd."
+    UsdGeom.Scope.Define(stage, f"{root}/Characters")
+    held = {}
+
+    def inside(character: CharacterReference, path: str):
+        """A prim path of the character's asset, as the crowd sees it (under its holder)."""
+        relative = Sdf.Path(path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
+        return Sdf.Path(f"{root}/Characters/{character.name}").AppendPath(relative)
+
+    for character in characters:
+        holder = stage.DefinePrim(f"{root}/Characters/{character.name}")
+        holder.GetReferences().AddReference(character.reference)
+        UsdGeom.Imageable(holder).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+        for crowd_path in character.crowd_paths:  # a character's own crowds stay out of this one
+            stage.OverridePrim(inside(character, crowd_path)).SetActive(False)
+        held[character.name] = character
+    for instancer in instancers:
+        character = held[instancer.character]
+        # The character's own copy is invisible; its referenced meshes draw only as instances.
+        write_instancer(stage, instancer.crowd, inside(character, instancer.animation), character.name,
+                        [inside(character, target) for target in instancer.targets], show_targets=True)
+    write_layer(stage.GetRootLayer(), output, replace=replace, what="crowd layer")
 
 
 def replaced_files(layer_path: PathLike) -> list:
@@ -802,9 +882,6 @@ def export_layer(layer, temporary: Path, target: Path) -> None:
     Raises:
         OSError: USD could not write the layer.
     """
-    from pxr import Tf
-
-    from vbusd.io.files import fault_point
 
     fault_point(f"export {temporary.name}", temporary)
     try:
@@ -829,3 +906,8 @@ def export_layer(layer, temporary: Path, target: Path) -> None:
 from vbusd.io.usd_reader import (  # noqa: E402,F401
     OUTSIDE_PATHS_HINT, READ_SUFFIXES, WEIGHT_SUM_TOLERANCE, AnimationAttributes, read_animation_attributes,
     read_asset, tf_message)
+
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+from vbusd.io.textures import container_for
+from vbusd.io.usd_lod import author_lod_root
+from pxr import Tf

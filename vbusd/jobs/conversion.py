@@ -57,16 +57,16 @@ from vbusd.converters import registry
 from vbusd.baking.lod import levels_from_names
 from vbusd.baking.lod import adopt_levels
 from vbusd.baking.lod import add_levels
+from vbusd.io.paths import OUTPUT_SUFFIXES, check_output_path
 
 __all__ = ["AUTO", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
            "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
-           "ConvertReport", "check_output", "check_output_path", "bake_animation",
+           "ConvertReport", "check_output", "bake_animation",
            "bake_with_clip_policy", "measure_errors", "convert"]
 
 AUTO = "auto"
 """The encoding choice that lets vbusd pick per animation."""
 
-OUTPUT_SUFFIXES = (".usda", ".usd", ".usdc")
 BAD_CLIP_POLICIES = ("error", "skip")
 """What ``vbusd convert --on-bad-clip`` does with a clip the encoding cannot hold."""
 DEFAULT_CHECK_ROWS = 256
@@ -359,42 +359,13 @@ class ConvertReport:
 
 
 def check_output(source: Path, output: Path, options: ConvertOptions) -> None:
-    """Refuse an output that cannot be written, or exists without ``force`` (before any work).
+    """Refuse an output that cannot be written, or exists without ``force`` (before any work):
+    :func:`vbusd.io.paths.check_output_path` with the options' ``force``.
 
     Raises:
         OptionsError: Wrong suffix, missing folder, output is the source, or exists without force.
     """
     check_output_path(source, output, force=options.force)
-
-
-def check_output_path(source: Path, output: Path, *, force: bool, what: str = "output",
-                      source_what: str = "input") -> None:
-    """Refuse a USD layer to write that cannot be written, or exists without ``force``.
-
-    Shared by ``vbusd convert`` and ``vbusd decode`` (``what`` and ``source_what`` name the two
-    files in the messages).
-
-    Raises:
-        OptionsError: Wrong suffix, the nearest existing ancestor is not a folder, the output is a
-            folder or the source, or it exists without ``force``.
-    """
-    if output.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise OptionsError(f"the {what} must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
-                           file=str(output))
-    # A missing output folder is created at write time (and removed again if the write fails);
-    # here only check that the nearest existing ancestor is a folder.
-    ancestor = output.parent
-    while not ancestor.exists() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise OptionsError(f"cannot create the output folder {output.parent}: {ancestor} is not a folder",
-                           file=str(output))
-    if output.is_dir():
-        raise OptionsError("the output is a folder; name the USD layer to write", file=str(output))
-    if source.exists() and output.exists() and output.resolve() == source.resolve():
-        raise OptionsError(f"the {what} would overwrite the {source_what}", file=str(output))
-    if output.exists() and not force:
-        raise OptionsError(f"the output exists; {FORCE_HINT}", file=str(output))
 
 
 def _dual_quaternion_meshes(scene: SourceScene, index: int, animation: SkinnedAnimation) -> tuple[list, list]:

@@ -4,8 +4,11 @@ A crowd file references each character's Virtual Bones asset (its default prim, 
 ``/Crowd/Characters/<name>``, made invisible so only the instances draw) and holds one
 ``UsdGeomPointInstancer`` with ``VirtualBonesInstancingAPI`` per character and animation (a
 character of several skeletons has several, with the same instances), whose prototype references
-that animation's bound meshes. Per instance it authors position, orientation (a yaw about the
-stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing").
+that animation's bound meshes. Per instance it chooses position, orientation (a yaw about the
+stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing"). This module only
+places and chooses; the layer is authored and written by :func:`vbusd.io.usd.write_crowd_layer`,
+whose point instancers come from :func:`vbusd.io.usd.write_instancer`, the one author of a Virtual
+Bones point instancer (an asset's own crowds are written by it too).
 
 Placement: ``grid`` (rows of ``spacing``), ``disc`` (a sunflower spiral of even density whose
 instances stand ``spacing`` apart on average) or ``points`` (a CSV of ``x,y,z`` rows, or a USD file
@@ -29,7 +32,12 @@ from typing import Optional, Sequence
 import numpy as np
 
 from vbusd.format.errors import FORCE_HINT, MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, OptionsError
+from vbusd.format.model import Crowd
 from vbusd.format.names import unique_names
+from vbusd.io.usd import CharacterInstancer, CharacterReference, read_asset, write_crowd_layer
+from pxr import UsdGeom
+from vbusd.io.usd_reader import stage_for_reading
+import dataclasses
 
 __all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
 
@@ -229,9 +237,7 @@ def read_points(path: str) -> np.ndarray:
 
 
 def _usd_points(source: Path) -> np.ndarray:
-    from pxr import UsdGeom
 
-    from vbusd.io.usd_reader import stage_for_reading
 
     with stage_for_reading(source, allow_outside_paths=True) as stage:  # a points file, not an asset
         return _first_points(stage, source, UsdGeom)
@@ -314,8 +320,6 @@ def _radius(vb, up_axis: str) -> float:
 
 
 def _character(path: Path, index: int, used: set) -> _Character:
-    from vbusd.io.usd import read_asset
-
     asset = read_asset(path)
     if not asset.animations:
         raise InputError("holds no VirtualBonesAnimation to instance", file=str(path), code="crowd.character")
@@ -401,16 +405,8 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
         >>> vbusd.build_crowd(["out/hero.usda"], "out/crowd.usda",
         ...                   CrowdOptions(layout="disc", count=1000, seed=7))  # doctest: +SKIP
     """
-    from vbusd.io.usd_plugin import INSTANCING_API, register, require_schema_types
-
-    register()
-    from pxr import Sdf, Usd, UsdGeom, Vt
-
-    from vbusd.io.usd import PRIMVAR_CLIP, PRIMVAR_PLAYBACK_RATE, PRIMVAR_TIME_OFFSET, REL_ANIMATION
-
     start = time.perf_counter()
     if force is not None or allow_outside_paths is not None:
-        import dataclasses
 
         options = dataclasses.replace(options, **{k: bool(v) for k, v in (("force", force), (
             "allow_outside_paths", allow_outside_paths)) if v is not None})
@@ -460,31 +456,14 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     rate = rng.uniform(options.playback_rate[0], options.playback_rate[1], size=n)
     unit = rng.random(size=n)  # time offsets: per instance, scaled to its clip below
 
-    require_schema_types()
-    # An in-memory layer named as the output: its relative references resolve (and compose) as they
-    # will once written, and nothing touches the disk before the one atomic write.
-    layer = Sdf.Layer.New(Sdf.FileFormat.FindById("usda"), str(output.resolve().with_suffix(".vbusd-building.usda")))
-    stage = Usd.Stage.Open(layer)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, cast[0].meters_per_unit)
-    root = UsdGeom.Xform.Define(stage, CROWD_ROOT)
-    stage.SetDefaultPrim(root.GetPrim())
-    stage.GetRootLayer().documentation = "A Virtual Bones crowd written by vbusd crowd."
-    UsdGeom.Scope.Define(stage, f"{CROWD_ROOT}/Characters")
-    report_instances, report_clips = [], []
+    report_instances, report_clips, instancers = [], [], []
     # One point instancer per (character, animation): a character's animations play together on the
     # same instances. A character of one animation keeps the name <character>Instances.
     instancer_names = iter(unique_names([
         f"{c.name}Instances" if len(c.animations) == 1 else f"{c.name}_{a.path.rsplit('/', 1)[-1]}Instances"
         for c in cast for a in c.animations]))
     axis = 1 if up_axis == "Y" else 2
-    for k, (character, reference) in enumerate(zip(cast, references)):
-        holder = stage.DefinePrim(f"{CROWD_ROOT}/Characters/{character.name}")
-        holder.GetReferences().AddReference(reference)
-        UsdGeom.Imageable(holder).CreateVisibilityAttr(UsdGeom.Tokens.invisible)
-        for crowd_path in character.crowd_paths:  # a character's own crowds stay out of this one
-            inside = Sdf.Path(crowd_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
-            stage.OverridePrim(holder.GetPath().AppendPath(inside)).SetActive(False)
+    for k, character in enumerate(cast):
         mine = np.flatnonzero(who == k)
         m = len(mine)
         clip = _clip_choice(character, options.clips, rng, m)
@@ -498,48 +477,23 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
         names_here = [next(instancer_names) for _ in character.animations]
         if m == 0:
             continue
-        held = Sdf.Path(f"{CROWD_ROOT}/Characters/{character.name}")
-        quats = np.zeros((m, 4), dtype=np.float32)
+        quats = np.zeros((m, 4), dtype=np.float32)  # a yaw about the up axis, (x, y, z, w)
         quats[:, axis] = np.sin(yaw[mine] / 2)
         quats[:, 3] = np.cos(yaw[mine] / 2)
         for animation, instancer_name in zip(character.animations, names_here):
-            instancer_path = Sdf.Path(f"{CROWD_ROOT}/{instancer_name}")
-            instancer = UsdGeom.PointInstancer.Define(stage, instancer_path)
-            prototype = instancer_path.AppendChild("Prototypes").AppendChild(character.name)
-            UsdGeom.Scope.Define(stage, prototype.GetParentPath())
-            UsdGeom.Xform.Define(stage, prototype)
-            names = unique_names([path.rsplit("/", 1)[-1] for path in animation.mesh_paths])
-            for mesh_path, name in zip(animation.mesh_paths, names):
-                inside = Sdf.Path(mesh_path).MakeRelativePath(Sdf.Path("/" + character.default_prim))
-                child = stage.DefinePrim(prototype.AppendChild(name))
-                child.GetReferences().AddInternalReference(held.AppendPath(inside))
-                # The character's own copy is invisible; its referenced meshes draw only as instances.
-                UsdGeom.Imageable(child).CreateVisibilityAttr(UsdGeom.Tokens.inherited)
-            instancer.CreatePositionsAttr(Vt.Vec3fArray.FromNumpy(
-                np.ascontiguousarray(positions[mine], dtype=np.float32)))
-            instancer.CreateOrientationsAttr(Vt.QuathArray.FromNumpy(quats.astype(np.float16)))
-            instancer.CreateOrientationsfAttr(Vt.QuatfArray.FromNumpy(quats))
-            instancer.CreateScalesAttr(Vt.Vec3fArray.FromNumpy(
-                np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32)))
-            instancer.CreateProtoIndicesAttr(Vt.IntArray.FromNumpy(np.zeros(m, dtype=np.int32)))
-            instancer.CreatePrototypesRel().SetTargets([prototype])
-            prim = instancer.GetPrim()
-            prim.ApplyAPI(INSTANCING_API)
-            prim.CreateRelationship(REL_ANIMATION).SetTargets(
-                [held.AppendPath(Sdf.Path(animation.path).MakeRelativePath(Sdf.Path("/" + character.default_prim)))])
-            primvars = UsdGeom.PrimvarsAPI(prim)
-            own_clip = np.asarray(animation.clip_of, dtype=np.int32)[clip]
-            primvars.CreatePrimvar(PRIMVAR_CLIP, Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
-                Vt.IntArray.FromNumpy(own_clip))
-            primvars.CreatePrimvar(PRIMVAR_TIME_OFFSET, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-                Vt.FloatArray.FromNumpy(offsets.astype(np.float32)))
-            primvars.CreatePrimvar(PRIMVAR_PLAYBACK_RATE, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set(
-                Vt.FloatArray.FromNumpy(rate[mine].astype(np.float32)))
-    from vbusd.io.usd import write_layer
-
+            crowd = Crowd(path=f"{CROWD_ROOT}/{instancer_name}",
+                          positions=np.ascontiguousarray(positions[mine], dtype=np.float32), orientations=quats,
+                          scales=np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32),
+                          clip=np.asarray(animation.clip_of, dtype=np.int32)[clip],
+                          time_offset=offsets.astype(np.float32), playback_rate=rate[mine].astype(np.float32))
+            instancers.append(CharacterInstancer(crowd=crowd, character=character.name, animation=animation.path,
+                                                 targets=animation.mesh_paths))
+    characters_held = [CharacterReference(name=c.name, reference=reference, default_prim=c.default_prim,
+                                          crowd_paths=c.crowd_paths) for c, reference in zip(cast, references)]
     # One commit as every vbusd output (spec, "File names and the write guarantee"): under the
     # output's lock, staged beside the target and renamed; a failed write is one write.failed line.
-    write_layer(stage.GetRootLayer(), output, replace=force, what="crowd layer")
+    write_crowd_layer(output, characters_held, instancers, up_axis=up_axis, meters_per_unit=cast[0].meters_per_unit,
+                      replace=force, root=CROWD_ROOT)
     return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
                        seconds=time.perf_counter() - start, animations=[len(c.animations) for c in cast],
                        spacing=None if options.layout == "points" else float(spacing))

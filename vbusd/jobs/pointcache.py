@@ -22,9 +22,10 @@ asset (copied as one matrix op where authored), so world positions match the ass
 Decoding uses the numpy reference decoder (:mod:`vbusd.decoders.reference`), or the warp decoder
 (:mod:`vbusd.decoders.warp`) when a device is named and warp can be imported. Rows are decoded in
 chunks so the temporary arrays stay small; the samples themselves live in the USD layer until it is
-written. The cache is written through :class:`vbusd.io.files.Commit`: under the output's lock,
-staged beside the target and renamed; a failure or a kill never leaves a partial cache in its
-place, and the next run writing there removes what a killed one staged.
+written. This module decodes; the layer is authored by :class:`vbusd.io.usd_pointcache.PointCache`
+and written through :class:`vbusd.io.files.Commit`: under the output's lock, staged beside the
+target and renamed; a failure or a kill never leaves a partial cache in its place, and the next run
+writing there removes what a killed one staged.
 """
 
 from __future__ import annotations
@@ -36,10 +37,13 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from vbusd.jobs.conversion import check_output_path
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.jsonform import json_ready
 from vbusd.format.model import VirtualBones, VirtualBonesAsset
+from vbusd.io.paths import check_output_path
+from vbusd.io.usd import read_asset
+from vbusd.io.usd_pointcache import PointCache, source_transforms
+from vbusd.decoders import reference
 
 __all__ = ["DEVICES", "DecodeReport", "row_times", "decode"]
 
@@ -80,7 +84,6 @@ class DecodeReport:
 
 def _skinner(device: Optional[str], warnings: list) -> tuple[Callable, Callable, str]:
     """(skin_mesh, skin_crowd, name): warp on ``device``, else the numpy reference decoder."""
-    from vbusd.decoders import reference
 
     if device is None:
         return reference.skin_mesh, reference.skin_crowd, "numpy reference"
@@ -133,49 +136,6 @@ def _snap(codes: np.ndarray) -> np.ndarray:
     return np.where(np.abs(codes - nearest) <= 1e-9 * np.maximum(1.0, np.abs(codes)), nearest, codes)
 
 
-def _source_transforms(asset_path: Path, paths, allow_outside_paths: bool) -> tuple:
-    """The asset's local transforms of ``paths`` and their ancestors, and its frames per second.
-
-    Read once, through the one USD reader (a host's open layer is not touched, USD's diagnostics
-    are captured), before the long decode: ``{path: (resets, [(time code or None, matrix)])}`` for
-    each Xformable prim that has a transform.
-    """
-    from pxr import Sdf, UsdGeom
-
-    from vbusd.io.usd_reader import stage_for_reading
-
-    table = {}
-    with stage_for_reading(asset_path, allow_outside_paths=allow_outside_paths) as stage:
-        wanted = {str(prefix) for path in paths for prefix in Sdf.Path(path).GetPrefixes()}
-        for path in sorted(wanted):
-            prim = stage.GetPrimAtPath(path)
-            if not prim or not prim.IsA(UsdGeom.Xformable):
-                continue
-            xformable = UsdGeom.Xformable(prim)
-            if not xformable.GetOrderedXformOps() and not xformable.GetResetXformStack():
-                continue
-            times = xformable.GetTimeSamples()
-            samples = [(code, xformable.GetLocalTransformation(code)) for code in times] if times \
-                else [(None, xformable.GetLocalTransformation())]
-            table[path] = (xformable.GetResetXformStack(), samples)
-        return table, float(stage.GetFramesPerSecond())
-
-
-def _copy_transform(source, target_prim, UsdGeom) -> None:
-    """Author a prim's local transform (one matrix op) from :func:`_source_transforms`' entry."""
-    if source is None:
-        return
-    resets, samples = source
-    target = UsdGeom.Xformable(target_prim)
-    target.SetResetXformStack(resets)
-    op = target.AddTransformOp()
-    for code, matrix in samples:
-        if code is None:
-            op.Set(matrix)
-        else:
-            op.Set(matrix, code)
-
-
 def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force: bool = False,
            allow_outside_paths: bool = False, crowds: bool = False,
            progress: Optional[Callable] = None) -> DecodeReport:
@@ -208,19 +168,12 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     warnings: list = []
     skin, skin_crowd, decoder_name = _skinner(device, warnings)
 
-    from pxr import Gf, Usd, UsdGeom, Vt
-
-    from vbusd.io.usd import read_asset
-
     asset: VirtualBonesAsset = read_asset(asset_path, allow_outside_paths=allow_outside_paths)
     placed = [m.path for vb in asset.animations for m in vb.meshes] + [c.path + "/x" for c in asset.crowds]
-    transforms, source_fps = _source_transforms(asset_path, placed, allow_outside_paths)
+    transforms, source_fps = source_transforms(asset_path, placed, allow_outside_paths)
     tcps = float(asset.time_codes_per_second)
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if asset.up_axis == "Z" else UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, float(asset.meters_per_unit))
-    stage.SetTimeCodesPerSecond(tcps)
-    stage.SetFramesPerSecond(float(asset.extra.get("frames_per_second", source_fps)))
+    cache = PointCache(up_axis=asset.up_axis, meters_per_unit=asset.meters_per_unit, time_codes_per_second=tcps,
+                       frames_per_second=asset.extra.get("frames_per_second", source_fps), transforms=transforms)
 
     report = DecodeReport(asset=str(asset_path), output=str(output), decoder=decoder_name, warnings=warnings)
     first_code, last_code = np.inf, -np.inf
@@ -232,40 +185,20 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         codes = _snap(seconds * tcps)
         first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
         if vb.lods is not None:
-            from vbusd.io.usd_lod import author_lod_root
-
-            # Levels of detail: the cache keeps the UsdLod root, so a viewer draws one level.
-            author_lod_root(stage, vb.lods, vb.clip_extents)
+            cache.lod_root(vb.lods, vb.clip_extents)  # the cache keeps the UsdLod root: a viewer draws one level
         for mesh in vb.meshes:
-            _define_path(stage, transforms, mesh.path, UsdGeom)
-            prim = UsdGeom.Mesh.Define(stage, mesh.path)
-            _copy_transform(transforms.get(mesh.path), prim.GetPrim(), UsdGeom)
-            prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_counts, np.int32)))
-            prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.face_vertex_indices, np.int32)))
-            prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            points_attr = prim.CreatePointsAttr()
-            extent_attr = prim.CreateExtentAttr()
-            normals_attr = None
-            if mesh.normals is not None:
-                normals_attr = prim.CreateNormalsAttr()
-                prim.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying if mesh.normals_interpolation == "faceVarying"
-                                             else UsdGeom.Tokens.vertex)
+            samples = cache.mesh(mesh.path, mesh.face_vertex_counts, mesh.face_vertex_indices,
+                                 normals_interpolation=None if mesh.normals is None else mesh.normals_interpolation)
             chunk = max(1, int(4_000_000 // max(1, mesh.points.shape[0] * mesh.max_influences)))
             for start in range(0, tau.size, chunk):
                 part = slice(start, min(tau.size, start + chunk))
                 points, normals = skin(vb, mesh, clip_index, tau[part])
                 points = np.asarray(points, dtype=np.float32)
                 for j, code in enumerate(codes[part]):
-                    code = Usd.TimeCode(float(code))
-                    points_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points[j])), code)
-                    low, high = points[j].min(axis=0), points[j].max(axis=0)
-                    extent_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, low)), Gf.Vec3f(*map(float, high))]), code)
-                    if normals_attr is not None and normals is not None:
-                        normals_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals[j], dtype=np.float32)),
-                                         code)
+                    samples.set(code, points[j], None if normals is None else normals[j])
             report.meshes.append({"path": mesh.path, "points": int(mesh.points.shape[0]), "samples": int(tau.size),
                                   "clip": vb.clips[clip_index].name, "animation": vb.path,
-                                  "normals": normals_attr is not None})
+                                  "normals": samples.has_normals})
             done += 1
             if progress:
                 progress("decode", done, total)
@@ -274,80 +207,43 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
             vb = asset.animations[animation_index]
             codes = _snap(row_times(vb, 0)[1] * tcps)
             first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
-            report.meshes.extend(_decode_crowd(stage, transforms, vb, crowd, codes, tcps, skin_crowd))
+            report.meshes.extend(_decode_crowd(cache, vb, crowd, codes, tcps, skin_crowd))
     if not report.meshes:
         raise OptionsError("the asset has no bound mesh to decode", file=str(asset_path))
-    stage.SetStartTimeCode(first_code)
-    stage.SetEndTimeCode(last_code)
-    default = asset.default_prim
-    if default and stage.GetPrimAtPath(f"/{default}"):
-        stage.SetDefaultPrim(stage.GetPrimAtPath(f"/{default}"))
-    stage.GetRootLayer().documentation = f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})"
-
-    from vbusd.io.usd import write_layer
-
     # One commit (spec, "File names and the write guarantee"): under the output's lock, the cache
     # is staged beside the target and one rename makes it current; a run killed half way leaves a
     # staged file that the next run writing there removes.
-    write_layer(stage.GetRootLayer(), output, replace=force, what="point cache", code="decode.write")
+    cache.write(output, start=first_code, end=last_code, default_prim=asset.default_prim,
+                documentation=f"Point cache decoded by vbusd from {asset_path.name} ({decoder_name})",
+                replace=force, code="decode.write")
     report.start_time_code, report.end_time_code = first_code, last_code
     report.bytes = output.stat().st_size
     report.seconds = round(time.perf_counter() - started, 4)
     return report
 
 
-def _decode_crowd(stage, transforms: dict, vb: VirtualBones, crowd, codes: np.ndarray, tcps: float,
+def _decode_crowd(cache: PointCache, vb: VirtualBones, crowd, codes: np.ndarray, tcps: float,
                   skin_crowd: Callable) -> list:
     """Write one mesh per bound mesh holding every instance of ``crowd``, time-sampled at ``codes``.
 
     Points are in the instancer's space (scale, orientation, position applied per instance, as the
     spec's "Instancing" places them); the crowd prim keeps the instancer's path and transform.
     """
-    from pxr import Gf, Usd, UsdGeom, Vt
-
-    _define_path(stage, transforms, crowd.path + "/x", UsdGeom)
-    holder = UsdGeom.Xform.Define(stage, crowd.path).GetPrim()
-    _copy_transform(transforms.get(crowd.path), holder, UsdGeom)
+    cache.group(crowd.path)  # the crowd prim and its ancestors, with the asset's transforms
     count = crowd.instance_count
     written = []
     for mesh in vb.meshes:
         path = f"{crowd.path}/{mesh.path.rsplit('/', 1)[-1]}"
-        prim = UsdGeom.Mesh.Define(stage, path)
         vertices = mesh.points.shape[0]
         counts = np.tile(np.asarray(mesh.face_vertex_counts, np.int32), count)
         offsets = np.repeat(np.arange(count, dtype=np.int64) * vertices, len(mesh.face_vertex_indices))
         indices = (np.tile(np.asarray(mesh.face_vertex_indices, np.int64), count) + offsets).astype(np.int32)
-        prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(counts)))
-        prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(indices)))
-        prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        points_attr, extent_attr = prim.CreatePointsAttr(), prim.CreateExtentAttr()
-        normals_attr = None
-        if mesh.normals is not None:
-            normals_attr = prim.CreateNormalsAttr()
-            prim.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying if mesh.normals_interpolation == "faceVarying"
-                                         else UsdGeom.Tokens.vertex)
+        samples = cache.mesh(path, counts, indices, transformed=False,
+                             normals_interpolation=None if mesh.normals is None else mesh.normals_interpolation)
         for code in codes:
             points, normals = skin_crowd(vb, mesh, crowd, float(code) / tcps)
-            flat = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
-            time = Usd.TimeCode(float(code))
-            points_attr.Set(Vt.Vec3fArray.FromNumpy(flat), time)
-            low, high = flat.min(axis=0), flat.max(axis=0)
-            extent_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*map(float, low)), Gf.Vec3f(*map(float, high))]), time)
-            if normals_attr is not None and normals is not None:
-                normals_attr.Set(Vt.Vec3fArray.FromNumpy(
-                    np.ascontiguousarray(np.asarray(normals, dtype=np.float32).reshape(-1, 3))), time)
+            samples.set(code, points, normals)
         written.append({"path": path, "points": int(vertices * count), "samples": int(len(codes)),
-                        "clip": "per instance", "animation": vb.path, "normals": normals_attr is not None,
+                        "clip": "per instance", "animation": vb.path, "normals": samples.has_normals,
                         "instances": int(count)})
     return written
-
-
-def _define_path(stage, transforms: dict, path: str, UsdGeom) -> None:
-    """Define the ancestors of ``path`` as Xforms carrying the asset's transforms."""
-    from pxr import Sdf
-
-    for ancestor in Sdf.Path(path).GetParentPath().GetPrefixes():
-        if stage.GetPrimAtPath(ancestor):
-            continue
-        prim = UsdGeom.Xform.Define(stage, ancestor).GetPrim()
-        _copy_transform(transforms.get(str(ancestor)), prim, UsdGeom)

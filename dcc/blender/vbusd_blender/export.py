@@ -579,7 +579,7 @@ def _rest_mesh(context, obj, modifier, armature, bones: list, parent_bone=None, 
 
 def _check_output(path: Path, settings: ExportSettings, container: str, animation_names: list) -> None:
     from vbusd import OptionsError
-    from vbusd.jobs.conversion import check_output_path
+    from vbusd.io.paths import check_output_path
 
     check_output_path(Path(""), path, force=settings.overwrite)
     if not settings.overwrite:
