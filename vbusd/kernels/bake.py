@@ -13,9 +13,9 @@ function                           numpy twin
 :func:`encode_cross_matrix`        ``format.encoding.encode_bones`` (crossMatrix)
 :func:`skinning_transforms`        ``converters.usdskel.AllFramesSkinning`` (local transforms,
                                    hierarchy, inverse bind, the skeleton's world transform)
-:func:`bone_box_bounds`            ``decode.bounds._bone_box_bounds`` (the bones' boxes at
+:func:`bone_box_bounds`            ``decoders.bounds._bone_box_bounds`` (the bones' boxes at
                                    every sample time)
-:func:`skin_lbs`                   ``decode.reference.skin`` (linear blend skinning)
+:func:`skin_lbs`                   ``decoders.reference.skin`` (linear blend skinning)
 =================================  ==========================================================
 
 Each wrapper returns None when its kernel should not run: the work is small (under
@@ -219,7 +219,7 @@ def skinning_transforms(translations: np.ndarray, rotations: np.ndarray, scales:
 
 def bone_box_bounds(values: np.ndarray, rows: tuple, encoding: str, bones: np.ndarray,
                     center: np.ndarray, half: np.ndarray) -> Optional[tuple]:
-    """The bones' boxes over sample times (kernel twin of ``decode.bounds._bone_box_bounds``).
+    """The bones' boxes over sample times (kernel twin of ``decoders.bounds._bone_box_bounds``).
 
     Args:
         values: ``(rows, B, T, 4)`` channel values of the whole texture: the stored float16 or
@@ -268,7 +268,7 @@ def skin_lbs(linear: np.ndarray, translation: np.ndarray, normal: np.ndarray, po
              indices: np.ndarray, weights: np.ndarray, normals: Optional[np.ndarray],
              normal_indices: np.ndarray, normal_weights: np.ndarray,
              normalize_normals: bool = True) -> Optional[tuple]:
-    """Linear blend skinning in float64 (kernel twin of ``decode.reference.skin`` for LBS).
+    """Linear blend skinning in float64 (kernel twin of ``decoders.reference.skin`` for LBS).
 
     Args:
         linear: ``(n, B, 3, 3)`` decoded linear parts (column-vector, ``p' = A p + t``).
