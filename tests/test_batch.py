@@ -402,7 +402,10 @@ def convert_then_idle(task):
     def ticks():  # CPU time (user + system, clock ticks) of each thread of this process, by the kernel
         found = {}
         for thread in os.listdir("/proc/self/task"):
-            fields = open(f"/proc/self/task/{thread}/stat").read().rsplit(") ", 1)[1].split()
+            try:
+                fields = open(f"/proc/self/task/{thread}/stat").read().rsplit(") ", 1)[1].split()
+            except FileNotFoundError:  # the thread ended between the listing and the read
+                continue
             found[thread] = int(fields[11]) + int(fields[12])
         return found
     before = ticks()

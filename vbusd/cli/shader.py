@@ -63,8 +63,10 @@ def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, 
     the module goes to standard output (with --format json, as the "source" of one JSON object);
     with -o it is written to FILE and the report says so.
     """
-    if texel_format is None:
+    if texel_format is None and encoding in {e.value for e in Encoding}:
         texel_format = default_texel_format(encoding).value
+    elif texel_format is None:  # ShaderOptions names the unknown encoding
+        texel_format = TexelFormat.FLOAT16.value
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),

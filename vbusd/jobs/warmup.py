@@ -10,6 +10,7 @@ crowd) call it before their first helper thread; it is cheap after the first cal
 
 from __future__ import annotations
 
+import codecs
 import threading
 from typing import Optional
 
@@ -68,12 +69,16 @@ def prepare(job: str, *, kernels: bool = False) -> None:
 
 
 def _warm_first_use() -> None:
-    """Run numpy's first-use paths that load a shared library, here rather than in a helper."""
+    """Run the first-use paths that load a module or a shared library (numpy's, the text codecs'), here
+    rather than in a helper."""
     # numpy reuses a temporary only after glibc's backtrace() says no C code holds it; backtrace()
     # loads libgcc_s on its first call. A 256 KiB temporary takes that path.
     work = np.zeros(1 << 16)
     work = (work + 1.0) * 2.0
     del work
+    # Text codecs load their module on first lookup (open(..., encoding="ascii") imports encodings.ascii).
+    for codec in ("ascii", "latin-1", "utf-8"):
+        codecs.lookup(codec)
     with np.errstate(all="ignore"):  # numpy's error-state machinery (per thread) and its ufunc loops
         np.einsum("ij,ij->i", np.ones((2, 3)), np.ones((2, 3)))
         np.linalg.det(np.eye(3)[None])
