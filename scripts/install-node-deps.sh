@@ -3,9 +3,9 @@
 #
 # * tests/node: what the Node-based tests check vbusd against: ktx-parse (three.js's KTX2 parser),
 #   three (GLTFLoader, KTX2Loader) and gltf-validator (the Khronos glTF-Validator);
-# * web: the three.js runtime's one dependency, three, which scripts/sync_web.py copies into the
-#   package data and tests/test_browser_package.py checks (shipped copy = pinned version, runtime
-#   shader module = `vbusd shader` under Node);
+# * web: the three.js runtime's one (peer) dependency, three, which scripts/sync_web.py copies into
+#   web/vendor/three-<version>/ and tests/test_browser_package.py checks (vendored copy = pinned
+#   version, runtime shader module = `vbusd shader` under Node);
 # * web/gltf-transform: the glTF-Transform extension for VBUSD_virtual_bones and what its tests and
 #   the gltf-transform CLI need (@gltf-transform/core, extensions, functions, cli, meshoptimizer,
 #   draco3dgltf, gltf-validator); tests/test_gltf_transform.py runs its Node tests.
