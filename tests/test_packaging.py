@@ -58,8 +58,8 @@ def _backend_installed(pyproject: dict) -> bool:
 def source_copy(tmp_path_factory) -> Path:
     """A snapshot of the checkout: the wheel is built from it and compared with it."""
     source = tmp_path_factory.mktemp("source") / "vbusd"
-    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
-        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc"))
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(  # the wheel is built without Node.js
+        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))
     return source
 
 
