@@ -1,88 +1,135 @@
-"""Build the viewer's package data from web/: run after changing web/, vbusd's shaders or three.js.
+"""Keep web/'s generated and third-party files current: run after changing vbusd's shaders, three.js or Babylon.js.
 
 1. Writes web/src/shader-modules.js from vbusd.decoders.shaders (vbusd.web.shader_modules), so the
-   three.js runtime runs the GLSL ``vbusd shader`` prints, never a retyped copy.
-2. Copies the runtime (web/src/*.js, web/src/webgpu/*.js) to vbusd/web/static/vbusd-three/ and the viewer pages
-   (web/viewer/*) to vbusd/web/static/.
-3. Copies the Babylon.js runtime (web/babylon/src/*.js) to vbusd/web/static/vbusd-babylon/ with its own
-   copy of the shader modules, and the esbuild bundle of Babylon.js (web/babylon/dist, built by
-   ``npm run bundle`` in web/babylon; the copy under static/babylon/ is committed) with its licence.
-4. Copies three.js (three.module.js, three.core.js, its LICENSE and the addons the page imports)
-   from web/node_modules/three (``npm ci`` in web/ installs the version package-lock.json pins) to
-   vbusd/web/static/three/, so ``vbusd view`` works offline from the wheel, without a CDN.
+   runtimes run the GLSL ``vbusd shader`` prints, never a retyped copy. It is the one copy: the
+   Babylon.js runtime imports it as ``@vbusd/three/shader-modules``.
+2. Copies three.js (its builds, its LICENSE and the addons the pages import) from
+   web/node_modules/three (``npm ci`` in web/ installs the version web/package.json pins) to
+   web/vendor/three-<version>/, with a README.md naming the version and where each file came from.
+3. Copies the esbuild bundle of Babylon.js (web/babylon/dist/babylon.bundle.js, built by
+   ``npm run bundle`` in web/babylon) and Babylon.js' licence to web/vendor/babylon-<version>/,
+   with a README.md likewise.
+
+A vendor folder of another version is removed: each third-party build is in the repository once.
+Nothing is copied into vbusd/: the wheel's vbusd/web/static/ is made from web/ when the wheel is
+built (setup.py, vbusd/web/static_files.py), and ``vbusd view`` from a checkout serves web/ itself.
 
 Usage: ``python scripts/sync_web.py`` (writes), ``python scripts/sync_web.py --check`` (lists
-what is stale and exits 1; writes nothing). tests/test_browser_package.py runs the check.
+what is stale and exits 1; writes nothing). tests/test_browser_package.py runs the check. What is
+not installed (web/node_modules/three, web/babylon/node_modules, the bundle) is not compared; the
+README.md files are checked against the pinned versions either way.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script from anywhere: this checkout's vbusd
+    sys.path.insert(0, str(REPO))
+
+from vbusd.io.files import atomic_write  # noqa: E402
+from vbusd.web.shader_modules import javascript_module  # noqa: E402
+
 WEB = REPO / "web"
-STATIC = REPO / "vbusd" / "web" / "static"
+VENDOR = WEB / "vendor"
 THREE = WEB / "node_modules" / "three"
 BABYLON = WEB / "babylon"
 #: Babylon.js' modules, bundled once by esbuild (``npm run bundle`` in web/babylon: @babylonjs/core's
-#: ES modules are ~1,800 files); the bundle is committed, so the wheel builds without node.
+#: ES modules are ~1,800 files).
 BABYLON_BUNDLE = BABYLON / "dist" / "babylon.bundle.js"
+BABYLON_LICENCE = BABYLON / "node_modules" / "@babylonjs" / "core" / "license.md"
 
+#: three.js' file (in the npm package) -> its path in web/vendor/three-<version>/ (the URL /three/...).
 THREE_FILES = {
-    "build/three.module.js": "three/three.module.js",
-    "build/three.core.js": "three/three.core.js",
-    "build/three.webgpu.js": "three/three.webgpu.js",  # `vbusd view --engine three-webgpu`
-    "build/three.tsl.js": "three/three.tsl.js",
-    "LICENSE": "three/LICENSE",
-    "examples/jsm/controls/OrbitControls.js": "three/addons/controls/OrbitControls.js",
-    "examples/jsm/loaders/GLTFLoader.js": "three/addons/loaders/GLTFLoader.js",
-    "examples/jsm/utils/BufferGeometryUtils.js": "three/addons/utils/BufferGeometryUtils.js",
-    "examples/jsm/utils/SkeletonUtils.js": "three/addons/utils/SkeletonUtils.js",
-    "examples/jsm/libs/ktx-parse.module.js": "three/addons/libs/ktx-parse.module.js",
-    "examples/jsm/libs/zstddec.module.js": "three/addons/libs/zstddec.module.js",
+    "build/three.module.js": "three.module.js",
+    "build/three.core.js": "three.core.js",
+    "build/three.webgpu.js": "three.webgpu.js",  # `vbusd view --engine three-webgpu`
+    "build/three.tsl.js": "three.tsl.js",
+    "LICENSE": "LICENSE",
+    "examples/jsm/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
+    "examples/jsm/loaders/GLTFLoader.js": "addons/loaders/GLTFLoader.js",
+    "examples/jsm/utils/BufferGeometryUtils.js": "addons/utils/BufferGeometryUtils.js",
+    "examples/jsm/utils/SkeletonUtils.js": "addons/utils/SkeletonUtils.js",
+    "examples/jsm/libs/ktx-parse.module.js": "addons/libs/ktx-parse.module.js",
+    "examples/jsm/libs/zstddec.module.js": "addons/libs/zstddec.module.js",
 }
 
 
-def planned_files(*, with_three: bool = True) -> dict[Path, bytes]:
-    """Every generated or copied file and the bytes it must hold.
+def pinned_versions() -> dict:
+    """The versions web/package.json and web/babylon/package.json pin (their devDependencies)."""
+    three = json.loads((WEB / "package.json").read_text(encoding="utf-8"))["devDependencies"]
+    babylon = json.loads((BABYLON / "package.json").read_text(encoding="utf-8"))["devDependencies"]
+    return {"three": three["three"], "babylon": babylon["@babylonjs/core"], "esbuild": babylon["esbuild"]}
 
-    Args:
-        with_three: Include the three.js copies (needs web/node_modules/three).
+
+def three_readme(version: str) -> str:
+    rows = "\n".join(f"| `{source}` | `{target}` |" for source, target in THREE_FILES.items())
+    return f"""# three.js {version} (third-party, vendored)
+
+The files of [three.js](https://threejs.org) {version} that the pages of `vbusd view` and the
+examples of docs/engines.md import, unchanged, from the npm package `three@{version}`
+(web/package.json pins it; `npm ci` in web/ installs it). Written by `python scripts/sync_web.py`,
+which tests/test_browser_package.py checks; do not edit. Licence: MIT, three.js' own `LICENSE`
+beside this file. The pages see this folder as `/three/`; the wheel's copy is made from it when
+the wheel is built (setup.py).
+
+| file of the npm package | here |
+|---|---|
+{rows}
+"""
+
+
+def babylon_readme(version: str, esbuild: str) -> str:
+    return f"""# Babylon.js {version} (third-party, vendored bundle)
+
+`babylon.bundle.js` is `@babylonjs/core` and `@babylonjs/loaders` {version} (web/babylon/package.json
+pins them) bundled by esbuild {esbuild} from web/babylon/bundle-entry.js, which names the exports the
+Babylon.js page of `vbusd view` and docs/engines.md's example use: `npm run bundle` in web/babylon
+(minified, ES module, the licence comments kept at its end; @babylonjs/core alone is ~1,800 ES
+module files). `LICENSE` is `@babylonjs/core`'s `license.md` (Apache-2.0). Copied here by
+`python scripts/sync_web.py`, which tests/test_browser_package.py checks; do not edit. The pages
+see this folder as `/babylon/`; the wheel's copy is made from it when the wheel is built (setup.py).
+"""
+
+
+def planned_files() -> tuple:
+    """Every generated or copied file with the bytes it must hold, and the vendor folders to remove.
 
     Returns:
-        Target path -> content.
+        (target path -> content, [stale vendor folders]). Copies whose source is not installed are
+        left out (not compared).
     """
-    from vbusd.web.shader_modules import javascript_module
-
-    files: dict[Path, bytes] = {WEB / "src" / "shader-modules.js": javascript_module().encode("utf-8")}
-    for source in sorted((WEB / "src").glob("*.js")):
-        if source.name != "shader-modules.js":
-            files[STATIC / "vbusd-three" / source.name] = source.read_bytes()
-    for source in sorted((WEB / "src" / "webgpu").glob("*.js")):  # the three.js WebGPU (TSL) runtime
-        files[STATIC / "vbusd-three" / "webgpu" / source.name] = source.read_bytes()
-    files[STATIC / "vbusd-three" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
-    # The Babylon.js runtime (web/babylon/src) with its own copy of the shader modules.
-    files[BABYLON / "src" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
-    for source in sorted((BABYLON / "src").glob("*.js")):
-        if source.name not in ("shader-modules.js", "babylon-entry.js"):
-            files[STATIC / "vbusd-babylon" / source.name] = source.read_bytes()
-    files[STATIC / "vbusd-babylon" / "shader-modules.js"] = files[WEB / "src" / "shader-modules.js"]
-    if BABYLON_BUNDLE.is_file():
-        files[STATIC / "babylon" / "babylon.bundle.js"] = BABYLON_BUNDLE.read_bytes()
-    licence = BABYLON / "node_modules" / "@babylonjs" / "core" / "license.md"
-    if licence.is_file():
-        files[STATIC / "babylon" / "LICENSE"] = licence.read_bytes()
-    for source in sorted((WEB / "viewer").iterdir()):
-        files[STATIC / source.name] = source.read_bytes()
-    if with_three:
+    versions = pinned_versions()
+    three_folder = VENDOR / f"three-{versions['three']}"
+    babylon_folder = VENDOR / f"babylon-{versions['babylon']}"
+    files: dict[Path, bytes] = {
+        WEB / "src" / "shader-modules.js": javascript_module().encode("utf-8"),
+        three_folder / "README.md": three_readme(versions["three"]).encode("utf-8"),
+        babylon_folder / "README.md": babylon_readme(versions["babylon"], versions["esbuild"]).encode("utf-8"),
+    }
+    if (THREE / "package.json").is_file():
+        installed = json.loads((THREE / "package.json").read_text(encoding="utf-8"))["version"]
+        if installed != versions["three"]:
+            raise SystemExit(f"sync_web: web/node_modules/three is {installed}, web/package.json pins "
+                             f"{versions['three']}: run npm ci in web/")
         for source, target in THREE_FILES.items():
-            files[STATIC / target] = (THREE / source).read_bytes()
-    return files
+            files[three_folder / target] = (THREE / source).read_bytes()
+    if BABYLON_BUNDLE.is_file():
+        files[babylon_folder / "babylon.bundle.js"] = BABYLON_BUNDLE.read_bytes()
+    if BABYLON_LICENCE.is_file():
+        files[babylon_folder / "LICENSE"] = BABYLON_LICENCE.read_bytes()
+    keep = {three_folder, babylon_folder}
+    stale_folders = sorted(path for name in ("three", "babylon") for path in VENDOR.glob(f"{name}-*")
+                           if path.is_dir() and path not in keep)
+    return files, stale_folders
 
 
-def stale(files: dict[Path, bytes]) -> list[Path]:
+def stale(files: dict) -> list:
     """The planned files whose content on disk differs (or that are missing)."""
     return [path for path, data in files.items() if not path.is_file() or path.read_bytes() != data]
 
@@ -99,23 +146,23 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true", help="list stale files, exit 1 if any; write nothing")
     args = parser.parse_args(argv)
-    with_three = THREE.is_dir()
-    if not with_three:
-        print("sync_web: web/node_modules/three is missing (run `npm ci` in web/); three.js files not checked",
+    if not THREE.is_dir():
+        print("sync_web: web/node_modules/three is missing (run `npm ci` in web/); three.js files not compared",
               file=sys.stderr)
-    files = planned_files(with_three=with_three)
+    files, old_folders = planned_files()
     outdated = stale(files)
     if args.check:
-        for path in outdated:
+        for path in outdated + old_folders:
             print(f"stale: {path.relative_to(REPO)}")
-        return 1 if outdated else 0
-    from vbusd.io.files import atomic_write
-
+        return 1 if outdated or old_folders else 0
     for path in outdated:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(path) as handle:
             handle.write(files[path])
         print(f"wrote {path.relative_to(REPO)}")
+    for folder in old_folders:
+        shutil.rmtree(folder)
+        print(f"removed {folder.relative_to(REPO)} (another version)")
     return 0
 
 

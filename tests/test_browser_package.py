@@ -1,53 +1,211 @@
-"""The three.js runtime's files: generated from vbusd, shipped in the package, pinned three.js.
+"""The web runtime's files: each first-party file once, third-party code once, and the wheel's copy.
 
 * web/src/shader-modules.js is what vbusd.web.shader_modules generates now from the shader source
-  of ``vbusd shader``, and the package data under vbusd/web/static is the current copy of web/
-  and of web/node_modules/three (scripts/sync_web.py --check);
+  of ``vbusd shader``, and web/vendor/ holds the three.js files and the Babylon.js bundle of the
+  versions package.json pins (scripts/sync_web.py --check), with their licences and a README.md
+  naming the version;
+* no file is committed twice: ``git ls-files`` holds no two byte-identical files outside test
+  fixtures and benchmark results (each a whole case or run), and nothing under vbusd/web/static;
+* the build step the wheel runs (vbusd.web.static_files.copy_static) writes every file each
+  engine's page imports, found by following the page's import map and every module's imports
+  (an independent walk, not the list the build copies from), and the server of a checkout serves
+  the same set;
 * the runtime's ``shaderModule(encoding, texelFormat, K, clips, skin)``, run under Node, returns
   exactly the text ``vbusd shader --lang glsl --no-main [--skin pulled]`` prints, for every encoding
   and texel format, both skin bindings and several sizes (so the browser runs that module, not a
   retyped one);
 * the runtime's ``packSkin`` writes the skin records of spec/shaders.md's worked example (K = 4,
-  texels 10 and 11) and of hand-computed K = 3 and K = 8 records;
-* the shipped three.js is the version web/package-lock.json pins.
+  texels 10 and 11) and of hand-computed K = 3 and K = 8 records.
 
 The Node checks skip with one line when Node.js or web/node_modules is missing (``npm ci`` in web/).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import re
 import shutil
 import subprocess
 import sys
+from collections import defaultdict
 from pathlib import Path
+from urllib.parse import urljoin
 
 import pytest
 
+from vbusd.web.engines import ENGINE_PAGES
 from vbusd.web.shader_modules import javascript_module
+from vbusd.web.static_files import copy_static, source_files, vendor_folder
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
-STATIC = REPO / "vbusd" / "web" / "static"
+
+#: Committed files that may be byte-identical: each fixture folder is one whole validation or
+#: conversion case (an asset the validator reads on its own), and each benchmark result is one
+#: run's record (two machines may measure the same deterministic study).
+DUPLICATES_ALLOWED = ("tests/fixtures/", "benchmarks/results/")
 
 
 def test_generated_shader_modules_are_current():
     assert (WEB / "src" / "shader-modules.js").read_text(encoding="utf-8") == javascript_module()
 
 
-def test_package_data_is_in_sync():
+def test_generated_and_vendored_files_are_current():
     result = subprocess.run([sys.executable, str(REPO / "scripts" / "sync_web.py"), "--check"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, f"run python scripts/sync_web.py:\n{result.stdout}{result.stderr}"
 
 
+def _tracked_files() -> list:
+    if shutil.which("git") is None or not (REPO / ".git").exists():
+        pytest.skip("not a git checkout (or git not found): the committed files cannot be listed")
+    result = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, timeout=60)
+    if result.returncode != 0:
+        pytest.skip(f"git ls-files failed: {result.stderr.decode(errors='replace').strip()}")
+    return [name for name in result.stdout.decode("utf-8").split("\0") if name]
+
+
+def test_no_file_is_committed_twice():
+    """Every first-party file once, every generated file once, third-party code once: no two
+    committed files hold the same bytes (a copy of web/ under vbusd/ was the case this guards)."""
+    by_digest = defaultdict(list)
+    for name in _tracked_files():
+        path = REPO / name
+        if path.is_file() and not path.is_symlink():
+            by_digest[hashlib.sha256(path.read_bytes()).hexdigest()].append(name)
+    copies = [names for names in by_digest.values() if len(names) > 1
+              and not all(name.startswith(DUPLICATES_ALLOWED) for name in names)]
+    assert not copies, f"committed more than once: {copies}"
+
+
+def test_the_wheels_static_folder_is_not_committed():
+    tracked = _tracked_files()
+    assert not [name for name in tracked if name.startswith("vbusd/web/static/")]
+    # Third-party code lives in one clearly named place, with its licence and version.
+    for name in ("three", "babylon"):
+        folder = vendor_folder(REPO, name)
+        assert (folder / "LICENSE").is_file() and (folder / "README.md").is_file(), folder
+        assert folder.name.split("-", 1)[1] in (folder / "README.md").read_text(encoding="utf-8")
+    third_party = ("three.module.js", "three.core.js", "babylon.bundle.js")
+    assert sorted(name for name in tracked if name.rsplit("/", 1)[-1] in third_party) == sorted(
+        f"web/vendor/{vendor_folder(REPO, 'three' if n.startswith('three') else 'babylon').name}/{n}"
+        for n in third_party)
+
+
+# --------------------------------------------------------------------------------------------
+# The pages' modules, followed as the browser follows them
+# --------------------------------------------------------------------------------------------
+
+_IMPORT_MAP = re.compile(r'<script type="importmap">(.*?)</script>', re.S)
+_PAGE_MODULE = re.compile(r'<script type="module" src="([^"]+)"')
+_STYLESHEET = re.compile(r'<link rel="stylesheet" href="([^"]+)"')
+_STATIC_IMPORT = re.compile(r'^\s*(?:import|export)\b[^;]*?\bfrom\s*[\'"]([^\'"]+)[\'"]', re.M)
+_BARE_IMPORT = re.compile(r'^\s*import\s*[\'"]([^\'"]+)[\'"]', re.M)
+_DYNAMIC_IMPORT = re.compile(r'\bimport\(\s*[\'"]([^\'"]+)[\'"]\s*\)')
+_MINIFIED_IMPORT = re.compile(r'(?:^|[;}])\s*(?:import|export)\s*(?:\{[^}]*\}|\*\s*as\s*\w+|\w+)?\s*from\s*"([^"]+)"')
+
+
+def _resolve(specifier: str, importer: str, imports: dict):
+    """The URL path a module specifier names: relative to its importer, or through the import map
+    (an exact key, else the longest key ending in ``/`` that prefixes it); None when unmapped."""
+    if specifier.startswith(("./", "../", "/")):
+        return urljoin(importer, specifier)
+    if specifier in imports:
+        return urljoin("/", imports[specifier])
+    prefixes = [key for key in imports if key.endswith("/") and specifier.startswith(key)]
+    if not prefixes:
+        return None
+    key = max(prefixes, key=len)
+    return urljoin("/", imports[key] + specifier[len(key):])
+
+
+def page_files(fetch, page: str) -> set:
+    """Every URL path one engine's page loads: the page, its stylesheet, its module and everything
+    that module imports, statically or with ``import()``, through the page's import map.
+
+    A module reached through ``import()`` may serve another page (viewer.js imports the WebGPU
+    runtime only on webgpu.html): its imports that this page's map does not map are not followed.
+    Everything reached by static imports must resolve and be served.
+
+    Args:
+        fetch: URL path -> the file's text, or None when it is not served.
+        page: The page's URL path (``/index.html``).
+
+    Returns:
+        The URL paths.
+    """
+    html = fetch(page)
+    assert html is not None, page
+    imports = json.loads(_IMPORT_MAP.search(html).group(1))["imports"]
+    seen = {page} | {urljoin(page, href) for href in _STYLESHEET.findall(html)}
+    for url in sorted(seen):
+        assert fetch(url) is not None, url
+    queue = [(urljoin(page, src), False) for src in _PAGE_MODULE.findall(html)]
+    assert queue, page
+    optional_seen = set()
+    while queue:
+        url, optional = queue.pop()
+        if url in seen or (optional and url in optional_seen):
+            continue
+        text = fetch(url)
+        if optional:
+            if text is None:
+                continue
+            optional_seen.add(url)
+        else:
+            assert text is not None, f"{page} needs {url}, which is not served"
+            seen.add(url)
+        minified = "\n" not in text[:2000]
+        found = [(specifier, optional) for pattern in ((_MINIFIED_IMPORT,) if minified else (_STATIC_IMPORT, _BARE_IMPORT))
+                 for specifier in pattern.findall(text)]
+        found += [(specifier, True) for specifier in ([] if minified else _DYNAMIC_IMPORT.findall(text))]
+        for specifier, lenient in found:
+            target = _resolve(specifier, url, imports)
+            if target is None:
+                assert lenient, f"{url} imports {specifier!r}, which the import map of {page} does not map"
+                continue
+            queue.append((target, lenient))
+    return seen | optional_seen
+
+
+def _folder_fetch(root: Path):
+    def fetch(url: str):
+        path = root / url.lstrip("/")
+        return path.read_text(encoding="utf-8") if path.is_file() else None
+    return fetch
+
+
+def test_the_build_step_writes_every_file_every_page_imports(tmp_path):
+    """What setup.py's build_py runs (copy_static) into a build folder holds each engine's page
+    and every module it reaches, and nothing else; the checkout's server lists the same files."""
+    written = copy_static(REPO, tmp_path / "static")
+    site = tmp_path / "static"
+    names = {path.relative_to(site).as_posix() for path in written}
+    assert names == {path.relative_to(site).as_posix() for path in site.rglob("*") if path.is_file()}
+    assert names == set(source_files(REPO))
+    needed = set()
+    for engine, page in ENGINE_PAGES.items():
+        files = page_files(_folder_fetch(site), page)
+        assert "/vbusd-three/index.js" in files or engine == "babylon" and "/vbusd-babylon/index.js" in files, engine
+        needed |= files
+    # Everything shipped is used by some page (LICENSE files ship as the licences require).
+    unused = sorted(name for name in names if f"/{name}" not in needed and not name.endswith("LICENSE"))
+    assert not unused, f"shipped but imported by no page: {unused}"
+    # Every copy is the checkout's file, byte for byte.
+    for url, source in source_files(REPO).items():
+        assert (site / url).read_bytes() == source.read_bytes(), url
+
+
 def test_shipped_three_is_the_pinned_version():
     lock = json.loads((WEB / "package-lock.json").read_text())
     pinned = lock["packages"]["node_modules/three"]["version"]
-    assert json.loads((WEB / "package.json").read_text())["dependencies"] == {"three": pinned}
+    assert json.loads((WEB / "package.json").read_text())["devDependencies"] == {"three": pinned}
+    folder = vendor_folder(REPO, "three")
+    assert folder.name == f"three-{pinned}"
     revision = pinned.split(".")[1]
-    assert f"const REVISION = '{revision}';" in (STATIC / "three" / "three.core.js").read_text(encoding="utf-8")
-    assert (STATIC / "three" / "LICENSE").read_text().startswith("The MIT License")
+    assert f"const REVISION = '{revision}';" in (folder / "three.core.js").read_text(encoding="utf-8")
+    assert (folder / "LICENSE").read_text().startswith("The MIT License")
 
 
 _NODE_SCRIPT = """
@@ -125,12 +283,14 @@ def test_runtime_packs_skin_records_as_the_spec_states():
 
 def test_shipped_babylon_is_the_pinned_version():
     """web/babylon pins @babylonjs/core and @babylonjs/loaders exactly (package.json and its lock
-    agree), and the committed bundle is that Babylon.js (its Engine.Version), with its licence."""
+    agree), and the vendored bundle is that Babylon.js (its Engine.Version), with its licence."""
     babylon = WEB / "babylon"
     lock = json.loads((babylon / "package-lock.json").read_text())
-    dependencies = json.loads((babylon / "package.json").read_text())["dependencies"]
+    dependencies = json.loads((babylon / "package.json").read_text())["devDependencies"]
     for name in ("@babylonjs/core", "@babylonjs/loaders"):
         assert dependencies[name] == lock["packages"][f"node_modules/{name}"]["version"]
-    bundle = (STATIC / "babylon" / "babylon.bundle.js").read_text(encoding="utf-8")
+    folder = vendor_folder(REPO, "babylon")
+    assert folder.name == f"babylon-{dependencies['@babylonjs/core']}"
+    bundle = (folder / "babylon.bundle.js").read_text(encoding="utf-8")
     assert f'Version(){{return"{dependencies["@babylonjs/core"]}"}}' in bundle
-    assert (STATIC / "babylon" / "LICENSE").read_text().startswith("# Apache License 2.0")
+    assert (folder / "LICENSE").read_text().startswith("# Apache License 2.0")

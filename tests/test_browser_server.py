@@ -287,7 +287,7 @@ def test_face_varying_normals_are_unwelded():
 
 def test_engine_babylon_serves_its_page(served_folder):
     """``--engine babylon``: the same asset and config (with the engine), Babylon's page, its
-    bundle and the Babylon runtime, all from the package."""
+    bundle and the Babylon runtime, all from the checkout's web/ (the wheel's copy: test_packaging)."""
     from vbusd.web.server import ViewerServer
 
     with ViewerServer(served_folder / "stadium_crowd_vb.usda", engine="babylon") as server:
@@ -295,5 +295,7 @@ def test_engine_babylon_serves_its_page(served_folder):
         assert json.loads(_get(port, "/config.json")[1])["engine"] == "babylon"
         page = _get(port, "/")[1].decode("utf-8")
         assert "babylon-viewer.js" in page and "./babylon/babylon.bundle.js" in page
-        for path in ("/babylon/babylon.bundle.js", "/vbusd-babylon/index.js", "/vbusd-babylon/shader-modules.js"):
+        for path in ("/babylon/babylon.bundle.js", "/vbusd-babylon/index.js", "/vbusd-three/shader-modules.js"):
             assert _get(port, path)[0] == 200, path
+        # The Babylon runtime imports the three.js runtime's shader modules (one copy), not its own.
+        assert _get(port, "/vbusd-babylon/shader-modules.js")[0] == 404

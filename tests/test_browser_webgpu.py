@@ -36,6 +36,7 @@ import pytest
 
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
+from vbusd.web.static_files import copy_static
 
 HERE = Path(__file__).resolve().parent
 _helpers = runpy.run_path(str(HERE / "test_browser.py"))
@@ -296,7 +297,6 @@ def test_docs_engines_example_runs(browser, tmp_path):
     import functools
     import http.server
     import re
-    import shutil
     import threading
 
     from vbusd.io.gltf_package import export_gltf
@@ -304,7 +304,7 @@ def test_docs_engines_example_runs(browser, tmp_path):
     text = (HERE.parent / "docs" / "engines.md").read_text(encoding="utf-8")
     section = text[text.index("## three.js WebGPU (TSL)"):]
     html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
-    shutil.copytree(HERE.parent / "vbusd" / "web" / "static", tmp_path / "site")
+    copy_static(HERE.parent, tmp_path / "site")  # what the wheel ships (setup.py's build step)
     (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
     export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
 

@@ -1,8 +1,11 @@
-"""``vbusd crowd`` / ``vbusd.build_crowd``: placement, clip weights, determinism and bad input, read
-back through USD itself (pxr) and vbusd's reader, and validated clean."""
+"""``vbusd crowd`` / ``vbusd.build_crowd``: placement, clip weights, crossfades and layers,
+determinism and bad input, read back through USD itself (pxr) and vbusd's reader, and validated
+clean. A crossfading, layered crowd plays, instance by instance, what ``vbusd.skin`` gives for the
+parameters USD reads from its primvars, given by hand."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -14,6 +17,8 @@ pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.crowd import CrowdOptions, build_crowd, disc_positions, grid_positions  # noqa: E402
+
+import vbusd  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
@@ -374,3 +379,212 @@ def test_khronos_characters_of_several_skeletons_stay_whole(shared_assets, tmp_p
     gltf = json.loads(data[20:20 + int.from_bytes(data[12:16], "little")])
     drawn = [n for n in gltf["nodes"] if "mesh" in n]
     assert len(drawn) == animations and all("extensions" in n for n in drawn)
+
+
+# ----------------------------------------------------------------------------------------------
+# Crossfades and layers: vbusd crowd --fade-* and --layer (spec "Crossfade", "Layers and bone masks")
+# ----------------------------------------------------------------------------------------------
+
+
+def _chain_character(folder: Path, *, masks=(("upper", "b1"),)) -> Path:
+    """A three-bone chain (b0 root, b1, b2) with three clips that move differently in time, a mesh
+    skinned to all three bones, bind transforms the identity, bone masks (format 1.2)."""
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh, VirtualBonesAsset
+
+    def local(angle, y):
+        c, s = np.cos(angle), np.sin(angle)
+        m = np.eye(4)
+        m[:2, :2] = [[c, -s], [s, c]]
+        m[1, 3] = y
+        return m
+
+    def clip(name, amplitudes, frequency, lift):
+        def sample(times):
+            out = []
+            for t in np.atleast_1d(times):
+                j0 = local(amplitudes[0] * np.sin(frequency * t), lift * np.sin(2 * frequency * t))
+                j1 = j0 @ local(amplitudes[1] * np.sin(frequency * t + 1.0), 1.0)
+                j2 = j1 @ local(amplitudes[2] * np.cos(frequency * t), 1.0)
+                out.append(np.stack([j0, j1, j2]))
+            return np.asarray(out)
+        return AnimationClip(name, 0.0, 2.0, sample, native_rate=30, loop=False)
+
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-0.3, 0.3, 30), np.linspace(0.0, 2.4, 30), rng.uniform(-0.3, 0.3, 30)])
+    indices = np.array([[0, 1], [1, 2], [0, 2]] * 10)
+    weights = np.repeat(rng.uniform(0.2, 0.8, (30, 1)), 2, axis=1) * [1, -1] + [0, 1]
+    mesh = SkinnedMesh("/Chain/Mesh", points, np.array([3] * 10), np.arange(30), indices, weights,
+                       normals=np.tile([1.0, 0.0, 0.0], (30, 1)))
+    animation = SkinnedAnimation("Chain", "/Chain/Anim", ("b0", "b1", "b2"),
+                                 (clip("walk", (0.2, 0.3, 0.1), 2.0, 0.1), clip("run", (0.5, 0.8, 0.6), 5.0, 0.3),
+                                  clip("wave", (0.0, 1.2, 1.5), 3.0, 0.0)), (mesh,),
+                                 bind_transforms=np.stack([np.eye(4)] * 3), bone_parents=(-1, 0, 1))
+    vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", masks=masks))
+    path = folder / "chain.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Chain"), path)
+    return path
+
+
+def _primvars(crowd_file: Path) -> dict:
+    """The instancer's primvars as USD itself reads them (pxr, not vbusd's reader): defaults, the
+    fade weight's time samples, the layer arrays as (instances, layers)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(crowd_file))
+    (prim,) = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    tcps = stage.GetTimeCodesPerSecond()
+    out = {"positions": np.array(prim.GetAttribute("positions").Get(), dtype=np.float64)}
+    for name in ("clip", "timeOffset", "playbackRate", "fadeClip", "fadeTimeOffset", "fadePlaybackRate",
+                 "fadeWeight", "layerClip", "layerTimeOffset", "layerPlaybackRate", "layerWeight", "layerMask"):
+        primvar = UsdGeom.Primvar(prim.GetAttribute(f"primvars:vb:{name}"))
+        if not primvar.GetAttr().IsValid() or not primvar.GetAttr().HasAuthoredValue():
+            continue  # the schema declares every primvar; only the authored ones are the crowd's
+        values = np.array(primvar.GetAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
+        size = primvar.GetElementSize()
+        out[name] = values.reshape(-1, size) if name.startswith("layer") else values
+        samples = primvar.GetAttr().GetTimeSamples()
+        if samples:
+            out[name + ".samples"] = {code / tcps: np.array(primvar.GetAttr().Get(code), dtype=np.float64)
+                                      for code in samples}
+    masks = stage.GetPrimAtPath(str(prim.GetRelationship("vb:animation").GetTargets()[0])).GetAttribute("vb:maskNames")
+    out["maskNames"] = list(masks.Get() or [])
+    return out
+
+
+def _by_hand(character: Path, values: dict, i: int, t: float, weight_at) -> np.ndarray:
+    """Instance i's world points at stage time t: vbusd.skin of the character with the instance's
+    clip, crossfade and layers given by hand (spec "Instancing": tau = offset + rate * t), plus its
+    position (the test's instances are neither turned nor scaled)."""
+    tau = values["timeOffset"][i] + values["playbackRate"][i] * t
+    fade = {}
+    if "fadeClip" in values:
+        fade = dict(fade_clip=int(values["fadeClip"][i]),
+                    fade_time=values["fadeTimeOffset"][i] + values["fadePlaybackRate"][i] * t,
+                    fade_weight=float(weight_at(i, t)))
+    layers = [{"clip": int(values["layerClip"][i, j]),
+               "time": values["layerTimeOffset"][i, j] + values["layerPlaybackRate"][i, j] * t,
+               "weight": float(values["layerWeight"][i, j]), "mask": values["maskNames"][int(values["layerMask"][i, j])]}
+              for j in range(values["layerClip"].shape[1])] if "layerClip" in values else None
+    (pose,) = vbusd.skin(character, int(values["clip"][i]), tau, layers=layers, **fade)
+    return pose.points + values["positions"][i]
+
+
+def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_given_by_hand(tmp_path, capsys):
+    """`vbusd crowd --fade-clips ... --fade-window ... --layer MASK CLIPS ...`: the primvars USD reads
+    hold what the options ask (clips among those named, weights in their ranges, the fade weight
+    sampled 0 at START and 1 at END), every instance read back through vbusd plays exactly what
+    vbusd.skin gives for its parameters by hand (before, inside and after the window), and the
+    crowd validates clean."""
+    from vbusd.decoders.reference import skin_crowd
+
+    character = _chain_character(tmp_path)
+    out = tmp_path / "crowd.usda"
+    status = main(["crowd", str(character), "-o", str(out), "--count", "12", "--yaw", "0", "0", "--seed", "5",
+                   "--clips", "walk", "--rate", "0.8", "1.2",
+                   "--fade-clips", "run:2,wave", "--fade-window", "0.5", "1.5", "--fade-time-offset", "-0.5", "-0.5",
+                   "--fade-rate", "0.9", "1.1",
+                   "--layer", "upper", "wave", "--layer-weight", "0.25", "0.75", "--layer-rate", "1", "1.5",
+                   "--format", "json"])
+    assert status == 0, capsys.readouterr().err
+    report = json.loads(capsys.readouterr().out)
+    assert report["layers"] == 1 and sum(report["fadeClips"][0].values()) == 12 and report["fadeClips"][0]["walk"] == 0
+    assert vbusd.validate(out).valid
+    values = _primvars(out)
+    clips = ["walk", "run", "wave"]
+    assert set(values["clip"]) == {0} and set(values["fadeClip"]) <= {1, 2}
+    assert np.all((values["fadePlaybackRate"] >= 0.9 - 1e-6) & (values["fadePlaybackRate"] <= 1.1 + 1e-6))
+    np.testing.assert_allclose(values["fadeTimeOffset"], -0.5)
+    # The window: sampled at 0.5 s (all 0) and 1.5 s (all 1), USD interpolating between.
+    samples = values["fadeWeight.samples"]
+    assert sorted(samples) == pytest.approx([0.5, 1.5])
+    np.testing.assert_array_equal(samples[min(samples)], 0.0)
+    np.testing.assert_array_equal(samples[max(samples)], 1.0)
+    assert values["layerClip"].shape == (12, 1) and set(values["layerClip"][:, 0]) == {clips.index("wave")}
+    assert values["maskNames"][int(values["layerMask"][0, 0])] == "upper" and len(set(values["layerMask"][:, 0])) == 1
+    assert np.all((values["layerWeight"] >= 0.25) & (values["layerWeight"] <= 0.75))
+    assert np.all((values["layerPlaybackRate"] >= 1.0) & (values["layerPlaybackRate"] <= 1.5))
+
+    def weight_at(i, t):  # the spec's ramp, by hand: 0 before START, 1 after END, linear between
+        return float(np.clip((t - 0.5) / (1.5 - 0.5), 0.0, 1.0))
+
+    back = vbusd.read_asset(out)
+    (crowd,) = back.crowds
+    animation = back.animations[back.crowd_animation[0]]
+    for t in (0.2, 0.9, 1.25, 1.8):
+        points, _ = skin_crowd(animation, animation.meshes[0], crowd, t)
+        for i in range(12):
+            np.testing.assert_allclose(points[i], _by_hand(character, values, i, t, weight_at), atol=1e-9,
+                                       err_msg=f"instance {i} at {t} s")
+    # The crossfade and the layer change the pose (the comparison is not of two unblended poses).
+    plain = vbusd.skin(character, 0, values["timeOffset"][0] + values["playbackRate"][0] * 1.25)[0].points
+    assert np.abs(points[0] - values["positions"][0] - plain).max() > 1e-2
+
+
+def test_crowd_api_constant_fade_weights_and_two_layers(tmp_path):
+    """The Python API: CrowdOptions(fade_clips=..., fade_weight=..., layers=[CrowdLayer or dict, ...]);
+    per-layer ranges; element i * L + j of the layer primvars is layer j of instance i, each
+    instance equal to vbusd.skin by hand; the base placement and clips are those of the same
+    crowd without crossfade and layers (the extra choices come after them)."""
+    from vbusd.decoders.reference import skin_crowd
+    from vbusd.jobs.crowd import CrowdLayer
+
+    character = _chain_character(tmp_path, masks=(("upper", "b1"), ("tip", "b2")))
+    base = CrowdOptions(layout="disc", count=20, yaw=(0, 0), seed=9, clips={"walk": 1, "run": 1})
+    build_crowd([character], tmp_path / "plain.usda", base)
+    layered = dataclasses.replace(base, fade_clips={"wave": 1}, fade_weight=(0.1, 0.4), fade_playback_rate=(1.0, 1.0),
+                                  layers=[CrowdLayer(mask="tip", clips={"run": 1}, weight=(1.0, 1.0), time_offset=(0.0, 0.3)),
+                                          {"mask": "upper", "clips": {}, "weight": (0.5, 0.5)}])
+    report = build_crowd([character], tmp_path / "layered.usda", layered)
+    assert report.layers == 2 and report.fade_clips == [{"walk": 0, "run": 0, "wave": 20}]
+    plain, values = _primvars(tmp_path / "plain.usda"), _primvars(tmp_path / "layered.usda")
+    for name in ("positions", "clip", "timeOffset", "playbackRate"):
+        np.testing.assert_array_equal(values[name], plain[name])
+    assert "fadeClip" not in plain and "layerClip" not in plain
+    assert np.all((values["fadeWeight"] >= 0.1) & (values["fadeWeight"] <= 0.4)) and "fadeWeight.samples" not in values
+    assert values["layerClip"].shape == (20, 2)
+    assert [values["maskNames"][int(m)] for m in values["layerMask"][0]] == ["tip", "upper"]
+    np.testing.assert_array_equal(values["layerClip"][:, 0], 1)
+    np.testing.assert_array_equal(values["layerWeight"][:, 1], 0.5)
+    assert np.all((values["layerTimeOffset"][:, 0] >= 0) & (values["layerTimeOffset"][:, 0] <= 0.3 + 1e-6))
+    assert vbusd.validate(tmp_path / "layered.usda").valid
+    back = vbusd.read_asset(tmp_path / "layered.usda")
+    animation = back.animations[back.crowd_animation[0]]
+    points, _ = skin_crowd(animation, animation.meshes[0], back.crowds[0], 0.7)
+    for i in range(20):
+        np.testing.assert_allclose(points[i], _by_hand(character, values, i, 0.7, lambda i, t: values["fadeWeight"][i]),
+                                   atol=1e-9, err_msg=f"instance {i}")
+    # Same seed, same bytes, with the new options too.
+    build_crowd([character], tmp_path / "again.usda", layered)
+    assert (tmp_path / "again.usda").read_bytes() == (tmp_path / "layered.usda").read_bytes()
+
+
+@pytest.mark.parametrize("args, code, words", [
+    (["--fade-weight", "0", "1"], "options.invalid", "--fade-clips"),
+    (["--fade-clips", "run", "--fade-weight", "0.5", "1.5"], "options.invalid", "within 0..1"),
+    (["--fade-clips", "run", "--fade-weight", "0", "1", "--fade-window", "0", "1"], "options.invalid", "not both"),
+    (["--fade-clips", "run", "--fade-window", "1", "1"], "options.invalid", "START < END"),
+    (["--fade-clips", "sprint"], "options.invalid", "sprint"),
+    (["--layer", "legs", "wave"], "layers.noMask", "legs"),
+    (["--layer", "upper", "wave", "--layer", "upper", "run", "--layer", "upper", "walk",
+      "--layer-weight", "0", "1", "--layer-weight", "0", "1"], "options.invalid", "once per --layer"),
+    (["--layer-rate", "1", "2"], "options.invalid", "--layer MASK CLIPS"),
+    (["--layer", "upper", "wave:x"], "options.invalid", "--layer upper"),
+])
+def test_bad_crossfade_and_layer_options_are_one_line(tmp_path, capsys, args, code, words):
+    character = _chain_character(tmp_path)
+    out = tmp_path / "bad.usda"
+    assert main(["crowd", str(character), "-o", str(out), "--count", "4", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and code in err[0] and words in err[0], err
+    assert not out.exists()
+
+
+def test_a_format_1_0_character_cannot_crossfade(character, tmp_path, capsys):
+    """The committed sample is format 1.0: a crossfading instancer must bind 1.1 (spec
+    "Instancing"), and the crowd layer cannot raise the referenced animation's version."""
+    out = tmp_path / "crowd.usda"
+    assert main(["crowd", str(character), "-o", str(out), "--fade-clips", _first_clip(character)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "crowd.character" in err[0] and "format 1.0" in err[0] and "vbusd convert" in err[0], err
+    assert not out.exists()

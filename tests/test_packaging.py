@@ -58,8 +58,8 @@ def _backend_installed(pyproject: dict) -> bool:
 def source_copy(tmp_path_factory) -> Path:
     """A snapshot of the checkout: the wheel is built from it and compared with it."""
     source = tmp_path_factory.mktemp("source") / "vbusd"
-    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
-        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc"))
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(  # the wheel is built without Node.js
+        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))
     return source
 
 
@@ -171,14 +171,69 @@ def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     assert report["plugInfo"] and report["jsonSchema"]
 
 
-def test_viewer_and_three_js_ship_in_the_wheel(wheel_names, source_copy):
-    # `vbusd view` works offline from the wheel: every file of the viewer's package data (the page,
-    # the three.js runtime, three.js and its licence) is in it, and three.js itself is not empty.
-    static = source_copy / "vbusd" / "web" / "static"
-    expected = sorted(f"vbusd/web/static/{path.relative_to(static).as_posix()}"
-                      for path in static.rglob("*") if path.is_file())
-    assert "vbusd/web/static/three/three.module.js" in expected
-    assert "vbusd/web/static/three/three.core.js" in expected
-    assert "vbusd/web/static/vbusd-three/index.js" in expected
-    missing = [name for name in expected if name not in wheel_names]
-    assert not missing, f"viewer files not packaged: {missing}"
+def test_viewer_and_three_js_ship_in_the_wheel(wheel_path, wheel_names, source_copy):
+    """`vbusd view` works offline from the wheel: the build step (setup.py) put every file of web/
+    the pages use (the pages, both runtimes, three.js, the Babylon.js bundle, their licences) under
+    vbusd/web/static/, byte for byte, though none of it is committed there."""
+    from vbusd.web.static_files import source_files
+
+    assert not (source_copy / "vbusd" / "web" / "static").exists()  # made at build time only
+    sources = source_files(source_copy)
+    expected = sorted(f"vbusd/web/static/{url}" for url in sources)
+    for name in ("three/three.module.js", "three/three.core.js", "three/LICENSE", "vbusd-three/index.js",
+                 "vbusd-three/shader-modules.js", "vbusd-babylon/index.js", "babylon/babylon.bundle.js", "index.html"):
+        assert f"vbusd/web/static/{name}" in expected, name
+    shipped = sorted(name for name in wheel_names if name.startswith("vbusd/web/static/"))
+    assert shipped == expected
+    with zipfile.ZipFile(wheel_path) as archive:
+        for url, source in sources.items():
+            assert archive.read(f"vbusd/web/static/{url}") == source.read_bytes(), url
+
+
+@pytest.mark.parametrize("engine", ["three", "three-webgpu", "babylon"])
+def test_vbusd_view_from_the_unpacked_wheel_serves_every_module_of_each_engine(wheel_path, tmp_path_factory, engine):
+    """``vbusd view --engine E --no-browser`` run from the unpacked wheel (outside the checkout, so
+    the package data is what it serves): the page and every module it imports, followed through
+    the page's import map (tests/test_browser_package.py's walk), over HTTP."""
+    import http.client
+    import runpy
+
+    from vbusd.web.engines import ENGINE_PAGES
+
+    site = tmp_path_factory.getbasetemp() / "view-site"
+    if not site.exists():
+        with zipfile.ZipFile(wheel_path) as archive:
+            archive.extractall(site)
+    walk = runpy.run_path(str(Path(__file__).parent / "test_browser_package.py"))["page_files"]
+    env = dict(os.environ, PYTHONPATH=str(site))
+    env.pop("PXR_PLUGINPATH_NAME", None)
+    asset = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
+    process = subprocess.Popen([sys.executable, "-m", "vbusd", "view", str(asset), "--engine", engine, "--no-browser"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=site)
+    try:
+        line = process.stdout.readline()
+        assert "http://127.0.0.1:" in line, line + process.stderr.read()
+        port = int(line.split("http://127.0.0.1:")[1].split("/")[0])
+
+        def fetch(url):
+            connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+            try:
+                connection.request("GET", url)
+                response = connection.getresponse()
+                body = response.read()
+                return body.decode("utf-8") if response.status == 200 else None
+            finally:
+                connection.close()
+
+        assert fetch("/") == fetch(ENGINE_PAGES[engine])
+        files = walk(fetch, ENGINE_PAGES[engine])
+        assert "/config.json" not in files and len(files) > 20
+        assert fetch("/scene/scene.json") is not None
+    finally:
+        process.kill()
+        process.wait(timeout=30)
+    # The files served came from the unpacked wheel, not from a checkout.
+    check = subprocess.run([sys.executable, "-c", "import vbusd.web.static_files as s; print(s.static_files()"
+                            "['index.html'])"], capture_output=True, text=True, env=env, cwd=site, timeout=120)
+    assert check.returncode == 0, check.stderr
+    assert Path(check.stdout.strip()).resolve().is_relative_to(site.resolve())

@@ -64,6 +64,7 @@ _EXPORTS = {
     "shader": "vbusd.api",
     "build_crowd": "vbusd.jobs.crowd",
     "CrowdOptions": "vbusd.jobs.crowd",
+    "CrowdLayer": "vbusd.jobs.crowd",
     "decode": "vbusd.jobs.pointcache",
     "Decoder": "vbusd.decoders.warp",
     "prepare": "vbusd.jobs.warmup",
@@ -89,7 +90,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from vbusd.api import bone_transform, root_motion, shader, skin, validate
     from vbusd.baking.baker import BakeOptions, bake
     from vbusd.jobs.conversion import ConvertOptions, convert
-    from vbusd.jobs.crowd import CrowdOptions, build_crowd
+    from vbusd.jobs.crowd import CrowdLayer, CrowdOptions, build_crowd
     from vbusd.jobs.pointcache import decode
     from vbusd.decoders.warp import Decoder
     from vbusd.jobs.warmup import prepare

@@ -11,7 +11,7 @@ import click
 
 from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option
 from vbusd.format.errors import OptionsError
-from vbusd.jobs.crowd import CrowdOptions, build_crowd, parse_weights
+from vbusd.jobs.crowd import CrowdLayer, CrowdOptions, build_crowd, parse_weights
 
 __all__ = ["command"]
 
@@ -30,6 +30,30 @@ def _weights(text, option: str):
         return tuple(float(w) for w in text.split(","))
     except ValueError:
         raise OptionsError(f"{option} must be numbers separated by commas, got {text!r}", file="crowd") from None
+
+
+def _layers(specs, weights, offsets, rates) -> tuple:
+    """``--layer MASK CLIPS`` (repeatable) with its ranges: each of ``--layer-weight``,
+    ``--layer-time-offset`` and ``--layer-rate`` is given once for every layer, or once per
+    ``--layer`` (in order), or not at all (the defaults)."""
+    count = len(specs)
+    per_layer = {}
+    for option, values in (("--layer-weight", weights), ("--layer-time-offset", offsets), ("--layer-rate", rates)):
+        if values and not count:
+            raise OptionsError(f"{option} needs --layer MASK CLIPS", file="crowd")
+        if len(values) not in (0, 1, count):
+            raise OptionsError(f"{option} is given {len(values)} times for {count} layers: give it once (every "
+                               "layer) or once per --layer, in order", file="crowd")
+        per_layer[option] = [None] * count if not values else list(values) * (count if len(values) == 1 else 1)
+    layers = []
+    for j, (mask, clips) in enumerate(specs):
+        fields = {"mask": mask, "clips": {} if clips.strip() == "*" else parse_weights(clips, option=f"--layer {mask}")}
+        for option, attribute in (("--layer-weight", "weight"), ("--layer-time-offset", "time_offset"),
+                                  ("--layer-rate", "playback_rate")):
+            if per_layer[option][j] is not None:
+                fields[attribute] = tuple(float(v) for v in per_layer[option][j])
+        layers.append(CrowdLayer(**fields))
+    return tuple(layers)
 
 
 class _CrowdCommand(click.Command):
@@ -68,21 +92,48 @@ class _CrowdCommand(click.Command):
               help="Range of turns about the up axis, degrees.")
 @click.option("--scale", nargs=2, type=float, default=(1.0, 1.0), show_default=True, metavar="MIN MAX",
               help="Range of uniform scales.")
+@click.option("--fade-clips", default=None, metavar="NAME[:W],...",
+              help="Crossfade (format 1.1): each instance also plays one of these clips (relative weights), blended "
+                   "in by its fade weight. The characters must be format 1.1 or later (vbusd convert writes 1.1).")
+@click.option("--fade-weight", nargs=2, type=float, default=None, metavar="MIN MAX",
+              help="Range of fade weights in 0..1 (0: the instance's clip alone, 1: the fade clip alone; default 0 1).")
+@click.option("--fade-window", nargs=2, type=float, default=None, metavar="START END",
+              help="Instead of --fade-weight: every instance fades from its clip to its fade clip between these stage "
+                   "seconds (the fade weight time-sampled, 0 at START, 1 at END).")
+@click.option("--fade-time-offset", nargs=2, type=float, default=None, metavar="MIN MAX",
+              help="Range of the fade clip's time offsets in seconds (default: anywhere in the fade clip).")
+@click.option("--fade-rate", nargs=2, type=float, default=None, metavar="MIN MAX",
+              help="Range of the fade clip's playback rates (default 1 1).")
+@click.option("--layer", "layer_specs", nargs=2, multiple=True, metavar="MASK CLIPS",
+              help="A layer (format 1.2): one of CLIPS (NAME[:W],..., or '*' for any) plays over the bones of the "
+                   "characters' mask MASK (vbusd convert --mask). Repeatable; layers apply in order.")
+@click.option("--layer-weight", "layer_weights", nargs=2, type=float, multiple=True, metavar="MIN MAX",
+              help="Range of layer weights in 0..1 (default 1 1): once for every layer, or once per --layer.")
+@click.option("--layer-time-offset", "layer_offsets", nargs=2, type=float, multiple=True, metavar="MIN MAX",
+              help="Range of a layer clip's time offsets in seconds (default: anywhere in its clip): once, or once per --layer.")
+@click.option("--layer-rate", "layer_rates", nargs=2, type=float, multiple=True, metavar="MIN MAX",
+              help="Range of a layer clip's playback rates (default 1 1): once, or once per --layer.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed: the same seed gives the same file, byte for byte.")
 @format_option
 @force_option
 @click.option("--allow-outside-paths", is_flag=True, help="Let the crowd reference characters outside its folder.")
 @quiet_option
 def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
-            yaw, scale, seed, output_format, force, allow_outside_paths, quiet):
+            yaw, scale, fade_clips, fade_weight, fade_window, fade_time_offset, fade_rate, layer_specs, layer_weights,
+            layer_offsets, layer_rates, seed, output_format, force, allow_outside_paths, quiet):
     """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
 
     options = CrowdOptions(layout=layout, count=count, spacing=spacing, points=points_file,
                            clips=parse_weights(clips) if clips else {},
                            characters=_weights(character_weights, "--character-weights"),
                            time_offset=_pair(time_offset, "--time-offset"), playback_rate=_pair(rate, "--rate"),
-                           yaw=_pair(yaw, "--yaw"), scale=_pair(scale, "--scale"), seed=seed, force=force,
-                           allow_outside_paths=allow_outside_paths)
+                           yaw=_pair(yaw, "--yaw"), scale=_pair(scale, "--scale"),
+                           fade_clips=parse_weights(fade_clips, option="--fade-clips") if fade_clips else {},
+                           fade_weight=_pair(fade_weight, "--fade-weight"), fade_window=_pair(fade_window, "--fade-window"),
+                           fade_time_offset=_pair(fade_time_offset, "--fade-time-offset"),
+                           fade_playback_rate=_pair(fade_rate, "--fade-rate") or (1.0, 1.0),
+                           layers=_layers(layer_specs, layer_weights, layer_offsets, layer_rates),
+                           seed=seed, force=force, allow_outside_paths=allow_outside_paths)
     report = build_crowd(characters, output, options)
     if quiet:
         return 0
@@ -94,8 +145,14 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
     spaced = "" if report.spacing is None else f", spacing {report.spacing:.4g}{origin}"
     click.echo(f"{report.output}: {total} instances of {len(report.instances)} character(s){spaced}, "
                f"{human_bytes(report.bytes)} ({report.seconds:.2f} s)")
-    for path, n, clip_counts, animations in zip(characters, report.instances, report.clips, report.animations):
+    fades = report.fade_clips or [None] * len(report.instances)
+    for path, n, clip_counts, animations, fade_counts in zip(characters, report.instances, report.clips,
+                                                             report.animations, fades):
         shown = ", ".join(f"{name} {k}" for name, k in clip_counts.items())
         together = f", {animations} animations each" if animations > 1 else ""
-        click.echo(f"  {path}: {n} instances ({shown}){together}")
+        fading = "" if fade_counts is None else "; fading into " + ", ".join(
+            f"{name} {k}" for name, k in fade_counts.items() if k)
+        click.echo(f"  {path}: {n} instances ({shown}){together}{fading}")
+    if report.layers:
+        click.echo(f"  {report.layers} layer(s) per instance: {', '.join(layer.mask for layer in options.layers)}")
     return 0

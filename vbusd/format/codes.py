@@ -366,8 +366,9 @@ _COMMAND_ERRORS = (
     Code("blender.modifiers", E, "A mesh's modifier stack cannot be baked as one skinning: two Armature "
          "modifiers, a modifier after it, no vertex groups, or a group mask.", f"{_VB}#skinning", "file"),
     Code("crowd.character", E, "A character given to vbusd crowd has no animation or bound mesh to "
-         "instance, animations whose clips match neither by name nor in number, or disagrees with the "
-         "others' up axis or units.", f"{_VB}#instancing", "file"),
+         "instance, animations whose clips match neither by name nor in number, disagrees with the "
+         "others' up axis or units, or is format 1.0 in a crossfading crowd (--fade-clips needs 1.1).",
+         f"{_VB}#instancing", "file"),
     Code("crowd.points", E, "The positions file of vbusd crowd --layout points is not rows of three "
          "finite numbers (CSV) or has no USD points prim.", f"{_VB}#instancing", "file"),
     # ---- glTF 2.0 converter (spec/gltf-conversion.md) ----
@@ -506,8 +507,9 @@ _COMMAND_ERRORS = (
     Code("layers.unsupported", E, "A crowd plays layers (primvars:vb:layer*, format 1.2) and the decoder or "
          "exporter asked for does not implement them yet (the numpy reference does); it refuses rather than "
          "draw the instances without their layers.", f"{_VB}#layers", "usd"),
-    Code("layers.noMask", E, "A layer (skin, bone_transform) names a mask the animation does not store, or "
-         "the animation stores no masks (format 1.2); reconvert with --mask NAME=BONE.", f"{_VB}#layers", "usd"),
+    Code("layers.noMask", E, "A layer (skin, bone_transform, vbusd crowd --layer) names a mask the "
+         "animation does not store, or the animation stores no masks (format 1.2); reconvert with "
+         "--mask NAME=BONE.", f"{_VB}#layers", "usd"),
 )
 
 _CODES = _FINDINGS + _COMMAND_ERRORS

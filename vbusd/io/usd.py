@@ -706,12 +706,14 @@ class CharacterInstancer:
         animation: The animation's prim path in the character's asset.
         targets: Prim paths in the character's asset the prototype references: the animation's
             bound meshes, or its LOD root.
+        mask_count: Bone masks the animation stores (format 1.2): a crowd with layers needs one.
     """
 
     crowd: Crowd
     character: str
     animation: str
     targets: tuple
+    mask_count: int = 0
 
 
 def write_crowd_layer(output, characters, instancers, *, up_axis: str, meters_per_unit: float,
@@ -770,7 +772,8 @@ def write_crowd_layer(output, characters, instancers, *, up_axis: str, meters_pe
         character = held[instancer.character]
         # The character's own copy is invisible; its referenced meshes draw only as instances.
         write_instancer(stage, instancer.crowd, inside(character, instancer.animation), character.name,
-                        [inside(character, target) for target in instancer.targets], show_targets=True)
+                        [inside(character, target) for target in instancer.targets], mask_count=instancer.mask_count,
+                        show_targets=True)
     write_layer(stage.GetRootLayer(), output, replace=replace, what="crowd layer")
 
 

@@ -5,7 +5,10 @@ A crowd file references each character's Virtual Bones asset (its default prim, 
 ``UsdGeomPointInstancer`` with ``VirtualBonesInstancingAPI`` per character and animation (a
 character of several skeletons has several, with the same instances), whose prototype references
 that animation's bound meshes. Per instance it chooses position, orientation (a yaw about the
-stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing"). This module only
+stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing") and, when asked,
+a crossfade (a fade clip with its own offset and rate, and a fade weight, constant or ramped over a
+window of stage time; spec "Crossfade", format 1.1) and layers (per layer a clip over a named bone
+mask, with its own offset, rate and weight; spec "Layers and bone masks", format 1.2). This module only
 places and chooses; the layer is authored and written by :func:`vbusd.io.usd.write_crowd_layer`,
 whose point instancers come from :func:`vbusd.io.usd.write_instancer`, the one author of a Virtual
 Bones point instancer (an asset's own crowds are written by it too).
@@ -32,6 +35,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from vbusd.format.errors import FORCE_HINT, MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, OptionsError
+from vbusd.format import names as vb_names
 from vbusd.format.model import Crowd
 from vbusd.format.names import unique_names
 from vbusd.io.usd import CharacterInstancer, CharacterReference, read_asset, write_crowd_layer
@@ -39,13 +43,80 @@ from pxr import UsdGeom
 from vbusd.io.usd_reader import stage_for_reading
 import dataclasses
 
-__all__ = ["CrowdOptions", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
+__all__ = ["CrowdOptions", "CrowdLayer", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
 
 LAYOUTS = ("grid", "disc", "points")
 MAX_INSTANCES = 10_000_000
 """Refused above this count: 10 M instances are ~600 MB of primvars in the layer."""
 
 CROWD_ROOT = "/Crowd"
+
+
+def _check_range(name: str, pair, *, positive: bool = False, unit: bool = False) -> None:
+    """``pair`` is (MIN, MAX): finite, MIN <= MAX (and positive, or within [0, 1], when asked)."""
+    low, high = pair
+    if not (math.isfinite(low) and math.isfinite(high) and low <= high) or (positive and low <= 0) or (
+            unit and not (0.0 <= low and high <= 1.0)):
+        need = " and positive" if positive else " and within 0..1" if unit else ""
+        raise OptionsError(f"{name} needs MIN <= MAX, finite{need}; got {low:g} {high:g}", file="crowd")
+
+
+def _check_weights(name: str, clips: dict) -> None:
+    for clip, weight in clips.items():
+        if not (math.isfinite(weight) and weight >= 0):
+            raise OptionsError(f"{name} weight of {clip!r} must be 0 or more, got {weight!r}", file="crowd")
+    if clips and not any(w > 0 for w in clips.values()):
+        raise OptionsError(f"{name} weights are all zero", file="crowd")
+
+
+def _pair(value, name: str) -> Optional[tuple]:
+    """A (MIN, MAX) option as a tuple of two floats, or None."""
+    if value is None:
+        return None
+    try:
+        low, high = value
+        return float(low), float(high)
+    except (TypeError, ValueError):
+        raise OptionsError(f"{name} needs two numbers MIN MAX, got {value!r}", file="crowd") from None
+
+
+@dataclass(frozen=True)
+class CrowdLayer:
+    """One layer every instance plays on top of its clip (format 1.2, spec "Layers and bone masks").
+
+    Per instance a clip is chosen among ``clips`` (by name, with relative weights, as
+    :attr:`CrowdOptions.clips`) and plays over the bones of the mask named ``mask`` (the characters'
+    ``vbusd convert --mask NAME=BONE``) at its own time offset and rate, with a weight drawn from
+    ``weight``. Layers apply in the order given.
+
+    Attributes:
+        mask: Name of a bone mask every instanced animation stores.
+        clips: Clip name (or index as text) -> relative weight; empty: every clip, equal weights.
+        weight: (min, max) layer weight, uniform, within 0..1 (1: the masked bones play the layer's
+            clip alone).
+        time_offset: (min, max) seconds; None: uniform over each instance's layer clip duration.
+        playback_rate: (min, max) rate, uniform.
+    """
+
+    mask: str
+    clips: dict = field(default_factory=dict)
+    weight: tuple = (1.0, 1.0)
+    time_offset: Optional[tuple] = None
+    playback_rate: tuple = (1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mask, str) or not self.mask:
+            raise OptionsError(f"a layer needs the name of a bone mask, got {self.mask!r}", file="crowd")
+        if not isinstance(self.clips, dict):
+            raise OptionsError(f"a layer's clips are a dict of clip name -> weight, got {self.clips!r}", file="crowd")
+        _check_weights(f"--layer {self.mask}", self.clips)
+        for name, attribute in (("--layer-weight", "weight"), ("--layer-time-offset", "time_offset"),
+                                ("--layer-rate", "playback_rate")):
+            object.__setattr__(self, attribute, _pair(getattr(self, attribute), name))
+        _check_range("--layer-weight", self.weight, unit=True)
+        _check_range("--layer-rate", self.playback_rate)
+        if self.time_offset is not None:
+            _check_range("--layer-time-offset", self.time_offset)
 
 
 @dataclass(frozen=True)
@@ -67,6 +138,19 @@ class CrowdOptions:
         playback_rate: (min, max) rate, uniform.
         yaw: (min, max) degrees about the up axis, uniform.
         scale: (min, max) uniform scale.
+        fade_clips: Crossfade (format 1.1, spec "Crossfade"): clip name (or index as text) ->
+            relative weight of the fade clip each instance also plays; empty (default): no
+            crossfade. Every instanced animation must be format 1.1 or later.
+        fade_weight: (min, max) fade weight, uniform, within 0..1 (0: the instance's clip alone, 1:
+            the fade clip alone); None: (0, 1), unless ``fade_window`` is given.
+        fade_window: (start, end) stage seconds: instead of a constant weight, every instance fades
+            from its clip (weight 0 until ``start``) to its fade clip (weight 1 from ``end``), the
+            fade weight time-sampled at the two times and ramping linearly between them.
+        fade_time_offset: (min, max) seconds of the fade clip at stage time 0; None: uniform over
+            each instance's fade clip duration.
+        fade_playback_rate: (min, max) rate of the fade clip, uniform.
+        layers: :class:`CrowdLayer` (or dicts of its fields) every instance plays, in order
+            (format 1.2); empty: none. Every instanced animation must store each layer's mask.
         seed: Seed of every random choice.
         force: Replace an existing output (as :class:`vbusd.jobs.conversion.ConvertOptions`).
         allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
@@ -82,6 +166,12 @@ class CrowdOptions:
     playback_rate: tuple = (1.0, 1.0)
     yaw: tuple = (0.0, 360.0)
     scale: tuple = (1.0, 1.0)
+    fade_clips: dict = field(default_factory=dict)
+    fade_weight: Optional[tuple] = None
+    fade_window: Optional[tuple] = None
+    fade_time_offset: Optional[tuple] = None
+    fade_playback_rate: tuple = (1.0, 1.0)
+    layers: tuple = ()
     seed: int = 0
     force: bool = False
     allow_outside_paths: bool = False
@@ -115,6 +205,44 @@ class CrowdOptions:
             raise OptionsError("character weights must be 0 or more and not all zero", file="crowd")
         if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
             raise OptionsError(f"--seed must be a non-negative integer, got {self.seed!r}", file="crowd")
+        if not isinstance(self.fade_clips, dict):
+            raise OptionsError(f"fade_clips is a dict of clip name -> weight, got {self.fade_clips!r}", file="crowd")
+        _check_weights("--fade-clips", self.fade_clips)
+        for name, attribute in (("--fade-weight", "fade_weight"), ("--fade-window", "fade_window"),
+                                ("--fade-time-offset", "fade_time_offset"), ("--fade-rate", "fade_playback_rate")):
+            value = _pair(getattr(self, attribute), name)
+            object.__setattr__(self, attribute, value)
+            if value is not None and attribute != "fade_playback_rate" and not self.fade_clips:
+                raise OptionsError(f"{name} needs --fade-clips (the clips instances fade into)", file="crowd")
+        if self.fade_playback_rate != (1.0, 1.0) and not self.fade_clips:
+            raise OptionsError("--fade-rate needs --fade-clips (the clips instances fade into)", file="crowd")
+        if self.fade_weight is not None and self.fade_window is not None:
+            raise OptionsError("give --fade-weight (a constant weight per instance) or --fade-window (a fade over "
+                               "stage time), not both", file="crowd")
+        if self.fade_weight is not None:
+            _check_range("--fade-weight", self.fade_weight, unit=True)
+        if self.fade_window is not None:
+            start, end = self.fade_window
+            if not (math.isfinite(start) and math.isfinite(end) and start < end):
+                raise OptionsError(f"--fade-window needs START < END, finite stage seconds; got {start:g} {end:g}",
+                                   file="crowd")
+        if self.fade_time_offset is not None:
+            _check_range("--fade-time-offset", self.fade_time_offset)
+        _check_range("--fade-rate", self.fade_playback_rate)
+        if isinstance(self.layers, (CrowdLayer, dict, str)) or not isinstance(self.layers, (list, tuple)):
+            raise OptionsError(f"layers is a list of CrowdLayer, got {type(self.layers).__name__}", file="crowd")
+        layers = []
+        for layer in self.layers:
+            if isinstance(layer, dict):
+                try:
+                    layer = CrowdLayer(**layer)
+                except TypeError as error:
+                    raise OptionsError(f"a layer has fields mask, clips, weight, time_offset, playback_rate: "
+                                       f"{error}", file="crowd") from None
+            if not isinstance(layer, CrowdLayer):
+                raise OptionsError(f"layers hold CrowdLayer (or dicts of its fields), got {layer!r}", file="crowd")
+            layers.append(layer)
+        object.__setattr__(self, "layers", tuple(layers))
 
 
 @dataclass
@@ -131,6 +259,8 @@ class CrowdReport:
             each), per character.
         spacing: The spacing used (scene units): the option's, or the one derived from the
             characters' size.
+        fade_clips: Instances per fade clip name, per character (empty without a crossfade).
+        layers: Layers each instance plays.
     """
 
     output: str
@@ -140,16 +270,22 @@ class CrowdReport:
     seconds: float = 0.0
     animations: list = field(default_factory=list)
     spacing: Optional[float] = None
+    fade_clips: list = field(default_factory=list)
+    layers: int = 0
 
     def to_dict(self) -> dict:
         """JSON form (camelCase keys, as the spec's metadata)."""
         return {"output": self.output, "instances": self.instances, "clips": self.clips,
-                "animations": self.animations, "spacing": self.spacing, "bytes": self.bytes,
-                "seconds": round(self.seconds, 3)}
+                "animations": self.animations, "spacing": self.spacing, "fadeClips": self.fade_clips,
+                "layers": self.layers, "bytes": self.bytes, "seconds": round(self.seconds, 3)}
 
 
-def parse_weights(text: str) -> dict:
+def parse_weights(text: str, *, option: str = "--clips") -> dict:
     """Parse ``NAME[:WEIGHT],...`` (for example ``Walk:3,Idle:1,Cheer``) into a dict.
+
+    Args:
+        text: The option's value.
+        option: The option named in errors (``--clips``, ``--fade-clips``, ``--layer MASK``).
 
     Raises:
         OptionsError: A weight that is not a number, or an empty name.
@@ -160,11 +296,11 @@ def parse_weights(text: str) -> dict:
             continue
         name, _, weight = part.rpartition(":") if ":" in part else (part, "", "1")
         if not name:
-            raise OptionsError(f"--clips entry {part!r} has no clip name", file="crowd")
+            raise OptionsError(f"{option} entry {part!r} has no clip name", file="crowd")
         try:
             weights[name] = float(weight)
         except ValueError:
-            raise OptionsError(f"--clips weight {weight!r} of {name!r} is not a number", file="crowd") from None
+            raise OptionsError(f"{option} weight {weight!r} of {name!r} is not a number", file="crowd") from None
     return weights
 
 
@@ -270,6 +406,8 @@ class _Animation:
     mesh_paths: tuple
     clip_of: tuple
     """For each of the character's clips (its first animation's), this animation's clip index."""
+    mask_names: tuple = ()
+    """The bone masks the animation stores (format 1.2), in order: a layer's mask index is into these."""
 
 
 @dataclass(frozen=True)
@@ -337,7 +475,8 @@ def _character(path: Path, index: int, used: set) -> _Character:
     # level and the LODRootAPI, so each instance selects its level (spec 20.2).
     animations = tuple(_Animation(path=vb.path, mesh_paths=(vb.lods.root,) if vb.lods is not None else
                                   tuple(m.path for m in vb.meshes),
-                                  clip_of=_clip_map(lead, vb, str(path))) for vb in drawn)
+                                  clip_of=_clip_map(lead, vb, str(path)),
+                                  mask_names=tuple(name for name, _ in vb.masks)) for vb in drawn)
     base = "".join(c if c.isalnum() or c == "_" else "_" for c in path.stem) or "Character"
     if base[0].isdigit():
         base = "_" + base
@@ -366,6 +505,53 @@ def _clip_choice(character: _Character, clips: dict, rng: np.random.Generator, n
         if chosen.sum() > 0:
             weights = chosen
     return rng.choice(len(weights), size=n, p=weights / weights.sum()).astype(np.int32)
+
+
+def _check_clip_names(option: str, clips: dict, cast) -> None:
+    """A clip name no character has would silently play every clip: refuse it."""
+    for name in clips:
+        if not any(name in c.clip_names or (name.isdigit() and int(name) < len(c.clip_names)) for c in cast):
+            known = sorted({clip for c in cast for clip in c.clip_names})
+            raise OptionsError(f"{option} names clip {name!r}, which no character has (clips: "
+                               f"{', '.join(known)}; or an index below {max(len(c.clip_names) for c in cast)})",
+                               file="crowd")
+
+
+def _check_fade_version(character: _Character) -> None:
+    """Spec "Instancing": a crossfading instancer binds animations of format 1.1 or later, so that a
+    1.0 reader refuses the crowd instead of playing the first clip alone. The crowd layer cannot
+    raise a referenced animation's version (its texture's metadata says the same), so a 1.0
+    character is refused."""
+    attribute = vb_names.BY_KEY["formatMinorVersion"].name
+    with stage_for_reading(character.path) as stage:
+        for animation in character.animations:
+            prim = stage.GetPrimAtPath(animation.path)
+            value = prim.GetAttribute(attribute).Get() if prim and prim.GetAttribute(attribute).HasAuthoredValue() else 0
+            if not isinstance(value, int) or value < 1:
+                raise InputError(f"animation {animation.path} is format 1.{value or 0}; a crossfading crowd (--fade-clips) "
+                                 "needs format 1.1 or later: convert the character again with vbusd convert, which "
+                                 "writes 1.1", file=str(character.path), location=animation.path,
+                                 code="crowd.character")
+
+
+def _check_masks(layers, cast) -> None:
+    """Every instanced animation stores every layer's mask (by name)."""
+    for layer in layers:
+        for character in cast:
+            for animation in character.animations:
+                if layer.mask not in animation.mask_names:
+                    stored = ", ".join(animation.mask_names) or "none"
+                    raise InputError(f"--layer names mask {layer.mask!r}, which animation {animation.path} does not "
+                                     f"store (masks: {stored}); convert the character with --mask {layer.mask}=BONE",
+                                     file=str(character.path), location=animation.path, code="layers.noMask")
+
+
+def _offsets(rng: np.random.Generator, span: Optional[tuple], durations: np.ndarray) -> np.ndarray:
+    """Time offsets: uniform in ``span``, or over each instance's clip duration when it is None."""
+    unit = rng.random(size=len(durations))
+    if span is None:
+        return unit * durations
+    return span[0] + unit * (span[1] - span[0])
 
 
 def _relative_reference(character: Path, output: Path, allow_outside_paths: bool) -> str:
@@ -430,12 +616,14 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                              f"first character's ({up_axis} / {cast[0].meters_per_unit:g})", file=str(other.path),
                              code="crowd.character")
     references = [_relative_reference(c.path, output, allow_outside_paths) for c in cast]
-    for name in options.clips:  # a clip no character has would silently play every clip
-        if not any(name in c.clip_names or (name.isdigit() and int(name) < len(c.clip_names)) for c in cast):
-            known = sorted({clip for c in cast for clip in c.clip_names})
-            raise OptionsError(f"--clips names clip {name!r}, which no character has (clips: "
-                               f"{', '.join(known)}; or an index below {max(len(c.clip_names) for c in cast)})",
-                               file="crowd")
+    _check_clip_names("--clips", options.clips, cast)
+    _check_clip_names("--fade-clips", options.fade_clips, cast)
+    for layer in options.layers:
+        _check_clip_names(f"--layer {layer.mask}", layer.clips, cast)
+    _check_masks(options.layers, cast)
+    if options.fade_clips:
+        for character in cast:
+            _check_fade_version(character)
 
     rng = np.random.default_rng(int(options.seed))
     spacing = options.spacing
@@ -456,7 +644,7 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     rate = rng.uniform(options.playback_rate[0], options.playback_rate[1], size=n)
     unit = rng.random(size=n)  # time offsets: per instance, scaled to its clip below
 
-    report_instances, report_clips, instancers = [], [], []
+    report_instances, report_clips, report_fades, instancers = [], [], [], []
     # One point instancer per (character, animation): a character's animations play together on the
     # same instances. A character of one animation keeps the name <character>Instances.
     instancer_names = iter(unique_names([
@@ -475,19 +663,56 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
         report_instances.append(m)
         report_clips.append({name: int(np.sum(clip == i)) for i, name in enumerate(character.clip_names)})
         names_here = [next(instancer_names) for _ in character.animations]
+        all_durations = np.asarray(character.clip_durations, dtype=np.float64)
+        # Crossfade and layers (drawn only when asked, so a crowd without them is what it was).
+        fade = None
+        if options.fade_clips:
+            fade_clip = _clip_choice(character, options.fade_clips, rng, m)
+            fade_offsets = _offsets(rng, options.fade_time_offset, all_durations[fade_clip])
+            fade_rate = rng.uniform(options.fade_playback_rate[0], options.fade_playback_rate[1], size=m)
+            if options.fade_window is None:
+                low, high = options.fade_weight if options.fade_weight is not None else (0.0, 1.0)
+                fade_weight, fade_samples = rng.uniform(low, high, size=m).astype(np.float32), None
+            else:  # 0 until the window opens, 1 once it closes; USD interpolates linearly between
+                fade_weight = np.zeros(m, dtype=np.float32)
+                fade_samples = {"fade_weight": (np.asarray(options.fade_window, dtype=np.float64),
+                                                np.stack([np.zeros(m, np.float32), np.ones(m, np.float32)]))}
+            fade = (fade_clip, fade_offsets.astype(np.float32), fade_rate.astype(np.float32), fade_weight, fade_samples)
+            report_fades.append({name: int(np.sum(fade_clip == i)) for i, name in enumerate(character.clip_names)})
+        layers = []
+        for layer in options.layers:
+            layer_clip = _clip_choice(character, layer.clips, rng, m)
+            layer_offsets = _offsets(rng, layer.time_offset, all_durations[layer_clip])
+            layer_rate = rng.uniform(layer.playback_rate[0], layer.playback_rate[1], size=m)
+            layer_weight = rng.uniform(layer.weight[0], layer.weight[1], size=m)
+            layers.append((layer.mask, layer_clip, layer_offsets, layer_rate, layer_weight))
         if m == 0:
             continue
         quats = np.zeros((m, 4), dtype=np.float32)  # a yaw about the up axis, (x, y, z, w)
         quats[:, axis] = np.sin(yaw[mine] / 2)
         quats[:, 3] = np.cos(yaw[mine] / 2)
         for animation, instancer_name in zip(character.animations, names_here):
+            clip_of = np.asarray(animation.clip_of, dtype=np.int32)
+            extra = {}
+            if fade is not None:
+                fade_clip, fade_offsets, fade_rate, fade_weight, fade_samples = fade
+                extra.update(fade_clip=clip_of[fade_clip], fade_time_offset=fade_offsets, fade_playback_rate=fade_rate,
+                             fade_weight=fade_weight, fade_samples=fade_samples)
+            if layers:  # (instances, layers) arrays, element i * L + j is layer j of instance i
+                extra.update(
+                    layer_clip=np.stack([clip_of[c] for _, c, _, _, _ in layers], axis=1),
+                    layer_time_offset=np.stack([o for _, _, o, _, _ in layers], axis=1).astype(np.float32),
+                    layer_playback_rate=np.stack([r for _, _, _, r, _ in layers], axis=1).astype(np.float32),
+                    layer_weight=np.stack([w for _, _, _, _, w in layers], axis=1).astype(np.float32),
+                    layer_mask=np.stack([np.full(m, animation.mask_names.index(mask), np.int32)
+                                         for mask, _, _, _, _ in layers], axis=1))
             crowd = Crowd(path=f"{CROWD_ROOT}/{instancer_name}",
                           positions=np.ascontiguousarray(positions[mine], dtype=np.float32), orientations=quats,
                           scales=np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32),
-                          clip=np.asarray(animation.clip_of, dtype=np.int32)[clip],
-                          time_offset=offsets.astype(np.float32), playback_rate=rate[mine].astype(np.float32))
+                          clip=clip_of[clip], time_offset=offsets.astype(np.float32),
+                          playback_rate=rate[mine].astype(np.float32), **extra)
             instancers.append(CharacterInstancer(crowd=crowd, character=character.name, animation=animation.path,
-                                                 targets=animation.mesh_paths))
+                                                 targets=animation.mesh_paths, mask_count=len(animation.mask_names)))
     characters_held = [CharacterReference(name=c.name, reference=reference, default_prim=c.default_prim,
                                           crowd_paths=c.crowd_paths) for c, reference in zip(cast, references)]
     # One commit as every vbusd output (spec, "File names and the write guarantee"): under the
@@ -496,4 +721,5 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                       replace=force, root=CROWD_ROOT)
     return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
                        seconds=time.perf_counter() - start, animations=[len(c.animations) for c in cast],
-                       spacing=None if options.layout == "points" else float(spacing))
+                       spacing=None if options.layout == "points" else float(spacing), fade_clips=report_fades,
+                       layers=len(options.layers))

@@ -7,6 +7,7 @@
   description and one binary buffer of texels, meshes and instances);
 * :mod:`vbusd.web.server` serves the viewer page, three.js and the asset on 127.0.0.1.
 
-The page, the runtime and three.js ship as package data under ``static/`` (copied from ``web/`` by
-scripts/sync_web.py), so the viewer works offline.
+The pages, the runtimes, three.js and the Babylon.js bundle live once in the repository's ``web/``
+(:mod:`vbusd.web.static_files` says which file each URL is); a checkout serves them from there, and
+the wheel ships a copy under ``static/`` made when it is built, so the viewer works offline.
 """

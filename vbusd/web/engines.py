@@ -12,7 +12,7 @@ __all__ = ["ENGINES", "ENGINE_PAGES"]
 #: Engine names, the default first.
 ENGINES = ("three", "three-webgpu", "babylon")
 
-#: The page of each engine under vbusd/web/static: three.js mapped to WebGLRenderer's build
+#: The page of each engine (web/viewer/; vbusd/web/static/ of a wheel): three.js mapped to WebGLRenderer's build
 #: (index.html) or to three/webgpu (webgpu.html); both run viewer.js.
 #: Babylon.js: babylon.html and babylon-viewer.js (the material plugin of web/babylon on thin
 #: instances; Babylon's modules bundled once by esbuild).

@@ -2,8 +2,9 @@
 
 Routes (GET and HEAD; everything else is 405):
 
-* ``/`` and the page's own files (``/viewer.js``, ``/three/...``, ``/vbusd-three/...``): package
-  data under ``vbusd/web/static`` (copied there from web/ by scripts/sync_web.py);
+* ``/`` and the page's own files (``/viewer.js``, ``/three/...``, ``/vbusd-three/...``): the files
+  :func:`vbusd.web.static_files.static_files` lists, from the checkout's ``web/`` or from the
+  installed package data (``vbusd/web/static``, made when the wheel is built); nothing else;
 * ``/config.json``: what the page loads: ``{"name", "kind": "scene" | "gltf", "url"}``;
 * ``/scene/scene.json`` and ``/scene/scene.bin``: for a USD asset, the plain files that
   :func:`vbusd.web.scene.build_scene` makes from it (in memory, when the server starts);
@@ -31,10 +32,9 @@ from vbusd.web.engines import ENGINE_PAGES, ENGINES
 from vbusd.io.gltf_package import check_package
 from vbusd.io.usd import read_asset
 from vbusd.web.scene import build_scene, scene_json
+from vbusd.web.static_files import static_files
 
-__all__ = ["STATIC", "GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
-
-STATIC = Path(__file__).resolve().parent / "static"
+__all__ = ["GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "ViewerServer"]
 
 GLTF_SUFFIXES = (".glb", ".gltf")
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
@@ -117,15 +117,20 @@ class _Handler(BaseHTTPRequestHandler):
             return self._send(viewer.generated[path], CONTENT_TYPES[Path(path).suffix], body)
         if path.startswith("/asset/"):
             root, relative = viewer.root, path[len("/asset/"):]
-        else:
-            root, relative = STATIC, path[1:]
-        found = safe_file(root, relative)
+            found = safe_file(root, relative)
+        else:  # the pages' files: only those listed, so nothing else of the package or checkout is reachable
+            root, relative = None, path[1:]
+            found = viewer.static.get(relative)
         if found is None:
             leaves = ".." in relative.split("/") or relative.startswith("/") or "\\" in relative
-            return self._refuse(HTTPStatus.FORBIDDEN if leaves or (root / relative).exists()
+            return self._refuse(HTTPStatus.FORBIDDEN if leaves or (root is not None and (root / relative).exists())
                                 else HTTPStatus.NOT_FOUND, body)
         content_type = CONTENT_TYPES.get(found.suffix.lower(), "application/octet-stream")
-        return self._send(found.read_bytes(), content_type, body)
+        try:
+            data = found.read_bytes()
+        except OSError:  # removed since the server started (a checkout being edited)
+            return self._refuse(HTTPStatus.NOT_FOUND, body)
+        return self._send(data, content_type, body)
 
     def _not_allowed(self) -> None:
         self._refuse(HTTPStatus.METHOD_NOT_ALLOWED, True)
@@ -167,7 +172,8 @@ class ViewerServer:
     Raises:
         InputError: The asset cannot be read (the same one-line errors as every command); a
             ``.glb``/``.gltf`` that is not a whole runtime package
-            (:func:`vbusd.io.gltf_package.check_package`).
+            (:func:`vbusd.io.gltf_package.check_package`); the pages' own files are missing
+            (``file.missing``).
         OptionsError: Not a USD or glTF file name, or the port cannot be bound.
     """
 
@@ -185,6 +191,14 @@ class ViewerServer:
                              code="file.missing" if not path.exists() else "file.kind")
         self.asset = path
         self.root = path.resolve().parent
+        try:
+            static = static_files()
+        except FileNotFoundError as error:  # a checkout missing a folder of web/
+            raise InputError(f"the viewer's pages are incomplete: {error}", file="view", code="file.missing") from None
+        if static is None:
+            raise InputError("the viewer's pages are missing (neither the package data vbusd/web/static nor a "
+                             "checkout's web/): reinstall vbusd", file="view", code="file.missing")
+        self.static: dict[str, Path] = static
         self.generated: dict[str, bytes] = {}
         if suffix in GLTF_SUFFIXES:
 

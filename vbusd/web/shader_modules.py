@@ -6,7 +6,8 @@ influences, 16 clips) for every encoding and texel format and both skin bindings
 ``pulled``) as string constants; the runtime's ``shaderModule(encoding, texelFormat, maxInfluences,
 maxClips, skin)`` changes only the sizing ``#define`` lines (the pulled module's record sizes among
 them) and the header comment that names them. scripts/sync_web.py writes the result to
-web/src/shader-modules.js, and tests check both that the committed file is what this function
+web/src/shader-modules.js (the one copy: the Babylon.js runtime imports it as
+``@vbusd/three/shader-modules``), and tests check both that the committed file is what this function
 writes now and that the runtime's output equals ``vbusd shader --no-main`` for other sizes.
 """
 

@@ -4,7 +4,7 @@
 import { RawTexture, Constants } from '@babylonjs/core';
 
 import { VirtualBonesError } from './skinning.js';
-import { BASE_MAX_CLIPS } from './shader-modules.js';
+import { BASE_MAX_CLIPS } from '@vbusd/three/shader-modules';
 
 const TEXEL_TYPES = {
   float16: { type: Constants.TEXTURETYPE_HALF_FLOAT, array: Uint16Array },

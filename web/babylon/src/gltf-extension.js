@@ -9,7 +9,7 @@
 //   const result = await ImportMeshAsync('crowd.glb', scene);
 //   const { crowds, animations } = scene.metadata.virtualBones;  // animations[a].time = t
 
-import { GLTFLoader } from '@babylonjs/loaders/glTF/2.0';
+import { GLTFLoader } from '@babylonjs/loaders/glTF/2.0/index.js';  // a file: Node refuses directory imports
 import { parseVirtualBonesKTX2 } from '@vbusd/three';
 
 import { VirtualBonesAnimation } from './animation.js';

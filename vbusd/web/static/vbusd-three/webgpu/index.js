@@ -1,7 +1,0 @@
-// vbusd's three.js WebGPU runtime: Virtual Bones crowds on any node material under
-// WebGPURenderer (WebGPU or its WebGL 2 backend), written in TSL. Import it with three mapped to
-// three/webgpu. See docs/engines.md ("three.js WebGPU (TSL)").
-
-export { animationNodes, skinVertex, safeNormalize } from './skinning.js';
-export { skinNodeMaterial, vertexInputs } from './material.js';
-export { probeNodeCrowd } from './probe.js';

@@ -1,0 +1,79 @@
+// Types of @vbusd/babylon (src/index.js): Virtual Bones crowds in Babylon.js. Hand-written, minimal:
+// the names and shapes of the exports; tests/test_npm_packages.py checks that every export of the
+// module is declared here. The JSDoc of each function in src/ says more.
+import type { Engine, Material, MaterialPluginBase, Matrix, Mesh, Scene } from '@babylonjs/core';
+
+export type Encoding = 'crossMatrix' | 'affineMatrix' | 'quatTranslation' | 'dualQuat';
+export type TexelFormat = 'float16' | 'float32';
+
+/** An error in the data handed to the runtime, or a browser that cannot run it. */
+export class VirtualBonesError extends Error {
+  constructor(message: string);
+}
+
+/** The GLSL of `vbusd shader --lang glsl --no-main` (attribute skin binding), character for character. */
+export function shaderModule(encoding: Encoding, texelFormat: TexelFormat, maxInfluences?: number, maxClips?: number): string;
+export function skinningDeclarations(animation: VirtualBonesAnimation, maxInfluences: number, keyword?: string): string;
+export function skinningCall(position: string, normal: string, maxInfluences: number): string;
+
+/** One Virtual Bones texture on a Babylon scene: its RawTexture, clip table and clock. */
+export class VirtualBonesAnimation {
+  constructor(scene: Scene, options: { layout: Record<string, any>; texels: Uint16Array | Float32Array; name?: string });
+  readonly name: string;
+  readonly layout: Record<string, any>;
+  readonly clips: Array<{ name: string; firstRow: number; rowCount: number; rowsPerSecond: number; loop: boolean }>;
+  /** Scene time in seconds. */
+  time: number;
+  clipIndex(name: string): number;
+  dispose(): void;
+}
+
+/** The material plugin that skins a StandardMaterial or PBRMaterial from a Virtual Bones texture. */
+export class VirtualBonesPluginMaterial extends MaterialPluginBase {
+  constructor(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number);
+}
+/** Make `material` skin from `animation` (the plugin and a ShadowDepthWrapper); returns the plugin. */
+export function skinMaterial(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number): VirtualBonesPluginMaterial;
+/** The vertex streams of a skinned mesh. */
+export function vertexInputs(maxInfluences: number): string[];
+
+/** A crowd: one Mesh per rest mesh, its instances as thin instances. */
+export class VirtualBonesCrowd {
+  constructor(scene: Scene, options: {
+    animation: VirtualBonesAnimation;
+    meshes?: Array<Record<string, any>>;
+    instances: { count: number; matrices?: Float32Array; clip: ArrayLike<number>; timeOffset: ArrayLike<number>; playbackRate: ArrayLike<number>; [key: string]: unknown };
+    material?: ((name: string) => Material) | null;
+    name?: string;
+    adopt?: Mesh[] | null;
+  });
+  readonly scene: Scene;
+  readonly animation: VirtualBonesAnimation;
+  readonly name: string;
+  readonly capacity: number;
+  readonly meshes: Mesh[];
+  /** Instances drawn (the first `count` of the capacity). */
+  count: number;
+  setFade(index: number, fade: { fadeClip: number; fadeTimeOffset?: number; fadePlaybackRate?: number; fadeWeight: number }): void;
+  setClips(clips: number | ArrayLike<number>): void;
+  socketMatrix(index: number, bone: number, time: number): Matrix;
+  instanceMatrix(index: number): Matrix;
+}
+
+/** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2). */
+export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number): { positions: Float32Array; normals: Float32Array };
+
+/** The VBUSD_virtual_bones glTF extension's name. */
+export const EXTENSION: 'VBUSD_virtual_bones';
+/** Babylon glTF loader extension for VBUSD_virtual_bones. */
+export class VirtualBonesGLTFLoaderExtension {
+  constructor(loader: object, options?: { material?: ((name: string) => Material) | null });
+  readonly name: 'VBUSD_virtual_bones';
+  enabled: boolean;
+  dispose(): void;
+}
+/** Register the extension with Babylon's glTF loader (every later load uses it). */
+export function registerVirtualBonesGLTFExtension(options?: { material?: ((name: string) => Material) | null }): void;
+
+/** Socket (spec 8.4) of an instance: the world transform of `bone` at scene time `time`. */
+export function crowdSocketMatrix(crowd: VirtualBonesCrowd, index: number, bone: number, time: number): Matrix;
