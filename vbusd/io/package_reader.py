@@ -250,7 +250,8 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
                       package: Package, decode: bool) -> dict:
     """``package.primitive`` for every bound primitive; returns mesh index -> animation index."""
     bound = {}
-    declared = len(root["extensions"][EXTENSION].get("animations") or ())
+    entries = root["extensions"][EXTENSION].get("animations")
+    declared = len(entries) if isinstance(entries, list) else 0  # not an array: a schema finding already
     for m, mesh in enumerate(root.get("meshes") or []):
         vertices, playing = 0, None
         primitives = mesh.get("primitives") or []
