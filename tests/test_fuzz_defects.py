@@ -15,6 +15,7 @@ import json
 import struct
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from vbusd.cli import main
@@ -96,3 +97,175 @@ def test_item2_animations_that_are_no_array_are_a_finding_not_an_internal_error(
     """The schema makes ``animations`` an array; validate said ``command.internal`` (exit 3)."""
     _rewrite(package, lambda d: d["extensions"]["VBUSD_virtual_bones"].__setitem__("animations", 5))
     _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations")
+
+
+# ------------------------------------------------------------------------------------------------
+# Items 6 and 7: compact textures and their ranges
+# ------------------------------------------------------------------------------------------------
+
+
+def _compact_asset(texels_hook=None, ranges_hook=None):
+    """The fixtures' base asset in the compact encoding (format 1.2); ``texels_hook(texels, layout,
+    ranges)`` changes the words, ``ranges_hook(ranges)`` the (4, 7, 2) ranges prim and texture share."""
+    import dataclasses
+
+    asset = MF.build_asset("compactQuatTranslation", "uint32", texels_hook=texels_hook)
+    vb = asset.animations[0]
+    if ranges_hook is not None:
+        ranges = np.array(vb.unorm_ranges, dtype=np.float64)
+        ranges_hook(ranges)
+        vb = dataclasses.replace(vb, unorm_ranges=ranges)
+        asset = dataclasses.replace(asset, animations=(vb,))
+    return asset
+
+
+def _every_reserved_bit(t, layout, ranges):
+    t[:layout.row_count, :layout.used_width, 1] |= np.uint32(1 << 31)
+
+
+def _every_word_all_ones(t, layout, ranges):
+    t[:layout.row_count, :layout.used_width, :3] = np.uint32(0xFFFFFFFF)
+
+
+def _every_dropped_index_changed(t, layout, ranges):
+    # Every texel of the base asset drops w (index 3; its small rotations keep |w| > 0.98), so w's
+    # range is unused: [0.9, 1] is as good as [0, 0]. Saying "x is dropped" (index 0) keeps y, z, w
+    # instead, and the third field decodes in w's range to at least 0.9: the kept squares sum to at
+    # least 0.81 > 3/4, which a dropped component >= 1/2 cannot leave (spec 5.6).
+    assert np.all(t[:layout.row_count, :layout.used_width, 2] >> 30 == 3)
+    ranges[:, 3] = (0.9, 1.0)
+    t[:layout.row_count, :layout.used_width, 2] &= np.uint32(0x3FFFFFFF)
+
+
+@pytest.mark.parametrize("container", ["exr", "ktx2"])
+@pytest.mark.parametrize("mutation, code", [(_every_reserved_bit, "encoding.compact.reservedBit"),
+                                            (_every_word_all_ones, "encoding.compact.reservedBit"),
+                                            (_every_dropped_index_changed, "encoding.compact.dropped")])
+def test_item6_a_compact_texture_or_sidecar_on_its_own_gets_the_texel_checks(tmp_path, container, mutation, code):
+    """The words are checked with the texture's own ranges, as they are when its USD is validated
+    (the content digest is that of the changed words, so only the texel rules can find them)."""
+    from vbusd.io.textures import write_texture
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    asset = _compact_asset(texels_hook=mutation)
+    write_asset(asset, tmp_path / "asset.usda")
+    texture = tmp_path / f"alone.{container}"
+    write_texture(texture, asset.animations[0])
+    for given in (tmp_path / "asset.usda", texture, Path(f"{texture}.json")):
+        report = validate(given)
+        codes = {f["code"] for f in report.to_json()["findings"]}
+        assert code in codes and report.exit_status == 1, (given.name, codes)
+    first = next(f for f in validate(texture).to_json()["findings"] if f["code"] == code)
+    if mutation is not _every_dropped_index_changed:  # every texel is bad: the first is row 0, bone 0
+        assert (first["location"]["row"], first["location"]["bone"]) == (0, 0)
+
+
+def _rewrite_exr_metadata(texture: Path, edit) -> None:
+    """Replace the embedded metadata text of an EXR and its sidecar by ``edit(text)`` (texels kept)."""
+    from vbusd.io import exr
+    from vbusd.io.textures import read_texture
+
+    texels = np.array(read_texture(texture, check_sidecar=False).texels)
+    text = edit(Path(f"{texture}.json").read_text(encoding="utf-8"))
+    exr.write_exr(texture, texels, text, compression="zip")
+    Path(f"{texture}.json").write_text(text, encoding="utf-8")
+
+
+def _all_refuse(asset: Path, capsys, code: str, texture_code: str = None) -> None:
+    """``validate`` of the USD and of the texture finds ``code``; ``info`` of each, and
+    ``decode`` and ``export`` of the USD, refuse it in one line and write nothing (a USD reader names
+    the texture it cannot read with ``texture_code``)."""
+    from vbusd.validators.api import validate
+
+    texture = asset.with_name("asset.Animation.exr")
+    for given in (asset, texture):
+        report = validate(given)
+        assert report.exit_status == 1 and code in {f["code"] for f in report.to_json()["findings"]}, given
+    for given in (asset, texture):
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and any(f": {c}: " in err[0] for c in (code, texture_code)), err
+    before = sorted(p.name for p in asset.parent.iterdir())
+    for command in (["decode", str(asset), "-o", str(asset.with_name("cache.usda"))],
+                    ["export", str(asset), "-o", str(asset.with_name("out.glb"))]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("vbusd: ") and any(f": {c}: " in err[0] for c in (code, texture_code)), \
+            (command, err)
+    assert sorted(p.name for p in asset.parent.iterdir()) == before
+
+
+def test_item7_compact_ranges_overflowing_to_infinity_are_refused_by_every_reader(tmp_path, capsys):
+    """``1e400`` is valid JSON syntax but no finite number: read, it would be infinity, which
+    metadata may not hold (spec 11.1), exactly as the ``Infinity`` token may not."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    _rewrite_exr_metadata(texture, lambda text: text.replace('"compactRanges": [\n    [\n      [\n        0.0,',
+                                                              '"compactRanges": [\n    [\n      [\n        -1e400,', 1))
+    assert "-1e400" in Path(f"{texture}.json").read_text()
+    _all_refuse(tmp_path / "asset.usda", capsys, "metadata.json", texture_code="texture.unreadable")
+    with pytest.raises(InputError) as raised:  # the sidecar alone: it is not readable metadata
+        validate(Path(f"{texture}.json"))
+    assert raised.value.code == "metadata.json" and "1e400" in raised.value.message
+
+
+def test_item7_texture_ranges_that_disagree_with_the_prim_are_refused(tmp_path, capsys):
+    """Translation ranges one unit wider in the texture and sidecar than in vb:compactRangeMin/Max:
+    each copy is self-consistent, but the copies must be equal (spec 5.6.3)."""
+    from vbusd.io.textures import write_texture
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    def wider(ranges):
+        ranges[:, 4:, 0] -= 1.0
+        ranges[:, 4:, 1] += 1.0
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    write_texture(texture, _compact_asset(ranges_hook=wider).animations[0])
+    report = validate(tmp_path / "asset.usda")
+    found = {(f["code"], f["location"]["file"], f["location"].get("pointer")) for f in report.to_json()["findings"]}
+    assert ("metadata.mismatch", "asset.Animation.exr", "/compactRanges") in found
+    assert ("metadata.mismatch", "asset.Animation.exr.json", "/compactRanges") in found
+    assert report.exit_status == 1
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for command in (["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "out.glb")]):
+        capsys.readouterr()
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ": /compactRanges: metadata.mismatch: " in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_item7_a_range_whose_span_overflows_binary32_is_refused(tmp_path, capsys):
+    """-3e38 .. 3e38: both bounds are binary32 values, but hi - lo = 6e38 is not (the largest is
+    3.4028235e38), so a decoder's lo + (hi - lo) u / (2^15 - 1) is infinity."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    def overflowing(ranges):
+        ranges[0, 4] = (-3e38, 3e38)
+
+    write_asset(_compact_asset(ranges_hook=overflowing), tmp_path / "asset.usda")
+    report = validate(tmp_path / "asset.usda")
+    found = {(f["code"], f["location"].get("file"), f["location"].get("pointer"), f["location"].get("property"))
+             for f in report.to_json()["findings"]}
+    assert ("prim.attribute.invalid", None, None, "vb:compactRangeMin") in found, found
+    assert ("metadata.inconsistent", "asset.Animation.exr", "/compactRanges/0/4", None) in found, found
+    texture = tmp_path / "asset.Animation.exr"
+    for given in (texture, Path(f"{texture}.json")):
+        found = {(f["code"], f["location"].get("pointer")) for f in validate(given).to_json()["findings"]}
+        assert ("metadata.inconsistent", "/compactRanges/0/4") in found, found
+    capsys.readouterr()
+    for given in (texture, tmp_path / "asset.usda"):
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ("metadata.inconsistent" in err[0] or "prim.attribute.invalid" in err[0]), err
+    assert main(["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")]) == 2
+    assert not (tmp_path / "cache.usda").exists()

@@ -37,6 +37,7 @@ from typing import Optional, Union
 import numpy as np
 
 from vbusd.format import names
+from vbusd.format.compact import range_problems
 from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
 from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
@@ -680,11 +681,16 @@ class UsdReader:
                         f"{names.COMPACT_RANGE_MAX} {high.size}; they hold 7 per bone"
                         + (f" ({7 * bones})" if isinstance(bones, int) else ""),
                         UsdSite(path, names.COMPACT_RANGE_MAX))
-        elif not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low <= high)):
-            self.report("prim.attribute.invalid", f"compact ranges must be finite with min <= max "
-                        f"({names.COMPACT_RANGE_MIN}, {names.COMPACT_RANGE_MAX})", UsdSite(path, names.COMPACT_RANGE_MIN))
         else:
-            declared.values["compactRanges"] = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
+            ranges = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
+            problems = range_problems(ranges, limit=1)
+            if problems:
+                (bone, slot), message = problems[0]
+                self.report("prim.attribute.invalid", f"{names.COMPACT_RANGE_MIN}/{names.COMPACT_RANGE_MAX} "
+                            f"[{7 * bone + slot}]: {message} (compact ranges are finite, min <= max, with a span "
+                            "finite in binary32)", UsdSite(path, names.COMPACT_RANGE_MIN))
+            else:
+                declared.values["compactRanges"] = ranges
 
     def _bind_transforms(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:bindTransforms`` (spec 8.4) into ``bindTransforms``: (bones, 4, 4) column vectors."""
