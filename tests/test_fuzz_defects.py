@@ -269,3 +269,38 @@ def test_item7_a_range_whose_span_overflows_binary32_is_refused(tmp_path, capsys
         assert len(err) == 1 and ("metadata.inconsistent" in err[0] or "prim.attribute.invalid" in err[0]), err
     assert main(["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")]) == 2
     assert not (tmp_path / "cache.usda").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 8: a compact asset declaring format 1.1
+# ------------------------------------------------------------------------------------------------
+
+
+def test_item8_a_compact_asset_declaring_format_1_1_is_refused(tmp_path, capsys):
+    """The compact encoding is format 1.2's (spec 16.2); a document or prim that says 1.1 is wrong
+    about its own version, and an upgrade must not make it right."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    _rewrite_exr_metadata(texture, lambda text: text.replace('"formatMinorVersion": 2', '"formatMinorVersion": 1'))
+    for given, where in ((texture, "header/vbusd.layout/formatMinorVersion"),
+                         (Path(f"{texture}.json"), "/formatMinorVersion")):
+        assert validate(given).exit_status == 1
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"vbusd: {given}: {where}: format.version: encoding compactQuatTranslation needs format "
+                       "version 1.2, but the document declares 1.1, which does not define it"], err
+    # The prim says 1.1 (its texture says 1.2 again): the USD readers refuse it alike.
+    write_asset(_compact_asset(), tmp_path / "prim" / "asset.usda")
+    asset = tmp_path / "prim" / "asset.usda"
+    asset.write_text(asset.read_text().replace("vb:formatMinorVersion = 2", "vb:formatMinorVersion = 1"))
+    report = validate(asset)
+    assert [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"]] == \
+        [("format.version", "vb:formatMinorVersion")]
+    for command in (["info", str(asset)], ["decode", str(asset), "-o", str(tmp_path / "cache.usda")]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ": format.version: encoding compactQuatTranslation needs format version 1.2" in err[0]
