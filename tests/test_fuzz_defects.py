@@ -304,3 +304,71 @@ def test_item8_a_compact_asset_declaring_format_1_1_is_refused(tmp_path, capsys)
         assert main(command) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and ": format.version: encoding compactQuatTranslation needs format version 1.2" in err[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 11: levels of detail and masks that validate was silent about
+# ------------------------------------------------------------------------------------------------
+
+
+def _lod_asset(tmp_path: Path, edit) -> Path:
+    """The valid fixture with two levels of detail (tests/fixtures/validate/valid/crossMatrix_float16_lods),
+    copied, with ``edit(stage)`` applied and saved."""
+    import shutil
+
+    from pxr import Usd
+
+    folder = tmp_path / "lods"
+    shutil.copytree(FIXTURES / "valid" / "crossMatrix_float16_lods", folder)
+    (folder / "expected.json").unlink()
+    stage = Usd.Stage.Open(str(folder / "asset.usda"))
+    edit(stage)
+    stage.GetRootLayer().Save()
+    return folder / "asset.usda"
+
+
+ROOT = "/VirtualBones/Character_lods"
+
+
+def _set_default_index(value):
+    def edit(stage):
+        stage.GetPrimAtPath(ROOT).GetAttribute("lod:default:index").Set(value)
+    return edit
+
+
+def _two_heuristic_targets(stage):
+    # The second target is a prim that exists (the animation), so one of the two is a heuristic:
+    # still not "exactly one target".
+    stage.GetPrimAtPath(ROOT).GetRelationship("lod:heuristics").AddTarget("/VirtualBones/Animation")
+
+
+def _weights_without_names(stage):
+    from pxr import Sdf
+
+    prim = stage.GetPrimAtPath("/VirtualBones/Animation")
+    prim.CreateAttribute("vb:maskWeights", Sdf.ValueTypeNames.FloatArray, custom=False).Set([1.0, 1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("edit, code, prim, prop", [
+    (_set_default_index(99), "lod.structure", ROOT, "lod:default:index"),
+    (_set_default_index(-3), "lod.structure", ROOT, "lod:default:index"),
+    (_two_heuristic_targets, "lod.heuristic", ROOT, "lod:heuristics"),
+    (_weights_without_names, "prim.attribute.invalid", "/VirtualBones/Animation", "vb:maskWeights"),
+], ids=["default-index-99", "default-index-minus-3", "two-heuristic-targets", "mask-weights-without-names"])
+def test_item11_levels_and_masks_are_checked(tmp_path, capsys, edit, code, prim, prop):
+    """The fixture has 2 levels (lod:default:index must be 0 or 1), one heuristic target and no
+    masks; each edit breaks one rule of spec 20.1 or 8.6, found at the property it broke."""
+    from vbusd.validators.api import validate
+
+    asset = _lod_asset(tmp_path, edit)
+    report = validate(asset)
+    found = [(f["code"], f["location"].get("primPath"), f["location"].get("property"))
+             for f in report.to_json()["findings"] if f["code"] != "texture.padding.fraction"]
+    assert found == [(code, prim, prop)] and report.exit_status == 1, found
+    for command in (["info", str(asset)], ["decode", str(asset), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(asset), "-o", str(tmp_path / "out.glb")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{prim}.{prop}: {code}: " in err[0], err
+    assert not (tmp_path / "cache.usda").exists() and not (tmp_path / "out.glb").exists()

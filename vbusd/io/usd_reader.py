@@ -723,10 +723,14 @@ class UsdReader:
                 return
             declared.values["boneParents"] = parents
         names_attr = prim.GetAttribute(names.MASK_NAMES)
+        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
         if not names_attr or not names_attr.HasAuthoredValue():
+            if weights_attr and weights_attr.HasAuthoredValue():
+                self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} is authored without "
+                            f"{names.MASK_NAMES}: weights of masks that have no names (spec 8.6)",
+                            UsdSite(path, names.MASK_WEIGHTS))
             return
         mask_names = [str(n) for n in (names_attr.Get() or [])]
-        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
         weights = np.array(weights_attr.Get() if weights_attr else [], dtype=np.float64)
         site = UsdSite(path, names.MASK_WEIGHTS)
         if not isinstance(bones, int) or weights.size != bones * len(mask_names):
@@ -1467,9 +1471,12 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
         prims = reader.animation_prims()
         found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
 
-        # Levels of detail (format 1.2) for info; their findings are validate's to report.
-        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=levels_of_animation(prim)[2])
-                 for prim, attributes in zip(prims, found)]
+        # Levels of detail (format 1.2): checked as every reader checks them (lod.*: the first raises).
+        levels = [None if attributes is None else levels_of_animation(prim) for prim, attributes in zip(prims, found)]
+        for item in (f for level in levels if level is not None for f in level[0]):
+            diagnostics.add(item)
+        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=level[2])
+                 for attributes, level in zip(found, levels)]
         by_path = {str(prim.GetPath()): i for i, prim in enumerate(prims)}
         crowds = []
         UsdGeom = _pxr()[3]
