@@ -69,9 +69,41 @@ def _rewrite(path: Path, change, binary_change=None) -> None:
     path.write_bytes(glb_bytes(document, bytes(binary)))
 
 
+def _document(path: Path) -> dict:
+    """The package's JSON (a .gltf's text, or a .glb's JSON chunk)."""
+    if path.suffix == ".gltf":
+        return json.loads(path.read_text(encoding="utf-8"))
+    return _glb_parts(path.read_bytes())[0]
+
+
+def _patch_view(path: Path, view: int, offset: int, data: bytes) -> None:
+    """Write ``data`` at ``offset`` into buffer view ``view`` (the .bin or .ktx2 file a .gltf names,
+    or the BIN chunk of a .glb), the JSON unchanged."""
+    document = _document(path)
+    entry = document["bufferViews"][view]
+    at = entry.get("byteOffset", 0) + offset
+    if path.suffix == ".gltf":
+        target = path.with_name(document["buffers"][entry["buffer"]]["uri"])
+        content = bytearray(target.read_bytes())
+        content[at:at + len(data)] = data
+        target.write_bytes(bytes(content))
+        return
+    assert entry["buffer"] == 0  # a .glb holds everything in its BIN chunk
+
+    def change(_, binary):
+        binary[at:at + len(data)] = data
+
+    _rewrite(path, lambda d: None, change)
+
+
+def _texture_view(path: Path) -> int:
+    return _document(path)["extensions"]["VBUSD_virtual_bones"]["animations"][0]["texture"]["bufferView"]
+
+
 def _refused_everywhere(path: Path, capsys, code: str, pointer: str = None) -> None:
     """``validate`` finds ``code`` (exit 1) and ``info`` and ``view`` refuse the file in one line
-    naming it and the same code (exit 2)."""
+    naming it (or, for a texture beside a .gltf, that texture as validate names it) and the same
+    code (exit 2)."""
     from vbusd.validators.api import validate
     from vbusd.web.server import ViewerServer
 
@@ -82,7 +114,8 @@ def _refused_everywhere(path: Path, capsys, code: str, pointer: str = None) -> N
     capsys.readouterr()
     assert main(["info", str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"vbusd: {path}") and f": {code}: " in err[0], err
+    names = (str(path), "asset.Animation.ktx2") if path.suffix == ".gltf" else (str(path),)
+    assert len(err) == 1 and any(err[0].startswith(f"vbusd: {n}") for n in names) and f": {code}: " in err[0], err
     with pytest.raises(InputError) as raised:
         ViewerServer(path)
     assert raised.value.code == code
@@ -372,3 +405,40 @@ def test_item11_levels_and_masks_are_checked(tmp_path, capsys, edit, code, prim,
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"{prim}.{prop}: {code}: " in err[0], err
     assert not (tmp_path / "cache.usda").exists() and not (tmp_path / "out.glb").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 9: view and info accepted packages whose KTX2 header validate refuses
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("offset, data, code", [
+    (20, struct.pack("<II", 65536, 65536), "texture.size"),   # pixelWidth, pixelHeight: 65536 x 65536
+    (1, b"XYZ", "texture.unreadable"),                        # the KTX 2.0 identifier's "KTX"
+], ids=["lying-size", "corrupt-signature"])
+def test_item9_the_ktx2_header_is_checked_by_every_reader(package, capsys, offset, data, code):
+    """Both break what spec/ktx2.md requires of the file's first bytes (the identifier; sides of
+    1..16384 texels), which every reader checks before it reads the level or hands the file on."""
+    _patch_view(package, _texture_view(package), offset, data)
+    _refused_everywhere(package, capsys, code)
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 10: accessors outside their buffer, indices beyond the vertices
+# ------------------------------------------------------------------------------------------------
+
+
+def test_item10_an_accessor_outside_its_buffer_view_is_refused_by_every_reader(package, capsys):
+    """POSITION's 8 VEC3 floats from byte 2^30: far past the 96 bytes of its buffer view."""
+    _rewrite(package, lambda d: d["accessors"][0].__setitem__("byteOffset", 1 << 30))
+    _refused_everywhere(package, capsys, "gltf.accessor.bounds", "/accessors/0")
+
+
+def test_item10_a_vertex_index_beyond_the_vertex_count_is_refused_by_every_reader(package, capsys):
+    """The mesh has 8 vertices (0..7); its first triangle's first index becomes 8."""
+    document = _document(package)
+    primitive = document["meshes"][0]["primitives"][0]
+    indices = document["accessors"][primitive["indices"]]
+    assert indices["componentType"] == 5123 and document["accessors"][primitive["attributes"]["POSITION"]]["count"] == 8
+    _patch_view(package, indices["bufferView"], indices.get("byteOffset", 0), struct.pack("<H", 8))
+    _refused_everywhere(package, capsys, "package.primitive", "/meshes/0/primitives/0/indices")

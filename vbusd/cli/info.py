@@ -165,14 +165,14 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
 def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
     """Describe a runtime package: its animations (layouts from the extension), meshes and crowds.
 
-    Read strictly with :func:`vbusd.io.package_reader.read_package` (its structure, the extension
-    against its schema, the crowds' instance attributes); the KTX2 textures are located, not
-    decoded (``vbusd validate`` checks them).
+    Read strictly with :func:`vbusd.io.package_reader.read_package`, the reader ``vbusd validate``
+    and ``vbusd view`` use (its structure, the extension against its schema, each KTX2 texture's
+    header and layout, every accessor, the primitives and the crowds' instance attributes); the KTX2
+    level data is not decoded (``vbusd validate`` checks the texels).
     """
 
     file = str(path)
-    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths,
-                           textures=False)
+    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths)
     animations = []
     for animation in package.animations:
         info = md.from_dict(animation.layout, file=file,

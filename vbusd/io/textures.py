@@ -38,7 +38,7 @@ __all__ = ["TextureData", "sidecar_path",
            "container_for", "write_texture", "TextureImage", "Container", "CONTAINERS",
            "looks_like_metadata", "read_texture_file", "read_sidecar_document", "check_image",
            "json_differences", "check_sidecar_agrees", "read_texture", "TextureHeader",
-           "read_texture_header", "sniff_container", "read_sidecar"]
+           "read_texture_header", "sniff_container", "read_sidecar", "read_ktx2_header_bytes"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -203,16 +203,37 @@ class Container:
 
 
 
+def _report_ktx2(error: InputError, diagnostics: Diagnostics, file: str) -> None:
+    """A finding of :mod:`vbusd.io.ktx2` (raised there) into ``diagnostics``, located in ``file``."""
+    match = re.fullmatch(r"byte (\d+)", str(error.location or ""))
+    diagnostics.report(error.code if error.code in codes.REGISTRY else "texture.unreadable",
+                       error.message, FileLocation(file, int(match.group(1)) if match else None,
+                                                   part=error.location))
+
+
+def read_ktx2_header_bytes(data: bytes, diagnostics: Diagnostics, display: str,
+                           max_dimension: int = MAX_TEXTURE_DIMENSION) -> Optional[ktx2.Ktx2Header]:
+    """The header of a KTX2 file held in memory (a runtime package's texture), checked as
+    :func:`read_texture_file` checks a KTX2 file's (:func:`vbusd.io.ktx2.scan`), its problem reported
+    in ``diagnostics`` at ``display``.
+
+    Returns:
+        The header, or None when it is not a readable Virtual Bones KTX2 header (reported).
+    """
+    try:
+        return ktx2.scan_bytes(data, display, max_dimension=max_dimension)
+    except InputError as error:
+        _report_ktx2(error, diagnostics, display)
+        return None
+
+
 def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
                pixels=True) -> Optional[TextureImage]:
     """The KTX2 container behind the reader interface (:mod:`vbusd.io.ktx2` raises its findings)."""
     file = display or str(path)
 
     def report(error: InputError) -> None:
-        match = re.fullmatch(r"byte (\d+)", str(error.location or ""))
-        diagnostics.report(error.code if error.code in codes.REGISTRY else "texture.unreadable",
-                           error.message, FileLocation(file, int(match.group(1)) if match else None,
-                                                       part=error.location))
+        _report_ktx2(error, diagnostics, file)
 
     try:
         header = ktx2.scan(path, max_dimension=max_dimension)
