@@ -442,3 +442,40 @@ def test_item10_a_vertex_index_beyond_the_vertex_count_is_refused_by_every_reade
     assert indices["componentType"] == 5123 and document["accessors"][primitive["attributes"]["POSITION"]]["count"] == 8
     _patch_view(package, indices["bufferView"], indices.get("byteOffset", 0), struct.pack("<H", 8))
     _refused_everywhere(package, capsys, "package.primitive", "/meshes/0/primitives/0/indices")
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 1: 200,000 extra nodes
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_item1_a_package_with_200000_extra_nodes_is_read_without_the_per_object_decoder(
+        tmp_path, capsys, monkeypatch):
+    """200,000 nodes (4 MB of JSON) are within the reader's bound of 262,144 entries per array,
+    so they must be read in time proportional to the file. pygltflib's own decoder
+    (dataclasses_json) resolves every field's type hints again for each object, about a millisecond
+    per node: minutes for this file. Here that decoder fails the test if anything calls it; info
+    and validate must read the package (the extra nodes draw nothing and break no rule)."""
+    import dataclasses_json.core
+    import pygltflib
+
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.validators.api import validate
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    document = json.loads(package.read_text(encoding="utf-8"))
+    document["nodes"] += [{"name": f"extra{i}"} for i in range(200_000)]
+    package.write_text(json.dumps(document), encoding="utf-8")
+
+    def per_object_decoder(*args, **kwargs):
+        raise AssertionError("pygltflib's per-object decoder was used")
+
+    monkeypatch.setattr(pygltflib, "_decode_dataclass", per_object_decoder)
+    monkeypatch.setattr(dataclasses_json.core, "_decode_dataclass", per_object_decoder)
+    assert main(["info", str(package), "--format", "json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["instances"] == 3 and [a["name"] for a in info["animations"]] == ["Animation"]
+    report = validate(package)
+    assert report.exit_status == 0, [f["code"] for f in report.to_json()["findings"]]
