@@ -268,11 +268,12 @@ def test_item7_texture_ranges_that_disagree_with_the_prim_are_refused(tmp_path, 
     assert report.exit_status == 1
     before = sorted(p.name for p in tmp_path.iterdir())
     for command in (["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")],
-                    ["export", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "out.glb")]):
+                    ["export", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "out.glb")],
+                    ["info", str(tmp_path / "asset.usda")]):
         capsys.readouterr()
         assert main(command) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and ": /compactRanges: metadata.mismatch: " in err[0], err
+        assert len(err) == 1 and "asset.Animation.exr: /compactRanges: metadata.mismatch: " in err[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 

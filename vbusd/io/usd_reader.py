@@ -60,6 +60,7 @@ from vbusd.io.usd_lod import levels_of
 from pxr import Sdf, UsdUtils
 from vbusd.io.usd_lod import levels_of_animation
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
+           "texture_disagreements",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
            "file_dependencies"]
@@ -890,14 +891,11 @@ class UsdReader:
             raise _Skip
 
         texture = read_texture(attributes.texture_file)
-        theirs = from_metadata(texture.info.to_dict(), os.path.relpath(attributes.texture_file, self.folder))
-        for item in compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim"):
+        for item in texture_disagreements(attributes, texture.info, os.path.relpath(attributes.texture_file,
+                                                                                    self.folder)):
             self.diagnostics.add(item)
         binds = attributes.declared.values.get("bindTransforms")
         theirs_binds = texture.info.bind_transforms
-        if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
-            self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
-                                         f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
         # Bone parents and masks (format 1.2): compare_declared above reports a disagreement; the
         # metadata's float64 mask weights are kept when both hold them (vb:maskWeights is float32).
         parents = attributes.declared.values.get("boneParents")
@@ -1319,6 +1317,27 @@ class UsdReader:
 
 
 _PRIVATE_READS = itertools.count(1)
+
+
+def texture_disagreements(attributes: AnimationAttributes, info, display: str) -> list:
+    """``metadata.mismatch`` findings where a texture's metadata (``info``, a checked
+    :class:`vbusd.format.metadata.LayoutInfo`) disagrees with its animation prim: every value
+    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges included) and the
+    bind transforms. The one comparison of the strict readers (``read_asset``, and ``info``, which
+    reads the texture's header only).
+
+    Args:
+        attributes: The prim's checked attributes.
+        info: The texture's metadata.
+        display: How findings name the texture (relative to the asset).
+    """
+    theirs = from_metadata(info.to_dict(), display)
+    out = compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
+    binds = attributes.declared.values.get("bindTransforms")
+    if binds is not None and info.bind_transforms is not None and not np.array_equal(binds, info.bind_transforms):
+        out.append(finding("metadata.mismatch", f"bindTransforms differ from the prim's {names.BIND_TRANSFORMS}",
+                           theirs.locate("bindTransforms")))
+    return out
 
 
 def _default_prim_name(authored: str) -> str:
