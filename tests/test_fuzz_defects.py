@@ -480,3 +480,47 @@ def test_item1_a_package_with_200000_extra_nodes_is_read_without_the_per_object_
     assert info["instances"] == 3 and [a["name"] for a in info["animations"]] == ["Animation"]
     report = validate(package)
     assert report.exit_status == 0, [f["code"] for f in report.to_json()["findings"]]
+
+
+def test_item9_a_ktx2_whose_layout_metadata_is_no_json_is_refused_by_every_reader(tmp_path, capsys):
+    """The header is sound but the vbusd.layout entry is not JSON: validate found it (metadata.json)
+    from its KTX2 checks while info and view read only the extension's copy of the layout."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    texels = read_texture(texture, check_sidecar=False).texels
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(texels), '{"formatVersion": 1,'))
+    document = _document(package)
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "metadata.json")
+
+
+def test_item9_a_ktx2_whose_header_disagrees_with_its_layout_is_refused_by_every_reader(tmp_path, capsys):
+    """float16 texels (vkFormat 97) under a vbusd.layout, and an extension layout equal to it, that
+    say float32 (texelBytes doubled to match): each document is consistent, the file is not what it
+    declares (spec/ktx2.md: vkFormat is that of texelFormat)."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    assert read.info.layout.texel_format.value == "float16"
+    document = _document(package)
+    layout = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"]
+    layout.update(texelFormat="float32", texelBytes=2 * layout["texelBytes"])
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "ktx2.vkFormat")

@@ -467,25 +467,35 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
 
 
 def _check_ktx2(animation: PackageAnimation, file: str, diagnostics: Diagnostics) -> bool:
-    """The KTX2 file's header (every check :func:`vbusd.io.ktx2.scan` makes before the level is read)
-    and the extension's ``layout`` against the file's ``vbusd.layout`` entry (``package.layout``).
+    """The KTX2 file's header (every check :func:`vbusd.io.ktx2.scan` makes before the level is read),
+    its ``vbusd.layout`` entry and the file against it (size, texel format), and the extension's
+    ``layout`` against that entry (``package.layout``).
 
-    A header that cannot be read is reported and False returned. A missing or unparseable
-    ``vbusd.layout`` is reported here only for strict readers: ``vbusd validate`` reports it, with
-    the rest of the KTX2 file's checks, from :func:`vbusd.validators.checks_texture.check_texture_file`.
+    A header that cannot be read is reported and False returned. What is wrong with the
+    ``vbusd.layout`` entry or between it and the file is reported here for strict readers only:
+    ``vbusd validate`` reports it, with the rest of the KTX2 file's checks, from
+    :func:`vbusd.validators.checks_texture.check_texture_file`, so it is not reported twice.
     """
-    header = textures.read_ktx2_header_bytes(animation.ktx2, diagnostics, animation.texture)
-    if header is None:
+    image = textures.read_ktx2_bytes(animation.ktx2, diagnostics, animation.texture)
+    if image is None:
         return False
     local = Diagnostics(animation.texture)
     document = None
-    if header.metadata is None:
+    if not image.metadata:
         local.report("metadata.missing", f"the KTX2 file has no {ktx2.METADATA_KEY} key/value entry: the "
                      "layout metadata every Virtual Bones texture embeds",
-                     FileLocation(animation.texture, part=f"kvd/{ktx2.METADATA_KEY}"))
+                     FileLocation(animation.texture, part=image.metadata_part))
     else:
-        document = md.parse_document(header.metadata, local, file=animation.texture,
-                                     within=f"kvd/{ktx2.METADATA_KEY}")
+        document = md.parse_document(image.metadata[0][0], local, file=animation.texture,
+                                     within=image.metadata_part)
+    if isinstance(document, dict):
+        texel_format = document.get("texelFormat")
+        width, height = document.get("width"), document.get("height")
+        textures.check_image(image, local, width=width if isinstance(width, int) else None,
+                             height=height if isinstance(height, int) else None,
+                             texel_format=texel_format if texel_format in textures.CONTAINERS["ktx2"].pixel_types
+                             else None,
+                             format_location=JsonPointer(animation.texture, "/texelFormat", image.metadata_part))
     if diagnostics.strict:
         for item in local.findings:
             diagnostics.add(item)

@@ -38,7 +38,7 @@ __all__ = ["TextureData", "sidecar_path",
            "container_for", "write_texture", "TextureImage", "Container", "CONTAINERS",
            "looks_like_metadata", "read_texture_file", "read_sidecar_document", "check_image",
            "json_differences", "check_sidecar_agrees", "read_texture", "TextureHeader",
-           "read_texture_header", "sniff_container", "read_sidecar", "read_ktx2_header_bytes"]
+           "read_texture_header", "sniff_container", "read_sidecar", "read_ktx2_bytes"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -211,20 +211,35 @@ def _report_ktx2(error: InputError, diagnostics: Diagnostics, file: str) -> None
                                                    part=error.location))
 
 
-def read_ktx2_header_bytes(data: bytes, diagnostics: Diagnostics, display: str,
-                           max_dimension: int = MAX_TEXTURE_DIMENSION) -> Optional[ktx2.Ktx2Header]:
-    """The header of a KTX2 file held in memory (a runtime package's texture), checked as
-    :func:`read_texture_file` checks a KTX2 file's (:func:`vbusd.io.ktx2.scan`), its problem reported
-    in ``diagnostics`` at ``display``.
+def _ktx2_image(header: ktx2.Ktx2Header, file: str) -> TextureImage:
+    """What a scanned KTX2 header says, as the reader interface returns it (texels not read)."""
+    image = TextureImage(file=file, container="ktx2", width=header.width, height=header.height,
+                         channels=("R", "G", "B", "A"),
+                         pixel_type={"unorm16": "uint16"}.get(header.texel_format, header.texel_format),
+                         compression=header.supercompression,
+                         metadata_part=f"kvd/{ktx2.METADATA_KEY}")
+    if header.metadata is not None:
+        image.metadata.append((header.metadata, FileLocation(file, part=image.metadata_part)))
+    image.misplaced_metadata += [f"key/value entry {key!r}" for key in header.key_values
+                                 if key != ktx2.METADATA_KEY and looks_like_metadata(key, "")]
+    return image
+
+
+def read_ktx2_bytes(data: bytes, diagnostics: Diagnostics, display: str,
+                    max_dimension: int = MAX_TEXTURE_DIMENSION) -> Optional[TextureImage]:
+    """A KTX2 file held in memory (a runtime package's texture) read as :func:`read_texture_file`'s
+    KTX2 reader reads a file without its pixels: the header checked (:func:`vbusd.io.ktx2.scan`),
+    a problem reported in ``diagnostics`` at ``display``, the metadata text kept unparsed.
 
     Returns:
-        The header, or None when it is not a readable Virtual Bones KTX2 header (reported).
+        The image (no texels), or None when the header is not a readable Virtual Bones KTX2 header.
     """
     try:
-        return ktx2.scan_bytes(data, display, max_dimension=max_dimension)
+        header = ktx2.scan_bytes(data, display, max_dimension=max_dimension)
     except InputError as error:
         _report_ktx2(error, diagnostics, display)
         return None
+    return _ktx2_image(header, display)
 
 
 def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
@@ -240,15 +255,7 @@ def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MA
     except InputError as error:
         report(error)
         return None
-    image = TextureImage(file=file, container="ktx2", width=header.width, height=header.height,
-                         channels=("R", "G", "B", "A"),
-                         pixel_type={"unorm16": "uint16"}.get(header.texel_format, header.texel_format),
-                         compression=header.supercompression,
-                         metadata_part=f"kvd/{ktx2.METADATA_KEY}")
-    if header.metadata is not None:
-        image.metadata.append((header.metadata, FileLocation(file, part=image.metadata_part)))
-    image.misplaced_metadata += [f"key/value entry {key!r}" for key in header.key_values
-                                 if key != ktx2.METADATA_KEY and looks_like_metadata(key, "")]
+    image = _ktx2_image(header, file)
     if pixels:
         try:
             image.texels = ktx2.read_level(path, header)
