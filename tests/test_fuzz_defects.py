@@ -1,4 +1,4 @@
-"""Defects the fuzzing of issue 35 found (items 1, 2, 6-11), one test per item.
+"""Defects the fuzzing of issue 35 found (items 1, 2, 6-11), each reproduced by the tests named after it.
 
 Each input is a valid asset of the golden fixtures (tests/fixtures/validate/make_fixtures.py: 4
 bones, clips 'walk' and 'idle', one 8-point mesh, a crowd of 3) or the runtime package exported
@@ -52,8 +52,8 @@ def _glb_parts(data: bytes) -> tuple:
 
 
 def _rewrite(path: Path, change, binary_change=None) -> None:
-    """Apply ``change`` to the package's JSON and ``binary_change`` to its texture's bytes (the
-    BIN chunk of a .glb, the .bin / .ktx2 files beside a .gltf); see :func:`_texture_bytes`."""
+    """Apply ``change`` to the package's JSON and, for a .glb, ``binary_change(document, bytearray)``
+    to its BIN chunk (a .gltf's buffers are files beside it: :func:`_patch_view` writes those)."""
     from vbusd.io.gltf_package import glb_bytes
 
     if path.suffix == ".gltf":
