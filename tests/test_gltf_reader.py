@@ -299,3 +299,91 @@ def test_outside_paths_allowed_on_request(tmp_path):
     got = points_at(inner / "bar.gltf", "Bend", 1.0,
                     options=ReadOptions(allow_outside_paths=True))
     np.testing.assert_allclose(got, BEND_1, atol=1e-6)
+
+
+# -- the document built from the checked JSON (issue 35 item 1) ---------------------------------------
+
+
+def _plain(value):
+    """A pygltflib document as nested (type name, value) pairs, for comparing two builds of it."""
+    import dataclasses
+
+    import pygltflib
+
+    if dataclasses.is_dataclass(value):
+        return type(value).__name__, {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, pygltflib.Attributes):
+        return "Attributes", {k: _plain(v) for k, v in vars(value).items()}
+    if isinstance(value, list):
+        return "list", [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return "dict", {k: _plain(v) for k, v in value.items()}
+    return type(value).__name__, value
+
+
+EVERY_CLASS = {
+    # Every pygltflib class, with values pygltflib coerces (a number name, "0.1" for a float, "yes"
+    # for a boolean), integers where floats go, nulls and absent members.
+    "asset": {"version": "2.0", "copyright": 5, "extras": {"a": [1, {"b": None}]}},
+    "scene": 0, "scenes": [{"nodes": [0], "name": 7}],
+    "nodes": [{"name": "n", "children": [], "matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1], "camera": 0,
+               "extensions": {"X": {"y": [1, 2]}}}, {},
+              {"translation": [1, 2, 3], "rotation": [0, 0, 0, 1], "scale": [2, 2, 2], "mesh": 0, "skin": None}],
+    "cameras": [{"type": "perspective", "perspective": {"yfov": 1, "znear": "0.1"}},
+                {"type": "orthographic", "orthographic": {"xmag": 1, "ymag": 1, "zfar": 10, "znear": 0}}],
+    "materials": [{"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "baseColorTexture": {"index": 0},
+                                            "metallicFactor": 0,
+                                            "metallicRoughnessTexture": {"index": 0, "texCoord": 1}},
+                   "normalTexture": {"index": 0, "scale": 2}, "occlusionTexture": {"index": 0, "strength": "0.5"},
+                   "emissiveTexture": {"index": 0}, "emissiveFactor": [0, 0, 1], "alphaMode": "MASK",
+                   "alphaCutoff": 1, "doubleSided": "yes", "name": 3}, {}],
+    "textures": [{"sampler": 0, "source": 0}], "samplers": [{"magFilter": 9729, "wrapS": 33071}],
+    "images": [{"uri": "x.png"}, {"bufferView": 0, "mimeType": "image/png"}],
+    "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "_X": 1}, "targets": [{"POSITION": 0}],
+                                "material": 0, "extensions": {"E": {}}},
+                               {"attributes": {}}], "weights": [0, 1], "name": "m"}],
+    "accessors": [{"bufferView": 0, "componentType": 5126, "count": 1, "type": "VEC3", "min": [0, 0, 0],
+                   "max": [1, 1, 1]},
+                  {"componentType": 5123, "count": 2, "type": "SCALAR", "normalized": True,
+                   "sparse": {"count": 1, "indices": {"bufferView": 0, "componentType": 5125},
+                              "values": {"bufferView": 0}}}],
+    "bufferViews": [{"buffer": 0, "byteLength": 12, "byteStride": 12, "target": 34962, "name": "v"}],
+    "buffers": [{"byteLength": 12, "uri": "data:application/octet-stream;base64,AAAAAAAAAAAAAAAA"}],
+    "skins": [{"joints": [0, 2], "skeleton": 0, "inverseBindMatrices": 0, "name": 1}],
+    "animations": [{"name": "a", "channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
+                    "samplers": [{"input": 0, "output": 0}, {"input": 0, "output": 0, "interpolation": "STEP"}]}],
+    "extensionsUsed": ["E"], "extras": {"z": 1}, "unknown": [1, 2]}
+
+
+def _assert_built_as_pygltflib_builds(texts) -> None:
+    import json
+
+    import pygltflib
+
+    from vbusd.io import gltf as container
+
+    for name, text in texts:
+        root = container._check_raw_structure(text, name)
+        expected = pygltflib.GLTF2.gltf_from_json(json.dumps(root))
+        assert _plain(container._document(json.loads(json.dumps(root)))) == _plain(expected), name
+
+
+def test_the_document_is_the_one_pygltflib_builds():
+    """The reader builds pygltflib's objects itself (pygltflib's decoder takes about a millisecond
+    per object); pygltflib.GLTF2.gltf_from_json is the oracle, on every glTF fixture and on a
+    document of every class with values it coerces."""
+    import json
+
+    from vbusd.io.gltf import json_text_of
+
+    files = sorted(FIXTURES.glob("*.gltf")) + sorted(FIXTURES.glob("*.glb"))
+    _assert_built_as_pygltflib_builds([("every class", json.dumps(EVERY_CLASS))] +
+                                      [(p.name, json_text_of(p.read_bytes(), str(p))) for p in files])
+
+
+def test_the_document_of_real_characters_is_the_one_pygltflib_builds(shared_assets):
+    from vbusd.io.gltf import json_text_of
+
+    files = sorted(p for p in (shared_assets / "gltf").rglob("*") if p.suffix in (".gltf", ".glb"))
+    assert files
+    _assert_built_as_pygltflib_builds([(p.name, json_text_of(p.read_bytes(), str(p))) for p in files])

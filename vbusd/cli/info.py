@@ -4,7 +4,8 @@ ASSET may be:
 
 * a Virtual Bones USD file (``.usd``, ``.usda``, ``.usdc``, ``.usdz``): every
   ``VirtualBonesAnimation`` prim is described from its ``vb:*`` attributes (the source of truth
-  inside USD; the texture itself is not opened, but its path, like the layer's sublayers,
+  inside USD; the texture's header and metadata are read, and must agree with the prim as every
+  reader requires, but its pixels are not decoded; its path, like the layer's sublayers,
   references and payloads, must stay inside the asset's folder unless ``--allow-outside-paths``);
 * a texture (``.exr``, ``.png`` or ``.ktx2``, recognized by its magic bytes): described from its embedded
   metadata; the header is checked but pixels are not decoded (``vbusd validate`` checks them);
@@ -27,7 +28,7 @@ from vbusd.cli import common
 from vbusd.format.errors import MISSING_FILE, InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
-from vbusd.io.usd_reader import read_summary
+from vbusd.io.usd_reader import read_summary, texture_disagreements
 from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.package_reader import EXTENSION, read_package
 from pxr import UsdGeom
@@ -165,14 +166,14 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
 def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
     """Describe a runtime package: its animations (layouts from the extension), meshes and crowds.
 
-    Read strictly with :func:`vbusd.io.package_reader.read_package` (its structure, the extension
-    against its schema, the crowds' instance attributes); the KTX2 textures are located, not
-    decoded (``vbusd validate`` checks them).
+    Read strictly with :func:`vbusd.io.package_reader.read_package`, the reader ``vbusd validate``
+    and ``vbusd view`` use (its structure, the extension against its schema, each KTX2 texture's
+    header and layout, every accessor, the primitives and the crowds' instance attributes); the KTX2
+    level data is not decoded (``vbusd validate`` checks the texels).
     """
 
     file = str(path)
-    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths,
-                           textures=False)
+    package = read_package(path, Diagnostics(file, strict=True), allow_outside_paths=allow_outside_paths)
     animations = []
     for animation in package.animations:
         info = md.from_dict(animation.layout, file=file,
@@ -210,7 +211,8 @@ def _stage_units(path: Path) -> dict:
 
 
 def _check_texture(asset: Path, animation) -> None:
-    """Refuse to describe a layout whose texture is missing or unreadable (its header, not its pixels).
+    """Refuse to describe a layout whose texture is missing or unreadable (its header, not its pixels),
+    or whose metadata disagrees with the prim.
 
     A layout of a texture nobody can load is no answer to "what is in this asset"; the one line
     names the prim's ``vb:texture`` and what is wrong with the file it names.
@@ -223,13 +225,17 @@ def _check_texture(asset: Path, animation) -> None:
         raise InputError(f"the texture {animation.texture} ({texture}) {why}", file=str(asset),
                          location=location, code="texture.missing")
     try:
-        textures.read_texture_header(texture)
+        header = textures.read_texture_header(texture)
     except InputError as error:
         raise InputError(f"the texture {animation.texture} cannot be read ({error})", file=str(asset),
                          location=location, code="texture.unreadable") from None
     except OSError as error:
         raise InputError(f"the texture {animation.texture} cannot be read ({error.strerror or error})",
                          file=str(asset), location=location, code="texture.unreadable") from None
+    # Its metadata must say what the prim says, as every reader of the asset requires (metadata.mismatch).
+    diagnostics = Diagnostics(str(asset), strict=True)
+    for item in texture_disagreements(animation, header.info, str(texture)):
+        diagnostics.add(item)
 
 
 # --------------------------------------------------------------------------------------------

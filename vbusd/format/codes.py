@@ -227,9 +227,9 @@ _FINDINGS = (
          "1.1) but its animation is format 1.0 (vb:formatMinorVersion absent or 0).", f"{_VB}#instancing", "usd"),
     # levels of detail (format 1.2)
     Code("lod.structure", E, "The meshes bound to an animation lie under more than one UsdLod LODRootAPI prim (or "
-         "some under one and some outside), the root has fewer than 2 or more than 8 children (levels), or a "
-         "level holds no mesh bound to the animation.", f"{_VB}#levels-of-detail", "usd"),
-    Code("lod.heuristic", E, "A LOD root's lod:heuristics does not target exactly one LODScreenSizeHeuristic, "
+         "some under one and some outside), the root has fewer than 2 or more than 8 children (levels), a "
+         "level holds no mesh bound to the animation, or an authored lod:default:index names no level.", f"{_VB}#levels-of-detail", "usd"),
+    Code("lod.heuristic", E, "A LOD root's lod:heuristics does not target exactly one prim, a LODScreenSizeHeuristic, "
          "or its thresholds are not one per level after the first, in (0, 1], strictly decreasing.",
          f"{_VB}#levels-of-detail", "usd"),
     Code("instancer.fadeWeight.range", W, "An instance's fade weight (primvars:vb:fadeWeight, format 1.1 "

@@ -41,7 +41,7 @@ from vbusd.format.quaternion import quat_to_matrix
 __all__ = ["ROTATION_BITS", "TRANSLATION_BITS", "RANGE_SLOTS", "KEPT_COMPONENTS", "MIN_DROPPED",
            "CompactBits", "DEFAULT_BITS", "compact_ranges", "choose_dropped", "encode_compact",
            "decode_compact_fields", "pack_words", "unpack_words", "decode_compact", "blend_compact",
-           "error_bound"]
+           "error_bound", "FLOAT32_MAX", "range_problems"]
 
 ROTATION_BITS = 16
 """Bits of each kept quaternion component."""
@@ -241,6 +241,53 @@ def decode_compact(words: np.ndarray, ranges: np.ndarray) -> np.ndarray:
     m[..., :3, 3] = t
     m[..., 3, 3] = 1.0
     return m
+
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+"""The largest finite binary32 value: no bound of a range, and no span ``hi - lo``, may exceed it."""
+
+_SLOT_NAMES = ("quaternion x", "quaternion y", "quaternion z", "quaternion w", "translation x",
+               "translation y", "translation z")
+
+
+def range_problems(ranges, limit: int = 3) -> list:
+    """What is wrong with (B, 7, 2) compact ranges (spec 5.6.3), at most ``limit`` problems.
+
+    Every bound must be finite, ``lo <= hi``, and the span ``hi - lo`` finite in binary32: decoders
+    compute ``lo + (hi - lo) * u / (2^n - 1)`` in binary32, so a span beyond :data:`FLOAT32_MAX`
+    (``-3e38 .. 3e38``) decodes to infinity. The one check of the ranges: the metadata's relations
+    (:func:`vbusd.format.metadata.check_relations`), the declared values ``vbusd validate`` checks
+    (:func:`vbusd.format.declared.from_metadata`) and the USD reader's ``vb:compactRangeMin/Max``.
+
+    Args:
+        ranges: The ranges (any array-like of shape (B, 7, 2); other shapes are not checked here).
+        limit: Stop after this many problems.
+
+    Returns:
+        ``[((bone, slot), message), ...]`` in bone and slot order; empty when the ranges are good.
+    """
+    array = np.asarray(ranges, dtype=np.float64)
+    if array.ndim != 3 or array.shape[1:] != (RANGE_SLOTS, 2):
+        return []
+    low, high = array[..., 0], array[..., 1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        bounds_ok = np.isfinite(low) & np.isfinite(high) & (np.abs(low) <= FLOAT32_MAX) \
+            & (np.abs(high) <= FLOAT32_MAX)
+        span = high.astype(np.float32) - low.astype(np.float32)
+        bad = ~bounds_ok | ~(low <= high) | ~np.isfinite(span)
+    out = []
+    for bone, slot in np.argwhere(bad)[:limit]:
+        lo, hi = float(low[bone, slot]), float(high[bone, slot])
+        what = f"bone {bone}'s {_SLOT_NAMES[slot]} range [{lo!r}, {hi!r}]"
+        if not bounds_ok[bone, slot]:
+            why = "is not finite in binary32"
+        elif not lo <= hi:
+            why = "has min greater than max"
+        else:
+            why = (f"spans {hi - lo:.6g}, more than binary32 holds ({FLOAT32_MAX:.8g}): decoders compute "
+                   "lo + (hi - lo) u / (2^n - 1) in binary32")
+        out.append(((int(bone), int(slot)), f"{what} {why}"))
+    return out
 
 
 def error_bound(ranges: np.ndarray, radius: np.ndarray | float) -> np.ndarray:

@@ -19,6 +19,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from vbusd.format.compact import RANGE_SLOTS, range_problems
 from vbusd.format.diagnostics import JsonPointer, finding
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat
 from vbusd.format.versioning import CURRENT, Version
@@ -116,8 +117,34 @@ def from_metadata(meta, file: str) -> Declared:
                 declared.values["unormRanges"] = array
         except (TypeError, ValueError):
             pass
+    _compact_ranges(meta.get("compactRanges"), declared)
     declared.layout = build_layout(declared, report=False)
     return declared
+
+
+def _compact_ranges(ranges, declared: Declared) -> None:
+    """Format 1.2 ``compactRanges`` (spec 5.6.3) into ``values["compactRanges"]``, (B, 7, 2) float64.
+
+    Ranges of another shape or type are left out (the schema and the bone count are checked where
+    the document is: ``metadata.schema``, ``metadata.inconsistent``); ranges that break the rule of
+    :func:`vbusd.format.compact.range_problems` are left out and reported as ``metadata.inconsistent``
+    in :attr:`Declared.findings`, as the strict reader reports them
+    (:func:`vbusd.format.metadata.check_relations`).
+    """
+    if ranges is None:
+        return
+    try:
+        array = np.asarray(ranges, dtype=np.float64)
+    except (TypeError, ValueError):
+        return
+    if array.ndim != 3 or array.shape[1:] != (RANGE_SLOTS, 2):
+        return
+    problems = range_problems(array)
+    for (bone, slot), message in problems:
+        declared.findings.append(finding("metadata.inconsistent", message,
+                                         declared.locate(("compactRanges", bone, slot))))
+    if not problems:
+        declared.values["compactRanges"] = array
 
 
 def _usable_clip(clip) -> bool:

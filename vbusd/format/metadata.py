@@ -28,11 +28,13 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 from dataclasses import dataclass
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
+from vbusd.format.compact import RANGE_SLOTS, range_problems
 from vbusd.format.digest import DIGEST_PREFIX, content_digest
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer, to_error
 from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
@@ -260,7 +262,7 @@ def parse_document(text, diagnostics: Diagnostics, *, file=None, within: str = "
                                FileLocation(file, error.start))
             return None
     try:
-        value = json.loads(text, parse_constant=_refuse_constant)
+        value = json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float)
     except json.JSONDecodeError as error:
         where = f"{within} line {error.lineno} column {error.colno}".strip()
         diagnostics.report("metadata.json", f"{what} is not valid JSON: {error.msg}",
@@ -295,6 +297,16 @@ def json_kind(value) -> str:
 
 def _refuse_constant(name: str):
     raise ValueError(f"{name} is not allowed in layout metadata")
+
+
+def _finite_float(text: str) -> float:
+    """A JSON number as a float; one that overflows binary64 (``1e400``) would read as infinity,
+    which layout metadata may not hold (spec 11.1), so it is refused like the ``Infinity`` token."""
+    value = float(text)
+    if value in (math.inf, -math.inf):
+        raise ValueError(f"the number {text[:40]} overflows binary64 (it would read as infinity); "
+                         "layout metadata numbers are finite")
+    return value
 
 
 @functools.lru_cache(maxsize=1)
@@ -379,10 +391,9 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
     if "compactRanges" in d and len(d["compactRanges"]) != layout.bone_count:
         report(["compactRanges"], f"compactRanges holds {len(d['compactRanges'])} bones for boneCount "
                                   f"{layout.bone_count}")
-    for b, bone in enumerate(d.get("compactRanges") or ()):
-        for c, (low, high) in enumerate(bone):
-            if low > high:
-                report(["compactRanges", b, c], f"min {low} is greater than max {high}")
+    if "compactRanges" in d and len(d["compactRanges"]) == layout.bone_count:
+        for (b, c), message in range_problems(d["compactRanges"], limit=len(d["compactRanges"]) * RANGE_SLOTS):
+            report(["compactRanges", b, c], message)
     for t, slot in enumerate(d.get("unormRanges") or ()):
         for c, (low, high) in enumerate(slot):
             if low > high:

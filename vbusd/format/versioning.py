@@ -120,6 +120,39 @@ def version_of(d: Mapping, *, file=None, location_prefix: str = "") -> Version:
     return Version(major, minor)
 
 
+def _first_defining(table: Mapping, is_defined) -> Optional[tuple]:
+    """The first version of ``table`` (version -> what it defines) for which ``is_defined`` holds."""
+    return next((v for v in sorted(table) if is_defined(table[v])), None)
+
+
+def _check_defined(d: Mapping, version: Version, *, file=None, location_prefix: str = "") -> None:
+    """Refuse an older document that uses what its version does not define (spec 16: "Versioning").
+
+    A document declaring version 1.1 but using the compact encoding (1.2) is no 1.1 document: an
+    upgrade function fills in what the newer version adds, and cannot vouch for a key or value the
+    document's own version never had. Versions the tables do not describe are not checked.
+
+    Raises:
+        InputError: Naming the first such encoding, texel format or key and the version that
+            defines it (code ``format.version``).
+    """
+    known = KNOWN_KEYS.get(tuple(version))
+    if known is None:
+        return
+    later = [(key, f"{key} {d[key]}", _first_defining(table, lambda values, value=d[key]: value in values))
+             for key, table in KNOWN_VALUES.items()
+             if tuple(version) in table and isinstance(d.get(key), str) and d[key] not in table[tuple(version)]]
+    later += [(key, str(key), _first_defining(KNOWN_KEYS, lambda keys, key=key: key in keys))
+              for key in sorted(str(k) for k in d) if key not in known]
+    later = [(key, what, newer) for key, what, newer in later if newer is not None]  # unknown: the schema says
+    if later:
+        key, what, newer = later[0]
+        declared = "formatMinorVersion" if "formatMinorVersion" in d else "formatVersion"
+        raise InputError(f"{what} needs format version {Version(*newer)}, but the document declares {version}, "
+                         "which does not define it", file=file,
+                         location=f"{location_prefix}/{declared}", code="format.version")
+
+
 def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, file=None,
             location_prefix: str = "") -> dict:
     """Bring a dict of an older format version up to the current one.
@@ -141,7 +174,8 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
         A new dict at version ``current``.
 
     Raises:
-        InputError: Not an object, a bad version, or no upgrade function for some step (code
+        InputError: Not an object, a bad version, an older version that uses a key, encoding or
+            texel format only a newer version defines, or no upgrade function for some step (code
             ``format.version``).
         VersionError: A version newer than ``current``.
     """
@@ -165,6 +199,8 @@ def upgrade(d: Mapping, *, upgrades: Optional[Mapping] = None, current=None, fil
         raise VersionError(f"format version {version} is newer than this reader (version {target}){uses}; "
                            "upgrade vbusd to read it", file=file,
                            location=location_prefix + "/formatMinorVersion", code="format.version")
+    if version < target:
+        _check_defined(d, version, file=file, location_prefix=location_prefix)
     result = copy.deepcopy(dict(d))
     while version < target:
         step = table.get(version)

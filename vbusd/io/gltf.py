@@ -7,10 +7,12 @@ batch cache read through it.
 
 * :func:`json_text_of`: the JSON text of a .gltf or of a .glb's JSON chunk (the GLB header and chunk
   table checked);
-* :func:`load`: the document parsed by pygltflib after the checks pygltflib does not make on the raw
-  JSON (types of the properties the converter reads, array bounds, ``extensions``), the version and
-  required extensions checked, every buffer loaded (GLB BIN chunk, base64 ``data:`` URIs, external
-  files inside the asset's folder) at exactly its ``byteLength``;
+* :func:`load`: the document as pygltflib's objects, built (:func:`_document`) after the checks
+  pygltflib does not make on the raw JSON (types of the properties the converter reads, array
+  bounds, ``extensions``), the version and required extensions checked, every buffer loaded (GLB
+  BIN chunk, base64 ``data:`` URIs, external files inside the asset's folder) at exactly its
+  ``byteLength``. The objects are the ones ``pygltflib.GLTF2.gltf_from_json`` builds, built here in
+  time proportional to the document (pygltflib's decoder costs about a millisecond per object);
 * :func:`referenced_uris`: the buffer and image URIs a file names.
 
 Accessors are read through :class:`vbusd.io.gltf_accessors.AccessorReader`. Every problem raises
@@ -22,9 +24,12 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
+import functools
 import os
 import re
 import struct
+import typing
 import urllib.parse
 from pathlib import Path
 
@@ -340,7 +345,7 @@ def _type_error(value, kind, pointer: str):
 
 MAX_ARRAY_ENTRIES = 1 << 18
 """Entries of one top-level glTF array (nodes, meshes, accessors...) the reader accepts: counted on
-the raw JSON before pygltflib builds an object per entry (a million nodes take it minutes and
+the raw JSON before an object is built per entry (:func:`_document`; a million nodes take
 gigabytes)."""
 
 
@@ -416,7 +421,114 @@ def _drop_foreign_extras(root: dict) -> bool:
     return dropped
 
 
-def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
+# ------------------------------------------------------------------------------------------------
+# Building pygltflib's objects from the checked JSON
+# ------------------------------------------------------------------------------------------------
+
+_PLANS: dict = {}
+"""pygltflib dataclass -> ((field name, converter, default factory), ...), built once per class."""
+
+
+def _plan(cls) -> tuple:
+    """How :func:`_build` fills each field of a pygltflib dataclass (its type hints read once)."""
+    plan = _PLANS.get(cls)
+    if plan is None:
+        hints = typing.get_type_hints(cls)
+        steps = []
+        for item in dataclasses.fields(cls):
+            if item.default is not dataclasses.MISSING:
+                default = functools.partial(_same, item.default)
+            elif item.default_factory is not dataclasses.MISSING:
+                default = item.default_factory
+            else:
+                default = functools.partial(_same, None)
+            steps.append((item.name, _converter(hints[item.name]), default))
+        plan = _PLANS[cls] = tuple(steps)
+    return plan
+
+
+def _same(value):
+    return value
+
+
+def _coerce(kind, value):
+    return value if isinstance(value, kind) else kind(value)
+
+
+def _converter(kind):
+    """The function that turns a JSON value that is not null into a field of type ``kind``, as
+    pygltflib's decoder (dataclasses_json, ``infer_missing=True``) turns it: dataclasses built,
+    lists converted item by item, ``int``/``float``/``str``/``bool`` coerced, anything else
+    (``Dict[str, Any]``, ``Attributes``) kept as read, a mapping copied."""
+    origin, arguments = typing.get_origin(kind), typing.get_args(kind)
+    if origin is typing.Union:
+        inner = [a for a in arguments if a is not type(None)]
+        return _converter(inner[0]) if len(inner) == 1 else _same
+    if dataclasses.is_dataclass(kind):
+        return functools.partial(_build, kind)
+    if origin is list:
+        item = _item_converter(arguments[0]) if arguments else _same
+        return lambda value: [item(x) for x in value]
+    if origin is dict:
+        return lambda value: dict(value.items())
+    if kind in (int, float, str, bool):
+        return functools.partial(_coerce, kind)
+    return _same
+
+
+def _item_converter(kind):
+    """:func:`_converter` for the items of a list, where a null is decoded too (as dataclasses_json
+    does: an object of defaults for a dataclass, ``int(None)`` fails, ``None`` for a generic)."""
+    if dataclasses.is_dataclass(kind) or kind in (int, float, str, bool):
+        return _converter(kind)
+    convert = _converter(kind)
+    if convert is _same:
+        return _same
+    return lambda value: None if value is None else convert(value)
+
+
+def _build(cls, value):
+    """A pygltflib object of ``cls`` from a parsed JSON object: each field from its member (a null
+    member is None, an absent one the field's default), the others left out.
+
+    The same objects ``pygltflib.GLTF2.gltf_from_json`` builds from the same JSON, in time
+    proportional to the document: pygltflib's decoder resolves every field's type hints again for
+    each object, about a millisecond an object, so 200,000 nodes took minutes (issue 35 item 1).
+    """
+    if value is None:
+        value = {}
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, dict):
+        raise TypeError(f"expected a JSON object for {cls.__name__}, found {json_kind(value)}")
+    fields = {}
+    for name, convert, default in _plan(cls):
+        if name in value:
+            member = value[name]
+            fields[name] = None if member is None else convert(member)
+        else:
+            fields[name] = default()
+    return cls(**fields)
+
+
+def _document(root: dict):
+    """The pygltflib document of a checked glTF JSON object (:func:`_check_raw_structure`).
+
+    Equivalent to ``pygltflib.GLTF2.gltf_from_json`` on the same JSON (tests/test_gltf_reader.py
+    compares the two on every glTF file of the test fixtures and shared assets), without its cost
+    per object: a non-empty ``attributes`` object of a primitive becomes an ``Attributes``, as
+    pygltflib makes it after decoding.
+    """
+    gltf = _build(pygltflib.GLTF2, root)
+    for mesh in gltf.meshes or ():
+        for primitive in mesh.primitives or ():
+            raw = primitive.attributes
+            if raw:
+                primitive.attributes = pygltflib.Attributes(**raw)
+    return gltf
+
+
+def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> dict:
     """Checks pygltflib cannot make, on the raw JSON, before it builds its objects.
 
     pygltflib fills a missing ``asset`` or ``asset.version`` with defaults and coerces typed
@@ -430,8 +542,8 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
         json_start: Byte offset of ``json_text`` in the file (20 in a GLB), for syntax errors.
 
     Returns:
-        The JSON text for pygltflib: ``json_text``, or the document without its ``extras`` that
-        are not objects (:func:`_drop_foreign_extras`) when it has any.
+        The parsed document without its ``extras`` that are not objects
+        (:func:`_drop_foreign_extras`), for :func:`_document`.
     """
 
     try:
@@ -466,7 +578,8 @@ def _check_raw_structure(json_text: str, file: str, json_start: int = 0) -> str:
     if found is not None:
         location, problem = found
         raise InputError(problem, file=file, location=location, code="gltf.value")
-    return json.dumps(root) if _drop_foreign_extras(root) else json_text
+    _drop_foreign_extras(root)
+    return root
 
 
 def json_text_of(data: bytes, file: str) -> str:
@@ -535,20 +648,19 @@ def load(path, options: ReadOptions | None = None):
     try:
         if data[:4] == GLB_MAGIC:
             json_text, binary = _parse_glb(data, file)
-            json_text = _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
-            # pygltflib parses the JSON chunk found by the checked chunk walk above. Its own
-            # load_from_bytes walks the chunks again without those checks: it decodes every chunk
-            # type as UTF-8 text (an unknown type such as b"\\x80..." escapes as a bare
-            # UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
-            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
+            root = _check_raw_structure(json_text, file, json_start=20)   # after header + chunk header
+            # The document is built from the JSON chunk found by the checked chunk walk above.
+            # pygltflib's own load_from_bytes walks the chunks again without those checks: it
+            # decodes every chunk type as UTF-8 text (an unknown type such as b"\\x80..." escapes
+            # as a bare UnicodeDecodeError) and re-parses any later chunk that calls itself JSON.
+            gltf = _document(root)
         else:
-            json_text = _check_raw_structure(json_text_of(data, file), file)
-            gltf = pygltflib.GLTF2.gltf_from_json(json_text)
+            gltf = _document(_check_raw_structure(json_text_of(data, file), file))
     except InputError:
         raise
-    except Exception as exc:  # pygltflib surfaces JSON and structure errors as raw exceptions
-        # The raw checks above have located every misplaced value they know of; what pygltflib
-        # still trips over has no better place than the file.
+    except Exception as exc:  # a value the raw checks do not type that no pygltflib field can hold
+        # The raw checks above have located every misplaced value they know of; what building the
+        # objects still trips over has no better place than the file.
         detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"not valid glTF JSON: {detail}", file=file, code="gltf.json") from None
     # The raw checks made these arrays (or absent); absent ones read as empty.

@@ -439,8 +439,10 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
     empty, truncated or plain glTF file is one line here rather than an error inside a browser:
     the container and every buffer (the glTF reader's checks: GLB header and chunks, JSON, buffer
     files present and long enough), the root ``VBUSD_virtual_bones`` extension (an object with a
-    known ``version`` and at least one animation), and each animation's texture: a buffer view
-    inside its buffer whose bytes start with the KTX2 signature.
+    known ``version`` and at least one animation), each animation's texture (a buffer view inside
+    its buffer holding a KTX2 file whose header and layout read), every accessor within its bounds
+    and vertex indices below the vertex count: every check ``vbusd validate`` makes but the texels
+    (:func:`vbusd.io.package_reader.read_package`).
 
     Args:
         path: The ``.glb`` or ``.gltf`` file.
@@ -452,7 +454,8 @@ def check_package(path, *, allow_outside_paths: bool = False) -> dict:
     Raises:
         InputError: One line naming the file, the place (byte offset or JSON pointer) and the
             problem: ``file.missing``, ``gltf.file`` (empty), the glTF reader's ``gltf.*`` codes,
-            ``package.extension`` (not a Virtual Bones runtime package) or ``package.texture``.
+            ``package.extension`` (not a Virtual Bones runtime package), ``package.texture``, the
+            KTX2 header's ``ktx2.*`` and ``texture.*`` codes, ``package.layout`` or ``package.primitive``.
     """
 
     path = Path(path)

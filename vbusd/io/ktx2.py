@@ -35,7 +35,7 @@ __all__ = ["MAGIC", "METADATA_KEY", "ORIENTATION_KEY", "WRITER_KEY", "ORIENTATIO
            "TEXEL_FORMAT_OF_VK_FORMAT", "VK_FORMAT_NAMES", "SUPERCOMPRESSION_SCHEMES",
            "SUPERCOMPRESSION_NAMES", "ZSTD_LEVEL", "HEADER_BYTES", "LEVEL_INDEX_BYTES",
            "DFD_BYTES", "MAX_KEY_VALUE_BYTES", "zstd_available", "data_format_descriptor",
-           "ktx2_bytes", "Ktx2Header", "scan", "read_level", "read_ktx2", "metadata_text"]
+           "ktx2_bytes", "Ktx2Header", "scan", "scan_bytes", "read_level", "read_ktx2", "metadata_text"]
 
 MAGIC = b"\xabKTX 20\xbb\r\n\x1a\n"
 """The 12-byte KTX 2.0 file identifier."""
@@ -306,76 +306,93 @@ def scan(path: PathLike, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2H
             (``texture.unreadable`` for a file that is not KTX2, ``texture.size`` for dimensions).
     """
     path = Path(path)
-    file = str(path)
     with _open_regular(path) as stream:
-        size = os.fstat(stream.fileno()).st_size
-        head = stream.read(HEADER_BYTES + LEVEL_INDEX_BYTES)
-        if head[:len(MAGIC)] != MAGIC[:len(head)]:
-            raise _bad(file, "byte 0", f"not a KTX 2.0 file (the first 12 bytes are {head[:12]!r})",
-                       "texture.unreadable")
-        if len(head) < HEADER_BYTES + LEVEL_INDEX_BYTES:
-            raise _bad(file, f"byte {len(head)}", f"file of {size} bytes ends inside the KTX2 header "
-                       f"and level index ({HEADER_BYTES + LEVEL_INDEX_BYTES} bytes)", "ktx2.truncated")
-        (vk_format, type_size, width, height, depth, layers, faces, levels,
-         scheme) = struct.unpack_from("<9I", head, 12)
-        dfd_offset, dfd_length, kvd_offset, kvd_length, sgd_offset, sgd_length = \
-            struct.unpack_from("<IIIIQQ", head, 48)
-        level_offset, level_length, uncompressed_length = struct.unpack_from("<QQQ", head, 80)
+        return _scan(stream, os.fstat(stream.fileno()).st_size, str(path), max_dimension)
 
-        if vk_format not in TEXEL_FORMAT_OF_VK_FORMAT:
-            raise _bad(file, "header/vkFormat (byte 12)", f"vkFormat {vk_format} is not a Virtual Bones "
-                       "texel format (97 R16G16B16A16_SFLOAT, 109 R32G32B32A32_SFLOAT, "
-                       "91 R16G16B16A16_UNORM, 104 R32G32B32_UINT)", "ktx2.vkFormat")
-        if type_size != _TYPE_SIZE[vk_format]:
-            raise _bad(file, "header/typeSize (byte 16)", f"typeSize {type_size} for "
-                       f"{VK_FORMAT_NAMES[vk_format]}, expected {_TYPE_SIZE[vk_format]}", "ktx2.header")
-        if not (1 <= width <= max_dimension and 1 <= height <= max_dimension):
-            raise _bad(file, "header/pixelWidth (byte 20)", f"header declares {width}x{height} texels; "
-                       f"each side must be 1..{max_dimension}; nothing allocated", "texture.size")
-        for name, value, wanted, offset in (("pixelDepth", depth, 0, 28), ("layerCount", layers, 0, 32),
-                                            ("faceCount", faces, 1, 36), ("levelCount", levels, 1, 40)):
-            if value != wanted:
-                raise _bad(file, f"header/{name} (byte {offset})", f"{name} is {value}; a Virtual Bones "
-                           f"texture is one 2D image with one mip level ({name} {wanted})", "ktx2.header")
-        if scheme not in SUPERCOMPRESSION_NAMES:
-            raise _bad(file, "header/supercompressionScheme (byte 44)", f"supercompression scheme "
-                       f"{scheme} is not supported (0 none, 2 Zstandard)", "ktx2.supercompression")
-        count = _CHANNEL_COUNT[vk_format]
-        texel_bytes = width * height * count * type_size
-        if uncompressed_length != texel_bytes:
-            raise _bad(file, "levels/0/uncompressedByteLength (byte 96)", f"level 0 declares "
-                       f"{uncompressed_length} bytes; {width}x{height} {'RGBA'[:count]} of {type_size}-byte "
-                       f"channels is {texel_bytes}", "ktx2.levels")
-        if scheme == 0 and level_length != texel_bytes:
-            raise _bad(file, "levels/0/byteLength (byte 88)", f"level 0 is {level_length} bytes; "
-                       f"without supercompression it must be {texel_bytes}", "ktx2.levels")
-        if sgd_length != 0 or sgd_offset != 0:
-            raise _bad(file, "index/sgdByteLength (byte 72)", f"supercompression global data of "
-                       f"{sgd_length} bytes; neither scheme 0 nor 2 has any", "ktx2.levels")
-        # Regions in KTX 2.0's order, each after the previous, none past the end of the file.
-        cursor = HEADER_BYTES + LEVEL_INDEX_BYTES
-        for name, offset, length, field_offset in (("dfd", dfd_offset, dfd_length, 48),
-                                                   ("kvd", kvd_offset, kvd_length, 56),
-                                                   ("level 0", level_offset, level_length, 80)):
-            if name == "kvd" and length == 0:
-                continue
-            if offset < cursor or length > size or offset > size - length:
-                raise _bad(file, f"index/{name} (byte {field_offset})", f"{name} region of {length} "
-                           f"bytes at byte {offset} lies outside the file of {size} bytes or overlaps "
-                           f"what comes before it (byte {cursor})", "ktx2.levels")
-            cursor = offset + length
-        if scheme == 0 and level_offset % _alignment(vk_format):
-            raise _bad(file, "levels/0/byteOffset (byte 80)", f"level 0 at byte {level_offset} is not "
-                       f"aligned to {_alignment(vk_format)} bytes", "ktx2.levels")
-        dfd_bytes = DFD_BYTES - 16 * (4 - count)
-        if dfd_length != dfd_bytes:
-            raise _bad(file, f"byte {dfd_offset}", f"DFD of {dfd_length} bytes; one basic block of "
-                       f"{count} samples is {dfd_bytes}", "ktx2.dfd")
-        if kvd_length > MAX_KEY_VALUE_BYTES:
-            raise _bad(file, f"byte {kvd_offset}", f"key/value data of {kvd_length} bytes is over the "
-                       f"limit of {MAX_KEY_VALUE_BYTES}", "ktx2.keyValue")
-        dfd = _read_at(stream, dfd_offset, dfd_length, file, "DFD")
-        kvd = _read_at(stream, kvd_offset, kvd_length, file, "key/value data") if kvd_length else b""
+
+def scan_bytes(data: bytes, file: str, *, max_dimension: int = MAX_TEXTURE_DIMENSION) -> Ktx2Header:
+    """:func:`scan` of a KTX2 file held in memory (a runtime package's buffer view, spec/runtime-package.md).
+
+    Args:
+        data: The whole KTX2 file.
+        file: How messages name it.
+        max_dimension: Largest accepted width or height.
+
+    Raises:
+        InputError: As :func:`scan`.
+    """
+    return _scan(io.BytesIO(data), len(data), file, max_dimension)
+
+
+def _scan(stream, size: int, file: str, max_dimension: int) -> Ktx2Header:
+    """The checks of :func:`scan` on an open binary stream of ``size`` bytes."""
+    head = stream.read(HEADER_BYTES + LEVEL_INDEX_BYTES)
+    if head[:len(MAGIC)] != MAGIC[:len(head)]:
+        raise _bad(file, "byte 0", f"not a KTX 2.0 file (the first 12 bytes are {head[:12]!r})",
+                   "texture.unreadable")
+    if len(head) < HEADER_BYTES + LEVEL_INDEX_BYTES:
+        raise _bad(file, f"byte {len(head)}", f"file of {size} bytes ends inside the KTX2 header "
+                   f"and level index ({HEADER_BYTES + LEVEL_INDEX_BYTES} bytes)", "ktx2.truncated")
+    (vk_format, type_size, width, height, depth, layers, faces, levels,
+     scheme) = struct.unpack_from("<9I", head, 12)
+    dfd_offset, dfd_length, kvd_offset, kvd_length, sgd_offset, sgd_length = \
+        struct.unpack_from("<IIIIQQ", head, 48)
+    level_offset, level_length, uncompressed_length = struct.unpack_from("<QQQ", head, 80)
+
+    if vk_format not in TEXEL_FORMAT_OF_VK_FORMAT:
+        raise _bad(file, "header/vkFormat (byte 12)", f"vkFormat {vk_format} is not a Virtual Bones "
+                   "texel format (97 R16G16B16A16_SFLOAT, 109 R32G32B32A32_SFLOAT, "
+                   "91 R16G16B16A16_UNORM, 104 R32G32B32_UINT)", "ktx2.vkFormat")
+    if type_size != _TYPE_SIZE[vk_format]:
+        raise _bad(file, "header/typeSize (byte 16)", f"typeSize {type_size} for "
+                   f"{VK_FORMAT_NAMES[vk_format]}, expected {_TYPE_SIZE[vk_format]}", "ktx2.header")
+    if not (1 <= width <= max_dimension and 1 <= height <= max_dimension):
+        raise _bad(file, "header/pixelWidth (byte 20)", f"header declares {width}x{height} texels; "
+                   f"each side must be 1..{max_dimension}; nothing allocated", "texture.size")
+    for name, value, wanted, offset in (("pixelDepth", depth, 0, 28), ("layerCount", layers, 0, 32),
+                                        ("faceCount", faces, 1, 36), ("levelCount", levels, 1, 40)):
+        if value != wanted:
+            raise _bad(file, f"header/{name} (byte {offset})", f"{name} is {value}; a Virtual Bones "
+                       f"texture is one 2D image with one mip level ({name} {wanted})", "ktx2.header")
+    if scheme not in SUPERCOMPRESSION_NAMES:
+        raise _bad(file, "header/supercompressionScheme (byte 44)", f"supercompression scheme "
+                   f"{scheme} is not supported (0 none, 2 Zstandard)", "ktx2.supercompression")
+    count = _CHANNEL_COUNT[vk_format]
+    texel_bytes = width * height * count * type_size
+    if uncompressed_length != texel_bytes:
+        raise _bad(file, "levels/0/uncompressedByteLength (byte 96)", f"level 0 declares "
+                   f"{uncompressed_length} bytes; {width}x{height} {'RGBA'[:count]} of {type_size}-byte "
+                   f"channels is {texel_bytes}", "ktx2.levels")
+    if scheme == 0 and level_length != texel_bytes:
+        raise _bad(file, "levels/0/byteLength (byte 88)", f"level 0 is {level_length} bytes; "
+                   f"without supercompression it must be {texel_bytes}", "ktx2.levels")
+    if sgd_length != 0 or sgd_offset != 0:
+        raise _bad(file, "index/sgdByteLength (byte 72)", f"supercompression global data of "
+                   f"{sgd_length} bytes; neither scheme 0 nor 2 has any", "ktx2.levels")
+    # Regions in KTX 2.0's order, each after the previous, none past the end of the file.
+    cursor = HEADER_BYTES + LEVEL_INDEX_BYTES
+    for name, offset, length, field_offset in (("dfd", dfd_offset, dfd_length, 48),
+                                               ("kvd", kvd_offset, kvd_length, 56),
+                                               ("level 0", level_offset, level_length, 80)):
+        if name == "kvd" and length == 0:
+            continue
+        if offset < cursor or length > size or offset > size - length:
+            raise _bad(file, f"index/{name} (byte {field_offset})", f"{name} region of {length} "
+                       f"bytes at byte {offset} lies outside the file of {size} bytes or overlaps "
+                       f"what comes before it (byte {cursor})", "ktx2.levels")
+        cursor = offset + length
+    if scheme == 0 and level_offset % _alignment(vk_format):
+        raise _bad(file, "levels/0/byteOffset (byte 80)", f"level 0 at byte {level_offset} is not "
+                   f"aligned to {_alignment(vk_format)} bytes", "ktx2.levels")
+    dfd_bytes = DFD_BYTES - 16 * (4 - count)
+    if dfd_length != dfd_bytes:
+        raise _bad(file, f"byte {dfd_offset}", f"DFD of {dfd_length} bytes; one basic block of "
+                   f"{count} samples is {dfd_bytes}", "ktx2.dfd")
+    if kvd_length > MAX_KEY_VALUE_BYTES:
+        raise _bad(file, f"byte {kvd_offset}", f"key/value data of {kvd_length} bytes is over the "
+                   f"limit of {MAX_KEY_VALUE_BYTES}", "ktx2.keyValue")
+    dfd = _read_at(stream, dfd_offset, dfd_length, file, "DFD")
+    kvd = _read_at(stream, kvd_offset, kvd_length, file, "key/value data") if kvd_length else b""
     _check_dfd(dfd, vk_format, scheme, dfd_offset, file)
     entries = _parse_key_values(kvd, kvd_offset, file)
     orientation = entries.get(ORIENTATION_KEY)

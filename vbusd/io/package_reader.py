@@ -2,8 +2,8 @@
 
 :func:`read_package` reads a ``.glb`` or ``.gltf`` and reports what is wrong into a
 :class:`~vbusd.format.diagnostics.Diagnostics` list, as the texture and USD readers do: strict for
-``vbusd info`` (the first error raises), lenient for ``vbusd validate`` (every problem is a
-finding). It checks
+``vbusd info`` and ``vbusd view`` (the first error raises), lenient for ``vbusd validate`` (every
+problem is a finding), so that the three accept and refuse the same packages. It checks
 
 * the container and the glTF JSON with the glTF container reader the converter uses
   (:func:`vbusd.io.gltf.load`: GLB chunks, JSON types, buffers and their URIs);
@@ -11,15 +11,19 @@ finding). It checks
   object and every primitive object against ``vbusd/schema/VBUSD_virtual_bones.schema.json`` (the layout
   against the layout metadata schema it references) (``package.extension``, ``metadata.schema``);
 * each animation's texture: its buffer view (no stride, no target, 16-byte aligned in a ``.glb``;
-  ``package.texture``), the KTX2 file it holds with every check of a KTX2 texture
-  (:func:`vbusd.validators.checks_texture.check_texture_file` does those for ``vbusd validate``),
-  and the extension's ``layout`` against the KTX2 file's own (``package.layout``);
+  ``package.texture``), the KTX2 file's header (:func:`vbusd.io.ktx2.scan_bytes`: identifier,
+  format, sides of 1..16384 texels, regions; ``ktx2.*``, ``texture.*``), its ``vbusd.layout`` entry
+  and the extension's ``layout`` against it (``package.layout``); the level data (digest, texels)
+  is ``vbusd validate``'s (:func:`vbusd.validators.checks_texture.check_texture_file`);
+* every primitive: every accessor it names read within the glTF reader's bounds
+  (``gltf.accessor.*``), a ``POSITION``, vertex indices below the vertex count
+  (``package.primitive``);
 * each bound primitive: its animation exists, its ``_VB_JOINTS_n`` / ``_VB_WEIGHTS_n`` pairs are
   there for its influences, with as many vertices as ``POSITION`` and bone indices below the
   animation's bone count (``package.primitive``);
-* each crowd node (``EXT_mesh_gpu_instancing`` on a mesh bound to an animation): the three ``_VB_``
-  instance attributes, one value per instance, clips that the animation has, finite times and
-  rates (``package.instances``).
+* each crowd node (``EXT_mesh_gpu_instancing`` on a mesh bound to an animation): every instance
+  attribute read within its bounds, the three ``_VB_`` instance attributes, one value per instance,
+  clips that the animation has, finite times and rates (``package.instances``).
 
 Locations are JSON pointers into the package's JSON (the ``.gltf``, or the ``.glb``'s JSON chunk).
 """
@@ -36,9 +40,12 @@ import numpy as np
 
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer
 from vbusd.format.errors import InputError, VbusdError
+from vbusd.format import metadata as md
 from vbusd.format.metadata import json_kind, json_pointer
+from vbusd.io import ktx2, textures
 from vbusd.io.gltf import json_text_of, load
 from vbusd.io.gltf_accessors import AccessorReader
+from vbusd.io.textures import json_differences
 import importlib.resources
 import jsonschema
 import referencing
@@ -246,11 +253,55 @@ def _count(root: dict, accessor) -> Optional[int]:
     return None
 
 
+def _read(reader, accessor, pointer: str, file: str, diagnostics: Diagnostics, failed: set):
+    """Accessor ``accessor``'s values with every bound of the glTF reader checked, or None (its
+    problem reported once, however many primitives or nodes name it)."""
+    key = accessor if isinstance(accessor, (int, float)) else repr(accessor)
+    if key in failed:
+        return None
+    try:
+        return reader.read(accessor, pointer)
+    except InputError as error:
+        failed.add(key)
+        diagnostics.report(error.code, error.message, JsonPointer(file, error.location or pointer))
+        return None
+
+
+def _check_geometry(root: dict, reader, primitive: dict, where: str, file: str, diagnostics: Diagnostics,
+                    failed: set) -> None:
+    """Every accessor of a primitive read (attributes, morph targets, indices: the ``gltf.accessor.*``
+    bounds), its ``POSITION`` present and its vertex indices below the vertex count
+    (``package.primitive``): what a loader reads to draw it."""
+    attributes = primitive.get("attributes") or {}
+    if "POSITION" not in attributes:
+        diagnostics.report("package.primitive", "the primitive has no POSITION attribute: nothing to draw",
+                           JsonPointer(file, f"{where}/attributes"))
+    for name, accessor in attributes.items():
+        _read(reader, accessor, f"{where}/attributes{json_pointer([name])}", file, diagnostics, failed)
+    for t, target in enumerate(primitive.get("targets") or ()):
+        for name, accessor in target.items():
+            _read(reader, accessor, f"{where}/targets/{t}{json_pointer([name])}", file, diagnostics, failed)
+    if primitive.get("indices") is None:
+        return
+    indices = _read(reader, primitive["indices"], f"{where}/indices", file, diagnostics, failed)
+    vertices = _count(root, attributes.get("POSITION"))
+    if indices is None or not isinstance(vertices, int):
+        return
+    bad = (indices < 0) | (indices >= vertices)
+    if bad.any():
+        first = int(np.argmax(bad))
+        diagnostics.report("package.primitive", f"{int(np.count_nonzero(bad))} vertex index(es) are not below the "
+                           f"vertex count {vertices}; the first, index {first}, is {int(indices[first])}",
+                           JsonPointer(file, f"{where}/indices"))
+
+
 def _check_primitives(root: dict, reader, animations: list, file: str, diagnostics: Diagnostics,
-                      package: Package, decode: bool) -> dict:
-    """``package.primitive`` for every bound primitive; returns mesh index -> animation index."""
+                      package: Package, failed: set) -> dict:
+    """Every primitive's accessors (:func:`_check_geometry`) and ``package.primitive`` for every bound
+    primitive; returns mesh index -> animation index."""
     bound = {}
-    declared = len(root["extensions"][EXTENSION].get("animations") or ())
+    entries = root["extensions"][EXTENSION].get("animations")
+    declared = len(entries) if isinstance(entries, list) else 0  # not an array: a schema finding already
     for m, mesh in enumerate(root.get("meshes") or []):
         vertices, playing = 0, None
         primitives = mesh.get("primitives") or []
@@ -259,6 +310,7 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
             attributes = primitive.get("attributes") or {}
             count = _count(root, attributes.get("POSITION")) or 0
             vertices += count
+            _check_geometry(root, reader, primitive, f"/meshes/{m}/primitives/{p}", file, diagnostics, failed)
             if not isinstance(ext, dict) or not _validators()[1].is_valid(ext):
                 continue  # not bound, or its object broke the schema (reported)
             where = f"/meshes/{m}/primitives/{p}"
@@ -283,12 +335,9 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
                         continue  # the glTF reader reports a bad index
                     if values != count:
                         diagnostics.report("package.primitive", f"{name} has {values} values for {count} vertices", at)
-                    elif decode and name.startswith("_VB_JOINTS") and isinstance(bones, int):
-                        try:
-                            indices = reader.read(accessor, f"/accessors/{accessor}")
-                        except InputError as error:
-                            diagnostics.report(error.code, error.message,
-                                               JsonPointer(file, error.location or f"/accessors/{accessor}"))
+                    elif name.startswith("_VB_JOINTS") and isinstance(bones, int):
+                        indices = _read(reader, accessor, f"/accessors/{accessor}", file, diagnostics, failed)
+                        if indices is None:
                             continue
                         bad = (indices < 0) | (indices >= bones)
                         if bad.any():
@@ -302,8 +351,9 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
 
 
 def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, diagnostics: Diagnostics,
-                 package: Package) -> None:
-    """``package.instances`` for every crowd node; collects crowds and single characters."""
+                 package: Package, failed: set) -> None:
+    """``package.instances`` for every crowd node, every instance attribute read within its bounds;
+    collects crowds and single characters."""
     nodes = root.get("nodes") or []
     # MSFT_lod (format 1.2): the nodes another node lists are its levels, drawn instead of it per
     # instance, not more characters or crowds; their instance attributes are still checked.
@@ -331,6 +381,9 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
                                    JsonPointer(file, f"{where}/{key}"))
         animation = next((a for a in animations if a.index == bound[mesh]), None)
         clip_count = len(animation.layout.get("clips") or ()) if animation is not None else None
+        for key, accessor in attributes.items():  # TRANSLATION, ROTATION, SCALE: what a loader reads
+            if key not in INSTANCE_ATTRIBUTES:
+                _read(reader, accessor, f"{where}{json_pointer([key])}", file, diagnostics, failed)
         values = {}
         for key in INSTANCE_ATTRIBUTES:
             if key not in attributes:
@@ -339,10 +392,9 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
                 continue
             if counts.get(key) != instances:
                 continue
-            try:
-                values[key] = reader.read(attributes[key], f"{where}/{key}").reshape(-1)
-            except InputError as error:
-                diagnostics.report(error.code, error.message, JsonPointer(file, error.location or f"{where}/{key}"))
+            array = _read(reader, attributes[key], f"{where}/{key}", file, diagnostics, failed)
+            if array is not None:
+                values[key] = array.reshape(-1)
         for key, array in values.items():
             bad = ~np.isfinite(array)
             if key == "_VB_CLIP" and isinstance(clip_count, int):
@@ -360,16 +412,17 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
                                            clips=None if clips is None else np.round(clips).astype(np.int64)))
 
 
-def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = False,
-                 textures: bool = True) -> Optional[Package]:
+def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = False) -> Optional[Package]:
     """Read and check a runtime package (see the module docstring).
+
+    ``vbusd info``, ``vbusd view`` (strict lists) and ``vbusd validate`` (a lenient list) all read
+    through here, so they accept and refuse the same packages; only the KTX2 files' level data
+    (content digest, texels) is left to ``validate`` (:mod:`vbusd.validators.checks_package`).
 
     Args:
         path: The ``.glb`` or ``.gltf``.
         diagnostics: Where problems go (strict: the first error raises).
         allow_outside_paths: Let buffer URIs resolve outside the package's folder.
-        textures: Read each animation's KTX2 bytes (``vbusd validate`` then checks them) and the
-            bone indices; ``vbusd info`` leaves both out.
 
     Returns:
         What could be read, or None when not even the glTF reader could read the file's buffers.
@@ -404,7 +457,53 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
             continue
         animation = PackageAnimation(index=index, name=entry["name"], path=entry.get("path"), layout=entry["layout"])
         animation.ktx2, animation.texture = _read_texture(gltf, reader, entry, index, binary, file, diagnostics)
+        if animation.ktx2 is not None and not _check_ktx2(animation, file, diagnostics):
+            animation.ktx2 = None  # its header is reported; validate has nothing more to read
         package.animations.append(animation)
-    bound = _check_primitives(root, reader, package.animations, file, diagnostics, package, textures)
-    _check_nodes(root, reader, bound, package.animations, file, diagnostics, package)
+    failed: set = set()
+    bound = _check_primitives(root, reader, package.animations, file, diagnostics, package, failed)
+    _check_nodes(root, reader, bound, package.animations, file, diagnostics, package, failed)
     return package
+
+
+def _check_ktx2(animation: PackageAnimation, file: str, diagnostics: Diagnostics) -> bool:
+    """The KTX2 file's header (every check :func:`vbusd.io.ktx2.scan` makes before the level is read),
+    its ``vbusd.layout`` entry and the file against it (size, texel format), and the extension's
+    ``layout`` against that entry (``package.layout``).
+
+    A header that cannot be read is reported and False returned. What is wrong with the
+    ``vbusd.layout`` entry or between it and the file is reported here for strict readers only:
+    ``vbusd validate`` reports it, with the rest of the KTX2 file's checks, from
+    :func:`vbusd.validators.checks_texture.check_texture_file`, so it is not reported twice.
+    """
+    image = textures.read_ktx2_bytes(animation.ktx2, diagnostics, animation.texture)
+    if image is None:
+        return False
+    local = Diagnostics(animation.texture)
+    document = None
+    if not image.metadata:
+        local.report("metadata.missing", f"the KTX2 file has no {ktx2.METADATA_KEY} key/value entry: the "
+                     "layout metadata every Virtual Bones texture embeds",
+                     FileLocation(animation.texture, part=image.metadata_part))
+    else:
+        document = md.parse_document(image.metadata[0][0], local, file=animation.texture,
+                                     within=image.metadata_part)
+    if isinstance(document, dict):
+        texel_format = document.get("texelFormat")
+        width, height = document.get("width"), document.get("height")
+        textures.check_image(image, local, width=width if isinstance(width, int) else None,
+                             height=height if isinstance(height, int) else None,
+                             texel_format=texel_format if texel_format in textures.CONTAINERS["ktx2"].pixel_types
+                             else None,
+                             format_location=JsonPointer(animation.texture, "/texelFormat", image.metadata_part))
+    if diagnostics.strict:
+        for item in local.findings:
+            diagnostics.add(item)
+    if not isinstance(document, dict):
+        return True
+    for parts in json_differences(animation.layout, document):
+        pointer = f"{_ROOT}/animations/{animation.index}/layout{json_pointer(parts)}"
+        diagnostics.report("package.layout", f"the layout differs from the vbusd.layout entry of its KTX2 texture "
+                           f"{animation.texture} at {json_pointer(parts) or '/'}; the two must be equal (export "
+                           "the package again)", JsonPointer(file, pointer))
+    return True

@@ -38,7 +38,7 @@ __all__ = ["TextureData", "sidecar_path",
            "container_for", "write_texture", "TextureImage", "Container", "CONTAINERS",
            "looks_like_metadata", "read_texture_file", "read_sidecar_document", "check_image",
            "json_differences", "check_sidecar_agrees", "read_texture", "TextureHeader",
-           "read_texture_header", "sniff_container", "read_sidecar"]
+           "read_texture_header", "sniff_container", "read_sidecar", "read_ktx2_bytes"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -203,22 +203,16 @@ class Container:
 
 
 
-def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
-               pixels=True) -> Optional[TextureImage]:
-    """The KTX2 container behind the reader interface (:mod:`vbusd.io.ktx2` raises its findings)."""
-    file = display or str(path)
+def _report_ktx2(error: InputError, diagnostics: Diagnostics, file: str) -> None:
+    """A finding of :mod:`vbusd.io.ktx2` (raised there) into ``diagnostics``, located in ``file``."""
+    match = re.fullmatch(r"byte (\d+)", str(error.location or ""))
+    diagnostics.report(error.code if error.code in codes.REGISTRY else "texture.unreadable",
+                       error.message, FileLocation(file, int(match.group(1)) if match else None,
+                                                   part=error.location))
 
-    def report(error: InputError) -> None:
-        match = re.fullmatch(r"byte (\d+)", str(error.location or ""))
-        diagnostics.report(error.code if error.code in codes.REGISTRY else "texture.unreadable",
-                           error.message, FileLocation(file, int(match.group(1)) if match else None,
-                                                       part=error.location))
 
-    try:
-        header = ktx2.scan(path, max_dimension=max_dimension)
-    except InputError as error:
-        report(error)
-        return None
+def _ktx2_image(header: ktx2.Ktx2Header, file: str) -> TextureImage:
+    """What a scanned KTX2 header says, as the reader interface returns it (texels not read)."""
     image = TextureImage(file=file, container="ktx2", width=header.width, height=header.height,
                          channels=("R", "G", "B", "A"),
                          pixel_type={"unorm16": "uint16"}.get(header.texel_format, header.texel_format),
@@ -228,6 +222,40 @@ def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MA
         image.metadata.append((header.metadata, FileLocation(file, part=image.metadata_part)))
     image.misplaced_metadata += [f"key/value entry {key!r}" for key in header.key_values
                                  if key != ktx2.METADATA_KEY and looks_like_metadata(key, "")]
+    return image
+
+
+def read_ktx2_bytes(data: bytes, diagnostics: Diagnostics, display: str,
+                    max_dimension: int = MAX_TEXTURE_DIMENSION) -> Optional[TextureImage]:
+    """A KTX2 file held in memory (a runtime package's texture) read as :func:`read_texture_file`'s
+    KTX2 reader reads a file without its pixels: the header checked (:func:`vbusd.io.ktx2.scan`),
+    a problem reported in ``diagnostics`` at ``display``, the metadata text kept unparsed.
+
+    Returns:
+        The image (no texels), or None when the header is not a readable Virtual Bones KTX2 header.
+    """
+    try:
+        header = ktx2.scan_bytes(data, display, max_dimension=max_dimension)
+    except InputError as error:
+        _report_ktx2(error, diagnostics, display)
+        return None
+    return _ktx2_image(header, display)
+
+
+def _read_ktx2(path, diagnostics: Diagnostics, *, display=None, max_dimension=MAX_TEXTURE_DIMENSION,
+               pixels=True) -> Optional[TextureImage]:
+    """The KTX2 container behind the reader interface (:mod:`vbusd.io.ktx2` raises its findings)."""
+    file = display or str(path)
+
+    def report(error: InputError) -> None:
+        _report_ktx2(error, diagnostics, file)
+
+    try:
+        header = ktx2.scan(path, max_dimension=max_dimension)
+    except InputError as error:
+        report(error)
+        return None
+    image = _ktx2_image(header, file)
     if pixels:
         try:
             image.texels = ktx2.read_level(path, header)

@@ -2,9 +2,10 @@
 
 One function, :func:`levels_of`, shared by the strict reader (:mod:`vbusd.io.usd_reader`) and
 ``vbusd validate`` (:mod:`vbusd.validators.api`), so both apply the same rules and codes:
-``lod.structure`` (one LOD root for all of an animation's meshes, 2 to 8 levels, none empty) and
-``lod.heuristic`` (one LODScreenSizeHeuristic, thresholds one per level after the first, in (0, 1],
-strictly decreasing).
+``lod.structure`` (one LOD root for all of an animation's meshes, 2 to 8 levels, none empty, an
+authored ``lod:default:index`` naming one of them) and ``lod.heuristic`` (``lod:heuristics``
+targets exactly one prim, a LODScreenSizeHeuristic, with thresholds one per level after the first,
+in (0, 1], strictly decreasing).
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ __all__ = ["LOD_ROOT_API", "levels_of", "levels_of_animation", "check_animation_
 
 LOD_ROOT_API = "LODRootAPI"
 """UsdLod's API schema of a level-of-detail root, as it appears in apiSchemas."""
+
+DEFAULT_INDEX = "lod:default:index"
+"""LODRootAPI's default level; authored, it must name a level (vbusd writes 0)."""
 
 
 def _root_of(stage, Sdf, mesh_path: str):
@@ -71,13 +75,21 @@ def levels_of(stage, animation_path: str, mesh_paths: list) -> tuple:
     if empty:
         return [finding("lod.structure", f"level(s) {', '.join(empty)} hold no mesh bound to {animation_path}",
                         root_site)], None, None
+    default = root.GetAttribute(DEFAULT_INDEX)
+    if default and default.HasAuthoredValue():
+        index = default.Get()
+        if not (isinstance(index, int) and 0 <= index < len(items)):
+            return [finding("lod.structure", f"{DEFAULT_INDEX} is {index!r}; it names a level, 0..{len(items) - 1} "
+                            "(vbusd writes 0)", UsdSite(str(root.GetPath()), DEFAULT_INDEX))], None, None
     relationship = root.GetRelationship("lod:heuristics")
-    targets = relationship.GetTargets() if relationship else []
+    targets = list(relationship.GetTargets()) if relationship else []
     screen = [stage.GetPrimAtPath(t) for t in targets]
     screen = [h for h in screen if h and h.GetTypeName() == "LODScreenSizeHeuristic"]
-    if len(screen) != 1:
-        return [finding("lod.heuristic", f"lod:heuristics targets {len(screen)} LODScreenSizeHeuristic prims; "
-                        "exactly one", UsdSite(str(root.GetPath()), "lod:heuristics"))], None, None
+    if len(targets) != 1 or len(screen) != 1:
+        listed = ", ".join(str(t) for t in targets[:4]) + (", ..." if len(targets) > 4 else "")
+        return [finding("lod.heuristic", f"lod:heuristics targets {len(targets)} prim(s) ({listed or 'none'}), "
+                        f"{len(screen)} of them LODScreenSizeHeuristic; exactly one target, a "
+                        "LODScreenSizeHeuristic", UsdSite(str(root.GetPath()), "lod:heuristics"))], None, None
     attribute = screen[0].GetAttribute("thresholds")
     value: Optional[object] = attribute.Get() if attribute and attribute.HasAuthoredValue() else None
     thresholds = np.asarray(value if value is not None else [], np.float64).reshape(-1)

@@ -37,6 +37,7 @@ from typing import Optional, Union
 import numpy as np
 
 from vbusd.format import names
+from vbusd.format.compact import range_problems
 from vbusd.format.declared import Declared, build_layout, check_declared, compare_declared, from_metadata
 from vbusd.format.diagnostics import Diagnostics, FileLocation, UsdSite, finding, to_error
 from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, VbusdError, VersionError
@@ -59,6 +60,7 @@ from vbusd.io.usd_lod import levels_of
 from pxr import Sdf, UsdUtils
 from vbusd.io.usd_lod import levels_of_animation
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
+           "texture_disagreements",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
            "file_dependencies"]
@@ -680,11 +682,16 @@ class UsdReader:
                         f"{names.COMPACT_RANGE_MAX} {high.size}; they hold 7 per bone"
                         + (f" ({7 * bones})" if isinstance(bones, int) else ""),
                         UsdSite(path, names.COMPACT_RANGE_MAX))
-        elif not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low <= high)):
-            self.report("prim.attribute.invalid", f"compact ranges must be finite with min <= max "
-                        f"({names.COMPACT_RANGE_MIN}, {names.COMPACT_RANGE_MAX})", UsdSite(path, names.COMPACT_RANGE_MIN))
         else:
-            declared.values["compactRanges"] = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
+            ranges = np.stack([low.reshape(-1, 7), high.reshape(-1, 7)], axis=-1)
+            problems = range_problems(ranges, limit=1)
+            if problems:
+                (bone, slot), message = problems[0]
+                self.report("prim.attribute.invalid", f"{names.COMPACT_RANGE_MIN}/{names.COMPACT_RANGE_MAX} "
+                            f"[{7 * bone + slot}]: {message} (compact ranges are finite, min <= max, with a span "
+                            "finite in binary32)", UsdSite(path, names.COMPACT_RANGE_MIN))
+            else:
+                declared.values["compactRanges"] = ranges
 
     def _bind_transforms(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:bindTransforms`` (spec 8.4) into ``bindTransforms``: (bones, 4, 4) column vectors."""
@@ -717,10 +724,14 @@ class UsdReader:
                 return
             declared.values["boneParents"] = parents
         names_attr = prim.GetAttribute(names.MASK_NAMES)
+        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
         if not names_attr or not names_attr.HasAuthoredValue():
+            if weights_attr and weights_attr.HasAuthoredValue():
+                self.report("prim.attribute.invalid", f"{names.MASK_WEIGHTS} is authored without "
+                            f"{names.MASK_NAMES}: weights of masks that have no names (spec 8.6)",
+                            UsdSite(path, names.MASK_WEIGHTS))
             return
         mask_names = [str(n) for n in (names_attr.Get() or [])]
-        weights_attr = prim.GetAttribute(names.MASK_WEIGHTS)
         weights = np.array(weights_attr.Get() if weights_attr else [], dtype=np.float64)
         site = UsdSite(path, names.MASK_WEIGHTS)
         if not isinstance(bones, int) or weights.size != bones * len(mask_names):
@@ -880,14 +891,11 @@ class UsdReader:
             raise _Skip
 
         texture = read_texture(attributes.texture_file)
-        theirs = from_metadata(texture.info.to_dict(), os.path.relpath(attributes.texture_file, self.folder))
-        for item in compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim"):
+        for item in texture_disagreements(attributes, texture.info, os.path.relpath(attributes.texture_file,
+                                                                                    self.folder)):
             self.diagnostics.add(item)
         binds = attributes.declared.values.get("bindTransforms")
         theirs_binds = texture.info.bind_transforms
-        if binds is not None and theirs_binds is not None and not np.array_equal(binds, theirs_binds):
-            self.diagnostics.add(finding("metadata.mismatch", f"bindTransforms differ from the prim's "
-                                         f"{names.BIND_TRANSFORMS}", theirs.locate("bindTransforms")))
         # Bone parents and masks (format 1.2): compare_declared above reports a disagreement; the
         # metadata's float64 mask weights are kept when both hold them (vb:maskWeights is float32).
         parents = attributes.declared.values.get("boneParents")
@@ -1311,6 +1319,27 @@ class UsdReader:
 _PRIVATE_READS = itertools.count(1)
 
 
+def texture_disagreements(attributes: AnimationAttributes, info, display: str) -> list:
+    """``metadata.mismatch`` findings where a texture's metadata (``info``, a checked
+    :class:`vbusd.format.metadata.LayoutInfo`) disagrees with its animation prim: every value
+    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges included) and the
+    bind transforms. The one comparison of the strict readers (``read_asset``, and ``info``, which
+    reads the texture's header only).
+
+    Args:
+        attributes: The prim's checked attributes.
+        info: The texture's metadata.
+        display: How findings name the texture (relative to the asset).
+    """
+    theirs = from_metadata(info.to_dict(), display)
+    out = compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
+    binds = attributes.declared.values.get("bindTransforms")
+    if binds is not None and info.bind_transforms is not None and not np.array_equal(binds, info.bind_transforms):
+        out.append(finding("metadata.mismatch", f"bindTransforms differ from the prim's {names.BIND_TRANSFORMS}",
+                           theirs.locate("bindTransforms")))
+    return out
+
+
 def _default_prim_name(authored: str) -> str:
     """The layer's defaultPrim when it names a root prim (a valid identifier); else "VirtualBones"
     (a corrupt or hostile value such as ``/etc/hostname`` names no prim)."""
@@ -1461,9 +1490,12 @@ def read_summary(path: PathLike, *, allow_outside_paths: bool = False) -> tuple[
         prims = reader.animation_prims()
         found = [reader.guard(prim, reader.animation_attributes, prim) for prim in prims]
 
-        # Levels of detail (format 1.2) for info; their findings are validate's to report.
-        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=levels_of_animation(prim)[2])
-                 for prim, attributes in zip(prims, found)]
+        # Levels of detail (format 1.2): checked as every reader checks them (lod.*: the first raises).
+        levels = [None if attributes is None else levels_of_animation(prim) for prim, attributes in zip(prims, found)]
+        for item in (f for level in levels if level is not None for f in level[0]):
+            diagnostics.add(item)
+        found = [attributes if attributes is None else dataclasses.replace(attributes, lods=level[2])
+                 for attributes, level in zip(found, levels)]
         by_path = {str(prim.GetPath()): i for i, prim in enumerate(prims)}
         crowds = []
         UsdGeom = _pxr()[3]

@@ -52,13 +52,18 @@ def check_metadata_schema(meta, file: str) -> list:
 
 
 def check_metadata_consistency(meta_declared: Declared) -> list:
-    """``metadata.inconsistent``: usedWidth and texelBytes, the relations inside one metadata
+    """``metadata.inconsistent``: usedWidth, texelBytes and the compact ranges (one per bone, each
+    as :func:`vbusd.format.compact.range_problems` requires), the relations inside one metadata
     document that neither its schema nor the declared-layout checks (``layout.width``...) state."""
-    out = []
+    out = list(meta_declared.findings)  # the compact ranges' own problems, found as they were read
     layout = meta_declared.layout
     values = meta_declared.values
     if layout is None:
         return out
+    ranges = values.get("compactRanges")
+    if ranges is not None and len(ranges) != layout.bone_count:
+        out.append(finding("metadata.inconsistent", f"compactRanges holds {len(ranges)} bones for boneCount "
+                           f"{layout.bone_count}", meta_declared.locate("compactRanges")))
     if "usedWidth" in values and values["usedWidth"] != layout.used_width:
         out.append(finding("metadata.inconsistent", f"usedWidth is {values['usedWidth']}, but boneCount x "
                            f"texelsPerBone is {layout.used_width}", meta_declared.locate("usedWidth")))

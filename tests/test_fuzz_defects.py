@@ -1,0 +1,526 @@
+"""Defects the fuzzing of issue 35 found (items 1, 2, 6-11), each reproduced by the tests named after it.
+
+Each input is a valid asset of the golden fixtures (tests/fixtures/validate/make_fixtures.py: 4
+bones, clips 'walk' and 'idle', one 8-point mesh, a crowd of 3) or the runtime package exported
+from it, with one thing changed; what each reader must say follows from the change and the spec's
+rule, not from running the code: bad input is one line naming the file and the problem (exit 2)
+for ``info``, ``view``, ``decode`` and ``export``, and a finding (exit 1) for ``validate``, never
+an internal error; every reader refuses what the others refuse.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vbusd.cli import main
+from vbusd.format.errors import InputError
+
+FIXTURES = Path(__file__).parent / "fixtures" / "validate"
+EXTENSION = "/extensions/VBUSD_virtual_bones"
+
+
+def _make_fixtures():
+    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+MF = _make_fixtures()
+
+
+@pytest.fixture(params=["glb", "gltf"])
+def package(request, tmp_path) -> Path:
+    from vbusd.io.gltf_package import export_gltf
+
+    out = tmp_path / "pkg" / f"asset.{request.param}"
+    export_gltf(MF.build_asset(), out)
+    return out
+
+
+def _glb_parts(data: bytes) -> tuple:
+    """(JSON document, BIN chunk bytes) of a GLB."""
+    length = struct.unpack_from("<I", data, 12)[0]
+    binary_length = struct.unpack_from("<I", data, 20 + length)[0]
+    return json.loads(data[20:20 + length]), data[28 + length:28 + length + binary_length]
+
+
+def _rewrite(path: Path, change, binary_change=None) -> None:
+    """Apply ``change`` to the package's JSON and, for a .glb, ``binary_change(document, bytearray)``
+    to its BIN chunk (a .gltf's buffers are files beside it: :func:`_patch_view` writes those)."""
+    from vbusd.io.gltf_package import glb_bytes
+
+    if path.suffix == ".gltf":
+        document = json.loads(path.read_text(encoding="utf-8"))
+        change(document)
+        path.write_text(json.dumps(document), encoding="utf-8")
+        return
+    document, binary = _glb_parts(path.read_bytes())
+    change(document)
+    binary = bytearray(binary)
+    if binary_change is not None:
+        binary_change(document, binary)
+    path.write_bytes(glb_bytes(document, bytes(binary)))
+
+
+def _document(path: Path) -> dict:
+    """The package's JSON (a .gltf's text, or a .glb's JSON chunk)."""
+    if path.suffix == ".gltf":
+        return json.loads(path.read_text(encoding="utf-8"))
+    return _glb_parts(path.read_bytes())[0]
+
+
+def _patch_view(path: Path, view: int, offset: int, data: bytes) -> None:
+    """Write ``data`` at ``offset`` into buffer view ``view`` (the .bin or .ktx2 file a .gltf names,
+    or the BIN chunk of a .glb), the JSON unchanged."""
+    document = _document(path)
+    entry = document["bufferViews"][view]
+    at = entry.get("byteOffset", 0) + offset
+    if path.suffix == ".gltf":
+        target = path.with_name(document["buffers"][entry["buffer"]]["uri"])
+        content = bytearray(target.read_bytes())
+        content[at:at + len(data)] = data
+        target.write_bytes(bytes(content))
+        return
+    assert entry["buffer"] == 0  # a .glb holds everything in its BIN chunk
+
+    def change(_, binary):
+        binary[at:at + len(data)] = data
+
+    _rewrite(path, lambda d: None, change)
+
+
+def _texture_view(path: Path) -> int:
+    return _document(path)["extensions"]["VBUSD_virtual_bones"]["animations"][0]["texture"]["bufferView"]
+
+
+def _refused_everywhere(path: Path, capsys, code: str, pointer: str = None) -> None:
+    """``validate`` finds ``code`` (exit 1) and ``info`` and ``view`` refuse the file in one line
+    naming it (or, for a texture beside a .gltf, that texture as validate names it) and the same
+    code (exit 2)."""
+    from vbusd.validators.api import validate
+    from vbusd.web.server import ViewerServer
+
+    report = validate(path)
+    found = [(f["code"], f["location"].get("pointer")) for f in report.to_json()["findings"]]
+    assert report.exit_status == 1 and any(c == code and (pointer is None or p == pointer) for c, p in found), found
+    assert main(["validate", "-q", str(path)]) == 1
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    names = (str(path), "asset.Animation.ktx2") if path.suffix == ".gltf" else (str(path),)
+    assert len(err) == 1 and any(err[0].startswith(f"vbusd: {n}") for n in names) and f": {code}: " in err[0], err
+    with pytest.raises(InputError) as raised:
+        ViewerServer(path)
+    assert raised.value.code == code
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 2: "animations": 5 in the root extension
+# ------------------------------------------------------------------------------------------------
+
+
+def test_item2_animations_that_are_no_array_are_a_finding_not_an_internal_error(package, capsys):
+    """The schema makes ``animations`` an array; validate said ``command.internal`` (exit 3)."""
+    _rewrite(package, lambda d: d["extensions"]["VBUSD_virtual_bones"].__setitem__("animations", 5))
+    _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations")
+
+
+# ------------------------------------------------------------------------------------------------
+# Items 6 and 7: compact textures and their ranges
+# ------------------------------------------------------------------------------------------------
+
+
+def _compact_asset(texels_hook=None, ranges_hook=None):
+    """The fixtures' base asset in the compact encoding (format 1.2); ``texels_hook(texels, layout,
+    ranges)`` changes the words, ``ranges_hook(ranges)`` the (4, 7, 2) ranges prim and texture share."""
+    import dataclasses
+
+    asset = MF.build_asset("compactQuatTranslation", "uint32", texels_hook=texels_hook)
+    vb = asset.animations[0]
+    if ranges_hook is not None:
+        ranges = np.array(vb.unorm_ranges, dtype=np.float64)
+        ranges_hook(ranges)
+        vb = dataclasses.replace(vb, unorm_ranges=ranges)
+        asset = dataclasses.replace(asset, animations=(vb,))
+    return asset
+
+
+def _every_reserved_bit(t, layout, ranges):
+    t[:layout.row_count, :layout.used_width, 1] |= np.uint32(1 << 31)
+
+
+def _every_word_all_ones(t, layout, ranges):
+    t[:layout.row_count, :layout.used_width, :3] = np.uint32(0xFFFFFFFF)
+
+
+def _every_dropped_index_changed(t, layout, ranges):
+    # Every texel of the base asset drops w (index 3; its small rotations keep |w| > 0.98), so w's
+    # range is unused: [0.9, 1] is as good as [0, 0]. Saying "x is dropped" (index 0) keeps y, z, w
+    # instead, and the third field decodes in w's range to at least 0.9: the kept squares sum to at
+    # least 0.81 > 3/4, which a dropped component >= 1/2 cannot leave (spec 5.6).
+    assert np.all(t[:layout.row_count, :layout.used_width, 2] >> 30 == 3)
+    ranges[:, 3] = (0.9, 1.0)
+    t[:layout.row_count, :layout.used_width, 2] &= np.uint32(0x3FFFFFFF)
+
+
+@pytest.mark.parametrize("container", ["exr", "ktx2"])
+@pytest.mark.parametrize("mutation, code", [(_every_reserved_bit, "encoding.compact.reservedBit"),
+                                            (_every_word_all_ones, "encoding.compact.reservedBit"),
+                                            (_every_dropped_index_changed, "encoding.compact.dropped")])
+def test_item6_a_compact_texture_or_sidecar_on_its_own_gets_the_texel_checks(tmp_path, container, mutation, code):
+    """The words are checked with the texture's own ranges, as they are when its USD is validated
+    (the content digest is that of the changed words, so only the texel rules can find them)."""
+    from vbusd.io.textures import write_texture
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    asset = _compact_asset(texels_hook=mutation)
+    write_asset(asset, tmp_path / "asset.usda")
+    texture = tmp_path / f"alone.{container}"
+    write_texture(texture, asset.animations[0])
+    for given in (tmp_path / "asset.usda", texture, Path(f"{texture}.json")):
+        report = validate(given)
+        codes = {f["code"] for f in report.to_json()["findings"]}
+        assert code in codes and report.exit_status == 1, (given.name, codes)
+    first = next(f for f in validate(texture).to_json()["findings"] if f["code"] == code)
+    if mutation is not _every_dropped_index_changed:  # every texel is bad: the first is row 0, bone 0
+        assert (first["location"]["row"], first["location"]["bone"]) == (0, 0)
+
+
+def _rewrite_exr_metadata(texture: Path, edit) -> None:
+    """Replace the embedded metadata text of an EXR and its sidecar by ``edit(text)`` (texels kept)."""
+    from vbusd.io import exr
+    from vbusd.io.textures import read_texture
+
+    texels = np.array(read_texture(texture, check_sidecar=False).texels)
+    text = edit(Path(f"{texture}.json").read_text(encoding="utf-8"))
+    exr.write_exr(texture, texels, text, compression="zip")
+    Path(f"{texture}.json").write_text(text, encoding="utf-8")
+
+
+def _all_refuse(asset: Path, capsys, code: str, texture_code: str = None) -> None:
+    """``validate`` of the USD and of the texture finds ``code``; ``info`` of each, and
+    ``decode`` and ``export`` of the USD, refuse it in one line and write nothing (a USD reader names
+    the texture it cannot read with ``texture_code``)."""
+    from vbusd.validators.api import validate
+
+    texture = asset.with_name("asset.Animation.exr")
+    for given in (asset, texture):
+        report = validate(given)
+        assert report.exit_status == 1 and code in {f["code"] for f in report.to_json()["findings"]}, given
+    for given in (asset, texture):
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and any(f": {c}: " in err[0] for c in (code, texture_code)), err
+    before = sorted(p.name for p in asset.parent.iterdir())
+    for command in (["decode", str(asset), "-o", str(asset.with_name("cache.usda"))],
+                    ["export", str(asset), "-o", str(asset.with_name("out.glb"))]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("vbusd: ") and any(f": {c}: " in err[0] for c in (code, texture_code)), \
+            (command, err)
+    assert sorted(p.name for p in asset.parent.iterdir()) == before
+
+
+def test_item7_compact_ranges_overflowing_to_infinity_are_refused_by_every_reader(tmp_path, capsys):
+    """``1e400`` is valid JSON syntax but no finite number: read, it would be infinity, which
+    metadata may not hold (spec 11.1), exactly as the ``Infinity`` token may not."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    _rewrite_exr_metadata(texture, lambda text: text.replace('"compactRanges": [\n    [\n      [\n        0.0,',
+                                                              '"compactRanges": [\n    [\n      [\n        -1e400,', 1))
+    assert "-1e400" in Path(f"{texture}.json").read_text()
+    _all_refuse(tmp_path / "asset.usda", capsys, "metadata.json", texture_code="texture.unreadable")
+    with pytest.raises(InputError) as raised:  # the sidecar alone: it is not readable metadata
+        validate(Path(f"{texture}.json"))
+    assert raised.value.code == "metadata.json" and "1e400" in raised.value.message
+
+
+def test_item7_texture_ranges_that_disagree_with_the_prim_are_refused(tmp_path, capsys):
+    """Translation ranges one unit wider in the texture and sidecar than in vb:compactRangeMin/Max:
+    each copy is self-consistent, but the copies must be equal (spec 5.6.3)."""
+    from vbusd.io.textures import write_texture
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    def wider(ranges):
+        ranges[:, 4:, 0] -= 1.0
+        ranges[:, 4:, 1] += 1.0
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    write_texture(texture, _compact_asset(ranges_hook=wider).animations[0])
+    report = validate(tmp_path / "asset.usda")
+    found = {(f["code"], f["location"]["file"], f["location"].get("pointer")) for f in report.to_json()["findings"]}
+    assert ("metadata.mismatch", "asset.Animation.exr", "/compactRanges") in found
+    assert ("metadata.mismatch", "asset.Animation.exr.json", "/compactRanges") in found
+    assert report.exit_status == 1
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for command in (["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "out.glb")],
+                    ["info", str(tmp_path / "asset.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "asset.Animation.exr: /compactRanges: metadata.mismatch: " in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_item7_a_range_whose_span_overflows_binary32_is_refused(tmp_path, capsys):
+    """-3e38 .. 3e38: both bounds are binary32 values, but hi - lo = 6e38 is not (the largest is
+    3.4028235e38), so a decoder's lo + (hi - lo) u / (2^15 - 1) is infinity."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    def overflowing(ranges):
+        ranges[0, 4] = (-3e38, 3e38)
+
+    write_asset(_compact_asset(ranges_hook=overflowing), tmp_path / "asset.usda")
+    report = validate(tmp_path / "asset.usda")
+    found = {(f["code"], f["location"].get("file"), f["location"].get("pointer"), f["location"].get("property"))
+             for f in report.to_json()["findings"]}
+    assert ("prim.attribute.invalid", None, None, "vb:compactRangeMin") in found, found
+    assert ("metadata.inconsistent", "asset.Animation.exr", "/compactRanges/0/4", None) in found, found
+    texture = tmp_path / "asset.Animation.exr"
+    for given in (texture, Path(f"{texture}.json")):
+        found = {(f["code"], f["location"].get("pointer")) for f in validate(given).to_json()["findings"]}
+        assert ("metadata.inconsistent", "/compactRanges/0/4") in found, found
+    capsys.readouterr()
+    for given in (texture, tmp_path / "asset.usda"):
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ("metadata.inconsistent" in err[0] or "prim.attribute.invalid" in err[0]), err
+    assert main(["decode", str(tmp_path / "asset.usda"), "-o", str(tmp_path / "cache.usda")]) == 2
+    assert not (tmp_path / "cache.usda").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 8: a compact asset declaring format 1.1
+# ------------------------------------------------------------------------------------------------
+
+
+def test_item8_a_compact_asset_declaring_format_1_1_is_refused(tmp_path, capsys):
+    """The compact encoding is format 1.2's (spec 16.2); a document or prim that says 1.1 is wrong
+    about its own version, and an upgrade must not make it right."""
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    write_asset(_compact_asset(), tmp_path / "asset.usda")
+    texture = tmp_path / "asset.Animation.exr"
+    _rewrite_exr_metadata(texture, lambda text: text.replace('"formatMinorVersion": 2', '"formatMinorVersion": 1'))
+    for given, where in ((texture, "header/vbusd.layout/formatMinorVersion"),
+                         (Path(f"{texture}.json"), "/formatMinorVersion")):
+        assert validate(given).exit_status == 1
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"vbusd: {given}: {where}: format.version: encoding compactQuatTranslation needs format "
+                       "version 1.2, but the document declares 1.1, which does not define it"], err
+    # The prim says 1.1 (its texture says 1.2 again): the USD readers refuse it alike.
+    write_asset(_compact_asset(), tmp_path / "prim" / "asset.usda")
+    asset = tmp_path / "prim" / "asset.usda"
+    asset.write_text(asset.read_text().replace("vb:formatMinorVersion = 2", "vb:formatMinorVersion = 1"))
+    report = validate(asset)
+    assert [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"]] == \
+        [("format.version", "vb:formatMinorVersion")]
+    for command in (["info", str(asset)], ["decode", str(asset), "-o", str(tmp_path / "cache.usda")]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ": format.version: encoding compactQuatTranslation needs format version 1.2" in err[0]
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 11: levels of detail and masks that validate was silent about
+# ------------------------------------------------------------------------------------------------
+
+
+def _lod_asset(tmp_path: Path, edit) -> Path:
+    """The valid fixture with two levels of detail (tests/fixtures/validate/valid/crossMatrix_float16_lods),
+    copied, with ``edit(stage)`` applied and saved."""
+    import shutil
+
+    from pxr import Usd
+
+    folder = tmp_path / "lods"
+    shutil.copytree(FIXTURES / "valid" / "crossMatrix_float16_lods", folder)
+    (folder / "expected.json").unlink()
+    stage = Usd.Stage.Open(str(folder / "asset.usda"))
+    edit(stage)
+    stage.GetRootLayer().Save()
+    return folder / "asset.usda"
+
+
+ROOT = "/VirtualBones/Character_lods"
+
+
+def _set_default_index(value):
+    def edit(stage):
+        stage.GetPrimAtPath(ROOT).GetAttribute("lod:default:index").Set(value)
+    return edit
+
+
+def _two_heuristic_targets(stage):
+    # The second target is a prim that exists (the animation), so one of the two is a heuristic:
+    # still not "exactly one target".
+    stage.GetPrimAtPath(ROOT).GetRelationship("lod:heuristics").AddTarget("/VirtualBones/Animation")
+
+
+def _weights_without_names(stage):
+    from pxr import Sdf
+
+    prim = stage.GetPrimAtPath("/VirtualBones/Animation")
+    prim.CreateAttribute("vb:maskWeights", Sdf.ValueTypeNames.FloatArray, custom=False).Set([1.0, 1.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("edit, code, prim, prop", [
+    (_set_default_index(99), "lod.structure", ROOT, "lod:default:index"),
+    (_set_default_index(-3), "lod.structure", ROOT, "lod:default:index"),
+    (_two_heuristic_targets, "lod.heuristic", ROOT, "lod:heuristics"),
+    (_weights_without_names, "prim.attribute.invalid", "/VirtualBones/Animation", "vb:maskWeights"),
+], ids=["default-index-99", "default-index-minus-3", "two-heuristic-targets", "mask-weights-without-names"])
+def test_item11_levels_and_masks_are_checked(tmp_path, capsys, edit, code, prim, prop):
+    """The fixture has 2 levels (lod:default:index must be 0 or 1), one heuristic target and no
+    masks; each edit breaks one rule of spec 20.1 or 8.6, found at the property it broke."""
+    from vbusd.validators.api import validate
+
+    asset = _lod_asset(tmp_path, edit)
+    report = validate(asset)
+    found = [(f["code"], f["location"].get("primPath"), f["location"].get("property"))
+             for f in report.to_json()["findings"] if f["code"] != "texture.padding.fraction"]
+    assert found == [(code, prim, prop)] and report.exit_status == 1, found
+    for command in (["info", str(asset)], ["decode", str(asset), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(asset), "-o", str(tmp_path / "out.glb")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{prim}.{prop}: {code}: " in err[0], err
+    assert not (tmp_path / "cache.usda").exists() and not (tmp_path / "out.glb").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 9: view and info accepted packages whose KTX2 header validate refuses
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("offset, data, code", [
+    (20, struct.pack("<II", 65536, 65536), "texture.size"),   # pixelWidth, pixelHeight: 65536 x 65536
+    (1, b"XYZ", "texture.unreadable"),                        # the KTX 2.0 identifier's "KTX"
+], ids=["lying-size", "corrupt-signature"])
+def test_item9_the_ktx2_header_is_checked_by_every_reader(package, capsys, offset, data, code):
+    """Both break what spec/ktx2.md requires of the file's first bytes (the identifier; sides of
+    1..16384 texels), which every reader checks before it reads the level or hands the file on."""
+    _patch_view(package, _texture_view(package), offset, data)
+    _refused_everywhere(package, capsys, code)
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 10: accessors outside their buffer, indices beyond the vertices
+# ------------------------------------------------------------------------------------------------
+
+
+def test_item10_an_accessor_outside_its_buffer_view_is_refused_by_every_reader(package, capsys):
+    """POSITION's 8 VEC3 floats from byte 2^30: far past the 96 bytes of its buffer view."""
+    _rewrite(package, lambda d: d["accessors"][0].__setitem__("byteOffset", 1 << 30))
+    _refused_everywhere(package, capsys, "gltf.accessor.bounds", "/accessors/0")
+
+
+def test_item10_a_vertex_index_beyond_the_vertex_count_is_refused_by_every_reader(package, capsys):
+    """The mesh has 8 vertices (0..7); its first triangle's first index becomes 8."""
+    document = _document(package)
+    primitive = document["meshes"][0]["primitives"][0]
+    indices = document["accessors"][primitive["indices"]]
+    assert indices["componentType"] == 5123 and document["accessors"][primitive["attributes"]["POSITION"]]["count"] == 8
+    _patch_view(package, indices["bufferView"], indices.get("byteOffset", 0), struct.pack("<H", 8))
+    _refused_everywhere(package, capsys, "package.primitive", "/meshes/0/primitives/0/indices")
+
+
+# ------------------------------------------------------------------------------------------------
+# Item 1: 200,000 extra nodes
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_item1_a_package_with_200000_extra_nodes_is_read_without_the_per_object_decoder(
+        tmp_path, capsys, monkeypatch):
+    """200,000 nodes (4 MB of JSON) are within the reader's bound of 262,144 entries per array,
+    so they must be read in time proportional to the file. pygltflib's own decoder
+    (dataclasses_json) resolves every field's type hints again for each object, about a millisecond
+    per node: minutes for this file. Here that decoder fails the test if anything calls it; info
+    and validate must read the package (the extra nodes draw nothing and break no rule)."""
+    import dataclasses_json.core
+    import pygltflib
+
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.validators.api import validate
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    document = json.loads(package.read_text(encoding="utf-8"))
+    document["nodes"] += [{"name": f"extra{i}"} for i in range(200_000)]
+    package.write_text(json.dumps(document), encoding="utf-8")
+
+    def per_object_decoder(*args, **kwargs):
+        raise AssertionError("pygltflib's per-object decoder was used")
+
+    monkeypatch.setattr(pygltflib, "_decode_dataclass", per_object_decoder)
+    monkeypatch.setattr(dataclasses_json.core, "_decode_dataclass", per_object_decoder)
+    assert main(["info", str(package), "--format", "json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["instances"] == 3 and [a["name"] for a in info["animations"]] == ["Animation"]
+    report = validate(package)
+    assert report.exit_status == 0, [f["code"] for f in report.to_json()["findings"]]
+
+
+def test_item9_a_ktx2_whose_layout_metadata_is_no_json_is_refused_by_every_reader(tmp_path, capsys):
+    """The header is sound but the vbusd.layout entry is not JSON: validate found it (metadata.json)
+    from its KTX2 checks while info and view read only the extension's copy of the layout."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    texels = read_texture(texture, check_sidecar=False).texels
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(texels), '{"formatVersion": 1,'))
+    document = _document(package)
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "metadata.json")
+
+
+def test_item9_a_ktx2_whose_header_disagrees_with_its_layout_is_refused_by_every_reader(tmp_path, capsys):
+    """float16 texels (vkFormat 97) under a vbusd.layout, and an extension layout equal to it, that
+    say float32 (texelBytes doubled to match): each document is consistent, the file is not what it
+    declares (spec/ktx2.md: vkFormat is that of texelFormat)."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    assert read.info.layout.texel_format.value == "float16"
+    document = _document(package)
+    layout = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"]
+    layout.update(texelFormat="float32", texelBytes=2 * layout["texelBytes"])
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "ktx2.vkFormat")
