@@ -1,8 +1,8 @@
 """Keep web/'s generated and third-party files current: run after changing vbusd's shaders, three.js or Babylon.js.
 
-1. Writes web/src/shader-modules.js from vbusd.decoders.shaders (vbusd.web.shader_modules), so the
-   runtimes run the GLSL ``vbusd shader`` prints, never a retyped copy. It is the one copy: the
-   Babylon.js runtime imports it as ``@vbusd/three/shader-modules``.
+1. Writes web/core/src/shader-modules.js from vbusd.decoders.shaders (vbusd.web.shader_modules), so the
+   runtimes run the GLSL ``vbusd shader`` prints, never a retyped copy. It is the one copy (@vbusd/core): every
+   runtime imports it as ``@vbusd/core/shader-modules``.
 2. Copies three.js (its builds, its LICENSE and the addons the pages import) from
    web/node_modules/three (``npm ci`` in web/ installs the version web/package.json pins) to
    web/vendor/three-<version>/, with a README.md naming the version and where each file came from.
@@ -108,7 +108,7 @@ def planned_files() -> tuple:
     three_folder = VENDOR / f"three-{versions['three']}"
     babylon_folder = VENDOR / f"babylon-{versions['babylon']}"
     files: dict[Path, bytes] = {
-        WEB / "src" / "shader-modules.js": javascript_module().encode("utf-8"),
+        WEB / "core" / "src" / "shader-modules.js": javascript_module().encode("utf-8"),
         three_folder / "README.md": three_readme(versions["three"]).encode("utf-8"),
         babylon_folder / "README.md": babylon_readme(versions["babylon"], versions["esbuild"]).encode("utf-8"),
     }

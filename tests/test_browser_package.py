@@ -48,7 +48,7 @@ DUPLICATES_ALLOWED = ("tests/fixtures/", "benchmarks/results/")
 
 
 def test_generated_shader_modules_are_current():
-    assert (WEB / "src" / "shader-modules.js").read_text(encoding="utf-8") == javascript_module()
+    assert (WEB / "core" / "src" / "shader-modules.js").read_text(encoding="utf-8") == javascript_module()
 
 
 def test_generated_and_vendored_files_are_current():
@@ -200,7 +200,7 @@ def test_the_build_step_writes_every_file_every_page_imports(tmp_path):
 def test_shipped_three_is_the_pinned_version():
     lock = json.loads((WEB / "package-lock.json").read_text())
     pinned = lock["packages"]["node_modules/three"]["version"]
-    assert json.loads((WEB / "package.json").read_text())["devDependencies"] == {"three": pinned}
+    assert json.loads((WEB / "package.json").read_text())["devDependencies"] == {"three": pinned, "@vbusd/core": "file:core"}
     folder = vendor_folder(REPO, "three")
     assert folder.name == f"three-{pinned}"
     revision = pinned.split(".")[1]
@@ -209,7 +209,7 @@ def test_shipped_three_is_the_pinned_version():
 
 
 _NODE_SCRIPT = """
-import { shaderModule } from './src/material.js';
+import { shaderModule } from './core/src/assemble.js';
 const out = {};
 for (const encoding of ['crossMatrix', 'affineMatrix', 'quatTranslation', 'dualQuat'])
   for (const format of ['float16', 'float32', 'unorm16'])
@@ -246,7 +246,7 @@ def test_runtime_shader_module_equals_vbusd_shader():
 
 
 _PACK_SCRIPT = """
-import { packSkin } from './src/skin.js';
+import { packSkin } from './core/src/skin.js';
 const hex = (records) => Array.from(records, (x) => x.toString(16).padStart(8, '0'));
 // spec/shaders.md, Skin records: vertex 5 of a K = 4 mesh, indices (3, 17, 0, 0), weights (0.75, 0.25, 0, 0).
 const idx = new Int16Array(6 * 4); const w = new Float32Array(6 * 4);

@@ -295,7 +295,8 @@ def test_engine_babylon_serves_its_page(served_folder):
         assert json.loads(_get(port, "/config.json")[1])["engine"] == "babylon"
         page = _get(port, "/")[1].decode("utf-8")
         assert "babylon-viewer.js" in page and "./babylon/babylon.bundle.js" in page
-        for path in ("/babylon/babylon.bundle.js", "/vbusd-babylon/index.js", "/vbusd-three/shader-modules.js"):
+        for path in ("/babylon/babylon.bundle.js", "/vbusd-babylon/index.js", "/vbusd-core/shader-modules.js"):
             assert _get(port, path)[0] == 200, path
-        # The Babylon runtime imports the three.js runtime's shader modules (one copy), not its own.
+        # Every runtime imports @vbusd/core's shader modules (one copy), none its own.
         assert _get(port, "/vbusd-babylon/shader-modules.js")[0] == 404
+        assert _get(port, "/vbusd-three/shader-modules.js")[0] == 404

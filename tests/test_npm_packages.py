@@ -1,10 +1,10 @@
-"""The web runtimes are npm packages a web user installs: @vbusd/three, @vbusd/babylon, @vbusd/gltf-transform.
+"""The web runtimes are npm packages a web user installs: @vbusd/core, @vbusd/three, @vbusd/babylon, @vbusd/gltf-transform.
 
 * Each package.json is publishable (not private), versioned after the format (``MAJOR.MINOR`` of
   the newest format the runtime reads, docs/engines.md "npm packages"), with entry points,
   type declarations and the engine as a peer dependency; every file its ``main``, ``types`` and
   ``exports`` name exists.
-* ``npm pack`` of each, then ``npm install`` of the three tarballs into a fresh npm project, offline,
+* ``npm pack`` of each, then ``npm install`` of the four tarballs into a fresh npm project, offline,
   with the peer dependencies taken from the folders ``scripts/install-node-deps.sh`` installs
   (web/node_modules/three, web/babylon/node_modules/@babylonjs/*,
   web/gltf-transform/node_modules/@gltf-transform/*): every entry point imports under Node, its
@@ -36,10 +36,12 @@ INSTALL_HINT = "run scripts/install-node-deps.sh (npm ci in web, web/babylon and
 
 #: package folder -> (name, {entry point specifier: its .d.ts}, peer dependencies that must be declared)
 PACKAGES = {
-    WEB: ("@vbusd/three", {"@vbusd/three": "types/index.d.ts", "@vbusd/three/webgpu": "types/webgpu.d.ts",
-                           "@vbusd/three/shader-modules": "types/shader-modules.d.ts"}, ("three",)),
+    WEB / "core": ("@vbusd/core", {"@vbusd/core": "types/index.d.ts", "@vbusd/core/shader-modules": "types/shader-modules.d.ts"},
+                   ()),
+    WEB: ("@vbusd/three", {"@vbusd/three": "types/index.d.ts", "@vbusd/three/webgpu": "types/webgpu.d.ts"},
+          ("three", "@vbusd/core")),
     WEB / "babylon": ("@vbusd/babylon", {"@vbusd/babylon": "types/index.d.ts"},
-                      ("@babylonjs/core", "@babylonjs/loaders", "@vbusd/three")),
+                      ("@babylonjs/core", "@babylonjs/loaders", "@vbusd/core", "@vbusd/three")),
     WEB / "gltf-transform": ("@vbusd/gltf-transform", {"@vbusd/gltf-transform": "types/index.d.ts"},
                              ("@gltf-transform/core", "@gltf-transform/extensions", "@gltf-transform/functions")),
 }
@@ -77,8 +79,8 @@ def test_package_json_is_publishable(folder):
     # runtime's own patch number.
     major, minor, patch = manifest["version"].split(".")
     assert (int(major), int(minor)) == (CURRENT.major, CURRENT.minor) and patch.isdigit(), manifest["version"]
-    assert set(peers) <= set(manifest["peerDependencies"]), manifest["peerDependencies"]
-    assert "dependencies" not in manifest, "the engine and the sibling runtime are peers, never bundled"
+    assert set(peers) <= set(manifest.get("peerDependencies", {})), manifest.get("peerDependencies")
+    assert "dependencies" not in manifest, "the engine, the core and the sibling runtime are peers, never bundled"
     for path in [manifest["main"], manifest["types"], *_targets(manifest["exports"])]:
         assert (folder / path).is_file(), f"{name}: {path} is missing"
     for specifier, types in entries.items():
@@ -87,10 +89,11 @@ def test_package_json_is_publishable(folder):
     assert "src" in manifest["files"] and "types" in manifest["files"]
 
 
-def test_babylon_runtime_peers_the_three_runtime_of_its_own_format():
-    three = _manifest(WEB)["version"]
-    peer = _manifest(WEB / "babylon")["peerDependencies"]["@vbusd/three"]
-    assert peer == "~" + ".".join(three.split(".")[:2]) + ".0", (peer, three)
+def test_runtimes_peer_the_core_and_three_runtime_of_their_own_format():
+    for folder, peer_name in ((WEB / "babylon", "@vbusd/three"), (WEB / "babylon", "@vbusd/core"), (WEB, "@vbusd/core")):
+        version = _manifest(WEB if peer_name == "@vbusd/three" else WEB / "core")["version"]
+        peer = _manifest(folder)["peerDependencies"][peer_name]
+        assert peer == "~" + ".".join(version.split(".")[:2]) + ".0", (folder, peer_name, peer, version)
 
 
 # --------------------------------------------------------------------------------------------
@@ -105,6 +108,7 @@ const three = await import('@vbusd/three');
 const babylon = await import('@vbusd/babylon');
 out.threeModule = three.shaderModule('dualQuat', 'float32', 4, 16, 'pulled');
 out.babylonModule = babylon.shaderModule('quatTranslation', 'float16', 4, 16);
+out.coreModule = (await import('@vbusd/core')).shaderModule('compactQuatTranslation', 'uint32', 4, 16, 'attributes', true);
 const { NodeIO, Document } = await import('@gltf-transform/core');
 const { VBUSDVirtualBones } = await import('@vbusd/gltf-transform');
 const io = new NodeIO().registerExtensions([VBUSDVirtualBones]);
@@ -155,10 +159,10 @@ def test_tarballs_hold_the_runtime_and_its_types_only(fresh_project):
         for file in files:
             assert file.split("/")[0] in ("src", "types", "package.json", "README.md", "gltf-transform.config.mjs"), \
                 f"{name} packs {file}"
-    assert "src/shader-modules.js" in contents["@vbusd/three"]
+    assert "src/shader-modules.js" in contents["@vbusd/core"]
     assert "src/webgpu/index.js" in contents["@vbusd/three"]
-    # One copy of the generated shader modules: the Babylon runtime imports @vbusd/three's.
-    assert not [f for f in contents["@vbusd/babylon"] if f.endswith("shader-modules.js")]
+    # One copy of the generated shader modules: every runtime imports @vbusd/core's.
+    assert not [f for name in ("@vbusd/three", "@vbusd/babylon") for f in contents[name] if f.endswith("shader-modules.js")]
 
 
 def test_installed_packages_import_and_declare_every_export(fresh_project):
@@ -178,4 +182,6 @@ def test_installed_packages_import_and_declare_every_export(fresh_project):
                                               main=False, skin="pulled")
     assert out["babylonModule"] == vbusd.shader("glsl", "quatTranslation", "float16", max_influences=4, max_clips=16,
                                                 main=False)
+    assert out["coreModule"] == vbusd.shader("glsl", "compactQuatTranslation", "uint32", max_influences=4, max_clips=16,
+                                             main=False, layers=True)
     assert out["gltfTransform"][1:] == ["/Walk", ["VBUSD_virtual_bones"]]

@@ -181,7 +181,7 @@ def test_viewer_and_three_js_ship_in_the_wheel(wheel_path, wheel_names, source_c
     sources = source_files(source_copy)
     expected = sorted(f"vbusd/web/static/{url}" for url in sources)
     for name in ("three/three.module.js", "three/three.core.js", "three/LICENSE", "vbusd-three/index.js",
-                 "vbusd-three/shader-modules.js", "vbusd-babylon/index.js", "babylon/babylon.bundle.js", "index.html"):
+                 "vbusd-core/shader-modules.js", "vbusd-core/index.js", "vbusd-babylon/index.js", "babylon/babylon.bundle.js", "index.html"):
         assert f"vbusd/web/static/{name}" in expected, name
     shipped = sorted(name for name in wheel_names if name.startswith("vbusd/web/static/"))
     assert shipped == expected

@@ -133,13 +133,31 @@ def _layers(crowd, buffer: _Buffer) -> dict:
             "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
 
 
+_FADE_FIELDS = (("fade_clip", "fadeClip", "i4"), ("fade_time_offset", "fadeTimeOffset", "f4"),
+                ("fade_playback_rate", "fadePlaybackRate", "f4"), ("fade_weight", "fadeWeight", "f4"))
+
+
 def _fade(crowd, buffer: _Buffer) -> dict:
-    """A crossfading crowd's fade arrays (format 1.1, defaults filled in), or nulls without crossfade."""
-    if not crowd.crossfades:
-        return {"fadeClip": None, "fadeTimeOffset": None, "fadePlaybackRate": None, "fadeWeight": None}
-    clip, offset, rate, weight = crowd.fade_arrays()
-    return {"fadeClip": buffer.add(clip, "i4"), "fadeTimeOffset": buffer.add(offset, "f4"),
-            "fadePlaybackRate": buffer.add(rate, "f4"), "fadeWeight": buffer.add(weight, "f4")}
+    """A crossfading crowd's fade arrays (format 1.1, defaults filled in), or nulls without crossfade.
+
+    Time-sampled fade primvars (a fade over stage time, ``vbusd crowd --fade-window``) also go out as
+    ``fadeSamples``: per field its stage times (seconds) and its (S, N) values, which the runtime
+    evaluates at the scene time as :meth:`vbusd.format.model.Crowd.at` does. A crowd whose weight is
+    0 at its first sample but sampled higher later crossfades too.
+    """
+    if not crowd.crossfades and not crowd.fade_samples:
+        return {"fadeClip": None, "fadeTimeOffset": None, "fadePlaybackRate": None, "fadeWeight": None,
+                "fadeSamples": None}
+    arrays = crowd.fade_arrays()
+    out = {key: buffer.add(values, dtype) for (_, key, dtype), values in zip(_FADE_FIELDS, arrays)}
+    samples = {}
+    for field, key, dtype in _FADE_FIELDS:
+        if field in (crowd.fade_samples or {}):
+            times, values = crowd.fade_samples[field]
+            samples[key] = {"times": [float(t) for t in np.asarray(times, dtype=np.float64)],
+                            "values": buffer.add(np.asarray(values).reshape(len(times), -1), dtype)}
+    out["fadeSamples"] = samples or None
+    return out
 
 
 def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> tuple[dict, bytes]:

@@ -1,4 +1,4 @@
-"""The GLSL module of ``vbusd shader`` as a JavaScript module for the three.js runtime.
+"""The GLSL module of ``vbusd shader`` as a JavaScript module for the web runtimes.
 
 The runtime (web/src/) must run exactly the module :func:`vbusd.decoders.shaders.generate` writes,
 never a retyped copy. :func:`javascript_module` embeds the generated GLSL (no ``main``, 4
@@ -6,8 +6,8 @@ influences, 16 clips) for every encoding and texel format and both skin bindings
 ``pulled``) as string constants; the runtime's ``shaderModule(encoding, texelFormat, maxInfluences,
 maxClips, skin)`` changes only the sizing ``#define`` lines (the pulled module's record sizes among
 them) and the header comment that names them. scripts/sync_web.py writes the result to
-web/src/shader-modules.js (the one copy: the Babylon.js runtime imports it as
-``@vbusd/three/shader-modules``), and tests check both that the committed file is what this function
+web/core/src/shader-modules.js (the one copy: @vbusd/core; every runtime imports it as
+``@vbusd/core/shader-modules``), and tests check both that the committed file is what this function
 writes now and that the runtime's output equals ``vbusd shader --no-main`` for other sizes.
 """
 
@@ -50,7 +50,7 @@ def layer_blocks() -> dict:
 
 
 def javascript_module() -> str:
-    """The text of web/src/shader-modules.js.
+    """The text of web/core/src/shader-modules.js.
 
     Returns:
         An ES module exporting ``GLSL_MODULES`` and ``GLSL_PULLED_MODULES`` (``"encoding/texelFormat"``

@@ -7,6 +7,7 @@ Every first-party file lives once, under ``web/`` of the repository; third-party
 URL folder         checkout folder                      files
 =================  ===================================  =========================================
 ``/``              ``web/viewer/``                      the pages (``*.html``, ``*.css``, ``*.js``)
+``/vbusd-core/``   ``web/core/src/``                    the engine-neutral core every runtime imports
 ``/vbusd-three/``  ``web/src/``                         the three.js runtime (``webgpu/`` included)
 ``/vbusd-babylon/`` ``web/babylon/src/``                the Babylon.js runtime
 ``/three/``        ``web/vendor/three-<version>/``      three.js' builds, the addons the pages
@@ -37,6 +38,7 @@ __all__ = ["SOURCES", "PACKAGE_STATIC", "CHECKOUT", "vendor_folder", "source_fil
 #: ``web/vendor/NAME-*`` is the one vendor folder of NAME, whatever its version.
 SOURCES = (
     ("", "web/viewer", ("*.html", "*.css", "*.js")),
+    ("vbusd-core", "web/core/src", ("*.js",)),
     ("vbusd-three", "web/src", ("*.js", "webgpu/*.js")),
     ("vbusd-babylon", "web/babylon/src", ("*.js",)),
     ("three", "web/vendor/three-*", ("LICENSE", "*.js", "addons/*/*.js")),

@@ -5,13 +5,19 @@
 import {
   Box3, BufferAttribute, BufferGeometry, DynamicDrawUsage, Float32BufferAttribute, Frustum, Group,
   InstancedBufferAttribute, InstancedMesh, IntType, Matrix4, MeshDepthMaterial, MeshDistanceMaterial,
-  MeshStandardMaterial, Quaternion, RGBADepthPacking, Sphere, Vector3,
+  MeshStandardMaterial, RGBADepthPacking, Sphere, Vector3,
 } from 'three';
+
+import {
+  VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
+  checkScreenSizes,
+} from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
 import { socketMatrix } from './sockets.js';
-import { VirtualBonesError } from './animation.js';
-import { DEFAULT_SKIN, checkSkinBinding, pullSkin } from './skin.js';
+import { DEFAULT_SKIN, pullSkin } from './skin.js';
+
+export { singleInstance };
 
 /**
  * A BufferGeometry for the runtime from plain arrays of one bound mesh.
@@ -129,6 +135,14 @@ export class VirtualBonesCrowd extends Group {
         weight: instances.fadeWeight?.[i] ?? 0,
       });
     }
+    // A fade over stage time (time-sampled fade primvars): updateSamples(time) writes each instance's
+    // fade at that time into the arrays above.
+    this.fadeSamples = instances.fadeSamples ?? null;
+    if (this.fadeSamples) {
+      const n = instances.count;
+      this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
+      this.updateSamples(0);
+    }
     // Layers (format 1.2): bound only for a crowd that plays them (its materials run vbSkinLayered).
     this.layered = Boolean(instances.layerWeight);  // not `layers`: Object3D.layers is three's render layers
     if (this.layered) {
@@ -189,12 +203,7 @@ export class VirtualBonesCrowd extends Group {
       // with the instances choosing that level; the full arrays above stay the source of truth
       // (setFade, socketMatrix and probe read them).
       const thresholds = Array.from(screenSizes ?? []);
-      if (thresholds.length !== levels.length) throw new VirtualBonesError(`${name}: ${levels.length + 1} levels need ${levels.length} screen sizes, got ${thresholds.length}`);
-      for (let t = 0; t < thresholds.length; ++t) {
-        if (!(thresholds[t] > 0 && thresholds[t] <= 1) || (t > 0 && !(thresholds[t] < thresholds[t - 1]))) {
-          throw new VirtualBonesError(`${name}: screen sizes must lie in (0, 1] and decrease, got ${thresholds.join(', ')}`);
-        }
-      }
+      checkScreenSizes(thresholds, levels.length, name);
       this.screenSizes = thresholds;
       this.hysteresis = hysteresis;
       this.levelOfInstance = new Int32Array(instances.count);
@@ -235,6 +244,27 @@ export class VirtualBonesCrowd extends Group {
     if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: fade weight must be in 0..1, got ${weight}`);
     this.fadeClipAttribute.array[index] = clip;
     this.fadeAttribute.array.set([timeOffset, playbackRate, weight], 3 * index);
+    this.fadeClipAttribute.needsUpdate = true;
+    this.fadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * A fade over stage time (format 1.1 fade primvars with time samples, `vbusd crowd
+   * --fade-window`): every instance's fade clip, offset, rate and weight at scene time `time`, as
+   * USD resolves the samples (@vbusd/core's evaluateSamples). Call with the animation's time each
+   * frame (the viewer does); without samples it does nothing.
+   */
+  updateSamples(time) {
+    if (!this.fadeSamples) return;
+    const { fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight } = evaluateSamples(this.fadeSamples, time, this.sampled);
+    const clips = this.fadeClipAttribute.array;
+    const fade = this.fadeAttribute.array;
+    for (let i = 0; i < this.capacity; ++i) {
+      if (this.fadeSamples.fadeClip) clips[i] = fadeClip[i];
+      if (this.fadeSamples.fadeTimeOffset) fade[3 * i] = fadeTimeOffset[i];
+      if (this.fadeSamples.fadePlaybackRate) fade[3 * i + 1] = fadePlaybackRate[i];
+      if (this.fadeSamples.fadeWeight) fade[3 * i + 2] = Math.min(Math.max(fadeWeight[i], 0), 1);
+    }
     this.fadeClipAttribute.needsUpdate = true;
     this.fadeAttribute.needsUpdate = true;
   }
@@ -333,16 +363,8 @@ export class VirtualBonesCrowd extends Group {
       let level = 0;
       if (camera.isPerspectiveCamera) {
         point.copy(centre).applyMatrix4(world);
-        const projected = (radius * scale) / (point.distanceTo(eye) * tangent);
-        const size = Math.PI * projected * projected / (4 * aspect);
-        for (const t of thresholds) if (size <= t) ++level;
-        const previous = this.levelOfInstance[i];
-        if (level < previous) {
-          // Finer only past the threshold by the hysteresis margin; coarser at once.
-          let raised = 0;
-          for (const t of thresholds) if (size <= t * (1 + this.hysteresis)) ++raised;
-          level = Math.min(previous, raised);
-        }
+        const size = screenSize(radius * scale, point.distanceTo(eye), tangent, aspect);
+        level = selectLevel(size, thresholds, this.levelOfInstance[i], this.hysteresis);
       }
       this.levelOfInstance[i] = level;
       const at = counts[level]++;
@@ -426,27 +448,6 @@ export class VirtualBonesCrowd extends Group {
  */
 export function instancesFromPlacement({ positions, orientations, scales = null, clip, timeOffset, playbackRate, fade = null, layers = null }) {
   const count = positions.length / 3;
-  const matrices = new Float32Array(16 * count);
-  const m = new Matrix4();
-  const p = new Vector3();
-  const q = new Quaternion();
-  const s = new Vector3(1, 1, 1);
-  for (let i = 0; i < count; ++i) {
-    p.fromArray(positions, 3 * i);
-    q.fromArray(orientations, 4 * i).normalize();
-    if (scales) s.fromArray(scales, 3 * i);
-    m.compose(p, q, s).toArray(matrices, 16 * i);
-  }
-  return { count, matrices, clip, timeOffset, playbackRate, ...(fade ?? {}), ...(layers ?? {}) };
-}
-
-/** One instance at the origin playing clip `clip` from its start at rate 1 (a single character). */
-export function singleInstance(clip = 0) {
-  return {
-    count: 1,
-    matrices: new Matrix4().toArray(new Float32Array(16)),
-    clip: new Int32Array([clip]),
-    timeOffset: new Float32Array([0]),
-    playbackRate: new Float32Array([1]),
-  };
+  return { count, matrices: placementMatrices(positions, orientations, scales), clip, timeOffset, playbackRate,
+    ...(fade ?? {}), ...(layers ?? {}) };
 }

@@ -3,50 +3,9 @@
 // lighting, fog, shadows and tone mapping work unchanged. The GLSL is the module `vbusd shader`
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
-import {
-  GLSL_MODULES, GLSL_PULLED_MODULES, GLSL_LAYER_BLOCKS, GLSL_LAYER_MARK, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS,
-} from './shader-modules.js';
-import { VirtualBonesError, BASE_MAX_BONES } from './animation.js';
-import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
+import { VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding } from '@vbusd/core';
 
-/**
- * The GLSL of `vbusd shader --lang glsl --no-main --encoding E --texel-format F
- * --max-influences K --max-clips C --skin S [--layers]`, character for character. The layer
- * functions of format 1.2 (spec/shaders.md, "Layers") come with the attribute binding only.
- */
-export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', layers = false, maxBones = BASE_MAX_BONES) {
-  checkSkinBinding(skin);
-  if (layers && skin !== 'attributes') throw new VirtualBonesError('layers (format 1.2) need the attributes skin binding');
-  const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
-  if (base === undefined) throw new VirtualBonesError(`no shader module for encoding ${encoding}, texel format ${texelFormat}`);
-  if (!Number.isInteger(maxInfluences) || maxInfluences < 1 || maxInfluences > 8) {
-    throw new VirtualBonesError(`maxInfluences must be 1..8, got ${maxInfluences}`);
-  }
-  if (!Number.isInteger(maxClips) || maxClips < 1 || maxClips > 256) {
-    throw new VirtualBonesError(`maxClips must be 1..256, got ${maxClips}`);
-  }
-  let text = replaceOnce(replaceOnce(replaceOnce(base,
-    `up to ${BASE_MAX_INFLUENCES} influences.`, `up to ${maxInfluences} influences.`),
-  `#define VB_MAX_INFLUENCES ${BASE_MAX_INFLUENCES}\n`, `#define VB_MAX_INFLUENCES ${maxInfluences}\n`),
-  `#define VB_MAX_CLIPS ${BASE_MAX_CLIPS}\n`, `#define VB_MAX_CLIPS ${maxClips}\n`);
-  if (encoding === 'compactQuatTranslation') {  // `vbusd shader --max-bones N`: the range uniforms' size
-    if (!Number.isInteger(maxBones) || maxBones < 1 || maxBones > 1024) throw new VirtualBonesError(`maxBones must be 1..1024, got ${maxBones}`);
-    text = replaceOnce(text, `#define VB_MAX_BONES ${BASE_MAX_BONES}\n`, `#define VB_MAX_BONES ${maxBones}\n`);
-  }
-  if (skin === 'pulled') {
-    text = replaceOnce(replaceOnce(text,
-      `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
-    `#define VB_SKIN_TEXELS ${skinRecordTexels(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_TEXELS ${skinRecordTexels(maxInfluences)}\n`);
-  }
-  if (layers) text = replaceOnce(text, GLSL_LAYER_MARK, GLSL_LAYER_BLOCKS[encoding] + GLSL_LAYER_MARK);
-  return text;
-}
-
-function replaceOnce(text, search, replacement) {
-  const at = text.indexOf(search);
-  if (at < 0 || text.indexOf(search, at + 1) >= 0) throw new VirtualBonesError(`shader hook ${JSON.stringify(search.trim())} not found exactly once`);
-  return text.slice(0, at) + replacement + text.slice(at + search.length);
-}
+export { shaderModule };
 
 /**
  * Declarations added after three's `#include <common>`: the module and the vertex inputs of

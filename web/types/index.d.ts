@@ -32,6 +32,8 @@ export class VirtualBonesAnimation {
   readonly name: string;
   readonly layout: Layout;
   readonly clips: Layout['clips'];
+  /** The stored texels, as given (the CPU decoder of sockets reads them). */
+  readonly texels: Texels;
   /** Scene time in seconds: an instance's clip-local time is timeOffset + playbackRate * time. */
   time: number;
   clipIndex(name: string): number;
@@ -52,6 +54,8 @@ export interface Instances {
   fadeTimeOffset?: Float32Array;
   fadePlaybackRate?: Float32Array;
   fadeWeight?: Float32Array;
+  /** A fade over stage time: per fade field its stage times and S x N values (VirtualBonesCrowd.updateSamples). */
+  fadeSamples?: { [field: string]: { times: ArrayLike<number>; values: ArrayLike<number> } } | null;
   layerClip?: Int32Array;
   layerTimeOffset?: Float32Array;
   layerPlaybackRate?: Float32Array;
@@ -88,6 +92,8 @@ export class VirtualBonesCrowd extends Group {
   readonly trianglesDrawn: number;
   setFade(index: number, fade?: { clip?: number; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
+  /** A fade over stage time: every instance's time-sampled fade at scene time `time` (no-op without samples). */
+  updateSamples(time: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
   updateLevels(camera: object): void;
   boundsOfInstances(): Box3;

@@ -2,8 +2,8 @@
 // material plugin (web/babylon/src), thin instances, a shadow-casting sun and an orbit camera.
 //
 // Query parameters as viewer.js's: time=T, paused=1, camera=x,y,z,tx,ty,tz, fov=DEG, silhouette=1,
-// ui=0, width=W, height=H, instances=N, antialias=0. The plain files of a USD asset are parsed with the three.js runtime's
-// loadPlainScene (its arrays only: nothing of three draws here).
+// ui=0, width=W, height=H, instances=N, antialias=0, skin=attributes|pulled (the skin binding;
+// attributes by default). The plain files of a USD asset are parsed by @vbusd/core.
 //
 // window.vbusd: {ready, probe(instance, time), setTime(t), render(), measureFrames(n), engine
 // ('babylon'), backend ('webgl2'), babylon: {engine, scene, camera}, crowds, animations}.
@@ -12,6 +12,8 @@ import {
   Engine, Scene, Vector3, Color3, Color4, StandardMaterial, DirectionalLight, HemisphericLight,
   ArcRotateCamera, MeshBuilder, ShadowGenerator, ImportMeshAsync,
 } from '@babylonjs/core';
+
+import { fetchPlainScene, singleInstance } from '@vbusd/core';
 
 import {
   VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd, registerVirtualBonesGLTFExtension,
@@ -25,45 +27,6 @@ const element = (id) => document.getElementById(id);
 function showError(error) {
   console.error(error);
   element('error').textContent = String(error?.message ?? error);
-}
-
-/** The asset as engine-neutral arrays: animations ({layout, texels, meshes}) and crowds. */
-async function loadArrays(config) {
-  if (config.kind !== 'scene') throw new Error(`unknown asset kind ${config.kind}`);
-  const { loadPlainScene } = await import('./vbusd-three/index.js');
-  const description = await loadPlainScene(config.url);
-  const meshArrays = (mesh) => {
-    const g = mesh.geometry;
-    const { pointIndex, hasNormals, pointCount } = g.userData.virtualBones;
-    const sets = g.attributes.vb_boneIndices1 ? 2 : 1;
-    const vertexCount = g.attributes.position.count;
-    const boneIndices = new Float32Array(4 * sets * vertexCount);
-    const boneWeights = new Float32Array(4 * sets * vertexCount);
-    for (let set = 0; set < sets; ++set) {
-      for (let v = 0; v < vertexCount; ++v) {
-        for (let i = 0; i < 4; ++i) {
-          boneIndices[v * 4 * sets + 4 * set + i] = g.attributes[`vb_boneIndices${set}`].array[4 * v + i];
-          boneWeights[v * 4 * sets + 4 * set + i] = g.attributes[`vb_boneWeights${set}`].array[4 * v + i];
-        }
-      }
-    }
-    return { name: mesh.name, maxInfluences: mesh.maxInfluences, positions: g.attributes.position.array,
-      normals: hasNormals ? g.attributes.normal.array : null, indices: g.index.array, boneIndices, boneWeights,
-      pointIndex, pointCount };
-  };
-  return {
-    upAxis: description.upAxis,
-    animations: description.animations.map((entry) => ({
-      name: entry.animation.name, layout: entry.animation.layout, texels: entry.animation.texture.image.data,
-      meshes: entry.meshes.map(meshArrays),
-    })),
-    crowds: description.crowds,
-  };
-}
-
-function oneInstance() {
-  return { count: 1, matrices: new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]),
-    clip: new Int32Array([0]), timeOffset: new Float32Array([0]), playbackRate: new Float32Array([1]) };
 }
 
 async function main() {
@@ -93,15 +56,17 @@ async function main() {
     if (!scene.metadata?.virtualBones) throw new Error('the glTF has no VBUSD_virtual_bones meshes');
     ({ crowds, animations } = scene.metadata.virtualBones);
   } else {
-    const asset = await loadArrays(config);
+    if (config.kind !== 'scene') throw new Error(`unknown asset kind ${config.kind}`);
+    const asset = await fetchPlainScene(config.url);
     zUp = asset.upAxis === 'Z';
+    const skin = params.get('skin');
     animations = asset.animations.map((entry) => new VirtualBonesAnimation(scene, entry));
     crowds = asset.crowds.map((crowd) => new VirtualBonesCrowd(scene, {
       animation: animations[crowd.animation], meshes: asset.animations[crowd.animation].meshes,
-      instances: crowd.instances, material, name: crowd.name }));
+      instances: crowd.instances, material, name: crowd.name, skin }));
     const instanced = new Set(asset.crowds.map((crowd) => crowd.animation));
     asset.animations.forEach((entry, a) => {
-      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: oneInstance(), material, name: entry.name }));
+      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: singleInstance(0), material, name: entry.name, skin }));
     });
   }
   if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
@@ -161,6 +126,7 @@ async function main() {
   const setTime = (t) => {
     time = t;
     for (const animation of animations) animation.time = t;
+    for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };
   element('play').textContent = playing ? 'Pause' : 'Play';

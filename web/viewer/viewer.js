@@ -153,6 +153,7 @@ async function main() {
     needsRender = true;
     time = t;
     for (const animation of objects.animations) animation.time = t;
+    for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
     element('time').value = String(t % Number(element('time').max));
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };

@@ -1,51 +1,64 @@
 // A baked Virtual Bones animation on Babylon's engine: its texture (a RawTexture of the stored
-// texels: NEAREST, no mipmaps, no flip, row r = scanline r), its clip table and its clock.
+// texels: NEAREST, no mipmaps, no flip, row r = scanline r), its clip table, ranges, rig texture
+// and clock. The arrays come from @vbusd/core (checked against the layout there).
 
 import { RawTexture, Constants } from '@babylonjs/core';
+import {
+  VirtualBonesError, checkLayout, widenWords, clipTable, unormRanges, compactRanges, rigTexels,
+} from '@vbusd/core';
 
-import { VirtualBonesError } from './skinning.js';
-import { BASE_MAX_CLIPS } from '@vbusd/three/shader-modules';
-
-const TEXEL_TYPES = {
-  float16: { type: Constants.TEXTURETYPE_HALF_FLOAT, array: Uint16Array },
-  float32: { type: Constants.TEXTURETYPE_FLOAT, array: Float32Array },
+// Babylon's texture format and type per texel format. unorm16 is RGBA16_EXT of WebGL 2's
+// EXT_texture_norm16 (Babylon's TEXTUREFORMAT_RGBA16_UNORM); the compact encoding's words are
+// widened to RGBA32UI (A = 0) and read with texelFetch from a usampler2D.
+const TEXTURES = {
+  float16: { format: Constants.TEXTUREFORMAT_RGBA, type: Constants.TEXTURETYPE_HALF_FLOAT },
+  float32: { format: Constants.TEXTUREFORMAT_RGBA, type: Constants.TEXTURETYPE_FLOAT },
+  unorm16: { format: 32859, type: Constants.TEXTURETYPE_UNSIGNED_SHORT },  // Engine.TEXTUREFORMAT_RGBA16_UNORM
+  uint32: { format: Constants.TEXTUREFORMAT_RGBA_INTEGER, type: Constants.TEXTURETYPE_UNSIGNED_INTEGER },
 };
-const ENCODINGS = { crossMatrix: 3, affineMatrix: 3, quatTranslation: 2, dualQuat: 2 };
+
+function rawTexture(scene, data, width, height, { format, type }, name) {
+  // Data, not colour: NEAREST, no mipmaps, no flip (invertY false keeps row r at texel row r).
+  const texture = new RawTexture(data, width, height, format, scene, false, false, Constants.TEXTURE_NEAREST_SAMPLINGMODE, type);
+  texture.name = name;
+  texture.wrapU = texture.wrapV = Constants.TEXTURE_CLAMP_ADDRESSMODE;
+  return texture;
+}
 
 /**
  * One Virtual Bones texture on a Babylon scene.
  *
  * `layout` is the layout metadata (spec "Layout metadata"); `texels` the stored values, scanline
- * 0 first (Uint16Array of float16 bits, or Float32Array). The Babylon runtime reads the float
- * encodings in float16 and float32; unorm16 and the compact uint32 encoding are refused with a
- * message (three.js' runtime reads them).
+ * 0 first (Uint16Array of float16 bits or unorm16 integers, Float32Array, or the compact
+ * encoding's Uint32Array of three words per texel). Every encoding and texel format; unorm16 needs
+ * EXT_texture_norm16, and where the browser lacks it the constructor says so in one line, naming
+ * the alternative.
  */
 export class VirtualBonesAnimation {
-  constructor(scene, { layout, texels, name = '' }) {
-    const texelType = TEXEL_TYPES[layout.texelFormat];
-    if (!texelType) throw new VirtualBonesError(`${name}: texel format ${JSON.stringify(layout.texelFormat)}: the Babylon.js runtime reads float16 and float32`);
-    if (!ENCODINGS[layout.encoding]) throw new VirtualBonesError(`${name}: encoding ${JSON.stringify(layout.encoding)}: the Babylon.js runtime reads ${Object.keys(ENCODINGS).join(', ')}`);
-    const expected = layout.width * layout.height * 4;
-    if (!(texels instanceof texelType.array) || texels.length !== expected) {
-      throw new VirtualBonesError(`${name}: texels must be a ${texelType.array.name} of ${expected} values, got ${texels?.constructor?.name} of ${texels?.length}`);
+  constructor(scene, { layout, texels, clipExtents = null, name = '' }) {
+    const facts = checkLayout(layout, texels, name);
+    if (layout.texelFormat === 'unorm16' && !scene.getEngine().getCaps().textureNorm16) {
+      throw new VirtualBonesError(`${name || 'animation'}: this unorm16 texture needs the WebGL extension `
+        + 'EXT_texture_norm16, which this browser does not offer; convert the asset with --texel-format float16 or float32');
     }
     this.name = name;
     this.layout = layout;
-    this.encoding = layout.encoding;
-    this.texelFormat = layout.texelFormat;
+    this.encoding = facts.encoding;
+    this.texelFormat = facts.texelFormat;
+    this.texelsPerBone = facts.texelsPerBone;
+    this.maxClips = facts.maxClips;
+    this.maxBones = facts.maxBones;
+    this.masks = facts.masks;
     this.clips = layout.clips;
-    this.texels = texels;
-    // Data, not colour: NEAREST, no mipmaps, no flip (invertY false keeps row r at texel row r).
-    this.texture = new RawTexture(texels, layout.width, layout.height, Constants.TEXTUREFORMAT_RGBA, scene,
-      false, false, Constants.TEXTURE_NEAREST_SAMPLINGMODE, texelType.type);
-    this.texture.name = `${name} (Virtual Bones)`;
-    this.texture.wrapU = this.texture.wrapV = Constants.TEXTURE_CLAMP_ADDRESSMODE;
-    this.maxClips = Math.max(BASE_MAX_CLIPS, this.clips.length);
-    this.clipTable = new Float32Array(4 * this.maxClips);
-    for (let i = 0; i < this.maxClips; ++i) {
-      const clip = this.clips[i];
-      this.clipTable.set(clip ? [clip.firstRow, clip.rowCount, clip.rowsPerSecond, clip.loop ? 1 : 0] : [0, 1, 1, 0], 4 * i);
-    }
+    this.clipExtents = clipExtents;
+    this.texels = texels;  // as stored: the CPU decoder (sockets) reads them
+    const data = layout.texelFormat === 'uint32' ? widenWords(layout, texels) : texels;
+    this.texture = rawTexture(scene, data, layout.width, layout.height, TEXTURES[layout.texelFormat], `${name} (Virtual Bones)`);
+    this.clipTable = clipTable(this.clips, this.maxClips);
+    if (layout.texelFormat === 'unorm16') this.ranges = unormRanges(layout);
+    if (layout.texelFormat === 'uint32') this.compactRanges = compactRanges(layout, this.maxBones);
+    const rig = rigTexels(layout);  // format 1.2 layers: bind transforms, parents, masks
+    this.rigTexture = rig ? rawTexture(scene, rig.data, rig.width, rig.height, TEXTURES.float32, `${name} (rig)`) : null;
     /** Scene time in seconds (vb_time): every material skinned from this animation reads it. */
     this.time = 0;
   }
@@ -53,5 +66,11 @@ export class VirtualBonesAnimation {
   /** Index of the clip named `name`, or -1. */
   clipIndex(name) { return this.clips.findIndex((clip) => clip.name === name); }
 
-  dispose() { this.texture.dispose(); }
+  /** Index of the bone mask called `name` (format 1.2), or -1. */
+  maskIndex(name) { return this.masks.indexOf(name); }
+
+  dispose() {
+    this.texture.dispose();
+    this.rigTexture?.dispose();
+  }
 }

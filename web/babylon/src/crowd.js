@@ -1,44 +1,84 @@
 // A Virtual Bones crowd in Babylon.js: one Mesh per rest mesh of the animation, its instances as
-// thin instances (one draw call per mesh), each with its own clip, time offset, rate and
-// crossfade in two thin-instance streams read by the material plugin.
+// thin instances (one draw call per mesh), each with its own clip, time offset, rate, crossfade
+// and layers in thin-instance streams read by the material plugin.
 
-import { Mesh, VertexData, Matrix, StandardMaterial, Color3 } from '@babylonjs/core';
+import { Mesh, VertexData, Matrix, StandardMaterial, Color3, RawTexture, Constants } from '@babylonjs/core';
+import {
+  VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
+} from '@vbusd/core';
 
-import { VirtualBonesError } from './skinning.js';
 import { skinMaterial } from './plugin.js';
-import { crowdSocketMatrix } from './sockets.js';
 
 /**
  * @param {Scene} scene
  * @param {object} options
  * @param {VirtualBonesAnimation} options.animation
  * @param {Array<object>} options.meshes per mesh: {name, positions: Float32Array (3 per vertex),
- *   normals (or null: Babylon computes them), indices: Uint32Array, boneIndices / boneWeights:
- *   4 or 8 per vertex (any numeric arrays), maxInfluences, pointIndex (or null), pointCount}
+ *   normals (or null: Babylon computes them), triangles (or indices): Uint32Array, boneIndices /
+ *   boneWeights: 4 or 8 per vertex (any numeric arrays), maxInfluences, pointIndex (or null),
+ *   pointCount} (@vbusd/core's parsePlainScene gives them)
  * @param {object} options.instances {count, matrices: Float32Array(16 N) (column-major: glTF's and
  *   three's, which is Babylon's memory layout), clip, timeOffset, playbackRate; optionally
- *   fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight}
+ *   fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight, fadeSamples (a fade over stage time,
+ *   evaluated by updateSamples), and the layers of format 1.2 (two per instance: layerClip,
+ *   layerMask, layerTimeOffset, layerPlaybackRate, layerWeight, 2 N each)}
  * @param {function(string): Material} [options.material] a new material per mesh (default a
  *   StandardMaterial); the plugin is added to it.
+ * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `attributes`
+ *   (default: bone indices and weights as vertex streams) or `pulled` (the skin records in an
+ *   RGBA32UI texture read by gl_VertexID; the bone streams are not made). Layers run in the
+ *   attributes binding.
  */
 export class VirtualBonesCrowd {
-  constructor(scene, { animation, meshes = [], instances, material = null, name = 'crowd', adopt = null }) {
+  constructor(scene, { animation, meshes = [], instances, material = null, name = 'crowd', adopt = null, skin = null, rootMotion = null }) {
     this.scene = scene;
     this.animation = animation;
     this.name = name;
     this.capacity = instances.count;
     this.instances = instances;
+    this.layered = Boolean(instances.layerWeight);
+    this.skin = skin ?? 'attributes';
+    checkSkinBinding(this.skin, name);
+    if (this.layered && this.skin !== 'attributes') throw new VirtualBonesError(`${name}: layers (format 1.2) need the attributes skin binding`);
+    if (this.layered && !animation.rigTexture) throw new VirtualBonesError(`${name}: the crowd plays layers but its animation stores no bone masks`);
+    this.rootMotion = rootMotion ?? animation.layout.rootMotion ?? null;
+    for (let i = 0; i < this.capacity; ++i) {
+      if (!(instances.clip[i] >= 0 && instances.clip[i] < animation.clips.length)) {
+        throw new VirtualBonesError(`${name}: instance ${i} plays clip ${instances.clip[i]}, the animation has ${animation.clips.length}`);
+      }
+    }
     this.instanceA = new Float32Array(4 * this.capacity);
     this.instanceB = new Float32Array(4 * this.capacity);
     for (let i = 0; i < this.capacity; ++i) {
       this.instanceA.set([instances.clip[i], instances.timeOffset[i], instances.playbackRate[i], instances.fadeClip?.[i] ?? 0], 4 * i);
-      this.instanceB.set([instances.fadeTimeOffset?.[i] ?? 0, instances.fadePlaybackRate?.[i] ?? 1, instances.fadeWeight?.[i] ?? 0, 0], 4 * i);
+      this.instanceB.set([instances.fadeTimeOffset?.[i] ?? 0, instances.fadePlaybackRate?.[i] ?? 1,
+        Math.min(Math.max(instances.fadeWeight?.[i] ?? 0, 0), 1), 0], 4 * i);
+    }
+    if (this.layered) {  // two layers per instance: (clip, mask), (offset, rate), (weight, weight)
+      this.instanceC = new Float32Array(4 * this.capacity);
+      this.instanceD = new Float32Array(4 * this.capacity);
+      this.instanceE = new Float32Array(4 * this.capacity);
+      for (let i = 0; i < this.capacity; ++i) {
+        for (let j = 0; j < 2; ++j) {
+          const k = 2 * i + j;
+          const weight = Math.min(Math.max(instances.layerWeight[k], 0), 1);
+          this.instanceC.set([weight > 0 ? instances.layerClip[k] : 0, weight > 0 ? instances.layerMask[k] : 0], 4 * i + 2 * j);
+          this.instanceD.set([instances.layerTimeOffset[k], instances.layerPlaybackRate[k]], 4 * i + 2 * j);
+          this.instanceE[4 * i + j] = weight;
+        }
+      }
+    }
+    this.fadeSamples = instances.fadeSamples ?? null;
+    if (this.fadeSamples) {
+      const n = this.capacity;
+      this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
     }
     this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
     // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
     // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
     this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
       : meshes.map((entry) => this._mesh(entry, material));
+    this.updateSamples(animation.time ?? 0);
   }
 
   _mesh(entry, material) {
@@ -48,7 +88,7 @@ export class VirtualBonesCrowd {
     const mesh = new Mesh(entry.name, this.scene);
     const data = new VertexData();
     data.positions = Float32Array.from(entry.positions);
-    data.indices = Uint32Array.from(entry.indices);
+    data.indices = Uint32Array.from(entry.triangles ?? entry.indices);
     if (entry.normals) data.normals = Float32Array.from(entry.normals);
     else {
       data.normals = new Float32Array(data.positions.length);
@@ -64,6 +104,8 @@ export class VirtualBonesCrowd {
     const vertexCount = mesh.getTotalVertices();
     const slots = entry.boneIndices.length / vertexCount;
     if (slots !== 4 && slots !== 8) throw new VirtualBonesError(`${mesh.name}: bone indices must be 4 or 8 per vertex, got ${slots}`);
+    const maxInfluences = entry.maxInfluences ?? slots;
+    const sets = [];
     for (let set = 0; set < slots / 4; ++set) {
       const indices = new Float32Array(4 * vertexCount);
       const weights = new Float32Array(4 * vertexCount);
@@ -73,24 +115,42 @@ export class VirtualBonesCrowd {
           weights[4 * v + i] = entry.boneWeights[v * slots + 4 * set + i];
         }
       }
-      mesh.setVerticesData(`vb_boneIndices${set}`, indices, false, 4);
-      mesh.setVerticesData(`vb_boneWeights${set}`, weights, false, 4);
+      sets.push([indices, weights]);
     }
-    const maxInfluences = entry.maxInfluences ?? slots;
+    let skinTexture = null;
+    if (this.skin === 'pulled') {
+      // The skin records (spec/shaders.md, "Skin records") in an RGBA32UI texture read by gl_VertexID.
+      const records = packSkin(sets.map(([indices]) => indices), sets.map(([, weights]) => weights), maxInfluences, mesh.name);
+      const { width, height, data } = skinTextureData(records);
+      skinTexture = new RawTexture(data, width, height, Constants.TEXTUREFORMAT_RGBA_INTEGER, this.scene, false, false,
+        Constants.TEXTURE_NEAREST_SAMPLINGMODE, Constants.TEXTURETYPE_UNSIGNED_INTEGER);
+      skinTexture.name = `${mesh.name} (skin records)`;
+    } else {
+      sets.forEach(([indices, weights], set) => {
+        mesh.setVerticesData(`vb_boneIndices${set}`, indices, false, 4);
+        mesh.setVerticesData(`vb_boneWeights${set}`, weights, false, 4);
+      });
+    }
     // The given material, else the mesh's own (a glTF's PBRMaterial), else a grey StandardMaterial;
     // a material some other skinned mesh already uses is cloned (the plugin holds one animation).
     let mat = material ? material(mesh.name) : mesh.material;
     if (!mat) mat = Object.assign(new StandardMaterial(`${mesh.name} material`, this.scene), { diffuseColor: new Color3(0.72, 0.74, 0.78) });
     else if (mat.metadata?.virtualBones) mat = mat.clone(`${mat.name} (${mesh.name})`);
-    skinMaterial(mat, this.animation, maxInfluences);
+    skinMaterial(mat, this.animation, maxInfluences, { skin: this.skin, skinTexture, layers: this.layered });
     mesh.material = mat;
     if (this.matrices) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
     mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
     mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
+    if (this.layered) {
+      mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
+      mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
+      mesh.thinInstanceSetBuffer('vb_instanceE', this.instanceE, 4, true);
+    }
     // Skinned vertices leave the rest bounds: the crowd is never culled by them.
     mesh.alwaysSelectAsActiveMesh = true;
-    mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals: true, pointCount: vertexCount,
-      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences } };
+    const hasNormals = mesh.isVerticesDataPresent('normal');
+    mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals, pointCount: vertexCount,
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets } };
     return mesh;
   }
 
@@ -99,27 +159,94 @@ export class VirtualBonesCrowd {
 
   set count(n) { for (const mesh of this.meshes) mesh.thinInstanceCount = Math.max(0, Math.min(n, this.capacity)); }
 
+  _updated(...streams) {
+    for (const mesh of this.meshes) for (const stream of streams) mesh.thinInstanceBufferUpdated(stream);
+  }
+
   /** Change instance `i`'s crossfade (spec 8.3): fade clip, its time offset and rate, weight. */
   setFade(i, { fadeClip, fadeTimeOffset = 0, fadePlaybackRate = 1, fadeWeight }) {
-    this.instanceA[4 * i + 3] = fadeClip;
-    this.instanceB.set([fadeTimeOffset, fadePlaybackRate, fadeWeight], 4 * i);
-    for (const mesh of this.meshes) {
-      mesh.thinInstanceBufferUpdated('vb_instanceA');
-      mesh.thinInstanceBufferUpdated('vb_instanceB');
+    if (!(fadeClip >= 0 && fadeClip < this.animation.clips.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${i} fades into clip ${fadeClip}, the animation has ${this.animation.clips.length}`);
     }
+    this.instanceA[4 * i + 3] = fadeClip;
+    this.instanceB.set([fadeTimeOffset, fadePlaybackRate, Math.min(Math.max(fadeWeight, 0), 1)], 4 * i);
+    this._updated('vb_instanceA', 'vb_instanceB');
+  }
+
+  /**
+   * A fade over stage time (time-sampled fade primvars, `vbusd crowd --fade-window`): every
+   * instance's fade at scene time `time`, as USD resolves the samples (@vbusd/core's
+   * evaluateSamples). The viewer calls it with the animation's time each frame; without samples it
+   * does nothing.
+   */
+  updateSamples(time) {
+    if (!this.fadeSamples) return;
+    const { fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight } = evaluateSamples(this.fadeSamples, time, this.sampled);
+    const s = this.fadeSamples;
+    for (let i = 0; i < this.capacity; ++i) {
+      if (s.fadeClip) this.instanceA[4 * i + 3] = fadeClip[i];
+      if (s.fadeTimeOffset) this.instanceB[4 * i] = fadeTimeOffset[i];
+      if (s.fadePlaybackRate) this.instanceB[4 * i + 1] = fadePlaybackRate[i];
+      if (s.fadeWeight) this.instanceB[4 * i + 2] = Math.min(Math.max(fadeWeight[i], 0), 1);
+    }
+    if (this.meshes) this._updated('vb_instanceA', 'vb_instanceB');
+  }
+
+  /**
+   * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
+   * playbackRate * time` over the bones of mask `mask` (index or name) with weight `weight`.
+   */
+  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers`);
+    const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
+    if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
+    if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: layer weight must be in 0..1, got ${weight}`);
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+      throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
+    }
+    this.instanceC.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
+    this.instanceD.set([timeOffset, playbackRate], 4 * index + 2 * slot);
+    this.instanceE[4 * index + slot] = weight;
+    this._updated('vb_instanceC', 'vb_instanceD', 'vb_instanceE');
   }
 
   /** Set every instance's clip (one clip index for all, or per instance). */
   setClips(clips) {
     for (let i = 0; i < this.capacity; ++i) this.instanceA[4 * i] = typeof clips === 'number' ? clips : clips[i];
-    for (const mesh of this.meshes) mesh.thinInstanceBufferUpdated('vb_instanceA');
+    this._updated('vb_instanceA');
   }
 
-  /** Socket (spec 8.4): the world transform of `bone` of instance `index` at scene time `time`. */
-  socketMatrix(index, bone, time) { return crowdSocketMatrix(this, index, bone, time); }
+  /**
+   * Socket (spec 8.4): the world transform of `bone` of instance `index` at scene time `time`
+   * (clip, offset, rate and crossfade of the instance, @vbusd/core's decoder on the stored texels;
+   * its thin-instance matrix and the mesh's world matrix) as a Babylon Matrix: a prop follows each
+   * character's hand with it.
+   */
+  socketMatrix(index, bone, time) {
+    this.updateSamples(time);
+    const [clip, offset, rate, fadeClip] = this.instanceA.subarray(4 * index, 4 * index + 4);
+    const [fadeOffset, fadeRate, fadeWeight] = this.instanceB.subarray(4 * index, 4 * index + 3);
+    const joint = jointElements(this.animation, bone, Math.round(clip), offset + rate * time,
+      { clip: Math.round(fadeClip), tau: fadeOffset + fadeRate * time, weight: fadeWeight });
+    // Row vectors: the joint first, then the instance's placement, then the mesh's world.
+    return Matrix.FromArray(joint).multiply(this.instanceMatrix(index)).multiply(this.meshes[0].computeWorldMatrix(true));
+  }
+
+  /**
+   * Root motion (spec 8.5): how far instance `index`'s clip, baked in place, moves it between scene
+   * times `t0` and `t1` (D(tau1) D(tau0)^-1 at its clip-local times), a Babylon Matrix in animation
+   * space; the identity without root motion.
+   */
+  rootMotionMatrix(index, t0, t1) {
+    const [clip, offset, rate] = this.instanceA.subarray(4 * index, 4 * index + 3);
+    return Matrix.FromArray(rootMotionElements(this.animation, this.rootMotion, Math.round(clip), offset + rate * t0, offset + rate * t1));
+  }
 
   /** Instance `i`'s placement as a Babylon Matrix. */
   instanceMatrix(i) {
     return this.matrices ? Matrix.FromArray(this.matrices, 16 * i) : this.meshes[0].thinInstanceGetWorldMatrices()[i].clone();
   }
 }
+
+/** The socket of instance `index` of `crowd` (crowd.socketMatrix). */
+export function crowdSocketMatrix(crowd, index, bone, time) { return crowd.socketMatrix(index, bone, time); }

@@ -80,7 +80,10 @@ export class VirtualBonesGLTFLoaderExtension {
           for (let v = 0; v < arrays[0].length / 4; ++v) for (let i = 0; i < 4; ++i) { out[8 * v + i] = arrays[0][4 * v + i]; out[8 * v + 4 + i] = arrays[1][4 * v + i]; }
           return out;
         };
-        return { mesh: node._primitiveBabylonMeshes[p], maxInfluences: extension.influences,
+        const babylonMesh = node._primitiveBabylonMeshes[p];
+        // A primitive without NORMAL has no normals of its own, whatever Babylon computes to light it.
+        babylonMesh.metadata = { ...(babylonMesh.metadata ?? {}), virtualBones: { hasNormals: primitive.attributes.NORMAL !== undefined } };
+        return { mesh: babylonMesh, maxInfluences: extension.influences,
           boneIndices: interleave(boneIndices), boneWeights: interleave(boneWeights) };
       }));
       const instancing = node.extensions?.EXT_mesh_gpu_instancing?.attributes;

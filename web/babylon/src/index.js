@@ -4,7 +4,6 @@
 export { VirtualBonesError, shaderModule, skinningDeclarations, skinningCall } from './skinning.js';
 export { VirtualBonesAnimation } from './animation.js';
 export { VirtualBonesPluginMaterial, skinMaterial, vertexInputs } from './plugin.js';
-export { VirtualBonesCrowd } from './crowd.js';
+export { VirtualBonesCrowd, crowdSocketMatrix } from './crowd.js';
 export { probeBabylonCrowd } from './probe.js';
 export { VirtualBonesGLTFLoaderExtension, registerVirtualBonesGLTFExtension, EXTENSION } from './gltf-extension.js';
-export { crowdSocketMatrix } from './sockets.js';

@@ -12,17 +12,19 @@
 
 import { MaterialPluginBase, ShadowDepthWrapper } from '@babylonjs/core';
 
+import { checkSkinBinding } from '@vbusd/core';
+
 import { VirtualBonesError, skinningCall, skinningDeclarations } from './skinning.js';
 
 const PLUGIN_NAME = 'VirtualBones';
-// Shader variants (encoding, texel format, influences, clips) get a number: the plugin's define
-// VB_VARIANT keeps Babylon from sharing one compiled effect between different modules.
+// Shader variants (encoding, texel format, influences, clips, bones, binding, layers) get a number:
+// the plugin's define VB_VARIANT keeps Babylon from sharing one compiled effect between modules.
 const variants = new Map();
 
 /** Vertex streams of a skinned mesh (the plugin's attributes). */
-export function vertexInputs(maxInfluences) {
-  return ['vb_boneIndices0', 'vb_boneWeights0', ...(maxInfluences > 4 ? ['vb_boneIndices1', 'vb_boneWeights1'] : []),
-    'vb_instanceA', 'vb_instanceB'];
+export function vertexInputs(maxInfluences, skin = 'attributes', layers = false) {
+  return [...(skin === 'pulled' ? [] : ['vb_boneIndices0', 'vb_boneWeights0', ...(maxInfluences > 4 ? ['vb_boneIndices1', 'vb_boneWeights1'] : [])]),
+    'vb_instanceA', 'vb_instanceB', ...(layers ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : [])];
 }
 
 export class VirtualBonesPluginMaterial extends MaterialPluginBase {
@@ -30,14 +32,22 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
    * @param {Material} material a StandardMaterial or PBRMaterial (GLSL: WebGL 2)
    * @param {VirtualBonesAnimation} animation the texture, clip table and clock
    * @param {number} maxInfluences bone influences per vertex of the meshes it draws (1..8)
+   * @param {object} [binding] {skin: 'attributes' (default) or 'pulled', skinTexture (the mesh's
+   *   RGBA32UI skin records, with pulled), layers (format 1.2: the crowd plays layers)}
    */
-  constructor(material, animation, maxInfluences = 4) {
+  constructor(material, animation, maxInfluences = 4, { skin = 'attributes', skinTexture = null, layers = false } = {}) {
     // The base constructor asks getCustomCode for its injection points before the fields below are
     // set (getCustomCode answers the same keys then); enabled once they are.
     super(material, PLUGIN_NAME, 200, { VIRTUAL_BONES: false, VB_VARIANT: 0 }, true, false);
+    checkSkinBinding(skin, material.name);
+    if (skin === 'pulled' && !skinTexture) throw new VirtualBonesError('the pulled skin binding needs the mesh\'s skin texture');
+    if (layers && !animation.rigTexture) throw new VirtualBonesError(`${animation.name}: layers need an animation with bone masks (format 1.2)`);
     this.animation = animation;
     this.maxInfluences = maxInfluences;
-    const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}`;
+    this.skin = skin;
+    this.skinTexture = skinTexture;
+    this.layers = layers;
+    const key = `${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
     if (!variants.has(key)) variants.set(key, variants.size + 1);
     this.variant = variants.get(key);
     // hardBindForSubMesh (every draw, the shadow pass included) is one of the plugin manager's
@@ -55,27 +65,35 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
     defines.VB_VARIANT = this.variant;
   }
 
-  getAttributes(attributes) { attributes.push(...vertexInputs(this.maxInfluences)); }
+  getAttributes(attributes) { attributes.push(...vertexInputs(this.maxInfluences, this.skin, this.layers)); }
 
-  getSamplers(samplers) { samplers.push('vb_texture'); }
+  getSamplers(samplers) { samplers.push('vb_texture', 'vb_skinTexture', 'vb_rig'); }
 
   // Declared by the module itself (VB_DECLARE_RESOURCES 1), so outside Babylon's uniform buffers.
-  getUniforms() { return { externalUniforms: ['vb_time', 'vb_clips'] }; }
+  getUniforms() { return { externalUniforms: ['vb_time', 'vb_clips', 'vb_rangeMin', 'vb_rangeMax', 'vb_compactRange'] }; }
 
   // Every draw (the colour pass and ShadowGenerator's, whose depth effect is subMesh.effect then).
   hardBindForSubMesh(uniformBuffer, scene, engine, subMesh) {
     const effect = subMesh.effect;
     if (!effect) return;
-    effect.setTexture('vb_texture', this.animation.texture);
-    effect.setFloat('vb_time', this.animation.time);
-    effect.setArray4('vb_clips', this.animation.clipTable);
+    const animation = this.animation;
+    effect.setTexture('vb_texture', animation.texture);
+    effect.setFloat('vb_time', animation.time);
+    effect.setArray4('vb_clips', animation.clipTable);
+    if (animation.ranges) {
+      effect.setArray4('vb_rangeMin', animation.ranges.min);
+      effect.setArray4('vb_rangeMax', animation.ranges.max);
+    }
+    if (animation.compactRanges) effect.setArray4('vb_compactRange', animation.compactRanges);
+    if (this.skinTexture) effect.setTexture('vb_skinTexture', this.skinTexture);
+    if (this.layers) effect.setTexture('vb_rig', animation.rigTexture);
   }
 
   getCustomCode(shaderType) {
     if (shaderType !== 'vertex') return null;
     if (!this.animation) return { CUSTOM_VERTEX_DEFINITIONS: '', CUSTOM_VERTEX_UPDATE_POSITION: '' };
     return {
-      CUSTOM_VERTEX_DEFINITIONS: skinningDeclarations(this.animation, this.maxInfluences, 'attribute'),
+      CUSTOM_VERTEX_DEFINITIONS: skinningDeclarations(this.animation, this.maxInfluences, 'attribute', this.skin, this.layers),
       // positionUpdated / normalUpdated are the rest vertex here, before morph-free instancing.
       CUSTOM_VERTEX_UPDATE_POSITION: `{
 #ifdef NORMAL
@@ -83,7 +101,7 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
 #else
   vec3 vbRestNormal = vec3(0.0, 0.0, 1.0);
 #endif
-${skinningCall('positionUpdated', 'vbRestNormal', this.maxInfluences)}
+${skinningCall('positionUpdated', 'vbRestNormal', this.maxInfluences, this.skin, this.layers)}
   positionUpdated = vbPosition;
 #ifdef NORMAL
   normalUpdated = vbNormal;
@@ -96,12 +114,12 @@ ${skinningCall('positionUpdated', 'vbRestNormal', this.maxInfluences)}
 
 /**
  * Make `material` skin from `animation` (in place; returns the plugin): the plugin, and a
- * ShadowDepthWrapper so that shadow generators skin too.
+ * ShadowDepthWrapper so that shadow generators skin too. `binding` as VirtualBonesPluginMaterial's.
  */
-export function skinMaterial(material, animation, maxInfluences = 4) {
+export function skinMaterial(material, animation, maxInfluences = 4, binding = {}) {
   if (!material || typeof material.getClassName !== 'function') throw new VirtualBonesError('skinMaterial needs a Babylon material');
-  const plugin = new VirtualBonesPluginMaterial(material, animation, maxInfluences);
+  const plugin = new VirtualBonesPluginMaterial(material, animation, maxInfluences, binding);
   material.shadowDepthWrapper = new ShadowDepthWrapper(material, material.getScene());
-  material.metadata = { ...(material.metadata ?? {}), virtualBones: { animation, maxInfluences } };
+  material.metadata = { ...(material.metadata ?? {}), virtualBones: { animation, maxInfluences, skin: plugin.skin, layers: plugin.layers } };
   return plugin;
 }

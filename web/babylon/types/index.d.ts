@@ -3,39 +3,42 @@
 // module is declared here. The JSDoc of each function in src/ says more.
 import type { Engine, Material, MaterialPluginBase, Matrix, Mesh, Scene } from '@babylonjs/core';
 
-export type Encoding = 'crossMatrix' | 'affineMatrix' | 'quatTranslation' | 'dualQuat';
-export type TexelFormat = 'float16' | 'float32';
+export type Encoding = 'crossMatrix' | 'affineMatrix' | 'quatTranslation' | 'dualQuat' | 'compactQuatTranslation';
+export type TexelFormat = 'float16' | 'float32' | 'unorm16' | 'uint32';
+export type SkinBinding = 'attributes' | 'pulled';
+export interface Binding { skin?: SkinBinding; skinTexture?: object | null; layers?: boolean }
 
 /** An error in the data handed to the runtime, or a browser that cannot run it. */
 export class VirtualBonesError extends Error {
   constructor(message: string);
 }
 
-/** The GLSL of `vbusd shader --lang glsl --no-main` (attribute skin binding), character for character. */
-export function shaderModule(encoding: Encoding, texelFormat: TexelFormat, maxInfluences?: number, maxClips?: number): string;
-export function skinningDeclarations(animation: VirtualBonesAnimation, maxInfluences: number, keyword?: string): string;
-export function skinningCall(position: string, normal: string, maxInfluences: number): string;
+/** The GLSL of `vbusd shader --lang glsl --no-main` (@vbusd/core's), character for character. */
+export function shaderModule(encoding: Encoding, texelFormat: TexelFormat, maxInfluences?: number, maxClips?: number, skin?: SkinBinding, layers?: boolean, maxBones?: number): string;
+export function skinningDeclarations(animation: VirtualBonesAnimation, maxInfluences: number, keyword?: string, skin?: SkinBinding, layers?: boolean): string;
+export function skinningCall(position: string, normal: string, maxInfluences: number, skin?: SkinBinding, layers?: boolean): string;
 
 /** One Virtual Bones texture on a Babylon scene: its RawTexture, clip table and clock. */
 export class VirtualBonesAnimation {
-  constructor(scene: Scene, options: { layout: Record<string, any>; texels: Uint16Array | Float32Array; name?: string });
+  constructor(scene: Scene, options: { layout: Record<string, any>; texels: Uint16Array | Float32Array | Uint32Array; clipExtents?: number[][][] | null; name?: string });
   readonly name: string;
   readonly layout: Record<string, any>;
   readonly clips: Array<{ name: string; firstRow: number; rowCount: number; rowsPerSecond: number; loop: boolean }>;
   /** Scene time in seconds. */
   time: number;
   clipIndex(name: string): number;
+  maskIndex(name: string): number;
   dispose(): void;
 }
 
 /** The material plugin that skins a StandardMaterial or PBRMaterial from a Virtual Bones texture. */
 export class VirtualBonesPluginMaterial extends MaterialPluginBase {
-  constructor(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number);
+  constructor(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number, binding?: Binding);
 }
 /** Make `material` skin from `animation` (the plugin and a ShadowDepthWrapper); returns the plugin. */
-export function skinMaterial(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number): VirtualBonesPluginMaterial;
+export function skinMaterial(material: Material, animation: VirtualBonesAnimation, maxInfluences?: number, binding?: Binding): VirtualBonesPluginMaterial;
 /** The vertex streams of a skinned mesh. */
-export function vertexInputs(maxInfluences: number): string[];
+export function vertexInputs(maxInfluences: number, skin?: SkinBinding, layers?: boolean): string[];
 
 /** A crowd: one Mesh per rest mesh, its instances as thin instances. */
 export class VirtualBonesCrowd {
@@ -46,6 +49,8 @@ export class VirtualBonesCrowd {
     material?: ((name: string) => Material) | null;
     name?: string;
     adopt?: Mesh[] | null;
+    skin?: SkinBinding | null;
+    rootMotion?: { upAxis: string; tracks: number[][][] } | null;
   });
   readonly scene: Scene;
   readonly animation: VirtualBonesAnimation;
@@ -55,13 +60,16 @@ export class VirtualBonesCrowd {
   /** Instances drawn (the first `count` of the capacity). */
   count: number;
   setFade(index: number, fade: { fadeClip: number; fadeTimeOffset?: number; fadePlaybackRate?: number; fadeWeight: number }): void;
+  updateSamples(time: number): void;
+  setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setClips(clips: number | ArrayLike<number>): void;
+  rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
   socketMatrix(index: number, bone: number, time: number): Matrix;
   instanceMatrix(index: number): Matrix;
 }
 
 /** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2). */
-export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number): { positions: Float32Array; normals: Float32Array };
+export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number): { positions: Float32Array; normals: Float32Array; lod: number };
 
 /** The VBUSD_virtual_bones glTF extension's name. */
 export const EXTENSION: 'VBUSD_virtual_bones';

@@ -1,4 +1,4 @@
-// Types of @vbusd/three/shader-modules (src/shader-modules.js, generated from vbusd's shader source
+// Types of @vbusd/core/shader-modules (src/shader-modules.js, generated from vbusd's shader source
 // by scripts/sync_web.py): the GLSL of `vbusd shader --lang glsl --no-main` as strings.
 
 /** Influences per vertex of the embedded modules (shaderModule rewrites the define for 1..8). */

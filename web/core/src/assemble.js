@@ -1,0 +1,64 @@
+// Shader-module assembly: the GLSL of `vbusd shader --lang glsl --no-main --encoding E
+// --texel-format F --max-influences K --max-clips C --skin S [--layers] [--max-bones N]`, character
+// for character, from the generated modules (shader-modules.js); every runtime builds its shaders
+// from these strings and only adds its engine's glue.
+
+import {
+  GLSL_MODULES, GLSL_PULLED_MODULES, GLSL_LAYER_BLOCKS, GLSL_LAYER_MARK, BASE_MAX_INFLUENCES, BASE_MAX_CLIPS,
+} from './shader-modules.js';
+import { VirtualBonesError } from './errors.js';
+import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
+
+/** Bones the compact module's range uniforms hold unless an animation needs more (VB_MAX_BONES). */
+export const BASE_MAX_BONES = 64;
+
+/** `text` with `search`, which must occur exactly once, replaced. */
+export function replaceOnce(text, search, replacement) {
+  const at = text.indexOf(search);
+  if (at < 0 || text.indexOf(search, at + 1) >= 0) throw new VirtualBonesError(`shader hook ${JSON.stringify(search.trim())} not found exactly once`);
+  return text.slice(0, at) + replacement + text.slice(at + search.length);
+}
+
+/**
+ * The GLSL of `vbusd shader --lang glsl --no-main --encoding E --texel-format F
+ * --max-influences K --max-clips C --skin S [--layers] [--max-bones N]`, character for character.
+ * The layer functions of format 1.2 (spec/shaders.md, "Layers") come with the attribute binding only.
+ */
+export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INFLUENCES, maxClips = BASE_MAX_CLIPS, skin = 'attributes', layers = false, maxBones = BASE_MAX_BONES) {
+  checkSkinBinding(skin);
+  if (layers && skin !== 'attributes') throw new VirtualBonesError('layers (format 1.2) need the attributes skin binding');
+  const base = (skin === 'pulled' ? GLSL_PULLED_MODULES : GLSL_MODULES)[`${encoding}/${texelFormat}`];
+  if (base === undefined) throw new VirtualBonesError(`no shader module for encoding ${encoding}, texel format ${texelFormat}`);
+  if (!Number.isInteger(maxInfluences) || maxInfluences < 1 || maxInfluences > 8) {
+    throw new VirtualBonesError(`maxInfluences must be 1..8, got ${maxInfluences}`);
+  }
+  if (!Number.isInteger(maxClips) || maxClips < 1 || maxClips > 256) {
+    throw new VirtualBonesError(`maxClips must be 1..256, got ${maxClips}`);
+  }
+  let text = replaceOnce(replaceOnce(replaceOnce(base,
+    `up to ${BASE_MAX_INFLUENCES} influences.`, `up to ${maxInfluences} influences.`),
+  `#define VB_MAX_INFLUENCES ${BASE_MAX_INFLUENCES}\n`, `#define VB_MAX_INFLUENCES ${maxInfluences}\n`),
+  `#define VB_MAX_CLIPS ${BASE_MAX_CLIPS}\n`, `#define VB_MAX_CLIPS ${maxClips}\n`);
+  if (encoding === 'compactQuatTranslation') {  // `vbusd shader --max-bones N`: the range uniforms' size
+    if (!Number.isInteger(maxBones) || maxBones < 1 || maxBones > 1024) throw new VirtualBonesError(`maxBones must be 1..1024, got ${maxBones}`);
+    text = replaceOnce(text, `#define VB_MAX_BONES ${BASE_MAX_BONES}\n`, `#define VB_MAX_BONES ${maxBones}\n`);
+  }
+  if (skin === 'pulled') {
+    text = replaceOnce(replaceOnce(text,
+      `#define VB_SKIN_WORDS ${skinRecordWords(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_WORDS ${skinRecordWords(maxInfluences)}\n`),
+    `#define VB_SKIN_TEXELS ${skinRecordTexels(BASE_MAX_INFLUENCES)}\n`, `#define VB_SKIN_TEXELS ${skinRecordTexels(maxInfluences)}\n`);
+  }
+  if (layers) text = replaceOnce(text, GLSL_LAYER_MARK, GLSL_LAYER_BLOCKS[encoding] + GLSL_LAYER_MARK);
+  return text;
+}
+
+/**
+ * The module for a shader preprocessor that runs in JavaScript before the GPU compiler and reads
+ * a bare `#if NAME` as `#if defined(NAME)` (Babylon.js'), which would switch the module's
+ * `#define VB_MAIN 0` example main on. Each bare `#if VB_X` becomes `#if VB_X > 0`: the same test
+ * for the module's integer macros in a C preprocessor, and one such a preprocessor evaluates by
+ * value. Nothing else of the module changes.
+ */
+export function definedTestModule(text) {
+  return text.replace(/^#if (VB_[A-Z0-9_]+)[ \t]*$/gm, '#if $1 > 0');
+}

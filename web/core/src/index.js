@@ -1,0 +1,20 @@
+// vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
+// WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, shader-module
+// assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
+// detail, the plain files and the transform-feedback probe. docs/engines.md ("@vbusd/core").
+
+export { VirtualBonesError } from './errors.js';
+export { BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule } from './assemble.js';
+export {
+  SKIN_BINDINGS, SKIN_TEXTURE_WIDTH, checkSkinBinding, skinRecordWords, skinRecordTexels, packSkin, skinTextureData,
+} from './skin.js';
+export {
+  TEXEL_FORMATS, ENCODINGS, checkLayout, widenWords, clipTable, unormRanges, compactRanges, affineInverseRows, rigTexels,
+} from './layout.js';
+export {
+  fromHalf, rowPosition, boneRows, elementsFromRows, multiply, jointElements, rootMotionElements,
+} from './decode.js';
+export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
+export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
+export { parsePlainScene, fetchPlainScene } from './plain.js';
+export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
