@@ -502,7 +502,8 @@ _COMMAND_ERRORS = (
     Code("socket.noBindTransforms", E, "A socket (bone_transform) was asked of an animation that stores no "
          "joint bind transforms (vb:bindTransforms, format 1.1); reconvert the source.", f"{_VB}#sockets", "usd"),
     Code("convert.mask", E, "A --mask NAME=BONE names no bone of the animation, repeats a mask name, is not "
-         "UTF-8 text, or the source gives no bone hierarchy or bind transforms to blend layers with.", f"{_VB}#layers", "usd"),
+         "UTF-8 text, or the source gives no bone hierarchy or bind transforms to blend layers with.",
+         f"{_VB}#layers", "usd"),
     Code("layers.unsupported", E, "A crowd plays layers (primvars:vb:layer*, format 1.2) and the decoder or "
          "exporter asked for does not implement them yet (the numpy reference does); it refuses rather than "
          "draw the instances without their layers.", f"{_VB}#layers", "usd"),
