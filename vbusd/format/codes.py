@@ -299,6 +299,9 @@ _COMMAND_ERRORS = (
          "usd-conversion.md#clips", "file"),
     Code("convert.lodSimplifier", E, "--lod-ratios needs meshoptimizer's simplifier, which is not installed "
          "(pip install 'vbusd[lod]').", f"{_VB}#levels-of-detail", "option"),
+    Code("decode.memory", E, "The point cache would need more memory than --max-memory or the memory "
+         "available (the message names both), or a crowd mesh more points than 32-bit indices address; "
+         "refused before decoding.", "usd-conversion.md#pointcache", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes
