@@ -112,7 +112,7 @@ def _check_rows(value: str):
                    "ratio, decreasing (default 0.01, 0.001, ...).")
 @click.option("--mask", "masks", multiple=True, metavar="NAME=BONE",
               help="A bone mask for layers (format 1.2; vbusd.skin(..., layers=...)): BONE and every bone below "
-                   "it; repeatable.")
+                   "it in the hierarchy (its descendants); repeatable.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
