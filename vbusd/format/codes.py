@@ -298,7 +298,8 @@ _COMMAND_ERRORS = (
          "failed to bake (the line names the first and why); nothing was written.",
          "usd-conversion.md#clips", "file"),
     Code("convert.lodSimplifier", E, "--lod-ratios needs meshoptimizer's simplifier, which is not installed "
-         "(pip install 'vbusd[lod]').", f"{_VB}#levels-of-detail", "option"),
+         "(pip install 'vbusd[lod]', which builds it from source with a C++ compiler).", f"{_VB}#levels-of-detail",
+         "option"),
     Code("decode.memory", E, "The point cache would need more memory than --max-memory or the memory "
          "available (the message names both), or a crowd mesh more points than 32-bit indices address; "
          "refused before decoding.", "usd-conversion.md#pointcache", "file"),
