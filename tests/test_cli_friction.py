@@ -97,7 +97,8 @@ def test_every_printed_size_comes_from_one_formatter(tmp_path, capsys):
 
     package = tmp_path / "crowd.glb"
     assert main(["export", str(crowd), "-o", str(package)]) == 0
-    assert capsys.readouterr().out.strip() == f"wrote crowd.glb ({_by_hand(package.stat().st_size)})"
+    # The path as given, folder included, as convert and crowd print theirs (issue 35 item 17).
+    assert capsys.readouterr().out.strip() == f"wrote {package} ({_by_hand(package.stat().st_size)})"
 
     cache = tmp_path / "cache.usda"
     assert main(["decode", str(character), "-o", str(cache)]) == 0

@@ -45,14 +45,17 @@ class SkinnedPose:
     normals: Optional[np.ndarray]
 
 
-def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None):
-    """Validate an asset (USD layer, texture or sidecar) and return its report.
+def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None,
+             allow_outside_paths: bool = False):
+    """Validate an asset (USD layer, texture, sidecar or runtime package) and return its report.
 
     Args:
         path: The file to check.
         only: Report only these codes or code prefixes.
         ignore: Leave out these codes or code prefixes.
         max_issues: List at most this many findings (the counts still cover all).
+        allow_outside_paths: Let the asset reference files outside its folder (as ``read_asset``
+            and the other jobs take it); without it each such reference is a ``path.unsafe`` finding.
 
     Returns:
         A :class:`vbusd.validators.report.Report`; ``report.valid`` is False when any error was found.
@@ -67,7 +70,7 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_
         True
     """
 
-    return _validate(path, only=only, ignore=ignore, max_issues=max_issues)
+    return _validate(path, only=only, ignore=ignore, max_issues=max_issues, allow_outside_paths=allow_outside_paths)
 
 
 def _animation(asset: AssetLike, animation: int, what: str) -> VirtualBones:

@@ -24,8 +24,9 @@ __all__ = ["command"]
 @click.argument("asset", type=click.Path(path_type=str))  # folders: one-line error from decode
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="Point cache to write (.usda, .usdc or .usd).")
-@click.option("--device", default=None, metavar="cpu|cuda",
-              help="Decode with the warp kernels on this device (default: the numpy reference decoder).")
+@click.option("--device", default=None, metavar="DEVICE",
+              help="Decode with the warp kernels on this device: cpu, cuda or cuda:N (default: the numpy "
+                   "reference decoder).")
 @click.option("--clip", default=None, metavar="NAME|INDEX", help="Clip to play (default: clip 0 of every animation).")
 @format_option
 @force_option
