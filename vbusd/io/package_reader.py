@@ -107,6 +107,9 @@ class Package:
         meshes: Per mesh, ``(name, primitive count, vertex count, animation index or None)``.
         crowds: The crowd nodes.
         characters: Nodes drawing a bound mesh once (no instancing), by name.
+        lods: Format 1.2 levels of detail (``MSFT_lod``): per node that lists levels, ``{"node",
+            "animation", "levels", "screenSizes"}`` (``levels`` counts LOD 0; ``screenSizes`` the
+            ``MSFT_screencoverage`` thresholds of LOD 1 and on, the trailing 0 left out).
     """
 
     file: str
@@ -116,6 +119,7 @@ class Package:
     meshes: list = field(default_factory=list)
     crowds: list = field(default_factory=list)
     characters: list = field(default_factory=list)
+    lods: list = field(default_factory=list)
 
 
 @functools.lru_cache(maxsize=1)
@@ -314,6 +318,13 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         if node.get("mesh") not in bound:
             continue
         name = node.get("name") or f"node{n}"
+        ids = ((node.get("extensions") or {}).get("MSFT_lod") or {}).get("ids")
+        if isinstance(ids, list) and ids:
+            coverage = (node.get("extras") or {}).get("MSFT_screencoverage")
+            sizes = [float(c) for c in coverage if isinstance(c, (int, float)) and not isinstance(c, bool)] \
+                if isinstance(coverage, list) else []
+            package.lods.append({"node": name, "animation": bound[node["mesh"]], "levels": len(ids) + 1,
+                                 "screenSizes": sizes[:len(ids)]})
         mesh = int(node["mesh"])
         mesh_name = package.meshes[mesh][0]
         ext = (node.get("extensions") or {}).get(INSTANCING)

@@ -185,6 +185,8 @@ class AnimationAttributes:
     declared: Optional[Declared] = None
     lods: Optional[LevelsOfDetail] = None
     """Format 1.2: the levels of detail of its bound meshes (filled by :func:`read_summary`), or None."""
+    format_minor_version: int = 0
+    """``vb:formatMinorVersion`` as authored (absent: 0)."""
 
 
 class _Skip(Exception):
@@ -871,7 +873,7 @@ class UsdReader:
             bones=tuple(values["bones"]), clips=clips, clip_extents=values.get("clipExtents"),
             unorm_ranges32=None if ranges is None else np.asarray(ranges, np.float32),
             content_digest=values.get("contentDigest"), texture=texture, texture_file=texture_file,
-            declared=declared)
+            declared=declared, format_minor_version=int(values.get("formatMinorVersion", 0)))
 
     def read_animation(self, prim) -> Optional[VirtualBones]:
         """An animation prim with its texture, whose metadata must agree with the prim."""
