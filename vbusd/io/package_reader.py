@@ -120,6 +120,8 @@ class Package:
     crowds: list = field(default_factory=list)
     characters: list = field(default_factory=list)
     lods: list = field(default_factory=list)
+    extensions_used: list = field(default_factory=list)
+    """The file's ``extensionsUsed`` (strings only), e.g. to tell a meshopt-compressed package."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -394,6 +396,8 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
     root = _parse(path, file)
     binary = path.read_bytes()[:4] == b"glTF"
     package = Package(file=file, container="glb" if binary else "gltf")
+    used = root.get("extensionsUsed") if isinstance(root, dict) else None
+    package.extensions_used = [u for u in used if isinstance(u, str)] if isinstance(used, list) else []
     extension = _check_extension(root, file, diagnostics)
     try:
         gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))
