@@ -301,3 +301,25 @@ def test_view_of_a_meshopt_package_says_what_to_run(packages):
     with ViewerServer(plain) as server:
         assert server.url
     np.testing.assert_array_equal(_skin_rows(plain), _skin_rows(packages / "crowd.glb"))
+
+
+def test_meshopt_data_the_decoder_refuses_is_one_line(packages, capsys):
+    """A meshopt package whose first compressed view's bytes are overwritten: one gltf.meshopt line
+    naming the view, not an exception from the decoder."""
+    pytest.importorskip("meshoptimizer")
+    out = packages / "meshopt_broken.glb"
+    result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    data = bytearray(out.read_bytes())
+    length = int.from_bytes(data[12:16], "little")
+    gltf = json.loads(data[20:20 + length])
+    (index, view) = next((i, v) for i, v in enumerate(gltf["bufferViews"])
+                         if "EXT_meshopt_compression" in (v.get("extensions") or {}))
+    ext = view["extensions"]["EXT_meshopt_compression"]
+    assert ext["buffer"] == 0  # the BIN chunk, which starts after the JSON chunk and its header
+    start = 20 + length + 8 + ext.get("byteOffset", 0)
+    data[start:start + ext["byteLength"]] = b"\xff" * ext["byteLength"]
+    out.write_bytes(bytes(data))
+    assert main(["info", str(out)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"/bufferViews/{index}/extensions/EXT_meshopt_compression: gltf.meshopt: " in line, line

@@ -388,8 +388,11 @@ _COMMAND_ERRORS = (
     Code("gltf.index", E, "An index into another glTF array (node, accessor, buffer view...) is out of "
          "range.", "gltf-conversion.md#reading", "json"),
     Code("gltf.asset.version", E, "The asset (or GLB container) is not glTF 2.x.", "gltf-conversion.md#reading", "json"),
-    Code("gltf.extension.required", E, "The file requires an extension vbusd does not support.",
-         "gltf-conversion.md#reading", "json"),
+    Code("gltf.extension.required", E, "The file requires an extension vbusd does not support (a Draco-"
+         "compressed package, or a meshopt one without meshoptimizer: the message names the command that "
+         "writes it uncompressed).", "gltf-conversion.md#reading", "json"),
+    Code("gltf.meshopt", E, "A meshopt-compressed buffer view (EXT_meshopt_compression) holds data "
+         "meshoptimizer's decoder refuses.", "runtime-package.md#pipelines", "json"),
     Code("gltf.buffer.base64", E, "A data URI is not valid base64.", "gltf-conversion.md#reading", "json"),
     Code("gltf.buffer.length", E, "A buffer holds fewer bytes than its byteLength.", "gltf-conversion.md#reading", "json"),
     Code("gltf.buffer.limit", E, "A buffer's byteLength exceeds the reader's limit.", "gltf-conversion.md#reading", "json"),
