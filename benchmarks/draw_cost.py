@@ -1540,6 +1540,21 @@ def time_method(method: Method, scene: Scene, budget_s: float, max_runs: int, mi
             "cpu_ms": stat("cpu"), "frame_ms": stat("wall"), "first_frame_ms": first.wall}
 
 
+def command_line(argv=None) -> str:
+    """The command as a result records it, without this machine's paths: a path under ``$OUT`` as
+    ``$OUT/...``, one in the repository relative to it, any other absolute path by its name."""
+    out = os.environ.get("OUT", "").rstrip("/")
+    words = []
+    for word in (sys.argv if argv is None else argv):
+        if out and (word == out or word.startswith(out + "/")):
+            word = "$OUT" + word[len(out):]
+        elif os.path.isabs(word):
+            path = Path(word)
+            word = str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else path.name
+        words.append(word)
+    return " ".join(words)
+
+
 def _gpu_facts(ctx) -> dict:
     facts = {"GL_RENDERER": ctx.info.get("GL_RENDERER"), "GL_VERSION": ctx.info.get("GL_VERSION"),
              "GL_VENDOR": ctx.info.get("GL_VENDOR"), "python": platform.python_version(),
@@ -1647,7 +1662,7 @@ def run(args) -> int:
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
     result = {"issue": {"issue25": 25, "issue29": 29}.get(args.plan, 18), "plan": args.plan, "budget_s": args.budget,
               "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
-              "command": " ".join(sys.argv), "runs": [], "skipped": [], "factors": []}
+              "command": command_line(), "runs": [], "skipped": [], "factors": []}
     print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']} | warp on {device}", flush=True)
 
     baked = {}
@@ -1828,7 +1843,7 @@ def run_factors(args) -> int:
     started = time.perf_counter()
     ctx, framebuffer = create_context()
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-    result = {"issue": 18, "resolution": list(RESOLUTION), "facts": _gpu_facts(ctx), "command": " ".join(sys.argv),
+    result = {"issue": 18, "resolution": list(RESOLUTION), "facts": _gpu_facts(ctx), "command": command_line(),
               "variants": []}
     print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']}", flush=True)
     vb = SAMPLE.bake_reference(encoding="crossMatrix", texel_format="float16")

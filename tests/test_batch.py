@@ -555,3 +555,26 @@ def test_a_stall_timeout_must_be_positive(tmp_path):
     library = _library(tmp_path / "lib", ("a", "b"))
     with pytest.raises(OptionsError):
         run_batch(plan_batch([str(library)], str(tmp_path / "o")), {}, jobs=2, stall_timeout=0)
+
+
+def test_a_completed_run_removes_the_cache_temporaries_a_killed_run_left(tmp_path):
+    """Issue 35 item 19: killed while a cache record's temporary was written (before its rename),
+    the run left ``.vbusd-cache/.<digest>.json.vbusd-tmp-<id>.json``; the run that resumes and
+    completes removes it (no other run is using the cache), and its records are whole JSON."""
+    library = _library(tmp_path / "lib", ("a", "b"))
+    trace = tmp_path / "trace.txt"
+    assert _cli([str(library), "-o", str(tmp_path / "clean"), "--jobs", "1"],
+                {"VBUSD_FAULT_TRACE": str(trace)}).returncode == 0
+    steps = [line.split(" ", 1) for line in trace.read_text().splitlines()]
+    # The last record write's fsync: its temporary is full, not yet renamed over the record.
+    step = max(int(n) for n, name in steps if name.startswith("fsync .") and ".json.vbusd-tmp-" in name)
+    out = tmp_path / "out"
+    assert _cli([str(library), "-o", str(out), "--jobs", "1"], {"VBUSD_FAULT": f"kill:{step}"}).returncode == -9
+    cache = out / ".vbusd-cache"
+    assert [p.name for p in cache.iterdir() if ".vbusd-tmp-" in p.name], sorted(os.listdir(cache))
+    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    assert resumed.returncode == 0, resumed.stderr
+    assert sorted(p.name for p in cache.iterdir() if p.name.startswith(".")) == [], sorted(os.listdir(cache))
+    for record in cache.iterdir():
+        assert json.loads(record.read_text())["state"] == "done"
+    assert _files(out) == _files(tmp_path / "clean")

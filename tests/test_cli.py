@@ -10,7 +10,9 @@ from vbusd.cli import COMMANDS, main
 
 @pytest.mark.parametrize("argv, fragment", [
     (["shader", "--bogus"], "vbusd shader: No such option '--bogus'"),
-    (["nosuch"], "No such command 'nosuch'"),
+    (["nosuch"], "no such command 'nosuch'; the commands are convert, decode"),
+    (["conver", "x.usda"], "no such command 'conver'; did you mean 'convert'?"),
+    (["valdiate"], "did you mean 'validate'?"),
     (["info"], "vbusd info: Missing argument 'ASSET'"),
     (["convert", "in.usda"], "vbusd convert: Missing option"),
 ])
@@ -134,3 +136,53 @@ def test_quiet_prints_no_report_and_json_is_one_document(tmp_path, capsys):
         sidecar.write_text("null", encoding="utf-8")
     assert main(["validate", str(asset), "-q"]) == 1  # invalid: only the exit status says so
     assert capsys.readouterr().out == ""
+
+
+# ----------------------------------------------------------------------------------------------
+# One style of help (issue 35 item 17)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_every_help_fits_80_columns_and_names_values_in_one_style():
+    """Every command's --help fits 80 columns. A fixed set of values is shown as click shows a
+    choice, ``[a|b|c]`` (or, where that would not fit, a NAME in capitals with the values listed in
+    the help); any other value by its kind in capitals (PATH, N, SIZE, DEVICE...), never a bare
+    letter such as ``E`` or lowercase alternatives such as ``cpu|cuda``."""
+    import re
+
+    import click
+    from click.testing import CliRunner
+
+    from vbusd.cli import cli
+
+    problems = []
+    for path, command in _leaf_commands():
+        name = path.split()[-1]
+        text = CliRunner().invoke(cli, [name, "--help"], terminal_width=80).output
+        problems += [f"{path}: {len(line)} columns: {line}" for line in text.splitlines() if len(line) > 80]
+        context = click.Context(command, info_name=name)
+        for param in command.params:
+            if not isinstance(param, click.Option) or param.is_flag:
+                continue
+            shown = param.get_help_record(context)[0].split(" ", 1)[1] if " " in param.get_help_record(context)[0] \
+                else ""
+            shown = shown.split(" ", 1)[-1] if shown.startswith("--") else shown
+            choices = getattr(param.type, "choices", None)
+            fixed = re.fullmatch(r"\[[\w-]+(\|[\w-]+)+\]", shown)
+            if choices is not None:
+                values = "[" + "|".join(choices) + "]"
+                if shown != values and not (shown.isupper() and all(c in (param.help or "") for c in choices)):
+                    problems.append(f"{path} {param.opts[-1]}: {shown} for the values {values}")
+                continue
+            kind = re.sub(r"tcp://|\ball\b", "", shown)
+            if not fixed and (re.search(r"[a-z]", kind) or (len(shown) == 1 and shown != "N")):
+                problems.append(f"{path} {param.opts[-1]}: metavar {shown!r}")
+    assert not problems, "\n".join(problems)
+
+
+def test_the_main_help_names_every_engine_of_view():
+    from vbusd.web.engines import ENGINES
+
+    assert set(ENGINES) == {"three", "three-webgpu", "babylon"}
+    for words in ("three.js", "WebGPU", "Babylon.js"):
+        assert words in COMMANDS["view"], COMMANDS["view"]

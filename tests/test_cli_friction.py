@@ -97,7 +97,8 @@ def test_every_printed_size_comes_from_one_formatter(tmp_path, capsys):
 
     package = tmp_path / "crowd.glb"
     assert main(["export", str(crowd), "-o", str(package)]) == 0
-    assert capsys.readouterr().out.strip() == f"wrote crowd.glb ({_by_hand(package.stat().st_size)})"
+    # The path as given, folder included, as convert and crowd print theirs (issue 35 item 17).
+    assert capsys.readouterr().out.strip() == f"wrote {package} ({_by_hand(package.stat().st_size)})"
 
     cache = tmp_path / "cache.usda"
     assert main(["decode", str(character), "-o", str(cache)]) == 0
@@ -159,3 +160,18 @@ def test_a_long_conversion_logs_progress_on_stderr_when_it_is_not_a_terminal(tmp
     assert {"read", "bake", "write"} <= steps, err
     assert main(["convert", str(STADIUM), "-o", str(tmp_path / "b.usda"), "--quiet", *FAST]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_readme_names_every_extra_and_what_the_lod_extra_needs():
+    """Issue 35 item 14: the README's table of extras lists every optional extra of pyproject.toml,
+    and says that the lod extra's meshoptimizer builds from source (PyPI has no wheel of any of
+    its releases) with a C++ compiler, the requirement pinned in pyproject."""
+    import tomllib
+
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    readme = (REPO / "README.md").read_text()
+    rows = {m.group(1): m.group(0) for m in re.finditer(r"^\| `(\w+)` \|.*$", readme, flags=re.M)}
+    assert set(extras) <= set(rows), sorted(set(extras) - set(rows))
+    (pin,) = [r for r in extras["lod"] if r.startswith("meshoptimizer")]
+    assert pin in extras["test"]
+    assert "C++ compiler" in rows["lod"] and pin.split("==")[1] in rows["lod"] and "g++" in rows["lod"]

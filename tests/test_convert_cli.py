@@ -309,3 +309,20 @@ def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypat
     assert not any(t.name.startswith("vbusd-check") for t in threading.enumerate())
     assert len(chunks) < 100, len(chunks)
     assert not (tmp_path / "out.usda").exists()
+
+
+def test_a_mask_or_output_that_is_not_utf8_is_one_line(small_rig, tmp_path):
+    """Issue 35 item 3: a byte that is not UTF-8 in a --mask name (or bone, or the output path) on
+    the command line is refused with one line and exit 2, before any work, not an internal error."""
+    rig = str(small_rig).encode()
+    cases = [([b"--mask", b"\xff=j1"], b"mask name is not UTF-8"),
+             ([b"--mask", b"upper=j1\xff"], b"mask bone is not UTF-8"),
+             ([], b"path is not UTF-8")]
+    for extra, fragment in cases:
+        output = bytes(tmp_path / "x") + (b"/\xff.usda" if not extra else b"/x.usda")
+        done = subprocess.run([sys.executable, "-m", "vbusd", "convert", rig, "-o", output, *extra],
+                              capture_output=True, timeout=300)
+        err = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(err) == 1 and fragment in err[0], done.stderr
+        assert b"convert.mask" in err[0] if extra else b"options.invalid" in err[0]
+        assert not (tmp_path / "x").exists()

@@ -185,3 +185,57 @@ def test_decode_creates_the_output_folder_and_refuses_folders_in_one_line(conver
         err = capsys.readouterr().err
         assert fragment in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "c.usda").exists()
+
+
+def _named_bytes(line: str) -> list:
+    """The exact byte counts a line names: ``(2,487,024,000,000 bytes)``."""
+    import re
+
+    return [int(n.replace(",", "")) for n in re.findall(r"\(([0-9,]+) bytes\)", line)]
+
+
+def test_a_million_instance_crowd_is_refused_up_front_under_a_memory_limit(tmp_path):
+    """Issue 35 item 4: ``decode --crowd`` of 1,000,000 stadium spectators under a 4 GiB address-space
+    limit refuses before decoding, naming the bytes it needs, instead of dying of a MemoryError."""
+    import resource
+    import shutil
+    import subprocess
+    import sys
+
+    for path in (REPO / "samples" / "stadium_crowd").glob("stadium_crowd_vb*"):
+        shutil.copy(path, tmp_path / path.name)
+    crowd = tmp_path / "million.usdc"
+    assert main(["crowd", str(tmp_path / "stadium_crowd_vb.usda"), "-o", str(crowd), "--count", "1000000",
+                 "-q"]) == 0
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+
+    cache = tmp_path / "cache.usdc"
+    done = subprocess.run([sys.executable, "-m", "vbusd", "decode", str(crowd), "-o", str(cache), "--crowd"],
+                          capture_output=True, text=True, timeout=600, preexec_fn=limit)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 1 and "decode.memory" in err[0], done.stderr
+    assert "MemoryError" not in done.stderr and not cache.exists()
+    # The samples alone, by hand: 1,000,000 instances x 202 points x 513 samples (512 looping rows
+    # and the wrap) x 24 bytes (float32 points and normals); the bound is at most the 4 GiB limit.
+    need, bound = _named_bytes(err[0])
+    assert need >= 1_000_000 * 202 * 513 * 24 and bound <= 4 << 30
+
+
+def test_max_memory_bounds_the_cache(converted, tmp_path, capsys):
+    """``--max-memory``: a cache larger than it is refused naming both sizes; one within it is written."""
+    _, asset = converted
+    cache = tmp_path / "cache.usda"
+    assert main(["decode", str(asset), "-o", str(cache), "--max-memory", "1K"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "decode.memory" in err[0] and "--max-memory" in err[0], err
+    need, bound = _named_bytes(err[0])
+    # Two meshes of the fixture's rig, 13 samples each (time codes 11..23), points and normals:
+    # at least 13 x 24 bytes per point, far more than 1 KiB.
+    assert bound == 1024 and need > 13 * 24 * 4 and not cache.exists()
+    assert main(["decode", str(asset), "-o", str(cache), "--max-memory", "1GiB", "-q"]) == 0 and cache.exists()
+    for bad in ("lots", "0", "-5M"):
+        assert main(["decode", str(asset), "-o", str(tmp_path / "c2.usda"), "--max-memory", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--max-memory" in err[0], err

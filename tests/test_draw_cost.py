@@ -380,3 +380,37 @@ def test_issue29_plan_compares_one_level_with_three_in_the_same_view(dc):
     assert [(c, n, m) for c, n, m, *_ in plan] == [("stadium", n, m) for n in (1_000_000, 100_000, 10_000)
                                                    for m in ("vb", "vb_lod")]
     assert dc.PLAN_VIEWS["issue29"] == "stand" and args.budget <= 450 and args.min_runs >= 10
+
+
+MACHINE_PATH = r"(?<![\w$.])/(?:root|home|work|opt|tmp|mnt|srv|var|usr/local)/"
+"""The start of an absolute path of some machine (a user's home, a work tree, a device's venv)."""
+
+
+def test_committed_results_hold_no_machine_paths_and_failures_are_noted():
+    """Issue 35 item 18: the committed results name no machine's paths, and every committed test
+    log that shows a failing test has the failing test named in benchmarks/README.md."""
+    import re
+
+    results = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+    readme = (results.parent / "README.md").read_text()
+    for path in sorted(results.iterdir()):
+        if path.suffix not in (".json", ".log", ".md", ".txt", ".csv"):
+            continue
+        text = path.read_text(encoding="utf-8", errors="replace")
+        found = re.findall(MACHINE_PATH + r"\S*", text)
+        assert not found, f"{path.name} names machine paths: {found[:3]}"
+        if path.suffix == ".log":
+            for failed in re.findall(r"^_{3,} (test_\w+)", text, flags=re.M):
+                assert failed in readme, f"{path.name}: {failed} fails there and benchmarks/README.md does not say why"
+
+
+def test_a_result_records_its_command_without_machine_paths(dc, monkeypatch, tmp_path):
+    import re
+
+    out = tmp_path / "device_out"
+    monkeypatch.setenv("OUT", str(out))
+    root = Path(__file__).resolve().parents[1]
+    line = dc.command_line([str(root / "benchmarks" / "draw_cost.py"), "run", "--json", str(out / "r.json"),
+                            "--cache", "/opt/some/venv/cache.bin"])
+    assert line == "benchmarks/draw_cost.py run --json $OUT/r.json --cache cache.bin"
+    assert not re.search(MACHINE_PATH, line)

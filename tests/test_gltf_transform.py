@@ -182,3 +182,144 @@ def test_optimized_crowd_animates_in_the_browser(packages, skin):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+# ------------------------------------------------------------------------------------------------
+# Compressed packages and vbusd's own tools (issue 35 item 13)
+# ------------------------------------------------------------------------------------------------
+
+
+def _skin_rows(path: Path) -> np.ndarray:
+    """Every vertex of every bound primitive as one row (position, joints, weights), sorted: what a
+    lossless compression keeps whatever order it puts the vertices in. Read with vbusd's reader."""
+    from vbusd.io.gltf import load
+    from vbusd.io.gltf_accessors import AccessorReader
+
+    gltf, buffers = load(path)
+    reader = AccessorReader(gltf, buffers, str(path))
+    rows = []
+    for m, mesh in enumerate(gltf.meshes):
+        for p, primitive in enumerate(mesh.primitives):
+            attributes = primitive.attributes.__dict__
+            names = ["POSITION", "_VB_JOINTS_0", "_VB_WEIGHTS_0"]
+            found = {n: attributes.get(n) for n in names}
+            if any(v is None for v in found.values()):
+                continue
+            parts = [np.asarray(reader.read(found[n], f"/meshes/{m}/primitives/{p}/attributes/{n}"), np.float64)
+                     .reshape(-1, 4 if n != "POSITION" else 3) for n in names]
+            rows.append(np.concatenate(parts, axis=1))
+    table = np.concatenate(rows)
+    return table[np.lexsort(table.T[::-1])]
+
+
+def test_a_meshopt_package_is_read_by_vbusd_s_own_tools(packages, capsys):
+    """vbusd-meshopt's output (README: "Compress with ... vbusd-meshopt"): validate and info read it,
+    and its bound vertices (position, joints, weights) are exactly the exported package's."""
+    pytest.importorskip("meshoptimizer")
+    out = packages / "meshopt_own_tools.glb"
+    result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    data = out.read_bytes()
+    assert "EXT_meshopt_compression" in json.loads(data[20:20 + int.from_bytes(data[12:16], "little")])[
+        "extensionsRequired"]
+    capsys.readouterr()
+    assert main(["validate", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out), "--format", "json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert main(["info", str(packages / "crowd.glb"), "--format", "json"]) == 0
+    exported = json.loads(capsys.readouterr().out)
+    assert info["instances"] == exported["instances"] == 1200
+    assert [c["clips"] for c in info["crowds"]] == [c["clips"] for c in exported["crowds"]]
+    np.testing.assert_array_equal(_skin_rows(out), _skin_rows(packages / "crowd.glb"))
+
+
+def test_a_meshopt_package_without_the_decoder_is_one_line_naming_what_to_do(packages, capsys, monkeypatch):
+    out = packages / "meshopt_no_decoder.glb"
+    result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    monkeypatch.setitem(sys.modules, "meshoptimizer._loader", None)  # the import now fails
+    monkeypatch.setitem(sys.modules, "meshoptimizer", None)
+    assert main(["info", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "EXT_meshopt_compression" in err[0] and "vbusd[lod]" in err[0], err
+    assert "vbusd-decompress" in err[0]
+
+
+def test_a_draco_package_is_refused_with_the_command_that_decompresses_it_and_that_command_works(packages, capsys):
+    """Draco (README: "Compress with --compress draco"): vbusd has no Draco decoder, so validate,
+    info and view say, in one line, the command that writes it uncompressed; run as written, that
+    command gives a package all three read."""
+    import shlex
+
+    from vbusd.format.errors import VbusdError
+    from vbusd.web.server import ViewerServer
+
+    draco = packages / "draco_own_tools.glb"
+    result = _cli("optimize", str(packages / "crowd.glb"), str(draco), "--compress", "draco", "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    capsys.readouterr()
+    assert main(["info", str(draco)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "KHR_draco_mesh_compression" in line and "vbusd-decompress" in line, line
+    assert main(["validate", str(draco)]) == 1
+    assert "vbusd-decompress" in capsys.readouterr().out
+    with pytest.raises(VbusdError, match="vbusd-decompress"):
+        ViewerServer(draco)
+    command = line.split("write it uncompressed with: ", 1)[1]
+    plain = packages / "draco_decompressed.glb"
+    words = [str(draco) if w == "IN.glb" else str(plain) if w == "OUT.glb" else w for w in shlex.split(command)]
+    assert words[:4] == ["npx", "--prefix", "web/gltf-transform", "gltf-transform"], words
+    done = subprocess.run(words, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert main(["validate", str(plain)]) == 0, capsys.readouterr().out
+    assert main(["info", str(plain), "-q"]) == 0
+    with ViewerServer(plain) as server:
+        assert server.url
+    # Draco is lossy (and optimize simplifies): every position left is within the README's 2^-10 of
+    # the character's size from one of the exported package's.
+    a, b = _skin_rows(plain)[:, :3], _skin_rows(packages / "crowd.glb")[:, :3]
+    assert _match(a, b) <= 2 ** -10 * float(np.linalg.norm(b.max(0) - b.min(0)))
+
+
+def test_view_of_a_meshopt_package_says_what_to_run(packages):
+    """vbusd view hands the file to the engine's loader, whose runtimes do not draw meshopt-decoded
+    geometry: one line naming the command that writes it uncompressed, which the viewer then serves."""
+    from vbusd.format.errors import VbusdError
+    from vbusd.web.server import ViewerServer
+
+    out = packages / "meshopt_view.glb"
+    result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    plain = packages / "meshopt_view_plain.glb"
+    for engine in ("three", "babylon"):
+        with pytest.raises(VbusdError) as caught:
+            ViewerServer(out, engine=engine)
+        assert "vbusd-decompress" in str(caught.value) and "\n" not in str(caught.value)
+    done = _cli("vbusd-decompress", str(out), str(plain), "--config", str(CONFIG))
+    assert done.returncode == 0, done.stderr
+    with ViewerServer(plain) as server:
+        assert server.url
+    np.testing.assert_array_equal(_skin_rows(plain), _skin_rows(packages / "crowd.glb"))
+
+
+def test_meshopt_data_the_decoder_refuses_is_one_line(packages, capsys):
+    """A meshopt package whose first compressed view's bytes are overwritten: one gltf.meshopt line
+    naming the view, not an exception from the decoder."""
+    pytest.importorskip("meshoptimizer")
+    out = packages / "meshopt_broken.glb"
+    result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
+    assert result.returncode == 0, result.stderr
+    data = bytearray(out.read_bytes())
+    length = int.from_bytes(data[12:16], "little")
+    gltf = json.loads(data[20:20 + length])
+    (index, view) = next((i, v) for i, v in enumerate(gltf["bufferViews"])
+                         if "EXT_meshopt_compression" in (v.get("extensions") or {}))
+    ext = view["extensions"]["EXT_meshopt_compression"]
+    assert ext["buffer"] == 0  # the BIN chunk, which starts after the JSON chunk and its header
+    start = 20 + length + 8 + ext.get("byteOffset", 0)
+    data[start:start + ext["byteLength"]] = b"\xff" * ext["byteLength"]
+    out.write_bytes(bytes(data))
+    assert main(["info", str(out)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"/bufferViews/{index}/extensions/EXT_meshopt_compression: gltf.meshopt: " in line, line

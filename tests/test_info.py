@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -59,7 +60,8 @@ def test_json_of_the_talks_texture(tmp_path, capsys):
     assert len(out["animations"]) == 1 and out["animations"][0]["width"] == 64
     # Exactly the keys `vbusd info --help` documents (copied here by hand from the help text).
     assert set(out["animations"][0]) == {
-        "path", "texture", "formatVersion", "encoding", "texelFormat", "boneCount", "texelsPerBone",
+        "path", "texture", "formatVersion", "formatMinorVersion", "version", "masks", "encoding", "texelFormat",
+        "boneCount", "texelsPerBone",
         "bones", "rowCount", "usedWidth", "width", "height", "horizontalPadding", "verticalPadding",
         "texelBytes", "usedTexelBytes", "bytesPerBoneKey", "fetchesPerBoneAndRow", "paddingBytes",
         "paddingFraction", "contentDigest", "clips", "container", "compression", "warnings"}
@@ -297,3 +299,53 @@ def test_the_stadium_crowd_sample(capsys):
     # The sample's texture passes every reader check, digest included.
     data = textures.read_texture(SAMPLE / usd["texture"])
     assert data.info.content_digest == usd["contentDigest"]
+
+
+def test_info_shows_the_minor_version_masks_and_bone_names(tmp_path, capsys):
+    """Issue 35 item 15: a format 1.2 asset (a bone mask) is described as 1.2 in JSON and text, as
+    the USD prim and the sidecar say, with its masks and the bone names the text form lacked."""
+    from pxr import Usd
+
+    out = tmp_path / "layers.usda"
+    assert main(["convert", str(SAMPLE / "stadium_crowd.usda"), "-o", str(out), "--mask", "upper=spine", "-q"]) == 0
+    sidecar = json.loads(next(tmp_path.glob("*.exr.json")).read_text())
+    stage = Usd.Stage.Open(str(out))
+    prim = next(p for p in stage.Traverse() if p.GetTypeName() == "VirtualBonesAnimation")
+    authored = (prim.GetAttribute("vb:formatVersion").Get(), prim.GetAttribute("vb:formatMinorVersion").Get())
+    assert authored == (sidecar["formatVersion"], sidecar["formatMinorVersion"]) == (1, 2)
+    upper = ["hips/spine", "hips/spine/chest", "hips/spine/chest/head"] + [
+        f"hips/spine/chest/{side}_shoulder" + tail for side in "LR"
+        for tail in ("", f"/{side}_upperArm", f"/{side}_upperArm/{side}_forearm",
+                     f"/{side}_upperArm/{side}_forearm/{side}_hand")]
+    for asset in (out, next(tmp_path.glob("*.exr")), next(tmp_path.glob("*.exr.json"))):
+        assert main(["info", str(asset), "--format", "json"]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert (info["formatVersion"], info["formatMinorVersion"], info["version"]) == (1, 2, "1.2"), asset
+        (mask,) = info["masks"]
+        assert mask["name"] == "upper" and sorted(mask["bones"]) == sorted(upper), asset
+        assert main(["info", str(asset)]) == 0
+        text = capsys.readouterr().out
+        assert re.search(r"^format\s+1\.2\s*$", text, flags=re.M), text
+        assert "bone names: hips, hips/spine, hips/spine/chest," in text
+        assert "mask upper (11 of 18 bones): hips/spine, " in text
+
+
+def test_info_shows_the_levels_of_detail_of_a_package(tmp_path, capsys):
+    """Issue 35 item 15: a package's MSFT_lod levels (count and screen coverage, read here from the
+    glTF JSON itself) are in info, as a USD asset's UsdLod levels are."""
+    pytest.importorskip("meshoptimizer")
+    usd, crowd, package = tmp_path / "lod.usda", tmp_path / "crowd.usda", tmp_path / "crowd.glb"
+    assert main(["convert", str(SAMPLE / "stadium_crowd.usda"), "-o", str(usd), "--lod-ratios", "0.5,0.2",
+                 "-q"]) == 0
+    assert main(["crowd", str(usd), "-o", str(crowd), "--count", "3", "-q"]) == 0
+    assert main(["export", str(crowd), "-o", str(package), "-q"]) == 0
+    data = package.read_bytes()
+    gltf = json.loads(data[20:20 + int.from_bytes(data[12:16], "little")])
+    (node,) = [n for n in gltf["nodes"] if "MSFT_lod" in (n.get("extensions") or {})]
+    coverage = node["extras"]["MSFT_screencoverage"]
+    assert main(["info", str(package), "--format", "json"]) == 0
+    lods = json.loads(capsys.readouterr().out)["levelsOfDetail"]
+    assert lods["levels"] == len(node["extensions"]["MSFT_lod"]["ids"]) + 1 == 3
+    assert lods["screenSizes"] == coverage[:-1] == pytest.approx([0.01, 0.001]) and lods["root"] == node["name"]
+    assert main(["info", str(package)]) == 0
+    assert re.search(r"levels of detail\s+3 under ", capsys.readouterr().out)

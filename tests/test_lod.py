@@ -386,6 +386,7 @@ def test_missing_meshoptimizer_is_one_line_naming_what_to_install(tmp_path, caps
     assert main(["convert", str(STADIUM), "-o", str(tmp_path / "x.usda"), "--lod-ratios", "0.5"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "convert.lodSimplifier" in err and "vbusd[lod]" in err, err
+    assert "C++ compiler" in err  # issue 35 item 14: the extra builds from source
     assert not (tmp_path / "x.usda").exists()
 
 

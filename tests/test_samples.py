@@ -491,3 +491,58 @@ def test_generator_refuses_a_bad_output_folder_in_one_line(gen, tmp_path, capsys
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err.count("\n") == 1 and "Traceback" not in captured.err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file.txt"]
+
+
+def _readme_inline_commands() -> list:
+    """Every inline ``vbusd ...`` command of the README that runs on the repository's sample."""
+    import re
+
+    text = (REPO / "README.md").read_text()
+    return [c for c in re.findall(r"`(vbusd [^`]+)`", text) if "samples/" in c]
+
+
+def test_readme_mask_example_runs_as_written_on_the_sample(tmp_path):
+    """Issue 35 item 12: the README's --mask example names a bone of the repository's own sample,
+    and its mask is that bone and every bone below it in the hierarchy (the sample's joint paths,
+    read with pxr: the spine, chest, head and both arms; not the hips or legs)."""
+    import os
+    import shlex
+
+    from pxr import Usd, UsdSkel
+
+    (masked,) = [c for c in _readme_inline_commands() if "--mask" in c]
+    (tmp_path / "samples").symlink_to(REPO / "samples", target_is_directory=True)
+    env = dict(os.environ, PYTHONSAFEPATH="1")
+    words = shlex.split(masked)
+    for _ in range(2):  # as written, and again (--force)
+        result = subprocess.run([sys.executable, "-m", "vbusd", *words[1:]], capture_output=True, text=True,
+                                timeout=300, cwd=tmp_path, env=env)
+        assert result.returncode == 0, (masked, result.stderr)
+    name, bone = words[words.index("--mask") + 1].split("=")
+    source = Usd.Stage.Open(str(USDSKEL))
+    joints = [str(j) for j in UsdSkel.Skeleton(next(
+        p for p in source.Traverse() if p.IsA(UsdSkel.Skeleton))).GetJointsAttr().Get()]
+    (path,) = [j for j in joints if j.rsplit("/", 1)[-1] == bone]
+    below = {j.rsplit("/", 1)[-1] for j in joints if j == path or j.startswith(path + "/")}
+    assert below == {"spine", "chest", "head", "L_shoulder", "L_upperArm", "L_forearm", "L_hand",
+                     "R_shoulder", "R_upperArm", "R_forearm", "R_hand"}
+    stage = Usd.Stage.Open(str(tmp_path / words[words.index("-o") + 1]))
+    prim = next(p for p in stage.Traverse() if p.GetTypeName() == "VirtualBonesAnimation")
+    bones = [b.rsplit("/", 1)[-1] for b in prim.GetAttribute("vb:bones").Get()]
+    assert list(prim.GetAttribute("vb:maskNames").Get()) == [name]
+    weights = np.array(prim.GetAttribute("vb:maskWeights").Get())
+    assert {b for b, w in zip(bones, weights) if w == 1.0} == below and set(weights) == {0.0, 1.0}
+
+
+def test_mask_wording_is_one_direction_everywhere():
+    """``--help``, docs/api.md and the spec describe a mask the same way: the bone and every bone
+    below it (its descendants), never "above it"."""
+    from click.testing import CliRunner
+
+    from vbusd.cli import cli
+
+    help_text = " ".join(CliRunner().invoke(cli, ["convert", "--help"]).output.split())
+    assert "BONE and every bone below it in the hierarchy" in help_text
+    api = (REPO / "docs" / "api.md").read_text()
+    assert "every bone below it" in api and "above it" not in api
+    assert "every bone below it" in (REPO / "spec" / "virtual-bones.md").read_text()

@@ -174,3 +174,38 @@ def test_bone_transform_per_crowd_instance_from_the_file(usdskel_rig, tmp_path):
     np.testing.assert_allclose(second, expected, atol=1e-6)
     with pytest.raises(OptionsError, match="instance must be an index 0..1"):
         vbusd.bone_transform(path, 2, time=t, instance=2)
+
+
+def test_api_arguments_are_checked_at_the_top_in_one_line(usdskel_rig):
+    """Issue 35 item 5: a time whose row position overflows, an instance or crowd that is not an
+    integer index: one OptionsError naming the argument, never an IndexError, ValueError,
+    OverflowError or TypeError from inside the decoder, and never silently truncated."""
+    _, animation, _ = usdskel_rig
+    vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))
+    crowd = Crowd("/Root/Crowd", positions=np.zeros((2, 3), np.float32),
+                  orientations=np.array([[0, 0, 0, 1]] * 2, np.float32), clip=np.zeros(2, np.int32),
+                  time_offset=np.zeros(2, np.float32), playback_rate=np.ones(2, np.float32))
+    asset = vbusd.VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,), default_prim="Root")
+    clip = vb.clips[0].name
+    # 1e308 s is finite, but 1e308 x rowsPerSecond is not: the spec's row position has no value.
+    for call, name in ((lambda: vbusd.skin(vb, clip, 1e308), "time"),
+                       (lambda: vbusd.skin(vb, clip, 0.0, fade_clip=clip, fade_time=-1e308, fade_weight=0.5),
+                        "fade_time"),
+                       (lambda: vbusd.bone_transform(vb, 1, clip, 1e308), "time"),
+                       (lambda: vbusd.bone_transform(asset, 1, time=1e308, instance=0), "time"),
+                       (lambda: vbusd.root_motion(vb, clip, 0.0, 1e308), "t1"),
+                       (lambda: vbusd.skin(vb, clip, "0.5"), "time")):
+        with pytest.raises(OptionsError) as caught:
+            call()
+        assert str(caught.value).count("\n") == 0 and f"{name} " in str(caught.value), caught.value
+    for instance in ("0", 1.5, float("nan"), float("inf"), True, np.float64(1.0)):
+        with pytest.raises(OptionsError, match="instance must be an integer index"):
+            vbusd.bone_transform(asset, 1, time=0.1, instance=instance)
+    for number in ("0", None, 0.5):
+        with pytest.raises(OptionsError, match="crowd must be an integer index"):
+            vbusd.bone_transform(asset, 1, time=0.1, instance=0, crowd=number)
+    # What stays accepted: integer indices of either kind, and a large time that still has a row.
+    expected = vbusd.bone_transform(asset, 1, time=0.1, instance=1)
+    np.testing.assert_array_equal(vbusd.bone_transform(asset, 1, time=0.1, instance=np.int64(1), crowd=np.int32(0)),
+                                  expected)
+    assert np.isfinite(vbusd.skin(vb, clip, 1e300)[0].points).all()

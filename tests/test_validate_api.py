@@ -244,9 +244,10 @@ def test_exr_compressions_the_spec_allows_pass_and_others_are_refused(tmp_path, 
     assert found == ([] if allowed else [("texture.compression", "asset.Animation.exr")])
 
 
-def test_outside_paths_are_refused_without_suggesting_an_option_validate_lacks(tmp_path):
-    """vbusd's reader suggests --allow-outside-paths; validate has no such option, so its
-    texture.outside and asset.outside messages must not suggest one."""
+def test_outside_paths_are_refused_naming_the_option_that_allows_them(tmp_path):
+    """validate takes allow_outside_paths as every reader does (issue 35 item 17): its
+    texture.outside and asset.outside messages say so in the caller's words, and with it the
+    outside texture and sublayer are read."""
     from pxr import Sdf, Usd
 
     asset = _copy("valid/crossMatrix_float16", tmp_path)
@@ -261,7 +262,9 @@ def test_outside_paths_are_refused_without_suggesting_an_option_validate_lacks(t
     assert {"texture.outside", "asset.outside"} <= set(found)
     for code in ("texture.outside", "asset.outside"):
         assert "absolute paths are not allowed" in found[code]
-        assert "allow" not in found[code].replace("not allowed", ""), found[code]
+        assert found[code].endswith("(pass allow_outside_paths=True to allow it)"), found[code]
+    allowed = {f.code for f in validate(asset, allow_outside_paths=True).findings}
+    assert not {"texture.outside", "asset.outside"} & allowed, allowed
 
 
 def test_a_sidecar_alone_does_not_make_up_for_missing_embedded_metadata(tmp_path):

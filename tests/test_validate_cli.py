@@ -140,3 +140,24 @@ def test_text_report_wraps_between_words_on_a_terminal_and_not_at_all_in_a_pipe(
             break
         wrapped.append(line.strip())
     assert len(wrapped) > 1 and " ".join(wrapped) == message
+
+
+def test_allow_outside_paths_as_the_other_readers_take_it(tmp_path, capsys):
+    """Issue 35 item 17: validate takes --allow-outside-paths as info, decode and export do (and
+    vbusd.validate the keyword): a texture reached through '..' is a texture.outside error that
+    names the flag; with the flag the asset validates as info reads it."""
+    import vbusd
+
+    sample = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
+    for name in ("stadium_crowd_vb.Cheer.exr", "stadium_crowd_vb.Cheer.exr.json"):
+        shutil.copy(sample / name, tmp_path / name)
+    text = (sample / "stadium_crowd_vb.usda").read_text()
+    asset = tmp_path / "inner" / "crowd.usda"
+    asset.parent.mkdir()
+    asset.write_text(text.replace("@./stadium_crowd_vb.Cheer.exr@", "@../stadium_crowd_vb.Cheer.exr@"))
+    assert main(["validate", str(asset)]) == 1
+    out = capsys.readouterr().out
+    assert "texture.outside" in out and "--allow-outside-paths" in out and "allow_outside_paths=True" not in out
+    assert main(["validate", str(asset), "--allow-outside-paths"]) == 0, capsys.readouterr().out
+    assert main(["info", str(asset), "--allow-outside-paths", "-q"]) == 0
+    assert not vbusd.validate(asset).valid and vbusd.validate(asset, allow_outside_paths=True).valid

@@ -45,14 +45,17 @@ class SkinnedPose:
     normals: Optional[np.ndarray]
 
 
-def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None):
-    """Validate an asset (USD layer, texture or sidecar) and return its report.
+def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None,
+             allow_outside_paths: bool = False):
+    """Validate an asset (USD layer, texture, sidecar or runtime package) and return its report.
 
     Args:
         path: The file to check.
         only: Report only these codes or code prefixes.
         ignore: Leave out these codes or code prefixes.
         max_issues: List at most this many findings (the counts still cover all).
+        allow_outside_paths: Let the asset reference files outside its folder (as ``read_asset``
+            and the other jobs take it); without it each such reference is a ``path.unsafe`` finding.
 
     Returns:
         A :class:`vbusd.validators.report.Report`; ``report.valid`` is False when any error was found.
@@ -67,7 +70,7 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_
         True
     """
 
-    return _validate(path, only=only, ignore=ignore, max_issues=max_issues)
+    return _validate(path, only=only, ignore=ignore, max_issues=max_issues, allow_outside_paths=allow_outside_paths)
 
 
 def _animation(asset: AssetLike, animation: int, what: str) -> VirtualBones:
@@ -103,14 +106,33 @@ def clip_index(vb: VirtualBones, clip, *, what: str = "skin") -> int:
     raise OptionsError(f"animation {vb.path} has no clip {clip!r} (clips: {', '.join(names)})", file=what)
 
 
-def _finite_seconds(value, name: str, job: str) -> float:
-    try:
-        seconds = float(value)
-    except (TypeError, ValueError):
-        seconds = float("nan")
+def _is_number(value) -> bool:
+    """A real number: int, float or a numpy scalar of either; not a bool, a string or None."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_index(value) -> bool:
+    """An integer index: int or a numpy integer; not a bool, a float (1.0 included) or a string."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _finite_seconds(value, name: str, job: str, rows_per_second: float = 1.0) -> float:
+    """A time argument as float seconds; refused (one line naming it) unless it is a finite number
+    whose row position ``seconds x rows_per_second`` (spec "Row position") is finite too."""
+    seconds = float(value) if _is_number(value) else float("nan")
     if not np.isfinite(seconds):
         raise OptionsError(f"{name} must be a finite number of seconds, got {value!r}", file=job)
+    if not np.isfinite(seconds * float(rows_per_second)):
+        raise OptionsError(f"{name} {value!r} is out of range: at {rows_per_second:g} rows per second its row "
+                           f"position is not a finite number", file=job)
     return seconds
+
+
+def _weight(value, name: str, job: str) -> float:
+    weight = float(value) if _is_number(value) else float("nan")
+    if not 0.0 <= weight <= 1.0:
+        raise OptionsError(f"{name} must be a number in 0..1, got {value!r}", file=job)
+    return weight
 
 
 def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_time=None, fade_weight: float = 0.0,
@@ -143,8 +165,8 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
     Raises:
         InputError: The asset cannot be read, or a layer names a mask it does not store (code
             ``layers.noMask``).
-        OptionsError: No such clip or animation, a time that is not a finite number, a fade
-            weight outside 0..1, a fade clip without a fade time, or a malformed layer.
+        OptionsError: No such clip or animation, a time that is not a finite number (or whose row
+            position, time x rowsPerSecond, is not), a fade weight that is not a number in 0..1, a fade clip without a fade time, or a malformed layer.
 
     Example:
         >>> poses = vbusd.skin("out/stadium_crowd.usda", "Cheer", 1.5)  # doctest: +SKIP
@@ -158,19 +180,14 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
     vb = _animation(asset, animation, "skin")
     index = clip_index(vb, clip)
-    tau = _finite_seconds(time, "time", "skin")
-    try:
-        weight = float(fade_weight)
-    except (TypeError, ValueError):
-        weight = float("nan")
-    if not 0.0 <= weight <= 1.0:
-        raise OptionsError(f"fade_weight must be a number in 0..1, got {fade_weight!r}", file="skin")
+    tau = _finite_seconds(time, "time", "skin", vb.clips[index].rows_per_second)
+    weight = _weight(fade_weight, "fade_weight", "skin")
     fade_index = None
     if fade_clip is not None:
         fade_index = clip_index(vb, fade_clip)
         if fade_time is None:
             raise OptionsError("fade_clip needs fade_time (the fade clip's clip-local seconds)", file="skin")
-        fade_tau = _finite_seconds(fade_time, "fade_time", "skin")
+        fade_tau = _finite_seconds(fade_time, "fade_time", "skin", vb.clips[fade_index].rows_per_second)
     elif weight > 0.0:
         raise OptionsError(f"fade_weight {weight} needs a fade_clip", file="skin")
     resolved = _layers(vb, layers, "skin")
@@ -218,15 +235,9 @@ def _layers(vb: VirtualBones, layers, job: str) -> list:
                 ([f"unknown keys {', '.join(unknown)}"] if unknown else [])
                 + ([f"missing {', '.join(missing)}"] if missing else []))
                 + f" (keys: {', '.join(_LAYER_KEYS)}; weight defaults to 1)", file=job)
-        try:
-            weight = float(layer.get("weight", 1.0))
-        except (TypeError, ValueError):
-            weight = float("nan")
-        if not 0.0 <= weight <= 1.0:
-            raise OptionsError(f"layers[{j}]: weight must be a number in 0..1, got {layer.get('weight')!r}",
-                               file=job)
+        weight = _weight(layer.get("weight", 1.0), f"layers[{j}]: weight", job)
         clip = clip_index(vb, layer["clip"], what=job)
-        seconds = _finite_seconds(layer["time"], f"layers[{j}] time", job)
+        seconds = _finite_seconds(layer["time"], f"layers[{j}] time", job, vb.clips[clip].rows_per_second)
         mask = mask_weights(vb, layer["mask"], what=job)
         resolved.append((clip, np.array([seconds]), weight, mask))
     return resolved
@@ -283,40 +294,55 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
     Raises:
         InputError: The asset cannot be read or stores no bind transforms (an asset converted
             before format 1.1: reconvert it).
-        OptionsError: No such bone, clip or animation, or a time that is not finite.
+        OptionsError: No such bone, clip, animation, crowd or instance (``instance`` and ``crowd``
+            must be integers), or a time that is not a finite number or whose row is not.
 
     Example:
         >>> hand = vbusd.bone_transform("out/stadium_crowd.usda", "R_hand", "Cheer", 2.5)  # doctest: +SKIP
         >>> hand[:3, 3]   # the hand's position in animation space
     """
 
+    job = "bone_transform"
     if instance is not None and layers:
         raise OptionsError("layers apply to one animation's clip, not with instance= (a crowd's layers are its "
-                           "primvars)", file="bone_transform")
+                           "primvars)", file=job)
+    if instance is not None and not _is_index(instance):
+        raise OptionsError(f"instance must be an integer index of an instance, got {instance!r}", file=job)
+    if not _is_index(crowd):
+        raise OptionsError(f"crowd must be an integer index of a crowd, got {crowd!r}", file=job)
     if instance is not None:
         if not isinstance(asset, VirtualBonesAsset):
 
             asset = read_asset(asset)
         if not 0 <= crowd < len(asset.crowds):
-            raise OptionsError(f"crowd must be an index 0..{len(asset.crowds) - 1}, got {crowd!r}",
-                               file="bone_transform")
-        crowd_data = asset.crowds[crowd]
-        if isinstance(instance, bool) or not 0 <= int(instance) < crowd_data.instance_count:
+            raise OptionsError(f"crowd must be an index 0..{len(asset.crowds) - 1}, got {crowd!r}", file=job)
+        crowd_data = asset.crowds[int(crowd)]
+        if not 0 <= instance < crowd_data.instance_count:
             raise OptionsError(f"instance must be an index 0..{crowd_data.instance_count - 1}, got {instance!r}",
-                               file="bone_transform")
-        vb = asset.animations[int(asset.crowd_animation[crowd])]
+                               file=job)
+        vb = asset.animations[int(asset.crowd_animation[int(crowd)])]
         single = dataclasses.replace(crowd_data, **{name: np.asarray(getattr(crowd_data, name))[[int(instance)]]
                                                    for name in _PER_INSTANCE if getattr(crowd_data, name) is not None})
         if crowd_data.fade_samples:
             single = dataclasses.replace(single, fade_samples={
                 key: (times, np.asarray(values)[:, [int(instance)]])
                 for key, (times, values) in crowd_data.fade_samples.items()})
-        seconds = _finite_seconds(time, "time", "bone_transform")
+        seconds = _finite_seconds(time, "time", job)
+        # The instance's clip-local times, offset + rate x time, at the fastest clip's rows per second
+        # (spec "Instancing"): finite, or the time is out of range for this instance.
+        offsets = [abs(float(v)) for name in ("time_offset", "fade_time_offset", "layer_time_offset")
+                   if getattr(single, name) is not None for v in np.ravel(getattr(single, name))]
+        rates = [abs(float(v)) for name in ("playback_rate", "fade_playback_rate", "layer_playback_rate")
+                 if getattr(single, name) is not None for v in np.ravel(getattr(single, name))]
+        local = max(offsets, default=0.0) + max(rates, default=1.0) * abs(seconds)
+        if not np.isfinite(local * max(c.rows_per_second for c in vb.clips)):
+            raise OptionsError(f"time {time!r} is out of range: instance {instance}'s clip-local time "
+                               f"(offset + rate x time) has no finite row position", file=job)
         return crowd_joint_transforms(vb, single, bone_index(vb, bone), seconds)[0]
-    vb = _animation(asset, animation, "bone_transform")
+    vb = _animation(asset, animation, job)
     index = bone_index(vb, bone)
-    clip_number = clip_index(vb, clip, what="bone_transform")
-    tau = _finite_seconds(time, "time", "bone_transform")
+    clip_number = clip_index(vb, clip, what=job)
+    tau = _finite_seconds(time, "time", job, vb.clips[clip_number].rows_per_second)
     resolved = _layers(vb, layers, "bone_transform")
     if resolved:
         return layered_skinning(vb, clip_number, np.array([tau]), resolved)[1][0, index]
@@ -344,7 +370,8 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
     Raises:
         InputError: The asset cannot be read.
-        OptionsError: No such clip or animation, or a time that is not finite.
+        OptionsError: No such clip or animation, or a time that is not a finite number (or whose row
+            position, time x rowsPerSecond, is not).
 
     Example:
         >>> step = vbusd.root_motion("walk.usda", "walk", 0.0, 1.0)  # doctest: +SKIP
@@ -353,7 +380,9 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
     vb = _animation(asset, animation, "root_motion")
     index = clip_index(vb, clip, what="root_motion")
-    return displacement(vb, index, _finite_seconds(t0, "t0", "root_motion"), _finite_seconds(t1, "t1", "root_motion"))
+    rate = vb.clips[index].rows_per_second
+    return displacement(vb, index, _finite_seconds(t0, "t0", "root_motion", rate),
+                        _finite_seconds(t1, "t1", "root_motion", rate))
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,

@@ -91,7 +91,8 @@ def _meshoptimizer():
         import meshoptimizer
     except ImportError:
         raise UnsupportedError("generating levels of detail needs meshoptimizer: pip install 'vbusd[lod]' "
-                               "(or pip install meshoptimizer)", location="--lod-ratios",
+                               "(it builds from source: needs a C++ compiler and Python's headers, Debian: "
+                               "apt install g++ python3-dev)", location="--lod-ratios",
                                code="convert.lodSimplifier") from None
     return meshoptimizer
 

@@ -8,6 +8,7 @@ library never calls ``sys.exit``.
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import sys
 from typing import Optional, Sequence
@@ -30,7 +31,7 @@ COMMANDS = {
     "shader": "Write a reference vertex shader for an encoding and texel format.",
     "export": "Export an asset or crowd for engines: a glTF 2.0 runtime package (.glb, .gltf).",
     "crowd": "Build a USD crowd of converted characters on a point instancer.",
-    "view": "Show an asset or crowd in a browser (three.js viewer on 127.0.0.1).",
+    "view": "Show an asset or crowd in a browser, drawn by three.js (WebGL or WebGPU) or Babylon.js.",
 }
 
 
@@ -55,6 +56,16 @@ def _remember_invocation(ctx: click.Context) -> None:
 class _LazyGroup(click.Group):
     def list_commands(self, ctx):
         return [name for name in COMMANDS if importlib.util.find_spec(f"vbusd.cli.{name}")]
+
+    def resolve_command(self, ctx, args):
+        """An unknown command is one usage line that suggests the nearest commands (difflib)."""
+        name = click.utils.make_str(args[0])
+        if self.get_command(ctx, name) is None and not name.startswith("-"):
+            near = difflib.get_close_matches(name, self.list_commands(ctx), n=3, cutoff=0.6)
+            hint = (f"did you mean {' or '.join(repr(n) for n in near)}?" if near
+                    else f"the commands are {', '.join(self.list_commands(ctx))}")
+            ctx.fail(f"no such command {name!r}; {hint}")
+        return super().resolve_command(ctx, args)
 
     def get_command(self, ctx, name):
         if name not in COMMANDS or importlib.util.find_spec(f"vbusd.cli.{name}") is None:

@@ -25,6 +25,7 @@ from vbusd.format.errors import COMMAND_LINE_SPELLINGS
 from rich.console import Console
 from rich.table import Table
 from vbusd.process import signals as _signals
+from vbusd.process.memory import human_bytes
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 __all__ = ["DEFAULT_TEXEL_FORMATS", "TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
@@ -79,24 +80,6 @@ def warn(message: str, *, quiet: bool = False) -> None:
     """Print ``vbusd: warning: MESSAGE`` on stderr, unless ``quiet``."""
     if not quiet:
         click.echo(f"vbusd: warning: {command_line_spelling(message)}", err=True)
-
-
-def human_bytes(count: int, *, exact: bool = False) -> str:
-    """A size as every text output prints it: ``812 B``, ``31.3 KiB``, ``49.9 MiB``, ``1.2 GiB``.
-
-    Args:
-        count: Bytes.
-        exact: Also give the exact count, ``256.0 KiB, 262,144 bytes``, where it is a design figure
-            (a texture's texel bytes) rather than a file's size.
-    """
-    count = int(count)
-    value, unit = float(count), "B"
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if abs(value) < 1024 or unit == "TiB":
-            break
-        value /= 1024.0
-    text = f"{count} B" if unit == "B" else f"{value:.1f} {unit}"
-    return f"{text}, {count:,} bytes" if exact and unit != "B" else text
 
 
 def echo_json(value) -> None:

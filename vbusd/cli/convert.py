@@ -53,9 +53,10 @@ def _check_rows(value: str):
                    "(a missing folder is created). With several sources, a folder, a glob or --manifest, or when "
                    "it names a folder (an existing one, or a path ending in /): the output folder, each asset "
                    "under its source's name.")
-@click.option("--encoding", default="auto", show_default=True,
+@click.option("--encoding", default="auto", show_default=True, metavar="ENCODING",
               type=click.Choice(["auto"] + [e.value for e in Encoding]),
-              help="Bone transform encoding. auto: crossMatrix when every bone is rigid, else affineMatrix; "
+              help="Bone transform encoding: " + ", ".join(["auto"] + [e.value for e in Encoding]) + ". "
+                   "auto: crossMatrix when every bone is rigid, else affineMatrix; "
                    "dualQuat when the source asks for dual-quaternion skinning. compactQuatTranslation (format "
                    "1.2): one 12-byte uint32 texel per bone and row, rigid bones only.")
 @click.option("--texel-format", default=None, show_default=DEFAULT_TEXEL_FORMATS,
@@ -112,7 +113,7 @@ def _check_rows(value: str):
                    "ratio, decreasing (default 0.01, 0.001, ...).")
 @click.option("--mask", "masks", multiple=True, metavar="NAME=BONE",
               help="A bone mask for layers (format 1.2; vbusd.skin(..., layers=...)): BONE and every bone below "
-                   "it; repeatable.")
+                   "it in the hierarchy (its descendants); repeatable.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",

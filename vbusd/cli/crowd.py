@@ -75,7 +75,7 @@ class _CrowdCommand(click.Command):
 @click.command("crowd", cls=_CrowdCommand)
 @click.argument("characters", nargs=-1, required=True, type=click.Path(path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str), help="Crowd layer to write (.usda, .usdc).")
-@click.option("--layout", default="grid", show_default=True, metavar="grid|disc|points FILE",
+@click.option("--layout", default="grid", show_default=True, metavar="[grid|disc|points]",
               help="Placement: a grid, a disc of even density, or the points of FILE (also --points FILE).")
 @click.option("--points", "points_file", metavar="FILE", help="CSV (x,y,z rows) or USD points prim for --layout points.")
 @click.option("--count", default=100, show_default=True, type=int, help="Instances (grid and disc).")

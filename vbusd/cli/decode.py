@@ -15,6 +15,7 @@ from vbusd.cli.common import (echo_json, force_option, format_option, human_byte
                               terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
 from vbusd.jobs.pointcache import decode
+from vbusd.process.memory import parse_size
 
 __all__ = ["command"]
 
@@ -23,8 +24,9 @@ __all__ = ["command"]
 @click.argument("asset", type=click.Path(path_type=str))  # folders: one-line error from decode
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="Point cache to write (.usda, .usdc or .usd).")
-@click.option("--device", default=None, metavar="cpu|cuda",
-              help="Decode with the warp kernels on this device (default: the numpy reference decoder).")
+@click.option("--device", default=None, metavar="DEVICE",
+              help="Decode with the warp kernels on this device: cpu, cuda or cuda:N (default: the numpy "
+                   "reference decoder).")
 @click.option("--clip", default=None, metavar="NAME|INDEX", help="Clip to play (default: clip 0 of every animation).")
 @format_option
 @force_option
@@ -33,13 +35,23 @@ __all__ = ["command"]
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>. "
                    "Large: instances x points x 24 bytes per sample (the stadium sample: several GB; "
                    "prefer a .usdc output).")
+@click.option("--max-memory", default=None, metavar="SIZE",
+              help="The most memory the cache may take while it is built (4G, 512MiB, bytes); default: the "
+                   "memory available. A larger cache is refused before decoding, naming its size.")
 @quiet_option
-def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, quiet):
+def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, max_memory, quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
+    if max_memory is not None:
+        size = parse_size(max_memory)
+        if size is None:
+            raise click.BadParameter(f"takes a size such as 4G, 512MiB or a number of bytes, got {max_memory!r}",
+                                     param_hint="--max-memory")
+        max_memory = size
 
     with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
         report = decode(asset, output, device=device, clip=clip, force=force,
-                        allow_outside_paths=allow_outside_paths, crowds=crowds, progress=progress)
+                        allow_outside_paths=allow_outside_paths, crowds=crowds, max_memory=max_memory,
+                        progress=progress)
     if quiet:
         return 0
     if output_format == "json":

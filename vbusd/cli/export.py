@@ -59,7 +59,7 @@ FORM_OF_SUFFIX = {".glb": "gltf", ".gltf": "gltf"}
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="File to write: OUT.glb or OUT.gltf (the glTF runtime package), OUT.usda|.usdc with "
                    "--as usdskel.")
-@click.option("--as", "form", default=None, metavar="FORM",
+@click.option("--as", "form", default=None, metavar="[" + "|".join(EXPORTERS) + "]",
               help="What to write: gltf (the glTF 2.0 runtime package; default for .glb and .gltf) or "
                    "usdskel (UsdSkel for Hydra renderers: a Skeleton and SkelAnimation per clip, crowds as "
                    "references with layer offsets).")
@@ -94,6 +94,6 @@ def command(asset, output, form, supercompression, duration, output_format, forc
         return 0
     for warning in report.get("warnings", ()):
         warn(warning)
-    files = ", ".join(f"{Path(path).name} ({human_bytes(size)})" for path, size in report["files"].items())
+    files = ", ".join(f"{path} ({human_bytes(size)})" for path, size in report["files"].items())
     click.echo(f"wrote {files}")
     return 0

@@ -50,20 +50,23 @@ attributes), a texture (.exr, .png or .ktx2, from its embedded metadata; pixels 
 sidecar <texture>.json, or the runtime package vbusd export writes (.glb, .gltf). USD files and
 packages also list their crowds: instances, prototypes and the clips they play.
 
-The text form shows, per animation: encoding, texel format, bones, rows, used and padded width,
-height, texel bytes, padding waste and the clips.
+The text form shows, per animation: format version (major.minor), encoding, texel format, bones and
+their names, bone masks (format 1.2), rows, used and padded width, height, texel bytes, padding
+waste, levels of detail and the clips.
 
 The JSON form (--format json) is one object:
 
 \b
   {"file": ASSET, "kind": "usd" | "texture" | "sidecar" | "package",
-   "animations": [{"path", "texture", "formatVersion", "encoding",
+   "animations": [{"path", "texture", "formatVersion",
+                   "formatMinorVersion", "version" ("1.2"), "encoding",
                    "texelFormat", "boneCount", "texelsPerBone", "bones",
                    "rowCount", "usedWidth", "width", "height",
                    "horizontalPadding", "verticalPadding", "texelBytes",
                    "usedTexelBytes", "bytesPerBoneKey",
                    "fetchesPerBoneAndRow", "paddingBytes", "paddingFraction",
-                   "contentDigest", "clips": [{"name", "firstRow",
+                   "contentDigest", "masks": [{"name", "bones",
+                   "weights"}], "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
   A texture's animation also has "container" (exr | png | ktx2),
@@ -79,7 +82,8 @@ The JSON form (--format json) is one object:
   A package also has "container" (glb | gltf), "extensionVersion",
   "meshes": [{"name", "primitives", "vertices", "animation"}],
   "characters" (nodes drawing one character) and, per animation,
-  "name".
+  "name" and, with MSFT_lod levels, "levelsOfDetail" (root: the
+  first node listing them).
 
 When there is exactly one animation its keys are repeated at the top level, so
 `vbusd info anim.exr --format json | jq .width` works; with several, use
@@ -90,7 +94,7 @@ texture file as written in the asset.
 
 def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
              texture: Optional[str] = None, format_version: Optional[int] = None,
-             content_digest: Optional[str] = None) -> dict:
+             content_digest: Optional[str] = None, format_minor_version: int = 0, masks=()) -> dict:
     """The JSON description of one animation's layout (keys as in the command help).
 
     Args:
@@ -99,15 +103,22 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
         bones: Bone names.
         path: Prim path of the animation, if it came from USD.
         texture: Texture file name as written in the asset.
-        format_version: The metadata's formatVersion.
+        format_version: The metadata's formatVersion (the major version).
         content_digest: The texels' digest.
+        format_minor_version: The metadata's formatMinorVersion (absent: 0).
+        masks: Format 1.2 bone masks, ``(name, weights)`` pairs: listed with the bones they weigh.
     """
+    bones = [str(b) for b in bones]
     return {
         "path": path,
         "texture": texture,
         "formatVersion": format_version,
+        "formatMinorVersion": int(format_minor_version or 0),
+        "version": None if format_version is None else f"{format_version}.{int(format_minor_version or 0)}",
         **md.layout_fields(layout),
-        "bones": [str(b) for b in bones],
+        "bones": bones,
+        "masks": [{"name": str(name), "bones": [b for b, w in zip(bones, weights) if float(w) > 0],
+                   "weights": [float(w) for w in weights]} for name, weights in masks],
         "usedTexelBytes": layout.used_texel_bytes,
         # bytes and texel fetches one bone costs per row (12 and 1 for the compact encoding)
         "bytesPerBoneKey": layout.texels_per_bone * layout.texel_format.stored_channels
@@ -125,9 +136,10 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
     }
 
 
-def _describe_info(info, *, texture: Optional[str]) -> dict:
-    return describe(info.layout, info.clips, bones=info.bones, texture=texture,
-                    format_version=info.format_version, content_digest=info.content_digest)
+def _describe_info(info, *, texture: Optional[str], path: Optional[str] = None) -> dict:
+    return describe(info.layout, info.clips, bones=info.bones, texture=texture, path=path,
+                    format_version=info.format_version, content_digest=info.content_digest,
+                    format_minor_version=info.format_minor_version, masks=info.masks)
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,7 +159,9 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     for animation in animations:
         _check_texture(path, animation)
     described = [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
-                          format_version=a.format_version, content_digest=a.content_digest)
+                          format_version=a.format_version, content_digest=a.content_digest,
+                          format_minor_version=a.format_minor_version,
+                          masks=[(m["name"], m["weights"]) for m in (a.declared.values.get("masks") or ())])
                  for a in animations]
     for entry, a in zip(described, animations):
         if a.lods is not None:  # format 1.2
@@ -178,9 +192,11 @@ def _package(path: Path, *, allow_outside_paths: bool = False) -> dict:
     for animation in package.animations:
         info = md.from_dict(animation.layout, file=file,
                             location_prefix=f"/extensions/{EXTENSION}/animations/{animation.index}/layout")
-        entry = {"name": animation.name, **describe(info.layout, info.clips, bones=info.bones, path=animation.path,
-                                                    texture=animation.texture, format_version=info.format_version,
-                                                    content_digest=info.content_digest)}
+        entry = {"name": animation.name, **_describe_info(info, texture=animation.texture, path=animation.path)}
+        lods = [lod for lod in package.lods if lod["animation"] == animation.index]
+        if lods:  # format 1.2: MSFT_lod nodes; every node of an animation lists the same levels
+            entry["levelsOfDetail"] = {"root": lods[0]["node"], "levels": lods[0]["levels"],
+                                       "screenSizes": lods[0]["screenSizes"]}
         animations.append(entry)
     names = {a.index: a.name for a in package.animations}
     crowds = []
@@ -326,6 +342,8 @@ def _print_text(result: dict) -> None:
         table.add_column("value", overflow="fold")  # wraps at spaces, never an ellipsis
         if animation["path"] and animation["texture"]:
             table.add_row("texture", escape(animation["texture"]))  # "PACKAGE.glb[bufferView 3]" is no markup
+        if animation.get("version"):
+            table.add_row("format", animation["version"])
         if animation.get("container"):
             table.add_row("container", f"{animation['container']} ({animation['compression']})")
         table.add_row("encoding", animation["encoding"])
@@ -344,11 +362,17 @@ def _print_text(result: dict) -> None:
                                        f"({common.human_bytes(animation['paddingBytes'], exact=True)})")
         lods = animation.get("levelsOfDetail")
         if lods:
-            table.add_row("levels of detail", f"{lods['levels']} under {lods['root']}, screen sizes "
-                                              + ", ".join(f"{t:g}" for t in lods["screenSizes"]))
+            table.add_row("levels of detail", escape(f"{lods['levels']} under {lods['root']}, screen sizes "
+                                                     + ", ".join(f"{t:g}" for t in lods["screenSizes"])))
         for warning in animation.get("warnings", ()):
             table.add_row("warning", warning)
         console.print(table)
+        # Lists of names on lines of their own: in the table one long row would pad every other row.
+        if animation.get("bones"):
+            console.print("bone names: " + ", ".join(animation["bones"]), markup=False)
+        for mask in animation.get("masks", ()):
+            console.print(f"mask {mask['name']} ({len(mask['bones'])} of {len(animation['bones'])} bones): "
+                          + ", ".join(mask["bones"]), markup=False)
         clips = common.table("name", "first row", "rows", "rows/s", "loop", "duration s", title="clips",
                              right=("first row", "rows", "rows/s", "loop", "duration s"), pad_edge=False)
         for clip in animation["clips"]:

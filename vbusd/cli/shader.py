@@ -33,18 +33,20 @@ def _integer(value: str, option: str) -> int:
 
 
 @click.command("shader")
-@click.option("--lang", default="glsl", show_default=True, metavar="LANG", help=f"Shading language: {', '.join(LANGUAGES)}.")
-@click.option("--encoding", default=Encoding.CROSS_MATRIX.value, show_default=True, metavar="E",
+@click.option("--lang", default="glsl", show_default=True, metavar="[" + "|".join(LANGUAGES) + "]",
+              help=f"Shading language: {', '.join(LANGUAGES)}.")
+@click.option("--encoding", default=Encoding.CROSS_MATRIX.value, show_default=True, metavar="ENCODING",
               help="Bone encoding: " + ", ".join(e.value for e in Encoding) + ".")
-@click.option("--texel-format", default=None, show_default=DEFAULT_TEXEL_FORMATS, metavar="F",
+@click.option("--texel-format", default=None, show_default=DEFAULT_TEXEL_FORMATS,
+              metavar="[" + "|".join(f.value for f in TexelFormat) + "]",
               help="Texel format: " + ", ".join(f.value for f in TexelFormat) + ".")
-@click.option("--max-influences", default="4", show_default=True, metavar="K", help="Influences per vertex, 1..8.")
+@click.option("--max-influences", default="4", show_default=True, metavar="N", help="Influences per vertex, 1..8.")
 @click.option("--max-clips", default=str(DEFAULT_MAX_CLIPS), show_default=True, metavar="N",
               help="Size of the clip table, 1..256.")
-@click.option("--max-bones", default=str(DEFAULT_MAX_BONES), show_default=True, metavar="B",
+@click.option("--max-bones", default=str(DEFAULT_MAX_BONES), show_default=True, metavar="N",
               help="compactQuatTranslation only: bones its range uniforms hold (VB_MAX_BONES), 1..1024.")
 @click.option("--no-main", is_flag=True, help="Emit only the functions, without the example entry point.")
-@click.option("--skin", default=SKINS[0], show_default=True, metavar="BINDING",
+@click.option("--skin", default=SKINS[0], show_default=True, metavar="[" + "|".join(SKINS) + "]",
               help="How bone indices and weights reach the shader: attributes (vertex attributes) or pulled "
                    "(read by vertex index from a storage buffer or texture; spec/shaders.md, Skin bindings).")
 @click.option("--layers", is_flag=True,

@@ -28,7 +28,7 @@ __all__ = ["command"]
 
 @click.command("view")
 @click.argument("asset", metavar="ASSET_OR_CROWD", type=click.Path(path_type=str))
-@click.option("--port", default="0", show_default=True, metavar="P",
+@click.option("--port", default="0", show_default=True, metavar="PORT",
               help="TCP port on 127.0.0.1 (0: any free port; the address is printed).")
 @click.option("--no-browser", is_flag=True, help="Do not open a browser; only print the address.")
 @click.option("--allow-outside-paths", is_flag=True, help="Let the asset reference files outside its folder.")

@@ -298,7 +298,11 @@ _COMMAND_ERRORS = (
          "failed to bake (the line names the first and why); nothing was written.",
          "usd-conversion.md#clips", "file"),
     Code("convert.lodSimplifier", E, "--lod-ratios needs meshoptimizer's simplifier, which is not installed "
-         "(pip install 'vbusd[lod]').", f"{_VB}#levels-of-detail", "option"),
+         "(pip install 'vbusd[lod]', which builds it from source with a C++ compiler).", f"{_VB}#levels-of-detail",
+         "option"),
+    Code("decode.memory", E, "The point cache would need more memory than --max-memory or the memory "
+         "available (the message names both), or a crowd mesh more points than 32-bit indices address; "
+         "refused before decoding.", "usd-conversion.md#pointcache", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes
@@ -385,8 +389,11 @@ _COMMAND_ERRORS = (
     Code("gltf.index", E, "An index into another glTF array (node, accessor, buffer view...) is out of "
          "range.", "gltf-conversion.md#reading", "json"),
     Code("gltf.asset.version", E, "The asset (or GLB container) is not glTF 2.x.", "gltf-conversion.md#reading", "json"),
-    Code("gltf.extension.required", E, "The file requires an extension vbusd does not support.",
-         "gltf-conversion.md#reading", "json"),
+    Code("gltf.extension.required", E, "The file requires an extension vbusd does not support (a Draco-"
+         "compressed package, or a meshopt one without meshoptimizer: the message names the command that "
+         "writes it uncompressed).", "gltf-conversion.md#reading", "json"),
+    Code("gltf.meshopt", E, "A meshopt-compressed buffer view (EXT_meshopt_compression) holds data "
+         "meshoptimizer's decoder refuses.", "runtime-package.md#pipelines", "json"),
     Code("gltf.buffer.base64", E, "A data URI is not valid base64.", "gltf-conversion.md#reading", "json"),
     Code("gltf.buffer.length", E, "A buffer holds fewer bytes than its byteLength.", "gltf-conversion.md#reading", "json"),
     Code("gltf.buffer.limit", E, "A buffer's byteLength exceeds the reader's limit.", "gltf-conversion.md#reading", "json"),
@@ -502,8 +509,9 @@ _COMMAND_ERRORS = (
          "time code.", "usd-conversion.md#accuracy", "usd"),
     Code("socket.noBindTransforms", E, "A socket (bone_transform) was asked of an animation that stores no "
          "joint bind transforms (vb:bindTransforms, format 1.1); reconvert the source.", f"{_VB}#sockets", "usd"),
-    Code("convert.mask", E, "A --mask NAME=BONE names no bone of the animation, repeats a mask name, or the "
-         "source gives no bone hierarchy or bind transforms to blend layers with.", f"{_VB}#layers", "usd"),
+    Code("convert.mask", E, "A --mask NAME=BONE names no bone of the animation, repeats a mask name, is not "
+         "UTF-8 text, or the source gives no bone hierarchy or bind transforms to blend layers with.",
+         f"{_VB}#layers", "usd"),
     Code("layers.unsupported", E, "A crowd plays layers (primvars:vb:layer*, format 1.2) and the decoder or "
          "exporter asked for does not implement them yet (the numpy reference does); it refuses rather than "
          "draw the instances without their layers.", f"{_VB}#layers", "usd"),

@@ -17,7 +17,7 @@ import json
 import math
 import re
 
-__all__ = ["TIME_DECIMALS", "TIME_KEYS", "camel_case", "round_time", "json_ready", "json_text"]
+__all__ = ["TIME_DECIMALS", "TIME_KEYS", "camel_case", "round_time", "json_ready", "json_text", "is_unicode_text"]
 
 TIME_DECIMALS = 6
 """Decimals kept of a time (seconds or time codes): a microsecond, far below any frame."""
@@ -26,6 +26,16 @@ TIME_KEYS = frozenset({"startTime", "duration", "startTimeCode", "endTimeCode", 
 """Keys whose numbers (and whose nested numbers) are times, rounded to :data:`TIME_DECIMALS`."""
 
 _SNAKE = re.compile(r"_([a-z0-9])")
+
+
+def is_unicode_text(text: str) -> bool:
+    """Whether ``text`` is Unicode that UTF-8 (a sidecar, a USD layer) can hold: no lone surrogate,
+    which is what a byte that is not UTF-8 becomes in a command-line argument or a file name."""
+    try:
+        str(text).encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def camel_case(name: str) -> str:

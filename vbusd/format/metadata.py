@@ -88,6 +88,8 @@ class LayoutInfo:
     """Format 1.2: per bone its parent's index or -1 (key ``boneParents``), or None."""
     masks: tuple = ()
     """Format 1.2: ``(name, weights)`` pairs (key ``masks``)."""
+    format_minor_version: int = 0
+    """The minor version the dict was written with (``formatMinorVersion``, absent 0; before any upgrade)."""
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, LayoutInfo):
@@ -520,12 +522,14 @@ def from_dict(d: Any, *, file=None, location_prefix: str = "") -> LayoutInfo:
         VersionError: The dict was written by a newer format version.
     """
     original_version = d.get("formatVersion") if isinstance(d, Mapping) else None
+    d_original = d
     d = upgrade(d, file=file, location_prefix=location_prefix)
     diagnostics = Diagnostics(file)
     info = check_document(d, diagnostics, within=location_prefix, format_version=original_version)
     raise_summary(diagnostics)
     assert info is not None
-    return info
+    # upgrade() checked it: an integer 0 or more, absent meaning 0
+    return dataclasses.replace(info, format_minor_version=int(d_original.get("formatMinorVersion", 0)))
 
 
 def parse_json(text, *, file=None, location_prefix: str = "", what: str = "layout metadata"):

@@ -85,7 +85,7 @@ __all__ = ["STALE_TEMPORARY_AGE_S", "AtomicTransaction", "atomic_write_many", "a
            "FAULT_ENV", "FAULT_TRACE_ENV", "fault_point", "LOCK_TIMEOUT_S", "OutputLocked",
            "lock_path", "journal_path", "Commit", "write_error", "recover", "resolve_inside",
            "make_folders", "remove_folders", "file_sha256", "digest_name", "free_name",
-           "settle_names"]
+           "settle_names", "SharedFolderLock", "remove_temporaries"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -523,6 +523,83 @@ class _Lock:
             os.unlink(self.path)  # while still locked: see the class docstring
         os.close(self._fd)
         self._fd = None
+
+
+class SharedFolderLock:
+    """A lock every run working in a folder holds shared; the run that ends can tell, by taking it
+    exclusive without waiting, that no other run is working there, so that what is left in the
+    folder is a killed run's (a batch's cache: :func:`vbusd.jobs.batch.run_batch`).
+
+    The shared hold is an ``flock`` on ``<folder>/.vbusd-runs.lock``, which the kernel drops when
+    its holder dies (SIGKILL included). The file stays (removing a lock file others may hold races);
+    :meth:`release` with ``remove=True`` removes it while holding it exclusive. File systems without
+    ``flock`` run unlocked, and :meth:`exclusive` then answers False (nothing is swept).
+    """
+
+    NAME = ".vbusd-runs.lock"
+
+    def __init__(self, folder: PathLike) -> None:
+        self.path = Path(folder) / self.NAME
+        self._fd: Optional[int] = None
+        self._exclusive = False
+
+    def acquire(self) -> "SharedFolderLock":
+        """Hold the lock shared (waits while a run holds it exclusive, a moment at its end)."""
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | getattr(os, "O_CLOEXEC", 0), 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH)
+            except OSError:
+                os.close(fd)
+                return self  # no flock here: unlocked, and never exclusive
+            try:
+                same = os.path.samestat(os.stat(self.path), os.fstat(fd))
+            except FileNotFoundError:
+                same = False
+            if same:
+                self._fd = fd
+                return self
+            os.close(fd)  # an ending run removed the file between our open and our lock
+
+    def exclusive(self) -> bool:
+        """Whether this run is now the only one holding the lock (then held exclusive)."""
+        if self._fd is None:
+            return False
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            return False
+        self._exclusive = True
+        return True
+
+    def release(self, *, remove: bool = False) -> None:
+        if self._fd is None:
+            return
+        if remove and self._exclusive:
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)  # while held: see acquire's samestat
+        os.close(self._fd)
+        self._fd = None
+
+
+def remove_temporaries(folder: PathLike, pattern: str) -> list:
+    """Remove the hidden temporaries (:func:`_temp_name`) in ``folder`` of targets whose names match
+    the regular expression ``pattern``; only for a folder no live writer uses (see
+    :class:`SharedFolderLock`). Returns the paths removed."""
+    target = re.compile(r"\.(" + pattern + ")" + re.escape(_TMP_MARK) + r"[0-9a-f]{8}(\.[A-Za-z0-9_]+)?")
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for entry in entries:
+        match = target.fullmatch(entry.name)
+        if match and match.group(2) in (None, "".join(Path(match.group(1)).suffixes[-1:])):
+            with contextlib.suppress(OSError):
+                if entry.is_file(follow_symlinks=False):
+                    os.unlink(entry.path)
+                    removed.append(Path(entry.path))
+    return removed
 
 
 def _usd_temporaries(folder: Path, temporary_name: str) -> list:

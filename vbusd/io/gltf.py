@@ -37,6 +37,7 @@ from vbusd.format.errors import InputError, UnsupportedError
 from vbusd.format.metadata import json_pointer
 from vbusd.format.model import ReadOptions
 from vbusd.io.gltf_accessors import require_int
+from vbusd.io import gltf_meshopt
 from vbusd.io.files import resolve_inside
 from reprlib import repr as short
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
@@ -177,6 +178,9 @@ def _load_buffers(gltf, binary: bytes | None, folder: Path, file: str,
             raise InputError(f"byteLength {length} exceeds the limit of {MAX_FILE_BYTES} bytes",
                              file=file, location=f"{where}/byteLength", code="gltf.buffer.limit")
         uri = buf.uri
+        if uri is None and gltf_meshopt.is_fallback_buffer(buf) and (i != 0 or binary is None):
+            buffers.append(b"")  # stands in for meshopt data only (decompress_views); no bytes to read
+            continue
         if uri is None:
             if i != 0 or binary is None:
                 raise InputError("buffer has no uri and there is no GLB BIN chunk for it", file=file,
@@ -670,9 +674,18 @@ def load(path, options: ReadOptions | None = None):
             setattr(gltf, key, [])
     _check_version(gltf, file)
     for i, name in enumerate(gltf.extensionsRequired):
+        if name == gltf_meshopt.DRACO:
+            gltf_meshopt.refuse_draco(file, f"/extensionsRequired/{i}")
+        if name == gltf_meshopt.MESHOPT:
+            if gltf_meshopt.decoder_missing():
+                gltf_meshopt.refuse_meshopt(file, f"/extensionsRequired/{i}")
+            continue  # decoded below
         if name not in _ALLOWED_REQUIRED and not str(name).startswith("KHR_materials_"):
             raise UnsupportedError(f"required extension {name!r} is not supported",
                                    file=file, location=f"/extensionsRequired/{i}",
                                    code="gltf.extension.required")
+    if gltf_meshopt.DRACO in gltf.extensionsUsed:  # Draco data has no plain buffer view to read instead
+        gltf_meshopt.refuse_draco(file, f"/extensionsUsed/{gltf.extensionsUsed.index(gltf_meshopt.DRACO)}")
     buffers = _load_buffers(gltf, binary, path.parent, file, options)
+    buffers = gltf_meshopt.decompress_views(gltf, buffers, file, MAX_FILE_BYTES)
     return gltf, buffers

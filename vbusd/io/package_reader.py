@@ -114,6 +114,9 @@ class Package:
         meshes: Per mesh, ``(name, primitive count, vertex count, animation index or None)``.
         crowds: The crowd nodes.
         characters: Nodes drawing a bound mesh once (no instancing), by name.
+        lods: Format 1.2 levels of detail (``MSFT_lod``): per node that lists levels, ``{"node",
+            "animation", "levels", "screenSizes"}`` (``levels`` counts LOD 0; ``screenSizes`` the
+            ``MSFT_screencoverage`` thresholds of LOD 1 and on, the trailing 0 left out).
     """
 
     file: str
@@ -123,6 +126,9 @@ class Package:
     meshes: list = field(default_factory=list)
     crowds: list = field(default_factory=list)
     characters: list = field(default_factory=list)
+    lods: list = field(default_factory=list)
+    extensions_used: list = field(default_factory=list)
+    """The file's ``extensionsUsed`` (strings only), e.g. to tell a meshopt-compressed package."""
 
 
 @functools.lru_cache(maxsize=1)
@@ -364,6 +370,13 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         if node.get("mesh") not in bound:
             continue
         name = node.get("name") or f"node{n}"
+        ids = ((node.get("extensions") or {}).get("MSFT_lod") or {}).get("ids")
+        if isinstance(ids, list) and ids:
+            coverage = (node.get("extras") or {}).get("MSFT_screencoverage")
+            sizes = [float(c) for c in coverage if isinstance(c, (int, float)) and not isinstance(c, bool)] \
+                if isinstance(coverage, list) else []
+            package.lods.append({"node": name, "animation": bound[node["mesh"]], "levels": len(ids) + 1,
+                                 "screenSizes": sizes[:len(ids)]})
         mesh = int(node["mesh"])
         mesh_name = package.meshes[mesh][0]
         ext = (node.get("extensions") or {}).get(INSTANCING)
@@ -436,6 +449,8 @@ def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = 
     root = _parse(path, file)
     binary = path.read_bytes()[:4] == b"glTF"
     package = Package(file=file, container="glb" if binary else "gltf")
+    used = root.get("extensionsUsed") if isinstance(root, dict) else None
+    package.extensions_used = [u for u in used if isinstance(u, str)] if isinstance(used, list) else []
     extension = _check_extension(root, file, diagnostics)
     try:
         gltf, buffers = load(path, ReadOptions(allow_outside_paths=allow_outside_paths))

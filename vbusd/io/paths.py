@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from vbusd.format.errors import FORCE_HINT, OptionsError
+from vbusd.format.jsonform import is_unicode_text
 
 __all__ = ["OUTPUT_SUFFIXES", "check_output_path"]
 
@@ -27,9 +28,13 @@ def check_output_path(source: Path, output: Path, *, force: bool, what: str = "o
     files in the messages), and by the Blender exporter.
 
     Raises:
-        OptionsError: Wrong suffix, the nearest existing ancestor is not a folder, the output is a
+        OptionsError: A path that is not UTF-8 text, a wrong suffix, the nearest existing ancestor is not a folder, the output is a
             folder or the source, or it exists without ``force``.
     """
+    if not is_unicode_text(str(output)):
+        # USD layers and the asset paths inside them are UTF-8; a byte that is not cannot be written.
+        raise OptionsError(f"the {what} path is not UTF-8 text; USD layer and asset paths must be",
+                           file=ascii(str(output))[1:-1])
     if output.suffix.lower() not in OUTPUT_SUFFIXES:
         raise OptionsError(f"the {what} must be a USD layer ({', '.join(OUTPUT_SUFFIXES)}), got '{output.name}'",
                            file=str(output))

@@ -60,7 +60,7 @@ from vbusd.format.metadata import json_kind
 from urllib.parse import unquote
 from vbusd.io.usd_reader import file_dependencies
 from dataclasses import asdict
-from vbusd.io.files import atomic_write
+from vbusd.io.files import SharedFolderLock, atomic_write, remove_temporaries
 import sys
 import socket
 from vbusd.process import signals as _signals
@@ -514,6 +514,10 @@ def _cached_result(source: str, output: str, record: dict) -> AssetResult:
                        warnings=[w for w in warnings if isinstance(w, str)] if isinstance(warnings, list) else [])
 
 
+RECORD_NAME = r"[0-9a-f]{40}\.json"
+"""A cache record's file name (:func:`_record_path`), as a regular expression."""
+
+
 def _record_path(cache: Path, output: Path) -> Path:
     name = hashlib.sha256(os.path.normcase(os.path.abspath(output)).encode()).hexdigest()[:40]
     return cache / f"{name}.json"
@@ -822,6 +826,28 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
     watched = {Path(i.output).resolve().parent for i in items} | ({cache_dir.resolve()} if cache_dir else set())
     missing = sorted({f for folder in watched for f in (folder, *folder.parents) if not f.exists()},
                      key=lambda f: len(f.parts), reverse=True)
+    runs = None
+    if cache_dir is not None:
+        # Every run using the cache holds this shared; the one that ends alone sweeps what killed runs left.
+        try:
+            cache_dir.mkdir(parents=True, exist_ok=True)
+            runs = SharedFolderLock(cache_dir).acquire()
+        except OSError:
+            runs = None  # the record writes will say what is wrong with the folder
+    try:
+        return _run_batch(items, base_options, jobs, scheduler, cache_dir, force, progress, stall_timeout, started)
+    finally:
+        if runs is not None:
+            alone = runs.exclusive()
+            if alone:
+                remove_temporaries(cache_dir, RECORD_NAME)
+            runs.release(remove=alone)
+        _remove_created_folders(missing)
+
+
+def _run_batch(items, base_options, jobs, scheduler, cache_dir, force, progress, stall_timeout,
+               started) -> BatchReport:
+    """:func:`run_batch` once its cache is held: plan, dispatch and collect."""
     results: list = [None] * len(items)
     tasks = []
     done = 0
@@ -876,15 +902,14 @@ def run_batch(items: list, base_options: dict, *, jobs: Optional[int] = None, sc
             finish(index, convert_one(task))
     elif tasks:
         _run_pool(tasks, min(jobs, len(tasks)), finish, stall_timeout)
-    _forget_failures(results, cache_dir, missing)
+    _forget_failures(results, cache_dir)
     return BatchReport(assets=results, jobs=jobs, scheduler=scheduler, seconds=time.perf_counter() - started,
                        cache=None if cache_dir is None else str(cache_dir))
 
 
-def _forget_failures(results: list, cache_dir: Optional[Path], created: list) -> None:
+def _forget_failures(results: list, cache_dir: Optional[Path]) -> None:
     """After the run: a failed asset wrote nothing (each conversion is one commit), so its "pending"
-    record goes when it has no output, and folders this run created that are still empty go too. A
-    batch where nothing converted leaves nothing behind."""
+    record goes when it has no output."""
     for result in results:
         if cache_dir is not None and result is not None and result.status == "failed" \
                 and not Path(result.output).exists():
@@ -892,7 +917,12 @@ def _forget_failures(results: list, cache_dir: Optional[Path], created: list) ->
                 record = _record_path(cache_dir, Path(result.output))
                 if (_read_record(cache_dir, Path(result.output)) or {}).get("state") == "pending":
                     record.unlink()
-    for folder in created:  # deepest first
+
+
+def _remove_created_folders(created: list) -> None:
+    """Folders this run created that are still empty go (deepest first): a batch where nothing
+    converted leaves nothing behind."""
+    for folder in created:
         with contextlib.suppress(OSError):
             folder.rmdir()
 

@@ -37,7 +37,7 @@ import numpy as np
 from vbusd.jobs import warmup
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
-from vbusd.format.jsonform import json_ready
+from vbusd.format.jsonform import is_unicode_text, json_ready
 from vbusd.format.containers import container_error, default_container, texture_file_name
 from vbusd.format.layout import Encoding, Padding, TexelFormat, pairing_error, texel_formats_of
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
@@ -242,6 +242,12 @@ def parse_masks(masks) -> tuple:
         if not name or not bone:
             raise OptionsError(f"--mask must be NAME=BONE (a mask name and the bone it starts at), got {mask!r}",
                                file="convert", code="convert.mask")
+        for part, text in (("name", name), ("bone", bone)):
+            # A byte that is not UTF-8 on the command line arrives as a lone surrogate, which no
+            # sidecar (JSON, UTF-8) or USD token can hold (spec "Layers and bone masks").
+            if not is_unicode_text(text):
+                raise OptionsError(f"--mask {mask!r}: the mask {part} is not UTF-8 text", file="convert",
+                                   code="convert.mask")
         pairs.append((name, bone))
     return tuple(pairs)
 

@@ -14,7 +14,11 @@ Crowds (``crowds=True``, ``vbusd decode --crowd``): for each point instancer and
 one mesh holding every instance (scale, orientation, position applied; each instance at its own
 clip and clip-local time) at ``<instancer path>/<mesh name>``, sampled at clip 0's row times. The
 stadium sample's 1,200 instances x 202 points x 513 samples make about 3 GB: decode crowds to
-``.usdc`` and only when needed.
+``.usdc`` and only when needed. Before it decodes anything, :func:`decode` adds up what the cache
+will hold (:func:`cache_bytes`) and refuses, naming the bytes, when that exceeds ``max_memory``
+(``vbusd decode --max-memory``; by default the memory available,
+:func:`vbusd.process.memory.available_memory`), and refuses a crowd mesh of more points than USD's
+32-bit face-vertex indices address.
 
 Transforms: the meshes' ancestors (and the meshes) keep the local transforms they have in the
 asset (copied as one matrix op where authored), so world positions match the asset's.
@@ -44,10 +48,33 @@ from vbusd.io.paths import check_output_path
 from vbusd.io.usd import read_asset
 from vbusd.io.usd_pointcache import PointCache, source_transforms
 from vbusd.decoders import reference
+from vbusd.process.memory import available_memory, human_bytes
 
-__all__ = ["DEVICES", "DecodeReport", "row_times", "decode"]
+__all__ = ["DEVICES", "DecodeReport", "row_times", "cache_bytes", "decode"]
 
 DEVICES = ("cpu", "cuda")
+
+MAX_MESH_POINTS = 2**31 - 1
+"""The most points one cache mesh may have: USD's ``faceVertexIndices`` are 32-bit integers."""
+
+_SAMPLE_BYTES_PER_POINT = 12
+"""A time sample of ``points`` (or of ``normals``) holds three float32 per point."""
+
+_TOPOLOGY_BYTES = 4
+"""``faceVertexCounts`` and ``faceVertexIndices`` hold one int32 per face and per face-vertex."""
+
+
+_ALLOCATOR_OVERHEAD = 1.3
+"""What the process's heap grows by per byte of samples kept: the samples are freed temporaries'
+neighbours, and glibc's allocator measured 1.26 (400 stadium spectators: 949 MiB of samples, the
+process 1,191 MiB larger)."""
+
+
+def _working_bytes_per_point(mesh) -> int:
+    """An upper bound of what skinning one sample takes per point, beyond its result: the numpy
+    reference's temporaries measure about 260 bytes per point with 4 influences (float64 positions,
+    normals and a weighted sum per influence)."""
+    return 64 * (int(mesh.max_influences) + 1)
 
 
 @dataclass
@@ -136,8 +163,68 @@ def _snap(codes: np.ndarray) -> np.ndarray:
     return np.where(np.abs(codes - nearest) <= 1e-9 * np.maximum(1.0, np.abs(codes)), nearest, codes)
 
 
+def cache_bytes(asset: VirtualBonesAsset, clip=None, crowds: bool = False) -> int:
+    """The memory a point cache of ``asset`` takes while it is built: every time sample of every
+    mesh's points and normals (float32) and every mesh's topology (int32), which the USD layer holds
+    until it is written (with the allocator's overhead), plus the largest one sample's skinning takes
+    (see :func:`_working_bytes_per_point`). With ``crowds``: one mesh of all instances per crowd and mesh,
+    ``instances x points x samples x 24`` bytes with normals."""
+
+    def mesh_bytes(mesh, copies: int, samples: int) -> tuple[int, int]:
+        points = int(mesh.points.shape[0]) * copies
+        per_sample = _SAMPLE_BYTES_PER_POINT * (2 if mesh.normals is not None else 1)
+        topology = _TOPOLOGY_BYTES * (len(mesh.face_vertex_counts) + len(mesh.face_vertex_indices)) * copies
+        # Building the topology takes its int32 arrays twice (the pattern repeated, then the copy
+        # USD keeps); skinning one sample takes the working bytes per point.
+        transient = max(topology, _working_bytes_per_point(mesh) * points)
+        return points * per_sample * samples + topology, transient
+
+    held, transient = 0, 0
+    for vb in asset.animations:
+        samples = row_times(vb, _clip_index(vb, clip))[0].size
+        for mesh in vb.meshes:
+            kept, extra = mesh_bytes(mesh, 1, samples)
+            held, transient = held + kept, max(transient, extra)
+    if crowds:
+        for crowd, index in zip(asset.crowds, asset.crowd_animation):
+            vb = asset.animations[index]
+            samples = row_times(vb, 0)[0].size
+            for mesh in vb.meshes:
+                kept, extra = mesh_bytes(mesh, int(crowd.instance_count), samples)
+                held, transient = held + kept, max(transient, extra)
+    return int(held * _ALLOCATOR_OVERHEAD) + transient
+
+
+def _check_size(asset: VirtualBonesAsset, asset_path: Path, clip, crowds: bool,
+                max_memory: Optional[int]) -> None:
+    """Refuse, before decoding, a cache that would not fit ``max_memory`` (default: the memory
+    available) or a crowd mesh with more points than USD indexes."""
+    if crowds:
+        for crowd, index in zip(asset.crowds, asset.crowd_animation):
+            for mesh in asset.animations[index].meshes:
+                points = int(crowd.instance_count) * int(mesh.points.shape[0])
+                if points > MAX_MESH_POINTS:
+                    raise OptionsError(
+                        f"--crowd: {crowd.path} would decode into one mesh of {points:,} points "
+                        f"({crowd.instance_count:,} instances x {mesh.points.shape[0]:,}), more than USD's 32-bit "
+                        f"face-vertex indices address ({MAX_MESH_POINTS:,})", file=str(asset_path),
+                        code="decode.memory")
+    need = cache_bytes(asset, clip, crowds)
+    bound = max_memory if max_memory is not None else available_memory()
+    if bound is not None and need > bound:
+        if max_memory is not None:
+            limit = f"--max-memory {human_bytes(bound)} ({bound:,} bytes)"
+            hint = "decode fewer instances or samples, or raise --max-memory where the memory is there"
+        else:
+            limit = f"the {human_bytes(bound)} ({bound:,} bytes) available"
+            hint = "decode fewer instances or samples, or on a machine with more memory"
+        raise OptionsError(f"the point cache{' with --crowd' if crowds else ''} needs {human_bytes(need)} "
+                           f"({need:,} bytes) in memory, more than {limit}; {hint}", file=str(asset_path),
+                           code="decode.memory")
+
+
 def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force: bool = False,
-           allow_outside_paths: bool = False, crowds: bool = False,
+           allow_outside_paths: bool = False, crowds: bool = False, max_memory: Optional[int] = None,
            progress: Optional[Callable] = None) -> DecodeReport:
     """Decode a Virtual Bones asset into a time-sampled USD point cache.
 
@@ -151,13 +238,16 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
         crowds: Also decode every crowd: per bound mesh, one mesh holding all instances at
             ``<crowd path>/<mesh name>``, sampled on clip 0's row times (large: instances x points
             x samples).
+        max_memory: The most bytes the cache may take while it is built (:func:`cache_bytes`);
+            None: the memory available (:func:`vbusd.process.memory.available_memory`).
         progress: Optional ``progress(step, done, total)`` callback.
 
     Returns:
         A :class:`DecodeReport`.
 
     Raises:
-        OptionsError: Bad options or output (before any work).
+        OptionsError: Bad options or output (before any work); a cache that would not fit
+            ``max_memory`` (code ``decode.memory``, before any decoding).
         InputError: The asset cannot be read.
     """
     started = time.perf_counter()
@@ -168,7 +258,13 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     warnings: list = []
     skin, skin_crowd, decoder_name = _skinner(device, warnings)
 
+    if max_memory is not None and (isinstance(max_memory, bool) or not isinstance(max_memory, int)
+                                   or max_memory <= 0):
+        raise OptionsError(f"max_memory must be a positive number of bytes, got {max_memory!r}", file="decode")
     asset: VirtualBonesAsset = read_asset(asset_path, allow_outside_paths=allow_outside_paths)
+    for vb in asset.animations:
+        _clip_index(vb, clip)  # a clip no animation has: one line before the size is reckoned
+    _check_size(asset, asset_path, clip, crowds, max_memory)
     placed = [m.path for vb in asset.animations for m in vb.meshes] + [c.path + "/x" for c in asset.crowds]
     transforms, source_fps = source_transforms(asset_path, placed, allow_outside_paths)
     tcps = float(asset.time_codes_per_second)
@@ -236,8 +332,9 @@ def _decode_crowd(cache: PointCache, vb: VirtualBones, crowd, codes: np.ndarray,
         path = f"{crowd.path}/{mesh.path.rsplit('/', 1)[-1]}"
         vertices = mesh.points.shape[0]
         counts = np.tile(np.asarray(mesh.face_vertex_counts, np.int32), count)
-        offsets = np.repeat(np.arange(count, dtype=np.int64) * vertices, len(mesh.face_vertex_indices))
-        indices = (np.tile(np.asarray(mesh.face_vertex_indices, np.int64), count) + offsets).astype(np.int32)
+        # int32 throughout (count x vertices fits: _check_size), instance i's indices offset by i x vertices
+        indices = (np.asarray(mesh.face_vertex_indices, np.int32)[None, :]
+                   + (np.arange(count, dtype=np.int32) * np.int32(vertices))[:, None]).ravel()
         samples = cache.mesh(path, counts, indices, transformed=False,
                              normals_interpolation=None if mesh.normals is None else mesh.normals_interpolation)
         for code in codes:

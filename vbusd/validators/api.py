@@ -16,7 +16,7 @@ import traceback
 from pathlib import Path
 from typing import Optional, Sequence
 
-from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, OUTSIDE_PATHS_HINT, InputError, OptionsError
 
 from vbusd.format import codes as _codes
 from vbusd.format.diagnostics import FileLocation, UsdSite, finding
@@ -55,7 +55,7 @@ def check_filters(only: Sequence[str] = (), ignore: Sequence[str] = ()) -> None:
 
 
 def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (),
-             max_issues: Optional[int] = None) -> Report:
+             max_issues: Optional[int] = None, allow_outside_paths: bool = False) -> Report:
     """Validate one asset.
 
     Args:
@@ -63,6 +63,9 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (),
         only: Report only these codes (or code prefixes).
         ignore: Do not report these codes (or code prefixes).
         max_issues: Report at most this many findings (counts still cover all).
+        allow_outside_paths: Let the asset reference layers, textures and buffers outside its
+            folder, as ``info``, ``decode`` and ``export`` do with the same option; without it
+            each such reference is a ``path.unsafe`` finding.
 
     Returns:
         The :class:`~vbusd.validators.report.Report`.
@@ -74,11 +77,11 @@ def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (),
     check_filters(only, ignore)
     if max_issues is not None and max_issues < 0:
         raise OptionsError(f"--max-issues must be 0 or more, got {max_issues}", file="validate")
-    findings = validate_findings(path)
+    findings = validate_findings(path, allow_outside_paths=allow_outside_paths)
     return build_report(str(path), findings, only=only, ignore=ignore, max_issues=max_issues)
 
 
-def validate_findings(path) -> list:
+def validate_findings(path, *, allow_outside_paths: bool = False) -> list:
     """All findings of one asset, unfiltered (see :func:`validate`)."""
     path = str(path)
     if not os.path.exists(path):
@@ -94,8 +97,8 @@ def validate_findings(path) -> list:
         return _validate_texture(path)
     if suffix in PACKAGE_SUFFIXES:
 
-        return check_package(path)
-    return _validate_usd(path)
+        return check_package(path, allow_outside_paths=allow_outside_paths)
+    return _validate_usd(path, allow_outside_paths)
 
 
 def guarded(check, *args, location=None):
@@ -144,26 +147,29 @@ def open_stage(path: str):
     return stage
 
 
-def _validate_usd(path: str) -> list:
+def _validate_usd(path: str, allow_outside_paths: bool = False) -> list:
     """The reader's findings (lenient), then the checks of every Virtual Bones prim."""
 
     diagnostics = Diagnostics(path)
-    with reading(path, diagnostics, outside_hint=None) as reader:
+    with reading(path, diagnostics, allow_outside_paths=allow_outside_paths,
+                 outside_hint=OUTSIDE_PATHS_HINT) as reader:
         if reader.stage is None:  # cannot be opened at all: exit 2, the same line as other commands
             diagnostics.raise_first_error()
-        checks = validate_stage(reader.stage, str(reader.folder), opened=True)
+        checks = validate_stage(reader.stage, str(reader.folder), opened=True,
+                                allow_outside_paths=allow_outside_paths)
         reader.report_usd_messages()  # what USD said while the checks read values
     return diagnostics.findings + checks
 
 
-def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
+def validate_stage(stage, asset_dir: str, *, opened: bool = False, allow_outside_paths: bool = False) -> list:
     """Findings of every Virtual Bones prim of an open stage.
 
     Args:
         stage: A ``Usd.Stage``.
-        asset_dir: The asset's folder (textures must lie inside it).
+        asset_dir: The asset's folder (textures must lie inside it unless ``allow_outside_paths``).
         opened: The stage was opened by vbusd's reader, which reported its composition errors and
             layers outside the folder already.
+        allow_outside_paths: Accept textures outside ``asset_dir``.
     """
 
     findings = []
@@ -184,7 +190,7 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False) -> list:
             iterator.PruneChildren()
         if prim.GetTypeName() == names.ANIMATION_TYPE:
             animations += 1
-            findings += guarded(check_animation_prim, prim, asset_dir, location=site)
+            findings += guarded(check_animation_prim, prim, asset_dir, allow_outside_paths, location=site)
             # Levels of detail (format 1.2, spec 20.1): the rules the reader applies.
             findings += guarded(check_animation_levels, prim, location=site)
         elif has_instancing(prim):

@@ -19,6 +19,7 @@ from typing import Optional
 
 from vbusd.format import names
 from vbusd.format.diagnostics import Diagnostics, UsdSite
+from vbusd.format.errors import OUTSIDE_PATHS_HINT
 from pxr import Ar
 from vbusd.io.usd_reader import UsdReader
 from vbusd.validators.checks_texture import check_texture_file
@@ -79,19 +80,20 @@ def resolve_texture(prim, reader, scratch: Optional[str] = None):
     return str(resolved), display
 
 
-def check_animation_prim(prim, asset_dir: str):
+def check_animation_prim(prim, asset_dir: str, allow_outside_paths: bool = False):
     """Every check of one VirtualBonesAnimation prim and its texture.
 
     Args:
         prim: The ``Usd.Prim``.
-        asset_dir: The asset's folder (textures must lie inside it).
+        asset_dir: The asset's folder (textures must lie inside it unless ``allow_outside_paths``).
+        allow_outside_paths: Accept a texture outside ``asset_dir`` (``vbusd validate
+            --allow-outside-paths``); without it the refusal says how to allow it.
     """
 
     root = prim.GetStage().GetRootLayer()
     diagnostics = Diagnostics(root.realPath or asset_dir)
-    # validate has no option to allow outside paths: its refusals suggest none.
     reader = UsdReader(root.realPath or Path(asset_dir) / "stage.usda", diagnostics, folder=asset_dir,
-                       outside_hint=None)
+                       allow_outside=allow_outside_paths, outside_hint=OUTSIDE_PATHS_HINT)
     declared = reader.guard(prim, reader.animation, prim)
     with tempfile.TemporaryDirectory(prefix="vbusd-validate-") as scratch:
         path, display = reader.guard(prim, resolve_texture, prim, reader, scratch) or (None, None)

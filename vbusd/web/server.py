@@ -27,9 +27,10 @@ from pathlib import Path
 from typing import Optional
 from urllib.parse import unquote, urlsplit
 
-from vbusd.format.errors import MISSING_FILE, InputError, OptionsError
+from vbusd.format.errors import MISSING_FILE, InputError, OptionsError, UnsupportedError
 from vbusd.web.engines import ENGINE_PAGES, ENGINES
 from vbusd.io.gltf_package import check_package
+from vbusd.io import gltf_meshopt
 from vbusd.io.usd import read_asset
 from vbusd.web.scene import build_scene, scene_json
 from vbusd.web.static_files import static_files
@@ -203,7 +204,14 @@ class ViewerServer:
         if suffix in GLTF_SUFFIXES:
 
             # Checked here, not in the browser: an empty, truncated or plain glTF is one line.
-            check_package(path, allow_outside_paths=allow_outside_paths)
+            package = check_package(path, allow_outside_paths=allow_outside_paths)
+            if gltf_meshopt.MESHOPT in getattr(package, "extensions_used", ()):
+                # vbusd's readers decode it (validate, info), but the viewer's page hands the file to
+                # the engine's loader, and the runtimes do not draw meshopt-decoded geometry yet.
+                raise UnsupportedError(f"the viewer's page does not draw meshopt-compressed packages "
+                                       f"({gltf_meshopt.MESHOPT}); view it uncompressed, written with: "
+                                       f"{gltf_meshopt.DECOMPRESS_COMMAND}", file=str(path),
+                                       code="gltf.extension.required")
             self.config = {"name": path.name, "kind": "gltf", "url": f"asset/{path.name}", "engine": engine}
         else:
 

@@ -6,10 +6,11 @@
  *       optimize crowd.glb out.glb [--compress draco]
  *
  * It registers VBUSD_virtual_bones beside every extension the CLI knows (a config's
- * `extensions` replaces the CLI's list, so ALL_EXTENSIONS is repeated here), and adds two
+ * `extensions` replaces the CLI's list, so ALL_EXTENSIONS is repeated here), and adds three
  * commands under "User": `vbusd-meshopt` (meshopt compression that leaves POSITION and the skin
  * exact; `optimize --compress meshopt` and `quantize` are refused for a package, with an error
- * saying so) and `vbusd-instance-defaults` (completes the crowd batches `instance` makes).
+ * saying so), `vbusd-decompress` (writes a compressed package uncompressed, as vbusd's own readers
+ * take it) and `vbusd-instance-defaults` (completes the crowd batches `instance` makes).
  */
 import { ALL_EXTENSIONS, EXTMeshoptCompression } from '@gltf-transform/extensions';
 import { MeshoptEncoder } from 'meshoptimizer';
@@ -35,6 +36,9 @@ if (process.argv.slice(2).find((word) => !word.startsWith('-')) === 'optimize'
     + 'the positions Virtual Bones skin); use --compress draco or the vbusd-meshopt command to compress\n');
 }
 
+// What `vbusd-decompress` removes: the geometry compressions glTF-Transform decodes on read.
+const COMPRESSION = ['KHR_draco_mesh_compression', 'EXT_meshopt_compression', 'KHR_meshopt_compression'];
+
 export default {
   extensions: [...ALL_EXTENSIONS, VBUSDVirtualBones],
   onProgramReady: ({ program, io, Session }) => {
@@ -49,6 +53,16 @@ export default {
         return Session.create(io, logger, args.input, args.output)
           .transform(vbusdMeshopt({ encoder: MeshoptEncoder, extension: EXTMeshoptCompression, level: options.level }));
       });
+    program
+      .command('vbusd-decompress', 'Write a package without Draco or meshopt compression, as vbusd validate, info and view read it')
+      .help('Reads the input with its compression decoded (KHR_draco_mesh_compression, EXT_meshopt_compression)\nand writes it with neither: what vbusd\'s readers and its viewer\'s page load.')
+      .argument('<input>', 'Path to read glTF 2.0 (.glb, .gltf) model')
+      .argument('<output>', 'Path to write output')
+      .action(({ args, logger }) => Session.create(io, logger, args.input, args.output).transform((document) => {
+        for (const extension of document.getRoot().listExtensionsUsed()) {
+          if (COMPRESSION.includes(extension.extensionName)) extension.dispose();
+        }
+      }));
     program
       .command('vbusd-instance-defaults', 'Give GPU-instancing batches of Virtual Bones meshes their _VB_ instance attributes')
       .argument('<input>', 'Path to read glTF 2.0 (.glb, .gltf) model')
