@@ -17,7 +17,6 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.jobs.batch import BatchItem, cache_key, dependencies, plan_batch, read_manifest, run_batch  # noqa: E402
 from vbusd.cli import main  # noqa: E402
@@ -190,6 +189,7 @@ def test_a_reference_that_appears_later_reconverts(tmp_path, capsys):
     assert status == 0 and _statuses(third) == {"char.usda": "converted", "rig.usda": "cached"}
 
 
+@pytest.mark.cli
 def test_a_corrupt_crate_fails_alone(tmp_path, capsys):
     # Planning once opened every USD source in the command's own process to find its
     # dependencies: this crate crashed the whole batch (signal 11). Now it is one failed asset.
@@ -232,6 +232,7 @@ def _cli(args, env=None, cwd=None):
                           env={**os.environ, **(env or {})}, cwd=cwd, timeout=600)
 
 
+@pytest.mark.cli
 def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp_path):
     library = _library(tmp_path / "lib")
     out = tmp_path / "out"
@@ -254,6 +255,7 @@ def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp
     assert not [p for p in out.iterdir() if "vbusd-tmp" in p.name or p.name.endswith("vbusd-journal")]
 
 
+@pytest.mark.cli
 def test_killed_after_the_commit_before_the_record(tmp_path):
     """Killed after b's layer is committed but before its cache record: the pending record marks the
     output as the batch's own, so the next run replaces it without --force."""
@@ -272,6 +274,7 @@ def test_killed_after_the_commit_before_the_record(tmp_path):
     assert _files(out) == _files(tmp_path / "clean")
 
 
+@pytest.mark.cli
 def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(tmp_path):
     """Issue 24: a batch killed and run again over outputs of other content (here an earlier run
     with other options) ended with textures named by digest (a.Skeleton.5e354db5539d.exr) where a
@@ -297,6 +300,7 @@ def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(t
     assert _files(out) == _files(tmp_path / "clean")
 
 
+@pytest.mark.cli
 def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_path):
     """Issue 24: the converters' warnings (a skinned mesh node whose transform glTF ignores) showed
     in a single conversion but neither on stderr nor in --report in a batch, converted or cached."""
@@ -338,6 +342,7 @@ def test_an_existing_output_of_someone_else_needs_force(tmp_path, capsys):
 # Determinism, manifests, pool, Dask
 
 
+@pytest.mark.cli
 def test_two_conversions_are_byte_identical(tmp_path):
     """Two runs in two processes into fresh folders give the same bytes for every writer: EXR
     (float16, float32), 16-bit PNG, KTX2, the layer as .usda and .usdc, the JSON sidecars (no
@@ -422,6 +427,7 @@ if __name__ == "__main__":
 """
 
 
+@pytest.mark.cli
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc to read thread CPU times")
 def test_an_idle_pool_worker_burns_no_cpu(tmp_path):
     # Each worker converts on one core. Limiting OpenUSD's threads after they started left one

@@ -23,38 +23,21 @@ stored texels:
 from __future__ import annotations
 
 import dataclasses
-import runpy
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+import vbusd
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
+                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
+                                   package_vertices, reference_instance, screenshot_luminance)
+
+pytestmark = pytest.mark.browser
 HERE = Path(__file__).resolve().parent
-_helpers = runpy.run_path(str(HERE / "test_browser.py"))
-stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
-bar_crowd = _helpers["bar_crowd"]
-screenshot_luminance = _helpers["screenshot_luminance"]
-check_probe = _helpers["check_probe"]
-ENCODINGS = _helpers["ENCODINGS"]
-FORMATS = _helpers["FORMATS"]
-STADIUM_PROBES = _helpers["STADIUM_PROBES"]
-POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
-NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
-PAGE = _helpers["PAGE"]
-
-import vbusd  # noqa: E402  (after the helpers: same module objects)
-
-
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium() as launched:
-        yield launched
 
 
 def run_probes(browser, path: Path, probes) -> list:
@@ -79,8 +62,7 @@ def assert_within(errors) -> None:
         assert normal_error <= NORMAL_TOLERANCE
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
 def test_babylon_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
     errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
     print(encoding, texel_format, errors)
@@ -115,7 +97,7 @@ def test_babylon_screenshot_matches_decoder_silhouette(browser):
     """Babylon's picture (unlit white on black) against the silhouette rasterized from the
     decoder's vertices with the page's own camera (tests/test_browser.py): IoU >= 0.98, and the
     same crowd 0.3 s later does not match."""
-    _helpers["check_silhouette"](browser, "babylon")
+    check_silhouette(browser, "babylon")
 
 
 def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
@@ -154,8 +136,7 @@ def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
             page.close()
 
 
-@pytest.mark.parametrize("encoding", ENCODINGS)
-@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+@pytest.mark.parametrize("character,encoding", character_encoding_cases(["Fox", "CesiumMan"]))
 def test_babylon_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
     """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
     joints, 3,273 vertices with normals), every float encoding, float16."""
@@ -175,9 +156,7 @@ def test_babylon_probe_through_gltf_loader(browser, bar_crowd, tmp_path, case):
     the USD asset."""
     from vbusd.io.gltf_package import export_gltf
 
-    package_vertices = _helpers["_package_vertices"]
-    reference_instance = _helpers["reference_instance"]
-    source = _helpers["SAMPLE"] / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
+    source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
     asset = vbusd.read_asset(source)
     package = tmp_path / case
     export_gltf(asset, package)
@@ -222,7 +201,7 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
     html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
     shutil.copytree(HERE.parent / "vbusd" / "web" / "static", tmp_path / "site")
     (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
-    export_gltf(vbusd.read_asset(_helpers["SAMPLE"] / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
+    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
 
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, *args):

@@ -35,12 +35,14 @@ def test_generated_shader_modules_are_current():
     assert (WEB / "src" / "shader-modules.js").read_text(encoding="utf-8") == javascript_module()
 
 
+@pytest.mark.cli
 def test_package_data_is_in_sync():
     result = subprocess.run([sys.executable, str(REPO / "scripts" / "sync_web.py"), "--check"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, f"run python scripts/sync_web.py:\n{result.stdout}{result.stderr}"
 
 
+@pytest.mark.node
 def test_shipped_three_is_the_pinned_version():
     lock = json.loads((WEB / "package-lock.json").read_text())
     pinned = lock["packages"]["node_modules/three"]["version"]
@@ -62,6 +64,8 @@ process.stdout.write(JSON.stringify(out));
 """
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_runtime_shader_module_equals_vbusd_shader():
     node = shutil.which("node")
     if node is None:
@@ -102,6 +106,8 @@ process.stdout.write(JSON.stringify({ k4: hex(packSkin([idx], [w], 4)).slice(40,
 """
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_runtime_packs_skin_records_as_the_spec_states():
     node = shutil.which("node")
     if node is None:
@@ -123,6 +129,7 @@ def test_runtime_packs_skin_records_as_the_spec_states():
                              "00000000", "00000000", "00000000", "c0000000", "3f000000"]
 
 
+@pytest.mark.node
 def test_shipped_babylon_is_the_pinned_version():
     """web/babylon pins @babylonjs/core and @babylonjs/loaders exactly (package.json and its lock
     agree), and the committed bundle is that Babylon.js (its Engine.Version), with its licence."""

@@ -28,47 +28,37 @@ browser offers no WebGPU adapter.
 
 from __future__ import annotations
 
-import runpy
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+import vbusd
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
+                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
+                                   package_vertices, reference_instance, screenshot_luminance)
+from tests.helpers.capabilities import unavailable
+
+pytestmark = pytest.mark.browser
 HERE = Path(__file__).resolve().parent
-_helpers = runpy.run_path(str(HERE / "test_browser.py"))
-stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
-rig_assets = _helpers["rig_assets"]
-bar_crowd = _helpers["bar_crowd"]
-check_probe = _helpers["check_probe"]
-screenshot_luminance = _helpers["screenshot_luminance"]
-SAMPLE = _helpers["SAMPLE"]
-ENCODINGS = _helpers["ENCODINGS"]
-FORMATS = _helpers["FORMATS"]
-STADIUM_PROBES = _helpers["STADIUM_PROBES"]
-POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
-NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
-PAGE = _helpers["PAGE"]
 
-import vbusd  # noqa: E402  (after the helpers: same module objects)
+NO_ADAPTER = "this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)"
 
 
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium(webgpu=True) as launched:
-        yield launched
+@pytest.fixture
+def browser(webgpu_browser):
+    """This module's pages need WebGPU: the session's Chromium launched with it."""
+    return webgpu_browser
 
 
 def open_page(browser, server: ViewerServer, query: str, **kwargs) -> ViewerPage:
     page = ViewerPage(browser, server.url + query, **kwargs)
     if "WebGPU is not available" in " ".join(page.messages):
         page.close()
-        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+        unavailable("browser", NO_ADAPTER)
     return page
 
 
@@ -95,16 +85,14 @@ def assert_within(errors) -> None:
         assert normal_error <= NORMAL_TOLERANCE
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
 def test_webgpu_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
     errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
     print(encoding, texel_format, errors)
     assert_within(errors)
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ("affineMatrix", "quatTranslation"))
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases(encodings=("affineMatrix", "quatTranslation")))
 def test_webgpu_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format):
     errors = run_probes(browser, rig_assets[encoding, texel_format], [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)])
     print(encoding, texel_format, errors)
@@ -234,8 +222,7 @@ def test_webgl2_backend_per_instance_and_picture(browser, bar_crowd, stadium_ass
             page.close()
 
 
-@pytest.mark.parametrize("encoding", ENCODINGS)
-@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+@pytest.mark.parametrize("character,encoding", character_encoding_cases(["Fox", "CesiumMan"]))
 def test_webgpu_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
     """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
     joints, 3,273 vertices with normals), every encoding, float16."""
@@ -254,8 +241,6 @@ def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
     the same vertices as the numpy decoder on the USD asset."""
     from vbusd.io.gltf_package import export_gltf
 
-    package_vertices = _helpers["_package_vertices"]
-    reference_instance = _helpers["reference_instance"]
     source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
     asset = vbusd.read_asset(source)
     package = tmp_path / case
@@ -286,7 +271,7 @@ def test_webgpu_screenshot_matches_decoder_silhouette(browser, backend_query):
     """WebGPURenderer's picture (MeshBasicNodeMaterial, unlit white on black) against the silhouette
     rasterized from the decoder's vertices with the page's camera (tests/test_browser.py), on
     WebGPU and on the WebGL 2 backend: IoU >= 0.98."""
-    _helpers["check_silhouette"](browser, "three-webgpu", backend_query)
+    check_silhouette(browser, "three-webgpu", backend_query)
 
 
 def test_docs_engines_example_runs(browser, tmp_path):
@@ -332,7 +317,7 @@ def test_docs_engines_example_runs(browser, tmp_path):
         thread.join()
     assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
     if any("WebGPU is not available" in m for m in messages):
-        pytest.skip("this Chromium offers no WebGPU adapter")
+        unavailable("browser", NO_ADAPTER)
     # Lit figures (above the ground's ~84), the dark background (33) and shadows on the ground
     # (between the two): all three present.
     figures, background = (luminance > 95).mean(), (luminance < 40).mean()

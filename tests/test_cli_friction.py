@@ -21,7 +21,6 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 
@@ -48,6 +47,7 @@ def _by_hand(size: int) -> str:
     raise AssertionError(size)
 
 
+@pytest.mark.cli
 def test_text_does_not_wrap_when_stdout_is_not_a_terminal(tmp_path):
     folder = tmp_path / ("a_folder_whose_name_alone_is_longer_than_half_of_an_eighty_column_line" * 2)
     output = folder / ("stadium_crowd_with_a_name_long_enough_that_its_texture_line_passes_eighty" + ".usda")

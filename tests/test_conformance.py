@@ -34,6 +34,8 @@ from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_text
 from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
+from tests.helpers import scripts
+
 FOLDER = Path(__file__).resolve().parents[1] / "spec" / "conformance"
 VECTORS = sorted(FOLDER.glob("*.json"))
 
@@ -405,6 +407,8 @@ def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path, skin: s
     return result[..., :3], result[..., 3:]
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("skin", ["attributes", "pulled-buffer", "pulled-texture"])
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
@@ -417,6 +421,7 @@ def test_shader_modules_reproduce_every_vector(gl, lang, path, skin, tmp_path):
         assert_matches(vector, index, points, normals, f"{lang} ({skin})")
 
 
+@pytest.mark.cli
 def test_vectors_are_current():
     """The committed vectors are what spec/conformance/make_vectors.py writes (generator string aside)."""
     result = subprocess.run([sys.executable, str(FOLDER / "make_vectors.py"), "--check"], capture_output=True,
@@ -427,11 +432,7 @@ def test_vectors_are_current():
 def test_the_check_compares_numbers_not_their_text(tmp_path, monkeypatch, capsys):
     """numpy 2.4 computes a vector's tolerance.diagonal one bit apart (6.1913571590537355 against
     6.191357159053735): the same number for the check; a change of 1e-9 of it is not."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("make_vectors", FOLDER / "make_vectors.py")
-    make_vectors = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make_vectors)
+    make_vectors = scripts.load("spec/conformance/make_vectors.py")
     folder = tmp_path / "conformance"
     shutil.copytree(FOLDER, folder)
     monkeypatch.setattr(make_vectors, "HERE", folder)
@@ -560,6 +561,8 @@ def test_numpy_reference_reproduces_every_socket(path):
         np.testing.assert_allclose(sockets, expected["sockets"], rtol=0, atol=1e-12)
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_shader_sockets_reproduce_every_vector(gl, lang, path, tmp_path):

@@ -8,15 +8,12 @@ UsdSkel's skinning via the report (the semantics tests compare decoded caches di
 from __future__ import annotations
 
 import json
-import runpy
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
@@ -27,8 +24,7 @@ STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
 
-# Not an installed module (tests import with --import-mode=importlib): load it by path.
-scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
+from tests.helpers import scenes
 
 
 @pytest.fixture()
@@ -84,6 +80,7 @@ def test_json_summary_is_pure_json_on_stdout(small_rig, tmp_path, capsys):
     assert any(path.endswith(".png") for path in report["files"])
 
 
+@pytest.mark.cli
 def test_subprocess_convert_and_decode(small_rig, tmp_path):
     asset, cache = tmp_path / "out.usda", tmp_path / "cache.usda"
     done = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(small_rig), "-o", str(asset),
@@ -218,6 +215,7 @@ def test_texture_beside_the_output_is_not_replaced_without_force(small_rig, tmp_
     assert texture.read_bytes()[:4] == b"\x76\x2f\x31\x01"  # now an OpenEXR file
 
 
+@pytest.mark.cli
 def test_sigterm_while_writing_leaves_nothing(small_rig, tmp_path):
     # A scheduler's kill (SIGTERM) arrives after the texture's temporary is written: the
     # transaction must still remove it and the output folder convert created.

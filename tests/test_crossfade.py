@@ -18,10 +18,6 @@ The GLSL, HLSL and three.js crossfades are checked on the conformance vectors
 
 from __future__ import annotations
 
-import math
-import runpy
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -31,6 +27,9 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
+
+from tests.helpers.animations import chain_animation
+from tests.helpers import node as node_tools
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 
@@ -65,8 +64,7 @@ def test_spec_worked_example_by_hand(encoding):
 
 def _chain(encoding: str):
     """test_shaders' 5-bone chain (two clips, 6 influences, twisted for dualQuat), baked in float16."""
-    shaders = SimpleNamespace(**runpy.run_path(str(Path(__file__).parent / "test_shaders.py")))
-    animation = shaders._chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
+    animation = chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
                                          twist=encoding == "dualQuat")
     return bake(animation, BakeOptions(encoding=encoding, texel_format="float16", max_influences=6))
 
@@ -153,11 +151,9 @@ def test_api_refuses_bad_fade_arguments(chains):
 # ----------------------------------------------------------------------------------------------
 # Against UsdSkel: the crossfade equals blending UsdSkel's own skinning at the two times
 # ----------------------------------------------------------------------------------------------
-
-pxr = pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom  # noqa: E402
 
-scenes = SimpleNamespace(**runpy.run_path(str(Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py")))
+from tests.helpers import scenes
 
 # Version 1's bound for these rigs with float32 texels (tests/test_usdskel_semantics.py): scene units.
 USDSKEL_TOLERANCE = 2e-4
@@ -212,19 +208,16 @@ def test_crossfade_equals_blend_of_usdskel_poses(tmp_path, encoding):
     assert np.linalg.norm(expected[0] - expected[1], axis=-1).max() > 100 * USDSKEL_TOLERANCE
 
 
+@pytest.mark.node
 def test_gltf_crossfade_equals_blend_of_threejs_poses(shared_assets):
     """Fox: Walk at one row blended with Run at another (w = 0.4) against three.js's own skinning
     (GLTFLoader + AnimationMixer + SkinnedMesh, tests/node/skin_pose.mjs) at the two source times,
     blended; float32 texels, within 1e-6 of the bounding-box diagonal (version 1's bound for
     glTF rigs at rows, tests/test_real_characters_gltf.py)."""
-    import importlib.util
 
     path = shared_assets / "gltf" / "Fox" / "Fox.glb"
     if not path.is_file():
         pytest.skip("Fox.glb is not among the shared assets")
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     from vbusd.converters import gltf
 
     scene = gltf.read(path)

@@ -9,14 +9,11 @@ first sample.
 from __future__ import annotations
 
 import json
-import runpy
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom  # noqa: E402
 
 from vbusd.cli import main  # noqa: E402
@@ -26,8 +23,7 @@ STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
 
-# Not an installed module (tests import with --import-mode=importlib): load it by path.
-scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
+from tests.helpers import scenes
 
 
 @pytest.fixture()

@@ -10,7 +10,6 @@ bytes follow the stated formula (texture + 92 bytes per instance; 64 bytes per j
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -18,15 +17,14 @@ import pytest
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 
+from tests.helpers import scripts
+
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "engines_side_by_side.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("vbusd_bench_engines_side_by_side", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("benchmarks/engines_side_by_side.py")
 
 
 def test_clones_play_the_vbusd_clip_time(bench, shared_assets, tmp_path):

@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
 from vbusd.cli import main  # noqa: E402

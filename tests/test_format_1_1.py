@@ -24,8 +24,6 @@ import vbusd
 from vbusd.format import versioning
 from vbusd.format.errors import VersionError
 from vbusd.format.model import Crowd
-
-pxr = pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,7 +11,6 @@ rules of spec/gltf-conversion.md (URIs, limits).
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -19,18 +18,13 @@ import pytest
 from vbusd.converters import gltf
 from vbusd.format.errors import InputError, VbusdError
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 BAD_DIR = FIXTURES / "bad"
 
 
-def _bad_table() -> dict:
-    spec = importlib.util.spec_from_file_location("gltf_make_fixtures", FIXTURES / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.BAD
-
-
-BAD = _bad_table()
+BAD = scripts.load("tests/fixtures/gltf/make_fixtures.py").BAD
 
 
 def _file(name: str) -> Path:

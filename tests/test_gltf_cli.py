@@ -20,6 +20,7 @@ def _vbusd(*args, cwd):
                           cwd=cwd, timeout=300)
 
 
+@pytest.mark.cli
 def test_convert_glb_round_trip(tmp_path):
     from vbusd.decoders.reference import skin_mesh
     from vbusd.io.usd import read_asset
@@ -49,6 +50,7 @@ def test_convert_glb_round_trip(tmp_path):
     assert cli.main(["validate", str(out)]) == 0
 
 
+@pytest.mark.cli
 def test_convert_bad_glb_one_line_no_output(tmp_path):
     out = tmp_path / "out.usda"
     result = _vbusd("convert", str(FIXTURES / "bad" / "glb_truncated.glb"), "-o", str(out),

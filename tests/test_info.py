@@ -271,6 +271,7 @@ def test_sublayer_outside_the_folder_is_refused(tmp_path, capsys):
     assert err.count("\n") == 1 and "asset.outside" in err and "outside.usda" in err
 
 
+@pytest.mark.cli
 def test_subprocess_json(tmp_path):
     path = tmp_path / "crowd.exr"
     textures.write_texture(path, talk_vb())

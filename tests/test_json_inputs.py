@@ -11,7 +11,6 @@ valid base asset these tests start from.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -21,19 +20,14 @@ from vbusd.cli import main
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.validators.api import validate
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures"
 NOT_OBJECTS = ["null", "[]", "3", '"text"', "true"]
 """JSON documents that are valid JSON but not objects."""
 
 
-def _make_fixtures():
-    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "validate" / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-MF = _make_fixtures()
+MF = scripts.load("tests/fixtures/validate/make_fixtures.py")
 CONTAINERS = {"exr": ("crossMatrix", "float16"), "png": ("quatTranslation", "unorm16"),
               "ktx2": ("dualQuat", "float32")}
 EMBEDDED_AT = {"exr": "header/vbusd.layout", "png": "iTXt vbusd.layout", "ktx2": "kvd/vbusd.layout"}

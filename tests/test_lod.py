@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from vbusd.cli import main
+from tests.helpers import node as node_tools
 
 ROOT = Path(__file__).resolve().parents[1]
 STADIUM = ROOT / "samples" / "stadium_crowd" / "stadium_crowd.usda"
@@ -189,15 +190,12 @@ def test_lod_structure_findings(stadium_lods, tmp_path):
         assert report.exit_status == 1
 
 
+@pytest.mark.node
 def test_export_writes_msft_lod_that_the_khronos_validator_accepts(stadium_lods):
     """The crowd of the 3-level stadium exported as a .glb: glTF-Validator reports no error or
     warning, three.js's GLTFLoader loads it, and the crowd node lists its LOD nodes in MSFT_lod with
     MSFT_screencoverage [t0, t1, 0], every level instanced with the same instance attributes."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     import json
     import struct
 
@@ -262,10 +260,10 @@ def test_gltf_source_levels_msft_lod_are_kept(tmp_path):
     assert main(["convert", str(source), "-o", str(tmp_path / "again.usda"), "--lod-ratios", "0.5"]) == 2
 
 
+@pytest.mark.node
 def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared_assets, tmp_path):
     """The Khronos CesiumMan (a glTF character) converted with --lod-ratios 0.5,0.2: vbusd validate
     clean, and its runtime package (MSFT_lod) clean for the Khronos glTF-Validator."""
-    import importlib.util
 
     from vbusd.validators.api import validate
 
@@ -278,9 +276,6 @@ def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared
     assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
     package = tmp_path / "cesium.glb"
     assert main(["export", str(out), "-o", str(package), "-q"]) == 0
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     issues = node_tools.run_json("gltf_check.mjs", package, packages=("three", "gltf-validator"))["validator"]["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
 

@@ -91,6 +91,7 @@ def _dist_info_file(wheel_path: Path, name: str) -> str:
         return archive.read(member).decode()
 
 
+@pytest.mark.cli
 def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
     required = [
         "vbusd/__init__.py", "vbusd/cli/__init__.py", "vbusd/format/layout.py",
@@ -103,6 +104,7 @@ def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
     assert not missing, f"missing from the wheel: {missing}"
 
 
+@pytest.mark.cli
 def test_every_source_module_and_schema_file_is_in_the_wheel(wheel_names, source_copy):
     # A sub-package folder that pyproject's explicit `packages` list forgets is silently left out
     # of the wheel; compare against the source folders themselves.
@@ -117,6 +119,7 @@ def test_every_source_module_and_schema_file_is_in_the_wheel(wheel_names, source
     assert not missing, f"source files not packaged: {missing}"
 
 
+@pytest.mark.cli
 def test_no_taken_top_level_names(wheel_names):
     top_level = {name.split("/", 1)[0] for name in wheel_names}
     dist_info = {name for name in top_level if name.endswith(".dist-info")}
@@ -125,6 +128,7 @@ def test_no_taken_top_level_names(wheel_names):
         assert not any(name.startswith(f"{taken}/") for name in wheel_names), taken
 
 
+@pytest.mark.cli
 def test_top_level_txt_names_only_vbusd(wheel_path):
     with zipfile.ZipFile(wheel_path) as archive:
         members = [n for n in archive.namelist() if n.endswith(".dist-info/top_level.txt")]
@@ -133,6 +137,7 @@ def test_top_level_txt_names_only_vbusd(wheel_path):
         assert archive.read(members[0]).decode().split() == ["vbusd"]
 
 
+@pytest.mark.cli
 def test_console_script_and_converter_entry_points(wheel_path):
     parser = configparser.ConfigParser(delimiters=("=",))
     parser.optionxform = str  # entry-point names are case-sensitive
@@ -145,6 +150,7 @@ def test_console_script_and_converter_entry_points(wheel_path):
         assert target.strip().startswith("vbusd.converters."), (name, target)
 
 
+@pytest.mark.cli
 def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     site = tmp_path / "site"
     with zipfile.ZipFile(wheel_path) as archive:
@@ -171,6 +177,7 @@ def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     assert report["plugInfo"] and report["jsonSchema"]
 
 
+@pytest.mark.cli
 def test_viewer_and_three_js_ship_in_the_wheel(wheel_names, source_copy):
     # `vbusd view` works offline from the wheel: every file of the viewer's package data (the page,
     # the three.js runtime, three.js and its licence) is in it, and three.js itself is not empty.

@@ -41,6 +41,7 @@ def test_readme_opens_with_the_picture():
     assert PICTURE.is_file()
 
 
+@pytest.mark.cli
 def test_picture_is_what_the_script_makes_now(tmp_path):
     reason = unavailable_reason()
     if reason:

@@ -9,7 +9,6 @@ through $VBUSD_SHARED_ASSETS or ../shared/assets; the tests skip without them.
 
 from __future__ import annotations
 
-import importlib.util
 import os
 from pathlib import Path
 
@@ -21,10 +20,8 @@ from vbusd.decoders.reference import skin_mesh
 from vbusd.format.errors import VbusdError
 from vbusd.format.model import ReadOptions
 from vbusd.io.gltf import load
+from tests.helpers import node as node_tools
 
-_spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-node_tools = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(node_tools)
 
 ASSETS = Path(os.environ.get("VBUSD_SHARED_ASSETS", Path(__file__).resolve().parents[2] / "shared" / "assets"))
 GLTF = sorted((ASSETS / "gltf").glob("*/*.gl*")) if (ASSETS / "gltf").is_dir() else []
@@ -45,6 +42,7 @@ def _key(mesh) -> str:
     return f"{node}:{int(mesh.source_path.rsplit('/', 1)[1])}"
 
 
+@pytest.mark.node
 @pytest.mark.skipif(not GLTF, reason="shared glTF assets not found ($VBUSD_SHARED_ASSETS or ../shared/assets)")
 @pytest.mark.parametrize("path", GLTF, ids=lambda p: p.name)
 def test_gltf_asset_whole_and_as_three_shows_it(path):

@@ -18,7 +18,6 @@ import sys
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.baking.baker import BakeOptions, bake  # noqa: E402
 from vbusd.converters import usdskel  # noqa: E402
@@ -291,6 +290,7 @@ def _convert(tmp_path, source, *extra):
     return result, out
 
 
+@pytest.mark.cli
 def test_units_and_up_axis_are_kept_and_shown(character, tmp_path):
     from pxr import Usd, UsdGeom
 
@@ -310,6 +310,7 @@ def test_units_and_up_axis_are_kept_and_shown(character, tmp_path):
     assert "Z up, 1 unit = 0.01 m" in text
 
 
+@pytest.mark.cli
 def test_clips_select_and_unknown_clip_is_one_line(character, tmp_path):
     result, out = _convert(tmp_path, character, "--clips", "Skel")
     assert result.returncode == 0, result.stderr
@@ -320,6 +321,7 @@ def test_clips_select_and_unknown_clip_is_one_line(character, tmp_path):
     assert "no clip named 'Run'" in lines[0] and "'Skel'" in lines[0] and "'Spawner'" in lines[0]
 
 
+@pytest.mark.cli
 def test_zero_scale_skeleton_skipped(tmp_path):
     source = tmp_path / "spawn.usda"
     source.write_text(stage_text(spawn_scale="(0, 0, 0)"))

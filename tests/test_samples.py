@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers import scripts
+
 REPO = Path(__file__).resolve().parents[1]
 GENERATOR = REPO / "samples" / "stadium_crowd.py"
 SAMPLE_DIR = REPO / "samples" / "stadium_crowd"
@@ -37,15 +39,8 @@ INSTANCES, DURATION, FPS = 1200, 10.0, 30.0
 
 
 def _load_generator():
-    """Import samples/stadium_crowd.py by path: samples/ is not an installed package."""
-    name = "vbusd_samples_stadium_crowd"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, GENERATOR)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the class is created
-    spec.loader.exec_module(module)
-    return module
+    """samples/stadium_crowd.py by path: samples/ is not an installed package."""
+    return scripts.load("samples/stadium_crowd.py")
 
 
 @pytest.fixture(scope="module")
@@ -159,13 +154,13 @@ print(json.dumps({
 
 @pytest.fixture(scope="module")
 def usdskel_probe():
-    pytest.importorskip("pxr")
     result = subprocess.run([sys.executable, "-c", _USDSKEL_PROBE, str(USDSKEL)], capture_output=True,
                             text=True, timeout=300, cwd=REPO.parent)
     assert result.returncode == 0, result.stderr
     return result, json.loads(result.stdout)
 
 
+@pytest.mark.cli
 def test_usdskel_asset_skins_without_warnings(usdskel_probe):
     result, report = usdskel_probe
     # OpenUSD reports UsdSkel problems (bad joint order, wrong counts) as warnings on stderr.
@@ -180,6 +175,7 @@ def test_usdskel_asset_skins_without_warnings(usdskel_probe):
     assert report["normals"] == VERTICES and report["normalsInterpolation"] == "vertex"
 
 
+@pytest.mark.cli
 def test_usdskel_skinning_matches_float64_lbs_of_the_generator(usdskel_probe, gen, rig):
     _, report = usdskel_probe
     usd = np.array(report["frames"])
@@ -243,6 +239,7 @@ def test_vb_crowd_is_1200_spectators_facing_the_pitch(vb_asset):
     assert (np.einsum("ij,ij->i", forward[:, [0, 2]], to_pitch) > 0.8).all()
 
 
+@pytest.mark.cli
 def test_vb_decode_matches_usdskel_at_every_row(vb_asset, usdskel_probe):
     from pxr import Usd, UsdSkel, Vt
     from vbusd.decoders import reference
@@ -277,7 +274,6 @@ def test_vb_decode_matches_usdskel_at_every_row(vb_asset, usdskel_probe):
 
 @pytest.fixture(scope="module")
 def regenerated(tmp_path_factory):
-    pytest.importorskip("pxr")
     out = tmp_path_factory.mktemp("stadium_crowd")
     start = time.perf_counter()
     result = subprocess.run([sys.executable, str(GENERATOR), "--out", str(out)], capture_output=True,
@@ -287,11 +283,13 @@ def regenerated(tmp_path_factory):
     return out, seconds
 
 
+@pytest.mark.cli
 def test_regeneration_is_fast(regenerated):
     _, seconds = regenerated
     assert seconds < 10.0, f"generating the sample took {seconds:.1f} s"
 
 
+@pytest.mark.cli
 def test_regenerated_files_are_the_committed_ones(regenerated):
     out, _ = regenerated
     committed = sorted(p.name for p in SAMPLE_DIR.iterdir())
@@ -350,6 +348,7 @@ def _layer_content(path: Path) -> dict:
     return content
 
 
+@pytest.mark.cli
 def test_the_committed_sample_is_what_the_generator_makes(regenerated):
     """Issue 24: samples/README says a regeneration gives the committed files, and it gave a
     stadium_crowd_vb.usda whose customLayerData and vb:clipExtents differed. Every file is compared:
@@ -375,6 +374,7 @@ def test_the_committed_sample_is_what_the_generator_makes(regenerated):
             _same_value(a.texels, b.texels, committed.name)
 
 
+@pytest.mark.cli
 def test_regenerated_usdskel_describes_the_same_rig(regenerated):
     from pxr import Usd
 
@@ -398,6 +398,7 @@ def test_regenerated_usdskel_describes_the_same_rig(regenerated):
                     assert a == b, attr.GetPath()
 
 
+@pytest.mark.cli
 def test_regenerated_vb_asset_describes_the_same_texture_and_crowd(regenerated, vb_asset):
     from vbusd.io import usd as usd_io
 
@@ -446,6 +447,7 @@ def test_both_readme_commands_make_and_enter_a_venv_first():
     assert len(ci) == 1 and ci[0].startswith(tests[0]), "README's test command is what .ci/run runs"
 
 
+@pytest.mark.cli
 def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
     import os
 

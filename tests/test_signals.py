@@ -72,6 +72,7 @@ def _trace_of_a_whole_run(sample, tmp_path) -> list:
     return _steps(trace)
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_run_stuck_in_c_ends_within_the_bound_and_leaves_nothing(sample, tmp_path, signum, status):
@@ -94,6 +95,7 @@ def test_a_run_stuck_in_c_ends_within_the_bound_and_leaves_nothing(sample, tmp_p
         assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, tmp_path):
     """Stuck between the commit's renames (a hung file system): the process still ends within the
@@ -117,6 +119,7 @@ def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, tm
     assert sorted(p.name for p in out.iterdir()) == ["a.Skeleton.exr", "a.Skeleton.exr.json", "a.usda"]
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_a_second_sigint_ends_a_stuck_run_at_once(sample, tmp_path):
     trace = tmp_path / "trace.txt"
@@ -134,6 +137,7 @@ def test_a_second_sigint_ends_a_stuck_run_at_once(sample, tmp_path):
     assert _leftovers(out) == []
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_an_interrupted_replacement_keeps_the_old_asset(sample, tmp_path):
     """--force over an existing asset, interrupted mid-write: the old asset is intact."""
@@ -153,6 +157,7 @@ def test_an_interrupted_replacement_keeps_the_old_asset(sample, tmp_path):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signals_at_many_moments_of_a_conversion(sample, tmp_path, signum, status):
@@ -216,6 +221,7 @@ def _batch_at_work(repo_root, tmp_path, settle: float) -> tuple:
     return process, _descendants(process.pid)
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG and /proc are Linux's")
 def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_path):
@@ -235,6 +241,7 @@ def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_p
     assert len(list((tmp_path / "out").glob("*.usda"))) == 12
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_an_interrupted_batch_ends_its_workers_within_the_bound(repo_root, tmp_path):
     process, family = _batch_at_work(repo_root, tmp_path, 1.5)

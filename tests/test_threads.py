@@ -84,6 +84,7 @@ def _sources(repo_root, shared_assets=None) -> list:
     return [s for s in found if s.exists()]
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("kernels", ["off", "on"])
 def test_no_helper_imports_and_nothing_loads_while_helpers_run(tmp_path, repo_root, kernels, request):
@@ -180,6 +181,7 @@ def _job(tmp_path, *args) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_no_job_kind_imports_off_the_main_thread(tmp_path, repo_root):
     """Every job kind, run as its command in a fresh interpreter under the import guard: the

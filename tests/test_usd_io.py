@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
 from vbusd.format import metadata as md  # noqa: E402

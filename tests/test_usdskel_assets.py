@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import InputError, UnsupportedError  # noqa: E402

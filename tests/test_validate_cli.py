@@ -106,6 +106,7 @@ def test_sidecar_without_its_texture(capsys, tmp_path):
     assert [f["code"] for f in report["findings"]] == ["texture.missing"]
 
 
+@pytest.mark.cli
 def test_the_installed_command_in_a_subprocess(tmp_path):
     exe = shutil.which("vbusd")
     if exe is None:

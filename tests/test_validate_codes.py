@@ -27,6 +27,7 @@ def test_issues_md_is_generated_from_the_registry():
         "spec/ISSUES.md is stale: run `python -m vbusd.format.codes --markdown > spec/ISSUES.md`")
 
 
+@pytest.mark.cli
 def test_generator_command_prints_the_same_text():
     result = subprocess.run([sys.executable, "-m", "vbusd.format.codes", "--markdown"],
                             capture_output=True, text=True, timeout=60)

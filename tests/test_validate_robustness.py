@@ -181,6 +181,7 @@ print(json.dumps({"results": results, "peak_kib": peak_kib}))
 """
 
 
+@pytest.mark.cli
 def test_corpus_through_the_installed_command(corpus):
     vbusd_exe = shutil.which("vbusd")
     if vbusd_exe is None:
@@ -414,6 +415,7 @@ def test_undecodable_metadata_chunk_is_named(tmp_path, capsys):
     assert "metadata.missing" not in {f["code"] for f in findings}
 
 
+@pytest.mark.cli
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
 def test_a_named_pipe_sublayer_is_refused_not_waited_on(tmp_path):
     # USD blocks forever reading a pipe; validate must refuse it before composing the stage.

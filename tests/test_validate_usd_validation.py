@@ -7,8 +7,6 @@ from pathlib import Path
 import pytest
 
 import vbusd  # noqa: F401  (registers the schema plugin)
-
-pxr = pytest.importorskip("pxr")
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdValidation, Vt  # noqa: E402
 
 from vbusd.validators import usd_validation  # noqa: E402

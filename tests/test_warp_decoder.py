@@ -11,7 +11,6 @@ Two kinds of expected values, neither produced by the kernels themselves:
 Devices: "cpu" always (when warp's CPU backend loads), "cuda" when a CUDA device is present.
 """
 
-import importlib.util
 import math
 import subprocess
 import sys
@@ -28,6 +27,9 @@ from vbusd.format.errors import InputError, OptionsError  # noqa: E402
 from vbusd.format.layout import Layout  # noqa: E402
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones  # noqa: E402
 
+from tests.helpers import scripts  # noqa: E402
+from tests.helpers import warp_synthetic as synthetic  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 DEVICES = wd.available_devices()
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
@@ -37,15 +39,6 @@ NORMAL_TOLERANCE = 5e-6
 H = math.sqrt(0.5)
 
 
-def _load(name, path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
-
-
-synthetic = _load("vbusd_test_warp_synthetic", ROOT / "tests" / "fixtures" / "warp" / "synthetic.py")
 
 
 def diagonal(points):
@@ -165,10 +158,7 @@ def test_module_functions_have_the_reference_call_shape(device):
 
 
 def _stadium():
-    path = ROOT / "samples" / "stadium_crowd.py"
-    if not path.exists():
-        pytest.skip("samples/stadium_crowd.py is not present")
-    return _load("vbusd_test_warp_stadium", path).make_asset()
+    return scripts.load("samples/stadium_crowd.py").make_asset()
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -188,7 +178,6 @@ def test_stadium_crowd_sample_file_agrees_with_reference(device):
     path = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
     if not path.exists():
         pytest.skip("samples/stadium_crowd/stadium_crowd_vb.usda is not present")
-    pytest.importorskip("pxr")
     pytest.importorskip("OpenEXR")
     from vbusd.io import usd as usd_io
 
@@ -350,6 +339,7 @@ def test_bad_inputs_raise_one_line_errors():
         wd.Decoder(vb, broken, device=device)
 
 
+@pytest.mark.cli
 @pytest.mark.skipif("cpu" not in DEVICES, reason="warp's CPU backend is not available here "
                     "(benchmarks/gpu_run.sh carries warp without it)")
 def test_cpu_work_prints_nothing_on_stderr():
