@@ -202,7 +202,7 @@ def test_a_corrupt_crate_fails_alone(tmp_path, capsys):
     assert _statuses(report) == {"a.usda": "converted", "b.usda": "converted", "bad.usdc": "failed"}
     bad = next(a for a in report["assets"] if a["status"] == "failed")
     assert bad["code"] == "usd.open" and bad["error"].startswith(f"{library / 'bad.usdc'}: usd.open: "), bad
-    assert run.stderr == ""
+    assert run.stderr == ""  # no progress line on a pipe without --progress, however slow the machine
 
 
 def test_gltf_buffers_and_images_are_inputs(tmp_path):

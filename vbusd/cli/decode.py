@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import click
 
-from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, quiet_option,
-                              terminate_as_interrupt, warn)
+from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, progress_option,
+                              quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
 from vbusd.jobs.pointcache import decode
 
@@ -33,11 +33,13 @@ __all__ = ["command"]
               help="Also decode crowds: one mesh of all instances per bound mesh, at <crowd path>/<mesh name>. "
                    "Large: instances x points x 24 bytes per sample (the stadium sample: several GB; "
                    "prefer a .usdc output).")
+@progress_option
 @quiet_option
-def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, quiet):
+def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, progress_lines, quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
 
-    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
+    # A bar on stderr when it is a terminal; plain lines elsewhere only with --progress.
+    with progress_bar(quiet=quiet, lines=progress_lines) as progress, terminate_as_interrupt():
         report = decode(asset, output, device=device, clip=clip, force=force,
                         allow_outside_paths=allow_outside_paths, crowds=crowds, progress=progress)
     if quiet:
