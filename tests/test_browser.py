@@ -41,6 +41,7 @@ from tests.helpers.browser import (CAMERA, NORMAL_TOLERANCE, PAGE, POSITION_TOLE
                                    check_probe, check_silhouette, check_skin_binding, convert,
                                    encoding_format_skin_cases, package_vertices, reference_instance, run_probes,
                                    screenshot_luminance)
+from tests.helpers.capabilities import shared_asset
 
 pytestmark = pytest.mark.browser
 
@@ -165,9 +166,7 @@ def test_runtime_layers_match_threejs_animation_mixer_on_the_fox(browser, shared
     instance per pose: the walk's time as its offset, rate 0, the Survey layer under the mask upper
     = b_Spine01_02 at weights 0.35 and 1) against three.js' own AnimationMixer blend of the glTF
     (tests/node/layered_pose.mjs), float32 texels: within 1e-6 of the bounding-box diagonal."""
-    source = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not source.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    source = shared_asset("gltf", "Fox", "Fox.glb")
     converted = tmp_path / "c" / "fox.usda"
     vbusd.convert(source, converted, vbusd.ConvertOptions(encoding="crossMatrix", texel_format="float32", check_rows=0,
                                                           masks=("upper=b_Spine01_02",)))

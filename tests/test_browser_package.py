@@ -17,7 +17,6 @@ The Node checks skip with one line when Node.js or web/node_modules is missing (
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from vbusd.web.shader_modules import javascript_module
+from tests.helpers import node as node_tools
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -67,11 +67,7 @@ process.stdout.write(JSON.stringify(out));
 @pytest.mark.cli
 @pytest.mark.node
 def test_runtime_shader_module_equals_vbusd_shader():
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node not found: install Node.js 18 or newer and run npm ci in web/")
-    if not (WEB / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("web/node_modules is missing: run npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     result = subprocess.run([node, "--input-type=module", "-e", _NODE_SCRIPT], cwd=WEB,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-4000:]
@@ -109,11 +105,7 @@ process.stdout.write(JSON.stringify({ k4: hex(packSkin([idx], [w], 4)).slice(40,
 @pytest.mark.cli
 @pytest.mark.node
 def test_runtime_packs_skin_records_as_the_spec_states():
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node not found: install Node.js 18 or newer and run npm ci in web/")
-    if not (WEB / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("web/node_modules is missing: run npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     result = subprocess.run([node, "--input-type=module", "-e", _PACK_SCRIPT], cwd=WEB,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-4000:]

@@ -18,6 +18,7 @@ import pytest
 import vbusd
 from vbusd.decoders.reference import skin_mesh
 from vbusd.format.errors import UnsupportedError
+from tests.helpers.capabilities import shared_asset
 
 pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.kernels.bake)
 
@@ -38,9 +39,7 @@ def _times(clip, substeps: int, rng) -> np.ndarray:
 
 @pytest.mark.parametrize("source,encodings", CASES, ids=[c[0].split("/")[1] for c in CASES])
 def test_clip_extents_hold_every_vertex_at_and_between_rows(shared_assets, tmp_path, source, encodings):
-    path = shared_assets / source
-    if not path.is_file():
-        pytest.skip(f"{source} is not among the shared assets")
+    path = shared_asset(*source.split("/"))
     rng = np.random.default_rng(15)
     checked = 0
     for encoding in encodings:

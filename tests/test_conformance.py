@@ -35,6 +35,7 @@ from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
 from tests.helpers import scripts
+from tests.helpers.capabilities import require
 
 FOLDER = Path(__file__).resolve().parents[1] / "spec" / "conformance"
 VECTORS = sorted(FOLDER.glob("*.json"))
@@ -230,9 +231,9 @@ def _warp_devices() -> list:
 @pytest.mark.parametrize("device", _warp_devices())
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_warp_reproduces_every_vector(path, device):
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if device not in warp.available_devices():
-        pytest.skip(f"warp has no {device} device here")
+    from vbusd.decoders import warp
+
+    require("gpu" if device.startswith("cuda") else "warp")
     vector = load(path)
     vb, crowd = vector_animation(vector), vector_crowd(vector)
     decoder = warp.Decoder(vb, device=device)
@@ -245,12 +246,8 @@ def test_warp_reproduces_every_vector(path, device):
 # GLSL and HLSL in an OpenGL pipeline (transform feedback), the example main with VB_CROSSFADE 1
 # ----------------------------------------------------------------------------------------------
 
-try:
-    import moderngl
-except ImportError:
-    moderngl = None
+import moderngl  # noqa: E402  (the test extra has it; a context needs EGL: capability gl)
 
-HAS_HLSL_TOOLS = bool(shutil.which("glslangValidator") and shutil.which("spirv-cross"))
 NAMES = {
     "glsl": {"texture": "vb_texture", "skinTexture": "vb_skinTexture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
     "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler",
@@ -261,12 +258,8 @@ NAMES = {
 
 @pytest.fixture(scope="module")
 def gl():
-    if moderngl is None:
-        pytest.skip("moderngl is not installed")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     framebuffer = ctx.simple_framebuffer((1, 1))
     framebuffer.use()
     yield ctx
@@ -413,8 +406,8 @@ def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path, skin: s
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_shader_modules_reproduce_every_vector(gl, lang, path, skin, tmp_path):
-    if lang == "hlsl" and not HAS_HLSL_TOOLS:
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     vector = load(path)
     for index, expected in enumerate(vector["expected"]):
         points, normals = run_shader(gl, lang, vector, expected["time"], tmp_path, skin)
@@ -566,8 +559,8 @@ def test_numpy_reference_reproduces_every_socket(path):
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_shader_sockets_reproduce_every_vector(gl, lang, path, tmp_path):
-    if lang == "hlsl" and not HAS_HLSL_TOOLS:
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     vector = load(path)
     for expected in vector["expected"]:
         rows = run_socket_shader(gl, lang, vector, expected["time"], tmp_path)

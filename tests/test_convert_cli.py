@@ -18,6 +18,7 @@ import pytest
 from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import OptionsError  # noqa: E402
+from tests.helpers.capabilities import unavailable
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
@@ -146,10 +147,9 @@ def test_force_replaces_an_existing_output(small_rig, tmp_path):
 
 def test_gltf_input_goes_through_the_same_command(shared_assets, tmp_path, capsys):
     # The command is converter-agnostic: a registered glTF converter is picked by suffix.
-    pytest.importorskip("pygltflib")
     source = shared_assets / "gltf" / "RiggedFigure" / "RiggedFigure.glb"
     if not source.exists():
-        pytest.skip("RiggedFigure.glb not in the shared assets")
+        unavailable("assets", "RiggedFigure.glb is not among the shared assets")
     status = main(["convert", str(source), "-o", str(tmp_path / "figure.usda"), "--format", "json",
                    "--check-rows", "4"])
     assert status == 0, capsys.readouterr().err

@@ -30,6 +30,7 @@ from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 
 from tests.helpers.animations import chain_animation
 from tests.helpers import node as node_tools
+from tests.helpers.capabilities import require, shared_asset
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 
@@ -90,9 +91,9 @@ def test_weight_zero_is_the_first_clip_and_one_the_fade_clip_bit_for_bit(chains,
 
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_warp_cpu_crossfade_matches_reference(chains, encoding):
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
+
     vb = chains[encoding]
     mesh = vb.meshes[0]
     tau, fade_tau = np.array([0.1, 0.77, 1.93, 0.5]), np.array([0.4, 0.05, 0.99, 0.7])
@@ -106,9 +107,8 @@ def test_warp_cpu_crossfade_matches_reference(chains, encoding):
 
 def test_warp_crowd_crossfade_matches_reference(chains):
     """A crowd whose instances fade per instance (placed, non-uniform scale) through Decoder.skin_crowd."""
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
     from vbusd.decoders.reference import skin_crowd
     from vbusd.format.model import Crowd
 
@@ -215,9 +215,7 @@ def test_gltf_crossfade_equals_blend_of_threejs_poses(shared_assets):
     blended; float32 texels, within 1e-6 of the bounding-box diagonal (version 1's bound for
     glTF rigs at rows, tests/test_real_characters_gltf.py)."""
 
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     from vbusd.converters import gltf
 
     scene = gltf.read(path)

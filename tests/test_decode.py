@@ -17,6 +17,7 @@ import pytest
 from pxr import Usd, UsdGeom  # noqa: E402
 
 from vbusd.cli import main  # noqa: E402
+from tests.helpers.capabilities import require
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
@@ -90,7 +91,7 @@ def test_decode_refuses_existing_output_and_bad_device(converted, tmp_path, caps
 
 
 def test_warp_cpu_decoder_matches_numpy(converted, tmp_path, capsys):
-    pytest.importorskip("warp")
+    require("warp")
     _, asset = converted
     assert main(["decode", str(asset), "-o", str(tmp_path / "numpy.usda")]) == 0
     assert main(["decode", str(asset), "-o", str(tmp_path / "warp.usda"), "--device", "cpu"]) == 0

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from tests.helpers import scripts
+from tests.helpers.capabilities import require, unavailable
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "draw_cost.py"
 
@@ -97,11 +98,11 @@ def test_vertex_animation_texture_holds_the_exact_pose_at_rows(dc, baked):
 
 @pytest.fixture(scope="module")
 def gl(dc):
-    pytest.importorskip("moderngl", reason="install moderngl (pip install moderngl)")
+    require("gl")
     try:
         ctx, framebuffer = dc.create_context()
-    except Exception as error:  # no EGL driver, or no OpenGL 4.3
-        pytest.skip(f"no EGL OpenGL 4.3 context (install Mesa's libegl1 and libgl1-mesa-dri): {error}")
+    except Exception as error:  # an EGL driver without OpenGL 4.3
+        unavailable("gl", f"no EGL OpenGL 4.3 context (Mesa's libegl1 and libgl1-mesa-dri give one): {error}")
     yield ctx, framebuffer
     ctx.release()
 
@@ -128,12 +129,11 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     elif method_name == "palette":
         method = dc.setup_palette(scene, dc.KeyedAnimation())
     else:
-        pytest.importorskip("warp", reason="install warp-lang")
         from vbusd.decoders.warp import available_devices
 
         devices = available_devices()  # CUDA (GL interop) where there is a GPU, else warp's CPU backend
-        if not devices:
-            pytest.skip("warp has neither a CUDA device nor its CPU backend here")
+        if "cuda" not in devices:
+            require("warp")
         method = dc.setup_warp(scene, baked, "cuda" if "cuda" in devices else "cpu")
     vat = dc.bake_vat(body.mesh, baked.clips[0]) if method_name == "vat" else None
     result = dc.check(method, scene, baked, vat)
@@ -352,10 +352,7 @@ def test_lod_method_draws_each_level_and_selects_as_vbusd_lod(dc, baked, gl):
     Each level's transform feedback agrees with numpy's skinning of that level's mesh, and the GPU's
     instances per level equal vbusd.baking.lod's choice (UsdLod's rule; tests/test_lod.py checks it against
     UsdLod itself) with frustum culling, on a crowd large enough that two levels appear."""
-    import os
 
-    if not os.environ.get("VBUSD_LOD_MESHES"):  # the GPU machine reads the levels made beforehand
-        pytest.importorskip("meshoptimizer")
     body = dc.stadium_character(baked)
     ctx, framebuffer = gl
     n = 2000

@@ -26,6 +26,7 @@ from vbusd.format import versioning
 from vbusd.format.errors import InputError, OptionsError, VersionError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 from tests.helpers import node as node_tools
+from tests.helpers.capabilities import require, shared_asset
 
 HERE = Path(__file__).resolve().parent
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
@@ -124,9 +125,7 @@ def test_layer_errors_are_one_line():
 
 @pytest.fixture(scope="module")
 def fox(shared_assets):
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     from vbusd.converters import gltf
 
     return path, gltf.read(path).animations[0]
@@ -415,7 +414,6 @@ TOut main(TIn input)
 def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
     """Skin ``vb.meshes[0]`` with the generated layer functions, one instance per pose
     ``(base clip, base tau, layer clip, layer tau, weight, mask)``: (points, normals) per pose."""
-    import shutil
     import subprocess
 
     import moderngl
@@ -431,8 +429,7 @@ def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
                               varyings=["t_position", "t_normal"])
         names = {"texture": "vb_texture", "rig": "vb_rig", "prefix": "t_", "inputs": ("clips", "times", "mask")}
     else:
-        if not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-            pytest.skip("glslang-tools and spirv-cross are not installed")
+        require("glslang")
         hlsl, spirv = workdir / "layers.hlsl", workdir / "layers.spv"
         hlsl.write_text(defines + module + _HLSL_TEST_MAIN)
         compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
@@ -493,11 +490,10 @@ def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
 
 @pytest.fixture(scope="module")
 def gl():
-    moderngl = pytest.importorskip("moderngl")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    import moderngl
+
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     framebuffer = ctx.simple_framebuffer((1, 1))
     framebuffer.use()
     yield ctx
@@ -695,7 +691,6 @@ def test_numpy_reference_reproduces_every_layer_vector(path):
 
 def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
     """Skin every (instance, vertex) of a layer vector with vbSkinLayered: (points, normals)."""
-    import shutil
     import subprocess
 
     import moderngl
@@ -711,8 +706,7 @@ def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
                               varyings=["t_position", "t_normal"])
         names = {"texture": "vb_texture", "rig": "vb_rig", "prefix": "t_"}
     else:
-        if not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-            pytest.skip("glslang-tools and spirv-cross are not installed")
+        require("glslang")
         hlsl, spirv = workdir / "vector.hlsl", workdir / "vector.spv"
         hlsl.write_text(module + _HLSL_VECTOR_MAIN)
         compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
@@ -784,9 +778,9 @@ def test_shader_layers_reproduce_every_layer_vector(gl, lang, path, tmp_path):
 
 
 def _warp_cpu():
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
+
     return warp
 
 
@@ -839,7 +833,7 @@ def test_validate_reports_bad_parents_and_masks_with_codes(tmp_path):
     """A cycle in boneParents (metadata.inconsistent, in the sidecar), a prim whose vb:boneParents
     points outside the bones (prim.attribute.invalid), and a prim whose mask weights disagree with
     the texture's (metadata.mismatch): each one finding with its code, never a traceback."""
-    from pxr import Sdf, Usd, Vt
+    from pxr import Usd, Vt
 
     vb = bake(_spec_example(), BakeOptions(encoding="crossMatrix", texel_format="float32", masks=(("arm", "b1"),)))
     from vbusd.format.model import VirtualBonesAsset
@@ -899,13 +893,10 @@ def test_shader_command_layers_option(capsys):
 def test_runtime_layered_shader_module_equals_vbusd_shader():
     """The three.js runtime's shaderModule(..., layers = true) is `vbusd shader --layers --no-main`,
     character for character, for every encoding and texel format and other sizes."""
-    import shutil
     import subprocess
 
     web = HERE.parent / "web"
-    node = shutil.which("node")
-    if node is None or not (web / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("node or web/node_modules missing: npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     script = """
 import { shaderModule } from './src/material.js';
 const out = {};

@@ -15,11 +15,11 @@ import pytest
 
 from vbusd.cli import main
 from tests.helpers import node as node_tools
+from tests.helpers.capabilities import shared_asset
 
 ROOT = Path(__file__).resolve().parents[1]
 STADIUM = ROOT / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 
-pytest.importorskip("meshoptimizer")
 
 
 def _heuristic(thresholds, extent):
@@ -267,9 +267,7 @@ def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared
 
     from vbusd.validators.api import validate
 
-    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
-    if not source.is_file():
-        pytest.skip(f"{source} is missing")
+    source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     out = tmp_path / "cesium.usda"
     assert main(["convert", str(source), "-o", str(out), "--lod-ratios", "0.5,0.2", "-q"]) == 0
     report = validate(out)

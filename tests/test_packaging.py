@@ -26,7 +26,6 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("build")
 
 pytestmark = pytest.mark.packaging
 

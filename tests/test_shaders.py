@@ -33,11 +33,9 @@ from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_text
 
 from tests.helpers import scripts
 from tests.helpers.animations import chain_animation
+from tests.helpers.capabilities import require
 
-try:
-    import moderngl
-except ImportError:  # the GPU-pipeline tests skip; compile-only and CLI tests still run
-    moderngl = None
+import moderngl  # noqa: E402  (the test extra has it; a context needs EGL: capability gl)
 
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
@@ -56,12 +54,8 @@ SKIN_BUFFER_BINDING = 2
 
 @pytest.fixture(scope="module")
 def gl():
-    if moderngl is None:
-        pytest.skip("moderngl is not installed")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:  # no EGL driver at all on this machine
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     # A surfaceless EGL context has no complete default framebuffer, and drawing (even with
     # rasterization discarded for transform feedback) needs one.
     framebuffer = ctx.simple_framebuffer((1, 1))
@@ -312,8 +306,7 @@ def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, ski
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
-                    reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
 @pytest.mark.parametrize("encoding, texel_format", PAIRS)
@@ -338,8 +331,8 @@ SHAPE_CASES = {
 @pytest.mark.parametrize("case", list(SHAPE_CASES))
 def test_influence_counts_and_texture_shapes(gl, lang, case, skin, tmp_path):
     """K = 1 and K = 8; a non-power-of-two width; a texture taller than 4096 rows (second clip at row 4200)."""
-    if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     encoding, texel_format, bake_options, shader_k = SHAPE_CASES[case]
     animation = chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"), twist=encoding == "dualQuat")
     vb = bake(animation, BakeOptions(encoding=encoding, texel_format=texel_format, **bake_options))
@@ -408,8 +401,7 @@ Output main(Input input)
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
-                    reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "unorm16"), ("dualQuat", "float16")])
 def test_engine_hooks_resources_as_arguments(gl, encoding, texel_format, tmp_path):
     """VB_MAIN 0, VB_DECLARE_RESOURCES 0, VB_ARGS_DECL / VB_ARGS (texture and clip row passed down
@@ -436,10 +428,9 @@ SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd" / "st
 def test_committed_sample_files_with_their_crowd(gl, lang, skin, tmp_path):
     """The committed sample as files (EXR texture, USD mesh and point instancer): 1,200 instances
     with their own time offsets and playback rates, at two scene times, one of them past the 10 s loop."""
-    if not SAMPLE.is_file():
-        pytest.skip("the committed sample is not in this checkout")
-    if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    assert SAMPLE.is_file(), f"the committed sample {SAMPLE} is missing"
+    if lang == "hlsl":
+        require("glslang")
     from vbusd.io.usd import read_asset
 
     asset = read_asset(SAMPLE)
@@ -484,7 +475,7 @@ _GLSL_VERSIONS = {"330": "#version 330 core\n",
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.usefixtures("glslang")
 def test_every_variant_compiles_as_glsl_330_glsl_es_300_and_hlsl(tmp_path):
     """All 104 variants per language (96, and 8 of the compact encoding), with the example main and functions only (--no-main, and
     VB_MAIN defined 0 before the module) called from a vertex function of the engine's own:
@@ -554,7 +545,7 @@ _GLSL_PULLED_VERSIONS = {**_GLSL_VERSIONS, "430": "#version 430 core\n",
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.usefixtures("glslang")
 def test_every_pulled_variant_compiles(tmp_path):
     """Every pulled variant (4 encodings x 3 texel formats x K = 1..8): GLSL 3.30 core and GLSL ES
     3.00 (the texture), GLSL 4.30 core and GLSL ES 3.10 (the storage buffer), with the example main and
@@ -632,7 +623,7 @@ def test_skin_records_are_the_spec_example():
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.usefixtures("glslang")
 def test_hlsl_cbuffer_offsets_are_the_documented_ones(tmp_path):
     """spec/shaders.md: vb_time at byte 0, vb_clips at 16, vb_rangeMin at 16 + 16 C, vb_rangeMax after it."""
     import re
@@ -731,7 +722,7 @@ def _hlsl_blocks(section_title: str) -> list:
 
 @pytest.mark.cli
 @pytest.mark.gl
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("engine", ["Unity", "Unreal"])
 def test_engine_notes_hlsl_compiles(engine, tmp_path):
     """The HLSL of docs/engines.md's Unity and Unreal steps, put together as the notes say (with

@@ -26,6 +26,7 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, skinning_matrices
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.model import Crowd
+from tests.helpers.capabilities import shared_asset
 
 HERE = Path(__file__).resolve().parent
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
@@ -85,9 +86,7 @@ def test_gltf_socket_equals_threejs_node_world_matrix(shared_assets):
     """Fox (24 joints, three clips) in float32: every joint at every row of every clip."""
     from vbusd.converters import gltf
 
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     scene = gltf.read(path)
     animation = scene.animations[0]
     vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))

@@ -17,6 +17,7 @@ import sys
 import textwrap
 
 import pytest
+from tests.helpers.capabilities import require
 
 _SCRIPT = textwrap.dedent("""
     import json, sys, threading
@@ -94,7 +95,7 @@ def test_no_helper_imports_and_nothing_loads_while_helpers_run(tmp_path, repo_ro
         shared = None
     sources = _sources(repo_root, shared)
     if kernels == "on":
-        pytest.importorskip("warp")
+        require("warp")
     results = _run(tmp_path, kernels, sources)
     assert len(results) == len(sources)
     kinds = {os.path.splitext(r["source"])[1] for r in results}

@@ -325,7 +325,7 @@ def test_late_import_with_plugin_path_set_is_fine(tmp_path):
 
 def _install_like_a_wheel(target: Path) -> None:
     """Lay the package out as the wheel does: the vbusd/ tree as it is, with its package-data."""
-    tomllib = pytest.importorskip("tomllib")
+    import tomllib
     config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert "package-dir" not in config, "the tree is the package: no folder is remapped"
     package_data = config.get("package-data", {})

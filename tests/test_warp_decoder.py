@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-wp = pytest.importorskip("warp")
 
 from vbusd.decoders import reference  # noqa: E402
 from vbusd.decoders import warp as wd  # noqa: E402
@@ -29,6 +28,7 @@ from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones  # noqa: E40
 
 from tests.helpers import scripts  # noqa: E402
 from tests.helpers import warp_synthetic as synthetic  # noqa: E402
+from tests.helpers.capabilities import require
 
 ROOT = Path(__file__).resolve().parents[1]
 DEVICES = wd.available_devices()
@@ -176,9 +176,7 @@ def test_stadium_crowd_sample_agrees_with_reference(device):
 def test_stadium_crowd_sample_file_agrees_with_reference(device):
     # The sample as written to disk (USD + float16 EXR texture), read back by vbusd's reader.
     path = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
-    if not path.exists():
-        pytest.skip("samples/stadium_crowd/stadium_crowd_vb.usda is not present")
-    pytest.importorskip("OpenEXR")
+    assert path.exists(), f"the committed sample {path} is missing"
     from vbusd.io import usd as usd_io
 
     asset = usd_io.read_asset(path)
@@ -340,9 +338,8 @@ def test_bad_inputs_raise_one_line_errors():
 
 
 @pytest.mark.cli
-@pytest.mark.skipif("cpu" not in DEVICES, reason="warp's CPU backend is not available here "
-                    "(benchmarks/gpu_run.sh carries warp without it)")
 def test_cpu_work_prints_nothing_on_stderr():
+    require("warp")  # benchmarks/gpu_run.sh carries warp without its CPU backend
     # Without a CUDA driver, warp's native library prints a warning straight to file descriptor 2
     # on initialization; a CLI decoding on the CPU must still print only its own lines.
     script = ("from vbusd.decoders import warp as wd\n"

@@ -185,3 +185,12 @@ def shared_asset(*parts: str) -> Path:
     if not path.exists():
         unavailable("assets", f"{'/'.join(parts)} is not among the shared assets ({shared_assets_dir()})")
     return path
+
+
+def shared_asset_params(paths, id=lambda path: path.name) -> list:
+    """``pytest.param`` per shared asset file for a parametrization made at collection, or, where
+    the assets are missing, one case (``shared-assets-missing``) whose ``require("assets")`` skips
+    or fails: never an empty parameter set that pytest would skip silently."""
+    if paths:
+        return [pytest.param(path, id=id(path)) for path in paths]
+    return [pytest.param(None, id="shared-assets-missing")]

@@ -86,3 +86,9 @@ def rig_assets(tmp_path_factory):
 def bar_crowd(tmp_path_factory):
     """A crowd of the bar rig: every instance its own clip, offset, rate, orientation and scale."""
     return browser_helpers.build_bar_crowd(tmp_path_factory.mktemp("bar_crowd"))
+
+
+@pytest.fixture
+def glslang() -> None:
+    """The test runs glslangValidator and spirv-cross (``@pytest.mark.usefixtures("glslang")``)."""
+    require("glslang")
