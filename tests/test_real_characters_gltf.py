@@ -26,6 +26,7 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.converters import gltf
 from vbusd.decoders.reference import skin_mesh_at_rows
 from vbusd.format.model import ReadOptions
+from tests.helpers import cli
 from tests.helpers import node as node_tools
 
 
@@ -388,31 +389,25 @@ def test_strict_weights_refuses(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------
 
 
-def _convert(tmp_path, path, *extra):
-    import subprocess
-    import sys
-
+def _convert(capfd, tmp_path, path, *extra):
+    """``vbusd convert`` in this process (tests.helpers.cli), its output captured like a child's."""
     out = tmp_path / "out" / "soldier.usda"
-    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(path), "-o", str(out), "--format", "json",
-                             *extra], capture_output=True, text=True, timeout=300)
-    return result, out
+    return cli.run(capfd, "convert", path, "-o", out, "--format", "json", *extra), out
 
 
-@pytest.mark.cli
-def test_bad_clip_error_names_it_and_suggests_options(tmp_path):
+def test_bad_clip_error_names_it_and_suggests_options(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path)
+    result, out = _convert(capfd, tmp_path, path)
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1, result.stderr
     assert "clip 'Spawn'" in lines[0] and "--on-bad-clip skip" in lines[0] and "--clips" in lines[0]
     assert "Traceback" not in result.stderr and not out.parent.exists()
 
 
-@pytest.mark.cli
 @pytest.mark.node
-def test_bad_clip_skip_converts_the_others(tmp_path):
+def test_bad_clip_skip_converts_the_others(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--on-bad-clip", "skip")
+    result, out = _convert(capfd, tmp_path, path, "--on-bad-clip", "skip")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [c["name"] for c in report["animations"][0]["clips"]] == ["Walk"]
@@ -425,19 +420,17 @@ def test_bad_clip_skip_converts_the_others(tmp_path):
     assert max(worst.values()) <= TOLERANCE, worst
 
 
-@pytest.mark.cli
-def test_clips_selects(tmp_path):
+def test_clips_selects(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--clips", "Walk")
+    result, out = _convert(capfd, tmp_path, path, "--clips", "Walk")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [c["name"] for c in report["animations"][0]["clips"]] == ["Walk"] and report["skippedClips"] == []
 
 
-@pytest.mark.cli
-def test_only_bad_clips_exit_2(tmp_path):
+def test_only_bad_clips_exit_2(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--clips", "Spawn", "--on-bad-clip", "skip")
+    result, out = _convert(capfd, tmp_path, path, "--clips", "Spawn", "--on-bad-clip", "skip")
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and "convert.nothingConverted" in lines[-1], result.stderr
     assert not out.parent.exists()
