@@ -34,7 +34,7 @@ from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
                                    character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
-                                   package_vertices, reference_instance, screenshot_luminance)
+                                   package_vertices, reference_instance, screenshot_luminance, settle)
 
 pytestmark = pytest.mark.browser
 HERE = Path(__file__).resolve().parent
@@ -216,15 +216,14 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
         page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
         page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
         page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
+        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there.
+        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True))
         materials = page.evaluate("""() => {
             const scene = BABYLON_SCENE();
             return scene.metadata.virtualBones.crowds.flatMap((crowd) => crowd.meshes.map((mesh) =>
                 [mesh.material.getClassName(), mesh.material.pluginManager._plugins.map((p) => p.getClassName())]));
         }""".replace("BABYLON_SCENE()", "(await import('@babylonjs/core')).EngineStore.LastCreatedScene")
                                   .replace("() => {", "async () => {"))
-        picture = page.screenshot()
-        luminance = screenshot_luminance(picture)
         (tmp_path / "example.png").write_bytes(picture)
         page.close()
     finally:
@@ -235,10 +234,17 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
     assert materials and all(name == "PBRMaterial" and "VirtualBonesPluginMaterial" in plugins for name, plugins in materials), materials
     # The dark sky (~28), the lit ground and figures (above 120) and the shadows on the ground
     # (between the two): all three present.
-    background, lit = (luminance < 40).mean(), (luminance > 120).mean()
-    shadows = ((luminance > 45) & (luminance < 75)).mean()
-    print("background, lit, shadows:", background, lit, shadows)
-    assert background > 0.05 and lit > 0.2 and shadows > 0.01, (background, lit, shadows)
+    assert _lit_and_shadowed(luminance) == (True, True, True), _fractions(luminance)
+
+
+def _fractions(luminance) -> tuple:
+    """(background, lit, shadows): the picture's fractions of dark sky, lit surfaces and shadow."""
+    return ((luminance < 40).mean(), (luminance > 120).mean(), ((luminance > 45) & (luminance < 75)).mean())
+
+
+def _lit_and_shadowed(luminance) -> tuple:
+    background, lit, shadows = _fractions(luminance)
+    return background > 0.05, lit > 0.2, shadows > 0.01
 
 
 def test_babylon_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path):

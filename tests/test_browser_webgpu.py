@@ -39,7 +39,7 @@ from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
                                    character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
-                                   package_vertices, reference_instance, screenshot_luminance)
+                                   package_vertices, reference_instance, screenshot_luminance, settle)
 from tests.helpers.capabilities import unavailable
 
 pytestmark = pytest.mark.browser
@@ -306,9 +306,10 @@ def test_docs_engines_example_runs(browser, tmp_path):
         page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
         page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
         page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
-        picture = page.screenshot()
-        luminance = screenshot_luminance(picture)
+        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there
+        # (or the page says it has no WebGPU).
+        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True)
+                                    or any("WebGPU is not available" in m for m in messages))
         (tmp_path / "example.png").write_bytes(picture)
         page.close()
     finally:
@@ -320,6 +321,14 @@ def test_docs_engines_example_runs(browser, tmp_path):
         unavailable("browser", NO_ADAPTER)
     # Lit figures (above the ground's ~84), the dark background (33) and shadows on the ground
     # (between the two): all three present.
-    figures, background = (luminance > 95).mean(), (luminance < 40).mean()
-    shadows = ((luminance > 45) & (luminance < 75)).mean()
-    assert figures > 0.002 and background > 0.05 and shadows > 0.02, (figures, background, shadows)
+    assert _lit_and_shadowed(luminance) == (True, True, True), _fractions(luminance)
+
+
+def _fractions(luminance) -> tuple:
+    """(figures, background, shadows): the picture's fractions of lit figures, dark background and shadow."""
+    return ((luminance > 95).mean(), (luminance < 40).mean(), ((luminance > 45) & (luminance < 75)).mean())
+
+
+def _lit_and_shadowed(luminance) -> tuple:
+    figures, background, shadows = _fractions(luminance)
+    return figures > 0.002, background > 0.05, shadows > 0.02

@@ -344,3 +344,18 @@ def check_silhouette(browser, engine: str = "three", backend_query: str = "") ->
     assert iou(shown, expected) >= 0.98
     # The comparison can fail: the same crowd 0.3 s later is another picture.
     assert iou(shown, silhouette(SCREENSHOT_TIME + 0.3)) < 0.9
+
+
+def settle(page, shows, *, timeout_s: float = 240.0, interval_ms: int = 500):
+    """Screenshots of ``page`` until ``shows(luminance)`` holds (a page drawn as it should be) or
+    ``timeout_s`` passes; returns the last (png bytes, luminance). Waits on what the page shows, not
+    for a fixed time: a slow machine takes longer, a fast one returns at once."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        picture = page.screenshot()
+        luminance = screenshot_luminance(picture)
+        if shows(luminance) or time.monotonic() > deadline:
+            return picture, luminance
+        page.wait_for_timeout(interval_ms)
