@@ -188,12 +188,13 @@ def test_missing_output_folders_are_created(small_rig, tmp_path, capsys):
 def test_failed_write_leaves_no_file_and_no_new_folder(small_rig, tmp_path, monkeypatch, capsys):
     # Inject a failure while the texture is written: the transaction leaves nothing, and the
     # folders convert created for the output are removed again.
-    import vbusd.io.textures
+    import vbusd.io.usd
 
     def broken(*args, **kwargs):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(vbusd.io.textures, "write_texture", broken)
+    # The USD writer calls the texture writer by the name it imported (vbusd/io/usd.py's top).
+    monkeypatch.setattr(vbusd.io.usd, "write_texture", broken)
     output = tmp_path / "new" / "x.usda"
     status = main(["convert", str(small_rig), "-o", str(output)])
     err = capsys.readouterr().err
@@ -283,7 +284,6 @@ def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypat
     import time
 
     from vbusd.jobs import conversion as convert_module
-    from vbusd.io import usd as usd_io
 
     chunks = []
 
@@ -299,7 +299,8 @@ def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypat
         raise KeyboardInterrupt
 
     monkeypatch.setattr(convert_module, "measure_errors", measure_errors)
-    monkeypatch.setattr(usd_io, "write_asset", write_asset)
+    # The conversion calls the writer by the name it imported (vbusd/jobs/conversion.py's top).
+    monkeypatch.setattr(convert_module, "write_asset", write_asset)
     with pytest.raises(KeyboardInterrupt):
         convert(small_rig, tmp_path / "out.usda", ConvertOptions())
     for thread in [t for t in threading.enumerate() if t.name.startswith("vbusd-check")]:

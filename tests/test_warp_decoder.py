@@ -177,6 +177,8 @@ def test_stadium_crowd_sample_file_agrees_with_reference(device):
     # The sample as written to disk (USD + float16 EXR texture), read back by vbusd's reader.
     path = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
     assert path.exists(), f"the committed sample {path} is missing"
+    # pxr and OpenEXR are dependencies; only benchmarks/gpu_run.sh's GPU run carries warp without them.
+    pytest.importorskip("pxr", reason="benchmarks/gpu_run.sh's GPU run carries numpy and warp only")
     from vbusd.io import usd as usd_io
 
     asset = usd_io.read_asset(path)
