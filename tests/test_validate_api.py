@@ -11,7 +11,7 @@ import pytest
 
 from vbusd.cli import main
 from vbusd.format.errors import InputError
-from vbusd.validators import checks_bindings
+from vbusd.validators import api as validators_api
 from vbusd.validators.api import validate
 
 FIXTURES = Path(__file__).parent / "fixtures" / "validate"
@@ -31,7 +31,8 @@ def test_a_failing_check_becomes_asset_internal_and_the_others_still_run(monkeyp
     def broken(prim):
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setattr(checks_bindings, "check_binding_prim", broken)
+    # validate() calls the check by the name vbusd.validators.api imported (at its top).
+    monkeypatch.setattr(validators_api, "check_binding_prim", broken)
     report = validate(FIXTURES / "instancer.clip.range" / "asset.usda")
     codes = {f.code for f in report.findings}
     assert "asset.internal" in codes and "instancer.clip.range" in codes

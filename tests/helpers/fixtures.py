@@ -43,25 +43,38 @@ def both_bake_paths(request, monkeypatch) -> str:
     return request.param
 
 
-def _launch(webgpu: bool):
-    from vbusd.web.browser import chromium
-
+@pytest.fixture(scope="session")
+def playwright_driver():
+    """playwright's sync driver, one per test session: a process may run only one at a time, so both
+    browsers below are launched from it (vbusd.web.browser.chromium starts a driver of its own)."""
     require("browser")
-    return chromium(webgpu=webgpu)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as driver:
+        yield driver
+
+
+def _launch(driver, webgpu: bool):
+    from vbusd.web.browser import CHROMIUM_ARGS, WEBGPU_ARGS, chromium_executable
+
+    return driver.chromium.launch(executable_path=chromium_executable(),
+                                  args=CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else []))
 
 
 @pytest.fixture(scope="session")
-def browser():
-    """Headless Chromium (software WebGL 2), one per test session."""
-    with _launch(webgpu=False) as launched:
-        yield launched
+def browser(playwright_driver):
+    """Headless Chromium (software WebGL 2; vbusd.web.browser's arguments), one per test session."""
+    launched = _launch(playwright_driver, webgpu=False)
+    yield launched
+    launched.close()
 
 
 @pytest.fixture(scope="session")
-def webgpu_browser():
+def webgpu_browser(playwright_driver):
     """Headless Chromium that also offers WebGPU through SwiftShader, one per test session."""
-    with _launch(webgpu=True) as launched:
-        yield launched
+    launched = _launch(playwright_driver, webgpu=True)
+    yield launched
+    launched.close()
 
 
 @pytest.fixture(scope="session")
