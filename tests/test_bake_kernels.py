@@ -138,6 +138,7 @@ def rig(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "float16"), ("affineMatrix", "float32"),
                                                    ("quatTranslation", "unorm16")])
 def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_format):
@@ -162,6 +163,7 @@ def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_f
         assert np.abs(compiled_part - numpy_part).max() <= 1e-12 * scale, (numpy_part, compiled_part)
 
 
+@pytest.mark.slow
 def test_a_whole_conversion_is_the_same_either_way_and_matches_usdskel(monkeypatch, rig, tmp_path):
     from vbusd.jobs.conversion import ConvertOptions, convert
     from vbusd.io.usd_reader import read_asset

@@ -139,6 +139,7 @@ def _with_sublayer(folder: Path) -> tuple:
     return folder / "char.usda", folder / "rig.usda"
 
 
+@pytest.mark.slow
 def test_cache_skips_unchanged_and_reconverts_a_changed_referenced_file(tmp_path, capsys):
     source, sublayer = _with_sublayer(tmp_path / "lib")
     shutil.copyfile(STADIUM, tmp_path / "lib" / "other.usda")
@@ -386,6 +387,7 @@ def test_manifest_csv_with_per_asset_options(tmp_path, capsys):
     assert "library.csv:2" in err and "texel_fmt" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_process_pool_matches_one_process(tmp_path, capsys):
     library = _library(tmp_path / "lib", ("a", "b"))
     status, report = _run_json([str(library), "-o", str(tmp_path / "pool"), "--jobs", "2"], capsys)
@@ -447,6 +449,7 @@ def test_an_idle_pool_worker_burns_no_cpu(tmp_path):
     assert "PXR_WORK_THREAD_LIMIT" not in done.stderr  # no banner for the override
 
 
+@pytest.mark.slow
 def test_dask_local_cluster(tmp_path):
     import distributed
     library = _library(tmp_path / "lib", ("a", "b"))
@@ -464,6 +467,7 @@ def test_dask_local_cluster(tmp_path):
     assert _files(tmp_path / "dask") == _files(tmp_path / "local")  # any worker, the same bytes
 
 
+@pytest.mark.slow
 def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
     import distributed  # noqa: F401  (the test extra has it)
     library = _library(tmp_path / "lib", ("a",))

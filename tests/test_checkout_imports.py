@@ -64,6 +64,7 @@ def test_the_checkout_is_the_package():
     assert not [f for f in found["finders"] if f.startswith("vbusd")], found["finders"]
 
 
+@pytest.mark.slow
 def test_no_import_magic_in_the_package():
     """No remapped folder in pyproject.toml, no import finder and no module class swap in the package."""
     import tomllib

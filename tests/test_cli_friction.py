@@ -150,6 +150,7 @@ def test_progress_is_plain_lines_at_a_modest_rate_when_stderr_is_not_a_terminal(
     assert quick.getvalue() == ""  # short work: nothing
 
 
+@pytest.mark.slow
 def test_progress_lines_on_a_pipe_only_with_progress(tmp_path, monkeypatch, capsys):
     """stderr not a terminal (capsys): plain progress lines only with --progress, whatever the
     machine's speed (the interval set to 0 s here: a line at every report of a conversion this

@@ -83,6 +83,7 @@ def _lbs(points, idx, w, matrices):
     return np.einsum("vk,nvki->nvi", w, moved)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["CesiumMan", "Fox", "RiggedFigure", "RiggedSimple", "SimpleSkin"])
 def test_shared_gltf_characters_within_5e_5_of_the_diagonal(shared_assets, name):
     """Must show: every rigid shared glTF character within 5e-5 of its bounding-box diagonal at rows."""

@@ -422,6 +422,7 @@ def test_vectors_are_current():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
+@pytest.mark.slow
 def test_the_check_compares_numbers_not_their_text(tmp_path, monkeypatch, capsys):
     """numpy 2.4 computes a vector's tolerance.diagonal one bit apart (6.1913571590537355 against
     6.191357159053735): the same number for the check; a change of 1e-9 of it is not."""

@@ -277,6 +277,7 @@ def test_a_check_that_fails_while_replacing_an_output_keeps_the_old_one(small_ri
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("rig.vb")} == before
 
 
+@pytest.mark.slow
 def test_an_interrupted_write_stops_the_check_too(small_rig, tmp_path, monkeypatch):
     """Ctrl-C (or SIGTERM) while the texture is written: the command stops, and the accuracy check
     running beside the write stops at its next chunk instead of running on to its end."""

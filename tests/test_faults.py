@@ -30,6 +30,8 @@ from vbusd.io import files  # noqa: E402
 
 from tests.helpers import faults as sweep
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 REPO = Path(__file__).resolve().parents[1]
 STADIUM_VB = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 

@@ -122,6 +122,7 @@ def test_a_1_0_reader_refuses_a_crossfading_crowd_by_name(tmp_path, monkeypatch)
         vbusd.read_asset(path)
 
 
+@pytest.mark.slow
 def test_crossfade_primvars_round_trip_and_decode_honours_them(tmp_path):
     assert SAMPLE.is_file(), f"the committed sample {SAMPLE} is missing"
     from vbusd.jobs.pointcache import decode

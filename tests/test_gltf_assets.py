@@ -21,6 +21,8 @@ import pytest
 
 from tests.helpers.capabilities import require, shared_asset, shared_asset_params, shared_assets_dir
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 # Collected at import time (the files parametrize the tests), so not through the shared_assets
 # fixture; the same two places: $VBUSD_SHARED_ASSETS, else ../shared/assets beside the checkout.
 ASSETS = (shared_assets_dir() or Path(__file__).resolve().parents[2] / "shared" / "assets") / "gltf"

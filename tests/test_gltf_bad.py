@@ -42,6 +42,7 @@ STRICT_WEIGHTS = {"weights_sum", "weights_zero"}
 them as glTF-Validator reports them (tests/test_real_characters_gltf.py checks the default)."""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(BAD))
 def test_bad_input_code_and_location(name):
     from vbusd.format.model import ReadOptions

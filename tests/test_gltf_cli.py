@@ -18,6 +18,7 @@ from tests.helpers import cli
 
 
 
+@pytest.mark.slow
 def test_convert_glb_round_trip(tmp_path, capfd):
     from vbusd.decoders.reference import skin_mesh
     from vbusd.io.usd import read_asset
@@ -45,6 +46,7 @@ def test_convert_glb_round_trip(tmp_path, capfd):
     assert cli.run(capfd, "validate", out).returncode == 0
 
 
+@pytest.mark.slow
 def test_convert_bad_glb_one_line_no_output(tmp_path, capfd):
     out = tmp_path / "out.usda"
     result = cli.run(capfd, "convert", str(FIXTURES / "bad" / "glb_truncated.glb"), "-o", str(out),

@@ -362,6 +362,7 @@ def test_crowd_built_by_vbusd_crowd_exports_and_a_missing_character_is_refused(t
 GLTF_FIXTURES = Path(__file__).resolve().parent / "fixtures" / "gltf"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["two.glb", "two.gltf"])
 def test_a_crowd_of_two_characters_with_one_animation_name_exports(tmp_path, capsys, name):
     """Issue 24: two glTF characters whose animations share a prim name (bar.gltf twice gives
@@ -393,6 +394,7 @@ def test_a_crowd_of_two_characters_with_one_animation_name_exports(tmp_path, cap
     assert drawn == {"aInstances": "Bar_Anim", "bInstances": "Bar_Anim_2"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage, code", [
     (lambda data: data[:12] + (37).to_bytes(4, "little") + data[16:], "ktx2.vkFormat"),  # R8G8B8A8_UNORM
     (lambda data: data[:-100], "ktx2.levels"),                                         # level over the file

@@ -319,6 +319,7 @@ def test_mutated_documents(tmp_path, mutate, code, location):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["data", "external", "glb"])
 def test_a_declared_gigabyte_is_refused_before_allocating(tmp_path, kind):
     """byteLength 10^9 over a 680-byte buffer: refused while tracemalloc's peak stays small."""

@@ -84,6 +84,7 @@ def test_a_sidecar_that_is_not_an_object_is_a_finding(tmp_path, text):
     _only_the_broken_copy(validate(texture), str(sidecar))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("container", sorted(CONTAINERS))
 @pytest.mark.parametrize("place", ["sidecar", "embedded"])
 @pytest.mark.parametrize("text", ["null", "[1, 2]"])
@@ -178,6 +179,7 @@ def test_a_gltf_document_that_is_not_an_object_is_refused(tmp_path, text):
     assert "JSON " + {"null": "null", "[]": "array", "3": "number"}[text] in caught.value.message
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", [None, [], 3, "text"])
 def test_gltf_extras_of_any_json_kind_are_accepted(tmp_path, value):
     """glTF 2.0 lets extras hold any value; pygltflib failed on a list or a number without a place."""
@@ -246,6 +248,7 @@ def test_the_command_prints_one_line_for_a_bad_manifest(tmp_path, capsys):
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text", ["null", "[]", '"text"', '{"state": "done", "files": null, "inputs": null}'])
 def test_a_cache_record_of_the_wrong_kind_vouches_for_nothing(tmp_path, capsys, text):
     """Such a record is no record: the output it would vouch for is not the batch's own, so it is

@@ -303,6 +303,7 @@ def _usd_source_with_levels(folder: Path, thresholds=(0.02,)) -> Path:
     return source
 
 
+@pytest.mark.slow
 def test_usd_source_lod_root_is_kept(tmp_path):
     """A UsdSkel source whose meshes lie under a UsdLod root converts with that root, its level names
     and its thresholds; validate clean."""
@@ -349,6 +350,7 @@ def test_meshes_named_for_their_level_become_levels(tmp_path):
     assert sorted((m.lod, m.path.rsplit("/", 1)[-1]) for m in vb.meshes) == [(0, "Body_LOD0"), (1, "Body_LOD1")]
 
 
+@pytest.mark.slow
 def test_point_cache_and_usdskel_fallback_keep_the_lod_root(stadium_lods):
     """vbusd decode and export --as usdskel of a 3-level asset: each output has the UsdLod root with the
     three levels in order (a viewer draws one level, not all three on top of each other)."""

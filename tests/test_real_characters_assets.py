@@ -69,6 +69,7 @@ def test_gltf_asset_whole_and_as_three_shows_it(path, shared_assets):
             assert np.linalg.norm(ours - theirs, axis=-1).max() <= tolerance * diagonal, (clip.name, key)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", shared_asset_params(USD, id=lambda p: str(p.relative_to(ASSETS / "usdskel"))))
 def test_usd_asset_whole(path, shared_assets):
     from pxr import Usd, UsdGeom

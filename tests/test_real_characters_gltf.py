@@ -395,6 +395,7 @@ def _convert(capfd, tmp_path, path, *extra):
     return cli.run(capfd, "convert", path, "-o", out, "--format", "json", *extra), out
 
 
+@pytest.mark.slow
 def test_bad_clip_error_names_it_and_suggests_options(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
     result, out = _convert(capfd, tmp_path, path)
@@ -420,6 +421,7 @@ def test_bad_clip_skip_converts_the_others(tmp_path, capfd):
     assert max(worst.values()) <= TOLERANCE, worst
 
 
+@pytest.mark.slow
 def test_clips_selects(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
     result, out = _convert(capfd, tmp_path, path, "--clips", "Walk")
@@ -428,6 +430,7 @@ def test_clips_selects(tmp_path, capfd):
     assert [c["name"] for c in report["animations"][0]["clips"]] == ["Walk"] and report["skippedClips"] == []
 
 
+@pytest.mark.slow
 def test_only_bad_clips_exit_2(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
     result, out = _convert(capfd, tmp_path, path, "--clips", "Spawn", "--on-bad-clip", "skip")

@@ -24,6 +24,8 @@ from vbusd.format.model import ReadOptions  # noqa: E402
 
 from tests.helpers import cli  # noqa: E402
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 TOLERANCE = 1e-6
 
 _CONSTANT_ONE = '''int[] primvars:skel:jointIndices = [{joint}] (

@@ -21,6 +21,8 @@ import pytest
 
 from tests.helpers import scripts
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 REPO = Path(__file__).resolve().parents[1]
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 

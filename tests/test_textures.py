@@ -732,6 +732,7 @@ def test_pipe_or_folder_as_texture_is_refused_without_blocking(tmp_path):
         signal.alarm(0)
 
 
+@pytest.mark.slow
 def test_compressed_itxt_is_bounded_against_decompression_bombs():
     # 200 KB of deflate that would expand to 200 MiB: refused after at most 16 MiB is inflated.
     import tracemalloc

@@ -130,6 +130,7 @@ def assert_crowds_equal(ours: Crowd, theirs: Crowd) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("encoding, texel_format", COMBOS)
 def test_round_trip_is_exact(tmp_path, encoding, texel_format):
     rng = np.random.default_rng(100 + 10 * ENCODINGS.index(encoding) + FORMATS.index(texel_format))

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 FIXTURES = Path(__file__).parent / "fixtures"
 CORRUPT = [FIXTURES / "corrupt_usdc" / f"{name}.usdc"
            for name in ("crash_or_huge_alloc", "endless_value_read", "four_gigabyte_value")]

@@ -18,7 +18,7 @@ import pytest
 import vbusd  # noqa: F401  (registers the schema before pxr builds its registry)
 from vbusd.converters import usdskel
 
-pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.kernels.bake)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("both_bake_paths")]  # numpy, then compiled (vbusd.kernels.bake)
 
 TOLERANCE = 1e-9
 """Largest difference allowed, relative to the largest matrix entry (UsdSkel works in double too)."""

@@ -22,6 +22,7 @@ from tests.helpers import scenes
 EXPECTED = json.loads((BAD / "expected.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_bad_fixture_gives_one_line_and_exit_2(name, tmp_path, capsys):
     output = tmp_path / "out.usda"

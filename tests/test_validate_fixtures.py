@@ -60,6 +60,7 @@ def test_every_code_has_a_fixture():
     assert named <= set(codes.REGISTRY), f"fixtures named after unknown codes: {sorted(named - set(codes.REGISTRY))}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("folder", INVALID, ids=[p.name for p in INVALID])
 def test_invalid_fixture_reports_its_code(folder):
     report = _check(folder)
@@ -77,6 +78,7 @@ def test_valid_fixture_has_no_error(folder):
     assert report.counts["warning"] == 0
 
 
+@pytest.mark.slow
 def test_committed_fixtures_are_what_the_generator_writes(tmp_path):
     """The goldens are made by make_fixtures.py, not edited by hand: regenerate and compare."""
     module = scripts.load("tests/fixtures/validate/make_fixtures.py")

@@ -135,6 +135,7 @@ def test_registration_survives_a_second_import_of_the_module(validators):
 STAGE_LEVEL = {"asset.composition", "asset.empty", "asset.outside"}
 
 
+@pytest.mark.slow
 def test_usd_validation_reports_what_vbusd_validate_reports_on_every_fixture(validators):
     """The same checks: over every golden fixture, each finding of `vbusd validate` (except the
     stage-level ones, which are not prim validators) comes out of a UsdValidation context too, with

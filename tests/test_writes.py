@@ -59,6 +59,7 @@ def bench(request, sources, tmp_path_factory):
                          runner=run_here)
 
 
+@pytest.mark.slow
 def test_enospc_at_every_step_of_every_writer(bench, in_process):
     kinds = [step.split(" ")[0] for step in bench.steps]
     assert kinds[0] == "lock" and "commit" in kinds  # every writer goes through the one commit
