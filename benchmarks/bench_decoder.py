@@ -474,7 +474,7 @@ def probe_filter_arithmetic(device, dtype, seed: int = 11) -> dict:
 
 def hardware_study(device: str) -> dict:
     """Exact vs hardware texture path for every encoding x texel format, plus the weight probe."""
-    synthetic = _load("bench_warp_synthetic", ROOT / "tests" / "fixtures" / "warp" / "synthetic.py")
+    synthetic = _load("bench_warp_synthetic", ROOT / "tests" / "helpers" / "warp_synthetic.py")
     probes = [probe_filter_weights(device, d) for d in (np.float16, np.float32, np.uint16)]
     probes += [probe_filter_arithmetic(device, d) for d in (np.float16, np.float32)]
     for probe in probes:

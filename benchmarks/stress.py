@@ -97,23 +97,40 @@ def _leftovers(folder: Path) -> list:
     return found
 
 
+RUN_ENV = "VBUSD_STRESS_RUN"
+"""Every run's processes carry its folder in this variable (a probe server or a worker inherits it),
+so only this run's processes are counted, never another program's on the same machine."""
+
+
 def _vbusd_processes(marker: str) -> list:
-    """Processes whose command line names ``marker`` (a run's own folder) or that are probe servers
-    orphaned to init, still running."""
+    """Processes of the run whose folder is ``marker`` still running: their command line names it, or
+    their environment has ``VBUSD_STRESS_RUN=marker`` (probe servers, pool workers)."""
     found = []
+    tag = f"{RUN_ENV}={marker}".encode()
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit() or int(entry.name) == os.getpid():
             continue
         try:
             command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode("utf-8", "replace")
             state = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            environ = (entry / "environ").read_bytes().split(b"\0")
         except OSError:
             continue
         if state[0] == "Z":
             continue
-        orphan_probe = "vbusd.io.usd_probe" in command and state[1] == "1"
-        if marker in command or orphan_probe:
+        if marker in command or tag in environ:
             found.append(f"{entry.name}: {command[:160]}")
+    return found
+
+
+def _lingering(marker: str) -> list:
+    """The run's processes still running once they have had the bound they are given to end with their
+    parent (SIGNAL_BOUND_S: a worker or probe server is sent SIGTERM when the run's process ends)."""
+    deadline = time.monotonic() + SIGNAL_BOUND_S
+    found = _vbusd_processes(marker)
+    while found and time.monotonic() < deadline:
+        time.sleep(0.1)
+        found = _vbusd_processes(marker)
     return found
 
 
@@ -225,7 +242,7 @@ def main(argv=None) -> int:
                                    "--texel-format", args.texel_format or rng.choice(["float16", "float32"])]
                 signum = rng.choice([signal.SIGTERM, signal.SIGINT]) if rng.random() < args.signal_fraction else None
                 at = rng.uniform(0.0, 4.0) if signum else None
-                result = _run(command, args.timeout, env=env, signal_at=at, signum=signum)
+                result = _run(command, args.timeout, env={**env, RUN_ENV: str(folder)}, signal_at=at, signum=signum)
                 record.update(source=source.name, signal=signum and signal.Signals(signum).name, at=at)
                 outputs = [(layer, result["status"] == 0)]
                 expected = {0} | ({SIGNAL_STATUS[signum], -signum} if result["signalled"] else set())
@@ -270,7 +287,7 @@ def main(argv=None) -> int:
                               " scheduler=c.scheduler_address)\n"
                               "sys.exit(r.exit_status)")
                     command = [args.python, "-c", script, str(library), str(folder / "out")]
-                result = _run(command, args.timeout * 3, env=env)
+                result = _run(command, args.timeout * 3, env={**env, RUN_ENV: str(folder)})
                 outputs = [(folder / "out" / f"s{i}.usda", result["status"] == 0) for i in range(len(chosen))]
                 expected, conversions = {0}, len(chosen)
             counts["runs"] += 1
@@ -291,8 +308,7 @@ def main(argv=None) -> int:
             if left:
                 counts["leftovers"] += 1
                 issues.append(f"leftovers: {left[:5]}")
-            time.sleep(0.05)
-            orphans = _vbusd_processes(str(folder))
+            orphans = _lingering(str(folder))
             if orphans:
                 counts["orphans"] += 1
                 issues.append(f"still running: {orphans[:3]}")

@@ -14,8 +14,8 @@
 #   draco3dgltf, gltf-validator); tests/test_gltf_transform.py runs its Node tests.
 #
 # Without node and npm it says what to install and returns 0: the tests that need them then skip
-# with one line, and everything else still runs. A folder whose installed lockfile is current is
-# left as it is.
+# with one line (in CI, CI=true, they fail naming the capability 'node': tests/helpers/capabilities.py),
+# and everything else still runs. A folder whose installed lockfile is current is left as it is.
 set -uo pipefail
 repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)" || exit 0
 

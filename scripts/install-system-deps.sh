@@ -7,8 +7,9 @@
 # download is neither run nor needed).
 #
 # Installs only what is missing, and only where apt-get can (root, or sudo without a password).
-# Elsewhere it says what to install and returns 0: tests/test_shaders.py then skips what it
-# cannot run instead of failing, and everything else still runs.
+# Elsewhere it says what to install and returns 0: the tests that need what is missing then skip
+# with one line per capability (in CI, CI=true, they fail naming it: tests/helpers/capabilities.py),
+# and everything else still runs.
 set -uo pipefail
 
 missing=()

@@ -1,113 +1,152 @@
-"""Shared pytest configuration for the vbusd test suite: markers and a few generic fixtures.
+"""Shared pytest configuration for the vbusd test suite: tiers, capabilities, the time per tier.
 
-Tests import the *installed* ``vbusd`` (pytest runs with ``--import-mode=importlib`` and the repo
-root is not a package path), so nothing here puts the source tree on ``sys.path``. Files of the
-repository that are not installed (samples/, benchmarks/, spec/) are reached through
-:func:`repo_root`.
+Tests import vbusd from the checkout (``python -m pytest`` puts the current folder first on
+``sys.path``, and pyproject's ``pythonpath = ["."]`` does so for a bare ``pytest``); the shared
+helpers are the package :mod:`tests.helpers` (``from tests.helpers import ...``).
+
+**Tiers** (markers; ``python -m pytest -m unit`` is the fast tier a developer runs):
+
+=========  ===========================================================================================
+unit       none of the others: in-process, no external tool (given to every test without another tier)
+cli        starts the ``vbusd`` command (``python -m vbusd``) or another Python process
+gl         an EGL OpenGL context or the shader compilers (glslang, spirv-cross)
+browser    headless Chromium (one per xdist worker, pages per test)
+node       Node.js and the npm packages
+blender    the bpy wheel
+gpu        a CUDA device
+slow       otherwise in-process, but more than a few seconds
+=========  ===========================================================================================
+
+**Capabilities** (:mod:`tests.helpers.capabilities`): a test needing one calls ``require(NAME)``
+(the markers browser, node, blender and gpu do it for every test they mark). In CI (``CI`` set) or
+with ``VBUSD_REQUIRE=all`` a missing one fails the test naming it; elsewhere the test skips, one
+summary line per capability.
+
+The run ends with its time per tier (:func:`pytest_terminal_summary`).
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+import time
+from collections import defaultdict
 
 import pytest
 
 # Before any test module touches pxr.Usd: OpenUSD builds its schema registry once per process, and
 # the Virtual Bones types are in it only if vbusd registered its plugin first (vbusd.io.usd_plugin).
 # Importing vbusd here makes that independent of which test files run and in which order.
-import vbusd  # noqa: F401,E402
+import vbusd  # noqa: F401
+from tests.helpers import capabilities
+from tests.helpers.capabilities import require
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+pytest_plugins = ["tests.helpers.fixtures"]
+
+TIERS = {
+    "blender": "the bpy wheel (Blender as a Python module)",
+    "browser": "headless Chromium (playwright)",
+    "gpu": "a CUDA device through warp",
+    "node": "Node.js and the npm packages",
+    "gl": "an EGL OpenGL context or glslang/spirv-cross",
+    "cli": "starts the vbusd command or another Python process",
+    "slow": "in-process, more than a few seconds",
+    "unit": "in-process, no external tool: the fast tier (python -m pytest -m unit)",
+}
+"""The tiers in the order that picks a test's one tier for the time summary (its first marker here)."""
+
+CAPABILITY_MARKERS = ("browser", "node", "blender", "gpu")
+"""Markers that require their capability for every test they mark."""
+
+BROWSER_FIXTURES = {"browser", "webgpu_browser"}
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "slow: takes more than a few seconds; deselect with -m 'not slow'")
+    for name, description in TIERS.items():
+        config.addinivalue_line("markers", f"{name}: tier: {description}")
     config.addinivalue_line(
         "markers", "packaging: builds the wheel (needs the 'build' tool and, without the build backend "
                    "installed, network access); deselect with -m 'not packaging'")
 
 
-# The browser tests draw every engine (three.js WebGL, three.js WebGPU, Babylon.js) in software
-# (SwiftShader on the CPU): each probe case is a page load and a shader compile, seconds each. By
-# default they run a covering set: every encoding, every texel format and both skin bindings at
-# least once per engine and per character, each (encoding, texel format) pair once, so that the
-# whole suite stays within 15 minutes on 2 cores. VBUSD_FULL_MATRIX=1 runs every combination.
-BROWSER_FILES = {"test_browser.py", "test_browser_babylon.py", "test_browser_webgpu.py"}
-COVER = {("crossMatrix", "float16"): "pulled", ("affineMatrix", "float32"): "attributes",
-         ("quatTranslation", "float16"): "attributes", ("dualQuat", "float32"): "pulled"}
-"""The (encoding, texel format) pairs of the default browser matrix, with the skin binding each runs in."""
-CHARACTER_COVER = {("Fox", "crossMatrix"), ("Fox", "quatTranslation"), ("CesiumMan", "affineMatrix"),
-                   ("CesiumMan", "dualQuat")}
+def pytest_report_header(config):
+    needed = capabilities.required()
+    lines = []
+    for name, (_, description) in capabilities.CAPABILITIES.items():
+        if name == "gpu" and name not in needed:
+            continue  # probing CUDA costs seconds; tests that want it say so
+        reason = capabilities.missing(name)
+        state = "yes" if reason is None else f"MISSING ({reason})"
+        lines.append(f"  {name:8} {'required' if name in needed else 'optional'}: {state}")
+    return ["vbusd capabilities (CI=true or VBUSD_REQUIRE=all makes a missing one fail its tests):", *lines]
 
 
-def _in_browser_cover(item) -> bool:
-    """Whether a browser test case is in the default matrix. Only full products are thinned (an
-    ``encoding`` parametrization beside a ``texel_format`` or ``character`` one); cases listed
-    pair by pair all run."""
-    params = getattr(getattr(item, "callspec", None), "params", {})
-    axes = {m.args[0] for m in item.iter_markers("parametrize") if m.args}
-    encoding = params.get("encoding")
-    if "encoding" in axes and "texel_format" in axes:
-        pair = (encoding, params.get("texel_format"))
-        return pair in COVER and params.get("skin") in (None, COVER[pair])
-    if "encoding" in axes and "character" in axes:
-        return (params.get("character"), encoding) in CHARACTER_COVER
-    return True
+def _tier(item) -> str:
+    for name in TIERS:
+        if item.get_closest_marker(name) is not None:
+            return name
+    return "unit"
 
 
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    if os.environ.get("VBUSD_FULL_MATRIX") == "1":
-        return
-    keep, drop = [], []
+    """Every test gets its tier: a browser fixture makes a test ``browser``; a test without a tier
+    marker is ``unit``. Runs before ``-m`` selects."""
     for item in items:
-        (keep if Path(str(item.fspath)).name not in BROWSER_FILES or _in_browser_cover(item) else drop).append(item)
-    if drop:
-        config.hook.pytest_deselected(items=drop)
-        items[:] = keep
+        if BROWSER_FIXTURES & set(getattr(item, "fixturenames", ())) and item.get_closest_marker("browser") is None:
+            item.add_marker(pytest.mark.browser)
+        tier = _tier(item)
+        if tier == "unit" and item.get_closest_marker("unit") is None:
+            item.add_marker(pytest.mark.unit)
+        item.user_properties.append(("vbusd_tier", tier))
 
 
-def pytest_terminal_summary(terminalreporter):
-    if os.environ.get("VBUSD_FULL_MATRIX") != "1":
-        terminalreporter.write_line("browser tests ran their covering matrix (every encoding, texel format and skin "
-                                    "binding); VBUSD_FULL_MATRIX=1 runs every combination")
+def pytest_runtest_setup(item):
+    for name in CAPABILITY_MARKERS:
+        if item.get_closest_marker(name) is not None:
+            require(name)
 
 
-def _shared_assets_dir() -> Path | None:
-    """The third-party test assets: ``$VBUSD_SHARED_ASSETS``, else ``../shared/assets`` beside the checkout."""
-    candidates = [os.environ.get("VBUSD_SHARED_ASSETS"), REPO_ROOT.parent / "shared" / "assets"]
-    for candidate in candidates:
-        if candidate and Path(candidate).is_dir():
-            return Path(candidate)
-    return None
+_STARTED = time.monotonic()
+_TIER_TIMES: dict = defaultdict(lambda: [0, 0.0, defaultdict(int)])
+"""tier -> [tests, seconds, {outcome: tests}], from the reports (under xdist, the workers' reports
+reach the controller's hook too)."""
 
 
-@pytest.fixture(scope="session")
-def repo_root() -> Path:
-    """The repository checkout the tests run from (for samples/, spec/, benchmarks/)."""
-    return REPO_ROOT
+def pytest_runtest_logreport(report):
+    tier = dict(report.user_properties).get("vbusd_tier", "unit")
+    entry = _TIER_TIMES[tier]
+    entry[1] += report.duration
+    if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):
+        entry[0] += 1
+        entry[2][report.outcome] += 1
+    elif report.when == "teardown" and report.outcome == "failed":
+        entry[2]["error"] += 1
 
 
-@pytest.fixture(scope="session")
-def shared_assets() -> Path:
-    """Folder of the real third-party assets (see its README.md); skips the test when absent."""
-    path = _shared_assets_dir()
-    if path is None:
-        pytest.skip("shared third-party assets not found (set VBUSD_SHARED_ASSETS)")
-    return path
+def pytest_terminal_summary(terminalreporter, config):
+    tiers = _TIER_TIMES
+    if not tiers:
+        return
+    wall = time.monotonic() - _STARTED
+    write = terminalreporter.write_line
+    terminalreporter.section("time per tier")
+    workers = getattr(config.option, "numprocesses", None)
+    write(f"{'tier':8} {'tests':>6} {'seconds':>9}  outcomes   (seconds: setup + call + teardown, summed over "
+          f"{'workers' if workers else 'the one process'})")
+    total = 0.0
+    for name in TIERS:
+        if name not in tiers:
+            continue
+        count, seconds, outcomes = tiers[name]
+        total += seconds
+        write(f"{name:8} {count:6d} {seconds:9.1f}  " + ", ".join(f"{n} {k}" for k, n in sorted(outcomes.items())))
+    write(f"{'all':8} {sum(t[0] for t in tiers.values()):6d} {total:9.1f}  wall clock {wall:.1f} s")
+    missing = [f"{name} ({capabilities.missing(name)})" for name in capabilities.CAPABILITIES
+               if name != "gpu" and capabilities.missing(name)]
+    if missing:
+        write("capabilities missing here (their tests skipped, or failed where required): " + "; ".join(missing))
+    from tests.helpers.browser import FULL_MATRIX
 
+    if not FULL_MATRIX:
+        write("browser tests ran their covering matrix (tests/helpers/browser.py: every encoding, texel format and "
+              "skin binding); VBUSD_FULL_MATRIX=1 runs every combination")
 
-@pytest.fixture(params=["numpy", "compiled"])
-def both_bake_paths(request, monkeypatch) -> str:
-    """Run a test twice: on the bake's numpy code, then with every compiled twin in
-    :mod:`vbusd.kernels.bake` forced on (however small the input). Skips the compiled run where
-    warp's CPU backend cannot run."""
-    from vbusd.kernels import bake as bake_kernels
-
-    if request.param == "compiled":
-        if not bake_kernels.available():
-            pytest.skip("warp's CPU backend cannot compile kernels here (pip install warp-lang)")
-        monkeypatch.setattr(bake_kernels, "MIN_ITEMS", 0)
-    else:
-        monkeypatch.setattr(bake_kernels, "MIN_ITEMS", 1 << 62)
-    return request.param

@@ -166,6 +166,7 @@ def test_no_module_imports_from_a_higher_layer():
     assert upward == [], "imports that run upward:\n" + "\n".join(upward)
 
 
+@pytest.mark.slow
 def test_no_circle_of_imports_between_files():
     edges = _edges()
     index, low, stack, on_stack, circles = {}, {}, [], set(), []
@@ -231,6 +232,7 @@ def test_modules_are_loaded_by_name_only_at_the_dispatch_points():
     assert found == [], "modules that load others by name: " + ", ".join(found)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lower", ["vbusd.format", "vbusd.io", "vbusd.process"])
 def test_the_lowest_layers_import_nothing_above_them(lower):
     """Named on their own because issue 32 asks it: format/, process/ and io/ never reach upward."""

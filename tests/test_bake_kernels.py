@@ -11,7 +11,6 @@ clip extents against every decoded vertex in tests/test_clip_extents.py, both on
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +21,15 @@ from vbusd.kernels import bake as bake_kernels
 from vbusd.process import parallel
 from vbusd.format import encoding as enc
 
-pytestmark = pytest.mark.skipif(not bake_kernels.available(),
-                                reason="warp's CPU backend cannot compile kernels here (pip install warp-lang)")
+from tests.helpers.capabilities import require
+from tests.helpers.rigs import build_rig
+
+
+@pytest.fixture(autouse=True)
+def _compiled_kernels():
+    """Every test here compiles warp kernels on the CPU."""
+    require("warp")
+
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -123,22 +129,16 @@ def test_linear_blend_skinning_equals_the_reference(monkeypatch, dense):
     assert np.allclose(np.linalg.norm(got[1], axis=-1), 1.0)
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_convert", REPO / "benchmarks" / "bench_convert.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory) -> Path:
     """The benchmark's rig, smaller: 101 joints, 400 frames, 2,500 points, every joint moving; with
     vertex normals, so that a conversion checks its normals against UsdSkel's too."""
     path = tmp_path_factory.mktemp("rig") / "rig.usdc"
-    _bench().build_rig(path, frames=400, points=2500, joints=101, normals=True)
+    build_rig(path, frames=400, points=2500, joints=101, normals=True)
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "float16"), ("affineMatrix", "float32"),
                                                    ("quatTranslation", "unorm16")])
 def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_format):
@@ -163,6 +163,7 @@ def test_clip_extents_equal_the_numpy_bounds(monkeypatch, rig, encoding, texel_f
         assert np.abs(compiled_part - numpy_part).max() <= 1e-12 * scale, (numpy_part, compiled_part)
 
 
+@pytest.mark.slow
 def test_a_whole_conversion_is_the_same_either_way_and_matches_usdskel(monkeypatch, rig, tmp_path):
     from vbusd.jobs.conversion import ConvertOptions, convert
     from vbusd.io.usd_reader import read_asset

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-try:
-    import bpy
-except ImportError:
-    pytest.skip("bpy not installed: pip install '.[blender]' (the bpy wheel needs Python 3.11)",
-                allow_module_level=True)
+from tests.helpers.capabilities import require
+
+pytestmark = pytest.mark.blender
+require("blender", allow_module_level=True)  # the bpy wheel: skips here, or fails where required (CI)
+
+import bpy  # noqa: E402
 
 import vbusd  # noqa: E402
 from vbusd.decoders.reference import skin_crowd, skin_mesh  # noqa: E402

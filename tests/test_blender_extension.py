@@ -15,27 +15,26 @@ from pathlib import Path
 
 import pytest
 
-try:
-    import bpy
-except ImportError:
-    pytest.skip("bpy not installed: pip install '.[blender]' (the bpy wheel needs Python 3.11)",
-                allow_module_level=True)
+from tests.helpers import scripts
+from tests.helpers.capabilities import require, unavailable
+
+pytestmark = pytest.mark.blender
+require("blender", allow_module_level=True)  # the bpy wheel: skips here, or fails where required (CI)
+
+import bpy  # noqa: E402
 
 EXTENSION = Path(__file__).resolve().parents[1] / "dcc" / "blender"
 
 
 def _build_module():
-    spec = importlib.util.spec_from_file_location("vbusd_build_extension", EXTENSION / "build_extension.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("dcc/blender/build_extension.py")
 
 
 @pytest.fixture(scope="module")
 def blender_ext() -> Path:
     tool = _build_module().blender_ext_tool()
     if tool is None:
-        pytest.skip("Blender's blender_ext.py not found in the bpy wheel")
+        unavailable("blender", "Blender's blender_ext.py not found in the bpy wheel")
     return tool
 
 

@@ -23,39 +23,22 @@ stored texels:
 from __future__ import annotations
 
 import dataclasses
-import runpy
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+import vbusd
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 from vbusd.web.static_files import copy_static
 
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
+                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
+                                   package_vertices, reference_instance, screenshot_luminance, settle)
+
+pytestmark = pytest.mark.browser
 HERE = Path(__file__).resolve().parent
-_helpers = runpy.run_path(str(HERE / "test_browser.py"))
-stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
-bar_crowd = _helpers["bar_crowd"]
-screenshot_luminance = _helpers["screenshot_luminance"]
-check_probe = _helpers["check_probe"]
-ENCODINGS = _helpers["ENCODINGS"]
-FORMATS = _helpers["FORMATS"]
-STADIUM_PROBES = _helpers["STADIUM_PROBES"]
-POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
-NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
-PAGE = _helpers["PAGE"]
-
-import vbusd  # noqa: E402  (after the helpers: same module objects)
-
-
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium() as launched:
-        yield launched
 
 
 def run_probes(browser, path: Path, probes) -> list:
@@ -80,8 +63,7 @@ def assert_within(errors) -> None:
         assert normal_error <= NORMAL_TOLERANCE
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
 def test_babylon_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
     errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
     print(encoding, texel_format, errors)
@@ -116,7 +98,7 @@ def test_babylon_screenshot_matches_decoder_silhouette(browser):
     """Babylon's picture (unlit white on black) against the silhouette rasterized from the
     decoder's vertices with the page's own camera (tests/test_browser.py): IoU >= 0.98, and the
     same crowd 0.3 s later does not match."""
-    _helpers["check_silhouette"](browser, "babylon")
+    check_silhouette(browser, "babylon")
 
 
 def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
@@ -155,8 +137,7 @@ def test_babylon_shadows_visible_and_skinned(browser, stadium_assets):
             page.close()
 
 
-@pytest.mark.parametrize("encoding", ENCODINGS)
-@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+@pytest.mark.parametrize("character,encoding", character_encoding_cases(["Fox", "CesiumMan"]))
 def test_babylon_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
     """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
     joints, 3,273 vertices with normals), every float encoding, float16."""
@@ -176,9 +157,7 @@ def test_babylon_probe_through_gltf_loader(browser, bar_crowd, tmp_path, case):
     the USD asset."""
     from vbusd.io.gltf_package import export_gltf
 
-    package_vertices = _helpers["_package_vertices"]
-    reference_instance = _helpers["reference_instance"]
-    source = _helpers["SAMPLE"] / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
+    source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
     asset = vbusd.read_asset(source)
     package = tmp_path / case
     export_gltf(asset, package)
@@ -222,7 +201,7 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
     html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
     copy_static(HERE.parent, tmp_path / "site")  # what the wheel ships (setup.py's build step)
     (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
-    export_gltf(vbusd.read_asset(_helpers["SAMPLE"] / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
+    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
 
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, *args):
@@ -237,15 +216,14 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
         page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
         page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
         page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
+        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there.
+        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True))
         materials = page.evaluate("""() => {
             const scene = BABYLON_SCENE();
             return scene.metadata.virtualBones.crowds.flatMap((crowd) => crowd.meshes.map((mesh) =>
                 [mesh.material.getClassName(), mesh.material.pluginManager._plugins.map((p) => p.getClassName())]));
         }""".replace("BABYLON_SCENE()", "(await import('@babylonjs/core')).EngineStore.LastCreatedScene")
                                   .replace("() => {", "async () => {"))
-        picture = page.screenshot()
-        luminance = screenshot_luminance(picture)
         (tmp_path / "example.png").write_bytes(picture)
         page.close()
     finally:
@@ -256,10 +234,17 @@ def test_docs_engines_babylon_example_runs(browser, tmp_path):
     assert materials and all(name == "PBRMaterial" and "VirtualBonesPluginMaterial" in plugins for name, plugins in materials), materials
     # The dark sky (~28), the lit ground and figures (above 120) and the shadows on the ground
     # (between the two): all three present.
-    background, lit = (luminance < 40).mean(), (luminance > 120).mean()
-    shadows = ((luminance > 45) & (luminance < 75)).mean()
-    print("background, lit, shadows:", background, lit, shadows)
-    assert background > 0.05 and lit > 0.2 and shadows > 0.01, (background, lit, shadows)
+    assert _lit_and_shadowed(luminance) == (True, True, True), _fractions(luminance)
+
+
+def _fractions(luminance) -> tuple:
+    """(background, lit, shadows): the picture's fractions of dark sky, lit surfaces and shadow."""
+    return ((luminance < 40).mean(), (luminance > 120).mean(), ((luminance > 45) & (luminance < 75)).mean())
+
+
+def _lit_and_shadowed(luminance) -> tuple:
+    background, lit, shadows = _fractions(luminance)
+    return background > 0.05, lit > 0.2, shadows > 0.01
 
 
 def test_babylon_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path):

@@ -25,10 +25,9 @@ import pytest
 
 import vbusd
 from vbusd.decoders.reference import skin_crowd
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
-pytest.importorskip("meshoptimizer")
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
@@ -36,15 +35,6 @@ DISTANCES = (3.0, 9.0, 16.0, 40.0, 90.0, -10.0)  # metres in front of the camera
 FOV, WIDTH, HEIGHT = 40.0, 320, 180
 EYE = (0.0, 1.0, 0.0)
 PAGE = f"?paused=1&ui=0&silhouette=1&width={WIDTH}&height={HEIGHT}&pixelRatio=1&fov={FOV}&camera=0,1,0,0,1,-100"
-
-
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium() as launched:
-        yield launched
 
 
 @pytest.fixture(scope="module")

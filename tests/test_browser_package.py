@@ -37,6 +37,8 @@ import pytest
 from vbusd.web.engines import ENGINE_PAGES
 from vbusd.web.shader_modules import javascript_module
 from vbusd.web.static_files import copy_static, source_files, vendor_folder
+from tests.helpers import node as node_tools
+from tests.helpers.web_pages import folder_fetch, page_files
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "web"
@@ -97,85 +99,6 @@ def test_the_wheels_static_folder_is_not_committed():
 # The pages' modules, followed as the browser follows them
 # --------------------------------------------------------------------------------------------
 
-_IMPORT_MAP = re.compile(r'<script type="importmap">(.*?)</script>', re.S)
-_PAGE_MODULE = re.compile(r'<script type="module" src="([^"]+)"')
-_STYLESHEET = re.compile(r'<link rel="stylesheet" href="([^"]+)"')
-_STATIC_IMPORT = re.compile(r'^\s*(?:import|export)\b[^;]*?\bfrom\s*[\'"]([^\'"]+)[\'"]', re.M)
-_BARE_IMPORT = re.compile(r'^\s*import\s*[\'"]([^\'"]+)[\'"]', re.M)
-_DYNAMIC_IMPORT = re.compile(r'\bimport\(\s*[\'"]([^\'"]+)[\'"]\s*\)')
-_MINIFIED_IMPORT = re.compile(r'(?:^|[;}])\s*(?:import|export)\s*(?:\{[^}]*\}|\*\s*as\s*\w+|\w+)?\s*from\s*"([^"]+)"')
-
-
-def _resolve(specifier: str, importer: str, imports: dict):
-    """The URL path a module specifier names: relative to its importer, or through the import map
-    (an exact key, else the longest key ending in ``/`` that prefixes it); None when unmapped."""
-    if specifier.startswith(("./", "../", "/")):
-        return urljoin(importer, specifier)
-    if specifier in imports:
-        return urljoin("/", imports[specifier])
-    prefixes = [key for key in imports if key.endswith("/") and specifier.startswith(key)]
-    if not prefixes:
-        return None
-    key = max(prefixes, key=len)
-    return urljoin("/", imports[key] + specifier[len(key):])
-
-
-def page_files(fetch, page: str) -> set:
-    """Every URL path one engine's page loads: the page, its stylesheet, its module and everything
-    that module imports, statically or with ``import()``, through the page's import map.
-
-    A module reached through ``import()`` may serve another page (viewer.js imports the WebGPU
-    runtime only on webgpu.html): its imports that this page's map does not map are not followed.
-    Everything reached by static imports must resolve and be served.
-
-    Args:
-        fetch: URL path -> the file's text, or None when it is not served.
-        page: The page's URL path (``/index.html``).
-
-    Returns:
-        The URL paths.
-    """
-    html = fetch(page)
-    assert html is not None, page
-    imports = json.loads(_IMPORT_MAP.search(html).group(1))["imports"]
-    seen = {page} | {urljoin(page, href) for href in _STYLESHEET.findall(html)}
-    for url in sorted(seen):
-        assert fetch(url) is not None, url
-    queue = [(urljoin(page, src), False) for src in _PAGE_MODULE.findall(html)]
-    assert queue, page
-    optional_seen = set()
-    while queue:
-        url, optional = queue.pop()
-        if url in seen or (optional and url in optional_seen):
-            continue
-        text = fetch(url)
-        if optional:
-            if text is None:
-                continue
-            optional_seen.add(url)
-        else:
-            assert text is not None, f"{page} needs {url}, which is not served"
-            seen.add(url)
-        minified = "\n" not in text[:2000]
-        found = [(specifier, optional) for pattern in ((_MINIFIED_IMPORT,) if minified else (_STATIC_IMPORT, _BARE_IMPORT))
-                 for specifier in pattern.findall(text)]
-        found += [(specifier, True) for specifier in ([] if minified else _DYNAMIC_IMPORT.findall(text))]
-        for specifier, lenient in found:
-            target = _resolve(specifier, url, imports)
-            if target is None:
-                assert lenient, f"{url} imports {specifier!r}, which the import map of {page} does not map"
-                continue
-            queue.append((target, lenient))
-    return seen | optional_seen
-
-
-def _folder_fetch(root: Path):
-    def fetch(url: str):
-        path = root / url.lstrip("/")
-        return path.read_text(encoding="utf-8") if path.is_file() else None
-    return fetch
-
-
 def test_the_build_step_writes_every_file_every_page_imports(tmp_path):
     """What setup.py's build_py runs (copy_static) into a build folder holds each engine's page
     and every module it reaches, and nothing else; the checkout's server lists the same files."""
@@ -186,7 +109,7 @@ def test_the_build_step_writes_every_file_every_page_imports(tmp_path):
     assert names == set(source_files(REPO))
     needed = set()
     for engine, page in ENGINE_PAGES.items():
-        files = page_files(_folder_fetch(site), page)
+        files = page_files(folder_fetch(site), page)
         assert "/vbusd-three/index.js" in files or engine == "babylon" and "/vbusd-babylon/index.js" in files, engine
         needed |= files
     # Everything shipped is used by some page (LICENSE files ship as the licences require).
@@ -197,6 +120,7 @@ def test_the_build_step_writes_every_file_every_page_imports(tmp_path):
         assert (site / url).read_bytes() == source.read_bytes(), url
 
 
+@pytest.mark.node
 def test_shipped_three_is_the_pinned_version():
     lock = json.loads((WEB / "package-lock.json").read_text())
     pinned = lock["packages"]["node_modules/three"]["version"]
@@ -220,12 +144,10 @@ process.stdout.write(JSON.stringify(out));
 """
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_runtime_shader_module_equals_vbusd_shader():
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node not found: install Node.js 18 or newer and run npm ci in web/")
-    if not (WEB / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("web/node_modules is missing: run npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     result = subprocess.run([node, "--input-type=module", "-e", _NODE_SCRIPT], cwd=WEB,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-4000:]
@@ -260,12 +182,10 @@ process.stdout.write(JSON.stringify({ k4: hex(packSkin([idx], [w], 4)).slice(40,
 """
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_runtime_packs_skin_records_as_the_spec_states():
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("node not found: install Node.js 18 or newer and run npm ci in web/")
-    if not (WEB / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("web/node_modules is missing: run npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     result = subprocess.run([node, "--input-type=module", "-e", _PACK_SCRIPT], cwd=WEB,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-4000:]
@@ -281,6 +201,7 @@ def test_runtime_packs_skin_records_as_the_spec_states():
                              "00000000", "00000000", "00000000", "c0000000", "3f000000"]
 
 
+@pytest.mark.node
 def test_shipped_babylon_is_the_pinned_version():
     """web/babylon pins @babylonjs/core and @babylonjs/loaders exactly (package.json and its lock
     agree), and the vendored bundle is that Babylon.js (its Engine.Version), with its licence."""

@@ -73,6 +73,7 @@ def viewer(served_folder):
         process.wait(timeout=30)
 
 
+@pytest.mark.cli
 def test_serves_page_config_and_plain_files(viewer):
     _, port = viewer
     status, body, content_type = _get(port, "/")
@@ -103,6 +104,7 @@ def test_serves_page_config_and_plain_files(viewer):
     "/three/../../server.py",  # the package's Python files are not the page's
     "/%2e%2e/server.py",
 ])
+@pytest.mark.cli
 def test_refuses_paths_that_leave_the_folder(viewer, path):
     _, port = viewer
     status, body, _ = _get(port, path)
@@ -110,6 +112,7 @@ def test_refuses_paths_that_leave_the_folder(viewer, path):
     assert b"not yours" not in body and b"import" not in body
 
 
+@pytest.mark.cli
 def test_ctrl_c_stops_cleanly(viewer):
     process, port = viewer
     assert _get(port, "/config.json")[0] == 200
@@ -128,6 +131,7 @@ def test_ctrl_c_stops_cleanly(viewer):
     (["stadium_crowd_vb.usda", "--port", "70000"], "--port must be 0..65535"),
     (["stadium_crowd_vb.usda", "--engine", "unreal"], "'unreal' is not one of 'three', 'three-webgpu', 'babylon'"),
 ])
+@pytest.mark.cli
 def test_bad_input_is_one_line(served_folder, arguments, expected):
     (served_folder / "notes.txt").write_text("hello")
     result = subprocess.run([sys.executable, "-m", "vbusd", "view", *arguments, "--no-browser"], cwd=served_folder,
@@ -137,6 +141,7 @@ def test_bad_input_is_one_line(served_folder, arguments, expected):
     assert len(lines) == 1 and expected in lines[0], result.stderr
 
 
+@pytest.mark.cli
 def test_engine_three_webgpu_serves_its_page(served_folder):
     """``--engine three-webgpu``: the same asset and config (with the engine), the page that maps
     three.js to its WebGPU build, and that build and the TSL runtime, all from the package."""
@@ -201,6 +206,7 @@ def _damaged_packages(folder: Path) -> dict:
             "notktx2.gltf": "package.texture"}
 
 
+@pytest.mark.cli
 def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder):
     """Issue 24: vbusd view served an empty, truncated or plain .glb and the error appeared only in
     the browser. It is one line and exit 2 before anything is served; the good package is served."""
@@ -216,6 +222,7 @@ def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder)
         assert check_package(served_folder / name).animations[0].name == "Cheer"
 
 
+@pytest.mark.cli
 def test_port_in_use_is_one_line(served_folder):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -28,48 +28,38 @@ browser offers no WebGPU adapter.
 
 from __future__ import annotations
 
-import runpy
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+import vbusd
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 from vbusd.web.static_files import copy_static
 
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
+                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
+                                   package_vertices, reference_instance, screenshot_luminance, settle)
+from tests.helpers.capabilities import unavailable
+
+pytestmark = pytest.mark.browser
 HERE = Path(__file__).resolve().parent
-_helpers = runpy.run_path(str(HERE / "test_browser.py"))
-stadium_assets = _helpers["stadium_assets"]  # module-scoped fixtures: the converted assets
-rig_assets = _helpers["rig_assets"]
-bar_crowd = _helpers["bar_crowd"]
-check_probe = _helpers["check_probe"]
-screenshot_luminance = _helpers["screenshot_luminance"]
-SAMPLE = _helpers["SAMPLE"]
-ENCODINGS = _helpers["ENCODINGS"]
-FORMATS = _helpers["FORMATS"]
-STADIUM_PROBES = _helpers["STADIUM_PROBES"]
-POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
-NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
-PAGE = _helpers["PAGE"]
 
-import vbusd  # noqa: E402  (after the helpers: same module objects)
+NO_ADAPTER = "this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)"
 
 
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium(webgpu=True) as launched:
-        yield launched
+@pytest.fixture
+def browser(webgpu_browser):
+    """This module's pages need WebGPU: the session's Chromium launched with it."""
+    return webgpu_browser
 
 
 def open_page(browser, server: ViewerServer, query: str, **kwargs) -> ViewerPage:
     page = ViewerPage(browser, server.url + query, **kwargs)
     if "WebGPU is not available" in " ".join(page.messages):
         page.close()
-        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+        unavailable("browser", NO_ADAPTER)
     return page
 
 
@@ -96,16 +86,14 @@ def assert_within(errors) -> None:
         assert normal_error <= NORMAL_TOLERANCE
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
 def test_webgpu_probe_matches_reference_on_stadium_crowd(browser, stadium_assets, encoding, texel_format):
     errors = run_probes(browser, stadium_assets[encoding, texel_format], STADIUM_PROBES)
     print(encoding, texel_format, errors)
     assert_within(errors)
 
 
-@pytest.mark.parametrize("texel_format", FORMATS)
-@pytest.mark.parametrize("encoding", ("affineMatrix", "quatTranslation"))
+@pytest.mark.parametrize("encoding,texel_format", encoding_format_cases(encodings=("affineMatrix", "quatTranslation")))
 def test_webgpu_probe_matches_reference_on_gltf_bar(browser, rig_assets, encoding, texel_format):
     errors = run_probes(browser, rig_assets[encoding, texel_format], [(0, 0.0), (0, 0.4321), (0, 0.77), (0, 5.0)])
     print(encoding, texel_format, errors)
@@ -235,8 +223,7 @@ def test_webgl2_backend_per_instance_and_picture(browser, bar_crowd, stadium_ass
             page.close()
 
 
-@pytest.mark.parametrize("encoding", ENCODINGS)
-@pytest.mark.parametrize("character", ["Fox", "CesiumMan"])
+@pytest.mark.parametrize("character,encoding", character_encoding_cases(["Fox", "CesiumMan"]))
 def test_webgpu_probe_matches_reference_on_gltf_characters(browser, shared_assets, tmp_path, character, encoding):
     """Two real rigs, Khronos samples (Fox: 24 joints, 1,728 vertices, no normals; CesiumMan: 19
     joints, 3,273 vertices with normals), every encoding, float16."""
@@ -255,8 +242,6 @@ def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
     the same vertices as the numpy decoder on the USD asset."""
     from vbusd.io.gltf_package import export_gltf
 
-    package_vertices = _helpers["_package_vertices"]
-    reference_instance = _helpers["reference_instance"]
     source = SAMPLE / "stadium_crowd_vb.usda" if case == "stadium.glb" else bar_crowd
     asset = vbusd.read_asset(source)
     package = tmp_path / case
@@ -287,7 +272,7 @@ def test_webgpu_screenshot_matches_decoder_silhouette(browser, backend_query):
     """WebGPURenderer's picture (MeshBasicNodeMaterial, unlit white on black) against the silhouette
     rasterized from the decoder's vertices with the page's camera (tests/test_browser.py), on
     WebGPU and on the WebGL 2 backend: IoU >= 0.98."""
-    _helpers["check_silhouette"](browser, "three-webgpu", backend_query)
+    check_silhouette(browser, "three-webgpu", backend_query)
 
 
 def test_docs_engines_example_runs(browser, tmp_path):
@@ -321,9 +306,10 @@ def test_docs_engines_example_runs(browser, tmp_path):
         page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
         page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
         page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        page.wait_for_timeout(8000)  # load, compile, a few frames on SwiftShader
-        picture = page.screenshot()
-        luminance = screenshot_luminance(picture)
+        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there
+        # (or the page says it has no WebGPU).
+        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True)
+                                    or any("WebGPU is not available" in m for m in messages))
         (tmp_path / "example.png").write_bytes(picture)
         page.close()
     finally:
@@ -332,9 +318,17 @@ def test_docs_engines_example_runs(browser, tmp_path):
         thread.join()
     assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
     if any("WebGPU is not available" in m for m in messages):
-        pytest.skip("this Chromium offers no WebGPU adapter")
+        unavailable("browser", NO_ADAPTER)
     # Lit figures (above the ground's ~84), the dark background (33) and shadows on the ground
     # (between the two): all three present.
-    figures, background = (luminance > 95).mean(), (luminance < 40).mean()
-    shadows = ((luminance > 45) & (luminance < 75)).mean()
-    assert figures > 0.002 and background > 0.05 and shadows > 0.02, (figures, background, shadows)
+    assert _lit_and_shadowed(luminance) == (True, True, True), _fractions(luminance)
+
+
+def _fractions(luminance) -> tuple:
+    """(figures, background, shadows): the picture's fractions of lit figures, dark background and shadow."""
+    return ((luminance > 95).mean(), (luminance < 40).mean(), ((luminance > 45) & (luminance < 75)).mean())
+
+
+def _lit_and_shadowed(luminance) -> tuple:
+    figures, background, shadows = _fractions(luminance)
+    return figures > 0.002, background > 0.05, shadows > 0.02

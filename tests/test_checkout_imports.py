@@ -17,6 +17,8 @@ import sys
 import types
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 PROGRAM = r"""
@@ -46,6 +48,7 @@ def _run(code: str):
                           timeout=300)
 
 
+@pytest.mark.cli
 def test_the_checkout_is_the_package():
     result = _run(PROGRAM)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -61,6 +64,7 @@ def test_the_checkout_is_the_package():
     assert not [f for f in found["finders"] if f.startswith("vbusd")], found["finders"]
 
 
+@pytest.mark.slow
 def test_no_import_magic_in_the_package():
     """No remapped folder in pyproject.toml, no import finder and no module class swap in the package."""
     import tomllib
@@ -92,6 +96,7 @@ def test_no_module_shares_a_name_with_a_public_function():
     assert clashes == []
 
 
+@pytest.mark.cli
 def test_only_the_package_is_a_package():
     """The repository's other folders do not become vbusd packages."""
     result = _run("import importlib.util, vbusd; "

@@ -29,6 +29,7 @@ def test_every_listed_command_loads_and_has_help(capsys):
     assert "Usage:" in capsys.readouterr().out
 
 
+@pytest.mark.cli
 def test_os_errors_are_one_line_not_a_traceback(tmp_path):
     target = tmp_path / "missing-folder" / "deeper" / "out.glsl"
     target.parent.parent.write_text("a file where a folder should be")

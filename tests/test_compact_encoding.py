@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from vbusd.io.generator import GENERATOR
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,18 +17,14 @@ import pytest
 from vbusd.format.compact import decode_compact_fields, encode_compact, pack_words, unpack_words
 from vbusd.format.errors import OptionsError, VersionError
 from vbusd.format.layout import Layout
+from tests.helpers import node as node_tools
+from tests.helpers import scripts
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _generator():
-    name = "vbusd_samples_stadium_crowd"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, REPO / "samples" / "stadium_crowd.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
+    return scripts.load("samples/stadium_crowd.py")
 
 
 def test_layout_one_texel_of_twelve_bytes_per_bone_key():
@@ -89,6 +83,7 @@ def _lbs(points, idx, w, matrices):
     return np.einsum("vk,nvki->nvi", w, moved)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["CesiumMan", "Fox", "RiggedFigure", "RiggedSimple", "SimpleSkin"])
 def test_shared_gltf_characters_within_5e_5_of_the_diagonal(shared_assets, name):
     """Must show: every rigid shared glTF character within 5e-5 of its bounding-box diagonal at rows."""
@@ -163,13 +158,6 @@ def test_schema_refuses_compact_without_ranges_or_with_another_texel_format():
 # ------------------------------------------------------------------------------------------------
 
 
-def _node_tools():
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", REPO / "tests" / "node" / "node_tools.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def compact_cheer():
     return _generator().bake_reference(encoding="compactQuatTranslation", texel_format="uint32")
@@ -207,6 +195,7 @@ def test_png_refuses_uint32_in_one_line(tmp_path, compact_cheer):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.node
 def test_ktx_parse_reads_r32g32b32_uint(tmp_path, compact_cheer):
     """ktx-parse (three.js's KTX2 parser) reads vkFormat 104, three 32-bit samples and the words."""
     import base64
@@ -215,7 +204,7 @@ def test_ktx_parse_reads_r32g32b32_uint(tmp_path, compact_cheer):
 
     path = tmp_path / "cheer.ktx2"
     write_texture(path, compact_cheer, sidecar=False)
-    result = _node_tools().run_json("ktx2_read.mjs", path, packages=("ktx-parse", "three"))
+    result = node_tools.run_json("ktx2_read.mjs", path, packages=("ktx-parse", "three"))
     parsed = result["ktxParse"]
     assert (parsed["vkFormat"], parsed["typeSize"]) == (104, 4)   # VK_FORMAT_R32G32B32_UINT
     (dfd,) = parsed["dataFormatDescriptor"]
@@ -348,6 +337,7 @@ def test_numpy_reference_blends_opposite_stored_signs_the_short_way():
                                             [0, -math.sin(angle), math.cos(angle)]], atol=2e-4)
 
 
+@pytest.mark.node
 def test_gltf_runtime_package_of_the_compact_encoding(tmp_path, compact_cheer):
     """`vbusd export` packs the compact texture as a VK_FORMAT_R32G32B32_UINT KTX2 in the glTF: the
     Khronos glTF-Validator reports no error or warning and three.js's GLTFLoader loads it."""
@@ -356,15 +346,12 @@ def test_gltf_runtime_package_of_the_compact_encoding(tmp_path, compact_cheer):
     from vbusd.cli import main
     from vbusd.io import usd
 
-    spec = importlib.util.spec_from_file_location("vbusd_test_gltf_package", REPO / "tests" / "test_gltf_package.py")
-    package_tests = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(package_tests)
     asset = dataclasses.replace(_generator().make_asset(), animations=(compact_cheer,))
     source = tmp_path / "in" / "crowd.usda"
     usd.write_asset(asset, source)
     out = tmp_path / "out" / "crowd.glb"
     assert main(["export", str(source), "-o", str(out)]) == 0
-    result = package_tests.check(out)
+    result = node_tools.gltf_check(out)
     (animation,) = result["three"]["rootExtensions"]["VBUSD_virtual_bones"]["animations"]
     assert (animation["layout"]["encoding"], animation["layout"]["texelFormat"]) == ("compactQuatTranslation", "uint32")
     (mesh,) = result["three"]["meshes"]

@@ -34,6 +34,9 @@ from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_text
 from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 
+from tests.helpers import scripts
+from tests.helpers.capabilities import require
+
 FOLDER = Path(__file__).resolve().parents[1] / "spec" / "conformance"
 VECTORS = sorted(FOLDER.glob("*.json"))
 
@@ -228,9 +231,9 @@ def _warp_devices() -> list:
 @pytest.mark.parametrize("device", _warp_devices())
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_warp_reproduces_every_vector(path, device):
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if device not in warp.available_devices():
-        pytest.skip(f"warp has no {device} device here")
+    from vbusd.decoders import warp
+
+    require("gpu" if device.startswith("cuda") else "warp")
     vector = load(path)
     vb, crowd = vector_animation(vector), vector_crowd(vector)
     decoder = warp.Decoder(vb, device=device)
@@ -243,12 +246,8 @@ def test_warp_reproduces_every_vector(path, device):
 # GLSL and HLSL in an OpenGL pipeline (transform feedback), the example main with VB_CROSSFADE 1
 # ----------------------------------------------------------------------------------------------
 
-try:
-    import moderngl
-except ImportError:
-    moderngl = None
+import moderngl  # noqa: E402  (the test extra has it; a context needs EGL: capability gl)
 
-HAS_HLSL_TOOLS = bool(shutil.which("glslangValidator") and shutil.which("spirv-cross"))
 NAMES = {
     "glsl": {"texture": "vb_texture", "skinTexture": "vb_skinTexture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
     "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler",
@@ -259,12 +258,8 @@ NAMES = {
 
 @pytest.fixture(scope="module")
 def gl():
-    if moderngl is None:
-        pytest.skip("moderngl is not installed")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     framebuffer = ctx.simple_framebuffer((1, 1))
     framebuffer.use()
     yield ctx
@@ -405,18 +400,21 @@ def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path, skin: s
     return result[..., :3], result[..., 3:]
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("skin", ["attributes", "pulled-buffer", "pulled-texture"])
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_shader_modules_reproduce_every_vector(gl, lang, path, skin, tmp_path):
-    if lang == "hlsl" and not HAS_HLSL_TOOLS:
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     vector = load(path)
     for index, expected in enumerate(vector["expected"]):
         points, normals = run_shader(gl, lang, vector, expected["time"], tmp_path, skin)
         assert_matches(vector, index, points, normals, f"{lang} ({skin})")
 
 
+@pytest.mark.cli
 def test_vectors_are_current():
     """The committed vectors are what spec/conformance/make_vectors.py writes (generator string aside)."""
     result = subprocess.run([sys.executable, str(FOLDER / "make_vectors.py"), "--check"], capture_output=True,
@@ -424,14 +422,11 @@ def test_vectors_are_current():
     assert result.returncode == 0, result.stdout + result.stderr
 
 
+@pytest.mark.slow
 def test_the_check_compares_numbers_not_their_text(tmp_path, monkeypatch, capsys):
     """numpy 2.4 computes a vector's tolerance.diagonal one bit apart (6.1913571590537355 against
     6.191357159053735): the same number for the check; a change of 1e-9 of it is not."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("make_vectors", FOLDER / "make_vectors.py")
-    make_vectors = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(make_vectors)
+    make_vectors = scripts.load("spec/conformance/make_vectors.py")
     folder = tmp_path / "conformance"
     shutil.copytree(FOLDER, folder)
     monkeypatch.setattr(make_vectors, "HERE", folder)
@@ -560,11 +555,13 @@ def test_numpy_reference_reproduces_every_socket(path):
         np.testing.assert_allclose(sockets, expected["sockets"], rtol=0, atol=1e-12)
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_shader_sockets_reproduce_every_vector(gl, lang, path, tmp_path):
-    if lang == "hlsl" and not HAS_HLSL_TOOLS:
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     vector = load(path)
     for expected in vector["expected"]:
         rows = run_socket_shader(gl, lang, vector, expected["time"], tmp_path)

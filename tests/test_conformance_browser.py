@@ -15,7 +15,7 @@ tests/test_browser.py checks that message).
 from __future__ import annotations
 
 import json
-import runpy
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +24,14 @@ import pytest
 from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
+from tests.helpers import node
+from tests.helpers.capabilities import REPO
+from tests.helpers.animations import loop_walk
+
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
 VECTORS = sorted((REPO / "spec" / "conformance").glob("*.json"))
 SAMPLE = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 
-browser = runpy.run_path(str(HERE / "test_browser.py"))["browser"]  # the module-scoped Chromium fixture
 
 PROBE = """
 async ([vector, texels, time, skin]) => {
@@ -81,8 +83,7 @@ def _texels(vector: dict) -> list:
 
 @pytest.fixture(scope="module")
 def page(browser):
-    if not SAMPLE.is_file():
-        pytest.skip("the committed sample is not in this checkout")
+    assert SAMPLE.is_file(), f"the committed sample {SAMPLE} is missing"
     with ViewerServer(SAMPLE) as server:
         viewer = ViewerPage(browser, server.url + "?paused=1&ui=0&width=64&height=64")
         assert viewer.error == "", viewer.error
@@ -116,18 +117,15 @@ def test_threejs_runtime_reproduces_every_vector(page, path, skin):
 
 
 def _run_node(*args):
-    import shutil
-    import subprocess
-
-    node = shutil.which("node")
-    if node is None or not (REPO / "web" / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("Node.js or web/node_modules/three is missing (npm ci in web/)")
-    result = subprocess.run([node, str(HERE / "node" / "runtime_sockets.mjs"), *map(str, args)],
+    executable = node.require_packages("three", folder="web")
+    result = subprocess.run([executable, str(HERE / "node" / "runtime_sockets.mjs"), *map(str, args)],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-4000:]
     return json.loads(result.stdout)
 
 
+@pytest.mark.cli
+@pytest.mark.node
 @pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
 def test_threejs_socket_matrix_reproduces_every_vector(path):
     vector = json.loads(path.read_text(encoding="utf-8"))
@@ -138,11 +136,13 @@ def test_threejs_socket_matrix_reproduces_every_vector(path):
         assert error <= vector["tolerance"]["socket"], f"{vector['vector']} at t = {expected['time']}: {error:.3g}"
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_threejs_root_motion_matches_vbusd(tmp_path):
     import vbusd
     from vbusd.baking.baker import BakeOptions, bake
 
-    animation = runpy.run_path(str(HERE / "test_root_motion.py"))["_loop_walk"](0.4)
+    animation = loop_walk(0.4)
     vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
     pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0)]
     clip = vb.clips[0]

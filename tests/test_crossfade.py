@@ -18,10 +18,6 @@ The GLSL, HLSL and three.js crossfades are checked on the conformance vectors
 
 from __future__ import annotations
 
-import math
-import runpy
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -31,6 +27,10 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade
 from vbusd.format.errors import OptionsError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
+
+from tests.helpers.animations import chain_animation
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import require, shared_asset
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 
@@ -65,8 +65,7 @@ def test_spec_worked_example_by_hand(encoding):
 
 def _chain(encoding: str):
     """test_shaders' 5-bone chain (two clips, 6 influences, twisted for dualQuat), baked in float16."""
-    shaders = SimpleNamespace(**runpy.run_path(str(Path(__file__).parent / "test_shaders.py")))
-    animation = shaders._chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
+    animation = chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
                                          twist=encoding == "dualQuat")
     return bake(animation, BakeOptions(encoding=encoding, texel_format="float16", max_influences=6))
 
@@ -92,9 +91,9 @@ def test_weight_zero_is_the_first_clip_and_one_the_fade_clip_bit_for_bit(chains,
 
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_warp_cpu_crossfade_matches_reference(chains, encoding):
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
+
     vb = chains[encoding]
     mesh = vb.meshes[0]
     tau, fade_tau = np.array([0.1, 0.77, 1.93, 0.5]), np.array([0.4, 0.05, 0.99, 0.7])
@@ -108,9 +107,8 @@ def test_warp_cpu_crossfade_matches_reference(chains, encoding):
 
 def test_warp_crowd_crossfade_matches_reference(chains):
     """A crowd whose instances fade per instance (placed, non-uniform scale) through Decoder.skin_crowd."""
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
     from vbusd.decoders.reference import skin_crowd
     from vbusd.format.model import Crowd
 
@@ -153,11 +151,9 @@ def test_api_refuses_bad_fade_arguments(chains):
 # ----------------------------------------------------------------------------------------------
 # Against UsdSkel: the crossfade equals blending UsdSkel's own skinning at the two times
 # ----------------------------------------------------------------------------------------------
-
-pxr = pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom  # noqa: E402
 
-scenes = SimpleNamespace(**runpy.run_path(str(Path(__file__).parent / "fixtures" / "usdskel" / "scenes.py")))
+from tests.helpers import scenes
 
 # Version 1's bound for these rigs with float32 texels (tests/test_usdskel_semantics.py): scene units.
 USDSKEL_TOLERANCE = 2e-4
@@ -212,19 +208,14 @@ def test_crossfade_equals_blend_of_usdskel_poses(tmp_path, encoding):
     assert np.linalg.norm(expected[0] - expected[1], axis=-1).max() > 100 * USDSKEL_TOLERANCE
 
 
+@pytest.mark.node
 def test_gltf_crossfade_equals_blend_of_threejs_poses(shared_assets):
     """Fox: Walk at one row blended with Run at another (w = 0.4) against three.js's own skinning
     (GLTFLoader + AnimationMixer + SkinnedMesh, tests/node/skin_pose.mjs) at the two source times,
     blended; float32 texels, within 1e-6 of the bounding-box diagonal (version 1's bound for
     glTF rigs at rows, tests/test_real_characters_gltf.py)."""
-    import importlib.util
 
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     from vbusd.converters import gltf
 
     scene = gltf.read(path)

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.crowd import CrowdOptions, build_crowd, disc_positions, grid_positions  # noqa: E402
@@ -131,6 +130,7 @@ def test_existing_output_needs_force(character, tmp_path, capsys):
     assert out.read_text() != "keep me"
 
 
+@pytest.mark.cli
 def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
     """The README's quick-start crowd line, run as written (after its convert line), in a scratch
     folder; the package it writes is checked with pxr's view of the crowd (instances, clip)."""

@@ -9,25 +9,22 @@ first sample.
 from __future__ import annotations
 
 import json
-import runpy
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom  # noqa: E402
 
 from vbusd.cli import main  # noqa: E402
+from tests.helpers.capabilities import require
 
 REPO = Path(__file__).resolve().parents[1]
 STADIUM = REPO / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
 
-# Not an installed module (tests import with --import-mode=importlib): load it by path.
-scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
+from tests.helpers import scenes
 
 
 @pytest.fixture()
@@ -94,7 +91,7 @@ def test_decode_refuses_existing_output_and_bad_device(converted, tmp_path, caps
 
 
 def test_warp_cpu_decoder_matches_numpy(converted, tmp_path, capsys):
-    pytest.importorskip("warp")
+    require("warp")
     _, asset = converted
     assert main(["decode", str(asset), "-o", str(tmp_path / "numpy.usda")]) == 0
     assert main(["decode", str(asset), "-o", str(tmp_path / "warp.usda"), "--device", "cpu"]) == 0

@@ -14,24 +14,21 @@ issue's set of configurations, and the report's table states each time as a fact
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.helpers import scripts
+from tests.helpers.capabilities import require, unavailable
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "draw_cost.py"
 
 
 @pytest.fixture(scope="module")
 def dc():
-    spec = importlib.util.spec_from_file_location("vbusd_bench_draw_cost", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("benchmarks/draw_cost.py")
 
 
 @pytest.fixture(scope="module")
@@ -101,11 +98,11 @@ def test_vertex_animation_texture_holds_the_exact_pose_at_rows(dc, baked):
 
 @pytest.fixture(scope="module")
 def gl(dc):
-    pytest.importorskip("moderngl", reason="install moderngl (pip install moderngl)")
+    require("gl")
     try:
         ctx, framebuffer = dc.create_context()
-    except Exception as error:  # no EGL driver, or no OpenGL 4.3
-        pytest.skip(f"no EGL OpenGL 4.3 context (install Mesa's libegl1 and libgl1-mesa-dri): {error}")
+    except Exception as error:  # an EGL driver without OpenGL 4.3
+        unavailable("gl", f"no EGL OpenGL 4.3 context (Mesa's libegl1 and libgl1-mesa-dri give one): {error}")
     yield ctx, framebuffer
     ctx.release()
 
@@ -116,6 +113,7 @@ def _scene(dc, gl, character, count=3):
     return dc.Scene(ctx, framebuffer, character, crowd, np.arange(count))
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("method_name", ["static", "vb", "vb_pulled", "vat", "palette", "warp"])
 def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     body = dc.stadium_character(baked)
@@ -131,12 +129,11 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     elif method_name == "palette":
         method = dc.setup_palette(scene, dc.KeyedAnimation())
     else:
-        pytest.importorskip("warp", reason="install warp-lang")
         from vbusd.decoders.warp import available_devices
 
         devices = available_devices()  # CUDA (GL interop) where there is a GPU, else warp's CPU backend
-        if not devices:
-            pytest.skip("warp has neither a CUDA device nor its CPU backend here")
+        if "cuda" not in devices:
+            require("warp")
         method = dc.setup_warp(scene, baked, "cuda" if "cuda" in devices else "cpu")
     vat = dc.bake_vat(body.mesh, baked.clips[0]) if method_name == "vat" else None
     result = dc.check(method, scene, baked, vat)
@@ -156,6 +153,7 @@ def test_each_method_draws_what_numpy_computes(dc, baked, gl, method_name):
     scene.release()
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("variant", ["skin_buffers", "packed_vb", "packed_static", "k2"])
 def test_factor_study_variants_draw_what_numpy_computes(dc, baked, gl, variant):
     # The one-factor study (draw_cost.py factors) changes how the skin reaches the vertex shader; each
@@ -198,6 +196,7 @@ def _words(indices, weights):
     return words + [0] * (-len(words) % 4)
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("encoding,texel_format,variant", [
     ("crossMatrix", "float16", "dense"), ("crossMatrix", "float32", "k1"), ("crossMatrix", "unorm16", "k3"),
     ("affineMatrix", "float16", "k2"), ("affineMatrix", "float32", "body"), ("affineMatrix", "unorm16", "body"),
@@ -256,6 +255,7 @@ def test_pulled_method_reads_the_skin_records_by_vertex_id(dc, gl, encoding, tex
     scene.release()
 
 
+@pytest.mark.gl
 @pytest.mark.parametrize("encoding,texel_format,variant", [
     ("crossMatrix", "float16", "body"), ("quatTranslation", "unorm16", "k3"), ("dualQuat", "float32", "dense")])
 def test_pulled_texture_method_reads_the_records_as_webgl_must(dc, gl, encoding, texel_format, variant):
@@ -346,15 +346,13 @@ def test_bindings_table_states_times_as_factors_of_static(dc):
                     "goal <= 1.05x MET"]
 
 
+@pytest.mark.gl
 def test_lod_method_draws_each_level_and_selects_as_vbusd_lod(dc, baked, gl):
     """Issue 29's ``vb_lod``: three levels sharing the texture, chosen per instance by a compute shader.
     Each level's transform feedback agrees with numpy's skinning of that level's mesh, and the GPU's
     instances per level equal vbusd.baking.lod's choice (UsdLod's rule; tests/test_lod.py checks it against
     UsdLod itself) with frustum culling, on a crowd large enough that two levels appear."""
-    import os
 
-    if not os.environ.get("VBUSD_LOD_MESHES"):  # the GPU machine reads the levels made beforehand
-        pytest.importorskip("meshoptimizer")
     body = dc.stadium_character(baked)
     ctx, framebuffer = gl
     n = 2000

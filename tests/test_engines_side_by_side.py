@@ -10,34 +10,29 @@ bytes follow the stated formula (texture + 92 bytes per instance; 64 bytes per j
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
 
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
+
+from tests.helpers import scripts
+from tests.helpers.capabilities import shared_asset
 
 BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "engines_side_by_side.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("vbusd_bench_engines_side_by_side", BENCHMARK)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("benchmarks/engines_side_by_side.py")
 
 
-def test_clones_play_the_vbusd_clip_time(bench, shared_assets, tmp_path):
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
-    if not source.is_file():
-        pytest.skip("no CesiumMan among the shared assets")
+def test_clones_play_the_vbusd_clip_time(bench, webgpu_browser, tmp_path):
+    browser = webgpu_browser
+    source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     crowd = bench.build_crowd(source, tmp_path, 4)
-    with chromium(webgpu=True) as browser, ViewerServer(crowd, engine="three-webgpu", allow_outside_paths=True) as server:
+    with ViewerServer(crowd, engine="three-webgpu", allow_outside_paths=True) as server:
         page = ViewerPage(browser, server.url + "?ui=0&paused=1&width=320&height=180")
         try:
             assert page.error == "", page.error
@@ -59,20 +54,15 @@ def test_clones_play_the_vbusd_clip_time(bench, shared_assets, tmp_path):
     assert shifted > 2e-2
 
 
-def test_babylon_bva_plays_the_vbusd_clip_time(bench, shared_assets, tmp_path):
+def test_babylon_bva_plays_the_vbusd_clip_time(bench, browser, tmp_path):
     """The Babylon rows: Babylon's BakedVertexAnimationManager, baked from the same glTF and set to
     each vbusd instance's offset and rate, is posed like vbusd's probe within its frame hold (no
     interpolation between its frames: < 0.1 of the diagonal), and 0.25 s off it is clearly further
     (the measure can fail). The bytes follow the stated formulas (vbusd: texture + 96 bytes per
     instance; BVA: (joints + 1) float32 4x4 matrices per frame + 80 bytes per instance)."""
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
-    if not source.is_file():
-        pytest.skip("no CesiumMan among the shared assets")
+    source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     crowd = bench.build_crowd(source, tmp_path, 4)
-    with chromium() as browser, ViewerServer(crowd, engine="babylon", allow_outside_paths=True) as server:
+    with ViewerServer(crowd, engine="babylon", allow_outside_paths=True) as server:
         page = ViewerPage(browser, server.url + "?ui=0&paused=1&width=320&height=180")
         try:
             assert page.error == "", page.error

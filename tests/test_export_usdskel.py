@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
 from vbusd.cli import main  # noqa: E402
@@ -106,6 +105,7 @@ def character_only(tmp_path, source: Path) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("encoding", ["crossMatrix", "dualQuat", "quatTranslation", "affineMatrix"])
 def test_usdskel_skinning_equals_the_reference_decode_at_every_row(tmp_path, encodings, encoding):
     from pxr import Usd, UsdSkel
@@ -171,6 +171,7 @@ def crowd_asset(tmp_path) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_crowd_instances_play_their_clip_offset_and_rate_through_layer_offsets(tmp_path):
     from pxr import Usd
 
@@ -254,6 +255,7 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert out.read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_openusd_validators_accept_the_fallback_and_catch_a_missing_binding(tmp_path):
     """OpenUSD's own validators (UsdSkel's SkelBindingAPI checks, composition, stage metadata) find
     nothing in the fallback of the stadium crowd; with SkelBindingAPI removed from the mesh they do."""

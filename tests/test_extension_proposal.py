@@ -12,13 +12,15 @@
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import re
 import struct
 from pathlib import Path
 
 import pytest
+from tests.helpers import node as node_tools
+
+from tests.helpers import scripts
 
 REPO = Path(__file__).resolve().parents[1]
 PROPOSAL = REPO / "spec" / "extensions" / "VBUSD_virtual_bones"
@@ -152,17 +154,13 @@ def test_sample_folder_has_model_readme_screenshot_and_license():
 
 
 def test_sample_model_is_what_vbusd_export_writes(tmp_path):
-    spec = importlib.util.spec_from_file_location("make_extension_sample", REPO / "scripts" / "make_extension_sample.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = scripts.load("scripts/make_extension_sample.py")
     fresh = script.export_model(tmp_path / "StadiumCrowd.glb")
     assert fresh.read_bytes() == MODEL.read_bytes(), "run python scripts/make_extension_sample.py"
 
 
+@pytest.mark.node
 def test_sample_model_passes_the_gltf_validator():
-    spec = importlib.util.spec_from_file_location("node_tools", REPO / "tests" / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     result = node_tools.run_json("gltf_check.mjs", MODEL, packages=("three", "gltf-validator"))
     issues = result["validator"]["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]

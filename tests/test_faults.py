@@ -12,7 +12,6 @@ The exhaustive sweep (every step, every injected errno, every writer) is the ben
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -24,25 +23,19 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (before pxr: registers the schema)
 from vbusd.cli import main  # noqa: E402
 from vbusd.io import files  # noqa: E402
 
+from tests.helpers import faults as sweep
+
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 REPO = Path(__file__).resolve().parents[1]
 STADIUM_VB = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 
 
-def _load_sweep():
-    spec = importlib.util.spec_from_file_location("vbusd_fault_sweep", REPO / "benchmarks" / "fault_sweep.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-sweep = _load_sweep()
 
 
 @pytest.fixture()
@@ -161,6 +154,7 @@ def _race(sources, target, force):
     return [(p.wait(timeout=300), p.stderr.read()) for p in processes]
 
 
+@pytest.mark.cli
 def test_two_writers_of_a_new_output_one_wins_the_other_is_refused(convert_bench, tmp_path):
     target = tmp_path / "a.usda"
     results = _race(convert_bench.sources, target, force=False)
@@ -172,6 +166,7 @@ def test_two_writers_of_a_new_output_one_wins_the_other_is_refused(convert_bench
     assert sweep.validate(target, "usd") == [] and sweep.leftovers(target, {"rig.usda"}) == ([], [])
 
 
+@pytest.mark.cli
 def test_two_writers_with_force_never_mix(convert_bench, tmp_path):
     target = tmp_path / "a.usda"
     shutil.copytree(convert_bench.old_dir, tmp_path, dirs_exist_ok=True)
@@ -193,9 +188,9 @@ def test_a_held_lock_stops_the_second_writer_with_one_line_naming_the_first(conv
 
 # -- point caches -------------------------------------------------------------------------------
 
+@pytest.mark.cli
 def test_decode_killed_while_usd_writes_a_large_cache_leaves_nothing(tmp_path):
-    if not STADIUM_VB.is_file():
-        pytest.skip("the stadium-crowd sample is missing")
+    assert STADIUM_VB.is_file(), f"the committed sample {STADIUM_VB} is missing"
     output = tmp_path / "out" / "cache.usda"
     process = subprocess.Popen(sweep.vbusd_argv("decode", STADIUM_VB, "-o", output, "--quiet"),
                                env=sweep.child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -250,6 +245,7 @@ def _unshare_works() -> bool:
     return probe.returncode == 0
 
 
+@pytest.mark.cli
 def test_a_full_tmpfs_and_a_read_only_one_leave_the_old_asset(convert_bench, tmp_path):
     if not _unshare_works():
         pytest.skip("cannot mount a tmpfs here (unshare -rm and mount not permitted)")

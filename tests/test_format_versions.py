@@ -12,7 +12,6 @@ import pytest
 from vbusd.cli import main
 from vbusd.format import versioning
 
-pytest.importorskip("pxr")
 
 VALID = Path(__file__).parent / "fixtures" / "validate" / "valid" / "crossMatrix_float16"
 

@@ -14,19 +14,25 @@ from __future__ import annotations
 import base64
 import functools
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.helpers.capabilities import require, shared_asset, shared_asset_params, shared_assets_dir
+
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 # Collected at import time (the files parametrize the tests), so not through the shared_assets
 # fixture; the same two places: $VBUSD_SHARED_ASSETS, else ../shared/assets beside the checkout.
-ASSETS = Path(os.environ.get("VBUSD_SHARED_ASSETS") or Path(__file__).resolve().parents[2] / "shared" / "assets") \
-    / "gltf"
+ASSETS = (shared_assets_dir() or Path(__file__).resolve().parents[2] / "shared" / "assets") / "gltf"
 FILES = sorted(ASSETS.glob("*/*.gl*")) if ASSETS.is_dir() else []
 
-pytestmark = pytest.mark.skipif(not FILES, reason="shared glTF assets absent")
+
+@pytest.fixture(autouse=True)
+def _shared_assets():
+    """Every test here reads the shared glTF assets: skips without them, fails where required (CI)."""
+    require("assets")
 
 DTYPE = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
@@ -157,7 +163,7 @@ class Independent:
         return np.einsum("vk,vki->vi", w, moved)
 
 
-@pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
+@pytest.mark.parametrize("path", shared_asset_params(FILES, id=lambda p: p.stem))
 def test_asset_converts_and_decodes_like_the_spec(path):
     from vbusd.baking.baker import BakeOptions, bake
     from vbusd.decoders.reference import skin_mesh_at_rows
@@ -191,7 +197,7 @@ def test_asset_converts_and_decodes_like_the_spec(path):
     assert checked > 0
 
 
-@pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
+@pytest.mark.parametrize("path", shared_asset_params(FILES, id=lambda p: p.stem))
 def test_cross_matrix_converts_or_names_the_scaled_bone(path):
     """crossMatrix holds rigid transforms only: scaled joints (RecursiveSkeletons) are refused by name."""
     from vbusd.baking.baker import BakeOptions, bake
@@ -214,9 +220,7 @@ def test_cross_matrix_converts_or_names_the_scaled_bone(path):
 
 def test_recursive_skeletons_is_scaled():
     """The asset README's tricky case: skinning matrices carry uniform scale 0.3 / 0.09."""
-    path = ASSETS / "RecursiveSkeletons" / "RecursiveSkeletons.glb"
-    if not path.exists():
-        pytest.skip("RecursiveSkeletons absent")
+    path = shared_asset("gltf", "RecursiveSkeletons", "RecursiveSkeletons.glb")
 
     scene = _read(path)
     assert len(scene.animations) == 84
@@ -229,9 +233,7 @@ def test_recursive_skeletons_is_scaled():
 
 def test_rigged_simple_ignores_the_mesh_node_transform():
     """RiggedSimple: joint-world x IBM equals the Z_UP node's matrix at rest, not the mesh node's."""
-    path = ASSETS / "RiggedSimple" / "RiggedSimple.glb"
-    if not path.exists():
-        pytest.skip("RiggedSimple absent")
+    path = shared_asset("gltf", "RiggedSimple", "RiggedSimple.glb")
 
     scene = _read(path)
     assert any("not identity" in w for w in scene.warnings)
@@ -274,10 +276,8 @@ def test_agrees_with_usdskel_on_the_usd_wg_conversions(name, usdz, frames):
     """A second, unrelated oracle: UsdSkel skinning the usd-wg USDZ conversions of the same
     assets (time code = glTF seconds x 24). Vertex order differs, so points are matched to their
     nearest neighbour; the asset README measured <= 8.7e-7 between three.js and UsdSkel."""
-    glb = ASSETS / name / f"{name}.glb"
-    usd_path = USDSKEL / usdz
-    if not (glb.exists() and usd_path.exists()):
-        pytest.skip("asset pair absent")
+    glb = shared_asset("gltf", name, f"{name}.glb")
+    usd_path = shared_asset("usdskel", *usdz.split("/"))
     animation = _read(glb).animations[0]
     (mesh,) = animation.meshes
     worst = 0.0

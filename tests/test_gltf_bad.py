@@ -11,7 +11,6 @@ rules of spec/gltf-conversion.md (URIs, limits).
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -19,18 +18,13 @@ import pytest
 from vbusd.converters import gltf
 from vbusd.format.errors import InputError, VbusdError
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 BAD_DIR = FIXTURES / "bad"
 
 
-def _bad_table() -> dict:
-    spec = importlib.util.spec_from_file_location("gltf_make_fixtures", FIXTURES / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.BAD
-
-
-BAD = _bad_table()
+BAD = scripts.load("tests/fixtures/gltf/make_fixtures.py").BAD
 
 
 def _file(name: str) -> Path:
@@ -48,6 +42,7 @@ STRICT_WEIGHTS = {"weights_sum", "weights_zero"}
 them as glTF-Validator reports them (tests/test_real_characters_gltf.py checks the default)."""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(BAD))
 def test_bad_input_code_and_location(name):
     from vbusd.format.model import ReadOptions

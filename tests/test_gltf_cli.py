@@ -1,10 +1,9 @@
 """End to end: `vbusd convert` on the hand-built bar (.glb), read back, decode, compare with the
-hand-computed points of tests/test_gltf_reader.py; a bad file gives one line and no output."""
+hand-computed points of tests/test_gltf_reader.py; a bad file gives one line and no output. The
+command runs in this process (tests.helpers.cli: its output captured at the file descriptors)."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,17 +14,17 @@ BEND_1 = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 1.5, 0], [-1, 1, 0], [-1, 2, 0]
 CUBIC_HALF = [[0, 0, 0], [1, 0, 0], [0.578125, 1, 0], [1.578125, 1, 0], [1.15625, 2, 0],
               [2.15625, 2, 0]]
 
-def _vbusd(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "vbusd", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
+from tests.helpers import cli
 
 
-def test_convert_glb_round_trip(tmp_path):
+
+@pytest.mark.slow
+def test_convert_glb_round_trip(tmp_path, capfd):
     from vbusd.decoders.reference import skin_mesh
     from vbusd.io.usd import read_asset
 
     out = tmp_path / "bar.usda"
-    result = _vbusd("convert", str(FIXTURES / "bar.glb"), "-o", str(out), "--texel-format",
+    result = cli.run(capfd, "convert", str(FIXTURES / "bar.glb"), "-o", str(out), "--texel-format",
                     "float32", "--encoding", "affineMatrix", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "not identity" in result.stderr          # the ignored skinned-node transform is reported
@@ -44,14 +43,13 @@ def test_convert_glb_round_trip(tmp_path):
     points, _ = skin_mesh(vb, mesh, names.index("Cubic"), np.array([0.5]))
     np.testing.assert_allclose(points[0], CUBIC_HALF, atol=1e-5)
     # The written asset passes vbusd's own validator (another helper's command) with no errors.
-    from vbusd import cli
-
-    assert cli.main(["validate", str(out)]) == 0
+    assert cli.run(capfd, "validate", out).returncode == 0
 
 
-def test_convert_bad_glb_one_line_no_output(tmp_path):
+@pytest.mark.slow
+def test_convert_bad_glb_one_line_no_output(tmp_path, capfd):
     out = tmp_path / "out.usda"
-    result = _vbusd("convert", str(FIXTURES / "bad" / "glb_truncated.glb"), "-o", str(out),
+    result = cli.run(capfd, "convert", str(FIXTURES / "bad" / "glb_truncated.glb"), "-o", str(out),
                     cwd=tmp_path)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()

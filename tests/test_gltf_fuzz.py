@@ -41,6 +41,7 @@ def _read_expecting_vbusd_error_or_success(path: Path) -> None:
         assert "\n" not in str(error)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(4))
 def test_json_mutations(tmp_path, seed):
     base = json.loads((FIXTURES / "bar.gltf").read_text())

@@ -17,7 +17,6 @@ Independence:
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import json
 import math
 import shutil
@@ -31,27 +30,15 @@ import vbusd  # noqa: F401  (registers the schema plugin)
 from vbusd.cli import main
 from vbusd.format.layout import Layout
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones, VirtualBonesAsset
+from tests.helpers.node import gltf_check as check
 
-_spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-node_tools = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(node_tools)
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
-ALLOWED_INFOS = {"UNSUPPORTED_EXTENSION", "UNUSED_OBJECT"}
 
 
 def sha(array) -> str:
     return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
-
-
-def check(path: Path) -> dict:
-    """Validator and GLTFLoader results; fails on any validator error or warning."""
-    result = node_tools.run_json("gltf_check.mjs", path, packages=("three", "gltf-validator"))
-    issues = result["validator"]["issues"]
-    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]
-    assert {m["code"] for m in issues["messages"]} <= ALLOWED_INFOS, issues["messages"]
-    return result
 
 
 def export(tmp_path, asset, name, *extra):
@@ -108,6 +95,7 @@ def usd_reference(path: Path) -> dict:
             "texture": texture_path, "mesh_path": str(mesh.GetPath()), "anim_path": str(anim.GetPath())}
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("name", ["crowd.glb", "crowd.gltf"])
 def test_stadium_crowd_package_loads_in_three_and_validates(tmp_path, capsys, name):
     asset = copy_sample(tmp_path)
@@ -243,6 +231,7 @@ def write_synthetic(tmp_path, **kwargs) -> Path:
     return path
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("crowd", [True, False])
 def test_polygons_face_varying_six_influences_z_up(tmp_path, capsys, crowd):
     asset = write_synthetic(tmp_path, crowd=crowd)
@@ -351,6 +340,7 @@ def test_existing_output_needs_force_and_a_failed_write_leaves_nothing(tmp_path,
     assert out.read_text() == "keep" and sorted(p.name for p in tmp_path.iterdir()) == ["asset", "c.gltf"]
 
 
+@pytest.mark.node
 def test_crowd_built_by_vbusd_crowd_exports_and_a_missing_character_is_refused(tmp_path, capsys):
     character = copy_sample(tmp_path)
     crowd = tmp_path / "asset" / "crowd.usda"
@@ -372,6 +362,7 @@ def test_crowd_built_by_vbusd_crowd_exports_and_a_missing_character_is_refused(t
 GLTF_FIXTURES = Path(__file__).resolve().parent / "fixtures" / "gltf"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["two.glb", "two.gltf"])
 def test_a_crowd_of_two_characters_with_one_animation_name_exports(tmp_path, capsys, name):
     """Issue 24: two glTF characters whose animations share a prim name (bar.gltf twice gives
@@ -403,6 +394,7 @@ def test_a_crowd_of_two_characters_with_one_animation_name_exports(tmp_path, cap
     assert drawn == {"aInstances": "Bar_Anim", "bInstances": "Bar_Anim_2"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage, code", [
     (lambda data: data[:12] + (37).to_bytes(4, "little") + data[16:], "ktx2.vkFormat"),  # R8G8B8A8_UNORM
     (lambda data: data[:-100], "ktx2.levels"),                                         # level over the file

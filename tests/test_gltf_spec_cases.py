@@ -18,7 +18,6 @@ numpy/json, no vbusd code); expected numbers are literals or closed forms derive
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -30,20 +29,14 @@ from vbusd.converters import gltf
 from vbusd.converters.gltf_animation import sample_channel
 from vbusd.format.errors import VbusdError
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures" / "gltf"
 S = math.sqrt(0.5)
 BEND_1 = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 1.5, 0], [-1, 1, 0], [-1, 2, 0]]
 
 
-def _make_fixtures():
-    spec = importlib.util.spec_from_file_location("gltf_make_fixtures_spec_cases",
-                                                  FIXTURES / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-MF = _make_fixtures()
+MF = scripts.load("tests/fixtures/gltf/make_fixtures.py")
 
 
 def _lbs(mesh, matrices: np.ndarray) -> np.ndarray:
@@ -326,6 +319,7 @@ def test_mutated_documents(tmp_path, mutate, code, location):
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["data", "external", "glb"])
 def test_a_declared_gigabyte_is_refused_before_allocating(tmp_path, kind):
     """byteLength 10^9 over a 680-byte buffer: refused while tracemalloc's peak stays small."""

@@ -12,12 +12,11 @@
   silently dropped.
 
 Skips with one line when node, the npm packages (scripts/install-node-deps.sh) or the shared
-assets are missing.
+assets are missing (fails where the run requires them: CI).
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -28,39 +27,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import vbusd
 from vbusd.cli import main
+from vbusd.web.browser import ViewerPage
+from vbusd.web.server import ViewerServer
+
+from tests.helpers import node as node_tools
+from tests.helpers.browser import PAGE, check_skin_binding, reference_instance
+from tests.helpers.capabilities import shared_assets_dir
+
+pytestmark = pytest.mark.node
 
 REPO = Path(__file__).resolve().parents[1]
 FOLDER = REPO / "web" / "gltf-transform"
 CONFIG = FOLDER / "gltf-transform.config.mjs"
 SAMPLE = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
-INSTALL_HINT = "run scripts/install-node-deps.sh (npm ci in web/gltf-transform and web; needs Node.js 18 or newer)"
 POSITION_TOLERANCE = 1e-6  # of the bounding-box diagonal, as tests/test_browser.py
 
 
-def _load(name: str):
-    """A module of tests/ by path (the tests import vbusd with --import-mode=importlib; tests/ is not a package)."""
-    spec = importlib.util.spec_from_file_location(f"_gltf_transform_{name}", REPO / "tests" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _shared_assets() -> Path | None:
-    for candidate in (os.environ.get("VBUSD_SHARED_ASSETS"), REPO.parent / "shared" / "assets"):
-        if candidate and (Path(candidate) / "gltf").is_dir():
-            return Path(candidate)
-    return None
-
-
 def _node() -> str:
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip(f"node not found: install Node.js 18 or newer, then {INSTALL_HINT}")
-    for folder, package in ((FOLDER, "@gltf-transform/core"), (FOLDER, "@gltf-transform/cli"), (REPO / "web", "three")):
-        if not (folder / "node_modules" / package / "package.json").is_file():
-            pytest.skip(f"npm package {package} missing in {folder.relative_to(REPO)}: {INSTALL_HINT}")
-    return node
+    node_tools.require_packages("@gltf-transform/core", "@gltf-transform/cli", folder="web/gltf-transform")
+    return node_tools.require_packages("three", folder="web")
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -77,7 +64,7 @@ def packages(tmp_path_factory, request) -> Path:
     folder = tmp_path_factory.mktemp("gltf_transform")
     assert main(["export", str(SAMPLE), "-o", str(folder / "crowd.glb")]) == 0
     assert main(["export", str(SAMPLE), "-o", str(folder / "gltf" / "crowd.gltf")]) == 0
-    assets = _shared_assets()
+    assets = shared_assets_dir()
     if assets is not None:
         for name in ("CesiumMan", "Fox"):
             usd = folder / name / f"{name}.usda"
@@ -140,18 +127,10 @@ def _match(probed: np.ndarray, expected: np.ndarray) -> float:
 
 
 @pytest.mark.parametrize("skin", ["attributes", "pulled"])
-def test_optimized_crowd_animates_in_the_browser(packages, skin):
+def test_optimized_crowd_animates_in_the_browser(browser, packages, skin):
     """`gltf-transform optimize` (dedup, flatten, join, weld, simplify, prune, sparse) of crowd.glb
     with the config: the viewer's GPU-skinned vertices of instances at several times are vertices
     of the numpy decoder's skinned character, and the character moves between the times."""
-    test_browser = _load("test_browser")
-    from vbusd.web.browser import ViewerPage, chromium, unavailable_reason  # noqa: PLC0415
-    from vbusd.web.server import ViewerServer  # noqa: PLC0415
-    import vbusd  # noqa: PLC0415
-
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
     out = packages / "optimized_browser.glb"
     # The issue's command as written: the config first, then a plain optimize (no --compress: with the
     # config that leaves the geometry uncompressed, and says so, instead of meshopt's refusal).
@@ -160,16 +139,16 @@ def test_optimized_crowd_animates_in_the_browser(packages, skin):
     assert result is None or "leaves the geometry uncompressed" in result.stderr
     asset = vbusd.read_asset(SAMPLE)
     probes = [(0, 0.0), (3, 0.61), (777, 3.71), (1199, 12.05)]
-    with chromium() as browser, ViewerServer(out) as server:
-        page = ViewerPage(browser, server.url + test_browser.PAGE + f"&skin={skin}")
+    with ViewerServer(out) as server:
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
         try:
             assert page.error == "", page.error
-            test_browser.check_skin_binding(page, skin)  # pulled: records packed from the de-interleaved skin
+            check_skin_binding(page, skin)  # pulled: records packed from the de-interleaved skin
             previous = None
             for instance, t in probes:
                 probe = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
                 positions = np.asarray(probe["positions"], dtype=np.float64).reshape(-1, 3)
-                expected, _ = test_browser.reference_instance(asset, instance, t)
+                expected, _ = reference_instance(asset, instance, t)
                 assert positions.shape[0] > 0
                 diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
                 assert _match(positions, expected) / diagonal <= POSITION_TOLERANCE, (instance, t)

@@ -11,7 +11,6 @@ valid base asset these tests start from.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -21,19 +20,14 @@ from vbusd.cli import main
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.validators.api import validate
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures"
 NOT_OBJECTS = ["null", "[]", "3", '"text"', "true"]
 """JSON documents that are valid JSON but not objects."""
 
 
-def _make_fixtures():
-    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "validate" / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-MF = _make_fixtures()
+MF = scripts.load("tests/fixtures/validate/make_fixtures.py")
 CONTAINERS = {"exr": ("crossMatrix", "float16"), "png": ("quatTranslation", "unorm16"),
               "ktx2": ("dualQuat", "float32")}
 EMBEDDED_AT = {"exr": "header/vbusd.layout", "png": "iTXt vbusd.layout", "ktx2": "kvd/vbusd.layout"}
@@ -90,6 +84,7 @@ def test_a_sidecar_that_is_not_an_object_is_a_finding(tmp_path, text):
     _only_the_broken_copy(validate(texture), str(sidecar))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("container", sorted(CONTAINERS))
 @pytest.mark.parametrize("place", ["sidecar", "embedded"])
 @pytest.mark.parametrize("text", ["null", "[1, 2]"])
@@ -184,6 +179,7 @@ def test_a_gltf_document_that_is_not_an_object_is_refused(tmp_path, text):
     assert "JSON " + {"null": "null", "[]": "array", "3": "number"}[text] in caught.value.message
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", [None, [], 3, "text"])
 def test_gltf_extras_of_any_json_kind_are_accepted(tmp_path, value):
     """glTF 2.0 lets extras hold any value; pygltflib failed on a list or a number without a place."""
@@ -252,6 +248,7 @@ def test_the_command_prints_one_line_for_a_bad_manifest(tmp_path, capsys):
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text", ["null", "[]", '"text"', '{"state": "done", "files": null, "inputs": null}'])
 def test_a_cache_record_of_the_wrong_kind_vouches_for_nothing(tmp_path, capsys, text):
     """Such a record is no record: the output it would vouch for is not the batch's own, so it is

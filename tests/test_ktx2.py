@@ -19,7 +19,6 @@ from vbusd.io.generator import GENERATOR
 
 import base64
 import hashlib
-import importlib.util
 import json
 import struct
 import tracemalloc
@@ -34,10 +33,8 @@ from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Layout
 from vbusd.format.model import Clip, VirtualBones
 from vbusd.io import ktx2, textures
+from tests.helpers import node as node_tools
 
-_spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-node_tools = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(node_tools)
 
 MAGIC = bytes([0xAB, 0x4B, 0x54, 0x58, 0x20, 0x32, 0x30, 0xBB, 0x0D, 0x0A, 0x1A, 0x0A])
 VK = {"float16": 97, "float32": 109, "unorm16": 91}
@@ -192,6 +189,7 @@ def test_suffix_picks_ktx2_for_every_texel_format(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("texel_format", FORMATS)
 @pytest.mark.parametrize("compression", ["none", "zstd"])
 def test_ktx_parse_and_ktx2loader_read_vbusd_files_bit_for_bit(tmp_path, texel_format, compression):

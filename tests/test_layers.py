@@ -25,6 +25,8 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format import versioning
 from vbusd.format.errors import InputError, OptionsError, VersionError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import require, shared_asset
 
 HERE = Path(__file__).resolve().parent
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
@@ -121,32 +123,21 @@ def test_layer_errors_are_one_line():
     assert error.value.code == "convert.mask" and "b7" in str(error.value)
 
 
-def _node_tools():
-    sys.path.insert(0, str(HERE / "node"))
-    try:
-        import node_tools
-    finally:
-        sys.path.pop(0)
-    return node_tools
-
-
 @pytest.fixture(scope="module")
 def fox(shared_assets):
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     from vbusd.converters import gltf
 
     return path, gltf.read(path).animations[0]
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("encoding", ["crossMatrix", "quatTranslation"])
 def test_fox_walking_with_its_upper_body_surveying_matches_threejs(fox, encoding):
     """The Fox walks (base) with its spine and everything above it playing Survey (the override
     layer, mask "upper" = b_Spine01_02 and below) at weights 0.35 and 1: joint world matrices and
     skinned vertices against three.js' AnimationMixer, at row times of both clips (between rows the
     bake's interpolation, not the blend, would differ from three.js' keyframe interpolation)."""
-    node_tools = _node_tools()
     path, animation = fox
     vb = bake(animation, BakeOptions(encoding=encoding, texel_format="float32", masks=(("upper", "b_Spine01_02"),)))
     mask = np.asarray(vb.masks[0][1])
@@ -248,15 +239,11 @@ def test_usdskel_layer_equals_the_same_blend_of_usdskel_poses(tmp_path):
     (SkeletonQuery.ComputeJointLocalTransforms) blended as spec 8.6 says with USD's math
     (UsdSkel.DecomposeTransform, Gf.Slerp, UsdSkel.MakeTransform) and concatenated by
     UsdSkel.ConcatJointTransforms under the skeleton's world transform."""
-    pxr = pytest.importorskip("pxr")  # noqa: F841
-    import runpy
-    from types import SimpleNamespace
-
     from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
 
     from vbusd.converters import usdskel
 
-    scenes = SimpleNamespace(**runpy.run_path(str(HERE / "fixtures" / "usdskel" / "scenes.py")))
+    from tests.helpers import scenes
     rig = scenes.RigSpec(joints=scenes.chain_joints(5), bend=70.0,
                          skel_xform=scenes.rotation((0, 1, 0), 30) * scenes.translation(1, 2, 3),
                          root_xform={1.0: scenes.translation(0, 0, 0), 13.0: scenes.translation(2, 0, -1)})
@@ -427,7 +414,6 @@ TOut main(TIn input)
 def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
     """Skin ``vb.meshes[0]`` with the generated layer functions, one instance per pose
     ``(base clip, base tau, layer clip, layer tau, weight, mask)``: (points, normals) per pose."""
-    import shutil
     import subprocess
 
     import moderngl
@@ -443,8 +429,7 @@ def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
                               varyings=["t_position", "t_normal"])
         names = {"texture": "vb_texture", "rig": "vb_rig", "prefix": "t_", "inputs": ("clips", "times", "mask")}
     else:
-        if not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-            pytest.skip("glslang-tools and spirv-cross are not installed")
+        require("glslang")
         hlsl, spirv = workdir / "layers.hlsl", workdir / "layers.spv"
         hlsl.write_text(defines + module + _HLSL_TEST_MAIN)
         compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
@@ -505,11 +490,10 @@ def run_layered_shader(ctx, lang: str, vb, poses, workdir: Path):
 
 @pytest.fixture(scope="module")
 def gl():
-    moderngl = pytest.importorskip("moderngl")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    import moderngl
+
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     framebuffer = ctx.simple_framebuffer((1, 1))
     framebuffer.use()
     yield ctx
@@ -517,12 +501,14 @@ def gl():
     ctx.release()
 
 
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.node
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("encoding", ["crossMatrix", "affineMatrix", "quatTranslation"])
 def test_shader_layers_match_threejs_on_the_fox(gl, fox, lang, encoding, tmp_path):
     """The Fox walking with its upper body surveying (weights 0.35 and 1), skinned on the GPU by the
     generated GLSL and HLSL layer functions (float32 texels), against three.js' AnimationMixer."""
-    node_tools = _node_tools()
     path, animation = fox
     vb = bake(animation, BakeOptions(encoding=encoding, texel_format="float32", masks=(("upper", "b_Spine01_02"),)))
     masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
@@ -672,6 +658,7 @@ def _vector_matches(vector, index, points, normals, who):
     return point_error / tolerance["position"]
 
 
+@pytest.mark.cli
 def test_layer_vectors_are_there_and_current():
     assert len(LAYER_VECTORS) == 8
     import subprocess
@@ -704,7 +691,6 @@ def test_numpy_reference_reproduces_every_layer_vector(path):
 
 def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
     """Skin every (instance, vertex) of a layer vector with vbSkinLayered: (points, normals)."""
-    import shutil
     import subprocess
 
     import moderngl
@@ -720,8 +706,7 @@ def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
                               varyings=["t_position", "t_normal"])
         names = {"texture": "vb_texture", "rig": "vb_rig", "prefix": "t_"}
     else:
-        if not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-            pytest.skip("glslang-tools and spirv-cross are not installed")
+        require("glslang")
         hlsl, spirv = workdir / "vector.hlsl", workdir / "vector.spv"
         hlsl.write_text(module + _HLSL_VECTOR_MAIN)
         compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
@@ -781,6 +766,8 @@ def run_layer_vector(ctx, lang: str, vector: dict, time: float, workdir: Path):
     return result[..., :3], result[..., 3:]
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
 def test_shader_layers_reproduce_every_layer_vector(gl, lang, path, tmp_path):
@@ -791,9 +778,9 @@ def test_shader_layers_reproduce_every_layer_vector(gl, lang, path, tmp_path):
 
 
 def _warp_cpu():
-    warp = pytest.importorskip("vbusd.decoders.warp")
-    if "cpu" not in warp.available_devices():
-        pytest.skip("warp's CPU backend is not available")
+    require("warp")
+    from vbusd.decoders import warp
+
     return warp
 
 
@@ -808,6 +795,7 @@ def test_warp_reproduces_every_layer_vector(path):
         _vector_matches(vector, index, points, normals, "warp (cpu)")
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("encoding", ["crossMatrix", "affineMatrix", "quatTranslation"])
 def test_warp_layers_match_threejs_on_the_fox(fox, encoding):
     """The Fox walking with its upper body surveying through the warp kernels on the CPU (one
@@ -815,7 +803,6 @@ def test_warp_layers_match_threejs_on_the_fox(fox, encoding):
     warp = _warp_cpu()
     from vbusd.format.model import Crowd
 
-    node_tools = _node_tools()
     path, animation = fox
     vb = bake(animation, BakeOptions(encoding=encoding, texel_format="float32", masks=(("upper", "b_Spine01_02"),)))
     masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
@@ -846,7 +833,7 @@ def test_validate_reports_bad_parents_and_masks_with_codes(tmp_path):
     """A cycle in boneParents (metadata.inconsistent, in the sidecar), a prim whose vb:boneParents
     points outside the bones (prim.attribute.invalid), and a prim whose mask weights disagree with
     the texture's (metadata.mismatch): each one finding with its code, never a traceback."""
-    from pxr import Sdf, Usd, Vt
+    from pxr import Usd, Vt
 
     vb = bake(_spec_example(), BakeOptions(encoding="crossMatrix", texel_format="float32", masks=(("arm", "b1"),)))
     from vbusd.format.model import VirtualBonesAsset
@@ -901,16 +888,15 @@ def test_shader_command_layers_option(capsys):
     assert document["layers"] is True and "Texture2D<float4> vb_rig;" in document["source"]
 
 
+@pytest.mark.cli
+@pytest.mark.node
 def test_runtime_layered_shader_module_equals_vbusd_shader():
     """The three.js runtime's shaderModule(..., layers = true) is `vbusd shader --layers --no-main`,
     character for character, for every encoding and texel format and other sizes."""
-    import shutil
     import subprocess
 
     web = HERE.parent / "web"
-    node = shutil.which("node")
-    if node is None or not (web / "node_modules" / "three" / "package.json").is_file():
-        pytest.skip("node or web/node_modules missing: npm ci in web/")
+    node = node_tools.require_packages("three", folder="web")
     script = """
 import { shaderModule } from './src/material.js';
 const out = {};

@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 
 from vbusd.cli import main
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import shared_asset
 
 ROOT = Path(__file__).resolve().parents[1]
 STADIUM = ROOT / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 
-pytest.importorskip("meshoptimizer")
 
 
 def _heuristic(thresholds, extent):
@@ -189,15 +190,12 @@ def test_lod_structure_findings(stadium_lods, tmp_path):
         assert report.exit_status == 1
 
 
+@pytest.mark.node
 def test_export_writes_msft_lod_that_the_khronos_validator_accepts(stadium_lods):
     """The crowd of the 3-level stadium exported as a .glb: glTF-Validator reports no error or
     warning, three.js's GLTFLoader loads it, and the crowd node lists its LOD nodes in MSFT_lod with
     MSFT_screencoverage [t0, t1, 0], every level instanced with the same instance attributes."""
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     import json
     import struct
 
@@ -262,25 +260,20 @@ def test_gltf_source_levels_msft_lod_are_kept(tmp_path):
     assert main(["convert", str(source), "-o", str(tmp_path / "again.usda"), "--lod-ratios", "0.5"]) == 2
 
 
+@pytest.mark.node
 def test_gltf_character_with_generated_levels_validates_and_exports_clean(shared_assets, tmp_path):
     """The Khronos CesiumMan (a glTF character) converted with --lod-ratios 0.5,0.2: vbusd validate
     clean, and its runtime package (MSFT_lod) clean for the Khronos glTF-Validator."""
-    import importlib.util
 
     from vbusd.validators.api import validate
 
-    source = shared_assets / "gltf" / "CesiumMan" / "CesiumMan.glb"
-    if not source.is_file():
-        pytest.skip(f"{source} is missing")
+    source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     out = tmp_path / "cesium.usda"
     assert main(["convert", str(source), "-o", str(out), "--lod-ratios", "0.5,0.2", "-q"]) == 0
     report = validate(out)
     assert report.error_count == 0 and report.counts["warning"] == 0, [f.code for f in report.findings]
     package = tmp_path / "cesium.glb"
     assert main(["export", str(out), "-o", str(package), "-q"]) == 0
-    spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-    node_tools = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(node_tools)
     issues = node_tools.run_json("gltf_check.mjs", package, packages=("three", "gltf-validator"))["validator"]["issues"]
     assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"][:5]
 
@@ -310,6 +303,7 @@ def _usd_source_with_levels(folder: Path, thresholds=(0.02,)) -> Path:
     return source
 
 
+@pytest.mark.slow
 def test_usd_source_lod_root_is_kept(tmp_path):
     """A UsdSkel source whose meshes lie under a UsdLod root converts with that root, its level names
     and its thresholds; validate clean."""
@@ -356,6 +350,7 @@ def test_meshes_named_for_their_level_become_levels(tmp_path):
     assert sorted((m.lod, m.path.rsplit("/", 1)[-1]) for m in vb.meshes) == [(0, "Body_LOD0"), (1, "Body_LOD1")]
 
 
+@pytest.mark.slow
 def test_point_cache_and_usdskel_fallback_keep_the_lod_root(stadium_lods):
     """vbusd decode and export --as usdskel of a 3-level asset: each output has the UsdLod root with the
     three levels in order (a viewer draws one level, not all three on top of each other)."""

@@ -70,6 +70,7 @@ def test_unorm_ranges_only_for_unorm16():
     assert "unormRanges" not in md.to_dict(make_vb("dualQuat", "float32", bones=5, rows=7), generator=GENERATOR)
 
 
+@pytest.mark.slow
 def test_output_validates_against_the_json_schema_directly():
     schema = json.loads((resources.files("vbusd.schema") / "layout-metadata.schema.json")
                         .read_text(encoding="utf-8"))

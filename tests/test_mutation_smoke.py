@@ -5,16 +5,14 @@ benchmarks/README.md; this slice uses another seed each release only when the ha
 
 from __future__ import annotations
 
-import importlib.util
 
 import pytest
 
+from tests.helpers import scripts
+
 
 def _harness(repo_root):
-    spec = importlib.util.spec_from_file_location("mutation_run", repo_root / "benchmarks" / "mutation_run.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("benchmarks/mutation_run.py")
 
 
 @pytest.mark.slow

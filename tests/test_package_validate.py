@@ -9,7 +9,6 @@ what info must say is that asset's own numbers, and what validate must find is w
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import struct
 from pathlib import Path
@@ -21,18 +20,13 @@ from vbusd.cli import main
 from vbusd.format.errors import InputError
 from vbusd.validators.api import validate
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures" / "validate"
 EXTENSION = "/extensions/VBUSD_virtual_bones"
 
 
-def _make_fixtures():
-    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-MF = _make_fixtures()
+MF = scripts.load("tests/fixtures/validate/make_fixtures.py")
 
 
 @pytest.fixture(params=["glb", "gltf"])

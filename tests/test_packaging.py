@@ -26,7 +26,8 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("build")
+from tests.helpers.web_pages import page_files
+
 
 pytestmark = pytest.mark.packaging
 
@@ -91,6 +92,7 @@ def _dist_info_file(wheel_path: Path, name: str) -> str:
         return archive.read(member).decode()
 
 
+@pytest.mark.cli
 def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
     required = [
         "vbusd/__init__.py", "vbusd/cli/__init__.py", "vbusd/format/layout.py",
@@ -103,6 +105,7 @@ def test_wheel_has_the_three_import_packages_and_package_data(wheel_names):
     assert not missing, f"missing from the wheel: {missing}"
 
 
+@pytest.mark.cli
 def test_every_source_module_and_schema_file_is_in_the_wheel(wheel_names, source_copy):
     # A sub-package folder that pyproject's explicit `packages` list forgets is silently left out
     # of the wheel; compare against the source folders themselves.
@@ -117,6 +120,7 @@ def test_every_source_module_and_schema_file_is_in_the_wheel(wheel_names, source
     assert not missing, f"source files not packaged: {missing}"
 
 
+@pytest.mark.cli
 def test_no_taken_top_level_names(wheel_names):
     top_level = {name.split("/", 1)[0] for name in wheel_names}
     dist_info = {name for name in top_level if name.endswith(".dist-info")}
@@ -125,6 +129,7 @@ def test_no_taken_top_level_names(wheel_names):
         assert not any(name.startswith(f"{taken}/") for name in wheel_names), taken
 
 
+@pytest.mark.cli
 def test_top_level_txt_names_only_vbusd(wheel_path):
     with zipfile.ZipFile(wheel_path) as archive:
         members = [n for n in archive.namelist() if n.endswith(".dist-info/top_level.txt")]
@@ -133,6 +138,7 @@ def test_top_level_txt_names_only_vbusd(wheel_path):
         assert archive.read(members[0]).decode().split() == ["vbusd"]
 
 
+@pytest.mark.cli
 def test_console_script_and_converter_entry_points(wheel_path):
     parser = configparser.ConfigParser(delimiters=("=",))
     parser.optionxform = str  # entry-point names are case-sensitive
@@ -145,6 +151,7 @@ def test_console_script_and_converter_entry_points(wheel_path):
         assert target.strip().startswith("vbusd.converters."), (name, target)
 
 
+@pytest.mark.cli
 def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     site = tmp_path / "site"
     with zipfile.ZipFile(wheel_path) as archive:
@@ -171,6 +178,7 @@ def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     assert report["plugInfo"] and report["jsonSchema"]
 
 
+@pytest.mark.cli
 def test_viewer_and_three_js_ship_in_the_wheel(wheel_path, wheel_names, source_copy):
     """`vbusd view` works offline from the wheel: the build step (setup.py) put every file of web/
     the pages use (the pages, both runtimes, three.js, the Babylon.js bundle, their licences) under
@@ -190,21 +198,20 @@ def test_viewer_and_three_js_ship_in_the_wheel(wheel_path, wheel_names, source_c
             assert archive.read(f"vbusd/web/static/{url}") == source.read_bytes(), url
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("engine", ["three", "three-webgpu", "babylon"])
 def test_vbusd_view_from_the_unpacked_wheel_serves_every_module_of_each_engine(wheel_path, tmp_path_factory, engine):
     """``vbusd view --engine E --no-browser`` run from the unpacked wheel (outside the checkout, so
     the package data is what it serves): the page and every module it imports, followed through
     the page's import map (tests/test_browser_package.py's walk), over HTTP."""
     import http.client
-    import runpy
-
     from vbusd.web.engines import ENGINE_PAGES
 
     site = tmp_path_factory.getbasetemp() / "view-site"
     if not site.exists():
         with zipfile.ZipFile(wheel_path) as archive:
             archive.extractall(site)
-    walk = runpy.run_path(str(Path(__file__).parent / "test_browser_package.py"))["page_files"]
+    walk = page_files
     env = dict(os.environ, PYTHONPATH=str(site))
     env.pop("PXR_PLUGINPATH_NAME", None)
     asset = REPO / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"

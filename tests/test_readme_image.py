@@ -20,7 +20,6 @@ import numpy as np
 import png
 import pytest
 
-from vbusd.web.browser import unavailable_reason
 
 REPO = Path(__file__).resolve().parents[1]
 PICTURE = REPO / "docs" / "images" / "stadium_crowd.png"
@@ -41,10 +40,9 @@ def test_readme_opens_with_the_picture():
     assert PICTURE.is_file()
 
 
+@pytest.mark.browser
+@pytest.mark.cli
 def test_picture_is_what_the_script_makes_now(tmp_path):
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
     made = tmp_path / "stadium_crowd.png"
     result = subprocess.run([sys.executable, str(SCRIPT), "-o", str(made)], capture_output=True, text=True,
                             timeout=300)

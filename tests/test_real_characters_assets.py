@@ -4,13 +4,11 @@ glTF: every mesh of three.js's scene (GLTFLoader r187 under Node, keyed by glTF 
 primitive) is a converted mesh, and the decoded asset (affineMatrix, float32) matches three.js at a
 few rows of every clip. USD: every visible, non-guide gprim of a stage that converts is a converted
 mesh, except curves (no surface to bind), which the converter names in a warning. Assets are found
-through $VBUSD_SHARED_ASSETS or ../shared/assets; the tests skip without them.
+through $VBUSD_SHARED_ASSETS or ../shared/assets; the tests skip without them (and fail where they are required: CI).
 """
 
 from __future__ import annotations
 
-import importlib.util
-import os
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +19,11 @@ from vbusd.decoders.reference import skin_mesh
 from vbusd.format.errors import VbusdError
 from vbusd.format.model import ReadOptions
 from vbusd.io.gltf import load
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import shared_asset_params, shared_assets_dir
 
-_spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-node_tools = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(node_tools)
 
-ASSETS = Path(os.environ.get("VBUSD_SHARED_ASSETS", Path(__file__).resolve().parents[2] / "shared" / "assets"))
+ASSETS = shared_assets_dir() or Path(__file__).resolve().parents[2] / "shared" / "assets"
 GLTF = sorted((ASSETS / "gltf").glob("*/*.gl*")) if (ASSETS / "gltf").is_dir() else []
 USD = sorted(p for p in (ASSETS / "usdskel").rglob("*") if p.suffix in (".usda", ".usdc", ".usdz")) \
     if (ASSETS / "usdskel").is_dir() else []
@@ -45,9 +42,9 @@ def _key(mesh) -> str:
     return f"{node}:{int(mesh.source_path.rsplit('/', 1)[1])}"
 
 
-@pytest.mark.skipif(not GLTF, reason="shared glTF assets not found ($VBUSD_SHARED_ASSETS or ../shared/assets)")
-@pytest.mark.parametrize("path", GLTF, ids=lambda p: p.name)
-def test_gltf_asset_whole_and_as_three_shows_it(path):
+@pytest.mark.node
+@pytest.mark.parametrize("path", shared_asset_params(GLTF))
+def test_gltf_asset_whole_and_as_three_shows_it(path, shared_assets):
     from vbusd.converters import gltf
 
     shown = node_tools.run_json("skin_pose.mjs", path, "-", 0, packages=("three",))["poses"][0]["byNode"]
@@ -72,9 +69,9 @@ def test_gltf_asset_whole_and_as_three_shows_it(path):
             assert np.linalg.norm(ours - theirs, axis=-1).max() <= tolerance * diagonal, (clip.name, key)
 
 
-@pytest.mark.skipif(not USD, reason="shared UsdSkel assets not found ($VBUSD_SHARED_ASSETS or ../shared/assets)")
-@pytest.mark.parametrize("path", USD, ids=lambda p: str(p.relative_to(ASSETS / "usdskel")))
-def test_usd_asset_whole(path):
+@pytest.mark.slow
+@pytest.mark.parametrize("path", shared_asset_params(USD, id=lambda p: str(p.relative_to(ASSETS / "usdskel"))))
+def test_usd_asset_whole(path, shared_assets):
     from pxr import Usd, UsdGeom
 
     from vbusd.converters import usdskel

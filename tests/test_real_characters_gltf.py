@@ -16,7 +16,6 @@ name the file lacks, ``--strict-weights`` on unnormalized weights, a bad clip un
 from __future__ import annotations
 
 import base64
-import importlib.util
 import json
 from pathlib import Path
 
@@ -27,10 +26,9 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.converters import gltf
 from vbusd.decoders.reference import skin_mesh_at_rows
 from vbusd.format.model import ReadOptions
+from tests.helpers import cli
+from tests.helpers import node as node_tools
 
-_spec = importlib.util.spec_from_file_location("vbusd_node_tools", Path(__file__).parent / "node" / "node_tools.py")
-node_tools = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(node_tools)
 
 TOLERANCE = 1e-6
 """Largest decoded-vs-three.js distance, as a fraction of the bounding box diagonal."""
@@ -239,6 +237,7 @@ def compare_with_three(path: Path, options: ReadOptions = ReadOptions()) -> dict
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.node
 def test_renormalized_weights_and_attachments_match_three(tmp_path):
     path = soldier().save(tmp_path / "soldier.gltf")
     worst = compare_with_three(path)
@@ -297,6 +296,7 @@ def rigid_robot(with_skin: bool) -> GltfBuilder:
     return b
 
 
+@pytest.mark.node
 @pytest.mark.parametrize("with_skin", [True, False], ids=["unused-skin", "no-skin"])
 def test_rigid_parts_without_skinned_mesh_match_three(tmp_path, with_skin):
     path = rigid_robot(with_skin).save(tmp_path / "robot.gltf")
@@ -389,28 +389,26 @@ def test_strict_weights_refuses(tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------
 
 
-def _convert(tmp_path, path, *extra):
-    import subprocess
-    import sys
-
+def _convert(capfd, tmp_path, path, *extra):
+    """``vbusd convert`` in this process (tests.helpers.cli), its output captured like a child's."""
     out = tmp_path / "out" / "soldier.usda"
-    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(path), "-o", str(out), "--format", "json",
-                             *extra], capture_output=True, text=True, timeout=300)
-    return result, out
+    return cli.run(capfd, "convert", path, "-o", out, "--format", "json", *extra), out
 
 
-def test_bad_clip_error_names_it_and_suggests_options(tmp_path):
+@pytest.mark.slow
+def test_bad_clip_error_names_it_and_suggests_options(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path)
+    result, out = _convert(capfd, tmp_path, path)
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1, result.stderr
     assert "clip 'Spawn'" in lines[0] and "--on-bad-clip skip" in lines[0] and "--clips" in lines[0]
     assert "Traceback" not in result.stderr and not out.parent.exists()
 
 
-def test_bad_clip_skip_converts_the_others(tmp_path):
+@pytest.mark.node
+def test_bad_clip_skip_converts_the_others(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--on-bad-clip", "skip")
+    result, out = _convert(capfd, tmp_path, path, "--on-bad-clip", "skip")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [c["name"] for c in report["animations"][0]["clips"]] == ["Walk"]
@@ -423,17 +421,19 @@ def test_bad_clip_skip_converts_the_others(tmp_path):
     assert max(worst.values()) <= TOLERANCE, worst
 
 
-def test_clips_selects(tmp_path):
+@pytest.mark.slow
+def test_clips_selects(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--clips", "Walk")
+    result, out = _convert(capfd, tmp_path, path, "--clips", "Walk")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [c["name"] for c in report["animations"][0]["clips"]] == ["Walk"] and report["skippedClips"] == []
 
 
-def test_only_bad_clips_exit_2(tmp_path):
+@pytest.mark.slow
+def test_only_bad_clips_exit_2(tmp_path, capfd):
     path = soldier(spawn=True).save(tmp_path / "soldier.gltf")
-    result, out = _convert(tmp_path, path, "--clips", "Spawn", "--on-bad-clip", "skip")
+    result, out = _convert(capfd, tmp_path, path, "--clips", "Spawn", "--on-bad-clip", "skip")
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and "convert.nothingConverted" in lines[-1], result.stderr
     assert not out.parent.exists()
@@ -444,6 +444,7 @@ def test_only_bad_clips_exit_2(tmp_path):
 # ------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.node
 def test_morph_warning_states_largest_displacement(tmp_path):
     path = soldier(morph=True).save(tmp_path / "soldier.gltf")
     scene = gltf.read(path)

@@ -12,18 +12,19 @@ and ``vbusd info`` shows.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.baking.baker import BakeOptions, bake  # noqa: E402
 from vbusd.converters import usdskel  # noqa: E402
 from vbusd.decoders.reference import skin_mesh_at_rows  # noqa: E402
 from vbusd.format.model import ReadOptions  # noqa: E402
+
+from tests.helpers import cli  # noqa: E402
+
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
 
 TOLERANCE = 1e-6
 
@@ -284,51 +285,48 @@ def _volume(mesh) -> float:
     return total
 
 
-def _convert(tmp_path, source, *extra):
+def _convert(capfd, tmp_path, source, *extra):
+    """``vbusd convert`` in this process (tests.helpers.cli), its output captured like a child's."""
     out = tmp_path / "out" / "character.usda"
-    result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(source), "-o", str(out),
-                             "--format", "json", *extra], capture_output=True, text=True, timeout=300)
-    return result, out
+    return cli.run(capfd, "convert", source, "-o", out, "--format", "json", *extra), out
 
 
-def test_units_and_up_axis_are_kept_and_shown(character, tmp_path):
+def test_units_and_up_axis_are_kept_and_shown(character, tmp_path, capfd):
     from pxr import Usd, UsdGeom
 
-    result, out = _convert(tmp_path, character, "--clips", "Skel")
+    result, out = _convert(capfd, tmp_path, character, "--clips", "Skel")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["metersPerUnit"] == 0.01 and report["upAxis"] == "Z"
     stage = Usd.Stage.Open(str(out))
     assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 0.01
-    info = subprocess.run([sys.executable, "-m", "vbusd", "info", str(out), "--format", "json"],
-                          capture_output=True, text=True, timeout=120)
+    info = cli.run(capfd, "info", out, "--format", "json")
     assert info.returncode == 0, info.stderr
     shown = json.loads(info.stdout)
     assert shown["upAxis"] == "Z" and shown["metersPerUnit"] == 0.01
-    text = subprocess.run([sys.executable, "-m", "vbusd", "info", str(out)], capture_output=True, text=True,
-                          timeout=120).stdout
+    text = cli.run(capfd, "info", out).stdout
     assert "Z up, 1 unit = 0.01 m" in text
 
 
-def test_clips_select_and_unknown_clip_is_one_line(character, tmp_path):
-    result, out = _convert(tmp_path, character, "--clips", "Skel")
+def test_clips_select_and_unknown_clip_is_one_line(character, tmp_path, capfd):
+    result, out = _convert(capfd, tmp_path, character, "--clips", "Skel")
     assert result.returncode == 0, result.stderr
     assert [a["path"] for a in json.loads(result.stdout)["animations"]] == ["/Root/Skel"]
-    result, out = _convert(tmp_path, character, "--clips", "Run", "--force")
+    result, out = _convert(capfd, tmp_path, character, "--clips", "Run", "--force")
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1, result.stderr
     assert "no clip named 'Run'" in lines[0] and "'Skel'" in lines[0] and "'Spawner'" in lines[0]
 
 
-def test_zero_scale_skeleton_skipped(tmp_path):
+def test_zero_scale_skeleton_skipped(tmp_path, capfd):
     source = tmp_path / "spawn.usda"
     source.write_text(stage_text(spawn_scale="(0, 0, 0)"))
-    result, out = _convert(tmp_path, source)
+    result, out = _convert(capfd, tmp_path, source)
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1, result.stderr
     assert "clip 'Spawner'" in lines[0] and "--on-bad-clip skip" in lines[0]
     assert not out.parent.exists()
-    result, out = _convert(tmp_path, source, "--on-bad-clip", "skip")
+    result, out = _convert(capfd, tmp_path, source, "--on-bad-clip", "skip")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [a["path"] for a in report["animations"]] == ["/Root/Skel"]

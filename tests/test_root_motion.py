@@ -12,24 +12,19 @@
 from __future__ import annotations
 
 import math
-import runpy
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 import vbusd
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.cli import main
 from vbusd.decoders.reference import joint_transforms, skin_mesh
-from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
-
-pxr = pytest.importorskip("pxr")
 from pxr import Gf, Usd, UsdSkel, Vt  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
-scenes = SimpleNamespace(**runpy.run_path(str(HERE / "fixtures" / "usdskel" / "scenes.py")))
+from tests.helpers import scenes
+from tests.helpers.animations import loop_walk
 
 
 def _walking_stage(path: Path) -> str:
@@ -85,25 +80,8 @@ def test_convert_extract_plays_in_place_and_the_track_gives_back_usdskel(tmp_pat
     np.testing.assert_allclose(inplace[0] @ moved[:3, :3].T + moved[:3, 3], np.array(points), atol=2e-4)
 
 
-def _loop_walk(yaw_rate: float):
-    """A 1 s loop walking 1.5 m/s along +Z (turning ``yaw_rate`` rad/s), one bone, bind at the origin."""
-    def sample(times):
-        times = np.atleast_1d(np.asarray(times, dtype=np.float64))
-        out = np.tile(np.eye(4), (len(times), 1, 1, 1))
-        for k, t in enumerate(times):
-            c, s = math.cos(yaw_rate * t), math.sin(yaw_rate * t)
-            out[k, 0, :3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-            out[k, 0, :3, 3] = (0.0, 0.1 * math.sin(2 * math.pi * t), 1.5 * t)
-        return out
-
-    mesh = SkinnedMesh("/Walk/Mesh", np.array([[0.0, 1.0, 0.0], [0.2, 0.0, 0.1]]), np.array([2]), np.array([0, 1]),
-                       np.array([[0], [0]]), np.array([[1.0], [1.0]]))
-    clip = AnimationClip("walk", 0.0, 1.0, sample, native_rate=30, loop=True)
-    return SkinnedAnimation("Walk", "/Walk/Anim", ("hips",), (clip,), (mesh,), bind_transforms=np.eye(4)[None])
-
-
 def test_root_motion_is_the_specs_worked_example():
-    vb = bake(_loop_walk(0.0), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extract"))
+    vb = bake(loop_walk(0.0), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extract"))
     track = vb.root_motion.tracks[0]
     assert track.shape == (31, 4)  # 30 rows and the loop's end
     np.testing.assert_allclose(track[15], [0, 0, 0.75, 0], atol=1e-12)
@@ -116,7 +94,7 @@ def test_root_motion_is_the_specs_worked_example():
 
 
 def test_extract_yaw_turns_and_gives_back_the_source():
-    animation = _loop_walk(0.4)
+    animation = loop_walk(0.4)
     vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", root_motion="extractYaw"))
     clip = vb.clips[0]
     source_clip = animation.clips[0]

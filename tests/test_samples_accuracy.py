@@ -14,30 +14,22 @@ the exact float64 matrices). The table in benchmarks/README.md must be the scrip
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.helpers import scripts
+
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 REPO = Path(__file__).resolve().parents[1]
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 
 
-def _load(name: str, path: Path):
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def accuracy():
-    return _load("vbusd_benchmarks_accuracy", REPO / "benchmarks" / "accuracy.py")
+    return scripts.load("benchmarks/accuracy.py")
 
 
 @pytest.fixture(scope="module")

@@ -14,10 +14,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import functools
-import importlib.util
 import json
-import math
 import shutil
 import string
 import struct
@@ -31,14 +28,14 @@ import pytest
 
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.cli import main
-from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 from vbusd.decoders.reference import skin_mesh
 from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 
-try:
-    import moderngl
-except ImportError:  # the GPU-pipeline tests skip; compile-only and CLI tests still run
-    moderngl = None
+from tests.helpers import scripts
+from tests.helpers.animations import chain_animation
+from tests.helpers.capabilities import require
+
+import moderngl  # noqa: E402  (the test extra has it; a context needs EGL: capability gl)
 
 ENCODINGS = ["crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"]
 FORMATS = ["float16", "float32", "unorm16"]
@@ -57,12 +54,8 @@ SKIN_BUFFER_BINDING = 2
 
 @pytest.fixture(scope="module")
 def gl():
-    if moderngl is None:
-        pytest.skip("moderngl is not installed")
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as error:  # no EGL driver at all on this machine
-        pytest.skip(f"no EGL OpenGL context: {error}")
+    require("gl")
+    ctx = moderngl.create_context(standalone=True, backend="egl")
     # A surfaceless EGL context has no complete default framebuffer, and drawing (even with
     # rasterization discarded for transform feedback) needs one.
     framebuffer = ctx.simple_framebuffer((1, 1))
@@ -70,61 +63,6 @@ def gl():
     yield ctx
     framebuffer.release()
     ctx.release()
-
-
-def _rotation(axis, angle):
-    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    x, y, z = axis
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
-                     [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
-                     [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)]])
-
-
-def _chain_animation(scaled: bool, twist: bool = False) -> SkinnedAnimation:
-    """A 5-bone chain with a looping 2 s clip and a clamped 1 s clip; random 6-influence weights.
-
-    ``twist`` turns bones 3 and 4 by a further 198 degrees, so that many vertices blend
-    quaternions of opposite hemispheres (dot < 0 with the first influence): the only data on which
-    dual-quaternion skinning's sign flip matters.
-    """
-    rng = np.random.default_rng(7)
-    axes = rng.normal(size=(5, 3))
-    twist_matrix = np.eye(4)
-    twist_matrix[:3, :3] = _rotation([0.3, 0.2, 1.0], 1.1 * math.pi)
-
-    def make_sampler(speed, duration):
-        def sample(times):
-            times = np.clip(np.atleast_1d(times), 0.0, duration)
-            out = np.tile(np.eye(4), (len(times), 5, 1, 1))
-            for k, time in enumerate(times):
-                world = np.eye(4)
-                for bone in range(5):
-                    local = np.eye(4)
-                    local[:3, :3] = _rotation(axes[bone], 0.9 * math.sin(2 * math.pi * speed * time / duration + bone))
-                    if scaled:
-                        local[:3, :3] *= 1.0 + 0.2 * math.sin(time + bone)
-                    local[:3, 3] = (0, 0.5 if bone else 0, 0)
-                    world = world @ local
-                    bind = np.eye(4)
-                    bind[1, 3] = -0.5 * bone
-                    out[k, bone] = world @ bind
-            if twist:
-                out[:, 3:] = out[:, 3:] @ twist_matrix
-            return out
-        return sample
-
-    points = rng.uniform(-0.3, 0.3, size=(24, 3)) + np.array([0, 1.0, 0])
-    normals = rng.normal(size=(24, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    normals[5] = 0.0  # a degenerate normal (meshes have them): the spec's normalize(0) is 0, not NaN
-    indices = np.stack([rng.permutation(5)[:5].tolist() + [int(rng.integers(5))] for _ in range(24)])
-    weights = rng.uniform(0.05, 1.0, size=(24, 6))
-    weights /= weights.sum(axis=1, keepdims=True)
-    mesh = SkinnedMesh("/Chain/Mesh", points, np.full(8, 3), np.arange(24), indices, weights, normals=normals)
-    clips = (AnimationClip("wave", 0.0, 2.0, make_sampler(1, 2.0), native_rate=15, loop=True),
-             AnimationClip("bend", 0.0, 1.0, make_sampler(0.5, 1.0), native_rate=10, loop=False))
-    return SkinnedAnimation("Anim", "/Chain/Anim", tuple(f"b{i}" for i in range(5)), clips, (mesh,))
 
 
 def _instances(vb):
@@ -283,24 +221,16 @@ def _diagonal(mesh_points):
     return float(np.linalg.norm(mesh_points.max(axis=0) - mesh_points.min(axis=0)))
 
 
-@functools.lru_cache(maxsize=None)
 def _stadium_module():
     """samples/stadium_crowd.py, loaded by path (samples/ is not an installed package), once."""
-    path = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd.py"
-    if not path.is_file():
-        pytest.skip("samples/stadium_crowd.py is not in this checkout")
-    spec = importlib.util.spec_from_file_location("vbusd_sample_stadium_crowd", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    return module
+    return scripts.load("samples/stadium_crowd.py")
 
 
 def _baked(source, encoding, texel_format):
     if source == "stadium":  # the talk's sample: its mesh, its cheer, 4 influences
         return _stadium_module().bake_reference(encoding=encoding, texel_format=texel_format), 4
     # Scale only where the encoding holds it (uniform scale for quatTranslation).
-    animation = _chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
+    animation = chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"),
                                  twist=encoding == "dualQuat")
     return bake(animation, BakeOptions(encoding=encoding, texel_format=texel_format, max_influences=6)), 6
 
@@ -365,6 +295,8 @@ def _check(ctx, lang, encoding, texel_format, tmp_path, source, skin="attributes
                     f"{encoding} {texel_format} {source}", skin=skin)
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
 @pytest.mark.parametrize("encoding, texel_format", PAIRS)
@@ -372,8 +304,9 @@ def test_glsl_runs_and_matches_reference(gl, encoding, texel_format, source, ski
     _check(gl, "glsl", encoding, texel_format, tmp_path, source, skin)
 
 
-@pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
-                    reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("source", ["stadium", "chain"])
 @pytest.mark.parametrize("encoding, texel_format", PAIRS)
@@ -391,15 +324,17 @@ SHAPE_CASES = {
 }
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 @pytest.mark.parametrize("case", list(SHAPE_CASES))
 def test_influence_counts_and_texture_shapes(gl, lang, case, skin, tmp_path):
     """K = 1 and K = 8; a non-power-of-two width; a texture taller than 4096 rows (second clip at row 4200)."""
-    if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    if lang == "hlsl":
+        require("glslang")
     encoding, texel_format, bake_options, shader_k = SHAPE_CASES[case]
-    animation = _chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"), twist=encoding == "dualQuat")
+    animation = chain_animation(scaled=encoding in ("affineMatrix", "quatTranslation"), twist=encoding == "dualQuat")
     vb = bake(animation, BakeOptions(encoding=encoding, texel_format=texel_format, **bake_options))
     if case.startswith("width"):
         assert vb.layout.width == vb.layout.used_width and vb.layout.width & (vb.layout.width - 1)
@@ -464,8 +399,9 @@ Output main(Input input)
 """
 
 
-@pytest.mark.skipif(not (shutil.which("glslangValidator") and shutil.which("spirv-cross")),
-                    reason="glslang-tools and spirv-cross are not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("encoding,texel_format", [("crossMatrix", "unorm16"), ("dualQuat", "float16")])
 def test_engine_hooks_resources_as_arguments(gl, encoding, texel_format, tmp_path):
     """VB_MAIN 0, VB_DECLARE_RESOURCES 0, VB_ARGS_DECL / VB_ARGS (texture and clip row passed down
@@ -485,15 +421,16 @@ def test_engine_hooks_resources_as_arguments(gl, encoding, texel_format, tmp_pat
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd" / "stadium_crowd_vb.usda"
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("skin", SKINS)
 @pytest.mark.parametrize("lang", ["glsl", "hlsl"])
 def test_committed_sample_files_with_their_crowd(gl, lang, skin, tmp_path):
     """The committed sample as files (EXR texture, USD mesh and point instancer): 1,200 instances
     with their own time offsets and playback rates, at two scene times, one of them past the 10 s loop."""
-    if not SAMPLE.is_file():
-        pytest.skip("the committed sample is not in this checkout")
-    if lang == "hlsl" and not (shutil.which("glslangValidator") and shutil.which("spirv-cross")):
-        pytest.skip("glslang-tools and spirv-cross are not installed")
+    assert SAMPLE.is_file(), f"the committed sample {SAMPLE} is missing"
+    if lang == "hlsl":
+        require("glslang")
     from vbusd.io.usd import read_asset
 
     asset = read_asset(SAMPLE)
@@ -536,7 +473,9 @@ _GLSL_VERSIONS = {"330": "#version 330 core\n",
                   "es300": "#version 300 es\nprecision highp float;\nprecision highp int;\n"}
 
 
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 def test_every_variant_compiles_as_glsl_330_glsl_es_300_and_hlsl(tmp_path):
     """All 104 variants per language (96, and 8 of the compact encoding), with the example main and functions only (--no-main, and
     VB_MAIN defined 0 before the module) called from a vertex function of the engine's own:
@@ -604,7 +543,9 @@ _GLSL_PULLED_VERSIONS = {**_GLSL_VERSIONS, "430": "#version 430 core\n",
                          "es310": "#version 310 es\nprecision highp float;\nprecision highp int;\n"}
 
 
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 def test_every_pulled_variant_compiles(tmp_path):
     """Every pulled variant (4 encodings x 3 texel formats x K = 1..8): GLSL 3.30 core and GLSL ES
     3.00 (the texture), GLSL 4.30 core and GLSL ES 3.10 (the storage buffer), with the example main and
@@ -680,7 +621,9 @@ def test_skin_records_are_the_spec_example():
             bad()
 
 
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 def test_hlsl_cbuffer_offsets_are_the_documented_ones(tmp_path):
     """spec/shaders.md: vb_time at byte 0, vb_clips at 16, vb_rangeMin at 16 + 16 C, vb_rangeMax after it."""
     import re
@@ -739,6 +682,8 @@ def _three_snippet_vertex_shader(module: str) -> str:
     return re.sub(r"^#include <\w+>$", "", shader, flags=re.M)
 
 
+@pytest.mark.cli
+@pytest.mark.gl
 @pytest.mark.parametrize("encoding", ["crossMatrix", "dualQuat"])
 def test_three_js_snippet_compiles_as_glsl_es_and_matches_reference(gl, encoding, tmp_path):
     """The GLSL the three.js snippet injects, with its VB_FETCH for EXRLoader's bottom-up rows, on
@@ -775,7 +720,9 @@ def _hlsl_blocks(section_title: str) -> list:
     return re.findall(r"```hlsl\n(.*?)```", text[start:end if end > 0 else None], flags=re.S)
 
 
-@pytest.mark.skipif(not shutil.which("glslangValidator"), reason="glslang-tools is not installed")
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.usefixtures("glslang")
 @pytest.mark.parametrize("engine", ["Unity", "Unreal"])
 def test_engine_notes_hlsl_compiles(engine, tmp_path):
     """The HLSL of docs/engines.md's Unity and Unreal steps, put together as the notes say (with
@@ -856,6 +803,7 @@ def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     assert main(["shader", "-o", str(nested)]) == 0 and "void main()" in nested.read_text()
 
 
+@pytest.mark.cli
 def test_shader_command_as_a_process(tmp_path):
     out = tmp_path / "skin.hlsl"
     done = subprocess.run([sys.executable, "-m", "vbusd.cli", "shader", "--lang", "hlsl", "--encoding",
@@ -884,7 +832,7 @@ def test_written_textures_ask_importers_for_no_colour_processing(tmp_path):
 
     from vbusd.io.textures import write_texture
 
-    animation = _chain_animation(scaled=False)
+    animation = chain_animation(scaled=False)
     png_vb = bake(animation, BakeOptions(texel_format="unorm16"))
     write_texture(tmp_path / "t.png", png_vb)
     data = (tmp_path / "t.png").read_bytes()

@@ -16,10 +16,7 @@ transforms; a crowd's sockets are the instance placement times the crossfaded jo
 from __future__ import annotations
 
 import dataclasses
-import runpy
-import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -29,14 +26,14 @@ from vbusd.baking.baker import BakeOptions, bake
 from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, skinning_matrices
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.model import Crowd
+from tests.helpers.capabilities import shared_asset
 
 HERE = Path(__file__).resolve().parent
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
-
-pxr = pytest.importorskip("pxr")
 from pxr import Usd, UsdGeom, UsdSkel  # noqa: E402
 
-scenes = SimpleNamespace(**runpy.run_path(str(HERE / "fixtures" / "usdskel" / "scenes.py")))
+from tests.helpers import scenes
+from tests.helpers import node as node_tools
 
 
 def _usdskel_animation(tmp_path):
@@ -84,18 +81,12 @@ def _rows_points(vb):
         yield skin_mesh_at_rows(vb, mesh, 0)[0].reshape(-1, 3)
 
 
+@pytest.mark.node
 def test_gltf_socket_equals_threejs_node_world_matrix(shared_assets):
     """Fox (24 joints, three clips) in float32: every joint at every row of every clip."""
-    sys.path.insert(0, str(HERE / "node"))
-    try:
-        import node_tools
-    finally:
-        sys.path.pop(0)
     from vbusd.converters import gltf
 
-    path = shared_assets / "gltf" / "Fox" / "Fox.glb"
-    if not path.is_file():
-        pytest.skip("Fox.glb is not among the shared assets")
+    path = shared_asset("gltf", "Fox", "Fox.glb")
     scene = gltf.read(path)
     animation = scene.animations[0]
     vb = bake(animation, BakeOptions(encoding="crossMatrix", texel_format="float32"))

@@ -13,9 +13,9 @@ import sys
 import pytest
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_conversions_under_full_load_never_hang(repo_root, tmp_path):
-    pytest.importorskip("pxr")
     out = tmp_path / "stress.json"
     done = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "stress.py"), "--conversions", "30",
                            "--no-dask", "--timeout", "120", "--seed", "7", "--out", str(out),

@@ -17,6 +17,7 @@ import sys
 import textwrap
 
 import pytest
+from tests.helpers.capabilities import require
 
 _SCRIPT = textwrap.dedent("""
     import json, sys, threading
@@ -84,6 +85,7 @@ def _sources(repo_root, shared_assets=None) -> list:
     return [s for s in found if s.exists()]
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("kernels", ["off", "on"])
 def test_no_helper_imports_and_nothing_loads_while_helpers_run(tmp_path, repo_root, kernels, request):
@@ -93,7 +95,7 @@ def test_no_helper_imports_and_nothing_loads_while_helpers_run(tmp_path, repo_ro
         shared = None
     sources = _sources(repo_root, shared)
     if kernels == "on":
-        pytest.importorskip("warp")
+        require("warp")
     results = _run(tmp_path, kernels, sources)
     assert len(results) == len(sources)
     kinds = {os.path.splitext(r["source"])[1] for r in results}
@@ -180,6 +182,7 @@ def _job(tmp_path, *args) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 def test_no_job_kind_imports_off_the_main_thread(tmp_path, repo_root):
     """Every job kind, run as its command in a fresh interpreter under the import guard: the

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (registers the schema plugin)
 from vbusd.format import metadata as md  # noqa: E402
@@ -131,6 +130,7 @@ def assert_crowds_equal(ours: Crowd, theirs: Crowd) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("encoding, texel_format", COMBOS)
 def test_round_trip_is_exact(tmp_path, encoding, texel_format):
     rng = np.random.default_rng(100 + 10 * ENCODINGS.index(encoding) + FORMATS.index(texel_format))

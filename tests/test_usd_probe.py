@@ -13,11 +13,14 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
+
 FIXTURES = Path(__file__).parent / "fixtures"
 CORRUPT = [FIXTURES / "corrupt_usdc" / f"{name}.usdc"
            for name in ("crash_or_huge_alloc", "endless_value_read", "four_gigabyte_value")]
 
 
+@pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("path", CORRUPT, ids=[p.stem for p in CORRUPT])
 def test_corrupt_crate_is_one_line_in_bounded_time_and_memory(path, tmp_path):
@@ -110,6 +113,7 @@ def test_a_read_that_never_ends_is_stopped_at_the_time_limit(tmp_path, monkeypat
 
     fifo = tmp_path / "blocked.usdc"
     os.mkfifo(fifo)
+    assert usd_probe.probe_crate(_small_crate(tmp_path / "warm.usdc")).ok  # the server started: not timed
     monkeypatch.setattr(usd_probe, "_BASE_SECONDS", 1.0)
     started = time.monotonic()
     result = usd_probe.probe_crate(fifo)
@@ -130,6 +134,7 @@ def _usdz(path, member: Path) -> Path:
     return path
 
 
+@pytest.mark.cli
 def test_a_corrupt_crate_inside_a_usdz_package_is_probed_too(tmp_path):
     # The package's bytes start with the zip magic, not the crate's; opened in-process unprobed,
     # this one crashed vbusd (signal 11) with no message.
@@ -166,6 +171,7 @@ def test_a_server_killed_during_a_probe_is_replaced_and_the_file_read_again(tmp_
     assert not result.ok and "takes more than 3 s" in result.problem, result
 
 
+@pytest.mark.cli
 def test_a_server_with_threads_reads_each_file_in_a_fresh_process(tmp_path):
     # fork() is unsafe once a process has several threads; a server started with BLAS threads
     # (numpy) falls back to one fresh process per file and answers the same.

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-pxr = pytest.importorskip("pxr")
+import pxr
 
 import vbusd  # noqa: E402  (registers the plugin)
 from vbusd.io import usd_plugin  # noqa: E402
@@ -38,6 +38,7 @@ def _clean_env() -> dict:
     return env
 
 
+@pytest.mark.cli
 def test_generated_files_match_usdgenschema(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "pxr.Usd.usdGenSchema", "-q", str(SCHEMA_DIR / "schema.usda"), str(tmp_path)],
@@ -226,6 +227,7 @@ def _run_probe(code: str, cwd: Path, env=None, *flags) -> dict:
     return json.loads(result.stdout)
 
 
+@pytest.mark.cli
 def test_import_vbusd_registers_without_importing_pxr(tmp_path):
     state = _run_probe(_PROBE, tmp_path)
     # pxr is not imported by `import vbusd`: the plugin folder goes on PXR_PLUGINPATH_NAME, which pxr
@@ -236,6 +238,7 @@ def test_import_vbusd_registers_without_importing_pxr(tmp_path):
     assert state["known"] and state["encoding"] == "crossMatrix"
 
 
+@pytest.mark.cli
 @pytest.mark.parametrize("first_import", ["from pxr import Tf", "from pxr import UsdGeom", "import pxr.Sdf"])
 def test_registration_holds_whichever_pxr_module_comes_first(tmp_path, first_import):
     # pxr reads the plugin path as its registry starts, whichever pxr module is imported first; the
@@ -251,6 +254,7 @@ def test_registration_holds_whichever_pxr_module_comes_first(tmp_path, first_imp
     assert state == {"plugin": True, "hooks": 0, "known": True, "host_entry_kept": True}
 
 
+@pytest.mark.cli
 def test_import_vbusd_after_pxr_registers_directly(tmp_path):
     state = _run_probe("from pxr import Usd\n" + _PROBE, tmp_path)
     assert state["environment_unchanged"] is True  # registered through Plug
@@ -286,6 +290,7 @@ print(json.dumps(state))
 """
 
 
+@pytest.mark.cli
 def test_import_vbusd_after_usd_built_its_schema_registry(tmp_path):
     # OpenUSD builds Usd.SchemaRegistry once; a plugin registered afterwards gets no prim
     # definitions. vbusd must say so on import, still read assets from authored data (the spec's
@@ -309,6 +314,7 @@ def test_import_vbusd_after_usd_built_its_schema_registry(tmp_path):
     assert state["written"] == []  # nothing half-written
 
 
+@pytest.mark.cli
 def test_late_import_with_plugin_path_set_is_fine(tmp_path):
     # The documented remedy: PXR_PLUGINPATH_NAME set before the process starts.
     env = _clean_env()
@@ -319,7 +325,7 @@ def test_late_import_with_plugin_path_set_is_fine(tmp_path):
 
 def _install_like_a_wheel(target: Path) -> None:
     """Lay the package out as the wheel does: the vbusd/ tree as it is, with its package-data."""
-    tomllib = pytest.importorskip("tomllib")
+    import tomllib
     config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert "package-dir" not in config, "the tree is the package: no folder is remapped"
     package_data = config.get("package-data", {})
@@ -333,6 +339,7 @@ def _install_like_a_wheel(target: Path) -> None:
                 shutil.copy2(file, dest / file.name)
 
 
+@pytest.mark.cli
 def test_installed_layout_resolves_the_plugin(tmp_path):
     site = tmp_path / "site"
     _install_like_a_wheel(site)

@@ -18,7 +18,7 @@ import pytest
 import vbusd  # noqa: F401  (registers the schema before pxr builds its registry)
 from vbusd.converters import usdskel
 
-pytestmark = pytest.mark.usefixtures("both_bake_paths")  # numpy, then compiled (vbusd.kernels.bake)
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("both_bake_paths")]  # numpy, then compiled (vbusd.kernels.bake)
 
 TOLERANCE = 1e-9
 """Largest difference allowed, relative to the largest matrix entry (UsdSkel works in double too)."""
@@ -93,8 +93,7 @@ def _check(path) -> int:
 def test_every_shared_usdskel_asset(shared_assets):
     files = sorted(p for p in (shared_assets / "usdskel").rglob("*") if p.suffix in (".usda", ".usdc", ".usdz")
                    and ".baked" not in p.name and "bakedInterval" not in p.name)
-    if not files:
-        pytest.skip("no UsdSkel assets under the shared assets")
+    assert files, f"no UsdSkel assets under the shared assets {shared_assets}"
     checked = {str(p.relative_to(shared_assets)): _check(p) for p in files}
     # The real characters (BrainStem, CesiumMan, RiggedFigure, the elephant) must take the fast path.
     for name in ("BrainStem", "CesiumMan", "RiggedFigure", "ElephantWithMonochord"):
@@ -187,5 +186,4 @@ def test_sampler_on_every_shared_asset_in_world_space(shared_assets):
                 scale = max(1.0, float(np.abs(slow).max()))
                 assert np.abs(fast - slow).max() <= TOLERANCE * scale, f"{path}:{animation.path}"
                 compared += 1
-    if compared == 0:
-        pytest.skip("no shared UsdSkel asset took the all-frames path")
+    assert compared, "no shared UsdSkel asset took the all-frames path"

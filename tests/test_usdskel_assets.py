@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
 from vbusd.format.errors import InputError, UnsupportedError  # noqa: E402
@@ -30,6 +29,7 @@ LBS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("relative", sorted(LBS))
 def test_lbs_asset_converts_and_matches_usdskel(shared_assets, tmp_path, relative):
     source = shared_assets / "usdskel" / relative
@@ -80,6 +80,7 @@ def test_joint_influence_error_cases_are_refused(shared_assets, tmp_path):
     assert (caught.value.code, caught.value.location) == ("usdskel.joints.empty", "/Skel1.joints")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("folder_name, stem", [("BakeSkinning_LBS", "lbs"), ("BakeSkinning_DQS", "dqs")])
 def test_decoded_cache_matches_pixars_bake_skinning_baseline(shared_assets, tmp_path, folder_name, stem):
     # A second, fully independent oracle: Pixar's own UsdSkel.BakeSkinning output, checked into

@@ -8,24 +8,21 @@ only warns, or silently skins such data; the converter must refuse it.
 from __future__ import annotations
 
 import json
-import runpy
 import subprocess
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 
-pytest.importorskip("pxr")
 
 from vbusd.cli import main  # noqa: E402
 
 BAD = Path(__file__).parent / "fixtures" / "usdskel" / "bad"
-# Not an installed module (tests import with --import-mode=importlib): load it by path.
-scenes = SimpleNamespace(**runpy.run_path(str(BAD.parent / "scenes.py")))
+from tests.helpers import scenes
 EXPECTED = json.loads((BAD / "expected.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_bad_fixture_gives_one_line_and_exit_2(name, tmp_path, capsys):
     output = tmp_path / "out.usda"
@@ -51,6 +48,7 @@ def test_every_fixture_is_otherwise_valid_usd():
         assert Usd.Stage.Open(str(BAD / name)) is not None
 
 
+@pytest.mark.cli
 def test_subprocess_exit_status_and_single_line(tmp_path):
     name = "joints_not_parent_first.usda"
     result = subprocess.run([sys.executable, "-m", "vbusd", "convert", str(BAD / name), "-o",

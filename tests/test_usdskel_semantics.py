@@ -11,14 +11,10 @@ order, a shifted timeline) fails.
 from __future__ import annotations
 
 import math
-import runpy
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
-pxr = pytest.importorskip("pxr")
 from pxr import Gf, Usd  # noqa: E402
 
 from vbusd.jobs.conversion import ConvertOptions, convert  # noqa: E402
@@ -27,8 +23,7 @@ from vbusd.jobs.pointcache import decode  # noqa: E402
 
 FIXTURES = Path(__file__).parent / "fixtures" / "usdskel"
 
-# Not an installed module (tests import with --import-mode=importlib): load it by path.
-scenes = SimpleNamespace(**runpy.run_path(str(FIXTURES / "scenes.py")))
+from tests.helpers import scenes
 
 TOLERANCE = 2e-4  # scene units; columns are 4 units tall, float32 texels
 

@@ -106,10 +106,10 @@ def test_sidecar_without_its_texture(capsys, tmp_path):
     assert [f["code"] for f in report["findings"]] == ["texture.missing"]
 
 
+@pytest.mark.cli
 def test_the_installed_command_in_a_subprocess(tmp_path):
     exe = shutil.which("vbusd")
-    if exe is None:
-        pytest.skip("the vbusd entry point is not installed")
+    assert exe is not None, "the vbusd command is not on PATH: pip install . (the README's set-up does)"
     result = subprocess.run([exe, "validate", str(FIXTURES / "clip.overlap" / "asset.usda"), "--format", "json"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 1 and result.stderr == ""

@@ -27,6 +27,7 @@ def test_issues_md_is_generated_from_the_registry():
         "spec/ISSUES.md is stale: run `python -m vbusd.format.codes --markdown > spec/ISSUES.md`")
 
 
+@pytest.mark.cli
 def test_generator_command_prints_the_same_text():
     result = subprocess.run([sys.executable, "-m", "vbusd.format.codes", "--markdown"],
                             capture_output=True, text=True, timeout=60)
@@ -130,6 +131,7 @@ def _sources() -> list:
     return sorted(p for folder in ("vbusd", "converters", "validators", "dcc") for p in (ROOT / folder).rglob("*.py"))
 
 
+@pytest.mark.slow
 def test_every_code_string_in_the_sources_is_registered():
     """Static scan of every module: a code given to an error, a finding or a reader's report, a
     class's default code, and any string of a registered area's dotted form, is in the registry.
@@ -163,6 +165,7 @@ def test_every_code_string_in_the_sources_is_registered():
     assert not unregistered, unregistered
 
 
+@pytest.mark.slow
 def test_every_error_names_its_code():
     """Every error vbusd raises for input names a registered code explicitly (the class defaults
     exist for third-party converters); option errors may use ``options.invalid``."""
@@ -177,6 +180,7 @@ def test_every_error_names_its_code():
     assert not missing, missing
 
 
+@pytest.mark.slow
 def test_findings_carry_the_location_kind_their_code_registers():
     """In a USD asset every finding's location is of the kind ISSUES.md lists for its code; and the
     JSON report of every golden fixture follows the report schema."""

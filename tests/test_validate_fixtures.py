@@ -15,6 +15,8 @@ import pytest
 from vbusd.format import codes
 from vbusd.validators.api import validate
 
+from tests.helpers import scripts
+
 FIXTURES = Path(__file__).parent / "fixtures" / "validate"
 INVALID = sorted(p for p in FIXTURES.iterdir() if p.is_dir() and p.name != "valid" and
                  (p / "expected.json").exists())
@@ -58,6 +60,7 @@ def test_every_code_has_a_fixture():
     assert named <= set(codes.REGISTRY), f"fixtures named after unknown codes: {sorted(named - set(codes.REGISTRY))}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("folder", INVALID, ids=[p.name for p in INVALID])
 def test_invalid_fixture_reports_its_code(folder):
     report = _check(folder)
@@ -75,13 +78,10 @@ def test_valid_fixture_has_no_error(folder):
     assert report.counts["warning"] == 0
 
 
+@pytest.mark.slow
 def test_committed_fixtures_are_what_the_generator_writes(tmp_path):
     """The goldens are made by make_fixtures.py, not edited by hand: regenerate and compare."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("make_fixtures", FIXTURES / "make_fixtures.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = scripts.load("tests/fixtures/validate/make_fixtures.py")
     module.generate(tmp_path)
     committed = sorted(p.relative_to(FIXTURES) for p in FIXTURES.rglob("expected.json"))
     fresh = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("expected.json"))

@@ -7,8 +7,6 @@ from pathlib import Path
 import pytest
 
 import vbusd  # noqa: F401  (registers the schema plugin)
-
-pxr = pytest.importorskip("pxr")
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdValidation, Vt  # noqa: E402
 
 from vbusd.validators import usd_validation  # noqa: E402
@@ -137,6 +135,7 @@ def test_registration_survives_a_second_import_of_the_module(validators):
 STAGE_LEVEL = {"asset.composition", "asset.empty", "asset.outside"}
 
 
+@pytest.mark.slow
 def test_usd_validation_reports_what_vbusd_validate_reports_on_every_fixture(validators):
     """The same checks: over every golden fixture, each finding of `vbusd validate` (except the
     stage-level ones, which are not prim validators) comes out of a UsdValidation context too, with

@@ -12,33 +12,20 @@ sizes (glTF), and the folder by listing it.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
 from pathlib import Path
 
 import pytest
 
-pytest.importorskip("pxr")
 
 import vbusd  # noqa: E402,F401  (before pxr: registers the schema)
+
+from tests.helpers import faults as sweep
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _load_sweep():
-    name = "vbusd_fault_sweep"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / "fault_sweep.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-sweep = _load_sweep()
 
 
 def run_here(args, env):
@@ -72,6 +59,7 @@ def bench(request, sources, tmp_path_factory):
                          runner=run_here)
 
 
+@pytest.mark.slow
 def test_enospc_at_every_step_of_every_writer(bench, in_process):
     kinds = [step.split(" ")[0] for step in bench.steps]
     assert kinds[0] == "lock" and "commit" in kinds  # every writer goes through the one commit

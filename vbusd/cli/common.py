@@ -1,7 +1,7 @@
 """What every ``vbusd`` subcommand shares: progress, interruption, quiet mode, JSON and table output.
 
-One home for these, so that the commands behave alike: progress on stderr, a bar on a terminal and
-plain lines at a modest rate otherwise (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
+One home for these, so that the commands behave alike: progress on stderr, a bar on a terminal and,
+with ``--progress``, plain lines at a modest rate otherwise (:class:`progress_bar`), SIGTERM handled like Ctrl-C while writing
 (:func:`terminate_as_interrupt`), the options every command has (:data:`quiet_option`,
 :data:`format_option`, and :data:`force_option` where it writes; tests/test_cli.py walks the command
 tree and checks them), warnings (:func:`warn`), JSON in one key
@@ -28,7 +28,7 @@ from vbusd.process import signals as _signals
 from vbusd.process.memory import human_bytes
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
-__all__ = ["DEFAULT_TEXEL_FORMATS", "TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "terminate_as_interrupt", "quiet_option",
+__all__ = ["DEFAULT_TEXEL_FORMATS", "TEXT_WIDTH", "PROGRESS_INTERVAL_S", "progress_bar", "progress_option", "terminate_as_interrupt", "quiet_option",
            "format_option", "force_option", "warn", "echo_json", "console", "table", "command_line_spelling",
            "human_bytes"]
 
@@ -60,6 +60,12 @@ format_option = click.option(
 """``--format text|json``: every command has it, with this meaning."""
 
 force_option = click.option("--force", is_flag=True, help="Replace existing output files.")
+
+progress_option = click.option(
+    "--progress", "progress_lines", is_flag=True,
+    help="When stderr is not a terminal (a log, a pipe), print plain progress lines on it, at most one "
+         "every 10 s; without it progress shows only on a terminal (as a bar).")
+"""``--progress``: the commands that report progress (convert, decode) have it, with this meaning."""
 """``--force``: every command that writes files (it has ``-o/--output``) has it, with this meaning."""
 
 
@@ -126,8 +132,9 @@ def terminate_as_interrupt():
 
 
 PROGRESS_INTERVAL_S = 10.0
-"""When stderr is not a terminal (a log, a pipe), a plain progress line at most this often, the first
-after this long: work shorter than it prints nothing, long work shows that it is alive."""
+"""With ``--progress`` and stderr not a terminal (a log, a pipe), a plain progress line at most this
+often, the first after this long: work shorter than it prints nothing, long work shows that it is
+alive."""
 
 
 class _PlainProgress:
@@ -159,19 +166,23 @@ class _PlainProgress:
 
 
 class progress_bar:
-    """Progress on stderr while a command works: a rich bar on a terminal, plain lines otherwise.
+    """Progress on stderr while a command works: a rich bar on a terminal; elsewhere nothing, or
+    plain lines when asked for (``--progress``).
 
     ``with progress_bar() as progress:`` gives a ``progress(step, done, total)`` callback for the
-    library's ``progress=`` argument, or None (quiet). When stderr is not a terminal (a CI log, a
-    pipe), the callback prints a plain line at most every :data:`PROGRESS_INTERVAL_S` seconds, so
-    long work shows it is alive without filling the log; short work prints nothing.
+    library's ``progress=`` argument, or None. One rule, whatever the machine's speed: when stderr is
+    not a terminal (a CI log, a pipe), nothing is printed unless ``lines`` (the command's
+    ``--progress``) is set; then a plain line at most every :data:`PROGRESS_INTERVAL_S` seconds, so
+    long work shows it is alive without filling the log.
 
     Args:
         quiet: Show no progress at all.
+        lines: When stderr is not a terminal, print plain progress lines.
     """
 
-    def __init__(self, *, quiet: bool = False) -> None:
+    def __init__(self, *, quiet: bool = False, lines: bool = False) -> None:
         self._quiet = quiet
+        self._lines = lines
         self._bar = None
         self._tasks = {}
 
@@ -179,7 +190,7 @@ class progress_bar:
         if self._quiet:
             return None
         if not sys.stderr.isatty():
-            return _PlainProgress(sys.stderr, PROGRESS_INTERVAL_S)
+            return _PlainProgress(sys.stderr, PROGRESS_INTERVAL_S) if self._lines else None
 
         # auto_refresh off: rich's refresh thread would render (and import) beside the job's own
         # imports; the bar is drawn from the calling thread instead (vbusd/process/threads.py).

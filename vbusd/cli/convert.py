@@ -4,7 +4,8 @@
 converts a library (:mod:`vbusd.jobs.batch`): a table per asset (or ``--format json``, ``--report
 FILE``), exit 0 when all converted, 1 when some failed, 2 when none could.
 
-Progress goes to stderr (a bar on a terminal, a plain line every 10 s otherwise); the summary goes to
+Progress goes to stderr (a bar on a terminal; elsewhere, only with ``--progress``, a plain line every
+10 s); the summary goes to
 stdout as text (``--format text``: wrapped at a terminal's width, not at all in a pipe) or as JSON
 (``--format json``, camelCase keys), with the same content. ``--quiet`` prints neither the summary
 nor warnings. Errors are one line
@@ -19,7 +20,7 @@ from pathlib import Path
 import click
 
 from vbusd.cli.common import (DEFAULT_TEXEL_FORMATS, command_line_spelling, console, echo_json, force_option, format_option, human_bytes,
-                              progress_bar, quiet_option, terminate_as_interrupt, warn)
+                              progress_bar, progress_option, quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.layout import Encoding, Padding, TexelFormat, default_texel_format
 from vbusd.io.usd_probe import needs_probe, prestart
 from vbusd.jobs.conversion import ConvertOptions, convert
@@ -129,12 +130,13 @@ def _check_rows(value: str):
 @click.option("--stall-timeout", default=None, type=click.FloatRange(min=0, min_open=True), metavar="SECONDS",
               help="Batch: end a worker that makes no progress for this long and report its asset failed "
                    "(batch.stalled); the others go on (default: 600).")
+@progress_option
 @quiet_option
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
             check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, lod_ratios,
             lod_screen_sizes, masks, manifest, jobs,
-            scheduler, cache_dir, no_cache, report_file, stall_timeout, quiet):
+            scheduler, cache_dir, no_cache, report_file, stall_timeout, progress_lines, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
     One SOURCE converts to the layer -o names. Several sources, folders (searched for .usd, .usda,
@@ -174,7 +176,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
                        "single conversion", err=True)
         return _run_batch(sources, output, manifest, values, jobs=jobs, scheduler=scheduler, cache_dir=cache_dir,
                           no_cache=no_cache, force=force, report_file=report_file, output_format=output_format,
-                          quiet=quiet, stall_timeout=stall_timeout)
+                          quiet=quiet, stall_timeout=stall_timeout, progress_lines=progress_lines)
     source = sources[0]
     ignored = [name for name, given in (("--jobs", jobs is not None), ("--cache", cache_dir is not None),
                                         ("--no-cache", no_cache), ("--stall-timeout", stall_timeout is not None)) if given]
@@ -183,7 +185,7 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
              "a folder, a glob or --manifest, or -o a folder); one source converts in this "
              "process, uncached", quiet=quiet)
     options = ConvertOptions(force=force, **values)
-    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
+    with progress_bar(quiet=quiet, lines=progress_lines) as progress, terminate_as_interrupt():
         report = convert(source, output, options, progress=progress)
     if quiet:
         return 0
@@ -210,12 +212,12 @@ def _is_batch(sources, output, manifest, scheduler, report_file) -> bool:
 
 
 def _run_batch(sources, output, manifest, values, *, jobs, scheduler, cache_dir, no_cache, force, report_file,
-               output_format, quiet, stall_timeout=None) -> int:
+               output_format, quiet, stall_timeout=None, progress_lines=False) -> int:
 
 
     ConvertOptions(**values)  # the batch's own options: refused before anything starts
     items = plan_batch(sources, output, manifest=manifest)
-    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():
+    with progress_bar(quiet=quiet, lines=progress_lines) as progress, terminate_as_interrupt():
         report = run_batch(items, values, jobs=jobs, scheduler=scheduler, cache=cache_dir, use_cache=not no_cache,
                            force=force, progress=progress, stall_timeout=stall_timeout)
     for asset in report.assets:  # the library's force=True is the command line's --force

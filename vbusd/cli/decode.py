@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import click
 
-from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, quiet_option,
-                              terminate_as_interrupt, warn)
+from vbusd.cli.common import (echo_json, force_option, format_option, human_bytes, progress_bar, progress_option,
+                              quiet_option, terminate_as_interrupt, warn)
 from vbusd.format.jsonform import round_time
 from vbusd.jobs.pointcache import decode
 from vbusd.process.memory import parse_size
@@ -38,8 +38,10 @@ __all__ = ["command"]
 @click.option("--max-memory", default=None, metavar="SIZE",
               help="The most memory the cache may take while it is built (4G, 512MiB, bytes); default: the "
                    "memory available. A larger cache is refused before decoding, naming its size.")
+@progress_option
 @quiet_option
-def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, max_memory, quiet):
+def command(asset, output, device, clip, output_format, force, allow_outside_paths, crowds, max_memory, progress_lines,
+            quiet):
     """Decode a Virtual Bones asset into a time-sampled USD point cache."""
     if max_memory is not None:
         size = parse_size(max_memory)
@@ -48,7 +50,8 @@ def command(asset, output, device, clip, output_format, force, allow_outside_pat
                                      param_hint="--max-memory")
         max_memory = size
 
-    with progress_bar(quiet=quiet) as progress, terminate_as_interrupt():  # a bar on stderr when it is a terminal
+    # A bar on stderr when it is a terminal; plain lines elsewhere only with --progress.
+    with progress_bar(quiet=quiet, lines=progress_lines) as progress, terminate_as_interrupt():
         report = decode(asset, output, device=device, clip=clip, force=force,
                         allow_outside_paths=allow_outside_paths, crowds=crowds, max_memory=max_memory,
                         progress=progress)

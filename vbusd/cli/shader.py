@@ -65,10 +65,9 @@ def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, 
     the module goes to standard output (with --format json, as the "source" of one JSON object);
     with -o it is written to FILE and the report says so.
     """
-    if texel_format is None and encoding in {e.value for e in Encoding}:
-        texel_format = default_texel_format(encoding).value
-    elif texel_format is None:  # ShaderOptions names the unknown encoding
-        texel_format = TexelFormat.FLOAT16.value
+    if texel_format is None:  # the encoding's own (spec 5.6); an unknown encoding is ShaderOptions' one-line error
+        known = encoding in {e.value for e in Encoding}
+        texel_format = (default_texel_format(encoding) if known else TexelFormat.FLOAT16).value
     try:
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),

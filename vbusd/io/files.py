@@ -146,7 +146,9 @@ def _target_mode(target: Path) -> int:
 def _current_umask() -> int:
     """The process umask; read from /proc where possible, since setting it to query it races threads."""
     try:
-        with open("/proc/self/status", encoding="ascii") as status:
+        # UTF-8 (the file is ASCII): its codec is loaded at start-up, so reading here imports nothing
+        # while helper threads run (tests/test_threads.py), where "ascii" imported encodings.ascii.
+        with open("/proc/self/status", encoding="utf-8") as status:
             for line in status:
                 if line.startswith("Umask:"):
                     return int(line.split()[1], 8)

@@ -1,0 +1,13 @@
+"""What the test modules share: import as ``from tests.helpers import ...`` (never by path).
+
+* :mod:`tests.helpers.capabilities`: what the machine offers (browser, EGL/GL, Node ...) and what a
+  run requires; ``require(NAME)``.
+* :mod:`tests.helpers.fixtures`: the session fixtures (browsers, converted assets, shared assets),
+  loaded by tests/conftest.py.
+* :mod:`tests.helpers.browser`: the browser probe, silhouette and covering matrix.
+* :mod:`tests.helpers.node`: the Node scripts of tests/node.
+* :mod:`tests.helpers.cli`: the ``vbusd`` command run in-process, with its output captured.
+* :mod:`tests.helpers.scenes`: small UsdSkel scenes written from code.
+* :mod:`tests.helpers.scripts`: repository scripts under test (samples/, spec/, scripts/, benchmarks/)
+  loaded by path, once.
+"""

@@ -1,0 +1,361 @@
+"""What the browser tests share (tests/test_browser*.py, the conformance and side-by-side pages):
+the converted assets they draw, the probe against vbusd's numpy reference decoder, the silhouette
+rasterizer, and the covering matrix of encodings, texel formats and skin bindings.
+
+The probe compares ``window.vbusd.probe(instance, time)`` (the GPU's world-space skinned positions
+and normals, by transform feedback) with :func:`reference_instance`, which shares no code with the
+browser's GLSL path beyond the stored texels. The session fixtures built from these helpers are in
+:mod:`tests.helpers.fixtures`: each asset is converted once per test session (per xdist worker).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import os
+from pathlib import Path
+
+import numpy as np
+
+import vbusd
+from vbusd.decoders.reference import skin_crowd, skin_mesh
+from vbusd.format.model import Crowd
+from vbusd.web.browser import ViewerPage
+from vbusd.web.server import ViewerServer
+
+from tests.helpers.capabilities import REPO
+
+SAMPLE = REPO / "samples" / "stadium_crowd"
+ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
+FORMATS = ("float16", "float32")
+POSITION_TOLERANCE = 1e-6  # of the instance's bounding-box diagonal
+NORMAL_TOLERANCE = 1e-5
+SKINS = ("attributes", "pulled")
+PAGE = "?paused=1&ui=0&silhouette=1&width=320&height=180"
+
+STADIUM_PROBES = [(0, 0.0), (0, 1.2345), (777, 3.71), (1199, 12.05)]
+"""Scene times: a row time, between rows, and past the 10 s loop (wraps)."""
+
+# ------------------------------------------------------------------------------------------------
+# The covering matrix. Each browser case is a page load and a shader compile in software (seconds),
+# so by default the engines run a covering set, named here case by case: every encoding, every
+# texel format and both skin bindings at least once per engine, each (encoding, texel format) pair
+# once; on the real characters, every encoding once. VBUSD_FULL_MATRIX=1 runs every combination.
+# ------------------------------------------------------------------------------------------------
+
+FULL_MATRIX = os.environ.get("VBUSD_FULL_MATRIX") == "1"
+
+COVER = {("crossMatrix", "float16"): "pulled", ("affineMatrix", "float32"): "attributes",
+         ("quatTranslation", "float16"): "attributes", ("dualQuat", "float32"): "pulled"}
+"""The (encoding, texel format) pairs of the default matrix, with the skin binding each runs in."""
+
+CHARACTER_COVER = (("Fox", "crossMatrix"), ("Fox", "quatTranslation"), ("CesiumMan", "affineMatrix"),
+                   ("CesiumMan", "dualQuat"))
+"""The (character, encoding) pairs of the default matrix of the real characters."""
+
+
+def encoding_format_skin_cases(encodings=ENCODINGS, formats=FORMATS, skins=SKINS) -> list[tuple[str, str, str]]:
+    """(encoding, texel format, skin) cases: the whole product under VBUSD_FULL_MATRIX=1, else the
+    pairs of :data:`COVER` among ``encodings`` x ``formats``, each in its skin binding (or, where
+    ``skins`` is one binding, in that one)."""
+    product = list(itertools.product(encodings, formats, skins))
+    if FULL_MATRIX:
+        return product
+    return [(e, f, s) for e, f, s in product if (e, f) in COVER and (len(skins) == 1 or COVER[e, f] == s)]
+
+
+def encoding_format_cases(encodings=ENCODINGS, formats=FORMATS) -> list[tuple[str, str]]:
+    """(encoding, texel format) cases: the whole product under VBUSD_FULL_MATRIX=1, else the
+    pairs of :data:`COVER`."""
+    product = list(itertools.product(encodings, formats))
+    return product if FULL_MATRIX else [pair for pair in product if pair in COVER]
+
+
+def character_encoding_cases(characters, encodings=ENCODINGS) -> list[tuple[str, str]]:
+    """(character, encoding) cases: the whole product under VBUSD_FULL_MATRIX=1, else
+    :data:`CHARACTER_COVER`'s among them."""
+    product = list(itertools.product(characters, encodings))
+    return product if FULL_MATRIX else [pair for pair in product if pair in CHARACTER_COVER]
+
+
+def convert(source: Path, output: Path, encoding: str, texel_format: str) -> Path:
+    """``source`` converted to ``output`` (no accuracy check rows: the probes are the check)."""
+    vbusd.convert(source, output, vbusd.ConvertOptions(encoding=encoding, texel_format=texel_format, check_rows=0))
+    return output
+
+
+class ConvertedOnce(dict):
+    """(encoding, texel format) -> converted asset, each converted by ``make(encoding, texel_format)``
+    the first time a test asks for it: a session converts only the cases its tests draw."""
+
+    def __init__(self, make):
+        super().__init__()
+        self._make = make
+
+    def __missing__(self, key):
+        self[key] = self._make(*key)
+        return self[key]
+
+
+def build_stadium_assets(folder: Path) -> ConvertedOnce:
+    """The stadium's UsdSkel source converted per encoding and format, with the sample's crowd."""
+    crowd_asset = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda")
+
+    def make(encoding: str, texel_format: str) -> Path:
+        converted = convert(SAMPLE / "stadium_crowd.usda", folder / f"c_{encoding}_{texel_format}.usda",
+                            encoding, texel_format)
+        asset = vbusd.read_asset(converted)
+        with_crowd = dataclasses.replace(asset, crowds=crowd_asset.crowds, crowd_animation=(0,))
+        path = folder / f"{encoding}_{texel_format}" / "stadium.usda"
+        path.parent.mkdir()
+        vbusd.write_asset(with_crowd, path)
+        return path
+
+    return ConvertedOnce(make)
+
+
+def build_compact_stadium(folder: Path):
+    """Format 1.2: the stadium converted with compactQuatTranslation (uint32 words), with its crowd."""
+    crowd_asset = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda")
+    converted = convert(SAMPLE / "stadium_crowd.usda", folder / "c.usda", "compactQuatTranslation", "uint32")
+    asset = dataclasses.replace(vbusd.read_asset(converted), crowds=crowd_asset.crowds, crowd_animation=(0,))
+    path = folder / "compact" / "stadium.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(asset, path)
+    return path
+
+
+def build_rig_assets(folder: Path):
+    """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
+    return ConvertedOnce(lambda encoding, texel_format: convert(
+        REPO / "tests" / "fixtures" / "gltf" / "bar.gltf", folder / f"{encoding}_{texel_format}" / "bar.usda",
+        encoding, texel_format))
+
+
+def build_bar_crowd(folder: Path):
+    """A crowd of the bar rig (glTF fixture, 5 clips that bend, slide, step and grow it): every
+    instance its own clip, time offset (negative too), playback rate, orientation and non-uniform
+    scale."""
+    asset = vbusd.read_asset(convert(REPO / "tests" / "fixtures" / "gltf" / "bar.gltf", folder / "bar.usda",
+                                      "affineMatrix", "float32"))
+    count = 10
+    rng = np.random.default_rng(14)
+    quaternions = rng.normal(size=(count, 4))
+    crowd = Crowd(path="/VirtualBones/Crowd", positions=rng.uniform(-6, 6, (count, 3)).astype(np.float32),
+                  orientations=(quaternions / np.linalg.norm(quaternions, axis=1, keepdims=True)).astype(np.float32),
+                  scales=rng.uniform(0.5, 1.6, (count, 3)).astype(np.float32),
+                  clip=(np.arange(count) % len(asset.animations[0].clips)).astype(np.int32),
+                  time_offset=rng.uniform(-1.0, 2.0, count).astype(np.float32),
+                  playback_rate=rng.uniform(0.3, 2.5, count).astype(np.float32))
+    path = folder / "crowd" / "bar_crowd.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), path)
+    return path
+
+
+def reference_instance(asset, instance: int, t: float):
+    """Positions and normals the viewer's instance ``instance`` has at time ``t`` (numpy decoder).
+
+    The viewer numbers the crowds' instances in the asset's order, then one instance (at the
+    origin, clip 0, offset 0, rate 1) per animation that no crowd instances.
+    """
+    for crowd, animation in zip(asset.crowds, asset.crowd_animation):
+        if instance < crowd.instance_count:
+            one = dataclasses.replace(crowd, **{field: None if getattr(crowd, field) is None
+                                                 else getattr(crowd, field)[instance:instance + 1]
+                                                 for field in ("positions", "orientations", "scales", "clip",
+                                                               "time_offset", "playback_rate", "fade_clip",
+                                                               "fade_time_offset", "fade_playback_rate",
+                                                               "fade_weight", "layer_clip", "layer_time_offset",
+                                                               "layer_playback_rate", "layer_weight",
+                                                               "layer_mask")})
+            vb = asset.animations[animation]
+            results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
+            return (np.concatenate([p[0] for p, _ in results]),
+                    np.concatenate([n[0] for _, n in results if n is not None] or [np.zeros((0, 3))]))
+        instance -= crowd.instance_count
+    singles = [vb for index, vb in enumerate(asset.animations) if index not in set(asset.crowd_animation)]
+    vb = singles[instance]
+    results = [skin_mesh(vb, mesh, 0, t) for mesh in vb.meshes]
+    return (np.concatenate([p[0] for p, _ in results]),
+            np.concatenate([n[0] for _, n in results if n is not None] or [np.zeros((0, 3))]))
+
+
+def check_probe(page: ViewerPage, asset, instance: int, t: float) -> tuple[float, float]:
+    """Probe the page and compare with the decoder; returns (position error / diagonal, normal error)."""
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    positions = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
+    normals = np.asarray(result["normals"], dtype=np.float64).reshape(-1, 3)
+    expected_positions, expected_normals = reference_instance(asset, instance, t)
+    assert positions.shape == expected_positions.shape
+    assert normals.shape == expected_normals.shape
+    diagonal = float(np.linalg.norm(expected_positions.max(0) - expected_positions.min(0)))
+    position_error = float(np.abs(positions - expected_positions).max()) / diagonal
+    normal_error = float(np.abs(normals - expected_normals).max()) if normals.size else 0.0
+    return position_error, normal_error
+
+
+def check_skin_binding(page: ViewerPage, skin: str) -> None:
+    """Every crowd of the page draws with ``skin``: pulled geometries keep no bone attributes
+    and carry skin records; attribute geometries keep them."""
+    state = page.page.evaluate("""() => window.vbusd.crowds.flatMap((crowd) => crowd.meshes.map((mesh) => ({
+        skin: crowd.skin, material: mesh.material.userData.virtualBones.skin,
+        depth: mesh.customDepthMaterial.userData.virtualBones.skin,
+        distance: mesh.customDistanceMaterial.userData.virtualBones.skin,
+        attributes: Object.keys(mesh.geometry.attributes).filter((name) => name.startsWith('vb_bone')).length,
+        records: mesh.geometry.userData.virtualBones.skin?.records.length ?? 0})))""")
+    assert state
+    for mesh in state:
+        assert mesh["skin"] == mesh["material"] == mesh["depth"] == mesh["distance"] == skin, mesh
+        assert (mesh["attributes"] == 0 and mesh["records"] > 0) if skin == "pulled" else mesh["attributes"] >= 2
+
+
+def run_probes(browser, path: Path, probes, skin: str = "attributes") -> list:
+    asset = vbusd.read_asset(path)
+    with ViewerServer(path) as server:
+        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
+        try:
+            assert page.error == "", page.error
+            check_skin_binding(page, skin)
+            errors = [check_probe(page, asset, instance, t) for instance, t in probes]
+            assert page.errors() == [], page.errors()
+            # Offline: the page, three.js, the runtime and the asset all come from the server.
+            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
+        finally:
+            page.close()
+    return errors
+
+
+def package_vertices(asset, positions: np.ndarray) -> np.ndarray:
+    """Points in the runtime package's vertex order: with faceVarying normals each corner of a face
+    of 3 or more vertices is its own vertex (spec/runtime-package.md), else the asset's points."""
+    parts, at = [], 0
+    for mesh in (m for vb in asset.animations for m in vb.meshes):
+        count = mesh.points.shape[0]
+        block = positions[at:at + count]
+        at += count
+        if mesh.normals_interpolation == "faceVarying":
+            counts = np.asarray(mesh.face_vertex_counts)
+            corners = np.split(np.asarray(mesh.face_vertex_indices), np.cumsum(counts)[:-1])
+            block = block[np.concatenate([c for c in corners if len(c) >= 3])]
+        parts.append(block)
+    return np.concatenate(parts)
+
+
+SCREEN = (640, 360)
+CAMERA = "0,11,38,0,2.5,44"  # above the front rows, looking down at the stand: figures apart
+SCREENSHOT_TIME = 2.5
+
+
+def rasterize(points_ndc: np.ndarray, triangles: np.ndarray, width: int, height: int,
+              budget: int = 4_000_000) -> np.ndarray:
+    """Coverage at pixel centres (GL's rule, ties aside) of triangles given in clip-divided NDC.
+
+    Every pixel of every triangle's bounding box is tested against its three edges, vectorized
+    over chunks of about ``budget`` (triangle, pixel) pairs.
+    """
+    mask = np.zeros((height, width), dtype=bool)
+    pixels = np.empty_like(points_ndc[:, :2])
+    pixels[:, 0] = (points_ndc[:, 0] + 1.0) * 0.5 * width
+    pixels[:, 1] = (1.0 - points_ndc[:, 1]) * 0.5 * height  # image rows run downward
+    corners = pixels[triangles]  # (n, 3, 2)
+    lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    keep = np.flatnonzero(area != 0)
+    spans = (hi - lo + 1)[keep]
+    counts = spans[:, 0] * spans[:, 1]
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(keep):
+        stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + budget, side="right")))
+        n = counts[start:stop]
+        which = np.repeat(np.arange(stop - start), n)
+        local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        width_of = spans[start:stop, 0][which]
+        triangle = keep[start:stop][which]
+        xs = lo[triangle, 0] + local % width_of
+        ys = lo[triangle, 1] + local // width_of
+        sign = np.sign(area[triangle])
+        inside = np.ones(xs.shape, dtype=bool)
+        for p, q in ((a, b), (b, c), (c, a)):
+            p, q = p[triangle], q[triangle]
+            inside &= ((q[:, 0] - p[:, 0]) * (ys + 0.5 - p[:, 1])
+                       - (q[:, 1] - p[:, 1]) * (xs + 0.5 - p[:, 0])) * sign >= 0
+        mask[ys[inside], xs[inside]] = True
+        start = stop
+    return mask
+
+
+def screenshot_luminance(png_bytes: bytes) -> np.ndarray:
+    """The PNG a screenshot returns as an (height, width) array of 8-bit grey (the mean of R, G, B)."""
+    import png
+
+    width, height, rows, _ = png.Reader(bytes=png_bytes).asRGBA8()
+    rgba = np.vstack([np.frombuffer(bytes(row), dtype=np.uint8) for row in rows]).reshape(height, width, 4)
+    return rgba[:, :, :3].mean(axis=2)
+
+
+def check_silhouette(browser, engine: str = "three", backend_query: str = "") -> None:
+    """The page of ``engine`` (unlit white on black) against the silhouette rasterized from the
+    decoder's vertices with the page's own camera: IoU >= 0.98, and < 0.9 0.3 s later."""
+    path = SAMPLE / "stadium_crowd_vb.usda"
+    asset = vbusd.read_asset(path)
+    width, height = SCREEN
+    query = (f"?time={SCREENSHOT_TIME}&paused=1&ui=0&silhouette=1&antialias=0&pixelRatio=1"
+             f"&width={width}&height={height}&camera={CAMERA}&fov=30{backend_query}")
+    with ViewerServer(path, engine=engine) as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
+        try:
+            assert page.error == ""
+            page.page.evaluate("window.vbusd.render()")
+            image = screenshot_luminance(page.page.locator("#view").screenshot())
+            camera = page.page.evaluate(
+                "({p: window.vbusd.camera.projectionMatrix.elements, v: window.vbusd.camera.matrixWorldInverse.elements})")
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    shown = image > 127
+    assert shown.shape == (height, width)
+
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    mesh = vb.meshes[0]
+    view_projection = np.asarray(camera["p"]).reshape(4, 4).T @ np.asarray(camera["v"]).reshape(4, 4).T
+    triangles = np.asarray(mesh.face_vertex_indices).reshape(-1, 3)
+    offsets = (np.arange(crowd.instance_count) * mesh.points.shape[0])[:, None, None]
+    all_triangles = (triangles[None] + offsets).reshape(-1, 3)
+
+    def silhouette(t: float) -> np.ndarray:
+        points, _ = skin_crowd(vb, mesh, crowd, t)
+        homogeneous = np.concatenate([points.reshape(-1, 3), np.ones((points.shape[0] * points.shape[1], 1))], axis=1)
+        clip = homogeneous @ view_projection.T
+        assert (clip[:, 3] > 0).all()  # the whole crowd is in front of the camera: no clipping needed
+        ndc = clip[:, :3] / clip[:, 3:]
+        visible = (np.abs(ndc[all_triangles][:, :, :2]) <= 1.05).any(axis=(1, 2))
+        return rasterize(ndc, all_triangles[visible], width, height)
+
+    def iou(a: np.ndarray, b: np.ndarray) -> float:
+        return float((a & b).sum() / (a | b).sum())
+
+    expected = silhouette(SCREENSHOT_TIME)
+    print(f"IoU {iou(shown, expected):.4f}, {expected.sum()} silhouette pixels")
+    assert 0.2 < expected.mean() < 0.8  # the camera sees figures and the gaps between them
+    assert iou(shown, expected) >= 0.98
+    # The comparison can fail: the same crowd 0.3 s later is another picture.
+    assert iou(shown, silhouette(SCREENSHOT_TIME + 0.3)) < 0.9
+
+
+def settle(page, shows, *, timeout_s: float = 240.0, interval_ms: int = 500):
+    """Screenshots of ``page`` until ``shows(luminance)`` holds (a page drawn as it should be) or
+    ``timeout_s`` passes; returns the last (png bytes, luminance). Waits on what the page shows, not
+    for a fixed time: a slow machine takes longer, a fast one returns at once."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        picture = page.screenshot()
+        luminance = screenshot_luminance(picture)
+        if shows(luminance) or time.monotonic() > deadline:
+            return picture, luminance
+        page.wait_for_timeout(interval_ms)
