@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import runpy
 from pathlib import Path
 
 import numpy as np
@@ -32,19 +31,9 @@ import vbusd
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 
-HERE = Path(__file__).resolve().parent
-_helpers = runpy.run_path(str(HERE / "test_browser.py"))
-check_probe = _helpers["check_probe"]
-reference_instance = _helpers["reference_instance"]
-package_vertices = _helpers["_package_vertices"]
-compact_stadium = _helpers["compact_stadium"]
-bar_crowd = _helpers["bar_crowd"]
-SAMPLE = _helpers["SAMPLE"]
-STADIUM_PROBES = _helpers["STADIUM_PROBES"]
-POSITION_TOLERANCE = _helpers["POSITION_TOLERANCE"]
-NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
-PAGE = _helpers["PAGE"]
-_crowd_helpers = runpy.run_path(str(HERE / "test_crowd.py"))
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, check_probe,
+                                   package_vertices, reference_instance)
+from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
 
 ENGINES = ("three", "babylon")
 
@@ -153,7 +142,7 @@ def fade_window_crowd(tmp_path_factory):
     from vbusd.cli import main
 
     folder = tmp_path_factory.mktemp("fade_window")
-    character = _crowd_helpers["_chain_character"](folder)
+    character = chain_character(folder)
     out = folder / "crowd.usda"
     status = main(["crowd", str(character), "-o", str(out), "--count", "12", "--yaw", "0", "0", "--seed", "5",
                    "--clips", "walk", "--rate", "0.8", "1.2",
@@ -170,8 +159,8 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
     character with the instance's clip, crossfade (the weight ramp 0 before 0.5 s, 1 after 1.5 s,
     linear between) and layer given by hand."""
     character, path = fade_window_crowd
-    values = _crowd_helpers["_primvars"](path)
-    by_hand = _crowd_helpers["_by_hand"]
+    values = primvars(path)
+    by_hand = crowd_by_hand
 
     def weight_at(i, t):
         return float(np.clip((t - 0.5) / (1.5 - 0.5), 0.0, 1.0))

@@ -18,6 +18,7 @@ from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.crowd import CrowdOptions, build_crowd, disc_positions, grid_positions  # noqa: E402
 
 import vbusd  # noqa: E402
+from tests.helpers.crowds import by_hand, chain_character, primvars  # noqa: E402
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
@@ -35,7 +36,7 @@ def _first_clip(character: Path) -> str:
     return vbusd.read_asset(character).animations[0].clips[0].name
 
 
-def test_grid_and_disc_by_hand():
+def test_grid_and_discby_hand():
     grid = grid_positions(5, 2.0, "Y")  # 3 columns, 2 rows, pitch 2, centred
     assert grid.tolist() == [[-2, 0, -1], [0, 0, -1], [2, 0, -1], [-2, 0, 1], [0, 0, 1]]
     disc = disc_positions(1000, 1.0, "Z")
@@ -386,91 +387,7 @@ def test_khronos_characters_of_several_skeletons_stay_whole(shared_assets, tmp_p
 # ----------------------------------------------------------------------------------------------
 
 
-def _chain_character(folder: Path, *, masks=(("upper", "b1"),)) -> Path:
-    """A three-bone chain (b0 root, b1, b2) with three clips that move differently in time, a mesh
-    skinned to all three bones, bind transforms the identity, bone masks (format 1.2)."""
-    from vbusd.baking.baker import BakeOptions, bake
-    from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh, VirtualBonesAsset
-
-    def local(angle, y):
-        c, s = np.cos(angle), np.sin(angle)
-        m = np.eye(4)
-        m[:2, :2] = [[c, -s], [s, c]]
-        m[1, 3] = y
-        return m
-
-    def clip(name, amplitudes, frequency, lift):
-        def sample(times):
-            out = []
-            for t in np.atleast_1d(times):
-                j0 = local(amplitudes[0] * np.sin(frequency * t), lift * np.sin(2 * frequency * t))
-                j1 = j0 @ local(amplitudes[1] * np.sin(frequency * t + 1.0), 1.0)
-                j2 = j1 @ local(amplitudes[2] * np.cos(frequency * t), 1.0)
-                out.append(np.stack([j0, j1, j2]))
-            return np.asarray(out)
-        return AnimationClip(name, 0.0, 2.0, sample, native_rate=30, loop=False)
-
-    rng = np.random.default_rng(3)
-    points = np.column_stack([rng.uniform(-0.3, 0.3, 30), np.linspace(0.0, 2.4, 30), rng.uniform(-0.3, 0.3, 30)])
-    indices = np.array([[0, 1], [1, 2], [0, 2]] * 10)
-    weights = np.repeat(rng.uniform(0.2, 0.8, (30, 1)), 2, axis=1) * [1, -1] + [0, 1]
-    mesh = SkinnedMesh("/Chain/Mesh", points, np.array([3] * 10), np.arange(30), indices, weights,
-                       normals=np.tile([1.0, 0.0, 0.0], (30, 1)))
-    animation = SkinnedAnimation("Chain", "/Chain/Anim", ("b0", "b1", "b2"),
-                                 (clip("walk", (0.2, 0.3, 0.1), 2.0, 0.1), clip("run", (0.5, 0.8, 0.6), 5.0, 0.3),
-                                  clip("wave", (0.0, 1.2, 1.5), 3.0, 0.0)), (mesh,),
-                                 bind_transforms=np.stack([np.eye(4)] * 3), bone_parents=(-1, 0, 1))
-    vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", masks=masks))
-    path = folder / "chain.usda"
-    vbusd.write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Chain"), path)
-    return path
-
-
-def _primvars(crowd_file: Path) -> dict:
-    """The instancer's primvars as USD itself reads them (pxr, not vbusd's reader): defaults, the
-    fade weight's time samples, the layer arrays as (instances, layers)."""
-    from pxr import Usd, UsdGeom
-
-    stage = Usd.Stage.Open(str(crowd_file))
-    (prim,) = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
-    tcps = stage.GetTimeCodesPerSecond()
-    out = {"positions": np.array(prim.GetAttribute("positions").Get(), dtype=np.float64)}
-    for name in ("clip", "timeOffset", "playbackRate", "fadeClip", "fadeTimeOffset", "fadePlaybackRate",
-                 "fadeWeight", "layerClip", "layerTimeOffset", "layerPlaybackRate", "layerWeight", "layerMask"):
-        primvar = UsdGeom.Primvar(prim.GetAttribute(f"primvars:vb:{name}"))
-        if not primvar.GetAttr().IsValid() or not primvar.GetAttr().HasAuthoredValue():
-            continue  # the schema declares every primvar; only the authored ones are the crowd's
-        values = np.array(primvar.GetAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
-        size = primvar.GetElementSize()
-        out[name] = values.reshape(-1, size) if name.startswith("layer") else values
-        samples = primvar.GetAttr().GetTimeSamples()
-        if samples:
-            out[name + ".samples"] = {code / tcps: np.array(primvar.GetAttr().Get(code), dtype=np.float64)
-                                      for code in samples}
-    masks = stage.GetPrimAtPath(str(prim.GetRelationship("vb:animation").GetTargets()[0])).GetAttribute("vb:maskNames")
-    out["maskNames"] = list(masks.Get() or [])
-    return out
-
-
-def _by_hand(character: Path, values: dict, i: int, t: float, weight_at) -> np.ndarray:
-    """Instance i's world points at stage time t: vbusd.skin of the character with the instance's
-    clip, crossfade and layers given by hand (spec "Instancing": tau = offset + rate * t), plus its
-    position (the test's instances are neither turned nor scaled)."""
-    tau = values["timeOffset"][i] + values["playbackRate"][i] * t
-    fade = {}
-    if "fadeClip" in values:
-        fade = dict(fade_clip=int(values["fadeClip"][i]),
-                    fade_time=values["fadeTimeOffset"][i] + values["fadePlaybackRate"][i] * t,
-                    fade_weight=float(weight_at(i, t)))
-    layers = [{"clip": int(values["layerClip"][i, j]),
-               "time": values["layerTimeOffset"][i, j] + values["layerPlaybackRate"][i, j] * t,
-               "weight": float(values["layerWeight"][i, j]), "mask": values["maskNames"][int(values["layerMask"][i, j])]}
-              for j in range(values["layerClip"].shape[1])] if "layerClip" in values else None
-    (pose,) = vbusd.skin(character, int(values["clip"][i]), tau, layers=layers, **fade)
-    return pose.points + values["positions"][i]
-
-
-def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_given_by_hand(tmp_path, capsys):
+def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_givenby_hand(tmp_path, capsys):
     """`vbusd crowd --fade-clips ... --fade-window ... --layer MASK CLIPS ...`: the primvars USD reads
     hold what the options ask (clips among those named, weights in their ranges, the fade weight
     sampled 0 at START and 1 at END), every instance read back through vbusd plays exactly what
@@ -478,7 +395,7 @@ def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_given_by_h
     crowd validates clean."""
     from vbusd.decoders.reference import skin_crowd
 
-    character = _chain_character(tmp_path)
+    character = chain_character(tmp_path)
     out = tmp_path / "crowd.usda"
     status = main(["crowd", str(character), "-o", str(out), "--count", "12", "--yaw", "0", "0", "--seed", "5",
                    "--clips", "walk", "--rate", "0.8", "1.2",
@@ -490,7 +407,7 @@ def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_given_by_h
     report = json.loads(capsys.readouterr().out)
     assert report["layers"] == 1 and sum(report["fadeClips"][0].values()) == 12 and report["fadeClips"][0]["walk"] == 0
     assert vbusd.validate(out).valid
-    values = _primvars(out)
+    values = primvars(out)
     clips = ["walk", "run", "wave"]
     assert set(values["clip"]) == {0} and set(values["fadeClip"]) <= {1, 2}
     assert np.all((values["fadePlaybackRate"] >= 0.9 - 1e-6) & (values["fadePlaybackRate"] <= 1.1 + 1e-6))
@@ -514,7 +431,7 @@ def test_crowd_options_make_a_crossfading_layered_crowd_that_plays_as_given_by_h
     for t in (0.2, 0.9, 1.25, 1.8):
         points, _ = skin_crowd(animation, animation.meshes[0], crowd, t)
         for i in range(12):
-            np.testing.assert_allclose(points[i], _by_hand(character, values, i, t, weight_at), atol=1e-9,
+            np.testing.assert_allclose(points[i], by_hand(character, values, i, t, weight_at), atol=1e-9,
                                        err_msg=f"instance {i} at {t} s")
     # The crossfade and the layer change the pose (the comparison is not of two unblended poses).
     plain = vbusd.skin(character, 0, values["timeOffset"][0] + values["playbackRate"][0] * 1.25)[0].points
@@ -529,7 +446,7 @@ def test_crowd_api_constant_fade_weights_and_two_layers(tmp_path):
     from vbusd.decoders.reference import skin_crowd
     from vbusd.jobs.crowd import CrowdLayer
 
-    character = _chain_character(tmp_path, masks=(("upper", "b1"), ("tip", "b2")))
+    character = chain_character(tmp_path, masks=(("upper", "b1"), ("tip", "b2")))
     base = CrowdOptions(layout="disc", count=20, yaw=(0, 0), seed=9, clips={"walk": 1, "run": 1})
     build_crowd([character], tmp_path / "plain.usda", base)
     layered = dataclasses.replace(base, fade_clips={"wave": 1}, fade_weight=(0.1, 0.4), fade_playback_rate=(1.0, 1.0),
@@ -537,7 +454,7 @@ def test_crowd_api_constant_fade_weights_and_two_layers(tmp_path):
                                           {"mask": "upper", "clips": {}, "weight": (0.5, 0.5)}])
     report = build_crowd([character], tmp_path / "layered.usda", layered)
     assert report.layers == 2 and report.fade_clips == [{"walk": 0, "run": 0, "wave": 20}]
-    plain, values = _primvars(tmp_path / "plain.usda"), _primvars(tmp_path / "layered.usda")
+    plain, values = primvars(tmp_path / "plain.usda"), primvars(tmp_path / "layered.usda")
     for name in ("positions", "clip", "timeOffset", "playbackRate"):
         np.testing.assert_array_equal(values[name], plain[name])
     assert "fadeClip" not in plain and "layerClip" not in plain
@@ -552,7 +469,7 @@ def test_crowd_api_constant_fade_weights_and_two_layers(tmp_path):
     animation = back.animations[back.crowd_animation[0]]
     points, _ = skin_crowd(animation, animation.meshes[0], back.crowds[0], 0.7)
     for i in range(20):
-        np.testing.assert_allclose(points[i], _by_hand(character, values, i, 0.7, lambda i, t: values["fadeWeight"][i]),
+        np.testing.assert_allclose(points[i], by_hand(character, values, i, 0.7, lambda i, t: values["fadeWeight"][i]),
                                    atol=1e-9, err_msg=f"instance {i}")
     # Same seed, same bytes, with the new options too.
     build_crowd([character], tmp_path / "again.usda", layered)
@@ -572,7 +489,7 @@ def test_crowd_api_constant_fade_weights_and_two_layers(tmp_path):
     (["--layer", "upper", "wave:x"], "options.invalid", "--layer upper"),
 ])
 def test_bad_crossfade_and_layer_options_are_one_line(tmp_path, capsys, args, code, words):
-    character = _chain_character(tmp_path)
+    character = chain_character(tmp_path)
     out = tmp_path / "bad.usda"
     assert main(["crowd", str(character), "-o", str(out), "--count", "4", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()

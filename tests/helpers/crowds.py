@@ -1,0 +1,96 @@
+"""A small chain character with a mask, the primvars of a crowd file, and an instance skinned by
+hand from them: what the crowd tests and the browser parity tests share."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import vbusd
+
+__all__ = ["chain_character", "primvars", "by_hand"]
+
+
+def chain_character(folder: Path, *, masks=(("upper", "b1"),)) -> Path:
+    """A three-bone chain (b0 root, b1, b2) with three clips that move differently in time, a mesh
+    skinned to all three bones, bind transforms the identity, bone masks (format 1.2)."""
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh, VirtualBonesAsset
+
+    def local(angle, y):
+        c, s = np.cos(angle), np.sin(angle)
+        m = np.eye(4)
+        m[:2, :2] = [[c, -s], [s, c]]
+        m[1, 3] = y
+        return m
+
+    def clip(name, amplitudes, frequency, lift):
+        def sample(times):
+            out = []
+            for t in np.atleast_1d(times):
+                j0 = local(amplitudes[0] * np.sin(frequency * t), lift * np.sin(2 * frequency * t))
+                j1 = j0 @ local(amplitudes[1] * np.sin(frequency * t + 1.0), 1.0)
+                j2 = j1 @ local(amplitudes[2] * np.cos(frequency * t), 1.0)
+                out.append(np.stack([j0, j1, j2]))
+            return np.asarray(out)
+        return AnimationClip(name, 0.0, 2.0, sample, native_rate=30, loop=False)
+
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-0.3, 0.3, 30), np.linspace(0.0, 2.4, 30), rng.uniform(-0.3, 0.3, 30)])
+    indices = np.array([[0, 1], [1, 2], [0, 2]] * 10)
+    weights = np.repeat(rng.uniform(0.2, 0.8, (30, 1)), 2, axis=1) * [1, -1] + [0, 1]
+    mesh = SkinnedMesh("/Chain/Mesh", points, np.array([3] * 10), np.arange(30), indices, weights,
+                       normals=np.tile([1.0, 0.0, 0.0], (30, 1)))
+    animation = SkinnedAnimation("Chain", "/Chain/Anim", ("b0", "b1", "b2"),
+                                 (clip("walk", (0.2, 0.3, 0.1), 2.0, 0.1), clip("run", (0.5, 0.8, 0.6), 5.0, 0.3),
+                                  clip("wave", (0.0, 1.2, 1.5), 3.0, 0.0)), (mesh,),
+                                 bind_transforms=np.stack([np.eye(4)] * 3), bone_parents=(-1, 0, 1))
+    vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", masks=masks))
+    path = folder / "chain.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Chain"), path)
+    return path
+
+
+def primvars(crowd_file: Path) -> dict:
+    """The instancer's primvars as USD itself reads them (pxr, not vbusd's reader): defaults, the
+    fade weight's time samples, the layer arrays as (instances, layers)."""
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(crowd_file))
+    (prim,) = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    tcps = stage.GetTimeCodesPerSecond()
+    out = {"positions": np.array(prim.GetAttribute("positions").Get(), dtype=np.float64)}
+    for name in ("clip", "timeOffset", "playbackRate", "fadeClip", "fadeTimeOffset", "fadePlaybackRate",
+                 "fadeWeight", "layerClip", "layerTimeOffset", "layerPlaybackRate", "layerWeight", "layerMask"):
+        primvar = UsdGeom.Primvar(prim.GetAttribute(f"primvars:vb:{name}"))
+        if not primvar.GetAttr().IsValid() or not primvar.GetAttr().HasAuthoredValue():
+            continue  # the schema declares every primvar; only the authored ones are the crowd's
+        values = np.array(primvar.GetAttr().Get(Usd.TimeCode.Default()), dtype=np.float64)
+        size = primvar.GetElementSize()
+        out[name] = values.reshape(-1, size) if name.startswith("layer") else values
+        samples = primvar.GetAttr().GetTimeSamples()
+        if samples:
+            out[name + ".samples"] = {code / tcps: np.array(primvar.GetAttr().Get(code), dtype=np.float64)
+                                      for code in samples}
+    masks = stage.GetPrimAtPath(str(prim.GetRelationship("vb:animation").GetTargets()[0])).GetAttribute("vb:maskNames")
+    out["maskNames"] = list(masks.Get() or [])
+    return out
+
+
+def by_hand(character: Path, values: dict, i: int, t: float, weight_at) -> np.ndarray:
+    """Instance i's world points at stage time t: vbusd.skin of the character with the instance's
+    clip, crossfade and layers given by hand (spec "Instancing": tau = offset + rate * t), plus its
+    position (the test's instances are neither turned nor scaled)."""
+    tau = values["timeOffset"][i] + values["playbackRate"][i] * t
+    fade = {}
+    if "fadeClip" in values:
+        fade = dict(fade_clip=int(values["fadeClip"][i]),
+                    fade_time=values["fadeTimeOffset"][i] + values["fadePlaybackRate"][i] * t,
+                    fade_weight=float(weight_at(i, t)))
+    layers = [{"clip": int(values["layerClip"][i, j]),
+               "time": values["layerTimeOffset"][i, j] + values["layerPlaybackRate"][i, j] * t,
+               "weight": float(values["layerWeight"][i, j]), "mask": values["maskNames"][int(values["layerMask"][i, j])]}
+              for j in range(values["layerClip"].shape[1])] if "layerClip" in values else None
+    (pose,) = vbusd.skin(character, int(values["clip"][i]), tau, layers=layers, **fade)
+    return pose.points + values["positions"][i]
