@@ -15,6 +15,7 @@ Marked ``packaging``: skipped when the ``build`` tool is missing; deselect with
 from __future__ import annotations
 
 import configparser
+import json
 import os
 import shutil
 import subprocess
@@ -170,8 +171,6 @@ def test_unpacked_wheel_imports_without_the_source_tree(wheel_path, tmp_path):
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env,
                             cwd=tmp_path, timeout=120)
     assert result.returncode == 0, result.stderr
-    import json
-
     report = json.loads(result.stdout.strip().splitlines()[-1])
     for file in report["files"]:
         assert Path(file).resolve().is_relative_to(site.resolve()), file

@@ -3,6 +3,7 @@ imports (static and dynamic): what the wheel's build step and `vbusd view` must 
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from urllib.parse import urljoin

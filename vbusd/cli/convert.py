@@ -26,7 +26,6 @@ from vbusd.io.usd_probe import needs_probe, prestart
 from vbusd.jobs.conversion import ConvertOptions, convert
 from vbusd.jobs.batch import is_glob
 from vbusd.jobs.batch import plan_batch, run_batch
-from vbusd.jobs.conversion import ConvertOptions
 from vbusd.format.jsonform import json_text
 from vbusd.io.files import atomic_write, make_folders
 from vbusd.cli.common import table

@@ -46,13 +46,12 @@ from vbusd.io.usd_reader import open_stage
 from vbusd.format.layout import MAX_TEXTURE_DIMENSION, Encoding
 from pxr import Sdf
 from vbusd.kernels import bake as bake_kernels
-from pxr import UsdGeom
 from vbusd.io.usd_reader import captured_usd_diagnostics
 from pxr import Tf
 from vbusd.io.usd_reader import tf_message
 from vbusd.io.usd_lod import levels_of
 from pxr import Vt
-from pxr import Gf, Vt
+from pxr import Gf
 
 __all__ = ["NAME", "SUFFIXES", "WEIGHT_SUM_TOLERANCE", "DQS", "sniff", "UsdSkelScene",
            "AllFramesSkinning", "SkeletonSampler", "read", "IMPLICIT_SEGMENTS", "implicit_surface",

@@ -34,8 +34,8 @@ from vbusd.format.layout import TexelFormat
 from vbusd.format.model import VirtualBones
 from vbusd.decoders.reference import decode_bones, interpolated_values
 from vbusd.kernels import bake as bake_kernels
-from vbusd.decoders.reference import decode_bones, interpolated_values, row_position
-from vbusd.decoders.reference import bone_transforms, channel_values, decode_bones, interpolated_values, skin
+from vbusd.decoders.reference import row_position
+from vbusd.decoders.reference import bone_transforms, channel_values, skin
 
 __all__ = ["SUBSTEPS", "CURVATURE_MARGIN", "ROUNDING_MARGIN", "clip_extents"]
 

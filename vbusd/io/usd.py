@@ -913,4 +913,3 @@ from vbusd.io.usd_reader import (  # noqa: E402,F401
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 from vbusd.io.textures import container_for
 from vbusd.io.usd_lod import author_lod_root
-from pxr import Tf

@@ -19,7 +19,7 @@ from vbusd.format.model import LevelsOfDetail
 from pxr import Sdf
 from pxr import Usd, UsdGeom
 from vbusd.format import names
-from pxr import Sdf, UsdGeom, UsdLod, Vt
+from pxr import UsdLod, Vt
 
 __all__ = ["LOD_ROOT_API", "levels_of", "levels_of_animation", "check_animation_levels", "author_lod_root"]
 

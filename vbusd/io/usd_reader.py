@@ -57,7 +57,6 @@ from vbusd.format.metadata import parents_problem
 from vbusd.format.rootmotion import RootMotion
 from vbusd.io.textures import read_texture
 from vbusd.io.usd_lod import levels_of
-from pxr import Sdf, UsdUtils
 from vbusd.io.usd_lod import levels_of_animation
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "texture_disagreements",

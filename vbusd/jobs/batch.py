@@ -65,7 +65,7 @@ import sys
 import socket
 from vbusd.process import signals as _signals
 from vbusd.jobs import warmup
-from vbusd.jobs.conversion import ConvertOptions, convert
+from vbusd.jobs.conversion import convert
 from vbusd.format.jsonform import camel_case
 import ctypes
 import platform

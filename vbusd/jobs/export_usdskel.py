@@ -47,10 +47,8 @@ from vbusd.format.encoding import decode_bones
 from vbusd.format.quaternion import matrix_to_quat, quat_to_matrix
 from pxr import Gf, Usd, UsdGeom
 from vbusd.io.usd_reader import stage_for_reading
-from pxr import Gf, Sdf, UsdGeom, UsdSkel, Vt
+from pxr import Sdf, UsdSkel, Vt
 from vbusd.io.usd_lod import author_lod_root
-from pxr import Gf, Sdf
-from pxr import Sdf, Usd, UsdGeom, Vt
 from vbusd.io.usd import write_layer
 
 __all__ = ["UsdSkelReport", "export_usdskel", "format_tolerance", "layer_offsets", "SUFFIXES", "CHARACTERS_ROOT",

@@ -29,7 +29,6 @@ from vbusd.format.declared import Declared, from_metadata
 from vbusd.format.diagnostics import JsonPointer
 from vbusd.format.errors import VbusdError
 from vbusd.format.declared import check_declared, check_format_version, compare_declared
-from vbusd.format.declared import check_declared
 
 __all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency",
            "check_texture_file", "check_texture_only"]

@@ -47,7 +47,7 @@ from vbusd.validators.checks_animation import check_animation_prim
 from vbusd.io.usd_lod import check_animation_levels
 from vbusd.validators.checks_bindings import check_binding_prim, has_binding
 from vbusd.validators.checks_bindings import check_instancer_prim, has_instancing
-from vbusd.validators.checks_bindings import applied_schemas, check_binding_prim, check_instancer_prim, has_binding, has_instancing
+from vbusd.validators.checks_bindings import applied_schemas
 import vbusd.io.usd_plugin as plugin
 from vbusd.format.errors import UnsupportedError
 
