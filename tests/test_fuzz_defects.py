@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
+import shutil
 import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import vbusd
 from vbusd.cli import main
 from vbusd.format.errors import InputError
 
@@ -524,3 +527,97 @@ def test_item9_a_ktx2_whose_header_disagrees_with_its_layout_is_refused_by_every
     document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
     package.write_text(json.dumps(document), encoding="utf-8")
     _refused_everywhere(package, capsys, "ktx2.vkFormat")
+
+
+# ------------------------------------------------------------------------------------------------
+# The format 1.2 mutation run (benchmarks/mutation_run.py --surfaces compact,package,lod,mask)
+# ------------------------------------------------------------------------------------------------
+
+SAMPLE = Path(__file__).parents[1] / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+
+
+@pytest.fixture(scope="module")
+def layered_crowd(tmp_path_factory) -> Path:
+    """The stadium sample (11 rows) with the mask upper=chest and a crowd of 2 playing one layer
+    under it: crowd.usda beside st.usda, as ``vbusd crowd --layer`` writes them."""
+    folder = tmp_path_factory.mktemp("layered")
+    assert main(["convert", str(SAMPLE), "-o", str(folder / "st.usda"), "--mask", "upper=chest",
+                 "--frame-range", "0", "10", "--check-rows", "0", "-q"]) == 0
+    assert main(["crowd", str(folder / "st.usda"), "-o", str(folder / "crowd.usda"), "--count", "2",
+                 "--layer", "upper", "*", "-q"]) == 0
+    return folder
+
+
+def _layer_edit(name: str, pattern: str, replacement: str):
+    def edit(text: str) -> str:
+        start = text.index(f"primvars:vb:{name} = ")
+        end = text.index(")\n", start)
+        block = text[start:end]
+        changed = re.sub(pattern, replacement, block, count=1)
+        assert changed != block, (name, pattern)
+        return text[:start] + changed + text[end:]
+    return edit
+
+
+@pytest.mark.parametrize("edit, code, prop", [
+    (_layer_edit("layerWeight", r"\[[^,\]]+", "[nan"), "instancer.nonFinite", "primvars:vb:layerWeight"),
+    (_layer_edit("layerPlaybackRate", r"\[[^,\]]+", "[inf"), "instancer.nonFinite", "primvars:vb:layerPlaybackRate"),
+    (_layer_edit("layerTimeOffset", r'interpolation = "vertex"', 'interpolation = "constant"'), "instancer.count",
+     "primvars:vb:layerTimeOffset"),
+    (_layer_edit("layerMask", r"elementSize = 1", "elementSize = 2"), "instancer.count", "primvars:vb:layerWeight"),
+    (_layer_edit("layerClip", r"\[[^,\]]+", "[7"), "instancer.clip.range", "primvars:vb:layerClip"),
+    (_layer_edit("layerMask", r"\[[^,\]]+", "[3"), "layers.noMask", "primvars:vb:layerMask"),
+])
+def test_layer_primvars_validate_accepted_are_refused_by_every_reader(layered_crowd, tmp_path, capsys, edit, code,
+                                                                        prop):
+    """vbusd validate had its own instancer checks, which knew no layer primvar: a NaN layer weight,
+    a layer primvar that is not per instance, one elementSize against the others, a clip or mask
+    index out of range passed validate (exit 0), while info, decode, export and read_asset refused
+    the crowd. Both now read them with one function (spec 8.6, 15)."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    crowd = folder / "crowd.usda"
+    crowd.write_text(edit(crowd.read_text(encoding="utf-8")), encoding="utf-8")
+    report = validate(crowd)
+    found = [(f["code"], f["location"].get("primPath"), f["location"].get("property"))
+             for f in report.to_json()["findings"] if f["severity"] == "error"]
+    assert found == [(code, "/Crowd/stInstances", prop)] and report.exit_status == 1, found
+    for command in (["info", str(crowd)], ["decode", str(crowd), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"/Crowd/stInstances.{prop}: {code}: " in err[0], err
+    with pytest.raises(InputError) as raised:
+        vbusd.read_asset(crowd)
+    assert raised.value.code == code
+
+
+@pytest.mark.parametrize("weight", [[0.0], "1", None, True])
+def test_a_mask_weight_that_is_no_number_is_a_schema_finding_not_an_internal_error(layered_crowd, tmp_path, capsys,
+                                                                                   weight):
+    """A weight of the metadata's masks replaced by a list (in the texture and its sidecar alike):
+    validate compared the prim's vb:maskWeights with it as an array and said asset.internal; it is
+    the schema's finding (masks/0/weights/2 is no number), and every reader refuses it alike."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def edit(text):
+        document = json.loads(text)
+        document["masks"][0]["weights"][2] = weight
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, edit)
+    report = validate(folder / "st.usda")
+    codes = {f["code"] for f in report.to_json()["findings"]}
+    assert "asset.internal" not in codes and "metadata.schema" in codes and report.exit_status == 1, codes
+    for command in (["info", str(folder / "st.usda")], ["info", str(texture)],
+                    ["decode", str(folder / "st.usda"), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "/masks/0/weights/2: metadata.schema: " in err[0], err

@@ -72,6 +72,11 @@ def _is_int(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
+def _is_real(value) -> bool:
+    """A JSON number (the schema's ``number``): an int or float, never a boolean."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def from_metadata(meta, file: str) -> Declared:
     """Gather declared values from a parsed layout metadata document.
 
@@ -107,7 +112,8 @@ def from_metadata(meta, file: str) -> Declared:
         declared.values["boneParents"] = [int(p) for p in parents]
     masks = meta.get("masks")
     if isinstance(masks, list) and all(isinstance(m, dict) and isinstance(m.get("name"), str)
-                                       and isinstance(m.get("weights"), list) for m in masks):
+                                       and isinstance(m.get("weights"), list)
+                                       and all(_is_real(w) for w in m["weights"]) for m in masks):
         declared.values["masks"] = [{"name": m["name"], "weights": m["weights"]} for m in masks]
     ranges = meta.get("unormRanges")
     if ranges is not None:
