@@ -621,3 +621,30 @@ def test_a_mask_weight_that_is_no_number_is_a_schema_finding_not_an_internal_err
         assert main(command) == 2, command
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "/masks/0/weights/2: metadata.schema: " in err[0], err
+
+
+@pytest.mark.parametrize("key, value, code", [("formatMinorVersion", 3, "format.version"),
+                                              ("formatMinorVersion", 2 ** 31, "format.version"),
+                                              ("usedWidth", 5, "metadata.inconsistent")])
+def test_a_package_layout_that_validate_refuses_is_refused_by_info_and_view(tmp_path, capsys, key, value, code):
+    """The extension's layout and its KTX2's vbusd.layout changed alike (so they still agree): a
+    newer minor version, or a used width that is not bones x texels per bone. validate checked the
+    KTX2's metadata as a texture's (schema, version, relations) and refused it; info and view read
+    it only as far as the header and the extension, and accepted it (spec/ktx2.md, step 7)."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    document = _document(package)
+    layout = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"]
+    layout[key] = value
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, code)
