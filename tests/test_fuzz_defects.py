@@ -648,3 +648,28 @@ def test_a_package_layout_that_validate_refuses_is_refused_by_info_and_view(tmp_
     document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
     package.write_text(json.dumps(document), encoding="utf-8")
     _refused_everywhere(package, capsys, code)
+
+
+def _nan_axis(t, layout, ranges):
+    t[0, 0, 0] = np.nan  # bone 0, row 0: the x axis's first component
+
+
+def test_a_nan_axis_is_an_orthonormality_finding_not_an_internal_error(tmp_path, capsys):
+    """A crossMatrix texel channel that is NaN: the orthonormality error of that bone and row is NaN,
+    counted as over the tolerance but never the worst (NaN > x is false), so the finding had no
+    place and validate said asset.internal (a USD asset) or command.internal, exit 3 (a package)."""
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    asset = MF.build_asset(texels_hook=_nan_axis)
+    write_asset(asset, tmp_path / "asset.usda")
+    export_gltf(asset, tmp_path / "pkg" / "asset.glb")
+    for given in (tmp_path / "asset.usda", tmp_path / "pkg" / "asset.glb"):
+        report = validate(given)
+        found = {(f["code"], f["location"].get("row"), f["location"].get("bone"))
+                 for f in report.to_json()["findings"]}
+        assert ("encoding.crossMatrix.orthonormal", 0, 0) in found and report.exit_status == 1, found
+        assert not any(code.endswith(".internal") for code, _, _ in found), found
+        capsys.readouterr()
+        assert main(["validate", "-q", str(given)]) == 1
