@@ -673,3 +673,22 @@ def test_a_nan_axis_is_an_orthonormality_finding_not_an_internal_error(tmp_path,
         assert not any(code.endswith(".internal") for code, _, _ in found), found
         capsys.readouterr()
         assert main(["validate", "-q", str(given)]) == 1
+
+
+@pytest.mark.parametrize("name, type_name", [(b"chan\nels", b"\xffhlist"), (b"chan\x1bels", b"\xffhlist")])
+def test_an_exr_attribute_name_with_control_bytes_is_quoted_in_the_one_line(tmp_path, capsys, name, type_name):
+    """An attribute name may hold any ASCII byte, a newline too; the reader's message quoted it as is,
+    so the Python API's InputError (and view's) was several lines where the command line's is one."""
+    from vbusd.io.textures import read_texture
+
+    source = FIXTURES / "valid" / "compactQuatTranslation_uint32"
+    shutil.copytree(source, tmp_path / "asset")
+    texture = tmp_path / "asset" / "asset.Animation.exr"
+    data = bytearray(texture.read_bytes())
+    assert data[8:16] == b"channels" and data[17:23] == b"chlist"
+    data[8:16], data[17:23] = name, type_name
+    texture.write_bytes(bytes(data))
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "texture.unreadable" and str(raised.value).count("\n") == 0, str(raised.value)
+    assert repr(name.decode()) in raised.value.message
