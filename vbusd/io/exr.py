@@ -265,7 +265,7 @@ def _parse_channels(value: bytes, file) -> dict:
         pixel_type, _linear, xs, ys = struct.unpack_from("<iB3xii", value, pos)
         pos += 16
         if (xs, ys) != (1, 1):
-            raise _bad(file, "header/channels", f"channel {name!r} is subsampled {xs} x {ys}; every "
+            raise _bad(file, "header/channels", f"channel {name} is subsampled {xs} x {ys}; every "
                        "channel of a Virtual Bones texture has sampling 1 x 1")
         channels[name] = PIXEL_TYPES.get(pixel_type, f"unknown ({pixel_type})")
     raise _bad(file, "header/channels", "malformed channel list")
