@@ -692,3 +692,31 @@ def test_an_exr_attribute_name_with_control_bytes_is_quoted_in_the_one_line(tmp_
         read_texture(texture)
     assert raised.value.code == "texture.unreadable" and str(raised.value).count("\n") == 0, str(raised.value)
     assert repr(name.decode()) in raised.value.message
+
+
+def test_bind_transforms_that_differ_from_the_prim_are_a_finding_of_validate(layered_crowd, tmp_path, capsys):
+    """The texture's metadata and sidecar say another bind transform for bone 1 than vb:bindTransforms:
+    read_asset, info, decode and export refused it (metadata.mismatch), validate compared every other
+    value with the prim but not these, and said valid."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def edit(text):
+        document = json.loads(text)
+        document["bindTransforms"][1][9] = -1
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, edit)
+    report = validate(folder / "st.usda")
+    found = {(f["code"], f["location"].get("file"), f["location"].get("pointer"))
+             for f in report.to_json()["findings"] if f["severity"] == "error"}
+    assert ("metadata.mismatch", "st.Skeleton.exr", "/bindTransforms") in found and report.exit_status == 1, found
+    for command in (["info", str(folder / "st.usda")],
+                    ["decode", str(folder / "st.usda"), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "st.Skeleton.exr: /bindTransforms: metadata.mismatch: bindTransforms differ" in err[0], err

@@ -1261,8 +1261,8 @@ _PRIVATE_READS = itertools.count(1)
 def texture_disagreements(attributes: AnimationAttributes, info, display: str) -> list:
     """``metadata.mismatch`` findings where a texture's metadata (``info``, a checked
     :class:`vbusd.format.metadata.LayoutInfo`) disagrees with its animation prim: every value
-    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges included) and the
-    bind transforms. The one comparison of the strict readers (``read_asset``, and ``info``, which
+    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges and the bind
+    transforms included). The one comparison of the strict readers (``read_asset``, and ``info``, which
     reads the texture's header only).
 
     Args:
@@ -1271,12 +1271,7 @@ def texture_disagreements(attributes: AnimationAttributes, info, display: str) -
         display: How findings name the texture (relative to the asset).
     """
     theirs = from_metadata(info.to_dict(), display)
-    out = compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
-    binds = attributes.declared.values.get("bindTransforms")
-    if binds is not None and info.bind_transforms is not None and not np.array_equal(binds, info.bind_transforms):
-        out.append(finding("metadata.mismatch", f"bindTransforms differ from the prim's {names.BIND_TRANSFORMS}",
-                           theirs.locate("bindTransforms")))
-    return out
+    return compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
 
 
 def _default_prim_name(authored: str) -> str:
