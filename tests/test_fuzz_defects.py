@@ -12,12 +12,15 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
+import shutil
 import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import vbusd
 from vbusd.cli import main
 from vbusd.format.errors import InputError
 
@@ -524,3 +527,196 @@ def test_item9_a_ktx2_whose_header_disagrees_with_its_layout_is_refused_by_every
     document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
     package.write_text(json.dumps(document), encoding="utf-8")
     _refused_everywhere(package, capsys, "ktx2.vkFormat")
+
+
+# ------------------------------------------------------------------------------------------------
+# The format 1.2 mutation run (benchmarks/mutation_run.py --surfaces compact,package,lod,mask)
+# ------------------------------------------------------------------------------------------------
+
+SAMPLE = Path(__file__).parents[1] / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+
+
+@pytest.fixture(scope="module")
+def layered_crowd(tmp_path_factory) -> Path:
+    """The stadium sample (11 rows) with the mask upper=chest and a crowd of 2 playing one layer
+    under it: crowd.usda beside st.usda, as ``vbusd crowd --layer`` writes them."""
+    folder = tmp_path_factory.mktemp("layered")
+    assert main(["convert", str(SAMPLE), "-o", str(folder / "st.usda"), "--mask", "upper=chest",
+                 "--frame-range", "0", "10", "--check-rows", "0", "-q"]) == 0
+    assert main(["crowd", str(folder / "st.usda"), "-o", str(folder / "crowd.usda"), "--count", "2",
+                 "--layer", "upper", "*", "-q"]) == 0
+    return folder
+
+
+def _layer_edit(name: str, pattern: str, replacement: str):
+    def edit(text: str) -> str:
+        start = text.index(f"primvars:vb:{name} = ")
+        end = text.index(")\n", start)
+        block = text[start:end]
+        changed = re.sub(pattern, replacement, block, count=1)
+        assert changed != block, (name, pattern)
+        return text[:start] + changed + text[end:]
+    return edit
+
+
+@pytest.mark.parametrize("edit, code, prop", [
+    (_layer_edit("layerWeight", r"\[[^,\]]+", "[nan"), "instancer.nonFinite", "primvars:vb:layerWeight"),
+    (_layer_edit("layerPlaybackRate", r"\[[^,\]]+", "[inf"), "instancer.nonFinite", "primvars:vb:layerPlaybackRate"),
+    (_layer_edit("layerTimeOffset", r'interpolation = "vertex"', 'interpolation = "constant"'), "instancer.count",
+     "primvars:vb:layerTimeOffset"),
+    (_layer_edit("layerMask", r"elementSize = 1", "elementSize = 2"), "instancer.count", "primvars:vb:layerWeight"),
+    (_layer_edit("layerClip", r"\[[^,\]]+", "[7"), "instancer.clip.range", "primvars:vb:layerClip"),
+    (_layer_edit("layerMask", r"\[[^,\]]+", "[3"), "layers.noMask", "primvars:vb:layerMask"),
+])
+def test_layer_primvars_validate_accepted_are_refused_by_every_reader(layered_crowd, tmp_path, capsys, edit, code,
+                                                                        prop):
+    """vbusd validate had its own instancer checks, which knew no layer primvar: a NaN layer weight,
+    a layer primvar that is not per instance, one elementSize against the others, a clip or mask
+    index out of range passed validate (exit 0), while info, decode, export and read_asset refused
+    the crowd. Both now read them with one function (spec 8.6, 15)."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    crowd = folder / "crowd.usda"
+    crowd.write_text(edit(crowd.read_text(encoding="utf-8")), encoding="utf-8")
+    report = validate(crowd)
+    found = [(f["code"], f["location"].get("primPath"), f["location"].get("property"))
+             for f in report.to_json()["findings"] if f["severity"] == "error"]
+    assert found == [(code, "/Crowd/stInstances", prop)] and report.exit_status == 1, found
+    for command in (["info", str(crowd)], ["decode", str(crowd), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"/Crowd/stInstances.{prop}: {code}: " in err[0], err
+    with pytest.raises(InputError) as raised:
+        vbusd.read_asset(crowd)
+    assert raised.value.code == code
+
+
+@pytest.mark.parametrize("weight", [[0.0], "1", None, True])
+def test_a_mask_weight_that_is_no_number_is_a_schema_finding_not_an_internal_error(layered_crowd, tmp_path, capsys,
+                                                                                   weight):
+    """A weight of the metadata's masks replaced by a list (in the texture and its sidecar alike):
+    validate compared the prim's vb:maskWeights with it as an array and said asset.internal; it is
+    the schema's finding (masks/0/weights/2 is no number), and every reader refuses it alike."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def edit(text):
+        document = json.loads(text)
+        document["masks"][0]["weights"][2] = weight
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, edit)
+    report = validate(folder / "st.usda")
+    codes = {f["code"] for f in report.to_json()["findings"]}
+    assert "asset.internal" not in codes and "metadata.schema" in codes and report.exit_status == 1, codes
+    for command in (["info", str(folder / "st.usda")], ["info", str(texture)],
+                    ["decode", str(folder / "st.usda"), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "/masks/0/weights/2: metadata.schema: " in err[0], err
+
+
+@pytest.mark.parametrize("key, value, code", [("formatMinorVersion", 3, "format.version"),
+                                              ("formatMinorVersion", 2 ** 31, "format.version"),
+                                              ("usedWidth", 5, "metadata.inconsistent")])
+def test_a_package_layout_that_validate_refuses_is_refused_by_info_and_view(tmp_path, capsys, key, value, code):
+    """The extension's layout and its KTX2's vbusd.layout changed alike (so they still agree): a
+    newer minor version, or a used width that is not bones x texels per bone. validate checked the
+    KTX2's metadata as a texture's (schema, version, relations) and refused it; info and view read
+    it only as far as the header and the extension, and accepted it (spec/ktx2.md, step 7)."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    document = _document(package)
+    layout = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"]
+    layout[key] = value
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, code)
+
+
+def _nan_axis(t, layout, ranges):
+    t[0, 0, 0] = np.nan  # bone 0, row 0: the x axis's first component
+
+
+def test_a_nan_axis_is_an_orthonormality_finding_not_an_internal_error(tmp_path, capsys):
+    """A crossMatrix texel channel that is NaN: the orthonormality error of that bone and row is NaN,
+    counted as over the tolerance but never the worst (NaN > x is false), so the finding had no
+    place and validate said asset.internal (a USD asset) or command.internal, exit 3 (a package)."""
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    asset = MF.build_asset(texels_hook=_nan_axis)
+    write_asset(asset, tmp_path / "asset.usda")
+    export_gltf(asset, tmp_path / "pkg" / "asset.glb")
+    for given in (tmp_path / "asset.usda", tmp_path / "pkg" / "asset.glb"):
+        report = validate(given)
+        found = {(f["code"], f["location"].get("row"), f["location"].get("bone"))
+                 for f in report.to_json()["findings"]}
+        assert ("encoding.crossMatrix.orthonormal", 0, 0) in found and report.exit_status == 1, found
+        assert not any(code.endswith(".internal") for code, _, _ in found), found
+        capsys.readouterr()
+        assert main(["validate", "-q", str(given)]) == 1
+
+
+@pytest.mark.parametrize("name, type_name", [(b"chan\nels", b"\xffhlist"), (b"chan\x1bels", b"\xffhlist")])
+def test_an_exr_attribute_name_with_control_bytes_is_quoted_in_the_one_line(tmp_path, capsys, name, type_name):
+    """An attribute name may hold any ASCII byte, a newline too; the reader's message quoted it as is,
+    so the Python API's InputError (and view's) was several lines where the command line's is one."""
+    from vbusd.io.textures import read_texture
+
+    source = FIXTURES / "valid" / "compactQuatTranslation_uint32"
+    shutil.copytree(source, tmp_path / "asset")
+    texture = tmp_path / "asset" / "asset.Animation.exr"
+    data = bytearray(texture.read_bytes())
+    assert data[8:16] == b"channels" and data[17:23] == b"chlist"
+    data[8:16], data[17:23] = name, type_name
+    texture.write_bytes(bytes(data))
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "texture.unreadable" and str(raised.value).count("\n") == 0, str(raised.value)
+    assert repr(name.decode()) in raised.value.message
+
+
+def test_bind_transforms_that_differ_from_the_prim_are_a_finding_of_validate(layered_crowd, tmp_path, capsys):
+    """The texture's metadata and sidecar say another bind transform for bone 1 than vb:bindTransforms:
+    read_asset, info, decode and export refused it (metadata.mismatch), validate compared every other
+    value with the prim but not these, and said valid."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def edit(text):
+        document = json.loads(text)
+        document["bindTransforms"][1][9] = -1
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, edit)
+    report = validate(folder / "st.usda")
+    found = {(f["code"], f["location"].get("file"), f["location"].get("pointer"))
+             for f in report.to_json()["findings"] if f["severity"] == "error"}
+    assert ("metadata.mismatch", "st.Skeleton.exr", "/bindTransforms") in found and report.exit_status == 1, found
+    for command in (["info", str(folder / "st.usda")],
+                    ["decode", str(folder / "st.usda"), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "st.Skeleton.exr: /bindTransforms: metadata.mismatch: bindTransforms differ" in err[0], err

@@ -72,6 +72,11 @@ def _is_int(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
+def _is_real(value) -> bool:
+    """A JSON number (the schema's ``number``): an int or float, never a boolean."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def from_metadata(meta, file: str) -> Declared:
     """Gather declared values from a parsed layout metadata document.
 
@@ -105,9 +110,16 @@ def from_metadata(meta, file: str) -> Declared:
     parents = meta.get("boneParents")
     if isinstance(parents, list) and all(_is_int(p) for p in parents):
         declared.values["boneParents"] = [int(p) for p in parents]
+    binds = meta.get("bindTransforms")
+    if isinstance(binds, list) and binds and all(isinstance(m, list) and len(m) == 16 and all(_is_real(v) for v in m)
+                                                 for m in binds):
+        # Column vectors, as the prim's vb:bindTransforms are read (spec 8.4).
+        declared.values["bindTransforms"] = np.transpose(np.array(binds, dtype=np.float64).reshape(-1, 4, 4),
+                                                         (0, 2, 1))
     masks = meta.get("masks")
     if isinstance(masks, list) and all(isinstance(m, dict) and isinstance(m.get("name"), str)
-                                       and isinstance(m.get("weights"), list) for m in masks):
+                                       and isinstance(m.get("weights"), list)
+                                       and all(_is_real(w) for w in m["weights"]) for m in masks):
         declared.values["masks"] = [{"name": m["name"], "weights": m["weights"]} for m in masks]
     ranges = meta.get("unormRanges")
     if ranges is not None:
@@ -354,6 +366,10 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
                         out.append(finding(code, f"clips[{i}].{key} is {_short(cb[key])} but {what} "
                                            f"{_where(reference, ('clips', i, key))} says {_short(ca[key])}",
                                            other.locate(("clips", i, key))))
+    a, b = reference.get("bindTransforms"), other.get("bindTransforms")
+    if a is not None and b is not None and (np.shape(a) != np.shape(b) or not np.array_equal(a, b)):
+        out.append(finding(code, f"bindTransforms differ from {what} {_where(reference, 'bindTransforms')}",
+                           other.locate("bindTransforms")))
     a, b = reference.get("boneParents"), other.get("boneParents")
     if a is not None and b is not None and list(a) != list(b):
         out.append(finding(code, f"boneParents differ from {what} {_where(reference, 'boneParents')}",

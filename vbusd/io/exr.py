@@ -159,7 +159,7 @@ def _scan_header(path, file: str, diagnostics: Diagnostics, max_dimension: int) 
             name, pos = _read_cstring(data, pos, name_limit, file, "an attribute name")
             if not name:
                 break
-            type_name, pos = _read_cstring(data, pos, name_limit, file, f"the type of {name}")
+            type_name, pos = _read_cstring(data, pos, name_limit, file, f"the type of {name!r}")
             while len(data) < pos + 4:
                 piece = stream.read(65536)
                 if not piece:
@@ -169,7 +169,7 @@ def _scan_header(path, file: str, diagnostics: Diagnostics, max_dimension: int) 
             (length,) = struct.unpack_from("<i", data, pos)
             pos += 4
             if length < 0 or pos + length > size:
-                raise _bad(file, f"byte {pos - 4}", f"attribute {name} declares {length} bytes "
+                raise _bad(file, f"byte {pos - 4}", f"attribute {name!r} declares {length} bytes "
                            f"but the file has {size - pos}; the file is truncated or corrupt")
             while len(data) < pos + length:
                 piece = stream.read(pos + length - len(data))

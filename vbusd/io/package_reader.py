@@ -503,6 +503,11 @@ def _check_ktx2(animation: PackageAnimation, file: str, diagnostics: Diagnostics
     else:
         document = md.parse_document(image.metadata[0][0], local, file=animation.texture,
                                      within=image.metadata_part)
+    if isinstance(document, dict) and diagnostics.strict:
+        # Step 7 of a KTX2 reader (spec/ktx2.md "Reading safely"): the layout metadata parsed,
+        # version-checked and validated, as a KTX2 file on its own is (vbusd validate reports the
+        # same from check_texture_file); the first problem raises.
+        md.from_dict(document, file=animation.texture, location_prefix=image.metadata_part)
     if isinstance(document, dict):
         texel_format = document.get("texelFormat")
         width, height = document.get("width"), document.get("height")

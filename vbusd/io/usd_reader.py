@@ -62,7 +62,7 @@ __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "re
            "texture_disagreements",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
-           "file_dependencies"]
+           "file_dependencies", "read_layer_primvars"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -1137,70 +1137,9 @@ class UsdReader:
                      playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers)
 
     def read_layers(self, prim, n: int, clip_count: int, mask_count: int) -> dict:
-        """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none).
-
-        All five have elementSize L; time samples go to ``fade_samples`` (stage seconds, values
-        (S, N, L)), evaluated by :meth:`Crowd.at`, the first sample being the plain field.
-        """
-        Sdf, Tf, Usd, UsdGeom = _pxr()
-        path = str(prim.GetPath())
-        fields = (("layer_clip", names.LAYER_CLIP, np.int32), ("layer_time_offset", names.LAYER_TIME_OFFSET, np.float32),
-                  ("layer_playback_rate", names.LAYER_PLAYBACK_RATE, np.float32),
-                  ("layer_weight", names.LAYER_WEIGHT, np.float32), ("layer_mask", names.LAYER_MASK, np.int32))
-        authored = {field: prim.GetAttribute(primvar.attribute) for field, primvar, _ in fields}
-        authored = {field: a for field, a in authored.items() if a and a.HasAuthoredValue()}
-        if not authored:
-            return {}
-        site = UsdSite(path, names.LAYER_WEIGHT.attribute)
-        missing = [primvar.attribute for field, primvar, _ in fields if field not in authored]
-        if missing:
-            self.fail("instancer.count", f"layers need all five layer primvars; {', '.join(missing)} missing", site)
-        sizes = {UsdGeom.Primvar(a).GetElementSize() for a in authored.values()}
-        if len(sizes) != 1 or min(sizes) < 1:
-            self.fail("instancer.count", f"the layer primvars must share one elementSize (layers per instance), "
-                      f"got {sorted(sizes)}", site)
-        count = sizes.pop()
-        if mask_count == 0:
-            self.fail("layers.noMask", "the instancer plays layers but its animation stores no bone masks "
-                      "(vb:maskNames, format 1.2)", site)
-        tcps = float(prim.GetStage().GetTimeCodesPerSecond())
-        out: dict = {}
-        samples: dict = {}
-        for field, primvar, dtype in fields:
-            attribute = authored[field]
-            where = UsdSite(path, primvar.attribute)
-            handle = UsdGeom.Primvar(attribute)
-            if handle.IsIndexed():
-                self.fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
-                          "must not be indexed", where)
-            if handle.GetInterpolation() != UsdGeom.Tokens.vertex:
-                self.fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex'", where)
-
-            def read(time, field=field, dtype=dtype, where=where, primvar=primvar, attribute=attribute):
-                value = attribute.Get(time)
-                array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
-                if array.size != n * count:
-                    self.fail("instancer.count", f"{primvar.attribute} has {array.size} values for {n} instances "
-                              f"x {count} layers", where)
-                if not np.all(np.isfinite(array)):
-                    self.fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values", where)
-                if field == "layer_clip" and np.any((array < 0) | (array >= clip_count)):
-                    self.fail("instancer.clip.range", f"{primvar.attribute}: clip index outside 0..{clip_count - 1}",
-                              where)
-                if field == "layer_mask" and np.any((array < 0) | (array >= max(mask_count, 1))):
-                    self.fail("layers.noMask", f"{primvar.attribute}: mask index outside 0..{mask_count - 1}", where)
-                return array.astype(dtype).reshape(n, count)
-
-            codes = attribute.GetTimeSamples()
-            if codes:
-                values = np.stack([read(Usd.TimeCode(code)) for code in codes])
-                samples[field] = (np.asarray(codes, dtype=np.float64) / tcps, values)
-                out[field] = values[0]
-            else:
-                out[field] = read(Usd.TimeCode.Default())
-        if samples:
-            out["fade_samples"] = samples
-        return out
+        """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none):
+        :func:`read_layer_primvars`, the first problem ending the prim's reading."""
+        return read_layer_primvars(prim, n, clip_count, mask_count, self.fail)
 
     def animation_target(self, prim, by_path: dict, code: str, api: str) -> int:
         """Index of the animation prim ``prim``'s ``vb:animation`` relationship targets."""
@@ -1327,8 +1266,8 @@ _PRIVATE_READS = itertools.count(1)
 def texture_disagreements(attributes: AnimationAttributes, info, display: str) -> list:
     """``metadata.mismatch`` findings where a texture's metadata (``info``, a checked
     :class:`vbusd.format.metadata.LayoutInfo`) disagrees with its animation prim: every value
-    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges included) and the
-    bind transforms. The one comparison of the strict readers (``read_asset``, and ``info``, which
+    :func:`vbusd.format.declared.compare_declared` compares (the compact ranges and the bind
+    transforms included). The one comparison of the strict readers (``read_asset``, and ``info``, which
     reads the texture's header only).
 
     Args:
@@ -1337,12 +1276,7 @@ def texture_disagreements(attributes: AnimationAttributes, info, display: str) -
         display: How findings name the texture (relative to the asset).
     """
     theirs = from_metadata(info.to_dict(), display)
-    out = compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
-    binds = attributes.declared.values.get("bindTransforms")
-    if binds is not None and info.bind_transforms is not None and not np.array_equal(binds, info.bind_transforms):
-        out.append(finding("metadata.mismatch", f"bindTransforms differ from the prim's {names.BIND_TRANSFORMS}",
-                           theirs.locate("bindTransforms")))
-    return out
+    return compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
 
 
 def _default_prim_name(authored: str) -> str:
@@ -1563,3 +1497,74 @@ def read_asset(path: PathLike, *, allow_outside_paths: bool = False,
     if asset is None:  # a lenient list given by the caller: its findings say why
         raise InputError("the asset cannot be read", file=str(path), code="usd.open")
     return asset
+
+
+def read_layer_primvars(prim, n: int, clip_count: int, mask_count: int, fail) -> dict:
+    """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none).
+
+    The one reading of them: the reader's crowds and ``vbusd validate``'s instancer checks call it,
+    so that every reader accepts and refuses the same layers. ``fail(code, message, site)`` is
+    called on the first problem and must not return (it raises).
+
+    All five have elementSize L; time samples go to ``fade_samples`` (stage seconds, values
+    (S, N, L)), evaluated by :meth:`Crowd.at`, the first sample being the plain field.
+    """
+    Sdf, Tf, Usd, UsdGeom = _pxr()
+    path = str(prim.GetPath())
+    fields = (("layer_clip", names.LAYER_CLIP, np.int32), ("layer_time_offset", names.LAYER_TIME_OFFSET, np.float32),
+              ("layer_playback_rate", names.LAYER_PLAYBACK_RATE, np.float32),
+              ("layer_weight", names.LAYER_WEIGHT, np.float32), ("layer_mask", names.LAYER_MASK, np.int32))
+    authored = {field: prim.GetAttribute(primvar.attribute) for field, primvar, _ in fields}
+    authored = {field: a for field, a in authored.items() if a and a.HasAuthoredValue()}
+    if not authored:
+        return {}
+    site = UsdSite(path, names.LAYER_WEIGHT.attribute)
+    missing = [primvar.attribute for field, primvar, _ in fields if field not in authored]
+    if missing:
+        fail("instancer.count", f"layers need all five layer primvars; {', '.join(missing)} missing", site)
+    sizes = {UsdGeom.Primvar(a).GetElementSize() for a in authored.values()}
+    if len(sizes) != 1 or min(sizes) < 1:
+        fail("instancer.count", f"the layer primvars must share one elementSize (layers per instance), "
+                  f"got {sorted(sizes)}", site)
+    count = sizes.pop()
+    if mask_count == 0:
+        fail("layers.noMask", "the instancer plays layers but its animation stores no bone masks "
+                  "(vb:maskNames, format 1.2)", site)
+    tcps = float(prim.GetStage().GetTimeCodesPerSecond())
+    out: dict = {}
+    samples: dict = {}
+    for field, primvar, dtype in fields:
+        attribute = authored[field]
+        where = UsdSite(path, primvar.attribute)
+        handle = UsdGeom.Primvar(attribute)
+        if handle.IsIndexed():
+            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+                      "must not be indexed", where)
+        if handle.GetInterpolation() != UsdGeom.Tokens.vertex:
+            fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex'", where)
+
+        def read(time, field=field, dtype=dtype, where=where, primvar=primvar, attribute=attribute):
+            value = attribute.Get(time)
+            array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+            if array.size != n * count:
+                fail("instancer.count", f"{primvar.attribute} has {array.size} values for {n} instances "
+                          f"x {count} layers", where)
+            if not np.all(np.isfinite(array)):
+                fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values", where)
+            if field == "layer_clip" and np.any((array < 0) | (array >= clip_count)):
+                fail("instancer.clip.range", f"{primvar.attribute}: clip index outside 0..{clip_count - 1}",
+                          where)
+            if field == "layer_mask" and np.any((array < 0) | (array >= max(mask_count, 1))):
+                fail("layers.noMask", f"{primvar.attribute}: mask index outside 0..{mask_count - 1}", where)
+            return array.astype(dtype).reshape(n, count)
+
+        codes = attribute.GetTimeSamples()
+        if codes:
+            values = np.stack([read(Usd.TimeCode(code)) for code in codes])
+            samples[field] = (np.asarray(codes, dtype=np.float64) / tcps, values)
+            out[field] = values[0]
+        else:
+            out[field] = read(Usd.TimeCode.Default())
+    if samples:
+        out["fade_samples"] = samples
+    return out

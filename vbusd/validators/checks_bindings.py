@@ -13,6 +13,7 @@ import numpy as np
 from vbusd.format import names as vb_names
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
+from vbusd.io.usd_reader import read_layer_primvars
 from vbusd.format.diagnostics import UsdSite, finding
 from pxr import UsdGeom
 from vbusd.format.compact import error_bound
@@ -337,6 +338,28 @@ def _check_normals(prim, path):
                     UsdSite(path, name))]
 
 
+class _LayerProblem(Exception):
+    pass
+
+
+def _layer_findings(prim, target, count: int, clip_count: int) -> list:
+    """The first problem of the format 1.2 layer primvars, as the readers find it
+    (:func:`vbusd.io.usd_reader.read_layer_primvars`): they refuse the crowd on it."""
+    names_attribute = target.GetAttribute(vb_names.MASK_NAMES)
+    mask_names = names_attribute.Get() if names_attribute.IsValid() and names_attribute.HasAuthoredValue() else None
+    found = []
+
+    def fail(code, message, site):
+        found.append(finding(code, message, site))
+        raise _LayerProblem
+
+    try:
+        read_layer_primvars(prim, count, clip_count, len(mask_names or ()), fail)
+    except _LayerProblem:
+        pass
+    return found
+
+
 def check_instancer_prim(prim):
     """Every check of one point instancer with VirtualBonesInstancingAPI."""
 
@@ -403,6 +426,8 @@ def check_instancer_prim(prim):
             first = int(np.argmax(bad))
             out.append(finding("instancer.nonFinite", f"{int(bad.sum())} value(s) are NaN or infinite; the first "
                                f"is instance {first} with {float(values[first])}", UsdSite(path, name)))
+    if count is not None and clip_count is not None:
+        out += _layer_findings(prim, target, count, clip_count)
     fading = [p.attribute for p in vb_names.FADE_PRIMVARS
               if prim.GetAttribute(p.attribute).IsValid() and prim.GetAttribute(p.attribute).HasAuthoredValue()]
     if fading and target is not None:

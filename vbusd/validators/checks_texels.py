@@ -169,8 +169,9 @@ class _Worst:
         self.count += n
         flat = int(np.argmax(np.where(bad, np.nan_to_num(error, nan=np.inf), -1)))
         r, b = np.unravel_index(flat, error.shape)
-        if float(error[r, b]) > self.value:
-            self.value = float(error[r, b])
+        value = float(np.nan_to_num(error[r, b], nan=np.inf))  # a NaN is the worst, as it is counted
+        if value > self.value or self.where is None:
+            self.value = value
             self.where = (row0 + int(r), int(b), None if extra is None else extra[r, b])
 
 
