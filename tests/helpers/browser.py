@@ -346,15 +346,16 @@ def check_silhouette(browser, engine: str = "three", backend_query: str = "") ->
     assert iou(shown, silhouette(SCREENSHOT_TIME + 0.3)) < 0.9
 
 
-def settle(page, shows, *, timeout_s: float = 240.0, interval_ms: int = 500):
+def settle(page, shows, *, timeout_s: float = 300.0, interval_ms: int = 1000):
     """Screenshots of ``page`` until ``shows(luminance)`` holds (a page drawn as it should be) or
     ``timeout_s`` passes; returns the last (png bytes, luminance). Waits on what the page shows, not
-    for a fixed time: a slow machine takes longer, a fast one returns at once."""
+    for a fixed time: a slow machine takes longer, a fast one returns at once. A screenshot of a page
+    busy compiling on SwiftShader may itself take long on a loaded machine: each gets the time left."""
     import time
 
     deadline = time.monotonic() + timeout_s
     while True:
-        picture = page.screenshot()
+        picture = page.screenshot(timeout=max(30_000, (deadline - time.monotonic()) * 1000))
         luminance = screenshot_luminance(picture)
         if shows(luminance) or time.monotonic() > deadline:
             return picture, luminance
