@@ -22,7 +22,13 @@ Usage::
 
     python benchmarks/mutation_run.py --mutants 5000 --jobs 2 --json benchmarks/results/mutation.json
 
-The suite runs a small slice of it (tests/test_mutation_smoke.py).
+``--surfaces compact,package,lod,mask`` runs the format 1.2 seeds instead (made at the start of the
+run: compact assets in EXR and KTX2, runtime packages, levels of detail, masks and a layered crowd),
+with structure-aware mutators beside the byte-level ones, the Python API and ``view``'s check
+beside the commands, and the accepted-bad oracle (:func:`agreement`): the readers of one file must
+accept and refuse it alike. benchmarks/README.md has both runs' figures.
+
+The suite runs small slices of both (tests/test_mutation_smoke.py).
 """
 
 from __future__ import annotations
@@ -1426,8 +1432,11 @@ def main(argv=None) -> int:
     for failure in summary["failures"][:40]:
         print(f"{'/'.join(failure['problems'])}: {' '.join(failure['argv'][:2])} [{failure['seed']}: "
               f"{failure['mutated']} {failure['op']}]: {failure['detail'][-300:]} {failure['raw'] or ''}")
-    if args.json:  # no machine paths: the mutants' folder is named for what it is
-        args.json.write_text(json.dumps(summary, indent=2).replace(str(root), "<mutants>") + "\n")
+    if args.json:  # no machine paths: the mutants' folder, the tree and Python's are named for what they are
+        text = json.dumps(summary, indent=2).replace(str(root), "<mutants>").replace(f"{ROOT}{os.sep}", "")
+        for prefix, name in ((sys.prefix, "<python>"), (sys.base_prefix, "<python>")):
+            text = text.replace(prefix, name)
+        args.json.write_text(text + "\n")
     if args.keep is None:
         shutil.rmtree(root, ignore_errors=True)
     return 0 if not any(summary["problems"].values()) else 1
