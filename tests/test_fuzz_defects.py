@@ -135,6 +135,21 @@ def test_item2_animations_that_are_no_array_are_a_finding_not_an_internal_error(
     _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations")
 
 
+@pytest.mark.parametrize("edit, pointer", [
+    (lambda d: d["nodes"][0].setdefault("extensions", {}).__setitem__("MSFT_lod", {"ids": 5}),
+     "/nodes/0/extensions/MSFT_lod/ids"),
+    (lambda d: d["nodes"][0].setdefault("extensions", {}).__setitem__("EXT_mesh_gpu_instancing", []),
+     "/nodes/0/extensions/EXT_mesh_gpu_instancing"),
+    (lambda d: d["nodes"][0].__setitem__("name", [1]), "/nodes/0/name"),
+], ids=["lod-ids-a-number", "instancing-a-list", "name-a-list"])
+def test_package_node_members_of_the_wrong_type_are_one_line_everywhere(package, capsys, edit, pointer):
+    """The format 1.2 mutation run: a node's MSFT_lod ids, EXT_mesh_gpu_instancing or name of the
+    wrong JSON type ended validate and info in command.internal and view's check in a traceback;
+    the glTF reader's type table (the extensions' own schemas) now refuses them for every reader."""
+    _rewrite(package, edit)
+    _refused_everywhere(package, capsys, "gltf.value", pointer)
+
+
 # ------------------------------------------------------------------------------------------------
 # Items 6 and 7: compact textures and their ranges
 # ------------------------------------------------------------------------------------------------

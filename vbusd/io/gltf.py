@@ -289,7 +289,11 @@ _TYPES = {
                          "weights": _NUMS}),
     "nodes": ("array", {"children": _INTS, "skin": _INT, "mesh": _INT, "camera": _INT,
                         "matrix": _NUMS, "rotation": _NUMS, "scale": _NUMS, "translation": _NUMS,
-                        "weights": _NUMS}),
+                        "weights": _NUMS, "name": _STR,
+                        # The extensions a runtime package's nodes carry (MSFT_lod's and
+                        # EXT_mesh_gpu_instancing's own schemas): a reader walks them.
+                        "extensions": {"MSFT_lod": {"ids": _INTS},
+                                       "EXT_mesh_gpu_instancing": {"attributes": _INT_MAP}}}),
     "scenes": ("array", {"nodes": _INTS}),
     "skins": ("array", {"inverseBindMatrices": _INT, "skeleton": _INT, "joints": _INTS}),
 }
