@@ -166,7 +166,8 @@ def _run(command: list, timeout: float, *, env=None, signal_at=None, signum=None
             "after_signal": None if signalled is None else time.monotonic() - signalled,
             "signalled": signalled is not None, "stderr": stderr[-600:],
             # Python's own start-up (site) interrupted: before any vbusd code ran
-            "python_startup": process.returncode == 1 and "init_import_site" in stderr}
+            "python_startup": process.returncode == 1 and ("init_import_site" in stderr
+                                                           or "Could not import runpy module" in stderr)}
 
 
 def _check_output(layer: Path, whole_expected: bool) -> list:

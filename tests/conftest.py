@@ -99,6 +99,29 @@ def pytest_collection_modifyitems(config, items):
         item.user_properties.append(("vbusd_tier", tier))
 
 
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A capability's skip is reported at tests.helpers.capabilities.unavailable, wherever it was
+    raised (pytest reports a fixture's skip at the test's line): ``-ra`` then folds every skip of one
+    capability into one line."""
+    return _at_unavailable((yield))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_make_collect_report(collector):
+    """The same for a module skipped whole at collection (the Blender modules without bpy)."""
+    return _at_unavailable((yield))
+
+
+def _at_unavailable(report):
+    longrepr = report.longrepr
+    if report.skipped and isinstance(longrepr, tuple) and len(longrepr) == 3:
+        message = str(longrepr[2])
+        if message.removeprefix("Skipped: ").startswith(capabilities.SKIP_PREFIX):
+            report.longrepr = (capabilities.__file__, capabilities.unavailable.__code__.co_firstlineno, message)
+    return report
+
+
 def pytest_runtest_setup(item):
     for name in CAPABILITY_MARKERS:
         if item.get_closest_marker(name) is not None:
