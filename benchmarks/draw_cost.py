@@ -99,6 +99,7 @@ if str(ROOT) not in sys.path:
 import vbusd  # noqa: E402
 from vbusd.decoders import reference  # noqa: E402
 from vbusd.decoders.shaders import pack_skin  # noqa: E402
+from vbusd.format.quaternion import quat_to_matrix  # noqa: E402
 
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 FORMATS = ("float16", "float32", "unorm16")
@@ -318,13 +319,7 @@ def stand_camera(count: int) -> Camera:
 
 def quat_matrices(q: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotation matrices of (..., 4) quaternions (x, y, z, w), normalized first."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
+    return quat_to_matrix(q / np.linalg.norm(q, axis=-1, keepdims=True))
 
 
 def place(crowd, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

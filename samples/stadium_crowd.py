@@ -41,6 +41,7 @@ import numpy as np
 # Import vbusd before any pxr use: importing it registers the Virtual Bones USD schema plugin, and
 # OpenUSD's schema registry does not pick up plugins registered after its first use in a process.
 import vbusd  # noqa: F401
+from vbusd.format.quaternion import quat_multiply, quat_to_matrix
 
 # ------------------------------------------------------------------------------------------------
 # Constants of the reference case
@@ -133,28 +134,6 @@ def _quat_axis_angle(axis: Sequence[float], angle: np.ndarray) -> np.ndarray:
     return out
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a (x) b of (..., 4) quaternions (x, y, z, w): rotate by b, then by a."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
-
-
-def _quat_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of (..., 4) unit quaternions (x, y, z, w)."""
-    x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
-
-
 _X, _Y, _Z = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
 
 # ------------------------------------------------------------------------------------------------
@@ -190,7 +169,7 @@ def local_pose(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = np.zeros((n, 4))
         q[:, 3] = 1.0
         for axis, angle in parts:  # applied in order: the first part is outermost
-            q = _quat_mul(q, _quat_axis_angle(axis, angle))
+            q = quat_multiply(q, _quat_axis_angle(axis, angle))
         rotations[:, _J[joint]] = q
 
     # Knee bounce: crouch depth in [0, 1], five bounces per loop (0.5 Hz).
@@ -226,7 +205,7 @@ def _compose(translations: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     """(n, J, 4, 4) matrices T(t) R(q) from local translations and rotations."""
     n, j = translations.shape[:2]
     out = np.zeros((n, j, 4, 4), dtype=np.float64)
-    out[..., :3, :3] = _quat_matrix(rotations)
+    out[..., :3, :3] = quat_to_matrix(rotations)
     out[..., :3, 3] = translations
     out[..., 3, 3] = 1.0
     return out

@@ -39,7 +39,7 @@ from vbusd.web.server import ViewerServer
 from tests.helpers import node
 from tests.helpers.browser import (CAMERA, NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, SKINS, STADIUM_PROBES,
                                    check_probe, check_silhouette, check_skin_binding, convert,
-                                   encoding_format_skin_cases, package_vertices, reference_instance, run_probes,
+                                   encoding_format_skin_cases, layered_stadium, package_vertices, reference_instance, run_probes,
                                    screenshot_luminance)
 from tests.helpers.capabilities import shared_asset
 
@@ -123,26 +123,7 @@ def test_probe_layers_from_the_plain_files(browser, tmp_path, encoding, texel_fo
     --mask arm=R_upperArm, its crowd given two layers per instance (primvars:vb:layer*, written and
     read back) on top of crossfades; the runtime's GPU skinning (vbSkinLayered) matches the numpy
     decoder within the usual tolerances."""
-    converted = tmp_path / "c" / "stadium.usda"
-    vbusd.convert(SAMPLE / "stadium_crowd.usda", converted,
-                  vbusd.ConvertOptions(encoding=encoding, texel_format=texel_format, check_rows=0,
-                                       masks=("upper=spine", "arm=R_upperArm")))
-    asset = vbusd.read_asset(converted)
-    crowd = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").crowds[0]
-    n = crowd.instance_count
-    weight = np.zeros((n, 2), np.float32)
-    weight[:6, 0] = [0.0, 1.0, 0.25, 0.5, 0.8, 0.6]
-    weight[:6, 1] = [0.0, 0.0, 0.0, 0.7, 1.0, 0.0]
-    layered = dataclasses.replace(
-        crowd, layer_clip=np.zeros((n, 2), np.int32), layer_mask=np.tile(np.array([0, 1], np.int32), (n, 1)),
-        layer_time_offset=np.tile(np.array([3.25, 7.5], np.float32), (n, 1)),
-        layer_playback_rate=np.tile(np.array([1.0, 0.5], np.float32), (n, 1)), layer_weight=weight,
-        fade_clip=np.zeros(n, np.int32), fade_time_offset=np.full(n, 1.5, np.float32),
-        fade_playback_rate=np.ones(n, np.float32), fade_weight=np.array([0, 0, 0, 0, 0, 0.4] + [0] * (n - 6),
-                                                                        np.float32))
-    path = tmp_path / "layered" / "layered.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
+    path = layered_stadium(tmp_path, encoding, texel_format)
     asset = vbusd.read_asset(path)
     assert asset.crowds[0].layered and asset.animations[0].masks
     with ViewerServer(path) as server:

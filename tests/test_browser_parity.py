@@ -21,7 +21,6 @@ instance's bounding-box diagonal, unit normals within 1e-5.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +30,7 @@ import vbusd
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 
+from tests.helpers.browser import layered_stadium as layered_stadium_file
 from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, check_probe,
                                    package_vertices, reference_instance)
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
@@ -90,28 +90,7 @@ def test_pulled_skin_binding(browser, bar_crowd, engine):
 def layered_stadium(tmp_path_factory):
     """The stadium with masks upper=spine and arm=R_upperArm, two layers per instance on top of a
     crossfade (as tests/test_browser.py's layer test), quatTranslation float16."""
-    folder = tmp_path_factory.mktemp("layered")
-    converted = folder / "c" / "stadium.usda"
-    vbusd.convert(SAMPLE / "stadium_crowd.usda", converted,
-                  vbusd.ConvertOptions(encoding="quatTranslation", texel_format="float16", check_rows=0,
-                                       masks=("upper=spine", "arm=R_upperArm")))
-    asset = vbusd.read_asset(converted)
-    crowd = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").crowds[0]
-    n = crowd.instance_count
-    weight = np.zeros((n, 2), np.float32)
-    weight[:6, 0] = [0.0, 1.0, 0.25, 0.5, 0.8, 0.6]
-    weight[:6, 1] = [0.0, 0.0, 0.0, 0.7, 1.0, 0.0]
-    layered = dataclasses.replace(
-        crowd, layer_clip=np.zeros((n, 2), np.int32), layer_mask=np.tile(np.array([0, 1], np.int32), (n, 1)),
-        layer_time_offset=np.tile(np.array([3.25, 7.5], np.float32), (n, 1)),
-        layer_playback_rate=np.tile(np.array([1.0, 0.5], np.float32), (n, 1)), layer_weight=weight,
-        fade_clip=np.zeros(n, np.int32), fade_time_offset=np.full(n, 1.5, np.float32),
-        fade_playback_rate=np.ones(n, np.float32),
-        fade_weight=np.array([0, 0, 0, 0, 0, 0.4] + [0] * (n - 6), np.float32))
-    path = folder / "layered" / "layered.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
-    return path
+    return layered_stadium_file(tmp_path_factory.mktemp("layered"))
 
 
 @pytest.mark.parametrize("engine", ENGINES)

@@ -360,3 +360,29 @@ def settle(page, shows, *, timeout_s: float = 300.0, interval_ms: int = 1000):
         if shows(luminance) or time.monotonic() > deadline:
             return picture, luminance
         page.wait_for_timeout(interval_ms)
+
+
+def layered_stadium(folder: Path, encoding: str = "quatTranslation", texel_format: str = "float16") -> Path:
+    """The stadium converted with masks upper=spine and arm=R_upperArm, its crowd given two layers per
+    instance on top of a crossfade (format 1.2), written to ``folder/layered/layered.usda``."""
+    converted = folder / "c" / "stadium.usda"
+    vbusd.convert(SAMPLE / "stadium_crowd.usda", converted,
+                  vbusd.ConvertOptions(encoding=encoding, texel_format=texel_format, check_rows=0,
+                                       masks=("upper=spine", "arm=R_upperArm")))
+    asset = vbusd.read_asset(converted)
+    crowd = vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda").crowds[0]
+    n = crowd.instance_count
+    weight = np.zeros((n, 2), np.float32)
+    weight[:6, 0] = [0.0, 1.0, 0.25, 0.5, 0.8, 0.6]
+    weight[:6, 1] = [0.0, 0.0, 0.0, 0.7, 1.0, 0.0]
+    layered = dataclasses.replace(
+        crowd, layer_clip=np.zeros((n, 2), np.int32), layer_mask=np.tile(np.array([0, 1], np.int32), (n, 1)),
+        layer_time_offset=np.tile(np.array([3.25, 7.5], np.float32), (n, 1)),
+        layer_playback_rate=np.tile(np.array([1.0, 0.5], np.float32), (n, 1)), layer_weight=weight,
+        fade_clip=np.zeros(n, np.int32), fade_time_offset=np.full(n, 1.5, np.float32),
+        fade_playback_rate=np.ones(n, np.float32),
+        fade_weight=np.array([0, 0, 0, 0, 0, 0.4] + [0] * (n - 6), np.float32))
+    path = folder / "layered" / "layered.usda"
+    path.parent.mkdir()
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
+    return path
