@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
+from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import layered_stadium as layered_stadium_file
@@ -36,15 +36,6 @@ from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, S
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
 
 ENGINES = ("three", "babylon")
-
-
-@pytest.fixture(scope="module")
-def browser():
-    reason = unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    with chromium() as launched:
-        yield launched
 
 
 def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None) -> list:

@@ -145,7 +145,7 @@ def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
     (convert_line,) = [x for x in readme if "pip install . && " in x and "vbusd convert" in x]
     (crowd_line,) = [x for x in readme if x.startswith("vbusd crowd ") and "vbusd export" in x]
     (tmp_path / "samples").symlink_to(SAMPLE.parent)
-    env = dict(os.environ, PYTHONSAFEPATH="1")  # the installed vbusd, never the checkout
+    env = dict(os.environ, PYTHONSAFEPATH="1")  # what the working folder holds is never imported
     commands = ["vbusd convert" + convert_line.split("vbusd convert", 1)[1]] + crowd_line.split("&&")
     for command in commands + commands:  # twice: the README's commands run again (--force)
         words = shlex.split(command)

@@ -449,7 +449,7 @@ def test_readme_main_job_gives_the_sample_texture(tmp_path, vb_asset):
     assert arguments[0] == "samples/stadium_crowd/stadium_crowd.usda"
     arguments[0] = str(REPO / arguments[0])
     arguments[output] = str(tmp_path / Path(arguments[output]).name)
-    env = dict(os.environ, PYTHONSAFEPATH="1")  # the installed vbusd, never the checkout
+    env = dict(os.environ, PYTHONSAFEPATH="1")  # what the working folder holds is never imported
     for _ in range(2):  # issue 24: the command as written runs again (it exited 2: the output exists)
         result = subprocess.run([sys.executable, "-m", "vbusd", "convert", *arguments], capture_output=True,
                                 text=True, timeout=300, cwd=tmp_path, env=env)
