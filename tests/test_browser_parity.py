@@ -46,11 +46,11 @@ NORMAL_TOLERANCE = _helpers["NORMAL_TOLERANCE"]
 PAGE = _helpers["PAGE"]
 _crowd_helpers = runpy.run_path(str(HERE / "test_crowd.py"))
 
-ENGINES = ("three", "babylon")
+ENGINES = ("three", "babylon", "three-webgpu")
 
 
 @pytest.fixture(scope="module")
-def browser():
+def webgl_browser():
     reason = unavailable_reason()
     if reason:
         pytest.skip(reason)
@@ -58,11 +58,35 @@ def browser():
         yield launched
 
 
+@pytest.fixture(scope="module")
+def webgpu_browser():
+    """Chromium with WebGPU on SwiftShader's Vulkan (vbusd.web.browser.WEBGPU_ARGS)."""
+    reason = unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    with chromium(webgpu=True) as launched:
+        yield launched
+
+
+@pytest.fixture
+def browser(request, engine):
+    """The browser that runs ``engine``: the WebGPU one for three-webgpu, else plain WebGL 2."""
+    return request.getfixturevalue("webgpu_browser" if engine == "three-webgpu" else "webgl_browser")
+
+
+def open_page(browser, server: ViewerServer, query: str = "") -> ViewerPage:
+    page = ViewerPage(browser, server.url + PAGE + query)
+    if "WebGPU is not available" in " ".join(page.messages):
+        page.close()
+        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+    return page
+
+
 def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by ``engine``."""
     asset = asset or vbusd.read_asset(path)
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE + query)
+        page = open_page(browser, server, query)
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine
@@ -139,7 +163,7 @@ def test_layers_with_masks(browser, layered_stadium, engine):
 
 def check_probe_of(browser, path, engine, asset, instance, t) -> float:
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             return check_probe(page, asset, instance, t)[0]
         finally:
@@ -177,7 +201,7 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
         return float(np.clip((t - 0.5) / (1.5 - 0.5), 0.0, 1.0))
 
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             assert page.error == "", page.error
             for t in (0.2, 0.9, 1.25, 1.8):
@@ -208,7 +232,7 @@ def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path
     package = tmp_path / "fox.glb"
     export_gltf(asset, package)
     with ViewerServer(package, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             assert page.error == "", page.error
             for instance, t in ((0, 0.0), (0, 0.8137), (0, 2.9)):
@@ -226,14 +250,14 @@ def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path
             page.close()
 
 
-def test_babylon_unorm16_without_norm16_is_one_clear_line(browser, tmp_path):
+def test_babylon_unorm16_without_norm16_is_one_clear_line(webgl_browser, tmp_path):
     """unorm16 needs EXT_texture_norm16 (not core WebGL 2); SwiftShader lacks it: the Babylon page
     says so in one line naming the alternative, as the three.js page does."""
     path = tmp_path / "u" / "stadium.usda"
     vbusd.convert(SAMPLE / "stadium_crowd.usda", path,
                   vbusd.ConvertOptions(encoding="quatTranslation", texel_format="unorm16", check_rows=0))
     with ViewerServer(path, engine="babylon") as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = ViewerPage(webgl_browser, server.url + PAGE)
         try:
             if page.page.evaluate("!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')"):
                 pytest.skip("this browser offers EXT_texture_norm16: unorm16 draws (tests/test_conformance_browser.py)")
