@@ -50,10 +50,14 @@ def browser():
 @pytest.fixture(scope="module")
 def row_package(tmp_path_factory):
     """The spectator with 3 levels, five instances along -Z, as a .glb."""
+    return make_row_package(tmp_path_factory.mktemp("lod_browser"))
+
+
+def make_row_package(folder: Path):
+    """(asset, package path) of the row: tests/test_browser_parity.py probes it in every engine."""
     from vbusd.format.model import Crowd
     from vbusd.io.gltf_package import export_gltf
 
-    folder = tmp_path_factory.mktemp("lod_browser")
     character = folder / "stadium.usda"
     vbusd.convert(STADIUM, character, vbusd.ConvertOptions(lod_ratios=(0.5, 0.2), check_rows=0))
     asset = vbusd.read_asset(character)
