@@ -8,6 +8,7 @@ repository that are not installed (samples/, benchmarks/, spec/) are reached thr
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -26,6 +27,55 @@ def pytest_configure(config):
     config.addinivalue_line(
         "markers", "packaging: builds the wheel (needs the 'build' tool and, without the build backend "
                    "installed, network access); deselect with -m 'not packaging'")
+    config.addinivalue_line(
+        "markers", "parity(feature, engine=None): a cell of docs/engines.md's feature x engine table "
+                   "(the engine from the test's `engine` parameter unless given); --parity-json records it")
+    config._parity_cells = {}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--parity-json", default=None, metavar="PATH",
+                     help="record the feature x engine cells the parity tests ran (passed, failed or skipped) into "
+                          "PATH (JSON, merged with what it holds); scripts/engine_table.py renders docs/engines.md from it")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    marker = item.get_closest_marker("parity")
+    if marker is None or not item.config.getoption("--parity-json"):
+        return
+    if report.when == "setup" and not report.skipped:
+        return
+    if report.when not in ("setup", "call"):
+        return
+    engine = marker.kwargs.get("engine") or getattr(getattr(item, "callspec", None), "params", {}).get("engine")
+    name = item.nodeid.split("::", 1)[1].split("[", 1)[0]
+    cell = {"test": f"{Path(str(item.fspath)).name}::{name}"}
+    notes = [value for key, value in item.user_properties if key == "parity_note"]
+    if notes:
+        cell["note"] = notes[-1]
+    if report.passed:
+        cell["outcome"] = "passed"
+    elif report.skipped:
+        cell["outcome"] = "skipped"
+        cell["note"] = str(report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr).removeprefix("Skipped: ")
+    else:
+        cell["outcome"] = "failed"
+    item.config._parity_cells.setdefault(marker.args[0], {})[engine] = cell
+
+
+def pytest_sessionfinish(session):
+    path = session.config.getoption("--parity-json")
+    cells = getattr(session.config, "_parity_cells", {})
+    if not path or not cells:
+        return
+    path = Path(path)
+    recorded = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+    for feature, engines in cells.items():
+        recorded.setdefault(feature, {}).update(engines)
+    path.write_text(json.dumps(recorded, indent=1, sort_keys=True) + "\n", encoding="utf-8")
 
 
 # The browser tests draw every engine (three.js WebGL, three.js WebGPU, Babylon.js) in software
