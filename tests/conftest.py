@@ -27,8 +27,10 @@ The run ends with its time per tier (:func:`pytest_terminal_summary`).
 
 from __future__ import annotations
 
+import json
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import pytest
 
@@ -65,6 +67,58 @@ def pytest_configure(config):
     config.addinivalue_line(
         "markers", "packaging: builds the wheel (needs the 'build' tool and, without the build backend "
                    "installed, network access); deselect with -m 'not packaging'")
+    config.addinivalue_line(
+        "markers", "parity(feature, engine=None): a cell of docs/engines.md's feature x engine table "
+                   "(the engine from the test's `engine` parameter unless given); --parity-json records it")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--parity-json", default=None, metavar="PATH",
+                     help="record the feature x engine cells the parity tests ran (passed, failed or skipped) into "
+                          "PATH (JSON, merged with what it holds); scripts/engine_table.py renders docs/engines.md from it")
+
+
+_PARITY_CELLS: dict = {}
+"""feature -> {engine: cell}, collected from the reports (the controller's, under xdist)."""
+
+
+def _parity_cell(item, report) -> None:
+    """A ``parity`` test's outcome as its cell of the feature x engine table (--parity-json), put in
+    the report's user properties: the controller's pytest_runtest_logreport collects it, also under
+    xdist (whose workers would otherwise each write the file)."""
+    marker = item.get_closest_marker("parity")
+    if marker is None or not item.config.getoption("--parity-json"):
+        return
+    if report.when == "setup" and not report.skipped:
+        return
+    if report.when not in ("setup", "call"):
+        return
+    engine = marker.kwargs.get("engine") or getattr(getattr(item, "callspec", None), "params", {}).get("engine")
+    name = item.nodeid.split("::", 1)[1].split("[", 1)[0]
+    cell = {"test": f"{Path(str(item.fspath)).name}::{name}"}
+    notes = [value for key, value in item.user_properties if key == "parity_note"]
+    if notes:
+        cell["note"] = notes[-1]
+    if report.passed:
+        cell["outcome"] = "passed"
+    elif report.skipped:
+        cell["outcome"] = "skipped"
+        cell["note"] = str(report.longrepr[2] if isinstance(report.longrepr, tuple) else report.longrepr).removeprefix("Skipped: ")
+    else:
+        cell["outcome"] = "failed"
+    report.user_properties.append(("parity_cell", (marker.args[0], engine, cell)))
+
+
+def pytest_sessionfinish(session):
+    path = session.config.getoption("--parity-json")
+    cells = _PARITY_CELLS
+    if not path or not cells or hasattr(session.config, "workerinput"):
+        return
+    path = Path(path)
+    recorded = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+    for feature, engines in cells.items():
+        recorded.setdefault(feature, {}).update(engines)
+    path.write_text(json.dumps(recorded, indent=1, sort_keys=True) + "\n", encoding="utf-8")
 
 
 def pytest_report_header(config):
@@ -104,13 +158,16 @@ def pytest_runtest_makereport(item, call):
     """A capability's skip is reported at tests.helpers.capabilities.unavailable, wherever it was
     raised (pytest reports a fixture's skip at the test's line): ``-ra`` then folds every skip of one
     capability into one line."""
-    return _at_unavailable((yield))
+    report = _at_unavailable((yield))
+    _parity_cell(item, report)
+    return report
 
 
 @pytest.hookimpl(wrapper=True)
 def pytest_make_collect_report(collector):
     """The same for a module skipped whole at collection (the Blender modules without bpy)."""
-    return _at_unavailable((yield))
+    report = _at_unavailable((yield))
+    return report
 
 
 def _at_unavailable(report):
@@ -135,7 +192,11 @@ reach the controller's hook too)."""
 
 
 def pytest_runtest_logreport(report):
-    tier = dict(report.user_properties).get("vbusd_tier", "unit")
+    properties = dict(report.user_properties)
+    if "parity_cell" in properties:
+        feature, engine, cell = properties["parity_cell"]
+        _PARITY_CELLS.setdefault(feature, {})[engine] = cell
+    tier = properties.get("vbusd_tier", "unit")
     entry = _TIER_TIMES[tier]
     entry[1] += report.duration
     if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):

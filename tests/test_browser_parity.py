@@ -33,16 +33,40 @@ from vbusd.web.server import ViewerServer
 from tests.helpers.browser import layered_stadium as layered_stadium_file
 from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, check_probe,
                                    package_vertices, reference_instance)
+from tests.helpers import lod_row as lod_row_helpers
+from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
 
-ENGINES = ("three", "babylon")
+ENGINES = ("three", "babylon", "three-webgpu")
+
+
+@pytest.fixture
+def webgl_browser(browser):
+    """The session's Chromium with plain WebGL 2 (tests/helpers/fixtures.py)."""
+    return browser
+
+
+@pytest.fixture
+def browser(browser, request):
+    """The browser that runs the test's ``engine``: the session's WebGPU Chromium for three-webgpu,
+    else its plain WebGL 2 one (one playwright driver per process: tests/helpers/fixtures.py)."""
+    engine = getattr(getattr(request.node, "callspec", None), "params", {}).get("engine")
+    return request.getfixturevalue("webgpu_browser") if engine == "three-webgpu" else browser
+
+
+def open_page(browser, server: ViewerServer, query: str = "") -> ViewerPage:
+    page = ViewerPage(browser, server.url + PAGE + query)
+    if "WebGPU is not available" in " ".join(page.messages):
+        page.close()
+        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+    return page
 
 
 def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by ``engine``."""
     asset = asset or vbusd.read_asset(path)
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE + query)
+        page = open_page(browser, server, query)
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine
@@ -62,6 +86,7 @@ def assert_within(errors, what="") -> None:
         assert normal_error <= NORMAL_TOLERANCE, (what, errors)
 
 
+@pytest.mark.parity('compact encoding (uint32)')
 @pytest.mark.parametrize("engine", ENGINES)
 def test_compact_encoding(browser, compact_stadium, engine):
     errors = probe_errors(browser, compact_stadium, engine, STADIUM_PROBES)
@@ -69,6 +94,7 @@ def test_compact_encoding(browser, compact_stadium, engine):
     assert_within(errors, engine)
 
 
+@pytest.mark.parity('pulled skin binding')
 @pytest.mark.parametrize("engine", ENGINES)
 def test_pulled_skin_binding(browser, bar_crowd, engine):
     """The skin records read by gl_VertexID; the page's geometries keep no bone attributes."""
@@ -84,6 +110,7 @@ def layered_stadium(tmp_path_factory):
     return layered_stadium_file(tmp_path_factory.mktemp("layered"))
 
 
+@pytest.mark.parity('layers with masks')
 @pytest.mark.parametrize("engine", ENGINES)
 def test_layers_with_masks(browser, layered_stadium, engine):
     asset = vbusd.read_asset(layered_stadium)
@@ -98,7 +125,7 @@ def test_layers_with_masks(browser, layered_stadium, engine):
 
 def check_probe_of(browser, path, engine, asset, instance, t) -> float:
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             return check_probe(page, asset, instance, t)[0]
         finally:
@@ -123,6 +150,7 @@ def fade_window_crowd(tmp_path_factory):
     return character, out
 
 
+@pytest.mark.parity('crossfade, time-sampled fade (`--fade-window`)')
 @pytest.mark.parametrize("engine", ENGINES)
 def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engine):
     """The viewer follows the time-sampled fade weight: each probe equals vbusd.skin of the
@@ -136,7 +164,7 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
         return float(np.clip((t - 0.5) / (1.5 - 0.5), 0.0, 1.0))
 
     with ViewerServer(path, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             assert page.error == "", page.error
             for t in (0.2, 0.9, 1.25, 1.8):
@@ -153,6 +181,7 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
             page.close()
 
 
+@pytest.mark.parity("glTF package through the engine's loader, mesh without normals")
 @pytest.mark.parametrize("engine", ENGINES)
 def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path, engine):
     """The Fox (no normals) as a `vbusd export` glb through each engine's glTF loader: the probe
@@ -167,7 +196,7 @@ def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path
     package = tmp_path / "fox.glb"
     export_gltf(asset, package)
     with ViewerServer(package, engine=engine) as server:
-        page = ViewerPage(browser, server.url + PAGE)
+        page = open_page(browser, server)
         try:
             assert page.error == "", page.error
             for instance, t in ((0, 0.0), (0, 0.8137), (0, 2.9)):
@@ -185,18 +214,146 @@ def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path
             page.close()
 
 
-def test_babylon_unorm16_without_norm16_is_one_clear_line(browser, tmp_path):
-    """unorm16 needs EXT_texture_norm16 (not core WebGL 2); SwiftShader lacks it: the Babylon page
-    says so in one line naming the alternative, as the three.js page does."""
-    path = tmp_path / "u" / "stadium.usda"
+@pytest.fixture(scope="module")
+def unorm16_stadium(tmp_path_factory):
+    path = tmp_path_factory.mktemp("unorm16") / "u" / "stadium.usda"
     vbusd.convert(SAMPLE / "stadium_crowd.usda", path,
                   vbusd.ConvertOptions(encoding="quatTranslation", texel_format="unorm16", check_rows=0))
-    with ViewerServer(path, engine="babylon") as server:
-        page = ViewerPage(browser, server.url + PAGE)
+    return path
+
+
+# What each engine needs for 16-bit normalized textures, and how the page asks for it.
+NORM16 = {
+    "three": ("EXT_texture_norm16", "!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')"),
+    "babylon": ("EXT_texture_norm16", "!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')"),
+    "three-webgpu": ("texture-formats-tier1", "navigator.gpu.requestAdapter().then((a) => a.features.has('texture-formats-tier1'))"),
+}
+
+
+@pytest.mark.parity('unorm16')
+@pytest.mark.parametrize("engine", ENGINES)
+def test_unorm16(browser, unorm16_stadium, engine, record_property):
+    """unorm16 needs 16-bit normalized textures: EXT_texture_norm16 on WebGL 2, the adapter feature
+    texture-formats-tier1 (rgba16unorm) on WebGPU. Where the browser has it the probe matches the
+    decoder; where it lacks it (SwiftShader's WebGL 2) the page says so in one line naming what is
+    missing and the alternative."""
+    feature, available = NORM16[engine]
+    with ViewerServer(unorm16_stadium, engine=engine) as server:
+        page = open_page(browser, server)
         try:
-            if page.page.evaluate("!!document.createElement('canvas').getContext('webgl2').getExtension('EXT_texture_norm16')"):
-                pytest.skip("this browser offers EXT_texture_norm16: unorm16 draws (tests/test_conformance_browser.py)")
-            assert "EXT_texture_norm16" in page.error and "--texel-format float16 or float32" in page.error, page.error
-            assert "\n" not in page.error.strip()
+            has = page.page.evaluate(available)
+            print(engine, feature, has)
+            if not has:
+                record_property("parity_note", f"one line naming float16/float32 without {feature} (absent here); with it not run here")
+                assert feature in page.error and "--texel-format float16 or float32" in page.error, page.error
+                assert "\n" not in page.error.strip()
+                return
+            assert page.error == "", page.error
+            asset = vbusd.read_asset(unorm16_stadium)
+            errors = [check_probe(page, asset, instance, t) for instance, t in STADIUM_PROBES]
+            print(engine, "unorm16", errors)
+            assert_within(errors, engine)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+@pytest.fixture(scope="module")
+def lod_row(tmp_path_factory):
+    """tests/test_browser_lod.py's row: the spectator with 3 levels, instances at chosen distances
+    in front of the page's camera (one behind it), as a .glb (MSFT_lod)."""
+    pytest.importorskip("meshoptimizer")
+    folder = tmp_path_factory.mktemp("lod_row")
+    asset, package = lod_row_helpers.make_row_package(folder)
+    usd = folder / "usd" / "row.usda"  # the same crowd as USD: vbusd view serves it as the plain files
+    usd.parent.mkdir()
+    vbusd.write_asset(asset, usd)
+    return asset, package, usd
+
+
+# Where each engine's levels of detail come from in test_levels_of_detail: the runtime package's
+# MSFT_lod through the engine's glTF loader, or the plain files of the USD crowd (Babylon's glTF
+# loader extension does not read MSFT_lod yet).
+LOD_SOURCE = {"three": "glb", "three-webgpu": "glb", "babylon": "usd"}
+
+
+@pytest.mark.parity('levels of detail')
+@pytest.mark.parametrize("engine", ENGINES)
+def test_levels_of_detail(browser, lod_row, engine, record_property):
+    """The level each instance draws equals OpenUSD's UsdLodScreenSizeHeuristic.ComputeLOD for the
+    page's camera (-1: outside the view, culled), and the probe skins that level's mesh as vbusd's
+    decoder does (1e-6 of the diagonal plus one float32 rounding of the world coordinate)."""
+    from vbusd.decoders.reference import skin_crowd
+
+    asset, package, usd = lod_row
+    vb = asset.animations[0]
+    expected_levels = lod_row_helpers.usdlod_levels(asset)
+    assert sorted(set(expected_levels)) == [-1, 0, 1, 2], expected_levels
+    meshes = {m.lod: m for m in vb.meshes}
+    crowd = asset.crowds[0]
+    t = 1.37
+    if LOD_SOURCE[engine] == "usd":
+        record_property("parity_note", "from the plain files of a USD crowd (its glTF loader does not read MSFT_lod yet)")
+    with ViewerServer(package if LOD_SOURCE[engine] == "glb" else usd, engine=engine) as server:
+        page = ViewerPage(browser, server.url + lod_row_helpers.PAGE)
+        try:
+            assert page.error == "", page.error
+            page.page.evaluate("() => window.vbusd.render()")
+            levels = page.page.evaluate("() => window.vbusd.levels()")
+            assert levels["lod"] == expected_levels
+            triangles = [len(meshes[level].face_vertex_counts) for level in expected_levels if level >= 0]
+            assert levels["triangles"] == sum(triangles)
+            for instance, level in enumerate(expected_levels):
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                assert result["lod"] == level
+                if level < 0:
+                    continue
+                one = dataclasses.replace(crowd, **{f: getattr(crowd, f)[instance:instance + 1] for f in
+                                                    ("positions", "orientations", "clip", "time_offset", "playback_rate")})
+                expected, _ = skin_crowd(vb, meshes[level], one, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                assert positions.shape == expected[0].shape
+                diagonal = float(np.linalg.norm(expected[0].max(0) - expected[0].min(0)))
+                tolerance = 1e-6 * diagonal + np.finfo(np.float32).eps * float(np.abs(expected[0]).max())
+                error = float(np.abs(positions - expected[0]).max())
+                print(engine, instance, level, error / diagonal)
+                assert error <= tolerance
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+@pytest.mark.parity("root motion", engine="babylon")
+def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
+    """Root motion (format 1.1, spec 8.5) on the Babylon page: ``crowd.rootMotionMatrix(i, t0, t1)``
+    of a walk baked in place (extractYaw: it turns while it walks) equals ``vbusd.root_motion`` for
+    pairs of times forward, backward and across loops. The three.js runtime's is checked under
+    Node (tests/test_conformance_browser.py); the root tracks have no layout-metadata key, so the
+    page is given them as an application gives them."""
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.format.model import VirtualBonesAsset
+
+    from vbusd.format.model import SkinnedMesh
+
+    walk = loop_walk(0.4)
+    triangle = SkinnedMesh("/Walk/Mesh", np.array([[0.0, 1.0, 0.0], [0.2, 0.0, 0.1], [-0.2, 0.0, 0.1]]), np.array([3]),
+                           np.array([0, 1, 2]), np.zeros((3, 1), np.int64), np.ones((3, 1)))
+    walk = dataclasses.replace(walk, meshes=(triangle,))  # a drawable mesh (the walk's own is one edge)
+    vb = bake(walk, BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
+    path = tmp_path / "walk" / "walk.usda"
+    vbusd.write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Walk"), path)
+    vb = vbusd.read_asset(path).animations[0]
+    pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0)]
+    root = {"upAxis": vb.root_motion.up_axis, "tracks": [track.tolist() for track in vb.root_motion.tracks]}
+    with ViewerServer(path, engine="babylon") as server:
+        page = ViewerPage(webgl_browser, server.url + PAGE)
+        try:
+            assert page.error == "", page.error
+            got = page.page.evaluate("""([root, pairs]) => { const crowd = window.vbusd.crowds[0]; crowd.rootMotion = root;
+                return pairs.map(([t0, t1]) => Array.from(crowd.rootMotionMatrix(0, t0, t1).m)); }""", [root, pairs])
+            for (t0, t1), matrix in zip(pairs, got):
+                # Babylon's row-vector m is the column-major array of the column-vector matrix.
+                np.testing.assert_allclose(np.array(matrix).reshape(4, 4).T, vbusd.root_motion(vb, 0, t0, t1), atol=1e-5)
+            assert page.errors() == [], page.errors()
         finally:
             page.close()

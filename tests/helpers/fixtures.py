@@ -46,7 +46,8 @@ def both_bake_paths(request, monkeypatch) -> str:
 @pytest.fixture(scope="session")
 def playwright_driver():
     """playwright's sync driver, one per test session: a process may run only one at a time, so both
-    browsers below are launched from it (vbusd.web.browser.chromium starts a driver of its own)."""
+    browsers below are launched from it; tests never call vbusd.web.browser.chromium, which starts a
+    driver of its own."""
     require("browser")
     from playwright.sync_api import sync_playwright
 
@@ -54,17 +55,12 @@ def playwright_driver():
         yield driver
 
 
-def _launch(driver, webgpu: bool):
-    from vbusd.web.browser import CHROMIUM_ARGS, WEBGPU_ARGS, chromium_executable
-
-    return driver.chromium.launch(executable_path=chromium_executable(),
-                                  args=CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else []))
-
-
 @pytest.fixture(scope="session")
 def browser(playwright_driver):
     """Headless Chromium (software WebGL 2; vbusd.web.browser's arguments), one per test session."""
-    launched = _launch(playwright_driver, webgpu=False)
+    from vbusd.web.browser import launch
+
+    launched = launch(playwright_driver, webgpu=False)
     yield launched
     launched.close()
 
@@ -72,7 +68,9 @@ def browser(playwright_driver):
 @pytest.fixture(scope="session")
 def webgpu_browser(playwright_driver):
     """Headless Chromium that also offers WebGPU through SwiftShader, one per test session."""
-    launched = _launch(playwright_driver, webgpu=True)
+    from vbusd.web.browser import launch
+
+    launched = launch(playwright_driver, webgpu=True)
     yield launched
     launched.close()
 

@@ -15,7 +15,7 @@ import os
 import shutil
 from typing import Iterator, Optional
 
-__all__ = ["CHROMIUM_ARGS", "WEBGPU_ARGS", "INSTALL_HINT", "chromium_executable", "unavailable_reason",
+__all__ = ["CHROMIUM_ARGS", "WEBGPU_ARGS", "INSTALL_HINT", "chromium_executable", "unavailable_reason", "launch",
            "chromium", "ViewerPage"]
 
 CHROMIUM_ARGS = [
@@ -71,6 +71,19 @@ def unavailable_reason() -> Optional[str]:
     return None
 
 
+def launch(playwright, *, webgpu: bool = False) -> object:
+    """Launch headless Chromium from a running playwright (``sync_playwright()``); one playwright
+    may launch several, e.g. one with WebGPU and one without.
+
+    Args:
+        webgpu: Also offer WebGPU through SwiftShader (:data:`WEBGPU_ARGS`).
+    """
+    executable = chromium_executable()
+    if executable is None:
+        raise RuntimeError(unavailable_reason())
+    return playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else []))
+
+
 @contextlib.contextmanager
 def chromium(*, webgpu: bool = False) -> Iterator[object]:
     """A headless Chromium browser (playwright ``Browser``), closed on exit.
@@ -84,7 +97,7 @@ def chromium(*, webgpu: bool = False) -> Iterator[object]:
     if executable is None:
         raise RuntimeError(unavailable_reason())
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=executable, args=CHROMIUM_ARGS + (WEBGPU_ARGS if webgpu else []))
+        browser = launch(playwright, webgpu=webgpu)
         try:
             yield browser
         finally:

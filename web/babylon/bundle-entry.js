@@ -9,6 +9,6 @@ export {
   MaterialPluginBase, ShadowDepthWrapper, ShadowGenerator, DirectionalLight, HemisphericLight,
   ArcRotateCamera, MeshBuilder, RawTexture, Constants, SceneLoader, LoadAssetContainerAsync,
   ImportMeshAsync, BakedVertexAnimationManager, VertexAnimationBaker, AnimationRange, Quaternion,
-  Tools, VertexBuffer, EngineStore,
+  Tools, VertexBuffer, EngineStore, Camera, Frustum, BoundingSphere,
 } from '@babylonjs/core';
 export { GLTFLoader } from '@babylonjs/loaders/glTF/2.0/index.js';

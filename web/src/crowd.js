@@ -98,8 +98,9 @@ function pick(values, slots, set) {
 export class VirtualBonesCrowd extends Group {
   constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1, skinMaterial = null }) {
     super();
-    // Layers (format 1.2) and the three.js WebGPU runtime's skinMaterial run only in the attributes
-    // binding: a layered crowd or one given its own skinMaterial defaults to it.
+    // Layers (format 1.2) run only in the attributes binding: a layered crowd defaults to it, as
+    // does one given its own skinMaterial (the three.js WebGPU runtime's keeps attributes as its
+    // default until GPU measurements say otherwise).
     skin = skin ?? (instances.layerWeight || skinMaterial ? 'attributes' : DEFAULT_SKIN);
     checkSkinBinding(skin, name);
     this.name = name;
@@ -168,7 +169,10 @@ export class VirtualBonesCrowd extends Group {
     const makeMesh = (entry, index, attributes) => {
       const geometry = entry.geometry;
       let binding = { skin, layers: this.layered };
-      if (skin === 'pulled') binding = { skin, skinTexture: pullSkin(geometry, entry.maxInfluences).texture };
+      if (skin === 'pulled') {
+        const pulled = pullSkin(geometry, entry.maxInfluences);
+        binding = { skin, skinTexture: pulled.texture, records: pulled.records };
+      }
       else if (!geometry.attributes.vb_boneIndices0) throw new VirtualBonesError(`${geometry.name}: the geometry has no bone attributes (its skin was pulled); use skin 'pulled'`);
       geometry.setAttribute('vb_instanceClip', attributes.clip);
       geometry.setAttribute('vb_instanceTime', attributes.time);

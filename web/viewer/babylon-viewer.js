@@ -61,12 +61,14 @@ async function main() {
     zUp = asset.upAxis === 'Z';
     const skin = params.get('skin');
     animations = asset.animations.map((entry) => new VirtualBonesAnimation(scene, entry));
+    // Levels of detail (format 1.2): each crowd picks every instance's level before each render.
+    const lod = (entry) => ({ levels: entry.levels, screenSizes: entry.screenSizes });
     crowds = asset.crowds.map((crowd) => new VirtualBonesCrowd(scene, {
       animation: animations[crowd.animation], meshes: asset.animations[crowd.animation].meshes,
-      instances: crowd.instances, material, name: crowd.name, skin }));
+      instances: crowd.instances, material, name: crowd.name, skin, ...lod(asset.animations[crowd.animation]) }));
     const instanced = new Set(asset.crowds.map((crowd) => crowd.animation));
     asset.animations.forEach((entry, a) => {
-      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: singleInstance(0), material, name: entry.name, skin }));
+      if (!instanced.has(a)) crowds.push(new VirtualBonesCrowd(scene, { animation: animations[a], meshes: entry.meshes, instances: singleInstance(0), material, name: entry.name, skin, ...lod(entry) }));
     });
   }
   if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');
@@ -75,6 +77,12 @@ async function main() {
   let min = new Vector3(Infinity, Infinity, Infinity);
   let max = new Vector3(-Infinity, -Infinity, -Infinity);
   for (const crowd of crowds) {
+    if (crowd.levels) {  // levels of detail: the instances' boxes (their level meshes draw none yet)
+      const box = crowd.boundsOfInstances();
+      min = Vector3.Minimize(min, box.min);
+      max = Vector3.Maximize(max, box.max);
+      continue;
+    }
     for (const mesh of crowd.meshes) {
       mesh.thinInstanceRefreshBoundingInfo(false);
       const box = mesh.getBoundingInfo().boundingBox;
@@ -132,7 +140,10 @@ async function main() {
   element('play').textContent = playing ? 'Pause' : 'Play';
   element('play').onclick = () => { playing = !playing; element('play').textContent = playing ? 'Pause' : 'Play'; };
   setTime(time);
-  const render = () => scene.render();
+  const render = () => {
+    for (const crowd of crowds) crowd.updateLevels?.(camera);
+    scene.render();
+  };
   await scene.whenReadyAsync();
   render();
   let last = performance.now();
@@ -158,12 +169,19 @@ async function main() {
     },
     setTime, render,
     get instanceCount() { return probeTargets.length; },
+    /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
+    levels() {
+      return {
+        lod: probeTargets.map(([crowd, i]) => crowd.levelOf(i)),
+        triangles: crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0),
+      };
+    },
     /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU. */
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
       const result = probeBabylonCrowd(engine, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: 0 };
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
     },
     /** Mean milliseconds per frame over `frames` frames, each rendered and finished (a pixel read). */
     measureFrames(frames = 60) {

@@ -74,11 +74,15 @@ async function main() {
   const Standard = webgpu ? THREE.MeshStandardNodeMaterial : THREE.MeshStandardMaterial;
   const material = silhouette ? () => new Basic({ color: 0xffffff })
     : () => new Standard({ color: 0xb7bcc6, roughness: 0.65, metalness: 0.0 });
-  // ?skin=pulled: the skin read by gl_VertexID from a texture (spec/shaders.md, Skin bindings).
-  // The WebGPU runtime has the attribute skin binding only; WebGL's default is DEFAULT_SKIN (pulled).
+  // ?skin=pulled: the skin read by vertex index from skin records (spec/shaders.md, Skin bindings):
+  // a texture on WebGL 2, a storage buffer on WebGPU. WebGL's default is DEFAULT_SKIN (pulled), the
+  // WebGPU runtime's `attributes`.
   const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null),
     skinMaterial: webgpu ? webgpu.skinNodeMaterial : null });
-  if (!webgpu) for (const animation of objects.animations) animation.checkSupport(renderer);
+  for (const animation of objects.animations) {
+    if (webgpu) webgpu.checkNodeSupport(renderer, animation);
+    else animation.checkSupport(renderer);
+  }
   scene.add(objects.group);
   const crowds = objects.crowds;
   if (params.has('instances')) for (const crowd of crowds) crowd.count = number('instances');

@@ -2,9 +2,12 @@
 // thin instances (one draw call per mesh), each with its own clip, time offset, rate, crossfade
 // and layers in thin-instance streams read by the material plugin.
 
-import { Mesh, VertexData, Matrix, StandardMaterial, Color3, RawTexture, Constants } from '@babylonjs/core';
+import {
+  Mesh, VertexData, Matrix, StandardMaterial, Color3, RawTexture, Constants, Vector3, Frustum, BoundingSphere, Camera,
+} from '@babylonjs/core';
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
+  screenSize, selectLevel, checkScreenSizes,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -28,9 +31,19 @@ import { skinMaterial } from './plugin.js';
  *   (default: bone indices and weights as vertex streams) or `pulled` (the skin records in an
  *   RGBA32UI texture read by gl_VertexID; the bone streams are not made). Layers run in the
  *   attributes binding.
+ * @param {Array<Array<object>>} [options.levels] levels of detail 1, 2, ... (format 1.2, spec
+ *   virtual-bones.md 20), each its meshes as `meshes` gives LOD 0's. With levels, call
+ *   `updateLevels(camera)` before each render: every instance gets the level its screen size
+ *   selects (@vbusd/core's screenSize and selectLevel, as the three.js runtime) and is culled
+ *   when outside the view; each level's meshes draw their instances from thin-instance buffers of
+ *   their own (one draw per level and mesh, never one per instance).
+ * @param {Array<number>} [options.screenSizes] the levels' thresholds, one per level after LOD 0.
+ * @param {number} [options.hysteresis] a finer level only once the screen size passes its
+ *   threshold by this fraction (default 0.1, spec 20.2).
  */
 export class VirtualBonesCrowd {
-  constructor(scene, { animation, meshes = [], instances, material = null, name = 'crowd', adopt = null, skin = null, rootMotion = null }) {
+  constructor(scene, { animation, meshes = [], instances, material = null, name = 'crowd', adopt = null, skin = null, rootMotion = null,
+    levels = null, screenSizes = null, hysteresis = 0.1 }) {
     this.scene = scene;
     this.animation = animation;
     this.name = name;
@@ -76,12 +89,39 @@ export class VirtualBonesCrowd {
     this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
     // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
     // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
-    this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
-      : meshes.map((entry) => this._mesh(entry, material));
+    this.levels = null;
+    if (levels && levels.length && this.layered) {
+      // Each level draws compacted copies of the playback streams; the layer streams are not among
+      // them, so a layered crowd draws LOD 0 for every instance (and says so once).
+      console.warn(`${name}: layered instances draw LOD 0 only (levels of detail with layers are not supported by this runtime)`);
+    } else if (levels && levels.length) {
+      if (adopt) throw new VirtualBonesError(`${name}: levels of detail are drawn from mesh arrays, not adopted meshes`);
+      const thresholds = Array.from(screenSizes ?? []);
+      checkScreenSizes(thresholds, levels.length, name);
+      this.screenSizes = thresholds;
+      this.hysteresis = hysteresis;
+      this.levelOfInstance = new Int32Array(this.capacity);
+      this.levelCounts = new Array(levels.length + 1).fill(0);
+      this.drawn = this.capacity;
+      const n = this.capacity;
+      this.levelBuffers = [meshes, ...levels].map(() => ({
+        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n) }));
+      this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry) => {
+        const mesh = this._mesh(entry, material, this.levelBuffers[level]);
+        mesh.thinInstanceCount = 0;
+        mesh.metadata.virtualBones.level = level;
+        return mesh;
+      }));
+      this.meshes = this.levels[0];
+    }
+    if (!this.levels) {
+      this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
+        : meshes.map((entry) => this._mesh(entry, material));
+    }
     this.updateSamples(animation.time ?? 0);
   }
 
-  _mesh(entry, material) {
+  _mesh(entry, material, buffers = null) {
     const vertexCount = entry.positions.length / 3;
     const slots = entry.boneIndices.length / vertexCount;
     if (slots !== 4 && slots !== 8) throw new VirtualBonesError(`${entry.name}: bone indices must be 4 or 8 per vertex, got ${slots}`);
@@ -97,10 +137,11 @@ export class VirtualBonesCrowd {
     data.applyToMesh(mesh, false);
     mesh.metadata = { virtualBones: { pointIndex: entry.pointIndex ?? null, hasNormals: Boolean(entry.normals),
       pointCount: entry.pointCount ?? vertexCount } };
-    return this._skin(mesh, entry, material);
+    return this._skin(mesh, entry, material, buffers);
   }
 
-  _skin(mesh, entry, material) {
+  // `buffers` ({matrix, a, b}): a level's own thin-instance arrays (levels of detail), else the crowd's.
+  _skin(mesh, entry, material, buffers = null) {
     const vertexCount = mesh.getTotalVertices();
     const slots = entry.boneIndices.length / vertexCount;
     if (slots !== 4 && slots !== 8) throw new VirtualBonesError(`${mesh.name}: bone indices must be 4 or 8 per vertex, got ${slots}`);
@@ -138,9 +179,15 @@ export class VirtualBonesCrowd {
     else if (mat.metadata?.virtualBones) mat = mat.clone(`${mat.name} (${mesh.name})`);
     skinMaterial(mat, this.animation, maxInfluences, { skin: this.skin, skinTexture, layers: this.layered });
     mesh.material = mat;
-    if (this.matrices) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
-    mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
-    mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
+    if (buffers) {
+      mesh.thinInstanceSetBuffer('matrix', buffers.matrix, 16, false);
+      mesh.thinInstanceSetBuffer('vb_instanceA', buffers.a, 4, false);
+      mesh.thinInstanceSetBuffer('vb_instanceB', buffers.b, 4, false);
+    } else {
+      if (this.matrices) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
+      mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
+      mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
+    }
     if (this.layered) {
       mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
       mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
@@ -155,12 +202,106 @@ export class VirtualBonesCrowd {
   }
 
   /** Instances drawn (the first `count` of the capacity). */
-  get count() { return this.meshes[0]?.thinInstanceCount ?? 0; }
+  get count() { return this.levels ? this.drawn : (this.meshes[0]?.thinInstanceCount ?? 0); }
 
-  set count(n) { for (const mesh of this.meshes) mesh.thinInstanceCount = Math.max(0, Math.min(n, this.capacity)); }
+  set count(n) {
+    const count = Math.max(0, Math.min(n, this.capacity));
+    if (this.levels) this.drawn = count;
+    else for (const mesh of this.meshes) mesh.thinInstanceCount = count;
+  }
 
   _updated(...streams) {
+    if (this.levels) return;  // the levels' buffers are written by updateLevels
     for (const mesh of this.meshes) for (const stream of streams) mesh.thinInstanceBufferUpdated(stream);
+  }
+
+  /** The meshes of level `level` (LOD 0's without levels). */
+  meshesOfLevel(level) { return this.levels ? this.levels[level] : this.meshes; }
+
+  /** The level instance `index` drew at the last updateLevels (-1: culled); 0 without levels. */
+  levelOf(index) { return this.levels ? this.levelOfInstance[index] : 0; }
+
+  /** The sphere around the box of every clip's extents (the rest bounds without extents), in mesh space. */
+  _extentSphere() {
+    const extents = this.animation.clipExtents;
+    const lo = [Infinity, Infinity, Infinity];
+    const hi = [-Infinity, -Infinity, -Infinity];
+    if (extents && extents.every(Boolean)) {
+      for (const [a, b] of extents) for (let c = 0; c < 3; ++c) { lo[c] = Math.min(lo[c], a[c]); hi[c] = Math.max(hi[c], b[c]); }
+    } else {
+      const box = this.meshes[0].getBoundingInfo().boundingBox;  // the rest bounds without extents
+      [box.minimum.x, box.minimum.y, box.minimum.z].forEach((v, c) => { lo[c] = v; });
+      [box.maximum.x, box.maximum.y, box.maximum.z].forEach((v, c) => { hi[c] = v; });
+    }
+    return {
+      centre: new Vector3((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2),
+      radius: 0.5 * Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]),
+    };
+  }
+
+  /** World-space {min, max} of the instances' spheres (`_extentSphere` placed at each). */
+  boundsOfInstances() {
+    const { centre, radius } = this._extentSphere();
+    const parent = this.meshes[0].computeWorldMatrix(true);
+    const min = new Vector3(Infinity, Infinity, Infinity);
+    const max = new Vector3(-Infinity, -Infinity, -Infinity);
+    for (let i = 0; i < this.count; ++i) {
+      const world = this.instanceMatrix(i).multiply(parent);
+      const scale = Math.max(...[0, 1, 2].map((r) => Math.hypot(world.m[4 * r], world.m[4 * r + 1], world.m[4 * r + 2])));
+      const point = Vector3.TransformCoordinates(centre, world);
+      min.minimizeInPlace(point.subtractFromFloats(radius * scale, radius * scale, radius * scale));
+      max.maximizeInPlace(point.add(new Vector3(radius * scale, radius * scale, radius * scale)));
+    }
+    return { min, max };
+  }
+
+  /**
+   * Levels of detail (spec virtual-bones.md 20.2), as the three.js runtime's updateLevels: each
+   * drawn instance's level from its screen size seen by `camera` (UsdLod's projectedSphere size of
+   * the box of every clip's extents), culled (-1) when that box lies outside the view; then each
+   * level's meshes get the instances choosing it in their own thin-instance buffers. Without
+   * levels it does nothing.
+   */
+  updateLevels(camera) {
+    if (!this.levels) return;
+    const { centre, radius } = this._extentSphere();
+    const planes = Frustum.GetPlanes(camera.getTransformationMatrix(true));
+    const eye = camera.globalPosition;
+    const perspective = camera.mode === Camera.PERSPECTIVE_CAMERA;
+    const aspect = this.scene.getEngine().getAspectRatio(camera);
+    // Babylon's fov is vertical unless the camera fixes the horizontal one.
+    const tangent = camera.fovMode === Camera.FOVMODE_HORIZONTAL_FIXED ? Math.tan(camera.fov / 2) / aspect : Math.tan(camera.fov / 2);
+    const parent = this.meshes[0].computeWorldMatrix(true);
+    const counts = this.levelCounts.fill(0);
+    const point = new Vector3();
+    for (let i = 0; i < this.drawn; ++i) {
+      const world = this.instanceMatrix(i).multiply(parent);
+      const scale = Math.max(...[0, 1, 2].map((r) => Math.hypot(world.m[4 * r], world.m[4 * r + 1], world.m[4 * r + 2])));
+      Vector3.TransformCoordinatesToRef(centre, world, point);
+      const sphere = new BoundingSphere(point.subtractFromFloats(radius * scale, 0, 0), point.add(new Vector3(radius * scale, 0, 0)));
+      if (!sphere.isInFrustum(planes)) { this.levelOfInstance[i] = -1; continue; }
+      let level = 0;
+      if (perspective) level = selectLevel(screenSize(radius * scale, Vector3.Distance(point, eye), tangent, aspect), this.screenSizes, this.levelOfInstance[i], this.hysteresis);
+      this.levelOfInstance[i] = level;
+      const at = counts[level]++;
+      const target = this.levelBuffers[level];
+      target.matrix.set(this.matrices ? this.matrices.subarray(16 * i, 16 * i + 16) : this.instanceMatrix(i).m, 16 * at);
+      target.a.set(this.instanceA.subarray(4 * i, 4 * i + 4), 4 * at);
+      target.b.set(this.instanceB.subarray(4 * i, 4 * i + 4), 4 * at);
+    }
+    this.levels.forEach((meshes, level) => {
+      for (const mesh of meshes) {
+        for (const stream of ['matrix', 'vb_instanceA', 'vb_instanceB']) mesh.thinInstanceBufferUpdated(stream);
+        mesh.thinInstanceCount = counts[level];
+      }
+    });
+  }
+
+  /** Triangles drawn with the levels chosen at the last updateLevels (all at LOD 0 without levels). */
+  get trianglesDrawn() {
+    const triangles = (mesh) => mesh.getTotalIndices() / 3;
+    if (!this.levels) return this.meshes.reduce((n, mesh) => n + triangles(mesh) * mesh.thinInstanceCount, 0);
+    return this.levels.reduce((n, meshes, level) => n + meshes.reduce((m, mesh) => m + triangles(mesh), 0) * this.levelCounts[level], 0);
   }
 
   /** Change instance `i`'s crossfade (spec 8.3): fade clip, its time offset and rate, weight. */

@@ -30,7 +30,8 @@ const glTexture = (texture) => texture?.getInternalTexture()?._hardwareTexture?.
 
 /**
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
- * computed by the GPU: `{positions, normals, lod}` (Float32Arrays; lod 0), meshes in order, points
+ * computed by the GPU: `{positions, normals, lod}` (Float32Arrays, and the level of detail the
+ * instance was drawn with at the crowd's last updateLevels, whose meshes are skinned), meshes in order, points
  * in the asset's order (normals empty for meshes without), as three.js' probeCrowd gives them.
  */
 export function probeBabylonCrowd(engine, crowd, index, time) {
@@ -45,7 +46,9 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
   const layers = Boolean(crowd.layered);
   const positions = [];
   const normals = [];
-  for (const mesh of crowd.meshes) {
+  // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
+  const lod = crowd.levelOf ? crowd.levelOf(index) : 0;
+  for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const info = mesh.metadata.virtualBones;
     const { maxInfluences } = info;
     const key = `babylon/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
@@ -92,5 +95,5 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
     normals.push(normalsOfMesh);
   }
   engine.wipeCaches(true);  // Babylon caches GL state; it must not trust it after raw calls
-  return { positions: concatenate(positions), normals: concatenate(normals), lod: 0 };
+  return { positions: concatenate(positions), normals: concatenate(normals), lod };
 }

@@ -51,6 +51,10 @@ export class VirtualBonesCrowd {
     adopt?: Mesh[] | null;
     skin?: SkinBinding | null;
     rootMotion?: { upAxis: string; tracks: number[][][] } | null;
+    /** Levels of detail 1, 2, ...: each its meshes as `meshes` gives LOD 0's. */
+    levels?: Array<Array<Record<string, any>>> | null;
+    screenSizes?: number[] | null;
+    hysteresis?: number;
   });
   readonly scene: Scene;
   readonly animation: VirtualBonesAnimation;
@@ -66,6 +70,13 @@ export class VirtualBonesCrowd {
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
   socketMatrix(index: number, bone: number, time: number): Matrix;
   instanceMatrix(index: number): Matrix;
+  /** Each level's meshes (null without levels of detail). */
+  readonly levels: Mesh[][] | null;
+  meshesOfLevel(level: number): Mesh[];
+  /** The level instance `index` drew at the last updateLevels (-1: culled). */
+  levelOf(index: number): number;
+  updateLevels(camera: object): void;
+  readonly trianglesDrawn: number;
 }
 
 /** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2). */

@@ -2,6 +2,6 @@
 // WebGPURenderer (WebGPU or its WebGL 2 backend), written in TSL. Import it with three mapped to
 // three/webgpu. See docs/engines.md ("three.js WebGPU (TSL)").
 
-export { animationNodes, skinVertex, safeNormalize } from './skinning.js';
-export { skinNodeMaterial, vertexInputs } from './material.js';
+export { animationNodes, checkNodeSupport, skinVertex, safeNormalize, pulledInfluences } from './skinning.js';
+export { skinNodeMaterial, vertexInputs, recordReader } from './material.js';
 export { probeNodeCrowd } from './probe.js';

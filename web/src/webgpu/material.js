@@ -10,66 +10,117 @@
 // drawn material's `castShadowPositionNode`: that node is the skinned position with the
 // instance matrix applied (the shadow material's own instancing result is replaced by it).
 
-import { InterleavedBufferAttribute, DynamicDrawUsage } from 'three/webgpu';
+import { InterleavedBufferAttribute, DynamicDrawUsage, StorageBufferAttribute } from 'three/webgpu';
 import {
-  Fn, attribute, positionGeometry, normalLocal, positionLocal, mat4, vec4, int,
-  instancedBufferAttribute, instancedDynamicBufferAttribute, storage, instanceIndex,
+  Fn, attribute, positionGeometry, normalLocal, positionLocal, mat4, vec4, int, float, ivec2, texture,
+  instancedBufferAttribute, instancedDynamicBufferAttribute, storage, instanceIndex, vertexIndex,
 } from 'three/tsl';
 
+import { checkSkinBinding } from '@vbusd/core';
+
 import { VirtualBonesError } from '../animation.js';
-import { animationNodes, skinVertex } from './skinning.js';
+import { animationNodes, pulledInfluences, skinVertex, texelLoad } from './skinning.js';
 
 /**
  * The per-instance values of VirtualBonesCrowd (`vb_instanceClip`, `vb_instanceTime`,
- * `vb_instanceFadeClip`, `vb_instanceFade`) as nodes. On the WebGPU backend the clip, time and
- * fade clip are read from storage buffers by instance index: WebGPU allows 8 vertex buffers, and
- * the rest mesh, two bone sets, these four and the instance matrix would need 11. The fade stays
- * an instanced attribute: three pads a vec3 attribute bound as storage to vec4 in place (its
- * array and itemSize change), which would break the crowd's own indexing. On the WebGL 2 backend
- * (no storage buffers in the vertex stage; 16 attributes) all four stay instanced attributes.
+ * `vb_instanceFadeClip`, `vb_instanceFade`, and with layers `vb_instanceLayerClipMask`,
+ * `vb_instanceLayerTime`, `vb_instanceLayerWeight`) as nodes. On the WebGPU backend the clip,
+ * time, fade clip and layers are read from storage buffers by instance index: WebGPU allows 8
+ * vertex buffers, and the rest mesh, two bone sets, these seven and the instance matrix would need
+ * 14. The fade stays an instanced attribute: three pads a vec3 attribute bound as storage to vec4
+ * in place (its array and itemSize change), which would break the crowd's own indexing. On the
+ * WebGL 2 backend (no storage buffers in the vertex stage; 16 attributes) all stay instanced
+ * attributes.
  */
-function instanceInputs(builder) {
+function instanceInputs(builder, layered) {
   const attributes = builder.geometry.attributes;
+  const fade = attribute('vb_instanceFade', 'vec3');
   if (builder.renderer.backend.isWebGPUBackend) {
-    const read = (name, type, items) => storage(attributes[name], type, attributes[name].count * items);
+    const read = (name, type, items) => storage(attributes[name], type, attributes[name].count * items).toReadOnly();
     const clip = read('vb_instanceClip', 'int', 1);
     const time = read('vb_instanceTime', 'float', 2);
     const fadeClip = read('vb_instanceFadeClip', 'int', 1);
-    const fade = attribute('vb_instanceFade', 'vec3');
     const i = int(instanceIndex);
-    return {
+    const inputs = {
       clip: clip.element(i), offset: time.element(i.mul(2)), rate: time.element(i.mul(2).add(1)),
       fadeClip: fadeClip.element(i), fadeOffset: fade.x, fadeRate: fade.y, fadeWeight: fade.z,
     };
+    if (layered) {
+      const clipMask = read('vb_instanceLayerClipMask', 'int', 4);
+      const layerTime = read('vb_instanceLayerTime', 'float', 4);
+      const weight = read('vb_instanceLayerWeight', 'float', 2);
+      inputs.layers = [0, 1].map((j) => ({
+        clip: clipMask.element(i.mul(4).add(2 * j)), mask: clipMask.element(i.mul(4).add(2 * j + 1)),
+        offset: layerTime.element(i.mul(4).add(2 * j)), rate: layerTime.element(i.mul(4).add(2 * j + 1)),
+        weight: weight.element(i.mul(2).add(j)),
+      }));
+    }
+    return inputs;
   }
   const time = attribute('vb_instanceTime', 'vec2');
-  const fade = attribute('vb_instanceFade', 'vec3');
-  return {
+  const inputs = {
     clip: attribute('vb_instanceClip', 'int'), offset: time.x, rate: time.y,
     fadeClip: attribute('vb_instanceFadeClip', 'int'), fadeOffset: fade.x, fadeRate: fade.y, fadeWeight: fade.z,
   };
+  if (layered) {
+    const clipMask = attribute('vb_instanceLayerClipMask', 'ivec4');
+    const layerTime = attribute('vb_instanceLayerTime', 'vec4');
+    const weight = attribute('vb_instanceLayerWeight', 'vec2');
+    inputs.layers = [0, 1].map((j) => ({
+      clip: clipMask.element(2 * j), mask: clipMask.element(2 * j + 1),
+      offset: layerTime.element(2 * j), rate: layerTime.element(2 * j + 1), weight: weight.element(j),
+    }));
+  }
+  return inputs;
+}
+
+const recordBuffers = new WeakMap();
+
+/**
+ * A reader of the pulled skin's records (spec/shaders.md, "Skin bindings") for `binding`
+ * ({records, skinTexture}): on WebGPU a read-only storage buffer of uvec4 (`VB_SKIN_STORAGE 1`), on
+ * the WebGL 2 backend (no storage buffers in the vertex stage) the RGBA32UI texture, texel t at
+ * (t % W, t / W), as the WebGL runtime reads it.
+ */
+export function recordReader(renderer, binding) {
+  if (renderer.backend.isWebGPUBackend) {
+    let buffer = recordBuffers.get(binding.records);
+    if (!buffer) {
+      buffer = storage(new StorageBufferAttribute(binding.records, 4), 'uvec4', binding.records.length / 4).toReadOnly();
+      recordBuffers.set(binding.records, buffer);
+    }
+    return (texel) => buffer.element(texel);
+  }
+  if (binding.skinTexture.internalFormat === 'RGBA32UI') binding.skinTexture.internalFormat = null;  // as animationNodes
+  const records = texture(binding.skinTexture);
+  const width = binding.skinTexture.image.width;
+  return (texel) => texelLoad(records, ivec2(texel.mod(width), texel.div(width)));
 }
 
 /**
  * The vertex inputs of spec/shaders.md ("Vertex inputs") as nodes, for the mesh `builder` builds:
- * the rest mesh, the bone attributes (`vb_boneIndices0/1`, `vb_boneWeights0/1`) and the
- * per-instance clip, time and fade of VirtualBonesCrowd, with the clip-local times at the
- * animation's scene time.
+ * the rest mesh, the bone attributes (`vb_boneIndices0/1`, `vb_boneWeights0/1`) or, with the
+ * pulled binding, the vertex's skin record, and the per-instance clip, time, fade and layers of
+ * VirtualBonesCrowd, with the clip-local times at the animation's scene time.
  */
-export function vertexInputs(builder, animation, maxInfluences) {
+export function vertexInputs(builder, animation, maxInfluences, binding = {}) {
   const nodes = animationNodes(animation);
-  const indices = [];
-  const weights = [];
-  for (let set = 0; set < Math.ceil(maxInfluences / 4); ++set) {
-    const boneIndices = attribute(`vb_boneIndices${set}`, 'ivec4');
-    const boneWeights = attribute(`vb_boneWeights${set}`, 'vec4');
-    for (let i = 0; i < 4 && 4 * set + i < maxInfluences; ++i) {
-      indices.push(int(boneIndices.element(i)));
-      weights.push(boneWeights.element(i));
+  let indices = [];
+  let weights = [];
+  if ((binding.skin ?? 'attributes') === 'pulled') {
+    ({ indices, weights } = pulledInfluences(recordReader(builder.renderer, binding), vertexIndex, maxInfluences));
+  } else {
+    for (let set = 0; set < Math.ceil(maxInfluences / 4); ++set) {
+      const boneIndices = attribute(`vb_boneIndices${set}`, 'ivec4');
+      const boneWeights = attribute(`vb_boneWeights${set}`, 'vec4');
+      for (let i = 0; i < 4 && 4 * set + i < maxInfluences; ++i) {
+        indices.push(int(boneIndices.element(i)));
+        weights.push(boneWeights.element(i));
+      }
     }
   }
-  const instance = instanceInputs(builder);
-  return {
+  const instance = instanceInputs(builder, Boolean(binding.layers));
+  const inputs = {
     position: positionGeometry,
     normal: attribute('normal', 'vec3'),
     indices,
@@ -80,6 +131,16 @@ export function vertexInputs(builder, animation, maxInfluences) {
     fadeTau: instance.fadeOffset.add(instance.fadeRate.mul(nodes.time)),
     fadeWeight: instance.fadeWeight,
   };
+  if (instance.layers) {
+    const [a, b] = instance.layers;
+    inputs.layers = {
+      clip: [int(a.clip).toVar(), int(b.clip).toVar()],
+      tau: [a.offset.add(a.rate.mul(nodes.time)).toVar(), b.offset.add(b.rate.mul(nodes.time)).toVar()],
+      weight: [float(a.weight).toVar(), float(b.weight).toVar()],
+      mask: [int(a.mask).toVar(), int(b.mask).toVar()],
+    };
+  }
+  return inputs;
 }
 
 const instanceColumns = new WeakMap();
@@ -105,36 +166,46 @@ function instanceMatrixNode(mesh) {
  * @param {NodeMaterial} material any node material of three/webgpu
  * @param {VirtualBonesAnimation} animation
  * @param {number} maxInfluences 1..8 bone influences per vertex
+ * @param {object} [binding] what VirtualBonesCrowd passes: {skin: 'attributes' (default) or
+ *   'pulled' (with the geometry's `records` and `skinTexture` from pullSkin: read by vertex index
+ *   from a storage buffer on WebGPU, from the texture on the WebGL 2 backend), layers (format 1.2:
+ *   the crowd plays layers, vbSkinLayered)}
  * @returns {NodeMaterial} material
  */
-export function skinNodeMaterial(material, animation, maxInfluences, { skin = 'attributes' } = {}) {
+export function skinNodeMaterial(material, animation, maxInfluences, binding = {}) {
+  const { skin = 'attributes', layers = false } = binding;
   if (!material?.isNodeMaterial) {
     throw new VirtualBonesError(`${material?.type ?? material}: the WebGPU runtime skins node materials (e.g. MeshStandardNodeMaterial from three/webgpu)`);
   }
-  if (skin !== 'attributes') {
-    throw new VirtualBonesError(`the three.js WebGPU runtime has the 'attributes' skin binding only, got ${JSON.stringify(skin)}`);
+  checkSkinBinding(skin, material.name);
+  if (skin === 'pulled' && !(binding.records instanceof Uint32Array && binding.skinTexture)) {
+    throw new VirtualBonesError('the pulled skin binding needs the geometry\'s skin records (pullSkin)');
   }
+  if (layers && skin !== 'attributes') throw new VirtualBonesError('layers (format 1.2) need the attributes skin binding');
+  if (layers && !animation.rigTexture) throw new VirtualBonesError(`${animation.name}: layers need an animation with bone masks (format 1.2)`);
   if (!Number.isInteger(maxInfluences) || maxInfluences < 1 || maxInfluences > 8) {
     throw new VirtualBonesError(`maxInfluences must be 1..8, got ${maxInfluences}`);
   }
-  animationNodes(animation);  // refuses what the runtime cannot read, now rather than at the first frame
+  animationNodes(animation);
+  const skinned = (builder) => skinVertex(animation, vertexInputs(builder, animation, maxInfluences, binding));
   const setupPosition = material.setupPosition;
   material.setupPosition = function skinnedSetupPosition(builder) {
-    const skinned = skinVertex(animation, vertexInputs(builder, animation, maxInfluences));
-    positionLocal.assign(skinned.position);
-    normalLocal.assign(skinned.normal);
+    const vertex = skinned(builder);
+    positionLocal.assign(vertex.position);
+    normalLocal.assign(vertex.normal);
     return setupPosition.call(this, builder);
   };
   material.castShadowPositionNode = Fn((builder) => {
-    const skinned = skinVertex(animation, vertexInputs(builder, animation, maxInfluences));
-    return instanceMatrixNode(builder.object).mul(vec4(skinned.position, 1.0)).xyz;
+    const vertex = skinned(builder);
+    return instanceMatrixNode(builder.object).mul(vec4(vertex.position, 1.0)).xyz;
   })();
   // The skinning is not a node of the material: the program cache must still tell materials of
-  // different animations (textures, clip tables) and influence counts apart.
-  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}`;
+  // different animations (textures, clip tables), influence counts, bindings and records apart.
+  const records = skin === 'pulled' ? binding.skinTexture.uuid : '';
+  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${skin}:${records}:${layers ? 'layers' : ''}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
-  material.userData.virtualBones = { animation, maxInfluences, skin };
+  material.userData.virtualBones = { animation, maxInfluences, skin, layers };
   material.needsUpdate = true;
   return material;
 }

@@ -11,7 +11,8 @@ import { Matrix3, Matrix4, Vector4 } from 'three/webgpu';
 import { Fn, instancedArray, instanceIndex, uniform, vec4, int } from 'three/tsl';
 
 import { VirtualBonesError } from '../animation.js';
-import { safeNormalize, skinVertex } from './skinning.js';
+import { recordReader } from './material.js';
+import { pulledInfluences, safeNormalize, skinVertex } from './skinning.js';
 
 const probes = new WeakMap();
 
@@ -23,18 +24,21 @@ function padded(array, from, count) {
 }
 
 /** The compute node and its buffers for one mesh (built once, fed per probe). */
-function meshProbe(mesh) {
+function meshProbe(renderer, mesh) {
   let probe = probes.get(mesh);
   if (probe) return probe;
-  const { maxInfluences } = mesh.userData.virtualBones;
+  const { maxInfluences, binding = {} } = mesh.userData.virtualBones;
   const crowd = mesh.userData.virtualBones.crowd;
+  const pulled = binding.skin === 'pulled';
+  const layered = Boolean(crowd.layered);
   const geometry = mesh.geometry;
   const count = geometry.attributes.position.count;
   const rest = instancedArray(padded(geometry.attributes.position.array, 3, count), 'vec4');
   const restNormal = instancedArray(padded(geometry.attributes.normal.array, 3, count), 'vec4');
-  const sets = Math.ceil(maxInfluences / 4);
+  const sets = pulled ? 0 : Math.ceil(maxInfluences / 4);
   // Bone indices as floats (exact below 2^24): integer vertex streams are not portable to the WebGL 2
-  // backend's transform-feedback compute.
+  // backend's transform-feedback compute. The pulled binding reads the geometry's skin records
+  // (a storage buffer on WebGPU, the records texture on WebGL 2) by vertex index, as its materials do.
   const boneIndices = [];
   const boneWeights = [];
   for (let set = 0; set < sets; ++set) {
@@ -44,15 +48,21 @@ function meshProbe(mesh) {
   const positions = rest;  // written in place (see above)
   const normals = restNormal;
   const initial = [rest.value.array.slice(), restNormal.value.array.slice()];
-  // The instance as two vec4 uniforms: (clip, timeOffset, playbackRate, time) and (fadeClip,
-  // fadeTimeOffset, fadePlaybackRate, fadeWeight); the clips are small integers, exact as floats.
+  // The instance as vec4 uniforms: (clip, timeOffset, playbackRate, time), (fadeClip,
+  // fadeTimeOffset, fadePlaybackRate, fadeWeight), and with layers (clip, mask) of each layer,
+  // (timeOffset, playbackRate) of each and their weights; the clips are small integers, exact as floats.
   const inputs = {
     instance: uniform(new Vector4()), fade: uniform(new Vector4()),
+    layerA: uniform(new Vector4()), layerB: uniform(new Vector4()), layerC: uniform(new Vector4()),
     world: uniform(new Matrix4()), normalMatrix: uniform(new Matrix3()),
   };
+  const read = pulled ? recordReader(renderer, binding) : null;
   const compute = Fn(() => {
-    const indices = [];
-    const weights = [];
+    let indices = [];
+    let weights = [];
+    if (pulled) {
+      ({ indices, weights } = pulledInfluences(read, instanceIndex, maxInfluences));
+    }
     for (let set = 0; set < sets; ++set) {
       const i4 = boneIndices[set].element(instanceIndex).toVar();
       const w4 = boneWeights[set].element(instanceIndex).toVar();
@@ -61,21 +71,28 @@ function meshProbe(mesh) {
         weights.push(w4.element(i));
       }
     }
+    const time = inputs.instance.w;
     const skinned = skinVertex(crowd.animation, {
       position: rest.element(instanceIndex).xyz,
       normal: restNormal.element(instanceIndex).xyz,
       indices,
       weights,
       clip: int(inputs.instance.x),
-      tau: inputs.instance.y.add(inputs.instance.z.mul(inputs.instance.w)),
+      tau: inputs.instance.y.add(inputs.instance.z.mul(time)),
       fadeClip: int(inputs.fade.x),
-      fadeTau: inputs.fade.y.add(inputs.fade.z.mul(inputs.instance.w)),
+      fadeTau: inputs.fade.y.add(inputs.fade.z.mul(time)),
       fadeWeight: inputs.fade.w,
+      layers: layered ? {
+        clip: [int(inputs.layerA.x), int(inputs.layerA.z)],
+        mask: [int(inputs.layerA.y), int(inputs.layerA.w)],
+        tau: [inputs.layerB.x.add(inputs.layerB.y.mul(time)), inputs.layerB.z.add(inputs.layerB.w.mul(time))],
+        weight: [inputs.layerC.x, inputs.layerC.y],
+      } : null,
     });
     positions.element(instanceIndex).assign(inputs.world.mul(vec4(skinned.position, 1.0)));
     normals.element(instanceIndex).assign(vec4(safeNormalize(inputs.normalMatrix.mul(skinned.normal)), 0.0));
   })().compute(count);
-  probe = { compute, positions, normals, inputs, count, initial, sets };
+  probe = { compute, positions, normals, inputs, count, initial, sets, layered };
   probes.set(mesh, probe);
   return probe;
 }
@@ -89,11 +106,14 @@ function meshProbe(mesh) {
 export async function probeNodeCrowd(renderer, crowd, index, time) {
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   crowd.updateMatrixWorld(true);
+  crowd.updateSamples?.(time);  // a fade over stage time: the instances' fades at `time`
   const placement = new Matrix4().fromArray(crowd.instanceMatrix.array, 16 * index);
+  // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
+  const lod = crowd.levelOf(index);
   const positions = [];
   const normals = [];
-  for (const mesh of crowd.meshes) {
-    const probe = meshProbe(mesh);
+  for (const mesh of crowd.meshesOfLevel(Math.max(lod, 0))) {
+    const probe = meshProbe(renderer, mesh);
     if (!renderer.backend.isWebGPUBackend && probe.sets > 1) {
       throw new VirtualBonesError(`${mesh.name}: the probe on WebGPURenderer's WebGL 2 backend reads up to 4 influences (transform feedback has 4 outputs), this mesh has ${mesh.userData.virtualBones.maxInfluences}`);
     }
@@ -105,6 +125,11 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
     inputs.instance.value.set(crowd.clipAttribute.array[index], crowd.timeAttribute.array[2 * index],
       crowd.timeAttribute.array[2 * index + 1], time);
     inputs.fade.value.set(crowd.fadeClipAttribute.array[index], ...crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3));
+    if (probe.layered) {
+      inputs.layerA.value.fromArray(crowd.layerClipMaskAttribute.array, 4 * index);
+      inputs.layerB.value.fromArray(crowd.layerTimeAttribute.array, 4 * index);
+      inputs.layerC.value.set(...crowd.layerWeightAttribute.array.subarray(2 * index, 2 * index + 2), 0, 0);
+    }
     inputs.world.value.multiplyMatrices(mesh.matrixWorld, placement);
     inputs.normalMatrix.value.getNormalMatrix(inputs.world.value);
     await renderer.computeAsync(probe.compute);
@@ -132,5 +157,5 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
     for (const a of arrays) { out.set(a, at); at += a.length; }
     return out;
   };
-  return { positions: concat(positions), normals: concat(normals) };
+  return { positions: concat(positions), normals: concat(normals), lod };
 }
