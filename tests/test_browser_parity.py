@@ -15,7 +15,9 @@ instance's bounding-box diagonal, unit normals within 1e-5.
   the probe at each time equals ``vbusd.skin`` given that instance's clip, fade and layer by hand
   (before, inside and after the window);
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
-* unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative.
+* unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
+* the previous-frame pose (motion vectors, spec 21): the probe's ``previousPositions`` for the
+  page's ``?dt=`` equal the decoder at t - dt, across a loop boundary and a clamped clip's end.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import layered_stadium as layered_stadium_file
-from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, check_probe,
-                                   package_vertices, reference_instance)
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, across_clip_time,
+                                   check_previous, check_probe, package_vertices, reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
@@ -357,3 +359,52 @@ def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:
+    """(previous-position error / diagonal, motion / diagonal) of each (instance, time) probe of
+    ``path`` drawn by ``engine`` with the page's frame interval ``dt`` (None: the default 1/60)."""
+    asset = vbusd.read_asset(path)
+    with ViewerServer(path, engine=engine) as server:
+        page = open_page(browser, server, "" if dt is None else f"&dt={dt!r}")
+        try:
+            assert page.error == "", page.error
+            results = [check_previous(page, asset, instance, t, 1 / 60 if dt is None else dt) for instance, t in probes]
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    return results
+
+
+@pytest.mark.parity("previous pose (motion vectors)")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_previous_pose(browser, layered_stadium, bar_crowd, engine):
+    """The probe's ``previousPositions`` (the pose the engine's velocity output is computed from,
+    spec virtual-bones.md 21) equal the numpy decoder at t - dt, within 1e-6 of the diagonal: on
+    the stadium crowd (default dt 1/60, across its 10 s loop: t after the wrap, t - dt before it),
+    on the layered stadium crossfading with per-instance rates (dt 0.05, across the loop too) and on
+    the bar crowd's clamped clips across their ends (dt 0.05). Each case moves: a previous pose
+    equal to the current one would fail."""
+    stadium_path = SAMPLE / "stadium_crowd_vb.usda"
+    stadium = vbusd.read_asset(stadium_path).crowds[0]
+    loop = 10.0  # the cheer loops every 10 s of clip-local time
+    stadium_probes = [(0, 1.2345), (0, across_clip_time(stadium, 0, loop, 1 / 60)),
+                      (777, across_clip_time(stadium, 777, 2 * loop, 1 / 60))]
+    layered = vbusd.read_asset(layered_stadium).crowds[0]
+    layered_probes = [(3, 0.83), (5, 0.83), (4, across_clip_time(layered, 4, loop, 0.05)),
+                      (5, across_clip_time(layered, 5, loop, 0.05))]
+    bar = vbusd.read_asset(bar_crowd)
+    clips = bar.animations[0].clips
+    bar_probes = []
+    for i in (0, 3):  # clamped clips: past the end, t - dt before it
+        clip = clips[int(bar.crowds[0].clip[i])]
+        assert not clip.loop
+        bar_probes.append((i, across_clip_time(bar.crowds[0], i, (clip.row_count - 1) / clip.rows_per_second, 0.05)))
+    cases = [("stadium", previous_errors(browser, stadium_path, engine, stadium_probes)),
+             ("layered", previous_errors(browser, layered_stadium, engine, layered_probes, dt=0.05)),
+             ("bar", previous_errors(browser, bar_crowd, engine, bar_probes, dt=0.05))]
+    print(engine, cases)
+    for name, results in cases:
+        for error, moved in results:
+            assert error <= POSITION_TOLERANCE, (name, results)
+        assert max(moved for _, moved in results) > 100 * POSITION_TOLERANCE, (name, results)

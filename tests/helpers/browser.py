@@ -386,3 +386,30 @@ def layered_stadium(folder: Path, encoding: str = "quatTranslation", texel_forma
     path.parent.mkdir()
     vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
     return path
+
+
+def check_previous(page: ViewerPage, asset, instance: int, t: float, dt: float) -> tuple[float, float]:
+    """Probe the page's previous-frame pose (spec virtual-bones.md 21) of ``instance`` at ``t`` and
+    compare it with the numpy decoder at scene time ``t - dt`` (every clip-local time at timeOffset
+    + playbackRate * (t - dt), wrapped or clamped by its clip; fades and layers at t - dt): returns
+    (previous-position error / diagonal, the largest distance the instance's points moved between
+    t - dt and t / diagonal: the motion the velocity pass sees, so a probe that returned the
+    current pose as the previous one fails)."""
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    assert abs(result["dt"] - dt) <= 1e-12, (result["dt"], dt)
+    previous = np.asarray(result["previousPositions"], dtype=np.float64).reshape(-1, 3)
+    expected_previous, _ = reference_instance(asset, instance, t - dt)
+    expected_current, _ = reference_instance(asset, instance, t)
+    assert previous.shape == expected_previous.shape
+    diagonal = float(np.linalg.norm(expected_current.max(0) - expected_current.min(0)))
+    error = float(np.abs(previous - expected_previous).max()) / diagonal
+    moved = float(np.linalg.norm(expected_current - expected_previous, axis=1).max()) / diagonal
+    return error, moved
+
+
+def across_clip_time(crowd, instance: int, boundary: float, dt: float) -> float:
+    """The scene time t at which ``instance``'s clip-local time timeOffset + playbackRate * t is half
+    a frame past ``boundary`` (a loop's end, a clamped clip's end): t - dt lies half a frame before it."""
+    offset = float(crowd.time_offset[instance])
+    rate = float(crowd.playback_rate[instance])
+    return (boundary - offset) / rate + 0.5 * dt

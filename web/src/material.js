@@ -96,6 +96,45 @@ const SKIN_LAYERED = `
                 position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 
+// The previous-frame pose (spec virtual-bones.md 21, spec/shaders.md "Previous pose"): the same
+// skin function at the previous frame's clip-local times: timeOffset + playbackRate *
+// vb_previousTime for the clip and the layers, the previous fade time and weight from
+// vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) (@vbusd/core's PreviousFrame); an
+// instance reset this frame (clip switched, teleported) takes its current pose: zero velocity.
+const PREVIOUS_INPUTS = `in vec4 vb_instancePreviousFade;
+uniform float vb_previousTime;
+`;
+
+const PREVIOUS_CROSSFADE = `
+  vec3 vbPreviousPosition = vbPosition;
+  if (vb_instancePreviousFade.z < 0.5) {
+    vec3 vbPreviousNormal;
+    vbSkinCrossfade(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_previousTime,
+                    vb_instanceFadeClip, vb_instancePreviousFade.x, vb_instancePreviousFade.y,
+                    position, normal, vbIndex, vbWeight, vbPreviousPosition, vbPreviousNormal);
+  }
+`;
+
+const PREVIOUS_LAYERED = `
+  vec3 vbPreviousPosition = vbPosition;
+  if (vb_instancePreviousFade.z < 0.5) {
+    vec3 vbPreviousNormal;
+    for (int j = 0; j < VB_MAX_LAYERS; ++j) {
+      vbLayerTau[j] = vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_previousTime;
+    }
+    vbSkinLayered(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_previousTime,
+                  vb_instanceFadeClip, vb_instancePreviousFade.x, vb_instancePreviousFade.y,
+                  vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                  position, normal, vbIndex, vbWeight, vbPreviousPosition, vbPreviousNormal);
+  }
+`;
+
+/** Declarations of the previous-frame inputs (after skinningDeclarations): vb_instancePreviousFade, vb_previousTime. */
+export function previousDeclarations() { return PREVIOUS_INPUTS; }
+
+/** Statements after skinningCall: the previous-frame skinned position into vbPreviousPosition (bind space, as vbPosition). */
+export function previousSkinningCall(layers = false) { return layers ? PREVIOUS_LAYERED : PREVIOUS_CROSSFADE; }
+
 /** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition / vbNormal. */
 export function skinningCall(skin = 'attributes', layers = false) {
   checkSkinBinding(skin);

@@ -153,11 +153,15 @@ async function main() {
   let playing = params.get('paused') !== '1' && !params.has('time');
   let needsRender = true;  // paused and unchanged: no frame is drawn (software WebGL is slow)
   controls.addEventListener('change', () => { needsRender = true; });
-  const setTime = (t) => {
+  // The frame interval of the previous-frame pose (motion vectors, spec 21): ?dt=SECONDS, default
+  // 1/60; a playing viewer uses its real frame interval.
+  const frameInterval = number('dt', 1 / 60);
+  const setTime = (t, dt = frameInterval) => {
     needsRender = true;
     time = t;
     for (const animation of objects.animations) animation.time = t;
     for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
+    for (const crowd of crowds) crowd.updatePrevious(t, dt);
     element('time').value = String(t % Number(element('time').max));
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };
@@ -217,7 +221,7 @@ async function main() {
     last = now;
     intervals.push(dt);
     if (intervals.length > 60) intervals.shift();
-    if (playing) setTime(time + dt);
+    if (playing) setTime(time + dt, dt > 0 ? dt : frameInterval);
     if (needsRender) {
       const start = performance.now();
       render();
@@ -240,13 +244,16 @@ async function main() {
     get instanceCount() { return probeTargets.length; },
     /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU,
      * and `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without
-     * levels); the vertices are that level's (LOD 0's when culled). */
+     * levels); the vertices are that level's (LOD 0's when culled); `previousPositions`: the
+     * previous-frame pose for the page's frame interval `dt` (?dt=SECONDS, default 1/60; spec 21). */
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
-      const result = webgpu ? await webgpu.probeNodeCrowd(renderer, target[0], target[1], t)
-        : probeCrowd(renderer, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+      const options = { dt: frameInterval };
+      const result = webgpu ? await webgpu.probeNodeCrowd(renderer, target[0], target[1], t, options)
+        : probeCrowd(renderer, target[0], target[1], t, options);
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals),
+        previousPositions: Array.from(result.previousPositions), dt: frameInterval, lod: result.lod };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
     levels() {
