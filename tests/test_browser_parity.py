@@ -369,6 +369,7 @@ def previous_errors(browser, path: Path, engine: str, probes, dt: float | None =
         page = open_page(browser, server, "" if dt is None else f"&dt={dt!r}")
         try:
             assert page.error == "", page.error
+            assert page.page.evaluate("window.vbusd.engine") == engine
             results = [check_previous(page, asset, instance, t, 1 / 60 if dt is None else dt) for instance, t in probes]
             assert page.errors() == [], page.errors()
         finally:
