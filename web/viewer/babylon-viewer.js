@@ -131,10 +131,14 @@ async function main() {
 
   let time = number('time', 0);
   let playing = params.get('paused') !== '1' && !params.has('time');
-  const setTime = (t) => {
+  // The frame interval of the previous-frame pose (motion vectors, spec 21): ?dt=SECONDS, default
+  // 1/60; a playing viewer uses its real frame interval.
+  const frameInterval = number('dt', 1 / 60);
+  const setTime = (t, dt = frameInterval) => {
     time = t;
     for (const animation of animations) animation.time = t;
     for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
+    for (const crowd of crowds) crowd.updatePrevious(t, dt);
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };
   element('play').textContent = playing ? 'Pause' : 'Play';
@@ -149,7 +153,7 @@ async function main() {
   let last = performance.now();
   engine.runRenderLoop(() => {
     const now = performance.now();
-    if (playing) setTime(time + (now - last) / 1000);
+    if (playing) setTime(time + (now - last) / 1000, now > last ? (now - last) / 1000 : frameInterval);
     last = now;
     render();
     element('stats').textContent = `frame time: ${engine.getDeltaTime().toFixed(1)} ms, ${crowds.reduce((n, c) => n + c.count, 0)} instances`;
@@ -180,8 +184,9 @@ async function main() {
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
-      const result = probeBabylonCrowd(engine, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+      const result = probeBabylonCrowd(engine, target[0], target[1], t, { dt: frameInterval });
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals),
+        previousPositions: Array.from(result.previousPositions), dt: frameInterval, lod: result.lod };
     },
     /** Mean milliseconds per frame over `frames` frames, each rendered and finished (a pixel read). */
     measureFrames(frames = 60) {

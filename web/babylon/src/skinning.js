@@ -26,7 +26,8 @@ export function babylonModule(animation, maxInfluences, skin = 'attributes', lay
  * thin-instance vec4 streams: vb_instanceA = (clip, timeOffset, playbackRate, fadeClip),
  * vb_instanceB = (fadeTimeOffset, fadePlaybackRate, fadeWeight, unused), and with layers (format
  * 1.2, two per instance) vb_instanceC = (clip, mask) of each layer, vb_instanceD = (timeOffset,
- * playbackRate) of each, vb_instanceE = (weight 0, weight 1, unused, unused). `keyword` is
+ * playbackRate) of each, vb_instanceE = (weight 0, weight 1, unused, unused); the previous frame's
+ * vb_instancePreviousFade and vb_previousTime (spec 21; read by the velocity pre-pass and the probe). `keyword` is
  * `attribute` in Babylon's shaders (its GLSL 1 style, migrated to `in` on WebGL 2) and `in` in the
  * probe. With the pulled skin there are no bone streams.
  */
@@ -37,7 +38,33 @@ ${maxInfluences > 4 ? `${keyword} vec4 vb_boneIndices1;\n${keyword} vec4 vb_bone
   return `${babylonModule(animation, maxInfluences, skin, layers)}
 ${bones}${keyword} vec4 vb_instanceA;
 ${keyword} vec4 vb_instanceB;
-${layers ? `${keyword} vec4 vb_instanceC;\n${keyword} vec4 vb_instanceD;\n${keyword} vec4 vb_instanceE;\n` : ''}`;
+${layers ? `${keyword} vec4 vb_instanceC;\n${keyword} vec4 vb_instanceD;\n${keyword} vec4 vb_instanceE;\n` : ''}${keyword} vec4 vb_instancePreviousFade;
+uniform float vb_previousTime;
+`;
+}
+
+/**
+ * Statements after skinningCall (in its scope): the previous-frame skinned position (spec
+ * virtual-bones.md 21) into `target` (a vec3 declared by the caller): the same skin function at
+ * timeOffset + playbackRate * vb_previousTime for the clip and the layers, the fade clip at
+ * vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) of @vbusd/core's PreviousFrame; an
+ * instance reset this frame keeps its current pose (zero velocity).
+ */
+export function previousSkinningCall(position, normal, target, layers = false) {
+  const playback = `int(vb_instanceA.x), vb_instanceA.y + vb_instanceA.z * vb_previousTime,
+                    int(vb_instanceA.w), vb_instancePreviousFade.x, vb_instancePreviousFade.y,`;
+  const call = layers ? `for (int j = 0; j < VB_MAX_LAYERS; ++j) vbLayerTau[j] = vb_instanceD[2 * j] + vb_instanceD[2 * j + 1] * vb_previousTime;
+    vbSkinLayered(${playback}
+                  vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                  ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);` : `vbSkinCrossfade(${playback}
+                    ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);`;
+  return `
+  ${target} = vbPosition;
+  if (vb_instancePreviousFade.z < 0.5) {
+    vec3 vbPreviousNormal;
+    ${call}
+  }
+`;
 }
 
 /**
