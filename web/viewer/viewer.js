@@ -18,7 +18,9 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
-import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF } from './vbusd-three/index.js';
+import {
+  buildObjects, loadPlainScene, probeCrowd, renderVelocity, VirtualBonesGLTFPlugin, descriptionFromGLTF,
+} from './vbusd-three/index.js';
 
 const params = new URLSearchParams(window.location.search);
 const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
@@ -177,7 +179,11 @@ async function main() {
     const choice = element('clip').value;
     crowds.forEach((crowd, c) => {
       const index = crowd.animation.clipIndex(choice);
-      crowd.clipAttribute.array.set(choice === '-1' || index < 0 ? authored[c] : authored[c].map(() => index));
+      const clips = choice === '-1' || index < 0 ? authored[c] : authored[c].map(() => index);
+      // A clip switch: no motion vector across it (spec 21's reset).
+      clips.forEach((clip, i) => { if (crowd.clipAttribute.array[i] !== clip) crowd.resetPrevious(i); });
+      crowd.clipAttribute.array.set(clips);
+      crowd.updatePrevious(time, frameInterval);
       crowd.clipAttribute.needsUpdate = true;
       crowd.updateBounds();
     });
@@ -254,6 +260,28 @@ async function main() {
         : probeCrowd(renderer, target[0], target[1], t, options);
       return { positions: Array.from(result.positions), normals: Array.from(result.normals),
         previousPositions: Array.from(result.previousPositions), dt: frameInterval, lod: result.lod };
+    },
+    /** WebGLRenderer: the velocity (motion vectors, spec 21) of the view at the current time and the
+     * page's dt, from the crowds' velocity materials (renderVelocity): NDC motion since the previous
+     * frame, {width, height, rg: row-major from the top row, 2 floats per pixel}. */
+    velocity() {
+      if (webgpu) throw new Error('velocity() reads WebGLRenderer\'s velocity materials; under WebGPURenderer use an MRT velocity output');
+      render();
+      const size = renderer.getDrawingBufferSize(new THREE.Vector2());
+      const target = new THREE.WebGLRenderTarget(size.x, size.y, { type: THREE.FloatType });
+      renderVelocity(renderer, scene, camera, target);
+      const pixels = new Float32Array(4 * size.x * size.y);
+      renderer.readRenderTargetPixels(target, 0, 0, size.x, size.y, pixels);
+      target.dispose();
+      const rg = new Array(2 * size.x * size.y);
+      for (let y = 0; y < size.y; ++y) {
+        const row = size.y - 1 - y;  // GL rows run upward
+        for (let x = 0; x < size.x; ++x) {
+          rg[2 * (y * size.x + x)] = pixels[4 * (row * size.x + x)];
+          rg[2 * (y * size.x + x) + 1] = pixels[4 * (row * size.x + x) + 1];
+        }
+      }
+      return { width: size.x, height: size.y, rg };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
     levels() {
