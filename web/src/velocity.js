@@ -16,7 +16,8 @@
 //   renderVelocity(renderer, scene, camera, velocity);
 //   // velocity.texture: per pixel the NDC motion of the surface since the previous frame
 
-import { Color, FloatType, HalfFloatType, Matrix4, Mesh, ShaderMaterial, UniformsUtils } from 'three';
+// Only names three.webgpu.js exports too: the WebGPU page maps `three` to it and loads this module.
+import { Color, FloatType, HalfFloatType, Matrix4, Mesh, ShaderMaterial } from 'three';
 
 import { VirtualBonesError } from '@vbusd/core';
 
@@ -62,11 +63,11 @@ void main() {
 `;
 
 function uniforms() {
-  return UniformsUtils.clone({
+  return {
     currentProjectionViewMatrix: { value: new Matrix4() },
     previousProjectionViewMatrix: { value: new Matrix4() },
     modelMatrixPrev: { value: new Matrix4() },
-  });
+  };
 }
 
 /**

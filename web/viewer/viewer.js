@@ -79,8 +79,11 @@ async function main() {
   // ?skin=pulled: the skin read by vertex index from skin records (spec/shaders.md, Skin bindings):
   // a texture on WebGL 2, a storage buffer on WebGPU. WebGL's default is DEFAULT_SKIN (pulled), the
   // WebGPU runtime's `attributes`.
-  const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null),
-    skinMaterial: webgpu ? webgpu.skinNodeMaterial : null });
+  // ?velocity=0 (WebGPU): the crowd writes no previous pose to the velocity output (its motion
+  // vectors are its placement's only), for comparison with vbusd's (docs/engines.md, the TRAA picture).
+  const previousPose = params.get('velocity') !== '0';
+  const skinMaterial = webgpu ? (m, a, k, binding) => webgpu.skinNodeMaterial(m, a, k, { ...binding, previousPose }) : null;
+  const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null), skinMaterial });
   for (const animation of objects.animations) {
     if (webgpu) webgpu.checkNodeSupport(renderer, animation);
     else animation.checkSupport(renderer);
@@ -208,12 +211,33 @@ async function main() {
       camera.updateProjectionMatrix();
     }
   };
+  // ?post=traa or ?post=motionblur (WebGPU): three's TRAA (three/addons/tsl/display/TRAANode.js) or
+  // motion blur (MotionBlur.js) fed by an MRT velocity output: the crowd's materials write the
+  // previous skinned pose into it (spec 21). TRAA wants ?antialias=0 (no MSAA).
+  let pipeline = null;
+  const post = webgpu ? params.get('post') : null;
+  if (post === 'traa' || post === 'motionblur') {
+    const tsl = await import('three/tsl');
+    const scenePass = tsl.pass(scene, camera);
+    scenePass.setMRT(tsl.mrt({ output: tsl.output, velocity: tsl.velocity }));
+    const color = scenePass.getTextureNode('output');
+    const motion = scenePass.getTextureNode('velocity');
+    pipeline = new THREE.RenderPipeline(renderer);
+    if (post === 'traa') {
+      const { traa } = await import('three/addons/tsl/display/TRAANode.js');
+      pipeline.outputNode = traa(color, scenePass.getTextureNode('depth'), motion, camera);
+    } else {
+      const { motionBlur } = await import('three/addons/tsl/display/MotionBlur.js');
+      pipeline.outputNode = motionBlur(color, motion.mul(number('blur', 1)), tsl.int(16));
+    }
+  }
   const render = () => {
     resize();
     controls.update();
     // Levels of detail (format 1.2): each crowd picks every instance's level for this camera.
     for (const crowd of crowds) crowd.updateLevels(camera);
-    renderer.render(scene, camera);
+    if (pipeline) pipeline.render();
+    else renderer.render(scene, camera);
     needsRender = false;
   };
   window.addEventListener('resize', () => { needsRender = true; });

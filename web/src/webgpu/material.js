@@ -191,11 +191,13 @@ function instanceMatrixNode(mesh) {
  * @param {object} [binding] what VirtualBonesCrowd passes: {skin: 'attributes' (default) or
  *   'pulled' (with the geometry's `records` and `skinTexture` from pullSkin: read by vertex index
  *   from a storage buffer on WebGPU, from the texture on the WebGL 2 backend), layers (format 1.2:
- *   the crowd plays layers, vbSkinLayered)}
+ *   the crowd plays layers, vbSkinLayered), previousPose (default true: with a velocity MRT output
+ *   the previous frame's skinned position goes to positionPrevious; false: the current one, no
+ *   skinning motion in the motion vectors)}
  * @returns {NodeMaterial} material
  */
 export function skinNodeMaterial(material, animation, maxInfluences, binding = {}) {
-  const { skin = 'attributes', layers = false } = binding;
+  const { skin = 'attributes', layers = false, previousPose = true } = binding;
   if (!material?.isNodeMaterial) {
     throw new VirtualBonesError(`${material?.type ?? material}: the WebGPU runtime skins node materials (e.g. MeshStandardNodeMaterial from three/webgpu)`);
   }
@@ -218,7 +220,8 @@ export function skinNodeMaterial(material, animation, maxInfluences, binding = {
     // `velocity` output: three's VelocityNode, TRAA, motion blur), the previous skinned position
     // goes where three's SkinnedMesh puts its own, in positionPrevious; three's instancing then
     // applies the previous instance matrix and VelocityNode projects it with the previous camera.
-    if (builder.needsPreviousData()) positionPrevious.assign(skinVertex(animation, inputs.previous()).position);
+    // (`previousPose: false`: the current skinned position, i.e. no skinning motion, for comparison.)
+    if (builder.needsPreviousData()) positionPrevious.assign(previousPose ? skinVertex(animation, inputs.previous()).position : vertex.position);
     positionLocal.assign(vertex.position);
     normalLocal.assign(vertex.normal);
     return setupPosition.call(this, builder);
@@ -230,7 +233,7 @@ export function skinNodeMaterial(material, animation, maxInfluences, binding = {
   // The skinning is not a node of the material: the program cache must still tell materials of
   // different animations (textures, clip tables), influence counts, bindings and records apart.
   const records = skin === 'pulled' ? binding.skinTexture.uuid : '';
-  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${skin}:${records}:${layers ? 'layers' : ''}`;
+  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${skin}:${records}:${layers ? 'layers' : ''}${previousPose ? '' : ':still'}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
   material.userData.virtualBones = { animation, maxInfluences, skin, layers };
