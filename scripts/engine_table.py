@@ -40,6 +40,8 @@ FEATURES = (
     "glTF package through the engine's loader, mesh without normals",
     "glTF package carrying layers and crossfades",
     "conformance vectors (spec/conformance/)",
+    "previous pose (motion vectors)",
+    "velocity output (motion vectors)",
 )
 
 # Cells probed by other modules (each against vbusd's decoder, within the same tolerances).
@@ -65,6 +67,10 @@ NOT_YET = {
     "(the probes above cover the same features)",
     ("conformance vectors (spec/conformance/)", "babylon"): "not yet: the vectors' page drives WebGLRenderer only "
     "(the probes above cover the same features)",
+    ("velocity output (motion vectors)", "three-webgpu"): "not yet checked per pixel: the crowd writes three's "
+    "positionPrevious (TRAA picture: scripts/motion_vectors_picture.py); the previous pose row probes its inputs",
+    ("velocity output (motion vectors)", "babylon"): "not yet checked per pixel: the plugin writes vPreviousPosition "
+    "in the velocity pre-pass; PrePassRenderer's velocity texture is not read back yet",
 }
 
 PARITY = "test_browser_parity.py"
