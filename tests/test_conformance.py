@@ -635,3 +635,34 @@ def test_warp_reproduces_every_previous_frame(path, device):
     for index, frame in enumerate(vector["previous"]["frames"]):
         points, normals = decoder.skin_crowd_previous(crowd, frame["time"], vector["previous"]["dt"]).numpy()
         assert_previous_matches(vector, index, points, normals, f"warp {device}")
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shader_modules_reproduce_every_previous_frame(gl, lang, path, tmp_path):
+    """The example main of a ``--previous`` module with VB_CROSSFADE 1: vb_previousPosition against
+    ``previous.frames[*].previousPositions``, vb_skinnedPosition against their ``positions``."""
+    from tests.helpers.gl_previous import Instances, run_previous
+
+    if lang == "hlsl":
+        require("glslang")
+    vector = load(path)
+    vb = vector_animation(vector)
+    rows = vector["instances"]
+    dt = vector["previous"]["dt"]
+    for index, frame in enumerate(vector["previous"]["frames"]):
+        t, before = frame["time"], frame["time"] - dt
+        instances = Instances(
+            np.array([r["clip"] for r in rows], np.int32),
+            np.array([[r["timeOffset"], r["playbackRate"]] for r in rows], np.float32),
+            np.array([r["fadeClip"] for r in rows], np.int32),
+            np.array([[r["fadeTimeOffset"], r["fadePlaybackRate"], r["fadeWeight"]] for r in rows], np.float32),
+            np.array([[r["fadeTimeOffset"] + r["fadePlaybackRate"] * before, r["fadeWeight"]] for r in rows], np.float32))
+        points, normals, previous = run_previous(gl, lang, vb, vb.meshes[0], instances, t, before, tmp_path)
+        tolerance = vector["tolerance"]
+        assert np.abs(points - np.array(frame["positions"])).max() <= tolerance["position"], (lang, t)
+        assert np.abs(normals - np.array(frame["normals"])).max() <= tolerance["normal"], (lang, t)
+        point_error = float(np.abs(previous - np.array(frame["previousPositions"])).max())
+        assert point_error <= tolerance["position"], f"{lang} {vector['vector']} previous at t = {t}: {point_error:.3g}"

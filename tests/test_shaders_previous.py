@@ -437,3 +437,20 @@ def test_fox_previous_positions_match_the_reference(gl, lang, shared_assets, tmp
                   offset, rate)
     _, _, motion = _check(gl, lang, vb, crowd, t, DT, tmp_path, what="Fox")
     assert motion > 100 * POSITION_TOLERANCE
+
+
+@pytest.mark.cli
+def test_hlsl_cbuffer_keeps_its_offsets_with_vb_previous_time(tmp_path):
+    """spec/shaders.md: vb_previousTime takes bytes 4..7 of the first register; vb_clips stays at 16."""
+    require("glslang")
+    import re
+    import subprocess
+
+    path = tmp_path / "module.hlsl"
+    path.write_text(generate(ShaderOptions("hlsl", "crossMatrix", "unorm16", max_clips=16, previous=True)))
+    reflected = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "-q",
+                                "-o", str(tmp_path / "out.spv"), str(path)], capture_output=True, text=True)
+    assert reflected.returncode == 0, reflected.stdout + reflected.stderr
+    offsets = {m[0]: int(m[1]) for m in re.findall(r"^(vb_\w+): offset (-?\d+)", reflected.stdout, re.M)}
+    assert offsets == {"vb_texture": -1, "vb_time": 0, "vb_previousTime": 4, "vb_clips": 16,
+                       "vb_rangeMin": 16 + 16 * 16, "vb_rangeMax": 16 + 16 * 16 + 16 * 3}, offsets
