@@ -454,3 +454,21 @@ def test_hlsl_cbuffer_keeps_its_offsets_with_vb_previous_time(tmp_path):
     offsets = {m[0]: int(m[1]) for m in re.findall(r"^(vb_\w+): offset (-?\d+)", reflected.stdout, re.M)}
     assert offsets == {"vb_texture": -1, "vb_time": 0, "vb_previousTime": 4, "vb_clips": 16,
                        "vb_rangeMin": 16 + 16 * 16, "vb_rangeMax": 16 + 16 * 16 + 16 * 3}, offsets
+
+
+@pytest.mark.cli
+def test_every_previous_module_compiles_as_glsl_es_300_with_crossfade(tmp_path):
+    """WebGL 2's GLSL ES 3.00 (what the three.js runtime compiles), every encoding, the example main
+    with VB_CROSSFADE on and off, checked by glslang's reference front end."""
+    require("glslang")
+    import subprocess
+
+    for encoding in Encoding:
+        texel_format = "uint32" if encoding is Encoding.COMPACT_QUAT_TRANSLATION else "float16"
+        for crossfade in ("0", "1"):
+            path = tmp_path / f"{encoding.value}-{crossfade}.vert"
+            path.write_text("#version 300 es\nprecision highp float;\nprecision highp int;\n"
+                            f"#define VB_CROSSFADE {crossfade}\n"
+                            + generate(ShaderOptions("glsl", encoding, texel_format, previous=True)))
+            compiled = subprocess.run(["glslangValidator", str(path)], capture_output=True, text=True)
+            assert compiled.returncode == 0, (encoding, crossfade, compiled.stdout + compiled.stderr)
