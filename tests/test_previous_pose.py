@@ -228,3 +228,34 @@ def test_hold_reset_kernel_is_its_numpy_twin():
                   device=device)
         np.testing.assert_array_equal(out.numpy(), expected)
     assert np.array_equal(expected[0], current[0]) and np.array_equal(expected[1], previous[1])
+
+
+def test_stadium_crowd_previous_is_usdskels_pose_placed_by_hand():
+    """Six spectators of the sample's crowd (their own offsets and rates, instance 0 crossing the
+    loop in the frame): each previous pose is UsdSkel's skinning of the source at the instance's
+    previous clip time wrapped by hand, rotated by its orientation and moved to its position, within
+    1e-3 of the body's diagonal."""
+    from tests.helpers.scenes import usdskel_world
+
+    asset = vbusd.read_asset(ASSET)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    n = 6
+    crowd = dataclasses.replace(crowd, positions=crowd.positions[:n], orientations=crowd.orientations[:n],
+                                scales=None if crowd.scales is None else crowd.scales[:n], clip=crowd.clip[:n],
+                                time_offset=crowd.time_offset[:n], playback_rate=crowd.playback_rate[:n])
+    offset, rate = crowd.time_offset.astype(np.float64), crowd.playback_rate.astype(np.float64)
+    t = (10.0 * np.ceil(offset[0] / 10.0 + 1e-9) - offset[0]) / rate[0] + DT / 2  # instance 0 wraps in (t - dt, t]
+    previous_tau = offset + rate * (t - DT)
+    assert np.floor((offset[0] + rate[0] * t) / 10.0) == np.floor(previous_tau[0] / 10.0) + 1
+    points, _ = reference.skin_crowd_previous(vb, vb.meshes[0], crowd, t, DT)
+    source = SAMPLE / "stadium_crowd.usda"
+    poses, _ = usdskel_world(source, "/StadiumCrowd/Body", (previous_tau % 10.0) * 30.0)
+    d = diagonal(poses[0])
+    for i in range(n):
+        x, y, z, w = np.asarray(crowd.orientations[i], np.float64) / np.linalg.norm(crowd.orientations[i])
+        rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        scale = np.ones(3) if crowd.scales is None else np.asarray(crowd.scales[i], np.float64)
+        expected = (poses[i] * scale) @ rotation.T + np.asarray(crowd.positions[i], np.float64)
+        assert np.abs(points[i] - expected).max() <= 1e-3 * d, f"instance {i}"
