@@ -67,6 +67,14 @@ both); ``report`` adds frame and GPU time and triangles drawn per level (:func:`
 ``lod-meshes --out FILE`` writes the generated levels for a machine without meshoptimizer
 (``$VBUSD_LOD_MESHES``).
 
+``--previous on|both`` (issue 36) also draws the Virtual Bones methods (``vb``, ``vb_pulled``,
+``vb_pulled_texture``) with the module of ``vbusd shader --previous``: the draw's main skins each
+vertex a second time at the previous frame's time (``vb_previousTime = t - 1/60``), projects both
+positions and writes the screen-space velocity into a second colour target (``RG16F``, as a TAA or
+motion-blur pass reads it); the read-back checks the previous positions against
+``reference.skin_crowd_previous`` too. ``both`` times each such configuration without and with it,
+``report`` then adds the cost table (:func:`previous_markdown`); ``--plan issue36`` is that set.
+
 ``factors`` is the one-factor study around Virtual Bones' vertex cost (:func:`run_factors`): skin
 attributes fetched or not, packed or not, read from storage buffers, K influences; its variants keep
 the 56-byte vertex of the attribute binding, static included, so that one factor changes at a time.
@@ -109,6 +117,8 @@ DENSE_SPLITS = 17  # each triangle of the body split 17 x 17: 50,890 vertices
 GLSL_VERSION = "#version 430 core\n"
 SEAT = (0.6, 0.85)  # metres between neighbours across and along the grid
 FRAME_STEP = 1.0 / 60.0  # scene time advances one 60 Hz frame per timed frame
+PREVIOUS_DT = FRAME_STEP  # --previous: the frame interval of the previous pose (spec 21's default)
+PREVIOUS_METHODS = ("vb", "vb_pulled", "vb_pulled_texture")  # the methods --previous draws both ways
 CHECK_TIME = 1.2345  # scene time of the read-back checks
 MAX_OUTPUT_GIB = 40.0  # warp: largest decoded vertex buffers (positions + normals) we allocate
 SKIN_BINDING = 3  # vb_pulled: storage binding of the skin records (palette: 0, warp: 0 and 1, factor study: 1 and 2)
@@ -579,6 +589,38 @@ void main()
 }
 """
 
+# --previous (issue 36): the same mains, skinning a second time at the previous frame's time
+# (vbusd shader --previous declares vb_previousTime) and projecting both positions for the velocity
+# target. The crowd stands still, so each instance's previous transform is its current one.
+_PREVIOUS_EMIT = """
+out vec4 clip_now;
+out vec4 clip_previous;
+out vec3 previous_world_position;
+void emitPrevious(vec3 previousPosition)
+{
+    previous_world_position = placeRotate(instance_orientation, previousPosition) + instance_position;
+    clip_now = gl_Position;
+    clip_previous = view_projection * vec4(previous_world_position, 1.0);
+}
+"""
+
+_PREVIOUS_CALL = """    emit(position, normal);
+    vec3 previousPosition;
+    vbSkin(VB_ARGS instance_clip, instance_time.x + instance_time.y * vb_previousTime, rest_position, rest_normal,
+           boneIndex, boneWeight, previousPosition, normal);
+    emitPrevious(previousPosition);
+}"""
+
+
+def _with_previous(main: str) -> str:
+    """A draw main that also writes the previous skinned position and both clip-space positions."""
+    assert main.count("    emit(position, normal);\n}") == 1
+    return main.replace(_PLACE, _PLACE + _PREVIOUS_EMIT, 1).replace("    emit(position, normal);\n}", _PREVIOUS_CALL)
+
+
+VB_MAIN_PREVIOUS = _with_previous(VB_MAIN)
+VB_MAIN_PULLED_PREVIOUS = _with_previous(VB_MAIN_PULLED)
+
 VAT_VS = GLSL_VERSION + _PLACE + """
 uniform highp sampler2D vat_positions;
 uniform highp sampler2D vat_normals;
@@ -662,9 +704,26 @@ void main()
 
 VARYINGS = ["world_position", "world_normal"]
 
+FRAGMENT_VELOCITY = GLSL_VERSION + """
+in vec3 world_position;
+in vec3 world_normal;
+in vec4 clip_now;
+in vec4 clip_previous;
+layout(location = 0) out vec4 color;
+layout(location = 1) out vec2 velocity;   // the RG16F velocity target of a TAA / motion-blur pass
+void main()
+{
+    float light = max(dot(normalize(world_normal), vec3(0.3, 0.8, 0.52)), 0.0);
+    color = vec4(vec3(0.15 + 0.85 * light), 1.0);
+    velocity = clip_now.xy / clip_now.w - clip_previous.xy / clip_previous.w;
+}
+"""
+
+VARYINGS_PREVIOUS = VARYINGS + ["previous_world_position"]
+
 
 def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main: str = VB_MAIN,
-                     skin: str = "attributes", skin_storage: bool = True) -> str:
+                     skin: str = "attributes", skin_storage: bool = True, previous: bool = False) -> str:
     """The draw's vertex shader: the module ``vbusd shader --skin SKIN`` prints (main off), then the draw's main.
 
     Args:
@@ -676,11 +735,13 @@ def vb_vertex_shader(encoding: str, texel_format: str, max_influences: int, main
         skin_storage: Pulled only: False defines ``VB_SKIN_STORAGE 0`` before the module (its own
             switch, spec/shaders.md), so it reads the records from the ``RGBA32UI`` texture, as WebGL 2
             and the three.js runtime must.
+        previous: The module of ``vbusd shader --previous`` (``vb_previousTime``; issue 36).
 
     Returns:
         GLSL 4.30 source: the version line, the shipped module unchanged, the draw's ``main``.
     """
-    module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False, skin=skin)
+    module = vbusd.shader("glsl", encoding, texel_format, max_influences=max_influences, main=False, skin=skin,
+                          previous=previous)
     switch = "#define VB_SKIN_STORAGE 0\n" if skin == "pulled" and not skin_storage else ""
     return GLSL_VERSION + switch + module + main
 
@@ -811,9 +872,9 @@ class Scene:
         tf_vao = self.ctx.vertex_array(tf_program, check, skip_errors=True)
         return draw_vao, tf_vao
 
-    def programs(self, vertex_shader: str):
-        program = self.ctx.program(vertex_shader=vertex_shader, fragment_shader=FRAGMENT)
-        tf_program = self.ctx.program(vertex_shader=vertex_shader, varyings=VARYINGS)
+    def programs(self, vertex_shader: str, fragment_shader: str = FRAGMENT, varyings=VARYINGS):
+        program = self.ctx.program(vertex_shader=vertex_shader, fragment_shader=fragment_shader)
+        tf_program = self.ctx.program(vertex_shader=vertex_shader, varyings=varyings)
         for p in (program, tf_program):
             if "view_projection" in p:
                 p["view_projection"].write(self.view_projection.T.astype("f4").tobytes())
@@ -852,7 +913,7 @@ def _texture_dtype(texel_format: str) -> str:
 
 
 def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: bool = False,
-             skin: str = "attributes") -> Method:
+             skin: str = "attributes", previous: bool = False) -> Method:
     """Virtual Bones, the shipped module in one of its skin bindings.
 
     Args:
@@ -868,6 +929,9 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
             ``pulled_texture`` (method ``vb_pulled_texture``): the same module with ``VB_SKIN_STORAGE
             0``, the records in an ``RGBA32UI`` texture ``min(texels, 4096)`` wide read by
             ``texelFetch``, as in WebGL 2 and the three.js runtime (``skinTexture``).
+        previous: Issue 36: the module of ``vbusd shader --previous``; the draw also skins at
+            ``vb_previousTime`` and writes the screen-space velocity into a second colour target
+            (``RG16F``) of a framebuffer of its own; the read-back adds the previous positions.
 
     Returns:
         The method, ready to check and time.
@@ -878,9 +942,17 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
     if pulled and skin_buffers:
         raise ValueError("skin_buffers is the factor study's variant of the attribute module")
     k = scene.character.mesh.bone_indices.shape[1]
+    if previous and skin_buffers:
+        raise ValueError("previous is not a factor of the factor study")
     main = VB_MAIN_PULLED if pulled else VB_MAIN_SKIN_BUFFERS if skin_buffers else VB_MAIN
-    program, tf = scene.programs(vb_vertex_shader(encoding, texel_format, k, main, skin="pulled" if pulled else skin,
-                                                  skin_storage=not in_texture))
+    if previous:
+        main = VB_MAIN_PULLED_PREVIOUS if pulled else VB_MAIN_PREVIOUS
+    shader = vb_vertex_shader(encoding, texel_format, k, main, skin="pulled" if pulled else skin,
+                              skin_storage=not in_texture, previous=previous)
+    if previous:
+        program, tf = scene.programs(shader, FRAGMENT_VELOCITY, VARYINGS_PREVIOUS)
+    else:
+        program, tf = scene.programs(shader)
     texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
                           dtype=_texture_dtype(texel_format))
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
@@ -923,6 +995,8 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         for binding, buffer in skin_objects:
             buffer.bind_to_storage_buffer(binding)
         p["vb_time"].value = t
+        if previous:
+            p["vb_previousTime"].value = t - PREVIOUS_DT
 
     texel_bytes = int(np.asarray(vb.texels).nbytes)
     notes = f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes"
@@ -935,10 +1009,20 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         config = f"{encoding} {texel_format}" + (", skin from storage buffers" if skin_buffers else "")
         notes += f"; vertex {scene.skin_stride} bytes (position, normal, bone indices, bone weights)"
     name = "vb_pulled_texture" if in_texture else "vb_pulled" if pulled else "vb"
+    targets = []
+    if previous:
+        config += ", previous pose"
+        notes += "; previous pose: a second skin at vb_previousTime, velocity into an RG16F target"
+        targets = [ctx.renderbuffer(RESOLUTION), ctx.renderbuffer(RESOLUTION, components=2, dtype="f2"),
+                   ctx.depth_renderbuffer(RESOLUTION)]
     method = Method(name, config,
                     draw, check, program, tf, texel_bytes + 12 * scene.count, set_time=set_time,
                     release=[texture] + [buffer for _, buffer in skin_objects] + ([skin_records] if in_texture else []),
                     notes=notes)
+    if previous:
+        method.previous = True
+        method.framebuffer = ctx.framebuffer(color_attachments=targets[:2], depth_attachment=targets[2])
+        method.release += [method.framebuffer] + targets
     if pulled:
         method.skin_records = skin_records  # the storage buffer the module reads (tests look into it)
     return method
@@ -1428,9 +1512,13 @@ def render_frame(method: Method, scene: Scene, t: float, query) -> Frame:
         method.before_draw(t)
     if method.set_time is not None:
         method.set_time(method.program, t)
-    scene.framebuffer.clear(0.55, 0.6, 0.7, 1.0, depth=1.0)
+    target = getattr(method, "framebuffer", None) or scene.framebuffer  # --previous: colour + velocity
+    target.use()
+    target.clear(0.55, 0.6, 0.7, 1.0, depth=1.0)
     with query:
         _draw(method, scene)
+    if target is not scene.framebuffer:
+        scene.framebuffer.use()
     cpu = time.perf_counter() - start
     ctx.finish()
     wall = time.perf_counter() - start
@@ -1450,7 +1538,9 @@ def read_back(method: Method, scene: Scene, t: float):
         method.before_draw(t)
     if method.set_time is not None:
         method.set_time(method.tf_program, t)
-    out = ctx.buffer(reserve=s * v * 24)
+    previous = getattr(method, "previous", False)
+    floats = 9 if previous else 6  # --previous: the previous world position after position and normal
+    out = ctx.buffer(reserve=s * v * floats * 4)
     if method.name == "warp":
         # One instance at a time from the decoded buffers: bind the draw's range holding it.
         results = []
@@ -1466,9 +1556,11 @@ def read_back(method: Method, scene: Scene, t: float):
         data = np.concatenate(results)
     else:
         method.tf_vao.transform(out, mode=moderngl.POINTS, vertices=v, instances=s)
-        data = np.frombuffer(out.read(), dtype="<f4").reshape(s, v, 6)
+        data = np.frombuffer(out.read(), dtype="<f4").reshape(s, v, floats)
     out.release()
-    return data[..., :3].astype(np.float64), data[..., 3:].astype(np.float64), extra
+    if previous:  # the previous world positions travel as the extra
+        extra = data[..., 6:9].astype(np.float64)
+    return data[..., :3].astype(np.float64), data[..., 3:6].astype(np.float64), extra
 
 
 def expected(method: Method, scene: Scene, t: float, vb, vat, extra):
@@ -1499,9 +1591,16 @@ def check(method: Method, scene: Scene, vb, vat) -> dict:
     normal_error = float(np.abs(normals - want_normals).max())
     exact_points, exact_normals = exact_pose(scene.check_crowd, scene.character.mesh, CHECK_TIME)
     limit = tolerance(want_points)
+    previous = {}
+    if getattr(method, "previous", False):  # issue 36: the previous positions against the reference at t - dt
+        want_previous, _ = reference.skin_crowd_previous(vb, scene.character.mesh, scene.check_crowd, CHECK_TIME,
+                                                         PREVIOUS_DT)
+        previous = {"previous_position_error_m": float(np.abs(extra - want_previous).max()),
+                    "previous_motion_m": float(np.abs(want_previous - want_points).max())}
     return {"instances_checked": int(len(scene.check_rows)), "position_error_m": point_error,
-            "normal_error": normal_error, "tolerance_m": limit,
-            "agrees": bool(point_error <= limit and normal_error <= 1e-3),
+            "normal_error": normal_error, "tolerance_m": limit, **previous,
+            "agrees": bool(point_error <= limit and normal_error <= 1e-3
+                           and previous.get("previous_position_error_m", 0.0) <= limit),
             "exact_position_error_m": float(np.abs(points - exact_points).max()),
             "exact_normal_error": float(np.abs(normals - exact_normals).max()) if method.name != "static" else None}
 
@@ -1583,12 +1682,21 @@ PLANS = {
 # one level of detail (vb) against three sharing the texture (vb_lod), crossMatrix float16.
 PLANS["issue29"] = [("stadium", n, method, "crossMatrix", "float16")
                     for n in (1_000_000, 100_000, 10_000) for method in ("vb", "vb_lod")]
+# issue36: the previous pose's cost (run with --previous both: each vb configuration without, then
+# with it), attribute and texture-pulled bindings beside static, stadium 100,000 / 1,000,000 / 10,000
+# and dense 10,000, crossMatrix float16.
+PLANS["issue36"] = [(character, n, method) + (("crossMatrix", "float16") if method.startswith("vb") else (None, None))
+                    for character, n in (("stadium", 100_000), ("stadium", 1_000_000), ("stadium", 10_000),
+                                         ("dense", 10_000))
+                    for method in ("static", "vb", "vb_pulled_texture")]
 PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
                              "factors": False},
                  "issue25-texture": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
                                      "factors": False},
                  "issue29": {"budget": 400.0, "per_config_s": 5.0, "min_runs": 10, "warmup_s": 3.0,
-                             "factors": False}}
+                             "factors": False},
+                 "issue36": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
+                             "factors": False, "previous": "both"}}
 PLAN_VIEWS = {"issue29": "stand"}
 """The camera of a plan's scenes (default ``grid``)."""
 
@@ -1655,7 +1763,8 @@ def run(args) -> int:
         device = None
     ctx, framebuffer = create_context()
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-    result = {"issue": {"issue25": 25, "issue29": 29}.get(args.plan, 18), "plan": args.plan, "budget_s": args.budget,
+    result = {"issue": {"issue25": 25, "issue29": 29, "issue36": 36}.get(args.plan, 18), "plan": args.plan,
+              "budget_s": args.budget, "previous": args.previous,
               "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
               "command": command_line(), "runs": [], "skipped": [], "factors": []}
     print(f"# {result['facts']['GL_RENDERER']} | {result['facts']['GL_VERSION']} | warp on {device}", flush=True)
@@ -1682,9 +1791,13 @@ def run(args) -> int:
     per_vertex_instance = {}  # (method, encoding, format) -> frame seconds per vertex-instance
     scene = None
     scene_key = None
-    for character_name, n, method_name, encoding, texel_format in plan:
+    previous_axis = {"off": (False,), "on": (True,), "both": (False, True)}[args.previous]
+    expanded = [item + (previous,) for item in plan
+                for previous in (previous_axis if item[2] in PREVIOUS_METHODS else (False,))]
+    for character_name, n, method_name, encoding, texel_format, previous in expanded:
         character = characters[character_name]
-        label = f"{character_name} N={n} {method_name} {encoding or ''} {texel_format or ''}".strip()
+        label = f"{character_name} N={n} {method_name} {encoding or ''} {texel_format or ''}".strip() + \
+            (" previous" if previous else "")
         elapsed = time.perf_counter() - started
         remaining = args.budget - elapsed
         too_big = _too_big(character, n, method_name, block_limit)
@@ -1718,7 +1831,7 @@ def run(args) -> int:
             elif method_name in ("vb", "vb_pulled", "vb_pulled_texture"):
                 method = setup_vb(scene, vb_for(encoding, texel_format), encoding, texel_format,
                                   skin={"vb": "attributes", "vb_pulled": "pulled",
-                                        "vb_pulled_texture": "pulled_texture"}[method_name])
+                                        "vb_pulled_texture": "pulled_texture"}[method_name], previous=previous)
             elif method_name == "vb_lod":
                 method = setup_vb_lod(scene, vb_for(encoding, texel_format), encoding, texel_format)
             elif method_name == "vat":
@@ -1742,7 +1855,7 @@ def run(args) -> int:
             row = {"character": character_name, "vertices": character.vertex_count, "instances": n,
                    "method": method_name, "config": method.config, "encoding": encoding,
                    "texel_format": texel_format, "anim_bytes": int(method.anim_bytes), "notes": method.notes,
-                   "correctness": correctness, **timing}
+                   "correctness": correctness, "previous": bool(previous), **timing}
             if method_name == "warp":
                 row["interop"] = method.uses_interop
             if method_name == "vb_lod":  # what the last timed frame drew, level by level
@@ -1760,7 +1873,7 @@ def run(args) -> int:
                   f"  cpu {timing['cpu_ms']['median']:9.3f} ms  frame {timing['frame_ms']['median']:9.3f} ms"
                   f"  x{timing['runs']:<3d} err {correctness['position_error_m']:.2e} m"
                   f" {'ok' if correctness['agrees'] else 'DISAGREES'}  anim {method.anim_bytes:,} B", flush=True)
-            if args.factors and character_name == "stadium" and n == args.factor_size \
+            if args.factors and character_name == "stadium" and n == args.factor_size and not previous \
                     and method_name in ("static", "vb", "vat", "palette") \
                     and (method_name != "vb" or (encoding, texel_format) == ("crossMatrix", "float16")):
                 result["factors"].append(factor_study(method, scene, args))
@@ -2007,6 +2120,25 @@ def bindings_markdown(data: dict) -> str:
     return "\n".join(rows)
 
 
+def previous_markdown(data: dict) -> str:
+    """Issue 36: each Virtual Bones configuration's GPU draw and frame time without and with the
+    previous pose (``--previous both``), the cost as a ratio, and the previous positions' error."""
+    rows = ["| character | instances | method | GPU draw ms, off | GPU draw ms, previous on | x | frame ms, off "
+            "| frame ms, on | previous pose error vs numpy (m) |", "|---|--:|---|--:|--:|--:|--:|--:|--:|"]
+    on = [r for r in data["runs"] if r.get("previous")]
+    for r in sorted(on, key=lambda r: (r["character"] != "stadium", r["instances"], r["method"])):
+        off = next((o for o in data["runs"] if not o.get("previous") and o["character"] == r["character"]
+                    and o["instances"] == r["instances"] and o["method"] == r["method"]
+                    and o["encoding"] == r["encoding"] and o["texel_format"] == r["texel_format"]), None)
+        off_draw = off["gpu_draw_ms"]["median"] if off else float("nan")
+        draw = r["gpu_draw_ms"]["median"]
+        rows.append(f"| {r['character']} | {r['instances']:,} | {r['method']} ({r['encoding']} {r['texel_format']}) "
+                    f"| {off_draw:.3f} | {draw:.3f} | {draw / off_draw:.2f} "
+                    f"| {off['frame_ms']['median'] if off else float('nan'):.3f} | {r['frame_ms']['median']:.3f} "
+                    f"| {r['correctness'].get('previous_position_error_m', float('nan')):.2e} |")
+    return "\n".join(rows)
+
+
 def markdown(data: dict) -> str:
     rows = ["| character | instances | method | configuration | GPU draw ms | GPU other ms | CPU ms | frame ms "
             "| runs | animation bytes on GPU | max error vs numpy (m) | vs exact (m) |",
@@ -2092,6 +2224,10 @@ def report(args) -> int:
         print()
         print(lod_markdown(data))
         print()
+    if any(r.get("previous") for r in data["runs"]):
+        print()
+        print(previous_markdown(data))
+        print()
     for line in goals(data):
         print("*", line)
     for s in data.get("skipped", []):
@@ -2108,7 +2244,11 @@ def report(args) -> int:
 
 def parse_args(argv=None) -> argparse.Namespace:
     """The command line, with ``run``'s defaults (and a named plan's) filled in."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        epilog="run --previous off|on|both (issue 36): also time the Virtual Bones methods with the previous-frame "
+               "pose (vbusd shader --previous, a velocity target); --plan issue36 is that comparison. "
+               "See 'run --help'.")
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="measure (needs moderngl with an EGL driver, numpy, warp)")
     r.add_argument("--json", required=True, help="where the results go (rewritten after every configuration)")
@@ -2118,7 +2258,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "instances, static, vb, vb_pulled and vat; issue25-texture: the same sizes, static, vb, "
                         "vb_pulled and vb_pulled_texture (the skin records in an RGBA32UI texture, as WebGL 2); "
                         "issue29: stadium 1,000,000 / 100,000 / 10,000 seen from the grid's edge, vb (one level) "
-                        "and vb_lod (three)")
+                        "and vb_lod (three); issue36: stadium 100,000 / 1,000,000 / 10,000 and dense 10,000, static, "
+                        "vb and vb_pulled_texture, previous pose off and on")
     r.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
     r.add_argument("--characters", default="stadium,dense")
     r.add_argument("--methods", default="static,vb,vb_pulled,vat,palette,warp")
@@ -2131,6 +2272,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     r.add_argument("--warmup-s", type=float, help="untimed frames before the first timed configuration, seconds "
                                                   "(default 0; issue25: 3)")
     r.add_argument("--max-frame-s", type=float, default=8.0, help="skip a configuration predicted slower than this")
+    r.add_argument("--previous", choices=("off", "on", "both"),
+                   help="issue 36: draw the Virtual Bones methods (vb, vb_pulled, vb_pulled_texture) with the previous "
+                        "pose on (vbusd shader --previous: a second skin at vb_previousTime = t - 1/60, screen-space "
+                        "velocity into an RG16F target, previous positions checked against the reference), off, "
+                        "or both (each configuration timed without, then with it; report adds the cost table) "
+                        "(default off; issue36: both)")
     r.add_argument("--no-factors", dest="factors", action="store_false")
     r.add_argument("--factor-size", type=int, default=100_000, help="crowd size of the one-factor study")
     f = sub.add_parser("factors", help="one factor at a time around VB's vertex cost (stadium character)")
@@ -2147,7 +2294,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--plot")
     args = parser.parse_args(argv)
     if args.command == "run":
-        defaults = {"budget": 420.0, "per_config_s": 1.5, "min_runs": 3, "warmup_s": 0.0}
+        defaults = {"budget": 420.0, "per_config_s": 1.5, "min_runs": 3, "warmup_s": 0.0, "previous": "off"}
         defaults.update(PLAN_DEFAULTS.get(args.plan, {}))
         for key, value in defaults.items():
             if key == "factors":

@@ -412,3 +412,55 @@ def test_a_result_records_its_command_without_machine_paths(dc, monkeypatch, tmp
                             "--cache", "/opt/some/venv/cache.bin"])
     assert line == "benchmarks/draw_cost.py run --json $OUT/r.json --cache cache.bin"
     assert not re.search(MACHINE_PATH, line)
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 36: the previous-frame pose (--previous), what the lead times on the device
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("skin", ["attributes", "pulled", "pulled_texture"])
+def test_previous_pose_methods_draw_what_numpy_computes_and_write_velocity(dc, baked, gl, skin):
+    """With --previous the read-back's previous positions agree with reference.skin_crowd_previous
+    (the check fails when they are the current ones: the crowd moves 100 times the tolerance in a
+    frame), and a drawn frame writes non-zero screen-space velocity into the RG16F target."""
+    body = dc.stadium_character(baked)
+    scene = _scene(dc, gl, body)
+    method = dc.setup_vb(scene, baked, "crossMatrix", "float16", skin=skin, previous=True)
+    result = dc.check(method, scene, baked, None)
+    assert result["agrees"], result
+    assert result["previous_position_error_m"] < 1e-5
+    assert result["previous_motion_m"] > 100 * result["tolerance_m"]
+    frame = dc.render_frame(method, scene, 2.0, scene.ctx.query(time=True))
+    assert frame.wall >= frame.cpu > 0
+    velocity = np.frombuffer(method.framebuffer.read(components=2, attachment=1, dtype="f2"), dtype="<f2")
+    assert np.isfinite(velocity).all() and np.abs(velocity).max() > 0
+    for item in method.release:
+        item.release()
+    scene.release()
+
+
+def test_previous_axis_and_the_issue36_plan(dc, capsys):
+    default = dc.parse_args(["run", "--json", "o"])
+    assert default.previous == "off"
+    args = dc.parse_args(["run", "--json", "o", "--plan", "issue36"])
+    assert args.previous == "both" and not args.factors and args.budget <= 450
+    plan = dc._plan(args)
+    assert {m for _, _, m, *_ in plan} == {"static", "vb", "vb_pulled_texture"}
+    assert dc.parse_args(["run", "--json", "o", "--plan", "issue36", "--previous", "on"]).previous == "on"
+    with pytest.raises(SystemExit):
+        dc.parse_args(["--help"])
+    assert "--previous" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        dc.parse_args(["run", "--help"])
+    assert "--previous {off,on,both}" in capsys.readouterr().out
+
+
+def test_previous_table_states_the_cost_as_a_ratio(dc):
+    def row(method, ms, previous):
+        return {"character": "stadium", "instances": 1000, "method": method, "encoding": "crossMatrix",
+                "texel_format": "float16", "previous": previous, "gpu_draw_ms": {"median": ms},
+                "frame_ms": {"median": ms + 1}, "correctness": {"previous_position_error_m": 2e-6} if previous else {}}
+    table = dc.previous_markdown({"runs": [row("vb", 2.0, False), row("vb", 3.0, True), row("static", 1.0, False)]})
+    assert "| stadium | 1,000 | vb (crossMatrix float16) | 2.000 | 3.000 | 1.50 | 3.000 | 4.000 | 2.00e-06 |" in table

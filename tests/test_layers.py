@@ -937,3 +937,51 @@ def test_a_1_1_reader_refuses_a_layered_crowd_by_name(tmp_path, monkeypatch):
     assert "vb:boneParents" in message and "primvars:vb:layerWeight" in message
     assert "version 1.1 does not define" in message
     assert "vb:bindTransforms" not in message  # 1.1 knows it
+
+
+# ----------------------------------------------------------------------------------------------
+# The previous-frame pose of the layer vectors (spec 21): layers at t - dt too
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_numpy_reference_reproduces_every_layer_vectors_previous_frame(path):
+    from vbusd.decoders.reference import skin_crowd_previous
+
+    vector = json.loads(path.read_text())
+    vb, crowd = layer_vector_animation(vector), layer_vector_crowd(vector)
+    for frame in vector["previous"]["frames"]:
+        points, normals = skin_crowd_previous(vb, vb.meshes[0], crowd, frame["time"], vector["previous"]["dt"])
+        np.testing.assert_allclose(points, frame["previousPositions"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(normals, frame["previousNormals"], rtol=0, atol=1e-12)
+    assert any(np.abs(np.array(f["previousPositions"]) - np.array(f["positions"])).max() > 1e-2
+               for f in vector["previous"]["frames"])
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_shader_layers_reproduce_every_layer_vectors_previous_frame(gl, lang, path, tmp_path):
+    """vbSkinLayered with every time taken at the previous frame's scene time (spec/shaders.md,
+    Previous pose: the vectors' weights are constant) gives ``previousPositions``."""
+    vector = json.loads(path.read_text())
+    dt = vector["previous"]["dt"]
+    for frame in vector["previous"]["frames"]:
+        points, _ = run_layer_vector(gl, lang, vector, frame["time"] - dt, tmp_path)
+        error = float(np.abs(points - np.array(frame["previousPositions"])).max())
+        assert error <= vector["tolerance"]["position"], (lang, frame["time"], error)
+
+
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_warp_reproduces_every_layer_vectors_previous_frame(path):
+    require("warp")
+    from vbusd.decoders import warp
+
+    vector = json.loads(path.read_text())
+    vb, crowd = layer_vector_animation(vector), layer_vector_crowd(vector)
+    decoder = warp.Decoder(vb, device="cpu")
+    for frame in vector["previous"]["frames"]:
+        points, normals = decoder.skin_crowd_previous(crowd, frame["time"], vector["previous"]["dt"]).numpy()
+        assert np.abs(points - np.array(frame["previousPositions"])).max() <= vector["tolerance"]["position"]
+        assert np.abs(normals - np.array(frame["previousNormals"])).max() <= vector["tolerance"]["normal"]

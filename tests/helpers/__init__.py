@@ -8,6 +8,8 @@
 * :mod:`tests.helpers.node`: the Node scripts of tests/node.
 * :mod:`tests.helpers.cli`: the ``vbusd`` command run in-process, with its output captured.
 * :mod:`tests.helpers.scenes`: small UsdSkel scenes written from code.
+* :mod:`tests.helpers.gl_previous`: a ``vbusd shader --previous`` module run by OpenGL transform
+  feedback (GLSL, and HLSL through glslang and spirv-cross).
 * :mod:`tests.helpers.scripts`: repository scripts under test (samples/, spec/, scripts/, benchmarks/)
   loaded by path, once.
 """
