@@ -68,7 +68,10 @@ pack)
     (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
     python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-        --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0
+        --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0 \
+        usd-core OpenEXR pypng pygltflib dataclasses-json marshmallow typing-inspect mypy-extensions deprecated wrapt \
+        jsonschema jsonschema-specifications referencing rpds-py attrs typing-extensions click rich markdown-it-py mdurl \
+        pygments  # vbusd's core dependencies but numpy (the image has it) and warp: the shaders come from vbusd.shader
     if [ -n "${NO_WARP:-}" ]; then  # issue25 needs no warp
         ls -l .gl .whl
     else
