@@ -11,6 +11,7 @@ package whose crossfade or layers are broken, naming the place.
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,8 @@ from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.package_reader import read_package
 
 from tests.helpers.crowds import chain_character, primvars
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import REPO
 from tests.helpers.node import gltf_check
 
 FADES = ("_VB_FADE_CLIP", "_VB_FADE_TIME_OFFSET", "_VB_FADE_PLAYBACK_RATE", "_VB_FADE_WEIGHT")
@@ -153,3 +156,26 @@ def test_a_broken_crossfade_or_layer_is_a_finding_and_view_refuses_it(crowds, tm
     assert main(["info", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f": {code}: " in err[0], err
+
+
+@pytest.mark.node
+def test_fades_layers_and_time_samples_survive_gltf_transform(crowds, tmp_path, capsys):
+    """glTF-Transform with the VBUSD_virtual_bones extension (web/gltf-transform: dedup, prune,
+    flatten, weld renumber accessors and nodes) keeps every _VB_FADE_ / _VB_LAYER_ attribute and
+    the node's time samples: the rewritten package reads as the primvars do."""
+    node = node_tools.require_packages("@gltf-transform/core", "@gltf-transform/functions", folder="web/gltf-transform")
+    source = tmp_path / "crowd.glb"
+    assert main(["export", str(crowds["window"]), "-o", str(source)]) == 0, capsys.readouterr().err
+    out = tmp_path / "transformed.glb"
+    result = subprocess.run([node, "test/transform_file.mjs", str(source), str(out)], cwd=REPO / "web" / "gltf-transform",
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    (before,), (after,) = read(source).crowds, read(out).crowds
+    assert sorted(after.playback) == sorted(before.playback) and after.layers == 2
+    for name, values in before.playback.items():
+        np.testing.assert_array_equal(after.playback[name], values, err_msg=name)
+    usd = primvars(crowds["window"])["fadeWeight.samples"]
+    times, values = after.samples["_VB_FADE_WEIGHT"]
+    np.testing.assert_array_equal(times, sorted(usd))
+    np.testing.assert_array_equal(values, np.float32([usd[t] for t in sorted(usd)]))
+    assert vbusd.validate(out).valid
