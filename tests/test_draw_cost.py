@@ -20,15 +20,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers import scripts
+from tests.helpers import draw_cost
 from tests.helpers.capabilities import require, unavailable
 
-BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "draw_cost.py"
 
 
 @pytest.fixture(scope="module")
 def dc():
-    return scripts.load("benchmarks/draw_cost.py")
+    return draw_cost  # the harness of benchmarks/draw_cost.py
 
 
 @pytest.fixture(scope="module")

@@ -297,8 +297,7 @@ def test_usdskel_layer_equals_the_same_blend_of_usdskel_poses(tmp_path):
 
 def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
     """primvars:vb:layer* (elementSize L) written, read back, and each instance skinned as
-    vbusd.skin skins its clip, layers and crossfade at its own times; decoders that do not
-    implement layers yet refuse the crowd (layers.unsupported) instead of drawing it without them."""
+    vbusd.skin skins its clip, layers and crossfade at its own times; the glTF package carries them."""
     from pxr import Usd, UsdGeom
 
     from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
@@ -343,12 +342,16 @@ def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
     joint = crowd_joint_transforms(back.animations[0], read_crowd, 1, t)[0]
     expected_joint = vbusd.bone_transform(vb, 1, 0, t, layers=[{"clip": 1, "time": 0.75, "weight": 0.5, "mask": "arm"}])
     np.testing.assert_allclose(joint, expected_joint, atol=1e-12)
-    # The three.js scene and the glTF package do not carry layers yet: they refuse the crowd.
+    # The glTF package carries them (spec/runtime-package.md 5.1): layer j as _VB_LAYER_*_j.
     from vbusd.io.gltf_package import build_package
 
-    with pytest.raises(vbusd.UnsupportedError) as error:
-        build_package(back, binary=True, base_name="crowd")
-    assert error.value.code == "layers.unsupported"
+    gltf, buffers, _ = build_package(back, binary=True, base_name="crowd")
+    node = next(n for n in gltf["nodes"] if "EXT_mesh_gpu_instancing" in n.get("extensions", {}))
+    attributes = node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
+    for j in range(2):
+        view = gltf["bufferViews"][gltf["accessors"][attributes[f"_VB_LAYER_WEIGHT_{j}"]]["bufferView"]]
+        data = buffers[0][1][view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
+        np.testing.assert_array_equal(np.frombuffer(data, "<f4"), crowd.layer_weight[:, j])
 
 
 # ----------------------------------------------------------------------------------------------

@@ -242,7 +242,7 @@ _FINDINGS += (
     # runtime package (a .glb or .gltf that vbusd export wrote)
     Code("package.extension", E, "The VBUSD_virtual_bones extension is missing (a plain glTF file given as a "
          "runtime package, e.g. to vbusd view), not listed in extensionsUsed, listed in extensionsRequired, or "
-         "its root or primitive object violates vbusd/schema/VBUSD_virtual_bones.schema.json (a version or "
+         "its root, primitive or node object violates vbusd/schema/VBUSD_virtual_bones.schema.json (a version or "
          "animations it cannot hold).", f"{_RUNTIME_PACKAGE}#extension", "json"),
     Code("package.texture", E, "An animation's texture buffer view does not exist, lies outside its buffer, "
          "does not hold a KTX2 file, has a byteStride or target, or (in a .glb) does not start at a multiple "
@@ -254,7 +254,9 @@ _FINDINGS += (
          "a bone index outside the animation's bones.", f"{_RUNTIME_PACKAGE}#meshes", "json"),
     Code("package.instances", E, "A crowd node lacks _VB_CLIP, _VB_TIME_OFFSET or _VB_PLAYBACK_RATE, has "
          "instance attributes of different counts, a clip the animation does not have, or a time offset or "
-         "rate that is not finite.", f"{_RUNTIME_PACKAGE}#nodes", "json"),
+         "rate that is not finite; or its crossfade (_VB_FADE_*) or layers (_VB_LAYER_*_j) are incomplete, name "
+         "a clip or mask the animation does not have, or their time samples are not increasing times with "
+         "S x N float values of an attribute the node carries.", f"{_RUNTIME_PACKAGE}#nodes", "json"),
 )
 
 _COMMAND_ERRORS = (

@@ -5,7 +5,9 @@ per bound mesh: rest points, normals, triangles, bone indices and weights as ``_
 ``_VB_WEIGHTS_n``), its texture as a KTX2 file (a buffer view of the ``.glb``, or a ``.ktx2`` buffer
 beside the ``.gltf``) referenced with the layout metadata from the root ``VBUSD_virtual_bones``
 extension, and each crowd as an ``EXT_mesh_gpu_instancing`` node with ``_VB_CLIP``,
-``_VB_TIME_OFFSET`` and ``_VB_PLAYBACK_RATE`` per instance. Every number of the asset is stored
+``_VB_TIME_OFFSET`` and ``_VB_PLAYBACK_RATE`` per instance (and its crossfade, ``_VB_FADE_*``, and
+layers, ``_VB_LAYER_*_j``, with their time samples in the node's ``VBUSD_virtual_bones`` object:
+spec/runtime-package.md 5.1). Every number of the asset is stored
 unchanged; the root node ``vbusd`` converts the asset's up axis and units to glTF's Y-up metres.
 
 The JSON and binary layout are written with the standard library (``json``, ``struct``) and numpy:
@@ -35,7 +37,6 @@ from vbusd.io.gltf import referenced_uris
 from vbusd.io.files import Commit, free_name, make_folders, remove_folders, settle_names, write_error
 
 from vbusd.io.generator import GENERATOR
-from vbusd.format.errors import UnsupportedError
 from vbusd.io import ktx2
 from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.package_reader import read_package
@@ -150,14 +151,23 @@ def _triangulate(mesh: BoundMesh, where: str):
     return points, normals, indices, weights, triangles.reshape(-1)
 
 
+FADE_ATTRIBUTES = (("fade_clip", "_VB_FADE_CLIP"), ("fade_time_offset", "_VB_FADE_TIME_OFFSET"),
+                   ("fade_playback_rate", "_VB_FADE_PLAYBACK_RATE"), ("fade_weight", "_VB_FADE_WEIGHT"))
+"""Crowd fields of a crossfade and their instance attributes (spec/runtime-package.md 5.1)."""
+LAYER_ATTRIBUTES = (("layer_clip", "_VB_LAYER_CLIP"), ("layer_time_offset", "_VB_LAYER_TIME_OFFSET"),
+                    ("layer_playback_rate", "_VB_LAYER_PLAYBACK_RATE"), ("layer_weight", "_VB_LAYER_WEIGHT"),
+                    ("layer_mask", "_VB_LAYER_MASK"))
+"""Crowd fields of the layers and the stem of their instance attributes (``<stem>_<j>`` for layer j)."""
+
+
+def _fades(crowd) -> bool:
+    """Whether the crowd authors a crossfade (any fade field, or a fade field's time samples)."""
+    return any(getattr(crowd, name) is not None for name, _ in FADE_ATTRIBUTES) or \
+        any(name.startswith("fade_") for name in (crowd.fade_samples or {}))
+
+
 def _crowd_arrays(crowd):
     count = crowd.instance_count
-    if crowd.layered:
-        # Spec 8.6 layers have no glTF transport yet: refuse rather than export the crowd without them.
-
-        raise UnsupportedError("the crowd plays layers (format 1.2), which the glTF runtime package does not "
-                               "carry yet", location=f"{crowd.path}.primvars:vb:layerWeight",
-                               code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
     rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])
@@ -170,7 +180,34 @@ def _crowd_arrays(crowd):
     columns["_VB_CLIP"] = (np.asarray(crowd.clip, dtype=np.float32).reshape(count), "SCALAR")
     columns["_VB_TIME_OFFSET"] = (np.asarray(crowd.time_offset, dtype=np.float32).reshape(count), "SCALAR")
     columns["_VB_PLAYBACK_RATE"] = (np.asarray(crowd.playback_rate, dtype=np.float32).reshape(count), "SCALAR")
+    if _fades(crowd):
+        # Format 1.1 crossfade (spec/runtime-package.md 5.1): all four, USD's defaults filled in.
+        for (_, name), values in zip(FADE_ATTRIBUTES, crowd.fade_arrays()):
+            columns[name] = (np.asarray(values, dtype=np.float32).reshape(count), "SCALAR")
+    if crowd.layer_weight is not None:
+        # Format 1.2 layers: layer j of every instance as its own five attributes.
+        layers = int(np.asarray(crowd.layer_weight).reshape(count, -1).shape[1])
+        for field_name, stem in LAYER_ATTRIBUTES:
+            values = np.asarray(getattr(crowd, field_name), dtype=np.float32).reshape(count, layers)
+            for j in range(layers):
+                columns[f"{stem}_{j}"] = (np.ascontiguousarray(values[:, j]), "SCALAR")
     return columns
+
+
+def _crowd_samples(crowd) -> dict:
+    """The crowd's time samples per instance attribute: ``{name: (times in seconds, (S, N) float32)}``."""
+    count = crowd.instance_count
+    stems = dict(FADE_ATTRIBUTES) | dict(LAYER_ATTRIBUTES)
+    out = {}
+    for field_name, (times, values) in (crowd.fade_samples or {}).items():
+        times = np.asarray(times, dtype=np.float64).reshape(-1)
+        values = np.asarray(values, dtype=np.float32).reshape(times.size, count, -1)
+        if field_name.startswith("fade_"):
+            out[stems[field_name]] = (times, values[:, :, 0])
+        else:
+            for j in range(values.shape[2]):
+                out[f"{stems[field_name]}_{j}"] = (times, np.ascontiguousarray(values[:, :, j]))
+    return out
 
 
 def _primitives(main, meshes, index: int, where: str) -> list:
@@ -297,8 +334,14 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
             continue
         attributes = {name: main.accessor(values, _FLOAT, kind)
                       for name, (values, kind) in _crowd_arrays(crowd).items()}
+        extensions = {INSTANCING: {"attributes": attributes}}
+        samples = {name: {"times": [float(s) for s in times], "values": main.accessor(values.reshape(-1), _FLOAT,
+                                                                                      "SCALAR")}
+                   for name, (times, values) in _crowd_samples(crowd).items()}
+        if samples:  # time-sampled fades or layers (spec/runtime-package.md 5.1)
+            extensions[EXTENSION] = {"samples": samples}
         children.append(add_node({"name": _prim_name(crowd.path), "mesh": mesh_of_animation[animation],
-                                  "extensions": {INSTANCING: {"attributes": attributes}}}, animation))
+                                  "extensions": extensions}, animation))
         instanced.add(animation)
         report.instances.append(crowd.instance_count)
     for index, mesh in sorted(mesh_of_animation.items()):
