@@ -44,9 +44,12 @@ def device():
     return harness.device()
 
 
-def _module(vb, skin, layers=False, max_influences=4, **options):
-    return generate(ShaderOptions("wgsl", vb.layout.encoding, vb.layout.texel_format, max_influences=max_influences,
-                                  skin=skin, layers=layers, crossfade=True, previous=True, **options))
+def _kernel(vb, skin, layers=False, max_influences=4):
+    """The module (crossfade and previous pose on, with its example entry point) and the test's passes."""
+    options = ShaderOptions("wgsl", vb.layout.encoding, vb.layout.texel_format, max_influences=max_influences,
+                            skin=skin, layers=layers, crossfade=True, previous=True)
+    mesh = vb.meshes[0]
+    return harness.skin_kernel(generate(options), skin, layers, len(mesh.points), len(vb.bones), options)
 
 
 def _previous_crowd(crowd: Crowd):
@@ -70,9 +73,15 @@ def _check_previous(vb, mesh, crowd, previous, time, skinned_previous, who):
 
 
 def _run(device, source, vb, mesh, crowd, previous, skin, layers, time, k=4):
+    """The functions' outputs (points, normals, previous points, sockets), after checking that the
+    example entry point (vbMain, run by the same pass) gives the functions' numbers for its inputs."""
     instances = harness.instances_of(crowd, previous[1], previous[2])
-    return harness.run(device, source, vb, mesh, instances, k, skin, layers, float(np.float32(time)),
-                       float(np.float32(np.float32(time) - np.float32(DT))))
+    out = harness.run(device, source, vb, mesh, instances, k, skin, layers, float(np.float32(time)),
+                      float(np.float32(np.float32(time) - np.float32(DT))), entry=not layers)
+    if not layers:  # the entry point calls vbSkinCrossfade as the pass does (vbSkin for weight 0: the same)
+        for name, a, b in zip(("position", "normal", "previous position"), out[:3], out[4:]):
+            np.testing.assert_array_equal(a, b, err_msg=f"the example entry point's {name}")
+    return out[:4]
 
 
 @pytest.mark.gl
@@ -83,7 +92,7 @@ def test_conformance_vectors_run(device, path, skin):
     vb, crowd = conformance.vector_animation(vector), conformance.vector_crowd(vector)
     mesh = vb.meshes[0]
     previous = _previous_crowd(crowd)
-    source = harness.skin_kernel(_module(vb, skin), skin, False, len(mesh.points), len(vb.bones))
+    source = _kernel(vb, skin)
     tolerance = vector["tolerance"]
     worst = 0.0
     for expected in vector["expected"]:
@@ -121,7 +130,7 @@ def test_layer_vectors_run(device, path):
     previous = _previous_crowd(crowd)
     # The pulled binding once per encoding would double a slow compile; float32 takes it.
     skin = "pulled" if vb.layout.texel_format.value == "float32" else "attributes"
-    source = harness.skin_kernel(_module(vb, skin, layers=True), skin, True, len(mesh.points), len(vb.bones))
+    source = _kernel(vb, skin, layers=True)
     tolerance = vector["tolerance"]
     for expected in vector["expected"] + [{"time": 2.0}]:
         points, normals, before, _ = _run(device, source, vb, mesh, crowd, previous, skin, True, expected["time"])
@@ -175,7 +184,7 @@ def test_stadium_and_chain_match_the_reference(device, encoding, texel_format, s
     time = 0.37
     crowd = _test_crowd(vb, time)
     previous = _previous_crowd(crowd)
-    module = harness.skin_kernel(_module(vb, skin, max_influences=k), skin, False, len(mesh.points), len(vb.bones))
+    module = _kernel(vb, skin, max_influences=k)
     points, normals, before, _ = _run(device, module, vb, mesh, crowd, previous, skin, False, time, k)
     expected_points, expected_normals = skin_crowd(vb, mesh, crowd, float(np.float32(time)))
     diagonal = float(np.linalg.norm(expected_points.reshape(-1, 3).max(0) - expected_points.reshape(-1, 3).min(0)))

@@ -114,10 +114,57 @@ _CALL = {
 }
 
 
-def skin_kernel(module: str, skin: str, layers: bool, vertices: int, bones: int) -> str:
-    """``module`` followed by the test's compute entry points ``t_main`` and ``t_sockets``."""
+_ENTRY = """
+// The module's example entry point (its body, vbMain) on the same inputs, its vertex inputs filled
+// as a vertex fetch would.
+@compute @workgroup_size(64)
+fn t_entry(@builtin(global_invocation_id) id: vec3<u32>) {
+    let index = i32(id.x);
+    if (index >= T_VERTICES * i32(arrayLength(&t_instances))) {
+        return;
+    }
+    let inst = t_instances[index / T_VERTICES];
+    let vertex = index % T_VERTICES;
+    let base = vertex * T_STRIDE;
+    var input: VbVertexInput;
+    input.vb_restPosition = vec3<f32>(t_vertices[base], t_vertices[base + 1], t_vertices[base + 2]);
+    input.vb_restNormal = vec3<f32>(t_vertices[base + 3], t_vertices[base + 4], t_vertices[base + 5]);
+@INPUTS@    input.vb_instanceClip = inst.clip;
+    input.vb_instanceTime = vec2<f32>(inst.offset, inst.rate);
+@FADE@    let output = vbMain(input);
+    let o = index * 9;
+    t_out[o] = output.vb_skinnedPosition.x; t_out[o + 1] = output.vb_skinnedPosition.y;
+    t_out[o + 2] = output.vb_skinnedPosition.z; t_out[o + 3] = output.vb_skinnedNormal.x;
+    t_out[o + 4] = output.vb_skinnedNormal.y; t_out[o + 5] = output.vb_skinnedNormal.z;
+@PREVIOUS@}
+"""
+
+
+def _entry(options) -> str:
+    if options.skin == "pulled":
+        inputs = "    input.vertexIndex = u32(vertex);\n"
+    else:
+        inputs = "".join(f"    input.vb_boneIndices{s}[{i}] = i32(t_vertices[base + 6 + {4 * s + i}]);\n"
+                         f"    input.vb_boneWeights{s}[{i}] = t_vertices[base + 6 + VB_MAX_INFLUENCES + {4 * s + i}];\n"
+                         for s in range(2 if options.max_influences > 4 else 1) for i in range(4)
+                         if 4 * s + i < options.max_influences)
+    fade = ""
+    if options.crossfade:
+        fade = ("    input.vb_instanceFadeClip = inst.fadeClip;\n"
+                "    input.vb_instanceFade = vec3<f32>(inst.fadeOffset, inst.fadeRate, inst.fadeWeight);\n")
+        if options.previous:
+            fade += "    input.vb_instancePreviousFade = vec2<f32>(inst.previousFadeOffset, inst.previousFadeWeight);\n"
+    previous = ("    t_out[o + 6] = output.vb_previousPosition.x; t_out[o + 7] = output.vb_previousPosition.y;\n"
+                "    t_out[o + 8] = output.vb_previousPosition.z;\n") if options.previous else ""
+    return _ENTRY.replace("@INPUTS@", inputs).replace("@FADE@", fade).replace("@PREVIOUS@", previous)
+
+
+def skin_kernel(module: str, skin: str, layers: bool, vertices: int, bones: int, options=None) -> str:
+    """``module`` followed by the test's compute entry points ``t_main`` and ``t_sockets``, and
+    ``t_entry`` (the module's example entry point) where ``options`` (its ShaderOptions) has one."""
     kernel = _KERNEL.replace("@VERTICES@", str(vertices)).replace("@BONES@", str(bones))
-    return module + kernel.replace("@FETCH@", _FETCH[skin]).replace("@CALL@", _CALL[layers])
+    kernel = kernel.replace("@FETCH@", _FETCH[skin]).replace("@CALL@", _CALL[layers])
+    return module + kernel + (_entry(options) if options is not None and options.main else "")
 
 
 def device():
@@ -178,9 +225,10 @@ def _buffer(dev, data: bytes, usage):
 
 
 def run(dev, source: str, vb, mesh, instances: np.ndarray, max_influences: int, skin: str, layers: bool,
-        time: float, previous_time: float):
+        time: float, previous_time: float, entry: bool = False):
     """Run ``t_main`` and ``t_sockets`` of ``source`` (:func:`skin_kernel`). Returns (positions,
-    normals, previous positions) (instances, V, 3) and sockets (instances, bones, 3, 4), float32."""
+    normals, previous positions) (instances, V, 3) and sockets (instances, bones, 3, 4), float32;
+    with ``entry``, then also (positions, normals, previous positions) of ``t_entry``."""
     import wgpu
 
     storage_read = {"type": wgpu.BufferBindingType.read_only_storage}
@@ -228,8 +276,9 @@ def run(dev, source: str, vb, mesh, instances: np.ndarray, max_influences: int, 
     module = dev.create_shader_module(code=source)
     pipeline_layout = dev.create_pipeline_layout(bind_group_layouts=[layout0, layout1])
     results = []
-    for entry, items, width in (("t_main", n * count, 9), ("t_sockets", n * bones, 12)):
-        pipeline = dev.create_compute_pipeline(layout=pipeline_layout, compute={"module": module, "entry_point": entry})
+    entries = [("t_main", n * count, 9), ("t_sockets", n * bones, 12)] + ([("t_entry", n * count, 9)] if entry else [])
+    for name, items, width in entries:
+        pipeline = dev.create_compute_pipeline(layout=pipeline_layout, compute={"module": module, "entry_point": name})
         encoder = dev.create_command_encoder()
         compute = encoder.begin_compute_pass()
         compute.set_pipeline(pipeline)
@@ -240,8 +289,11 @@ def run(dev, source: str, vb, mesh, instances: np.ndarray, max_influences: int, 
         dev.queue.submit([encoder.finish()])
         data = np.frombuffer(dev.queue.read_buffer(out), "<f4")[:items * width]
         results.append(data.reshape(n, -1, width).copy())
-    skinned, sockets = results
-    return skinned[..., 0:3], skinned[..., 3:6], skinned[..., 6:9], sockets.reshape(n, bones, 3, 4)
+    skinned, sockets = results[:2]
+    out = (skinned[..., 0:3], skinned[..., 3:6], skinned[..., 6:9], sockets.reshape(n, bones, 3, 4))
+    if entry:
+        out += (results[2][..., 0:3], results[2][..., 3:6], results[2][..., 6:9])
+    return out
 
 
 def instances_of(crowd, previous_fade_offset=None, previous_fade_weight=None) -> np.ndarray:

@@ -685,8 +685,8 @@ struct VbVertexOutput {
     @location(1) vb_skinnedNormal: vec3<f32>,
 @OUTPUTS@}
 
-@vertex
-fn main(input: VbVertexInput) -> VbVertexOutput {
+// The entry point's body as a function, so that a compute pass can run it too (the tests do).
+fn vbMain(input: VbVertexInput) -> VbVertexOutput {
 @SKIN_FETCH@    let tau = input.vb_instanceTime.x + input.vb_instanceTime.y * vb_uniforms.vb_time;
     let skinned = @CALL@;
     var output: VbVertexOutput;
@@ -694,6 +694,11 @@ fn main(input: VbVertexInput) -> VbVertexOutput {
     output.vb_skinnedNormal = skinned.normal;
 @PREVIOUS@    output.position = vec4<f32>(skinned.position, 1.0);
     return output;
+}
+
+@vertex
+fn main(input: VbVertexInput) -> VbVertexOutput {
+    return vbMain(input);
 }
 """
 
