@@ -157,13 +157,16 @@ def _test_crowd(vb, time):
             taus.append((clip_index, x / rate))
     count = len(taus)
     clip = np.array([c for c, _ in taus], np.int32)
-    rate = np.linspace(0.5, 1.5, count).astype(np.float32)
-    offset = (np.array([t for _, t in taus]) - rate.astype(np.float64) * time).astype(np.float32)
+    # Rates and offsets on a grid of 1/64 and 1/1024 s, so that offset + rate * time is exact in
+    # binary32 at time 0.375 and the GPU and the reference take the same clip times (as the vectors).
+    grid = lambda values, step: (np.round(np.asarray(values) / step) * step).astype(np.float32)  # noqa: E731
+    rate = grid(np.linspace(0.5, 1.5, count), 1 / 64)
+    offset = grid(np.array([t for _, t in taus]) - rate.astype(np.float64) * time, 1 / 1024)
     fade = np.where(np.arange(count) % 3 == 0, np.linspace(0.2, 0.9, count), 0.0).astype(np.float32)
     return Crowd("/Test/Crowd", np.zeros((count, 3), np.float32), np.tile(np.float32([0, 0, 0, 1]), (count, 1)),
                  clip, offset, rate, fade_clip=((clip + 1) % len(vb.clips)).astype(np.int32),
-                 fade_time_offset=np.linspace(-1.0, 3.0, count).astype(np.float32),
-                 fade_playback_rate=np.linspace(1.25, 0.75, count).astype(np.float32), fade_weight=fade)
+                 fade_time_offset=grid(np.linspace(-1.0, 3.0, count), 1 / 64),
+                 fade_playback_rate=grid(np.linspace(1.25, 0.75, count), 1 / 64), fade_weight=fade)
 
 
 # The chain rig (K = 6: two attribute sets) scales its bones, which the compact encoding does not hold.
@@ -181,7 +184,7 @@ def test_stadium_and_chain_match_the_reference(device, encoding, texel_format, s
                   BakeOptions(encoding=encoding, texel_format=texel_format, max_influences=6))
         k = 6
     mesh = vb.meshes[0]
-    time = 0.37
+    time = 0.375
     crowd = _test_crowd(vb, time)
     previous = _previous_crowd(crowd)
     module = _kernel(vb, skin, max_influences=k)
