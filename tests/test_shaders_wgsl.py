@@ -247,3 +247,18 @@ def test_shader_command_writes_wgsl(device, capfd, tmp_path):
     bad = run_cli(capfd, "shader", "--lang", "wgls")
     assert bad.returncode == 2 and bad.stdout == "" and len(bad.stderr.strip().splitlines()) == 1
     assert "--lang must be one of glsl, hlsl, wgsl" in bad.stderr
+
+
+@pytest.mark.gl
+def test_engine_notes_wgsl_compiles(device):
+    """docs/engines.md's WGSL vertex function, after the module its text names, validates."""
+    import re
+
+    from tests.helpers.capabilities import REPO
+
+    page = (REPO / "docs" / "engines.md").read_text(encoding="utf-8")
+    section = page[page.index("## WGSL (Bevy, wgpu, raw WebGPU)"):]
+    blocks = re.findall(r"```wgsl\n(.*?)```", section[:section.index("\n## ", 10)], re.S)
+    assert len(blocks) == 1
+    module = generate(ShaderOptions("wgsl", skin="pulled", previous=True, main=False))
+    device.create_shader_module(code=module + "\n" + blocks[0])
