@@ -15,11 +15,7 @@ from __future__ import annotations
 
 from vbusd.format.layout import Encoding, TexelFormat
 
-__all__ = ["BINDINGS", "generate"]
-
-BINDINGS = {"texture": 0, "uniforms": 1, "skin": 2, "rig": 3}
-"""Bindings of bind group 0 (spec/shaders.md, WGSL): the texture, the uniform block, the pulled
-skin records and the rig texture of layers."""
+__all__ = ["generate"]
 
 _UNIFORMS = """\
 // Bind group 0 (spec/shaders.md, WGSL). The uniform block has the HLSL cbuffer's layout: vb_time at
@@ -703,7 +699,7 @@ fn main(input: VbVertexInput) -> VbVertexOutput {
 """
 
 _PREVIOUS_MAIN = """\
-    // Previous pose (spec/shaders.md, Previous pose): the same skinning at the previous frame's
+    // Previous pose (spec/shaders.md, WGSL): the same skinning at the previous frame's
     // clip-local time; the fade inputs of the previous frame come as vb_instancePreviousFade.
     let previousTau = input.vb_instanceTime.x + input.vb_instanceTime.y * vb_uniforms.vb_previousTime;
     output.vb_previousPosition = @CALL@.position;
@@ -756,21 +752,21 @@ def _main(options, method: str) -> str:
                       "        skin.boneWeight[i] = input.vb_boneWeights0[i];\n")
         fetch += "    }\n"
 
-    def call(tau: str, fade_offset: str, fade_weight: str) -> str:
+    def call(tau: str, time: str, fade_offset: str, fade_weight: str) -> str:
         rest = "input.vb_restPosition, input.vb_restNormal, skin.boneIndex, skin.boneWeight"
         if options.crossfade:
             return (f"vbSkinCrossfade(input.vb_instanceClip, {tau}, input.vb_instanceFadeClip,\n"
-                    f"        {fade_offset} + input.vb_instanceFade.y * vb_uniforms.{'vb_previousTime' if tau != 'tau' else 'vb_time'}, "
-                    f"{fade_weight},\n        {rest})")
+                    f"        {fade_offset} + input.vb_instanceFade.y * vb_uniforms.{time}, {fade_weight},\n"
+                    f"        {rest})")
         return f"vbSkin(input.vb_instanceClip, {tau}, {rest})"
 
     previous = ""
     if options.previous:
-        previous = _fill(_PREVIOUS_MAIN, CALL=call("previousTau", "input.vb_instancePreviousFade.x",
+        previous = _fill(_PREVIOUS_MAIN, CALL=call("previousTau", "vb_previousTime", "input.vb_instancePreviousFade.x",
                                                    "input.vb_instancePreviousFade.y"))
     outputs = "    @location(2) vb_previousPosition: vec3<f32>,\n" if options.previous else ""
     return _fill(_MAIN, INPUTS="\n".join(inputs) + "\n", OUTPUTS=outputs, SKIN_FETCH=fetch,
-                 CALL=call("tau", "input.vb_instanceFade.x", "input.vb_instanceFade.z"), PREVIOUS=previous)
+                 CALL=call("tau", "vb_time", "input.vb_instanceFade.x", "input.vb_instanceFade.z"), PREVIOUS=previous)
 
 
 def generate(options) -> str:
@@ -815,7 +811,7 @@ def generate(options) -> str:
     parts.append(_fill(_SKIN_POSE[method], DOC=pose_doc, NAME="vbSkinPose", PARAMS="clip: i32, tau: f32, ",
                        ROWS="    let rows = vbRows(clip, tau);\n", BONE="vbBone(index[i], rows)"))
     parts.append(_fill(_CROSSFADE, DOC=_ENTRY_DOCS["vbSkin"], NAME="vbSkin", FADE_PARAMS="", LAYER_PARAMS="",
-                       POSE="vbSkinPose", LAYER_ARGS="", FADE="").replace("var pose", "var pose", 1))
+                       POSE="vbSkinPose", LAYER_ARGS="", FADE=""))
     parts.append(_fill(_CROSSFADE, DOC=_ENTRY_DOCS["vbSkinCrossfade"], NAME="vbSkinCrossfade",
                        FADE_PARAMS=_FADE_PARAMS, LAYER_PARAMS="", POSE="vbSkinPose", LAYER_ARGS="",
                        FADE=_fill(_FADE_BODY, POSE="vbSkinPose", LAYER_ARGS="")))
