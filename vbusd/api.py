@@ -417,11 +417,11 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
            max_clips: int = 16, main: bool = True, skin: str = "attributes", layers: bool = False,
-           previous: bool = False) -> str:
+           crossfade: bool = False, previous: bool = False) -> str:
     """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
 
     Args:
-        lang: ``glsl`` or ``hlsl``.
+        lang: ``glsl``, ``hlsl`` or ``wgsl``.
         encoding: Bone encoding token (``crossMatrix``, ``affineMatrix``, ``quatTranslation``, ``dualQuat``).
         texel_format: ``float16``, ``float32`` or ``unorm16``.
         max_influences: Influences per vertex, 1..8.
@@ -430,8 +430,9 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
             vertex index from skin records, ``vbusd.decoders.shaders.pack_skin``; spec/shaders.md).
         layers: Also emit the format 1.2 layer functions (``vbSkinLayered``; spec/shaders.md, Layers).
-        previous: Also declare ``vb_previousTime`` and write the previous frame's skinned position
-            ``vb_previousPosition`` from the example entry point (spec/shaders.md, Previous pose).
+        crossfade: The example entry point reads the crossfade inputs and calls ``vbSkinCrossfade``.
+        previous: The previous-frame pose: ``vb_previousTime`` and the entry point's
+            ``vb_previousPosition`` (spec/shaders.md, Previous pose).
 
     Returns:
         The shader source text.
@@ -442,4 +443,4 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                   max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,
-                                  layers=layers, previous=previous))
+                                  layers=layers, crossfade=crossfade, previous=previous))

@@ -18,13 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vbusd.decoders import shaders_wgsl
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat, pairing_error
 
 __all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "DEFAULT_MAX_BONES", "SKIN_TEXTURE_WIDTH", "ShaderOptions",
            "generate", "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
 
-LANGUAGES = ("glsl", "hlsl")
+LANGUAGES = ("glsl", "hlsl", "wgsl")
 SKINS = ("attributes", "pulled")  # spec/shaders.md, Skin bindings; attributes is the default
 SKIN_TEXTURE_WIDTH = 4096  # the widest skin texture vbusd lays out (spec: W = min(texels, 4096))
 DEFAULT_MAX_CLIPS = 16
@@ -51,6 +52,9 @@ class ShaderOptions:
             attributes) or ``pulled`` (skin records read by vertex index, ``vbSkinInfluences``).
         layers: Also emit the layer functions of format 1.2 (``vbSkinLayered``, the rig texture
             ``vb_rig``; spec/virtual-bones.md 8.6, spec/shaders.md "Layers").
+        crossfade: The example entry point reads the crossfade inputs and calls ``vbSkinCrossfade``
+            (GLSL/HLSL: the default of ``VB_CROSSFADE`` becomes 1; WGSL, which has no preprocessor,
+            chooses the entry point's inputs here).
         previous: Also declare the uniform ``vb_previousTime`` and let the example entry point
             write ``vb_previousPosition``, the previous frame's skinned position (spec/virtual-bones.md
             21, spec/shaders.md "Previous pose"). False leaves the module byte-identical.
@@ -65,6 +69,7 @@ class ShaderOptions:
     skin: str = "attributes"
     layers: bool = False
     max_bones: int = DEFAULT_MAX_BONES
+    crossfade: bool = False
     previous: bool = False
 
     def __post_init__(self) -> None:
@@ -1158,8 +1163,10 @@ def generate(options: ShaderOptions) -> str:
 
     Returns:
         GLSL (without a ``#version`` line, so it can be pasted into an engine's shader; add
-        ``#version 330 core`` or later to compile it alone) or HLSL source text.
+        ``#version 330 core`` or later to compile it alone), HLSL or WGSL source text.
     """
+    if options.lang == "wgsl":  # no preprocessor: the variant is chosen in Python (shaders_wgsl)
+        return shaders_wgsl.generate(options)
     header = [
         f"// vbusd Virtual Bones vertex module ({options.lang}): encoding {options.encoding.value}, "
         f"texel format {options.texel_format.value}, up to {options.max_influences} influences.",
@@ -1183,7 +1190,7 @@ def generate(options: ShaderOptions) -> str:
         "#endif",
         "// VB_CROSSFADE 1: the example main reads the per-instance fade clip, time and weight (format 1.1).",
         "#ifndef VB_CROSSFADE",
-        "#define VB_CROSSFADE 0",
+        f"#define VB_CROSSFADE {1 if options.crossfade else 0}",
         "#endif",
         "// Engine hooks (spec/shaders.md, section Engine hooks): define any of these before the module.",
         "#ifndef VB_DECLARE_RESOURCES",
