@@ -204,3 +204,38 @@ def test_writer_refuses_a_part_the_prototype_lacks(folder, tmp_path):
     with pytest.raises(OptionsError) as error:
         vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,)), tmp_path / "out.usda")
     assert error.value.code == "variety.parts"
+
+
+def test_usdskel_fallback_keeps_tints_variants_and_parts(folder, capfd):
+    """The fallback (one prim per instance) shows the same variety to any USD viewer, read with pxr alone:
+    the Hat of an instance is visible exactly when its mask's bit 0 is set, the meshes inherit a
+    displayColor of the variant's UsdPreviewSurface colour times the tint, and resolve (UsdShade's own
+    binding resolution) to the variant's material."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    crowd = varied_crowd(folder, name="fallback_src.usda", count=40)
+    stage, prim = _instancer(crowd)
+    primvars = UsdGeom.PrimvarsAPI(prim)
+    tints = np.asarray(primvars.GetPrimvar("vb:tint").Get(), dtype=np.float64)
+    variant = np.asarray(primvars.GetPrimvar("vb:variant").Get())
+    parts = np.asarray(primvars.GetPrimvar("vb:parts").Get())
+    names = list(prim.GetAttribute("vb:variantNames").Get())
+    colours = [UsdShade.Material(stage.GetPrimAtPath(t)).ComputeSurfaceSource()[0].GetInput("diffuseColor").Get()
+               for t in prim.GetRelationship("vb:variantMaterials").GetTargets()]
+    output = folder / "fallback.usda"
+    result = cli.run(capfd, "export", str(crowd), "-o", str(output), "--as", "usdskel", "--force")
+    assert result.returncode == 0, result.stderr
+    fallback = Usd.Stage.Open(str(output))
+    instances = sorted((p for p in fallback.Traverse() if p.GetName().startswith("i") and p.GetChild("Body")),
+                       key=lambda p: p.GetName())
+    assert len(instances) == len(tints)
+    for i, instance in enumerate(instances):
+        body, hat = instance.GetChild("Body"), instance.GetChild("Hat")
+        visible = UsdGeom.Imageable(hat).ComputeVisibility() != UsdGeom.Tokens.invisible
+        assert visible == bool(parts[i] & 1), i
+        assert UsdGeom.Imageable(body).ComputeVisibility() != UsdGeom.Tokens.invisible
+        display = UsdGeom.PrimvarsAPI(body).FindPrimvarWithInheritance("displayColor").Get()
+        np.testing.assert_allclose(display[0], np.asarray(colours[variant[i]]) * tints[i], rtol=1e-6, atol=1e-7)
+        material = UsdShade.MaterialBindingAPI(body).ComputeBoundMaterial()[0]
+        assert material.GetPrim().GetName() == names[variant[i]], i
+        assert UsdShade.MaterialBindingAPI(hat).ComputeBoundMaterial()[0].GetPath() == material.GetPath()
