@@ -239,3 +239,91 @@ def test_usdskel_fallback_keeps_tints_variants_and_parts(folder, capfd):
         material = UsdShade.MaterialBindingAPI(body).ComputeBoundMaterial()[0]
         assert material.GetPrim().GetName() == names[variant[i]], i
         assert UsdShade.MaterialBindingAPI(hat).ComputeBoundMaterial()[0].GetPath() == material.GetPath()
+
+
+def _glb(path):
+    """The JSON and BIN chunks of a .glb, read here with struct (not vbusd's reader)."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    (json_length,) = struct.unpack_from("<I", data, 12)
+    gltf = json.loads(data[20:20 + json_length])
+    bin_at = 20 + json_length
+    (bin_length,) = struct.unpack_from("<I", data, bin_at)
+    return gltf, data, bin_at + 8
+
+
+def _accessor(gltf, data, bin_start, index):
+    accessor = gltf["accessors"][index]
+    view = gltf["bufferViews"][accessor["bufferView"]]
+    width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[accessor["type"]]
+    assert accessor["componentType"] == 5126 and "byteStride" not in view
+    start = bin_start + view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    return np.frombuffer(data, dtype="<f4", count=accessor["count"] * width, offset=start).reshape(-1, width), start
+
+
+def test_gltf_package_carries_the_variety(folder, capfd):
+    """Instance attributes _VB_TINT / _VB_VARIANT / _VB_PARTS, KHR_materials_variants and the primitives'
+    part bits, read from the GLB bytes, equal what pxr reads from the USD crowd; glTF-Validator reports no
+    error or warning (where Node is installed); a variant out of range is refused by vbusd validate."""
+    from pxr import UsdGeom, UsdShade
+
+    crowd = varied_crowd(folder, name="pkg_src.usda", count=50)
+    stage, prim = _instancer(crowd)
+    primvars = UsdGeom.PrimvarsAPI(prim)
+    tints = np.asarray(primvars.GetPrimvar("vb:tint").Get(), dtype=np.float32)
+    variant = np.asarray(primvars.GetPrimvar("vb:variant").Get())
+    parts = np.asarray(primvars.GetPrimvar("vb:parts").Get())
+    names = list(prim.GetAttribute("vb:variantNames").Get())
+    colours = [UsdShade.Material(stage.GetPrimAtPath(t)).ComputeSurfaceSource()[0].GetInput("diffuseColor").Get()
+               for t in prim.GetRelationship("vb:variantMaterials").GetTargets()]
+    package = folder / "crowd.glb"
+    result = cli.run(capfd, "export", str(crowd), "-o", str(package), "--force")
+    assert result.returncode == 0, result.stderr
+    gltf, data, bin_start = _glb(package)
+    assert "KHR_materials_variants" in gltf["extensionsUsed"]
+    variants = [v["name"] for v in gltf["extensions"]["KHR_materials_variants"]["variants"]]
+    assert variants == names
+    (node,) = [n for n in gltf["nodes"] if "EXT_mesh_gpu_instancing" in n.get("extensions", {})]
+    attributes = node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
+    got_tint, _ = _accessor(gltf, data, bin_start, attributes["_VB_TINT"])
+    np.testing.assert_array_equal(got_tint, tints)
+    got_variant, _ = _accessor(gltf, data, bin_start, attributes["_VB_VARIANT"])
+    assert [variants[int(v)] for v in got_variant[:, 0]] == [names[v] for v in variant]
+    got_parts, _ = _accessor(gltf, data, bin_start, attributes["_VB_PARTS"])
+    primitives = gltf["meshes"][node["mesh"]]["primitives"]
+    hat = [p for p in primitives if p["extensions"]["VBUSD_virtual_bones"]["path"].endswith("/Hat")]
+    body = [p for p in primitives if p["extensions"]["VBUSD_virtual_bones"]["path"].endswith("/Body")]
+    assert len(hat) == 1 and "part" not in body[0]["extensions"]["VBUSD_virtual_bones"]
+    bit = hat[0]["extensions"]["VBUSD_virtual_bones"]["part"]
+    np.testing.assert_array_equal((got_parts[:, 0].astype(np.int64) >> bit) & 1, parts & 1)
+    for primitive in primitives:
+        mappings = primitive["extensions"]["KHR_materials_variants"]["mappings"]
+        for mapping in mappings:
+            (k,) = mapping["variants"]
+            factor = gltf["materials"][mapping["material"]]["pbrMetallicRoughness"]["baseColorFactor"]
+            np.testing.assert_allclose(factor, [*colours[k], 1.0], rtol=1e-6)
+    assert cli.run(capfd, "validate", str(package)).returncode == 0
+
+    bad = folder / "bad_pkg.glb"
+    _, start = _accessor(gltf, data, bin_start, attributes["_VB_VARIANT"])
+    changed = bytearray(data)
+    changed[start:start + 4] = np.float32(5).tobytes()
+    bad.write_bytes(bytes(changed))
+    result = cli.run(capfd, "validate", str(bad))
+    assert result.returncode == 1 and "package.instances" in result.stdout and "_VB_VARIANT" in result.stdout
+
+
+def test_gltf_validator_accepts_the_varied_package(folder, capfd):
+    """The Khronos glTF-Validator: no error and no warning (only the infos every vbusd package has), and
+    three.js's GLTFLoader loads the variety attributes as instanced attributes."""
+    from tests.helpers import node as node_tools
+
+    package = folder / "validator.glb"
+    assert cli.run(capfd, "export", str(varied_crowd(folder, name="val_src.usda", count=20)), "-o", str(package),
+                   "--force").returncode == 0
+    result = node_tools.gltf_check(package)
+    for mesh in result["three"]["meshes"]:
+        for key in ("_VB_TINT", "_VB_VARIANT", "_VB_PARTS"):
+            assert mesh["attributes"][key]["instanced"] and mesh["attributes"][key]["count"] == 20
