@@ -176,12 +176,14 @@ async function main() {
         triangles: crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0),
       };
     },
-    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU. */
+    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU, and
+     * what it shows (format 1.3 crowd variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
       const result = probeBabylonCrowd(engine, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod,
+        ...target[0].varietyOf(target[1]) };
     },
     /** Mean milliseconds per frame over `frames` frames, each rendered and finished (a pixel read). */
     measureFrames(frames = 60) {

@@ -240,13 +240,15 @@ async function main() {
     get instanceCount() { return probeTargets.length; },
     /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU,
      * and `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without
-     * levels); the vertices are that level's (LOD 0's when culled). */
+     * levels); the vertices are that level's (LOD 0's when culled); and what it shows (format 1.3
+     * crowd variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
     async probe(instance, t) {
       const target = probeTargets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
       const result = webgpu ? await webgpu.probeNodeCrowd(renderer, target[0], target[1], t)
         : probeCrowd(renderer, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod,
+        ...target[0].varietyOf(target[1]) };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
     levels() {

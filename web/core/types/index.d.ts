@@ -67,3 +67,19 @@ export function probeOutputs(world: string): string;
 export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, vertexCount: number, setup: (input: FeedbackInput) => void): [Float32Array, Float32Array];
 export function assetOrder(results: [Float32Array, Float32Array], info: { pointIndex?: ArrayLike<number> | null; hasNormals?: boolean; pointCount?: number }): [Float32Array, Float32Array];
 export function concatenate(arrays: ArrayLike<number>[]): Float32Array;
+
+/** Crowd variety (format 1.3): per-instance tint, material variant and parts mask. */
+export interface VarietyInstances {
+  count: number;
+  tint?: Float32Array | null;
+  variant?: Int32Array | null;
+  parts?: Int32Array | null;
+  variantNames?: string[];
+  variantColors?: number[][];
+  partNames?: string[];
+}
+export function isVaried(instances: VarietyInstances): boolean;
+export function instanceColors(instances: VarietyInstances): Float32Array | null;
+export function partBit(meshName: string, partNames?: string[]): number;
+export function partMatrices(matrices: Float32Array, parts: Int32Array | null, bit: number): Float32Array;
+export function varietyOf(instances: VarietyInstances, i: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
