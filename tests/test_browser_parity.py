@@ -431,14 +431,26 @@ def _pixel_at(image, xy) -> np.ndarray:
 
 @pytest.mark.parity("crowd variety")
 @pytest.mark.parametrize("engine", ENGINES)
-def test_crowd_variety(browser, variety_row, engine):
-    tints, variants, parts, variant_names, part_names = _variety_primvars(variety_row)
-    assert len({tuple(t) for t in tints}) >= 2 and set(parts) == {0, 1} and set(variants) == {0, 1}
+def test_crowd_variety(browser, variety_row, engine, tmp_path):
+    """The USD crowd (``vbusd view`` of the .usda: the plain files) and its ``vbusd export`` package
+    (through each engine's glTF loader) show the same variety."""
+    from vbusd.io.gltf_package import export_gltf
+
     asset = vbusd.read_asset(variety_row)
-    query = (f"?time={VARIETY_TIME}&paused=1&ui=0&antialias=0&pixelRatio=1&width={VARIETY_SIZE[0]}&height={VARIETY_SIZE[1]}"
+    package = tmp_path / "variety.glb"
+    export_gltf(asset, package)
+    for source in (variety_row, package):
+        _check_variety_page(browser, engine, source, variety_row, asset)
+
+
+def _check_variety_page(browser, engine, source, usd_crowd, asset):
+    tints, variants, parts, variant_names, part_names = _variety_primvars(usd_crowd)
+    assert len({tuple(t) for t in tints}) >= 2 and set(parts) == {0, 1} and set(variants) == {0, 1}
+    width, height = VARIETY_SIZE
+    query = (f"?time={VARIETY_TIME}&paused=1&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
              f"&camera={VARIETY_CAMERA}&fov=40")
-    with ViewerServer(variety_row, engine=engine) as server:
-        page = ViewerPage(browser, server.url + query, width=VARIETY_SIZE[0], height=VARIETY_SIZE[1])
+    with ViewerServer(source, engine=engine) as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
         try:
             if "WebGPU is not available" in " ".join(page.messages):
                 pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
@@ -452,7 +464,6 @@ def test_crowd_variety(browser, variety_row, engine):
                 assert result["variant"] == variants[i] and result["variantName"] == variant_names[variants[i]]
                 assert result["parts"] == parts[i] and result["partNames"] == part_names
                 results.append(np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3))
-            page.page.evaluate("window.vbusd.setTime && window.vbusd.setTime(%r)" % VARIETY_TIME)
             page.page.evaluate("window.vbusd.render()")
             image = _rgb_pixels(page.page.locator("#view").screenshot())
             camera = page.page.evaluate(
@@ -461,20 +472,16 @@ def test_crowd_variety(browser, variety_row, engine):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
-    assert image.shape == (VARIETY_SIZE[1], VARIETY_SIZE[0], 3)
+    assert image.shape == (height, width, 3)
     background = _pixel_at(image, (3, 3))
-    from pxr import Usd, UsdShade
-
-    stage = Usd.Stage.Open(str(variety_row))
-    variant_colours = [np.asarray(UsdShade.Material(stage.GetPrimAtPath(f"/Crowd/spectatorInstances/Variants/{name}"))
-                                  .ComputeSurfaceSource()[0].GetInput("diffuseColor").Get()) for name in variant_names]
+    variant_colours = [np.asarray(c) for c in asset.crowds[0].variant_colors]  # the materials' diffuseColor
     bodies = {}
     for i, positions in enumerate(results):
         body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:]
         channel = int(np.argmax(tints[i]))
         others = [c for c in range(3) if c != channel]
         colour = _pixel_at(image, _project_to_pixels(body.mean(axis=0, keepdims=True), camera)[0])
-        print(engine, i, "body", colour, "tint", tints[i], "variant", variants[i])
+        print(engine, source.suffix, i, "body", colour, "tint", tints[i], "variant", variants[i])
         assert colour[channel] > 10 and colour[channel] > 2 * colour[others].max(), (engine, i, colour, tints[i])
         bodies.setdefault(channel, []).append((variant_colours[variants[i]][channel], colour[channel]))
         # Inside the hat, above the head (the body's highest point under the hat; hands may be higher
@@ -486,7 +493,7 @@ def test_crowd_variety(browser, variety_row, engine):
         assert hat_top - head_top > 0.03, (head_top, hat_top)
         point = point + (0.5 * (head_top + hat_top) - point @ up) * up
         seen = _pixel_at(image, _project_to_pixels(point[None], camera)[0])
-        print(engine, i, "hat", bool(parts[i] & 1), seen, "background", background)
+        print(engine, source.suffix, i, "hat", bool(parts[i] & 1), seen, "background", background)
         if parts[i] & 1:
             assert seen[channel] > 2 * seen[others].max() and np.abs(seen - background).max() > 20, (engine, i, seen)
         else:

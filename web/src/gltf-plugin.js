@@ -13,6 +13,7 @@ import { BufferAttribute, BufferGeometry, IntType, Matrix4 } from 'three';
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { instancesFromPlacement, singleInstance } from './crowd.js';
 import { parseVirtualBonesKTX2 } from './ktx2.js';
+import { packageVariety } from '@vbusd/core';
 
 export const EXTENSION = 'VBUSD_virtual_bones';
 
@@ -161,6 +162,10 @@ export class VirtualBonesGLTFPlugin {
           playbackRate: await accessor('_VB_PLAYBACK_RATE'),
         }),
       });
+      // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
+      Object.assign(crowds[crowds.length - 1].instances, packageVariety(json, node.mesh, {
+        tint: await accessor('_VB_TINT', false), variant: await accessor('_VB_VARIANT', false),
+        parts: await accessor('_VB_PARTS', false) }, clips.length));
     }
     gltf.userData.virtualBones = {
       upAxis: 'Y',  // the package's root node converts the asset's axes to glTF's

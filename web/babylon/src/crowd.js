@@ -128,6 +128,7 @@ export class VirtualBonesCrowd {
       this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
         : meshes.map((entry) => this._mesh(entry, material));
     }
+    this.applyParts();
     this.updateSamples(animation.time ?? 0);
   }
 
@@ -205,11 +206,7 @@ export class VirtualBonesCrowd {
         if (mat.albedoColor) mat.albedoColor = new Color3(1, 1, 1);
       }
     }
-    const bit = partBit(entry.name ?? mesh.name, this.instances.partNames);
-    if (bit >= 0 && this.instances.parts && !buffers && this.matrices) {
-      // A part (spec 22.3): its own matrices, zero for the instances that do not show it.
-      mesh.thinInstanceSetBuffer('matrix', partMatrices(this.matrices, this.instances.parts, bit), 16, false);
-    }
+    const part = buffers ? -1 : partBit(entry.name ?? mesh.name, this.instances.partNames);  // applyParts() uses it
     if (this.layered) {
       mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
       mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
@@ -219,8 +216,31 @@ export class VirtualBonesCrowd {
     mesh.alwaysSelectAsActiveMesh = true;
     const hasNormals = mesh.isVerticesDataPresent('normal');
     mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals, pointCount: vertexCount,
-      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets } };
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part } };
     return mesh;
+  }
+
+  /**
+   * Parts (format 1.3, spec 22.3): each part's mesh gets its own thin-instance matrices, collapsed
+   * (linear part zero) for the instances whose mask hides it, from the crowd's matrices (an adopted
+   * glTF crowd: the thin-instance matrices of its first mesh of no part, as Babylon's
+   * EXT_mesh_gpu_instancing set them). The constructor calls it; the glTF extension calls it again
+   * before the first render, once Babylon's loader has set every thin-instance buffer.
+   */
+  applyParts() {
+    const parts = this.instances.parts;
+    if (!parts || this.levels) return;
+    let source = this.matrices;
+    if (!source) {
+      const base = this.meshes.find((mesh) => mesh.metadata.virtualBones.part < 0);
+      if (!base) return;
+      source = new Float32Array(16 * this.capacity);
+      base.thinInstanceGetWorldMatrices().forEach((m, i) => m.copyToArray(source, 16 * i));
+    }
+    for (const mesh of this.meshes) {
+      const bit = mesh.metadata.virtualBones.part;
+      if (bit >= 0) mesh.thinInstanceSetBuffer('matrix', partMatrices(source, parts, bit), 16, false);
+    }
   }
 
   /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */

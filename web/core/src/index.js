@@ -18,4 +18,4 @@ export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
-export { isVaried, instanceColors, partBit, partMatrices, varietyOf } from './variety.js';
+export { isVaried, instanceColors, partBit, partMatrices, varietyOf, packageVariety } from './variety.js';

@@ -68,3 +68,46 @@ export function varietyOf(instances, i) {
     partNames: [...partNames],
   };
 }
+
+/**
+ * The variety of a crowd node of a runtime package (spec/runtime-package.md 13) as instance fields:
+ * `tint`, `variant`, `parts` from its `_VB_TINT`, `_VB_VARIANT`, `_VB_PARTS` accessors (already read,
+ * or null), the variants' names from the root `KHR_materials_variants` and their base colours from
+ * the materials the mesh's first primitive maps them to (`baseColorFactor`, as stored: linear), and
+ * the part names from the primitives' `VBUSD_virtual_bones.part` bits (the mesh's prim name, the
+ * last element of `path`). `{}` for a node without variety.
+ */
+export function packageVariety(json, meshIndex, { tint = null, variant = null, parts = null } = {}, count = 0) {
+  if (!tint && !variant && !parts) return {};
+  const out = {};
+  const check = (array, width, name) => {
+    if (array && array.length !== width * count) throw new VirtualBonesError(`${name} has ${array.length / width} values for ${count} instances`);
+  };
+  check(tint, 3, '_VB_TINT');
+  check(variant, 1, '_VB_VARIANT');
+  check(parts, 1, '_VB_PARTS');
+  const primitives = json.meshes?.[meshIndex]?.primitives ?? [];
+  if (tint) out.tint = Float32Array.from(tint);
+  if (variant) {
+    const variants = json.extensions?.KHR_materials_variants?.variants ?? [];
+    out.variantNames = variants.map((v) => v.name);
+    const mappings = primitives[0]?.extensions?.KHR_materials_variants?.mappings ?? [];
+    out.variantColors = out.variantNames.map((_, k) => {
+      const mapping = mappings.find((m) => (m.variants ?? []).includes(k));
+      const factor = mapping ? json.materials?.[mapping.material]?.pbrMetallicRoughness?.baseColorFactor : null;
+      return factor ? factor.slice(0, 3) : [1, 1, 1];
+    });
+    out.variant = Int32Array.from(variant, (v) => Math.floor(v + 0.5));
+    for (const v of out.variant) if (!(v >= 0 && v < out.variantNames.length)) throw new VirtualBonesError(`_VB_VARIANT ${v} is not a variant of KHR_materials_variants (${out.variantNames.length})`);
+  }
+  if (parts) {
+    const names = [];
+    for (const primitive of primitives) {
+      const binding = primitive.extensions?.VBUSD_virtual_bones ?? {};
+      if (Number.isInteger(binding.part)) names[binding.part] = String(binding.path ?? `part${binding.part}`).split('/').pop();
+    }
+    out.partNames = Array.from(names, (name, j) => name ?? `part${j}`);
+    out.parts = Int32Array.from(parts, (m) => Math.floor(m + 0.5));
+  }
+  return out;
+}

@@ -83,3 +83,4 @@ export function instanceColors(instances: VarietyInstances): Float32Array | null
 export function partBit(meshName: string, partNames?: string[]): number;
 export function partMatrices(matrices: Float32Array, parts: Int32Array | null, bit: number): Float32Array;
 export function varietyOf(instances: VarietyInstances, i: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
+export function packageVariety(json: object, meshIndex: number, arrays?: { tint?: ArrayLike<number> | null; variant?: ArrayLike<number> | null; parts?: ArrayLike<number> | null }, count?: number): Partial<VarietyInstances>;
