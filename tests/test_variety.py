@@ -327,3 +327,22 @@ def test_gltf_validator_accepts_the_varied_package(folder, capfd):
     for mesh in result["three"]["meshes"]:
         for key in ("_VB_TINT", "_VB_VARIANT", "_VB_PARTS"):
             assert mesh["attributes"][key]["instanced"] and mesh["attributes"][key]["count"] == 20
+
+
+def test_report_counts_what_the_file_holds(folder):
+    """CrowdReport.variety counts the instances per colour, variant and part as the file holds them (pxr)."""
+    from pxr import UsdGeom
+
+    output = folder / "report.usda"
+    report = vbusd.build_crowd([modular_character(folder)], output, CrowdOptions(
+        count=80, tints=TINTS, variants=VARIANTS, parts=PARTS, seed=5, force=True))
+    (variety,) = report.variety
+    _, prim = _instancer(output)
+    primvars = UsdGeom.PrimvarsAPI(prim)
+    tints = np.asarray(primvars.GetPrimvar("vb:tint").Get(), dtype=np.float64)
+    variant = np.asarray(primvars.GetPrimvar("vb:variant").Get())
+    parts = np.asarray(primvars.GetPrimvar("vb:parts").Get())
+    assert variety["tints"] == [int(np.sum(np.abs(tints - np.asarray(c)).max(axis=1) < 1e-6)) for c in TINTS_LINEAR]
+    assert variety["variants"] == {"home": int(np.sum(variant == 0)), "away": int(np.sum(variant == 1))}
+    assert variety["parts"] == {"Hat": int(np.sum(parts & 1))}
+    assert sum(variety["tints"]) == 80

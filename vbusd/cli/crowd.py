@@ -168,4 +168,13 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
         click.echo(f"  {path}: {n} instances ({shown}){together}{fading}")
     if report.layers:
         click.echo(f"  {report.layers} layer(s) per instance: {', '.join(layer.mask for layer in options.layers)}")
+    for path, variety in zip(characters, report.variety):  # format 1.3 crowd variety
+        said = []
+        if variety["tints"]:
+            said.append("tints " + ", ".join(f"{colour} {k}" for colour, k in zip(tints.split(","), variety["tints"])))
+        if variety["variants"]:
+            said.append("variants " + ", ".join(f"{name} {k}" for name, k in variety["variants"].items()))
+        if variety["parts"]:
+            said.append("showing " + ", ".join(f"{name} {k}" for name, k in variety["parts"].items()))
+        click.echo(f"  {path}: {'; '.join(said)}")
     return 0

@@ -8,7 +8,9 @@ that animation's bound meshes. Per instance it chooses position, orientation (a 
 stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing") and, when asked,
 a crossfade (a fade clip with its own offset and rate, and a fade weight, constant or ramped over a
 window of stage time; spec "Crossfade", format 1.1) and layers (per layer a clip over a named bone
-mask, with its own offset, rate and weight; spec "Layers and bone masks", format 1.2). This module only
+mask, with its own offset, rate and weight; spec "Layers and bone masks", format 1.2) and crowd variety (a
+tint from a palette, a material variant and the optional parts shown; spec "Crowd variety", format 1.3,
+drawn after every other choice so that a crowd without it is unchanged). This module only
 places and chooses; the layer is authored and written by :func:`vbusd.io.usd.write_crowd_layer`,
 whose point instancers come from :func:`vbusd.io.usd.write_instancer`, the one author of a Virtual
 Bones point instancer (an asset's own crowds are written by it too).
@@ -308,6 +310,9 @@ class CrowdReport:
         spacing: The spacing used (scene units): the option's, or the one derived from the
             characters' size.
         fade_clips: Instances per fade clip name, per character (empty without a crossfade).
+        variety: Per character (format 1.3; empty without variety): instances per palette colour
+            (``tints``, in palette order), per variant name (``variants``) and showing each part
+            (``parts``).
         layers: Layers each instance plays.
     """
 
@@ -320,12 +325,14 @@ class CrowdReport:
     spacing: Optional[float] = None
     fade_clips: list = field(default_factory=list)
     layers: int = 0
+    variety: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON form (camelCase keys, as the spec's metadata)."""
         return {"output": self.output, "instances": self.instances, "clips": self.clips,
                 "animations": self.animations, "spacing": self.spacing, "fadeClips": self.fade_clips,
-                "layers": self.layers, "bytes": self.bytes, "seconds": round(self.seconds, 3)}
+                "layers": self.layers, "variety": self.variety, "bytes": self.bytes,
+                "seconds": round(self.seconds, 3)}
 
 
 def parse_weights(text: str, *, option: str = "--clips") -> dict:
@@ -744,7 +751,7 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     rate = rng.uniform(options.playback_rate[0], options.playback_rate[1], size=n)
     unit = rng.random(size=n)  # time offsets: per instance, scaled to its clip below
 
-    report_instances, report_clips, report_fades, instancers = [], [], [], []
+    report_instances, report_clips, report_fades, report_variety, instancers = [], [], [], [], []
     # One point instancer per (character, animation): a character's animations play together on the
     # same instances. A character of one animation keeps the name <character>Instances.
     instancer_names = iter(unique_names([
@@ -787,6 +794,13 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
             layer_weight = rng.uniform(layer.weight[0], layer.weight[1], size=m)
             layers.append((layer.mask, layer_clip, layer_offsets, layer_rate, layer_weight))
         tint, variant, shown = _variety(options, rng, m)
+        if options.tints or options.variants or options.parts:
+            palette = np.asarray(options.tints, dtype=np.float32).reshape(-1, 3)
+            report_variety.append({
+                "tints": [int(np.sum(np.all(tint == colour, axis=1))) for colour in palette] if tint is not None else [],
+                "variants": {name: int(np.sum(variant == k)) for k, name in enumerate(options.variants)}
+                if variant is not None else {},
+                "parts": {name: int(np.sum(values)) for name, values in shown.items()} if shown is not None else {}})
         if m == 0:
             continue
         quats = np.zeros((m, 4), dtype=np.float32)  # a yaw about the up axis, (x, y, z, w)
@@ -834,4 +848,4 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
                        seconds=time.perf_counter() - start, animations=[len(c.animations) for c in cast],
                        spacing=None if options.layout == "points" else float(spacing), fade_clips=report_fades,
-                       layers=len(options.layers))
+                       layers=len(options.layers), variety=report_variety)
