@@ -41,6 +41,7 @@ FEATURES = (
     "glTF package through the engine's loader, mesh without normals",
     "glTF package carrying layers and crossfades",
     "conformance vectors (spec/conformance/)",
+    "crowd variety",
 )
 
 # Cells probed by other modules (each against vbusd's decoder, within the same tolerances).

@@ -25,6 +25,12 @@ back-face culling, one Lambert light) by six methods:
    shader picks every instance's level (UsdLod's projectedSphere screen size, thresholds 0.01 and
    0.001, culled by the view), writes per-level instance lists and the instance counts of three
    indirect draws, which read their lists by ``gl_InstanceID`` (no draw call per instance);
+5c. ``vb_variety`` (issue 37, ``run --variety on|both``): ``vb`` with crowd variety (format 1.3): per
+   instance a tint (3 floats), a material variant (an int selecting one of 8 base colours, a uniform
+   array) and a parts mask (an int) in a 20-byte instance stream; the fragment colour is the
+   variant's colour times the tint; the spectator's hat part (samples/stadium_crowd.py ``hat_mesh``,
+   8 vertices, 12 triangles, on about half the instances) is a second instanced draw whose vertex
+   shader collapses the instances whose mask hides it (what the web runtimes do with zero matrices);
 5. ``warp``: vbusd's warp decoder (``vbusd.Decoder.skin_crowd``) writes world-space positions and
    normals into GL buffers (CUDA-GL interop when CUDA is there, else a copy through the host,
    reported as such), then a draw pulls them by ``gl_InstanceID`` and ``gl_VertexID``.
@@ -51,6 +57,8 @@ Usage::
 
     python benchmarks/draw_cost.py run --json OUT.json [--budget 420] [--sizes 1200,10000]
     python benchmarks/draw_cost.py run --plan issue25 --json OUT.json   # issue 25's set, one device call
+    python benchmarks/draw_cost.py run --plan issue37 --json OUT.json   # variety off vs on, 100,000 spectators
+    python benchmarks/draw_cost.py run --variety both --sizes 100000 --characters stadium --methods vb --json OUT.json
     python benchmarks/draw_cost.py factors --json OUT.json [--sizes 100000,10000]
     python benchmarks/draw_cost.py report --json benchmarks/results/draw_cost_h200.json \\
         --markdown --plot benchmarks/results/draw_cost_h200.png
@@ -621,6 +629,43 @@ def _with_previous(main: str) -> str:
 VB_MAIN_PREVIOUS = _with_previous(VB_MAIN)
 VB_MAIN_PULLED_PREVIOUS = _with_previous(VB_MAIN_PULLED)
 
+# Crowd variety (issue 37, format 1.3): the draw's main of ``vb`` plus a per-instance tint, variant and
+# parts mask; the colour (variant colour x tint) goes to the fragment shader. VB_PART_BIT >= 0 makes it
+# a part's draw: instances whose mask lacks the bit collapse to a point (no triangle is drawn).
+VB_MAIN_VARIETY = _PLACE + _MESH_INPUTS + """
+in int instance_clip;
+in vec2 instance_time;  // (timeOffset, playbackRate)
+in vec3 instance_tint;
+in int instance_variant;
+in int instance_parts;
+uniform vec3 variant_colors[8];
+uniform int part_bit;   // -1: the body, drawn on every instance
+out vec3 vb_color;
+void main()
+{
+    vb_color = variant_colors[instance_variant] * instance_tint;
+    if (part_bit >= 0 && ((instance_parts >> part_bit) & 1) == 0)
+    {
+        world_position = instance_position;
+        world_normal = vec3(0.0, 1.0, 0.0);
+        gl_Position = vec4(0.0, 0.0, 0.0, 1.0);  // every vertex at one point: degenerate triangles
+        return;
+    }
+    int boneIndex[VB_MAX_INFLUENCES];
+    float boneWeight[VB_MAX_INFLUENCES];
+    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
+    {
+        boneIndex[i] = bone_indices[i];
+        boneWeight[i] = bone_weights[i];
+    }
+    vec3 position;
+    vec3 normal;
+    vbSkin(VB_ARGS instance_clip, instance_time.x + instance_time.y * vb_time, rest_position, rest_normal,
+           boneIndex, boneWeight, position, normal);
+    emit(position, normal);
+}
+"""
+
 VAT_VS = GLSL_VERSION + _PLACE + """
 uniform highp sampler2D vat_positions;
 uniform highp sampler2D vat_normals;
@@ -699,6 +744,18 @@ void main()
 {
     float light = max(dot(normalize(world_normal), vec3(0.3, 0.8, 0.52)), 0.0);
     color = vec4(vec3(0.15 + 0.85 * light), 1.0);
+}
+"""
+
+FRAGMENT_VARIETY = GLSL_VERSION + """
+in vec3 world_position;
+in vec3 world_normal;
+in vec3 vb_color;
+out vec4 color;
+void main()
+{
+    float light = max(dot(normalize(world_normal), vec3(0.3, 0.8, 0.52)), 0.0);
+    color = vec4(vb_color * (0.15 + 0.85 * light), 1.0);
 }
 """
 
@@ -1025,6 +1082,104 @@ def setup_vb(scene: Scene, vb, encoding: str, texel_format: str, skin_buffers: b
         method.release += [method.framebuffer] + targets
     if pulled:
         method.skin_records = skin_records  # the storage buffer the module reads (tests look into it)
+    return method
+
+
+VARIETY_TINTS = ((1.0, 1.0, 1.0), (1.0, 0.2158605, 0.0), (0.0144438, 0.1169707, 1.0))
+"""The variety run's palette: #ffffff, #ff8000, #2060ff in linear RGB (vbusd crowd --tints)."""
+VARIETY_HAT_PROBABILITY = 0.5
+
+
+def variety_arrays(count: int, seed: int = 37) -> tuple:
+    """Per instance (tint (N, 3) float32, variant (N,) int32 of 2, parts mask (N,) int32 with the hat on
+    about half), seeded: what ``vbusd crowd --tints ... --variants home=1,away=1 --parts Hat=0.5`` authors."""
+    rng = np.random.default_rng(seed)
+    tint = np.asarray(VARIETY_TINTS, np.float32)[rng.integers(len(VARIETY_TINTS), size=count)]
+    variant = rng.integers(2, size=count).astype(np.int32)
+    parts = (rng.random(count) < VARIETY_HAT_PROBABILITY).astype(np.int32)
+    return tint, variant, parts
+
+
+def _variety_bytes(count: int) -> bytes:
+    tint, variant, parts = variety_arrays(count)
+    rec = np.rec.fromarrays([tint[:, 0], tint[:, 1], tint[:, 2], variant.astype("<i4"), parts.astype("<i4")],
+                            formats=["<f4", "<f4", "<f4", "<i4", "<i4"])
+    return rec.tobytes()
+
+
+def setup_vb_variety(scene: Scene, vb, encoding: str, texel_format: str, hat) -> Method:
+    """``vb`` with crowd variety (issue 37): the body's draw reads a 20-byte instance stream (tint,
+    variant, parts mask) and colours by variant colour x tint; the hat (``hat``: a SkinnedMesh bound to
+    the same bones) is a second instanced draw of the same shader with ``part_bit`` 0, whose vertex
+    shader collapses the instances that do not wear it. The read-back checks the body, whose positions
+    variety must not change."""
+    from vbusd.format.variety import VARIANT_COLORS
+
+    ctx, moderngl = scene.ctx, scene.moderngl
+    k = scene.character.mesh.bone_indices.shape[1]
+    vertex_shader = vb_vertex_shader(encoding, texel_format, k, VB_MAIN_VARIETY)
+    program = ctx.program(vertex_shader=vertex_shader, fragment_shader=FRAGMENT_VARIETY)
+    tf = ctx.program(vertex_shader=vertex_shader, varyings=VARYINGS)
+    texture = ctx.texture((vb.layout.width, vb.layout.height), 4, np.ascontiguousarray(vb.texels).tobytes(),
+                          dtype=_texture_dtype(texel_format))
+    texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    clips = [(float(c.first_row), float(c.row_count), float(c.rows_per_second), 1.0 if c.loop else 0.0)
+             for c in vb.clips]
+    clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
+    for p in (program, tf):
+        p["view_projection"].write(scene.view_projection.T.astype("f4").tobytes())
+        p["vb_texture"].value = 0
+        p["vb_clips"].value = clips
+        if "variant_colors" in p:
+            p["variant_colors"].value = [tuple(c) for c in VARIANT_COLORS]
+        if "part_bit" in p:
+            p["part_bit"].value = -1
+        if vb.unorm_ranges is not None:
+            p["vb_rangeMin"].value = [tuple(r) for r in vb.unorm_ranges[..., 0]]
+            p["vb_rangeMax"].value = [tuple(r) for r in vb.unorm_ranges[..., 1]]
+    variety = ctx.buffer(_variety_bytes(scene.count))
+    variety_format = (variety, "3f 1i 1i/i", "instance_tint", "instance_variant", "instance_parts")
+    instances = [(scene.placement, *PLACEMENT[1]), (scene.animation, *ANIMATION_CLIP_TIME[1]), variety_format]
+    draw = ctx.vertex_array(program, [(scene.vertices, *scene.mesh_format)] + instances,
+                            index_buffer=scene.indices, index_element_size=4, skip_errors=True)
+    _, check_vao = scene.vertex_arrays(program, tf, [PLACEMENT, ANIMATION_CLIP_TIME], True)
+    # The hat: its own vertex and index buffers, the same instance streams, part_bit 0 in its own program.
+    hat_program = ctx.program(vertex_shader=vertex_shader, fragment_shader=FRAGMENT_VARIETY)
+    hat_program["view_projection"].write(scene.view_projection.T.astype("f4").tobytes())
+    hat_program["vb_texture"].value = 0
+    hat_program["vb_clips"].value = clips
+    hat_program["variant_colors"].value = [tuple(c) for c in VARIANT_COLORS]
+    hat_program["part_bit"].value = 0
+    hk = np.asarray(hat.bone_indices).shape[1]
+    idx = np.zeros((len(hat.points), 4), np.int32)
+    w = np.zeros((len(hat.points), 4), np.float32)
+    idx[:, :hk], w[:, :hk] = hat.bone_indices, hat.bone_weights
+    hat_vertices = ctx.buffer(np.ascontiguousarray(np.concatenate(
+        [np.asarray(hat.points, np.float32), np.asarray(hat.normals, np.float32), idx.view(np.float32), w],
+        axis=1)).tobytes())
+    hat_indices = ctx.buffer(np.ascontiguousarray(hat.face_vertex_indices, dtype=np.uint32).tobytes())
+    hat_vao = ctx.vertex_array(hat_program, [(hat_vertices, *Scene.MESH_FORMAT)] + instances,
+                               index_buffer=hat_indices, index_element_size=4, skip_errors=True)
+
+    def set_time(p, t):
+        texture.use(location=0)
+        p["vb_time"].value = t
+        if p is program:
+            hat_program["vb_time"].value = t
+
+    texel_bytes = int(np.asarray(vb.texels).nbytes)
+    shown = int(variety_arrays(scene.count)[2].sum())
+    method = Method("vb_variety", f"{encoding} {texel_format}, variety (tint, 2 variants, hat on {shown})",
+                    draw, check_vao, program, tf, texel_bytes + 12 * scene.count + 20 * scene.count,
+                    set_time=set_time, release=[texture, variety, hat_vertices, hat_indices, hat_vao, hat_program],
+                    notes=f"texture {vb.layout.width}x{vb.layout.height} {texel_format}: {texel_bytes} bytes; variety "
+                          f"20 bytes an instance (tint, variant, parts mask); hat part ({len(hat.points)} vertices, "
+                          f"{len(hat.face_vertex_indices) // 3} triangles) a second instanced draw over every "
+                          f"instance, {shown} of {scene.count} shown")
+    method.part_vaos = [hat_vao]
+    method.variety_buffer, method.hat_vertices, method.vertex_shader = variety, hat_vertices, vertex_shader
+    method.hat_shown = shown
+    method.hat_triangles = len(hat.face_vertex_indices) // 3
     return method
 
 
@@ -1502,6 +1657,8 @@ def _draw(method: Method, scene: Scene) -> None:
         if hasattr(method, "bind"):  # warp: each draw reads its range of the decoded buffers
             method.bind(start, count)
         method.draw_vao.render(scene.moderngl.TRIANGLES, instances=count)
+        for vao in getattr(method, "part_vaos", ()):  # vb_variety: one instanced draw per part
+            vao.render(scene.moderngl.TRIANGLES, instances=count)
 
 
 def render_frame(method: Method, scene: Scene, t: float, query) -> Frame:
@@ -1570,7 +1727,7 @@ def expected(method: Method, scene: Scene, t: float, vb, vat, extra):
         s = crowd.instance_count
         return place(crowd, np.broadcast_to(np.asarray(mesh.points, np.float64), (s,) + mesh.points.shape),
                      np.broadcast_to(np.asarray(mesh.normals, np.float64), (s,) + mesh.normals.shape))
-    if method.name in ("vb", "vb_pulled", "vb_pulled_texture", "warp"):
+    if method.name in ("vb", "vb_pulled", "vb_pulled_texture", "vb_variety", "warp"):
         return reference.skin_crowd(vb, mesh, crowd, t)
     if method.name == "vat":
         return vat_pose(vat, crowd, scene.character.vertex_count, t)
@@ -1689,6 +1846,9 @@ PLANS["issue36"] = [(character, n, method) + (("crossMatrix", "float16") if meth
                     for character, n in (("stadium", 100_000), ("stadium", 1_000_000), ("stadium", 10_000),
                                          ("dense", 10_000))
                     for method in ("static", "vb", "vb_pulled_texture")]
+# issue37: crowd variety off (vb) against on (vb_variety) at 100,000 and 1,000,000 spectators (and 10,000).
+PLANS["issue37"] = [("stadium", n, method, "crossMatrix", "float16")
+                    for n in (100_000, 1_000_000, 10_000) for method in ("vb", "vb_variety")]
 PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
                              "factors": False},
                  "issue25-texture": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
@@ -1696,7 +1856,9 @@ PLAN_DEFAULTS = {"issue25": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 1
                  "issue29": {"budget": 400.0, "per_config_s": 5.0, "min_runs": 10, "warmup_s": 3.0,
                              "factors": False},
                  "issue36": {"budget": 400.0, "per_config_s": 3.0, "min_runs": 10, "warmup_s": 3.0,
-                             "factors": False, "previous": "both"}}
+                             "factors": False, "previous": "both"},
+                 "issue37": {"budget": 300.0, "per_config_s": 5.0, "min_runs": 10, "warmup_s": 3.0,
+                             "factors": False}}
 PLAN_VIEWS = {"issue29": "stand"}
 """The camera of a plan's scenes (default ``grid``)."""
 
@@ -1718,6 +1880,13 @@ def _plan(args) -> list:
                 plan.append(item)
 
     five = [("static",), ("vb",) + main_vb, ("vb_pulled",) + main_vb, ("vat",), ("palette",), ("warp",) + main_vb]
+    variety = getattr(args, "variety", "off")
+    if variety != "off":  # issue 37: each vb configuration with crowd variety (and without, for "both")
+        if "vb" in methods and "vb_variety" not in methods:
+            methods = methods + ["vb_variety"]
+        if variety == "on":
+            methods = [m for m in methods if m != "vb"]
+        five = [m for item in five for m in ([item, ("vb_variety",) + main_vb] if item[0] == "vb" else [item])]
     for n in sorted(sizes, key=lambda s: (s != 100_000, s)):
         for m in five:
             add("stadium", n, *m)
@@ -1763,7 +1932,7 @@ def run(args) -> int:
         device = None
     ctx, framebuffer = create_context()
     ctx.enable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
-    result = {"issue": {"issue25": 25, "issue29": 29, "issue36": 36}.get(args.plan, 18), "plan": args.plan,
+    result = {"issue": {"issue25": 25, "issue29": 29, "issue36": 36, "issue37": 37}.get(args.plan, 18), "plan": args.plan,
               "budget_s": args.budget, "previous": args.previous,
               "resolution": list(RESOLUTION), "warp_device": device, "facts": _gpu_facts(ctx),
               "command": command_line(), "runs": [], "skipped": [], "factors": []}
@@ -1834,6 +2003,9 @@ def run(args) -> int:
                                         "vb_pulled_texture": "pulled_texture"}[method_name], previous=previous)
             elif method_name == "vb_lod":
                 method = setup_vb_lod(scene, vb_for(encoding, texel_format), encoding, texel_format)
+            elif method_name == "vb_variety":
+                method = setup_vb_variety(scene, vb_for(encoding, texel_format), encoding, texel_format,
+                                          SAMPLE.hat_mesh())
             elif method_name == "vat":
                 if character_name not in vats:
                     vats[character_name] = bake_vat(character.mesh, base_vb.clips[0])
@@ -1865,6 +2037,9 @@ def run(args) -> int:
                 row["triangles_drawn"] = int(sum(int(c) * t for c, t in zip(drawn, method.level_triangles)))
             else:
                 row["triangles_drawn"] = int(n * len(character.triangles))
+            if method_name == "vb_variety":  # the hat's triangles on the instances that wear it
+                row["triangles_drawn"] += int(method.hat_shown * method.hat_triangles)
+                row["variety"] = True
             row["view"] = scene.view
             result["runs"].append(row)
             per_vertex_instance[(character_name, method_name, encoding, texel_format)] = \
@@ -2144,7 +2319,7 @@ def markdown(data: dict) -> str:
             "| runs | animation bytes on GPU | max error vs numpy (m) | vs exact (m) |",
             "|---|--:|---|---|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for r in sorted(data["runs"], key=lambda r: (r["character"] != "stadium", r["instances"],
-                                                 ["static", "vb", "vb_pulled", "vb_pulled_texture", "vb_lod", "vat", "palette", "warp"].index(
+                                                 ["static", "vb", "vb_variety", "vb_pulled", "vb_pulled_texture", "vb_lod", "vat", "palette", "warp"].index(
                                                      r["method"]),
                                                  r["config"])):
         c = r["correctness"]
@@ -2206,6 +2381,22 @@ def lod_markdown(data: dict) -> str:
     return "\n".join(lines)
 
 
+def variety_markdown(data: dict) -> str:
+    """Issue 37: per crowd size, vb without and with crowd variety (tint, variant, hat part), and the cost."""
+    lines = ["| instances | variety off: GPU draw ms | on: GPU draw ms | on / off | frame ms off / on "
+             "| triangles drawn on (hats) | max error vs numpy (m) on |", "|---:|---:|---:|---:|---|---:|---:|"]
+    for n in sorted({r["instances"] for r in data["runs"]}):
+        off = _find(data["runs"], "stadium", n, "vb", "crossMatrix", "float16")
+        on = _find(data["runs"], "stadium", n, "vb_variety", "crossMatrix", "float16")
+        if off is None or on is None:
+            continue
+        a, b = off["gpu_draw_ms"]["median"], on["gpu_draw_ms"]["median"]
+        lines.append(f"| {n:,} | {a:.3f} | {b:.3f} | {b / a:.2f}x | {off['frame_ms']['median']:.2f} / "
+                     f"{on['frame_ms']['median']:.2f} | {on.get('triangles_drawn', 0):,} "
+                     f"| {on['correctness']['position_error_m']:.1e} |")
+    return "\n".join(lines)
+
+
 def report(args) -> int:
     data = json.loads(Path(args.json).read_text())
     facts = data.get("facts", {})
@@ -2219,6 +2410,10 @@ def report(args) -> int:
     if any(r["method"] == "vb_pulled" for r in data["runs"]):
         print()
         print(bindings_markdown(data))
+        print()
+    if any(r["method"] == "vb_variety" for r in data["runs"]):
+        print()
+        print(variety_markdown(data))
         print()
     if any(r["method"] == "vb_lod" for r in data["runs"]):
         print()
@@ -2259,7 +2454,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "vb_pulled and vb_pulled_texture (the skin records in an RGBA32UI texture, as WebGL 2); "
                         "issue29: stadium 1,000,000 / 100,000 / 10,000 seen from the grid's edge, vb (one level) "
                         "and vb_lod (three); issue36: stadium 100,000 / 1,000,000 / 10,000 and dense 10,000, static, "
-                        "vb and vb_pulled_texture, previous pose off and on")
+                        "vb and vb_pulled_texture, previous pose off and on; issue37: stadium 100,000 / 1,000,000 / 10,000, vb and "
+                        "vb_variety")
     r.add_argument("--sizes", default=",".join(str(s) for s in SIZES))
     r.add_argument("--characters", default="stadium,dense")
     r.add_argument("--methods", default="static,vb,vb_pulled,vat,palette,warp")
@@ -2278,6 +2474,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "velocity into an RG16F target, previous positions checked against the reference), off, "
                         "or both (each configuration timed without, then with it; report adds the cost table) "
                         "(default off; issue36: both)")
+    r.add_argument("--variety", choices=("off", "on", "both"), default="off",
+                   help="issue 37: crowd variety (format 1.3) on the vb configurations: off (default), on (vb_variety "
+                        "instead of vb) or both (each vb configuration also with variety); --plan issue37 is both at "
+                        "100,000, 1,000,000 and 10,000 spectators")
     r.add_argument("--no-factors", dest="factors", action="store_false")
     r.add_argument("--factor-size", type=int, default=100_000, help="crowd size of the one-factor study")
     f = sub.add_parser("factors", help="one factor at a time around VB's vertex cost (stadium character)")

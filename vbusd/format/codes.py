@@ -234,6 +234,17 @@ _FINDINGS = (
          f"{_VB}#levels-of-detail", "usd"),
     Code("instancer.fadeWeight.range", W, "An instance's fade weight (primvars:vb:fadeWeight, format 1.1 "
          "crossfade) is outside [0, 1]; decoders clamp it.", f"{_VB}#instancing", "usd"),
+    # crowd variety (format 1.3)
+    Code("variety.tint", E, "An instance's tint (primvars:vb:tint, format 1.3) is not three finite numbers "
+         "0 or more, or the primvar does not hold one colour per instance.", f"{_VB}#variety-tint", "usd"),
+    Code("variety.variant", E, "An instance's material variant (primvars:vb:variant) is outside "
+         "vb:variantNames, the instancer has variants but no vb:variantNames, its names repeat, or "
+         "vb:variantMaterials does not target one Material prim per name.", f"{_VB}#variety-variant", "usd"),
+    Code("variety.parts", E, "An instance's parts mask (primvars:vb:parts) is negative or names no part (a bit at "
+         "or above the number of vb:partNames), or a part name repeats, names no child of the prototype or "
+         "the instancer names more than 31 parts.", f"{_VB}#variety-parts", "usd"),
+    Code("variety.version", E, "An instancer authors crowd variety (format 1.3) but neither its own "
+         "vb:formatMinorVersion nor its animation's is 3 or more.", f"{_VB}#variety-version", "usd"),
 )
 """Codes ``vbusd validate`` reports about an asset: each has a golden fixture in tests/fixtures/validate."""
 

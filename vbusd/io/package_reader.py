@@ -59,6 +59,8 @@ SUFFIXES = (".glb", ".gltf")
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
 INSTANCE_ATTRIBUTES = ("_VB_CLIP", "_VB_TIME_OFFSET", "_VB_PLAYBACK_RATE")
+VARIETY_ATTRIBUTES = ("_VB_TINT", "_VB_VARIANT", "_VB_PARTS")
+"""Format 1.3 crowd variety (spec/runtime-package.md 13): optional instance attributes."""
 _ROOT = f"/extensions/{EXTENSION}"
 
 
@@ -97,6 +99,9 @@ class PackageCrowd:
         playback: The ``_VB_`` instance attributes read (clip, times and rates; the crossfade's
             ``_VB_FADE_*`` and the layers' ``_VB_LAYER_*_j``, spec/runtime-package.md 5.1), by name.
         samples: Time samples of fade and layer attributes: ``{name: (times in seconds (S,), (S, N))}``.
+        tint: (N, 3) tints (format 1.3), or None.
+        variant: (N,) variant indices into the root ``KHR_materials_variants``, or None.
+        parts: (N,) parts masks, or None.
     """
 
     node: str
@@ -116,6 +121,9 @@ class PackageCrowd:
     def layers(self) -> int:
         """Layers per instance (``_VB_LAYER_WEIGHT_j`` for j below it)."""
         return sum(1 for name in self.playback if name.startswith("_VB_LAYER_WEIGHT_"))
+    tint: Optional[np.ndarray] = None
+    variant: Optional[np.ndarray] = None
+    parts: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -418,9 +426,9 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         clip_count = len(animation.layout.get("clips") or ()) if animation is not None else None
         masks = animation.layout.get("masks") if animation is not None else None
         mask_count = len(masks) if isinstance(masks, list) else 0
-        playback_names = [k for k in attributes if k.startswith("_VB_")]
+        playback_names = [k for k in attributes if k.startswith("_VB_") and k not in VARIETY_ATTRIBUTES]
         for key, accessor in attributes.items():  # TRANSLATION, ROTATION, SCALE: what a loader reads
-            if key not in playback_names:
+            if key not in playback_names + list(VARIETY_ATTRIBUTES):
                 _read(reader, accessor, f"{where}{json_pointer([key])}", file, diagnostics, failed)
         for problem in _playback_problems(playback_names):
             diagnostics.report("package.instances", problem, JsonPointer(file, where))
@@ -443,12 +451,14 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         samples = _check_samples(root, reader, node, n, attributes, instances, clip_count, mask_count, file,
                                  diagnostics, failed)
         clips = values.get("_VB_CLIP")
+        variety = _check_variety(root, reader, node, mesh, attributes, counts, instances, where, file, diagnostics,
+                                 failed)
         if n in levels:
             continue  # a level of another crowd node: the same instances, not another crowd
         package.crowds.append(PackageCrowd(node=name, mesh=mesh_name, animation=bound[mesh],
                                            instances=int(instances),
                                            clips=None if clips is None else np.round(clips).astype(np.int64),
-                                           playback=values, samples=samples))
+                                           playback=values, samples=samples, **variety))
 
 
 _FADE_NAMES = ("_VB_FADE_CLIP", "_VB_FADE_TIME_OFFSET", "_VB_FADE_PLAYBACK_RATE", "_VB_FADE_WEIGHT")
@@ -527,6 +537,44 @@ def _check_samples(root: dict, reader, node: dict, n: int, attributes: dict, ins
         _check_playback(name, values.reshape(-1), clip_count, mask_count, f"{where}/values", "sample value",
                         file, diagnostics)
         out[name] = (times, values)
+
+
+def _check_variety(root: dict, reader, node: dict, mesh: int, attributes: dict, counts: dict, instances: int,
+                   where: str, file: str, diagnostics: Diagnostics, failed: set) -> dict:
+    """The optional format 1.3 variety attributes of a crowd node (spec/runtime-package.md 13), checked:
+    finite, tints >= 0, variants integers in the root KHR_materials_variants, masks integers >= 0 naming
+    only parts the mesh's primitives have. Returns the PackageCrowd fields read."""
+    variants = ((root.get("extensions") or {}).get("KHR_materials_variants") or {}).get("variants")
+    variant_count = len(variants) if isinstance(variants, list) else 0
+    primitives = ((root.get("meshes") or [])[mesh] or {}).get("primitives") or []
+    part_bits = [((p.get("extensions") or {}).get(EXTENSION) or {}).get("part") for p in primitives
+                 if isinstance(p, dict)]
+    part_count = max([b + 1 for b in part_bits if isinstance(b, int) and not isinstance(b, bool)], default=0)
+    out = {}
+    for key, field_name, width in (("_VB_TINT", "tint", 3), ("_VB_VARIANT", "variant", 1), ("_VB_PARTS", "parts", 1)):
+        if key not in attributes or counts.get(key) != instances:
+            continue
+        array = _read(reader, attributes[key], f"{where}/{key}", file, diagnostics, failed)
+        if array is None:
+            continue
+        array = np.asarray(array, dtype=np.float64).reshape(instances, width)
+        bad = ~np.all(np.isfinite(array), axis=1)
+        if key == "_VB_TINT":
+            bad |= np.any(array < 0, axis=1)
+            why = "(tints are three finite numbers 0 or more)"
+        else:
+            flat = array[:, 0]
+            limit = variant_count if key == "_VB_VARIANT" else 1 << min(part_count, 31)
+            bad |= (flat != np.round(flat)) | (flat < 0) | (flat >= limit)
+            why = (f"(variants 0..{variant_count - 1} of KHR_materials_variants)" if key == "_VB_VARIANT"
+                   else f"(masks of the {part_count} part(s) of the mesh's primitives)")
+        if bad.any():
+            first = int(np.argmax(bad))
+            diagnostics.report("package.instances", f"instance {first} has {key} "
+                               f"{array[first].tolist() if width > 1 else float(array[first, 0])!r} {why}",
+                               JsonPointer(file, f"{where}/{key}"))
+            continue
+        out[field_name] = array.astype(np.float32) if width > 1 else np.round(array[:, 0]).astype(np.int64)
     return out
 
 

@@ -11,7 +11,7 @@
 
 import { BufferAttribute, BufferGeometry, IntType, Matrix4 } from 'three';
 
-import { packagePlayback } from '@vbusd/core';
+import { packagePlayback, packageVariety } from '@vbusd/core';
 
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { instancesFromPlacement, singleInstance } from './crowd.js';
@@ -165,6 +165,10 @@ export class VirtualBonesGLTFPlugin {
           ...blending,
         },
       });
+      // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
+      const optional = async (name) => (instancing.attributes[name] === undefined ? null : read(instancing.attributes[name]));
+      Object.assign(crowds[crowds.length - 1].instances, packageVariety(json, node.mesh, {
+        tint: await optional('_VB_TINT'), variant: await optional('_VB_VARIANT'), parts: await optional('_VB_PARTS') }, count));
     }
     gltf.userData.virtualBones = {
       upAxis: 'Y',  // the package's root node converts the asset's axes to glTF's

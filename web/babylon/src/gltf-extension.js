@@ -11,7 +11,7 @@
 //   const { crowds, animations } = scene.metadata.virtualBones;  // animations[a].time = t
 
 import { GLTFLoader } from '@babylonjs/loaders/glTF/2.0/index.js';  // a file: Node refuses directory imports
-import { packagePlayback, parseVirtualBonesKTX2 } from '@vbusd/core';
+import { packagePlayback, packageVariety, parseVirtualBonesKTX2 } from '@vbusd/core';
 
 import { VirtualBonesAnimation } from './animation.js';
 import { VirtualBonesCrowd } from './crowd.js';
@@ -84,7 +84,7 @@ export class VirtualBonesGLTFLoaderExtension {
         const babylonMesh = node._primitiveBabylonMeshes[p];
         // A primitive without NORMAL has no normals of its own, whatever Babylon computes to light it.
         babylonMesh.metadata = { ...(babylonMesh.metadata ?? {}), virtualBones: { hasNormals: primitive.attributes.NORMAL !== undefined } };
-        return { mesh: babylonMesh, maxInfluences: extension.influences,
+        return { mesh: babylonMesh, name: extension.path ?? babylonMesh.name, maxInfluences: extension.influences,
           boneIndices: interleave(boneIndices), boneWeights: interleave(boneWeights) };
       }));
       const instancing = node.extensions?.EXT_mesh_gpu_instancing?.attributes;
@@ -93,9 +93,16 @@ export class VirtualBonesGLTFLoaderExtension {
       const playback = await packagePlayback({ attributes: instancing ?? {}, samples: node.extensions?.[EXTENSION]?.samples,
         count, read: (index) => this._floats(context, index), what: context });
       const instances = { count, matrices: null, ...playback };
+      // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
+      const optional = async (name) => (instancing?.[name] !== undefined ? this._floats(context, instancing[name]) : null);
+      Object.assign(instances, packageVariety(this._loader.gltf, node.mesh, {
+        tint: await optional('_VB_TINT'), variant: await optional('_VB_VARIANT'), parts: await optional('_VB_PARTS') }, count));
       if (!instancing) for (const entry of adopt) entry.mesh.thinInstanceSetBuffer('matrix', new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]), 16, true);
       const crowd = new VirtualBonesCrowd(this._loader.babylonScene, { animation, instances, adopt, material: this._material,
         name: node.name ?? `node ${node.index}` });
+      // Parts (format 1.3): again before the first frame, over the thin-instance matrices Babylon's
+      // EXT_mesh_gpu_instancing sets once the load completes.
+      if (instances.parts) this._loader.babylonScene.onBeforeRenderObservable.addOnce(() => crowd.applyParts());
       // Crowds (instanced nodes) first, then single characters, as the plain files number them.
       crowd.instanced = Boolean(instancing);
       this._crowds.push(crowd);

@@ -20,3 +20,4 @@ export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { RUNTIME_LAYERS, packagePlayback } from './package.js';
 export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';
 export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
+export { isVaried, instanceColors, partBit, partMatrices, varietyOf, packageVariety } from './variety.js';

@@ -49,13 +49,15 @@ export function pageApi(crowds, probeOne, measure) {
   const targets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
   return {
     get instanceCount() { return targets.length; },
-    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU, and
-     * `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without levels). */
+    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU,
+     * `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without levels),
+     * and what it shows (format 1.3 crowd variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
     async probe(instance, t) {
       const target = targets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${targets.length})`);
       const result = await probeOne(target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod,
+        ...(target[0].varietyOf ? target[0].varietyOf(target[1]) : {}) };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
     levels() {

@@ -97,3 +97,19 @@ export function readKTX2Container(data: Uint8Array, name?: string): {
 /** A Virtual Bones KTX2 file's layout metadata and texels (Zstandard levels inflated with `inflate`, default zstddec). */
 export function parseVirtualBonesKTX2(bytes: Uint8Array | ArrayBuffer, name?: string,
   options?: { inflate?: (data: Uint8Array, size: number) => Promise<Uint8Array> }): Promise<{ layout: object; texels: Uint16Array | Float32Array | Uint32Array }>;
+/** Crowd variety (format 1.3): per-instance tint, material variant and parts mask. */
+export interface VarietyInstances {
+  count: number;
+  tint?: Float32Array | null;
+  variant?: Int32Array | null;
+  parts?: Int32Array | null;
+  variantNames?: string[];
+  variantColors?: number[][];
+  partNames?: string[];
+}
+export function isVaried(instances: VarietyInstances): boolean;
+export function instanceColors(instances: VarietyInstances): Float32Array | null;
+export function partBit(meshName: string, partNames?: string[]): number;
+export function partMatrices(matrices: Float32Array, parts: Int32Array | null, bit: number): Float32Array;
+export function varietyOf(instances: VarietyInstances, i: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
+export function packageVariety(json: object, meshIndex: number, arrays?: { tint?: ArrayLike<number> | null; variant?: ArrayLike<number> | null; parts?: ArrayLike<number> | null }, count?: number): Partial<VarietyInstances>;

@@ -99,7 +99,7 @@ export class VirtualBonesBinding extends ExtensionProperty {
   }
 
   getDefaults() {
-    return Object.assign(super.getDefaults(), { animation: null, influences: 4, path: null });
+    return Object.assign(super.getDefaults(), { animation: null, influences: 4, path: null, part: null });
   }
 
   getAnimation() { return this.getRef('animation'); }
@@ -109,6 +109,9 @@ export class VirtualBonesBinding extends ExtensionProperty {
   setInfluences(influences) { return this.set('influences', influences); }
   getPath() { return this.get('path'); }
   setPath(path) { return this.set('path', path); }
+  /** Crowd variety (vbusd format 1.3): the optional part this primitive is (bit j of _VB_PARTS), or null. */
+  getPart() { return this.get('part'); }
+  setPart(part) { return this.set('part', part); }
 }
 
 /** Accessor usage of the time samples' values (written like instance attributes, grouped by node). */
@@ -210,7 +213,8 @@ export class VBUSDVirtualBones extends Extension {
         if (!def) return;
         const animation = animations[def.animation];
         if (!animation) throw new VirtualBonesError(`meshes[${meshIndex}].primitives[${primIndex}]: animation ${JSON.stringify(def.animation)} is not in the root object`);
-        const binding = this.createBinding().setAnimation(animation).setInfluences(def.influences).setPath(def.path ?? null);
+        const binding = this.createBinding().setAnimation(animation).setInfluences(def.influences).setPath(def.path ?? null)
+          .setPart(Number.isInteger(def.part) ? def.part : null);
         if (def.extras !== undefined) binding.setExtras(def.extras);
         context.meshes[meshIndex].listPrimitives()[primIndex].setExtension(VBUSD_VIRTUAL_BONES, binding);
       });
@@ -290,6 +294,7 @@ export class VBUSDVirtualBones extends Extension {
         if (!binding) return;
         const def = { animation: indexOf.get(binding.getAnimation()), influences: binding.getInfluences() };
         if (binding.getPath() !== null) def.path = binding.getPath();
+        if (binding.getPart() !== null) def.part = binding.getPart();
         if (Object.keys(binding.getExtras()).length) def.extras = binding.getExtras();
         const primDef = meshDef.primitives[primIndex];
         primDef.extensions ??= {};

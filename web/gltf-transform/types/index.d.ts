@@ -49,6 +49,7 @@ interface IVirtualBonesBinding extends IProperty {
   animation: VirtualBonesAnimation;
   influences: number;
   path: string | null;
+  part: number | null;
 }
 
 /** The binding of one mesh primitive to an animation. */
@@ -63,6 +64,9 @@ export class VirtualBonesBinding extends ExtensionProperty<IVirtualBonesBinding>
   setInfluences(influences: number): this;
   getPath(): string | null;
   setPath(path: string | null): this;
+  /** Crowd variety (vbusd format 1.3): the optional part this primitive is (bit j of _VB_PARTS), or null. */
+  getPart(): number | null;
+  setPart(part: number | null): this;
 }
 
 interface IVirtualBonesSamples extends IProperty {
