@@ -22,7 +22,9 @@ __all__ = [
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
     "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS", "CLIP_ROOT_MOTION",
     "ROOT_MOTION_UP_AXIS", "unique_names", "BONE_PARENTS", "MASK_NAMES", "MASK_WEIGHTS", "LAYER_CLIP",
-    "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS"]
+    "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS", "TINT", "VARIANT",
+    "PARTS", "VARIETY_PRIMVARS", "VARIANT_NAMES", "VARIANT_MATERIALS", "PART_NAMES", "INSTANCER_MINOR_VERSION",
+    "VARIETY_PROPERTIES", "VARIANTS_SCOPE"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -153,6 +155,23 @@ LAYER_WEIGHT = Primvar("vb:layerWeight", "float[]")
 LAYER_MASK = Primvar("vb:layerMask", "int[]")
 LAYER_PRIMVARS = (LAYER_CLIP, LAYER_TIME_OFFSET, LAYER_PLAYBACK_RATE, LAYER_WEIGHT, LAYER_MASK)
 """Format 1.2: per-instance layer primvars of VirtualBonesInstancingAPI (elementSize L, spec "Layers")."""
+TINT = Primvar("vb:tint", "color3f[]")
+VARIANT = Primvar("vb:variant", "int[]")
+PARTS = Primvar("vb:parts", "int[]")
+VARIETY_PRIMVARS = (TINT, VARIANT, PARTS)
+"""Format 1.3: per-instance variety primvars of VirtualBonesInstancingAPI (spec 22); defaults (1, 1, 1),
+no variant, every part."""
+VARIANT_NAMES = "vb:variantNames"
+VARIANT_MATERIALS = "vb:variantMaterials"
+PART_NAMES = "vb:partNames"
+"""Format 1.3: the instancer's material variants (names, and a relationship to their Material prims in
+that order) and the names of its prototype's optional parts (spec 22.2, 22.3)."""
+INSTANCER_MINOR_VERSION = "vb:formatMinorVersion"
+"""Format 1.3: the minor version an instancer states for its own properties (spec 22.4)."""
+VARIETY_PROPERTIES = tuple(p.attribute for p in VARIETY_PRIMVARS) + (VARIANT_NAMES, VARIANT_MATERIALS, PART_NAMES)
+"""Every property of spec 22 on an instancer, in the order messages name them."""
+VARIANTS_SCOPE = "Variants"
+"""The scope under an instancer where ``vbusd crowd`` authors its variant materials."""
 
 
 def attribute_of(key) -> Optional[str]:

@@ -101,6 +101,8 @@ export class VirtualBonesCrowd extends Group {
   /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
   resetPrevious(index: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
+  /** What instance `index` shows (format 1.3 crowd variety). */
+  varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   updateLevels(camera: object): void;
   boundsOfInstances(): Box3;
   updateBounds(): void;

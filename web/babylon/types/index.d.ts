@@ -75,6 +75,8 @@ export class VirtualBonesCrowd {
   updatePrevious(time?: number, dt?: number): void;
   /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
   resetPrevious(index: number): void;
+  /** What instance `index` shows (format 1.3 crowd variety). */
+  varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
   socketMatrix(index: number, bone: number, time: number): Matrix;
   instanceMatrix(index: number): Matrix;
