@@ -10,7 +10,7 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, instanceColors, partBit, partMatrices, varietyOf,
+  checkScreenSizes, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL, PreviousFrame,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -150,6 +150,11 @@ export class VirtualBonesCrowd extends Group {
       this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
       this.updateSamples(0);
     }
+    // The previous frame (spec 21): vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) per
+    // instance from @vbusd/core's PreviousFrame, read only by the velocity materials and the probe.
+    this.previous = new PreviousFrame(instances.count);
+    this.previousFadeAttribute = new InstancedBufferAttribute(this.previous.values, 4).setUsage(DynamicDrawUsage);
+    this.updatePrevious(0);
     // Layers (format 1.2): bound only for a crowd that plays them (its materials run vbSkinLayered).
     this.layered = Boolean(instances.layerWeight);  // not `layers`: Object3D.layers is three's render layers
     if (this.layered) {
@@ -170,7 +175,7 @@ export class VirtualBonesCrowd extends Group {
     }
     const shared = {
       clip: this.clipAttribute, time: this.timeAttribute, fadeClip: this.fadeClipAttribute, fade: this.fadeAttribute,
-      matrix: this.instanceMatrix,
+      matrix: this.instanceMatrix, previousFade: this.previousFadeAttribute,
     };
     // Crowd variety (format 1.3): one colour per instance, shared by every mesh; parts below.
     const colors = instanceColors(instances);
@@ -187,6 +192,7 @@ export class VirtualBonesCrowd extends Group {
       geometry.setAttribute('vb_instanceTime', attributes.time);
       geometry.setAttribute('vb_instanceFadeClip', attributes.fadeClip);
       geometry.setAttribute('vb_instanceFade', attributes.fade);
+      geometry.setAttribute('vb_instancePreviousFade', attributes.previousFade);
       if (this.layered) {
         geometry.setAttribute('vb_instanceLayerClipMask', this.layerClipMaskAttribute);
         geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
@@ -237,7 +243,8 @@ export class VirtualBonesCrowd extends Group {
         clip.gpuType = IntType;
         const fadeClip = dynamic(new Int32Array(n), 1);
         fadeClip.gpuType = IntType;
-        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3) };
+        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3),
+          previousFade: dynamic(new Float32Array(4 * n), 4) };
       });
       this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry, index) => {
         const mesh = makeMesh(entry, index, this.levelAttributes[level]);
@@ -290,6 +297,26 @@ export class VirtualBonesCrowd extends Group {
     this.fadeClipAttribute.needsUpdate = true;
     this.fadeAttribute.needsUpdate = true;
   }
+
+  /**
+   * The previous frame (spec virtual-bones.md 21) for the frame at scene time `time` drawn `dt`
+   * seconds after the last one (default 1/60): each instance's previous fade time and weight (a
+   * time-sampled fade at time - dt) and the animation's previousTime (time - dt), which the
+   * velocity materials (velocity.js) and the probe read. Call each frame after setting the
+   * animation's time and updateSamples(time); the viewer does.
+   */
+  updatePrevious(time = this.animation.time, dt = DEFAULT_FRAME_INTERVAL) {
+    const fade = this.fadeAttribute.array;
+    this.previous.update(time, dt, (i) => fade.subarray(3 * i, 3 * i + 3), this.fadeSamples);
+    this.animation.previousTime = this.previous.previousTime;
+    this.previousFadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * Instance `index` switched clips or was teleported: its next frame has no motion (its previous
+   * pose is its current one), as spec 21's reset says. Takes effect at the next updatePrevious.
+   */
+  resetPrevious(index) { this.previous.reset(index); }
 
   /**
    * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
@@ -400,12 +427,13 @@ export class VirtualBonesCrowd extends Group {
       target.time.array[2 * at + 1] = source.time[2 * i + 1];
       target.fadeClip.array[at] = source.fadeClip[i];
       target.fade.array.set(source.fade.subarray(3 * i, 3 * i + 3), 3 * at);
+      target.previousFade.array.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
     }
     this.levels.forEach((meshes, level) => {
       const attributes = this.levelAttributes[level];
       for (const [key, attribute] of Object.entries(attributes)) {
         attribute.clearUpdateRanges();
-        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3 }[key];
+        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3, previousFade: 4 }[key];
         if (counts[level]) attribute.addUpdateRange(0, counts[level] * size);
         attribute.needsUpdate = true;
       }
