@@ -20,6 +20,7 @@ import functools
 import importlib.util
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -71,6 +72,10 @@ def _glslang() -> Optional[str]:
 def _wgpu() -> Optional[str]:
     if importlib.util.find_spec("wgpu") is None:
         return "the wgpu package is not installed (pip install '.[test]')"
+    # Mesa's Vulkan loader prints "XDG_RUNTIME_DIR is invalid" to the terminal without one (a CI
+    # container has none); wgpu needs no runtime folder, so any private folder quiets it.
+    if not os.environ.get("XDG_RUNTIME_DIR"):
+        os.environ["XDG_RUNTIME_DIR"] = tempfile.mkdtemp(prefix="vbusd-xdg-")
     try:
         import wgpu
 
