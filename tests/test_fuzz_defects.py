@@ -735,3 +735,34 @@ def test_bind_transforms_that_differ_from_the_prim_are_a_finding_of_validate(lay
         assert main(command) == 2, command
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "st.Skeleton.exr: /bindTransforms: metadata.mismatch: bindTransforms differ" in err[0], err
+
+
+def test_a_non_utf8_byte_in_a_referenced_layer_is_one_line_everywhere(layered_crowd, tmp_path, capsys):
+    """A byte that is not UTF-8 in the header of the character layer a crowd references (st.usda's
+    customLayerData): USD's parse error and the composition error echo the byte, so str() of them
+    raised UnicodeDecodeError: command.internal (exit 3) in validate, info, decode and export, a
+    traceback from read_asset and view. Every reader now names the layer and the byte (usd.open)."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    layer = folder / "st.usda"
+    data = bytearray(layer.read_bytes())
+    offset = data.index(b"st.Skeleton.exr.json") + 3  # inside customLayerData's string
+    data[offset] = 0xA0
+    layer.write_bytes(bytes(data))
+    crowd = folder / "crowd.usda"
+    with pytest.raises(InputError) as raised:  # a stage that cannot be opened at all: exit 2, as st.usda alone
+        validate(crowd)
+    assert raised.value.code == "usd.open" and raised.value.file.endswith("st.usda"), str(raised.value)
+    for command in (["validate", str(crowd)], ["info", str(crowd)],
+                    ["decode", str(crowd), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(crowd), "-o", str(tmp_path / "out.glb")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"st.usda: byte {offset}: usd.open: " in err[0] and "not UTF-8" in err[0], err
+    assert not (tmp_path / "cache.usda").exists() and not (tmp_path / "out.glb").exists()
+    with pytest.raises(InputError) as raised:
+        vbusd.read_asset(crowd)
+    assert raised.value.code == "usd.open" and "\n" not in str(raised.value)

@@ -250,7 +250,8 @@ class UsdReader:
         reported = set()
         for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
             site = getattr(error, "rootSite", None)
-            text = one_line(str(error), 300)
+            text = one_line(error_text(error) or "USD reported a composition error whose text is not valid UTF-8",
+                            300)
             reported.add(text)
             self.report("asset.composition", f"composition error: {text}",
                         UsdSite(str(site.path) if site is not None else "/"))
@@ -416,8 +417,17 @@ class UsdReader:
                 continue
             try:
                 child = Sdf.Layer.FindOrOpen(str(target))
-            except Tf.ErrorException:
-                continue  # reported by USD as a composition error
+            except Tf.ErrorException as error:
+                if error_text(error) is not None:
+                    continue  # reported by USD as a composition error
+                # USD's text echoes bytes of the layer that are not UTF-8: its composition error
+                # could not be printed either, so the layer is named here, at that byte.
+                offset = first_non_utf8(target)
+                at = f" at byte {offset}" if offset is not None else ""
+                self.report("usd.open", f"USD cannot open layer @{dependency}@: {tf_message(error)}; the "
+                            f"layer holds a byte that is not UTF-8{at}", FileLocation(str(target), offset))
+                composable = False
+                continue
             if child is not None:
                 composable = self.check_dependencies(Sdf, Tf, child, seen) and composable
         return composable
