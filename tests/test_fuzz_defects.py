@@ -766,3 +766,56 @@ def test_a_non_utf8_byte_in_a_referenced_layer_is_one_line_everywhere(layered_cr
     with pytest.raises(InputError) as raised:
         vbusd.read_asset(crowd)
     assert raised.value.code == "usd.open" and "\n" not in str(raised.value)
+
+
+def _pop(key):
+    return lambda d: d[key].pop()
+
+
+def _set(key, index, value):
+    def edit(d):
+        d[key][index] = value
+    return edit
+
+
+@pytest.mark.parametrize("edit, pointer", [
+    (_pop("boneParents"), "/boneParents"),
+    (_set("boneParents", 3, 40), "/boneParents/3"),
+    (_set("boneParents", 1, 1), "/boneParents/1"),
+    (_pop("bindTransforms"), "/bindTransforms"),
+    (lambda d: d["masks"].append(dict(d["masks"][0])), "/masks/1/name"),
+    (lambda d: d["masks"][0]["weights"].pop(), "/masks/0/weights"),
+    (lambda d: d.__setitem__("texelBytes", 1e308), "/texelBytes"),
+])
+def test_metadata_relations_the_readers_refuse_are_findings_of_validate(layered_crowd, tmp_path, capsys, edit,
+                                                                         pointer):
+    """Relations of the layout metadata that its schema cannot state (spec 8.6, 9): boneParents and
+    bindTransforms of another count than boneCount, a parent that is no other bone, a mask name used
+    twice, a mask with another count of weights, texelBytes of 1e308 (an integral number the schema
+    takes). The readers' check_relations refuses them (metadata.inconsistent); validate of the texture
+    or its sidecar said valid (exit 0), having its own subset of the relations."""
+    from vbusd.io.textures import read_texture
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def change(text):
+        document = json.loads(text)
+        edit(document)
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, change)
+    for given in (texture, Path(f"{texture}.json")):
+        report = validate(given)
+        found = [(f["code"], f["location"].get("pointer")) for f in report.to_json()["findings"]
+                 if f["severity"] == "error"]
+        assert found == [("metadata.inconsistent", pointer)] and report.exit_status == 1, found
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "metadata.inconsistent"
+    capsys.readouterr()
+    assert main(["info", str(texture)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"header/vbusd.layout{pointer}: metadata.inconsistent: " in err[0], err

@@ -137,8 +137,9 @@ _FINDINGS = (
     # texture readers
     Code("metadata.inconsistent", E, "Layout metadata contradicts itself: a derived size (texelsPerBone, "
          "usedWidth, width, height, texelBytes) is not what its other values compute, bones does not "
-         "hold boneCount names, clips do not tile the rows in order under unique names, or a unorm16 "
-         "range has min above max.", f"{_VB}#layout-metadata", "json"),
+         "hold boneCount names, clips do not tile the rows in order under unique names, a unorm16 "
+         "range has min above max, or bindTransforms, boneParents or a mask's weights do not hold one "
+         "entry per bone, a parent is no other bone, or mask names repeat.", f"{_VB}#layout-metadata", "json"),
     Code("metadata.sidecarMismatch", E, "The sidecar <texture>.json and the metadata embedded in the "
          "texture disagree.", f"{_VB}#layout-metadata", "json"),
     # encodings
