@@ -819,3 +819,38 @@ def test_metadata_relations_the_readers_refuse_are_findings_of_validate(layered_
     assert main(["info", str(texture)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"header/vbusd.layout{pointer}: metadata.inconsistent: " in err[0], err
+
+
+@pytest.mark.parametrize("container", ["exr", "ktx2"])
+def test_info_of_a_sidecar_that_disagrees_with_its_texture_is_refused(tmp_path, capsys, container):
+    """A sidecar edited (clip 0's rowsPerSecond) while the metadata embedded in its texture was not:
+    validate of the sidecar and read_texture found metadata.sidecarMismatch, info of the sidecar read
+    it alone and printed its layout (exit 0). Spec 12.3: every reader given the sidecar reads the
+    texture's copy too and must not guess which one is right."""
+    from vbusd.io.textures import read_texture
+    from vbusd.validators.api import validate
+
+    asset = tmp_path / "asset.usda"
+    assert main(["convert", str(SAMPLE), "-o", str(asset), "--frame-range", "0", "10", "--check-rows", "0",
+                 "--container", container, "-q"]) == 0
+    texture = next(tmp_path.glob(f"asset.*.{container}"))
+    sidecar = Path(f"{texture}.json")
+    document = json.loads(sidecar.read_text(encoding="utf-8"))
+    document["clips"][0]["rowsPerSecond"] = document["clips"][0]["rowsPerSecond"] + 1
+    sidecar.write_text(json.dumps(document, indent=2), encoding="utf-8")
+    report = validate(sidecar)
+    found = {(f["code"], f["location"].get("pointer")) for f in report.to_json()["findings"]}
+    assert ("metadata.sidecarMismatch", "/clips/0/rowsPerSecond") in found and report.exit_status == 1, found
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "metadata.sidecarMismatch"
+    for given in (sidecar, texture):
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2, given
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{sidecar.name}: /clips/0/rowsPerSecond: metadata.sidecarMismatch: " in err[0], err
+    sidecar.rename(tmp_path / "kept.json")  # a sidecar whose texture is gone is read alone
+    texture.unlink()
+    (tmp_path / "kept.json").rename(sidecar)
+    capsys.readouterr()
+    assert main(["info", str(sidecar)]) == 0
