@@ -1326,7 +1326,7 @@ too. ``info`` and ``view`` of a package read the metadata and headers only (spec
 vbusd validate makes but the texels")."""
 
 LIMITATIONS = {"export": {"layers.unsupported", "export.noMeshes", "export.mesh"},
-               "decode": set(), "api": set(), "view": set(), "info": set()}
+               "decode": {"decode.noMeshes"}, "api": set(), "view": set(), "info": set()}
 """Refusals that are no verdict on the file: what a reader does not implement (the runtime
 package holds no layers yet) or cannot write."""
 

@@ -854,3 +854,32 @@ def test_info_of_a_sidecar_that_disagrees_with_its_texture_is_refused(tmp_path, 
     (tmp_path / "kept.json").rename(sidecar)
     capsys.readouterr()
     assert main(["info", str(sidecar)]) == 0
+
+
+def test_an_animation_without_bound_meshes_is_valid_and_decode_has_nothing_to_do(tmp_path, capsys):
+    """An animation with no bound mesh (a clip library, bones for sockets) is a valid asset: validate
+    says so, info and read_asset read it. decode refused it with options.invalid, an option error
+    for an input without options, which made it look like a reader refusing a valid file; it is
+    now decode.noMeshes (usd-conversion.md 10), as export's export.noMeshes: nothing written."""
+    from vbusd.format.model import VirtualBones, VirtualBonesAsset
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    full = MF.build_asset()
+    bare = VirtualBonesAsset(animations=(VirtualBones(**{**full.animations[0].__dict__, "meshes": ()}),))
+    path = tmp_path / "bare" / "bare.usda"
+    path.parent.mkdir()
+    write_asset(bare, path)
+    report = validate(path)
+    assert report.exit_status == 0 and report.error_count == 0, report.to_json()["findings"]
+    assert vbusd.read_asset(path).animations[0].meshes == ()
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 0
+    for command, code in ((["decode", str(path), "-o", str(tmp_path / "cache.usda")], "decode.noMeshes"),
+                          (["decode", str(path), "--crowd", "-o", str(tmp_path / "cache.usda")], "decode.noMeshes"),
+                          (["export", str(path), "-o", str(tmp_path / "out.glb")], "export.noMeshes")):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f": file: {code}: " in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bare"]

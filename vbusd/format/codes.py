@@ -304,6 +304,9 @@ _COMMAND_ERRORS = (
     Code("decode.memory", E, "The point cache would need more memory than --max-memory or the memory "
          "available (the message names both), or a crowd mesh more points than 32-bit indices address; "
          "refused before decoding.", "usd-conversion.md#pointcache", "file"),
+    Code("decode.noMeshes", E, "The asset has no mesh bound to an animation (nor, with --crowd, a crowd): "
+         "there is nothing to decode. The asset itself may be valid: an animation needs no bound mesh.",
+         "usd-conversion.md#pointcache", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes
