@@ -49,3 +49,37 @@ def test_format_1_2_mutants_never_escape_and_the_readers_agree(repo_root, tmp_pa
     for command in ("validate", "info", "view"):
         assert statuses.get(f"{command}:0", 0) > 0, (command, statuses)
     assert statuses.get("validate:1", 0) + statuses.get("validate:2", 0) > 0
+
+
+def test_the_harness_runs_its_own_tree_on_one_thread_per_worker(repo_root):
+    """On a fresh machine of many cores (`--jobs 0`: one worker per usable core) each worker imports
+    the vbusd of the tree the script is in, and is held to one thread, so that N workers do not start
+    N threads per core each; a thread count the caller sets is kept."""
+    harness = _harness(repo_root)
+    env = harness.worker_environment({"PYTHONPATH": "/elsewhere", "OMP_NUM_THREADS": "3"})
+    assert env["PYTHONPATH"].split(":") == [str(repo_root), "/elsewhere"]
+    assert env["VBUSD_THREADS"] == "1" and env["OPENBLAS_NUM_THREADS"] == "1" and env["OMP_NUM_THREADS"] == "3"
+    assert harness.usable_cores() >= 1
+    harness.REQUIREMENTS["test"] = ("vbusd_no_such_module", "install it")
+    try:
+        assert harness.missing_requirements(["test"]) == [
+            "--surfaces test: vbusd_no_such_module is not installed; install it"]
+    finally:
+        del harness.REQUIREMENTS["test"]
+
+
+def test_the_harness_table_is_the_readme_table(repo_root):
+    """The Markdown the run writes beside its JSON: runs and exit statuses per command, the problems
+    and the accepted-bad split, as benchmarks/README.md shows them."""
+    harness = _harness(repo_root)
+    summary = {"mutants": 2, "runs": 5, "by_command": {"validate": 3, "info": 2},
+               "statuses": {"validate:0": 1, "validate:1": 1, "validate:3": 1, "info:None": 1, "info:2": 1},
+               "problems": {"traceback": 1, "internal": 1, "hang": 0, "memory": 0, "partial": 0, "clobbered": 0,
+                            "raw": 0, "accepted_bad": 1},
+               "accepted_bad": {"validate_missed": 1, "reader_accepted": 0, "expected_refusal": 0},
+               "peak_rss_mb": 150.0, "seconds": 1234.5, "workers": 16, "cores": 16}
+    lines = harness.markdown_table(summary).splitlines()
+    assert lines[2] == "| validate | 3 | 1 | 1 |  | 1 |  |"
+    assert lines[3] == "| info | 2 |  |  | 1 |  | 1 |"
+    assert lines[7] == "| 1 | 1 | 0 | 0 | 0 | 0 | 0 | 1 (1 / 0 / 0) |"
+    assert lines[9] == "2 mutants, 5 runs in 1,234.5 s on 16 workers (16 usable cores); peak worker memory 150.0 MB."
