@@ -883,3 +883,41 @@ def test_an_animation_without_bound_meshes_is_valid_and_decode_has_nothing_to_do
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f": file: {code}: " in err[0], err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bare"]
+
+
+def _integral_floats(document):
+    extension = document["extensions"]["VBUSD_virtual_bones"]
+    extension["animations"][0]["texture"]["bufferView"] = float(extension["animations"][0]["texture"]["bufferView"])
+    for mesh in document["meshes"]:
+        for primitive in mesh["primitives"]:
+            bound = primitive.get("extensions", {}).get("VBUSD_virtual_bones")
+            if bound is not None:
+                bound["animation"] = float(bound["animation"])
+                bound["influences"] = float(bound["influences"])
+
+
+def test_extension_integers_written_as_integral_floats_are_read_as_integers(package, capsys):
+    """The format 1.2 mutation run: the texture's bufferView written 0.0 (JSON Schema's integer, so
+    the schema passed) was then used as a list index: command.internal in validate and info, a
+    traceback from view's check. runtime-package.md 3: 3.0 is read as 3, as glTF's own indices are;
+    a primitive's animation and influences alike."""
+    from vbusd.validators.api import validate
+    from vbusd.web.server import ViewerServer
+
+    _rewrite(package, _integral_floats)
+    report = validate(package)
+    assert report.exit_status == 0 and report.error_count == 0, report.to_json()["findings"]
+    capsys.readouterr()
+    assert main(["info", "--format", "json", str(package)]) == 0
+    described = json.loads(capsys.readouterr().out)
+    assert described["animations"][0]["boneCount"] == 4
+    ViewerServer(package).stop()
+
+
+def test_an_extension_index_with_a_fraction_is_refused_everywhere(package, capsys):
+    """1.5 is no integer: the schema's finding (package.extension) for every reader."""
+    def edit(document):
+        document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["texture"]["bufferView"] = 1.5
+
+    _rewrite(package, edit)
+    _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations/0/texture/bufferView")

@@ -211,8 +211,19 @@ def _check_extension(root: dict, file: str, diagnostics: Diagnostics) -> Optiona
         diagnostics.report("package.extension", f"{EXTENSION} must be an object, found JSON {json_kind(value)}",
                            JsonPointer(file, _ROOT))
         return None
-    _schema(root_validator, value, _ROOT, file, diagnostics)
+    if _schema(root_validator, value, _ROOT, file, diagnostics):
+        for entry in value["animations"]:
+            _integers(entry["texture"], ("bufferView",))
     return value
+
+
+def _integers(obj: dict, keys) -> None:
+    """The members ``keys`` of a schema-checked object as Python ints: JSON Schema counts ``3.0`` an
+    integer (runtime-package.md 3), which as a float cannot index a list or count a range."""
+    for key in keys:
+        value = obj.get(key)
+        if isinstance(value, float) and value.is_integer():
+            obj[key] = int(value)
 
 
 def _texture_name(gltf, view_index: int, data: bytes, file: str) -> str:
@@ -319,6 +330,7 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
             _check_geometry(root, reader, primitive, f"/meshes/{m}/primitives/{p}", file, diagnostics, failed)
             if not isinstance(ext, dict) or not _validators()[1].is_valid(ext):
                 continue  # not bound, or its object broke the schema (reported)
+            _integers(ext, ("animation", "influences"))
             where = f"/meshes/{m}/primitives/{p}"
             index = ext["animation"]
             if index >= declared:
