@@ -921,3 +921,32 @@ def test_an_extension_index_with_a_fraction_is_refused_everywhere(package, capsy
 
     _rewrite(package, edit)
     _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations/0/texture/bufferView")
+
+
+@pytest.mark.parametrize("extras", [[1, 2], 5, "x", None])
+def test_a_lod_node_whose_extras_is_no_object_is_read_without_screen_coverage(tmp_path, capsys, extras):
+    """The format 1.2 mutation run: a LOD node's extras replaced by a list (glTF allows extras of any
+    JSON type; an object only SHOULD be used) ended validate and info in command.internal and view's
+    check in a traceback, read as an object for MSFT_screencoverage. It is a package without screen
+    coverage for that node: every reader reads it."""
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.validators.api import validate
+    from vbusd.web.server import ViewerServer
+
+    source = FIXTURES / "valid" / "crossMatrix_float16_lods" / "asset.usda"
+    package = tmp_path / "pkg" / "asset.glb"
+    export_gltf(vbusd.read_asset(source), package)
+    document = _document(package)
+    lod_nodes = [n for n, node in enumerate(document["nodes"]) if "MSFT_lod" in node.get("extensions", {})]
+    assert lod_nodes and "MSFT_screencoverage" in document["nodes"][lod_nodes[0]]["extras"]
+
+    def edit(d):
+        d["nodes"][lod_nodes[0]]["extras"] = extras
+
+    _rewrite(package, edit)
+    report = validate(package)
+    assert report.exit_status == 0 and not any(f.code.endswith(".internal") for f in report.findings), \
+        report.to_json()["findings"]
+    capsys.readouterr()
+    assert main(["info", "--format", "json", str(package)]) == 0
+    ViewerServer(package).stop()

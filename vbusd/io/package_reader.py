@@ -384,7 +384,10 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         name = node.get("name") or f"node{n}"
         ids = ((node.get("extensions") or {}).get("MSFT_lod") or {}).get("ids")
         if isinstance(ids, list) and ids:
-            coverage = (node.get("extras") or {}).get("MSFT_screencoverage")
+            # glTF lets extras be any JSON value (an object only SHOULD): MSFT_lod's screen coverage
+            # is read from an object's member, and no object means none is given.
+            extras = node.get("extras")
+            coverage = extras.get("MSFT_screencoverage") if isinstance(extras, dict) else None
             sizes = [float(c) for c in coverage if isinstance(c, (int, float)) and not isinstance(c, bool)] \
                 if isinstance(coverage, list) else []
             package.lods.append({"node": name, "animation": bound[node["mesh"]], "levels": len(ids) + 1,
