@@ -950,3 +950,47 @@ def test_a_lod_node_whose_extras_is_no_object_is_read_without_screen_coverage(tm
     capsys.readouterr()
     assert main(["info", "--format", "json", str(package)]) == 0
     ViewerServer(package).stop()
+
+
+def test_a_signalling_nan_in_a_float_accessor_is_one_line_and_no_numpy_warning(package, capsys):
+    """The format 1.2 mutation run: a POSITION float whose bytes are a signalling NaN (0x7f800001)
+    raised the invalid flag as the reader widened it to float64, and numpy printed a RuntimeWarning
+    line on stderr (a raw line from view's check) before the NaN was refused."""
+    import warnings
+
+    document = _document(package)
+    position = document["accessors"][document["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert position["componentType"] == 5126
+    _patch_view(package, position["bufferView"], position.get("byteOffset", 0) + 4, struct.pack("<I", 0x7F800001))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _refused_everywhere(package, capsys, "gltf.accessor.nonFinite")
+
+
+@pytest.mark.parametrize("name, authored, code", [
+    ("normals", "normal3f[] normals", "prim.attribute.missing"),
+    ("faceVertexIndices", "int[] faceVertexIndices", "binding.mesh"),
+    ("faceVertexCounts", "int[] faceVertexCounts", "binding.mesh"),
+])
+def test_a_mesh_attribute_of_another_type_is_a_finding_of_validate(tmp_path, capsys, name, authored, code):
+    """The format 1.2 mutation run: a bound mesh's normals authored as normalnanf[] (a type USD does not
+    know: its value reads as an UnregisteredValue) was asset.internal in validate; faceVertexIndices
+    authored as float[] passed validate. read_asset and decode refuse both by the attribute's type
+    (UsdReader.read_mesh, read_normals); validate checks the same types."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(FIXTURES / "valid" / "crossMatrix_float16", folder)
+    layer = folder / "asset.usda"
+    text = layer.read_text(encoding="utf-8")
+    assert authored in text
+    wrong = authored.replace(authored.split()[0], "normalnanf[]" if name == "normals" else "float[]")
+    layer.write_text(text.replace(authored, wrong), encoding="utf-8")
+    report = validate(layer)
+    found = [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"]
+             if f["severity"] == "error"]
+    assert found == [(code, name)] and report.exit_status == 1, found
+    capsys.readouterr()
+    assert main(["decode", str(layer), "-o", str(tmp_path / "cache.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f".{name}: {code}: {name} must be " in err[0], err

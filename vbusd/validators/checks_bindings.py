@@ -265,6 +265,11 @@ def _check_topology(prim, path, points):
                         "per point)", UsdSite(path, "points"))]
     if not prim.HasAttribute("faceVertexCounts") and not prim.HasAttribute("faceVertexIndices"):
         return []  # not a Mesh (binding.api.prim says so) or a point cloud: nothing more to check
+    for name in ("faceVertexCounts", "faceVertexIndices"):  # the reader's rule (UsdReader.read_mesh)
+        attribute = prim.GetAttribute(name)
+        actual = wrong_type(attribute, "int[]") if attribute and attribute.HasAuthoredValue() else None
+        if actual is not None:
+            return [finding("binding.mesh", f"{name} must be int[], found {actual}", UsdSite(path, name))]
     counts = _array(prim.GetAttribute("faceVertexCounts"), np.int64)
     indices = _array(prim.GetAttribute("faceVertexIndices"), np.int64)
     if counts is None or indices is None:
@@ -295,7 +300,16 @@ def _check_normals(prim, path):
         attribute, name = prim.GetAttribute("normals"), "normals"
     if attribute is None:
         return []
-    normals = _array(attribute, np.float64)
+    # The reader's rules (UsdReader.read_normals, through UsdReader.numbers): the authored type, then
+    # values that read as numbers, three per normal.
+    actual = wrong_type(attribute, "normal3f[]")
+    if actual is not None:
+        return [finding("prim.attribute.missing", f"{name} must be normal3f[], found {actual}", UsdSite(path, name))]
+    try:
+        normals = _array(attribute, np.float64)
+    except (TypeError, ValueError) as error:
+        return [finding("usd.value", f"{name} does not read as numbers: {' '.join(str(error).split())[:200]}",
+                        UsdSite(path, name))]
     if normals is None or normals.size % 3:
         return []
     normals = normals.reshape(-1, 3)
