@@ -994,3 +994,28 @@ def test_a_mesh_attribute_of_another_type_is_a_finding_of_validate(tmp_path, cap
     assert main(["decode", str(layer), "-o", str(tmp_path / "cache.usda")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f".{name}: {code}: {name} must be " in err[0], err
+
+
+def test_a_relationship_spec_where_an_attribute_is_read_is_a_finding_not_an_internal_error(tmp_path, capsys):
+    """The format 1.2 mutation run (--seed 5, mutant 631): two bytes of a compact asset's crate file
+    changed so that the property specs of the animation's and the mesh's attributes are
+    relationships' (tests/fixtures/corrupt_usdc/attribute_spec_is_relationship.usdc). The readers'
+    type check read every spec's typeName, which a relationship's spec has not: asset.internal in
+    validate. The spec's kind is now the type mismatch it is, for every reader
+    (authored_type_mismatch)."""
+    from vbusd.validators.api import validate
+
+    path = tmp_path / "bar.usdc"
+    shutil.copy(Path(__file__).parent / "fixtures" / "corrupt_usdc" / "attribute_spec_is_relationship.usdc", path)
+    report = validate(path)
+    findings = report.to_json()["findings"]
+    assert not any(f["code"].endswith(".internal") for f in findings), findings
+    assert ("prim.attribute.missing", "/BarScene/Bar_Anim", "vb:formatVersion") in {
+        (f["code"], f["location"].get("primPath"), f["location"].get("property")) for f in findings}
+    assert report.exit_status == 1
+    for command in (["info", str(path)], ["decode", str(path), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "/BarScene/Bar_Anim.vb:formatVersion: prim.attribute.missing: vb:formatVersion " \
+            "must be int, found a relationship in bar.usdc" in err[0], err

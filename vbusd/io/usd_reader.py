@@ -1307,8 +1307,11 @@ def authored_type_mismatch(attribute, type_name: str) -> Optional[str]:
     Sdf = _pxr()[0]
     expected = Sdf.ValueTypeNames.Find(type_name)
     for spec in attribute.GetPropertyStack():
-        if expected and spec.typeName.type != expected.type:
-            return f"{spec.typeName} in {Path(spec.layer.identifier).name}"
+        type_name_of = getattr(spec, "typeName", None)
+        if type_name_of is None:  # a relationship's spec where an attribute is read (a corrupt crate file)
+            return f"a relationship in {Path(spec.layer.identifier).name}"
+        if expected and type_name_of.type != expected.type:
+            return f"{type_name_of} in {Path(spec.layer.identifier).name}"
     actual = str(attribute.GetTypeName())
     return None if not expected or Sdf.ValueTypeNames.Find(actual).type == expected.type else actual
 
