@@ -860,10 +860,18 @@ def m_mask_attr(folder: Path, seed: dict, rng: random.Random):
             masks = doc.get("masks")
             if not masks:
                 return False
+            # Every choice changes the document: a mask's own name or weight is no change (with one
+            # mask, masks[-1] is masks[0]), and the oracle would expect a refusal of a valid copy.
             if how == "metadata_weight":
-                masks[0]["weights"][rng.randrange(len(masks[0]["weights"]))] = value
+                weights = masks[0]["weights"]
+                i = rng.randrange(len(weights))
+                if weights[i] == value:
+                    return False
+                weights[i] = value
             else:
-                masks[-1]["name"] = rng.choice(["", masks[0]["name"], "x" * 300])
+                names = ["", "x" * 300] + ([masks[0]["name"]] if len(masks) > 1 else [])
+                name = rng.choice([n for n in names if n != masks[-1]["name"]])
+                masks[-1]["name"] = name
 
         done = _edit_metadata(folder, seed, edit, rng)
         if done is None:

@@ -83,3 +83,29 @@ def test_the_harness_table_is_the_readme_table(repo_root):
     assert lines[3] == "| info | 2 |  |  | 1 |  | 1 |"
     assert lines[7] == "| 1 | 1 | 0 | 0 | 0 | 0 | 0 | 1 (1 / 0 / 0) |"
     assert lines[9] == "2 mutants, 5 runs in 1,234.5 s on 16 workers (16 usable cores); peak worker memory 150.0 MB."
+
+
+def test_a_metadata_mask_mutant_always_changes_the_metadata(repo_root, tmp_path, monkeypatch):
+    """The oracle expects every reader to refuse a metadata_names or metadata_weight mutant; with one
+    mask the mutator could "rename" the mask to its own name (masks[-1] is masks[0]) and leave the
+    document as it was: a valid copy counted as 6 expected_refusal cases (--seed 6, mutant 280). Each
+    edit now changes the document, or declines."""
+    import copy
+    import random
+
+    harness = _harness(repo_root)
+    original = {"masks": [{"name": "upper", "weights": [0.0, 1.0, 1.0]}]}
+    edits = []
+
+    def capture(folder, seed, edit, rng):
+        document = copy.deepcopy(original)
+        edits.append((edit(document), document))
+        return None
+
+    monkeypatch.setattr(harness, "_edit_metadata", capture)
+    for n in range(400):  # the other kinds of mask mutants edit the layer: a fresh one each time
+        (tmp_path / "st.usda").write_text('uniform token[] vb:maskNames = ["upper"]\n', encoding="utf-8")
+        harness.m_mask_attr(tmp_path, {}, random.Random(n))
+    assert len(edits) > 20
+    for result, document in edits:
+        assert result is False or document != original, document
