@@ -971,10 +971,12 @@ def test_a_signalling_nan_in_a_float_accessor_is_one_line_and_no_numpy_warning(p
     ("normals", "normal3f[] normals", "prim.attribute.missing"),
     ("faceVertexIndices", "int[] faceVertexIndices", "binding.mesh"),
     ("faceVertexCounts", "int[] faceVertexCounts", "binding.mesh"),
+    ("points", "point3f[] points", "binding.mesh"),
 ])
 def test_a_mesh_attribute_of_another_type_is_a_finding_of_validate(tmp_path, capsys, name, authored, code):
-    """The format 1.2 mutation run: a bound mesh's normals authored as normalnanf[] (a type USD does not
-    know: its value reads as an UnregisteredValue) was asset.internal in validate; faceVertexIndices
+    """The format 1.2 mutation run: a bound mesh's normals or points authored as normalnanf[] or
+    pointnanf[] (types USD does not know: the value reads as an UnregisteredValue) were asset.internal
+    in validate (the normals check read the points again, unchecked); faceVertexIndices
     authored as float[] passed validate. read_asset and decode refuse both by the attribute's type
     (UsdReader.read_mesh, read_normals); validate checks the same types."""
     from vbusd.validators.api import validate
@@ -984,7 +986,7 @@ def test_a_mesh_attribute_of_another_type_is_a_finding_of_validate(tmp_path, cap
     layer = folder / "asset.usda"
     text = layer.read_text(encoding="utf-8")
     assert authored in text
-    wrong = authored.replace(authored.split()[0], "normalnanf[]" if name == "normals" else "float[]")
+    wrong = authored.replace(authored.split()[0], {"normals": "normalnanf[]", "points": "pointnanf[]"}.get(name, "float[]"))
     layer.write_text(text.replace(authored, wrong), encoding="utf-8")
     report = validate(layer)
     found = [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"]

@@ -144,10 +144,17 @@ def check_binding_prim(prim):
     bone_count = _int_value(target, vb_names.BY_KEY["boneCount"].name) if target is not None else None
 
     points_attr = UsdGeom.Mesh(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else prim.GetAttribute("points")
-    points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() else None
+    # The reader's rule (UsdReader.read_mesh): points of another authored type are refused by it.
+    wrong_points = (wrong_type(points_attr, "point3f[]") if points_attr and points_attr.IsValid()
+                    and points_attr.HasAuthoredValue() else None)
+    points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() and wrong_points is None \
+        else None
     if points is not None:
         points = points.reshape(-1, 3) if points.size % 3 == 0 else None
-    out += _check_topology(prim, path, points)
+    if wrong_points is not None:
+        out.append(finding("binding.mesh", f"points must be point3f[], found {wrong_points}", UsdSite(path, "points")))
+    else:
+        out += _check_topology(prim, path, points)
     if points is not None:
         bad = ~np.all(np.isfinite(points), axis=-1)
         if bad.any():
@@ -216,7 +223,7 @@ def check_binding_prim(prim):
             out.append(finding("binding.weights.sum", f"{int(off.sum())} vertex(es) have weights not summing "
                                f"to 1 (tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with "
                                f"sum {float(sums[vertex]):.6g}", UsdSite(path, WEIGHTS)))
-    out += _check_normals(prim, path)
+    out += _check_normals(prim, path, points)
     if target is not None and points is not None and INDICES in arrays and WEIGHTS in arrays and bone_count:
         out += _check_compact_error_bound(target, path, points, arrays[INDICES], arrays[WEIGHTS], bone_count)
     return out
@@ -291,7 +298,9 @@ def _check_topology(prim, path, points):
     return []
 
 
-def _check_normals(prim, path):
+def _check_normals(prim, path, points):
+    """Rest normals against ``points`` (the mesh's points as checked above: None when unreadable or
+    of another type, which is reported there)."""
     attribute, name = None, None
     primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
     if primvar and primvar.HasValue():
@@ -323,8 +332,6 @@ def _check_normals(prim, path):
         interpolation = str(UsdGeom.PointBased(prim).GetNormalsInterpolation()) \
             if prim.IsA(UsdGeom.PointBased) else "vertex"
         count = len(normals)
-    points = _array(prim.GetAttribute("points"), np.float64) if prim.HasAttribute("points") else None
-    points = None if points is None else points.reshape(-1, 3)
     face_vertices = prim.GetAttribute("faceVertexIndices").Get() if prim.HasAttribute("faceVertexIndices") \
         else None
     expected = {"vertex": None if points is None else len(points),
