@@ -1021,3 +1021,48 @@ def test_a_relationship_spec_where_an_attribute_is_read_is_a_finding_not_an_inte
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "/BarScene/Bar_Anim.vb:formatVersion: prim.attribute.missing: vb:formatVersion " \
             "must be int, found a relationship in bar.usdc" in err[0], err
+
+
+def test_a_crowd_whose_positions_are_of_another_type_is_a_finding_of_validate(layered_crowd, tmp_path, capsys):
+    """The format 1.2 mutation run: a point instancer's positions authored as point99999999f[] (a type
+    USD does not know): validate took the length of the UnregisteredValue, asset.internal. The
+    readers refuse the type (instancer.count); validate checks it as they do."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    crowd = folder / "crowd.usda"
+    text = crowd.read_text(encoding="utf-8")
+    assert "point3f[] positions = " in text
+    crowd.write_text(text.replace("point3f[] positions = ", "point99999999f[] positions = ", 1), encoding="utf-8")
+    report = validate(crowd)
+    found = [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"] if f["severity"] == "error"]
+    assert found == [("instancer.count", "positions")] and report.exit_status == 1, found
+    capsys.readouterr()
+    assert main(["info", str(crowd)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ".positions: instancer.count: positions must be point3f[], found point99999999f[]" \
+        in err[0], err
+
+
+def test_a_package_ktx2_whose_texel_format_is_a_list_is_a_schema_finding(tmp_path, capsys):
+    """The format 1.2 mutation run: the KTX2 file's vbusd.layout says "texelFormat": [0, 0, 0]; the
+    package reader looked the list up in a dict of pixel types (unhashable): command.internal in
+    validate. It is the schema's finding, and info refuses the package in one line."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    layout = dict(_document(package)["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"])
+    layout["texelFormat"] = [0, 0, 0]
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    document = _document(package)
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "metadata.schema", "/texelFormat")

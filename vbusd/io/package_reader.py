@@ -528,8 +528,8 @@ def _check_ktx2(animation: PackageAnimation, file: str, diagnostics: Diagnostics
         width, height = document.get("width"), document.get("height")
         textures.check_image(image, local, width=width if isinstance(width, int) else None,
                              height=height if isinstance(height, int) else None,
-                             texel_format=texel_format if texel_format in textures.CONTAINERS["ktx2"].pixel_types
-                             else None,
+                             texel_format=texel_format if isinstance(texel_format, str)
+                             and texel_format in textures.CONTAINERS["ktx2"].pixel_types else None,
                              format_location=JsonPointer(animation.texture, "/texelFormat", image.metadata_part))
     if diagnostics.strict:
         for item in local.findings:

@@ -397,7 +397,12 @@ def check_instancer_prim(prim):
     # positions); without positions the instance count is unknown.
     count = None
     attribute = prim.GetAttribute("positions")
-    if attribute.IsValid() and attribute.HasValue():
+    wrong_positions = (wrong_type(attribute, "point3f[]") if attribute.IsValid() and attribute.HasAuthoredValue()
+                       else None)
+    if wrong_positions is not None:  # the reader's rule (UsdReader.read_crowd: UsdReader.numbers)
+        out.append(finding("instancer.count", f"positions must be point3f[], found {wrong_positions}",
+                           UsdSite(path, "positions")))
+    elif attribute.IsValid() and attribute.HasValue():
         count = len(attribute.Get())
     else:
         out.append(finding("instancer.count", "positions is missing: the instances are the positions",
