@@ -736,3 +736,334 @@ def test_bind_transforms_that_differ_from_the_prim_are_a_finding_of_validate(lay
         assert main(command) == 2, command
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "st.Skeleton.exr: /bindTransforms: metadata.mismatch: bindTransforms differ" in err[0], err
+
+
+def test_a_non_utf8_byte_in_a_referenced_layer_is_one_line_everywhere(layered_crowd, tmp_path, capsys):
+    """A byte that is not UTF-8 in the header of the character layer a crowd references (st.usda's
+    customLayerData): USD's parse error and the composition error echo the byte, so str() of them
+    raised UnicodeDecodeError: command.internal (exit 3) in validate, info, decode and export, a
+    traceback from read_asset and view. Every reader now names the layer and the byte (usd.open)."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    layer = folder / "st.usda"
+    data = bytearray(layer.read_bytes())
+    offset = data.index(b"st.Skeleton.exr.json") + 3  # inside customLayerData's string
+    data[offset] = 0xA0
+    layer.write_bytes(bytes(data))
+    crowd = folder / "crowd.usda"
+    with pytest.raises(InputError) as raised:  # a stage that cannot be opened at all: exit 2, as st.usda alone
+        validate(crowd)
+    assert raised.value.code == "usd.open" and raised.value.file.endswith("st.usda"), str(raised.value)
+    for command in (["validate", str(crowd)], ["info", str(crowd)],
+                    ["decode", str(crowd), "-o", str(tmp_path / "cache.usda")],
+                    ["export", str(crowd), "-o", str(tmp_path / "out.glb")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"st.usda: byte {offset}: usd.open: " in err[0] and "not UTF-8" in err[0], err
+    assert not (tmp_path / "cache.usda").exists() and not (tmp_path / "out.glb").exists()
+    with pytest.raises(InputError) as raised:
+        vbusd.read_asset(crowd)
+    assert raised.value.code == "usd.open" and "\n" not in str(raised.value)
+
+
+def _pop(key):
+    return lambda d: d[key].pop()
+
+
+def _set(key, index, value):
+    def edit(d):
+        d[key][index] = value
+    return edit
+
+
+@pytest.mark.parametrize("edit, pointer", [
+    (_pop("boneParents"), "/boneParents"),
+    (_set("boneParents", 3, 40), "/boneParents/3"),
+    (_set("boneParents", 1, 1), "/boneParents/1"),
+    (_pop("bindTransforms"), "/bindTransforms"),
+    (lambda d: d["masks"].append(dict(d["masks"][0])), "/masks/1/name"),
+    (lambda d: d["masks"][0]["weights"].pop(), "/masks/0/weights"),
+    (lambda d: d.__setitem__("texelBytes", 1e308), "/texelBytes"),
+])
+def test_metadata_relations_the_readers_refuse_are_findings_of_validate(layered_crowd, tmp_path, capsys, edit,
+                                                                         pointer):
+    """Relations of the layout metadata that its schema cannot state (spec 8.6, 9): boneParents and
+    bindTransforms of another count than boneCount, a parent that is no other bone, a mask name used
+    twice, a mask with another count of weights, texelBytes of 1e308 (an integral number the schema
+    takes). The readers' check_relations refuses them (metadata.inconsistent); validate of the texture
+    or its sidecar said valid (exit 0), having its own subset of the relations."""
+    from vbusd.io.textures import read_texture
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(layered_crowd, folder)
+    texture = folder / "st.Skeleton.exr"
+
+    def change(text):
+        document = json.loads(text)
+        edit(document)
+        return json.dumps(document, indent=2)
+
+    _rewrite_exr_metadata(texture, change)
+    for given in (texture, Path(f"{texture}.json")):
+        report = validate(given)
+        found = [(f["code"], f["location"].get("pointer")) for f in report.to_json()["findings"]
+                 if f["severity"] == "error"]
+        assert found == [("metadata.inconsistent", pointer)] and report.exit_status == 1, found
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "metadata.inconsistent"
+    capsys.readouterr()
+    assert main(["info", str(texture)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"header/vbusd.layout{pointer}: metadata.inconsistent: " in err[0], err
+
+
+@pytest.mark.parametrize("container", ["exr", "ktx2"])
+def test_info_of_a_sidecar_that_disagrees_with_its_texture_is_refused(tmp_path, capsys, container):
+    """A sidecar edited (clip 0's rowsPerSecond) while the metadata embedded in its texture was not:
+    validate of the sidecar and read_texture found metadata.sidecarMismatch, info of the sidecar read
+    it alone and printed its layout (exit 0). Spec 12.3: every reader given the sidecar reads the
+    texture's copy too and must not guess which one is right."""
+    from vbusd.io.textures import read_texture
+    from vbusd.validators.api import validate
+
+    asset = tmp_path / "asset.usda"
+    assert main(["convert", str(SAMPLE), "-o", str(asset), "--frame-range", "0", "10", "--check-rows", "0",
+                 "--container", container, "-q"]) == 0
+    texture = next(tmp_path.glob(f"asset.*.{container}"))
+    sidecar = Path(f"{texture}.json")
+    document = json.loads(sidecar.read_text(encoding="utf-8"))
+    document["clips"][0]["rowsPerSecond"] = document["clips"][0]["rowsPerSecond"] + 1
+    sidecar.write_text(json.dumps(document, indent=2), encoding="utf-8")
+    report = validate(sidecar)
+    found = {(f["code"], f["location"].get("pointer")) for f in report.to_json()["findings"]}
+    assert ("metadata.sidecarMismatch", "/clips/0/rowsPerSecond") in found and report.exit_status == 1, found
+    with pytest.raises(InputError) as raised:
+        read_texture(texture)
+    assert raised.value.code == "metadata.sidecarMismatch"
+    for given in (sidecar, texture):
+        capsys.readouterr()
+        assert main(["info", str(given)]) == 2, given
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{sidecar.name}: /clips/0/rowsPerSecond: metadata.sidecarMismatch: " in err[0], err
+    sidecar.rename(tmp_path / "kept.json")  # a sidecar whose texture is gone is read alone
+    texture.unlink()
+    (tmp_path / "kept.json").rename(sidecar)
+    capsys.readouterr()
+    assert main(["info", str(sidecar)]) == 0
+
+
+def test_an_animation_without_bound_meshes_is_valid_and_decode_has_nothing_to_do(tmp_path, capsys):
+    """An animation with no bound mesh (a clip library, bones for sockets) is a valid asset: validate
+    says so, info and read_asset read it. decode refused it with options.invalid, an option error
+    for an input without options, which made it look like a reader refusing a valid file; it is
+    now decode.noMeshes (usd-conversion.md 10), as export's export.noMeshes: nothing written."""
+    from vbusd.format.model import VirtualBones, VirtualBonesAsset
+    from vbusd.io.usd import write_asset
+    from vbusd.validators.api import validate
+
+    full = MF.build_asset()
+    bare = VirtualBonesAsset(animations=(VirtualBones(**{**full.animations[0].__dict__, "meshes": ()}),))
+    path = tmp_path / "bare" / "bare.usda"
+    path.parent.mkdir()
+    write_asset(bare, path)
+    report = validate(path)
+    assert report.exit_status == 0 and report.error_count == 0, report.to_json()["findings"]
+    assert vbusd.read_asset(path).animations[0].meshes == ()
+    capsys.readouterr()
+    assert main(["info", str(path)]) == 0
+    for command, code in ((["decode", str(path), "-o", str(tmp_path / "cache.usda")], "decode.noMeshes"),
+                          (["decode", str(path), "--crowd", "-o", str(tmp_path / "cache.usda")], "decode.noMeshes"),
+                          (["export", str(path), "-o", str(tmp_path / "out.glb")], "export.noMeshes")):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f": file: {code}: " in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bare"]
+
+
+def _integral_floats(document):
+    extension = document["extensions"]["VBUSD_virtual_bones"]
+    extension["animations"][0]["texture"]["bufferView"] = float(extension["animations"][0]["texture"]["bufferView"])
+    for mesh in document["meshes"]:
+        for primitive in mesh["primitives"]:
+            bound = primitive.get("extensions", {}).get("VBUSD_virtual_bones")
+            if bound is not None:
+                bound["animation"] = float(bound["animation"])
+                bound["influences"] = float(bound["influences"])
+
+
+def test_extension_integers_written_as_integral_floats_are_read_as_integers(package, capsys):
+    """The format 1.2 mutation run: the texture's bufferView written 0.0 (JSON Schema's integer, so
+    the schema passed) was then used as a list index: command.internal in validate and info, a
+    traceback from view's check. runtime-package.md 3: 3.0 is read as 3, as glTF's own indices are;
+    a primitive's animation and influences alike."""
+    from vbusd.validators.api import validate
+    from vbusd.web.server import ViewerServer
+
+    _rewrite(package, _integral_floats)
+    report = validate(package)
+    assert report.exit_status == 0 and report.error_count == 0, report.to_json()["findings"]
+    capsys.readouterr()
+    assert main(["info", "--format", "json", str(package)]) == 0
+    described = json.loads(capsys.readouterr().out)
+    assert described["animations"][0]["boneCount"] == 4
+    ViewerServer(package).stop()
+
+
+def test_an_extension_index_with_a_fraction_is_refused_everywhere(package, capsys):
+    """1.5 is no integer: the schema's finding (package.extension) for every reader."""
+    def edit(document):
+        document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["texture"]["bufferView"] = 1.5
+
+    _rewrite(package, edit)
+    _refused_everywhere(package, capsys, "package.extension", f"{EXTENSION}/animations/0/texture/bufferView")
+
+
+@pytest.mark.parametrize("extras", [[1, 2], 5, "x", None])
+def test_a_lod_node_whose_extras_is_no_object_is_read_without_screen_coverage(tmp_path, capsys, extras):
+    """The format 1.2 mutation run: a LOD node's extras replaced by a list (glTF allows extras of any
+    JSON type; an object only SHOULD be used) ended validate and info in command.internal and view's
+    check in a traceback, read as an object for MSFT_screencoverage. It is a package without screen
+    coverage for that node: every reader reads it."""
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.validators.api import validate
+    from vbusd.web.server import ViewerServer
+
+    source = FIXTURES / "valid" / "crossMatrix_float16_lods" / "asset.usda"
+    package = tmp_path / "pkg" / "asset.glb"
+    export_gltf(vbusd.read_asset(source), package)
+    document = _document(package)
+    lod_nodes = [n for n, node in enumerate(document["nodes"]) if "MSFT_lod" in node.get("extensions", {})]
+    assert lod_nodes and "MSFT_screencoverage" in document["nodes"][lod_nodes[0]]["extras"]
+
+    def edit(d):
+        d["nodes"][lod_nodes[0]]["extras"] = extras
+
+    _rewrite(package, edit)
+    report = validate(package)
+    assert report.exit_status == 0 and not any(f.code.endswith(".internal") for f in report.findings), \
+        report.to_json()["findings"]
+    capsys.readouterr()
+    assert main(["info", "--format", "json", str(package)]) == 0
+    ViewerServer(package).stop()
+
+
+def test_a_signalling_nan_in_a_float_accessor_is_one_line_and_no_numpy_warning(package, capsys):
+    """The format 1.2 mutation run: a POSITION float whose bytes are a signalling NaN (0x7f800001)
+    raised the invalid flag as the reader widened it to float64, and numpy printed a RuntimeWarning
+    line on stderr (a raw line from view's check) before the NaN was refused."""
+    import warnings
+
+    document = _document(package)
+    position = document["accessors"][document["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    assert position["componentType"] == 5126
+    _patch_view(package, position["bufferView"], position.get("byteOffset", 0) + 4, struct.pack("<I", 0x7F800001))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _refused_everywhere(package, capsys, "gltf.accessor.nonFinite")
+
+
+@pytest.mark.parametrize("name, authored, code", [
+    ("normals", "normal3f[] normals", "prim.attribute.missing"),
+    ("faceVertexIndices", "int[] faceVertexIndices", "binding.mesh"),
+    ("faceVertexCounts", "int[] faceVertexCounts", "binding.mesh"),
+    ("points", "point3f[] points", "binding.mesh"),
+])
+def test_a_mesh_attribute_of_another_type_is_a_finding_of_validate(tmp_path, capsys, name, authored, code):
+    """The format 1.2 mutation run: a bound mesh's normals or points authored as normalnanf[] or
+    pointnanf[] (types USD does not know: the value reads as an UnregisteredValue) were asset.internal
+    in validate (the normals check read the points again, unchecked); faceVertexIndices
+    authored as float[] passed validate. read_asset and decode refuse both by the attribute's type
+    (UsdReader.read_mesh, read_normals); validate checks the same types."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "asset"
+    shutil.copytree(FIXTURES / "valid" / "crossMatrix_float16", folder)
+    layer = folder / "asset.usda"
+    text = layer.read_text(encoding="utf-8")
+    assert authored in text
+    wrong = authored.replace(authored.split()[0], {"normals": "normalnanf[]", "points": "pointnanf[]"}.get(name, "float[]"))
+    layer.write_text(text.replace(authored, wrong), encoding="utf-8")
+    report = validate(layer)
+    found = [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"]
+             if f["severity"] == "error"]
+    assert found == [(code, name)] and report.exit_status == 1, found
+    capsys.readouterr()
+    assert main(["decode", str(layer), "-o", str(tmp_path / "cache.usda")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f".{name}: {code}: {name} must be " in err[0], err
+
+
+def test_a_relationship_spec_where_an_attribute_is_read_is_a_finding_not_an_internal_error(tmp_path, capsys):
+    """The format 1.2 mutation run (--seed 5, mutant 631): two bytes of a compact asset's crate file
+    changed so that the property specs of the animation's and the mesh's attributes are
+    relationships' (tests/fixtures/corrupt_usdc/attribute_spec_is_relationship.usdc). The readers'
+    type check read every spec's typeName, which a relationship's spec has not: asset.internal in
+    validate. The spec's kind is now the type mismatch it is, for every reader
+    (authored_type_mismatch)."""
+    from vbusd.validators.api import validate
+
+    path = tmp_path / "bar.usdc"
+    shutil.copy(Path(__file__).parent / "fixtures" / "corrupt_usdc" / "attribute_spec_is_relationship.usdc", path)
+    report = validate(path)
+    findings = report.to_json()["findings"]
+    assert not any(f["code"].endswith(".internal") for f in findings), findings
+    assert ("prim.attribute.missing", "/BarScene/Bar_Anim", "vb:formatVersion") in {
+        (f["code"], f["location"].get("primPath"), f["location"].get("property")) for f in findings}
+    assert report.exit_status == 1
+    for command in (["info", str(path)], ["decode", str(path), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "/BarScene/Bar_Anim.vb:formatVersion: prim.attribute.missing: vb:formatVersion " \
+            "must be int, found a relationship in bar.usdc" in err[0], err
+
+
+def test_a_crowd_whose_positions_are_of_another_type_is_a_finding_of_validate(layered_crowd, tmp_path, capsys):
+    """The format 1.2 mutation run: a point instancer's positions authored as point99999999f[] (a type
+    USD does not know): validate took the length of the UnregisteredValue, asset.internal. The
+    readers refuse the type (instancer.count); validate checks it as they do."""
+    from vbusd.validators.api import validate
+
+    folder = tmp_path / "crowd"
+    shutil.copytree(layered_crowd, folder)
+    crowd = folder / "crowd.usda"
+    text = crowd.read_text(encoding="utf-8")
+    assert "point3f[] positions = " in text
+    crowd.write_text(text.replace("point3f[] positions = ", "point99999999f[] positions = ", 1), encoding="utf-8")
+    report = validate(crowd)
+    found = [(f["code"], f["location"].get("property")) for f in report.to_json()["findings"] if f["severity"] == "error"]
+    assert found == [("instancer.count", "positions")] and report.exit_status == 1, found
+    capsys.readouterr()
+    assert main(["info", str(crowd)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ".positions: instancer.count: positions must be point3f[], found point99999999f[]" \
+        in err[0], err
+
+
+def test_a_package_ktx2_whose_texel_format_is_a_list_is_a_schema_finding(tmp_path, capsys):
+    """The format 1.2 mutation run: the KTX2 file's vbusd.layout says "texelFormat": [0, 0, 0]; the
+    package reader looked the list up in a dict of pixel types (unhashable): command.internal in
+    validate. It is the schema's finding, and info refuses the package in one line."""
+    from vbusd.io import ktx2
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.io.textures import read_texture
+
+    package = tmp_path / "pkg" / "asset.gltf"
+    export_gltf(MF.build_asset(), package)
+    texture = package.with_name("asset.Animation.ktx2")
+    read = read_texture(texture, check_sidecar=False)
+    layout = dict(_document(package)["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"])
+    layout["texelFormat"] = [0, 0, 0]
+    texture.write_bytes(ktx2.ktx2_bytes(np.array(read.texels), json.dumps(layout)))
+    document = _document(package)
+    view = _texture_view(package)
+    document["bufferViews"][view]["byteLength"] = texture.stat().st_size
+    document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
+    package.write_text(json.dumps(document), encoding="utf-8")
+    _refused_everywhere(package, capsys, "metadata.schema", "/texelFormat")

@@ -860,10 +860,18 @@ def m_mask_attr(folder: Path, seed: dict, rng: random.Random):
             masks = doc.get("masks")
             if not masks:
                 return False
+            # Every choice changes the document: a mask's own name or weight is no change (with one
+            # mask, masks[-1] is masks[0]), and the oracle would expect a refusal of a valid copy.
             if how == "metadata_weight":
-                masks[0]["weights"][rng.randrange(len(masks[0]["weights"]))] = value
+                weights = masks[0]["weights"]
+                i = rng.randrange(len(weights))
+                if weights[i] == value:
+                    return False
+                weights[i] = value
             else:
-                masks[-1]["name"] = rng.choice(["", masks[0]["name"], "x" * 300])
+                names = ["", "x" * 300] + ([masks[0]["name"]] if len(masks) > 1 else [])
+                name = rng.choice([n for n in names if n != masks[-1]["name"]])
+                masks[-1]["name"] = name
 
         done = _edit_metadata(folder, seed, edit, rng)
         if done is None:
@@ -1192,11 +1200,51 @@ def worker() -> int:
     return 0
 
 
+WORKER_THREADS = ("VBUSD_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                  "NUMEXPR_NUM_THREADS")
+"""Thread counts each worker is held to (unless the caller's environment sets them): the run's
+parallelism is its ``--jobs`` workers, and on a machine of many cores N workers that each start a
+thread per core would oversubscribe it N times (and time out as false hangs)."""
+
+
+def worker_environment(environ=None) -> dict:
+    """The environment of a worker: the tree this script belongs to first on ``PYTHONPATH`` (a
+    fresh checkout runs its own vbusd, installed or not; an installed vbusd of another tree is not
+    what this run measures), one thread per worker, unbuffered output."""
+    env = dict(os.environ if environ is None else environ, PYTHONUNBUFFERED="1")
+    paths = [str(ROOT)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p and p != str(ROOT)]
+    env["PYTHONPATH"] = os.pathsep.join(paths)
+    for name in WORKER_THREADS:
+        env.setdefault(name, "1")
+    return env
+
+
+REQUIREMENTS = {"lod": ("meshoptimizer", "the lod seeds are made with convert --lod-ratios: pip install -e '.[lod]' "
+                                          "(meshoptimizer builds from source: a C++ compiler and Python's headers)")}
+"""What a surface's seeds need beyond vbusd's own requirements (pxr, OpenEXR, numpy...)."""
+
+
+def missing_requirements(surfaces) -> list:
+    """One line per requirement of ``surfaces`` that this Python lacks (checked before any seed is
+    made, so that a fresh machine learns what to install in the first second, not after the seeds)."""
+    import importlib.util
+
+    out = []
+    for module in ("pxr", "OpenEXR", "numpy", "jsonschema", "pygltflib"):
+        if importlib.util.find_spec(module) is None:
+            out.append(f"{module} is not installed: pip install -e . (in the checkout)")
+    for surface in surfaces:
+        module, why = REQUIREMENTS.get(surface, (None, None))
+        if module and importlib.util.find_spec(module) is None:
+            out.append(f"--surfaces {surface}: {module} is not installed; {why}")
+    return out
+
+
 class Worker:
     """One worker process and its pipes."""
 
     def __init__(self) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env = worker_environment()
         self.proc = subprocess.Popen([sys.executable, str(ROOT / "benchmarks" / "mutation_run.py"), "--worker"], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, text=True)
         self.baseline_mb = None
@@ -1326,7 +1374,7 @@ too. ``info`` and ``view`` of a package read the metadata and headers only (spec
 vbusd validate makes but the texels")."""
 
 LIMITATIONS = {"export": {"layers.unsupported", "export.noMeshes", "export.mesh"},
-               "decode": set(), "api": set(), "view": set(), "info": set()}
+               "decode": {"decode.noMeshes"}, "api": set(), "view": set(), "info": set()}
 """Refusals that are no verdict on the file: what a reader does not implement (the runtime
 package holds no layers yet) or cannot write."""
 
@@ -1388,15 +1436,48 @@ def agreement(tasks: list, results: list) -> list:
     return out
 
 
+STATUS_COLUMNS = (("0", "exit 0"), ("1", "exit 1 (findings)"), ("2", "exit 2 (one line)"),
+                  ("3", "exit 3 (internal)"), ("None", "no exit (traceback, hang)"))
+
+
+def _number(value) -> str:
+    return f"{value:,}" if value else ""
+
+
+def markdown_table(summary: dict) -> str:
+    """The summary as benchmarks/README.md shows it: runs and exit statuses per command, then the
+    problems (each must be 0) and the accepted-bad split, and the run's size and time."""
+    lines = ["| command | runs | " + " | ".join(title for _, title in STATUS_COLUMNS) + " |",
+             "|---|--:|" + "--:|" * len(STATUS_COLUMNS)]
+    for command, runs in summary["by_command"].items():
+        cells = [_number(summary["statuses"].get(f"{command}:{status}", 0)) for status, _ in STATUS_COLUMNS]
+        lines.append(f"| {command} | {runs:,} | " + " | ".join(cells) + " |")
+    problems, split = summary["problems"], summary["accepted_bad"]
+    names = [k for k in problems if k != "accepted_bad"]
+    lines += ["", "| " + " | ".join(n.replace("_", " ") for n in names) + " | accepted-bad ("
+              + " / ".join(split) + ") |", "|" + "--:|" * (len(names) + 1),
+              "| " + " | ".join(f"{problems[n]:,}" for n in names) + f" | {problems['accepted_bad']:,} ("
+              + " / ".join(f"{split[k]:,}" for k in split) + ") |", "",
+              f"{summary['mutants']:,} mutants, {summary['runs']:,} runs in {summary['seconds']:,} s on "
+              f"{summary.get('workers', '?')} workers ({summary.get('cores', '?')} usable cores); peak worker "
+              f"memory {summary['peak_rss_mb']} MB.", ""]
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--mutants", type=int, default=5000)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--jobs", type=int, default=2,
+                        help="worker processes (0: one per usable core); each runs one command at a time "
+                             "on one thread")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds before a run counts as a hang")
     parser.add_argument("--max-rss-mb", type=float, default=500.0)
     parser.add_argument("--json", type=Path, help="write the summary and failures here")
+    parser.add_argument("--table", type=Path,
+                        help="write the summary as the Markdown tables of benchmarks/README.md here (default: "
+                             "beside --json, with the suffix .md)")
     parser.add_argument("--keep", type=Path, help="build the mutants here and keep them")
     parser.add_argument("--surfaces", default="old",
                         help="comma-separated: old (the 1.0/1.1 assets and sources), compact, package, lod, "
@@ -1408,6 +1489,16 @@ def main(argv=None) -> int:
     unknown = sorted(set(surfaces) - set(SURFACES))
     if unknown or not surfaces:
         parser.error(f"--surfaces: unknown {', '.join(unknown) or 'empty'} (known: {', '.join(SURFACES)})")
+    if args.jobs < 0 or args.mutants < 0:
+        parser.error("--jobs and --mutants must be 0 or more")
+    if str(ROOT) not in sys.path:  # the seeds are made in this process with this tree's vbusd, as workers use
+        sys.path.insert(0, str(ROOT))
+    missing = missing_requirements(surfaces)
+    if missing:
+        parser.error("; ".join(missing))
+    from vbusd.process.parallel import usable_cores  # this tree's vbusd (above): its one rule for core counts
+
+    workers = args.jobs or usable_cores()
     root = Path(tempfile.mkdtemp(prefix="vbusd-mutants-")) if args.keep is None else args.keep
     start = time.perf_counter()
     jobs = make_mutants(root / "old", args.mutants, args.seed) if "old" in surfaces else []
@@ -1422,9 +1513,11 @@ def main(argv=None) -> int:
             last[0] = now
             print(f"\r{done}/{total} runs, {now - start:.0f} s", end="", file=sys.stderr, flush=True)
 
-    summary = run(jobs, root / "out", workers=args.jobs, timeout=args.timeout, max_rss_mb=args.max_rss_mb,
+    summary = run(jobs, root / "out", workers=workers, timeout=args.timeout, max_rss_mb=args.max_rss_mb,
                   progress=progress)
     summary["seconds"] = round(time.perf_counter() - start, 1)
+    summary["workers"] = workers
+    summary["cores"] = usable_cores()
     summary["command"] = "python benchmarks/mutation_run.py " + " ".join(argv if argv is not None else sys.argv[1:])
     print(file=sys.stderr)
     shown = {k: v for k, v in summary.items() if k != "failures"}
@@ -1437,6 +1530,11 @@ def main(argv=None) -> int:
         for prefix, name in ((sys.prefix, "<python>"), (sys.base_prefix, "<python>")):
             text = text.replace(prefix, name)
         args.json.write_text(text + "\n")
+    table = markdown_table(summary)
+    print(table)
+    destination = args.table or (args.json.with_suffix(".md") if args.json else None)
+    if destination is not None:
+        destination.write_text(table)
     if args.keep is None:
         shutil.rmtree(root, ignore_errors=True)
     return 0 if not any(summary["problems"].values()) else 1

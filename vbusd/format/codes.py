@@ -137,8 +137,9 @@ _FINDINGS = (
     # texture readers
     Code("metadata.inconsistent", E, "Layout metadata contradicts itself: a derived size (texelsPerBone, "
          "usedWidth, width, height, texelBytes) is not what its other values compute, bones does not "
-         "hold boneCount names, clips do not tile the rows in order under unique names, or a unorm16 "
-         "range has min above max.", f"{_VB}#layout-metadata", "json"),
+         "hold boneCount names, clips do not tile the rows in order under unique names, a unorm16 "
+         "range has min above max, or bindTransforms, boneParents or a mask's weights do not hold one "
+         "entry per bone, a parent is no other bone, or mask names repeat.", f"{_VB}#layout-metadata", "json"),
     Code("metadata.sidecarMismatch", E, "The sidecar <texture>.json and the metadata embedded in the "
          "texture disagree.", f"{_VB}#layout-metadata", "json"),
     # encodings
@@ -316,6 +317,9 @@ _COMMAND_ERRORS = (
     Code("decode.memory", E, "The point cache would need more memory than --max-memory or the memory "
          "available (the message names both), or a crowd mesh more points than 32-bit indices address; "
          "refused before decoding.", "usd-conversion.md#pointcache", "file"),
+    Code("decode.noMeshes", E, "The asset has no mesh bound to an animation (nor, with --crowd, a crowd): "
+         "there is nothing to decode. The asset itself may be valid: an animation needs no bound mesh.",
+         "usd-conversion.md#pointcache", "file"),
     Code("decode.write", E, "The point cache cannot be written (disk full, permissions); nothing was "
          "written.", f"{_VB}#conforming-writer", "file"),
     # writes

@@ -314,7 +314,10 @@ class AccessorReader:
 
     def _convert(self, values: np.ndarray, ctype: int, normalized: bool, where: str) -> np.ndarray:
         if ctype == 5126:
-            out = values.astype(np.float64)
+            # A signalling NaN (a corrupt buffer's bytes) raises the invalid flag as it widens: numpy
+            # warns on stderr, a raw line; NaN is refused below with its element.
+            with np.errstate(invalid="ignore"):
+                out = values.astype(np.float64)
             if not np.all(np.isfinite(out)):
                 bad = int(np.nonzero(~np.isfinite(out.reshape(len(out), -1)).all(axis=1))[0][0])
                 raise InputError(f"element {bad} holds a NaN or infinite value", file=self.file,

@@ -241,8 +241,19 @@ def _check_extension(root: dict, file: str, diagnostics: Diagnostics) -> Optiona
         diagnostics.report("package.extension", f"{EXTENSION} must be an object, found JSON {json_kind(value)}",
                            JsonPointer(file, _ROOT))
         return None
-    _schema(root_validator, value, _ROOT, file, diagnostics)
+    if _schema(root_validator, value, _ROOT, file, diagnostics):
+        for entry in value["animations"]:
+            _integers(entry["texture"], ("bufferView",))
     return value
+
+
+def _integers(obj: dict, keys) -> None:
+    """The members ``keys`` of a schema-checked object as Python ints: JSON Schema counts ``3.0`` an
+    integer (runtime-package.md 3), which as a float cannot index a list or count a range."""
+    for key in keys:
+        value = obj.get(key)
+        if isinstance(value, float) and value.is_integer():
+            obj[key] = int(value)
 
 
 def _texture_name(gltf, view_index: int, data: bytes, file: str) -> str:
@@ -349,6 +360,7 @@ def _check_primitives(root: dict, reader, animations: list, file: str, diagnosti
             _check_geometry(root, reader, primitive, f"/meshes/{m}/primitives/{p}", file, diagnostics, failed)
             if not isinstance(ext, dict) or not _validators()[1].is_valid(ext):
                 continue  # not bound, or its object broke the schema (reported)
+            _integers(ext, ("animation", "influences"))
             where = f"/meshes/{m}/primitives/{p}"
             index = ext["animation"]
             if index >= declared:
@@ -402,7 +414,10 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         name = node.get("name") or f"node{n}"
         ids = ((node.get("extensions") or {}).get("MSFT_lod") or {}).get("ids")
         if isinstance(ids, list) and ids:
-            coverage = (node.get("extras") or {}).get("MSFT_screencoverage")
+            # glTF lets extras be any JSON value (an object only SHOULD): MSFT_lod's screen coverage
+            # is read from an object's member, and no object means none is given.
+            extras = node.get("extras")
+            coverage = extras.get("MSFT_screencoverage") if isinstance(extras, dict) else None
             sizes = [float(c) for c in coverage if isinstance(c, (int, float)) and not isinstance(c, bool)] \
                 if isinstance(coverage, list) else []
             package.lods.append({"node": name, "animation": bound[node["mesh"]], "levels": len(ids) + 1,
@@ -667,8 +682,8 @@ def _check_ktx2(animation: PackageAnimation, file: str, diagnostics: Diagnostics
         width, height = document.get("width"), document.get("height")
         textures.check_image(image, local, width=width if isinstance(width, int) else None,
                              height=height if isinstance(height, int) else None,
-                             texel_format=texel_format if texel_format in textures.CONTAINERS["ktx2"].pixel_types
-                             else None,
+                             texel_format=texel_format if isinstance(texel_format, str)
+                             and texel_format in textures.CONTAINERS["ktx2"].pixel_types else None,
                              format_location=JsonPointer(animation.texture, "/texelFormat", image.metadata_part))
     if diagnostics.strict:
         for item in local.findings:

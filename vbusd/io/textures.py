@@ -580,10 +580,22 @@ def read_sidecar(path: PathLike) -> md.LayoutInfo:
     Args:
         path: The sidecar itself (not the texture).
 
+    The texture the sidecar belongs to (``path`` less ``.json``), when it exists, is read too,
+    without its pixels (:func:`read_texture_header`): all copies of the metadata must agree and a
+    reader must not guess which one is right (spec 12, 12.3), so a sidecar that disagrees with the
+    metadata embedded in its texture is refused (``metadata.sidecarMismatch``), as ``vbusd
+    validate`` of the sidecar and :func:`read_texture` of the texture refuse it. A sidecar whose
+    texture is gone is read alone.
+
     Raises:
         InputError: Missing or unreadable file, text that is not UTF-8 (``byte N``), broken JSON
-            (``line L column C``), or invalid metadata (a JSON pointer).
+            (``line L column C``), or invalid metadata (a JSON pointer); its texture's problems
+            (as :func:`read_texture_header`), a disagreeing copy included.
     """
     file = str(path)
     document = read_sidecar_document(path, Diagnostics(file, strict=True))
-    return md.from_dict(document, file=file)
+    info = md.from_dict(document, file=file)
+    texture = Path(file[:-len(".json")]) if file.lower().endswith(".json") else None
+    if texture is not None and sidecar_path(texture) == Path(path) and os.path.lexists(texture):
+        read_texture_header(texture)
+    return info

@@ -251,7 +251,8 @@ class UsdReader:
         reported = set()
         for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
             site = getattr(error, "rootSite", None)
-            text = one_line(str(error), 300)
+            text = one_line(error_text(error) or "USD reported a composition error whose text is not valid UTF-8",
+                            300)
             reported.add(text)
             self.report("asset.composition", f"composition error: {text}",
                         UsdSite(str(site.path) if site is not None else "/"))
@@ -417,8 +418,17 @@ class UsdReader:
                 continue
             try:
                 child = Sdf.Layer.FindOrOpen(str(target))
-            except Tf.ErrorException:
-                continue  # reported by USD as a composition error
+            except Tf.ErrorException as error:
+                if error_text(error) is not None:
+                    continue  # reported by USD as a composition error
+                # USD's text echoes bytes of the layer that are not UTF-8: its composition error
+                # could not be printed either, so the layer is named here, at that byte.
+                offset = first_non_utf8(target)
+                at = f" at byte {offset}" if offset is not None else ""
+                self.report("usd.open", f"USD cannot open layer @{dependency}@: {tf_message(error)}; the "
+                            f"layer holds a byte that is not UTF-8{at}", FileLocation(str(target), offset))
+                composable = False
+                continue
             if child is not None:
                 composable = self.check_dependencies(Sdf, Tf, child, seen) and composable
         return composable
@@ -1444,8 +1454,11 @@ def authored_type_mismatch(attribute, type_name: str) -> Optional[str]:
     Sdf = _pxr()[0]
     expected = Sdf.ValueTypeNames.Find(type_name)
     for spec in attribute.GetPropertyStack():
-        if expected and spec.typeName.type != expected.type:
-            return f"{spec.typeName} in {Path(spec.layer.identifier).name}"
+        type_name_of = getattr(spec, "typeName", None)
+        if type_name_of is None:  # a relationship's spec where an attribute is read (a corrupt crate file)
+            return f"a relationship in {Path(spec.layer.identifier).name}"
+        if expected and type_name_of.type != expected.type:
+            return f"{type_name_of} in {Path(spec.layer.identifier).name}"
     actual = str(attribute.GetTypeName())
     return None if not expected or Sdf.ValueTypeNames.Find(actual).type == expected.type else actual
 

@@ -248,7 +248,8 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
     Raises:
         OptionsError: Bad options or output (before any work); a cache that would not fit
             ``max_memory`` (code ``decode.memory``, before any decoding).
-        InputError: The asset cannot be read.
+        InputError: The asset cannot be read; it has no bound mesh (``decode.noMeshes``: nothing to
+            decode, though the asset may be valid).
     """
     started = time.perf_counter()
     asset_path, output = Path(asset_path), Path(output)
@@ -305,7 +306,10 @@ def decode(asset_path, output, *, device: Optional[str] = None, clip=None, force
             first_code, last_code = min(first_code, float(codes[0])), max(last_code, float(codes[-1]))
             report.meshes.extend(_decode_crowd(cache, vb, crowd, codes, tcps, skin_crowd))
     if not report.meshes:
-        raise OptionsError("the asset has no bound mesh to decode", file=str(asset_path))
+        # Not a verdict on the asset (an animation needs no bound mesh: validate calls it valid); the
+        # job has nothing to write (usd-conversion.md 10), as export has nothing to export.
+        raise InputError("the asset has no mesh bound to an animation: there is nothing to decode",
+                         file=str(asset_path), location="file", code="decode.noMeshes")
     # One commit (spec, "File names and the write guarantee"): under the output's lock, the cache
     # is staged beside the target and one rename makes it current; a run killed half way leaves a
     # staged file that the next run writing there removes.

@@ -27,6 +27,7 @@ from vbusd.validators.checks_texture import check_texture_only
 from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.usd_reader import open_stage as open_usd_stage
 from vbusd.io.usd_reader import reading
+from vbusd.io.usd_errors import error_text
 from pxr import Usd
 from vbusd.format import names
 from vbusd.io.usd_lod import check_animation_levels
@@ -178,7 +179,8 @@ def validate_stage(stage, asset_dir: str, *, opened: bool = False, allow_outside
         # what it can and only warns, but readers (vbusd's included) refuse such a stage.
         for error in stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else ():
             site = getattr(error, "rootSite", None)
-            findings.append(finding("asset.composition", " ".join(str(error).split())[:300],
+            text = error_text(error) or "USD reported a composition error whose text is not valid UTF-8"
+            findings.append(finding("asset.composition", " ".join(text.split())[:300],
                                     UsdSite(str(site.path) if site is not None else "/")))
     animations = 0
     iterator = iter(Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)))

@@ -144,10 +144,17 @@ def check_binding_prim(prim):
     bone_count = _int_value(target, vb_names.BY_KEY["boneCount"].name) if target is not None else None
 
     points_attr = UsdGeom.Mesh(prim).GetPointsAttr() if prim.IsA(UsdGeom.PointBased) else prim.GetAttribute("points")
-    points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() else None
+    # The reader's rule (UsdReader.read_mesh): points of another authored type are refused by it.
+    wrong_points = (wrong_type(points_attr, "point3f[]") if points_attr and points_attr.IsValid()
+                    and points_attr.HasAuthoredValue() else None)
+    points = _array(points_attr, np.float64) if points_attr and points_attr.IsValid() and wrong_points is None \
+        else None
     if points is not None:
         points = points.reshape(-1, 3) if points.size % 3 == 0 else None
-    out += _check_topology(prim, path, points)
+    if wrong_points is not None:
+        out.append(finding("binding.mesh", f"points must be point3f[], found {wrong_points}", UsdSite(path, "points")))
+    else:
+        out += _check_topology(prim, path, points)
     if points is not None:
         bad = ~np.all(np.isfinite(points), axis=-1)
         if bad.any():
@@ -216,7 +223,7 @@ def check_binding_prim(prim):
             out.append(finding("binding.weights.sum", f"{int(off.sum())} vertex(es) have weights not summing "
                                f"to 1 (tolerance {WEIGHT_SUM_TOLERANCE}); the first is vertex {vertex} with "
                                f"sum {float(sums[vertex]):.6g}", UsdSite(path, WEIGHTS)))
-    out += _check_normals(prim, path)
+    out += _check_normals(prim, path, points)
     if target is not None and points is not None and INDICES in arrays and WEIGHTS in arrays and bone_count:
         out += _check_compact_error_bound(target, path, points, arrays[INDICES], arrays[WEIGHTS], bone_count)
     return out
@@ -265,6 +272,11 @@ def _check_topology(prim, path, points):
                         "per point)", UsdSite(path, "points"))]
     if not prim.HasAttribute("faceVertexCounts") and not prim.HasAttribute("faceVertexIndices"):
         return []  # not a Mesh (binding.api.prim says so) or a point cloud: nothing more to check
+    for name in ("faceVertexCounts", "faceVertexIndices"):  # the reader's rule (UsdReader.read_mesh)
+        attribute = prim.GetAttribute(name)
+        actual = wrong_type(attribute, "int[]") if attribute and attribute.HasAuthoredValue() else None
+        if actual is not None:
+            return [finding("binding.mesh", f"{name} must be int[], found {actual}", UsdSite(path, name))]
     counts = _array(prim.GetAttribute("faceVertexCounts"), np.int64)
     indices = _array(prim.GetAttribute("faceVertexIndices"), np.int64)
     if counts is None or indices is None:
@@ -286,7 +298,9 @@ def _check_topology(prim, path, points):
     return []
 
 
-def _check_normals(prim, path):
+def _check_normals(prim, path, points):
+    """Rest normals against ``points`` (the mesh's points as checked above: None when unreadable or
+    of another type, which is reported there)."""
     attribute, name = None, None
     primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
     if primvar and primvar.HasValue():
@@ -295,7 +309,16 @@ def _check_normals(prim, path):
         attribute, name = prim.GetAttribute("normals"), "normals"
     if attribute is None:
         return []
-    normals = _array(attribute, np.float64)
+    # The reader's rules (UsdReader.read_normals, through UsdReader.numbers): the authored type, then
+    # values that read as numbers, three per normal.
+    actual = wrong_type(attribute, "normal3f[]")
+    if actual is not None:
+        return [finding("prim.attribute.missing", f"{name} must be normal3f[], found {actual}", UsdSite(path, name))]
+    try:
+        normals = _array(attribute, np.float64)
+    except (TypeError, ValueError) as error:
+        return [finding("usd.value", f"{name} does not read as numbers: {' '.join(str(error).split())[:200]}",
+                        UsdSite(path, name))]
     if normals is None or normals.size % 3:
         return []
     normals = normals.reshape(-1, 3)
@@ -309,8 +332,6 @@ def _check_normals(prim, path):
         interpolation = str(UsdGeom.PointBased(prim).GetNormalsInterpolation()) \
             if prim.IsA(UsdGeom.PointBased) else "vertex"
         count = len(normals)
-    points = _array(prim.GetAttribute("points"), np.float64) if prim.HasAttribute("points") else None
-    points = None if points is None else points.reshape(-1, 3)
     face_vertices = prim.GetAttribute("faceVertexIndices").Get() if prim.HasAttribute("faceVertexIndices") \
         else None
     expected = {"vertex": None if points is None else len(points),
@@ -392,7 +413,12 @@ def check_instancer_prim(prim):
     # positions); without positions the instance count is unknown.
     count = None
     attribute = prim.GetAttribute("positions")
-    if attribute.IsValid() and attribute.HasValue():
+    wrong_positions = (wrong_type(attribute, "point3f[]") if attribute.IsValid() and attribute.HasAuthoredValue()
+                       else None)
+    if wrong_positions is not None:  # the reader's rule (UsdReader.read_crowd: UsdReader.numbers)
+        out.append(finding("instancer.count", f"positions must be point3f[], found {wrong_positions}",
+                           UsdSite(path, "positions")))
+    elif attribute.IsValid() and attribute.HasValue():
         count = len(attribute.Get())
     else:
         out.append(finding("instancer.count", "positions is missing: the instances are the positions",

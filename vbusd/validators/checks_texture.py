@@ -30,8 +30,8 @@ from vbusd.format.diagnostics import JsonPointer
 from vbusd.format.errors import VbusdError
 from vbusd.format.declared import check_declared, check_format_version, compare_declared
 
-__all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency",
-           "check_texture_file", "check_texture_only"]
+__all__ = ["TEXEL_FORMATS", "check_metadata_schema", "check_metadata_consistency", "metadata_relations",
+           "not_reported", "check_texture_file", "check_texture_only"]
 
 TEXEL_FORMATS = ("float16", "float32", "unorm16", "uint32")
 
@@ -76,6 +76,35 @@ def check_metadata_consistency(meta_declared: Declared) -> list:
     return out
 
 
+def metadata_relations(meta, file: str) -> list:
+    """The findings of :func:`vbusd.format.metadata.check_relations` on one document that passed its
+    schema: the relations every reader refuses (``metadata.inconsistent``: the counts of ``bones``,
+    ``bindTransforms``, ``boneParents`` and each mask's weights, a parent outside the bones or a
+    cycle, duplicate clip and mask names, the derived sizes), as the readers find them."""
+    diagnostics = Diagnostics(file)
+    md.check_relations(meta, diagnostics, file=file)
+    return diagnostics.findings
+
+
+def not_reported(candidates: list, found: list) -> list:
+    """The ``candidates`` that no error of ``found`` (or an earlier candidate) covers: one whose JSON
+    pointer equals, contains or lies inside the candidate's. validate's own checks name many of the
+    readers' relations with their own codes (``clip.order``, ``layout.width``...), and a texture's
+    embedded metadata and its sidecar are one document twice (their differences are
+    ``metadata.sidecarMismatch``): the readers' rule is added only where validate has not said it,
+    so each problem is one finding."""
+    taken = [item.location.pointer for item in found
+             if isinstance(item.location, JsonPointer) and item.severity.value == "error"]
+    out = []
+    for item in candidates:
+        pointer = item.location.pointer
+        if not any(pointer == p or pointer.startswith(p + "/") or p.startswith(pointer + "/") or not p or not pointer
+                   for p in taken):
+            out.append(item)
+            taken.append(pointer)
+    return out
+
+
 def _upgraded(value, file: str, out: list):
     """A document of an older format version brought to the current one with the format's upgrade
     functions (:func:`vbusd.format.metadata.upgrade`), so it is checked against the current
@@ -113,7 +142,7 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
     if image is None:
         return out
     documents = [(image.document, display), (image.sidecar, image.sidecar_file)]
-    meta_declared, schema_ok = [], []
+    meta_declared, schema_ok, relations = [], [], []
     for value, file in documents:
         if value is None:
             continue
@@ -121,6 +150,8 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
         problems = check_metadata_schema(value, file)
         out += problems
         schema_ok.append(not problems)
+        if not problems and value.get("formatVersion") == FORMAT_VERSION:
+            relations += metadata_relations(value, file)
         meta_declared.append(from_metadata(value, file))
         out += check_metadata_consistency(meta_declared[-1])
     if declared is None:
@@ -146,7 +177,7 @@ def check_texture_file(texture_path: str, display: str, declared: Optional[Decla
                          format_location=FileLocation(display), digest_location=where, what=what)
     if image.texels is not None:
         out += _check_texels(image.texels, display, declared, site)
-    return out
+    return out + not_reported(relations, out)
 
 
 def _check_texels(tex: np.ndarray, display: str, declared: Declared, site: Optional[UsdSite]) -> list:
@@ -202,8 +233,11 @@ def check_texture_only(path: str) -> list:
         return diagnostics.findings
     out = [finding("texture.missing", f"the texture {os.path.basename(texture)} of this sidecar does not "
                    "exist", FileLocation(texture))]
-    out += check_metadata_schema(value, path)
+    problems = check_metadata_schema(value, path)
+    out += problems
     declared = from_metadata(value, path)
     out += check_metadata_consistency(declared)
     out += check_declared(declared)
+    if not problems and isinstance(value, dict) and value.get("formatVersion") == FORMAT_VERSION:
+        out += not_reported(metadata_relations(value, path), out)
     return out
