@@ -78,3 +78,24 @@ def test_a_newer_major_version_in_the_texture_metadata_is_one_line(asset, capsys
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"vbusd: {exr}: header/vbusd.layout/formatVersion: format.version: formatVersion 2 is newer "
                    f"than this reader (version {versioning.CURRENT}); upgrade vbusd to read it"]
+
+
+def test_known_minor_versions_are_compared_by_content_not_number():
+    """Spec 16: a prim and its texture's metadata may declare different minor versions this reader
+    knows (the 5,000-mutant run at 1.3: metadata raised to 1.3 under a 1.2 prim was a validate error
+    that every reader accepted); a value that differs, or a version newer than the reader's, is still
+    reported."""
+    from vbusd.format.declared import Declared, compare_declared
+    from vbusd.format.versioning import FORMAT_MINOR_VERSION
+
+    def declared(minor, rows=8):
+        return Declared("metadata", {"formatVersion": 1, "formatMinorVersion": minor, "rowCount": rows},
+                        locate=lambda key: f"/{key}")
+
+    prim = declared(2)
+    assert compare_declared(prim, declared(FORMAT_MINOR_VERSION), "metadata.mismatch", "the prim") == []
+    assert compare_declared(prim, declared(0), "metadata.mismatch", "the prim") == []
+    (finding,) = compare_declared(prim, declared(FORMAT_MINOR_VERSION + 1), "metadata.mismatch", "the prim")
+    assert finding.code == "metadata.mismatch" and finding.location == "/formatMinorVersion"
+    (finding,) = compare_declared(prim, declared(2, rows=9), "metadata.mismatch", "the prim")
+    assert finding.location == "/rowCount"

@@ -22,7 +22,7 @@ import numpy as np
 from vbusd.format.compact import RANGE_SLOTS, range_problems
 from vbusd.format.diagnostics import JsonPointer, finding
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat
-from vbusd.format.versioning import CURRENT, Version
+from vbusd.format.versioning import CURRENT, FORMAT_MINOR_VERSION, Version
 
 __all__ = ["Declared", "from_metadata", "build_layout", "same_value", "check_format_version",
            "check_declared_layout", "check_clips", "check_declared", "compare_declared",
@@ -347,9 +347,12 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
     for key in COMPARED_KEYS:
         if key in reference.values and key in other.values:
             a, b = reference.values[key], other.values[key]
-            if key == "formatMinorVersion" and _is_number(a) and _is_number(b) and a == 2 and b < 2:
-                # Levels of detail make a prim 1.2 but change no texel and no metadata key (spec
-                # 20.5): its texture's metadata keeps the lowest version that holds it.
+            if key == "formatMinorVersion" and _is_number(a) and _is_number(b) and \
+                    max(a, b) <= FORMAT_MINOR_VERSION:
+                # Each source declares the lowest version that holds what it carries (levels of
+                # detail make a prim 1.2 and change no metadata key, spec 20.5) and is upgraded on its
+                # own (spec 16): two versions this reader knows are compared by content, not by
+                # number. A newer one is refused by the version check, not here.
                 continue
             if not same_value(a, b):
                 out.append(finding(code, f"{key} is {_short(b)} but {what} {_where(reference, key)} says "
