@@ -388,8 +388,15 @@ class VirtualBones:
     masks: tuple = ()
     """Format 1.2: the named bone masks, ``(name, (bones,) float64 weights in [0, 1])`` pairs (spec
     "Layers and bone masks"); stored only with ``bone_parents`` and ``bind_transforms``."""
+    blend_spaces: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.BlendSpace` objects (spec 23); stored only with
+    ``bone_parents`` and ``bind_transforms``."""
+    markers: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.Marker` objects, the clips' named times (spec 23.4)."""
 
     def __post_init__(self) -> None:
+        if self.blend_spaces and (self.bone_parents is None or self.bind_transforms is None):
+            raise ValueError("blend spaces need bone parents and bind transforms (spec 23)")
         if self.texels.shape != self.layout.shape:
             raise ValueError(f"texels shape {self.texels.shape} != layout shape {self.layout.shape}")
         if self.texels.dtype != np.dtype(self.layout.texel_format.numpy_dtype):

@@ -25,10 +25,11 @@ from vbusd.format.layout import FORMAT_VERSION
 __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_from", "version_of",
            "upgrade"]
 
-FORMAT_MINOR_VERSION = 2
+FORMAT_MINOR_VERSION = 3
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
 Writers write the lowest version that holds an asset (spec 16.1, 16.2, 20.5): 1.0 unless it uses a 1.1
-key, 1.2 for the compact encoding, levels of detail or a 1.2 key (bone parents, masks)."""
+key, 1.2 for the compact encoding, levels of detail or a 1.2 key (bone parents, masks), 1.3 for a 1.3 key
+(blend spaces, markers: spec 16.3, 23)."""
 
 
 class Version(NamedTuple):
@@ -60,20 +61,24 @@ KEYS_1_0 = frozenset((
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
 KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
+KEYS_1_2 = KEYS_1_1 | {"boneParents", "masks", "compactRanges", "compactRangeMin", "compactRangeMax"}
 KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
               # Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims.
-              (1, 2): KEYS_1_1 | {"boneParents", "masks", "compactRanges", "compactRangeMin",
-                                   "compactRangeMax"}}
+              (1, 2): KEYS_1_2,
+              # Blend spaces and markers (1.3, spec 16.3, 23).
+              (1, 3): KEYS_1_2 | {"blendSpaces", "markers"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
 
 ENCODINGS_1_0 = frozenset(("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"))
 KNOWN_VALUES = {
     "encoding": {(1, 0): ENCODINGS_1_0, (1, 1): ENCODINGS_1_0,
-                 (1, 2): ENCODINGS_1_0 | {"compactQuatTranslation"}},
+                 (1, 2): ENCODINGS_1_0 | {"compactQuatTranslation"},
+                 (1, 3): ENCODINGS_1_0 | {"compactQuatTranslation"}},
     "texelFormat": {(1, 0): frozenset(("float16", "float32", "unorm16")),
                     (1, 1): frozenset(("float16", "float32", "unorm16")),
-                    (1, 2): frozenset(("float16", "float32", "unorm16", "uint32"))},
+                    (1, 2): frozenset(("float16", "float32", "unorm16", "uint32")),
+                    (1, 3): frozenset(("float16", "float32", "unorm16", "uint32"))},
 }
 """The encodings and texel formats each version defines: a reader refusing a newer document names
 the encoding it cannot decode first (spec 16.2), then any keys it does not know."""
@@ -226,3 +231,10 @@ def upgrade_1_1_to_1_2(document: dict) -> dict:
     """1.1 -> 1.2 (spec 16.2, 20.5): the compact encoding (which no 1.1 document uses), bone parents and
     masks (layers) and levels of detail (UsdLod prims) are all optional; nothing to fill in."""
     return {**document, "formatMinorVersion": 2}
+
+
+@upgrades_from(1, 2)
+def upgrade_1_2_to_1_3(document: dict) -> dict:
+    """1.2 -> 1.3 (spec 16.3): blend spaces and clip markers are optional and absent means none (additive
+    layers and blend parameters are a decoder's and an instance's); nothing to fill in."""
+    return {**document, "formatMinorVersion": 3}

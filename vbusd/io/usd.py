@@ -250,6 +250,23 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["maskNames"] = Vt.TokenArray([str(name) for name, _ in vb.masks])
         values["maskWeights"] = Vt.FloatArray([float(w) for _, weights in vb.masks for w in weights])
         minor = max(minor, 2)
+    if vb.blend_spaces:
+        # Format 1.3 (spec 23.6): per space name, dimensions, point count, sync marker; per point its
+        # clip and position, space after space.
+        spaces = vb.blend_spaces
+        values["blendSpaceNames"] = Vt.TokenArray([str(s.name) for s in spaces])
+        values["blendSpaceDimensions"] = Vt.IntArray([int(s.dimensions) for s in spaces])
+        values["blendSpacePointCounts"] = Vt.IntArray([len(s.points) for s in spaces])
+        values["blendSpaceClips"] = Vt.TokenArray([str(c) for s in spaces for c in s.clips])
+        values["blendSpacePoints"] = Vt.Vec2dArray([Gf.Vec2d(float(p[0]), float(p[1]) if len(p) > 1 else 0.0)
+                                                    for s in spaces for p in s.points])
+        values["blendSpaceSyncMarkers"] = Vt.TokenArray([str(s.sync_marker or "") for s in spaces])
+        minor = max(minor, 3)
+    if vb.markers:
+        values["markerClips"] = Vt.TokenArray([str(m.clip) for m in vb.markers])
+        values["markerNames"] = Vt.TokenArray([str(m.name) for m in vb.markers])
+        values["markerTimes"] = Vt.DoubleArray([float(m.time) for m in vb.markers])
+        minor = max(minor, 3)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
         # float4[] holds float32: the nearest float32 of each float64 bound (spec: USD schema).
