@@ -17,15 +17,17 @@ import numpy as np
 from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpack
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
-from vbusd.format.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
+from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
 from vbusd.format.errors import InputError
 from vbusd.format.rootmotion import displacement
+from vbusd.format.motion import crossed_markers
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
-           "mix_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers"]
+           "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
+           "Additive", "crowd_events"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -239,6 +241,23 @@ def skin_mesh_at_rows(vb: VirtualBones, mesh: BoundMesh, clip_index: int) -> tup
 def instance_time(crowd: Crowd, t: float) -> np.ndarray:
     """Clip-local time of every instance at scene time ``t``: timeOffset + playbackRate * t."""
     return np.asarray(crowd.time_offset, dtype=np.float64) + np.asarray(crowd.playback_rate, dtype=np.float64) * t
+
+
+def crowd_events(vb: VirtualBones, crowd: Crowd, t0: float, t1: float) -> list:
+    """The markers every instance of a crowd crosses between scene times ``t0`` and ``t1`` (spec 23.5):
+    instance ``i`` plays clip-local time ``timeOffset + playbackRate x t``, so its events are its
+    clip's markers crossed from that time at ``t0`` to that at ``t1`` (backward for a negative rate).
+
+    Returns:
+        ``[(instance, {"name", "time"})]``, instance by instance, each in the order crossed.
+    """
+    out = []
+    start, end = instance_time(crowd, t0), instance_time(crowd, t1)
+    for i in range(crowd.instance_count):
+        clip = vb.clips[int(crowd.clip[i])]
+        out.extend((i, event) for event in crossed_markers(vb.markers, clip.name, clip.duration, clip.loop,
+                                                           float(start[i]), float(end[i])))
+    return out
 
 
 def crossfade(pose_a: tuple, pose_b: tuple, weight) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -512,6 +531,30 @@ def mix_local(x: np.ndarray, y: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return out
 
 
+def add_local(x: np.ndarray, layer: np.ndarray, reference: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``X`` with ``alpha`` of the additive difference of ``layer`` from ``reference`` (spec 23.4), for
+    (..., 4, 4) local transforms and (...) weights: ``t + a (t_L - t_R)``, ``q (x) slerp(1, q_R^-1 q_L, a)``,
+    ``s + a (s_L - s_R)``, as three.js' ``makeClipAdditive`` and additive ``PropertyMixer`` give; ``X``
+    itself where ``alpha`` is 0."""
+    out = x.copy()
+    active = alpha > 0.0
+    if np.any(active):
+        a = np.minimum(alpha[active], 1.0)
+        tx, qx, sx = decompose_trs(x[active])
+        tl, ql, sl = decompose_trs(layer[active])
+        tr, qr, sr = decompose_trs(reference[active])
+        delta = quat_multiply(quat_conjugate(qr), ql)
+        identity = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), delta.shape)
+        out[active] = compose_trs(tx + a[:, None] * (tl - tr), quat_multiply(qx, slerp(identity, delta, a)),
+                                  sx + a[:, None] * (sl - sr))
+    return out
+
+
+class Additive(tuple):
+    """The additive mode of a layer (spec 23.4): ``Additive((reference clip, reference times (n,)))``;
+    the fifth element of a layer tuple of :func:`layered_skinning` (absent: override)."""
+
+
 def _local(joints: np.ndarray, parents: np.ndarray) -> np.ndarray:
     """Local transforms ``J_p^-1 J_b`` (a root's is ``J_b``) of (n, B, 4, 4) joint transforms."""
     local = joints.copy()
@@ -537,7 +580,8 @@ def mask_weights(vb: VirtualBones, mask, *, what: str = "skin") -> np.ndarray:
                      code="layers.noMask")
 
 
-def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None) -> tuple[BoneTransforms, np.ndarray]:
+def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None, *,
+                     blend=None) -> tuple[BoneTransforms, np.ndarray]:
     """Decoded bone transforms of one clip with layers applied (spec "Layers and bone masks").
 
     Args:
@@ -545,30 +589,60 @@ def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None
         clip_index: The base clip.
         tau: Its clip-local times (n,).
         layers: ``(clip index, times (n,), weight (scalar or (n,)), mask weights (B,))`` per layer,
-            applied in order.
+            applied in order; an additive layer (spec 23.4) has a fifth element, :class:`Additive`.
         values: :func:`channel_values` of ``vb``, to avoid recomputing it.
+        blend: A blend space's points of non-zero weight in the space's order (spec 23.1), as
+            ``(clip index, times (n,), weight)``; it replaces ``clip_index`` and ``tau`` as the base.
+            One point of weight 1 is that clip alone, bit for bit.
 
     Returns:
         ``(transforms, joints)``: the :class:`BoneTransforms` to skin with (a bone the layers leave
         unchanged keeps its decoded transform exactly) and the layered joint transforms ``J'``
         (n, B, 4, 4).
     """
+    blend = [entry for entry in (blend or ()) if entry[2] > 0.0]
+    if len(blend) == 1:
+        clip_index, tau = blend[0][0], blend[0][1]
+        blend = []
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
     encoding = vb.layout.encoding
-    base = decode_bones(interpolated_values(vb, clip_index, tau, values), encoding)
     bind = _bind(vb)
-    joints = _matrices(base) @ bind[None]
-    if not layers:
-        return base, joints
-    parents = np.asarray(vb.bone_parents, dtype=np.int64)
-    local = _local(joints, parents)
-    changed = np.zeros(local.shape[:2], dtype=bool)
-    for clip, times, weight, mask in layers:
+
+    def local_pose(clip, times):
         times = np.broadcast_to(np.atleast_1d(np.asarray(times, dtype=np.float64)), tau.shape)
-        layer = _matrices(decode_bones(interpolated_values(vb, clip, times, values), encoding)) @ bind[None]
+        joints_of = _matrices(decode_bones(interpolated_values(vb, clip, times, values), encoding)) @ bind[None]
+        return _local(joints_of, parents)
+
+    if blend:
+        # Spec 23.1: the points' local transforms accumulated in the space's order, as three.js'
+        # PropertyMixer accumulates weighted actions.
+        parents = np.asarray(vb.bone_parents, dtype=np.int64)
+        tau = np.broadcast_to(np.atleast_1d(np.asarray(blend[0][1], dtype=np.float64)), tau.shape).copy()
+        base = decode_bones(interpolated_values(vb, blend[0][0], tau, values), encoding)
+        local = local_pose(blend[0][0], blend[0][1])
+        total = float(blend[0][2])
+        for clip, times, weight in blend[1:]:
+            total += float(weight)
+            local = mix_local(local, local_pose(clip, times), np.full(local.shape[:2], float(weight) / total))
+        joints = _matrices(base) @ bind[None]
+        changed = np.ones(local.shape[:2], dtype=bool)
+    else:
+        base = decode_bones(interpolated_values(vb, clip_index, tau, values), encoding)
+        joints = _matrices(base) @ bind[None]
+        if not layers:
+            return base, joints
+        parents = np.asarray(vb.bone_parents, dtype=np.int64)
+        local = _local(joints, parents)
+        changed = np.zeros(local.shape[:2], dtype=bool)
+    for layer_entry in layers:
+        clip, times, weight, mask = layer_entry[:4]
         w = np.clip(np.broadcast_to(np.asarray(weight, dtype=np.float64), tau.shape), 0.0, 1.0)
         alpha = w[:, None] * np.asarray(mask, dtype=np.float64)[None, :]
-        local = mix_local(local, _local(layer, parents), alpha)
+        if len(layer_entry) > 4 and isinstance(layer_entry[4], Additive):
+            reference_clip, reference_times = layer_entry[4]
+            local = add_local(local, local_pose(clip, times), local_pose(reference_clip, reference_times), alpha)
+        else:
+            local = mix_local(local, local_pose(clip, times), alpha)
         changed |= alpha > 0.0
     layered = joints.copy()
     for b in bone_order(parents):
@@ -605,7 +679,7 @@ def _matrices(transforms: BoneTransforms) -> np.ndarray:
 
 
 def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, layers, *, fade_clip=None,
-                      fade_tau=None, fade_weight=0.0) -> tuple[np.ndarray, Optional[np.ndarray]]:
+                      fade_tau=None, fade_weight=0.0, blend=None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Skinned points and normals of a bound mesh with layers (spec "Layers and bone masks").
 
     With a fade clip, each side of the crossfade is layered and the two layered poses are blended
@@ -620,6 +694,8 @@ def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, l
         fade_clip: The fade clip's index, or None.
         fade_tau: Its clip-local times.
         fade_weight: Its weight (clamped to [0, 1]).
+        blend: A blend space's weighted points, as :func:`layered_skinning` takes them (spec 23.1);
+            the base instead of ``clip_index`` and ``tau`` (not with a fade clip).
 
     Returns:
         (points (n, V, 3), normals (n, V', 3) or None), float64.
@@ -628,7 +704,7 @@ def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, l
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
 
     def pose(clip, times, finish):
-        transforms, _ = layered_skinning(vb, clip, times, layers, values)
+        transforms, _ = layered_skinning(vb, clip, times, layers, values, blend=None if fade_clip is not None else blend)
         return skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
                     mesh.normals, normal_point_indices(mesh), normalize_normals=finish)
 

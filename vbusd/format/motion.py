@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
-import numpy as np
 
 from vbusd.format.errors import OptionsError
 

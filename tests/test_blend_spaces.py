@@ -1,0 +1,261 @@
+"""Blend spaces, phase sync, additive layers and events in the numpy reference decoder (format 1.3,
+spec/virtual-bones.md section 23) against independent results.
+
+* three.js (tests/node/blend_pose.mjs: GLTFLoader + AnimationMixer on the Fox): 1D and 2D blends as
+  weighted actions, an additive layer as ``AnimationUtils.makeClipAdditive`` played additively, and
+  phase sync as actions whose ``setEffectiveTimeScale`` is ``D_k / sum w D`` advanced by the mixer;
+  joint world matrices and skinned vertices within 1e-6 of the bounding-box diagonal in float32.
+* Hand-computed: spec 23.4's additive example.
+* A direct count of marker crossings for crowd instances with offsets, rates (negative included)
+  and looping and clamped clips.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import vbusd
+from vbusd.api import blend_points, clip_index
+from vbusd.baking.baker import BakeOptions, bake
+from vbusd.decoders.reference import crowd_events, layered_skinning
+from vbusd.format.model import AnimationClip, Crowd, SkinnedAnimation, SkinnedMesh
+from vbusd.format.motion import BlendSpace, Marker, parse_blend_space
+from tests.helpers import node as node_tools
+from tests.helpers.capabilities import shared_asset
+
+DENSE_RATE = 2400.0
+"""Rows per second of the Fox baked for the three.js checks: between rows the bake lerps matrices
+where three.js slerps keyframes; at 100x the source's 24 keys per second that difference is far below
+1e-6 of the diagonal, so arbitrary phases (not only row times) are compared."""
+
+
+def _matrix(translation=(0, 0, 0), degrees=0.0):
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:3, 3] = translation
+    return m
+
+
+def _two_bone(clips: dict, spaces=(), markers=(), loops=None):
+    """Two bones (bone 1 below bone 0, both binds the identity), each clip constant."""
+    mesh = SkinnedMesh("/Example/Mesh", np.array([[1.0, 0, 0], [1.0, 0.5, 0], [1.0, 0, 0.5]]), np.array([3]),
+                       np.array([0, 1, 2]), np.array([[1]] * 3), np.array([[1.0]] * 3))
+
+    def constant(matrices):
+        return lambda times: np.tile(np.asarray(matrices, np.float64), (len(np.atleast_1d(times)), 1, 1, 1))
+
+    animation = SkinnedAnimation("Example", "/Example/Anim", ("b0", "b1"),
+                                 tuple(AnimationClip(name, 0.0, 1.0, constant(m), native_rate=2,
+                                                     loop=(loops or {}).get(name, True))
+                                       for name, m in clips.items()), (mesh,),
+                                 bind_transforms=np.stack([np.eye(4)] * 2), bone_parents=(-1, 0))
+    return bake(animation, BakeOptions(encoding="affineMatrix", texel_format="float32", masks=(("all", "b0"),),
+                                       blend_spaces=tuple(spaces), markers=tuple(markers)))
+
+
+def test_spec_additive_example_by_hand():
+    """Spec 23.4: base local T(2,0,0) R_z(10), layer T(0,1,0) R_z(90) against reference T(0,1,0), weight
+    0.5 -> T(2,0,0) R_z(55) (bone 0 is the identity, so local = joint)."""
+    vb = _two_bone({"base": [np.eye(4), _matrix((2, 0, 0), 10)], "add": [np.eye(4), _matrix((0, 1, 0), 90)],
+                    "ref": [np.eye(4), _matrix((0, 1, 0))]})
+    layer = {"clip": "add", "time": 0.0, "weight": 0.5, "mask": "all", "mode": "additive",
+             "reference": {"clip": "ref", "time": 0.0}}
+    joint = vbusd.bone_transform(vb, "b1", "base", 0.0, layers=[layer])
+    np.testing.assert_allclose(joint, _matrix((2, 0, 0), 55), atol=1e-6)
+    # Against itself as reference, a layer adds nothing at any weight; weight 0 is the base exactly.
+    same = dict(layer, reference={"clip": "add", "time": 0.0}, weight=1.0)
+    np.testing.assert_allclose(vbusd.bone_transform(vb, "b1", "base", 0.0, layers=[same]), _matrix((2, 0, 0), 10),
+                               atol=1e-6)
+    np.testing.assert_array_equal(vbusd.bone_transform(vb, "b1", "base", 0.0, layers=[dict(layer, weight=0.0)]),
+                                  vbusd.bone_transform(vb, "b1", "base", 0.0))
+
+
+def test_blend_errors_are_one_line():
+    vb = _two_bone({"a": [np.eye(4), np.eye(4)], "b": [np.eye(4), _matrix((1, 0, 0))]},
+                   spaces=[parse_blend_space("s=a@0,b@1")])
+    for blend, words in (({"space": "t"}, "no blend space 't'"), ({"x": 1}, "space required"),
+                         ({"space": "s", "x": "fast"}, "x must be a finite number")):
+        with pytest.raises(vbusd.OptionsError) as error:
+            vbusd.skin(vb, blend=blend)
+        assert error.value.code == "blend.noSpace" and words in str(error.value) and "\n" not in str(error.value)
+    with pytest.raises(vbusd.OptionsError, match="mode must be"):
+        vbusd.skin(vb, "a", 0.0, layers=[{"clip": "b", "time": 0, "mask": "all", "mode": "add"}])
+    # A 1D blend of two constant clips: the child's local translation lerped (spec 23.1).
+    np.testing.assert_allclose(vbusd.bone_transform(vb, "b1", blend={"space": "s", "x": 0.25})[:3, 3],
+                               [0.25, 0, 0], atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def fox(shared_assets):
+    from vbusd.converters import gltf
+
+    path = shared_asset("gltf", "Fox", "Fox.glb")
+    animation = gltf.read(path).animations[0]
+    # Any marker times serve the comparison with three.js (it starts each action at its marker);
+    # Walk and Run each get one (spec 23.3).
+    spaces = (parse_blend_space("speed=Walk@1,Run@3"), parse_blend_space("mood=Survey@0:0,Walk@1:0,Run@0:1"),
+              BlendSpace("synced", 1, ("Walk", "Run"), ((1.0,), (3.0,)), "step"))
+    markers = (Marker("Walk", "step", 0.25), Marker("Run", "step", 0.4))
+    vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", rows_per_second=DENSE_RATE,
+                                     masks=(("upper", "b_Spine01_02"),), blend_spaces=spaces, markers=markers))
+    return path, vb
+
+
+def _run(path, poses, tmp_path):
+    file = tmp_path / f"poses{len(list(tmp_path.iterdir()))}.json"
+    file.write_text(json.dumps(poses))
+    return node_tools.run_json("blend_pose.mjs", path, 0, file, packages=("three",))["poses"]
+
+
+def _compare(vb, theirs, ours_points, ours_joint, what):
+    points = np.array(theirs["positions"]).reshape(-1, 3)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    error = float(np.abs(ours_points - points).max())
+    assert error <= 1e-6 * diagonal, f"{what}: points {error:.3g} ({diagonal=:.3g})"
+    joints = np.transpose(np.array(theirs["matrices"]).reshape(-1, 4, 4), (0, 2, 1))
+    joint_error = max(float(np.abs(ours_joint(b) - joints[b]).max()) for b in range(len(joints)))
+    assert joint_error <= 1e-6 * diagonal, f"{what}: joints {joint_error:.3g}"
+    return error / diagonal, points, diagonal
+
+
+@pytest.mark.node
+def test_1d_and_2d_blends_match_threejs_weighted_actions(fox, tmp_path):
+    path, vb = fox
+    cases = [("speed", 1.5, 0.0, 0.3), ("speed", 2.6, 0.0, 0.71), ("speed", 0.0, 0.0, 0.2),
+             ("mood", 0.3, 0.3, 0.45), ("mood", 0.1, 0.6, 0.9), ("mood", 0.8, 0.8, 0.05)]
+    poses, blends = [], []
+    for space, x, y, phase in cases:
+        blend = {"space": space, "x": x, "y": y, "phase": phase}
+        points = blend_points(vb, blend)
+        assert abs(sum(w for *_, w in points) - 1) < 1e-12
+        blends.append(blend)
+        poses.append({"actions": [{"clip": vb.clips[c].name, "time": float(vb.clips[c].start_time + t[0]), "weight": w}
+                                  for c, t, w in points]})
+    worst = 0.0
+    for blend, theirs, (space, x, *_rest) in zip(blends, _run(path, poses, tmp_path), cases):
+        ours = vbusd.skin(vb, blend=blend)[0].points
+        relative, points, diagonal = _compare(vb, theirs, ours, lambda b: vbusd.bone_transform(vb, b, blend=blend),
+                                              f"{blend}")
+        worst = max(worst, relative)
+        if len(blend_points(vb, blend)) > 1:
+            # The blend is not one of its clips alone.
+            for c, t, _ in blend_points(vb, blend):
+                alone = vbusd.skin(vb, c, float(t[0]))[0].points
+                assert float(np.abs(alone - points).max()) > 1e-3 * diagonal
+    print(f"blend spaces vs three.js: worst point error {worst:.3g} of the diagonal")
+
+
+@pytest.mark.node
+def test_additive_layer_matches_threejs_make_clip_additive(fox, tmp_path):
+    """Walk with Survey added on the upper body against Survey at 1.0 s (makeClipAdditive), weights
+    0.4 and 1, and on a 1D blend base."""
+    path, vb = fox
+    masked = [int(b) for b in np.flatnonzero(vb.masks[0][1])]
+    cases = []
+    for weight, base, layer_time in ((0.4, ("Walk", 0.3), 2.2), (1.0, ("Walk", 0.55), 0.7), (0.7, None, 1.9)):
+        layer = {"clip": "Survey", "time": layer_time, "weight": weight, "mask": "upper", "mode": "additive",
+                 "reference": {"clip": "Survey", "time": 1.0}}
+        cases.append((weight, base, layer))
+    poses = []
+    for weight, base, layer in cases:
+        survey = vb.clips[clip_index(vb, "Survey")]
+        additive = {"clip": "Survey", "time": survey.start_time + layer["time"], "weight": weight, "mask": masked,
+                    "additive": {"clip": "Survey", "time": survey.start_time + 1.0}}
+        if base is None:
+            base_actions = [{"clip": vb.clips[c].name, "time": vb.clips[c].start_time + float(t[0]), "weight": w}
+                            for c, t, w in blend_points(vb, {"space": "speed", "x": 2.2, "phase": 0.35})]
+        else:
+            clip = vb.clips[clip_index(vb, base[0])]
+            base_actions = [{"clip": base[0], "time": clip.start_time + base[1], "weight": 1.0}]
+        poses.append({"actions": base_actions + [additive]})
+    for (weight, base, layer), theirs in zip(cases, _run(path, poses, tmp_path)):
+        kwargs = dict(layers=[layer]) if base else dict(layers=[layer], blend={"space": "speed", "x": 2.2, "phase": 0.35})
+        clip, time = base or ("Walk", 0.0)
+        ours = vbusd.skin(vb, clip, time, **kwargs)[0].points
+        relative, points, diagonal = _compare(vb, theirs, ours,
+                                              lambda b: vbusd.bone_transform(vb, b, clip, time, **kwargs),
+                                              f"additive {weight=} {base=}")
+        print(f"additive layer vs three.js ({weight=}, {base=}): point error {relative:.3g} of the diagonal")
+        plain = vbusd.skin(vb, clip, time, **{k: v for k, v in kwargs.items() if k == "blend"})[0].points
+        assert float(np.abs(plain - points).max()) > 1e-3 * diagonal  # the layer moved the upper body
+
+
+@pytest.mark.node
+def test_walk_to_run_in_phase_matches_threejs_time_scaled_actions(fox, tmp_path):
+    """A walk-to-run change with phase sync (spec 23.3): three.js plays Walk and Run from their
+    'step' markers with setEffectiveTimeScale(D_k / sum w D) and advances the mixer; vbusd blends at
+    phase P = advance / sum w D. The left front foot's world height agrees within 1e-3 of the
+    diagonal (and the whole pose within 1e-6); the naive blend, both clips at the same clip-local
+    time as the mixer's unsynchronized actions would play them, does not."""
+    path, vb = fox
+    walk, run = (vb.clips[clip_index(vb, n)] for n in ("Walk", "Run"))
+    foot = next(b for b, name in enumerate(vb.bones) if name.rsplit("/", 1)[-1].startswith("b_LeftFoot"))
+    poses, expected = [], []
+    for x, advance in ((1.5, 0.37), (2.0, 1.3), (2.5, 2.05), (2.9, 0.8)):
+        blend = {"space": "synced", "x": x}
+        weights = blend_points(vb, dict(blend, phase=0.0))
+        cycle = sum(w * vb.clips[c].duration for c, _, w in weights)
+        actions = []
+        for c, t, w in weights:
+            clip = vb.clips[c]
+            actions.append({"clip": clip.name, "time": clip.start_time + float(t[0]), "weight": w,
+                            "timeScale": clip.duration / cycle})
+        poses.append({"actions": actions, "advance": advance})
+        expected.append((dict(blend, phase=advance / cycle), weights, advance))
+    gaps = []
+    for (blend, weights, advance), theirs in zip(expected, _run(path, poses, tmp_path)):
+        ours = vbusd.skin(vb, blend=blend)[0].points
+        relative, points, diagonal = _compare(vb, theirs, ours, lambda b: vbusd.bone_transform(vb, b, blend=blend),
+                                              f"synced {blend}")
+        height = lambda joint: float(joint[1, 3])  # noqa: E731  (the Fox is Y-up)
+        theirs_foot = height(np.array(theirs["matrices"][foot]).reshape(4, 4).T)
+        synced = height(vbusd.bone_transform(vb, foot, blend=blend))
+        assert abs(synced - theirs_foot) <= 1e-3 * diagonal
+        print(f"synced {blend}: points {relative:.3g}, foot height {abs(synced - theirs_foot) / diagonal:.3g} "
+              "of the diagonal")
+        # Naive: each clip at its marker plus the same elapsed clip-local time (rate 1, no sync).
+        naive_points = [(c, np.array([float(t[0]) + advance]), w) for c, t, w in weights]
+        naive = height(layered_skinning(vb, 0, np.zeros(1), [], blend=naive_points)[1][0, foot])
+        gaps.append(abs(naive - theirs_foot) / diagonal)
+    assert max(gaps) > 1e-3, gaps
+    print(f"walk-to-run foot height: naive blend off by up to {max(gaps):.3g} of the diagonal")
+
+
+def test_events_of_crowd_instances_equal_a_direct_count():
+    """Instances with offsets, rates (one negative, one 0) and looping and clamped clips: crowd_events
+    and vbusd.events against the marker times counted directly (every k of a wide range with
+    m + k D inside the interval, one k for a clamped clip), sorted as spec 23.5 orders them."""
+    vb = _two_bone({"walk": [np.eye(4), np.eye(4)], "wave": [np.eye(4), np.eye(4)]}, loops={"wave": False},
+                   markers=[Marker("walk", "a", 0.1), Marker("walk", "b", 0.35), Marker("wave", "c", 0.3),
+                            Marker("walk", "a2", 0.1)])
+    walk, wave = vb.clips
+    assert walk.loop and not wave.loop
+    rng = np.random.default_rng(38)
+    n = 40
+    crowd = Crowd("/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  rng.integers(0, 2, n).astype(np.int32), rng.uniform(-3, 3, n).astype(np.float32),
+                  np.concatenate([[0.0, -1.5], rng.uniform(0.2, 2.5, n - 2)]).astype(np.float32))
+    t0, t1 = 0.7, 3.9
+    found = crowd_events(vb, crowd, t0, t1)
+    for i in range(n):
+        clip = vb.clips[int(crowd.clip[i])]
+        a = float(crowd.time_offset[i]) + float(crowd.playback_rate[i]) * t0
+        b = float(crowd.time_offset[i]) + float(crowd.playback_rate[i]) * t1
+        low, high = min(a, b), max(a, b)
+        expected = []
+        for order, m in enumerate(m for m in vb.markers if m.clip == clip.name):
+            for k in (range(-50, 51) if clip.loop else (0,)):
+                time = m.time + k * clip.duration
+                inside = (a < time <= b) if b >= a else (b <= time < a)
+                if inside and low - 1e-9 <= time <= high + 1e-9:
+                    expected.append((time, order, m.name))
+        expected.sort(key=lambda e: (e[0], e[1]), reverse=b < a)
+        ours = [e for j, e in found if j == i]
+        assert [(e["name"], round(e["time"], 9)) for e in ours] == [(name, round(t, 9)) for t, _, name in expected]
+        assert vbusd.events(vb, clip.name, a, b) == ours
+    assert sum(1 for _ in found) > 2 * n  # the instances do cross markers, several each
