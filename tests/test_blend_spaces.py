@@ -23,7 +23,8 @@ from vbusd.api import blend_points, clip_index
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.decoders.reference import crowd_events, layered_skinning
 from vbusd.format.model import AnimationClip, Crowd, SkinnedAnimation, SkinnedMesh
-from vbusd.format.motion import BlendSpace, Marker, parse_blend_space
+from vbusd.format.motion import BlendSpace, Marker, as_layer_weights, blend_weights, parse_blend_space
+from tests.helpers.capabilities import require
 from tests.helpers import node as node_tools
 from tests.helpers.capabilities import shared_asset
 
@@ -102,7 +103,8 @@ def fox(shared_assets):
               BlendSpace("synced", 1, ("Walk", "Run"), ((1.0,), (3.0,)), "step"))
     markers = (Marker("Walk", "step", 0.25), Marker("Run", "step", 0.4))
     vb = bake(animation, BakeOptions(encoding="quatTranslation", texel_format="float32", rows_per_second=DENSE_RATE,
-                                     masks=(("upper", "b_Spine01_02"),), blend_spaces=spaces, markers=markers))
+                                     masks=(("upper", "b_Spine01_02"), ("all", "_rootJoint")),
+                                     blend_spaces=spaces, markers=markers))
     return path, vb
 
 
@@ -259,3 +261,46 @@ def test_events_of_crowd_instances_equal_a_direct_count():
         assert [(e["name"], round(e["time"], 9)) for e in ours] == [(name, round(t, 9)) for t, _, name in expected]
         assert vbusd.events(vb, clip.name, a, b) == ours
     assert sum(1 for _ in found) > 2 * n  # the instances do cross markers, several each
+
+
+def test_warp_decodes_blends_as_layers_equal_to_the_reference(fox):
+    """Spec 23.1, "Decoding a blend as layers": a crowd whose instances play 1D and 2D blends at
+    several phases, each as its first point's clip plus override layers (weights w_k / W_k, the mask
+    of every bone), through the warp kernels on the CPU, against the numpy reference's blend: within
+    1e-6 of the diagonal (float32 kernels and crowd times against float64)."""
+    require("warp")
+    from vbusd.decoders import warp
+
+    _, vb = fox
+    every = [name for name, _ in vb.masks].index("all")
+    assert np.all(np.asarray(vb.masks[every][1]) == 1.0)
+    blends = [{"space": "speed", "x": x, "phase": p} for x, p in ((1.4, 0.1), (2.2, 0.62), (2.95, 0.33))]
+    blends += [{"space": "mood", "x": x, "y": y, "phase": p} for x, y, p in ((0.2, 0.3, 0.4), (0.5, 0.45, 0.8))]
+    blends += [{"space": "synced", "x": 1.7, "phase": 1.35}]
+    n, count = len(blends), 2
+    clip = np.zeros(n, np.int32)
+    offset = np.zeros(n, np.float32)
+    layer_clip = np.zeros((n, count), np.int32)
+    layer_offset = np.zeros((n, count), np.float32)
+    layer_weight = np.zeros((n, count), np.float32)
+    for i, blend in enumerate(blends):
+        points = blend_points(vb, blend)
+        space = next(s for s in vb.blend_spaces if s.name == blend["space"])
+        weights = as_layer_weights(blend_weights(space, blend["x"], blend.get("y", 0.0)))
+        assert [k for k, _ in weights] == [k for k, _ in blend_weights(space, blend["x"], blend.get("y", 0.0))]
+        clip[i], offset[i] = points[0][0], points[0][1][0]
+        for j, ((c, t, _), (_, relative)) in enumerate(zip(points[1:], weights[1:])):
+            layer_clip[i, j], layer_offset[i, j], layer_weight[i, j] = c, t[0], relative
+    crowd = Crowd("/Fox", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  clip, offset, np.zeros(n, np.float32), layer_clip=layer_clip, layer_time_offset=layer_offset,
+                  layer_playback_rate=np.zeros((n, count), np.float32), layer_weight=layer_weight,
+                  layer_mask=np.full((n, count), every, np.int32))
+    points, _ = warp.skin_crowd(vb, vb.meshes[0], crowd, 0.0, device="cpu")
+    worst = 0.0
+    for i, blend in enumerate(blends):
+        ours = vbusd.skin(vb, blend=blend)[0].points
+        diagonal = float(np.linalg.norm(ours.max(axis=0) - ours.min(axis=0)))
+        error = float(np.abs(points[i] - ours).max()) / diagonal
+        worst = max(worst, error)
+        assert error <= 1e-6, f"warp {blend}: {error:.3g} of the diagonal"
+    print(f"warp blends as layers vs the numpy reference: worst {worst:.3g} of the diagonal")

@@ -22,7 +22,7 @@ from vbusd.format.errors import OptionsError
 
 __all__ = ["BlendSpace", "Marker", "parse_blend_space", "parse_marker", "motion_problems", "spaces_from_dict",
            "markers_from_dict", "spaces_to_dict", "markers_to_dict", "triangulate", "blend_weights",
-           "phase_times", "crossed_markers", "MAX_POINTS"]
+           "phase_times", "crossed_markers", "MAX_POINTS", "as_layer_weights"]
 
 MAX_POINTS = 64
 """The most points a blend space may hold (the 2D triangulation is found by an O(n^4) search)."""
@@ -343,6 +343,17 @@ def blend_weights(space: BlendSpace, x: float, y: float = 0.0) -> list:
                 best = (distance, edge, t)
     _, (a, b), t = best
     return _clean((a, b), (1.0 - t, t))
+
+
+def as_layer_weights(weights) -> list:
+    """A blend's ``[(point, weight)]`` (in the space's order) as a base and override layers (spec 23.1,
+    "Decoding a blend as layers"): ``[(point, w_k / (w_1 + ... + w_k))]``, the first entry's 1 being the base.
+    A decoder that layers with a mask of every bone decodes the blend with these weights."""
+    out, total = [], 0.0
+    for k, w in weights:
+        total += float(w)
+        out.append((k, float(w) / total if total > 0 else 0.0))
+    return out
 
 
 def _clean(indices, weights) -> list:
