@@ -1,7 +1,7 @@
 // vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
 // WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, shader-module
 // assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
-// detail, the plain files and the transform-feedback probe. docs/engines.md ("@vbusd/core").
+// detail, blend spaces and clip events (format 1.3), the plain files and the transform-feedback probe. docs/engines.md ("@vbusd/core").
 
 export { VirtualBonesError } from './errors.js';
 export { BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule } from './assemble.js';
@@ -16,5 +16,6 @@ export {
 } from './decode.js';
 export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
+export { triangulate, blendWeights, phaseTimes, layerWeights, crossedMarkers, crowdEvents } from './motion.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';

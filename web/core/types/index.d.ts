@@ -67,3 +67,14 @@ export function probeOutputs(world: string): string;
 export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, vertexCount: number, setup: (input: FeedbackInput) => void): [Float32Array, Float32Array];
 export function assetOrder(results: [Float32Array, Float32Array], info: { pointIndex?: ArrayLike<number> | null; hasNormals?: boolean; pointCount?: number }): [Float32Array, Float32Array];
 export function concatenate(arrays: ArrayLike<number>[]): Float32Array;
+
+/** A blend space as the layout metadata's `blendSpaces` holds it (format 1.3, spec 23.6). */
+export interface BlendSpace { name: string; dimensions: 1 | 2; points: { clip: string; x: number; y?: number }[]; syncMarker?: string }
+/** A clip marker as the layout metadata's `markers` holds it (format 1.3, spec 23.5). */
+export interface ClipMarker { clip: string; name: string; time: number }
+export function triangulate(points: [number, number][]): [number, number, number][];
+export function blendWeights(space: BlendSpace, x: number, y?: number): [number, number][];
+export function phaseTimes(space: BlendSpace, durations: Record<string, number>, markers: ClipMarker[] | undefined, phase: number): number[];
+export function layerWeights(weights: [number, number][]): [number, number][];
+export function crossedMarkers(markers: ClipMarker[] | undefined, clip: string, duration: number, loop: boolean, t0: number, t1: number): { name: string; time: number }[];
+export function crowdEvents(markers: ClipMarker[] | undefined, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], clip: ArrayLike<number>, timeOffset: ArrayLike<number>, playbackRate: ArrayLike<number>, t0: number, t1: number): { instance: number; name: string; time: number }[];
