@@ -146,3 +146,43 @@ process.stdout.write(JSON.stringify(out));
         for case, js in zip(vector["events"], theirs["events"]):
             assert [e["name"] for e in js] == [e["name"] for e in case["events"]]
             np.testing.assert_allclose([e["time"] for e in js], [e["time"] for e in case["events"]], rtol=0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def gl():
+    from tests.helpers.layer_shader import gl_context
+
+    with gl_context() as ctx:
+        yield ctx
+
+
+def _blend_instances(vector: dict, vb) -> list:
+    """Each blend as the layer vectors' instance: its first point's clip at its clip time (rate 0),
+    the other points as override layers of mask "all" with the layer weights (spec 23.1)."""
+    every = [name for name, _ in vb.masks].index("all")
+    names = [c.name for c in vb.clips]
+    instances = []
+    for case in vector["blends"]:
+        (base, base_time), *rest = case["clipTimes"]
+        layers = [{"clip": names.index(name), "timeOffset": time, "playbackRate": 0.0, "weight": weight, "mask": every}
+                  for (name, time), (_, weight) in zip(rest, case["layerWeights"][1:])]
+        layers += [{"clip": 0, "timeOffset": 0.0, "playbackRate": 0.0, "weight": 0.0, "mask": 0}] * (2 - len(layers))
+        instances.append({"clip": names.index(base), "timeOffset": base_time, "playbackRate": 0.0, "fadeClip": 0,
+                          "fadeTimeOffset": 0.0, "fadePlaybackRate": 0.0, "fadeWeight": 0.0, "layers": layers})
+    return instances
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shaders_reproduce_every_blend_as_layers(gl, lang, path, tmp_path):
+    """vbSkinLayered (vbusd shader --layers, GLSL and HLSL on Mesa) decodes each blend of the vectors as
+    the base clip plus layers of mask "all" (spec 23.1), within the vectors' tolerances."""
+    from tests.helpers.layer_shader import run_layers
+
+    vector = json.loads(path.read_text())
+    vb = _animation(vector)
+    points, normals = run_layers(gl, lang, vb, _blend_instances(vector, vb), 0.0, tmp_path)
+    for i, case in enumerate(vector["blends"]):
+        _matches(vector, case, points[i], normals[i], None, f"{lang} {path.stem} {case['blend']}")
