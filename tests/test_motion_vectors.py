@@ -1,6 +1,6 @@
 """The format 1.3 conformance vectors of spec/conformance/motion/ (blend spaces, additive layers,
 events) through vbusd's decoders: the numpy reference built from each vector's JSON alone (not
-from the bake that wrote it), the warp kernels on the CPU decoding the blends as override layers
+from the bake that wrote it), the warp kernels (CPU, and CUDA where there is one) decoding the blends as override layers
 of the mask "all" (spec 23.1), and the web core's weights and events (Node)."""
 
 from __future__ import annotations
@@ -107,9 +107,10 @@ def test_warp_reproduces_every_blend_as_layers(path):
                   np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), clip, offset, np.zeros(n, np.float32),
                   layer_clip=layer_clip, layer_time_offset=layer_offset, layer_playback_rate=np.zeros((n, count), np.float32),
                   layer_weight=layer_weight, layer_mask=np.full((n, count), every, np.int32))
-    points, normals = warp.skin_crowd(vb, vb.meshes[0], crowd, 0.0, device="cpu")
-    for i, case in enumerate(cases):
-        _matches(vector, case, points[i], normals[i], None, f"warp (cpu) {path.stem} {case['blend']}")
+    for device in warp.available_devices():  # "cpu", and "cuda" where there is one
+        points, normals = warp.skin_crowd(vb, vb.meshes[0], crowd, 0.0, device=device)
+        for i, case in enumerate(cases):
+            _matches(vector, case, points[i], normals[i], None, f"warp ({device}) {path.stem} {case['blend']}")
 
 
 @pytest.mark.node

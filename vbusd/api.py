@@ -227,7 +227,8 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
 _PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
                  "fade_time_offset", "fade_playback_rate", "fade_weight", "layer_clip", "layer_time_offset",
-                 "layer_playback_rate", "layer_weight", "layer_mask")
+                 "layer_playback_rate", "layer_weight", "layer_mask", "layer_mode", "layer_reference_clip",
+                 "layer_reference_time")
 
 
 _LAYER_KEYS = ("clip", "time", "weight", "mask", "mode", "reference")

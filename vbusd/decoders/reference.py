@@ -724,9 +724,22 @@ def instance_layers(vb: VirtualBones, crowd: Crowd, t: float) -> list:
     offset = np.asarray(crowd.layer_time_offset, dtype=np.float64).reshape(weight.shape)
     rate = np.asarray(crowd.layer_playback_rate, dtype=np.float64).reshape(weight.shape)
     mask = np.asarray(crowd.layer_mask, dtype=np.int64).reshape(weight.shape)
-    return [[(int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
-              mask_weights(vb, int(mask[i, j]))) for j in range(weight.shape[1]) if weight[i, j] > 0]
-            for i in range(weight.shape[0])]
+    # Format 1.3 (spec 23.4): additive layers and their reference poses (default: the layer's clip at 0).
+    mode = (np.zeros(weight.shape, np.int64) if crowd.layer_mode is None
+            else np.asarray(crowd.layer_mode, dtype=np.int64).reshape(weight.shape))
+    reference_clip = (clip if crowd.layer_reference_clip is None
+                      else np.asarray(crowd.layer_reference_clip, dtype=np.int64).reshape(weight.shape))
+    reference_time = (np.zeros(weight.shape) if crowd.layer_reference_time is None
+                      else np.asarray(crowd.layer_reference_time, dtype=np.float64).reshape(weight.shape))
+
+    def layer(i, j):
+        entry = (int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
+                 mask_weights(vb, int(mask[i, j])))
+        if mode[i, j] == 1:
+            entry += (Additive((int(reference_clip[i, j]), np.array([reference_time[i, j]]))),)
+        return entry
+
+    return [[layer(i, j) for j in range(weight.shape[1]) if weight[i, j] > 0] for i in range(weight.shape[0])]
 
 
 def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float):

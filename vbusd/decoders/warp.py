@@ -142,6 +142,10 @@ class DeviceCrowd:
     layer_playback_rate: Optional[wp.array] = None
     layer_weight: Optional[wp.array] = None
     layer_mask: Optional[wp.array] = None
+    layer_mode: Optional[wp.array] = None
+    """Format 1.3 (spec 23.4): (n, L) 0 override, 1 additive; with the reference clip and time of each layer."""
+    layer_reference_clip: Optional[wp.array] = None
+    layer_reference_time: Optional[wp.array] = None
 
     @property
     def instance_count(self) -> int:
@@ -399,7 +403,23 @@ class Decoder:
                     layer_playback_rate=self._array(np.asarray(crowd.layer_playback_rate, np.float64).reshape(n, count),
                                                     wp.float64),
                     layer_weight=self._array(np.clip(weight, 0.0, 1.0), wp.float32),
-                    layer_mask=self._array(np.where(active, mask, 0).astype(np.int32), wp.int32))
+                    layer_mask=self._array(np.where(active, mask, 0).astype(np.int32), wp.int32),
+                    **self._additive_arrays(crowd, clip, active))
+
+    def _additive_arrays(self, crowd: Crowd, clip: np.ndarray, active: np.ndarray) -> dict:
+        """The DeviceCrowd fields of additive layers (format 1.3, spec 23.4): modes, reference clips and times."""
+        shape = clip.shape
+        mode = np.zeros(shape, np.int32) if crowd.layer_mode is None else np.asarray(crowd.layer_mode).reshape(shape)
+        reference = clip if crowd.layer_reference_clip is None else np.asarray(crowd.layer_reference_clip).reshape(shape)
+        time = (np.zeros(shape) if crowd.layer_reference_time is None
+                else np.asarray(crowd.layer_reference_time, np.float64).reshape(shape))
+        additive = active & (mode == 1)
+        if np.any(additive & ((reference < 0) | (reference >= self.clip_count))):
+            raise InputError(f"a layer reference clip index is outside 0..{self.clip_count - 1}",
+                             location=f"{crowd.path}.primvars:vb:layerReferenceClip", code="instancer.clip.range")
+        return dict(layer_mode=self._array(np.where(additive, 1, 0).astype(np.int32), wp.int32),
+                    layer_reference_clip=self._array(np.where(additive, reference, 0).astype(np.int32), wp.int32),
+                    layer_reference_time=self._array(time, wp.float64))
 
     def _fade_arrays(self, fade_clip, fade_offset, fade_rate, fade_weight) -> dict:
         """The DeviceCrowd fields of a crossfade (spec "Crossfade"): clip, offset, rate, weight per instance."""
@@ -525,10 +545,17 @@ class Decoder:
                           inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
                                   crowd.layer_clip, crowd.layer_time_offset, crowd.layer_playback_rate,
                                   wp.float64(t), rows])
+                # Additive layers' reference poses (spec 23.4): their clips at their fixed times.
+                reference_rows = wp.empty((n, crowd.layer_count, 3), dtype=float, device=self.device)
+                wp.launch(K.layer_rows_kernel, dim=(n, crowd.layer_count), device=self.device,
+                          inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
+                                  crowd.layer_reference_clip, crowd.layer_reference_time,
+                                  wp.zeros((n, crowd.layer_count), dtype=wp.float64, device=self.device),
+                                  wp.float64(t), reference_rows])
                 wp.launch(K.layer_bones, dim=dim, device=self.device,
                           inputs=[self.texels, self.encoding_id, frames, int(separate), rows, crowd.layer_count,
                                   crowd.layer_weight, crowd.layer_mask, self.rig_bind, self.rig_inverse_bind,
-                                  self.rig_parents, self.rig_masks, *outputs])
+                                  self.rig_parents, self.rig_masks, crowd.layer_mode, reference_rows, *outputs])
         else:
             wp.launch(K.decode_bones_texture, dim=dim, device=self.device,
                       inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,

@@ -248,6 +248,11 @@ class Crowd:
         layer_playback_rate: (N, L) float32 clip seconds per stage second of each layer.
         layer_weight: (N, L) float32 weight of each layer in [0, 1] (0: the layer slot is unused).
         layer_mask: (N, L) int32 mask of each layer, an index into the animation's masks.
+        layer_mode: (N, L) int32 mode of each layer (format 1.3, spec 23.4): 0 override, 1 additive;
+            None: every layer overrides.
+        layer_reference_clip: (N, L) int32 clip of each additive layer's reference pose, or None for
+            the layer's own clip.
+        layer_reference_time: (N, L) float32 clip-local seconds of the reference pose, or None for 0.
     """
 
     path: str
@@ -267,6 +272,9 @@ class Crowd:
     layer_playback_rate: Optional[np.ndarray] = None
     layer_weight: Optional[np.ndarray] = None
     layer_mask: Optional[np.ndarray] = None
+    layer_mode: Optional[np.ndarray] = None
+    layer_reference_clip: Optional[np.ndarray] = None
+    layer_reference_time: Optional[np.ndarray] = None
 
     @property
     def layered(self) -> bool:

@@ -435,6 +435,11 @@ def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
     if not mask_count:
         raise OptionsError(f"crowd {crowd.path}: layers need an animation that stores bone masks (format 1.2; "
                            "convert with --mask NAME=BONE)", file="usd", code="layers.noMask")
+    if crowd.layer_mode is not None and np.any((np.asarray(crowd.layer_mode) == 1) & (weight > 0)):
+        # Additive layers (spec 23.4) play per instance in the decoders, but format 1.3 defines no
+        # instancer primvar for them: refused rather than written as override layers.
+        raise OptionsError(f"crowd {crowd.path}: additive layers have no USD primvars in format 1.3 (spec 23.4); "
+                           "they decode from a Crowd in Python only", file="usd", code="layers.unsupported")
     count = weight.shape[1]
     for primvar, values, integer in ((names.LAYER_CLIP, crowd.layer_clip, True),
                                      (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),
