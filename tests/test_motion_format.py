@@ -176,3 +176,25 @@ def test_validate_reports_a_bad_marker_on_the_prim_and_a_mismatch(fox, tmp_path,
         ("prim.attribute.invalid", "vb:markerClips")]
     out.write_text(text.replace("vb:markerTimes = [0.2, 0.1, 1.5]", "vb:markerTimes = [0.2, 0.1, 1.0]"))
     assert "metadata.mismatch" in {f.code for f in vbusd.validate(out).findings}
+
+
+def test_the_gltf_runtime_package_carries_spaces_and_markers(fox, tmp_path, capsys):
+    """vbusd export: the VBUSD_virtual_bones extension's layout holds blendSpaces and markers (format
+    1.3) as the sidecar does, and the package validates clean."""
+    import struct
+
+    import vbusd
+    from vbusd.cli import main
+
+    out = tmp_path / "fox.usda"
+    assert main(["convert", str(fox), "-o", str(out), "--texel-format", "float32", *FOX_MOTION, "-q"]) == 0
+    package = tmp_path / "fox.glb"
+    assert main(["export", str(out), "-o", str(package)]) == 0, capsys.readouterr().err
+    data = package.read_bytes()
+    length = struct.unpack("<I", data[12:16])[0]
+    document = json.loads(data[20:20 + length])
+    layout = document["extensions"]["VBUSD_virtual_bones"]["animations"][0]["layout"]
+    sidecar = json.loads(next(tmp_path.rglob("*.exr.json")).read_text())
+    assert layout["formatMinorVersion"] == 3
+    assert layout["blendSpaces"] == sidecar["blendSpaces"] and layout["markers"] == sidecar["markers"]
+    assert vbusd.validate(package).valid
