@@ -16,18 +16,20 @@ import numpy as np
 
 from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpack
 from vbusd.format.layout import Encoding
+import dataclasses
+
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
 from vbusd.format.errors import InputError
 from vbusd.format.rootmotion import displacement
-from vbusd.format.motion import crossed_markers
+from vbusd.format.motion import crossed_markers, instance_blend
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
            "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
-           "Additive", "crowd_events"]
+           "Additive", "crowd_events", "instance_blend_points", "blends_as_layers"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -365,7 +367,7 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     n = crowd.instance_count
     if n == 0:
         return np.empty((0,) + mesh.points.shape), None if mesh.normals is None else np.empty((0,) + mesh.normals.shape)
-    if crowd.layered:
+    if crowd.layered or crowd.blended:
         points, normals = _layered_instances(vb, mesh, crowd, t)
     else:
         points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
@@ -427,13 +429,14 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     n = crowd.instance_count
     if n == 0:
         return np.empty((0, 4, 4))
-    if crowd.layered:
+    if crowd.layered or crowd.blended:
         # Spec 8.6 and 8.4: each side of the crossfade layered, the two layered transforms blended.
         taus = instance_time(crowd, t)
         fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
         local = np.empty((n, 4, 4))
         for i, layers in enumerate(instance_layers(vb, crowd, t)):
-            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers)[0])[0, bone]
+            blend = instance_blend_points(vb, crowd, i, t)
+            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers, blend=blend)[0])[0, bone]
             w = float(np.clip(fade_weight[i], 0.0, 1.0)) if crowd.crossfades else 0.0
             if w > 0:
                 fade_tau = np.array([fade_offset[i] + fade_rate[i] * t])
@@ -742,16 +745,104 @@ def instance_layers(vb: VirtualBones, crowd: Crowd, t: float) -> list:
     return [[layer(i, j) for j in range(weight.shape[1]) if weight[i, j] > 0] for i in range(weight.shape[0])]
 
 
+def instance_blend_points(vb: VirtualBones, crowd: Crowd, i: int, t: float):
+    """Instance ``i``'s blend space at scene time ``t`` as :func:`layered_skinning` takes it (spec 23.7),
+    ``[(clip index, times (1,), weight)]``, or None when it plays its clip.
+
+    Raises:
+        InputError: A blend space index the animation does not have, or a blend with a crossfade
+            (code ``blend.noSpace``).
+    """
+    if crowd.blend_space is None or int(crowd.blend_space[i]) < 0:
+        return None
+    index = int(crowd.blend_space[i])
+    if index >= len(vb.blend_spaces):
+        raise InputError(f"instance {i} plays blend space {index}, but the animation stores {len(vb.blend_spaces)}",
+                         location=f"{crowd.path}.primvars:vb:blendSpace", code="blend.noSpace")
+    if crowd.crossfades and float(crowd.fade_arrays()[3][i]) > 0:
+        raise InputError(f"instance {i} plays a blend space and a crossfade; a blend is the whole base pose "
+                         "(spec 23.7)", location=f"{crowd.path}.primvars:vb:blendSpace", code="blend.noSpace")
+    space = vb.blend_spaces[index]
+    names = [c.name for c in vb.clips]
+
+    def value(field):
+        return 0.0 if field is None else float(np.asarray(field)[i])
+
+    entries = instance_blend(space, value(crowd.blend_x), value(crowd.blend_y), value(crowd.blend_phase),
+                             float(np.asarray(crowd.playback_rate)[i]), {c.name: c.duration for c in vb.clips},
+                             vb.markers)
+    return [(names.index(space.clips[k]), np.array([offset + rate * t]), w) for k, w, _, offset, rate in entries]
+
+
+def blends_as_layers(vb: VirtualBones, crowd: Crowd) -> Crowd:
+    """A crowd whose instances play blend spaces (spec 23.7) as one that plays layers: each blended
+    instance plays its first weighted point's clip (offset and rate from :func:`instance_blend`) with
+    one override layer per further point, under mask index ``len(vb.masks)`` -- a mask of every bone
+    the decoder adds -- before its own layers (spec 23.1, "Decoding a blend as layers"). What a
+    decoder that layers (warp) decodes blends with; the times are linear in the scene time, so the
+    conversion holds at every time."""
+    n = crowd.instance_count
+    every = len(vb.masks)
+    names = [c.name for c in vb.clips]
+    durations = {c.name: c.duration for c in vb.clips}
+    own = 0 if crowd.layer_weight is None else np.asarray(crowd.layer_weight).reshape(n, -1).shape[1]
+    rows = []
+    clip = np.asarray(crowd.clip, np.int32).copy()
+    offset = np.asarray(crowd.time_offset, np.float64).copy()
+    rate = np.asarray(crowd.playback_rate, np.float64).copy()
+    for i in range(n):
+        blend = instance_blend_points(vb, crowd, i, 0.0)  # checks the space and the crossfade
+        if blend is None:
+            rows.append([])
+            continue
+        space = vb.blend_spaces[int(crowd.blend_space[i])]
+        value = lambda field: 0.0 if field is None else float(np.asarray(field)[i])  # noqa: E731
+        entries = instance_blend(space, value(crowd.blend_x), value(crowd.blend_y), value(crowd.blend_phase),
+                                 float(rate[i]), durations, vb.markers)
+        first = entries[0]
+        clip[i], offset[i], rate[i] = names.index(space.clips[first[0]]), first[3], first[4]
+        rows.append([(names.index(space.clips[k]), o, r, relative, every) for k, _, relative, o, r in entries[1:]])
+    extra = max((len(r) for r in rows), default=0)
+    count = extra + own
+    if count == 0:
+        return dataclasses.replace(crowd, blend_space=None, clip=clip, time_offset=offset, playback_rate=rate)
+    layer = {key: np.zeros((n, count), dtype) for key, dtype in (("clip", np.int32), ("offset", np.float64),
+                                                                 ("rate", np.float64), ("weight", np.float32),
+                                                                 ("mask", np.int32), ("mode", np.int32),
+                                                                 ("reference_clip", np.int32),
+                                                                 ("reference_time", np.float64))}
+    for i, row in enumerate(rows):
+        for j, (c, o, r, w, m) in enumerate(row):
+            layer["clip"][i, j], layer["offset"][i, j], layer["rate"][i, j] = c, o, r
+            layer["weight"][i, j], layer["mask"][i, j], layer["reference_clip"][i, j] = w, m, c
+    if own:
+        shape = (n, own)
+        source = {"clip": crowd.layer_clip, "offset": crowd.layer_time_offset, "rate": crowd.layer_playback_rate,
+                  "weight": crowd.layer_weight, "mask": crowd.layer_mask, "mode": crowd.layer_mode,
+                  "reference_clip": crowd.layer_reference_clip if crowd.layer_reference_clip is not None
+                  else crowd.layer_clip, "reference_time": crowd.layer_reference_time}
+        for key, values in source.items():
+            if values is not None:
+                layer[key][:, extra:] = np.asarray(values).reshape(shape)
+    return dataclasses.replace(
+        crowd, clip=clip, time_offset=offset, playback_rate=rate, blend_space=None, layer_clip=layer["clip"],
+        layer_time_offset=layer["offset"], layer_playback_rate=layer["rate"], layer_weight=layer["weight"],
+        layer_mask=layer["mask"], layer_mode=layer["mode"], layer_reference_clip=layer["reference_clip"],
+        layer_reference_time=layer["reference_time"])
+
+
 def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float):
-    """Skinned points and normals (N, V, 3) of a layered crowd, one instance at a time."""
+    """Skinned points and normals (N, V, 3) of a layered or blended crowd, one instance at a time."""
     taus = instance_time(crowd, t)
     fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
     points, normals = [], []
     for i, layers in enumerate(instance_layers(vb, crowd, t)):
-        fading = crowd.crossfades and fade_weight[i] > 0
+        blend = instance_blend_points(vb, crowd, i, t)
+        fading = crowd.crossfades and fade_weight[i] > 0 and blend is None
         p, n = skin_mesh_layered(vb, mesh, int(crowd.clip[i]), taus[i:i + 1], layers,
                                  fade_clip=int(fade_clip[i]) if fading else None,
-                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i])
+                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i],
+                                 blend=blend)
         points.append(p[0])
         normals.append(None if n is None else n[0])
     return np.stack(points), None if normals[0] is None else np.stack(normals)

@@ -41,7 +41,7 @@ from vbusd.decoders import warp_kernels as K
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
-from vbusd.decoders.reference import channel_values, normal_point_indices
+from vbusd.decoders.reference import blends_as_layers, channel_values, normal_point_indices
 from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
 from vbusd.format.errors import UnsupportedError
 
@@ -331,6 +331,9 @@ class Decoder:
             InputError: A clip index out of range or mismatched per-instance array lengths.
         """
         n = crowd.instance_count
+        if crowd.blended:
+            # Blend spaces (spec 23.7) decode as layers under a mask of every bone (23.1).
+            crowd = blends_as_layers(self.vb, crowd)
         layers = self._layer_arrays(crowd) if crowd.layered else {}
         clip = np.asarray(crowd.clip, dtype=np.int64).reshape(-1)
         arrays = {"clip": clip, "timeOffset": np.asarray(crowd.time_offset).reshape(-1),
@@ -377,7 +380,7 @@ class Decoder:
         if self.sampling != "exact":
             raise UnsupportedError("layers (format 1.2) are decoded on the exact path only; use sampling='exact'",
                                    location=where, code="layers.unsupported")
-        if not vb.masks or vb.bone_parents is None or vb.bind_transforms is None:
+        if (not vb.masks and not vb.blend_spaces) or vb.bone_parents is None or vb.bind_transforms is None:
             raise InputError("the crowd plays layers but its animation stores no bone masks (format 1.2)",
                              location=where, code="layers.noMask")
         weight = np.asarray(crowd.layer_weight, np.float32)
@@ -388,7 +391,9 @@ class Decoder:
         if np.any(active & ((clip < 0) | (clip >= self.clip_count))):
             raise InputError(f"a layer clip index is outside 0..{self.clip_count - 1}", location=where,
                              code="instancer.clip.range")
-        if np.any(active & ((mask < 0) | (mask >= len(vb.masks)))):
+        # Mask index len(vb.masks) is the mask of every bone that blend spaces decode with (spec 23.1).
+        masks_there = len(vb.masks) + (1 if vb.blend_spaces else 0)
+        if np.any(active & ((mask < 0) | (mask >= masks_there))):
             raise InputError(f"a layer mask index is outside 0..{len(vb.masks) - 1}", location=where,
                              code="layers.noMask")
         if not hasattr(self, "rig_bind"):
@@ -396,7 +401,8 @@ class Decoder:
             self.rig_bind = self._array(binds.astype(np.float32), wp.mat44)
             self.rig_inverse_bind = self._array(np.linalg.inv(binds).astype(np.float32), wp.mat44)
             self.rig_parents = self._array(np.asarray(vb.bone_parents, np.int32), wp.int32)
-            self.rig_masks = self._array(np.stack([np.asarray(w, np.float32) for _, w in vb.masks]), wp.float32)
+            rows = [np.asarray(w, np.float32) for _, w in vb.masks] + [np.ones(vb.layout.bone_count, np.float32)]
+            self.rig_masks = self._array(np.stack(rows), wp.float32)
         return dict(layer_clip=self._array(np.where(active, clip, 0).astype(np.int32), wp.int32),
                     layer_time_offset=self._array(np.asarray(crowd.layer_time_offset, np.float64).reshape(n, count),
                                                   wp.float64),

@@ -253,6 +253,12 @@ class Crowd:
         layer_reference_clip: (N, L) int32 clip of each additive layer's reference pose, or None for
             the layer's own clip.
         layer_reference_time: (N, L) float32 clip-local seconds of the reference pose, or None for 0.
+        blend_space: (N,) int32 blend space each instance plays (format 1.3, spec 23.7), an index into the
+            animation's blend spaces, -1 for none (the instance plays its clip); None for none.
+        blend_x: (N,) float32 blend parameter x, or None for 0.
+        blend_y: (N,) float32 blend parameter y, or None for 0.
+        blend_phase: (N,) float32 phase at stage time 0, or None for 0; the phase advances by
+            ``playbackRate / sum w D`` per second (spec 23.3, 23.7).
     """
 
     path: str
@@ -275,6 +281,15 @@ class Crowd:
     layer_mode: Optional[np.ndarray] = None
     layer_reference_clip: Optional[np.ndarray] = None
     layer_reference_time: Optional[np.ndarray] = None
+    blend_space: Optional[np.ndarray] = None
+    blend_x: Optional[np.ndarray] = None
+    blend_y: Optional[np.ndarray] = None
+    blend_phase: Optional[np.ndarray] = None
+
+    @property
+    def blended(self) -> bool:
+        """Whether any instance plays a blend space (format 1.3, spec 23.7)."""
+        return self.blend_space is not None and bool(np.any(np.asarray(self.blend_space) >= 0))
 
     @property
     def layered(self) -> bool:

@@ -22,7 +22,7 @@ from vbusd.format.errors import OptionsError
 
 __all__ = ["BlendSpace", "Marker", "parse_blend_space", "parse_marker", "motion_problems", "spaces_from_dict",
            "markers_from_dict", "spaces_to_dict", "markers_to_dict", "triangulate", "blend_weights",
-           "phase_times", "crossed_markers", "MAX_POINTS", "as_layer_weights"]
+           "phase_times", "crossed_markers", "MAX_POINTS", "as_layer_weights", "instance_blend"]
 
 MAX_POINTS = 64
 """The most points a blend space may hold (the 2D triangulation is found by an O(n^4) search)."""
@@ -353,6 +353,24 @@ def as_layer_weights(weights) -> list:
     for k, w in weights:
         total += float(w)
         out.append((k, float(w) / total if total > 0 else 0.0))
+    return out
+
+
+def instance_blend(space: BlendSpace, x: float, y: float, phase: float, rate: float, durations: dict,
+                   markers) -> list:
+    """An instance's blend (spec 23.7) as clip times linear in the scene time ``t``: per weighted point in
+    the space's order, ``(point, weight, layer weight, offset, rate)`` with the point's clip-local time
+    ``offset + rate t``. The phase is ``phase + rate t / D`` with ``D = sum w_k D_k``, so point ``k`` plays
+    ``s_k + phase D_k + (rate D_k / D) t`` (23.3); the layer weights are :func:`as_layer_weights`'s."""
+    weights = blend_weights(space, x, y)
+    cycle = sum(w * durations[space.clips[k]] for k, w in weights)
+    starts = phase_times(space, durations, markers, 0.0)
+    layered = as_layer_weights(weights)
+    out = []
+    for (k, w), (_, relative) in zip(weights, layered):
+        duration = durations[space.clips[k]]
+        out.append((k, w, relative, starts[k] + float(phase) * duration,
+                    float(rate) * duration / cycle if cycle > 0 else 0.0))
     return out
 
 

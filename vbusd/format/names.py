@@ -25,7 +25,8 @@ __all__ = [
     "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS",
     "BLEND_SPACE_NAMES", "BLEND_SPACE_DIMENSIONS", "BLEND_SPACE_POINT_COUNTS", "BLEND_SPACE_CLIPS",
     "BLEND_SPACE_POINTS", "BLEND_SPACE_SYNC_MARKERS", "BLEND_SPACE_ATTRIBUTES", "MARKER_CLIPS", "MARKER_NAMES",
-    "MARKER_TIMES", "MARKER_ATTRIBUTES", "MOTION_KEYS"]
+    "MARKER_TIMES", "MARKER_ATTRIBUTES", "MOTION_KEYS", "BLEND_SPACE", "BLEND_X", "BLEND_Y", "BLEND_PHASE",
+    "BLEND_PRIMVARS"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -167,6 +168,13 @@ LAYER_PRIMVARS = (LAYER_CLIP, LAYER_TIME_OFFSET, LAYER_PLAYBACK_RATE, LAYER_WEIG
 """Format 1.2: per-instance layer primvars of VirtualBonesInstancingAPI (elementSize L, spec "Layers")."""
 
 
+BLEND_SPACE = Primvar("vb:blendSpace", "int[]")
+BLEND_X = Primvar("vb:blendX", "float[]")
+BLEND_Y = Primvar("vb:blendY", "float[]")
+BLEND_PHASE = Primvar("vb:blendPhase", "float[]")
+BLEND_PRIMVARS = (BLEND_SPACE, BLEND_X, BLEND_Y, BLEND_PHASE)
+"""Format 1.3: per-instance blend primvars of VirtualBonesInstancingAPI (spec "Blend spaces per instance");
+defaults -1 (no blend), 0, 0, 0."""
 BLEND_SPACE_NAMES = "vb:blendSpaceNames"
 BLEND_SPACE_DIMENSIONS = "vb:blendSpaceDimensions"
 BLEND_SPACE_POINT_COUNTS = "vb:blendSpacePointCounts"

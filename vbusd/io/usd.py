@@ -421,6 +421,20 @@ def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets
         _write_fades(stage, pxr, primvars, crowd)
     if crowd.layer_weight is not None:
         _write_layers(pxr, primvars, crowd, mask_count)
+    if crowd.blend_space is not None:
+        # Format 1.3 (spec 23.7): the blend space, parameter and phase of each instance.
+        for primvar, values, default, integer in ((names.BLEND_SPACE, crowd.blend_space, -1, True),
+                                                  (names.BLEND_X, crowd.blend_x, 0.0, False),
+                                                  (names.BLEND_Y, crowd.blend_y, 0.0, False),
+                                                  (names.BLEND_PHASE, crowd.blend_phase, 0.0, False)):
+            array = (np.full(n, default) if values is None else np.asarray(values)).reshape(-1)
+            if array.shape != (n,):
+                raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} "
+                                   "instances", file="usd")
+            vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
+            type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
+            primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex).Set(
+                vt.FromNumpy(np.ascontiguousarray(array, dtype=dtype)))
     return instancer
 
 

@@ -621,7 +621,8 @@ class UsdReader:
                                                 ((1, 2), names.BONE_PARENTS), ((1, 2), names.MASK_NAMES),
                                                 ((1, 3), names.BLEND_SPACE_NAMES), ((1, 3), names.MARKER_CLIPS))
                      if version > tuple(current)]
-        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS))
+        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS),
+                                             ((1, 3), names.BLEND_PRIMVARS))
                     if version > tuple(current) for p in group]
         target = prim.GetPath()
         found = []
@@ -1190,12 +1191,26 @@ class UsdReader:
                       f"the first is {int(clip[first])} at instance {first}",
                       UsdSite(path, names.INSTANCE_CLIP.attribute))
         fades = self.read_fades(prim, n, clip_count)
+        # Format 1.3 (spec 23.7): blend spaces per instance; absent means none.
+        blends = {}
+        if any(prim.GetAttribute(p.attribute) and prim.GetAttribute(p.attribute).HasAuthoredValue()
+               for p in names.BLEND_PRIMVARS):
+            for field, primvar, default, dtype in (("blend_space", names.BLEND_SPACE, -1, np.int32),
+                                                   ("blend_x", names.BLEND_X, 0.0, np.float32),
+                                                   ("blend_y", names.BLEND_Y, 0.0, np.float32),
+                                                   ("blend_phase", names.BLEND_PHASE, 0.0, np.float32)):
+                values, _ = self.primvar(prim, primvar, np.float64, count=n, element_size=1, default=default,
+                                         codes=codes)
+                if not np.all(np.isfinite(values)):
+                    self.fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values",
+                              UsdSite(path, primvar.attribute))
+                blends[field] = values.astype(dtype)
         layers = self.read_layers(prim, n, clip_count, mask_count)
         if "fade_samples" in layers:
             fades["fade_samples"] = {**fades.get("fade_samples", {}), **layers.pop("fade_samples")}
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
-                     playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers)
+                     playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers, **blends)
 
     def read_layers(self, prim, n: int, clip_count: int, mask_count: int) -> dict:
         """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none):
