@@ -99,3 +99,66 @@ def test_web_core_motion_equals_python(tmp_path):
     np.testing.assert_allclose([e["time"] for _, e in ours], [e["time"] for e in theirs["crowd"]], rtol=0, atol=1e-12)
     assert len(ours) > n
     assert spaces_to_dict(spaces_from_dict(spaces[:2])) == spaces[:2]
+
+
+@pytest.mark.node
+def test_web_core_blend_layers_equal_the_reference_conversion(tmp_path):
+    """@vbusd/core's blendLayers (what the three.js runtime's VirtualBonesCrowd.setBlend writes into
+    an instance's clip, time and layer slots) equals vbusd.decoders.reference.blends_as_layers on the
+    same instances (the numpy and warp decoders' reading of spec 23.7), random parameters, phases
+    and rates, 1D and 2D spaces, with and without a sync marker."""
+    from pathlib import Path
+
+    from vbusd.decoders.reference import blends_as_layers
+
+    rng = np.random.default_rng(7)
+    clips = [{"name": "Walk", "rowCount": 24, "rowsPerSecond": 24.0, "loop": True, "firstRow": 0, "startTime": 0.0},
+             {"name": "Run", "rowCount": 15, "rowsPerSecond": 25.0, "loop": True, "firstRow": 24, "startTime": 0.0},
+             {"name": "Idle", "rowCount": 49, "rowsPerSecond": 24.0, "loop": False, "firstRow": 39, "startTime": 0.0}]
+    markers = [{"clip": "Walk", "name": "step", "time": 0.25}, {"clip": "Run", "name": "step", "time": 0.1},
+               {"clip": "Idle", "name": "step", "time": 1.0}]
+    spaces = [{"name": "speed", "dimensions": 1, "syncMarker": "step",
+               "points": [{"clip": "Idle", "x": 0.0}, {"clip": "Walk", "x": 1.0}, {"clip": "Run", "x": 3.0}]},
+              {"name": "turn", "dimensions": 2, "points": [{"clip": c, "x": x, "y": y} for c, x, y in (
+                  ("Idle", 0.0, 0.0), ("Walk", 1.0, 0.0), ("Run", 0.0, 1.0), ("Walk", 1.0, 1.2))]}]
+    n = 24
+    rows = [{"space": int(rng.integers(0, 2)), "x": float(rng.uniform(-0.5, 3.5)), "y": float(rng.uniform(-0.2, 1.4)),
+             "phase": float(rng.uniform(-1, 2)), "rate": float(rng.uniform(-1, 2))} for _ in range(n)]
+    script = tmp_path / "blend_layers.mjs"
+    core = (Path(__file__).resolve().parents[1] / "web" / "core" / "src" / "motion.js").as_uri()
+    script.write_text(f"""
+import fs from 'node:fs';
+import {{ blendLayers }} from '{core}';
+const q = JSON.parse(fs.readFileSync(process.argv[2], 'utf8'));
+process.stdout.write(JSON.stringify(q.rows.map((r) => blendLayers(q.spaces[r.space], r.x, r.y, r.phase, r.rate,
+  q.clips, q.markers))));
+""")
+    queries = tmp_path / "queries.json"
+    queries.write_text(json.dumps({"rows": rows, "spaces": spaces, "clips": clips, "markers": markers}))
+    node = node_tools.require_packages()
+    import subprocess
+
+    result = subprocess.run([node, str(script), str(queries)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    theirs = json.loads(result.stdout)
+    layout = Layout("crossMatrix", "float32", 2, 88)
+    vb = VirtualBones(layout, np.zeros(layout.shape, np.float32), ("a", "b"),
+                      tuple(Clip(c["name"], c["firstRow"], c["rowCount"], c["rowsPerSecond"], c["loop"]) for c in clips),
+                      bind_transforms=np.stack([np.eye(4)] * 2), bone_parents=(-1, 0),
+                      blend_spaces=spaces_from_dict(spaces), markers=markers_from_dict(markers))
+    crowd = Crowd("/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1.0], np.float32), (n, 1)),
+                  np.zeros(n, np.int32), np.zeros(n), np.array([r["rate"] for r in rows]),
+                  blend_space=np.array([r["space"] for r in rows], np.int32), blend_x=np.array([r["x"] for r in rows]),
+                  blend_y=np.array([r["y"] for r in rows]), blend_phase=np.array([r["phase"] for r in rows]))
+    ours = blends_as_layers(vb, crowd)
+    for i, plan in enumerate(theirs):
+        assert plan["clip"] == ours.clip[i]
+        np.testing.assert_allclose([plan["timeOffset"], plan["playbackRate"]], [ours.time_offset[i], ours.playback_rate[i]],
+                                   rtol=0, atol=1e-12)
+        count = len(plan["layers"])
+        assert np.all(ours.layer_weight[i, count:] == 0)
+        for j, layer in enumerate(plan["layers"]):
+            assert layer["clip"] == ours.layer_clip[i, j] and ours.layer_mask[i, j] == len(vb.masks)
+            np.testing.assert_allclose([layer["timeOffset"], layer["playbackRate"], layer["weight"]],
+                                       [ours.layer_time_offset[i, j], ours.layer_playback_rate[i, j],
+                                        ours.layer_weight[i, j]], rtol=0, atol=1e-6)

@@ -10,7 +10,7 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes,
+  checkScreenSizes, blendLayers,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -295,6 +295,38 @@ export class VirtualBonesCrowd extends Group {
     for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
       attribute.needsUpdate = true;
     }
+  }
+
+  /**
+   * Instance `index` plays blend space `space` (its name in the layout's `blendSpaces`, format 1.3,
+   * spec 23.7) at parameter (x, y), phase `phase` at scene time 0, advancing at `playbackRate /
+   * sum w D`: written as its clip and time plus layer slots 0 and 1 under the mask of every bone
+   * (spec 23.1, "Decoding a blend as layers"; @vbusd/core's blendLayers), so a crowd made with
+   * layers plays it. A space's point beyond the third weighted one would need a third slot: refused.
+   */
+  setBlend(index, { space, x = 0, y = 0, phase = 0, playbackRate = 1 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers (blends play as layers)`);
+    const spaces = this.animation.layout.blendSpaces ?? [];
+    const found = spaces.find((s) => s.name === space);
+    if (!found) throw new VirtualBonesError(`${this.name}: no blend space ${JSON.stringify(space)} (spaces: ${spaces.map((s) => s.name).join(', ')})`);
+    const plan = blendLayers(found, x, y, phase, playbackRate, this.animation.clips, this.animation.layout.markers);
+    if (plan.layers.length > 2) throw new VirtualBonesError(`${this.name}: instance ${index}: the blend weighs ${plan.layers.length + 1} points; the runtime layers 3 at most`);
+    this.clipAttribute.array[index] = plan.clip;
+    this.timeAttribute.array.set([plan.timeOffset, plan.playbackRate], 2 * index);
+    this.clipAttribute.needsUpdate = true;
+    this.timeAttribute.needsUpdate = true;
+    this.setFade(index, { weight: 0 });
+    const every = this.animation.masks.length;  // the rig texture's every-bone mask (rigTexels)
+    for (let slot = 0; slot < 2; ++slot) {
+      const layer = plan.layers[slot];
+      this.layerClipMaskAttribute.array.set([layer ? layer.clip : 0, layer ? every : 0], 4 * index + 2 * slot);
+      this.layerTimeAttribute.array.set(layer ? [layer.timeOffset, layer.playbackRate] : [0, 1], 4 * index + 2 * slot);
+      this.layerWeightAttribute.array[2 * index + slot] = layer ? layer.weight : 0;
+    }
+    for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
+      attribute.needsUpdate = true;
+    }
+    return plan;
   }
 
   /**

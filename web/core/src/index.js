@@ -16,6 +16,8 @@ export {
 } from './decode.js';
 export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
-export { triangulate, blendWeights, phaseTimes, layerWeights, crossedMarkers, crowdEvents } from './motion.js';
+export {
+  triangulate, blendWeights, phaseTimes, layerWeights, blendLayers, crossedMarkers, crowdEvents,
+} from './motion.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';

@@ -175,3 +175,28 @@ export function crowdEvents(markers, clips, clip, timeOffset, playbackRate, t0, 
   }
   return out;
 }
+
+/**
+ * An instance's blend (spec 23.7) as the per-instance data of a crowd that layers (spec 23.1,
+ * "Decoding a blend as layers"): {clip, timeOffset, playbackRate, layers: [{clip, timeOffset,
+ * playbackRate, weight}]}, every clip time linear in the scene time t (offset + rate t): the first
+ * weighted point's clip is the base, each further point an override layer of weight w_k / (w_1 + ...
+ * + w_k) under a mask of every bone. `clips` are the metadata's clip objects; `markers` its markers.
+ * The twin of vbusd.decoders.reference.blends_as_layers for one instance.
+ */
+export function blendLayers(space, x, y, phase, playbackRate, clips, markers) {
+  const durations = Object.fromEntries(clips.map((c) => [c.name, (c.loop ? c.rowCount : c.rowCount - 1) / c.rowsPerSecond]));
+  const index = (name) => clips.findIndex((c) => c.name === name);
+  const weights = blendWeights(space, x, y);
+  const cycle = weights.reduce((sum, [k, w]) => sum + w * durations[space.points[k].clip], 0);
+  const starts = phaseTimes(space, durations, markers, 0);
+  const entries = layerWeights(weights).map(([k, relative]) => {
+    const duration = durations[space.points[k].clip];
+    return {
+      clip: index(space.points[k].clip), weight: relative, timeOffset: starts[k] + phase * duration,
+      playbackRate: cycle > 0 ? (playbackRate * duration) / cycle : 0,
+    };
+  });
+  const [base, ...layers] = entries;
+  return { clip: base.clip, timeOffset: base.timeOffset, playbackRate: base.playbackRate, layers };
+}
