@@ -15,7 +15,8 @@ instance's bounding-box diagonal, unit normals within 1e-5.
   the probe at each time equals ``vbusd.skin`` given that instance's clip, fade and layer by hand
   (before, inside and after the window);
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
-* unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative.
+* unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
+* blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask.
 """
 
 from __future__ import annotations
@@ -357,3 +358,44 @@ def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+@pytest.fixture(scope="module")
+def blending_chain(tmp_path_factory):
+    """The chain character (walk, run, wave) with a 1D and a 2D blend space and a crowd of six
+    instances playing them at their own parameters, phases and rates (format 1.3, spec 23.7)."""
+    from vbusd.format.model import Crowd
+    from vbusd.format.motion import parse_blend_space
+
+    folder = tmp_path_factory.mktemp("blend")
+    asset = vbusd.read_asset(chain_character(folder))
+    vb = dataclasses.replace(asset.animations[0], blend_spaces=(
+        parse_blend_space("speed=walk@0,run@1"), parse_blend_space("mix=walk@0:0,run@1:0,wave@0:1")))
+    n = 6
+    crowd = Crowd("/Chain/Crowd", np.column_stack([np.arange(n) * 1.5, np.zeros(n), np.zeros(n)]).astype(np.float32),
+                  np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), np.zeros(n, np.int32), np.zeros(n, np.float32),
+                  np.array([1.0, 0.75, 1.25, 1.0, 0.5, 1.0], np.float32),
+                  blend_space=np.array([0, 0, 1, 1, 1, -1], np.int32),
+                  blend_x=np.array([0.25, 0.8, 0.2, 0.5, 0.1, 0.0], np.float32),
+                  blend_y=np.array([0.0, 0.0, 0.3, 0.25, 0.7, 0.0], np.float32),
+                  blend_phase=np.array([0.0, 0.125, 0.25, 0.0, 0.375, 0.0], np.float32))
+    path = folder / "blend" / "blend.usda"
+    vbusd.write_asset(dataclasses.replace(asset, animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
+    return path
+
+
+@pytest.mark.parity("blend spaces")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_blend_spaces(browser, blending_chain, engine):
+    """A crowd playing 1D and 2D blend spaces (spec 23.7) as the runtimes' layers under the rig's
+    every-bone mask (23.1; vbusd view converts with reference.blends_as_layers): each instance's
+    probe against the numpy decoder's blend."""
+    asset = vbusd.read_asset(blending_chain)
+    assert asset.crowds[0].blended
+    for i in range(5):  # the blended instances are not their clip (walk) played plainly
+        blended, _ = reference_instance(asset, i, 0.37)
+        plain = vbusd.skin(asset.animations[0], "walk", 0.37)[0].points + asset.crowds[0].positions[i]
+        assert float(np.abs(blended - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
+    errors = probe_errors(browser, blending_chain, engine, [(i, t) for i in range(6) for t in (0.0, 0.37)], asset=asset)
+    print(engine, "blend spaces", errors)
+    assert_within(errors, engine)

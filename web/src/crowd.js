@@ -286,7 +286,9 @@ export class VirtualBonesCrowd extends Group {
     if (weight > 0 && !(clip >= 0 && clip < this.animation.clips.length)) {
       throw new VirtualBonesError(`${this.name}: instance ${index} layers clip ${clip}, the animation has ${this.animation.clips.length}`);
     }
-    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+    // Format 1.3: with blend spaces, mask index masks.length is the rig's every-bone mask (blends as layers).
+    const maskCount = this.animation.masks.length + (this.animation.layout?.blendSpaces ? 1 : 0);
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
     this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);

@@ -342,7 +342,9 @@ export class VirtualBonesCrowd {
     const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
     if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
     if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: layer weight must be in 0..1, got ${weight}`);
-    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+    // Format 1.3: with blend spaces, mask index masks.length is the rig's every-bone mask (blends as layers).
+    const maskCount = this.animation.masks.length + (this.animation.layout?.blendSpaces ? 1 : 0);
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
     this.instanceC.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
