@@ -443,3 +443,24 @@ def test_blending_crowd_round_trips_through_usd_primvars(fox, tmp_path):
     ours, _ = skin_crowd(vb, vb.meshes[0], crowd, 0.8)
     theirs, _ = skin_crowd(back.animations[0], back.animations[0].meshes[0], dataclasses.replace(read), 0.8)
     np.testing.assert_allclose(theirs, ours, rtol=0, atol=1e-9)
+
+
+def test_a_blending_crowd_is_refused_by_the_gltf_package_in_one_line(fox, tmp_path, capsys):
+    """The glTF runtime package has no per-instance blend attribute yet: vbusd export refuses a
+    blending crowd by name (exit 2, one line, no file) rather than drop the blends."""
+    from vbusd.cli import main
+    from vbusd.format.model import VirtualBonesAsset
+    from vbusd.io.usd import write_asset
+
+    _, vb = fox
+    n = 2
+    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.zeros(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
+                  blend_space=np.array([0, -1], np.int32), blend_x=np.array([1.5, 0], np.float32))
+    path = tmp_path / "crowd.usda"
+    write_asset(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
+    out = tmp_path / "crowd.glb"
+    assert main(["export", str(path), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "layers.unsupported" in err[0] and "blend spaces" in err[0], err
+    assert not out.exists()

@@ -158,6 +158,11 @@ def _crowd_arrays(crowd):
         raise UnsupportedError("the crowd plays layers (format 1.2), which the glTF runtime package does not "
                                "carry yet", location=f"{crowd.path}.primvars:vb:layerWeight",
                                code="layers.unsupported")
+    if crowd.blended:
+        # Spec 23.7 blends per instance have no EXT_mesh_gpu_instancing attribute yet: refused likewise.
+        raise UnsupportedError("the crowd plays blend spaces per instance (format 1.3), which the glTF runtime "
+                               "package does not carry yet", location=f"{crowd.path}.primvars:vb:blendSpace",
+                               code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
     rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])
