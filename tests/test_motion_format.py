@@ -198,3 +198,19 @@ def test_the_gltf_runtime_package_carries_spaces_and_markers(fox, tmp_path, caps
     assert layout["formatMinorVersion"] == 3
     assert layout["blendSpaces"] == sidecar["blendSpaces"] and layout["markers"] == sidecar["markers"]
     assert vbusd.validate(package).valid
+
+
+def test_info_lists_spaces_and_markers(fox, tmp_path, capsys):
+    from vbusd.cli import main
+
+    out = tmp_path / "fox.usda"
+    assert main(["convert", str(fox), "-o", str(out), "--texel-format", "float32", *FOX_MOTION, "-q"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out), "--format", "json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert [s["name"] for s in info["blendSpaces"]] == ["move", "dir"] and info["blendSpaces"][0]["syncMarker"] == "footL"
+    assert info["markers"][2] == {"clip": "Survey", "name": "look", "time": 1.5}
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "blend space move (1D, in phase from marker footL): Walk@1, Run@2" in text
+    assert "markers: Walk:footL@0.2, Run:footL@0.1, Survey:look@1.5" in text
