@@ -365,12 +365,13 @@ def blending_chain(tmp_path_factory):
     """The chain character (walk, run, wave) with a 1D and a 2D blend space and a crowd of six
     instances playing them at their own parameters, phases and rates (format 1.3, spec 23.7)."""
     from vbusd.format.model import Crowd
-    from vbusd.format.motion import parse_blend_space
+    from vbusd.format.motion import parse_blend_space, parse_marker
 
     folder = tmp_path_factory.mktemp("blend")
     asset = vbusd.read_asset(chain_character(folder))
     vb = dataclasses.replace(asset.animations[0], blend_spaces=(
-        parse_blend_space("speed=walk@0,run@1"), parse_blend_space("mix=walk@0:0,run@1:0,wave@0:1")))
+        parse_blend_space("speed=walk@0,run@1"), parse_blend_space("mix=walk@0:0,run@1:0,wave@0:1")),
+        markers=tuple(parse_marker(m) for m in ("walk:step@0.5", "walk:step@1.5", "run:step@0.25", "wave:hi@1")))
     n = 6
     crowd = Crowd("/Chain/Crowd", np.column_stack([np.arange(n) * 1.5, np.zeros(n), np.zeros(n)]).astype(np.float32),
                   np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), np.zeros(n, np.int32), np.zeros(n, np.float32),
@@ -399,3 +400,30 @@ def test_blend_spaces(browser, blending_chain, engine):
     errors = probe_errors(browser, blending_chain, engine, [(i, t) for i in range(6) for t in (0.0, 0.37)], asset=asset)
     print(engine, "blend spaces", errors)
     assert_within(errors, engine)
+
+
+@pytest.mark.parity("clip events")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_clip_events(browser, blending_chain, engine):
+    """``crowd.events(t0, t1)`` on the page (format 1.3, spec 23.5, 23.7: a blending instance reports
+    its first weighted point's clip) equals the reference's crowd_events, forward and backward."""
+    from vbusd.decoders.reference import crowd_events
+
+    asset = vbusd.read_asset(blending_chain)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    intervals = [(0.0, 1.7), (0.3, 0.9), (1.9, 0.2), (-0.5, 3.0)]
+    with ViewerServer(blending_chain, engine=engine) as server:
+        page = open_page(browser, server)
+        try:
+            assert page.error == "", page.error
+            got = page.page.evaluate("(pairs) => pairs.map(([a, b]) => window.vbusd.crowds[0].events(a, b))", intervals)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    total = 0
+    for (t0, t1), theirs in zip(intervals, got):
+        ours = crowd_events(vb, crowd, t0, t1)
+        assert [(e["instance"], e["name"]) for e in theirs] == [(i, e["name"]) for i, e in ours], (t0, t1)
+        np.testing.assert_allclose([e["time"] for e in theirs], [e["time"] for _, e in ours], rtol=0, atol=1e-5)
+        total += len(ours)
+    assert total > 10

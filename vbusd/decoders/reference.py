@@ -250,9 +250,14 @@ def crowd_events(vb: VirtualBones, crowd: Crowd, t0: float, t1: float) -> list:
     instance ``i`` plays clip-local time ``timeOffset + playbackRate x t``, so its events are its
     clip's markers crossed from that time at ``t0`` to that at ``t1`` (backward for a negative rate).
 
+    An instance that plays a blend space (spec 23.7) reports the markers of its first weighted
+    point's clip at that point's clip time.
+
     Returns:
         ``[(instance, {"name", "time"})]``, instance by instance, each in the order crossed.
     """
+    if crowd.blended:
+        crowd = blends_as_layers(vb, crowd)
     out = []
     start, end = instance_time(crowd, t0), instance_time(crowd, t1)
     for i in range(crowd.instance_count):

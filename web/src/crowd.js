@@ -10,7 +10,7 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, blendLayers,
+  checkScreenSizes, blendLayers, crowdEvents,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -329,6 +329,20 @@ export class VirtualBonesCrowd extends Group {
       attribute.needsUpdate = true;
     }
     return plan;
+  }
+
+  /**
+   * The clip markers (format 1.3, spec 23.5) every instance crosses between scene times t0 and t1,
+   * from the clock on the CPU (a footstep sound, a dust particle): [{instance, name, time}], instance
+   * by instance, each in the order crossed, `time` the unwrapped clip-local time. An instance that
+   * plays a blend space reports its first weighted point's clip (spec 23.7).
+   */
+  events(t0, t1) {
+    const n = this.capacity;
+    const offset = new Float64Array(n);
+    const rate = new Float64Array(n);
+    for (let i = 0; i < n; ++i) [offset[i], rate[i]] = [this.timeAttribute.array[2 * i], this.timeAttribute.array[2 * i + 1]];
+    return crowdEvents(this.animation.layout.markers, this.animation.clips, this.clipAttribute.array, offset, rate, t0, t1);
   }
 
   /**

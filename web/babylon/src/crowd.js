@@ -7,7 +7,7 @@ import {
 } from '@babylonjs/core';
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
-  screenSize, selectLevel, checkScreenSizes,
+  screenSize, selectLevel, checkScreenSizes, crowdEvents,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -302,6 +302,17 @@ export class VirtualBonesCrowd {
     const triangles = (mesh) => mesh.getTotalIndices() / 3;
     if (!this.levels) return this.meshes.reduce((n, mesh) => n + triangles(mesh) * mesh.thinInstanceCount, 0);
     return this.levels.reduce((n, meshes, level) => n + meshes.reduce((m, mesh) => m + triangles(mesh), 0) * this.levelCounts[level], 0);
+  }
+
+  /**
+   * The clip markers (format 1.3, spec 23.5) every instance crosses between scene times t0 and t1
+   * (CPU, from the clock): [{instance, name, time}], as the three.js runtime's `events`.
+   */
+  events(t0, t1) {
+    const n = this.capacity;
+    const [clip, offset, rate] = [new Int32Array(n), new Float64Array(n), new Float64Array(n)];
+    for (let i = 0; i < n; ++i) [clip[i], offset[i], rate[i]] = this.instanceA.subarray(4 * i, 4 * i + 3);
+    return crowdEvents(this.animation.layout.markers, this.animation.layout.clips, clip, offset, rate, t0, t1);
   }
 
   /** Change instance `i`'s crossfade (spec 8.3): fade clip, its time offset and rate, weight. */
