@@ -187,3 +187,41 @@ def test_shaders_reproduce_every_blend_as_layers(gl, lang, path, tmp_path):
     points, normals = run_layers(gl, lang, vb, _blend_instances(vector, vb), 0.0, tmp_path)
     for i, case in enumerate(vector["blends"]):
         _matches(vector, case, points[i], normals[i], None, f"{lang} {path.stem} {case['blend']}")
+
+
+def _additive_instances(vector: dict, vb) -> list:
+    """Each additive case of the vectors as an instance (rate 0) with its two layers, modes and references."""
+    names = [c.name for c in vb.clips]
+    masks = [name for name, _ in vb.masks]
+    instances = []
+    for case in vector["additive"]:
+        layers = []
+        for layer in case["layers"]:
+            additive = layer.get("mode") == "additive"
+            reference = layer.get("reference", {"clip": layer["clip"], "time": 0.0})
+            layers.append({"clip": names.index(layer["clip"]), "timeOffset": layer["time"], "playbackRate": 0.0,
+                           "weight": layer.get("weight", 1.0), "mask": masks.index(layer["mask"]),
+                           "mode": int(additive), "referenceClip": names.index(reference["clip"]),
+                           "referenceTau": reference["time"]})
+        layers += [{"clip": 0, "timeOffset": 0.0, "playbackRate": 0.0, "weight": 0.0, "mask": 0}] * (2 - len(layers))
+        instances.append({"clip": names.index(case["clip"]), "timeOffset": case["time"], "playbackRate": 0.0,
+                          "fadeClip": 0, "fadeTimeOffset": 0.0, "fadePlaybackRate": 0.0, "fadeWeight": 0.0,
+                          "layers": layers})
+    return instances
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shaders_reproduce_every_additive_case(gl, lang, path, tmp_path):
+    """vbSkinLayered compiled with VB_ADDITIVE_LAYERS 1 (format 1.3, spec 23.4: each layer's mode and
+    reference pose) on the vectors' additive cases, override and additive layers mixed, within the
+    vectors' tolerances (GLSL and HLSL on Mesa)."""
+    from tests.helpers.layer_shader import run_layers
+
+    vector = json.loads(path.read_text())
+    vb = _animation(vector)
+    points, normals = run_layers(gl, lang, vb, _additive_instances(vector, vb), 0.0, tmp_path, additive=True)
+    for i, case in enumerate(vector["additive"]):
+        _matches(vector, case, points[i], normals[i], None, f"{lang} {path.stem} additive {i}")

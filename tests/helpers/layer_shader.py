@@ -99,12 +99,36 @@ TOut main(TIn input)
 """
 
 
-def run_layers(ctx, lang: str, vb, instances: list, time: float, workdir: Path):
+def _additive(main: str, lang: str) -> str:
+    """A vector main that also feeds each layer's mode and reference pose (``VB_ADDITIVE_LAYERS 1``,
+    format 1.3): per instance ``additive`` = (mode 0, mode 1, reference clip 0, reference clip 1) and
+    ``referenceTau`` = (reference time 0, reference time 1)."""
+    if lang == "glsl":
+        main = main.replace("out vec3 t_position;", "in ivec4 t_additive;\nin vec2 t_referenceTau;\nout vec3 t_position;")
+        fetch, tau = "t_additive", "t_referenceTau"
+        call = "layerMask, t_restPosition"
+    else:
+        main = main.replace("    float4 layerTimes : TEXCOORD6;",
+                            "    float4 layerTimes : TEXCOORD6;\n    int4 additive : TEXCOORD7;\n    float2 referenceTau : TEXCOORD8;")
+        fetch, tau = "input.additive", "input.referenceTau"
+        call = "layerMask,\n                  input.restPosition"
+    declare = (f"\n    int layerMode[VB_MAX_LAYERS]; int referenceClip[VB_MAX_LAYERS]; float referenceTau[VB_MAX_LAYERS];"
+               f"\n    layerMode[0] = {fetch}.x; layerMode[1] = {fetch}.y; referenceClip[0] = {fetch}.z; "
+               f"referenceClip[1] = {fetch}.w;\n    referenceTau[0] = {tau}.x; referenceTau[1] = {tau}.y;")
+    marker = "layerMask[0] = t_masks.x; layerMask[1] = t_masks.y;" if lang == "glsl" else \
+        "layerMask[0] = input.masks.x; layerMask[1] = input.masks.y;"
+    assert marker in main and call in main
+    main = main.replace(marker, marker + declare)
+    return main.replace(call, call.replace("layerMask", "layerMask, layerMode, referenceClip, referenceTau"))
+
+
+def run_layers(ctx, lang: str, vb, instances: list, time: float, workdir: Path, *, additive: bool = False):
     """Skin every (instance, vertex) of ``vb``'s first mesh with vbSkinLayered: (points, normals).
 
     ``instances`` are dicts as the layer conformance files hold them (clip, timeOffset, playbackRate,
     fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight, two layers of clip, timeOffset,
-    playbackRate, weight, mask).
+    playbackRate, weight, mask). With ``additive`` (format 1.3) the module is compiled with
+    ``VB_ADDITIVE_LAYERS 1`` and each layer also has ``mode``, ``referenceClip`` and ``referenceTau``.
     """
     import subprocess
 
@@ -115,14 +139,17 @@ def run_layers(ctx, lang: str, vb, instances: list, time: float, workdir: Path):
     layout = vb.layout
     module = generate(ShaderOptions(lang, layout.encoding, layout.texel_format, max_influences=4, main=False,
                                     layers=True))
+    prefix = "#define VB_ADDITIVE_LAYERS 1\n" if additive else ""
+    glsl_main = _additive(_GLSL_VECTOR_MAIN, "glsl") if additive else _GLSL_VECTOR_MAIN
+    hlsl_main = _additive(_HLSL_VECTOR_MAIN, "hlsl") if additive else _HLSL_VECTOR_MAIN
     if lang == "glsl":
-        program = ctx.program(vertex_shader="#version 330 core\n" + module + _GLSL_VECTOR_MAIN,
+        program = ctx.program(vertex_shader="#version 330 core\n" + prefix + module + glsl_main,
                               varyings=["t_position", "t_normal"])
         names = {"texture": "vb_texture", "rig": "vb_rig", "prefix": "t_"}
     else:
         require("glslang")
         hlsl, spirv = workdir / "vector.hlsl", workdir / "vector.spv"
-        hlsl.write_text(module + _HLSL_VECTOR_MAIN)
+        hlsl.write_text(prefix + module + hlsl_main)
         compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
                                    "--auto-map-bindings", "-o", str(spirv), str(hlsl)], capture_output=True, text=True)
         assert compiled.returncode == 0, compiled.stdout + compiled.stderr
@@ -158,18 +185,27 @@ def run_layers(ctx, lang: str, vb, instances: list, time: float, workdir: Path):
          np.asarray(mesh.bone_weights, np.float32).view(np.int32)], axis=1)).tobytes())
     rows = instances
     per = np.zeros(len(rows), dtype=[("clips", "<i4", 4), ("masks", "<i4", 2), ("base", "<f4", 4),
-                                     ("weights", "<f4", 3), ("layerTimes", "<f4", 4)])
+                                     ("weights", "<f4", 3), ("layerTimes", "<f4", 4)]
+                   + ([("additive", "<i4", 4), ("referenceTau", "<f4", 2)] if additive else []))
     per["clips"] = [(r["clip"], r["fadeClip"], r["layers"][0]["clip"], r["layers"][1]["clip"]) for r in rows]
     per["masks"] = [(r["layers"][0]["mask"], r["layers"][1]["mask"]) for r in rows]
     per["base"] = [(r["timeOffset"], r["playbackRate"], r["fadeTimeOffset"], r["fadePlaybackRate"]) for r in rows]
     per["weights"] = [(r["fadeWeight"], r["layers"][0]["weight"], r["layers"][1]["weight"]) for r in rows]
     per["layerTimes"] = [(r["layers"][0]["timeOffset"], r["layers"][0]["playbackRate"], r["layers"][1]["timeOffset"],
                           r["layers"][1]["playbackRate"]) for r in rows]
+    if additive:
+        per["additive"] = [(r["layers"][0].get("mode", 0), r["layers"][1].get("mode", 0),
+                            r["layers"][0].get("referenceClip", r["layers"][0]["clip"]),
+                            r["layers"][1].get("referenceClip", r["layers"][1]["clip"])) for r in rows]
+        per["referenceTau"] = [(r["layers"][0].get("referenceTau", 0.0), r["layers"][1].get("referenceTau", 0.0))
+                               for r in rows]
     ibo = ctx.buffer(per.tobytes())
     p = names["prefix"]
     vao = ctx.vertex_array(program, [
         (vbo, "3f 3f 4i 4f", f"{p}restPosition", f"{p}restNormal", f"{p}boneIndices", f"{p}boneWeights"),
-        (ibo, "4i 2i 4f 3f 4f/i", *[f"{p}{s}" for s in ("clips", "masks", "base", "weights", "layerTimes")])])
+        (ibo, "4i 2i 4f 3f 4f" + (" 4i 2f" if additive else "") + "/i",
+         *[f"{p}{s}" for s in ("clips", "masks", "base", "weights", "layerTimes")
+           + (("additive", "referenceTau") if additive else ())])])
     count = len(mesh.points)
     out = ctx.buffer(reserve=count * len(rows) * 6 * 4)
     vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=len(rows))
