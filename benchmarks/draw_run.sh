@@ -48,8 +48,14 @@
 #   device call: carry [".gl", ".whl", ".lod"]  command: bash benchmarks/draw_run.sh issue29
 # It writes draw_tests.log, draw_issue29.json, draw_issue29.log and draw_issue29_report.md (the table of
 # frame time, GPU time and triangles drawn per crowd size and level count) to $OUT.
+#
+# Issue 36 (the previous-frame pose's cost: static, vb and vb_pulled_texture, each VB configuration
+# without and with `--previous`): ONE device call, no warp, after `NO_WARP=1 bash benchmarks/draw_run.sh pack`:
+#   device call: carry [".gl", ".whl"]  command: bash benchmarks/draw_run.sh issue36
+# It writes draw_tests.log, draw_issue36.json, draw_issue36.log and draw_issue36_report.md (with the
+# previous-pose cost table) to $OUT.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29}
+cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -62,7 +68,10 @@ pack)
     (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
     python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
         --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-        --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0
+        --platform manylinux1_x86_64 -d .whl moderngl==5.13.0 glcontext==3.1.0 \
+        usd-core OpenEXR pypng pygltflib dataclasses-json marshmallow typing-inspect mypy-extensions deprecated wrapt \
+        jsonschema jsonschema-specifications referencing rpds-py attrs typing-extensions click rich markdown-it-py mdurl \
+        pygments  # vbusd's core dependencies but numpy (the image has it) and warp: the shaders come from vbusd.shader
     if [ -n "${NO_WARP:-}" ]; then  # issue25 needs no warp
         ls -l .gl .whl
     else
@@ -79,7 +88,7 @@ pack-lod)
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors|issue25|issue25-texture|issue29)
+smoke|run|factors|issue25|issue25-texture|issue29|issue36)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -125,7 +134,7 @@ smoke|run|factors|issue25|issue25-texture|issue29)
         tail -12 "$out/draw_issue29_report.md"
         exit 0
     fi
-    if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ]; then
+    if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ] || [ "$cmd" = issue36 ]; then
         plan=$cmd; name=${cmd//-/_}
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
         # shellcheck disable=SC2086
@@ -145,6 +154,6 @@ smoke|run|factors|issue25|issue25-texture|issue29)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29" >&2; exit 2
+    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36" >&2; exit 2
     ;;
 esac

@@ -675,6 +675,41 @@ def make_asset(rig: Optional[Rig] = None):
                              default_prim="StadiumCrowd")
 
 
+def hat_mesh(path: str = "/StadiumCrowd/Hat"):
+    """An optional hat part (spec "Crowd variety", modular characters): a flat box on top of the head,
+    bound rigidly to the ``head`` joint, in bind space like the body (8 vertices, 12 triangles)."""
+    from vbusd.format.model import SkinnedMesh
+
+    top = _BONE_ENDS[_J["head"]]
+    points, triangles = _box((top[0] - 0.13, top[1] - 0.03, top[2] - 0.13), (top[0] + 0.13, top[1] + 0.07, top[2] + 0.13))
+    centre = points.mean(axis=0)
+    normals = (points - centre) / np.linalg.norm(points - centre, axis=1, keepdims=True)
+    count = len(points)
+    return SkinnedMesh(path=path, points=points, face_vertex_counts=np.full(len(triangles), 3, dtype=np.int32),
+                       face_vertex_indices=triangles.reshape(-1).astype(np.int32),
+                       bone_indices=np.full((count, 1), _J["head"], dtype=np.int32), bone_weights=np.ones((count, 1)),
+                       normals=normals, normals_interpolation="vertex", source_path="samples/stadium_crowd.py")
+
+
+def write_modular(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
+    """The spectator as a modular character (format 1.3 crowd variety): the body and an optional ``Hat`` part
+    sharing its skeleton and texture, no crowd of its own (``vbusd crowd --parts Hat=P`` places it)."""
+    import dataclasses
+
+    from vbusd.baking.baker import bake
+    from vbusd.format.model import VirtualBonesAsset
+    from vbusd.io import usd as usd_io
+
+    animation = make_skinned_animation(rig)
+    animation = dataclasses.replace(animation, meshes=animation.meshes + (hat_mesh(),))
+    baked = bake(animation, reference_bake_options())
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    usd_io.write_asset(VirtualBonesAsset(animations=(baked,), up_axis="Y", meters_per_unit=1.0,
+                                         time_codes_per_second=FPS, default_prim="StadiumCrowd"), path)
+    return path
+
+
 def write_virtual_bones(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
     """Write the Virtual Bones asset (USD + texture + sidecar JSON) with ``vbusd.io.usd``."""
     from vbusd.io import usd as usd_io

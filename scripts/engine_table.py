@@ -1,6 +1,7 @@
 """Render docs/engines.md's feature x engine table from what the browser tests ran.
 
-``pytest tests/test_browser_parity.py --parity-json docs/engine-parity.json`` records, for every
+``pytest tests/test_browser_parity.py tests/test_browser_lod.py tests/test_conformance_browser.py --parity-json
+docs/engine-parity.json`` records, for every
 test marked ``@pytest.mark.parity(feature)``, the cell (feature, engine) it probed and its outcome
 (passed, failed, skipped with the reason). This script renders those cells, together with the
 rows other test modules cover (:data:`ELSEWHERE`: each names the test that probes it) and the
@@ -40,6 +41,9 @@ FEATURES = (
     "glTF package through the engine's loader, mesh without normals",
     "glTF package carrying layers and crossfades",
     "conformance vectors (spec/conformance/)",
+    "crowd variety",
+    "blend spaces",
+    "clip events",
 )
 
 # Cells probed by other modules (each against vbusd's decoder, within the same tolerances).
@@ -52,20 +56,10 @@ ELSEWHERE = {
     ("sockets", "babylon"): "test_browser_babylon.py",
     ("root motion", "three"): "test_conformance_browser.py::test_threejs_root_motion_matches_vbusd (the core decoder under Node)",
     ("root motion", "three-webgpu"): "the WebGL runtime's crowd and core decoder (test_conformance_browser.py)",
-    ("conformance vectors (spec/conformance/)", "three"): "test_conformance_browser.py",
 }
 
 # Cells no test fills yet, with the reason.
-NOT_YET = {
-    ("glTF package carrying layers and crossfades", engine): "not yet: `vbusd export` refuses a layered crowd "
-    "(`layers.unsupported`) and the package has no crossfade attributes (issue 33 item 3)"
-    for engine, _ in ENGINES
-} | {
-    ("conformance vectors (spec/conformance/)", "three-webgpu"): "not yet: the vectors' page drives WebGLRenderer only "
-    "(the probes above cover the same features)",
-    ("conformance vectors (spec/conformance/)", "babylon"): "not yet: the vectors' page drives WebGLRenderer only "
-    "(the probes above cover the same features)",
-}
+NOT_YET: dict = {}
 
 PARITY = "test_browser_parity.py"
 

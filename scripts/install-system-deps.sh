@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install the Debian packages the shader tests run on: Mesa's EGL/OpenGL (llvmpipe runs the GLSL
-# without a GPU), glslang-tools (HLSL front end) and spirv-cross (SPIR-V back to GLSL); and what the
+# without a GPU), Mesa's Vulkan drivers (lavapipe runs the WGSL through wgpu), glslang-tools (HLSL front end) and spirv-cross (SPIR-V back to GLSL); and what the
 # browser tests (tests/test_browser.py, the README picture) run on: Debian's chromium (headless, with
 # SwiftShader's software WebGL 2) and playwright-python from the package index, used only as the
 # driver of that chromium (vbusd.web.browser passes its executable; playwright's own browser
@@ -26,6 +26,8 @@ has_library 'libEGL_mesa.so.0 ' || missing+=(libegl-mesa0)
 # llvmpipe, Mesa's software rasterizer, is in the DRI driver package.
 compgen -G '/usr/lib/*/dri/swrast_dri.so' >/dev/null || compgen -G '/usr/lib/dri/swrast_dri.so' >/dev/null \
     || missing+=(libgl1-mesa-dri)
+# lavapipe, Mesa's software Vulkan driver, runs the WGSL modules through the wgpu package (WebGPU).
+compgen -G '/usr/share/vulkan/icd.d/lvp_icd*.json' >/dev/null || missing+=(mesa-vulkan-drivers)
 command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 || missing+=(chromium)
 
 # playwright-python (the driver; a wheel with its own Node runtime inside). Allowed to fail: the

@@ -55,7 +55,6 @@ THREE_FILES = {
     "examples/jsm/loaders/GLTFLoader.js": "addons/loaders/GLTFLoader.js",
     "examples/jsm/utils/BufferGeometryUtils.js": "addons/utils/BufferGeometryUtils.js",
     "examples/jsm/utils/SkeletonUtils.js": "addons/utils/SkeletonUtils.js",
-    "examples/jsm/libs/ktx-parse.module.js": "addons/libs/ktx-parse.module.js",
     "examples/jsm/libs/zstddec.module.js": "addons/libs/zstddec.module.js",
 }
 

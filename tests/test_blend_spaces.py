@@ -464,3 +464,89 @@ def test_a_blending_crowd_is_refused_by_the_gltf_package_in_one_line(fox, tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "layers.unsupported" in err[0] and "blend spaces" in err[0], err
     assert not out.exists()
+
+
+def test_previous_pose_of_a_blend_and_of_an_additive_layer(fox):
+    """Spec 21 with spec 23: vbusd.skin(blend=..., previous=dt) gives the pose whose phase is
+    ``dt * playback_rate / sum w D`` back, which is what the crowd rule gives (skin_crowd_previous of
+    a one-instance blending crowd, spec 23.7, its phase reached from scene time); an additive layer's
+    clip time steps back with the clip while its reference pose stays."""
+    from vbusd.decoders.reference import skin_crowd, skin_crowd_previous
+
+    _, vb = fox
+    spaces = [s.name for s in vb.blend_spaces]
+    t, dt, rate, phase0, x = 1.3, 0.05, 1.25, 0.2, 2.4
+    crowd = Crowd("/Fox", np.zeros((1, 3), np.float32), np.array([[0, 0, 0, 1]], np.float32), np.array([1], np.int32),
+                  np.zeros(1, np.float32), np.array([rate], np.float32), blend_space=np.array([spaces.index("synced")]),
+                  blend_x=np.array([x], np.float32), blend_y=np.zeros(1, np.float32),
+                  blend_phase=np.array([phase0], np.float32))
+    x, phase0 = float(np.float32(x)), float(np.float32(phase0))
+    walk, run = (vb.clips[clip_index(vb, name)].duration for name in ("Walk", "Run"))
+    cycle = (1 - 0.7) * walk + 0.7 * run  # x = 2.4 between Walk@1 and Run@3: weights 0.3 and 0.7
+    (pose,) = vbusd.skin(vb, blend={"space": "synced", "x": x, "phase": phase0 + rate * t / cycle},
+                         previous=dt, playback_rate=rate)
+    now, _ = skin_crowd(vb, vb.meshes[0], crowd, t)
+    before, _ = skin_crowd_previous(vb, vb.meshes[0], crowd, t, dt)
+    diagonal = float(np.linalg.norm(now[0].max(axis=0) - now[0].min(axis=0)))
+    assert float(np.abs(pose.points - now[0]).max()) <= 1e-7 * diagonal
+    assert float(np.abs(pose.previous_positions - before[0]).max()) <= 1e-7 * diagonal
+    assert float(np.abs(pose.previous_positions - pose.points).max()) > 1e-3 * diagonal
+
+    additive = {"clip": "Survey", "time": 0.9, "weight": 0.8, "mask": "upper", "mode": "additive",
+                "reference": {"clip": "Survey", "time": 0.3}}
+    (pose,) = vbusd.skin(vb, "Walk", 0.6, layers=[additive], previous=0.1, playback_rate=2.0)
+    (expected,) = vbusd.skin(vb, "Walk", 0.4, layers=[{**additive, "time": 0.7}])
+    np.testing.assert_allclose(pose.previous_positions, expected.points, rtol=0, atol=1e-12)
+
+
+def test_a_crowd_with_variety_and_blends_is_format_1_3_on_both_counts(fox, tmp_path):
+    """A crowd may tint its instances (spec 22) and blend them (spec 23.7) at once: the instancer
+    carries both sets of primvars and states 1.3 itself, the animation is 1.3 for its spaces, the
+    file validates clean and reads back both; the glTF package refuses it for the blends."""
+    from pxr import Usd
+
+    from vbusd.cli import main
+    from vbusd.format.model import VirtualBonesAsset
+    from vbusd.io.usd import read_asset, write_asset
+
+    _, vb = fox
+    n = 3
+    tint = np.array([[1, 0.5, 0.25], [1, 1, 1], [0, 0.2, 1]], np.float32)
+    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.ones(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32), tint=tint,
+                  blend_space=np.array([0, -1, 1], np.int32), blend_x=np.array([1.5, 0, 0.4], np.float32),
+                  blend_y=np.array([0, 0, 0.3], np.float32), blend_phase=np.array([0.1, 0, 0.6], np.float32))
+    path = tmp_path / "crowd.usda"
+    write_asset(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/Fox/Crowd")
+    assert prim.GetAttribute("vb:formatMinorVersion").Get() == 3
+    animations = [p for p in stage.Traverse() if p.GetTypeName() == "VirtualBonesAnimation"]
+    assert [p.GetAttribute("vb:formatMinorVersion").Get() for p in animations] == [3]
+    assert vbusd.validate(path).valid
+    read = read_asset(path).crowds[0]
+    np.testing.assert_array_equal(read.tint, tint)
+    for field in ("blend_space", "blend_x", "blend_y", "blend_phase"):
+        np.testing.assert_array_equal(getattr(read, field), getattr(crowd, field))
+    assert main(["export", str(path), "-o", str(tmp_path / "crowd.glb")]) == 2
+
+
+def test_an_additive_layer_is_refused_by_the_gltf_package(fox, tmp_path):
+    """Spec 23.4: an additive layer is never written as an override one. The package's layer
+    attributes (spec/runtime-package.md 5.1) have no mode, so export_gltf refuses the crowd by name."""
+    from vbusd.format.errors import UnsupportedError
+    from vbusd.format.model import VirtualBonesAsset
+    from vbusd.io.gltf_package import export_gltf
+
+    _, vb = fox
+    n = 2
+    masks = [name for name, _ in vb.masks]
+    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.ones(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
+                  layer_clip=np.zeros((n, 1), np.int32), layer_time_offset=np.zeros((n, 1), np.float32),
+                  layer_playback_rate=np.ones((n, 1), np.float32), layer_weight=np.full((n, 1), 0.5, np.float32),
+                  layer_mask=np.full((n, 1), masks.index("upper"), np.int32), layer_mode=np.array([[0], [1]], np.int32))
+    out = tmp_path / "crowd.glb"
+    with pytest.raises(UnsupportedError, match="additive layers"):
+        export_gltf(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), out)
+    assert not out.exists()

@@ -38,9 +38,9 @@ from vbusd.web.server import ViewerServer
 
 from tests.helpers import node
 from tests.helpers.browser import (CAMERA, NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, SKINS, STADIUM_PROBES,
-                                   check_probe, check_silhouette, check_skin_binding, convert,
-                                   encoding_format_skin_cases, layered_stadium, package_vertices, reference_instance, run_probes,
-                                   screenshot_luminance)
+                                   check_probe, check_silhouette, check_skin_binding, convert, crossfading_bar_crowd,
+                                   encoding_format_skin_cases, layered_stadium, package_probe_errors, reference_instance,
+                                   run_probes, screenshot_luminance)
 from tests.helpers.capabilities import shared_asset
 
 pytestmark = pytest.mark.browser
@@ -87,16 +87,8 @@ def test_probe_crossfade_from_the_plain_files(browser, bar_crowd, tmp_path, skin
     """A crossfading crowd (format 1.1 fade primvars, written and read back) through `vbusd view`'s
     plain files: each instance blended with its own fade clip, offset, rate and weight, as the
     numpy decoder does."""
-    asset = vbusd.read_asset(bar_crowd)
-    crowd = asset.crowds[0]
-    count, clips = crowd.instance_count, len(asset.animations[0].clips)
-    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
-                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
-                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
-                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
-    path = tmp_path / "faded" / "faded.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    crowd = vbusd.read_asset(bar_crowd).crowds[0]
+    path = crossfading_bar_crowd(bar_crowd, tmp_path / "faded" / "faded.usda")
     asset = vbusd.read_asset(path)
     assert asset.crowds[0].crossfades
     with ViewerServer(path) as server:
@@ -358,25 +350,10 @@ def test_probe_matches_reference_through_gltf_plugin(browser, bar_crowd, tmp_pat
     package = tmp_path / case
     export_gltf(asset, package)
     probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
-    with ViewerServer(package) as server:
-        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
-        try:
-            assert page.error == "", page.error
-            check_skin_binding(page, skin)  # pulled: records packed from _VB_JOINTS_n/_VB_WEIGHTS_n
-            for instance, t in probes:
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
-                expected_positions, expected_normals = reference_instance(asset, instance, t)
-                positions = np.asarray(result["positions"]).reshape(-1, 3)
-                expected = package_vertices(asset, expected_positions)
-                assert positions.shape == expected.shape
-                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
-                assert np.abs(positions - expected).max() / diagonal <= POSITION_TOLERANCE
-                normals = np.asarray(result["normals"]).reshape(-1, 3)
-                assert normals.shape == expected_normals.shape and normals.size
-                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
-            assert page.errors() == [], page.errors()
-        finally:
-            page.close()
+    # pulled: records packed from _VB_JOINTS_n/_VB_WEIGHTS_n
+    errors = package_probe_errors(browser, package, "three", asset, probes, f"&skin={skin}",
+                                  check=lambda page: check_skin_binding(page, skin))
+    assert max(errors) <= POSITION_TOLERANCE
 
 
 # MeshStandardMaterial: the README picture, the shadow test; MeshBasicMaterial: the probes' pages.

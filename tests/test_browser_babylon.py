@@ -22,7 +22,6 @@ stored texels:
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -31,36 +30,18 @@ import pytest
 import vbusd
 from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
-from vbusd.web.static_files import copy_static
 
-from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
-                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
-                                   package_vertices, reference_instance, screenshot_luminance, settle)
+from tests.helpers.browser import (POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, assert_within,
+                                   character_encoding_cases, check_crowd_sockets, check_silhouette,
+                                   crossfading_bar_crowd, encoding_format_cases, engine_probe_errors,
+                                   package_probe_errors, run_docs_example, screenshot_luminance)
 
 pytestmark = pytest.mark.browser
-HERE = Path(__file__).resolve().parent
 
 
 def run_probes(browser, path: Path, probes) -> list:
     """Probe a page of ``vbusd view --engine babylon`` and compare with the decoder."""
-    asset = vbusd.read_asset(path)
-    with ViewerServer(path, engine="babylon") as server:
-        page = ViewerPage(browser, server.url + PAGE)
-        try:
-            assert page.error == "", page.error
-            assert page.page.evaluate("[window.vbusd.engine, window.vbusd.backend]") == ["babylon", "webgl2"]
-            errors = [check_probe(page, asset, instance, t) for instance, t in probes]
-            assert page.errors() == [], page.errors()
-            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
-        finally:
-            page.close()
-    return errors
-
-
-def assert_within(errors) -> None:
-    for position_error, normal_error in errors:
-        assert position_error <= POSITION_TOLERANCE
-        assert normal_error <= NORMAL_TOLERANCE
+    return engine_probe_errors(browser, path, "babylon", probes, backend="webgl2")
 
 
 @pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
@@ -78,17 +59,8 @@ def test_babylon_probe_per_instance_clip_offset_rate(browser, bar_crowd):
 def test_babylon_probe_crossfade(browser, bar_crowd, tmp_path):
     """A crossfading crowd (format 1.1): each instance blended with its own fade clip, offset,
     rate and weight, as the reference decoder blends them."""
-    asset = vbusd.read_asset(bar_crowd)
-    crowd = asset.crowds[0]
-    count = crowd.instance_count
-    clips = len(asset.animations[0].clips)
-    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
-                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
-                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
-                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
-    path = tmp_path / "faded" / "faded.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    path = crossfading_bar_crowd(bar_crowd, tmp_path / "faded" / "faded.usda")
+    count = vbusd.read_asset(path).crowds[0].instance_count
     errors = run_probes(browser, path, [(i, t) for i in range(count) for t in (0.0, 0.83)])
     print(errors)
     assert_within(errors)
@@ -162,74 +134,22 @@ def test_babylon_probe_through_gltf_loader(browser, bar_crowd, tmp_path, case):
     package = tmp_path / case
     export_gltf(asset, package)
     probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
-    with ViewerServer(package, engine="babylon") as server:
-        page = ViewerPage(browser, server.url + PAGE)
-        try:
-            assert page.error == "", page.error
-            for instance, t in probes:
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
-                expected_positions, expected_normals = reference_instance(asset, instance, t)
-                positions = np.asarray(result["positions"]).reshape(-1, 3)
-                expected = package_vertices(asset, expected_positions)
-                assert positions.shape == expected.shape
-                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
-                error = np.abs(positions - expected).max() / diagonal
-                print(case, instance, t, error)
-                assert error <= POSITION_TOLERANCE
-                normals = np.asarray(result["normals"]).reshape(-1, 3)
-                assert normals.shape == expected_normals.shape and normals.size
-                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
-            assert page.errors() == [], page.errors()
-            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
-        finally:
-            page.close()
+    errors = package_probe_errors(browser, package, "babylon", asset, probes)
+    assert max(errors) <= POSITION_TOLERANCE
 
 
 def test_docs_engines_babylon_example_runs(browser, tmp_path):
     """docs/engines.md's Babylon.js page, as written, on a folder laid out as it says (the
     package's static files and a ``vbusd export`` package): PBR materials with the plugin, lit
     figures, shadows on the ground, no error."""
-    import functools
-    import http.server
-    import re
-    import threading
-
-    from vbusd.io.gltf_package import export_gltf
-
-    text = (HERE.parent / "docs" / "engines.md").read_text(encoding="utf-8")
-    section = text[text.index("## Babylon.js: `web/babylon/`"):]
-    html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
-    copy_static(HERE.parent, tmp_path / "site")  # what the wheel ships (setup.py's build step)
-    (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
-    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args):
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path / "site")))
-    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
-    thread.start()
-    try:
-        page = browser.new_page(viewport={"width": 480, "height": 270}, device_scale_factor=1)
-        messages = []
-        page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
-        page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
-        page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there.
-        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True))
-        materials = page.evaluate("""() => {
-            const scene = BABYLON_SCENE();
-            return scene.metadata.virtualBones.crowds.flatMap((crowd) => crowd.meshes.map((mesh) =>
-                [mesh.material.getClassName(), mesh.material.pluginManager._plugins.map((p) => p.getClassName())]));
-        }""".replace("BABYLON_SCENE()", "(await import('@babylonjs/core')).EngineStore.LastCreatedScene")
-                                  .replace("() => {", "async () => {"))
-        (tmp_path / "example.png").write_bytes(picture)
-        page.close()
-    finally:
-        server.shutdown()
-        server.server_close()
-        thread.join()
+    inspect = """async () => {
+        const scene = (await import('@babylonjs/core')).EngineStore.LastCreatedScene;
+        return scene.metadata.virtualBones.crowds.flatMap((crowd) => crowd.meshes.map((mesh) =>
+            [mesh.material.getClassName(), mesh.material.pluginManager._plugins.map((p) => p.getClassName())]));
+    }"""
+    messages, _, luminance, materials = run_docs_example(
+        browser, tmp_path, "## Babylon.js: `web/babylon/`",
+        lambda image, messages: _lit_and_shadowed(image) == (True, True, True), inspect)
     assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
     assert materials and all(name == "PBRMaterial" and "VirtualBonesPluginMaterial" in plugins for name, plugins in materials), materials
     # The dark sky (~28), the lit ground and figures (above 120) and the shadows on the ground
@@ -251,34 +171,5 @@ def test_babylon_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_pat
     """Sockets (format 1.1) on the Babylon page: ``crowd.socketMatrix(i, bone, t)`` of every
     instance of a crossfading crowd equals the decoder's ``crowd_joint_transforms`` (placement
     times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
-    from vbusd.decoders.reference import crowd_joint_transforms
-
-    asset = vbusd.read_asset(bar_crowd)
-    crowd = asset.crowds[0]
-    count = crowd.instance_count
-    clips = len(asset.animations[0].clips)
-    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 1) % clips).astype(np.int32),
-                                fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
-                                fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
-                                fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
-    path = tmp_path / "sockets" / "faded.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
-    asset = vbusd.read_asset(path)
-    vb = asset.animations[0]
-    extent = float(np.linalg.norm(np.ptp(np.asarray(faded.positions), axis=0))) + 1.0
-    with ViewerServer(path, engine="babylon") as server:
-        page = ViewerPage(browser, server.url + PAGE)
-        try:
-            assert page.error == "", page.error
-            for bone in range(vb.layout.bone_count):
-                for t in (0.0, 0.61):
-                    got = np.asarray(page.page.evaluate(
-                        """([bone, t, n]) => Array.from({ length: n }, (_, i) =>
-                            Array.from(window.vbusd.crowds[0].socketMatrix(i, bone, t).m))""", [bone, t, count]))
-                    expected = crowd_joint_transforms(vb, asset.crowds[0], bone, t)
-                    got = got.reshape(count, 4, 4).transpose(0, 2, 1)  # Babylon's row vectors
-                    assert np.abs(got - expected).max() <= 1e-6 * extent, (bone, t)
-            assert page.errors() == [], page.errors()
-        finally:
-            page.close()
+    path = crossfading_bar_crowd(bar_crowd, tmp_path / "sockets" / "faded.usda", for_sockets=True)
+    check_crowd_sockets(browser, path, "babylon", "Array.from(m.m)")  # Babylon's row vectors: the same numbers

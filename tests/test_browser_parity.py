@@ -16,7 +16,9 @@ instance's bounding-box diagonal, unit normals within 1e-5.
   (before, inside and after the window);
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
 * unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
-* blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask.
+* blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask, and their clip events;
+* crowd variety (format 1.3): tints, material variants and parts masks, read back from the page and
+  seen in a screenshot (the section at the end).
 """
 
 from __future__ import annotations
@@ -32,11 +34,12 @@ from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import layered_stadium as layered_stadium_file
-from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, check_probe,
-                                   package_vertices, reference_instance)
+from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, assert_within, check_probe,
+                                   engine_probe_errors, open_engine_page, package_probe_errors, reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
+from tests.helpers.variety import modular_character
 
 ENGINES = ("three", "babylon", "three-webgpu")
 
@@ -56,35 +59,17 @@ def browser(browser, request):
 
 
 def open_page(browser, server: ViewerServer, query: str = "") -> ViewerPage:
-    page = ViewerPage(browser, server.url + PAGE + query)
-    if "WebGPU is not available" in " ".join(page.messages):
-        page.close()
-        pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
-    return page
+    return open_engine_page(browser, server, PAGE + query)
 
 
 def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by ``engine``."""
-    asset = asset or vbusd.read_asset(path)
-    with ViewerServer(path, engine=engine) as server:
-        page = open_page(browser, server, query)
-        try:
-            assert page.error == "", page.error
-            assert page.page.evaluate("window.vbusd.engine") == engine
-            if "skin=pulled" in query:  # every crowd draws with the records, no bone streams
-                assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
-            errors = [check_probe(page, asset, instance, t) for instance, t in probes]
-            assert page.errors() == [], page.errors()
-            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
-        finally:
-            page.close()
-    return errors
 
+    def pulled(page):  # every crowd draws with the records, no bone streams
+        assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
 
-def assert_within(errors, what="") -> None:
-    for position_error, normal_error in errors:
-        assert position_error <= POSITION_TOLERANCE, (what, errors)
-        assert normal_error <= NORMAL_TOLERANCE, (what, errors)
+    return engine_probe_errors(browser, path, engine, probes, query=query, asset=asset,
+                               check=pulled if "skin=pulled" in query else None)
 
 
 @pytest.mark.parity('compact encoding (uint32)')
@@ -158,13 +143,18 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
     character with the instance's clip, crossfade (the weight ramp 0 before 0.5 s, 1 after 1.5 s,
     linear between) and layer given by hand."""
     character, path = fade_window_crowd
-    values = primvars(path)
-    by_hand = crowd_by_hand
+    check_fade_window(browser, path, engine, character, primvars(path))
+
+
+def check_fade_window(browser, served: Path, engine: str, character: Path, values: dict) -> None:
+    """Probes of the `--fade-window 0.5 1.5` crowd served from ``served`` (its USD file or a package
+    of it) before, inside and after the window, each within the tolerance of vbusd.skin given the
+    instance's clip, crossfade (weight 0 before 0.5 s, 1 after 1.5 s, linear between) and layer by hand."""
 
     def weight_at(i, t):
         return float(np.clip((t - 0.5) / (1.5 - 0.5), 0.0, 1.0))
 
-    with ViewerServer(path, engine=engine) as server:
+    with ViewerServer(served, engine=engine) as server:
         page = open_page(browser, server)
         try:
             assert page.error == "", page.error
@@ -172,10 +162,10 @@ def test_fade_window_and_layers_of_vbusd_crowd(browser, fade_window_crowd, engin
                 for i in (0, 5, 11):
                     result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [i, t])
                     got = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
-                    expected = by_hand(character, values, i, t, weight_at)
+                    expected = crowd_by_hand(character, values, i, t, weight_at)
                     diagonal = float(np.linalg.norm(np.ptp(expected, axis=0)))
                     error = float(np.abs(got - expected).max()) / diagonal
-                    print(engine, t, i, error)
+                    print(engine, served.suffix, t, i, error)
                     assert error <= POSITION_TOLERANCE, (t, i, error)
             assert page.errors() == [], page.errors()
         finally:
@@ -196,23 +186,8 @@ def test_gltf_package_of_a_mesh_without_normals(browser, shared_assets, tmp_path
     assert all(mesh.normals is None for vb in asset.animations for mesh in vb.meshes)
     package = tmp_path / "fox.glb"
     export_gltf(asset, package)
-    with ViewerServer(package, engine=engine) as server:
-        page = open_page(browser, server)
-        try:
-            assert page.error == "", page.error
-            for instance, t in ((0, 0.0), (0, 0.8137), (0, 2.9)):
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
-                positions = np.asarray(result["positions"]).reshape(-1, 3)
-                expected = package_vertices(asset, reference_instance(asset, instance, t)[0])
-                assert positions.shape == expected.shape
-                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
-                error = float(np.abs(positions - expected).max()) / diagonal
-                print(engine, instance, t, error)
-                assert error <= POSITION_TOLERANCE
-                assert result["normals"] == []
-            assert page.errors() == [], page.errors()
-        finally:
-            page.close()
+    errors = package_probe_errors(browser, package, engine, asset, ((0, 0.0), (0, 0.8137), (0, 2.9)))
+    assert max(errors) <= POSITION_TOLERANCE  # and no normals: the asset has none
 
 
 @pytest.fixture(scope="module")
@@ -427,3 +402,173 @@ def test_clip_events(browser, blending_chain, engine):
         np.testing.assert_allclose([e["time"] for e in theirs], [e["time"] for _, e in ours], rtol=0, atol=1e-5)
         total += len(ours)
     assert total > 10
+
+
+@pytest.mark.parity('glTF package carrying layers and crossfades')
+@pytest.mark.parametrize("engine", ENGINES)
+def test_gltf_package_of_a_layered_crossfading_crowd(browser, layered_stadium, fade_window_crowd, tmp_path, engine):
+    """`vbusd export` of two crowds, drawn through each engine's glTF loader (spec/runtime-package.md
+    5.1): the layered stadium (two layers with bone masks on top of a crossfade) probed against the
+    numpy decoder of its USD asset, and the `vbusd crowd --fade-window --layer` crowd, whose fade
+    weight is time-sampled in the package, against vbusd.skin given each instance's clip, fade and
+    layer by hand (before, inside and after the window)."""
+    from vbusd.io.gltf_package import export_gltf
+
+    asset = vbusd.read_asset(layered_stadium)
+    package = tmp_path / "layered.glb"
+    export_gltf(asset, package)
+    errors = probe_errors(browser, package, engine, [(i, 0.83) for i in range(6)], asset=asset)
+    print(engine, "layered glb", errors)
+    assert_within(errors, engine)
+    # The layers matter: without them instance 4 is elsewhere, so the probes above saw them.
+    plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
+    assert check_probe_of(browser, package, engine, plain, 4, 0.83) > 1e-3
+
+    character, path = fade_window_crowd
+    package = tmp_path / "fade_window.glb"
+    export_gltf(vbusd.read_asset(path), package)
+    check_fade_window(browser, package, engine, character, primvars(path))
+
+
+# --------------------------------------------------------------------------------------------
+# Crowd variety (format 1.3, spec virtual-bones.md 22): a row of modular spectators (body and an
+# optional hat, samples/stadium_crowd.py's write_modular) tinted pure red, green and blue, two
+# material variants, the hat on some. Each probe's positions are the numpy decoder's (variety never
+# moves a vertex); the tint, variant and parts mask the page reports are the crowd's (pxr); in a
+# screenshot, each body's pixel (its skinned vertices projected with the page's camera) is dominated
+# by its tint's channel, a brighter variant material gives a brighter body, and the pixel inside the
+# hat shows the tint when the mask shows the hat and the background when it hides it.
+# --------------------------------------------------------------------------------------------
+
+VARIETY_SIZE = (960, 540)
+VARIETY_CAMERA = "0,1.5,8,0,1.1,0"
+VARIETY_TIME = 9.0  # the cheer with the hands away from the head: nothing in front of the hat
+VARIETY_XS = (-4.0, -2.0, 0.0, 2.0, 4.0)
+VARIETY_BODY_POINTS = 202
+
+
+@pytest.fixture(scope="module")
+def variety_row(tmp_path_factory):
+    """Five spectators in a row facing the camera, tinted red / green / blue, variants home and away,
+    the hat on some: ``vbusd crowd --layout points ... --tints --variants --parts``."""
+    from vbusd.cli import main
+
+    folder = tmp_path_factory.mktemp("variety_row")
+    character = modular_character(folder)
+    points = folder / "row.csv"
+    points.write_text("".join(f"{x},0,0\n" for x in VARIETY_XS))
+    out = folder / "crowd.usda"
+    status = main(["crowd", str(character), "-o", str(out), "--layout", "points", str(points), "--yaw", "0", "0",
+                   "--time-offset", "0", "0", "--tints", "#ff0000,#00ff00,#0000ff", "--variants", "home=1,away=1",
+                   "--parts", "Hat=0.5", "--seed", "11", "-q"])
+    assert status == 0
+    return out
+
+
+def _variety_primvars(path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    (prim,) = [p for p in stage.Traverse() if p.IsA(UsdGeom.PointInstancer)]
+    primvars = UsdGeom.PrimvarsAPI(prim)
+    return (np.asarray(primvars.GetPrimvar("vb:tint").Get(), dtype=np.float64),
+            np.asarray(primvars.GetPrimvar("vb:variant").Get()), np.asarray(primvars.GetPrimvar("vb:parts").Get()),
+            list(prim.GetAttribute("vb:variantNames").Get()), list(prim.GetAttribute("vb:partNames").Get()))
+
+
+def _rgb_pixels(png_bytes: bytes) -> np.ndarray:
+    """The screenshot as (height, width, 3) 8-bit RGB values (pypng, as tests/helpers/browser.py reads them)."""
+    import png
+
+    width, height, rows, _ = png.Reader(bytes=png_bytes).asRGBA8()
+    rgba = np.vstack([np.frombuffer(bytes(row), dtype=np.uint8) for row in rows]).reshape(height, width, 4)
+    return rgba[:, :, :3].astype(np.float64)
+
+
+def _project_to_pixels(points, camera) -> np.ndarray:
+    view_projection = np.asarray(camera["p"]).reshape(4, 4).T @ np.asarray(camera["v"]).reshape(4, 4).T
+    clip = np.concatenate([points, np.ones((len(points), 1))], axis=1) @ view_projection.T
+    ndc = clip[:, :2] / clip[:, 3:]
+    return np.stack([(ndc[:, 0] + 1) / 2 * VARIETY_SIZE[0], (1 - ndc[:, 1]) / 2 * VARIETY_SIZE[1]], axis=1)
+
+
+def _pixel_at(image, xy) -> np.ndarray:
+    x, y = int(round(xy[0])), int(round(xy[1]))
+    return np.median(image[y - 1:y + 2, x - 1:x + 2].reshape(-1, 3), axis=0)
+
+
+@pytest.mark.parity("crowd variety")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_crowd_variety(browser, variety_row, engine, tmp_path):
+    """The USD crowd (``vbusd view`` of the .usda: the plain files) and its ``vbusd export`` package
+    (through each engine's glTF loader) show the same variety."""
+    from vbusd.io.gltf_package import export_gltf
+
+    asset = vbusd.read_asset(variety_row)
+    package = tmp_path / "variety.glb"
+    export_gltf(asset, package)
+    for source in (variety_row, package):
+        _check_variety_page(browser, engine, source, variety_row, asset)
+
+
+def _check_variety_page(browser, engine, source, usd_crowd, asset):
+    tints, variants, parts, variant_names, part_names = _variety_primvars(usd_crowd)
+    assert len({tuple(t) for t in tints}) >= 2 and set(parts) == {0, 1} and set(variants) == {0, 1}
+    width, height = VARIETY_SIZE
+    query = (f"?time={VARIETY_TIME}&paused=1&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
+             f"&camera={VARIETY_CAMERA}&fov=40")
+    with ViewerServer(source, engine=engine) as server:
+        page = ViewerPage(browser, server.url + query, width=width, height=height)
+        try:
+            if "WebGPU is not available" in " ".join(page.messages):
+                pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+            assert page.error == "", page.error
+            results = []
+            for i in range(len(VARIETY_XS)):
+                position_error, normal_error = check_probe(page, asset, i, VARIETY_TIME)
+                assert position_error <= POSITION_TOLERANCE and normal_error <= NORMAL_TOLERANCE, (i, position_error)
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [i, VARIETY_TIME])
+                np.testing.assert_allclose(result["tint"], tints[i], rtol=1e-6)
+                assert result["variant"] == variants[i] and result["variantName"] == variant_names[variants[i]]
+                assert result["parts"] == parts[i] and result["partNames"] == part_names
+                results.append(np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3))
+            page.page.evaluate("window.vbusd.render()")
+            image = _rgb_pixels(page.page.locator("#view").screenshot())
+            camera = page.page.evaluate(
+                "({p: Array.from(window.vbusd.camera.projectionMatrix.elements),"
+                " v: Array.from(window.vbusd.camera.matrixWorldInverse.elements)})")
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    assert image.shape == (height, width, 3)
+    background = _pixel_at(image, (3, 3))
+    variant_colours = [np.asarray(c) for c in asset.crowds[0].variant_colors]  # the materials' diffuseColor
+    bodies = {}
+    for i, positions in enumerate(results):
+        body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:]
+        channel = int(np.argmax(tints[i]))
+        others = [c for c in range(3) if c != channel]
+        colour = _pixel_at(image, _project_to_pixels(body.mean(axis=0, keepdims=True), camera)[0])
+        print(engine, source.suffix, i, "body", colour, "tint", tints[i], "variant", variants[i])
+        assert colour[channel] > 10 and colour[channel] > 2 * colour[others].max(), (engine, i, colour, tints[i])
+        bodies.setdefault(channel, []).append((variant_colours[variants[i]][channel], colour[channel]))
+        # Inside the hat, above the head (the body's highest point under the hat; hands may be higher
+        # elsewhere): the tint with the hat, the background without.
+        point = hat.mean(axis=0)
+        up = np.asarray(camera["v"]).reshape(4, 4).T[1, :3]  # the camera's up axis in world space
+        under = np.linalg.norm((body - point) - np.outer((body - point) @ up, up), axis=1) < 0.15
+        head_top, hat_top = float((body[under] @ up).max()), float((hat @ up).max())
+        assert hat_top - head_top > 0.03, (head_top, hat_top)
+        point = point + (0.5 * (head_top + hat_top) - point @ up) * up
+        seen = _pixel_at(image, _project_to_pixels(point[None], camera)[0])
+        print(engine, source.suffix, i, "hat", bool(parts[i] & 1), seen, "background", background)
+        if parts[i] & 1:
+            assert seen[channel] > 2 * seen[others].max() and np.abs(seen - background).max() > 20, (engine, i, seen)
+        else:
+            assert np.abs(seen - background).max() <= 12, (engine, i, seen, background)
+    # The variant selects the material: of two bodies with the same tint, the one whose variant material
+    # is brighter in that channel is the brighter one on screen.
+    for channel, pairs in bodies.items():
+        for (base_a, seen_a), (base_b, seen_b) in zip(pairs, pairs[1:]):
+            if abs(base_a - base_b) > 0.3:
+                assert (seen_a > seen_b) == (base_a > base_b), (engine, channel, pairs)

@@ -36,18 +36,14 @@ import pytest
 import vbusd
 from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
-from vbusd.web.static_files import copy_static
 
-from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
-                                   character_encoding_cases, check_probe, check_silhouette, encoding_format_cases,
-                                   package_vertices, reference_instance, screenshot_luminance, settle)
+from tests.helpers.browser import (NO_ADAPTER, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, assert_within,
+                                   character_encoding_cases, check_crowd_sockets, check_silhouette,
+                                   crossfading_bar_crowd, encoding_format_cases, engine_probe_errors,
+                                   open_engine_page, package_probe_errors, run_docs_example, screenshot_luminance)
 from tests.helpers.capabilities import unavailable
 
 pytestmark = pytest.mark.browser
-HERE = Path(__file__).resolve().parent
-
-NO_ADAPTER = "this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)"
-
 
 @pytest.fixture
 def browser(webgpu_browser):
@@ -56,34 +52,14 @@ def browser(webgpu_browser):
 
 
 def open_page(browser, server: ViewerServer, query: str, **kwargs) -> ViewerPage:
-    page = ViewerPage(browser, server.url + query, **kwargs)
-    if "WebGPU is not available" in " ".join(page.messages):
-        page.close()
-        unavailable("browser", NO_ADAPTER)
-    return page
+    return open_engine_page(browser, server, query, **kwargs)
 
 
 def run_probes(browser, path: Path, probes, backend: str = "webgpu") -> list:
     """Probe a page of ``vbusd view --engine three-webgpu`` on ``backend`` (``webgpu`` or
     ``webgl2``, WebGPURenderer's fallback) and compare with the decoder."""
-    asset = vbusd.read_asset(path)
-    with ViewerServer(path, engine="three-webgpu") as server:
-        page = open_page(browser, server, PAGE + ("&backend=webgl" if backend == "webgl2" else ""))
-        try:
-            assert page.error == "", page.error
-            assert page.page.evaluate("[window.vbusd.engine, window.vbusd.backend]") == ["three-webgpu", backend]
-            errors = [check_probe(page, asset, instance, t) for instance, t in probes]
-            assert page.errors() == [], page.errors()
-            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
-        finally:
-            page.close()
-    return errors
-
-
-def assert_within(errors) -> None:
-    for position_error, normal_error in errors:
-        assert position_error <= POSITION_TOLERANCE
-        assert normal_error <= NORMAL_TOLERANCE
+    return engine_probe_errors(browser, path, "three-webgpu", probes, backend=backend,
+                               query="&backend=webgl" if backend == "webgl2" else "")
 
 
 @pytest.mark.parametrize("encoding,texel_format", encoding_format_cases())
@@ -108,19 +84,8 @@ def test_webgpu_probe_per_instance_clip_offset_rate(browser, bar_crowd):
 def test_webgpu_probe_crossfade(browser, bar_crowd, tmp_path):
     """A crossfading crowd (format 1.1): each instance blended with its own fade clip, offset,
     rate and weight, as the reference decoder blends them."""
-    import dataclasses
-
-    asset = vbusd.read_asset(bar_crowd)
-    crowd = asset.crowds[0]
-    count = crowd.instance_count
-    clips = len(asset.animations[0].clips)
-    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
-                                fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
-                                fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
-                                fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
-    path = tmp_path / "faded" / "faded.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
+    path = crossfading_bar_crowd(bar_crowd, tmp_path / "faded" / "faded.usda")
+    count = vbusd.read_asset(path).crowds[0].instance_count
     errors = run_probes(browser, path, [(i, t) for i in range(count) for t in (0.0, 0.83)])
     print(errors)
     assert_within(errors)
@@ -130,38 +95,8 @@ def test_webgpu_page_sockets_of_a_crossfading_crowd(browser, bar_crowd, tmp_path
     """Sockets (format 1.1) on the WebGPU page: ``crowd.socketMatrix(i, bone, t)`` of every
     instance of a crossfading crowd equals the decoder's ``crowd_joint_transforms`` (placement
     times the matrix-crossfaded joint) within 1e-6 of the crowd's extent."""
-    import dataclasses
-
-    from vbusd.decoders.reference import crowd_joint_transforms
-
-    asset = vbusd.read_asset(bar_crowd)
-    crowd = asset.crowds[0]
-    count = crowd.instance_count
-    clips = len(asset.animations[0].clips)
-    faded = dataclasses.replace(crowd, fade_clip=((np.arange(count) + 1) % clips).astype(np.int32),
-                                fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
-                                fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
-                                fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
-    path = tmp_path / "sockets" / "faded.usda"
-    path.parent.mkdir()
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(faded,)), path)
-    asset = vbusd.read_asset(path)
-    vb = asset.animations[0]
-    extent = float(np.linalg.norm(np.ptp(np.asarray(faded.positions), axis=0))) + 1.0
-    with ViewerServer(path, engine="three-webgpu") as server:
-        page = open_page(browser, server, PAGE)
-        try:
-            for bone in range(vb.layout.bone_count):
-                for t in (0.0, 0.61):
-                    got = np.asarray(page.page.evaluate(
-                        """([bone, t, n]) => Array.from({ length: n }, (_, i) =>
-                            window.vbusd.crowds[0].socketMatrix(i, bone, t).toArray())""", [bone, t, count]))
-                    expected = crowd_joint_transforms(vb, asset.crowds[0], bone, t)
-                    got = got.reshape(count, 4, 4).transpose(0, 2, 1)  # three's column-major
-                    assert np.abs(got - expected).max() <= 1e-6 * extent, (bone, t)
-            assert page.errors() == [], page.errors()
-        finally:
-            page.close()
+    path = crossfading_bar_crowd(bar_crowd, tmp_path / "sockets" / "faded.usda", for_sockets=True)
+    check_crowd_sockets(browser, path, "three-webgpu", "m.toArray()")  # three's column-major elements
 
 
 def test_webgpu_shadows_follow_the_animation(browser):
@@ -247,24 +182,8 @@ def test_webgpu_probe_through_gltf_plugin(browser, bar_crowd, tmp_path, case):
     package = tmp_path / case
     export_gltf(asset, package)
     probes = [(0, 0.0), (3, 0.61), (asset.crowds[0].instance_count - 1, 2.3)]
-    with ViewerServer(package, engine="three-webgpu") as server:
-        page = open_page(browser, server, PAGE)
-        try:
-            assert page.error == "", page.error
-            for instance, t in probes:
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
-                expected_positions, expected_normals = reference_instance(asset, instance, t)
-                positions = np.asarray(result["positions"]).reshape(-1, 3)
-                expected = package_vertices(asset, expected_positions)
-                assert positions.shape == expected.shape
-                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
-                assert np.abs(positions - expected).max() / diagonal <= POSITION_TOLERANCE
-                normals = np.asarray(result["normals"]).reshape(-1, 3)
-                assert normals.shape == expected_normals.shape and normals.size
-                assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
-            assert page.errors() == [], page.errors()
-        finally:
-            page.close()
+    errors = package_probe_errors(browser, package, "three-webgpu", asset, probes)
+    assert max(errors) <= POSITION_TOLERANCE
 
 
 @pytest.mark.parametrize("backend_query", ["", "&backend=webgl"])
@@ -279,43 +198,11 @@ def test_docs_engines_example_runs(browser, tmp_path):
     """docs/engines.md's three.js WebGPU page, as written, on a folder laid out as it says (the
     package's static files and a ``vbusd export`` package): it draws lit, shadowed figures and
     logs no error."""
-    import functools
-    import http.server
-    import re
-    import threading
-
-    from vbusd.io.gltf_package import export_gltf
-
-    text = (HERE.parent / "docs" / "engines.md").read_text(encoding="utf-8")
-    section = text[text.index("## three.js WebGPU (TSL)"):]
-    html = re.search(r"```html\n(.*?)```", section, re.S).group(1)
-    copy_static(HERE.parent, tmp_path / "site")  # what the wheel ships (setup.py's build step)
-    (tmp_path / "site" / "example.html").write_text(html, encoding="utf-8")
-    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), tmp_path / "site" / "crowd.glb")
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args):
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path / "site")))
-    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
-    thread.start()
-    try:
-        page = browser.new_page(viewport={"width": 480, "height": 270}, device_scale_factor=1)
-        messages = []
-        page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
-        page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
-        page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
-        # Load, compile and a few frames on SwiftShader: until the lit, shadowed picture is there
-        # (or the page says it has no WebGPU).
-        picture, luminance = settle(page, lambda image: _lit_and_shadowed(image) == (True, True, True)
-                                    or any("WebGPU is not available" in m for m in messages))
-        (tmp_path / "example.png").write_bytes(picture)
-        page.close()
-    finally:
-        server.shutdown()
-        server.server_close()
-        thread.join()
+    # Until the lit, shadowed picture is there (or the page says it has no WebGPU).
+    messages, _, luminance, _ = run_docs_example(
+        browser, tmp_path, "## three.js WebGPU (TSL)",
+        lambda image, messages: _lit_and_shadowed(image) == (True, True, True)
+        or any("WebGPU is not available" in m for m in messages))
     assert [m for m in messages if m.startswith(("error", "pageerror"))] == [], messages
     if any("WebGPU is not available" in m for m in messages):
         unavailable("browser", NO_ADAPTER)

@@ -568,3 +568,101 @@ def test_shader_sockets_reproduce_every_vector(gl, lang, path, tmp_path):
         error = float(np.abs(rows - np.array(expected["sockets"])[:, :, :3, :]).max())
         assert error <= vector["tolerance"]["socket"], \
             f"{lang} {vector['vector']} at t = {expected['time']}: socket error {error:.3g}"
+
+
+# ----------------------------------------------------------------------------------------------
+# The previous-frame pose (spec 21): the vectors' `previous` frames
+# ----------------------------------------------------------------------------------------------
+
+
+def assert_previous_matches(vector: dict, frame_index: int, points, normals, who: str) -> tuple[float, float]:
+    """Assert a decoder's previous points and normals (instances, V, 3) at ``previous.frames[frame_index]``."""
+    frame = vector["previous"]["frames"][frame_index]
+    tolerance = vector["tolerance"]
+    point_error = float(np.abs(np.asarray(points, np.float64) - np.array(frame["previousPositions"])).max())
+    normal_error = float(np.abs(np.asarray(normals, np.float64) - np.array(frame["previousNormals"])).max())
+    where = f"{who} {vector['vector']} previous pose at t = {frame['time']}"
+    assert point_error <= tolerance["position"], f"{where}: position error {point_error:.3g} > {tolerance['position']:.3g}"
+    assert normal_error <= tolerance["normal"], f"{where}: normal error {normal_error:.3g} > {tolerance['normal']:.3g}"
+    return point_error, normal_error
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_previous_frames_agree_with_a_hand_decode_at_exact_rows(path):
+    """dt = 0.25 s is one row: instance 0 (clip 0, offset 0, rate 1) at t = 0 goes back across the
+    loop to row 7; instance 4 (fade weight 1: clip 0 at 1 + 2 t) to row 2; instance 2 past the
+    clamped clip's end holds its last row in both frames; the frozen instance 7 (rates 0) does not move."""
+    vector = load(path)
+    assert vector["previous"]["dt"] == 0.25
+    frames = vector["previous"]["frames"]
+    assert [f["time"] for f in frames] == [0.0, 0.875, 1.875]
+    clamped = vector["layout"]["clips"][1]
+    clamped_last = clamped["firstRow"] + clamped["rowCount"] - 1
+    for frame_index, instance, row in ((0, 0, 7), (0, 4, 2), (2, 2, clamped_last)):
+        points, normals = _hand_decode_row(vector, row)
+        np.testing.assert_allclose(frames[frame_index]["previousPositions"][instance], points, atol=1e-9)
+        np.testing.assert_allclose(frames[frame_index]["previousNormals"][instance], normals, atol=1e-9)
+    now, _ = _hand_decode_row(vector, 0)
+    np.testing.assert_allclose(frames[0]["positions"][0], now, atol=1e-9)
+    for frame in frames:
+        np.testing.assert_array_equal(frame["previousPositions"][7], frame["positions"][7])
+    # At 0.875 s instance 2 has just reached the end: it moved in the frame before.
+    assert np.abs(np.array(frames[1]["previousPositions"][2]) - frames[1]["positions"][2]).max() > 1e-3
+    np.testing.assert_allclose(frames[1]["positions"][2], _hand_decode_row(vector, clamped_last)[0], atol=1e-9)
+
+
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_numpy_reference_reproduces_every_previous_frame(path):
+    from vbusd.decoders.reference import skin_crowd_previous
+
+    vector = load(path)
+    vb, crowd = vector_animation(vector), vector_crowd(vector)
+    for frame in vector["previous"]["frames"]:
+        points, normals = skin_crowd_previous(vb, vb.meshes[0], crowd, frame["time"], vector["previous"]["dt"])
+        np.testing.assert_allclose(points, frame["previousPositions"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(normals, frame["previousNormals"], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("device", _warp_devices())
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_warp_reproduces_every_previous_frame(path, device):
+    from vbusd.decoders import warp
+
+    require("gpu" if device.startswith("cuda") else "warp")
+    vector = load(path)
+    vb, crowd = vector_animation(vector), vector_crowd(vector)
+    decoder = warp.Decoder(vb, device=device)
+    for index, frame in enumerate(vector["previous"]["frames"]):
+        points, normals = decoder.skin_crowd_previous(crowd, frame["time"], vector["previous"]["dt"]).numpy()
+        assert_previous_matches(vector, index, points, normals, f"warp {device}")
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", VECTORS, ids=lambda p: p.stem)
+def test_shader_modules_reproduce_every_previous_frame(gl, lang, path, tmp_path):
+    """The example main of a ``--previous`` module with VB_CROSSFADE 1: vb_previousPosition against
+    ``previous.frames[*].previousPositions``, vb_skinnedPosition against their ``positions``."""
+    from tests.helpers.gl_previous import Instances, run_previous
+
+    if lang == "hlsl":
+        require("glslang")
+    vector = load(path)
+    vb = vector_animation(vector)
+    rows = vector["instances"]
+    dt = vector["previous"]["dt"]
+    for index, frame in enumerate(vector["previous"]["frames"]):
+        t, before = frame["time"], frame["time"] - dt
+        instances = Instances(
+            np.array([r["clip"] for r in rows], np.int32),
+            np.array([[r["timeOffset"], r["playbackRate"]] for r in rows], np.float32),
+            np.array([r["fadeClip"] for r in rows], np.int32),
+            np.array([[r["fadeTimeOffset"], r["fadePlaybackRate"], r["fadeWeight"]] for r in rows], np.float32),
+            np.array([[r["fadeTimeOffset"] + r["fadePlaybackRate"] * before, r["fadeWeight"]] for r in rows], np.float32))
+        points, normals, previous = run_previous(gl, lang, vb, vb.meshes[0], instances, t, before, tmp_path)
+        tolerance = vector["tolerance"]
+        assert np.abs(points - np.array(frame["positions"])).max() <= tolerance["position"], (lang, t)
+        assert np.abs(normals - np.array(frame["normals"])).max() <= tolerance["normal"], (lang, t)
+        point_error = float(np.abs(previous - np.array(frame["previousPositions"])).max())
+        assert point_error <= tolerance["position"], f"{lang} {vector['vector']} previous at t = {t}: {point_error:.3g}"

@@ -20,15 +20,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers import scripts
+from tests.helpers import draw_cost
 from tests.helpers.capabilities import require, unavailable
 
-BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "draw_cost.py"
 
 
 @pytest.fixture(scope="module")
 def dc():
-    return scripts.load("benchmarks/draw_cost.py")
+    return draw_cost  # the harness of benchmarks/draw_cost.py
 
 
 @pytest.fixture(scope="module")
@@ -412,3 +411,137 @@ def test_a_result_records_its_command_without_machine_paths(dc, monkeypatch, tmp
                             "--cache", "/opt/some/venv/cache.bin"])
     assert line == "benchmarks/draw_cost.py run --json $OUT/r.json --cache cache.bin"
     assert not re.search(MACHINE_PATH, line)
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 36: the previous-frame pose (--previous), what the lead times on the device
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.gl
+@pytest.mark.parametrize("skin", ["attributes", "pulled", "pulled_texture"])
+def test_previous_pose_methods_draw_what_numpy_computes_and_write_velocity(dc, baked, gl, skin):
+    """With --previous the read-back's previous positions agree with reference.skin_crowd_previous
+    (the check fails when they are the current ones: the crowd moves 100 times the tolerance in a
+    frame), and a drawn frame writes non-zero screen-space velocity into the RG16F target."""
+    body = dc.stadium_character(baked)
+    scene = _scene(dc, gl, body)
+    method = dc.setup_vb(scene, baked, "crossMatrix", "float16", skin=skin, previous=True)
+    result = dc.check(method, scene, baked, None)
+    assert result["agrees"], result
+    assert result["previous_position_error_m"] < 1e-5
+    assert result["previous_motion_m"] > 100 * result["tolerance_m"]
+    frame = dc.render_frame(method, scene, 2.0, scene.ctx.query(time=True))
+    assert frame.wall >= frame.cpu > 0
+    velocity = np.frombuffer(method.framebuffer.read(components=2, attachment=1, dtype="f2"), dtype="<f2")
+    assert np.isfinite(velocity).all() and np.abs(velocity).max() > 0
+    for item in method.release:
+        item.release()
+    scene.release()
+
+
+def test_previous_axis_and_the_issue36_plan(dc, capsys):
+    default = dc.parse_args(["run", "--json", "o"])
+    assert default.previous == "off"
+    args = dc.parse_args(["run", "--json", "o", "--plan", "issue36"])
+    assert args.previous == "both" and not args.factors and args.budget <= 450
+    plan = dc._plan(args)
+    assert {m for _, _, m, *_ in plan} == {"static", "vb", "vb_pulled_texture"}
+    assert dc.parse_args(["run", "--json", "o", "--plan", "issue36", "--previous", "on"]).previous == "on"
+    with pytest.raises(SystemExit):
+        dc.parse_args(["--help"])
+    assert "--previous" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        dc.parse_args(["run", "--help"])
+    assert "--previous {off,on,both}" in capsys.readouterr().out
+
+
+def test_previous_table_states_the_cost_as_a_ratio(dc):
+    def row(method, ms, previous):
+        return {"character": "stadium", "instances": 1000, "method": method, "encoding": "crossMatrix",
+                "texel_format": "float16", "previous": previous, "gpu_draw_ms": {"median": ms},
+                "frame_ms": {"median": ms + 1}, "correctness": {"previous_position_error_m": 2e-6} if previous else {}}
+    table = dc.previous_markdown({"runs": [row("vb", 2.0, False), row("vb", 3.0, True), row("static", 1.0, False)]})
+    assert "| stadium | 1,000 | vb (crossMatrix float16) | 2.000 | 3.000 | 1.50 | 3.000 | 4.000 | 2.00e-06 |" in table
+
+
+@pytest.mark.gl
+def test_variety_method_draws_the_same_body_and_colours_by_tint_and_variant(dc, baked, gl):
+    """Issue 37's ``vb_variety``: the body read back by transform feedback is the numpy decoder's (variety
+    moves no vertex); in the picture an instance's pixels carry its variant colour x tint (the instance
+    nearest the camera, its body's projected centre), and the hat draws only on instances whose mask has it:
+    the picture with every hat hidden differs from it exactly where hats stand."""
+    from vbusd.format.variety import VARIANT_COLORS
+
+    ctx, framebuffer = gl
+    body = dc.stadium_character(baked)
+    scene = _scene(dc, gl, body, count=16)
+    method = dc.setup_vb_variety(scene, baked, "crossMatrix", "float16", dc.SAMPLE.hat_mesh())
+    correctness = dc.check(method, scene, baked, None)
+    assert correctness["agrees"], correctness
+    tint, variant, parts = dc.variety_arrays(16)
+    assert set(parts) == {0, 1}
+    t = 1.0
+    ctx.enable(scene.moderngl.DEPTH_TEST)
+
+    def picture():
+        method.set_time(method.program, t)
+        framebuffer.clear(0.0, 0.0, 0.0, 1.0, depth=1.0)
+        dc._draw(method, scene)
+        width, height = dc.RESOLUTION
+        return np.frombuffer(framebuffer.read(components=3), np.uint8).reshape(height, width, 3).astype(float)
+
+    image = picture()
+    from vbusd.decoders.reference import skin_crowd  # noqa: PLC0415
+
+    points, _ = skin_crowd(baked, body.mesh, dc.crowd_rows(scene.crowd, np.arange(16)), t)
+    width, height = dc.RESOLUTION
+    centres = np.concatenate([points.mean(axis=1), np.ones((16, 1))], axis=1) @ scene.view_projection.T
+    pixels = np.stack([(centres[:, 0] / centres[:, 3] + 1) / 2 * width,
+                       (centres[:, 1] / centres[:, 3] + 1) / 2 * height], axis=1).astype(int)  # rows from the bottom
+    # The row nearest the camera (lowest on the picture): no other instance stands in front of it.
+    front = np.argsort(pixels[:, 1])[:4]
+    for i in front:
+        pixel = image[pixels[i, 1], pixels[i, 0]]
+        assert pixel.any(), i
+        colour = np.asarray(VARIANT_COLORS[variant[i]]) * tint[i]
+        np.testing.assert_allclose(pixel / pixel.max(), colour / colour.max(), atol=0.08)
+    assert len({(int(variant[i]), tuple(tint[i])) for i in front}) >= 2  # the check tells colours apart
+    # The hat's draw collapses exactly the instances whose mask hides it: its vertex shader read back
+    # by transform feedback over every instance puts each non-wearer's 8 hat vertices on its position.
+    hat_tf = ctx.program(vertex_shader=method.vertex_shader, varyings=dc.VARYINGS)
+    hat_tf["vb_texture"].value = 0
+    hat_tf["vb_clips"].value = method.program["vb_clips"].value
+    hat_tf["part_bit"].value = 0
+    method.set_time(hat_tf, t)
+    vao = ctx.vertex_array(hat_tf, [(method.hat_vertices, *dc.Scene.MESH_FORMAT),
+                                    (scene.placement, *dc.PLACEMENT[1]), (scene.animation, *dc.ANIMATION_CLIP_TIME[1]),
+                                    (method.variety_buffer, "16x 1i/i", "instance_parts")],  # the colour is not fed back
+                           skip_errors=True)
+    out = ctx.buffer(reserve=16 * 8 * 24)
+    vao.transform(out, mode=scene.moderngl.POINTS, vertices=8, instances=16)
+    hat_points = np.frombuffer(out.read(), "<f4").reshape(16, 8, 6)[:, :, :3]
+    positions = np.asarray(scene.crowd.positions, np.float64)
+    for i in range(16):
+        on_position = np.allclose(hat_points[i], positions[i], atol=1e-6)
+        assert on_position == (not parts[i]), i
+        if parts[i]:  # worn: on the head, about 1.9 m above the feet
+            assert hat_points[i][:, 1].mean() - positions[i][1] > 1.5, i
+    for item in (vao, out, hat_tf):
+        item.release()
+    for item in method.release:
+        item.release()
+
+
+def test_variety_axis_plans_variety_on_and_off(dc):
+    """``run --variety both`` measures each vb configuration with and without variety, ``on`` with only;
+    ``--plan issue37`` is both at 100,000, 1,000,000 and 10,000 spectators."""
+    both = dc._plan(dc.parse_args(["run", "--json", "x.json", "--sizes", "100000", "--characters", "stadium",
+                                   "--methods", "vb", "--variety", "both"]))
+    assert ("stadium", 100_000, "vb", "crossMatrix", "float16") in both
+    assert ("stadium", 100_000, "vb_variety", "crossMatrix", "float16") in both
+    only = dc._plan(dc.parse_args(["run", "--json", "x.json", "--sizes", "100000", "--characters", "stadium",
+                                   "--methods", "vb", "--variety", "on"]))
+    assert {item[2] for item in only} == {"vb_variety"}
+    plan = dc._plan(dc.parse_args(["run", "--json", "x.json", "--plan", "issue37"]))
+    assert [(n, m) for _, n, m, _, _ in plan][:2] == [(100_000, "vb"), (100_000, "vb_variety")]

@@ -64,10 +64,12 @@ def _validators():
 
     split = {"root": make({"$ref": "glTF.VBUSD_virtual_bones.schema.json"}),
              "primitive": make({"$ref": "mesh.primitive.VBUSD_virtual_bones.schema.json"}),
+             "node": make({"$ref": "node.VBUSD_virtual_bones.schema.json"}),
              # The split animation schema leaves `layout` an object (it names the layout schema in
              # its description, as Khronos schemas do for external formats); checked here too.
              "layout": make({"$ref": layout["$id"]})}
-    full = {"root": make(whole), "primitive": make({"$ref": whole["$id"] + "#/$defs/primitive"})}
+    full = {"root": make(whole), "primitive": make({"$ref": whole["$id"] + "#/$defs/primitive"}),
+            "node": make({"$ref": whole["$id"] + "#/$defs/node"})}
     return split, full
 
 
@@ -86,6 +88,9 @@ def _documents():
         out.append(("root", gltf["extensions"][NAME]))
         out += [("primitive", p["extensions"][NAME]) for m in gltf["meshes"] for p in m["primitives"]
                 if NAME in p.get("extensions", {})]
+    # A crowd node's time samples (runtime-package.md 5.1), as vbusd export writes a --fade-window crowd.
+    out.append(("node", {"samples": {"_VB_FADE_WEIGHT": {"times": [0.5, 1.5], "values": 17},
+                                     "_VB_LAYER_WEIGHT_1": {"times": [0.0], "values": 18}}}))
     return out
 
 
@@ -110,6 +115,15 @@ def _broken(kind: str, value) -> list:
         variant(lambda v: v["animations"][0].update(unknown=1))
         variant(lambda v: v["animations"][0]["layout"].update(encoding="eulerAngles"))
         variant(lambda v: v.update(unknown=True))
+    elif kind == "node":
+        variant(lambda v: v.pop("samples"))
+        variant(lambda v: v.update(samples={}))
+        variant(lambda v: v["samples"].update(_VB_CLIP={"times": [0.0], "values": 1}))
+        variant(lambda v: v["samples"].update(_VB_LAYER_WEIGHT_01={"times": [0.0], "values": 1}))
+        variant(lambda v: v["samples"]["_VB_FADE_WEIGHT"].update(times=[]))
+        variant(lambda v: v["samples"]["_VB_FADE_WEIGHT"].update(values=-1))
+        variant(lambda v: v["samples"]["_VB_FADE_WEIGHT"].pop("values"))
+        variant(lambda v: v.update(unknown=1))
     else:
         variant(lambda v: v.update(influences=0))
         variant(lambda v: v.update(animation=-1))

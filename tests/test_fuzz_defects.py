@@ -23,6 +23,7 @@ import pytest
 import vbusd
 from vbusd.cli import main
 from vbusd.format.errors import InputError
+from vbusd.format.versioning import FORMAT_MINOR_VERSION
 
 FIXTURES = Path(__file__).parent / "fixtures" / "validate"
 EXTENSION = "/extensions/VBUSD_virtual_bones"
@@ -638,7 +639,7 @@ def test_a_mask_weight_that_is_no_number_is_a_schema_finding_not_an_internal_err
         assert len(err) == 1 and "/masks/0/weights/2: metadata.schema: " in err[0], err
 
 
-@pytest.mark.parametrize("key, value, code", [("formatMinorVersion", 3, "format.version"),
+@pytest.mark.parametrize("key, value, code", [("formatMinorVersion", FORMAT_MINOR_VERSION + 1, "format.version"),
                                               ("formatMinorVersion", 2 ** 31, "format.version"),
                                               ("usedWidth", 5, "metadata.inconsistent")])
 def test_a_package_layout_that_validate_refuses_is_refused_by_info_and_view(tmp_path, capsys, key, value, code):

@@ -297,8 +297,7 @@ def test_usdskel_layer_equals_the_same_blend_of_usdskel_poses(tmp_path):
 
 def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
     """primvars:vb:layer* (elementSize L) written, read back, and each instance skinned as
-    vbusd.skin skins its clip, layers and crossfade at its own times; decoders that do not
-    implement layers yet refuse the crowd (layers.unsupported) instead of drawing it without them."""
+    vbusd.skin skins its clip, layers and crossfade at its own times; the glTF package carries them."""
     from pxr import Usd, UsdGeom
 
     from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
@@ -343,12 +342,16 @@ def test_crowd_layers_round_trip_as_primvars_and_play_per_instance(tmp_path):
     joint = crowd_joint_transforms(back.animations[0], read_crowd, 1, t)[0]
     expected_joint = vbusd.bone_transform(vb, 1, 0, t, layers=[{"clip": 1, "time": 0.75, "weight": 0.5, "mask": "arm"}])
     np.testing.assert_allclose(joint, expected_joint, atol=1e-12)
-    # The three.js scene and the glTF package do not carry layers yet: they refuse the crowd.
+    # The glTF package carries them (spec/runtime-package.md 5.1): layer j as _VB_LAYER_*_j.
     from vbusd.io.gltf_package import build_package
 
-    with pytest.raises(vbusd.UnsupportedError) as error:
-        build_package(back, binary=True, base_name="crowd")
-    assert error.value.code == "layers.unsupported"
+    gltf, buffers, _ = build_package(back, binary=True, base_name="crowd")
+    node = next(n for n in gltf["nodes"] if "EXT_mesh_gpu_instancing" in n.get("extensions", {}))
+    attributes = node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"]
+    for j in range(2):
+        view = gltf["bufferViews"][gltf["accessors"][attributes[f"_VB_LAYER_WEIGHT_{j}"]]["bufferView"]]
+        data = buffers[0][1][view["byteOffset"]:view["byteOffset"] + view["byteLength"]]
+        np.testing.assert_array_equal(np.frombuffer(data, "<f4"), crowd.layer_weight[:, j])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -937,3 +940,51 @@ def test_a_1_1_reader_refuses_a_layered_crowd_by_name(tmp_path, monkeypatch):
     assert "vb:boneParents" in message and "primvars:vb:layerWeight" in message
     assert "version 1.1 does not define" in message
     assert "vb:bindTransforms" not in message  # 1.1 knows it
+
+
+# ----------------------------------------------------------------------------------------------
+# The previous-frame pose of the layer vectors (spec 21): layers at t - dt too
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_numpy_reference_reproduces_every_layer_vectors_previous_frame(path):
+    from vbusd.decoders.reference import skin_crowd_previous
+
+    vector = json.loads(path.read_text())
+    vb, crowd = layer_vector_animation(vector), layer_vector_crowd(vector)
+    for frame in vector["previous"]["frames"]:
+        points, normals = skin_crowd_previous(vb, vb.meshes[0], crowd, frame["time"], vector["previous"]["dt"])
+        np.testing.assert_allclose(points, frame["previousPositions"], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(normals, frame["previousNormals"], rtol=0, atol=1e-12)
+    assert any(np.abs(np.array(f["previousPositions"]) - np.array(f["positions"])).max() > 1e-2
+               for f in vector["previous"]["frames"])
+
+
+@pytest.mark.cli
+@pytest.mark.gl
+@pytest.mark.parametrize("lang", ["glsl", "hlsl"])
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_shader_layers_reproduce_every_layer_vectors_previous_frame(gl, lang, path, tmp_path):
+    """vbSkinLayered with every time taken at the previous frame's scene time (spec/shaders.md,
+    Previous pose: the vectors' weights are constant) gives ``previousPositions``."""
+    vector = json.loads(path.read_text())
+    dt = vector["previous"]["dt"]
+    for frame in vector["previous"]["frames"]:
+        points, _ = run_layer_vector(gl, lang, vector, frame["time"] - dt, tmp_path)
+        error = float(np.abs(points - np.array(frame["previousPositions"])).max())
+        assert error <= vector["tolerance"]["position"], (lang, frame["time"], error)
+
+
+@pytest.mark.parametrize("path", LAYER_VECTORS, ids=lambda p: p.stem)
+def test_warp_reproduces_every_layer_vectors_previous_frame(path):
+    require("warp")
+    from vbusd.decoders import warp
+
+    vector = json.loads(path.read_text())
+    vb, crowd = layer_vector_animation(vector), layer_vector_crowd(vector)
+    decoder = warp.Decoder(vb, device="cpu")
+    for frame in vector["previous"]["frames"]:
+        points, normals = decoder.skin_crowd_previous(crowd, frame["time"], vector["previous"]["dt"]).numpy()
+        assert np.abs(points - np.array(frame["previousPositions"])).max() <= vector["tolerance"]["position"]
+        assert np.abs(normals - np.array(frame["previousNormals"])).max() <= vector["tolerance"]["normal"]

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import pytest
 
-from tests.helpers import scripts
+from tests.helpers import mutation_run
 
 
 def _harness(repo_root):
-    return scripts.load("benchmarks/mutation_run.py")
+    return mutation_run  # the harness of benchmarks/mutation_run.py
 
 
 @pytest.mark.slow

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.helpers import scripts
+from tests.helpers import accuracy as accuracy_harness
 
 pytestmark = pytest.mark.slow  # seconds each: outside the fast tier (-m unit)
 
@@ -29,7 +29,7 @@ ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
 
 @pytest.fixture(scope="module")
 def accuracy():
-    return scripts.load("benchmarks/accuracy.py")
+    return accuracy_harness  # the harness of benchmarks/accuracy.py
 
 
 @pytest.fixture(scope="module")

@@ -788,7 +788,7 @@ def test_shader_command_writes_module_and_refuses_bad_options(tmp_path, capsys):
     assert main(["shader", "--skin", "pulled", "--format", "json"]) == 0
     described = json.loads(capsys.readouterr().out)
     assert described["skin"] == "pulled" and "vb_boneIndices0" not in described["source"]
-    bad = {("--lang", "wgsl"): "--lang", ("--encoding", "quat"): "--encoding",
+    bad = {("--lang", "msl"): "--lang", ("--encoding", "quat"): "--encoding",
            ("--texel-format", "rgba8"): "--texel-format", ("--max-influences", "0"): "--max-influences",
            ("--max-influences", "9"): "--max-influences", ("--max-influences", "four"): "--max-influences",
            ("--max-clips", "0"): "--max-clips", ("--max-clips", "2.5"): "--max-clips", ("--skin", "pull"): "--skin",

@@ -19,7 +19,7 @@ from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.validators.api import validate as _validate
 from vbusd.io.usd import read_asset
 from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
-from vbusd.decoders.reference import Additive, mask_weights
+from vbusd.decoders.reference import Additive, mask_weights, check_frame_interval
 from vbusd.format.motion import blend_weights, crossed_markers, phase_times
 from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, layered_skinning
 from vbusd.decoders.reference import root_motion as displacement
@@ -40,11 +40,17 @@ class SkinnedPose:
         points: (V, 3) float64 skinned points in the animation's space.
         normals: Skinned unit normals ((V, 3) vertex or (F, 3) faceVarying), or None when the
             mesh has none.
+        previous_positions: (V, 3) float64 skinned points of the previous frame (spec 21), when
+            :func:`skin` was asked for them with ``previous=``; None otherwise.
+        previous_normals: The previous frame's unit normals, as ``normals``; None without
+            ``previous=`` or without normals.
     """
 
     path: str
     points: np.ndarray
     normals: Optional[np.ndarray]
+    previous_positions: Optional[np.ndarray] = None
+    previous_normals: Optional[np.ndarray] = None
 
 
 def validate(path, *, only: Sequence[str] = (), ignore: Sequence[str] = (), max_issues: Optional[int] = None,
@@ -138,7 +144,8 @@ def _weight(value, name: str, job: str) -> float:
 
 
 def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_time=None, fade_weight: float = 0.0,
-         animation: int = 0, layers=None, blend=None) -> list:
+         animation: int = 0, layers=None, blend=None, previous: Optional[float] = None,
+         playback_rate: float = 1.0) -> list:
     """Skin every mesh bound to an animation at one clip-local time, with the numpy reference decoder.
 
     With ``fade_clip`` the mesh plays two clips at once (spec: "Crossfade", format 1.1): ``clip``
@@ -166,6 +173,13 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
             and ``phase`` default to 0): the space's clips weighted at ``(X, Y)``, each at ``P`` times
             its duration (from its sync marker when the space has one); ``clip`` and ``time`` are then
             ignored. Not with a crossfade.
+        previous: A frame interval ``dt`` in seconds (spec 21, "Previous-frame pose"): each pose also
+            carries ``previous_positions`` and ``previous_normals``, the pose at clip-local
+            ``time - dt * playback_rate`` (wrapped or clamped as the clip does); the fade time and
+            the layer times step back by the same amount (an additive layer's reference pose stays),
+            weights are held; a blend's phase steps back by ``dt * playback_rate / sum w D`` (spec
+            23.3). None (the default) computes nothing more.
+        playback_rate: Clip seconds per scene second of this pose, used only with ``previous``.
 
     Returns:
         A list of :class:`SkinnedPose`, one per bound mesh in the asset's order, in the
@@ -176,6 +190,7 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
             ``layers.noMask``).
         OptionsError: No such clip or animation, a time that is not a finite number (or whose row
             position, time x rowsPerSecond, is not), a fade weight that is not a number in 0..1, a fade clip without a fade time, or a malformed layer.
+            ``previous`` not a finite number above 0, or ``playback_rate`` not a finite number.
 
     Example:
         >>> poses = vbusd.skin("out/stadium_crowd.usda", "Cheer", 1.5)  # doctest: +SKIP
@@ -207,28 +222,54 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
     elif weight > 0.0:
         raise OptionsError(f"fade_weight {weight} needs a fade_clip", file="skin")
     resolved = _layers(vb, layers, "skin")
+    step = 0.0
+    if previous is not None:
+        dt = check_frame_interval(previous, "skin")
+        rate = float(playback_rate) if _is_number(playback_rate) else float("nan")
+        if not np.isfinite(rate):
+            raise OptionsError(f"playback_rate must be a finite number, got {playback_rate!r}", file="skin")
+        step = dt * rate
+        _finite_seconds(tau - step, "time - previous x playback_rate", "skin", vb.clips[index].rows_per_second)
+
+    previous_blended = blended
+    if blended is not None and step != 0.0:
+        # The phase advances at rate / sum w D (spec 23.3), so the previous frame is that much phase back.
+        weighted = sum(w * vb.clips[c].duration for c, _, w in blended)
+        if weighted > 0.0:
+            previous_blended = blend_points(vb, {**blend, "phase": float(blend.get("phase", 0.0)) - step / weighted},
+                                            "skin")
+
+    def pose(mesh, back: float):
+        # a layer's clip time steps back; an additive layer's reference pose (its fifth element) stays
+        shifted = [(layer[0], layer[1] - back) + tuple(layer[2:]) for layer in resolved]
+        if resolved or blended is not None:
+            # with a blend, its points are the base (index and tau only give the shape)
+            return skin_mesh_layered(vb, mesh, index, np.array([tau - back]), shifted, fade_clip=fade_index,
+                                     fade_tau=None if fade_index is None else np.array([fade_tau - back]),
+                                     fade_weight=weight, blend=blended if back == 0.0 else previous_blended)
+        if fade_index is None:
+            return skin_mesh(vb, mesh, index, np.array([tau - back]))
+        return skin_mesh_crossfade(vb, mesh, index, np.array([tau - back]), fade_index,
+                                   np.array([fade_tau - back]), weight)
+
     poses = []
     for mesh in vb.meshes:
-        if resolved or blended is not None:
-            skinned, normals = skin_mesh_layered(vb, mesh, index, np.array([tau]), resolved,
-                                                 fade_clip=fade_index,
-                                                 fade_tau=None if fade_index is None else np.array([fade_tau]),
-                                                 fade_weight=weight, blend=blended)
-            poses.append(SkinnedPose(mesh.path, skinned[0], None if normals is None else normals[0]))
-            continue
-        elif fade_index is None:
-            points, normals = skin_mesh(vb, mesh, index, np.array([tau]))
-        else:
-            points, normals = skin_mesh_crossfade(vb, mesh, index, np.array([tau]), fade_index,
-                                                  np.array([fade_tau]), weight)
-        poses.append(SkinnedPose(mesh.path, points[0], None if normals is None else normals[0]))
+        points, normals = pose(mesh, 0.0)
+        previous_points = previous_normals = None
+        if previous is not None:
+            previous_points, previous_normals = pose(mesh, step)
+            previous_points = previous_points[0]
+            previous_normals = None if previous_normals is None else previous_normals[0]
+        poses.append(SkinnedPose(mesh.path, points[0], None if normals is None else normals[0],
+                                 previous_points, previous_normals))
     return poses
 
 
 _PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
                  "fade_time_offset", "fade_playback_rate", "fade_weight", "layer_clip", "layer_time_offset",
                  "layer_playback_rate", "layer_weight", "layer_mask", "layer_mode", "layer_reference_clip",
-                 "layer_reference_time")
+                 "layer_reference_time", "blend_space", "blend_x", "blend_y", "blend_phase", "tint", "variant",
+                 "parts")
 
 
 _LAYER_KEYS = ("clip", "time", "weight", "mask", "mode", "reference")
@@ -490,11 +531,12 @@ def root_motion(asset: AssetLike, clip=0, t0: float = 0.0, t1: float = 0.0, *, a
 
 
 def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *, max_influences: int = 4,
-           max_clips: int = 16, main: bool = True, skin: str = "attributes", layers: bool = False) -> str:
+           max_clips: int = 16, main: bool = True, skin: str = "attributes", layers: bool = False,
+           crossfade: bool = False, previous: bool = False) -> str:
     """The reference vertex-shader module for one encoding and texel format (what ``vbusd shader`` prints).
 
     Args:
-        lang: ``glsl`` or ``hlsl``.
+        lang: ``glsl``, ``hlsl`` or ``wgsl``.
         encoding: Bone encoding token (``crossMatrix``, ``affineMatrix``, ``quatTranslation``, ``dualQuat``).
         texel_format: ``float16``, ``float32`` or ``unorm16``.
         max_influences: Influences per vertex, 1..8.
@@ -503,6 +545,9 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
         skin: ``attributes`` (bone indices and weights as vertex attributes) or ``pulled`` (read by
             vertex index from skin records, ``vbusd.decoders.shaders.pack_skin``; spec/shaders.md).
         layers: Also emit the format 1.2 layer functions (``vbSkinLayered``; spec/shaders.md, Layers).
+        crossfade: The example entry point reads the crossfade inputs and calls ``vbSkinCrossfade``.
+        previous: The previous-frame pose: ``vb_previousTime`` and the entry point's
+            ``vb_previousPosition`` (spec/shaders.md, Previous pose).
 
     Returns:
         The shader source text.
@@ -513,4 +558,4 @@ def shader(lang: str = "glsl", encoding="crossMatrix", texel_format="float16", *
 
     return generate(ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                   max_influences=max_influences, max_clips=max_clips, main=main, skin=skin,
-                                  layers=layers))
+                                  layers=layers, crossfade=crossfade, previous=previous))

@@ -4,7 +4,8 @@ One vector per encoding and texel format (12): a small texture (4 bones, a loopi
 and a clamped clip of 5 rows, both at 4 rows per second), a mesh of 8 vertices with 4 influences,
 8 instances (clip, time offset, playback rate and the format 1.1 crossfade: fade clip, its offset
 and rate, fade weight) and the expected skinned points and normals of every instance at three
-scene times, with every joint's socket transform (format 1.1), computed in float64 by vbusd's numpy reference decoder from the stored texels.
+scene times, with every joint's socket transform (format 1.1), and the previous-frame pose (spec 21) of
+every instance for a frame interval at three more times, computed in float64 by vbusd's numpy reference decoder from the stored texels.
 
 Every time, offset and rate is a multiple of 1/64 with few significant bits, so a decoder that
 computes ``tau = timeOffset + playbackRate * time`` in binary32 gets the same clip times as the
@@ -34,6 +35,13 @@ TEXEL_FORMATS = ("float16", "float32", "unorm16")
 VECTORS = tuple((e, f) for e in ENCODINGS for f in TEXEL_FORMATS) + (("compactQuatTranslation", "uint32"),)
 """Every vector: each 1.0 encoding in each 1.0 texel format, and the compact encoding of format 1.2."""
 TIMES = (0.0, 0.375, 1.875)
+PREVIOUS_DT = 0.25
+"""The frame interval of the previous-frame pose (spec 21): one row of the vectors' clips, so that
+previous times fall on rows: instance 0 at t = 0 wraps back across the loop to row 7."""
+PREVIOUS_TIMES = (0.0, 0.875, 1.875)
+"""Scene times of the previous-pose frames: the loop boundary (instance 0 at t = 0, instance 4's
+fade clip), the clamped clip's end (instance 2 at 0.875 s: 1.125 s held at the last row, 0.875 s a
+frame before it) and both times past the end (1.875 s: zero velocity)."""
 INSTANCES = (
     # clip, timeOffset, playbackRate, fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight
     (0, 0.0, 1.0, 0, 0.0, 1.0, 0.0),          # rows, mid-row, the loop's wrap (row 7 into row 0)
@@ -118,7 +126,7 @@ def _animation(encoding: str):
 def build(encoding: str, texel_format: str, folder: Path) -> dict:
     """Bake one vector, write its texture into ``folder`` and return its JSON document."""
     from vbusd.baking.baker import BakeOptions, bake
-    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd, skin_crowd_previous
     from vbusd.format import metadata as md
     from vbusd.format.model import Crowd
     from vbusd.io.textures import write_texture
@@ -142,6 +150,12 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
         sockets = np.stack([crowd_joint_transforms(vb, crowd, bone, time) for bone in range(len(vb.bones))], axis=1)
         expected.append({"time": time, "positions": points.tolist(), "normals": normals.tolist(),
                          "sockets": sockets.tolist()})
+    frames = []
+    for time in PREVIOUS_TIMES:
+        points, normals = skin_crowd(vb, mesh, crowd, time)
+        previous_points, previous_normals = skin_crowd_previous(vb, mesh, crowd, time, PREVIOUS_DT)
+        frames.append({"time": time, "positions": points.tolist(), "normals": normals.tolist(),
+                       "previousPositions": previous_points.tolist(), "previousNormals": previous_normals.tolist()})
     every_point = np.array([e["positions"] for e in expected]).reshape(-1, 3)
     diagonal = float(np.linalg.norm(every_point.max(axis=0) - every_point.min(axis=0)))
     position_fraction, normal_tolerance = TOLERANCES[texel_format]
@@ -168,6 +182,7 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
                  "boneWeights": mesh.bone_weights.tolist()},
         "instances": [dict(zip(keys, [int(row[0]), *row[1:3], int(row[3]), *row[4:]])) for row in INSTANCES],
         "expected": expected,
+        "previous": {"dt": PREVIOUS_DT, "frames": frames},
         "tolerance": {"position": position_fraction * diagonal, "positionFractionOfDiagonal": position_fraction,
                       "diagonal": diagonal, "normal": normal_tolerance,
                       "socket": position_fraction * max(diagonal, 1.0)},

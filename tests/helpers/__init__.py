@@ -8,6 +8,11 @@
 * :mod:`tests.helpers.node`: the Node scripts of tests/node.
 * :mod:`tests.helpers.cli`: the ``vbusd`` command run in-process, with its output captured.
 * :mod:`tests.helpers.scenes`: small UsdSkel scenes written from code.
-* :mod:`tests.helpers.scripts`: repository scripts under test (samples/, spec/, scripts/, benchmarks/)
-  loaded by path, once.
+* :mod:`tests.helpers.gl_previous`: a ``vbusd shader --previous`` module run by OpenGL transform
+  feedback (GLSL, and HLSL through glslang and spirv-cross).
+* :mod:`tests.helpers.scripts`: repository scripts under test (samples/, spec/, scripts/) loaded by
+  path, once.
+* the benchmarks' harnesses, whose logic tests check and whose command lines are benchmarks/*.py:
+  :mod:`tests.helpers.draw_cost`, :mod:`tests.helpers.accuracy`, :mod:`tests.helpers.mutation_run`,
+  :mod:`tests.helpers.engines_side_by_side`.
 """

@@ -23,7 +23,7 @@ from vbusd.format.model import Crowd
 from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
-from tests.helpers.capabilities import REPO
+from tests.helpers.capabilities import REPO, unavailable
 
 SAMPLE = REPO / "samples" / "stadium_crowd"
 ENCODINGS = ("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat")
@@ -212,20 +212,187 @@ def check_skin_binding(page: ViewerPage, skin: str) -> None:
         assert (mesh["attributes"] == 0 and mesh["records"] > 0) if skin == "pulled" else mesh["attributes"] >= 2
 
 
-def run_probes(browser, path: Path, probes, skin: str = "attributes") -> list:
-    asset = vbusd.read_asset(path)
-    with ViewerServer(path) as server:
-        page = ViewerPage(browser, server.url + PAGE + f"&skin={skin}")
+NO_ADAPTER = "this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)"
+
+
+def open_engine_page(browser, server: ViewerServer, query: str = PAGE, **kwargs) -> ViewerPage:
+    """The page of ``server`` (``vbusd view --engine ...``) at ``query``; a three-webgpu page in a
+    Chromium without a WebGPU adapter skips (or fails where the browser is required) in one line."""
+    page = ViewerPage(browser, server.url + query, **kwargs)
+    if "WebGPU is not available" in " ".join(page.messages):
+        page.close()
+        unavailable("browser", NO_ADAPTER)
+    return page
+
+
+def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str = "", asset=None, backend=None,
+                        check=None) -> list:
+    """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
+    ``engine`` (``vbusd view --engine ENGINE``, at :data:`PAGE` + ``query``) against
+    :func:`reference_instance`; the page names the engine (and ``backend``), logs no error, and
+    loads everything from the server (offline). ``check(page)`` looks at the page first."""
+    asset = asset or vbusd.read_asset(path)
+    with ViewerServer(path, engine=engine) as server:
+        page = open_engine_page(browser, server, PAGE + query)
         try:
             assert page.error == "", page.error
-            check_skin_binding(page, skin)
+            assert page.page.evaluate("window.vbusd.engine") == engine
+            if backend is not None:
+                assert page.page.evaluate("window.vbusd.backend") == backend
+            if check is not None:
+                check(page)
             errors = [check_probe(page, asset, instance, t) for instance, t in probes]
             assert page.errors() == [], page.errors()
-            # Offline: the page, three.js, the runtime and the asset all come from the server.
+            # Offline: the page, the engine, the runtime and the asset all come from the server.
             assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
         finally:
             page.close()
     return errors
+
+
+def assert_within(errors, what: str = "") -> None:
+    """Every probe's position error within :data:`POSITION_TOLERANCE`, normal error within :data:`NORMAL_TOLERANCE`."""
+    for position_error, normal_error in errors:
+        assert position_error <= POSITION_TOLERANCE, (what, errors)
+        assert normal_error <= NORMAL_TOLERANCE, (what, errors)
+
+
+def run_probes(browser, path: Path, probes, skin: str = "attributes") -> list:
+    """The three.js WebGL page's probes in skin binding ``skin`` (checked on every crowd first)."""
+    return engine_probe_errors(browser, path, "three", probes, query=f"&skin={skin}",
+                               check=lambda page: check_skin_binding(page, skin))
+
+
+def package_probe_errors(browser, package: Path, engine: str, asset, probes, query: str = "", check=None) -> list:
+    """Position errors (/ diagonal) of probes of a runtime package drawn through ``engine``'s glTF
+    loader, against the numpy decoder of the USD ``asset`` it was exported from, in the package's
+    vertex order (:func:`package_vertices`); normals within :data:`NORMAL_TOLERANCE` where the
+    asset has them, none where it has none. ``check(page)`` looks at the page first."""
+    errors = []
+    with ViewerServer(package, engine=engine) as server:
+        page = open_engine_page(browser, server, PAGE + query)
+        try:
+            assert page.error == "", page.error
+            if check is not None:
+                check(page)
+            for instance, t in probes:
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                expected_positions, expected_normals = reference_instance(asset, instance, t)
+                positions = np.asarray(result["positions"]).reshape(-1, 3)
+                expected = package_vertices(asset, expected_positions)
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                errors.append(float(np.abs(positions - expected).max()) / diagonal)
+                normals = np.asarray(result["normals"]).reshape(-1, 3)
+                assert normals.shape == expected_normals.shape
+                if normals.size:
+                    assert np.abs(normals - expected_normals).max() <= NORMAL_TOLERANCE
+            assert page.errors() == [], page.errors()
+            assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests
+        finally:
+            page.close()
+    print(engine, package.name, errors)
+    return errors
+
+
+def crossfading_bar_crowd(bar_crowd: Path, path: Path, *, for_sockets: bool = False) -> Path:
+    """The bar crowd with a crossfade per instance (format 1.1), written to ``path``: each instance
+    a fade clip, offset, rate and weight of its own (weights 0, 1 and between; for the socket
+    checks, a ramp from 0 to 1)."""
+    asset = vbusd.read_asset(bar_crowd)
+    crowd = asset.crowds[0]
+    count = crowd.instance_count
+    clips = len(asset.animations[0].clips)
+    if for_sockets:
+        fade = dict(fade_clip=((np.arange(count) + 1) % clips).astype(np.int32),
+                    fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
+                    fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
+                    fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
+    else:
+        fade = dict(fade_clip=((np.arange(count) + 2) % clips).astype(np.int32),
+                    fade_time_offset=np.linspace(-0.5, 1.0, count).astype(np.float32),
+                    fade_playback_rate=np.linspace(0.5, 1.5, count).astype(np.float32),
+                    fade_weight=np.array([0.0, 1.0, 0.25, 0.5, 0.75] * (count // 5), dtype=np.float32))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(dataclasses.replace(crowd, **fade),)), path)
+    return path
+
+
+def check_crowd_sockets(browser, path: Path, engine: str, matrix_array: str) -> None:
+    """``crowd.socketMatrix(i, bone, t)`` of every instance of the page's first crowd, for every
+    bone at two times, equals the decoder's ``crowd_joint_transforms`` (placement times the
+    crossfaded joint) within 1e-6 of the crowd's extent. ``matrix_array`` is the JS expression
+    turning the engine's matrix ``m`` into its 16 numbers (three's column-major ``elements``,
+    Babylon's row-vector ``m``: the same numbers)."""
+    from vbusd.decoders.reference import crowd_joint_transforms
+
+    asset = vbusd.read_asset(path)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    count = crowd.instance_count
+    extent = float(np.linalg.norm(np.ptp(np.asarray(crowd.positions), axis=0))) + 1.0
+    with ViewerServer(path, engine=engine) as server:
+        page = open_engine_page(browser, server)
+        try:
+            assert page.error == "", page.error
+            for bone in range(vb.layout.bone_count):
+                for t in (0.0, 0.61):
+                    got = np.asarray(page.page.evaluate(
+                        f"""([bone, t, n]) => Array.from({{ length: n }}, (_, i) => {{
+                            const m = window.vbusd.crowds[0].socketMatrix(i, bone, t); return {matrix_array}; }})""",
+                        [bone, t, count]))
+                    expected = crowd_joint_transforms(vb, crowd, bone, t)
+                    got = got.reshape(count, 4, 4).transpose(0, 2, 1)
+                    assert np.abs(got - expected).max() <= 1e-6 * extent, (bone, t)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+
+
+def run_docs_example(browser, folder: Path, section: str, shows, inspect: str = None):
+    """docs/engines.md's example page of ``section`` (its first ```html block), as written, on a
+    folder laid out as the docs say (the wheel's static files and a ``vbusd export`` package of the
+    stadium crowd, ``crowd.glb``), served by a plain HTTP server: screenshots until ``shows(luminance)``
+    (:func:`settle`). Returns (console messages, last picture, its luminance, ``inspect``'s result:
+    a JS function evaluated on the page then, or None)."""
+    import functools
+    import http.server
+    import re
+    import threading
+
+    from vbusd.io.gltf_package import export_gltf
+    from vbusd.web.static_files import copy_static
+
+    text = (REPO / "docs" / "engines.md").read_text(encoding="utf-8")
+    html = re.search(r"```html\n(.*?)```", text[text.index(section):], re.S).group(1)
+    copy_static(REPO, folder / "site")  # what the wheel ships (setup.py's build step)
+    (folder / "site" / "example.html").write_text(html, encoding="utf-8")
+    export_gltf(vbusd.read_asset(SAMPLE / "stadium_crowd_vb.usda"), folder / "site" / "crowd.glb")
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(folder / "site")))
+    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
+    thread.start()
+    inspected = None
+    try:
+        page = browser.new_page(viewport={"width": 480, "height": 270}, device_scale_factor=1)
+        messages = []
+        page.on("console", lambda message: messages.append(f"{message.type}: {message.text}"))
+        page.on("pageerror", lambda error: messages.append(f"pageerror: {error}"))
+        page.goto(f"http://127.0.0.1:{server.server_address[1]}/example.html")
+        # Load, compile and a few frames on SwiftShader: until the picture is there.
+        picture, luminance = settle(page, lambda image: shows(image, messages))
+        if inspect is not None:
+            inspected = page.evaluate(inspect)
+        (folder / "example.png").write_bytes(picture)
+        page.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
+    return messages, picture, luminance, inspected
 
 
 def package_vertices(asset, positions: np.ndarray) -> np.ndarray:

@@ -68,6 +68,21 @@ def _glslang() -> Optional[str]:
     return None
 
 
+def _wgpu() -> Optional[str]:
+    if importlib.util.find_spec("wgpu") is None:
+        return "the wgpu package is not installed (pip install '.[test]')"
+    try:
+        import wgpu
+
+        adapter = wgpu.gpu.request_adapter_sync()
+        if adapter is None:
+            raise RuntimeError("no adapter")
+        adapter.request_device_sync()
+    except Exception as error:  # no Vulkan/Metal/D3D12 driver at all
+        return f"no WebGPU adapter for wgpu ({str(error).splitlines()[0] if str(error) else error!r}); {SYSTEM_HINT} (Mesa's mesa-vulkan-drivers: lavapipe)"
+    return None
+
+
 def _node() -> Optional[str]:
     if shutil.which("node") is None:
         return f"node not found: install Node.js 18 or newer, then {NODE_HINT}"
@@ -114,6 +129,7 @@ CAPABILITIES: dict[str, tuple[Callable[[], Optional[str]], str]] = {
     "browser": (_browser, "headless Chromium driven by playwright (software WebGL 2)"),
     "gl": (_gl, "an EGL OpenGL context through moderngl (Mesa's llvmpipe will do)"),
     "glslang": (_glslang, "glslangValidator and spirv-cross (HLSL and SPIR-V round trips)"),
+    "wgpu": (_wgpu, "WebGPU through the wgpu package (Naga validates WGSL; Mesa's lavapipe will do)"),
     "node": (_node, "Node.js with the npm packages of tests/node, web and web/gltf-transform"),
     "blender": (_blender, "the bpy wheel (Blender as a Python module)"),
     "assets": (_assets, "the shared third-party assets (../shared/assets or $VBUSD_SHARED_ASSETS)"),
@@ -122,7 +138,7 @@ CAPABILITIES: dict[str, tuple[Callable[[], Optional[str]], str]] = {
 }
 """Every capability: its check (None when present, else one line saying what to install) and what it is."""
 
-CI_REQUIRES = ("browser", "gl", "glslang", "node", "blender", "assets", "warp")
+CI_REQUIRES = ("browser", "gl", "glslang", "wgpu", "node", "blender", "assets", "warp")
 """What CI requires (``CI`` set, or ``VBUSD_REQUIRE=all``): everything but a GPU, which CI has not."""
 
 

@@ -1,6 +1,8 @@
 """Repository scripts under test, loaded by path once per process: the sample's generator
 (samples/), the conformance vectors' generator (spec/conformance/), the fixture generators
-(tests/fixtures/), the repository's scripts/ and the benchmarks whose own logic a test checks.
+(tests/fixtures/) and the repository's scripts/. Never benchmarks/: the harness code a test checks
+lives in tests/helpers (draw_cost, accuracy, mutation_run, engines_side_by_side), imported by the
+tests and by the benchmark scripts, which are its command lines.
 
 They are scripts, run as ``python PATH``, not packages; the tests import their functions through
 :func:`load`, which gives every test module the same module object.

@@ -11,7 +11,7 @@ import click
 
 from vbusd.cli.common import force_option, format_option, human_bytes, quiet_option
 from vbusd.format.errors import OptionsError
-from vbusd.jobs.crowd import CrowdLayer, CrowdOptions, build_crowd, parse_weights
+from vbusd.jobs.crowd import CrowdLayer, CrowdOptions, build_crowd, parse_assignments, parse_weights
 
 __all__ = ["command"]
 
@@ -113,6 +113,15 @@ class _CrowdCommand(click.Command):
               help="Range of a layer clip's time offsets in seconds (default: anywhere in its clip): once, or once per --layer.")
 @click.option("--layer-rate", "layer_rates", nargs=2, type=float, multiple=True, metavar="MIN MAX",
               help="Range of a layer clip's playback rates (default 1 1): once, or once per --layer.")
+@click.option("--tints", default=None, metavar="COLOR,...",
+              help="Crowd variety (format 1.3): a palette of #rrggbb colours; each instance picks one as its tint, "
+                   "which multiplies its base colour.")
+@click.option("--variants", default=None, metavar="NAME=WEIGHT,...",
+              help="Material variants (format 1.3) with relative weights; each instance gets one, each variant a "
+                   "material.")
+@click.option("--parts", default=None, metavar="PART=PROBABILITY,...",
+              help="Optional parts (format 1.3): meshes of the characters, by name, each shown on an instance with "
+                   "that probability.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed: the same seed gives the same file, byte for byte.")
 @format_option
 @force_option
@@ -120,7 +129,8 @@ class _CrowdCommand(click.Command):
 @quiet_option
 def command(characters, output, layout, points_file, count, spacing, clips, character_weights, time_offset, rate,
             yaw, scale, fade_clips, fade_weight, fade_window, fade_time_offset, fade_rate, layer_specs, layer_weights,
-            layer_offsets, layer_rates, seed, output_format, force, allow_outside_paths, quiet):
+            layer_offsets, layer_rates, tints, variants, parts, seed, output_format, force, allow_outside_paths,
+            quiet):
     """Build a USD crowd (PointInstancer + VirtualBonesInstancingAPI) from converted characters."""
 
     options = CrowdOptions(layout=layout, count=count, spacing=spacing, points=points_file,
@@ -133,6 +143,9 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
                            fade_time_offset=_pair(fade_time_offset, "--fade-time-offset"),
                            fade_playback_rate=_pair(fade_rate, "--fade-rate") or (1.0, 1.0),
                            layers=_layers(layer_specs, layer_weights, layer_offsets, layer_rates),
+                           tints=tuple(c.strip() for c in tints.split(",") if c.strip()) if tints else (),
+                           variants=parse_assignments(variants, option="--variants") if variants else {},
+                           parts=parse_assignments(parts, option="--parts") if parts else {},
                            seed=seed, force=force, allow_outside_paths=allow_outside_paths)
     report = build_crowd(characters, output, options)
     if quiet:
@@ -155,4 +168,13 @@ def command(characters, output, layout, points_file, count, spacing, clips, char
         click.echo(f"  {path}: {n} instances ({shown}){together}{fading}")
     if report.layers:
         click.echo(f"  {report.layers} layer(s) per instance: {', '.join(layer.mask for layer in options.layers)}")
+    for path, variety in zip(characters, report.variety):  # format 1.3 crowd variety
+        said = []
+        if variety["tints"]:
+            said.append("tints " + ", ".join(f"{colour} {k}" for colour, k in zip(tints.split(","), variety["tints"])))
+        if variety["variants"]:
+            said.append("variants " + ", ".join(f"{name} {k}" for name, k in variety["variants"].items()))
+        if variety["parts"]:
+            said.append("showing " + ", ".join(f"{name} {k}" for name, k in variety["parts"].items()))
+        click.echo(f"  {path}: {'; '.join(said)}")
     return 0

@@ -21,7 +21,7 @@ __all__ = ["command", "write_text"]
 # ShaderOptions names its fields; the command line spells them as options.
 _OPTION_NAMES = {"lang": "--lang", "encoding": "--encoding", "texel_format": "--texel-format",
                  "max_influences": "--max-influences", "max_clips": "--max-clips", "skin": "--skin",
-                 "max_bones": "--max-bones"}
+                 "max_bones": "--max-bones", "previous": "--previous"}
 
 
 def _integer(value: str, option: str) -> int:
@@ -52,14 +52,20 @@ def _integer(value: str, option: str) -> int:
 @click.option("--layers", is_flag=True,
               help="Also emit the layer functions of format 1.2 (vbSkinLayered and the rig texture vb_rig; "
                    "spec/shaders.md, Layers).")
+@click.option("--crossfade", is_flag=True,
+              help="The example entry point reads the crossfade inputs and calls vbSkinCrossfade (GLSL/HLSL: "
+                   "VB_CROSSFADE defaults to 1; WGSL has no preprocessor).")
+@click.option("--previous", is_flag=True,
+              help="Also declare vb_previousTime and write the previous frame's skinned position vb_previousPosition "
+                   "from the example main, for velocity (motion vectors; spec/shaders.md, Previous pose).")
 @click.option("-o", "--output", metavar="FILE",
               help="File to write, atomically; missing folders are created (default: standard output).")
 @force_option
 @format_option
 @quiet_option
-def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, no_main, skin, layers, output, force,
-            output_format, quiet):
-    """Write a self-contained vertex-stage module (GLSL or HLSL) that decodes and skins.
+def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, no_main, skin, layers, crossfade,
+            previous, output, force, output_format, quiet):
+    """Write a self-contained vertex-stage module (GLSL, HLSL or WGSL) that decodes and skins.
 
     The module's interface (uniforms, attributes, sampler state) is in spec/shaders.md. Without -o
     the module goes to standard output (with --format json, as the "source" of one JSON object);
@@ -72,7 +78,8 @@ def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, 
         options = ShaderOptions(lang=lang, encoding=encoding, texel_format=texel_format,
                                 max_influences=_integer(max_influences, "--max-influences"),
                                 max_clips=_integer(max_clips, "--max-clips"), main=not no_main, skin=skin,
-                                layers=layers, max_bones=_integer(max_bones, "--max-bones"))
+                                layers=layers, max_bones=_integer(max_bones, "--max-bones"), crossfade=crossfade,
+                                previous=previous)
     except OptionsError as error:
         message = error.message
         for field, option in _OPTION_NAMES.items():
@@ -83,7 +90,8 @@ def command(lang, encoding, texel_format, max_influences, max_clips, max_bones, 
     described = {"lang": options.lang, "encoding": Encoding(options.encoding).value,
                  "texelFormat": TexelFormat(options.texel_format).value, "maxInfluences": options.max_influences,
                  "maxClips": options.max_clips, "main": options.main, "skin": options.skin,
-                 **({"layers": True} if options.layers else {})}
+                 **({"layers": True} if options.layers else {}), **({"crossfade": True} if options.crossfade else {}),
+                 **({"previous": True} if options.previous else {})}
     if output is None:  # the module is what this command prints: -q does not hold it back
         if output_format == "json":
             echo_json({**described, "source": source})

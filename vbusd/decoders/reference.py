@@ -10,17 +10,16 @@ says otherwise. The source time of ``tau`` is ``clip.start_time + tau``.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 import numpy as np
 
 from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpack
 from vbusd.format.layout import Encoding
-import dataclasses
-
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
 from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
-from vbusd.format.errors import InputError
+from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.rootmotion import displacement
 from vbusd.format.motion import crossed_markers, instance_blend
 
@@ -29,7 +28,8 @@ __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transf
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
            "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
-           "Additive", "crowd_events", "instance_blend_points", "blends_as_layers"]
+           "Additive", "crowd_events", "instance_blend_points", "blends_as_layers",
+           "DEFAULT_FRAME_INTERVAL", "check_frame_interval", "hold_reset", "skin_crowd_previous"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -851,3 +851,79 @@ def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float
         points.append(p[0])
         normals.append(None if n is None else n[0])
     return np.stack(points), None if normals[0] is None else np.stack(normals)
+
+
+# --------------------------------------------------------------------------------------------
+# The previous-frame pose (spec 21)
+# --------------------------------------------------------------------------------------------
+
+DEFAULT_FRAME_INTERVAL = 1.0 / 60.0
+"""The frame interval ``dt`` (s of scene time) a previous pose takes when none is given (spec 21.1)."""
+
+
+def check_frame_interval(dt, what: str = "skin") -> float:
+    """``dt`` as float seconds; refused (one line naming it) unless finite and above 0 (spec 21.1).
+
+    Raises:
+        OptionsError: ``dt`` is not a finite number above 0.
+    """
+    ok = isinstance(dt, (int, float, np.integer, np.floating)) and not isinstance(dt, (bool, np.bool_))
+    value = float(dt) if ok else float("nan")
+    if not (np.isfinite(value) and value > 0.0):
+        raise OptionsError(f"previous (the frame interval) must be a finite number of seconds above 0, got {dt!r}",
+                           file=what)
+    return value
+
+
+def hold_reset(previous: np.ndarray, current: np.ndarray, reset) -> np.ndarray:
+    """``previous`` with the rows of reset instances replaced by ``current`` (spec 21.1, Reset).
+
+    The numpy twin of ``warp_kernels.hold_reset_kernel``. ``reset`` is None (no instance reset) or
+    one flag per leading entry.
+    """
+    if reset is None:
+        return previous
+    flags = np.asarray(reset, dtype=bool).reshape(-1)
+    if flags.shape[0] != previous.shape[0]:
+        raise OptionsError(f"reset has {flags.shape[0]} flags for {previous.shape[0]} instances", file="previous")
+    return np.where(flags.reshape((-1,) + (1,) * (previous.ndim - 1)), current, previous)
+
+
+def skin_crowd_previous(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float,
+                        dt: float = DEFAULT_FRAME_INTERVAL, *, reset=None,
+                        previous_crowd: Optional[Crowd] = None) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """World-space points (N, V, 3) and normals of every instance's previous-frame pose (spec 21).
+
+    Each instance is evaluated at scene time ``t - dt`` by exactly the rules of :func:`skin_crowd`:
+    its clip-local time ``timeOffset + playbackRate (t - dt)`` wrapped or clamped as its clip does,
+    crossfade and layers (time-sampled ones included) at ``t - dt``. It is placed by
+    ``previous_crowd``'s transforms (positions, orientations, scales; its other fields are not read)
+    when given, else by ``crowd``'s. A reset instance's previous pose is its current pose.
+
+    Args:
+        vb: The baked animation.
+        mesh: A bound mesh.
+        crowd: The instances.
+        t: Scene time (s) of the current frame.
+        dt: The frame interval (s), finite and above 0; 1/60 by default.
+        reset: None, or one flag per instance: the runtime switched its clip or teleported it this
+            frame (its velocity is zero).
+        previous_crowd: The instances' transforms of the previous frame, or None.
+
+    Returns:
+        (points (N, V, 3), normals or None), float64, in the space of :func:`skin_crowd`'s.
+    """
+    dt = check_frame_interval(dt, "skin_crowd_previous")
+    placed = crowd
+    if previous_crowd is not None:
+        if previous_crowd.instance_count != crowd.instance_count:
+            raise OptionsError(f"previous_crowd has {previous_crowd.instance_count} instances, the crowd "
+                               f"{crowd.instance_count}", file="skin_crowd_previous")
+        placed = dataclasses.replace(crowd, positions=previous_crowd.positions,
+                                     orientations=previous_crowd.orientations, scales=previous_crowd.scales)
+    points, normals = skin_crowd(vb, mesh, placed, t - dt)
+    if reset is not None and np.any(np.asarray(reset, dtype=bool)):
+        now_points, now_normals = skin_crowd(vb, mesh, crowd, t)
+        points = hold_reset(points, now_points, reset)
+        normals = None if normals is None else hold_reset(normals, now_normals, reset)
+    return points, normals

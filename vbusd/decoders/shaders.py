@@ -18,13 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vbusd.decoders import shaders_wgsl
 from vbusd.format.errors import OptionsError
 from vbusd.format.layout import Encoding, TexelFormat, pairing_error
 
 __all__ = ["LANGUAGES", "SKINS", "DEFAULT_MAX_CLIPS", "DEFAULT_MAX_BONES", "SKIN_TEXTURE_WIDTH", "ShaderOptions",
            "generate", "skin_record_texels", "pack_skin", "skin_texture_shape", "RIG_TEXELS_PER_BONE", "rig_texels"]
 
-LANGUAGES = ("glsl", "hlsl")
+LANGUAGES = ("glsl", "hlsl", "wgsl")
 SKINS = ("attributes", "pulled")  # spec/shaders.md, Skin bindings; attributes is the default
 SKIN_TEXTURE_WIDTH = 4096  # the widest skin texture vbusd lays out (spec: W = min(texels, 4096))
 DEFAULT_MAX_CLIPS = 16
@@ -51,6 +52,12 @@ class ShaderOptions:
             attributes) or ``pulled`` (skin records read by vertex index, ``vbSkinInfluences``).
         layers: Also emit the layer functions of format 1.2 (``vbSkinLayered``, the rig texture
             ``vb_rig``; spec/virtual-bones.md 8.6, spec/shaders.md "Layers").
+        crossfade: The example entry point reads the crossfade inputs and calls ``vbSkinCrossfade``
+            (GLSL/HLSL: the default of ``VB_CROSSFADE`` becomes 1; WGSL, which has no preprocessor,
+            chooses the entry point's inputs here).
+        previous: Also declare the uniform ``vb_previousTime`` and let the example entry point
+            write ``vb_previousPosition``, the previous frame's skinned position (spec/virtual-bones.md
+            21, spec/shaders.md "Previous pose"). False leaves the module byte-identical.
     """
 
     lang: str = "glsl"
@@ -62,6 +69,8 @@ class ShaderOptions:
     skin: str = "attributes"
     layers: bool = False
     max_bones: int = DEFAULT_MAX_BONES
+    crossfade: bool = False
+    previous: bool = False
 
     def __post_init__(self) -> None:
         if self.lang not in LANGUAGES:
@@ -82,6 +91,8 @@ class ShaderOptions:
             raise OptionsError(f"max_clips must be 1..256, got {self.max_clips!r}", file="shader")
         if isinstance(self.max_bones, bool) or int(self.max_bones) != self.max_bones or not 1 <= self.max_bones <= 1024:
             raise OptionsError(f"max_bones must be 1..1024, got {self.max_bones!r}", file="shader")
+        if not isinstance(self.previous, bool):
+            raise OptionsError(f"previous must be True or False, got {self.previous!r}", file="shader")
         mismatch = pairing_error(self.encoding, self.texel_format)
         if mismatch:
             raise OptionsError(mismatch, file="shader")
@@ -1139,6 +1150,66 @@ void vbSkinLayered(VB_ARGS_DECL int clip, float tau, int fadeClip, float fadeTau
 """
 
 
+# The previous-frame pose (spec/virtual-bones.md 21, spec/shaders.md "Previous pose"): spliced into
+# the resources and the example main by generate() only with ShaderOptions(previous=True), so that a
+# module without it stays byte-identical. (anchor in the template, text inserted after it)
+_PREVIOUS_SPLICES = {
+    "glsl": (
+        ("uniform float vb_time;                 // scene time in seconds\n",
+         "uniform float vb_previousTime;         // scene time of the previous frame: vb_time - dt (spec 21)\n"),
+        ("in vec3 vb_instanceFade;         // per instance: (fadeTimeOffset, fadePlaybackRate, fadeWeight)\n",
+         "in vec2 vb_instancePreviousFade; // per instance: (fadeTime, fadeWeight) of the previous frame (spec 21)\n"),
+        ("out vec3 vb_skinnedNormal;\n",
+         "out vec3 vb_previousPosition;    // the previous frame's skinned position, same space (spec 21)\n"),
+        ("""           vb_skinnedPosition, vb_skinnedNormal);
+#endif
+""", """    // The previous frame (spec 21): the same skin function at the previous clip-local time.
+    vec3 previousNormal;
+    float previousTau = vb_instanceTime.x + vb_instanceTime.y * vb_previousTime;
+#if VB_CROSSFADE
+    vbSkinCrossfade(VB_ARGS vb_instanceClip, previousTau, vb_instanceFadeClip, vb_instancePreviousFade.x,
+                    vb_instancePreviousFade.y, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
+                    vb_previousPosition, previousNormal);
+#else
+    vbSkin(VB_ARGS vb_instanceClip, previousTau, vb_restPosition, vb_restNormal, boneIndex, boneWeight,
+           vb_previousPosition, previousNormal);
+#endif
+"""),
+    ),
+    "hlsl": (
+        ("    float vb_time;                     // scene time in seconds\n",
+         "    float vb_previousTime;             // scene time of the previous frame: vb_time - dt (spec 21)\n"),
+        ("    float3 instanceFade : TEXCOORD5;   // per instance: (fadeTimeOffset, fadePlaybackRate, fadeWeight)\n",
+         "    float2 instancePreviousFade : TEXCOORD3;  // per instance: (fadeTime, fadeWeight) of the previous frame\n"),
+        ("    float3 skinnedNormal : TEXCOORD1;\n",
+         "    float3 previousPosition : TEXCOORD2;  // the previous frame's skinned position (spec 21)\n"),
+        ("""           output.skinnedPosition, output.skinnedNormal);
+#endif
+""", """    // The previous frame (spec 21): the same skin function at the previous clip-local time.
+    float3 previousNormal;
+    float previousTau = input.instanceTime.x + input.instanceTime.y * vb_previousTime;
+#if VB_CROSSFADE
+    vbSkinCrossfade(VB_ARGS input.instanceClip, previousTau, input.instanceFadeClip, input.instancePreviousFade.x,
+                    input.instancePreviousFade.y, input.restPosition, input.restNormal, boneIndex, boneWeight,
+                    output.previousPosition, previousNormal);
+#else
+    vbSkin(VB_ARGS input.instanceClip, previousTau, input.restPosition, input.restNormal, boneIndex, boneWeight,
+           output.previousPosition, previousNormal);
+#endif
+"""),
+    ),
+}
+
+
+def _splice_previous(text: str, lang: str) -> str:
+    """A whole module with the previous-pose lines inserted after their anchors (each found once)."""
+    for anchor, added in _PREVIOUS_SPLICES[lang]:
+        if text.count(anchor) != 1:  # a template changed under the splice: fail loudly, never skip
+            raise RuntimeError(f"previous-pose anchor found {text.count(anchor)} times: {anchor.strip()!r}")
+        text = text.replace(anchor, anchor + added)
+    return text
+
+
 # The GLSL spellings are macros for the shared body only: undefine them so that they cannot clash
 # with names in the engine code that includes the module (a variable called `mix`, say).
 _HLSL_EPILOGUE = """\
@@ -1158,8 +1229,10 @@ def generate(options: ShaderOptions) -> str:
 
     Returns:
         GLSL (without a ``#version`` line, so it can be pasted into an engine's shader; add
-        ``#version 330 core`` or later to compile it alone) or HLSL source text.
+        ``#version 330 core`` or later to compile it alone), HLSL or WGSL source text.
     """
+    if options.lang == "wgsl":  # no preprocessor: the variant is chosen in Python (shaders_wgsl)
+        return shaders_wgsl.generate(options)
     header = [
         f"// vbusd Virtual Bones vertex module ({options.lang}): encoding {options.encoding.value}, "
         f"texel format {options.texel_format.value}, up to {options.max_influences} influences.",
@@ -1176,12 +1249,14 @@ def generate(options: ShaderOptions) -> str:
            f"#define VB_SKIN_WORDS {(options.max_influences + 1) // 2 + options.max_influences}",
            f"#define VB_SKIN_TEXELS {skin_record_texels(options.max_influences)}"]
           if options.skin == "pulled" else []),
+        *(["// Previous-frame pose (spec/virtual-bones.md 21): uniform vb_previousTime, output vb_previousPosition.",
+           "#define VB_PREVIOUS 1"] if options.previous else []),
         "#ifndef VB_MAIN",
         f"#define VB_MAIN {1 if options.main else 0}",
         "#endif",
         "// VB_CROSSFADE 1: the example main reads the per-instance fade clip, time and weight (format 1.1).",
         "#ifndef VB_CROSSFADE",
-        "#define VB_CROSSFADE 0",
+        f"#define VB_CROSSFADE {1 if options.crossfade else 0}",
         "#endif",
         "// Engine hooks (spec/shaders.md, section Engine hooks): define any of these before the module.",
         "#ifndef VB_DECLARE_RESOURCES",
@@ -1230,7 +1305,8 @@ def generate(options: ShaderOptions) -> str:
         compact = options.encoding is Encoding.COMPACT_QUAT_TRANSLATION
         parts.append(_HLSL_EPILOGUE + ("#undef uvec4\n" if options.skin == "pulled" or compact else "")
                      + ("#undef uintBitsToFloat\n" if options.skin == "pulled" else ""))
-    return "\n".join(header) + "\n".join(parts)
+    source = "\n".join(header) + "\n".join(parts)
+    return _splice_previous(source, options.lang) if options.previous else source
 
 
 def skin_record_texels(max_influences: int) -> int:

@@ -29,6 +29,7 @@ Kernels and their numpy twins: :mod:`vbusd.decoders.warp_kernels`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from typing import Optional, Union
@@ -42,11 +43,12 @@ from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
 from vbusd.decoders.reference import blends_as_layers, channel_values, normal_point_indices
+from vbusd.decoders.reference import DEFAULT_FRAME_INTERVAL, check_frame_interval
 from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
 from vbusd.format.errors import UnsupportedError
 
 __all__ = ["quiet_warp", "SAMPLING_MODES", "available_devices", "SkinResult", "DeviceCrowd",
-           "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd"]
+           "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd", "skin_crowd_previous"]
 
 
 
@@ -648,6 +650,58 @@ class Decoder:
         return self.skin_bones(crowd, buffers, out)
 
     @_quietly
+    def skin_crowd_previous(self, crowd: Union[Crowd, DeviceCrowd], t: float, dt: float = DEFAULT_FRAME_INTERVAL,
+                            out: Optional[SkinResult] = None, *, reset=None, previous_crowd: Optional[Crowd] = None,
+                            current: Optional[SkinResult] = None) -> SkinResult:
+        """Every instance's previous-frame pose (spec 21), twin of ``reference.skin_crowd_previous``.
+
+        The crowd at scene time ``t - dt`` by :meth:`skin_crowd`'s own rules (per-instance clip times,
+        crossfade and layers at ``t - dt``), placed by ``previous_crowd``'s transforms when given;
+        a reset instance gets its current pose (``hold_reset_kernel``).
+
+        Args:
+            crowd: The instances (a :class:`DeviceCrowd` only without ``previous_crowd``).
+            t: Scene time (s) of the current frame.
+            dt: Frame interval (s), finite and above 0.
+            out: Arrays from :meth:`allocate` for the previous pose, or None.
+            reset: None, or one flag per instance (clip switched or teleported this frame).
+            previous_crowd: The instances' previous transforms (positions, orientations, scales).
+            current: This frame's :meth:`skin_crowd` result, when the caller has it (read for reset
+                instances instead of skinning the current frame again).
+
+        Returns:
+            ``out`` (or new arrays) with the previous points and normals on the device.
+        """
+        dt = check_frame_interval(dt, "decode")
+        if not np.isfinite(t):
+            raise OptionsError(f"scene time must be finite, got {t!r}", file="decode")
+        placed = crowd
+        if previous_crowd is not None:
+            if not isinstance(crowd, Crowd):
+                raise OptionsError("previous_crowd needs the crowd as a Crowd, not a DeviceCrowd", file="decode")
+            if previous_crowd.instance_count != crowd.instance_count:
+                raise OptionsError(f"previous_crowd has {previous_crowd.instance_count} instances, the crowd "
+                                   f"{crowd.instance_count}", file="decode")
+            placed = dataclasses.replace(crowd, positions=previous_crowd.positions,
+                                         orientations=previous_crowd.orientations, scales=previous_crowd.scales)
+            if not placed.fade_samples:
+                placed = self.upload_crowd(placed)  # not cached: the current crowd keeps its upload
+        out = self.skin_crowd(placed, t - dt, out)
+        flags = None if reset is None else np.asarray(reset, dtype=bool).reshape(-1)
+        if flags is not None and flags.shape[0] != out.instance_count:
+            raise OptionsError(f"reset has {flags.shape[0]} flags for {out.instance_count} instances", file="decode")
+        if flags is not None and flags.any():
+            if current is None:
+                current = self.skin_crowd(crowd, t)
+            reset_array = self._array(flags.astype(np.int32), wp.int32)
+            wp.launch(K.hold_reset_kernel, dim=out.points.shape, inputs=[reset_array, current.points, out.points],
+                      device=self.device)
+            if out.normals is not None:
+                wp.launch(K.hold_reset_kernel, dim=out.normals.shape,
+                          inputs=[reset_array, current.normals, out.normals], device=self.device)
+        return out
+
+    @_quietly
     def skin(self, clip_index: int, tau, out: Optional[SkinResult] = None, *,
              fraction_steps: float = 0.0) -> SkinResult:
         """Skinned points and normals of the mesh at clip-local times ``tau`` (twin of ``reference.skin_mesh``).
@@ -755,3 +809,13 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float, *, dev
     Consecutive calls for the same ``vb``, ``mesh`` and ``crowd`` objects reuse the uploaded data.
     """
     return _cached_decoder(vb, mesh, device, sampling).skin_crowd(crowd, t).numpy()
+
+
+@_quietly
+def skin_crowd_previous(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float,
+                        dt: float = DEFAULT_FRAME_INTERVAL, *, device, reset=None,
+                        previous_crowd: Optional[Crowd] = None, sampling: str = "exact") -> tuple:
+    """Every instance's previous-frame pose (spec 21) on ``device``: ``reference.skin_crowd_previous``
+    plus ``device=``; float32 results."""
+    return _cached_decoder(vb, mesh, device, sampling).skin_crowd_previous(
+        crowd, t, dt, reset=reset, previous_crowd=previous_crowd).numpy()

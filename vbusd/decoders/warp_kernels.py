@@ -20,6 +20,8 @@ kernel / function                  numpy twin
 :data:`skin_normals_kernel`        faceVarying normals (``normal_points``) of the two above
 :func:`blend_bones`                ``reference.crossfade`` for LBS (blend of the two clips'
                                    decoded matrices, equal to the blend of the two poses)
+:data:`hold_reset_kernel`          ``reference.hold_reset`` (spec 21: a reset instance's
+                                   previous pose is its current pose)
 =================================  ==========================================================
 
 Crossfade (spec "Crossfade", format 1.1): an instance whose fade weight ``w`` is above 0 also
@@ -61,7 +63,8 @@ __all__ = ["ENCODING_IDS", "CROSS_MATRIX", "AFFINE_MATRIX", "QUAT_TRANSLATION", 
            "InstanceFrame", "instance_frames_kernel", "store_bones", "decode_at",
            "sample_decode_at", "blend_bones", "decode_bones", "decode_bones_texture", "place_bone",
            "skin_lbs_kernel", "dqs_pose", "skin_dqs_kernel", "skin_normals_kernel", "bone_matrix", "joint_local",
-           "layer_slerp", "mix_local", "add_local", "layered_matrix", "layer_rows_kernel", "dual_of", "layer_bones"]
+           "layer_slerp", "mix_local", "add_local", "layered_matrix", "layer_rows_kernel", "dual_of", "layer_bones",
+           "hold_reset_kernel"]
 
 # Compile only the forward kernels: the decoder never differentiates, and skipping the adjoints
 # roughly halves compile time on the CPU (LLVM) backend.
@@ -726,6 +729,16 @@ def skin_normals_kernel(
             else:
                 sn += w * (load_linear(linear, instance, bone) * wp.vec4(n[0], n[1], n[2], 0.0))
         out_normals[instance, e] = wp.normalize(sn)
+
+
+@wp.kernel
+def hold_reset_kernel(reset: wp.array(dtype=wp.int32), current: wp.array2d(dtype=wp.vec3),
+                      previous: wp.array2d(dtype=wp.vec3)):
+    """Spec 21 (Reset): the previous pose of a reset instance is its current pose. One item per
+    (instance, vertex); twin of ``reference.hold_reset``."""
+    instance, v = wp.tid()
+    if reset[instance] != 0:
+        previous[instance, v] = current[instance, v]
 
 
 # --------------------------------------------------------------------------------------------

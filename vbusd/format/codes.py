@@ -234,6 +234,17 @@ _FINDINGS = (
          f"{_VB}#levels-of-detail", "usd"),
     Code("instancer.fadeWeight.range", W, "An instance's fade weight (primvars:vb:fadeWeight, format 1.1 "
          "crossfade) is outside [0, 1]; decoders clamp it.", f"{_VB}#instancing", "usd"),
+    # crowd variety (format 1.3)
+    Code("variety.tint", E, "An instance's tint (primvars:vb:tint, format 1.3) is not three finite numbers "
+         "0 or more, or the primvar does not hold one colour per instance.", f"{_VB}#variety-tint", "usd"),
+    Code("variety.variant", E, "An instance's material variant (primvars:vb:variant) is outside "
+         "vb:variantNames, the instancer has variants but no vb:variantNames, its names repeat, or "
+         "vb:variantMaterials does not target one Material prim per name.", f"{_VB}#variety-variant", "usd"),
+    Code("variety.parts", E, "An instance's parts mask (primvars:vb:parts) is negative or names no part (a bit at "
+         "or above the number of vb:partNames), or a part name repeats, names no child of the prototype or "
+         "the instancer names more than 31 parts.", f"{_VB}#variety-parts", "usd"),
+    Code("variety.version", E, "An instancer authors crowd variety (format 1.3) but neither its own "
+         "vb:formatMinorVersion nor its animation's is 3 or more.", f"{_VB}#variety-version", "usd"),
 )
 """Codes ``vbusd validate`` reports about an asset: each has a golden fixture in tests/fixtures/validate."""
 
@@ -242,7 +253,7 @@ _FINDINGS += (
     # runtime package (a .glb or .gltf that vbusd export wrote)
     Code("package.extension", E, "The VBUSD_virtual_bones extension is missing (a plain glTF file given as a "
          "runtime package, e.g. to vbusd view), not listed in extensionsUsed, listed in extensionsRequired, or "
-         "its root or primitive object violates vbusd/schema/VBUSD_virtual_bones.schema.json (a version or "
+         "its root, primitive or node object violates vbusd/schema/VBUSD_virtual_bones.schema.json (a version or "
          "animations it cannot hold).", f"{_RUNTIME_PACKAGE}#extension", "json"),
     Code("package.texture", E, "An animation's texture buffer view does not exist, lies outside its buffer, "
          "does not hold a KTX2 file, has a byteStride or target, or (in a .glb) does not start at a multiple "
@@ -254,7 +265,9 @@ _FINDINGS += (
          "a bone index outside the animation's bones.", f"{_RUNTIME_PACKAGE}#meshes", "json"),
     Code("package.instances", E, "A crowd node lacks _VB_CLIP, _VB_TIME_OFFSET or _VB_PLAYBACK_RATE, has "
          "instance attributes of different counts, a clip the animation does not have, or a time offset or "
-         "rate that is not finite.", f"{_RUNTIME_PACKAGE}#nodes", "json"),
+         "rate that is not finite; or its crossfade (_VB_FADE_*) or layers (_VB_LAYER_*_j) are incomplete, name "
+         "a clip or mask the animation does not have, or their time samples are not increasing times with "
+         "S x N float values of an attribute the node carries.", f"{_RUNTIME_PACKAGE}#nodes", "json"),
 )
 
 _COMMAND_ERRORS = (

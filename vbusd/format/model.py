@@ -259,6 +259,15 @@ class Crowd:
         blend_y: (N,) float32 blend parameter y, or None for 0.
         blend_phase: (N,) float32 phase at stage time 0, or None for 0; the phase advances by
             ``playbackRate / sum w D`` per second (spec 23.3, 23.7).
+        tint: (N, 3) float32 linear-RGB multiplier of each instance's base colour (format 1.3, spec
+            "Crowd variety"), or None for (1, 1, 1).
+        variant: (N,) int32 material variant of each instance, an index into ``variant_names``, or
+            None for none (each mesh keeps its own material).
+        variant_names: Names of the material variants, in order (empty: none).
+        variant_colors: (V, 3) float32 linear base colour of each variant's material (what engines
+            without USD's shading carry over), or None.
+        parts: (N,) int32 parts mask of each instance, bit j showing part j, or None for every part.
+        part_names: Names of the prototype's optional parts (its children of those names).
     """
 
     path: str
@@ -290,6 +299,31 @@ class Crowd:
     def blended(self) -> bool:
         """Whether any instance plays a blend space (format 1.3, spec 23.7)."""
         return self.blend_space is not None and bool(np.any(np.asarray(self.blend_space) >= 0))
+
+    tint: Optional[np.ndarray] = None
+    variant: Optional[np.ndarray] = None
+    variant_names: tuple = ()
+    variant_colors: Optional[np.ndarray] = None
+    parts: Optional[np.ndarray] = None
+    part_names: tuple = ()
+
+    @property
+    def varied(self) -> bool:
+        """Whether the crowd authors any variety (a format 1.3 instancer, spec "Crowd variety")."""
+        return (self.tint is not None or self.variant is not None or self.parts is not None
+                or bool(self.variant_names) or bool(self.part_names))
+
+    def variety_arrays(self) -> tuple:
+        """(tint (N, 3) float32, variant (N,) int32 (-1: none), parts (N,) int32) with defaults filled in:
+        tint (1, 1, 1), no variant, every part shown."""
+        n = self.instance_count
+        tint = (np.ones((n, 3), np.float32) if self.tint is None
+                else np.asarray(self.tint, np.float32).reshape(n, 3))
+        variant = (np.full(n, -1, np.int32) if self.variant is None
+                   else np.asarray(self.variant, np.int32).reshape(n))
+        parts = (np.full(n, (1 << len(self.part_names)) - 1, np.int32) if self.parts is None
+                 else np.asarray(self.parts, np.int32).reshape(n))
+        return tint, variant, parts
 
     @property
     def layered(self) -> bool:

@@ -26,7 +26,8 @@ __all__ = [
     "BLEND_SPACE_NAMES", "BLEND_SPACE_DIMENSIONS", "BLEND_SPACE_POINT_COUNTS", "BLEND_SPACE_CLIPS",
     "BLEND_SPACE_POINTS", "BLEND_SPACE_SYNC_MARKERS", "BLEND_SPACE_ATTRIBUTES", "MARKER_CLIPS", "MARKER_NAMES",
     "MARKER_TIMES", "MARKER_ATTRIBUTES", "MOTION_KEYS", "BLEND_SPACE", "BLEND_X", "BLEND_Y", "BLEND_PHASE",
-    "BLEND_PRIMVARS"]
+    "BLEND_PRIMVARS", "TINT", "VARIANT", "PARTS", "VARIETY_PRIMVARS", "VARIANT_NAMES", "VARIANT_MATERIALS",
+    "PART_NAMES", "INSTANCER_MINOR_VERSION", "VARIETY_PROPERTIES", "VARIANTS_SCOPE"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -166,6 +167,23 @@ LAYER_WEIGHT = Primvar("vb:layerWeight", "float[]")
 LAYER_MASK = Primvar("vb:layerMask", "int[]")
 LAYER_PRIMVARS = (LAYER_CLIP, LAYER_TIME_OFFSET, LAYER_PLAYBACK_RATE, LAYER_WEIGHT, LAYER_MASK)
 """Format 1.2: per-instance layer primvars of VirtualBonesInstancingAPI (elementSize L, spec "Layers")."""
+TINT = Primvar("vb:tint", "color3f[]")
+VARIANT = Primvar("vb:variant", "int[]")
+PARTS = Primvar("vb:parts", "int[]")
+VARIETY_PRIMVARS = (TINT, VARIANT, PARTS)
+"""Format 1.3: per-instance variety primvars of VirtualBonesInstancingAPI (spec 22); defaults (1, 1, 1),
+no variant, every part."""
+VARIANT_NAMES = "vb:variantNames"
+VARIANT_MATERIALS = "vb:variantMaterials"
+PART_NAMES = "vb:partNames"
+"""Format 1.3: the instancer's material variants (names, and a relationship to their Material prims in
+that order) and the names of its prototype's optional parts (spec 22.2, 22.3)."""
+INSTANCER_MINOR_VERSION = "vb:formatMinorVersion"
+"""Format 1.3: the minor version an instancer states for its own properties (spec 22.4)."""
+VARIETY_PROPERTIES = tuple(p.attribute for p in VARIETY_PRIMVARS) + (VARIANT_NAMES, VARIANT_MATERIALS, PART_NAMES)
+"""Every property of spec 22 on an instancer, in the order messages name them."""
+VARIANTS_SCOPE = "Variants"
+"""The scope under an instancer where ``vbusd crowd`` authors its variant materials."""
 
 
 BLEND_SPACE = Primvar("vb:blendSpace", "int[]")

@@ -5,7 +5,9 @@ per bound mesh: rest points, normals, triangles, bone indices and weights as ``_
 ``_VB_WEIGHTS_n``), its texture as a KTX2 file (a buffer view of the ``.glb``, or a ``.ktx2`` buffer
 beside the ``.gltf``) referenced with the layout metadata from the root ``VBUSD_virtual_bones``
 extension, and each crowd as an ``EXT_mesh_gpu_instancing`` node with ``_VB_CLIP``,
-``_VB_TIME_OFFSET`` and ``_VB_PLAYBACK_RATE`` per instance. Every number of the asset is stored
+``_VB_TIME_OFFSET`` and ``_VB_PLAYBACK_RATE`` per instance (and its crossfade, ``_VB_FADE_*``, and
+layers, ``_VB_LAYER_*_j``, with their time samples in the node's ``VBUSD_virtual_bones`` object:
+spec/runtime-package.md 5.1). Every number of the asset is stored
 unchanged; the root node ``vbusd`` converts the asset's up axis and units to glTF's Y-up metres.
 
 The JSON and binary layout are written with the standard library (``json``, ``struct``) and numpy:
@@ -28,14 +30,13 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError
+from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError, UnsupportedError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 from vbusd.io.gltf import referenced_uris
 from vbusd.io.files import Commit, free_name, make_folders, remove_folders, settle_names, write_error
 
 from vbusd.io.generator import GENERATOR
-from vbusd.format.errors import UnsupportedError
 from vbusd.io import ktx2
 from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.package_reader import read_package
@@ -47,6 +48,7 @@ INSTANCING = "EXT_mesh_gpu_instancing"
 MSFT_LOD = "MSFT_lod"
 MSFT_SCREEN_COVERAGE = "MSFT_screencoverage"
 EXTENSION_VERSION = 1
+VARIANTS = "KHR_materials_variants"
 SUFFIXES = (".glb", ".gltf")
 ROOT_NODE = "vbusd"
 Z_UP_TO_Y_UP = [-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)]
@@ -150,18 +152,53 @@ def _triangulate(mesh: BoundMesh, where: str):
     return points, normals, indices, weights, triangles.reshape(-1)
 
 
+FADE_ATTRIBUTES = (("fade_clip", "_VB_FADE_CLIP"), ("fade_time_offset", "_VB_FADE_TIME_OFFSET"),
+                   ("fade_playback_rate", "_VB_FADE_PLAYBACK_RATE"), ("fade_weight", "_VB_FADE_WEIGHT"))
+"""Crowd fields of a crossfade and their instance attributes (spec/runtime-package.md 5.1)."""
+LAYER_ATTRIBUTES = (("layer_clip", "_VB_LAYER_CLIP"), ("layer_time_offset", "_VB_LAYER_TIME_OFFSET"),
+                    ("layer_playback_rate", "_VB_LAYER_PLAYBACK_RATE"), ("layer_weight", "_VB_LAYER_WEIGHT"),
+                    ("layer_mask", "_VB_LAYER_MASK"))
+"""Crowd fields of the layers and the stem of their instance attributes (``<stem>_<j>`` for layer j)."""
+
+
+def _fades(crowd) -> bool:
+    """Whether the crowd authors a crossfade (any fade field, or a fade field's time samples)."""
+    return any(getattr(crowd, name) is not None for name, _ in FADE_ATTRIBUTES) or \
+        any(name.startswith("fade_") for name in (crowd.fade_samples or {}))
+def _variety_columns(crowd, variant_index: dict, parts: list) -> dict:
+    """Format 1.3 crowd variety as instance attributes (spec/runtime-package.md 13): ``_VB_TINT`` (VEC3),
+    ``_VB_VARIANT`` (the package's variant index, KHR_materials_variants order) and ``_VB_PARTS`` (the
+    mask over the animation's part bits), each only when the crowd has it."""
+    count = crowd.instance_count
+    columns = {}
+    if crowd.tint is not None:
+        columns["_VB_TINT"] = (np.asarray(crowd.tint, dtype=np.float32).reshape(count, 3), "VEC3")
+    if crowd.variant is not None and crowd.variant_names:
+        remap = np.asarray([variant_index[name] for name in crowd.variant_names], dtype=np.float32)
+        columns["_VB_VARIANT"] = (remap[np.asarray(crowd.variant, dtype=np.int64).reshape(count)], "SCALAR")
+    if crowd.part_names:
+        _, _, mask = crowd.variety_arrays()
+        remapped = np.zeros(count, dtype=np.int64)
+        for j, name in enumerate(crowd.part_names):
+            remapped |= ((mask.astype(np.int64) >> j) & 1) << parts.index(name)
+        columns["_VB_PARTS"] = (remapped.astype(np.float32), "SCALAR")
+    return columns
+
+
 def _crowd_arrays(crowd):
     count = crowd.instance_count
-    if crowd.layered:
-        # Spec 8.6 layers have no glTF transport yet: refuse rather than export the crowd without them.
-
-        raise UnsupportedError("the crowd plays layers (format 1.2), which the glTF runtime package does not "
-                               "carry yet", location=f"{crowd.path}.primvars:vb:layerWeight",
-                               code="layers.unsupported")
     if crowd.blended:
-        # Spec 23.7 blends per instance have no EXT_mesh_gpu_instancing attribute yet: refused likewise.
+        # Spec 23.7 blends per instance have no EXT_mesh_gpu_instancing attribute yet: refuse rather than
+        # export the crowd without them.
         raise UnsupportedError("the crowd plays blend spaces per instance (format 1.3), which the glTF runtime "
                                "package does not carry yet", location=f"{crowd.path}.primvars:vb:blendSpace",
+                               code="layers.unsupported")
+    if (crowd.layer_mode is not None and crowd.layer_weight is not None
+            and np.any((np.asarray(crowd.layer_mode) == 1) & (np.asarray(crowd.layer_weight) > 0))):
+        # Spec 23.4: an additive layer MUST NOT be written as an override one, and the package's layer
+        # attributes (like the USD primvars) have no mode.
+        raise UnsupportedError("the crowd plays additive layers (format 1.3), which the glTF runtime package does "
+                               "not carry", location=f"{crowd.path}.primvars:vb:layerWeight",
                                code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
@@ -175,13 +212,45 @@ def _crowd_arrays(crowd):
     columns["_VB_CLIP"] = (np.asarray(crowd.clip, dtype=np.float32).reshape(count), "SCALAR")
     columns["_VB_TIME_OFFSET"] = (np.asarray(crowd.time_offset, dtype=np.float32).reshape(count), "SCALAR")
     columns["_VB_PLAYBACK_RATE"] = (np.asarray(crowd.playback_rate, dtype=np.float32).reshape(count), "SCALAR")
+    if _fades(crowd):
+        # Format 1.1 crossfade (spec/runtime-package.md 5.1): all four, USD's defaults filled in.
+        for (_, name), values in zip(FADE_ATTRIBUTES, crowd.fade_arrays()):
+            columns[name] = (np.asarray(values, dtype=np.float32).reshape(count), "SCALAR")
+    if crowd.layer_weight is not None:
+        # Format 1.2 layers: layer j of every instance as its own five attributes.
+        layers = int(np.asarray(crowd.layer_weight).reshape(count, -1).shape[1])
+        for field_name, stem in LAYER_ATTRIBUTES:
+            values = np.asarray(getattr(crowd, field_name), dtype=np.float32).reshape(count, layers)
+            for j in range(layers):
+                columns[f"{stem}_{j}"] = (np.ascontiguousarray(values[:, j]), "SCALAR")
     return columns
 
 
-def _primitives(main, meshes, index: int, where: str) -> list:
-    """The glTF primitives of bound meshes of animation ``index`` (accessors appended to ``main``)."""
+def _crowd_samples(crowd) -> dict:
+    """The crowd's time samples per instance attribute: ``{name: (times in seconds, (S, N) float32)}``."""
+    count = crowd.instance_count
+    stems = dict(FADE_ATTRIBUTES) | dict(LAYER_ATTRIBUTES)
+    out = {}
+    for field_name, (times, values) in (crowd.fade_samples or {}).items():
+        times = np.asarray(times, dtype=np.float64).reshape(-1)
+        values = np.asarray(values, dtype=np.float32).reshape(times.size, count, -1)
+        if field_name.startswith("fade_"):
+            out[stems[field_name]] = (times, values[:, :, 0])
+        else:
+            for j in range(values.shape[2]):
+                out[f"{stems[field_name]}_{j}"] = (times, np.ascontiguousarray(values[:, :, j]))
+    return out
+
+
+def _primitives(main, meshes, index: int, where: str, parts=(), variant_materials=()) -> list:
+    """The glTF primitives of bound meshes of animation ``index`` (accessors appended to ``main``).
+
+    ``parts``: the animation's part names (format 1.3): a primitive whose mesh is part ``j`` (by prim
+    name, as the USD prototype names its children) gets ``part: j``. ``variant_materials``: the
+    package's variant materials, mapped onto every primitive with ``KHR_materials_variants``."""
     primitives = []
-    for mesh in meshes:
+    mesh_names = unique_names([mesh.path.rsplit("/", 1)[-1] for mesh in meshes])
+    for mesh, mesh_name in zip(meshes, mesh_names):
         points, normals, bones, weights, triangles = _triangulate(mesh, where)
         if bones.size and (bones.min() < 0 or bones.max() > _MAX_BONE_INDEX):
             raise InputError(f"bone index {int(bones.max())} does not fit the SHORT attribute "
@@ -204,9 +273,14 @@ def _primitives(main, meshes, index: int, where: str) -> list:
         small = points.shape[0] <= 65535  # index 65535 is primitive restart for UNSIGNED_SHORT
         indices = main.accessor(triangles.astype(np.uint16 if small else np.uint32),
                                 _USHORT if small else _UINT, "SCALAR", target=_ELEMENT_ARRAY_BUFFER)
-        primitives.append({"attributes": attributes, "indices": indices, "mode": 4,
-                           "extensions": {EXTENSION: {"animation": index, "influences": influences,
-                                                      "path": mesh.path}}})
+        binding = {"animation": index, "influences": influences, "path": mesh.path}
+        if mesh_name in parts:
+            binding["part"] = list(parts).index(mesh_name)
+        primitive = {"attributes": attributes, "indices": indices, "mode": 4, "extensions": {EXTENSION: binding}}
+        if variant_materials:
+            primitive["extensions"][VARIANTS] = {"mappings": [{"material": material, "variants": [k]}
+                                                              for k, material in enumerate(variant_materials)]}
+        primitives.append(primitive)
     return primitives
 
 
@@ -248,6 +322,24 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
     # have no names both give skin0_Anim): the package's names, and the .gltf's KTX2 files named
     # after them, are made unique in order (skin0_Anim, skin0_Anim_2), as the UsdSkel fallback's.
     names = unique_names([_prim_name(vb.path) for vb in asset.animations])
+    # Crowd variety (format 1.3, runtime-package.md 13): the package's variants (by name, first seen
+    # first, each one material) and each animation's parts (bits of _VB_PARTS, by name).
+    variant_index, variant_colors, parts_of = {}, [], {}
+    for crowd, animation in zip(asset.crowds, asset.crowd_animation):
+        colors = crowd.variant_colors if crowd.variant_colors is not None else [None] * len(crowd.variant_names)
+        for name, color in zip(crowd.variant_names, colors):
+            if name not in variant_index:
+                variant_index[name] = len(variant_index)
+                variant_colors.append((0.18, 0.18, 0.18) if color is None else tuple(float(c) for c in color))
+        parts = parts_of.setdefault(animation, [])
+        parts += [name for name in crowd.part_names if name not in parts]
+    variant_materials = []
+    if variant_index:
+        gltf["materials"] = [{"name": name, "pbrMetallicRoughness": {
+            "baseColorFactor": [*color, 1.0], "metallicFactor": 0.0, "roughnessFactor": 0.6}}
+            for name, color in zip(variant_index, variant_colors)]
+        variant_materials = list(range(len(variant_index)))
+        gltf["extensionsUsed"].append(VARIANTS)
     for index, (vb, name) in enumerate(zip(asset.animations, names)):
         text = md.dumps(md.to_dict(vb, generator=GENERATOR))
         data = ktx2.ktx2_bytes(vb.texels, text, supercompression=supercompression)
@@ -269,7 +361,8 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
         for level in range(levels):
             # Levels of detail (spec/virtual-bones.md 20.4): one glTF mesh per level, LOD 0 first.
             meshes = vb.meshes if vb.lods is None else tuple(m for m in vb.meshes if m.lod == level)
-            primitives = _primitives(main, meshes, index, where)
+            primitives = _primitives(main, meshes, index, where, parts_of.get(index, ()),
+                                     variant_materials if index in parts_of else ())
             gltf["meshes"].append({"name": name if level == 0 else f"{name}_lod{level}", "primitives": primitives})
             if level == 0:
                 mesh_of_animation[index] = len(gltf["meshes"]) - 1
@@ -300,10 +393,16 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
         if crowd.instance_count == 0:
             report.warnings.append(f"crowd {crowd.path} has no instances; not written")
             continue
-        attributes = {name: main.accessor(values, _FLOAT, kind)
-                      for name, (values, kind) in _crowd_arrays(crowd).items()}
+        columns = {**_crowd_arrays(crowd), **_variety_columns(crowd, variant_index, parts_of.get(animation, []))}
+        attributes = {name: main.accessor(values, _FLOAT, kind) for name, (values, kind) in columns.items()}
+        extensions = {INSTANCING: {"attributes": attributes}}
+        samples = {name: {"times": [float(s) for s in times], "values": main.accessor(values.reshape(-1), _FLOAT,
+                                                                                      "SCALAR")}
+                   for name, (times, values) in _crowd_samples(crowd).items()}
+        if samples:  # time-sampled fades or layers (spec/runtime-package.md 5.1)
+            extensions[EXTENSION] = {"samples": samples}
         children.append(add_node({"name": _prim_name(crowd.path), "mesh": mesh_of_animation[animation],
-                                  "extensions": {INSTANCING: {"attributes": attributes}}}, animation))
+                                  "extensions": extensions}, animation))
         instanced.add(animation)
         report.instances.append(crowd.instance_count)
     for index, mesh in sorted(mesh_of_animation.items()):
@@ -320,6 +419,8 @@ def build_package(asset: VirtualBonesAsset, *, binary: bool, base_name: str,
     if float(asset.meters_per_unit) != 1.0:
         root["scale"] = [float(asset.meters_per_unit)] * 3
     gltf["extensions"] = {EXTENSION: {"version": EXTENSION_VERSION, "animations": animations}}
+    if variant_index:
+        gltf["extensions"][VARIANTS] = {"variants": [{"name": name} for name in variant_index]}
 
     main.data += bytes(-len(main.data) % 4)
     buffers = [(None if binary else f"{base_name}.bin", main)] + ktx_buffers

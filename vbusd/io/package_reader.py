@@ -47,6 +47,7 @@ from vbusd.io.gltf import json_text_of, load
 from vbusd.io.gltf_accessors import AccessorReader
 from vbusd.io.textures import json_differences
 import importlib.resources
+import re
 import jsonschema
 import referencing
 import urllib.parse
@@ -58,6 +59,8 @@ SUFFIXES = (".glb", ".gltf")
 EXTENSION = "VBUSD_virtual_bones"
 INSTANCING = "EXT_mesh_gpu_instancing"
 INSTANCE_ATTRIBUTES = ("_VB_CLIP", "_VB_TIME_OFFSET", "_VB_PLAYBACK_RATE")
+VARIETY_ATTRIBUTES = ("_VB_TINT", "_VB_VARIANT", "_VB_PARTS")
+"""Format 1.3 crowd variety (spec/runtime-package.md 13): optional instance attributes."""
 _ROOT = f"/extensions/{EXTENSION}"
 
 
@@ -93,6 +96,12 @@ class PackageCrowd:
         animation: The index of the animation its primitives play.
         instances: The instance count.
         clips: The clip index of each instance (None when ``_VB_CLIP`` is missing).
+        playback: The ``_VB_`` instance attributes read (clip, times and rates; the crossfade's
+            ``_VB_FADE_*`` and the layers' ``_VB_LAYER_*_j``, spec/runtime-package.md 5.1), by name.
+        samples: Time samples of fade and layer attributes: ``{name: (times in seconds (S,), (S, N))}``.
+        tint: (N, 3) tints (format 1.3), or None.
+        variant: (N,) variant indices into the root ``KHR_materials_variants``, or None.
+        parts: (N,) parts masks, or None.
     """
 
     node: str
@@ -100,6 +109,21 @@ class PackageCrowd:
     animation: int
     instances: int
     clips: Optional[np.ndarray] = None
+    playback: dict = field(default_factory=dict)
+    samples: dict = field(default_factory=dict)
+
+    @property
+    def fades(self) -> bool:
+        """Whether the crowd carries a crossfade (``_VB_FADE_*``)."""
+        return "_VB_FADE_WEIGHT" in self.playback
+
+    @property
+    def layers(self) -> int:
+        """Layers per instance (``_VB_LAYER_WEIGHT_j`` for j below it)."""
+        return sum(1 for name in self.playback if name.startswith("_VB_LAYER_WEIGHT_"))
+    tint: Optional[np.ndarray] = None
+    variant: Optional[np.ndarray] = None
+    parts: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -133,7 +157,7 @@ class Package:
 
 @functools.lru_cache(maxsize=1)
 def _validators():
-    """JSON Schema validators of the root object and of ``$defs/primitive`` (schema checked once)."""
+    """JSON Schema validators of the root object, ``$defs/primitive`` and ``$defs/node`` (schema checked once)."""
 
     schemas = [json.loads((importlib.resources.files("vbusd.schema") / name).read_text(encoding="utf-8"))
                for name in ("VBUSD_virtual_bones.schema.json", "layout-metadata.schema.json")]
@@ -144,7 +168,8 @@ def _validators():
     root = jsonschema.Draft202012Validator(schemas[0], registry=registry)
     primitive = jsonschema.Draft202012Validator({"$ref": schemas[0]["$id"] + "#/$defs/primitive"},
                                                 registry=registry)
-    return root, primitive
+    node = jsonschema.Draft202012Validator({"$ref": schemas[0]["$id"] + "#/$defs/node"}, registry=registry)
+    return root, primitive, node
 
 
 def _schema(validator, value, pointer: str, file: str, diagnostics: Diagnostics) -> bool:
@@ -190,7 +215,12 @@ def _check_extension(root: dict, file: str, diagnostics: Diagnostics) -> Optiona
         diagnostics.report("package.extension", f"{EXTENSION} is listed in extensionsRequired; it must only be "
                            "used, so that a loader without it still draws the rest pose",
                            JsonPointer(file, f"/extensionsRequired/{required.index(EXTENSION)}"))
-    root_validator, primitive_validator = _validators()
+    root_validator, primitive_validator, node_validator = _validators()
+    nodes = root.get("nodes")
+    for n, node in enumerate(nodes if isinstance(nodes, list) else ()):
+        extensions = node.get("extensions") if isinstance(node, dict) else None
+        if isinstance(extensions, dict) and EXTENSION in extensions:  # time samples (spec 5.1)
+            _schema(node_validator, extensions[EXTENSION], f"/nodes/{n}/extensions/{EXTENSION}", file, diagnostics)
     meshes = root.get("meshes")
     for m, mesh in enumerate(meshes if isinstance(meshes, list) else ()):
         primitives = mesh.get("primitives") if isinstance(mesh, dict) else None
@@ -394,35 +424,159 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
                                    JsonPointer(file, f"{where}/{key}"))
         animation = next((a for a in animations if a.index == bound[mesh]), None)
         clip_count = len(animation.layout.get("clips") or ()) if animation is not None else None
+        masks = animation.layout.get("masks") if animation is not None else None
+        mask_count = len(masks) if isinstance(masks, list) else 0
+        playback_names = [k for k in attributes if k.startswith("_VB_") and k not in VARIETY_ATTRIBUTES]
         for key, accessor in attributes.items():  # TRANSLATION, ROTATION, SCALE: what a loader reads
-            if key not in INSTANCE_ATTRIBUTES:
+            if key not in playback_names + list(VARIETY_ATTRIBUTES):
                 _read(reader, accessor, f"{where}{json_pointer([key])}", file, diagnostics, failed)
+        for problem in _playback_problems(playback_names):
+            diagnostics.report("package.instances", problem, JsonPointer(file, where))
+        if any(k.startswith("_VB_LAYER_") for k in playback_names) and animation is not None and not mask_count:
+            diagnostics.report("package.instances", "the crowd plays layers but its animation's layout has no masks "
+                               "(format 1.2 layers need them)", JsonPointer(file, where))
         values = {}
         for key in INSTANCE_ATTRIBUTES:
             if key not in attributes:
                 diagnostics.report("package.instances", f"the crowd has no {key} (every crowd node carries "
                                    f"{', '.join(INSTANCE_ATTRIBUTES)})", JsonPointer(file, where))
-                continue
+        for key in playback_names:
             if counts.get(key) != instances:
                 continue
-            array = _read(reader, attributes[key], f"{where}/{key}", file, diagnostics, failed)
+            array = _read(reader, attributes[key], f"{where}{json_pointer([key])}", file, diagnostics, failed)
             if array is not None:
                 values[key] = array.reshape(-1)
-        for key, array in values.items():
-            bad = ~np.isfinite(array)
-            if key == "_VB_CLIP" and isinstance(clip_count, int):
-                bad |= (array != np.round(array)) | (array < 0) | (array >= clip_count)
-            if bad.any():
-                first = int(np.argmax(bad))
-                diagnostics.report("package.instances", f"instance {first} has {key} {float(array[first])!r}"
-                                   + (f" (clips 0..{clip_count - 1})" if key == "_VB_CLIP" else " (not finite)"),
-                                   JsonPointer(file, f"{where}/{key}"))
+                _check_playback(key, values[key], clip_count, mask_count, f"{where}{json_pointer([key])}",
+                                "instance", file, diagnostics)
+        samples = _check_samples(root, reader, node, n, attributes, instances, clip_count, mask_count, file,
+                                 diagnostics, failed)
         clips = values.get("_VB_CLIP")
+        variety = _check_variety(root, reader, node, mesh, attributes, counts, instances, where, file, diagnostics,
+                                 failed)
         if n in levels:
             continue  # a level of another crowd node: the same instances, not another crowd
         package.crowds.append(PackageCrowd(node=name, mesh=mesh_name, animation=bound[mesh],
                                            instances=int(instances),
-                                           clips=None if clips is None else np.round(clips).astype(np.int64)))
+                                           clips=None if clips is None else np.round(clips).astype(np.int64),
+                                           playback=values, samples=samples, **variety))
+
+
+_FADE_NAMES = ("_VB_FADE_CLIP", "_VB_FADE_TIME_OFFSET", "_VB_FADE_PLAYBACK_RATE", "_VB_FADE_WEIGHT")
+_LAYER_STEMS = ("_VB_LAYER_CLIP", "_VB_LAYER_TIME_OFFSET", "_VB_LAYER_PLAYBACK_RATE", "_VB_LAYER_WEIGHT",
+                "_VB_LAYER_MASK")
+_LAYER_NAME = re.compile(r"^(_VB_LAYER_[A-Z_]+?)_(0|[1-9][0-9]*)$")
+
+
+def _playback_problems(names: list) -> list:
+    """What is wrong with the set of ``_VB_`` instance attribute names (spec/runtime-package.md 5.1)."""
+    problems = []
+    unknown = [k for k in names if k not in INSTANCE_ATTRIBUTES and k not in _FADE_NAMES
+               and not (_LAYER_NAME.match(k) and _LAYER_NAME.match(k).group(1) in _LAYER_STEMS)]
+    if unknown:
+        problems.append(f"unknown Virtual Bones instance attribute {unknown[0]} (spec/runtime-package.md 5.1)")
+    fades = [k for k in _FADE_NAMES if k in names]
+    if fades and len(fades) != len(_FADE_NAMES):
+        problems.append(f"the crowd's crossfade needs all of {', '.join(_FADE_NAMES)}; it has "
+                        f"{', '.join(fades)}")
+    layers = {int(m.group(2)) for m in map(_LAYER_NAME.match, names) if m and m.group(1) in _LAYER_STEMS}
+    for j in range(max(layers) + 1 if layers else 0):
+        missing = [f"{stem}_{j}" for stem in _LAYER_STEMS if f"{stem}_{j}" not in names]
+        if missing:
+            problems.append(f"layer {j} lacks {', '.join(missing)} (layers 0 .. {max(layers)} each carry all five)")
+            break
+    return problems
+
+
+def _check_playback(key: str, array: np.ndarray, clip_count, mask_count: int, pointer: str, what: str, file: str,
+                    diagnostics: Diagnostics) -> None:
+    """Finite values; clip and mask indices that are integers the animation has."""
+    bad = ~np.isfinite(array)
+    limit, noun = None, ""
+    if key in ("_VB_CLIP", "_VB_FADE_CLIP") or key.startswith("_VB_LAYER_CLIP_"):
+        limit, noun = clip_count, "clips"
+    elif key.startswith("_VB_LAYER_MASK_"):
+        limit, noun = mask_count, "masks"
+    if isinstance(limit, int):
+        bad |= (array != np.round(array)) | (array < 0) | (array >= limit)
+    if bad.any():
+        first = int(np.argmax(bad))
+        diagnostics.report("package.instances", f"{what} {first} has {key} {float(array[first])!r}"
+                           + (f" ({noun} 0..{limit - 1})" if isinstance(limit, int) else " (not finite)"),
+                           JsonPointer(file, pointer))
+
+
+def _check_samples(root: dict, reader, node: dict, n: int, attributes: dict, instances: int, clip_count,
+                   mask_count: int, file: str, diagnostics: Diagnostics, failed: set) -> dict:
+    """The crowd node's time samples (spec/runtime-package.md 5.1): ``{name: (times, (S, N) values)}``."""
+    ext = (node.get("extensions") or {}).get(EXTENSION)
+    if not isinstance(ext, dict) or not _validators()[2].is_valid(ext):
+        return {}  # none, or reported against the schema
+    out = {}
+    for name, entry in ext["samples"].items():
+        where = f"/nodes/{n}/extensions/{EXTENSION}/samples{json_pointer([name])}"
+        if name not in attributes:
+            diagnostics.report("package.instances", f"time samples of {name}, which the node's "
+                               f"{INSTANCING} does not carry", JsonPointer(file, where))
+            continue
+        times = np.asarray(entry["times"], dtype=np.float64)
+        if not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+            diagnostics.report("package.instances", f"the sample times of {name} must be finite and strictly "
+                               "increasing", JsonPointer(file, f"{where}/times"))
+            continue
+        accessors = root.get("accessors") if isinstance(root.get("accessors"), list) else []
+        accessor = accessors[entry["values"]] if entry["values"] < len(accessors) else None
+        if not isinstance(accessor, dict) or accessor.get("type") != "SCALAR" or \
+                accessor.get("componentType") != 5126 or accessor.get("count") != times.size * instances:
+            diagnostics.report("package.instances", f"the samples of {name} must be a SCALAR FLOAT accessor of "
+                               f"{times.size} x {instances} values", JsonPointer(file, f"{where}/values"))
+            continue
+        values = _read(reader, entry["values"], f"{where}/values", file, diagnostics, failed)
+        if values is None:
+            continue
+        values = values.reshape(times.size, instances)
+        _check_playback(name, values.reshape(-1), clip_count, mask_count, f"{where}/values", "sample value",
+                        file, diagnostics)
+        out[name] = (times, values)
+    return out
+
+
+def _check_variety(root: dict, reader, node: dict, mesh: int, attributes: dict, counts: dict, instances: int,
+                   where: str, file: str, diagnostics: Diagnostics, failed: set) -> dict:
+    """The optional format 1.3 variety attributes of a crowd node (spec/runtime-package.md 13), checked:
+    finite, tints >= 0, variants integers in the root KHR_materials_variants, masks integers >= 0 naming
+    only parts the mesh's primitives have. Returns the PackageCrowd fields read."""
+    variants = ((root.get("extensions") or {}).get("KHR_materials_variants") or {}).get("variants")
+    variant_count = len(variants) if isinstance(variants, list) else 0
+    primitives = ((root.get("meshes") or [])[mesh] or {}).get("primitives") or []
+    part_bits = [((p.get("extensions") or {}).get(EXTENSION) or {}).get("part") for p in primitives
+                 if isinstance(p, dict)]
+    part_count = max([b + 1 for b in part_bits if isinstance(b, int) and not isinstance(b, bool)], default=0)
+    out = {}
+    for key, field_name, width in (("_VB_TINT", "tint", 3), ("_VB_VARIANT", "variant", 1), ("_VB_PARTS", "parts", 1)):
+        if key not in attributes or counts.get(key) != instances:
+            continue
+        array = _read(reader, attributes[key], f"{where}/{key}", file, diagnostics, failed)
+        if array is None:
+            continue
+        array = np.asarray(array, dtype=np.float64).reshape(instances, width)
+        bad = ~np.all(np.isfinite(array), axis=1)
+        if key == "_VB_TINT":
+            bad |= np.any(array < 0, axis=1)
+            why = "(tints are three finite numbers 0 or more)"
+        else:
+            flat = array[:, 0]
+            limit = variant_count if key == "_VB_VARIANT" else 1 << min(part_count, 31)
+            bad |= (flat != np.round(flat)) | (flat < 0) | (flat >= limit)
+            why = (f"(variants 0..{variant_count - 1} of KHR_materials_variants)" if key == "_VB_VARIANT"
+                   else f"(masks of the {part_count} part(s) of the mesh's primitives)")
+        if bad.any():
+            first = int(np.argmax(bad))
+            diagnostics.report("package.instances", f"instance {first} has {key} "
+                               f"{array[first].tolist() if width > 1 else float(array[first, 0])!r} {why}",
+                               JsonPointer(file, f"{where}/{key}"))
+            continue
+        out[field_name] = array.astype(np.float32) if width > 1 else np.round(array[:, 0]).astype(np.int64)
+    return out
 
 
 def read_package(path, diagnostics: Diagnostics, *, allow_outside_paths: bool = False) -> Optional[Package]:

@@ -66,6 +66,7 @@ from vbusd.format.names import unique_names
 from vbusd.format.errors import OptionsError, VbusdError
 from vbusd.format.layout import FORMAT_VERSION, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones, VirtualBonesAsset
+from vbusd.format import variety
 from vbusd.io.files import Commit, fault_point, file_sha256, free_name, make_folders, remove_folders, settle_names
 from vbusd.io.textures import sidecar_path, write_texture
 from vbusd.io.usd_plugin import ANIMATION_TYPE, BINDING_API, INSTANCING_API, register, require_schema_types
@@ -435,7 +436,63 @@ def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets
             type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
             primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex).Set(
                 vt.FromNumpy(np.ascontiguousarray(array, dtype=dtype)))
+    if crowd.varied:
+        _write_variety(stage, pxr, prim, primvars, crowd, [name for name in unique_names(
+            [target.name for target in targets])])
     return instancer
+
+
+def _write_variety(stage, pxr, prim, primvars, crowd: Crowd, children) -> None:
+    """Author crowd variety (format 1.3, spec 22): the instancer's own ``vb:formatMinorVersion = 3``,
+    ``vb:variantNames`` with one UsdPreviewSurface material per variant under ``Variants/`` and
+    ``vb:variantMaterials`` targeting them, ``vb:partNames`` (children of the prototype), and the
+    tint, variant and parts primvars (interpolation ``vertex``) the crowd has."""
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    n = crowd.instance_count
+    variant_names = [str(v) for v in crowd.variant_names]
+    part_names = [str(v) for v in crowd.part_names]
+    found = variety.problems(n, tint=crowd.tint, variant=crowd.variant, parts=crowd.parts,
+                             variant_count=len(variant_names), part_count=len(part_names))
+    if len(set(variant_names)) != len(variant_names) or any(not Sdf.Path.IsValidIdentifier(v) for v in variant_names):
+        found.append(("variety.variant", "variant", f"variant names must be unique identifiers, got {variant_names}"))
+    missing = [p for p in part_names if p not in children]
+    if len(set(part_names)) != len(part_names) or missing or len(part_names) > variety.MAX_PARTS:
+        found.append(("variety.parts", "parts", f"part names {part_names} must be unique, at most "
+                      f"{variety.MAX_PARTS}, each a child of the prototype ({', '.join(children)})"))
+    if found:
+        code, _, message = found[0]
+        raise OptionsError(f"crowd {crowd.path}: {message}", file="usd", code=code)
+    prim.CreateAttribute(names.INSTANCER_MINOR_VERSION, Sdf.ValueTypeNames.Int, variability=Sdf.VariabilityUniform
+                         ).Set(variety.VARIETY_MINOR_VERSION)
+    if variant_names:
+        prim.CreateAttribute(names.VARIANT_NAMES, Sdf.ValueTypeNames.TokenArray,
+                             variability=Sdf.VariabilityUniform).Set(Vt.TokenArray(variant_names))
+        scope = prim.GetPath().AppendChild(names.VARIANTS_SCOPE)
+        UsdGeom.Scope.Define(stage, scope)
+        colors = (np.asarray(crowd.variant_colors, np.float64).reshape(-1, 3) if crowd.variant_colors is not None
+                  else np.asarray([variety.VARIANT_COLORS[k % len(variety.VARIANT_COLORS)]
+                                   for k in range(len(variant_names))]))
+        targets = []
+        for name, color in zip(variant_names, colors):
+            material = UsdShade.Material.Define(stage, scope.AppendChild(name))
+            shader = UsdShade.Shader.Define(stage, material.GetPath().AppendChild("Surface"))
+            shader.CreateIdAttr("UsdPreviewSurface")
+            shader.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*(float(c) for c in color)))
+            shader.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.6)
+            material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+            targets.append(material.GetPath())
+        prim.CreateRelationship(names.VARIANT_MATERIALS).SetTargets(targets)
+    if part_names:
+        prim.CreateAttribute(names.PART_NAMES, Sdf.ValueTypeNames.TokenArray,
+                             variability=Sdf.VariabilityUniform).Set(Vt.TokenArray(part_names))
+    if crowd.tint is not None:
+        tint = np.ascontiguousarray(crowd.tint, dtype=np.float32).reshape(n, 3)
+        primvars.CreatePrimvar(names.TINT.name, Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(tint))
+    for primvar, values in ((names.VARIANT, crowd.variant), (names.PARTS, crowd.parts)):
+        if values is not None:
+            primvars.CreatePrimvar(primvar.name, Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
+                Vt.IntArray.FromNumpy(np.ascontiguousarray(values, dtype=np.int32).reshape(n)))
 
 
 def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
@@ -946,6 +1003,6 @@ from vbusd.io.usd_reader import (  # noqa: E402,F401
     OUTSIDE_PATHS_HINT, READ_SUFFIXES, WEIGHT_SUM_TOLERANCE, AnimationAttributes, read_animation_attributes,
     read_asset, tf_message)
 
-from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdShade, Vt
 from vbusd.io.textures import container_for
 from vbusd.io.usd_lod import author_lod_root

@@ -50,9 +50,10 @@ from vbusd.io.usd_errors import error_text, one_line, tf_message
 from pxr import UsdUtils
 from vbusd.process.capture import captured_output
 from vbusd.io.usd_plugin import register
-from pxr import Sdf, Tf, Usd, UsdGeom
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdShade
 from vbusd.io.usd_probe import needs_probe, probe_crate
 from vbusd.format import versioning
+from vbusd.format import variety
 from vbusd.format.metadata import parents_problem
 from vbusd.format.motion import markers_from_dict, motion_problems, spaces_from_dict
 from vbusd.format.rootmotion import RootMotion
@@ -63,7 +64,7 @@ __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "re
            "texture_disagreements",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
-           "file_dependencies", "read_layer_primvars"]
+           "file_dependencies", "read_layer_primvars", "read_variety_properties", "instancer_prototypes"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -1208,9 +1209,25 @@ class UsdReader:
         layers = self.read_layers(prim, n, clip_count, mask_count)
         if "fade_samples" in layers:
             fades["fade_samples"] = {**fades.get("fade_samples", {}), **layers.pop("fade_samples")}
+        layers.update(self.read_variety(prim, n))
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
                      playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers, **blends)
+
+    def read_variety(self, prim, n: int) -> dict:
+        """Crowd variety of an instancer (format 1.3, spec 22) as Crowd fields ({} when none):
+        :func:`read_variety_properties`, the first problem ending the prim's reading; an instancer newer
+        than this reader raises :class:`VersionError` for strict callers."""
+
+        def newer(message, site):
+            item = finding("format.version", message, site)
+            if self.diagnostics.strict:
+                self.diagnostics.findings.append(item)
+                raise to_error(item, file=self.file, error_type=VersionError) from None
+            self.diagnostics.add(item)
+            raise _Skip
+
+        return read_variety_properties(prim, n, self.fail, newer)
 
     def read_layers(self, prim, n: int, clip_count: int, mask_count: int) -> dict:
         """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none):
@@ -1354,6 +1371,136 @@ def texture_disagreements(attributes: AnimationAttributes, info, display: str) -
     """
     theirs = from_metadata(info.to_dict(), display)
     return compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
+
+
+def read_variety_properties(prim, n: int, fail, newer=None) -> dict:
+    """Crowd variety of an instancer (format 1.3, spec 22) as Crowd fields ({} when none).
+
+    One function for the USD reader and ``vbusd validate``'s checks, so that both accept and refuse
+    the same instancers. The instancer's own version first (newer than this reader:
+    ``newer(message, site)``, else ``fail`` with ``format.version``, naming the variety properties;
+    variety on a 1.2 instancer: ``variety.version``), then the names, materials and per-instance
+    values. ``fail(code, message, site)`` is called on the first problem and must not return.
+    """
+    Sdf, Tf, Usd, UsdGeom = _pxr()
+    path = str(prim.GetPath())
+    authored = [name for name in names.VARIETY_PROPERTIES
+                if (prim.GetAttribute(name) and prim.GetAttribute(name).HasAuthoredValue())
+                or (prim.GetRelationship(name) and prim.GetRelationship(name).HasAuthoredTargets())]
+    version_attribute = prim.GetAttribute(names.INSTANCER_MINOR_VERSION)
+    own = version_attribute.Get() if version_attribute and version_attribute.HasAuthoredValue() else None
+    site = UsdSite(path, names.INSTANCER_MINOR_VERSION)
+    if own is not None and (not isinstance(own, int) or own < 0):
+        fail("format.version", f"{names.INSTANCER_MINOR_VERSION} must be an integer 0 or more, got "
+                  f"{own!r:.60}", site)
+    current = versioning.CURRENT
+    if own is not None and own > current.minor:
+        uses = f"; the instancer uses {', '.join(authored)}, which version {current} does not define" if authored else ""
+        message = (f"format version {current.major}.{own} is newer than this reader (version {current}){uses}; "
+                   "upgrade vbusd to read it")
+        (newer or (lambda text, where: fail("format.version", text, where)))(message, site)
+    if not authored:
+        return {}
+    if (own or 0) < variety.VARIETY_MINOR_VERSION and _animation_minor(prim) < variety.VARIETY_MINOR_VERSION:
+        fail("variety.version", f"{', '.join(authored)} (format 1.3 crowd variety) on an instancer whose "
+                  f"{names.INSTANCER_MINOR_VERSION} is {own or 0} and whose animation is older than 1.3; "
+                  f"author {names.INSTANCER_MINOR_VERSION} = 3 on the instancer", UsdSite(path, authored[0]))
+    out: dict = {}
+
+    def tokens(name):
+        attribute = prim.GetAttribute(name)
+        value = attribute.Get() if attribute and attribute.HasAuthoredValue() else None
+        return tuple(str(v) for v in value) if value is not None else ()
+
+    variant_names, part_names = tokens(names.VARIANT_NAMES), tokens(names.PART_NAMES)
+    if len(set(variant_names)) != len(variant_names):
+        fail("variety.variant", f"{names.VARIANT_NAMES} repeats a name: {list(variant_names)}",
+                  UsdSite(path, names.VARIANT_NAMES))
+    relationship = prim.GetRelationship(names.VARIANT_MATERIALS)
+    materials = list(relationship.GetForwardedTargets()) if relationship else []
+    if variant_names or materials:
+        where = UsdSite(path, names.VARIANT_MATERIALS)
+        if len(materials) != len(variant_names):
+            fail("variety.variant", f"{names.VARIANT_MATERIALS} has {len(materials)} targets for "
+                      f"{len(variant_names)} variant names", where)
+        colors = []
+        for target in materials:
+            material = UsdShade.Material(prim.GetStage().GetPrimAtPath(target))
+            if not material:
+                fail("variety.variant", f"{names.VARIANT_MATERIALS} targets {target}, which is not a "
+                          "Material prim", where)
+            colors.append(_base_color(UsdShade, material))
+        out.update(variant_names=variant_names, variant_colors=np.asarray(colors, np.float32).reshape(-1, 3))
+    if part_names:
+        children = set()
+        for prototype in (instancer_prototypes(prim)):
+            children.update(child.GetName() for child in prototype.GetChildren())
+        unknown = [name for name in part_names if name not in children]
+        if len(set(part_names)) != len(part_names) or unknown or len(part_names) > variety.MAX_PARTS:
+            fail("variety.parts", f"{names.PART_NAMES} {list(part_names)} must be unique, at most "
+                      f"{variety.MAX_PARTS}, each a child of the prototype"
+                      + (f"; {', '.join(unknown)} is not" if unknown else ""), UsdSite(path, names.PART_NAMES))
+        out["part_names"] = part_names
+    values = {}
+    for field, primvar, dtype, width in (("tint", names.TINT, np.float32, 3), ("variant", names.VARIANT, np.int32, 1),
+                                         ("parts", names.PARTS, np.int32, 1)):
+        attribute = prim.GetAttribute(primvar.attribute)
+        if not attribute or not attribute.HasAuthoredValue():
+            continue
+        where = UsdSite(path, primvar.attribute)
+        handle = UsdGeom.Primvar(attribute)
+        if handle.IsIndexed():
+            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+                      "must not be indexed", where)
+        if handle.GetInterpolation() != UsdGeom.Tokens.vertex or handle.GetElementSize() != 1:
+            fail("instancer.count", f"{primvar.attribute} must be vertex-interpolated with elementSize 1",
+                      where)
+        value = attribute.Get()
+        array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+        if array.size != n * width:
+            fail("variety." + field, f"{primvar.attribute} has {array.size // width} values for {n} "
+                      "instances", where)
+        values[field] = array
+    for code, which, message in variety.problems(n, **values, variant_count=len(variant_names),
+                                                 part_count=len(part_names)):
+        fail(code, message, UsdSite(path, {"tint": names.TINT, "variant": names.VARIANT,
+                                                "parts": names.PARTS}[which].attribute))
+    if "tint" in values:
+        out["tint"] = values["tint"].reshape(n, 3).astype(np.float32)
+    for field in ("variant", "parts"):
+        if field in values:
+            out[field] = values[field].astype(np.int32)
+    return out
+
+def _animation_minor(prim) -> int:
+    """The vb:formatMinorVersion of the animation an instancer plays (0 when absent or unknown)."""
+    relationship = prim.GetRelationship(names.ANIMATION_REL)
+    targets = relationship.GetForwardedTargets() if relationship else []
+    if len(targets) != 1:
+        return 0
+    animation = prim.GetStage().GetPrimAtPath(targets[0])
+    attribute = animation.GetAttribute(names.BY_KEY["formatMinorVersion"].name) if animation else None
+    value = attribute.Get() if attribute and attribute.HasAuthoredValue() else 0
+    return value if isinstance(value, int) else 0
+
+
+def instancer_prototypes(prim) -> list:
+    """The prototype prims a point instancer's ``prototypes`` relationship targets (valid ones only)."""
+    relationship = prim.GetRelationship("prototypes")
+    stage = prim.GetStage()
+    found = [stage.GetPrimAtPath(target) for target in (relationship.GetForwardedTargets() if relationship else [])]
+    return [p for p in found if p]
+
+
+def _base_color(UsdShade, material) -> tuple:
+    """A variant material's base colour (spec 22.2): its UsdPreviewSurface's diffuseColor (the value, or its
+    default), else :data:`vbusd.format.variety.DEFAULT_BASE_COLOR`."""
+    shader = material.ComputeSurfaceSource()[0]
+    if shader and shader.GetIdAttr().Get() == "UsdPreviewSurface":
+        value = shader.GetInput("diffuseColor").Get() if shader.GetInput("diffuseColor") else None
+        if value is not None and len(value) == 3:
+            return tuple(float(v) for v in value)
+    return variety.DEFAULT_BASE_COLOR
 
 
 def _default_prim_name(authored: str) -> str:

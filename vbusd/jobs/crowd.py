@@ -8,7 +8,9 @@ that animation's bound meshes. Per instance it chooses position, orientation (a 
 stage's up axis), scale, clip, time offset and playback rate (spec: "Instancing") and, when asked,
 a crossfade (a fade clip with its own offset and rate, and a fade weight, constant or ramped over a
 window of stage time; spec "Crossfade", format 1.1) and layers (per layer a clip over a named bone
-mask, with its own offset, rate and weight; spec "Layers and bone masks", format 1.2). This module only
+mask, with its own offset, rate and weight; spec "Layers and bone masks", format 1.2) and crowd variety (a
+tint from a palette, a material variant and the optional parts shown; spec "Crowd variety", format 1.3,
+drawn after every other choice so that a crowd without it is unchanged). This module only
 places and chooses; the layer is authored and written by :func:`vbusd.io.usd.write_crowd_layer`,
 whose point instancers come from :func:`vbusd.io.usd.write_instancer`, the one author of a Virtual
 Bones point instancer (an asset's own crowds are written by it too).
@@ -27,6 +29,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,12 +41,14 @@ from vbusd.format.errors import FORCE_HINT, MISSING_FILE, OUTSIDE_PATHS_HINT, In
 from vbusd.format import names as vb_names
 from vbusd.format.model import Crowd
 from vbusd.format.names import unique_names
+from vbusd.format import variety
 from vbusd.io.usd import CharacterInstancer, CharacterReference, read_asset, write_crowd_layer
 from pxr import UsdGeom
 from vbusd.io.usd_reader import stage_for_reading
 import dataclasses
 
-__all__ = ["CrowdOptions", "CrowdLayer", "CrowdReport", "build_crowd", "parse_weights", "LAYOUTS", "MAX_INSTANCES"]
+__all__ = ["CrowdOptions", "CrowdLayer", "CrowdReport", "build_crowd", "parse_weights", "parse_assignments",
+           "LAYOUTS", "MAX_INSTANCES"]
 
 LAYOUTS = ("grid", "disc", "points")
 MAX_INSTANCES = 10_000_000
@@ -151,6 +156,13 @@ class CrowdOptions:
         fade_playback_rate: (min, max) rate of the fade clip, uniform.
         layers: :class:`CrowdLayer` (or dicts of its fields) every instance plays, in order
             (format 1.2); empty: none. Every instanced animation must store each layer's mask.
+        tints: Crowd variety (format 1.3, spec "Crowd variety"): a palette of ``#rrggbb`` colours (sRGB)
+            or linear ``(r, g, b)`` triples; each instance picks one (equal chances) as its tint. Empty
+            (default): no tint.
+        variants: Material variant name -> relative weight; each instance gets one, and each variant
+            a UsdPreviewSurface material under ``<instancer>/Variants/<name>``. Empty: no variants.
+        parts: Part name (a bound mesh of the characters, by prim name) -> probability in [0, 1] that
+            an instance shows it, each part on its own. Empty: every mesh on every instance.
         seed: Seed of every random choice.
         force: Replace an existing output (as :class:`vbusd.jobs.conversion.ConvertOptions`).
         allow_outside_paths: Let the crowd reference characters outside its folder (absolute paths).
@@ -172,6 +184,9 @@ class CrowdOptions:
     fade_time_offset: Optional[tuple] = None
     fade_playback_rate: tuple = (1.0, 1.0)
     layers: tuple = ()
+    tints: tuple = ()
+    variants: dict = field(default_factory=dict)
+    parts: dict = field(default_factory=dict)
     seed: int = 0
     force: bool = False
     allow_outside_paths: bool = False
@@ -243,6 +258,41 @@ class CrowdOptions:
                 raise OptionsError(f"layers hold CrowdLayer (or dicts of its fields), got {layer!r}", file="crowd")
             layers.append(layer)
         object.__setattr__(self, "layers", tuple(layers))
+        self._check_variety()
+
+    def _check_variety(self) -> None:
+        """Tints as linear triples (``#rrggbb`` converted), variant weights, part probabilities (spec 22)."""
+        if isinstance(self.tints, str) or not isinstance(self.tints, (list, tuple)):
+            raise OptionsError(f"--tints is a list of #rrggbb colours, got {self.tints!r}", file="crowd")
+        tints = []
+        for color in self.tints:
+            linear = variety.hex_to_linear(color) if isinstance(color, str) else None
+            if linear is None and not isinstance(color, str):
+                try:
+                    linear = tuple(float(c) for c in color)
+                except (TypeError, ValueError):
+                    linear = None
+                if linear is not None and (len(linear) != 3 or not all(math.isfinite(c) and c >= 0 for c in linear)):
+                    linear = None
+            if linear is None:
+                raise OptionsError(f"--tints colour {color!r} is not #rrggbb (or three finite numbers 0 or more)",
+                                   file="crowd")
+            tints.append(linear)
+        object.__setattr__(self, "tints", tuple(tints))
+        for option, table in (("--variants", self.variants), ("--parts", self.parts)):
+            if not isinstance(table, dict):
+                raise OptionsError(f"{option} is a dict of name -> number, got {table!r}", file="crowd")
+        _check_weights("--variants", self.variants)
+        for name in self.variants:
+            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+                raise OptionsError(f"--variants name {name!r} must be an identifier (letters, digits, _; it names a "
+                                   "USD material)", file="crowd")
+        for name, probability in self.parts.items():
+            if not (isinstance(probability, (int, float)) and math.isfinite(probability) and 0 <= probability <= 1):
+                raise OptionsError(f"--parts probability of {name!r} must be within 0..1, got {probability!r}",
+                                   file="crowd")
+        if len(self.parts) > variety.MAX_PARTS:
+            raise OptionsError(f"--parts names {len(self.parts)} parts; at most {variety.MAX_PARTS}", file="crowd")
 
 
 @dataclass
@@ -260,6 +310,9 @@ class CrowdReport:
         spacing: The spacing used (scene units): the option's, or the one derived from the
             characters' size.
         fade_clips: Instances per fade clip name, per character (empty without a crossfade).
+        variety: Per character (format 1.3; empty without variety): instances per palette colour
+            (``tints``, in palette order), per variant name (``variants``) and showing each part
+            (``parts``).
         layers: Layers each instance plays.
     """
 
@@ -272,12 +325,14 @@ class CrowdReport:
     spacing: Optional[float] = None
     fade_clips: list = field(default_factory=list)
     layers: int = 0
+    variety: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON form (camelCase keys, as the spec's metadata)."""
         return {"output": self.output, "instances": self.instances, "clips": self.clips,
                 "animations": self.animations, "spacing": self.spacing, "fadeClips": self.fade_clips,
-                "layers": self.layers, "bytes": self.bytes, "seconds": round(self.seconds, 3)}
+                "layers": self.layers, "variety": self.variety, "bytes": self.bytes,
+                "seconds": round(self.seconds, 3)}
 
 
 def parse_weights(text: str, *, option: str = "--clips") -> dict:
@@ -302,6 +357,29 @@ def parse_weights(text: str, *, option: str = "--clips") -> dict:
         except ValueError:
             raise OptionsError(f"{option} weight {weight!r} of {name!r} is not a number", file="crowd") from None
     return weights
+
+
+def parse_assignments(text: str, *, option: str) -> dict:
+    """Parse ``NAME=NUMBER,...`` (``--variants home=3,away=1``, ``--parts Hat=0.4``) into a dict.
+
+    Raises:
+        OptionsError: An entry without ``=``, an empty name, a repeated name or a value that is not a number.
+    """
+    values = {}
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        name, equals, value = part.partition("=")
+        name = name.strip()
+        if not equals or not name:
+            raise OptionsError(f"{option} entry {part!r} is not NAME=NUMBER", file="crowd")
+        if name in values:
+            raise OptionsError(f"{option} names {name!r} twice", file="crowd")
+        try:
+            values[name] = float(value)
+        except ValueError:
+            raise OptionsError(f"{option} value {value!r} of {name!r} is not a number", file="crowd") from None
+    return values
 
 
 # --------------------------------------------------------------------------------------------
@@ -546,6 +624,34 @@ def _check_masks(layers, cast) -> None:
                                      file=str(character.path), location=animation.path, code="layers.noMask")
 
 
+def _prototype_children(animation) -> list:
+    """The names the prototype gives the animation's targets (spec 15: named after each, made unique)."""
+    return unique_names([path.rsplit("/", 1)[-1] for path in animation.mesh_paths])
+
+
+def _check_parts(parts: dict, cast) -> None:
+    """A part (spec 22.3) names a bound mesh of some instanced animation, by prim name."""
+    known = sorted({name for c in cast for a in c.animations for name in _prototype_children(a)})
+    for part in parts:
+        if part not in known:
+            raise OptionsError(f"--parts names {part!r}, which is no mesh of the characters (meshes: "
+                               f"{', '.join(known)})", file="crowd")
+
+
+def _variety(options, rng: np.random.Generator, m: int):
+    """One character's tints, variants and parts (spec 22.5: in that order, only those asked for)."""
+    tint = variant = shown = None
+    if options.tints:
+        palette = np.asarray(options.tints, dtype=np.float32)
+        tint = palette[rng.integers(len(palette), size=m)]
+    if options.variants:
+        weights = np.asarray(list(options.variants.values()), dtype=np.float64)
+        variant = rng.choice(len(weights), size=m, p=weights / weights.sum()).astype(np.int32)
+    if options.parts:
+        shown = {part: rng.random(size=m) < probability for part, probability in options.parts.items()}
+    return tint, variant, shown
+
+
 def _offsets(rng: np.random.Generator, span: Optional[tuple], durations: np.ndarray) -> np.ndarray:
     """Time offsets: uniform in ``span``, or over each instance's clip duration when it is None."""
     unit = rng.random(size=len(durations))
@@ -624,6 +730,7 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     if options.fade_clips:
         for character in cast:
             _check_fade_version(character)
+    _check_parts(options.parts, cast)
 
     rng = np.random.default_rng(int(options.seed))
     spacing = options.spacing
@@ -644,7 +751,7 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     rate = rng.uniform(options.playback_rate[0], options.playback_rate[1], size=n)
     unit = rng.random(size=n)  # time offsets: per instance, scaled to its clip below
 
-    report_instances, report_clips, report_fades, instancers = [], [], [], []
+    report_instances, report_clips, report_fades, report_variety, instancers = [], [], [], [], []
     # One point instancer per (character, animation): a character's animations play together on the
     # same instances. A character of one animation keeps the name <character>Instances.
     instancer_names = iter(unique_names([
@@ -686,6 +793,14 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
             layer_rate = rng.uniform(layer.playback_rate[0], layer.playback_rate[1], size=m)
             layer_weight = rng.uniform(layer.weight[0], layer.weight[1], size=m)
             layers.append((layer.mask, layer_clip, layer_offsets, layer_rate, layer_weight))
+        tint, variant, shown = _variety(options, rng, m)
+        if options.tints or options.variants or options.parts:
+            palette = np.asarray(options.tints, dtype=np.float32).reshape(-1, 3)
+            report_variety.append({
+                "tints": [int(np.sum(np.all(tint == colour, axis=1))) for colour in palette] if tint is not None else [],
+                "variants": {name: int(np.sum(variant == k)) for k, name in enumerate(options.variants)}
+                if variant is not None else {},
+                "parts": {name: int(np.sum(values)) for name, values in shown.items()} if shown is not None else {}})
         if m == 0:
             continue
         quats = np.zeros((m, 4), dtype=np.float32)  # a yaw about the up axis, (x, y, z, w)
@@ -706,6 +821,17 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                     layer_weight=np.stack([w for _, _, _, _, w in layers], axis=1).astype(np.float32),
                     layer_mask=np.stack([np.full(m, animation.mask_names.index(mask), np.int32)
                                          for mask, _, _, _, _ in layers], axis=1))
+            if tint is not None:
+                extra["tint"] = tint
+            if variant is not None:
+                extra.update(variant=variant, variant_names=tuple(options.variants))
+            if shown is not None:
+                here = [part for part in options.parts if part in _prototype_children(animation)]
+                mask = np.zeros(m, dtype=np.int32)
+                for j, part in enumerate(here):
+                    mask |= shown[part].astype(np.int32) << j
+                if here:
+                    extra.update(parts=mask, part_names=tuple(here))
             crowd = Crowd(path=f"{CROWD_ROOT}/{instancer_name}",
                           positions=np.ascontiguousarray(positions[mine], dtype=np.float32), orientations=quats,
                           scales=np.ascontiguousarray(np.repeat(scale[mine, None], 3, axis=1), dtype=np.float32),
@@ -722,4 +848,4 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
     return CrowdReport(output=str(output), instances=report_instances, clips=report_clips, bytes=output.stat().st_size,
                        seconds=time.perf_counter() - start, animations=[len(c.animations) for c in cast],
                        spacing=None if options.layout == "points" else float(spacing), fade_clips=report_fades,
-                       layers=len(options.layers))
+                       layers=len(options.layers), variety=report_variety)

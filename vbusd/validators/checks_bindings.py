@@ -13,7 +13,7 @@ import numpy as np
 from vbusd.format import names as vb_names
 from vbusd.format.names import ANIMATION_TYPE, BINDING_API, INSTANCING_API
 from vbusd.io.usd_reader import authored_type_mismatch as wrong_type
-from vbusd.io.usd_reader import read_layer_primvars
+from vbusd.io.usd_reader import read_layer_primvars, read_variety_properties
 from vbusd.format.diagnostics import UsdSite, finding
 from pxr import UsdGeom
 from vbusd.format.compact import error_bound
@@ -360,6 +360,22 @@ def _layer_findings(prim, target, count: int, clip_count: int) -> list:
     return found
 
 
+def _variety_findings(prim, count: int) -> list:
+    """The first problem of the format 1.3 variety properties, as the readers find it
+    (:func:`vbusd.io.usd_reader.read_variety_properties`): they refuse the crowd on it."""
+    found = []
+
+    def fail(code, message, site):
+        found.append(finding(code, message, site))
+        raise _LayerProblem
+
+    try:
+        read_variety_properties(prim, count, fail)
+    except _LayerProblem:
+        pass
+    return found
+
+
 def check_instancer_prim(prim):
     """Every check of one point instancer with VirtualBonesInstancingAPI."""
 
@@ -428,6 +444,8 @@ def check_instancer_prim(prim):
                                f"is instance {first} with {float(values[first])}", UsdSite(path, name)))
     if count is not None and clip_count is not None:
         out += _layer_findings(prim, target, count, clip_count)
+    if count is not None:
+        out += _variety_findings(prim, count)
     fading = [p.attribute for p in vb_names.FADE_PRIMVARS
               if prim.GetAttribute(p.attribute).IsValid() and prim.GetAttribute(p.attribute).HasAuthoredValue()]
     if fading and target is not None:

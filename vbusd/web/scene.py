@@ -161,6 +161,19 @@ def _fade(crowd, buffer: _Buffer) -> dict:
     return out
 
 
+def _variety(crowd, buffer: _Buffer) -> dict:
+    """A varied crowd's arrays (format 1.3, spec 22): tint (3 per instance), variant (-1: none) and
+    parts mask per instance, with the variants' names and base colours and the part names; nothing
+    for a crowd without variety."""
+    if not crowd.varied:
+        return {}
+    tint, variant, parts = crowd.variety_arrays()
+    colors = ([] if crowd.variant_colors is None
+              else np.asarray(crowd.variant_colors, dtype=np.float64).reshape(-1, 3).tolist())
+    return {"tint": buffer.add(tint, "f4"), "variant": buffer.add(variant, "i4"), "parts": buffer.add(parts, "i4"),
+            "variantNames": list(crowd.variant_names), "variantColors": colors, "partNames": list(crowd.part_names)}
+
+
 def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> tuple[dict, bytes]:
     """The viewer's description of ``asset`` and its binary buffer.
 
@@ -209,6 +222,7 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
             "playbackRate": buffer.add(crowd.playback_rate, "f4"),
             **_fade(crowd, buffer),
             **_layers(crowd, buffer),
+            **_variety(crowd, buffer),
         })
     scene = {
         "format": SCENE_FORMAT,

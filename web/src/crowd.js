@@ -10,7 +10,7 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, blendLayers, crowdEvents,
+  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -73,6 +73,12 @@ function pick(values, slots, set) {
  *   Optionally the layers of format 1.2 (spec 8.6), two per instance: layerClip, layerMask:
  *   Int32Array(2 N), layerTimeOffset, layerPlaybackRate, layerWeight: Float32Array(2 N) (absent: no
  *   layers); the animation must store bone masks. `setLayer` changes them per instance.
+ *   Optionally crowd variety (format 1.3, spec 22): tint (Float32Array(3 N), linear RGB), variant
+ *   (Int32Array(N), -1 none), parts (Int32Array(N) masks), variantNames, variantColors, partNames:
+ *   the meshes get an instanceColor of variant colour x tint (three multiplies the material colour
+ *   by it; with variants the material colour is white, so the variant gives the base colour), and
+ *   a part's mesh its own instance matrices, zero where the mask hides it (one instanced draw per
+ *   part). `varietyOf(i)` tells what instance i shows.
  * @param {function(): Material} [options.material] a new material per mesh (default
  *   MeshStandardMaterial); it is patched to skin from the texture, and depth and distance
  *   materials are patched so shadows follow the animation.
@@ -166,6 +172,9 @@ export class VirtualBonesCrowd extends Group {
       clip: this.clipAttribute, time: this.timeAttribute, fadeClip: this.fadeClipAttribute, fade: this.fadeAttribute,
       matrix: this.instanceMatrix,
     };
+    // Crowd variety (format 1.3): one colour per instance, shared by every mesh; parts below.
+    const colors = instanceColors(instances);
+    this.instanceColor = colors ? new InstancedBufferAttribute(colors, 3) : null;
     const makeMesh = (entry, index, attributes) => {
       const geometry = entry.geometry;
       let binding = { skin, layers: this.layered };
@@ -187,12 +196,21 @@ export class VirtualBonesCrowd extends Group {
       const mesh = new InstancedMesh(geometry, skinned(material(index), animation, entry.maxInfluences, binding), instances.count);
       mesh.instanceMatrix = attributes.matrix;
       mesh.name = entry.name || geometry.name;
+      if (this.instanceColor) {
+        mesh.instanceColor = this.instanceColor;
+        if (instances.variant && mesh.material.color) mesh.material.color.setRGB(1, 1, 1);  // the variant's colour is in instanceColor
+      }
+      const bit = partBit(entry.name || geometry.name, instances.partNames);
+      if (bit >= 0 && instances.parts && attributes === shared) {
+        // A part (spec 22.3): its own matrices, zero for the instances that do not show it.
+        mesh.instanceMatrix = new InstancedBufferAttribute(partMatrices(instances.matrices, instances.parts, bit), 16);
+      }
       if (!skinMaterial) {
         mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
         mesh.customDistanceMaterial = patchMaterial(new MeshDistanceMaterial(), animation, entry.maxInfluences, binding);
       }
       mesh.castShadow = mesh.receiveShadow = true;
-      mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this, binding };
+      mesh.userData.virtualBones = { maxInfluences: entry.maxInfluences, crowd: this, binding, part: bit };
       this.add(mesh);
       return mesh;
     };
@@ -359,6 +377,9 @@ export class VirtualBonesCrowd extends Group {
     const placement = new Matrix4().fromArray(this.instanceMatrix.array, 16 * index);
     return this.matrixWorld.clone().multiply(placement).multiply(joint);
   }
+
+  /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */
+  varietyOf(index) { return varietyOf(this.instances, index); }
 
   /** Instances drawn (the first `count` of the crowd). */
   get count() { return this.levels ? this.drawn : (this.meshes[0]?.count ?? 0); }

@@ -1,6 +1,7 @@
 // GLTFLoader plugin for the runtime package (spec/runtime-package.md): the VBUSD_virtual_bones
 // extension (animations with their KTX2 textures, primitives bound to them) and crowds as
-// EXT_mesh_gpu_instancing nodes with _VB_CLIP, _VB_TIME_OFFSET and _VB_PLAYBACK_RATE.
+// EXT_mesh_gpu_instancing nodes with _VB_CLIP, _VB_TIME_OFFSET and _VB_PLAYBACK_RATE, their
+// crossfades (_VB_FADE_*, time-sampled too) and layers (_VB_LAYER_*_j): @vbusd/core's packagePlayback.
 //
 //   const loader = new GLTFLoader();
 //   loader.register((parser) => new VirtualBonesGLTFPlugin(parser));
@@ -9,6 +10,8 @@
 //   scene.add(group);  // instead of gltf.scene, which shows the rest pose
 
 import { BufferAttribute, BufferGeometry, IntType, Matrix4 } from 'three';
+
+import { packagePlayback, packageVariety } from '@vbusd/core';
 
 import { VirtualBonesAnimation, VirtualBonesError } from './animation.js';
 import { instancesFromPlacement, singleInstance } from './crowd.js';
@@ -138,29 +141,34 @@ export class VirtualBonesGLTFPlugin {
         singles.push({ animation: entry, name: node.name ?? `node ${nodeIndex}`, instances: singleInstance(0), matrix, ...levelsOf(node, nodeIndex) });
         continue;
       }
-      const accessor = async (name, required = true) => {
-        const index = instancing.attributes[name];
-        if (index === undefined) {
-          if (required) throw new VirtualBonesError(`node ${nodeIndex}: EXT_mesh_gpu_instancing has no ${name}`);
-          return null;
-        }
-        return (await parser.getDependency('accessor', index)).array;
-      };
-      const clips = await accessor('_VB_CLIP');
+      const where = `node ${nodeIndex}`;
+      for (const name of ['TRANSLATION', 'ROTATION', '_VB_CLIP', '_VB_TIME_OFFSET', '_VB_PLAYBACK_RATE']) {
+        if (instancing.attributes[name] === undefined) throw new VirtualBonesError(`${where}: EXT_mesh_gpu_instancing has no ${name}`);
+      }
+      const read = async (index) => packed(await parser.getDependency('accessor', index)).array;
+      const count = json.accessors[instancing.attributes.TRANSLATION].count;
+      // Clip, times and rates, the crossfade and its time samples, the layers (spec/runtime-package.md 5.1).
+      const { clip, timeOffset, playbackRate, ...blending } = await packagePlayback({
+        attributes: instancing.attributes, samples: node.extensions?.[EXTENSION]?.samples, count, read, what: where });
       crowds.push({
         animation: entry,
-        name: node.name ?? `node ${nodeIndex}`,
+        name: node.name ?? where,
         matrix,
         ...levelsOf(node, nodeIndex),
-        instances: instancesFromPlacement({
-          positions: await accessor('TRANSLATION'),
-          orientations: await accessor('ROTATION'),
-          scales: await accessor('SCALE', false),
-          clip: Int32Array.from(clips, (c) => Math.floor(c + 0.5)),
-          timeOffset: await accessor('_VB_TIME_OFFSET'),
-          playbackRate: await accessor('_VB_PLAYBACK_RATE'),
-        }),
+        instances: {
+          ...instancesFromPlacement({
+            positions: await read(instancing.attributes.TRANSLATION),
+            orientations: await read(instancing.attributes.ROTATION),
+            scales: instancing.attributes.SCALE === undefined ? null : await read(instancing.attributes.SCALE),
+            clip, timeOffset, playbackRate,
+          }),
+          ...blending,
+        },
       });
+      // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
+      const optional = async (name) => (instancing.attributes[name] === undefined ? null : read(instancing.attributes[name]));
+      Object.assign(crowds[crowds.length - 1].instances, packageVariety(json, node.mesh, {
+        tint: await optional('_VB_TINT'), variant: await optional('_VB_VARIANT'), parts: await optional('_VB_PARTS') }, count));
     }
     gltf.userData.virtualBones = {
       upAxis: 'Y',  // the package's root node converts the asset's axes to glTF's

@@ -3,7 +3,7 @@
 // lighting, fog, shadows and tone mapping work unchanged. The GLSL is the module `vbusd shader`
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
-import { VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding } from '@vbusd/core';
+import { VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding, skinningStatements } from '@vbusd/core';
 
 export { shaderModule };
 
@@ -45,61 +45,18 @@ in vec4 vb_instanceLayerTime;
 in vec2 vb_instanceLayerWeight;
 `;
 
-const SKIN_FROM_ATTRIBUTES = `
-  int vbIndex[VB_MAX_INFLUENCES];
-  float vbWeight[VB_MAX_INFLUENCES];
-  for (int i = 0; i < VB_MAX_INFLUENCES; ++i) {
-#if VB_MAX_INFLUENCES > 4
-    vbIndex[i] = i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4];
-    vbWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];
-#else
-    vbIndex[i] = vb_boneIndices0[i];
-    vbWeight[i] = vb_boneWeights0[i];
-#endif
-  }`;
+// Where the three.js runtime's instances keep their playback (crowd.js: instanced attributes).
+const PLAYBACK = {
+  clip: 'vb_instanceClip', tau: 'vb_instanceTime.x + vb_instanceTime.y * vb_time',
+  fadeClip: 'vb_instanceFadeClip', fadeTau: 'vb_instanceFade.x + vb_instanceFade.y * vb_time', fadeWeight: 'vb_instanceFade.z',
+  layerClip: 'vb_instanceLayerClipMask[2 * j]', layerMask: 'vb_instanceLayerClipMask[2 * j + 1]',
+  layerTau: 'vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_time', layerWeight: 'vb_instanceLayerWeight[j]',
+};
 
-// gl_VertexID is the vertex's index in the geometry (drawElements: the index read; WebGL 2 has no
-// base vertex), which is its skin record.
-const SKIN_PULLED = `
-  int vbIndex[VB_MAX_INFLUENCES];
-  float vbWeight[VB_MAX_INFLUENCES];
-  vbSkinInfluences(gl_VertexID, vbIndex, vbWeight);`;
-
-const SKIN_AND_CROSSFADE = `
-  vec3 vbPosition;
-  vec3 vbNormal;
-  // Crossfade (spec 8.3, format 1.1): vb_instanceFade = (fadeTimeOffset, fadePlaybackRate, fadeWeight);
-  // with fadeWeight 0 this is exactly vbSkin.
-  vbSkinCrossfade(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time,
-                  vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time, vb_instanceFade.z,
-                  position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
-`;
-
-const SKIN_LAYERED = `
-  vec3 vbPosition;
-  vec3 vbNormal;
-  // Layers (spec 8.6, format 1.2) on each side of the crossfade (8.3); with every layer weight 0
-  // this is exactly vbSkinCrossfade.
-  int vbLayerClip[VB_MAX_LAYERS];
-  float vbLayerTau[VB_MAX_LAYERS];
-  float vbLayerWeight[VB_MAX_LAYERS];
-  int vbLayerMask[VB_MAX_LAYERS];
-  for (int j = 0; j < VB_MAX_LAYERS; ++j) {
-    vbLayerClip[j] = vb_instanceLayerClipMask[2 * j];
-    vbLayerTau[j] = vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_time;
-    vbLayerWeight[j] = vb_instanceLayerWeight[j];
-    vbLayerMask[j] = vb_instanceLayerClipMask[2 * j + 1];
-  }
-  vbSkinLayered(vb_instanceClip, vb_instanceTime.x + vb_instanceTime.y * vb_time,
-                vb_instanceFadeClip, vb_instanceFade.x + vb_instanceFade.y * vb_time, vb_instanceFade.z,
-                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
-                position, normal, vbIndex, vbWeight, vbPosition, vbNormal);
-`;
-
-/** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition / vbNormal. */
+/** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition /
+ * vbNormal (@vbusd/core's skinningStatements, the body every engine runs). */
 export function skinningCall(skin = 'attributes', layers = false) {
-  checkSkinBinding(skin);
-  return (skin === 'pulled' ? SKIN_PULLED : SKIN_FROM_ATTRIBUTES) + (layers ? SKIN_LAYERED : SKIN_AND_CROSSFADE);
+  return skinningStatements({ skin, layers, playback: PLAYBACK });
 }
 
 /** The attribute binding's statements (skinningCall('attributes')). */

@@ -99,6 +99,8 @@ export class VirtualBonesCrowd extends Group {
   /** A fade over stage time: every instance's time-sampled fade at scene time `time` (no-op without samples). */
   updateSamples(time: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
+  /** What instance `index` shows (format 1.3 crowd variety). */
+  varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   updateLevels(camera: object): void;
   boundsOfInstances(): Box3;
   updateBounds(): void;

@@ -14,31 +14,17 @@ import {
 } from '@babylonjs/core';
 
 import { fetchPlainScene, singleInstance } from '@vbusd/core';
+import { measureFrames, pageApi, pageOptions, showError, startPage } from './vbusd-core/viewer.js';
 
 import {
   VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd, registerVirtualBonesGLTFExtension,
 } from './vbusd-babylon/index.js';
 
-const params = new URLSearchParams(window.location.search);
-const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
-const silhouette = params.get('silhouette') === '1';
-const element = (id) => document.getElementById(id);
-
-function showError(error) {
-  console.error(error);
-  element('error').textContent = String(error?.message ?? error);
-}
+const page = pageOptions();
+const { params, number, silhouette, element } = page;
 
 async function main() {
-  const config = await (await fetch('config.json')).json();
-  element('title').textContent = config.name;
-  document.title = `vbusd view: ${config.name}`;
-  if (params.get('ui') === '0') element('panel').classList.add('hidden');
-  const canvas = element('view');
-  if (params.has('width')) {
-    canvas.style.width = `${number('width')}px`;
-    canvas.style.height = `${number('height')}px`;
-  }
+  const { config, canvas } = await startPage(page);
   const engine = new Engine(canvas, params.get('antialias') !== '0', { preserveDrawingBuffer: true, stencil: true });
   if (engine.webGLVersion < 2) throw new Error('the Babylon.js runtime needs WebGL 2');
   const scene = new Scene(engine);
@@ -156,8 +142,8 @@ async function main() {
   });
   window.addEventListener('resize', () => engine.resize());
 
-  const probeTargets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
   const gl = engine._gl;
+  const pixel = new Uint8Array(4);
   window.vbusd = {
     engine: 'babylon', backend: 'webgl2', babylon: { engine, scene, camera, shadowGenerator }, crowds, animations,
     /** The camera's projection and view matrices as three.js' pages give them (column-major
@@ -168,35 +154,13 @@ async function main() {
       get matrixWorldInverse() { return { elements: Array.from(camera.getViewMatrix(true).m) }; },
     },
     setTime, render,
-    get instanceCount() { return probeTargets.length; },
-    /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
-    levels() {
-      return {
-        lod: probeTargets.map(([crowd, i]) => crowd.levelOf(i)),
-        triangles: crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0),
-      };
-    },
-    /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU. */
-    async probe(instance, t) {
-      const target = probeTargets[instance];
-      if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
-      const result = probeBabylonCrowd(engine, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
-    },
-    /** Mean milliseconds per frame over `frames` frames, each rendered and finished (a pixel read). */
-    measureFrames(frames = 60) {
+    // instanceCount, probe(instance, t), levels(), measureFrames(n): @vbusd/core's page part; each
+    // measured frame is rendered and finished (a pixel read), outside Babylon's render loop.
+    ...pageApi(crowds, (crowd, index, t) => probeBabylonCrowd(engine, crowd, index, t), (frames = 60) => {
       engine.stopRenderLoop();
-      const pixel = new Uint8Array(4);
-      render();
-      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
-      const start = performance.now();
-      for (let i = 0; i < frames; ++i) {
-        setTime(time + 1 / 60);
-        render();
-        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
-      }
-      return (performance.now() - start) / frames;
-    },
+      return measureFrames(frames, { step: () => setTime(time + 1 / 60), render,
+        finish: () => gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel) });
+    }),
   };
 }
 

@@ -19,16 +19,10 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
 import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF } from './vbusd-three/index.js';
+import { measureFrames, pageApi, pageOptions, showError, startPage } from './vbusd-core/viewer.js';
 
-const params = new URLSearchParams(window.location.search);
-const number = (name, fallback) => (params.has(name) ? Number(params.get(name)) : fallback);
-const silhouette = params.get('silhouette') === '1';
-const element = (id) => document.getElementById(id);
-
-function showError(error) {
-  console.error(error);
-  element('error').textContent = String(error?.message ?? error);
-}
+const page = pageOptions();
+const { params, number, silhouette, element } = page;
 
 async function loadDescription(config) {
   if (config.kind === 'scene') return loadPlainScene(config.url);
@@ -42,16 +36,7 @@ async function loadDescription(config) {
 }
 
 async function main() {
-  const config = await (await fetch('config.json')).json();
-  element('title').textContent = config.name;
-  document.title = `vbusd view: ${config.name}`;
-  if (params.get('ui') === '0') element('panel').classList.add('hidden');
-
-  const canvas = element('view');
-  if (params.has('width')) {
-    canvas.style.width = `${number('width')}px`;
-    canvas.style.height = `${number('height')}px`;
-  }
+  const { config, canvas } = await startPage(page);
   const engine = config.engine ?? 'three';
   const antialias = params.get('antialias') !== '0';
   let renderer;
@@ -231,62 +216,29 @@ async function main() {
   };
   setTime(time);
 
-  // Instance numbering for probe: crowds in order, each instance of each.
-  const probeTargets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
-  const gl = webgpu ? null : renderer.getContext();
+  // WebGLRenderer: a pixel read back finishes a frame; WebGPURenderer: the GPU queue drained (or a
+  // pixel read back on its WebGL 2 backend).
+  const pixel = new Uint8Array(4);
+  const finish = () => {
+    if (!webgpu) {
+      const gl = renderer.getContext();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+    } else if (renderer.backend.isWebGPUBackend) {
+      return renderer.backend.device.queue.onSubmittedWorkDone();
+    } else {
+      const c = renderer.backend.gl;
+      c.readPixels(0, 0, 1, 1, c.RGBA, c.UNSIGNED_BYTE, pixel);
+    }
+    return undefined;
+  };
   window.vbusd = {
     renderer, scene, camera, controls, crowds, animations: objects.animations, engine, backend,
     setTime, render,
-    get instanceCount() { return probeTargets.length; },
-    /** World-space skinned vertices of instance `instance` at viewer time `t` (seconds), from the GPU,
-     * and `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without
-     * levels); the vertices are that level's (LOD 0's when culled). */
-    async probe(instance, t) {
-      const target = probeTargets[instance];
-      if (!target) throw new Error(`no instance ${instance} (the viewer has ${probeTargets.length})`);
-      const result = webgpu ? await webgpu.probeNodeCrowd(renderer, target[0], target[1], t)
-        : probeCrowd(renderer, target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod };
-    },
-    /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */
-    levels() {
-      return {
-        lod: probeTargets.map(([crowd, i]) => crowd.levelOf(i)),
-        triangles: crowds.reduce((n, crowd) => n + crowd.trianglesDrawn, 0),
-      };
-    },
-    /** Mean milliseconds per frame over `frames` frames, each rendered and finished (pixels read). */
-    measureFrames(frames = 60) {
-      if (webgpu) return measureNodeFrames(frames);
-      const pixel = new Uint8Array(4);
-      render();
-      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
-      const start = performance.now();
-      for (let i = 0; i < frames; ++i) {
-        setTime(time + 1 / 60);
-        render();
-        gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
-      }
-      return (performance.now() - start) / frames;
-    },
+    // instanceCount, probe(instance, t), levels(), measureFrames(n): @vbusd/core's page part.
+    ...pageApi(crowds,
+      (crowd, index, t) => (webgpu ? webgpu.probeNodeCrowd(renderer, crowd, index, t) : probeCrowd(renderer, crowd, index, t)),
+      (frames = 60) => measureFrames(frames, { step: () => setTime(time + 1 / 60), render, finish })),
   };
-  // WebGPURenderer: each frame rendered and finished (the GPU queue drained, or a pixel read back on
-  // the WebGL 2 backend), as WebGLRenderer's readPixels finishes it.
-  const finish = async () => {
-    if (renderer.backend.isWebGPUBackend) await renderer.backend.device.queue.onSubmittedWorkDone();
-    else { const c = renderer.backend.gl; c.readPixels(0, 0, 1, 1, c.RGBA, c.UNSIGNED_BYTE, new Uint8Array(4)); }
-  };
-  async function measureNodeFrames(frames) {
-    render();
-    await finish();
-    const start = performance.now();
-    for (let i = 0; i < frames; ++i) {
-      setTime(time + 1 / 60);
-      render();
-      await finish();
-    }
-    return (performance.now() - start) / frames;
-  }
   render();
   requestAnimationFrame(loop);
 }

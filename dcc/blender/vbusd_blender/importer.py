@@ -15,7 +15,13 @@ For each animation the asset holds:
 * each crowd instance as its own armature object (sharing the armature data) and mesh objects
   (sharing the mesh data), placed by the instancer's transform, playing its clip through an NLA
   strip whose start, scale and repeats give ``tau = timeOffset + playbackRate * t``, with scene
-  time ``t = (frame - scene.frame_start) / fps``.
+  time ``t = (frame - scene.frame_start) / fps``;
+* a varied crowd (format 1.3, spec "Crowd variety") keeps its variety: each instance's mesh objects
+  carry its tint as the object colour (``Object.color``: the Solid view's Object colour and the Object
+  Info node's Color), use its variant's material (one per variant, linked to the object: a
+  Principled BSDF whose base colour is the variant's colour times the object colour), hide the parts
+  its mask leaves out (viewport and render), and keep the values as custom properties ``vb_tint``,
+  ``vb_variant``, ``vb_parts``.
 
 Placement follows the layer's transforms as USD composes them, so the import stands where a USD
 renderer (and ``vbusd decode``) puts the asset: an animation's armature object gets the
@@ -320,6 +326,45 @@ def _skinned_object(name: str, data, rig, collection):
     return obj
 
 
+def _variant_materials(crowd) -> list:
+    """One material per variant of a varied crowd (format 1.3): base colour = the variant's colour
+    times the object colour (the instance's tint), so each instance shows both."""
+    materials = []
+    colors = crowd.variant_colors if crowd.variant_colors is not None else [(0.18, 0.18, 0.18)] * len(crowd.variant_names)
+    for name, color in zip(crowd.variant_names, colors):
+        material = bpy.data.materials.new(f"{crowd.path.rstrip('/').rsplit('/', 1)[-1]}|{name}")
+        material.use_nodes = True
+        nodes, links = material.node_tree.nodes, material.node_tree.links
+        shader = next(node for node in nodes if node.type == "BSDF_PRINCIPLED")
+        info = nodes.new("ShaderNodeObjectInfo")
+        multiply = nodes.new("ShaderNodeVectorMath")
+        multiply.operation = "MULTIPLY"
+        multiply.inputs[0].default_value = tuple(float(c) for c in color)
+        links.new(info.outputs["Color"], multiply.inputs[1])
+        links.new(multiply.outputs["Vector"], shader.inputs["Base Color"])
+        material.diffuse_color = (*(float(c) for c in color), 1.0)  # the Solid view's Material colour
+        material["vb_variant_color"] = [float(c) for c in color]
+        materials.append(material)
+    return materials
+
+
+def _apply_variety(objects: list, mesh_names: list, crowd, i: int, materials: list) -> None:
+    """Instance ``i``'s tint, variant and parts on its mesh objects (format 1.3)."""
+    tint, variant, parts = crowd.variety_arrays()
+    for obj, name in zip(objects, mesh_names):
+        obj.color = (*(float(c) for c in tint[i]), 1.0)
+        obj["vb_tint"] = [float(c) for c in tint[i]]
+        obj["vb_variant"] = int(variant[i])
+        obj["vb_parts"] = int(parts[i])
+        if 0 <= variant[i] < len(materials):
+            if not obj.data.materials:
+                obj.data.materials.append(None)
+            obj.material_slots[0].link = "OBJECT"
+            obj.material_slots[0].material = materials[int(variant[i])]
+        if name in crowd.part_names and not (int(parts[i]) >> crowd.part_names.index(name)) & 1:
+            obj.hide_viewport = obj.hide_render = True
+
+
 def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list, actions: list,
                      collection, parent, settings: ImportSettings, report: ImportReport, fps: float,
                      first_frame: float, inside: Matrix = None) -> list:
@@ -330,6 +375,7 @@ def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list,
     scene = context.scene
     placed = []
     slow = 0
+    materials = _variant_materials(crowd) if crowd.varied else []
     for i in range(count):
         x, y, z, w = (float(v) for v in crowd.orientations[i])
         scale = (1.0, 1.0, 1.0) if crowd.scales is None else tuple(float(v) for v in crowd.scales[i])
@@ -341,8 +387,10 @@ def _place_instances(context, crowd, vb, rig, mesh_data: list, mesh_names: list,
         instance.matrix_parent_inverse = Matrix.Identity(4)
         # its pose bones rotate by quaternion, Blender's default mode; ``inside`` places the mesh in the prototype
         instance.matrix_basis = matrix if inside is None else matrix @ inside
-        objects = [_skinned_object(f"{name}.{i:04d}", data, instance, collection).name
-                   for name, data in zip(mesh_names, mesh_data)]
+        made = [_skinned_object(f"{name}.{i:04d}", data, instance, collection) for name, data in zip(mesh_names, mesh_data)]
+        if crowd.varied:
+            _apply_variety(made, mesh_names, crowd, i, materials)
+        objects = [obj.name for obj in made]
         clip_index = int(crowd.clip[i])
         if not 0 <= clip_index < len(actions):
             clip_index = 0

@@ -5,7 +5,7 @@ format 1.1 vectors (../make_vectors.py: a 4-bone chain root, spine, arm, hand), 
 parents, two masks ("upper": spine and every bone below it; "soft": arm 0.5, hand 1, a per-bone
 weight no --mask writes) and 6 instances with up to two layers each (clip, time offset, playback
 rate, weight, mask) on top of the crossfade, with the expected skinned points, normals and sockets
-at three scene times, computed in float64 by vbusd's numpy reference decoder (itself checked against
+at three scene times, and the previous-frame pose (spec 21) at three more, computed in float64 by vbusd's numpy reference decoder (itself checked against
 three.js' AnimationMixer and UsdSkel's poses, tests/test_layers.py).
 
 Usage (from the repository root): ``python spec/conformance/layers/make_layer_vectors.py`` rewrites
@@ -31,6 +31,8 @@ BASE = runpy.run_path(str(HERE.parent / "make_vectors.py"))
 ENCODINGS = BASE["ENCODINGS"]
 TEXEL_FORMATS = ("float16", "float32")
 TIMES = BASE["TIMES"]
+PREVIOUS_DT = BASE["PREVIOUS_DT"]
+PREVIOUS_TIMES = BASE["PREVIOUS_TIMES"]
 PARENTS = (-1, 0, 1, 2)
 MASKS = (("upper", (0.0, 1.0, 1.0, 1.0)), ("soft", (0.0, 0.0, 0.5, 1.0)))
 INSTANCES = (
@@ -66,7 +68,7 @@ def _crowd(vb):
 def build(encoding: str, texel_format: str, folder: Path) -> dict:
     """Bake one vector, write its texture into ``folder`` and return its JSON document."""
     from vbusd.baking.baker import BakeOptions, bake
-    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
+    from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd, skin_crowd_previous
     from vbusd.format import metadata as md
     from vbusd.io.textures import write_texture
 
@@ -86,6 +88,12 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
         sockets = np.stack([crowd_joint_transforms(vb, crowd, bone, time) for bone in range(len(vb.bones))], axis=1)
         expected.append({"time": time, "positions": points.tolist(), "normals": normals.tolist(),
                          "sockets": sockets.tolist()})
+    frames = []  # the previous-frame pose (spec 21), as in ../make_vectors.py: layers at t - dt too
+    for time in PREVIOUS_TIMES:
+        points, normals = skin_crowd(vb, mesh, crowd, time)
+        previous_points, previous_normals = skin_crowd_previous(vb, mesh, crowd, time, PREVIOUS_DT)
+        frames.append({"time": time, "positions": points.tolist(), "normals": normals.tolist(),
+                       "previousPositions": previous_points.tolist(), "previousNormals": previous_normals.tolist()})
     every_point = np.array([e["positions"] for e in expected]).reshape(-1, 3)
     diagonal = float(np.linalg.norm(every_point.max(axis=0) - every_point.min(axis=0)))
     position_fraction, normal_tolerance = TOLERANCES[texel_format]
@@ -113,6 +121,7 @@ def build(encoding: str, texel_format: str, folder: Path) -> dict:
                  "boneWeights": mesh.bone_weights.tolist()},
         "instances": instances,
         "expected": expected,
+        "previous": {"dt": PREVIOUS_DT, "frames": frames},
         "tolerance": {"position": position_fraction * diagonal, "positionFractionOfDiagonal": position_fraction,
                       "diagonal": diagonal, "normal": normal_tolerance,
                       "socket": position_fraction * max(diagonal, 1.0)},

@@ -7,7 +7,7 @@ import {
 } from '@babylonjs/core';
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
-  screenSize, selectLevel, checkScreenSizes, crowdEvents,
+  screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -24,7 +24,10 @@ import { skinMaterial } from './plugin.js';
  *   three's, which is Babylon's memory layout), clip, timeOffset, playbackRate; optionally
  *   fadeClip, fadeTimeOffset, fadePlaybackRate, fadeWeight, fadeSamples (a fade over stage time,
  *   evaluated by updateSamples), and the layers of format 1.2 (two per instance: layerClip,
- *   layerMask, layerTimeOffset, layerPlaybackRate, layerWeight, 2 N each)}
+ *   layerMask, layerTimeOffset, layerPlaybackRate, layerWeight, 2 N each), and crowd variety
+ *   (format 1.3: tint, variant, parts, variantNames, variantColors, partNames; @vbusd/core's
+ *   variety.js): a thin-instance colour of variant colour x tint (the material's colour white when
+ *   the crowd has variants), and per part mesh its own matrices, zero where the mask hides it}
  * @param {function(string): Material} [options.material] a new material per mesh (default a
  *   StandardMaterial); the plugin is added to it.
  * @param {string} [options.skin] the skin binding (spec/shaders.md, "Skin bindings"): `attributes`
@@ -87,6 +90,13 @@ export class VirtualBonesCrowd {
       this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
     }
     this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
+    // Crowd variety (format 1.3): Babylon's thin-instance colour (RGBA) multiplies the material's.
+    const colors = instanceColors(instances);
+    this.instanceColors = null;
+    if (colors) {
+      this.instanceColors = new Float32Array(4 * this.capacity).fill(1);
+      for (let i = 0; i < this.capacity; ++i) this.instanceColors.set(colors.subarray(3 * i, 3 * i + 3), 4 * i);
+    }
     // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
     // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
     this.levels = null;
@@ -118,6 +128,7 @@ export class VirtualBonesCrowd {
       this.meshes = adopt ? adopt.map((entry) => this._skin(entry.mesh, entry, material))
         : meshes.map((entry) => this._mesh(entry, material));
     }
+    this.applyParts();
     this.updateSamples(animation.time ?? 0);
   }
 
@@ -188,6 +199,14 @@ export class VirtualBonesCrowd {
       mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
       mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
     }
+    if (this.instanceColors) {
+      mesh.thinInstanceSetBuffer('color', this.instanceColors, 4, true);
+      if (this.instances.variant) {  // the variant's colour is in the instance colour
+        if (mat.diffuseColor) mat.diffuseColor = new Color3(1, 1, 1);
+        if (mat.albedoColor) mat.albedoColor = new Color3(1, 1, 1);
+      }
+    }
+    const part = buffers ? -1 : partBit(entry.name ?? mesh.name, this.instances.partNames);  // applyParts() uses it
     if (this.layered) {
       mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
       mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
@@ -197,9 +216,35 @@ export class VirtualBonesCrowd {
     mesh.alwaysSelectAsActiveMesh = true;
     const hasNormals = mesh.isVerticesDataPresent('normal');
     mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals, pointCount: vertexCount,
-      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets } };
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part } };
     return mesh;
   }
+
+  /**
+   * Parts (format 1.3, spec 22.3): each part's mesh gets its own thin-instance matrices, collapsed
+   * (linear part zero) for the instances whose mask hides it, from the crowd's matrices (an adopted
+   * glTF crowd: the thin-instance matrices of its first mesh of no part, as Babylon's
+   * EXT_mesh_gpu_instancing set them). The constructor calls it; the glTF extension calls it again
+   * before the first render, once Babylon's loader has set every thin-instance buffer.
+   */
+  applyParts() {
+    const parts = this.instances.parts;
+    if (!parts || this.levels) return;
+    let source = this.matrices;
+    if (!source) {
+      const base = this.meshes.find((mesh) => mesh.metadata.virtualBones.part < 0);
+      if (!base) return;
+      source = new Float32Array(16 * this.capacity);
+      base.thinInstanceGetWorldMatrices().forEach((m, i) => m.copyToArray(source, 16 * i));
+    }
+    for (const mesh of this.meshes) {
+      const bit = mesh.metadata.virtualBones.part;
+      if (bit >= 0) mesh.thinInstanceSetBuffer('matrix', partMatrices(source, parts, bit), 16, false);
+    }
+  }
+
+  /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */
+  varietyOf(index) { return varietyOf(this.instances, index); }
 
   /** Instances drawn (the first `count` of the capacity). */
   get count() { return this.levels ? this.drawn : (this.meshes[0]?.thinInstanceCount ?? 0); }

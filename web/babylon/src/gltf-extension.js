@@ -1,16 +1,17 @@
 // Babylon.js glTF loader extension VBUSD_virtual_bones (spec/runtime-package.md): Babylon's own
 // GLTFLoader reads a `vbusd export` package. Babylon loads the rest meshes and, through its
 // EXT_mesh_gpu_instancing, the crowd's thin-instance matrices; this extension then reads each
-// animation's KTX2 texture from its buffer view (the three.js runtime's parser, web/src/ktx2.js),
+// animation's KTX2 texture from its buffer view (@vbusd/core's parser, web/core/src/ktx2.js),
 // each primitive's _VB_JOINTS_n / _VB_WEIGHTS_n and each crowd's _VB_CLIP, _VB_TIME_OFFSET and
-// _VB_PLAYBACK_RATE, and skins the meshes with the material plugin (VirtualBonesCrowd).
+// _VB_PLAYBACK_RATE, crossfade (_VB_FADE_*, time-sampled too) and layers (_VB_LAYER_*_j) through
+// @vbusd/core's packagePlayback, and skins the meshes with the material plugin (VirtualBonesCrowd).
 //
 //   registerVirtualBonesGLTFExtension();
 //   const result = await ImportMeshAsync('crowd.glb', scene);
 //   const { crowds, animations } = scene.metadata.virtualBones;  // animations[a].time = t
 
 import { GLTFLoader } from '@babylonjs/loaders/glTF/2.0/index.js';  // a file: Node refuses directory imports
-import { parseVirtualBonesKTX2 } from '@vbusd/three';
+import { packagePlayback, packageVariety, parseVirtualBonesKTX2 } from '@vbusd/core';
 
 import { VirtualBonesAnimation } from './animation.js';
 import { VirtualBonesCrowd } from './crowd.js';
@@ -83,18 +84,25 @@ export class VirtualBonesGLTFLoaderExtension {
         const babylonMesh = node._primitiveBabylonMeshes[p];
         // A primitive without NORMAL has no normals of its own, whatever Babylon computes to light it.
         babylonMesh.metadata = { ...(babylonMesh.metadata ?? {}), virtualBones: { hasNormals: primitive.attributes.NORMAL !== undefined } };
-        return { mesh: babylonMesh, maxInfluences: extension.influences,
+        return { mesh: babylonMesh, name: extension.path ?? babylonMesh.name, maxInfluences: extension.influences,
           boneIndices: interleave(boneIndices), boneWeights: interleave(boneWeights) };
       }));
       const instancing = node.extensions?.EXT_mesh_gpu_instancing?.attributes;
       const count = instancing ? this._loader.gltf.accessors[instancing._VB_CLIP].count : 1;
-      const read = async (name, fallback) => (instancing?.[name] !== undefined ? this._floats(context, instancing[name]) : new Float32Array(count).fill(fallback));
-      const clip = await read('_VB_CLIP', 0);
-      const instances = { count, matrices: null, clip: Int32Array.from(clip, (c) => Math.floor(c + 0.5)),
-        timeOffset: await read('_VB_TIME_OFFSET', 0), playbackRate: await read('_VB_PLAYBACK_RATE', 1) };
+      // Clip, times and rates, the crossfade and its time samples, the layers (spec/runtime-package.md 5.1).
+      const playback = await packagePlayback({ attributes: instancing ?? {}, samples: node.extensions?.[EXTENSION]?.samples,
+        count, read: (index) => this._floats(context, index), what: context });
+      const instances = { count, matrices: null, ...playback };
+      // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
+      const optional = async (name) => (instancing?.[name] !== undefined ? this._floats(context, instancing[name]) : null);
+      Object.assign(instances, packageVariety(this._loader.gltf, node.mesh, {
+        tint: await optional('_VB_TINT'), variant: await optional('_VB_VARIANT'), parts: await optional('_VB_PARTS') }, count));
       if (!instancing) for (const entry of adopt) entry.mesh.thinInstanceSetBuffer('matrix', new Float32Array([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]), 16, true);
       const crowd = new VirtualBonesCrowd(this._loader.babylonScene, { animation, instances, adopt, material: this._material,
         name: node.name ?? `node ${node.index}` });
+      // Parts (format 1.3): again before the first frame, over the thin-instance matrices Babylon's
+      // EXT_mesh_gpu_instancing sets once the load completes.
+      if (instances.parts) this._loader.babylonScene.onBeforeRenderObservable.addOnce(() => crowd.applyParts());
       // Crowds (instanced nodes) first, then single characters, as the plain files number them.
       crowd.instanced = Boolean(instancing);
       this._crowds.push(crowd);

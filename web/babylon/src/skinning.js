@@ -3,7 +3,7 @@
 // the glue that feeds it Babylon's vertex streams. The material plugin and the probe both build
 // their shaders from these strings, so the probe reads back what the materials draw.
 
-import { VirtualBonesError, BASE_MAX_BONES, shaderModule, definedTestModule } from '@vbusd/core';
+import { VirtualBonesError, BASE_MAX_BONES, shaderModule, definedTestModule, skinningStatements } from '@vbusd/core';
 
 export { VirtualBonesError, shaderModule };
 
@@ -40,48 +40,20 @@ ${keyword} vec4 vb_instanceB;
 ${layers ? `${keyword} vec4 vb_instanceC;\n${keyword} vec4 vb_instanceD;\n${keyword} vec4 vb_instanceE;\n` : ''}`;
 }
 
+// Where the Babylon.js runtime's instances keep their playback (thin-instance vec4 streams, above).
+const PLAYBACK = {
+  clip: 'int(vb_instanceA.x)', tau: 'vb_instanceA.y + vb_instanceA.z * vb_time',
+  fadeClip: 'int(vb_instanceA.w)', fadeTau: 'vb_instanceB.x + vb_instanceB.y * vb_time', fadeWeight: 'vb_instanceB.z',
+  layerClip: 'int(vb_instanceC[2 * j])', layerMask: 'int(vb_instanceC[2 * j + 1])',
+  layerTau: 'vb_instanceD[2 * j] + vb_instanceD[2 * j + 1] * vb_time', layerWeight: 'vb_instanceE[j]',
+};
+
 /**
  * Statements that skin `position` / `normal` (rest, bind space) into `vbPosition` / `vbNormal`
- * (declared by them): vbSkinCrossfade of the module (spec 8.3; fade weight 0 is plain vbSkin), or
- * vbSkinLayered with layers (8.6; every layer weight 0 is vbSkinCrossfade).
+ * (declared by them): @vbusd/core's skinningStatements, the body every engine runs (vbSkinCrossfade,
+ * or vbSkinLayered with layers). `maxInfluences` is the module's VB_MAX_INFLUENCES (kept for callers).
  */
+// eslint-disable-next-line no-unused-vars
 export function skinningCall(position, normal, maxInfluences, skin = 'attributes', layers = false) {
-  const influences = skin === 'pulled' ? `
-  int vbIndex[VB_MAX_INFLUENCES];
-  float vbWeight[VB_MAX_INFLUENCES];
-  vbSkinInfluences(gl_VertexID, vbIndex, vbWeight);` : `
-  int vbIndex[VB_MAX_INFLUENCES];
-  float vbWeight[VB_MAX_INFLUENCES];
-  for (int i = 0; i < VB_MAX_INFLUENCES; ++i) {
-${maxInfluences > 4 ? `    vbIndex[i] = int(i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4]);
-    vbWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];` : `    vbIndex[i] = int(vb_boneIndices0[i]);
-    vbWeight[i] = vb_boneWeights0[i];`}
-  }`;
-  const playback = `int(vb_instanceA.x), vb_instanceA.y + vb_instanceA.z * vb_time,
-                  int(vb_instanceA.w), vb_instanceB.x + vb_instanceB.y * vb_time, vb_instanceB.z,`;
-  if (!layers) {
-    return `${influences}
-  vec3 vbPosition;
-  vec3 vbNormal;
-  vbSkinCrossfade(${playback}
-                  ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
-`;
-  }
-  return `${influences}
-  vec3 vbPosition;
-  vec3 vbNormal;
-  int vbLayerClip[VB_MAX_LAYERS];
-  float vbLayerTau[VB_MAX_LAYERS];
-  float vbLayerWeight[VB_MAX_LAYERS];
-  int vbLayerMask[VB_MAX_LAYERS];
-  for (int j = 0; j < VB_MAX_LAYERS; ++j) {
-    vbLayerClip[j] = int(vb_instanceC[2 * j]);
-    vbLayerMask[j] = int(vb_instanceC[2 * j + 1]);
-    vbLayerTau[j] = vb_instanceD[2 * j] + vb_instanceD[2 * j + 1] * vb_time;
-    vbLayerWeight[j] = vb_instanceE[j];
-  }
-  vbSkinLayered(${playback}
-                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
-                ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
-`;
+  return skinningStatements({ skin, layers, position, normal, playback: PLAYBACK });
 }

@@ -69,6 +69,8 @@ export class VirtualBonesCrowd {
   updateSamples(time: number): void;
   setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setClips(clips: number | ArrayLike<number>): void;
+  /** What instance `index` shows (format 1.3 crowd variety). */
+  varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
   socketMatrix(index: number, bone: number, time: number): Matrix;
   instanceMatrix(index: number): Matrix;

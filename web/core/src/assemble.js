@@ -62,3 +62,61 @@ export function shaderModule(encoding, texelFormat, maxInfluences = BASE_MAX_INF
 export function definedTestModule(text) {
   return text.replace(/^#if (VB_[A-Z0-9_]+)[ \t]*$/gm, '#if $1 > 0');
 }
+
+/**
+ * GLSL statements for the top of a vertex shader's main(), the same in every engine: the vertex's
+ * influences (from the bone inputs vb_boneIndices0/1 and vb_boneWeights0/1, integer or float
+ * vectors, or with the pulled skin from its record by gl_VertexID), then the module's
+ * vbSkinCrossfade (spec 8.3; fade weight 0 is exactly vbSkin) or, with layers, vbSkinLayered
+ * (8.6; every layer weight 0 is exactly vbSkinCrossfade), skinning `position` / `normal` (the rest
+ * vertex) into the `vbPosition` / `vbNormal` they declare. An engine only names where an
+ * instance's playback comes from: `playback` holds GLSL expressions `clip`, `tau`, `fadeClip`,
+ * `fadeTau`, `fadeWeight` and, with layers, those of layer `j` (a GLSL int): `layerClip`,
+ * `layerMask`, `layerTau`, `layerWeight`.
+ */
+export function skinningStatements({ skin = 'attributes', layers = false, position = 'position', normal = 'normal', playback }) {
+  checkSkinBinding(skin);
+  const influences = skin === 'pulled' ? `
+  int vbIndex[VB_MAX_INFLUENCES];
+  float vbWeight[VB_MAX_INFLUENCES];
+  vbSkinInfluences(gl_VertexID, vbIndex, vbWeight);` : `
+  int vbIndex[VB_MAX_INFLUENCES];
+  float vbWeight[VB_MAX_INFLUENCES];
+  for (int i = 0; i < VB_MAX_INFLUENCES; ++i) {
+#if VB_MAX_INFLUENCES > 4
+    vbIndex[i] = int(i < 4 ? vb_boneIndices0[i] : vb_boneIndices1[i - 4]);
+    vbWeight[i] = i < 4 ? vb_boneWeights0[i] : vb_boneWeights1[i - 4];
+#else
+    vbIndex[i] = int(vb_boneIndices0[i]);
+    vbWeight[i] = vb_boneWeights0[i];
+#endif
+  }`;
+  const p = playback;
+  const instance = `${p.clip}, ${p.tau},
+                  ${p.fadeClip}, ${p.fadeTau}, ${p.fadeWeight},`;
+  if (!layers) {
+    return `${influences}
+  vec3 vbPosition;
+  vec3 vbNormal;
+  vbSkinCrossfade(${instance}
+                  ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
+`;
+  }
+  return `${influences}
+  vec3 vbPosition;
+  vec3 vbNormal;
+  int vbLayerClip[VB_MAX_LAYERS];
+  float vbLayerTau[VB_MAX_LAYERS];
+  float vbLayerWeight[VB_MAX_LAYERS];
+  int vbLayerMask[VB_MAX_LAYERS];
+  for (int j = 0; j < VB_MAX_LAYERS; ++j) {
+    vbLayerClip[j] = ${p.layerClip};
+    vbLayerMask[j] = ${p.layerMask};
+    vbLayerTau[j] = ${p.layerTau};
+    vbLayerWeight[j] = ${p.layerWeight};
+  }
+  vbSkinLayered(${instance}
+                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
+`;
+}

@@ -1,10 +1,11 @@
 // vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
-// WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, shader-module
+// WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, KTX2 textures, shader-module
 // assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
-// detail, blend spaces and clip events (format 1.3), the plain files and the transform-feedback probe. docs/engines.md ("@vbusd/core").
+// detail, blend spaces and clip events (format 1.3), crowd variety, the plain files, a runtime package
+// crowd's playback arrays and the transform-feedback probe. docs/engines.md ("@vbusd/core").
 
 export { VirtualBonesError } from './errors.js';
-export { BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule } from './assemble.js';
+export { BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule, skinningStatements } from './assemble.js';
 export {
   SKIN_BINDINGS, SKIN_TEXTURE_WIDTH, checkSkinBinding, skinRecordWords, skinRecordTexels, packSkin, skinTextureData,
 } from './skin.js';
@@ -20,4 +21,7 @@ export {
   triangulate, blendWeights, phaseTimes, layerWeights, blendLayers, crossedMarkers, crowdEvents,
 } from './motion.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
+export { RUNTIME_LAYERS, packagePlayback } from './package.js';
+export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';
 export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
+export { isVaried, instanceColors, partBit, partMatrices, varietyOf, packageVariety } from './variety.js';

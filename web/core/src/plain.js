@@ -27,7 +27,8 @@ const LAYER_ARRAYS = { layerClip: Int32Array, layerMask: Int32Array, layerTimeOf
  * pointCount}`; `instances` is `{count, matrices (16 N column-major), clip, timeOffset,
  * playbackRate}`, plus `fadeClip`, `fadeTimeOffset`, `fadePlaybackRate`, `fadeWeight` (format 1.1)
  * and `fadeSamples` ({field: {times, values}}, evaluated with evaluateSamples) where the crowd has
- * them, and the layer arrays (format 1.2, 2 per instance) where it plays layers.
+ * them, and the layer arrays (format 1.2, 2 per instance) where it plays layers, and `tint`, `variant`,
+ * `parts`, `variantNames`, `variantColors`, `partNames` (format 1.3 crowd variety) where it is varied.
  */
 export function parsePlainScene(scene, buffer) {
   if (scene.format !== 'vbusd.webScene' || scene.version !== 1) {
@@ -83,6 +84,18 @@ export function parsePlainScene(scene, buffer) {
     }
     if (crowd.layerWeight) {  // format 1.2 layers: two per instance
       for (const [key, ArrayType] of Object.entries(LAYER_ARRAYS)) instances[key] = view(buffer, crowd[key], ArrayType, `${at}.${key}`);
+    }
+    if (crowd.tint) {  // format 1.3 crowd variety (spec 22): tint, variant, parts mask per instance
+      instances.tint = view(buffer, crowd.tint, Float32Array, `${at}.tint`);
+      instances.variant = view(buffer, crowd.variant, Int32Array, `${at}.variant`);
+      instances.parts = view(buffer, crowd.parts, Int32Array, `${at}.parts`);
+      instances.variantNames = crowd.variantNames ?? [];
+      instances.variantColors = crowd.variantColors ?? [];
+      instances.partNames = crowd.partNames ?? [];
+      if (instances.tint.length !== 3 * instances.count || instances.variant.length !== instances.count
+          || instances.parts.length !== instances.count) {
+        throw new VirtualBonesError(`${at}: the variety arrays do not hold one value per instance`);
+      }
     }
     return { animation: crowd.animation, name: crowd.path, instances };
   });

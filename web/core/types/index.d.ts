@@ -23,6 +23,15 @@ export const BASE_MAX_BONES: number;
 export function shaderModule(encoding: string, texelFormat: string, maxInfluences?: number, maxClips?: number, skin?: 'attributes' | 'pulled', layers?: boolean, maxBones?: number): string;
 export function replaceOnce(text: string, search: string, replacement: string): string;
 export function definedTestModule(text: string): string;
+/** GLSL statements at the top of main() skinning `position` / `normal` into vbPosition / vbNormal (every engine's body). */
+export function skinningStatements(options: {
+  skin?: 'attributes' | 'pulled';
+  layers?: boolean;
+  position?: string;
+  normal?: string;
+  playback: { clip: string; tau: string; fadeClip: string; fadeTau: string; fadeWeight: string;
+    layerClip?: string; layerMask?: string; layerTau?: string; layerWeight?: string };
+}): string;
 
 export const SKIN_BINDINGS: string[];
 export const SKIN_TEXTURE_WIDTH: number;
@@ -62,6 +71,17 @@ export function checkScreenSizes(thresholds: number[], levels: number, name?: st
 export function parsePlainScene(scene: object, buffer: ArrayBuffer): { upAxis: string; animations: object[]; crowds: object[] };
 export function fetchPlainScene(url: string): Promise<{ upAxis: string; animations: object[]; crowds: object[] }>;
 
+/** Layers per instance the runtimes play. */
+export const RUNTIME_LAYERS: number;
+/** A runtime package crowd node's playback arrays (spec/runtime-package.md 5.1): clip, time, crossfade (and its samples), layers. */
+export function packagePlayback(options: {
+  attributes: Record<string, number>;
+  samples?: Record<string, { times: number[]; values: number }>;
+  count: number;
+  read: (accessor: number) => Promise<ArrayLike<number>>;
+  what?: string;
+}): Promise<{ clip: Int32Array; timeOffset: Float32Array; playbackRate: Float32Array; [field: string]: unknown }>;
+
 export function probeProgram(gl: WebGL2RenderingContext, key: string, vertexSource: string): WebGLProgram;
 export function probeOutputs(world: string): string;
 export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, vertexCount: number, setup: (input: FeedbackInput) => void): [Float32Array, Float32Array];
@@ -79,3 +99,28 @@ export function layerWeights(weights: [number, number][]): [number, number][];
 export function crossedMarkers(markers: ClipMarker[] | undefined, clip: string, duration: number, loop: boolean, t0: number, t1: number): { name: string; time: number }[];
 export function crowdEvents(markers: ClipMarker[] | undefined, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], clip: ArrayLike<number>, timeOffset: ArrayLike<number>, playbackRate: ArrayLike<number>, t0: number, t1: number): { instance: number; name: string; time: number }[];
 export function blendLayers(space: BlendSpace, x: number, y: number, phase: number, playbackRate: number, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], markers: ClipMarker[] | undefined): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
+/** The KTX2 container of a file (header, level index, key/value data), every region checked. */
+export function readKTX2Container(data: Uint8Array, name?: string): {
+  vkFormat: number; typeSize: number; pixelWidth: number; pixelHeight: number; pixelDepth: number;
+  layerCount: number; faceCount: number; levelCount: number; supercompressionScheme: number;
+  keyValue: Record<string, Uint8Array>; levels: { levelData: Uint8Array; uncompressedByteLength: number }[];
+};
+/** A Virtual Bones KTX2 file's layout metadata and texels (Zstandard levels inflated with `inflate`, default zstddec). */
+export function parseVirtualBonesKTX2(bytes: Uint8Array | ArrayBuffer, name?: string,
+  options?: { inflate?: (data: Uint8Array, size: number) => Promise<Uint8Array> }): Promise<{ layout: object; texels: Uint16Array | Float32Array | Uint32Array }>;
+/** Crowd variety (format 1.3): per-instance tint, material variant and parts mask. */
+export interface VarietyInstances {
+  count: number;
+  tint?: Float32Array | null;
+  variant?: Int32Array | null;
+  parts?: Int32Array | null;
+  variantNames?: string[];
+  variantColors?: number[][];
+  partNames?: string[];
+}
+export function isVaried(instances: VarietyInstances): boolean;
+export function instanceColors(instances: VarietyInstances): Float32Array | null;
+export function partBit(meshName: string, partNames?: string[]): number;
+export function partMatrices(matrices: Float32Array, parts: Int32Array | null, bit: number): Float32Array;
+export function varietyOf(instances: VarietyInstances, i: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
+export function packageVariety(json: object, meshIndex: number, arrays?: { tint?: ArrayLike<number> | null; variant?: ArrayLike<number> | null; parts?: ArrayLike<number> | null }, count?: number): Partial<VarietyInstances>;

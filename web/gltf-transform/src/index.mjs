@@ -25,7 +25,7 @@
  *   const io = new NodeIO().registerExtensions([VBUSDVirtualBones]);
  */
 
-import { Extension, ExtensionProperty, PropertyType, Accessor, Format } from '@gltf-transform/core';
+import { Extension, ExtensionProperty, PropertyType, Accessor, Format, RefMap } from '@gltf-transform/core';
 import { KHRMeshQuantization } from '@gltf-transform/extensions';
 import { join, quantize, reorder } from '@gltf-transform/functions';
 
@@ -99,7 +99,7 @@ export class VirtualBonesBinding extends ExtensionProperty {
   }
 
   getDefaults() {
-    return Object.assign(super.getDefaults(), { animation: null, influences: 4, path: null });
+    return Object.assign(super.getDefaults(), { animation: null, influences: 4, path: null, part: null });
   }
 
   getAnimation() { return this.getRef('animation'); }
@@ -109,6 +109,43 @@ export class VirtualBonesBinding extends ExtensionProperty {
   setInfluences(influences) { return this.set('influences', influences); }
   getPath() { return this.get('path'); }
   setPath(path) { return this.set('path', path); }
+  /** Crowd variety (vbusd format 1.3): the optional part this primitive is (bit j of _VB_PARTS), or null. */
+  getPart() { return this.get('part'); }
+  setPart(part) { return this.set('part', part); }
+}
+
+/** Accessor usage of the time samples' values (written like instance attributes, grouped by node). */
+const SAMPLE_VALUES = 'VBUSD_SAMPLE_VALUES';
+
+/**
+ * Time samples of a crowd node's crossfade and layer instance attributes (nodes[n].extensions,
+ * spec/runtime-package.md 5.1): per attribute name, stage times in seconds and an accessor of
+ * S x N floats. A reference, not an accessor index, so transforms renumber accessors freely.
+ */
+export class VirtualBonesSamples extends ExtensionProperty {
+  init() {
+    this.extensionName = VBUSD_VIRTUAL_BONES;
+    this.propertyType = 'VirtualBonesSamples';
+    this.parentTypes = [PropertyType.NODE];
+  }
+
+  getDefaults() {
+    return Object.assign(super.getDefaults(), { times: {}, values: new RefMap() });
+  }
+
+  /** The sampled attribute names (`_VB_FADE_WEIGHT`, `_VB_LAYER_WEIGHT_0`, ...). */
+  listNames() { return this.listRefMapKeys('values'); }
+  /** The stage times (seconds) of attribute `name`'s samples, or null. */
+  getTimes(name) { return this.get('times')[name] ?? null; }
+  /** The accessor of attribute `name`'s S x N sample values, or null. */
+  getValues(name) { return this.getRefMap('values', name); }
+  /** Sets (or, with a null accessor, removes) attribute `name`'s samples. */
+  setSamples(name, times, accessor) {
+    const all = { ...this.get('times') };
+    if (accessor) all[name] = Array.from(times); else delete all[name];
+    this.set('times', all);
+    return this.setRefMap('values', name, accessor, { usage: SAMPLE_VALUES });
+  }
 }
 
 function where(mesh, primIndex) {
@@ -119,7 +156,7 @@ function where(mesh, primIndex) {
 export class VBUSDVirtualBones extends Extension {
   static EXTENSION_NAME = VBUSD_VIRTUAL_BONES;
   extensionName = VBUSD_VIRTUAL_BONES;
-  prewriteTypes = [PropertyType.BUFFER];
+  prewriteTypes = [PropertyType.ACCESSOR, PropertyType.BUFFER];
 
   /** A new animation (root object entry), in the order animations are written. */
   createAnimation(name = '') {
@@ -129,6 +166,11 @@ export class VBUSDVirtualBones extends Extension {
   /** A new primitive binding; attach with `prim.setExtension(VBUSD_VIRTUAL_BONES, binding)`. */
   createBinding() {
     return new VirtualBonesBinding(this.document.getGraph());
+  }
+
+  /** A new node object of time samples; attach with `node.setExtension(VBUSD_VIRTUAL_BONES, samples)`. */
+  createSamples() {
+    return new VirtualBonesSamples(this.document.getGraph());
   }
 
   /** The animations, in the order they are written. */
@@ -171,15 +213,39 @@ export class VBUSDVirtualBones extends Extension {
         if (!def) return;
         const animation = animations[def.animation];
         if (!animation) throw new VirtualBonesError(`meshes[${meshIndex}].primitives[${primIndex}]: animation ${JSON.stringify(def.animation)} is not in the root object`);
-        const binding = this.createBinding().setAnimation(animation).setInfluences(def.influences).setPath(def.path ?? null);
+        const binding = this.createBinding().setAnimation(animation).setInfluences(def.influences).setPath(def.path ?? null)
+          .setPart(Number.isInteger(def.part) ? def.part : null);
         if (def.extras !== undefined) binding.setExtras(def.extras);
         context.meshes[meshIndex].listPrimitives()[primIndex].setExtension(VBUSD_VIRTUAL_BONES, binding);
       });
+    });
+
+    // Crowd nodes' time samples (spec/runtime-package.md 5.1).
+    (json.nodes ?? []).forEach((nodeDef, nodeIndex) => {
+      const def = nodeDef.extensions?.[VBUSD_VIRTUAL_BONES];
+      if (!def) return;
+      const samples = this.createSamples();
+      for (const [name, entry] of Object.entries(def.samples ?? {})) {
+        const accessor = context.accessors[entry?.values];
+        if (!accessor || !Array.isArray(entry.times)) throw new VirtualBonesError(`nodes[${nodeIndex}]: the samples of ${name} name no accessor ${JSON.stringify(entry?.values)} with times`);
+        samples.setSamples(name, entry.times, accessor);
+      }
+      if (def.extras !== undefined) samples.setExtras(def.extras);
+      context.nodes[nodeIndex].setExtension(VBUSD_VIRTUAL_BONES, samples);
     });
     return this;
   }
 
   prewrite(context, propertyType) {
+    if (propertyType === PropertyType.ACCESSOR) {
+      // The samples' values are written like instance attributes: tightly packed, grouped by node.
+      context.accessorUsageGroupedByParent.add(SAMPLE_VALUES);
+      for (const property of this.properties) {
+        if (!(property instanceof VirtualBonesSamples) || property.isDisposed()) continue;
+        for (const name of property.listNames()) context.addAccessorToUsageGroup(property.getValues(name), SAMPLE_VALUES);
+      }
+      return this;
+    }
     if (propertyType !== PropertyType.BUFFER) return this;
     this._check();
     const buffers = this.document.getRoot().listBuffers();
@@ -228,11 +294,22 @@ export class VBUSDVirtualBones extends Extension {
         if (!binding) return;
         const def = { animation: indexOf.get(binding.getAnimation()), influences: binding.getInfluences() };
         if (binding.getPath() !== null) def.path = binding.getPath();
+        if (binding.getPart() !== null) def.part = binding.getPart();
         if (Object.keys(binding.getExtras()).length) def.extras = binding.getExtras();
         const primDef = meshDef.primitives[primIndex];
         primDef.extensions ??= {};
         primDef.extensions[VBUSD_VIRTUAL_BONES] = def;
       });
+    }
+    for (const node of this.document.getRoot().listNodes()) {
+      const samples = node.getExtension(VBUSD_VIRTUAL_BONES);
+      if (!samples || !samples.listNames().length) continue;
+      const nodeDef = json.nodes[context.nodeIndexMap.get(node)];
+      const def = { samples: Object.fromEntries(samples.listNames().map((name) => [name,
+        { times: samples.getTimes(name), values: context.accessorIndexMap.get(samples.getValues(name)) }])) };
+      if (Object.keys(samples.getExtras()).length) def.extras = samples.getExtras();
+      nodeDef.extensions ??= {};
+      nodeDef.extensions[VBUSD_VIRTUAL_BONES] = def;
     }
     this._align(context, [...viewIndex.values()]);
     return this;

@@ -1,7 +1,7 @@
 // Types of @vbusd/gltf-transform (src/index.mjs): the VBUSD_virtual_bones extension for
 // glTF-Transform. Hand-written, minimal: tests/test_npm_packages.py checks that every export of the
 // module is declared here.
-import type { Buffer, Extension, ExtensionProperty, IProperty, ReaderContext, Transform, WriterContext } from '@gltf-transform/core';
+import type { Accessor, Buffer, Extension, ExtensionProperty, IProperty, ReaderContext, RefMap, Transform, WriterContext } from '@gltf-transform/core';
 
 export const VBUSD_VIRTUAL_BONES: 'VBUSD_virtual_bones';
 /** The extension's own version (spec/extensions/VBUSD_virtual_bones). */
@@ -49,6 +49,7 @@ interface IVirtualBonesBinding extends IProperty {
   animation: VirtualBonesAnimation;
   influences: number;
   path: string | null;
+  part: number | null;
 }
 
 /** The binding of one mesh primitive to an animation. */
@@ -63,6 +64,26 @@ export class VirtualBonesBinding extends ExtensionProperty<IVirtualBonesBinding>
   setInfluences(influences: number): this;
   getPath(): string | null;
   setPath(path: string | null): this;
+  /** Crowd variety (vbusd format 1.3): the optional part this primitive is (bit j of _VB_PARTS), or null. */
+  getPart(): number | null;
+  setPart(part: number | null): this;
+}
+
+interface IVirtualBonesSamples extends IProperty {
+  times: Record<string, number[]>;
+  values: RefMap<Accessor>;
+}
+
+/** Time samples of a crowd node's fade and layer instance attributes (spec/runtime-package.md 5.1). */
+export class VirtualBonesSamples extends ExtensionProperty<IVirtualBonesSamples> {
+  readonly extensionName: 'VBUSD_virtual_bones';
+  readonly propertyType: 'VirtualBonesSamples';
+  readonly parentTypes: string[];
+  protected init(): void;
+  listNames(): string[];
+  getTimes(name: string): number[] | null;
+  getValues(name: string): Accessor | null;
+  setSamples(name: string, times: number[], accessor: Accessor | null): this;
 }
 
 /** The extension: `io.registerExtensions([VBUSDVirtualBones])`. */
@@ -71,6 +92,7 @@ export class VBUSDVirtualBones extends Extension {
   readonly extensionName: 'VBUSD_virtual_bones';
   createAnimation(name?: string): VirtualBonesAnimation;
   createBinding(): VirtualBonesBinding;
+  createSamples(): VirtualBonesSamples;
   listAnimations(): VirtualBonesAnimation[];
   read(context: ReaderContext): this;
   write(context: WriterContext): this;

@@ -1,0 +1,261 @@
+"""The previous-frame pose (spec 21): ``vbusd.skin(..., previous=dt)``, the numpy crowd decode
+``reference.skin_crowd_previous`` and its warp twin.
+
+Expected values come from outside the code under test:
+
+* the spec's worked example (21.2), rows and blend factors computed by hand across a loop boundary
+  and a clamped clip's end;
+* UsdSkel's own skinning of the stadium sample's source at the previous source time (clip-local
+  time wrapped by hand), within 1e-3 of the mesh's bounding-box diagonal (the float16 texture and
+  its 51.2 rows/s against the source's 30 samples/s: measured 2e-4..5e-4), while the pose moves
+  ten times that in the frame;
+* a crossfading, layered crowd with per-instance rates and a time-sampled fade weight, each
+  instance skinned by hand with ``vbusd.skin`` at clip times computed from the primvars USD reads
+  (``tests.helpers.crowds.by_hand``) at ``t - dt``, across its clamped clips' end, within 1e-6
+  (the reader keeps an interpolated fade weight in float32, as USD's float[] primvar holds it);
+* the warp decoder against the numpy reference within 1e-6 of the diagonal (float32).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import vbusd
+from vbusd.cli import main
+from vbusd.decoders import reference
+from vbusd.format.errors import OptionsError
+from vbusd.format.model import Clip
+
+from tests.helpers.crowds import by_hand, chain_character, primvars
+from tests.helpers.capabilities import REPO, require
+
+SAMPLE = REPO / "samples" / "stadium_crowd"
+ASSET = SAMPLE / "stadium_crowd_vb.usda"
+DT = 1.0 / 60.0
+
+
+def diagonal(points) -> float:
+    flat = np.asarray(points).reshape(-1, 3)
+    return float(np.linalg.norm(flat.max(axis=0) - flat.min(axis=0)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Clip-local times by hand (spec 21.2)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_spec_example_rows_across_the_loop_and_the_clip_end():
+    cheer = vbusd.read_asset(ASSET).animations[0].clips[0]
+    assert (cheer.row_count, cheer.rows_per_second, cheer.loop) == (512, 51.2, True)
+    now = 9.99 + 0.02
+    i0, i1, f = reference.row_position(cheer, now)
+    assert (int(i0), int(i1)) == (0, 1) and float(f) == pytest.approx(0.512, abs=1e-9)
+    i0, i1, f = reference.row_position(cheer, now - DT)
+    assert (int(i0), int(i1)) == (511, 0) and float(f) == pytest.approx(0.658667, abs=1e-6)
+    clamped = Clip("jump", 0, 31, 30.0, False, 0.0)
+    i0, i1, f = reference.row_position(clamped, 2 * 0.51)
+    assert (int(i0), int(i1), float(f)) == (30, 30, 0.0)
+    i0, i1, f = reference.row_position(clamped, 2 * (0.51 - DT))
+    assert (int(i0), int(i1)) == (29, 30) and float(f) == pytest.approx(0.6, abs=1e-9)
+
+
+# ----------------------------------------------------------------------------------------------
+# vbusd.skin(previous=dt) against UsdSkel at the previous time
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("tau, dt, rate", [(10.01, DT, 1.0),    # the loop boundary (spec 21.2)
+                                           (0.02, DT, 1.5),     # back across 0: wraps to 9.995
+                                           (10.05, 0.1, 1.0),   # a longer frame across the boundary
+                                           (3.3, 0.25, -1.0)])  # playing backwards
+def test_previous_positions_are_usdskels_pose_at_the_previous_time(tau, dt, rate):
+    from tests.helpers.scenes import usdskel_world
+
+    (pose,) = vbusd.skin(ASSET, "cheer", tau, previous=dt, playback_rate=rate)
+    source = SAMPLE / "stadium_crowd.usda"
+    period = 10.0  # 512 rows at 51.2 rows/s; the source's 30 samples/s, time code = seconds x 30
+    previous_code = ((tau - dt * rate) % period) * 30.0
+    (expected,), (expected_normals,) = usdskel_world(source, "/StadiumCrowd/Body", [previous_code])
+    (current,), _ = usdskel_world(source, "/StadiumCrowd/Body", [(tau % period) * 30.0])
+    d = diagonal(expected)
+    assert np.abs(pose.previous_positions - expected).max() <= 1e-3 * d
+    assert np.abs(pose.points - current).max() <= 1e-3 * d
+    assert np.abs(pose.previous_positions - pose.points).max() > 1e-2 * d  # it moved: the check can fail
+    assert pose.previous_normals.shape == pose.normals.shape
+    assert np.abs(pose.previous_normals - expected_normals).max() < 2e-2
+
+
+def test_without_previous_nothing_changes_and_bad_intervals_are_refused():
+    (plain,) = vbusd.skin(ASSET, "cheer", 2.5)
+    (asked,) = vbusd.skin(ASSET, "cheer", 2.5, previous=DT)
+    assert plain.previous_positions is None and plain.previous_normals is None
+    np.testing.assert_array_equal(plain.points, asked.points)
+    np.testing.assert_array_equal(plain.normals, asked.normals)
+    for bad in (0.0, -DT, float("nan"), float("inf"), True, "0.1"):
+        with pytest.raises(OptionsError, match="previous"):
+            vbusd.skin(ASSET, "cheer", 2.5, previous=bad)
+    with pytest.raises(OptionsError, match="playback_rate"):
+        vbusd.skin(ASSET, "cheer", 2.5, previous=DT, playback_rate=float("nan"))
+
+
+def test_previous_steps_the_fade_and_the_layers_back_with_the_clip(tmp_path):
+    character = chain_character(tmp_path)
+    layers = [{"clip": "wave", "time": 0.7, "weight": 0.6, "mask": "upper"}]
+    (pose,) = vbusd.skin(character, "walk", 1.0, fade_clip="run", fade_time=0.4, fade_weight=0.3, layers=layers,
+                         previous=0.1, playback_rate=2.0)
+    (expected,) = vbusd.skin(character, "walk", 0.8, fade_clip="run", fade_time=0.2, fade_weight=0.3,
+                             layers=[{**layers[0], "time": 0.5}])
+    np.testing.assert_allclose(pose.previous_positions, expected.points, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(pose.previous_normals, expected.normals, rtol=0, atol=1e-12)
+    assert np.abs(pose.previous_positions - pose.points).max() > 1e-2
+
+
+# ----------------------------------------------------------------------------------------------
+# A crossfading, layered crowd with per-instance rates (numpy reference and warp)
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def chain_crowd(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("previous")
+    character = chain_character(folder)
+    out = folder / "crowd.usda"
+    status = main(["crowd", str(character), "-o", str(out), "--count", "8", "--yaw", "0", "0", "--seed", "7",
+                   "--clips", "walk", "--rate", "0.7", "1.3", "--time-offset", "0", "0.5",
+                   "--fade-clips", "run:2,wave", "--fade-window", "2.5", "3.5", "--fade-time-offset", "-2", "-2",
+                   "--fade-rate", "0.9", "1.1",
+                   "--layer", "upper", "wave", "--layer-weight", "0.25", "0.75", "--layer-rate", "1", "1.5"])
+    assert status == 0
+    back = vbusd.read_asset(out)
+    animation = back.animations[back.crowd_animation[0]]
+    return character, primvars(out), animation, back.crowds[0]
+
+
+def _weight_at(i, t):  # the crowd's fade window, by hand: 0 before 2.5 s, 1 after 3.5 s, linear between
+    return float(np.clip((t - 2.5) / (3.5 - 2.5), 0.0, 1.0))
+
+
+def test_crowd_previous_is_every_instance_by_hand_at_t_minus_dt(chain_crowd):
+    character, values, animation, crowd = chain_crowd
+    mesh = animation.meshes[0]
+    # Each instance at the frame its walk clip (clamped, 2 s) reaches its end, and two frames that
+    # cross the fade window's ends (the fade weight is time-sampled: its previous value differs).
+    ends = (2.0 - values["timeOffset"]) / values["playbackRate"] + DT / 2
+    checked_end = 0
+    for t in (2.5 + DT / 2, 3.5 + DT / 3, *ends[:3]):
+        points, normals = reference.skin_crowd_previous(animation, mesh, crowd, t, DT)
+        now, _ = reference.skin_crowd(animation, mesh, crowd, t)
+        for i in range(crowd.instance_count):
+            np.testing.assert_allclose(points[i], by_hand(character, values, i, t - DT, _weight_at), rtol=0,
+                                       atol=1e-6, err_msg=f"instance {i} at {t} s")
+        assert np.abs(points - now).max() > 1e-3
+        taus = values["timeOffset"] + values["playbackRate"] * np.array([t, t - DT])[:, None]
+        checked_end += int(np.sum((taus[0] > 2.0) & (taus[1] < 2.0)))
+    assert checked_end >= 3  # instances whose previous time is before the clip's end, current after
+    assert normals is not None and normals.shape == points.shape
+
+
+def test_crowd_reset_and_previous_transforms(chain_crowd):
+    character, values, animation, crowd = chain_crowd
+    mesh = animation.meshes[0]
+    t = 2.9
+    reset = np.zeros(crowd.instance_count, bool)
+    reset[[1, 4]] = True
+    moved = dataclasses.replace(crowd, positions=np.asarray(crowd.positions) + [0.0, 0.0, 2.0])
+    points, _ = reference.skin_crowd_previous(animation, mesh, crowd, t, DT, reset=reset, previous_crowd=moved)
+    for i in range(crowd.instance_count):
+        if reset[i]:
+            expected = by_hand(character, values, i, t, _weight_at)
+        else:
+            expected = by_hand(character, values, i, t - DT, _weight_at) + [0.0, 0.0, 2.0]
+        np.testing.assert_allclose(points[i], expected, rtol=0, atol=1e-6, err_msg=f"instance {i}")
+    with pytest.raises(OptionsError, match="reset"):
+        reference.skin_crowd_previous(animation, mesh, crowd, t, DT, reset=[True])
+    with pytest.raises(OptionsError, match="previous"):
+        reference.skin_crowd_previous(animation, mesh, crowd, t, 0.0)
+
+
+def _warp():
+    require("warp")
+    from vbusd.decoders import warp as wd
+    return wd
+
+
+@pytest.mark.parametrize("which", ["chain", "stadium"])
+def test_warp_previous_agrees_with_the_reference(chain_crowd, which):
+    wd = _warp()
+    if which == "chain":
+        _, _, animation, crowd = chain_crowd
+        times = (2.5 + DT / 2, 1.9)
+    else:
+        asset = vbusd.read_asset(ASSET)
+        animation, crowd = asset.animations[0], asset.crowds[0]
+        # instance 0 crosses the loop boundary between t - dt and t
+        tau0 = float(crowd.time_offset[0])
+        rate0 = float(crowd.playback_rate[0])
+        times = ((10.0 - tau0) / rate0 + DT / 2 if rate0 > 0 else 0.3, 4.0)
+    mesh = animation.meshes[0]
+    n = crowd.instance_count
+    reset = np.arange(n) % 5 == 2
+    moved = dataclasses.replace(crowd, positions=np.asarray(crowd.positions) - [0.5, 0.0, 0.25])
+    for device in wd.available_devices():
+        for t in times:
+            for kwargs in ({}, {"reset": reset, "previous_crowd": moved}):
+                expected = reference.skin_crowd_previous(animation, mesh, crowd, t, DT, **kwargs)
+                got = wd.skin_crowd_previous(animation, mesh, crowd, t, DT, device=device, **kwargs)
+                d = diagonal(expected[0])
+                assert np.abs(got[0] - expected[0]).max() <= 1e-6 * d, (device, t, kwargs.keys())
+                assert np.abs(got[1] - expected[1]).max() <= 5e-6
+
+
+def test_hold_reset_kernel_is_its_numpy_twin():
+    wd = _warp()
+    import warp as wp
+    from vbusd.decoders import warp_kernels as K
+
+    rng = np.random.default_rng(1)
+    current, previous = rng.normal(size=(2, 6, 5, 3)).astype(np.float32)
+    reset = np.array([1, 0, 0, 1, 1, 0], np.int32)
+    expected = reference.hold_reset(previous, current, reset.astype(bool))
+    for device in wd.available_devices():
+        out = wp.array(previous, dtype=wp.vec3, device=device)
+        wp.launch(K.hold_reset_kernel, dim=(6, 5), inputs=[wp.array(reset, dtype=wp.int32, device=device),
+                                                           wp.array(current, dtype=wp.vec3, device=device), out],
+                  device=device)
+        np.testing.assert_array_equal(out.numpy(), expected)
+    assert np.array_equal(expected[0], current[0]) and np.array_equal(expected[1], previous[1])
+
+
+def test_stadium_crowd_previous_is_usdskels_pose_placed_by_hand():
+    """Six spectators of the sample's crowd (their own offsets and rates, instance 0 crossing the
+    loop in the frame): each previous pose is UsdSkel's skinning of the source at the instance's
+    previous clip time wrapped by hand, rotated by its orientation and moved to its position, within
+    1e-3 of the body's diagonal."""
+    from tests.helpers.scenes import usdskel_world
+
+    asset = vbusd.read_asset(ASSET)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    n = 6
+    crowd = dataclasses.replace(crowd, positions=crowd.positions[:n], orientations=crowd.orientations[:n],
+                                scales=None if crowd.scales is None else crowd.scales[:n], clip=crowd.clip[:n],
+                                time_offset=crowd.time_offset[:n], playback_rate=crowd.playback_rate[:n])
+    offset, rate = crowd.time_offset.astype(np.float64), crowd.playback_rate.astype(np.float64)
+    t = (10.0 * np.ceil(offset[0] / 10.0 + 1e-9) - offset[0]) / rate[0] + DT / 2  # instance 0 wraps in (t - dt, t]
+    previous_tau = offset + rate * (t - DT)
+    assert np.floor((offset[0] + rate[0] * t) / 10.0) == np.floor(previous_tau[0] / 10.0) + 1
+    points, _ = reference.skin_crowd_previous(vb, vb.meshes[0], crowd, t, DT)
+    source = SAMPLE / "stadium_crowd.usda"
+    poses, _ = usdskel_world(source, "/StadiumCrowd/Body", (previous_tau % 10.0) * 30.0)
+    d = diagonal(poses[0])
+    for i in range(n):
+        x, y, z, w = np.asarray(crowd.orientations[i], np.float64) / np.linalg.norm(crowd.orientations[i])
+        rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        scale = np.ones(3) if crowd.scales is None else np.asarray(crowd.scales[i], np.float64)
+        expected = (poses[i] * scale) @ rotation.T + np.asarray(crowd.positions[i], np.float64)
+        assert np.abs(points[i] - expected).max() <= 1e-3 * d, f"instance {i}"
