@@ -54,8 +54,9 @@
 #   device call: carry [".gl", ".whl"]  command: bash benchmarks/draw_run.sh issue36
 # It writes draw_tests.log, draw_issue36.json, draw_issue36.log and draw_issue36_report.md (with the
 # previous-pose cost table) to $OUT.
+# Issue 37 (crowd variety on vs off, --plan issue37): the same call with `issue37` instead.
 set -euo pipefail
-cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36}
+cmd=${1:?usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36|issue37}
 case "$cmd" in
 pack)
     exclude="$(git rev-parse --git-dir)/info/exclude"; mkdir -p "$(dirname "$exclude")"
@@ -88,7 +89,7 @@ pack-lod)
 stage)
     bash benchmarks/gpu_run.sh stage "$2"
     ;;
-smoke|run|factors|issue25|issue25-texture|issue29|issue36)
+smoke|run|factors|issue25|issue25-texture|issue29|issue36|issue37)
     out=${OUT:-/tmp/out}; mkdir -p "$out"
     for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/glsite .whl/*.whl
@@ -134,7 +135,7 @@ smoke|run|factors|issue25|issue25-texture|issue29|issue36)
         tail -12 "$out/draw_issue29_report.md"
         exit 0
     fi
-    if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ] || [ "$cmd" = issue36 ]; then
+    if [ "$cmd" = issue25 ] || [ "$cmd" = issue25-texture ] || [ "$cmd" = issue36 ] || [ "$cmd" = issue37 ]; then
         plan=$cmd; name=${cmd//-/_}
         timeout 60 python3 -m pytest -p no:cacheprovider --noconftest tests/test_draw_cost.py -q -rs 2>&1 | tee "$out/draw_tests.log"
         # shellcheck disable=SC2086
@@ -154,6 +155,6 @@ smoke|run|factors|issue25|issue25-texture|issue29|issue36)
     tail -30 "$out/draw_report.md"
     ;;
 *)
-    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36" >&2; exit 2
+    echo "usage: draw_run.sh pack|pack-lod|stage N|smoke|run|factors|issue25|issue25-texture|issue29|issue36|issue37" >&2; exit 2
     ;;
 esac

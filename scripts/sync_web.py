@@ -56,6 +56,10 @@ THREE_FILES = {
     "examples/jsm/utils/BufferGeometryUtils.js": "addons/utils/BufferGeometryUtils.js",
     "examples/jsm/utils/SkeletonUtils.js": "addons/utils/SkeletonUtils.js",
     "examples/jsm/libs/zstddec.module.js": "addons/libs/zstddec.module.js",
+    # Motion vectors under WebGPURenderer (the TRAA picture of docs/engines.md, `?post=traa`).
+    "examples/jsm/tsl/display/TRAANode.js": "addons/tsl/display/TRAANode.js",
+    "examples/jsm/tsl/display/MotionBlur.js": "addons/tsl/display/MotionBlur.js",
+    "examples/jsm/tsl/utils/TAAUtils.js": "addons/tsl/utils/TAAUtils.js",
 }
 
 

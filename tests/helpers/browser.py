@@ -555,3 +555,87 @@ def layered_stadium(folder: Path, encoding: str = "quatTranslation", texel_forma
     path.parent.mkdir()
     vbusd.write_asset(dataclasses.replace(asset, crowds=(layered,), crowd_animation=(0,)), path)
     return path
+
+
+def check_previous(page: ViewerPage, asset, instance: int, t: float, dt: float) -> tuple[float, float]:
+    """Probe the page's previous-frame pose (spec virtual-bones.md 21) of ``instance`` at ``t`` and
+    compare it with the numpy decoder at scene time ``t - dt`` (every clip-local time at timeOffset
+    + playbackRate * (t - dt), wrapped or clamped by its clip; fades and layers at t - dt): returns
+    (previous-position error / diagonal, the largest distance the instance's points moved between
+    t - dt and t / diagonal: the motion the velocity pass sees, so a probe that returned the
+    current pose as the previous one fails)."""
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    assert abs(result["dt"] - dt) <= 1e-12, (result["dt"], dt)
+    previous = np.asarray(result["previousPositions"], dtype=np.float64).reshape(-1, 3)
+    expected_previous, _ = reference_instance(asset, instance, t - dt)
+    expected_current, _ = reference_instance(asset, instance, t)
+    assert previous.shape == expected_previous.shape
+    diagonal = float(np.linalg.norm(expected_current.max(0) - expected_current.min(0)))
+    error = float(np.abs(previous - expected_previous).max()) / diagonal
+    moved = float(np.linalg.norm(expected_current - expected_previous, axis=1).max()) / diagonal
+    return error, moved
+
+
+def across_clip_time(crowd, instance: int, boundary: float, dt: float) -> float:
+    """The scene time t at which ``instance``'s clip-local time timeOffset + playbackRate * t is half
+    a frame past ``boundary`` (a loop's end, a clamped clip's end): t - dt lies half a frame before it."""
+    offset = float(crowd.time_offset[instance])
+    rate = float(crowd.playback_rate[instance])
+    return (boundary - offset) / rate + 0.5 * dt
+
+
+def rasterize_nearest(clip: np.ndarray, triangles: np.ndarray, width: int, height: int,
+                      budget: int = 4_000_000) -> tuple[np.ndarray, np.ndarray]:
+    """A depth-tested rasterization of ``triangles`` given in clip space (x, y, z, w; all w > 0):
+    per pixel centre the nearest triangle (NDC depth, linear in screen space) as its index (-1:
+    none) and its perspective-correct barycentric weights (height, width, 3), as a GPU's
+    interpolation of a varying uses them. Chunked over (triangle, pixel) pairs as :func:`rasterize`."""
+    ndc = clip[:, :3] / clip[:, 3:]
+    pixels = np.empty((len(clip), 2))
+    pixels[:, 0] = (ndc[:, 0] + 1.0) * 0.5 * width
+    pixels[:, 1] = (1.0 - ndc[:, 1]) * 0.5 * height
+    corners = pixels[triangles]
+    lo = np.floor(corners.min(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    hi = np.ceil(corners.max(axis=1) - 0.5).astype(np.int64).clip(0, [width - 1, height - 1])
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    keep = np.flatnonzero(area != 0)
+    spans = (hi - lo + 1)[keep]
+    counts = spans[:, 0] * spans[:, 1]
+    ends = np.cumsum(counts)
+    depth = np.full(width * height, np.inf)
+    nearest = np.full(width * height, -1, dtype=np.int64)
+    weights = np.zeros((width * height, 3))
+    start = 0
+    while start < len(keep):
+        stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + budget, side="right")))
+        n = counts[start:stop]
+        which = np.repeat(np.arange(stop - start), n)
+        local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        width_of = spans[start:stop, 0][which]
+        triangle = keep[start:stop][which]
+        xs = lo[triangle, 0] + local % width_of + 0.5
+        ys = lo[triangle, 1] + local // width_of + 0.5
+        p, q, r = a[triangle], b[triangle], c[triangle]
+        total = area[triangle]
+        l0 = ((q[:, 0] - xs) * (r[:, 1] - ys) - (q[:, 1] - ys) * (r[:, 0] - xs)) / total
+        l1 = ((r[:, 0] - xs) * (p[:, 1] - ys) - (r[:, 1] - ys) * (p[:, 0] - xs)) / total
+        l2 = 1.0 - l0 - l1
+        inside = (l0 >= 0) & (l1 >= 0) & (l2 >= 0)
+        triangle, l0, l1, l2 = triangle[inside], l0[inside], l1[inside], l2[inside]
+        index = (ys[inside] - 0.5).astype(np.int64) * width + (xs[inside] - 0.5).astype(np.int64)
+        vertices = triangles[triangle]
+        z = l0 * ndc[vertices[:, 0], 2] + l1 * ndc[vertices[:, 1], 2] + l2 * ndc[vertices[:, 2], 2]
+        order = np.lexsort((z, index))
+        first = order[np.r_[True, index[order][1:] != index[order][:-1]]] if len(order) else order
+        better = z[first] < depth[index[first]]
+        chosen = first[better]
+        at = index[chosen]
+        depth[at] = z[chosen]
+        nearest[at] = triangle[chosen]
+        # Perspective-correct: screen-space weights over each corner's w, renormalized.
+        inverse_w = 1.0 / clip[vertices[chosen], 3]
+        perspective = np.stack([l0[chosen], l1[chosen], l2[chosen]], axis=1) * inverse_w
+        weights[at] = perspective / perspective.sum(axis=1, keepdims=True)
+        start = stop
+    return nearest.reshape(height, width), weights.reshape(height, width, 3)

@@ -41,7 +41,7 @@ SOURCES = (
     ("vbusd-core", "web/core/src", ("*.js",)),
     ("vbusd-three", "web/src", ("*.js", "webgpu/*.js")),
     ("vbusd-babylon", "web/babylon/src", ("*.js",)),
-    ("three", "web/vendor/three-*", ("LICENSE", "*.js", "addons/*/*.js")),
+    ("three", "web/vendor/three-*", ("LICENSE", "*.js", "addons/*/*.js", "addons/*/*/*.js")),
     ("babylon", "web/vendor/babylon-*", ("LICENSE", "*.js")),
 )
 

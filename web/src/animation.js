@@ -74,6 +74,8 @@ export class VirtualBonesAnimation {
     this.uniforms = {
       vb_texture: { value: texture },
       vb_time: { value: 0 },
+      // The previous frame's scene time (spec 21; velocity materials and the probe read it).
+      vb_previousTime: { value: -1 / 60 },
       vb_clips: { value: vectors(clipTable(this.clips, this.maxClips)) },
     };
     const rig = rigTexels(layout);
@@ -96,6 +98,11 @@ export class VirtualBonesAnimation {
   get time() { return this.uniforms.vb_time.value; }
 
   set time(seconds) { this.uniforms.vb_time.value = seconds; }
+
+  /** Scene time of the previous frame (time - dt; VirtualBonesCrowd.updatePrevious sets it). */
+  get previousTime() { return this.uniforms.vb_previousTime.value; }
+
+  set previousTime(seconds) { this.uniforms.vb_previousTime.value = seconds; }
 
   /** Index of the clip called `name`, or -1. */
   clipIndex(name) { return this.clips.findIndex((clip) => clip.name === name); }

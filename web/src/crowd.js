@@ -10,7 +10,8 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
+  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL,
+  PreviousFrame,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -150,6 +151,11 @@ export class VirtualBonesCrowd extends Group {
       this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
       this.updateSamples(0);
     }
+    // The previous frame (spec 21): vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) per
+    // instance from @vbusd/core's PreviousFrame, read only by the velocity materials and the probe.
+    this.previous = new PreviousFrame(instances.count);
+    this.previousFadeAttribute = new InstancedBufferAttribute(this.previous.values, 4).setUsage(DynamicDrawUsage);
+    this.updatePrevious(0);
     // Layers (format 1.2): bound only for a crowd that plays them (its materials run vbSkinLayered).
     this.layered = Boolean(instances.layerWeight);  // not `layers`: Object3D.layers is three's render layers
     if (this.layered) {
@@ -170,7 +176,7 @@ export class VirtualBonesCrowd extends Group {
     }
     const shared = {
       clip: this.clipAttribute, time: this.timeAttribute, fadeClip: this.fadeClipAttribute, fade: this.fadeAttribute,
-      matrix: this.instanceMatrix,
+      matrix: this.instanceMatrix, previousFade: this.previousFadeAttribute,
     };
     // Crowd variety (format 1.3): one colour per instance, shared by every mesh; parts below.
     const colors = instanceColors(instances);
@@ -187,6 +193,7 @@ export class VirtualBonesCrowd extends Group {
       geometry.setAttribute('vb_instanceTime', attributes.time);
       geometry.setAttribute('vb_instanceFadeClip', attributes.fadeClip);
       geometry.setAttribute('vb_instanceFade', attributes.fade);
+      geometry.setAttribute('vb_instancePreviousFade', attributes.previousFade);
       if (this.layered) {
         geometry.setAttribute('vb_instanceLayerClipMask', this.layerClipMaskAttribute);
         geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
@@ -237,7 +244,8 @@ export class VirtualBonesCrowd extends Group {
         clip.gpuType = IntType;
         const fadeClip = dynamic(new Int32Array(n), 1);
         fadeClip.gpuType = IntType;
-        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3) };
+        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3),
+          previousFade: dynamic(new Float32Array(4 * n), 4) };
       });
       this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry, index) => {
         const mesh = makeMesh(entry, index, this.levelAttributes[level]);
@@ -292,6 +300,26 @@ export class VirtualBonesCrowd extends Group {
   }
 
   /**
+   * The previous frame (spec virtual-bones.md 21) for the frame at scene time `time` drawn `dt`
+   * seconds after the last one (default 1/60): each instance's previous fade time and weight (a
+   * time-sampled fade at time - dt) and the animation's previousTime (time - dt), which the
+   * velocity materials (velocity.js) and the probe read. Call each frame after setting the
+   * animation's time and updateSamples(time); the viewer does.
+   */
+  updatePrevious(time = this.animation.time, dt = DEFAULT_FRAME_INTERVAL) {
+    const fade = this.fadeAttribute.array;
+    this.previous.update(time, dt, (i) => fade.subarray(3 * i, 3 * i + 3), this.fadeSamples);
+    this.animation.previousTime = this.previous.previousTime;
+    this.previousFadeAttribute.needsUpdate = true;
+  }
+
+  /**
+   * Instance `index` switched clips or was teleported: its next frame has no motion (its previous
+   * pose is its current one), as spec 21's reset says. Takes effect at the next updatePrevious.
+   */
+  resetPrevious(index) { this.previous.reset(index); }
+
+  /**
    * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
    * playbackRate * time` overrides the bones of mask `mask` (an index into the animation's masks,
    * or its name) with weight `weight` (0..1; 0 leaves the slot out).
@@ -323,6 +351,8 @@ export class VirtualBonesCrowd extends Group {
    * sum w D`: written as its clip and time plus layer slots 0 and 1 under the mask of every bone
    * (spec 23.1, "Decoding a blend as layers"; @vbusd/core's blendLayers), so a crowd made with
    * layers plays it. A space's point beyond the third weighted one would need a third slot: refused.
+   * Switching an instance to another space (or from its clip) is a clip switch for motion vectors:
+   * call resetPrevious(index) then (spec 21, Reset); moving x, y within one space is not.
    */
   setBlend(index, { space, x = 0, y = 0, phase = 0, playbackRate = 1 } = {}) {
     if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers (blends play as layers)`);
@@ -448,12 +478,13 @@ export class VirtualBonesCrowd extends Group {
       target.time.array[2 * at + 1] = source.time[2 * i + 1];
       target.fadeClip.array[at] = source.fadeClip[i];
       target.fade.array.set(source.fade.subarray(3 * i, 3 * i + 3), 3 * at);
+      target.previousFade.array.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
     }
     this.levels.forEach((meshes, level) => {
       const attributes = this.levelAttributes[level];
       for (const [key, attribute] of Object.entries(attributes)) {
         attribute.clearUpdateRanges();
-        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3 }[key];
+        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3, previousFade: 4 }[key];
         if (counts[level]) attribute.addUpdateRange(0, counts[level] * size);
         attribute.needsUpdate = true;
       }

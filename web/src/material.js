@@ -3,7 +3,10 @@
 // lighting, fog, shadows and tone mapping work unchanged. The GLSL is the module `vbusd shader`
 // writes (shader-modules.js is generated from it); this file only adds the glue.
 
-import { VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding, skinningStatements } from '@vbusd/core';
+import {
+  VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding, skinningStatements,
+  previousDeclarations as corePreviousDeclarations, previousSkinningStatements,
+} from '@vbusd/core';
 
 export { shaderModule };
 
@@ -52,6 +55,19 @@ const PLAYBACK = {
   layerClip: 'vb_instanceLayerClipMask[2 * j]', layerMask: 'vb_instanceLayerClipMask[2 * j + 1]',
   layerTau: 'vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_time', layerWeight: 'vb_instanceLayerWeight[j]',
 };
+
+// The previous-frame pose (spec virtual-bones.md 21, spec/shaders.md "Previous pose"): @vbusd/core's
+// previousSkinningStatements with the same playback, at the previous frame's clip-local times
+// (timeOffset + playbackRate * vb_previousTime for the clip and the layers), the previous fade time
+// and weight from vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) (@vbusd/core's
+// PreviousFrame); an instance reset this frame (clip switched, teleported) takes its current pose:
+// zero velocity.
+
+/** Declarations of the previous-frame inputs (after skinningDeclarations): vb_instancePreviousFade, vb_previousTime. */
+export function previousDeclarations() { return corePreviousDeclarations('in'); }
+
+/** Statements after skinningCall: the previous-frame skinned position into vbPreviousPosition (bind space, as vbPosition). */
+export function previousSkinningCall(layers = false) { return previousSkinningStatements({ layers, playback: PLAYBACK }); }
 
 /** Statements at the top of main() for skin binding `skin`: skin the rest vertex into vbPosition /
  * vbNormal (@vbusd/core's skinningStatements, the body every engine runs). */

@@ -2,9 +2,11 @@
 // three's context, with the same GLSL (module + skinning call) that the patched materials run and
 // the instance data of the crowd's own attribute arrays.
 
-import { VirtualBonesError, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from '@vbusd/core';
+import {
+  VirtualBonesError, DEFAULT_FRAME_INTERVAL, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate,
+} from '@vbusd/core';
 
-import { skinningCall, skinningDeclarations } from './material.js';
+import { previousDeclarations, previousSkinningCall, skinningCall, skinningDeclarations } from './material.js';
 import { DEFAULT_SKIN } from './skin.js';
 
 function vertexSource(animation, maxInfluences, skin, layers) {
@@ -12,15 +14,18 @@ function vertexSource(animation, maxInfluences, skin, layers) {
 precision highp float;
 precision highp int;
 ${skinningDeclarations(animation, maxInfluences, skin, layers)}
+${previousDeclarations()}
 in vec3 position;
 in vec3 normal;
 in mat4 instanceMatrix;
 uniform mat4 modelMatrix;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
+out vec3 vbWorldPreviousPosition;
 void main() {
 ${skinningCall(skin, layers)}
-${probeOutputs('modelMatrix * instanceMatrix')}
+${previousSkinningCall(layers)}
+${probeOutputs('modelMatrix * instanceMatrix', { previous: true })}
 }
 `;
 }
@@ -34,9 +39,11 @@ const vec4s = (vectors) => { const a = new Float32Array(4 * vectors.length); vec
  * order, points in the asset's order (normals in the asset's normal order: per point, or per
  * face-vertex for face-varying normals; empty for meshes without normals). The crowd's own skin
  * binding is used: with `pulled`, the skin records are read from the geometry's skin texture by
- * gl_VertexID, as the crowd's materials read them.
+ * gl_VertexID, as the crowd's materials read them. `previousPositions` are the instance's
+ * previous-frame pose for frame interval `dt` (spec 21; the velocity materials' vertex code:
+ * material.js previousSkinningCall), in the order of `positions`.
  */
-export function probeCrowd(renderer, crowd, index, time) {
+export function probeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
   const gl = renderer.getContext();
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   const animation = crowd.animation;
@@ -48,15 +55,17 @@ export function probeCrowd(renderer, crowd, index, time) {
   crowd.updateMatrixWorld(true);
   const positions = [];
   const normals = [];
+  const previous = [];
   // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
   const lod = crowd.levelOf ? crowd.levelOf(index) : 0;
   crowd.updateSamples?.(time);  // a fade over stage time: the instances' fades at `time`
+  crowd.updatePrevious(time, dt);  // the previous frame: fades at time - dt, vb_previousTime
   for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const { maxInfluences } = mesh.userData.virtualBones;
     const skin = crowd.skin ?? DEFAULT_SKIN;
     const layers = Boolean(crowd.layered);
     const key = `three/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
-    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers));
+    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers), { previous: true });
     const geometry = mesh.geometry;
     const vertexCount = geometry.attributes.position.count;
     let skinTexture = null;
@@ -80,6 +89,7 @@ export function probeCrowd(renderer, crowd, index, time) {
       input.attribute('vb_instanceTime', crowd.timeAttribute.array, 2, { divisor: 1, offset: 8 * index });
       input.attribute('vb_instanceFadeClip', crowd.fadeClipAttribute.array, 1, { integer: true, divisor: 1, offset: 4 * index });
       input.attribute('vb_instanceFade', crowd.fadeAttribute.array, 3, { divisor: 1, offset: 12 * index });
+      input.attribute('vb_instancePreviousFade', crowd.previousFadeAttribute.array, 4, { divisor: 1, offset: 16 * index });
       input.attribute('instanceMatrix', crowd.instanceMatrix.array, 4, { divisor: 1, offset: 64 * index, columns: 4 });
       if (layers) {  // format 1.2: the instance's two layers
         input.attribute('vb_instanceLayerClipMask', crowd.layerClipMaskAttribute.array, 4, { integer: true, divisor: 1, offset: 16 * index });
@@ -100,6 +110,7 @@ export function probeCrowd(renderer, crowd, index, time) {
         gl.uniform1i(input.uniform('vb_rig'), 2);
       }
       gl.uniform1f(input.uniform('vb_time'), time);
+      gl.uniform1f(input.uniform('vb_previousTime'), animation.previousTime);
       gl.uniform4fv(input.uniform('vb_clips'), vec4s(animation.uniforms.vb_clips.value));
       if (animation.uniforms.vb_rangeMin) {
         gl.uniform4fv(input.uniform('vb_rangeMin'), vec4s(animation.uniforms.vb_rangeMin.value));
@@ -110,10 +121,11 @@ export function probeCrowd(renderer, crowd, index, time) {
       }
       gl.uniformMatrix4fv(input.uniform('modelMatrix'), false, mesh.matrixWorld.elements);
     });
-    const [points, normalsOfMesh] = assetOrder(results, geometry.userData.virtualBones);
+    const [points, normalsOfMesh, previousOfMesh] = assetOrder(results, geometry.userData.virtualBones);
     positions.push(points);
     normals.push(normalsOfMesh);
+    previous.push(previousOfMesh);
   }
   renderer.resetState();  // three caches GL state; it must not trust it after raw calls
-  return { positions: concatenate(positions), normals: concatenate(normals), lod };
+  return { positions: concatenate(positions), normals: concatenate(normals), previousPositions: concatenate(previous), lod };
 }

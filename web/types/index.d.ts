@@ -36,6 +36,8 @@ export class VirtualBonesAnimation {
   readonly texels: Texels;
   /** Scene time in seconds: an instance's clip-local time is timeOffset + playbackRate * time. */
   time: number;
+  /** Scene time of the previous frame (vb_previousTime; VirtualBonesCrowd.updatePrevious sets it). */
+  previousTime: number;
   clipIndex(name: string): number;
   maskIndex(name: string): number;
   boundsOfClips(clipIndices: number[]): Box3 | null;
@@ -98,6 +100,10 @@ export class VirtualBonesCrowd extends Group {
   setBlend(index: number, blend: { space: string; x?: number; y?: number; phase?: number; playbackRate?: number }): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
   /** A fade over stage time: every instance's time-sampled fade at scene time `time` (no-op without samples). */
   updateSamples(time: number): void;
+  /** The previous frame (motion vectors): previous fades and the animation's previousTime for interval dt (default 1/60). */
+  updatePrevious(time?: number, dt?: number): void;
+  /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
+  resetPrevious(index: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
   /** What instance `index` shows (format 1.3 crowd variety). */
   varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
@@ -150,7 +156,19 @@ export function buildObjects(description: Description, options?: {
 }): { group: Group; crowds: VirtualBonesCrowd[]; animations: VirtualBonesAnimation[] };
 
 /** World-space skinned positions and normals of one instance, computed by the GPU. */
-export function probeCrowd(renderer: WebGLRenderer, crowd: VirtualBonesCrowd, index: number, time: number): { positions: Float32Array; normals: Float32Array; lod: number };
+export function probeCrowd(renderer: WebGLRenderer, crowd: VirtualBonesCrowd, index: number, time: number,
+  options?: { dt?: number }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
+/** Declarations of the previous-frame inputs (vb_instancePreviousFade, vb_previousTime). */
+export function previousDeclarations(): string;
+/** Statements after skinningCall: the previous-frame skinned position into vbPreviousPosition. */
+export function previousSkinningCall(layers?: boolean): string;
+/** A crowd mesh's velocity material: ndcCurrent - ndcPrevious (packed: three's VelocityShader encoding). */
+export function velocityMaterial(animation: VirtualBonesAnimation, maxInfluences: number,
+  binding?: { skin?: SkinBinding; skinTexture?: object | null; layers?: boolean }, options?: { packed?: boolean }): Material;
+/** The velocity material of a rigid mesh. */
+export function staticVelocityMaterial(options?: { packed?: boolean }): Material;
+/** Draw a scene's velocity (crowd meshes with their previous pose) into `target`. */
+export function renderVelocity(renderer: WebGLRenderer, scene: object, camera: object, target: object | null, options?: { packed?: boolean }): void;
 
 export function parseVirtualBonesKTX2(bytes: Uint8Array | ArrayBuffer, name?: string): Promise<{ layout: Layout; texels: Texels }>;
 

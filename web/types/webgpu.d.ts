@@ -20,4 +20,9 @@ export function skinNodeMaterial<M extends object>(material: M, animation: Virtu
 export function vertexInputs(builder: object, animation: VirtualBonesAnimation, maxInfluences: number,
   binding?: { skin?: SkinBinding; records?: Uint32Array; skinTexture?: object; layers?: boolean }): Record<string, unknown>;
 /** World-space skinned positions and normals of one instance, computed by WebGPURenderer. */
-export function probeNodeCrowd(renderer: object, crowd: VirtualBonesCrowd, index: number, time: number): Promise<{ positions: Float32Array; normals: Float32Array; lod: number }>;
+export function probeNodeCrowd(renderer: object, crowd: VirtualBonesCrowd, index: number, time: number,
+  options?: { dt?: number }): Promise<{ positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number }>;
+/** The skinVertex playback inputs of an instance at scene time `time` (materials and probe). */
+export function playbackInputs(instance: Record<string, unknown>, time: unknown): Record<string, unknown>;
+/** The skinVertex playback inputs of the previous frame (spec 21): previousTime, vb_instancePreviousFade (fadeTime, fadeWeight, reset, 0). */
+export function previousPlaybackInputs(instance: Record<string, unknown>, time: unknown, previousTime: unknown, previousFade: unknown): Record<string, unknown>;

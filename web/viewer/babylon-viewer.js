@@ -117,10 +117,14 @@ async function main() {
 
   let time = number('time', 0);
   let playing = params.get('paused') !== '1' && !params.has('time');
-  const setTime = (t) => {
+  // The frame interval of the previous-frame pose (motion vectors, spec 21): ?dt=SECONDS, default
+  // 1/60; a playing viewer uses its real frame interval.
+  const frameInterval = number('dt', 1 / 60);
+  const setTime = (t, dt = frameInterval) => {
     time = t;
     for (const animation of animations) animation.time = t;
     for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
+    for (const crowd of crowds) crowd.updatePrevious(t, dt);
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };
   element('play').textContent = playing ? 'Pause' : 'Play';
@@ -135,7 +139,7 @@ async function main() {
   let last = performance.now();
   engine.runRenderLoop(() => {
     const now = performance.now();
-    if (playing) setTime(time + (now - last) / 1000);
+    if (playing) setTime(time + (now - last) / 1000, now > last ? (now - last) / 1000 : frameInterval);
     last = now;
     render();
     element('stats').textContent = `frame time: ${engine.getDeltaTime().toFixed(1)} ms, ${crowds.reduce((n, c) => n + c.count, 0)} instances`;
@@ -154,13 +158,14 @@ async function main() {
       get matrixWorldInverse() { return { elements: Array.from(camera.getViewMatrix(true).m) }; },
     },
     setTime, render,
-    // instanceCount, probe(instance, t), levels(), measureFrames(n): @vbusd/core's page part; each
-    // measured frame is rendered and finished (a pixel read), outside Babylon's render loop.
-    ...pageApi(crowds, (crowd, index, t) => probeBabylonCrowd(engine, crowd, index, t), (frames = 60) => {
+    // instanceCount, probe(instance, t) (with previousPositions for the page's dt), levels(),
+    // measureFrames(n): @vbusd/core's page part; each measured frame is rendered and finished (a
+    // pixel read), outside Babylon's render loop.
+    ...pageApi(crowds, (crowd, index, t, options) => probeBabylonCrowd(engine, crowd, index, t, options), (frames = 60) => {
       engine.stopRenderLoop();
       return measureFrames(frames, { step: () => setTime(time + 1 / 60), render,
         finish: () => gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel) });
-    }),
+    }, { dt: frameInterval }),
   };
 }
 

@@ -18,7 +18,9 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 
-import { buildObjects, loadPlainScene, probeCrowd, VirtualBonesGLTFPlugin, descriptionFromGLTF } from './vbusd-three/index.js';
+import {
+  buildObjects, loadPlainScene, probeCrowd, renderVelocity, VirtualBonesGLTFPlugin, descriptionFromGLTF,
+} from './vbusd-three/index.js';
 import { measureFrames, pageApi, pageOptions, showError, startPage } from './vbusd-core/viewer.js';
 
 const page = pageOptions();
@@ -62,8 +64,11 @@ async function main() {
   // ?skin=pulled: the skin read by vertex index from skin records (spec/shaders.md, Skin bindings):
   // a texture on WebGL 2, a storage buffer on WebGPU. WebGL's default is DEFAULT_SKIN (pulled), the
   // WebGPU runtime's `attributes`.
-  const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null),
-    skinMaterial: webgpu ? webgpu.skinNodeMaterial : null });
+  // ?velocity=0 (WebGPU): the crowd writes no previous pose to the velocity output (its motion
+  // vectors are its placement's only), for comparison with vbusd's (docs/engines.md, the TRAA picture).
+  const previousPose = params.get('velocity') !== '0';
+  const skinMaterial = webgpu ? (m, a, k, binding) => webgpu.skinNodeMaterial(m, a, k, { ...binding, previousPose }) : null;
+  const objects = buildObjects(description, { material, skin: params.get('skin') ?? (webgpu ? 'attributes' : null), skinMaterial });
   for (const animation of objects.animations) {
     if (webgpu) webgpu.checkNodeSupport(renderer, animation);
     else animation.checkSupport(renderer);
@@ -138,11 +143,15 @@ async function main() {
   let playing = params.get('paused') !== '1' && !params.has('time');
   let needsRender = true;  // paused and unchanged: no frame is drawn (software WebGL is slow)
   controls.addEventListener('change', () => { needsRender = true; });
-  const setTime = (t) => {
+  // The frame interval of the previous-frame pose (motion vectors, spec 21): ?dt=SECONDS, default
+  // 1/60; a playing viewer uses its real frame interval.
+  const frameInterval = number('dt', 1 / 60);
+  const setTime = (t, dt = frameInterval) => {
     needsRender = true;
     time = t;
     for (const animation of objects.animations) animation.time = t;
     for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
+    for (const crowd of crowds) crowd.updatePrevious(t, dt);
     element('time').value = String(t % Number(element('time').max));
     element('time-label').textContent = `${t.toFixed(2)} s`;
   };
@@ -158,7 +167,11 @@ async function main() {
     const choice = element('clip').value;
     crowds.forEach((crowd, c) => {
       const index = crowd.animation.clipIndex(choice);
-      crowd.clipAttribute.array.set(choice === '-1' || index < 0 ? authored[c] : authored[c].map(() => index));
+      const clips = choice === '-1' || index < 0 ? authored[c] : authored[c].map(() => index);
+      // A clip switch: no motion vector across it (spec 21's reset).
+      clips.forEach((clip, i) => { if (crowd.clipAttribute.array[i] !== clip) crowd.resetPrevious(i); });
+      crowd.clipAttribute.array.set(clips);
+      crowd.updatePrevious(time, frameInterval);
       crowd.clipAttribute.needsUpdate = true;
       crowd.updateBounds();
     });
@@ -183,12 +196,33 @@ async function main() {
       camera.updateProjectionMatrix();
     }
   };
+  // ?post=traa or ?post=motionblur (WebGPU): three's TRAA (three/addons/tsl/display/TRAANode.js) or
+  // motion blur (MotionBlur.js) fed by an MRT velocity output: the crowd's materials write the
+  // previous skinned pose into it (spec 21). TRAA wants ?antialias=0 (no MSAA).
+  let pipeline = null;
+  const post = webgpu ? params.get('post') : null;
+  if (post === 'traa' || post === 'motionblur') {
+    const tsl = await import('three/tsl');
+    const scenePass = tsl.pass(scene, camera);
+    scenePass.setMRT(tsl.mrt({ output: tsl.output, velocity: tsl.velocity }));
+    const color = scenePass.getTextureNode('output');
+    const motion = scenePass.getTextureNode('velocity');
+    pipeline = new THREE.RenderPipeline(renderer);
+    if (post === 'traa') {
+      const { traa } = await import('three/addons/tsl/display/TRAANode.js');
+      pipeline.outputNode = traa(color, scenePass.getTextureNode('depth'), motion, camera);
+    } else {
+      const { motionBlur } = await import('three/addons/tsl/display/MotionBlur.js');
+      pipeline.outputNode = motionBlur(color, motion.mul(number('blur', 1)), tsl.int(16));
+    }
+  }
   const render = () => {
     resize();
     controls.update();
     // Levels of detail (format 1.2): each crowd picks every instance's level for this camera.
     for (const crowd of crowds) crowd.updateLevels(camera);
-    renderer.render(scene, camera);
+    if (pipeline) pipeline.render();
+    else renderer.render(scene, camera);
     needsRender = false;
   };
   window.addEventListener('resize', () => { needsRender = true; });
@@ -202,7 +236,7 @@ async function main() {
     last = now;
     intervals.push(dt);
     if (intervals.length > 60) intervals.shift();
-    if (playing) setTime(time + dt);
+    if (playing) setTime(time + dt, dt > 0 ? dt : frameInterval);
     if (needsRender) {
       const start = performance.now();
       render();
@@ -234,10 +268,35 @@ async function main() {
   window.vbusd = {
     renderer, scene, camera, controls, crowds, animations: objects.animations, engine, backend,
     setTime, render,
-    // instanceCount, probe(instance, t), levels(), measureFrames(n): @vbusd/core's page part.
+    /** WebGLRenderer: the velocity (motion vectors, spec 21) of the view at the current time and the
+     * page's dt, from the crowds' velocity materials (renderVelocity): NDC motion since the previous
+     * frame, {width, height, rg: row-major from the top row, 2 floats per pixel}. */
+    velocity() {
+      if (webgpu) throw new Error('velocity() reads WebGLRenderer\'s velocity materials; under WebGPURenderer use an MRT velocity output');
+      render();
+      const size = renderer.getDrawingBufferSize(new THREE.Vector2());
+      const target = new THREE.WebGLRenderTarget(size.x, size.y, { type: THREE.FloatType });
+      renderVelocity(renderer, scene, camera, target);
+      const pixels = new Float32Array(4 * size.x * size.y);
+      renderer.readRenderTargetPixels(target, 0, 0, size.x, size.y, pixels);
+      target.dispose();
+      const rg = new Array(2 * size.x * size.y);
+      for (let y = 0; y < size.y; ++y) {
+        const row = size.y - 1 - y;  // GL rows run upward
+        for (let x = 0; x < size.x; ++x) {
+          rg[2 * (y * size.x + x)] = pixels[4 * (row * size.x + x)];
+          rg[2 * (y * size.x + x) + 1] = pixels[4 * (row * size.x + x) + 1];
+        }
+      }
+      return { width: size.x, height: size.y, rg };
+    },
+    // instanceCount, probe(instance, t) (with previousPositions for the page's dt), levels(),
+    // measureFrames(n): @vbusd/core's page part.
     ...pageApi(crowds,
-      (crowd, index, t) => (webgpu ? webgpu.probeNodeCrowd(renderer, crowd, index, t) : probeCrowd(renderer, crowd, index, t)),
-      (frames = 60) => measureFrames(frames, { step: () => setTime(time + 1 / 60), render, finish })),
+      (crowd, index, t, options) => (webgpu ? webgpu.probeNodeCrowd(renderer, crowd, index, t, options)
+        : probeCrowd(renderer, crowd, index, t, options)),
+      (frames = 60) => measureFrames(frames, { step: () => setTime(time + 1 / 60), render, finish }),
+      { dt: frameInterval }),
   };
   render();
   requestAnimationFrame(loop);

@@ -61,6 +61,8 @@ export class VirtualBonesAnimation {
     this.rigTexture = rig ? rawTexture(scene, rig.data, rig.width, rig.height, TEXTURES.float32, `${name} (rig)`) : null;
     /** Scene time in seconds (vb_time): every material skinned from this animation reads it. */
     this.time = 0;
+    /** Scene time of the previous frame (vb_previousTime, spec 21): VirtualBonesCrowd.updatePrevious sets it. */
+    this.previousTime = -1 / 60;
   }
 
   /** Index of the clip named `name`, or -1. */

@@ -8,6 +8,7 @@ import {
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
   screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
+  DEFAULT_FRAME_INTERVAL, PreviousFrame,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -89,6 +90,9 @@ export class VirtualBonesCrowd {
       const n = this.capacity;
       this.sampled = { fadeClip: new Int32Array(n), fadeTimeOffset: new Float32Array(n), fadePlaybackRate: new Float32Array(n), fadeWeight: new Float32Array(n) };
     }
+    // The previous frame (spec 21): @vbusd/core's PreviousFrame, its values the thin-instance stream
+    // vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) read by the velocity pre-pass and the probe.
+    this.previous = new PreviousFrame(this.capacity);
     this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
     // Crowd variety (format 1.3): Babylon's thin-instance colour (RGBA) multiplies the material's.
     const colors = instanceColors(instances);
@@ -115,7 +119,7 @@ export class VirtualBonesCrowd {
       this.drawn = this.capacity;
       const n = this.capacity;
       this.levelBuffers = [meshes, ...levels].map(() => ({
-        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n) }));
+        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n) }));
       this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry) => {
         const mesh = this._mesh(entry, material, this.levelBuffers[level]);
         mesh.thinInstanceCount = 0;
@@ -130,6 +134,7 @@ export class VirtualBonesCrowd {
     }
     this.applyParts();
     this.updateSamples(animation.time ?? 0);
+    this.updatePrevious(animation.time ?? 0);
   }
 
   _mesh(entry, material, buffers = null) {
@@ -194,10 +199,12 @@ export class VirtualBonesCrowd {
       mesh.thinInstanceSetBuffer('matrix', buffers.matrix, 16, false);
       mesh.thinInstanceSetBuffer('vb_instanceA', buffers.a, 4, false);
       mesh.thinInstanceSetBuffer('vb_instanceB', buffers.b, 4, false);
+      mesh.thinInstanceSetBuffer('vb_instancePreviousFade', buffers.p, 4, false);
     } else {
       if (this.matrices) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
       mesh.thinInstanceSetBuffer('vb_instanceA', this.instanceA, 4, false);
       mesh.thinInstanceSetBuffer('vb_instanceB', this.instanceB, 4, false);
+      mesh.thinInstanceSetBuffer('vb_instancePreviousFade', this.previous.values, 4, false);
     }
     if (this.instanceColors) {
       mesh.thinInstanceSetBuffer('color', this.instanceColors, 4, true);
@@ -333,10 +340,11 @@ export class VirtualBonesCrowd {
       target.matrix.set(this.matrices ? this.matrices.subarray(16 * i, 16 * i + 16) : this.instanceMatrix(i).m, 16 * at);
       target.a.set(this.instanceA.subarray(4 * i, 4 * i + 4), 4 * at);
       target.b.set(this.instanceB.subarray(4 * i, 4 * i + 4), 4 * at);
+      target.p.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
     }
     this.levels.forEach((meshes, level) => {
       for (const mesh of meshes) {
-        for (const stream of ['matrix', 'vb_instanceA', 'vb_instanceB']) mesh.thinInstanceBufferUpdated(stream);
+        for (const stream of ['matrix', 'vb_instanceA', 'vb_instanceB', 'vb_instancePreviousFade']) mesh.thinInstanceBufferUpdated(stream);
         mesh.thinInstanceCount = counts[level];
       }
     });
@@ -409,11 +417,35 @@ export class VirtualBonesCrowd {
     this._updated('vb_instanceC', 'vb_instanceD', 'vb_instanceE');
   }
 
-  /** Set every instance's clip (one clip index for all, or per instance). */
+  /**
+   * Set every instance's clip (one clip index for all, or per instance). An instance whose clip
+   * changes is reset for the next frame (spec 21: no motion vector across a clip switch).
+   */
   setClips(clips) {
-    for (let i = 0; i < this.capacity; ++i) this.instanceA[4 * i] = typeof clips === 'number' ? clips : clips[i];
+    for (let i = 0; i < this.capacity; ++i) {
+      const clip = typeof clips === 'number' ? clips : clips[i];
+      if (this.instanceA[4 * i] !== clip) this.previous.reset(i);
+      this.instanceA[4 * i] = clip;
+    }
     this._updated('vb_instanceA');
   }
+
+  /**
+   * The previous frame (spec virtual-bones.md 21) for the frame at scene time `time` drawn `dt`
+   * seconds after the last one (default 1/60): each instance's previous fade time and weight (a
+   * time-sampled fade at time - dt) and the animation's previousTime, which the velocity pre-pass
+   * (PrePassRenderer: MotionBlurPostProcess) and the probe read. Call each frame after the
+   * animation's time and updateSamples(time); the viewer does.
+   */
+  updatePrevious(time = this.animation.time, dt = DEFAULT_FRAME_INTERVAL) {
+    const b = this.instanceB;
+    this.previous.update(time, dt, (i) => b.subarray(4 * i, 4 * i + 3), this.fadeSamples);
+    this.animation.previousTime = this.previous.previousTime;
+    if (this.meshes) this._updated('vb_instancePreviousFade');
+  }
+
+  /** Instance `index` switched clips or was teleported: its next frame has no motion (spec 21's reset). */
+  resetPrevious(index) { this.previous.reset(index); }
 
   /**
    * Socket (spec 8.4): the world transform of `bone` of instance `index` at scene time `time`

@@ -14,7 +14,7 @@ import { MaterialPluginBase, ShadowDepthWrapper } from '@babylonjs/core';
 
 import { checkSkinBinding } from '@vbusd/core';
 
-import { VirtualBonesError, skinningCall, skinningDeclarations } from './skinning.js';
+import { VirtualBonesError, previousSkinningCall, skinningCall, skinningDeclarations } from './skinning.js';
 
 const PLUGIN_NAME = 'VirtualBones';
 // Shader variants (encoding, texel format, influences, clips, bones, binding, layers) get a number:
@@ -24,8 +24,11 @@ const variants = new Map();
 /** Vertex streams of a skinned mesh (the plugin's attributes). */
 export function vertexInputs(maxInfluences, skin = 'attributes', layers = false) {
   return [...(skin === 'pulled' ? [] : ['vb_boneIndices0', 'vb_boneWeights0', ...(maxInfluences > 4 ? ['vb_boneIndices1', 'vb_boneWeights1'] : [])]),
-    'vb_instanceA', 'vb_instanceB', ...(layers ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : [])];
+    'vb_instanceA', 'vb_instanceB', ...(layers ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : []), 'vb_instancePreviousFade'];
 }
+
+// Where Babylon's default / PBR vertex shaders write a velocity (PrePassRenderer's velocity texture).
+const VELOCITY = '#if defined(PREPASS) && (defined(PREPASS_VELOCITY) || defined(PREPASS_VELOCITY_LINEAR))';
 
 export class VirtualBonesPluginMaterial extends MaterialPluginBase {
   /**
@@ -70,7 +73,7 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
   getSamplers(samplers) { samplers.push('vb_texture', 'vb_skinTexture', 'vb_rig'); }
 
   // Declared by the module itself (VB_DECLARE_RESOURCES 1), so outside Babylon's uniform buffers.
-  getUniforms() { return { externalUniforms: ['vb_time', 'vb_clips', 'vb_rangeMin', 'vb_rangeMax', 'vb_compactRange'] }; }
+  getUniforms() { return { externalUniforms: ['vb_time', 'vb_previousTime', 'vb_clips', 'vb_rangeMin', 'vb_rangeMax', 'vb_compactRange'] }; }
 
   // Every draw (the colour pass and ShadowGenerator's, whose depth effect is subMesh.effect then).
   hardBindForSubMesh(uniformBuffer, scene, engine, subMesh) {
@@ -79,6 +82,7 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
     const animation = this.animation;
     effect.setTexture('vb_texture', animation.texture);
     effect.setFloat('vb_time', animation.time);
+    effect.setFloat('vb_previousTime', animation.previousTime);
     effect.setArray4('vb_clips', animation.clipTable);
     if (animation.ranges) {
       effect.setArray4('vb_rangeMin', animation.ranges.min);
@@ -91,22 +95,35 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
 
   getCustomCode(shaderType) {
     if (shaderType !== 'vertex') return null;
-    if (!this.animation) return { CUSTOM_VERTEX_DEFINITIONS: '', CUSTOM_VERTEX_UPDATE_POSITION: '' };
+    if (!this.animation) return { CUSTOM_VERTEX_DEFINITIONS: '', CUSTOM_VERTEX_UPDATE_POSITION: '', CUSTOM_VERTEX_MAIN_END: '' };
     return {
       CUSTOM_VERTEX_DEFINITIONS: skinningDeclarations(this.animation, this.maxInfluences, 'attribute', this.skin, this.layers),
       // positionUpdated / normalUpdated are the rest vertex here, before morph-free instancing.
-      CUSTOM_VERTEX_UPDATE_POSITION: `{
+      // Motion vectors (spec 21): in the pre-pass with a velocity texture (PrePassRenderer: Babylon's
+      // MotionBlurPostProcess, SSR, TAA reprojection), the previous skinned position as well.
+      CUSTOM_VERTEX_UPDATE_POSITION: `${VELOCITY}
+  vec3 vbPreviousSkinned;
+#endif
+{
 #ifdef NORMAL
   vec3 vbRestNormal = normalUpdated;
 #else
   vec3 vbRestNormal = vec3(0.0, 0.0, 1.0);
 #endif
 ${skinningCall('positionUpdated', 'vbRestNormal', this.maxInfluences, this.skin, this.layers)}
+${VELOCITY}
+${previousSkinningCall('positionUpdated', 'vbRestNormal', 'vbPreviousSkinned', this.layers)}
+#endif
   positionUpdated = vbPosition;
 #ifdef NORMAL
   normalUpdated = vbNormal;
 #endif
 }
+`,
+      // Babylon wrote vPreviousPosition from the current skinned position; the previous one replaces it.
+      CUSTOM_VERTEX_MAIN_END: `${VELOCITY}
+  vPreviousPosition = previousViewProjection * finalPreviousWorld * vec4(vbPreviousSkinned, 1.0);
+#endif
 `,
     };
   }

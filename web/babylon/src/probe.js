@@ -5,9 +5,11 @@
 // textures, and one instance's playback as constant vertex attributes; then Babylon's GL state
 // cache is wiped.
 
-import { VirtualBonesError, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from '@vbusd/core';
+import {
+  VirtualBonesError, DEFAULT_FRAME_INTERVAL, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate,
+} from '@vbusd/core';
 
-import { skinningCall, skinningDeclarations } from './skinning.js';
+import { previousSkinningCall, skinningCall, skinningDeclarations } from './skinning.js';
 
 function vertexSource(animation, maxInfluences, skin, layers) {
   return `#version 300 es
@@ -19,9 +21,12 @@ in vec3 normal;
 uniform mat4 vb_world;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
+out vec3 vbWorldPreviousPosition;
 void main() {
 ${skinningCall('position', 'normal', maxInfluences, skin, layers)}
-${probeOutputs('vb_world')}
+  vec3 vbPreviousPosition;
+${previousSkinningCall('position', 'normal', 'vbPreviousPosition', layers)}
+${probeOutputs('vb_world', { previous: true })}
 }
 `;
 }
@@ -34,7 +39,7 @@ const glTexture = (texture) => texture?.getInternalTexture()?._hardwareTexture?.
  * instance was drawn with at the crowd's last updateLevels, whose meshes are skinned), meshes in order, points
  * in the asset's order (normals empty for meshes without), as three.js' probeCrowd gives them.
  */
-export function probeBabylonCrowd(engine, crowd, index, time) {
+export function probeBabylonCrowd(engine, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
   const gl = engine._gl;
   if (!gl || typeof gl.beginTransformFeedback !== 'function') throw new VirtualBonesError('the probe needs a WebGL 2 engine');
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
@@ -42,17 +47,19 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
   const texture = glTexture(animation.texture);
   if (!texture) throw new VirtualBonesError('the animation texture was not uploaded');
   crowd.updateSamples?.(time);  // a fade over stage time: the instances' fades at `time`
+  crowd.updatePrevious(time, dt);  // the previous frame: fades at time - dt, vb_previousTime
   const skin = crowd.skin ?? 'attributes';
   const layers = Boolean(crowd.layered);
   const positions = [];
   const normals = [];
+  const previous = [];
   // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
   const lod = crowd.levelOf ? crowd.levelOf(index) : 0;
   for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const info = mesh.metadata.virtualBones;
     const { maxInfluences } = info;
     const key = `babylon/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
-    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers));
+    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers), { previous: true });
     const vertexCount = mesh.getTotalVertices();
     const results = runFeedback(gl, program, vertexCount, (input) => {
       input.attribute('position', Float32Array.from(mesh.getVerticesData('position')), 3);
@@ -69,6 +76,7 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
       // The instance's own thin-instance entries, as constant attributes.
       const streams = [['vb_instanceA', crowd.instanceA], ['vb_instanceB', crowd.instanceB]];
       if (layers) streams.push(['vb_instanceC', crowd.instanceC], ['vb_instanceD', crowd.instanceD], ['vb_instanceE', crowd.instanceE]);
+      streams.push(['vb_instancePreviousFade', crowd.previous.values]);
       for (const [name, array] of streams) input.constant(name, array.subarray(4 * index, 4 * index + 4));
       const textures = [['vb_texture', texture]];
       if (skin === 'pulled') textures.push(['vb_skinTexture', glTexture(info.skinTexture)]);
@@ -80,6 +88,7 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
         gl.uniform1i(input.uniform(name), unit);
       });
       gl.uniform1f(input.uniform('vb_time'), time);
+      gl.uniform1f(input.uniform('vb_previousTime'), animation.previousTime);
       gl.uniform4fv(input.uniform('vb_clips'), animation.clipTable);
       if (animation.ranges) {
         gl.uniform4fv(input.uniform('vb_rangeMin'), animation.ranges.min);
@@ -90,10 +99,11 @@ export function probeBabylonCrowd(engine, crowd, index, time) {
       const world = crowd.instanceMatrix(index).multiply(mesh.computeWorldMatrix(true));
       gl.uniformMatrix4fv(input.uniform('vb_world'), false, world.toArray());
     });
-    const [points, normalsOfMesh] = assetOrder(results, info);
+    const [points, normalsOfMesh, previousOfMesh] = assetOrder(results, info);
     positions.push(points);
     normals.push(normalsOfMesh);
+    previous.push(previousOfMesh);
   }
   engine.wipeCaches(true);  // Babylon caches GL state; it must not trust it after raw calls
-  return { positions: concatenate(positions), normals: concatenate(normals), lod };
+  return { positions: concatenate(positions), normals: concatenate(normals), previousPositions: concatenate(previous), lod };
 }

@@ -3,7 +3,10 @@
 // the glue that feeds it Babylon's vertex streams. The material plugin and the probe both build
 // their shaders from these strings, so the probe reads back what the materials draw.
 
-import { VirtualBonesError, BASE_MAX_BONES, shaderModule, definedTestModule, skinningStatements } from '@vbusd/core';
+import {
+  VirtualBonesError, BASE_MAX_BONES, shaderModule, definedTestModule, skinningStatements, previousDeclarations,
+  previousSkinningStatements,
+} from '@vbusd/core';
 
 export { VirtualBonesError, shaderModule };
 
@@ -26,7 +29,8 @@ export function babylonModule(animation, maxInfluences, skin = 'attributes', lay
  * thin-instance vec4 streams: vb_instanceA = (clip, timeOffset, playbackRate, fadeClip),
  * vb_instanceB = (fadeTimeOffset, fadePlaybackRate, fadeWeight, unused), and with layers (format
  * 1.2, two per instance) vb_instanceC = (clip, mask) of each layer, vb_instanceD = (timeOffset,
- * playbackRate) of each, vb_instanceE = (weight 0, weight 1, unused, unused). `keyword` is
+ * playbackRate) of each, vb_instanceE = (weight 0, weight 1, unused, unused); the previous frame's
+ * vb_instancePreviousFade and vb_previousTime (spec 21; read by the velocity pre-pass and the probe). `keyword` is
  * `attribute` in Babylon's shaders (its GLSL 1 style, migrated to `in` on WebGL 2) and `in` in the
  * probe. With the pulled skin there are no bone streams.
  */
@@ -37,7 +41,19 @@ ${maxInfluences > 4 ? `${keyword} vec4 vb_boneIndices1;\n${keyword} vec4 vb_bone
   return `${babylonModule(animation, maxInfluences, skin, layers)}
 ${bones}${keyword} vec4 vb_instanceA;
 ${keyword} vec4 vb_instanceB;
-${layers ? `${keyword} vec4 vb_instanceC;\n${keyword} vec4 vb_instanceD;\n${keyword} vec4 vb_instanceE;\n` : ''}`;
+${layers ? `${keyword} vec4 vb_instanceC;\n${keyword} vec4 vb_instanceD;\n${keyword} vec4 vb_instanceE;\n` : ''}${previousDeclarations(keyword)}`;
+}
+
+/**
+ * Statements after skinningCall (in its scope): the previous-frame skinned position (spec
+ * virtual-bones.md 21) into `target` (a vec3 declared by the caller): @vbusd/core's
+ * previousSkinningStatements with this runtime's playback (the same skin function at timeOffset +
+ * playbackRate * vb_previousTime for the clip and the layers, the fade clip at
+ * vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) of @vbusd/core's PreviousFrame); an
+ * instance reset this frame keeps its current pose (zero velocity).
+ */
+export function previousSkinningCall(position, normal, target, layers = false) {
+  return previousSkinningStatements({ layers, position, normal, target, declare: false, playback: PLAYBACK });
 }
 
 // Where the Babylon.js runtime's instances keep their playback (thin-instance vec4 streams, above).

@@ -17,6 +17,8 @@ export class VirtualBonesError extends Error {
 export function shaderModule(encoding: Encoding, texelFormat: TexelFormat, maxInfluences?: number, maxClips?: number, skin?: SkinBinding, layers?: boolean, maxBones?: number): string;
 export function skinningDeclarations(animation: VirtualBonesAnimation, maxInfluences: number, keyword?: string, skin?: SkinBinding, layers?: boolean): string;
 export function skinningCall(position: string, normal: string, maxInfluences: number, skin?: SkinBinding, layers?: boolean): string;
+/** Statements after skinningCall: the previous-frame skinned position (spec 21) into `target`. */
+export function previousSkinningCall(position: string, normal: string, target: string, layers?: boolean): string;
 
 /** One Virtual Bones texture on a Babylon scene: its RawTexture, clip table and clock. */
 export class VirtualBonesAnimation {
@@ -26,6 +28,8 @@ export class VirtualBonesAnimation {
   readonly clips: Array<{ name: string; firstRow: number; rowCount: number; rowsPerSecond: number; loop: boolean }>;
   /** Scene time in seconds. */
   time: number;
+  /** Scene time of the previous frame (vb_previousTime): VirtualBonesCrowd.updatePrevious sets it. */
+  previousTime: number;
   clipIndex(name: string): number;
   maskIndex(name: string): number;
   dispose(): void;
@@ -69,6 +73,10 @@ export class VirtualBonesCrowd {
   updateSamples(time: number): void;
   setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setClips(clips: number | ArrayLike<number>): void;
+  /** The previous frame (motion vectors): previous fades and the animation's previousTime for interval dt (default 1/60). */
+  updatePrevious(time?: number, dt?: number): void;
+  /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
+  resetPrevious(index: number): void;
   /** What instance `index` shows (format 1.3 crowd variety). */
   varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
@@ -84,7 +92,8 @@ export class VirtualBonesCrowd {
 }
 
 /** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2). */
-export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number): { positions: Float32Array; normals: Float32Array; lod: number };
+export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number,
+  options?: { dt?: number }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
 
 /** The VBUSD_virtual_bones glTF extension's name. */
 export const EXTENSION: 'VBUSD_virtual_bones';

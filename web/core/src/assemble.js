@@ -120,3 +120,54 @@ export function skinningStatements({ skin = 'attributes', layers = false, positi
                 ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 }
+
+/**
+ * Declarations of the previous-frame inputs (spec virtual-bones.md 21, spec/shaders.md "Previous
+ * pose") the web runtimes feed from @vbusd/core's PreviousFrame: the per-instance stream
+ * `vb_instancePreviousFade` = (fadeTime, fadeWeight, reset, 0), whose x and y are the GLSL module's
+ * `vb_instancePreviousFade` (the fade clip's clip-local time and the fade weight of the previous
+ * frame) and whose z marks an instance reset this frame, and the uniform `vb_previousTime`.
+ * `keyword`: `in`, or `attribute` for an engine's GLSL 1 style shaders.
+ */
+export function previousDeclarations(keyword = 'in') {
+  return `${keyword} vec4 vb_instancePreviousFade;
+uniform float vb_previousTime;
+`;
+}
+
+/** `expression` (a clip-local time of `skinningStatements`' playback) at the previous frame: vb_time, once, as vb_previousTime. */
+function atPreviousTime(expression, what) {
+  const uses = expression.match(/\bvb_time\b/g) ?? [];
+  if (uses.length !== 1) throw new VirtualBonesError(`previous pose: the playback's ${what} must use vb_time once, got ${JSON.stringify(expression)}`);
+  return expression.replace(/\bvb_time\b/, 'vb_previousTime');
+}
+
+/**
+ * GLSL statements after `skinningStatements` (in its scope, with the same `playback`): the
+ * previous-frame skinned position (spec virtual-bones.md 21, spec/shaders.md "Previous pose") into
+ * `target` (declared here unless `declare` is false), the same skin function as the current pose
+ * at the previous frame's times: the clip's and layers' `tau` / `layerTau` with vb_time replaced by
+ * vb_previousTime (each instance its own offset and rate; the clip wraps or clamps there), the fade
+ * clip at vb_instancePreviousFade.x with weight vb_instancePreviousFade.y, the layers' clips,
+ * masks and weights as now. An instance reset this frame (vb_instancePreviousFade.z = 1) keeps its
+ * current pose: zero velocity.
+ */
+export function previousSkinningStatements({ layers = false, position = 'position', normal = 'normal', target = 'vbPreviousPosition', declare = true, playback }) {
+  const p = playback;
+  const instance = `${p.clip}, ${atPreviousTime(p.tau, 'tau')},
+                    ${p.fadeClip}, vb_instancePreviousFade.x, vb_instancePreviousFade.y,`;
+  const call = layers ? `for (int j = 0; j < VB_MAX_LAYERS; ++j) {
+      vbLayerTau[j] = ${atPreviousTime(p.layerTau, 'layerTau')};
+    }
+    vbSkinLayered(${instance}
+                  vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                  ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);` : `vbSkinCrossfade(${instance}
+                    ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);`;
+  return `
+  ${declare ? 'vec3 ' : ''}${target} = vbPosition;
+  if (vb_instancePreviousFade.z < 0.5) {
+    vec3 vbPreviousNormal;
+    ${call}
+  }
+`;
+}

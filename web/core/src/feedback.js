@@ -14,11 +14,14 @@ void main() { vbColor = vec4(0.0); }
 
 /**
  * The world-space tail of a probe's vertex shader: `world` (a mat4 expression) places the skinned
- * vbPosition / vbNormal, the normal by the inverse transpose, normalized.
+ * vbPosition / vbNormal, the normal by the inverse transpose, normalized. With `previous`, also
+ * vbWorldPreviousPosition from vbPreviousPosition (the previous-frame pose, spec/shaders.md
+ * "Previous pose"), placed by the same matrix (the runtimes keep no previous instance transform).
  */
-export function probeOutputs(world) {
+export function probeOutputs(world, { previous = false } = {}) {
   return `  mat4 vbWorld = ${world};
-  vbWorldPosition = (vbWorld * vec4(vbPosition, 1.0)).xyz;
+  vbWorldPosition = (vbWorld * vec4(vbPosition, 1.0)).xyz;${previous ? `
+  vbWorldPreviousPosition = (vbWorld * vec4(vbPreviousPosition, 1.0)).xyz;` : ''}
   vec3 vbN = transpose(inverse(mat3(vbWorld))) * vbNormal;
   float vbLength = length(vbN);
   vbWorldNormal = vbLength > 0.0 ? vbN / vbLength : vbN;
@@ -39,8 +42,14 @@ function compile(gl, type, source) {
 
 const programs = new WeakMap();
 
-/** The linked probe program of `vertexSource` (cached per context and `key`). */
-export function probeProgram(gl, key, vertexSource) {
+/** The outputs a probe program writes: positions, normals and, with `previous`, previous positions. */
+export const PROBE_VARYINGS = ['vbWorldPosition', 'vbWorldNormal', 'vbWorldPreviousPosition'];
+
+/**
+ * The linked probe program of `vertexSource` (cached per context and `key`); with `previous` the
+ * shader also writes vbWorldPreviousPosition (a third transform-feedback output).
+ */
+export function probeProgram(gl, key, vertexSource, { previous = false } = {}) {
   if (!gl || typeof gl.beginTransformFeedback !== 'function') throw new VirtualBonesError('the probe needs a WebGL 2 context');
   let cache = programs.get(gl);
   if (!cache) programs.set(gl, cache = new Map());
@@ -48,7 +57,7 @@ export function probeProgram(gl, key, vertexSource) {
   const program = gl.createProgram();
   gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, vertexSource));
   gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
-  gl.transformFeedbackVaryings(program, ['vbWorldPosition', 'vbWorldNormal'], gl.SEPARATE_ATTRIBS);
+  gl.transformFeedbackVaryings(program, PROBE_VARYINGS.slice(0, previous ? 3 : 2), gl.SEPARATE_ATTRIBS);
   gl.linkProgram(program);
   if (!gl.getProgramParameter(program, gl.LINK_STATUS)) throw new VirtualBonesError(`probe program does not link: ${gl.getProgramInfoLog(program)}`);
   cache.set(key, program);
@@ -61,7 +70,8 @@ export function probeProgram(gl, key, vertexSource) {
  * through `input.attribute(name, data, size, options)` (options: integer, divisor, offset (bytes),
  * columns (a matN of vec-size columns)) or `input.constant(name, values)` (a generic vertex
  * attribute: the same value for every vertex), and sets uniforms and textures. Returns the
- * [positions, normals] Float32Arrays (3 per vertex). The context's state is the engine's to reset.
+ * [positions, normals] Float32Arrays (3 per vertex), and previous positions for a program made with
+ * `previous`. The context's state is the engine's to reset.
  */
 export function runFeedback(gl, program, vertexCount, setup) {
   const vao = gl.createVertexArray();
@@ -98,7 +108,7 @@ export function runFeedback(gl, program, vertexCount, setup) {
     uniform(name) { return gl.getUniformLocation(program, name); },
   };
   setup(input);
-  const outputs = [gl.createBuffer(), gl.createBuffer()];
+  const outputs = Array.from({ length: gl.getProgramParameter(program, gl.TRANSFORM_FEEDBACK_VARYINGS) }, () => gl.createBuffer());
   const feedback = gl.createTransformFeedback();
   gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, feedback);
   outputs.forEach((buffer, slot) => {
@@ -117,8 +127,7 @@ export function runFeedback(gl, program, vertexCount, setup) {
     gl.getBufferSubData(gl.TRANSFORM_FEEDBACK_BUFFER, 0, data);
     return data;
   });
-  gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 0, null);
-  gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, 1, null);
+  outputs.forEach((_, slot) => gl.bindBufferBase(gl.TRANSFORM_FEEDBACK_BUFFER, slot, null));
   gl.bindTransformFeedback(gl.TRANSFORM_FEEDBACK, null);
   gl.bindVertexArray(null);
   gl.deleteTransformFeedback(feedback);
@@ -128,16 +137,18 @@ export function runFeedback(gl, program, vertexCount, setup) {
 }
 
 /**
- * A mesh's probed [positions, normals] in the asset's order: vertex j of an unwelded mesh is
- * face-vertex j of point pointIndex[j]; normals empty for a mesh without normals.
+ * A mesh's probed [positions, normals, previous positions] in the asset's order: vertex j of an
+ * unwelded mesh is face-vertex j of point pointIndex[j]; normals empty for a mesh without normals,
+ * previous positions empty where the probe wrote none.
  */
-export function assetOrder([positions, normals], { pointIndex = null, hasNormals = true, pointCount = 0 }) {
-  let points = positions;
-  if (pointIndex) {
-    points = new Float32Array(pointCount * 3);
-    pointIndex.forEach((point, j) => points.set(positions.subarray(3 * j, 3 * j + 3), 3 * point));
-  }
-  return [points, hasNormals ? normals : new Float32Array(0)];
+export function assetOrder([positions, normals, previous = null], { pointIndex = null, hasNormals = true, pointCount = 0 }) {
+  const points = (values) => {
+    if (!pointIndex) return values;
+    const out = new Float32Array(pointCount * 3);
+    pointIndex.forEach((point, j) => out.set(values.subarray(3 * j, 3 * j + 3), 3 * point));
+    return out;
+  };
+  return [points(positions), hasNormals ? normals : new Float32Array(0), previous ? points(previous) : new Float32Array(0)];
 }
 
 /** The arrays one after the other in one Float32Array. */

@@ -1,11 +1,14 @@
 // vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
 // WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, KTX2 textures, shader-module
 // assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
-// detail, blend spaces and clip events (format 1.3), crowd variety, the plain files, a runtime package
-// crowd's playback arrays and the transform-feedback probe. docs/engines.md ("@vbusd/core").
+// detail, blend spaces and clip events (format 1.3), crowd variety, the previous-frame clock (motion
+// vectors), the plain files, a runtime package crowd's playback arrays and the transform-feedback probe.
+// docs/engines.md ("@vbusd/core").
 
 export { VirtualBonesError } from './errors.js';
-export { BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule, skinningStatements } from './assemble.js';
+export {
+  BASE_MAX_BONES, shaderModule, replaceOnce, definedTestModule, skinningStatements, previousDeclarations, previousSkinningStatements,
+} from './assemble.js';
 export {
   SKIN_BINDINGS, SKIN_TEXTURE_WIDTH, checkSkinBinding, skinRecordWords, skinRecordTexels, packSkin, skinTextureData,
 } from './skin.js';
@@ -16,6 +19,7 @@ export {
   fromHalf, rowPosition, boneRows, elementsFromRows, multiply, jointElements, rootMotionElements,
 } from './decode.js';
 export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
+export { DEFAULT_FRAME_INTERVAL, checkFrameInterval, previousClipTime, PreviousFrame } from './previous.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
 export {
   triangulate, blendWeights, phaseTimes, layerWeights, blendLayers, crossedMarkers, crowdEvents,
@@ -23,5 +27,5 @@ export {
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { RUNTIME_LAYERS, packagePlayback } from './package.js';
 export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';
-export { probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
+export { PROBE_VARYINGS, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
 export { isVaried, instanceColors, partBit, partMatrices, varietyOf, packageVariety } from './variety.js';

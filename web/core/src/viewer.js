@@ -42,21 +42,26 @@ export async function startPage({ params, number, element }) {
 /**
  * window.vbusd's engine-neutral members over `crowds` (in the order the page numbers instances:
  * each crowd's instances in turn): `instanceCount`, `probe(instance, t)` through the engine's
- * `probeOne(crowd, index, t)` (a result or a promise of `{positions, normals, lod}`), `levels()`
- * and `measureFrames(frames)` through `measure`.
+ * `probeOne(crowd, index, t, {dt})` (a result or a promise of `{positions, normals, lod}` and, for
+ * the previous-frame pose, `previousPositions`), `levels()` and `measureFrames(frames)` through
+ * `measure`. `dt`: the page's frame interval (?dt=SECONDS, default 1/60; spec virtual-bones.md 21),
+ * the interval the probe's previous pose is taken over.
  */
-export function pageApi(crowds, probeOne, measure) {
+export function pageApi(crowds, probeOne, measure, { dt = 1 / 60 } = {}) {
   const targets = crowds.flatMap((crowd) => Array.from({ length: crowd.capacity }, (_, i) => [crowd, i]));
   return {
     get instanceCount() { return targets.length; },
     /** World-space skinned vertices of instance `instance` at time `t` (seconds), from the GPU,
-     * `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without levels),
-     * and what it shows (format 1.3 crowd variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
+     * `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without levels;
+     * the vertices are that level's, LOD 0's when culled), `previousPositions`: the previous-frame
+     * pose for the page's frame interval `dt` (spec 21), and what it shows (format 1.3 crowd
+     * variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
     async probe(instance, t) {
       const target = targets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${targets.length})`);
-      const result = await probeOne(target[0], target[1], t);
-      return { positions: Array.from(result.positions), normals: Array.from(result.normals), lod: result.lod,
+      const result = await probeOne(target[0], target[1], t, { dt });
+      return { positions: Array.from(result.positions), normals: Array.from(result.normals),
+        previousPositions: Array.from(result.previousPositions ?? []), dt, lod: result.lod,
         ...(target[0].varietyOf ? target[0].varietyOf(target[1]) : {}) };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */

@@ -32,6 +32,18 @@ export function skinningStatements(options: {
   playback: { clip: string; tau: string; fadeClip: string; fadeTau: string; fadeWeight: string;
     layerClip?: string; layerMask?: string; layerTau?: string; layerWeight?: string };
 }): string;
+/** Declarations of the previous-frame inputs: vb_instancePreviousFade (fadeTime, fadeWeight, reset, 0) and vb_previousTime. */
+export function previousDeclarations(keyword?: string): string;
+/** GLSL statements after skinningStatements (same playback): the previous-frame pose into `target` (default vbPreviousPosition). */
+export function previousSkinningStatements(options: {
+  layers?: boolean;
+  position?: string;
+  normal?: string;
+  target?: string;
+  declare?: boolean;
+  playback: { clip: string; tau: string; fadeClip: string; fadeTau: string; fadeWeight: string;
+    layerClip?: string; layerMask?: string; layerTau?: string; layerWeight?: string };
+}): string;
 
 export const SKIN_BINDINGS: string[];
 export const SKIN_TEXTURE_WIDTH: number;
@@ -64,6 +76,23 @@ export function evaluateSamples<T extends Record<string, { length: number; [i: n
 export function placementMatrices(positions: ArrayLike<number>, orientations: ArrayLike<number>, scales?: ArrayLike<number> | null): Float32Array;
 export function singleInstance(clip?: number): { count: number; matrices: Float32Array; clip: Int32Array; timeOffset: Float32Array; playbackRate: Float32Array };
 
+/** The frame interval assumed when none is given (1/60 s; spec virtual-bones.md 21). */
+export const DEFAULT_FRAME_INTERVAL: number;
+export function checkFrameInterval(dt: number, where?: string): number;
+/** timeOffset + playbackRate * (time - dt): an instance's clip-local time of the previous frame. */
+export function previousClipTime(timeOffset: number, playbackRate: number, time: number, dt?: number): number;
+/** Per-instance previous-frame inputs (vb_instancePreviousFade: fadeTime, fadeWeight, reset, 0) and vb_previousTime. */
+export class PreviousFrame {
+  constructor(count: number);
+  readonly count: number;
+  readonly values: Float32Array;
+  time: number;
+  dt: number;
+  previousTime: number;
+  reset(i: number): void;
+  update(time: number, dt: number, fade: (i: number) => ArrayLike<number>, samples?: Samples | null): Float32Array;
+}
+
 export function screenSize(radius: number, distance: number, tanHalfFov: number, aspect?: number): number;
 export function selectLevel(size: number, thresholds: number[], previous?: number, hysteresis?: number): number;
 export function checkScreenSizes(thresholds: number[], levels: number, name?: string): void;
@@ -82,10 +111,11 @@ export function packagePlayback(options: {
   what?: string;
 }): Promise<{ clip: Int32Array; timeOffset: Float32Array; playbackRate: Float32Array; [field: string]: unknown }>;
 
-export function probeProgram(gl: WebGL2RenderingContext, key: string, vertexSource: string): WebGLProgram;
-export function probeOutputs(world: string): string;
-export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, vertexCount: number, setup: (input: FeedbackInput) => void): [Float32Array, Float32Array];
-export function assetOrder(results: [Float32Array, Float32Array], info: { pointIndex?: ArrayLike<number> | null; hasNormals?: boolean; pointCount?: number }): [Float32Array, Float32Array];
+export const PROBE_VARYINGS: string[];
+export function probeProgram(gl: WebGL2RenderingContext, key: string, vertexSource: string, options?: { previous?: boolean }): WebGLProgram;
+export function probeOutputs(world: string, options?: { previous?: boolean }): string;
+export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, vertexCount: number, setup: (input: FeedbackInput) => void): Float32Array[];
+export function assetOrder(results: Float32Array[], info: { pointIndex?: ArrayLike<number> | null; hasNormals?: boolean; pointCount?: number }): [Float32Array, Float32Array, Float32Array];
 export function concatenate(arrays: ArrayLike<number>[]): Float32Array;
 
 /** A blend space as the layout metadata's `blendSpaces` holds it (format 1.3, spec 23.6). */

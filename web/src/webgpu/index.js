@@ -3,5 +3,5 @@
 // three/webgpu. See docs/engines.md ("three.js WebGPU (TSL)").
 
 export { animationNodes, checkNodeSupport, skinVertex, safeNormalize, pulledInfluences } from './skinning.js';
-export { skinNodeMaterial, vertexInputs, recordReader } from './material.js';
+export { skinNodeMaterial, vertexInputs, recordReader, playbackInputs, previousPlaybackInputs } from './material.js';
 export { probeNodeCrowd } from './probe.js';

@@ -12,8 +12,8 @@
 
 import { InterleavedBufferAttribute, DynamicDrawUsage, StorageBufferAttribute } from 'three/webgpu';
 import {
-  Fn, attribute, positionGeometry, normalLocal, positionLocal, mat4, vec4, int, float, ivec2, texture,
-  instancedBufferAttribute, instancedDynamicBufferAttribute, storage, instanceIndex, vertexIndex,
+  Fn, attribute, positionGeometry, normalLocal, positionLocal, positionPrevious, mat4, vec4, int, float, ivec2, texture,
+  instancedBufferAttribute, instancedDynamicBufferAttribute, storage, instanceIndex, vertexIndex, select,
 } from 'three/tsl';
 
 import { checkSkinBinding } from '@vbusd/core';
@@ -44,6 +44,7 @@ function instanceInputs(builder, layered) {
     const inputs = {
       clip: clip.element(i), offset: time.element(i.mul(2)), rate: time.element(i.mul(2).add(1)),
       fadeClip: fadeClip.element(i), fadeOffset: fade.x, fadeRate: fade.y, fadeWeight: fade.z,
+      previousFade: () => read('vb_instancePreviousFade', 'vec4', 1).element(i),
     };
     if (layered) {
       const clipMask = read('vb_instanceLayerClipMask', 'int', 4);
@@ -61,6 +62,7 @@ function instanceInputs(builder, layered) {
   const inputs = {
     clip: attribute('vb_instanceClip', 'int'), offset: time.x, rate: time.y,
     fadeClip: attribute('vb_instanceFadeClip', 'int'), fadeOffset: fade.x, fadeRate: fade.y, fadeWeight: fade.z,
+    previousFade: () => attribute('vb_instancePreviousFade', 'vec4'),
   };
   if (layered) {
     const clipMask = attribute('vb_instanceLayerClipMask', 'ivec4');
@@ -120,27 +122,47 @@ export function vertexInputs(builder, animation, maxInfluences, binding = {}) {
     }
   }
   const instance = instanceInputs(builder, Boolean(binding.layers));
+  const inputs = { position: positionGeometry, normal: attribute('normal', 'vec3'), indices, weights, ...playbackInputs(instance, nodes.time) };
+  // The previous frame's inputs (spec 21), built only where asked (a velocity MRT output).
+  inputs.previous = () => ({ ...inputs, ...previousPlaybackInputs(instance, nodes.time, nodes.previousTime, instance.previousFade()) });
+  return inputs;
+}
+
+/**
+ * The skinVertex inputs of an instance's playback at scene time `time`: `instance` holds nodes
+ * clip, offset, rate, fadeClip, fadeOffset, fadeRate, fadeWeight and, with layers, `layers` (two
+ * of {clip, mask, offset, rate, weight}). Shared by the materials and the probe.
+ */
+export function playbackInputs(instance, time) {
   const inputs = {
-    position: positionGeometry,
-    normal: attribute('normal', 'vec3'),
-    indices,
-    weights,
     clip: instance.clip,
-    tau: instance.offset.add(instance.rate.mul(nodes.time)),
+    tau: instance.offset.add(instance.rate.mul(time)),
     fadeClip: instance.fadeClip,
-    fadeTau: instance.fadeOffset.add(instance.fadeRate.mul(nodes.time)),
+    fadeTau: instance.fadeOffset.add(instance.fadeRate.mul(time)),
     fadeWeight: instance.fadeWeight,
   };
   if (instance.layers) {
     const [a, b] = instance.layers;
     inputs.layers = {
       clip: [int(a.clip).toVar(), int(b.clip).toVar()],
-      tau: [a.offset.add(a.rate.mul(nodes.time)).toVar(), b.offset.add(b.rate.mul(nodes.time)).toVar()],
+      tau: [a.offset.add(a.rate.mul(time)).toVar(), b.offset.add(b.rate.mul(time)).toVar()],
       weight: [float(a.weight).toVar(), float(b.weight).toVar()],
       mask: [int(a.mask).toVar(), int(b.mask).toVar()],
     };
   }
   return inputs;
+}
+
+/**
+ * The skinVertex inputs of the previous frame (spec virtual-bones.md 21): the clip and the layers
+ * at scene time `previousTime` (timeOffset + playbackRate * (t - dt)), the fade clip at the
+ * previous fade time and weight of `previousFade` (vb_instancePreviousFade = (fadeTime,
+ * fadeWeight, reset, 0), @vbusd/core's PreviousFrame); an instance reset this frame at `time`
+ * (its current pose: zero velocity). Shared by the materials and the probe.
+ */
+export function previousPlaybackInputs(instance, time, previousTime, previousFade) {
+  const at = select(previousFade.z.greaterThan(0.5), time, previousTime).toVar();
+  return { ...playbackInputs(instance, at), fadeTau: previousFade.x, fadeWeight: previousFade.y };
 }
 
 const instanceColumns = new WeakMap();
@@ -169,11 +191,13 @@ function instanceMatrixNode(mesh) {
  * @param {object} [binding] what VirtualBonesCrowd passes: {skin: 'attributes' (default) or
  *   'pulled' (with the geometry's `records` and `skinTexture` from pullSkin: read by vertex index
  *   from a storage buffer on WebGPU, from the texture on the WebGL 2 backend), layers (format 1.2:
- *   the crowd plays layers, vbSkinLayered)}
+ *   the crowd plays layers, vbSkinLayered), previousPose (default true: with a velocity MRT output
+ *   the previous frame's skinned position goes to positionPrevious; false: the current one, no
+ *   skinning motion in the motion vectors)}
  * @returns {NodeMaterial} material
  */
 export function skinNodeMaterial(material, animation, maxInfluences, binding = {}) {
-  const { skin = 'attributes', layers = false } = binding;
+  const { skin = 'attributes', layers = false, previousPose = true } = binding;
   if (!material?.isNodeMaterial) {
     throw new VirtualBonesError(`${material?.type ?? material}: the WebGPU runtime skins node materials (e.g. MeshStandardNodeMaterial from three/webgpu)`);
   }
@@ -190,7 +214,14 @@ export function skinNodeMaterial(material, animation, maxInfluences, binding = {
   const skinned = (builder) => skinVertex(animation, vertexInputs(builder, animation, maxInfluences, binding));
   const setupPosition = material.setupPosition;
   material.setupPosition = function skinnedSetupPosition(builder) {
-    const vertex = skinned(builder);
+    const inputs = vertexInputs(builder, animation, maxInfluences, binding);
+    const vertex = skinVertex(animation, inputs);
+    // Motion vectors (spec 21): where the render asks for the previous frame (an MRT with a
+    // `velocity` output: three's VelocityNode, TRAA, motion blur), the previous skinned position
+    // goes where three's SkinnedMesh puts its own, in positionPrevious; three's instancing then
+    // applies the previous instance matrix and VelocityNode projects it with the previous camera.
+    // (`previousPose: false`: the current skinned position, i.e. no skinning motion, for comparison.)
+    if (builder.needsPreviousData()) positionPrevious.assign(previousPose ? skinVertex(animation, inputs.previous()).position : vertex.position);
     positionLocal.assign(vertex.position);
     normalLocal.assign(vertex.normal);
     return setupPosition.call(this, builder);
@@ -202,7 +233,7 @@ export function skinNodeMaterial(material, animation, maxInfluences, binding = {
   // The skinning is not a node of the material: the program cache must still tell materials of
   // different animations (textures, clip tables), influence counts, bindings and records apart.
   const records = skin === 'pulled' ? binding.skinTexture.uuid : '';
-  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${skin}:${records}:${layers ? 'layers' : ''}`;
+  const key = `vbusd:${animation.texture.uuid}:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${skin}:${records}:${layers ? 'layers' : ''}${previousPose ? '' : ':still'}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
   material.userData.virtualBones = { animation, maxInfluences, skin, layers };

@@ -9,9 +9,10 @@
 
 import { Matrix3, Matrix4, Vector4 } from 'three/webgpu';
 import { Fn, instancedArray, instanceIndex, uniform, vec4, int } from 'three/tsl';
+import { DEFAULT_FRAME_INTERVAL } from '@vbusd/core';
 
 import { VirtualBonesError } from '../animation.js';
-import { recordReader } from './material.js';
+import { playbackInputs, previousPlaybackInputs, recordReader } from './material.js';
 import { pulledInfluences, safeNormalize, skinVertex } from './skinning.js';
 
 const probes = new WeakMap();
@@ -55,9 +56,13 @@ function meshProbe(renderer, mesh) {
     instance: uniform(new Vector4()), fade: uniform(new Vector4()),
     layerA: uniform(new Vector4()), layerB: uniform(new Vector4()), layerC: uniform(new Vector4()),
     world: uniform(new Matrix4()), normalMatrix: uniform(new Matrix3()),
+    previousFade: uniform(new Vector4()), previousTime: uniform(0),
   };
   const read = pulled ? recordReader(renderer, binding) : null;
-  const compute = Fn(() => {
+  // `previous`: the previous-frame pose (spec 21) with the playback inputs the materials' velocity
+  // output uses (material.js previousPlaybackInputs), written over the positions as the current
+  // pose is (a second run: the WebGL 2 backend's compute has four outputs).
+  const pass = (previous) => Fn(() => {
     let indices = [];
     let weights = [];
     if (pulled) {
@@ -72,27 +77,27 @@ function meshProbe(renderer, mesh) {
       }
     }
     const time = inputs.instance.w;
+    const instance = {
+      clip: int(inputs.instance.x), offset: inputs.instance.y, rate: inputs.instance.z,
+      fadeClip: int(inputs.fade.x), fadeOffset: inputs.fade.y, fadeRate: inputs.fade.z, fadeWeight: inputs.fade.w,
+      layers: layered ? [
+        { clip: inputs.layerA.x, mask: inputs.layerA.y, offset: inputs.layerB.x, rate: inputs.layerB.y, weight: inputs.layerC.x },
+        { clip: inputs.layerA.z, mask: inputs.layerA.w, offset: inputs.layerB.z, rate: inputs.layerB.w, weight: inputs.layerC.y },
+      ] : null,
+    };
+    const playback = previous ? previousPlaybackInputs(instance, time, inputs.previousTime, inputs.previousFade)
+      : playbackInputs(instance, time);
     const skinned = skinVertex(crowd.animation, {
       position: rest.element(instanceIndex).xyz,
       normal: restNormal.element(instanceIndex).xyz,
       indices,
       weights,
-      clip: int(inputs.instance.x),
-      tau: inputs.instance.y.add(inputs.instance.z.mul(time)),
-      fadeClip: int(inputs.fade.x),
-      fadeTau: inputs.fade.y.add(inputs.fade.z.mul(time)),
-      fadeWeight: inputs.fade.w,
-      layers: layered ? {
-        clip: [int(inputs.layerA.x), int(inputs.layerA.z)],
-        mask: [int(inputs.layerA.y), int(inputs.layerA.w)],
-        tau: [inputs.layerB.x.add(inputs.layerB.y.mul(time)), inputs.layerB.z.add(inputs.layerB.w.mul(time))],
-        weight: [inputs.layerC.x, inputs.layerC.y],
-      } : null,
+      ...playback,
     });
     positions.element(instanceIndex).assign(inputs.world.mul(vec4(skinned.position, 1.0)));
     normals.element(instanceIndex).assign(vec4(safeNormalize(inputs.normalMatrix.mul(skinned.normal)), 0.0));
   })().compute(count);
-  probe = { compute, positions, normals, inputs, count, initial, sets, layered };
+  probe = { compute: pass(false), previousCompute: pass(true), positions, normals, inputs, count, initial, sets, layered };
   probes.set(mesh, probe);
   return probe;
 }
@@ -100,28 +105,34 @@ function meshProbe(renderer, mesh) {
 /**
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
  * computed by the GPU with WebGPURenderer `renderer` (either backend): a Promise of
- * `{positions, normals}` as Float32Arrays, in the order and shape of the WebGL runtime's
- * probeCrowd (meshes in order, points in the asset's order; normals empty for meshes without).
+ * `{positions, normals, previousPositions}` as Float32Arrays, in the order and shape of the WebGL
+ * runtime's probeCrowd (meshes in order, points in the asset's order; normals empty for meshes
+ * without); previousPositions: the previous-frame pose for frame interval `dt` (spec 21).
  */
-export async function probeNodeCrowd(renderer, crowd, index, time) {
+export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   crowd.updateMatrixWorld(true);
   crowd.updateSamples?.(time);  // a fade over stage time: the instances' fades at `time`
+  crowd.updatePrevious(time, dt);  // the previous frame: fades at time - dt, previousTime
   const placement = new Matrix4().fromArray(crowd.instanceMatrix.array, 16 * index);
   // Levels of detail: the meshes of the level the instance was drawn with (LOD 0 when culled).
   const lod = crowd.levelOf(index);
   const positions = [];
   const normals = [];
+  const previousPositions = [];
   for (const mesh of crowd.meshesOfLevel(Math.max(lod, 0))) {
     const probe = meshProbe(renderer, mesh);
     if (!renderer.backend.isWebGPUBackend && probe.sets > 1) {
       throw new VirtualBonesError(`${mesh.name}: the probe on WebGPURenderer's WebGL 2 backend reads up to 4 influences (transform feedback has 4 outputs), this mesh has ${mesh.userData.virtualBones.maxInfluences}`);
     }
     const { inputs } = probe;
-    probe.positions.value.array.set(probe.initial[0]);
-    probe.normals.value.array.set(probe.initial[1]);
-    probe.positions.value.needsUpdate = true;
-    probe.normals.value.needsUpdate = true;
+    const refill = () => {
+      probe.positions.value.array.set(probe.initial[0]);
+      probe.normals.value.array.set(probe.initial[1]);
+      probe.positions.value.needsUpdate = true;
+      probe.normals.value.needsUpdate = true;
+    };
+    refill();
     inputs.instance.value.set(crowd.clipAttribute.array[index], crowd.timeAttribute.array[2 * index],
       crowd.timeAttribute.array[2 * index + 1], time);
     inputs.fade.value.set(crowd.fadeClipAttribute.array[index], ...crowd.fadeAttribute.array.subarray(3 * index, 3 * index + 3));
@@ -130,6 +141,8 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
       inputs.layerB.value.fromArray(crowd.layerTimeAttribute.array, 4 * index);
       inputs.layerC.value.set(...crowd.layerWeightAttribute.array.subarray(2 * index, 2 * index + 2), 0, 0);
     }
+    inputs.previousFade.value.fromArray(crowd.previous.values, 4 * index);
+    inputs.previousTime.value = crowd.previous.previousTime;
     inputs.world.value.multiplyMatrices(mesh.matrixWorld, placement);
     inputs.normalMatrix.value.getNormalMatrix(inputs.world.value);
     await renderer.computeAsync(probe.compute);
@@ -141,14 +154,18 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
     };
     const p = await read(probe.positions);
     const n = await read(probe.normals);
+    refill();
+    await renderer.computeAsync(probe.previousCompute);
+    const q = await read(probe.positions);
     const { pointIndex, hasNormals, pointCount } = mesh.geometry.userData.virtualBones;
-    if (pointIndex) {
+    const inAssetOrder = (values) => {
+      if (!pointIndex) return values;
       const points = new Float32Array(pointCount * 3);
-      pointIndex.forEach((point, j) => points.set(p.subarray(3 * j, 3 * j + 3), 3 * point));
-      positions.push(points);
-    } else {
-      positions.push(p);
-    }
+      pointIndex.forEach((point, j) => points.set(values.subarray(3 * j, 3 * j + 3), 3 * point));
+      return points;
+    };
+    positions.push(inAssetOrder(p));
+    previousPositions.push(inAssetOrder(q));
     normals.push(hasNormals ? n : new Float32Array(0));
   }
   const concat = (arrays) => {
@@ -157,5 +174,5 @@ export async function probeNodeCrowd(renderer, crowd, index, time) {
     for (const a of arrays) { out.set(a, at); at += a.length; }
     return out;
   };
-  return { positions: concat(positions), normals: concat(normals), lod };
+  return { positions: concat(positions), normals: concat(normals), previousPositions: concat(previousPositions), lod };
 }

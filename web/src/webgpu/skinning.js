@@ -41,6 +41,8 @@ export function animationNodes(animation) {
   let nodes = nodesOfAnimation.get(animation);
   if (nodes) return nodes;
   const time = uniform(0).onRenderUpdate(() => animation.time);
+  // The previous frame's scene time (spec 21): VirtualBonesCrowd.updatePrevious sets it.
+  const previousTime = uniform(0).onRenderUpdate(() => animation.previousTime);
   const uniforms = animation.uniforms;
   // The compact encoding's RGBA32UI texture: WebGLRenderer needs `internalFormat` named, which
   // WebGPURenderer would take as a WebGPU format name; both of its backends derive rgba32uint /
@@ -54,6 +56,7 @@ export function animationNodes(animation) {
     texture: texture(animation.texture),
     clips: uniformArray(uniforms.vb_clips.value, 'vec4'),
     time,
+    previousTime,
     rangeMin: uniforms.vb_rangeMin ? uniformArray(uniforms.vb_rangeMin.value, 'vec4') : null,
     rangeMax: uniforms.vb_rangeMax ? uniformArray(uniforms.vb_rangeMax.value, 'vec4') : null,
     compactRange: uniforms.vb_compactRange ? uniformArray(uniforms.vb_compactRange.value, 'vec4') : null,
