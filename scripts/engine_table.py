@@ -44,6 +44,8 @@ FEATURES = (
     "crowd variety",
     "previous pose (motion vectors)",
     "velocity output (motion vectors)",
+    "blend spaces",
+    "clip events",
 )
 
 # Cells probed by other modules (each against vbusd's decoder, within the same tolerances).

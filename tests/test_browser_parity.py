@@ -16,6 +16,7 @@ instance's bounding-box diagonal, unit normals within 1e-5.
   (before, inside and after the window);
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
 * unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
+* blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask, and their clip events;
 * the previous-frame pose (motion vectors, spec 21): the probe's ``previousPositions`` for the
   page's ``?dt=`` equal the decoder at t - dt, across a loop boundary and a clamped clip's end;
 * crowd variety (format 1.3): tints, material variants and parts masks, read back from the page and
@@ -37,7 +38,7 @@ from vbusd.web.server import ViewerServer
 from tests.helpers.browser import layered_stadium as layered_stadium_file
 from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, across_clip_time,
                                    assert_within, check_previous, check_probe, engine_probe_errors, open_engine_page,
-                                   package_probe_errors, rasterize_nearest)
+                                   package_probe_errors, rasterize_nearest, reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
@@ -335,6 +336,75 @@ def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+@pytest.fixture(scope="module")
+def blending_chain(tmp_path_factory):
+    """The chain character (walk, run, wave) with a 1D and a 2D blend space and a crowd of six
+    instances playing them at their own parameters, phases and rates (format 1.3, spec 23.7)."""
+    from vbusd.format.model import Crowd
+    from vbusd.format.motion import parse_blend_space, parse_marker
+
+    folder = tmp_path_factory.mktemp("blend")
+    asset = vbusd.read_asset(chain_character(folder))
+    vb = dataclasses.replace(asset.animations[0], blend_spaces=(
+        parse_blend_space("speed=walk@0,run@1"), parse_blend_space("mix=walk@0:0,run@1:0,wave@0:1")),
+        markers=tuple(parse_marker(m) for m in ("walk:step@0.5", "walk:step@1.5", "run:step@0.25", "wave:hi@1")))
+    n = 6
+    crowd = Crowd("/Chain/Crowd", np.column_stack([np.arange(n) * 1.5, np.zeros(n), np.zeros(n)]).astype(np.float32),
+                  np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), np.zeros(n, np.int32), np.zeros(n, np.float32),
+                  np.array([1.0, 0.75, 1.25, 1.0, 0.5, 1.0], np.float32),
+                  blend_space=np.array([0, 0, 1, 1, 1, -1], np.int32),
+                  blend_x=np.array([0.25, 0.8, 0.2, 0.5, 0.1, 0.0], np.float32),
+                  blend_y=np.array([0.0, 0.0, 0.3, 0.25, 0.7, 0.0], np.float32),
+                  blend_phase=np.array([0.0, 0.125, 0.25, 0.0, 0.375, 0.0], np.float32))
+    path = folder / "blend" / "blend.usda"
+    vbusd.write_asset(dataclasses.replace(asset, animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
+    return path
+
+
+@pytest.mark.parity("blend spaces")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_blend_spaces(browser, blending_chain, engine):
+    """A crowd playing 1D and 2D blend spaces (spec 23.7) as the runtimes' layers under the rig's
+    every-bone mask (23.1; vbusd view converts with reference.blends_as_layers): each instance's
+    probe against the numpy decoder's blend."""
+    asset = vbusd.read_asset(blending_chain)
+    assert asset.crowds[0].blended
+    for i in range(5):  # the blended instances are not their clip (walk) played plainly
+        blended, _ = reference_instance(asset, i, 0.37)
+        plain = vbusd.skin(asset.animations[0], "walk", 0.37)[0].points + asset.crowds[0].positions[i]
+        assert float(np.abs(blended - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
+    errors = probe_errors(browser, blending_chain, engine, [(i, t) for i in range(6) for t in (0.0, 0.37)], asset=asset)
+    print(engine, "blend spaces", errors)
+    assert_within(errors, engine)
+
+
+@pytest.mark.parity("clip events")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_clip_events(browser, blending_chain, engine):
+    """``crowd.events(t0, t1)`` on the page (format 1.3, spec 23.5, 23.7: a blending instance reports
+    its first weighted point's clip) equals the reference's crowd_events, forward and backward."""
+    from vbusd.decoders.reference import crowd_events
+
+    asset = vbusd.read_asset(blending_chain)
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    intervals = [(0.0, 1.7), (0.3, 0.9), (1.9, 0.2), (-0.5, 3.0)]
+    with ViewerServer(blending_chain, engine=engine) as server:
+        page = open_page(browser, server)
+        try:
+            assert page.error == "", page.error
+            got = page.page.evaluate("(pairs) => pairs.map(([a, b]) => window.vbusd.crowds[0].events(a, b))", intervals)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    total = 0
+    for (t0, t1), theirs in zip(intervals, got):
+        ours = crowd_events(vb, crowd, t0, t1)
+        assert [(e["instance"], e["name"]) for e in theirs] == [(i, e["name"]) for i, e in ours], (t0, t1)
+        np.testing.assert_allclose([e["time"] for e in theirs], [e["time"] for _, e in ours], rtol=0, atol=1e-5)
+        total += len(ours)
+    assert total > 10
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:

@@ -60,7 +60,8 @@ def test_json_of_the_talks_texture(tmp_path, capsys):
     assert len(out["animations"]) == 1 and out["animations"][0]["width"] == 64
     # Exactly the keys `vbusd info --help` documents (copied here by hand from the help text).
     assert set(out["animations"][0]) == {
-        "path", "texture", "formatVersion", "formatMinorVersion", "version", "masks", "encoding", "texelFormat",
+        "path", "texture", "formatVersion", "formatMinorVersion", "version", "masks", "blendSpaces", "markers",
+        "encoding", "texelFormat",
         "boneCount", "texelsPerBone",
         "bones", "rowCount", "usedWidth", "width", "height", "horizontalPadding", "verticalPadding",
         "texelBytes", "usedTexelBytes", "bytesPerBoneKey", "fetchesPerBoneAndRow", "paddingBytes",

@@ -375,8 +375,8 @@ def _architecture_usd_names() -> list:
 
 def test_architecture_lists_are_parsed():
     top, clip = _architecture_metadata_keys()
-    # 23: bindTransforms (1.1), boneParents, masks and compactRanges (1.2)
-    assert len(top) == 23 and top[0] == "format" and top[-1] == "contentDigest"
+    # 25: bindTransforms (1.1), boneParents, masks and compactRanges (1.2), blendSpaces and markers (1.3)
+    assert len(top) == 25 and top[0] == "format" and top[-1] == "contentDigest"
     assert clip == ["name", "firstRow", "rowCount", "rowsPerSecond", "loop", "startTime"]
     assert "vb:textureWidth" in _architecture_usd_names()
     assert "primvars:vb:playbackRate" in _architecture_usd_names()
@@ -388,7 +388,8 @@ def test_schema_keys_are_exactly_the_architecture_keys(schema):
     assert sorted(schema["$defs"]["clip"]["properties"]) == sorted(clip)
     assert sorted(schema["$defs"]["clip"]["required"]) == sorted(clip)
     assert sorted(schema["required"]) == sorted(k for k in top if k not in ("unormRanges", "formatMinorVersion",
-                                                                            "bindTransforms", "boneParents", "masks", "compactRanges"))
+                                                                            "bindTransforms", "boneParents", "masks", "compactRanges",
+                                                                            "blendSpaces", "markers"))
 
 
 def test_spec_names_every_metadata_key(spec_text):

@@ -89,7 +89,10 @@ def test_schema_registry_knows_the_types():
         "vb:clipExtents", "vb:unormRangeMin", "vb:unormRangeMax", "vb:contentDigest",
         "vb:bindTransforms", "vb:clipRootMotion", "vb:rootMotionUpAxis",  # format 1.1 (sockets, root motion)
         "vb:boneParents", "vb:maskNames", "vb:maskWeights",  # format 1.2 (layers and bone masks)
-        "vb:compactRangeMin", "vb:compactRangeMax"}  # format 1.2 (compact encoding)
+        "vb:compactRangeMin", "vb:compactRangeMax",  # format 1.2 (compact encoding)
+        "vb:blendSpaceNames", "vb:blendSpaceDimensions", "vb:blendSpacePointCounts", "vb:blendSpaceClips",
+        "vb:blendSpacePoints", "vb:blendSpaceSyncMarkers",  # format 1.3 (blend spaces)
+        "vb:markerClips", "vb:markerNames", "vb:markerTimes"}  # format 1.3 (clip markers)
     assert names == expected
 
 

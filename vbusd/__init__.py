@@ -61,6 +61,7 @@ _EXPORTS = {
     "skin": "vbusd.api",
     "bone_transform": "vbusd.api",
     "root_motion": "vbusd.api",
+    "events": "vbusd.api",
     "shader": "vbusd.api",
     "build_crowd": "vbusd.jobs.crowd",
     "CrowdOptions": "vbusd.jobs.crowd",

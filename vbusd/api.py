@@ -19,12 +19,14 @@ from vbusd.format.model import VirtualBones, VirtualBonesAsset
 from vbusd.validators.api import validate as _validate
 from vbusd.io.usd import read_asset
 from vbusd.decoders.reference import skin_mesh, skin_mesh_crossfade, skin_mesh_layered
-from vbusd.decoders.reference import mask_weights, check_frame_interval
+from vbusd.decoders.reference import Additive, mask_weights, check_frame_interval
+from vbusd.format.motion import blend_weights, crossed_markers, phase_times
 from vbusd.decoders.reference import crowd_joint_transforms, joint_transforms, layered_skinning
 from vbusd.decoders.reference import root_motion as displacement
 from vbusd.decoders.shaders import ShaderOptions, generate
 
-__all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "root_motion", "shader", "clip_index"]
+__all__ = ["SkinnedPose", "validate", "skin", "bone_transform", "root_motion", "shader", "clip_index", "events",
+           "blend_points"]
 
 AssetLike = Union[str, os.PathLike, VirtualBonesAsset, VirtualBones]
 
@@ -142,7 +144,8 @@ def _weight(value, name: str, job: str) -> float:
 
 
 def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_time=None, fade_weight: float = 0.0,
-         animation: int = 0, layers=None, previous: Optional[float] = None, playback_rate: float = 1.0) -> list:
+         animation: int = 0, layers=None, blend=None, previous: Optional[float] = None,
+         playback_rate: float = 1.0) -> list:
     """Skin every mesh bound to an animation at one clip-local time, with the numpy reference decoder.
 
     With ``fade_clip`` the mesh plays two clips at once (spec: "Crossfade", format 1.1): ``clip``
@@ -163,11 +166,19 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
             clip (and on each side of a crossfade): a list of ``{"clip": name or index, "time":
             clip-local seconds, "weight": 0..1 (default 1), "mask": mask name}``; each overrides
             the bones of its mask in local space (translation and scale lerped, rotation slerped).
+            Format 1.3 (spec 23.4): ``"mode": "additive"`` (default ``"override"``) adds the layer
+            clip's difference from ``"reference": {"clip": ..., "time": ...}`` (default the layer's
+            clip at 0) instead.
+        blend: Format 1.3 (spec 23.1 to 23.3): ``{"space": NAME, "x": X, "y": Y, "phase": P}`` (``y``
+            and ``phase`` default to 0): the space's clips weighted at ``(X, Y)``, each at ``P`` times
+            its duration (from its sync marker when the space has one); ``clip`` and ``time`` are then
+            ignored. Not with a crossfade.
         previous: A frame interval ``dt`` in seconds (spec 21, "Previous-frame pose"): each pose also
             carries ``previous_positions`` and ``previous_normals``, the pose at clip-local
             ``time - dt * playback_rate`` (wrapped or clamped as the clip does); the fade time and
-            the layer times step back by the same amount, weights are held. None (the default)
-            computes nothing more.
+            the layer times step back by the same amount (an additive layer's reference pose stays),
+            weights are held; a blend's phase steps back by ``dt * playback_rate / sum w D`` (spec
+            23.3). None (the default) computes nothing more.
         playback_rate: Clip seconds per scene second of this pose, used only with ``previous``.
 
     Returns:
@@ -192,10 +203,17 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
     """
 
     vb = _animation(asset, animation, "skin")
-    index = clip_index(vb, clip)
-    tau = _finite_seconds(time, "time", "skin", vb.clips[index].rows_per_second)
+    blended = blend_points(vb, blend, "skin") if blend is not None else None
+    if blended is None:
+        index = clip_index(vb, clip)
+        tau = _finite_seconds(time, "time", "skin", vb.clips[index].rows_per_second)
+    else:
+        index, tau = blended[0][0], float(blended[0][1][0])  # the blend is the base: clip and time are ignored
     weight = _weight(fade_weight, "fade_weight", "skin")
     fade_index = None
+    if blended is not None and fade_clip is not None:
+        raise OptionsError("blend= and fade_clip= do not combine: a blend space is the base pose", file="skin",
+                           code="blend.noSpace")
     if fade_clip is not None:
         fade_index = clip_index(vb, fade_clip)
         if fade_time is None:
@@ -213,12 +231,22 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
         step = dt * rate
         _finite_seconds(tau - step, "time - previous x playback_rate", "skin", vb.clips[index].rows_per_second)
 
+    previous_blended = blended
+    if blended is not None and step != 0.0:
+        # The phase advances at rate / sum w D (spec 23.3), so the previous frame is that much phase back.
+        weighted = sum(w * vb.clips[c].duration for c, _, w in blended)
+        if weighted > 0.0:
+            previous_blended = blend_points(vb, {**blend, "phase": float(blend.get("phase", 0.0)) - step / weighted},
+                                            "skin")
+
     def pose(mesh, back: float):
-        shifted = [(clip, times - back, w, mask) for clip, times, w, mask in resolved]
-        if resolved:
+        # a layer's clip time steps back; an additive layer's reference pose (its fifth element) stays
+        shifted = [(layer[0], layer[1] - back) + tuple(layer[2:]) for layer in resolved]
+        if resolved or blended is not None:
+            # with a blend, its points are the base (index and tau only give the shape)
             return skin_mesh_layered(vb, mesh, index, np.array([tau - back]), shifted, fade_clip=fade_index,
                                      fade_tau=None if fade_index is None else np.array([fade_tau - back]),
-                                     fade_weight=weight)
+                                     fade_weight=weight, blend=blended if back == 0.0 else previous_blended)
         if fade_index is None:
             return skin_mesh(vb, mesh, index, np.array([tau - back]))
         return skin_mesh_crossfade(vb, mesh, index, np.array([tau - back]), fade_index,
@@ -239,10 +267,74 @@ def skin(asset: AssetLike, clip=0, time: float = 0.0, *, fade_clip=None, fade_ti
 
 _PER_INSTANCE = ("positions", "orientations", "scales", "clip", "time_offset", "playback_rate", "fade_clip",
                  "fade_time_offset", "fade_playback_rate", "fade_weight", "layer_clip", "layer_time_offset",
-                 "layer_playback_rate", "layer_weight", "layer_mask")
+                 "layer_playback_rate", "layer_weight", "layer_mask", "layer_mode", "layer_reference_clip",
+                 "layer_reference_time", "blend_space", "blend_x", "blend_y", "blend_phase", "tint", "variant",
+                 "parts")
 
 
-_LAYER_KEYS = ("clip", "time", "weight", "mask")
+_LAYER_KEYS = ("clip", "time", "weight", "mask", "mode", "reference")
+_BLEND_KEYS = ("space", "x", "y", "phase")
+
+
+def blend_points(vb: VirtualBones, blend, job: str = "skin") -> list:
+    """A ``blend`` dict (spec 23.1 to 23.3) resolved to the space's weighted points in its order,
+    ``[(clip index, times (1,), weight)]``, as :func:`~vbusd.decoders.reference.layered_skinning` takes them.
+
+    Raises:
+        OptionsError: Not a dict with ``space`` (and numbers ``x``, ``y``, ``phase``), or a space the
+            animation does not store (code ``blend.noSpace``).
+    """
+    if not isinstance(blend, dict) or "space" not in blend or any(k not in _BLEND_KEYS for k in blend):
+        raise OptionsError(f"blend must be a dict with keys {', '.join(_BLEND_KEYS)} (space required), got "
+                           f"{blend!r:.80}", file=job, code="blend.noSpace")
+    spaces = {space.name: space for space in vb.blend_spaces}
+    if blend["space"] not in spaces:
+        have = (f"spaces: {', '.join(spaces)}" if spaces
+                else "it stores none (format 1.3): reconvert with --blend-space NAME=CLIP@X,...")
+        raise OptionsError(f"animation {vb.path} has no blend space {blend['space']!r} ({have})", file=job,
+                           code="blend.noSpace")
+    space = spaces[blend["space"]]
+    values = {}
+    for key in ("x", "y", "phase"):
+        value = blend.get(key, 0.0)
+        if not _is_number(value) or not np.isfinite(float(value)):
+            raise OptionsError(f"blend {key} must be a finite number, got {value!r}", file=job, code="blend.noSpace")
+        values[key] = float(value)
+    durations = {c.name: c.duration for c in vb.clips}
+    times = phase_times(space, durations, vb.markers, values["phase"])
+    return [(clip_index(vb, space.clips[k], what=job), np.array([times[k]]), w)
+            for k, w in blend_weights(space, values["x"], values["y"])]
+
+
+def events(asset: AssetLike, clip, t0: float, t1: float, *, animation: int = 0) -> list:
+    """The markers of a clip crossed between two clip-local times (format 1.3, spec 23.5).
+
+    Forward (``t1 >= t0``): every marker time in ``(t0, t1]``, a looping clip's markers once per
+    loop, in increasing time; backward (``t1 < t0``): those in ``[t1, t0)``, in decreasing time.
+
+    Args:
+        asset: A Virtual Bones asset path, a read asset or one :class:`~vbusd.format.model.VirtualBones`.
+        clip: Clip name or index.
+        t0: Clip-local start time in seconds (excluded).
+        t1: Clip-local end time in seconds (included).
+        animation: Which animation of the asset (index).
+
+    Returns:
+        ``[{"name": marker name, "time": unwrapped clip-local time}]`` in the order crossed.
+
+    Raises:
+        InputError: The asset cannot be read.
+        OptionsError: No such clip or animation, or a time that is not a finite number.
+
+    Example:
+        >>> vbusd.events("fox.usda", "Walk", 0.0, 2.0)  # doctest: +SKIP
+        [{'name': 'footL', 'time': 0.2}, {'name': 'footL', 'time': 0.9083333}, ...]
+    """
+    vb = _animation(asset, animation, "events")
+    index = clip_index(vb, clip, what="events")
+    c = vb.clips[index]
+    return crossed_markers(vb.markers, c.name, c.duration, c.loop, _finite_seconds(t0, "t0", "events"),
+                           _finite_seconds(t1, "t1", "events"))
 
 
 def _layers(vb: VirtualBones, layers, job: str) -> list:
@@ -259,6 +351,12 @@ def _layers(vb: VirtualBones, layers, job: str) -> list:
             raise OptionsError(f"layers[{j}] must be a dict with keys {', '.join(_LAYER_KEYS)}, got "
                                f"{type(layer).__name__}", file=job)
         unknown = sorted(str(k) for k in layer if k not in _LAYER_KEYS)
+        mode = layer.get("mode", "override")
+        if mode not in ("override", "additive"):
+            raise OptionsError(f"layers[{j}]: mode must be 'override' or 'additive', got {mode!r}", file=job,
+                               code="blend.noSpace")
+        if "reference" in layer and mode != "additive":
+            raise OptionsError(f"layers[{j}]: a reference needs mode 'additive'", file=job, code="blend.noSpace")
         missing = [k for k in ("clip", "time", "mask") if k not in layer]
         if unknown or missing:
             raise OptionsError(f"layers[{j}]: " + "; ".join(
@@ -269,7 +367,18 @@ def _layers(vb: VirtualBones, layers, job: str) -> list:
         clip = clip_index(vb, layer["clip"], what=job)
         seconds = _finite_seconds(layer["time"], f"layers[{j}] time", job, vb.clips[clip].rows_per_second)
         mask = mask_weights(vb, layer["mask"], what=job)
-        resolved.append((clip, np.array([seconds]), weight, mask))
+        if mode == "additive":
+            reference = layer.get("reference", {"clip": clip, "time": 0.0})
+            if not isinstance(reference, dict) or set(reference) - {"clip", "time"}:
+                raise OptionsError(f"layers[{j}]: reference must be a dict with keys clip, time, got {reference!r:.60}",
+                                   file=job, code="blend.noSpace")
+            reference_clip = clip_index(vb, reference.get("clip", clip), what=job)
+            reference_time = _finite_seconds(reference.get("time", 0.0), f"layers[{j}] reference time", job,
+                                             vb.clips[reference_clip].rows_per_second)
+            resolved.append((clip, np.array([seconds]), weight, mask,
+                             Additive((reference_clip, np.array([reference_time])))))
+        else:
+            resolved.append((clip, np.array([seconds]), weight, mask))
     return resolved
 
 
@@ -295,7 +404,7 @@ def bone_index(vb: VirtualBones, bone, *, what: str = "bone_transform") -> int:
 
 
 def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animation: int = 0,
-                   instance: Optional[int] = None, crowd: int = 0, layers=None) -> np.ndarray:
+                   instance: Optional[int] = None, crowd: int = 0, layers=None, blend=None) -> np.ndarray:
     """A joint's transform in the animation's space at one clip time: where to attach a prop (a socket).
 
     Returns ``J = M B`` (spec "Sockets", format 1.1): the bone's decoded skinning transform ``M`` at
@@ -317,6 +426,8 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         crowd: Which crowd of the asset (index), with ``instance``.
         layers: Format 1.2 layers, as in :func:`skin` (not with ``instance``): the joint of the
             layered pose, ``J'_b`` (spec "Layers and bone masks").
+        blend: Format 1.3 blend, as in :func:`skin` (not with ``instance``): the joint of the
+            blended (and layered) pose.
 
     Returns:
         (4, 4) float64 matrix for column vectors, ``p' = M[:3, :3] @ p + M[:3, 3]``.
@@ -371,11 +482,15 @@ def bone_transform(asset: AssetLike, bone, clip=0, time: float = 0.0, *, animati
         return crowd_joint_transforms(vb, single, bone_index(vb, bone), seconds)[0]
     vb = _animation(asset, animation, job)
     index = bone_index(vb, bone)
-    clip_number = clip_index(vb, clip, what=job)
-    tau = _finite_seconds(time, "time", job, vb.clips[clip_number].rows_per_second)
+    points = blend_points(vb, blend, job) if blend is not None else None
+    if points is None:
+        clip_number = clip_index(vb, clip, what=job)
+        tau = _finite_seconds(time, "time", job, vb.clips[clip_number].rows_per_second)
+    else:
+        clip_number, tau = points[0][0], float(points[0][1][0])
     resolved = _layers(vb, layers, "bone_transform")
-    if resolved:
-        return layered_skinning(vb, clip_number, np.array([tau]), resolved)[1][0, index]
+    if resolved or points is not None:
+        return layered_skinning(vb, clip_number, np.array([tau]), resolved, blend=points)[1][0, index]
     return joint_transforms(vb, clip_number, np.array([tau]))[0, index]
 
 

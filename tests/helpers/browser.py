@@ -168,7 +168,9 @@ def reference_instance(asset, instance: int, t: float):
                                                                "fade_time_offset", "fade_playback_rate",
                                                                "fade_weight", "layer_clip", "layer_time_offset",
                                                                "layer_playback_rate", "layer_weight",
-                                                               "layer_mask")})
+                                                               "layer_mask", "layer_mode", "layer_reference_clip",
+                                                               "layer_reference_time", "blend_space", "blend_x",
+                                                               "blend_y", "blend_phase")})
             vb = asset.animations[animation]
             results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
             return (np.concatenate([p[0] for p, _ in results]),

@@ -23,9 +23,10 @@ from vbusd.format.model import AnimationClip, BoundMesh, Clip, SkinnedAnimation,
 from vbusd.kernels import bake as bake_kernels
 from vbusd.baking.rootmotion import in_place_clip
 from vbusd.format.rootmotion import RootMotion, check_mode
+from vbusd.format.motion import motion_problems
 from vbusd.decoders.bounds import clip_extents
 
-__all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "bone_masks", "RowPlan", "decide_loop", "plan_rows",
+__all__ = ["DEFAULT_ROWS_PER_SECOND", "BakeOptions", "bone_masks", "check_motion", "RowPlan", "decide_loop", "plan_rows",
            "reduce_influences", "bind_mesh", "bake"]
 
 DEFAULT_ROWS_PER_SECOND = 30.0
@@ -66,6 +67,10 @@ class BakeOptions:
     masks: tuple = ()
     """Format 1.2: ``(name, bone)`` pairs, each a bone mask of ``bone`` and every bone below it
     (spec "Layers and bone masks"; ``vbusd convert --mask NAME=BONE``)."""
+    blend_spaces: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.BlendSpace` objects (spec 23; ``vbusd convert --blend-space``)."""
+    markers: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.Marker` objects (spec 23.4; ``vbusd convert --marker``)."""
 
     def __post_init__(self) -> None:
         for name, kind in (("encoding", Encoding), ("texel_format", TexelFormat),
@@ -291,6 +296,13 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
     bone_count = animation.bone_count
     # Masks are resolved before any pose is sampled: a misspelt bone fails at once.
     parents, masks = bone_masks(animation, options.masks) if options.masks else (None, ())
+    if options.blend_spaces and parents is None:
+        # Blend spaces blend in local space (spec 23.1): they need the hierarchy as masks do.
+        if animation.bone_parents is None or animation.bind_transforms is None:
+            raise OptionsError("--blend-space needs the bones' hierarchy and bind transforms, which this "
+                               "source's converter does not give", file=animation.source, location=animation.path,
+                               code="convert.blendSpace")
+        parents = tuple(int(p) for p in animation.bone_parents)
     trackers = None
 
     mode = check_mode(options.root_motion)
@@ -363,16 +375,31 @@ def bake(animation: SkinnedAnimation, options: BakeOptions = BakeOptions()) -> V
             entries = plan.row_count + (1 if plan.loop else 0)
             tracks.append(track(clip.start_time + np.arange(entries, dtype=np.float64) / plan.rows_per_second))
         motion = RootMotion(options.up_axis, tuple(tracks))
+    check_motion(options.blend_spaces, options.markers, clips, animation)
     baked = VirtualBones(layout=layout, texels=texels, bones=tuple(animation.bones), clips=tuple(clips),
                          unorm_ranges=ranges, meshes=meshes, path=animation.path,
                          clip_extents=np.stack(extents), bind_transforms=bind, root_motion=motion,
-                         bone_parents=parents, masks=masks)
+                         bone_parents=parents, masks=masks, blend_spaces=tuple(options.blend_spaces),
+                         markers=tuple(options.markers))
     if meshes:
         # vb:clipExtents from the decoded texels, at rows and between rows (spec 13): they bound
         # what every decoder computes, quantization included.
 
         baked = dataclasses.replace(baked, clip_extents=clip_extents(baked).astype(np.float32))
     return baked
+
+
+def check_motion(spaces, markers, clips, animation: SkinnedAnimation) -> None:
+    """Refuse blend spaces and markers that do not fit the baked clips (spec 23.6), in one line.
+
+    Raises:
+        OptionsError: The first problem (code ``convert.marker`` for a marker, ``convert.blendSpace``
+            for a blend space).
+    """
+    durations = {c.name: c.duration for c in clips}
+    for parts, message in motion_problems(tuple(spaces), tuple(markers), durations):
+        code = "convert.marker" if parts[0] == "markers" else "convert.blendSpace"
+        raise OptionsError(message, file=animation.source, location=animation.path, code=code)
 
 
 def bone_masks(animation: SkinnedAnimation, requests) -> tuple:

@@ -114,6 +114,13 @@ def _check_rows(value: str):
 @click.option("--mask", "masks", multiple=True, metavar="NAME=BONE",
               help="A bone mask for layers (format 1.2; vbusd.skin(..., layers=...)): BONE and every bone below "
                    "it in the hierarchy (its descendants); repeatable.")
+@click.option("--blend-space", "blend_spaces", multiple=True, metavar="NAME=CLIP@X,... | NAME=CLIP@X:Y,...",
+              help="A blend space of clips (format 1.3; vbusd.skin(..., blend=...)): 1D with CLIP@X points, 2D "
+                   "with CLIP@X:Y points; repeatable.")
+@click.option("--blend-sync", "blend_syncs", multiple=True, metavar="SPACE=MARKER",
+              help="Play a blend space's clips in phase from this marker of each clip (format 1.3); repeatable.")
+@click.option("--marker", "markers", multiple=True, metavar="CLIP:NAME@SECONDS",
+              help="A named time of a clip, in clip-local seconds (format 1.3; vbusd.events); repeatable.")
 @click.option("--manifest", default=None, type=click.Path(path_type=str),
               help="A JSON or CSV list of assets (source, output, per-asset options): spec/batch.md.")
 @click.option("--jobs", "-j", default=None, type=click.IntRange(min=1), metavar="N",
@@ -134,7 +141,7 @@ def _check_rows(value: str):
 def command(sources, output, encoding, texel_format, rows_per_second, horizontal_padding, vertical_padding,
             max_influences, skeletons, frame_range, container, output_format, allow_outside_paths, force,
             check_rows, loop_mode, converter, clip_names, on_bad_clip, strict_weights, root_motion, lod_ratios,
-            lod_screen_sizes, masks, manifest, jobs,
+            lod_screen_sizes, masks, blend_spaces, blend_syncs, markers, manifest, jobs,
             scheduler, cache_dir, no_cache, report_file, stall_timeout, progress_lines, quiet):
     """Convert skinned UsdSkel or glTF assets into Virtual Bones USD assets.
 
@@ -164,7 +171,8 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
         loop={"auto": None, "loop": True, "clamp": False}[loop_mode],
         clips=_split_clips(clip_names), on_bad_clip=on_bad_clip, strict_weights=strict_weights,
         root_motion=root_motion, lod_ratios=lod_ratios or (), lod_screen_sizes=lod_screen_sizes,
-        masks=tuple(masks))
+        masks=tuple(masks), blend_spaces=tuple(blend_spaces), blend_syncs=tuple(blend_syncs),
+        markers=tuple(markers))
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):

@@ -28,6 +28,7 @@ from vbusd.cli import common
 from vbusd.format.errors import MISSING_FILE, InputError
 from vbusd.format import metadata as md
 from vbusd.format.layout import Layout
+from vbusd.format.motion import markers_to_dict, spaces_to_dict
 from vbusd.io.usd_reader import read_summary, texture_disagreements
 from vbusd.format.diagnostics import Diagnostics
 from vbusd.io.package_reader import EXTENSION, read_package
@@ -66,7 +67,9 @@ The JSON form (--format json) is one object:
                    "usedTexelBytes", "bytesPerBoneKey",
                    "fetchesPerBoneAndRow", "paddingBytes", "paddingFraction",
                    "contentDigest", "masks": [{"name", "bones",
-                   "weights"}], "clips": [{"name", "firstRow",
+                   "weights"}], "blendSpaces": [{"name", "dimensions",
+                   "points", "syncMarker"?}], "markers": [{"clip",
+                   "name", "time"}], "clips": [{"name", "firstRow",
                    "rowCount", "rowsPerSecond", "loop", "startTime",
                    "duration"}]}, ...]}
   A texture's animation also has "container" (exr | png | ktx2),
@@ -94,7 +97,8 @@ texture file as written in the asset.
 
 def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
              texture: Optional[str] = None, format_version: Optional[int] = None,
-             content_digest: Optional[str] = None, format_minor_version: int = 0, masks=()) -> dict:
+             content_digest: Optional[str] = None, format_minor_version: int = 0, masks=(), blend_spaces=(),
+             markers=()) -> dict:
     """The JSON description of one animation's layout (keys as in the command help).
 
     Args:
@@ -107,6 +111,8 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
         content_digest: The texels' digest.
         format_minor_version: The metadata's formatMinorVersion (absent: 0).
         masks: Format 1.2 bone masks, ``(name, weights)`` pairs: listed with the bones they weigh.
+        blend_spaces: Format 1.3 blend spaces, as the metadata's ``blendSpaces`` holds them.
+        markers: Format 1.3 clip markers, as the metadata's ``markers`` holds them.
     """
     bones = [str(b) for b in bones]
     return {
@@ -119,6 +125,8 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
         "bones": bones,
         "masks": [{"name": str(name), "bones": [b for b, w in zip(bones, weights) if float(w) > 0],
                    "weights": [float(w) for w in weights]} for name, weights in masks],
+        "blendSpaces": list(blend_spaces or ()),
+        "markers": list(markers or ()),
         "usedTexelBytes": layout.used_texel_bytes,
         # bytes and texel fetches one bone costs per row (12 and 1 for the compact encoding)
         "bytesPerBoneKey": layout.texels_per_bone * layout.texel_format.stored_channels
@@ -139,7 +147,8 @@ def describe(layout: Layout, clips, *, bones=(), path: Optional[str] = None,
 def _describe_info(info, *, texture: Optional[str], path: Optional[str] = None) -> dict:
     return describe(info.layout, info.clips, bones=info.bones, texture=texture, path=path,
                     format_version=info.format_version, content_digest=info.content_digest,
-                    format_minor_version=info.format_minor_version, masks=info.masks)
+                    format_minor_version=info.format_minor_version, masks=info.masks,
+                    blend_spaces=spaces_to_dict(info.blend_spaces), markers=markers_to_dict(info.markers))
 
 
 # --------------------------------------------------------------------------------------------
@@ -161,7 +170,9 @@ def _usd_animations(path: Path, *, allow_outside_paths: bool = False) -> list:
     described = [describe(a.layout, a.clips, bones=a.bones, path=a.path, texture=a.texture,
                           format_version=a.format_version, content_digest=a.content_digest,
                           format_minor_version=a.format_minor_version,
-                          masks=[(m["name"], m["weights"]) for m in (a.declared.values.get("masks") or ())])
+                          masks=[(m["name"], m["weights"]) for m in (a.declared.values.get("masks") or ())],
+                          blend_spaces=a.declared.values.get("blendSpaces") or (),
+                          markers=a.declared.values.get("markers") or ())
                  for a in animations]
     for entry, a in zip(described, animations):
         if a.lods is not None:  # format 1.2
@@ -373,6 +384,13 @@ def _print_text(result: dict) -> None:
         for mask in animation.get("masks", ()):
             console.print(f"mask {mask['name']} ({len(mask['bones'])} of {len(animation['bones'])} bones): "
                           + ", ".join(mask["bones"]), markup=False)
+        for space in animation.get("blendSpaces", ()):  # format 1.3
+            points = ", ".join(f"{p['clip']}@{p['x']:g}" + (f":{p['y']:g}" if "y" in p else "") for p in space["points"])
+            sync = f", in phase from marker {space['syncMarker']}" if space.get("syncMarker") else ""
+            console.print(f"blend space {space['name']} ({space['dimensions']}D{sync}): {points}", markup=False)
+        if animation.get("markers"):
+            console.print("markers: " + ", ".join(f"{m['clip']}:{m['name']}@{m['time']:g}"
+                                                  for m in animation["markers"]), markup=False)
         clips = common.table("name", "first row", "rows", "rows/s", "loop", "duration s", title="clips",
                              right=("first row", "rows", "rows/s", "loop", "duration s"), pad_edge=False)
         for clip in animation["clips"]:

@@ -18,15 +18,17 @@ import numpy as np
 from vbusd.format.encoding import BoneTransforms, decode_bones, dequantize, unpack
 from vbusd.format.layout import Encoding
 from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
-from vbusd.format.quaternion import matrix_to_quat, quat_multiply, quat_to_matrix
+from vbusd.format.quaternion import matrix_to_quat, quat_conjugate, quat_multiply, quat_to_matrix
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.rootmotion import displacement
+from vbusd.format.motion import crossed_markers, instance_blend
 
 __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transforms", "skin",
            "DENSE_BONE_LIMIT", "normal_point_indices", "skin_mesh", "skin_mesh_at_rows",
            "instance_time", "crossfade", "skin_mesh_crossfade", "skin_crowd", "skinning_matrices",
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
-           "mix_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
+           "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
+           "Additive", "crowd_events", "instance_blend_points", "blends_as_layers",
            "DEFAULT_FRAME_INTERVAL", "check_frame_interval", "hold_reset", "skin_crowd_previous"]
 
 
@@ -243,6 +245,28 @@ def instance_time(crowd: Crowd, t: float) -> np.ndarray:
     return np.asarray(crowd.time_offset, dtype=np.float64) + np.asarray(crowd.playback_rate, dtype=np.float64) * t
 
 
+def crowd_events(vb: VirtualBones, crowd: Crowd, t0: float, t1: float) -> list:
+    """The markers every instance of a crowd crosses between scene times ``t0`` and ``t1`` (spec 23.5):
+    instance ``i`` plays clip-local time ``timeOffset + playbackRate x t``, so its events are its
+    clip's markers crossed from that time at ``t0`` to that at ``t1`` (backward for a negative rate).
+
+    An instance that plays a blend space (spec 23.7) reports the markers of its first weighted
+    point's clip at that point's clip time.
+
+    Returns:
+        ``[(instance, {"name", "time"})]``, instance by instance, each in the order crossed.
+    """
+    if crowd.blended:
+        crowd = blends_as_layers(vb, crowd)
+    out = []
+    start, end = instance_time(crowd, t0), instance_time(crowd, t1)
+    for i in range(crowd.instance_count):
+        clip = vb.clips[int(crowd.clip[i])]
+        out.extend((i, event) for event in crossed_markers(vb.markers, clip.name, clip.duration, clip.loop,
+                                                           float(start[i]), float(end[i])))
+    return out
+
+
 def crossfade(pose_a: tuple, pose_b: tuple, weight) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Blend two skinned poses with the weight of the second (spec: "Crossfade").
 
@@ -348,7 +372,7 @@ def skin_crowd(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float) -> tup
     n = crowd.instance_count
     if n == 0:
         return np.empty((0,) + mesh.points.shape), None if mesh.normals is None else np.empty((0,) + mesh.normals.shape)
-    if crowd.layered:
+    if crowd.layered or crowd.blended:
         points, normals = _layered_instances(vb, mesh, crowd, t)
     else:
         points, normals = _per_instance(crowd, t, lambda clip, taus: _raw_pose(vb, mesh, clip, taus, values))
@@ -410,13 +434,14 @@ def crowd_joint_transforms(vb: VirtualBones, crowd: Crowd, bone: int, t: float) 
     n = crowd.instance_count
     if n == 0:
         return np.empty((0, 4, 4))
-    if crowd.layered:
+    if crowd.layered or crowd.blended:
         # Spec 8.6 and 8.4: each side of the crossfade layered, the two layered transforms blended.
         taus = instance_time(crowd, t)
         fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
         local = np.empty((n, 4, 4))
         for i, layers in enumerate(instance_layers(vb, crowd, t)):
-            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers)[0])[0, bone]
+            blend = instance_blend_points(vb, crowd, i, t)
+            local[i] = _matrices(layered_skinning(vb, int(crowd.clip[i]), taus[i:i + 1], layers, blend=blend)[0])[0, bone]
             w = float(np.clip(fade_weight[i], 0.0, 1.0)) if crowd.crossfades else 0.0
             if w > 0:
                 fade_tau = np.array([fade_offset[i] + fade_rate[i] * t])
@@ -514,6 +539,30 @@ def mix_local(x: np.ndarray, y: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return out
 
 
+def add_local(x: np.ndarray, layer: np.ndarray, reference: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``X`` with ``alpha`` of the additive difference of ``layer`` from ``reference`` (spec 23.4), for
+    (..., 4, 4) local transforms and (...) weights: ``t + a (t_L - t_R)``, ``q (x) slerp(1, q_R^-1 q_L, a)``,
+    ``s + a (s_L - s_R)``, as three.js' ``makeClipAdditive`` and additive ``PropertyMixer`` give; ``X``
+    itself where ``alpha`` is 0."""
+    out = x.copy()
+    active = alpha > 0.0
+    if np.any(active):
+        a = np.minimum(alpha[active], 1.0)
+        tx, qx, sx = decompose_trs(x[active])
+        tl, ql, sl = decompose_trs(layer[active])
+        tr, qr, sr = decompose_trs(reference[active])
+        delta = quat_multiply(quat_conjugate(qr), ql)
+        identity = np.broadcast_to(np.array([0.0, 0.0, 0.0, 1.0]), delta.shape)
+        out[active] = compose_trs(tx + a[:, None] * (tl - tr), quat_multiply(qx, slerp(identity, delta, a)),
+                                  sx + a[:, None] * (sl - sr))
+    return out
+
+
+class Additive(tuple):
+    """The additive mode of a layer (spec 23.4): ``Additive((reference clip, reference times (n,)))``;
+    the fifth element of a layer tuple of :func:`layered_skinning` (absent: override)."""
+
+
 def _local(joints: np.ndarray, parents: np.ndarray) -> np.ndarray:
     """Local transforms ``J_p^-1 J_b`` (a root's is ``J_b``) of (n, B, 4, 4) joint transforms."""
     local = joints.copy()
@@ -539,7 +588,8 @@ def mask_weights(vb: VirtualBones, mask, *, what: str = "skin") -> np.ndarray:
                      code="layers.noMask")
 
 
-def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None) -> tuple[BoneTransforms, np.ndarray]:
+def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None, *,
+                     blend=None) -> tuple[BoneTransforms, np.ndarray]:
     """Decoded bone transforms of one clip with layers applied (spec "Layers and bone masks").
 
     Args:
@@ -547,30 +597,60 @@ def layered_skinning(vb: VirtualBones, clip_index: int, tau, layers, values=None
         clip_index: The base clip.
         tau: Its clip-local times (n,).
         layers: ``(clip index, times (n,), weight (scalar or (n,)), mask weights (B,))`` per layer,
-            applied in order.
+            applied in order; an additive layer (spec 23.4) has a fifth element, :class:`Additive`.
         values: :func:`channel_values` of ``vb``, to avoid recomputing it.
+        blend: A blend space's points of non-zero weight in the space's order (spec 23.1), as
+            ``(clip index, times (n,), weight)``; it replaces ``clip_index`` and ``tau`` as the base.
+            One point of weight 1 is that clip alone, bit for bit.
 
     Returns:
         ``(transforms, joints)``: the :class:`BoneTransforms` to skin with (a bone the layers leave
         unchanged keeps its decoded transform exactly) and the layered joint transforms ``J'``
         (n, B, 4, 4).
     """
+    blend = [entry for entry in (blend or ()) if entry[2] > 0.0]
+    if len(blend) == 1:
+        clip_index, tau = blend[0][0], blend[0][1]
+        blend = []
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
     encoding = vb.layout.encoding
-    base = decode_bones(interpolated_values(vb, clip_index, tau, values), encoding)
     bind = _bind(vb)
-    joints = _matrices(base) @ bind[None]
-    if not layers:
-        return base, joints
-    parents = np.asarray(vb.bone_parents, dtype=np.int64)
-    local = _local(joints, parents)
-    changed = np.zeros(local.shape[:2], dtype=bool)
-    for clip, times, weight, mask in layers:
+
+    def local_pose(clip, times):
         times = np.broadcast_to(np.atleast_1d(np.asarray(times, dtype=np.float64)), tau.shape)
-        layer = _matrices(decode_bones(interpolated_values(vb, clip, times, values), encoding)) @ bind[None]
+        joints_of = _matrices(decode_bones(interpolated_values(vb, clip, times, values), encoding)) @ bind[None]
+        return _local(joints_of, parents)
+
+    if blend:
+        # Spec 23.1: the points' local transforms accumulated in the space's order, as three.js'
+        # PropertyMixer accumulates weighted actions.
+        parents = np.asarray(vb.bone_parents, dtype=np.int64)
+        tau = np.broadcast_to(np.atleast_1d(np.asarray(blend[0][1], dtype=np.float64)), tau.shape).copy()
+        base = decode_bones(interpolated_values(vb, blend[0][0], tau, values), encoding)
+        local = local_pose(blend[0][0], blend[0][1])
+        total = float(blend[0][2])
+        for clip, times, weight in blend[1:]:
+            total += float(weight)
+            local = mix_local(local, local_pose(clip, times), np.full(local.shape[:2], float(weight) / total))
+        joints = _matrices(base) @ bind[None]
+        changed = np.ones(local.shape[:2], dtype=bool)
+    else:
+        base = decode_bones(interpolated_values(vb, clip_index, tau, values), encoding)
+        joints = _matrices(base) @ bind[None]
+        if not layers:
+            return base, joints
+        parents = np.asarray(vb.bone_parents, dtype=np.int64)
+        local = _local(joints, parents)
+        changed = np.zeros(local.shape[:2], dtype=bool)
+    for layer_entry in layers:
+        clip, times, weight, mask = layer_entry[:4]
         w = np.clip(np.broadcast_to(np.asarray(weight, dtype=np.float64), tau.shape), 0.0, 1.0)
         alpha = w[:, None] * np.asarray(mask, dtype=np.float64)[None, :]
-        local = mix_local(local, _local(layer, parents), alpha)
+        if len(layer_entry) > 4 and isinstance(layer_entry[4], Additive):
+            reference_clip, reference_times = layer_entry[4]
+            local = add_local(local, local_pose(clip, times), local_pose(reference_clip, reference_times), alpha)
+        else:
+            local = mix_local(local, local_pose(clip, times), alpha)
         changed |= alpha > 0.0
     layered = joints.copy()
     for b in bone_order(parents):
@@ -607,7 +687,7 @@ def _matrices(transforms: BoneTransforms) -> np.ndarray:
 
 
 def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, layers, *, fade_clip=None,
-                      fade_tau=None, fade_weight=0.0) -> tuple[np.ndarray, Optional[np.ndarray]]:
+                      fade_tau=None, fade_weight=0.0, blend=None) -> tuple[np.ndarray, Optional[np.ndarray]]:
     """Skinned points and normals of a bound mesh with layers (spec "Layers and bone masks").
 
     With a fade clip, each side of the crossfade is layered and the two layered poses are blended
@@ -622,6 +702,8 @@ def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, l
         fade_clip: The fade clip's index, or None.
         fade_tau: Its clip-local times.
         fade_weight: Its weight (clamped to [0, 1]).
+        blend: A blend space's weighted points, as :func:`layered_skinning` takes them (spec 23.1);
+            the base instead of ``clip_index`` and ``tau`` (not with a fade clip).
 
     Returns:
         (points (n, V, 3), normals (n, V', 3) or None), float64.
@@ -630,7 +712,7 @@ def skin_mesh_layered(vb: VirtualBones, mesh: BoundMesh, clip_index: int, tau, l
     tau = np.atleast_1d(np.asarray(tau, dtype=np.float64))
 
     def pose(clip, times, finish):
-        transforms, _ = layered_skinning(vb, clip, times, layers, values)
+        transforms, _ = layered_skinning(vb, clip, times, layers, values, blend=None if fade_clip is not None else blend)
         return skin(transforms, vb.layout.encoding, mesh.points, mesh.bone_indices, mesh.bone_weights,
                     mesh.normals, normal_point_indices(mesh), normalize_normals=finish)
 
@@ -650,21 +732,122 @@ def instance_layers(vb: VirtualBones, crowd: Crowd, t: float) -> list:
     offset = np.asarray(crowd.layer_time_offset, dtype=np.float64).reshape(weight.shape)
     rate = np.asarray(crowd.layer_playback_rate, dtype=np.float64).reshape(weight.shape)
     mask = np.asarray(crowd.layer_mask, dtype=np.int64).reshape(weight.shape)
-    return [[(int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
-              mask_weights(vb, int(mask[i, j]))) for j in range(weight.shape[1]) if weight[i, j] > 0]
-            for i in range(weight.shape[0])]
+    # Format 1.3 (spec 23.4): additive layers and their reference poses (default: the layer's clip at 0).
+    mode = (np.zeros(weight.shape, np.int64) if crowd.layer_mode is None
+            else np.asarray(crowd.layer_mode, dtype=np.int64).reshape(weight.shape))
+    reference_clip = (clip if crowd.layer_reference_clip is None
+                      else np.asarray(crowd.layer_reference_clip, dtype=np.int64).reshape(weight.shape))
+    reference_time = (np.zeros(weight.shape) if crowd.layer_reference_time is None
+                      else np.asarray(crowd.layer_reference_time, dtype=np.float64).reshape(weight.shape))
+
+    def layer(i, j):
+        entry = (int(clip[i, j]), np.array([offset[i, j] + rate[i, j] * t]), float(np.clip(weight[i, j], 0.0, 1.0)),
+                 mask_weights(vb, int(mask[i, j])))
+        if mode[i, j] == 1:
+            entry += (Additive((int(reference_clip[i, j]), np.array([reference_time[i, j]]))),)
+        return entry
+
+    return [[layer(i, j) for j in range(weight.shape[1]) if weight[i, j] > 0] for i in range(weight.shape[0])]
+
+
+def instance_blend_points(vb: VirtualBones, crowd: Crowd, i: int, t: float):
+    """Instance ``i``'s blend space at scene time ``t`` as :func:`layered_skinning` takes it (spec 23.7),
+    ``[(clip index, times (1,), weight)]``, or None when it plays its clip.
+
+    Raises:
+        InputError: A blend space index the animation does not have, or a blend with a crossfade
+            (code ``blend.noSpace``).
+    """
+    if crowd.blend_space is None or int(crowd.blend_space[i]) < 0:
+        return None
+    index = int(crowd.blend_space[i])
+    if index >= len(vb.blend_spaces):
+        raise InputError(f"instance {i} plays blend space {index}, but the animation stores {len(vb.blend_spaces)}",
+                         location=f"{crowd.path}.primvars:vb:blendSpace", code="blend.noSpace")
+    if crowd.crossfades and float(crowd.fade_arrays()[3][i]) > 0:
+        raise InputError(f"instance {i} plays a blend space and a crossfade; a blend is the whole base pose "
+                         "(spec 23.7)", location=f"{crowd.path}.primvars:vb:blendSpace", code="blend.noSpace")
+    space = vb.blend_spaces[index]
+    names = [c.name for c in vb.clips]
+
+    def value(field):
+        return 0.0 if field is None else float(np.asarray(field)[i])
+
+    entries = instance_blend(space, value(crowd.blend_x), value(crowd.blend_y), value(crowd.blend_phase),
+                             float(np.asarray(crowd.playback_rate)[i]), {c.name: c.duration for c in vb.clips},
+                             vb.markers)
+    return [(names.index(space.clips[k]), np.array([offset + rate * t]), w) for k, w, _, offset, rate in entries]
+
+
+def blends_as_layers(vb: VirtualBones, crowd: Crowd) -> Crowd:
+    """A crowd whose instances play blend spaces (spec 23.7) as one that plays layers: each blended
+    instance plays its first weighted point's clip (offset and rate from :func:`instance_blend`) with
+    one override layer per further point, under mask index ``len(vb.masks)`` -- a mask of every bone
+    the decoder adds -- before its own layers (spec 23.1, "Decoding a blend as layers"). What a
+    decoder that layers (warp) decodes blends with; the times are linear in the scene time, so the
+    conversion holds at every time."""
+    n = crowd.instance_count
+    every = len(vb.masks)
+    names = [c.name for c in vb.clips]
+    durations = {c.name: c.duration for c in vb.clips}
+    own = 0 if crowd.layer_weight is None else np.asarray(crowd.layer_weight).reshape(n, -1).shape[1]
+    rows = []
+    clip = np.asarray(crowd.clip, np.int32).copy()
+    offset = np.asarray(crowd.time_offset, np.float64).copy()
+    rate = np.asarray(crowd.playback_rate, np.float64).copy()
+    for i in range(n):
+        blend = instance_blend_points(vb, crowd, i, 0.0)  # checks the space and the crossfade
+        if blend is None:
+            rows.append([])
+            continue
+        space = vb.blend_spaces[int(crowd.blend_space[i])]
+        value = lambda field: 0.0 if field is None else float(np.asarray(field)[i])  # noqa: E731
+        entries = instance_blend(space, value(crowd.blend_x), value(crowd.blend_y), value(crowd.blend_phase),
+                                 float(rate[i]), durations, vb.markers)
+        first = entries[0]
+        clip[i], offset[i], rate[i] = names.index(space.clips[first[0]]), first[3], first[4]
+        rows.append([(names.index(space.clips[k]), o, r, relative, every) for k, _, relative, o, r in entries[1:]])
+    extra = max((len(r) for r in rows), default=0)
+    count = extra + own
+    if count == 0:
+        return dataclasses.replace(crowd, blend_space=None, clip=clip, time_offset=offset, playback_rate=rate)
+    layer = {key: np.zeros((n, count), dtype) for key, dtype in (("clip", np.int32), ("offset", np.float64),
+                                                                 ("rate", np.float64), ("weight", np.float32),
+                                                                 ("mask", np.int32), ("mode", np.int32),
+                                                                 ("reference_clip", np.int32),
+                                                                 ("reference_time", np.float64))}
+    for i, row in enumerate(rows):
+        for j, (c, o, r, w, m) in enumerate(row):
+            layer["clip"][i, j], layer["offset"][i, j], layer["rate"][i, j] = c, o, r
+            layer["weight"][i, j], layer["mask"][i, j], layer["reference_clip"][i, j] = w, m, c
+    if own:
+        shape = (n, own)
+        source = {"clip": crowd.layer_clip, "offset": crowd.layer_time_offset, "rate": crowd.layer_playback_rate,
+                  "weight": crowd.layer_weight, "mask": crowd.layer_mask, "mode": crowd.layer_mode,
+                  "reference_clip": crowd.layer_reference_clip if crowd.layer_reference_clip is not None
+                  else crowd.layer_clip, "reference_time": crowd.layer_reference_time}
+        for key, values in source.items():
+            if values is not None:
+                layer[key][:, extra:] = np.asarray(values).reshape(shape)
+    return dataclasses.replace(
+        crowd, clip=clip, time_offset=offset, playback_rate=rate, blend_space=None, layer_clip=layer["clip"],
+        layer_time_offset=layer["offset"], layer_playback_rate=layer["rate"], layer_weight=layer["weight"],
+        layer_mask=layer["mask"], layer_mode=layer["mode"], layer_reference_clip=layer["reference_clip"],
+        layer_reference_time=layer["reference_time"])
 
 
 def _layered_instances(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: float):
-    """Skinned points and normals (N, V, 3) of a layered crowd, one instance at a time."""
+    """Skinned points and normals (N, V, 3) of a layered or blended crowd, one instance at a time."""
     taus = instance_time(crowd, t)
     fade_clip, fade_offset, fade_rate, fade_weight = crowd.fade_arrays()
     points, normals = [], []
     for i, layers in enumerate(instance_layers(vb, crowd, t)):
-        fading = crowd.crossfades and fade_weight[i] > 0
+        blend = instance_blend_points(vb, crowd, i, t)
+        fading = crowd.crossfades and fade_weight[i] > 0 and blend is None
         p, n = skin_mesh_layered(vb, mesh, int(crowd.clip[i]), taus[i:i + 1], layers,
                                  fade_clip=int(fade_clip[i]) if fading else None,
-                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i])
+                                 fade_tau=np.array([fade_offset[i] + fade_rate[i] * t]), fade_weight=fade_weight[i],
+                                 blend=blend)
         points.append(p[0])
         normals.append(None if n is None else n[0])
     return np.stack(points), None if normals[0] is None else np.stack(normals)

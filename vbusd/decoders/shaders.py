@@ -741,6 +741,19 @@ _LAYERS = """\
 #ifndef VB_MAX_DEPTH
 #define VB_MAX_DEPTH 32
 #endif
+// Additive layers (format 1.3, spec 23.4; spec/shaders.md): define VB_ADDITIVE_LAYERS 1 and the
+// layer functions take, after layerMask, each layer's mode (0 override, 1 additive) and the clip
+// and clip-local time of its reference pose.
+#ifndef VB_ADDITIVE_LAYERS
+#define VB_ADDITIVE_LAYERS 0
+#endif
+#if VB_ADDITIVE_LAYERS
+#define VB_ADDITIVE_DECL , int layerMode[VB_MAX_LAYERS], int referenceClip[VB_MAX_LAYERS], float referenceTau[VB_MAX_LAYERS]
+#define VB_ADDITIVE_ARGS , layerMode, referenceClip, referenceTau
+#else
+#define VB_ADDITIVE_DECL
+#define VB_ADDITIVE_ARGS
+#endif
 
 // Rig texture row 0, per bone b: texels 8b..8b+2 the rows of its bind transform B, 8b+3..8b+5 those
 // of B^-1, 8b+6 = (parent index or -1, 0, 0, 0). Row 1 + m: texel b = (weight of bone b in mask m).
@@ -875,6 +888,32 @@ void vbMixLocal(inout vec4 x0, inout vec4 x1, inout vec4 x2, vec4 y0, vec4 y1, v
     vbCompose(mix(tx, ty, alpha), vbSlerp(qx, qy, alpha), mix(sx, sy, alpha), x0, x1, x2);
 }
 
+#if VB_ADDITIVE_LAYERS
+// Hamilton product a (x) b of (x, y, z, w) quaternions.
+vec4 vbQuatMul(vec4 a, vec4 b)
+{
+    return vec4(a.w * b.xyz + b.w * a.xyz + cross(a.xyz, b.xyz), a.w * b.w - dot(a.xyz, b.xyz));
+}
+
+// X plus alpha of the additive difference of Y from the reference R (spec 23.4): t + a (t_Y - t_R),
+// q (x) slerp(1, q_R^-1 (x) q_Y, a), s + a (s_Y - s_R); X where alpha is 0.
+void vbAddLocal(inout vec4 x0, inout vec4 x1, inout vec4 x2, vec4 y0, vec4 y1, vec4 y2, vec4 r0, vec4 r1, vec4 r2,
+                float alpha)
+{
+    if (alpha <= 0.0) return;
+    float a = min(alpha, 1.0);
+    vec3 tx; vec4 qx; vec3 sx;
+    vec3 ty; vec4 qy; vec3 sy;
+    vec3 tr; vec4 qr; vec3 sr;
+    vbDecompose(x0, x1, x2, tx, qx, sx);
+    vbDecompose(y0, y1, y2, ty, qy, sy);
+    vbDecompose(r0, r1, r2, tr, qr, sr);
+    vec4 delta = vbQuatMul(vec4(-qr.xyz, qr.w), qy);
+    vec4 q = vbQuatMul(qx, vbSlerp(vec4(0.0, 0.0, 0.0, 1.0), delta, a));
+    vbCompose(tx + a * (ty - tr), q, sx + a * (sy - sr), x0, x1, x2);
+}
+#endif
+
 // A bone's joint transform J = M B at clip-local time tau (spec 8.4), as rows.
 void vbJointRows(VB_ARGS_DECL int clip, float tau, int bone, out vec4 j0, out vec4 j1, out vec4 j2)
 {
@@ -890,7 +929,7 @@ void vbJointRows(VB_ARGS_DECL int clip, float tau, int bone, out vec4 j0, out ve
 // down again blending local transforms. changed is false, and M' the decoded M, when no layer
 // touches the bone or its ancestors.
 void vbLayeredBoneRows(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
-                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS], int bone,
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS] VB_ADDITIVE_DECL, int bone,
                        out vec4 m0, out vec4 m1, out vec4 m2, out bool changed)
 {
     int chain[VB_MAX_DEPTH];
@@ -930,6 +969,19 @@ void vbLayeredBoneRows(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LA
         if (parent >= 0 && layerWeight[j] > 0.0)
             vbJointRows(VB_ARGS layerClip[j], layerTau[j], parent, layer0[j], layer1[j], layer2[j]);
     }
+#if VB_ADDITIVE_LAYERS
+    vec4 reference0[VB_MAX_LAYERS];
+    vec4 reference1[VB_MAX_LAYERS];
+    vec4 reference2[VB_MAX_LAYERS];
+    for (int j = 0; j < VB_MAX_LAYERS; ++j)
+    {
+        reference0[j] = vec4(1.0, 0.0, 0.0, 0.0);
+        reference1[j] = vec4(0.0, 1.0, 0.0, 0.0);
+        reference2[j] = vec4(0.0, 0.0, 1.0, 0.0);
+        if (parent >= 0 && layerWeight[j] > 0.0 && layerMode[j] == 1)
+            vbJointRows(VB_ARGS referenceClip[j], referenceTau[j], parent, reference0[j], reference1[j], reference2[j]);
+    }
+#endif
     vec4 out0 = base0; vec4 out1 = base1; vec4 out2 = base2;
     for (int k = top; k >= 0; --k)
     {
@@ -950,7 +1002,21 @@ void vbLayeredBoneRows(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LA
             vbAffineInverse(layer0[j], layer1[j], layer2[j], i0, i1, i2);
             vbAffineMul(i0, i1, i2, k0, k1, k2, y0, y1, y2);
             layer0[j] = k0; layer1[j] = k1; layer2[j] = k2;
-            vbMixLocal(l0, l1, l2, y0, y1, y2, clamp(layerWeight[j], 0.0, 1.0) * vbMaskWeight(layerMask[j], b));
+            float alpha = clamp(layerWeight[j], 0.0, 1.0) * vbMaskWeight(layerMask[j], b);
+#if VB_ADDITIVE_LAYERS
+            if (layerMode[j] == 1)
+            {
+                vec4 e0; vec4 e1; vec4 e2;
+                vbJointRows(VB_ARGS referenceClip[j], referenceTau[j], b, e0, e1, e2);
+                vec4 r0; vec4 r1; vec4 r2;
+                vbAffineInverse(reference0[j], reference1[j], reference2[j], i0, i1, i2);
+                vbAffineMul(i0, i1, i2, e0, e1, e2, r0, r1, r2);
+                reference0[j] = e0; reference1[j] = e1; reference2[j] = e2;
+                vbAddLocal(l0, l1, l2, y0, y1, y2, r0, r1, r2, alpha);
+                continue;
+            }
+#endif
+            vbMixLocal(l0, l1, l2, y0, y1, y2, alpha);
         }
         vec4 n0; vec4 n1; vec4 n2;
         vbAffineMul(out0, out1, out2, l0, l1, l2, n0, n1, n2);
@@ -965,7 +1031,7 @@ _LAYERS_SKIN_LBS = """\
 // Layered LBS of one vertex at clip-local time tau (spec 8.6); the normal is not yet normalized. A
 // bone the layers change skins with M' and inverse(A')^T, an unchanged one exactly as vbSkinPose.
 void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
-                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS],
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS] VB_ADDITIVE_DECL,
                        vec3 restPosition, vec3 restNormal,
                        int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
                        out vec3 position, out vec3 normal)
@@ -983,7 +1049,7 @@ void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LA
         vec3 a0; vec3 a1; vec3 a2; vec3 t; vec3 n0; vec3 n1; vec3 n2;
         vec4 m0; vec4 m1; vec4 m2;
         bool changed;
-        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, boneIndex[i],
+        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask VB_ADDITIVE_ARGS, boneIndex[i],
                           m0, m1, m2, changed);
         if (changed)
         {
@@ -1010,7 +1076,7 @@ _LAYERS_SKIN_DQS = """\
 // Layered DQS of one vertex at clip-local time tau (spec 8.6): a bone the layers change skins with
 // the dual quaternion of M'; the normal is not yet normalized.
 void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS],
-                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS],
+                       float layerWeight[VB_MAX_LAYERS], int layerMask[VB_MAX_LAYERS] VB_ADDITIVE_DECL,
                        vec3 restPosition, vec3 restNormal,
                        int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
                        out vec3 position, out vec3 normal)
@@ -1027,7 +1093,7 @@ void vbSkinLayeredPose(VB_ARGS_DECL int clip, float tau, int layerClip[VB_MAX_LA
         vec4 r; vec4 d;
         vec4 m0; vec4 m1; vec4 m2;
         bool changed;
-        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, boneIndex[i],
+        vbLayeredBoneRows(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask VB_ADDITIVE_ARGS, boneIndex[i],
                           m0, m1, m2, changed);
         if (changed)
         {
@@ -1063,19 +1129,19 @@ _LAYERS_ENTRY = """\
 // With every layer weight 0 the result is exactly that of vbSkinCrossfade.
 void vbSkinLayered(VB_ARGS_DECL int clip, float tau, int fadeClip, float fadeTau, float fadeWeight,
                    int layerClip[VB_MAX_LAYERS], float layerTau[VB_MAX_LAYERS], float layerWeight[VB_MAX_LAYERS],
-                   int layerMask[VB_MAX_LAYERS], vec3 restPosition, vec3 restNormal,
+                   int layerMask[VB_MAX_LAYERS] VB_ADDITIVE_DECL, vec3 restPosition, vec3 restNormal,
                    int boneIndex[VB_MAX_INFLUENCES], float boneWeight[VB_MAX_INFLUENCES],
                    out vec3 position, out vec3 normal)
 {
-    vbSkinLayeredPose(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask, restPosition, restNormal,
-                      boneIndex, boneWeight, position, normal);
+    vbSkinLayeredPose(VB_ARGS clip, tau, layerClip, layerTau, layerWeight, layerMask VB_ADDITIVE_ARGS, restPosition,
+                      restNormal, boneIndex, boneWeight, position, normal);
     float w = clamp(fadeWeight, 0.0, 1.0);
     if (w > 0.0)
     {
         vec3 fadePosition;
         vec3 fadeNormal;
-        vbSkinLayeredPose(VB_ARGS fadeClip, fadeTau, layerClip, layerTau, layerWeight, layerMask, restPosition,
-                          restNormal, boneIndex, boneWeight, fadePosition, fadeNormal);
+        vbSkinLayeredPose(VB_ARGS fadeClip, fadeTau, layerClip, layerTau, layerWeight, layerMask VB_ADDITIVE_ARGS,
+                          restPosition, restNormal, boneIndex, boneWeight, fadePosition, fadeNormal);
         position = mix(position, fadePosition, w);
         normal = mix(normal, fadeNormal, w);
     }

@@ -42,7 +42,7 @@ from vbusd.decoders import warp_kernels as K
 from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
-from vbusd.decoders.reference import channel_values, normal_point_indices
+from vbusd.decoders.reference import blends_as_layers, channel_values, normal_point_indices
 from vbusd.decoders.reference import DEFAULT_FRAME_INTERVAL, check_frame_interval
 from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
 from vbusd.format.errors import UnsupportedError
@@ -144,6 +144,10 @@ class DeviceCrowd:
     layer_playback_rate: Optional[wp.array] = None
     layer_weight: Optional[wp.array] = None
     layer_mask: Optional[wp.array] = None
+    layer_mode: Optional[wp.array] = None
+    """Format 1.3 (spec 23.4): (n, L) 0 override, 1 additive; with the reference clip and time of each layer."""
+    layer_reference_clip: Optional[wp.array] = None
+    layer_reference_time: Optional[wp.array] = None
 
     @property
     def instance_count(self) -> int:
@@ -329,6 +333,9 @@ class Decoder:
             InputError: A clip index out of range or mismatched per-instance array lengths.
         """
         n = crowd.instance_count
+        if crowd.blended:
+            # Blend spaces (spec 23.7) decode as layers under a mask of every bone (23.1).
+            crowd = blends_as_layers(self.vb, crowd)
         layers = self._layer_arrays(crowd) if crowd.layered else {}
         clip = np.asarray(crowd.clip, dtype=np.int64).reshape(-1)
         arrays = {"clip": clip, "timeOffset": np.asarray(crowd.time_offset).reshape(-1),
@@ -375,7 +382,7 @@ class Decoder:
         if self.sampling != "exact":
             raise UnsupportedError("layers (format 1.2) are decoded on the exact path only; use sampling='exact'",
                                    location=where, code="layers.unsupported")
-        if not vb.masks or vb.bone_parents is None or vb.bind_transforms is None:
+        if (not vb.masks and not vb.blend_spaces) or vb.bone_parents is None or vb.bind_transforms is None:
             raise InputError("the crowd plays layers but its animation stores no bone masks (format 1.2)",
                              location=where, code="layers.noMask")
         weight = np.asarray(crowd.layer_weight, np.float32)
@@ -386,7 +393,9 @@ class Decoder:
         if np.any(active & ((clip < 0) | (clip >= self.clip_count))):
             raise InputError(f"a layer clip index is outside 0..{self.clip_count - 1}", location=where,
                              code="instancer.clip.range")
-        if np.any(active & ((mask < 0) | (mask >= len(vb.masks)))):
+        # Mask index len(vb.masks) is the mask of every bone that blend spaces decode with (spec 23.1).
+        masks_there = len(vb.masks) + (1 if vb.blend_spaces else 0)
+        if np.any(active & ((mask < 0) | (mask >= masks_there))):
             raise InputError(f"a layer mask index is outside 0..{len(vb.masks) - 1}", location=where,
                              code="layers.noMask")
         if not hasattr(self, "rig_bind"):
@@ -394,14 +403,31 @@ class Decoder:
             self.rig_bind = self._array(binds.astype(np.float32), wp.mat44)
             self.rig_inverse_bind = self._array(np.linalg.inv(binds).astype(np.float32), wp.mat44)
             self.rig_parents = self._array(np.asarray(vb.bone_parents, np.int32), wp.int32)
-            self.rig_masks = self._array(np.stack([np.asarray(w, np.float32) for _, w in vb.masks]), wp.float32)
+            rows = [np.asarray(w, np.float32) for _, w in vb.masks] + [np.ones(vb.layout.bone_count, np.float32)]
+            self.rig_masks = self._array(np.stack(rows), wp.float32)
         return dict(layer_clip=self._array(np.where(active, clip, 0).astype(np.int32), wp.int32),
                     layer_time_offset=self._array(np.asarray(crowd.layer_time_offset, np.float64).reshape(n, count),
                                                   wp.float64),
                     layer_playback_rate=self._array(np.asarray(crowd.layer_playback_rate, np.float64).reshape(n, count),
                                                     wp.float64),
                     layer_weight=self._array(np.clip(weight, 0.0, 1.0), wp.float32),
-                    layer_mask=self._array(np.where(active, mask, 0).astype(np.int32), wp.int32))
+                    layer_mask=self._array(np.where(active, mask, 0).astype(np.int32), wp.int32),
+                    **self._additive_arrays(crowd, clip, active))
+
+    def _additive_arrays(self, crowd: Crowd, clip: np.ndarray, active: np.ndarray) -> dict:
+        """The DeviceCrowd fields of additive layers (format 1.3, spec 23.4): modes, reference clips and times."""
+        shape = clip.shape
+        mode = np.zeros(shape, np.int32) if crowd.layer_mode is None else np.asarray(crowd.layer_mode).reshape(shape)
+        reference = clip if crowd.layer_reference_clip is None else np.asarray(crowd.layer_reference_clip).reshape(shape)
+        time = (np.zeros(shape) if crowd.layer_reference_time is None
+                else np.asarray(crowd.layer_reference_time, np.float64).reshape(shape))
+        additive = active & (mode == 1)
+        if np.any(additive & ((reference < 0) | (reference >= self.clip_count))):
+            raise InputError(f"a layer reference clip index is outside 0..{self.clip_count - 1}",
+                             location=f"{crowd.path}.primvars:vb:layerReferenceClip", code="instancer.clip.range")
+        return dict(layer_mode=self._array(np.where(additive, 1, 0).astype(np.int32), wp.int32),
+                    layer_reference_clip=self._array(np.where(additive, reference, 0).astype(np.int32), wp.int32),
+                    layer_reference_time=self._array(time, wp.float64))
 
     def _fade_arrays(self, fade_clip, fade_offset, fade_rate, fade_weight) -> dict:
         """The DeviceCrowd fields of a crossfade (spec "Crossfade"): clip, offset, rate, weight per instance."""
@@ -527,10 +553,17 @@ class Decoder:
                           inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
                                   crowd.layer_clip, crowd.layer_time_offset, crowd.layer_playback_rate,
                                   wp.float64(t), rows])
+                # Additive layers' reference poses (spec 23.4): their clips at their fixed times.
+                reference_rows = wp.empty((n, crowd.layer_count, 3), dtype=float, device=self.device)
+                wp.launch(K.layer_rows_kernel, dim=(n, crowd.layer_count), device=self.device,
+                          inputs=[self.clip_first_row, self.clip_row_count, self.clip_rate, self.clip_loop,
+                                  crowd.layer_reference_clip, crowd.layer_reference_time,
+                                  wp.zeros((n, crowd.layer_count), dtype=wp.float64, device=self.device),
+                                  wp.float64(t), reference_rows])
                 wp.launch(K.layer_bones, dim=dim, device=self.device,
                           inputs=[self.texels, self.encoding_id, frames, int(separate), rows, crowd.layer_count,
                                   crowd.layer_weight, crowd.layer_mask, self.rig_bind, self.rig_inverse_bind,
-                                  self.rig_parents, self.rig_masks, *outputs])
+                                  self.rig_parents, self.rig_masks, crowd.layer_mode, reference_rows, *outputs])
         else:
             wp.launch(K.decode_bones_texture, dim=dim, device=self.device,
                       inputs=[self.texture, self.encoding_id, int(self.unorm), self.unorm_low, self.unorm_span,

@@ -63,7 +63,7 @@ __all__ = ["ENCODING_IDS", "CROSS_MATRIX", "AFFINE_MATRIX", "QUAT_TRANSLATION", 
            "InstanceFrame", "instance_frames_kernel", "store_bones", "decode_at",
            "sample_decode_at", "blend_bones", "decode_bones", "decode_bones_texture", "place_bone",
            "skin_lbs_kernel", "dqs_pose", "skin_dqs_kernel", "skin_normals_kernel", "bone_matrix", "joint_local",
-           "layer_slerp", "mix_local", "layered_matrix", "layer_rows_kernel", "dual_of", "layer_bones",
+           "layer_slerp", "mix_local", "add_local", "layered_matrix", "layer_rows_kernel", "dual_of", "layer_bones",
            "hold_reset_kernel"]
 
 # Compile only the forward kernels: the decoder never differentiates, and skipping the adjoints
@@ -833,6 +833,29 @@ def mix_local(x: wp.mat44, y: wp.mat44, alpha: float):
 
 
 @wp.func
+def add_local(x: wp.mat44, y: wp.mat44, r: wp.mat44, alpha: float):
+    """``X`` plus ``alpha`` of the additive difference of ``Y`` from the reference ``R`` (spec 23.4; twin
+    of ``reference.add_local``): ``t + a (t_Y - t_R)``, ``q (x) slerp(1, q_R^-1 (x) q_Y, a)``,
+    ``s + a (s_Y - s_R)``."""
+    if alpha <= 0.0:
+        return x
+    a = wp.min(alpha, 1.0)
+    sx = layer_scale(x)
+    sy = layer_scale(y)
+    sr = layer_scale(r)
+    qx = layer_decompose_rotation(x, sx)
+    delta = wp.quat_inverse(layer_decompose_rotation(r, sr)) * layer_decompose_rotation(y, sy)
+    q = qx * layer_slerp(wp.quat(0.0, 0.0, 0.0, 1.0), delta, a)
+    s = sx + (sy - sr) * a
+    t = wp.vec3(x[0, 3], x[1, 3], x[2, 3]) + (wp.vec3(y[0, 3], y[1, 3], y[2, 3]) - wp.vec3(r[0, 3], r[1, 3], r[2, 3])) * a
+    m = wp.quat_to_matrix(q)
+    return wp.mat44(m[0, 0] * s[0], m[0, 1] * s[1], m[0, 2] * s[2], t[0],
+                    m[1, 0] * s[0], m[1, 1] * s[1], m[1, 2] * s[2], t[1],
+                    m[2, 0] * s[0], m[2, 1] * s[1], m[2, 2] * s[2], t[2],
+                    0.0, 0.0, 0.0, 1.0)
+
+
+@wp.func
 def ancestor(parents: wp.array(dtype=wp.int32), bone: int, steps: int):
     node = bone
     for _ in range(steps):
@@ -845,9 +868,11 @@ def layered_matrix(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, 
                    top: int, layer_rows: wp.array3d(dtype=float), instance: int, layer_count: int,
                    layer_weight: wp.array2d(dtype=wp.float32), layer_mask: wp.array2d(dtype=wp.int32),
                    bind: wp.array(dtype=wp.mat44), inverse_bind: wp.array(dtype=wp.mat44),
-                   parents: wp.array(dtype=wp.int32), masks: wp.array2d(dtype=wp.float32)):
+                   parents: wp.array(dtype=wp.int32), masks: wp.array2d(dtype=wp.float32),
+                   layer_mode: wp.array2d(dtype=wp.int32), reference_rows: wp.array3d(dtype=float)):
     """``M'`` of one bone of one clip side: rebuilt from the root-most changed ancestor (``top``
-    steps above the bone) down, blending local transforms (spec 8.6)."""
+    steps above the bone) down, blending local transforms (spec 8.6); an additive layer (mode 1,
+    spec 23.4) adds its difference from its reference rows instead."""
     out = wp.identity(n=4, dtype=float)
     top_parent = parents[ancestor(parents, bone, top)]
     if top_parent >= 0:
@@ -862,7 +887,14 @@ def layered_matrix(texels: wp.array2d(dtype=wp.vec4), encoding: int, row0: int, 
             if w > 0.0:
                 other = joint_local(texels, encoding, int(layer_rows[instance, j, 0]), int(layer_rows[instance, j, 1]),
                                     layer_rows[instance, j, 2], node, parent, bind)
-                local = mix_local(local, other, w * masks[layer_mask[instance, j], node])
+                alpha = w * masks[layer_mask[instance, j], node]
+                if layer_mode[instance, j] == 1:
+                    reference = joint_local(texels, encoding, int(reference_rows[instance, j, 0]),
+                                            int(reference_rows[instance, j, 1]), reference_rows[instance, j, 2], node,
+                                            parent, bind)
+                    local = add_local(local, other, reference, alpha)
+                else:
+                    local = mix_local(local, other, alpha)
         out = out * local
         k -= 1
     return out * inverse_bind[bone]
@@ -913,6 +945,8 @@ def layer_bones(
     inverse_bind: wp.array(dtype=wp.mat44),
     parents: wp.array(dtype=wp.int32),
     masks: wp.array2d(dtype=wp.float32),
+    layer_mode: wp.array2d(dtype=wp.int32),
+    reference_rows: wp.array3d(dtype=float),
     out_linear: wp.array3d(dtype=float),
     out_normal: wp.array3d(dtype=float),
     out_dual: wp.array3d(dtype=float),
@@ -936,11 +970,13 @@ def layer_bones(
     if top < 0:
         return
     m = layered_matrix(texels, encoding, frame.row0, frame.row1, frame.f, bone, top, layer_rows, instance,
-                       layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks)
+                       layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks, layer_mode,
+                       reference_rows)
     fade = wp.identity(n=4, dtype=float)
     if frame.fade_weight > 0.0:
         fade = layered_matrix(texels, encoding, frame.fade_row0, frame.fade_row1, frame.fade_f, bone, top, layer_rows,
-                              instance, layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks)
+                              instance, layer_count, layer_weight, layer_mask, bind, inverse_bind, parents, masks,
+                              layer_mode, reference_rows)
     if encoding == DUAL_QUAT:
         store_dual(out_dual, instance, bone, dual_of(m))
         if frame.fade_weight > 0.0:

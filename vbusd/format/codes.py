@@ -532,6 +532,14 @@ _COMMAND_ERRORS = (
     Code("layers.unsupported", E, "A crowd plays layers (primvars:vb:layer*, format 1.2) and the decoder or "
          "exporter asked for does not implement them yet (the numpy reference does); it refuses rather than "
          "draw the instances without their layers.", f"{_VB}#layers", "usd"),
+    Code("convert.blendSpace", E, "A --blend-space is not NAME=CLIP@X,... or NAME=CLIP@X:Y,..., names a clip the "
+         "animation does not have, repeats a name or a position, is 2D with all points on one line, syncs on a "
+         "marker a clip lacks, or the source gives no bone hierarchy to blend with (format 1.3).",
+         f"{_VB}#blend-spaces", "usd"),
+    Code("convert.marker", E, "A --marker is not CLIP:NAME@SECONDS, names a clip the animation does not have, "
+         "or lies outside the clip's duration (format 1.3).", f"{_VB}#markers", "usd"),
+    Code("blend.noSpace", E, "A blend (skin(..., blend=...)) names a blend space the animation does not store, "
+         "or gives a malformed blend, additive layer or reference (format 1.3).", f"{_VB}#blend-spaces", "usd"),
     Code("layers.noMask", E, "A layer (skin, bone_transform, vbusd crowd --layer) names a mask the "
          "animation does not store, or the animation stores no masks (format 1.2); reconvert with "
          "--mask NAME=BONE.", f"{_VB}#layers", "usd"),

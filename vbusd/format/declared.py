@@ -23,6 +23,7 @@ from vbusd.format.compact import RANGE_SLOTS, range_problems
 from vbusd.format.diagnostics import JsonPointer, finding
 from vbusd.format.layout import Encoding, Layout, Padding, TexelFormat
 from vbusd.format.versioning import CURRENT, FORMAT_MINOR_VERSION, Version
+from vbusd.format.motion import markers_from_dict, markers_to_dict, spaces_from_dict, spaces_to_dict
 
 __all__ = ["Declared", "from_metadata", "build_layout", "same_value", "check_format_version",
            "check_declared_layout", "check_clips", "check_declared", "compare_declared",
@@ -121,6 +122,10 @@ def from_metadata(meta, file: str) -> Declared:
                                        and isinstance(m.get("weights"), list)
                                        and all(_is_real(w) for w in m["weights"]) for m in masks):
         declared.values["masks"] = [{"name": m["name"], "weights": m["weights"]} for m in masks]
+    for key in ("blendSpaces", "markers"):
+        # Format 1.3 (spec 23.6): kept as the metadata holds them; compared in their normal form.
+        if isinstance(meta.get(key), list):
+            declared.values[key] = meta[key]
     ranges = meta.get("unormRanges")
     if ranges is not None:
         try:
@@ -385,12 +390,26 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
                        for ma, mb in zip(a, b))):
         # vb:maskWeights is float[]: compared as float32, as the unorm ranges are.
         out.append(finding(code, f"masks differ from {what} {_where(reference, 'masks')}", other.locate("masks")))
+    for key in ("blendSpaces", "markers"):
+        a, b = reference.get(key), other.get(key)
+        if a is not None and b is not None and _motion_form(key, a) != _motion_form(key, b):
+            out.append(finding(code, f"{key} differ from {what} {_where(reference, key)}", other.locate(key)))
     for key in ("unormRanges", "compactRanges"):
         a, b = reference.get(key), other.get(key)
         if a is not None and b is not None and (np.shape(a) != np.shape(b) or
                                                 not same_value(np.asarray(a, np.float32), np.asarray(b, np.float32))):
             out.append(finding(code, f"{key} differ from {what} {_where(reference, key)}", other.locate(key)))
     return out
+
+
+def _motion_form(key: str, items):
+    """``blendSpaces`` or ``markers`` in one normal form (floats as floats), or the raw value when malformed."""
+    try:
+        if key == "blendSpaces":
+            return spaces_to_dict(spaces_from_dict(items))
+        return markers_to_dict(markers_from_dict(items))
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return items
 
 
 def _is_number(value) -> bool:

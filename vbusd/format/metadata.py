@@ -39,6 +39,8 @@ from vbusd.format.digest import DIGEST_PREFIX, content_digest
 from vbusd.format.diagnostics import Diagnostics, FileLocation, JsonPointer, to_error
 from vbusd.format.layout import FORMAT_VERSION, CHANNELS, Layout, TexelFormat
 from vbusd.format.model import Clip, VirtualBones
+from vbusd.format.motion import (markers_from_dict, markers_to_dict, motion_problems, spaces_from_dict,
+                                 spaces_to_dict)
 
 __all__ = ["FORMAT_NAME", "SCHEMA_RESOURCE", "DIGEST_PREFIX", "LayoutInfo", "content_digest",
            "layout_fields", "to_dict", "dumps", "json_pointer", "MAX_METADATA_BYTES",
@@ -90,6 +92,10 @@ class LayoutInfo:
     """Format 1.2: ``(name, weights)`` pairs (key ``masks``)."""
     format_minor_version: int = 0
     """The minor version the dict was written with (``formatMinorVersion``, absent 0; before any upgrade)."""
+    blend_spaces: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.BlendSpace` objects (key ``blendSpaces``)."""
+    markers: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.Marker` objects (key ``markers``)."""
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, LayoutInfo):
@@ -108,7 +114,7 @@ class LayoutInfo:
         """The metadata dict of this info (the current format version, keys as :func:`to_dict`)."""
         return _build_dict(self.layout, self.bones, self.clips, self.unorm_ranges,
                            self.content_digest, self.generator, self.bind_transforms,
-                           self.bone_parents, self.masks)
+                           self.bone_parents, self.masks, self.blend_spaces, self.markers)
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,10 +143,11 @@ def layout_fields(layout: Layout) -> dict:
 
 
 def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generator: str,
-                bind_transforms=None, bone_parents=None, masks=()) -> dict:
-    # The lowest version that holds the document (spec 16.1, 16.2): 1.2 only with the compact
-    # encoding or a 1.2 key (bone parents, masks), 1.1 only with a 1.1 key.
-    minor = (2 if (bone_parents is not None or masks or layout.texel_format is TexelFormat.UINT32)
+                bind_transforms=None, bone_parents=None, masks=(), blend_spaces=(), markers=()) -> dict:
+    # The lowest version that holds the document (spec 16.1, 16.2, 16.3): 1.3 only with a 1.3 key
+    # (blend spaces, markers), 1.2 only with the compact encoding or a 1.2 key (bone parents, masks),
+    # 1.1 only with a 1.1 key.
+    minor = (3 if (blend_spaces or markers) else 2 if (bone_parents is not None or masks or layout.texel_format is TexelFormat.UINT32)
              else 1 if bind_transforms is not None else 0)
     result: dict[str, Any] = {
         "format": FORMAT_NAME,
@@ -185,6 +192,10 @@ def _build_dict(layout: Layout, bones, clips, unorm_ranges, digest: str, generat
         result["boneParents"] = [int(p) for p in bone_parents]
     if masks:
         result["masks"] = [{"name": str(name), "weights": [float(w) for w in weights]} for name, weights in masks]
+    if blend_spaces:
+        result["blendSpaces"] = spaces_to_dict(blend_spaces)
+    if markers:
+        result["markers"] = markers_to_dict(markers)
     result["contentDigest"] = digest
     return result
 
@@ -204,7 +215,7 @@ def to_dict(vb: VirtualBones, *, generator: str) -> dict:
         ValueError: unorm16 without ranges, or ranges of the wrong shape (a bug in the caller).
     """
     return _build_dict(vb.layout, vb.bones, vb.clips, vb.unorm_ranges, vb.content_digest,
-                       generator, vb.bind_transforms, vb.bone_parents, vb.masks)
+                       generator, vb.bind_transforms, vb.bone_parents, vb.masks, vb.blend_spaces, vb.markers)
 
 
 def dumps(d: Mapping) -> str:
@@ -415,6 +426,12 @@ def check_relations(d: Mapping, diagnostics: Diagnostics, *, file=None,
         if len(mask["weights"]) != layout.bone_count:
             report(["masks", j, "weights"], f"mask {mask['name']!r} holds {len(mask['weights'])} weights for "
                                             f"boneCount {layout.bone_count}")
+    # Format 1.3 (spec 23.6): blend spaces and markers name clips the document has, and so on.
+    durations = {c["name"]: Clip(c["name"], c["firstRow"], max(1, c["rowCount"]), float(c["rowsPerSecond"]) or 1.0,
+                                 c["loop"]).duration for c in d["clips"]}
+    for parts, message in motion_problems(spaces_from_dict(d.get("blendSpaces")), markers_from_dict(d.get("markers")),
+                                          durations):
+        report(parts, message)
     return layout if len(diagnostics.findings) == found else None
 
 
@@ -458,7 +475,8 @@ def check_document(d: Any, diagnostics: Diagnostics, *, file=None, within: str =
     return LayoutInfo(layout=layout, bones=tuple(d["bones"]), clips=clips, unorm_ranges=ranges,
                       content_digest=d["contentDigest"],
                       format_version=d["formatVersion"] if format_version is None else format_version,
-                      generator=d["generator"], bind_transforms=binds, bone_parents=parents, masks=masks)
+                      generator=d["generator"], bind_transforms=binds, bone_parents=parents, masks=masks,
+                      blend_spaces=spaces_from_dict(d.get("blendSpaces")), markers=markers_from_dict(d.get("markers")))
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:

@@ -248,6 +248,17 @@ class Crowd:
         layer_playback_rate: (N, L) float32 clip seconds per stage second of each layer.
         layer_weight: (N, L) float32 weight of each layer in [0, 1] (0: the layer slot is unused).
         layer_mask: (N, L) int32 mask of each layer, an index into the animation's masks.
+        layer_mode: (N, L) int32 mode of each layer (format 1.3, spec 23.4): 0 override, 1 additive;
+            None: every layer overrides.
+        layer_reference_clip: (N, L) int32 clip of each additive layer's reference pose, or None for
+            the layer's own clip.
+        layer_reference_time: (N, L) float32 clip-local seconds of the reference pose, or None for 0.
+        blend_space: (N,) int32 blend space each instance plays (format 1.3, spec 23.7), an index into the
+            animation's blend spaces, -1 for none (the instance plays its clip); None for none.
+        blend_x: (N,) float32 blend parameter x, or None for 0.
+        blend_y: (N,) float32 blend parameter y, or None for 0.
+        blend_phase: (N,) float32 phase at stage time 0, or None for 0; the phase advances by
+            ``playbackRate / sum w D`` per second (spec 23.3, 23.7).
         tint: (N, 3) float32 linear-RGB multiplier of each instance's base colour (format 1.3, spec
             "Crowd variety"), or None for (1, 1, 1).
         variant: (N,) int32 material variant of each instance, an index into ``variant_names``, or
@@ -276,6 +287,19 @@ class Crowd:
     layer_playback_rate: Optional[np.ndarray] = None
     layer_weight: Optional[np.ndarray] = None
     layer_mask: Optional[np.ndarray] = None
+    layer_mode: Optional[np.ndarray] = None
+    layer_reference_clip: Optional[np.ndarray] = None
+    layer_reference_time: Optional[np.ndarray] = None
+    blend_space: Optional[np.ndarray] = None
+    blend_x: Optional[np.ndarray] = None
+    blend_y: Optional[np.ndarray] = None
+    blend_phase: Optional[np.ndarray] = None
+
+    @property
+    def blended(self) -> bool:
+        """Whether any instance plays a blend space (format 1.3, spec 23.7)."""
+        return self.blend_space is not None and bool(np.any(np.asarray(self.blend_space) >= 0))
+
     tint: Optional[np.ndarray] = None
     variant: Optional[np.ndarray] = None
     variant_names: tuple = ()
@@ -421,8 +445,15 @@ class VirtualBones:
     masks: tuple = ()
     """Format 1.2: the named bone masks, ``(name, (bones,) float64 weights in [0, 1])`` pairs (spec
     "Layers and bone masks"); stored only with ``bone_parents`` and ``bind_transforms``."""
+    blend_spaces: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.BlendSpace` objects (spec 23); stored only with
+    ``bone_parents`` and ``bind_transforms``."""
+    markers: tuple = ()
+    """Format 1.3: :class:`vbusd.format.motion.Marker` objects, the clips' named times (spec 23.4)."""
 
     def __post_init__(self) -> None:
+        if self.blend_spaces and (self.bone_parents is None or self.bind_transforms is None):
+            raise ValueError("blend spaces need bone parents and bind transforms (spec 23)")
         if self.texels.shape != self.layout.shape:
             raise ValueError(f"texels shape {self.texels.shape} != layout shape {self.layout.shape}")
         if self.texels.dtype != np.dtype(self.layout.texel_format.numpy_dtype):

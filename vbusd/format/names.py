@@ -22,9 +22,12 @@ __all__ = [
     "INSTANCE_TIME_OFFSET", "INSTANCE_PLAYBACK_RATE", "INSTANCE_PRIMVARS", "attribute_of",
     "FADE_CLIP", "FADE_TIME_OFFSET", "FADE_PLAYBACK_RATE", "FADE_WEIGHT", "FADE_PRIMVARS", "BIND_TRANSFORMS", "CLIP_ROOT_MOTION",
     "ROOT_MOTION_UP_AXIS", "unique_names", "BONE_PARENTS", "MASK_NAMES", "MASK_WEIGHTS", "LAYER_CLIP",
-    "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS", "TINT", "VARIANT",
-    "PARTS", "VARIETY_PRIMVARS", "VARIANT_NAMES", "VARIANT_MATERIALS", "PART_NAMES", "INSTANCER_MINOR_VERSION",
-    "VARIETY_PROPERTIES", "VARIANTS_SCOPE"]
+    "LAYER_TIME_OFFSET", "LAYER_PLAYBACK_RATE", "LAYER_WEIGHT", "LAYER_MASK", "LAYER_PRIMVARS",
+    "BLEND_SPACE_NAMES", "BLEND_SPACE_DIMENSIONS", "BLEND_SPACE_POINT_COUNTS", "BLEND_SPACE_CLIPS",
+    "BLEND_SPACE_POINTS", "BLEND_SPACE_SYNC_MARKERS", "BLEND_SPACE_ATTRIBUTES", "MARKER_CLIPS", "MARKER_NAMES",
+    "MARKER_TIMES", "MARKER_ATTRIBUTES", "MOTION_KEYS", "BLEND_SPACE", "BLEND_X", "BLEND_Y", "BLEND_PHASE",
+    "BLEND_PRIMVARS", "TINT", "VARIANT", "PARTS", "VARIETY_PRIMVARS", "VARIANT_NAMES", "VARIANT_MATERIALS",
+    "PART_NAMES", "INSTANCER_MINOR_VERSION", "VARIETY_PROPERTIES", "VARIANTS_SCOPE"]
 
 ANIMATION_TYPE = "VirtualBonesAnimation"
 BINDING_API = "VirtualBonesBindingAPI"
@@ -81,6 +84,15 @@ ANIMATION_ATTRIBUTES = (
     Attribute("vb:boneParents", "int[]", False, "boneParents"),
     Attribute("vb:maskNames", "token[]", False, "maskNames", mirrored=False),
     Attribute("vb:maskWeights", "float[]", False, "maskWeights", mirrored=False),
+    Attribute("vb:blendSpaceNames", "token[]", False, "blendSpaceNames", mirrored=False),
+    Attribute("vb:blendSpaceDimensions", "int[]", False, "blendSpaceDimensions", mirrored=False),
+    Attribute("vb:blendSpacePointCounts", "int[]", False, "blendSpacePointCounts", mirrored=False),
+    Attribute("vb:blendSpaceClips", "token[]", False, "blendSpaceClips", mirrored=False),
+    Attribute("vb:blendSpacePoints", "double2[]", False, "blendSpacePoints", mirrored=False),
+    Attribute("vb:blendSpaceSyncMarkers", "token[]", False, "blendSpaceSyncMarkers", mirrored=False),
+    Attribute("vb:markerClips", "token[]", False, "markerClips", mirrored=False),
+    Attribute("vb:markerNames", "token[]", False, "markerNames", mirrored=False),
+    Attribute("vb:markerTimes", "double[]", False, "markerTimes", mirrored=False),
     Attribute("vb:unormRangeMin", "float4[]", False, "unormRangeMin"),
     Attribute("vb:unormRangeMax", "float4[]", False, "unormRangeMax"),
     Attribute("vb:compactRangeMin", "float[]", False, "compactRangeMin"),
@@ -174,6 +186,33 @@ VARIANTS_SCOPE = "Variants"
 """The scope under an instancer where ``vbusd crowd`` authors its variant materials."""
 
 
+BLEND_SPACE = Primvar("vb:blendSpace", "int[]")
+BLEND_X = Primvar("vb:blendX", "float[]")
+BLEND_Y = Primvar("vb:blendY", "float[]")
+BLEND_PHASE = Primvar("vb:blendPhase", "float[]")
+BLEND_PRIMVARS = (BLEND_SPACE, BLEND_X, BLEND_Y, BLEND_PHASE)
+"""Format 1.3: per-instance blend primvars of VirtualBonesInstancingAPI (spec "Blend spaces per instance");
+defaults -1 (no blend), 0, 0, 0."""
+BLEND_SPACE_NAMES = "vb:blendSpaceNames"
+BLEND_SPACE_DIMENSIONS = "vb:blendSpaceDimensions"
+BLEND_SPACE_POINT_COUNTS = "vb:blendSpacePointCounts"
+BLEND_SPACE_CLIPS = "vb:blendSpaceClips"
+BLEND_SPACE_POINTS = "vb:blendSpacePoints"
+BLEND_SPACE_SYNC_MARKERS = "vb:blendSpaceSyncMarkers"
+BLEND_SPACE_ATTRIBUTES = (BLEND_SPACE_NAMES, BLEND_SPACE_DIMENSIONS, BLEND_SPACE_POINT_COUNTS, BLEND_SPACE_CLIPS,
+                          BLEND_SPACE_POINTS, BLEND_SPACE_SYNC_MARKERS)
+"""Format 1.3: the blend spaces (spec "Blend spaces"): per space its name, dimensions (1 or 2), point
+count and sync marker ("" for none); per point, space after space, its clip name and position (y 0 in 1D)."""
+MARKER_CLIPS = "vb:markerClips"
+MARKER_NAMES = "vb:markerNames"
+MARKER_TIMES = "vb:markerTimes"
+MARKER_ATTRIBUTES = (MARKER_CLIPS, MARKER_NAMES, MARKER_TIMES)
+"""Format 1.3: the clip markers (spec "Markers and events"): per marker its clip name, name and
+clip-local time in seconds."""
+MOTION_KEYS = {"blendSpaces": BLEND_SPACE_NAMES, "markers": MARKER_CLIPS}
+"""The format 1.3 metadata keys and the USD attribute a location names for each."""
+
+
 def attribute_of(key) -> Optional[str]:
     """The USD attribute that holds a key of the animation dict, or None.
 
@@ -191,6 +230,8 @@ def attribute_of(key) -> Optional[str]:
         return found.name if found else None
     if parts[0] == "unormRanges":
         return UNORM_RANGE_MIN
+    if parts[0] in MOTION_KEYS:
+        return MOTION_KEYS[parts[0]]
     found = BY_KEY.get(parts[0])
     return found.name if found else None
 

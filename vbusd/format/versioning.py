@@ -28,8 +28,8 @@ __all__ = ["Version", "CURRENT", "UPGRADES", "FORMAT_MINOR_VERSION", "upgrades_f
 FORMAT_MINOR_VERSION = 3
 """The newest minor version this vbusd reads and writes (the major is ``layout.FORMAT_VERSION``).
 Writers write the lowest version that holds an asset (spec 16.1, 16.2, 16.3, 20.5): 1.0 unless it uses a
-1.1 key, 1.2 for the compact encoding, levels of detail or a 1.2 key (bone parents, masks), 1.3 for crowd
-variety (on the instancer that uses it, spec 22.4)."""
+1.1 key, 1.2 for the compact encoding, levels of detail or a 1.2 key (bone parents, masks), 1.3 for a 1.3
+key (blend spaces, markers: spec 23) and for crowd variety (on the instancer that uses it, spec 22.4)."""
 
 
 class Version(NamedTuple):
@@ -61,14 +61,15 @@ KEYS_1_0 = frozenset((
 """The keys a version 1.0 document (or animation prim dict) may hold."""
 
 KEYS_1_1 = KEYS_1_0 | {"bindTransforms", "clipRootMotion", "rootMotionUpAxis"}
+KEYS_1_2 = KEYS_1_1 | {"boneParents", "masks", "compactRanges", "compactRangeMin", "compactRangeMax"}
 KNOWN_KEYS = {(1, 0): KEYS_1_0, (1, 1): KEYS_1_1,
               # Levels of detail (1.2, spec 20.5) add no key: they live on UsdLod prims.
-              (1, 2): KEYS_1_1 | {"boneParents", "masks", "compactRanges", "compactRangeMin",
-                                   "compactRangeMax"}}
+              (1, 2): KEYS_1_2,
+              # Blend spaces and markers (1.3, spec 16.3, 23). Crowd variety (1.3, spec 22) adds no key:
+              # it lives on the instancers (their own vb:formatMinorVersion).
+              (1, 3): KEYS_1_2 | {"blendSpaces", "markers"}}
 """The keys each version defines, so that a reader refusing a newer document names what it does not
 know (spec 16.1: "refused by name")."""
-# Crowd variety (1.3, spec 22) adds no key: it lives on the instancers (their own vb:formatMinorVersion).
-KNOWN_KEYS[(1, 3)] = KNOWN_KEYS[(1, 2)]
 
 ENCODINGS_1_0 = frozenset(("crossMatrix", "affineMatrix", "quatTranslation", "dualQuat"))
 KNOWN_VALUES = {
@@ -235,6 +236,7 @@ def upgrade_1_1_to_1_2(document: dict) -> dict:
 
 @upgrades_from(1, 2)
 def upgrade_1_2_to_1_3(document: dict) -> dict:
-    """1.2 -> 1.3 (spec 16.3, 22): crowd variety lives on instancers (their own version); no metadata key or
-    animation attribute to fill in."""
+    """1.2 -> 1.3 (spec 16.3, 22, 23): blend spaces and clip markers are optional and absent means none
+    (additive layers and blend parameters are a decoder's and an instance's); crowd variety lives on
+    instancers (their own version): no metadata key or animation attribute to fill in."""
     return {**document, "formatMinorVersion": 3}

@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError
+from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError, UnsupportedError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 from vbusd.io.gltf import referenced_uris
@@ -187,6 +187,19 @@ def _variety_columns(crowd, variant_index: dict, parts: list) -> dict:
 
 def _crowd_arrays(crowd):
     count = crowd.instance_count
+    if crowd.blended:
+        # Spec 23.7 blends per instance have no EXT_mesh_gpu_instancing attribute yet: refuse rather than
+        # export the crowd without them.
+        raise UnsupportedError("the crowd plays blend spaces per instance (format 1.3), which the glTF runtime "
+                               "package does not carry yet", location=f"{crowd.path}.primvars:vb:blendSpace",
+                               code="layers.unsupported")
+    if (crowd.layer_mode is not None and crowd.layer_weight is not None
+            and np.any((np.asarray(crowd.layer_mode) == 1) & (np.asarray(crowd.layer_weight) > 0))):
+        # Spec 23.4: an additive layer MUST NOT be written as an override one, and the package's layer
+        # attributes (like the USD primvars) have no mode.
+        raise UnsupportedError("the crowd plays additive layers (format 1.3), which the glTF runtime package does "
+                               "not carry", location=f"{crowd.path}.primvars:vb:layerWeight",
+                               code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
     rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])

@@ -251,6 +251,23 @@ def _write_animation(stage, pxr, vb: VirtualBones, texture_name: str, minor: int
         values["maskNames"] = Vt.TokenArray([str(name) for name, _ in vb.masks])
         values["maskWeights"] = Vt.FloatArray([float(w) for _, weights in vb.masks for w in weights])
         minor = max(minor, 2)
+    if vb.blend_spaces:
+        # Format 1.3 (spec 23.6): per space name, dimensions, point count, sync marker; per point its
+        # clip and position, space after space.
+        spaces = vb.blend_spaces
+        values["blendSpaceNames"] = Vt.TokenArray([str(s.name) for s in spaces])
+        values["blendSpaceDimensions"] = Vt.IntArray([int(s.dimensions) for s in spaces])
+        values["blendSpacePointCounts"] = Vt.IntArray([len(s.points) for s in spaces])
+        values["blendSpaceClips"] = Vt.TokenArray([str(c) for s in spaces for c in s.clips])
+        values["blendSpacePoints"] = Vt.Vec2dArray([Gf.Vec2d(float(p[0]), float(p[1]) if len(p) > 1 else 0.0)
+                                                    for s in spaces for p in s.points])
+        values["blendSpaceSyncMarkers"] = Vt.TokenArray([str(s.sync_marker or "") for s in spaces])
+        minor = max(minor, 3)
+    if vb.markers:
+        values["markerClips"] = Vt.TokenArray([str(m.clip) for m in vb.markers])
+        values["markerNames"] = Vt.TokenArray([str(m.name) for m in vb.markers])
+        values["markerTimes"] = Vt.DoubleArray([float(m.time) for m in vb.markers])
+        minor = max(minor, 3)
     if layout.texel_format is TexelFormat.UNORM16:
         ranges = np.asarray(vb.unorm_ranges, dtype=np.float64)
         # float4[] holds float32: the nearest float32 of each float64 bound (spec: USD schema).
@@ -405,6 +422,20 @@ def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets
         _write_fades(stage, pxr, primvars, crowd)
     if crowd.layer_weight is not None:
         _write_layers(pxr, primvars, crowd, mask_count)
+    if crowd.blend_space is not None:
+        # Format 1.3 (spec 23.7): the blend space, parameter and phase of each instance.
+        for primvar, values, default, integer in ((names.BLEND_SPACE, crowd.blend_space, -1, True),
+                                                  (names.BLEND_X, crowd.blend_x, 0.0, False),
+                                                  (names.BLEND_Y, crowd.blend_y, 0.0, False),
+                                                  (names.BLEND_PHASE, crowd.blend_phase, 0.0, False)):
+            array = (np.full(n, default) if values is None else np.asarray(values)).reshape(-1)
+            if array.shape != (n,):
+                raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} "
+                                   "instances", file="usd")
+            vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
+            type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
+            primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex).Set(
+                vt.FromNumpy(np.ascontiguousarray(array, dtype=dtype)))
     if crowd.varied:
         _write_variety(stage, pxr, prim, primvars, crowd, [name for name in unique_names(
             [target.name for target in targets])])
@@ -475,6 +506,11 @@ def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
     if not mask_count:
         raise OptionsError(f"crowd {crowd.path}: layers need an animation that stores bone masks (format 1.2; "
                            "convert with --mask NAME=BONE)", file="usd", code="layers.noMask")
+    if crowd.layer_mode is not None and np.any((np.asarray(crowd.layer_mode) == 1) & (weight > 0)):
+        # Additive layers (spec 23.4) play per instance in the decoders, but format 1.3 defines no
+        # instancer primvar for them: refused rather than written as override layers.
+        raise OptionsError(f"crowd {crowd.path}: additive layers have no USD primvars in format 1.3 (spec 23.4); "
+                           "they decode from a Crowd in Python only", file="usd", code="layers.unsupported")
     count = weight.shape[1]
     for primvar, values, integer in ((names.LAYER_CLIP, crowd.layer_clip, True),
                                      (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),

@@ -55,6 +55,7 @@ from vbusd.io.usd_probe import needs_probe, probe_crate
 from vbusd.format import versioning
 from vbusd.format import variety
 from vbusd.format.metadata import parents_problem
+from vbusd.format.motion import markers_from_dict, motion_problems, spaces_from_dict
 from vbusd.format.rootmotion import RootMotion
 from vbusd.io.textures import read_texture
 from vbusd.io.usd_lod import levels_of
@@ -508,7 +509,7 @@ class UsdReader:
         for attribute in names.ANIMATION_ATTRIBUTES:
             if attribute.key in ("texture", "clipExtents", "unormRangeMin", "unormRangeMax", "bindTransforms",
                                  "clipRootMotion", "rootMotionUpAxis", "boneParents", "maskNames", "maskWeights",
-                                 "compactRangeMin", "compactRangeMax"):
+                                 "compactRangeMin", "compactRangeMax") or not attribute.mirrored:
                 continue  # read below, with their own rules
             authored, value = self.value(prim, attribute.name, attribute.type)
             if value is None:
@@ -550,6 +551,7 @@ class UsdReader:
         self._compact_ranges(prim, declared)
         self._bind_transforms(prim, declared)
         self._masks(prim, declared)
+        self._motion(prim, declared)
         declared.layout = build_layout(declared)
         for item in declared.findings:
             self.diagnostics.add(item)
@@ -627,9 +629,11 @@ class UsdReader:
 
         current = versioning.CURRENT
         own_names = [name for version, name in (((1, 1), names.BIND_TRANSFORMS), ((1, 1), names.CLIP_ROOT_MOTION),
-                                                ((1, 2), names.BONE_PARENTS), ((1, 2), names.MASK_NAMES))
+                                                ((1, 2), names.BONE_PARENTS), ((1, 2), names.MASK_NAMES),
+                                                ((1, 3), names.BLEND_SPACE_NAMES), ((1, 3), names.MARKER_CLIPS))
                      if version > tuple(current)]
-        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS))
+        primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS),
+                                             ((1, 3), names.BLEND_PRIMVARS))
                     if version > tuple(current) for p in group]
         target = prim.GetPath()
         found = []
@@ -763,6 +767,60 @@ class UsdReader:
             return
         declared.values["masks"] = [{"name": name, "weights": row.tolist()}
                                     for name, row in zip(mask_names, weights.reshape(len(mask_names), bones))]
+
+    def _motion(self, prim, declared: Declared) -> None:
+        """Format 1.3 blend spaces and markers (spec 23.6) into ``blendSpaces`` and ``markers`` as the
+        metadata holds them; what does not fit the animation's clips is ``prim.attribute.invalid``."""
+        path = str(prim.GetPath())
+
+        def get(name):
+            attribute = prim.GetAttribute(name)
+            return list(attribute.Get() or []) if attribute and attribute.HasAuthoredValue() else None
+
+        spaces_raw = [get(n) for n in names.BLEND_SPACE_ATTRIBUTES]
+        if any(v is not None for v in spaces_raw):
+            space_names, dims, counts, clips, points, syncs = (v or [] for v in spaces_raw)
+            if not (len(space_names) == len(dims) == len(counts) == len(syncs)) or any(int(c) < 1 for c in counts) \
+                    or len(clips) != sum(int(c) for c in counts) or len(points) != len(clips):
+                self.report("prim.attribute.invalid", f"{names.BLEND_SPACE_NAMES}: the blend space arrays disagree "
+                            "(one name, dimension count, point count and sync marker per space; one clip and point "
+                            "per point; spec 23.6)", UsdSite(path, names.BLEND_SPACE_NAMES))
+            else:
+                spaces, start = [], 0
+                for name, dim, count, sync in zip(space_names, dims, counts, syncs):
+                    pts = [{"clip": str(c), "x": float(p[0]), **({"y": float(p[1])} if int(dim) == 2 else {})}
+                           for c, p in zip(clips[start:start + int(count)], points[start:start + int(count)])]
+                    start += int(count)
+                    spaces.append({"name": str(name), "dimensions": int(dim), "points": pts,
+                                   **({"syncMarker": str(sync)} if str(sync) else {})})
+                declared.values["blendSpaces"] = spaces
+        markers_raw = [get(n) for n in names.MARKER_ATTRIBUTES]
+        if any(v is not None for v in markers_raw):
+            clips, marker_names, times = (v or [] for v in markers_raw)
+            if not len(clips) == len(marker_names) == len(times):
+                self.report("prim.attribute.invalid", f"{names.MARKER_CLIPS}, {names.MARKER_NAMES} and "
+                            f"{names.MARKER_TIMES} must hold one entry per marker (spec 23.6)",
+                            UsdSite(path, names.MARKER_CLIPS))
+            else:
+                declared.values["markers"] = [{"clip": str(c), "name": str(n), "time": float(t)}
+                                              for c, n, t in zip(clips, marker_names, times)]
+        clips = declared.values.get("clips")
+        if clips and ("blendSpaces" in declared.values or "markers" in declared.values):
+            durations = {c["name"]: Clip(c["name"], c["firstRow"], max(1, int(c["rowCount"])),
+                                         float(c["rowsPerSecond"]) or 1.0, bool(c["loop"])).duration for c in clips}
+            problems = motion_problems(spaces_from_dict(declared.values.get("blendSpaces")),
+                                       markers_from_dict(declared.values.get("markers")), durations)
+            for parts, message in problems[:1]:
+                name = names.BLEND_SPACE_NAMES if parts[0] == "blendSpaces" else names.MARKER_CLIPS
+                self.report("prim.attribute.invalid", f"{name}: {message}", UsdSite(path, name))
+            if problems:
+                declared.values.pop("blendSpaces", None)
+                declared.values.pop("markers", None)
+            elif "blendSpaces" in declared.values and ("boneParents" not in declared.values
+                                                       or "bindTransforms" not in declared.values):
+                self.report("prim.attribute.invalid", f"{names.BLEND_SPACE_NAMES} needs {names.BONE_PARENTS} and "
+                            f"{names.BIND_TRANSFORMS} (spec 23)", UsdSite(path, names.BLEND_SPACE_NAMES))
+                declared.values.pop("blendSpaces", None)
 
     def _root_motion(self, prim, declared: Declared) -> None:
         """Format 1.1 ``vb:clipRootMotion`` and ``vb:rootMotionUpAxis`` (spec "Root motion") into ``rootMotion``."""
@@ -920,7 +978,11 @@ class UsdReader:
                             clip_extents=attributes.clip_extents,
                             bind_transforms=binds if binds is not None else theirs_binds,
                             root_motion=attributes.declared.values.get("rootMotion"),
-                            bone_parents=parents, masks=masks)
+                            bone_parents=parents, masks=masks,
+                            blend_spaces=texture.info.blend_spaces or spaces_from_dict(
+                                attributes.declared.values.get("blendSpaces")),
+                            markers=texture.info.markers or markers_from_dict(
+                                attributes.declared.values.get("markers")))
 
     # -- bound meshes and crowds -----------------------------------------------------------------
 
@@ -1140,13 +1202,27 @@ class UsdReader:
                       f"the first is {int(clip[first])} at instance {first}",
                       UsdSite(path, names.INSTANCE_CLIP.attribute))
         fades = self.read_fades(prim, n, clip_count)
+        # Format 1.3 (spec 23.7): blend spaces per instance; absent means none.
+        blends = {}
+        if any(prim.GetAttribute(p.attribute) and prim.GetAttribute(p.attribute).HasAuthoredValue()
+               for p in names.BLEND_PRIMVARS):
+            for field, primvar, default, dtype in (("blend_space", names.BLEND_SPACE, -1, np.int32),
+                                                   ("blend_x", names.BLEND_X, 0.0, np.float32),
+                                                   ("blend_y", names.BLEND_Y, 0.0, np.float32),
+                                                   ("blend_phase", names.BLEND_PHASE, 0.0, np.float32)):
+                values, _ = self.primvar(prim, primvar, np.float64, count=n, element_size=1, default=default,
+                                         codes=codes)
+                if not np.all(np.isfinite(values)):
+                    self.fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values",
+                              UsdSite(path, primvar.attribute))
+                blends[field] = values.astype(dtype)
         layers = self.read_layers(prim, n, clip_count, mask_count)
         if "fade_samples" in layers:
             fades["fade_samples"] = {**fades.get("fade_samples", {}), **layers.pop("fade_samples")}
         layers.update(self.read_variety(prim, n))
         return Crowd(path=path, positions=positions.reshape(n, 3), orientations=orientations,
                      clip=clip.astype(np.int32), time_offset=offset.astype(np.float32),
-                     playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers)
+                     playback_rate=rate.astype(np.float32), scales=scales, **fades, **layers, **blends)
 
     def read_variety(self, prim, n: int) -> dict:
         """Crowd variety of an instancer (format 1.3, spec 22) as Crowd fields ({} when none):
@@ -1274,7 +1350,8 @@ class UsdReader:
                                    unorm_ranges=vb.unorm_ranges, meshes=tuple(found), path=vb.path,
                                    texture=vb.texture, clip_extents=vb.clip_extents,
                                    bind_transforms=vb.bind_transforms, root_motion=vb.root_motion,
-                                   lods=lods, bone_parents=vb.bone_parents, masks=vb.masks)
+                                   lods=lods, bone_parents=vb.bone_parents, masks=vb.masks,
+                                   blend_spaces=vb.blend_spaces, markers=vb.markers)
                       for vb, (found, lods) in zip(animations, [lv or (m, None) for lv, m in zip(levels, meshes)])]
         extra = {}
         tcps = float(stage.GetTimeCodesPerSecond())

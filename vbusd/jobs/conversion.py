@@ -38,6 +38,7 @@ from vbusd.jobs import warmup
 from vbusd.baking.baker import BakeOptions, bake
 from vbusd.format.errors import FORCE_HINT, InputError, OptionsError, UnsupportedError, VbusdError
 from vbusd.format.jsonform import is_unicode_text, json_ready
+from vbusd.format.motion import BlendSpace, Marker, parse_blend_space, parse_marker
 from vbusd.format.containers import container_error, default_container, texture_file_name
 from vbusd.format.layout import Encoding, Padding, TexelFormat, pairing_error, texel_formats_of
 from vbusd.format.model import ReadOptions, SkinnedAnimation, SourceScene, VirtualBones, VirtualBonesAsset
@@ -59,7 +60,7 @@ from vbusd.baking.lod import adopt_levels
 from vbusd.baking.lod import add_levels
 from vbusd.io.paths import OUTPUT_SUFFIXES, check_output_path
 
-__all__ = ["AUTO", "parse_masks", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
+__all__ = ["AUTO", "parse_masks", "with_syncs", "OUTPUT_SUFFIXES", "BAD_CLIP_POLICIES", "DEFAULT_CHECK_ROWS",
            "ConvertOptions", "MeshReport", "SkippedClip", "ClipReport", "AnimationReport",
            "ConvertReport", "check_output", "bake_animation",
            "bake_with_clip_policy", "measure_errors", "convert"]
@@ -114,6 +115,11 @@ class ConvertOptions:
             :func:`vbusd.baking.lod.default_screen_sizes`.
         masks: Format 1.2 bone masks for layers (spec "Layers and bone masks"): ``(name, bone)``
             pairs or ``"NAME=BONE"`` strings, each weighing ``bone`` and every bone below it.
+        blend_spaces: Format 1.3 blend spaces (spec 23): ``"NAME=CLIP@X,..."`` / ``"NAME=CLIP@X:Y,..."``
+            strings or :class:`~vbusd.format.motion.BlendSpace` objects.
+        markers: Format 1.3 clip markers (spec 23.4): ``"CLIP:NAME@SECONDS"`` strings or
+            :class:`~vbusd.format.motion.Marker` objects.
+        blend_syncs: ``"SPACE=MARKER"`` strings: the space plays its clips' phases from that marker (spec 23.3).
     """
 
     encoding: str = AUTO
@@ -137,10 +143,17 @@ class ConvertOptions:
     lod_ratios: tuple = ()
     lod_screen_sizes: Optional[tuple] = None
     masks: tuple = ()
+    blend_spaces: tuple = ()
+    markers: tuple = ()
+    blend_syncs: tuple = ()
 
     def __post_init__(self) -> None:
         where = "convert"
         object.__setattr__(self, "masks", parse_masks(self.masks))
+        spaces = tuple(s if isinstance(s, BlendSpace) else parse_blend_space(s) for s in self.blend_spaces)
+        object.__setattr__(self, "markers", tuple(m if isinstance(m, Marker) else parse_marker(m)
+                                                  for m in self.markers))
+        object.__setattr__(self, "blend_spaces", with_syncs(spaces, self.blend_syncs))
 
         ratios = self.lod_ratios
         if isinstance(ratios, str):
@@ -220,7 +233,25 @@ class ConvertOptions:
                            rows_per_second=self.rows_per_second, horizontal_padding=self.horizontal_padding,
                            vertical_padding=self.vertical_padding, max_influences=int(self.max_influences),
                            loop=self.loop, root_motion=self.root_motion,
-                           up_axis="Z" if str(up_axis).upper() == "Z" else "Y", masks=self.masks)
+                           up_axis="Z" if str(up_axis).upper() == "Z" else "Y", masks=self.masks,
+                           blend_spaces=self.blend_spaces, markers=self.markers)
+
+
+def with_syncs(spaces: tuple, syncs) -> tuple:
+    """``spaces`` with the sync markers of ``--blend-sync SPACE=MARKER`` values (spec 23.3).
+
+    Raises:
+        OptionsError: Not SPACE=MARKER, or a space not given (code ``convert.blendSpace``).
+    """
+    spaces = list(spaces)
+    for text in syncs or ():
+        name, _, marker = str(text).partition("=")
+        found = [k for k, s in enumerate(spaces) if s.name == name]
+        if not marker or not found:
+            raise OptionsError(f"--blend-sync takes SPACE=MARKER for a --blend-space SPACE, got {text!r}",
+                               file="convert", code="convert.blendSpace")
+        spaces[found[0]] = dataclasses.replace(spaces[found[0]], sync_marker=marker)
+    return tuple(spaces)
 
 
 def parse_masks(masks) -> tuple:

@@ -25,6 +25,7 @@ from vbusd.format.metadata import to_dict
 from vbusd.io.generator import GENERATOR
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.errors import UnsupportedError
+from vbusd.decoders.reference import blends_as_layers
 
 __all__ = ["SCENE_FORMAT", "SCENE_VERSION", "build_scene", "scene_json"]
 
@@ -205,6 +206,10 @@ def build_scene(asset: VirtualBonesAsset, *, buffer_uri: str = "scene.bin") -> t
         })
     crowds = []
     for crowd, animation in zip(asset.crowds, asset.crowd_animation):
+        if crowd.blended:
+            # Blend spaces per instance (format 1.3, spec 23.7) play as layers under the rig's
+            # every-bone mask (23.1): the runtimes' layer path, no new shader.
+            crowd = blends_as_layers(asset.animations[animation], crowd)
         crowds.append({
             "path": crowd.path,
             "animation": int(animation),

@@ -10,7 +10,8 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL, PreviousFrame,
+  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL,
+  PreviousFrame,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -331,7 +332,9 @@ export class VirtualBonesCrowd extends Group {
     if (weight > 0 && !(clip >= 0 && clip < this.animation.clips.length)) {
       throw new VirtualBonesError(`${this.name}: instance ${index} layers clip ${clip}, the animation has ${this.animation.clips.length}`);
     }
-    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+    // Format 1.3: with blend spaces, mask index masks.length is the rig's every-bone mask (blends as layers).
+    const maskCount = this.animation.masks.length + (this.animation.layout?.blendSpaces ? 1 : 0);
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
     this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
@@ -340,6 +343,54 @@ export class VirtualBonesCrowd extends Group {
     for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
       attribute.needsUpdate = true;
     }
+  }
+
+  /**
+   * Instance `index` plays blend space `space` (its name in the layout's `blendSpaces`, format 1.3,
+   * spec 23.7) at parameter (x, y), phase `phase` at scene time 0, advancing at `playbackRate /
+   * sum w D`: written as its clip and time plus layer slots 0 and 1 under the mask of every bone
+   * (spec 23.1, "Decoding a blend as layers"; @vbusd/core's blendLayers), so a crowd made with
+   * layers plays it. A space's point beyond the third weighted one would need a third slot: refused.
+   * Switching an instance to another space (or from its clip) is a clip switch for motion vectors:
+   * call resetPrevious(index) then (spec 21, Reset); moving x, y within one space is not.
+   */
+  setBlend(index, { space, x = 0, y = 0, phase = 0, playbackRate = 1 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers (blends play as layers)`);
+    const spaces = this.animation.layout.blendSpaces ?? [];
+    const found = spaces.find((s) => s.name === space);
+    if (!found) throw new VirtualBonesError(`${this.name}: no blend space ${JSON.stringify(space)} (spaces: ${spaces.map((s) => s.name).join(', ')})`);
+    const plan = blendLayers(found, x, y, phase, playbackRate, this.animation.clips, this.animation.layout.markers);
+    if (plan.layers.length > 2) throw new VirtualBonesError(`${this.name}: instance ${index}: the blend weighs ${plan.layers.length + 1} points; the runtime layers 3 at most`);
+    this.clipAttribute.array[index] = plan.clip;
+    this.timeAttribute.array.set([plan.timeOffset, plan.playbackRate], 2 * index);
+    this.clipAttribute.needsUpdate = true;
+    this.timeAttribute.needsUpdate = true;
+    this.setFade(index, { weight: 0 });
+    const every = this.animation.masks.length;  // the rig texture's every-bone mask (rigTexels)
+    for (let slot = 0; slot < 2; ++slot) {
+      const layer = plan.layers[slot];
+      this.layerClipMaskAttribute.array.set([layer ? layer.clip : 0, layer ? every : 0], 4 * index + 2 * slot);
+      this.layerTimeAttribute.array.set(layer ? [layer.timeOffset, layer.playbackRate] : [0, 1], 4 * index + 2 * slot);
+      this.layerWeightAttribute.array[2 * index + slot] = layer ? layer.weight : 0;
+    }
+    for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
+      attribute.needsUpdate = true;
+    }
+    return plan;
+  }
+
+  /**
+   * The clip markers (format 1.3, spec 23.5) every instance crosses between scene times t0 and t1,
+   * from the clock on the CPU (a footstep sound, a dust particle): [{instance, name, time}], instance
+   * by instance, each in the order crossed, `time` the unwrapped clip-local time. An instance that
+   * plays a blend space reports its first weighted point's clip (spec 23.7).
+   */
+  events(t0, t1) {
+    const n = this.capacity;
+    const offset = new Float64Array(n);
+    const rate = new Float64Array(n);
+    for (let i = 0; i < n; ++i) [offset[i], rate[i]] = [this.timeAttribute.array[2 * i], this.timeAttribute.array[2 * i + 1]];
+    return crowdEvents(this.animation.layout.markers, this.animation.clips, this.clipAttribute.array, offset, rate, t0, t1);
   }
 
   /**

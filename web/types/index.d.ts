@@ -94,6 +94,10 @@ export class VirtualBonesCrowd extends Group {
   readonly trianglesDrawn: number;
   setFade(index: number, fade?: { clip?: number; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
+  /** Format 1.3: the clip markers every instance crosses between scene times t0 and t1 (spec 23.5). */
+  events(t0: number, t1: number): { instance: number; name: string; time: number }[];
+  /** Format 1.3: instance `index` plays a blend space, as its clip plus layer slots 0 and 1 under the every-bone mask. */
+  setBlend(index: number, blend: { space: string; x?: number; y?: number; phase?: number; playbackRate?: number }): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
   /** A fade over stage time: every instance's time-sampled fade at scene time `time` (no-op without samples). */
   updateSamples(time: number): void;
   /** The previous frame (motion vectors): previous fades and the animation's previousTime for interval dt (default 1/60). */

@@ -7,8 +7,8 @@ import {
 } from '@babylonjs/core';
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
-  screenSize, selectLevel, checkScreenSizes, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL,
-  PreviousFrame,
+  screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
+  DEFAULT_FRAME_INTERVAL, PreviousFrame,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -357,6 +357,17 @@ export class VirtualBonesCrowd {
     return this.levels.reduce((n, meshes, level) => n + meshes.reduce((m, mesh) => m + triangles(mesh), 0) * this.levelCounts[level], 0);
   }
 
+  /**
+   * The clip markers (format 1.3, spec 23.5) every instance crosses between scene times t0 and t1
+   * (CPU, from the clock): [{instance, name, time}], as the three.js runtime's `events`.
+   */
+  events(t0, t1) {
+    const n = this.capacity;
+    const [clip, offset, rate] = [new Int32Array(n), new Float64Array(n), new Float64Array(n)];
+    for (let i = 0; i < n; ++i) [clip[i], offset[i], rate[i]] = this.instanceA.subarray(4 * i, 4 * i + 3);
+    return crowdEvents(this.animation.layout.markers, this.animation.layout.clips, clip, offset, rate, t0, t1);
+  }
+
   /** Change instance `i`'s crossfade (spec 8.3): fade clip, its time offset and rate, weight. */
   setFade(i, { fadeClip, fadeTimeOffset = 0, fadePlaybackRate = 1, fadeWeight }) {
     if (!(fadeClip >= 0 && fadeClip < this.animation.clips.length)) {
@@ -395,7 +406,9 @@ export class VirtualBonesCrowd {
     const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
     if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
     if (!(weight >= 0 && weight <= 1)) throw new VirtualBonesError(`${this.name}: instance ${index}: layer weight must be in 0..1, got ${weight}`);
-    if (weight > 0 && !(maskIndex >= 0 && maskIndex < this.animation.masks.length)) {
+    // Format 1.3: with blend spaces, mask index masks.length is the rig's every-bone mask (blends as layers).
+    const maskCount = this.animation.masks.length + (this.animation.layout?.blendSpaces ? 1 : 0);
+    if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
     this.instanceC.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);

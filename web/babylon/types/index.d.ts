@@ -68,6 +68,8 @@ export class VirtualBonesCrowd {
   /** Instances drawn (the first `count` of the capacity). */
   count: number;
   setFade(index: number, fade: { fadeClip: number; fadeTimeOffset?: number; fadePlaybackRate?: number; fadeWeight: number }): void;
+  /** Format 1.3: the clip markers every instance crosses between scene times t0 and t1 (spec 23.5). */
+  events(t0: number, t1: number): { instance: number; name: string; time: number }[];
   updateSamples(time: number): void;
   setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
   setClips(clips: number | ArrayLike<number>): void;

@@ -1,8 +1,9 @@
 // vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
 // WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, KTX2 textures, shader-module
 // assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
-// detail, the previous-frame clock (motion vectors), the plain files, a runtime package crowd's playback arrays and the
-// transform-feedback probe. docs/engines.md ("@vbusd/core").
+// detail, blend spaces and clip events (format 1.3), crowd variety, the previous-frame clock (motion
+// vectors), the plain files, a runtime package crowd's playback arrays and the transform-feedback probe.
+// docs/engines.md ("@vbusd/core").
 
 export { VirtualBonesError } from './errors.js';
 export {
@@ -20,6 +21,9 @@ export {
 export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
 export { DEFAULT_FRAME_INTERVAL, checkFrameInterval, previousClipTime, PreviousFrame } from './previous.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
+export {
+  triangulate, blendWeights, phaseTimes, layerWeights, blendLayers, crossedMarkers, crowdEvents,
+} from './motion.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { RUNTIME_LAYERS, packagePlayback } from './package.js';
 export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';

@@ -111,10 +111,12 @@ export function affineInverseRows([a0, a1, a2]) {
  * layout stores no masks, parents or bind transforms.
  */
 export function rigTexels(layout) {
-  if (!(layout.masks && layout.boneParents && layout.bindTransforms)) return null;
+  if (!((layout.masks || layout.blendSpaces) && layout.boneParents && layout.bindTransforms)) return null;
   const bones = layout.boneCount;
   const width = 8 * bones;
-  const height = 1 + layout.masks.length;
+  const masks = layout.masks ?? [];
+  // Format 1.3: with blend spaces, mask index masks.length weighs every bone (spec 23.1, 23.7).
+  const height = 1 + masks.length + (layout.blendSpaces ? 1 : 0);
   const data = new Float32Array(width * height * 4);
   layout.bindTransforms.forEach((e, b) => {  // column-major: row i is e[i], e[4 + i], e[8 + i], e[12 + i]
     const rows = [0, 1, 2].map((i) => [e[i], e[4 + i], e[8 + i], e[12 + i]]);
@@ -123,6 +125,7 @@ export function rigTexels(layout) {
     inverse.forEach((row, i) => data.set(row, 4 * (8 * b + 3 + i)));
     data[4 * (8 * b + 6)] = layout.boneParents[b];
   });
-  layout.masks.forEach((mask, m) => mask.weights.forEach((w, b) => { data[4 * ((1 + m) * width + b)] = w; }));
+  masks.forEach((mask, m) => mask.weights.forEach((w, b) => { data[4 * ((1 + m) * width + b)] = w; }));
+  if (layout.blendSpaces) for (let b = 0; b < bones; ++b) data[4 * ((1 + masks.length) * width + b)] = 1;
   return { width, height, data };
 }

@@ -118,6 +118,17 @@ export function runFeedback(gl: WebGL2RenderingContext, program: WebGLProgram, v
 export function assetOrder(results: Float32Array[], info: { pointIndex?: ArrayLike<number> | null; hasNormals?: boolean; pointCount?: number }): [Float32Array, Float32Array, Float32Array];
 export function concatenate(arrays: ArrayLike<number>[]): Float32Array;
 
+/** A blend space as the layout metadata's `blendSpaces` holds it (format 1.3, spec 23.6). */
+export interface BlendSpace { name: string; dimensions: 1 | 2; points: { clip: string; x: number; y?: number }[]; syncMarker?: string }
+/** A clip marker as the layout metadata's `markers` holds it (format 1.3, spec 23.5). */
+export interface ClipMarker { clip: string; name: string; time: number }
+export function triangulate(points: [number, number][]): [number, number, number][];
+export function blendWeights(space: BlendSpace, x: number, y?: number): [number, number][];
+export function phaseTimes(space: BlendSpace, durations: Record<string, number>, markers: ClipMarker[] | undefined, phase: number): number[];
+export function layerWeights(weights: [number, number][]): [number, number][];
+export function crossedMarkers(markers: ClipMarker[] | undefined, clip: string, duration: number, loop: boolean, t0: number, t1: number): { name: string; time: number }[];
+export function crowdEvents(markers: ClipMarker[] | undefined, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], clip: ArrayLike<number>, timeOffset: ArrayLike<number>, playbackRate: ArrayLike<number>, t0: number, t1: number): { instance: number; name: string; time: number }[];
+export function blendLayers(space: BlendSpace, x: number, y: number, phase: number, playbackRate: number, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], markers: ClipMarker[] | undefined): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
 /** The KTX2 container of a file (header, level index, key/value data), every region checked. */
 export function readKTX2Container(data: Uint8Array, name?: string): {
   vkFormat: number; typeSize: number; pixelWidth: number; pixelHeight: number; pixelDepth: number;
