@@ -352,12 +352,11 @@ def compare_declared(reference: Declared, other: Declared, code: str, what: str)
     for key in COMPARED_KEYS:
         if key in reference.values and key in other.values:
             a, b = reference.values[key], other.values[key]
-            if key == "formatMinorVersion" and _is_number(a) and _is_number(b) and \
-                    max(a, b) <= FORMAT_MINOR_VERSION:
-                # Each source declares the lowest version that holds what it carries (levels of
-                # detail make a prim 1.2 and change no metadata key, spec 20.5) and is upgraded on its
-                # own (spec 16): two versions this reader knows are compared by content, not by
-                # number. A newer one is refused by the version check, not here.
+            if key == "formatMinorVersion" and _is_number(a) and _is_number(b) and b <= a <= FORMAT_MINOR_VERSION:
+                # The prim declares what the whole asset needs, its texture's metadata the lowest
+                # version that holds the metadata (levels of detail make a prim 1.2 and change no
+                # metadata key, spec 20.5; so do 1.3's prim-only properties): a prim at or above its
+                # metadata's version agrees. A prim below it is a prim too old for what it mirrors.
                 continue
             if not same_value(a, b):
                 out.append(finding(code, f"{key} is {_short(b)} but {what} {_where(reference, key)} says "
