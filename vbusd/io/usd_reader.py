@@ -1379,7 +1379,13 @@ def texture_disagreements(attributes: AnimationAttributes, info, display: str) -
         info: The texture's metadata.
         display: How findings name the texture (relative to the asset).
     """
-    theirs = from_metadata(info.to_dict(), display)
+    document = info.to_dict()
+    # The version the metadata declares, as validate compares it (to_dict writes the lowest version
+    # that holds the content): a prim below its metadata's declared version is refused alike (spec 16).
+    document.pop("formatMinorVersion", None)
+    if info.format_minor_version:
+        document["formatMinorVersion"] = info.format_minor_version
+    theirs = from_metadata(document, display)
     return compare_declared(attributes.declared, theirs, "metadata.mismatch", "the prim")
 
 
