@@ -1067,3 +1067,24 @@ def test_a_package_ktx2_whose_texel_format_is_a_list_is_a_schema_finding(tmp_pat
     document["buffers"][document["bufferViews"][view]["buffer"]]["byteLength"] = texture.stat().st_size
     package.write_text(json.dumps(document), encoding="utf-8")
     _refused_everywhere(package, capsys, "metadata.schema", "/texelFormat")
+
+
+def test_a_token_array_that_is_not_utf8_is_one_usd_value_line(tmp_path, capsys):
+    """The 5,000-mutant run of the older surfaces (mutant 1354, a word of a crate file set to
+    0xFFFFFFFF): a vb:clipNames token whose bytes are not UTF-8. USD decodes a token array's strings
+    only when an element is read, so the reader's list() of it raised UnicodeDecodeError:
+    command.internal in info and decode. The one value reader now reads token and string arrays
+    whole, so the byte is one usd.value finding for every reader."""
+    from vbusd.validators.api import validate
+
+    path = tmp_path / "asset.usdc"
+    shutil.copy(Path(__file__).parent / "fixtures" / "corrupt_usdc" / "token_not_utf8.usdc", path)
+    findings = validate(path).to_json()["findings"]
+    assert not any(f["code"].endswith(".internal") for f in findings), findings
+    for command in (["info", str(path)], ["decode", str(path), "-o", str(tmp_path / "cache.usda")]):
+        capsys.readouterr()
+        assert main(command) == 2, command
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "vb:clipNames: usd.value: vb:clipNames cannot be read: a string that is not " \
+            "UTF-8" in err[0], err
+    assert not (tmp_path / "cache.usda").exists()

@@ -455,8 +455,16 @@ class UsdReader:
                 self.report(missing_code, f"{name} must be {type_name}, found {wrong}", site)
                 return True, None
             value = attribute.Get()
+            if type_name in ("token[]", "string[]") and value is not None:
+                # A corrupt crate's string bytes decode only when each element is read: read them
+                # here, where a bad byte is one finding, not later in a caller (UnicodeDecodeError).
+                value = [str(v) for v in value]
         except VbusdError:
             raise
+        except UnicodeDecodeError as error:
+            self.report("usd.value", f"{name} cannot be read: a string that is not UTF-8 (byte "
+                        f"{error.object[error.start:error.start + 1].hex()} at {error.start})", site)
+            return True, None
         except Exception as error:  # a corrupt crate value fails on its lazy read
             self.report("usd.value", f"{name} cannot be read: {tf_message(error)}", site)
             return True, None
