@@ -35,7 +35,7 @@ FEATURES = (
     "pulled skin binding",
     "crossfade, time-sampled fade (`--fade-window`)",
     "layers with masks",
-    "Fox and CesiumMan: compact encoding, pulled binding, crossfade",
+    "Fox and CesiumMan: compact encoding, pulled binding, crossfade, sockets",
     "sockets",
     "root motion",
     "levels of detail",

@@ -372,28 +372,12 @@ def test_sockets(browser, socket_stadium, engine, record_property):
     crossfaded joint transform) within 1e-6 of the instance's bounding-box diagonal. (three's
     Matrix4 holds float64; Babylon's Matrix float32 unless the engine asks for high precision, so
     its error is the float32 rounding of a stadium seat's world coordinates, near 1e-6.)"""
-    from vbusd.decoders.reference import crowd_joint_transforms
-
-    from tests.helpers.browser import reference_instance
-
     asset = vbusd.read_asset(socket_stadium)
-    vb, crowd = asset.animations[0], asset.crowds[0]
-    bones = sorted({0, vb.layout.bone_count // 2, vb.layout.bone_count - 1})
-    elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
-    errors = []
     with ViewerServer(socket_stadium, engine=engine) as server:
         page = open_page(browser, server)
         try:
             assert page.error == "", page.error
-            for instance, t in SOCKET_PROBES:
-                got = np.asarray(page.page.evaluate(
-                    f"""([i, bones, t]) => bones.map((bone) => {{
-                        const m = window.vbusd.crowds[0].socketMatrix(i, bone, t); return {elements}; }})""",
-                    [instance, bones, t])).reshape(len(bones), 4, 4).transpose(0, 2, 1)
-                expected = np.stack([crowd_joint_transforms(vb, crowd, bone, t)[instance] for bone in bones])
-                positions, _ = reference_instance(asset, instance, t)
-                diagonal = float(np.linalg.norm(positions.max(0) - positions.min(0)))
-                errors.append(float(np.abs(got - expected).max()) / diagonal)
+            errors = socket_errors(page, asset, engine, SOCKET_PROBES)
             assert page.errors() == [], page.errors()
         finally:
             page.close()
@@ -406,16 +390,56 @@ CHARACTER_PROBES = [(0, 0.0), (3, 0.8137), (4, 0.0), (5, 2.9)]
 """(instance, scene time) of the character crowd: Fox instances 0 to 3, CesiumMan 4 and 5."""
 
 
-@pytest.mark.parity("Fox and CesiumMan: compact encoding, pulled binding, crossfade")
+def socket_errors(page, asset, engine: str, probes, bones_of=lambda count: sorted({0, count // 2, count - 1})) -> list:
+    """Largest error / instance diagonal of ``crowd.socketMatrix(i, bone, t)`` on ``page`` against
+    the numpy decoder's ``crowd_joint_transforms``, per (instance, time) probe (instances numbered
+    over the crowds in order, as the probe numbers them), for a few bones of each character."""
+    from vbusd.decoders.reference import crowd_joint_transforms
+
+    from tests.helpers.browser import reference_instance
+
+    elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
+    errors = []
+    for instance, t in probes:
+        index, local = 0, instance
+        while local >= asset.crowds[index].instance_count:
+            local -= asset.crowds[index].instance_count
+            index += 1
+        crowd, vb = asset.crowds[index], asset.animations[asset.crowd_animation[index]]
+        bones = bones_of(vb.layout.bone_count)
+        got = np.asarray(page.page.evaluate(
+            f"""([c, i, bones, t]) => bones.map((bone) => {{
+                const m = window.vbusd.crowds[c].socketMatrix(i, bone, t); return {elements}; }})""",
+            [index, local, bones, t])).reshape(len(bones), 4, 4).transpose(0, 2, 1)
+        expected = np.stack([crowd_joint_transforms(vb, crowd, bone, t)[local] for bone in bones])
+        positions, _ = reference_instance(asset, instance, t)
+        diagonal = float(np.linalg.norm(positions.max(0) - positions.min(0)))
+        errors.append(float(np.abs(got - expected).max()) / diagonal)
+    return errors
+
+
+@pytest.mark.parity("Fox and CesiumMan: compact encoding, pulled binding, crossfade, sockets")
 @pytest.mark.parametrize("engine", ENGINES)
 def test_fox_and_cesium_man(browser, character_crowd, engine, record_property):
     """The Khronos Fox (no normals) and CesiumMan converted with the compact encoding, in one
     ``vbusd crowd --fade-clips`` crowd (every instance crossfading, weights 0.2 to 0.8), drawn in
-    the pulled binding: each probe equals the numpy decoder within 1e-6 of the instance's diagonal."""
-    errors = probe_errors(browser, character_crowd, engine, CHARACTER_PROBES, "&skin=pulled")
-    print(engine, "Fox and CesiumMan", errors)
-    record_property("parity_note", f"largest error {max(e for e, _ in errors):.1e} of the diagonal")
+    the pulled binding: each probe equals the numpy decoder within 1e-6 of the instance's diagonal,
+    and so do the crowds' sockets (``crowd.socketMatrix``, the first, middle and last joint) on the
+    same page."""
+    asset = vbusd.read_asset(character_crowd)
+    sockets = []
+
+    def pulled_and_sockets(page):
+        assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
+        sockets.extend(socket_errors(page, asset, engine, CHARACTER_PROBES))
+
+    errors = engine_probe_errors(browser, character_crowd, engine, CHARACTER_PROBES, query="&skin=pulled", asset=asset,
+                                 check=pulled_and_sockets)
+    print(engine, "Fox and CesiumMan", errors, "sockets", sockets)
+    record_property("parity_note", f"largest error {max(e for e, _ in errors):.1e} of the diagonal, "
+                                   f"sockets {max(sockets):.1e}")
     assert_within(errors, engine)
+    assert len(sockets) == len(CHARACTER_PROBES) and max(sockets) <= POSITION_TOLERANCE, sockets
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:
