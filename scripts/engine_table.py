@@ -35,6 +35,7 @@ FEATURES = (
     "pulled skin binding",
     "crossfade, time-sampled fade (`--fade-window`)",
     "layers with masks",
+    "Fox and CesiumMan: compact encoding, pulled binding, crossfade, sockets",
     "sockets",
     "root motion",
     "levels of detail",
@@ -53,11 +54,6 @@ ELSEWHERE = {
     ("float encodings, float16 / float32", "three"): "test_browser.py",
     ("float encodings, float16 / float32", "three-webgpu"): "test_browser_webgpu.py",
     ("float encodings, float16 / float32", "babylon"): "test_browser_babylon.py",
-    ("sockets", "three"): "test_conformance_browser.py (the core decoder under Node)",
-    ("sockets", "three-webgpu"): "test_browser_webgpu.py::test_webgpu_page_sockets_of_a_crossfading_crowd",
-    ("sockets", "babylon"): "test_browser_babylon.py",
-    ("root motion", "three"): "test_conformance_browser.py::test_threejs_root_motion_matches_vbusd (the core decoder under Node)",
-    ("root motion", "three-webgpu"): "the WebGL runtime's crowd and core decoder (test_conformance_browser.py)",
 }
 
 # Cells no test fills yet, with the reason.

@@ -17,6 +17,10 @@ instance's bounding-box diagonal, unit normals within 1e-5.
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
 * unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
 * blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask, and their clip events;
+* root motion (``crowd.rootMotionMatrix``) against ``vbusd.root_motion``, and sockets
+  (``crowd.socketMatrix``) of a crossfading stadium crowd against ``crowd_joint_transforms``;
+* the Khronos Fox and CesiumMan (shared assets) with the compact encoding, in a crossfading crowd of
+  ``vbusd crowd --fade-clips``, drawn in the pulled binding;
 * the previous-frame pose (motion vectors, spec 21): the probe's ``previousPositions`` for the
   page's ``?dt=`` equal the decoder at t - dt, across a loop boundary and a clamped clip's end;
 * crowd variety (format 1.3): tints, material variants and parts masks, read back from the page and
@@ -302,17 +306,15 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
             page.close()
 
 
-@pytest.mark.parity("root motion", engine="babylon")
-def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
-    """Root motion (format 1.1, spec 8.5) on the Babylon page: ``crowd.rootMotionMatrix(i, t0, t1)``
+@pytest.mark.parity("root motion")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_root_motion_on_the_page(browser, tmp_path, engine):
+    """Root motion (format 1.1, spec 8.5) on each engine's page: ``crowd.rootMotionMatrix(i, t0, t1)``
     of a walk baked in place (extractYaw: it turns while it walks) equals ``vbusd.root_motion`` for
-    pairs of times forward, backward and across loops. The three.js runtime's is checked under
-    Node (tests/test_conformance_browser.py); the root tracks have no layout-metadata key, so the
-    page is given them as an application gives them."""
+    pairs of times forward, backward and across loops. The root tracks have no layout-metadata key,
+    so the page is given them as an application gives them (``crowd.rootMotion``)."""
     from vbusd.baking.baker import BakeOptions, bake
-    from vbusd.format.model import VirtualBonesAsset
-
-    from vbusd.format.model import SkinnedMesh
+    from vbusd.format.model import SkinnedMesh, VirtualBonesAsset
 
     walk = loop_walk(0.4)
     triangle = SkinnedMesh("/Walk/Mesh", np.array([[0.0, 1.0, 0.0], [0.2, 0.0, 0.1], [-0.2, 0.0, 0.1]]), np.array([3]),
@@ -324,15 +326,19 @@ def test_babylon_root_motion_on_the_page(webgl_browser, tmp_path):
     vb = vbusd.read_asset(path).animations[0]
     pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0)]
     root = {"upAxis": vb.root_motion.up_axis, "tracks": [track.tolist() for track in vb.root_motion.tracks]}
-    with ViewerServer(path, engine="babylon") as server:
-        page = ViewerPage(webgl_browser, server.url + PAGE)
+    # three's column-major elements and Babylon's row-vector m: the same 16 numbers.
+    elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
+    with ViewerServer(path, engine=engine) as server:
+        page = open_page(browser, server)
         try:
             assert page.error == "", page.error
-            got = page.page.evaluate("""([root, pairs]) => { const crowd = window.vbusd.crowds[0]; crowd.rootMotion = root;
-                return pairs.map(([t0, t1]) => Array.from(crowd.rootMotionMatrix(0, t0, t1).m)); }""", [root, pairs])
+            got = page.page.evaluate(f"""([root, pairs]) => {{ const crowd = window.vbusd.crowds[0]; crowd.rootMotion = root;
+                return pairs.map(([t0, t1]) => {{ const m = crowd.rootMotionMatrix(0, t0, t1); return {elements}; }}); }}""",
+                                     [root, pairs])
             for (t0, t1), matrix in zip(pairs, got):
-                # Babylon's row-vector m is the column-major array of the column-vector matrix.
-                np.testing.assert_allclose(np.array(matrix).reshape(4, 4).T, vbusd.root_motion(vb, 0, t0, t1), atol=1e-5)
+                expected = vbusd.root_motion(vb, 0, t0, t1)
+                assert not np.allclose(expected, np.eye(4))  # the walk moves between every pair
+                np.testing.assert_allclose(np.array(matrix).reshape(4, 4).T, expected, atol=1e-5)
             assert page.errors() == [], page.errors()
         finally:
             page.close()
@@ -405,6 +411,105 @@ def test_clip_events(browser, blending_chain, engine):
         np.testing.assert_allclose([e["time"] for e in theirs], [e["time"] for _, e in ours], rtol=0, atol=1e-5)
         total += len(ours)
     assert total > 10
+
+
+@pytest.fixture(scope="module")
+def socket_stadium(compact_stadium, tmp_path_factory):
+    """The compact stadium (converted, so with vb:bindTransforms) with a crossfade per instance: the
+    next clip, its own offset and rate, weights ramping 0 to 1 over the crowd."""
+    asset = vbusd.read_asset(compact_stadium)
+    crowd = asset.crowds[0]
+    count, clips = crowd.instance_count, len(asset.animations[0].clips)
+    fade = dict(fade_clip=((np.asarray(crowd.clip) + 1) % clips).astype(np.int32),
+                fade_time_offset=np.linspace(-0.3, 0.9, count).astype(np.float32),
+                fade_playback_rate=np.linspace(0.6, 1.4, count).astype(np.float32),
+                fade_weight=np.linspace(0.0, 1.0, count).astype(np.float32))
+    path = tmp_path_factory.mktemp("sockets") / "stadium.usda"
+    vbusd.write_asset(dataclasses.replace(asset, crowds=(dataclasses.replace(crowd, **fade),)), path)
+    return path
+
+
+SOCKET_PROBES = [(0, 0.0), (777, 3.71), (1000, 1.2345), (1199, 12.05)]
+"""(instance, scene time): fade weights 0, about 0.65, 0.83 and 1; a row time, between rows, past the loop."""
+
+
+@pytest.mark.parity("sockets")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_sockets(browser, socket_stadium, engine, record_property):
+    """Sockets (format 1.1, spec 8.4) on each engine's page: ``crowd.socketMatrix(i, bone, t)`` (the
+    runtime's CPU decoder, @vbusd/core's jointElements on the stored compact words) of a crossfading
+    stadium crowd equals the numpy decoder's ``crowd_joint_transforms`` (placement times the
+    crossfaded joint transform) within 1e-6 of the instance's bounding-box diagonal. (three's
+    Matrix4 holds float64; Babylon's Matrix float32 unless the engine asks for high precision, so
+    its error is the float32 rounding of a stadium seat's world coordinates, near 1e-6.)"""
+    asset = vbusd.read_asset(socket_stadium)
+    with ViewerServer(socket_stadium, engine=engine) as server:
+        page = open_page(browser, server)
+        try:
+            assert page.error == "", page.error
+            errors = socket_errors(page, asset, engine, SOCKET_PROBES)
+            assert page.errors() == [], page.errors()
+        finally:
+            page.close()
+    print(engine, "sockets", errors)
+    record_property("parity_note", f"largest error {max(errors):.1e} of the diagonal")
+    assert max(errors) <= POSITION_TOLERANCE, errors
+
+
+CHARACTER_PROBES = [(0, 0.0), (3, 0.8137), (4, 0.0), (5, 2.9)]
+"""(instance, scene time) of the character crowd: Fox instances 0 to 3, CesiumMan 4 and 5."""
+
+
+def socket_errors(page, asset, engine: str, probes, bones_of=lambda count: sorted({0, count // 2, count - 1})) -> list:
+    """Largest error / instance diagonal of ``crowd.socketMatrix(i, bone, t)`` on ``page`` against
+    the numpy decoder's ``crowd_joint_transforms``, per (instance, time) probe (instances numbered
+    over the crowds in order, as the probe numbers them), for a few bones of each character."""
+    from vbusd.decoders.reference import crowd_joint_transforms
+
+    from tests.helpers.browser import reference_instance
+
+    elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
+    errors = []
+    for instance, t in probes:
+        index, local = 0, instance
+        while local >= asset.crowds[index].instance_count:
+            local -= asset.crowds[index].instance_count
+            index += 1
+        crowd, vb = asset.crowds[index], asset.animations[asset.crowd_animation[index]]
+        bones = bones_of(vb.layout.bone_count)
+        got = np.asarray(page.page.evaluate(
+            f"""([c, i, bones, t]) => bones.map((bone) => {{
+                const m = window.vbusd.crowds[c].socketMatrix(i, bone, t); return {elements}; }})""",
+            [index, local, bones, t])).reshape(len(bones), 4, 4).transpose(0, 2, 1)
+        expected = np.stack([crowd_joint_transforms(vb, crowd, bone, t)[local] for bone in bones])
+        positions, _ = reference_instance(asset, instance, t)
+        diagonal = float(np.linalg.norm(positions.max(0) - positions.min(0)))
+        errors.append(float(np.abs(got - expected).max()) / diagonal)
+    return errors
+
+
+@pytest.mark.parity("Fox and CesiumMan: compact encoding, pulled binding, crossfade, sockets")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_fox_and_cesium_man(browser, character_crowd, engine, record_property):
+    """The Khronos Fox (no normals) and CesiumMan converted with the compact encoding, in one
+    ``vbusd crowd --fade-clips`` crowd (every instance crossfading, weights 0.2 to 0.8), drawn in
+    the pulled binding: each probe equals the numpy decoder within 1e-6 of the instance's diagonal,
+    and so do the crowds' sockets (``crowd.socketMatrix``, the first, middle and last joint) on the
+    same page."""
+    asset = vbusd.read_asset(character_crowd)
+    sockets = []
+
+    def pulled_and_sockets(page):
+        assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
+        sockets.extend(socket_errors(page, asset, engine, CHARACTER_PROBES))
+
+    errors = engine_probe_errors(browser, character_crowd, engine, CHARACTER_PROBES, query="&skin=pulled", asset=asset,
+                                 check=pulled_and_sockets)
+    print(engine, "Fox and CesiumMan", errors, "sockets", sockets)
+    record_property("parity_note", f"largest error {max(e for e, _ in errors):.1e} of the diagonal, "
+                                   f"sockets {max(sockets):.1e}")
+    assert_within(errors, engine)
+    assert len(sockets) == len(CHARACTER_PROBES) and max(sockets) <= POSITION_TOLERANCE, sockets
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:

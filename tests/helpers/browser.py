@@ -125,6 +125,23 @@ def build_compact_stadium(folder: Path):
     return path
 
 
+def build_character_crowd(assets: Path, folder: Path) -> Path:
+    """The Khronos Fox and CesiumMan (glTF, shared assets) converted with compactQuatTranslation
+    (uint32) and made one crowd by ``vbusd crowd --fade-clips``: 4 Fox and 2 CesiumMan instances,
+    each crossfading (weights 0.2 to 0.8) to a clip of its own character. Spaced 2 units apart (the
+    Fox overlaps its neighbours): the default spacing, from the Fox's reach, would put CesiumMan
+    hundreds of units out, where float32 world positions cannot hold 1e-6 of its 1.8-unit diagonal."""
+    from vbusd.cli import main
+
+    characters = [convert(assets / "gltf" / name / f"{name}.glb", folder / f"{name}.usda", "compactQuatTranslation",
+                          "uint32") for name in ("Fox", "CesiumMan")]
+    out = folder / "crowd.usda"
+    status = main(["crowd", *map(str, characters), "-o", str(out), "--count", "6", "--seed", "3", "--spacing", "2",
+                   "--fade-clips", "Walk,Run,animation0", "--fade-weight", "0.2", "0.8", "--quiet"])
+    assert status == 0
+    return out
+
+
 def build_rig_assets(folder: Path):
     """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
     return ConvertedOnce(lambda encoding, texel_format: convert(

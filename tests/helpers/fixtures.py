@@ -88,6 +88,12 @@ def compact_stadium(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def character_crowd(shared_assets, tmp_path_factory):
+    """Fox and CesiumMan, compact encoding, one crossfading crowd (``vbusd crowd --fade-clips``)."""
+    return browser_helpers.build_character_crowd(shared_assets, tmp_path_factory.mktemp("characters"))
+
+
+@pytest.fixture(scope="session")
 def rig_assets(tmp_path_factory):
     """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
     return browser_helpers.build_rig_assets(tmp_path_factory.mktemp("bar"))

@@ -15,7 +15,7 @@ import {
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
-import { socketMatrix } from './sockets.js';
+import { socketMatrix, rootMotionMatrix } from './sockets.js';
 import { DEFAULT_SKIN, pullSkin } from './skin.js';
 
 export { singleInstance };
@@ -103,7 +103,7 @@ function pick(values, slots, set) {
  *   (webgpu/material.js), whose shadows need no extra materials.
  */
 export class VirtualBonesCrowd extends Group {
-  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1, skinMaterial = null }) {
+  constructor({ animation, meshes, instances, material = () => new MeshStandardMaterial({ color: 0xb0b4bc, roughness: 0.7 }), name = '', skin = null, levels = null, screenSizes = null, hysteresis = 0.1, skinMaterial = null, rootMotion = null }) {
     super();
     // Layers (format 1.2) run only in the attributes binding: a layered crowd defaults to it, as
     // does one given its own skinMaterial (the three.js WebGPU runtime's keeps attributes as its
@@ -113,6 +113,9 @@ export class VirtualBonesCrowd extends Group {
     this.name = name;
     this.skin = skin;
     this.animation = animation;
+    // Root motion (spec 8.5): {upAxis, tracks}; the layout metadata carries no key for it, so an
+    // application sets it (as on the Babylon crowd).
+    this.rootMotion = rootMotion ?? animation.layout?.rootMotion ?? null;
     this.instances = instances;
     this.capacity = instances.count;
     this.instanceMatrix = new InstancedBufferAttribute(instances.matrices, 16);
@@ -406,6 +409,17 @@ export class VirtualBonesCrowd extends Group {
       { clip: this.fadeClipAttribute.array[index], tau: fade[0] + fade[1] * time, weight: fade[2] });
     const placement = new Matrix4().fromArray(this.instanceMatrix.array, 16 * index);
     return this.matrixWorld.clone().multiply(placement).multiply(joint);
+  }
+
+  /**
+   * Root motion (spec 8.5): how far instance `index`'s clip, baked in place, moves it between scene
+   * times `t0` and `t1` (D(tau1) D(tau0)^-1 at its clip-local times), a Matrix4 in animation space;
+   * the identity without root motion (@vbusd/core's rootMotionElements, as the Babylon crowd's).
+   */
+  rootMotionMatrix(index, t0, t1) {
+    const clip = this.clipAttribute.array[index];
+    const [offset, rate] = [this.timeAttribute.array[2 * index], this.timeAttribute.array[2 * index + 1]];
+    return rootMotionMatrix(this.animation, this.rootMotion, clip, offset + rate * t0, offset + rate * t1);
   }
 
   /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */

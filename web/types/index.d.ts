@@ -85,6 +85,7 @@ export class VirtualBonesCrowd extends Group {
     levels?: CrowdMesh[][] | null;
     screenSizes?: number[] | null;
     hysteresis?: number;
+    rootMotion?: { upAxis: string; tracks: number[][][] } | null;
     skinMaterial?: ((material: Material, animation: VirtualBonesAnimation, maxInfluences: number, binding: SkinBinding) => Material) | null;
   });
   readonly animation: VirtualBonesAnimation;
@@ -105,6 +106,9 @@ export class VirtualBonesCrowd extends Group {
   /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
   resetPrevious(index: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
+  /** Root motion (spec 8.5) of instance `index` between scene times t0 and t1, in animation space. */
+  rootMotionMatrix(index: number, t0: number, t1: number): Matrix4;
+  rootMotion: { upAxis: string; tracks: number[][][] } | null;
   /** What instance `index` shows (format 1.3 crowd variety). */
   varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   updateLevels(camera: object): void;
