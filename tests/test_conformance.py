@@ -31,42 +31,12 @@ import numpy as np
 import pytest
 
 from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
-from vbusd.format.layout import Layout
-from vbusd.format.model import BoundMesh, Clip, Crowd, VirtualBones
+from vbusd.format.model import Crowd, VirtualBones
 
-from tests.helpers import scripts
+from tests.helpers import conformance, scripts
 from tests.helpers.capabilities import require
 
-FOLDER = Path(__file__).resolve().parents[1] / "spec" / "conformance"
-VECTORS = sorted(FOLDER.glob("*.json"))
-
-
-def load(path: Path) -> dict:
-    """A vector's JSON document."""
-    return json.loads(path.read_text(encoding="utf-8"))
-
-
-def vector_animation(vector: dict) -> VirtualBones:
-    """The vector's texture, clips and mesh as a :class:`VirtualBones`, from the JSON alone."""
-    layout_doc = vector["layout"]
-    layout = Layout(layout_doc["encoding"], layout_doc["texelFormat"], layout_doc["boneCount"], layout_doc["rowCount"],
-                    layout_doc["horizontalPadding"], layout_doc["verticalPadding"])
-    if layout_doc["texelFormat"] == "uint32":  # format 1.2: three words per texel, widened with A = 0
-        texels = np.zeros((layout.height, layout.width, 4), "<u4")
-        texels[..., :3] = np.array(vector["texels"], dtype=np.uint64).reshape(layout.height, layout.width, 3)
-    else:
-        dtype = {"float16": "<f2", "float32": "<f4", "unorm16": "<u2"}[layout_doc["texelFormat"]]
-        texels = np.array(vector["texels"], dtype=np.float64).astype(dtype).reshape(layout.height, layout.width, 4)
-    clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], c["rowsPerSecond"], c["loop"], c["startTime"])
-                  for c in layout_doc["clips"])
-    mesh = vector["mesh"]
-    bound = BoundMesh("/Conformance/Mesh", np.array(mesh["points"]), np.array([len(mesh["points"])]),
-                      np.arange(len(mesh["points"])), np.array(mesh["boneIndices"]), np.array(mesh["boneWeights"]),
-                      normals=np.array(mesh["normals"]))
-    ranges = np.array(layout_doc["unormRanges"]) if "unormRanges" in layout_doc else None
-    if "compactRanges" in layout_doc:
-        ranges = np.array(layout_doc["compactRanges"], dtype=np.float64)
-    return VirtualBones(layout, texels, tuple(layout_doc["bones"]), clips, ranges, (bound,))
+FOLDER, VECTORS, load, vector_animation = conformance.FOLDER, conformance.VECTORS, conformance.load, conformance.vector_animation
 
 
 def vector_crowd(vector: dict) -> Crowd:

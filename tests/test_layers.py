@@ -544,23 +544,9 @@ LAYER_VECTORS = sorted((HERE.parent / "spec" / "conformance" / "layers").glob("*
 
 def layer_vector_animation(vector: dict):
     """A layer vector's texture, clips, mesh, bind transforms, parents and masks, from its JSON alone."""
-    from vbusd.format.layout import Layout
-    from vbusd.format.model import BoundMesh, Clip, VirtualBones
+    from tests.helpers.conformance import vector_animation
 
-    doc = vector["layout"]
-    layout = Layout(doc["encoding"], doc["texelFormat"], doc["boneCount"], doc["rowCount"], doc["horizontalPadding"],
-                    doc["verticalPadding"])
-    dtype = {"float16": "<f2", "float32": "<f4"}[doc["texelFormat"]]
-    texels = np.array(vector["texels"], dtype=np.float64).astype(dtype).reshape(layout.height, layout.width, 4)
-    clips = tuple(Clip(c["name"], c["firstRow"], c["rowCount"], c["rowsPerSecond"], c["loop"], c["startTime"])
-                  for c in doc["clips"])
-    mesh = vector["mesh"]
-    bound = BoundMesh("/Conformance/Mesh", np.array(mesh["points"]), np.array([len(mesh["points"])]),
-                      np.arange(len(mesh["points"])), np.array(mesh["boneIndices"]), np.array(mesh["boneWeights"]),
-                      normals=np.array(mesh["normals"]))
-    return VirtualBones(layout, texels, tuple(doc["bones"]), clips, None, (bound,),
-                        bind_transforms=np.array(vector["bindTransforms"]), bone_parents=tuple(vector["boneParents"]),
-                        masks=tuple((m["name"], np.array(m["weights"])) for m in vector["masks"]))
+    return vector_animation(vector)
 
 
 def layer_vector_crowd(vector: dict):
