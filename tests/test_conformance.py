@@ -31,7 +31,7 @@ import numpy as np
 import pytest
 
 from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
-from vbusd.format.model import Crowd, VirtualBones
+from vbusd.format.model import VirtualBones
 
 from tests.helpers import conformance, scripts
 from tests.helpers.capabilities import require
@@ -39,17 +39,9 @@ from tests.helpers.capabilities import require
 FOLDER, VECTORS, load, vector_animation = conformance.FOLDER, conformance.VECTORS, conformance.load, conformance.vector_animation
 
 
-def vector_crowd(vector: dict) -> Crowd:
-    """The vector's instances, unplaced (expected values are in animation space)."""
-    instances = vector["instances"]
-    n = len(instances)
-    column = lambda key, dtype: np.array([i[key] for i in instances], dtype=dtype)  # noqa: E731
-    orientations = np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1))
-    return Crowd("/Conformance/Crowd", np.zeros((n, 3), np.float32), orientations, column("clip", np.int32),
-                 column("timeOffset", np.float32), column("playbackRate", np.float32),
-                 fade_clip=column("fadeClip", np.int32), fade_time_offset=column("fadeTimeOffset", np.float32),
-                 fade_playback_rate=column("fadePlaybackRate", np.float32),
-                 fade_weight=column("fadeWeight", np.float32))
+def vector_crowd(vector: dict):
+    """The vector's instances (with their layers where it has them): tests/helpers/conformance.py."""
+    return conformance.vector_crowd(vector)
 
 
 def assert_matches(vector: dict, time_index: int, points, normals, who: str) -> tuple[float, float]:

@@ -26,6 +26,7 @@ from vbusd.format import versioning
 from vbusd.format.errors import InputError, OptionsError, VersionError
 from vbusd.format.model import AnimationClip, SkinnedAnimation, SkinnedMesh
 from tests.helpers import node as node_tools
+from tests.helpers import conformance
 from tests.helpers.capabilities import require, shared_asset
 
 HERE = Path(__file__).resolve().parent
@@ -550,20 +551,8 @@ def layer_vector_animation(vector: dict):
 
 
 def layer_vector_crowd(vector: dict):
-    from vbusd.format.model import Crowd
-
-    rows = vector["instances"]
-    n = len(rows)
-    column = lambda key, dtype: np.array([r[key] for r in rows], dtype=dtype)  # noqa: E731
-    layer = lambda key, dtype: np.array([[l[key] for l in r["layers"]] for r in rows], dtype=dtype)  # noqa: E731
-    return Crowd("/Conformance/Crowd", np.zeros((n, 3), np.float32),
-                 np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), column("clip", np.int32),
-                 column("timeOffset", np.float32), column("playbackRate", np.float32),
-                 fade_clip=column("fadeClip", np.int32), fade_time_offset=column("fadeTimeOffset", np.float32),
-                 fade_playback_rate=column("fadePlaybackRate", np.float32), fade_weight=column("fadeWeight", np.float32),
-                 layer_clip=layer("clip", np.int32), layer_time_offset=layer("timeOffset", np.float32),
-                 layer_playback_rate=layer("playbackRate", np.float32), layer_weight=layer("weight", np.float32),
-                 layer_mask=layer("mask", np.int32))
+    """The vector's instances (with their layers where it has them): tests/helpers/conformance.py."""
+    return conformance.vector_crowd(vector)
 
 
 def _vector_matches(vector, index, points, normals, who):
