@@ -52,13 +52,16 @@ def command(asset, port, no_browser, allow_outside_paths, engine, output_format,
         raise OptionsError(f"--port must be 0..65535, got {port_number}", file="view")
 
     server = ViewerServer(asset, port=port_number, allow_outside_paths=allow_outside_paths, engine=engine).start()
-    if quiet:
-        pass
-    elif output_format == "json":
-        echo_json({"asset": asset, "url": server.url, "engine": engine})
-    else:
-        click.echo(f"vbusd view: {asset} at {server.url} with {engine} (Ctrl-C stops)")
+    # From here the server thread answers requests: a Ctrl-C may come as soon as the address is out
+    # (on a loaded machine, before this thread reaches its wait), so the address is printed inside
+    # the block that turns Ctrl-C into a clean stop.
     try:
+        if quiet:
+            pass
+        elif output_format == "json":
+            echo_json({"asset": asset, "url": server.url, "engine": engine})
+        else:
+            click.echo(f"vbusd view: {asset} at {server.url} with {engine} (Ctrl-C stops)")
         if not no_browser:
             webbrowser.open(server.url)
         threading.Event().wait()
