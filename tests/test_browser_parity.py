@@ -24,7 +24,7 @@ instance's bounding-box diagonal, unit normals within 1e-5.
 * the previous-frame pose (motion vectors, spec 21): the probe's ``previousPositions`` for the
   page's ``?dt=`` equal the decoder at t - dt, across a loop boundary and a clamped clip's end;
 * crowd variety (format 1.3): tints, material variants and parts masks, read back from the page and
-  seen in a screenshot (the section at the end).
+  seen in a screenshot, and a prop at a socket (the flag) where the socket puts it (the section at the end).
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, S
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
+from tests.helpers import scripts
 from tests.helpers.variety import modular_character
 
 ENGINES = ("three", "babylon", "three-webgpu")
@@ -664,7 +665,10 @@ def test_gltf_package_of_a_layered_crossfading_crowd(browser, layered_stadium, f
 # moves a vertex); the tint, variant and parts mask the page reports are the crowd's (pxr); in a
 # screenshot, each body's pixel (its skinned vertices projected with the page's camera) is dominated
 # by its tint's channel, a brighter variant material gives a brighter body, and the pixel inside the
-# hat shows the tint when the mask shows the hat and the background when it hides it.
+# hat shows the tint when the mask shows the hat and the background when it hides it. The flag is a
+# prop at the right hand's socket (spec 22.3, "Props at sockets"): its probed points are the numpy
+# decoder's socket (crowd_joint_transforms) applied to its joint-space points, the page's own
+# socketMatrix agrees, and the pixel at its cloth is the background where the mask hides it.
 # --------------------------------------------------------------------------------------------
 
 VARIETY_SIZE = (960, 540)
@@ -672,12 +676,13 @@ VARIETY_CAMERA = "0,1.5,8,0,1.1,0"
 VARIETY_TIME = 9.0  # the cheer with the hands away from the head: nothing in front of the hat
 VARIETY_XS = (-4.0, -2.0, 0.0, 2.0, 4.0)
 VARIETY_BODY_POINTS = 202
+VARIETY_HAT_POINTS = 8  # then the flag's 16 (samples/stadium_crowd.py: hat_mesh, flag_mesh)
 
 
 @pytest.fixture(scope="module")
 def variety_row(tmp_path_factory):
     """Five spectators in a row facing the camera, tinted red / green / blue, variants home and away,
-    the hat on some: ``vbusd crowd --layout points ... --tints --variants --parts``."""
+    the hat on some and the flag on others: ``vbusd crowd --layout points ... --tints --variants --parts``."""
     from vbusd.cli import main
 
     folder = tmp_path_factory.mktemp("variety_row")
@@ -687,7 +692,7 @@ def variety_row(tmp_path_factory):
     out = folder / "crowd.usda"
     status = main(["crowd", str(character), "-o", str(out), "--layout", "points", str(points), "--yaw", "0", "0",
                    "--time-offset", "0", "0", "--tints", "#ff0000,#00ff00,#0000ff", "--variants", "home=1,away=1",
-                   "--parts", "Hat=0.5", "--seed", "11", "-q"])
+                   "--parts", "Hat=0.5,Flag=0.5", "--seed", "11", "-q"])
     assert status == 0
     return out
 
@@ -738,9 +743,28 @@ def test_crowd_variety(browser, variety_row, engine, tmp_path):
         _check_variety_page(browser, engine, source, variety_row, asset)
 
 
+def check_prop_at_socket(drawn, local, asset, instance, bone, body) -> None:
+    """The prop's probed points ``drawn`` equal the numpy decoder's socket of ``bone`` at ``instance``
+    (placement times J = M B, crowd_joint_transforms) applied to its joint-space points ``local``,
+    within 1e-6 of the instance's bounding-box diagonal (spec 22.3, "Props at sockets")."""
+    from vbusd.decoders.reference import crowd_joint_transforms
+
+    socket = crowd_joint_transforms(asset.animations[0], asset.crowds[0], bone, VARIETY_TIME)[instance]
+    expected = local @ socket[:3, :3].T + socket[:3, 3]
+    diagonal = float(np.linalg.norm(body.max(0) - body.min(0)))
+    assert drawn.shape == expected.shape
+    error = float(np.abs(drawn - expected).max()) / diagonal
+    assert error <= POSITION_TOLERANCE, (instance, error)
+
+
 def _check_variety_page(browser, engine, source, usd_crowd, asset):
     tints, variants, parts, variant_names, part_names = _variety_primvars(usd_crowd)
-    assert len({tuple(t) for t in tints}) >= 2 and set(parts) == {0, 1} and set(variants) == {0, 1}
+    assert len({tuple(t) for t in tints}) >= 2 and set(variants) == {0, 1}
+    assert set(parts & 1) == {0, 1} and set(parts >> 1 & 1) == {0, 1}, parts  # hat and flag, each shown and hidden
+    sample = scripts.load("samples/stadium_crowd.py")
+    flag_bone = sample.JOINT_NAMES.index(sample.FLAG_BONE)
+    flag_local, _, _ = sample.flag_local()
+    socket_errors_of_page = []
     width, height = VARIETY_SIZE
     query = (f"?time={VARIETY_TIME}&paused=1&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
              f"&camera={VARIETY_CAMERA}&fov=40")
@@ -759,6 +783,10 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
                 assert result["variant"] == variants[i] and result["variantName"] == variant_names[variants[i]]
                 assert result["parts"] == parts[i] and result["partNames"] == part_names
                 results.append(np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3))
+                if parts[i] >> 1 & 1:
+                    check_prop_at_socket(results[-1][VARIETY_BODY_POINTS + VARIETY_HAT_POINTS:], flag_local, asset, i,
+                                         flag_bone, results[-1][:VARIETY_BODY_POINTS])
+                    socket_errors_of_page += socket_errors(page, asset, engine, [(i, VARIETY_TIME)], lambda _: [flag_bone])
             page.page.evaluate("window.vbusd.render()")
             image = _rgb_pixels(page.page.locator("#view").screenshot())
             camera = page.page.evaluate(
@@ -767,14 +795,23 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+    assert max(socket_errors_of_page) <= POSITION_TOLERANCE, socket_errors_of_page
     assert image.shape == (height, width, 3)
     background = _pixel_at(image, (3, 3))
     variant_colours = [np.asarray(c) for c in asset.crowds[0].variant_colors]  # the materials' diffuseColor
     bodies = {}
     for i, positions in enumerate(results):
-        body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:]
+        body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:VARIETY_BODY_POINTS + VARIETY_HAT_POINTS]
+        flag = positions[VARIETY_BODY_POINTS + VARIETY_HAT_POINTS:]
         channel = int(np.argmax(tints[i]))
         others = [c for c in range(3) if c != channel]
+        # The middle of the flag's cloth (its last 8 points): drawn where the mask shows it, the background where not.
+        seen = _pixel_at(image, _project_to_pixels(flag[8:].mean(axis=0, keepdims=True), camera)[0])
+        print(engine, source.suffix, i, "flag", bool(parts[i] >> 1 & 1), seen, "background", background)
+        if parts[i] >> 1 & 1:  # the flag takes the instance's colour, as every mesh of it does
+            assert seen[channel] > 2 * seen[others].max() and np.abs(seen - background).max() > 10, (engine, i, seen, background)
+        else:
+            assert np.abs(seen - background).max() <= 12, (engine, i, seen, background)
         colour = _pixel_at(image, _project_to_pixels(body.mean(axis=0, keepdims=True), camera)[0])
         print(engine, source.suffix, i, "body", colour, "tint", tints[i], "variant", variants[i])
         assert colour[channel] > 10 and colour[channel] > 2 * colour[others].max(), (engine, i, colour, tints[i])
