@@ -244,11 +244,12 @@ def test_unorm16(browser, unorm16_stadium, engine, record_property):
 
 @pytest.fixture(scope="module")
 def lod_row(tmp_path_factory):
-    """tests/test_browser_lod.py's row: the spectator with 3 levels, instances at chosen distances
-    in front of the page's camera (one behind it), as a .glb (MSFT_lod)."""
+    """tests/test_browser_lod.py's row of the modular spectator (body, hat and flag parts) with 3 levels,
+    instances at chosen distances in front of the page's camera (one behind it) with parts masks, as a
+    .glb (MSFT_lod)."""
     pytest.importorskip("meshoptimizer")
     folder = tmp_path_factory.mktemp("lod_row")
-    asset, package = lod_row_helpers.make_row_package(folder)
+    asset, package = lod_row_helpers.make_row_package(folder, modular=True)
     usd = folder / "usd" / "row.usda"  # the same crowd as USD: vbusd view serves it as the plain files
     usd.parent.mkdir()
     vbusd.write_asset(asset, usd)
@@ -265,15 +266,18 @@ LOD_SOURCE = {"three": "glb", "three-webgpu": "glb", "babylon": "usd"}
 @pytest.mark.parametrize("engine", ENGINES)
 def test_levels_of_detail(browser, lod_row, engine, record_property):
     """The level each instance draws equals OpenUSD's UsdLodScreenSizeHeuristic.ComputeLOD for the
-    page's camera (-1: outside the view, culled), and the probe skins that level's mesh as vbusd's
-    decoder does (1e-6 of the diagonal plus one float32 rounding of the world coordinate)."""
+    page's camera (-1: outside the view, culled), and the probe skins that level's meshes as vbusd's
+    decoder does (1e-6 of the diagonal plus one float32 rounding of the world coordinate). Parts on
+    levels (spec 22.3): each level's part meshes draw the instances at that level with their
+    placement where the mask shows the part and collapsed (linear part zero: nothing drawn, as
+    test_crowd_variety's screenshot shows) where it hides it."""
     from vbusd.decoders.reference import skin_crowd
 
     asset, package, usd = lod_row
     vb = asset.animations[0]
     expected_levels = lod_row_helpers.usdlod_levels(asset)
     assert sorted(set(expected_levels)) == [-1, 0, 1, 2], expected_levels
-    meshes = {m.lod: m for m in vb.meshes}
+    meshes = {level: [m for m in vb.meshes if m.lod == level] for level in range(3)}
     crowd = asset.crowds[0]
     t = 1.37
     if LOD_SOURCE[engine] == "usd":
@@ -285,8 +289,9 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
             page.page.evaluate("() => window.vbusd.render()")
             levels = page.page.evaluate("() => window.vbusd.levels()")
             assert levels["lod"] == expected_levels
-            triangles = [len(meshes[level].face_vertex_counts) for level in expected_levels if level >= 0]
+            triangles = [sum(len(m.face_vertex_counts) for m in meshes[level]) for level in expected_levels if level >= 0]
             assert levels["triangles"] == sum(triangles)
+            check_level_parts(page, engine, asset, expected_levels)
             for instance, level in enumerate(expected_levels):
                 result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
                 assert result["lod"] == level
@@ -294,17 +299,73 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
                     continue
                 one = dataclasses.replace(crowd, **{f: getattr(crowd, f)[instance:instance + 1] for f in
                                                     ("positions", "orientations", "clip", "time_offset", "playback_rate")})
-                expected, _ = skin_crowd(vb, meshes[level], one, t)
+                expected = np.concatenate([skin_crowd(vb, mesh, one, t)[0][0] for mesh in meshes[level]])
                 positions = np.asarray(result["positions"]).reshape(-1, 3)
-                assert positions.shape == expected[0].shape
-                diagonal = float(np.linalg.norm(expected[0].max(0) - expected[0].min(0)))
-                tolerance = 1e-6 * diagonal + np.finfo(np.float32).eps * float(np.abs(expected[0]).max())
-                error = float(np.abs(positions - expected[0]).max())
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                tolerance = 1e-6 * diagonal + np.finfo(np.float32).eps * float(np.abs(expected).max())
+                error = float(np.abs(positions - expected).max())
                 print(engine, instance, level, error / diagonal)
                 assert error <= tolerance
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+def drawn_matrices(page, engine: str, level=None) -> list:
+    """What each mesh of the page's first crowd draws with: ``[{name, count, matrices (count, 4, 4)
+    column-vector}]`` of level ``level`` (None: a crowd without levels), read from the instance buffers
+    the engine uploads (three: the InstancedMesh's instanceMatrix; Babylon: the thin-instance matrices)."""
+    meshes = "crowd.levels[level]" if level is not None else "crowd.meshes"
+    read = ("{name: mesh.name, count: mesh.count, m: Array.from(mesh.instanceMatrix.array.subarray(0, 16 * mesh.count))}"
+            if engine.startswith("three") else
+            "{name: mesh.name, count: mesh.thinInstanceCount, m: mesh.thinInstanceGetWorldMatrices().slice(0, mesh.thinInstanceCount).flatMap((x) => Array.from(x.m))}")
+    got = page.page.evaluate(f"(level) => {{ const crowd = window.vbusd.crowds[0]; return {meshes}.map((mesh) => ({read})); }}", level)
+    return [dict(item, matrices=np.asarray(item["m"], np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)) for item in got]
+
+
+def placements(crowd) -> np.ndarray:
+    """(N, 4, 4) placement of each instance (scale, then orientation, then position: spec 15), by hand from the quaternions."""
+    x, y, z, w = np.asarray(crowd.orientations, np.float64).T
+    rotation = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    scale = np.ones((len(x), 3)) if crowd.scales is None else np.asarray(crowd.scales, np.float64)
+    out = np.tile(np.eye(4), (len(x), 1, 1))
+    out[:, :3, :3] = rotation * scale[:, None, :]
+    out[:, :3, 3] = np.asarray(crowd.positions, np.float64)
+    return out
+
+
+def expected_part_matrix(placement: np.ndarray, shown: bool) -> np.ndarray:
+    """A part's matrix for one instance (spec 22.3): the placement, or with its linear part zero where hidden."""
+    out = placement.copy()
+    if not shown:
+        out[:3, :3] = 0.0
+    return out
+
+
+def check_level_parts(page, engine: str, asset, levels) -> None:
+    """Each level's meshes draw the instances at that level, in instance order; a part mesh's slot is
+    the instance's placement where its mask shows the part and collapsed where it hides it (spec 22.3,
+    parts and levels of detail), for the part names the crowd gives (Hat bit 0, Flag bit 1)."""
+    crowd = asset.crowds[0]
+    place = placements(crowd)
+    seen = {}
+    for level in sorted({level for level in levels if level >= 0}):
+        at_level = [i for i, chosen in enumerate(levels) if chosen == level]
+        for mesh in drawn_matrices(page, engine, level):
+            name = mesh["name"].rsplit("/", 1)[-1]
+            bit = list(crowd.part_names).index(name) if name in crowd.part_names else -1
+            assert mesh["count"] == len(at_level), (engine, level, name)
+            for slot, i in enumerate(at_level):
+                shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
+                seen.setdefault((name, shown), set()).add(level)
+                np.testing.assert_allclose(mesh["matrices"][slot], expected_part_matrix(place[i], shown), atol=1e-5,
+                                           err_msg=f"{engine} level {level} {name} instance {i}")
+    # Both parts were seen shown and hidden at levels 0 and 1 (tests/helpers/lod_row.py's PARTS).
+    for name in ("Hat", "Flag"):
+        assert {0, 1} <= seen[(name, True)] and {0, 1} <= seen[(name, False)], seen
 
 
 @pytest.mark.parity("root motion")

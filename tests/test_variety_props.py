@@ -107,3 +107,33 @@ def test_crowd_parts_mask_shows_the_flag(tmp_path):
     asset = vbusd.read_asset(path)
     flags = [m for m in asset.animations[0].meshes if m.path.endswith("/Flag")]
     assert len(flags) == 1 and asset.animations[0].bind_transforms is not None
+
+
+def test_parts_of_a_character_with_levels(tmp_path, capfd):
+    """Parts and levels of detail (spec 22.3): the modular spectator with generated levels keeps its
+    parts' names below every level prim; ``vbusd crowd --parts Hat=...,Flag=...`` names them, the USD
+    crowd reads back and validates clean (pxr sees the names under the levels), and a name that no level
+    holds is still refused in one line."""
+    pytest.importorskip("meshoptimizer")
+    import vbusd
+    from pxr import Usd, UsdGeom
+    from vbusd.baking.lod import add_levels
+
+    from tests.helpers import cli
+    from tests.helpers.variety import modular_character
+
+    asset = vbusd.read_asset(modular_character(tmp_path))
+    character = tmp_path / "lod" / "spectator.usda"
+    vbusd.write_asset(dataclasses.replace(asset, animations=(add_levels(asset.animations[0], (0.5, 0.2)),)), character)
+    stage = Usd.Stage.Open(str(character))
+    for level in ("lod0", "lod1", "lod2"):  # each level holds its own Hat and Flag meshes
+        assert {p.GetName() for p in stage.GetPrimAtPath(f"/StadiumCrowd/Cheer_lods/{level}").GetChildren()} == {"Body", "Hat", "Flag"}
+    crowd = tmp_path / "crowd.usda"
+    result = cli.run(capfd, "crowd", character, "-o", crowd, "--count", "30", "--parts", "Hat=0.5,Flag=0.5", "--seed", "3", "-q")
+    assert result.returncode == 0, result.stderr
+    read = vbusd.read_asset(crowd)
+    assert read.crowds[0].part_names == ("Hat", "Flag") and set(read.crowds[0].parts) == {0, 1, 2, 3}
+    result = cli.run(capfd, "validate", crowd)
+    assert result.returncode == 0, result.stdout + result.stderr
+    result = cli.run(capfd, "crowd", character, "-o", tmp_path / "bad.usda", "--count", "3", "--parts", "Cape=0.5", "-q")
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1 and "Cape" in result.stderr

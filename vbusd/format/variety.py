@@ -17,7 +17,8 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["VARIETY_MINOR_VERSION", "VARIANT_COLORS", "DEFAULT_BASE_COLOR", "MAX_PARTS", "hex_to_linear",
-           "srgb_to_linear", "problems", "part_visible", "socket_prop"]
+           "srgb_to_linear", "problems", "part_visible", "socket_prop",
+           "level_part_names"]
 
 VARIETY_MINOR_VERSION = 3
 """The minor format version that defines crowd variety (spec 22.4)."""
@@ -121,3 +122,17 @@ def socket_prop(bind_transform, points, normals=None) -> tuple:
         return rest, None
     turned = np.asarray(normals, dtype=np.float64).reshape(-1, 3) @ np.linalg.inv(bind[:3, :3])
     return rest, turned / np.linalg.norm(turned, axis=1, keepdims=True)
+
+
+def level_part_names(mesh_paths, root: str) -> tuple:
+    """The names a parts mask may give a part of an animation with levels of detail (spec 22.3, "Parts
+    and levels of detail"): the names of the children of its level prims (``<root>/<level>/<name>``),
+    which hold that level's meshes of the part, in the order of first appearance. ``mesh_paths`` are the
+    animation's bound meshes, ``root`` its UsdLod root's path."""
+    out = []
+    prefix = root.rstrip("/") + "/"
+    for path in mesh_paths:
+        rest = str(path)[len(prefix):].split("/") if str(path).startswith(prefix) else []
+        if len(rest) >= 2 and rest[1] not in out:
+            out.append(rest[1])
+    return tuple(out)
