@@ -313,13 +313,15 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
 
 
 def drawn_matrices(page, engine: str, level=None) -> list:
-    """What each mesh of the page's first crowd draws with: ``[{name, count, matrices (count, 4, 4)
-    column-vector}]`` of level ``level`` (None: a crowd without levels), read from the instance buffers
+    """What each mesh of the page's first crowd draws with: ``[{name, part (the part bit the engine gave
+    it, -1: no part), count, matrices (count, 4, 4) column-vector}]`` of level ``level`` (None: a crowd without levels), read from the instance buffers
     the engine uploads (three: the InstancedMesh's instanceMatrix; Babylon: the thin-instance matrices)."""
     meshes = "crowd.levels[level]" if level is not None else "crowd.meshes"
-    read = ("{name: mesh.name, count: mesh.count, m: Array.from(mesh.instanceMatrix.array.subarray(0, 16 * mesh.count))}"
+    read = ("{name: mesh.name, part: mesh.userData.virtualBones.part, count: mesh.count,"
+            " m: Array.from(mesh.instanceMatrix.array.subarray(0, 16 * mesh.count))}"
             if engine.startswith("three") else
-            "{name: mesh.name, count: mesh.thinInstanceCount, m: mesh.thinInstanceGetWorldMatrices().slice(0, mesh.thinInstanceCount).flatMap((x) => Array.from(x.m))}")
+            "{name: mesh.name, part: mesh.metadata.virtualBones.part, count: mesh.thinInstanceCount,"
+            " m: mesh.thinInstanceGetWorldMatrices().slice(0, mesh.thinInstanceCount).flatMap((x) => Array.from(x.m))}")
     got = page.page.evaluate(f"(level) => {{ const crowd = window.vbusd.crowds[0]; return {meshes}.map((mesh) => ({read})); }}", level)
     return [dict(item, matrices=np.asarray(item["m"], np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)) for item in got]
 
@@ -354,9 +356,11 @@ def check_level_parts(page, engine: str, asset, levels) -> None:
     seen = {}
     for level in sorted({level for level in levels if level >= 0}):
         at_level = [i for i, chosen in enumerate(levels) if chosen == level]
-        for mesh in drawn_matrices(page, engine, level):
-            name = mesh["name"].rsplit("/", 1)[-1]
-            bit = list(crowd.part_names).index(name) if name in crowd.part_names else -1
+        drawn = drawn_matrices(page, engine, level)
+        assert sorted(mesh["part"] for mesh in drawn) == [-1, 0, 1], (engine, level)  # the body, the hat, the flag
+        for mesh in drawn:
+            bit = mesh["part"]
+            name = crowd.part_names[bit] if bit >= 0 else "body"
             assert mesh["count"] == len(at_level), (engine, level, name)
             for slot, i in enumerate(at_level):
                 shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
@@ -804,6 +808,48 @@ def test_crowd_variety(browser, variety_row, engine, tmp_path):
         _check_variety_page(browser, engine, source, variety_row, asset)
 
 
+VARIETY_MOVED = 3  # the instance probed again after root motion (it shows the hat and the flag)
+
+
+def check_root_motion_moves_parts(page, engine: str, asset, before: np.ndarray) -> None:
+    """Root motion moves the parts with their instance (spec 8.5 and 22.3): given a root track (a walk
+    along +Z that turns, as an application gives one: ``crowd.rootMotion``), ``crowd.applyRootMotion(t0,
+    t1)`` makes every mesh's drawn matrices, the part meshes' included, the placement ``P`` times the
+    numpy decoder's ``root_motion`` at the instance's clip times (collapsed where the mask hides the part),
+    and the probe of instance VARIETY_MOVED the points it had before moved by ``P D P^-1``."""
+    from vbusd.decoders.reference import root_motion
+    from vbusd.format.rootmotion import RootMotion
+
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    rows = vb.clips[0].row_count
+    steps = np.arange(rows + 1) / rows  # looping: one entry per row and the loop's displacement
+    track = np.stack([0.3 * np.sin(2 * np.pi * steps), np.zeros_like(steps), 1.5 * steps, 0.6 * steps], axis=1)
+    walking = dataclasses.replace(vb, root_motion=RootMotion("Y", (track,)))
+    t0, t1 = 2.25, 7.5
+    page.page.evaluate("([track, t0, t1]) => { const crowd = window.vbusd.crowds[0]; crowd.rootMotion = {upAxis: 'Y', tracks: [track]};"
+                       " crowd.applyRootMotion(t0, t1); window.vbusd.render(); }", [track.tolist(), t0, t1])
+    place = placements(crowd)
+    offsets, rates = np.asarray(crowd.time_offset, np.float64), np.asarray(crowd.playback_rate, np.float64)
+    moved = np.stack([place[i] @ root_motion(walking, 0, offsets[i] + rates[i] * t0, offsets[i] + rates[i] * t1)
+                      for i in range(crowd.instance_count)])
+    assert np.linalg.norm(moved[:, :3, 3] - place[:, :3, 3], axis=1).min() > 0.5  # every instance walked
+    drawn = drawn_matrices(page, engine)
+    assert sorted(mesh["part"] for mesh in drawn) == [-1, 0, 1], engine  # the body, the hat, the flag
+    for mesh in drawn:
+        bit = mesh["part"]
+        name = crowd.part_names[bit] if bit >= 0 else "body"
+        for i in range(crowd.instance_count):
+            shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
+            np.testing.assert_allclose(mesh["matrices"][i], expected_part_matrix(moved[i], shown), atol=1e-5,
+                                       err_msg=f"{engine} {name} instance {i} after root motion")
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [VARIETY_MOVED, VARIETY_TIME])
+    after = np.asarray(result["positions"], np.float64).reshape(-1, 3)
+    change = moved[VARIETY_MOVED] @ np.linalg.inv(place[VARIETY_MOVED])
+    expected = before @ change[:3, :3].T + change[:3, 3]
+    diagonal = float(np.linalg.norm(before.max(0) - before.min(0)))
+    assert float(np.abs(after - expected).max()) <= 1e-6 * diagonal + 4 * np.finfo(np.float32).eps * float(np.abs(expected).max())
+
+
 def check_prop_at_socket(drawn, local, asset, instance, bone, body) -> None:
     """The prop's probed points ``drawn`` equal the numpy decoder's socket of ``bone`` at ``instance``
     (placement times J = M B, crowd_joint_transforms) applied to its joint-space points ``local``,
@@ -853,6 +899,7 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
             camera = page.page.evaluate(
                 "({p: Array.from(window.vbusd.camera.projectionMatrix.elements),"
                 " v: Array.from(window.vbusd.camera.matrixWorldInverse.elements)})")
+            check_root_motion_moves_parts(page, engine, asset, results[VARIETY_MOVED])
             assert page.errors() == [], page.errors()
         finally:
             page.close()
