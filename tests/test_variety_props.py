@@ -137,3 +137,34 @@ def test_parts_of_a_character_with_levels(tmp_path, capfd):
     assert result.returncode == 0, result.stdout + result.stderr
     result = cli.run(capfd, "crowd", character, "-o", tmp_path / "bad.usda", "--count", "3", "--parts", "Cape=0.5", "-q")
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1 and "Cape" in result.stderr
+
+
+def test_usdskel_fallback_hides_parts_at_every_level(tmp_path):
+    """The UsdSkel fallback of a crowd with levels of detail and parts masks (spec runtime-package 11.6,
+    virtual-bones 22.3): pxr's own ComputeVisibility of each instance's part meshes, at every level, is
+    invisible exactly where the instance's mask leaves the part out; bodies stay visible."""
+    pytest.importorskip("meshoptimizer")
+    import vbusd
+    from pxr import Usd, UsdGeom
+    from vbusd.jobs.export_usdskel import export_usdskel
+
+    from tests.helpers import lod_row
+
+    asset, _ = lod_row.make_row_package(tmp_path, modular=True)
+    source = tmp_path / "usd" / "row.usda"
+    vbusd.write_asset(asset, source)
+    out = tmp_path / "fallback.usda"
+    export_usdskel(vbusd.read_asset(source), out, source=source)
+    stage = Usd.Stage.Open(str(out))
+    masks = lod_row.PARTS
+    checked = 0
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdGeom.Mesh) or "/Row/" not in str(prim.GetPath()):
+            continue
+        instance = int(str(prim.GetPath()).split("/Row/i")[1].split("/")[0])
+        part = prim.GetName().split("_")[0]  # Hat, Hat_2, Hat_3: the part at levels 0, 1, 2
+        visible = UsdGeom.Imageable(prim).ComputeVisibility() != UsdGeom.Tokens.invisible
+        bit = {"Hat": 0, "Flag": 1}.get(part)
+        assert visible == (bit is None or bool(masks[instance] >> bit & 1)), (prim.GetPath(), masks[instance])
+        checked += 1
+    assert checked == len(masks) * 9  # body, hat and flag at three levels, for every instance
