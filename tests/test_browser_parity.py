@@ -591,7 +591,7 @@ def test_fox_and_cesium_man_layers_lod_root_motion(browser, character_layers_cro
                                    f"{max(roots['errors']):.1e}; levels {expected_levels}")
     assert_within(errors, engine)
     assert max(roots["moved"]) > 1e-3  # CesiumMan's root moves between the pairs
-    assert max(roots["errors"]) <= 1e-9, roots["errors"]
+    assert max(roots["errors"]) <= 1e-6, roots["errors"]  # scene units (Babylon's matrices are float32)
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:
