@@ -104,8 +104,11 @@ export class VirtualBonesCrowd {
     // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
     // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
     this.levels = null;
+    this.adopted = Boolean(adopt);
     if (levels && levels.length) {
-      if (adopt) throw new VirtualBonesError(`${name}: levels of detail are drawn from mesh arrays, not adopted meshes`);
+      // Adopted meshes (the glTF loader's, MSFT_lod): each level's entries are adopted too, and
+      // the crowd's `instances.matrices` are the instance placements the levels compact.
+      if (adopt && !this.matrices) throw new VirtualBonesError(`${name}: adopted levels of detail need the instance matrices`);
       const thresholds = Array.from(screenSizes ?? []);
       checkScreenSizes(thresholds, levels.length, name);
       this.screenSizes = thresholds;
@@ -118,8 +121,8 @@ export class VirtualBonesCrowd {
       this.levelBuffers = [meshes, ...levels].map(() => ({
         matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n),
         ...(this.layered ? { c: new Float32Array(4 * n), d: new Float32Array(4 * n), e: new Float32Array(4 * n) } : {}) }));
-      this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry) => {
-        const mesh = this._mesh(entry, material, this.levelBuffers[level]);
+      this.levels = [adopt ?? meshes, ...levels].map((entries, level) => entries.map((entry) => {
+        const mesh = adopt ? this._skin(entry.mesh, entry, material, this.levelBuffers[level]) : this._mesh(entry, material, this.levelBuffers[level]);
         mesh.thinInstanceCount = 0;
         mesh.metadata.virtualBones.level = level;
         return mesh;
@@ -314,6 +317,12 @@ export class VirtualBonesCrowd {
    */
   updateLevels(camera) {
     if (!this.levels) return;
+    if (this.adopted && !this._levelMatrices) {
+      // The glTF loader's EXT_mesh_gpu_instancing gave the adopted meshes every instance's matrix
+      // once the load completed: each level draws its compacted copy instead.
+      this.levels.forEach((meshes, level) => { for (const mesh of meshes) mesh.thinInstanceSetBuffer('matrix', this.levelBuffers[level].matrix, 16, false); });
+      this._levelMatrices = true;
+    }
     const { centre, radius } = this._extentSphere();
     const planes = Frustum.GetPlanes(camera.getTransformationMatrix(true));
     const eye = camera.globalPosition;
