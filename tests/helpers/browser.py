@@ -298,14 +298,15 @@ def open_engine_page(browser, server: ViewerServer, query: str = PAGE, **kwargs)
 
 
 def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str = "", asset=None, backend=None,
-                        check=None) -> list:
+                        check=None, timeout_s: float = 60.0) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
     ``engine`` (``vbusd view --engine ENGINE``, at :data:`PAGE` + ``query``) against
     :func:`reference_instance`; the page names the engine (and ``backend``), logs no error, and
-    loads everything from the server (offline). ``check(page)`` looks at the page first."""
+    loads everything from the server (offline). ``check(page)`` looks at the page first; the page
+    has ``timeout_s`` seconds to load."""
     asset = asset or vbusd.read_asset(path)
     with ViewerServer(path, engine=engine) as server:
-        page = open_engine_page(browser, server, PAGE + query)
+        page = open_engine_page(browser, server, PAGE + query, timeout_s=timeout_s)
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine
