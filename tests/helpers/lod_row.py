@@ -80,7 +80,8 @@ def usdlod_levels_seen(asset, eye, fov: float = FOV, width: int = WIDTH, height:
     """OpenUSD's choice of level for every instance of every crowd of ``asset``, numbered as the
     page numbers them (the crowds in the asset's order), for a camera at ``eye`` looking down -Z:
     ComputeLOD of a LODScreenSizeHeuristic with the instance's animation's thresholds and the box of
-    its clips' extents, placed by the instance's placement (-1: outside the view, culled)."""
+    its clips' extents, placed by the instance's placement (-1: outside the view, culled); 0 for the
+    instances of an animation without levels (the runtimes neither choose nor cull them)."""
     from pxr import Gf, Usd, UsdLod
 
     frustum = Gf.Frustum()
@@ -90,6 +91,9 @@ def usdlod_levels_seen(asset, eye, fov: float = FOV, width: int = WIDTH, height:
     levels = []
     for k, (crowd, animation) in enumerate(zip(asset.crowds, asset.crowd_animation)):
         vb = asset.animations[animation]
+        if vb.lods is None:
+            levels.extend([0] * crowd.instance_count)
+            continue
         extents = np.asarray(vb.clip_extents, np.float64)
         heuristic = UsdLod.ScreenSizeHeuristic.Define(stage, f"/H{k}")
         heuristic.CreateLodDomainAttr("imaging")
