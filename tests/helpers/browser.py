@@ -166,8 +166,8 @@ def build_character_layers_crowd(assets: Path, folder: Path) -> Path:
     """Layers, levels of detail and root motion on real characters: the Khronos Fox and CesiumMan
     (glTF, shared assets) converted with compactQuatTranslation (uint32), a bone mask ``upper``
     each (``--mask``), root motion (``--root-motion extract``) and, for CesiumMan, a generated
-    level of detail (:data:`CHARACTER_LEVELS`), made one crowd by ``vbusd crowd --layout points --fade-clips ...
-    --layer upper ...``: 9 instances of both characters at :data:`CHARACTER_POINTS` (a few units
+    level of detail (:data:`CHARACTER_LEVELS`), made one crowd by ``vbusd crowd --layout points
+    --fade-clips ... --layer upper ...``: 9 instances of both characters at :data:`CHARACTER_POINTS` (a few units
     apart: the Fox overlaps its neighbours; the default spacing, from the Fox's reach, would put
     CesiumMan hundreds of units out, where float32 world positions cannot hold 1e-6 of its 1.8-unit
     diagonal), each crossfading (weights 0.2 to 0.8) to a clip of its own character and playing a

@@ -95,7 +95,7 @@ def character_crowd(shared_assets, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def character_layers_crowd(shared_assets, tmp_path_factory):
-    """Fox and CesiumMan with a bone mask, generated levels of detail and root motion, one crowd
+    """Fox and CesiumMan with a bone mask and root motion (CesiumMan with a generated level of detail), one crowd
     crossfading and playing a layer (``vbusd crowd --layout points --fade-clips ... --layer ...``)."""
     return browser_helpers.build_character_layers_crowd(shared_assets, tmp_path_factory.mktemp("character_layers"))
 
