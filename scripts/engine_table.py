@@ -36,6 +36,7 @@ FEATURES = (
     "crossfade, time-sampled fade (`--fade-window`)",
     "layers with masks",
     "Fox and CesiumMan: compact encoding, pulled binding, crossfade, sockets",
+    "Fox and CesiumMan: layers with masks, levels of detail, root motion",
     "sockets",
     "root motion",
     "levels of detail",

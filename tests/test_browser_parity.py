@@ -40,9 +40,9 @@ from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers.browser import layered_stadium as layered_stadium_file
-from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES, across_clip_time,
-                                   assert_within, check_previous, check_probe, engine_probe_errors, open_engine_page,
-                                   package_probe_errors, rasterize_nearest, reference_instance)
+from tests.helpers.browser import (CHARACTER_CAMERA, NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
+                                   across_clip_time, assert_within, check_previous, check_probe, engine_probe_errors,
+                                   open_engine_page, package_probe_errors, rasterize_nearest, reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
@@ -257,9 +257,9 @@ def lod_row(tmp_path_factory):
 
 
 # Where each engine's levels of detail come from in test_levels_of_detail: the runtime package's
-# MSFT_lod through the engine's glTF loader, or the plain files of the USD crowd (Babylon's glTF
-# loader extension does not read MSFT_lod yet).
-LOD_SOURCE = {"three": "glb", "three-webgpu": "glb", "babylon": "usd"}
+# MSFT_lod through the engine's glTF loader (Babylon's: VBUSD_virtual_bones adopts the levels' nodes
+# and turns Babylon's progressive MSFT_lod loading off), or the plain files of the USD crowd.
+LOD_SOURCE = {"three": "glb", "three-webgpu": "glb", "babylon": "glb"}
 
 
 @pytest.mark.parity('levels of detail')
@@ -525,6 +525,18 @@ def test_sockets(browser, socket_stadium, engine, record_property):
 CHARACTER_PROBES = [(0, 0.0), (3, 0.8137), (4, 0.0), (5, 2.9)]
 """(instance, scene time) of the character crowd: Fox instances 0 to 3, CesiumMan 4 and 5."""
 
+LAYER_PROBES = [(3, 0.8137), (8, 0.3)]
+"""(instance, scene time) of the layered character crowd: a Fox (instances 0 to 5) and CesiumMan at
+its level 1 (instance 8; 6 and 7 draw level 0, checked by the page's levels only: each (mesh,
+influences) a probe draws costs its own layered shader compile, tens of seconds in software under
+load), at a time where CesiumMan's clip and its layer's are both inside the clip (it does not loop:
+past its 2 s both hold the last pose, and the layer would change nothing)."""
+
+LAYER_PAGE = ("&skin=attributes&pixelRatio=1&fov={fov}&camera=" + ",".join(map(str, CHARACTER_CAMERA[0] + CHARACTER_CAMERA[1]))
+              ).format(fov=lod_row_helpers.FOV)
+"""The layered character crowd's page: the camera of :data:`tests.helpers.browser.CHARACTER_CAMERA`, the
+attributes skin binding (layers need it: the pulled binding's shader has no layers yet)."""
+
 
 def socket_errors(page, asset, engine: str, probes, bones_of=lambda count: sorted({0, count // 2, count - 1})) -> list:
     """Largest error / instance diagonal of ``crowd.socketMatrix(i, bone, t)`` on ``page`` against
@@ -576,6 +588,79 @@ def test_fox_and_cesium_man(browser, character_crowd, engine, record_property):
                                    f"sockets {max(sockets):.1e}")
     assert_within(errors, engine)
     assert len(sockets) == len(CHARACTER_PROBES) and max(sockets) <= POSITION_TOLERANCE, sockets
+
+
+def root_motion_errors(page, asset, engine: str, pairs) -> tuple:
+    """Largest difference of ``crowd.rootMotionMatrix(i, t0, t1)`` on ``page`` from
+    ``vbusd.root_motion`` of the instance's clip between its clip-local times offset + rate x t0
+    and offset + rate x t1, per crowd, for every instance and (t0, t1) pair, and the largest
+    displacement the reference moves them. The root tracks have no layout-metadata key, so the
+    page is given each crowd's as an application gives them (``crowd.rootMotion``)."""
+    elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
+    errors, moved = [], []
+    for index, (crowd, animation) in enumerate(zip(asset.crowds, asset.crowd_animation)):
+        vb = asset.animations[animation]
+        root = {"upAxis": vb.root_motion.up_axis, "tracks": [track.tolist() for track in vb.root_motion.tracks]}
+        got = np.asarray(page.page.evaluate(
+            f"""([c, root, n, pairs]) => {{ const crowd = window.vbusd.crowds[c]; crowd.rootMotion = root;
+                return Array.from({{length: n}}, (_, i) => pairs.map(([t0, t1]) => {{
+                    const m = crowd.rootMotionMatrix(i, t0, t1); return {elements}; }})); }}""",
+            [index, root, crowd.instance_count, pairs])).reshape(crowd.instance_count, len(pairs), 4, 4).transpose(0, 1, 3, 2)
+        for i in range(crowd.instance_count):
+            offset, rate = float(crowd.time_offset[i]), float(crowd.playback_rate[i])
+            expected = np.stack([vbusd.root_motion(vb, int(crowd.clip[i]), offset + rate * t0, offset + rate * t1)
+                                 for t0, t1 in pairs])
+            errors.append(float(np.abs(got[i] - expected).max()))
+            moved.append(float(np.abs(expected[:, :3, 3]).max()))
+    return errors, moved
+
+
+@pytest.mark.parity("Fox and CesiumMan: layers with masks, levels of detail, root motion")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_fox_and_cesium_man_layers_lod_root_motion(browser, character_layers_crowd, engine, record_property):
+    """The Khronos Fox (no normals) and CesiumMan converted with the compact encoding, a bone mask
+    ``upper``, root motion extracted and (CesiumMan) a generated level of detail, in one ``vbusd crowd
+    --layout points --fade-clips ... --layer upper ...`` crowd (every instance crossfading, weights
+    0.2 to 0.8, and playing a layer over its upper body, weights 0.3 to 0.9), all checked on one
+    page per engine:
+
+    * the level each instance draws equals OpenUSD's UsdLodScreenSizeHeuristic.ComputeLOD for the
+      page's camera (CesiumMan's three instances levels 0, 0 and 1; the Fox has no levels), as the
+      stadium's row;
+    * each probe equals the numpy decoder (``vbusd.skin``'s, with the instance's fade and layers)
+      at the level the page drew, within 1e-6 of the instance's diagonal;
+    * ``crowd.rootMotionMatrix`` equals ``vbusd.root_motion`` of each instance's clip at its
+      clip-local times (CesiumMan's walk drifts; the Fox's root joint stands still)."""
+    asset = vbusd.read_asset(character_layers_crowd)
+    assert all(crowd.layered and crowd.crossfades for crowd in asset.crowds)
+    expected_levels = lod_row_helpers.usdlod_levels_seen(asset, CHARACTER_CAMERA[0])
+    assert expected_levels == [0] * 6 + [0, 0, 1], expected_levels  # CesiumMan: both levels
+    # The layers matter: without them every probed instance is elsewhere.
+    plain = dataclasses.replace(asset, crowds=tuple(dataclasses.replace(crowd, layer_weight=crowd.layer_weight * 0)
+                                                    for crowd in asset.crowds))
+    for instance, t in LAYER_PROBES:
+        level = expected_levels[instance]
+        with_layers, without = reference_instance(asset, instance, t, level)[0], reference_instance(plain, instance, t, level)[0]
+        assert np.abs(with_layers - without).max() > 1e-3 * np.linalg.norm(with_layers.max(0) - with_layers.min(0))
+    roots = {}
+
+    def check_page(page):
+        assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"attributes"}
+        page.page.evaluate("() => window.vbusd.render()")
+        assert page.page.evaluate("() => window.vbusd.levels()")["lod"] == expected_levels
+        pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1)]
+        roots["errors"], roots["moved"] = root_motion_errors(page, asset, engine, pairs)
+
+    # Software WebGPU compiles the layered shaders of three meshes (the Fox, CesiumMan's two levels) slowly.
+    errors = engine_probe_errors(browser, character_layers_crowd, engine, LAYER_PROBES, query=LAYER_PAGE, asset=asset,
+                                 check=check_page, timeout_s=240.0)
+    print(engine, "Fox and CesiumMan layers, levels, root motion", errors, "root motion", max(roots["errors"]),
+          "moved", max(roots["moved"]))
+    record_property("parity_note", f"largest error {max(e for e, _ in errors):.1e} of the diagonal, root motion "
+                                   f"{max(roots['errors']):.1e}; levels {expected_levels}")
+    assert_within(errors, engine)
+    assert max(roots["moved"]) > 1e-3  # CesiumMan's root moves between the pairs
+    assert max(roots["errors"]) <= 1e-6, roots["errors"]  # scene units (Babylon's matrices are float32)
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:

@@ -142,6 +142,58 @@ def build_character_crowd(assets: Path, folder: Path) -> Path:
     return out
 
 
+CHARACTER_MASKS = {"Fox": "upper=b_Spine02_03", "CesiumMan": "upper=Skeleton_torso_joint_2"}
+"""Each character's bone mask ``upper`` (its spine and everything above), the mask the crowd's layer plays over."""
+
+CHARACTER_LEVELS = {"CesiumMan": ("0.2", "0.05")}
+"""``--lod-ratios`` and ``--lod-screen-sizes`` of the characters given levels of detail: CesiumMan a
+level 1 of a fifth of its triangles, drawn below a screen size of 0.05 (with
+:data:`CHARACTER_CAMERA`, by its instance 10 units away). Not the Fox: its mesh stores three
+vertices per triangle, which meshoptimizer cannot collapse (its generated levels keep all 576
+triangles), and each level's layered shaders are seconds more to compile in software."""
+
+CHARACTER_POINTS = ((0.0, 0.0, 0.0), (1.5, 0.0, -1.0), (-1.5, 0.0, 1.0), (0.0, 0.0, -3.0), (1.5, 0.0, -2.0),
+                    (-1.5, 0.0, 1.5), (1.0, 0.0, 2.5), (-1.0, 0.0, -6.0), (0.5, 0.0, -6.0))
+"""Where the character crowd stands (``vbusd crowd --layout points``): near the origin, where float32
+world coordinates hold 1e-6 of CesiumMan's 1.8-unit diagonal. ``--seed 3`` gives points 2, 3 and 8
+to CesiumMan: 3.4, 7 and 10 units from the camera, its levels 0, 0 and 1."""
+
+CHARACTER_CAMERA = ((0.0, 1.0, 4.0), (0.0, 1.0, -100.0))
+"""(eye, target) of the character crowd's page: looking down -Z, as lod_row's camera."""
+
+
+def build_character_layers_crowd(assets: Path, folder: Path) -> Path:
+    """Layers, levels of detail and root motion on real characters: the Khronos Fox and CesiumMan
+    (glTF, shared assets) converted with compactQuatTranslation (uint32), a bone mask ``upper``
+    each (``--mask``), root motion (``--root-motion extract``) and, for CesiumMan, a generated
+    level of detail (:data:`CHARACTER_LEVELS`), made one crowd by ``vbusd crowd --layout points
+    --fade-clips ... --layer upper ...``: 9 instances of both characters at :data:`CHARACTER_POINTS` (a few units
+    apart: the Fox overlaps its neighbours; the default spacing, from the Fox's reach, would put
+    CesiumMan hundreds of units out, where float32 world positions cannot hold 1e-6 of its 1.8-unit
+    diagonal), each crossfading (weights 0.2 to 0.8) to a clip of its own character and playing a
+    layer over its upper body (weights 0.3 to 0.9)."""
+    from vbusd.cli import main
+
+    characters = []
+    for name in ("Fox", "CesiumMan"):
+        out = folder / name / f"{name}.usda"
+        levels = ["--lod-ratios", CHARACTER_LEVELS[name][0], "--lod-screen-sizes", CHARACTER_LEVELS[name][1]] \
+            if name in CHARACTER_LEVELS else []
+        status = main(["convert", str(assets / "gltf" / name / f"{name}.glb"), "-o", str(out),
+                       "--encoding", "compactQuatTranslation", "--texel-format", "uint32", "--check-rows", "0",
+                       "--mask", CHARACTER_MASKS[name], *levels, "--root-motion", "extract", "--quiet"])
+        assert status == 0
+        characters.append(out)
+    points = folder / "points.csv"
+    points.write_text("".join(f"{x},{y},{z}\n" for x, y, z in CHARACTER_POINTS), encoding="utf-8")
+    out = folder / "crowd.usda"
+    status = main(["crowd", *map(str, characters), "-o", str(out), "--layout", "points", "--points", str(points),
+                   "--seed", "3", "--fade-clips", "Walk,Run,animation0", "--fade-weight", "0.2", "0.8",
+                   "--layer", "upper", "Survey,animation0", "--layer-weight", "0.3", "0.9", "--quiet"])
+    assert status == 0
+    return out
+
+
 def build_rig_assets(folder: Path):
     """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
     return ConvertedOnce(lambda encoding, texel_format: convert(
@@ -170,8 +222,10 @@ def build_bar_crowd(folder: Path):
     return path
 
 
-def reference_instance(asset, instance: int, t: float):
-    """Positions and normals the viewer's instance ``instance`` has at time ``t`` (numpy decoder).
+def reference_instance(asset, instance: int, t: float, level: int = 0):
+    """Positions and normals the viewer's instance ``instance`` has at time ``t`` (numpy decoder),
+    drawn at level of detail ``level`` (the meshes of that level; every mesh of an animation
+    without levels is level 0).
 
     The viewer numbers the crowds' instances in the asset's order, then one instance (at the
     origin, clip 0, offset 0, rate 1) per animation that no crowd instances.
@@ -189,23 +243,26 @@ def reference_instance(asset, instance: int, t: float):
                                                                "layer_reference_time", "blend_space", "blend_x",
                                                                "blend_y", "blend_phase")})
             vb = asset.animations[animation]
-            results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes]
+            results = [skin_crowd(vb, mesh, one, t) for mesh in vb.meshes if getattr(mesh, "lod", 0) == level]
             return (np.concatenate([p[0] for p, _ in results]),
                     np.concatenate([n[0] for _, n in results if n is not None] or [np.zeros((0, 3))]))
         instance -= crowd.instance_count
     singles = [vb for index, vb in enumerate(asset.animations) if index not in set(asset.crowd_animation)]
     vb = singles[instance]
-    results = [skin_mesh(vb, mesh, 0, t) for mesh in vb.meshes]
+    results = [skin_mesh(vb, mesh, 0, t) for mesh in vb.meshes if getattr(mesh, "lod", 0) == level]
     return (np.concatenate([p[0] for p, _ in results]),
             np.concatenate([n[0] for _, n in results if n is not None] or [np.zeros((0, 3))]))
 
 
 def check_probe(page: ViewerPage, asset, instance: int, t: float) -> tuple[float, float]:
-    """Probe the page and compare with the decoder; returns (position error / diagonal, normal error)."""
+    """Probe the page and compare with the decoder at the level of detail the page drew (the
+    probe's ``lod``; 0 without levels); returns (position error / diagonal, normal error)."""
     result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    level = result.get("lod") or 0
+    assert level >= 0, f"instance {instance} is culled: nothing to probe"
     positions = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
     normals = np.asarray(result["normals"], dtype=np.float64).reshape(-1, 3)
-    expected_positions, expected_normals = reference_instance(asset, instance, t)
+    expected_positions, expected_normals = reference_instance(asset, instance, t, level)
     assert positions.shape == expected_positions.shape
     assert normals.shape == expected_normals.shape
     diagonal = float(np.linalg.norm(expected_positions.max(0) - expected_positions.min(0)))
@@ -243,14 +300,15 @@ def open_engine_page(browser, server: ViewerServer, query: str = PAGE, **kwargs)
 
 
 def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str = "", asset=None, backend=None,
-                        check=None) -> list:
+                        check=None, timeout_s: float = 60.0) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
     ``engine`` (``vbusd view --engine ENGINE``, at :data:`PAGE` + ``query``) against
     :func:`reference_instance`; the page names the engine (and ``backend``), logs no error, and
-    loads everything from the server (offline). ``check(page)`` looks at the page first."""
+    loads everything from the server (offline). ``check(page)`` looks at the page first; the page
+    has ``timeout_s`` seconds to load."""
     asset = asset or vbusd.read_asset(path)
     with ViewerServer(path, engine=engine) as server:
-        page = open_engine_page(browser, server, PAGE + query)
+        page = open_engine_page(browser, server, PAGE + query, timeout_s=timeout_s)
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine

@@ -94,6 +94,13 @@ def character_crowd(shared_assets, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def character_layers_crowd(shared_assets, tmp_path_factory):
+    """Fox and CesiumMan with a bone mask and root motion (CesiumMan with a generated level of detail), one crowd
+    crossfading and playing a layer (``vbusd crowd --layout points --fade-clips ... --layer ...``)."""
+    return browser_helpers.build_character_layers_crowd(shared_assets, tmp_path_factory.mktemp("character_layers"))
+
+
+@pytest.fixture(scope="session")
 def rig_assets(tmp_path_factory):
     """The bar fixture (glTF) converted with the encodings that hold its growing scale."""
     return browser_helpers.build_rig_assets(tmp_path_factory.mktemp("bar"))

@@ -79,3 +79,47 @@ def usdlod_levels(asset) -> list:
         # UsdLod gives what lies outside the frustum screen size 0; the runtime culls it (-1).
         levels.append(-1 if heuristic.ComputeScreenSize(frustum, world) == 0 else int(heuristic.ComputeLOD(frustum, world)))
     return levels
+
+
+def placements(crowd) -> np.ndarray:
+    """(N, 4, 4) column-vector placement of each instance of ``crowd``: translate x rotate x scale."""
+    x, y, z, w = np.asarray(crowd.orientations, np.float64).T
+    n = crowd.instance_count
+    rotation = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    scale = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, np.float64)
+    world = np.tile(np.eye(4), (n, 1, 1))
+    world[:, :3, :3] = rotation * scale[:, None, :]
+    world[:, :3, 3] = crowd.positions
+    return world
+
+
+def usdlod_levels_seen(asset, eye, fov: float = FOV, width: int = WIDTH, height: int = HEIGHT) -> list:
+    """OpenUSD's choice of level for every instance of every crowd of ``asset``, numbered as the
+    page numbers them (the crowds in the asset's order), for a camera at ``eye`` looking down -Z:
+    ComputeLOD of a LODScreenSizeHeuristic with the instance's animation's thresholds and the box of
+    its clips' extents, placed by the instance's placement (-1: outside the view, culled); 0 for the
+    instances of an animation without levels (the runtimes neither choose nor cull them)."""
+    from pxr import Gf, Usd, UsdLod
+
+    frustum = Gf.Frustum()
+    frustum.SetPerspective(fov, width / height, 0.01, 10000.0)
+    frustum.SetPosition(Gf.Vec3d(*eye))
+    stage = Usd.Stage.CreateInMemory()
+    levels = []
+    for k, (crowd, animation) in enumerate(zip(asset.crowds, asset.crowd_animation)):
+        vb = asset.animations[animation]
+        if vb.lods is None:
+            levels.extend([0] * crowd.instance_count)
+            continue
+        extents = np.asarray(vb.clip_extents, np.float64)
+        heuristic = UsdLod.ScreenSizeHeuristic.Define(stage, f"/H{k}")
+        heuristic.CreateLodDomainAttr("imaging")
+        heuristic.CreateThresholdsAttr(list(vb.lods.screen_sizes))
+        heuristic.CreateExtentAttr([tuple(extents[:, 0].min(axis=0)), tuple(extents[:, 1].max(axis=0))])
+        for world in placements(crowd):
+            world = Gf.Matrix4d(world.T.tolist())  # USD's row vectors
+            levels.append(-1 if heuristic.ComputeScreenSize(frustum, world) == 0
+                          else int(heuristic.ComputeLOD(frustum, world)))
+    return levels

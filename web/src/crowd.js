@@ -198,9 +198,9 @@ export class VirtualBonesCrowd extends Group {
       geometry.setAttribute('vb_instanceFade', attributes.fade);
       geometry.setAttribute('vb_instancePreviousFade', attributes.previousFade);
       if (this.layered) {
-        geometry.setAttribute('vb_instanceLayerClipMask', this.layerClipMaskAttribute);
-        geometry.setAttribute('vb_instanceLayerTime', this.layerTimeAttribute);
-        geometry.setAttribute('vb_instanceLayerWeight', this.layerWeightAttribute);
+        geometry.setAttribute('vb_instanceLayerClipMask', attributes.layerClipMask ?? this.layerClipMaskAttribute);
+        geometry.setAttribute('vb_instanceLayerTime', attributes.layerTime ?? this.layerTimeAttribute);
+        geometry.setAttribute('vb_instanceLayerWeight', attributes.layerWeight ?? this.layerWeightAttribute);
       }
       const skinned = skinMaterial ?? patchMaterial;
       const mesh = new InstancedMesh(geometry, skinned(material(index), animation, entry.maxInfluences, binding), instances.count);
@@ -229,14 +229,10 @@ export class VirtualBonesCrowd extends Group {
     };
     this.levels = null;
     this.drawn = instances.count;
-    if (levels && levels.length && this.layered) {
-      // Each level draws compacted copies of the per-instance attributes; the layer attributes are
-      // not among them, so a layered crowd draws LOD 0 for every instance (and says so once).
-      console.warn(`${name}: layered instances draw LOD 0 only (levels of detail with layers are not supported by this runtime)`);
-    } else if (levels && levels.length) {
+    if (levels && levels.length) {
       // Levels of detail (spec 20.2): per level, compact instance arrays that updateLevels() fills
-      // with the instances choosing that level; the full arrays above stay the source of truth
-      // (setFade, socketMatrix and probe read them).
+      // with the instances choosing that level (the layers' too); the full arrays above stay the
+      // source of truth (setFade, setLayer, socketMatrix and probe read them).
       const thresholds = Array.from(screenSizes ?? []);
       checkScreenSizes(thresholds, levels.length, name);
       this.screenSizes = thresholds;
@@ -250,8 +246,15 @@ export class VirtualBonesCrowd extends Group {
         clip.gpuType = IntType;
         const fadeClip = dynamic(new Int32Array(n), 1);
         fadeClip.gpuType = IntType;
-        return { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3),
+        const attributes = { matrix: dynamic(new Float32Array(16 * n), 16), clip, time: dynamic(new Float32Array(2 * n), 2), fadeClip, fade: dynamic(new Float32Array(3 * n), 3),
           previousFade: dynamic(new Float32Array(4 * n), 4) };
+        if (this.layered) {
+          attributes.layerClipMask = dynamic(new Int32Array(4 * n), 4);
+          attributes.layerClipMask.gpuType = IntType;
+          attributes.layerTime = dynamic(new Float32Array(4 * n), 4);
+          attributes.layerWeight = dynamic(new Float32Array(2 * n), 2);
+        }
+        return attributes;
       });
       this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry, index) => {
         const mesh = makeMesh(entry, index, this.levelAttributes[level]);
@@ -533,13 +536,17 @@ export class VirtualBonesCrowd extends Group {
       target.previousFade.array.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
       // Parts (spec 22.3): the level's part meshes draw the slot collapsed where the mask hides them.
       for (const mesh of this.levelParts[level]) partMatrixAt(mesh.instanceMatrix.array, at, source.matrix, i, parts[i], mesh.userData.virtualBones.part);
+      if (this.layered) {
+        target.layerClipMask.array.set(this.layerClipMaskAttribute.array.subarray(4 * i, 4 * i + 4), 4 * at);
+        target.layerTime.array.set(this.layerTimeAttribute.array.subarray(4 * i, 4 * i + 4), 4 * at);
+        target.layerWeight.array.set(this.layerWeightAttribute.array.subarray(2 * i, 2 * i + 2), 2 * at);
+      }
     }
     this.levels.forEach((meshes, level) => {
       const attributes = this.levelAttributes[level];
-      for (const [key, attribute] of Object.entries(attributes)) {
+      for (const attribute of Object.values(attributes)) {
         attribute.clearUpdateRanges();
-        const size = { matrix: 16, clip: 1, time: 2, fadeClip: 1, fade: 3, previousFade: 4 }[key];
-        if (counts[level]) attribute.addUpdateRange(0, counts[level] * size);
+        if (counts[level]) attribute.addUpdateRange(0, counts[level] * attribute.itemSize);
         attribute.needsUpdate = true;
       }
       for (const mesh of meshes) mesh.count = counts[level];

@@ -104,12 +104,11 @@ export class VirtualBonesCrowd {
     // `adopt`: meshes something else built (the glTF loader: VirtualBonesGLTFLoaderExtension), each
     // {mesh, maxInfluences, boneIndices, boneWeights}; their thin-instance matrices are kept.
     this.levels = null;
-    if (levels && levels.length && this.layered) {
-      // Each level draws compacted copies of the playback streams; the layer streams are not among
-      // them, so a layered crowd draws LOD 0 for every instance (and says so once).
-      console.warn(`${name}: layered instances draw LOD 0 only (levels of detail with layers are not supported by this runtime)`);
-    } else if (levels && levels.length) {
-      if (adopt) throw new VirtualBonesError(`${name}: levels of detail are drawn from mesh arrays, not adopted meshes`);
+    this.adopted = Boolean(adopt);
+    if (levels && levels.length) {
+      // Adopted meshes (the glTF loader's, MSFT_lod): each level's entries are adopted too, and
+      // the crowd's `instances.matrices` are the instance placements the levels compact.
+      if (adopt && !this.matrices) throw new VirtualBonesError(`${name}: adopted levels of detail need the instance matrices`);
       const thresholds = Array.from(screenSizes ?? []);
       checkScreenSizes(thresholds, levels.length, name);
       this.screenSizes = thresholds;
@@ -118,10 +117,12 @@ export class VirtualBonesCrowd {
       this.levelCounts = new Array(levels.length + 1).fill(0);
       this.drawn = this.capacity;
       const n = this.capacity;
+      // Each level's compacted copies of the playback streams (and of the layer streams, with layers).
       this.levelBuffers = [meshes, ...levels].map(() => ({
-        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n) }));
-      this.levels = [meshes, ...levels].map((entries, level) => entries.map((entry) => {
-        const mesh = this._mesh(entry, material, this.levelBuffers[level]);
+        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n),
+        ...(this.layered ? { c: new Float32Array(4 * n), d: new Float32Array(4 * n), e: new Float32Array(4 * n) } : {}) }));
+      this.levels = [adopt ?? meshes, ...levels].map((entries, level) => entries.map((entry) => {
+        const mesh = adopt ? this._skin(entry.mesh, entry, material, this.levelBuffers[level]) : this._mesh(entry, material, this.levelBuffers[level]);
         mesh.thinInstanceCount = 0;
         mesh.metadata.virtualBones.level = level;
         return mesh;
@@ -220,9 +221,9 @@ export class VirtualBonesCrowd {
       }
     }
     if (this.layered) {
-      mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
-      mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
-      mesh.thinInstanceSetBuffer('vb_instanceE', this.instanceE, 4, true);
+      mesh.thinInstanceSetBuffer('vb_instanceC', buffers?.c ?? this.instanceC, 4, !buffers);
+      mesh.thinInstanceSetBuffer('vb_instanceD', buffers?.d ?? this.instanceD, 4, !buffers);
+      mesh.thinInstanceSetBuffer('vb_instanceE', buffers?.e ?? this.instanceE, 4, !buffers);
     }
     // Skinned vertices leave the rest bounds: the crowd is never culled by them.
     mesh.alwaysSelectAsActiveMesh = true;
@@ -343,6 +344,12 @@ export class VirtualBonesCrowd {
    */
   updateLevels(camera) {
     if (!this.levels) return;
+    if (this.adopted && !this._levelMatrices) {
+      // The glTF loader's EXT_mesh_gpu_instancing gave the adopted meshes every instance's matrix
+      // once the load completed: each level draws its compacted copy instead.
+      this.levels.forEach((meshes, level) => { for (const mesh of meshes) mesh.thinInstanceSetBuffer('matrix', this.levelBuffers[level].matrix, 16, false); });
+      this._levelMatrices = true;
+    }
     const { centre, radius } = this._extentSphere();
     const planes = Frustum.GetPlanes(camera.getTransformationMatrix(true));
     const eye = camera.globalPosition;
@@ -373,10 +380,16 @@ export class VirtualBonesCrowd {
         const { part, partMatrix } = mesh.metadata.virtualBones;
         if (partMatrix) partMatrixAt(partMatrix, at, target.matrix, at, this.instances.parts[i], part);
       }
+      if (this.layered) {
+        target.c.set(this.instanceC.subarray(4 * i, 4 * i + 4), 4 * at);
+        target.d.set(this.instanceD.subarray(4 * i, 4 * i + 4), 4 * at);
+        target.e.set(this.instanceE.subarray(4 * i, 4 * i + 4), 4 * at);
+      }
     }
+    const streams = ['matrix', 'vb_instanceA', 'vb_instanceB', 'vb_instancePreviousFade', ...(this.layered ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : [])];
     this.levels.forEach((meshes, level) => {
       for (const mesh of meshes) {
-        for (const stream of ['matrix', 'vb_instanceA', 'vb_instanceB', 'vb_instancePreviousFade']) mesh.thinInstanceBufferUpdated(stream);
+        for (const stream of streams) mesh.thinInstanceBufferUpdated(stream);
         mesh.thinInstanceCount = counts[level];
       }
     });
