@@ -691,9 +691,44 @@ def hat_mesh(path: str = "/StadiumCrowd/Hat"):
                        normals=normals, normals_interpolation="vertex", source_path="samples/stadium_crowd.py")
 
 
+FLAG_BONE = "R_hand"
+"""The joint whose socket holds the flag prop (spec 22.3, "Props at sockets")."""
+
+
+def flag_local():
+    """The flag prop in the joint space of :data:`FLAG_BONE` (metres): a pole along the joint's +Y from
+    just past the hand, and a cloth plate at its top reaching outwards (-X, away from the body), thin
+    along Z. Returns (points (16, 3), triangles (24, 3), normals (16, 3)), float64 / int64."""
+    pole, pole_tris = _box((-0.095, -0.05, -0.015), (-0.065, 0.75, 0.015))
+    cloth, cloth_tris = _box((-0.45, 0.45, -0.01), (-0.095, 0.75, 0.01))
+    points = np.concatenate([pole, cloth])
+    triangles = np.concatenate([pole_tris, cloth_tris + len(pole)])
+    normals = np.concatenate([(box - box.mean(axis=0)) / np.linalg.norm(box - box.mean(axis=0), axis=1, keepdims=True)
+                              for box in (pole, cloth)])
+    return points, triangles, normals
+
+
+def flag_mesh(path: str = "/StadiumCrowd/Flag"):
+    """An optional flag prop held in the right hand (spec "Crowd variety", props at sockets): the points
+    of :func:`flag_local` placed at the bind pose of :data:`FLAG_BONE` with
+    ``vbusd.format.variety.socket_prop`` and bound rigidly to that joint, so that it draws at the socket
+    ``J p`` at every time (16 vertices, 24 triangles)."""
+    from vbusd.format.model import SkinnedMesh
+    from vbusd.format.variety import socket_prop
+
+    local, triangles, local_normals = flag_local()
+    points, normals = socket_prop(bind_matrices()[_J[FLAG_BONE]], local, local_normals)
+    count = len(points)
+    return SkinnedMesh(path=path, points=points, face_vertex_counts=np.full(len(triangles), 3, dtype=np.int32),
+                       face_vertex_indices=triangles.reshape(-1).astype(np.int32),
+                       bone_indices=np.full((count, 1), _J[FLAG_BONE], dtype=np.int32), bone_weights=np.ones((count, 1)),
+                       normals=normals, normals_interpolation="vertex", source_path="samples/stadium_crowd.py")
+
+
 def write_modular(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
-    """The spectator as a modular character (format 1.3 crowd variety): the body and an optional ``Hat`` part
-    sharing its skeleton and texture, no crowd of its own (``vbusd crowd --parts Hat=P`` places it)."""
+    """The spectator as a modular character (format 1.3 crowd variety): the body, an optional ``Hat`` part and
+    an optional ``Flag`` prop at the right hand's socket, sharing its skeleton and texture, with the joints'
+    bind transforms (sockets), no crowd of its own (``vbusd crowd --parts Hat=P,Flag=Q`` places it)."""
     import dataclasses
 
     from vbusd.baking.baker import bake
@@ -701,7 +736,8 @@ def write_modular(path: os.PathLike, rig: Optional[Rig] = None) -> Path:
     from vbusd.io import usd as usd_io
 
     animation = make_skinned_animation(rig)
-    animation = dataclasses.replace(animation, meshes=animation.meshes + (hat_mesh(),))
+    animation = dataclasses.replace(animation, meshes=animation.meshes + (hat_mesh(), flag_mesh()),
+                                    bind_transforms=bind_matrices())
     baked = bake(animation, reference_bake_options())
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,11 +1,11 @@
-"""Make docs/engines.md's picture of crowd variety: the stadium sample with tints, variants and hats.
+"""Make docs/engines.md's picture of crowd variety: the stadium sample with tints, variants, hats and flags.
 
 The sample's 1,200 seats (samples/stadium_crowd.py: positions, orientations, time offsets and rates
-of its own crowd) are filled with the modular spectator (``write_modular``: the body and an optional
-``Hat`` part sharing its skeleton and texture), and each spectator gets, from one seeded generator as
-``vbusd crowd --tints ... --variants home=3,away=1 --parts Hat=0.4`` draws them, a tint of a
-five-colour palette, a material variant and a hat on two in five (format 1.3, spec/virtual-bones.md
-22). The crowd is written with :func:`vbusd.write_asset` into a temporary folder and drawn by
+of its own crowd) are filled with the modular spectator (``write_modular``: the body, an optional
+``Hat`` part and an optional ``Flag`` prop at the right hand's socket, sharing its skeleton and
+texture), and each spectator gets, from one seeded generator as ``vbusd crowd --tints ... --variants
+home=3,away=1 --parts Hat=0.4,Flag=0.15`` draws them, a tint of a five-colour palette, a material
+variant, a hat on two in five and a flag on about one in seven (format 1.3, spec/virtual-bones.md 22). The crowd is written with :func:`vbusd.write_asset` into a temporary folder and drawn by
 ``vbusd view``'s three.js page in headless Chromium at the README picture's size and time
 (scripts/make_readme_image.py), from nearer the front rows, and the canvas is saved as a PNG.
 
@@ -32,6 +32,7 @@ OUTPUT = REPO / "docs" / "images" / "stadium_variety.png"
 PALETTE = ("#f2f2f2", "#ff8000", "#2060ff", "#e02030", "#30b040")
 VARIANTS = {"home": 3.0, "away": 1.0}
 HAT = 0.4
+FLAG = 0.15
 SEED = 37
 CAMERA = "-7,4.2,33,1,2.0,42"  # nearer the front rows than the README's picture: the hats show
 
@@ -52,11 +53,13 @@ def varied_stadium(folder: Path) -> Path:
     rng = np.random.default_rng(SEED)
     palette = np.asarray([hex_to_linear(c) for c in PALETTE], dtype=np.float32)
     weights = np.asarray(list(VARIANTS.values()))
+    tint = palette[rng.integers(len(palette), size=n)]
+    variant = rng.choice(len(weights), size=n, p=weights / weights.sum()).astype(np.int32)
+    parts = (rng.random(n) < HAT).astype(np.int32) | (rng.random(n) < FLAG).astype(np.int32) << 1
     crowd = dataclasses.replace(
         seated, path=f"/{asset.default_prim}/Crowd",
-        tint=palette[rng.integers(len(palette), size=n)],
-        variant=rng.choice(len(weights), size=n, p=weights / weights.sum()).astype(np.int32),
-        variant_names=tuple(VARIANTS), parts=(rng.random(n) < HAT).astype(np.int32), part_names=("Hat",))
+        tint=tint, variant=variant,
+        variant_names=tuple(VARIANTS), parts=parts, part_names=("Hat", "Flag"))
     out = folder / "stadium_variety.usda"
     vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), out)
     return out

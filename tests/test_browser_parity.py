@@ -24,7 +24,7 @@ instance's bounding-box diagonal, unit normals within 1e-5.
 * the previous-frame pose (motion vectors, spec 21): the probe's ``previousPositions`` for the
   page's ``?dt=`` equal the decoder at t - dt, across a loop boundary and a clamped clip's end;
 * crowd variety (format 1.3): tints, material variants and parts masks, read back from the page and
-  seen in a screenshot (the section at the end).
+  seen in a screenshot, and a prop at a socket (the flag) where the socket puts it (the section at the end).
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from tests.helpers.browser import (NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, S
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
+from tests.helpers import scripts
 from tests.helpers.variety import modular_character
 
 ENGINES = ("three", "babylon", "three-webgpu")
@@ -243,11 +244,12 @@ def test_unorm16(browser, unorm16_stadium, engine, record_property):
 
 @pytest.fixture(scope="module")
 def lod_row(tmp_path_factory):
-    """tests/test_browser_lod.py's row: the spectator with 3 levels, instances at chosen distances
-    in front of the page's camera (one behind it), as a .glb (MSFT_lod)."""
+    """tests/test_browser_lod.py's row of the modular spectator (body, hat and flag parts) with 3 levels,
+    instances at chosen distances in front of the page's camera (one behind it) with parts masks, as a
+    .glb (MSFT_lod)."""
     pytest.importorskip("meshoptimizer")
     folder = tmp_path_factory.mktemp("lod_row")
-    asset, package = lod_row_helpers.make_row_package(folder)
+    asset, package = lod_row_helpers.make_row_package(folder, modular=True)
     usd = folder / "usd" / "row.usda"  # the same crowd as USD: vbusd view serves it as the plain files
     usd.parent.mkdir()
     vbusd.write_asset(asset, usd)
@@ -264,15 +266,18 @@ LOD_SOURCE = {"three": "glb", "three-webgpu": "glb", "babylon": "usd"}
 @pytest.mark.parametrize("engine", ENGINES)
 def test_levels_of_detail(browser, lod_row, engine, record_property):
     """The level each instance draws equals OpenUSD's UsdLodScreenSizeHeuristic.ComputeLOD for the
-    page's camera (-1: outside the view, culled), and the probe skins that level's mesh as vbusd's
-    decoder does (1e-6 of the diagonal plus one float32 rounding of the world coordinate)."""
+    page's camera (-1: outside the view, culled), and the probe skins that level's meshes as vbusd's
+    decoder does (1e-6 of the diagonal plus one float32 rounding of the world coordinate). Parts on
+    levels (spec 22.3): each level's part meshes draw the instances at that level with their
+    placement where the mask shows the part and collapsed (linear part zero: nothing drawn, as
+    test_crowd_variety's screenshot shows) where it hides it."""
     from vbusd.decoders.reference import skin_crowd
 
     asset, package, usd = lod_row
     vb = asset.animations[0]
     expected_levels = lod_row_helpers.usdlod_levels(asset)
     assert sorted(set(expected_levels)) == [-1, 0, 1, 2], expected_levels
-    meshes = {m.lod: m for m in vb.meshes}
+    meshes = {level: [m for m in vb.meshes if m.lod == level] for level in range(3)}
     crowd = asset.crowds[0]
     t = 1.37
     if LOD_SOURCE[engine] == "usd":
@@ -284,8 +289,9 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
             page.page.evaluate("() => window.vbusd.render()")
             levels = page.page.evaluate("() => window.vbusd.levels()")
             assert levels["lod"] == expected_levels
-            triangles = [len(meshes[level].face_vertex_counts) for level in expected_levels if level >= 0]
+            triangles = [sum(len(m.face_vertex_counts) for m in meshes[level]) for level in expected_levels if level >= 0]
             assert levels["triangles"] == sum(triangles)
+            check_level_parts(page, engine, asset, expected_levels)
             for instance, level in enumerate(expected_levels):
                 result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
                 assert result["lod"] == level
@@ -293,17 +299,77 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
                     continue
                 one = dataclasses.replace(crowd, **{f: getattr(crowd, f)[instance:instance + 1] for f in
                                                     ("positions", "orientations", "clip", "time_offset", "playback_rate")})
-                expected, _ = skin_crowd(vb, meshes[level], one, t)
+                expected = np.concatenate([skin_crowd(vb, mesh, one, t)[0][0] for mesh in meshes[level]])
                 positions = np.asarray(result["positions"]).reshape(-1, 3)
-                assert positions.shape == expected[0].shape
-                diagonal = float(np.linalg.norm(expected[0].max(0) - expected[0].min(0)))
-                tolerance = 1e-6 * diagonal + np.finfo(np.float32).eps * float(np.abs(expected[0]).max())
-                error = float(np.abs(positions - expected[0]).max())
+                assert positions.shape == expected.shape
+                diagonal = float(np.linalg.norm(expected.max(0) - expected.min(0)))
+                tolerance = 1e-6 * diagonal + np.finfo(np.float32).eps * float(np.abs(expected).max())
+                error = float(np.abs(positions - expected).max())
                 print(engine, instance, level, error / diagonal)
                 assert error <= tolerance
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+
+
+def drawn_matrices(page, engine: str, level=None) -> list:
+    """What each mesh of the page's first crowd draws with: ``[{name, part (the part bit the engine gave
+    it, -1: no part), count, matrices (count, 4, 4) column-vector}]`` of level ``level`` (None: a crowd without levels), read from the instance buffers
+    the engine uploads (three: the InstancedMesh's instanceMatrix; Babylon: the thin-instance matrices)."""
+    meshes = "crowd.levels[level]" if level is not None else "crowd.meshes"
+    read = ("{name: mesh.name, part: mesh.userData.virtualBones.part, count: mesh.count,"
+            " m: Array.from(mesh.instanceMatrix.array.subarray(0, 16 * mesh.count))}"
+            if engine.startswith("three") else
+            "{name: mesh.name, part: mesh.metadata.virtualBones.part, count: mesh.thinInstanceCount,"
+            " m: mesh.thinInstanceGetWorldMatrices().slice(0, mesh.thinInstanceCount).flatMap((x) => Array.from(x.m))}")
+    got = page.page.evaluate(f"(level) => {{ const crowd = window.vbusd.crowds[0]; return {meshes}.map((mesh) => ({read})); }}", level)
+    return [dict(item, matrices=np.asarray(item["m"], np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)) for item in got]
+
+
+def placements(crowd) -> np.ndarray:
+    """(N, 4, 4) placement of each instance (scale, then orientation, then position: spec 15), by hand from the quaternions."""
+    x, y, z, w = np.asarray(crowd.orientations, np.float64).T
+    rotation = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                         np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                         np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], 1)
+    scale = np.ones((len(x), 3)) if crowd.scales is None else np.asarray(crowd.scales, np.float64)
+    out = np.tile(np.eye(4), (len(x), 1, 1))
+    out[:, :3, :3] = rotation * scale[:, None, :]
+    out[:, :3, 3] = np.asarray(crowd.positions, np.float64)
+    return out
+
+
+def expected_part_matrix(placement: np.ndarray, shown: bool) -> np.ndarray:
+    """A part's matrix for one instance (spec 22.3): the placement, or with its linear part zero where hidden."""
+    out = placement.copy()
+    if not shown:
+        out[:3, :3] = 0.0
+    return out
+
+
+def check_level_parts(page, engine: str, asset, levels) -> None:
+    """Each level's meshes draw the instances at that level, in instance order; a part mesh's slot is
+    the instance's placement where its mask shows the part and collapsed where it hides it (spec 22.3,
+    parts and levels of detail), for the part names the crowd gives (Hat bit 0, Flag bit 1)."""
+    crowd = asset.crowds[0]
+    place = placements(crowd)
+    seen = {}
+    for level in sorted({level for level in levels if level >= 0}):
+        at_level = [i for i, chosen in enumerate(levels) if chosen == level]
+        drawn = drawn_matrices(page, engine, level)
+        assert sorted(mesh["part"] for mesh in drawn) == [-1, 0, 1], (engine, level)  # the body, the hat, the flag
+        for mesh in drawn:
+            bit = mesh["part"]
+            name = crowd.part_names[bit] if bit >= 0 else "body"
+            assert mesh["count"] == len(at_level), (engine, level, name)
+            for slot, i in enumerate(at_level):
+                shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
+                seen.setdefault((name, shown), set()).add(level)
+                np.testing.assert_allclose(mesh["matrices"][slot], expected_part_matrix(place[i], shown), atol=1e-5,
+                                           err_msg=f"{engine} level {level} {name} instance {i}")
+    # Both parts were seen shown and hidden at levels 0 and 1 (tests/helpers/lod_row.py's PARTS).
+    for name in ("Hat", "Flag"):
+        assert {0, 1} <= seen[(name, True)] and {0, 1} <= seen[(name, False)], seen
 
 
 @pytest.mark.parity("root motion")
@@ -664,7 +730,10 @@ def test_gltf_package_of_a_layered_crossfading_crowd(browser, layered_stadium, f
 # moves a vertex); the tint, variant and parts mask the page reports are the crowd's (pxr); in a
 # screenshot, each body's pixel (its skinned vertices projected with the page's camera) is dominated
 # by its tint's channel, a brighter variant material gives a brighter body, and the pixel inside the
-# hat shows the tint when the mask shows the hat and the background when it hides it.
+# hat shows the tint when the mask shows the hat and the background when it hides it. The flag is a
+# prop at the right hand's socket (spec 22.3, "Props at sockets"): its probed points are the numpy
+# decoder's socket (crowd_joint_transforms) applied to its joint-space points, the page's own
+# socketMatrix agrees, and the pixel at its cloth is the background where the mask hides it.
 # --------------------------------------------------------------------------------------------
 
 VARIETY_SIZE = (960, 540)
@@ -672,12 +741,13 @@ VARIETY_CAMERA = "0,1.5,8,0,1.1,0"
 VARIETY_TIME = 9.0  # the cheer with the hands away from the head: nothing in front of the hat
 VARIETY_XS = (-4.0, -2.0, 0.0, 2.0, 4.0)
 VARIETY_BODY_POINTS = 202
+VARIETY_HAT_POINTS = 8  # then the flag's 16 (samples/stadium_crowd.py: hat_mesh, flag_mesh)
 
 
 @pytest.fixture(scope="module")
 def variety_row(tmp_path_factory):
     """Five spectators in a row facing the camera, tinted red / green / blue, variants home and away,
-    the hat on some: ``vbusd crowd --layout points ... --tints --variants --parts``."""
+    the hat on some and the flag on others: ``vbusd crowd --layout points ... --tints --variants --parts``."""
     from vbusd.cli import main
 
     folder = tmp_path_factory.mktemp("variety_row")
@@ -687,7 +757,7 @@ def variety_row(tmp_path_factory):
     out = folder / "crowd.usda"
     status = main(["crowd", str(character), "-o", str(out), "--layout", "points", str(points), "--yaw", "0", "0",
                    "--time-offset", "0", "0", "--tints", "#ff0000,#00ff00,#0000ff", "--variants", "home=1,away=1",
-                   "--parts", "Hat=0.5", "--seed", "11", "-q"])
+                   "--parts", "Hat=0.5,Flag=0.5", "--seed", "11", "-q"])
     assert status == 0
     return out
 
@@ -738,9 +808,70 @@ def test_crowd_variety(browser, variety_row, engine, tmp_path):
         _check_variety_page(browser, engine, source, variety_row, asset)
 
 
+VARIETY_MOVED = 3  # the instance probed again after root motion (it shows the hat and the flag)
+
+
+def check_root_motion_moves_parts(page, engine: str, asset, before: np.ndarray) -> None:
+    """Root motion moves the parts with their instance (spec 8.5 and 22.3): given a root track (a walk
+    along +Z that turns, as an application gives one: ``crowd.rootMotion``), ``crowd.applyRootMotion(t0,
+    t1)`` makes every mesh's drawn matrices, the part meshes' included, the placement ``P`` times the
+    numpy decoder's ``root_motion`` at the instance's clip times (collapsed where the mask hides the part),
+    and the probe of instance VARIETY_MOVED the points it had before moved by ``P D P^-1``."""
+    from vbusd.decoders.reference import root_motion
+    from vbusd.format.rootmotion import RootMotion
+
+    vb, crowd = asset.animations[0], asset.crowds[0]
+    rows = vb.clips[0].row_count
+    steps = np.arange(rows + 1) / rows  # looping: one entry per row and the loop's displacement
+    track = np.stack([0.3 * np.sin(2 * np.pi * steps), np.zeros_like(steps), 1.5 * steps, 0.6 * steps], axis=1)
+    walking = dataclasses.replace(vb, root_motion=RootMotion("Y", (track,)))
+    t0, t1 = 2.25, 7.5
+    page.page.evaluate("([track, t0, t1]) => { const crowd = window.vbusd.crowds[0]; crowd.rootMotion = {upAxis: 'Y', tracks: [track]};"
+                       " crowd.applyRootMotion(t0, t1); window.vbusd.render(); }", [track.tolist(), t0, t1])
+    place = placements(crowd)
+    offsets, rates = np.asarray(crowd.time_offset, np.float64), np.asarray(crowd.playback_rate, np.float64)
+    moved = np.stack([place[i] @ root_motion(walking, 0, offsets[i] + rates[i] * t0, offsets[i] + rates[i] * t1)
+                      for i in range(crowd.instance_count)])
+    assert np.linalg.norm(moved[:, :3, 3] - place[:, :3, 3], axis=1).min() > 0.5  # every instance walked
+    drawn = drawn_matrices(page, engine)
+    assert sorted(mesh["part"] for mesh in drawn) == [-1, 0, 1], engine  # the body, the hat, the flag
+    for mesh in drawn:
+        bit = mesh["part"]
+        name = crowd.part_names[bit] if bit >= 0 else "body"
+        for i in range(crowd.instance_count):
+            shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
+            np.testing.assert_allclose(mesh["matrices"][i], expected_part_matrix(moved[i], shown), atol=1e-5,
+                                       err_msg=f"{engine} {name} instance {i} after root motion")
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [VARIETY_MOVED, VARIETY_TIME])
+    after = np.asarray(result["positions"], np.float64).reshape(-1, 3)
+    change = moved[VARIETY_MOVED] @ np.linalg.inv(place[VARIETY_MOVED])
+    expected = before @ change[:3, :3].T + change[:3, 3]
+    diagonal = float(np.linalg.norm(before.max(0) - before.min(0)))
+    assert float(np.abs(after - expected).max()) <= 1e-6 * diagonal + 4 * np.finfo(np.float32).eps * float(np.abs(expected).max())
+
+
+def check_prop_at_socket(drawn, local, asset, instance, bone, body) -> None:
+    """The prop's probed points ``drawn`` equal the numpy decoder's socket of ``bone`` at ``instance``
+    (placement times J = M B, crowd_joint_transforms) applied to its joint-space points ``local``,
+    within 1e-6 of the instance's bounding-box diagonal (spec 22.3, "Props at sockets")."""
+    from vbusd.decoders.reference import crowd_joint_transforms
+
+    socket = crowd_joint_transforms(asset.animations[0], asset.crowds[0], bone, VARIETY_TIME)[instance]
+    expected = local @ socket[:3, :3].T + socket[:3, 3]
+    diagonal = float(np.linalg.norm(body.max(0) - body.min(0)))
+    assert drawn.shape == expected.shape
+    error = float(np.abs(drawn - expected).max()) / diagonal
+    assert error <= POSITION_TOLERANCE, (instance, error)
+
+
 def _check_variety_page(browser, engine, source, usd_crowd, asset):
     tints, variants, parts, variant_names, part_names = _variety_primvars(usd_crowd)
-    assert len({tuple(t) for t in tints}) >= 2 and set(parts) == {0, 1} and set(variants) == {0, 1}
+    assert len({tuple(t) for t in tints}) >= 2 and set(variants) == {0, 1}
+    assert set(parts & 1) == {0, 1} and set(parts >> 1 & 1) == {0, 1}, parts  # hat and flag, each shown and hidden
+    sample = scripts.load("samples/stadium_crowd.py")
+    flag_bone = sample.JOINT_NAMES.index(sample.FLAG_BONE)
+    flag_local, _, _ = sample.flag_local()
+    socket_errors_of_page = []
     width, height = VARIETY_SIZE
     query = (f"?time={VARIETY_TIME}&paused=1&ui=0&antialias=0&pixelRatio=1&width={width}&height={height}"
              f"&camera={VARIETY_CAMERA}&fov=40")
@@ -759,22 +890,36 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
                 assert result["variant"] == variants[i] and result["variantName"] == variant_names[variants[i]]
                 assert result["parts"] == parts[i] and result["partNames"] == part_names
                 results.append(np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3))
+                if parts[i] >> 1 & 1:
+                    check_prop_at_socket(results[-1][VARIETY_BODY_POINTS + VARIETY_HAT_POINTS:], flag_local, asset, i,
+                                         flag_bone, results[-1][:VARIETY_BODY_POINTS])
+                    socket_errors_of_page += socket_errors(page, asset, engine, [(i, VARIETY_TIME)], lambda _: [flag_bone])
             page.page.evaluate("window.vbusd.render()")
             image = _rgb_pixels(page.page.locator("#view").screenshot())
             camera = page.page.evaluate(
                 "({p: Array.from(window.vbusd.camera.projectionMatrix.elements),"
                 " v: Array.from(window.vbusd.camera.matrixWorldInverse.elements)})")
+            check_root_motion_moves_parts(page, engine, asset, results[VARIETY_MOVED])
             assert page.errors() == [], page.errors()
         finally:
             page.close()
+    assert max(socket_errors_of_page) <= POSITION_TOLERANCE, socket_errors_of_page
     assert image.shape == (height, width, 3)
     background = _pixel_at(image, (3, 3))
     variant_colours = [np.asarray(c) for c in asset.crowds[0].variant_colors]  # the materials' diffuseColor
     bodies = {}
     for i, positions in enumerate(results):
-        body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:]
+        body, hat = positions[:VARIETY_BODY_POINTS], positions[VARIETY_BODY_POINTS:VARIETY_BODY_POINTS + VARIETY_HAT_POINTS]
+        flag = positions[VARIETY_BODY_POINTS + VARIETY_HAT_POINTS:]
         channel = int(np.argmax(tints[i]))
         others = [c for c in range(3) if c != channel]
+        # The middle of the flag's cloth (its last 8 points): drawn where the mask shows it, the background where not.
+        seen = _pixel_at(image, _project_to_pixels(flag[8:].mean(axis=0, keepdims=True), camera)[0])
+        print(engine, source.suffix, i, "flag", bool(parts[i] >> 1 & 1), seen, "background", background)
+        if parts[i] >> 1 & 1:  # the flag takes the instance's colour, as every mesh of it does
+            assert seen[channel] > 2 * seen[others].max() and np.abs(seen - background).max() > 10, (engine, i, seen, background)
+        else:
+            assert np.abs(seen - background).max() <= 12, (engine, i, seen, background)
         colour = _pixel_at(image, _project_to_pixels(body.mean(axis=0, keepdims=True), camera)[0])
         print(engine, source.suffix, i, "body", colour, "tint", tints[i], "variant", variants[i])
         assert colour[channel] > 10 and colour[channel] > 2 * colour[others].max(), (engine, i, colour, tints[i])

@@ -1,7 +1,8 @@
 """@vbusd/core's crowd variety helpers (web/core/src/variety.js, format 1.3) under Node, against values
 worked out by hand: the colour of an instance is its variant's base colour times its tint, a part's
 matrices lose their linear part (keeping the translation) where the mask hides the part, part bits
-come from the mesh's prim name, and a package's variety is read from its instance attributes,
+come from the mesh's prim name, a level's slot of a part takes the instance's matrix or its collapse by
+the mask (parts on levels of detail), root motion moves a placement along its own heading, and a package's variety is read from its instance attributes,
 KHR_materials_variants and the primitives' part bits (tests/node/core_variety.mjs)."""
 
 from __future__ import annotations
@@ -33,6 +34,13 @@ def test_core_variety_helpers():
     np.testing.assert_array_equal(hat, [translated[0], collapsed[1], translated[2]])
     np.testing.assert_array_equal(flag, [collapsed[0], collapsed[1], translated[2]])
     np.testing.assert_array_equal(body, translated)
+    # Levels (spec 22.3): instance 2 (x = 2) into slot 1 with mask 1, which hides the flag (bit 1): collapsed
+    # there, slot 0 untouched; with mask 3 into slot 0, the whole matrix.
+    np.testing.assert_array_equal(np.asarray(out["levelSlots"][0]).reshape(2, 16), [np.zeros(16), collapsed[2]])
+    np.testing.assert_array_equal(np.asarray(out["levelSlots"][1]).reshape(2, 16), [translated[2], np.zeros(16)])
+    # Root motion (spec 8.5): P = T(1, 0, 0) R_y(90 deg) moved by T(0, 0, 2) in its own space: R_y(90) takes
+    # +Z to +X, so the translation becomes (1 + 2, 0, 0); the rotation stays.
+    np.testing.assert_allclose(out["moved"], [0, 0, -1, 0, 0, 1, 0, 0, 1, 0, 0, 0, 3, 0, 0, 1], atol=1e-7)
     assert out["variety"][0] == {"tint": [1, 0.5, 0], "variant": 1, "variantName": "away", "parts": 1,
                                  "partNames": ["Hat", "Flag"]}
     assert out["variety"][2]["variant"] == -1 and out["variety"][2]["variantName"] is None

@@ -520,8 +520,26 @@ void main() { emit(rest_position, rest_normal); }
 VB_MAIN = _PLACE + _MESH_INPUTS + """
 in int instance_clip;
 in vec2 instance_time;  // (timeOffset, playbackRate)
+#ifdef VB_VARIETY
+in vec3 instance_tint;
+in int instance_variant;
+in int instance_parts;
+uniform vec3 variant_colors[8];
+uniform int part_bit;   // -1: the body, drawn on every instance
+out vec3 vb_color;
+#endif
 void main()
 {
+#ifdef VB_VARIETY
+    vb_color = variant_colors[instance_variant] * instance_tint;
+    if (part_bit >= 0 && ((instance_parts >> part_bit) & 1) == 0)
+    {
+        world_position = instance_position;
+        world_normal = vec3(0.0, 1.0, 0.0);
+        gl_Position = vec4(0.0, 0.0, 0.0, 1.0);  // every vertex at one point: degenerate triangles
+        return;
+    }
+#endif
     int boneIndex[VB_MAX_INFLUENCES];
     float boneWeight[VB_MAX_INFLUENCES];
     for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
@@ -629,42 +647,11 @@ def _with_previous(main: str) -> str:
 VB_MAIN_PREVIOUS = _with_previous(VB_MAIN)
 VB_MAIN_PULLED_PREVIOUS = _with_previous(VB_MAIN_PULLED)
 
-# Crowd variety (issue 37, format 1.3): the draw's main of ``vb`` plus a per-instance tint, variant and
-# parts mask; the colour (variant colour x tint) goes to the fragment shader. VB_PART_BIT >= 0 makes it
-# a part's draw: instances whose mask lacks the bit collapse to a point (no triangle is drawn).
-VB_MAIN_VARIETY = _PLACE + _MESH_INPUTS + """
-in int instance_clip;
-in vec2 instance_time;  // (timeOffset, playbackRate)
-in vec3 instance_tint;
-in int instance_variant;
-in int instance_parts;
-uniform vec3 variant_colors[8];
-uniform int part_bit;   // -1: the body, drawn on every instance
-out vec3 vb_color;
-void main()
-{
-    vb_color = variant_colors[instance_variant] * instance_tint;
-    if (part_bit >= 0 && ((instance_parts >> part_bit) & 1) == 0)
-    {
-        world_position = instance_position;
-        world_normal = vec3(0.0, 1.0, 0.0);
-        gl_Position = vec4(0.0, 0.0, 0.0, 1.0);  // every vertex at one point: degenerate triangles
-        return;
-    }
-    int boneIndex[VB_MAX_INFLUENCES];
-    float boneWeight[VB_MAX_INFLUENCES];
-    for (int i = 0; i < VB_MAX_INFLUENCES; ++i)
-    {
-        boneIndex[i] = bone_indices[i];
-        boneWeight[i] = bone_weights[i];
-    }
-    vec3 position;
-    vec3 normal;
-    vbSkin(VB_ARGS instance_clip, instance_time.x + instance_time.y * vb_time, rest_position, rest_normal,
-           boneIndex, boneWeight, position, normal);
-    emit(position, normal);
-}
-"""
+# Crowd variety (issue 37, format 1.3): the draw's main of ``vb`` with its VB_VARIETY switch on: a
+# per-instance tint, variant and parts mask; the colour (variant colour x tint) goes to the fragment
+# shader. part_bit >= 0 makes it a part's draw: instances whose mask lacks the bit collapse to a point
+# (no triangle is drawn). VB_MAIN itself leaves VB_VARIETY undefined: the plain vb draw.
+VB_MAIN_VARIETY = "#define VB_VARIETY\n" + VB_MAIN
 
 VAT_VS = GLSL_VERSION + _PLACE + """
 uniform highp sampler2D vat_positions;

@@ -1,5 +1,6 @@
 // @vbusd/core's crowd variety helpers (web/core/src/variety.js) on given inputs; prints JSON.
-import { instanceColors, partBit, partMatrices, varietyOf, packageVariety } from '../../web/core/src/variety.js';
+import { instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, packageVariety } from '../../web/core/src/variety.js';
+import { moveInstance } from '../../web/core/src/playback.js';
 
 const instances = {
   count: 3,
@@ -23,6 +24,8 @@ const json = {
     { pbrMetallicRoughness: { baseColorFactor: [0.2, 0.3, 0.8, 1] } }],
   extensions: { KHR_materials_variants: { variants: [{ name: 'home' }, { name: 'away' }] } },
 };
+// A placement turned 90 degrees about Y (its +Z heading becomes +X) at x = 1, moved 2 along its own +Z.
+const turned = new Float32Array([0, 0, -1, 0, 0, 1, 0, 0, 1, 0, 0, 0, 1, 0, 0, 1]);
 const fromPackage = packageVariety(json, 0, { tint: [1, 1, 1, 0, 0, 1], variant: [1, 0], parts: [1, 0] }, 2);
 console.log(JSON.stringify({
   colors: Array.from(instanceColors(instances)),
@@ -30,6 +33,8 @@ console.log(JSON.stringify({
   hat: Array.from(partMatrices(matrices, instances.parts, 0)),
   flag: Array.from(partMatrices(matrices, instances.parts, 1)),
   body: Array.from(partMatrices(matrices, instances.parts, -1)),
+  levelSlots: [Array.from(partMatrixAt(new Float32Array(32), 1, matrices, 2, 1, 1)), Array.from(partMatrixAt(new Float32Array(32), 0, matrices, 2, 3, 1))],
+  moved: Array.from(moveInstance(turned, 0, [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 2, 1])),
   variety: [0, 1, 2].map((i) => varietyOf(instances, i)),
   fromPackage: { ...fromPackage, tint: Array.from(fromPackage.tint), variant: Array.from(fromPackage.variant), parts: Array.from(fromPackage.parts) },
 }));

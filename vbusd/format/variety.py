@@ -5,7 +5,8 @@ instancer's named materials; a parts mask per instance shows a subset of the pro
 parts. This module holds what every reader and writer shares: the checks of the per-instance values
 (:func:`problems`), ``#rrggbb`` to linear RGB (:func:`hex_to_linear`), the base colours ``vbusd
 crowd`` gives the variant materials it authors (:data:`VARIANT_COLORS`) and the colour a variant
-material without a UsdPreviewSurface ``diffuseColor`` has (:data:`DEFAULT_BASE_COLOR`).
+material without a UsdPreviewSurface ``diffuseColor`` has (:data:`DEFAULT_BASE_COLOR`), and the rest
+pose of a prop attached at a socket (:func:`socket_prop`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from typing import Optional
 import numpy as np
 
 __all__ = ["VARIETY_MINOR_VERSION", "VARIANT_COLORS", "DEFAULT_BASE_COLOR", "MAX_PARTS", "hex_to_linear",
-           "srgb_to_linear", "problems", "part_visible"]
+           "srgb_to_linear", "problems", "part_visible", "socket_prop",
+           "level_part_names"]
 
 VARIETY_MINOR_VERSION = 3
 """The minor format version that defines crowd variety (spec 22.4)."""
@@ -101,3 +103,36 @@ def problems(n: int, *, tint=None, variant=None, parts=None, variant_count: int 
                 out.append(("variety.parts", "parts", f"{int(bad.sum())} parts mask(s) name no part; the first is "
                             f"{int(array[first])} at instance {first}, and the instancer has {named}"))
     return out
+
+
+def socket_prop(bind_transform, points, normals=None) -> tuple:
+    """The rest points and normals of a prop part attached at the socket of a bone (spec 22.3, "Props
+    at sockets"): ``points`` (and ``normals``) are modelled in the joint's own space, ``bind_transform``
+    is the joint's bind transform ``B_b`` (column vectors, 4x4, spec 8.4). The prop is bound rigidly to
+    the bone (one influence, weight 1), so its skinned points are ``M_b B_b p = J_b p``: the socket.
+
+    Returns:
+        ``(rest_points, rest_normals)``: ``B_b p`` as (V, 3) float64, and the normals turned by the
+        inverse transpose of ``B_b``'s linear part and made unit length (None without normals).
+    """
+    bind = np.asarray(bind_transform, dtype=np.float64).reshape(4, 4)
+    local = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    rest = local @ bind[:3, :3].T + bind[:3, 3]
+    if normals is None:
+        return rest, None
+    turned = np.asarray(normals, dtype=np.float64).reshape(-1, 3) @ np.linalg.inv(bind[:3, :3])
+    return rest, turned / np.linalg.norm(turned, axis=1, keepdims=True)
+
+
+def level_part_names(mesh_paths, root: str) -> tuple:
+    """The names a parts mask may give a part of an animation with levels of detail (spec 22.3, "Parts
+    and levels of detail"): the names of the children of its level prims (``<root>/<level>/<name>``),
+    which hold that level's meshes of the part, in the order of first appearance. ``mesh_paths`` are the
+    animation's bound meshes, ``root`` its UsdLod root's path."""
+    out = []
+    prefix = root.rstrip("/") + "/"
+    for path in mesh_paths:
+        rest = str(path)[len(prefix):].split("/") if str(path).startswith(prefix) else []
+        if len(rest) >= 2 and rest[1] not in out:
+            out.append(rest[1])
+    return tuple(out)

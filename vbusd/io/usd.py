@@ -337,11 +337,13 @@ def _write_crowd(stage, pxr, crowd: Crowd, vb: VirtualBones) -> None:
     """An asset's crowd: its prototype references the animation's bound meshes (or its LOD root)."""
     Sdf = pxr[1]
     targets = (vb.lods.root,) if vb.lods is not None else tuple(m.path for m in vb.meshes)
-    write_instancer(stage, crowd, vb.path, Sdf.Path(vb.path).name, targets, mask_count=len(vb.masks))
+    parts = variety.level_part_names([m.path for m in vb.meshes], vb.lods.root) if vb.lods is not None else ()
+    write_instancer(stage, crowd, vb.path, Sdf.Path(vb.path).name, targets, mask_count=len(vb.masks),
+                    part_children=parts)
 
 
 def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets, *, mask_count: int = 0,
-                    show_targets: bool = False):
+                    show_targets: bool = False, part_children=()):
     """Author one UsdGeomPointInstancer with VirtualBonesInstancingAPI (spec 15, "Instancing").
 
     The one author of a Virtual Bones point instancer, for :func:`write_asset` (an asset's crowds)
@@ -437,7 +439,9 @@ def write_instancer(stage, crowd: Crowd, animation: str, prototype: str, targets
             primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex).Set(
                 vt.FromNumpy(np.ascontiguousarray(array, dtype=dtype)))
     if crowd.varied:
-        _write_variety(stage, pxr, prim, primvars, crowd, [name for name in unique_names(
+        # Parts (spec 22.3) are the prototype's children, or with levels of detail the children of
+        # the level prims (``part_children``: the targets are the LOD root).
+        _write_variety(stage, pxr, prim, primvars, crowd, list(part_children) or [name for name in unique_names(
             [target.name for target in targets])])
     return instancer
 
@@ -807,6 +811,8 @@ class CharacterInstancer:
     animation: str
     targets: tuple
     mask_count: int = 0
+    part_children: tuple = ()
+    """With levels of detail, the names parts may have (the level prims' children, spec 22.3); else empty."""
 
 
 def write_crowd_layer(output, characters, instancers, *, up_axis: str, meters_per_unit: float,
@@ -866,6 +872,7 @@ def write_crowd_layer(output, characters, instancers, *, up_axis: str, meters_pe
         # The character's own copy is invisible; its referenced meshes draw only as instances.
         write_instancer(stage, instancer.crowd, inside(character, instancer.animation), character.name,
                         [inside(character, target) for target in instancer.targets], mask_count=instancer.mask_count,
+                        part_children=instancer.part_children,
                         show_targets=True)
     write_layer(stage.GetRootLayer(), output, replace=replace, what="crowd layer")
 

@@ -58,7 +58,7 @@ from vbusd.format.metadata import parents_problem
 from vbusd.format.motion import markers_from_dict, motion_problems, spaces_from_dict
 from vbusd.format.rootmotion import RootMotion
 from vbusd.io.textures import read_texture
-from vbusd.io.usd_lod import levels_of
+from vbusd.io.usd_lod import LOD_ROOT_API, levels_of
 from vbusd.io.usd_lod import levels_of_animation
 __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "read_asset", "read_animation_attributes",
            "texture_disagreements",
@@ -1458,7 +1458,11 @@ def read_variety_properties(prim, n: int, fail, newer=None) -> dict:
     if part_names:
         children = set()
         for prototype in (instancer_prototypes(prim)):
-            children.update(child.GetName() for child in prototype.GetChildren())
+            for child in prototype.GetChildren():
+                children.add(child.GetName())
+                # Levels of detail (spec 22.3): a LOD root's parts are the children of its level prims.
+                if LOD_ROOT_API in child.GetAppliedSchemas():
+                    children.update(item.GetName() for level in child.GetChildren() for item in level.GetChildren())
         unknown = [name for name in part_names if name not in children]
         if len(set(part_names)) != len(part_names) or unknown or len(part_names) > variety.MAX_PARTS:
             fail("variety.parts", f"{names.PART_NAMES} {list(part_names)} must be unique, at most "

@@ -486,6 +486,8 @@ class _Animation:
     """For each of the character's clips (its first animation's), this animation's clip index."""
     mask_names: tuple = ()
     """The bone masks the animation stores (format 1.2), in order: a layer's mask index is into these."""
+    part_children: tuple = ()
+    """With levels of detail, the names its parts may have: the level prims' children (spec 22.3)."""
 
 
 @dataclass(frozen=True)
@@ -554,7 +556,9 @@ def _character(path: Path, index: int, used: set) -> _Character:
     animations = tuple(_Animation(path=vb.path, mesh_paths=(vb.lods.root,) if vb.lods is not None else
                                   tuple(m.path for m in vb.meshes),
                                   clip_of=_clip_map(lead, vb, str(path)),
-                                  mask_names=tuple(name for name, _ in vb.masks)) for vb in drawn)
+                                  mask_names=tuple(name for name, _ in vb.masks),
+                                  part_children=variety.level_part_names([m.path for m in vb.meshes], vb.lods.root)
+                                  if vb.lods is not None else ()) for vb in drawn)
     base = "".join(c if c.isalnum() or c == "_" else "_" for c in path.stem) or "Character"
     if base[0].isdigit():
         base = "_" + base
@@ -626,6 +630,8 @@ def _check_masks(layers, cast) -> None:
 
 def _prototype_children(animation) -> list:
     """The names the prototype gives the animation's targets (spec 15: named after each, made unique)."""
+    if animation.part_children:  # levels of detail: the prototype holds the LOD root, parts sit below its levels
+        return list(animation.part_children)
     return unique_names([path.rsplit("/", 1)[-1] for path in animation.mesh_paths])
 
 
@@ -838,7 +844,8 @@ def build_crowd(characters: Sequence, output, options: CrowdOptions = CrowdOptio
                           clip=clip_of[clip], time_offset=offsets.astype(np.float32),
                           playback_rate=rate[mine].astype(np.float32), **extra)
             instancers.append(CharacterInstancer(crowd=crowd, character=character.name, animation=animation.path,
-                                                 targets=animation.mesh_paths, mask_count=len(animation.mask_names)))
+                                                 targets=animation.mesh_paths, mask_count=len(animation.mask_names),
+                                                 part_children=animation.part_children))
     characters_held = [CharacterReference(name=c.name, reference=reference, default_prim=c.default_prim,
                                           crowd_paths=c.crowd_paths) for c, reference in zip(cast, references)]
     # One commit as every vbusd output (spec, "File names and the write guarantee"): under the

@@ -357,16 +357,33 @@ def _variant_materials(stage, group: str, crowd) -> list:
     return paths
 
 
-def _variety_of(crowd, materials: list, mesh_names: list):
-    """Per instance: display colour (variant base colour x tint), material path or None, hidden part names."""
+def _fallback_parts(vb) -> list:
+    """(path of the mesh in the fallback character, relative to its SkelRoot; the part it belongs to) of
+    each bound mesh: the mesh's own name without levels; with levels (spec 22.3, parts and levels of
+    detail) ``<LOD root>/<level>/<mesh>``, in the part its level prim's child names."""
+    names = _unique([m.path.rsplit("/", 1)[-1] for m in vb.meshes], "Mesh")
+    if vb.lods is None:
+        return [(name, name) for name in names]
+    root = vb.lods.root.rstrip("/")
+    out = []
+    for mesh, name in zip(vb.meshes, names):
+        below = mesh.path[len(root) + 1:].split("/") if mesh.path.startswith(root + "/") else []
+        out.append((f"{root.rsplit('/', 1)[-1]}/{vb.lods.item_name(mesh.lod)}/{name}", below[1] if len(below) >= 2 else None))
+    return out
+
+
+def _variety_of(crowd, materials: list, mesh_parts: list):
+    """Per instance: display colour (variant base colour x tint), material path or None, and the paths
+    (relative to the instance) of the meshes of the parts its mask hides; ``mesh_parts`` is
+    :func:`_fallback_parts`."""
     tint, variant, parts = crowd.variety_arrays()
     colors = np.asarray(crowd.variant_colors if crowd.variant_colors is not None
                         else np.ones((max(len(crowd.variant_names), 1), 3)), dtype=np.float64)
     base = np.where((variant >= 0)[:, None], colors[np.clip(variant, 0, len(colors) - 1)], 1.0)
     display = base * tint
     material = [materials[v] if 0 <= v < len(materials) else None for v in variant]
-    hidden = [[name for j, name in enumerate(crowd.part_names) if not (int(m) >> j) & 1 and name in mesh_names]
-              for m in parts]
+    bits = {name: j for j, name in enumerate(crowd.part_names)}
+    hidden = [[path for path, part in mesh_parts if part in bits and not (int(m) >> bits[part]) & 1] for m in parts]
     return display, material, hidden
 
 
@@ -402,7 +419,9 @@ def _instance_specs(layer, parent: str, character: str, names, offsets, scales, 
                     binding = Sdf.RelationshipSpec(spec, "material:binding", custom=False)
                     binding.targetPathList.Prepend(material[i])
                 for part in hidden[i]:
-                    over = Sdf.PrimSpec(spec, part, Sdf.SpecifierOver)
+                    over = spec
+                    for element in part.split("/"):  # with levels, the mesh lies below the LOD root's level prim
+                        over = over.nameChildren.get(element) or Sdf.PrimSpec(over, element, Sdf.SpecifierOver)
                     Sdf.AttributeSpec(over, "visibility", Sdf.ValueTypeNames.Token).default = UsdGeom.Tokens.invisible
 
 
@@ -527,8 +546,7 @@ def export_usdskel(asset: VirtualBonesAsset, output, *, source: Optional[Path] =
             variety = None
             if crowd.varied:
                 materials = _variant_materials(stage, f"/{default}/{crowd_name}", crowd)
-                variety = _variety_of(crowd, materials, _unique([m.path.rsplit("/", 1)[-1] for m in vb.meshes],
-                                                                "Mesh") if vb.lods is None else [])
+                variety = _variety_of(crowd, materials, _fallback_parts(vb))
             pending.append((f"/{default}/{crowd_name}", character, [f"i{k:0{width}d}" for k in range(count)],
                             offsets, scales, chosen, np.asarray(crowd.positions, dtype=np.float64), quats,
                             None if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64), variety))

@@ -10,8 +10,8 @@ import {
 
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
-  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, varietyOf, DEFAULT_FRAME_INTERVAL,
-  PreviousFrame,
+  checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, DEFAULT_FRAME_INTERVAL,
+  PreviousFrame, moveInstance,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -214,6 +214,9 @@ export class VirtualBonesCrowd extends Group {
       if (bit >= 0 && instances.parts && attributes === shared) {
         // A part (spec 22.3): its own matrices, zero for the instances that do not show it.
         mesh.instanceMatrix = new InstancedBufferAttribute(partMatrices(instances.matrices, instances.parts, bit), 16);
+      } else if (bit >= 0 && instances.parts) {
+        // A part at a level of detail: its own compact list, written by updateLevels with the mask applied.
+        mesh.instanceMatrix = new InstancedBufferAttribute(new Float32Array(16 * instances.count), 16).setUsage(DynamicDrawUsage);
       }
       if (!skinMaterial) {
         mesh.customDepthMaterial = patchMaterial(new MeshDepthMaterial({ depthPacking: RGBADepthPacking }), animation, entry.maxInfluences, binding);
@@ -258,6 +261,8 @@ export class VirtualBonesCrowd extends Group {
         return mesh;
       }));
       this.meshes = this.levels[0];
+      // The part meshes of each level (spec 22.3): their own matrices, the mask applied per slot.
+      this.levelParts = this.levels.map((meshes) => meshes.filter((mesh) => instances.parts && mesh.userData.virtualBones.part >= 0));
     } else {
       this.meshes = meshes.map((entry, index) => makeMesh(entry, index, shared));
     }
@@ -422,6 +427,38 @@ export class VirtualBonesCrowd extends Group {
     return rootMotionMatrix(this.animation, this.rootMotion, clip, offset + rate * t0, offset + rate * t1);
   }
 
+  /**
+   * Move every instance by its root motion between scene times `t0` and `t1` (spec 8.5:
+   * rootMotionMatrix, applied in the instance's own space), so that a crowd baked in place walks:
+   * call it each frame with the last frame's time and this one's. The placements change, and with
+   * them every mesh's, the part meshes' included (spec 22.3: a part moves with its instance), and the
+   * levels' lists at the next updateLevels. Without root motion nothing moves.
+   */
+  applyRootMotion(t0, t1) {
+    if (!this.rootMotion) return;
+    const matrices = this.instanceMatrix.array;
+    for (let i = 0; i < this.capacity; ++i) moveInstance(matrices, i, this.rootMotionMatrix(i, t0, t1).elements);
+    this.instanceMatrix.needsUpdate = true;
+    this.applyParts();
+    this.updateBounds();
+  }
+
+  /**
+   * Parts (format 1.3, spec 22.3): rewrite each part mesh's matrices from the crowd's placements,
+   * collapsed where the mask hides the part. The constructor sets them; call it after changing
+   * `instanceMatrix` (applyRootMotion does). With levels, updateLevels writes them instead.
+   */
+  applyParts() {
+    const parts = this.instances.parts;
+    if (!parts || this.levels) return;
+    for (const mesh of this.meshes) {
+      const bit = mesh.userData.virtualBones.part;
+      if (bit < 0 || mesh.instanceMatrix === this.instanceMatrix) continue;
+      mesh.instanceMatrix.array.set(partMatrices(this.instanceMatrix.array, parts, bit));
+      mesh.instanceMatrix.needsUpdate = true;
+    }
+  }
+
   /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */
   varietyOf(index) { return varietyOf(this.instances, index); }
 
@@ -468,6 +505,7 @@ export class VirtualBonesCrowd extends Group {
     const counts = this.levelCounts.fill(0);
     const thresholds = this.screenSizes;
     const source = { matrix: this.instanceMatrix.array, clip: this.clipAttribute.array, time: this.timeAttribute.array, fadeClip: this.fadeClipAttribute.array, fade: this.fadeAttribute.array };
+    const parts = this.instances.parts;
     for (let i = 0; i < this.drawn; ++i) {
       instance.fromArray(source.matrix, 16 * i);
       world.multiplyMatrices(this.matrixWorld, instance);
@@ -493,6 +531,8 @@ export class VirtualBonesCrowd extends Group {
       target.fadeClip.array[at] = source.fadeClip[i];
       target.fade.array.set(source.fade.subarray(3 * i, 3 * i + 3), 3 * at);
       target.previousFade.array.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
+      // Parts (spec 22.3): the level's part meshes draw the slot collapsed where the mask hides them.
+      for (const mesh of this.levelParts[level]) partMatrixAt(mesh.instanceMatrix.array, at, source.matrix, i, parts[i], mesh.userData.virtualBones.part);
     }
     this.levels.forEach((meshes, level) => {
       const attributes = this.levelAttributes[level];
@@ -503,6 +543,11 @@ export class VirtualBonesCrowd extends Group {
         attribute.needsUpdate = true;
       }
       for (const mesh of meshes) mesh.count = counts[level];
+      for (const mesh of this.levelParts[level]) {
+        mesh.instanceMatrix.clearUpdateRanges();
+        if (counts[level]) mesh.instanceMatrix.addUpdateRange(0, counts[level] * 16);
+        mesh.instanceMatrix.needsUpdate = true;
+      }
     });
   }
 

@@ -108,6 +108,10 @@ export class VirtualBonesCrowd extends Group {
   socketMatrix(index: number, bone: number, time: number): Matrix4;
   /** Root motion (spec 8.5) of instance `index` between scene times t0 and t1, in animation space. */
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix4;
+  /** Move every instance by its root motion between scene times t0 and t1 (spec 8.5); part meshes follow (spec 22.3). */
+  applyRootMotion(t0: number, t1: number): void;
+  /** Rewrite the part meshes' matrices from the placements, collapsed where the mask hides a part (spec 22.3). */
+  applyParts(): void;
   rootMotion: { upAxis: string; tracks: number[][][] } | null;
   /** What instance `index` shows (format 1.3 crowd variety). */
   varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };

@@ -7,7 +7,7 @@ import {
 } from '@babylonjs/core';
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
-  screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, varietyOf,
+  screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, moveInstance,
   DEFAULT_FRAME_INTERVAL, PreviousFrame,
 } from '@vbusd/core';
 
@@ -195,8 +195,14 @@ export class VirtualBonesCrowd {
     else if (mat.metadata?.virtualBones) mat = mat.clone(`${mat.name} (${mesh.name})`);
     skinMaterial(mat, this.animation, maxInfluences, { skin: this.skin, skinTexture, layers: this.layered });
     mesh.material = mat;
+    const part = partBit(entry.name ?? mesh.name, this.instances.partNames);  // applyParts() and updateLevels use it
+    let partMatrix = null;
+    if (buffers && part >= 0 && this.instances.parts) {
+      // A part at a level of detail (spec 22.3): its own compact matrices, the mask applied by updateLevels.
+      partMatrix = new Float32Array(buffers.matrix.length);
+      mesh.thinInstanceSetBuffer('matrix', partMatrix, 16, false);
+    } else if (buffers) mesh.thinInstanceSetBuffer('matrix', buffers.matrix, 16, false);
     if (buffers) {
-      mesh.thinInstanceSetBuffer('matrix', buffers.matrix, 16, false);
       mesh.thinInstanceSetBuffer('vb_instanceA', buffers.a, 4, false);
       mesh.thinInstanceSetBuffer('vb_instanceB', buffers.b, 4, false);
       mesh.thinInstanceSetBuffer('vb_instancePreviousFade', buffers.p, 4, false);
@@ -213,7 +219,6 @@ export class VirtualBonesCrowd {
         if (mat.albedoColor) mat.albedoColor = new Color3(1, 1, 1);
       }
     }
-    const part = buffers ? -1 : partBit(entry.name ?? mesh.name, this.instances.partNames);  // applyParts() uses it
     if (this.layered) {
       mesh.thinInstanceSetBuffer('vb_instanceC', this.instanceC, 4, true);
       mesh.thinInstanceSetBuffer('vb_instanceD', this.instanceD, 4, true);
@@ -223,7 +228,7 @@ export class VirtualBonesCrowd {
     mesh.alwaysSelectAsActiveMesh = true;
     const hasNormals = mesh.isVerticesDataPresent('normal');
     mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals, pointCount: vertexCount,
-      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part } };
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part, partMatrix } };
     return mesh;
   }
 
@@ -248,6 +253,28 @@ export class VirtualBonesCrowd {
       const bit = mesh.metadata.virtualBones.part;
       if (bit >= 0) mesh.thinInstanceSetBuffer('matrix', partMatrices(source, parts, bit), 16, false);
     }
+  }
+
+  /**
+   * Move every instance by its root motion between scene times `t0` and `t1` (spec 8.5:
+   * rootMotionMatrix, applied in the instance's own space), as the three.js crowd's: the placements
+   * change, and with them every mesh's thin-instance matrices, the part meshes' included (spec
+   * 22.3: a part moves with its instance), and the levels' at the next updateLevels.
+   */
+  applyRootMotion(t0, t1) {
+    if (!this.rootMotion) return;
+    if (!this.matrices) {
+      // An adopted glTF crowd keeps its placements in its meshes' thin instances: hold them here, once.
+      const base = this.meshes.find((mesh) => mesh.metadata.virtualBones.part < 0) ?? this.meshes[0];
+      this.matrices = new Float32Array(16 * this.capacity);
+      base.thinInstanceGetWorldMatrices().forEach((m, i) => m.copyToArray(this.matrices, 16 * i));
+      if (!this.levels) {
+        for (const mesh of this.meshes) if (!(mesh.metadata.virtualBones.part >= 0 && this.instances.parts)) mesh.thinInstanceSetBuffer('matrix', this.matrices, 16, false);
+      }
+    }
+    for (let i = 0; i < this.capacity; ++i) moveInstance(this.matrices, i, this.rootMotionMatrix(i, t0, t1).m);
+    this._updated('matrix');
+    this.applyParts();
   }
 
   /** What instance `index` shows (format 1.3 crowd variety): `{tint, variant, variantName, parts, partNames}`. */
@@ -341,6 +368,11 @@ export class VirtualBonesCrowd {
       target.a.set(this.instanceA.subarray(4 * i, 4 * i + 4), 4 * at);
       target.b.set(this.instanceB.subarray(4 * i, 4 * i + 4), 4 * at);
       target.p.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
+      // Parts (spec 22.3): the level's part meshes draw the slot collapsed where the mask hides them.
+      for (const mesh of this.levels[level]) {
+        const { part, partMatrix } = mesh.metadata.virtualBones;
+        if (partMatrix) partMatrixAt(partMatrix, at, target.matrix, at, this.instances.parts[i], part);
+      }
     }
     this.levels.forEach((meshes, level) => {
       for (const mesh of meshes) {

@@ -80,6 +80,8 @@ export class VirtualBonesCrowd {
   /** What instance `index` shows (format 1.3 crowd variety). */
   varietyOf(index: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix;
+  /** Move every instance by its root motion between scene times t0 and t1 (spec 8.5); part meshes follow (spec 22.3). */
+  applyRootMotion(t0: number, t1: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix;
   instanceMatrix(index: number): Matrix;
   /** Each level's meshes (null without levels of detail). */

@@ -18,7 +18,7 @@ export {
 export {
   fromHalf, rowPosition, boneRows, elementsFromRows, multiply, jointElements, rootMotionElements,
 } from './decode.js';
-export { clipTime, evaluateSamples, placementMatrices, singleInstance } from './playback.js';
+export { clipTime, evaluateSamples, placementMatrices, singleInstance, moveInstance } from './playback.js';
 export { DEFAULT_FRAME_INTERVAL, checkFrameInterval, previousClipTime, PreviousFrame } from './previous.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
 export {
@@ -28,4 +28,4 @@ export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { RUNTIME_LAYERS, packagePlayback } from './package.js';
 export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';
 export { PROBE_VARYINGS, probeProgram, probeOutputs, runFeedback, assetOrder, concatenate } from './feedback.js';
-export { isVaried, instanceColors, partBit, partMatrices, varietyOf, packageVariety } from './variety.js';
+export { isVaried, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, packageVariety } from './variety.js';

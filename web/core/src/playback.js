@@ -71,3 +71,21 @@ export function singleInstance(clip = 0) {
     playbackRate: new Float32Array([1]),
   };
 }
+
+/**
+ * Move instance `i` of `matrices` (16 column-major numbers per instance) by `delta`, a displacement
+ * in the instance's own animation space (root motion, spec 8.5: rootMotionElements): its placement
+ * P becomes P * delta, so the character walks along its own heading. In place; returns `matrices`.
+ * A runtime then re-derives what copies the placement (its part meshes' matrices, spec 22.3).
+ */
+export function moveInstance(matrices, i, delta) {
+  const p = Array.from(matrices.subarray(16 * i, 16 * i + 16));
+  for (let c = 0; c < 4; ++c) {
+    for (let r = 0; r < 4; ++r) {
+      let sum = 0;
+      for (let k = 0; k < 4; ++k) sum += p[4 * k + r] * delta[4 * c + k];
+      matrices[16 * i + 4 * c + r] = sum;
+    }
+  }
+  return matrices;
+}

@@ -56,6 +56,18 @@ export function partMatrices(matrices, parts, bit) {
   return out;
 }
 
+/**
+ * One instance's matrix of a part's mesh into slot `at` of `out` (a level's compact instance list,
+ * spec 22.3 "Parts and levels of detail"): instance `i` of `matrices`, its linear part zero when
+ * mask `mask` leaves part `bit` out (as partMatrices). Levels choose where an instance is drawn,
+ * the mask whether its part is: both apply.
+ */
+export function partMatrixAt(out, at, matrices, i, mask, bit) {
+  out.set(matrices.subarray(16 * i, 16 * i + 16), 16 * at);
+  if (bit >= 0 && !((mask >> bit) & 1)) out.fill(0, 16 * at, 16 * at + 12);
+  return out;
+}
+
 /** What instance `i` shows: `{tint: [r, g, b], variant (-1: none), variantName, parts (mask), partNames}`. */
 export function varietyOf(instances, i) {
   const { tint = null, variant = null, parts = null, variantNames = [], partNames = [] } = instances;

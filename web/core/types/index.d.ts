@@ -152,5 +152,9 @@ export function isVaried(instances: VarietyInstances): boolean;
 export function instanceColors(instances: VarietyInstances): Float32Array | null;
 export function partBit(meshName: string, partNames?: string[]): number;
 export function partMatrices(matrices: Float32Array, parts: Int32Array | null, bit: number): Float32Array;
+/** Instance i's matrix of a part into slot `at` of a level's list, collapsed where `mask` hides part `bit` (spec 22.3). */
+export function partMatrixAt(out: Float32Array, at: number, matrices: Float32Array, i: number, mask: number, bit: number): Float32Array;
+/** Placement i becomes P * delta (root motion in the instance's own space, spec 8.5); in place. */
+export function moveInstance(matrices: Float32Array, i: number, delta: ArrayLike<number>): Float32Array;
 export function varietyOf(instances: VarietyInstances, i: number): { tint: number[]; variant: number; variantName: string | null; parts: number; partNames: string[] };
 export function packageVariety(json: object, meshIndex: number, arrays?: { tint?: ArrayLike<number> | null; variant?: ArrayLike<number> | null; parts?: ArrayLike<number> | null }, count?: number): Partial<VarietyInstances>;
