@@ -202,7 +202,7 @@ def reference_instance(asset, instance: int, t: float):
 
 def check_probe(page: ViewerPage, asset, instance: int, t: float) -> tuple[float, float]:
     """Probe the page and compare with the decoder; returns (position error / diagonal, normal error)."""
-    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
     positions = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
     normals = np.asarray(result["normals"], dtype=np.float64).reshape(-1, 3)
     expected_positions, expected_normals = reference_instance(asset, instance, t)
@@ -293,7 +293,7 @@ def package_probe_errors(browser, package: Path, engine: str, asset, probes, que
             if check is not None:
                 check(page)
             for instance, t in probes:
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
                 expected_positions, expected_normals = reference_instance(asset, instance, t)
                 positions = np.asarray(result["positions"]).reshape(-1, 3)
                 expected = package_vertices(asset, expected_positions)

@@ -290,7 +290,7 @@ def pose_difference(page, instance: int, t: float, theirs_script: str = CLONE_PO
     """Largest nearest-vertex distance between vbusd's probe and the engine's own pose (three's CPU
     skinning of the clone, or Babylon's BVA evaluated on the CPU), over the bounding-box diagonal
     (symmetric)."""
-    ours = np.asarray(page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])["positions"]).reshape(-1, 3)
+    ours = np.asarray(page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])["positions"]).reshape(-1, 3)
     theirs = np.asarray(page.page.evaluate(theirs_script, [instance, t])).reshape(-1, 3)
     # Every pairwise distance, a block of rows at a time (the same numbers as one (V, V', 3) array,
     # without its hundreds of MB for a 3,000-vertex character).
