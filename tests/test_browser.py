@@ -173,7 +173,7 @@ def test_runtime_layers_match_threejs_animation_mixer_on_the_fox(browser, shared
         try:
             assert page.error == "", page.error
             for instance, theirs in enumerate(expected):
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, 0.0])
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, 0.0])
                 ours = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
                 diagonal = float(np.linalg.norm(theirs.max(0) - theirs.min(0)))
                 error = float(np.abs(ours - theirs).max()) / diagonal
@@ -241,7 +241,7 @@ def test_frustum_culling_bounds_cover_every_pose(browser, bar_crowd):
             outside_rest = 0
             for instance in range(crowd.instance_count):
                 for t in np.linspace(0.0, 4.0, 9):
-                    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, float(t)])
+                    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, float(t)])
                     points = np.asarray(result["positions"]).reshape(-1, 3)
                     assert (points >= low - 1e-4).all() and (points <= high + 1e-4).all(), (instance, t)
                     local = (points - crowd.positions[instance]) @ _rotation(crowd.orientations[instance]) \

@@ -70,14 +70,25 @@ def open_page(browser, server: ViewerServer, query: str = "") -> ViewerPage:
     return open_engine_page(browser, server, PAGE + query)
 
 
-def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None) -> list:
-    """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by ``engine``."""
+def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None, check=None) -> list:
+    """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
+    ``engine``; ``check(page)`` looks at the same page first."""
 
-    def pulled(page):  # every crowd draws with the records, no bone streams
-        assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
+    def checks(page):
+        if "skin=pulled" in query:  # every crowd draws with the records, no bone streams
+            assert set(page.page.evaluate("window.vbusd.crowds.map((crowd) => crowd.skin)")) == {"pulled"}
+        if check is not None:
+            check(page)
 
-    return engine_probe_errors(browser, path, engine, probes, query=query, asset=asset,
-                               check=pulled if "skin=pulled" in query else None)
+    return engine_probe_errors(browser, path, engine, probes, query=query, asset=asset, check=checks)
+
+
+def layers_matter(asset, instance: int, t: float, found: list):
+    """A page check: the probe of ``instance`` at ``t`` is more than 1e-3 of the diagonal away from
+    the decoder of ``asset`` without its layers (appended to ``found``), so the probes saw them (on
+    the page the probes use: a second page would compile the engine's shaders again)."""
+    plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
+    return lambda page: found.append(check_probe(page, plain, instance, t)[0])
 
 
 @pytest.mark.parity('compact encoding (uint32)')
@@ -109,21 +120,13 @@ def layered_stadium(tmp_path_factory):
 def test_layers_with_masks(browser, layered_stadium, engine):
     asset = vbusd.read_asset(layered_stadium)
     assert asset.crowds[0].layered
-    errors = probe_errors(browser, layered_stadium, engine, [(i, 0.83) for i in range(6)], asset=asset)
+    plain = []
+    errors = probe_errors(browser, layered_stadium, engine, [(i, 0.83) for i in range(6)], asset=asset,
+                          check=layers_matter(asset, 4, 0.83, plain))
     print(engine, "layers", errors)
     assert_within(errors, engine)
     # The layers matter: without them instance 4 is elsewhere.
-    plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
-    assert check_probe_of(browser, layered_stadium, engine, plain, 4, 0.83) > 1e-3
-
-
-def check_probe_of(browser, path, engine, asset, instance, t) -> float:
-    with ViewerServer(path, engine=engine) as server:
-        page = open_page(browser, server)
-        try:
-            return check_probe(page, asset, instance, t)[0]
-        finally:
-            page.close()
+    assert plain[0] > 1e-3
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +171,7 @@ def check_fade_window(browser, served: Path, engine: str, character: Path, value
             assert page.error == "", page.error
             for t in (0.2, 0.9, 1.25, 1.8):
                 for i in (0, 5, 11):
-                    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [i, t])
+                    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [i, t])
                     got = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
                     expected = crowd_by_hand(character, values, i, t, weight_at)
                     diagonal = float(np.linalg.norm(np.ptp(expected, axis=0)))
@@ -293,7 +296,7 @@ def test_levels_of_detail(browser, lod_row, engine, record_property):
             assert levels["triangles"] == sum(triangles)
             check_level_parts(page, engine, asset, expected_levels)
             for instance, level in enumerate(expected_levels):
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
                 assert result["lod"] == level
                 if level < 0:
                     continue
@@ -795,12 +798,13 @@ def test_gltf_package_of_a_layered_crossfading_crowd(browser, layered_stadium, f
     asset = vbusd.read_asset(layered_stadium)
     package = tmp_path / "layered.glb"
     export_gltf(asset, package)
-    errors = probe_errors(browser, package, engine, [(i, 0.83) for i in range(6)], asset=asset)
+    plain = []
+    errors = probe_errors(browser, package, engine, [(i, 0.83) for i in range(6)], asset=asset,
+                          check=layers_matter(asset, 4, 0.83, plain))
     print(engine, "layered glb", errors)
     assert_within(errors, engine)
     # The layers matter: without them instance 4 is elsewhere, so the probes above saw them.
-    plain = dataclasses.replace(asset, crowds=(dataclasses.replace(asset.crowds[0], layer_weight=None),))
-    assert check_probe_of(browser, package, engine, plain, 4, 0.83) > 1e-3
+    assert plain[0] > 1e-3
 
     character, path = fade_window_crowd
     package = tmp_path / "fade_window.glb"
@@ -927,7 +931,7 @@ def check_root_motion_moves_parts(page, engine: str, asset, before: np.ndarray) 
             shown = bit < 0 or bool(crowd.parts[i] >> bit & 1)
             np.testing.assert_allclose(mesh["matrices"][i], expected_part_matrix(moved[i], shown), atol=1e-5,
                                        err_msg=f"{engine} {name} instance {i} after root motion")
-    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [VARIETY_MOVED, VARIETY_TIME])
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [VARIETY_MOVED, VARIETY_TIME])
     after = np.asarray(result["positions"], np.float64).reshape(-1, 3)
     change = moved[VARIETY_MOVED] @ np.linalg.inv(place[VARIETY_MOVED])
     expected = before @ change[:3, :3].T + change[:3, 3]
@@ -970,7 +974,7 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
             for i in range(len(VARIETY_XS)):
                 position_error, normal_error = check_probe(page, asset, i, VARIETY_TIME)
                 assert position_error <= POSITION_TOLERANCE and normal_error <= NORMAL_TOLERANCE, (i, position_error)
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [i, VARIETY_TIME])
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [i, VARIETY_TIME])
                 np.testing.assert_allclose(result["tint"], tints[i], rtol=1e-6)
                 assert result["variant"] == variants[i] and result["variantName"] == variant_names[variants[i]]
                 assert result["parts"] == parts[i] and result["partNames"] == part_names

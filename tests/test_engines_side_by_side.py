@@ -31,7 +31,7 @@ def test_clones_play_the_vbusd_clip_time(bench, webgpu_browser, tmp_path):
     source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     crowd = bench.build_crowd(source, tmp_path, 4)
     with ViewerServer(crowd, engine="three-webgpu", allow_outside_paths=True) as server:
-        page = ViewerPage(browser, server.url + "?ui=0&paused=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + "?ui=0&paused=1&silhouette=1&width=320&height=180")
         try:
             assert page.error == "", page.error
             ours = page.page.evaluate(bench.MEASURE, [1, "vbusd", ""])
@@ -61,7 +61,7 @@ def test_babylon_bva_plays_the_vbusd_clip_time(bench, browser, tmp_path):
     source = shared_asset("gltf", "CesiumMan", "CesiumMan.glb")
     crowd = bench.build_crowd(source, tmp_path, 4)
     with ViewerServer(crowd, engine="babylon", allow_outside_paths=True) as server:
-        page = ViewerPage(browser, server.url + "?ui=0&paused=1&width=320&height=180")
+        page = ViewerPage(browser, server.url + "?ui=0&paused=1&silhouette=1&width=320&height=180")
         try:
             assert page.error == "", page.error
             ours = page.page.evaluate(bench.MEASURE_BABYLON, [1, "vbusd", ""])

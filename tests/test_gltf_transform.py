@@ -146,7 +146,7 @@ def test_optimized_crowd_animates_in_the_browser(browser, packages, skin):
             check_skin_binding(page, skin)  # pulled: records packed from the de-interleaved skin
             previous = None
             for instance, t in probes:
-                probe = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                probe = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
                 positions = np.asarray(probe["positions"], dtype=np.float64).reshape(-1, 3)
                 expected, _ = reference_instance(asset, instance, t)
                 assert positions.shape[0] > 0

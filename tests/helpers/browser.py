@@ -257,7 +257,7 @@ def reference_instance(asset, instance: int, t: float, level: int = 0):
 def check_probe(page: ViewerPage, asset, instance: int, t: float) -> tuple[float, float]:
     """Probe the page and compare with the decoder at the level of detail the page drew (the
     probe's ``lod``; 0 without levels); returns (position error / diagonal, normal error)."""
-    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+    result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
     level = result.get("lod") or 0
     assert level >= 0, f"instance {instance} is culled: nothing to probe"
     positions = np.asarray(result["positions"], dtype=np.float64).reshape(-1, 3)
@@ -351,7 +351,7 @@ def package_probe_errors(browser, package: Path, engine: str, asset, probes, que
             if check is not None:
                 check(page)
             for instance, t in probes:
-                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t)", [instance, t])
+                result = page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])
                 expected_positions, expected_normals = reference_instance(asset, instance, t)
                 positions = np.asarray(result["positions"]).reshape(-1, 3)
                 expected = package_vertices(asset, expected_positions)

@@ -116,6 +116,10 @@ async function main() {
   }
 
   let time = number('time', 0);
+  // Draw only when something changed (time, camera, size), as the three.js viewer does: a paused
+  // page that redraws every animation frame keeps a core busy under software WebGL.
+  let needsRender = true;
+  camera.onViewMatrixChangedObservable.add(() => { needsRender = true; });
   let playing = params.get('paused') !== '1' && !params.has('time');
   // The frame interval of the previous-frame pose (motion vectors, spec 21): ?dt=SECONDS, default
   // 1/60; a playing viewer uses its real frame interval.
@@ -126,6 +130,7 @@ async function main() {
     for (const crowd of crowds) crowd.updateSamples(t);  // a fade over stage time
     for (const crowd of crowds) crowd.updatePrevious(t, dt);
     element('time-label').textContent = `${t.toFixed(2)} s`;
+    needsRender = true;
   };
   element('play').textContent = playing ? 'Pause' : 'Play';
   element('play').onclick = () => { playing = !playing; element('play').textContent = playing ? 'Pause' : 'Play'; };
@@ -133,6 +138,7 @@ async function main() {
   const render = () => {
     for (const crowd of crowds) crowd.updateLevels?.(camera);
     scene.render();
+    needsRender = false;
   };
   await scene.whenReadyAsync();
   render();
@@ -141,10 +147,10 @@ async function main() {
     const now = performance.now();
     if (playing) setTime(time + (now - last) / 1000, now > last ? (now - last) / 1000 : frameInterval);
     last = now;
-    render();
+    if (needsRender) render();
     element('stats').textContent = `frame time: ${engine.getDeltaTime().toFixed(1)} ms, ${crowds.reduce((n, c) => n + c.count, 0)} instances`;
   });
-  window.addEventListener('resize', () => engine.resize());
+  window.addEventListener('resize', () => { engine.resize(); needsRender = true; });
 
   const gl = engine._gl;
   const pixel = new Uint8Array(4);

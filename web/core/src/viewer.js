@@ -55,13 +55,14 @@ export function pageApi(crowds, probeOne, measure, { dt = 1 / 60 } = {}) {
      * `lod`: the level of detail it was drawn with at the last render (-1: culled; 0 without levels;
      * the vertices are that level's, LOD 0's when culled), `previousPositions`: the previous-frame
      * pose for the page's frame interval `dt` (spec 21), and what it shows (format 1.3 crowd
-     * variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. */
-    async probe(instance, t) {
+     * variety): `tint`, `variant`, `variantName`, `parts`, `partNames`. `{previous: false}` leaves
+     * `previousPositions` null (WebGPU then compiles no second compute pass: seconds on software). */
+    async probe(instance, t, { previous = true } = {}) {
       const target = targets[instance];
       if (!target) throw new Error(`no instance ${instance} (the viewer has ${targets.length})`);
-      const result = await probeOne(target[0], target[1], t, { dt });
+      const result = await probeOne(target[0], target[1], t, { dt, previous });
       return { positions: Array.from(result.positions), normals: Array.from(result.normals),
-        previousPositions: Array.from(result.previousPositions ?? []), dt, lod: result.lod,
+        previousPositions: previous ? Array.from(result.previousPositions ?? []) : null, dt, lod: result.lod,
         ...(target[0].varietyOf ? target[0].varietyOf(target[1]) : {}) };
     },
     /** Levels of detail drawn at the last render: per instance (probe numbering), and triangles drawn. */

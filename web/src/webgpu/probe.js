@@ -107,9 +107,10 @@ function meshProbe(renderer, mesh) {
  * computed by the GPU with WebGPURenderer `renderer` (either backend): a Promise of
  * `{positions, normals, previousPositions}` as Float32Arrays, in the order and shape of the WebGL
  * runtime's probeCrowd (meshes in order, points in the asset's order; normals empty for meshes
- * without); previousPositions: the previous-frame pose for frame interval `dt` (spec 21).
+ * without); previousPositions: the previous-frame pose for frame interval `dt` (spec 21), null
+ * with `previous: false` (its compute pass is then not run, nor compiled on first use).
  */
-export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
+export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL, previous = true } = {}) {
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   crowd.updateMatrixWorld(true);
   crowd.updateSamples?.(time);  // a fade over stage time: the instances' fades at `time`
@@ -155,8 +156,11 @@ export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAUL
     const p = await read(probe.positions);
     const n = await read(probe.normals);
     refill();
-    await renderer.computeAsync(probe.previousCompute);
-    const q = await read(probe.positions);
+    let q = new Float32Array(3 * probe.count);
+    if (previous) {
+      await renderer.computeAsync(probe.previousCompute);
+      q = await read(probe.positions);
+    }
     const { pointIndex, hasNormals, pointCount } = mesh.geometry.userData.virtualBones;
     const inAssetOrder = (values) => {
       if (!pointIndex) return values;
@@ -174,5 +178,5 @@ export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAUL
     for (const a of arrays) { out.set(a, at); at += a.length; }
     return out;
   };
-  return { positions: concat(positions), normals: concat(normals), previousPositions: concat(previousPositions), lod };
+  return { positions: concat(positions), normals: concat(normals), previousPositions: previous ? concat(previousPositions) : null, lod };
 }
