@@ -347,7 +347,10 @@ export class VirtualBonesCrowd {
     if (this.adopted && !this._levelMatrices) {
       // The glTF loader's EXT_mesh_gpu_instancing gave the adopted meshes every instance's matrix
       // once the load completed: each level draws its compacted copy instead.
-      this.levels.forEach((meshes, level) => { for (const mesh of meshes) mesh.thinInstanceSetBuffer('matrix', this.levelBuffers[level].matrix, 16, false); });
+      // A part mesh keeps its own matrices (spec 22.3: the slots its mask hides collapsed).
+      this.levels.forEach((meshes, level) => {
+        for (const mesh of meshes) mesh.thinInstanceSetBuffer('matrix', mesh.metadata.virtualBones.partMatrix ?? this.levelBuffers[level].matrix, 16, false);
+      });
       this._levelMatrices = true;
     }
     const { centre, radius } = this._extentSphere();
