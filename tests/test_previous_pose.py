@@ -346,3 +346,26 @@ def test_root_motion_crowd_without_a_track_and_refusals(walking_crowd):
         reference.root_motion_crowd(turning, stretched, 0.5)
     tall = dataclasses.replace(crowd, scales=np.array([[1.0, 3.0, 1.0]] * 4))  # only the up axis differs: allowed
     assert reference.root_motion_crowd(turning, tall, 0.5).instance_count == 4
+
+
+def test_warp_root_motion_crowd_agrees_with_the_reference(walking_crowd):
+    """The warp twin (``root_motion_kernel``, float64) against the reference on every device: the
+    straight walk and a turning one (extractYaw), rates forwards and backwards, many loops."""
+    wd = _warp()
+    from vbusd.baking.baker import BakeOptions, bake
+
+    from tests.helpers.animations import loop_walk
+
+    vb, crowd = walking_crowd
+    turning = bake(loop_walk(0.4), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
+    for device in wd.available_devices():
+        for animation in (vb, turning):
+            for t, t0 in ((4 / 30, 0.0), (7.3, 1.1), (-2.6, 0.0)):
+                expected = reference.root_motion_crowd(animation, crowd, t, t0)
+                got = wd.root_motion_crowd(animation, crowd, t, t0, device=device)
+                assert np.abs(expected.positions - crowd.positions).max() > 0.1  # they walked
+                np.testing.assert_allclose(got.positions, expected.positions, rtol=0, atol=1e-9, err_msg=device)
+                np.testing.assert_allclose(got.orientations, expected.orientations, rtol=0, atol=1e-9, err_msg=device)
+        stretched = dataclasses.replace(crowd, scales=np.array([[1.0, 1.0, 2.0]] * 4))
+        with pytest.raises(OptionsError, match="instance 0 turns"):
+            wd.root_motion_crowd(turning, stretched, 0.5, device=device)

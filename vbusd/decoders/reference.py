@@ -30,7 +30,7 @@ __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transf
            "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
            "Additive", "crowd_events", "instance_blend_points", "blends_as_layers",
            "DEFAULT_FRAME_INTERVAL", "check_frame_interval", "hold_reset", "skin_crowd_previous",
-           "root_motion_crowd"]
+           "root_motion_crowd", "check_root_motion_scales"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -474,6 +474,18 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
 
 
 
+def check_root_motion_scales(up_axis: str, scales: np.ndarray, yaw: np.ndarray) -> None:
+    """Refuse an instance that its root motion turns (``yaw`` not 0) while its scale differs between
+    the two horizontal axes: ``S R_up`` is then no rotation times a scale (the placement shears)."""
+    up = 1 if up_axis == "Y" else 2
+    horizontal = [axis for axis in range(3) if axis != up]
+    shearing = (np.abs(yaw) > 0) & ~np.isclose(scales[:, horizontal[0]], scales[:, horizontal[1]], rtol=1e-12, atol=0)
+    if shearing.any():
+        i = int(np.flatnonzero(shearing)[0])
+        raise OptionsError(f"instance {i} turns with its root motion but its scale {scales[i].tolist()} differs "
+                           f"between the horizontal axes", file="root_motion_crowd")
+
+
 def root_motion_crowd(vb: VirtualBones, crowd: Crowd, t: float, t0: float = 0.0) -> Crowd:
     """The crowd with every instance moved by its root displacement at scene time ``t`` (spec 8.5, 21.1).
 
@@ -517,12 +529,7 @@ def root_motion_crowd(vb: VirtualBones, crowd: Crowd, t: float, t0: float = 0.0)
     sin = moves[:, 0, 2] if up == 1 else moves[:, 1, 0]
     phi = np.arctan2(sin, moves[:, 0, 0])
     scales = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
-    horizontal = [axis for axis in range(3) if axis != up]
-    shearing = (np.abs(phi) > 0) & ~np.isclose(scales[:, horizontal[0]], scales[:, horizontal[1]], rtol=1e-12, atol=0)
-    if shearing.any():
-        i = int(np.flatnonzero(shearing)[0])
-        raise OptionsError(f"instance {i} turns with its root motion but its scale {scales[i].tolist()} differs "
-                           f"between the horizontal axes", file="root_motion_crowd")
+    check_root_motion_scales(vb.root_motion.up_axis, scales, phi)
     orientations = _normalize(np.asarray(crowd.orientations, dtype=np.float64))
     rotation = quat_to_matrix(orientations)
     positions = np.asarray(crowd.positions, dtype=np.float64) + np.einsum("nij,nj->ni", rotation,
