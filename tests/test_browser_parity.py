@@ -573,14 +573,16 @@ def test_previous_pose(browser, layered_stadium, bar_crowd, engine):
         assert max(moved for _, moved in results) > 100 * POSITION_TOLERANCE, (name, results)
 
 
-VELOCITY_ENGINES = ("three",)  # Babylon's pre-pass velocity texture is not read back yet (docs/engines.md)
+VELOCITY_ENGINES = ("three", "three-webgpu")  # Babylon's pre-pass velocity texture is not read back yet (docs/engines.md)
 
 
 @pytest.mark.parity("velocity output (motion vectors)")
 @pytest.mark.parametrize("engine", VELOCITY_ENGINES)
 def test_velocity_output(webgl_browser, engine):
-    """The velocity a WebGL engine's motion-blur / TAA input gets from the crowd: three's
-    WebGLRenderer through vbusd's velocity materials (web/src/velocity.js, renderVelocity), read
+    """The velocity an engine's motion-blur / TAA input gets from the crowd: three's
+    WebGLRenderer through vbusd's velocity materials (web/src/velocity.js, renderVelocity), and
+    three's WebGPURenderer (on SwiftShader's WebGPU) through its own VelocityNode in an MRT
+    ``velocity`` output fed by the crowd's previous skinned pose (web/src/webgpu/material.js), read
     back by the page's ``window.vbusd.velocity()``. On the stadium, against the decoder's poses at t and t - dt rasterized with the page's own camera (depth-tested,
     perspective-correct barycentrics: tests/helpers/browser.py rasterize_nearest): at each pixel
     both cover, the velocity written (ndcCurrent - ndcPrevious) is the pixel's NDC minus the
@@ -600,6 +602,8 @@ def test_velocity_output(webgl_browser, engine):
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine
+            if engine == "three-webgpu":  # WebGPU itself, not three's WebGL 2 fallback
+                assert page.page.evaluate("window.vbusd.renderer.backend.isWebGPUBackend") is True
             image = page.page.evaluate("window.vbusd.velocity()")
             camera = page.page.evaluate(
                 "({p: window.vbusd.camera.projectionMatrix.elements, v: window.vbusd.camera.matrixWorldInverse.elements})")
