@@ -31,7 +31,7 @@ from vbusd.format.model import Crowd
 from tests.helpers import scripts
 from tests.helpers.capabilities import REPO, require
 from tests.helpers.crowds import chain_character
-from tests.helpers.gl_previous import Instances, hlsl_to_glsl, run_previous
+from tests.helpers.gl_module import Instances, hlsl_to_glsl, run_previous
 
 POSITION_TOLERANCE = 1e-6   # fraction of the bounding-box diagonal
 NORMAL_TOLERANCE = 2.5e-5
