@@ -59,8 +59,6 @@ ELSEWHERE = {
 
 # Cells no test fills yet, with the reason.
 NOT_YET = {
-    ("velocity output (motion vectors)", "three-webgpu"): "not yet checked per pixel: the crowd writes three's "
-    "positionPrevious (TRAA picture: scripts/motion_vectors_picture.py); the previous pose row probes its inputs",
     ("velocity output (motion vectors)", "babylon"): "not yet checked per pixel: the plugin writes vPreviousPosition "
     "in the velocity pre-pass; PrePassRenderer's velocity texture is not read back yet",
 }

@@ -380,10 +380,14 @@ def check_level_parts(page, engine: str, asset, levels) -> None:
 def test_root_motion_on_the_page(browser, tmp_path, engine):
     """Root motion (format 1.1, spec 8.5) on each engine's page: ``crowd.rootMotionMatrix(i, t0, t1)``
     of a walk baked in place (extractYaw: it turns while it walks) equals ``vbusd.root_motion`` for
-    pairs of times forward, backward and across loops. The root tracks have no layout-metadata key,
+    pairs of times forward, backward and across loops; its step over a frame ``(t - dt, t)`` is the
+    one between ``reference.root_motion_crowd`` at ``t - dt`` and at ``t`` (spec 21.1: the previous pose's
+    placement). The root tracks have no layout-metadata key,
     so the page is given them as an application gives them (``crowd.rootMotion``)."""
     from vbusd.baking.baker import BakeOptions, bake
-    from vbusd.format.model import SkinnedMesh, VirtualBonesAsset
+    from vbusd.decoders import reference
+    from vbusd.format.model import Crowd, SkinnedMesh, VirtualBonesAsset
+    from vbusd.format.quaternion import quat_to_matrix
 
     walk = loop_walk(0.4)
     triangle = SkinnedMesh("/Walk/Mesh", np.array([[0.0, 1.0, 0.0], [0.2, 0.0, 0.1], [-0.2, 0.0, 0.1]]), np.array([3]),
@@ -393,7 +397,7 @@ def test_root_motion_on_the_page(browser, tmp_path, engine):
     path = tmp_path / "walk" / "walk.usda"
     vbusd.write_asset(VirtualBonesAsset(animations=(vb,), default_prim="Walk"), path)
     vb = vbusd.read_asset(path).animations[0]
-    pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0)]
+    pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1), (0.0, 1.0), (2.0 - 1 / 60, 2.0)]
     root = {"upAxis": vb.root_motion.up_axis, "tracks": [track.tolist() for track in vb.root_motion.tracks]}
     # three's column-major elements and Babylon's row-vector m: the same 16 numbers.
     elements = "m.toArray()" if engine.startswith("three") else "Array.from(m.m)"
@@ -408,6 +412,13 @@ def test_root_motion_on_the_page(browser, tmp_path, engine):
                 expected = vbusd.root_motion(vb, 0, t0, t1)
                 assert not np.allclose(expected, np.eye(4))  # the walk moves between every pair
                 np.testing.assert_allclose(np.array(matrix).reshape(4, 4).T, expected, atol=1e-5)
+            # The previous frame's step (spec 21.1): M(t) M(t - dt)^-1 of the crowd moved at t - dt and at t.
+            moved = [reference.root_motion_crowd(vb, Crowd("/c", np.zeros((1, 3)), np.array([[0, 0, 0, 1.0]]),
+                                                           np.zeros(1, np.int32), np.zeros(1), np.ones(1)), time)
+                     for time in pairs[-1]]
+            placed = [np.block([[quat_to_matrix(c.orientations[0]), c.positions[0][:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+                      for c in moved]
+            np.testing.assert_allclose(np.array(got[-1]).reshape(4, 4).T, placed[1] @ np.linalg.inv(placed[0]), atol=1e-5)
             assert page.errors() == [], page.errors()
         finally:
             page.close()
@@ -716,14 +727,16 @@ def test_previous_pose(browser, layered_stadium, bar_crowd, engine):
         assert max(moved for _, moved in results) > 100 * POSITION_TOLERANCE, (name, results)
 
 
-VELOCITY_ENGINES = ("three",)  # Babylon's pre-pass velocity texture is not read back yet (docs/engines.md)
+VELOCITY_ENGINES = ("three", "three-webgpu")  # Babylon's pre-pass velocity texture is not read back yet (docs/engines.md)
 
 
 @pytest.mark.parity("velocity output (motion vectors)")
 @pytest.mark.parametrize("engine", VELOCITY_ENGINES)
 def test_velocity_output(webgl_browser, engine):
-    """The velocity a WebGL engine's motion-blur / TAA input gets from the crowd: three's
-    WebGLRenderer through vbusd's velocity materials (web/src/velocity.js, renderVelocity), read
+    """The velocity an engine's motion-blur / TAA input gets from the crowd: three's
+    WebGLRenderer through vbusd's velocity materials (web/src/velocity.js, renderVelocity), and
+    three's WebGPURenderer (on SwiftShader's WebGPU) through its own VelocityNode in an MRT
+    ``velocity`` output fed by the crowd's previous skinned pose (web/src/webgpu/material.js), read
     back by the page's ``window.vbusd.velocity()``. On the stadium, against the decoder's poses at t and t - dt rasterized with the page's own camera (depth-tested,
     perspective-correct barycentrics: tests/helpers/browser.py rasterize_nearest): at each pixel
     both cover, the velocity written (ndcCurrent - ndcPrevious) is the pixel's NDC minus the
@@ -743,6 +756,8 @@ def test_velocity_output(webgl_browser, engine):
         try:
             assert page.error == "", page.error
             assert page.page.evaluate("window.vbusd.engine") == engine
+            if engine == "three-webgpu":  # WebGPU itself, not three's WebGL 2 fallback
+                assert page.page.evaluate("window.vbusd.renderer.backend.isWebGPUBackend") is True
             image = page.page.evaluate("window.vbusd.velocity()")
             camera = page.page.evaluate(
                 "({p: window.vbusd.camera.projectionMatrix.elements, v: window.vbusd.camera.matrixWorldInverse.elements})")

@@ -30,11 +30,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
+from vbusd.decoders.shaders import ShaderOptions, generate
 from vbusd.format.model import VirtualBones
 
 from tests.helpers import conformance, scripts
 from tests.helpers.capabilities import require
+from tests.helpers.gl_module import TEXTURE, Instances, hlsl_to_glsl, run_module, run_previous
 
 FOLDER, VECTORS, load, vector_animation = conformance.FOLDER, conformance.VECTORS, conformance.load, conformance.vector_animation
 
@@ -210,13 +211,6 @@ def test_warp_reproduces_every_vector(path, device):
 
 import moderngl  # noqa: E402  (the test extra has it; a context needs EGL: capability gl)
 
-NAMES = {
-    "glsl": {"texture": "vb_texture", "skinTexture": "vb_skinTexture", "prefix": "vb_", "varyings": ["vb_skinnedPosition", "vb_skinnedNormal"]},
-    "hlsl": {"texture": "SPIRV_Cross_Combinedvb_textureSPIRV_Cross_DummySampler",
-             "skinTexture": "SPIRV_Cross_Combinedvb_skinTextureSPIRV_Cross_DummySampler", "prefix": "input_",
-             "varyings": ["_entryPointOutput_skinnedPosition", "_entryPointOutput_skinnedNormal"]},
-}
-
 
 @pytest.fixture(scope="module")
 def gl():
@@ -227,17 +221,6 @@ def gl():
     yield ctx
     framebuffer.release()
     ctx.release()
-
-
-def _hlsl_to_glsl(source: str, workdir: Path) -> str:
-    hlsl, spirv = workdir / "module.hlsl", workdir / "module.spv"
-    hlsl.write_text(source)
-    compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
-                               "--auto-map-bindings", "-o", str(spirv), str(hlsl)], capture_output=True, text=True)
-    assert compiled.returncode == 0, compiled.stdout + compiled.stderr
-    crossed = subprocess.run(["spirv-cross", str(spirv), "--version", "450", "--no-es"], capture_output=True, text=True)
-    assert crossed.returncode == 0, crossed.stderr
-    return crossed.stdout
 
 
 def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
@@ -255,7 +238,7 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
                               dtype=dtype)
     texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
     texture.use(location=0)
-    program[NAMES[lang]["texture"]].value = 0
+    program[TEXTURE[lang]].value = 0
     clips = [(float(c["firstRow"]), float(c["rowCount"]), float(c["rowsPerSecond"]), 1.0 if c["loop"] else 0.0)
              for c in layout["clips"]]
     clips += [(0.0, 1.0, 1.0, 0.0)] * (16 - len(clips))
@@ -289,77 +272,31 @@ def _bind_animation(ctx, program, lang: str, vector: dict, time: float):
     return texture, block
 
 
-SKIN_BUFFER_BINDING = 3
+
+
+def vector_instances(vector: dict, before: float | None = None) -> Instances:
+    """The vector's instances as the example main's inputs (VB_CROSSFADE 1); with ``before``, the
+    previous frame's fade time and weight too."""
+    rows = vector["instances"]
+    previous = None if before is None else np.array(
+        [[r["fadeTimeOffset"] + r["fadePlaybackRate"] * before, r["fadeWeight"]] for r in rows], np.float32)
+    return Instances(np.array([r["clip"] for r in rows], np.int32),
+                     np.array([[r["timeOffset"], r["playbackRate"]] for r in rows], np.float32),
+                     np.array([r["fadeClip"] for r in rows], np.int32),
+                     np.array([[r["fadeTimeOffset"], r["fadePlaybackRate"], r["fadeWeight"]] for r in rows], np.float32),
+                     previous)
 
 
 def run_shader(ctx, lang: str, vector: dict, time: float, workdir: Path, skin: str = "attributes"):
-    """Skin every (instance, vertex) of a vector with the generated module; (points, normals).
+    """Skin every (instance, vertex) of a vector with the generated module (tests/helpers/gl_module.py);
+    (points, normals).
 
     ``skin``: ``attributes``, ``pulled-buffer`` (GLSL 4.30 storage buffer / HLSL StructuredBuffer)
     or ``pulled-texture`` (GLSL 3.30 / HLSL ``VB_SKIN_STORAGE 0``: an RGBA32UI texture, 5 texels wide
     so that records straddle rows)."""
-    layout = vector["layout"]
-    names = NAMES[lang]
-    k = vector["mesh"]["influences"]
-    source = "#define VB_CROSSFADE 1\n" + generate(ShaderOptions(lang, layout["encoding"], layout["texelFormat"],
-                                                                   max_influences=k,
-                                                                   skin="attributes" if skin == "attributes" else "pulled"))
-    if lang == "glsl":
-        version = "#version 430 core\n" if skin == "pulled-buffer" else "#version 330 core\n"
-        if skin == "pulled-buffer":
-            version += f"#define VB_SKIN_BUFFER_LAYOUT std430, binding = {SKIN_BUFFER_BINDING}\n"
-        compiled = version + source
-    else:
-        compiled = _hlsl_to_glsl(("#define VB_SKIN_STORAGE 0\n" if skin == "pulled-texture" else "") + source, workdir)
-    program = ctx.program(vertex_shader=compiled, varyings=names["varyings"])
-    texture, block = _bind_animation(ctx, program, lang, vector, time)
-    mesh = vector["mesh"]
-    count = len(mesh["points"])
-    indices = np.array(mesh["boneIndices"], np.int32)
-    weights = np.array(mesh["boneWeights"], np.float32)
-    vertex = np.concatenate([np.array(mesh["points"], np.float32), np.array(mesh["normals"], np.float32)], axis=1)
-    skin_resource = None
-    p = names["prefix"]
-    if skin == "attributes":
-        vbo = ctx.buffer(np.ascontiguousarray(np.concatenate([vertex.view(np.int32), indices, weights.view(np.int32)],
-                                                             axis=1)).tobytes())
-        vertex_inputs = ("3f 3f 4i 4f", f"{p}restPosition", f"{p}restNormal", f"{p}boneIndices0", f"{p}boneWeights0")
-    else:  # pulled: position and normal only; the skin records by vertex index
-        vbo = ctx.buffer(np.ascontiguousarray(vertex).tobytes())
-        vertex_inputs = ("3f 3f", f"{p}restPosition", f"{p}restNormal")
-        records = pack_skin(indices, weights, k)
-        if skin == "pulled-buffer":
-            import re
-
-            found = re.search(r"std430, binding = (\d+)|binding = (\d+), std430", compiled)
-            skin_resource = ctx.buffer(records.tobytes())
-            skin_resource.bind_to_storage_buffer(int(found[1] or found[2]))
-        else:
-            width, height = skin_texture_shape(len(records), 5)
-            data = np.zeros((width * height, 4), "<u4")
-            data[:len(records)] = records
-            skin_resource = ctx.texture((width, height), 4, data.tobytes(), dtype="u4")
-            skin_resource.filter = (moderngl.NEAREST, moderngl.NEAREST)
-            skin_resource.use(location=1)
-            program[names["skinTexture"]].value = 1
-    instances = vector["instances"]
-    per_instance = np.zeros(len(instances), dtype=[("clip", "<i4"), ("time", "<f4", 2), ("fadeClip", "<i4"),
-                                                    ("fade", "<f4", 3)])
-    per_instance["clip"] = [i["clip"] for i in instances]
-    per_instance["time"] = [[i["timeOffset"], i["playbackRate"]] for i in instances]
-    per_instance["fadeClip"] = [i["fadeClip"] for i in instances]
-    per_instance["fade"] = [[i["fadeTimeOffset"], i["fadePlaybackRate"], i["fadeWeight"]] for i in instances]
-    ibo = ctx.buffer(per_instance.tobytes())
-    vao = ctx.vertex_array(program, [
-        (vbo, *vertex_inputs),
-        (ibo, "1i 2f 1i 3f/i", f"{p}instanceClip", f"{p}instanceTime", f"{p}instanceFadeClip", f"{p}instanceFade")])
-    out = ctx.buffer(reserve=count * len(instances) * 6 * 4)
-    vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=len(instances))
-    result = np.frombuffer(out.read(), dtype="<f4").reshape(len(instances), count, 6)
-    for resource in (vao, vbo, ibo, out, texture, program, skin_resource):
-        if resource is not None:
-            resource.release()
-    return result[..., :3], result[..., 3:]
+    vb = vector_animation(vector)
+    return run_module(ctx, lang, vb, vb.meshes[0], vector_instances(vector), time, workdir, skin=skin,
+                      skin_texture_width=5)
 
 
 @pytest.mark.cli
@@ -476,7 +413,7 @@ def run_socket_shader(ctx, lang: str, vector: dict, time: float, workdir: Path) 
         program = ctx.program(vertex_shader="#version 330 core\n" + module + _SOCKET_GLSL_MAIN,
                               varyings=SOCKET_NAMES["glsl"]["varyings"])
     else:
-        program = ctx.program(vertex_shader=_hlsl_to_glsl(module + _SOCKET_HLSL_MAIN, workdir),
+        program = ctx.program(vertex_shader=hlsl_to_glsl(module + _SOCKET_HLSL_MAIN, workdir),
                               varyings=SOCKET_NAMES["hlsl"]["varyings"])
     texture, block = _bind_animation(ctx, program, lang, vector, time)
     binds = np.array(vector["bindTransforms"], np.float32)  # (bones, 4, 4)
@@ -606,23 +543,15 @@ def test_warp_reproduces_every_previous_frame(path, device):
 def test_shader_modules_reproduce_every_previous_frame(gl, lang, path, tmp_path):
     """The example main of a ``--previous`` module with VB_CROSSFADE 1: vb_previousPosition against
     ``previous.frames[*].previousPositions``, vb_skinnedPosition against their ``positions``."""
-    from tests.helpers.gl_previous import Instances, run_previous
-
     if lang == "hlsl":
         require("glslang")
     vector = load(path)
     vb = vector_animation(vector)
-    rows = vector["instances"]
     dt = vector["previous"]["dt"]
     for index, frame in enumerate(vector["previous"]["frames"]):
         t, before = frame["time"], frame["time"] - dt
-        instances = Instances(
-            np.array([r["clip"] for r in rows], np.int32),
-            np.array([[r["timeOffset"], r["playbackRate"]] for r in rows], np.float32),
-            np.array([r["fadeClip"] for r in rows], np.int32),
-            np.array([[r["fadeTimeOffset"], r["fadePlaybackRate"], r["fadeWeight"]] for r in rows], np.float32),
-            np.array([[r["fadeTimeOffset"] + r["fadePlaybackRate"] * before, r["fadeWeight"]] for r in rows], np.float32))
-        points, normals, previous = run_previous(gl, lang, vb, vb.meshes[0], instances, t, before, tmp_path)
+        points, normals, previous = run_previous(gl, lang, vb, vb.meshes[0], vector_instances(vector, before), t, before,
+                                                 tmp_path)
         tolerance = vector["tolerance"]
         assert np.abs(points - np.array(frame["positions"])).max() <= tolerance["position"], (lang, t)
         assert np.abs(normals - np.array(frame["normals"])).max() <= tolerance["normal"], (lang, t)

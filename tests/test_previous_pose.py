@@ -259,3 +259,113 @@ def test_stadium_crowd_previous_is_usdskels_pose_placed_by_hand():
         scale = np.ones(3) if crowd.scales is None else np.asarray(crowd.scales[i], np.float64)
         expected = (poses[i] * scale) @ rotation.T + np.asarray(crowd.positions[i], np.float64)
         assert np.abs(points[i] - expected).max() <= 1e-3 * d, f"instance {i}"
+
+
+# ----------------------------------------------------------------------------------------------
+# Root motion in the previous pose (spec 21.1 "Root motion", 8.5): reference.root_motion_crowd
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def walking_crowd():
+    """The spec's 8.5 walk (1 s loop, 1.5 m/s along +Z, a 0.1 bob ``sin(2 pi tau)`` kept in place), baked in
+    place at 30 rows/s (crossMatrix float32), and four instances on row times: rates 1, 2, -1 and 2
+    (the last crossing its loop between t - dt and t), one turned 90 degrees about Y and scaled 2."""
+    from vbusd.baking.baker import BakeOptions, bake
+    from vbusd.format.model import Crowd
+
+    from tests.helpers.animations import loop_walk
+
+    vb = bake(loop_walk(0.0), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extract"))
+    quarter = np.array([0.0, np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)])
+    crowd = Crowd("/Walk/Crowd", np.array([[0.0, 0.0, 0.0], [3.0, 0.0, -1.0], [-2.0, 0.5, 4.0], [1.0, 0.0, 1.0]]),
+                  np.array([[0, 0, 0, 1.0], quarter, [0, 0, 0, 1.0], [0, 0, 0, 1.0]]), np.zeros(4, np.int32),
+                  np.array([0.0, 5 / 30, 20 / 30, 23 / 30]), np.array([1.0, 2.0, -1.0, 2.0]),
+                  scales=np.array([[1.0, 1.0, 1.0], [2.0, 2.0, 2.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]))
+    return vb, crowd
+
+
+def _walker_by_hand(crowd, i, t):
+    """Instance ``i``'s two points at scene time ``t`` worked out from the walk itself: the rest point,
+    the bob ``0.1 sin(2 pi tau)`` (exact on row times), the root's ``1.5 (tau - tau0)`` along +Z since
+    scene time 0 (loops add 1.5 each), then the instance's scale, orientation and position."""
+    tau = crowd.time_offset[i] + crowd.playback_rate[i] * t
+    local = np.array([[0.0, 1.0, 0.0], [0.2, 0.0, 0.1]]) + [0.0, 0.1 * np.sin(2 * np.pi * tau),
+                                                           1.5 * (tau - crowd.time_offset[i])]
+    x, y, z, w = crowd.orientations[i]
+    turn = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return (local * crowd.scales[i]) @ turn.T + crowd.positions[i]
+
+
+def test_previous_pose_takes_the_previous_root_displacement(walking_crowd):
+    """A walking instance's velocity is its root's speed (1.5 m/s times its rate, along its own +Z,
+    scaled) times dt plus its pose's own change, by hand; the crowd moved at t - dt placed the previous
+    pose (skin_crowd_previous(previous_crowd=...)), the crowd moved at t the current one."""
+    vb, crowd = walking_crowd
+    mesh = vb.meshes[0]
+    dt = 1.0 / 30.0
+    t = 4 / 30
+    taus = crowd.time_offset + crowd.playback_rate * np.array([[t - dt], [t]])
+    assert np.floor(taus[0, 3]) + 1 == np.floor(taus[1, 3])  # instance 3 loops inside the frame
+    now = reference.root_motion_crowd(vb, crowd, t)
+    before = reference.root_motion_crowd(vb, crowd, t - dt)
+    current, _ = reference.skin_crowd(vb, mesh, now, t)
+    previous, _ = reference.skin_crowd_previous(vb, mesh, now, t, dt, previous_crowd=before)
+    for i in range(crowd.instance_count):
+        np.testing.assert_allclose(current[i], _walker_by_hand(crowd, i, t), rtol=0, atol=1e-6, err_msg=f"{i} now")
+        np.testing.assert_allclose(previous[i], _walker_by_hand(crowd, i, t - dt), rtol=0, atol=1e-6,
+                                   err_msg=f"{i} previous")
+        # velocity = root speed * rate * dt along the instance's +Z (turned, scaled) + the bob's change
+        bob = 0.1 * (np.sin(2 * np.pi * taus[1, i]) - np.sin(2 * np.pi * taus[0, i]))
+        step = 1.5 * crowd.playback_rate[i] * dt
+        expected = {0: [0, bob, step], 1: [2 * step, 2 * bob, 0], 2: [0, bob, step], 3: [0, bob, step]}[i]
+        np.testing.assert_allclose(current[i] - previous[i], np.tile(expected, (2, 1)), rtol=0, atol=2e-6,
+                                   err_msg=f"instance {i} velocity")
+    # Placed by this frame's root displacement the previous pose would lose the step: it is what moves.
+    still, _ = reference.skin_crowd_previous(vb, mesh, now, t, dt)
+    assert np.abs((still - previous)[0, :, 2]).min() > 0.04
+
+
+def test_root_motion_crowd_without_a_track_and_refusals(walking_crowd):
+    vb, crowd = walking_crowd
+    plain = dataclasses.replace(vb, root_motion=None)
+    assert reference.root_motion_crowd(plain, crowd, 2.0) is crowd
+    moved = reference.root_motion_crowd(vb, crowd, 0.0)  # at t0 every instance stands where it was put
+    np.testing.assert_allclose(moved.positions, crowd.positions, atol=1e-12)
+    with pytest.raises(OptionsError, match="finite"):
+        reference.root_motion_crowd(vb, crowd, float("nan"))
+    from vbusd.baking.baker import BakeOptions, bake
+
+    from tests.helpers.animations import loop_walk
+
+    turning = bake(loop_walk(0.4), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
+    stretched = dataclasses.replace(crowd, scales=np.array([[1.0, 1.0, 2.0]] * 4))  # x and z differ: a turn shears
+    with pytest.raises(OptionsError, match="instance 0 turns"):
+        reference.root_motion_crowd(turning, stretched, 0.5)
+    tall = dataclasses.replace(crowd, scales=np.array([[1.0, 3.0, 1.0]] * 4))  # only the up axis differs: allowed
+    assert reference.root_motion_crowd(turning, tall, 0.5).instance_count == 4
+
+
+def test_warp_root_motion_crowd_agrees_with_the_reference(walking_crowd):
+    """The warp twin (``root_motion_kernel``, float64) against the reference on every device: the
+    straight walk and a turning one (extractYaw), rates forwards and backwards, many loops."""
+    wd = _warp()
+    from vbusd.baking.baker import BakeOptions, bake
+
+    from tests.helpers.animations import loop_walk
+
+    vb, crowd = walking_crowd
+    turning = bake(loop_walk(0.4), BakeOptions(encoding="crossMatrix", texel_format="float32", root_motion="extractYaw"))
+    for device in wd.available_devices():
+        for animation in (vb, turning):
+            for t, t0 in ((4 / 30, 0.0), (7.3, 1.1), (-2.6, 0.0)):
+                expected = reference.root_motion_crowd(animation, crowd, t, t0)
+                got = wd.root_motion_crowd(animation, crowd, t, t0, device=device)
+                assert np.abs(expected.positions - crowd.positions).max() > 0.1  # they walked
+                np.testing.assert_allclose(got.positions, expected.positions, rtol=0, atol=1e-9, err_msg=device)
+                np.testing.assert_allclose(got.orientations, expected.orientations, rtol=0, atol=1e-9, err_msg=device)
+        stretched = dataclasses.replace(crowd, scales=np.array([[1.0, 1.0, 2.0]] * 4))
+        with pytest.raises(OptionsError, match="instance 0 turns"):
+            wd.root_motion_crowd(turning, stretched, 0.5, device=device)

@@ -8,8 +8,8 @@
 * :mod:`tests.helpers.node`: the Node scripts of tests/node.
 * :mod:`tests.helpers.cli`: the ``vbusd`` command run in-process, with its output captured.
 * :mod:`tests.helpers.scenes`: small UsdSkel scenes written from code.
-* :mod:`tests.helpers.gl_previous`: a ``vbusd shader --previous`` module run by OpenGL transform
-  feedback (GLSL, and HLSL through glslang and spirv-cross).
+* :mod:`tests.helpers.gl_module`: a ``vbusd shader`` module (``--previous`` or not) run by OpenGL
+  transform feedback (GLSL, and HLSL through glslang and spirv-cross): the shader tests' one harness.
 * :mod:`tests.helpers.scripts`: repository scripts under test (samples/, spec/, scripts/) loaded by
   path, once.
 * the benchmarks' harnesses, whose logic tests check and whose command lines are benchmarks/*.py:

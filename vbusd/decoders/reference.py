@@ -29,7 +29,8 @@ __all__ = ["row_position", "channel_values", "interpolated_values", "bone_transf
            "joint_transforms", "crowd_joint_transforms", "bone_order", "decompose_trs", "compose_trs", "slerp",
            "mix_local", "add_local", "mask_weights", "layered_skinning", "skin_mesh_layered", "instance_layers",
            "Additive", "crowd_events", "instance_blend_points", "blends_as_layers",
-           "DEFAULT_FRAME_INTERVAL", "check_frame_interval", "hold_reset", "skin_crowd_previous"]
+           "DEFAULT_FRAME_INTERVAL", "check_frame_interval", "hold_reset", "skin_crowd_previous",
+           "root_motion_crowd", "check_root_motion_scales"]
 
 
 def row_position(clip: Clip, tau) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -471,6 +472,72 @@ def root_motion(vb: VirtualBones, clip_index: int, t0: float, t1: float) -> np.n
 
     return displacement(vb.root_motion, clip_index, vb.clips[clip_index], t0, t1)
 
+
+
+def check_root_motion_scales(up_axis: str, scales: np.ndarray, yaw: np.ndarray) -> None:
+    """Refuse an instance that its root motion turns (``yaw`` not 0) while its scale differs between
+    the two horizontal axes: ``S R_up`` is then no rotation times a scale (the placement shears)."""
+    up = 1 if up_axis == "Y" else 2
+    horizontal = [axis for axis in range(3) if axis != up]
+    shearing = (np.abs(yaw) > 0) & ~np.isclose(scales[:, horizontal[0]], scales[:, horizontal[1]], rtol=1e-12, atol=0)
+    if shearing.any():
+        i = int(np.flatnonzero(shearing)[0])
+        raise OptionsError(f"instance {i} turns with its root motion but its scale {scales[i].tolist()} differs "
+                           f"between the horizontal axes", file="root_motion_crowd")
+
+
+def root_motion_crowd(vb: VirtualBones, crowd: Crowd, t: float, t0: float = 0.0) -> Crowd:
+    """The crowd with every instance moved by its root displacement at scene time ``t`` (spec 8.5, 21.1).
+
+    What a runtime that plays root motion draws: instance ``i`` placed by its transform times
+    ``D_i = D(tau_i(t)) D(tau_i(t0))^-1``, the root track of its clip (``crowd.clip``; a fade clip's
+    track is not blended) between its clip-local times ``timeOffset + playbackRate * t0`` and
+    ``timeOffset + playbackRate * t`` (:func:`root_motion`, the web runtimes'
+    ``crowd.rootMotionMatrix(i, t0, t)``). ``D_i = T(d) R_up(phi)`` is rigid, so the moved instance
+    is again a position, orientation and scale: position ``p + R(q) (s * d)``, orientation
+    ``q R_up(phi)``, scale ``s``. Skin the moved crowd at ``t`` for this frame and pass the crowd
+    moved at ``t - dt`` as ``previous_crowd`` of :func:`skin_crowd_previous`: the previous pose is
+    placed by the previous root displacement, so a walking instance's velocity is its root's speed
+    times ``dt`` plus its pose's own change.
+
+    Args:
+        vb: The baked animation; without root tracks the crowd is returned unchanged.
+        crowd: The instances at their start (scene time ``t0``).
+        t: Scene time (s).
+        t0: Scene time (s) at which each instance stands at its own transform.
+
+    Returns:
+        A :class:`~vbusd.format.model.Crowd` with moved positions and orientations, its other fields
+        those of ``crowd``.
+
+    Raises:
+        OptionsError: A non-finite time, or an instance turned by its root track whose scale differs
+            between the two horizontal axes (its placement would shear, no position-orientation-scale).
+    """
+    if not (np.isfinite(t) and np.isfinite(t0)):
+        raise OptionsError(f"scene times must be finite, got t={t!r}, t0={t0!r}", file="root_motion_crowd")
+    if vb.root_motion is None or crowd.instance_count == 0:
+        return crowd
+    up = 1 if vb.root_motion.up_axis == "Y" else 2
+    n = crowd.instance_count
+    offsets = np.asarray(crowd.time_offset, dtype=np.float64)
+    rates = np.asarray(crowd.playback_rate, dtype=np.float64)
+    clips = np.asarray(crowd.clip, dtype=np.int64)
+    moves = np.stack([root_motion(vb, int(clips[i]), offsets[i] + rates[i] * t0, offsets[i] + rates[i] * t)
+                      for i in range(n)])
+    # The yaw of D about the up axis: rotation_about_up puts sin(phi) at [0, 2] (Y up) or [1, 0] (Z up).
+    sin = moves[:, 0, 2] if up == 1 else moves[:, 1, 0]
+    phi = np.arctan2(sin, moves[:, 0, 0])
+    scales = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
+    check_root_motion_scales(vb.root_motion.up_axis, scales, phi)
+    orientations = _normalize(np.asarray(crowd.orientations, dtype=np.float64))
+    rotation = quat_to_matrix(orientations)
+    positions = np.asarray(crowd.positions, dtype=np.float64) + np.einsum("nij,nj->ni", rotation,
+                                                                          scales * moves[:, :3, 3])
+    turn = np.zeros((n, 4))
+    turn[:, up] = np.sin(phi / 2)
+    turn[:, 3] = np.cos(phi / 2)
+    return dataclasses.replace(crowd, positions=positions, orientations=quat_multiply(orientations, turn))
 
 # --------------------------------------------------------------------------------------------
 # Layers and bone masks (format 1.2, spec "Layers and bone masks")

@@ -72,22 +72,37 @@ struct VbRowPair {
     blend: f32,
 }
 
+// v with the low 12 of its 24 significand bits cleared (a Dekker split): a product of two such
+// halves, or of a half and a remainder v - vbHighBits(v), has at most 24 bits and is exact.
+fn vbHighBits(v: f32) -> f32 {
+    return bitcast<f32>(bitcast<i32>(v) & -4096);
+}
+
+// The row position tau * rowsPerSecond summed from exact partial products into whole rows and a
+// fraction (spec/shaders.md, Row position), as the GLSL module does.
 fn vbRows(clip: i32, tau: f32) -> VbRowPair {
     let c = vb_uniforms.vb_clips[clip];
     let n = c.y;
-    var x = tau * c.z;
-    var i0: f32;
+    let th = vbHighBits(tau);
+    let tl = tau - th;
+    let rh = vbHighBits(c.z);
+    let rl = c.z - rh;
+    let high = th * rh;
+    var i0 = floor(high);
+    var f = (high - i0) + (th * rl + tl * rh + tl * rl);
+    let k = floor(f);
+    i0 += k;
+    f -= k;
     var i1: f32;
     if (c.w > 0.5) {
-        x = x - n * floor(x / n);
-        i0 = min(floor(x), n - 1.0);
+        i0 -= n * floor((i0 + 0.5) / n);
         i1 = select(i0 + 1.0, 0.0, i0 + 1.0 >= n);
     } else {
-        x = clamp(x, 0.0, n - 1.0);
-        i0 = floor(x);
+        if (i0 < 0.0) { i0 = 0.0; f = 0.0; }
+        if (i0 >= n - 1.0) { i0 = n - 1.0; f = 0.0; }
         i1 = min(i0 + 1.0, n - 1.0);
     }
-    return VbRowPair(i32(c.x + i0), i32(c.x + i1), x - i0);
+    return VbRowPair(i32(c.x + i0), i32(c.x + i1), f);
 }
 """
 

@@ -43,12 +43,13 @@ from vbusd.format.errors import InputError, OptionsError
 from vbusd.format.layout import Encoding, TexelFormat
 from vbusd.format.model import BoundMesh, Crowd, VirtualBones
 from vbusd.decoders.reference import blends_as_layers, channel_values, normal_point_indices
-from vbusd.decoders.reference import DEFAULT_FRAME_INTERVAL, check_frame_interval
+from vbusd.decoders.reference import DEFAULT_FRAME_INTERVAL, check_frame_interval, check_root_motion_scales
 from vbusd.kernels.warp_setup import _WARP_INIT_NOTES, _init_warp, quiet_warp  # noqa: F401  (quiet_warp: public here)
 from vbusd.format.errors import UnsupportedError
 
 __all__ = ["quiet_warp", "SAMPLING_MODES", "available_devices", "SkinResult", "DeviceCrowd",
-           "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd", "skin_crowd_previous"]
+           "BoneBuffers", "Decoder", "skin_mesh", "skin_mesh_crossfade", "skin_crowd", "skin_crowd_previous",
+           "root_motion_crowd"]
 
 
 
@@ -819,3 +820,36 @@ def skin_crowd_previous(vb: VirtualBones, mesh: BoundMesh, crowd: Crowd, t: floa
     plus ``device=``; float32 results."""
     return _cached_decoder(vb, mesh, device, sampling).skin_crowd_previous(
         crowd, t, dt, reset=reset, previous_crowd=previous_crowd).numpy()
+
+
+@_quietly
+def root_motion_crowd(vb: VirtualBones, crowd: Crowd, t: float, t0: float = 0.0, *, device) -> Crowd:
+    """The crowd with every instance moved by its root displacement at scene time ``t`` (spec 8.5, 21.1)
+    on ``device``: ``reference.root_motion_crowd`` plus ``device=`` (``root_motion_kernel``, float64)."""
+    if not (np.isfinite(t) and np.isfinite(t0)):
+        raise OptionsError(f"scene times must be finite, got t={t!r}, t0={t0!r}", file="root_motion_crowd")
+    if vb.root_motion is None or crowd.instance_count == 0:
+        return crowd
+    device = _resolve_device(device)
+    n = crowd.instance_count
+    tracks = [np.asarray(track, dtype=np.float64).reshape(-1, 4) for track in vb.root_motion.tracks]
+    starts = np.cumsum([0] + [len(track) for track in tracks[:-1]]).astype(np.int32)
+    scales = np.ones((n, 3)) if crowd.scales is None else np.asarray(crowd.scales, dtype=np.float64)
+
+    def array(data, dtype):
+        return wp.array(np.ascontiguousarray(data), dtype=dtype, device=device)
+
+    positions = wp.zeros(n, dtype=wp.vec3d, device=device)
+    orientations = wp.zeros(n, dtype=wp.vec4d, device=device)
+    yaw = wp.zeros(n, dtype=wp.float64, device=device)
+    wp.launch(K.root_motion_kernel, dim=n, device=device, inputs=[
+        array(np.concatenate(tracks), wp.vec4d), array(starts, wp.int32),
+        array([c.row_count for c in vb.clips], wp.int32), array([c.rows_per_second for c in vb.clips], wp.float64),
+        array([1 if c.loop else 0 for c in vb.clips], wp.int32), 1 if vb.root_motion.up_axis == "Y" else 2,
+        array(np.asarray(crowd.clip, np.int32), wp.int32), array(np.asarray(crowd.time_offset, np.float64), wp.float64),
+        array(np.asarray(crowd.playback_rate, np.float64), wp.float64), float(t0), float(t),
+        array(np.asarray(crowd.positions, np.float64), wp.vec3d),
+        array(np.asarray(crowd.orientations, np.float64), wp.vec4d), array(scales, wp.vec3d),
+        positions, orientations, yaw])
+    check_root_motion_scales(vb.root_motion.up_axis, scales, yaw.numpy())
+    return dataclasses.replace(crowd, positions=positions.numpy(), orientations=orientations.numpy())

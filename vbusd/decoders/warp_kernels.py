@@ -22,6 +22,8 @@ kernel / function                  numpy twin
                                    decoded matrices, equal to the blend of the two poses)
 :data:`hold_reset_kernel`          ``reference.hold_reset`` (spec 21: a reset instance's
                                    previous pose is its current pose)
+:data:`root_motion_kernel`         ``reference.root_motion_crowd`` (spec 8.5, 21.1: each
+                                   instance moved by its root displacement, float64)
 =================================  ==========================================================
 
 Crossfade (spec "Crossfade", format 1.1): an instance whose fade weight ``w`` is above 0 also
@@ -996,3 +998,102 @@ def layer_bones(
     linear, normal = place_bone(AFFINE_MATRIX, separate_normals, linear, normal, frame)
     store_bones(encoding, separate_normals, instance, bone, linear, normal, dualquat(), out_linear, out_normal,
                 out_dual)
+
+
+# --------------------------------------------------------------------------------------------
+# Root motion (spec 8.5, 21.1; twin of reference.root_motion_crowd, float64 as the reference)
+# --------------------------------------------------------------------------------------------
+
+
+@wp.func
+def turn_up(phi: wp.float64, v: wp.vec3d, up: int) -> wp.vec3d:
+    """``R_up(phi) v`` (``rootmotion.rotation_about_up``: right-handed about Y or Z)."""
+    c = wp.cos(phi)
+    s = wp.sin(phi)
+    if up == 1:
+        return wp.vec3d(c * v[0] + s * v[2], v[1], c * v[2] - s * v[0])
+    return wp.vec3d(c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+
+
+@wp.func
+def compose_root(a: wp.vec4d, b: wp.vec4d, up: int) -> wp.vec4d:
+    """``D_a D_b`` of two ``(d, phi)`` displacements ``T(d) R_up(phi)``."""
+    d = wp.vec3d(a[0], a[1], a[2]) + turn_up(a[3], wp.vec3d(b[0], b[1], b[2]), up)
+    return wp.vec4d(d[0], d[1], d[2], a[3] + b[3])
+
+
+@wp.func
+def invert_root(a: wp.vec4d, up: int) -> wp.vec4d:
+    """``D^-1 = T(-R_up(-phi) d) R_up(-phi)``."""
+    d = turn_up(-a[3], wp.vec3d(a[0], a[1], a[2]), up)
+    return wp.vec4d(-d[0], -d[1], -d[2], -a[3])
+
+
+@wp.func
+def root_at(tracks: wp.array(dtype=wp.vec4d), start: int, n: int, rows_per_second: wp.float64, loop: int,
+            tau: wp.float64, up: int) -> wp.vec4d:
+    """``D(tau)`` of one clip's track (``rootmotion.at``): entries blended between rows, loops accumulated."""
+    x = tau * rows_per_second
+    loops = int(0)
+    i0 = int(0)
+    i1 = int(0)
+    if loop != 0:
+        k = wp.floor(x / wp.float64(n))
+        loops = int(k)
+        x = x - k * wp.float64(n)
+        i0 = wp.min(int(wp.floor(x)), n - 1)
+        i1 = i0 + 1  # entry n is the loop's end
+    else:
+        x = wp.clamp(x, wp.float64(0.0), wp.float64(n - 1))
+        i0 = int(wp.floor(x))
+        i1 = wp.min(i0 + 1, n - 1)
+    f = x - wp.float64(i0)
+    result = (wp.float64(1.0) - f) * tracks[start + i0] + f * tracks[start + i1]
+    step = tracks[start + n]
+    if loops < 0:
+        step = invert_root(step, up)
+    for _ in range(wp.abs(loops)):
+        result = compose_root(step, result, up)
+    return result
+
+
+@wp.kernel
+def root_motion_kernel(tracks: wp.array(dtype=wp.vec4d), track_start: wp.array(dtype=wp.int32),
+                       clip_row_count: wp.array(dtype=wp.int32), clip_rows_per_second: wp.array(dtype=wp.float64),
+                       clip_loop: wp.array(dtype=wp.int32), up: int, clip: wp.array(dtype=wp.int32),
+                       time_offset: wp.array(dtype=wp.float64), playback_rate: wp.array(dtype=wp.float64),
+                       t0: wp.float64, t: wp.float64, positions: wp.array(dtype=wp.vec3d),
+                       orientations: wp.array(dtype=wp.vec4d), scales: wp.array(dtype=wp.vec3d),
+                       out_positions: wp.array(dtype=wp.vec3d), out_orientations: wp.array(dtype=wp.vec4d),
+                       out_yaw: wp.array(dtype=wp.float64)):
+    """One instance moved by ``D(tau(t)) D(tau(t0))^-1`` of its clip's root track: position
+    ``p + R(q) (s * d)``, orientation ``q R_up(phi)``; twin of ``reference.root_motion_crowd``."""
+    i = wp.tid()
+    c = clip[i]
+    start = track_start[c]
+    n = clip_row_count[c]
+    rps = clip_rows_per_second[c]
+    looping = clip_loop[c]
+    now = root_at(tracks, start, n, rps, looping, time_offset[i] + playback_rate[i] * t, up)
+    then = root_at(tracks, start, n, rps, looping, time_offset[i] + playback_rate[i] * t0, up)
+    move = compose_root(now, invert_root(then, up), up)
+    q = orientations[i]
+    q = q / wp.sqrt(wp.dot(q, q))
+    s = scales[i]
+    local = wp.vec3d(s[0] * move[0], s[1] * move[1], s[2] * move[2])
+    # R(q) local, q = (x, y, z, w): v + 2 w (u x v) + 2 u x (u x v)
+    u = wp.vec3d(q[0], q[1], q[2])
+    uv = wp.cross(u, local)
+    rotated = local + wp.float64(2.0) * (q[3] * uv + wp.cross(u, uv))
+    out_positions[i] = positions[i] + rotated
+    phi = wp.atan2(wp.sin(move[3]), wp.cos(move[3]))  # in (-pi, pi], as the reference reads it from D
+    half = phi * wp.float64(0.5)
+    sh = wp.sin(half)
+    r = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.cos(half))
+    r[up] = sh
+    # Hamilton product q r (x, y, z, w)
+    out_orientations[i] = wp.vec4d(q[3] * r[0] + q[0] * r[3] + q[1] * r[2] - q[2] * r[1],
+                                   q[3] * r[1] - q[0] * r[2] + q[1] * r[3] + q[2] * r[0],
+                                   q[3] * r[2] + q[0] * r[1] - q[1] * r[0] + q[2] * r[3],
+                                   q[3] * r[3] - q[0] * r[0] - q[1] * r[1] - q[2] * r[2])
+    out_yaw[i] = phi

@@ -265,14 +265,45 @@ async function main() {
     }
     return undefined;
   };
+  /** WebGPURenderer: the velocity three's VelocityNode writes to an MRT `velocity` output (what TRAA and
+   * motion blur read; the crowd's materials put the previous skinned pose in positionPrevious),
+   * rendered into a float32 target (two renders: VelocityNode takes the previous camera from the one
+   * before) and read back, in velocity()'s layout. */
+  const webgpuVelocity = async () => {
+    resize();
+    const tsl = await import('three/tsl');
+    const scenePass = tsl.pass(scene, camera, { type: THREE.FloatType });
+    scenePass.setMRT(tsl.mrt({ output: tsl.output, velocity: tsl.velocity }));
+    const velocityPipeline = new THREE.RenderPipeline(renderer);
+    velocityPipeline.outputNode = scenePass.getTextureNode('velocity');
+    velocityPipeline.render();
+    velocityPipeline.render();
+    const target = scenePass.renderTarget;
+    const index = target.textures.findIndex((texture) => texture.name === 'velocity');
+    const { width, height } = target;
+    const pixels = await renderer.readRenderTargetPixelsAsync(target, 0, 0, width, height, index);
+    velocityPipeline.dispose();
+    scenePass.dispose();
+    const upward = !renderer.backend.isWebGPUBackend;  // the WebGL 2 backend reads rows bottom first
+    const rg = new Array(2 * width * height);
+    for (let y = 0; y < height; ++y) {
+      const row = upward ? height - 1 - y : y;
+      for (let x = 0; x < width; ++x) {
+        rg[2 * (y * width + x)] = pixels[4 * (row * width + x)];
+        rg[2 * (y * width + x) + 1] = pixels[4 * (row * width + x) + 1];
+      }
+    }
+    return { width, height, rg };
+  };
   window.vbusd = {
     renderer, scene, camera, controls, crowds, animations: objects.animations, engine, backend,
     setTime, render,
-    /** WebGLRenderer: the velocity (motion vectors, spec 21) of the view at the current time and the
-     * page's dt, from the crowds' velocity materials (renderVelocity): NDC motion since the previous
-     * frame, {width, height, rg: row-major from the top row, 2 floats per pixel}. */
+    /** The velocity (motion vectors, spec 21) of the view at the current time and the page's dt: NDC
+     * motion since the previous frame, {width, height, rg: row-major from the top row, 2 floats per
+     * pixel}. WebGLRenderer: from the crowds' velocity materials (renderVelocity); WebGPURenderer: a
+     * Promise of three's MRT velocity output (webgpuVelocity). */
     velocity() {
-      if (webgpu) throw new Error('velocity() reads WebGLRenderer\'s velocity materials; under WebGPURenderer use an MRT velocity output');
+      if (webgpu) return webgpuVelocity();
       render();
       const size = renderer.getDrawingBufferSize(new THREE.Vector2());
       const target = new THREE.WebGLRenderTarget(size.x, size.y, { type: THREE.FloatType });

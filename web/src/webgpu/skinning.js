@@ -13,7 +13,7 @@
 import {
   Fn, float, int, uint, ivec2, vec3, vec4, mat4, uniform, uniformArray, texture, textureLoad,
   floor, min, max, clamp, mix, cross, dot, normalize, length, sqrt, select, If, Loop, Break, array,
-  uintBitsToFloat,
+  uintBitsToFloat, floatBitsToUint,
 } from 'three/tsl';
 
 import { VirtualBonesError } from '../animation.js';
@@ -82,24 +82,40 @@ export function checkNodeSupport(renderer, animation) {
   }
 }
 
-/** Texture rows and blend factor of clip `clip` at clip-local time `tau` (spec "Clips"; vbRows). */
+/** `v` with the low 12 of its 24 significand bits cleared (vbHighBits: Dekker's split). */
+function highBits(v) {
+  return uintBitsToFloat(floatBitsToUint(v).bitAnd(uint(0xfffff000)));
+}
+
+/**
+ * Texture rows and blend factor of clip `clip` at clip-local time `tau` (spec "Clips"; vbRows): the row
+ * position tau * rowsPerSecond summed from exact partial products into whole rows and a fraction
+ * (spec/shaders.md, "Row position").
+ */
 function rows(nodes, clip, tau) {
   const c = nodes.clips.element(clip).toVar();
   const n = c.y;
-  const x0 = tau.mul(c.z).toVar();
+  const th = highBits(tau).toVar();
+  const tl = tau.sub(th).toVar();
+  const rh = highBits(c.z).toVar();
+  const rl = c.z.sub(rh).toVar();
+  const high = th.mul(rh).toVar();
+  const whole = floor(high).toVar();
+  const part = high.sub(whole).add(th.mul(rl).add(tl.mul(rh)).add(tl.mul(rl))).toVar();
+  const k = floor(part).toVar();
+  const i0 = whole.add(k).toVar();
+  const f = part.sub(k).toVar();
   // Loop: wrap into [0, n), the last row blends into the first.
-  const xLoop = x0.sub(n.mul(floor(x0.div(n)))).toVar();
-  const i0Loop = min(floor(xLoop), n.sub(1.0)).toVar();
+  const i0Loop = i0.sub(n.mul(floor(i0.add(0.5).div(n)))).toVar();
   const i1Loop = select(i0Loop.add(1.0).greaterThanEqual(n), float(0.0), i0Loop.add(1.0));
-  // Not looping: hold the first and last rows.
-  const xHold = clamp(x0, 0.0, n.sub(1.0)).toVar();
-  const i0Hold = floor(xHold).toVar();
+  // Not looping: hold the first and last rows (fraction 0 outside them).
+  const i0Hold = clamp(i0, 0.0, n.sub(1.0)).toVar();
+  const fHold = select(i0.lessThan(0.0).or(i0.greaterThanEqual(n.sub(1.0))), float(0.0), f);
   const i1Hold = min(i0Hold.add(1.0), n.sub(1.0));
   const loop = c.w.greaterThan(0.5);
-  const x = select(loop, xLoop, xHold).toVar();
-  const i0 = select(loop, i0Loop, i0Hold).toVar();
-  const i1 = select(loop, i1Loop, i1Hold);
-  return { row0: int(c.x.add(i0)).toVar(), row1: int(c.x.add(i1)).toVar(), blend: x.sub(i0).toVar() };
+  const row0 = select(loop, i0Loop, i0Hold).toVar();
+  const row1 = select(loop, i1Loop, i1Hold);
+  return { row0: int(c.x.add(row0)).toVar(), row1: int(c.x.add(row1)).toVar(), blend: select(loop, f, fHold).toVar() };
 }
 
 /** One texel of `bone`'s slot `slot` at `row`, unorm16 values mapped to their range (vbTexel). */

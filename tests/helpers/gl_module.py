@@ -1,11 +1,12 @@
-"""Run a ``vbusd shader --previous`` module in a real OpenGL pipeline (transform feedback, EGL):
-GLSL as it is, HLSL through glslang's HLSL front end and spirv-cross. Shared by the previous-pose
-shader tests and the conformance vectors' previous frames.
+"""Run a ``vbusd shader`` module (with or without ``--previous``) in a real OpenGL pipeline
+(transform feedback, EGL): GLSL as it is, HLSL through glslang's HLSL front end and spirv-cross. The
+one GL harness of the shader tests: the conformance vectors (current and previous frames) and the
+previous-pose tests.
 
 The example main of the module is used as an engine would: per instance ``vb_instanceClip``,
 ``vb_instanceTime = (timeOffset, playbackRate)`` and, with ``VB_CROSSFADE 1``, ``vb_instanceFadeClip``,
-``vb_instanceFade = (fadeTimeOffset, fadePlaybackRate, fadeWeight)`` of this frame and
-``vb_instancePreviousFade = (fadeTime, fadeWeight)`` of the previous frame; uniforms ``vb_time``
+``vb_instanceFade = (fadeTimeOffset, fadePlaybackRate, fadeWeight)`` of this frame and, with a
+previous frame, ``vb_instancePreviousFade = (fadeTime, fadeWeight)`` of it; uniforms ``vb_time``
 and ``vb_previousTime`` (spec/shaders.md, Previous pose).
 """
 
@@ -20,7 +21,7 @@ import numpy as np
 
 from vbusd.decoders.shaders import ShaderOptions, generate, pack_skin, skin_texture_shape
 
-__all__ = ["Instances", "run_previous", "hlsl_to_glsl"]
+__all__ = ["TEXTURE", "Instances", "run_module", "run_previous", "hlsl_to_glsl"]
 
 VARYINGS = {"glsl": ["vb_skinnedPosition", "vb_skinnedNormal", "vb_previousPosition"],
             "hlsl": ["_entryPointOutput_skinnedPosition", "_entryPointOutput_skinnedNormal",
@@ -39,7 +40,7 @@ class Instances:
     time: np.ndarray                     # (n, 2): timeOffset, playbackRate
     fade_clip: Optional[np.ndarray] = None       # (n,) int
     fade: Optional[np.ndarray] = None            # (n, 3): fadeTimeOffset, fadePlaybackRate, fadeWeight (this frame)
-    previous_fade: Optional[np.ndarray] = None   # (n, 2): fadeTime, fadeWeight of the previous frame
+    previous_fade: Optional[np.ndarray] = None   # (n, 2): fadeTime, fadeWeight of the previous frame (with one)
 
     @property
     def count(self) -> int:
@@ -47,7 +48,8 @@ class Instances:
 
 
 def hlsl_to_glsl(source: str, workdir: Path) -> str:
-    hlsl, spirv = workdir / "previous.hlsl", workdir / "previous.spv"
+    """HLSL through glslang's HLSL front end (SPIR-V) and spirv-cross into GLSL 4.50 that Mesa runs."""
+    hlsl, spirv = workdir / "module.hlsl", workdir / "module.spv"
     hlsl.write_text(source)
     compiled = subprocess.run(["glslangValidator", "-D", "-V", "-S", "vert", "-e", "main", "--auto-map-locations",
                                "--auto-map-bindings", "-o", str(spirv), str(hlsl)], capture_output=True, text=True)
@@ -81,19 +83,29 @@ def _compact_ranges(vb, max_bones=64) -> np.ndarray:
 
 def run_previous(ctx, lang: str, vb, mesh, instances: Instances, time: float, previous_time: float, workdir: Path,
                  *, skin: str = "attributes") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Skin every (instance, vertex) with the example main of a ``--previous`` module.
+    """:func:`run_module` of a ``--previous`` module at ``time`` and ``previous_time``: (points, normals,
+    previous points)."""
+    return run_module(ctx, lang, vb, mesh, instances, time, workdir, previous_time=previous_time, skin=skin)
 
-    ``skin``: ``attributes``, ``pulled-buffer`` or ``pulled-texture``. Returns float64 (points,
-    normals, previous points), each (instances, V, 3), in animation space (the example main does not
-    place instances).
+
+def run_module(ctx, lang: str, vb, mesh, instances: Instances, time: float, workdir: Path, *,
+               previous_time: Optional[float] = None, skin: str = "attributes", skin_texture_width: int = 61) -> tuple:
+    """Skin every (instance, vertex) with the example main of a module.
+
+    ``previous_time``: None for a module without ``--previous``, else the previous frame's scene time
+    (``vb_previousTime``). ``skin``: ``attributes``, ``pulled-buffer`` or ``pulled-texture`` (the skin
+    records in an RGBA32UI texture ``skin_texture_width`` texels wide). Returns float64 (points,
+    normals) and, with a previous frame, its points, each (instances, V, 3), in animation space (the
+    example main does not place instances).
     """
     import moderngl
 
     crossfade = instances.fade is not None
     k = int(mesh.bone_indices.shape[1])
     width = 8 if k > 4 else 4
+    previous = previous_time is not None
     module = generate(ShaderOptions(lang, vb.layout.encoding, vb.layout.texel_format, max_influences=width,
-                                    skin="attributes" if skin == "attributes" else "pulled", previous=True))
+                                    skin="attributes" if skin == "attributes" else "pulled", previous=previous))
     source = ("#define VB_CROSSFADE 1\n" if crossfade else "") + module
     if lang == "glsl":
         version = "#version 430 core\n" if skin == "pulled-buffer" else "#version 330 core\n"
@@ -102,7 +114,7 @@ def run_previous(ctx, lang: str, vb, mesh, instances: Instances, time: float, pr
         compiled = version + source
     else:
         compiled = hlsl_to_glsl(("#define VB_SKIN_STORAGE 0\n" if skin == "pulled-texture" else "") + source, workdir)
-    program = ctx.program(vertex_shader=compiled, varyings=VARYINGS[lang])
+    program = ctx.program(vertex_shader=compiled, varyings=VARYINGS[lang][:3 if previous else 2])
     texture = _texture(ctx, vb)
     texture.use(location=0)
     program[TEXTURE[lang]].value = 0
@@ -114,15 +126,16 @@ def run_previous(ctx, lang: str, vb, mesh, instances: Instances, time: float, pr
     block = None
     if lang == "glsl":
         program["vb_time"].value = time
-        program["vb_previousTime"].value = previous_time
+        if previous:
+            program["vb_previousTime"].value = previous_time
         program["vb_clips"].value = clips
         if unorm:
             program["vb_rangeMin"].value = [tuple(r) for r in vb.unorm_ranges[..., 0]]
             program["vb_rangeMax"].value = [tuple(r) for r in vb.unorm_ranges[..., 1]]
         if compact:
             program["vb_compactRange"].write(_compact_ranges(vb).tobytes())
-    else:  # the cbuffer: vb_time, vb_previousTime in the first 16 bytes (spec/shaders.md), then the clips
-        payload = np.array([time, previous_time, 0, 0], "<f4").tobytes() + np.array(clips, "<f4").tobytes()
+    else:  # the cbuffer: vb_time (and vb_previousTime) in the first 16 bytes (spec/shaders.md), then the clips
+        payload = np.array([time, previous_time if previous else 0, 0, 0], "<f4").tobytes() + np.array(clips, "<f4").tobytes()
         if unorm:
             payload += np.array(vb.unorm_ranges[..., 0], "<f4").tobytes() + np.array(vb.unorm_ranges[..., 1], "<f4").tobytes()
         if compact:
@@ -157,7 +170,7 @@ def run_previous(ctx, lang: str, vb, mesh, instances: Instances, time: float, pr
             skin_resource = ctx.buffer(records.tobytes())
             skin_resource.bind_to_storage_buffer(int(found[1] or found[2]))
         else:
-            tw, th = skin_texture_shape(len(records), 61)
+            tw, th = skin_texture_shape(len(records), skin_texture_width)
             data = np.zeros((tw * th, 4), "<u4")
             data[:len(records)] = records
             skin_resource = ctx.texture((tw, th), 4, data.tobytes(), dtype="u4")
@@ -167,21 +180,28 @@ def run_previous(ctx, lang: str, vb, mesh, instances: Instances, time: float, pr
     n = instances.count
     fields = [("clip", "<i4"), ("time", "<f4", 2)]
     if crossfade:
-        fields += [("fadeClip", "<i4"), ("fade", "<f4", 3), ("previousFade", "<f4", 2)]
+        fields += [("fadeClip", "<i4"), ("fade", "<f4", 3)] + ([("previousFade", "<f4", 2)] if previous else [])
     per = np.zeros(n, dtype=fields)
     per["clip"], per["time"] = instances.clip, instances.time
     instance_inputs = ["1i 2f/i", f"{p}instanceClip", f"{p}instanceTime"]
     if crossfade:
-        per["fadeClip"], per["fade"], per["previousFade"] = instances.fade_clip, instances.fade, instances.previous_fade
-        instance_inputs = ["1i 2f 1i 3f 2f/i", f"{p}instanceClip", f"{p}instanceTime", f"{p}instanceFadeClip",
-                           f"{p}instanceFade", f"{p}instancePreviousFade"]
+        per["fadeClip"], per["fade"] = instances.fade_clip, instances.fade
+        instance_inputs = ["1i 2f 1i 3f/i", f"{p}instanceClip", f"{p}instanceTime", f"{p}instanceFadeClip",
+                           f"{p}instanceFade"]
+        if previous:
+            per["previousFade"] = instances.previous_fade
+            instance_inputs[0] = "1i 2f 1i 3f 2f/i"
+            instance_inputs.append(f"{p}instancePreviousFade")
     ibo = ctx.buffer(per.tobytes())
     vao = ctx.vertex_array(program, [(vbo, *vertex_inputs), (ibo, *instance_inputs)])
     count = len(mesh.points)
-    out = ctx.buffer(reserve=count * n * 9 * 4)
+    floats = 9 if previous else 6
+    out = ctx.buffer(reserve=count * n * floats * 4)
     vao.transform(out, mode=moderngl.POINTS, vertices=count, instances=n)
-    result = np.frombuffer(out.read(), dtype="<f4").reshape(n, count, 9).astype(np.float64)
+    result = np.frombuffer(out.read(), dtype="<f4").reshape(n, count, floats).astype(np.float64)
     for resource in (vao, vbo, ibo, out, texture, program, skin_resource, block):
         if resource is not None:
             resource.release()
+    if not previous:
+        return result[..., :3], result[..., 3:6]
     return result[..., :3], result[..., 3:6], result[..., 6:]
