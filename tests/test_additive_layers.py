@@ -40,12 +40,12 @@ def test_additive_layers_round_trip_through_usd_primvars(additive):
         given = [{"clip": c, "time": f32(o) + f32(r) * t, "weight": f32(w), "mask": m,
                   **({"mode": "additive", "reference": {"clip": rc, "time": f32(rt)}} if mode else {})}
                  for c, o, r, w, m, mode, rc, rt in layers if w > 0]
-        ours = vbusd.skin(vb, clip, f32(offset) + f32(rate) * t, layers=given)[0].points
+        ours = vbusd.skin(vb, clip, f32(offset) + f32(rate) * t, layers=given)[0].points + crowd.positions[i]
         diagonal = float(np.linalg.norm(ours.max(axis=0) - ours.min(axis=0)))
         assert float(np.abs(decoded[i] - ours).max()) <= 1e-7 * diagonal, i
         if any(layer[5] == 1 and layer[3] > 0 for layer in layers):  # the additive layer matters
             plain = vbusd.skin(vb, clip, f32(offset) + f32(rate) * t,
-                               layers=[g for g in given if g.get("mode") != "additive"])[0].points
+                               layers=[g for g in given if g.get("mode") != "additive"])[0].points + crowd.positions[i]
             assert float(np.abs(plain - ours).max()) > 1e-3 * diagonal, i
 
 
