@@ -550,3 +550,64 @@ def test_an_additive_layer_is_refused_by_the_gltf_package(fox, tmp_path):
     with pytest.raises(UnsupportedError, match="additive layers"):
         export_gltf(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), out)
     assert not out.exists()
+
+
+def _foot_contact(vb, foot: int, clip: str) -> tuple[float, float]:
+    """(time, world height) where ``foot`` is lowest in ``clip``: the clip sampled at 200 times over its
+    duration, then a grid of 40 around the lowest sample (the Fox is Y-up)."""
+    duration = vb.clips[clip_index(vb, clip)].duration
+    height = lambda t: float(vbusd.bone_transform(vb, foot, clip, float(t))[1, 3])  # noqa: E731
+    coarse = np.linspace(0.0, duration, 200, endpoint=False)
+    best = coarse[int(np.argmin([height(t) for t in coarse]))]
+    step = duration / 200
+    fine = np.clip(np.linspace(best - step, best + step, 41), 0.0, duration)
+    heights = [height(t) for t in fine]
+    return float(fine[int(np.argmin(heights))]), float(min(heights))
+
+
+def test_phase_sync_keeps_the_foot_down_at_matched_phases_across_walk_to_run(fox):
+    """The issue's must-show (spec 23.3): a walk-to-run change with phase sync keeps the feet in step.
+
+    Sync markers ``footDown`` are placed at each clip's foot contact: the clip-local time where the
+    left front foot (b_LeftFoot*) is lowest, found from the clip itself (_foot_contact). The space
+    ``gait = Walk@1, Run@3`` syncs on them. At matched phases (every whole phase: the foot-down of
+    each clip) the synced blend keeps the foot down all along the change, x from 1 (walk) to 3
+    (run): its height stays within 1e-3 of the diagonal of the contact height the clips give it,
+    (1 - w) h_Walk + w h_Run (w the Run weight; the Fox's two clips put the ankle at different
+    heights when planted, 15.2 and 12.2 units, 1.6% of the diagonal apart, so no blend can hold one
+    constant height). A naive blend, both clips at the same clip-local time (the walk's foot
+    contact, then whole walk cycles later: no phase normalization, no markers), strays from it by
+    more than 1e-3 of the diagonal. Sampled once per cycle as x ramps over 8 cycles."""
+    import dataclasses
+
+    _, vb = fox
+    foot = next(b for b, name in enumerate(vb.bones) if name.rsplit("/", 1)[-1].startswith("b_LeftFoot"))
+    (walk_time, walk_height), (run_time, run_height) = (_foot_contact(vb, foot, c) for c in ("Walk", "Run"))
+    vb = dataclasses.replace(vb, markers=(Marker("Walk", "footDown", walk_time), Marker("Run", "footDown", run_time)),
+                             blend_spaces=(BlendSpace("gait", 1, ("Walk", "Run"), ((1.0,), (3.0,)), "footDown"),))
+    walk_d, run_d = (vb.clips[clip_index(vb, c)].duration for c in ("Walk", "Run"))
+    diagonal = float(np.linalg.norm(np.ptp(vbusd.skin(vb, "Walk", walk_time)[0].points, axis=0)))
+    height = lambda joint: float(joint[1, 3])  # noqa: E731
+    synced, naive, xs = [], [], []
+    for cycle in range(9):  # one whole phase per step: x ramps 1 -> 3 over 8 cycles
+        x = 1.0 + 2.0 * cycle / 8
+        xs.append(x)
+        synced.append(height(vbusd.bone_transform(vb, foot, blend={"space": "gait", "x": x, "phase": float(cycle)})))
+        # Naive: Walk and Run both at the walk's clip-local time (its foot contact plus whole walk cycles).
+        w_run = (x - 1.0) / 2.0
+        tau = walk_time + cycle * walk_d
+        points = [(clip_index(vb, "Walk"), np.array([tau]), 1.0 - w_run), (clip_index(vb, "Run"), np.array([tau]), w_run)]
+        naive.append(height(layered_skinning(vb, 0, np.zeros(1), [], blend=[p for p in points if p[2] > 0])[1][0, foot]))
+    contact = [walk_height + (x - 1.0) / 2.0 * (run_height - walk_height) for x in xs]
+    synced_spread = max(abs(a - b) for a, b in zip(synced, contact)) / diagonal
+    naive_spread = max(abs(a - b) for a, b in zip(naive, contact)) / diagonal
+    print(f"foot contact: Walk at {walk_time:.4f} s of {walk_d:.4f} s (height {walk_height:.4g}), Run at {run_time:.4f} s "
+          f"of {run_d:.4f} s (height {run_height:.4g}); diagonal {diagonal:.4g}")
+    print("x:      " + " ".join(f"{v:8.3f}" for v in xs))
+    print("contact:" + " ".join(f"{v:8.4f}" for v in contact))
+    print("synced: " + " ".join(f"{v:8.4f}" for v in synced))
+    print("naive:  " + " ".join(f"{v:8.4f}" for v in naive))
+    print(f"foot height off the contact height at matched phases: synced {synced_spread:.3g}, naive {naive_spread:.3g} "
+          "of the diagonal")
+    assert synced_spread <= 1e-3, synced
+    assert naive_spread > 1e-3, naive

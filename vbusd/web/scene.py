@@ -127,11 +127,19 @@ def _layers(crowd, buffer: _Buffer) -> dict:
         out[:, :used] = np.asarray(values, dtype=dtype).reshape(n, count)[:, :used]
         return out
 
-    return {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),
-            "layerMask": buffer.add(padded(crowd.layer_mask, np.int32), "i4"),
-            "layerTimeOffset": buffer.add(padded(crowd.layer_time_offset, np.float32), "f4"),
-            "layerPlaybackRate": buffer.add(padded(crowd.layer_playback_rate, np.float32), "f4"),
-            "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
+    out = {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),
+           "layerMask": buffer.add(padded(crowd.layer_mask, np.int32), "i4"),
+           "layerTimeOffset": buffer.add(padded(crowd.layer_time_offset, np.float32), "f4"),
+           "layerPlaybackRate": buffer.add(padded(crowd.layer_playback_rate, np.float32), "f4"),
+           "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
+    if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
+        # Format 1.3 additive layers (spec 23.4): each layer's mode and reference pose.
+        reference_clip = crowd.layer_clip if crowd.layer_reference_clip is None else crowd.layer_reference_clip
+        reference_time = np.zeros((n, count)) if crowd.layer_reference_time is None else crowd.layer_reference_time
+        out.update({"layerMode": buffer.add(padded(crowd.layer_mode, np.int32), "i4"),
+                    "layerReferenceClip": buffer.add(padded(reference_clip, np.int32), "i4"),
+                    "layerReferenceTime": buffer.add(padded(reference_time, np.float32), "f4")})
+    return out
 
 
 _FADE_FIELDS = (("fade_clip", "fadeClip", "i4"), ("fade_time_offset", "fadeTimeOffset", "f4"),
