@@ -445,27 +445,6 @@ def test_blending_crowd_round_trips_through_usd_primvars(fox, tmp_path):
     np.testing.assert_allclose(theirs, ours, rtol=0, atol=1e-9)
 
 
-def test_a_blending_crowd_is_refused_by_the_gltf_package_in_one_line(fox, tmp_path, capsys):
-    """The glTF runtime package has no per-instance blend attribute yet: vbusd export refuses a
-    blending crowd by name (exit 2, one line, no file) rather than drop the blends."""
-    from vbusd.cli import main
-    from vbusd.format.model import VirtualBonesAsset
-    from vbusd.io.usd import write_asset
-
-    _, vb = fox
-    n = 2
-    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
-                  np.zeros(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
-                  blend_space=np.array([0, -1], np.int32), blend_x=np.array([1.5, 0], np.float32))
-    path = tmp_path / "crowd.usda"
-    write_asset(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
-    out = tmp_path / "crowd.glb"
-    assert main(["export", str(path), "-o", str(out)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "layers.unsupported" in err[0] and "blend spaces" in err[0], err
-    assert not out.exists()
-
-
 def test_previous_pose_of_a_blend_and_of_an_additive_layer(fox):
     """Spec 21 with spec 23: vbusd.skin(blend=..., previous=dt) gives the pose whose phase is
     ``dt * playback_rate / sum w D`` back, which is what the crowd rule gives (skin_crowd_previous of
@@ -502,7 +481,7 @@ def test_previous_pose_of_a_blend_and_of_an_additive_layer(fox):
 def test_a_crowd_with_variety_and_blends_is_format_1_3_on_both_counts(fox, tmp_path):
     """A crowd may tint its instances (spec 22) and blend them (spec 23.7) at once: the instancer
     carries both sets of primvars and states 1.3 itself, the animation is 1.3 for its spaces, the
-    file validates clean and reads back both; the glTF package refuses it for the blends."""
+    file validates clean and reads back both; its glTF package carries both (_VB_TINT, _VB_BLEND_*)."""
     from pxr import Usd
 
     from vbusd.cli import main
@@ -528,28 +507,11 @@ def test_a_crowd_with_variety_and_blends_is_format_1_3_on_both_counts(fox, tmp_p
     np.testing.assert_array_equal(read.tint, tint)
     for field in ("blend_space", "blend_x", "blend_y", "blend_phase"):
         np.testing.assert_array_equal(getattr(read, field), getattr(crowd, field))
-    assert main(["export", str(path), "-o", str(tmp_path / "crowd.glb")]) == 2
-
-
-def test_an_additive_layer_is_refused_by_the_gltf_package(fox, tmp_path):
-    """Spec 23.4: an additive layer is never written as an override one. The package's layer
-    attributes (spec/runtime-package.md 5.1) have no mode, so export_gltf refuses the crowd by name."""
-    from vbusd.format.errors import UnsupportedError
-    from vbusd.format.model import VirtualBonesAsset
-    from vbusd.io.gltf_package import export_gltf
-
-    _, vb = fox
-    n = 2
-    masks = [name for name, _ in vb.masks]
-    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
-                  np.ones(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
-                  layer_clip=np.zeros((n, 1), np.int32), layer_time_offset=np.zeros((n, 1), np.float32),
-                  layer_playback_rate=np.ones((n, 1), np.float32), layer_weight=np.full((n, 1), 0.5, np.float32),
-                  layer_mask=np.full((n, 1), masks.index("upper"), np.int32), layer_mode=np.array([[0], [1]], np.int32))
-    out = tmp_path / "crowd.glb"
-    with pytest.raises(UnsupportedError, match="additive layers"):
-        export_gltf(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), out)
-    assert not out.exists()
+    assert main(["export", str(path), "-o", str(tmp_path / "crowd.gltf")]) == 0
+    node = next(n for n in json.loads((tmp_path / "crowd.gltf").read_text())["nodes"]
+                if "EXT_mesh_gpu_instancing" in n.get("extensions", {}))
+    assert {"_VB_TINT", "_VB_BLEND_SPACE", "_VB_BLEND_X", "_VB_BLEND_Y", "_VB_BLEND_PHASE"} <= set(
+        node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"])
 
 
 def _foot_contact(vb, foot: int, clip: str) -> tuple[float, float]:

@@ -410,28 +410,41 @@ def test_blend_spaces(browser, blending_chain, engine):
 @pytest.fixture(scope="module")
 def additive_crowd(tmp_path_factory):
     """The chain character's crowd of additive and override layers (tests/helpers/crowds.py's
-    ADDITIVE_ROWS: format 1.3 primvars:vb:layerMode, layerReferenceClip, layerReferenceTime)."""
-    return additive_chain(tmp_path_factory.mktemp("additive"))
+    ADDITIVE_ROWS: format 1.3 primvars:vb:layerMode, layerReferenceClip, layerReferenceTime), its last
+    instance playing a synced 1D blend space, and its `vbusd export` package (the same as
+    ``_VB_LAYER_MODE_j``, ``_VB_LAYER_REFERENCE_*_j`` and ``_VB_BLEND_*`` instance attributes)."""
+    from vbusd.io.gltf_package import export_gltf
+
+    path = additive_chain(tmp_path_factory.mktemp("additive"), blends=True)
+    package = path.with_suffix(".glb")
+    export_gltf(vbusd.read_asset(path), package)
+    return path, package
 
 
 @pytest.mark.parity("additive layers")
 @pytest.mark.parametrize("engine", ENGINES)
 def test_additive_layers(browser, additive_crowd, engine):
-    """Additive layers (spec 23.4) on top of override ones in every engine: each instance's probe
-    against the numpy decoder, which equals vbusd.skin(..., layers=[{..., "mode": "additive",
-    "reference": ...}]) for these instances (tests/test_additive_layers.py); without the additive
-    layers' modes the instances are elsewhere."""
-    asset = vbusd.read_asset(additive_crowd)
+    """Additive layers (spec 23.4) on top of override ones in every engine, beside a blending instance
+    (23.7): each instance's probe against the numpy decoder, which equals vbusd.skin(..., layers=[{...,
+    "mode": "additive", "reference": ...}]) for these instances (tests/test_additive_layers.py);
+    without the additive layers' modes the instances are elsewhere. Twice: the USD crowd through
+    vbusd view's plain files, and its glTF package through the engine's glTF loader
+    (spec/runtime-package.md 5.1)."""
+    path, package = additive_crowd
+    asset = vbusd.read_asset(path)
     crowd = asset.crowds[0]
-    assert np.any((crowd.layer_mode == 1) & (crowd.layer_weight > 0))
-    override = dataclasses.replace(asset, crowds=(dataclasses.replace(crowd, layer_mode=None),))
-    for i in range(3):  # the additive layers matter for the instances that play one
+    assert np.any((crowd.layer_mode == 1) & (crowd.layer_weight > 0)) and crowd.blended
+    override = dataclasses.replace(asset, crowds=(dataclasses.replace(crowd, layer_mode=None, blend_space=None),))
+    for i in range(4):  # the additive layers (and the blend of the last instance) matter
         additive, _ = reference_instance(asset, i, 0.45)
         plain, _ = reference_instance(override, i, 0.45)
         assert float(np.abs(additive - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
-    errors = probe_errors(browser, additive_crowd, engine, [(i, t) for i in range(4) for t in (0.0, 0.45)], asset=asset)
-    print(engine, "additive layers", errors)
+    probes = [(i, t) for i in range(4) for t in (0.0, 0.45)]
+    errors = probe_errors(browser, path, engine, probes, asset=asset)
+    print(engine, "additive layers (USD)", errors)
     assert_within(errors, engine)
+    errors = package_probe_errors(browser, package, engine, asset, probes)
+    assert max(errors) <= POSITION_TOLERANCE, (engine, errors)
 
 
 @pytest.mark.parity("clip events")

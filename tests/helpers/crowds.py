@@ -106,10 +106,12 @@ ADDITIVE_ROWS = (  # base clip, offset, rate; per layer: clip, offset, rate, wei
 not, references of the layer's own clip and of another, instance 3 with every weight 0."""
 
 
-def additive_chain(folder: Path, rows=ADDITIVE_ROWS) -> Path:
+def additive_chain(folder: Path, rows=ADDITIVE_ROWS, blends: bool = False) -> Path:
     """The chain character (masks ``upper`` = b1 and ``all`` = b0) with a crowd whose instances play
     :data:`ADDITIVE_ROWS`: two layers each, override and additive, written as the instancer's layer
-    primvars and its additive ones (primvars:vb:layerMode, layerReferenceClip, layerReferenceTime)."""
+    primvars and its additive ones (primvars:vb:layerMode, layerReferenceClip, layerReferenceTime).
+    With ``blends``, the animation also stores the 1D space ``speed = walk@0, run@1`` synced on the
+    marker ``step`` and the last instance (whose layers weigh 0) plays it at x 0.3, phase 0.2."""
     import dataclasses
 
     from vbusd.format.model import Crowd
@@ -131,6 +133,16 @@ def additive_chain(folder: Path, rows=ADDITIVE_ROWS) -> Path:
                   layer_playback_rate=field(2, np.float32), layer_weight=field(3, np.float32),
                   layer_mask=field(4, np.int32, masks.index), layer_mode=field(5, np.int32),
                   layer_reference_clip=field(6, np.int32, clips.index), layer_reference_time=field(7, np.float32))
+    if blends:
+        from vbusd.format.motion import parse_blend_space, parse_marker
+
+        space = dataclasses.replace(parse_blend_space("speed=walk@0,run@1"), sync_marker="step")
+        vb = dataclasses.replace(vb, blend_spaces=(space,),
+                                 markers=(parse_marker("walk:step@0.5"), parse_marker("run:step@0.25")))
+        crowd = dataclasses.replace(crowd, blend_space=np.array([-1] * (n - 1) + [0], np.int32),
+                                    blend_x=np.array([0.0] * (n - 1) + [0.3], np.float32),
+                                    blend_y=np.zeros(n, np.float32),
+                                    blend_phase=np.array([0.0] * (n - 1) + [0.2], np.float32))
     path = folder / "additive" / "additive.usda"
-    vbusd.write_asset(dataclasses.replace(asset, crowds=(crowd,), crowd_animation=(0,)), path)
+    vbusd.write_asset(dataclasses.replace(asset, animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
     return path

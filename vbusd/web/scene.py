@@ -115,8 +115,11 @@ def _layers(crowd, buffer: _Buffer) -> dict:
         return {}
     weight = np.asarray(crowd.layer_weight, dtype=np.float32)
     n, count = weight.shape
-    if count > RUNTIME_LAYERS and np.any(weight[:, RUNTIME_LAYERS:] > 0):
-
+    # Each instance's layers of weight above 0, in order, moved to the first slots (a layer of weight 0
+    # changes nothing, so the pose is the same): a blend's layers before an instance's own ones
+    # (reference.blends_as_layers) then fit the runtime's slots whenever the instance weighs few enough.
+    order = np.argsort(weight <= 0, axis=1, kind="stable")
+    if np.any(np.sum(weight > 0, axis=1) > RUNTIME_LAYERS):
         raise UnsupportedError(f"the crowd plays {count} layers per instance; the three.js runtime plays at most "
                                f"{RUNTIME_LAYERS}", location=f"{crowd.path}.primvars:vb:layerWeight",
                                code="layers.unsupported")
@@ -124,7 +127,8 @@ def _layers(crowd, buffer: _Buffer) -> dict:
     def padded(values, dtype):
         out = np.zeros((n, RUNTIME_LAYERS), dtype=dtype)
         used = min(count, RUNTIME_LAYERS)
-        out[:, :used] = np.asarray(values, dtype=dtype).reshape(n, count)[:, :used]
+        compact = np.take_along_axis(np.asarray(values, dtype=dtype).reshape(n, count), order, axis=1)
+        out[:, :used] = compact[:, :used]
         return out
 
     out = {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),

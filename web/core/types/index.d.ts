@@ -102,13 +102,15 @@ export function fetchPlainScene(url: string): Promise<{ upAxis: string; animatio
 
 /** Layers per instance the runtimes play. */
 export const RUNTIME_LAYERS: number;
-/** A runtime package crowd node's playback arrays (spec/runtime-package.md 5.1): clip, time, crossfade (and its samples), layers. */
+/** A runtime package crowd node's playback arrays (spec/runtime-package.md 5.1): clip, time, crossfade (and its samples), layers (additive ones too), blends as layers. */
 export function packagePlayback(options: {
   attributes: Record<string, number>;
   samples?: Record<string, { times: number[]; values: number }>;
   count: number;
   read: (accessor: number) => Promise<ArrayLike<number>>;
   what?: string;
+  /** The animation's layout metadata: its blendSpaces, markers, clips and masks play _VB_BLEND_* as layers. */
+  layout?: object | null;
 }): Promise<{ clip: Int32Array; timeOffset: Float32Array; playbackRate: Float32Array; [field: string]: unknown }>;
 
 export const PROBE_VARYINGS: string[];
