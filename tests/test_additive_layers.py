@@ -76,3 +76,16 @@ def test_bad_additive_primvars_are_findings_at_their_primvar(additive, tmp_path,
     assert found == [(code, attribute)], [(f.code, str(f.location)) for f in report.findings]
     with pytest.raises(vbusd.VbusdError, match=code.replace(".", r"\.")):
         vbusd.read_asset(path)
+
+
+def test_a_1_2_reader_refuses_additive_layers_by_name(additive, monkeypatch):
+    """Spec 23.4: the instancer states vb:formatMinorVersion 3, so a 1.2 reader refuses the crowd and
+    names the additive primvars rather than play the layers as override ones."""
+    from vbusd.format import versioning
+
+    monkeypatch.setattr(versioning, "CURRENT", versioning.Version(1, 2))
+    with pytest.raises(vbusd.VbusdError) as error:
+        vbusd.read_asset(additive)
+    message = str(error.value)
+    assert "format.version" in message and "newer than this reader (version 1.2)" in message
+    assert "primvars:vb:layerMode" in message and "primvars:vb:layerReferenceTime" in message

@@ -1419,7 +1419,11 @@ def read_variety_properties(prim, n: int, fail, newer=None) -> dict:
                   f"{own!r:.60}", site)
     current = versioning.CURRENT
     if own is not None and own > current.minor:
-        uses = f"; the instancer uses {', '.join(authored)}, which version {current} does not define" if authored else ""
+        # Named: what the instancer authors of its own version (variety, spec 22; additive layers, 23.4).
+        newer_names = authored + [p.attribute for p in names.ADDITIVE_LAYER_PRIMVARS
+                                  if prim.GetAttribute(p.attribute) and prim.GetAttribute(p.attribute).HasAuthoredValue()]
+        uses = (f"; the instancer uses {', '.join(newer_names)}, which version {current} does not define"
+                if newer_names else "")
         message = (f"format version {current.major}.{own} is newer than this reader (version {current}){uses}; "
                    "upgrade vbusd to read it")
         (newer or (lambda text, where: fail("format.version", text, where)))(message, site)
