@@ -48,6 +48,7 @@ FEATURES = (
     "velocity output (motion vectors)",
     "blend spaces",
     "clip events",
+    "additive layers",
 )
 
 # Cells probed by other modules (each against vbusd's decoder, within the same tolerances).

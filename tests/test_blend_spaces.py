@@ -445,27 +445,6 @@ def test_blending_crowd_round_trips_through_usd_primvars(fox, tmp_path):
     np.testing.assert_allclose(theirs, ours, rtol=0, atol=1e-9)
 
 
-def test_a_blending_crowd_is_refused_by_the_gltf_package_in_one_line(fox, tmp_path, capsys):
-    """The glTF runtime package has no per-instance blend attribute yet: vbusd export refuses a
-    blending crowd by name (exit 2, one line, no file) rather than drop the blends."""
-    from vbusd.cli import main
-    from vbusd.format.model import VirtualBonesAsset
-    from vbusd.io.usd import write_asset
-
-    _, vb = fox
-    n = 2
-    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
-                  np.zeros(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
-                  blend_space=np.array([0, -1], np.int32), blend_x=np.array([1.5, 0], np.float32))
-    path = tmp_path / "crowd.usda"
-    write_asset(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
-    out = tmp_path / "crowd.glb"
-    assert main(["export", str(path), "-o", str(out)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "layers.unsupported" in err[0] and "blend spaces" in err[0], err
-    assert not out.exists()
-
-
 def test_previous_pose_of_a_blend_and_of_an_additive_layer(fox):
     """Spec 21 with spec 23: vbusd.skin(blend=..., previous=dt) gives the pose whose phase is
     ``dt * playback_rate / sum w D`` back, which is what the crowd rule gives (skin_crowd_previous of
@@ -502,7 +481,7 @@ def test_previous_pose_of_a_blend_and_of_an_additive_layer(fox):
 def test_a_crowd_with_variety_and_blends_is_format_1_3_on_both_counts(fox, tmp_path):
     """A crowd may tint its instances (spec 22) and blend them (spec 23.7) at once: the instancer
     carries both sets of primvars and states 1.3 itself, the animation is 1.3 for its spaces, the
-    file validates clean and reads back both; the glTF package refuses it for the blends."""
+    file validates clean and reads back both; its glTF package carries both (_VB_TINT, _VB_BLEND_*)."""
     from pxr import Usd
 
     from vbusd.cli import main
@@ -528,25 +507,69 @@ def test_a_crowd_with_variety_and_blends_is_format_1_3_on_both_counts(fox, tmp_p
     np.testing.assert_array_equal(read.tint, tint)
     for field in ("blend_space", "blend_x", "blend_y", "blend_phase"):
         np.testing.assert_array_equal(getattr(read, field), getattr(crowd, field))
-    assert main(["export", str(path), "-o", str(tmp_path / "crowd.glb")]) == 2
+    assert main(["export", str(path), "-o", str(tmp_path / "crowd.gltf")]) == 0
+    node = next(n for n in json.loads((tmp_path / "crowd.gltf").read_text())["nodes"]
+                if "EXT_mesh_gpu_instancing" in n.get("extensions", {}))
+    assert {"_VB_TINT", "_VB_BLEND_SPACE", "_VB_BLEND_X", "_VB_BLEND_Y", "_VB_BLEND_PHASE"} <= set(
+        node["extensions"]["EXT_mesh_gpu_instancing"]["attributes"])
 
 
-def test_an_additive_layer_is_refused_by_the_gltf_package(fox, tmp_path):
-    """Spec 23.4: an additive layer is never written as an override one. The package's layer
-    attributes (spec/runtime-package.md 5.1) have no mode, so export_gltf refuses the crowd by name."""
-    from vbusd.format.errors import UnsupportedError
-    from vbusd.format.model import VirtualBonesAsset
-    from vbusd.io.gltf_package import export_gltf
+def _foot_contact(vb, foot: int, clip: str) -> tuple[float, float]:
+    """(time, world height) where ``foot`` is lowest in ``clip``: the clip sampled at 200 times over its
+    duration, then a grid of 40 around the lowest sample (the Fox is Y-up)."""
+    duration = vb.clips[clip_index(vb, clip)].duration
+    height = lambda t: float(vbusd.bone_transform(vb, foot, clip, float(t))[1, 3])  # noqa: E731
+    coarse = np.linspace(0.0, duration, 200, endpoint=False)
+    best = coarse[int(np.argmin([height(t) for t in coarse]))]
+    step = duration / 200
+    fine = np.clip(np.linspace(best - step, best + step, 41), 0.0, duration)
+    heights = [height(t) for t in fine]
+    return float(fine[int(np.argmin(heights))]), float(min(heights))
+
+
+def test_phase_sync_keeps_the_foot_down_at_matched_phases_across_walk_to_run(fox):
+    """The issue's must-show (spec 23.3): a walk-to-run change with phase sync keeps the feet in step.
+
+    Sync markers ``footDown`` are placed at each clip's foot contact: the clip-local time where the
+    left front foot (b_LeftFoot*) is lowest, found from the clip itself (_foot_contact). The space
+    ``gait = Walk@1, Run@3`` syncs on them. At matched phases (every whole phase: the foot-down of
+    each clip) the synced blend keeps the foot down all along the change, x from 1 (walk) to 3
+    (run): its height stays within 1e-3 of the diagonal of the contact height the clips give it,
+    (1 - w) h_Walk + w h_Run (w the Run weight; the Fox's two clips put the ankle at different
+    heights when planted, 15.2 and 12.2 units, 1.6% of the diagonal apart, so no blend can hold one
+    constant height). A naive blend, both clips at the same clip-local time (the walk's foot
+    contact, then whole walk cycles later: no phase normalization, no markers), strays from it by
+    more than 1e-3 of the diagonal. Sampled once per cycle as x ramps over 8 cycles."""
+    import dataclasses
 
     _, vb = fox
-    n = 2
-    masks = [name for name, _ in vb.masks]
-    crowd = Crowd("/Fox/Crowd", np.zeros((n, 3), np.float32), np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
-                  np.ones(n, np.int32), np.zeros(n, np.float32), np.ones(n, np.float32),
-                  layer_clip=np.zeros((n, 1), np.int32), layer_time_offset=np.zeros((n, 1), np.float32),
-                  layer_playback_rate=np.ones((n, 1), np.float32), layer_weight=np.full((n, 1), 0.5, np.float32),
-                  layer_mask=np.full((n, 1), masks.index("upper"), np.int32), layer_mode=np.array([[0], [1]], np.int32))
-    out = tmp_path / "crowd.glb"
-    with pytest.raises(UnsupportedError, match="additive layers"):
-        export_gltf(VirtualBonesAsset(animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), out)
-    assert not out.exists()
+    foot = next(b for b, name in enumerate(vb.bones) if name.rsplit("/", 1)[-1].startswith("b_LeftFoot"))
+    (walk_time, walk_height), (run_time, run_height) = (_foot_contact(vb, foot, c) for c in ("Walk", "Run"))
+    vb = dataclasses.replace(vb, markers=(Marker("Walk", "footDown", walk_time), Marker("Run", "footDown", run_time)),
+                             blend_spaces=(BlendSpace("gait", 1, ("Walk", "Run"), ((1.0,), (3.0,)), "footDown"),))
+    walk_d, run_d = (vb.clips[clip_index(vb, c)].duration for c in ("Walk", "Run"))
+    diagonal = float(np.linalg.norm(np.ptp(vbusd.skin(vb, "Walk", walk_time)[0].points, axis=0)))
+    height = lambda joint: float(joint[1, 3])  # noqa: E731
+    synced, naive, xs = [], [], []
+    for cycle in range(9):  # one whole phase per step: x ramps 1 -> 3 over 8 cycles
+        x = 1.0 + 2.0 * cycle / 8
+        xs.append(x)
+        synced.append(height(vbusd.bone_transform(vb, foot, blend={"space": "gait", "x": x, "phase": float(cycle)})))
+        # Naive: Walk and Run both at the walk's clip-local time (its foot contact plus whole walk cycles).
+        w_run = (x - 1.0) / 2.0
+        tau = walk_time + cycle * walk_d
+        points = [(clip_index(vb, "Walk"), np.array([tau]), 1.0 - w_run), (clip_index(vb, "Run"), np.array([tau]), w_run)]
+        naive.append(height(layered_skinning(vb, 0, np.zeros(1), [], blend=[p for p in points if p[2] > 0])[1][0, foot]))
+    contact = [walk_height + (x - 1.0) / 2.0 * (run_height - walk_height) for x in xs]
+    synced_spread = max(abs(a - b) for a, b in zip(synced, contact)) / diagonal
+    naive_spread = max(abs(a - b) for a, b in zip(naive, contact)) / diagonal
+    print(f"foot contact: Walk at {walk_time:.4f} s of {walk_d:.4f} s (height {walk_height:.4g}), Run at {run_time:.4f} s "
+          f"of {run_d:.4f} s (height {run_height:.4g}); diagonal {diagonal:.4g}")
+    print("x:      " + " ".join(f"{v:8.3f}" for v in xs))
+    print("contact:" + " ".join(f"{v:8.4f}" for v in contact))
+    print("synced: " + " ".join(f"{v:8.4f}" for v in synced))
+    print("naive:  " + " ".join(f"{v:8.4f}" for v in naive))
+    print(f"foot height off the contact height at matched phases: synced {synced_spread:.3g}, naive {naive_spread:.3g} "
+          "of the diagonal")
+    assert synced_spread <= 1e-3, synced
+    assert naive_spread > 1e-3, naive

@@ -17,6 +17,7 @@ instance's bounding-box diagonal, unit normals within 1e-5.
 * a ``vbusd export`` package of a mesh without normals (the Fox) through each engine's glTF loader;
 * unorm16 where the browser lacks EXT_texture_norm16: one clear line naming the alternative;
 * blend spaces per instance (format 1.3), played as layers under the rig's every-bone mask, and their clip events;
+* additive layers (format 1.3, primvars:vb:layerMode) beside override ones;
 * root motion (``crowd.rootMotionMatrix``) against ``vbusd.root_motion``, and sockets
   (``crowd.socketMatrix``) of a crossfading stadium crowd against ``crowd_joint_transforms``;
 * the Khronos Fox and CesiumMan (shared assets) with the compact encoding, in a crossfading crowd of
@@ -45,7 +46,7 @@ from tests.helpers.browser import (CHARACTER_CAMERA, NORMAL_TOLERANCE, PAGE, POS
                                    open_engine_page, package_probe_errors, rasterize_nearest, reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
-from tests.helpers.crowds import by_hand as crowd_by_hand, chain_character, primvars
+from tests.helpers.crowds import additive_chain, by_hand as crowd_by_hand, chain_character, primvars
 from tests.helpers import scripts
 from tests.helpers.variety import modular_character
 
@@ -70,9 +71,10 @@ def open_page(browser, server: ViewerServer, query: str = "") -> ViewerPage:
     return open_engine_page(browser, server, PAGE + query)
 
 
-def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None, check=None) -> list:
+def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asset=None, check=None, then=None) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
-    ``engine``; ``check(page)`` looks at the same page first."""
+    ``engine``; ``check(page)`` looks at the same page first, ``then(page)`` after the probes
+    returns more (error, error) pairs."""
 
     def checks(page):
         if "skin=pulled" in query:  # every crowd draws with the records, no bone streams
@@ -80,7 +82,7 @@ def probe_errors(browser, path: Path, engine: str, probes, query: str = "", asse
         if check is not None:
             check(page)
 
-    return engine_probe_errors(browser, path, engine, probes, query=query, asset=asset, check=checks)
+    return engine_probe_errors(browser, path, engine, probes, query=query, asset=asset, check=checks, then=then)
 
 
 def layers_matter(asset, instance: int, t: float, found: list):
@@ -461,9 +463,69 @@ def test_blend_spaces(browser, blending_chain, engine):
         blended, _ = reference_instance(asset, i, 0.37)
         plain = vbusd.skin(asset.animations[0], "walk", 0.37)[0].points + asset.crowds[0].positions[i]
         assert float(np.abs(blended - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
-    errors = probe_errors(browser, blending_chain, engine, [(i, t) for i in range(6) for t in (0.0, 0.37)], asset=asset)
-    print(engine, "blend spaces", errors)
+    # On the same page load: the runtime API's crowd.setBlend (the same signature in every engine)
+    # turns instance 5, which plays its clip, into a 2D blend; its probe against the decoder of the
+    # crowd with that blend stored (spec 23.7).
+    blend = {"space": "mix", "x": 0.3, "y": 0.4, "phase": 0.2, "playbackRate": 1.1}
+    crowd = asset.crowds[0]
+    changed = dataclasses.replace(asset, crowds=(dataclasses.replace(
+        crowd, blend_space=np.array([*crowd.blend_space[:5], 1], np.int32),
+        blend_x=np.array([*crowd.blend_x[:5], 0.3], np.float32), blend_y=np.array([*crowd.blend_y[:5], 0.4], np.float32),
+        blend_phase=np.array([*crowd.blend_phase[:5], 0.2], np.float32),
+        playback_rate=np.array([*crowd.playback_rate[:5], 1.1], np.float32)),))
+
+    def set_blend(page):
+        plan = page.page.evaluate("(blend) => window.vbusd.crowds[0].setBlend(5, blend)", blend)
+        assert len(plan["layers"]) == 2  # three points weighted: the base and both layer slots
+        return [check_probe(page, changed, 5, t) for t in (0.0, 0.37)]
+
+    errors = probe_errors(browser, blending_chain, engine, [(i, t) for i in range(6) for t in (0.0, 0.37)], asset=asset,
+                          then=set_blend)
+    print(engine, "blend spaces (the last two: setBlend)", errors)
     assert_within(errors, engine)
+    blended, _ = reference_instance(changed, 5, 0.37)
+    plain, _ = reference_instance(asset, 5, 0.37)
+    assert float(np.abs(blended - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
+
+
+@pytest.fixture(scope="module")
+def additive_crowd(tmp_path_factory):
+    """The chain character's crowd of additive and override layers (tests/helpers/crowds.py's
+    ADDITIVE_ROWS: format 1.3 primvars:vb:layerMode, layerReferenceClip, layerReferenceTime), its last
+    instance playing a synced 1D blend space, and its `vbusd export` package (the same as
+    ``_VB_LAYER_MODE_j``, ``_VB_LAYER_REFERENCE_*_j`` and ``_VB_BLEND_*`` instance attributes)."""
+    from vbusd.io.gltf_package import export_gltf
+
+    path = additive_chain(tmp_path_factory.mktemp("additive"), blends=True)
+    package = path.with_suffix(".glb")
+    export_gltf(vbusd.read_asset(path), package)
+    return path, package
+
+
+@pytest.mark.parity("additive layers")
+@pytest.mark.parametrize("engine", ENGINES)
+def test_additive_layers(browser, additive_crowd, engine):
+    """Additive layers (spec 23.4) on top of override ones in every engine, beside a blending instance
+    (23.7): each instance's probe against the numpy decoder, which equals vbusd.skin(..., layers=[{...,
+    "mode": "additive", "reference": ...}]) for these instances (tests/test_additive_layers.py);
+    without the additive layers' modes the instances are elsewhere. Twice: the USD crowd through
+    vbusd view's plain files, and its glTF package through the engine's glTF loader
+    (spec/runtime-package.md 5.1)."""
+    path, package = additive_crowd
+    asset = vbusd.read_asset(path)
+    crowd = asset.crowds[0]
+    assert np.any((crowd.layer_mode == 1) & (crowd.layer_weight > 0)) and crowd.blended
+    override = dataclasses.replace(asset, crowds=(dataclasses.replace(crowd, layer_mode=None, blend_space=None),))
+    for i in range(4):  # the additive layers (and the blend of the last instance) matter
+        additive, _ = reference_instance(asset, i, 0.45)
+        plain, _ = reference_instance(override, i, 0.45)
+        assert float(np.abs(additive - plain).max()) > 1e-3 * float(np.linalg.norm(plain.max(0) - plain.min(0)))
+    probes = [(i, t) for i in range(4) for t in (0.0, 0.45)]
+    errors = probe_errors(browser, path, engine, probes, asset=asset)
+    print(engine, "additive layers (USD)", errors)
+    assert_within(errors, engine)
+    errors = package_probe_errors(browser, package, engine, asset, probes)
+    assert max(errors) <= POSITION_TOLERANCE, (engine, errors)
 
 
 @pytest.mark.parity("clip events")

@@ -300,12 +300,13 @@ def open_engine_page(browser, server: ViewerServer, query: str = PAGE, **kwargs)
 
 
 def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str = "", asset=None, backend=None,
-                        check=None, timeout_s: float = 60.0) -> list:
+                        check=None, then=None, timeout_s: float = 60.0) -> list:
     """(position error / diagonal, normal error) of each (instance, time) probe of ``path`` drawn by
     ``engine`` (``vbusd view --engine ENGINE``, at :data:`PAGE` + ``query``) against
     :func:`reference_instance`; the page names the engine (and ``backend``), logs no error, and
-    loads everything from the server (offline). ``check(page)`` looks at the page first; the page
-    has ``timeout_s`` seconds to load."""
+    loads everything from the server (offline). ``check(page)`` looks at the page first;
+    ``then(page)``, after the probes on the same page load, returns more (error, error) pairs; the
+    page has ``timeout_s`` seconds to load."""
     asset = asset or vbusd.read_asset(path)
     with ViewerServer(path, engine=engine) as server:
         page = open_engine_page(browser, server, PAGE + query, timeout_s=timeout_s)
@@ -317,6 +318,8 @@ def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str 
             if check is not None:
                 check(page)
             errors = [check_probe(page, asset, instance, t) for instance, t in probes]
+            if then is not None:
+                errors += then(page)
             assert page.errors() == [], page.errors()
             # Offline: the page, the engine, the runtime and the asset all come from the server.
             assert page.requests and all(url.startswith(server.url) for url in page.requests), page.requests

@@ -9,7 +9,7 @@ import numpy as np
 
 import vbusd
 
-__all__ = ["chain_character", "primvars", "by_hand"]
+__all__ = ["chain_character", "additive_chain", "primvars", "by_hand"]
 
 
 def chain_character(folder: Path, *, masks=(("upper", "b1"),)) -> Path:
@@ -94,3 +94,55 @@ def by_hand(character: Path, values: dict, i: int, t: float, weight_at) -> np.nd
               for j in range(values["layerClip"].shape[1])] if "layerClip" in values else None
     (pose,) = vbusd.skin(character, int(values["clip"][i]), tau, layers=layers, **fade)
     return pose.points + values["positions"][i]
+
+
+ADDITIVE_ROWS = (  # base clip, offset, rate; per layer: clip, offset, rate, weight, mask, mode, reference clip, time
+    ("walk", 0.3, 1.0, (("wave", 0.4, 1.0, 0.6, "upper", 1, "wave", 0.0), ("run", 0.0, 0.0, 0.0, "all", 0, "run", 0.0))),
+    ("run", 0.1, 0.5, (("wave", 0.7, 1.0, 1.0, "all", 1, "walk", 0.25), ("walk", 0.2, 0.0, 0.5, "upper", 0, "walk", 0.0))),
+    ("walk", 0.55, 1.0, (("run", 0.3, 0.0, 0.6, "upper", 0, "run", 0.0), ("wave", 1.1, 0.5, 0.8, "all", 1, "wave", 1.5))),
+    ("wave", 1.0, 1.0, (("walk", 0.1, 1.0, 0.0, "all", 1, "walk", 0.0), ("run", 0.6, 0.0, 0.0, "upper", 1, "run", 0.0))),
+)
+"""The additive crowd's instances (format 1.3, spec 23.4): override and additive layers mixed, masked and
+not, references of the layer's own clip and of another, instance 3 with every weight 0."""
+
+
+def additive_chain(folder: Path, rows=ADDITIVE_ROWS, blends: bool = False) -> Path:
+    """The chain character (masks ``upper`` = b1 and ``all`` = b0) with a crowd whose instances play
+    :data:`ADDITIVE_ROWS`: two layers each, override and additive, written as the instancer's layer
+    primvars and its additive ones (primvars:vb:layerMode, layerReferenceClip, layerReferenceTime).
+    With ``blends``, the animation also stores the 1D space ``speed = walk@0, run@1`` synced on the
+    marker ``step`` and the last instance (whose layers weigh 0) plays it at x 0.3, phase 0.2."""
+    import dataclasses
+
+    from vbusd.format.model import Crowd
+
+    asset = vbusd.read_asset(chain_character(folder, masks=(("upper", "b1"), ("all", "b0"))))
+    vb = asset.animations[0]
+    clips = [c.name for c in vb.clips]
+    masks = [name for name, _ in vb.masks]
+    n = len(rows)
+
+    def field(k, dtype, convert=lambda v: v):
+        return np.array([[convert(layer[k]) for layer in row[3]] for row in rows], dtype)
+
+    crowd = Crowd("/Chain/Crowd", np.column_stack([np.arange(n) * 1.5, np.zeros(n), np.zeros(n)]).astype(np.float32),
+                  np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)),
+                  np.array([clips.index(r[0]) for r in rows], np.int32), np.array([r[1] for r in rows], np.float32),
+                  np.array([r[2] for r in rows], np.float32),
+                  layer_clip=field(0, np.int32, clips.index), layer_time_offset=field(1, np.float32),
+                  layer_playback_rate=field(2, np.float32), layer_weight=field(3, np.float32),
+                  layer_mask=field(4, np.int32, masks.index), layer_mode=field(5, np.int32),
+                  layer_reference_clip=field(6, np.int32, clips.index), layer_reference_time=field(7, np.float32))
+    if blends:
+        from vbusd.format.motion import parse_blend_space, parse_marker
+
+        space = dataclasses.replace(parse_blend_space("speed=walk@0,run@1"), sync_marker="step")
+        vb = dataclasses.replace(vb, blend_spaces=(space,),
+                                 markers=(parse_marker("walk:step@0.5"), parse_marker("run:step@0.25")))
+        crowd = dataclasses.replace(crowd, blend_space=np.array([-1] * (n - 1) + [0], np.int32),
+                                    blend_x=np.array([0.0] * (n - 1) + [0.3], np.float32),
+                                    blend_y=np.zeros(n, np.float32),
+                                    blend_phase=np.array([0.0] * (n - 1) + [0.2], np.float32))
+    path = folder / "additive" / "additive.usda"
+    vbusd.write_asset(dataclasses.replace(asset, animations=(vb,), crowds=(crowd,), crowd_animation=(0,)), path)
+    return path

@@ -543,6 +543,9 @@ _COMMAND_ERRORS = (
     Code("layers.noMask", E, "A layer (skin, bone_transform, vbusd crowd --layer) names a mask the "
          "animation does not store, or the animation stores no masks (format 1.2); reconvert with "
          "--mask NAME=BONE.", f"{_VB}#layers", "usd"),
+    Code("layers.mode", E, "A layer's mode (primvars:vb:layerMode, the glTF package's _VB_LAYER_MODE_j, a "
+         "Crowd's layer_mode) is neither 0 (override) nor 1 (additive) (format 1.3).", f"{_VB}#additive-layers",
+         "usd"),
 )
 
 _CODES = _FINDINGS + _COMMAND_ERRORS

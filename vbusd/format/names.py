@@ -167,6 +167,16 @@ LAYER_WEIGHT = Primvar("vb:layerWeight", "float[]")
 LAYER_MASK = Primvar("vb:layerMask", "int[]")
 LAYER_PRIMVARS = (LAYER_CLIP, LAYER_TIME_OFFSET, LAYER_PLAYBACK_RATE, LAYER_WEIGHT, LAYER_MASK)
 """Format 1.2: per-instance layer primvars of VirtualBonesInstancingAPI (elementSize L, spec "Layers")."""
+LAYER_MODE = Primvar("vb:layerMode", "int[]")
+LAYER_REFERENCE_CLIP = Primvar("vb:layerReferenceClip", "int[]")
+LAYER_REFERENCE_TIME = Primvar("vb:layerReferenceTime", "float[]")
+ADDITIVE_LAYER_PRIMVARS = (LAYER_MODE, LAYER_REFERENCE_CLIP, LAYER_REFERENCE_TIME)
+"""Format 1.3: per-instance additive layer primvars of VirtualBonesInstancingAPI (elementSize L like the
+layer primvars, spec "Additive layers"): each layer's mode (0 override, 1 additive) and the clip and
+clip-local time of its reference pose; defaults 0, the layer's clip, 0. Authored with the instancer's
+own ``vb:formatMinorVersion`` = 3."""
+LAYER_MODES = (0, 1)
+"""The values of ``primvars:vb:layerMode``: 0 override (spec 8.6), 1 additive (spec 23.4)."""
 TINT = Primvar("vb:tint", "color3f[]")
 VARIANT = Primvar("vb:variant", "int[]")
 PARTS = Primvar("vb:parts", "int[]")

@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from vbusd.format import metadata as md
-from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError, UnsupportedError
+from vbusd.format.errors import FORCE_HINT, MISSING_FILE, InputError, OptionsError
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.format.names import unique_names
 from vbusd.io.gltf import referenced_uris
@@ -159,6 +159,12 @@ LAYER_ATTRIBUTES = (("layer_clip", "_VB_LAYER_CLIP"), ("layer_time_offset", "_VB
                     ("layer_playback_rate", "_VB_LAYER_PLAYBACK_RATE"), ("layer_weight", "_VB_LAYER_WEIGHT"),
                     ("layer_mask", "_VB_LAYER_MASK"))
 """Crowd fields of the layers and the stem of their instance attributes (``<stem>_<j>`` for layer j)."""
+ADDITIVE_ATTRIBUTES = (("layer_mode", "_VB_LAYER_MODE"), ("layer_reference_clip", "_VB_LAYER_REFERENCE_CLIP"),
+                       ("layer_reference_time", "_VB_LAYER_REFERENCE_TIME"))
+"""Format 1.3 additive layers (spec/runtime-package.md 5.1): each layer's mode and reference pose, ``<stem>_<j>``."""
+BLEND_ATTRIBUTES = (("blend_space", "_VB_BLEND_SPACE", -1.0), ("blend_x", "_VB_BLEND_X", 0.0),
+                    ("blend_y", "_VB_BLEND_Y", 0.0), ("blend_phase", "_VB_BLEND_PHASE", 0.0))
+"""Format 1.3 blend spaces per instance (spec/runtime-package.md 5.1): field, attribute, default."""
 
 
 def _fades(crowd) -> bool:
@@ -187,19 +193,6 @@ def _variety_columns(crowd, variant_index: dict, parts: list) -> dict:
 
 def _crowd_arrays(crowd):
     count = crowd.instance_count
-    if crowd.blended:
-        # Spec 23.7 blends per instance have no EXT_mesh_gpu_instancing attribute yet: refuse rather than
-        # export the crowd without them.
-        raise UnsupportedError("the crowd plays blend spaces per instance (format 1.3), which the glTF runtime "
-                               "package does not carry yet", location=f"{crowd.path}.primvars:vb:blendSpace",
-                               code="layers.unsupported")
-    if (crowd.layer_mode is not None and crowd.layer_weight is not None
-            and np.any((np.asarray(crowd.layer_mode) == 1) & (np.asarray(crowd.layer_weight) > 0))):
-        # Spec 23.4: an additive layer MUST NOT be written as an override one, and the package's layer
-        # attributes (like the USD primvars) have no mode.
-        raise UnsupportedError("the crowd plays additive layers (format 1.3), which the glTF runtime package does "
-                               "not carry", location=f"{crowd.path}.primvars:vb:layerWeight",
-                               code="layers.unsupported")
     rotations = np.asarray(crowd.orientations, dtype=np.float64).reshape(count, 4)
     length = np.linalg.norm(rotations, axis=1, keepdims=True)
     rotations = np.where(length > 0, rotations / np.where(length > 0, length, 1), [0, 0, 0, 1])
@@ -223,6 +216,21 @@ def _crowd_arrays(crowd):
             values = np.asarray(getattr(crowd, field_name), dtype=np.float32).reshape(count, layers)
             for j in range(layers):
                 columns[f"{stem}_{j}"] = (np.ascontiguousarray(values[:, j]), "SCALAR")
+        if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
+            # Format 1.3 additive layers (spec 23.4): an additive layer is never written as an override one.
+            defaults = {"layer_reference_clip": crowd.layer_clip, "layer_reference_time": np.zeros((count, layers))}
+            for field_name, stem in ADDITIVE_ATTRIBUTES:
+                source = getattr(crowd, field_name)
+                values = np.asarray(defaults[field_name] if source is None else source,
+                                    dtype=np.float32).reshape(count, layers)
+                for j in range(layers):
+                    columns[f"{stem}_{j}"] = (np.ascontiguousarray(values[:, j]), "SCALAR")
+    if crowd.blended:
+        # Format 1.3 blend spaces per instance (spec 23.7); the spaces and markers are in the layout.
+        for field_name, name, default in BLEND_ATTRIBUTES:
+            source = getattr(crowd, field_name)
+            values = np.full(count, default) if source is None else np.asarray(source).reshape(count)
+            columns[name] = (np.asarray(values, dtype=np.float32), "SCALAR")
     return columns
 
 

@@ -441,6 +441,10 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
         clip_count = len(animation.layout.get("clips") or ()) if animation is not None else None
         masks = animation.layout.get("masks") if animation is not None else None
         mask_count = len(masks) if isinstance(masks, list) else 0
+        spaces = animation.layout.get("blendSpaces") if animation is not None else None
+        space_count = len(spaces) if isinstance(spaces, list) else (0 if animation is not None else None)
+        if isinstance(masks, list) and isinstance(spaces, list):
+            mask_count += 1  # blends play as layers under a mask of every bone (spec 23.1)
         playback_names = [k for k in attributes if k.startswith("_VB_") and k not in VARIETY_ATTRIBUTES]
         for key, accessor in attributes.items():  # TRANSLATION, ROTATION, SCALE: what a loader reads
             if key not in playback_names + list(VARIETY_ATTRIBUTES):
@@ -462,7 +466,7 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
             if array is not None:
                 values[key] = array.reshape(-1)
                 _check_playback(key, values[key], clip_count, mask_count, f"{where}{json_pointer([key])}",
-                                "instance", file, diagnostics)
+                                "instance", file, diagnostics, space_count)
         samples = _check_samples(root, reader, node, n, attributes, instances, clip_count, mask_count, file,
                                  diagnostics, failed)
         clips = values.get("_VB_CLIP")
@@ -479,14 +483,18 @@ def _check_nodes(root: dict, reader, bound: dict, animations: list, file: str, d
 _FADE_NAMES = ("_VB_FADE_CLIP", "_VB_FADE_TIME_OFFSET", "_VB_FADE_PLAYBACK_RATE", "_VB_FADE_WEIGHT")
 _LAYER_STEMS = ("_VB_LAYER_CLIP", "_VB_LAYER_TIME_OFFSET", "_VB_LAYER_PLAYBACK_RATE", "_VB_LAYER_WEIGHT",
                 "_VB_LAYER_MASK")
+_ADDITIVE_STEMS = ("_VB_LAYER_MODE", "_VB_LAYER_REFERENCE_CLIP", "_VB_LAYER_REFERENCE_TIME")
+"""Format 1.3 additive layers (spec/runtime-package.md 5.1): all three of every layer, or none."""
+_BLEND_NAMES = ("_VB_BLEND_SPACE", "_VB_BLEND_X", "_VB_BLEND_Y", "_VB_BLEND_PHASE")
+"""Format 1.3 blend spaces per instance (spec/runtime-package.md 5.1): all four, or none."""
 _LAYER_NAME = re.compile(r"^(_VB_LAYER_[A-Z_]+?)_(0|[1-9][0-9]*)$")
 
 
 def _playback_problems(names: list) -> list:
     """What is wrong with the set of ``_VB_`` instance attribute names (spec/runtime-package.md 5.1)."""
     problems = []
-    unknown = [k for k in names if k not in INSTANCE_ATTRIBUTES and k not in _FADE_NAMES
-               and not (_LAYER_NAME.match(k) and _LAYER_NAME.match(k).group(1) in _LAYER_STEMS)]
+    unknown = [k for k in names if k not in INSTANCE_ATTRIBUTES and k not in _FADE_NAMES and k not in _BLEND_NAMES
+               and not (_LAYER_NAME.match(k) and _LAYER_NAME.match(k).group(1) in _LAYER_STEMS + _ADDITIVE_STEMS)]
     if unknown:
         problems.append(f"unknown Virtual Bones instance attribute {unknown[0]} (spec/runtime-package.md 5.1)")
     fades = [k for k in _FADE_NAMES if k in names]
@@ -499,24 +507,38 @@ def _playback_problems(names: list) -> list:
         if missing:
             problems.append(f"layer {j} lacks {', '.join(missing)} (layers 0 .. {max(layers)} each carry all five)")
             break
+    additive = [k for k in names if _LAYER_NAME.match(k) and _LAYER_NAME.match(k).group(1) in _ADDITIVE_STEMS]
+    if additive:
+        expected = [f"{stem}_{j}" for j in range(max(layers) + 1 if layers else 0) for stem in _ADDITIVE_STEMS]
+        if sorted(additive) != sorted(expected):
+            problems.append(f"additive layers carry all of {', '.join(_ADDITIVE_STEMS)} for every layer "
+                            f"(_j for each j of the layers), or none; the crowd has {', '.join(sorted(additive))}")
+    blends = [k for k in _BLEND_NAMES if k in names]
+    if blends and len(blends) != len(_BLEND_NAMES):
+        problems.append(f"the crowd's blends need all of {', '.join(_BLEND_NAMES)}; it has {', '.join(blends)}")
     return problems
 
 
 def _check_playback(key: str, array: np.ndarray, clip_count, mask_count: int, pointer: str, what: str, file: str,
-                    diagnostics: Diagnostics) -> None:
+                    diagnostics: Diagnostics, space_count=None) -> None:
     """Finite values; clip and mask indices that are integers the animation has."""
     bad = ~np.isfinite(array)
     limit, noun = None, ""
-    if key in ("_VB_CLIP", "_VB_FADE_CLIP") or key.startswith("_VB_LAYER_CLIP_"):
+    low = 0
+    if key in ("_VB_CLIP", "_VB_FADE_CLIP") or key.startswith(("_VB_LAYER_CLIP_", "_VB_LAYER_REFERENCE_CLIP_")):
         limit, noun = clip_count, "clips"
     elif key.startswith("_VB_LAYER_MASK_"):
         limit, noun = mask_count, "masks"
+    elif key.startswith("_VB_LAYER_MODE_"):
+        limit, noun = 2, "modes: 0 override, 1 additive"
+    elif key == "_VB_BLEND_SPACE":
+        limit, noun, low = space_count, "blend spaces, or -1 for none", -1
     if isinstance(limit, int):
-        bad |= (array != np.round(array)) | (array < 0) | (array >= limit)
+        bad |= (array != np.round(array)) | (array < low) | (array >= limit)
     if bad.any():
         first = int(np.argmax(bad))
         diagnostics.report("package.instances", f"{what} {first} has {key} {float(array[first])!r}"
-                           + (f" ({noun} 0..{limit - 1})" if isinstance(limit, int) else " (not finite)"),
+                           + (f" ({noun} {low}..{limit - 1})" if isinstance(limit, int) else " (not finite)"),
                            JsonPointer(file, pointer))
 
 

@@ -510,11 +510,6 @@ def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
     if not mask_count:
         raise OptionsError(f"crowd {crowd.path}: layers need an animation that stores bone masks (format 1.2; "
                            "convert with --mask NAME=BONE)", file="usd", code="layers.noMask")
-    if crowd.layer_mode is not None and np.any((np.asarray(crowd.layer_mode) == 1) & (weight > 0)):
-        # Additive layers (spec 23.4) play per instance in the decoders, but format 1.3 defines no
-        # instancer primvar for them: refused rather than written as override layers.
-        raise OptionsError(f"crowd {crowd.path}: additive layers have no USD primvars in format 1.3 (spec 23.4); "
-                           "they decode from a Crowd in Python only", file="usd", code="layers.unsupported")
     count = weight.shape[1]
     for primvar, values, integer in ((names.LAYER_CLIP, crowd.layer_clip, True),
                                      (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),
@@ -528,6 +523,36 @@ def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
         type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
         handle = primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count)
         handle.Set(vt.FromNumpy(array))
+    if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
+        _write_additive_layers(pxr, primvars, crowd, count)
+
+
+def _write_additive_layers(pxr, primvars, crowd: Crowd, count: int) -> None:
+    """Author the additive layer primvars (format 1.3, spec 23.4): each layer's mode and the clip and
+    time of its reference pose, elementSize L like the layer primvars, and the instancer's own
+    ``vb:formatMinorVersion`` = 3 so that a 1.2 reader refuses them by name rather than play the
+    layers as override ones."""
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    n = crowd.instance_count
+    mode = np.asarray(crowd.layer_mode).reshape(-1)
+    if mode.shape != (n * count,) or not np.all(np.isin(mode, names.LAYER_MODES)):
+        raise OptionsError(f"crowd {crowd.path}: {names.LAYER_MODE.attribute} must be 0 (override) or 1 (additive), "
+                           f"one per instance and layer ({n} x {count})", file="usd", code="layers.mode")
+    reference_clip = (np.asarray(crowd.layer_clip) if crowd.layer_reference_clip is None
+                      else np.asarray(crowd.layer_reference_clip))
+    reference_time = (np.zeros(n * count) if crowd.layer_reference_time is None
+                      else np.asarray(crowd.layer_reference_time))
+    for primvar, values, integer in ((names.LAYER_MODE, mode, True), (names.LAYER_REFERENCE_CLIP, reference_clip, True),
+                                     (names.LAYER_REFERENCE_TIME, reference_time, False)):
+        vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
+        array = np.ascontiguousarray(values, dtype=dtype).reshape(-1)
+        if array.shape != (n * count,):
+            raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} instances "
+                               f"x {count} layers", file="usd")
+        type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
+        primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count).Set(vt.FromNumpy(array))
+    primvars.GetPrim().CreateAttribute(names.INSTANCER_MINOR_VERSION, Sdf.ValueTypeNames.Int,
+                                       variability=Sdf.VariabilityUniform).Set(3)
 
 
 def _fades(crowd: Crowd) -> bool:

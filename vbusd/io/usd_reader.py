@@ -64,7 +64,7 @@ __all__ = ["AnimationAttributes", "CrowdSummary", "UsdReader", "open_stage", "re
            "texture_disagreements",
            "read_summary", "tf_message", "captured_usd_diagnostics", "READ_SUFFIXES", "OUTSIDE_PATHS_HINT",
            "WEIGHT_SUM_TOLERANCE", "reading", "authored_type_mismatch", "stage_for_reading",
-           "file_dependencies", "read_layer_primvars", "read_variety_properties", "instancer_prototypes"]
+           "file_dependencies", "read_layer_primvars", "read_additive_layer_primvars", "read_variety_properties", "instancer_prototypes"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -641,7 +641,7 @@ class UsdReader:
                                                 ((1, 3), names.BLEND_SPACE_NAMES), ((1, 3), names.MARKER_CLIPS))
                      if version > tuple(current)]
         primvars = [p for version, group in (((1, 1), names.FADE_PRIMVARS), ((1, 2), names.LAYER_PRIMVARS),
-                                             ((1, 3), names.BLEND_PRIMVARS))
+                                             ((1, 3), names.BLEND_PRIMVARS), ((1, 3), names.ADDITIVE_LAYER_PRIMVARS))
                     if version > tuple(current) for p in group]
         target = prim.GetPath()
         found = []
@@ -1419,7 +1419,11 @@ def read_variety_properties(prim, n: int, fail, newer=None) -> dict:
                   f"{own!r:.60}", site)
     current = versioning.CURRENT
     if own is not None and own > current.minor:
-        uses = f"; the instancer uses {', '.join(authored)}, which version {current} does not define" if authored else ""
+        # Named: what the instancer authors of its own version (variety, spec 22; additive layers, 23.4).
+        newer_names = authored + [p.attribute for p in names.ADDITIVE_LAYER_PRIMVARS
+                                  if prim.GetAttribute(p.attribute) and prim.GetAttribute(p.attribute).HasAuthoredValue()]
+        uses = (f"; the instancer uses {', '.join(newer_names)}, which version {current} does not define"
+                if newer_names else "")
         message = (f"format version {current.major}.{own} is newer than this reader (version {current}){uses}; "
                    "upgrade vbusd to read it")
         (newer or (lambda text, where: fail("format.version", text, where)))(message, site)
@@ -1822,4 +1826,61 @@ def read_layer_primvars(prim, n: int, clip_count: int, mask_count: int, fail) ->
             out[field] = read(Usd.TimeCode.Default())
     if samples:
         out["fade_samples"] = samples
+    out.update(read_additive_layer_primvars(prim, n, count, clip_count, fail))
+    return out
+
+
+def read_additive_layer_primvars(prim, n: int, count: int, clip_count: int, fail) -> dict:
+    """Format 1.3 additive layer primvars of an instancer that plays ``count`` layers (spec 23.4) as
+    Crowd fields ({} when none): ``layer_mode`` (0 override, 1 additive; anything else
+    ``layers.mode``), ``layer_reference_clip`` (default the layer's clip; ``instancer.clip.range``)
+    and ``layer_reference_time`` (default 0). Each with elementSize ``count``, interpolation vertex,
+    not indexed, not time-sampled; an instancer authoring them states ``vb:formatMinorVersion`` >= 3 or
+    plays a 1.3 animation (``format.version`` otherwise: a 1.2 reader would play them as override)."""
+    Sdf, Tf, Usd, UsdGeom = _pxr()
+    path = str(prim.GetPath())
+    authored = {p: prim.GetAttribute(p.attribute) for p in names.ADDITIVE_LAYER_PRIMVARS}
+    authored = {p: a for p, a in authored.items() if a and a.HasAuthoredValue()}
+    if not authored:
+        return {}
+    if names.LAYER_MODE not in authored:
+        fail("instancer.count", f"{', '.join(p.attribute for p in authored)} without {names.LAYER_MODE.attribute}",
+             UsdSite(path, next(iter(authored)).attribute))
+    version = prim.GetAttribute(names.INSTANCER_MINOR_VERSION)
+    own = version.Get() if version and version.HasAuthoredValue() else 0
+    if (own if isinstance(own, int) else 0) < 3 and _animation_minor(prim) < 3:
+        fail("format.version", f"{names.LAYER_MODE.attribute} (format 1.3 additive layers) on an instancer whose "
+             f"{names.INSTANCER_MINOR_VERSION} is {own} and whose animation is older than 1.3; author "
+             f"{names.INSTANCER_MINOR_VERSION} = 3 on the instancer", UsdSite(path, names.LAYER_MODE.attribute))
+    out: dict = {}
+    for field, primvar, dtype in (("layer_mode", names.LAYER_MODE, np.int32),
+                                  ("layer_reference_clip", names.LAYER_REFERENCE_CLIP, np.int32),
+                                  ("layer_reference_time", names.LAYER_REFERENCE_TIME, np.float32)):
+        attribute = authored.get(primvar)
+        if attribute is None:
+            continue
+        where = UsdSite(path, primvar.attribute)
+        handle = UsdGeom.Primvar(attribute)
+        if handle.IsIndexed():
+            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+                 "must not be indexed", where)
+        if handle.GetInterpolation() != UsdGeom.Tokens.vertex or handle.GetElementSize() != count:
+            fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex' and elementSize {count} "
+                 "(that of the layer primvars)", where)
+        if attribute.GetNumTimeSamples():
+            fail("instancer.count", f"{primvar.attribute} must not be time-sampled", where)
+        value = attribute.Get()
+        array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
+        if array.size != n * count:
+            fail("instancer.count", f"{primvar.attribute} has {array.size} values for {n} instances x {count} layers",
+                 where)
+        if not np.all(np.isfinite(array)):
+            fail("instancer.nonFinite", f"{primvar.attribute} holds NaN or infinite values", where)
+        if field == "layer_mode" and not np.all(np.isin(array, names.LAYER_MODES)):
+            bad = int(np.argmax(~np.isin(array, names.LAYER_MODES)))
+            fail("layers.mode", f"{primvar.attribute}: mode {array[bad]:g} at instance {bad // count}, layer "
+                 f"{bad % count}; a layer's mode is 0 (override) or 1 (additive)", where)
+        if field == "layer_reference_clip" and np.any((array < 0) | (array >= clip_count)):
+            fail("instancer.clip.range", f"{primvar.attribute}: clip index outside 0..{clip_count - 1}", where)
+        out[field] = array.astype(dtype).reshape(n, count)
     return out

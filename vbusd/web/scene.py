@@ -115,8 +115,11 @@ def _layers(crowd, buffer: _Buffer) -> dict:
         return {}
     weight = np.asarray(crowd.layer_weight, dtype=np.float32)
     n, count = weight.shape
-    if count > RUNTIME_LAYERS and np.any(weight[:, RUNTIME_LAYERS:] > 0):
-
+    # Each instance's layers of weight above 0, in order, moved to the first slots (a layer of weight 0
+    # changes nothing, so the pose is the same): a blend's layers before an instance's own ones
+    # (reference.blends_as_layers) then fit the runtime's slots whenever the instance weighs few enough.
+    order = np.argsort(weight <= 0, axis=1, kind="stable")
+    if np.any(np.sum(weight > 0, axis=1) > RUNTIME_LAYERS):
         raise UnsupportedError(f"the crowd plays {count} layers per instance; the three.js runtime plays at most "
                                f"{RUNTIME_LAYERS}", location=f"{crowd.path}.primvars:vb:layerWeight",
                                code="layers.unsupported")
@@ -124,14 +127,23 @@ def _layers(crowd, buffer: _Buffer) -> dict:
     def padded(values, dtype):
         out = np.zeros((n, RUNTIME_LAYERS), dtype=dtype)
         used = min(count, RUNTIME_LAYERS)
-        out[:, :used] = np.asarray(values, dtype=dtype).reshape(n, count)[:, :used]
+        compact = np.take_along_axis(np.asarray(values, dtype=dtype).reshape(n, count), order, axis=1)
+        out[:, :used] = compact[:, :used]
         return out
 
-    return {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),
-            "layerMask": buffer.add(padded(crowd.layer_mask, np.int32), "i4"),
-            "layerTimeOffset": buffer.add(padded(crowd.layer_time_offset, np.float32), "f4"),
-            "layerPlaybackRate": buffer.add(padded(crowd.layer_playback_rate, np.float32), "f4"),
-            "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
+    out = {"layerClip": buffer.add(padded(crowd.layer_clip, np.int32), "i4"),
+           "layerMask": buffer.add(padded(crowd.layer_mask, np.int32), "i4"),
+           "layerTimeOffset": buffer.add(padded(crowd.layer_time_offset, np.float32), "f4"),
+           "layerPlaybackRate": buffer.add(padded(crowd.layer_playback_rate, np.float32), "f4"),
+           "layerWeight": buffer.add(np.clip(padded(weight, np.float32), 0.0, 1.0), "f4")}
+    if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
+        # Format 1.3 additive layers (spec 23.4): each layer's mode and reference pose.
+        reference_clip = crowd.layer_clip if crowd.layer_reference_clip is None else crowd.layer_reference_clip
+        reference_time = np.zeros((n, count)) if crowd.layer_reference_time is None else crowd.layer_reference_time
+        out.update({"layerMode": buffer.add(padded(crowd.layer_mode, np.int32), "i4"),
+                    "layerReferenceClip": buffer.add(padded(reference_clip, np.int32), "i4"),
+                    "layerReferenceTime": buffer.add(padded(reference_time, np.float32), "f4")})
+    return out
 
 
 _FADE_FIELDS = (("fade_clip", "fadeClip", "i4"), ("fade_time_offset", "fadeTimeOffset", "f4"),

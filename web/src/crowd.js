@@ -11,7 +11,7 @@ import {
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
   checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, DEFAULT_FRAME_INTERVAL,
-  PreviousFrame, moveInstance,
+  PreviousFrame, moveInstance, packLayerMask, layerModeOf,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -168,12 +168,14 @@ export class VirtualBonesCrowd extends Group {
       clipMask.gpuType = IntType;
       this.layerClipMaskAttribute = clipMask;
       this.layerTimeAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 4), 4);
-      this.layerWeightAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 2), 2);
+      // (weight 0, weight 1, additive reference time 0, reference time 1): format 1.3 additive layers.
+      this.layerWeightAttribute = new InstancedBufferAttribute(new Float32Array(instances.count * 4), 4);
       for (let i = 0; i < instances.count; ++i) {
         for (let j = 0; j < 2; ++j) {
           const k = 2 * i + j;
           this.setLayer(i, j, { clip: instances.layerClip[k], mask: instances.layerMask[k], timeOffset: instances.layerTimeOffset[k],
-            playbackRate: instances.layerPlaybackRate[k], weight: instances.layerWeight[k] });
+            playbackRate: instances.layerPlaybackRate[k], weight: instances.layerWeight[k], mode: instances.layerMode?.[k] ?? 0,
+            reference: { clip: instances.layerReferenceClip?.[k] ?? instances.layerClip[k], time: instances.layerReferenceTime?.[k] ?? 0 } });
         }
       }
     }
@@ -333,9 +335,11 @@ export class VirtualBonesCrowd extends Group {
   /**
    * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
    * playbackRate * time` overrides the bones of mask `mask` (an index into the animation's masks,
-   * or its name) with weight `weight` (0..1; 0 leaves the slot out).
+   * or its name) with weight `weight` (0..1; 0 leaves the slot out). With `mode: 'additive'` (format
+   * 1.3, spec 23.4) it adds the clip's difference from the reference pose `reference` = {clip, time}
+   * (default the layer's clip at 0) instead, as three.js' makeClipAdditive played additively.
    */
-  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0, mode = 'override', reference = null } = {}) {
     if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers`);
     const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
     if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
@@ -348,9 +352,13 @@ export class VirtualBonesCrowd extends Group {
     if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
-    this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
+    const additive = layerModeOf(mode, `${this.name}: instance ${index} layer ${slot}`);
+    const referenceClip = reference?.clip ?? clip;
+    const code = weight > 0 ? packLayerMask(maskIndex, additive, referenceClip, this.animation.clips.length, `${this.name}: instance ${index} layer ${slot}`) : 0;
+    this.layerClipMaskAttribute.array.set([weight > 0 ? clip : 0, code], 4 * index + 2 * slot);
     this.layerTimeAttribute.array.set([timeOffset, playbackRate], 4 * index + 2 * slot);
-    this.layerWeightAttribute.array[2 * index + slot] = weight;
+    this.layerWeightAttribute.array[4 * index + slot] = weight;
+    this.layerWeightAttribute.array[4 * index + 2 + slot] = additive ? (reference?.time ?? 0) : 0;
     for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
       attribute.needsUpdate = true;
     }
@@ -382,7 +390,8 @@ export class VirtualBonesCrowd extends Group {
       const layer = plan.layers[slot];
       this.layerClipMaskAttribute.array.set([layer ? layer.clip : 0, layer ? every : 0], 4 * index + 2 * slot);
       this.layerTimeAttribute.array.set(layer ? [layer.timeOffset, layer.playbackRate] : [0, 1], 4 * index + 2 * slot);
-      this.layerWeightAttribute.array[2 * index + slot] = layer ? layer.weight : 0;
+      this.layerWeightAttribute.array[4 * index + slot] = layer ? layer.weight : 0;
+      this.layerWeightAttribute.array[4 * index + 2 + slot] = 0;
     }
     for (const attribute of [this.layerClipMaskAttribute, this.layerTimeAttribute, this.layerWeightAttribute]) {
       attribute.needsUpdate = true;

@@ -1,7 +1,8 @@
 // GLTFLoader plugin for the runtime package (spec/runtime-package.md): the VBUSD_virtual_bones
 // extension (animations with their KTX2 textures, primitives bound to them) and crowds as
 // EXT_mesh_gpu_instancing nodes with _VB_CLIP, _VB_TIME_OFFSET and _VB_PLAYBACK_RATE, their
-// crossfades (_VB_FADE_*, time-sampled too) and layers (_VB_LAYER_*_j): @vbusd/core's packagePlayback.
+// crossfades (_VB_FADE_*, time-sampled too), layers (_VB_LAYER_*_j, additive ones too) and blend spaces
+// per instance (_VB_BLEND_*, played as layers): @vbusd/core's packagePlayback.
 //
 //   const loader = new GLTFLoader();
 //   loader.register((parser) => new VirtualBonesGLTFPlugin(parser));
@@ -149,7 +150,8 @@ export class VirtualBonesGLTFPlugin {
       const count = json.accessors[instancing.attributes.TRANSLATION].count;
       // Clip, times and rates, the crossfade and its time samples, the layers (spec/runtime-package.md 5.1).
       const { clip, timeOffset, playbackRate, ...blending } = await packagePlayback({
-        attributes: instancing.attributes, samples: node.extensions?.[EXTENSION]?.samples, count, read, what: where });
+        attributes: instancing.attributes, samples: node.extensions?.[EXTENSION]?.samples, count, read, what: where,
+        layout: animations[entry].layout });
       crowds.push({
         animation: entry,
         name: node.name ?? where,

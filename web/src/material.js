@@ -5,7 +5,7 @@
 
 import {
   VirtualBonesError, BASE_MAX_BONES, shaderModule, replaceOnce, checkSkinBinding, skinningStatements,
-  previousDeclarations as corePreviousDeclarations, previousSkinningStatements,
+  previousDeclarations as corePreviousDeclarations, previousSkinningStatements, ADDITIVE_LAYERS_DEFINE,
 } from '@vbusd/core';
 
 export { shaderModule };
@@ -16,8 +16,9 @@ export { shaderModule };
  * With the `pulled` skin there are no bone inputs: the module declares `vb_skinTexture`.
  */
 export function skinningDeclarations(animation, maxInfluences, skin = 'attributes', layers = false) {
-  const module = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin, layers,
-    animation.maxBones ?? BASE_MAX_BONES);
+  // Layered: with additive layers (format 1.3) too; a layer of mode 0 is exactly the override path.
+  const module = (layers ? ADDITIVE_LAYERS_DEFINE : '') + shaderModule(animation.encoding, animation.texelFormat, maxInfluences,
+    animation.maxClips, skin, layers, animation.maxBones ?? BASE_MAX_BONES);
   if (skin === 'pulled') {
     return `${module}
 in int vb_instanceClip;
@@ -40,12 +41,13 @@ in vec3 vb_instanceFade;
 ${layers ? LAYER_INPUTS : ''}`;
 }
 
-// Format 1.2 layers (spec 8.6): two per instance (VB_MAX_LAYERS 2): (clip, mask) of each in one
-// ivec4, (timeOffset, playbackRate) of each in one vec4, the weights (0 leaves a slot out) in a vec2:
-// three attributes, as WebGL 2 guarantees only 16 and the crowd already uses 12.
+// Format 1.2 layers (spec 8.6): two per instance (VB_MAX_LAYERS 2): (clip, mask code) of each in one
+// ivec4, (timeOffset, playbackRate) of each in one vec4, the weights (0 leaves a slot out) and the
+// additive reference times (format 1.3, @vbusd/core's additive.js) in a vec4: three attributes, as
+// WebGL 2 guarantees only 16 and the crowd already uses 12.
 const LAYER_INPUTS = `in ivec4 vb_instanceLayerClipMask;
 in vec4 vb_instanceLayerTime;
-in vec2 vb_instanceLayerWeight;
+in vec4 vb_instanceLayerWeight;
 `;
 
 // Where the three.js runtime's instances keep their playback (crowd.js: instanced attributes).
@@ -54,6 +56,7 @@ const PLAYBACK = {
   fadeClip: 'vb_instanceFadeClip', fadeTau: 'vb_instanceFade.x + vb_instanceFade.y * vb_time', fadeWeight: 'vb_instanceFade.z',
   layerClip: 'vb_instanceLayerClipMask[2 * j]', layerMask: 'vb_instanceLayerClipMask[2 * j + 1]',
   layerTau: 'vb_instanceLayerTime[2 * j] + vb_instanceLayerTime[2 * j + 1] * vb_time', layerWeight: 'vb_instanceLayerWeight[j]',
+  referenceTau: 'vb_instanceLayerWeight[2 + j]',
 };
 
 // The previous-frame pose (spec virtual-bones.md 21, spec/shaders.md "Previous pose"): @vbusd/core's
@@ -113,7 +116,7 @@ export function patchMaterial(material, animation, maxInfluences, { skin = 'attr
     Object.assign(shader.uniforms, animation.uniforms, skinUniforms);
     shader.vertexShader = patchVertexShader(shader.vertexShader, animation, maxInfluences, skin, layers);
   };
-  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}:${animation.maxBones ?? BASE_MAX_BONES}${layers ? ':layers' : ''}`;
+  const key = `vbusd:${animation.encoding}:${animation.texelFormat}:${maxInfluences}:${animation.maxClips}:${skin}:${animation.maxBones ?? BASE_MAX_BONES}${layers ? ':layers:additive' : ''}`;
   const previousKey = material.customProgramCacheKey.bind(material);
   material.customProgramCacheKey = () => `${previousKey()}|${key}`;
   material.userData.virtualBones = { animation, maxInfluences, skin, layers };

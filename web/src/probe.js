@@ -94,7 +94,7 @@ export function probeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_IN
       if (layers) {  // format 1.2: the instance's two layers
         input.attribute('vb_instanceLayerClipMask', crowd.layerClipMaskAttribute.array, 4, { integer: true, divisor: 1, offset: 16 * index });
         input.attribute('vb_instanceLayerTime', crowd.layerTimeAttribute.array, 4, { divisor: 1, offset: 16 * index });
-        input.attribute('vb_instanceLayerWeight', crowd.layerWeightAttribute.array, 2, { divisor: 1, offset: 8 * index });
+        input.attribute('vb_instanceLayerWeight', crowd.layerWeightAttribute.array, 4, { divisor: 1, offset: 16 * index });
       }
       gl.activeTexture(gl.TEXTURE0);
       gl.bindTexture(gl.TEXTURE_2D, webglTexture);

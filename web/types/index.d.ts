@@ -94,7 +94,7 @@ export class VirtualBonesCrowd extends Group {
   count: number;
   readonly trianglesDrawn: number;
   setFade(index: number, fade?: { clip?: number; timeOffset?: number; playbackRate?: number; weight?: number }): void;
-  setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
+  setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number; mode?: 'override' | 'additive' | 0 | 1; reference?: { clip?: number; time?: number } | null }): void;
   /** Format 1.3: the clip markers every instance crosses between scene times t0 and t1 (spec 23.5). */
   events(t0: number, t1: number): { instance: number; name: string; time: number }[];
   /** Format 1.3: instance `index` plays a blend space, as its clip plus layer slots 0 and 1 under the every-bone mask. */

@@ -8,7 +8,7 @@ import {
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
   screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, moveInstance,
-  DEFAULT_FRAME_INTERVAL, PreviousFrame,
+  DEFAULT_FRAME_INTERVAL, PreviousFrame, blendLayers, packLayerMask, layerModeOf,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -78,10 +78,10 @@ export class VirtualBonesCrowd {
       for (let i = 0; i < this.capacity; ++i) {
         for (let j = 0; j < 2; ++j) {
           const k = 2 * i + j;
-          const weight = Math.min(Math.max(instances.layerWeight[k], 0), 1);
-          this.instanceC.set([weight > 0 ? instances.layerClip[k] : 0, weight > 0 ? instances.layerMask[k] : 0], 4 * i + 2 * j);
-          this.instanceD.set([instances.layerTimeOffset[k], instances.layerPlaybackRate[k]], 4 * i + 2 * j);
-          this.instanceE[4 * i + j] = weight;
+          this._writeLayer(i, j, { clip: instances.layerClip[k], mask: instances.layerMask[k], timeOffset: instances.layerTimeOffset[k],
+            playbackRate: instances.layerPlaybackRate[k], weight: Math.min(Math.max(instances.layerWeight[k], 0), 1),
+            mode: instances.layerMode?.[k] ?? 0,
+            reference: { clip: instances.layerReferenceClip?.[k] ?? instances.layerClip[k], time: instances.layerReferenceTime?.[k] ?? 0 } });
         }
       }
     }
@@ -447,9 +447,11 @@ export class VirtualBonesCrowd {
 
   /**
    * Layer `slot` (0 or 1) of instance `index` (spec 8.6, format 1.2): clip `clip` at `timeOffset +
-   * playbackRate * time` over the bones of mask `mask` (index or name) with weight `weight`.
+   * playbackRate * time` over the bones of mask `mask` (index or name) with weight `weight`; with
+   * `mode: 'additive'` (format 1.3, spec 23.4) the clip's difference from `reference` = {clip, time}
+   * (default the layer's clip at 0) is added instead, as the three.js runtime's setLayer.
    */
-  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0 } = {}) {
+  setLayer(index, slot, { clip = 0, mask = 0, timeOffset = 0, playbackRate = 1, weight = 0, mode = 'override', reference = null } = {}) {
     if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers`);
     const maskIndex = typeof mask === 'string' ? this.animation.maskIndex(mask) : mask;
     if (!(slot === 0 || slot === 1)) throw new VirtualBonesError(`${this.name}: layer slot must be 0 or 1, got ${slot}`);
@@ -459,10 +461,45 @@ export class VirtualBonesCrowd {
     if (weight > 0 && !(maskIndex >= 0 && maskIndex < maskCount)) {
       throw new VirtualBonesError(`${this.name}: instance ${index}: no bone mask ${JSON.stringify(mask)} (masks: ${this.animation.masks.join(', ')})`);
     }
-    this.instanceC.set([weight > 0 ? clip : 0, weight > 0 ? maskIndex : 0], 4 * index + 2 * slot);
+    this._writeLayer(index, slot, { clip, mask: maskIndex, timeOffset, playbackRate, weight, mode, reference });
+    this._updated('vb_instanceC', 'vb_instanceD', 'vb_instanceE');
+  }
+
+  /** Layer `slot` of instance `index` into the streams vb_instanceC/D/E (checked by the caller). */
+  _writeLayer(index, slot, { clip, mask, timeOffset, playbackRate, weight, mode = 0, reference = null }) {
+    const what = `${this.name}: instance ${index} layer ${slot}`;
+    const additive = layerModeOf(mode, what);
+    const code = weight > 0 ? packLayerMask(mask, additive, reference?.clip ?? clip, this.animation.clips.length, what) : 0;
+    this.instanceC.set([weight > 0 ? clip : 0, code], 4 * index + 2 * slot);
     this.instanceD.set([timeOffset, playbackRate], 4 * index + 2 * slot);
     this.instanceE[4 * index + slot] = weight;
-    this._updated('vb_instanceC', 'vb_instanceD', 'vb_instanceE');
+    this.instanceE[4 * index + 2 + slot] = additive ? (reference?.time ?? 0) : 0;
+  }
+
+  /**
+   * Instance `index` plays blend space `space` (format 1.3, spec 23.7) at parameter (x, y), phase
+   * `phase` at scene time 0, advancing at `playbackRate / sum w D`: written as its clip and time plus
+   * layer slots 0 and 1 under the rig's every-bone mask (spec 23.1, "Decoding a blend as layers";
+   * @vbusd/core's blendLayers), the same signature and behaviour as the three.js runtime's setBlend.
+   * Returns the plan ({clip, timeOffset, playbackRate, layers}).
+   */
+  setBlend(index, { space, x = 0, y = 0, phase = 0, playbackRate = 1 } = {}) {
+    if (!this.layered) throw new VirtualBonesError(`${this.name}: the crowd was made without layers (blends play as layers)`);
+    const spaces = this.animation.layout.blendSpaces ?? [];
+    const found = spaces.find((s) => s.name === space);
+    if (!found) throw new VirtualBonesError(`${this.name}: no blend space ${JSON.stringify(space)} (spaces: ${spaces.map((s) => s.name).join(', ')})`);
+    const plan = blendLayers(found, x, y, phase, playbackRate, this.animation.layout.clips, this.animation.layout.markers);
+    if (plan.layers.length > 2) throw new VirtualBonesError(`${this.name}: instance ${index}: the blend weighs ${plan.layers.length + 1} points; the runtime layers 3 at most`);
+    this.instanceA.set([plan.clip, plan.timeOffset, plan.playbackRate], 4 * index);
+    this.instanceB[4 * index + 2] = 0;  // a blending instance does not crossfade (spec 23.7)
+    const every = this.animation.masks.length;  // the rig texture's every-bone mask (rigTexels)
+    for (let slot = 0; slot < 2; ++slot) {
+      const layer = plan.layers[slot];
+      this._writeLayer(index, slot, layer ? { clip: layer.clip, mask: every, timeOffset: layer.timeOffset, playbackRate: layer.playbackRate, weight: layer.weight }
+        : { clip: 0, mask: 0, timeOffset: 0, playbackRate: 1, weight: 0 });
+    }
+    this._updated('vb_instanceA', 'vb_instanceB', 'vb_instanceC', 'vb_instanceD', 'vb_instanceE');
+    return plan;
   }
 
   /**

@@ -123,7 +123,7 @@ export class VirtualBonesGLTFLoaderExtension {
       const count = instancing ? this._loader.gltf.accessors[instancing._VB_CLIP].count : 1;
       // Clip, times and rates, the crossfade and its time samples, the layers (spec/runtime-package.md 5.1).
       const playback = await packagePlayback({ attributes: instancing ?? {}, samples: node.extensions?.[EXTENSION]?.samples,
-        count, read: (index) => this._floats(context, index), what: context });
+        count, read: (index) => this._floats(context, index), what: context, layout: animation.layout });
       const instances = { count, matrices: null, ...playback };
       // Crowd variety (format 1.3, spec/runtime-package.md 13): tints, variants, parts masks.
       const optional = async (name) => (instancing?.[name] !== undefined ? this._floats(context, instancing[name]) : null);

@@ -5,7 +5,7 @@
 
 import {
   VirtualBonesError, BASE_MAX_BONES, shaderModule, definedTestModule, skinningStatements, previousDeclarations,
-  previousSkinningStatements,
+  previousSkinningStatements, ADDITIVE_LAYERS_DEFINE,
 } from '@vbusd/core';
 
 export { VirtualBonesError, shaderModule };
@@ -20,7 +20,8 @@ export { VirtualBonesError, shaderModule };
 export function babylonModule(animation, maxInfluences, skin = 'attributes', layers = false) {
   const text = shaderModule(animation.encoding, animation.texelFormat, maxInfluences, animation.maxClips, skin, layers,
     animation.maxBones ?? BASE_MAX_BONES);
-  return `${skin === 'pulled' ? '#define VB_SKIN_STORAGE 0\n' : ''}${definedTestModule(text)}`;
+  // Layered: with additive layers (format 1.3) too; a layer of mode 0 is exactly the override path.
+  return `${skin === 'pulled' ? '#define VB_SKIN_STORAGE 0\n' : ''}${layers ? ADDITIVE_LAYERS_DEFINE : ''}${definedTestModule(text)}`;
 }
 
 /**
@@ -28,8 +29,9 @@ export function babylonModule(animation, maxInfluences, skin = 'attributes', lay
  * 2^24; Babylon's custom vertex buffers are float streams), and each instance's playback as
  * thin-instance vec4 streams: vb_instanceA = (clip, timeOffset, playbackRate, fadeClip),
  * vb_instanceB = (fadeTimeOffset, fadePlaybackRate, fadeWeight, unused), and with layers (format
- * 1.2, two per instance) vb_instanceC = (clip, mask) of each layer, vb_instanceD = (timeOffset,
- * playbackRate) of each, vb_instanceE = (weight 0, weight 1, unused, unused); the previous frame's
+ * 1.2, two per instance) vb_instanceC = (clip, mask code) of each layer (the code: @vbusd/core's
+ * packLayerMask, mask and additive reference clip, format 1.3), vb_instanceD = (timeOffset,
+ * playbackRate) of each, vb_instanceE = (weight 0, weight 1, reference time 0, reference time 1); the previous frame's
  * vb_instancePreviousFade and vb_previousTime (spec 21; read by the velocity pre-pass and the probe). `keyword` is
  * `attribute` in Babylon's shaders (its GLSL 1 style, migrated to `in` on WebGL 2) and `in` in the
  * probe. With the pulled skin there are no bone streams.
@@ -62,6 +64,7 @@ const PLAYBACK = {
   fadeClip: 'int(vb_instanceA.w)', fadeTau: 'vb_instanceB.x + vb_instanceB.y * vb_time', fadeWeight: 'vb_instanceB.z',
   layerClip: 'int(vb_instanceC[2 * j])', layerMask: 'int(vb_instanceC[2 * j + 1])',
   layerTau: 'vb_instanceD[2 * j] + vb_instanceD[2 * j + 1] * vb_time', layerWeight: 'vb_instanceE[j]',
+  referenceTau: 'vb_instanceE[2 + j]',
 };
 
 /**

@@ -71,7 +71,8 @@ export class VirtualBonesCrowd {
   /** Format 1.3: the clip markers every instance crosses between scene times t0 and t1 (spec 23.5). */
   events(t0: number, t1: number): { instance: number; name: string; time: number }[];
   updateSamples(time: number): void;
-  setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number }): void;
+  setLayer(index: number, slot: number, layer?: { clip?: number; mask?: number | string; timeOffset?: number; playbackRate?: number; weight?: number; mode?: 'override' | 'additive' | 0 | 1; reference?: { clip?: number; time?: number } | null }): void;
+  setBlend(index: number, blend: { space: string; x?: number; y?: number; phase?: number; playbackRate?: number }): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
   setClips(clips: number | ArrayLike<number>): void;
   /** The previous frame (motion vectors): previous fades and the animation's previousTime for interval dt (default 1/60). */
   updatePrevious(time?: number, dt?: number): void;

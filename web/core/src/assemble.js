@@ -8,6 +8,7 @@ import {
 } from './shader-modules.js';
 import { VirtualBonesError } from './errors.js';
 import { checkSkinBinding, skinRecordTexels, skinRecordWords } from './skin.js';
+import { LAYER_MASK_SPAN } from './additive.js';
 
 /** Bones the compact module's range uniforms hold unless an animation needs more (VB_MAX_BONES). */
 export const BASE_MAX_BONES = 64;
@@ -72,7 +73,9 @@ export function definedTestModule(text) {
  * vertex) into the `vbPosition` / `vbNormal` they declare. An engine only names where an
  * instance's playback comes from: `playback` holds GLSL expressions `clip`, `tau`, `fadeClip`,
  * `fadeTau`, `fadeWeight` and, with layers, those of layer `j` (a GLSL int): `layerClip`,
- * `layerMask`, `layerTau`, `layerWeight`.
+ * `layerMask` (an int: the packed code of additive.js' packLayerMask, mask and additive reference
+ * clip), `layerTau`, `layerWeight` and `referenceTau` (the additive reference pose's clip-local
+ * time). The layered module must be preceded by ADDITIVE_LAYERS_DEFINE.
  */
 export function skinningStatements({ skin = 'attributes', layers = false, position = 'position', normal = 'normal', playback }) {
   checkSkinBinding(skin);
@@ -102,6 +105,8 @@ export function skinningStatements({ skin = 'attributes', layers = false, positi
                   ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
   }
+  // Additive layers (format 1.3, additive.js): the mask slot holds mask + span x (reference clip + 1)
+  // for an additive layer; the module runs with VB_ADDITIVE_LAYERS 1 (ADDITIVE_LAYERS_DEFINE).
   return `${influences}
   vec3 vbPosition;
   vec3 vbNormal;
@@ -109,14 +114,21 @@ export function skinningStatements({ skin = 'attributes', layers = false, positi
   float vbLayerTau[VB_MAX_LAYERS];
   float vbLayerWeight[VB_MAX_LAYERS];
   int vbLayerMask[VB_MAX_LAYERS];
+  int vbLayerMode[VB_MAX_LAYERS];
+  int vbReferenceClip[VB_MAX_LAYERS];
+  float vbReferenceTau[VB_MAX_LAYERS];
   for (int j = 0; j < VB_MAX_LAYERS; ++j) {
+    int vbCode = ${p.layerMask};
     vbLayerClip[j] = ${p.layerClip};
-    vbLayerMask[j] = ${p.layerMask};
+    vbLayerMask[j] = vbCode % ${LAYER_MASK_SPAN};
+    vbLayerMode[j] = vbCode >= ${LAYER_MASK_SPAN} ? 1 : 0;
+    vbReferenceClip[j] = max(vbCode / ${LAYER_MASK_SPAN} - 1, 0);
+    vbReferenceTau[j] = ${p.referenceTau};
     vbLayerTau[j] = ${p.layerTau};
     vbLayerWeight[j] = ${p.layerWeight};
   }
   vbSkinLayered(${instance}
-                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask, vbLayerMode, vbReferenceClip, vbReferenceTau,
                 ${position}, ${normal}, vbIndex, vbWeight, vbPosition, vbNormal);
 `;
 }
@@ -160,7 +172,7 @@ export function previousSkinningStatements({ layers = false, position = 'positio
       vbLayerTau[j] = ${atPreviousTime(p.layerTau, 'layerTau')};
     }
     vbSkinLayered(${instance}
-                  vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask,
+                  vbLayerClip, vbLayerTau, vbLayerWeight, vbLayerMask, vbLayerMode, vbReferenceClip, vbReferenceTau,
                   ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);` : `vbSkinCrossfade(${instance}
                     ${position}, ${normal}, vbIndex, vbWeight, ${target}, vbPreviousNormal);`;
   return `

@@ -18,6 +18,7 @@ function view(buffer, range, ArrayType, what) {
 
 const FADE_ARRAYS = { fadeClip: Int32Array, fadeTimeOffset: Float32Array, fadePlaybackRate: Float32Array, fadeWeight: Float32Array };
 const LAYER_ARRAYS = { layerClip: Int32Array, layerMask: Int32Array, layerTimeOffset: Float32Array, layerPlaybackRate: Float32Array, layerWeight: Float32Array };
+const ADDITIVE_ARRAYS = { layerMode: Int32Array, layerReferenceClip: Int32Array, layerReferenceTime: Float32Array };
 
 /**
  * Parse a plain scene (the JSON already decoded, the buffer as an ArrayBuffer) into arrays:
@@ -27,7 +28,8 @@ const LAYER_ARRAYS = { layerClip: Int32Array, layerMask: Int32Array, layerTimeOf
  * pointCount}`; `instances` is `{count, matrices (16 N column-major), clip, timeOffset,
  * playbackRate}`, plus `fadeClip`, `fadeTimeOffset`, `fadePlaybackRate`, `fadeWeight` (format 1.1)
  * and `fadeSamples` ({field: {times, values}}, evaluated with evaluateSamples) where the crowd has
- * them, and the layer arrays (format 1.2, 2 per instance) where it plays layers, and `tint`, `variant`,
+ * them, and the layer arrays (format 1.2, 2 per instance) where it plays layers (with `layerMode`,
+ * `layerReferenceClip`, `layerReferenceTime` where it plays additive ones, format 1.3), and `tint`, `variant`,
  * `parts`, `variantNames`, `variantColors`, `partNames` (format 1.3 crowd variety) where it is varied.
  */
 export function parsePlainScene(scene, buffer) {
@@ -84,6 +86,12 @@ export function parsePlainScene(scene, buffer) {
     }
     if (crowd.layerWeight) {  // format 1.2 layers: two per instance
       for (const [key, ArrayType] of Object.entries(LAYER_ARRAYS)) instances[key] = view(buffer, crowd[key], ArrayType, `${at}.${key}`);
+    }
+    if (crowd.layerWeight && crowd.layerMode) {  // format 1.3 additive layers: mode and reference pose per layer
+      for (const [key, ArrayType] of Object.entries(ADDITIVE_ARRAYS)) {
+        instances[key] = view(buffer, crowd[key], ArrayType, `${at}.${key}`);
+        if (instances[key].length !== instances.layerWeight.length) throw new VirtualBonesError(`${at}.${key}: ${instances[key].length} values for ${instances.layerWeight.length} layers`);
+      }
     }
     if (crowd.tint) {  // format 1.3 crowd variety (spec 22): tint, variant, parts mask per instance
       instances.tint = view(buffer, crowd.tint, Float32Array, `${at}.tint`);

@@ -102,13 +102,15 @@ export function fetchPlainScene(url: string): Promise<{ upAxis: string; animatio
 
 /** Layers per instance the runtimes play. */
 export const RUNTIME_LAYERS: number;
-/** A runtime package crowd node's playback arrays (spec/runtime-package.md 5.1): clip, time, crossfade (and its samples), layers. */
+/** A runtime package crowd node's playback arrays (spec/runtime-package.md 5.1): clip, time, crossfade (and its samples), layers (additive ones too), blends as layers. */
 export function packagePlayback(options: {
   attributes: Record<string, number>;
   samples?: Record<string, { times: number[]; values: number }>;
   count: number;
   read: (accessor: number) => Promise<ArrayLike<number>>;
   what?: string;
+  /** The animation's layout metadata: its blendSpaces, markers, clips and masks play _VB_BLEND_* as layers. */
+  layout?: object | null;
 }): Promise<{ clip: Int32Array; timeOffset: Float32Array; playbackRate: Float32Array; [field: string]: unknown }>;
 
 export const PROBE_VARYINGS: string[];
@@ -129,6 +131,13 @@ export function layerWeights(weights: [number, number][]): [number, number][];
 export function crossedMarkers(markers: ClipMarker[] | undefined, clip: string, duration: number, loop: boolean, t0: number, t1: number): { name: string; time: number }[];
 export function crowdEvents(markers: ClipMarker[] | undefined, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], clip: ArrayLike<number>, timeOffset: ArrayLike<number>, playbackRate: ArrayLike<number>, t0: number, t1: number): { instance: number; name: string; time: number }[];
 export function blendLayers(space: BlendSpace, x: number, y: number, phase: number, playbackRate: number, clips: { name: string; rowCount: number; rowsPerSecond: number; loop: boolean }[], markers: ClipMarker[] | undefined): { clip: number; timeOffset: number; playbackRate: number; layers: { clip: number; timeOffset: number; playbackRate: number; weight: number }[] };
+
+/** Additive layers in the runtimes (format 1.3, spec 23.4): the packed mask code of a layer slot. */
+export const LAYER_MASK_SPAN: number;
+export const ADDITIVE_LAYERS_DEFINE: string;
+export function layerModeOf(mode: 'override' | 'additive' | 0 | 1 | undefined | null, what?: string): 0 | 1;
+export function packLayerMask(mask: number, mode: 'override' | 'additive' | 0 | 1, referenceClip: number, clipCount: number, what?: string): number;
+export function maskOfCode(code: number): number;
 /** The KTX2 container of a file (header, level index, key/value data), every region checked. */
 export function readKTX2Container(data: Uint8Array, name?: string): {
   vkFormat: number; typeSize: number; pixelWidth: number; pixelHeight: number; pixelDepth: number;

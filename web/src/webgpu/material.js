@@ -49,11 +49,11 @@ function instanceInputs(builder, layered) {
     if (layered) {
       const clipMask = read('vb_instanceLayerClipMask', 'int', 4);
       const layerTime = read('vb_instanceLayerTime', 'float', 4);
-      const weight = read('vb_instanceLayerWeight', 'float', 2);
+      const weight = read('vb_instanceLayerWeight', 'float', 4);
       inputs.layers = [0, 1].map((j) => ({
         clip: clipMask.element(i.mul(4).add(2 * j)), mask: clipMask.element(i.mul(4).add(2 * j + 1)),
         offset: layerTime.element(i.mul(4).add(2 * j)), rate: layerTime.element(i.mul(4).add(2 * j + 1)),
-        weight: weight.element(i.mul(2).add(j)),
+        weight: weight.element(i.mul(4).add(j)), reference: weight.element(i.mul(4).add(2 + j)),
       }));
     }
     return inputs;
@@ -67,10 +67,11 @@ function instanceInputs(builder, layered) {
   if (layered) {
     const clipMask = attribute('vb_instanceLayerClipMask', 'ivec4');
     const layerTime = attribute('vb_instanceLayerTime', 'vec4');
-    const weight = attribute('vb_instanceLayerWeight', 'vec2');
+    const weight = attribute('vb_instanceLayerWeight', 'vec4');
     inputs.layers = [0, 1].map((j) => ({
       clip: clipMask.element(2 * j), mask: clipMask.element(2 * j + 1),
       offset: layerTime.element(2 * j), rate: layerTime.element(2 * j + 1), weight: weight.element(j),
+      reference: weight.element(2 + j),
     }));
   }
   return inputs;
@@ -131,7 +132,8 @@ export function vertexInputs(builder, animation, maxInfluences, binding = {}) {
 /**
  * The skinVertex inputs of an instance's playback at scene time `time`: `instance` holds nodes
  * clip, offset, rate, fadeClip, fadeOffset, fadeRate, fadeWeight and, with layers, `layers` (two
- * of {clip, mask, offset, rate, weight}). Shared by the materials and the probe.
+ * of {clip, mask (the packed code: mask and additive reference clip), offset, rate, weight,
+ * reference (the additive reference time)}). Shared by the materials and the probe.
  */
 export function playbackInputs(instance, time) {
   const inputs = {
@@ -147,7 +149,8 @@ export function playbackInputs(instance, time) {
       clip: [int(a.clip).toVar(), int(b.clip).toVar()],
       tau: [a.offset.add(a.rate.mul(time)).toVar(), b.offset.add(b.rate.mul(time)).toVar()],
       weight: [float(a.weight).toVar(), float(b.weight).toVar()],
-      mask: [int(a.mask).toVar(), int(b.mask).toVar()],
+      mask: [int(a.mask).toVar(), int(b.mask).toVar()],  // the packed code of @vbusd/core's packLayerMask (format 1.3)
+      referenceTau: [float(a.reference).toVar(), float(b.reference).toVar()],
     };
   }
   return inputs;

@@ -81,8 +81,8 @@ function meshProbe(renderer, mesh) {
       clip: int(inputs.instance.x), offset: inputs.instance.y, rate: inputs.instance.z,
       fadeClip: int(inputs.fade.x), fadeOffset: inputs.fade.y, fadeRate: inputs.fade.z, fadeWeight: inputs.fade.w,
       layers: layered ? [
-        { clip: inputs.layerA.x, mask: inputs.layerA.y, offset: inputs.layerB.x, rate: inputs.layerB.y, weight: inputs.layerC.x },
-        { clip: inputs.layerA.z, mask: inputs.layerA.w, offset: inputs.layerB.z, rate: inputs.layerB.w, weight: inputs.layerC.y },
+        { clip: inputs.layerA.x, mask: inputs.layerA.y, offset: inputs.layerB.x, rate: inputs.layerB.y, weight: inputs.layerC.x, reference: inputs.layerC.z },
+        { clip: inputs.layerA.z, mask: inputs.layerA.w, offset: inputs.layerB.z, rate: inputs.layerB.w, weight: inputs.layerC.y, reference: inputs.layerC.w },
       ] : null,
     };
     const playback = previous ? previousPlaybackInputs(instance, time, inputs.previousTime, inputs.previousFade)
@@ -140,7 +140,7 @@ export async function probeNodeCrowd(renderer, crowd, index, time, { dt = DEFAUL
     if (probe.layered) {
       inputs.layerA.value.fromArray(crowd.layerClipMaskAttribute.array, 4 * index);
       inputs.layerB.value.fromArray(crowd.layerTimeAttribute.array, 4 * index);
-      inputs.layerC.value.set(...crowd.layerWeightAttribute.array.subarray(2 * index, 2 * index + 2), 0, 0);
+      inputs.layerC.value.fromArray(crowd.layerWeightAttribute.array, 4 * index);  // weights, additive reference times
     }
     inputs.previousFade.value.fromArray(crowd.previous.values, 4 * index);
     inputs.previousTime.value = crowd.previous.previousTime;

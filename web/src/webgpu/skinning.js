@@ -16,6 +16,8 @@ import {
   uintBitsToFloat, floatBitsToUint,
 } from 'three/tsl';
 
+import { LAYER_MASK_SPAN } from '@vbusd/core';
+
 import { VirtualBonesError } from '../animation.js';
 
 /**
@@ -339,6 +341,28 @@ function mixLocal(x, y, alpha) {
   });
 }
 
+/** Hamilton product a (x) b of (x, y, z, w) quaternions (vbQuatMul). */
+function quatMul(a, b) {
+  return vec4(b.xyz.mul(a.w).add(a.xyz.mul(b.w)).add(cross(a.xyz, b.xyz)), a.w.mul(b.w).sub(dot(a.xyz, b.xyz)));
+}
+
+/**
+ * X plus alpha of the additive difference of Y from the reference R (spec 23.4; vbAddLocal), in
+ * place on `x`: t + a (t_Y - t_R), q (x) slerp(1, q_R^-1 (x) q_Y, a), s + a (s_Y - s_R).
+ */
+function addLocal(x, y, r, alpha) {
+  If(alpha.greaterThan(0.0), () => {
+    const a = min(alpha, 1.0).toVar();
+    const dx = decompose(x);
+    const dy = decompose(y);
+    const dr = decompose(r);
+    const delta = quatMul(vec4(dr.q.xyz.negate(), dr.q.w), dy.q).toVar();
+    const q = quatMul(dx.q, slerp(vec4(0.0, 0.0, 0.0, 1.0), delta, a)).toVar();
+    const rows = compose(dx.t.add(dy.t.sub(dr.t).mul(a)), q, dx.s.add(dy.s.sub(dr.s).mul(a)));
+    x.forEach((xi, i) => xi.assign(rows[i]));
+  });
+}
+
 /** Rig texture row 0 of `bone`: texel `k` of its 8 (vbRigFetch: bind rows 0..2, inverse 3..5, parent 6). */
 const rigTexel = (nodes, bone, k) => texelLoad(nodes.rig, ivec2(bone.mul(8).add(k), int(0)));
 const parentOf = (nodes, bone) => int(rigTexel(nodes, bone, 6).x);
@@ -382,8 +406,14 @@ function layerFunctions(nodes) {
   // (clip, tau, weight, mask); the fourth column's x is 1 when a layer changed the bone, else 0
   // and M' the decoded M.
   const MAX_DEPTH = 32;
-  const layeredBoneRows = Fn(([clip, tau, c0, c1, u0, u1, w0, w1, k0, k1, bone]) => {
-    const layers = [{ clip: c0, tau: u0, weight: w0, mask: k0 }, { clip: c1, tau: u1, weight: w1, mask: k1 }];
+  const layeredBoneRows = Fn(([clip, tau, c0, c1, u0, u1, w0, w1, k0, k1, e0, e1, bone]) => {
+    // Each layer's mask slot holds @vbusd/core's packed code (additive.js): mask + span x (0 for an
+    // override layer, reference clip + 1 for an additive one, format 1.3); e0, e1 the reference times.
+    const layers = [[c0, u0, w0, k0, e0], [c1, u1, w1, k1, e1]].map(([c, u, w, code, e]) => {
+      const high = int(code).div(LAYER_MASK_SPAN).toVar();
+      return { clip: c, tau: u, weight: w, mask: int(code).sub(high.mul(LAYER_MASK_SPAN)).toVar(), additive: high.greaterThan(0),
+        referenceClip: max(high.sub(1), int(0)).toVar(), referenceTau: e };
+    });
     const chain = array('int', MAX_DEPTH).toVar();
     const depth = int(0).toVar();
     const top = int(-1).toVar();
@@ -416,6 +446,15 @@ function layerFunctions(nodes) {
         });
         return rowsOfLayer;
       });
+      // Additive layers (spec 23.4): the reference pose's chain, as the layer clip's.
+      const referenceBase = layers.map((layer) => {
+        const rowsOfReference = IDENTITY_ROWS().map((row) => row.toVar());
+        If(parent.greaterThanEqual(0).and(layer.weight.greaterThan(0.0)).and(layer.additive), () => {
+          const joint = unpackRows(jointRows(layer.referenceClip, layer.referenceTau, parent));
+          rowsOfReference.forEach((row, i) => row.assign(joint[i]));
+        });
+        return rowsOfReference;
+      });
       const out = base.map((row) => vec4(row).toVar());
       Loop({ start: top, end: int(0), type: 'int', condition: '>=' }, ({ i: k }) => {
         const bk = chain.element(k).toVar();
@@ -427,7 +466,15 @@ function layerFunctions(nodes) {
             const layerJoint = unpackRows(jointRows(layer.clip, layer.tau, bk));
             const y = affineMul(affineInverse(layerBase[j]), layerJoint);
             layerBase[j].forEach((row, i) => row.assign(layerJoint[i]));
-            mixLocal(local, y, clamp(layer.weight, 0.0, 1.0).mul(maskWeight(nodes, layer.mask, bk)).toVar());
+            const alpha = clamp(layer.weight, 0.0, 1.0).mul(maskWeight(nodes, layer.mask, bk)).toVar();
+            If(layer.additive, () => {
+              const referenceJoint = unpackRows(jointRows(layer.referenceClip, layer.referenceTau, bk));
+              const reference = affineMul(affineInverse(referenceBase[j]), referenceJoint);
+              referenceBase[j].forEach((row, i) => row.assign(referenceJoint[i]));
+              addLocal(local, y, reference, alpha);
+            }).Else(() => {
+              mixLocal(local, y, alpha);
+            });
           });
         });
         const next = affineMul(out, local);
@@ -445,6 +492,7 @@ function layerFunctions(nodes) {
       { name: 'layerTau0', type: 'float' }, { name: 'layerTau1', type: 'float' },
       { name: 'layerWeight0', type: 'float' }, { name: 'layerWeight1', type: 'float' },
       { name: 'layerMask0', type: 'int' }, { name: 'layerMask1', type: 'int' },
+      { name: 'referenceTau0', type: 'float' }, { name: 'referenceTau1', type: 'float' },
       { name: 'bone', type: 'int' },
     ],
   });
@@ -495,7 +543,7 @@ function skinLayeredPose(nodes, clip, tau, input, functions) {
   const { layeredBoneRows } = functions;
   const L = input.layers;
   const layered = (bone) => layeredBoneRows(clip, tau, L.clip[0], L.clip[1], L.tau[0], L.tau[1], L.weight[0], L.weight[1],
-    L.mask[0], L.mask[1], bone).toVar();
+    L.mask[0], L.mask[1], L.referenceTau[0], L.referenceTau[1], bone).toVar();
   const r = rows(nodes, clip, tau);
   if (nodes.encoding === 'dualQuat') {
     const real = vec4(0.0).toVar();
