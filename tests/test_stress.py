@@ -1,4 +1,5 @@
-"""The short stress run (issue 23): tens of conversions with every core busy and signals at random
+"""The short stress run (issue 23): tens of conversions with every core busy (one CPU hog beside
+the suite's other workers) and signals at random
 moments, each under a watchdog; none may hang, fail, leave files or processes behind, or write an
 invalid asset. The long run (1,000+ conversions) is ``python benchmarks/stress.py``; its figures
 are in benchmarks/README.md.
@@ -17,12 +18,12 @@ import pytest
 @pytest.mark.slow
 def test_conversions_under_full_load_never_hang(repo_root, tmp_path):
     out = tmp_path / "stress.json"
-    done = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "stress.py"), "--conversions", "30",
-                           "--no-dask", "--timeout", "120", "--seed", "7", "--out", str(out),
+    done = subprocess.run([sys.executable, str(repo_root / "benchmarks" / "stress.py"), "--conversions", "20",
+                           "--hogs", "1", "--no-dask", "--timeout", "120", "--seed", "7", "--out", str(out),
                            "--work", str(tmp_path / "work")],
                           capture_output=True, text=True, timeout=1200)
     summary = json.loads(out.read_text())
-    assert summary["conversions"] >= 30
+    assert summary["conversions"] >= 20
     assert summary["runs"] >= 10
     for count in ("hangs", "failures", "leftovers", "invalid", "orphans"):
         assert summary[count] == 0, (count, summary["problems"], done.stderr[-3000:])

@@ -30,6 +30,9 @@ CHROMIUM_ARGS = [
     "--disable-sync",
     "--no-first-run",
     "--mute-audio",
+    # Software rendering compiles a large layered shader for tens of seconds on a loaded machine; the
+    # GPU watchdog would kill the GPU process mid-compile and every WebGPU buffer with it.
+    "--disable-gpu-watchdog",
 ]
 
 # WebGPU in headless Chromium (for `vbusd view --engine three-webgpu`), measured with Chromium 156:
