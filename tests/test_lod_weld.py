@@ -136,3 +136,20 @@ def test_fox_levels_are_simpler_and_follow_the_decoder(tmp_path):
                 diagonal = float(np.linalg.norm(full[0].max(0) - full[0].min(0)))
                 error = float(np.abs(got[0] - by_hand).max()) / diagonal
                 assert error <= 1e-6, (level, clip, t, error)
+
+
+def test_the_warning_reaches_the_conversion_report(tmp_path, monkeypatch, capsys):
+    """``vbusd convert --lod-ratios`` passes add_levels' lines to its report and prints each as one
+    line (a level made poorly simplified on purpose: the stadium sample simplifies well)."""
+    from vbusd.baking import lod
+    from vbusd.cli import main
+
+    monkeypatch.setattr(lod, "poorly_simplified", lambda total, kept, ratio: f"keeps {kept} of {total} triangles (test)")
+    report = vbusd.convert(SAMPLE / "stadium_crowd.usda", tmp_path / "a.usda",
+                           vbusd.ConvertOptions(lod_ratios=(0.5,), check_rows=0))
+    lines = [w for w in report.warnings if "(test)" in w]
+    assert len(lines) == 1 and "/lod1/" in lines[0] and "LOD 1 of " in lines[0], report.warnings
+    assert main(["convert", str(SAMPLE / "stadium_crowd.usda"), "-o", str(tmp_path / "b.usda"), "--lod-ratios", "0.5",
+                 "--check-rows", "0"]) == 0
+    printed = capsys.readouterr()
+    assert sum("(test)" in line for line in (printed.out + printed.err).splitlines()) == 1, printed
