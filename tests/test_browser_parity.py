@@ -608,6 +608,9 @@ influences) a probe draws costs its own layered shader compile, tens of seconds 
 load), at a time where CesiumMan's clip and its layer's are both inside the clip (it does not loop:
 past its 2 s both hold the last pose, and the layer would change nothing)."""
 
+SOCKET_PROBES = [(i, 0.8137) for i in range(9)] + [(8, 0.3)]
+"""(instance, scene time) of the layered character crowd's sockets: every instance (sockets cost no
+shader compile), each layered and crossfading."""
 LAYER_PAGE = ("&skin=attributes&pixelRatio=1&fov={fov}&camera=" + ",".join(map(str, CHARACTER_CAMERA[0] + CHARACTER_CAMERA[1]))
               ).format(fov=lod_row_helpers.FOV)
 """The layered character crowd's page: the camera of :data:`tests.helpers.browser.CHARACTER_CAMERA`, the
@@ -706,7 +709,10 @@ def test_fox_and_cesium_man_layers_lod_root_motion(browser, character_layers_cro
     * each probe equals the numpy decoder (``vbusd.skin``'s, with the instance's fade and layers)
       at the level the page drew, within 1e-6 of the instance's diagonal;
     * ``crowd.rootMotionMatrix`` equals ``vbusd.root_motion`` of each instance's clip at its
-      clip-local times (CesiumMan's walk drifts; the Fox's root joint stands still)."""
+      clip-local times (CesiumMan's walk drifts; the Fox's root joint stands still);
+    * ``crowd.socketMatrix`` (the first, middle and last joint of every instance: layered on the CPU
+      by @vbusd/core's layeredJointElements) equals ``crowd_joint_transforms`` within 1e-6 of the
+      diagonal, on the same page; without the layers it would be off by 0.06 to 0.39."""
     asset = vbusd.read_asset(character_layers_crowd)
     assert all(crowd.layered and crowd.crossfades for crowd in asset.crowds)
     expected_levels = lod_row_helpers.usdlod_levels_seen(asset, CHARACTER_CAMERA[0])
@@ -726,17 +732,19 @@ def test_fox_and_cesium_man_layers_lod_root_motion(browser, character_layers_cro
         assert page.page.evaluate("() => window.vbusd.levels()")["lod"] == expected_levels
         pairs = [(0.0, 0.5), (0.25, 2.75), (2.75, 0.25), (-1.3, 0.1)]
         roots["errors"], roots["moved"] = root_motion_errors(page, asset, engine, pairs)
+        roots["sockets"] = socket_errors(page, asset, engine, SOCKET_PROBES)
 
     # Software WebGPU compiles the layered shaders of three meshes (the Fox, CesiumMan's two levels) slowly.
     errors = engine_probe_errors(browser, character_layers_crowd, engine, LAYER_PROBES, query=LAYER_PAGE, asset=asset,
                                  check=check_page, timeout_s=240.0)
     print(engine, "Fox and CesiumMan layers, levels, root motion", errors, "root motion", max(roots["errors"]),
-          "moved", max(roots["moved"]))
+          "moved", max(roots["moved"]), "sockets", roots["sockets"])
     record_property("parity_note", f"largest error {max(e for e, _ in errors):.1e} of the diagonal, root motion "
-                                   f"{max(roots['errors']):.1e}; levels {expected_levels}")
+                                   f"{max(roots['errors']):.1e}, sockets {max(roots['sockets']):.1e}; levels {expected_levels}")
     assert_within(errors, engine)
     assert max(roots["moved"]) > 1e-3  # CesiumMan's root moves between the pairs
     assert max(roots["errors"]) <= 1e-6, roots["errors"]  # scene units (Babylon's matrices are float32)
+    assert len(roots["sockets"]) == len(SOCKET_PROBES) and max(roots["sockets"]) <= POSITION_TOLERANCE, roots["sockets"]
 
 
 def previous_errors(browser, path: Path, engine: str, probes, dt: float | None = None) -> list:

@@ -26,7 +26,8 @@ from vbusd.format.model import BoundMesh, LevelsOfDetail, VirtualBones
 from vbusd.format.names import unique_names
 from vbusd.baking.baker import reduce_influences
 
-__all__ = ["MAX_LEVELS", "default_screen_sizes", "parse_ratios", "check_screen_sizes", "simplify_mesh",
+__all__ = ["MAX_LEVELS", "default_screen_sizes", "parse_ratios", "check_screen_sizes", "weld_points", "simplify_mesh",
+           "poorly_simplified",
            "add_levels", "adopt_levels", "levels_from_names", "screen_size", "select_levels", "level_meshes"]
 
 MAX_LEVELS = 8
@@ -128,6 +129,19 @@ def _vertex_normals(mesh: BoundMesh) -> Optional[np.ndarray]:
     return np.where(length > 0, total / np.where(length > 0, length, 1.0), np.array([0.0, 1.0, 0.0]))
 
 
+def weld_points(points, bone_indices, bone_weights, normals=None) -> np.ndarray:
+    """For each point, the first point equal to it in rest position, influences (indices and
+    weights, slot by slot) and normal (when given): (V,) indices, ``weld[weld] == weld``. Exact
+    equality: welding changes no vertex a level keeps, only which triangles share it."""
+    columns = [np.asarray(points, dtype=np.float64).reshape(len(points), -1),
+               np.asarray(bone_indices, dtype=np.float64).reshape(len(points), -1),
+               np.asarray(bone_weights, dtype=np.float64).reshape(len(points), -1)]
+    if normals is not None:
+        columns.append(np.asarray(normals, dtype=np.float64).reshape(len(points), -1))
+    _, first, inverse = np.unique(np.concatenate(columns, axis=1), axis=0, return_index=True, return_inverse=True)
+    return first[inverse.reshape(-1)].astype(np.int64)
+
+
 def simplify_mesh(mesh: BoundMesh, ratio: float, max_influences: int, path: str, level: int) -> BoundMesh:
     """One mesh simplified to about ``ratio`` of its triangles, with at most ``max_influences`` influences.
 
@@ -147,20 +161,27 @@ def simplify_mesh(mesh: BoundMesh, ratio: float, max_influences: int, path: str,
 
     meshopt = _meshoptimizer()
     triangles, _ = _triangles(mesh)
-    points = np.ascontiguousarray(mesh.points, dtype=np.float32)
-    indices = np.ascontiguousarray(triangles.reshape(-1), dtype=np.uint32)
+    normals = _vertex_normals(mesh)
+    # Weld first (spec 20.3): points equal in position, influences and normal are one vertex, so
+    # an unindexed mesh (glTF's Fox: three points per triangle) is connected and can collapse.
+    weld = weld_points(mesh.points, mesh.bone_indices, mesh.bone_weights, normals)
+    # Only the welded points the triangles use go to the simplifier: an unused duplicate at a used
+    # point's position would make meshoptimizer take that point for a seam it must keep.
+    welded, compact = np.unique(weld[triangles].reshape(-1), return_inverse=True)
+    all_points = np.asarray(mesh.points, dtype=np.float32)
+    points = np.ascontiguousarray(all_points[welded])
+    indices = np.ascontiguousarray(compact.reshape(-1), dtype=np.uint32)
     target = max(3, 3 * math.ceil(ratio * len(triangles)))
     destination = np.zeros(indices.size, dtype=np.uint32)
     # target_error 1 (the whole mesh extent): the triangle count decides, not an error bound;
     # meshoptimizer still removes the least visible edges first.
     count = meshopt.simplify(destination, indices, points, index_count=indices.size, vertex_count=len(points),
                              target_index_count=target, target_error=1.0)
-    kept = destination[:count].astype(np.int64).reshape(-1, 3)
+    kept = welded[destination[:count].astype(np.int64)].reshape(-1, 3)
     used, remapped = np.unique(kept.reshape(-1), return_inverse=True)
     bone_indices, bone_weights, _ = reduce_influences(np.asarray(mesh.bone_indices)[used],
                                                       np.asarray(mesh.bone_weights)[used], max_influences, mesh=path)
-    normals = _vertex_normals(mesh)
-    return BoundMesh(path=path, points=points[used].copy(),
+    return BoundMesh(path=path, points=all_points[used].copy(),
                      face_vertex_counts=np.full(len(kept), 3, dtype=np.int32),
                      face_vertex_indices=remapped.astype(np.int32).reshape(-1),
                      bone_indices=bone_indices, bone_weights=bone_weights,
@@ -168,8 +189,18 @@ def simplify_mesh(mesh: BoundMesh, ratio: float, max_influences: int, path: str,
                      normals_interpolation="vertex", lod=level)
 
 
+def poorly_simplified(source_triangles: int, kept_triangles: int, ratio: float) -> Optional[str]:
+    """Why a generated level is not the simpler level asked for, or None: the simplifier removed
+    less than half of the triangles ratio ``ratio`` asks it to remove (spec 20.3)."""
+    target = math.ceil(ratio * source_triangles)
+    if source_triangles - kept_triangles >= 0.5 * (source_triangles - target):
+        return None
+    return (f"keeps {kept_triangles} of {source_triangles} triangles, not about {target} (ratio {ratio:g}): "
+            "the simplifier cannot collapse this mesh further without flipping faces or tearing seams")
+
+
 def add_levels(vb: VirtualBones, ratios: Sequence[float], *, screen_sizes: Optional[Sequence[float]] = None,
-               root: Optional[str] = None) -> VirtualBones:
+               root: Optional[str] = None, warnings: Optional[list] = None) -> VirtualBones:
     """Give a baked animation generated levels of detail (spec 20.3).
 
     LOD 0 is the animation's meshes, moved under ``<root>/lod0``; LOD ``i`` simplifies each of them
@@ -181,6 +212,8 @@ def add_levels(vb: VirtualBones, ratios: Sequence[float], *, screen_sizes: Optio
         ratios: Triangle ratios of LOD 1, 2, ... (see :func:`parse_ratios`).
         screen_sizes: Thresholds (one per generated level), default :func:`default_screen_sizes`.
         root: Prim path of the LOD root, default ``<parent of the first mesh>/<animation name>_lods``.
+        warnings: Where to append one line per level mesh that the simplifier could not reduce
+            meaningfully (:func:`poorly_simplified`): it is written all the same.
 
     Returns:
         The animation with ``lods`` set and every level's meshes.
@@ -206,7 +239,11 @@ def add_levels(vb: VirtualBones, ratios: Sequence[float], *, screen_sizes: Optio
     for level, ratio in enumerate(ratios, start=1):
         for mesh, name in zip(vb.meshes, names):
             influences = max(1, mesh.max_influences >> level)
-            meshes.append(simplify_mesh(mesh, ratio, influences, f"{lods.item_path(level)}/{name}", level))
+            simplified = simplify_mesh(mesh, ratio, influences, f"{lods.item_path(level)}/{name}", level)
+            note = poorly_simplified(len(_triangles(mesh)[0]), len(simplified.face_vertex_counts), ratio)
+            if note and warnings is not None:
+                warnings.append(f"{simplified.path}: LOD {level} of {mesh.path} {note}")
+            meshes.append(simplified)
     return dataclasses.replace(vb, meshes=tuple(meshes), lods=lods)
 
 

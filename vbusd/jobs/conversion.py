@@ -861,6 +861,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
                             "the animation and its meshes are left out")
             continue
         scene, vb, reason, extra = outcome
+        extra = list(extra)
         if not any(m.lod for m in vb.meshes):
 
             # Meshes named for their level (Body_LOD0, Body_LOD1: spec 20.3) are levels too.
@@ -880,7 +881,7 @@ def convert(source, output, options: ConvertOptions = ConvertOptions(),
         elif options.lod_ratios:
 
             # After the bake: every level shares the texture and its clip extents (spec 20.3).
-            vb = add_levels(vb, options.lod_ratios, screen_sizes=options.lod_screen_sizes)
+            vb = add_levels(vb, options.lod_ratios, screen_sizes=options.lod_screen_sizes, warnings=extra)
         kept.append(index)
         baked.append(vb)
         reasons.append(reason)

@@ -415,7 +415,7 @@ export class VirtualBonesCrowd extends Group {
 
   /**
    * Socket of instance `index` (spec 8.4, format 1.1): the world transform of `bone` at scene time
-   * `time` (instance placement, crossfade included) as a Matrix4: a prop instanced over the crowd
+   * `time` (instance placement, crossfade and layers included) as a Matrix4: a prop instanced over the crowd
    * follows each character's hand with `prop.matrix = crowd.socketMatrix(i, bone, t)`.
    */
   socketMatrix(index, bone, time) {
@@ -423,9 +423,18 @@ export class VirtualBonesCrowd extends Group {
     const [offset, rate] = [this.timeAttribute.array[2 * index], this.timeAttribute.array[2 * index + 1]];
     const fade = this.fadeAttribute.array.subarray(3 * index, 3 * index + 3);
     const joint = socketMatrix(this.animation, bone, clip, offset + rate * time,
-      { clip: this.fadeClipAttribute.array[index], tau: fade[0] + fade[1] * time, weight: fade[2] });
+      { clip: this.fadeClipAttribute.array[index], tau: fade[0] + fade[1] * time, weight: fade[2] }, this.socketLayers(index, time));
     const placement = new Matrix4().fromArray(this.instanceMatrix.array, 16 * index);
     return this.matrixWorld.clone().multiply(placement).multiply(joint);
+  }
+
+  /** Instance `index`'s layers at scene time `time` as @vbusd/core's layeredJointElements takes them (none without layers). */
+  socketLayers(index, time) {
+    if (!this.layered) return null;
+    const cm = this.layerClipMaskAttribute.array;
+    const tr = this.layerTimeAttribute.array;
+    return [0, 1].map((j) => ({ clip: cm[4 * index + 2 * j], mask: cm[4 * index + 2 * j + 1],
+      tau: tr[4 * index + 2 * j] + tr[4 * index + 2 * j + 1] * time, weight: this.layerWeightAttribute.array[2 * index + j] }));
   }
 
   /**

@@ -4,17 +4,19 @@
 // joint_transforms, crowd_joint_transforms, root_motion), reading the animation's stored texels.
 
 import { Matrix4 } from 'three';
-import { rowPosition, boneRows, jointElements, rootMotionElements } from '@vbusd/core';
+import { rowPosition, boneRows, layeredJointElements, rootMotionElements } from '@vbusd/core';
 
 export { rowPosition, boneRows };
 
 /**
  * Socket (spec 8.4): the joint transform J = M B of `bone` in animation space at clip-local time
  * `tau`, as a Matrix4. `fade` ({clip, tau, weight}) crossfades the decoded matrices,
- * M = (1 - w) M_a + w M_b. The bind transforms come from the layout's `bindTransforms`.
+ * M = (1 - w) M_a + w M_b. The bind transforms come from the layout's `bindTransforms`. `layers`
+ * ([{clip, tau, weight, mask}], spec 8.6) layer each side of the crossfade (@vbusd/core's
+ * layeredJointElements).
  */
-export function socketMatrix(animation, bone, clipIndex, tau, fade = null) {
-  return new Matrix4().fromArray(jointElements(animation, bone, clipIndex, tau, fade));
+export function socketMatrix(animation, bone, clipIndex, tau, fade = null, layers = null) {
+  return new Matrix4().fromArray(layeredJointElements(animation, bone, clipIndex, tau, fade, layers));
 }
 
 /**

@@ -106,6 +106,8 @@ export class VirtualBonesCrowd extends Group {
   /** Instance `index` switched clips or was teleported: zero motion at the next frame. */
   resetPrevious(index: number): void;
   socketMatrix(index: number, bone: number, time: number): Matrix4;
+  /** Instance `index`'s layers at scene time `time` as @vbusd/core's layeredJointElements takes them (null without layers). */
+  socketLayers(index: number, time: number): { clip: number; tau: number; weight: number; mask: number }[] | null;
   /** Root motion (spec 8.5) of instance `index` between scene times t0 and t1, in animation space. */
   rootMotionMatrix(index: number, t0: number, t1: number): Matrix4;
   /** Move every instance by its root motion between scene times t0 and t1 (spec 8.5); part meshes follow (spec 22.3). */
@@ -193,6 +195,7 @@ export function descriptionFromGLTF(gltf: object): Description;
 export function rowPosition(clip: Layout['clips'][number], tau: number): { i0: number; i1: number; f: number };
 export function boneRows(animation: VirtualBonesAnimation, clipIndex: number, tau: number, bone: number): number[][];
 export function socketMatrix(animation: VirtualBonesAnimation, bone: number, clipIndex: number, tau: number,
-  fade?: { clip: number; tau: number; weight: number } | null): Matrix4;
+  fade?: { clip: number; tau: number; weight: number } | null,
+  layers?: { clip: number; tau: number; weight: number; mask: number | string | ArrayLike<number>; mode?: 'override' | 'additive'; reference?: { clip: number; tau: number } }[] | null): Matrix4;
 export function rootMotionMatrix(animation: VirtualBonesAnimation, rootMotion: { upAxis: string; tracks: number[][][] } | null,
   clipIndex: number, t0: number, t1: number): Matrix4;

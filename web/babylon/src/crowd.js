@@ -6,7 +6,7 @@ import {
   Mesh, VertexData, Matrix, StandardMaterial, Color3, RawTexture, Constants, Vector3, Frustum, BoundingSphere, Camera,
 } from '@babylonjs/core';
 import {
-  VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, jointElements, rootMotionElements,
+  VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, layeredJointElements, rootMotionElements,
   screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, moveInstance,
   DEFAULT_FRAME_INTERVAL, PreviousFrame, blendLayers, packLayerMask, layerModeOf,
 } from '@vbusd/core';
@@ -534,7 +534,7 @@ export class VirtualBonesCrowd {
 
   /**
    * Socket (spec 8.4): the world transform of `bone` of instance `index` at scene time `time`
-   * (clip, offset, rate and crossfade of the instance, @vbusd/core's decoder on the stored texels;
+   * (clip, offset, rate, crossfade and layers of the instance, @vbusd/core's decoder on the stored texels;
    * its thin-instance matrix and the mesh's world matrix) as a Babylon Matrix: a prop follows each
    * character's hand with it.
    */
@@ -542,8 +542,11 @@ export class VirtualBonesCrowd {
     this.updateSamples(time);
     const [clip, offset, rate, fadeClip] = this.instanceA.subarray(4 * index, 4 * index + 4);
     const [fadeOffset, fadeRate, fadeWeight] = this.instanceB.subarray(4 * index, 4 * index + 3);
-    const joint = jointElements(this.animation, bone, Math.round(clip), offset + rate * time,
-      { clip: Math.round(fadeClip), tau: fadeOffset + fadeRate * time, weight: fadeWeight });
+    const layers = !this.layered ? null : [0, 1].map((j) => ({
+      clip: Math.round(this.instanceC[4 * index + 2 * j]), mask: Math.round(this.instanceC[4 * index + 2 * j + 1]),
+      tau: this.instanceD[4 * index + 2 * j] + this.instanceD[4 * index + 2 * j + 1] * time, weight: this.instanceE[4 * index + j] }));
+    const joint = layeredJointElements(this.animation, bone, Math.round(clip), offset + rate * time,
+      { clip: Math.round(fadeClip), tau: fadeOffset + fadeRate * time, weight: fadeWeight }, layers);
     // Row vectors: the joint first, then the instance's placement, then the mesh's world.
     return Matrix.FromArray(joint).multiply(this.instanceMatrix(index)).multiply(this.meshes[0].computeWorldMatrix(true));
   }

@@ -1,6 +1,6 @@
 // vbusd's engine-neutral web core (@vbusd/core): what every runtime (three.js WebGL, three.js
 // WebGPU, Babylon.js) shares and no engine is imported for: layout metadata, KTX2 textures, shader-module
-// assembly, skin records, the CPU decoder (sockets, root motion), playback parameters, levels of
+// assembly, skin records, the CPU decoder (sockets, root motion, layers), playback parameters, levels of
 // detail, blend spaces and clip events (format 1.3), crowd variety, the previous-frame clock (motion
 // vectors), the plain files, a runtime package crowd's playback arrays and the transform-feedback probe.
 // docs/engines.md ("@vbusd/core").
@@ -18,6 +18,9 @@ export {
 export {
   fromHalf, rowPosition, boneRows, elementsFromRows, multiply, jointElements, rootMotionElements,
 } from './decode.js';
+export {
+  decomposeTRS, composeTRS, slerp, mixLocal, addLocal, maskWeights, layeredJoint, layeredJointElements,
+} from './layers.js';
 export { clipTime, evaluateSamples, placementMatrices, singleInstance, moveInstance } from './playback.js';
 export { DEFAULT_FRAME_INTERVAL, checkFrameInterval, previousClipTime, PreviousFrame } from './previous.js';
 export { screenSize, selectLevel, checkScreenSizes } from './lod.js';

@@ -69,6 +69,16 @@ export function boneRows(source: DecoderSource, clipIndex: number, tau: number, 
 export function elementsFromRows(rows: number[][]): number[];
 export function multiply(a: Matrix16, b: Matrix16): number[];
 export function jointElements(source: DecoderSource, bone: number, clipIndex: number, tau: number, fade?: { clip: number; tau: number; weight: number } | null): number[];
+/** A layer of a socket's pose (spec virtual-bones.md 8.6, 23.4): mask an index into the layout's masks, a name, or weights. */
+export interface JointLayer { clip: number; tau: number; weight: number; mask: number | string | ArrayLike<number>; mode?: 'override' | 'additive'; reference?: { clip: number; tau: number } }
+export function decomposeTRS(e: ArrayLike<number>): { t: number[]; q: number[]; s: number[] };
+export function composeTRS(t: ArrayLike<number>, q: ArrayLike<number>, s: ArrayLike<number>): number[];
+export function slerp(q0: ArrayLike<number>, q1: ArrayLike<number>, alpha: number): number[];
+export function mixLocal(x: number[], y: number[], alpha: number): number[];
+export function addLocal(x: number[], layer: number[], reference: number[], alpha: number): number[];
+export function maskWeights(source: DecoderSource, mask: number | string | ArrayLike<number>): ArrayLike<number>;
+export function layeredJoint(source: DecoderSource, bone: number, clipIndex: number, tau: number, layers: JointLayer[]): number[];
+export function layeredJointElements(source: DecoderSource, bone: number, clipIndex: number, tau: number, fade?: { clip: number; tau: number; weight: number } | null, layers?: JointLayer[] | null): number[];
 export function rootMotionElements(source: DecoderSource, rootMotion: { upAxis: string; tracks: number[][][] } | null, clipIndex: number, t0: number, t1: number): number[];
 
 export function clipTime(timeOffset: number, playbackRate: number, time: number): number;
