@@ -83,7 +83,7 @@ def _diagonal(asset, instance: int, t: float) -> float:
 
 
 def additive_cases(asset, bones_of):
-    """Additive layers (spec 23.4, which web crowds do not carry but the core decodes) and an
+    """Additive layers (spec 23.4) and an
     override after an additive one, against ``layered_skinning`` with :class:`Additive` entries."""
     cases, expected, diagonals = [], [], []
     a = asset.crowd_animation[0]
@@ -103,6 +103,25 @@ def additive_cases(asset, bones_of):
             expected.append(joints[0, bone])
             diagonals.append(diagonal)
     return cases, np.stack(expected), np.asarray(diagonals)
+
+
+LAYER_MASK_SPAN = 1024  # web/core/src/additive.js: a layer slot's code is mask + 1024 x (reference clip + 1)
+STREAM_TIME, STREAM_RATE = 2.0, 0.25
+
+
+def as_streams(case):
+    """``case`` with its two layers written as a runtime writes them in its per-instance streams
+    (clip and code, offset and rate, weights and reference times; docs/engines.md), the packing
+    spelled out here from the rule rather than taken from the runtime."""
+    clip_mask, time, weight = [0.0] * 4, [0.0] * 4, [0.0] * 4
+    for j, layer in enumerate(case["layers"]):
+        additive = layer.get("mode") == "additive"
+        code = layer["mask"] + (LAYER_MASK_SPAN * (layer["reference"]["clip"] + 1) if additive else 0)
+        clip_mask[2 * j:2 * j + 2] = [layer["clip"], code]
+        time[2 * j:2 * j + 2] = [layer["tau"] - STREAM_RATE * STREAM_TIME, STREAM_RATE]
+        weight[j] = layer["weight"]
+        weight[2 + j] = layer["reference"]["tau"] if additive else 0.0
+    return {**case, "layers": None, "streams": {"clipMask": clip_mask, "time": time, "weight": weight, "sceneTime": STREAM_TIME}}
 
 
 def check(tmp_path, asset, cases, expected, diagonals, what):
@@ -131,6 +150,7 @@ def test_layered_sockets_fox_and_cesium_man(character_layers_crowd, tmp_path):
     assert (np.abs(unlayered - expected).max(axis=(1, 2)) / diagonals).max() > 1e-2
     cases, expected, diagonals = additive_cases(asset, every_bone)
     check(tmp_path, asset, cases, expected, diagonals, "Fox additive layers")
+    check(tmp_path, asset, [as_streams(case) for case in cases], expected, diagonals, "Fox additive layers from the streams")
 
 
 @pytest.mark.parametrize("encoding,texel_format", [("quatTranslation", "float16"), ("crossMatrix", "float32")])
@@ -144,3 +164,5 @@ def test_layered_sockets_stadium(tmp_path, encoding, texel_format):
     check(tmp_path, asset, cases, expected, diagonals, f"stadium {encoding} layered sockets")
     cases, expected, diagonals = additive_cases(asset, every_bone)
     check(tmp_path, asset, cases, expected, diagonals, f"stadium {encoding} additive layers")
+    # What crowd.socketMatrix reads in every engine: the layers decoded from the instance streams.
+    check(tmp_path, asset, [as_streams(case) for case in cases], expected, diagonals, f"stadium {encoding} additive layers from the streams")

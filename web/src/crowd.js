@@ -11,7 +11,7 @@ import {
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, placementMatrices, singleInstance, screenSize, selectLevel,
   checkScreenSizes, blendLayers, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, DEFAULT_FRAME_INTERVAL,
-  PreviousFrame, moveInstance, packLayerMask, layerModeOf,
+  PreviousFrame, moveInstance, packLayerMask, layerModeOf, layersOfStreams,
 } from '@vbusd/core';
 
 import { patchMaterial } from './material.js';
@@ -254,7 +254,7 @@ export class VirtualBonesCrowd extends Group {
           attributes.layerClipMask = dynamic(new Int32Array(4 * n), 4);
           attributes.layerClipMask.gpuType = IntType;
           attributes.layerTime = dynamic(new Float32Array(4 * n), 4);
-          attributes.layerWeight = dynamic(new Float32Array(2 * n), 2);
+          attributes.layerWeight = dynamic(new Float32Array(4 * n), 4);  // weights, additive reference times
         }
         return attributes;
       });
@@ -431,10 +431,7 @@ export class VirtualBonesCrowd extends Group {
   /** Instance `index`'s layers at scene time `time` as @vbusd/core's layeredJointElements takes them (none without layers). */
   socketLayers(index, time) {
     if (!this.layered) return null;
-    const cm = this.layerClipMaskAttribute.array;
-    const tr = this.layerTimeAttribute.array;
-    return [0, 1].map((j) => ({ clip: cm[4 * index + 2 * j], mask: cm[4 * index + 2 * j + 1],
-      tau: tr[4 * index + 2 * j] + tr[4 * index + 2 * j + 1] * time, weight: this.layerWeightAttribute.array[2 * index + j] }));
+    return layersOfStreams(this.layerClipMaskAttribute.array, this.layerTimeAttribute.array, this.layerWeightAttribute.array, index, time);
   }
 
   /**
@@ -557,7 +554,7 @@ export class VirtualBonesCrowd extends Group {
       if (this.layered) {
         target.layerClipMask.array.set(this.layerClipMaskAttribute.array.subarray(4 * i, 4 * i + 4), 4 * at);
         target.layerTime.array.set(this.layerTimeAttribute.array.subarray(4 * i, 4 * i + 4), 4 * at);
-        target.layerWeight.array.set(this.layerWeightAttribute.array.subarray(2 * i, 2 * i + 2), 2 * at);
+        target.layerWeight.array.set(this.layerWeightAttribute.array.subarray(4 * i, 4 * i + 4), 4 * at);
       }
     }
     this.levels.forEach((meshes, level) => {

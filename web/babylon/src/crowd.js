@@ -8,7 +8,7 @@ import {
 import {
   VirtualBonesError, checkSkinBinding, evaluateSamples, packSkin, skinTextureData, layeredJointElements, rootMotionElements,
   screenSize, selectLevel, checkScreenSizes, crowdEvents, instanceColors, partBit, partMatrices, partMatrixAt, varietyOf, moveInstance,
-  DEFAULT_FRAME_INTERVAL, PreviousFrame, blendLayers, packLayerMask, layerModeOf,
+  DEFAULT_FRAME_INTERVAL, PreviousFrame, blendLayers, packLayerMask, layerModeOf, layersOfStreams,
 } from '@vbusd/core';
 
 import { skinMaterial } from './plugin.js';
@@ -542,9 +542,7 @@ export class VirtualBonesCrowd {
     this.updateSamples(time);
     const [clip, offset, rate, fadeClip] = this.instanceA.subarray(4 * index, 4 * index + 4);
     const [fadeOffset, fadeRate, fadeWeight] = this.instanceB.subarray(4 * index, 4 * index + 3);
-    const layers = !this.layered ? null : [0, 1].map((j) => ({
-      clip: Math.round(this.instanceC[4 * index + 2 * j]), mask: Math.round(this.instanceC[4 * index + 2 * j + 1]),
-      tau: this.instanceD[4 * index + 2 * j] + this.instanceD[4 * index + 2 * j + 1] * time, weight: this.instanceE[4 * index + j] }));
+    const layers = this.layered ? layersOfStreams(this.instanceC, this.instanceD, this.instanceE, index, time) : null;
     const joint = layeredJointElements(this.animation, bone, Math.round(clip), offset + rate * time,
       { clip: Math.round(fadeClip), tau: fadeOffset + fadeRate * time, weight: fadeWeight }, layers);
     // Row vectors: the joint first, then the instance's placement, then the mesh's world.

@@ -39,3 +39,22 @@ export function packLayerMask(mask, mode, referenceClip, clipCount, what = 'laye
 
 /** The mask index of a packed code (packLayerMask). */
 export function maskOfCode(code) { return code % LAYER_MASK_SPAN; }
+
+/**
+ * Instance `index`'s two layers at scene time `time`, read back from the per-instance streams every
+ * layered runtime writes (`clipMask`: clip, code per layer; `time`: offset, rate per layer;
+ * `weight`: weight 0, weight 1, reference time 0, reference time 1; 4 values per instance each), as
+ * layers.js's layeredJointElements takes them: {clip, tau, weight, mask, mode, reference}.
+ */
+export function layersOfStreams(clipMask, time, weight, index, sceneTime) {
+  return [0, 1].map((j) => {
+    const code = Math.round(clipMask[4 * index + 2 * j + 1]);
+    const referenceClip = Math.floor(code / LAYER_MASK_SPAN) - 1;
+    return {
+      clip: Math.round(clipMask[4 * index + 2 * j]), mask: maskOfCode(code),
+      tau: time[4 * index + 2 * j] + time[4 * index + 2 * j + 1] * sceneTime, weight: weight[4 * index + j],
+      mode: referenceClip >= 0 ? 'additive' : 'override',
+      reference: referenceClip >= 0 ? { clip: referenceClip, tau: weight[4 * index + 2 + j] } : null,
+    };
+  });
+}

@@ -27,7 +27,7 @@ export { screenSize, selectLevel, checkScreenSizes } from './lod.js';
 export {
   triangulate, blendWeights, phaseTimes, layerWeights, blendLayers, crossedMarkers, crowdEvents,
 } from './motion.js';
-export { LAYER_MASK_SPAN, ADDITIVE_LAYERS_DEFINE, layerModeOf, packLayerMask, maskOfCode } from './additive.js';
+export { LAYER_MASK_SPAN, ADDITIVE_LAYERS_DEFINE, layerModeOf, packLayerMask, maskOfCode, layersOfStreams } from './additive.js';
 export { parsePlainScene, fetchPlainScene } from './plain.js';
 export { RUNTIME_LAYERS, packagePlayback } from './package.js';
 export { readKTX2Container, parseVirtualBonesKTX2 } from './ktx2.js';

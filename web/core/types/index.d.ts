@@ -148,6 +148,9 @@ export const ADDITIVE_LAYERS_DEFINE: string;
 export function layerModeOf(mode: 'override' | 'additive' | 0 | 1 | undefined | null, what?: string): 0 | 1;
 export function packLayerMask(mask: number, mode: 'override' | 'additive' | 0 | 1, referenceClip: number, clipCount: number, what?: string): number;
 export function maskOfCode(code: number): number;
+/** Instance `index`'s two layers at scene time `sceneTime` decoded from the runtimes' per-instance layer streams (4 values per instance each). */
+export function layersOfStreams(clipMask: ArrayLike<number>, time: ArrayLike<number>, weight: ArrayLike<number>, index: number, sceneTime: number): {
+  clip: number; tau: number; weight: number; mask: number; mode: 'override' | 'additive'; reference: { clip: number; tau: number } | null }[];
 /** The KTX2 container of a file (header, level index, key/value data), every region checked. */
 export function readKTX2Container(data: Uint8Array, name?: string): {
   vkFormat: number; typeSize: number; pixelWidth: number; pixelHeight: number; pixelDepth: number;
