@@ -143,6 +143,11 @@ export class VirtualBonesCrowd {
     const slots = entry.boneIndices.length / vertexCount;
     if (slots !== 4 && slots !== 8) throw new VirtualBonesError(`${entry.name}: bone indices must be 4 or 8 per vertex, got ${slots}`);
     const mesh = new Mesh(entry.name, this.scene);
+    // vbusd's triangles are counter-clockwise seen from the front (right-handed, as USD's default
+    // orientation and glTF): the side Babylon culls is set as its glTF loader sets it. With its
+    // default (clockwise) a right-handed scene culled the front faces and drew each figure's far side.
+    mesh.sideOrientation = this.scene.useRightHandedSystem
+      ? Constants.MATERIAL_CounterClockWiseSideOrientation : Constants.MATERIAL_ClockWiseSideOrientation;
     const data = new VertexData();
     data.positions = Float32Array.from(entry.positions);
     data.indices = Uint32Array.from(entry.triangles ?? entry.indices);
