@@ -94,6 +94,12 @@ export class VirtualBonesCrowd {
     // vb_instancePreviousFade = (fadeTime, fadeWeight, reset, 0) read by the velocity pre-pass and the probe.
     this.previous = new PreviousFrame(this.capacity);
     this.matrices = instances.matrices ? Float32Array.from(instances.matrices) : null;
+    // Spec 21.1 "Instance transform": each instance's previous matrix, the placement it had at the
+    // last updatePrevious (Babylon's 'previousMatrix' thin-instance buffer: previousWorld0..3 of
+    // its velocity pre-pass; unset, Babylon binds none on the first frame -- a zero matrix, the
+    // previous pose at the origin -- and copies the current slots after each draw, which is wrong
+    // once levels of detail compact the instances anew each frame).
+    this.previousMatrices = this.matrices ? Float32Array.from(this.matrices) : null;
     // Crowd variety (format 1.3): Babylon's thin-instance colour (RGBA) multiplies the material's.
     const colors = instanceColors(instances);
     this.instanceColors = null;
@@ -119,7 +125,7 @@ export class VirtualBonesCrowd {
       const n = this.capacity;
       // Each level's compacted copies of the playback streams (and of the layer streams, with layers).
       this.levelBuffers = [meshes, ...levels].map(() => ({
-        matrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n),
+        matrix: new Float32Array(16 * n), previousMatrix: new Float32Array(16 * n), a: new Float32Array(4 * n), b: new Float32Array(4 * n), p: new Float32Array(4 * n),
         ...(this.layered ? { c: new Float32Array(4 * n), d: new Float32Array(4 * n), e: new Float32Array(4 * n) } : {}) }));
       this.levels = [adopt ?? meshes, ...levels].map((entries, level) => entries.map((entry) => {
         const mesh = adopt ? this._skin(entry.mesh, entry, material, this.levelBuffers[level]) : this._mesh(entry, material, this.levelBuffers[level]);
@@ -203,11 +209,14 @@ export class VirtualBonesCrowd {
     mesh.material = mat;
     const part = partBit(entry.name ?? mesh.name, this.instances.partNames);  // applyParts() and updateLevels use it
     let partMatrix = null;
+    let partPreviousMatrix = null;
     if (buffers && part >= 0 && this.instances.parts) {
       // A part at a level of detail (spec 22.3): its own compact matrices, the mask applied by updateLevels.
       partMatrix = new Float32Array(buffers.matrix.length);
+      partPreviousMatrix = new Float32Array(buffers.matrix.length);
       mesh.thinInstanceSetBuffer('matrix', partMatrix, 16, false);
     } else if (buffers) mesh.thinInstanceSetBuffer('matrix', buffers.matrix, 16, false);
+    if (buffers) mesh.thinInstanceSetBuffer('previousMatrix', partPreviousMatrix ?? buffers.previousMatrix, 16, false);
     if (buffers) {
       mesh.thinInstanceSetBuffer('vb_instanceA', buffers.a, 4, false);
       mesh.thinInstanceSetBuffer('vb_instanceB', buffers.b, 4, false);
@@ -234,7 +243,7 @@ export class VirtualBonesCrowd {
     mesh.alwaysSelectAsActiveMesh = true;
     const hasNormals = mesh.isVerticesDataPresent('normal');
     mesh.metadata = { ...(mesh.metadata ?? {}), virtualBones: { pointIndex: null, hasNormals, pointCount: vertexCount,
-      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part, partMatrix } };
+      ...(mesh.metadata?.virtualBones ?? {}), crowd: this, maxInfluences, skinTexture, sets, part, partMatrix, partPreviousMatrix } };
     return mesh;
   }
 
@@ -380,13 +389,16 @@ export class VirtualBonesCrowd {
       const at = counts[level]++;
       const target = this.levelBuffers[level];
       target.matrix.set(this.matrices ? this.matrices.subarray(16 * i, 16 * i + 16) : this.instanceMatrix(i).m, 16 * at);
+      // The instance's own previous matrix in its slot of this frame (spec 21.1), not the slot's last occupant's.
+      target.previousMatrix.set(this.previousMatrices ? this.previousMatrices.subarray(16 * i, 16 * i + 16) : target.matrix.subarray(16 * at, 16 * at + 16), 16 * at);
       target.a.set(this.instanceA.subarray(4 * i, 4 * i + 4), 4 * at);
       target.b.set(this.instanceB.subarray(4 * i, 4 * i + 4), 4 * at);
       target.p.set(this.previous.values.subarray(4 * i, 4 * i + 4), 4 * at);
       // Parts (spec 22.3): the level's part meshes draw the slot collapsed where the mask hides them.
       for (const mesh of this.levels[level]) {
-        const { part, partMatrix } = mesh.metadata.virtualBones;
+        const { part, partMatrix, partPreviousMatrix } = mesh.metadata.virtualBones;
         if (partMatrix) partMatrixAt(partMatrix, at, target.matrix, at, this.instances.parts[i], part);
+        if (partPreviousMatrix) partMatrixAt(partPreviousMatrix, at, target.previousMatrix, at, this.instances.parts[i], part);
       }
       if (this.layered) {
         target.c.set(this.instanceC.subarray(4 * i, 4 * i + 4), 4 * at);
@@ -394,7 +406,7 @@ export class VirtualBonesCrowd {
         target.e.set(this.instanceE.subarray(4 * i, 4 * i + 4), 4 * at);
       }
     }
-    const streams = ['matrix', 'vb_instanceA', 'vb_instanceB', 'vb_instancePreviousFade', ...(this.layered ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : [])];
+    const streams = ['matrix', 'previousMatrix', 'vb_instanceA', 'vb_instanceB', 'vb_instancePreviousFade', ...(this.layered ? ['vb_instanceC', 'vb_instanceD', 'vb_instanceE'] : [])];
     this.levels.forEach((meshes, level) => {
       for (const mesh of meshes) {
         for (const stream of streams) mesh.thinInstanceBufferUpdated(stream);
@@ -532,9 +544,38 @@ export class VirtualBonesCrowd {
     this.previous.update(time, dt, (i) => b.subarray(4 * i, 4 * i + 3), this.fadeSamples);
     this.animation.previousTime = this.previous.previousTime;
     if (this.meshes) this._updated('vb_instancePreviousFade');
+    this._keepPreviousMatrices();
   }
 
-  /** Instance `index` switched clips or was teleported: its next frame has no motion (spec 21's reset). */
+  /**
+   * Spec 21.1 "Instance transform": the placements now become the previous ones (each instance's
+   * 'previousMatrix' thin-instance slot), so that a move after updatePrevious (applyRootMotion, a
+   * new matrix) is motion in the next frame's velocity; a reset instance is placed by its
+   * current matrix instead (the plugin).
+   */
+  _keepPreviousMatrices() {
+    const copy = (to, from) => to.set(from.subarray(0, to.length));
+    if (this.previousMatrices && this.matrices) copy(this.previousMatrices, this.matrices);
+    if (!this.meshes || this.levels) return;  // the levels' slots are written by updateLevels
+    for (const mesh of this.meshes) {
+      // The mesh's own 'matrix' data (a part's collapsed copy, an adopted glTF mesh's loader-set buffer).
+      const current = mesh._thinInstanceDataStorage?.matrixData;
+      if (!current) continue;
+      const meta = mesh.metadata.virtualBones;
+      if (!meta.previousMatrix || meta.previousMatrix.length !== current.length) {
+        meta.previousMatrix = Float32Array.from(current);
+        mesh.thinInstanceSetBuffer('previousMatrix', meta.previousMatrix, 16, false);
+      } else {
+        copy(meta.previousMatrix, current);
+        mesh.thinInstanceBufferUpdated('previousMatrix');
+      }
+    }
+  }
+
+  /**
+   * Instance `index` switched clips or was teleported: its next frame has no motion (spec 21's
+   * reset): its previous pose is its current one, and the plugin places it by its current matrix.
+   */
   resetPrevious(index) { this.previous.reset(index); }
 
   /**

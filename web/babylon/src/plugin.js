@@ -66,9 +66,19 @@ export class VirtualBonesPluginMaterial extends MaterialPluginBase {
   prepareDefines(defines) {
     defines.VIRTUAL_BONES = true;
     defines.VB_VARIANT = this.variant;
+    // Babylon's instancing binds the previous instance matrices (previousWorld0..3) under
+    // PREPASS_VELOCITY only, though its shaders read them under PREPASS_VELOCITY_LINEAR as well:
+    // getAttributes asks for them then (unbound, they are zero and the previous pose sits at the origin).
+    this.linearVelocity = Boolean(defines.PREPASS && defines.PREPASS_VELOCITY_LINEAR && !defines.PREPASS_VELOCITY
+      && (defines.INSTANCES || defines.THIN_INSTANCES));
   }
 
-  getAttributes(attributes) { attributes.push(...vertexInputs(this.maxInfluences, this.skin, this.layers)); }
+  getAttributes(attributes) {
+    attributes.push(...vertexInputs(this.maxInfluences, this.skin, this.layers));
+    if (this.linearVelocity && attributes.includes('world0') && !attributes.includes('previousWorld0')) {
+      attributes.push('previousWorld0', 'previousWorld1', 'previousWorld2', 'previousWorld3');
+    }
+  }
 
   getSamplers(samplers) { samplers.push('vb_texture', 'vb_skinTexture', 'vb_rig'); }
 
@@ -120,9 +130,11 @@ ${previousSkinningCall('positionUpdated', 'vbRestNormal', 'vbPreviousSkinned', t
 #endif
 }
 `,
-      // Babylon wrote vPreviousPosition from the current skinned position; the previous one replaces it.
+      // Babylon wrote vPreviousPosition from the current skinned position; the previous one replaces
+      // it, placed by the thin instance's previous matrix (the crowd's 'previousMatrix' buffer, spec
+      // 21.1), or by its current one when the instance was reset this frame (a teleport: no motion).
       CUSTOM_VERTEX_MAIN_END: `${VELOCITY}
-  vPreviousPosition = previousViewProjection * finalPreviousWorld * vec4(vbPreviousSkinned, 1.0);
+  vPreviousPosition = previousViewProjection * (vb_instancePreviousFade.z > 0.5 ? finalWorld : finalPreviousWorld) * vec4(vbPreviousSkinned, 1.0);
 #endif
 `,
     };
@@ -137,6 +149,25 @@ export function skinMaterial(material, animation, maxInfluences = 4, binding = {
   if (!material || typeof material.getClassName !== 'function') throw new VirtualBonesError('skinMaterial needs a Babylon material');
   const plugin = new VirtualBonesPluginMaterial(material, animation, maxInfluences, binding);
   material.shadowDepthWrapper = new ShadowDepthWrapper(material, material.getScene());
+  cameraPassesOnly(material.prePassConfiguration);
   material.metadata = { ...(material.metadata ?? {}), virtualBones: { animation, maxInfluences, skin: plugin.skin, layers: plugin.layers } };
   return plugin;
+}
+
+/**
+ * With the ShadowDepthWrapper, ShadowGenerator binds the material (bindForSubMesh) while the scene's
+ * transform is the light's; Babylon's PrePassConfiguration takes each new transform for the camera's
+ * and would hand the next colour pass the light's view-projection as previousViewProjection (every
+ * velocity off by the difference). It is updated in the camera's render passes only.
+ */
+function cameraPassesOnly(configuration) {
+  if (!configuration || configuration.vbCameraPassesOnly) return;
+  const bind = configuration.bindForSubMesh.bind(configuration);
+  configuration.bindForSubMesh = (effect, scene, ...rest) => {
+    const camera = scene.activeCamera;
+    const pass = scene.getEngine().currentRenderPassId;
+    if (camera && pass !== camera.renderPassId && pass !== camera.outputRenderTarget?.renderPassId) return;
+    bind(effect, scene, ...rest);
+  };
+  configuration.vbCameraPassesOnly = true;
 }
