@@ -59,10 +59,7 @@ ELSEWHERE = {
 }
 
 # Cells no test fills yet, with the reason.
-NOT_YET = {
-    ("velocity output (motion vectors)", "babylon"): "not yet checked per pixel: the plugin writes vPreviousPosition "
-    "in the velocity pre-pass; PrePassRenderer's velocity texture is not read back yet",
-}
+NOT_YET: dict = {}
 
 PARITY = "test_browser_parity.py"
 

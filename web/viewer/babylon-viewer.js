@@ -5,16 +5,17 @@
 // ui=0, width=W, height=H, instances=N, antialias=0, skin=attributes|pulled (the skin binding;
 // attributes by default). The plain files of a USD asset are parsed by @vbusd/core.
 //
-// window.vbusd: {ready, probe(instance, time), setTime(t), render(), measureFrames(n), engine
-// ('babylon'), backend ('webgl2'), babylon: {engine, scene, camera}, crowds, animations}.
+// window.vbusd: {ready, probe(instance, time), setTime(t), render(), velocity({texture}),
+// measureFrames(n), engine ('babylon'), backend ('webgl2'), babylon: {engine, scene, camera},
+// crowds, animations}.
 
 import {
   Engine, Scene, Vector3, Color3, Color4, StandardMaterial, DirectionalLight, HemisphericLight,
-  ArcRotateCamera, MeshBuilder, ShadowGenerator, ImportMeshAsync,
+  ArcRotateCamera, MeshBuilder, ShadowGenerator, ImportMeshAsync, Tools, Constants,
 } from '@babylonjs/core';
 
 import { fetchPlainScene, singleInstance } from '@vbusd/core';
-import { measureFrames, pageApi, pageOptions, showError, startPage } from './vbusd-core/viewer.js';
+import { measureFrames, pageApi, pageOptions, showError, startPage, velocityImage } from './vbusd-core/viewer.js';
 
 import {
   VirtualBonesAnimation, VirtualBonesCrowd, probeBabylonCrowd, registerVirtualBonesGLTFExtension,
@@ -154,6 +155,44 @@ async function main() {
 
   const gl = engine._gl;
   const pixel = new Uint8Array(4);
+  /** The velocity textures Babylon's PrePassRenderer writes from the same previous and current
+   * positions (the material plugin's previous skinned pose placed by the crowd's previous
+   * thin-instance matrices), decoded into NDC motion (current - previous): 'taa', what
+   * TAARenderingPipeline's reprojection reads (PREPASS_VELOCITY_LINEAR: half floats, (previous -
+   * current) / 2), and 'motionBlur', what MotionBlurPostProcess reads (PREPASS_VELOCITY: 8 bits,
+   * v = sign(d) |d|^(1/3) / 2 + 1/2 of d = (current - previous) / 2, so NDC motion = 2 sign(c) |c|^3,
+   * c = 2 v - 1). Babylon writes one of the two at a time. */
+  const velocityTextures = {
+    taa: { type: Constants.PREPASS_VELOCITY_LINEAR_TEXTURE_TYPE, decode: (value) => -2 * value },
+    motionBlur: { type: Constants.PREPASS_VELOCITY_TEXTURE_TYPE,
+      decode: (value) => { const c = (2 * value) / 255 - 1; return 2 * Math.sign(c) * Math.abs(c) ** 3; } },
+  };
+  let velocityPass = null;
+  /** velocity()'s image of `texture` (velocityTextures), asked for by a pass post-process that carries
+   * it in its pre-pass configuration as those effects do (the bundle does not export PassPostProcess:
+   * it is made from Babylon's class registry by name). Two renders: previousViewProjection is the
+   * camera of the render before. */
+  const babylonVelocity = async ({ texture: name = 'taa' } = {}) => {
+    const kind = velocityTextures[name];
+    if (!kind) throw new Error(`velocity: no texture '${name}' (${Object.keys(velocityTextures).join(', ')})`);
+    if (velocityPass?.vbTexture !== name) {
+      velocityPass?.dispose(camera);
+      const PassPostProcess = Tools.Instantiate('BABYLON.PassPostProcess');
+      velocityPass = new PassPostProcess(`vbusd velocity (${name})`, 1.0, camera);
+      velocityPass.vbTexture = name;
+      velocityPass._prePassEffectConfiguration = { name: `vbusd ${name} velocity`, enabled: true, texturesRequired: [kind.type] };
+      if (!scene.enablePrePassRenderer()) throw new Error('Babylon.js\' pre-pass renderer is not supported here');
+      scene.prePassRenderer.markAsDirty();
+      await scene.whenReadyAsync();
+    }
+    render();
+    render();
+    const prePass = scene.prePassRenderer;
+    const target = prePass.defaultRT.textures[prePass.getIndex(kind.type)];
+    const { width, height } = target.getSize();
+    const pixels = await target.readPixels(0, 0, null, true, false);  // bytes, or float32 from half floats
+    return velocityImage(pixels, width, height, { decode: kind.decode, covered: true });
+  };
   window.vbusd = {
     engine: 'babylon', backend: 'webgl2', babylon: { engine, scene, camera, shadowGenerator }, crowds, animations,
     /** The camera's projection and view matrices as three.js' pages give them (column-major
@@ -164,6 +203,11 @@ async function main() {
       get matrixWorldInverse() { return { elements: Array.from(camera.getViewMatrix(true).m) }; },
     },
     setTime, render,
+    /** The velocity (motion vectors, spec 21) of the view at the current time and the page's dt: NDC
+     * motion since the previous frame, {width, height, rg: row-major from the top row, 2 floats per
+     * pixel}, a Promise; `{texture: 'motionBlur'}` reads MotionBlurPostProcess' 8-bit texture instead
+     * of TAA's (babylonVelocity). */
+    velocity: babylonVelocity,
     // instanceCount, probe(instance, t) (with previousPositions for the page's dt), levels(),
     // measureFrames(n): @vbusd/core's page part; each measured frame is rendered and finished (a
     // pixel read), outside Babylon's render loop.

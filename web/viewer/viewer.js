@@ -21,7 +21,7 @@ import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import {
   buildObjects, loadPlainScene, probeCrowd, renderVelocity, VirtualBonesGLTFPlugin, descriptionFromGLTF,
 } from './vbusd-three/index.js';
-import { measureFrames, pageApi, pageOptions, showError, startPage } from './vbusd-core/viewer.js';
+import { measureFrames, pageApi, pageOptions, showError, startPage, velocityImage } from './vbusd-core/viewer.js';
 
 const page = pageOptions();
 const { params, number, silhouette, element } = page;
@@ -284,16 +284,8 @@ async function main() {
     const pixels = await renderer.readRenderTargetPixelsAsync(target, 0, 0, width, height, index);
     velocityPipeline.dispose();
     scenePass.dispose();
-    const upward = !renderer.backend.isWebGPUBackend;  // the WebGL 2 backend reads rows bottom first
-    const rg = new Array(2 * width * height);
-    for (let y = 0; y < height; ++y) {
-      const row = upward ? height - 1 - y : y;
-      for (let x = 0; x < width; ++x) {
-        rg[2 * (y * width + x)] = pixels[4 * (row * width + x)];
-        rg[2 * (y * width + x) + 1] = pixels[4 * (row * width + x) + 1];
-      }
-    }
-    return { width, height, rg };
+    // The WebGL 2 backend reads rows bottom first, WebGPU top first.
+    return velocityImage(pixels, width, height, { upward: !renderer.backend.isWebGPUBackend });
   };
   window.vbusd = {
     renderer, scene, camera, controls, crowds, animations: objects.animations, engine, backend,
@@ -311,15 +303,7 @@ async function main() {
       const pixels = new Float32Array(4 * size.x * size.y);
       renderer.readRenderTargetPixels(target, 0, 0, size.x, size.y, pixels);
       target.dispose();
-      const rg = new Array(2 * size.x * size.y);
-      for (let y = 0; y < size.y; ++y) {
-        const row = size.y - 1 - y;  // GL rows run upward
-        for (let x = 0; x < size.x; ++x) {
-          rg[2 * (y * size.x + x)] = pixels[4 * (row * size.x + x)];
-          rg[2 * (y * size.x + x) + 1] = pixels[4 * (row * size.x + x) + 1];
-        }
-      }
-      return { width: size.x, height: size.y, rg };
+      return velocityImage(pixels, size.x, size.y);
     },
     // instanceCount, probe(instance, t) (with previousPositions for the page's dt), levels(),
     // measureFrames(n): @vbusd/core's page part.

@@ -77,6 +77,26 @@ export function pageApi(crowds, probeOne, measure, { dt = 1 / 60 } = {}) {
 }
 
 /**
+ * window.vbusd.velocity()'s image from an RGBA texture read back from the GPU (`pixels`, rows
+ * bottom first as WebGL reads them unless `upward` is false): `{width, height, rg}`, rg row-major
+ * from the top row, 2 numbers a pixel, `decode` of the texture's red and green (NDC motion); with
+ * `covered`, a pixel whose alpha is 0 (nothing drawn) is 0, whatever its code.
+ */
+export function velocityImage(pixels, width, height, { upward = true, decode = (value) => value, covered = false } = {}) {
+  const rg = new Array(2 * width * height);
+  for (let y = 0; y < height; ++y) {
+    const row = upward ? height - 1 - y : y;
+    for (let x = 0; x < width; ++x) {
+      const k = 4 * (row * width + x);
+      const empty = covered && pixels[k + 3] === 0;
+      rg[2 * (y * width + x)] = empty ? 0 : decode(pixels[k]);
+      rg[2 * (y * width + x) + 1] = empty ? 0 : decode(pixels[k + 1]);
+    }
+  }
+  return { width, height, rg };
+}
+
+/**
  * Mean milliseconds per frame over `frames` frames, each the clock advanced one 60 Hz step
  * (`step`), rendered (`render`) and finished (`finish`: a pixel read back, or the GPU queue
  * drained; it may return a promise, awaited before the next frame). A promise of the mean.
