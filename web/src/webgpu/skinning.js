@@ -404,16 +404,23 @@ function layerFunctions(nodes) {
 
   // The layered skinning transform M' of one bone (spec 8.6; vbLayeredBoneRows): two layers, each
   // (clip, tau, weight, mask); the fourth column's x is 1 when a layer changed the bone, else 0
-  // and M' the decoded M.
+  // and M' the decoded M. The layers are a loop over arrays, as the module's: each call site of
+  // vbJointRows is a copy of the decode once a compiler inlines it (SwiftShader inlines every
+  // call), so unrolled per layer the Fox's shader grew past what SwiftShader's Subzero compiles.
   const MAX_DEPTH = 32;
+  const LAYERS = 2;
   const layeredBoneRows = Fn(([clip, tau, c0, c1, u0, u1, w0, w1, k0, k1, e0, e1, bone]) => {
     // Each layer's mask slot holds @vbusd/core's packed code (additive.js): mask + span x (0 for an
     // override layer, reference clip + 1 for an additive one, format 1.3); e0, e1 the reference times.
-    const layers = [[c0, u0, w0, k0, e0], [c1, u1, w1, k1, e1]].map(([c, u, w, code, e]) => {
-      const high = int(code).div(LAYER_MASK_SPAN).toVar();
-      return { clip: c, tau: u, weight: w, mask: int(code).sub(high.mul(LAYER_MASK_SPAN)).toVar(), additive: high.greaterThan(0),
-        referenceClip: max(high.sub(1), int(0)).toVar(), referenceTau: e };
-    });
+    const high = [k0, k1].map((code) => int(code).div(LAYER_MASK_SPAN).toVar());
+    const layerClip = array([c0, c1]).toVar();
+    const layerTau = array([u0, u1]).toVar();
+    const layerWeight = array([w0, w1]).toVar();
+    const layerMask = array([k0, k1].map((code, j) => int(code).sub(high[j].mul(LAYER_MASK_SPAN)))).toVar();
+    const layerMode = array(high.map((h) => select(h.greaterThan(0), int(1), int(0)))).toVar();
+    const referenceClip = array(high.map((h) => max(h.sub(1), int(0)))).toVar();
+    const referenceTau = array([e0, e1]).toVar();
+    const eachLayer = (body) => Loop({ start: int(0), end: int(LAYERS), type: 'int', condition: '<', name: 'j' }, ({ j }) => body(j));
     const chain = array('int', MAX_DEPTH).toVar();
     const depth = int(0).toVar();
     const top = int(-1).toVar();
@@ -421,9 +428,9 @@ function layerFunctions(nodes) {
     Loop({ start: int(0), end: int(MAX_DEPTH), type: 'int', condition: '<' }, () => {
       If(b.lessThan(0), () => { Break(); });
       chain.element(depth).assign(b);
-      for (const layer of layers) {
-        If(clamp(layer.weight, 0.0, 1.0).mul(maskWeight(nodes, layer.mask, b)).greaterThan(0.0), () => { top.assign(depth); });
-      }
+      eachLayer((j) => {
+        If(clamp(layerWeight.element(j), 0.0, 1.0).mul(maskWeight(nodes, layerMask.element(j), b)).greaterThan(0.0), () => { top.assign(depth); });
+      });
       depth.addAssign(1);
       b.assign(parentOf(nodes, b));
     });
@@ -438,22 +445,22 @@ function layerFunctions(nodes) {
         const rowsOfParent = unpackRows(jointRows(clip, tau, parent));
         base.forEach((row, i) => row.assign(rowsOfParent[i]));
       });
-      const layerBase = layers.map((layer) => {
-        const rowsOfLayer = IDENTITY_ROWS().map((row) => row.toVar());
-        If(parent.greaterThanEqual(0).and(layer.weight.greaterThan(0.0)), () => {
-          const joint = unpackRows(jointRows(layer.clip, layer.tau, parent));
-          rowsOfLayer.forEach((row, i) => row.assign(joint[i]));
+      // Each layer's chain and (additive layers, spec 23.4) its reference pose's, as rows per layer.
+      const layerBase = IDENTITY_ROWS().map(() => array('vec4', LAYERS).toVar());
+      const referenceBase = IDENTITY_ROWS().map(() => array('vec4', LAYERS).toVar());
+      eachLayer((j) => {
+        IDENTITY_ROWS().forEach((row, i) => {
+          layerBase[i].element(j).assign(row);
+          referenceBase[i].element(j).assign(row);
         });
-        return rowsOfLayer;
-      });
-      // Additive layers (spec 23.4): the reference pose's chain, as the layer clip's.
-      const referenceBase = layers.map((layer) => {
-        const rowsOfReference = IDENTITY_ROWS().map((row) => row.toVar());
-        If(parent.greaterThanEqual(0).and(layer.weight.greaterThan(0.0)).and(layer.additive), () => {
-          const joint = unpackRows(jointRows(layer.referenceClip, layer.referenceTau, parent));
-          rowsOfReference.forEach((row, i) => row.assign(joint[i]));
+        If(parent.greaterThanEqual(0).and(layerWeight.element(j).greaterThan(0.0)), () => {
+          const joint = unpackRows(jointRows(layerClip.element(j), layerTau.element(j), parent));
+          layerBase.forEach((rows, i) => rows.element(j).assign(joint[i]));
+          If(layerMode.element(j).equal(1), () => {
+            const reference = unpackRows(jointRows(referenceClip.element(j), referenceTau.element(j), parent));
+            referenceBase.forEach((rows, i) => rows.element(j).assign(reference[i]));
+          });
         });
-        return rowsOfReference;
       });
       const out = base.map((row) => vec4(row).toVar());
       Loop({ start: top, end: int(0), type: 'int', condition: '>=' }, ({ i: k }) => {
@@ -461,16 +468,16 @@ function layerFunctions(nodes) {
         const joint = unpackRows(jointRows(clip, tau, bk));
         const local = affineMul(affineInverse(base), joint);
         base.forEach((row, i) => row.assign(joint[i]));
-        layers.forEach((layer, j) => {
-          If(layer.weight.greaterThan(0.0), () => {
-            const layerJoint = unpackRows(jointRows(layer.clip, layer.tau, bk));
-            const y = affineMul(affineInverse(layerBase[j]), layerJoint);
-            layerBase[j].forEach((row, i) => row.assign(layerJoint[i]));
-            const alpha = clamp(layer.weight, 0.0, 1.0).mul(maskWeight(nodes, layer.mask, bk)).toVar();
-            If(layer.additive, () => {
-              const referenceJoint = unpackRows(jointRows(layer.referenceClip, layer.referenceTau, bk));
-              const reference = affineMul(affineInverse(referenceBase[j]), referenceJoint);
-              referenceBase[j].forEach((row, i) => row.assign(referenceJoint[i]));
+        eachLayer((j) => {
+          If(layerWeight.element(j).greaterThan(0.0), () => {
+            const layerJoint = unpackRows(jointRows(layerClip.element(j), layerTau.element(j), bk));
+            const y = affineMul(affineInverse(layerBase.map((rows) => rows.element(j).toVar())), layerJoint);
+            layerBase.forEach((rows, i) => rows.element(j).assign(layerJoint[i]));
+            const alpha = clamp(layerWeight.element(j), 0.0, 1.0).mul(maskWeight(nodes, layerMask.element(j), bk)).toVar();
+            If(layerMode.element(j).equal(1), () => {
+              const referenceJoint = unpackRows(jointRows(referenceClip.element(j), referenceTau.element(j), bk));
+              const reference = affineMul(affineInverse(referenceBase.map((rows) => rows.element(j).toVar())), referenceJoint);
+              referenceBase.forEach((rows, i) => rows.element(j).assign(referenceJoint[i]));
               addLocal(local, y, reference, alpha);
             }).Else(() => {
               mixLocal(local, y, alpha);
@@ -499,18 +506,31 @@ function layerFunctions(nodes) {
   return { boneRows, jointRows, layeredBoneRows };
 }
 
+/**
+ * `body(bone, weight, influence)` for each of the vertex's influences (`input.indices`,
+ * `input.weights`) as one shader loop over arrays, as the module's loop: unrolled, each influence
+ * would be a copy of the bone decode (with layers, of the whole layered chain) in the shader.
+ */
+function eachInfluence(input, body) {
+  const bones = array(input.indices).toVar();
+  const weights = array(input.weights).toVar();
+  Loop({ start: int(0), end: int(input.indices.length), type: 'int', condition: '<', name: 'influence' }, ({ influence }) => {
+    body(bones.element(influence).toVar(), weights.element(influence).toVar(), influence);
+  });
+}
+
 /** Skinned position and (unnormalized) normal at clip-local time `tau` (vbSkinPose). */
 function skinPose(nodes, clip, tau, input) {
   const r = rows(nodes, clip, tau);
   if (nodes.encoding === 'dualQuat') {
     const real = vec4(0.0).toVar();
     const dual = vec4(0.0).toVar();
-    let pivot = null;
-    input.indices.forEach((bone, i) => {
+    const pivot = vec4(0.0, 0.0, 0.0, 1.0).toVar();
+    eachInfluence(input, (bone, weight, influence) => {
       const b = dualQuatBone(nodes, bone, r);
-      if (i === 0) pivot = b.real;
+      If(influence.equal(0), () => { pivot.assign(b.real); });
       // Signs follow the first influence (shortest path).
-      const w = select(dot(b.real, pivot).lessThan(0.0), input.weights[i].negate(), input.weights[i]).toVar();
+      const w = select(dot(b.real, pivot).lessThan(0.0), weight.negate(), weight).toVar();
       real.addAssign(b.real.mul(w));
       dual.addAssign(b.dual.mul(w));
     });
@@ -521,8 +541,7 @@ function skinPose(nodes, clip, tau, input) {
   }
   const position = vec3(0.0).toVar();
   const normal = vec3(0.0).toVar();
-  input.indices.forEach((bone, i) => {
-    const w = input.weights[i];
+  eachInfluence(input, (bone, w) => {
     If(w.notEqual(0.0), () => {  // as the module: a zero weight reads nothing (no 0 * inf)
       const m = matrixBone(nodes, bone, r);
       const p = input.position;
@@ -549,7 +568,7 @@ function skinLayeredPose(nodes, clip, tau, input, functions) {
     const real = vec4(0.0).toVar();
     const dual = vec4(0.0).toVar();
     const pivot = vec4(0.0, 0.0, 0.0, 1.0).toVar();
-    input.indices.forEach((bone, i) => {
+    eachInfluence(input, (bone, weight, influence) => {
       const m = layered(bone);
       const qr = vec4(0.0).toVar();
       const qd = vec4(0.0).toVar();
@@ -567,8 +586,8 @@ function skinLayeredPose(nodes, clip, tau, input, functions) {
         qr.assign(b.real);
         qd.assign(b.dual);
       });
-      if (i === 0) pivot.assign(qr);
-      const w = select(dot(qr, pivot).lessThan(0.0), input.weights[i].negate(), input.weights[i]).toVar();
+      If(influence.equal(0), () => { pivot.assign(qr); });
+      const w = select(dot(qr, pivot).lessThan(0.0), weight.negate(), weight).toVar();
       real.addAssign(qr.mul(w));
       dual.addAssign(qd.mul(w));
     });
@@ -579,8 +598,7 @@ function skinLayeredPose(nodes, clip, tau, input, functions) {
   }
   const position = vec3(0.0).toVar();
   const normal = vec3(0.0).toVar();
-  input.indices.forEach((bone, i) => {
-    const w = input.weights[i];
+  eachInfluence(input, (bone, w) => {
     If(w.notEqual(0.0), () => {
       const a = [vec3(0.0).toVar(), vec3(0.0).toVar(), vec3(0.0).toVar()];
       const t = vec3(0.0).toVar();
