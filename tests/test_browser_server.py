@@ -5,12 +5,13 @@ and spoken to over raw HTTP, so paths reach it exactly as sent (``http.client`` 
 ``..``). Checked: the page and the plain files are served; paths that leave the asset's folder or
 the package's static folder are refused (``..``, percent-encoded ``..``, absolute paths, a symbolic
 link leading out); Ctrl-C (SIGINT) stops it with status 0 and no traceback, and frees the port; bad
-input is one line with status 2. The plain files are checked against the asset's own content
-digest and mesh arrays.
+input is one line with status 2 (the command run in this process: it refuses before serving). The
+plain files are checked against the asset's own content digest and mesh arrays.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import http.client
 import json
@@ -20,13 +21,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
+import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import vbusd
+from tests.helpers.cli import run
+from vbusd.cli import view as view_command
 from vbusd.format.model import BoundMesh, VirtualBonesAsset
 from vbusd.web.scene import build_scene
 from vbusd.web.server import safe_file
@@ -45,22 +48,26 @@ def _get(port: int, path: str, method: str = "GET") -> tuple[int, bytes, str]:
         connection.close()
 
 
-@pytest.fixture()
-def served_folder(tmp_path):
+def _served_folder(parent: Path) -> Path:
     """A copy of the sample's Virtual Bones asset, a secret beside its folder and a link to it."""
-    folder = tmp_path / "asset"
+    folder = parent / "asset"
     folder.mkdir()
     for name in ("stadium_crowd_vb.usda", "stadium_crowd_vb.Cheer.exr", "stadium_crowd_vb.Cheer.exr.json"):
         shutil.copy(SAMPLE / name, folder / name)
-    (tmp_path / "secret.txt").write_text("not yours")
-    os.symlink(tmp_path / "secret.txt", folder / "link.txt")
+    (parent / "secret.txt").write_text("not yours")
+    os.symlink(parent / "secret.txt", folder / "link.txt")
     return folder
 
 
 @pytest.fixture()
-def viewer(served_folder):
+def served_folder(tmp_path):
+    return _served_folder(tmp_path)
+
+
+@contextlib.contextmanager
+def _viewer(folder: Path):
     """``vbusd view ASSET --no-browser`` running; yields (process, port)."""
-    process = subprocess.Popen([sys.executable, "-m", "vbusd", "view", str(served_folder / "stadium_crowd_vb.usda"),
+    process = subprocess.Popen([sys.executable, "-m", "vbusd", "view", str(folder / "stadium_crowd_vb.usda"),
                                 "--no-browser"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = process.stdout.readline()
@@ -73,9 +80,34 @@ def viewer(served_folder):
         process.wait(timeout=30)
 
 
+@pytest.fixture()
+def viewer(served_folder):
+    """A server of the test's own, for a test that stops it."""
+    with _viewer(served_folder) as running:
+        yield running
+
+
+@pytest.fixture(scope="module")
+def shared_viewer(tmp_path_factory):
+    """One server for the tests that only send it requests (starting one costs seconds)."""
+    with _viewer(_served_folder(tmp_path_factory.mktemp("served"))) as running:
+        yield running
+
+
+def _view(capfd, monkeypatch, *args, cwd: Path):
+    """``vbusd view ARGS --no-browser`` in this process, for input it must refuse before serving.
+
+    Were it to serve anyway, it would wait for Ctrl-C for good: the wait fails the test instead."""
+    def served(*_):
+        raise AssertionError("vbusd view served instead of refusing")
+
+    monkeypatch.setattr(view_command, "threading", types.SimpleNamespace(Event=lambda: types.SimpleNamespace(wait=served)))
+    return run(capfd, "view", *args, "--no-browser", cwd=cwd)
+
+
 @pytest.mark.cli
-def test_serves_page_config_and_plain_files(viewer):
-    _, port = viewer
+def test_serves_page_config_and_plain_files(shared_viewer):
+    _, port = shared_viewer
     status, body, content_type = _get(port, "/")
     assert status == 200 and b'<script type="module" src="viewer.js">' in body and content_type.startswith("text/html")
     status, body, content_type = _get(port, "/three/three.module.js")
@@ -105,8 +137,8 @@ def test_serves_page_config_and_plain_files(viewer):
     "/%2e%2e/server.py",
 ])
 @pytest.mark.cli
-def test_refuses_paths_that_leave_the_folder(viewer, path):
-    _, port = viewer
+def test_refuses_paths_that_leave_the_folder(shared_viewer, path):
+    _, port = shared_viewer
     status, body, _ = _get(port, path)
     assert status in (403, 404), (path, status)
     assert b"not yours" not in body and b"import" not in body
@@ -131,11 +163,9 @@ def test_ctrl_c_stops_cleanly(viewer):
     (["stadium_crowd_vb.usda", "--port", "70000"], "--port must be 0..65535"),
     (["stadium_crowd_vb.usda", "--engine", "unreal"], "'unreal' is not one of 'three', 'three-webgpu', 'babylon'"),
 ])
-@pytest.mark.cli
-def test_bad_input_is_one_line(served_folder, arguments, expected):
+def test_bad_input_is_one_line(served_folder, arguments, expected, capfd, monkeypatch):
     (served_folder / "notes.txt").write_text("hello")
-    result = subprocess.run([sys.executable, "-m", "vbusd", "view", *arguments, "--no-browser"], cwd=served_folder,
-                            capture_output=True, text=True, timeout=60)
+    result = _view(capfd, monkeypatch, *arguments, cwd=served_folder)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and expected in lines[0], result.stderr
@@ -206,13 +236,11 @@ def _damaged_packages(folder: Path) -> dict:
             "notktx2.gltf": "package.texture"}
 
 
-@pytest.mark.cli
-def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder):
+def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder, capfd, monkeypatch):
     """Issue 24: vbusd view served an empty, truncated or plain .glb and the error appeared only in
     the browser. It is one line and exit 2 before anything is served; the good package is served."""
     for name, code in _damaged_packages(served_folder).items():
-        result = subprocess.run([sys.executable, "-m", "vbusd", "view", name, "--no-browser"], cwd=served_folder,
-                                capture_output=True, text=True, timeout=60)
+        result = _view(capfd, monkeypatch, name, cwd=served_folder)
         lines = result.stderr.strip().splitlines()
         assert result.returncode == 2 and len(lines) == 1 and code in lines[0] and name in lines[0], (name, result)
         assert result.stdout == "", (name, result.stdout)  # no address printed: nothing was served
@@ -222,14 +250,12 @@ def test_a_package_no_loader_could_draw_is_refused_before_serving(served_folder)
         assert check_package(served_folder / name).animations[0].name == "Cheer"
 
 
-@pytest.mark.cli
-def test_port_in_use_is_one_line(served_folder):
+def test_port_in_use_is_one_line(served_folder, capfd, monkeypatch):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        result = subprocess.run([sys.executable, "-m", "vbusd", "view", "stadium_crowd_vb.usda", "--port", str(port),
-                                 "--no-browser"], cwd=served_folder, capture_output=True, text=True, timeout=60)
+        result = _view(capfd, monkeypatch, "stadium_crowd_vb.usda", "--port", port, cwd=served_folder)
     assert result.returncode == 2
     assert len(result.stderr.strip().splitlines()) == 1 and f"--port {port}" in result.stderr
 
