@@ -27,6 +27,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.once import once_per_run
 from tests.helpers.web_pages import page_files
 
 
@@ -56,19 +57,12 @@ def _backend_installed(pyproject: dict) -> bool:
     return True
 
 
-@pytest.fixture(scope="module")
-def source_copy(tmp_path_factory) -> Path:
-    """A snapshot of the checkout: the wheel is built from it and compared with it."""
-    source = tmp_path_factory.mktemp("source") / "vbusd"
+def _build_wheel(folder: Path) -> tuple:
+    """Copy the checkout into FOLDER and build the wheel from the copy: (source copy, wheel)."""
+    source = folder / "vbusd"
     shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(  # the wheel is built without Node.js
         ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))
-    return source
-
-
-@pytest.fixture(scope="module")
-def wheel_path(tmp_path_factory, source_copy) -> Path:
-    source = source_copy
-    out = tmp_path_factory.mktemp("dist")
+    out = folder / "dist"
     pyproject = tomllib.loads((source / "pyproject.toml").read_text())
     command = [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(source)]
     if _backend_installed(pyproject):
@@ -78,7 +72,35 @@ def wheel_path(tmp_path_factory, source_copy) -> Path:
     assert result.returncode == 0, f"wheel build failed:\n{result.stdout[-4000:]}\n{result.stderr[-4000:]}"
     wheels = sorted(out.glob("vbusd-*.whl"))
     assert len(wheels) == 1, wheels
-    return wheels[0]
+    return source, wheels[0]
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> tuple:
+    """(snapshot of the checkout, the wheel built from it), made once per test run for all xdist workers."""
+    return once_per_run(tmp_path_factory, "wheel", _build_wheel)
+
+
+@pytest.fixture(scope="module")
+def source_copy(built) -> Path:
+    """A snapshot of the checkout: the wheel is built from it and compared with it."""
+    return built[0]
+
+
+@pytest.fixture(scope="module")
+def wheel_path(built) -> Path:
+    return built[1]
+
+
+@pytest.fixture(scope="module")
+def unpacked_wheel(tmp_path_factory, wheel_path) -> Path:
+    """The wheel unpacked as an installer lays it out, once per test run (the view tests serve from it)."""
+    def unpack(folder: Path) -> Path:
+        with zipfile.ZipFile(wheel_path) as archive:
+            archive.extractall(folder)
+        return folder
+
+    return once_per_run(tmp_path_factory, "wheel-site", unpack)
 
 
 @pytest.fixture(scope="module")
@@ -199,17 +221,14 @@ def test_viewer_and_three_js_ship_in_the_wheel(wheel_path, wheel_names, source_c
 
 @pytest.mark.cli
 @pytest.mark.parametrize("engine", ["three", "three-webgpu", "babylon"])
-def test_vbusd_view_from_the_unpacked_wheel_serves_every_module_of_each_engine(wheel_path, tmp_path_factory, engine):
+def test_vbusd_view_from_the_unpacked_wheel_serves_every_module_of_each_engine(unpacked_wheel, engine):
     """``vbusd view --engine E --no-browser`` run from the unpacked wheel (outside the checkout, so
     the package data is what it serves): the page and every module it imports, followed through
     the page's import map (tests/test_browser_package.py's walk), over HTTP."""
     import http.client
     from vbusd.web.engines import ENGINE_PAGES
 
-    site = tmp_path_factory.getbasetemp() / "view-site"
-    if not site.exists():
-        with zipfile.ZipFile(wheel_path) as archive:
-            archive.extractall(site)
+    site = unpacked_wheel
     walk = page_files
     env = dict(os.environ, PYTHONPATH=str(site))
     env.pop("PXR_PLUGINPATH_NAME", None)
