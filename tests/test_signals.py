@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.cli import run
+from tests.helpers.once import once_per_run
 from vbusd.process.signals import GRACE_SECONDS
 
 BOUND_S = 5.0
@@ -38,8 +40,10 @@ def _wait_for(predicate, timeout: float = 60.0) -> None:
     raise AssertionError("the run never reached the moment the test waits for")
 
 
-def _ended_within(process: subprocess.Popen, seconds: float) -> tuple:
-    started = time.monotonic()
+def _ended_within(process: subprocess.Popen, seconds: float, signalled: float | None = None) -> tuple:
+    """(exit status, seconds from ``signalled`` (the monotonic time of the signal; default now) to
+    when its end was seen)."""
+    started = time.monotonic() if signalled is None else signalled
     try:
         process.wait(timeout=seconds + 10)
     finally:
@@ -67,45 +71,67 @@ def sample(repo_root) -> Path:
     return repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
 
 
-def _trace_of_a_whole_run(sample, tmp_path) -> list:
-    trace = tmp_path / "trace.txt"
-    env = dict(os.environ, VBUSD_FAULT_TRACE=str(trace))
-    done = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", tmp_path / "probe" / "a.usda"],
-                          env=env, capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    return _steps(trace)
+@pytest.fixture(scope="module")
+def whole_run_steps(repo_root, tmp_path_factory) -> list:
+    """The fault trace of a whole conversion of the sample (steps are counted per process, so it
+    is a process of its own), once per test run."""
+    def trace_a_run(folder: Path) -> list:
+        trace = folder / "trace.txt"
+        env = dict(os.environ, VBUSD_FAULT_TRACE=str(trace))
+        sample = repo_root / "samples" / "stadium_crowd" / "stadium_crowd.usda"
+        done = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", folder / "probe" / "a.usda"],
+                              env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        return _steps(trace)
+
+    return once_per_run(tmp_path_factory, "signals-whole-run-trace", trace_a_run)
 
 
 @pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.parametrize("signum, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_a_run_stuck_in_c_ends_within_the_bound_and_leaves_nothing(sample, tmp_path, signum, status):
-    steps = _trace_of_a_whole_run(sample, tmp_path)
+def test_a_run_stuck_in_c_ends_within_the_bound_and_leaves_nothing(sample, whole_run_steps, tmp_path, signum, status):
+    steps = whole_run_steps
     first_fsync = next(i for i, line in enumerate(steps, 1) if line.split()[1] == "fsync")
-    # the first step of the write, one inside a library's write, the last before the commit's renames
-    for step in (1, 4, first_fsync - 1):
-        out = tmp_path / f"out{step}"
-        trace = tmp_path / f"trace{step}.txt"
-        env = dict(os.environ, VBUSD_FAULT=f"hang:{step}", VBUSD_FAULT_TRACE=str(trace))
-        process = _vbusd("convert", sample, "-o", out / "a.usda", env=env)
-        _wait_for(lambda: len(_steps(trace)) >= step)
+    # the first step of the write, one inside a library's write, the last before the commit's renames;
+    # the three runs at once (each waits out the grace period), signalled once all are stuck: idle
+    # processes, so the bound is timed as for one
+    runs = []
+    try:
+        for step in (1, 4, first_fsync - 1):
+            out = tmp_path / f"out{step}"
+            trace = tmp_path / f"trace{step}.txt"
+            env = dict(os.environ, VBUSD_FAULT=f"hang:{step}", VBUSD_FAULT_TRACE=str(trace))
+            runs.append((step, out, trace, _vbusd("convert", sample, "-o", out / "a.usda", env=env)))
+        for step, _, trace, _ in runs:
+            _wait_for(lambda: len(_steps(trace)) >= step)
         time.sleep(0.2)  # inside the hang
-        process.send_signal(signum)
-        code, took = _ended_within(process, BOUND_S)
-        assert code == status, process.stderr.read()
-        assert took <= BOUND_S
-        assert not (out / "a.usda").exists()
-        assert _leftovers(out) == []
-        assert not out.exists() or not any(out.iterdir())
+        signalled = {}
+        for step, _, _, process in runs:
+            process.send_signal(signum)
+            signalled[step] = time.monotonic()
+        for step, out, _, process in runs:
+            code, took = _ended_within(process, BOUND_S, signalled[step])
+            assert code == status, process.stderr.read()
+            assert took <= BOUND_S
+            assert not (out / "a.usda").exists()
+            assert _leftovers(out) == []
+            assert not out.exists() or not any(out.iterdir())
+    finally:
+        for *_, process in runs:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
 
 
 @pytest.mark.cli
 @pytest.mark.slow
-def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, tmp_path):
+def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, whole_run_steps, tmp_path, capfd):
     """Stuck between the commit's renames (a hung file system): the process still ends within the
-    bound; the asset is not current (no layer), and the next run of the output removes what the
-    stuck one placed (its journal) and writes a whole asset."""
-    steps = _trace_of_a_whole_run(sample, tmp_path)
+    bound; the asset is not current (no layer), and the next run of the output (in this process:
+    what it finds on disk is the point) removes what the stuck one placed (its journal) and writes a
+    whole asset."""
+    steps = whole_run_steps
     rename = next(i for i, line in enumerate(steps, 1) if line.split()[1] == "rename")
     out = tmp_path / "out"
     trace = tmp_path / "trace2.txt"
@@ -117,8 +143,7 @@ def test_a_run_stuck_inside_its_commit_ends_and_the_next_run_recovers(sample, tm
     code, took = _ended_within(process, BOUND_S)
     assert code == 143 and took <= BOUND_S
     assert not (out / "a.usda").exists()
-    again = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", out / "a.usda"],
-                           capture_output=True, text=True, timeout=120)
+    again = run(capfd, "convert", sample, "-o", out / "a.usda")
     assert again.returncode == 0, again.stderr
     assert sorted(p.name for p in out.iterdir()) == ["a.Skeleton.exr", "a.Skeleton.exr.json", "a.usda"]
 
@@ -143,11 +168,11 @@ def test_a_second_sigint_ends_a_stuck_run_at_once(sample, tmp_path):
 
 @pytest.mark.cli
 @pytest.mark.slow
-def test_an_interrupted_replacement_keeps_the_old_asset(sample, tmp_path):
-    """--force over an existing asset, interrupted mid-write: the old asset is intact."""
+def test_an_interrupted_replacement_keeps_the_old_asset(sample, tmp_path, capfd):
+    """--force over an existing asset (converted in this process), interrupted mid-write: the old
+    asset is intact."""
     out = tmp_path / "out"
-    first = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", sample, "-o", out / "a.usda"],
-                           capture_output=True, text=True, timeout=120)
+    first = run(capfd, "convert", sample, "-o", out / "a.usda")
     assert first.returncode == 0, first.stderr
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     trace = tmp_path / "trace.txt"
@@ -230,7 +255,7 @@ def _batch_at_work(repo_root, tmp_path, settle: float) -> tuple:
 @pytest.mark.cli
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG and /proc are Linux's")
-def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_path):
+def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_path, capfd):
     process, family = _batch_at_work(repo_root, tmp_path, 1.0)
     process.kill()  # outright: the parent can do nothing
     process.wait()
@@ -239,9 +264,9 @@ def test_a_killed_batch_parent_leaves_no_worker_or_probe_server(repo_root, tmp_p
         time.sleep(0.1)
     assert [p for p in family if _alive(p)] == []
     # The workers aborted (SIGTERM by PR_SET_PDEATHSIG); what one could not remove in time is in its
-    # output's journal, and the next run of the batch leaves nothing and converts every asset.
-    again = subprocess.run([sys.executable, "-m", "vbusd.cli", "convert", tmp_path / "src", "-o", tmp_path / "out",
-                            "--jobs", "2"], capture_output=True, text=True, timeout=300)
+    # output's journal, and the next run of the batch (in this process) leaves nothing and converts
+    # every asset.
+    again = run(capfd, "convert", tmp_path / "src", "-o", tmp_path / "out", "--jobs", "2")
     assert again.returncode == 0, again.stderr
     assert _leftovers(tmp_path / "out") == []
     assert len(list((tmp_path / "out").glob("*.usda"))) == 12
