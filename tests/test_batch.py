@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 
+from tests.helpers.cli import run
 from vbusd.jobs.batch import BatchItem, cache_key, dependencies, plan_batch, read_manifest, run_batch  # noqa: E402
 from vbusd.cli import main  # noqa: E402
 from vbusd.jobs.conversion import ConvertOptions  # noqa: E402
@@ -229,12 +230,20 @@ def test_gltf_buffers_and_images_are_inputs(tmp_path):
 
 
 def _cli(args, env=None, cwd=None):
+    """``vbusd convert ARGS`` as a process of its own: for a run that is killed, and for a fault trace
+    (steps are counted per process)."""
     return subprocess.run([sys.executable, "-m", "vbusd", "convert", *args, *FAST], capture_output=True, text=True,
                           env={**os.environ, **(env or {})}, cwd=cwd, timeout=600)
 
 
+def _here(capfd, args):
+    """``vbusd convert ARGS`` in this process (what it finds on disk and reports is the point, not
+    its process): the same result as :func:`_cli`'s, without a second of start-up."""
+    return run(capfd, "convert", *args, *FAST)
+
+
 @pytest.mark.cli
-def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp_path):
+def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp_path, capfd):
     library = _library(tmp_path / "lib")
     out = tmp_path / "out"
     trace = tmp_path / "trace.txt"
@@ -247,7 +256,7 @@ def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp
     assert killed.returncode == -9  # SIGKILL
     assert (out / "a.usda").is_file() and not (out / "b.usda").exists() and not (out / "c.usda").exists()
 
-    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    resumed = _here(capfd, [str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
     assert resumed.returncode == 0, resumed.stderr
     report = json.loads(resumed.stdout)
     assert _statuses(report) == {"a.usda": "cached", "b.usda": "converted", "c.usda": "converted"}
@@ -257,7 +266,7 @@ def test_sigkill_leaves_no_partial_asset_and_the_next_run_does_only_the_rest(tmp
 
 
 @pytest.mark.cli
-def test_killed_after_the_commit_before_the_record(tmp_path):
+def test_killed_after_the_commit_before_the_record(tmp_path, capfd):
     """Killed after b's layer is committed but before its cache record: the pending record marks the
     output as the batch's own, so the next run replaces it without --force."""
     library = _library(tmp_path / "lib", ("a", "b"))
@@ -269,24 +278,24 @@ def test_killed_after_the_commit_before_the_record(tmp_path):
     out = tmp_path / "out"
     assert _cli([str(library), "-o", str(out), "--jobs", "1"], {"VBUSD_FAULT": f"kill:{step}"}).returncode == -9
     assert (out / "b.usda").is_file()
-    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    resumed = _here(capfd, [str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
     assert resumed.returncode == 0, resumed.stderr
     assert _statuses(json.loads(resumed.stdout)) == {"a.usda": "cached", "b.usda": "converted"}
     assert _files(out) == _files(tmp_path / "clean")
 
 
 @pytest.mark.cli
-def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(tmp_path):
+def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(tmp_path, capfd):
     """Issue 24: a batch killed and run again over outputs of other content (here an earlier run
     with other options) ended with textures named by digest (a.Skeleton.5e354db5539d.exr) where a
     clean run has plain names. Killed between the commit that used the digest name and the one
     that gives the plain name back, then resumed: the clean run's files, name for name."""
     library = _library(tmp_path / "lib", ("a", "b"))
     new_options = ["--jobs", "1", "--texel-format", "float32"]
-    assert _cli([str(library), "-o", str(tmp_path / "clean"), *new_options]).returncode == 0
+    assert _here(capfd, [str(library), "-o", str(tmp_path / "clean"), *new_options]).returncode == 0
     out, traced = tmp_path / "out", tmp_path / "traced"
     for folder in (out, traced):
-        assert _cli([str(library), "-o", str(folder), "--jobs", "1"]).returncode == 0  # float16 first
+        assert _here(capfd, [str(library), "-o", str(folder), "--jobs", "1"]).returncode == 0  # float16 first
     trace = tmp_path / "trace.txt"
     assert _cli([str(library), "-o", str(traced), *new_options], {"VBUSD_FAULT_TRACE": str(trace)}).returncode == 0
     assert _files(traced) == _files(tmp_path / "clean")  # replaced without a kill: the clean run's files
@@ -296,13 +305,13 @@ def test_a_batch_resumed_over_another_run_gives_the_clean_runs_files_and_names(t
     assert killed.returncode == -9
     assert any(".Skeleton." in name and name.endswith(".exr") and len(name.split(".")) == 4
                for name in os.listdir(out)), os.listdir(out)  # killed while a's texture had a digest name
-    resumed = _cli([str(library), "-o", str(out), *new_options, "--format", "json"])
+    resumed = _here(capfd, [str(library), "-o", str(out), *new_options, "--format", "json"])
     assert resumed.returncode == 0, resumed.stderr
     assert _files(out) == _files(tmp_path / "clean")
 
 
 @pytest.mark.cli
-def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_path):
+def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_path, capfd):
     """Issue 24: the converters' warnings (a skinned mesh node whose transform glTF ignores) showed
     in a single conversion but neither on stderr nor in --report in a batch, converted or cached."""
     bar = REPO / "tests" / "fixtures" / "gltf" / "bar.gltf"
@@ -310,20 +319,20 @@ def test_a_batch_shows_the_converters_warnings_as_a_single_conversion_does(tmp_p
     assert "skin" in node and any(key in node for key in ("translation", "rotation", "scale", "matrix"))
     library = _library(tmp_path / "lib", ("a",))
     shutil.copyfile(bar, library / "bar.gltf")
-    single = _cli([str(bar), "-o", str(tmp_path / "single" / "bar.usda")])
+    single = _here(capfd, [str(bar), "-o", str(tmp_path / "single" / "bar.usda")])
     assert single.returncode == 0, single.stderr
     (expected,) = [line[len("vbusd: warning: "):] for line in single.stderr.splitlines()
                    if line.startswith("vbusd: warning: ")]
     assert "skinned mesh node's transform is not identity" in expected
     report = tmp_path / "report.json"
     for status in ("converted", "cached"):
-        run = _cli([str(library), "-o", str(tmp_path / "out"), "--jobs", "2", "--report", str(report)])
-        assert run.returncode == 0, run.stderr
-        assert run.stderr.splitlines() == [f"vbusd: warning: {library / 'bar.gltf'}: {expected}"], run.stderr
+        batch = _here(capfd, [str(library), "-o", str(tmp_path / "out"), "--jobs", "2", "--report", str(report)])
+        assert batch.returncode == 0, batch.stderr
+        assert batch.stderr.splitlines() == [f"vbusd: warning: {library / 'bar.gltf'}: {expected}"], batch.stderr
         assets = {Path(a["source"]).name: a for a in json.loads(report.read_text())["assets"]}
         assert {name: a["status"] for name, a in assets.items()} == {"a.usda": status, "bar.gltf": status}
         assert assets["bar.gltf"]["warnings"] == [expected] and assets["a.usda"]["warnings"] == []
-    quiet = _cli([str(library), "-o", str(tmp_path / "out"), "--quiet"])
+    quiet = _here(capfd, [str(library), "-o", str(tmp_path / "out"), "--quiet"])
     assert quiet.returncode == 0 and quiet.stderr == ""
 
 
@@ -567,7 +576,7 @@ def test_a_stall_timeout_must_be_positive(tmp_path):
         run_batch(plan_batch([str(library)], str(tmp_path / "o")), {}, jobs=2, stall_timeout=0)
 
 
-def test_a_completed_run_removes_the_cache_temporaries_a_killed_run_left(tmp_path):
+def test_a_completed_run_removes_the_cache_temporaries_a_killed_run_left(tmp_path, capfd):
     """Issue 35 item 19: killed while a cache record's temporary was written (before its rename),
     the run left ``.vbusd-cache/.<digest>.json.vbusd-tmp-<id>.json``; the run that resumes and
     completes removes it (no other run is using the cache), and its records are whole JSON."""
@@ -582,7 +591,7 @@ def test_a_completed_run_removes_the_cache_temporaries_a_killed_run_left(tmp_pat
     assert _cli([str(library), "-o", str(out), "--jobs", "1"], {"VBUSD_FAULT": f"kill:{step}"}).returncode == -9
     cache = out / ".vbusd-cache"
     assert [p.name for p in cache.iterdir() if ".vbusd-tmp-" in p.name], sorted(os.listdir(cache))
-    resumed = _cli([str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
+    resumed = _here(capfd, [str(library), "-o", str(out), "--jobs", "1", "--format", "json"])
     assert resumed.returncode == 0, resumed.stderr
     assert sorted(p.name for p in cache.iterdir() if p.name.startswith(".")) == [], sorted(os.listdir(cache))
     for record in cache.iterdir():
