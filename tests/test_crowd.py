@@ -131,27 +131,23 @@ def test_existing_output_needs_force(character, tmp_path, capsys):
     assert out.read_text() != "keep me"
 
 
-@pytest.mark.cli
-def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path):
-    """The README's quick-start crowd line, run as written (after its convert line), in a scratch
-    folder; the package it writes is checked with pxr's view of the crowd (instances, clip)."""
-    import json
-    import os
+def test_readme_quick_start_builds_and_exports_the_sample_crowd(tmp_path, capfd):
+    """The README's quick-start crowd line, run as written (after its convert line; the commands in
+    this process, tests/helpers/cli.py), in a scratch folder; the package it writes is checked with
+    pxr's view of the crowd (instances, clip)."""
     import shlex
-    import subprocess
-    import sys
+
+    from tests.helpers.cli import run
 
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text().splitlines()
     (convert_line,) = [x for x in readme if "pip install . && " in x and "vbusd convert" in x]
     (crowd_line,) = [x for x in readme if x.startswith("vbusd crowd ") and "vbusd export" in x]
     (tmp_path / "samples").symlink_to(SAMPLE.parent)
-    env = dict(os.environ, PYTHONSAFEPATH="1")  # what the working folder holds is never imported
     commands = ["vbusd convert" + convert_line.split("vbusd convert", 1)[1]] + crowd_line.split("&&")
     for command in commands + commands:  # twice: the README's commands run again (--force)
         words = shlex.split(command)
         assert words[0] == "vbusd", command
-        result = subprocess.run([sys.executable, "-m", "vbusd", *words[1:]], capture_output=True, text=True,
-                                timeout=300, cwd=tmp_path, env=env)
+        result = run(capfd, *words[1:], cwd=tmp_path)
         assert result.returncode == 0, (command, result.stderr)
     package = tmp_path / "out" / "crowd.glb"
     length = int.from_bytes(package.read_bytes()[12:16], "little")
