@@ -7,6 +7,8 @@
 * :mod:`tests.helpers.browser`: the browser probe, silhouette and covering matrix.
 * :mod:`tests.helpers.node`: the Node scripts of tests/node.
 * :mod:`tests.helpers.cli`: the ``vbusd`` command run in-process, with its output captured.
+* :mod:`tests.helpers.once`: a costly read-only input (a wheel, a trace) made once per test run for
+  all xdist workers.
 * :mod:`tests.helpers.scenes`: small UsdSkel scenes written from code.
 * :mod:`tests.helpers.gl_module`: a ``vbusd shader`` module (``--previous`` or not) run by OpenGL
   transform feedback (GLSL, and HLSL through glslang and spirv-cross): the shader tests' one harness.
