@@ -283,3 +283,27 @@ def test_an_interrupted_batch_ends_its_workers_within_the_bound(repo_root, tmp_p
     time.sleep(0.5)
     assert [p for p in family if _alive(p)] == []
     assert _leftovers(tmp_path / "out") == []
+
+
+def test_a_signal_that_a_library_turns_into_its_own_error_still_ends_the_command(sample, monkeypatch, capfd):
+    """A SIGTERM that lands inside code that turns the interrupt into an error of its own (pxr's
+    import answers one with ImportError "initialization failed", no cause attached) ends the
+    command with 143 and "aborted", as any SIGTERM does, not with a command.internal line (exit 3)."""
+    import vbusd.cli.info as info
+
+    def interrupted_inside_a_library(*args, **kwargs):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(GRACE_SECONDS / 10)  # the handler raises Interrupted in this frame
+        except KeyboardInterrupt:
+            pass
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(info, "read_summary", interrupted_inside_a_library)
+    result = run(capfd, "info", sample)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    assert result.stderr.strip().splitlines() == ["vbusd: aborted"]
+    # Without a signal the same error is a bug, reported as one.
+    monkeypatch.setattr(info, "read_summary", lambda *a, **k: (_ for _ in ()).throw(ImportError("initialization failed")))
+    result = run(capfd, "info", sample)
+    assert result.returncode == 3 and "command.internal" in result.stderr, result.stderr

@@ -165,6 +165,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         _echo_error(f"vbusd: {where}{error.strerror or error}")
         return 2
     except Exception as error:  # anything else is a bug: one line saying so, never a traceback
+        if _signals.received() is not None:
+            # The interrupt landed inside code that turned it into an error of its own (pxr's
+            # import reports "initialization failed"): the signal ended the command, not a bug.
+            _echo_error("vbusd: aborted")
+            return _signals.exit_status(_signals.Interrupted(_signals.received()))
         _echo_error(internal_error_line(error, _RUNNING.get("command"), _RUNNING.get("input")))
         return INTERNAL_ERROR_STATUS
     return int(result or 0)

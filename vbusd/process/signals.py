@@ -33,7 +33,7 @@ import sys
 import ctypes
 
 __all__ = ["GRACE_SECONDS", "Interrupted", "handling_signals", "critical", "on_hard_exit", "exit_status",
-           "die_with_parent"]
+           "received", "die_with_parent"]
 
 GRACE_SECONDS = 3.5
 """How long the main thread has to unwind after the first SIGINT/SIGTERM before the process ends."""
@@ -57,6 +57,13 @@ class Interrupted(KeyboardInterrupt):
 def exit_status(error: BaseException) -> int:
     """The exit status of a command ended by ``error`` (an interrupt): 128 + its signal."""
     return 128 + getattr(error, "signum", signal.SIGINT)
+
+
+def received() -> Optional[int]:
+    """The signal the last :func:`handling_signals` block received (None: none). An error raised
+    after it may not carry the :class:`Interrupted` (a C extension's import that the interrupt broke
+    raises its own ImportError): the command was still ended by the signal."""
+    return _state.get("signum")
 
 
 # -- what a hard exit must undo --------------------------------------------------------------
