@@ -338,6 +338,31 @@ def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str 
     return errors
 
 
+PACKED_EVALUATE = """async ([arg, keys]) => {
+  const value = {...(await (%s)(arg))};
+  for (const key of keys) {
+    const bytes = new Uint8Array(Float64Array.from(value[key]).buffer);
+    let text = '';
+    for (let at = 0; at < bytes.length; at += 0x8000) text += String.fromCharCode(...bytes.subarray(at, at + 0x8000));
+    value[key] = btoa(text);
+  }
+  return value;
+}"""
+
+
+def evaluate_arrays(page, function: str, arg=None, arrays=()) -> dict:
+    """``page.evaluate(function, arg)`` of a function returning (a Promise of) an object whose
+    fields ``arrays`` are long arrays of numbers (a frame's pixels): those come back as float64
+    numpy arrays, sent as the base64 bytes of a Float64Array (every JS number exactly). As JSON
+    lists the page's serialization and the driver's per-element checks cost seconds a frame."""
+    import base64
+
+    value = page.evaluate(PACKED_EVALUATE % function, [arg, list(arrays)])
+    for key in arrays:
+        value[key] = np.frombuffer(base64.b64decode(value[key]), dtype="<f8")
+    return value
+
+
 def assert_within(errors, what: str = "") -> None:
     """Every probe's position error within :data:`POSITION_TOLERANCE`, normal error within :data:`NORMAL_TOLERANCE`."""
     for position_error, normal_error in errors:
