@@ -340,7 +340,7 @@ def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str 
 
 PACKED_EVALUATE = """async ([arg, keys]) => {
   const value = {...(await (%s)(arg))};
-  for (const key of keys) {
+  for (const key of keys.filter((key) => value[key] != null)) {
     const bytes = new Uint8Array(Float64Array.from(value[key]).buffer);
     let text = '';
     for (let at = 0; at < bytes.length; at += 0x8000) text += String.fromCharCode(...bytes.subarray(at, at + 0x8000));
@@ -359,8 +359,20 @@ def evaluate_arrays(page, function: str, arg=None, arrays=()) -> dict:
 
     value = page.evaluate(PACKED_EVALUATE % function, [arg, list(arrays)])
     for key in arrays:
-        value[key] = np.frombuffer(base64.b64decode(value[key]), dtype="<f8")
+        if isinstance(value.get(key), str):  # absent or null ones stay as they came
+            value[key] = np.frombuffer(base64.b64decode(value[key]), dtype="<f8").copy()
     return value
+
+
+PROBE_ARRAYS = ("positions", "normals", "previousPositions")
+
+
+def read_probe(page, instance: int, t: float, *, previous: bool = False) -> dict:
+    """``window.vbusd.probe(instance, t)`` of ``page`` (a playwright page), its vertex arrays as
+    float64 numpy arrays (:func:`evaluate_arrays`); with ``previous``, the previous-frame pose too.
+    For probes of thousands of vertices, read many times (a figure of the stadium is cheap either way)."""
+    options = "" if previous else ", {previous: false}"
+    return evaluate_arrays(page, f"([i, t]) => window.vbusd.probe(i, t{options})", [instance, t], PROBE_ARRAYS)
 
 
 def assert_within(errors, what: str = "") -> None:
