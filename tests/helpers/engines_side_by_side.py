@@ -53,10 +53,9 @@ from pathlib import Path
 import numpy as np
 
 import vbusd
+from tests.helpers.browser import evaluate_arrays, read_probe
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
-
-from tests.helpers.browser import evaluate_arrays, read_probe
 
 REPO = Path(__file__).resolve().parents[2]
 WIDTH, HEIGHT = 1280, 720
