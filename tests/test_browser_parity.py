@@ -43,7 +43,8 @@ from vbusd.web.server import ViewerServer
 from tests.helpers.browser import layered_stadium as layered_stadium_file
 from tests.helpers.browser import (CHARACTER_CAMERA, NORMAL_TOLERANCE, PAGE, POSITION_TOLERANCE, SAMPLE, STADIUM_PROBES,
                                    across_clip_time, assert_within, check_previous, check_probe, engine_probe_errors,
-                                   open_engine_page, package_probe_errors, rasterize_nearest, reference_instance)
+                                   evaluate_arrays, open_engine_page, package_probe_errors, rasterize_nearest,
+                                   reference_instance)
 from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import additive_chain, by_hand as crowd_by_hand, chain_character, primvars
@@ -857,12 +858,13 @@ def test_velocity_output(webgl_browser, engine):
             assert page.page.evaluate("window.vbusd.engine") == engine
             if engine == "three-webgpu":  # WebGPU itself, not three's WebGL 2 fallback
                 assert page.page.evaluate("window.vbusd.renderer.backend.isWebGPUBackend") is True
-            images = {texture: page.page.evaluate(read, texture) for texture in textures}
+            images = {texture: evaluate_arrays(page.page, read, texture, ["rg"]) for texture in textures}
             camera = page.page.evaluate(
                 "({p: window.vbusd.camera.projectionMatrix.elements, v: window.vbusd.camera.matrixWorldInverse.elements})")
             page.page.evaluate("""() => { for (const crowd of window.vbusd.crowds) {
                 for (let i = 0; i < crowd.capacity; ++i) crowd.resetPrevious(i); crowd.updatePrevious(crowd.animation.time, %r); } }""" % dt)
-            resets = {texture: page.page.evaluate(read, texture) for texture in textures}
+            # Last texture first: Babylon's page sets its pre-pass up again (shaders) at each change of texture.
+            resets = {texture: evaluate_arrays(page.page, read, texture, ["rg"]) for texture in reversed(textures)}
             assert page.errors() == [], page.errors()
         finally:
             page.close()

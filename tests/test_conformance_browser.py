@@ -38,8 +38,12 @@ ENGINES = ("three", "three-webgpu", "babylon")
 SKINS = ("attributes", "pulled")
 
 # What every engine's probe shares: the vector's arrays as the runtimes take them (@vbusd/core's
-# plain-scene form: texels as stored, 4 bone slots per vertex, instance columns).
+# plain-scene form: texels as stored, 4 bone slots per vertex, instance columns). The vector comes as
+# JSON text of the fields the page reads (PAGE_FIELDS): as a nested argument the driver would walk
+# its every number, seconds per vector.
+PAGE_FIELDS = ("vector", "layout", "mesh", "instances")
 ARRAYS = """
+  const vector = JSON.parse(vectorText);
   const layout = vector.layout;
   const arrays = { float16: Uint16Array, float32: Float32Array, unorm16: Uint16Array, uint32: Uint32Array };
   const texelArray = new arrays[layout.texelFormat](texels);
@@ -74,7 +78,7 @@ PROBE_LOOP = """
 
 # Per engine: build the animation and crowd, probe every instance at `time` (skip: no 16-bit textures).
 PROBES = {
-    "three": """async ([vector, texels, time, skin]) => {""" + ARRAYS + """
+    "three": """async ([vectorText, texels, time, skin]) => {""" + ARRAYS + """
   const runtime = await import('./vbusd-three/index.js');
   const renderer = window.vbusd.renderer;
   if (layout.texelFormat === 'unorm16' && !renderer.extensions.has('EXT_texture_norm16')) return { skip: 'EXT_texture_norm16' };
@@ -84,7 +88,7 @@ PROBES = {
     instances, name: vector.vector, skin });
   const probeOf = (i) => runtime.probeCrowd(renderer, crowd, i, time);
   const release = () => animation.dispose();""" + PROBE_LOOP,
-    "three-webgpu": """async ([vector, texels, time, skin]) => {""" + ARRAYS + """
+    "three-webgpu": """async ([vectorText, texels, time, skin]) => {""" + ARRAYS + """
   const runtime = await import('./vbusd-three/index.js');
   const webgpu = await import('./vbusd-three/webgpu/index.js');
   const { MeshBasicNodeMaterial } = await import('three');
@@ -98,7 +102,7 @@ PROBES = {
     instances, name: vector.vector, skin, material: () => new MeshBasicNodeMaterial(), skinMaterial: webgpu.skinNodeMaterial });
   const probeOf = (i) => webgpu.probeNodeCrowd(renderer, crowd, i, time);
   const release = () => animation.dispose();""" + PROBE_LOOP,
-    "babylon": """async ([vector, texels, time, skin]) => {""" + ARRAYS + """
+    "babylon": """async ([vectorText, texels, time, skin]) => {""" + ARRAYS + """
   const runtime = await import('./vbusd-babylon/index.js');
   const { engine, scene } = window.vbusd.babylon;
   if (layout.texelFormat === 'unorm16' && !engine.getCaps().textureNorm16) return { skip: 'EXT_texture_norm16' };
@@ -159,11 +163,12 @@ def test_every_engine_reproduces_every_vector(pages, engine, record_property):
     for path in VECTORS:
         vector = json.loads(path.read_text(encoding="utf-8"))
         texels = _texels(vector)
+        vector_text = json.dumps({key: vector[key] for key in PAGE_FIELDS})
         tolerance = vector["tolerance"]
         cases = [(skin, expected) for k, expected in enumerate(vector["expected"])
                  for skin in (SKINS if FULL_MATRIX else (SKINS[k % len(SKINS)],))]
         for skin, expected in cases:
-            result = page.page.evaluate(PROBES[engine], [vector, texels, expected["time"], skin])
+            result = page.page.evaluate(PROBES[engine], [vector_text, texels, expected["time"], skin])
             if result.get("skip"):
                 skipped.add(f"{vector['vector']} (no {result['skip']})")
                 break

@@ -338,6 +338,43 @@ def engine_probe_errors(browser, path: Path, engine: str, probes, *, query: str 
     return errors
 
 
+PACKED_EVALUATE = """async ([arg, keys]) => {
+  const value = {...(await (%s)(arg))};
+  for (const key of keys.filter((key) => value[key] != null)) {
+    const bytes = new Uint8Array(Float64Array.from(value[key]).buffer);
+    let text = '';
+    for (let at = 0; at < bytes.length; at += 0x8000) text += String.fromCharCode(...bytes.subarray(at, at + 0x8000));
+    value[key] = btoa(text);
+  }
+  return value;
+}"""
+
+
+def evaluate_arrays(page, function: str, arg=None, arrays=()) -> dict:
+    """``page.evaluate(function, arg)`` of a function returning (a Promise of) an object whose
+    fields ``arrays`` are long arrays of numbers (a frame's pixels): those come back as float64
+    numpy arrays, sent as the base64 bytes of a Float64Array (every JS number exactly). As JSON
+    lists the page's serialization and the driver's per-element checks cost seconds a frame."""
+    import base64
+
+    value = page.evaluate(PACKED_EVALUATE % function, [arg, list(arrays)])
+    for key in arrays:
+        if isinstance(value.get(key), str):  # absent or null ones stay as they came
+            value[key] = np.frombuffer(base64.b64decode(value[key]), dtype="<f8").copy()
+    return value
+
+
+PROBE_ARRAYS = ("positions", "normals", "previousPositions")
+
+
+def read_probe(page, instance: int, t: float, *, previous: bool = False) -> dict:
+    """``window.vbusd.probe(instance, t)`` of ``page`` (a playwright page), its vertex arrays as
+    float64 numpy arrays (:func:`evaluate_arrays`); with ``previous``, the previous-frame pose too.
+    For probes of thousands of vertices, read many times (a figure of the stadium is cheap either way)."""
+    options = "" if previous else ", {previous: false}"
+    return evaluate_arrays(page, f"([i, t]) => window.vbusd.probe(i, t{options})", [instance, t], PROBE_ARRAYS)
+
+
 def assert_within(errors, what: str = "") -> None:
     """Every probe's position error within :data:`POSITION_TOLERANCE`, normal error within :data:`NORMAL_TOLERANCE`."""
     for position_error, normal_error in errors:

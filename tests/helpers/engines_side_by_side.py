@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 import vbusd
+from tests.helpers.browser import evaluate_arrays, read_probe
 from vbusd.web.browser import ViewerPage, chromium, unavailable_reason
 from vbusd.web.server import ViewerServer
 
@@ -290,17 +291,19 @@ def pose_difference(page, instance: int, t: float, theirs_script: str = CLONE_PO
     """Largest nearest-vertex distance between vbusd's probe and the engine's own pose (three's CPU
     skinning of the clone, or Babylon's BVA evaluated on the CPU), over the bounding-box diagonal
     (symmetric)."""
-    ours = np.asarray(page.page.evaluate("([i, t]) => window.vbusd.probe(i, t, {previous: false})", [instance, t])["positions"]).reshape(-1, 3)
-    theirs = np.asarray(page.page.evaluate(theirs_script, [instance, t])).reshape(-1, 3)
+    ours = np.asarray(read_probe(page.page, instance, t)["positions"]).reshape(-1, 3)
+    theirs = evaluate_arrays(page.page, f"async (arg) => ({{positions: await ({theirs_script})(arg)}})", [instance, t],
+                             ["positions"])["positions"].reshape(-1, 3)
     # Every pairwise squared distance as |a|^2 + |b|^2 - 2 a.b (one matrix product, milliseconds where
     # the (V, V', 3) differences took seconds); its rounding (~1e-15 of |a|^2) is far below the 5e-3
     # and 2e-2 of the diagonal the measure separates.
     center = ours.mean(0)  # near the origin, where |a|^2 rounds least
     ours, theirs = ours - center, theirs - center
     squared = (ours ** 2).sum(1)[:, None] + (theirs ** 2).sum(1)[None, :] - 2.0 * ours @ theirs.T
-    distances = np.sqrt(np.maximum(squared, 0.0))
-    ours_nearest = distances.min(1)
-    theirs_nearest = distances.min(0)
+    # The nearest distances are the roots of the least squares (the root is monotonic): two roots per
+    # vertex, not one per pair.
+    ours_nearest = np.sqrt(np.maximum(squared.min(1), 0.0))
+    theirs_nearest = np.sqrt(np.maximum(squared.min(0), 0.0))
     worst = max(ours_nearest.max(), theirs_nearest.max())
     return float(worst / np.linalg.norm(theirs.max(0) - theirs.min(0)))
 
