@@ -57,11 +57,29 @@ def _backend_installed(pyproject: dict) -> bool:
     return True
 
 
+def _copy_source(source: Path) -> None:
+    """The checkout's source as a fresh clone has it: the files git tracks and the untracked ones it
+    does not ignore (not the virtual environment, node_modules or generated files beside them: the
+    wheel is built without Node.js; copying a 2 GB .venv was most of this fixture's time). Outside
+    a git checkout, the tree less what is never source."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
+                            capture_output=True) if shutil.which("git") else None
+    if listed is None or listed.returncode != 0:
+        shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
+            ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))
+        return
+    for name in filter(None, listed.stdout.decode("utf-8").split("\0")):
+        origin = REPO / name
+        if origin.is_file():  # a tracked file deleted in the working tree is not source any more
+            target = source / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(origin, target)
+
+
 def _build_wheel(folder: Path) -> tuple:
     """Copy the checkout into FOLDER and build the wheel from the copy: (source copy, wheel)."""
     source = folder / "vbusd"
-    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(  # the wheel is built without Node.js
-        ".git", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))
+    _copy_source(source)
     out = folder / "dist"
     pyproject = tomllib.loads((source / "pyproject.toml").read_text())
     command = [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(source)]
