@@ -16,7 +16,7 @@
 #
 # `run` writes to $OUT: gpu.txt (nvidia-smi), pytest.log, conformance.log, bench.log, decoder_cuda.json, hardware.log,
 # hardware.json. Kept in benchmarks/results/ as decoder_cuda[_h100].json,
-# decoder_hardware_cuda[_h100].json and warp_tests_cuda_h100.log (no suffix: the H200 runs).
+# decoder_hardware_cuda.json (one file: both GPUs gave it byte for byte) and warp_tests_cuda_h100.log (no suffix: the H200 runs).
 set -euo pipefail
 cmd=${1:?usage: gpu_run.sh pack|stage N|run|layers}
 case "$cmd" in
