@@ -63,7 +63,7 @@ def _copy_source(source: Path) -> None:
     wheel is built without Node.js; copying a 2 GB .venv was most of this fixture's time). Outside
     a git checkout, the tree less what is never source."""
     listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
-                            capture_output=True) if shutil.which("git") else None
+                            capture_output=True, check=False) if shutil.which("git") else None
     if listed is None or listed.returncode != 0:
         shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
             ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", "out", "*.pyc", "node_modules"))

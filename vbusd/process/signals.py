@@ -59,7 +59,7 @@ def exit_status(error: BaseException) -> int:
     return 128 + getattr(error, "signum", signal.SIGINT)
 
 
-def received() -> Optional[int]:
+def received() -> int | None:
     """The signal the last :func:`handling_signals` block received (None: none). An error raised
     after it may not carry the :class:`Interrupted` (a C extension's import that the interrupt broke
     raises its own ImportError): the command was still ended by the signal."""
