@@ -511,20 +511,27 @@ def _write_layers(pxr, primvars, crowd: Crowd, mask_count: int) -> None:
         raise OptionsError(f"crowd {crowd.path}: layers need an animation that stores bone masks (format 1.2; "
                            "convert with --mask NAME=BONE)", file="usd", code="layers.noMask")
     count = weight.shape[1]
-    for primvar, values, integer in ((names.LAYER_CLIP, crowd.layer_clip, True),
-                                     (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),
-                                     (names.LAYER_PLAYBACK_RATE, crowd.layer_playback_rate, False),
-                                     (names.LAYER_WEIGHT, weight, False), (names.LAYER_MASK, crowd.layer_mask, True)):
+    _write_per_layer_primvars(pxr, primvars, crowd, count, (
+        (names.LAYER_CLIP, crowd.layer_clip, True), (names.LAYER_TIME_OFFSET, crowd.layer_time_offset, False),
+        (names.LAYER_PLAYBACK_RATE, crowd.layer_playback_rate, False), (names.LAYER_WEIGHT, weight, False),
+        (names.LAYER_MASK, crowd.layer_mask, True)))
+    if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
+        _write_additive_layers(pxr, primvars, crowd, count)
+
+
+def _write_per_layer_primvars(pxr, primvars, crowd: Crowd, count: int, entries) -> None:
+    """Author primvars of ``count`` values per instance (elementSize ``count``, vertex), one per
+    ``(primvar, values, integer)`` entry; values of the wrong size are one OptionsError line."""
+    Gf, Sdf, Tf, Usd, UsdGeom, Vt = pxr
+    n = crowd.instance_count
+    for primvar, values, integer in entries:
         vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
         array = np.ascontiguousarray(values, dtype=dtype).reshape(-1)
         if array.shape != (n * count,):
             raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} instances "
                                f"x {count} layers", file="usd")
         type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
-        handle = primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count)
-        handle.Set(vt.FromNumpy(array))
-    if crowd.layer_mode is not None and np.any(np.asarray(crowd.layer_mode) != 0):
-        _write_additive_layers(pxr, primvars, crowd, count)
+        primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count).Set(vt.FromNumpy(array))
 
 
 def _write_additive_layers(pxr, primvars, crowd: Crowd, count: int) -> None:
@@ -542,15 +549,9 @@ def _write_additive_layers(pxr, primvars, crowd: Crowd, count: int) -> None:
                       else np.asarray(crowd.layer_reference_clip))
     reference_time = (np.zeros(n * count) if crowd.layer_reference_time is None
                       else np.asarray(crowd.layer_reference_time))
-    for primvar, values, integer in ((names.LAYER_MODE, mode, True), (names.LAYER_REFERENCE_CLIP, reference_clip, True),
-                                     (names.LAYER_REFERENCE_TIME, reference_time, False)):
-        vt, dtype = (Vt.IntArray, np.int32) if integer else (Vt.FloatArray, np.float32)
-        array = np.ascontiguousarray(values, dtype=dtype).reshape(-1)
-        if array.shape != (n * count,):
-            raise OptionsError(f"crowd {crowd.path}: {primvar.attribute} has {array.size} values for {n} instances "
-                               f"x {count} layers", file="usd")
-        type_name = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
-        primvars.CreatePrimvar(primvar.name, type_name, UsdGeom.Tokens.vertex, count).Set(vt.FromNumpy(array))
+    _write_per_layer_primvars(pxr, primvars, crowd, count, (
+        (names.LAYER_MODE, mode, True), (names.LAYER_REFERENCE_CLIP, reference_clip, True),
+        (names.LAYER_REFERENCE_TIME, reference_time, False)))
     primvars.GetPrim().CreateAttribute(names.INSTANCER_MINOR_VERSION, Sdf.ValueTypeNames.Int,
                                        variability=Sdf.VariabilityUniform).Set(3)
 

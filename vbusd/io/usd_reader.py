@@ -1480,13 +1480,7 @@ def read_variety_properties(prim, n: int, fail, newer=None) -> dict:
         if not attribute or not attribute.HasAuthoredValue():
             continue
         where = UsdSite(path, primvar.attribute)
-        handle = UsdGeom.Primvar(attribute)
-        if handle.IsIndexed():
-            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
-                      "must not be indexed", where)
-        if handle.GetInterpolation() != UsdGeom.Tokens.vertex or handle.GetElementSize() != 1:
-            fail("instancer.count", f"{primvar.attribute} must be vertex-interpolated with elementSize 1",
-                      where)
+        check_instancer_primvar(attribute, primvar, where, fail, element_size=1)
         value = attribute.Get()
         array = np.asarray(value if value is not None else [], dtype=np.float64).reshape(-1)
         if array.size != n * width:
@@ -1758,6 +1752,19 @@ def read_asset(path: PathLike, *, allow_outside_paths: bool = False,
     return asset
 
 
+def check_instancer_primvar(attribute, primvar, where, fail, element_size: Optional[int] = None) -> None:
+    """An instancer primvar's shape (spec 15): not indexed (``instancer.indexed``), vertex
+    interpolation and, where given, ``element_size`` values per instance (``instancer.count``)."""
+    handle = UsdGeom.Primvar(attribute)
+    if handle.IsIndexed():
+        fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
+             "must not be indexed", where)
+    if handle.GetInterpolation() != UsdGeom.Tokens.vertex or (
+            element_size is not None and handle.GetElementSize() != element_size):
+        size = "" if element_size is None else f" and elementSize {element_size}"
+        fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex'{size}", where)
+
+
 def read_layer_primvars(prim, n: int, clip_count: int, mask_count: int, fail) -> dict:
     """Format 1.2 layer primvars of an instancer (spec 8.6, 15) as Crowd fields ({} when none).
 
@@ -1795,12 +1802,7 @@ def read_layer_primvars(prim, n: int, clip_count: int, mask_count: int, fail) ->
     for field, primvar, dtype in fields:
         attribute = authored[field]
         where = UsdSite(path, primvar.attribute)
-        handle = UsdGeom.Primvar(attribute)
-        if handle.IsIndexed():
-            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
-                      "must not be indexed", where)
-        if handle.GetInterpolation() != UsdGeom.Tokens.vertex:
-            fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex'", where)
+        check_instancer_primvar(attribute, primvar, where, fail)
 
         def read(time, field=field, dtype=dtype, where=where, primvar=primvar, attribute=attribute):
             value = attribute.Get(time)
@@ -1860,13 +1862,7 @@ def read_additive_layer_primvars(prim, n: int, count: int, clip_count: int, fail
         if attribute is None:
             continue
         where = UsdSite(path, primvar.attribute)
-        handle = UsdGeom.Primvar(attribute)
-        if handle.IsIndexed():
-            fail("instancer.indexed", f"{primvar.attribute} is an indexed primvar; instancer primvars "
-                 "must not be indexed", where)
-        if handle.GetInterpolation() != UsdGeom.Tokens.vertex or handle.GetElementSize() != count:
-            fail("instancer.count", f"{primvar.attribute} must have interpolation 'vertex' and elementSize {count} "
-                 "(that of the layer primvars)", where)
+        check_instancer_primvar(attribute, primvar, where, fail, element_size=count)
         if attribute.GetNumTimeSamples():
             fail("instancer.count", f"{primvar.attribute} must not be time-sampled", where)
         value = attribute.Get()
