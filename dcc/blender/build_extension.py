@@ -83,8 +83,10 @@ def _manifest_with_wheels(text: str, wheels: list, platforms: list) -> str:
     return "\n".join(lines[:index + 1] + extra + lines[index + 1:]) + "\n"
 
 
-def build(output_dir: Path, platforms: list, dependencies: bool = True, tool: Path | None = None) -> Path:
-    """Build the extension zip into ``output_dir`` and return its path.
+def build(output_dir: Path, platforms: list, dependencies: bool = True, tool: Path | None = None,
+          wheel: Path | None = None) -> Path:
+    """Build the extension zip into ``output_dir`` and return its path. ``wheel``: a vbusd wheel
+    already built (a CI's release wheel) to bundle instead of building one from the checkout.
 
     Raises:
         subprocess.CalledProcessError: pip or Blender's tool failed.
@@ -101,7 +103,10 @@ def build(output_dir: Path, platforms: list, dependencies: bool = True, tool: Pa
                 shutil.copy2(source, stage / name)
         wheels = stage / "wheels"
         wheels.mkdir()
-        _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", wheels, REPO])
+        if wheel is not None:
+            shutil.copy2(wheel, wheels / Path(wheel).name)
+        else:
+            _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", wheels, REPO])
         if dependencies:
             for platform in platforms:
                 command = [sys.executable, "-m", "pip", "download", "-q", "--only-binary=:all:", "-d", wheels,
@@ -140,9 +145,16 @@ def main(argv=None) -> int:
                         help="bundle only the vbusd wheel (the target Blender must have the others)")
     parser.add_argument("--blender-ext", type=Path, default=None,
                         help="path to Blender's blender_ext.py (default: from the installed bpy wheel)")
+    parser.add_argument("--wheel", type=Path, default=None,
+                        help="bundle this vbusd wheel (already built) instead of building one from the checkout")
     args = parser.parse_args(argv)
+    if args.wheel is not None and not (args.wheel.is_file() and args.wheel.name.startswith("vbusd-")
+                                       and args.wheel.suffix == ".whl"):
+        print(f"build_extension: {args.wheel}: not a vbusd wheel (vbusd-*.whl)", file=sys.stderr)
+        return 2
     try:
-        target = build(args.output_dir, args.platform or ["linux-x64"], not args.no_dependencies, args.blender_ext)
+        target = build(args.output_dir, args.platform or ["linux-x64"], not args.no_dependencies, args.blender_ext,
+                       args.wheel)
     except subprocess.CalledProcessError as error:
         print(f"build_extension: {error.cmd[2] if len(error.cmd) > 2 else error.cmd[0]} failed "
               f"(exit {error.returncode})", file=sys.stderr)

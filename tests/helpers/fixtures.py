@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 
 from tests.helpers import browser as browser_helpers
+from tests.helpers import wheel as wheel_helpers
 from tests.helpers.capabilities import REPO, require, shared_assets_dir
+from tests.helpers.once import once_per_run
 
 
 @pytest.fixture(scope="session")
@@ -26,6 +28,13 @@ def shared_assets() -> Path:
     where the assets are required: CI)."""
     require("assets")
     return shared_assets_dir()
+
+
+@pytest.fixture(scope="session")
+def built_wheel(tmp_path_factory) -> tuple:
+    """(snapshot of the checkout, the vbusd wheel built from it), made once per test run for every
+    xdist worker (the packaging tests check it, the Blender extension test bundles it)."""
+    return once_per_run(tmp_path_factory, "wheel", wheel_helpers.build_wheel)
 
 
 @pytest.fixture(params=["numpy", "compiled"])

@@ -1039,12 +1039,32 @@ def _prepare_plugin():
     return PrepareWorker()
 
 
+def _refused_at_once(scheduler: str) -> None:
+    """Refuse a TCP scheduler address that nothing listens on at once: Dask's Client retries a
+    refused connection until its 10 s timeout, a long wait for a typo in a port. Any other outcome
+    (it answers, it is slow, another protocol, a name that does not resolve yet) is left to Dask."""
+    from distributed.comm import parse_address, parse_host_port
+
+    try:
+        protocol, location = parse_address(scheduler)
+        if protocol != "tcp":
+            return
+        host, port = parse_host_port(location)
+        socket.create_connection((host, port), timeout=2.0).close()
+    except ConnectionRefusedError:
+        raise OptionsError("cannot reach the Dask scheduler: connection refused (is it running, on this port?)",
+                           file=scheduler, code="batch.scheduler") from None
+    except (OSError, ValueError, TypeError):
+        return
+
+
 def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_TIMEOUT_S) -> None:
     try:
         from distributed import Client
     except ImportError:
         raise OptionsError("--scheduler needs Dask's distributed package: pip install 'vbusd[dask]'",
                            file=scheduler, code="batch.scheduler") from None
+    _refused_at_once(scheduler)
     try:
         client = Client(scheduler, timeout="10s", set_as_default=False)
     except (OSError, TimeoutError) as error:

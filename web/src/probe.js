@@ -9,7 +9,7 @@ import {
 import { previousDeclarations, previousSkinningCall, skinningCall, skinningDeclarations } from './material.js';
 import { DEFAULT_SKIN } from './skin.js';
 
-function vertexSource(animation, maxInfluences, skin, layers) {
+function vertexSource(animation, maxInfluences, skin, layers, previous) {
   return `#version 300 es
 precision highp float;
 precision highp int;
@@ -21,11 +21,11 @@ in mat4 instanceMatrix;
 uniform mat4 modelMatrix;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
-out vec3 vbWorldPreviousPosition;
+${previous ? 'out vec3 vbWorldPreviousPosition;' : ''}
 void main() {
 ${skinningCall(skin, layers)}
-${previousSkinningCall(layers)}
-${probeOutputs('modelMatrix * instanceMatrix', { previous: true })}
+${previous ? previousSkinningCall(layers) : ''}
+${probeOutputs('modelMatrix * instanceMatrix', { previous })}
 }
 `;
 }
@@ -41,9 +41,10 @@ const vec4s = (vectors) => { const a = new Float32Array(4 * vectors.length); vec
  * binding is used: with `pulled`, the skin records are read from the geometry's skin texture by
  * gl_VertexID, as the crowd's materials read them. `previousPositions` are the instance's
  * previous-frame pose for frame interval `dt` (spec 21; the velocity materials' vertex code:
- * material.js previousSkinningCall), in the order of `positions`.
+ * material.js previousSkinningCall), in the order of `positions`; with `previous: false` none
+ * (empty): the probe's shader then skins once, half the compile (seconds in software WebGL).
  */
-export function probeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
+export function probeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL, previous: withPrevious = true } = {}) {
   const gl = renderer.getContext();
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
   const animation = crowd.animation;
@@ -64,8 +65,9 @@ export function probeCrowd(renderer, crowd, index, time, { dt = DEFAULT_FRAME_IN
     const { maxInfluences } = mesh.userData.virtualBones;
     const skin = crowd.skin ?? DEFAULT_SKIN;
     const layers = Boolean(crowd.layered);
-    const key = `three/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
-    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers), { previous: true });
+    const key = `three/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}/${withPrevious}`;
+    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers, withPrevious),
+      { previous: withPrevious });
     const geometry = mesh.geometry;
     const vertexCount = geometry.attributes.position.count;
     let skinTexture = null;

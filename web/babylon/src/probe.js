@@ -11,7 +11,7 @@ import {
 
 import { previousSkinningCall, skinningCall, skinningDeclarations } from './skinning.js';
 
-function vertexSource(animation, maxInfluences, skin, layers) {
+function vertexSource(animation, maxInfluences, skin, layers, previous) {
   return `#version 300 es
 precision highp float;
 precision highp int;
@@ -21,12 +21,12 @@ in vec3 normal;
 uniform mat4 vb_world;
 out vec3 vbWorldPosition;
 out vec3 vbWorldNormal;
-out vec3 vbWorldPreviousPosition;
+${previous ? 'out vec3 vbWorldPreviousPosition;' : ''}
 void main() {
 ${skinningCall('position', 'normal', maxInfluences, skin, layers)}
-  vec3 vbPreviousPosition;
-${previousSkinningCall('position', 'normal', 'vbPreviousPosition', layers)}
-${probeOutputs('vb_world', { previous: true })}
+${previous ? `  vec3 vbPreviousPosition;
+${previousSkinningCall('position', 'normal', 'vbPreviousPosition', layers)}` : ''}
+${probeOutputs('vb_world', { previous })}
 }
 `;
 }
@@ -37,9 +37,10 @@ const glTexture = (texture) => texture?.getInternalTexture()?._hardwareTexture?.
  * World-space skinned positions and normals of instance `index` of `crowd` at scene time `time`,
  * computed by the GPU: `{positions, normals, lod}` (Float32Arrays, and the level of detail the
  * instance was drawn with at the crowd's last updateLevels, whose meshes are skinned), meshes in order, points
- * in the asset's order (normals empty for meshes without), as three.js' probeCrowd gives them.
+ * in the asset's order (normals empty for meshes without), as three.js' probeCrowd gives them;
+ * `previousPositions` for frame interval `dt` unless `previous: false` (then the shader skins once).
  */
-export function probeBabylonCrowd(engine, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL } = {}) {
+export function probeBabylonCrowd(engine, crowd, index, time, { dt = DEFAULT_FRAME_INTERVAL, previous: withPrevious = true } = {}) {
   const gl = engine._gl;
   if (!gl || typeof gl.beginTransformFeedback !== 'function') throw new VirtualBonesError('the probe needs a WebGL 2 engine');
   if (!(index >= 0 && index < crowd.capacity)) throw new VirtualBonesError(`instance ${index} is not in ${crowd.name} (${crowd.capacity} instances)`);
@@ -58,8 +59,9 @@ export function probeBabylonCrowd(engine, crowd, index, time, { dt = DEFAULT_FRA
   for (const mesh of crowd.meshesOfLevel ? crowd.meshesOfLevel(Math.max(lod, 0)) : crowd.meshes) {
     const info = mesh.metadata.virtualBones;
     const { maxInfluences } = info;
-    const key = `babylon/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}`;
-    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers), { previous: true });
+    const key = `babylon/${animation.encoding}/${animation.texelFormat}/${maxInfluences}/${animation.maxClips}/${animation.maxBones}/${skin}/${layers}/${withPrevious}`;
+    const program = probeProgram(gl, key, vertexSource(animation, maxInfluences, skin, layers, withPrevious),
+      { previous: withPrevious });
     const vertexCount = mesh.getTotalVertices();
     const results = runFeedback(gl, program, vertexCount, (input) => {
       input.attribute('position', Float32Array.from(mesh.getVerticesData('position')), 3);
