@@ -21,7 +21,7 @@ import vbusd
 from vbusd.decoders.reference import skin_crowd, skin_mesh
 from vbusd.format.model import Crowd
 from vbusd.web.browser import ViewerPage
-from vbusd.web.server import ViewerServer
+from vbusd.web.server import SHUTDOWN_POLL_S, ViewerServer
 
 from tests.helpers.capabilities import REPO, unavailable
 
@@ -498,7 +498,8 @@ def run_docs_example(browser, folder: Path, section: str, shows, inspect: str = 
             pass
 
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(folder / "site")))
-    thread = threading.Thread(target=server.serve_forever, name="docs-example", daemon=True)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": SHUTDOWN_POLL_S},
+                              name="docs-example", daemon=True)
     thread.start()
     inspected = None
     try:

@@ -39,6 +39,8 @@ __all__ = ["GLTF_SUFFIXES", "USD_SUFFIXES", "CONTENT_TYPES", "safe_file", "Viewe
 
 GLTF_SUFFIXES = (".glb", ".gltf")
 USD_SUFFIXES = (".usda", ".usdc", ".usd")
+SHUTDOWN_POLL_S = 0.05
+"""How often the serving thread looks for stop() (socketserver's poll interval)."""
 
 CONTENT_TYPES = {
     ".html": "text/html; charset=utf-8",
@@ -237,7 +239,10 @@ class ViewerServer:
 
     def start(self) -> "ViewerServer":
         """Start serving in a daemon thread; returns self."""
-        self._thread = threading.Thread(target=self._server.serve_forever, name="vbusd-view", daemon=True)
+        # A short poll: stop() waits up to one interval for the loop to see it (0.5 s by default, per
+        # stop; the tests start hundreds of servers), while the idle loop's wake-ups cost nothing measurable.
+        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": SHUTDOWN_POLL_S},
+                                        name="vbusd-view", daemon=True)
         self._thread.start()
         return self
 
