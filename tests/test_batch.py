@@ -486,6 +486,7 @@ def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
     status = main(["convert", str(library), "-o", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9"])
     err = capsys.readouterr().err
     assert status == 2 and "batch.scheduler" in err and len(err.strip().splitlines()) == 1
+    assert "connection refused" in err  # said at once, not after Dask's connect timeout
 
 
 def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):

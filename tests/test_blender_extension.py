@@ -82,3 +82,13 @@ def test_built_extension_registers_the_operators(blender_ext, built_wheel, tmp_p
         package.unregister()
     finally:
         sys.modules.pop("vbusd_extension", None)
+
+
+def test_a_wheel_option_that_is_not_a_vbusd_wheel_is_one_line(tmp_path, capsys):
+    other = tmp_path / "numpy-2.0.0-py3-none-any.whl"
+    other.write_bytes(b"")
+    for wheel in (other, tmp_path / "vbusd-0-py3-none-any.whl"):  # another project's; a missing file
+        assert _build_module().main(["--wheel", str(wheel), "--output-dir", str(tmp_path / "dist")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(wheel) in err[0] and "not a vbusd wheel" in err[0], err
+    assert not (tmp_path / "dist").exists()
