@@ -476,6 +476,7 @@ def test_dask_local_cluster(tmp_path):
     assert all(a.worker and a.worker.startswith(("tcp://", "inproc://")) for a in report.assets[:2])
     assert [a.status for a in again.assets] == ["cached", "cached", "failed"]
     local = run_batch(plan_batch([str(library)], str(tmp_path / "local")), base, jobs=1)
+    assert [a.status for a in local.assets] == ["converted", "converted", "failed"]
     assert _files(tmp_path / "dask") == _files(tmp_path / "local")  # any worker, the same bytes
 
 
