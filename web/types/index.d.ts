@@ -165,9 +165,10 @@ export function buildObjects(description: Description, options?: {
   skinMaterial?: ((material: Material, animation: VirtualBonesAnimation, maxInfluences: number, binding: SkinBinding) => Material) | null;
 }): { group: Group; crowds: VirtualBonesCrowd[]; animations: VirtualBonesAnimation[] };
 
-/** World-space skinned positions and normals of one instance, computed by the GPU. */
+/** World-space skinned positions and normals of one instance, computed by the GPU;
+ * `previous: false` leaves previousPositions empty and compiles a shader that skins once. */
 export function probeCrowd(renderer: WebGLRenderer, crowd: VirtualBonesCrowd, index: number, time: number,
-  options?: { dt?: number }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
+  options?: { dt?: number; previous?: boolean }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
 /** Declarations of the previous-frame inputs (vb_instancePreviousFade, vb_previousTime). */
 export function previousDeclarations(): string;
 /** Statements after skinningCall: the previous-frame skinned position into vbPreviousPosition. */

@@ -19,9 +19,10 @@ export function skinNodeMaterial<M extends object>(material: M, animation: Virtu
   binding?: { skin?: SkinBinding; records?: Uint32Array; skinTexture?: object; layers?: boolean }): M;
 export function vertexInputs(builder: object, animation: VirtualBonesAnimation, maxInfluences: number,
   binding?: { skin?: SkinBinding; records?: Uint32Array; skinTexture?: object; layers?: boolean }): Record<string, unknown>;
-/** World-space skinned positions and normals of one instance, computed by WebGPURenderer. */
+/** World-space skinned positions and normals of one instance, computed by WebGPURenderer;
+ * `previous: false` leaves previousPositions null and runs (and compiles) no second compute pass. */
 export function probeNodeCrowd(renderer: object, crowd: VirtualBonesCrowd, index: number, time: number,
-  options?: { dt?: number }): Promise<{ positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number }>;
+  options?: { dt?: number; previous?: boolean }): Promise<{ positions: Float32Array; normals: Float32Array; previousPositions: Float32Array | null; lod: number }>;
 /** The skinVertex playback inputs of an instance at scene time `time` (materials and probe). */
 export function playbackInputs(instance: Record<string, unknown>, time: unknown): Record<string, unknown>;
 /** The skinVertex playback inputs of the previous frame (spec 21): previousTime, vb_instancePreviousFade (fadeTime, fadeWeight, reset, 0). */

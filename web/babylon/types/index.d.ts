@@ -94,9 +94,10 @@ export class VirtualBonesCrowd {
   readonly trianglesDrawn: number;
 }
 
-/** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2). */
+/** World-space skinned positions and normals of one instance, computed by the GPU (WebGL 2);
+ * `previous: false` leaves previousPositions empty and compiles a shader that skins once. */
 export function probeBabylonCrowd(engine: Engine, crowd: VirtualBonesCrowd, index: number, time: number,
-  options?: { dt?: number }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
+  options?: { dt?: number; previous?: boolean }): { positions: Float32Array; normals: Float32Array; previousPositions: Float32Array; lod: number };
 
 /** The VBUSD_virtual_bones glTF extension's name. */
 export const EXTENSION: 'VBUSD_virtual_bones';
