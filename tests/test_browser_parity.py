@@ -49,6 +49,8 @@ from tests.helpers import lod_row as lod_row_helpers
 from tests.helpers.animations import loop_walk
 from tests.helpers.crowds import additive_chain, by_hand as crowd_by_hand, chain_character, primvars
 from tests.helpers import scripts
+from tests.helpers.browser import NO_ADAPTER
+from tests.helpers.capabilities import require, unavailable
 from tests.helpers.variety import modular_character
 
 ENGINES = ("three", "babylon", "three-webgpu")
@@ -253,7 +255,7 @@ def lod_row(tmp_path_factory):
     """tests/test_browser_lod.py's row of the modular spectator (body, hat and flag parts) with 3 levels,
     instances at chosen distances in front of the page's camera (one behind it) with parts masks, as a
     .glb (MSFT_lod)."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     folder = tmp_path_factory.mktemp("lod_row")
     asset, package = lod_row_helpers.make_row_package(folder, modular=True)
     usd = folder / "usd" / "row.usda"  # the same crowd as USD: vbusd view serves it as the plain files
@@ -1092,7 +1094,7 @@ def _check_variety_page(browser, engine, source, usd_crowd, asset):
         page = ViewerPage(browser, server.url + query, width=width, height=height)
         try:
             if "WebGPU is not available" in " ".join(page.messages):
-                pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+                unavailable("browser", NO_ADAPTER)  # fails where the browser is required (CI)
             assert page.error == "", page.error
             results = []
             for i in range(len(VARIETY_XS)):

@@ -27,8 +27,8 @@ from vbusd.web.browser import ViewerPage
 from vbusd.web.server import ViewerServer
 
 from tests.helpers import node
-from tests.helpers.browser import FULL_MATRIX
-from tests.helpers.capabilities import REPO
+from tests.helpers.browser import FULL_MATRIX, NO_ADAPTER
+from tests.helpers.capabilities import REPO, unavailable
 from tests.helpers.animations import loop_walk
 
 HERE = Path(__file__).resolve().parent
@@ -140,7 +140,7 @@ def pages(request):
             viewer = ViewerPage(browser, server.url + "?paused=1&ui=0&width=64&height=64")
             opened[engine] = (server, viewer)
             if "WebGPU is not available" in " ".join(viewer.messages):
-                pytest.skip("this Chromium offers no WebGPU adapter (see vbusd.web.browser.WEBGPU_ARGS)")
+                unavailable("browser", NO_ADAPTER)  # fails where the browser is required (CI)
             assert viewer.error == "", viewer.error
         return opened[engine][1]
 

@@ -34,7 +34,7 @@ from vbusd.web.server import ViewerServer
 
 from tests.helpers import node as node_tools
 from tests.helpers.browser import PAGE, check_skin_binding, reference_instance
-from tests.helpers.capabilities import shared_assets_dir
+from tests.helpers.capabilities import require, shared_assets_dir
 
 pytestmark = pytest.mark.node
 
@@ -194,7 +194,7 @@ def _skin_rows(path: Path) -> np.ndarray:
 def test_a_meshopt_package_is_read_by_vbusd_s_own_tools(packages, capsys):
     """vbusd-meshopt's output (README: "Compress with ... vbusd-meshopt"): validate and info read it,
     and its bound vertices (position, joints, weights) are exactly the exported package's."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     out = packages / "meshopt_own_tools.glb"
     result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
     assert result.returncode == 0, result.stderr
@@ -285,7 +285,7 @@ def test_view_of_a_meshopt_package_says_what_to_run(packages):
 def test_meshopt_data_the_decoder_refuses_is_one_line(packages, capsys):
     """A meshopt package whose first compressed view's bytes are overwritten: one gltf.meshopt line
     naming the view, not an exception from the decoder."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     out = packages / "meshopt_broken.glb"
     result = _cli("vbusd-meshopt", str(packages / "crowd.glb"), str(out), "--config", str(CONFIG))
     assert result.returncode == 0, result.stderr

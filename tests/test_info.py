@@ -17,6 +17,8 @@ from vbusd.format.layout import Layout
 from vbusd.format.metadata import content_digest
 from vbusd.format.model import Clip, VirtualBones
 
+from tests.helpers.capabilities import require
+
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
 REQUIRED = {"encoding", "texelFormat", "boneCount", "rowCount", "usedWidth", "width", "height",
@@ -332,7 +334,7 @@ def test_info_shows_the_minor_version_masks_and_bone_names(tmp_path, capsys):
 def test_info_shows_the_levels_of_detail_of_a_package(tmp_path, capsys):
     """Issue 35 item 15: a package's MSFT_lod levels (count and screen coverage, read here from the
     glTF JSON itself) are in info, as a USD asset's UsdLod levels are."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     usd, crowd, package = tmp_path / "lod.usda", tmp_path / "crowd.usda", tmp_path / "crowd.glb"
     assert main(["convert", str(SAMPLE / "stadium_crowd.usda"), "-o", str(usd), "--lod-ratios", "0.5,0.2",
                  "-q"]) == 0

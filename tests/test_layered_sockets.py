@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 
 import vbusd
-from vbusd.decoders.reference import Additive, crowd_joint_transforms, layered_skinning, mask_weights, skin_crowd
+from vbusd.decoders.reference import Additive, crowd_joint_transforms, layered_skinning, mask_weights
 from vbusd.format.quaternion import quat_to_matrix
 from vbusd.web.scene import build_scene, scene_json
 
 from tests.helpers import browser as browser_helpers
 from tests.helpers.node import run_json
+
+pytestmark = pytest.mark.node  # @vbusd/core runs in Node
 
 TOLERANCE = 1e-6  # of the instance's diagonal
 TIMES = (0.37, 1.9)

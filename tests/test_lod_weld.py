@@ -10,17 +10,16 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 import vbusd
 from vbusd.decoders.reference import skin_mesh
 from vbusd.format.model import BoundMesh
 
-from tests.helpers.capabilities import shared_asset
+from tests.helpers.capabilities import require, shared_asset
 
 SAMPLE = Path(__file__).resolve().parents[1] / "samples" / "stadium_crowd"
 
-pytest.importorskip("meshoptimizer", reason="generated levels need meshoptimizer (pip install 'vbusd[lod]')")
+require("lod", allow_module_level=True)  # generated levels need meshoptimizer
 
 
 def unindexed_grid(k: int = 8, bone_of_triangle=lambda t: 0) -> BoundMesh:

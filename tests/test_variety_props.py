@@ -21,6 +21,7 @@ from vbusd.decoders.reference import crowd_joint_transforms, skin_crowd
 from vbusd.format.model import Crowd
 
 from tests.helpers import scripts
+from tests.helpers.capabilities import require
 
 TIMES = (0.0, 1.2345, 9.0, 12.05)  # a row time, between rows, the cheer, past the 10 s loop
 TOLERANCE = 1e-6  # of the instance's bounding-box diagonal
@@ -114,9 +115,9 @@ def test_parts_of_a_character_with_levels(tmp_path, capfd):
     parts' names below every level prim; ``vbusd crowd --parts Hat=...,Flag=...`` names them, the USD
     crowd reads back and validates clean (pxr sees the names under the levels), and a name that no level
     holds is still refused in one line."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     import vbusd
-    from pxr import Usd, UsdGeom
+    from pxr import Usd
     from vbusd.baking.lod import add_levels
 
     from tests.helpers import cli
@@ -143,7 +144,7 @@ def test_usdskel_fallback_hides_parts_at_every_level(tmp_path):
     """The UsdSkel fallback of a crowd with levels of detail and parts masks (spec runtime-package 11.6,
     virtual-bones 22.3): pxr's own ComputeVisibility of each instance's part meshes, at every level, is
     invisible exactly where the instance's mask leaves the part out; bodies stay visible."""
-    pytest.importorskip("meshoptimizer")
+    require("lod")
     import vbusd
     from pxr import Usd, UsdGeom
     from vbusd.jobs.export_usdskel import export_usdskel

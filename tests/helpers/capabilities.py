@@ -110,6 +110,13 @@ def _assets() -> Optional[str]:
     return None
 
 
+def _lod() -> Optional[str]:
+    if importlib.util.find_spec("meshoptimizer") is None:
+        return ("meshoptimizer is not installed: pip install 'vbusd[lod]' (the test extra has it; pip builds it, "
+                "which needs a C++ compiler and Python's headers)")
+    return None
+
+
 def _warp() -> Optional[str]:
     from vbusd.kernels import bake
 
@@ -139,11 +146,12 @@ CAPABILITIES: dict[str, tuple[Callable[[], Optional[str]], str]] = {
     "blender": (_blender, "the bpy wheel (Blender as a Python module)"),
     "assets": (_assets, "the shared third-party assets (../shared/assets or $VBUSD_SHARED_ASSETS)"),
     "warp": (_warp, "warp's CPU backend (compiled kernels)"),
+    "lod": (_lod, "meshoptimizer, the simplifier of generated levels of detail (vbusd convert --lod-ratios)"),
     "gpu": (_gpu, "a CUDA device for warp"),
 }
 """Every capability: its check (None when present, else one line saying what to install) and what it is."""
 
-CI_REQUIRES = ("browser", "gl", "glslang", "wgpu", "node", "blender", "assets", "warp")
+CI_REQUIRES = ("browser", "gl", "glslang", "wgpu", "node", "blender", "assets", "warp", "lod")
 """What CI requires (``CI`` set, or ``VBUSD_REQUIRE=all``): everything but a GPU, which CI has not."""
 
 
