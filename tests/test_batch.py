@@ -481,13 +481,28 @@ def test_dask_local_cluster(tmp_path):
 
 
 @pytest.mark.slow
-def test_unreachable_scheduler_is_one_line(tmp_path, capsys):
+@pytest.mark.parametrize("scheduler,said", [("tcp://127.0.0.1:9", "connection refused"),
+                                             ("tcp://127.0.0.1", "missing port"), ("no address", "missing port"),
+                                             ("tcp://127.0.0.1:port", "expected tcp://HOST:PORT")])
+def test_unreachable_or_malformed_scheduler_is_one_line(tmp_path, capsys, scheduler, said):
+    # Said at once: not after Dask's 10 s connect timeout, nor as Dask's ValueError from inside
+    # Client (an internal error, then its half-made client's traceback after 20 s).
     import distributed  # noqa: F401  (the test extra has it)
     library = _library(tmp_path / "lib", ("a",))
-    status = main(["convert", str(library), "-o", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:9"])
+    status = main(["convert", str(library), "-o", str(tmp_path / "o"), "--scheduler", scheduler])
     err = capsys.readouterr().err
-    assert status == 2 and "batch.scheduler" in err and len(err.strip().splitlines()) == 1
-    assert "connection refused" in err  # said at once, not after Dask's connect timeout
+    assert status == 2 and "batch.scheduler" in err and len(err.strip().splitlines()) == 1, err
+    assert said in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_one_source_into_a_layer_name_as_a_batch_is_refused_without_a_contradicting_note(tmp_path, capsys):
+    """`--report` (or --scheduler) makes one source a batch; a .usda output is then refused, and the
+    note that -o names a folder (it does not) is not said before it."""
+    status = main(["convert", str(STADIUM), "-o", str(tmp_path / "x.usda"), "--report", str(tmp_path / "r.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "batch.plan" in err[0], err
+    assert not (tmp_path / "x.usda").exists()
 
 
 def test_several_sources_into_a_usd_file_name_is_refused(tmp_path, capsys):

@@ -176,7 +176,8 @@ def command(sources, output, encoding, texel_format, rows_per_second, horizontal
     if not sources and manifest is None:
         raise click.UsageError("name a source (a file, folder or glob) or --manifest")
     if _is_batch(sources, output, manifest, scheduler, report_file):
-        if len(sources) == 1 and manifest is None and Path(sources[0]).is_file() and not quiet:
+        if (len(sources) == 1 and manifest is None and Path(sources[0]).is_file() and not quiet
+                and Path(output).suffix.lower() not in (".usd", ".usda", ".usdc")):  # a layer's name is refused below
             # One file into a folder is a batch of one: say so, since its summary is the batch's table.
             click.echo(f"vbusd: note: -o {output} names a folder: {sources[0]} is converted into it as a batch of "
                        f"one ({Path(output) / (Path(sources[0]).stem + '.usda')}); name a .usda file for the "

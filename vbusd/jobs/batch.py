@@ -1040,21 +1040,27 @@ def _prepare_plugin():
 
 
 def _refused_at_once(scheduler: str) -> None:
-    """Refuse a TCP scheduler address that nothing listens on at once: Dask's Client retries a
-    refused connection until its 10 s timeout, a long wait for a typo in a port. Any other outcome
-    (it answers, it is slow, another protocol, a name that does not resolve yet) is left to Dask."""
+    """Refuse at once a scheduler address Dask cannot use: one it cannot parse (Dask raised a
+    ValueError from inside Client, and its half-made client then waited 20 s to close), or a TCP
+    address nothing listens on (Dask's Client retries a refused connection until its 10 s timeout,
+    a long wait for a typo in a port). Any other outcome (it answers, it is slow, another protocol,
+    a name that does not resolve yet) is left to Dask."""
     from distributed.comm import parse_address, parse_host_port
 
     try:
         protocol, location = parse_address(scheduler)
-        if protocol != "tcp":
-            return
-        host, port = parse_host_port(location)
+        host, port = parse_host_port(location) if protocol == "tcp" else (None, None)
+    except (ValueError, TypeError) as error:
+        raise OptionsError(f"not a Dask scheduler address ({error}): expected tcp://HOST:PORT",
+                           file=scheduler, code="batch.scheduler") from None
+    if host is None:
+        return
+    try:
         socket.create_connection((host, port), timeout=2.0).close()
     except ConnectionRefusedError:
         raise OptionsError("cannot reach the Dask scheduler: connection refused (is it running, on this port?)",
                            file=scheduler, code="batch.scheduler") from None
-    except (OSError, ValueError, TypeError):
+    except OSError:
         return
 
 
@@ -1067,7 +1073,7 @@ def _run_dask(tasks: list, scheduler: str, finish, stall_timeout: float = STALL_
     _refused_at_once(scheduler)
     try:
         client = Client(scheduler, timeout="10s", set_as_default=False)
-    except (OSError, TimeoutError) as error:
+    except (OSError, TimeoutError, ValueError) as error:
         raise OptionsError(f"cannot reach the Dask scheduler: {' '.join(str(error).split())[:200]}",
                            file=scheduler, code="batch.scheduler") from None
 
